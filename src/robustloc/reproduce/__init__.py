@@ -1,0 +1,184 @@
+"""``robustloc reproduce``: every paper's experiment, on simulation and on real data.
+
+The report is assembled from *sections*, one module each in this package.  A section module
+exposes ``TITLE`` (str), ``ORDER`` (int, position in the report) and
+``run(ctx: Context) -> Section``.  Modules are discovered automatically, so each paper's
+experiment lives in its own file.
+"""
+
+from __future__ import annotations
+
+import html
+import importlib
+import json
+import pkgutil
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+
+@dataclass
+class Context:
+    """What a section needs to run.
+
+    Attributes
+    ----------
+    out_dir : Path
+        Report folder; sections write figures and CSV tables here.
+    data_dir : Path or None
+        The full real-data folder (``--data``, default ``../shared/data``), or None when
+        absent: sections then use the excerpts shipped in the package and say so.
+    seed : int
+        Seed for every simulation.
+    quick : bool
+        Fewer Monte Carlo trials / epochs (for tests).
+    """
+
+    out_dir: Path
+    data_dir: Path | None
+    seed: int = 1
+    quick: bool = False
+
+    def log(self, message: str) -> None:
+        print(message, file=sys.stderr, flush=True)
+
+
+@dataclass
+class Section:
+    """One part of the report: prose, tables and figures.
+
+    ``blocks`` is an ordered list of ``("text", markdown)``, ``("table", (caption,
+    DataFrame))`` or ``("figure", (caption, relative_png_path))``.  ``summary`` is a JSON
+    serializable dict of headline numbers (written to ``summary.json``).
+    """
+
+    title: str
+    blocks: list[tuple[str, Any]] = field(default_factory=list)
+    summary: dict[str, Any] = field(default_factory=dict)
+
+    def text(self, markdown: str) -> None:
+        self.blocks.append(("text", markdown))
+
+    def table(self, caption: str, frame: pd.DataFrame) -> None:
+        self.blocks.append(("table", (caption, frame)))
+
+    def figure(self, caption: str, relpath: str) -> None:
+        self.blocks.append(("figure", (caption, relpath)))
+
+
+def section_modules(only: list[str] | None = None) -> list:
+    """Discovered section modules, in report order; ``only`` filters by module name."""
+    import robustloc.reproduce as pkg
+
+    mods = []
+    for info in pkgutil.iter_modules(pkg.__path__):
+        if info.name.startswith("_"):
+            continue
+        mod = importlib.import_module(f"robustloc.reproduce.{info.name}")
+        if hasattr(mod, "run") and hasattr(mod, "TITLE"):
+            mod.KEY = getattr(mod, "KEY", info.name)
+            mods.append(mod)
+    mods.sort(key=lambda m: getattr(m, "ORDER", 100))
+    if only:
+        unknown = set(only) - {m.KEY for m in mods}
+        if unknown:
+            raise ValueError(
+                f"unknown section(s) {', '.join(sorted(unknown))}; "
+                f"available: {', '.join(m.KEY for m in mods)}"
+            )
+        mods = [m for m in mods if m.KEY in only]
+    return mods
+
+
+def _fmt_table(frame: pd.DataFrame) -> str:
+    return frame.to_markdown(floatfmt=".3g") if _has_tabulate() else frame.to_string()
+
+
+def _has_tabulate() -> bool:
+    try:
+        import tabulate  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _md_table(frame: pd.DataFrame) -> str:
+    """Markdown pipe table without the optional ``tabulate`` dependency."""
+    df = frame.reset_index() if frame.index.name or not isinstance(frame.index, pd.RangeIndex) else frame
+    cols = [str(c) for c in df.columns]
+
+    def cell(v: Any) -> str:
+        if isinstance(v, float):
+            return "" if pd.isna(v) else f"{v:.4g}"
+        return str(v)
+
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in df.itertuples(index=False)]
+    return "\n".join(lines)
+
+
+def render(sections: list[Section], out_dir: Path, elapsed: dict[str, float]) -> tuple[Path, Path]:
+    """Write ``report.md`` and ``report.html`` into ``out_dir``."""
+    md = ["# robustloc reproduction report", ""]
+    body = ["<h1>robustloc reproduction report</h1>"]
+    for s in sections:
+        md += [f"## {s.title}", ""]
+        body.append(f"<h2>{html.escape(s.title)}</h2>")
+        for kind, payload in s.blocks:
+            if kind == "text":
+                md += [payload, ""]
+                body.append("".join(f"<p>{html.escape(p)}</p>" for p in payload.split("\n\n")))
+            elif kind == "table":
+                caption, frame = payload
+                md += [f"**{caption}**", "", _md_table(frame), ""]
+                body.append(f"<h4>{html.escape(caption)}</h4>")
+                body.append(frame.to_html(float_format=lambda v: f"{v:.4g}", na_rep=""))
+            elif kind == "figure":
+                caption, rel = payload
+                md += [f"![{caption}]({rel})", "", f"*{caption}*", ""]
+                body.append(
+                    f'<figure><img src="{html.escape(rel)}" style="max-width:900px">'
+                    f"<figcaption>{html.escape(caption)}</figcaption></figure>"
+                )
+        if s.title in elapsed:
+            md += [f"_section run time: {elapsed[s.title]:.1f} s_", ""]
+    md_path = out_dir / "report.md"
+    md_path.write_text("\n".join(md), encoding="utf-8")
+    style = (
+        "body{font-family:sans-serif;max-width:1100px;margin:auto;padding:1em}"
+        "table{border-collapse:collapse;font-size:0.85em;margin-bottom:1em}"
+        "td,th{border:1px solid #ccc;padding:2px 6px;text-align:right}"
+    )
+    html_path = out_dir / "report.html"
+    html_path.write_text(
+        f"<!doctype html><html><head><meta charset='utf-8'><title>robustloc report</title>"
+        f"<style>{style}</style></head><body>{''.join(body)}</body></html>",
+        encoding="utf-8",
+    )
+    return md_path, html_path
+
+
+def run_all(ctx: Context, only: list[str] | None = None) -> list[Section]:
+    """Run every section (or ``only`` those), print their tables and write the report."""
+    ctx.out_dir.mkdir(parents=True, exist_ok=True)
+    sections: list[Section] = []
+    elapsed: dict[str, float] = {}
+    summary: dict[str, Any] = {}
+    for mod in section_modules(only):
+        ctx.log(f"== {mod.TITLE}")
+        t0 = time.perf_counter()
+        sec = mod.run(ctx)
+        elapsed[sec.title] = time.perf_counter() - t0
+        sections.append(sec)
+        summary[mod.KEY] = sec.summary
+        for kind, payload in sec.blocks:
+            if kind == "table":
+                caption, frame = payload
+                print(f"\n{caption}\n{frame.to_string(float_format=lambda v: f'{v:.3f}')}")
+    render(sections, ctx.out_dir, elapsed)
+    (ctx.out_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    return sections
