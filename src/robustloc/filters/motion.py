@@ -1,0 +1,154 @@
+"""Kinematic motion models: constant velocity (CV) and constant acceleration (CA).
+
+State ordering follows seed 001 sec. 2: blocks by derivative order, axes inside a block,
+``[x, y, x', y']`` for CV and ``[x, y, x', y', x'', y'']`` for CA (``dim = 2``; ``dim = 3``
+appends ``z`` to each block).  ``x`` is east, ``y`` north.
+
+Process noise
+-------------
+Two standard choices, selected by ``noise``:
+
+* ``"discrete"`` (the paper's form): ``X(k+1) = F X(k) + Gamma W(k)`` with ``W`` a piecewise
+  constant acceleration (CV) or jerk (CA) of variance ``q`` per axis, so
+  ``Q = q Gamma Gamma^T`` (seed 001, EKF and UKF models).
+* ``"continuous"``: white-noise acceleration (CV) or jerk (CA) of spectral density ``q``
+  integrated over the step (Bar-Shalom, Li, Kirubarajan 2001, sec. 6.2), e.g. for CV
+  ``Q = q [[T^3/3, T^2/2], [T^2/2, T]]`` per axis.
+
+``dt`` may be a scalar or one step per track, shape ``(K,)``; matrices then have shape
+``(K, n, n)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from math import factorial
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+Array = NDArray[np.float64]
+
+
+def _kinematic_1d(order: int, dt: Array) -> tuple[Array, Array, Array, Array]:
+    """1-D blocks for a kinematic chain of ``order + 1`` states, for each ``dt``.
+
+    Returns ``F (M, s, s)``, ``Gamma (M, s)``, continuous ``Q`` per unit intensity
+    ``(M, s, s)`` and ``dt (M,)`` with ``s = order + 1``.
+    """
+    s = order + 1
+    dt = np.atleast_1d(np.asarray(dt, dtype=float))
+    M = dt.shape[0]
+    F = np.zeros((M, s, s))
+    for i in range(s):
+        for j in range(i, s):
+            F[:, i, j] = dt ** (j - i) / factorial(j - i)
+    # Gamma: effect of a constant highest derivative + 1 over the step (seed 001)
+    G = np.stack([dt ** (s - i) / factorial(s - i) for i in range(s)], axis=-1)
+    Qc = np.zeros((M, s, s))
+    for i in range(s):
+        for j in range(s):
+            a, b = s - 1 - i, s - 1 - j  # powers of dt in each entry of F's last column
+            p = a + b + 1
+            Qc[:, i, j] = dt**p / (p * factorial(a) * factorial(b))
+    return F, G, Qc, dt
+
+
+@dataclass(frozen=True)
+class _Kinematic:
+    q: float = 1.0
+    dim: int = 2
+    noise: Literal["discrete", "continuous"] = "discrete"
+    order: int = 1
+    name: str = "kinematic"
+
+    def __post_init__(self) -> None:
+        if self.dim not in (1, 2, 3):
+            raise ValueError(f"dim must be 1, 2 or 3, got {self.dim}")
+        if not self.q >= 0:
+            raise ValueError(f"process noise intensity q must be >= 0, got {self.q}")
+        if self.noise not in ("discrete", "continuous"):
+            raise ValueError(f"noise must be 'discrete' or 'continuous', got {self.noise!r}")
+
+    @property
+    def n_states(self) -> int:
+        """State dimension ``(order + 1) * dim``."""
+        return (self.order + 1) * self.dim
+
+    def index(self, derivative: int, axis: int) -> int:
+        """Position of ``d^derivative / dt`` of ``axis`` in the state vector."""
+        return derivative * self.dim + axis
+
+    def _expand(self, block: Array, dt: ArrayLike) -> Array:
+        eye = np.eye(self.dim)
+        out = np.einsum("mij,ab->miajb", block, eye).reshape(
+            block.shape[0], self.n_states, self.n_states
+        )
+        return out[0] if np.ndim(dt) == 0 else out
+
+    def F(self, dt: ArrayLike) -> Array:
+        """Transition matrix (seed 001: CV ``F`` of the EKF model, CA of the UKF model)."""
+        F1, _, _, _ = _kinematic_1d(self.order, dt)
+        return self._expand(F1, dt)
+
+    def Gamma(self, dt: ArrayLike) -> Array:
+        """Noise input matrix ``Gamma``, shape ``(n, dim)`` (or ``(K, n, dim)``)."""
+        _, G1, _, _ = _kinematic_1d(self.order, dt)
+        eye = np.eye(self.dim)
+        out = np.einsum("mi,ab->miab", G1, eye).reshape(G1.shape[0], self.n_states, self.dim)
+        return out[0] if np.ndim(dt) == 0 else out
+
+    def Q(self, dt: ArrayLike) -> Array:
+        """Process noise covariance for a step ``dt`` (see module docstring)."""
+        _, G1, Qc, _ = _kinematic_1d(self.order, dt)
+        if self.noise == "discrete":
+            block = self.q * np.einsum("mi,mj->mij", G1, G1)
+        else:
+            block = self.q * Qc
+        return self._expand(block, dt)
+
+    def f(self, x: ArrayLike, dt: ArrayLike) -> Array:
+        """Propagate states ``x (K, n)`` by ``dt`` (linear: ``F x``)."""
+        x = np.asarray(x, dtype=float)
+        F = self.F(dt)
+        if F.ndim == 2:
+            return x @ F.T
+        return np.einsum("kij,kj->ki", F, x)
+
+
+@dataclass(frozen=True)
+class ConstantVelocity(_Kinematic):
+    """Constant velocity model, state ``[p, v]`` per axis (seed 001, EKF model).
+
+    ``F = [[1, T], [0, 1]]`` and ``Gamma = [T^2/2, T]`` per axis, ``q`` the variance of the
+    white acceleration (``noise="discrete"``, ``(m/s^2)^2``) or its spectral density
+    (``noise="continuous"``, ``m^2/s^3``).
+    """
+
+    order: int = 1
+    name: str = "cv"
+
+
+@dataclass(frozen=True)
+class ConstantAcceleration(_Kinematic):
+    """Constant acceleration model, state ``[p, v, a]`` per axis (seed 001, UKF model).
+
+    ``F = [[1, T, T^2/2], [0, 1, T], [0, 0, 1]]`` and ``Gamma = [T^3/6, T^2/2, T]`` per axis
+    (jerk input), ``q`` the jerk variance (discrete) or spectral density (continuous).
+    """
+
+    order: int = 2
+    name: str = "ca"
+
+
+def motion_model(
+    name: str, q: float = 1.0, dim: int = 2, noise: Literal["discrete", "continuous"] = "discrete"
+) -> ConstantVelocity | ConstantAcceleration:
+    """Build a motion model by its command-line name, ``cv`` or ``ca``."""
+    key = name.lower()
+    if key == "cv":
+        return ConstantVelocity(q=q, dim=dim, noise=noise)
+    if key == "ca":
+        return ConstantAcceleration(q=q, dim=dim, noise=noise)
+    raise ValueError(f"unknown motion model {name!r}; choose cv or ca")
