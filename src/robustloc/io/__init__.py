@@ -1,0 +1,56 @@
+"""Reading and writing the contract file formats (CSV or Parquet), validated.
+
+See :mod:`robustloc.io.tables` for the formats and the validation rules.
+"""
+
+from robustloc.io.tables import (
+    ANCHOR_PARAM_COLUMNS,
+    POSITION_COLUMNS,
+    VALUE_COLUMNS,
+    Epochs,
+    is_parquet,
+    iter_epochs,
+    iter_measurements,
+    positions_frame,
+    read_anchors,
+    read_measurements,
+    read_positions,
+    read_survey,
+    read_table,
+    read_truth,
+    require_columns,
+    to_epochs,
+    validate_anchors,
+    validate_measurements,
+    validate_positions,
+    validate_survey,
+    validate_truth,
+    write_positions,
+    write_table,
+)
+
+__all__ = [
+    "ANCHOR_PARAM_COLUMNS",
+    "POSITION_COLUMNS",
+    "VALUE_COLUMNS",
+    "Epochs",
+    "is_parquet",
+    "iter_epochs",
+    "iter_measurements",
+    "positions_frame",
+    "read_anchors",
+    "read_measurements",
+    "read_positions",
+    "read_survey",
+    "read_table",
+    "read_truth",
+    "require_columns",
+    "to_epochs",
+    "validate_anchors",
+    "validate_measurements",
+    "validate_positions",
+    "validate_survey",
+    "validate_truth",
+    "write_positions",
+    "write_table",
+]
