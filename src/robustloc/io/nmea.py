@@ -1,0 +1,386 @@
+"""NMEA 0183 reading (RMC, VTG, GGA, GST) through pynmea2, and sentence writing.
+
+What comes out (:func:`read_nmea` / :func:`parse_nmea`, an :class:`NmeaLog`):
+
+* ``motion`` -- one row per RMC or VTG sentence: ``time_s``, ``speed_mps`` (knots x
+  1852/3600, or km/h / 3.6), ``course_rad`` (course over ground, true, clockwise from north,
+  wrapped to ``[-pi, pi)``; NaN when the receiver leaves it empty, e.g. standing still) and
+  ``sentence``.  This is the GPS speed ``v`` and heading ``theta`` of seed 001.
+* ``fixes`` -- one row per valid GGA: ``time_s, lat_deg, lon_deg, h_m`` (ellipsoidal:
+  altitude + geoid separation), ``quality, n_sats, hdop`` and local ``east_m, north_m,
+  up_m`` from pymap3d's ``geodetic2enu`` about ``origin`` (default: the first valid fix).
+* ``accuracy`` -- GST: ``time_s, rms_m, sigma_lat_m, sigma_lon_m, sigma_alt_m``.
+* ``summary`` -- counts of lines, parsed sentences per type and every skip by reason.
+
+Time: ``time_s`` is seconds since 00:00 UTC of the day of the first sentence, with day
+roll-overs counted when the time of day jumps back by more than 12 h.  Add an offset to
+align it with another stream (see :mod:`robustloc.fusion.align`).
+
+Robustness: lines may carry a prefix or suffix (Android GnssLogger ``NMEA,$GP...*hh,ms``):
+the sentence is the text from ``$`` to the two hex digits after ``*``.  A bad checksum, a
+missing checksum, a truncated sentence (required fields empty), an invalid fix (GGA
+quality 0, RMC status ``V``) or an unsupported type is counted in ``summary.skipped`` and
+skipped -- never an exception.  Only an unreadable *file* raises :class:`InputError`.
+"""
+
+from __future__ import annotations
+
+import re
+from collections import Counter
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from os import PathLike
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pymap3d
+import pynmea2
+
+from robustloc.errors import InputError
+
+KNOT_MPS = 1852.0 / 3600.0
+
+_SENTENCE = re.compile(r"\$([A-Z]{2}[A-Z0-9]{3}),([^*$]*)(\*([0-9A-Fa-f]{2}))?")
+
+#: Reasons a line is skipped (keys of :attr:`NmeaSummary.skipped`).
+SKIP_REASONS = (
+    "no_sentence",
+    "bad_checksum",
+    "missing_checksum",
+    "truncated",
+    "invalid_fix",
+    "unsupported",
+)
+
+
+def nmea_checksum(body: str) -> str:
+    """XOR checksum of the text between ``$`` and ``*``, two upper-case hex digits."""
+    c = 0
+    for ch in body:
+        c ^= ord(ch)
+    return f"{c:02X}"
+
+
+@dataclass(frozen=True)
+class NmeaSummary:
+    """What :func:`parse_nmea` read and skipped.
+
+    Attributes
+    ----------
+    lines : int
+        Non-empty input lines.
+    parsed : dict[str, int]
+        Sentences used, by type (``RMC``, ``VTG``, ``GGA``, ``GST``).
+    skipped : dict[str, int]
+        Skipped lines by reason (see :data:`SKIP_REASONS`).
+    examples : list[tuple[int, str]]
+        Up to 20 ``(line number, reason)`` of skipped lines, for the user.
+    """
+
+    lines: int
+    parsed: dict[str, int]
+    skipped: dict[str, int]
+    examples: list[tuple[int, str]] = field(default_factory=list)
+
+    @property
+    def n_skipped(self) -> int:
+        return int(sum(self.skipped.values()))
+
+    def text(self) -> str:
+        """One line for a command's stderr."""
+        used = ", ".join(f"{k} {v}" for k, v in sorted(self.parsed.items())) or "none"
+        skip = ", ".join(f"{k} {v}" for k, v in sorted(self.skipped.items()) if v) or "none"
+        return f"NMEA: {self.lines} lines; used {used}; skipped {skip}"
+
+
+@dataclass(frozen=True)
+class NmeaLog:
+    """Parsed NMEA stream (see the module docstring for the columns)."""
+
+    motion: pd.DataFrame
+    fixes: pd.DataFrame
+    accuracy: pd.DataFrame
+    origin: tuple[float, float, float] | None
+    summary: NmeaSummary
+
+
+def _tod(ts) -> float:
+    return ts.hour * 3600.0 + ts.minute * 60.0 + ts.second + ts.microsecond * 1e-6
+
+
+def _num(v) -> float:
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
+def parse_nmea(
+    lines: Iterable[str],
+    origin: tuple[float, float, float] | None = None,
+    source: str = "<nmea>",
+) -> NmeaLog:
+    """Parse NMEA text lines; see the module docstring.
+
+    Parameters
+    ----------
+    lines : iterable of str
+        Raw lines (prefixes/suffixes around the sentence are tolerated).
+    origin : (lat_deg, lon_deg, h_m), optional
+        ENU origin for GGA positions; default the first valid GGA fix.
+    source : str
+        Name used in messages.
+    """
+    skipped: Counter[str] = Counter({r: 0 for r in SKIP_REASONS})
+    parsed: Counter[str] = Counter()
+    examples: list[tuple[int, str]] = []
+    motion: list[tuple[float, float, float, str, int]] = []
+    fixes: list[tuple] = []
+    acc: list[tuple] = []
+    n_lines = 0
+
+    def skip(lineno: int, reason: str) -> None:
+        skipped[reason] += 1
+        if len(examples) < 20:
+            examples.append((lineno, reason))
+
+    order = 0
+    for lineno, raw in enumerate(lines, start=1):
+        line = raw.strip()
+        if not line:
+            continue
+        n_lines += 1
+        m = _SENTENCE.search(line)
+        if m is None:
+            skip(lineno, "no_sentence")
+            continue
+        talker_type, body, cs = m.group(1), m.group(2), m.group(4)
+        if cs is None:
+            skip(lineno, "missing_checksum")
+            continue
+        if nmea_checksum(f"{talker_type},{body}") != cs.upper():
+            skip(lineno, "bad_checksum")
+            continue
+        kind = talker_type[2:]
+        if kind not in ("RMC", "VTG", "GGA", "GST"):
+            skip(lineno, "unsupported")
+            continue
+        try:
+            msg = pynmea2.parse(m.group(0), check=True)
+        except (pynmea2.ParseError, ValueError, TypeError):
+            skip(lineno, "truncated")
+            continue
+        try:
+            ts = getattr(msg, "timestamp", None)
+            if kind == "RMC":
+                if ts is None or not msg.status:
+                    skip(lineno, "truncated")
+                    continue
+                if msg.status != "A":
+                    skip(lineno, "invalid_fix")
+                    continue
+                if msg.spd_over_grnd in (None, ""):
+                    skip(lineno, "truncated")
+                    continue
+                speed = float(msg.spd_over_grnd) * KNOT_MPS
+                course = _num(msg.true_course)
+                motion.append((_tod(ts), speed, np.deg2rad(course), "RMC", order))
+            elif kind == "VTG":
+                if getattr(msg, "faa_mode", None) == "N":
+                    skip(lineno, "invalid_fix")
+                    continue
+                kmh = _num(msg.spd_over_grnd_kmph)
+                kts = _num(msg.spd_over_grnd_kts)
+                speed = kmh / 3.6 if np.isfinite(kmh) else kts * KNOT_MPS
+                if not np.isfinite(speed):
+                    skip(lineno, "truncated")
+                    continue
+                # VTG has no time: it belongs to the last timed sentence
+                motion.append((np.nan, speed, np.deg2rad(_num(msg.true_track)), "VTG", order))
+            elif kind == "GGA":
+                if ts is None or msg.gps_qual is None or not msg.lat or not msg.lon:
+                    if msg.gps_qual == 0:
+                        skip(lineno, "invalid_fix")
+                    else:
+                        skip(lineno, "truncated")
+                    continue
+                if int(msg.gps_qual) == 0:
+                    skip(lineno, "invalid_fix")
+                    continue
+                alt = _num(msg.altitude)
+                sep = _num(msg.geo_sep)
+                h = alt + (sep if np.isfinite(sep) else 0.0)
+                fixes.append(
+                    (
+                        _tod(ts),
+                        float(msg.latitude),
+                        float(msg.longitude),
+                        h,
+                        int(msg.gps_qual),
+                        _num(msg.num_sats),
+                        _num(msg.horizontal_dil),
+                        order,
+                    )
+                )
+            else:  # GST
+                if ts is None:
+                    skip(lineno, "truncated")
+                    continue
+                acc.append(
+                    (
+                        _tod(ts),
+                        _num(msg.rms),
+                        _num(msg.std_dev_latitude),
+                        _num(msg.std_dev_longitude),
+                        _num(msg.std_dev_altitude),
+                        order,
+                    )
+                )
+        except (ValueError, TypeError, AttributeError, IndexError):
+            skip(lineno, "truncated")
+            continue
+        parsed[kind] += 1
+        order += 1
+
+    # ---- one time axis: seconds since 00:00 UTC of the first date, with roll-overs
+    events = [(o, t) for (t, *_rest, o) in motion if np.isfinite(t)]
+    events += [(r[-1], r[0]) for r in fixes] + [(r[-1], r[0]) for r in acc]
+    events.sort()
+    order_to_time: dict[int, float] = {}
+    day = 0
+    prev = None
+    for o, t in events:
+        if prev is not None and t < prev - 43200.0:
+            day += 1
+        prev = t
+        order_to_time[o] = t + 86400.0 * day
+
+    def timeline(rows_order: list[int], tod: list[float]) -> np.ndarray:
+        return np.array([order_to_time.get(o, t) for o, t in zip(rows_order, tod)], dtype=float)
+
+    mot = pd.DataFrame(motion, columns=["time_s", "speed_mps", "course_rad", "sentence", "o"])
+    if len(mot):
+        t = mot["time_s"].to_numpy(copy=True)
+        t = timeline(mot["o"].tolist(), t.tolist())
+        # VTG inherits the time of the latest earlier timed sentence
+        known = sorted(order_to_time.items())
+        if known:
+            ko = np.array([k for k, _ in known])
+            kt = np.array([v for _, v in known])
+            idx = np.searchsorted(ko, mot["o"].to_numpy(), side="right") - 1
+            fill = np.where(idx >= 0, kt[np.clip(idx, 0, None)], np.nan)
+            t = np.where(np.isfinite(t), t, fill)
+        mot["time_s"] = t
+        mot["course_rad"] = (mot["course_rad"] + np.pi) % (2 * np.pi) - np.pi
+    n_vtg_untimed = int(np.isnan(mot["time_s"]).sum()) if len(mot) else 0
+    if n_vtg_untimed:
+        skipped["truncated"] += n_vtg_untimed
+        parsed["VTG"] -= n_vtg_untimed
+        mot = mot[np.isfinite(mot["time_s"])]
+    mot = mot.drop(columns="o").reset_index(drop=True)
+
+    fx = pd.DataFrame(
+        fixes, columns=["time_s", "lat_deg", "lon_deg", "h_m", "quality", "n_sats", "hdop", "o"]
+    )
+    if len(fx):
+        fx["time_s"] = timeline(fx["o"].tolist(), fx["time_s"].tolist())
+        if origin is None:
+            origin = (float(fx["lat_deg"].iloc[0]), float(fx["lon_deg"].iloc[0]), 0.0)
+            h0 = fx["h_m"].iloc[0]
+            origin = (origin[0], origin[1], float(h0) if np.isfinite(h0) else 0.0)
+        e, n, u = pymap3d.geodetic2enu(
+            fx["lat_deg"].to_numpy(),
+            fx["lon_deg"].to_numpy(),
+            np.nan_to_num(fx["h_m"].to_numpy(), nan=origin[2]),
+            *origin,
+        )
+        fx["east_m"], fx["north_m"], fx["up_m"] = np.asarray(e), np.asarray(n), np.asarray(u)
+    else:
+        for c in ("east_m", "north_m", "up_m"):
+            fx[c] = pd.Series(dtype=float)
+    fx = fx.drop(columns="o")
+
+    ac = pd.DataFrame(
+        acc, columns=["time_s", "rms_m", "sigma_lat_m", "sigma_lon_m", "sigma_alt_m", "o"]
+    )
+    if len(ac):
+        ac["time_s"] = timeline(ac["o"].tolist(), ac["time_s"].tolist())
+    ac = ac.drop(columns="o")
+
+    summary = NmeaSummary(
+        lines=n_lines, parsed=dict(parsed), skipped=dict(skipped), examples=examples
+    )
+    return NmeaLog(motion=mot, fixes=fx, accuracy=ac, origin=origin, summary=summary)
+
+
+def read_nmea(
+    path: str | PathLike[str], origin: tuple[float, float, float] | None = None
+) -> NmeaLog:
+    """Read an NMEA file (see :func:`parse_nmea`); raises :class:`InputError` if unreadable."""
+    p = Path(path)
+    try:
+        text = p.read_bytes().decode("ascii", errors="replace")
+    except OSError as exc:
+        raise InputError(f"cannot read NMEA file: {exc.strerror or exc}", p) from None
+    log = parse_nmea(text.splitlines(), origin=origin, source=str(p))
+    if not len(log.motion) and not len(log.fixes):
+        raise InputError(
+            f"no usable RMC/VTG/GGA sentence ({log.summary.text()})", p
+        )
+    return log
+
+
+# ------------------------------------------------------------------------ writing
+def _hhmmss(t_s: float) -> str:
+    t = t_s % 86400.0
+    h = int(t // 3600)
+    mi = int((t - 3600 * h) // 60)
+    s = t - 3600 * h - 60 * mi
+    return f"{h:02d}{mi:02d}{s:05.2f}"
+
+
+def _ddmm(value_deg: float, lat: bool) -> tuple[str, str]:
+    hemi = ("N" if value_deg >= 0 else "S") if lat else ("E" if value_deg >= 0 else "W")
+    a = abs(value_deg)
+    d = int(a)
+    mins = (a - d) * 60.0
+    return (f"{d:02d}{mins:09.6f}" if lat else f"{d:03d}{mins:09.6f}"), hemi
+
+
+def make_rmc(
+    t_s: float,
+    speed_mps: float,
+    course_deg: float,
+    lat_deg: float = 0.0,
+    lon_deg: float = 0.0,
+    date: str = "010124",
+    talker: str = "GP",
+) -> str:
+    """An RMC sentence with checksum (speed written in knots, course true from north)."""
+    la, lah = _ddmm(lat_deg, True)
+    lo, loh = _ddmm(lon_deg, False)
+    course = "" if not np.isfinite(course_deg) else f"{course_deg % 360.0:.2f}"
+    fields = (_hhmmss(t_s), "A", la, lah, lo, loh, f"{speed_mps / KNOT_MPS:.4f}", course, date,
+              "", "", "A")
+    return str(pynmea2.RMC(talker, "RMC", fields))
+
+
+def make_vtg(speed_mps: float, course_deg: float, talker: str = "GP") -> str:
+    """A VTG sentence with checksum (speed in knots and km/h)."""
+    course = "" if not np.isfinite(course_deg) else f"{course_deg % 360.0:.2f}"
+    fields = (course, "T", "", "M", f"{speed_mps / KNOT_MPS:.4f}", "N",
+              f"{speed_mps * 3.6:.3f}", "K", "A")
+    return str(pynmea2.VTG(talker, "VTG", fields))
+
+
+def make_gga(
+    t_s: float, lat_deg: float, lon_deg: float, h_m: float, quality: int = 1,
+    n_sats: int = 8, hdop: float = 1.0, talker: str = "GP",
+) -> str:
+    """A GGA sentence with checksum (altitude written as ``h_m`` with zero geoid height)."""
+    la, lah = _ddmm(lat_deg, True)
+    lo, loh = _ddmm(lon_deg, False)
+    fields = (_hhmmss(t_s), la, lah, lo, loh, str(quality), f"{n_sats:02d}", f"{hdop:.1f}",
+              f"{h_m:.2f}", "M", "0.0", "M", "", "")
+    return str(pynmea2.GGA(talker, "GGA", fields))

@@ -1,0 +1,120 @@
+"""Tests of the NMEA reader/writer (pynmea2-based)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as hs
+
+from robustloc.errors import InputError
+from robustloc.io.nmea import (
+    KNOT_MPS,
+    make_gga,
+    make_rmc,
+    make_vtg,
+    nmea_checksum,
+    parse_nmea,
+    read_nmea,
+)
+from robustloc.paths import PACKAGE_DATA
+
+VOID = "GPRMC,000011.00,V,,,,,,,010124,,,N"
+PIXEL6 = PACKAGE_DATA / "nmea-pixel6" / "pixel6.nmea"
+
+
+def test_checksum_known_sentence():
+    # from the pixel6 fixture: $GPRMC,...*4F
+    body = "GPRMC,234321.00,A,3725.589246,N,12210.425073,W,002.2,199.1,071123,,,A"
+    assert nmea_checksum(body) == "4F"
+
+
+def test_pixel6_fixture():
+    log = read_nmea(PIXEL6)
+    assert log.summary.parsed == {"GGA": 48, "RMC": 48}
+    assert log.summary.n_skipped == 0
+    assert len(log.motion) == 48 and len(log.fixes) == 48
+    # third RMC: 002.2 kn, 199.1 deg (true, clockwise from north)
+    row = log.motion.iloc[2]
+    assert row["speed_mps"] == pytest.approx(2.2 * 1852 / 3600)
+    assert np.rad2deg(row["course_rad"]) % 360 == pytest.approx(199.1)
+    # stationary: empty course -> NaN, speed 0
+    assert np.isnan(log.motion["course_rad"].iloc[0]) and log.motion["speed_mps"].iloc[0] == 0
+    # time of day 23:42:57 -> seconds
+    assert log.fixes["time_s"].iloc[0] == pytest.approx(23 * 3600 + 42 * 60 + 57)
+    # ENU about the first fix; first GGA: 51.9 m MSL + (-28.4) geoid = 23.5 m ellipsoidal
+    assert log.origin == pytest.approx((37.426506616, -122.1737089, 23.5))
+    assert log.fixes[["east_m", "north_m", "up_m"]].iloc[0].abs().max() < 1e-6
+    # second fix: 0.000119' of latitude north = 0.22 m
+    assert log.fixes["north_m"].iloc[1] == pytest.approx(0.000119 / 60 * 111_000, rel=0.01)
+
+
+def test_malformed_sentences_counted_not_raised():
+    good = make_rmc(10.0, 1.0, 90.0)
+    lines = [
+        good,
+        good[:-2] + ("00" if not good.endswith("00") else "01"),  # bad checksum
+        good.split("*")[0],  # missing checksum
+        "$GPRMC,000010.00*" + nmea_checksum("GPRMC,000010.00"),  # truncated, valid checksum
+        make_gga(10.0, 37.0, -122.0, 5.0, quality=0),  # invalid fix
+        "$" + VOID + "*" + nmea_checksum(VOID),  # status V: invalid fix
+        "$GPGSV,1,1,00*" + nmea_checksum("GPGSV,1,1,00"),  # unsupported
+        "not nmea at all",
+        "",
+        "$GPGGA,1,2,3\x00\xff",
+    ]
+    log = parse_nmea(lines)
+    s = log.summary
+    assert s.parsed == {"RMC": 1}
+    assert s.skipped["bad_checksum"] == 1
+    assert s.skipped["missing_checksum"] == 2
+    assert s.skipped["truncated"] == 1
+    assert s.skipped["invalid_fix"] == 2
+    assert s.skipped["unsupported"] == 1
+    assert s.skipped["no_sentence"] == 1
+    assert s.lines == 9
+    assert "skipped" in s.text()
+
+
+def test_writer_round_trip_and_vtg_gets_time():
+    lines = []
+    for k in range(5):
+        t = 86395.0 + k * 2.0  # crosses midnight
+        lines += [make_rmc(t, 0.2 * k, 350.0 + 5 * k), make_vtg(0.2 * k, 350.0 + 5 * k),
+                  make_gga(t, 37.0, -122.0 + 1e-5 * k, 10.0)]
+    log = parse_nmea(lines)
+    rmc = log.motion[log.motion["sentence"] == "RMC"]
+    vtg = log.motion[log.motion["sentence"] == "VTG"]
+    np.testing.assert_allclose(rmc["time_s"], 86395.0 + 2.0 * np.arange(5))
+    np.testing.assert_allclose(vtg["time_s"], rmc["time_s"])  # VTG inherits the RMC time
+    np.testing.assert_allclose(rmc["speed_mps"], 0.2 * np.arange(5), atol=1e-4 * KNOT_MPS)
+    np.testing.assert_allclose(vtg["speed_mps"], 0.2 * np.arange(5), atol=1e-3)
+    course_deg = np.rad2deg(rmc["course_rad"].to_numpy())
+    np.testing.assert_allclose(course_deg, [-10, -5, 0, 5, 10], atol=1e-6)  # wrapped
+    assert np.all(np.diff(log.fixes["east_m"]) > 0.8)  # 1e-5 deg lon at 37 N ~ 0.89 m
+
+
+def test_origin_option():
+    lines = [make_gga(1.0, 37.0, -122.0, 0.0)]
+    log = parse_nmea(lines, origin=(37.0, -122.0001, 0.0))
+    phi = np.deg2rad(37.0)
+    n_radius = 6378137.0 / np.sqrt(1 - 6.69437999014e-3 * np.sin(phi) ** 2)  # WGS84
+    expected = n_radius * np.cos(phi) * np.deg2rad(0.0001)
+    assert log.fixes["east_m"].iloc[0] == pytest.approx(expected, rel=1e-6)
+
+
+def test_unreadable_and_empty_files(tmp_path):
+    with pytest.raises(InputError, match="cannot read"):
+        read_nmea(tmp_path / "missing.nmea")
+    p = tmp_path / "junk.nmea"
+    p.write_text("hello\n$GPRMC,bad*00\n")
+    with pytest.raises(InputError, match="no usable"):
+        read_nmea(p)
+
+
+@settings(max_examples=200, deadline=None)
+@given(hs.lists(hs.text(alphabet="$GPRMCVTGAS,.*0123456789ABCDEFNW-\x00", max_size=80),
+                max_size=8))
+def test_garbage_never_crashes(lines):
+    log = parse_nmea(lines)
+    assert log.summary.lines <= len(lines)
