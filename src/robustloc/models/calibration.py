@@ -1,0 +1,616 @@
+"""Calibration of path-loss models and of range bias/scale from a survey.
+
+Every calibration here is a straight-line fit ``y = a + b x`` (or ``y = a`` when the slope
+is fixed), per anchor and/or pooled over all anchors, solved for all anchors at once from
+grouped sums (no loop over anchors):
+
+* log-distance (seed 000 eq. (1)): ``y = rssi``, ``x = -10 lg d``, ``(a, b) = (A, n)``;
+* attenuation factor (seed 002 eq. (5)): ``y = rssi - p0``, ``x = 10 lg(d0/d)``,
+  ``(a, b) = (faf, gamma)``;
+* free space (seed 002 eq. (4)): ``y = rssi - 20 lg(d0/d)``, ``a = p0`` (no slope);
+* range: ``y = range``, ``x = d``, ``(a, b) = (bias, scale)``; without scale
+  ``y = range - d``, ``a = bias``.
+
+Least squares gives the parameters, their standard errors from
+``cov = s^2 (X^T W X)^-1`` with ``s^2 = sum(w v^2) / (n_used - p)``, and the residual
+standard deviation ``s`` (dB for RSSI, m for ranges).
+
+Robust option (the survey has outliers too: people, multipath): iteratively reweighted
+least squares with a weight function of :mod:`robustloc.robust.weights` (Huber, Hampel,
+IGG, IGG3, ...) on standardized residuals ``u = v / (sigma sqrt(q_vv))``, ``sigma`` the
+MAD scale of the current residuals of the group (seed 000 sec. 2.1) and ``q_vv = 1 - h``
+(``h`` the leverage), until the parameters change by less than ``tol``.  The standard
+errors of the robust fit use the final weights in the formula above (an approximation:
+it treats the final weights as known).
+
+Attenuation factor: only ``p0 + faf`` is identifiable from RSSI alone.  As in the paper,
+``p0`` is the reference power at ``d0``; it is taken from ``p0=`` (scalar or per anchor),
+else as the mean survey RSSI of that anchor within 5 % of ``d0``, else as the pooled mean
+there; with no sample near ``d0`` and no ``p0`` given it is an error.
+
+Anchors with fewer survey rows than parameters + 1 get the pooled parameters (column
+``calib_source = "pooled"``), so that every anchor is usable after calibration.
+
+Range calibration is applied as ``range_corrected = (range - bias) / scale``
+(:func:`apply_range_calibration`): ``bias`` is the constant offset of the ranging device
+(m), ``scale`` its scale factor (1 when not fitted).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+from numpy.typing import ArrayLike, NDArray
+
+from robustloc.errors import InputError
+from robustloc.robust.scale import MAD_NORMAL
+from robustloc.robust.weights import WeightFunction, get_weight
+
+Array = NDArray[np.float64]
+
+#: Fitted columns written to the anchors file, per model.
+FIT_COLUMNS: dict[str, tuple[str, ...]] = {
+    "log-distance": ("A", "n"),
+    "attenuation-factor": ("p0", "gamma", "faf", "d0"),
+    "friis": ("p0", "d0"),
+    "range": ("bias", "scale"),
+}
+PATHLOSS_MODELS = ("log-distance", "attenuation-factor", "friis")
+#: Path-loss columns of every model, dropped from an anchors file when another model is
+#: written (so ``locate`` cannot pick stale parameters).
+_ALL_PATHLOSS_COLUMNS = ("A", "n", "p0", "gamma", "faf", "d0")
+POOLED = "*pooled*"
+
+
+# --------------------------------------------------------------------------------------
+# batched line fit
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class LineFit:
+    """Grouped weighted fit of ``y = a + b x`` (``b`` fixed at 0 when ``slope=False``).
+
+    Arrays have one entry per group (shape ``(g,)``), except ``weights`` and ``residuals``
+    (one per row, ``v = a + b x - y``).
+    """
+
+    a: Array
+    b: Array
+    a_se: Array
+    b_se: Array
+    cov_ab: Array
+    residual_std: Array
+    n_obs: NDArray[np.int64]
+    n_used: NDArray[np.int64]
+    iterations: int
+    converged: bool
+    weights: Array
+    residuals: Array
+
+
+def _group_sums(g: NDArray[np.int64], n_groups: int, *cols: Array) -> list[Array]:
+    return [np.bincount(g, weights=c, minlength=n_groups) for c in cols]
+
+
+def _solve_lines(
+    x: Array, y: Array, w: Array, g: NDArray[np.int64], n_groups: int, slope: bool
+) -> tuple[Array, Array, Array]:
+    """Weighted least squares per group from sums; returns ``a, b, det``."""
+    sw, swx, swy, swxx, swxy = _group_sums(g, n_groups, w, w * x, w * y, w * x * x, w * x * y)
+    if not slope:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            a = swy / sw
+        return a, np.zeros(n_groups), sw
+    det = sw * swxx - swx * swx
+    with np.errstate(invalid="ignore", divide="ignore"):
+        b = (sw * swxy - swx * swy) / det
+        a = (swy - b * swx) / sw
+    return a, b, det
+
+
+def fit_lines(
+    x: ArrayLike,
+    y: ArrayLike,
+    group: ArrayLike,
+    n_groups: int,
+    *,
+    slope: bool = True,
+    robust: WeightFunction | None = None,
+    max_iter: int = 50,
+    tol: float = 1e-8,
+) -> LineFit:
+    """Fit ``y = a + b x`` in every group at once; least squares or robust IRLS.
+
+    Parameters
+    ----------
+    x, y : array_like, shape (k,)
+        Regressor and observation of each row (``x`` ignored when ``slope=False``).
+    group : array_like of int, shape (k,)
+        Group index of each row in ``0 .. n_groups-1``.
+    n_groups : int
+    slope : bool
+        Fit the slope ``b`` (else ``b = 0``, one parameter).
+    robust : WeightFunction, optional
+        IRLS weight function on standardized residuals (MAD scale per group, leverage
+        ``q_vv = 1 - h``); ``None`` for least squares.
+    max_iter, tol : int, float
+        IRLS stop: ``max |delta a|, |delta b| < tol`` or ``max_iter`` iterations.
+
+    Returns
+    -------
+    LineFit
+        Groups with too few rows (``n_used <= p``) have NaN parameters or standard errors.
+    """
+    x = np.asarray(x, dtype=float)
+    y = np.asarray(y, dtype=float)
+    g = np.asarray(group, dtype=np.int64)
+    p = 2 if slope else 1
+    w = np.ones_like(y)
+    xs = x if slope else np.zeros_like(y)
+    a, b, _ = _solve_lines(xs, y, w, g, n_groups, slope)
+    it = 0
+    converged = robust is None
+    if robust is not None:
+        for k in range(1, max_iter + 1):
+            it = k
+            v = a[g] + b[g] * xs - y
+            h = _leverage(xs, w, g, n_groups, slope)
+            qvv = np.clip(1.0 - h, 1e-12, None)
+            # robust scale per group: med|v| / 0.6745 over the rows in use (seed 000 sec. 2.1)
+            vg = np.where(w > 0, v, np.nan)
+            sigma = _grouped_mad(vg, g, n_groups)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                u = v / (sigma[g] * np.sqrt(qvv))
+            u = np.where(np.isfinite(u), u, 0.0)  # zero scale (exact fit): keep full weight
+            w = np.nan_to_num(robust.weights(u), nan=0.0)
+            a_new, b_new, _ = _solve_lines(xs, y, w, g, n_groups, slope)
+            step = np.nanmax(np.abs(np.concatenate([a_new - a, b_new - b]))) if n_groups else 0
+            a, b = a_new, b_new
+            if not np.isfinite(step) or step < tol:
+                converged = True
+                break
+    v = a[g] + b[g] * xs - y
+    used = w > 0
+    n_obs = np.bincount(g, minlength=n_groups).astype(np.int64)
+    n_used = np.bincount(g, weights=used.astype(float), minlength=n_groups).astype(np.int64)
+    (wvv,) = _group_sums(g, n_groups, w * v * v)
+    dof = n_used - p
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s2 = np.where(dof > 0, wvv / np.maximum(dof, 1), np.nan)
+    sw, swx, swxx = _group_sums(g, n_groups, w, w * xs, w * xs * xs)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if slope:
+            det = sw * swxx - swx * swx
+            var_a = s2 * swxx / det
+            var_b = s2 * sw / det
+            cov_ab = -s2 * swx / det
+        else:
+            var_a = s2 / sw
+            var_b = np.zeros(n_groups)
+            cov_ab = np.zeros(n_groups)
+    few = n_used < p
+    a = np.where(few, np.nan, a)
+    b = np.where(few, np.nan, b) if slope else b
+    return LineFit(
+        a=a, b=b, a_se=np.sqrt(var_a), b_se=np.sqrt(var_b) if slope else var_b,
+        cov_ab=cov_ab, residual_std=np.sqrt(s2), n_obs=n_obs, n_used=n_used,
+        iterations=it, converged=converged, weights=w, residuals=v,
+    )
+
+
+def _leverage(
+    x: Array, w: Array, g: NDArray[np.int64], n_groups: int, slope: bool
+) -> Array:
+    """Diagonal of the hat matrix ``h_i = w_i x_i^T (X^T W X)^-1 x_i`` per row."""
+    sw, swx, swxx = _group_sums(g, n_groups, w, w * x, w * x * x)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if not slope:
+            return np.nan_to_num(w / sw[g])
+        det = sw * swxx - swx * swx
+        h = w * (swxx[g] - 2.0 * x * swx[g] + x * x * sw[g]) / det[g]
+    return np.nan_to_num(h)
+
+
+def _grouped_mad(v: Array, g: NDArray[np.int64], n_groups: int) -> Array:
+    out = pd.Series(np.abs(v)).groupby(g).median()
+    s = np.full(n_groups, np.nan)
+    s[out.index.to_numpy()] = out.to_numpy()
+    return s / MAD_NORMAL
+
+
+# --------------------------------------------------------------------------------------
+# calibrations
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """Fitted parameters per anchor and pooled.
+
+    Attributes
+    ----------
+    model : str
+        ``log-distance``, ``attenuation-factor``, ``friis`` or ``range``.
+    table : DataFrame
+        One row per anchor plus a last row ``anchor = "*pooled*"``: the fitted columns
+        (:data:`FIT_COLUMNS`), their standard errors (``<col>_se``), ``residual_std`` (dB
+        or m), ``n_obs``, ``n_used`` (rows with non-zero weight), ``calib_source``
+        (``anchor`` or ``pooled``: anchors with too few survey rows take the pooled fit).
+    pooled : bool
+        Whether :meth:`apply_to_anchors` writes the pooled parameters to every anchor.
+    robust : str or None
+        Weight function name of a robust fit.
+    unit : str
+        ``dB`` or ``m``.
+    """
+
+    model: str
+    table: pd.DataFrame
+    pooled: bool = False
+    robust: str | None = None
+    unit: str = "dB"
+    notes: list[str] = field(default_factory=list)
+
+    def parameters(self) -> pd.DataFrame:
+        """Per-anchor parameters actually used (pooled rows substituted), indexed by anchor."""
+        t = self.table.set_index("anchor")
+        per = t.drop(index=POOLED)
+        if self.pooled:
+            per = per.copy()
+            for c in FIT_COLUMNS[self.model]:
+                if self.model == "attenuation-factor" and c == "p0":
+                    continue  # gamma, faf pooled relative to each anchor's own p0
+                per[c] = t.loc[POOLED, c]
+            per["calib_source"] = "pooled"
+        return per
+
+    def apply_to_anchors(self, anchors: pd.DataFrame | None) -> pd.DataFrame:
+        """Anchors frame with the fitted columns set (added or replaced).
+
+        Anchors absent from the survey get the pooled parameters.  For a path-loss model
+        the columns of the *other* path-loss models are dropped, so ``locate`` cannot
+        pick stale parameters.  Without ``anchors``, returns ``anchor`` + parameters only.
+        """
+        cols = list(FIT_COLUMNS[self.model])
+        par = self.parameters()
+        pooled_row = self.table.set_index("anchor").loc[POOLED]
+        if anchors is None:
+            out = par[cols + ["calib_source"]].reset_index()
+            return out
+        out = anchors.copy()
+        if self.model in PATHLOSS_MODELS:
+            stale = [c for c in _ALL_PATHLOSS_COLUMNS if c in out.columns and c not in cols]
+            out = out.drop(columns=stale)
+        ids = out["anchor"].astype(str)
+        for c in cols:
+            vals = ids.map(par[c]).astype(float)
+            out[c] = vals.fillna(float(pooled_row[c])).to_numpy()
+        src = ids.map(par["calib_source"])
+        out["calib_source"] = src.fillna("pooled").to_numpy()
+        return out
+
+    def summary(self) -> pd.DataFrame:
+        """The table with parameters and standard errors, for printing."""
+        return self.table.copy()
+
+
+def _robust_weight(robust: str | WeightFunction | None) -> WeightFunction | None:
+    if robust is None or robust is False:
+        return None
+    if isinstance(robust, WeightFunction):
+        return robust
+    return get_weight(str(robust))
+
+
+def _groups(survey: pd.DataFrame) -> tuple[NDArray[np.int64], list[str]]:
+    codes, uniques = pd.factorize(survey["anchor"].astype(str), sort=True)
+    return codes.astype(np.int64), [str(u) for u in uniques]
+
+
+def _p0_per_anchor(
+    survey: pd.DataFrame,
+    g: NDArray[np.int64],
+    ids: list[str],
+    d0: float,
+    p0: float | Mapping[str, float] | None,
+) -> Array:
+    m = len(ids)
+    if isinstance(p0, Mapping):
+        vals = np.array([float(p0.get(a, np.nan)) for a in ids])
+    elif p0 is not None:
+        vals = np.full(m, float(p0))
+    else:
+        vals = np.full(m, np.nan)
+    if np.all(np.isfinite(vals)):
+        return vals
+    d = survey["distance"].to_numpy(dtype=float)
+    r = survey["rssi"].to_numpy(dtype=float)
+    near = np.abs(d - d0) <= 0.05 * d0
+    cnt = np.bincount(g[near], minlength=m)
+    s = np.bincount(g[near], weights=r[near], minlength=m)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_near = s / cnt
+    pooled_near = r[near].mean() if near.any() else np.nan
+    vals = np.where(np.isfinite(vals), vals, mean_near)
+    vals = np.where(np.isfinite(vals), vals, pooled_near)
+    if not np.all(np.isfinite(vals)):
+        raise InputError(
+            f"attenuation-factor fit needs the reference power p0 at d0 = {d0} m: give p0 "
+            "(--p0, or a p0 column in the anchors file) or survey rows at that distance",
+            survey.attrs.get("path"),
+        )
+    return vals
+
+
+def calibrate_pathloss(
+    survey: pd.DataFrame,
+    model: str = "log-distance",
+    *,
+    robust: str | WeightFunction | None = None,
+    pooled: bool = False,
+    d0: float = 1.0,
+    p0: float | Mapping[str, float] | None = None,
+    max_iter: int = 50,
+) -> CalibrationResult:
+    """Fit a path-loss model per anchor and pooled from an RSSI survey.
+
+    Parameters
+    ----------
+    survey : DataFrame
+        ``anchor, distance, rssi`` (:func:`robustloc.io.read_survey`).
+    model : {"log-distance", "attenuation-factor", "friis"}
+        Log-distance ``A, n`` (seed 000 eq. (1)); attenuation factor ``gamma, faf`` with
+        ``p0`` fixed (seed 002 eq. (5)); free space ``p0`` with exponent 2 (eq. (4)).
+    robust : str or WeightFunction, optional
+        Robust IRLS (e.g. ``"huber"``, ``"igg3"``); default least squares.
+    pooled : bool
+        Write the pooled fit (all anchors together) to every anchor.
+    d0 : float
+        Reference distance (m) of the attenuation-factor and Friis models.
+    p0 : float or mapping anchor -> float, optional
+        Reference power for the attenuation-factor fit (see the module notes).
+    max_iter : int
+        IRLS iteration limit.
+
+    Returns
+    -------
+    CalibrationResult
+    """
+    if model not in PATHLOSS_MODELS:
+        raise ValueError(f"unknown path-loss model {model!r}; one of {', '.join(PATHLOSS_MODELS)}")
+    if "rssi" not in survey.columns:
+        raise InputError(
+            "path-loss calibration needs an RSSI survey (anchor, distance, rssi)",
+            survey.attrs.get("path"), 1,
+        )
+    if not d0 > 0:
+        raise ValueError(f"d0 must be positive, got {d0}")
+    weight = _robust_weight(robust)
+    g, ids = _groups(survey)
+    d = survey["distance"].to_numpy(dtype=float)
+    r = survey["rssi"].to_numpy(dtype=float)
+    m = len(ids)
+    p0_arr = None
+    if model == "log-distance":
+        x, y, slope = -10.0 * np.log10(d), r, True
+    elif model == "attenuation-factor":
+        p0_arr = _p0_per_anchor(survey, g, ids, d0, p0)
+        x, y, slope = 10.0 * np.log10(d0 / d), r - p0_arr[g], True
+    else:
+        x, y, slope = np.zeros_like(d), r - 20.0 * np.log10(d0 / d), False
+    per = fit_lines(x, y, g, m, slope=slope, robust=weight, max_iter=max_iter)
+    pool = fit_lines(x, y, np.zeros_like(g), 1, slope=slope, robust=weight, max_iter=max_iter)
+    rows = _assemble(per, pool, ids, slope)
+    if model == "log-distance":
+        table = _table(rows, {"A": "a", "n": "b"})
+    elif model == "attenuation-factor":
+        table = _table(rows, {"faf": "a", "gamma": "b"})
+        pooled_p0 = float(np.mean(p0_arr)) if p0 is None or isinstance(p0, Mapping) else p0
+        table.insert(1, "p0", np.append(p0_arr, pooled_p0))
+        table["d0"] = d0
+    else:
+        table = _table(rows, {"p0": "a"})
+        table["d0"] = d0
+    notes = _notes(per, ids, weight, 2 if slope else 1)
+    return CalibrationResult(
+        model=model, table=table, pooled=pooled,
+        robust=None if weight is None else weight.name, unit="dB", notes=notes,
+    )
+
+
+def calibrate_ranges(
+    survey: pd.DataFrame,
+    *,
+    scale: bool = False,
+    robust: str | WeightFunction | None = None,
+    pooled: bool = False,
+    max_iter: int = 50,
+) -> CalibrationResult:
+    """Fit a per-anchor range bias (and optionally scale) from ``anchor, distance, range``.
+
+    The model is ``range = scale * distance + bias + noise``; without ``scale`` the scale
+    is 1 and ``bias`` is the (robust) mean of ``range - distance``.  Apply it with
+    :func:`apply_range_calibration`: ``range_corrected = (range - bias) / scale``.
+    """
+    if "range" not in survey.columns:
+        raise InputError(
+            "range calibration needs a survey with a 'range' column (anchor, distance, range)",
+            survey.attrs.get("path"), 1,
+        )
+    weight = _robust_weight(robust)
+    g, ids = _groups(survey)
+    d = survey["distance"].to_numpy(dtype=float)
+    r = survey["range"].to_numpy(dtype=float)
+    if scale:
+        x, y = d, r
+    else:
+        x, y = np.zeros_like(d), r - d
+    per = fit_lines(x, y, g, len(ids), slope=scale, robust=weight, max_iter=max_iter)
+    pool = fit_lines(x, y, np.zeros_like(g), 1, slope=scale, robust=weight, max_iter=max_iter)
+    rows = _assemble(per, pool, ids, scale)
+    table = _table(rows, {"bias": "a", "scale": "b"} if scale else {"bias": "a"})
+    if not scale:
+        table.insert(3, "scale", 1.0)
+    return CalibrationResult(
+        model="range", table=table, pooled=pooled,
+        robust=None if weight is None else weight.name, unit="m",
+        notes=_notes(per, ids, weight, 2 if scale else 1),
+    )
+
+
+def _assemble(per: LineFit, pool: LineFit, ids: list[str], slope: bool) -> dict[str, Array]:
+    p = 2 if slope else 1
+    few = per.n_used <= p  # cannot estimate a standard error: take the pooled fit
+    src = np.where(few, "pooled", "anchor").astype(object)
+    out: dict[str, Array] = {"anchor": np.array(ids + [POOLED], dtype=object)}
+    for k in ("a", "b", "a_se", "b_se", "residual_std"):
+        pv = getattr(per, k)
+        out[k] = np.append(np.where(few, getattr(pool, k)[0], pv), getattr(pool, k))
+    out["n_obs"] = np.append(per.n_obs, pool.n_obs)
+    out["n_used"] = np.append(per.n_used, pool.n_used)
+    out["calib_source"] = np.append(src, "pooled")
+    return out
+
+
+def _table(rows: dict[str, Array], names: dict[str, str]) -> pd.DataFrame:
+    data: dict[str, object] = {"anchor": rows["anchor"]}
+    for col, key in names.items():
+        data[col] = rows[key]
+    for col, key in names.items():
+        data[f"{col}_se"] = rows[f"{key}_se"]
+    for k in ("residual_std", "n_obs", "n_used", "calib_source"):
+        data[k] = rows[k]
+    return pd.DataFrame(data)
+
+
+def _notes(
+    per: LineFit, ids: list[str], weight: WeightFunction | None, p: int
+) -> list[str]:
+    notes = []
+    few = [a for a, n in zip(ids, per.n_used) if n <= p]
+    if few:
+        notes.append(f"too few survey rows, pooled fit used for anchor(s): {', '.join(few)}")
+    if weight is not None and not per.converged:
+        notes.append(f"robust fit stopped at the iteration limit ({per.iterations})")
+    return notes
+
+
+def apply_range_calibration(anchors: pd.DataFrame, values: ArrayLike) -> Array:
+    """Correct ranges ``(N, m)`` with the anchors' ``bias``/``scale`` columns.
+
+    ``range_corrected = (range - bias) / scale`` per anchor column (anchor order of the
+    frame's rows).  A missing column, or an empty value, means ``bias = 0``/``scale = 1``.
+    NaN ranges stay NaN.
+    """
+    v = np.asarray(values, dtype=float)
+    m = len(anchors)
+    if v.shape[-1] != m:
+        raise ValueError(f"values have {v.shape[-1]} anchor columns, anchors frame has {m}")
+    bias = (
+        np.nan_to_num(anchors["bias"].to_numpy(dtype=float), nan=0.0)
+        if "bias" in anchors.columns else np.zeros(m)
+    )
+    scale = (
+        np.nan_to_num(anchors["scale"].to_numpy(dtype=float), nan=1.0)
+        if "scale" in anchors.columns else np.ones(m)
+    )
+    if np.any(scale <= 0):
+        raise InputError("anchors file has a non-positive range 'scale'", anchors.attrs.get("path"))
+    return (v - bias) / scale
+
+
+def survey_from_positions(
+    measurements: pd.DataFrame,
+    truth: pd.DataFrame,
+    anchors: pd.DataFrame,
+    *,
+    time_tolerance_s: float = 1e-6,
+    dim: int | None = None,
+) -> pd.DataFrame:
+    """Build a survey (``anchor, distance, rssi|range``) from measurements with truth.
+
+    Each measurement row is matched to the truth row of the same ``tag`` with the nearest
+    ``time`` within ``time_tolerance_s``; unmatched rows are dropped (their count is in
+    ``frame.attrs["n_unmatched"]``).  ``distance`` is 3-D when ``dim == 3`` or when both
+    anchors and truth have ``z`` (``dim=None``), else horizontal.
+    """
+    value = measurements.attrs.get("value") or ("rssi" if "rssi" in measurements else "range")
+    pos = _match_truth(measurements, truth, time_tolerance_s)
+    ok = np.isfinite(pos[:, 0])
+    meas = measurements.loc[ok] if not ok.all() else measurements
+    pos = pos[ok]
+    a = anchors.set_index(anchors["anchor"].astype(str))
+    ai = a.index.get_indexer(meas["anchor"].astype(str))
+    if (ai < 0).any():
+        i = int(np.argmax(ai < 0))
+        line = int(meas.index[i]) if meas.index.name == "line" else None
+        raise InputError(
+            f"unknown anchor id {meas['anchor'].iloc[i]!r} (not in the anchors file)",
+            measurements.attrs.get("path"), line,
+        )
+    use3 = (dim == 3) or (dim is None and "z" in a.columns and "z" in truth.columns)
+    axy = a[["x", "y"]].to_numpy(dtype=float)[ai]
+    dist2 = np.sum((axy - pos[:, :2]) ** 2, axis=1)
+    if use3:
+        az = a["z"].to_numpy(dtype=float)[ai] if "z" in a.columns else 0.0
+        dist2 = dist2 + (az - pos[:, 2]) ** 2
+    out = pd.DataFrame(
+        {"anchor": meas["anchor"].astype(str).to_numpy(), "distance": np.sqrt(dist2),
+         value: meas[value].to_numpy(dtype=float)}
+    )
+    out.attrs["value"] = value
+    out.attrs["n_unmatched"] = int((~ok).sum())
+    out.attrs["path"] = measurements.attrs.get("path")
+    return out
+
+
+def _match_truth(
+    frame: pd.DataFrame, truth: pd.DataFrame, tol: float
+) -> Array:
+    """Truth position ``(k, 3)`` (z = 0 if absent) for each row of ``frame``; NaN if none."""
+    k = len(frame)
+    out = np.full((k, 3), np.nan)
+    has_z = "z" in truth.columns
+    tt = truth.assign(_z=truth["z"] if has_z else 0.0)
+    ft = frame["tag"].astype(str).to_numpy()
+    ftime = frame["time"].to_numpy(dtype=float)
+    for tag, grp in tt.groupby(tt["tag"].astype(str), sort=False):
+        rows = np.flatnonzero(ft == tag)
+        if rows.size == 0:
+            continue
+        grp = grp.sort_values("time")
+        ts = grp["time"].to_numpy(dtype=float)
+        j = np.clip(np.searchsorted(ts, ftime[rows]), 1, max(len(ts) - 1, 1))
+        j0 = np.clip(j - 1, 0, len(ts) - 1)
+        j1 = np.clip(j, 0, len(ts) - 1)
+        pick = np.where(np.abs(ts[j0] - ftime[rows]) <= np.abs(ts[j1] - ftime[rows]), j0, j1)
+        near = np.abs(ts[pick] - ftime[rows]) <= tol
+        xyz = grp[["x", "y", "_z"]].to_numpy(dtype=float)[pick]
+        out[rows[near]] = xyz[near]
+    return out
+
+
+def default_p0_from_anchors(anchors: pd.DataFrame | None) -> dict[str, float] | None:
+    """``{anchor: p0}`` from an anchors frame's ``p0`` column, if it has finite values."""
+    if anchors is None or "p0" not in anchors.columns:
+        return None
+    vals = anchors["p0"].to_numpy(dtype=float)
+    if not np.isfinite(vals).any():
+        return None
+    return {str(a): float(v) for a, v in zip(anchors["anchor"], vals) if np.isfinite(v)}
+
+
+__all__: Sequence[str] = (
+    "CalibrationResult",
+    "LineFit",
+    "apply_range_calibration",
+    "calibrate_pathloss",
+    "calibrate_ranges",
+    "default_p0_from_anchors",
+    "fit_lines",
+    "survey_from_positions",
+)

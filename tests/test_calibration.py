@@ -1,0 +1,189 @@
+"""Calibration: recovery within standard errors, statsmodels OLS as reference, robust fits,
+range bias/scale, survey built from measurements with truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+import statsmodels.api as sm
+
+from robustloc.errors import InputError
+from robustloc.models.calibration import (
+    POOLED,
+    apply_range_calibration,
+    calibrate_pathloss,
+    calibrate_ranges,
+    fit_lines,
+    survey_from_positions,
+)
+from robustloc.models.pathloss import AttenuationFactor, LogDistance
+
+
+def _survey(model, n_anchors, distances, sigma_db, rng):
+    d = np.tile(distances, n_anchors)
+    ids = np.repeat([f"b{i}" for i in range(n_anchors)], len(distances))
+    r = model.rssi(d) + rng.normal(0, sigma_db, d.size)
+    return pd.DataFrame({"anchor": ids, "distance": d, "rssi": r})
+
+
+def test_log_distance_matches_statsmodels_ols():
+    rng = np.random.default_rng(3)
+    s = _survey(LogDistance(-61.0, 2.4), 1, np.arange(1.0, 31.0), 2.5, rng)
+    res = calibrate_pathloss(s)
+    row = res.table.iloc[0]
+    X = sm.add_constant(-10 * np.log10(s["distance"].to_numpy()))
+    ols = sm.OLS(s["rssi"].to_numpy(), X).fit()
+    np.testing.assert_allclose([row["A"], row["n"]], ols.params, rtol=1e-10)
+    np.testing.assert_allclose([row["A_se"], row["n_se"]], ols.bse, rtol=1e-8)
+    np.testing.assert_allclose(row["residual_std"], np.sqrt(ols.scale), rtol=1e-10)
+
+
+def test_log_distance_recovers_known_parameters_within_standard_errors():
+    # seed 000: A and n calibrated from RSSI sampled every 1 m along the corridor
+    rng = np.random.default_rng(7)
+    s = _survey(LogDistance(-59.0, 2.2), 1, np.arange(1.0, 41.0), 3.0, rng)
+    row = calibrate_pathloss(s).table.iloc[0]
+    assert abs(row["A"] + 59.0) < 3 * row["A_se"]
+    assert abs(row["n"] - 2.2) < 3 * row["n_se"]
+    assert 2.2 < row["residual_std"] < 3.8
+
+
+def test_standard_errors_have_nominal_coverage():
+    # 400 independent anchors in one batched call: ~95 % of |error| < 1.96 SE
+    rng = np.random.default_rng(11)
+    s = _survey(LogDistance(-59.0, 2.2), 400, np.arange(1.0, 21.0), 2.0, rng)
+    t = calibrate_pathloss(s).table
+    t = t[t["anchor"] != POOLED]
+    cov_A = np.mean(np.abs(t["A"] + 59.0) < 1.96 * t["A_se"])
+    cov_n = np.mean(np.abs(t["n"] - 2.2) < 1.96 * t["n_se"])
+    assert 0.91 < cov_A < 0.99 and 0.91 < cov_n < 0.99
+
+
+def test_attenuation_factor_paper_example_recovered():
+    # seed 002: d0 = 1 m, P_r(d0) = -29 dBm, gamma = 2.275, FAF = -1.076, residual 1.59 dBm
+    rng = np.random.default_rng(5)
+    truth = AttenuationFactor(p0=-29.0, gamma=2.275, faf=-1.076, d0=1.0)
+    s = _survey(truth, 1, np.repeat(np.arange(1.0, 9.0), 25), 1.59, rng)
+    res = calibrate_pathloss(s, "attenuation-factor", p0=-29.0)
+    row = res.table.iloc[0]
+    assert row["p0"] == -29.0 and row["d0"] == 1.0
+    assert abs(row["gamma"] - 2.275) < 3 * row["gamma_se"]
+    assert abs(row["faf"] + 1.076) < 3 * row["faf_se"]
+    assert abs(row["residual_std"] - 1.59) < 0.2
+    assert row["gamma_se"] < 0.1
+
+
+def test_attenuation_factor_p0_from_reference_samples_and_error():
+    rng = np.random.default_rng(2)
+    s = _survey(AttenuationFactor(-29.0, 2.0, 0.0), 2, np.arange(1.0, 11.0), 0.5, rng)
+    res = calibrate_pathloss(s, "attenuation-factor")
+    at_d0 = s[s["distance"] == 1.0].groupby("anchor")["rssi"].mean().to_numpy()
+    np.testing.assert_allclose(res.table["p0"].to_numpy()[:2], at_d0)
+    with pytest.raises(InputError, match="needs the reference power p0"):
+        calibrate_pathloss(s[s["distance"] > 2], "attenuation-factor")
+
+
+def test_friis_fits_reference_power_only():
+    rng = np.random.default_rng(4)
+    s = _survey(LogDistance(-40.0, 2.0), 1, np.arange(1.0, 21.0), 1.0, rng)
+    row = calibrate_pathloss(s, "friis").table.iloc[0]
+    assert abs(row["p0"] + 40.0) < 3 * row["p0_se"]
+    np.testing.assert_allclose(row["p0_se"], row["residual_std"] / np.sqrt(20))
+
+
+def test_robust_fit_resists_outliers_where_ls_does_not():
+    rng = np.random.default_rng(9)
+    s = _survey(LogDistance(-59.0, 2.2), 1, np.arange(1.0, 41.0), 1.5, rng)
+    s.loc[s.index[::5], "rssi"] -= 20.0  # body blockage: 20 % of samples 20 dB low
+    ls = calibrate_pathloss(s).table.iloc[0]
+    for name in ("huber", "igg3", "hampel"):
+        rb = calibrate_pathloss(s, robust=name).table.iloc[0]
+        assert abs(rb["A"] + 59.0) < abs(ls["A"] + 59.0)
+        assert abs(rb["n"] - 2.2) < 0.25, name
+    igg3 = calibrate_pathloss(s, robust="igg3").table.iloc[0]
+    assert igg3["n_used"] == 32  # the 8 blocked samples rejected
+    assert abs(ls["A"] + 59.0) > 2.0
+
+
+def test_robust_equals_ls_on_exact_data():
+    d = np.arange(1.0, 11.0)
+    s = pd.DataFrame({"anchor": "a", "distance": d, "rssi": LogDistance(-50, 3).rssi(d)})
+    for robust in (None, "huber", "igg"):
+        row = calibrate_pathloss(s, robust=robust).table.iloc[0]
+        np.testing.assert_allclose([row["A"], row["n"]], [-50, 3], atol=1e-9)
+
+
+def test_pooled_and_sparse_anchors_and_apply_to_anchors():
+    rng = np.random.default_rng(1)
+    s = _survey(LogDistance(-60.0, 2.0), 3, np.arange(1.0, 16.0), 1.0, rng)
+    s = pd.concat([s, pd.DataFrame({"anchor": ["lonely"] * 2, "distance": [1.0, 2.0],
+                                    "rssi": [-60.0, -66.0]})])
+    res = calibrate_pathloss(s)
+    t = res.table.set_index("anchor")
+    assert t.loc["lonely", "calib_source"] == "pooled"
+    assert t.loc["lonely", "A"] == t.loc[POOLED, "A"]
+    assert any("lonely" in n for n in res.notes)
+    anchors = pd.DataFrame({"anchor": ["b0", "b1", "b2", "lonely", "new"], "x": range(5),
+                            "y": 0.0, "p0": -1.0, "gamma": 2.0})
+    out = res.apply_to_anchors(anchors)
+    assert "p0" not in out.columns and "gamma" not in out.columns  # stale model dropped
+    assert out.loc[4, "calib_source"] == "pooled"
+    assert out.loc[4, "A"] == t.loc[POOLED, "A"]
+    assert out.loc[0, "A"] == t.loc["b0", "A"]
+    pooled = calibrate_pathloss(s, pooled=True).apply_to_anchors(anchors)
+    assert np.all(pooled["A"] == t.loc[POOLED, "A"])
+
+
+def test_range_bias_and_scale():
+    rng = np.random.default_rng(6)
+    d = np.tile(np.linspace(1, 20, 40), 2)
+    ids = np.repeat(["ap1", "ap2"], 40)
+    bias = np.where(ids == "ap1", 0.8, -0.3)
+    scl = np.where(ids == "ap1", 1.02, 1.0)
+    r = scl * d + bias + rng.normal(0, 0.1, d.size)
+    s = pd.DataFrame({"anchor": ids, "distance": d, "range": r})
+    t = calibrate_ranges(s).table.set_index("anchor")
+    np.testing.assert_allclose(t.loc["ap2", "bias"], np.mean(r[40:] - d[40:]))
+    assert t.loc["ap2", "scale"] == 1.0
+    ts = calibrate_ranges(s, scale=True).table.set_index("anchor")
+    assert abs(ts.loc["ap1", "bias"] - 0.8) < 3 * ts.loc["ap1", "bias_se"]
+    assert abs(ts.loc["ap1", "scale"] - 1.02) < 3 * ts.loc["ap1", "scale_se"]
+    anchors = calibrate_ranges(s, scale=True).apply_to_anchors(
+        pd.DataFrame({"anchor": ["ap1", "ap2"], "x": [0.0, 1.0], "y": [0.0, 0.0]})
+    )
+    corrected = apply_range_calibration(anchors, np.array([[1.02 * 10 + 0.8, np.nan]]))
+    np.testing.assert_allclose(corrected[0, 0], 10.0, atol=0.1)
+    assert np.isnan(corrected[0, 1])
+
+
+def test_apply_range_calibration_defaults():
+    a = pd.DataFrame({"anchor": ["1", "2"], "x": [0.0, 1], "y": [0.0, 1], "bias": [0.5, np.nan]})
+    np.testing.assert_allclose(apply_range_calibration(a, [[3.0, 4.0]]), [[2.5, 4.0]])
+    with pytest.raises(ValueError, match="anchor columns"):
+        apply_range_calibration(a, [[1.0, 2.0, 3.0]])
+
+
+def test_survey_from_positions():
+    anchors = pd.DataFrame({"anchor": ["a", "b"], "x": [0.0, 10.0], "y": [0.0, 0.0],
+                            "z": [2.0, 2.0]})
+    truth = pd.DataFrame({"time": [0.0, 1.0], "tag": ["T", "T"], "x": [3.0, 5.0],
+                          "y": [4.0, 0.0], "z": [2.0, 2.0]})
+    meas = pd.DataFrame({"time": [0.0, 0.0, 1.0, 2.0], "tag": ["T"] * 4,
+                         "anchor": ["a", "b", "a", "a"], "range": [5.5, 8.0, 5.2, 1.0]})
+    meas.attrs["value"] = "range"
+    s = survey_from_positions(meas, truth, anchors)
+    np.testing.assert_allclose(s["distance"], [5.0, np.hypot(7, 4), 5.0])
+    assert s.attrs["n_unmatched"] == 1  # time 2.0 has no truth
+    t = calibrate_ranges(s).table.set_index("anchor")
+    np.testing.assert_allclose(t.loc["a", "bias"], 0.35)
+
+
+def test_fit_lines_groups_independent_and_vectorized():
+    rng = np.random.default_rng(0)
+    g = rng.integers(0, 50, 2000)
+    x = rng.normal(size=2000)
+    y = 2.0 * g + (0.1 * g) * x + rng.normal(0, 0.01, 2000)
+    f = fit_lines(x, y, g, 50)
+    np.testing.assert_allclose(f.a, 2.0 * np.arange(50), atol=0.01)
+    np.testing.assert_allclose(f.b, 0.1 * np.arange(50), atol=0.01)
