@@ -1,0 +1,347 @@
+"""Speed, memory and accuracy of the batched position estimators against per-epoch peers.
+
+Workload (issue 2, "Speed"): ``--epochs`` epochs (default 100 000) of 2-D range
+positioning with 10 anchors and 20 % outlying ranges, solved by every method of
+``robustloc.estimators`` in one batched call each, beside the same work done one epoch at a
+time by
+
+* statsmodels ``RLM(M=HuberT())`` on the paper's linearized difference system
+  (seed 000, eq. (3): ``G Z = h``, one RLM fit per epoch), and
+* ``scipy.optimize.least_squares(loss="huber", f_scale=0.6)`` on the raw ranges (nonlinear,
+  started at the anchors' centroid; ``f_scale`` = 2 sigma, the paper's Huber ``c = 2``).
+
+The peers are timed on a subsample (``--peer-epochs``, default 500) and reported per fix
+(fixes/s extrapolate linearly: every epoch is an independent small problem).
+
+Simulated data (seeded, ``--seed``): anchors at the corners, edge midpoints and two interior
+points of a 30 m x 30 m square; true positions uniform in [5, 25]^2 m; range noise
+N(0, 0.3 m); each range independently an outlier with probability 0.2, outliers get a
+positive NLOS-like error U(3, 15) m.
+
+Columns: fixes/s, microseconds per fix, ratio to the statsmodels loop, peak traced memory
+of the call (``tracemalloc``, a separate run so tracing does not slow the timing), RMS and
+95th percentile of the 2-D position error over usable fixes, % epochs without a usable fix.
+
+Usage::
+
+    python benchmarks/bench_locate.py            # 100 000 epochs (about a minute)
+    python benchmarks/bench_locate.py --quick    # 5 000 epochs, 200 peer epochs
+    python benchmarks/bench_locate.py --epochs 20000 --methods ls,igg --json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+import tracemalloc
+import warnings
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+METHODS = ("ls", "wls", "nls", "huber", "hampel", "igg", "igg3", "lege")
+SIGMA_M = 0.3
+OUTLIER_RATE = 0.2
+
+
+# ----------------------------------------------------------------------------- data
+
+
+@dataclass(frozen=True)
+class Workload:
+    anchors: Array  # (m, 2)
+    truth: Array  # (N, 2)
+    ranges: Array  # (N, m)
+    outlier: NDArray[np.bool_]  # (N, m)
+
+
+def make_workload(n_epochs: int, seed: int = 0) -> Workload:
+    """Simulated range epochs (see the module docstring for every number)."""
+    rng = np.random.default_rng(seed)
+    anchors = np.array(
+        [
+            [0, 0], [30, 0], [30, 30], [0, 30], [15, 0],
+            [30, 15], [15, 30], [0, 15], [10, 20], [20, 10],
+        ],
+        dtype=float,
+    )  # fmt: skip
+    truth = rng.uniform(5.0, 25.0, size=(n_epochs, 2))
+    d = np.linalg.norm(truth[:, None, :] - anchors[None], axis=2)
+    noise = rng.normal(0.0, SIGMA_M, size=d.shape)
+    outlier = rng.random(d.shape) < OUTLIER_RATE
+    gross = np.where(outlier, rng.uniform(3.0, 15.0, size=d.shape), 0.0)
+    return Workload(anchors, truth, d + noise + gross, outlier)
+
+
+def linearized_system(anchors: Array, ranges: Array) -> tuple[Array, Array]:
+    """The paper's difference system (seed 000, eq. (3)), first anchor as reference.
+
+    ``G`` row ``i-1`` = ``a_i - a_1``; ``h`` row ``i-1`` =
+    ``(d_1^2 - d_i^2 - |a_1|^2 + |a_i|^2) / 2``.  Returns ``G (N, m-1, 2)`` (a broadcast
+    view) and ``h (N, m-1)``.
+    """
+    a1 = anchors[0]
+    G = anchors[1:] - a1
+    k = np.sum(anchors**2, axis=1)
+    h = 0.5 * (ranges[:, :1] ** 2 - ranges[:, 1:] ** 2 - k[0] + k[1:])
+    return np.broadcast_to(G, (ranges.shape[0],) + G.shape), h
+
+
+# ----------------------------------------------------------------------------- ours
+
+
+@dataclass(frozen=True)
+class Fixes:
+    position: Array  # (N, 2), NaN = no usable fix
+    how: str  # what was called
+
+
+def _usable(x: Array, status: NDArray[np.object_]) -> Array:
+    from robustloc import status as st
+
+    return np.where(np.isin(status, st.USABLE)[:, None], x, np.nan)
+
+
+def our_solver(method: str, mad_scale: bool = False) -> Callable[[Workload], Fixes]:
+    """A batched solver for ``method``.
+
+    Uses ``robustloc.estimators.ranging.locate`` when it exists (what ``robustloc locate``
+    runs), else calls the kernels directly: ``linear.solve_wls`` / ``linear.lege`` on the
+    eq. (3) system, ``nonlinear.gauss_newton`` on :class:`RangeModel` started from ``ls``
+    with the known range sigma (``scale=1``: the same information scipy gets through
+    ``f_scale``); ``mad_scale=True`` estimates the scale per epoch by the MAD instead.
+    """
+    try:
+        from robustloc.estimators.ranging import locate  # type: ignore[import-not-found]
+    except ImportError:
+        locate = None
+    if locate is not None:
+
+        def run_locate(wl: Workload) -> Fixes:
+            sol = locate(method, wl.anchors, ranges=wl.ranges)
+            return Fixes(_usable(sol.position, sol.status), "estimators.ranging.locate")
+
+        return run_locate
+
+    from robustloc.estimators import linear, nonlinear
+    from robustloc.models.ranging import RangeModel
+    from robustloc.robust.weights import get_weight
+
+    def ls(wl: Workload) -> Fixes:
+        G, h = linearized_system(wl.anchors, wl.ranges)
+        fit = linear.solve_wls(G, h)
+        return Fixes(_usable(fit.x, fit.status), "linear.solve_wls(eq. 3)")
+
+    def lege(wl: Workload) -> Fixes:
+        G, h = linearized_system(wl.anchors, wl.ranges)
+        fit = linear.lege(G, h)
+        return Fixes(_usable(fit.x, fit.status), "linear.lege(eq. 3)")
+
+    def gn(wl: Workload) -> Fixes:
+        G, h = linearized_system(wl.anchors, wl.ranges)
+        x0 = linear.solve_wls(G, h).x
+        x0 = np.where(np.isfinite(x0), x0, wl.anchors.mean(axis=0))
+        wf = None if method == "nls" else get_weight(method)
+        scale = None if mad_scale else 1.0
+        fit = nonlinear.gauss_newton(
+            RangeModel(wl.anchors), wl.ranges, x0, SIGMA_M, weight=wf, scale=scale
+        )
+        how = f"nonlinear.gauss_newton({method}, scale={'MAD' if mad_scale else 'sigma'})"
+        return Fixes(_usable(fit.x, fit.status), how + " from ls")
+
+    table = {"ls": ls, "lege": lege, "nls": gn, "huber": gn, "hampel": gn, "igg": gn, "igg3": gn}
+    if method not in table:
+        raise NotImplementedError(f"{method}: needs estimators.ranging.locate (not present yet)")
+    return table[method]
+
+
+# ----------------------------------------------------------------------------- peers
+
+
+def statsmodels_rlm(wl: Workload) -> Fixes:
+    """statsmodels RLM(HuberT), one fit per epoch on the eq. (3) system."""
+    import statsmodels.api as sm
+
+    G, h = linearized_system(wl.anchors, wl.ranges)
+    out = np.full((wl.ranges.shape[0], 2), np.nan)
+    norm = sm.robust.norms.HuberT()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for i in range(out.shape[0]):
+            out[i] = sm.RLM(h[i], G[i], M=norm).fit().params
+    return Fixes(out, "statsmodels RLM(HuberT) per epoch")
+
+
+def scipy_huber(wl: Workload) -> Fixes:
+    """scipy least_squares(loss='huber') on the raw ranges, one call per epoch."""
+    from scipy.optimize import least_squares
+
+    A = wl.anchors
+    x0 = A.mean(axis=0)
+    out = np.full((wl.ranges.shape[0], 2), np.nan)
+    for i in range(out.shape[0]):
+        z = wl.ranges[i]
+
+        def f(x: Array, z: Array = z) -> Array:
+            return np.hypot(x[0] - A[:, 0], x[1] - A[:, 1]) - z
+
+        def jac(x: Array) -> Array:
+            d = x - A
+            return d / np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-12)[:, None]
+
+        r = least_squares(f, x0, jac=jac, loss="huber", f_scale=2 * SIGMA_M)
+        out[i] = r.x if r.success else np.nan
+    return Fixes(out, "scipy least_squares(huber) per epoch")
+
+
+PEERS: dict[str, Callable[[Workload], Fixes]] = {
+    "statsmodels-RLM(HuberT)": statsmodels_rlm,
+    "scipy-least_squares(huber)": scipy_huber,
+}
+
+
+# ----------------------------------------------------------------------------- harness
+
+
+@dataclass
+class Row:
+    method: str
+    epochs: int
+    seconds: float
+    fixes_per_s: float
+    us_per_fix: float
+    ratio_vs_statsmodels: float
+    peak_mem_mb: float
+    rms_m: float
+    p95_m: float
+    failed_pct: float
+    how: str
+
+
+def _subset(wl: Workload, n: int) -> Workload:
+    return Workload(wl.anchors, wl.truth[:n], wl.ranges[:n], wl.outlier[:n])
+
+
+def measure(name: str, fn: Callable[[Workload], Fixes], wl: Workload, memory: bool) -> Row:
+    """Time one call of ``fn`` on the workload; optionally a second, traced call for memory.
+
+    A warm-up call on 20 epochs first, so imports and first-call costs are not timed.
+    """
+    fn(_subset(wl, 20))
+    t = time.perf_counter()
+    fx = fn(wl)
+    dt = time.perf_counter() - t
+    peak = float("nan")
+    if memory:
+        tracemalloc.start()
+        fn(wl)
+        peak = tracemalloc.get_traced_memory()[1] / 2**20
+        tracemalloc.stop()
+    err = np.linalg.norm(fx.position - wl.truth, axis=1)
+    ok = np.isfinite(err)
+    n = wl.ranges.shape[0]
+    return Row(
+        method=name,
+        epochs=n,
+        seconds=dt,
+        fixes_per_s=n / dt,
+        us_per_fix=1e6 * dt / n,
+        ratio_vs_statsmodels=float("nan"),
+        peak_mem_mb=peak,
+        rms_m=float(np.sqrt(np.mean(err[ok] ** 2))) if ok.any() else float("nan"),
+        p95_m=float(np.percentile(err[ok], 95)) if ok.any() else float("nan"),
+        failed_pct=100.0 * float(np.mean(~ok)),
+        how=fx.how,
+    )
+
+
+def run(
+    epochs: int,
+    peer_epochs: int,
+    methods: list[str],
+    seed: int,
+    memory: bool = True,
+    mad_scale: bool = False,
+) -> list[Row]:
+    """Run the peers and our methods; return one row each (ratio filled in)."""
+    wl = make_workload(epochs, seed)
+    rows: list[Row] = []
+    peer_wl = _subset(wl, min(peer_epochs, epochs))
+    for name, fn in PEERS.items():
+        print(f"  {name} on {peer_wl.ranges.shape[0]} epochs ...", file=sys.stderr)
+        rows.append(measure(name, fn, peer_wl, memory))
+    for m in methods:
+        print(f"  {m} on {epochs} epochs ...", file=sys.stderr)
+        try:
+            fn = our_solver(m, mad_scale)
+            rows.append(measure(m, fn, wl, memory))
+        except NotImplementedError as e:
+            print(f"  skipped: {e}", file=sys.stderr)
+    ref = rows[0].us_per_fix
+    for r in rows:
+        r.ratio_vs_statsmodels = ref / r.us_per_fix
+    return rows
+
+
+def format_table(rows: list[Row]) -> str:
+    head = (
+        f"{'method':<28}{'epochs':>8}{'fixes/s':>12}{'us/fix':>10}{'x RLM':>9}"
+        f"{'peak MB':>9}{'RMS m':>8}{'p95 m':>8}{'fail %':>8}  called"
+    )
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        lines.append(
+            f"{r.method:<28}{r.epochs:>8d}{r.fixes_per_s:>12,.0f}{r.us_per_fix:>10.2f}"
+            f"{r.ratio_vs_statsmodels:>9.1f}{r.peak_mem_mb:>9.1f}{r.rms_m:>8.3f}{r.p95_m:>8.3f}"
+            f"{r.failed_pct:>8.2f}  {r.how}"
+        )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--epochs", type=int, default=100_000, help="epochs for our methods")
+    ap.add_argument("--peer-epochs", type=int, default=500, help="epochs for per-epoch peers")
+    ap.add_argument("--quick", action="store_true", help="5 000 epochs, 200 peer epochs")
+    ap.add_argument("--methods", default=",".join(METHODS), help="comma-separated methods")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--no-memory", action="store_true", help="skip the traced memory run")
+    ap.add_argument("--mad-scale", action="store_true", help="robust methods: per-epoch MAD scale")
+    ap.add_argument("--json", action="store_true", help="print the rows as JSON")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.epochs, args.peer_epochs = 5_000, 200
+    if args.epochs < 1 or args.peer_epochs < 1:
+        ap.error("--epochs and --peer-epochs must be positive")
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        ap.error(f"unknown method(s) {unknown}; choose from {', '.join(METHODS)}")
+    rows = run(
+        args.epochs,
+        args.peer_epochs,
+        methods,
+        args.seed,
+        memory=not args.no_memory,
+        mad_scale=args.mad_scale,
+    )
+    if args.json:
+        print(json.dumps([asdict(r) for r in rows], indent=2))
+    else:
+        print(
+            f"{args.epochs} epochs x 10 anchors, 2-D, range sigma {SIGMA_M} m, "
+            f"{OUTLIER_RATE:.0%} outliers U(3,15) m, seed {args.seed}; "
+            f"peers timed on {min(args.peer_epochs, args.epochs)} epochs"
+        )
+        print(format_table(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
