@@ -1,0 +1,417 @@
+"""Statistics of RSSI samples, per anchor and per distance bin (seed 002, sec. 2, Table 1).
+
+The paper characterizes static RSSI at one AP by its mean, variance, skewness
+``alpha = E(x - mu)^3 / sigma^3`` and kurtosis ``beta = E(x - mu)^4 / sigma^4`` (Pearson's,
+``beta = 3`` for a normal law), the correlation of the variance with distance (0.578) and the
+lag after which the autocorrelation falls below 0.2 (8 samples).  :class:`RssiStatistics`
+computes the same quantities for every anchor of a measurements table and, when the truth
+is known, for every (anchor, distance bin), plus a normality test.
+
+Conventions
+-----------
+* ``variance`` is the sample variance (``ddof = 1``); skewness and kurtosis use the
+  population moments of the paper's formulas (``scipy.stats.skew`` and
+  ``scipy.stats.kurtosis(fisher=False)`` with their default ``bias=True``).
+* The autocorrelation at lag ``k`` (in samples, not seconds: real logs are irregular) is
+  the pooled biased estimator over the contiguous runs of a group,
+  ``r(k) = sum_runs sum_t c_t c_{t+k} / sum c_t^2`` with ``c`` the values minus the group
+  mean; for a single run it is ``statsmodels.tsa.stattools.acf(x, adjusted=False)``.
+  Per anchor, when the truth is known, ``c`` is the RSSI minus the mean of its distance
+  bin, so the distance trend of a moving tag does not pass for correlation.
+* Normality: D'Agostino-Pearson ``scipy.stats.normaltest`` (needs 8 samples) and
+  Shapiro-Wilk ``scipy.stats.shapiro`` (3 to 5000 samples); p-values, NaN when the group is
+  too small.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from numpy.typing import ArrayLike, NDArray
+from scipy import stats
+
+from robustloc.errors import InputError
+
+Array = NDArray[np.float64]
+
+
+# ---------------------------------------------------------------------------------------
+# building blocks
+# ---------------------------------------------------------------------------------------
+
+
+def moments(x: ArrayLike) -> dict[str, float]:
+    """Mean, sample variance, Pearson skewness and kurtosis of ``x`` (seed 002, Table 1).
+
+    Returns NaN entries when fewer than 2 finite values (skewness and kurtosis also NaN
+    for a constant sample).
+    """
+    v = np.asarray(x, dtype=float)
+    v = v[np.isfinite(v)]
+    n = v.size
+    if n < 2:
+        mean = float(v.mean()) if n else float("nan")
+        return {"n": n, "mean": mean, "variance": float("nan"), "skewness": float("nan"),
+                "kurtosis": float("nan")}
+    mu = v.mean()
+    c = v - mu
+    m2 = np.mean(c * c)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        skew = np.mean(c**3) / m2**1.5 if m2 > 0 else np.nan  # alpha = E(x-mu)^3 / sigma^3
+        kurt = np.mean(c**4) / m2**2 if m2 > 0 else np.nan  # beta = E(x-mu)^4 / sigma^4
+    return {"n": n, "mean": float(mu), "variance": float(c @ c / (n - 1)),
+            "skewness": float(skew), "kurtosis": float(kurt)}
+
+
+def autocorrelation(
+    x: ArrayLike, max_lag: int, runs: ArrayLike | None = None, center: float | None = None
+) -> Array:
+    """Pooled biased autocorrelation ``r(0..max_lag)`` of ``x`` over contiguous runs.
+
+    Parameters
+    ----------
+    x : array_like, shape (n,)
+        Values in time order (within each run).
+    max_lag : int
+        Largest lag (samples).
+    runs : array_like, shape (n,), optional
+        Run label of each value; products across two runs are not counted.  Default: one
+        run (then ``r`` equals ``statsmodels`` ``acf(x, adjusted=False)``).
+    center : float, optional
+        Value subtracted before the products; default the mean of ``x``.
+
+    Returns
+    -------
+    ndarray, shape (max_lag + 1,)
+        ``r(0) = 1``; NaN beyond the longest run or for a constant sample.
+    """
+    v = np.asarray(x, dtype=float)
+    if max_lag < 0:
+        raise ValueError(f"max_lag must be >= 0, got {max_lag}")
+    r = np.full(max_lag + 1, np.nan)
+    if v.size == 0:
+        return r
+    c = v - (np.mean(v) if center is None else center)
+    den = c @ c
+    if not den > 0:
+        return r
+    lab = np.zeros(v.size, dtype=np.int64) if runs is None else pd.factorize(
+        np.asarray(runs))[0]
+    for k in range(min(max_lag, v.size - 1) + 1):
+        same = lab[k:] == lab[: v.size - k]
+        if k and not same.any():
+            break
+        r[k] = np.sum(c[: v.size - k] * c[k:] * same) / den
+    return r
+
+
+def decorrelation_lag(acf: ArrayLike, threshold: float = 0.2) -> float:
+    """First lag where the autocorrelation drops below ``threshold`` (NaN if never).
+
+    The paper finds 8 samples at 0.2 (seed 002, sec. 2): average more than that many.
+    """
+    r = np.asarray(acf, dtype=float)
+    below = np.flatnonzero(r < threshold)
+    return float(below[0]) if below.size else float("nan")
+
+
+def normality(x: ArrayLike) -> dict[str, float]:
+    """p-values of D'Agostino-Pearson (``normaltest``) and Shapiro-Wilk tests."""
+    v = np.asarray(x, dtype=float)
+    v = v[np.isfinite(v)]
+    out = {"normaltest_p": float("nan"), "shapiro_p": float("nan")}
+    if v.size < 3 or np.ptp(v) == 0:
+        return out
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        if v.size >= 8:
+            out["normaltest_p"] = float(stats.normaltest(v).pvalue)
+        if v.size <= 5000:
+            out["shapiro_p"] = float(stats.shapiro(v).pvalue)
+    return out
+
+
+def truth_distances(
+    measurements: pd.DataFrame, anchors: pd.DataFrame, truth: pd.DataFrame
+) -> Array:
+    """True tag-anchor distance of every measurement row (truth interpolated in time).
+
+    The truth position of the row's tag is linearly interpolated at the row's time (held
+    constant outside the truth span); 3-D when both anchors and truth have ``z``.  Rows
+    whose tag has no truth get NaN.
+    """
+    n = len(measurements)
+    pos = np.full((n, 3), np.nan)
+    use_z = "z" in anchors.columns and "z" in truth.columns
+    dims = ["x", "y", "z"] if use_z else ["x", "y"]
+    mt = measurements["time"].to_numpy(dtype=float)
+    mtag = measurements["tag"].astype(str).to_numpy()
+    for tag, grp in truth.groupby(truth["tag"].astype(str), sort=False):
+        rows = np.flatnonzero(mtag == tag)
+        if rows.size == 0:
+            continue
+        g = grp.sort_values("time")
+        tt = g["time"].to_numpy(dtype=float)
+        for j, c in enumerate(dims):
+            pos[rows, j] = np.interp(mt[rows], tt, g[c].to_numpy(dtype=float))
+    idx = pd.Index(anchors["anchor"].astype(str)).get_indexer(
+        measurements["anchor"].astype(str))
+    if (idx < 0).any():
+        i = int(np.argmax(idx < 0))
+        raise InputError(
+            f"unknown anchor id {measurements['anchor'].iloc[i]!r} (not in the anchors)",
+            measurements.attrs.get("path"),
+            int(measurements.index[i]) if measurements.index.name == "line" else None,
+        )
+    apos = anchors[dims].to_numpy(dtype=float)[idx]
+    return np.sqrt(np.sum((pos[:, : len(dims)] - apos) ** 2, axis=1))
+
+
+# ---------------------------------------------------------------------------------------
+# the analysis
+# ---------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RssiStatsResult:
+    """Tables of :meth:`RssiStatistics.compute`.
+
+    Attributes
+    ----------
+    per_anchor : DataFrame
+        One row per anchor: ``anchor, n, mean, variance, skewness, kurtosis,
+        decorrelation_lag, normaltest_p, shapiro_p``; with truth also the moments of the
+        residuals about their distance-bin means (``resid_variance, resid_skewness,
+        resid_kurtosis``: the noise without the distance trend) and ``distance_min/max_m``.
+        The summary's skewness and kurtosis are the residual ones when present.
+    per_bin : DataFrame or None
+        With truth: one row per (anchor, distance bin): ``anchor, distance_m`` (bin centre)
+        and the same statistics.
+    acf : DataFrame
+        Autocorrelation per anchor: index lag, one column per anchor.
+    variance_distance_corr : float
+        Pearson correlation of the per-bin variance with the bin distance (paper: 0.578);
+        NaN without truth or with fewer than 3 bins.
+    samples : DataFrame
+        The samples analysed (``tag, anchor, time, rssi`` and ``distance_m`` with truth),
+        for the histograms.
+    """
+
+    per_anchor: pd.DataFrame
+    per_bin: pd.DataFrame | None
+    acf: pd.DataFrame
+    variance_distance_corr: float
+    samples: pd.DataFrame
+
+    def write_csv(self, out_dir: Path) -> list[Path]:
+        """Write ``per_anchor.csv``, ``per_bin.csv`` (with truth) and ``acf.csv``."""
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        paths = [out_dir / "per_anchor.csv"]
+        self.per_anchor.to_csv(paths[0], index=False)
+        if self.per_bin is not None:
+            paths.append(out_dir / "per_bin.csv")
+            self.per_bin.to_csv(paths[-1], index=False)
+        paths.append(out_dir / "acf.csv")
+        self.acf.to_csv(paths[-1], index_label="lag")
+        return paths
+
+    def summary(self) -> dict[str, object]:
+        """Headline numbers (JSON-serializable)."""
+        pa = self.per_anchor
+        sk = "resid_skewness" if "resid_skewness" in pa.columns else "skewness"
+        ku = "resid_kurtosis" if "resid_kurtosis" in pa.columns else "kurtosis"
+        return {
+            "n_samples": int(pa["n"].sum()),
+            "n_anchors": int(len(pa)),
+            "median_skewness": _f(pa[sk].median()),
+            "median_kurtosis": _f(pa[ku].median()),
+            "median_decorrelation_lag": _f(pa["decorrelation_lag"].median()),
+            "share_anchors_left_skewed": _f((pa[sk] < 0).mean()),
+            "share_anchors_normal_rejected_5pct": _f((pa["normaltest_p"] < 0.05).mean()),
+            "variance_distance_corr": _f(self.variance_distance_corr),
+            "n_bins": 0 if self.per_bin is None else int(len(self.per_bin)),
+        }
+
+
+def _f(v: object) -> float | None:
+    v = float(v)  # type: ignore[arg-type]
+    return None if not np.isfinite(v) else v
+
+
+class RssiStatistics:
+    """RSSI statistics per anchor and per distance bin (seed 002, sec. 2, Table 1).
+
+    Parameters
+    ----------
+    max_lag : int
+        Largest autocorrelation lag, in samples (default 30).
+    bin_width_m : float
+        Width of the distance bins (default 1 m, the paper's 1..8 m steps); bins are
+        centred on multiples of the width.
+    threshold : float
+        Autocorrelation level for the decorrelation lag (paper: 0.2).
+    min_samples : int
+        Bins with fewer samples are dropped from ``per_bin`` (default 10).
+    """
+
+    def __init__(
+        self, max_lag: int = 30, bin_width_m: float = 1.0, threshold: float = 0.2,
+        min_samples: int = 10,
+    ) -> None:
+        if max_lag < 1:
+            raise ValueError(f"max_lag must be >= 1, got {max_lag}")
+        if not bin_width_m > 0:
+            raise ValueError(f"bin_width_m must be positive, got {bin_width_m}")
+        if min_samples < 2:
+            raise ValueError(f"min_samples must be >= 2, got {min_samples}")
+        self.max_lag = int(max_lag)
+        self.bin_width_m = float(bin_width_m)
+        self.threshold = float(threshold)
+        self.min_samples = int(min_samples)
+
+    def compute(
+        self, measurements: pd.DataFrame, anchors: pd.DataFrame | None = None,
+        truth: pd.DataFrame | None = None,
+    ) -> RssiStatsResult:
+        """Analyse a measurements frame (``time, tag, anchor, rssi``).
+
+        ``truth`` requires ``anchors`` (for the distances).
+        """
+        if "rssi" not in measurements.columns:
+            raise InputError("measurements have no 'rssi' column: statistics need RSSI",
+                             measurements.attrs.get("path"))
+        if truth is not None and anchors is None:
+            raise ValueError("--truth needs --anchors (anchor positions give the distances)")
+        df = pd.DataFrame({
+            "tag": measurements["tag"].astype(str).to_numpy(),
+            "anchor": measurements["anchor"].astype(str).to_numpy(),
+            "time": measurements["time"].to_numpy(dtype=float),
+            "rssi": measurements["rssi"].to_numpy(dtype=float),
+        })
+        if truth is not None:
+            df["distance_m"] = truth_distances(measurements, anchors, truth)
+        df = df[np.isfinite(df["rssi"])].sort_values(["anchor", "tag", "time"],
+                                                     kind="mergesort").reset_index(drop=True)
+        if df.empty:
+            raise InputError("no finite RSSI sample to analyse", measurements.attrs.get("path"))
+
+        per_bin = None
+        corr = float("nan")
+        resid = df["rssi"].to_numpy()
+        if truth is not None:
+            ok = np.isfinite(df["distance_m"].to_numpy())
+            df = df[ok].reset_index(drop=True)
+            w = self.bin_width_m
+            df["bin_m"] = np.maximum(np.round(df["distance_m"] / w), 1) * w
+            rows = []
+            for (anchor, b), g in df.groupby(["anchor", "bin_m"], sort=True):
+                if len(g) < self.min_samples:
+                    continue
+                rows.append({"anchor": anchor, "distance_m": b,
+                             **self._stats(g["rssi"].to_numpy(), self._runs(g))})
+            per_bin = pd.DataFrame(rows)
+            if len(per_bin) >= 3 and per_bin["variance"].std() > 0:
+                corr = float(np.corrcoef(per_bin["distance_m"], per_bin["variance"])[0, 1])
+            bin_mean = df.groupby(["anchor", "bin_m"])["rssi"].transform("mean")
+            resid = (df["rssi"] - bin_mean).to_numpy()
+
+        rows = []
+        acfs = {}
+        for anchor, g in df.groupby("anchor", sort=True):
+            idx = g.index.to_numpy()
+            row = {"anchor": anchor, **self._stats(g["rssi"].to_numpy(), None)}
+            r = autocorrelation(resid[idx], self.max_lag, runs=g["tag"].to_numpy(),
+                                center=None if truth is None else 0.0)
+            row["decorrelation_lag"] = decorrelation_lag(r, self.threshold)
+            if truth is not None:
+                mr = moments(resid[idx])
+                row.update({"resid_variance": mr["variance"], "resid_skewness": mr["skewness"],
+                            "resid_kurtosis": mr["kurtosis"]})
+                row["distance_min_m"] = float(g["distance_m"].min())
+                row["distance_max_m"] = float(g["distance_m"].max())
+            rows.append(row)
+            acfs[anchor] = r
+        per_anchor = pd.DataFrame(rows)
+        acf = pd.DataFrame(acfs, index=pd.RangeIndex(self.max_lag + 1, name="lag"))
+        return RssiStatsResult(per_anchor, per_bin, acf, corr, df)
+
+    @staticmethod
+    def _runs(g: pd.DataFrame) -> NDArray[np.int64]:
+        """Contiguous runs of a group: a new run where the tag changes or rows skip."""
+        tag_change = np.r_[True, g["tag"].to_numpy()[1:] != g["tag"].to_numpy()[:-1]]
+        gap = np.r_[True, np.diff(g.index.to_numpy()) != 1]
+        return np.cumsum(tag_change | gap)
+
+    def _stats(self, x: Array, runs: ArrayLike | None) -> dict[str, float]:
+        out: dict[str, float] = dict(moments(x))
+        if runs is not None:
+            r = autocorrelation(x, self.max_lag, runs=runs)
+            out["decorrelation_lag"] = decorrelation_lag(r, self.threshold)
+        out.update(normality(x))
+        return out
+
+
+# ---------------------------------------------------------------------------------------
+# figures
+# ---------------------------------------------------------------------------------------
+
+
+def plot_histograms(result: RssiStatsResult, path: Path, max_panels: int = 16) -> Path:
+    """Histogram of the RSSI of each anchor with the fitted normal density (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    anchors = list(result.per_anchor["anchor"])[:max_panels]
+    n = len(anchors)
+    cols = min(4, n)
+    rows = int(np.ceil(n / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.6 * rows), squeeze=False)
+    s = result.samples
+    for ax, a in zip(axes.ravel(), anchors):
+        v = s.loc[s["anchor"] == a, "rssi"].to_numpy()
+        lo, hi = np.floor(v.min()) - 0.5, np.ceil(v.max()) + 0.5
+        ax.hist(v, bins=np.arange(lo, hi + 1.0), density=True, color="0.6")
+        mu, sd = v.mean(), v.std()
+        if sd > 0:
+            t = np.linspace(lo, hi, 200)
+            ax.plot(t, stats.norm.pdf(t, mu, sd), "r-", lw=1)
+        row = result.per_anchor.set_index("anchor").loc[a]
+        ax.set_title(f"{a}: skew {row['skewness']:.2f}, kurt {row['kurtosis']:.2f}",
+                     fontsize=8)
+        ax.set_xlabel("RSSI (dBm)", fontsize=8)
+    for ax in axes.ravel()[n:]:
+        ax.axis("off")
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def plot_autocorrelation(result: RssiStatsResult, path: Path, threshold: float = 0.2) -> Path:
+    """Autocorrelation of each anchor's RSSI against the lag, with the threshold (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 3.8))
+    for a in result.acf.columns:
+        ax.plot(result.acf.index, result.acf[a], lw=1, label=str(a))
+    ax.axhline(threshold, color="k", ls="--", lw=1)
+    ax.set_xlabel("lag (samples)")
+    ax.set_ylabel("autocorrelation")
+    if len(result.acf.columns) <= 12:
+        ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path

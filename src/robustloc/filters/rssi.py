@@ -1,0 +1,565 @@
+"""Robust RSSI Kalman filter, one filter per (tag, anchor) link (seed 002, sec. 2-3).
+
+Every link (one receiver hearing one transmitter) carries the state
+``X = [P_r, d, v]``: the received power (dBm), the distance (m) and the radial speed
+(m/s, positive moving away).  All links of all tags are filtered together: the links are the
+batch axis, the loop runs over the *k-th sample of every link* (a ragged log is laid out as a
+``(T, L)`` array, NaN-padded), so the cost is ``T`` vectorized steps whatever ``L`` is.
+
+State model (seed 002, eq. (15)), near-constant radial acceleration ``a`` over the
+sampling interval ``t``::
+
+    d_{k+1}   = d_k + v_k t + a t^2 / 2
+    v_{k+1}   = v_k + a t
+    P_{k+1}   = P_k + 10 n lg(d_k / d_{k+1})
+
+The paper writes ``20 lg(d_k / (d_k + v_k t))``, the free-space exponent ``n = 2``.  Here
+``n`` is the link's path-loss exponent (``gamma`` of the attenuation-factor model, seed 002
+eq. (5)) so that the predicted power stays on the calibrated model curve when the distance
+changes; ``RobustRssiFilter(exponent=2.0)`` is the paper's equation literally, and it is
+also the fallback when the anchor has no exponent.
+
+Measurement (eq. (16)): ``RSSI = [1 0 0] X + r``, ``r ~ N(0, R)``.
+
+Jacobian (eq. (17), garbled in the source; derived here).  With ``c = 10 n / ln 10`` and
+``d' = d + v t`` (the mean prediction, ``a = 0``)::
+
+    dP'/dP = 1
+    dP'/dd = c (1/d - 1/d') = c v t / (d d')
+    dP'/dv = -c t / d'
+    dd'/dd = 1,  dd'/dv = t,  dv'/dv = 1,  all other entries 0
+
+so ``Phi = [[1, c v t/(d d'), -c t/d'], [0, 1, t], [0, 0, 1]]``.  At ``v = 0`` the power
+row is ``[1, 0, -c t/d]``: a radial speed changes the power, a distance alone does not.
+
+Process noise: the acceleration enters every component through
+``G = dX'/da = [-c (t^2/2) / d', t^2/2, t]`` (the power term follows from
+``P' = P + 10 n lg(d/d')`` with ``d' = d + v t + a t^2/2``), so
+``Q = sigma_a^2 G G^T + diag(q_P t, 0, 0)``; the second term is a random walk of the power
+itself (shadowing and environment changes that are not a distance change).
+
+Robust update (seed 002, eqs. (12)-(13)): the gain is re-weighted by the equivalent weight
+``D`` of the standardized innovation, ``K^ = K D``, ``X+ = X- + K^ (Z - H X-)``,
+``P+ = (I - K^ H) P-``; ``D`` is any :class:`~robustloc.robust.weights.WeightFunction`,
+by default the asymmetric weight of eq. (14), :class:`~robustloc.robust.weights.AsymmetricIGG`
+with ``K0 = 2, K1 = C = 3``.
+
+Adaptive thresholds.  The paper sets ``K0 = 2 s`` and ``K1 = C = 3 s`` with ``s`` "the
+standard error of the residuals".  Dividing the innovation by ``s`` and using the fixed
+``K0 = 2, K1 = C = 3`` is the same thing.  ``s`` is, per link,
+
+``s_k = max(s_emp, sqrt(S_k))``
+
+where ``S_k = P-_PP + R`` is the innovation variance the filter predicts and ``s_emp`` a
+running, outlier-proof estimate of the spread of the innovations actually seen: an
+exponentially weighted mean of ``|e|`` winsorized at ``C s`` and scaled by ``sqrt(pi/2)``
+(``E|e| = s sqrt(2/pi)`` for normal ``e``)::
+
+    s_emp <- (1 - lambda) s_emp + lambda sqrt(pi/2) min(|e|, C s)
+
+with ``lambda = 1/scale_window`` (default 20 samples) and ``s_emp`` starting at
+``sqrt(R)``.  Winsorizing keeps a burst of outliers from inflating the scale it is judged
+by; the ``max`` keeps the test from rejecting the legitimately large innovations of a
+filter that has just started or is mis-tuned with too small an ``R``.
+
+Environment changes (a door closing, a person standing still in the path) shift the power
+level for good: every later innovation is then rejected, and only the slowly growing
+predicted variance would let the new level in.  When a link would reject its
+``max_rejected``-th consecutive sample (default 8, the paper's decorrelation lag), that
+sample is taken with weight one and the power variance is first inflated by ``e^2``, so the
+filter re-locks to the new level at once (``max_rejected=0`` disables this).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from robustloc.filters import core
+from robustloc.robust.weights import AsymmetricIGG, WeightFunction
+
+Array = NDArray[np.float64]
+
+LN10 = float(np.log(10.0))
+#: Measurement matrix of seed 002 eq. (16): the filter observes the power only.
+_H = np.array([[1.0, 0.0, 0.0]])
+
+
+# ---------------------------------------------------------------------------------------
+# Path loss helpers (attenuation-factor model, seed 002 eq. (5))
+# ---------------------------------------------------------------------------------------
+
+
+def rssi_from_distance(
+    distance_m: ArrayLike, p0_dbm: ArrayLike, gamma: ArrayLike, faf_db: ArrayLike = 0.0,
+    d0_m: ArrayLike = 1.0,
+) -> Array:
+    """``P_r(d) = P_r(d0) + 10 gamma lg(d0/d) + FAF`` (seed 002, eq. (5))."""
+    d = np.asarray(distance_m, dtype=float)
+    return np.asarray(p0_dbm) + 10.0 * np.asarray(gamma) * np.log10(np.asarray(d0_m) / d) + (
+        np.asarray(faf_db)
+    )
+
+
+def distance_from_rssi(
+    rssi_dbm: ArrayLike, p0_dbm: ArrayLike, gamma: ArrayLike, faf_db: ArrayLike = 0.0,
+    d0_m: ArrayLike = 1.0,
+) -> Array:
+    """Inverse of eq. (5): ``d = d0 10^((P_r(d0) + FAF - P_r) / (10 gamma))``."""
+    p = np.asarray(rssi_dbm, dtype=float)
+    return np.asarray(d0_m) * 10.0 ** (
+        (np.asarray(p0_dbm) + np.asarray(faf_db) - p) / (10.0 * np.asarray(gamma))
+    )
+
+
+# ---------------------------------------------------------------------------------------
+# State model (seed 002 eq. (15)), its Jacobian (eq. (17), derived) and process noise
+# ---------------------------------------------------------------------------------------
+
+
+def transition(
+    x: ArrayLike, dt_s: ArrayLike, exponent: ArrayLike = 2.0, min_distance_m: float = 0.1
+) -> Array:
+    """Mean state prediction of seed 002 eq. (15) (``a = 0``), batched over ``x (..., 3)``.
+
+    Distances are kept at or above ``min_distance_m`` (the log is undefined at zero).
+    """
+    x = np.asarray(x, dtype=float)
+    dt = np.asarray(dt_s, dtype=float)
+    d = np.maximum(x[..., 1], min_distance_m)
+    d1 = np.maximum(d + x[..., 2] * dt, min_distance_m)
+    out = np.empty(np.broadcast_shapes(x.shape, dt.shape + (3,)))
+    out[..., 0] = x[..., 0] + 10.0 * np.asarray(exponent) * np.log10(d / d1)  # eq. (15)
+    out[..., 1] = d1
+    out[..., 2] = x[..., 2]
+    return out
+
+
+def transition_jacobian(
+    x: ArrayLike, dt_s: ArrayLike, exponent: ArrayLike = 2.0, min_distance_m: float = 0.1
+) -> Array:
+    """``Phi = d f / d X`` of eq. (15) at ``x`` (eq. (17), derived in the module docstring).
+
+    Returns an array of shape ``(..., 3, 3)``.
+    """
+    x = np.asarray(x, dtype=float)
+    dt = np.asarray(dt_s, dtype=float)
+    c = 10.0 * np.asarray(exponent, dtype=float) / LN10
+    d = np.maximum(x[..., 1], min_distance_m)
+    d1 = np.maximum(d + x[..., 2] * dt, min_distance_m)
+    shape = np.broadcast_shapes(x.shape[:-1], dt.shape)
+    phi = np.zeros(shape + (3, 3))
+    phi[..., 0, 0] = 1.0
+    phi[..., 0, 1] = c * (1.0 / d - 1.0 / d1)
+    phi[..., 0, 2] = -c * dt / d1
+    phi[..., 1, 1] = 1.0
+    phi[..., 1, 2] = dt
+    phi[..., 2, 2] = 1.0
+    return phi
+
+
+def process_noise(
+    x: ArrayLike, dt_s: ArrayLike, sigma_accel_mps2: float, q_rssi_db2_per_s: float,
+    exponent: ArrayLike = 2.0, min_distance_m: float = 0.1,
+) -> Array:
+    """``Q = sigma_a^2 G G^T + diag(q_P t, 0, 0)``, ``G = [-c t^2/(2 d'), t^2/2, t]``."""
+    x = np.asarray(x, dtype=float)
+    dt = np.asarray(dt_s, dtype=float)
+    c = 10.0 * np.asarray(exponent, dtype=float) / LN10
+    d = np.maximum(x[..., 1], min_distance_m)
+    d1 = np.maximum(d + x[..., 2] * dt, min_distance_m)
+    g = np.stack(np.broadcast_arrays(-c * 0.5 * dt * dt / d1, 0.5 * dt * dt, dt), axis=-1)
+    q = sigma_accel_mps2**2 * g[..., :, None] * g[..., None, :]
+    q[..., 0, 0] += q_rssi_db2_per_s * dt
+    return q
+
+
+def scalar_update(
+    x: Array, P: Array, innovation: Array, S: Array, D: Array
+) -> tuple[Array, Array]:
+    """Robust update with ``H = [1 0 0]`` in closed form, batched over links.
+
+    ``K = P- H^T / S``, ``K^ = K D`` (seed 002, eq. (12)), ``X+ = X- + K^ e`` (eq. (13)).
+    The covariance is the Joseph form the shared core uses
+    (:func:`robustloc.filters.core.update_from_moments`),
+    ``(I - K^ H) P- (I - K^ H)^T + K^ R K^^T = P- - D (2 - D) h h^T / S`` with ``h = P- H^T``;
+    for ``D`` in ``{0, 1}`` this is the paper's ``(I - K^ H) P-``, and for ``0 < D < 1`` it is
+    the actual covariance of the down-weighted estimate.  This is the ``m = 1`` case of
+    :func:`robustloc.filters.core.update_linear` written out, to run at millions of
+    samples per second (the generic update solves ``(K, m, m)`` systems and builds status
+    strings each step); ``RobustRssiFilter(engine="core")`` runs the core's update instead
+    and the tests check both agree.
+    """
+    h = P[:, :, 0]
+    x = x + (D * innovation / S)[:, None] * h
+    P = P - (D * (2.0 - D) / S)[:, None, None] * (h[:, :, None] * h[:, None, :])
+    return x, P
+
+
+class _Rescaled(WeightFunction):
+    """``p(e r)``: a weight function applied to innovations re-standardized by ``r``.
+
+    The shared core standardizes each innovation by ``sqrt(S)``; the adaptive filter
+    standardizes by ``s = max(s_emp, sqrt(S))`` (module docstring), i.e. multiplies the
+    core's ``e`` by ``r = sqrt(S) / s``.  ``force`` marks links whose weight is 1 (re-lock).
+    """
+
+    def __init__(self, inner: WeightFunction, ratio: Array, force: Array) -> None:
+        self.inner = inner
+        self.ratio = ratio
+        self.force = force
+        self.name = inner.name
+
+    def weights(self, u: ArrayLike) -> Array:
+        return np.where(self.force, 1.0, self.inner.weights(np.asarray(u) * self.ratio))
+
+    def rho(self, u: ArrayLike) -> Array:
+        return self.inner.rho(np.asarray(u) * self.ratio)
+
+
+# ---------------------------------------------------------------------------------------
+# Ragged log <-> (T, L) step layout
+# ---------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class StepLayout:
+    """Where each sample of a ragged multi-link log sits in the ``(T, L)`` step array.
+
+    Attributes
+    ----------
+    link : ndarray of int, shape (n,)
+        Link index (column) of each sample.
+    step : ndarray of int, shape (n,)
+        Rank of the sample within its link in time order (row).
+    n_steps, n_links : int
+    """
+
+    link: NDArray[np.int64]
+    step: NDArray[np.int64]
+    n_steps: int
+    n_links: int
+
+    @classmethod
+    def build(cls, link: ArrayLike, time_s: ArrayLike) -> StepLayout:
+        """Rank samples within each link by time (stable for equal times)."""
+        link = np.asarray(link, dtype=np.int64)
+        t = np.asarray(time_s, dtype=float)
+        n = link.size
+        if n == 0:
+            return cls(link, np.zeros(0, dtype=np.int64), 0, 0)
+        order = np.lexsort((np.arange(n), t, link))
+        sl = link[order]
+        start = np.r_[0, np.flatnonzero(np.diff(sl)) + 1]
+        counts = np.diff(np.r_[start, n])
+        rank = np.arange(n) - np.repeat(start, counts)
+        step = np.empty(n, dtype=np.int64)
+        step[order] = rank
+        return cls(link, step, int(counts.max()), int(link.max()) + 1)
+
+    def scatter(self, values: ArrayLike, fill: float = np.nan) -> Array:
+        """Per-sample values into a ``(T, L)`` array (``fill`` where no sample)."""
+        out = np.full((self.n_steps, self.n_links), fill)
+        out[self.step, self.link] = values
+        return out
+
+    def gather(self, grid: ArrayLike) -> Array:
+        """``(T, L)`` array back to per-sample values, in the input order."""
+        return np.asarray(grid)[self.step, self.link]
+
+    def intervals(self, time_s: ArrayLike) -> Array:
+        """``(T, L)`` sampling intervals ``t_k - t_{k-1}`` (0 at a link's first sample)."""
+        tg = self.scatter(time_s)
+        dt = np.zeros_like(tg)
+        dt[1:] = np.diff(tg, axis=0)
+        return np.where(np.isfinite(dt), dt, 0.0)
+
+
+# ---------------------------------------------------------------------------------------
+# The filter
+# ---------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RssiFilterResult:
+    """Output of :meth:`RobustRssiFilter.run`, arrays of shape ``(T, L)`` (or ``(n,)``).
+
+    Attributes
+    ----------
+    rssi_dbm : filtered power ``P_r`` (a-posteriori state); NaN where no sample.
+    distance_m : filtered distance state ``d``.
+    speed_mps : radial speed state ``v``.
+    rssi_var_db2 : a-posteriori variance of ``P_r``.
+    innovation_db : ``Z - H X-`` (NaN for a missing measurement).
+    standardized : innovation divided by the adaptive standard error ``s``.
+    scale_db : the standard error ``s`` used (see module docstring).
+    weight : equivalent weight ``D`` applied to the gain (1 for the plain filter; NaN for a
+        missing measurement).
+    relocked : the sample re-locked the link after ``max_rejected`` rejections.
+    """
+
+    rssi_dbm: Array
+    distance_m: Array
+    speed_mps: Array
+    rssi_var_db2: Array
+    innovation_db: Array
+    standardized: Array
+    scale_db: Array
+    weight: Array
+    relocked: NDArray[np.bool_]
+    extra: dict = field(default_factory=dict)
+
+    def gather(self, layout: StepLayout) -> RssiFilterResult:
+        """The same result per sample (input order) from the ``(T, L)`` layout."""
+        g = layout.gather
+        return RssiFilterResult(
+            g(self.rssi_dbm), g(self.distance_m), g(self.speed_mps), g(self.rssi_var_db2),
+            g(self.innovation_db), g(self.standardized), g(self.scale_db), g(self.weight),
+            g(self.relocked).astype(bool), dict(self.extra),
+        )
+
+
+@dataclass(frozen=True)
+class LinkParams:
+    """Attenuation-factor path-loss parameters of each link (seed 002 eq. (5)), shape ``(L,)``.
+
+    ``gamma`` is also the exponent of the state transition unless the filter forces one.
+    """
+
+    p0_dbm: Array
+    gamma: Array
+    faf_db: Array
+    d0_m: Array
+
+    @classmethod
+    def broadcast(
+        cls, n_links: int, p0_dbm: ArrayLike = -40.0, gamma: ArrayLike = 2.0,
+        faf_db: ArrayLike = 0.0, d0_m: ArrayLike = 1.0,
+    ) -> LinkParams:
+        def arr(v: ArrayLike) -> Array:
+            return np.broadcast_to(np.asarray(v, dtype=float), (n_links,)).copy()
+
+        return cls(arr(p0_dbm), arr(gamma), arr(faf_db), arr(d0_m))
+
+
+class RobustRssiFilter:
+    """Robust (M-estimation) Kalman filter on RSSI, batched over links (seed 002).
+
+    Parameters
+    ----------
+    weight : WeightFunction or None
+        Equivalent weight ``D`` of the standardized innovation (eq. (12)); default
+        :class:`AsymmetricIGG` ``(K0=2, K1=3, C=3)`` (eq. (14)).  ``None``: the plain
+        Kalman filter (``D = 1``).
+    sigma_rssi_db : float
+        Measurement noise standard deviation ``sqrt(R)`` (eq. (16)).
+    sigma_accel_mps2 : float
+        Standard deviation of the radial acceleration ``a`` of eq. (15).
+    q_rssi_db2_per_s : float
+        Random-walk intensity of the power level (environment changes).
+    exponent : float or None
+        Path-loss exponent of the transition; ``None``: each link's ``gamma`` (see module
+        docstring); ``2.0``: the paper's ``20 lg`` literally.
+    init_speed_std_mps : float
+        Prior standard deviation of the radial speed.
+    adaptive : bool
+        Standardize by ``max(s_emp, sqrt(S))`` (True) or by ``sqrt(S)`` alone (False).
+    scale_window : float
+        ``1/lambda`` of the running scale ``s_emp``, in samples.
+    max_rejected : int
+        Consecutive zero-weight samples after which a link re-locks (0: never).
+    min_distance_m : float
+        Floor on the distance state.
+    engine : {"scalar", "core"}
+        Measurement update: the closed-form ``m = 1`` update (:func:`scalar_update`,
+        fast) or the shared core's :func:`~robustloc.filters.core.update_linear` (same
+        result, several times slower).  The prediction always runs through
+        :func:`~robustloc.filters.core.predict_ekf`.
+    """
+
+    def __init__(
+        self,
+        weight: WeightFunction | None = None,
+        *,
+        robust: bool = True,
+        sigma_rssi_db: float = 2.0,
+        sigma_accel_mps2: float = 0.5,
+        q_rssi_db2_per_s: float = 0.05,
+        exponent: float | None = None,
+        init_speed_std_mps: float = 1.0,
+        adaptive: bool = True,
+        scale_window: float = 20.0,
+        max_rejected: int = 8,
+        min_distance_m: float = 0.1,
+        engine: str = "scalar",
+    ) -> None:
+        if engine not in ("scalar", "core"):
+            raise ValueError(f"engine must be 'scalar' or 'core', got {engine!r}")
+        self.engine = engine
+        if weight is None and robust:
+            weight = AsymmetricIGG(k0=2.0, k1=3.0, c=3.0)
+        self.weight = weight if robust else None
+        for name, val in [
+            ("sigma_rssi_db", sigma_rssi_db), ("scale_window", scale_window),
+            ("min_distance_m", min_distance_m),
+        ]:
+            if not (np.isfinite(val) and val > 0):
+                raise ValueError(f"{name} must be positive, got {val}")
+        for name, val in [
+            ("sigma_accel_mps2", sigma_accel_mps2), ("q_rssi_db2_per_s", q_rssi_db2_per_s),
+            ("init_speed_std_mps", init_speed_std_mps),
+        ]:
+            if not (np.isfinite(val) and val >= 0):
+                raise ValueError(f"{name} must be >= 0, got {val}")
+        if exponent is not None and not exponent > 0:
+            raise ValueError(f"exponent must be positive, got {exponent}")
+        if max_rejected < 0:
+            raise ValueError(f"max_rejected must be >= 0, got {max_rejected}")
+        self.sigma_rssi_db = float(sigma_rssi_db)
+        self.sigma_accel_mps2 = float(sigma_accel_mps2)
+        self.q_rssi_db2_per_s = float(q_rssi_db2_per_s)
+        self.exponent = exponent
+        self.init_speed_std_mps = float(init_speed_std_mps)
+        self.adaptive = bool(adaptive)
+        self.scale_window = float(scale_window)
+        self.max_rejected = int(max_rejected)
+        self.min_distance_m = float(min_distance_m)
+
+    @property
+    def name(self) -> str:
+        return "plain" if self.weight is None else self.weight.name
+
+    # -- public entry points ---------------------------------------------------------
+
+    def filter_samples(
+        self, link: ArrayLike, time_s: ArrayLike, rssi_dbm: ArrayLike,
+        params: LinkParams | None = None,
+    ) -> RssiFilterResult:
+        """Filter a ragged log: per-sample ``link`` index, ``time_s``, ``rssi_dbm``.
+
+        Returns per-sample results in the input order.  Non-finite RSSI values are
+        missing measurements (prediction only, weight NaN).
+        """
+        link = np.asarray(link, dtype=np.int64)
+        t = np.asarray(time_s, dtype=float)
+        z = np.asarray(rssi_dbm, dtype=float)
+        if not (link.shape == t.shape == z.shape) or link.ndim != 1:
+            raise ValueError("link, time_s and rssi_dbm must be 1-D arrays of equal length")
+        if link.size and link.min() < 0:
+            raise ValueError("link indices must be >= 0")
+        if not np.all(np.isfinite(t)):
+            raise ValueError("time_s must be finite")
+        layout = StepLayout.build(link, t)
+        if params is None:
+            params = LinkParams.broadcast(layout.n_links)
+        res = self.run(layout.scatter(z), layout.intervals(t), params)
+        return res.gather(layout)
+
+    def run(self, rssi_dbm: ArrayLike, dt_s: ArrayLike, params: LinkParams) -> RssiFilterResult:
+        """Filter ``(T, L)`` RSSI (NaN: no sample) with intervals ``dt_s (T, L)``.
+
+        One vectorized step per row; every link is an independent filter.
+        """
+        z_all = np.asarray(rssi_dbm, dtype=float)
+        dt_all = np.asarray(dt_s, dtype=float)
+        if z_all.ndim != 2 or dt_all.shape != z_all.shape:
+            raise ValueError("rssi_dbm and dt_s must both have shape (T, L)")
+        T, L = z_all.shape
+        p = params
+        if p.p0_dbm.shape != (L,):
+            raise ValueError(f"link parameters must have shape ({L},), got {p.p0_dbm.shape}")
+        expo = np.full(L, float(self.exponent)) if self.exponent is not None else np.where(
+            np.isfinite(p.gamma) & (p.gamma > 0), p.gamma, 2.0
+        )
+        c_db = 10.0 * expo / LN10  # dP/d(ln d)
+        R = self.sigma_rssi_db**2
+        lam = 1.0 / self.scale_window
+        wf = self.weight
+        c_win = wf.rejection_threshold if wf is not None else np.inf
+        if not np.isfinite(c_win):
+            c_win = 3.0
+
+        out = {k: np.full((T, L), np.nan) for k in
+               ("p", "d", "v", "var", "innov", "u", "scale", "w")}
+        relocked = np.zeros((T, L), dtype=bool)
+
+        x = np.zeros((L, 3))
+        P = np.zeros((L, 3, 3))
+        started = np.zeros(L, dtype=bool)
+        s_emp = np.full(L, self.sigma_rssi_db)
+        n_rej = np.zeros(L, dtype=np.int64)
+        sqrt_half_pi = np.sqrt(np.pi / 2.0)
+
+        for k in range(T):
+            z = z_all[k]
+            present = np.isfinite(z)
+            # links starting now: state from the first finite sample (model-consistent
+            # prior: d from the inverse of eq. (5), cov(P, d) through dd/dP)
+            new = present & ~started
+            if new.any():
+                d_init = np.clip(
+                    distance_from_rssi(z[new], p.p0_dbm[new], expo[new], p.faf_db[new],
+                                       p.d0_m[new]), self.min_distance_m, 1e4)
+                x[new] = np.stack([z[new], d_init, np.zeros(new.sum())], axis=1)
+                dd_dp = -d_init / c_db[new]
+                J = np.stack([np.ones(new.sum()), dd_dp, np.zeros(new.sum())], axis=1)
+                P0 = R * J[:, :, None] * J[:, None, :]
+                P0[:, 1, 1] += (0.05 * d_init) ** 2
+                P0[:, 2, 2] += self.init_speed_std_mps**2
+                P[new] = P0
+                started |= new
+            run_now = started & ~new
+            dt = np.where(run_now, dt_all[k], 0.0)
+            # prediction, eq. (13) first line, through the shared EKF core with the
+            # transition of eq. (15) and its Jacobian (eq. (17), derived above)
+            Q = process_noise(x, dt, self.sigma_accel_mps2, self.q_rssi_db2_per_s, expo,
+                              self.min_distance_m)
+            x, P = core.predict_ekf(
+                x, P, lambda s, dt=dt: transition(s, dt, expo, self.min_distance_m), Q,
+                jac=lambda s, dt=dt: transition_jacobian(s, dt, expo, self.min_distance_m),
+            )
+            # measurement update, eqs. (12)-(13) with H = [1 0 0] (eq. (16))
+            upd = present & run_now
+            S = P[:, 0, 0] + R
+            e = np.where(upd, z - x[:, 0], np.nan)
+            scale = np.sqrt(np.maximum(s_emp**2, S)) if self.adaptive else np.sqrt(S)
+            u = e / scale
+            D = np.where(upd, 1.0, np.nan) if wf is None else wf.weights(u)  # eq. (14)
+            rejected = upd & (D <= 0.0)
+            n_rej = np.where(rejected, n_rej + 1, np.where(upd, 0, n_rej))
+            relock = rejected & (n_rej >= self.max_rejected) if self.max_rejected else (
+                np.zeros(L, dtype=bool))
+            if relock.any():
+                P[relock, 0, 0] += e[relock] ** 2
+                D = np.where(relock, 1.0, D)
+                n_rej[relock] = 0
+                S = P[:, 0, 0] + R
+            if self.engine == "core":
+                robust = core.PLAIN if wf is None else core.RobustUpdate(
+                    weight=_Rescaled(wf, (np.sqrt(S) / scale)[:, None], relock[:, None]))
+                res = core.update_linear(x, P, np.where(upd, z, np.nan)[:, None], _H,
+                                         np.array([[R]]), robust=robust)
+                x, P = res.x, res.P
+            else:
+                x, P = scalar_update(x, P, np.where(upd, e, 0.0), S, np.where(upd, D, 0.0))
+            # running standard error of the innovations (winsorized at C s)
+            a_e = np.minimum(np.abs(e), c_win * scale)
+            s_emp = np.where(upd, (1 - lam) * s_emp + lam * sqrt_half_pi * a_e, s_emp)
+            x[:, 1] = np.maximum(x[:, 1], self.min_distance_m)
+
+            has = started
+            out["p"][k] = np.where(has, x[:, 0], np.nan)
+            out["d"][k] = np.where(has, x[:, 1], np.nan)
+            out["v"][k] = np.where(has, x[:, 2], np.nan)
+            out["var"][k] = np.where(has, P[:, 0, 0], np.nan)
+            out["innov"][k] = e
+            out["u"][k] = u
+            out["scale"][k] = np.where(upd, scale, np.nan)
+            out["w"][k] = np.where(upd | new, np.where(new, 1.0, D), np.nan)
+            relocked[k] = relock
+        return RssiFilterResult(
+            out["p"], out["d"], out["v"], out["var"], out["innov"], out["u"], out["scale"],
+            out["w"], relocked, {"exponent": expo},
+        )

@@ -1,0 +1,220 @@
+"""Robust RSSI Kalman filter (seed 002, eqs. (12)-(17))."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from robustloc.filters.core import numerical_jacobian
+from robustloc.filters.rssi import (
+    LinkParams,
+    RobustRssiFilter,
+    StepLayout,
+    distance_from_rssi,
+    process_noise,
+    rssi_from_distance,
+    transition,
+    transition_jacobian,
+)
+from robustloc.robust.weights import AsymmetricIGG
+
+
+def _full_transition(x, dt, n, a):
+    """Eq. (15) with the acceleration: d' = d + v t + a t^2/2, P' = P + 10 n lg(d/d')."""
+    p, d, v = x
+    d1 = d + v * dt + 0.5 * a * dt * dt
+    return np.array([p + 10 * n * np.log10(d / d1), d1, v + a * dt])
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    p=st.floats(-90, -20), d=st.floats(0.5, 30), v=st.floats(-1.5, 1.5),
+    dt=st.floats(0.01, 0.3), n=st.floats(1.5, 4.0),
+)
+def test_jacobian_matches_finite_differences(p, d, v, dt, n):
+    x = np.array([[p, d, v]])
+    J = transition_jacobian(x, dt, n)
+    Jn = numerical_jacobian(lambda s: transition(s, dt, n), x)
+    np.testing.assert_allclose(J, Jn, rtol=1e-5, atol=1e-6)
+
+
+def test_jacobian_hand_values():
+    # d = 4, v = 1, t = 1, n = 2: d' = 5, c = 20 / ln 10
+    c = 20 / np.log(10)
+    J = transition_jacobian(np.array([-50.0, 4.0, 1.0]), 1.0, 2.0)
+    np.testing.assert_allclose(J, [[1, c * (1 / 4 - 1 / 5), -c / 5], [0, 1, 1], [0, 0, 1]])
+    # paper's transition literally: 20 lg(d / (d + v t))
+    x1 = transition(np.array([-50.0, 4.0, 1.0]), 1.0, 2.0)
+    np.testing.assert_allclose(x1, [-50 + 20 * np.log10(4 / 5), 5.0, 1.0])
+
+
+def test_process_noise_is_acceleration_sensitivity():
+    x = np.array([-60.0, 6.0, 0.7])
+    dt, n, sa = 0.5, 2.6, 0.8
+    h = 1e-6
+    G = (_full_transition(x, dt, n, h) - _full_transition(x, dt, n, -h)) / (2 * h)
+    Q = process_noise(x, dt, sa, 0.0, n)
+    np.testing.assert_allclose(Q, sa**2 * np.outer(G, G), rtol=1e-6, atol=1e-12)
+    Q2 = process_noise(x, dt, sa, 0.3, n)
+    assert Q2[0, 0] - Q[0, 0] == pytest.approx(0.3 * dt)
+
+
+def test_asymmetric_weight_eq14_breakpoints():
+    w = AsymmetricIGG(k0=2.0, k1=3.0, c=3.0)
+    e = np.array([-3.5, -3.0, -2.5, -2.0, 0.0, 1.99, 2.0, 2.5, 3.0, 4.0])
+    # -C: (C + e) = 0; -K0 and K0: weight 1 (continuous); -2.5: (2/2.5)(0.5/1) = 0.4;
+    # 2.5: (2/2.5)(0.5/1)^2 = 0.2; K1 and beyond: 0
+    np.testing.assert_allclose(w.weights(e), [0, 0, 0.4, 1, 1, 1, 1, 0.2, 0, 0], atol=1e-12)
+    # asymmetric for C > K1: the negative side keeps weight further out
+    w2 = AsymmetricIGG(k0=1.5, k1=2.5, c=4.0)
+    assert w2.weights(-3.0) == pytest.approx((1.5 / 3.0) * 1.0 / 2.5)
+    assert w2.weights(3.0) == 0.0
+
+
+def test_pathloss_roundtrip_paper_example():
+    # seed 002: p0 = -29 dBm at 1 m, gamma = 2.275, FAF = -1.076
+    d = np.array([1.0, 2.0, 5.0, 8.0])
+    r = rssi_from_distance(d, -29.0, 2.275, -1.076)
+    np.testing.assert_allclose(r[0], -30.076)
+    np.testing.assert_allclose(r[1], -29 - 22.75 * np.log10(2) - 1.076)
+    np.testing.assert_allclose(distance_from_rssi(r, -29.0, 2.275, -1.076), d)
+
+
+@pytest.mark.parametrize("robust", [True, False])
+def test_follows_noise_free_rssi_exactly(robust):
+    T, dt = 400, 0.5
+    t = np.arange(T) * dt
+    d = np.stack([np.full(T, 3.0), 2.0 + 0.4 * t, 60.0 - 0.3 * t], axis=1)  # (T, 3)
+    p0, g = np.array([-30.0, -35.0, -28.0]), np.array([2.0, 2.5, 3.0])
+    z = rssi_from_distance(d, p0, g)
+    f = RobustRssiFilter(robust=robust, sigma_rssi_db=1.0)
+    res = f.run(z, np.full_like(z, dt), LinkParams.broadcast(3, p0, g))
+    np.testing.assert_allclose(res.rssi_dbm[-100:], z[-100:], atol=1e-6)
+    # the distance state follows the true distance to within 1 % (the model ties P and d;
+    # the power random walk q_P lets them drift apart slightly)
+    np.testing.assert_allclose(res.distance_m[-100:], d[-100:], rtol=1e-2)
+    np.testing.assert_allclose(res.speed_mps[-1], [0.0, 0.4, -0.3], atol=5e-3)
+    assert np.all(res.weight == 1.0)
+
+
+def test_outlier_barely_moves_robust_but_drags_plain():
+    rng = np.random.default_rng(3)
+    T = 200
+    z = -55.0 + rng.normal(0, 1.0, T)
+    z_out = z.copy()
+    z_out[120] -= 15.0
+    dt = np.full((T, 1), 0.5)
+    lp = LinkParams.broadcast(1, -35.0, 2.0)
+    for robust, lo, hi in ((True, 0.0, 0.3), (False, 2.0, 15.0)):
+        f = RobustRssiFilter(robust=robust, sigma_rssi_db=1.0)
+        a = f.run(z[:, None], dt, lp).rssi_dbm[:, 0]
+        b = f.run(z_out[:, None], dt, lp).rssi_dbm[:, 0]
+        shift = abs(b[120] - a[120])
+        assert lo <= shift <= hi, (robust, shift)
+    r = RobustRssiFilter(sigma_rssi_db=1.0).run(z_out[:, None], dt, lp)
+    assert r.weight[120, 0] == 0.0
+    # the weight is eq. (14) of the standardized innovation
+    np.testing.assert_allclose(
+        r.weight[1:, 0], AsymmetricIGG().weights(r.standardized[1:, 0]), atol=1e-12
+    )
+
+
+def test_core_and_scalar_engines_agree():
+    rng = np.random.default_rng(1)
+    T, L = 250, 6
+    Z = -55 + rng.normal(0, 2, (T, L))
+    Z[rng.random((T, L)) < 0.05] -= 12
+    Z[50:70, 2] -= 10
+    Z[rng.random((T, L)) < 0.02] = np.nan
+    DT = np.full((T, L), 0.5)
+    lp = LinkParams.broadcast(L, -35, 2.3)
+    for kw in ({}, {"robust": False}, {"adaptive": False}):
+        a = RobustRssiFilter(max_rejected=5, **kw).run(Z, DT, lp)
+        b = RobustRssiFilter(max_rejected=5, engine="core", **kw).run(Z, DT, lp)
+        np.testing.assert_allclose(a.rssi_dbm, b.rssi_dbm, atol=1e-8)
+        np.testing.assert_allclose(a.distance_m, b.distance_m, rtol=1e-9)
+        np.testing.assert_allclose(a.rssi_var_db2, b.rssi_var_db2, rtol=1e-8)
+
+
+def test_adaptive_scale_prevents_over_rejection():
+    rng = np.random.default_rng(5)
+    z = -60 + rng.normal(0, 2.0, (500, 1))  # true noise 2 dB, filter told 0.3 dB
+    dt = np.full_like(z, 0.5)
+    lp = LinkParams.broadcast(1, -35, 2.0)
+    fixed = RobustRssiFilter(sigma_rssi_db=0.3, adaptive=False, max_rejected=0).run(z, dt, lp)
+    adapt = RobustRssiFilter(sigma_rssi_db=0.3, max_rejected=0).run(z, dt, lp)
+    assert np.mean(fixed.weight[100:] == 0) > 0.3
+    assert np.mean(adapt.weight[100:] == 0) < 0.1
+    # the running scale converges to the noise level
+    assert np.median(adapt.scale_db[200:]) == pytest.approx(2.0, rel=0.25)
+
+
+def test_relock_after_environment_change():
+    rng = np.random.default_rng(7)
+    z = -60 + rng.normal(0, 1.0, (300, 1))
+    z[150:] -= 10.0  # a door closes for good
+    dt = np.full_like(z, 0.5)
+    lp = LinkParams.broadcast(1, -35, 2.0)
+    r = RobustRssiFilter(sigma_rssi_db=1.0, max_rejected=8).run(z, dt, lp)
+    assert r.relocked[:, 0].sum() >= 1
+    assert abs(np.mean(r.rssi_dbm[200:, 0]) - (-70)) < 1.0
+    locked = np.argmax(np.abs(r.rssi_dbm[150:, 0] + 70) < 2)
+    assert locked == 7  # the 8th consecutive rejection is taken with weight 1
+    # without re-locking only the growing innovation variance lets it through, later
+    slow = RobustRssiFilter(sigma_rssi_db=1.0, max_rejected=0).run(z, dt, lp)
+    assert not slow.relocked.any()
+    assert np.argmax(np.abs(slow.rssi_dbm[150:, 0] + 70) < 2) > locked
+
+
+def test_ragged_samples_equal_per_link_runs():
+    rng = np.random.default_rng(11)
+    links, times, vals = [], [], []
+    for link, n in enumerate([40, 7, 25]):
+        t = np.cumsum(rng.uniform(0.1, 1.0, n))
+        links.append(np.full(n, link))
+        times.append(t)
+        vals.append(-50 - 3 * link + rng.normal(0, 2, n))
+    link, t, z = map(np.concatenate, (links, times, vals))
+    perm = rng.permutation(link.size)
+    f = RobustRssiFilter()
+    lp = LinkParams.broadcast(3, [-30, -35, -40], [2.0, 2.5, 3.0])
+    out = f.filter_samples(link[perm], t[perm], z[perm], lp)
+    for k in range(3):
+        sel = link == k
+        single = f.filter_samples(
+            np.zeros(sel.sum(), dtype=int), t[sel], z[sel],
+            LinkParams.broadcast(1, lp.p0_dbm[k], lp.gamma[k]),
+        )
+        got = np.empty(link.size)
+        got[perm] = out.rssi_dbm
+        np.testing.assert_allclose(got[sel], single.rssi_dbm, atol=1e-12)
+
+
+def test_step_layout_roundtrip():
+    lay = StepLayout.build([1, 0, 1, 1, 0], [3.0, 1.0, 1.0, 2.0, 0.5])
+    assert (lay.n_steps, lay.n_links) == (3, 2)
+    np.testing.assert_array_equal(lay.step, [2, 1, 0, 1, 0])
+    grid = lay.scatter(np.arange(5.0))
+    np.testing.assert_array_equal(lay.gather(grid), np.arange(5.0))
+    dt = lay.intervals([3.0, 1.0, 1.0, 2.0, 0.5])
+    np.testing.assert_allclose(dt[:, 1], [0, 1, 1])
+    np.testing.assert_allclose(dt[:2, 0], [0, 0.5])
+
+
+def test_missing_values_predict_only():
+    z = np.array([[-50.0], [np.nan], [-50.0]])
+    r = RobustRssiFilter().run(z, np.full_like(z, 1.0), LinkParams.broadcast(1))
+    assert np.isnan(r.weight[1, 0]) and np.isfinite(r.rssi_dbm[1, 0])
+
+
+def test_bad_settings_and_shapes():
+    with pytest.raises(ValueError):
+        RobustRssiFilter(sigma_rssi_db=0)
+    with pytest.raises(ValueError):
+        RobustRssiFilter(engine="gpu")
+    with pytest.raises(ValueError):
+        RobustRssiFilter().run(np.zeros((3, 2)), np.zeros((3, 1)), LinkParams.broadcast(2))
+    with pytest.raises(ValueError):
+        RobustRssiFilter().filter_samples([0, 0], [0.0, np.nan], [-50.0, -51.0])
