@@ -313,3 +313,28 @@ def test_wifi_full_counts() -> None:
     # README: corridor AP1 column never heard.
     raw = pd.read_csv(SHARED / "wifi-rtt-rss/data/database_corridor_train.csv")
     assert (raw["AP1 RTT(mm)"] == 100000).all()
+
+
+# ----------------------------------------------------------------------------- contract
+
+
+def test_frames_pass_io_contract_validators(no_shared: None) -> None:
+    """The loaders' frames are valid contract frames for robustloc.io."""
+    from robustloc import io
+
+    anchors = io.validate_anchors(ble.load_anchors())
+    meas, truth = ble.load_track("rectangular_without_rotation")
+    io.validate_measurements(meas, anchors=anchors)
+    io.validate_truth(truth)
+    io.validate_survey(ble.load_histograms())
+    ep = io.to_epochs(meas, anchors["anchor"])
+    np.testing.assert_array_equal(ep.time, truth["time"])
+    assert ep.values.shape == (len(truth), 12) and ep.n_duplicates == 0
+    r = wifi.load_room("office", "all")
+    a = io.validate_anchors(r.anchors)
+    for frame in (r.ranges, r.rssi):
+        io.validate_measurements(frame, anchors=a)
+    io.validate_truth(r.truth)
+    ep = io.to_epochs(r.ranges, a["anchor"])
+    np.testing.assert_array_equal(ep.time, r.truth["time"])  # every scan heard >= 1 AP
+    assert np.nanmax(ep.values) < 30.0
