@@ -182,6 +182,12 @@ def test_ble_bad_inputs(tmp_path: Path) -> None:
     (d / "trk/alien_all_sensors.mbd").write_text(good.replace("b827eb4521b4", "ffffffffffff"))
     with pytest.raises(InputError, match="no sample comes from a known sensor"):
         ble.load_track("alien", d)
+    (d / "trk/mixed_all_sensors.mbd").write_text(
+        good + good.replace("b827eb4521b4", "ffffffffffff").replace("1.0,", "1.5,", 1)
+    )
+    meas, truth = ble.load_track("mixed", d)
+    assert len(meas) == 1 and meas.attrs["n_skipped_unknown_sensor"] == 1
+    assert meas.loc[0, "anchor"] == "sensor10" and truth.loc[0, "x"] == 1.0
     with pytest.raises(InputError, match="unknown track"):
         ble.load_track("nope", d)
     with pytest.raises(InputError, match="not found"):

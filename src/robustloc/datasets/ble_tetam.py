@@ -250,8 +250,12 @@ def _samples_to_frames(
     window_s: float | None,
     statistic: str,
     truth_xyz: tuple[float, float, float] | None = None,
-) -> tuple[pd.DataFrame, pd.DataFrame, int]:
-    """Bin raw samples (with ``x, y, z`` columns unless ``truth_xyz``) into epochs."""
+) -> tuple[pd.DataFrame, pd.DataFrame, dict[str, float | int]]:
+    """Bin raw samples (with ``x, y, z`` columns unless ``truth_xyz``) into epochs.
+
+    Samples from a sensor not in ``cnf/tetam.dev`` are skipped and counted
+    (``n_skipped_unknown_sensor`` in the returned info, copied to ``frame.attrs``).
+    """
     m2a = _mac_to_anchor(anchors)
     anchor = df["mac"].map(m2a)
     unknown = anchor.isna()
@@ -281,7 +285,8 @@ def _samples_to_frames(
     meas.insert(1, "tag", tag)
     truth.insert(1, "tag", tag)
     meas = meas[["time", "tag", "anchor", "rssi", "n_samples"]].reset_index(drop=True)
-    return meas, truth.reset_index(drop=True), t0
+    info = {"t0_unix_s": t0, "n_skipped_unknown_sensor": n_unknown}
+    return meas, truth.reset_index(drop=True), info
 
 
 # ---------------------------------------------------------------------------------------
@@ -337,8 +342,8 @@ def load_track(
     anchors = load_anchors(src.path)
     path = src.path / "trk" / f"{name}{_TRACK_SUFFIX}"
     raw = _read_mbd(path, with_position=True)
-    meas, truth, t0 = _samples_to_frames(raw, anchors, name, path, window_s, statistic)
-    more = {"t0_unix_s": t0, "window_s": window_s, "statistic": statistic}
+    meas, truth, info = _samples_to_frames(raw, anchors, name, path, window_s, statistic)
+    more = {**info, "window_s": window_s, "statistic": statistic}
     return _tag(meas, src, **more), _tag(truth, src, **more)
 
 
@@ -390,10 +395,10 @@ def load_static(
     )
     raw = pd.concat([_read_mbd(p, with_position=False) for p in files], ignore_index=True)
     xyz = tuple(float(v) for v in point.split("_"))
-    meas, truth, t0 = _samples_to_frames(
+    meas, truth, info = _samples_to_frames(
         raw, anchors, f"static_{point}", files[0].parent, window_s, statistic, xyz
     )
-    more = {"t0_unix_s": t0, "window_s": window_s, "statistic": statistic}
+    more = {**info, "window_s": window_s, "statistic": statistic}
     return _tag(meas, src, **more), _tag(truth, src, **more)
 
 
