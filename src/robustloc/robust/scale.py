@@ -34,11 +34,21 @@ def mad_scale(
     """
     v = np.asarray(residuals, dtype=float)
     if center:
-        v = v - np.nanmedian(v, axis=axis, keepdims=True)
-    with np.errstate(all="ignore"):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            s = np.nanmedian(np.abs(v), axis=axis) / MAD_NORMAL
+        v = v - nanmedian_fast(v, axis=axis)[..., None] if axis in (-1, v.ndim - 1) else (
+            v - np.nanmedian(v, axis=axis, keepdims=True))
+    s = nanmedian_fast(np.abs(v), axis=axis) / MAD_NORMAL
     return np.maximum(s, floor) if floor > 0 else s
+
+
+def nanmedian_fast(a: ArrayLike, axis: int = -1) -> NDArray[np.float64]:
+    """NaN-ignoring median along ``axis`` by one sort (much faster than ``np.nanmedian``
+    on many short rows).  Rows with no finite value give NaN."""
+    x = np.moveaxis(np.asarray(a, dtype=float), axis, -1)
+    nan = np.isnan(x)
+    c = x.shape[-1] - nan.sum(axis=-1)
+    srt = np.sort(np.where(nan, np.inf, x), axis=-1)
+    lo = np.clip((c - 1) // 2, 0, None)[..., None]
+    hi = np.clip(c // 2, 0, x.shape[-1] - 1)[..., None]
+    with np.errstate(invalid="ignore"):
+        med = 0.5 * (np.take_along_axis(srt, lo, -1) + np.take_along_axis(srt, hi, -1))[..., 0]
+    return np.where(c > 0, med, np.nan)

@@ -156,7 +156,9 @@ class IGG(WeightFunction):
 
     def __post_init__(self) -> None:
         if not 0 < self.k0 < self.k1 or self.c < 0:
-            raise ValueError(f"IGG needs 0 < k0 < k1 and c >= 0, got {self.k0}, {self.k1}, {self.c}")
+            raise ValueError(
+                f"IGG needs 0 < k0 < k1 and c >= 0, got {self.k0}, {self.k1}, {self.c}"
+            )
 
     @property
     def rejection_threshold(self) -> float:

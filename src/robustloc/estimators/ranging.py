@@ -1,0 +1,399 @@
+"""Position fixes from ranges or RSSI to known anchors: every method, batched over epochs.
+
+:class:`Locator` holds the settings (method, solver, noise level) and solves a whole log
+at once: ``anchors (m, dim)``, ``values (N, m)`` with NaN for an anchor not heard.
+
+Methods
+-------
+``ls``
+    The paper's linearized difference system, seed 000 eq. (3), ``P = I``.
+``wls``
+    The same system weighted by ``1 / (d_i^2 s_i^2)`` (a row of the difference system
+    carries the range error times ``d_i``; ``s_i`` the range standard deviation: constant
+    for measured ranges, ``∝ d_i`` for ranges converted from RSSI, seed 001 eq. (4)).
+``nls``
+    Gauss-Newton on the raw observations (ranges, or RSSI in dB for RSSI input by default),
+    initialised from ``ls``; covariance of the fix.
+``huber``, ``hampel``, ``igg``, ``igg3``
+    Robust IRLS (seed 000 eqs. (5)-(7)) on the nonlinear observation equations
+    (``solver="nonlinear"``, default) or on the paper's linearized system
+    (``solver="linearized"``).
+``lege``
+    LEGE (seed 000 sec. 2.4) on the linearized system, or on the Gauss-Newton
+    linearization followed by a re-solve without the located gross errors.
+``snooping``
+    Iterative w-test data snooping with the B-method (seed 003), Gauss-Newton re-solved
+    after each exclusion; needs the a-priori ``sigma``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from robustloc import status as st
+from robustloc.estimators.linear import LinearFit, irls, lege, solve_wls
+from robustloc.estimators.nonlinear import gauss_newton
+from robustloc.estimators.solution import Solution
+from robustloc.models.ranging import LN10, RangeModel, RssiModel
+from robustloc.robust.weights import get_weight
+
+Array = NDArray[np.float64]
+
+METHODS = ("ls", "wls", "nls", "huber", "hampel", "igg", "igg3", "lege", "snooping")
+ROBUST = ("huber", "hampel", "igg", "igg3")
+
+
+def _rows(fit: LinearFit, idx: NDArray) -> LinearFit:
+    """The epochs ``idx`` of a fit."""
+    return LinearFit(
+        x=fit.x[idx], v=fit.v[idx], w=fit.w[idx], qvv=fit.qvv[idx], sigma0=fit.sigma0[idx],
+        cov=fit.cov[idx], n_used=fit.n_used[idx], iterations=fit.iterations[idx],
+        converged=fit.converged[idx], status=fit.status[idx],
+        extra={k: v[idx] for k, v in fit.extra.items() if isinstance(v, np.ndarray)},
+    )
+
+
+def _merge(fit: LinearFit, sub: LinearFit, idx: NDArray, take: NDArray[np.bool_]) -> LinearFit:
+    """Replace epochs ``idx[take]`` of ``fit`` by the matching rows of ``sub``."""
+    out = {}
+    for name in ("x", "v", "w", "qvv", "sigma0", "cov", "n_used", "iterations", "converged",
+                 "status"):
+        arr = getattr(fit, name).copy()
+        arr[idx[take]] = getattr(sub, name)[take]
+        out[name] = arr
+    extra = dict(fit.extra)
+    for k, v in sub.extra.items():
+        if k in extra and isinstance(v, np.ndarray) and extra[k].shape[1:] == v.shape[1:]:
+            e = extra[k].copy()
+            e[idx[take]] = v[take]
+            extra[k] = e
+    return LinearFit(**out, extra=extra)
+
+
+def linearized_system(
+    anchors: ArrayLike, ranges: ArrayLike, height_offset: ArrayLike | None = None
+) -> tuple[Array, Array, NDArray[np.int64], Array]:
+    """The paper's difference system ``G Z = h`` (seed 000 eq. (3)), batched.
+
+    The first anchor heard in each epoch is the reference; the other rows are
+    ``G_i = a_i - a_r`` and ``h_i = (d_r^2 - d_i^2 - |a_r|^2 + |a_i|^2) / 2``.  Anchors are
+    first shifted to their centroid (returned) so the system is well scaled; known height
+    offsets turn slant ranges into horizontal ones (``d^2 - dz^2``).
+
+    Returns
+    -------
+    G : (N, m, dim) design, rows of missing anchors and of the reference are NaN.
+    h : (N, m) right-hand side, NaN on those rows.
+    ref : (N,) index of the reference anchor (-1 when no anchor was heard).
+    centroid : (dim,) shift to add back to the solution.
+    """
+    a = np.asarray(anchors, dtype=float)
+    d = np.asarray(ranges, dtype=float)
+    N, m = d.shape
+    centroid = a.mean(axis=0)
+    ac = a - centroid
+    d2 = d * d
+    if height_offset is not None:
+        d2 = d2 - np.asarray(height_offset, dtype=float)[None, :] ** 2
+    heard = np.isfinite(d2)
+    ref = np.where(heard.any(axis=1), np.argmax(heard, axis=1), -1)
+    rr = np.maximum(ref, 0)
+    a_r = ac[rr]  # (N, dim)
+    d2_r = d2[np.arange(N), rr]
+    n2 = np.sum(ac * ac, axis=1)
+    G = ac[None, :, :] - a_r[:, None, :]
+    h = 0.5 * (d2_r[:, None] - d2 - n2[rr][:, None] + n2[None, :])  # seed 000 eq. (3)
+    use = heard.copy()
+    use[np.arange(N), rr] = False
+    G = np.where(use[..., None], G, np.nan)
+    h = np.where(use, h, np.nan)
+    return G, h, ref, centroid
+
+
+@dataclass(frozen=True)
+class Locator:
+    """Batched position solver for ranging (UWB, WiFi RTT) and RSSI (BLE, WiFi) logs.
+
+    Parameters
+    ----------
+    method : str
+        One of :data:`METHODS` (see the module docstring).
+    solver : {"nonlinear", "linearized"}
+        For the robust methods and LEGE: IRLS on the raw observation equations (default,
+        one bad anchor is one bad row) or on the paper's difference system.
+    domain : {"rssi", "range"}
+        For RSSI input and the nonlinear solvers: fit in dB (default; RSSI noise is closer
+        to Gaussian there) or on ranges converted by the path-loss model.
+    sigma : float, optional
+        A-priori standard deviation of one observation (metres for ranges, dB for RSSI).
+        None: unknown, the robust scale is estimated per epoch (MAD).  Required by
+        ``snooping``.
+    weight_params : dict[str, float]
+        Overrides of the weight function's thresholds (e.g. ``{"c": 1.5}`` for Huber).
+    min_scale : float
+        Floor on the estimated robust scale, in units of ``sigma`` (or of the observation
+        when ``sigma`` is None).
+    max_iter, tol : iteration limit and step threshold (metres) of the iterative solvers.
+    alpha0, beta0 : significance and power of the w-test (``snooping``, B-method).
+    """
+
+    method: str = "igg"
+    solver: str = "nonlinear"
+    domain: str = "rssi"
+    sigma: float | None = None
+    weight_params: dict[str, float] = field(default_factory=dict)
+    min_scale: float = 0.0
+    max_iter: int = 50
+    tol: float = 1e-3
+    alpha0: float = 0.001
+    beta0: float = 0.10
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
+        if self.solver not in ("nonlinear", "linearized"):
+            raise ValueError(f"solver must be 'nonlinear' or 'linearized', got {self.solver!r}")
+        if self.domain not in ("rssi", "range"):
+            raise ValueError(f"domain must be 'rssi' or 'range', got {self.domain!r}")
+        if self.sigma is not None and not self.sigma > 0:
+            raise ValueError(f"sigma must be positive, got {self.sigma}")
+        if self.method == "snooping" and self.sigma is None:
+            raise ValueError("method 'snooping' needs the a-priori standard deviation --sigma")
+        if self.method in ROBUST:
+            get_weight(self.method, **self.weight_params)  # validate early
+
+    # ------------------------------------------------------------------ public
+    def solve(
+        self,
+        anchors: ArrayLike,
+        values: ArrayLike,
+        kind: str = "range",
+        *,
+        A: ArrayLike | None = None,
+        n: ArrayLike | None = None,
+        height_offset: ArrayLike | None = None,
+    ) -> Solution:
+        """Solve every epoch.
+
+        Parameters
+        ----------
+        anchors : (m, dim) anchor coordinates (dim 2 or 3: the solved dimension).
+        values : (N, m) ranges in metres or RSSI in dBm; NaN = not heard.
+        kind : {"range", "rssi"}
+        A, n : (m,) log-distance parameters per anchor (required for RSSI).
+        height_offset : (m,) known anchor-minus-tag heights for 2-D solutions with
+            slant ranges.
+
+        Returns
+        -------
+        Solution
+        """
+        a = np.asarray(anchors, dtype=float)
+        z = np.atleast_2d(np.asarray(values, dtype=float))
+        if a.ndim != 2 or a.shape[1] not in (2, 3):
+            raise ValueError(f"anchors must be (m, 2) or (m, 3), got {a.shape}")
+        if z.shape[1] != a.shape[0]:
+            raise ValueError(f"values have {z.shape[1]} columns for {a.shape[0]} anchors")
+        z = np.where(np.isfinite(z), z, np.nan)
+        if kind == "rssi":
+            if A is None or n is None:
+                raise ValueError("RSSI positioning needs path-loss parameters A and n per anchor")
+            rmodel = RssiModel(a, A, n, height_offset)
+            ranges = rmodel.distance(z)
+        elif kind == "range":
+            rmodel = None
+            ranges = z
+        else:
+            raise ValueError(f"kind must be 'range' or 'rssi', got {kind!r}")
+        dim = a.shape[1]
+        n_heard = np.sum(np.isfinite(z), axis=1)
+        fit = self._dispatch(a, z, ranges, rmodel, height_offset)
+        status = fit.status.copy()
+        status[n_heard < dim + 1] = st.INSUFFICIENT
+        status[n_heard == 0] = st.INVALID
+        x = np.where(np.isin(status, st.USABLE)[:, None], fit.x, np.nan)
+        w = fit.w
+        excluded = np.isfinite(z) & (np.nan_to_num(w, nan=1.0) <= 0)
+        if self.method == "lege" or self.method == "snooping":
+            excluded |= fit.extra.get("flagged", np.zeros_like(excluded))
+        n_used = np.sum(np.isfinite(z), axis=1) - excluded.sum(axis=1)
+        return Solution(
+            position=x, covariance=fit.cov, residuals=fit.v, weights=w, excluded=excluded,
+            sigma0=fit.sigma0, iterations=fit.iterations, converged=fit.converged,
+            status=status, n_used=n_used, method=self.method, extra=fit.extra,
+        )
+
+    # ----------------------------------------------------------------- helpers
+    def _dispatch(self, a, z, ranges, rmodel, height_offset) -> LinearFit:
+        meth = self.method
+        if meth == "ls":
+            return self._linearized(a, ranges, height_offset, None)
+        if meth == "wls":
+            return self._linearized(a, ranges, height_offset, self._wls_weights(ranges, rmodel))
+        if self.solver == "linearized" and meth in ROBUST + ("lege",):
+            return self._linearized(a, ranges, height_offset, None, robust=meth)
+        x0 = self._initial(a, ranges, height_offset)
+        model, obs, sig = self._nonlinear_problem(a, z, ranges, rmodel, height_offset, x0)
+        if meth == "nls":
+            return self._gn(model, obs, x0, sig, None)
+        if meth in ROBUST:
+            wf = get_weight(meth, **self.weight_params)
+            fit = self._gn(model, obs, x0, sig, wf)
+            return self._rescue(model, obs, sig, wf, fit, a)
+        if meth == "lege":
+            return self._lege_nonlinear(model, obs, x0, sig)
+        return self._snooping(model, obs, x0, sig)
+
+    def _wls_weights(self, ranges: Array, rmodel: RssiModel | None) -> Array:
+        d = np.maximum(ranges, 0.1)
+        # difference row i carries d_i * e_i; e_i ∝ d_i for RSSI-derived ranges
+        power = 4.0 if rmodel is not None else 2.0
+        return 1.0 / d**power
+
+    def _linearized(self, a, ranges, height_offset, w, robust: str | None = None) -> LinearFit:
+        G, h, ref, c = linearized_system(a, ranges, height_offset)
+        if robust is None:
+            fit = solve_wls(G, h, w)
+        elif robust == "lege":
+            fit = lege(G, h, w)
+            fit.extra["flagged"] = fit.extra["gross_errors"] != 0
+        else:
+            fit = irls(
+                G, h, get_weight(robust, **self.weight_params), w,
+                max_iter=self.max_iter, tol=self.tol, min_scale=self.min_scale,
+            )
+        x = fit.x + c
+        return LinearFit(
+            x=x, v=fit.v, w=fit.w, qvv=fit.qvv, sigma0=fit.sigma0, cov=fit.cov,
+            n_used=fit.n_used, iterations=fit.iterations, converged=fit.converged,
+            status=fit.status, extra={**fit.extra, "reference": ref},
+        )
+
+    def _initial(self, a, ranges, height_offset) -> Array:
+        """Start for the iterative solvers, robust to wild ranges.
+
+        Two candidates per epoch: the linearized LS fix clipped to the anchors' bounding
+        box grown by 25 % of its size, and the inverse-square-distance weighted centroid of
+        the heard anchors; the one with the smaller median absolute range residual wins.
+        """
+        fit = self._linearized(a, ranges, height_offset, None)
+        lo, hi = a.min(axis=0), a.max(axis=0)
+        span = np.maximum(hi - lo, 1.0)
+        x_ls = np.clip(fit.x, lo - 0.25 * span, hi + 0.25 * span)
+        with np.errstate(all="ignore"):
+            wts = np.where(np.isfinite(ranges), 1.0 / np.maximum(ranges, 0.5) ** 2, 0.0)
+            x_c = (wts @ a) / wts.sum(axis=1, keepdims=True)
+        model = RangeModel(a, height_offset)
+
+        def cost(x: Array) -> Array:
+            from robustloc.robust.scale import nanmedian_fast
+
+            r = np.abs(model.predict(np.nan_to_num(x)) - ranges)
+            c = nanmedian_fast(r, axis=1)
+            return np.where(np.all(np.isfinite(x), axis=1) & np.isfinite(c), c, np.inf)
+
+        x0 = np.where((cost(x_ls) <= cost(x_c))[:, None], x_ls, x_c)
+        x0 = np.where(np.isfinite(x0), x0, (lo + hi) / 2)
+        return x0
+
+    def _nonlinear_problem(self, a, z, ranges, rmodel, height_offset, x0):
+        if rmodel is not None and self.domain == "rssi":
+            sig = 1.0 if self.sigma is None else self.sigma
+            return rmodel, z, np.full(z.shape, sig)
+        model = RangeModel(a, height_offset)
+        if rmodel is not None:  # RSSI converted to range: s_d = d ln10 s_dB / (10 n)
+            s_db = 1.0 if self.sigma is None else self.sigma
+            sig = np.maximum(ranges, 0.1) * LN10 * s_db / (10.0 * rmodel.n[None, :])
+            return model, ranges, sig
+        sig = 1.0 if self.sigma is None else self.sigma
+        return model, ranges, np.full(ranges.shape, sig)
+
+    def _gn(self, model, obs, x0, sig, weight) -> LinearFit:
+        return gauss_newton(
+            model, obs, x0, sig, weight=weight,
+            scale=None if self.sigma is None else 1.0,
+            min_scale=self.min_scale, max_iter=self.max_iter, tol=self.tol,
+            min_obs=model.anchors.shape[1] + 1,
+        )
+
+    def _rescue(self, model, obs, sig, wf, fit: LinearFit, a: Array) -> LinearFit:
+        """Second chance for epochs that look trapped in a wrong basin.
+
+        A robust fit that failed, left the anchors' bounding box (grown by 25 %) or rejected
+        more than a third of its observations is restarted from the best point of a coarse
+        grid over that box, scored by the median absolute residual (least median of
+        squares); the restarted fit replaces the first where its median absolute
+        standardized residual is smaller.  Only those epochs pay for the grid.
+        """
+        lo, hi = a.min(axis=0), a.max(axis=0)
+        span = np.maximum(hi - lo, 1.0)
+        blo, bhi = lo - 0.25 * span, hi + 0.25 * span
+        x = fit.x
+        n_obs = np.sum(np.isfinite(obs), axis=1)
+        rejected = np.sum(np.nan_to_num(fit.w, nan=1.0) <= 0, axis=1)
+        outside = np.any((x < blo) | (x > bhi), axis=1) | ~np.all(np.isfinite(x), axis=1)
+        sus = np.flatnonzero(
+            (n_obs >= a.shape[1] + 1) & (outside | (rejected * 3 > n_obs))
+        )
+        if sus.size == 0:
+            return fit
+        dim = a.shape[1]
+        per = 24 if dim == 2 else 10
+        axes = [np.linspace(blo[k], bhi[k], per if dim == 2 or k < 2 else 5) for k in range(dim)]
+        grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, dim)
+        from robustloc.robust.scale import nanmedian_fast
+
+        zs, ss = obs[sus], sig[sus]
+        best = np.full((sus.size, dim), np.nan)
+        best_c = np.full(sus.size, np.inf)
+        pred_g = model.predict(grid)  # (G, m)
+        for g0 in range(0, grid.shape[0], 64):
+            pg = pred_g[g0 : g0 + 64]
+            r = np.abs(pg[None, :, :] - zs[:, None, :]) / ss[:, None, :]
+            c = nanmedian_fast(r, axis=2)  # (S, G)
+            j = np.argmin(c, axis=1)
+            cj = c[np.arange(sus.size), j]
+            upd = cj < best_c
+            best[upd] = grid[g0 + j[upd]]
+            best_c[upd] = cj[upd]
+        refit = self._gn(model, zs, best, ss, wf)
+
+        def score(f: LinearFit, rows: slice | NDArray) -> Array:
+            xx = np.nan_to_num(f.x)
+            r = np.abs(model.predict(xx) - zs) / ss
+            c = nanmedian_fast(r, axis=1)
+            return np.where(np.isin(f.status, st.USABLE), c, np.inf)
+
+        take = score(refit, sus) < score(_rows(fit, sus), sus)
+        if not np.any(take):
+            return fit
+        return _merge(fit, refit, sus, take)
+
+    def _lege_nonlinear(self, model, obs, x0, sig) -> LinearFit:
+        base = self._gn(model, obs, x0, sig, None)
+        xs = np.where(np.isfinite(base.x), base.x, x0)
+        pred, J = model.predict(xs), model.jacobian(xs)
+        w0 = np.where(np.isfinite(obs), 1.0 / sig**2, 0.0)
+        # linearized at the LS fix: y = J dx + e with y = obs - f(x)
+        found = lege(J, obs - pred, w0)
+        flagged = found.extra["gross_errors"] != 0
+        obs2 = np.where(flagged, np.nan, obs)
+        fit = self._gn(model, obs2, xs, sig, None)
+        fit.extra.update(
+            flagged=flagged, gross_errors=found.extra["gross_errors"], order=found.extra["order"]
+        )
+        # keep the excluded observations' residuals visible
+        v = np.where(flagged, model.predict(np.nan_to_num(fit.x)) - obs, fit.v)
+        return LinearFit(
+            x=fit.x, v=v, w=np.where(flagged, 0.0, fit.w), qvv=fit.qvv, sigma0=fit.sigma0,
+            cov=fit.cov, n_used=fit.n_used, iterations=fit.iterations, converged=fit.converged,
+            status=fit.status, extra=fit.extra,
+        )
+
+    def _snooping(self, model, obs, x0, sig) -> LinearFit:
+        from robustloc.estimators._snooping import snooping_ranging
+
+        return snooping_ranging(self, model, obs, x0, sig)
