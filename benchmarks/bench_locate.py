@@ -24,7 +24,7 @@ of the call (``tracemalloc``, a separate run so tracing does not slow the timing
 
 Usage::
 
-    python benchmarks/bench_locate.py            # 100 000 epochs (about a minute)
+    python benchmarks/bench_locate.py            # 100 000 epochs (a few minutes)
     python benchmarks/bench_locate.py --quick    # 5 000 epochs, 200 peer epochs
     python benchmarks/bench_locate.py --epochs 20000 --methods ls,igg --json
 """
@@ -45,7 +45,7 @@ from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
 
-METHODS = ("ls", "wls", "nls", "huber", "hampel", "igg", "igg3", "lege")
+METHODS = ("ls", "wls", "nls", "huber", "hampel", "igg", "igg3", "lege", "snooping")
 SIGMA_M = 0.3
 OUTLIER_RATE = 0.2
 
@@ -108,26 +108,30 @@ def _usable(x: Array, status: NDArray[np.object_]) -> Array:
     return np.where(np.isin(status, st.USABLE)[:, None], x, np.nan)
 
 
-def our_solver(method: str, mad_scale: bool = False) -> Callable[[Workload], Fixes]:
+def our_solver(
+    method: str, mad_scale: bool = False, solver: str = "nonlinear"
+) -> Callable[[Workload], Fixes]:
     """A batched solver for ``method``.
 
-    Uses ``robustloc.estimators.ranging.locate`` when it exists (what ``robustloc locate``
-    runs), else calls the kernels directly: ``linear.solve_wls`` / ``linear.lege`` on the
-    eq. (3) system, ``nonlinear.gauss_newton`` on :class:`RangeModel` started from ``ls``
-    with the known range sigma (``scale=1``: the same information scipy gets through
-    ``f_scale``); ``mad_scale=True`` estimates the scale per epoch by the MAD instead.
+    Uses :class:`robustloc.estimators.ranging.Locator` when it exists (what
+    ``robustloc locate`` runs) with the known range sigma (the same information scipy gets
+    through ``f_scale``; ``mad_scale=True``: sigma unknown, MAD scale per epoch), else calls
+    the kernels directly: ``linear.solve_wls`` / ``linear.lege`` on the eq. (3) system,
+    ``nonlinear.gauss_newton`` on :class:`RangeModel` started from ``ls``.
     """
     try:
-        from robustloc.estimators.ranging import locate  # type: ignore[import-not-found]
+        from robustloc.estimators.ranging import Locator
     except ImportError:
-        locate = None
-    if locate is not None:
+        Locator = None  # noqa: N806
+    if Locator is not None:
+        loc = Locator(method=method, solver=solver, sigma=None if mad_scale else SIGMA_M)
 
-        def run_locate(wl: Workload) -> Fixes:
-            sol = locate(method, wl.anchors, ranges=wl.ranges)
-            return Fixes(_usable(sol.position, sol.status), "estimators.ranging.locate")
+        def run_locator(wl: Workload) -> Fixes:
+            sol = loc.solve(wl.anchors, wl.ranges, kind="range")
+            how = f"Locator({method}, {solver}, sigma={loc.sigma})"
+            return Fixes(_usable(sol.position, sol.status), how)
 
-        return run_locate
+        return run_locator
 
     from robustloc.estimators import linear, nonlinear
     from robustloc.models.ranging import RangeModel
@@ -268,6 +272,7 @@ def run(
     seed: int,
     memory: bool = True,
     mad_scale: bool = False,
+    solver: str = "nonlinear",
 ) -> list[Row]:
     """Run the peers and our methods; return one row each (ratio filled in)."""
     wl = make_workload(epochs, seed)
@@ -279,7 +284,7 @@ def run(
     for m in methods:
         print(f"  {m} on {epochs} epochs ...", file=sys.stderr)
         try:
-            fn = our_solver(m, mad_scale)
+            fn = our_solver(m, mad_scale, solver)
             rows.append(measure(m, fn, wl, memory))
         except NotImplementedError as e:
             print(f"  skipped: {e}", file=sys.stderr)
@@ -313,6 +318,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-memory", action="store_true", help="skip the traced memory run")
     ap.add_argument("--mad-scale", action="store_true", help="robust methods: per-epoch MAD scale")
+    ap.add_argument(
+        "--solver",
+        choices=("nonlinear", "linearized"),
+        default="nonlinear",
+        help="robust methods and lege: nonlinear (default) or the paper's linearized system",
+    )
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
     args = ap.parse_args(argv)
     if args.quick:
@@ -330,6 +341,7 @@ def main(argv: list[str] | None = None) -> int:
         args.seed,
         memory=not args.no_memory,
         mad_scale=args.mad_scale,
+        solver=args.solver,
     )
     if args.json:
         print(json.dumps([asdict(r) for r in rows], indent=2))
