@@ -1,0 +1,175 @@
+"""``robustloc montecarlo``: Monte Carlo of gross-error detection and robust estimation."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from robustloc.errors import InputError
+
+NAME = "montecarlo"
+HELP = "Monte Carlo of fault detection (snooping, LEGE, robust IRLS) against B-method theory"
+DESCRIPTION = """\
+Injects 0, 1, 2, 3 ... gross errors of a chosen size into random observations of a ranging
+layout or a simulated multi-constellation GNSS snapshot, runs iterative w-test data
+snooping, LEGE and robust IRLS (Huber, Hampel, IGG, IGG3) on every trial, and reports per
+method: flag rate (with 0 faults: the false-alarm rate), correct-identification rate
+(rejected set == faulty set), unavailability and horizontal position error (mean, RMS,
+95th percentile), beside the theory: global-test rejection probability of the drawn faults
+(alpha of the B-method with 0 faults, 1 - beta0 for one fault of MDB size) and the w-test
+power for single faults. Trials are vectorized: 10 000 trials take seconds.
+
+The model is linearized at the true position (exactly the model the B-method theory is
+derived for). Layout, one of:
+  --anchors FILE [--position X,Y[,Z]] [--sigma S]   ranging (sigma in metres; default
+                                                     position: centroid of the anchors)
+  --gnss [--systems GEC] [--mask-deg 10] [--lat --lon --height] [--time-s T]
+                                                     simulated GPS/Galileo/BeiDou snapshot
+                                                     (robustloc.sim.gnss), code noise of
+                                                     the seed-003 table / sin(elevation)
+Fault sizes: --size in multiples of each observation's MDB (--unit mdb, default) or in
+metres (--unit m); each fault gets a random sign.
+
+Example:
+  robustloc montecarlo --gnss --trials 10000 --faults 0,1,2 --size 1,3 --json"""
+
+
+def _floats(text: str) -> list[float]:
+    try:
+        return [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        msg = f"expected comma-separated numbers, got {text!r}"
+        raise argparse.ArgumentTypeError(msg) from None
+
+
+def _ints(text: str) -> list[int]:
+    try:
+        return [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        msg = f"expected comma-separated integers, got {text!r}"
+        raise argparse.ArgumentTypeError(msg) from None
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    lay = p.add_mutually_exclusive_group(required=True)
+    lay.add_argument("--anchors", help="ranging layout: anchors file (anchor, x, y[, z])")
+    lay.add_argument("--gnss", action="store_true", help="simulated GNSS snapshot layout")
+    p.add_argument("--position", type=_floats, default=None, metavar="X,Y[,Z]",
+                   help="true tag position for --anchors (default: anchors' centroid)")
+    p.add_argument("--dim", type=int, choices=(2, 3), default=2,
+                   help="solved dimension for --anchors (default 2; z = known height offsets)")
+    p.add_argument("--tag-z", type=float, default=0.0, help="tag height for --dim 2 (default 0)")
+    p.add_argument("--sigma", type=float, default=1.0,
+                   help="range standard deviation, m, for --anchors (default 1)")
+    p.add_argument("--systems", default="GEC", help="GNSS systems among G, E, C (default GEC)")
+    p.add_argument("--mask-deg", type=float, default=10.0, help="GNSS elevation mask (deg)")
+    p.add_argument("--lat", type=float, default=30.53, help="GNSS receiver latitude (deg)")
+    p.add_argument("--lon", type=float, default=114.36, help="GNSS receiver longitude (deg)")
+    p.add_argument("--height", type=float, default=30.0, help="GNSS receiver height (m)")
+    p.add_argument("--time-s", type=float, default=0.0, help="GNSS snapshot time (s)")
+    p.add_argument("--trials", type=int, default=10_000, help="trials per experiment (10000)")
+    p.add_argument("--faults", type=_ints, default=[0, 1, 2], metavar="K[,K...]",
+                   help="numbers of gross errors per trial (default 0,1,2)")
+    p.add_argument("--size", type=_floats, default=[1.0, 3.0], metavar="S[,S...]",
+                   help="fault sizes (default 1,3)")
+    p.add_argument("--unit", choices=("mdb", "m"), default="mdb",
+                   help="unit of --size: multiples of the MDB (default) or metres")
+    p.add_argument("--methods", default="ls,snooping,lege,huber,igg3",
+                   help="comma-separated among ls, snooping, lege, huber, hampel, igg, igg3 "
+                        "(default ls,snooping,lege,huber,igg3)")
+    p.add_argument("--alpha0", type=float, default=0.001, help="w-test significance (0.001)")
+    p.add_argument("--beta0", type=float, default=0.10, help="B-method type II error (0.10)")
+    p.add_argument("--alpha", type=float, default=None,
+                   help="fixed global-test significance (default: B-method for each dof)")
+    p.add_argument("--reject-weight", type=float, default=0.1,
+                   help="IRLS: weight below which an observation counts as rejected (0.1)")
+    p.add_argument("--lege-max-order", type=int, default=3,
+                   help="largest number of gross errors LEGE searches (default 3)")
+    p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    p.add_argument("-o", "--out", default=None, help="write the table as CSV here")
+    p.add_argument("--json", action="store_true", help="print the table as JSON")
+
+
+def build_layout(args: argparse.Namespace):  # noqa: ANN201
+    """The :class:`~robustloc.integrity.montecarlo.Layout` chosen on the command line."""
+    from robustloc.integrity.montecarlo import gnss_layout, ranging_layout
+
+    if args.gnss:
+        lay = gnss_layout(args.time_s, args.lat, args.lon, args.height, args.systems.upper(),
+                          args.mask_deg)
+        if lay.n <= lay.p:
+            raise InputError(f"only {lay.n} satellites visible for {lay.p} unknowns")
+        return lay
+    from robustloc.io import read_anchors
+
+    df = read_anchors(args.anchors)
+    has_z = "z" in df.columns
+    if args.dim == 3 and not has_z:
+        raise InputError("--dim 3 needs a z column", args.anchors)
+    if has_z and not np.all(np.isfinite(df["z"].to_numpy(float))):
+        raise InputError("anchor heights (z) must all be given when the column exists",
+                         args.anchors)
+    xy = df[["x", "y"] + (["z"] if args.dim == 3 else [])].to_numpy(float)
+    hoff = (df["z"].to_numpy(float) - args.tag_z) if (has_z and args.dim == 2) else None
+    pos = np.asarray(args.position if args.position is not None else xy.mean(axis=0), float)
+    if pos.size != args.dim:
+        raise InputError(f"--position needs {args.dim} coordinates, got {pos.size}")
+    if not (np.isfinite(args.sigma) and args.sigma > 0):
+        raise InputError(f"--sigma must be positive, got {args.sigma}")
+    lay = ranging_layout(xy, pos, args.sigma, [str(a) for a in df["anchor"]], hoff,
+                         name=Path(args.anchors).stem)
+    if lay.n <= lay.p:
+        raise InputError(f"{lay.n} anchors for {lay.p} unknowns: no redundancy", args.anchors)
+    return lay
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from robustloc.integrity.montecarlo import METHODS, run_montecarlo
+
+    methods = tuple(m.strip().lower() for m in args.methods.split(",") if m.strip())
+    bad = [m for m in methods if m not in METHODS]
+    if bad:
+        raise InputError(f"unknown method(s) {', '.join(bad)}; choose among {', '.join(METHODS)}")
+    if args.trials < 1:
+        raise InputError("--trials must be at least 1")
+    lay = build_layout(args)
+    if any(k < 0 or k > lay.n - lay.p for k in args.faults):
+        raise InputError(f"--faults must be within 0..{lay.n - lay.p} (the redundancy)")
+    if any(not np.isfinite(s) or s <= 0 for s in args.size):
+        raise InputError("--size values must be positive")
+    runs = [(0, 0.0)] if 0 in args.faults else []
+    runs += [(k, s) for k in args.faults if k > 0 for s in args.size]
+    frames = []
+    for i, (k, s) in enumerate(tqdm(runs, desc="montecarlo", file=sys.stderr,
+                                    disable=not sys.stderr.isatty())):
+        frames.append(run_montecarlo(
+            lay, n_faults=k, size=s, unit=args.unit, trials=args.trials, methods=methods,
+            alpha=args.alpha, alpha0=args.alpha0, beta0=args.beta0,
+            reject_weight=args.reject_weight, lege_max_order=args.lege_max_order,
+            seed=args.seed + i,
+        ))
+    table = pd.concat(frames, ignore_index=True)
+    table.insert(0, "layout", lay.name)
+    if args.out:
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        table.to_csv(out, index=False, float_format="%.6g")
+    if args.json:
+        print(json.dumps({
+            "layout": lay.name, "n_obs": lay.n, "n_unknowns": lay.p,
+            "rows": json.loads(table.to_json(orient="records")),
+        }, indent=2))
+    else:
+        print(f"layout {lay.name}: {lay.n} observations, {lay.p} unknowns, "
+              f"{args.trials} trials per row")
+        cols = ["n_faults", "size", "method", "flag_rate", "theory_global", "theory_w",
+                "identified", "unavailable", "err_mean_m", "err_rms_m", "err_p95_m", "seconds"]
+        print(table[cols].to_string(index=False, float_format=lambda v: f"{v:.4f}"))
+    return 0

@@ -1,0 +1,151 @@
+"""``robustloc reliability``: anchor-layout planner (reliability maps over a grid, seed 003)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from robustloc.errors import InputError
+
+NAME = "reliability"
+HELP = "anchor-layout planner: DOP, CRLB, MDB, external reliability, w-test correlation maps"
+DESCRIPTION = """\
+Linearizes the range (or RSSI) model at every point of a grid of tag positions and writes,
+per point: DOP, the Cramer-Rao bound of the position RMSE, the largest minimal detectable
+bias (MDB) over the anchors heard, the largest horizontal position error an undetected MDB
+causes (external reliability), the largest correlation |rho_ij| of two w-tests (near 1: a
+fault cannot be attributed to one anchor), the smallest redundancy number r_i and the total
+redundancy. Output: DIR/reliability.csv and one heat-map PNG per figure with the anchors
+drawn, plus a summary on stdout (--json for machine-readable).
+
+Use it to decide where one more beacon goes: add it to the anchors file and compare maps.
+
+Anchors file: contract format `anchor, x, y[, z]` (CSV or Parquet). In 2-D, anchor heights
+(z) are known offsets from the tag height --tag-z. For --model rssi the path-loss exponent
+is --n, or the anchors' `n` column when present.
+
+Example:
+  robustloc reliability --anchors anchors.csv --area 0,40,0,3 --step 0.25 --sigma 1 -o rel/"""
+
+
+def _area(text: str) -> tuple[float, float, float, float]:
+    try:
+        vals = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"--area expects xmin,xmax,ymin,ymax, got {text!r}"
+        ) from None
+    if len(vals) != 4:
+        raise argparse.ArgumentTypeError(f"--area expects 4 numbers, got {text!r}")
+    return vals  # type: ignore[return-value]
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--anchors", required=True, help="anchors file (anchor, x, y[, z])")
+    p.add_argument("--area", type=_area, default=None, metavar="XMIN,XMAX,YMIN,YMAX",
+                   help="grid extent in metres (default: anchors' bounding box + 10 %%)")
+    p.add_argument("--step", type=float, default=None,
+                   help="grid spacing in metres (default: about 150 points along the longer side)")
+    p.add_argument("--sigma", type=float, default=1.0,
+                   help="a-priori standard deviation of one observation: m for ranges, dB for "
+                        "RSSI (default 1)")
+    p.add_argument("--dim", type=int, choices=(2, 3), default=2,
+                   help="solved dimension (default 2)")
+    p.add_argument("--tag-z", type=float, default=0.0, help="tag height in metres (default 0)")
+    p.add_argument("--model", choices=("range", "rssi"), default="range",
+                   help="observation type (default range)")
+    p.add_argument("--n", type=float, default=None,
+                   help="path-loss exponent for --model rssi (default: anchors' n column, else 2)")
+    p.add_argument("--max-range", type=float, default=None,
+                   help="anchors farther than this (m) are not heard (default: all heard)")
+    p.add_argument("--alpha0", type=float, default=0.001,
+                   help="w-test significance (default 0.001)")
+    p.add_argument("--beta0", type=float, default=0.10, help="w-test type II error (default 0.10)")
+    p.add_argument("--rho-threshold", type=float, default=0.9,
+                   help="|rho_ij| above which two anchors are flagged as not separable (0.9)")
+    p.add_argument("-o", "--out", required=True, help="output folder")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+
+def _read(path: str):  # noqa: ANN202
+    from robustloc.io import read_anchors
+
+    df = read_anchors(path)
+    cols = ["x", "y"] + (["z"] if "z" in df.columns else [])
+    xyz = df[cols].to_numpy(dtype=float)
+    if "z" in df.columns and not np.all(np.isfinite(xyz[:, 2])):
+        raise InputError("anchor heights (z) must all be given when the column exists", path)
+    return df, xyz
+
+
+def run(args: argparse.Namespace) -> int:
+    from robustloc.integrity.planner import MAPS, plan, plot_maps
+
+    df, xyz = _read(args.anchors)
+    if args.area is None:
+        lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
+        pad = np.maximum(0.1 * (hi - lo), 1.0)
+        area = (lo[0] - pad[0], hi[0] + pad[0], lo[1] - pad[1], hi[1] + pad[1])
+    else:
+        area = args.area
+    step = args.step
+    if step is None:
+        step = max(area[1] - area[0], area[3] - area[2]) / 150.0
+    n_exp: object = 2.0
+    if args.model == "rssi":
+        if args.n is not None:
+            n_exp = args.n
+        elif "n" in df.columns and np.all(np.isfinite(df["n"].to_numpy(float))):
+            n_exp = df["n"].to_numpy(float)
+    grid = plan(
+        xyz, area, step, args.sigma, dim=args.dim, tag_z=args.tag_z, model=args.model,
+        path_loss_n=n_exp, max_range_m=args.max_range, alpha0=args.alpha0, beta0=args.beta0,
+        rho_threshold=args.rho_threshold,
+    )
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    csv = out / "reliability.csv"
+    grid.table.to_csv(csv, index=False, float_format="%.6g")
+    pngs = plot_maps(grid, xyz, out, [str(a) for a in df["anchor"]])
+    t = grid.table
+    summary = {
+        "anchors": int(len(xyz)),
+        "grid_points": int(len(t)),
+        "area": list(area),
+        "step_m": step,
+        "model": args.model,
+        "sigma": args.sigma,
+        "points_without_fix": int(t["dop"].isna().sum()),
+        "points_without_redundancy": int((t["dof"] < 1).sum()),
+    }
+    for col in MAPS:
+        v = t[col].to_numpy(float)
+        v = v[np.isfinite(v)]
+        summary[col] = {
+            "median": float(np.median(v)) if v.size else None,
+            "max": float(v.max()) if v.size else None,
+            "min": float(v.min()) if v.size else None,
+        }
+    summary["points_with_flagged_pairs"] = int((t["n_flagged"] > 0).sum())
+    summary["csv"] = str(csv)
+    summary["figures"] = [str(p) for p in pngs]
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(f"{summary['grid_points']} grid points, {summary['anchors']} anchors, "
+              f"model {args.model}, sigma {args.sigma}")
+        for col, cap in MAPS.items():
+            s = summary[col]
+            if s["median"] is None:
+                continue
+            print(f"  {col:15s} median {s['median']:9.3f}  min {s['min']:9.3f}  "
+                  f"max {s['max']:9.3f}   {cap}")
+        print(f"  points without a fix: {summary['points_without_fix']}, without redundancy: "
+              f"{summary['points_without_redundancy']}, with flagged pairs: "
+              f"{summary['points_with_flagged_pairs']}")
+        print(f"wrote {csv} and {len(pngs)} maps into {out}", file=sys.stderr)
+    return 0

@@ -1,0 +1,233 @@
+"""Anchor-layout planner: reliability maps over a grid of tag positions (seed 003).
+
+For every grid position of the tag, the range (or RSSI) model is linearized at that position
+and the figures an engineer needs to decide where one more beacon goes are computed:
+
+* ``dop``: position dilution of precision of the range geometry, ``sqrt(trace (G^T G)^-1)``;
+* ``crlb_m``: Cramer-Rao bound on the position RMSE for the given noise
+  (:mod:`robustloc.eval.crlb`);
+* ``max_mdb``: largest minimal detectable bias over the anchors heard (observation units:
+  metres for ranges, dB for RSSI);
+* ``max_ext_m``: largest horizontal position error an undetected MDB causes (external
+  reliability);
+* ``max_abs_rho``: largest correlation of two w-tests (values near 1: a fault is detected
+  but cannot be attributed); ``n_flagged``: pairs above the threshold;
+* ``min_redundancy``: smallest redundancy number ``r_i`` (0: an anchor not controlled at all);
+  ``dof``: total redundancy ``n - p``; ``n_heard``: anchors in range.
+
+Grid points where fewer anchors than unknowns are heard (or the geometry is singular) get
+NaN; an MDB of an uncontrolled observation (``r_i = 0``) is ``inf``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from numpy.typing import ArrayLike, NDArray
+
+from robustloc.eval.crlb import crlb_range, crlb_rssi, dop
+from robustloc.integrity.bmethod import ALPHA0, BETA0
+from robustloc.integrity.reliability import RHO_THRESHOLD, reliability
+
+Array = NDArray[np.float64]
+
+#: Columns of the planner table, in order, with their captions.
+MAPS = {
+    "dop": "position DOP of the range geometry",
+    "crlb_m": "CRLB of the position RMSE (m)",
+    "max_mdb": "largest MDB (observation units)",
+    "max_ext_m": "largest horizontal effect of an undetected MDB (m)",
+    "max_abs_rho": "largest |rho_ij| of two w-tests",
+    "min_redundancy": "smallest redundancy number r_i",
+}
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A planner grid: coordinates and the per-point table (row-major over ``y`` then ``x``)."""
+
+    x: Array
+    y: Array
+    table: pd.DataFrame
+
+    def field(self, column: str) -> Array:
+        """Column as a ``(ny, nx)`` array for plotting."""
+        return self.table[column].to_numpy(dtype=float).reshape(self.y.size, self.x.size)
+
+
+def grid_axes(area: tuple[float, float, float, float], step: float) -> tuple[Array, Array]:
+    """Grid coordinates covering ``area = (xmin, xmax, ymin, ymax)`` with spacing ``step``."""
+    xmin, xmax, ymin, ymax = map(float, area)
+    if not (np.isfinite([xmin, xmax, ymin, ymax]).all() and xmax > xmin and ymax > ymin):
+        raise ValueError(f"area must be xmin,xmax,ymin,ymax with xmin < xmax, ymin < ymax, "
+                         f"got {area}")
+    if not (np.isfinite(step) and step > 0):
+        raise ValueError(f"grid step must be positive, got {step}")
+    nx = int(np.floor((xmax - xmin) / step + 1e-9)) + 1
+    ny = int(np.floor((ymax - ymin) / step + 1e-9)) + 1
+    if nx * ny > 2_000_000:
+        raise ValueError(f"grid of {nx} x {ny} points is too large; increase --step")
+    return xmin + step * np.arange(nx), ymin + step * np.arange(ny)
+
+
+def plan(
+    anchors: ArrayLike,
+    area: tuple[float, float, float, float],
+    step: float,
+    sigma: float,
+    *,
+    dim: int = 2,
+    tag_z: float = 0.0,
+    model: str = "range",
+    path_loss_n: ArrayLike = 2.0,
+    max_range_m: float | None = None,
+    alpha0: float = ALPHA0,
+    beta0: float = BETA0,
+    rho_threshold: float = RHO_THRESHOLD,
+    chunk: int = 4096,
+) -> Grid:
+    """Reliability figures over a grid of tag positions.
+
+    Parameters
+    ----------
+    anchors : array_like (m, 2) or (m, 3)
+        Anchor coordinates, m.
+    area : (xmin, xmax, ymin, ymax)
+        Grid extent, m.
+    step : float
+        Grid spacing, m.
+    sigma : float
+        A-priori standard deviation of one observation: metres (``model="range"``) or dB
+        (``model="rssi"``).
+    dim : 2 or 3
+        Solved dimension.  In 2-D, anchor heights (third column) enter as known offsets from
+        the tag height ``tag_z``; in 3-D the grid lies at height ``tag_z``.
+    model : "range" or "rssi"
+        Observation type; ``rssi`` uses the log-distance model with exponent(s)
+        ``path_loss_n`` (seed 000 eq. (1)).
+    max_range_m : float, optional
+        Anchors farther than this are not heard.
+    alpha0, beta0, rho_threshold
+        See :func:`robustloc.integrity.reliability.reliability`.
+    chunk : int
+        Grid points processed at once (bounds memory).
+    """
+    from robustloc.models.ranging import RangeModel, RssiModel
+
+    a = np.asarray(anchors, dtype=float)
+    if a.ndim != 2 or a.shape[1] not in (2, 3) or a.shape[0] < 1:
+        raise ValueError(f"anchors must have shape (m, 2) or (m, 3), got {a.shape}")
+    if dim not in (2, 3):
+        raise ValueError(f"dim must be 2 or 3, got {dim}")
+    if dim == 3 and a.shape[1] != 3:
+        raise ValueError("--dim 3 needs anchor heights (a z column)")
+    if model not in ("range", "rssi"):
+        raise ValueError(f"model must be 'range' or 'rssi', got {model!r}")
+    if not (np.isfinite(sigma) and sigma > 0):
+        raise ValueError(f"sigma must be positive, got {sigma}")
+    gx, gy = grid_axes(area, step)
+    X, Y = np.meshgrid(gx, gy)
+    pts = np.column_stack([X.ravel(), Y.ravel()])
+    if dim == 3:
+        pts = np.column_stack([pts, np.full(len(pts), float(tag_z))])
+        anc, hoff = a, None
+    else:
+        anc = a[:, :2]
+        hoff = (a[:, 2] - tag_z) if a.shape[1] == 3 else None
+    rmodel = RangeModel(anc, hoff)
+    smodel = RssiModel(anc, A=0.0, n=path_loss_n, height_offset=hoff) if model == "rssi" else None
+    out = {k: np.full(len(pts), np.nan) for k in
+           ("dop", "crlb_m", "max_mdb", "max_ext_m", "max_abs_rho", "min_redundancy")}
+    n_heard = np.zeros(len(pts), dtype=np.int64)
+    dof = np.zeros(len(pts), dtype=np.int64)
+    n_flag = np.zeros(len(pts), dtype=np.int64)
+    for s in range(0, len(pts), chunk):
+        P = pts[s : s + chunk]
+        rng, G = rmodel.predict_jacobian(P)
+        heard = np.ones(rng.shape, dtype=bool) if max_range_m is None else rng <= max_range_m
+        heard &= rng > 1e-6  # the tag on an anchor: direction undefined
+        Gm = np.where(heard[..., None], G, np.nan)
+        out["dop"][s : s + len(P)] = dop(Gm, n_position=dim).pdop
+        if smodel is None:
+            Hm = Gm
+            c = crlb_range(anc, P, sigma, hoff, mask=heard)
+        else:
+            Hm = np.where(heard[..., None], smodel.jacobian(P), np.nan)
+            c = crlb_rssi(anc, P, sigma, path_loss_n, hoff, mask=heard)
+        out["crlb_m"][s : s + len(P)] = c.rmse
+        rel = reliability(Hm, sigma, mask=heard, alpha0=alpha0, beta0=beta0,
+                          rho_threshold=rho_threshold)
+        good = rel.ok & (rel.n_used > dim)
+        sl = slice(s, s + len(P))
+        out["max_mdb"][sl] = np.where(good, rel.max_mdb, np.nan)
+        out["max_ext_m"][sl] = np.where(good, rel.max_external_horizontal, np.nan)
+        out["max_abs_rho"][sl] = np.where(good, rel.max_abs_rho, np.nan)
+        out["min_redundancy"][sl] = np.where(good, rel.min_redundancy, np.nan)
+        n_heard[sl] = heard.sum(axis=1)
+        dof[sl] = np.where(rel.ok, rel.n_used - dim, 0)
+        n_flag[sl] = np.triu(rel.flagged, 1).sum(axis=(1, 2))
+    table = pd.DataFrame({"x": pts[:, 0], "y": pts[:, 1], **out, "n_heard": n_heard, "dof": dof,
+                          "n_flagged": n_flag})
+    return Grid(gx, gy, table)
+
+
+def plot_maps(
+    grid: Grid,
+    anchors: ArrayLike,
+    out_dir: str | Path,
+    anchor_ids: list[str] | None = None,
+    prefix: str = "reliability",
+    columns: tuple[str, ...] = tuple(MAPS),
+) -> list[Path]:
+    """Heat maps of the planner columns with the anchors drawn; returns the PNG paths."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    a = np.asarray(anchors, dtype=float)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    ids = anchor_ids if anchor_ids is not None else [str(i + 1) for i in range(len(a))]
+    wx = grid.x[-1] - grid.x[0] if grid.x.size > 1 else 1.0
+    wy = grid.y[-1] - grid.y[0] if grid.y.size > 1 else 1.0
+    aspect = wy / wx
+    figw = 9.0
+    # very elongated areas (a corridor) are drawn stretched so the field stays readable
+    equal = 0.2 <= aspect <= 5.0
+    figh = float(np.clip(figw * aspect + 1.2, 3.0, 9.0)) if equal else 3.5
+    paths = []
+    for col in columns:
+        f = grid.field(col)
+        f = np.where(np.isfinite(f), f, np.nan)
+        fig, ax = plt.subplots(figsize=(figw, figh))
+        finite = f[np.isfinite(f)]
+        vmax = float(np.percentile(finite, 98)) if finite.size else 1.0
+        if col == "max_abs_rho":
+            vmin, vmax = 0.0, 1.0
+        elif col == "min_redundancy":
+            vmin, vmax = 0.0, max(vmax, 1e-3)
+        else:
+            vmin = float(np.nanmin(finite)) if finite.size else 0.0
+        im = ax.pcolormesh(grid.x, grid.y, f, shading="nearest", cmap="viridis",
+                           vmin=vmin, vmax=max(vmax, vmin + 1e-9))
+        fig.colorbar(im, ax=ax, label=col, shrink=0.9)
+        ax.plot(a[:, 0], a[:, 1], "r^", ms=8, mec="k", label="anchors")
+        for (px, py), name in zip(a[:, :2], ids):
+            ax.annotate(str(name), (px, py), textcoords="offset points", xytext=(3, 3),
+                        fontsize=7, color="r")
+        ax.set_title(MAPS.get(col, col), fontsize=10)
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+        if equal:
+            ax.set_aspect("equal")
+        else:
+            ax.set_title(MAPS.get(col, col) + " (axes not to scale)", fontsize=10)
+        p = out / f"{prefix}_{col}.png"
+        fig.savefig(p, dpi=100, bbox_inches="tight")
+        plt.close(fig)
+        paths.append(p)
+    return paths

@@ -1,0 +1,118 @@
+"""Monte Carlo (integrity.montecarlo), the gnss scenario and the montecarlo command."""
+
+import argparse
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy import stats
+
+from robustloc.cli import main
+from robustloc.integrity import global_alpha, reliability
+from robustloc.integrity.montecarlo import (
+    draw_trials,
+    gnss_layout,
+    ranging_layout,
+    run_montecarlo,
+    theory,
+)
+from robustloc.sim import gnss as simgnss
+
+ANCHORS = np.array([[0, 0], [20, 0], [20, 15], [0, 15], [10, -3], [10, 18], [25, 7]], float)
+
+
+def _in_ci(rate: float, n: int, p: float) -> bool:
+    lo, hi = stats.binom.interval(0.999, n, p)
+    return lo / n <= rate <= hi / n
+
+
+def test_false_alarm_and_detection_at_mdb_match_theory():
+    lay = ranging_layout(ANCHORS, [8.0, 6.0], 0.3)
+    n = 20000
+    h0 = run_montecarlo(lay, n_faults=0, trials=n, methods=("snooping",), seed=3)
+    a = float(global_alpha(lay.n - lay.p))
+    assert h0["theory_global"].iloc[0] == pytest.approx(a)
+    assert _in_ci(h0["flag_rate"].iloc[0], n, a)
+    h1 = run_montecarlo(lay, n_faults=1, size=1.0, unit="mdb", trials=n,
+                        methods=("snooping",), seed=4)
+    assert h1["theory_global"].iloc[0] == pytest.approx(0.90, abs=1e-6)
+    assert _in_ci(h1["flag_rate"].iloc[0], n, 0.90)
+
+
+def test_large_faults_identified_by_snooping_and_lege():
+    lay = ranging_layout(ANCHORS, [8.0, 6.0], 0.3)
+    df = run_montecarlo(lay, n_faults=1, size=8.0, trials=2000,
+                        methods=("ls", "snooping", "lege", "hampel"), seed=5).set_index("method")
+    assert df.loc["snooping", "identified"] > 0.97
+    assert df.loc["lege", "identified"] > 0.97
+    assert df.loc["ls", "flag_rate"] == 0
+    assert df.loc["snooping", "err_rms_m"] < 0.5 * df.loc["ls", "err_rms_m"]
+    assert df.loc["hampel", "err_rms_m"] < 0.5 * df.loc["ls", "err_rms_m"]
+
+
+def test_draw_trials_injects_requested_faults():
+    lay = ranging_layout(ANCHORS, [8.0, 6.0], 0.3)
+    tr = draw_trials(lay, 500, 2, 3.0, "mdb", seed=1)
+    assert np.all(tr.faulty.sum(axis=1) == 2)
+    mdb = reliability(lay.H, lay.sigma).mdb[0]
+    expected = 3 * np.broadcast_to(mdb, tr.faulty.shape)[tr.faulty]
+    np.testing.assert_allclose(np.abs(tr.faults[tr.faulty]), expected)
+    tr_m = draw_trials(lay, 10, 1, 25.0, "m", seed=1)
+    np.testing.assert_allclose(np.abs(tr_m.faults[tr_m.faulty]), 25.0)
+    th = theory(lay, tr_m)
+    assert th["global_rejection"] > 0.99 and th["w_test_power"] > 0.99
+    with pytest.raises(ValueError):
+        draw_trials(lay, 10, 99, 1.0)
+    with pytest.raises(ValueError):
+        run_montecarlo(lay, methods=("nope",))
+
+
+def test_gnss_layout_and_scenario(tmp_path):
+    lay = gnss_layout()
+    assert lay.p == 6 and lay.n > 12
+    los = -lay.H[:, :3]
+    np.testing.assert_allclose(np.linalg.norm(los, axis=1), 1.0)
+    assert np.all(los[:, 2] >= np.sin(np.deg2rad(10.0)) - 1e-12)
+    p = argparse.ArgumentParser()
+    simgnss.add_arguments(p)
+    args = p.parse_args(["--epochs", "3", "--faults", "1", "--fault-m", "30"])
+    paths = simgnss.simulate(tmp_path, 7, args)
+    pr = pd.read_csv(paths["pseudoranges"])
+    truth = pd.read_csv(paths["truth"])
+    assert len(truth) == 3
+    assert (pr.groupby("time")["fault_m"].apply(lambda f: (f != 0).sum()) == 1).all()
+    # pseudorange = geometric range + system clock + noise + fault
+    t = truth.set_index("time")
+    rx = t.loc[pr["time"], ["x", "y", "z"]].to_numpy()
+    geo = np.linalg.norm(pr[["x_sat", "y_sat", "z_sat"]].to_numpy() - rx, axis=1)
+    clk = np.array([t.loc[tt, f"clock_{s}"] for tt, s in zip(pr["time"], pr["system"])])
+    z = (pr["pseudorange"] - geo - clk - pr["fault_m"]) / pr["sigma"]
+    assert abs(z.mean()) < 0.5 and 0.6 < z.std() < 1.5
+    assert np.all(np.abs(pr["fault_m"][pr["fault_m"] != 0]) >= 30)
+    radii = np.linalg.norm(pr[["x_sat", "y_sat", "z_sat"]].to_numpy(), axis=1)
+    assert np.all((radii > 2.6e7) & (radii < 3.0e7))
+    with pytest.raises(ValueError):
+        simgnss.generate(1, systems="GX")
+
+
+def test_cli_montecarlo_json_and_errors(tmp_path, capsys):
+    anchors = tmp_path / "a.csv"
+    pd.DataFrame({"anchor": [f"b{i}" for i in range(7)], "x": ANCHORS[:, 0],
+                  "y": ANCHORS[:, 1]}).to_csv(anchors, index=False)
+    out = tmp_path / "mc.csv"
+    rc = main(["montecarlo", "--anchors", str(anchors), "--position", "8,6", "--sigma", "0.3",
+               "--trials", "300", "--faults", "0,1", "--size", "5", "--methods",
+               "ls,snooping,huber", "--json", "-o", str(out)])
+    assert rc == 0
+    js = json.loads(capsys.readouterr().out)
+    assert js["n_obs"] == 7 and js["n_unknowns"] == 2
+    assert len(js["rows"]) == 6
+    assert pd.read_csv(out).shape[0] == 6
+    assert main(["montecarlo", "--anchors", str(anchors), "--faults", "9"]) == 2
+    assert "redundancy" in capsys.readouterr().err
+    assert main(["montecarlo", "--anchors", str(anchors), "--methods", "foo"]) == 2
+    bad = tmp_path / "bad.csv"
+    bad.write_text("anchor,x,y\nb1,0,0\nb2,abc,1\n")
+    assert main(["montecarlo", "--anchors", str(bad)]) == 2
+    assert "bad.csv" in capsys.readouterr().err

@@ -1,0 +1,63 @@
+"""Anchor-layout planner (integrity.planner) and the reliability command."""
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from robustloc.cli import main
+from robustloc.eval.crlb import crlb_range
+from robustloc.integrity import reliability
+from robustloc.integrity.planner import grid_axes, plan
+from robustloc.models.ranging import RangeModel
+
+SQUARE = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0], [5.0, -2.0]])
+
+
+def test_plan_matches_direct_computation():
+    g = plan(SQUARE, (1, 9, 1, 9), 2.0, 0.5)
+    assert len(g.table) == 25
+    row = g.table[(g.table.x == 5.0) & (g.table.y == 5.0)].iloc[0]
+    H = RangeModel(SQUARE).jacobian(np.array([[5.0, 5.0]]))
+    rel = reliability(H, 0.5)
+    assert row["max_mdb"] == pytest.approx(rel.max_mdb[0])
+    assert row["max_ext_m"] == pytest.approx(rel.max_external_horizontal[0])
+    assert row["max_abs_rho"] == pytest.approx(rel.max_abs_rho[0])
+    assert row["min_redundancy"] == pytest.approx(rel.min_redundancy[0])
+    assert row["crlb_m"] == pytest.approx(crlb_range(SQUARE, [[5.0, 5.0]], 0.5).rmse[0])
+    assert row["dop"] == pytest.approx(row["crlb_m"] / 0.5)
+    assert row["dof"] == 3 and row["n_heard"] == 5
+    assert g.field("dop").shape == (5, 5)
+
+
+def test_plan_max_range_and_rssi():
+    g = plan(SQUARE, (0, 10, 0, 10), 5.0, 1.0, max_range_m=6.0)
+    # at (0, 10) only the corner anchor is in range: no fix
+    r = g.table[(g.table.x == 0) & (g.table.y == 10)].iloc[0]
+    assert r["n_heard"] < 3 and np.isnan(r["max_mdb"])
+    g2 = plan(SQUARE, (1, 9, 1, 9), 4.0, 4.0, model="rssi", path_loss_n=2.0)
+    assert np.all(np.isfinite(g2.table["crlb_m"]))
+    with pytest.raises(ValueError):
+        plan(SQUARE, (1, 9, 1, 9), 4.0, 1.0, dim=3)
+    with pytest.raises(ValueError):
+        grid_axes((0, -1, 0, 1), 1.0)
+
+
+def test_cli_reliability(tmp_path, capsys):
+    anchors = tmp_path / "anchors.csv"
+    pd.DataFrame({"anchor": list("ABCDE"), "x": SQUARE[:, 0], "y": SQUARE[:, 1],
+                  "z": [2.5] * 5}).to_csv(anchors, index=False)
+    out = tmp_path / "rel"
+    rc = main(["reliability", "--anchors", str(anchors), "--area", "0,10,0,10", "--step", "1",
+               "--sigma", "0.3", "-o", str(out), "--json"])
+    assert rc == 0
+    js = json.loads(capsys.readouterr().out)
+    assert js["grid_points"] == 121
+    t = pd.read_csv(out / "reliability.csv")
+    assert {"x", "y", "dop", "crlb_m", "max_mdb", "max_ext_m", "max_abs_rho",
+            "min_redundancy", "dof"} <= set(t.columns)
+    for name in ("dop", "crlb_m", "max_mdb", "max_ext_m", "max_abs_rho", "min_redundancy"):
+        assert (out / f"reliability_{name}.png").stat().st_size > 1000
+    assert main(["reliability", "--anchors", str(anchors), "--step", "-1", "-o", str(out)]) == 2
+    assert main(["reliability", "--anchors", str(tmp_path / "none.csv"), "-o", str(out)]) == 2
