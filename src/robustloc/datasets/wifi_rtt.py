@@ -20,6 +20,9 @@ Conversions (checked on the data, see ``tests/test_datasets.py``):
   reach +10 m).  Anchor ids are the CSV column names, so the corridor anchors are
   ``AP2 .. AP5``.
 
+Sizes (full data): 7200 / 6480 / 6840 scans, 60 per RP; the train/test files of the lecture
+theatre hold 5280 / 1920 scans (the upstream README says 5400 / 1800).
+
 Epochs: one per scan (one CSV row).  ``tag`` is the room name, ``time`` the scan index
 (0-based; with ``split="all"`` the test scans follow the train scans).  Extra columns:
 ``rp`` (reference-point id ``"<X>_<Y>"`` in grid units), ``split`` and ``scan`` (row index in
