@@ -1,0 +1,318 @@
+"""RAIM fault detection and exclusion (FDE) and protection levels for SPP (seed 003).
+
+The detector is the integrity layer's iterative data snooping
+(:func:`robustloc.integrity.snooping.snoop`), driven by a GNSS re-solver that re-linearizes
+the pseudorange model after every exclusion, for all epochs still failing at once:
+
+1. global test of ``v^T P v`` against ``chi2(1 - alpha, n - p)`` with ``alpha`` from the
+   B-method for the current redundancy (seed 003, eqs. (3)-(4));
+2. on failure, the w-test ``w_i = |v_i| / sqrt(Q_vv,ii)`` (seed 003, eqs. (1)-(2)); the
+   largest above ``N(1 - alpha0/2)`` (3.29) is excluded and the epoch re-solved;
+3. repeat while the global test fails and at least one redundant observation remains after
+   the exclusion (several faulty satellites are excluded in turn).
+
+A-priori sigmas are the elevation model of :class:`~robustloc.gnss.spp.SppSolver`, frozen at
+the first solution.  One receiver clock per constellation: constellations absent from an
+epoch get a unit pseudo-observation on their clock column (zero residual, zero redundancy:
+never tested, never excluded, and the redundancy ``n - p`` stays right), so one fixed-width
+design serves every epoch.
+
+**Protection levels** (Baarda's external reliability, per epoch, after FDE): a bias equal to
+the minimal detectable bias ``MDB_i = sigma_i sqrt(lambda0 / r_i)`` on satellite ``i`` is
+missed by the w-test with probability ``beta0`` (10 %), and moves the position by
+``dx_i = (H^T P H)^-1 H^T P e_i MDB_i``.  With ``dx_i`` expressed in east/north/up::
+
+    HPL = max_i sqrt(dE_i^2 + dN_i^2),     VPL = max_i |dU_i|
+
+over the satellites in the solution; infinite when a satellite that moves the position has
+zero redundancy (its fault could not be detected).  This is the slope method of snapshot
+RAIM (slope_i times sqrt(lambda0)) with the B-method's ``lambda0``; it bounds the effect of a
+single undetected fault and does not add the fault-free noise.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from robustloc import status as st
+from robustloc.gnss.corrections import enu_matrix, geodetic
+from robustloc.gnss.rinex import NavData, ObsData
+from robustloc.gnss.sp3 import PreciseProducts
+from robustloc.gnss.spp import SppResult, SppSolver, dops
+from robustloc.integrity.bmethod import ALPHA0, BETA0, lambda0
+from robustloc.integrity.snooping import snoop
+from robustloc.integrity.tests import R_MIN, global_and_w_tests, whiten
+
+
+def protection_levels(
+    H: NDArray[np.float64], sigma: NDArray[np.float64], used: NDArray[np.bool_],
+    xyz_m: NDArray[np.float64], lam0: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Horizontal and vertical protection levels (m) from MDB-sized faults (see module doc).
+
+    Parameters
+    ----------
+    H : ndarray (N, n, p)
+        Design at the solution; columns 0-2 ECEF position, the rest clocks.
+    sigma : ndarray (N, n)
+    used : ndarray of bool (N, n)
+    xyz_m : ndarray (N, 3)
+        Position, for the ENU rotation.
+    lam0 : float
+        Non-centrality ``lambda0`` of the B-method.
+    """
+    N = H.shape[0]
+    good = np.all(np.isfinite(xyz_m), axis=1)
+    lat, lon, _ = geodetic(np.where(good[:, None], xyz_m, [6378137.0, 0.0, 0.0]))
+    R = enu_matrix(lat, lon)
+    Henu = H.copy()
+    Henu[..., :3] = np.einsum("nij,nsj->nsi", R, np.nan_to_num(H[..., :3]))
+    Henu = np.where(np.isfinite(H), Henu, np.nan)
+    wh = whiten(Henu, np.where(used, sigma, np.nan), mask=used)
+    r = 1.0 - wh.hat_diagonal()
+    G = np.einsum("kpq,kiq->kip", wh.Ninv, wh.A)[..., :3]  # d position / d (v_i / sigma_i)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        k = np.sqrt(lam0 / np.where(r > R_MIN, r, np.nan))
+        moves = np.linalg.norm(G, axis=2) > 1e-9
+        dx = G * k[..., None]
+        dh = np.hypot(dx[..., 0], dx[..., 1])
+        du = np.abs(dx[..., 2])
+        blind = wh.used & (r <= R_MIN) & moves
+        dh = np.where(blind, np.inf, np.where(wh.used & moves, dh, 0.0))
+        du = np.where(blind, np.inf, np.where(wh.used & moves, du, 0.0))
+    ok = wh.ok & good & (wh.n_used > 0)
+    hpl = np.where(ok, np.max(np.nan_to_num(dh, nan=0.0), axis=1), np.nan)
+    vpl = np.where(ok, np.max(np.nan_to_num(du, nan=0.0), axis=1), np.nan)
+    return hpl.reshape(N), vpl.reshape(N)
+
+
+class RaimFde:
+    """Snapshot RAIM with fault detection and exclusion of several satellites.
+
+    Parameters
+    ----------
+    alpha0 : float
+        Significance of the w-test (default 0.1 %).
+    beta0 : float
+        Missed-detection probability of the B-method (default 10 %), defines ``lambda0``.
+    alpha : float, optional
+        Fixed significance of the global test; default: the B-method value per redundancy.
+    max_exclusions : int, optional
+        At most this many satellites excluded per epoch (default: as long as redundancy
+        allows).
+    gn_iterations : int
+        Gauss-Newton iterations of each re-solution (default 4).
+    check_ambiguity : bool
+        After an exclusion, re-test every swap of an excluded satellite for a used one; if
+        any alternative also passes the global test the exclusion is not identifiable and
+        the epoch is ``unavailable`` (default True).
+    """
+
+    def __init__(
+        self,
+        alpha0: float = ALPHA0,
+        beta0: float = BETA0,
+        alpha: float | None = None,
+        max_exclusions: int | None = None,
+        gn_iterations: int = 4,
+        check_ambiguity: bool = True,
+    ) -> None:
+        self.lambda0 = lambda0(alpha0, beta0)  # validates alpha0, beta0
+        self.alpha0 = float(alpha0)
+        self.beta0 = float(beta0)
+        self.alpha = alpha
+        if max_exclusions is not None and max_exclusions < 0:
+            raise ValueError("max_exclusions must be >= 0")
+        self.max_exclusions = max_exclusions
+        self.gn_iterations = int(gn_iterations)
+        self.check_ambiguity = bool(check_ambiguity)
+
+    def _readmit(self, res, resolve, sigma_ext, used, excl) -> NDArray[np.int64]:  # noqa: ANN001
+        """Backward step after snooping: try to put every excluded satellite back, one at a
+        time; keep it if the global test still passes and its own w-test is below the
+        critical value (a good satellite excluded because two faults bent the solution
+        towards it).  Updates ``used``/``excl`` in place; returns re-admissions per epoch."""
+        N = used.shape[0]
+        count = np.zeros(N, dtype=np.int64)
+        cand = np.flatnonzero((res.n_excluded >= 2) & (res.status == st.FAULT_EXCLUDED))
+        for kk in range(int(res.n_excluded[cand].max()) if cand.size else 0):
+            rows = cand[res.exclusion_order[cand, kk] >= 0]
+            if rows.size == 0:
+                continue
+            ks = res.exclusion_order[rows, kk]
+            m = used[rows].copy()
+            m[np.arange(rows.size), ks] = True
+            _, He, ve = resolve(m, rows)
+            t = global_and_w_tests(He, ve, sigma_ext[rows], mask=m, alpha=self.alpha,
+                                   alpha0=self.alpha0, beta0=self.beta0)
+            wk = t.w[np.arange(rows.size), ks]
+            keep = t.global_pass & (np.nan_to_num(wk, nan=np.inf) <= t.w_crit)
+            r, k = rows[keep], ks[keep]
+            used[r, k] = True
+            excl[r, k] = False
+            count[r] += 1
+        return count
+
+    def _ambiguous(self, res, resolve, sigma_ext, S: int, used, excl) -> NDArray[np.bool_]:  # noqa: ANN001
+        """Epochs whose exclusion is not unique: swapping an excluded satellite for a used
+        one also passes the global test (highly correlated w-tests, seed 003's
+        identifiability problem).  Such epochs are reported ``unavailable`` instead of
+        trusting a coin toss."""
+        N = res.used.shape[0]
+        amb = np.zeros(N, dtype=bool)
+        cand = np.flatnonzero((res.n_excluded > 0) & np.isin(res.status, (st.FAULT_EXCLUDED,)))
+        if cand.size == 0:
+            return amb
+        for kk in range(int(res.n_excluded[cand].max())):
+            k_sat = res.exclusion_order[cand, kk]
+            has_k = k_sat >= 0
+            has_k[has_k] = excl[cand[has_k], k_sat[has_k]]  # not re-admitted
+            for j in range(S):
+                rows = cand[has_k & used[cand, j] & ~amb[cand]]
+                if rows.size == 0:
+                    continue
+                ks = res.exclusion_order[rows, kk]
+                m = used[rows].copy()
+                m[:, j] = False
+                m[np.arange(rows.size), ks] = True
+                _, He, ve = resolve(m, rows)
+                t = global_and_w_tests(He, ve, sigma_ext[rows], mask=m, alpha=self.alpha,
+                                       alpha0=self.alpha0, beta0=self.beta0)
+                amb[rows[t.global_pass]] = True
+        return amb
+
+    def solve(
+        self,
+        solver: SppSolver,
+        obs: ObsData,
+        nav: NavData | None = None,
+        precise: PreciseProducts | None = None,
+        x0: NDArray | None = None,
+    ) -> SppResult:
+        """SPP of every epoch with FDE; the result carries the test statistics and PLs."""
+        P = solver.prepare(obs, nav, precise)
+        return self.solve_prepared(solver, P, x0)
+
+    def solve_prepared(self, solver: SppSolver, P, x0: NDArray | None = None) -> SppResult:  # noqa: ANN001
+        """As :meth:`solve` on the output of :meth:`SppSolver.prepare` (for benchmarks)."""
+        N, S = P.pr.shape
+        K = len(P.systems)
+        p = 3 + K
+        x = solver.initial_state(P, x0)
+        x, H, v, use, el, az, sig, conv, n_it, absent = solver._gauss_newton(
+            P, np.arange(N), x, P.avail, solver.max_iter + 5, True
+        )
+        sig_fixed = np.where(use, sig, np.nan)
+        xcur = x.copy()
+        pseudo_H = np.zeros((K, p))
+        pseudo_H[np.arange(K), 3 + np.arange(K)] = 1.0
+
+        first = {"pending": True}
+        mask0 = np.concatenate([use, absent], axis=1)
+        v0 = np.where(use, v, np.nan)
+
+        def resolve(mask: NDArray[np.bool_], rows: NDArray[np.int64]):  # noqa: ANN202
+            if first["pending"] and rows.size == N and np.array_equal(mask, mask0):
+                first["pending"] = False  # the initial solution is already at hand
+                He = np.concatenate([H, np.broadcast_to(pseudo_H, (N, K, p))], axis=1)
+                return x, He, np.concatenate([v0, np.zeros((N, K))], axis=1)
+            allowed = mask[:, :S]
+            xr, Hr, vr, *_ = solver._gauss_newton(
+                P, rows, xcur[rows], allowed, self.gn_iterations, False, sig_fixed[rows]
+            )
+            xcur[rows] = xr
+            He = np.concatenate([Hr, np.broadcast_to(pseudo_H, (len(rows), K, p))], axis=1)
+            ve = np.concatenate([vr, np.zeros((len(rows), K))], axis=1)
+            return xr, He, ve
+
+        sigma_ext = np.concatenate([sig_fixed, np.ones((N, K))], axis=1)
+        res = snoop(
+            resolve, mask0, sigma_ext, alpha=self.alpha, alpha0=self.alpha0, beta0=self.beta0,
+            max_exclusions=self.max_exclusions,
+        )
+        used_ext, excl_ext = res.used.copy(), res.excluded.copy()
+        readmitted = self._readmit(res, resolve, sigma_ext, used_ext, excl_ext)
+        status = res.status.copy()
+        ambiguous = np.zeros(N, dtype=bool)
+        if self.check_ambiguity:
+            ambiguous = self._ambiguous(res, resolve, sigma_ext, S, used_ext, excl_ext)
+            status[ambiguous] = st.UNAVAILABLE
+        used = used_ext[:, :S]
+        excluded = excl_ext[:, :S]
+        xs, vs, ws = res.x.copy(), res.residuals.copy(), res.w.copy()
+        gstat, gcrit, dof = res.global_stat.copy(), res.global_crit.copy(), res.dof.copy()
+        rr = np.flatnonzero(readmitted > 0)
+        if rr.size:  # re-solve the epochs that got satellites back
+            xr, He, ve = resolve(used_ext[rr], rr)
+            t = global_and_w_tests(He, ve, sigma_ext[rr], mask=used_ext[rr], alpha=self.alpha,
+                                   alpha0=self.alpha0, beta0=self.beta0)
+            xs[rr], vs[rr], ws[rr] = xr, np.where(used_ext[rr], ve, np.nan), t.w
+            gstat[rr], gcrit[rr], dof[rr] = t.global_stat, t.global_crit, t.dof
+        # final geometry for residuals, DOPs and protection levels
+        xf = np.where(np.all(np.isfinite(xs), axis=1)[:, None], xs, xcur)
+        _, pred_H, el, az, _, _ = solver._model(P, np.arange(N), xf)
+        vfin = vs[:, :S]
+        absent_f = np.einsum(
+            "ks,sj->kj", used.astype(float),
+            (P.sys_idx[:, None] == np.arange(K)[None, :]).astype(float),
+        ) == 0
+        hpl, vpl = protection_levels(pred_H, sig_fixed, used, xf[:, :3], self.lambda0)
+        # RTKLIB-like geometry screen on top of the tests
+        dop = dops(pred_H, used, xf[:, :3], absent_f)
+        gd = dop[:, 0]
+        status[np.isin(status, (st.OK, st.FAULT_EXCLUDED)) & ~(gd <= solver.max_gdop)] = (
+            st.ILL_CONDITIONED
+        )
+        unavailable_fix = status == st.UNAVAILABLE
+        extra = {
+            "global_stat_initial": res.global_stat_initial,
+            "global_crit_initial": res.global_crit_initial,
+            "global_stat": gstat,
+            "global_crit": gcrit,
+            "dof": dof,
+            "detected": res.detected,
+            "ambiguous": ambiguous,
+            "readmitted": readmitted,
+            "n_excluded": excluded.sum(axis=1),
+            "w": ws[:, :S],
+            "hpl_m": np.where(np.isin(status, st.USABLE), hpl, np.nan),
+            "vpl_m": np.where(np.isin(status, st.USABLE), vpl, np.nan),
+            "lambda0": self.lambda0,
+            "w_crit": res.w_crit,
+            # position kept for 'unavailable' (a fix whose integrity cannot be checked)
+            "xyz_unverified_m": np.where(unavailable_fix[:, None], xf[:, :3], np.nan),
+        }
+        return solver._result(P, xf, pred_H, vfin, used, el, az, sig, conv, n_it, absent_f,
+                              excluded, extra, status=status, dop=dop)
+
+
+def inject_faults(
+    obs: ObsData, faults: dict[str, float], from_t_gps_s: float | None = None,
+    until_t_gps_s: float | None = None,
+) -> ObsData:
+    """Copy of ``obs`` with biases added to every code observation of some satellites.
+
+    Parameters
+    ----------
+    faults : dict sat -> bias (m)
+        E.g. ``{"G11": 20.0}``.  Every pseudorange type (``C*``, ``P*``) gets the bias, so
+        single-frequency and ionosphere-free solutions see the same fault.
+    from_t_gps_s, until_t_gps_s : float, optional
+        Time window (GPS seconds) of the fault; default the whole file.
+    """
+    rows = np.ones(obs.n_epochs, dtype=bool)
+    if from_t_gps_s is not None:
+        rows &= obs.t_gps_s >= from_t_gps_s
+    if until_t_gps_s is not None:
+        rows &= obs.t_gps_s <= until_t_gps_s
+    new = {k: v.copy() for k, v in obs.obs.items()}
+    for sat, bias in faults.items():
+        if sat not in obs.sats:
+            raise ValueError(f"satellite {sat} is not in {obs.path} (has {', '.join(obs.sats)})")
+        j = obs.sats.index(sat)
+        for name, arr in new.items():
+            if name[0] in "CP":
+                arr[rows, j] += float(bias)
+    return ObsData(obs.path, obs.version, obs.t_gps_s, list(obs.sats), new, obs.approx_xyz_m,
+                   obs.epoch_flag, obs.line, dict(obs.header))

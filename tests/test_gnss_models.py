@@ -1,0 +1,124 @@
+"""Broadcast orbits vs precise SP3, SP3 interpolation, Klobuchar and Saastamoinen."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robustloc.gnss.corrections import klobuchar, saastamoinen
+from robustloc.gnss.ephemeris import C_LIGHT, broadcast_state, select_ephemeris
+from robustloc.gnss.rinex import WEEK_S, NavData, read_nav, read_obs
+from robustloc.gnss.sp3 import PreciseProducts, Sp3, read_clk, read_sp3
+from robustloc.paths import PACKAGE_DATA
+
+SLAC = PACKAGE_DATA / "gnss-slac"
+
+
+@pytest.fixture(scope="module")
+def slac():  # noqa: ANN201
+    nav = read_nav(SLAC / "brdc1180_1700-2200.21n")
+    obs = read_obs(SLAC / "slac1180_1930-1940.21o")
+    pp = PreciseProducts(read_sp3(SLAC / "COD0MGXFIN_20211181905_60M_05M_ORB.SP3"),
+                         read_clk(SLAC / "COD0MGXFIN_20211181930_12M_30S_CLK.CLK"))
+    return nav, obs, pp
+
+
+def test_broadcast_orbits_and_clocks_agree_with_sp3_clk(slac) -> None:  # noqa: ANN001
+    nav, obs, pp = slac
+    sats = [s for s in obs.sats if s[0] == "G"]
+    rec = select_ephemeris(nav, sats, obs.t_gps_s)
+    assert np.all(rec >= 0)
+    t = np.broadcast_to(obs.t_gps_s[:, None], rec.shape)
+    b = broadcast_state(nav, rec, t)
+    p = pp.state(sats, t)
+    d = np.linalg.norm(b.pos_m - p.pos_m, axis=-1)
+    # broadcast antenna phase centre vs precise centre of mass: ~1-2 m, a few m at most
+    assert np.all(d < 5.0) and 0.5 < np.median(d) < 3.0
+    # clocks: broadcast (L1, minus TGD) + TGD vs precise (IF) after a common offset
+    dc = (b.clock_s + nav.params["tgd"][rec] - p.clock_s) * C_LIGHT
+    dc -= dc.mean(axis=1, keepdims=True)
+    assert np.max(np.abs(dc)) < 2.0 and np.std(dc) < 0.8
+
+
+def test_lagrange_interpolation_reproduces_polynomials() -> None:
+    t = 1.3e9 + 300.0 * np.arange(20)
+    tau = (t - t[0]) / 3600.0
+    pos = np.stack([2.0e7 + 1e5 * tau**3 - 4e4 * tau, -1.0e7 + 3e5 * tau**2, 5e6 + 1e3 * tau**5],
+                   axis=-1)[None]
+    sp3 = Sp3(["G01"], t, pos, np.full((1, 20), 1e-4), "synthetic")
+    tq = t[0] + np.array([[37.0], [1234.5], [4567.8]])
+    st = PreciseProducts(sp3).state(["G01"], tq)
+    tau_q = (tq[:, 0] - t[0]) / 3600.0
+    exp = np.stack([2.0e7 + 1e5 * tau_q**3 - 4e4 * tau_q, -1.0e7 + 3e5 * tau_q**2,
+                    5e6 + 1e3 * tau_q**5], axis=-1)
+    np.testing.assert_allclose(st.pos_m[:, 0], exp, atol=1e-6)
+    # outside the product: invalid, not extrapolated
+    out = PreciseProducts(sp3).state(["G01", "G02"], np.array([[t[-1] + 10.0, t[3]]]))
+    assert not out.valid[0, 0] and not out.valid[0, 1]
+
+
+def test_week_rollover_and_week_independence(slac) -> None:  # noqa: ANN001
+    nav, obs, _ = slac
+    k = 0
+    one = NavData(nav.sat[[k]], nav.toc_gps_s[[k]], nav.toe_gps_s[[k]],
+                  {n: v[[k]] for n, v in nav.params.items()}, None, None, [])
+    shifted = NavData(one.sat, one.toc_gps_s + WEEK_S, one.toe_gps_s + WEEK_S, one.params,
+                      None, None, [])
+    t = one.toe_gps_s + np.array([-3600.0, 0.0, 5400.0])
+    a = broadcast_state(one, np.zeros(3, int), t)
+    b = broadcast_state(shifted, np.zeros(3, int), t + WEEK_S)
+    np.testing.assert_allclose(a.pos_m, b.pos_m, atol=1e-6)
+    np.testing.assert_allclose(a.clock_s, b.clock_s, atol=1e-15)
+    # toe 30 min before the end of a week, evaluated across the week boundary: continuous,
+    # and unchanged when the record's week is off by 1024 weeks (GPS week-number rollover)
+    week_end = (np.floor(one.toe_gps_s[0] / WEEK_S) + 1) * WEEK_S
+    d = week_end - 1800.0 - one.toe_gps_s[0]
+    late = NavData(one.sat, one.toc_gps_s + d, one.toe_gps_s + d, one.params, None, None, [])
+    rolled = NavData(one.sat, late.toc_gps_s - 1024 * WEEK_S, late.toe_gps_s - 1024 * WEEK_S,
+                     one.params, None, None, [])
+    tt = week_end + np.array([-0.5, 0.5])
+    s1 = broadcast_state(late, np.zeros(2, int), tt)
+    s2 = broadcast_state(rolled, np.zeros(2, int), tt)
+    step = np.linalg.norm(s1.pos_m[1] - s1.pos_m[0])
+    assert 2000.0 < step < 5000.0  # ~3.9 km/s orbital speed, no jump
+    np.testing.assert_allclose(s1.pos_m, s2.pos_m, atol=1e-6)
+    np.testing.assert_allclose(s1.clock_s, s2.clock_s, atol=1e-15)
+
+
+def test_klobuchar_hand_values() -> None:
+    # IS-GPS-200 20.3.3.5.2.5 at the zenith, receiver at lat = lon = 0:
+    # F = 1 + 16 (0.53 - 0.5)^3 = 1.000432
+    F = 1.0 + 16.0 * 0.03**3
+    alpha = np.array([1e-8, 0.0, 0.0, 0.0])
+    beta = np.array([72000.0, 0.0, 0.0, 0.0])
+    # local time 14:00 (t = 50400 s of the day at longitude 0): x = 0, full amplitude
+    day = klobuchar(50400.0, 0.0, 0.0, 0.0, np.pi / 2, alpha, beta)
+    assert day == pytest.approx(C_LIGHT * F * (5e-9 + 1e-8), rel=1e-9)  # 4.4989 m
+    # midnight: |x| > 1.57, only the 5 ns night-time constant remains
+    night = klobuchar(0.0, 0.0, 0.0, 0.0, np.pi / 2, alpha, beta)
+    assert night == pytest.approx(C_LIGHT * F * 5e-9, rel=1e-9)  # 1.4996 m
+    # 3 hours from the peak with a 72000 s period: x = 2 pi 10800 / 72000 = 0.9425
+    x = 2 * np.pi * 10800.0 / 72000.0
+    mid = klobuchar(50400.0 + 10800.0, 0.0, 0.0, 0.0, np.pi / 2, alpha, beta)
+    assert mid == pytest.approx(C_LIGHT * F * (5e-9 + 1e-8 * (1 - x**2 / 2 + x**4 / 24)),
+                                rel=1e-9)
+    # lower elevation: larger obliquity factor, larger delay
+    assert klobuchar(50400.0, 0.0, 0.0, 0.0, np.deg2rad(20), alpha, beta) > 2.0 * day
+
+
+def test_saastamoinen_hand_values() -> None:
+    # sea level, 45 deg latitude, standard atmosphere: ZHD = 0.0022768 x 1013.25 = 2.30697 m
+    # (the textbook ~2.3 m), ZWD with 70 % humidity at 15 C (e = 12.0117 hPa) = 0.12049 m
+    z = saastamoinen(np.deg2rad(45.0), 0.0, np.pi / 2)
+    assert z == pytest.approx(2.306966 + 0.120488, abs=2e-4)
+    # 1/cos(z) mapping: twice the zenith delay at 30 deg elevation
+    assert saastamoinen(np.deg2rad(45.0), 0.0, np.deg2rad(30.0)) == pytest.approx(2 * z)
+    # Black & Eisner mapping at 30 deg: 1.001 / sqrt(0.002001 + 0.25)
+    b = saastamoinen(np.deg2rad(45.0), 0.0, np.deg2rad(30.0), mapping="black")
+    assert b == pytest.approx(z * 1.001 / np.sqrt(0.002001 + 0.25))
+    # higher station: less delay; out of range: zero
+    assert saastamoinen(np.deg2rad(45.0), 2000.0, np.pi / 2) < 0.85 * z
+    assert saastamoinen(0.0, 2e4, np.pi / 2) == 0.0
+    assert saastamoinen(0.0, 0.0, -0.1) == 0.0
+    with pytest.raises(ValueError):
+        saastamoinen(0.0, 0.0, 1.0, mapping="niell")

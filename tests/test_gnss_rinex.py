@@ -1,0 +1,154 @@
+"""RINEX / SP3 / CLK readers: agreement with georinex, clear errors on bad files."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from robustloc.errors import InputError
+from robustloc.gnss.rinex import datetime64_to_gps_s, read_nav, read_obs
+from robustloc.gnss.sp3 import read_clk, read_sp3
+from robustloc.paths import PACKAGE_DATA
+
+GEONET = PACKAGE_DATA / "gnss-geonet"
+SLAC = PACKAGE_DATA / "gnss-slac"
+OBS = GEONET / "07590920.05o"
+NAV = GEONET / "07590920_0000-0400.05n"
+SLAC_OBS = SLAC / "slac1180_1930-1940.21o"
+
+
+def _georinex(path: Path):  # noqa: ANN202
+    gr = pytest.importorskip("georinex")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return gr.load(path)
+
+
+@pytest.mark.parametrize("path", [OBS, SLAC_OBS])
+def test_obs_reader_matches_georinex(path: Path) -> None:
+    ours = read_obs(path)
+    ref = _georinex(path)
+    assert ours.n_epochs == ref.sizes["time"]
+    np.testing.assert_allclose(ours.t_gps_s, datetime64_to_gps_s(ref.time.values), atol=1e-6)
+    sv = [str(s) for s in ref.sv.values]
+    assert sorted(ours.sats) == sorted(sv)
+    cols = [sv.index(s) for s in ours.sats]
+    n_compared = 0
+    for name, arr in ours.obs.items():
+        theirs = np.asarray(ref[name].values)[:, cols]
+        theirs = np.where(theirs == 0.0, np.nan, theirs)  # we map 0.000 ("absent") to NaN
+        np.testing.assert_array_equal(np.isnan(arr), np.isnan(theirs), err_msg=name)
+        np.testing.assert_allclose(arr, theirs, rtol=0, atol=1e-9, equal_nan=True, err_msg=name)
+        n_compared += int(np.isfinite(arr).sum())
+    assert n_compared > 1000
+
+
+def test_obs_header_and_epochs() -> None:
+    o = read_obs(OBS)
+    np.testing.assert_allclose(o.approx_xyz_m, [-3976219.5082, 3382372.5671, 3652512.9849])
+    assert o.n_epochs == 120
+    np.testing.assert_allclose(np.diff(o.t_gps_s), 30.0, atol=2e-3)  # 1-ms clock steps
+    # 2005-04-02 00:00:00 GPST = week 1316, day 6 (Saturday) 00:00
+    assert o.t_gps_s[0] == 1316 * 604800 + 6 * 86400
+    # first record of the file: G03 C1 = 24767686.375 (line 19)
+    assert o.obs["C1"][0, o.sats.index("G03")] == pytest.approx(24767686.375)
+
+
+def test_nav_reader_matches_georinex() -> None:
+    nav = read_nav(NAV)
+    ref = _georinex(NAV)
+    assert nav.n_records == int(np.isfinite(ref["sqrtA"].values).sum())
+    for k in range(nav.n_records):
+        toc = np.datetime64("1980-01-06", "ns") + np.int64(round(nav.toc_gps_s[k] * 1e9))
+        rec = ref.sel(sv=nav.sat[k], time=toc)
+        for name in ("sqrtA", "M0", "Toe", "SVclockBias", "Eccentricity", "Omega0", "Crs"):
+            assert nav.params[name][k] == float(rec[name])
+        assert nav.params["tgd"][k] == float(rec["TGD"])
+    np.testing.assert_allclose(nav.ion_alpha, [1.118e-08, 1.49e-08, -5.96e-08, -5.96e-08])
+    np.testing.assert_allclose(nav.ion_beta, [8.806e04, 1.638e04, -1.966e05, -1.311e05])
+
+
+def test_sp3_and_clk_values() -> None:
+    sp3 = read_sp3(SLAC / "COD0MGXFIN_20211181905_60M_05M_ORB.SP3")
+    clk = read_clk(SLAC / "COD0MGXFIN_20211181930_12M_30S_CLK.CLK")
+    assert sp3.t_gps_s.size == 13 and np.all(np.diff(sp3.t_gps_s) == 300.0)
+    assert {"G02", "R09", "E13"} <= set(sp3.sats)
+    assert clk.t_gps_s.size == 23 and np.all(np.diff(clk.t_gps_s) == 30.0)
+    # AS G02 2021 04 28 19 30 0.0: -0.599721550314E-03 s
+    t = datetime64_to_gps_s(np.array([np.datetime64("2021-04-28T19:30:00")]))[0]
+    j = list(clk.t_gps_s).index(t)
+    assert clk.clock_s[clk.sats.index("G02"), j] == pytest.approx(-0.599721550314e-03, rel=1e-12)
+
+
+def _write(tmp_path: Path, name: str, text: str) -> Path:
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+def test_truncated_obs_names_file_and_line(tmp_path: Path) -> None:
+    lines = OBS.read_text().splitlines()
+    bad = _write(tmp_path, "cut.05o", "\n".join(lines[:-3]) + "\n")
+    with pytest.raises(InputError) as e:
+        read_obs(bad)
+    assert e.value.path == str(bad)
+    last_epoch = max(i for i, ln in enumerate(lines) if ln.startswith(" 05  4  2"))
+    assert e.value.line == last_epoch + 1  # header line of the cut epoch
+    assert "ends inside" in str(e.value)
+
+
+def test_malformed_obs_number(tmp_path: Path) -> None:
+    lines = OBS.read_text().splitlines()
+    lines[18] = lines[18][:20] + "xx" + lines[18][22:]
+    bad = _write(tmp_path, "bad.05o", "\n".join(lines) + "\n")
+    with pytest.raises(InputError) as e:
+        read_obs(bad)
+    assert e.value.line == 19 and "C1" in str(e.value)
+
+
+def test_malformed_epoch_header(tmp_path: Path) -> None:
+    lines = OBS.read_text().splitlines()
+    lines[17] = " 05  4  2  0  0  0.0000000  0 XG 3G 7G 8G11G19G20G24G28"
+    bad = _write(tmp_path, "bad.05o", "\n".join(lines) + "\n")
+    with pytest.raises(InputError) as e:
+        read_obs(bad)
+    assert e.value.line == 18
+
+
+def test_not_rinex_and_missing_header(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="RINEX VERSION"):
+        read_obs(_write(tmp_path, "x.05o", "hello\n"))
+    head = OBS.read_text().splitlines()[:5]
+    with pytest.raises(InputError, match="END OF HEADER"):
+        read_obs(_write(tmp_path, "y.05o", "\n".join(head) + "\n"))
+    with pytest.raises(InputError, match="not an observation file"):
+        read_obs(NAV)
+
+
+def test_truncated_and_malformed_nav(tmp_path: Path) -> None:
+    lines = NAV.read_text().splitlines()
+    with pytest.raises(InputError, match="truncated") as e:
+        read_nav(_write(tmp_path, "cut.05n", "\n".join(lines[:-2]) + "\n"))
+    assert e.value.path is not None
+    bad = list(lines)
+    k = next(i for i, ln in enumerate(lines) if "END OF HEADER" in ln) + 3
+    bad[k] = bad[k][:5] + "1.2345X-08" + bad[k][15:]
+    with pytest.raises(InputError) as e:
+        read_nav(_write(tmp_path, "bad.05n", "\n".join(bad) + "\n"))
+    assert e.value.line == k + 1
+
+
+def test_bad_sp3_and_clk(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="SP3"):
+        read_sp3(_write(tmp_path, "a.sp3", "garbage\n"))
+    lines = (SLAC / "COD0MGXFIN_20211181905_60M_05M_ORB.SP3").read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if ln.startswith("PG"))
+    lines[k] = lines[k][:10] + "abc" + lines[k][13:]
+    with pytest.raises(InputError) as e:
+        read_sp3(_write(tmp_path, "b.sp3", "\n".join(lines) + "\n"))
+    assert e.value.line == k + 1
+    with pytest.raises(InputError, match="clock"):
+        read_clk(OBS)
