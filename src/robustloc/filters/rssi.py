@@ -21,6 +21,14 @@ also the fallback when the anchor has no exponent.
 
 Measurement (eq. (16)): ``RSSI = [1 0 0] X + r``, ``r ~ N(0, R)``.
 
+Observability: the power changes by ``-c v t / d`` per step, so the RSSI sequence fixes
+only the ratio ``v / d``; the distance state is anchored by its initial value (the inverse
+of eq. (5) at the first sample, with the matching ``cov(P, d)``) and by that correlation,
+and it random-walks with the speed errors afterwards (on the simulated walk its median
+error is several metres).  The filtered *power* is the product; distances for positioning
+are best taken from it through the path-loss model (the ``distance`` column of
+:func:`filter_measurements`), the state ``d`` is reported as ``distance_state``.
+
 Jacobian (eq. (17), garbled in the source; derived here).  With ``c = 10 n / ln 10`` and
 ``d' = d + v t`` (the mean prediction, ``a = 0``)::
 
@@ -435,12 +443,13 @@ class RobustRssiFilter:
 
     def filter_samples(
         self, link: ArrayLike, time_s: ArrayLike, rssi_dbm: ArrayLike,
-        params: LinkParams | None = None,
+        params: LinkParams | None = None, progress: bool = False,
     ) -> RssiFilterResult:
         """Filter a ragged log: per-sample ``link`` index, ``time_s``, ``rssi_dbm``.
 
         Returns per-sample results in the input order.  Non-finite RSSI values are
-        missing measurements (prediction only, weight NaN).
+        missing measurements (prediction only, weight NaN).  ``progress`` shows a bar on
+        stderr when it is a terminal.
         """
         link = np.asarray(link, dtype=np.int64)
         t = np.asarray(time_s, dtype=float)
@@ -454,13 +463,16 @@ class RobustRssiFilter:
         layout = StepLayout.build(link, t)
         if params is None:
             params = LinkParams.broadcast(layout.n_links)
-        res = self.run(layout.scatter(z), layout.intervals(t), params)
+        res = self.run(layout.scatter(z), layout.intervals(t), params, progress=progress)
         return res.gather(layout)
 
-    def run(self, rssi_dbm: ArrayLike, dt_s: ArrayLike, params: LinkParams) -> RssiFilterResult:
+    def run(
+        self, rssi_dbm: ArrayLike, dt_s: ArrayLike, params: LinkParams, progress: bool = False
+    ) -> RssiFilterResult:
         """Filter ``(T, L)`` RSSI (NaN: no sample) with intervals ``dt_s (T, L)``.
 
-        One vectorized step per row; every link is an independent filter.
+        One vectorized step per row; every link is an independent filter.  ``progress``
+        shows a bar on stderr when it is a terminal.
         """
         z_all = np.asarray(rssi_dbm, dtype=float)
         dt_all = np.asarray(dt_s, dtype=float)
@@ -492,7 +504,15 @@ class RobustRssiFilter:
         n_rej = np.zeros(L, dtype=np.int64)
         sqrt_half_pi = np.sqrt(np.pi / 2.0)
 
-        for k in range(T):
+        steps = range(T)
+        if progress and T > 1:
+            import sys
+
+            from tqdm import tqdm
+
+            steps = tqdm(steps, desc="filter", unit="step", file=sys.stderr,
+                         disable=not sys.stderr.isatty())
+        for k in steps:
             z = z_all[k]
             present = np.isfinite(z)
             # links starting now: state from the first finite sample (model-consistent
@@ -563,3 +583,111 @@ class RobustRssiFilter:
             out["p"], out["d"], out["v"], out["var"], out["innov"], out["u"], out["scale"],
             out["w"], relocked, {"exponent": expo},
         )
+
+
+# ---------------------------------------------------------------------------------------
+# Tables: contract measurements in, filtered measurements out
+# ---------------------------------------------------------------------------------------
+
+
+def link_params_from_anchors(anchors: object, anchor_of_link: ArrayLike) -> LinkParams:
+    """Path-loss parameters of each link from an anchors table.
+
+    Attenuation-factor columns ``p0, gamma, faf, d0`` (seed 002 eq. (5)) when present and
+    finite for the anchor; else log-distance ``A, n`` (``p0 = A, gamma = n, FAF = 0,
+    d0 = 1 m``); else ``p0 = -40 dBm, gamma = 2`` (the distance state is then only
+    indicative; the filtered RSSI does not depend on it much).
+    """
+    import pandas as pd
+
+    a = pd.DataFrame(anchors).set_index(pd.DataFrame(anchors)["anchor"].astype(str))
+    ids = np.asarray(anchor_of_link).astype(str)
+    n = ids.size
+
+    def col(name: str) -> Array:
+        if name not in a.columns:
+            return np.full(n, np.nan)
+        return a[name].astype(float).reindex(ids).to_numpy()
+
+    p0, g, faf, d0 = col("p0"), col("gamma"), col("faf"), col("d0")
+    A, nn = col("A"), col("n")
+    att = np.isfinite(p0) & np.isfinite(g) & (g > 0)
+    logd = ~att & np.isfinite(A) & np.isfinite(nn) & (nn > 0)
+    return LinkParams(
+        p0_dbm=np.where(att, p0, np.where(logd, A, -40.0)),
+        gamma=np.where(att, g, np.where(logd, nn, 2.0)),
+        faf_db=np.where(att & np.isfinite(faf), faf, 0.0),
+        d0_m=np.where(att & np.isfinite(d0) & (d0 > 0), d0, 1.0),
+    )
+
+
+@dataclass(frozen=True)
+class FilteredTable:
+    """Result of :func:`filter_measurements`.
+
+    ``frame`` has the input rows in the input order, ``rssi`` replaced by the filtered
+    value and extra columns ``rssi_raw``, ``distance`` (m: the filtered RSSI through the
+    inverse of the link's path-loss model, eq. (5) -- what positioning uses),
+    ``distance_state`` (the filter's own ``d``, see the module docstring on its weak
+    observability), ``speed`` (radial speed state, m/s), ``weight`` (equivalent weight
+    ``D``), ``innovation`` (dB) and ``relocked``.  ``summary`` holds the counts.
+    """
+
+    frame: object
+    summary: dict
+
+
+def filter_measurements(
+    measurements: object, anchors: object | None, filt: RobustRssiFilter,
+    progress: bool = False,
+) -> FilteredTable:
+    """Filter every (tag, anchor) link of a contract measurements frame in one pass.
+
+    Parameters
+    ----------
+    measurements : DataFrame
+        ``time, tag, anchor, rssi`` (from :func:`robustloc.io.read_measurements`).
+    anchors : DataFrame, optional
+        Anchors with path-loss columns (see :func:`link_params_from_anchors`).
+    filt : RobustRssiFilter
+    progress : bool
+        Progress bar on stderr (only on a terminal).
+    """
+    import pandas as pd
+
+    from robustloc.errors import InputError
+
+    m = pd.DataFrame(measurements)
+    if "rssi" not in m.columns:
+        raise InputError("the filter needs an 'rssi' column (this file has none)",
+                         getattr(measurements, "attrs", {}).get("path"))
+    key = m["tag"].astype(str) + "\x1f" + m["anchor"].astype(str)
+    link, uniq = pd.factorize(key, sort=True)
+    anchor_of_link = np.array([u.split("\x1f", 1)[1] for u in uniq], dtype=object)
+    params = (link_params_from_anchors(anchors, anchor_of_link) if anchors is not None
+              else LinkParams.broadcast(len(uniq)))
+    res = filt.filter_samples(link, m["time"].to_numpy(dtype=float),
+                              m["rssi"].to_numpy(dtype=float), params, progress=progress)
+    out = m.copy()
+    out["rssi_raw"] = m["rssi"].to_numpy(dtype=float)
+    out["rssi"] = res.rssi_dbm
+    out["distance"] = distance_from_rssi(
+        res.rssi_dbm, params.p0_dbm[link], params.gamma[link], params.faf_db[link],
+        params.d0_m[link])
+    out["distance_state"] = res.distance_m
+    out["speed"] = res.speed_mps
+    out["weight"] = res.weight
+    out["innovation"] = res.innovation_db
+    out["relocked"] = res.relocked
+    w = res.weight[np.isfinite(res.innovation_db)]
+    summary = {
+        "filter": filt.name,
+        "samples": int(len(m)),
+        "links": int(len(uniq)),
+        "downweighted": int(np.sum(w < 1)),
+        "rejected": int(np.sum(w == 0)),
+        "relocked": int(res.relocked.sum()),
+        "share_downweighted": float(np.mean(w < 1)) if w.size else 0.0,
+        "raw_minus_filtered_std_db": float(np.nanstd(out["rssi_raw"] - out["rssi"])),
+    }
+    return FilteredTable(out, summary)

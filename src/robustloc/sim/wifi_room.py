@@ -24,7 +24,8 @@ anticlockwise from ``(1, 1.5)`` at ``--speed`` (default 1.0 m/s, walking pace), 
 RSSI noise, in dB, added to the model value of every scan (the paper's RSSI is left-skewed,
 heavy-tailed and correlated up to lag 8, sec. 2):
 
-* an AR(1) Gaussian component, ``phi = 0.88`` per scan, stationary standard deviation
+* an AR(1) Gaussian component, ``phi = 0.88`` per scan (``--ar-phi``; 0 makes it
+  white), stationary standard deviation
   ``--noise-db`` (default 1.5 dB): with the white parts below, the autocorrelation of the
   total falls below 0.2 after about 8 lags, as in the paper;
 * a left-skewed component: skew-normal with shape ``-4``, scale ``0.8 --noise-db``,
@@ -87,6 +88,7 @@ class WifiRoomConfig:
     jump_db: float = 8.0
     jumps: bool = True
     survey_samples: int = 50
+    ar_phi: float = AR_PHI
 
     def __post_init__(self) -> None:
         for name in ("samples_per_point", "walk_epochs", "survey_samples"):
@@ -97,6 +99,8 @@ class WifiRoomConfig:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if self.noise_db < 0 or self.jump_db < 0:
             raise ValueError("noise_db and jump_db must be >= 0")
+        if not 0 <= self.ar_phi < 1:
+            raise ValueError(f"ar_phi must be in [0, 1), got {self.ar_phi}")
         if not 0 <= self.fade_prob <= 1:
             raise ValueError(f"fade_prob must be in [0, 1], got {self.fade_prob}")
 
@@ -147,13 +151,14 @@ def _noise(
     ``distance_m`` broadcasts to ``shape`` and scales the continuous components.
     """
     s_ar = cfg.noise_db
-    eps = rng.normal(0.0, s_ar * np.sqrt(1 - AR_PHI**2), shape)
+    phi = cfg.ar_phi
+    eps = rng.normal(0.0, s_ar * np.sqrt(1 - phi**2), shape)
     ar = np.empty(shape)
     ar[0] = rng.normal(0.0, s_ar, shape[1:])
     # AR(1) recursion along time; lfilter is the vectorized form of a_k = phi a_{k-1} + e_k
     from scipy.signal import lfilter
 
-    ar[1:] = lfilter([1.0], [1.0, -AR_PHI], eps[1:], axis=0, zi=AR_PHI * ar[:1])[0]
+    ar[1:] = lfilter([1.0], [1.0, -phi], eps[1:], axis=0, zi=phi * ar[:1])[0]
     sk = stats.skewnorm(SKEW_SHAPE, scale=0.8 * cfg.noise_db)
     skew = sk.rvs(size=shape, random_state=rng) - sk.mean()
     fade = np.where(rng.random(shape) < cfg.fade_prob, -rng.uniform(4.0, 10.0, shape), 0.0)
@@ -233,6 +238,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"probability of a 4-10 dB fade per scan (default {d.fade_prob})")
     p.add_argument("--jump-db", type=float, default=d.jump_db,
                    help=f"environment-change drop on the walk, dB (default {d.jump_db})")
+    p.add_argument("--ar-phi", type=float, default=d.ar_phi,
+                   help=f"AR(1) coefficient of the correlated noise per scan (default {d.ar_phi})")
     p.add_argument("--no-jumps", action="store_true", help="no environment changes")
 
 
@@ -247,6 +254,7 @@ def simulate(out_dir: Path, seed: int, args: argparse.Namespace) -> dict[str, Pa
         fade_prob=getattr(args, "fade_prob", 0.03),
         jump_db=getattr(args, "jump_db", 8.0),
         jumps=not getattr(args, "no_jumps", False),
+        ar_phi=getattr(args, "ar_phi", AR_PHI),
     )
     data = generate(cfg, seed)
     out = Path(out_dir)
