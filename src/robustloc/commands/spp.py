@@ -54,7 +54,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-exclusions", type=int, default=None,
                    help="at most this many satellites excluded per epoch")
     p.add_argument("--reference", default=None, metavar="X,Y,Z",
-                   help="reference ECEF position for the error summary (default: RINEX header)")
+                   help="reference ECEF position (m) for the error summary (default: RINEX "
+                        "header); write --reference=X,Y,Z when X is negative")
     p.add_argument("--inject", default=None, metavar="PRN:BIAS_M[,PRN:BIAS_M]",
                    help="add biases (m) to these satellites' pseudoranges, e.g. G11:20,G24:-15")
     p.add_argument("--inject-from", default=None, metavar="T",
