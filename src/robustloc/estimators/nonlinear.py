@@ -124,7 +124,10 @@ def gauss_newton(
         last = si == len(stages) - 1
         act = base.copy()
         lam = np.full(N, 1e-3)
-        for _ in range(max_iter):
+        # MM-style: the robust scale is estimated at the start of each stage and then held
+        # fixed, so a drifting fit cannot inflate its own scale and re-admit outliers
+        stage_scale = np.full(N, np.nan) if scale is None else np.full(N, float(scale))
+        for it in range(max_iter):
             if act.size == 0:
                 break
             xa = x[act]
@@ -136,9 +139,12 @@ def gauss_newton(
                 with np.errstate(all="ignore"):
                     hNh = np.sum(np.matmul(J, Ninv0) * J, axis=2)
                     qvv = np.where(wa0 > 0, 1.0 / np.where(wa0 > 0, wa0, 1) - hNh, np.nan)
-                u, _s = standardized_residuals(
-                    np.where(wa0 > 0, -r, np.nan), np.maximum(qvv, 0.0), wa0, scale, min_scale
+                u, s_used = standardized_residuals(
+                    np.where(wa0 > 0, -r, np.nan), np.maximum(qvv, 0.0), wa0,
+                    None if it == 0 and scale is None else stage_scale[act], min_scale,
                 )
+                if it == 0:
+                    stage_scale[act] = s_used
                 wa = wa0 * np.nan_to_num(wf.weights(u), nan=0.0)
                 if np.any(np.sum(wa > 0, axis=1) < p):  # keep geometry: fall back to a-priori
                     bad = np.sum(wa > 0, axis=1) < p

@@ -29,6 +29,7 @@ Methods
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from itertools import combinations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -38,12 +39,31 @@ from robustloc.estimators.linear import LinearFit, irls, lege, solve_wls
 from robustloc.estimators.nonlinear import gauss_newton
 from robustloc.estimators.solution import Solution
 from robustloc.models.ranging import LN10, RangeModel, RssiModel
+from robustloc.robust.scale import nanmedian_fast
 from robustloc.robust.weights import get_weight
 
 Array = NDArray[np.float64]
 
 METHODS = ("ls", "wls", "nls", "huber", "hampel", "igg", "igg3", "lege", "snooping")
 ROBUST = ("huber", "hampel", "igg", "igg3")
+
+
+def _collinear(a: Array, heard: NDArray[np.bool_], rel: float = 1e-3) -> NDArray[np.bool_]:
+    """Epochs whose heard anchors lie on one line (2-D: the fix is ambiguous by mirror).
+
+    The smaller eigenvalue of the heard anchors' scatter matrix, relative to the larger,
+    below ``rel**2`` (anchors within 0.1 % of their spread from a line).
+    """
+    h = heard.astype(float)
+    cnt = np.maximum(h.sum(axis=1), 1.0)
+    mean = (h @ a) / cnt[:, None]
+    sxx = (h @ (a[:, 0] ** 2)) / cnt - mean[:, 0] ** 2
+    syy = (h @ (a[:, 1] ** 2)) / cnt - mean[:, 1] ** 2
+    sxy = (h @ (a[:, 0] * a[:, 1])) / cnt - mean[:, 0] * mean[:, 1]
+    tr, det = sxx + syy, sxx * syy - sxy**2
+    disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0.0))
+    lmax, lmin = tr / 2 + disc, tr / 2 - disc
+    return lmin <= (rel**2) * np.maximum(lmax, 1e-300)
 
 
 def _rows(fit: LinearFit, idx: NDArray) -> LinearFit:
@@ -111,6 +131,70 @@ def linearized_system(
     G = np.where(use[..., None], G, np.nan)
     h = np.where(use, h, np.nan)
     return G, h, ref, centroid
+
+
+def subset_fixes(
+    anchors: ArrayLike,
+    ranges: ArrayLike,
+    height_offset: ArrayLike | None = None,
+    max_subsets: int = 64,
+    seed: int = 0,
+) -> tuple[Array, Array]:
+    """Least-median-of-squares start: exact fixes from minimal anchor subsets.
+
+    Every subset of ``dim + 1`` anchors gives an exact position from its own difference
+    system (seed 000 eq. (3) with ``dim`` rows); its design depends only on the anchors, so
+    it is inverted once per subset and applied to all epochs.  Each epoch keeps the subset
+    fix with the smallest median absolute range residual over all heard anchors.  At most
+    ``max_subsets`` subsets are used (a fixed random choice when there are more).
+
+    Returns
+    -------
+    x : (N, dim) best subset fix (NaN where no subset was fully heard).
+    med : (N,) its median absolute range residual.
+    """
+    a = np.asarray(anchors, dtype=float)
+    d = np.asarray(ranges, dtype=float)
+    N, m = d.shape
+    dim = a.shape[1]
+    q = dim + 1
+    if m < q:
+        return np.full((N, dim), np.nan), np.full(N, np.inf)
+    combos = np.array(list(combinations(range(m), q)), dtype=np.int64)
+    if combos.shape[0] > max_subsets:
+        pick = np.random.default_rng(seed).choice(combos.shape[0], max_subsets, replace=False)
+        combos = combos[np.sort(pick)]
+    c0 = a.mean(axis=0)
+    ac = a - c0
+    sub = ac[combos]  # (C, q, dim)
+    G = sub[:, 1:, :] - sub[:, :1, :]  # (C, dim, dim)
+    with np.errstate(all="ignore"):
+        det = np.linalg.det(G)
+        scale = np.prod(np.linalg.norm(G, axis=2), axis=1)
+        good = np.abs(det) > 1e-3 * np.maximum(scale, 1e-300)
+    combos, sub, G = combos[good], sub[good], G[good]
+    if combos.shape[0] == 0:
+        return np.full((N, dim), np.nan), np.full(N, np.inf)
+    Ginv = np.linalg.inv(G)
+    d2 = d * d
+    if height_offset is not None:
+        d2 = d2 - np.asarray(height_offset, dtype=float)[None, :] ** 2
+    n2 = np.sum(sub * sub, axis=2)  # (C, q)
+    d2s = d2[:, combos]  # (N, C, q)
+    h = 0.5 * (d2s[:, :, :1] - d2s[:, :, 1:] - n2[None, :, :1] + n2[None, :, 1:])
+    x = np.einsum("cij,ncj->nci", Ginv, h) + c0  # (N, C, dim)
+    model = RangeModel(a, height_offset)
+    best = np.full((N, dim), np.nan)
+    best_c = np.full(N, np.inf)
+    for k in range(combos.shape[0]):
+        xk = x[:, k, :]
+        r = np.abs(model.predict(np.nan_to_num(xk)) - d)
+        c = nanmedian_fast(r, axis=1)
+        c = np.where(np.all(np.isfinite(xk), axis=1) & np.isfinite(c), c, np.inf)
+        better = c < best_c
+        best[better] = xk[better]
+        best_c[better] = c[better]
+    return best, best_c
 
 
 @dataclass(frozen=True)
@@ -212,6 +296,10 @@ class Locator:
         n_heard = np.sum(np.isfinite(z), axis=1)
         fit = self._dispatch(a, z, ranges, rmodel, height_offset)
         status = fit.status.copy()
+        if dim == 2:
+            status[_collinear(a, np.isfinite(z)) & (status != st.INSUFFICIENT)] = (
+                st.ILL_CONDITIONED
+            )
         status[n_heard < dim + 1] = st.INSUFFICIENT
         status[n_heard == 0] = st.INVALID
         x = np.where(np.isin(status, st.USABLE)[:, None], fit.x, np.nan)
@@ -273,31 +361,35 @@ class Locator:
         )
 
     def _initial(self, a, ranges, height_offset) -> Array:
-        """Start for the iterative solvers, robust to wild ranges.
+        """Start for the iterative solvers, robust to wild ranges and to masking.
 
-        Two candidates per epoch: the linearized LS fix clipped to the anchors' bounding
-        box grown by 25 % of its size, and the inverse-square-distance weighted centroid of
-        the heard anchors; the one with the smaller median absolute range residual wins.
+        Candidates per epoch: the linearized LS fix clipped to the anchors' bounding box
+        grown by 25 % of its size, the inverse-square-distance weighted centroid of the
+        heard anchors, and (for the robust methods) the exact fixes of minimal subsets of
+        ``dim + 1`` anchors (:func:`subset_fixes`).  The candidate with the smallest median
+        absolute range residual wins (least median of squares): an M-estimator started
+        from it is no longer masked by several gross errors pulling the LS start.
         """
         fit = self._linearized(a, ranges, height_offset, None)
         lo, hi = a.min(axis=0), a.max(axis=0)
         span = np.maximum(hi - lo, 1.0)
-        x_ls = np.clip(fit.x, lo - 0.25 * span, hi + 0.25 * span)
+        cands = [np.clip(fit.x, lo - 0.25 * span, hi + 0.25 * span)]
         with np.errstate(all="ignore"):
             wts = np.where(np.isfinite(ranges), 1.0 / np.maximum(ranges, 0.5) ** 2, 0.0)
-            x_c = (wts @ a) / wts.sum(axis=1, keepdims=True)
+            cands.append((wts @ a) / wts.sum(axis=1, keepdims=True))
+        if self.method in ROBUST + ("lege", "snooping"):
+            cands.append(subset_fixes(a, ranges, height_offset)[0])
         model = RangeModel(a, height_offset)
-
-        def cost(x: Array) -> Array:
-            from robustloc.robust.scale import nanmedian_fast
-
-            r = np.abs(model.predict(np.nan_to_num(x)) - ranges)
+        best = np.full_like(cands[0], np.nan)
+        best_c = np.full(ranges.shape[0], np.inf)
+        for xc in cands:
+            r = np.abs(model.predict(np.nan_to_num(xc)) - ranges)
             c = nanmedian_fast(r, axis=1)
-            return np.where(np.all(np.isfinite(x), axis=1) & np.isfinite(c), c, np.inf)
-
-        x0 = np.where((cost(x_ls) <= cost(x_c))[:, None], x_ls, x_c)
-        x0 = np.where(np.isfinite(x0), x0, (lo + hi) / 2)
-        return x0
+            c = np.where(np.all(np.isfinite(xc), axis=1) & np.isfinite(c), c, np.inf)
+            better = c < best_c
+            best[better] = xc[better]
+            best_c[better] = c[better]
+        return np.where(np.isfinite(best), best, (lo + hi) / 2)
 
     def _nonlinear_problem(self, a, z, ranges, rmodel, height_offset, x0):
         if rmodel is not None and self.domain == "rssi":
@@ -344,8 +436,6 @@ class Locator:
         per = 24 if dim == 2 else 10
         axes = [np.linspace(blo[k], bhi[k], per if dim == 2 or k < 2 else 5) for k in range(dim)]
         grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, dim)
-        from robustloc.robust.scale import nanmedian_fast
-
         zs, ss = obs[sus], sig[sus]
         best = np.full((sus.size, dim), np.nan)
         best_c = np.full(sus.size, np.inf)
@@ -375,13 +465,17 @@ class Locator:
     def _lege_nonlinear(self, model, obs, x0, sig) -> LinearFit:
         base = self._gn(model, obs, x0, sig, None)
         xs = np.where(np.isfinite(base.x), base.x, x0)
-        pred, J = model.predict(xs), model.jacobian(xs)
         w0 = np.where(np.isfinite(obs), 1.0 / sig**2, 0.0)
-        # linearized at the LS fix: y = J dx + e with y = obs - f(x)
-        found = lege(J, obs - pred, w0)
-        flagged = found.extra["gross_errors"] != 0
-        obs2 = np.where(flagged, np.nan, obs)
-        fit = self._gn(model, obs2, xs, sig, None)
+        flagged = np.zeros(obs.shape, dtype=bool)
+        # LEGE on the linearization y = J dx + e (y = obs - f(x)) at the LS fix, then once
+        # more at the fix without the located errors (the first linearization point is
+        # pulled by the very errors being sought)
+        for _ in range(2):
+            pred, J = model.predict(xs), model.jacobian(xs)
+            found = lege(J, obs - pred, w0)
+            flagged = found.extra["gross_errors"] != 0
+            fit = self._gn(model, np.where(flagged, np.nan, obs), xs, sig, None)
+            xs = np.where(np.isfinite(fit.x), fit.x, xs)
         fit.extra.update(
             flagged=flagged, gross_errors=found.extra["gross_errors"], order=found.extra["order"]
         )

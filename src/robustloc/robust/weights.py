@@ -88,7 +88,7 @@ class Huber(WeightFunction):
 
     def weights(self, u: ArrayLike) -> Array:
         a = _abs(u)
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(all="ignore"):
             return np.where(a <= self.c, 1.0, self.c / a) * np.where(np.isnan(a), np.nan, 1.0)
 
     def rho(self, u: ArrayLike) -> Array:
@@ -122,7 +122,7 @@ class Hampel(WeightFunction):
     def weights(self, u: ArrayLike) -> Array:
         x = _abs(u)
         a, b, c = self.a, self.b, self.c
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(all="ignore"):
             w = np.select(
                 [x <= a, x <= b, x <= c],
                 [np.ones_like(x), a / x, a * (c - x) / ((c - b) * x)],
@@ -166,7 +166,7 @@ class IGG(WeightFunction):
 
     def weights(self, u: ArrayLike) -> Array:
         x = _abs(u)
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(all="ignore"):
             w = np.select([x < self.k0, x < self.k1], [np.ones_like(x), 1.0 / (x + self.c)], 0.0)
         return np.where(np.isnan(x), np.nan, w)
 
@@ -177,7 +177,7 @@ class IGG(WeightFunction):
         def mid(t: Array) -> Array:  # integral of t / (t + C) from k0
             return 0.5 * k0 * k0 + (t - k0) - c * np.log((t + c) / (k0 + c))
 
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(all="ignore"):
             return np.select(
                 [x < k0, x < k1], [0.5 * x * x, mid(x)], mid(np.asarray(k1, dtype=float))
             )
@@ -206,7 +206,7 @@ class IGG3(WeightFunction):
     def weights(self, u: ArrayLike) -> Array:
         x = _abs(u)
         k0, k1 = self.k0, self.k1
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(all="ignore"):
             w = np.select(
                 [x <= k0, x <= k1], [np.ones_like(x), (k0 / x) * ((k1 - x) / (k1 - k0)) ** 2], 0.0
             )
@@ -255,7 +255,7 @@ class AsymmetricIGG(WeightFunction):
     def weights(self, u: ArrayLike) -> Array:
         e = np.asarray(u, dtype=float)
         k0, k1, c = self.k0, self.k1, self.c
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(all="ignore"):
             w = np.select(
                 [e < -c, e < -k0, e < k0, e < k1],
                 [
