@@ -47,7 +47,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from robustloc.errors import InputError
 from robustloc.robust.scale import MAD_NORMAL
-from robustloc.robust.weights import WeightFunction, get_weight
+from robustloc.robust.weights import Huber, WeightFunction, get_weight
 
 Array = NDArray[np.float64]
 
@@ -155,24 +155,14 @@ def fit_lines(
     it = 0
     converged = robust is None
     if robust is not None:
-        for k in range(1, max_iter + 1):
-            it = k
-            v = a[g] + b[g] * xs - y
-            h = _leverage(xs, w, g, n_groups, slope)
-            qvv = np.clip(1.0 - h, 1e-12, None)
-            # robust scale per group: med|v| / 0.6745 over the rows in use (seed 000 sec. 2.1)
-            vg = np.where(w > 0, v, np.nan)
-            sigma = _grouped_mad(vg, g, n_groups)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                u = v / (sigma[g] * np.sqrt(qvv))
-            u = np.where(np.isfinite(u), u, 0.0)  # zero scale (exact fit): keep full weight
-            w = np.nan_to_num(robust.weights(u), nan=0.0)
-            a_new, b_new, _ = _solve_lines(xs, y, w, g, n_groups, slope)
-            step = np.nanmax(np.abs(np.concatenate([a_new - a, b_new - b]))) if n_groups else 0
-            a, b = a_new, b_new
-            if not np.isfinite(step) or step < tol:
-                converged = True
-                break
+        stages: list[WeightFunction] = [robust]
+        if np.isfinite(robust.rejection_threshold):
+            # redescending weights: converge with Huber first, so the final stage starts
+            # near the robust solution rather than at the outlier-pulled LS line
+            stages = [Huber(1.5), robust]
+        for wf in stages:
+            a, b, w, k, converged = _irls(xs, y, g, n_groups, slope, wf, a, b, max_iter, tol)
+            it += k
     v = a[g] + b[g] * xs - y
     used = w > 0
     n_obs = np.bincount(g, minlength=n_groups).astype(np.int64)
@@ -200,6 +190,29 @@ def fit_lines(
         cov_ab=cov_ab, residual_std=np.sqrt(s2), n_obs=n_obs, n_used=n_used,
         iterations=it, converged=converged, weights=w, residuals=v,
     )
+
+
+def _irls(
+    xs: Array, y: Array, g: NDArray[np.int64], n_groups: int, slope: bool,
+    wf: WeightFunction, a: Array, b: Array, max_iter: int, tol: float,
+) -> tuple[Array, Array, Array, int, bool]:
+    w = np.ones_like(y)
+    for k in range(1, max_iter + 1):
+        v = a[g] + b[g] * xs - y
+        qvv = np.clip(1.0 - _leverage(xs, w, g, n_groups, slope), 1e-12, None)
+        # robust scale per group: med|v| / 0.6745 over the rows in use (seed 000 sec. 2.1)
+        sigma = _grouped_mad(np.where(w > 0, v, np.nan), g, n_groups)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            u = v / (sigma[g] * np.sqrt(qvv))
+        u = np.where(np.isfinite(u), u, 0.0)  # zero scale (exact fit): keep full weight
+        w = np.nan_to_num(wf.weights(u), nan=0.0)
+        a_new, b_new, _ = _solve_lines(xs, y, w, g, n_groups, slope)
+        step = np.abs(np.concatenate([a_new - a, b_new - b]))
+        step = np.nanmax(step) if np.isfinite(step).any() else 0.0
+        a, b = np.where(np.isfinite(a_new), a_new, a), np.where(np.isfinite(b_new), b_new, b)
+        if step < tol:
+            return a, b, w, k, True
+    return a, b, w, max_iter, False
 
 
 def _leverage(
@@ -306,9 +319,21 @@ def _robust_weight(robust: str | WeightFunction | None) -> WeightFunction | None
     return get_weight(str(robust))
 
 
+def _natural_key(s: str) -> tuple[int, float, str]:
+    try:
+        return (0, float(s), s)
+    except ValueError:
+        return (1, 0.0, s)
+
+
 def _groups(survey: pd.DataFrame) -> tuple[NDArray[np.int64], list[str]]:
-    codes, uniques = pd.factorize(survey["anchor"].astype(str), sort=True)
-    return codes.astype(np.int64), [str(u) for u in uniques]
+    """Group index per row; anchors in natural order (numeric ids numerically)."""
+    codes, uniques = pd.factorize(survey["anchor"].astype(str), sort=False)
+    ids = [str(u) for u in uniques]
+    order = sorted(range(len(ids)), key=lambda i: _natural_key(ids[i]))
+    remap = np.empty(len(ids), dtype=np.int64)
+    remap[order] = np.arange(len(ids))
+    return remap[codes], [ids[i] for i in order]
 
 
 def _p0_per_anchor(

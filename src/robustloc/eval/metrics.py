@@ -1,0 +1,211 @@
+"""Position error statistics against truth (seed 000 sec. 3, Table 1).
+
+For each epoch the horizontal error ``Δd = |(x, y) - (x_true, y_true)|`` (and the 3-D error
+when both files have ``z``).  Per tag and method, over the epochs with a usable fix:
+
+* ``max``, ``min``, ``mean`` ``Δd̄ = (1/n) Σ Δd_i``;
+* ``rms`` -- the paper's "positioning standard error" ``σ0 = sqrt((1/n) Σ Δd_i^2)``;
+* ``sigma1`` -- the paper's spread ``σ1 = sqrt((1/n) Σ (Δd_i - Δd̄)^2)`` (population form,
+  divisor ``n``, as in the paper; note ``σ0^2 = Δd̄^2 + σ1^2``);
+* ``median`` and ``p95`` (95th percentile, linear interpolation between order statistics,
+  numpy's default);
+* ``n`` (rows), ``n_failed`` (status not usable -- see :data:`robustloc.status.USABLE` -- or
+  a non-finite coordinate), ``n_ok = n - n_failed``, ``failed_pct``.
+
+Aggregate rows per method: ``tag = "all"`` pools the epochs of every tag; ``tag = "mean"``
+is the mean of the per-tag statistics, which is how the paper's Table 1 forms its
+"average over the points" rows.  ``mean_impr_pct`` and ``rms_impr_pct`` give the
+improvement over the ``ls`` row of the same tag, ``100 (ls - method) / ls``, when the
+positions contain method ``ls``.
+
+Matching: each positions row is paired with the truth row of the same ``tag`` whose
+``time`` is nearest, if within ``time_tolerance_s`` (default 1e-6 s, i.e. equal times
+written by the same program; raise it for logs whose fixes are stamped differently from
+the truth).  Positions rows without truth are not scored; their count is in
+``table.attrs["n_unmatched"]``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from robustloc import status as st
+from robustloc.errors import InputError
+
+STAT_COLUMNS = ("max", "min", "mean", "rms", "sigma1", "median", "p95")
+
+
+def match_truth(
+    positions: pd.DataFrame, truth: pd.DataFrame, time_tolerance_s: float = 1e-6
+) -> pd.DataFrame:
+    """Positions with the matched truth columns ``x_true, y_true[, z_true]`` (NaN: none).
+
+    Raises
+    ------
+    InputError
+        Duplicate ``(time, tag)`` in the truth, naming the line.
+    """
+    if time_tolerance_s < 0:
+        raise ValueError(f"time tolerance must be >= 0, got {time_tolerance_s}")
+    t = truth.copy()
+    t["tag"] = t["tag"].astype(str)
+    dup = t.duplicated(["time", "tag"]).to_numpy()
+    if dup.any():
+        i = int(np.argmax(dup))
+        line = int(t.index[i]) if t.index.name == "line" else None
+        raise InputError(
+            f"duplicate truth for time {t['time'].iloc[i]} and tag {t['tag'].iloc[i]!r}",
+            truth.attrs.get("path"), line,
+        )
+    cols = ["x", "y"] + (["z"] if "z" in t.columns else [])
+    right = t[["time", "tag"] + cols].rename(columns={c: f"{c}_true" for c in cols})
+    right = right.sort_values("time", kind="stable").reset_index(drop=True)
+    right["_t_true"] = right["time"]
+    left = positions.copy()
+    left["tag"] = left["tag"].astype(str)
+    left["_row"] = np.arange(len(left))
+    left = left.sort_values("time", kind="stable").reset_index(drop=True)
+    merged = pd.merge_asof(
+        left, right, on="time", by="tag", direction="nearest",
+        tolerance=float(time_tolerance_s) if time_tolerance_s > 0 else None,
+        allow_exact_matches=True,
+    )
+    if time_tolerance_s == 0:
+        off = merged["_t_true"].to_numpy() != merged["time"].to_numpy()
+        for c in cols:
+            merged.loc[off, f"{c}_true"] = np.nan
+    merged = merged.sort_values("_row").drop(columns=["_row", "_t_true"])
+    merged.index = positions.index
+    return merged
+
+
+def epoch_errors(
+    positions: pd.DataFrame, truth: pd.DataFrame, time_tolerance_s: float = 1e-6
+) -> pd.DataFrame:
+    """Per-row errors: the positions frame plus ``error_2d`` (m), ``error_3d`` (when both
+    have ``z``), ``usable`` (bool) and ``matched`` (bool)."""
+    m = match_truth(positions, truth, time_tolerance_s)
+    dx = m["x"].to_numpy(dtype=float) - m["x_true"].to_numpy(dtype=float)
+    dy = m["y"].to_numpy(dtype=float) - m["y_true"].to_numpy(dtype=float)
+    m["error_2d"] = np.hypot(dx, dy)
+    if "z" in m.columns and "z_true" in m.columns:
+        dz = m["z"].to_numpy(dtype=float) - m["z_true"].to_numpy(dtype=float)
+        m["error_3d"] = np.sqrt(dx * dx + dy * dy + dz * dz)
+    status = m["status"].astype(str) if "status" in m.columns else pd.Series("ok", index=m.index)
+    m["matched"] = np.isfinite(m["x_true"].to_numpy(dtype=float))
+    m["usable"] = status.isin(st.USABLE).to_numpy() & np.isfinite(m["error_2d"].to_numpy())
+    return m
+
+
+def error_stats(errors: NDArray[np.float64]) -> dict[str, float]:
+    """The statistics of :data:`STAT_COLUMNS` of one set of errors (NaN if empty)."""
+    e = np.asarray(errors, dtype=float)
+    e = e[np.isfinite(e)]
+    if e.size == 0:
+        return {k: float("nan") for k in STAT_COLUMNS}
+    mean = e.mean()
+    return {
+        "max": float(e.max()),
+        "min": float(e.min()),
+        "mean": float(mean),
+        "rms": float(np.sqrt(np.mean(e * e))),  # seed 000: sigma0
+        "sigma1": float(np.sqrt(np.mean((e - mean) ** 2))),  # seed 000: sigma1
+        "median": float(np.median(e)),
+        "p95": float(np.percentile(e, 95)),
+    }
+
+
+def _group_rows(df: pd.DataFrame, keys: dict[str, str], has3d: bool) -> dict[str, object]:
+    ok = df["usable"].to_numpy()
+    row: dict[str, object] = dict(keys)
+    row["n"] = int(len(df))
+    row["n_failed"] = int((~ok).sum())
+    row["n_ok"] = int(ok.sum())
+    row["failed_pct"] = 100.0 * row["n_failed"] / max(len(df), 1)
+    row.update(error_stats(df["error_2d"].to_numpy()[ok]))
+    if has3d:
+        s3 = error_stats(df["error_3d"].to_numpy()[ok])
+        row.update({f"{k}_3d": v for k, v in s3.items()})
+    return row
+
+
+def error_table(
+    positions: pd.DataFrame,
+    truth: pd.DataFrame,
+    *,
+    time_tolerance_s: float = 1e-6,
+    baseline: str = "ls",
+) -> pd.DataFrame:
+    """Error statistics per tag and method, with aggregates and improvement over ``ls``.
+
+    Parameters
+    ----------
+    positions : DataFrame
+        Contract positions (``time, tag, x, y[, z], method, status, ...``); ``method``
+        defaults to ``"unknown"``, ``status`` to ``"ok"`` when absent.
+    truth : DataFrame
+        Contract truth (``time, tag, x, y[, z]``).
+    time_tolerance_s : float
+        Largest time difference for a positions row to match a truth row of its tag.
+    baseline : str
+        Method the improvements are measured against (default ``ls``).
+
+    Returns
+    -------
+    DataFrame
+        One row per (tag, method), then per method ``tag = "all"`` (pooled epochs) and
+        ``tag = "mean"`` (mean of the per-tag statistics, the paper's average rows).
+        Columns: ``tag, method, n, n_failed, n_ok, failed_pct, max, min, mean, rms, sigma1,
+        median, p95`` (metres, horizontal), the same with suffix ``_3d`` when both files
+        have ``z``, and ``mean_impr_pct, rms_impr_pct``.  ``attrs["n_unmatched"]``: rows
+        without truth (not scored).
+    """
+    pos = positions.copy()
+    if "method" not in pos.columns:
+        pos["method"] = "unknown"
+    if "status" not in pos.columns:
+        pos["status"] = st.OK
+    e = epoch_errors(pos, truth, time_tolerance_s)
+    n_unmatched = int((~e["matched"]).sum())
+    e = e[e["matched"].to_numpy()]
+    if len(e) == 0:
+        raise InputError(
+            "no positions row matches the truth by (time, tag); check the tags, or raise "
+            "the time tolerance",
+            positions.attrs.get("path"),
+        )
+    has3d = "error_3d" in e.columns
+    e["method"] = e["method"].astype(str)
+    rows = []
+    methods = list(dict.fromkeys(e["method"]))
+    tags = sorted(set(e["tag"]))
+    for (tag, meth), grp in e.groupby(["tag", "method"], sort=False):
+        rows.append(_group_rows(grp, {"tag": tag, "method": meth}, has3d))
+    per = pd.DataFrame(rows)
+    per["_m"] = per["method"].map({m: i for i, m in enumerate(methods)})
+    per["_t"] = per["tag"].map({t: i for i, t in enumerate(tags)})
+    per = per.sort_values(["_t", "_m"]).drop(columns=["_m", "_t"])
+    agg = []
+    for meth in methods:
+        grp = e[e["method"] == meth]
+        agg.append(_group_rows(grp, {"tag": "all", "method": meth}, has3d))
+    for meth in methods:
+        sub = per[per["method"] == meth]
+        row: dict[str, object] = {"tag": "mean", "method": meth}
+        for c in sub.columns:
+            if c in ("tag", "method"):
+                continue
+            row[c] = float(sub[c].mean())
+        agg.append(row)
+    table = pd.concat([per, pd.DataFrame(agg)], ignore_index=True)
+    for c in ("n", "n_failed", "n_ok"):
+        table[c] = table[c].astype(float)
+    base = table[table["method"] == baseline].set_index("tag")
+    for stat in ("mean", "rms"):
+        ref = table["tag"].map(base[stat]) if len(base) else np.nan
+        with np.errstate(invalid="ignore", divide="ignore"):
+            table[f"{stat}_impr_pct"] = 100.0 * (ref - table[stat]) / ref
+    table.attrs["n_unmatched"] = n_unmatched
+    return table

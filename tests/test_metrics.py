@@ -1,0 +1,99 @@
+"""Error statistics: hand values, numpy references, matching, aggregates, improvements."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from robustloc.errors import InputError
+from robustloc.eval.metrics import epoch_errors, error_stats, error_table
+
+
+def test_error_stats_hand_values():
+    s = error_stats(np.array([3.0, 4.0, 5.0, np.nan]))
+    assert s["max"] == 5.0 and s["min"] == 3.0 and s["mean"] == 4.0
+    np.testing.assert_allclose(s["rms"], np.sqrt((9 + 16 + 25) / 3))  # seed 000 sigma0
+    np.testing.assert_allclose(s["sigma1"], np.sqrt(2 / 3))  # population spread
+    assert s["median"] == 4.0
+    np.testing.assert_allclose(s["p95"], 4.9)  # linear interpolation
+    np.testing.assert_allclose(s["rms"] ** 2, s["mean"] ** 2 + s["sigma1"] ** 2)
+    assert np.isnan(error_stats(np.array([]))["mean"])
+
+
+def test_error_stats_against_numpy_random():
+    e = np.random.default_rng(0).gamma(2.0, 1.5, 500)
+    s = error_stats(e)
+    np.testing.assert_allclose(s["sigma1"], np.std(e))
+    np.testing.assert_allclose(s["p95"], np.quantile(e, 0.95))
+    np.testing.assert_allclose(s["median"], np.median(e))
+
+
+def _frames():
+    truth = pd.DataFrame({"time": [0.0, 1, 2] * 2, "tag": ["A"] * 3 + ["B"] * 3,
+                          "x": [0.0, 1, 2, 10, 10, 10], "y": 0.0})
+    ls = truth.assign(x=truth["x"] + [3.0, 4, np.nan, 1, 2, 2], method="ls",
+                      status=["ok", "ok", "insufficient_anchors", "ok", "ok", "ok"])
+    igg = truth.assign(y=[1.0, 2, 2, 1, 1, 1], method="igg", status="ok")
+    bad = truth.assign(x=truth["x"] + 9, method="igg", status="ill_conditioned").iloc[:1]
+    return truth, pd.concat([ls, igg], ignore_index=True), bad
+
+
+def test_error_table_per_tag_aggregates_and_improvement():
+    truth, pos, _ = _frames()
+    t = error_table(pos, truth).set_index(["tag", "method"])
+    a_ls = t.loc[("A", "ls")]
+    assert a_ls["n"] == 3 and a_ls["n_failed"] == 1 and a_ls["n_ok"] == 2
+    assert a_ls["mean"] == 3.5 and a_ls["max"] == 4.0
+    np.testing.assert_allclose(a_ls["rms"], np.sqrt(12.5))
+    a_igg = t.loc[("A", "igg")]
+    np.testing.assert_allclose(a_igg["mean"], 5 / 3)
+    np.testing.assert_allclose(a_igg["mean_impr_pct"], 100 * (3.5 - 5 / 3) / 3.5)
+    assert t.loc[("A", "ls"), "mean_impr_pct"] == 0.0
+    # "all" pools epochs: ls errors 3, 4, 1, 2, 2 (one failed)
+    all_ls = t.loc[("all", "ls")]
+    assert all_ls["n"] == 6 and all_ls["n_failed"] == 1
+    np.testing.assert_allclose(all_ls["mean"], 12 / 5)
+    # "mean" averages the per-tag statistics (paper's Table 1 average rows)
+    np.testing.assert_allclose(t.loc[("mean", "ls"), "max"], (4 + 2) / 2)
+    np.testing.assert_allclose(t.loc[("mean", "ls"), "mean"], (3.5 + 5 / 3) / 2)
+    np.testing.assert_allclose(
+        t.loc[("mean", "igg"), "rms_impr_pct"],
+        100 * (t.loc[("mean", "ls"), "rms"] - t.loc[("mean", "igg"), "rms"])
+        / t.loc[("mean", "ls"), "rms"],
+    )
+    assert "rms_3d" not in t.columns
+
+
+def test_failed_status_counts_even_with_coordinates():
+    truth, pos, bad = _frames()
+    t = error_table(pd.concat([pos, bad]), truth).set_index(["tag", "method"])
+    assert t.loc[("A", "igg"), "n_failed"] == 1
+    assert t.loc[("A", "igg"), "max"] == 2.0  # the 9 m ill-conditioned fix is not scored
+
+
+def test_three_d_errors():
+    truth = pd.DataFrame({"time": [0.0], "tag": ["T"], "x": [0.0], "y": [0.0], "z": [1.0]})
+    pos = pd.DataFrame({"time": [0.0], "tag": ["T"], "x": [3.0], "y": [0.0], "z": [5.0],
+                        "method": "nls", "status": "ok"})
+    t = error_table(pos, truth)
+    assert t.loc[0, "mean"] == 3.0 and t.loc[0, "mean_3d"] == 5.0
+
+
+def test_time_tolerance_and_unmatched():
+    truth = pd.DataFrame({"time": [0.0, 1.0], "tag": ["T", "T"], "x": [0.0, 1.0], "y": 0.0})
+    pos = pd.DataFrame({"time": [0.01, 0.98, 5.0], "tag": "T", "x": [0.0, 1.0, 9.0], "y": 0.0})
+    with pytest.raises(InputError, match="no positions row matches"):
+        error_table(pos, truth)
+    t = error_table(pos, truth, time_tolerance_s=0.05)
+    assert t.attrs["n_unmatched"] == 1 and t.loc[0, "n"] == 2 and t.loc[0, "max"] == 0.0
+    e = epoch_errors(pos, truth, time_tolerance_s=0.05)
+    assert list(e["matched"]) == [True, True, False]
+
+
+def test_duplicate_truth_is_an_error():
+    truth = pd.DataFrame({"time": [0.0, 0.0], "tag": ["T", "T"], "x": 0.0, "y": 0.0})
+    truth.index = pd.Index([2, 3], name="line")
+    with pytest.raises(InputError, match="duplicate truth") as ei:
+        error_table(truth.assign(method="ls"), truth)
+    assert ei.value.line == 3
