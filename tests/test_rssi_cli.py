@@ -15,10 +15,10 @@ from robustloc.cli import main
 from robustloc.filters.rssi import (
     LinkParams,
     RobustRssiFilter,
-    distance_from_rssi,
     filter_measurements,
     link_params_from_anchors,
 )
+from robustloc.models.pathloss import AttenuationFactor
 from robustloc.sim.wifi_room import simulate
 
 
@@ -48,7 +48,8 @@ def test_filter_cli_writes_locatable_measurements(sim, tmp_path, capsys):
     # the distance column is the filtered RSSI through the anchor's model (eq. 5)
     a = pd.read_csv(sim["anchors"]).set_index("anchor").loc[f["anchor"]]
     np.testing.assert_allclose(
-        f["distance"], distance_from_rssi(f["rssi"], a["p0"], a["gamma"], a["faf"], a["d0"])
+        f["distance"],
+        AttenuationFactor(a["p0"], a["gamma"], a["faf"], a["d0"]).distance(f["rssi"]),
     )
     # contract readers accept it as a measurements file
     from robustloc.io import read_measurements

@@ -12,12 +12,11 @@ from robustloc.filters.rssi import (
     LinkParams,
     RobustRssiFilter,
     StepLayout,
-    distance_from_rssi,
     process_noise,
-    rssi_from_distance,
     transition,
     transition_jacobian,
 )
+from robustloc.models.pathloss import AttenuationFactor
 from robustloc.robust.weights import AsymmetricIGG
 
 
@@ -73,22 +72,13 @@ def test_asymmetric_weight_eq14_breakpoints():
     assert w2.weights(3.0) == 0.0
 
 
-def test_pathloss_roundtrip_paper_example():
-    # seed 002: p0 = -29 dBm at 1 m, gamma = 2.275, FAF = -1.076
-    d = np.array([1.0, 2.0, 5.0, 8.0])
-    r = rssi_from_distance(d, -29.0, 2.275, -1.076)
-    np.testing.assert_allclose(r[0], -30.076)
-    np.testing.assert_allclose(r[1], -29 - 22.75 * np.log10(2) - 1.076)
-    np.testing.assert_allclose(distance_from_rssi(r, -29.0, 2.275, -1.076), d)
-
-
 @pytest.mark.parametrize("robust", [True, False])
 def test_follows_noise_free_rssi_exactly(robust):
     T, dt = 400, 0.5
     t = np.arange(T) * dt
     d = np.stack([np.full(T, 3.0), 2.0 + 0.4 * t, 60.0 - 0.3 * t], axis=1)  # (T, 3)
     p0, g = np.array([-30.0, -35.0, -28.0]), np.array([2.0, 2.5, 3.0])
-    z = rssi_from_distance(d, p0, g)
+    z = AttenuationFactor(p0, g, 0.0, 1.0).rssi(d)
     f = RobustRssiFilter(robust=robust, sigma_rssi_db=1.0)
     res = f.run(z, np.full_like(z, dt), LinkParams.broadcast(3, p0, g))
     np.testing.assert_allclose(res.rssi_dbm[-100:], z[-100:], atol=1e-6)

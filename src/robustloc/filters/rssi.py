@@ -86,6 +86,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from robustloc.filters import core
+from robustloc.models.pathloss import AttenuationFactor
 from robustloc.robust.weights import AsymmetricIGG, WeightFunction
 
 Array = NDArray[np.float64]
@@ -95,31 +96,10 @@ LN10 = float(np.log(10.0))
 _H = np.array([[1.0, 0.0, 0.0]])
 
 
-# ---------------------------------------------------------------------------------------
-# Path loss helpers (attenuation-factor model, seed 002 eq. (5))
-# ---------------------------------------------------------------------------------------
-
-
-def rssi_from_distance(
-    distance_m: ArrayLike, p0_dbm: ArrayLike, gamma: ArrayLike, faf_db: ArrayLike = 0.0,
-    d0_m: ArrayLike = 1.0,
-) -> Array:
-    """``P_r(d) = P_r(d0) + 10 gamma lg(d0/d) + FAF`` (seed 002, eq. (5))."""
-    d = np.asarray(distance_m, dtype=float)
-    return np.asarray(p0_dbm) + 10.0 * np.asarray(gamma) * np.log10(np.asarray(d0_m) / d) + (
-        np.asarray(faf_db)
-    )
-
-
-def distance_from_rssi(
-    rssi_dbm: ArrayLike, p0_dbm: ArrayLike, gamma: ArrayLike, faf_db: ArrayLike = 0.0,
-    d0_m: ArrayLike = 1.0,
-) -> Array:
-    """Inverse of eq. (5): ``d = d0 10^((P_r(d0) + FAF - P_r) / (10 gamma))``."""
-    p = np.asarray(rssi_dbm, dtype=float)
-    return np.asarray(d0_m) * 10.0 ** (
-        (np.asarray(p0_dbm) + np.asarray(faf_db) - p) / (10.0 * np.asarray(gamma))
-    )
+def _attenuation(params: LinkParams, idx: ArrayLike | slice = slice(None)) -> AttenuationFactor:
+    """The shared attenuation-factor model (seed 002 eq. (5)) of the links ``idx``."""
+    return AttenuationFactor(p0=params.p0_dbm[idx], gamma=params.gamma[idx],
+                             faf=params.faf_db[idx], d0=params.d0_m[idx])
 
 
 # ---------------------------------------------------------------------------------------
@@ -225,6 +205,32 @@ class _Rescaled(WeightFunction):
 
     def rho(self, u: ArrayLike) -> Array:
         return self.inner.rho(np.asarray(u) * self.ratio)
+
+
+def _model_terms(
+    x: Array, dt: Array, exponent: Array, sigma_a: float, q_p: float, min_distance_m: float
+) -> tuple[Array, Array, Array]:
+    """:func:`transition`, :func:`transition_jacobian` and :func:`process_noise` at once
+    for ``x (L, 3)`` (the hot path computes ``d, d'`` once); same formulas."""
+    c = 10.0 * exponent / LN10
+    d = np.maximum(x[:, 1], min_distance_m)
+    vt = x[:, 2] * dt
+    d1 = np.maximum(d + vt, min_distance_m)
+    L = x.shape[0]
+    xp = np.empty_like(x)
+    xp[:, 0] = x[:, 0] + c * np.log(d / d1)  # eq. (15): 10 n lg(d / d')
+    xp[:, 1] = d1
+    xp[:, 2] = x[:, 2]
+    phi = np.zeros((L, 3, 3))
+    phi[:, 0, 0] = phi[:, 1, 1] = phi[:, 2, 2] = 1.0
+    phi[:, 0, 1] = c * (1.0 / d - 1.0 / d1)
+    phi[:, 0, 2] = -c * dt / d1
+    phi[:, 1, 2] = dt
+    half = 0.5 * dt * dt
+    g = np.stack([-c * half / d1, half, dt], axis=1)
+    Q = (sigma_a * sigma_a) * (g[:, :, None] * g[:, None, :])
+    Q[:, 0, 0] += q_p * dt
+    return xp, phi, Q
 
 
 # ---------------------------------------------------------------------------------------
@@ -503,6 +509,7 @@ class RobustRssiFilter:
         s_emp = np.full(L, self.sigma_rssi_db)
         n_rej = np.zeros(L, dtype=np.int64)
         sqrt_half_pi = np.sqrt(np.pi / 2.0)
+        all_started = False
 
         steps = range(T)
         if progress and T > 1:
@@ -519,9 +526,8 @@ class RobustRssiFilter:
             # prior: d from the inverse of eq. (5), cov(P, d) through dd/dP)
             new = present & ~started
             if new.any():
-                d_init = np.clip(
-                    distance_from_rssi(z[new], p.p0_dbm[new], expo[new], p.faf_db[new],
-                                       p.d0_m[new]), self.min_distance_m, 1e4)
+                model = AttenuationFactor(p.p0_dbm[new], expo[new], p.faf_db[new], p.d0_m[new])
+                d_init = np.clip(model.distance(z[new]), self.min_distance_m, 1e4)
                 x[new] = np.stack([z[new], d_init, np.zeros(new.sum())], axis=1)
                 dd_dp = -d_init / c_db[new]
                 J = np.stack([np.ones(new.sum()), dd_dp, np.zeros(new.sum())], axis=1)
@@ -534,12 +540,12 @@ class RobustRssiFilter:
             dt = np.where(run_now, dt_all[k], 0.0)
             # prediction, eq. (13) first line, through the shared EKF core with the
             # transition of eq. (15) and its Jacobian (eq. (17), derived above)
-            Q = process_noise(x, dt, self.sigma_accel_mps2, self.q_rssi_db2_per_s, expo,
-                              self.min_distance_m)
-            x, P = core.predict_ekf(
-                x, P, lambda s, dt=dt: transition(s, dt, expo, self.min_distance_m), Q,
-                jac=lambda s, dt=dt: transition_jacobian(s, dt, expo, self.min_distance_m),
-            )
+            # (f and its Jacobian are evaluated once at the prior state x, which is where
+            # predict_ekf evaluates them)
+            x_pred, phi, Q = _model_terms(x, dt, expo, self.sigma_accel_mps2,
+                                          self.q_rssi_db2_per_s, self.min_distance_m)
+            x, P = core.predict_ekf(x, P, lambda _s, xp=x_pred: xp, Q,
+                                    jac=lambda _s, jp=phi: jp)
             # measurement update, eqs. (12)-(13) with H = [1 0 0] (eq. (16))
             upd = present & run_now
             S = P[:, 0, 0] + R
@@ -569,15 +575,21 @@ class RobustRssiFilter:
             s_emp = np.where(upd, (1 - lam) * s_emp + lam * sqrt_half_pi * a_e, s_emp)
             x[:, 1] = np.maximum(x[:, 1], self.min_distance_m)
 
-            has = started
-            out["p"][k] = np.where(has, x[:, 0], np.nan)
-            out["d"][k] = np.where(has, x[:, 1], np.nan)
-            out["v"][k] = np.where(has, x[:, 2], np.nan)
-            out["var"][k] = np.where(has, P[:, 0, 0], np.nan)
+            if all_started or started.all():
+                all_started = True
+                out["p"][k] = x[:, 0]
+                out["d"][k] = x[:, 1]
+                out["v"][k] = x[:, 2]
+                out["var"][k] = P[:, 0, 0]
+            else:
+                out["p"][k] = np.where(started, x[:, 0], np.nan)
+                out["d"][k] = np.where(started, x[:, 1], np.nan)
+                out["v"][k] = np.where(started, x[:, 2], np.nan)
+                out["var"][k] = np.where(started, P[:, 0, 0], np.nan)
             out["innov"][k] = e
             out["u"][k] = u
             out["scale"][k] = np.where(upd, scale, np.nan)
-            out["w"][k] = np.where(upd | new, np.where(new, 1.0, D), np.nan)
+            out["w"][k] = np.where(new, 1.0, np.where(upd, D, np.nan))
             relocked[k] = relock
         return RssiFilterResult(
             out["p"], out["d"], out["v"], out["var"], out["innov"], out["u"], out["scale"],
@@ -671,9 +683,7 @@ def filter_measurements(
     out = m.copy()
     out["rssi_raw"] = m["rssi"].to_numpy(dtype=float)
     out["rssi"] = res.rssi_dbm
-    out["distance"] = distance_from_rssi(
-        res.rssi_dbm, params.p0_dbm[link], params.gamma[link], params.faf_db[link],
-        params.d0_m[link])
+    out["distance"] = _attenuation(params, link).distance(res.rssi_dbm)
     out["distance_state"] = res.distance_m
     out["speed"] = res.speed_mps
     out["weight"] = res.weight
