@@ -340,18 +340,25 @@ def update_from_moments(
     K, n = x.shape
     m = y.shape[1]
     R = _as_batch(R, K)
-    avail = np.isfinite(y) & np.isfinite(np.diagonal(S, axis1=1, axis2=2))
-    y0 = np.where(avail, y, 0.0)
-    pair = avail[:, :, None] & avail[:, None, :]
-    eye_m = np.eye(m)
-    Sm = np.where(pair, np.nan_to_num(S), eye_m)
-    Pxz = np.where(avail[:, None, :], np.nan_to_num(Pxz), 0.0)
+    Sdiag = np.diagonal(S, axis1=1, axis2=2)
+    avail = np.isfinite(y) & np.isfinite(Sdiag)
+    full = bool(avail.all())
+    if full:  # fast path: nothing missing
+        y0, Sm = y, S
+    else:
+        y0 = np.where(avail, y, 0.0)
+        pair = avail[:, :, None] & avail[:, None, :]
+        Sm = np.where(pair, np.nan_to_num(S), np.eye(m))
+        Pxz = np.where(avail[:, None, :], np.nan_to_num(Pxz), 0.0)
+        Sdiag = np.where(avail, Sdiag, 1.0)
 
-    sd = np.sqrt(np.where(avail, np.diagonal(Sm, axis1=1, axis2=2), 1.0))
-    e = np.where(avail, y0 / sd, np.nan)
-    Sinv_y = np.linalg.solve(Sm, y0[..., None])[..., 0]
-    nis = np.einsum("ki,ki->k", y0, Sinv_y)
+    # one factorization: S^-1 [P_xz^T | y]
+    sol = np.linalg.solve(Sm, np.concatenate([_mT(Pxz), y0[..., None]], axis=-1))
+    nis = np.einsum("ki,ki->k", y0, sol[..., n])
     dof = avail.sum(axis=1)
+    e = y0 / np.sqrt(Sdiag)
+    if not full:
+        e = np.where(avail, e, np.nan)
 
     gated = np.zeros(K, dtype=bool)
     if robust.gate_probability is not None:
@@ -360,25 +367,29 @@ def update_from_moments(
 
     if robust.weight is not None:
         D = np.nan_to_num(robust.weight.weights(e), nan=0.0)  # seed 002 eq. (11): p(e_i)
+        D = np.where(avail, D, 0.0)
     else:
-        D = np.ones((K, m))
-    D = np.where(avail & ~gated[:, None], D, 0.0)
+        D = avail.astype(float)
+    if gated.any():
+        D = np.where(gated[:, None], 0.0, D)
 
     if robust.mode == "variance" and robust.weight is not None:
         # equivalent variance R_ii / D_ii: S gains R_ii (1/D_ii - 1) on its diagonal
         use = D > 0
+        eye_m = np.eye(m)
         rdiag = np.diagonal(R, axis1=1, axis2=2)
         with np.errstate(divide="ignore"):
             extra = np.where(use, rdiag * (1.0 / np.where(use, D, 1.0) - 1.0), 0.0)
         pair_u = use[:, :, None] & use[:, None, :]
-        Sm = np.where(pair_u, Sm + extra[:, :, None] * eye_m, eye_m)
+        Sm = np.where(pair_u, np.nan_to_num(Sm) + extra[:, :, None] * eye_m, eye_m)
         Pxz = np.where(use[:, None, :], Pxz, 0.0)
         G = _mT(np.linalg.solve(Sm, _mT(Pxz)))
         Reff = R + extra[:, :, None] * eye_m
         Dg = use.astype(float)
     else:
-        Kg = _mT(np.linalg.solve(Sm, _mT(Pxz)))  # K = P_xz S^-1
-        G = Kg * D[:, None, :]  # seed 002 eq. (12): K_hat = K D
+        G = _mT(sol[..., :n])  # K = P_xz S^-1
+        if robust.weight is not None or gated.any() or not full:
+            G = G * D[:, None, :]  # seed 002 eq. (12): K_hat = K D
         Reff = R
         Dg = D
 
@@ -387,29 +398,30 @@ def update_from_moments(
         xn[:, list(x_angles)] = wrap_angle(xn[:, list(x_angles)])
     if H is not None:
         H = _as_batch(H, K)
-        IKH = np.eye(n) - G @ np.where(Dg[:, :, None] > 0, H, 0.0)
-        Rm = np.where(pair, Reff, 0.0)
-        Pn = IKH @ P @ _mT(IKH) + G @ Rm @ _mT(G)  # Joseph form
+        if not full or robust.weight is not None or gated.any():
+            H = np.where(Dg[:, :, None] > 0, H, 0.0)
+            Reff = np.where(avail[:, :, None] & avail[:, None, :], Reff, 0.0)
+        IKH = np.eye(n) - G @ H
+        Pn = IKH @ P @ _mT(IKH) + G @ Reff @ _mT(G)  # Joseph form
     else:
         GPxz = G @ _mT(Pxz)
         Pn = P - GPxz - _mT(GPxz) + G @ Sm @ _mT(G)
     Pn = symmetrize(Pn)
 
     n_used = (D > 0).sum(axis=1)
-    status = np.full(K, st.OK, dtype=object)
-    status[(n_used < dof) & (dof > 0)] = st.FAULT_EXCLUDED
-    status[gated] = st.FAULT_EXCLUDED
-    status[dof == 0] = PREDICTED
+    status = np.where(
+        dof == 0, PREDICTED, np.where(gated | (n_used < dof), st.FAULT_EXCLUDED, st.OK)
+    )
     return UpdateResult(
         x=xn,
         P=Pn,
-        innovation=np.where(avail, y, np.nan),
+        innovation=y if full else np.where(avail, y, np.nan),
         standardized=e,
         weights=D,
-        nis=np.where(dof > 0, nis, np.nan),
+        nis=nis if full else np.where(dof > 0, nis, np.nan),
         n_used=n_used,
         gated=gated,
-        status=status.astype(str),
+        status=status,
     )
 
 

@@ -22,6 +22,7 @@ Two standard choices, selected by ``noise``:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from math import factorial
 from typing import Literal
 
@@ -31,28 +32,64 @@ from numpy.typing import ArrayLike, NDArray
 Array = NDArray[np.float64]
 
 
-def _kinematic_1d(order: int, dt: Array) -> tuple[Array, Array, Array, Array]:
-    """1-D blocks for a kinematic chain of ``order + 1`` states, for each ``dt``.
+def _kinematic_1d(order: int, dt: Array) -> tuple[Array, Array, Array]:
+    """1-D blocks of a kinematic chain of ``s = order + 1`` states for one ``dt``.
 
-    Returns ``F (M, s, s)``, ``Gamma (M, s)``, continuous ``Q`` per unit intensity
-    ``(M, s, s)`` and ``dt (M,)`` with ``s = order + 1``.
+    Returns ``F (s, s)``, ``Gamma (s,)`` and the continuous ``Q`` per unit intensity.
     """
     s = order + 1
-    dt = np.atleast_1d(np.asarray(dt, dtype=float))
-    M = dt.shape[0]
-    F = np.zeros((M, s, s))
+    F = np.zeros((s, s))
     for i in range(s):
         for j in range(i, s):
-            F[:, i, j] = dt ** (j - i) / factorial(j - i)
+            F[i, j] = dt ** (j - i) / factorial(j - i)
     # Gamma: effect of a constant highest derivative + 1 over the step (seed 001)
-    G = np.stack([dt ** (s - i) / factorial(s - i) for i in range(s)], axis=-1)
-    Qc = np.zeros((M, s, s))
+    G = np.array([dt ** (s - i) / factorial(s - i) for i in range(s)])
+    Qc = np.zeros((s, s))
     for i in range(s):
         for j in range(s):
             a, b = s - 1 - i, s - 1 - j  # powers of dt in each entry of F's last column
             p = a + b + 1
-            Qc[:, i, j] = dt**p / (p * factorial(a) * factorial(b))
-    return F, G, Qc, dt
+            Qc[i, j] = dt**p / (p * factorial(a) * factorial(b))
+    return F, G, Qc
+
+
+@lru_cache(maxsize=32)
+def _coefficients(order: int, dim: int) -> tuple[Array, Array, Array, Array]:
+    """Polynomial coefficients in ``dt`` of ``F``, ``Gamma``, ``Gamma Gamma^T`` and the
+    continuous ``Q``: ``M(dt) = sum_p dt^p C[p]``, expanded to ``dim`` axes.
+
+    Every entry of these matrices is a monomial in ``dt``; evaluating them at ``dt = 1``
+    gives the coefficient, and the power is read from the structure.  This makes a stack of
+    ``K`` different steps cost one small matrix product.
+    """
+    s = order + 1
+    P = 2 * s + 1
+    F1, G1, Qc1 = _kinematic_1d(order, 1.0)
+    CF = np.zeros((P, s, s))
+    CG = np.zeros((P, s))
+    CQd = np.zeros((P, s, s))
+    CQc = np.zeros((P, s, s))
+    for i in range(s):
+        CG[s - i, i] = G1[i]
+        for j in range(s):
+            if j >= i:
+                CF[j - i, i, j] = F1[i, j]
+            CQd[(s - i) + (s - j), i, j] = G1[i] * G1[j]
+            CQc[(s - 1 - i) + (s - 1 - j) + 1, i, j] = Qc1[i, j]
+    eye = np.eye(dim)
+    n = s * dim
+
+    def ex(C: Array) -> Array:
+        return np.einsum("pij,ab->piajb", C, eye).reshape(P, n, n)
+
+    CGx = np.einsum("pi,ab->piab", CG, eye).reshape(P, n, dim)
+    return ex(CF), CGx, ex(CQd), ex(CQc)
+
+
+def _evaluate(C: Array, dt: ArrayLike) -> Array:
+    d = np.asarray(dt, dtype=float)
+    powers = d[..., None] ** np.arange(C.shape[0])  # (..., P)
+    return np.tensordot(powers, C, axes=(-1, 0))
 
 
 @dataclass(frozen=True)
@@ -80,33 +117,18 @@ class _Kinematic:
         """Position of ``d^derivative / dt`` of ``axis`` in the state vector."""
         return derivative * self.dim + axis
 
-    def _expand(self, block: Array, dt: ArrayLike) -> Array:
-        eye = np.eye(self.dim)
-        out = np.einsum("mij,ab->miajb", block, eye).reshape(
-            block.shape[0], self.n_states, self.n_states
-        )
-        return out[0] if np.ndim(dt) == 0 else out
-
     def F(self, dt: ArrayLike) -> Array:
         """Transition matrix (seed 001: CV ``F`` of the EKF model, CA of the UKF model)."""
-        F1, _, _, _ = _kinematic_1d(self.order, dt)
-        return self._expand(F1, dt)
+        return _evaluate(_coefficients(self.order, self.dim)[0], dt)
 
     def Gamma(self, dt: ArrayLike) -> Array:
         """Noise input matrix ``Gamma``, shape ``(n, dim)`` (or ``(K, n, dim)``)."""
-        _, G1, _, _ = _kinematic_1d(self.order, dt)
-        eye = np.eye(self.dim)
-        out = np.einsum("mi,ab->miab", G1, eye).reshape(G1.shape[0], self.n_states, self.dim)
-        return out[0] if np.ndim(dt) == 0 else out
+        return _evaluate(_coefficients(self.order, self.dim)[1], dt)
 
     def Q(self, dt: ArrayLike) -> Array:
         """Process noise covariance for a step ``dt`` (see module docstring)."""
-        _, G1, Qc, _ = _kinematic_1d(self.order, dt)
-        if self.noise == "discrete":
-            block = self.q * np.einsum("mi,mj->mij", G1, G1)
-        else:
-            block = self.q * Qc
-        return self._expand(block, dt)
+        C = _coefficients(self.order, self.dim)
+        return self.q * _evaluate(C[2] if self.noise == "discrete" else C[3], dt)
 
     def f(self, x: ArrayLike, dt: ArrayLike) -> Array:
         """Propagate states ``x (K, n)`` by ``dt`` (linear: ``F x``)."""

@@ -1,0 +1,137 @@
+"""Time alignment of measurement streams at different rates (UWB epochs, GPS sentences).
+
+Policy (event-driven, no interpolation of measurements):
+
+1. every stream is shifted onto the UWB clock by its own offset (``t + offset_s``; GPS
+   sentences carry UTC time of day, UWB logs their own clock);
+2. all measurement times of one tag are merged into one sorted timeline; consecutive times
+   separated by at most ``merge_window_s`` form one *event* (its time is the first one), so
+   ranges reported a few milliseconds apart by one TWR round become one update (keep the
+   window below the sampling interval, or chains of samples merge);
+3. the filter predicts from event to event with the actual ``dt`` and updates with whatever
+   arrived -- missing components are NaN, so the update only uses what is there.  A value
+   arriving twice inside one event (same anchor twice) is averaged.
+
+Several tags are processed together by *event index*: row ``k`` of every output holds the
+events of tag ``k`` padded with NaN times at the end, so the ``j``-th step of all tags is one
+vectorized filter step with per-tag ``dt`` (see :func:`robustloc.fusion.pipeline.run_filter`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Stream:
+    """One measurement stream of one or more tags.
+
+    Attributes
+    ----------
+    time_s : (L,) measurement times on the stream's own clock.
+    tag : (L,) tag ids (strings).
+    values : (L, c) values, NaN for absent components.
+    columns : (c,) indices of the fused measurement vector these values fill.
+    offset_s : float, added to ``time_s`` to reach the common (UWB) clock.
+    """
+
+    time_s: Array
+    tag: NDArray[np.object_]
+    values: Array
+    columns: Sequence[int]
+    offset_s: float = 0.0
+
+
+@dataclass(frozen=True)
+class Timeline:
+    """Fused, event-indexed measurements of ``K`` tags.
+
+    Attributes
+    ----------
+    tags : (K,) tag ids.
+    time_s : (K, J) event times, NaN padding after a tag's last event.
+    z : (K, J, m) fused measurements, NaN = not measured at that event.
+    """
+
+    tags: NDArray[np.object_]
+    time_s: Array
+    z: Array
+
+    @property
+    def n_events(self) -> NDArray[np.int64]:
+        return np.isfinite(self.time_s).sum(axis=1)
+
+
+def merge_streams(streams: Sequence[Stream], m: int, merge_window_s: float = 0.0) -> Timeline:
+    """Merge streams into one event timeline per tag (module docstring, steps 1-2).
+
+    Parameters
+    ----------
+    streams : the measurement streams; their ``columns`` index a vector of length ``m``.
+    m : length of the fused measurement vector.
+    merge_window_s : events closer than this to their group's first time are merged.
+    """
+    if merge_window_s < 0:
+        raise ValueError("merge_window_s must be >= 0")
+    ts, tags, cols, vals = [], [], [], []
+    for s in streams:
+        t = np.asarray(s.time_s, dtype=float) + s.offset_s
+        v = np.atleast_2d(np.asarray(s.values, dtype=float))
+        if v.shape[0] != t.shape[0]:
+            v = v.reshape(t.shape[0], -1)
+        c = np.asarray(list(s.columns), dtype=int)
+        if v.shape[1] != c.size or (c.size and (c.min() < 0 or c.max() >= m)):
+            raise ValueError("stream columns do not match its values or the vector size")
+        L = t.shape[0]
+        ts.append(np.repeat(t, c.size))
+        tags.append(np.repeat(np.asarray(s.tag, dtype=object).astype(str), c.size))
+        cols.append(np.tile(c, L))
+        vals.append(v.reshape(-1))
+    t = np.concatenate(ts) if ts else np.empty(0)
+    tag = np.concatenate(tags) if tags else np.empty(0, dtype=object)
+    col = np.concatenate(cols) if cols else np.empty(0, dtype=int)
+    val = np.concatenate(vals) if vals else np.empty(0)
+    keep = np.isfinite(t) & np.isfinite(val)
+    t, tag, col, val = t[keep], tag[keep], col[keep], val[keep]
+    tag_u, tag_i = np.unique(tag.astype(str), return_inverse=True)
+    order = np.lexsort((t, tag_i))
+    t, tag_i, col, val = t[order], tag_i[order], col[order], val[order]
+    K = tag_u.size
+    # event grouping: a new event starts at a new tag or after a gap > merge_window_s
+    new = np.ones(t.size, dtype=bool)
+    if t.size:
+        same_tag = np.r_[False, tag_i[1:] == tag_i[:-1]]
+        gap = np.r_[np.inf, np.diff(t)]
+        new = ~same_tag | (gap > merge_window_s) | ((merge_window_s == 0) & (gap > 0))
+    ev = np.cumsum(new) - 1  # global event id
+    ev_tag = tag_i[new]
+    ev_time = t[new]
+    first_ev = np.searchsorted(ev_tag, np.arange(K))
+    j_of_ev = np.arange(ev.max() + 1 if ev.size else 0) - first_ev[ev_tag]
+    J = int(j_of_ev.max() + 1) if j_of_ev.size else 0
+    time_s = np.full((K, J), np.nan)
+    time_s[ev_tag, j_of_ev] = ev_time
+    sums = np.zeros((K, J, m))
+    counts = np.zeros((K, J, m))
+    np.add.at(sums, (tag_i, j_of_ev[ev], col), val)
+    np.add.at(counts, (tag_i, j_of_ev[ev], col), 1.0)
+    with np.errstate(invalid="ignore"):
+        z = np.where(counts > 0, sums / np.maximum(counts, 1.0), np.nan)
+    return Timeline(tags=tag_u.astype(object), time_s=time_s, z=z)
+
+
+def interp_at(t_query: ArrayLike, t: ArrayLike, values: ArrayLike) -> Array:
+    """Linear interpolation of ``values (L, c)`` at ``t_query``; NaN outside ``t``'s span."""
+    t = np.asarray(t, dtype=float)
+    v = np.asarray(values, dtype=float)
+    q = np.asarray(t_query, dtype=float)
+    v2 = v.reshape(len(t), -1)
+    out = np.stack([np.interp(q, t, v2[:, i]) for i in range(v2.shape[1])], axis=-1)
+    out[(q < t[0]) | (q > t[-1])] = np.nan
+    return out.reshape(q.shape + v.shape[1:])

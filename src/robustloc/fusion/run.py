@@ -1,0 +1,220 @@
+"""End-to-end fusion of contract frames: ranges + anchors (+ NMEA) -> track frame.
+
+Used by ``robustloc fuse``, the ``uwb_gps`` report section and the real-data loaders.
+Loose coupling: per UWB epoch an LS/WLS fix (:mod:`robustloc.fusion.uwb`) with its
+covariance as ``R``; tight coupling: the ranges themselves (:mod:`robustloc.fusion.pipeline`).
+GPS speed and course (RMC/VTG) join as further components.  Streams are aligned as
+documented in :mod:`robustloc.fusion.align`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from robustloc.errors import InputError
+from robustloc.fusion.align import Stream, merge_streams
+from robustloc.fusion.pipeline import FusionFilter, FusionMeasurement, initial_state
+from robustloc.fusion.uwb import range_sigma, uwb_fix
+from robustloc.io.nmea import NmeaLog
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class FuseOptions:
+    """Settings of :func:`fuse` (defaults tuned on simulation, documented in the CLI help).
+
+    Parameters
+    ----------
+    coupling : ``"loose"`` (UWB fixes) or ``"tight"`` (raw ranges).
+    fix_method : ``"ls"`` or ``"wls"`` UWB fixes (loose coupling).
+    sigma_range_m, range_k : range noise ``sigma0 + k d`` (m, -).
+    sigma_speed_mps, sigma_course_deg : GPS speed and course noise.
+    nmea_offset_s : added to NMEA times to reach the ranges' clock.
+    merge_window_s : events closer than this are merged (see align).
+    tag_height_m : tag height for slant-range correction when anchors have ``z``.
+    init_var_m2 : initial position variance.
+    """
+
+    coupling: Literal["loose", "tight"] = "tight"
+    fix_method: Literal["ls", "wls"] = "wls"
+    sigma_range_m: float = 0.15
+    range_k: float = 0.0
+    sigma_speed_mps: float = 0.05
+    sigma_course_deg: float = 5.0
+    nmea_offset_s: float = 0.0
+    merge_window_s: float = 0.02
+    tag_height_m: float | None = None
+    init_var_m2: float = 4.0
+
+    def __post_init__(self) -> None:
+        if self.coupling not in ("loose", "tight"):
+            raise ValueError(f"coupling must be 'loose' or 'tight', got {self.coupling!r}")
+        for name in ("sigma_range_m", "sigma_speed_mps", "sigma_course_deg", "init_var_m2"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive")
+
+
+@dataclass(frozen=True)
+class FuseResult:
+    """Track frame (contract ``track`` columns) plus a run summary."""
+
+    track: pd.DataFrame
+    summary: dict = field(default_factory=dict)
+
+
+def _anchor_arrays(anchors: pd.DataFrame, opts: FuseOptions) -> tuple[Array, Array | None]:
+    a = anchors[["x", "y"]].to_numpy(float)
+    if "z" in anchors.columns and opts.tag_height_m is not None:
+        return a, anchors["z"].to_numpy(float) - opts.tag_height_m
+    return a, None
+
+
+def fuse(
+    measurements: pd.DataFrame,
+    anchors: pd.DataFrame,
+    nmea: NmeaLog | None,
+    filt: FusionFilter,
+    opts: FuseOptions = FuseOptions(),
+    progress: bool = False,
+) -> FuseResult:
+    """Fuse UWB ranges (and GPS speed/course) of every tag into tracks.
+
+    Parameters
+    ----------
+    measurements : ``time, tag, anchor, range`` (contract measurements frame).
+    anchors : ``anchor, x, y[, z]``.
+    nmea : parsed NMEA (its ``motion`` rows go to every tag), or ``None``.
+    filt : the filter settings (EKF/UKF, motion model, robust update).
+    opts : coupling and noise settings.
+
+    Returns
+    -------
+    FuseResult
+        ``track``: one row per fused event and tag: ``time, tag, x, y, vx, vy[, ax, ay],
+        status, var_x, var_y, var_vx, var_vy[, var_ax, var_ay], n_used, nis, source``.
+    """
+    if "range" not in measurements.columns:
+        raise InputError("fusion needs a 'range' column in the measurements")
+    ids = [str(a) for a in anchors["anchor"]]
+    col = pd.Index(ids).get_indexer(measurements["anchor"].astype(str))
+    if (col < 0).any():
+        bad = measurements["anchor"].astype(str)[col < 0].iloc[0]
+        raise InputError(f"unknown anchor id {bad!r} (not in the anchors)")
+    a_xy, dz = _anchor_arrays(anchors, opts)
+    M = len(ids)
+    n = filt.motion.n_states
+    t = measurements["time"].to_numpy(float)
+    tags = measurements["tag"].astype(str).to_numpy(object)
+    rng_m = measurements["range"].to_numpy(float)
+
+    streams: list[Stream] = []
+    summary: dict = {"coupling": opts.coupling, "filter": filt.kind, "motion": filt.motion.name}
+    if opts.coupling == "tight":
+        m = M + 2
+        vals = np.full((len(t), M), np.nan)
+        vals[np.arange(len(t)), col] = rng_m
+        streams.append(Stream(t, tags, vals, list(range(M))))
+        meas = FusionMeasurement(n, a_xy, dz)
+    else:
+        m = 4
+        # UWB epochs: rows with the same (tag, time within the window) form one fix epoch
+        tl_u = merge_streams(
+            [Stream(t, tags, _one_hot(len(t), M, col, rng_m), list(range(M)))], M,
+            opts.merge_window_s,
+        )
+        K, J = tl_u.time_s.shape
+        flat = tl_u.z.reshape(K * J, M)
+        live = np.isfinite(tl_u.time_s.reshape(-1))
+        fix = uwb_fix(a_xy, flat[live], opts.fix_method, dz, opts.sigma_range_m, opts.range_k)
+        summary["fixes"] = int((fix.status == "ok").sum())
+        summary["uwb_epochs"] = int(live.sum())
+        tag_rep = np.repeat(tl_u.tags, J)[live]
+        # a (3,)-column stream: x, y and the fix variances carried in columns 4, 5
+        v = np.concatenate(
+            [fix.position, np.diagonal(fix.covariance, axis1=1, axis2=2)], axis=1
+        )
+        streams.append(Stream(tl_u.time_s.reshape(-1)[live], tag_rep, v, [0, 1, 4, 5]))
+        meas = FusionMeasurement(n)
+    if nmea is not None and len(nmea.motion):
+        mo = nmea.motion
+        ut = np.unique(tags)
+        for tg in ut:
+            streams.append(
+                Stream(mo["time_s"].to_numpy(float), np.full(len(mo), tg, dtype=object),
+                       mo[["speed_mps", "course_rad"]].to_numpy(float), [m - 2, m - 1],
+                       opts.nmea_offset_s)
+            )
+    m_aug = m + (2 if opts.coupling == "loose" else 0)
+    tl = merge_streams(streams, m_aug, opts.merge_window_s)
+    K, J = tl.time_s.shape
+    z = tl.z[..., :m]
+    # per-event diagonal R
+    Rd = np.empty((K, J, m))
+    if opts.coupling == "tight":
+        Rd[..., :M] = range_sigma(np.nan_to_num(z[..., :M]), opts.sigma_range_m, opts.range_k) ** 2
+    else:
+        Rd[..., :2] = np.where(np.isfinite(tl.z[..., 4:6]), tl.z[..., 4:6], 1.0)
+        z[..., :2] = np.where(np.isfinite(tl.z[..., 4:6]), z[..., :2], np.nan)
+    Rd[..., m - 2] = opts.sigma_speed_mps**2
+    Rd[..., m - 1] = np.deg2rad(opts.sigma_course_deg) ** 2
+
+    x0pos, has = _initial_positions(tl, z, opts, a_xy, dz, M)
+    x0, P0 = initial_state(x0pos, n, opts.init_var_m2)
+    P0[~has, 0, 0] = P0[~has, 1, 1] = 1e4
+    tr = filt.run(tl.time_s, z, Rd, meas, x0, P0, progress=progress)
+
+    frame = _track_frame(tl.tags, tl.time_s, tr, filt, z, m, opts)
+    summary["events"] = int(np.isfinite(tl.time_s).sum())
+    summary["tags"] = int(K)
+    summary["status"] = frame["status"].value_counts().to_dict()
+    return FuseResult(track=frame, summary=summary)
+
+
+def _one_hot(L: int, M: int, col: NDArray[np.int64], v: Array) -> Array:
+    out = np.full((L, M), np.nan)
+    out[np.arange(L), col] = v
+    return out
+
+
+def _initial_positions(tl, z, opts, a_xy, dz, M):
+    """First usable position of each tag: a fix (loose) or an LS fix of merged ranges."""
+    K, J = tl.time_s.shape
+    if opts.coupling == "loose":
+        pos = z[..., :2]
+    else:
+        flat = z[..., :M].reshape(K * J, M)
+        # carry the last heard range of each anchor over 1 s to get a first fix quickly
+        pos = uwb_fix(a_xy, flat, "ls", dz).position.reshape(K, J, 2)
+    ok = np.isfinite(pos).all(axis=-1)
+    first = np.argmax(ok, axis=1)
+    has = ok[np.arange(K), first]
+    x0 = np.where(has[:, None], pos[np.arange(K), first], a_xy.mean(axis=0)[None])
+    return x0, has
+
+
+def _track_frame(tags, time_s, tr, filt: FusionFilter, z, m, opts) -> pd.DataFrame:
+    K, J = time_s.shape
+    live = np.isfinite(time_s)
+    k_idx, j_idx = np.nonzero(live)
+    x = tr.x[k_idx, j_idx]
+    var = tr.var[k_idx, j_idx]
+    names = ["x", "y", "vx", "vy", "ax", "ay"][: filt.motion.n_states]
+    data: dict[str, object] = {"time": time_s[k_idx, j_idx], "tag": tags[k_idx]}
+    for i, c in enumerate(names):
+        data[c] = x[:, i]
+    data["status"] = tr.status[k_idx, j_idx]
+    for i, c in enumerate(names):
+        data["var_" + c] = var[:, i]
+    data["n_used"] = tr.n_used[k_idx, j_idx]
+    data["nis"] = tr.nis[k_idx, j_idx]
+    zz = z[k_idx, j_idx]
+    uwb = np.isfinite(zz[:, : m - 2]).any(axis=1)
+    gps = np.isfinite(zz[:, m - 2 :]).any(axis=1)
+    data["source"] = np.where(uwb & gps, "uwb+gps", np.where(uwb, "uwb", "gps"))
+    return pd.DataFrame(data)

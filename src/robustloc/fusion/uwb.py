@@ -1,0 +1,129 @@
+"""UWB range-only fixes: the paper's linearized LS and distance-weighted WLS (seed 001).
+
+Linearization (seed 001, eqs. (3)-(4), as in seed 000 eq. (2)): subtracting the equation of a
+reference anchor ``r`` (per epoch, the first anchor heard) from that of anchor ``i`` gives
+
+    2 (a_i - a_r)^T x = d_r^2 - d_i^2 + |a_i|^2 - |a_r|^2
+
+a linear system ``A x = b`` solved for all epochs at once with
+:func:`robustloc.estimators.linear.solve_wls`.  In 2-D with known vertical offsets
+``dz_i`` (anchor height minus tag height) the slant ranges are first made horizontal,
+``d_i^2 <- d_i^2 - dz_i^2``.
+
+WLS weights (seed 001 eq. (5), lost in extraction -- our documented choice): the range noise
+grows with distance, ``sigma_i = sigma0_m + k * d_i``; the linearized observation is a
+*squared* range, whose standard deviation is ``2 d_i sigma_i``; so
+
+    omega_i = 1 / (2 d_i sigma_i)^2            (k = 0: omega_i proportional to 1 / d_i^2)
+
+which down-weights far anchors twice: by their noisier range and by the squaring.  The
+reference anchor's error enters every row; it is not modelled (as in the paper).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from robustloc import status as st
+from robustloc.estimators.linear import solve_wls
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class UwbFix:
+    """Per-epoch UWB fixes.
+
+    Attributes
+    ----------
+    position : (N, dim) positions (NaN where no fix).
+    covariance : (N, dim, dim) covariance ``(A^T omega A)^-1`` scaled to metres.
+    n_used : (N,) ranges used.
+    status : (N,) status strings (``ok``, ``insufficient_anchors``, ``ill_conditioned``).
+    """
+
+    position: Array
+    covariance: Array
+    n_used: NDArray[np.int64]
+    status: NDArray[np.str_]
+
+
+def range_sigma(range_m: ArrayLike, sigma0_m: float = 0.1, k: float = 0.0) -> Array:
+    """Distance-dependent range standard deviation ``sigma0_m + k d`` (module docstring)."""
+    return sigma0_m + k * np.abs(np.asarray(range_m, dtype=float))
+
+
+def uwb_fix(
+    anchors: ArrayLike,
+    ranges_m: ArrayLike,
+    method: Literal["ls", "wls"] = "ls",
+    height_offset_m: ArrayLike | None = None,
+    sigma0_m: float = 0.1,
+    k: float = 0.0,
+) -> UwbFix:
+    """Linearized LS or WLS UWB fixes for ``N`` epochs at once (seed 001, eqs. (3)-(4)).
+
+    Parameters
+    ----------
+    anchors : (m, dim) anchor coordinates.
+    ranges_m : (N, m) measured ranges, NaN where an anchor was not heard.
+    method : ``"ls"`` (equal weights) or ``"wls"`` (``omega_i = 1/(2 d_i sigma_i)^2``).
+    height_offset_m : (m,) optional anchor-minus-tag heights for 2-D fixes from slant ranges.
+    sigma0_m, k : range noise model ``sigma_i = sigma0_m + k d_i`` (WLS weights and the
+        covariance of both methods).
+    """
+    a = np.asarray(anchors, dtype=float)
+    d = np.atleast_2d(np.asarray(ranges_m, dtype=float))
+    if a.ndim != 2 or d.shape[1] != a.shape[0]:
+        raise ValueError(f"anchors {a.shape} and ranges {d.shape} do not match")
+    if method not in ("ls", "wls"):
+        raise ValueError(f"method must be 'ls' or 'wls', got {method!r}")
+    N, m = d.shape
+    dim = a.shape[1]
+    d = np.where(np.isfinite(d), d, np.nan)
+    d2 = d * d
+    if height_offset_m is not None:
+        d2 = d2 - np.broadcast_to(np.asarray(height_offset_m, dtype=float), (m,)) ** 2
+    heard = np.isfinite(d2)
+    ref = np.argmax(heard, axis=1)  # first anchor heard (0 if none; then all NaN anyway)
+    rows = np.arange(N)
+    a_ref = a[ref]  # (N, dim)
+    d2_ref = d2[rows, ref]
+    H = 2.0 * (a[None, :, :] - a_ref[:, None, :])  # (N, m, dim)
+    y = d2_ref[:, None] - d2 + (a * a).sum(1)[None, :] - (a_ref * a_ref).sum(1)[:, None]
+    y[rows, ref] = np.nan  # the reference row is identically zero
+    sig = range_sigma(d, sigma0_m, k)
+    var_own = (2.0 * np.abs(d) * sig) ** 2  # own squared-range noise of each row
+    var_ref = (2.0 * np.abs(d[rows, ref]) * sig[rows, ref]) ** 2  # shared by all rows
+    if method == "wls":
+        w = 1.0 / np.maximum((2.0 * np.abs(d) * sig) ** 2, 1e-12)  # documented weights
+    else:
+        w = np.ones((N, m))
+    fit = solve_wls(H, y, np.where(np.isfinite(y), w, 0.0))
+    # covariance (A^T W A)^-1 A^T W C_b W A (A^T W A)^-1 with the row covariance
+    # C_b = diag(var_own) + var_ref 1 1^T (the reference range enters every row)
+    Wm = np.where(np.isfinite(y), w, 0.0)
+    Hz = np.where(np.isfinite(y)[..., None], H, 0.0)
+    Nm = np.einsum("kmi,km,kmj->kij", Hz, Wm, Hz)
+    C = np.einsum("kmi,km,kmj->kij", Hz, Wm * Wm * np.nan_to_num(var_own), Hz)
+    g = np.einsum("kmi,km->ki", Hz, Wm)
+    C = C + np.nan_to_num(var_ref)[:, None, None] * np.einsum("ki,kj->kij", g, g)
+    good = np.isfinite(fit.x).all(axis=1) & (np.abs(np.linalg.det(Nm)) > 1e-12)
+    Ninv = np.full_like(Nm, np.nan)
+    if good.any():
+        Ninv[good] = np.linalg.inv(Nm[good])
+    cov = Ninv @ C @ Ninv
+    n_used = heard.sum(axis=1)
+    status = np.asarray(fit.status, dtype=object).copy()
+    status[n_used < dim + 1] = st.INSUFFICIENT
+    pos = np.where((status == st.OK)[:, None], fit.x, np.nan)
+    return UwbFix(
+        position=pos,
+        covariance=np.where((status == st.OK)[:, None, None], cov, np.nan),
+        n_used=n_used.astype(np.int64),
+        status=status.astype(str),
+    )

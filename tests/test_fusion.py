@@ -1,0 +1,205 @@
+"""Tests of UWB fixes, stream alignment, the fusion filter and the fuse command."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from robustloc.cli import main
+from robustloc.filters import ConstantAcceleration, ConstantVelocity, RobustUpdate
+from robustloc.filters.core import numerical_jacobian
+from robustloc.fusion.align import Stream, merge_streams
+from robustloc.fusion.pipeline import FusionFilter, FusionMeasurement, initial_state
+from robustloc.fusion.run import FuseOptions, fuse
+from robustloc.fusion.uwb import uwb_fix
+from robustloc.io.nmea import read_nmea
+from robustloc.robust.weights import IGG3
+from robustloc.sim import uwb_cart
+
+SQUARE = np.array([[0.0, 0.0], [5.0, 0.0], [5.0, 5.0], [0.0, 5.0]])
+
+
+@pytest.mark.parametrize("method", ["ls", "wls"])
+def test_uwb_fix_exact_without_noise(method):
+    pts = np.array([[2.0, 2.0], [1.0, 4.0], [4.5, 0.5]])
+    d = np.linalg.norm(pts[:, None] - SQUARE[None], axis=-1)
+    fix = uwb_fix(SQUARE, d, method)
+    np.testing.assert_allclose(fix.position, pts, atol=1e-9)
+    # slant ranges with known heights: tag at 1 m, anchors at 2.5 m
+    d3 = np.sqrt(d**2 + 1.5**2)
+    fix3 = uwb_fix(SQUARE, d3, method, height_offset_m=np.full(4, 1.5))
+    np.testing.assert_allclose(fix3.position, pts, atol=1e-9)
+
+
+def test_uwb_fix_missing_and_insufficient():
+    d = np.linalg.norm(np.array([2.0, 2.0]) - SQUARE, axis=1)
+    D = np.tile(d, (3, 1))
+    D[1, [0, 2]] = np.nan  # two anchors left: no 2-D fix from the linearized system
+    D[2, 0] = np.nan  # three anchors: a fix
+    fix = uwb_fix(SQUARE, D)
+    assert list(fix.status) == ["ok", "insufficient_anchors", "ok"]
+    assert np.isnan(fix.position[1]).all()
+    np.testing.assert_allclose(fix.position[[0, 2]], [[2, 2], [2, 2]], atol=1e-9)
+
+
+def test_uwb_fix_covariance_matches_monte_carlo_and_wls_helps():
+    rng = np.random.default_rng(4)
+    x = np.array([1.0, 1.0])
+    d = np.linalg.norm(x - SQUARE, axis=1)
+    sig = 0.05 + 0.05 * d  # noise grows with distance
+    D = d + rng.normal(size=(4000, 4)) * sig
+    ls = uwb_fix(SQUARE, D, "ls", sigma0_m=0.05, k=0.05)
+    wls = uwb_fix(SQUARE, D, "wls", sigma0_m=0.05, k=0.05)
+    for f in (ls, wls):
+        emp = np.cov((f.position - x).T)
+        np.testing.assert_allclose(np.median(f.covariance, axis=0), emp, rtol=0.25, atol=2e-4)
+    e_ls = np.hypot(*(ls.position - x).T).mean()
+    e_wls = np.hypot(*(wls.position - x).T).mean()
+    assert e_wls < 0.95 * e_ls
+
+
+def test_merge_streams_events_tags_and_duplicates():
+    a = Stream(np.array([0.0, 0.001, 1.0, 0.5]), np.array(["t1", "t1", "t1", "t2"], object),
+               np.array([[1.0], [3.0], [5.0], [7.0]]), [0])
+    b = Stream(np.array([0.0, 2.0]), np.array(["t1", "t1"], object),
+               np.array([[10.0, 0.1], [20.0, 0.2]]), [1, 2], offset_s=0.0005)
+    tl = merge_streams([a, b], 3, merge_window_s=0.01)
+    assert list(tl.tags) == ["t1", "t2"]
+    np.testing.assert_allclose(tl.time_s[0], [0.0, 1.0, 2.0005])
+    np.testing.assert_allclose(tl.time_s[1, 0], 0.5)
+    assert np.isnan(tl.time_s[1, 1:]).all()
+    np.testing.assert_allclose(tl.z[0, 0], [2.0, 10.0, 0.1])  # 1 and 3 averaged
+    np.testing.assert_allclose(tl.z[0, 1, 0], 5.0)
+    assert np.isnan(tl.z[0, 1, 1:]).all()
+    np.testing.assert_allclose(tl.n_events, [3, 1])
+
+
+@pytest.mark.parametrize("anchors", [None, SQUARE])
+def test_measurement_jacobian(anchors):
+    fm = FusionMeasurement(6, anchors, None if anchors is None else np.full(4, 0.7))
+    x = np.array([[1.0, 2.0, 0.3, -0.2, 0.01, 0.0], [3.0, 1.0, -0.5, 0.4, 0.0, 0.1]])
+    np.testing.assert_allclose(fm.jacobian(x), numerical_jacobian(fm.predict, x), atol=1e-6)
+
+
+def _round_robin(seed=0, J=120, sigma=0.05, outliers=False):
+    """Cart at 0.1 m/s; at each 0.25 s event only ONE anchor is heard (round robin)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(J) * 0.25
+    pos = np.stack([0.5 + 0.1 * t * 0.8, 1.0 + 0.1 * t * 0.6], axis=1)
+    k = np.arange(J) % 4
+    d = np.linalg.norm(pos - SQUARE[k], axis=1) + rng.normal(0, sigma, J)
+    if outliers:
+        d[30::17] += 4.0  # NLOS-like excess ranges
+    z = np.full((1, J, 6), np.nan)
+    z[0, np.arange(J), k] = d
+    return t, pos, z
+
+
+@pytest.mark.parametrize("kind", ["ekf", "ukf"])
+def test_tight_coupling_works_with_one_range_per_event(kind):
+    t, pos, z = _round_robin()
+    fm = FusionMeasurement(4, SQUARE)
+    x0, P0 = initial_state([[1.0, 1.5]], 4, 1.0)
+    tr = FusionFilter(kind, ConstantVelocity(q=0.01)).run(
+        t[None], z, np.diag([0.05**2] * 4 + [1, 1]), fm, x0, P0
+    )
+    err = np.hypot(*(tr.x[0, 20:, :2] - pos[20:]).T)
+    assert err.max() < 0.15
+    # the linearized fix has no solution from one range: loose coupling would have nothing
+    assert (uwb_fix(SQUARE, z[0, :, :4]).status == "insufficient_anchors").all()
+
+
+def test_robust_tight_coupling_ignores_nlos_ranges():
+    t, pos, z = _round_robin(outliers=True)
+    fm = FusionMeasurement(4, SQUARE)
+    x0, P0 = initial_state([[0.5, 1.0]], 4, 0.1)
+    R = np.diag([0.05**2] * 4 + [1, 1])
+    errs = {}
+    for name, rob in (("plain", RobustUpdate()), ("igg3", RobustUpdate(weight=IGG3(1.5, 3.0)))):
+        tr = FusionFilter("ekf", ConstantVelocity(q=0.01), rob).run(t[None], z, R, fm, x0, P0)
+        errs[name] = np.hypot(*(tr.x[0, 20:, :2] - pos[20:]).T).max()
+        if name == "igg3":
+            assert (tr.status[0, 30::17] == "fault_excluded").all()
+    assert errs["plain"] > 0.5
+    assert errs["igg3"] < 0.2
+
+
+def test_batched_tracks_equal_single_runs():
+    zs, ts = [], []
+    for s in range(3):
+        t, _, z = _round_robin(seed=s, J=60)
+        zs.append(z[0])
+        ts.append(t * (1 + 0.1 * s))  # different rates per track
+    T = np.stack(ts)
+    T[2, 50:] = np.nan  # a shorter track (padding)
+    Z = np.stack(zs)
+    fm = FusionMeasurement(6, SQUARE)
+    x0, P0 = initial_state(np.array([[1.0, 1.5]] * 3), 6, 1.0)
+    R = np.diag([0.05**2] * 4 + [1, 1])
+    f = FusionFilter("ukf", ConstantAcceleration(q=0.01), RobustUpdate(weight=IGG3()))
+    both = f.run(T, Z, R, fm, x0, P0)
+    for k in range(3):
+        one = f.run(T[k : k + 1], Z[k : k + 1], R, fm, x0[k : k + 1], P0[k : k + 1])
+        np.testing.assert_allclose(both.x[k], one.x[0], atol=1e-10, equal_nan=True)
+    assert (both.status[2, 50:] == "").all()
+
+
+@pytest.fixture(scope="module")
+def cart(tmp_path_factory):
+    out = tmp_path_factory.mktemp("cart")
+    files = uwb_cart.simulate(out, 3, argparse.Namespace(group="A", path="diagonal",
+                                                         nlos_prob=0.0))
+    return files
+
+
+def test_uwb_cart_nmea_round_trip(cart):
+    log = read_nmea(cart["nmea"])
+    assert log.summary.n_skipped == 0
+    rmc = log.motion[log.motion["sentence"] == "RMC"]
+    assert abs(rmc["speed_mps"].mean() - 0.2) < 0.01
+    assert np.rad2deg(rmc["course_rad"]).mean() == pytest.approx(45.0, abs=1.0)
+    truth = pd.read_csv(cart["truth"])
+    np.testing.assert_allclose(rmc["time_s"], truth["time"])
+
+
+@pytest.mark.parametrize("coupling", ["loose", "tight"])
+@pytest.mark.parametrize("kind", ["ekf", "ukf"])
+def test_fuse_on_cart_beats_uwb_fixes(cart, coupling, kind):
+    meas = pd.read_csv(cart["measurements"])
+    anchors = pd.read_csv(cart["anchors"])
+    truth = pd.read_csv(cart["truth"])
+    log = read_nmea(cart["nmea"])
+    res = fuse(meas, anchors, log, FusionFilter(kind, ConstantVelocity(q=1e-4)),
+               FuseOptions(coupling=coupling, sigma_range_m=0.1, sigma_speed_mps=0.02,
+                           sigma_course_deg=2.0))
+    tr = res.track
+    assert len(tr) == len(truth) and set(tr["status"]) <= {"ok", "fault_excluded"}
+    e = np.hypot(tr["x"] - truth["x"], tr["y"] - truth["y"])
+    piv = meas.pivot(index="time", columns="anchor", values="range")[anchors["anchor"]]
+    fix = uwb_fix(anchors[["x", "y"]].to_numpy(), piv.to_numpy())
+    e_fix = np.hypot(*(fix.position - truth[["x", "y"]].to_numpy()).T)
+    assert e[10:].mean() < 0.8 * e_fix[10:].mean()
+    assert {"var_x", "var_y", "var_vx", "var_vy", "source"} <= set(tr.columns)
+
+
+def test_fuse_command(cart, tmp_path, capsys):
+    out = tmp_path / "track.csv"
+    rc = main(["fuse", "--ranges", str(cart["measurements"]), "--anchors",
+               str(cart["anchors"]), "--nmea", str(cart["nmea"]), "--filter", "ekf",
+               "--motion", "ca", "--robust", "igg3", "--gate", "0.999", "-o", str(out),
+               "--json"])
+    assert rc == 0
+    tr = pd.read_csv(out)
+    assert list(tr.columns[:6]) == ["time", "tag", "x", "y", "vx", "vy"]
+    assert "status" in tr.columns and "var_ax" in tr.columns
+    assert '"events": ' in capsys.readouterr().out
+    # an unknown anchor id is a user error: exit 2, message names the file and line
+    bad = tmp_path / "bad.csv"
+    pd.read_csv(cart["measurements"]).assign(anchor="nope").to_csv(bad, index=False)
+    rc = main(["fuse", "--ranges", str(bad), "--anchors", str(cart["anchors"]), "-o",
+               str(tmp_path / "x.csv")])
+    assert rc == 2
+    assert "unknown anchor" in capsys.readouterr().err
