@@ -266,3 +266,22 @@ def test_positions_frame_and_writer_round_trip(tmp_path):
     assert list(back["excluded"]) == ["a2", "", "a1;a2"]
     with pytest.raises(ValueError, match="missing column"):
         write_positions(f.drop(columns="status"), tmp_path / "q.csv")
+
+
+@pytest.mark.parametrize(
+    ("text", "line", "words"),
+    [
+        ("anchor,x,y\n1,0,0,7\n2,1,1\n", 2, "expected 3 fields, found 4"),  # not an index
+        ("anchor,x,y\n1,0,0\n2,1\n", 3, "column 'y': missing"),  # short row: empty field
+        ("anchor,x,y\n1,0,0\n2,1,1,9\n", 3, "expected 3 fields, found 4"),
+    ],
+)
+def test_ragged_rows_are_errors_not_shifted_columns(tmp_path, text, line, words):
+    p = _write(tmp_path, "a.csv", text)
+    with pytest.raises(InputError, match=words) as ei:
+        read_anchors(p)
+    assert ei.value.line == line
+    m = _write(tmp_path, "m.csv", "time,tag,anchor,rssi\n0,A,1,-50,3\n1,A,1,-50\n")
+    with pytest.raises(InputError, match="expected 4 fields, found 5") as ei:
+        list(iter_measurements(m, chunk_rows=1))
+    assert ei.value.line == 2

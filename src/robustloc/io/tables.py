@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import os
 import re
+import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -83,8 +84,53 @@ def _parser_error(exc: Exception, path: Path) -> InputError:
     return InputError(f"cannot parse: {msg.strip()}", path)
 
 
+def _ragged_line(path: Path) -> InputError:
+    """Locate the first row whose field count differs from the header's (slow path)."""
+    import csv
+
+    with open(path, newline="", encoding="utf-8", errors="replace") as fh:
+        reader = csv.reader(fh)
+        header = next(reader, [])
+        for row in reader:
+            if row and len(row) != len(header):
+                return InputError(
+                    f"expected {len(header)} fields, found {len(row)}", path, reader.line_num
+                )
+    return InputError("rows do not match the header's number of fields", path)
+
+
+class _RaggedGuard:
+    """Turn pandas' "Length of header ... does not match" warning into an InputError.
+
+    (With ``index_col=False`` pandas truncates a row with extra fields and only warns;
+    without it, an extra field in the first row silently becomes the index.)
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def __enter__(self) -> _RaggedGuard:
+        self._cm = warnings.catch_warnings(record=True)
+        self._log = self._cm.__enter__()
+        warnings.simplefilter("always", pd.errors.ParserWarning)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._cm.__exit__(*exc)
+        if exc[0] is None:
+            self.check()
+
+    def check(self) -> None:
+        for w in self._log:
+            if issubclass(w.category, pd.errors.ParserWarning) and "Length of header" in str(
+                w.message
+            ):
+                raise _ragged_line(self.path)
+
+
 def _csv_kwargs(str_columns: Sequence[str]) -> dict:
     return dict(
+        index_col=False,
         dtype={c: str for c in str_columns},
         skip_blank_lines=False,
         skipinitialspace=True,
@@ -115,7 +161,8 @@ def _read_raw(path: PathLike, str_columns: Sequence[str] = ()) -> pd.DataFrame:
             raise InputError(f"cannot read Parquet file: {exc}", p) from None
         return _finish_frame(df.reset_index(drop=True), p, 2)
     try:
-        df = pd.read_csv(p, **_csv_kwargs(str_columns))
+        with _RaggedGuard(p):
+            df = pd.read_csv(p, **_csv_kwargs(str_columns))
     except pd.errors.EmptyDataError:
         raise InputError("empty file (expected a header line)", p, 1) from None
     except (pd.errors.ParserError, UnicodeDecodeError) as exc:
@@ -146,13 +193,15 @@ def _iter_raw(
             raise InputError(f"cannot read Parquet file: {exc}", p) from None
         return
     try:
-        reader = pd.read_csv(p, chunksize=chunk_rows, **_csv_kwargs(str_columns))
         line = 2
-        with reader:
-            for df in reader:
-                n = len(df)
-                yield _finish_frame(df, p, line)
-                line += n
+        with _RaggedGuard(p) as guard:
+            reader = pd.read_csv(p, chunksize=chunk_rows, **_csv_kwargs(str_columns))
+            with reader:
+                for df in reader:
+                    guard.check()
+                    n = len(df)
+                    yield _finish_frame(df, p, line)
+                    line += n
     except pd.errors.EmptyDataError:
         raise InputError("empty file (expected a header line)", p, 1) from None
     except (pd.errors.ParserError, UnicodeDecodeError) as exc:

@@ -1,0 +1,152 @@
+"""Command line: simulate -> calibrate -> evaluate, and bad input -> `error: FILE:LINE:`, exit 2."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from robustloc.cli import main
+from robustloc.io import read_anchors, read_positions
+
+ANCHORS = "anchor,x,y\n1,0,0\n2,10,0\n3,0,10\n"
+SURVEY = "anchor,distance,rssi\n" + "".join(
+    f"{a},{d},{-60 - 22 * np.log10(d) + (0.5 if d % 2 else -0.5):.2f}\n"
+    for a in (1, 2, 3) for d in range(1, 11)
+)
+
+
+def _w(tmp_path, name, text):
+    p = tmp_path / name
+    p.write_text(text)
+    return str(p)
+
+
+def _fails(capsys, argv, path, line, words):
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert code == 2
+    prefix = f"error: {path}:{line}: " if line is not None else f"error: {path}: "
+    assert err.startswith(prefix), err
+    assert words in err
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize(
+    ("name", "text", "line", "words"),
+    [
+        ("missing_col.csv", "anchor,distance\n1,2\n", 1, "rssi or range"),
+        ("non_numeric.csv", "anchor,distance,rssi\n1,2,-50\n1,three,-60\n", 3, "not a number"),
+        ("nan.csv", "anchor,distance,rssi\n1,2,-50\n1,3,nan\n", 3, "NaN"),
+        ("inf.csv", "anchor,distance,rssi\n1,2,-50\n1,3,inf\n", 3, "infinite"),
+        ("empty.csv", "", 1, "empty file"),
+        ("header_only.csv", "anchor,distance,rssi\n", 2, "no data rows"),
+        ("ragged.csv", "anchor,distance,rssi\n1,2,-50,7\n", 2, "expected 3 fields"),
+    ],
+)
+def test_calibrate_bad_survey(tmp_path, capsys, name, text, line, words):
+    p = _w(tmp_path, name, text)
+    _fails(capsys, ["calibrate", p, "-o", str(tmp_path / "o.csv")], p, line, words)
+
+
+def test_calibrate_duplicate_anchor(tmp_path, capsys):
+    s = _w(tmp_path, "s.csv", SURVEY)
+    a = _w(tmp_path, "a.csv", ANCHORS + "2,5,5\n")
+    _fails(capsys, ["calibrate", s, "--anchors", a, "-o", str(tmp_path / "o.csv")], a, 5,
+           "duplicate anchor id '2'")
+
+
+def test_calibrate_unknown_anchor_in_measurements(tmp_path, capsys):
+    a = _w(tmp_path, "a.csv", ANCHORS)
+    m = _w(tmp_path, "m.csv", "time,tag,anchor,range\n0,T,1,5\n0,T,9,5\n")
+    t = _w(tmp_path, "t.csv", "time,tag,x,y\n0,T,3,4\n")
+    argv = ["calibrate", "--measurements", m, "--truth", t, "--anchors", a, "-o",
+            str(tmp_path / "o.csv")]
+    _fails(capsys, argv, m, 3, "unknown anchor id '9'")
+
+
+def test_missing_file(tmp_path, capsys):
+    p = str(tmp_path / "nope.csv")
+    _fails(capsys, ["calibrate", p, "-o", str(tmp_path / "o.csv")], p, None, "file not found")
+    _fails(capsys, ["evaluate", p, "--truth", p], p, None, "file not found")
+
+
+@pytest.mark.parametrize(
+    ("pos", "line", "words"),
+    [
+        ("time,tag,x\n0,T,1\n", 1, "missing column(s) y"),
+        ("time,tag,x,y\n0,T,1,2\n0,T,a,2\n", 3, "not a number"),
+        ("time,tag,x,y\n0,T,1,2\nnan,T,1,2\n", 3, "NaN"),
+    ],
+)
+def test_evaluate_bad_positions(tmp_path, capsys, pos, line, words):
+    p = _w(tmp_path, "p.csv", pos)
+    t = _w(tmp_path, "t.csv", "time,tag,x,y\n0,T,0,0\n")
+    _fails(capsys, ["evaluate", p, "--truth", t], p, line, words)
+
+
+def test_subprocess_exit_code_and_no_traceback(tmp_path):
+    p = _w(tmp_path, "bad.csv", "anchor,distance,rssi\n1,2,loud\n")
+    r = subprocess.run(
+        [sys.executable, "-m", "robustloc.cli", "calibrate", p, "-o", str(tmp_path / "o.csv")],
+        capture_output=True, text=True, check=False,
+    )
+    assert r.returncode == 2
+    assert r.stderr.startswith(f"error: {p}:2: ") and "Traceback" not in r.stderr
+
+
+def test_simulate_calibrate_evaluate_end_to_end(tmp_path, capsys):
+    out = tmp_path / "sim"
+    assert main(["simulate", "ble-corridor", "--seed", "2", "--out", str(out)]) == 0
+    assert main(["simulate", "--list"]) == 0
+    listing = capsys.readouterr().out
+    assert "ble-corridor" in listing
+    cal = tmp_path / "cal.csv"
+    argv = ["calibrate", str(out / "survey.csv"), "--anchors", str(out / "anchors.csv"),
+            "-o", str(cal), "--robust", "igg3", "--json"]
+    assert main(argv) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["model"] == "log-distance" and summary["robust"] == "igg3"
+    assert len(summary["parameters"]) == 11  # 10 beacons + pooled
+    a = read_anchors(cal)
+    assert np.all(np.isfinite(a["A"])) and np.all((a["n"] > 1.5) & (a["n"] < 3))
+    # positions: truth plus a known offset per method, one failed epoch
+    truth = pd.read_csv(out / "truth.csv")
+    ls = truth.assign(x=truth["x"] + 3.0, method="ls", status="ok")
+    igg = truth.assign(x=truth["x"] + 1.0, method="igg", status="ok")
+    igg.loc[0, "status"] = "insufficient_anchors"
+    pos = pd.concat([ls, igg]).assign(n_used=5, sigma0=1.0, excluded="")
+    pos.to_parquet(tmp_path / "pos.parquet", index=False)
+    read_positions(tmp_path / "pos.parquet")
+    err_csv = tmp_path / "err.csv"
+    argv = ["evaluate", str(tmp_path / "pos.parquet"), "--truth", str(out / "truth.csv"),
+            "--json", "-o", str(err_csv)]
+    assert main(argv) == 0
+    rows = json.loads(capsys.readouterr().out)["rows"]
+    by = {(r["tag"], r["method"]): r for r in rows}
+    assert by[("all", "ls")]["mean"] == pytest.approx(3.0)
+    assert by[("all", "igg")]["mean_impr_pct"] == pytest.approx(100 * 2 / 3)
+    assert by[("S1", "igg")]["n_failed"] == 1
+    assert err_csv.exists()
+    assert main(["evaluate", str(tmp_path / "pos.parquet"), "--truth",
+                 str(out / "truth.csv")]) == 0
+    text = capsys.readouterr().out
+    assert "rms" in text and "S3" in text
+
+
+def test_calibrate_range_survey_text_output(tmp_path, capsys):
+    s = _w(tmp_path, "r.csv", "anchor,distance,range\n" + "".join(
+        f"{a},{d},{d + b + (0.01 if d % 2 else -0.01)}\n"
+        for a, b in (("1", 0.5), ("2", -0.2)) for d in range(1, 9)))
+    a = _w(tmp_path, "a.csv", ANCHORS)
+    out = tmp_path / "o.parquet"
+    assert main(["calibrate", s, "--anchors", a, "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "range fit, least squares" in text and "bias" in text
+    cal = read_anchors(out).set_index("anchor")
+    assert cal.loc["1", "bias"] == pytest.approx(0.5)
+    assert cal.loc["3", "calib_source"] == "pooled"  # anchor 3 not in the survey
