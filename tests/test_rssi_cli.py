@@ -58,6 +58,18 @@ def test_filter_cli_writes_locatable_measurements(sim, tmp_path, capsys):
     assert back.attrs["value"] == "rssi"
 
 
+def test_filter_then_locate_unchanged(sim, tmp_path):
+    out = tmp_path / "f.csv"
+    assert main(["filter", str(sim["measurements"]), "--anchors", str(sim["anchors"]),
+                 "-o", str(out), "--static"]) == 0
+    pos = tmp_path / "pos.csv"
+    assert main(["locate", str(out), "--anchors", str(sim["anchors"]), "--method", "nls",
+                 "-o", str(pos)]) == 0
+    p = pd.read_csv(pos)
+    assert len(p) == 20 * 10 + 60  # one row per epoch
+    assert p["status"].isin(["ok", "not_converged"]).all()
+
+
 def test_filter_cli_plain_equals_library(sim, tmp_path):
     out = tmp_path / "plain.csv"
     assert main(["filter", str(sim["measurements"]), "--anchors", str(sim["anchors"]),

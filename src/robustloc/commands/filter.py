@@ -42,6 +42,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--exponent", type=float, default=None,
                    help="path-loss exponent of the transition (default: each anchor's "
                         "gamma; 2 = the paper's 20 lg)")
+    p.add_argument("--static", action="store_true",
+                   help="receivers do not move: speed fixed at 0, no acceleration (the "
+                        "filter becomes a robust running mean with a slow power walk)")
     p.add_argument("--max-rejected", type=int, default=8,
                    help="consecutive rejections before a link re-locks (0: never; default 8)")
     p.add_argument("--no-adaptive", action="store_true",
@@ -61,7 +64,8 @@ def run(args: argparse.Namespace) -> int:
         get_weight(args.robust) if robust else None,
         robust=robust,
         sigma_rssi_db=args.sigma_rssi,
-        sigma_accel_mps2=args.sigma_accel,
+        sigma_accel_mps2=0.0 if args.static else args.sigma_accel,
+        init_speed_std_mps=0.0 if args.static else 1.0,
         q_rssi_db2_per_s=args.q_rssi,
         exponent=args.exponent,
         max_rejected=args.max_rejected,

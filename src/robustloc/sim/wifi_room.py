@@ -217,8 +217,11 @@ def generate(cfg: WifiRoomConfig, seed: int) -> WifiRoomData:
         "distance": np.tile(np.repeat(dist, m), n_s),
         "rssi": sv.ravel(),
     })
-    meas = pd.concat([static, walk], ignore_index=True)
-    truth = pd.concat([truth_static, truth_walk], ignore_index=True)
+    # time-sorted (the static points and the walk share the clock), as logs are streamed
+    meas = pd.concat([static, walk], ignore_index=True).sort_values(
+        "time", kind="mergesort", ignore_index=True)
+    truth = pd.concat([truth_static, truth_walk], ignore_index=True).sort_values(
+        "time", kind="mergesort", ignore_index=True)
     return WifiRoomData(anchors, meas, truth, survey)
 
 
