@@ -116,3 +116,18 @@ def test_cli_montecarlo_json_and_errors(tmp_path, capsys):
     bad.write_text("anchor,x,y\nb1,0,0\nb2,abc,1\n")
     assert main(["montecarlo", "--anchors", str(bad)]) == 2
     assert "bad.csv" in capsys.readouterr().err
+
+
+def test_reproduce_section_quick(tmp_path):
+    from robustloc.reproduce import Context, s40_integrity
+
+    ctx = Context(out_dir=tmp_path, data_dir=None, seed=1, quick=True)
+    sec = s40_integrity.run(ctx)
+    assert sec.summary["lambda0"] == pytest.approx(20.90, abs=0.005)
+    assert sec.summary["alpha_max_abs_deviation_from_reference"] < 5e-5
+    figs = [v[1] for k, v in sec.blocks if k == "figure"]
+    assert len(figs) == 6
+    for rel in figs:
+        assert (tmp_path / rel).stat().st_size > 1000
+    tables = [v[1] for k, v in sec.blocks if k == "table"]
+    assert any("global test (theory)" in t.columns for t in tables)

@@ -125,6 +125,35 @@ def ranging_layout(
     return Layout(name, H, sig, list(map(str, ids)), model.dim, tuple(range(min(2, model.dim))))
 
 
+def rssi_layout(
+    anchors: ArrayLike,
+    position: ArrayLike,
+    sigma_db: float | ArrayLike,
+    n: float | ArrayLike,
+    anchor_ids: list[str] | None = None,
+    height_offset: ArrayLike | None = None,
+    name: str = "rssi",
+) -> Layout:
+    """Layout of RSSI positioning with the log-distance model (seed 000 eq. (1)).
+
+    The design is ``d RSSI / d x`` at ``position``; observations and faults are in dB
+    (a body blocking a beacon is a gross error of 6-18 dB), position errors in metres.
+    """
+    from robustloc.models.ranging import RssiModel
+
+    a = np.asarray(anchors, dtype=float)
+    model = RssiModel(a, A=0.0, n=n, height_offset=height_offset)
+    x = np.asarray(position, dtype=float).reshape(1, -1)
+    if x.shape[1] != a.shape[1]:
+        raise ValueError(f"position must have {a.shape[1]} coordinates like the anchors")
+    H = model.jacobian(x)[0]
+    sig = np.broadcast_to(np.asarray(sigma_db, dtype=float), (a.shape[0],)).copy()
+    if np.any(~np.isfinite(sig)) or np.any(sig <= 0):
+        raise ValueError("RSSI sigma must be positive and finite")
+    ids = anchor_ids if anchor_ids is not None else [f"a{i + 1}" for i in range(a.shape[0])]
+    return Layout(name, H, sig, list(map(str, ids)), a.shape[1], tuple(range(min(2, a.shape[1]))))
+
+
 def gnss_layout(
     t_s: float = 0.0,
     lat_deg: float = 30.53,

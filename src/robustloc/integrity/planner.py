@@ -212,8 +212,11 @@ def plot_maps(
             vmin, vmax = 0.0, max(vmax, 1e-3)
         else:
             vmin = float(np.nanmin(finite)) if finite.size else 0.0
-        im = ax.pcolormesh(grid.x, grid.y, f, shading="nearest", cmap="viridis",
-                           vmin=vmin, vmax=max(vmax, vmin + 1e-9))
+        hx = 0.5 * (grid.x[1] - grid.x[0]) if grid.x.size > 1 else 0.5
+        hy = 0.5 * (grid.y[1] - grid.y[0]) if grid.y.size > 1 else 0.5
+        im = ax.imshow(f, origin="lower", cmap="viridis", interpolation="nearest",
+                       extent=(grid.x[0] - hx, grid.x[-1] + hx, grid.y[0] - hy, grid.y[-1] + hy),
+                       vmin=vmin, vmax=max(vmax, vmin + 1e-9), aspect="auto")
         fig.colorbar(im, ax=ax, label=col, shrink=0.9)
         ax.plot(a[:, 0], a[:, 1], "r^", ms=8, mec="k", label="anchors")
         for (px, py), name in zip(a[:, :2], ids):
@@ -226,8 +229,9 @@ def plot_maps(
             ax.set_aspect("equal")
         else:
             ax.set_title(MAPS.get(col, col) + " (axes not to scale)", fontsize=10)
+        fig.subplots_adjust(bottom=0.16 if not equal else 0.1, top=0.9)
         p = out / f"{prefix}_{col}.png"
-        fig.savefig(p, dpi=100, bbox_inches="tight")
+        fig.savefig(p, dpi=100)
         plt.close(fig)
         paths.append(p)
     return paths
