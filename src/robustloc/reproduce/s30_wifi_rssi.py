@@ -374,33 +374,19 @@ def _ble(ctx: Context, sec: Section) -> dict:
     survey = ble_tetam.load_survey_means(ctx.data_dir)
     cal = calibrate_pathloss(survey, "log-distance")
     anchors = cal.apply_to_anchors(anchors)
-    ids = list(anchors["anchor"])
     tag_height_m = 1.75  # beacon carried at about this height (truth z 1.6-1.9 m)
     hoff = anchors["z"].to_numpy(float) - tag_height_m
     tracks = ble_tetam.list_tracks(ctx.data_dir)
     if ctx.quick:
         tracks = tracks[:1]
     rows, all_samples, all_truth = [], [], []
-    window_s = 1.0
     for name in tracks:
         meas, truth = ble_tetam.load_track(name, ctx.data_dir, window_s=None)
         all_samples.append(meas)
         all_truth.append(truth)
-        w = np.floor(meas["time"].to_numpy() / window_s)
-        tw = np.floor(truth["time"].to_numpy() / window_s)
-        tr = truth.assign(win=tw).groupby("win")[["x", "y"]].mean()
         variants = _filtered_variants(meas, anchors, 4.0, np.array([], dtype=object))
         variants["raw (1 s window mean)"] = variants.pop("raw")
-        for vname, frame in variants.items():
-            fr = frame.assign(win=w)
-            agg = "mean" if vname.startswith("raw") else "last"
-            g = fr.groupby(["win", "anchor"], as_index=False)["rssi"].agg(agg)
-            g["time"] = g["win"]
-            g["tag"] = name
-            ep = _pivot(g, ids)
-            txy = tr.reindex(ep.time).to_numpy(float)
-            pos = _locate(anchors, ep.values, height_offset=hoff)
-            e = _errors(pos, txy)
+        for vname, e in _window_errors(meas, truth, variants, anchors, hoff, 1.0).items():
             rows.append({"track": name, "method": vname, **e})
     t = pd.DataFrame(rows)
     piv = t.pivot(index="track", columns="method", values="mean_error_m")
@@ -435,10 +421,100 @@ def _ble(ctx: Context, sec: Section) -> dict:
         "misfits by about 4.5 dB (see the fits table): that bias, not sample noise, "
         "dominates the BLE error, so filtering the noise gains little here."
     )
-    return {"ble_raw_m": raw_e, "ble_robust_m": rob_e, "ble_plain_m": pla_e,
+    static = _ble_static(ctx, sec, anchors, hoff)
+    return {"ble_raw_m": raw_e, "ble_robust_m": rob_e, "ble_plain_m": pla_e, **static,
             "ble_source": src.kind, "ble_tracks": len(tracks),
             "ble_median_skewness": s["median_skewness"],
             "ble_median_kurtosis": s["median_kurtosis"], "ble_survey": survey}
+
+
+def _window_errors(meas: pd.DataFrame, truth: pd.DataFrame, variants: dict[str, pd.DataFrame],
+                   anchors: pd.DataFrame, hoff: np.ndarray, window_s: float) -> dict[str, dict]:
+    """Errors of 1-window epochs: raw variants averaged, filtered ones take the last value."""
+    ids = list(anchors["anchor"])
+    w = np.floor(meas["time"].to_numpy() / window_s)
+    tr = truth.assign(win=np.floor(truth["time"].to_numpy() / window_s)).groupby("win")[
+        ["x", "y"]].mean()
+    out = {}
+    for vname, frame in variants.items():
+        agg = "mean" if vname.startswith("raw") else "last"
+        g = frame.assign(win=w).groupby(["win", "anchor"], as_index=False)["rssi"].agg(agg)
+        g["time"] = g["win"]
+        g["tag"] = str(meas["tag"].iloc[0])
+        ep = _pivot(g, ids)
+        out[vname] = _errors(_locate(anchors, ep.values, height_offset=hoff),
+                             tr.reindex(ep.time).to_numpy(float))
+    return out
+
+
+def _ble_static(ctx: Context, sec: Section, anchors: pd.DataFrame, hoff: np.ndarray) -> dict:
+    """The 30-minute static logs of ble-tetam (full data only): Table 1 structure on real
+    BLE RSSI and static positioning from raw and filtered RSSI."""
+    from robustloc.datasets import ble_tetam
+    from robustloc.eval.rssi_stats import RssiStatistics, plot_autocorrelation
+
+    points = ble_tetam.list_static_points(ctx.data_dir)
+    if not points or ctx.quick:
+        sec.text("ble-tetam static logs: not run (" + ("quick mode" if points else
+                 "only in the full data set; the shipped excerpt has no raw static logs")
+                 + ").")
+        return {}
+    rows, samples, truths = [], [], []
+    for pt in points:
+        meas, truth = ble_tetam.load_static(pt, ctx.data_dir, window_s=None)
+        samples.append(meas)
+        truths.append(truth)
+        variants = _filtered_variants(meas, anchors, 4.0, meas["tag"].unique())
+        variants["raw (1 s window mean)"] = variants.pop("raw")
+        errs = _window_errors(meas, truth, variants, anchors, hoff, 1.0)
+        whole = meas.groupby("anchor", as_index=False)["rssi"].mean().assign(
+            time=0.0, tag="p")
+        ep = _pivot(whole, list(anchors["anchor"]))
+        xy = truth[["x", "y"]].to_numpy(float)[:1]
+        e_mean = _errors(_locate(anchors, ep.values, height_offset=hoff), xy)
+        row = {"point": pt, **{k: v["mean_error_m"] for k, v in errs.items()},
+               "mean of the whole log": e_mean["mean_error_m"]}
+        rows.append(row)
+    t = pd.DataFrame(rows).set_index("point")
+    sec.table("ble-tetam static points (30-minute logs, 12 receivers): mean error (m) of "
+              "1 s epochs from raw and filtered RSSI (static tuning), and of one fix from "
+              "the mean of the whole log", t)
+    st = RssiStatistics(max_lag=40, bin_width_m=0.5, min_samples=100).compute(
+        pd.concat(samples, ignore_index=True), anchors, pd.concat(truths, ignore_index=True))
+    pb = st.per_bin.sort_values("distance_m")
+    show = pb[["anchor", "distance_m", "n", "mean", "variance", "skewness", "kurtosis",
+               "decorrelation_lag"]]
+    sec.table("Table 1 structure on real BLE RSSI: the static logs per receiver and distance "
+              "(0.5 m bins; lag in samples of that receiver, about 2 per second)",
+              show.set_index(["anchor", "distance_m"]))
+    pb.to_csv(ctx.out_dir / "s30_ble_static_table1.csv", index=False)
+    plot_autocorrelation(st, ctx.out_dir / "s30_ble_static_acf.png")
+    sec.figure("Autocorrelation of the static BLE RSSI per receiver (dashed: 0.2)",
+               "s30_ble_static_acf.png")
+    s = st.summary()
+    left = float((pb["skewness"] < 0).mean())
+    sec.text(
+        f"Real static BLE RSSI: {100 * left:.0f} % of the receiver-distance cells are "
+        f"left-skewed, median kurtosis {pb['kurtosis'].median():.2f} (3 for normal), "
+        f"normality rejected at 5 % in {100 * (pb['normaltest_p'] < 0.05).mean():.0f} % of "
+        f"cells, median decorrelation lag {pb['decorrelation_lag'].median():.0f} samples, "
+        f"variance-distance correlation {s['variance_distance_corr']:.2f} (paper: mostly "
+        "left-skewed, heavy-tailed, lag 8, correlation 0.578).  Unlike the paper's WiFi "
+        "RSSI, most cells have kurtosis well below 3: the values form two or three clusters "
+        "several dB apart (e.g. sensor20 at the first point: -77 and -70 dBm), consecutive "
+        "samples alternating between them -- BLE advertises on three channels whose gains "
+        "differ -- which is also why the autocorrelation is gone after 1-2 samples.  Those "
+        "modes are not outliers: the adaptive scale grows to cover them, so the robust and "
+        "the plain filter agree, and both roughly reach the whole-log mean, well below the "
+        "error of raw 1 s windows."
+    )
+    return {"ble_static_raw_m": float(t["raw (1 s window mean)"].mean()),
+            "ble_static_robust_m": float(t["robust KF (eq. 14)"].mean()),
+            "ble_static_plain_m": float(t["plain KF"].mean()),
+            "ble_static_share_left_skewed": left,
+            "ble_static_median_kurtosis": float(pb["kurtosis"].median()),
+            "ble_static_median_lag": float(pb["decorrelation_lag"].median()),
+            "ble_static_variance_distance_corr": s["variance_distance_corr"]}
 
 
 def _wifi(ctx: Context, sec: Section) -> tuple[dict, dict]:
