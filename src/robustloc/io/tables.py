@@ -289,12 +289,13 @@ def _ids(df: pd.DataFrame, col: str, path: PathLike | None = None) -> None:
         if np.all(np.isnan(v) | (v == np.round(v))):
             s = s.astype("Int64")
     missing = s.isna().to_numpy()
-    out = s.astype(str).str.strip()
-    empty = missing | (out == "").to_numpy()
+    out = s if isinstance(s.dtype, pd.StringDtype) else s.astype(str)
+    out = out.str.strip()
+    empty = missing | (out == "").to_numpy(dtype=bool, na_value=True)
     if empty.any():
         i = int(np.argmax(empty))
         raise InputError(f"column '{col}': empty id", _path_of(df, path), _line_of(df, i))
-    df[col] = out.astype(object)
+    df[col] = out
 
 
 def _require_rows(df: pd.DataFrame, what: str, path: PathLike | None = None) -> None:
@@ -666,7 +667,10 @@ def to_epochs(
             np.empty(0), np.empty(0, dtype=object), np.empty((0, m)), ids, value,
             np.empty(0, dtype=np.int64), 0,
         )
-    col = pd.Index(ids).get_indexer(frame["anchor"].astype(str))
+    anchor_col = frame["anchor"]
+    if not isinstance(anchor_col.dtype, pd.StringDtype):
+        anchor_col = anchor_col.astype(str)
+    col = pd.Index(ids).get_indexer(anchor_col)
     if (col < 0).any():
         i = int(np.argmax(col < 0))
         raise InputError(
@@ -675,7 +679,10 @@ def to_epochs(
             _line_of(frame, i),
         )
     t = frame["time"].to_numpy(dtype=float)
-    tag_codes, tag_uniques = pd.factorize(frame["tag"].astype(str), sort=True)
+    tag_col = frame["tag"]
+    if not isinstance(tag_col.dtype, pd.StringDtype):
+        tag_col = tag_col.astype(str)
+    tag_codes, tag_uniques = pd.factorize(tag_col, sort=True)
     time_codes, time_uniques = pd.factorize(t, sort=True)
     key = time_codes.astype(np.int64) * len(tag_uniques) + tag_codes
     ukey, epoch = np.unique(key, return_inverse=True)
