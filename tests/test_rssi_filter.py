@@ -13,6 +13,7 @@ from robustloc.filters.rssi import (
     RobustRssiFilter,
     StepLayout,
     process_noise,
+    scalar_update,
     transition,
     transition_jacobian,
 )
@@ -208,3 +209,53 @@ def test_bad_settings_and_shapes():
         RobustRssiFilter().run(np.zeros((3, 2)), np.zeros((3, 1)), LinkParams.broadcast(2))
     with pytest.raises(ValueError):
         RobustRssiFilter().filter_samples([0, 0], [0.0, np.nan], [-50.0, -51.0])
+
+
+def test_static_plain_filter_matches_filterpy():
+    """v = 0 and no acceleration: the power component is a 1-D random-walk Kalman filter."""
+    from filterpy.kalman import KalmanFilter
+
+    rng = np.random.default_rng(8)
+    z = -62 + rng.normal(0, 2, 80)
+    t = np.cumsum(rng.uniform(0.3, 1.5, 80))
+    R, q = 4.0, 0.2
+    ours = RobustRssiFilter(robust=False, sigma_rssi_db=2.0, sigma_accel_mps2=0.0,
+                            init_speed_std_mps=0.0, q_rssi_db2_per_s=q)
+    res = ours.filter_samples(np.zeros(80, dtype=int), t, z,
+                              LinkParams.broadcast(1, -35.0, 2.0))
+    kf = KalmanFilter(dim_x=1, dim_z=1)
+    kf.x = np.array([[z[0]]])
+    kf.P = np.array([[R]])
+    kf.H = np.array([[1.0]])
+    kf.R = np.array([[R]])
+    ref = [z[0]]
+    for k in range(1, 80):
+        kf.Q = np.array([[q * (t[k] - t[k - 1])]])
+        kf.predict()
+        kf.update(z[k])
+        ref.append(kf.x[0, 0])
+    np.testing.assert_allclose(res.rssi_dbm, ref, atol=1e-9)
+    np.testing.assert_allclose(res.speed_mps, 0.0)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), D=st.floats(0.0, 1.0), R=st.floats(0.1, 25.0))
+def test_scalar_update_matches_core_and_stays_psd(seed, D, R):
+    from robustloc.filters import core
+
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(1, 3, 3))
+    P = A @ np.swapaxes(A, 1, 2) + 0.01 * np.eye(3)
+    x = rng.normal(size=(1, 3))
+    z = x[:, 0] + rng.normal(0, 3, 1)
+    S = P[:, 0, 0] + R
+    xs, Ps = scalar_update(x, P, z - x[:, 0], S, np.array([D]))
+    fixed = type("Fixed", (AsymmetricIGG,), {"weights": lambda self, u: np.full_like(u, D)})
+    ref = core.update_linear(x, P, z[:, None], np.array([[1.0, 0, 0]]), np.array([[R]]),
+                             robust=core.RobustUpdate(weight=fixed()))
+    np.testing.assert_allclose(xs, ref.x, atol=1e-9)
+    np.testing.assert_allclose(Ps, ref.P, atol=1e-9)
+    assert np.linalg.eigvalsh(Ps[0]).min() > -1e-9
+    # down-weighting never shrinks the variance more than the full update
+    full = P[0, 0, 0] - P[0, 0, 0] ** 2 / S[0]
+    assert full - 1e-12 <= Ps[0, 0, 0] <= P[0, 0, 0] + 1e-12
