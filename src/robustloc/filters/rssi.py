@@ -47,10 +47,18 @@ Process noise: the acceleration enters every component through
 itself (shadowing and environment changes that are not a distance change).
 
 Robust update (seed 002, eqs. (12)-(13)): the gain is re-weighted by the equivalent weight
-``D`` of the standardized innovation, ``K^ = K D``, ``X+ = X- + K^ (Z - H X-)``,
-``P+ = (I - K^ H) P-``; ``D`` is any :class:`~robustloc.robust.weights.WeightFunction`,
-by default the asymmetric weight of eq. (14), :class:`~robustloc.robust.weights.AsymmetricIGG`
-with ``K0 = 2, K1 = C = 3``.
+``D`` of the standardized innovation, ``K^ = K D``, ``X+ = X- + K^ (Z - H X-)``; ``D`` is
+any :class:`~robustloc.robust.weights.WeightFunction`, by default the asymmetric weight of
+eq. (14), :class:`~robustloc.robust.weights.AsymmetricIGG` with ``K0 = 2, K1 = C = 3``.
+The covariance is the Joseph form of the shared core, ``P- - D (2 - D) h h^T / S``
+(``h = P- H^T``): the paper's ``(I - K^ H) P-`` for ``D`` = 0 or 1, and the true
+covariance of the down-weighted estimate in between (see :func:`scalar_update`).
+
+Shared core: the prediction runs through :func:`robustloc.filters.core.predict_ekf` with the
+transition and Jacobian above; the update is either the core's
+:func:`~robustloc.filters.core.update_linear` (``engine="core"``) or its closed form for
+``H = [1 0 0]`` (``engine="scalar"``, default, several times faster); both give the same
+numbers (tested).
 
 Adaptive thresholds.  The paper sets ``K0 = 2 s`` and ``K1 = C = 3 s`` with ``s`` "the
 standard error of the residuals".  Dividing the innovation by ``s`` and using the fixed
