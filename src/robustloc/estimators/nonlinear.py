@@ -60,6 +60,7 @@ def gauss_newton(
     tol: float = 1e-6,
     min_obs: int | None = None,
     warmup: bool = True,
+    rel_tol: float = 1e-2,
 ) -> LinearFit:
     """Gauss-Newton / Levenberg-Marquardt on ``N`` epochs at once, optionally robust.
 
@@ -87,6 +88,10 @@ def gauss_newton(
     min_scale : float
         Floor on the estimated scale (in units of ``sigma``).
     max_iter, tol : iteration limit (per stage) and threshold on the step size.
+    rel_tol : float
+        An epoch has also converged when its step is below ``rel_tol`` times the
+        standard error of its fix (``sqrt(trace((J^T W J)^-1) s^2)``): iterating further
+        moves the fix by a negligible fraction of its own uncertainty.
     min_obs : int, optional
         Fewer valid observations give status ``insufficient_anchors`` (default: p).
     warmup : bool
@@ -171,7 +176,12 @@ def gauss_newton(
             iters[act] += 1
             step = np.max(np.abs(dx), axis=1)
             flat = accept & (cost_old - cost_new <= 1e-9 * np.maximum(cost_old, 1e-300))
-            done = (accept & (step < tol)) | flat | (lam[act] > 1e8) | ~np.isfinite(step)
+            # a step below 1e-3 of the fix's own standard error changes nothing that matters
+            dof = np.maximum(np.sum(wa > 0, axis=1) - p, 1)
+            with np.errstate(all="ignore"):
+                sd = np.sqrt(np.einsum("kii->k", Ninv) * np.maximum(cost_new, 0) / dof)
+            tiny = accept & (step <= rel_tol * np.nan_to_num(sd, nan=0.0))
+            done = (accept & (step < tol)) | flat | tiny | (lam[act] > 1e8) | ~np.isfinite(step)
             if last:
                 conv[act[done & np.isfinite(step)]] = True
             act = act[~done]

@@ -221,6 +221,8 @@ class Locator:
         Floor on the estimated robust scale, in units of ``sigma`` (or of the observation
         when ``sigma`` is None).
     max_iter, tol : iteration limit and step threshold (metres) of the iterative solvers.
+    rel_tol : float
+        Also converged when a step is below this fraction of the fix's standard error.
     alpha0, beta0 : significance and power of the w-test (``snooping``, B-method).
     """
 
@@ -232,6 +234,7 @@ class Locator:
     min_scale: float = 0.0
     max_iter: int = 50
     tol: float = 1e-3
+    rel_tol: float = 1e-2
     alpha0: float = 0.001
     beta0: float = 0.10
 
@@ -408,7 +411,7 @@ class Locator:
             model, obs, x0, sig, weight=weight,
             scale=None if self.sigma is None else 1.0,
             min_scale=self.min_scale, max_iter=self.max_iter, tol=self.tol,
-            min_obs=model.anchors.shape[1] + 1,
+            min_obs=model.anchors.shape[1] + 1, rel_tol=self.rel_tol,
         )
 
     def _rescue(self, model, obs, sig, wf, fit: LinearFit, a: Array) -> LinearFit:

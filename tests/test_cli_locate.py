@@ -1,0 +1,104 @@
+"""`robustloc locate` end to end: simulate -> calibrate -> locate -> evaluate, streaming,
+bad input."""
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from robustloc.cli import main
+
+
+@pytest.fixture(scope="module")
+def corridor(tmp_path_factory):
+    d = tmp_path_factory.mktemp("corridor")
+    assert main(["simulate", "ble-corridor", "--seed", "3", "--out", str(d)]) == 0
+    assert main(["calibrate", str(d / "survey.csv"), "--model", "log-distance",
+                 "--anchors", str(d / "anchors.csv"), "-o", str(d / "cal.csv")]) == 0
+    return d
+
+
+def test_locate_every_epoch_gets_a_row(corridor, capsys):
+    out = corridor / "pos.csv"
+    rc = main(["locate", str(corridor / "measurements.csv"), "--anchors", str(corridor / "cal.csv"),
+               "--method", "ls,igg", "-o", str(out), "--json"])
+    assert rc == 0
+    summary = json.loads(capsys.readouterr().out)
+    pos = pd.read_csv(out)
+    truth = pd.read_csv(corridor / "truth.csv")
+    assert summary["epochs"] == len(truth)
+    assert len(pos) == 2 * len(truth)
+    assert list(pos.columns[:9]) == ["time", "tag", "x", "y", "method", "status", "n_used",
+                                     "sigma0", "excluded"]
+    # robust beats the paper's LS on the simulated corridor
+    m = pos.merge(truth, on=["time", "tag"], suffixes=("", "_t"))
+    m["e"] = np.hypot(m.x - m.x_t, m.y - m.y_t)
+    rms = m.groupby("method")["e"].apply(lambda e: np.sqrt(np.nanmean(e**2)))
+    assert rms["igg"] < 0.6 * rms["ls"]
+
+
+def test_streaming_in_small_chunks_matches_whole(corridor, tmp_path):
+    args = ["locate", str(corridor / "measurements.csv"), "--anchors", str(corridor / "cal.csv"),
+            "--method", "nls", "--quiet"]
+    assert main(args + ["-o", str(tmp_path / "a.csv")]) == 0
+    assert main(args + ["-o", str(tmp_path / "b.parquet"), "--chunk-rows", "37"]) == 0
+    a = pd.read_csv(tmp_path / "a.csv")
+    b = pd.read_parquet(tmp_path / "b.parquet")
+    assert len(a) == len(b)
+    np.testing.assert_allclose(a[["x", "y"]].to_numpy(), b[["x", "y"]].to_numpy(), atol=1e-9)
+
+
+def test_range_calibration_applied(tmp_path):
+    anchors = pd.DataFrame({"anchor": ["a", "b", "c", "d"], "x": [0, 10, 0, 10],
+                            "y": [0, 0, 10, 10], "bias": [1.0, -0.5, 0.0, 2.0]})
+    x = np.array([3.0, 4.0])
+    d = np.hypot(anchors.x - x[0], anchors.y - x[1]) + anchors.bias
+    meas = pd.DataFrame({"time": 0.0, "tag": "t", "anchor": anchors.anchor, "range": d})
+    anchors.to_csv(tmp_path / "an.csv", index=False)
+    meas.to_csv(tmp_path / "m.csv", index=False)
+    assert main(["locate", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "an.csv"),
+                 "--method", "nls", "-o", str(tmp_path / "p.csv")]) == 0
+    p = pd.read_csv(tmp_path / "p.csv")
+    np.testing.assert_allclose(p[["x", "y"]].to_numpy()[0], x, atol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "meas, message",
+    [
+        ("time,tag,anchor,range\n0,t,a,1\n0,t,zz,2\n", "unknown anchor"),
+        ("time,tag,anchor,range\n0,t,a,nan\n", ":2:"),
+        ("time,tag,anchor\n0,t,a\n", "rssi"),
+        ("time,tag,anchor,range\n0,t,a,abc\n", ":2:"),
+        ("time,tag,anchor,range\n1,t,a,1\n0,t,b,1\n", "sorted"),
+    ],
+)
+def test_locate_bad_input_exit_2(tmp_path, capsys, meas, message):
+    (tmp_path / "an.csv").write_text("anchor,x,y\na,0,0\nb,1,0\nc,0,1\n")
+    (tmp_path / "m.csv").write_text(meas)
+    rc = main(["locate", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "an.csv"),
+               "--method", "ls", "-o", str(tmp_path / "p.csv")])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert err.startswith("error: ") and message in err
+    assert "Traceback" not in err
+
+
+def test_locate_cli_settings_errors(tmp_path, capsys, corridor):
+    base = ["locate", str(corridor / "measurements.csv"), "--anchors",
+            str(corridor / "cal.csv"), "-o", str(tmp_path / "p.csv")]
+    assert main(base + ["--method", "snooping"]) == 2
+    assert "--sigma" in capsys.readouterr().err
+    assert main(base + ["--method", "nope"]) == 2
+    assert main(base + ["--method", "huber", "--param", "c"]) == 2
+    assert main(base[:-2] + ["-o", str(tmp_path / "p.csv"), "--anchors",
+                             str(tmp_path / "missing.csv")]) == 2
+    # RSSI with anchors lacking path-loss parameters
+    assert main(["locate", str(corridor / "measurements.csv"), "--anchors",
+                 str(corridor / "anchors.csv"), "--method", "ls",
+                 "-o", str(tmp_path / "q.csv")]) == 0  # simulated anchors carry true A, n
+    raw = pd.read_csv(corridor / "anchors.csv")[["anchor", "x", "y"]]
+    raw.to_csv(tmp_path / "bare.csv", index=False)
+    assert main(["locate", str(corridor / "measurements.csv"), "--anchors",
+                 str(tmp_path / "bare.csv"), "--method", "ls", "-o", str(tmp_path / "r.csv")]) == 2
+    assert "calibrate" in capsys.readouterr().err
