@@ -69,6 +69,13 @@ def test_calibrate_unknown_anchor_in_measurements(tmp_path, capsys):
     _fails(capsys, argv, m, 3, "unknown anchor id '9'")
 
 
+def test_calibrate_unknown_anchor_in_survey(tmp_path, capsys):
+    s = _w(tmp_path, "s.csv", SURVEY + "7,2,-70\n")
+    a = _w(tmp_path, "a.csv", ANCHORS)
+    _fails(capsys, ["calibrate", s, "--anchors", a, "-o", str(tmp_path / "o.csv")], s, 32,
+           "unknown anchor id '7'")
+
+
 def test_missing_file(tmp_path, capsys):
     p = str(tmp_path / "nope.csv")
     _fails(capsys, ["calibrate", p, "-o", str(tmp_path / "o.csv")], p, None, "file not found")

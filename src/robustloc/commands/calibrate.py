@@ -79,7 +79,7 @@ def _load_survey(args: argparse.Namespace, anchors: pd.DataFrame | None) -> pd.D
         return survey
     if not args.survey:
         raise ValueError("give a SURVEY file, or --measurements, --truth and --anchors")
-    return read_survey(args.survey)
+    return read_survey(args.survey, anchors)
 
 
 def _fmt(table: pd.DataFrame, unit: str) -> str:

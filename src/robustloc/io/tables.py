@@ -355,20 +355,40 @@ def read_anchors(path: PathLike) -> pd.DataFrame:
     return validate_anchors(_read_raw(path, ("anchor",)), path)
 
 
-def read_survey(path: PathLike) -> pd.DataFrame:
+def read_survey(
+    path: PathLike, anchors: pd.DataFrame | Sequence[str] | None = None
+) -> pd.DataFrame:
     """Read a calibration survey: ``anchor, distance`` and one of ``rssi`` or ``range``.
 
     ``distance`` (m) is the true anchor-receiver distance; ``rssi`` (dBm) or ``range`` (m)
     is what was measured there.  For an RSSI survey ``distance`` must be positive (the
     path-loss models take its logarithm); for a range survey it must be non-negative.
     Returns a frame with ``anchor`` (str), ``distance`` and the value column (float),
-    index = source line; ``frame.attrs["value"]`` is ``"rssi"`` or ``"range"``.
+    index = source line; ``frame.attrs["value"]`` is ``"rssi"`` or ``"range"``.  With
+    ``anchors`` given, an anchor id not among them is an error naming its line.
     """
     df = _read_raw(path, ("anchor",))
-    return validate_survey(df, path)
+    return validate_survey(df, path, anchors)
 
 
-def validate_survey(df: pd.DataFrame, path: PathLike | None = None) -> pd.DataFrame:
+def _check_known(
+    df: pd.DataFrame, anchors: pd.DataFrame | Sequence[str], path: PathLike | None
+) -> None:
+    ok = df["anchor"].isin(_anchor_ids(anchors)).to_numpy()
+    if not ok.all():
+        i = int(np.argmax(~ok))
+        raise InputError(
+            f"unknown anchor id {df['anchor'].iloc[i]!r} (not in the anchors file)",
+            _path_of(df, path),
+            _line_of(df, i),
+        )
+
+
+def validate_survey(
+    df: pd.DataFrame,
+    path: PathLike | None = None,
+    anchors: pd.DataFrame | Sequence[str] | None = None,
+) -> pd.DataFrame:
     """Validate a survey frame (see :func:`read_survey`)."""
     df = df.copy()
     value = _value_column(df, "survey", path)
@@ -385,6 +405,8 @@ def validate_survey(df: pd.DataFrame, path: PathLike | None = None) -> pd.DataFr
         raise InputError(
             f"column 'distance': {d[i]} must be {need}", _path_of(df, path), _line_of(df, i)
         )
+    if anchors is not None:
+        _check_known(df, anchors, path)
     df.attrs["value"] = value
     return df
 
@@ -472,15 +494,7 @@ def validate_measurements(
     _numeric(df, "time", path)
     _numeric(df, value, path)
     if anchors is not None:
-        known = _anchor_ids(anchors)
-        ok = df["anchor"].isin(known).to_numpy()
-        if not ok.all():
-            i = int(np.argmax(~ok))
-            raise InputError(
-                f"unknown anchor id {df['anchor'].iloc[i]!r} (not in the anchors file)",
-                _path_of(df, path),
-                _line_of(df, i),
-            )
+        _check_known(df, anchors, path)
     df.attrs["value"] = value
     return df
 
@@ -652,8 +666,8 @@ def to_epochs(
     Returns
     -------
     Epochs
-        One row per distinct ``(time, tag)``, sorted by time then tag; NaN where an anchor
-        was not heard; duplicates averaged.
+        One row per distinct ``(time, tag)`` (times compared exactly), sorted by time then
+        tag; NaN where an anchor was not heard; duplicates averaged.
     """
     if value is None:
         value = frame.attrs.get("value") or _value_column(frame, "measurements", None)
