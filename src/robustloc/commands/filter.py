@@ -15,8 +15,10 @@ K1 = C = 3 standard errors of the innovations.  All links run in one vectorized 
 
 The output is a measurements file with the same rows in the same order: 'rssi' holds the
 filtered value (so 'robustloc locate' runs on it unchanged), plus 'rssi_raw', 'distance'
-(the filter's distance state, m), 'speed' (m/s), 'weight' (D), 'innovation' (dB) and
-'relocked'.  Path-loss parameters come from the anchors file (p0, gamma, faf, d0 or A, n).
+(m, the filtered RSSI through the anchor's path-loss model), 'distance_state' (the filter's
+own d, weakly observable from RSSI alone), 'speed' (m/s), 'weight' (D), 'innovation' (dB)
+and 'relocked'.  Use --static when the receivers do not move.  Path-loss parameters come
+from the anchors file (p0, gamma, faf, d0 or A, n).
 
 Example:
   robustloc simulate wifi-room --seed 1 --out sim

@@ -562,8 +562,8 @@ def _wifi(ctx: Context, sec: Section) -> tuple[dict, dict]:
         "point's scans.  Gain of the robust filter over raw scans (m): "
         + ", ".join(f"{k} {v:+.2f}" for k, v in gain.items())
         + ".  The remaining error is the path-loss model's misfit (walls, NLOS: several dB "
-        "per AP that no filter over time can remove); the per-point mean is the ceiling "
-        "of any filter on static data."
+        "per AP that no filter over time can remove); the per-point mean is about what "
+        "a filter can reach on static data here."
     )
     summ = {f"wifi_{r}_{k}": float(piv.loc[r, m]) for r in piv.index
             for k, m in (("raw_m", "raw (every scan)"), ("robust_m", "robust KF (eq. 14)"))}
