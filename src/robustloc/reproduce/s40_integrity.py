@@ -6,15 +6,29 @@
    robust IRLS, on a simulated GPS + Galileo + BeiDou snapshot (the paper's evaluation) and
    on the ``ble-corridor`` layout (seed 000) with ranges and with RSSI.
 3. Detection probability against fault size, measured and theoretical.
-4. Reliability maps of the ``ble-corridor`` layout and the reliability at its test points.
+4. Real data: data snooping as an NLOS detector on WiFi RTT ranges with line-of-sight
+   labels (``wifi-rtt-rss``; shipped excerpt, or the full set under ``ctx.data_dir``).
+5. Reliability maps of the ``ble-corridor`` layout and the reliability at its test points.
 """
 
 from __future__ import annotations
+
+import warnings
 
 import numpy as np
 import pandas as pd
 
 from robustloc.reproduce import Context, Section
+
+
+def json_ready(frame: pd.DataFrame) -> list[dict]:
+    """Rows of a frame as plain JSON-serializable dicts (NaN -> None)."""
+    out = []
+    for rec in frame.to_dict(orient="records"):
+        out.append({k: (None if isinstance(v, float) and not np.isfinite(v) else
+                        (v.item() if hasattr(v, "item") else v)) for k, v in rec.items()})
+    return out
+
 
 TITLE = "Gross-error detection and reliability (seed 003)"
 ORDER = 40
@@ -96,6 +110,85 @@ def _detection_curve(ctx: Context, layout, trials: int) -> tuple[str, pd.DataFra
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path.name, df
+
+
+def _room_matrices(w, ids: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # noqa: ANN001
+    """(N, m) ranges, LOS flags and (N, 2) truth of one wifi-rtt-rss room."""
+    t = w.truth["time"]
+    R = w.ranges.pivot_table(index="time", columns="anchor", values="range")
+    L = w.ranges.pivot_table(index="time", columns="anchor", values="los", aggfunc="first")
+    R = R.reindex(index=t, columns=ids).to_numpy(float)
+    L = L.reindex(index=t, columns=ids).fillna(False).to_numpy(bool)
+    return R, L, w.truth[["x", "y"]].to_numpy(float)
+
+
+def _wifi_rtt_block(ctx: Context) -> tuple[pd.DataFrame, str]:
+    """Data snooping as an NLOS detector on the real WiFi RTT data (wifi-rtt-rss).
+
+    Per room: per-AP bias and sigma calibrated on the *train* scans' line-of-sight ranges
+    (median and MAD of range minus true distance; all ranges when a room has no LOS), then
+    snooping and plain Gauss-Newton on the bias-corrected *test* scans.
+    """
+    from robustloc.datasets.wifi_rtt import ROOMS, load_room
+    from robustloc.estimators.ranging import Locator
+    from robustloc.integrity import global_alpha, reliability
+    from robustloc.models.ranging import RangeModel
+
+    rows = []
+    kind = "?"
+    for room in ROOMS:
+        tr = load_room(room, "train", ctx.data_dir)
+        te = load_room(room, "test", ctx.data_dir)
+        kind = te.source.kind
+        ids = [str(a) for a in tr.anchors["anchor"]]
+        A = tr.anchors[["x", "y"]].to_numpy(float)
+        R, L, X = _room_matrices(tr, ids)
+        e = R - np.linalg.norm(X[:, None] - A[None], axis=2)
+        e_los = np.where(L & np.isfinite(e), e, np.nan)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # an AP never in LOS
+            bias = np.nanmedian(e_los, axis=0)
+        bias = np.where(np.isfinite(bias), bias, np.nanmedian(e, axis=0))
+        has_los = np.isfinite(e_los).any()
+        resid = (e_los if has_los else e) - bias
+        sigma = float(1.4826 * np.nanmedian(np.abs(resid)))
+        Rt, Lt, Xt = _room_matrices(te, ids)
+        Rc = Rt - bias
+        heard = np.isfinite(Rt)
+        nlos = heard & ~Lt
+        all_los = ~np.any(nlos, axis=1)
+        nls = Locator(method="nls", domain="range").solve(A, Rc, "range")
+        sn = Locator(method="snooping", domain="range", sigma=sigma).solve(A, Rc, "range")
+        det = np.asarray(sn.extra.get("detected", np.zeros(len(Xt), bool)), bool)
+        ex = sn.excluded
+        e_n = np.linalg.norm(nls.position - Xt, axis=1)
+        e_s = np.linalg.norm(sn.position - Xt, axis=1)
+        ok_s = sn.ok
+        # size of the NLOS offsets beside the MDB of those ranges (geometry at the truth)
+        off = (Rc - np.linalg.norm(Xt[:, None] - A[None], axis=2))[nlos]
+        mdb = reliability(RangeModel(A).jacobian(Xt), sigma, mask=heard).mdb[nlos]
+        rows.append({
+            "room": room,
+            "test scans": len(Xt),
+            "APs": len(ids),
+            "LOS share": float(Lt[heard].mean()),
+            "sigma (m)": sigma,
+            "alpha (B-method)": float(global_alpha(len(ids) - 2)),
+            "flagged, all-LOS scans": float(det[all_los].mean()) if all_los.any() else np.nan,
+            "flagged, scans with NLOS": float(det[~all_los].mean()) if (~all_los).any()
+            else np.nan,
+            "excluded obs": int(ex.sum()),
+            "NLOS among excluded": float((ex & nlos).sum() / ex.sum()) if ex.any() else np.nan,
+            "NLOS obs excluded": float((ex & nlos).sum() / nlos.sum()) if nlos.any() else np.nan,
+            "median |NLOS offset| (m)": float(np.median(np.abs(off))) if off.size else np.nan,
+            "NLOS offsets > MDB": float(np.mean(np.abs(off) > mdb)) if off.size else np.nan,
+            "unavailable": float(np.mean(sn.status == "unavailable")),
+            "median err NLS (m)": float(np.nanmedian(e_n)),
+            "median err snooping (m)": float(np.nanmedian(e_s[ok_s])),
+            "p95 err NLS (m)": float(np.nanpercentile(e_n, 95)),
+            "p95 err snooping (m)": float(np.nanpercentile(e_s[ok_s], 95)),
+        })
+    return pd.DataFrame(rows), kind
 
 
 def run(ctx: Context) -> Section:
@@ -184,6 +277,33 @@ def run(ctx: Context) -> Section:
     sec.figure("Detection of one fault by data snooping against its size: measured (markers) "
                "and theory (lines); GNSS snapshot", name)
     sec.table("Detection probability against fault size (GNSS snapshot)", dc)
+
+    # --- real data: WiFi RTT with line-of-sight labels
+    wt, kind = _wifi_rtt_block(ctx)
+    sec.table(f"Real data: data snooping on WiFi RTT ranges (wifi-rtt-rss, {kind} data, test "
+              "scans; bias and sigma calibrated on the train scans' LOS ranges)", wt)
+    r_off = wt.set_index("room")
+    lt = r_off.loc["lecture_theatre"] if "lecture_theatre" in r_off.index else None
+    of = r_off.loc["office"] if "office" in r_off.index else None
+    if lt is not None and of is not None:
+        sec.text(
+            "Real WiFi RTT (Feng, Nguyen & Luo data set; every scan labelled with its "
+            "line-of-sight APs) is the judge of whether the Gaussian theory holds. In the "
+            f"all-LOS lecture theatre the global test fires on {lt['flagged, all-LOS scans']:.1%}"
+            f" of scans against alpha = {lt['alpha (B-method)']:.2%}: real RTT errors have "
+            "heavier tails than a Gaussian of the MAD sigma, so the nominal false-alarm rate "
+            "is optimistic there. In the mixed office "
+            f"{of['NLOS among excluded']:.0%} of the excluded ranges are NLOS-labelled (NLOS "
+            f"share of all ranges {1 - of['LOS share']:.0%}) and the median error drops from "
+            f"{of['median err NLS (m)']:.2f} m to {of['median err snooping (m)']:.2f} m; only "
+            f"{of['NLOS obs excluded']:.0%} of NLOS ranges are excluded, and only "
+            f"{of['NLOS offsets > MDB']:.0%} of them exceed their MDB (median |offset| "
+            f"{of['median |NLOS offset| (m)']:.2f} m after the per-AP bias correction): most "
+            "NLOS offsets in this room are below what 5 APs can detect. In the all-NLOS "
+            "corridor the per-AP calibration absorbs the common part of the NLOS offsets, the "
+            "remaining errors are broad and snooping flags few scans."
+        )
+    sec.summary["wifi_rtt"] = json_ready(wt)
 
     # --- reliability map of the ble-corridor layout
     step = 1.0 if ctx.quick else 0.1
