@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from robustloc.errors import InputError
 from robustloc.estimators.solution import Solution
 from robustloc.io import (
+    PositionsWriter,
     iter_epochs,
     iter_measurements,
     positions_frame,
@@ -285,3 +286,24 @@ def test_ragged_rows_are_errors_not_shifted_columns(tmp_path, text, line, words)
     with pytest.raises(InputError, match="expected 4 fields, found 5") as ei:
         list(iter_measurements(m, chunk_rows=1))
     assert ei.value.line == 2
+
+
+@pytest.mark.parametrize("ext", ["csv", "parquet"])
+def test_positions_writer_chunks_equal_one_write(tmp_path, ext):
+    f = pd.DataFrame({
+        "time": np.arange(7.0), "tag": "T", "x": np.r_[1.0, np.nan, 3, 4, 5, 6, 7], "y": 0.5,
+        "method": "igg", "status": "ok", "n_used": 4, "sigma0": 0.1, "excluded": "",
+        "iterations": 3,
+    })
+    with PositionsWriter(tmp_path / f"p.{ext}") as w:
+        for part in (f.iloc[:3], f.iloc[3:4], f.iloc[4:]):
+            w.write(part)
+    assert w.n_rows == 7
+    write_positions(f, tmp_path / f"q.{ext}")
+    a = read_positions(tmp_path / f"p.{ext}")
+    b = read_positions(tmp_path / f"q.{ext}")
+    pd.testing.assert_frame_equal(a.reset_index(drop=True), b.reset_index(drop=True))
+    with pytest.raises(ValueError, match="first chunk"):
+        with PositionsWriter(tmp_path / f"r.{ext}") as w:
+            w.write(f)
+            w.write(f.drop(columns="iterations"))

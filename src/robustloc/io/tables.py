@@ -808,6 +808,69 @@ def write_positions(frame: pd.DataFrame, path: PathLike) -> Path:
     return write_table(frame[cols + extra], path)
 
 
+class PositionsWriter:
+    """Write a positions file chunk by chunk (bounded memory for streamed logs).
+
+    CSV chunks are appended under one header; Parquet chunks become row groups of one
+    file.  Each chunk is ordered as :func:`write_positions` orders it; every chunk must
+    have the same columns as the first.  Use as a context manager::
+
+        with PositionsWriter("positions.csv") as out:
+            for epochs in iter_epochs(path, anchors):
+                out.write(positions_frame(solver.solve(...), epochs.time, epochs.tag, ids))
+    """
+
+    def __init__(self, path: PathLike) -> None:
+        self.path = Path(path)
+        self.n_rows = 0
+        self._columns: list[str] | None = None
+        self._pq_writer = None
+
+    def __enter__(self) -> PositionsWriter:
+        if self.path.parent and not self.path.parent.exists():
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        return self
+
+    def write(self, frame: pd.DataFrame) -> None:
+        """Append one chunk of positions."""
+        cols = list(POSITION_COLUMNS)
+        if "z" in frame.columns:
+            cols.insert(4, "z")
+        missing = [c for c in cols if c not in frame.columns]
+        if missing:
+            raise ValueError(f"positions frame is missing column(s): {', '.join(missing)}")
+        ordered = cols + [c for c in frame.columns if c not in cols]
+        if self._columns is None:
+            self._columns = ordered
+        elif ordered != self._columns:
+            raise ValueError(
+                f"positions chunk has columns {ordered}, the first chunk had {self._columns}"
+            )
+        out = frame[self._columns].reset_index(drop=True)
+        out.attrs = {}
+        if is_parquet(self.path):
+            import pyarrow as pa
+            import pyarrow.parquet as pq
+
+            table = pa.Table.from_pandas(out, preserve_index=False)
+            if self._pq_writer is None:
+                self._pq_writer = pq.ParquetWriter(self.path, table.schema)
+            self._pq_writer.write_table(table.cast(self._pq_writer.schema))
+        else:
+            out.to_csv(self.path, mode="w" if self.n_rows == 0 else "a",
+                       header=self.n_rows == 0, index=False)
+        self.n_rows += len(out)
+
+    def close(self) -> None:
+        """Finish the file (Parquet footer)."""
+        if self._pq_writer is not None:
+            self._pq_writer.close()
+            self._pq_writer = None
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
 def read_table(path: PathLike) -> pd.DataFrame:
     """Read any CSV/Parquet table without contract validation (index = source line)."""
     return _read_raw(path)
