@@ -26,7 +26,7 @@ Usage::
 
     python benchmarks/bench_locate.py            # 100 000 epochs (a few minutes)
     python benchmarks/bench_locate.py --quick    # 5 000 epochs, 200 peer epochs
-    python benchmarks/bench_locate.py --epochs 20000 --methods ls,igg --json
+    python benchmarks/bench_locate.py --epochs 20000 --methods ls,igg --json -o bench.csv
 """
 
 from __future__ import annotations
@@ -325,6 +325,7 @@ def main(argv: list[str] | None = None) -> int:
         help="robust methods and lege: nonlinear (default) or the paper's linearized system",
     )
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
+    ap.add_argument("-o", "--out", help="also write the rows to this CSV file")
     args = ap.parse_args(argv)
     if args.quick:
         args.epochs, args.peer_epochs = 5_000, 200
@@ -343,6 +344,10 @@ def main(argv: list[str] | None = None) -> int:
         mad_scale=args.mad_scale,
         solver=args.solver,
     )
+    if args.out:
+        import pandas as pd
+
+        pd.DataFrame([asdict(r) for r in rows]).to_csv(args.out, index=False)
     if args.json:
         print(json.dumps([asdict(r) for r in rows], indent=2))
     else:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gzip
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -345,3 +346,65 @@ def test_frames_pass_io_contract_validators(no_shared: None) -> None:
     ep = io.to_epochs(r.ranges, a["anchor"])
     np.testing.assert_array_equal(ep.time, r.truth["time"])  # every scan heard >= 1 AP
     assert np.nanmax(ep.values) < 30.0
+
+
+# ----------------------------------------------------------------------------- benchmark
+
+
+def _bench_module():
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_locate.py"
+    spec = importlib.util.spec_from_file_location("bench_locate", path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules.setdefault("bench_locate", mod)  # dataclasses resolve their module
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_bench_locate_workload_and_peers_exact_without_noise() -> None:
+    """The benchmark's eq. (3) system and its per-epoch peers are exact on noise-free data,
+    and its workload has the documented outlier rate."""
+    b = _bench_module()
+    wl = b.make_workload(4000, seed=1)
+    assert wl.ranges.shape == (4000, 10)
+    assert abs(wl.outlier.mean() - 0.2) < 0.01
+    assert (
+        wl.ranges[wl.outlier]
+        - np.linalg.norm(wl.truth[:, None] - wl.anchors[None], axis=2)[wl.outlier]
+        > 2.0
+    ).all()
+    clean = b.Workload(
+        wl.anchors,
+        wl.truth[:5],
+        np.linalg.norm(wl.truth[:5, None] - wl.anchors[None], axis=2),
+        np.zeros((5, 10), bool),
+    )
+    G, h = b.linearized_system(clean.anchors, clean.ranges)
+    x = np.linalg.lstsq(G[0], h[0], rcond=None)[0]
+    np.testing.assert_allclose(x, clean.truth[0], atol=1e-9)
+    for peer in b.PEERS.values():
+        np.testing.assert_allclose(peer(clean).position, clean.truth, atol=1e-4)
+
+
+def test_bench_locate_runs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    b = _bench_module()
+    out = tmp_path / "bench.csv"
+    rc = b.main(
+        ["--epochs", "300", "--peer-epochs", "10", "--methods", "ls,igg", "--no-memory",
+         "--json", "-o", str(out)]
+    )  # fmt: skip
+    assert rc == 0
+    rows = pd.read_csv(out)
+    assert list(rows["method"]) == [
+        "statsmodels-RLM(HuberT)",
+        "scipy-least_squares(huber)",
+        "ls",
+        "igg",
+    ]
+    assert rows.loc[0, "ratio_vs_statsmodels"] == 1.0
+    assert (rows["fixes_per_s"] > 0).all()
+    igg = rows.set_index("method").loc["igg"]
+    assert igg["p95_m"] < 2.0  # robust fix survives 20 % outliers; LS does not
+    assert rows.set_index("method").loc["ls", "p95_m"] > 5.0
+    assert '"method": "igg"' in capsys.readouterr().out
