@@ -217,11 +217,13 @@ def run(ctx: Context) -> Section:
     trials = 300 if ctx.quick else 10_000
     trials_gnss = 300 if ctx.quick else 5_000
     runs = [(0, 0.0, "mdb"), (1, 1.0, "mdb"), (1, 3.0, "mdb"), (2, 3.0, "mdb")]
+    if ctx.quick:  # smoke run: fewer rows and methods
+        runs = runs[:2]
 
     # --- GNSS snapshot (the paper's setting)
     g = gnss_layout()
     ctx.log(f"  Monte Carlo on {g.name}: {g.n} satellites, {trials_gnss} trials per row")
-    methods_g = ("ls", "snooping", "lege", "huber", "igg3")
+    methods_g = ("ls", "snooping", "lege", "huber") + (() if ctx.quick else ("igg3",))
     tg = _mc_block(g, trials_gnss, methods_g, ctx.seed, runs, lege_max_order=2)
     sec.text(
         f"Simulated GPS + Galileo + BeiDou snapshot (robustloc.sim.gnss, Walker orbits, code "
@@ -251,7 +253,8 @@ def run(ctx: Context) -> Section:
     # --- ble-corridor layout, ranges and RSSI, at test point S2
     s2 = bc.TEST_POINTS["S2"]
     lay_r = ranging_layout(bc.ANCHOR_XY, s2, 1.0, list(bc.ANCHOR_IDS), name="ble-corridor ranges")
-    methods_r = ("ls", "snooping", "lege", "huber", "hampel", "igg", "igg3")
+    methods_r = ("ls", "snooping", "lege", "huber", "igg3") + (
+        () if ctx.quick else ("hampel", "igg"))
     ctx.log(f"  Monte Carlo on the ble-corridor layout, {trials} trials per row")
     tr_ = _mc_block(lay_r, trials, methods_r, ctx.seed + 10, runs)
     sec.text(
@@ -262,7 +265,7 @@ def run(ctx: Context) -> Section:
     sec.table(f"Monte Carlo, ble-corridor ranges at S2 ({trials} trials per row)", tr_)
     lay_s = rssi_layout(bc.ANCHOR_XY, s2, 2.5, bc.N_EXPONENT, list(bc.ANCHOR_IDS),
                         name="ble-corridor RSSI")
-    runs_db = [(0, 0.0, "m"), (1, 12.0, "m"), (2, 12.0, "m")]
+    runs_db = [(0, 0.0, "m"), (1, 12.0, "m"), (2, 12.0, "m")][: 2 if ctx.quick else 3]
     ts = _mc_block(lay_s, trials, methods_r, ctx.seed + 20, runs_db)
     sec.text(
         "The same layout observed by RSSI (log-distance model, n = 2.2, sigma 2.5 dB): the "
