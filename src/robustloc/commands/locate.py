@@ -32,7 +32,8 @@ Methods (comma-separated list allowed; the `method` column tells them apart):
 RSSI input uses the anchors' path-loss parameters (A, n or p0, gamma, faf, d0; see
 `robustloc calibrate`); the nonlinear solvers fit in dB by default (--domain range to fit
 ranges converted by the model). Range input is corrected with the anchors' `bias`/`scale`
-columns when present: range_corrected = (range - bias) / scale.
+columns when present: range_corrected = (range - bias) / scale. An anchors' `sigma` column
+(per-anchor observation std, m or dB) weights the anchors unless --sigma is given.
 
 In 2-D, anchors' z is ignored unless --tag-height H is given, in which case slant ranges
 are reduced with the known height difference z_anchor - H.
@@ -57,7 +58,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--domain", choices=("rssi", "range"), default="rssi",
                    help="RSSI input, nonlinear solvers: fit in dB (default) or in range")
     p.add_argument("--sigma", type=float, default=None,
-                   help="a-priori std of one observation (m or dB); default: robust estimate")
+                   help="a-priori std of one observation (m or dB); default: the anchors' "
+                        "`sigma` column (per-anchor, e.g. from calibrate) if present, else "
+                        "equal weights")
+    p.add_argument("--robust-scale", choices=("mad", "apriori"), default="mad",
+                   help="robust methods: estimate the noise scale per epoch (mad, default) "
+                        "or trust --sigma")
     p.add_argument("--min-scale", type=float, default=0.0,
                    help="floor of the estimated robust scale (units of --sigma)")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
@@ -149,9 +155,16 @@ def locate_file(args: argparse.Namespace) -> dict:
         height = anchors["z"].to_numpy(dtype=float) - args.tag_height
     methods = [m.strip() for m in args.method.split(",") if m.strip()]
     params = _params(args.param)
+    sigma: float | tuple[float, ...] | None = args.sigma
+    if sigma is None and "sigma" in anchors.columns:
+        sg = anchors["sigma"].to_numpy(dtype=float)
+        if not np.all(np.isfinite(sg) & (sg > 0)):
+            raise InputError("anchors' sigma column must be positive and finite", args.anchors)
+        sigma = tuple(sg)
     locators = [
         Locator(
-            m, solver=args.solver, domain=args.domain, sigma=args.sigma,
+            m, solver=args.solver, domain=args.domain, sigma=sigma,
+            robust_scale=args.robust_scale,
             weight_params=params if m in ("huber", "hampel", "igg", "igg3") else {},
             min_scale=args.min_scale, alpha0=args.alpha0, beta0=args.beta0,
         )

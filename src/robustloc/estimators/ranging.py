@@ -211,10 +211,13 @@ class Locator:
     domain : {"rssi", "range"}
         For RSSI input and the nonlinear solvers: fit in dB (default; RSSI noise is closer
         to Gaussian there) or on ranges converted by the path-loss model.
-    sigma : float, optional
-        A-priori standard deviation of one observation (metres for ranges, dB for RSSI).
-        None: unknown, the robust scale is estimated per epoch (MAD).  Required by
-        ``snooping``.
+    sigma : float or sequence of float (one per anchor), optional
+        A-priori standard deviation of one observation (metres for ranges, dB for RSSI),
+        e.g. the per-anchor residual std of a calibration.  It sets the relative weights
+        of the anchors; None: equal weights.  Required by ``snooping``.
+    robust_scale : {"mad", "apriori"}
+        Robust methods: estimate the noise scale of each epoch from its residuals (MAD of
+        the standardized residuals, default) or trust ``sigma`` as the true noise level.
     weight_params : dict[str, float]
         Overrides of the weight function's thresholds (e.g. ``{"c": 1.5}`` for Huber).
     min_scale : float
@@ -229,7 +232,8 @@ class Locator:
     method: str = "igg"
     solver: str = "nonlinear"
     domain: str = "rssi"
-    sigma: float | None = None
+    sigma: float | tuple[float, ...] | None = None
+    robust_scale: str = "mad"
     weight_params: dict[str, float] = field(default_factory=dict)
     min_scale: float = 0.0
     max_iter: int = 50
@@ -245,8 +249,15 @@ class Locator:
             raise ValueError(f"solver must be 'nonlinear' or 'linearized', got {self.solver!r}")
         if self.domain not in ("rssi", "range"):
             raise ValueError(f"domain must be 'rssi' or 'range', got {self.domain!r}")
-        if self.sigma is not None and not self.sigma > 0:
-            raise ValueError(f"sigma must be positive, got {self.sigma}")
+        if self.sigma is not None:
+            sg = np.atleast_1d(np.asarray(self.sigma, dtype=float))
+            if sg.ndim != 1 or not np.all(np.isfinite(sg) & (sg > 0)):
+                raise ValueError(f"sigma must be positive and finite, got {self.sigma}")
+            object.__setattr__(self, "sigma", float(sg[0]) if sg.size == 1 else tuple(sg))
+        if self.robust_scale not in ("mad", "apriori"):
+            raise ValueError(f"robust_scale must be 'mad' or 'apriori', got {self.robust_scale!r}")
+        if self.robust_scale == "apriori" and self.sigma is None:
+            raise ValueError("robust_scale='apriori' needs sigma")
         if self.method == "snooping" and self.sigma is None:
             raise ValueError("method 'snooping' needs the a-priori standard deviation --sigma")
         if self.method in ROBUST:
@@ -396,20 +407,26 @@ class Locator:
 
     def _nonlinear_problem(self, a, z, ranges, rmodel, height_offset, x0):
         if rmodel is not None and self.domain == "rssi":
-            sig = 1.0 if self.sigma is None else self.sigma
-            return rmodel, z, np.full(z.shape, sig)
+            return rmodel, z, self._sigma_array(z.shape)
         model = RangeModel(a, height_offset)
         if rmodel is not None:  # RSSI converted to range: s_d = d ln10 s_dB / (10 n)
-            s_db = 1.0 if self.sigma is None else self.sigma
+            s_db = self._sigma_array(z.shape)
             sig = np.maximum(ranges, 0.1) * LN10 * s_db / (10.0 * rmodel.n[None, :])
             return model, ranges, sig
-        sig = 1.0 if self.sigma is None else self.sigma
-        return model, ranges, np.full(ranges.shape, sig)
+        return model, ranges, self._sigma_array(ranges.shape)
+
+    def _sigma_array(self, shape: tuple[int, int]) -> Array:
+        if self.sigma is None:
+            return np.ones(shape)
+        sg = np.atleast_1d(np.asarray(self.sigma, dtype=float))
+        if sg.size not in (1, shape[1]):
+            raise ValueError(f"sigma has {sg.size} values for {shape[1]} anchors")
+        return np.broadcast_to(sg, shape).astype(float)
 
     def _gn(self, model, obs, x0, sig, weight) -> LinearFit:
         return gauss_newton(
             model, obs, x0, sig, weight=weight,
-            scale=None if self.sigma is None else 1.0,
+            scale=1.0 if self.robust_scale == "apriori" else None,
             min_scale=self.min_scale, max_iter=self.max_iter, tol=self.tol,
             min_obs=model.anchors.shape[1] + 1, rel_tol=self.rel_tol,
         )
