@@ -193,7 +193,14 @@ def test_ble_bad_inputs(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="unknown track"):
         ble.load_track("nope", d)
     with pytest.raises(InputError, match="not found"):
-        ble.load_anchors(tmp_path / "empty")
+        ble.load_anchors(tmp_path / "missing")
+    (tmp_path / "other").mkdir()  # a data root without ble-tetam: the excerpt, said so
+    src = ble.resolve(tmp_path / "other")
+    assert src.kind == "excerpt" and "ble-tetam not in" in src.note
+    assert ble.load_anchors(tmp_path / "other").attrs["source"] == "excerpt"
+    (tmp_path / "broken" / "ble-tetam").mkdir(parents=True)  # present but incomplete
+    with pytest.raises(InputError, match="not found"):
+        ble.load_anchors(tmp_path / "broken")
     with pytest.raises(ValueError, match="window_s"):
         ble.load_track("bad", d, window_s=0.0)
     (d / "cnf/tetam.dev").write_text("Dongles:{not a dict\n")
@@ -391,7 +398,7 @@ def test_bench_locate_runs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
     b = _bench_module()
     out = tmp_path / "bench.csv"
     rc = b.main(
-        ["--epochs", "300", "--peer-epochs", "10", "--methods", "ls,igg", "--no-memory",
+        ["--epochs", "1000", "--peer-epochs", "10", "--methods", "ls,igg", "--no-memory",
          "--json", "-o", str(out)]
     )  # fmt: skip
     assert rc == 0
@@ -404,7 +411,9 @@ def test_bench_locate_runs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
     ]
     assert rows.loc[0, "ratio_vs_statsmodels"] == 1.0
     assert (rows["fixes_per_s"] > 0).all()
-    igg = rows.set_index("method").loc["igg"]
-    assert igg["p95_m"] < 2.0  # robust fix survives 20 % outliers; LS does not
-    assert rows.set_index("method").loc["ls", "p95_m"] > 5.0
+    by = rows.set_index("method")
+    # robust fixes survive 20 % outliers far better than LS (p95 near breakdown is
+    # sensitive, so compare rather than fix a number)
+    assert by.loc["igg", "p95_m"] < 0.5 * by.loc["ls", "p95_m"]
+    assert by.loc["igg", "rms_m"] < 0.5 * by.loc["ls", "rms_m"]
     assert '"method": "igg"' in capsys.readouterr().out

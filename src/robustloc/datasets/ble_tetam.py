@@ -74,10 +74,13 @@ class DatasetSource:
     kind : str
         ``"full"`` (the shared data or a user folder) or ``"excerpt"`` (shipped in the
         package, a subset: see its ``SOURCE.md``).
+    note : str
+        Why the excerpt was used when a data folder was given (empty otherwise).
     """
 
     path: Path
     kind: str
+    note: str = ""
 
 
 def resolve_dataset(name: str, marker: str, data_dir: str | Path | None = None) -> DatasetSource:
@@ -91,7 +94,10 @@ def resolve_dataset(name: str, marker: str, data_dir: str | Path | None = None) 
         A relative path that must exist inside the data set folder.
     data_dir : str or Path, optional
         Either the root holding ``name/`` (like ``../shared/data``) or the data set folder
-        itself.  None: the shared data if present, else the shipped excerpt.
+        itself.  None: the shared data if present, else the shipped excerpt.  An existing
+        root without ``name/`` also falls back to the excerpt (``kind="excerpt"`` and a
+        ``note`` say so); a missing folder, or a ``name/`` folder without ``marker``, is an
+        :class:`InputError`.
     """
     if data_dir is None:
         root = paths.default_data_dir()
@@ -107,6 +113,13 @@ def resolve_dataset(name: str, marker: str, data_dir: str | Path | None = None) 
             cand = cand.resolve()
             kind = "excerpt" if cand == PACKAGE_DATA / name else "full"
             return DatasetSource(cand, kind)
+    pkg = PACKAGE_DATA / name
+    if (
+        d.is_dir()
+        and not (d / name).exists()
+        and ((pkg / marker).exists() or _gz(pkg / marker).exists())
+    ):
+        return DatasetSource(pkg, "excerpt", f"{name} not in {d}: using the shipped excerpt")
     raise InputError(f"data set {name!r} not found (looked for {marker})", d)
 
 
