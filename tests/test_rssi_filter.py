@@ -259,3 +259,19 @@ def test_scalar_update_matches_core_and_stays_psd(seed, D, R):
     # down-weighting never shrinks the variance more than the full update
     full = P[0, 0, 0] - P[0, 0, 0] ** 2 / S[0]
     assert full - 1e-12 <= Ps[0, 0, 0] <= P[0, 0, 0] + 1e-12
+
+
+def test_hot_path_model_terms_equal_public_functions():
+    from robustloc.filters.rssi import _ModelTerms
+
+    rng = np.random.default_rng(12)
+    x = np.stack([rng.uniform(-90, -30, 50), rng.uniform(0.05, 30, 50),
+                  rng.uniform(-2, 2, 50)], axis=1)
+    dt = rng.uniform(0, 1, 50)
+    n = rng.uniform(1.5, 3.5, 50)
+    terms = _ModelTerms(50, n, 0.7, 0.2, 0.1)
+    for _ in range(2):  # the buffers are reused between steps
+        xp, phi, Q = terms(x, dt)
+        np.testing.assert_allclose(xp, transition(x, dt, n, 0.1), atol=1e-12)
+        np.testing.assert_allclose(phi, transition_jacobian(x, dt, n, 0.1), atol=1e-12)
+        np.testing.assert_allclose(Q, process_noise(x, dt, 0.7, 0.2, n, 0.1), atol=1e-12)

@@ -215,30 +215,43 @@ class _Rescaled(WeightFunction):
         return self.inner.rho(np.asarray(u) * self.ratio)
 
 
-def _model_terms(
-    x: Array, dt: Array, exponent: Array, sigma_a: float, q_p: float, min_distance_m: float
-) -> tuple[Array, Array, Array]:
-    """:func:`transition`, :func:`transition_jacobian` and :func:`process_noise` at once
-    for ``x (L, 3)`` (the hot path computes ``d, d'`` once); same formulas."""
-    c = 10.0 * exponent / LN10
-    d = np.maximum(x[:, 1], min_distance_m)
-    vt = x[:, 2] * dt
-    d1 = np.maximum(d + vt, min_distance_m)
-    L = x.shape[0]
-    xp = np.empty_like(x)
-    xp[:, 0] = x[:, 0] + c * np.log(d / d1)  # eq. (15): 10 n lg(d / d')
-    xp[:, 1] = d1
-    xp[:, 2] = x[:, 2]
-    phi = np.zeros((L, 3, 3))
-    phi[:, 0, 0] = phi[:, 1, 1] = phi[:, 2, 2] = 1.0
-    phi[:, 0, 1] = c * (1.0 / d - 1.0 / d1)
-    phi[:, 0, 2] = -c * dt / d1
-    phi[:, 1, 2] = dt
-    half = 0.5 * dt * dt
-    g = np.stack([-c * half / d1, half, dt], axis=1)
-    Q = (sigma_a * sigma_a) * (g[:, :, None] * g[:, None, :])
-    Q[:, 0, 0] += q_p * dt
-    return xp, phi, Q
+class _ModelTerms:
+    """:func:`transition`, :func:`transition_jacobian` and :func:`process_noise` at once for
+    ``x (L, 3)``: the hot path computes ``d, d'`` once and fills preallocated ``Phi`` and
+    ``Q`` buffers (same formulas; the buffers are consumed by the prediction each step)."""
+
+    def __init__(self, n_links: int, exponent: Array, sigma_a: float, q_p: float,
+                 min_distance_m: float) -> None:
+        self.c = 10.0 * exponent / LN10
+        self.sa2 = sigma_a * sigma_a
+        self.q_p = q_p
+        self.dmin = min_distance_m
+        self.phi = np.zeros((n_links, 3, 3))
+        self.phi[:, 0, 0] = self.phi[:, 1, 1] = self.phi[:, 2, 2] = 1.0
+        self.Q = np.zeros((n_links, 3, 3))
+
+    def __call__(self, x: Array, dt: Array) -> tuple[Array, Array, Array]:
+        c = self.c
+        d = np.maximum(x[:, 1], self.dmin)
+        d1 = np.maximum(d + x[:, 2] * dt, self.dmin)
+        xp = np.empty_like(x)
+        xp[:, 0] = x[:, 0] + c * np.log(d / d1)  # eq. (15): 10 n lg(d / d')
+        xp[:, 1] = d1
+        xp[:, 2] = x[:, 2]
+        phi = self.phi
+        phi[:, 0, 1] = c * (1.0 / d - 1.0 / d1)  # eq. (17), derived
+        phi[:, 0, 2] = -c * dt / d1
+        phi[:, 1, 2] = dt
+        half = 0.5 * dt * dt
+        g0, g1, g2 = -c * half / d1, half, dt  # G = dX'/da
+        Q, s = self.Q, self.sa2
+        Q[:, 0, 0] = s * g0 * g0 + self.q_p * dt
+        Q[:, 1, 1] = s * g1 * g1
+        Q[:, 2, 2] = s * g2 * g2
+        Q[:, 0, 1] = Q[:, 1, 0] = s * g0 * g1
+        Q[:, 0, 2] = Q[:, 2, 0] = s * g0 * g2
+        Q[:, 1, 2] = Q[:, 2, 1] = s * g1 * g2
+        return xp, phi, Q
 
 
 # ---------------------------------------------------------------------------------------
@@ -518,6 +531,8 @@ class RobustRssiFilter:
         n_rej = np.zeros(L, dtype=np.int64)
         sqrt_half_pi = np.sqrt(np.pi / 2.0)
         all_started = False
+        terms = _ModelTerms(L, expo, self.sigma_accel_mps2, self.q_rssi_db2_per_s,
+                            self.min_distance_m)
 
         steps = range(T)
         if progress and T > 1:
@@ -550,8 +565,7 @@ class RobustRssiFilter:
             # transition of eq. (15) and its Jacobian (eq. (17), derived above)
             # (f and its Jacobian are evaluated once at the prior state x, which is where
             # predict_ekf evaluates them)
-            x_pred, phi, Q = _model_terms(x, dt, expo, self.sigma_accel_mps2,
-                                          self.q_rssi_db2_per_s, self.min_distance_m)
+            x_pred, phi, Q = terms(x, dt)
             x, P = core.predict_ekf(x, P, lambda _s, xp=x_pred: xp, Q,
                                     jac=lambda _s, jp=phi: jp)
             # measurement update, eqs. (12)-(13) with H = [1 0 0] (eq. (16))
