@@ -30,15 +30,16 @@ Methods (comma-separated list allowed; the `method` column tells them apart):
   snooping  w-test data snooping with the B-method (seed 003); needs --sigma
 
 RSSI input uses the anchors' path-loss parameters (A, n or p0, gamma, faf, d0; see
-`robustloc calibrate`); the nonlinear solvers fit in dB by default (--domain range to fit
-ranges converted by the model). Range input is corrected with the anchors' `bias`/`scale`
+`robustloc calibrate`); the nonlinear solvers fit ranges converted by the model, each
+with sigma_d = d ln10 sigma_dB / (10 n), so a faded (long-reading) link down-weights
+itself (--domain rssi fits in dB instead). Range input is corrected with the anchors' `bias`/`scale`
 columns when present: range_corrected = (range - bias) / scale. An anchors' `sigma` column
 (per-anchor observation std, m or dB) weights the anchors unless --sigma is given.
 
 In 2-D, anchors' z is ignored unless --tag-height H is given, in which case slant ranges
 are reduced with the known height difference z_anchor - H.
 
-  robustloc locate meas.csv --anchors anchors.csv --method igg -o positions.csv
+  robustloc locate meas.csv --anchors anchors.csv -o positions.csv
   robustloc locate meas.csv --anchors anchors.csv --method ls,nls,igg,lege -o all.csv"""
 
 
@@ -48,15 +49,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("measurements", help="measurements file (time, tag, anchor, rssi|range)")
     p.add_argument("--anchors", required=True, help="anchors file (anchor, x, y[, z], ...)")
     p.add_argument(
-        "--method", default="igg",
-        help=f"method or comma-separated methods: {', '.join(METHODS)} (default igg)",
+        "--method", default="huber",
+        help=f"method or comma-separated methods: {', '.join(METHODS)} (default huber: the "
+             "most accurate on the shared real data; igg is the seed-000 paper's favourite)",
     )
     p.add_argument("-o", "--out", required=True, help="positions file (.csv or .parquet)")
     p.add_argument("--dim", type=int, choices=(2, 3), default=2, help="solve in 2-D or 3-D")
     p.add_argument("--solver", choices=("nonlinear", "linearized"), default="nonlinear",
                    help="robust methods and LEGE: nonlinear equations (default) or linearized")
-    p.add_argument("--domain", choices=("rssi", "range"), default="rssi",
-                   help="RSSI input, nonlinear solvers: fit in dB (default) or in range")
+    p.add_argument("--domain", choices=("range", "rssi"), default="range",
+                   help="RSSI input, nonlinear solvers: fit ranges converted by the model "
+                        "(default; fades then down-weight themselves) or fit in dB")
     p.add_argument("--sigma", type=float, default=None,
                    help="a-priori std of one observation (m or dB); default: the anchors' "
                         "`sigma` column (per-anchor, e.g. from calibrate) if present, else "

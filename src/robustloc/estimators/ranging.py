@@ -208,9 +208,14 @@ class Locator:
     solver : {"nonlinear", "linearized"}
         For the robust methods and LEGE: IRLS on the raw observation equations (default,
         one bad anchor is one bad row) or on the paper's difference system.
-    domain : {"rssi", "range"}
-        For RSSI input and the nonlinear solvers: fit in dB (default; RSSI noise is closer
-        to Gaussian there) or on ranges converted by the path-loss model.
+    domain : {"range", "rssi"}
+        For RSSI input and the nonlinear solvers: fit ranges converted by the path-loss
+        model with ``sigma_d = d ln10 sigma_dB / (10 n)`` (default), or fit in dB.
+        The dB domain is the maximum-likelihood choice for Gaussian dB noise, but RSSI
+        fades are one-sided: in the range domain a faded link reads long and its own
+        ``sigma_d`` grows with it, so it is down-weighted automatically.  Measured here:
+        ble-tetam tracks (12 receivers) 2-D RMS 2.94 m in range vs 3.61 m in dB (nls),
+        2.87 vs 4.14 m (huber); simulated corridor 1.24 vs 1.47 m (nls).
     sigma : float or sequence of float (one per anchor), optional
         A-priori standard deviation of one observation (metres for ranges, dB for RSSI),
         e.g. the per-anchor residual std of a calibration.  It sets the relative weights
@@ -229,9 +234,9 @@ class Locator:
     alpha0, beta0 : significance and power of the w-test (``snooping``, B-method).
     """
 
-    method: str = "igg"
+    method: str = "huber"
     solver: str = "nonlinear"
-    domain: str = "rssi"
+    domain: str = "range"
     sigma: float | tuple[float, ...] | None = None
     robust_scale: str = "mad"
     weight_params: dict[str, float] = field(default_factory=dict)
