@@ -180,7 +180,7 @@ def _wifi_rtt_block(ctx: Context) -> tuple[pd.DataFrame, str]:
             "excluded obs": int(ex.sum()),
             "NLOS among excluded": float((ex & nlos).sum() / ex.sum()) if ex.any() else np.nan,
             "NLOS obs excluded": float((ex & nlos).sum() / nlos.sum()) if nlos.any() else np.nan,
-            "median |NLOS offset| (m)": float(np.median(np.abs(off))) if off.size else np.nan,
+            "median abs NLOS offset (m)": float(np.median(np.abs(off))) if off.size else np.nan,
             "NLOS offsets > MDB": float(np.mean(np.abs(off) > mdb)) if off.size else np.nan,
             "unavailable": float(np.mean(sn.status == "unavailable")),
             "median err NLS (m)": float(np.nanmedian(e_n)),
@@ -301,7 +301,7 @@ def run(ctx: Context) -> Section:
             f"{of['median err NLS (m)']:.2f} m to {of['median err snooping (m)']:.2f} m; only "
             f"{of['NLOS obs excluded']:.0%} of NLOS ranges are excluded, and only "
             f"{of['NLOS offsets > MDB']:.0%} of them exceed their MDB (median |offset| "
-            f"{of['median |NLOS offset| (m)']:.2f} m after the per-AP bias correction): most "
+            f"{of['median abs NLOS offset (m)']:.2f} m after the per-AP bias correction): most "
             "NLOS offsets in this room are below what 5 APs can detect. In the all-NLOS "
             "corridor the per-AP calibration absorbs the common part of the NLOS offsets, the "
             "remaining errors are broad and snooping flags few scans."
