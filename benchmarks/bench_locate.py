@@ -8,7 +8,9 @@ time by
 * statsmodels ``RLM(M=HuberT())`` on the paper's linearized difference system
   (seed 000, eq. (3): ``G Z = h``, one RLM fit per epoch), and
 * ``scipy.optimize.least_squares(loss="huber", f_scale=0.6)`` on the raw ranges (nonlinear,
-  started at the anchors' centroid; ``f_scale`` = 2 sigma, the paper's Huber ``c = 2``).
+  started at the anchors' centroid; ``f_scale`` = 2 sigma, the paper's Huber ``c = 2``),
+* and, as the ceiling of batching, bare NumPy normal equations of eq. (3) for all epochs at
+  once (no validation, statuses or covariance), on all epochs.
 
 The peers are timed on a subsample (``--peer-epochs``, default 500) and reported per fix
 (fixes/s extrapolate linearly: every epoch is an independent small problem).
@@ -204,6 +206,15 @@ def scipy_huber(wl: Workload) -> Fixes:
     return Fixes(out, "scipy least_squares(huber) per epoch")
 
 
+def numpy_bare_ls(wl: Workload) -> Fixes:
+    """Ceiling reference: bare batched NumPy LS on the eq. (3) system (no checks, no
+    statuses, no covariance): normal equations solved for all epochs at once."""
+    G, h = linearized_system(wl.anchors, wl.ranges)
+    Gt = G[0].T
+    x = np.linalg.solve(Gt @ G[0], Gt @ h.T).T
+    return Fixes(x, "numpy normal equations, all epochs at once")
+
+
 PEERS: dict[str, Callable[[Workload], Fixes]] = {
     "statsmodels-RLM(HuberT)": statsmodels_rlm,
     "scipy-least_squares(huber)": scipy_huber,
@@ -281,6 +292,8 @@ def run(
     for name, fn in PEERS.items():
         print(f"  {name} on {peer_wl.ranges.shape[0]} epochs ...", file=sys.stderr)
         rows.append(measure(name, fn, peer_wl, memory))
+    print(f"  numpy bare LS on {epochs} epochs ...", file=sys.stderr)
+    rows.append(measure("numpy-bare-LS(reference)", numpy_bare_ls, wl, memory))
     for m in methods:
         print(f"  {m} on {epochs} epochs ...", file=sys.stderr)
         try:

@@ -390,7 +390,7 @@ def test_bench_locate_workload_and_peers_exact_without_noise() -> None:
     G, h = b.linearized_system(clean.anchors, clean.ranges)
     x = np.linalg.lstsq(G[0], h[0], rcond=None)[0]
     np.testing.assert_allclose(x, clean.truth[0], atol=1e-9)
-    for peer in b.PEERS.values():
+    for peer in [*b.PEERS.values(), b.numpy_bare_ls]:
         np.testing.assert_allclose(peer(clean).position, clean.truth, atol=1e-4)
 
 
@@ -406,6 +406,7 @@ def test_bench_locate_runs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
     assert list(rows["method"]) == [
         "statsmodels-RLM(HuberT)",
         "scipy-least_squares(huber)",
+        "numpy-bare-LS(reference)",
         "ls",
         "igg",
     ]
