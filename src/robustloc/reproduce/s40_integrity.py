@@ -300,7 +300,7 @@ def run(ctx: Context) -> Section:
             f"share of all ranges {1 - of['LOS share']:.0%}) and the median error drops from "
             f"{of['median err NLS (m)']:.2f} m to {of['median err snooping (m)']:.2f} m; only "
             f"{of['NLOS obs excluded']:.0%} of NLOS ranges are excluded, and only "
-            f"{of['NLOS offsets > MDB']:.0%} of them exceed their MDB (median |offset| "
+            f"{of['NLOS offsets > MDB']:.0%} of all NLOS ranges exceed their MDB (median |offset| "
             f"{of['median abs NLOS offset (m)']:.2f} m after the per-AP bias correction): most "
             "NLOS offsets in this room are below what 5 APs can detect. In the all-NLOS "
             "corridor the per-AP calibration absorbs the common part of the NLOS offsets, the "
