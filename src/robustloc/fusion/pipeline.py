@@ -147,6 +147,12 @@ class FusionFilter:
     robust : robust update / gate settings.
     points : UKF sigma points (paper: ``alpha = 1, kappa = 0``).
     min_speed_mps : course measurements below this speed are ignored.
+    max_rejected : after this many consecutive events of a track in which some measurement
+        was rejected (robust weight 0 or gated), the track re-locks: its position and
+        velocity variances are raised to ``relock_var`` so that the next measurements are
+        standardized against a wide prior and accepted (a robust filter that drifted
+        away would otherwise reject everything forever).  0 disables.
+    relock_var : variance (m^2 and (m/s)^2) set on re-lock.
     """
 
     kind: Literal["ekf", "ukf"] = "ukf"
@@ -154,6 +160,8 @@ class FusionFilter:
     robust: RobustUpdate = PLAIN
     points: SigmaPoints = field(default_factory=SigmaPoints)
     min_speed_mps: float = 0.1
+    max_rejected: int = 5
+    relock_var: float = 4.0
 
     def __post_init__(self) -> None:
         if self.kind not in ("ekf", "ukf"):
@@ -230,6 +238,8 @@ class FusionFilter:
         nis = np.full((K, J), np.nan)
         ws = np.full((K, J, m), np.nan)
         t_prev = np.where(np.isfinite(t[:, 0]), t[:, 0], 0.0)
+        rejected = np.zeros(K, dtype=np.int64)
+        relocks = np.zeros(K, dtype=np.int64)
         steps = range(J)
         if progress:
             import sys
@@ -251,6 +261,19 @@ class FusionFilter:
             zj = np.where(live[:, None], z[:, j], np.nan)
             r = self.step(x, P, dt, zj, Rj, meas)
             x, P = r.x, r.P
+            if self.max_rejected > 0:
+                avail = np.isfinite(r.innovation).sum(axis=1)
+                had = avail > 0
+                allrej = had & (r.n_used < avail)
+                rejected = np.where(allrej, rejected + 1, np.where(had, 0, rejected))
+                lock = rejected >= self.max_rejected
+                if lock.any():
+                    P = P.copy()
+                    idx = np.arange(min(4, n))
+                    P[np.ix_(lock, idx, idx)] = 0.0
+                    P[lock, idx, idx] = self.relock_var
+                    rejected[lock] = 0
+                    relocks += lock
             t_prev = np.where(live, tj, t_prev)
             xs[:, j] = x
             vs[:, j] = np.diagonal(P, axis1=1, axis2=2)
@@ -260,7 +283,7 @@ class FusionFilter:
             ws[:, j] = r.weights
         return FusionTrack(
             time_s=t, x=xs, var=vs, status=stat.astype(str), n_used=nu, nis=nis, weights=ws,
-            P_last=P,
+            P_last=P, extra={"relocks": relocks},
         )
 
 

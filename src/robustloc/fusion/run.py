@@ -78,7 +78,7 @@ def _anchor_arrays(anchors: pd.DataFrame, opts: FuseOptions) -> tuple[Array, Arr
 def fuse(
     measurements: pd.DataFrame,
     anchors: pd.DataFrame,
-    nmea: NmeaLog | None,
+    nmea: NmeaLog | pd.DataFrame | None,
     filt: FusionFilter,
     opts: FuseOptions = FuseOptions(),
     progress: bool = False,
@@ -89,7 +89,8 @@ def fuse(
     ----------
     measurements : ``time, tag, anchor, range`` (contract measurements frame).
     anchors : ``anchor, x, y[, z]``.
-    nmea : parsed NMEA (its ``motion`` rows go to every tag), or ``None``.
+    nmea : parsed NMEA (its ``motion`` rows go to every tag), or directly a motion frame
+        ``time_s, speed_mps, course_rad`` (e.g. wheel odometry speed, course NaN), or None.
     filt : the filter settings (EKF/UKF, motion model, robust update).
     opts : coupling and noise settings.
 
@@ -112,6 +113,12 @@ def fuse(
     t = measurements["time"].to_numpy(float)
     tags = measurements["tag"].astype(str).to_numpy(object)
     rng_m = measurements["range"].to_numpy(float)
+    if {"bias", "scale"} & set(anchors.columns):  # per-anchor range calibration
+        from robustloc.models.calibration import apply_range_calibration
+
+        one = np.full((len(rng_m), M), np.nan)
+        one[np.arange(len(rng_m)), col] = rng_m
+        rng_m = apply_range_calibration(anchors, one)[np.arange(len(rng_m)), col]
 
     streams: list[Stream] = []
     summary: dict = {"coupling": opts.coupling, "filter": filt.kind, "motion": filt.motion.name}
@@ -135,14 +142,16 @@ def fuse(
         summary["fixes"] = int((fix.status == "ok").sum())
         summary["uwb_epochs"] = int(live.sum())
         tag_rep = np.repeat(tl_u.tags, J)[live]
-        # a (3,)-column stream: x, y and the fix variances carried in columns 4, 5
+        # x, y, the fix variances (columns 4, 5) and an always-present epoch marker
+        # (column 6) so that an epoch without a fix still gets its (predicted) row
         v = np.concatenate(
-            [fix.position, np.diagonal(fix.covariance, axis1=1, axis2=2)], axis=1
+            [fix.position, np.diagonal(fix.covariance, axis1=1, axis2=2),
+             np.ones((len(fix.status), 1))], axis=1,
         )
-        streams.append(Stream(tl_u.time_s.reshape(-1)[live], tag_rep, v, [0, 1, 4, 5]))
+        streams.append(Stream(tl_u.time_s.reshape(-1)[live], tag_rep, v, [0, 1, 4, 5, 6]))
         meas = FusionMeasurement(n)
-    if nmea is not None and len(nmea.motion):
-        mo = nmea.motion
+    mo = nmea.motion if isinstance(nmea, NmeaLog) else nmea
+    if mo is not None and len(mo):
         ut = np.unique(tags)
         for tg in ut:
             streams.append(
@@ -150,7 +159,7 @@ def fuse(
                        mo[["speed_mps", "course_rad"]].to_numpy(float), [m - 2, m - 1],
                        opts.nmea_offset_s)
             )
-    m_aug = m + (2 if opts.coupling == "loose" else 0)
+    m_aug = m + (3 if opts.coupling == "loose" else 0)
     tl = merge_streams(streams, m_aug, opts.merge_window_s)
     K, J = tl.time_s.shape
     z = tl.z[..., :m]
@@ -182,15 +191,24 @@ def _one_hot(L: int, M: int, col: NDArray[np.int64], v: Array) -> Array:
     return out
 
 
-def _initial_positions(tl, z, opts, a_xy, dz, M):
-    """First usable position of each tag: a fix (loose) or an LS fix of merged ranges."""
+def _initial_positions(tl, z, opts, a_xy, dz, M, max_age_s: float = 1.0):
+    """First usable position of each tag: a fix (loose), or in tight coupling an LS fix of
+    the latest range of every anchor heard within ``max_age_s`` (ranges of one TWR round
+    rarely share a time stamp)."""
     K, J = tl.time_s.shape
     if opts.coupling == "loose":
         pos = z[..., :2]
     else:
-        flat = z[..., :M].reshape(K * J, M)
-        # carry the last heard range of each anchor over 1 s to get a first fix quickly
-        pos = uwb_fix(a_xy, flat, "ls", dz).position.reshape(K, J, 2)
+        r = z[..., :M]
+        idx = np.where(np.isfinite(r), np.arange(J)[None, :, None], -1)
+        last = np.maximum.accumulate(idx, axis=1)  # (K, J, M) index of the latest range
+        kk = np.arange(K)[:, None, None]
+        mm = np.arange(M)[None, None, :]
+        held = np.where(last >= 0, r[kk, np.maximum(last, 0), mm], np.nan)
+        t_last = np.where(last >= 0, tl.time_s[kk[..., 0], np.maximum(last, 0)], np.nan)
+        age = tl.time_s[..., None] - t_last
+        held = np.where(age <= max_age_s, held, np.nan)
+        pos = uwb_fix(a_xy, held.reshape(K * J, M), "ls", dz).position.reshape(K, J, 2)
     ok = np.isfinite(pos).all(axis=-1)
     first = np.argmax(ok, axis=1)
     has = ok[np.arange(K), first]
@@ -216,5 +234,7 @@ def _track_frame(tags, time_s, tr, filt: FusionFilter, z, m, opts) -> pd.DataFra
     zz = z[k_idx, j_idx]
     uwb = np.isfinite(zz[:, : m - 2]).any(axis=1)
     gps = np.isfinite(zz[:, m - 2 :]).any(axis=1)
-    data["source"] = np.where(uwb & gps, "uwb+gps", np.where(uwb, "uwb", "gps"))
+    data["source"] = np.where(
+        uwb & gps, "uwb+gps", np.where(uwb, "uwb", np.where(gps, "gps", "none"))
+    )
     return pd.DataFrame(data)
