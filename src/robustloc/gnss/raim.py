@@ -42,7 +42,7 @@ from robustloc.gnss.sp3 import PreciseProducts
 from robustloc.gnss.spp import SppResult, SppSolver, dops
 from robustloc.integrity.bmethod import ALPHA0, BETA0, lambda0
 from robustloc.integrity.snooping import snoop
-from robustloc.integrity.tests import R_MIN, global_and_w_tests, whiten
+from robustloc.integrity.tests import R_MIN, global_and_w_tests, integrity_tests, whiten
 
 
 def protection_levels(
@@ -50,6 +50,18 @@ def protection_levels(
     xyz_m: NDArray[np.float64], lam0: float,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Horizontal and vertical protection levels (m) from MDB-sized faults (see module doc).
+
+    See :func:`protection_levels_and_mdb` for the parameters.
+    """
+    hpl, vpl, _ = protection_levels_and_mdb(H, sigma, used, xyz_m, lam0)
+    return hpl, vpl
+
+
+def protection_levels_and_mdb(
+    H: NDArray[np.float64], sigma: NDArray[np.float64], used: NDArray[np.bool_],
+    xyz_m: NDArray[np.float64], lam0: float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """HPL, VPL (N,) and the minimal detectable bias ``MDB_i`` (N, n) of every observation.
 
     Parameters
     ----------
@@ -84,7 +96,10 @@ def protection_levels(
     ok = wh.ok & good & (wh.n_used > 0)
     hpl = np.where(ok, np.max(np.nan_to_num(dh, nan=0.0), axis=1), np.nan)
     vpl = np.where(ok, np.max(np.nan_to_num(du, nan=0.0), axis=1), np.nan)
-    return hpl.reshape(N), vpl.reshape(N)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mdb = np.where(wh.used & ok[:, None],
+                       np.where(r > R_MIN, wh.sigma * k, np.inf), np.nan)  # seed 003 MDB
+    return hpl.reshape(N), vpl.reshape(N), mdb
 
 
 class RaimFde:
@@ -107,6 +122,10 @@ class RaimFde:
         After an exclusion, re-test every swap of an excluded satellite for a used one; if
         any alternative also passes the global test the exclusion is not identifiable and
         the epoch is ``unavailable`` (default True).
+    rho_min : float
+        Only swaps with satellites whose w-test correlates with the excluded one by more
+        than this (``|rho_jk|``, before exclusion) are re-tested (default 0.3; a swap with
+        an uncorrelated satellite cannot pass the global test for a detectable fault).
     """
 
     def __init__(
@@ -117,6 +136,7 @@ class RaimFde:
         max_exclusions: int | None = None,
         gn_iterations: int = 4,
         check_ambiguity: bool = True,
+        rho_min: float = 0.3,
     ) -> None:
         self.lambda0 = lambda0(alpha0, beta0)  # validates alpha0, beta0
         self.alpha0 = float(alpha0)
@@ -127,6 +147,7 @@ class RaimFde:
         self.max_exclusions = max_exclusions
         self.gn_iterations = int(gn_iterations)
         self.check_ambiguity = bool(check_ambiguity)
+        self.rho_min = float(rho_min)
 
     def _readmit(self, res, resolve, sigma_ext, used, excl) -> NDArray[np.int64]:  # noqa: ANN001
         """Backward step after snooping: try to put every excluded satellite back, one at a
@@ -154,31 +175,47 @@ class RaimFde:
             count[r] += 1
         return count
 
-    def _ambiguous(self, res, resolve, sigma_ext, S: int, used, excl) -> NDArray[np.bool_]:  # noqa: ANN001
+    def _ambiguous(self, res, lin, sigma_ext, S: int, used, excl) -> NDArray[np.bool_]:  # noqa: ANN001
         """Epochs whose exclusion is not unique: swapping an excluded satellite for a used
         one also passes the global test (highly correlated w-tests, seed 003's
         identifiability problem).  Such epochs are reported ``unavailable`` instead of
-        trusting a coin toss."""
+        trusting a coin toss.  The alternatives are tested on the model linearized at the
+        final solution (``lin(rows) -> (H, l)``), which differs from a re-linearized one by
+        far less than the noise."""
         N = res.used.shape[0]
         amb = np.zeros(N, dtype=bool)
         cand = np.flatnonzero((res.n_excluded > 0) & np.isin(res.status, (st.FAULT_EXCLUDED,)))
         if cand.size == 0:
             return amb
+        He, le = lin(cand)
+        # w-test correlations rho_jk (seed 003) in the geometry before any exclusion: a swap
+        # can only pass the global test when the two w-tests are correlated
+        m0 = used[cand] | excl[cand]
+        wh0 = whiten(He, sigma_ext[cand], mask=m0)
+        r0 = 1.0 - wh0.hat_diagonal()
         for kk in range(int(res.n_excluded[cand].max())):
             k_sat = res.exclusion_order[cand, kk]
             has_k = k_sat >= 0
             has_k[has_k] = excl[cand[has_k], k_sat[has_k]]  # not re-admitted
+            kz = np.where(has_k, k_sat, 0)
+            ak = wh0.A[np.arange(cand.size), kz]  # (C, p)
+            u = np.einsum("cip,cpq,cq->ci", wh0.A, wh0.Ninv, ak)  # U[:, :, k]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                rho = -u / np.sqrt(r0 * r0[np.arange(cand.size), kz][:, None])
+            related = np.abs(np.nan_to_num(rho)) > self.rho_min
             for j in range(S):
-                rows = cand[has_k & used[cand, j] & ~amb[cand]]
+                sel = has_k & used[cand, j] & ~amb[cand] & related[:, j]
+                rows = cand[sel]
                 if rows.size == 0:
                     continue
                 ks = res.exclusion_order[rows, kk]
                 m = used[rows].copy()
                 m[:, j] = False
                 m[np.arange(rows.size), ks] = True
-                _, He, ve = resolve(m, rows)
-                t = global_and_w_tests(He, ve, sigma_ext[rows], mask=m, alpha=self.alpha,
-                                       alpha0=self.alpha0, beta0=self.beta0)
+                wh = whiten(He[sel], sigma_ext[rows], mask=m)
+                v = np.einsum("kip,kp->ki", He[sel], wh.solve(le[sel])) - le[sel]
+                t = integrity_tests(wh, np.where(m, v, np.nan), alpha=self.alpha,
+                                    alpha0=self.alpha0, beta0=self.beta0)
                 amb[rows[t.global_pass]] = True
         return amb
 
@@ -226,6 +263,15 @@ class RaimFde:
             ve = np.concatenate([vr, np.zeros((len(rows), K))], axis=1)
             return xr, He, ve
 
+        def linearized(rows: NDArray[np.int64]):  # noqa: ANN202
+            """Design and prefit residuals ``l = z - f(x)`` of every satellite at ``x``."""
+            xr = np.where(np.all(np.isfinite(res.x[rows]), axis=1)[:, None], res.x[rows],
+                          xcur[rows])
+            pred, Hr, *_ = solver._model(P, rows, xr)
+            He = np.concatenate([Hr, np.broadcast_to(pseudo_H, (len(rows), K, p))], axis=1)
+            le = np.concatenate([P.pr[rows] - pred, np.zeros((len(rows), K))], axis=1)
+            return He, le
+
         sigma_ext = np.concatenate([sig_fixed, np.ones((N, K))], axis=1)
         res = snoop(
             resolve, mask0, sigma_ext, alpha=self.alpha, alpha0=self.alpha0, beta0=self.beta0,
@@ -236,7 +282,7 @@ class RaimFde:
         status = res.status.copy()
         ambiguous = np.zeros(N, dtype=bool)
         if self.check_ambiguity:
-            ambiguous = self._ambiguous(res, resolve, sigma_ext, S, used_ext, excl_ext)
+            ambiguous = self._ambiguous(res, linearized, sigma_ext, S, used_ext, excl_ext)
             status[ambiguous] = st.UNAVAILABLE
         used = used_ext[:, :S]
         excluded = excl_ext[:, :S]
@@ -257,7 +303,8 @@ class RaimFde:
             "ks,sj->kj", used.astype(float),
             (P.sys_idx[:, None] == np.arange(K)[None, :]).astype(float),
         ) == 0
-        hpl, vpl = protection_levels(pred_H, sig_fixed, used, xf[:, :3], self.lambda0)
+        hpl, vpl, mdb = protection_levels_and_mdb(pred_H, sig_fixed, used, xf[:, :3],
+                                                  self.lambda0)
         # RTKLIB-like geometry screen on top of the tests
         dop = dops(pred_H, used, xf[:, :3], absent_f)
         gd = dop[:, 0]
@@ -278,6 +325,7 @@ class RaimFde:
             "w": ws[:, :S],
             "hpl_m": np.where(np.isin(status, st.USABLE), hpl, np.nan),
             "vpl_m": np.where(np.isin(status, st.USABLE), vpl, np.nan),
+            "mdb_m": mdb,
             "lambda0": self.lambda0,
             "w_crit": res.w_crit,
             # position kept for 'unavailable' (a fix whose integrity cannot be checked)

@@ -235,6 +235,18 @@ class _Prepared:
     beta: NDArray | None
     iono_scale: NDArray[np.float64]  # (S,) (f_L1/f)^2
 
+    def take(self, rows: NDArray[np.int64], pr_m: NDArray[np.float64] | None = None) -> _Prepared:
+        """Epochs ``rows`` (repeats allowed), optionally with other pseudoranges (e.g. with
+        injected faults: satellite states barely depend on the pseudorange)."""
+        st_ = self.state
+        pr = self.pr[rows] if pr_m is None else pr_m
+        return _Prepared(
+            self.obs.select(rows), pr,
+            SatState(st_.pos_m[rows], st_.clock_s[rows], st_.var_m2[rows], st_.valid[rows]),
+            self.avail[rows] & np.isfinite(pr), self.sys_idx, self.systems, self.alpha,
+            self.beta, self.iono_scale,
+        )
+
 
 class SppSolver:
     """Iterated weighted least-squares single-point positioning, all epochs at once.
