@@ -40,6 +40,19 @@ def _make(path: Path, rows: int, m: int = 10, block: int = 1_000_000) -> None:
         first = False
 
 
+def _peak_mb() -> float:
+    """Peak resident memory of this process (VmHWM; ru_maxrss survives fork/exec on Linux
+    and would report the parent's peak)."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
 def _stream(path: str, chunk_rows: int, q: mp.Queue) -> None:
     from robustloc.io import iter_epochs
 
@@ -49,7 +62,7 @@ def _stream(path: str, chunk_rows: int, q: mp.Queue) -> None:
     for e in iter_epochs(path, ids, chunk_rows=chunk_rows):
         n_ep += e.n_epochs
     dt = time.perf_counter() - t0
-    q.put((n_ep, dt, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024))
+    q.put((n_ep, dt, _peak_mb()))
 
 
 def _whole(path: str, chunk_rows: int, q: mp.Queue) -> None:
@@ -58,7 +71,7 @@ def _whole(path: str, chunk_rows: int, q: mp.Queue) -> None:
     t0 = time.perf_counter()
     e = to_epochs(read_measurements(path), [str(i) for i in range(10)])
     dt = time.perf_counter() - t0
-    q.put((e.n_epochs, dt, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024))
+    q.put((e.n_epochs, dt, _peak_mb()))
 
 
 def _child(fn, *args) -> tuple[int, float, float]:
