@@ -275,3 +275,20 @@ def test_hot_path_model_terms_equal_public_functions():
         np.testing.assert_allclose(xp, transition(x, dt, n, 0.1), atol=1e-12)
         np.testing.assert_allclose(phi, transition_jacobian(x, dt, n, 0.1), atol=1e-12)
         np.testing.assert_allclose(Q, process_noise(x, dt, 0.7, 0.2, n, 0.1), atol=1e-12)
+
+
+def test_path_loss_tie_keeps_distance_state_on_the_model():
+    rng = np.random.default_rng(21)
+    T, dt = 600, 0.5
+    t = np.arange(T) * dt
+    d = 6.0 + 4.0 * np.sin(2 * np.pi * t / 60.0)  # walking to and from the anchor
+    z = AttenuationFactor(-35.0, 2.5, 0.0, 1.0).rssi(d) + rng.normal(0, 2.0, T)
+    lp = LinkParams.broadcast(1, -35.0, 2.5)
+    free = RobustRssiFilter(model_sigma_db=None).run(z[:, None], np.full((T, 1), dt), lp)
+    tied = RobustRssiFilter(model_sigma_db=3.0).run(z[:, None], np.full((T, 1), dt), lp)
+    err_free = np.median(np.abs(free.distance_m[100:, 0] - d[100:]))
+    err_tied = np.median(np.abs(tied.distance_m[100:, 0] - d[100:]))
+    assert err_tied < 0.5 * err_free
+    assert err_tied < 1.5
+    with pytest.raises(ValueError):
+        RobustRssiFilter(model_sigma_db=0.0)

@@ -25,9 +25,18 @@ Observability: the power changes by ``-c v t / d`` per step, so the RSSI sequenc
 only the ratio ``v / d``; the distance state is anchored by its initial value (the inverse
 of eq. (5) at the first sample, with the matching ``cov(P, d)``) and by that correlation,
 and it random-walks with the speed errors afterwards (on the simulated walk its median
-error is several metres).  The filtered *power* is the product; distances for positioning
-are best taken from it through the path-loss model (the ``distance`` column of
-:func:`filter_measurements`), the state ``d`` is reported as ``distance_state``.
+error is several metres; it can collapse to the floor, where the transition becomes so
+sensitive that the filter stops smoothing).  The fix used here (``model_sigma_db``,
+default 3 dB, ``None`` for the paper's model literally) ties the two through eq. (5): after
+each update the pseudo-observation ``0 = P_r - (A - c ln d) + w``, ``w ~ N(0, sigma_m^2)``
+(``sigma_m`` the path-loss model's misfit, 1.59 dB in the paper's calibration), linearized
+as ``h = [1, c/d, 0]``, keeps ``d`` on the model curve through ``P_r``.  Only ``d`` and
+``v`` are corrected (the power component of the tie's gain is zero, a Schmidt "consider"
+update): the tie re-uses information the power already holds and must not count it twice.
+For a static link (``v = 0``) the power row of ``Phi`` does not involve ``d``, so the
+filtered power is exactly that of the paper's filter there.  Distances for positioning are
+taken from the filtered power through the path-loss model (the ``distance`` column of
+:func:`filter_measurements`); the state ``d`` is reported as ``distance_state``.
 
 Jacobian (eq. (17), garbled in the source; derived here).  With ``c = 10 n / ln 10`` and
 ``d' = d + v t`` (the mean prediction, ``a = 0``)::
@@ -405,6 +414,10 @@ class RobustRssiFilter:
         ``1/lambda`` of the running scale ``s_emp``, in samples.
     max_rejected : int
         Consecutive zero-weight samples after which a link re-locks (0: never).
+    model_sigma_db : float or None
+        Standard deviation (dB) of the path-loss tie ``P_r = P_r(d)`` (eq. (5)) applied as a
+        pseudo-observation after each update (see the module docstring); ``None``: the
+        paper's model literally, the distance state then drifts.
     min_distance_m : float
         Floor on the distance state.
     engine : {"scalar", "core"}
@@ -427,6 +440,7 @@ class RobustRssiFilter:
         adaptive: bool = True,
         scale_window: float = 20.0,
         max_rejected: int = 8,
+        model_sigma_db: float | None = 3.0,
         min_distance_m: float = 0.1,
         engine: str = "scalar",
     ) -> None:
@@ -461,10 +475,37 @@ class RobustRssiFilter:
         self.scale_window = float(scale_window)
         self.max_rejected = int(max_rejected)
         self.min_distance_m = float(min_distance_m)
+        if model_sigma_db is not None and not (np.isfinite(model_sigma_db) and model_sigma_db > 0):
+            raise ValueError(f"model_sigma_db must be positive or None, got {model_sigma_db}")
+        self.model_sigma_db = model_sigma_db
 
     @property
     def name(self) -> str:
         return "plain" if self.weight is None else self.weight.name
+
+    # -- the path-loss tie ------------------------------------------------------------
+
+    def _model_tie(self, x: Array, P: Array, active: NDArray[np.bool_], a_db: Array,
+                   c_db: Array) -> tuple[Array, Array]:
+        """Path-loss tie ``0 = P_r - (A - c ln d) + w``, ``w ~ N(0, model_sigma^2)``, that
+        corrects ``d`` and ``v`` only.
+
+        Linearized row ``h = [1, c/d, 0]``, gain ``K = P h / S`` with its power component
+        set to zero (a Schmidt "consider" update: the tie re-uses information the power
+        already carries, so it must not feed back into the filtered RSSI), covariance
+        ``P - K (P h)^T - (P h) K^T + S K K^T`` (valid for any gain, as in the core).
+        """
+        d = np.maximum(x[:, 1], self.min_distance_m)
+        h1 = c_db / d
+        resid = np.where(active, -(x[:, 0] - a_db + c_db * np.log(d)), 0.0)
+        ph = P[:, :, 0] + P[:, :, 1] * h1[:, None]  # P h with h = [1, c/d, 0]
+        S = ph[:, 0] + h1 * ph[:, 1] + self.model_sigma_db**2
+        K = np.where(active[:, None], ph / S[:, None], 0.0)
+        K[:, 0] = 0.0
+        x = x + K * resid[:, None]
+        KPh = K[:, :, None] * ph[:, None, :]
+        P = P - KPh - np.swapaxes(KPh, 1, 2) + S[:, None, None] * (K[:, :, None] * K[:, None, :])
+        return x, P
 
     # -- public entry points ---------------------------------------------------------
 
@@ -533,6 +574,8 @@ class RobustRssiFilter:
         all_started = False
         terms = _ModelTerms(L, expo, self.sigma_accel_mps2, self.q_rssi_db2_per_s,
                             self.min_distance_m)
+        # eq. (5) as P = A - c ln d with A = p0 + FAF + 10 n lg d0 (the tie's intercept)
+        tie_a = AttenuationFactor(p.p0_dbm, expo, p.faf_db, p.d0_m).log_distance_params()[0]
 
         steps = range(T)
         if progress and T > 1:
@@ -592,6 +635,8 @@ class RobustRssiFilter:
                 x, P = res.x, res.P
             else:
                 x, P = scalar_update(x, P, np.where(upd, e, 0.0), S, np.where(upd, D, 0.0))
+            if self.model_sigma_db is not None:
+                x, P = self._model_tie(x, P, upd, tie_a, c_db)
             # running standard error of the innovations (winsorized at C s)
             a_e = np.minimum(np.abs(e), c_win * scale)
             s_emp = np.where(upd, (1 - lam) * s_emp + lam * sqrt_half_pi * a_e, s_emp)
