@@ -11,6 +11,8 @@ import statsmodels.api as sm
 from robustloc.errors import InputError
 from robustloc.models.calibration import (
     POOLED,
+    PathLossCalibrator,
+    RangeCalibrator,
     apply_range_calibration,
     calibrate_pathloss,
     calibrate_ranges,
@@ -187,3 +189,13 @@ def test_fit_lines_groups_independent_and_vectorized():
     f = fit_lines(x, y, g, 50)
     np.testing.assert_allclose(f.a, 2.0 * np.arange(50), atol=0.01)
     np.testing.assert_allclose(f.b, 0.1 * np.arange(50), atol=0.01)
+
+
+def test_calibrator_objects_match_functions():
+    rng = np.random.default_rng(8)
+    s = _survey(LogDistance(-60.0, 2.0), 2, np.arange(1.0, 21.0), 1.0, rng)
+    a = PathLossCalibrator("log-distance", robust="huber").fit(s).table
+    b = calibrate_pathloss(s, robust="huber").table
+    pd.testing.assert_frame_equal(a, b)
+    r = s.rename(columns={"rssi": "range"}).assign(range=lambda f: f["distance"] + 0.3)
+    assert RangeCalibrator().fit(r).table["bias"].iloc[0] == pytest.approx(0.3)

@@ -524,6 +524,51 @@ def _notes(
     return notes
 
 
+@dataclass(frozen=True)
+class PathLossCalibrator:
+    """Settings of a path-loss calibration; :meth:`fit` takes the survey.
+
+    See :func:`calibrate_pathloss` for the parameters.  Example::
+
+        res = PathLossCalibrator("log-distance", robust="igg3").fit(read_survey("s.csv"))
+        anchors = res.apply_to_anchors(read_anchors("anchors.csv"))
+    """
+
+    model: str = "log-distance"
+    robust: str | None = None
+    pooled: bool = False
+    d0: float = 1.0
+    p0: float | None = None
+    max_iter: int = 50
+
+    def fit(
+        self, survey: pd.DataFrame, p0: Mapping[str, float] | None = None
+    ) -> CalibrationResult:
+        """Fit the survey; ``p0`` per anchor overrides the scalar setting."""
+        return calibrate_pathloss(
+            survey, self.model, robust=self.robust, pooled=self.pooled, d0=self.d0,
+            p0=p0 if p0 is not None else self.p0, max_iter=self.max_iter,
+        )
+
+
+@dataclass(frozen=True)
+class RangeCalibrator:
+    """Settings of a range bias/scale calibration; :meth:`fit` takes the survey
+    (see :func:`calibrate_ranges`)."""
+
+    scale: bool = False
+    robust: str | None = None
+    pooled: bool = False
+    max_iter: int = 50
+
+    def fit(self, survey: pd.DataFrame) -> CalibrationResult:
+        """Fit ``range = scale * distance + bias`` per anchor and pooled."""
+        return calibrate_ranges(
+            survey, scale=self.scale, robust=self.robust, pooled=self.pooled,
+            max_iter=self.max_iter,
+        )
+
+
 def apply_range_calibration(anchors: pd.DataFrame, values: ArrayLike) -> Array:
     """Correct ranges ``(N, m)`` with the anchors' ``bias``/``scale`` columns.
 
@@ -632,6 +677,8 @@ def default_p0_from_anchors(anchors: pd.DataFrame | None) -> dict[str, float] | 
 __all__: Sequence[str] = (
     "CalibrationResult",
     "LineFit",
+    "PathLossCalibrator",
+    "RangeCalibrator",
     "apply_range_calibration",
     "calibrate_pathloss",
     "calibrate_ranges",
