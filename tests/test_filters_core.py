@@ -321,3 +321,17 @@ def test_posterior_covariance_stays_symmetric_pd(seed, outlier, mode):
         # never more certain than the plain update
         plain = update_linear(x, P, z, H, R)
         assert np.all(np.trace(r.P, axis1=1, axis2=2) >= np.trace(plain.P, axis1=1, axis2=2) - 1e-9)
+
+
+def test_flop_counts_follow_the_paper_rules():
+    from robustloc.filters.complexity import ekf_flops, matmul, ukf_flops
+
+    assert matmul(2, 3, 4) == 2 * 3 * 2 * 4 - 2 * 4
+    u = ukf_flops(6, 4)
+    # hand sum of the paper's nine terms for n = 6, l = 4
+    hand = (64 + 192 - 24) + (48 + 4) + (192 - 24 + 288) + (72 + 12) + (864 + 180 + 12) + (
+        576 - 4) + (48 + 8) + (384 + 48 + 48 + 8) + (576 + 72 + 48 + 12)
+    assert u["total"] == hand
+    e = ekf_flops(4, 4)
+    assert e["total"] == sum(v for k, v in e.items() if k != "total")
+    assert ekf_flops(6, 4)["total"] < u["total"]

@@ -203,3 +203,26 @@ def test_fuse_command(cart, tmp_path, capsys):
                str(tmp_path / "x.csv")])
     assert rc == 2
     assert "unknown anchor" in capsys.readouterr().err
+
+
+def test_relock_recovers_a_robust_filter_that_lost_lock():
+    # all four ranges every 0.25 s, but the filter starts 3 m off with a tiny covariance:
+    # the robust weights reject every range; without re-lock the track never recovers
+    rng = np.random.default_rng(8)
+    J = 80
+    t = np.arange(J) * 0.25
+    pos = np.tile([2.0, 2.5], (J, 1))
+    z = np.full((1, J, 6), np.nan)
+    z[0, :, :4] = np.linalg.norm(pos[:, None] - SQUARE[None], axis=-1) + rng.normal(0, 0.05,
+                                                                                    (J, 4))
+    fm = FusionMeasurement(4, SQUARE)
+    x0, P0 = initial_state([[4.0, 4.5]], 4, 1e-4, 1e-4)
+    R = np.diag([0.05**2] * 4 + [1, 1])
+    rob = RobustUpdate(weight=IGG3(1.5, 3.0))
+    stuck = FusionFilter("ekf", ConstantVelocity(q=1e-4), rob, max_rejected=0).run(
+        t[None], z, R, fm, x0, P0)
+    relock = FusionFilter("ekf", ConstantVelocity(q=1e-4), rob, max_rejected=5).run(
+        t[None], z, R, fm, x0, P0)
+    assert np.hypot(*(stuck.x[0, -1, :2] - pos[-1])) > 2.0
+    assert np.hypot(*(relock.x[0, -1, :2] - pos[-1])) < 0.1
+    assert relock.extra["relocks"][0] >= 1

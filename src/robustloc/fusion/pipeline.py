@@ -42,6 +42,10 @@ Array = NDArray[np.float64]
 Motion = ConstantVelocity | ConstantAcceleration
 
 
+def _mT3(A: Array) -> Array:
+    return np.swapaxes(A, -1, -2)
+
+
 @dataclass(frozen=True)
 class FusionMeasurement:
     """Measurement model ``h(x)`` and Jacobian for loose or tight coupling.
@@ -186,9 +190,18 @@ class FusionFilter:
         else:
             K, n = x.shape
 
-            def f(s: Array) -> Array:  # sigma points (S*K, n): track k uses F[k]
-                s3 = s.reshape(-1, K, n)
-                return np.einsum("kij,skj->ski", F, s3).reshape(-1, n)
+            if F.ndim == 3 and np.all(dt == dt[0]):
+                F = F[0]  # one step for all tracks: a single matrix product
+            if F.ndim == 2:
+                F2 = F
+
+                def f(s: Array) -> Array:
+                    return s @ F2.T
+            else:
+
+                def f(s: Array) -> Array:  # sigma points (S*K, n): track k uses F[k]
+                    s3 = s.reshape(-1, K, n).transpose(1, 0, 2)  # (K, S, n)
+                    return (s3 @ _mT3(F)).transpose(1, 0, 2).reshape(-1, n)
 
             x, P = predict_ukf(x, P, f, Q, self.points)
         z = z.copy()
