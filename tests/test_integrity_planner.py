@@ -61,3 +61,36 @@ def test_cli_reliability(tmp_path, capsys):
         assert (out / f"reliability_{name}.png").stat().st_size > 1000
     assert main(["reliability", "--anchors", str(anchors), "--step", "-1", "-o", str(out)]) == 2
     assert main(["reliability", "--anchors", str(tmp_path / "none.csv"), "-o", str(out)]) == 2
+
+
+def test_suggest_anchor_finds_the_missing_corner():
+    from robustloc.integrity.planner import default_candidates, layout_score, suggest_anchor
+
+    three = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0]])
+    cand = default_candidates((0, 10, 0, 10), 4)
+    assert len(cand) == 16
+    df = suggest_anchor(three, (0, 10, 0, 10), 1.0, 1.0, cand)
+    assert (df.loc[0, "x"], df.loc[0, "y"]) == (0.0, 10.0)
+    assert df["score"].is_monotonic_increasing
+    g4 = plan(np.vstack([three, [0.0, 10.0]]), (0, 10, 0, 10), 1.0, 1.0)
+    assert df.loc[0, "score"] == pytest.approx(layout_score(g4))
+    with pytest.raises(ValueError):
+        layout_score(g4, metric="nope")
+    with pytest.raises(ValueError):
+        suggest_anchor(three, (0, 10, 0, 10), 1.0, 1.0, [[1.0, 2.0, 3.0]])
+
+
+def test_cli_reliability_suggest(tmp_path, capsys):
+    anchors = tmp_path / "anchors.csv"
+    pd.DataFrame({"anchor": ["A", "B", "C"], "x": [0.0, 10.0, 10.0],
+                  "y": [0.0, 0.0, 10.0]}).to_csv(anchors, index=False)
+    cand = tmp_path / "cand.csv"
+    pd.DataFrame({"x": [5.0, 0.0], "y": [5.0, 10.0]}).to_csv(cand, index=False)
+    out = tmp_path / "rel"
+    rc = main(["reliability", "--anchors", str(anchors), "--area", "0,10,0,10", "--step", "2",
+               "-o", str(out), "--suggest", "--candidates", str(cand), "--json", "--no-maps"])
+    assert rc == 0
+    js = json.loads(capsys.readouterr().out)
+    assert js["suggestions"][0]["x"] == 0.0 and js["suggestions"][0]["y"] == 10.0
+    assert len(pd.read_csv(out / "suggestions.csv")) == 2
+    assert js["figures"] == [] and not list(out.glob("*.png"))

@@ -22,7 +22,12 @@ fault cannot be attributed to one anchor), the smallest redundancy number r_i an
 redundancy. Output: DIR/reliability.csv and one heat-map PNG per figure with the anchors
 drawn, plus a summary on stdout (--json for machine-readable).
 
-Use it to decide where one more beacon goes: add it to the anchors file and compare maps.
+Use it to decide where one more beacon goes: add it to the anchors file and compare maps,
+or let --suggest rank candidate positions (default: 8 per side of the area's border, where
+anchors are mounted; or --candidates FILE with columns x, y[, z]) by the 95th percentile
+over the area of --suggest-metric (default max_ext_m: the largest position error an
+undetected fault can cause) with that one anchor added; the best three are starred on the
+maps and all are written to DIR/suggestions.csv.
 
 Anchors file: contract format `anchor, x, y[, z]` (CSV or Parquet). In 2-D, anchor heights
 (z) are known offsets from the tag height --tag-z. For --model rssi the path-loss exponent
@@ -67,6 +72,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--beta0", type=float, default=0.10, help="w-test type II error (default 0.10)")
     p.add_argument("--rho-threshold", type=float, default=0.9,
                    help="|rho_ij| above which two anchors are flagged as not separable (0.9)")
+    p.add_argument("--suggest", action="store_true",
+                   help="rank candidate positions for one more anchor")
+    p.add_argument("--candidates", default=None,
+                   help="candidate positions file (columns x, y[, z]) for --suggest")
+    p.add_argument("--suggest-metric", default="max_ext_m",
+                   choices=("max_ext_m", "max_mdb", "crlb_m", "dop", "max_abs_rho"),
+                   help="figure whose 95th percentile over the area --suggest minimizes")
+    p.add_argument("--no-maps", action="store_true", help="write the CSV only, no PNG maps")
     p.add_argument("-o", "--out", required=True, help="output folder")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 
@@ -80,6 +93,35 @@ def _read(path: str):  # noqa: ANN202
     if "z" in df.columns and not np.all(np.isfinite(xyz[:, 2])):
         raise InputError("anchor heights (z) must all be given when the column exists", path)
     return df, xyz
+
+
+def _suggest(args: argparse.Namespace, xyz: np.ndarray, area, step: float, n_exp):  # noqa: ANN001, ANN202
+    import pandas as pd
+
+    from robustloc.integrity.planner import default_candidates, suggest_anchor
+
+    if args.candidates is not None:
+        from robustloc.io.tables import read_table
+
+        cdf = read_table(args.candidates)
+        cols = ["x", "y"] + (["z"] if xyz.shape[1] == 3 else [])
+        missing = [c for c in cols if c not in cdf.columns]
+        if missing:
+            raise InputError(f"candidates file needs columns {', '.join(cols)}", args.candidates)
+        cand = cdf[cols].apply(pd.to_numeric, errors="coerce").to_numpy(float)
+        bad = ~np.all(np.isfinite(cand), axis=1)
+        if bad.any():
+            raise InputError("non-numeric or missing candidate coordinate", args.candidates,
+                             int(np.argmax(bad)) + 2)
+    else:
+        z = float(np.median(xyz[:, 2])) if xyz.shape[1] == 3 else None
+        cand = default_candidates(area, 8, z)
+    # one planner run per candidate: a grid about twice as coarse as the maps'
+    return suggest_anchor(
+        xyz, area, 2 * step, args.sigma, cand, metric=args.suggest_metric, dim=args.dim,
+        tag_z=args.tag_z, model=args.model, path_loss_n=n_exp, max_range_m=args.max_range,
+        alpha0=args.alpha0, beta0=args.beta0,
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -110,7 +152,13 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     csv = out / "reliability.csv"
     grid.table.to_csv(csv, index=False, float_format="%.6g")
-    pngs = plot_maps(grid, xyz, out, [str(a) for a in df["anchor"]])
+    sugg = None
+    if args.suggest:
+        sugg = _suggest(args, xyz, area, step, n_exp)
+        sugg.to_csv(out / "suggestions.csv", index=False, float_format="%.6g")
+    best = None if sugg is None else sugg[["x", "y"]].to_numpy(float)[:3]
+    pngs = [] if args.no_maps else plot_maps(grid, xyz, out, [str(a) for a in df["anchor"]],
+                                             highlight=best)
     t = grid.table
     summary = {
         "anchors": int(len(xyz)),
@@ -131,6 +179,8 @@ def run(args: argparse.Namespace) -> int:
             "min": float(v.min()) if v.size else None,
         }
     summary["points_with_flagged_pairs"] = int((t["n_flagged"] > 0).sum())
+    if sugg is not None:
+        summary["suggestions"] = json.loads(sugg.head(5).to_json(orient="records"))
     summary["csv"] = str(csv)
     summary["figures"] = [str(p) for p in pngs]
     if args.json:
@@ -147,5 +197,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"  points without a fix: {summary['points_without_fix']}, without redundancy: "
               f"{summary['points_without_redundancy']}, with flagged pairs: "
               f"{summary['points_with_flagged_pairs']}")
+        if sugg is not None:
+            print(f"one more anchor, ranked by the 95th percentile of {args.suggest_metric} "
+                  f"(now {sugg['baseline'].iloc[0]:.3f}):")
+            print(sugg.head(5).to_string(index=False, float_format=lambda v: f"{v:.3f}"))
         print(f"wrote {csv} and {len(pngs)} maps into {out}", file=sys.stderr)
     return 0

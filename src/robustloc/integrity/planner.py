@@ -181,8 +181,12 @@ def plot_maps(
     anchor_ids: list[str] | None = None,
     prefix: str = "reliability",
     columns: tuple[str, ...] = tuple(MAPS),
+    highlight: ArrayLike | None = None,
 ) -> list[Path]:
-    """Heat maps of the planner columns with the anchors drawn; returns the PNG paths."""
+    """Heat maps of the planner columns with the anchors drawn; returns the PNG paths.
+
+    ``highlight`` (k, 2+): positions drawn as white stars (e.g. suggested new anchors).
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -219,6 +223,10 @@ def plot_maps(
                        vmin=vmin, vmax=max(vmax, vmin + 1e-9), aspect="auto")
         fig.colorbar(im, ax=ax, label=col, shrink=0.9)
         ax.plot(a[:, 0], a[:, 1], "r^", ms=8, mec="k", label="anchors")
+        if highlight is not None and len(highlight):
+            hl = np.atleast_2d(np.asarray(highlight, dtype=float))
+            ax.plot(hl[:, 0], hl[:, 1], "w*", ms=13, mec="k", label="suggested anchor")
+            ax.legend(loc="upper right", fontsize=7, framealpha=0.7)
         for (px, py), name in zip(a[:, :2], ids):
             ax.annotate(str(name), (px, py), textcoords="offset points", xytext=(3, 3),
                         fontsize=7, color="r")
@@ -235,3 +243,93 @@ def plot_maps(
         plt.close(fig)
         paths.append(p)
     return paths
+
+
+#: Planner columns a suggestion can minimize.
+SUGGEST_METRICS = ("max_ext_m", "max_mdb", "crlb_m", "dop", "max_abs_rho")
+
+
+def layout_score(grid: Grid, metric: str = "max_ext_m", quantile: float = 0.95) -> float:
+    """One number for a layout: the ``quantile`` of ``metric`` over the grid points.
+
+    Grid points without a fix, or without redundancy when the metric needs it (NaN in the
+    table), count as ``+inf``, so coverage gaps dominate the score.
+    """
+    if metric not in SUGGEST_METRICS:
+        raise ValueError(f"metric must be one of {', '.join(SUGGEST_METRICS)}, got {metric!r}")
+    if not 0.0 < quantile <= 1.0:
+        raise ValueError(f"quantile must be in (0, 1], got {quantile}")
+    v = grid.table[metric].to_numpy(dtype=float)
+    v = np.where(np.isnan(v), np.inf, v)
+    return float(np.quantile(v, quantile, method="higher"))
+
+
+def suggest_anchor(
+    anchors: ArrayLike,
+    area: tuple[float, float, float, float],
+    step: float,
+    sigma: float,
+    candidates: ArrayLike,
+    *,
+    metric: str = "max_ext_m",
+    quantile: float = 0.95,
+    **plan_kwargs: object,
+) -> pd.DataFrame:
+    """Rank candidate positions for one more anchor by the layout score they give.
+
+    For each candidate the planner grid is recomputed with the candidate added, and the
+    layout is scored by :func:`layout_score` (default: the 95th percentile over the area of
+    the largest horizontal effect of an undetected MDB, i.e. the external reliability an
+    engineer can promise almost everywhere).
+
+    Parameters
+    ----------
+    anchors : (m, d) existing anchors.
+    area, step, sigma : as in :func:`plan` (use a coarser ``step`` than for the maps: the
+        cost is one planner run per candidate).
+    candidates : (C, d) candidate positions (same columns as ``anchors``).
+    metric, quantile : see :func:`layout_score`.
+    **plan_kwargs : further options of :func:`plan` (``dim``, ``model``, ``max_range_m``...).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per candidate, best first: its coordinates, ``score``, ``baseline`` (score
+        without a new anchor), ``improvement`` (``baseline - score``; ``inf`` when the
+        candidate closes a coverage gap) and ``points_without_fix``.
+    """
+    a = np.asarray(anchors, dtype=float)
+    c = np.atleast_2d(np.asarray(candidates, dtype=float))
+    if c.shape[1] != a.shape[1]:
+        raise ValueError(f"candidates need {a.shape[1]} columns like the anchors, got {c.shape}")
+    if not np.all(np.isfinite(c)):
+        raise ValueError("candidate coordinates must be finite")
+    base = layout_score(plan(a, area, step, sigma, **plan_kwargs), metric, quantile)
+    rows = []
+    for cand in c:
+        g = plan(np.vstack([a, cand]), area, step, sigma, **plan_kwargs)
+        sc = layout_score(g, metric, quantile)
+        rows.append({**{k: float(v) for k, v in zip("xyz", cand)}, "score": sc,
+                     "baseline": base,
+                     "improvement": (base - sc) if np.isfinite(sc) else -np.inf,
+                     "points_without_fix": int(g.table[metric].isna().sum())})
+    out = pd.DataFrame(rows)
+    return out.sort_values(["score", "points_without_fix"], kind="stable").reset_index(drop=True)
+
+
+def default_candidates(
+    area: tuple[float, float, float, float], n_per_side: int = 8, z: float | None = None
+) -> Array:
+    """Candidate anchor positions on the border of ``area`` (walls and ceiling edges are
+    where anchors can be mounted), ``n_per_side`` per side; with ``z`` a third column."""
+    xmin, xmax, ymin, ymax = map(float, area)
+    t = np.linspace(0.0, 1.0, n_per_side, endpoint=False)
+    pts = np.vstack([
+        np.column_stack([xmin + t * (xmax - xmin), np.full_like(t, ymin)]),
+        np.column_stack([np.full_like(t, xmax), ymin + t * (ymax - ymin)]),
+        np.column_stack([xmax - t * (xmax - xmin), np.full_like(t, ymax)]),
+        np.column_stack([np.full_like(t, xmin), ymax - t * (ymax - ymin)]),
+    ])
+    if z is not None:
+        pts = np.column_stack([pts, np.full(len(pts), float(z))])
+    return pts
