@@ -98,17 +98,20 @@ def _run_cart(group: str, path: str, n_trials: int, seed: int) -> dict[str, floa
          np.full((K, J, 1), np.deg2rad(SIGMA_COURSE_DEG) ** 2)], axis=-1,
     )
     t = np.broadcast_to(data.time_s, (K, J))
+    # the cart moves steadily: process noise per step scaled with the step (T = 1 s or 10 s)
+    T = float(data.time_s[1] - data.time_s[0])
+    q_cv, q_ca, acc0 = 1e-4 / T**2, 1e-6 / T**2, 1e-4 / T**2
     for kind in ("ekf", "ukf"):
-        for motion in (ConstantVelocity(q=1e-4), ConstantAcceleration(q=1e-6)):
-            x0, P0 = initial_state(pos[:, 0], motion.n_states, 1.0, 0.1, 1e-4)
+        for motion in (ConstantVelocity(q=q_cv), ConstantAcceleration(q=q_ca)):
+            x0, P0 = initial_state(pos[:, 0], motion.n_states, 1.0, 0.1, acc0)
             filt = FusionFilter(kind, motion)
             tr = filt.run(t, z, Rd, FusionMeasurement(motion.n_states), x0, P0)
             out[f"{kind.upper()} ({motion.name.upper()})"] = mean_cm(tr.x[..., :2])
     # tight coupling, UKF-CA on the raw ranges
     zt = np.concatenate([data.ranges, z[..., 2:]], axis=-1)
     Rt = np.concatenate([data.sigma_r**2, Rd[..., 2:]], axis=-1)
-    motion = ConstantAcceleration(q=1e-6)
-    x0, P0 = initial_state(pos[:, 0], motion.n_states, 1.0, 0.1, 1e-4)
+    motion = ConstantAcceleration(q=q_ca)
+    x0, P0 = initial_state(pos[:, 0], motion.n_states, 1.0, 0.1, acc0)
     tr = FusionFilter("ukf", motion).run(t, zt, Rt, FusionMeasurement(6, data.anchors), x0, P0)
     out["UKF (CA) tight"] = mean_cm(tr.x[..., :2])
     return out
@@ -131,7 +134,9 @@ def _cart_experiment(ctx: Context, sec: Section) -> None:
     a = table["A line"]
     sec.text(
         "Noise (documented in `robustloc.sim.uwb_cart`): range sigma 0.10 m + 0.1 % of the "
-        "distance, GPS speed 0.02 m/s, course 2 deg, GPS position 0.6 m per axis.  Loose "
+        "distance, GPS speed 0.02 m/s, course 2 deg, GPS position 0.6 m per axis.  Process "
+        "noise (discrete white acceleration / jerk variance) `1e-4 / T^2` (CV) and "
+        "`1e-6 / T^2` (CA), initial acceleration variance `1e-4 / T^2`.  Loose "
         "coupling feeds the WLS fix with its covariance plus GPS speed and course.  With "
         "three anchors the linearized system has exactly two rows for two unknowns, so LS "
         "and WLS fixes coincide (the paper's WLS gain cannot come from that linearization).  "
