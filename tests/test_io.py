@@ -307,3 +307,15 @@ def test_positions_writer_chunks_equal_one_write(tmp_path, ext):
         with PositionsWriter(tmp_path / f"r.{ext}") as w:
             w.write(f)
             w.write(f.drop(columns="iterations"))
+
+
+def test_ids_may_be_na_words_but_numbers_may_not(tmp_path):
+    a = read_anchors(_write(tmp_path, "a.csv", "anchor,x,y\nNA,0,0\nNone,1,1\n"))
+    assert list(a["anchor"]) == ["NA", "None"]
+    with pytest.raises(InputError, match="'y': missing or NaN") as ei:
+        read_anchors(_write(tmp_path, "b.csv", "anchor,x,y\nNA,0,NA\n"))
+    assert ei.value.line == 2
+    with pytest.raises(InputError, match="empty id"):
+        read_anchors(_write(tmp_path, "c.csv", "anchor,x,y\n,0,0\n"))
+    m = read_measurements(_write(tmp_path, "m.csv", " time, tag, anchor, rssi\n0, A, NA, -50\n"))
+    assert list(m.columns) == ["time", "tag", "anchor", "rssi"] and m["anchor"].iloc[0] == "NA"

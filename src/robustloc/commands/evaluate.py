@@ -58,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
         return 0
     show = table[[c for c in _SHOW if c in table.columns]].copy()
     for c in ("n", "n_failed"):
-        show[c] = show[c].map(lambda v: f"{v:g}")
+        show[c] = show[c].map(lambda v: f"{v:.3g}")
     for c in show.columns[4:]:
         show[c] = show[c].map(lambda v: "" if not np.isfinite(v) else f"{v:.2f}")
     show = show.rename(columns={"mean_impr_pct": "mean_vs_ls_%", "rms_impr_pct": "rms_vs_ls_%"})

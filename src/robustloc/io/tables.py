@@ -128,14 +128,22 @@ class _RaggedGuard:
                 raise _ragged_line(self.path)
 
 
-def _csv_kwargs(str_columns: Sequence[str]) -> dict:
+_NA_NUMERIC = ["", "nan", "NaN", "NAN", "NA", "null", "None"]
+
+
+def _csv_kwargs(path: Path, str_columns: Sequence[str]) -> dict:
+    """read_csv options: ids as strings (only an empty field is missing, so an anchor may
+    be called "NA"), the usual missing-value spellings in every other column."""
+    header = pd.read_csv(path, nrows=0, skipinitialspace=True, index_col=False)
+    names = [str(c) for c in header.columns]
+    strs = {c for c in str_columns}
     return dict(
         index_col=False,
-        dtype={c: str for c in str_columns},
+        dtype={c: str for c in names if c.strip() in strs},
         skip_blank_lines=False,
         skipinitialspace=True,
         keep_default_na=False,
-        na_values=["", "nan", "NaN", "NAN", "NA", "null", "None"],
+        na_values={c: ([""] if c.strip() in strs else _NA_NUMERIC) for c in names},
     )
 
 
@@ -162,7 +170,7 @@ def _read_raw(path: PathLike, str_columns: Sequence[str] = ()) -> pd.DataFrame:
         return _finish_frame(df.reset_index(drop=True), p, 2)
     try:
         with _RaggedGuard(p):
-            df = pd.read_csv(p, **_csv_kwargs(str_columns))
+            df = pd.read_csv(p, **_csv_kwargs(p, str_columns))
     except pd.errors.EmptyDataError:
         raise InputError("empty file (expected a header line)", p, 1) from None
     except (pd.errors.ParserError, UnicodeDecodeError) as exc:
@@ -195,7 +203,7 @@ def _iter_raw(
     try:
         line = 2
         with _RaggedGuard(p) as guard:
-            reader = pd.read_csv(p, chunksize=chunk_rows, **_csv_kwargs(str_columns))
+            reader = pd.read_csv(p, chunksize=chunk_rows, **_csv_kwargs(p, str_columns))
             with reader:
                 for df in reader:
                     guard.check()
