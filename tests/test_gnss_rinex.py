@@ -152,3 +152,77 @@ def test_bad_sp3_and_clk(tmp_path: Path) -> None:
     assert e.value.line == k + 1
     with pytest.raises(InputError, match="clock"):
         read_clk(OBS)
+
+
+RINEX3_OBS = """\
+     3.03           OBSERVATION DATA    M                   RINEX VERSION / TYPE
+  -3976219.5082  3382372.5671  3652512.9849                  APPROX POSITION XYZ
+G    3 C1C L1C C2W                                          SYS / # / OBS TYPES
+E    2 C1C C5Q                                              SYS / # / OBS TYPES
+  2021     4    28    19    30    0.0000000     GPS         TIME OF FIRST OBS
+                                                            END OF HEADER
+> 2021 04 28 19 30  0.0000000  0  3
+G05  20311445.258   106734567.123 8  20311449.125
+E11  23000001.500    23000004.750
+G19  21565852.190
+> 2021 04 28 19 30 30.0000000  0  2
+G05  20311545.258   106735567.123 8  20311549.125
+E11  23000101.500    23000104.750
+"""
+
+
+def test_rinex3_obs_through_georinex(tmp_path: Path) -> None:
+    o = read_obs(_write(tmp_path, "x.rnx", RINEX3_OBS))
+    assert o.version == 3.03 and o.n_epochs == 2
+    assert o.sats == ["G05", "G19", "E11"]
+    assert o.obs["C1C"][0].tolist() == [20311445.258, 21565852.190, 23000001.5]
+    assert o.obs["C1C"][1, 0] == 20311545.258 and np.isnan(o.obs["C1C"][1, 1])
+    assert o.obs["C5Q"][0, 2] == 23000004.75
+    assert o.t_gps_s[1] - o.t_gps_s[0] == 30.0
+    assert o.line.tolist() == [7, 11]
+
+
+def _nav3_from_nav2(records: list[list[str]], sys_letter: str) -> list[str]:
+    """Re-write RINEX 2 GPS records as RINEX 3 records of another constellation."""
+    out = []
+    for rec in records:
+        prn = int(rec[0][:2])
+        yy, mo, dd, hh, mi = (int(rec[0][c : c + 3]) for c in (2, 5, 8, 11, 14))
+        ss = int(float(rec[0][17:22]))
+        out.append(f"{sys_letter}{prn:02d} {2000 + yy:04d} {mo:02d} {dd:02d} {hh:02d} {mi:02d} "
+                   f"{ss:02d}" + rec[0][22:79])
+        out += ["    " + ln[3:79] for ln in rec[1:]]
+    return out
+
+
+def test_rinex3_nav_gps_galileo_beidou(tmp_path: Path) -> None:
+    nav2 = read_nav(NAV)
+    lines = NAV.read_text().splitlines()
+    i0 = next(i for i, ln in enumerate(lines) if "END OF HEADER" in ln) + 1
+    recs = [lines[i : i + 8] for i in range(i0, i0 + 8 * 3, 8)]
+    head = [
+        "     3.03           N: GNSS NAV DATA    M: Mixed            RINEX VERSION / TYPE",
+        "GPSA   1.1180E-08  1.4900E-08 -5.9600E-08 -5.9600E-08       IONOSPHERIC CORR",
+        "GPSB   8.8060E+04  1.6380E+04 -1.9660E+05 -1.3110E+05       IONOSPHERIC CORR",
+        "                                                            END OF HEADER",
+    ]
+    body = _nav3_from_nav2(recs, "G") + _nav3_from_nav2(recs, "E") + _nav3_from_nav2(recs, "C")
+    path = _write(tmp_path, "mixed.rnx", "\n".join(head + body) + "\n")
+    nav3 = read_nav(path)
+    np.testing.assert_allclose(nav3.ion_alpha, nav2.ion_alpha)
+    g3 = np.char.startswith(nav3.sat.astype(str), "G")
+    e3 = np.char.startswith(nav3.sat.astype(str), "E")
+    assert g3.sum() == 3 and e3.sum() == 3
+    for k in range(3):
+        j = int(np.flatnonzero((nav2.sat == nav3.sat[g3][k]) &
+                               (nav2.toc_gps_s == nav3.toc_gps_s[g3][k]))[0])
+        for name in ("sqrtA", "M0", "Omega0", "Crs", "SVclockBias", "tgd"):
+            assert nav3.params[name][g3][k] == nav2.params[name][j]
+        assert nav3.toe_gps_s[g3][k] == nav2.toe_gps_s[j]
+    # Galileo: the 7th line's third field is BGD(E1,E5a), used as the group delay
+    np.testing.assert_allclose(nav3.params["tgd"][e3], nav3.params["tgd"][g3])
+    # BeiDou: epochs in BDT = GPST - 14 s
+    c3 = np.char.startswith(nav3.sat.astype(str), "C")
+    assert c3.sum() == 3
+    np.testing.assert_allclose(nav3.toc_gps_s[c3], nav3.toc_gps_s[g3] + 14.0)
+    np.testing.assert_allclose(nav3.toe_gps_s[c3], nav3.toe_gps_s[g3] + 14.0)

@@ -26,14 +26,32 @@ KLOBUCHAR_DEFAULT = np.array(
 )
 
 
-def geodetic(xyz_m: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
-    """WGS-84 latitude (rad), longitude (rad) and ellipsoidal height (m) of ECEF points."""
-    import pymap3d
+#: WGS-84 ellipsoid.
+WGS84_A = 6378137.0
+WGS84_F = 1.0 / 298.257223563
 
+
+def geodetic(xyz_m: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
+    """WGS-84 latitude (rad), longitude (rad) and ellipsoidal height (m) of ECEF points.
+
+    Bowring's (1976) closed form, exact to well below a millimetre for points near the
+    Earth's surface (checked against pymap3d in the tests); about 5x faster than
+    ``pymap3d.ecef2geodetic`` on the per-iteration calls of the solver.
+    """
     x = np.asarray(xyz_m, dtype=np.float64)
-    lat, lon, h = pymap3d.ecef2geodetic(x[..., 0], x[..., 1], x[..., 2], deg=False)
-    shape = x.shape[:-1]
-    return tuple(np.asarray(a, dtype=float).reshape(shape) for a in (lat, lon, h))
+    a, f = WGS84_A, WGS84_F
+    b = a * (1.0 - f)
+    e2 = f * (2.0 - f)
+    ep2 = e2 / (1.0 - e2)
+    X, Y, Z = x[..., 0], x[..., 1], x[..., 2]
+    p = np.hypot(X, Y)
+    lon = np.arctan2(Y, X)
+    th = np.arctan2(Z * a, p * b)
+    st, ct = np.sin(th), np.cos(th)
+    lat = np.arctan2(Z + ep2 * b * st**3, p - e2 * a * ct**3)
+    sl, cl = np.sin(lat), np.cos(lat)
+    h = p * cl + Z * sl - a * np.sqrt(1.0 - e2 * sl * sl)
+    return lat, lon, h
 
 
 def enu_matrix(lat_rad: NDArray, lon_rad: NDArray) -> NDArray[np.float64]:
