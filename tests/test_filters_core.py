@@ -335,3 +335,53 @@ def test_flop_counts_follow_the_paper_rules():
     e = ekf_flops(4, 4)
     assert e["total"] == sum(v for k, v in e.items() if k != "total")
     assert ekf_flops(6, 4)["total"] < u["total"]
+
+
+def test_ukf_matches_filterpy_merwe_points():
+    # one nonlinear predict (turning motion) and one [x, y, v, heading] update, both against
+    # FilterPy's UnscentedKalmanFilter with Merwe points (alpha = 1, beta = 2, kappa = 0);
+    # FilterPy reuses the propagated sigma points in update, we redraw them from the
+    # predicted moments, so its sigma points are redrawn too before the update.
+    from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+
+    def fx(x, dt=1.0):  # coordinated turn of the velocity by 0.1 rad per step
+        x = np.atleast_2d(x)
+        c, s = np.cos(0.1), np.sin(0.1)
+        out = x.copy()
+        out[:, 0] += x[:, 2] * dt
+        out[:, 1] += x[:, 3] * dt
+        out[:, 2] = c * x[:, 2] + s * x[:, 3]
+        out[:, 3] = -s * x[:, 2] + c * x[:, 3]
+        return out
+
+    x0 = np.array([1.0, 2.0, 0.4, -0.3])
+    A = np.random.default_rng(1).normal(size=(4, 4))
+    P0 = 0.05 * A @ A.T + 0.1 * np.eye(4)
+    Q = 0.01 * np.eye(4)
+    R = np.diag([0.1, 0.1, 0.01, 0.02])
+    z = np.array([1.5, 1.6, 0.55, 2.3])
+    pts = MerweScaledSigmaPoints(4, alpha=1.0, beta=2.0, kappa=0.0)
+
+    def res_z(a, b):
+        d = np.subtract(a, b)
+        d[3] = wrap_angle(d[3])
+        return d
+
+    def z_mean(sigmas, wm):
+        m = np.dot(wm, sigmas)
+        m[3] = np.arctan2(np.dot(wm, np.sin(sigmas[:, 3])), np.dot(wm, np.cos(sigmas[:, 3])))
+        return m
+
+    ref = UnscentedKalmanFilter(4, 4, 1.0, hx=lambda s: _speed_course(s[None])[0],
+                                fx=lambda s, dt: fx(s, dt)[0], points=pts,
+                                residual_z=res_z, z_mean_fn=z_mean)
+    ref.x, ref.P, ref.Q, ref.R = x0.copy(), P0.copy(), Q, R
+    ref.predict()
+    x, P = predict_ukf(x0[None], P0[None], fx, Q)
+    np.testing.assert_allclose(x[0], ref.x, atol=1e-12)
+    np.testing.assert_allclose(P[0], ref.P, atol=1e-12)
+    ref.sigmas_f = pts.sigma_points(ref.x, ref.P)
+    ref.update(z)
+    r = update_ukf(x, P, z[None], _speed_course, R, z_angles=[3])
+    np.testing.assert_allclose(r.x[0], ref.x, atol=1e-10)
+    np.testing.assert_allclose(r.P[0], ref.P, atol=1e-10)
