@@ -118,3 +118,14 @@ def test_unreadable_and_empty_files(tmp_path):
 def test_garbage_never_crashes(lines):
     log = parse_nmea(lines)
     assert log.summary.lines <= len(lines)
+
+
+def test_gst_accuracy_rows():
+    body = "GPGST,172814.0,0.006,0.023,0.020,273.6,0.023,0.020,0.031"
+    log = parse_nmea(["$" + body + "*" + nmea_checksum(body), make_gga(62894.0, 1.0, 2.0, 3.0)])
+    acc = log.accuracy
+    assert len(acc) == 1 and log.summary.parsed["GST"] == 1
+    row = acc.iloc[0]
+    assert row["time_s"] == pytest.approx(17 * 3600 + 28 * 60 + 14)
+    assert (row["rms_m"], row["sigma_lat_m"], row["sigma_lon_m"], row["sigma_alt_m"]) == (
+        pytest.approx(0.006), pytest.approx(0.023), pytest.approx(0.020), pytest.approx(0.031))
