@@ -8,7 +8,8 @@
 3. Detection probability against fault size, measured and theoretical.
 4. Real data: data snooping as an NLOS detector on WiFi RTT ranges with line-of-sight
    labels (``wifi-rtt-rss``; shipped excerpt, or the full set under ``ctx.data_dir``).
-5. Reliability maps of the ``ble-corridor`` layout and the reliability at its test points.
+5. Reliability maps of the ``ble-corridor`` layout, the reliability at its test points and
+   the best places for one more beacon.
 """
 
 from __future__ import annotations
@@ -194,7 +195,12 @@ def _wifi_rtt_block(ctx: Context) -> tuple[pd.DataFrame, str]:
 def run(ctx: Context) -> Section:
     from robustloc.integrity import RHO_THRESHOLD, reliability
     from robustloc.integrity.montecarlo import gnss_layout, ranging_layout, rssi_layout
-    from robustloc.integrity.planner import plan, plot_maps
+    from robustloc.integrity.planner import (
+        default_candidates,
+        plan,
+        plot_maps,
+        suggest_anchor,
+    )
     from robustloc.sim import ble_corridor as bc
 
     sec = Section(TITLE)
@@ -310,10 +316,15 @@ def run(ctx: Context) -> Section:
 
     # --- reliability map of the ble-corridor layout
     step = 1.0 if ctx.quick else 0.1
-    grid = plan(bc.ANCHOR_XY, (0.0, bc.CORRIDOR_LENGTH_M, 0.0, bc.CORRIDOR_WIDTH_M), step, 1.0)
+    area = (0.0, bc.CORRIDOR_LENGTH_M, 0.0, bc.CORRIDOR_WIDTH_M)
+    grid = plan(bc.ANCHOR_XY, area, step, 1.0)
+    # where would an 11th beacon help most? (candidates on the walls and ends)
+    sugg = suggest_anchor(bc.ANCHOR_XY, area, 2.0 if ctx.quick else 0.5, 1.0,
+                          default_candidates(area, 8))
     cols = ("dop", "max_mdb", "max_ext_m", "max_abs_rho", "min_redundancy")
     pngs = plot_maps(grid, bc.ANCHOR_XY, ctx.out_dir, list(bc.ANCHOR_IDS),
-                     prefix="s40_ble_corridor", columns=cols)
+                     prefix="s40_ble_corridor", columns=cols,
+                     highlight=sugg[["x", "y"]].to_numpy(float)[:3])
     grid.table.to_csv(ctx.out_dir / "s40_ble_corridor_reliability.csv", index=False,
                       float_format="%.5g")
     captions = {
@@ -324,7 +335,13 @@ def run(ctx: Context) -> Section:
         "min_redundancy": "ble-corridor: smallest redundancy number r_i",
     }
     for col, p in zip(cols, pngs):
-        sec.figure(captions[col], p.name)
+        sec.figure(captions[col] + " (stars: best places for an 11th beacon)", p.name)
+    sec.table(
+        "One more beacon: candidates on the corridor's border ranked by the 95th percentile "
+        "over the corridor of the largest horizontal effect of an undetected MDB (m), "
+        "`robustloc reliability --suggest`", sugg.head(5),
+    )
+    sec.summary["corridor_best_new_beacon"] = json_ready(sugg.head(1))[0]
     t = grid.table
     rows = []
     for name_, xy in bc.TEST_POINTS.items():
