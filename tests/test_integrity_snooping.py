@@ -101,6 +101,16 @@ def test_statuses_for_degenerate_epochs():
     H = np.zeros((1, 4, 2))
     H[0, :, 0] = 1
     assert snoop_linear(H, np.zeros((1, 4)), 1.0).status[0] == st.ILL_CONDITIONED
+    # non-finite observations and design rows are missing observations, never a crash
+    Hn = np.ones((1, 3, 1))
+    Hn[0, 1, 0] = np.nan
+    r = snoop_linear(Hn, np.array([[1.0, 5.0, 2.0]]), 1.0)
+    assert r.n_used[0] == 2 and r.status[0] == st.OK
+    r = snoop_linear(np.ones((1, 3, 1)), np.array([[1.0, np.inf, 2.0]]), 1.0)
+    assert r.n_used[0] == 2
+    # an empty batch keeps its shapes
+    r = snoop_linear(np.ones((0, 3, 2)), np.zeros((0, 3)), 1.0)
+    assert r.x.shape == (0, 2) and r.status.shape == (0,)
 
 
 def test_require_local_and_max_exclusions():

@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import inspect
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -465,7 +465,11 @@ def snoop_linear(
         v = np.einsum("kip,kp->ki", Hr, x) - yr
         return x, Hr, v
 
-    return snoop(
+    res = snoop(
         _solve, m, sig, alpha=alpha, alpha0=alpha0, beta0=beta0,
         require_local=require_local, max_exclusions=max_exclusions, rcond=rcond,
     )
+    if N == 0:  # no epoch: keep the number of unknowns in the shapes
+        p = Hm.shape[2]
+        res = replace(res, x=np.zeros((0, p)), cov=np.zeros((0, p, p)))
+    return res
