@@ -117,6 +117,10 @@ class _Kinematic:
         """Position of ``d^derivative / dt`` of ``axis`` in the state vector."""
         return derivative * self.dim + axis
 
+    def FQ(self, dt: float) -> tuple[Array, Array]:
+        """``(F(dt), Q(dt))`` for a scalar step, cached (read-only arrays; hot path)."""
+        return _fq_cached(self, float(dt))
+
     def F(self, dt: ArrayLike) -> Array:
         """Transition matrix (seed 001: CV ``F`` of the EKF model, CA of the UKF model)."""
         return _evaluate(_coefficients(self.order, self.dim)[0], dt)
@@ -162,6 +166,14 @@ class ConstantAcceleration(_Kinematic):
 
     order: int = 2
     name: str = "ca"
+
+
+@lru_cache(maxsize=256)
+def _fq_cached(model: _Kinematic, dt: float) -> tuple[Array, Array]:
+    F, Q = model.F(dt), model.Q(dt)
+    F.flags.writeable = False
+    Q.flags.writeable = False
+    return F, Q
 
 
 def motion_model(

@@ -183,15 +183,15 @@ class FusionFilter:
         meas: FusionMeasurement,
     ):
         """One vectorized predict + update of ``K`` tracks with per-track ``dt (K,)``."""
-        F = self.motion.F(dt)
-        Q = self.motion.Q(dt)
+        if np.all(dt == dt[0]):  # one step for all tracks (the usual case): cached 2-D F, Q
+            F, Q = self.motion.FQ(float(dt[0]))
+        else:
+            F, Q = self.motion.F(dt), self.motion.Q(dt)
         if self.kind == "ekf":
             x, P = predict_linear(x, P, F, Q)
         else:
             K, n = x.shape
 
-            if F.ndim == 3 and np.all(dt == dt[0]):
-                F = F[0]  # one step for all tracks: a single matrix product
             if F.ndim == 2:
                 F2 = F
 
