@@ -199,3 +199,38 @@ def test_calibrator_objects_match_functions():
     pd.testing.assert_frame_equal(a, b)
     r = s.rename(columns={"rssi": "range"}).assign(range=lambda f: f["distance"] + 0.3)
     assert RangeCalibrator().fit(r).table["bias"].iloc[0] == pytest.approx(0.3)
+
+
+def test_frequency_weights_equal_repeated_rows():
+    rng = np.random.default_rng(12)
+    d = np.arange(1.0, 16.0)
+    r = LogDistance(-60.0, 2.0).rssi(d) + rng.normal(0, 2, d.size)
+    counts = rng.integers(1, 5, d.size)
+    weighted = pd.DataFrame({"anchor": "a", "distance": d, "rssi": r, "weight": counts})
+    repeated = pd.DataFrame({"anchor": "a", "distance": np.repeat(d, counts),
+                             "rssi": np.repeat(r, counts)})
+    r[::4] -= 15.0  # outliers, so that the robust weights (and the MAD scale) matter
+    weighted["rssi"] = r
+    repeated["rssi"] = np.repeat(r, counts)
+    for robust in (None, "huber", "igg3"):
+        tw = calibrate_pathloss(weighted, robust=robust).table.iloc[0]
+        tr = calibrate_pathloss(repeated, robust=robust).table.iloc[0]
+        for c in ("A", "n", "A_se", "n_se", "residual_std"):
+            np.testing.assert_allclose(tw[c], tr[c], rtol=1e-9, err_msg=f"{robust} {c}")
+    bad = weighted.assign(weight=-1.0)
+    with pytest.raises(InputError, match="'weight'"):
+        calibrate_pathloss(bad)
+
+
+def test_weighted_mad_equals_repeated_median():
+    from robustloc.models.calibration import _grouped_mad
+
+    rng = np.random.default_rng(2)
+    for _ in range(30):
+        k = rng.integers(1, 12)
+        v = rng.normal(size=k)
+        c = rng.integers(1, 4, k)
+        g = np.zeros(k, dtype=np.int64)
+        got = _grouped_mad(v, g, 1, c.astype(float))[0]
+        want = np.median(np.abs(np.repeat(v, c))) / 0.6744897501960817
+        np.testing.assert_allclose(got, want, rtol=1e-12)

@@ -28,6 +28,9 @@ Attenuation factor: only ``p0 + faf`` is identifiable from RSSI alone.  As in th
 else as the mean survey RSSI of that anchor within 5 % of ``d0``, else as the pooled mean
 there; with no sample near ``d0`` and no ``p0`` given it is an error.
 
+A survey may carry a ``weight`` column: frequency weights of its rows (e.g. the
+probability of each bin of an RSSI histogram, or a sample count), used in every sum above.
+
 Anchors with fewer survey rows than parameters + 1 get the pooled parameters (column
 ``calib_source = "pooled"``), so that every anchor is usable after calibration.
 
@@ -122,6 +125,7 @@ def fit_lines(
     robust: WeightFunction | None = None,
     max_iter: int = 50,
     tol: float = 1e-8,
+    weights: ArrayLike | None = None,
 ) -> LineFit:
     """Fit ``y = a + b x`` in every group at once; least squares or robust IRLS.
 
@@ -139,6 +143,10 @@ def fit_lines(
         ``q_vv = 1 - h``); ``None`` for least squares.
     max_iter, tol : int, float
         IRLS stop: ``max |delta a|, |delta b| < tol`` or ``max_iter`` iterations.
+    weights : array_like, shape (k,), optional
+        Prior (frequency) weights of the rows, e.g. histogram probabilities or counts;
+        the robust weights multiply them.  The residual variance is
+        ``sum(w v^2) / (sum of the prior weights of the rows in use - p)``.
 
     Returns
     -------
@@ -149,7 +157,10 @@ def fit_lines(
     y = np.asarray(y, dtype=float)
     g = np.asarray(group, dtype=np.int64)
     p = 2 if slope else 1
-    w = np.ones_like(y)
+    w0 = np.ones_like(y) if weights is None else np.asarray(weights, dtype=float)
+    if w0.shape != y.shape or np.any(~np.isfinite(w0)) or np.any(w0 < 0):
+        raise ValueError("weights must be finite, non-negative, one per row")
+    w = w0.copy()
     xs = x if slope else np.zeros_like(y)
     a, b, _ = _solve_lines(xs, y, w, g, n_groups, slope)
     it = 0
@@ -161,14 +172,16 @@ def fit_lines(
             # near the robust solution rather than at the outlier-pulled LS line
             stages = [Huber(1.5), robust]
         for wf in stages:
-            a, b, w, k, converged = _irls(xs, y, g, n_groups, slope, wf, a, b, max_iter, tol)
+            a, b, w, k, converged = _irls(
+                xs, y, g, n_groups, slope, wf, a, b, max_iter, tol, w0
+            )
             it += k
     v = a[g] + b[g] * xs - y
     used = w > 0
     n_obs = np.bincount(g, minlength=n_groups).astype(np.int64)
     n_used = np.bincount(g, weights=used.astype(float), minlength=n_groups).astype(np.int64)
-    (wvv,) = _group_sums(g, n_groups, w * v * v)
-    dof = n_used - p
+    (wvv, n_freq) = _group_sums(g, n_groups, w * v * v, np.where(used, w0, 0.0))
+    dof = (n_used if weights is None else n_freq) - p
     with np.errstate(invalid="ignore", divide="ignore"):
         s2 = np.where(dof > 0, wvv / np.maximum(dof, 1), np.nan)
     sw, swx, swxx = _group_sums(g, n_groups, w, w * xs, w * xs * xs)
@@ -194,18 +207,22 @@ def fit_lines(
 
 def _irls(
     xs: Array, y: Array, g: NDArray[np.int64], n_groups: int, slope: bool,
-    wf: WeightFunction, a: Array, b: Array, max_iter: int, tol: float,
+    wf: WeightFunction, a: Array, b: Array, max_iter: int, tol: float, w0: Array,
 ) -> tuple[Array, Array, Array, int, bool]:
-    w = np.ones_like(y)
+    w = w0.copy()
     for k in range(1, max_iter + 1):
         v = a[g] + b[g] * xs - y
-        qvv = np.clip(1.0 - _leverage(xs, w, g, n_groups, slope), 1e-12, None)
+        # per-observation leverage: a row of frequency weight c stands for c observations,
+        # each with q_vv = 1 - p_robust x^T N^-1 x
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w_rob = np.where(w0 > 0, w / w0, 0.0)
+        qvv = np.clip(1.0 - _leverage(xs, w, g, n_groups, slope, w_rob), 1e-12, None)
         # robust scale per group: med|v| / 0.6745 over the rows in use (seed 000 sec. 2.1)
-        sigma = _grouped_mad(np.where(w > 0, v, np.nan), g, n_groups)
+        sigma = _grouped_mad(v, g, n_groups, w0)
         with np.errstate(invalid="ignore", divide="ignore"):
             u = v / (sigma[g] * np.sqrt(qvv))
         u = np.where(np.isfinite(u), u, 0.0)  # zero scale (exact fit): keep full weight
-        w = np.nan_to_num(wf.weights(u), nan=0.0)
+        w = w0 * np.nan_to_num(wf.weights(u), nan=0.0)
         a_new, b_new, _ = _solve_lines(xs, y, w, g, n_groups, slope)
         step = np.abs(np.concatenate([a_new - a, b_new - b]))
         step = np.nanmax(step) if np.isfinite(step).any() else 0.0
@@ -216,22 +233,51 @@ def _irls(
 
 
 def _leverage(
-    x: Array, w: Array, g: NDArray[np.int64], n_groups: int, slope: bool
+    x: Array, w: Array, g: NDArray[np.int64], n_groups: int, slope: bool,
+    p: Array | None = None,
 ) -> Array:
-    """Diagonal of the hat matrix ``h_i = w_i x_i^T (X^T W X)^-1 x_i`` per row."""
+    """Hat-matrix diagonal ``h_i = p_i x_i^T (X^T W X)^-1 x_i`` per row (``p = w`` unless
+    given)."""
+    p = w if p is None else p
     sw, swx, swxx = _group_sums(g, n_groups, w, w * x, w * x * x)
     with np.errstate(invalid="ignore", divide="ignore"):
         if not slope:
-            return np.nan_to_num(w / sw[g])
+            return np.nan_to_num(p / sw[g])
         det = sw * swxx - swx * swx
-        h = w * (swxx[g] - 2.0 * x * swx[g] + x * x * sw[g]) / det[g]
+        h = p * (swxx[g] - 2.0 * x * swx[g] + x * x * sw[g]) / det[g]
     return np.nan_to_num(h)
 
 
-def _grouped_mad(v: Array, g: NDArray[np.int64], n_groups: int) -> Array:
-    out = pd.Series(np.abs(v)).groupby(g).median()
+def _grouped_mad(
+    v: Array, g: NDArray[np.int64], n_groups: int, w: Array | None = None
+) -> Array:
+    """``med|v| / 0.6745`` per group, NaN ignored; a weighted median with weights ``w``
+    (the lower weighted median averaged with the next value at an exact half, which
+    equals the plain median of the rows repeated ``w`` times for integer ``w``)."""
+    a = np.abs(v)
+    ok = np.isfinite(a)
+    if w is None:
+        out = pd.Series(a[ok]).groupby(g[ok]).median()
+        s = np.full(n_groups, np.nan)
+        s[out.index.to_numpy()] = out.to_numpy()
+        return s / MAD_NORMAL
+    ok &= w > 0
+    a, gg, ww = a[ok], g[ok], w[ok]
+    order = np.lexsort((a, gg))
+    a, gg, ww = a[order], gg[order], ww[order]
+    tot = np.bincount(gg, weights=ww, minlength=n_groups)
+    start = np.concatenate(([0.0], np.cumsum(tot)[:-1]))
+    cum = np.cumsum(ww) - start[gg]  # cumulative weight within the group
+    half = 0.5 * tot[gg]
     s = np.full(n_groups, np.nan)
-    s[out.index.to_numpy()] = out.to_numpy()
+    first = (cum >= half - 1e-12 * tot[gg]) & (cum - ww < half - 1e-12 * tot[gg])
+    idx = np.flatnonzero(first)
+    med = a[idx].copy()
+    exact = np.isclose(cum[idx], half[idx], rtol=1e-12, atol=0.0)
+    nxt = np.minimum(idx + 1, len(a) - 1)
+    same = gg[nxt] == gg[idx]
+    med = np.where(exact & same, 0.5 * (med + a[nxt]), med)
+    s[gg[idx]] = med
     return s / MAD_NORMAL
 
 
@@ -317,6 +363,22 @@ def _robust_weight(robust: str | WeightFunction | None) -> WeightFunction | None
     if isinstance(robust, WeightFunction):
         return robust
     return get_weight(str(robust))
+
+
+def _survey_weights(survey: pd.DataFrame) -> Array | None:
+    """The survey's optional ``weight`` column (frequency weights), validated."""
+    if "weight" not in survey.columns:
+        return None
+    w = pd.to_numeric(survey["weight"], errors="coerce").to_numpy(dtype=float)
+    bad = ~np.isfinite(w) | (w < 0)
+    if bad.any():
+        i = int(np.argmax(bad))
+        line = int(survey.index[i]) if survey.index.name == "line" else None
+        raise InputError(
+            f"column 'weight': {survey['weight'].iloc[i]!r} must be a finite number >= 0",
+            survey.attrs.get("path"), line,
+        )
+    return w
 
 
 def _natural_key(s: str) -> tuple[int, float, str]:
@@ -427,8 +489,11 @@ def calibrate_pathloss(
         x, y, slope = 10.0 * np.log10(d0 / d), r - p0_arr[g], True
     else:
         x, y, slope = np.zeros_like(d), r - 20.0 * np.log10(d0 / d), False
-    per = fit_lines(x, y, g, m, slope=slope, robust=weight, max_iter=max_iter)
-    pool = fit_lines(x, y, np.zeros_like(g), 1, slope=slope, robust=weight, max_iter=max_iter)
+    sw = _survey_weights(survey)
+    per = fit_lines(x, y, g, m, slope=slope, robust=weight, max_iter=max_iter, weights=sw)
+    pool = fit_lines(
+        x, y, np.zeros_like(g), 1, slope=slope, robust=weight, max_iter=max_iter, weights=sw
+    )
     rows = _assemble(per, pool, ids, slope)
     if model == "log-distance":
         table = _table(rows, {"A": "a", "n": "b"})
@@ -474,8 +539,11 @@ def calibrate_ranges(
         x, y = d, r
     else:
         x, y = np.zeros_like(d), r - d
-    per = fit_lines(x, y, g, len(ids), slope=scale, robust=weight, max_iter=max_iter)
-    pool = fit_lines(x, y, np.zeros_like(g), 1, slope=scale, robust=weight, max_iter=max_iter)
+    sw = _survey_weights(survey)
+    per = fit_lines(x, y, g, len(ids), slope=scale, robust=weight, max_iter=max_iter, weights=sw)
+    pool = fit_lines(
+        x, y, np.zeros_like(g), 1, slope=scale, robust=weight, max_iter=max_iter, weights=sw
+    )
     rows = _assemble(per, pool, ids, scale)
     table = _table(rows, {"bias": "a", "scale": "b"} if scale else {"bias": "a"})
     if not scale:
