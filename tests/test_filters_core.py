@@ -385,3 +385,34 @@ def test_ukf_matches_filterpy_merwe_points():
     r = update_ukf(x, P, z[None], _speed_course, R, z_angles=[3])
     np.testing.assert_allclose(r.x[0], ref.x, atol=1e-10)
     np.testing.assert_allclose(r.P[0], ref.P, atol=1e-10)
+
+
+@pytest.mark.parametrize("kind", ["ekf", "ukf"])
+def test_angular_state_wraps(kind):
+    # state [heading, turn rate]; heading crosses +-pi; measurement = heading
+    F = np.array([[1.0, 1.0], [0.0, 1.0]])
+    Q = np.diag([1e-4, 1e-6])
+    R = np.array([[np.deg2rad(1.0) ** 2]])
+    x = np.array([[np.pi - 0.3, 0.05]])
+    P = np.diag([0.01, 1e-4])[None]
+    truth = np.array([np.pi - 0.3, 0.05])
+
+    def f(s):
+        out = s @ F.T
+        out[:, 0] = wrap_angle(out[:, 0])
+        return out
+
+    for _ in range(15):
+        truth = F @ truth
+        z = wrap_angle(truth[:1])[None]
+        if kind == "ekf":
+            x, P = predict_ekf(x, P, f, Q, jac=lambda s: np.tile(F, (len(s), 1, 1)),
+                               x_angles=[0])
+            r = update_ekf(x, P, z, lambda s: s[:, :1], R, z_angles=[0], x_angles=[0])
+        else:
+            x, P = predict_ukf(x, P, f, Q, x_angles=[0])
+            r = update_ukf(x, P, z, lambda s: s[:, :1], R, z_angles=[0], x_angles=[0])
+        x, P = r.x, r.P
+        assert -np.pi <= x[0, 0] < np.pi
+        assert abs(wrap_angle(x[0, 0] - truth[0])) < np.deg2rad(2.0)
+        assert abs(x[0, 1] - 0.05) < 0.01
