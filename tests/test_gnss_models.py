@@ -122,3 +122,27 @@ def test_saastamoinen_hand_values() -> None:
     assert saastamoinen(0.0, 0.0, -0.1) == 0.0
     with pytest.raises(ValueError):
         saastamoinen(0.0, 0.0, 1.0, mapping="niell")
+
+
+def test_geodetic_matches_pymap3d() -> None:
+    import pymap3d
+
+    from robustloc.gnss.corrections import azimuth_elevation, geodetic
+
+    rng = np.random.default_rng(0)
+    lat = rng.uniform(-89.9, 89.9, 500)
+    lon = rng.uniform(-180, 180, 500)
+    h = rng.uniform(-400, 25000, 500)
+    xyz = np.stack(pymap3d.geodetic2ecef(lat, lon, h), axis=-1)
+    la, lo, hh = geodetic(xyz)
+    np.testing.assert_allclose(np.rad2deg(la), lat, atol=1e-9)  # ~0.1 mm
+    np.testing.assert_allclose(np.rad2deg(lo), lon, atol=1e-9)
+    np.testing.assert_allclose(hh, h, atol=1e-4)
+    # azimuth/elevation against pymap3d.ecef2aer
+    sat = np.array([[[15.6e6, -7.9e6, 19.6e6], [-2.0e7, 1.2e7, 1.0e7]]])
+    rx = xyz[:1]
+    az, el = azimuth_elevation(rx, sat, la[:1], lo[:1])
+    for k in range(2):
+        a, e, _ = pymap3d.ecef2aer(*sat[0, k], lat[0], lon[0], h[0])
+        assert np.rad2deg(az[0, k]) == pytest.approx(a, abs=1e-7)
+        assert np.rad2deg(el[0, k]) == pytest.approx(e, abs=1e-7)

@@ -99,7 +99,7 @@ def test_protection_levels_equal_external_reliability() -> None:
     used[0, 7] = False
     # at lat = lon = 0, ENU = (y, z, x) of ECEF
     xyz = np.tile([6378137.0, 0.0, 0.0], (N, 1))
-    hpl, vpl = protection_levels(H, sigma, used, xyz, lam0=20.9)
+    hpl, vpl = protection_levels(H, sigma, used, xyz, lam0=20.9)  # bias term only
     Henu = H[..., [1, 2, 0, 3]]
     rel = reliability(Henu, np.where(used, sigma, np.nan), mask=used, horizontal=(0, 1))
     lam_ratio = np.sqrt(20.9 / rel.lambda0)
@@ -107,6 +107,13 @@ def test_protection_levels_equal_external_reliability() -> None:
                                rtol=1e-9)
     np.testing.assert_allclose(vpl, np.nanmax(np.abs(rel.external[..., 2]), axis=1) * lam_ratio,
                                rtol=1e-9)
+    # plus k times the fault-free sigma: the largest eigenvalue of the EN covariance
+    hpl3, vpl3 = protection_levels(H, sigma, used, xyz, lam0=20.9, k_noise=3.0)
+    A = Henu / sigma[..., None] * used[..., None]
+    C = np.linalg.inv(np.swapaxes(A, 1, 2) @ A)
+    np.testing.assert_allclose(hpl3 - hpl, 3.0 * np.sqrt(np.linalg.eigvalsh(C[:, :2, :2])[:, 1]),
+                               rtol=1e-9)
+    np.testing.assert_allclose(vpl3 - vpl, 3.0 * np.sqrt(C[:, 2, 2]), rtol=1e-9)
 
 
 def test_inject_unknown_satellite(geonet) -> None:  # noqa: ANN001

@@ -17,17 +17,19 @@ epoch get a unit pseudo-observation on their clock column (zero residual, zero r
 never tested, never excluded, and the redundancy ``n - p`` stays right), so one fixed-width
 design serves every epoch.
 
-**Protection levels** (Baarda's external reliability, per epoch, after FDE): a bias equal to
-the minimal detectable bias ``MDB_i = sigma_i sqrt(lambda0 / r_i)`` on satellite ``i`` is
-missed by the w-test with probability ``beta0`` (10 %), and moves the position by
-``dx_i = (H^T P H)^-1 H^T P e_i MDB_i``.  With ``dx_i`` expressed in east/north/up::
+**Protection levels** (Baarda's external reliability plus the fault-free noise, per epoch,
+after FDE): a bias equal to the minimal detectable bias ``MDB_i = sigma_i sqrt(lambda0 / r_i)``
+on satellite ``i`` is missed by the w-test with probability ``beta0`` (10 %), and moves the
+position by ``dx_i = (H^T P H)^-1 H^T P e_i MDB_i``.  With ``dx_i`` in east/north/up and the
+a-priori covariance ``C = (H^T P H)^-1`` of the position in ENU::
 
-    HPL = max_i sqrt(dE_i^2 + dN_i^2),     VPL = max_i |dU_i|
+    HPL = max_i sqrt(dE_i^2 + dN_i^2) + k sqrt(lambda_max(C_EN)),
+    VPL = max_i |dU_i|                 + k sqrt(C_UU),          k = N(1 - alpha0/2) = 3.29
 
 over the satellites in the solution; infinite when a satellite that moves the position has
-zero redundancy (its fault could not be detected).  This is the slope method of snapshot
-RAIM (slope_i times sqrt(lambda0)) with the B-method's ``lambda0``; it bounds the effect of a
-single undetected fault and does not add the fault-free noise.
+zero redundancy (its fault could not be detected).  The first term is the slope method of
+snapshot RAIM (slope_i times sqrt(lambda0)) with the B-method's ``lambda0``, the second the
+noise bound at the test's own significance.
 """
 
 from __future__ import annotations
@@ -40,26 +42,26 @@ from robustloc.gnss.corrections import enu_matrix, geodetic
 from robustloc.gnss.rinex import NavData, ObsData
 from robustloc.gnss.sp3 import PreciseProducts
 from robustloc.gnss.spp import SppResult, SppSolver, dops
-from robustloc.integrity.bmethod import ALPHA0, BETA0, lambda0
+from robustloc.integrity.bmethod import ALPHA0, BETA0, lambda0, w_critical
 from robustloc.integrity.snooping import snoop
 from robustloc.integrity.tests import R_MIN, global_and_w_tests, integrity_tests, whiten
 
 
 def protection_levels(
     H: NDArray[np.float64], sigma: NDArray[np.float64], used: NDArray[np.bool_],
-    xyz_m: NDArray[np.float64], lam0: float,
+    xyz_m: NDArray[np.float64], lam0: float, k_noise: float = 0.0,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Horizontal and vertical protection levels (m) from MDB-sized faults (see module doc).
 
     See :func:`protection_levels_and_mdb` for the parameters.
     """
-    hpl, vpl, _ = protection_levels_and_mdb(H, sigma, used, xyz_m, lam0)
+    hpl, vpl, _ = protection_levels_and_mdb(H, sigma, used, xyz_m, lam0, k_noise)
     return hpl, vpl
 
 
 def protection_levels_and_mdb(
     H: NDArray[np.float64], sigma: NDArray[np.float64], used: NDArray[np.bool_],
-    xyz_m: NDArray[np.float64], lam0: float,
+    xyz_m: NDArray[np.float64], lam0: float, k_noise: float = 0.0,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """HPL, VPL (N,) and the minimal detectable bias ``MDB_i`` (N, n) of every observation.
 
@@ -73,6 +75,9 @@ def protection_levels_and_mdb(
         Position, for the ENU rotation.
     lam0 : float
         Non-centrality ``lambda0`` of the B-method.
+    k_noise : float
+        Multiplier of the fault-free standard deviation added to the bias term (0: the
+        pure external-reliability bound; :class:`RaimFde` uses ``N(1 - alpha0/2)``).
     """
     N = H.shape[0]
     good = np.all(np.isfinite(xyz_m), axis=1)
@@ -94,8 +99,14 @@ def protection_levels_and_mdb(
         dh = np.where(blind, np.inf, np.where(wh.used & moves, dh, 0.0))
         du = np.where(blind, np.inf, np.where(wh.used & moves, du, 0.0))
     ok = wh.ok & good & (wh.n_used > 0)
-    hpl = np.where(ok, np.max(np.nan_to_num(dh, nan=0.0), axis=1), np.nan)
-    vpl = np.where(ok, np.max(np.nan_to_num(du, nan=0.0), axis=1), np.nan)
+    C = wh.Ninv[:, :3, :3]
+    cen = C[:, :2, :2]
+    tr, det = cen[:, 0, 0] + cen[:, 1, 1], cen[:, 0, 0] * cen[:, 1, 1] - cen[:, 0, 1] ** 2
+    lam_max = 0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
+    with np.errstate(invalid="ignore"):
+        sig_h, sig_u = np.sqrt(lam_max), np.sqrt(C[:, 2, 2])
+    hpl = np.where(ok, np.max(np.nan_to_num(dh, nan=0.0), axis=1) + k_noise * sig_h, np.nan)
+    vpl = np.where(ok, np.max(np.nan_to_num(du, nan=0.0), axis=1) + k_noise * sig_u, np.nan)
     with np.errstate(invalid="ignore", divide="ignore"):
         mdb = np.where(wh.used & ok[:, None],
                        np.where(r > R_MIN, wh.sigma * k, np.inf), np.nan)  # seed 003 MDB
@@ -304,7 +315,7 @@ class RaimFde:
             (P.sys_idx[:, None] == np.arange(K)[None, :]).astype(float),
         ) == 0
         hpl, vpl, mdb = protection_levels_and_mdb(pred_H, sig_fixed, used, xf[:, :3],
-                                                  self.lambda0)
+                                                  self.lambda0, w_critical(self.alpha0))
         # RTKLIB-like geometry screen on top of the tests
         dop = dops(pred_H, used, xf[:, :3], absent_f)
         gd = dop[:, 0]

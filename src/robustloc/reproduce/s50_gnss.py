@@ -266,15 +266,31 @@ def run(ctx: Context) -> Section:
                                    1e3 * t_raim_g / g_obs.n_epochs, RTKLIB_SOLVE_MS],
               }).set_index("what"))
 
+    # ------------------------------------------------------------------ protection levels
+    panels = [(g_raim, g_obs, "GEONET 0759 GPS, fault-free"),
+              (fault_res, g_obs, "GEONET 0759 GPS, G11 +20 m on epochs 40-79, RAIM"),
+              (raim.solve(gps, s_obs, s_nav), s_obs, "SLAC GPS broadcast, fault-free"),
+              (raim.solve(SppSolver(systems="GRE", iono="iflc"), s_obs, None, pp), s_obs,
+               "SLAC GPS+GLONASS+Galileo SP3/CLK, fault-free")]
+    pl_rows = []
+    for res, obs, label in panels:
+        ok = res.ok
+        e = res.enu_errors(obs.approx_xyz_m)[ok]
+        hpl, vpl = res.extra["hpl_m"][ok], res.extra["vpl_m"][ok]
+        pl_rows.append({
+            "solution": label, "fixes": int(ok.sum()),
+            "median HPL (m)": float(np.median(hpl)), "median VPL (m)": float(np.median(vpl)),
+            "H error <= HPL %": 100.0 * float(np.mean(np.hypot(e[:, 0], e[:, 1]) <= hpl)),
+            "|U error| <= VPL %": 100.0 * float(np.mean(np.abs(e[:, 2]) <= vpl)),
+        })
+    sec.table("Protection levels (MDB slope bound + 3.29 sigma of the fault-free noise) and "
+              "how often they bound the error against the header position",
+              pd.DataFrame(pl_rows).set_index("solution"))
+    sec.summary["protection_levels"] = pl_rows
+
     # ------------------------------------------------------------------ figure
     fig, axes = plt.subplots(3, 1, figsize=(9, 9), sharex=False)
-    for ax, (res, obs, label) in zip(
-        axes,
-        [(g_raim, g_obs, "GEONET 0759 GPS, fault-free"),
-         (fault_res, g_obs, "GEONET 0759 GPS, G11 +20 m on epochs 40-79, RAIM"),
-         (raim.solve(SppSolver(systems="GRE", iono="iflc"), s_obs, None, pp), s_obs,
-          "SLAC GPS+GLONASS+Galileo SP3/CLK, fault-free")],
-    ):
+    for ax, (res, obs, label) in zip(axes, [panels[0], panels[1], panels[3]]):
         tm = (obs.t_gps_s - obs.t_gps_s[0]) / 60.0
         e = res.enu_errors(obs.approx_xyz_m)
         ax.plot(tm, np.hypot(e[:, 0], e[:, 1]), "b.-", ms=3, lw=0.8, label="horizontal error")
