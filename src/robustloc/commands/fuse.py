@@ -19,6 +19,9 @@ Coupling:
          still update, and a robust update (--robust) down-weights one bad range instead
          of a whole fix.
 
+From the NMEA log only speed and course are fused (the paper's GPS measurements); GGA
+positions are parsed (ENU about --origin) but not used as measurements.
+
 Time alignment: NMEA times (seconds of the UTC day) plus --nmea-offset must match the
 ranges' time column; measurements within --merge-window seconds form one filter event.
 Course is ignored below 0.1 m/s.
