@@ -156,6 +156,9 @@ def test_cli_spp_text_summary_and_reference(tmp_path: Path, capsys) -> None:  # 
         (["spp", str(OBS), str(NAV), "--reference", "1,2", "-o", "x.csv"], "X,Y,Z"),
         (["spp", str(OBS), str(NAV), "--systems", "GQ", "-o", "x.csv"], "constellation"),
         (["spp", "missing.05o", str(NAV), "-o", "x.csv"], "missing.05o"),
+        (["spp", str(SLAC / "slac1180_1930-1940.21o"), str(SLAC / "brdc1180_1700-2200.21n"),
+          "--systems", "E", "--raim", "-o", "x.csv"], "no usable pseudoranges"),
+        (["spp", str(OBS), "--sp3", str(NAV), "-o", "x.csv"], "SP3"),
     ],
 )
 def test_cli_errors(tmp_path: Path, capsys, argv, message) -> None:  # noqa: ANN001

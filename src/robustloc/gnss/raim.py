@@ -244,6 +244,7 @@ class RaimFde:
 
     def solve_prepared(self, solver: SppSolver, P, x0: NDArray | None = None) -> SppResult:  # noqa: ANN001
         """As :meth:`solve` on the output of :meth:`SppSolver.prepare` (for benchmarks)."""
+        solver.check_prepared(P)
         N, S = P.pr.shape
         K = len(P.systems)
         p = 3 + K

@@ -342,6 +342,11 @@ class SppSolver:
             var = np.where(fill, bs.var_m2, var)
         valid = np.all(np.isfinite(pos), axis=-1) & np.isfinite(clk)
         avail = valid & np.isfinite(pr)
+        # keep only constellations with at least one satellite that has an orbit
+        systems = "".join(s for s in systems if np.any(avail[:, sysl == s]))
+        keep = np.isin(sysl, list(systems)) if systems else np.zeros(len(obs.sats), bool)
+        pr = np.where(keep[None, :], pr, np.nan)
+        avail &= keep[None, :]
         sys_idx = np.array([systems.find(s) for s in sysl])
         f1 = np.array([FREQ_HZ.get(s, (1575.42e6,))[0] for s in sysl])
         return _Prepared(
@@ -439,6 +444,15 @@ class SppSolver:
         absent = (use.astype(float) @ (P.sys_idx[:, None] == np.arange(K)[None, :])) == 0
         return x, H, np.where(use, pred - z, np.nan), use, el, az, sig, conv, n_it, absent
 
+    def check_prepared(self, P: _Prepared) -> None:
+        """Raise :class:`InputError` when no constellation has a usable satellite."""
+        if len(P.systems) == 0:
+            raise InputError(
+                f"no usable pseudoranges of the requested constellations {self.systems!r} "
+                "(no code observations, or no ephemeris / precise orbit for them)",
+                P.obs.path,
+            )
+
     def initial_state(self, P: _Prepared, x0: NDArray | None) -> NDArray[np.float64]:
         N = P.pr.shape[0]
         x = np.zeros((N, 3 + len(P.systems)))
@@ -463,11 +477,7 @@ class SppSolver:
         N, S = P.pr.shape
         rows = np.arange(N)
         x = self.initial_state(P, x0)
-        if len(P.systems) == 0:
-            raise InputError(
-                f"no usable pseudoranges of the requested constellations {self.systems!r}",
-                P.obs.path,
-            )
+        self.check_prepared(P)
         x, H, v, use, el, az, sig, conv, n_it, absent = self._gauss_newton(
             P, rows, x, P.avail, self.max_iter + 5, True
         )
