@@ -57,6 +57,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dim", type=int, choices=(2, 3), default=2, help="solve in 2-D or 3-D")
     p.add_argument("--solver", choices=("nonlinear", "linearized"), default="nonlinear",
                    help="robust methods and LEGE: nonlinear equations (default) or linearized")
+    p.add_argument("--reference", choices=("first", "nearest"), default="first",
+                   help="linearized system: reference anchor = first heard (paper) or the "
+                        "one with the shortest range")
     p.add_argument("--domain", choices=("range", "rssi"), default="range",
                    help="RSSI input, nonlinear solvers: fit ranges converted by the model "
                         "(default; fades then down-weight themselves) or fit in dB")
@@ -167,7 +170,7 @@ def locate_file(args: argparse.Namespace) -> dict:
     locators = [
         Locator(
             m, solver=args.solver, domain=args.domain, sigma=sigma,
-            robust_scale=args.robust_scale,
+            robust_scale=args.robust_scale, reference=args.reference,
             weight_params=params if m in ("huber", "hampel", "igg", "igg3") else {},
             min_scale=args.min_scale, alpha0=args.alpha0, beta0=args.beta0,
         )

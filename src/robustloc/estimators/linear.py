@@ -179,6 +179,7 @@ def irls(
     max_iter: int = 50,
     tol: float = 1e-6,
     warmup: bool = True,
+    x0: ArrayLike | None = None,
 ) -> LinearFit:
     """Robust IRLS on a batch of linear systems (seed 000 sec. 2, eqs. (4)-(7)).
 
@@ -204,6 +205,9 @@ def irls(
         For redescending weights (zero beyond a threshold), first iterate with a
         Huber(1.5) weight to convergence, then switch: the standard safeguard against a
         redescending M-estimator locking onto a bad start.
+    x0 : (N, p) array, optional
+        Start (e.g. a high-breakdown fix); default the least-squares solution.  Epochs
+        with a non-finite start use least squares.
 
     Returns
     -------
@@ -215,6 +219,10 @@ def irls(
     fit0 = solve_wls(H, y, w0)
     qvv0 = fit0.qvv
     x = fit0.x.copy()
+    if x0 is not None:
+        xs = np.asarray(x0, dtype=float).reshape(x.shape)
+        okx = np.all(np.isfinite(xs), axis=1)
+        x[okx] = xs[okx]
     w = w0.copy()
     iters = np.zeros(N, dtype=np.int64)
     conv = np.zeros(N, dtype=bool)

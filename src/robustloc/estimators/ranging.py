@@ -39,7 +39,6 @@ from robustloc.estimators.linear import LinearFit, irls, lege, solve_wls
 from robustloc.estimators.nonlinear import gauss_newton
 from robustloc.estimators.solution import Solution
 from robustloc.models.ranging import LN10, RangeModel, RssiModel
-from robustloc.robust.scale import nanmedian_fast
 from robustloc.robust.weights import get_weight
 
 Array = NDArray[np.float64]
@@ -94,11 +93,16 @@ def _merge(fit: LinearFit, sub: LinearFit, idx: NDArray, take: NDArray[np.bool_]
 
 
 def linearized_system(
-    anchors: ArrayLike, ranges: ArrayLike, height_offset: ArrayLike | None = None
+    anchors: ArrayLike,
+    ranges: ArrayLike,
+    height_offset: ArrayLike | None = None,
+    reference: str = "first",
 ) -> tuple[Array, Array, NDArray[np.int64], Array]:
     """The paper's difference system ``G Z = h`` (seed 000 eq. (3)), batched.
 
-    The first anchor heard in each epoch is the reference; the other rows are
+    The reference is the first anchor heard in each epoch (the paper's choice,
+    ``reference="first"``) or the one with the shortest range (``"nearest"``: its error,
+    which enters every row, is then the smallest); the other rows are
     ``G_i = a_i - a_r`` and ``h_i = (d_r^2 - d_i^2 - |a_r|^2 + |a_i|^2) / 2``.  Anchors are
     first shifted to their centroid (returned) so the system is well scaled; known height
     offsets turn slant ranges into horizontal ones (``d^2 - dz^2``).
@@ -119,7 +123,12 @@ def linearized_system(
     if height_offset is not None:
         d2 = d2 - np.asarray(height_offset, dtype=float)[None, :] ** 2
     heard = np.isfinite(d2)
-    ref = np.where(heard.any(axis=1), np.argmax(heard, axis=1), -1)
+    if reference == "first":
+        ref = np.where(heard.any(axis=1), np.argmax(heard, axis=1), -1)
+    elif reference == "nearest":
+        ref = np.where(heard.any(axis=1), np.argmin(np.where(heard, d, np.inf), axis=1), -1)
+    else:
+        raise ValueError(f"reference must be 'first' or 'nearest', got {reference!r}")
     rr = np.maximum(ref, 0)
     a_r = ac[rr]  # (N, dim)
     d2_r = d2[np.arange(N), rr]
@@ -131,6 +140,23 @@ def linearized_system(
     G = np.where(use[..., None], G, np.nan)
     h = np.where(use, h, np.nan)
     return G, h, ref, centroid
+
+
+def lms_score(residuals: Array, dim: int, axis: int = -1) -> Array:
+    """Least-median-of-squares score of candidate fixes: the ``h``-th smallest absolute
+    residual with ``h = max(ceil(n/2), dim + 2)`` (NaN ignored; ``n`` heard anchors).
+
+    A fix from a minimal subset of ``dim + 1`` anchors has zero residual on those, so the
+    score must look at least one anchor further to tell good subsets from bad ones.
+    """
+    r = np.moveaxis(np.abs(np.asarray(residuals, dtype=float)), axis, -1)
+    nan = np.isnan(r)
+    cnt = r.shape[-1] - nan.sum(axis=-1)
+    srt = np.sort(np.where(nan, np.inf, r), axis=-1)
+    h = np.maximum((cnt + 1) // 2, dim + 2)
+    h = np.clip(np.minimum(h, cnt), 1, r.shape[-1]) - 1
+    out = np.take_along_axis(srt, h[..., None], -1)[..., 0]
+    return np.where(cnt > 0, out, np.inf)
 
 
 def subset_fixes(
@@ -145,13 +171,13 @@ def subset_fixes(
     Every subset of ``dim + 1`` anchors gives an exact position from its own difference
     system (seed 000 eq. (3) with ``dim`` rows); its design depends only on the anchors, so
     it is inverted once per subset and applied to all epochs.  Each epoch keeps the subset
-    fix with the smallest median absolute range residual over all heard anchors.  At most
+    fix with the smallest :func:`lms_score` over all heard anchors.  At most
     ``max_subsets`` subsets are used (a fixed random choice when there are more).
 
     Returns
     -------
     x : (N, dim) best subset fix (NaN where no subset was fully heard).
-    med : (N,) its median absolute range residual.
+    score : (N,) its :func:`lms_score`.
     """
     a = np.asarray(anchors, dtype=float)
     d = np.asarray(ranges, dtype=float)
@@ -188,8 +214,7 @@ def subset_fixes(
     best_c = np.full(N, np.inf)
     for k in range(combos.shape[0]):
         xk = x[:, k, :]
-        r = np.abs(model.predict(np.nan_to_num(xk)) - d)
-        c = nanmedian_fast(r, axis=1)
+        c = lms_score(model.predict(np.nan_to_num(xk)) - d, dim)
         c = np.where(np.all(np.isfinite(xk), axis=1) & np.isfinite(c), c, np.inf)
         better = c < best_c
         best[better] = xk[better]
@@ -232,6 +257,9 @@ class Locator:
     rel_tol : float
         Also converged when a step is below this fraction of the fix's standard error.
     alpha0, beta0 : significance and power of the w-test (``snooping``, B-method).
+    reference : {"first", "nearest"}
+        Reference anchor of the linearized system (:func:`linearized_system`): the
+        paper's first heard anchor, or the one with the shortest range.
     """
 
     method: str = "huber"
@@ -246,6 +274,7 @@ class Locator:
     rel_tol: float = 1e-2
     alpha0: float = 0.001
     beta0: float = 0.10
+    reference: str = "first"
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -259,6 +288,8 @@ class Locator:
             if sg.ndim != 1 or not np.all(np.isfinite(sg) & (sg > 0)):
                 raise ValueError(f"sigma must be positive and finite, got {self.sigma}")
             object.__setattr__(self, "sigma", float(sg[0]) if sg.size == 1 else tuple(sg))
+        if self.reference not in ("first", "nearest"):
+            raise ValueError(f"reference must be 'first' or 'nearest', got {self.reference!r}")
         if self.robust_scale not in ("mad", "apriori"):
             raise ValueError(f"robust_scale must be 'mad' or 'apriori', got {self.robust_scale!r}")
         if self.robust_scale == "apriori" and self.sigma is None:
@@ -361,16 +392,18 @@ class Locator:
         return 1.0 / d**power
 
     def _linearized(self, a, ranges, height_offset, w, robust: str | None = None) -> LinearFit:
-        G, h, ref, c = linearized_system(a, ranges, height_offset)
+        G, h, ref, c = linearized_system(a, ranges, height_offset, self.reference)
         if robust is None:
             fit = solve_wls(G, h, w)
         elif robust == "lege":
             fit = lege(G, h, w)
             fit.extra["flagged"] = fit.extra["gross_errors"] != 0
         else:
+            # start from the least-median-of-squares subset fix (shifted like the system)
+            xs, _ = subset_fixes(a, ranges, height_offset)
             fit = irls(
                 G, h, get_weight(robust, **self.weight_params), w,
-                max_iter=self.max_iter, tol=self.tol, min_scale=self.min_scale,
+                max_iter=self.max_iter, tol=self.tol, min_scale=self.min_scale, x0=xs - c,
             )
         x = fit.x + c
         return LinearFit(
@@ -402,8 +435,7 @@ class Locator:
         best = np.full_like(cands[0], np.nan)
         best_c = np.full(ranges.shape[0], np.inf)
         for xc in cands:
-            r = np.abs(model.predict(np.nan_to_num(xc)) - ranges)
-            c = nanmedian_fast(r, axis=1)
+            c = lms_score(model.predict(np.nan_to_num(xc)) - ranges, a.shape[1])
             c = np.where(np.all(np.isfinite(xc), axis=1) & np.isfinite(c), c, np.inf)
             better = c < best_c
             best[better] = xc[better]
@@ -468,7 +500,7 @@ class Locator:
         for g0 in range(0, grid.shape[0], 64):
             pg = pred_g[g0 : g0 + 64]
             r = np.abs(pg[None, :, :] - zs[:, None, :]) / ss[:, None, :]
-            c = nanmedian_fast(r, axis=2)  # (S, G)
+            c = lms_score(r, dim, axis=2)  # (S, G)
             j = np.argmin(c, axis=1)
             cj = c[np.arange(sus.size), j]
             upd = cj < best_c
@@ -478,8 +510,7 @@ class Locator:
 
         def score(f: LinearFit, rows: slice | NDArray) -> Array:
             xx = np.nan_to_num(f.x)
-            r = np.abs(model.predict(xx) - zs) / ss
-            c = nanmedian_fast(r, axis=1)
+            c = lms_score((model.predict(xx) - zs) / ss, dim)
             return np.where(np.isin(f.status, st.USABLE), c, np.inf)
 
         take = score(refit, sus) < score(_rows(fit, sus), sus)

@@ -108,7 +108,8 @@ def _has_tabulate() -> bool:
 
 def _md_table(frame: pd.DataFrame) -> str:
     """Markdown pipe table without the optional ``tabulate`` dependency."""
-    df = frame.reset_index() if frame.index.name or not isinstance(frame.index, pd.RangeIndex) else frame
+    named = frame.index.name or not isinstance(frame.index, pd.RangeIndex)
+    df = frame.reset_index() if named else frame
     cols = [str(c) for c in df.columns]
 
     def cell(v: Any) -> str:
