@@ -131,3 +131,23 @@ def test_reproduce_section_quick(tmp_path):
         assert (tmp_path / rel).stat().st_size > 1000
     tables = [v[1] for k, v in sec.blocks if k == "table"]
     assert any("global test (theory)" in t.columns for t in tables)
+
+
+def test_nonlinear_ranging_close_to_linearized_theory(capsys, tmp_path):
+    lay = ranging_layout(ANCHORS, [8.0, 6.0], 0.3)
+    n = 4000
+    df = run_montecarlo(lay, n_faults=1, size=1.0, trials=n, methods=("ls", "snooping"),
+                        nonlinear=True, seed=9).set_index("method")
+    assert df.loc["snooping", "model"] == "nonlinear"
+    # sigma 0.3 m at ranges of ~10 m: linearization is accurate, theory holds
+    assert _in_ci(df.loc["snooping", "flag_rate"], n, 0.90)
+    assert df.loc["snooping", "err_rms_m"] < df.loc["ls", "err_rms_m"]
+    with pytest.raises(ValueError):
+        run_montecarlo(gnss_layout(), trials=10, nonlinear=True)
+    anchors = tmp_path / "a.csv"
+    pd.DataFrame({"anchor": [f"b{i}" for i in range(7)], "x": ANCHORS[:, 0],
+                  "y": ANCHORS[:, 1]}).to_csv(anchors, index=False)
+    assert main(["montecarlo", "--anchors", str(anchors), "--trials", "50", "--faults", "1",
+                 "--size", "3", "--methods", "snooping", "--nonlinear", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["rows"][0]["model"] == "nonlinear"
+    assert main(["montecarlo", "--gnss", "--nonlinear"]) == 2

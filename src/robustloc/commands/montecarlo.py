@@ -25,7 +25,9 @@ method: flag rate (with 0 faults: the false-alarm rate), correct-identification 
 power for single faults. Trials are vectorized: 10 000 trials take seconds.
 
 The model is linearized at the true position (exactly the model the B-method theory is
-derived for). Layout, one of:
+derived for); with --nonlinear (ranging layouts) the ranges themselves are simulated and
+solved by Gauss-Newton, re-linearized after each exclusion, as `robustloc locate` does.
+Layout, one of:
   --anchors FILE [--position X,Y[,Z]] [--sigma S]   ranging (sigma in metres; default
                                                      position: centroid of the anchors)
   --gnss [--systems GEC] [--mask-deg 10] [--lat --lon --height] [--time-s T]
@@ -90,6 +92,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="IRLS: weight below which an observation counts as rejected (0.1)")
     p.add_argument("--lege-max-order", type=int, default=3,
                    help="largest number of gross errors LEGE searches (default 3)")
+    p.add_argument("--nonlinear", action="store_true",
+                   help="--anchors only: simulate ranges and solve them by Gauss-Newton "
+                        "(robustloc locate's solvers) instead of the linearized model")
     p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
     p.add_argument("-o", "--out", default=None, help="write the table as CSV here")
     p.add_argument("--json", action="store_true", help="print the table as JSON")
@@ -139,6 +144,10 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"unknown method(s) {', '.join(bad)}; choose among {', '.join(METHODS)}")
     if args.trials < 1:
         raise InputError("--trials must be at least 1")
+    if args.nonlinear and args.gnss:
+        raise InputError("--nonlinear applies to ranging layouts (--anchors) only")
+    if args.nonlinear and args.alpha is not None:
+        raise InputError("--alpha (fixed) is not available with --nonlinear")
     lay = build_layout(args)
     if any(k < 0 or k > lay.n - lay.p for k in args.faults):
         raise InputError(f"--faults must be within 0..{lay.n - lay.p} (the redundancy)")
@@ -153,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
             lay, n_faults=k, size=s, unit=args.unit, trials=args.trials, methods=methods,
             alpha=args.alpha, alpha0=args.alpha0, beta0=args.beta0,
             reject_weight=args.reject_weight, lege_max_order=args.lege_max_order,
-            seed=args.seed + i,
+            seed=args.seed + i, nonlinear=args.nonlinear,
         ))
     table = pd.concat(frames, ignore_index=True)
     table.insert(0, "layout", lay.name)
