@@ -226,3 +226,20 @@ def test_relock_recovers_a_robust_filter_that_lost_lock():
     assert np.hypot(*(stuck.x[0, -1, :2] - pos[-1])) > 2.0
     assert np.hypot(*(relock.x[0, -1, :2] - pos[-1])) < 0.1
     assert relock.extra["relocks"][0] >= 1
+
+
+def test_fuse_several_tags_at_different_times(cart):
+    meas = pd.read_csv(cart["measurements"])
+    anchors = pd.read_csv(cart["anchors"])
+    two = pd.concat([meas, meas.assign(tag="cart2", time=meas["time"] + 0.37)])
+    log = read_nmea(cart["nmea"])
+    res = fuse(two, anchors, log, FusionFilter("ekf", ConstantVelocity(q=1e-4)),
+               FuseOptions(sigma_range_m=0.1))
+    tr = res.track
+    assert res.summary["tags"] == 2
+    one = tr[tr["tag"] == "cart"]
+    other = tr[tr["tag"] == "cart2"]
+    assert len(one) == 71  # UWB and GPS share their epochs (diagonal: 71 epochs)
+    assert len(other) == 142  # GPS epochs (0, 1, ...) and UWB epochs (0.37, 1.37, ...)
+    assert set(other["source"]) == {"uwb", "gps"}
+    np.testing.assert_allclose(other["time"].iloc[:3], [0.0, 0.37, 1.0])

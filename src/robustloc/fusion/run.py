@@ -205,7 +205,7 @@ def _initial_positions(tl, z, opts, a_xy, dz, M, max_age_s: float = 1.0):
         kk = np.arange(K)[:, None, None]
         mm = np.arange(M)[None, None, :]
         held = np.where(last >= 0, r[kk, np.maximum(last, 0), mm], np.nan)
-        t_last = np.where(last >= 0, tl.time_s[kk[..., 0], np.maximum(last, 0)], np.nan)
+        t_last = np.where(last >= 0, tl.time_s[kk, np.maximum(last, 0)], np.nan)
         age = tl.time_s[..., None] - t_last
         held = np.where(age <= max_age_s, held, np.nan)
         pos = uwb_fix(a_xy, held.reshape(K * J, M), "ls", dz).position.reshape(K, J, 2)
