@@ -62,6 +62,8 @@ def test_single_20m_fault_on_real_geometry_is_excluded(geonet) -> None:  # noqa:
     assert set(res.status[win]) <= {st.FAULT_EXCLUDED, st.UNAVAILABLE}
     good = win & (res.status == st.FAULT_EXCLUDED)
     assert good.sum() >= 15
+    unav = win & (res.status == st.UNAVAILABLE)  # kept, but flagged and not `ok`
+    assert np.all(np.isfinite(res.xyz_m[unav])) and not res.ok[unav].any()
     h_raim = _h_err(res, obs.approx_xyz_m)[good]
     h_plain = _h_err(plain, obs.approx_xyz_m)[good]
     assert np.sqrt(np.mean(h_raim**2)) < 2.5 < 15.0 < np.sqrt(np.mean(h_plain**2))

@@ -25,8 +25,10 @@ satellite.  --inject adds a bias to real pseudoranges to exercise the detector.
 
 Output: one row per epoch (time as GPS seconds, week, time of week and UTC ISO; ECEF, lat,
 lon, h; receiver clock(s); n_sats; DOPs; sigma0; status; excluded satellites; test
-statistics; hpl/vpl).  A summary of errors against --reference (default: the RINEX header's
-APPROX POSITION XYZ) is printed (--json for JSON).
+statistics; hpl/vpl).  Status 'unavailable' (RAIM detected a fault it could not attribute,
+or no redundancy to test) keeps the position but marks it unverified.  A summary of errors
+against --reference (default: the RINEX header's APPROX POSITION XYZ) is printed (--json
+for JSON).
 
 Example:
   robustloc spp 07590920.05o 07590920.05n --systems G --raim -o sol.csv

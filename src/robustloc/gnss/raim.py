@@ -323,7 +323,6 @@ class RaimFde:
         status[np.isin(status, (st.OK, st.FAULT_EXCLUDED)) & ~(gd <= solver.max_gdop)] = (
             st.ILL_CONDITIONED
         )
-        unavailable_fix = status == st.UNAVAILABLE
         extra = {
             "global_stat_initial": res.global_stat_initial,
             "global_crit_initial": res.global_crit_initial,
@@ -340,8 +339,6 @@ class RaimFde:
             "mdb_m": mdb,
             "lambda0": self.lambda0,
             "w_crit": res.w_crit,
-            # position kept for 'unavailable' (a fix whose integrity cannot be checked)
-            "xyz_unverified_m": np.where(unavailable_fix[:, None], xf[:, :3], np.nan),
         }
         return solver._result(P, xf, pred_H, vfin, used, el, az, sig, conv, n_it, absent_f,
                               excluded, extra, status=status, dop=dop)

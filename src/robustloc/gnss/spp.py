@@ -124,7 +124,8 @@ class SppResult:
     ----------
     t_gps_s : ndarray (N,)
     xyz_m : ndarray (N, 3)
-        ECEF position; NaN when unsolved.
+        ECEF position; NaN when unsolved.  Kept for ``unavailable`` epochs (RAIM could not
+        verify or attribute a fault): check ``status`` / :attr:`ok`.
     clock_m : ndarray (N, K)
         Receiver clock bias of each constellation in ``systems`` (metres, ``c dt``).
     systems : str
@@ -501,7 +502,9 @@ class SppSolver:
             status[~(dop[:, 0] <= self.max_gdop)] = st.ILL_CONDITIONED
             status[n_used < p_eff] = st.INSUFFICIENT
             status[n_used == 0] = st.INSUFFICIENT
-        bad = ~np.isin(status, st.USABLE)
+        # positions are kept for 'unavailable' (RAIM: a fix whose integrity could not be
+        # established; the status says so and `ok` excludes it)
+        bad = ~np.isin(status, (*st.USABLE, st.UNAVAILABLE))
         xyz = np.where(bad[:, None], np.nan, x[:, :3])
         clk = np.where(bad[:, None] | absent, np.nan, x[:, 3:])
         return SppResult(

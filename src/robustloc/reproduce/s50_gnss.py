@@ -292,7 +292,7 @@ def run(ctx: Context) -> Section:
     fig, axes = plt.subplots(3, 1, figsize=(9, 9), sharex=False)
     for ax, (res, obs, label) in zip(axes, [panels[0], panels[1], panels[3]]):
         tm = (obs.t_gps_s - obs.t_gps_s[0]) / 60.0
-        e = res.enu_errors(obs.approx_xyz_m)
+        e = np.where(res.ok[:, None], res.enu_errors(obs.approx_xyz_m), np.nan)
         ax.plot(tm, np.hypot(e[:, 0], e[:, 1]), "b.-", ms=3, lw=0.8, label="horizontal error")
         ax.plot(tm, np.abs(e[:, 2]), "g.-", ms=3, lw=0.8, label="|vertical error|")
         ax.plot(tm, res.extra["hpl_m"], "b--", lw=1, label="HPL")
