@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 import tracemalloc
@@ -42,8 +43,12 @@ import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
-import numpy as np
-from numpy.typing import NDArray
+# "on one core": pin the BLAS pools before NumPy loads (override by setting them yourself)
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import numpy as np  # noqa: E402
+from numpy.typing import NDArray  # noqa: E402
 
 Array = NDArray[np.float64]
 
