@@ -129,3 +129,19 @@ def test_gst_accuracy_rows():
     assert row["time_s"] == pytest.approx(17 * 3600 + 28 * 60 + 14)
     assert (row["rms_m"], row["sigma_lat_m"], row["sigma_lon_m"], row["sigma_alt_m"]) == (
         pytest.approx(0.006), pytest.approx(0.023), pytest.approx(0.020), pytest.approx(0.031))
+
+
+@pytest.mark.parametrize(
+    "body",
+    [
+        "GPVTG,1,T,,M,abc,N,x,K,A",
+        "GPRMC,12x456,A,3725.5,N,12210.4,W,abc,1e999,071123,,,A",
+        "GPRMC,123456,A,3725.5,N,12210.4,W,1e999,10,071123,,,A",
+        "GPGGA,123456,37xx.5,N,12210.4,W,1,08,zz,10,M,0,M,,",
+        "GPGST,123456,a,b,c,d,e,f,g",
+        "GPRMC,999999,A,3725.5,N,12210.4,W,1.0,2.0,991399,,,A",
+    ],
+)
+def test_garbage_fields_with_valid_checksum_are_skipped(body):
+    log = parse_nmea(["$" + body + "*" + nmea_checksum(body)])
+    assert log.summary.parsed == {} and log.summary.skipped["truncated"] == 1

@@ -184,6 +184,9 @@ def parse_nmea(
                     skip(lineno, "truncated")
                     continue
                 speed = float(msg.spd_over_grnd) * KNOT_MPS
+                if not np.isfinite(speed):
+                    skip(lineno, "truncated")
+                    continue
                 course = _num(msg.true_course)
                 motion.append((_tod(ts), speed, np.deg2rad(course), "RMC", order))
             elif kind == "VTG":
@@ -224,20 +227,13 @@ def parse_nmea(
                     )
                 )
             else:  # GST
-                if ts is None:
+                vals = (_num(msg.rms), _num(msg.std_dev_latitude),
+                        _num(msg.std_dev_longitude), _num(msg.std_dev_altitude))
+                if ts is None or not np.isfinite(vals).any():
                     skip(lineno, "truncated")
                     continue
-                acc.append(
-                    (
-                        _tod(ts),
-                        _num(msg.rms),
-                        _num(msg.std_dev_latitude),
-                        _num(msg.std_dev_longitude),
-                        _num(msg.std_dev_altitude),
-                        order,
-                    )
-                )
-        except (ValueError, TypeError, AttributeError, IndexError):
+                acc.append((_tod(ts), *vals, order))
+        except (ValueError, TypeError, AttributeError, IndexError, ArithmeticError):
             skip(lineno, "truncated")
             continue
         parsed[kind] += 1
