@@ -151,3 +151,9 @@ def test_nonlinear_ranging_close_to_linearized_theory(capsys, tmp_path):
                  "--size", "3", "--methods", "snooping", "--nonlinear", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["rows"][0]["model"] == "nonlinear"
     assert main(["montecarlo", "--gnss", "--nonlinear"]) == 2
+    capsys.readouterr()
+    assert main(["montecarlo", "--anchors", str(anchors), "--model", "rssi", "--n", "2.2",
+                 "--sigma", "2.5", "--unit", "m", "--size", "12", "--faults", "1",
+                 "--trials", "50", "--methods", "ls,snooping", "--nonlinear", "--json"]) == 0
+    js = json.loads(capsys.readouterr().out)
+    assert "RSSI" in js["layout"] and js["rows"][1]["theory_w"] > 0.3

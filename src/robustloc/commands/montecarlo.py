@@ -30,6 +30,8 @@ solved by Gauss-Newton, re-linearized after each exclusion, as `robustloc locate
 Layout, one of:
   --anchors FILE [--position X,Y[,Z]] [--sigma S]   ranging (sigma in metres; default
                                                      position: centroid of the anchors)
+  --anchors FILE --model rssi [--n N] [--sigma S]   RSSI, log-distance model (sigma and
+                                                     --unit m sizes in dB)
   --gnss [--systems GEC] [--mask-deg 10] [--lat --lon --height] [--time-s T]
                                                      simulated GPS/Galileo/BeiDou snapshot
                                                      (robustloc.sim.gnss), code noise of
@@ -67,7 +69,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="solved dimension for --anchors (default 2; z = known height offsets)")
     p.add_argument("--tag-z", type=float, default=0.0, help="tag height for --dim 2 (default 0)")
     p.add_argument("--sigma", type=float, default=1.0,
-                   help="range standard deviation, m, for --anchors (default 1)")
+                   help="observation standard deviation for --anchors: m for ranges, dB for "
+                        "RSSI (default 1)")
+    p.add_argument("--model", choices=("range", "rssi"), default="range",
+                   help="observation type for --anchors (default range)")
+    p.add_argument("--n", type=float, default=None,
+                   help="path-loss exponent for --model rssi (default: anchors' n column, "
+                        "else 2)")
     p.add_argument("--systems", default="GEC", help="GNSS systems among G, E, C (default GEC)")
     p.add_argument("--mask-deg", type=float, default=10.0, help="GNSS elevation mask (deg)")
     p.add_argument("--lat", type=float, default=30.53, help="GNSS receiver latitude (deg)")
@@ -102,7 +110,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def build_layout(args: argparse.Namespace):  # noqa: ANN201
     """The :class:`~robustloc.integrity.montecarlo.Layout` chosen on the command line."""
-    from robustloc.integrity.montecarlo import gnss_layout, ranging_layout
+    from robustloc.integrity.montecarlo import gnss_layout, ranging_layout, rssi_layout
 
     if args.gnss:
         lay = gnss_layout(args.time_s, args.lat, args.lon, args.height, args.systems.upper(),
@@ -126,8 +134,20 @@ def build_layout(args: argparse.Namespace):  # noqa: ANN201
         raise InputError(f"--position needs {args.dim} coordinates, got {pos.size}")
     if not (np.isfinite(args.sigma) and args.sigma > 0):
         raise InputError(f"--sigma must be positive, got {args.sigma}")
-    lay = ranging_layout(xy, pos, args.sigma, [str(a) for a in df["anchor"]], hoff,
-                         name=Path(args.anchors).stem)
+    ids = [str(a) for a in df["anchor"]]
+    if args.model == "rssi":
+        if args.n is not None:
+            n_exp = np.full(len(ids), float(args.n))
+        elif "n" in df.columns and np.all(np.isfinite(df["n"].to_numpy(float))):
+            n_exp = df["n"].to_numpy(float)
+        else:
+            n_exp = np.full(len(ids), 2.0)
+        if np.any(n_exp <= 0):
+            raise InputError("path-loss exponent n must be positive", args.anchors)
+        lay = rssi_layout(xy, pos, args.sigma, n_exp, ids, hoff,
+                          name=Path(args.anchors).stem + " (RSSI)")
+    else:
+        lay = ranging_layout(xy, pos, args.sigma, ids, hoff, name=Path(args.anchors).stem)
     if lay.n <= lay.p:
         raise InputError(f"{lay.n} anchors for {lay.p} unknowns: no redundancy", args.anchors)
     return lay
@@ -145,7 +165,7 @@ def run(args: argparse.Namespace) -> int:
     if args.trials < 1:
         raise InputError("--trials must be at least 1")
     if args.nonlinear and args.gnss:
-        raise InputError("--nonlinear applies to ranging layouts (--anchors) only")
+        raise InputError("--nonlinear applies to --anchors layouts only")
     if args.nonlinear and args.alpha is not None:
         raise InputError("--alpha (fixed) is not available with --nonlinear")
     lay = build_layout(args)

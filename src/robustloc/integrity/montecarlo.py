@@ -86,6 +86,9 @@ class Layout:
     anchors: Array | None = None
     truth: Array | None = None
     height_offset: Array | None = None
+    #: ``"range"`` or ``"rssi"`` (then ``path_loss_n`` holds the exponents).
+    kind: str = "range"
+    path_loss_n: Array | None = None
 
     @property
     def n(self) -> int:
@@ -156,7 +159,9 @@ def rssi_layout(
     if np.any(~np.isfinite(sig)) or np.any(sig <= 0):
         raise ValueError("RSSI sigma must be positive and finite")
     ids = anchor_ids if anchor_ids is not None else [f"a{i + 1}" for i in range(a.shape[0])]
-    return Layout(name, H, sig, list(map(str, ids)), a.shape[1], tuple(range(min(2, a.shape[1]))))
+    return Layout(name, H, sig, list(map(str, ids)), a.shape[1], tuple(range(min(2, a.shape[1]))),
+                  anchors=a, truth=x[0], height_offset=model.height_offset, kind="rssi",
+                  path_loss_n=model.n)
 
 
 def gnss_layout(
@@ -295,17 +300,24 @@ _LOCATOR_METHOD = {"ls": "nls", "snooping": "snooping", "lege": "lege", "huber":
 def _run_method_nonlinear(
     method: str, layout: Layout, y: Array, alpha0: float, beta0: float, reject_weight: float,
 ) -> tuple[Array, NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_]]:
-    """Ranges ``true range + noise + faults`` solved by the Gauss-Newton based
+    """Ranges (or RSSI) ``model value + noise + faults`` solved by the Gauss-Newton based
     :class:`robustloc.estimators.ranging.Locator`; returns (dx, rejected, flagged, usable)."""
     from robustloc.estimators.ranging import Locator
-    from robustloc.models.ranging import RangeModel
+    from robustloc.models.ranging import RangeModel, RssiModel
 
-    model = RangeModel(layout.anchors, layout.height_offset)
-    z = model.predict(layout.truth[None])[0] + y
     sigma = float(np.median(layout.sigma))
-    loc = Locator(method=_LOCATOR_METHOD[method], domain="range", sigma=sigma,
+    loc = Locator(method=_LOCATOR_METHOD[method], domain=layout.kind, sigma=sigma,
                   alpha0=alpha0, beta0=beta0)
-    sol = loc.solve(layout.anchors, z, "range", height_offset=layout.height_offset)
+    if layout.kind == "rssi":
+        A = np.zeros(len(layout.anchors))
+        model = RssiModel(layout.anchors, A, layout.path_loss_n, layout.height_offset)
+        z = model.predict(layout.truth[None])[0] + y
+        sol = loc.solve(layout.anchors, z, "rssi", A=A, n=layout.path_loss_n,
+                        height_offset=layout.height_offset)
+    else:
+        model = RangeModel(layout.anchors, layout.height_offset)
+        z = model.predict(layout.truth[None])[0] + y
+        sol = loc.solve(layout.anchors, z, "range", height_offset=layout.height_offset)
     dx = sol.position - layout.truth[None]
     w = np.nan_to_num(np.asarray(sol.weights, dtype=float), nan=1.0)
     rej = np.asarray(sol.excluded, dtype=bool) | (w < reject_weight)
@@ -356,7 +368,8 @@ def run_montecarlo(
         Largest number of gross errors LEGE searches for (cost grows as ``C(n, k)``).
     seed : int
     nonlinear : bool
-        Ranging layouts only: simulate the ranges themselves (true range + noise + faults)
+        Ranging / RSSI layouts only: simulate the observations themselves (model value +
+        noise + faults)
         and solve them with the Gauss-Newton based
         :class:`~robustloc.estimators.ranging.Locator` (``ls`` is its ``nls``), which
         re-linearizes after each exclusion, instead of the linearized model.  The theory
@@ -373,7 +386,7 @@ def run_montecarlo(
     if bad:
         raise ValueError(f"unknown method(s) {', '.join(bad)}; choose among {', '.join(METHODS)}")
     if nonlinear and layout.anchors is None:
-        raise ValueError("nonlinear Monte Carlo needs a ranging layout (anchors file)")
+        raise ValueError("nonlinear Monte Carlo needs a ranging or RSSI layout (anchors file)")
     if nonlinear and alpha is not None:
         raise ValueError("a fixed alpha is not available for nonlinear runs (B-method only)")
     tr = draw_trials(layout, trials, n_faults, size, unit, seed, alpha0, beta0)
