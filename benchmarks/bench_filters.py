@@ -38,12 +38,15 @@ def _data(steps: int, K: int, n: int, seed: int = 0) -> tuple[np.ndarray, np.nda
 
 
 R = np.diag([0.01, 0.01, 4e-4, 1e-3])
+#: UKF predict through sigma points (True) or, exact for the linear CA model, with F (False).
+SIGMA_PREDICT = False
 
 
 def _ours(kind: str, motion, z: np.ndarray, x0: np.ndarray, repeats: int = 5) -> float:
     """Median seconds per step of ``K`` tracks (z: (K, steps, 4))."""
     K, steps, _ = z.shape
-    f = FusionFilter(kind, motion, points=SigmaPoints(1.0, 2.0, 0.0), min_speed_mps=0.0)
+    f = FusionFilter(kind, motion, points=SigmaPoints(1.0, 2.0, 0.0), min_speed_mps=0.0,
+                     sigma_point_predict=SIGMA_PREDICT)
     meas = FusionMeasurement(motion.n_states)
     dt = np.ones(K)
     best = []
@@ -124,9 +127,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--tracks", type=int, default=1000)
+    ap.add_argument("--sigma-predict", action="store_true",
+                    help="UKF predict through sigma points (default: exact linear predict)")
     args = ap.parse_args()
+    global SIGMA_PREDICT
+    SIGMA_PREDICT = args.sigma_predict
     S, K = args.steps, args.tracks
-    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; {S} steps")
+    print(f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores; {S} steps; "
+          f"UKF predict: {'sigma points' if SIGMA_PREDICT else 'linear (exact for CA)'}")
     rows = []
     cases = [
         ("UKF 6-state CA", "ukf", ConstantAcceleration(q=1e-4), _filterpy_ukf, ukf_flops(6, 4)),

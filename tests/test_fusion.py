@@ -243,3 +243,15 @@ def test_fuse_several_tags_at_different_times(cart):
     assert len(other) == 142  # GPS epochs (0, 1, ...) and UWB epochs (0.37, 1.37, ...)
     assert set(other["source"]) == {"uwb", "gps"}
     np.testing.assert_allclose(other["time"].iloc[:3], [0.0, 0.37, 1.0])
+
+
+def test_ukf_linear_predict_equals_sigma_point_predict():
+    t, _, z = _round_robin(J=40)
+    fm = FusionMeasurement(6, SQUARE)
+    x0, P0 = initial_state([[1.0, 1.5]], 6, 1.0)
+    R = np.diag([0.05**2] * 4 + [1, 1])
+    a = FusionFilter("ukf", ConstantAcceleration(q=0.01)).run(t[None], z, R, fm, x0, P0)
+    b = FusionFilter("ukf", ConstantAcceleration(q=0.01), sigma_point_predict=True).run(
+        t[None], z, R, fm, x0, P0)
+    np.testing.assert_allclose(a.x, b.x, atol=1e-9)
+    np.testing.assert_allclose(a.var, b.var, atol=1e-9)

@@ -63,6 +63,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Literal
 
 import numpy as np
@@ -243,7 +244,10 @@ class SigmaPoints:
         return self.alpha**2 * (n + self.kappa) - n
 
     def weights(self, n: int) -> tuple[Array, Array]:
-        """Mean and covariance weights ``(2n + 1,)`` each."""
+        """Mean and covariance weights ``(2n + 1,)`` each (cached, read-only)."""
+        return _sigma_weights(self.alpha, self.beta, self.kappa, n)
+
+    def _weights(self, n: int) -> tuple[Array, Array]:
         lam = self.lam(n)
         if n + lam <= 0:
             raise ValueError(f"sigma-point scaling n + lambda = {n + lam} must be positive")
@@ -251,14 +255,25 @@ class SigmaPoints:
         wc = wm.copy()
         wm[0] = lam / (n + lam)
         wc[0] = wm[0] + 1.0 - self.alpha**2 + self.beta
+        wm.flags.writeable = False
+        wc.flags.writeable = False
         return wm, wc
 
     def points(self, x: Array, P: Array) -> Array:
         """Sigma points ``(2n + 1, K, n)`` for states ``x (K, n)`` and ``P (K, n, n)``."""
-        n = x.shape[-1]
+        K, n = x.shape
         L = _sqrt_psd((n + self.lam(n)) * P)  # columns are the spreads
-        spread = np.moveaxis(L, -1, 0)  # (n, K, n): column i of each L
-        return np.concatenate([x[None], x[None] + spread, x[None] - spread])
+        spread = np.transpose(L, (2, 0, 1))  # (n, K, n): column i of each L
+        out = np.empty((2 * n + 1, K, n))
+        out[0] = x
+        np.add(x, spread, out=out[1 : n + 1])
+        np.subtract(x, spread, out=out[n + 1 :])
+        return out
+
+
+@lru_cache(maxsize=64)
+def _sigma_weights(alpha: float, beta: float, kappa: float, n: int) -> tuple[Array, Array]:
+    return SigmaPoints(alpha, beta, kappa)._weights(n)
 
 
 # --------------------------------------------------------------------------- result

@@ -157,6 +157,11 @@ class FusionFilter:
         standardized against a wide prior and accepted (a robust filter that drifted
         away would otherwise reject everything forever).  0 disables.
     relock_var : variance (m^2 and (m/s)^2) set on re-lock.
+    sigma_point_predict : UKF only -- propagate sigma points through the motion model
+        (seed 001 eq. (21)).  The CV/CA models are linear, for which the unscented
+        transform is exact and equals ``F x, F P F^T + Q`` (tested), so by default the UKF
+        predicts with the matrices and uses sigma points in the update only (same result,
+        half the work).
     """
 
     kind: Literal["ekf", "ukf"] = "ukf"
@@ -166,6 +171,7 @@ class FusionFilter:
     min_speed_mps: float = 0.1
     max_rejected: int = 5
     relock_var: float = 4.0
+    sigma_point_predict: bool = False
 
     def __post_init__(self) -> None:
         if self.kind not in ("ekf", "ukf"):
@@ -187,7 +193,7 @@ class FusionFilter:
             F, Q = self.motion.FQ(float(dt[0]))
         else:
             F, Q = self.motion.F(dt), self.motion.Q(dt)
-        if self.kind == "ekf":
+        if self.kind == "ekf" or not self.sigma_point_predict:
             x, P = predict_linear(x, P, F, Q)
         else:
             K, n = x.shape
