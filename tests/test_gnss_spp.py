@@ -161,3 +161,34 @@ def test_bad_settings() -> None:
         SppSolver(iono="magic")
     with pytest.raises(ValueError):
         SppSolver().solve(read_obs(GEONET / "07590920.05o"))
+
+
+def test_carrier_smoothing_reduces_noise_and_resets_on_slips() -> None:
+    from robustloc.gnss.spp import carrier_smooth_iflc
+
+    rng = np.random.default_rng(7)
+    N = 200
+    t = 1.3e9 + 30.0 * np.arange(N)
+    f1, f2 = 1575.42e6, 1227.60e6
+    lam1, lam2 = C_LIGHT / f1, C_LIGHT / f2
+    r = 2.2e7 + 400.0 * np.arange(N) + 3.0 * np.sin(np.arange(N) / 20.0)
+    iono1 = 5.0 + 0.02 * np.arange(N)  # slowly growing ionosphere (divergence-free IF)
+    iono2 = iono1 * (f1 / f2) ** 2
+    c1 = r + iono1 + rng.normal(0, 0.5, N)
+    p2 = r + iono2 + rng.normal(0, 0.5, N)
+    l1 = (r - iono1) / lam1 + 1234567.0
+    l2 = (r - iono2) / lam2 - 7654321.0
+    l1[120:] += 10.0  # cycle slip on L1 from epoch 120
+    obs = ObsData("synthetic", 2.11, t, ["G01"],
+                  {"C1": c1[:, None], "P2": p2[:, None], "L1": l1[:, None], "L2": l2[:, None]},
+                  np.zeros(3), np.zeros(N, dtype=np.int64), np.arange(N, dtype=np.int64))
+    raw = pseudoranges(obs, "iflc")[:, 0]
+    sm = carrier_smooth_iflc(obs, pseudoranges(obs, "iflc"), window=60)[:, 0]
+    err_raw, err_sm = raw - r, sm - r
+    assert np.std(err_raw[60:120]) > 1.0  # IF noise ~ 3 x 0.5 m
+    assert np.std(err_sm[60:120]) < 0.35 * np.std(err_raw[60:120])
+    assert sm[120] == raw[120]  # restarted at the slip: no 10-cycle jump carried over
+    assert np.max(np.abs(err_sm[120:])) < 4 * np.std(err_raw)
+    assert np.std(err_sm[180:]) < 0.35 * np.std(err_raw[60:120])
+    with pytest.raises(ValueError, match="iflc"):
+        SppSolver(smoothing_epochs=30)

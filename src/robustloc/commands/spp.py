@@ -32,7 +32,7 @@ for JSON).
 
 Example:
   robustloc spp 07590920.05o 07590920.05n --systems G --raim -o sol.csv
-  robustloc spp slac1180.21o --sp3 COD.SP3 --clk COD.CLK --systems GRE --iono iflc -o s.csv
+  robustloc spp slac1180.21o --sp3 COD.SP3 --clk COD.CLK --systems GRE --smooth 60 -o s.csv
   robustloc spp 07590920.05o 07590920.05n --raim --inject G11:20 --inject-from 796436400 -o f.csv
 """
 
@@ -50,6 +50,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="ionosphere: broadcast Klobuchar, ionosphere-free combination or none "
                         "(default: iflc with --sp3, else klobuchar)")
     p.add_argument("--tropo", choices=("saastamoinen", "none"), default="saastamoinen")
+    p.add_argument("--smooth", type=int, default=0, metavar="EPOCHS",
+                   help="carrier-smooth the ionosphere-free code over up to EPOCHS epochs "
+                        "(Hatch filter, needs --iono iflc; default 0 = off)")
     p.add_argument("--raim", action="store_true", help="fault detection and exclusion + PLs")
     p.add_argument("--alpha0", type=float, default=0.001, help="w-test significance (0.001)")
     p.add_argument("--beta0", type=float, default=0.10, help="B-method missed detection (0.10)")
@@ -124,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
                             _parse_time(args.inject_until, "--inject-until"))
     iono = args.iono or ("iflc" if precise is not None else "klobuchar")
     solver = SppSolver(systems=args.systems, elevation_mask_deg=args.elevation_mask,
-                       iono=iono, tropo=args.tropo)
+                       iono=iono, tropo=args.tropo, smoothing_epochs=args.smooth)
     if args.raim:
         res = RaimFde(alpha0=args.alpha0, beta0=args.beta0,
                       max_exclusions=args.max_exclusions).solve(solver, obs, nav, precise)

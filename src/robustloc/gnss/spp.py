@@ -116,6 +116,78 @@ def pseudoranges(obs: ObsData, iono: str) -> NDArray[np.float64]:
     return pick_code(obs, {k: v[0] for k, v in CODE_PRIORITY.items()})
 
 
+#: Carrier-phase priority (first, second signal) for carrier smoothing; GLONASS (FDMA, channel
+#: numbers not in RINEX 2) is not smoothed.
+PHASE_PRIORITY = {
+    "G": (["L1", "L1C", "L1W", "L1X"], ["L2", "L2W", "L2L", "L2X", "L2S"]),
+    "E": (["L1", "L1C", "L1X"], ["L5", "L5Q", "L5X", "L5I"]),
+    "C": (["L2", "L1", "L2I", "L1I"], ["L7", "L7I", "L6I"]),
+}
+
+
+def carrier_smooth_iflc(
+    obs: ObsData, pr_if_m: NDArray[np.float64], window: int = 60,
+    slip_gf_m: float = 0.15, slip_cmp_m: float = 15.0,
+) -> NDArray[np.float64]:
+    """Hatch filter of the ionosphere-free code with the ionosphere-free carrier phase.
+
+    ``Ps_k = P_k / n + (n - 1) / n (Ps_{k-1} + Phi_k - Phi_{k-1})``, ``n = min(k, window)``
+    epochs since the last reset (Hatch 1982).  The ionosphere-free combination has no
+    code-carrier divergence, so long windows are safe.  The filter restarts for a
+    satellite when its phase or code is missing, on a cycle slip -- a jump of the
+    geometry-free phase ``lambda1 L1 - lambda2 L2`` by more than ``slip_gf_m`` or of the
+    code-minus-phase by more than ``slip_cmp_m`` between epochs -- or after a gap of more than
+    two sampling intervals.  Sequential in time (one vectorized step per epoch over all
+    satellites); satellites without both carriers (GLONASS) keep the raw code.
+
+    Parameters
+    ----------
+    obs : ObsData
+    pr_if_m : ndarray (N, S)
+        Ionosphere-free code (:func:`pseudoranges` with ``"iflc"``).
+    window : int
+        Maximum smoothing length in epochs.
+    """
+    if window < 1:
+        raise ValueError("smoothing window must be >= 1 epoch")
+    sysl = obs.system_of()
+    l1 = pick_code(obs, {k: v[0] for k, v in PHASE_PRIORITY.items()})
+    l2 = pick_code(obs, {k: v[1] for k, v in PHASE_PRIORITY.items()})
+    f1 = np.array([FREQ_HZ.get(s, (np.nan, np.nan))[0] if s in PHASE_PRIORITY else np.nan
+                   for s in sysl])
+    f2 = np.array([FREQ_HZ.get(s, (np.nan, np.nan))[1] if s in PHASE_PRIORITY else np.nan
+                   for s in sysl])
+    lam1, lam2 = C_LIGHT / f1, C_LIGHT / f2
+    g = f1**2 / (f1**2 - f2**2)
+    phi = g * lam1 * l1 + (1.0 - g) * lam2 * l2  # IF phase (m), ambiguous
+    gf = lam1 * l1 - lam2 * l2
+    dt = np.diff(obs.t_gps_s)
+    max_gap = 2.5 * (np.median(dt) if dt.size else 30.0)
+    out = np.array(pr_if_m, dtype=float, copy=True)
+    N, S = out.shape
+    prev_phi = np.full(S, np.nan)
+    prev_gf = np.full(S, np.nan)
+    prev_ps = np.full(S, np.nan)
+    n = np.zeros(S)
+    t_prev = -np.inf
+    for k in range(N):
+        p, ph, gk = out[k], phi[k], gf[k]
+        ok = np.isfinite(p) & np.isfinite(ph)
+        with np.errstate(invalid="ignore"):
+            cont = (ok & np.isfinite(prev_phi) & (obs.t_gps_s[k] - t_prev <= max_gap)
+                    & (np.abs(gk - prev_gf) <= slip_gf_m))
+            pred = prev_ps + ph - prev_phi
+            cont &= np.abs(p - pred) <= slip_cmp_m
+        n = np.where(cont, np.minimum(n + 1, window), np.where(ok, 1, 0))
+        ps = np.where(cont, p / np.maximum(n, 1) + (n - 1) / np.maximum(n, 1) * pred, p)
+        out[k] = ps
+        prev_phi = np.where(ok, ph, np.nan)
+        prev_gf = np.where(ok, gk, np.nan)
+        prev_ps = np.where(ok, ps, np.nan)
+        t_prev = obs.t_gps_s[k]
+    return out
+
+
 @dataclass(frozen=True)
 class SppResult:
     """Per-epoch SPP (and RAIM) results for ``N`` epochs and ``S`` satellites.
@@ -274,6 +346,10 @@ class SppSolver:
         Add the Klobuchar and Saastamoinen model-error variances to the weights (RTKLIB
         does; off by default because those errors are mostly common to all satellites and
         then make the a-priori sigmas about four times too large for the residual tests).
+    smoothing_epochs : int
+        With ``iono="iflc"``: Hatch-filter the code with the ionosphere-free carrier phase
+        over up to this many epochs (:func:`carrier_smooth_iflc`); 0 = raw code (default).
+        The weights are not changed (conservative: smoothed code is less noisy).
     """
 
     def __init__(
@@ -289,6 +365,7 @@ class SppSolver:
         tol_m: float = 1e-3,
         max_gdop: float = 30.0,
         atmosphere_variance: bool = False,
+        smoothing_epochs: int = 0,
     ) -> None:
         systems = "".join(dict.fromkeys(systems.upper()))
         bad = set(systems) - set("GREC")
@@ -312,6 +389,9 @@ class SppSolver:
         self.max_iter = int(max_iter)
         self.tol_m = float(tol_m)
         self.max_gdop = float(max_gdop)
+        if smoothing_epochs and iono != "iflc":
+            raise ValueError("carrier smoothing (smoothing_epochs > 0) needs iono='iflc'")
+        self.smoothing_epochs = int(smoothing_epochs)
         self.atmosphere_variance = bool(atmosphere_variance)
 
     # ------------------------------------------------------------------ preparation
@@ -322,6 +402,8 @@ class SppSolver:
         if nav is None and precise is None:
             raise ValueError("need broadcast navigation data or precise products (SP3)")
         pr = pseudoranges(obs, self.iono)
+        if self.smoothing_epochs > 0:
+            pr = carrier_smooth_iflc(obs, pr, self.smoothing_epochs)
         pr = np.where((pr > 1.0e7) & (pr < 6.0e7), pr, np.nan)  # plausible code range
         sysl = obs.system_of()
         present = [s for s in self.systems if np.any((sysl == s) & np.any(np.isfinite(pr), 0))]

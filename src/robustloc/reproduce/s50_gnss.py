@@ -149,6 +149,8 @@ def run(ctx: Context) -> Section:
         ("SLAC, GPS SP3/CLK, iono-free", SppSolver(systems="G", iono="iflc")),
         ("SLAC, GPS+Galileo SP3/CLK, iono-free", SppSolver(systems="GE", iono="iflc")),
         ("SLAC, GPS+GLONASS+Galileo SP3/CLK, iono-free", SppSolver(systems="GRE", iono="iflc")),
+        ("SLAC, GPS+GLONASS+Galileo SP3/CLK, iono-free, carrier-smoothed (60 epochs)",
+         SppSolver(systems="GRE", iono="iflc", smoothing_epochs=60)),
     ]
     prec = {}
     for label, solver in variants:
@@ -156,23 +158,30 @@ def run(ctx: Context) -> Section:
         rows.append(_row(label, prec[label], s_obs.approx_xyz_m))
     acc = pd.DataFrame(rows).set_index("solution")
     sec.table("SPP accuracy (m) beside RTKLIB 2.4.3 rnx2rtkp on the same files", acc)
-    gre = prec["SLAC, GPS+GLONASS+Galileo SP3/CLK, iono-free"]
+    gre = prec["SLAC, GPS+GLONASS+Galileo SP3/CLK, iono-free, carrier-smoothed (60 epochs)"]
     e_b = s_res.enu_errors(s_obs.approx_xyz_m)[s_res.ok]
     e_p = gre.enu_errors(s_obs.approx_xyz_m)[gre.ok]
     sec.text(
         "Scatter about the mean (bias removed), SLAC: GPS broadcast std E/N/U = "
         + " / ".join(f"{v:.2f}" for v in e_b.std(axis=0))
-        + " m; GPS+GLONASS+Galileo precise std = "
+        + " m; GPS+GLONASS+Galileo precise carrier-smoothed std = "
         + " / ".join(f"{v:.2f}" for v in e_p.std(axis=0))
-        + " m.  Most of the remaining horizontal RMS of the precise solution is a constant "
-        "east offset shared by every variant (the reference position's own uncertainty)."
+        + " m.  Multi-GNSS with precise products removes the 3.6 m vertical bias of the "
+        "broadcast solution and cuts the 3-D RMS by about a third.  The horizontal RMS of "
+        "every precise variant is dominated by a constant ~2 m east offset that GPS, "
+        "Galileo and GLONASS alone all agree on: the header position's own error (its "
+        "monument comment differs from it by 1.2 m east), not the solution's.  Raw "
+        "ionosphere-free code is about 3 times noisier than C1, hence the carrier smoothing; "
+        "the GPS satellites of this file only have C1 (no P1), so the P1-C1 code biases "
+        "(not in the shared data) remain in the GPS ionosphere-free ranges."
     )
     sec.summary["geonet_gps"] = {k: acc.loc["GEONET 0759, GPS broadcast (ours)", k]
                                  for k in ("rms_h_m", "rms_3d_m", "p95_h_m", "solved")}
     sec.summary["slac_gps"] = {k: acc.loc["SLAC, GPS broadcast (ours)", k]
                                for k in ("rms_h_m", "rms_3d_m", "solved")}
-    sec.summary["slac_gre_precise"] = {
-        k: acc.loc["SLAC, GPS+GLONASS+Galileo SP3/CLK, iono-free", k]
+    sec.summary["slac_gre_precise_smoothed"] = {
+        k: acc.loc["SLAC, GPS+GLONASS+Galileo SP3/CLK, iono-free, carrier-smoothed (60 epochs)",
+                   k]
         for k in ("rms_h_m", "rms_3d_m", "solved")}
 
     # ------------------------------------------------------------------ RAIM fault injection
