@@ -300,6 +300,28 @@ def run(ctx: Context) -> Section:
     )
     sec.table(f"Monte Carlo, ble-corridor RSSI at S2, 12 dB blockages ({trials} trials per row)",
               ts)
+    tsn = _mc_block(lay_s, trials, ("ls", "snooping"), ctx.seed + 20, runs_db[:2],
+                    nonlinear=True)
+    lin = float(ts[(ts["faults"] == "1 x 12 m") & (ts["method"] == "snooping")]
+                ["flagged (measured)"].iloc[0])
+    non = float(tsn[(tsn["faults"] == "1 x 12 m") & (tsn["method"] == "snooping")]
+                ["flagged (measured)"].iloc[0])
+    th12 = float(tsn[tsn["faults"] == "1 x 12 m"]["global test (theory)"].iloc[0])
+    sec.text(
+        "RSSI without linearization (RSSI simulated from the log-distance model and solved "
+        "by Gauss-Newton in dB): a 12 dB blockage is detected in "
+        f"{non:.1%} of trials against {lin:.1%} for the linearized model and {th12:.1%} in "
+        "theory"
+        + (". The gap exceeds three binomial standard errors: the log-distance model is "
+           "curved (its gradient grows as 1/d near a beacon), so the linearized detection "
+           "theory is less exact for RSSI than for ranges."
+           if abs(non - th12) > 3 * np.sqrt(th12 * (1 - th12) / trials) else
+           ", within three binomial standard errors.")
+    )
+    sec.table(f"Monte Carlo, ble-corridor RSSI at S2, nonlinear solvers ({trials} trials per "
+              "row)", tsn)
+    sec.summary["corridor_rssi_detection_12db"] = {"theory": th12, "linearized": lin,
+                                                   "nonlinear": non}
 
     # --- detection curve
     name, dc = _detection_curve(ctx, g, 200 if ctx.quick else 4000)
