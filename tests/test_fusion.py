@@ -255,3 +255,13 @@ def test_ukf_linear_predict_equals_sigma_point_predict():
         t[None], z, R, fm, x0, P0)
     np.testing.assert_allclose(a.x, b.x, atol=1e-9)
     np.testing.assert_allclose(a.var, b.var, atol=1e-9)
+
+
+def test_nls_fix_exact_and_handles_far_tags():
+    # anchors spanning 2 m, tag 40 m away: Gauss-Newton recovers the exact position
+    a = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 1.5], [0.0, 1.5]])
+    x = np.array([[40.0, 10.0], [-30.0, 25.0]])
+    d = np.linalg.norm(x[:, None] - a[None], axis=-1)
+    fix = uwb_fix(a, d, "nls")
+    np.testing.assert_allclose(fix.position, x, atol=1e-6)
+    assert list(fix.status) == ["ok", "ok"]

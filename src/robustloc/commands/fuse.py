@@ -48,8 +48,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--motion", choices=["cv", "ca"], default="cv", help="default cv")
     p.add_argument("--coupling", choices=["loose", "tight"], default="tight",
                    help="default tight")
-    p.add_argument("--fix", choices=["ls", "wls"], default="wls",
-                   help="UWB fix for loose coupling (default wls)")
+    p.add_argument("--fix", choices=["ls", "wls", "nls"], default="nls",
+                   help="UWB fix for loose coupling: linearized ls/wls or Gauss-Newton "
+                        "nls (default nls)")
     p.add_argument("--robust", choices=ROBUST, default="none",
                    help="equivalent weight of the robust update (default none)")
     p.add_argument("--gate", type=float, default=None, metavar="PROB",

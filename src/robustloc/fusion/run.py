@@ -32,7 +32,7 @@ class FuseOptions:
     Parameters
     ----------
     coupling : ``"loose"`` (UWB fixes) or ``"tight"`` (raw ranges).
-    fix_method : ``"ls"`` or ``"wls"`` UWB fixes (loose coupling).
+    fix_method : ``"ls"``, ``"wls"`` or ``"nls"`` (Gauss-Newton) UWB fixes (loose coupling).
     sigma_range_m, range_k : range noise ``sigma0 + k d`` (m, -).
     sigma_speed_mps, sigma_course_deg : GPS speed and course noise.
     nmea_offset_s : added to NMEA times to reach the ranges' clock.
@@ -42,7 +42,7 @@ class FuseOptions:
     """
 
     coupling: Literal["loose", "tight"] = "tight"
-    fix_method: Literal["ls", "wls"] = "wls"
+    fix_method: Literal["ls", "wls", "nls"] = "nls"
     sigma_range_m: float = 0.15
     range_k: float = 0.0
     sigma_speed_mps: float = 0.05

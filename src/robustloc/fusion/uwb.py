@@ -60,7 +60,7 @@ def range_sigma(range_m: ArrayLike, sigma0_m: float = 0.1, k: float = 0.0) -> Ar
 def uwb_fix(
     anchors: ArrayLike,
     ranges_m: ArrayLike,
-    method: Literal["ls", "wls"] = "ls",
+    method: Literal["ls", "wls", "nls"] = "ls",
     height_offset_m: ArrayLike | None = None,
     sigma0_m: float = 0.1,
     k: float = 0.0,
@@ -71,7 +71,11 @@ def uwb_fix(
     ----------
     anchors : (m, dim) anchor coordinates.
     ranges_m : (N, m) measured ranges, NaN where an anchor was not heard.
-    method : ``"ls"`` (equal weights) or ``"wls"`` (``omega_i = 1/(2 d_i sigma_i)^2``).
+    method : ``"ls"`` (equal weights), ``"wls"`` (``omega_i = 1/(2 d_i sigma_i)^2``) or
+        ``"nls"``: Gauss-Newton on the range equations themselves
+        (:func:`robustloc.estimators.nonlinear.gauss_newton` with
+        :class:`robustloc.models.ranging.RangeModel`, weights ``1/sigma_i^2``) started from
+        the LS fix -- the better fix when the anchors span little compared with the ranges.
     height_offset_m : (m,) optional anchor-minus-tag heights for 2-D fixes from slant ranges.
     sigma0_m, k : range noise model ``sigma_i = sigma0_m + k d_i`` (WLS weights and the
         covariance of both methods).
@@ -80,8 +84,8 @@ def uwb_fix(
     d = np.atleast_2d(np.asarray(ranges_m, dtype=float))
     if a.ndim != 2 or d.shape[1] != a.shape[0]:
         raise ValueError(f"anchors {a.shape} and ranges {d.shape} do not match")
-    if method not in ("ls", "wls"):
-        raise ValueError(f"method must be 'ls' or 'wls', got {method!r}")
+    if method not in ("ls", "wls", "nls"):
+        raise ValueError(f"method must be 'ls', 'wls' or 'nls', got {method!r}")
     N, m = d.shape
     dim = a.shape[1]
     d = np.where(np.isfinite(d), d, np.nan)
@@ -121,9 +125,40 @@ def uwb_fix(
     status = np.asarray(fit.status, dtype=object).copy()
     status[n_used < dim + 1] = st.INSUFFICIENT
     pos = np.where((status == st.OK)[:, None], fit.x, np.nan)
+    if method == "nls":
+        return _nls_fix(a, d, pos, status, height_offset_m, sigma0_m, k)
     return UwbFix(
         position=pos,
         covariance=np.where((status == st.OK)[:, None, None], cov, np.nan),
         n_used=n_used.astype(np.int64),
+        status=status.astype(str),
+    )
+
+
+def _nls_fix(
+    a: Array, d: Array, x_ls: Array, status_ls: NDArray, height_offset_m, sigma0_m: float,
+    k: float,
+) -> UwbFix:
+    """Gauss-Newton fixes on the range equations, started at the linearized LS fix."""
+    from robustloc.estimators.nonlinear import gauss_newton
+    from robustloc.models.ranging import RangeModel
+
+    N, m = d.shape
+    dim = a.shape[1]
+    hz = None if height_offset_m is None else np.broadcast_to(
+        np.asarray(height_offset_m, dtype=float), (m,))
+    model = RangeModel(a, hz)
+    x0 = np.where(np.isfinite(x_ls), x_ls, a.mean(axis=0)[None] + 1.0)
+    heard = np.isfinite(d).sum(axis=1)
+    fit = gauss_newton(model, d, x0, range_sigma(d, sigma0_m, k), scale=1.0, min_obs=dim + 1)
+    status = np.asarray(fit.status, dtype=object).copy()
+    status[heard < dim + 1] = st.INSUFFICIENT
+    status[(status == st.NOT_CONVERGED)] = st.OK  # damped steps: a usable fix
+    good = (status == st.OK) & np.isfinite(fit.x).all(axis=1)
+    status[~good & (status == st.OK)] = st.ILL_CONDITIONED
+    return UwbFix(
+        position=np.where(good[:, None], fit.x, np.nan),
+        covariance=np.where(good[:, None, None], fit.cov, np.nan),
+        n_used=heard.astype(np.int64),
         status=status.astype(str),
     )
