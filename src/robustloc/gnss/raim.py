@@ -34,6 +34,8 @@ noise bound at the test's own significance.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -137,6 +139,9 @@ class RaimFde:
         Only swaps with satellites whose w-test correlates with the excluded one by more
         than this (``|rho_jk|``, before exclusion) are re-tested (default 0.3; a swap with
         an uncorrelated satellite cannot pass the global test for a detectable fault).
+    max_subsets : int
+        After two or more exclusions, every other subset of at most as many satellites is
+        tested too (ambiguous if one passes); skipped when there are more subsets than this.
     """
 
     def __init__(
@@ -148,6 +153,7 @@ class RaimFde:
         gn_iterations: int = 4,
         check_ambiguity: bool = True,
         rho_min: float = 0.3,
+        max_subsets: int = 2000,
     ) -> None:
         self.lambda0 = lambda0(alpha0, beta0)  # validates alpha0, beta0
         self.alpha0 = float(alpha0)
@@ -159,6 +165,7 @@ class RaimFde:
         self.gn_iterations = int(gn_iterations)
         self.check_ambiguity = bool(check_ambiguity)
         self.rho_min = float(rho_min)
+        self.max_subsets = int(max_subsets)
 
     def _readmit(self, res, resolve, sigma_ext, used, excl) -> NDArray[np.int64]:  # noqa: ANN001
         """Backward step after snooping: try to put every excluded satellite back, one at a
@@ -188,7 +195,8 @@ class RaimFde:
 
     def _ambiguous(self, res, lin, sigma_ext, S: int, used, excl) -> NDArray[np.bool_]:  # noqa: ANN001
         """Epochs whose exclusion is not unique: swapping an excluded satellite for a used
-        one also passes the global test (highly correlated w-tests, seed 003's
+        one (or, after several exclusions, excluding any other subset of at most as many
+        satellites) also passes the global test (highly correlated w-tests, seed 003's
         identifiability problem).  Such epochs are reported ``unavailable`` instead of
         trusting a coin toss.  The alternatives are tested on the model linearized at the
         final solution (``lin(rows) -> (H, l)``), which differs from a re-linearized one by
@@ -228,6 +236,30 @@ class RaimFde:
                 t = integrity_tests(wh, np.where(m, v, np.nan), alpha=self.alpha,
                                     alpha0=self.alpha0, beta0=self.beta0)
                 amb[rows[t.global_pass]] = True
+        # several exclusions: any other subset of at most as many satellites whose
+        # exclusion also passes the global test makes the result ambiguous (a wrong pair
+        # can pass where single swaps cannot)
+        multi = cand[(res.n_excluded[cand] >= 2) & ~amb[cand]]
+        for e in multi:
+            ci = int(np.flatnonzero(cand == e)[0])
+            pool = np.flatnonzero((used[e] | excl[e])[:S])
+            m = int(excl[e, :S].sum())
+            actual = set(np.flatnonzero(excl[e, :S]).tolist())
+            combos = [c for k in range(1, m + 1) for c in itertools.combinations(pool, k)
+                      if set(c) != actual]
+            if not combos or len(combos) > self.max_subsets:
+                continue
+            masks = np.repeat((used[e] | excl[e])[None], len(combos), axis=0)
+            for r_, c in enumerate(combos):
+                masks[r_, list(c)] = False
+            Hc = np.repeat(He[ci][None], len(combos), axis=0)
+            lc = np.repeat(le[ci][None], len(combos), axis=0)
+            sc = np.repeat(sigma_ext[e][None], len(combos), axis=0)
+            wh = whiten(Hc, sc, mask=masks)
+            v = np.einsum("kip,kp->ki", Hc, wh.solve(lc)) - lc
+            t = integrity_tests(wh, np.where(masks, v, np.nan), alpha=self.alpha,
+                                alpha0=self.alpha0, beta0=self.beta0)
+            amb[e] = bool(np.any(t.global_pass))
         return amb
 
     def solve(
