@@ -156,7 +156,8 @@ class FusionFilter:
         velocity variances are raised to ``relock_var`` so that the next measurements are
         standardized against a wide prior and accepted (a robust filter that drifted
         away would otherwise reject everything forever).  0 disables.
-    relock_var : variance (m^2 and (m/s)^2) set on re-lock.
+    relock_var : variance (m^2 and (m/s)^2) set on re-lock; the acceleration states of the
+        CA model are zeroed with a variance of ``relock_var / 100`` (m/s^2)^2.
     sigma_point_predict : UKF only -- propagate sigma points through the motion model
         (seed 001 eq. (21)).  The CV/CA models are linear, for which the unscented
         transform is exact and equals ``F x, F P F^T + Q`` (tested), so by default the UKF
@@ -286,11 +287,14 @@ class FusionFilter:
                 allrej = had & (r.n_used < avail)
                 rejected = np.where(allrej, rejected + 1, np.where(had, 0, rejected))
                 lock = rejected >= self.max_rejected
-                if lock.any():
+                if lock.any():  # re-lock: wide position/velocity, acceleration reset
                     P = P.copy()
-                    idx = np.arange(min(4, n))
-                    P[np.ix_(lock, idx, idx)] = 0.0
-                    P[lock, idx, idx] = self.relock_var
+                    x = x.copy()
+                    P[lock] = 0.0
+                    diag = np.full(n, self.relock_var)
+                    diag[4:] = self.relock_var * 0.01
+                    P[lock] = np.diag(diag)
+                    x[np.ix_(lock, np.arange(4, n))] = 0.0
                     rejected[lock] = 0
                     relocks += lock
             t_prev = np.where(live, tj, t_prev)

@@ -39,6 +39,7 @@ class FuseOptions:
     merge_window_s : events closer than this are merged (see align).
     tag_height_m : tag height for slant-range correction when anchors have ``z``.
     init_var_m2 : initial position variance.
+    init_acc_var : initial acceleration variance (CA), (m/s^2)^2.
     """
 
     coupling: Literal["loose", "tight"] = "tight"
@@ -51,6 +52,7 @@ class FuseOptions:
     merge_window_s: float = 0.02
     tag_height_m: float | None = None
     init_var_m2: float = 4.0
+    init_acc_var: float = 0.01
 
     def __post_init__(self) -> None:
         if self.coupling not in ("loose", "tight"):
@@ -174,7 +176,7 @@ def fuse(
     Rd[..., m - 1] = np.deg2rad(opts.sigma_course_deg) ** 2
 
     x0pos, has = _initial_positions(tl, z, opts, a_xy, dz, M)
-    x0, P0 = initial_state(x0pos, n, opts.init_var_m2)
+    x0, P0 = initial_state(x0pos, n, opts.init_var_m2, acc_var=opts.init_acc_var)
     P0[~has, 0, 0] = P0[~has, 1, 1] = 1e4
     tr = filt.run(tl.time_s, z, Rd, meas, x0, P0, progress=progress)
 
