@@ -140,12 +140,15 @@ def gauss_newton(
             r = zz[act] - pred
             wa0 = w0[act]
             if wf is not None:
-                Ninv0, _ = _inv_small(normal_matrix(J, wa0))
-                with np.errstate(all="ignore"):
-                    hNh = np.sum(np.matmul(J, Ninv0) * J, axis=2)
-                    qvv = np.where(wa0 > 0, 1.0 / np.where(wa0 > 0, wa0, 1) - hNh, np.nan)
+                if it == 0:  # Q_vv of the a-priori fit, once per stage (geometry barely moves)
+                    Ninv0, _ = _inv_small(normal_matrix(J, wa0))
+                    with np.errstate(all="ignore"):
+                        hNh = np.sum(np.matmul(J, Ninv0) * J, axis=2)
+                        qvv0 = np.where(wa0 > 0, 1.0 / np.where(wa0 > 0, wa0, 1) - hNh, np.nan)
+                    stage_qvv = np.full((N, n), np.nan)
+                    stage_qvv[act] = np.maximum(qvv0, 0.0)
                 u, s_used = standardized_residuals(
-                    np.where(wa0 > 0, -r, np.nan), np.maximum(qvv, 0.0), wa0,
+                    np.where(wa0 > 0, -r, np.nan), stage_qvv[act], wa0,
                     None if it == 0 and scale is None else stage_scale[act], min_scale,
                 )
                 if it == 0:
