@@ -102,11 +102,13 @@ def make_residual(angles: Sequence[int] = ()) -> Callable[[Array, Array], Array]
 
 def _weighted_mean(pts: Array, wm: Array, angles: Array) -> Array:
     """Weighted mean of sigma points ``pts (s, K, d)``; circular for ``angles``."""
-    mean = np.tensordot(wm, pts, axes=1)
+    S = pts.shape[0]
+    mean = (wm @ pts.reshape(S, -1)).reshape(pts.shape[1:])
     if angles.size:
-        a = pts[..., angles]
+        a = pts[..., angles].reshape(S, -1)
+        shape = mean[..., angles].shape
         mean[..., angles] = np.arctan2(
-            np.tensordot(wm, np.sin(a), axes=1), np.tensordot(wm, np.cos(a), axes=1)
+            (wm @ np.sin(a)).reshape(shape), (wm @ np.cos(a)).reshape(shape)
         )
     return mean
 
@@ -394,7 +396,7 @@ def update_from_moments(
     """
     K, n = x.shape
     m = y.shape[1]
-    R = _as_batch(R, K)
+    R = np.asarray(R, dtype=float)
     Sdiag = np.diagonal(S, axis1=1, axis2=2)
     avail = np.isfinite(y) & np.isfinite(Sdiag)
     full = bool(avail.all())
@@ -409,7 +411,7 @@ def update_from_moments(
 
     # one factorization: S^-1 [P_xz^T | y]
     sol = spd_solve(Sm, np.concatenate([_mT(Pxz), y0[..., None]], axis=-1))
-    nis = np.einsum("ki,ki->k", y0, sol[..., n])
+    nis = np.sum(y0 * sol[..., n], axis=1)
     dof = avail.sum(axis=1)
     e = y0 / np.sqrt(Sdiag)
     if not full:
@@ -432,6 +434,7 @@ def update_from_moments(
         # equivalent variance R_ii / D_ii: S gains R_ii (1/D_ii - 1) on its diagonal
         use = D > 0
         eye_m = np.eye(m)
+        R = _as_batch(R, K)
         rdiag = np.diagonal(R, axis1=1, axis2=2)
         with np.errstate(divide="ignore"):
             extra = np.where(use, rdiag * (1.0 / np.where(use, D, 1.0) - 1.0), 0.0)
@@ -455,7 +458,7 @@ def update_from_moments(
         H = _as_batch(H, K)
         if not full or robust.weight is not None or gated.any():
             H = np.where(Dg[:, :, None] > 0, H, 0.0)
-            Reff = np.where(avail[:, :, None] & avail[:, None, :], Reff, 0.0)
+            Reff = np.where(avail[:, :, None] & avail[:, None, :], _as_batch(Reff, K), 0.0)
         IKH = np.eye(n) - G @ H
         Pn = IKH @ P @ _mT(IKH) + G @ Reff @ _mT(G)  # Joseph form
     else:
