@@ -23,14 +23,17 @@ from robustloc import __version__
 from robustloc.errors import InputError
 
 
-def _command_modules() -> list:
+def _command_modules(only: str | None = None) -> list:
+    """Command modules; ``only`` (a module name) imports just that one, so running a
+    command does not pay for importing every other command's dependencies."""
     import robustloc.commands as pkg
 
     mods = []
-    for info in sorted(pkgutil.iter_modules(pkg.__path__), key=lambda i: i.name):
-        if info.name.startswith("_"):
-            continue
-        mod = importlib.import_module(f"robustloc.commands.{info.name}")
+    names = [i.name for i in pkgutil.iter_modules(pkg.__path__) if not i.name.startswith("_")]
+    if only is not None and only.replace("-", "_") in names:
+        names = [only.replace("-", "_")]
+    for name in sorted(names):
+        mod = importlib.import_module(f"robustloc.commands.{name}")
         if hasattr(mod, "NAME") and hasattr(mod, "run"):
             mods.append(mod)
     order = getattr(pkg, "ORDER", [])
@@ -38,14 +41,14 @@ def _command_modules() -> list:
     return mods
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="robustloc",
         description="Robust positioning from RSSI, ranges, NMEA and GNSS pseudoranges.",
     )
     parser.add_argument("--version", action="version", version=f"robustloc {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for mod in _command_modules():
+    for mod in _command_modules(only):
         p = sub.add_parser(
             mod.NAME,
             help=mod.HELP,
@@ -67,7 +70,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the process exit code."""
     warnings.filterwarnings("ignore", category=FutureWarning)
     warnings.filterwarnings("ignore", category=DeprecationWarning)
-    parser = build_parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
+    first = next((a for a in argv if not a.startswith("-")), None)
+    parser = build_parser(first)
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):
         parser.print_help()
@@ -87,6 +92,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return error(str(exc))
     except KeyboardInterrupt:
         return error("interrupted")
+    except BrokenPipeError:  # output piped into `head` and closed: not an error
+        import os
+
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -100,43 +100,6 @@ def _params(items: list[str]) -> dict[str, float]:
     return out
 
 
-class PositionsWriter:
-    """Appends positions chunks to a CSV or Parquet file, contract columns first."""
-
-    def __init__(self, path: Path) -> None:
-        from robustloc.io import is_parquet
-
-        self.path = path
-        self.parquet = is_parquet(path)
-        self._writer = None
-        self._first = True
-        path.parent.mkdir(parents=True, exist_ok=True)
-
-    def write(self, frame: pd.DataFrame) -> None:
-        from robustloc.io import POSITION_COLUMNS
-
-        cols = list(POSITION_COLUMNS)
-        if "z" in frame.columns:
-            cols.insert(4, "z")
-        frame = frame[cols + [c for c in frame.columns if c not in cols]]
-        if self.parquet:
-            import pyarrow as pa
-            import pyarrow.parquet as pq
-
-            table = pa.Table.from_pandas(frame, preserve_index=False)
-            if self._writer is None:
-                self._writer = pq.ParquetWriter(self.path, table.schema)
-            self._writer.write_table(table)
-        else:
-            frame.to_csv(self.path, mode="w" if self._first else "a", header=self._first,
-                         index=False)
-        self._first = False
-
-    def close(self) -> None:
-        if self._writer is not None:
-            self._writer.close()
-
-
 def locate_file(args: argparse.Namespace) -> dict:
     """Run ``locate`` as configured by ``args``; returns the summary."""
     from tqdm import tqdm
@@ -144,6 +107,7 @@ def locate_file(args: argparse.Namespace) -> dict:
     from robustloc.errors import InputError
     from robustloc.estimators.ranging import Locator
     from robustloc.io import iter_epochs, positions_frame, read_anchors
+    from robustloc.io.tables import PositionsWriter
     from robustloc.models.calibration import apply_range_calibration
     from robustloc.models.pathloss import log_distance_arrays
 
@@ -177,7 +141,7 @@ def locate_file(args: argparse.Namespace) -> dict:
         for m in methods
     ]
     out = Path(args.out)
-    writer = PositionsWriter(out)
+    writer = PositionsWriter(out).__enter__()
     counts: dict[str, dict[str, int]] = {m: {} for m in methods}
     n_epochs = n_dup = 0
     A = n = None
@@ -208,7 +172,7 @@ def locate_file(args: argparse.Namespace) -> dict:
             n_dup += block.n_duplicates
             bar.update(block.n_epochs)
     finally:
-        writer.close()
+        writer.__exit__(None, None, None)
         bar.close()
     wall = _time.perf_counter() - t0
     return {
