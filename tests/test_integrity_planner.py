@@ -94,3 +94,13 @@ def test_cli_reliability_suggest(tmp_path, capsys):
     assert js["suggestions"][0]["x"] == 0.0 and js["suggestions"][0]["y"] == 10.0
     assert len(pd.read_csv(out / "suggestions.csv")) == 2
     assert js["figures"] == [] and not list(out.glob("*.png"))
+
+
+def test_suggest_with_per_anchor_path_loss_exponents():
+    from robustloc.integrity.planner import default_candidates, suggest_anchor
+
+    four = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])
+    df = suggest_anchor(four, (0, 10, 0, 10), 2.5, 3.0, default_candidates((0, 10, 0, 10), 2),
+                        model="rssi", path_loss_n=np.array([2.0, 2.1, 2.2, 2.3]))
+    assert len(df) == 8 and np.isfinite(df["score"]).all()
+    assert (df["improvement"] > 0).all()

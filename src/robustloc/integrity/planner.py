@@ -290,6 +290,7 @@ def suggest_anchor(
     candidates : (C, d) candidate positions (same columns as ``anchors``).
     metric, quantile : see :func:`layout_score`.
     **plan_kwargs : further options of :func:`plan` (``dim``, ``model``, ``max_range_m``...).
+        Per-anchor path-loss exponents are extended with their median for the candidate.
 
     Returns
     -------
@@ -305,9 +306,13 @@ def suggest_anchor(
     if not np.all(np.isfinite(c)):
         raise ValueError("candidate coordinates must be finite")
     base = layout_score(plan(a, area, step, sigma, **plan_kwargs), metric, quantile)
+    kw_new = dict(plan_kwargs)
+    n_exp = np.asarray(plan_kwargs.get("path_loss_n", 2.0), dtype=float)
+    if n_exp.ndim == 1 and n_exp.size == len(a):  # per-anchor exponents: the new one gets
+        kw_new["path_loss_n"] = np.append(n_exp, np.median(n_exp))  # the median
     rows = []
     for cand in c:
-        g = plan(np.vstack([a, cand]), area, step, sigma, **plan_kwargs)
+        g = plan(np.vstack([a, cand]), area, step, sigma, **kw_new)
         sc = layout_score(g, metric, quantile)
         rows.append({**{k: float(v) for k, v in zip("xyz", cand)}, "score": sc,
                      "baseline": base,
