@@ -157,3 +157,16 @@ def test_nonlinear_ranging_close_to_linearized_theory(capsys, tmp_path):
                  "--trials", "50", "--methods", "ls,snooping", "--nonlinear", "--json"]) == 0
     js = json.loads(capsys.readouterr().out)
     assert "RSSI" in js["layout"] and js["rows"][1]["theory_w"] > 0.3
+
+
+def test_single_exclusion_policy_cannot_handle_two_faults():
+    lay = ranging_layout(ANCHORS, [8.0, 6.0], 0.3)
+    df = run_montecarlo(lay, n_faults=2, size=10.0, trials=500,
+                        methods=("snooping", "raim-single"), seed=2).set_index("method")
+    assert df.loc["raim-single", "identified"] == 0.0
+    assert df.loc["raim-single", "unavailable"] > 0.9
+    assert df.loc["snooping", "identified"] > 0.9
+    h0 = run_montecarlo(lay, n_faults=0, trials=4000, methods=("raim-single",), seed=3)
+    assert _in_ci(h0["flag_rate"].iloc[0], 4000, 0.001)
+    with pytest.raises(ValueError):
+        run_montecarlo(lay, trials=10, methods=("raim-single",), nonlinear=True)

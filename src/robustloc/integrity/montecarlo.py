@@ -18,6 +18,10 @@ measured rates can be put beside the theoretical ones:
   ``delta = |f_i| sqrt(r_i) / sigma_i``.
 
 Methods: ``ls`` (no fault handling, reference), ``snooping`` (iterative w-test data snooping),
+``raim-single`` (the classical RAIM policy of RTKLIB's ``rnx2rtkp``, emulated on the same
+model: global chi-square test at a fixed ``alpha = 0.001``, at most one exclusion, of the
+observation whose removal lowers ``v^T P v`` most -- for one exclusion that is the largest
+w-test, since the drop is ``w_i^2`` -- and ``unavailable`` if the test still fails),
 ``lege`` (seed 000 sec. 2.4, :func:`robustloc.estimators.linear.lege`) and IRLS with the
 weight functions of :mod:`robustloc.robust.weights` (``huber``, ``hampel``, ``igg``,
 ``igg3``; :func:`robustloc.estimators.linear.irls` with the known a-priori scale).  An
@@ -55,8 +59,11 @@ from robustloc.integrity.tests import whiten
 
 Array = NDArray[np.float64]
 
+#: Fixed global-test significance of the ``raim-single`` policy (RTKLIB's chi-square test).
+RAIM_SINGLE_ALPHA = 0.001
+
 #: Methods understood by :func:`run_montecarlo`.
-METHODS = ("ls", "snooping", "lege", "huber", "hampel", "igg", "igg3")
+METHODS = ("ls", "snooping", "raim-single", "lege", "huber", "hampel", "igg", "igg3")
 
 
 @dataclass(frozen=True)
@@ -270,8 +277,12 @@ def _run_method(
     T = y.shape[0]
     H = np.broadcast_to(layout.H, (T,) + layout.H.shape)
     w0 = np.broadcast_to(1.0 / layout.sigma**2, y.shape)
-    if method == "snooping":
-        res = snoop_linear(H, y, layout.sigma, alpha=alpha, alpha0=alpha0, beta0=beta0)
+    if method in ("snooping", "raim-single"):
+        if method == "snooping":
+            res = snoop_linear(H, y, layout.sigma, alpha=alpha, alpha0=alpha0, beta0=beta0)
+        else:  # the classical single-exclusion RAIM policy (see module docstring)
+            res = snoop_linear(H, y, layout.sigma, alpha=RAIM_SINGLE_ALPHA, alpha0=alpha0,
+                               beta0=beta0, require_local=False, max_exclusions=1)
         usable = np.isin(res.status, (st.OK, st.FAULT_EXCLUDED))
         return res.x, res.excluded, res.detected, usable
     from robustloc.estimators import linear
@@ -294,6 +305,7 @@ def _run_method(
 
 #: Locator method used for each Monte Carlo method in nonlinear runs.
 _LOCATOR_METHOD = {"ls": "nls", "snooping": "snooping", "lege": "lege", "huber": "huber",
+                   "raim-single": "",
                    "hampel": "hampel", "igg": "igg", "igg3": "igg3"}
 
 
@@ -387,6 +399,8 @@ def run_montecarlo(
         raise ValueError(f"unknown method(s) {', '.join(bad)}; choose among {', '.join(METHODS)}")
     if nonlinear and layout.anchors is None:
         raise ValueError("nonlinear Monte Carlo needs a ranging or RSSI layout (anchors file)")
+    if nonlinear and "raim-single" in methods:
+        raise ValueError("method 'raim-single' is available on the linearized model only")
     if nonlinear and alpha is not None:
         raise ValueError("a fixed alpha is not available for nonlinear runs (B-method only)")
     tr = draw_trials(layout, trials, n_faults, size, unit, seed, alpha0, beta0)
