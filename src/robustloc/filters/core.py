@@ -119,6 +119,13 @@ def _weighted_cov(wc: Array, a: Array, b: Array) -> Array:
     return at @ np.transpose(b, (1, 0, 2))
 
 
+@lru_cache(maxsize=32)
+def _eye(n: int) -> Array:
+    e = np.eye(n)
+    e.flags.writeable = False
+    return e
+
+
 def _as_batch(A: ArrayLike, K: int) -> Array:
     A = np.asarray(A, dtype=float)
     return A if A.ndim == 3 else np.broadcast_to(A, (K, *A.shape))
@@ -397,8 +404,8 @@ def update_from_moments(
     else:
         y0 = np.where(avail, y, 0.0)
         pair = avail[:, :, None] & avail[:, None, :]
-        Sm = np.where(pair, np.nan_to_num(S), np.eye(m))
-        Pxz = np.where(avail[:, None, :], np.nan_to_num(Pxz), 0.0)
+        Sm = np.where(pair, S, _eye(m))
+        Pxz = np.where(avail[:, None, :], Pxz, 0.0)
         Sdiag = np.where(avail, Sdiag, 1.0)
 
     # one factorization: S^-1 [P_xz^T | y]
@@ -415,8 +422,8 @@ def update_from_moments(
         gated = (dof > 0) & (nis > thr)
 
     if robust.weight is not None:
-        D = np.nan_to_num(robust.weight.weights(e), nan=0.0)  # seed 002 eq. (11): p(e_i)
-        D = np.where(avail, D, 0.0)
+        D = robust.weight.weights(e)  # seed 002 eq. (11): p(e_i)
+        D = np.where(avail & np.isfinite(D), D, 0.0)
     else:
         D = avail.astype(float)
     if gated.any():
@@ -451,7 +458,7 @@ def update_from_moments(
         if not full or robust.weight is not None or gated.any():
             H = np.where(Dg[:, :, None] > 0, H, 0.0)
             Reff = np.where(avail[:, :, None] & avail[:, None, :], _as_batch(Reff, K), 0.0)
-        IKH = np.eye(n) - G @ H
+        IKH = _eye(n) - G @ H
         Pn = IKH @ P @ _mT(IKH) + G @ Reff @ _mT(G)  # Joseph form
     else:
         GPxz = G @ _mT(Pxz)
@@ -494,7 +501,7 @@ def update_linear(
     z = np.asarray(z, dtype=float)
     K = x.shape[0]
     Hb = _as_batch(H, K)
-    Rb = _as_batch(R, K)
+    Rb = np.asarray(R, dtype=float)
     zhat = np.einsum("kmn,kn->km", Hb, x)
     y = make_residual(z_angles)(z.copy(), zhat)
     PHt = P @ _mT(Hb)
@@ -518,9 +525,8 @@ def update_ekf(
     x = np.asarray(x, dtype=float)
     P = np.asarray(P, dtype=float)
     z = np.asarray(z, dtype=float)
-    K = x.shape[0]
     Hb = numerical_jacobian(h, x) if jac is None else np.asarray(jac(x), dtype=float)
-    Rb = _as_batch(R, K)
+    Rb = np.asarray(R, dtype=float)
     zhat = np.asarray(h(x), dtype=float)
     y = make_residual(z_angles)(z.copy(), zhat)
     PHt = P @ _mT(Hb)
@@ -556,7 +562,7 @@ def update_ukf(
     res_z = make_residual(z_angles)
     dz = res_z(zs, zhat[None])
     dx = make_residual(x_angles)(sig, x[None])
-    Rb = _as_batch(R, K)
+    Rb = np.asarray(R, dtype=float)
     S = _weighted_cov(wc, dz, dz) + Rb
     Pxz = _weighted_cov(wc, dx, dz)
     y = res_z(z.copy(), zhat)

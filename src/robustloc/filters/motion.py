@@ -88,8 +88,9 @@ def _coefficients(order: int, dim: int) -> tuple[Array, Array, Array, Array]:
 
 def _evaluate(C: Array, dt: ArrayLike) -> Array:
     d = np.asarray(dt, dtype=float)
-    powers = d[..., None] ** np.arange(C.shape[0])  # (..., P)
-    return np.tensordot(powers, C, axes=(-1, 0))
+    P = C.shape[0]
+    powers = d[..., None] ** np.arange(P)  # (..., P)
+    return (powers.reshape(-1, P) @ C.reshape(P, -1)).reshape(d.shape + C.shape[1:])
 
 
 @dataclass(frozen=True)

@@ -260,6 +260,7 @@ class FusionFilter:
         t_prev = np.where(np.isfinite(t[:, 0]), t[:, 0], 0.0)
         rejected = np.zeros(K, dtype=np.int64)
         relocks = np.zeros(K, dtype=np.int64)
+        eye_m = np.eye(m)
         steps = range(J)
         if progress:
             import sys
@@ -275,7 +276,7 @@ class FusionFilter:
             if R.ndim == 2:
                 Rj = R
             elif R.ndim == 3:
-                Rj = np.einsum("km,mn->kmn", R[:, j], np.eye(m))
+                Rj = R[:, j, :, None] * eye_m
             else:
                 Rj = R[:, j]
             zj = np.where(live[:, None], z[:, j], np.nan)
