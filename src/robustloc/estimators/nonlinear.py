@@ -68,7 +68,7 @@ def gauss_newton(
     the a-priori weight and ``p(u_i)`` the robust equivalent weight of the standardized
     residual (seed 000 sec. 2: the "selection-of-weights iteration" carried to the
     nonlinear observation equations, so one bad range is one bad row).  Steps are damped
-    (``(J^T W J + λ diag(J^T W J)) dx = J^T W r``) and accepted only when they lower the
+    (``(J^T W J + λ tr(J^T W J)/p I) dx = J^T W r``) and accepted only when they lower the
     weighted cost, so an epoch never diverges.
 
     Parameters
@@ -163,8 +163,10 @@ def gauss_newton(
             JW = J * wa[..., None]
             Nm = np.matmul(np.swapaxes(JW, 1, 2), J)
             g = np.matmul(np.swapaxes(JW, 1, 2), r[..., None])[..., 0]
-            diag = np.einsum("kii->ki", Nm)
-            Nd = Nm + (lam[act][:, None] * np.maximum(diag, 1e-12))[:, :, None] * np.eye(p)
+            # damping by the mean diagonal (trace / p) times I: unlike Marquardt's
+            # diag(J^T W J) it is rotation-invariant, so fixes move rigidly with the anchors
+            tr = np.maximum(np.einsum("kii->k", Nm) / p, 1e-12)
+            Nd = Nm + (lam[act] * tr)[:, None, None] * np.eye(p)
             Ninv, good = _inv_small(Nd)
             dx = np.matmul(Ninv, g[..., None])[..., 0]
             xn = xa + dx
