@@ -13,7 +13,7 @@ A run folder (``Dynamic_measurements/{LOS,NLOS}/Trajectory_A/Case_1``) holds
 Conversions (*checked*): the tag is carried at 1.0 m above the ground (the static data
 set's true range is ``sqrt(d^2 + (h_anchor - 1.0)^2)``), so 2-D solutions use the known
 vertical offsets ``z_anchor - 1.0``.  Times are seconds since ``t0_ns`` (the first range
-of the run, floored to the second), kept in ``frame.attrs["t0_ns"]``.
+of the run, floored to the second), kept in :attr:`Dwm1001Run.t0_ns`.
 
 The shipped excerpt (``robustloc/data/uwb-dwm1001``) holds the first 60 s of both runs as
 gzip'd CSV in the same layout; see its ``SOURCE.md``.
