@@ -31,6 +31,7 @@ from robustloc.filters.core import (
     PLAIN,
     RobustUpdate,
     SigmaPoints,
+    UpdateResult,
     predict_linear,
     predict_ukf,
     update_ekf,
@@ -188,7 +189,7 @@ class FusionFilter:
         z: Array,
         R: Array,
         meas: FusionMeasurement,
-    ):
+    ) -> UpdateResult:
         """One vectorized predict + update of ``K`` tracks with per-track ``dt (K,)``."""
         if np.all(dt == dt[0]):  # one step for all tracks (the usual case): cached 2-D F, Q
             F, Q = self.motion.FQ(float(dt[0]))
@@ -285,8 +286,8 @@ class FusionFilter:
             if self.max_rejected > 0:
                 avail = np.isfinite(r.innovation).sum(axis=1)
                 had = avail > 0
-                allrej = had & (r.n_used < avail)
-                rejected = np.where(allrej, rejected + 1, np.where(had, 0, rejected))
+                some_rejected = had & (r.n_used < avail)
+                rejected = np.where(some_rejected, rejected + 1, np.where(had, 0, rejected))
                 lock = rejected >= self.max_rejected
                 if lock.any():  # re-lock: wide position/velocity, acceleration reset
                     P = P.copy()
