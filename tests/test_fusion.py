@@ -265,3 +265,38 @@ def test_nls_fix_exact_and_handles_far_tags():
     fix = uwb_fix(a, d, "nls")
     np.testing.assert_allclose(fix.position, x, atol=1e-6)
     assert list(fix.status) == ["ok", "ok"]
+
+
+@pytest.mark.parametrize("kind", ["ekf", "ukf"])
+def test_tight_filter_nees_consistent(kind):
+    # 300 tracks simulated from the CV model, ranges to the 4 anchors every 0.5 s; the
+    # time-averaged NEES of the (nonlinear) range filter must lie in the 99 % chi-square band
+    from scipy.stats import chi2
+
+    rng = np.random.default_rng(21)
+    K, J, dt, sr = 300, 40, 0.5, 0.05
+    cv = ConstantVelocity(q=0.01)
+    F, Q = cv.F(dt), cv.Q(dt)
+    Lq = np.linalg.cholesky(Q + 1e-12 * np.eye(4))
+    P0 = np.diag([0.05, 0.05, 0.01, 0.01])
+    x_true = np.array([2.0, 2.5, 0.1, -0.1]) + rng.normal(size=(K, 4)) * np.sqrt(np.diag(P0))
+    truth = np.empty((K, J, 4))
+    for j in range(J):
+        if j:
+            x_true = x_true @ F.T + rng.normal(size=(K, 4)) @ Lq.T
+        truth[:, j] = x_true
+    z = np.full((K, J, 6), np.nan)
+    z[..., :4] = np.linalg.norm(truth[..., None, :2] - SQUARE, axis=-1) + rng.normal(
+        0, sr, (K, J, 4))
+    t = np.broadcast_to(np.arange(J) * dt, (K, J))
+    x0 = np.tile([2.0, 2.5, 0.1, -0.1], (K, 1))
+    f = FusionFilter(kind, cv, max_rejected=0)
+    tr = f.run(t, z, np.diag([sr**2] * 4 + [1, 1]), FusionMeasurement(4, SQUARE), x0,
+               np.tile(P0, (K, 1, 1)))
+    # per-axis normalized squared position errors (the track keeps only the covariance
+    # diagonal): each is chi-square with 1 dof; their average over tracks and epochs
+    e = tr.x[:, 10:, :2] - truth[:, 10:, :2]
+    nees = (e**2 / tr.var[:, 10:, :2]).mean()
+    N = e.size
+    lo, hi = chi2.ppf([0.005, 0.995], N) / N
+    assert lo < nees < hi, nees
