@@ -300,3 +300,13 @@ def test_tight_filter_nees_consistent(kind):
     N = e.size
     lo, hi = chi2.ppf([0.005, 0.995], N) / N
     assert lo < nees < hi, nees
+
+
+def test_fuse_aligns_posix_ranges_with_nmea_automatically(cart):
+    meas = pd.read_csv(cart["measurements"])
+    anchors = pd.read_csv(cart["anchors"])
+    log = read_nmea(cart["nmea"])  # RMC date 01/01/24 -> POSIX 1704067200
+    shifted = meas.assign(time=meas["time"] + 1704067200.0)
+    res = fuse(shifted, anchors, log, FusionFilter("ekf", ConstantVelocity(q=1e-4)))
+    assert res.summary["nmea_offset_s"] == 1704067200.0
+    assert set(res.track["source"]) == {"uwb+gps"}  # every epoch fused with its sentence

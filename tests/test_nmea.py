@@ -145,3 +145,15 @@ def test_gst_accuracy_rows():
 def test_garbage_fields_with_valid_checksum_are_skipped(body):
     log = parse_nmea(["$" + body + "*" + nmea_checksum(body)])
     assert log.summary.parsed == {} and log.summary.skipped["truncated"] == 1
+
+
+def test_posix_day_from_rmc_date():
+    log = read_nmea(PIXEL6)  # 2023-11-07 23:42:57 UTC = 1699400577 (the logger's own ms)
+    t0 = log.fixes["time_s"].iloc[0] + log.day0_posix_s
+    assert t0 == pytest.approx(1699400577.0)
+    # rolling over midnight keeps the same day 0
+    log2 = parse_nmea([make_rmc(86399.0, 1.0, 0.0, date="311223"),
+                       make_rmc(1.0, 1.0, 0.0, date="010124")])
+    np.testing.assert_allclose(log2.motion["time_s"], [86399.0, 86401.0])
+    assert log2.day0_posix_s == pytest.approx(1703980800.0)  # 2023-12-31 00:00 UTC
+    assert parse_nmea([make_vtg(1.0, 0.0)]).day0_posix_s is None

@@ -23,7 +23,8 @@ From the NMEA log only speed and course are fused (the paper's GPS measurements)
 positions are parsed (ENU about --origin) but not used as measurements.
 
 Time alignment: NMEA times (seconds of the UTC day) plus --nmea-offset must match the
-ranges' time column; measurements within --merge-window seconds form one filter event.
+ranges' time column (automatic for POSIX-time ranges and dated RMC sentences);
+measurements within --merge-window seconds form one filter event.
 Course is ignored below 0.1 m/s.
 
 Output (track contract): time, tag, x, y, vx, vy[, ax, ay], status, var_* (covariance
@@ -63,8 +64,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="range std growth with distance, sigma = s0 + k d (default 0)")
     p.add_argument("--sigma-speed", type=float, default=0.05, help="GPS speed std, m/s")
     p.add_argument("--sigma-course", type=float, default=5.0, help="GPS course std, deg")
-    p.add_argument("--nmea-offset", type=float, default=0.0,
-                   help="seconds added to NMEA times to reach the ranges' clock")
+    p.add_argument("--nmea-offset", type=float, default=None,
+                   help="seconds added to NMEA times (UTC seconds of day) to reach the "
+                        "ranges' clock (default: POSIX time from the RMC date when the "
+                        "ranges' times are POSIX seconds, else 0)")
     p.add_argument("--merge-window", type=float, default=0.02,
                    help="measurements closer than this (s) form one event (0.02)")
     p.add_argument("--tag-height", type=float, default=None,

@@ -35,7 +35,10 @@ class FuseOptions:
     fix_method : ``"ls"``, ``"wls"`` or ``"nls"`` (Gauss-Newton) UWB fixes (loose coupling).
     sigma_range_m, range_k : range noise ``sigma0 + k d`` (m, -).
     sigma_speed_mps, sigma_course_deg : GPS speed and course noise.
-    nmea_offset_s : added to NMEA times to reach the ranges' clock.
+    nmea_offset_s : added to NMEA times to reach the ranges' clock; ``None`` (default):
+        automatic -- POSIX time (``NmeaLog.day0_posix_s``) when the ranges' times look like
+        POSIX seconds (median above 1e8) and the log has a dated RMC, else 0 (simulated
+        logs: NMEA time of day 0 = time 0 of the ranges).
     merge_window_s : events closer than this are merged (see align).
     tag_height_m : tag height for slant-range correction when anchors have ``z``.
     init_var_m2 : initial position variance.
@@ -48,7 +51,7 @@ class FuseOptions:
     range_k: float = 0.0
     sigma_speed_mps: float = 0.05
     sigma_course_deg: float = 5.0
-    nmea_offset_s: float = 0.0
+    nmea_offset_s: float | None = None
     merge_window_s: float = 0.02
     tag_height_m: float | None = None
     init_var_m2: float = 4.0
@@ -153,13 +156,18 @@ def fuse(
         streams.append(Stream(tl_u.time_s.reshape(-1)[live], tag_rep, v, [0, 1, 4, 5, 6]))
         meas = FusionMeasurement(n)
     mo = nmea.motion if isinstance(nmea, NmeaLog) else nmea
+    offset = opts.nmea_offset_s
+    if offset is None:
+        day0 = nmea.day0_posix_s if isinstance(nmea, NmeaLog) else None
+        offset = day0 if (day0 is not None and len(t) and np.median(t) > 1e8) else 0.0
+    summary["nmea_offset_s"] = float(offset)
     if mo is not None and len(mo):
         ut = np.unique(tags)
         for tg in ut:
             streams.append(
                 Stream(mo["time_s"].to_numpy(float), np.full(len(mo), tg, dtype=object),
                        mo[["speed_mps", "course_rad"]].to_numpy(float), [m - 2, m - 1],
-                       opts.nmea_offset_s)
+                       offset)
             )
     m_aug = m + (3 if opts.coupling == "loose" else 0)
     tl = merge_streams(streams, m_aug, opts.merge_window_s)

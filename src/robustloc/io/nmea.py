@@ -13,8 +13,9 @@ What comes out (:func:`read_nmea` / :func:`parse_nmea`, an :class:`NmeaLog`):
 * ``summary`` -- counts of lines, parsed sentences per type and every skip by reason.
 
 Time: ``time_s`` is seconds since 00:00 UTC of the day of the first sentence, with day
-roll-overs counted when the time of day jumps back by more than 12 h.  Add an offset to
-align it with another stream (see :mod:`robustloc.fusion.align`).
+roll-overs counted when the time of day jumps back by more than 12 h.  With a dated RMC,
+``time_s + day0_posix_s`` is POSIX time.  Add an offset to align it with another stream
+(see :mod:`robustloc.fusion.align`).
 
 Robustness: lines may carry a prefix or suffix (Android GnssLogger ``NMEA,$GP...*hh,ms``):
 the sentence is the text from ``$`` to the two hex digits after ``*``.  A bad checksum, a
@@ -103,6 +104,9 @@ class NmeaLog:
     accuracy: pd.DataFrame
     origin: tuple[float, float, float] | None
     summary: NmeaSummary
+    #: POSIX time (s) of 00:00 UTC of day 0 of ``time_s``, from the first RMC date; None
+    #: without any dated RMC.  ``time_s + day0_posix_s`` is POSIX time.
+    day0_posix_s: float | None = None
 
 
 def _tod(ts) -> float:
@@ -139,6 +143,7 @@ def parse_nmea(
     fixes: list[tuple] = []
     acc: list[tuple] = []
     n_lines = 0
+    first_date = None
 
     def skip(lineno: int, reason: str) -> None:
         skipped[reason] += 1
@@ -188,6 +193,8 @@ def parse_nmea(
                     skip(lineno, "truncated")
                     continue
                 course = _num(msg.true_course)
+                if first_date is None and msg.datestamp is not None:
+                    first_date = (order, msg.datestamp)
                 motion.append((_tod(ts), speed, np.deg2rad(course), "RMC", order))
             elif kind == "VTG":
                 if getattr(msg, "faa_mode", None) == "N":
@@ -307,7 +314,16 @@ def parse_nmea(
     summary = NmeaSummary(
         lines=n_lines, parsed=dict(parsed), skipped=dict(skipped), examples=examples
     )
-    return NmeaLog(motion=mot, fixes=fx, accuracy=ac, origin=origin, summary=summary)
+    day0 = None
+    if first_date is not None and first_date[0] in order_to_time:
+        import calendar
+
+        o, date = first_date
+        day_index = int(order_to_time[o] // 86400.0)
+        midnight = calendar.timegm((date.year, date.month, date.day, 0, 0, 0))
+        day0 = float(midnight - 86400.0 * day_index)
+    return NmeaLog(motion=mot, fixes=fx, accuracy=ac, origin=origin, summary=summary,
+                   day0_posix_s=day0)
 
 
 def read_nmea(
