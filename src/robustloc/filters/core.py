@@ -313,8 +313,12 @@ def predict_linear(x: ArrayLike, P: ArrayLike, F: ArrayLike, Q: ArrayLike) -> tu
     P = np.asarray(P, dtype=float)
     F = np.asarray(F, dtype=float)
     if F.ndim == 2:
+        K, n = x.shape
         xp = x @ F.T
-        Pp = F @ P @ F.T + Q
+        # F P F^T for the whole stack as two plain (K n x n) @ (n x n) products (BLAS)
+        PFt = (P.reshape(K * n, n) @ F.T).reshape(K, n, n)  # P F^T
+        Pp = (_mT(PFt).reshape(K * n, n) @ F.T).reshape(K, n, n)  # (F P^T F^T)^T
+        Pp = _mT(Pp) + Q
     else:
         xp = np.einsum("kij,kj->ki", F, x)
         Pp = F @ P @ _mT(F) + Q
