@@ -97,9 +97,16 @@ def _detection_curve(ctx: Context, layout, trials: int) -> tuple[str, pd.DataFra
                      "identified (measured)": ident.mean()})
     df = pd.DataFrame(rows)
     fig, ax = plt.subplots(figsize=(6.5, 4))
-    ax.plot(df["size (MDB)"], df["detected (theory)"], "k-", label="global test, theory")
+    # a fault of s MDB on any observation has non-centrality s^2 lambda0 (global test) and
+    # shifts its own w-test by s sqrt(lambda0): the theory curves are analytic in s
+    from robustloc.integrity import detection_power_global, detection_power_w, lambda0
+
+    sf = np.linspace(0.0, sizes.max() * 1.05, 200)
+    lam0 = lambda0()
+    ax.plot(sf, detection_power_global(sf**2 * lam0, layout.n - layout.p), "k-",
+            label="global test, theory")
     ax.plot(df["size (MDB)"], df["detected (measured)"], "o", label="global test, measured")
-    ax.plot(df["size (MDB)"], df["w-test of the fault (theory)"], "k--",
+    ax.plot(sf, detection_power_w(sf * np.sqrt(lam0)), "k--",
             label="w-test of the faulty obs., theory")
     ax.plot(df["size (MDB)"], df["identified (measured)"], "s", label="identified, measured")
     ax.axhline(0.9, color="grey", lw=0.6)
