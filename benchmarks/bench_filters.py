@@ -7,8 +7,13 @@ aggregate steps per second when 1 000 independent tracks advance in one batched 
 The paper's flop counts (:mod:`robustloc.filters.complexity`) are printed beside the
 measured time per step.
 
-Run:  python benchmarks/bench_filters.py [--steps 300] [--tracks 1000]
-The machine's load matters (numbers are wall time, median of 5 repeats).
+Run:  python benchmarks/bench_filters.py [--steps 300] [--tracks 1000] [--sigma-predict]
+The machine's load matters (numbers are wall time, median of 5 repeats); compare the
+ratios, measured in the same run.  Measured here (2 shared cores, load about 2, FilterPy
+itself 3-4x slower than on an idle machine): UKF 6-state CA one track 2.0x FilterPy,
+1 000 tracks batched 86-97x FilterPy's single-track steps/s; EKF 4-state CV one track
+0.3x (NumPy call overhead: our update makes ~35 array calls where FilterPy's EKF makes
+~10), batched 16-20x.
 """
 
 from __future__ import annotations
