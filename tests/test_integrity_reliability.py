@@ -99,3 +99,14 @@ def test_bad_arguments():
         reliability(H_LEVEL, 1.0, rho_threshold=0.0)
     with pytest.raises(ValueError):
         reliability(H_LEVEL, 1.0, horizontal=(0, 5))
+
+
+def test_chunked_equals_unchunked():
+    rng = np.random.default_rng(5)
+    H = rng.normal(size=(50, 6, 2))
+    sig = rng.uniform(0.5, 2.0, size=(50, 6))
+    mask = rng.random((50, 6)) > 0.1
+    a = reliability(H, sig, mask, chunk=7)
+    b = reliability(H, sig, mask)
+    for k in ("redundancy", "mdb", "external", "rho", "max_abs_rho", "flagged", "n_used"):
+        np.testing.assert_array_equal(getattr(a, k), getattr(b, k))

@@ -121,6 +121,7 @@ def reliability(
     rho_threshold: float = RHO_THRESHOLD,
     horizontal: tuple[int, ...] | None = None,
     rcond: float = RCOND,
+    chunk: int = 2048,
 ) -> Reliability:
     """Redundancy, MDB, external reliability and w-test correlation (seed 003).
 
@@ -141,11 +142,30 @@ def reliability(
         first two, ``(0, 1)``: x, y, or east, north of a design expressed in ENU).
     rcond : float
         Conditioning floor of the normal matrix.
+    chunk : int
+        Epochs processed at once (the ``(N, n, n)`` correlation matrices bound memory).
 
     Returns
     -------
     Reliability
     """
+    Hm = np.asarray(H, dtype=float)
+    if Hm.ndim == 3 and Hm.shape[0] > chunk:
+        N = Hm.shape[0]
+        sig = np.broadcast_to(np.asarray(sigma, dtype=float), Hm.shape[:2])
+        mk = None if mask is None else np.broadcast_to(np.asarray(mask, bool), Hm.shape[:2])
+        parts = [
+            reliability(Hm[s : s + chunk], sig[s : s + chunk],
+                        None if mk is None else mk[s : s + chunk], alpha0=alpha0, beta0=beta0,
+                        rho_threshold=rho_threshold, horizontal=horizontal, rcond=rcond,
+                        chunk=chunk)
+            for s in range(0, N, chunk)
+        ]
+        arrays = {k: np.concatenate([getattr(p, k) for p in parts]) for k in (
+            "redundancy", "redundancy_total", "mdb", "external", "external_horizontal",
+            "bias_to_noise", "rho", "max_abs_rho", "flagged", "n_used", "ok")}
+        return Reliability(**arrays, lambda0=parts[0].lambda0,
+                           rho_threshold=parts[0].rho_threshold)
     if not 0.0 < rho_threshold <= 1.0:
         raise ValueError(f"rho_threshold must be in (0, 1], got {rho_threshold}")
     wh = whiten(H, sigma, mask=mask, rcond=rcond)
