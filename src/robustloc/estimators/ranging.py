@@ -28,7 +28,7 @@ Methods
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from itertools import combinations
 
 import numpy as np
@@ -39,7 +39,8 @@ from robustloc.estimators.linear import LinearFit, irls, lege, solve_wls
 from robustloc.estimators.nonlinear import gauss_newton
 from robustloc.estimators.solution import Solution
 from robustloc.models.ranging import LN10, RangeModel, RssiModel
-from robustloc.robust.weights import get_weight
+from robustloc.robust.scale import mad_scale
+from robustloc.robust.weights import Huber, get_weight
 
 Array = NDArray[np.float64]
 
@@ -490,14 +491,46 @@ class Locator:
         return np.broadcast_to(sg, shape).astype(float)
 
     def _gn(self, model, obs, x0, sig, weight) -> LinearFit:
-        # the start is already high-breakdown (subset fixes scored by LMS), so the
-        # redescending weights need no Huber warm-up stage (an MM-estimator's logic)
-        return gauss_newton(
-            model, obs, x0, sig, weight=weight, warmup=False,
+        """Gauss-Newton / robust IRLS from ``x0`` with this locator's settings.
+
+        Redescending weights (Hampel, IGG, IGG-III): a Huber(1.5) fit from ``x0``, then
+        the redescending fit from both the Huber fix and ``x0`` (the high-breakdown subset
+        start), keeping the one with the smaller robust objective.  Measured (IGG RMS):
+        on the simulated corridor (fading noise, beacons on two lines, many near-collinear
+        subsets; 3 seeds) 2.73 m from the subset start alone, 1.74 m from the Huber fix
+        alone, 1.97 m keeping the better; on the benchmark's distinct gross errors (20 %
+        outliers) the 95th percentile is 0.21 m from the subset start, 2.2 m from the
+        Huber fix, 0.20 m keeping the better.
+        """
+        kw = dict(
             scale=1.0 if self.robust_scale == "apriori" else None,
             min_scale=self.min_scale, max_iter=self.max_iter, tol=self.tol,
-            min_obs=model.anchors.shape[1] + 1, rel_tol=self.rel_tol,
+            min_obs=model.anchors.shape[1] + 1, rel_tol=self.rel_tol, warmup=False,
         )
+        if weight is None or not np.isfinite(weight.rejection_threshold):
+            return gauss_newton(model, obs, x0, sig, weight=weight, **kw)
+        hub = gauss_newton(model, obs, x0, sig, weight=Huber(1.5), **kw)
+        xh = np.where(np.isfinite(hub.x), hub.x, x0)
+        fa = gauss_newton(model, obs, xh, sig, weight=weight, **kw)
+        fb = gauss_newton(model, obs, x0, sig, weight=weight, **kw)
+        # keep the fit with the smaller robust objective sum rho(v / (s sigma)), with one
+        # scale s for both (the smaller MAD scale of the two starts), so they compare
+        with np.errstate(all="ignore"):
+            s_h = np.fmin(
+                mad_scale((model.predict(xh) - obs) / sig, axis=1),
+                mad_scale((model.predict(x0) - obs) / sig, axis=1),
+            )
+        s_h = np.where(np.isfinite(s_h) & (s_h > 0), s_h, 1.0)[:, None]
+
+        def objective(f: LinearFit) -> Array:
+            xx = np.where(np.isfinite(f.x), f.x, x0)
+            u = (model.predict(xx) - obs) / (sig * s_h)
+            val = np.nansum(weight.rho(u), axis=1)
+            return np.where(np.isin(f.status, st.USABLE), val, np.inf)
+
+        take_b = objective(fb) < objective(fa)
+        fit = _merge(fa, fb, np.arange(len(take_b)), take_b)
+        return replace(fit, iterations=fit.iterations + hub.iterations)
 
     def _rescue(self, model, obs, sig, wf, fit: LinearFit, a: Array) -> LinearFit:
         """Second chance for epochs that look trapped in a wrong basin.
