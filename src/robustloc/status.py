@@ -16,7 +16,13 @@ FAULT_EXCLUDED = "fault_excluded"
 UNAVAILABLE = "unavailable"
 #: The epoch's own input was unusable (all NaN/inf, malformed).
 INVALID = "invalid_measurement"
+#: A filter's state propagated to this epoch without a measurement update (coasting).
+PREDICTED = "predicted"
 
-ALL = (OK, INSUFFICIENT, ILL_CONDITIONED, NOT_CONVERGED, FAULT_EXCLUDED, UNAVAILABLE, INVALID)
-#: Statuses whose position is a usable fix.
-USABLE = (OK, FAULT_EXCLUDED, NOT_CONVERGED)
+ALL = (
+    OK, INSUFFICIENT, ILL_CONDITIONED, NOT_CONVERGED, FAULT_EXCLUDED, UNAVAILABLE, INVALID,
+    PREDICTED,
+)
+#: Statuses whose position is a usable fix (a coasting filter's prediction included: its
+#: covariance says how far to trust it).
+USABLE = (OK, FAULT_EXCLUDED, NOT_CONVERGED, PREDICTED)

@@ -77,7 +77,7 @@ Array = NDArray[np.float64]
 StateFn = Callable[[Array], Array]
 
 #: Status of a track whose update used no measurement (all missing): prediction only.
-PREDICTED = "predicted"
+PREDICTED = st.PREDICTED
 
 
 # --------------------------------------------------------------------------- helpers
