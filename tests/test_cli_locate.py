@@ -87,7 +87,14 @@ def test_locate_bad_input_exit_2(tmp_path, capsys, meas, message):
 def test_locate_cli_settings_errors(tmp_path, capsys, corridor):
     base = ["locate", str(corridor / "measurements.csv"), "--anchors",
             str(corridor / "cal.csv"), "-o", str(tmp_path / "p.csv")]
-    assert main(base + ["--method", "snooping"]) == 2
+    # snooping needs sigma: the calibrated anchors carry a per-anchor `sigma` column...
+    assert main(base + ["--method", "snooping"]) == 0
+    # ...anchors without it need --sigma
+    nosig = pd.read_csv(corridor / "cal.csv").drop(columns=["sigma"])
+    nosig.to_csv(tmp_path / "nosig.csv", index=False)
+    assert main(["locate", str(corridor / "measurements.csv"), "--anchors",
+                 str(tmp_path / "nosig.csv"), "-o", str(tmp_path / "s.csv"),
+                 "--method", "snooping"]) == 2
     assert "--sigma" in capsys.readouterr().err
     assert main(base + ["--method", "nope"]) == 2
     assert main(base + ["--method", "huber", "--param", "c"]) == 2

@@ -333,6 +333,10 @@ class CalibrationResult:
         Anchors absent from the survey get the pooled parameters.  For a path-loss model
         the columns of the *other* path-loss models are dropped, so ``locate`` cannot
         pick stale parameters.  Without ``anchors``, returns ``anchor`` + parameters only.
+
+        A ``sigma`` column is written too: the fit's residual standard deviation (dB for
+        RSSI, m for ranges; the pooled one for pooled fits or where an anchor's own is not
+        positive).  ``robustloc locate`` weights each anchor by it.
         """
         cols = list(FIT_COLUMNS[self.model])
         par = self.parameters()
@@ -350,6 +354,10 @@ class CalibrationResult:
             out[c] = vals.fillna(float(pooled_row[c])).to_numpy()
         src = ids.map(par["calib_source"])
         out["calib_source"] = src.fillna("pooled").to_numpy()
+        pooled_sd = float(pooled_row["residual_std"])
+        sd = ids.map(par["residual_std"]).astype(float).to_numpy()
+        use_pooled = self.pooled | ~(np.isfinite(sd) & (sd > 0))
+        out["sigma"] = np.where(use_pooled, pooled_sd, sd)
         return out
 
     def summary(self) -> pd.DataFrame:
