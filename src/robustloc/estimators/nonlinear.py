@@ -177,10 +177,10 @@ def gauss_newton(
             accept = good & np.isfinite(cost_new) & (cost_new <= cost_old * (1 + 1e-12))
             x[act[accept]] = xn[accept]
             w[act] = wa
-            lam[act] = np.where(accept, np.maximum(lam[act] / 3.0, 1e-9), lam[act] * 4.0)
+            lam[act] = np.where(accept, np.maximum(lam[act] / 1.5, 1e-9), lam[act] * 3.0)
             iters[act] += 1
             step = np.max(np.abs(dx), axis=1)
-            flat = accept & (cost_old - cost_new <= 1e-9 * np.maximum(cost_old, 1e-300))
+            flat = accept & (cost_old - cost_new <= 1e-6 * np.maximum(cost_old, 1e-300))
             # a step below 1e-3 of the fix's own standard error changes nothing that matters
             dof = np.maximum(np.sum(wa > 0, axis=1) - p, 1)
             with np.errstate(all="ignore"):

@@ -300,7 +300,7 @@ class Locator:
     robust_scale: str = "mad"
     weight_params: dict[str, float] = field(default_factory=dict)
     min_scale: float = 0.0
-    max_iter: int = 50
+    max_iter: int = 100
     tol: float = 1e-3
     rel_tol: float = 1e-2
     alpha0: float = 0.001
