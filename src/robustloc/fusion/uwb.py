@@ -3,21 +3,23 @@
 Linearization (seed 001, eqs. (3)-(4), as in seed 000 eq. (2)): subtracting the equation of a
 reference anchor ``r`` (per epoch, the first anchor heard) from that of anchor ``i`` gives
 
-    2 (a_i - a_r)^T x = d_r^2 - d_i^2 + |a_i|^2 - |a_r|^2
+    (a_i - a_r)^T x = (d_r^2 - d_i^2 + |a_i|^2 - |a_r|^2) / 2
 
-a linear system ``A x = b`` solved for all epochs at once with
-:func:`robustloc.estimators.linear.solve_wls`.  In 2-D with known vertical offsets
+a linear system ``A x = b`` built by :func:`robustloc.estimators.ranging.linearized_system`
+(the same one ``robustloc locate --method ls`` solves) and solved for all epochs at once
+with :func:`robustloc.estimators.linear.solve_wls`.  In 2-D with known vertical offsets
 ``dz_i`` (anchor height minus tag height) the slant ranges are first made horizontal,
 ``d_i^2 <- d_i^2 - dz_i^2``.
 
 WLS weights (seed 001 eq. (5), lost in extraction -- our documented choice): the range noise
-grows with distance, ``sigma_i = sigma0_m + k * d_i``; the linearized observation is a
-*squared* range, whose standard deviation is ``2 d_i sigma_i``; so
+grows with distance, ``sigma_i = sigma0_m + k * d_i``; the linearized observation is half a
+*squared* range, whose standard deviation is ``d_i sigma_i``; so
 
-    omega_i = 1 / (2 d_i sigma_i)^2            (k = 0: omega_i proportional to 1 / d_i^2)
+    omega_i = 1 / (d_i sigma_i)^2              (k = 0: omega_i proportional to 1 / d_i^2)
 
 which down-weights far anchors twice: by their noisier range and by the squaring.  The
-reference anchor's error enters every row; it is not modelled (as in the paper).
+reference anchor's error enters every row: the weights ignore it (as in the paper), the
+reported covariance includes it.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from robustloc import status as st
 from robustloc.estimators.linear import solve_wls
+from robustloc.estimators.ranging import linearized_system
 
 Array = NDArray[np.float64]
 
@@ -71,7 +74,7 @@ def uwb_fix(
     ----------
     anchors : (m, dim) anchor coordinates.
     ranges_m : (N, m) measured ranges, NaN where an anchor was not heard.
-    method : ``"ls"`` (equal weights), ``"wls"`` (``omega_i = 1/(2 d_i sigma_i)^2``) or
+    method : ``"ls"`` (equal weights), ``"wls"`` (``omega_i = 1/(d_i sigma_i)^2``) or
         ``"nls"``: Gauss-Newton on the range equations themselves
         (:func:`robustloc.estimators.nonlinear.gauss_newton` with
         :class:`robustloc.models.ranging.RangeModel`, weights ``1/sigma_i^2``) started from
@@ -89,22 +92,17 @@ def uwb_fix(
     N, m = d.shape
     dim = a.shape[1]
     d = np.where(np.isfinite(d), d, np.nan)
-    d2 = d * d
-    if height_offset_m is not None:
-        d2 = d2 - np.broadcast_to(np.asarray(height_offset_m, dtype=float), (m,)) ** 2
-    heard = np.isfinite(d2)
-    ref = np.argmax(heard, axis=1)  # first anchor heard (0 if none; then all NaN anyway)
+    # the paper's difference system (first heard anchor as reference), shared with
+    # robustloc locate: rows a_i - a_ref, rhs (d_ref^2 - d_i^2 - |a_ref|^2 + |a_i|^2) / 2
+    H, y, ref, centre = linearized_system(a, d, height_offset_m)
+    heard = np.isfinite(d)
     rows = np.arange(N)
-    a_ref = a[ref]  # (N, dim)
-    d2_ref = d2[rows, ref]
-    H = 2.0 * (a[None, :, :] - a_ref[:, None, :])  # (N, m, dim)
-    y = d2_ref[:, None] - d2 + (a * a).sum(1)[None, :] - (a_ref * a_ref).sum(1)[:, None]
-    y[rows, ref] = np.nan  # the reference row is identically zero
+    rr = np.maximum(ref, 0)
     sig = range_sigma(d, sigma0_m, k)
-    var_own = (2.0 * np.abs(d) * sig) ** 2  # own squared-range noise of each row
-    var_ref = (2.0 * np.abs(d[rows, ref]) * sig[rows, ref]) ** 2  # shared by all rows
+    var_own = (np.abs(d) * sig) ** 2  # own noise of each row: d_i e_i
+    var_ref = (np.abs(d[rows, rr]) * sig[rows, rr]) ** 2  # d_ref e_ref, shared by all rows
     if method == "wls":
-        w = 1.0 / np.maximum((2.0 * np.abs(d) * sig) ** 2, 1e-12)  # documented weights
+        w = 1.0 / np.maximum(var_own, 1e-12)  # documented weights, 1 / (d_i sigma_i)^2
     else:
         w = np.ones((N, m))
     fit = solve_wls(H, y, np.where(np.isfinite(y), w, 0.0))
@@ -124,7 +122,7 @@ def uwb_fix(
     n_used = heard.sum(axis=1)
     status = np.asarray(fit.status, dtype=object).copy()
     status[n_used < dim + 1] = st.INSUFFICIENT
-    pos = np.where((status == st.OK)[:, None], fit.x, np.nan)
+    pos = np.where((status == st.OK)[:, None], fit.x + centre, np.nan)
     if method == "nls":
         return _nls_fix(a, d, pos, status, height_offset_m, sigma0_m, k)
     return UwbFix(
