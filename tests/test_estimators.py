@@ -205,3 +205,35 @@ def test_bad_settings_raise():
         Locator("snooping")
     with pytest.raises(ValueError, match="path-loss"):
         Locator("ls").solve(SQUARE, np.zeros((1, 8)), "rssi")
+
+
+def test_slant_ranges_with_known_height_offsets_are_exact():
+    rng = np.random.default_rng(8)
+    a3 = np.c_[SQUARE, rng.uniform(2.0, 3.0, len(SQUARE))]
+    tag_z = 1.2
+    x = rng.uniform(2, 18, (40, 2))
+    d = np.linalg.norm(np.c_[x, np.full(40, tag_z)][:, None, :] - a3[None], axis=2)
+    for method in ("ls", "nls", "huber", "igg3"):
+        sol = Locator(method).solve(SQUARE, d, height_offset=a3[:, 2] - tag_z)
+        np.testing.assert_allclose(sol.position, x, atol=1e-4)
+    # ignoring the heights biases the fix
+    biased = Locator("nls").solve(SQUARE, d)
+    assert np.abs(biased.position - x).max() > 0.05
+
+
+def test_gauss_newton_reaches_the_cramer_rao_bound():
+    """nls is efficient on Gaussian ranges: its RMS error matches sqrt(trace CRLB)."""
+    from robustloc.eval.crlb import crlb_range
+
+    rng = np.random.default_rng(9)
+    truth = np.array([[6.0, 13.0]])
+    sig = 0.3
+    d = ranges_to(SQUARE, np.repeat(truth, 6000, 0)) + rng.normal(0, sig, (6000, 8))
+    sol = Locator("nls").solve(SQUARE, d)
+    rms = np.sqrt(np.mean(np.sum((sol.position - truth) ** 2, axis=1)))
+    bound = float(crlb_range(SQUARE, truth, sig).rmse[0])
+    assert rms == pytest.approx(bound, rel=0.05)
+    # the robust default loses little efficiency on clean data
+    hub = Locator("huber").solve(SQUARE, d)
+    rms_h = np.sqrt(np.mean(np.sum((hub.position - truth) ** 2, axis=1)))
+    assert bound <= rms_h < 1.15 * bound
