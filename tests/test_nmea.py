@@ -117,7 +117,10 @@ def test_unreadable_and_empty_files(tmp_path):
                 max_size=8))
 def test_garbage_never_crashes(lines):
     log = parse_nmea(lines)
-    assert log.summary.lines <= len(lines)
+    sm = log.summary
+    # no silent loss: every non-empty line is either used or counted as skipped
+    assert sm.lines == sum(1 for ln in lines if ln.strip())
+    assert sum(sm.parsed.values()) + sm.n_skipped == sm.lines
 
 
 def test_gst_accuracy_rows():
