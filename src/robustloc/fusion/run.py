@@ -144,7 +144,7 @@ def fuse(
         flat = tl_u.z.reshape(K * J, M)
         live = np.isfinite(tl_u.time_s.reshape(-1))
         fix = uwb_fix(a_xy, flat[live], opts.fix_method, dz, opts.sigma_range_m, opts.range_k)
-        summary["fixes"] = int((fix.status == "ok").sum())
+        summary["fixes"] = int(np.isfinite(fix.position).all(axis=1).sum())
         summary["uwb_epochs"] = int(live.sum())
         tag_rep = np.repeat(tl_u.tags, J)[live]
         # x, y, the fix variances (columns 4, 5) and an always-present epoch marker

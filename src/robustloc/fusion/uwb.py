@@ -151,9 +151,11 @@ def _nls_fix(
     fit = gauss_newton(model, d, x0, range_sigma(d, sigma0_m, k), scale=1.0, min_obs=dim + 1)
     status = np.asarray(fit.status, dtype=object).copy()
     status[heard < dim + 1] = st.INSUFFICIENT
-    status[(status == st.NOT_CONVERGED)] = st.OK  # damped steps: a usable fix
-    good = (status == st.OK) & np.isfinite(fit.x).all(axis=1)
-    status[~good & (status == st.OK)] = st.ILL_CONDITIONED
+    # not_converged is a usable fix (every step was damped and lowered the cost): it is
+    # kept, and reported as such rather than relabelled ok
+    usable = np.isin(status, st.USABLE)
+    good = usable & np.isfinite(fit.x).all(axis=1)
+    status[~good & usable] = st.ILL_CONDITIONED
     return UwbFix(
         position=np.where(good[:, None], fit.x, np.nan),
         covariance=np.where(good[:, None, None], fit.cov, np.nan),
