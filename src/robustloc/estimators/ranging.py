@@ -180,6 +180,35 @@ def lms_score(residuals: Array, dim: int, axis: int = -1) -> Array:
     return np.where(cnt > 0, out, np.inf)
 
 
+def minimal_subsets(
+    anchors: ArrayLike, max_subsets: int = 24, seed: int = 0
+) -> tuple[NDArray[np.int64], Array, Array]:
+    """The minimal anchor subsets of :func:`subset_fixes` and their inverted designs.
+
+    Returns ``combos (C, dim + 1)`` (at most ``max_subsets``, a fixed random choice when
+    there are more; near-degenerate subsets dropped), ``Ginv (C, dim, dim)`` the inverses
+    of ``G = a_j - a_0`` of the centroid-shifted anchors, and that centroid ``c0``.
+    """
+    a = np.asarray(anchors, dtype=float)
+    m, dim = a.shape
+    q = dim + 1
+    c0 = a.mean(axis=0)
+    if m < q:
+        return np.zeros((0, q), dtype=np.int64), np.zeros((0, dim, dim)), c0
+    combos = np.array(list(combinations(range(m), q)), dtype=np.int64)
+    if combos.shape[0] > max_subsets:
+        pick = np.random.default_rng(seed).choice(combos.shape[0], max_subsets, replace=False)
+        combos = combos[np.sort(pick)]
+    sub = (a - c0)[combos]  # (C, q, dim)
+    G = sub[:, 1:, :] - sub[:, :1, :]  # (C, dim, dim)
+    with np.errstate(all="ignore"):
+        det = np.linalg.det(G)
+        scale = np.prod(np.linalg.norm(G, axis=2), axis=1)
+        good = np.abs(det) > 1e-3 * np.maximum(scale, 1e-300)
+    combos, G = combos[good], G[good]
+    return combos, np.linalg.inv(G) if combos.shape[0] else np.zeros((0, dim, dim)), c0
+
+
 def subset_fixes(
     anchors: ArrayLike,
     ranges: ArrayLike,
@@ -206,25 +235,10 @@ def subset_fixes(
     d = np.asarray(ranges, dtype=float)
     N, m = d.shape
     dim = a.shape[1]
-    q = dim + 1
-    if m < q:
-        return np.full((N, dim), np.nan), np.full(N, np.inf)
-    combos = np.array(list(combinations(range(m), q)), dtype=np.int64)
-    if combos.shape[0] > max_subsets:
-        pick = np.random.default_rng(seed).choice(combos.shape[0], max_subsets, replace=False)
-        combos = combos[np.sort(pick)]
-    c0 = a.mean(axis=0)
-    ac = a - c0
-    sub = ac[combos]  # (C, q, dim)
-    G = sub[:, 1:, :] - sub[:, :1, :]  # (C, dim, dim)
-    with np.errstate(all="ignore"):
-        det = np.linalg.det(G)
-        scale = np.prod(np.linalg.norm(G, axis=2), axis=1)
-        good = np.abs(det) > 1e-3 * np.maximum(scale, 1e-300)
-    combos, sub, G = combos[good], sub[good], G[good]
+    combos, Ginv, c0 = minimal_subsets(a, max_subsets, seed)
     if combos.shape[0] == 0:
         return np.full((N, dim), np.nan), np.full(N, np.inf)
-    Ginv = np.linalg.inv(G)
+    sub = (a - c0)[combos]  # (C, q, dim)
     d2 = d * d
     if height_offset is not None:
         d2 = d2 - np.asarray(height_offset, dtype=float)[None, :] ** 2
@@ -251,6 +265,41 @@ def subset_fixes(
         best_c[s0 : s0 + step] = score[e, k]
     best[~np.isfinite(best_c)] = np.nan
     return best, best_c
+
+
+def _height2(height_offset: ArrayLike | None, m: int) -> Array:
+    if height_offset is None:
+        return np.zeros(m)
+    return np.broadcast_to(np.asarray(height_offset, dtype=float), (m,)) ** 2
+
+
+def _compiled_gn(
+    model: RangeModel, obs: Array, x0: Array, sig: Array, weight, kw: dict
+) -> LinearFit | None:
+    """``Locator._gn`` through the compiled kernels (None: no compiled twin of ``weight``)."""
+    from robustloc.estimators import _compiled
+    from robustloc.robust._compiled import weight_spec
+
+    spec = weight_spec(weight)
+    if spec is None:
+        return None
+    code, prm = spec
+    a = model.anchors
+    m = obs.shape[1]
+    scale = kw["scale"]
+    out = _compiled.fit_ranges(
+        a, _height2(model.height_offset, m), np.ascontiguousarray(obs, dtype=float),
+        np.ascontiguousarray(np.broadcast_to(sig, obs.shape), dtype=float),
+        np.ascontiguousarray(x0, dtype=float), code, prm, weight is not None,
+        weight is not None and bool(np.isfinite(weight.rejection_threshold)),
+        np.nan if scale is None else float(scale), float(kw["min_scale"]), int(kw["max_iter"]),
+        float(kw["tol"]), float(kw["rel_tol"]), int(kw["min_obs"]),
+    )
+    x, v, w, qvv, s0, cov, n_used, iters, conv, status, u = out
+    return LinearFit(
+        x=x, v=v, w=w, qvv=qvv, sigma0=s0, cov=cov, n_used=n_used, iterations=iters,
+        converged=conv, status=_compiled.CODES[status], extra={"u": u},
+    )
 
 
 @dataclass(frozen=True)
@@ -291,6 +340,12 @@ class Locator:
     reference : {"first", "nearest"}
         Reference anchor of the linearized system (:func:`linearized_system`): the
         paper's first heard anchor, or the one with the shortest range.
+    engine : {"compiled", "numpy"}
+        ``"compiled"``: the robust start and the Gauss-Newton fits of ranges (and of RSSI
+        converted to ranges) run per epoch in the numba kernels of
+        :mod:`robustloc.estimators._compiled` (about 10x faster); ``"numpy"``: the
+        batched NumPy implementation, which the kernels reproduce (the tests compare
+        them) and which serves the dB-domain model and custom weight functions.
     """
 
     method: str = "huber"
@@ -306,6 +361,7 @@ class Locator:
     alpha0: float = 0.001
     beta0: float = 0.10
     reference: str = "first"
+    engine: str = "compiled"
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -329,6 +385,8 @@ class Locator:
             raise ValueError("method 'snooping' needs the a-priori standard deviation --sigma")
         if self.method in ROBUST:
             get_weight(self.method, **self.weight_params)  # validate early
+        if self.engine not in ("compiled", "numpy"):
+            raise ValueError(f"engine must be 'compiled' or 'numpy', got {self.engine!r}")
 
     # ------------------------------------------------------------------ public
     def solve(
@@ -453,8 +511,18 @@ class Locator:
         absolute range residual wins (least median of squares): an M-estimator started
         from it is no longer masked by several gross errors pulling the LS start.
         """
-        fit = self._linearized(a, ranges, height_offset, None)
         centre, radius = _area(a)
+        if self.engine == "compiled":
+            from robustloc.estimators import _compiled
+
+            combos, Ginv, c0 = minimal_subsets(a)
+            ho2 = _height2(height_offset, a.shape[0])
+            return _compiled.initial_fixes(
+                a, np.ascontiguousarray(ranges, dtype=float), ho2, combos, Ginv, c0, centre,
+                radius, self.method in ROBUST + ("lege", "snooping"),
+                self.reference == "nearest",
+            )
+        fit = self._linearized(a, ranges, height_offset, None)
         cands = [_clip_disc(fit.x, centre, radius)]
         with np.errstate(all="ignore"):
             wts = np.where(np.isfinite(ranges), 1.0 / np.maximum(ranges, 0.5) ** 2, 0.0)
@@ -507,6 +575,10 @@ class Locator:
             min_scale=self.min_scale, max_iter=self.max_iter, tol=self.tol,
             min_obs=model.anchors.shape[1] + 1, rel_tol=self.rel_tol, warmup=False,
         )
+        if self.engine == "compiled" and type(model) is RangeModel:
+            fit = _compiled_gn(model, obs, x0, sig, weight, kw)
+            if fit is not None:
+                return fit
         if weight is None or not np.isfinite(weight.rejection_threshold):
             return gauss_newton(model, obs, x0, sig, weight=weight, **kw)
         hub = gauss_newton(model, obs, x0, sig, weight=Huber(1.5), **kw)

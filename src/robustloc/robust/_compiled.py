@@ -49,7 +49,7 @@ def weight_spec(weight: WeightFunction | None) -> tuple[int, np.ndarray] | None:
     return None
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
 def weight_value(code: int, prm: np.ndarray, u: float) -> float:  # pragma: no cover - jit
     """Equivalent weight ``p(u)`` (NaN for NaN ``u``)."""
     if math.isnan(u):
@@ -97,7 +97,7 @@ def weight_value(code: int, prm: np.ndarray, u: float) -> float:  # pragma: no c
     return 0.0
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
 def rho_value(code: int, prm: np.ndarray, u: float) -> float:  # pragma: no cover - jit
     """Objective ``rho(u)``, the same formulas as the NumPy ``rho`` methods."""
     x = abs(u)

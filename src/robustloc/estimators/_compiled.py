@@ -1,0 +1,641 @@
+"""Compiled (numba) per-epoch kernels for range positioning: the robust start and the
+robust Gauss-Newton fit of :class:`robustloc.estimators.ranging.Locator`.
+
+The NumPy implementation (:func:`robustloc.estimators.nonlinear.gauss_newton`,
+``Locator._initial``, ``Locator._gn``) iterates all epochs together, one array operation per
+step; every operation walks the whole batch, so a 2-D epoch of 10 ranges costs about 50 us
+in temporaries and call overhead.  Here the same algorithm runs one epoch at a time in
+machine code, with every intermediate in a few reused scratch vectors: the small ``p x p``
+normal equations (``p = 2, 3``), order statistics by insertion sort, weights by
+:func:`robustloc.robust._compiled.weight_value`.
+
+The kernels reproduce the NumPy path step for step (same start candidates and subsets,
+same damping schedule, stopping rules, MM-style per-stage scale and final statistics); the
+tests compare the two on random logs.  They cover the range model
+(:class:`~robustloc.models.ranging.RangeModel`, also used for RSSI converted to ranges) and
+the built-in weight functions; anything else runs the NumPy path.
+
+Status codes returned by the kernels: :data:`CODES` maps them to :mod:`robustloc.status`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from robustloc import status as st
+from robustloc.robust._compiled import HUBER, rho_value, weight_value
+
+OK, INSUFFICIENT, ILL, NOT_CONVERGED = 0, 1, 2, 3
+#: Status strings of the kernels' codes.
+CODES = np.array([st.OK, st.INSUFFICIENT, st.ILL_CONDITIONED, st.NOT_CONVERGED], dtype=object)
+COND_LIMIT = 1e10  # as robustloc.estimators._kernels.COND_LIMIT
+MAD_NORMAL = 0.6744897501960817
+_HUBER_WARMUP = np.array([1.5, 0.0, 0.0])  # Huber(1.5), the redescending fits' first stage
+
+# ruff: noqa: N803, N806  (matrix names)
+
+
+# ------------------------------------------------------------------ small dense helpers
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def _inv_small(A, out):  # pragma: no cover - jit
+    """Inverse of a symmetric ``p x p`` (p <= 3) into ``out``; returns the *good* flag of
+    :func:`robustloc.estimators._kernels.inv_spd` (finite, det > 0, Frobenius condition
+    number below ``COND_LIMIT``); a bad matrix gets the identity, as there."""
+    p = A.shape[0]
+    if p == 1:
+        det = A[0, 0]
+        out[0, 0] = 1.0 / (det if det != 0 else 1.0)
+    elif p == 2:
+        det = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
+        s = 1.0 / (det if det != 0 else 1.0)
+        out[0, 0] = A[1, 1] * s
+        out[0, 1] = -A[0, 1] * s
+        out[1, 0] = -A[1, 0] * s
+        out[1, 1] = A[0, 0] * s
+    else:
+        c00 = A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1]
+        c01 = A[1, 2] * A[2, 0] - A[1, 0] * A[2, 2]
+        c02 = A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]
+        det = A[0, 0] * c00 + A[0, 1] * c01 + A[0, 2] * c02
+        s = 1.0 / (det if det != 0 else 1.0)
+        out[0, 0] = c00 * s
+        out[1, 0] = c01 * s
+        out[2, 0] = c02 * s
+        out[0, 1] = (A[0, 2] * A[2, 1] - A[0, 1] * A[2, 2]) * s
+        out[1, 1] = (A[0, 0] * A[2, 2] - A[0, 2] * A[2, 0]) * s
+        out[2, 1] = (A[0, 1] * A[2, 0] - A[0, 0] * A[2, 1]) * s
+        out[0, 2] = (A[0, 1] * A[1, 2] - A[0, 2] * A[1, 1]) * s
+        out[1, 2] = (A[0, 2] * A[1, 0] - A[0, 0] * A[1, 2]) * s
+        out[2, 2] = (A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]) * s
+    fa = 0.0
+    fi = 0.0
+    for i in range(p):
+        for j in range(p):
+            fa += A[i, j] * A[i, j]
+            fi += out[i, j] * out[i, j]
+    cond = math.sqrt(fa) * math.sqrt(fi)
+    good = math.isfinite(cond) and det > 0 and cond < COND_LIMIT
+    if not good:
+        for i in range(p):
+            for j in range(p):
+                out[i, j] = 1.0 if i == j else 0.0
+    return good
+
+
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def _order_stat(vals, buf, k):  # pragma: no cover - jit
+    """``k``-th smallest (0-based) of the non-NaN ``vals`` (insertion sort into ``buf``);
+    returns ``(value, count)``; ``value`` is NaN when there are fewer than ``k + 1``."""
+    c = 0
+    for v in vals:
+        if v == v:
+            j = c
+            while j > 0 and buf[j - 1] > v:
+                buf[j] = buf[j - 1]
+                j -= 1
+            buf[j] = v
+            c += 1
+    return (buf[k] if k < c else math.nan), c
+
+
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def _median_abs(vals, tmp, buf):  # pragma: no cover - jit
+    """NaN-ignoring median of ``|vals|`` (NaN if none), as ``nanmedian_fast``."""
+    for i in range(vals.shape[0]):
+        tmp[i] = abs(vals[i])
+    _, c = _order_stat(tmp, buf, 0)
+    if c == 0:
+        return math.nan
+    return 0.5 * (buf[(c - 1) // 2] + buf[c // 2])
+
+
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def _lms(res, dim, tmp, buf):  # pragma: no cover - jit
+    """:func:`robustloc.estimators.ranging.lms_score` of one residual vector."""
+    m = res.shape[0]
+    for i in range(m):
+        tmp[i] = abs(res[i])
+    _, c = _order_stat(tmp, buf, 0)
+    if c == 0:
+        return math.inf
+    h = max((c + 1) // 2, dim + 2)
+    h = min(max(min(h, c), 1), m) - 1
+    return buf[h]
+
+
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def _ranges(a, ho2, x, pred, J):  # pragma: no cover - jit
+    """Ranges ``sqrt(|x - a_i|^2 + dz_i^2)`` (seed 000 eq. (2)) and, if ``J`` has rows,
+    the Jacobian ``(x - a_i) / d_i`` (as ``RangeModel.predict_jacobian``)."""
+    m, p = a.shape
+    for i in range(m):
+        d2 = ho2[i]
+        s = 0.0
+        for k in range(p):
+            t = x[k] - a[i, k]
+            s += t * t
+        d = math.sqrt(s + d2)
+        pred[i] = d
+        if J.shape[0]:
+            dd = max(d, 1e-9)
+            for k in range(p):
+                J[i, k] = (x[k] - a[i, k]) / dd
+
+
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def _jacobian_at(a, x, d, pred, J):  # pragma: no cover - jit
+    """``pred = d`` (ranges already computed at ``x``) and the Jacobian there."""
+    m, p = J.shape
+    for i in range(m):
+        pred[i] = d[i]
+        inv = 1.0 / max(d[i], 1e-9)
+        for k in range(p):
+            J[i, k] = (x[k] - a[i, k]) * inv
+
+
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def _normal(J, w, r, Nm, g):  # pragma: no cover - jit
+    """``Nm = J^T diag(w) J`` and ``g = J^T diag(w) r`` in one pass over the rows."""
+    m, p = J.shape
+    for k in range(p):
+        g[k] = 0.0
+        for j in range(p):
+            Nm[k, j] = 0.0
+    for i in range(m):
+        wi = w[i]
+        if wi == 0.0:
+            continue
+        for k in range(p):
+            jw = J[i, k] * wi
+            g[k] += jw * r[i]
+            for j in range(k, p):
+                Nm[k, j] += jw * J[i, j]
+    for k in range(p):
+        for j in range(k):
+            Nm[k, j] = Nm[j, k]
+
+
+# ------------------------------------------------------------------------ robust start
+@njit(cache=True, nogil=True, error_model="numpy")
+def initial_fixes(a, d, ho2, combos, Ginv, c0, centre, radius, use_subsets,
+                  nearest):  # pragma: no cover - jit
+    """Per-epoch start of the iterative solvers (``Locator._initial``).
+
+    Candidates: the linearized LS fix of seed 000 eq. (3) (reference anchor the first
+    heard one, or the nearest) clipped to the anchors' disc; the inverse-square-distance
+    weighted centroid of the heard anchors; with ``use_subsets``, the exact fixes of the
+    minimal anchor subsets ``combos (C, dim + 1)`` (inverted designs ``Ginv (C, dim, dim)``
+    of the centroid-shifted anchors, shift ``c0``).  The smallest least-median-of-squares
+    score wins (first candidate on ties); the disc centre if none is finite.
+    """
+    N, m = d.shape
+    dim = a.shape[1]
+    C, q = combos.shape
+    ac = a - c0
+    n2 = np.empty(m)
+    for i in range(m):
+        n2[i] = np.sum(ac[i] * ac[i])
+    out = np.empty((N, dim))
+    res = np.empty(m)
+    tmp = np.empty(m)
+    buf = np.empty(m)
+    d2 = np.empty(m)
+    cand = np.empty(dim)
+    best = np.empty(dim)
+    Nm = np.empty((dim, dim))
+    Ni = np.empty((dim, dim))
+    b = np.empty(dim)
+    hs = np.empty(dim)
+    for e in range(N):
+        best_c = math.inf
+        for k in range(dim):
+            best[k] = math.nan
+        ref = -1
+        heard = 0
+        for i in range(m):
+            d2[i] = d[e, i] * d[e, i] - ho2[i]
+            if math.isfinite(d2[i]):
+                if ref < 0 or (nearest and d[e, i] < d[e, ref]):
+                    ref = i
+            if d[e, i] == d[e, i]:
+                heard += 1
+        h_idx = min(max(min(max((heard + 1) // 2, dim + 2), heard), 1), m) - 1
+        for ci in range(2 + (C if use_subsets else 0)):
+            ok = True
+            if ci == 0:  # linearized LS, eq. (3), clipped to the disc
+                if ref < 0:
+                    continue
+                for k in range(dim):
+                    b[k] = 0.0
+                    for j in range(dim):
+                        Nm[k, j] = 0.0
+                for i in range(m):
+                    if i == ref or not math.isfinite(d2[i]):
+                        continue
+                    h = 0.5 * (d2[ref] - d2[i] - n2[ref] + n2[i])
+                    for k in range(dim):
+                        gk = ac[i, k] - ac[ref, k]
+                        b[k] += gk * h
+                        for j in range(dim):
+                            Nm[k, j] += gk * (ac[i, j] - ac[ref, j])
+                if not _inv_small(Nm, Ni):
+                    continue
+                r2 = 0.0
+                for k in range(dim):
+                    s = 0.0
+                    for j in range(dim):
+                        s += Ni[k, j] * b[j]
+                    cand[k] = s + c0[k]
+                    r2 += (cand[k] - centre[k]) ** 2
+                r = math.sqrt(r2)
+                if r > radius:
+                    for k in range(dim):
+                        cand[k] = centre[k] + (cand[k] - centre[k]) * (radius / r)
+            elif ci == 1:  # weighted centroid
+                ws = 0.0
+                for k in range(dim):
+                    cand[k] = 0.0
+                for i in range(m):
+                    if math.isfinite(d[e, i]):
+                        wi = 1.0 / max(d[e, i], 0.5) ** 2
+                        ws += wi
+                        for k in range(dim):
+                            cand[k] += wi * a[i, k]
+                for k in range(dim):
+                    cand[k] /= ws
+            else:  # exact fix of a minimal subset
+                c = ci - 2
+                for j in range(q):
+                    if not math.isfinite(d2[combos[c, j]]):
+                        ok = False
+                if not ok:
+                    continue
+                i0 = combos[c, 0]
+                for j in range(dim):
+                    i1 = combos[c, j + 1]
+                    hs[j] = 0.5 * (d2[i0] - d2[i1] - n2[i0] + n2[i1])
+                for k in range(dim):
+                    s = 0.0
+                    for j in range(dim):
+                        s += Ginv[c, k, j] * hs[j]
+                    cand[k] = s + c0[k]
+            for k in range(dim):
+                if not math.isfinite(cand[k]):
+                    ok = False
+            if not ok:
+                continue
+            # the score is the (h+1)-th smallest |residual|: it can only beat best_c if
+            # more than h residuals do, i.e. if at most heard - h - 1 of them do not
+            above = 0
+            for i in range(m):
+                t = ho2[i]
+                for k in range(dim):
+                    t += (cand[k] - a[i, k]) ** 2
+                res[i] = math.sqrt(t) - d[e, i]
+                if abs(res[i]) >= best_c:
+                    above += 1
+                    if above > heard - h_idx - 1:
+                        break
+            if above > heard - h_idx - 1:
+                continue
+            score = _lms(res, dim, tmp, buf)
+            if score < best_c:
+                best_c = score
+                for k in range(dim):
+                    best[k] = cand[k]
+        for k in range(dim):
+            out[e, k] = best[k] if best_c < math.inf else centre[k]
+    return out
+
+
+# ---------------------------------------------------------------- robust Gauss-Newton
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def _gn_iterate(a, ho2, zz, w0, x, w, u, code, prm, robust, scale_fixed, min_scale,
+                max_iter, tol, rel_tol, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx, xn,
+                wa):  # pragma: no cover - jit
+    """One stage of :func:`robustloc.estimators.nonlinear.gauss_newton` for one epoch.
+
+    ``x`` (start, overwritten by the solution), ``w`` (a-priori weights in, final
+    weights out) and ``u`` (standardized residuals out) are this epoch's rows; the rest
+    are scratch arrays (see :func:`scratch`).  Returns ``(iterations, converged)``.
+    """
+    m, p = J.shape
+    lam = 1e-3
+    stage_scale = math.nan
+    conv = False
+    it = 0
+    fresh = False  # pred and J hold the values at x (kept across a rejected step)
+    while it < max_iter:
+        if not fresh:
+            _ranges(a, ho2, x, pred, J)
+            fresh = True
+        for i in range(m):
+            r[i] = zz[i] - pred[i]
+        if robust:
+            if it == 0:  # Q_vv of the a-priori fit, once per stage
+                _normal(J, w0, r, Nm, g)
+                _inv_small(Nm, Ni)
+                for i in range(m):
+                    if w0[i] > 0:
+                        h = 0.0
+                        for k in range(p):
+                            for j in range(p):
+                                h += J[i, k] * Ni[k, j] * J[i, j]
+                        q = 1.0 / w0[i] - h
+                        qvv[i] = 0.0 if q < 0 else q
+                    else:
+                        qvv[i] = math.nan
+            # standardized residuals (seed 000 sec. 2.1), as standardized_residuals()
+            for i in range(m):
+                testable = qvv[i] == qvv[i] and qvv[i] > 1e-10 / max(w0[i], 1e-300)
+                vi = -r[i] if w0[i] > 0 else math.nan
+                vn[i] = vi / math.sqrt(qvv[i]) if testable else math.nan
+            if it == 0:
+                if scale_fixed == scale_fixed:
+                    sc = scale_fixed
+                else:
+                    sc = _median_abs(vn, tmp, buf) / MAD_NORMAL
+                if not sc == sc:
+                    sc = 0.0
+                stage_scale = max(sc, max(min_scale, 1e-12))
+            n_pos = 0
+            for i in range(m):
+                vi = -r[i] if w0[i] > 0 else math.nan
+                if not math.isfinite(vi):
+                    u[i] = math.nan
+                elif vn[i] == vn[i]:
+                    u[i] = vn[i] / stage_scale
+                else:
+                    u[i] = 0.0
+                pw = weight_value(code, prm, u[i])
+                wa[i] = w0[i] * (pw if pw == pw else 0.0)
+                if wa[i] > 0:
+                    n_pos += 1
+            if n_pos < p:  # keep the geometry: fall back to the previous weights
+                for i in range(m):
+                    wa[i] = w[i]
+        else:
+            for i in range(m):
+                wa[i] = w0[i]
+        # damped normal equations (J^T W J + lam tr/p I) dx = J^T W r
+        _normal(J, wa, r, Nm, g)
+        tr = 0.0
+        for k in range(p):
+            tr += Nm[k, k]
+        tr = max(tr / p, 1e-12)
+        for k in range(p):
+            Nm[k, k] += lam * tr
+        good = _inv_small(Nm, Ni)
+        step = 0.0
+        for k in range(p):
+            t = 0.0
+            for j in range(p):
+                t += Ni[k, j] * g[j]
+            dx[k] = t
+            xn[k] = x[k] + t
+            if not t == t or step != step:
+                step = math.nan
+            else:
+                step = max(step, abs(t))
+        _ranges(a, ho2, xn, tmp, J[:0])
+        cost_old = 0.0
+        cost_new = 0.0
+        n_pos = 0
+        for i in range(m):
+            cost_old += wa[i] * r[i] * r[i]
+            rn = zz[i] - tmp[i]
+            cost_new += wa[i] * rn * rn
+            if wa[i] > 0:
+                n_pos += 1
+        accept = good and math.isfinite(cost_new) and cost_new <= cost_old * (1 + 1e-12)
+        if accept:
+            for k in range(p):
+                x[k] = xn[k]
+            _jacobian_at(a, x, tmp, pred, J)
+        for i in range(m):
+            w[i] = wa[i]
+        lam = max(lam / 1.5, 1e-9) if accept else lam * 3.0
+        it += 1
+        flat = accept and (cost_old - cost_new <= 1e-6 * max(cost_old, 1e-300))
+        dof = max(n_pos - p, 1)
+        trn = 0.0
+        for k in range(p):
+            trn += Ni[k, k]
+        sd = math.sqrt(trn * max(cost_new, 0.0) / dof) if cost_new == cost_new else math.nan
+        if sd != sd:
+            sd = 0.0
+        elif sd == math.inf:
+            sd = 1.7976931348623157e308
+        tiny = accept and step <= rel_tol * sd
+        finite = math.isfinite(step)
+        done = (accept and step < tol) or flat or tiny or lam > 1e8 or not finite
+        if done:
+            conv = finite
+            break
+    return it, conv
+
+
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def _finish(a, ho2, z, valid, x, w, v, qv, cov, pred, J, Nm, Ni, g):  # pragma: no cover
+    """Final statistics at the solution (as the end of ``gauss_newton``): residuals
+    ``v = f(x) - z``, ``Q_vv`` diagonal, covariance ``sigma0^2 N^-1``.  Returns
+    ``(good, sigma0)``."""
+    m, p = J.shape
+    _ranges(a, ho2, x, pred, J)
+    n_pos = 0
+    _normal(J, w, pred, Nm, g)
+    good = _inv_small(Nm, Ni)
+    vpv = 0.0
+    for i in range(m):
+        v[i] = pred[i] - z[i] if valid[i] else math.nan
+        if w[i] > 0:
+            n_pos += 1
+            vpv += w[i] * v[i] * v[i]
+            h = 0.0
+            for k in range(p):
+                for j in range(p):
+                    h += J[i, k] * Ni[k, j] * J[i, j]
+            q = 1.0 / w[i] - h
+        else:
+            q = math.inf
+        qv[i] = (0.0 if q < 0 else q) if valid[i] else math.nan
+    dof = n_pos - p
+    s0 = math.sqrt(vpv / max(dof, 1)) if dof > 0 else math.nan
+    s2 = s0 * s0 if dof > 0 else 1.0
+    for k in range(p):
+        for j in range(p):
+            cov[k, j] = Ni[k, j] * s2 if good else math.nan
+    return good, s0
+
+
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def _solve_slot(a, ho2, z, e, xstart, code, prm, robust, scale_fixed, min_scale, max_iter,
+                tol, rel_tol, min_obs, n_valid, t, XS, WS, US, VS, QS, CS, x, w, u, v, qv, cov,
+                pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx, xn, wa, zz, w0,
+                valid):  # pragma: no cover - jit
+    """One Gauss-Newton stage of epoch ``e`` from ``xstart`` plus the final statistics,
+    stored in slot ``t`` of ``XS, WS, US, VS, QS, CS``; returns ``(status, iterations,
+    converged, sigma0, n_used)``.  Works on scratch vectors only (no per-epoch views)."""
+    m, p = J.shape
+    finite = True
+    for i in range(m):
+        w[i] = w0[i]
+        u[i] = math.nan
+        v[i] = math.nan
+        qv[i] = math.nan
+    for k in range(p):
+        x[k] = xstart[k]
+        finite = finite and math.isfinite(xstart[k])
+        for j in range(p):
+            cov[k, j] = math.nan
+    status = OK
+    if n_valid < min_obs:
+        status = INSUFFICIENT
+    elif not finite:
+        status = ILL
+    its, conv, s0 = 0, False, math.nan
+    if status == OK:
+        its, conv = _gn_iterate(a, ho2, zz, w0, x, w, u, code, prm, robust, scale_fixed,
+                                min_scale, max_iter, tol, rel_tol, pred, J, r, qvv, vn, tmp,
+                                buf, Nm, Ni, g, dx, xn, wa)
+        good, s0 = _finish(a, ho2, z[e], valid, x, w, v, qv, cov, pred, J, Nm, Ni, g)
+        if not good:
+            status = ILL
+        elif not conv:
+            status = NOT_CONVERGED
+    n_used = 0
+    unusable = status == INSUFFICIENT or status == ILL
+    for i in range(m):
+        if w[i] > 0:
+            n_used += 1
+        WS[t, i] = w[i] if valid[i] else math.nan
+        US[t, i] = u[i]
+        VS[t, i] = v[i]
+        QS[t, i] = qv[i]
+    for k in range(p):
+        XS[t, k] = math.nan if unusable else x[k]
+        for j in range(p):
+            CS[t, k, j] = cov[k, j]
+    return status, its, conv, s0, n_used
+
+
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def _objective(a, ho2, z, sig, e, XS, t, x0, code, prm, scale, status, x, pred,
+               nojac):  # pragma: no cover - jit
+    """Robust objective ``sum rho(v_i / (s sigma_i))`` of the fix in slot ``t`` (inf if
+    unusable; the start ``x0[e]`` stands in for a NaN fix)."""
+    if status == INSUFFICIENT or status == ILL:
+        return math.inf
+    use_start = not math.isfinite(XS[t, 0])
+    for k in range(x.shape[0]):
+        x[k] = x0[e, k] if use_start else XS[t, k]
+    _ranges(a, ho2, x, pred, nojac)
+    tot = 0.0
+    for i in range(z.shape[1]):
+        uu = (pred[i] - z[e, i]) / (sig[e, i] * scale)
+        if uu == uu:
+            tot += rho_value(code, prm, uu)
+    return tot
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def fit_ranges(a, ho2, z, sig, x0, code, prm, robust, redescending, scale_fixed, min_scale,
+               max_iter, tol, rel_tol, min_obs):  # pragma: no cover - jit
+    """``Locator._gn`` for every epoch: robust Gauss-Newton on the ranges ``z (N, m)``
+    with a-priori ``sig (N, m)`` from the starts ``x0 (N, p)``.
+
+    Redescending weights: a Huber(1.5) stage from ``x0``, then the redescending fit from
+    the Huber fix and from ``x0``, keeping the smaller robust objective (both measured
+    with the smaller MAD scale of the two starts).  Returns the arrays of a
+    :class:`~robustloc.estimators.linear.LinearFit` with status codes.
+    """
+    N, m = z.shape
+    p = a.shape[1]
+    X = np.empty((N, p))
+    W = np.empty((N, m))
+    U = np.empty((N, m))
+    V = np.empty((N, m))
+    QV = np.empty((N, m))
+    COV = np.empty((N, p, p))
+    S0 = np.empty(N)
+    NU = np.empty(N, dtype=np.int64)
+    IT = np.empty(N, dtype=np.int64)
+    CONV = np.empty(N, dtype=np.bool_)
+    STAT = np.empty(N, dtype=np.int64)
+    # slots: 0 Huber warm-up, 1 fit from the warm-up fix, 2 fit from the start
+    XS, CS = np.empty((3, p)), np.empty((3, p, p))
+    WS, US, VS, QS = np.empty((3, m)), np.empty((3, m)), np.empty((3, m)), np.empty((3, m))
+    x, w, u, v, qv, cov = (np.empty(p), np.empty(m), np.empty(m), np.empty(m), np.empty(m),
+                           np.empty((p, p)))
+    pred, J, r, qvv, vn, tmp, buf = (np.empty(m), np.empty((m, p)), np.empty(m),
+                                     np.empty(m), np.empty(m), np.empty(m), np.empty(m))
+    Nm, Ni, g, dx, xn, wa = (np.empty((p, p)), np.empty((p, p)), np.empty(p), np.empty(p),
+                             np.empty(p), np.empty(m))
+    zz, w0, valid = np.empty(m), np.empty(m), np.empty(m, dtype=np.bool_)
+    xstart, xh, res, nojac = np.empty(p), np.empty(p), np.empty(m), np.empty((0, p))
+    for e in range(N):
+        n_valid = 0
+        for i in range(m):
+            valid[i] = math.isfinite(z[e, i]) and math.isfinite(sig[e, i]) and sig[e, i] > 0
+            w0[i] = 1.0 / (sig[e, i] * sig[e, i]) if valid[i] else 0.0
+            zz[i] = z[e, i] if valid[i] else 0.0
+            n_valid += valid[i]
+        for k in range(p):
+            xstart[k] = x0[e, k]
+        if not redescending:
+            t = 1
+            st_, it_, cv_, s0_, nu_ = _solve_slot(
+                a, ho2, z, e, xstart, code, prm, robust, scale_fixed, min_scale, max_iter,
+                tol, rel_tol, min_obs, n_valid, 1, XS, WS, US, VS, QS, CS, x, w, u, v, qv,
+                cov, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx, xn, wa, zz, w0, valid)
+        else:
+            sth, ith, _, _, _ = _solve_slot(
+                a, ho2, z, e, xstart, HUBER, _HUBER_WARMUP, True, scale_fixed, min_scale,
+                max_iter, tol, rel_tol, min_obs, n_valid, 0, XS, WS, US, VS, QS, CS, x, w, u,
+                v, qv, cov, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx, xn, wa, zz, w0,
+                valid)
+            for k in range(p):
+                xh[k] = XS[0, k] if math.isfinite(XS[0, k]) else xstart[k]
+            sta, ita, cva, s0a, nua = _solve_slot(
+                a, ho2, z, e, xh, code, prm, robust, scale_fixed, min_scale, max_iter,
+                tol, rel_tol, min_obs, n_valid, 1, XS, WS, US, VS, QS, CS, x, w, u, v, qv,
+                cov, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx, xn, wa, zz, w0, valid)
+            stb, itb, cvb, s0b, nub = _solve_slot(
+                a, ho2, z, e, xstart, code, prm, robust, scale_fixed, min_scale, max_iter,
+                tol, rel_tol, min_obs, n_valid, 2, XS, WS, US, VS, QS, CS, x, w, u, v, qv,
+                cov, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx, xn, wa, zz, w0, valid)
+            # one scale for both objectives: the smaller MAD scale of the two starts
+            sc = math.nan
+            for start in range(2):
+                _ranges(a, ho2, xh if start == 0 else xstart, pred, nojac)
+                for i in range(m):
+                    res[i] = (pred[i] - z[e, i]) / sig[e, i]
+                si = _median_abs(res, tmp, buf) / MAD_NORMAL
+                if sc != sc or si < sc:
+                    sc = si
+            if not (math.isfinite(sc) and sc > 0):
+                sc = 1.0
+            oa = _objective(a, ho2, z, sig, e, XS, 1, x0, code, prm, sc, sta, x, pred, nojac)
+            ob = _objective(a, ho2, z, sig, e, XS, 2, x0, code, prm, sc, stb, x, pred, nojac)
+            if ob < oa:
+                t, st_, it_, cv_, s0_, nu_ = 2, stb, itb + ith, cvb, s0b, nub
+            else:
+                t, st_, it_, cv_, s0_, nu_ = 1, sta, ita + ith, cva, s0a, nua
+        for k in range(p):
+            X[e, k] = XS[t, k]
+            for j in range(p):
+                COV[e, k, j] = CS[t, k, j]
+        for i in range(m):
+            W[e, i] = WS[t, i]
+            U[e, i] = US[t, i]
+            V[e, i] = VS[t, i]
+            QV[e, i] = QS[t, i]
+        STAT[e] = st_
+        IT[e] = it_
+        CONV[e] = cv_
+        S0[e] = s0_
+        NU[e] = nu_
+    return X, V, W, QV, S0, COV, NU, IT, CONV, STAT, U

@@ -1,0 +1,143 @@
+"""The compiled (numba) kernels reproduce the NumPy implementation they replace.
+
+``Locator(engine="compiled")`` (the default) runs the robust start and the Gauss-Newton fits
+of ranges per epoch in :mod:`robustloc.estimators._compiled`; ``engine="numpy"`` runs the
+batched NumPy path.  Both must give the same fixes, statuses, weights and statistics on
+logs with missing anchors, slant ranges, 3-D, per-anchor sigma and every robust weight.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from robustloc import status as st
+from robustloc.estimators.ranging import Locator
+from robustloc.robust import _compiled as rc
+from robustloc.robust.weights import (
+    IGG,
+    IGG3,
+    AsymmetricIGG,
+    Hampel,
+    Huber,
+    LeastSquares,
+    WeightFunction,
+)
+
+WEIGHTS = [LeastSquares(), Huber(), Huber(1.345), Hampel(), IGG(), IGG3(), AsymmetricIGG(),
+           Hampel(2.0, 4.0, 8.0), IGG3(1.0, 2.5)]
+
+
+@pytest.mark.parametrize("w", WEIGHTS, ids=lambda w: repr(w))
+def test_compiled_weights_match_numpy(w: WeightFunction) -> None:
+    u = np.concatenate([np.linspace(-12, 12, 2401), [np.nan, 0.0, -0.0, 1.5, -2.0, 2.5, 3.0,
+                                                      8.5, -3.0, 1e300, -np.inf]])
+    code, prm = rc.weight_spec(w)
+    got_w = np.array([rc.weight_value(code, prm, x) for x in u])
+    got_r = np.array([rc.rho_value(code, prm, x) for x in u[:-11]])
+    np.testing.assert_allclose(got_w, w.weights(u), rtol=1e-13, atol=0, equal_nan=True)
+    np.testing.assert_allclose(got_r, w.rho(u[:-11]), rtol=1e-12, atol=1e-15)
+
+
+def test_weight_spec_none_for_custom_weight() -> None:
+    class Cauchy(WeightFunction):
+        def weights(self, u):
+            return 1.0 / (1.0 + np.asarray(u) ** 2)
+
+        def rho(self, u):
+            return 0.5 * np.log1p(np.asarray(u) ** 2)
+
+    assert rc.weight_spec(Cauchy()) is None
+    assert rc.weight_spec(None)[0] == rc.LS
+
+
+def _log(rng: np.random.Generator, N: int, anchors: np.ndarray, miss: float = 0.1,
+         outliers: float = 0.2, dz: np.ndarray | None = None) -> np.ndarray:
+    dim = anchors.shape[1]
+    lo, hi = anchors.min(axis=0), anchors.max(axis=0)
+    x = rng.uniform(lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo), size=(N, dim))
+    d2 = np.sum((x[:, None, :] - anchors[None]) ** 2, axis=2)
+    if dz is not None:
+        d2 = d2 + dz**2
+    d = np.sqrt(d2) + rng.normal(0, 0.3, d2.shape)
+    d += np.where(rng.random(d.shape) < outliers, rng.uniform(3, 15, d.shape), 0.0)
+    d[rng.random(d.shape) < miss] = np.nan
+    d[:3, 2:] = np.nan  # too few anchors
+    d[3] = np.nan  # nothing heard
+    return d
+
+
+A2 = np.array([[0, 0], [30, 0], [30, 30], [0, 30], [15, 0], [30, 15], [15, 30], [0, 15],
+               [10, 20], [20, 10]], dtype=float)
+A3 = np.array([[0, 0, 0], [20, 0, 3], [20, 20, 0], [0, 20, 3], [10, 0, 1.5], [10, 20, 2],
+               [0, 10, 0.5], [20, 10, 2.5]], dtype=float)
+
+
+def _compare(loc_kw: dict, anchors: np.ndarray, values: np.ndarray, **solve_kw) -> None:
+    a = Locator(engine="numpy", **loc_kw).solve(anchors, values, **solve_kw)
+    b = Locator(engine="compiled", **loc_kw).solve(anchors, values, **solve_kw)
+    np.testing.assert_array_equal(a.status, b.status)
+    # the two sum in different orders: fixes agree to rounding amplified by the iterations
+    np.testing.assert_allclose(b.position, a.position, rtol=0, atol=1e-6, equal_nan=True)
+    np.testing.assert_allclose(b.sigma0, a.sigma0, rtol=1e-5, atol=1e-9, equal_nan=True)
+    np.testing.assert_allclose(b.covariance, a.covariance, rtol=1e-4, atol=1e-9,
+                               equal_nan=True)
+    np.testing.assert_allclose(b.residuals, a.residuals, rtol=0, atol=1e-6, equal_nan=True)
+    np.testing.assert_array_equal(np.isnan(a.weights), np.isnan(b.weights))
+    np.testing.assert_allclose(b.weights, a.weights, rtol=1e-4, atol=1e-12, equal_nan=True)
+    np.testing.assert_array_equal(a.excluded, b.excluded)
+    np.testing.assert_array_equal(a.n_used, b.n_used)
+    assert np.mean(a.iterations == b.iterations) > 0.99
+    assert np.all(np.isin(b.status, [st.OK, st.NOT_CONVERGED, st.INSUFFICIENT, st.INVALID,
+                                     st.ILL_CONDITIONED]))
+
+
+@pytest.mark.parametrize("method", ["nls", "huber", "hampel", "igg", "igg3"])
+def test_locator_engines_agree_2d(method: str) -> None:
+    rng = np.random.default_rng(11)
+    _compare({"method": method, "sigma": 0.3}, A2, _log(rng, 400, A2))
+
+
+@pytest.mark.parametrize("method", ["huber", "igg"])
+def test_locator_engines_agree_3d_nearest_apriori(method: str) -> None:
+    rng = np.random.default_rng(12)
+    kw = {"method": method, "sigma": 0.3, "robust_scale": "apriori", "reference": "nearest"}
+    _compare(kw, A3, _log(rng, 300, A3, outliers=0.1))
+
+
+def test_locator_engines_agree_slant_ranges_per_anchor_sigma() -> None:
+    rng = np.random.default_rng(13)
+    dz = rng.uniform(1.0, 3.0, A2.shape[0])
+    sig = tuple(rng.uniform(0.2, 0.5, A2.shape[0]))
+    values = _log(rng, 300, A2, dz=dz)
+    _compare({"method": "igg3", "sigma": sig}, A2, values, height_offset=dz)
+    _compare({"method": "huber"}, A2, values, height_offset=dz)
+
+
+def test_locator_engines_agree_rssi_range_domain() -> None:
+    rng = np.random.default_rng(14)
+    A_dbm, n = np.full(A2.shape[0], -59.0), np.full(A2.shape[0], 2.2)
+    x = rng.uniform(5, 25, (300, 2))
+    d = np.linalg.norm(x[:, None] - A2[None], axis=2)
+    rssi = A_dbm - 10 * n * np.log10(d) + rng.normal(0, 2.0, d.shape)
+    rssi[rng.random(rssi.shape) < 0.1] -= 12.0  # body-blockage fades
+    _compare({"method": "hampel", "sigma": 2.0}, A2, rssi, kind="rssi", A=A_dbm, n=n)
+
+
+def test_custom_weight_falls_back_to_numpy() -> None:
+    from robustloc.estimators.nonlinear import gauss_newton
+    from robustloc.estimators.ranging import _compiled_gn
+    from robustloc.models.ranging import RangeModel
+
+    class Tukeyish(Huber):  # a subclass is not the built-in: no compiled twin
+        pass
+
+    rng = np.random.default_rng(15)
+    z = _log(rng, 50, A2, miss=0.0)[10:]
+    model = RangeModel(A2)
+    kw = dict(scale=None, min_scale=0.0, max_iter=50, tol=1e-3, min_obs=3, rel_tol=1e-2)
+    assert _compiled_gn(model, z, np.full((z.shape[0], 2), 15.0), np.ones_like(z),
+                        Tukeyish(), kw) is None
+    fit = gauss_newton(model, z, np.full((z.shape[0], 2), 15.0), 1.0, weight=Tukeyish(),
+                       warmup=False, **kw)
+    assert np.all(np.isfinite(fit.x))
