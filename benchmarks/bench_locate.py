@@ -116,7 +116,7 @@ def _usable(x: Array, status: NDArray[np.object_]) -> Array:
 
 
 def our_solver(
-    method: str, mad_scale: bool = False, solver: str = "nonlinear"
+    method: str, mad_scale: bool = False, solver: str = "nonlinear", engine: str = "compiled"
 ) -> Callable[[Workload], Fixes]:
     """A batched solver for ``method``.
 
@@ -131,11 +131,12 @@ def our_solver(
     except ImportError:
         Locator = None  # noqa: N806
     if Locator is not None:
-        loc = Locator(method=method, solver=solver, sigma=None if mad_scale else SIGMA_M)
+        loc = Locator(method=method, solver=solver, sigma=None if mad_scale else SIGMA_M,
+                      engine=engine)
 
         def run_locator(wl: Workload) -> Fixes:
             sol = loc.solve(wl.anchors, wl.ranges, kind="range")
-            how = f"Locator({method}, {solver}, sigma={loc.sigma})"
+            how = f"Locator({method}, {solver}, sigma={loc.sigma}, engine={engine})"
             return Fixes(_usable(sol.position, sol.status), how)
 
         return run_locator
@@ -248,15 +249,21 @@ def _subset(wl: Workload, n: int) -> Workload:
     return Workload(wl.anchors, wl.truth[:n], wl.ranges[:n], wl.outlier[:n])
 
 
-def measure(name: str, fn: Callable[[Workload], Fixes], wl: Workload, memory: bool) -> Row:
-    """Time one call of ``fn`` on the workload; optionally a second, traced call for memory.
+def measure(
+    name: str, fn: Callable[[Workload], Fixes], wl: Workload, memory: bool, repeats: int = 1
+) -> Row:
+    """Time ``fn`` on the workload (best of ``repeats`` calls: on a shared machine the
+    fastest run is the least disturbed one); optionally one more, traced call for memory.
 
-    A warm-up call on 20 epochs first, so imports and first-call costs are not timed.
+    A warm-up call on 20 epochs first, so imports, first-call and numba compilation costs
+    are not timed.
     """
     fn(_subset(wl, 20))
-    t = time.perf_counter()
-    fx = fn(wl)
-    dt = time.perf_counter() - t
+    dt = float("inf")
+    for _ in range(max(repeats, 1)):
+        t = time.perf_counter()
+        fx = fn(wl)
+        dt = min(dt, time.perf_counter() - t)
     peak = float("nan")
     if memory:
         tracemalloc.start()
@@ -289,8 +296,14 @@ def run(
     memory: bool = True,
     mad_scale: bool = False,
     solver: str = "nonlinear",
+    repeats: int = 3,
+    numpy_methods: tuple[str, ...] = ("nls", "huber", "igg"),
 ) -> list[Row]:
-    """Run the peers and our methods; return one row each (ratio filled in)."""
+    """Run the peers and our methods; return one row each (ratio filled in).
+
+    ``numpy_methods`` are also run with ``Locator(engine="numpy")`` (rows ``name[numpy]``):
+    the batched NumPy implementation that the compiled kernels reproduce.
+    """
     wl = make_workload(epochs, seed)
     rows: list[Row] = []
     peer_wl = _subset(wl, min(peer_epochs, epochs))
@@ -303,7 +316,10 @@ def run(
         print(f"  {m} on {epochs} epochs ...", file=sys.stderr)
         try:
             fn = our_solver(m, mad_scale, solver)
-            rows.append(measure(m, fn, wl, memory))
+            rows.append(measure(m, fn, wl, memory, repeats))
+            if m in numpy_methods and solver == "nonlinear":
+                fn = our_solver(m, mad_scale, solver, engine="numpy")
+                rows.append(measure(f"{m}[numpy]", fn, wl, False))
         except NotImplementedError as e:
             print(f"  skipped: {e}", file=sys.stderr)
     ref = rows[0].us_per_fix
@@ -342,6 +358,10 @@ def main(argv: list[str] | None = None) -> int:
         default="nonlinear",
         help="robust methods and lege: nonlinear (default) or the paper's linearized system",
     )
+    ap.add_argument("--repeats", type=int, default=3,
+                    help="timed calls per method, the best is reported (default 3)")
+    ap.add_argument("--numpy-methods", default="nls,huber,igg",
+                    help="methods also timed with the NumPy engine ('' for none)")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
     ap.add_argument("-o", "--out", help="also write the rows to this CSV file")
     args = ap.parse_args(argv)
@@ -361,6 +381,8 @@ def main(argv: list[str] | None = None) -> int:
         memory=not args.no_memory,
         mad_scale=args.mad_scale,
         solver=args.solver,
+        repeats=args.repeats,
+        numpy_methods=tuple(m.strip() for m in args.numpy_methods.split(",") if m.strip()),
     )
     if args.out:
         import pandas as pd

@@ -314,13 +314,16 @@ def initial_fixes(a, d, ho2, combos, Ginv, c0, centre, radius, use_subsets,
 # ---------------------------------------------------------------- robust Gauss-Newton
 @njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
 def _gn_iterate(a, ho2, zz, w0, x, w, u, code, prm, robust, scale_fixed, min_scale,
-                max_iter, tol, rel_tol, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx, xn,
-                wa):  # pragma: no cover - jit
+                max_iter, tol, rel_tol, reuse, scale_in, pred, J, r, qvv, vn, tmp, buf, Nm,
+                Ni, g, dx, xn, wa):  # pragma: no cover - jit
     """One stage of :func:`robustloc.estimators.nonlinear.gauss_newton` for one epoch.
 
     ``x`` (start, overwritten by the solution), ``w`` (a-priori weights in, final
     weights out) and ``u`` (standardized residuals out) are this epoch's rows; the rest
-    are scratch arrays (see :func:`scratch`).  Returns ``(iterations, converged)``.
+    are scratch arrays.  ``reuse``: ``qvv`` already holds ``Q_vv`` at this start (a
+    previous stage from the same start computed it) and ``scale_in`` its scale.
+    Returns ``(iterations, converged, stage scale)``; on return ``pred`` and ``J`` hold
+    the ranges and Jacobian at ``x`` (after at least one iteration).
     """
     m, p = J.shape
     lam = 1e-3
@@ -335,41 +338,39 @@ def _gn_iterate(a, ho2, zz, w0, x, w, u, code, prm, robust, scale_fixed, min_sca
         for i in range(m):
             r[i] = zz[i] - pred[i]
         if robust:
-            if it == 0:  # Q_vv of the a-priori fit, once per stage
+            if it == 0 and not reuse:  # Q_vv of the a-priori fit, once per stage
                 _normal(J, w0, r, Nm, g)
                 _inv_small(Nm, Ni)
-                for i in range(m):
+                for i in range(m):  # kept as 1 / sqrt(Q_vv,ii) of testable rows, else NaN
+                    q = math.nan
                     if w0[i] > 0:
                         h = 0.0
                         for k in range(p):
                             for j in range(p):
                                 h += J[i, k] * Ni[k, j] * J[i, j]
-                        q = 1.0 / w0[i] - h
-                        qvv[i] = 0.0 if q < 0 else q
-                    else:
-                        qvv[i] = math.nan
+                        q = max(1.0 / w0[i] - h, 0.0)
+                    testable = q == q and q > 1e-10 / max(w0[i], 1e-300)
+                    qvv[i] = 1.0 / math.sqrt(q) if testable else math.nan
             # standardized residuals (seed 000 sec. 2.1), as standardized_residuals()
-            for i in range(m):
-                testable = qvv[i] == qvv[i] and qvv[i] > 1e-10 / max(w0[i], 1e-300)
-                vi = -r[i] if w0[i] > 0 else math.nan
-                vn[i] = vi / math.sqrt(qvv[i]) if testable else math.nan
-            if it == 0:
+            if it == 0 and reuse:
+                stage_scale = scale_in
+            elif it == 0:
                 if scale_fixed == scale_fixed:
                     sc = scale_fixed
                 else:
+                    for i in range(m):
+                        vn[i] = -r[i] * qvv[i] if w0[i] > 0 else math.nan
                     sc = _median_abs(vn, tmp, buf) / MAD_NORMAL
                 if not sc == sc:
                     sc = 0.0
                 stage_scale = max(sc, max(min_scale, 1e-12))
+            inv_scale = 1.0 / stage_scale
             n_pos = 0
             for i in range(m):
-                vi = -r[i] if w0[i] > 0 else math.nan
-                if not math.isfinite(vi):
-                    u[i] = math.nan
-                elif vn[i] == vn[i]:
-                    u[i] = vn[i] / stage_scale
+                if w0[i] > 0 and math.isfinite(r[i]):
+                    u[i] = -r[i] * qvv[i] * inv_scale if qvv[i] == qvv[i] else 0.0
                 else:
-                    u[i] = 0.0
+                    u[i] = math.nan
                 pw = weight_value(code, prm, u[i])
                 wa[i] = w0[i] * (pw if pw == pw else 0.0)
                 if wa[i] > 0:
@@ -435,19 +436,24 @@ def _gn_iterate(a, ho2, zz, w0, x, w, u, code, prm, robust, scale_fixed, min_sca
         if done:
             conv = finite
             break
-    return it, conv
+    return it, conv, stage_scale
 
 
 @njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
-def _finish(a, ho2, z, valid, x, w, v, qv, cov, pred, J, Nm, Ni, g):  # pragma: no cover
+def _finish(a, ho2, z, valid, x, w, v, qv, cov, fresh, full, pred, J, Nm, Ni,
+            g):  # pragma: no cover - jit
     """Final statistics at the solution (as the end of ``gauss_newton``): residuals
-    ``v = f(x) - z``, ``Q_vv`` diagonal, covariance ``sigma0^2 N^-1``.  Returns
-    ``(good, sigma0)``."""
+    ``v = f(x) - z``, ``Q_vv`` diagonal, covariance ``sigma0^2 N^-1``.  ``fresh``:
+    ``pred``, ``J`` already hold the values at ``x``; ``full=False``: only the geometry
+    check (a warm-up stage needs no statistics).  Returns ``(good, sigma0)``."""
     m, p = J.shape
-    _ranges(a, ho2, x, pred, J)
+    if not fresh:
+        _ranges(a, ho2, x, pred, J)
     n_pos = 0
     _normal(J, w, pred, Nm, g)
     good = _inv_small(Nm, Ni)
+    if not full:
+        return good, math.nan
     vpv = 0.0
     for i in range(m):
         v[i] = pred[i] - z[i] if valid[i] else math.nan
@@ -473,12 +479,13 @@ def _finish(a, ho2, z, valid, x, w, v, qv, cov, pred, J, Nm, Ni, g):  # pragma: 
 
 @njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
 def _solve_slot(a, ho2, z, e, xstart, code, prm, robust, scale_fixed, min_scale, max_iter,
-                tol, rel_tol, min_obs, n_valid, t, XS, WS, US, VS, QS, CS, x, w, u, v, qv, cov,
-                pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx, xn, wa, zz, w0,
-                valid):  # pragma: no cover - jit
+                tol, rel_tol, min_obs, n_valid, t, reuse, scale_in, full, XS, WS, US, VS, QS,
+                CS, x, w, u, v, qv, cov, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx, xn, wa,
+                zz, w0, valid):  # pragma: no cover - jit
     """One Gauss-Newton stage of epoch ``e`` from ``xstart`` plus the final statistics,
     stored in slot ``t`` of ``XS, WS, US, VS, QS, CS``; returns ``(status, iterations,
-    converged, sigma0, n_used)``.  Works on scratch vectors only (no per-epoch views)."""
+    converged, sigma0, n_used, stage scale)``.  Works on scratch vectors only (no per-epoch
+    views); ``reuse``, ``scale_in``: see :func:`_gn_iterate`, ``full``: :func:`_finish`."""
     m, p = J.shape
     finite = True
     for i in range(m):
@@ -496,12 +503,13 @@ def _solve_slot(a, ho2, z, e, xstart, code, prm, robust, scale_fixed, min_scale,
         status = INSUFFICIENT
     elif not finite:
         status = ILL
-    its, conv, s0 = 0, False, math.nan
+    its, conv, s0, scale = 0, False, math.nan, math.nan
     if status == OK:
-        its, conv = _gn_iterate(a, ho2, zz, w0, x, w, u, code, prm, robust, scale_fixed,
-                                min_scale, max_iter, tol, rel_tol, pred, J, r, qvv, vn, tmp,
-                                buf, Nm, Ni, g, dx, xn, wa)
-        good, s0 = _finish(a, ho2, z[e], valid, x, w, v, qv, cov, pred, J, Nm, Ni, g)
+        its, conv, scale = _gn_iterate(
+            a, ho2, zz, w0, x, w, u, code, prm, robust, scale_fixed, min_scale, max_iter, tol,
+            rel_tol, reuse, scale_in, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx, xn, wa)
+        good, s0 = _finish(a, ho2, z[e], valid, x, w, v, qv, cov, its > 0, full, pred, J, Nm,
+                           Ni, g)
         if not good:
             status = ILL
         elif not conv:
@@ -519,7 +527,7 @@ def _solve_slot(a, ho2, z, e, xstart, code, prm, robust, scale_fixed, min_scale,
         XS[t, k] = math.nan if unusable else x[k]
         for j in range(p):
             CS[t, k, j] = cov[k, j]
-    return status, its, conv, s0, n_used
+    return status, its, conv, s0, n_used, scale
 
 
 @njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
@@ -587,26 +595,32 @@ def fit_ranges(a, ho2, z, sig, x0, code, prm, robust, redescending, scale_fixed,
             xstart[k] = x0[e, k]
         if not redescending:
             t = 1
-            st_, it_, cv_, s0_, nu_ = _solve_slot(
+            st_, it_, cv_, s0_, nu_, _ = _solve_slot(
                 a, ho2, z, e, xstart, code, prm, robust, scale_fixed, min_scale, max_iter,
-                tol, rel_tol, min_obs, n_valid, 1, XS, WS, US, VS, QS, CS, x, w, u, v, qv,
-                cov, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx, xn, wa, zz, w0, valid)
+                tol, rel_tol, min_obs, n_valid, 1, False, math.nan, True, XS, WS, US, VS, QS,
+                CS, x, w, u, v, qv, cov, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx, xn, wa,
+                zz, w0, valid)
         else:
-            sth, ith, _, _, _ = _solve_slot(
+            # Huber warm-up from the start (slot 0), then the redescending fit from the same
+            # start (slot 2: its Q_vv and scale equal the warm-up's first ones), then from
+            # the warm-up fix (slot 1)
+            sth, ith, _, _, _, sc0 = _solve_slot(
                 a, ho2, z, e, xstart, HUBER, _HUBER_WARMUP, True, scale_fixed, min_scale,
-                max_iter, tol, rel_tol, min_obs, n_valid, 0, XS, WS, US, VS, QS, CS, x, w, u,
-                v, qv, cov, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx, xn, wa, zz, w0,
-                valid)
+                max_iter, tol, rel_tol, min_obs, n_valid, 0, False, math.nan, False, XS, WS,
+                US, VS, QS, CS, x, w, u, v, qv, cov, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g,
+                dx, xn, wa, zz, w0, valid)
+            stb, itb, cvb, s0b, nub, _ = _solve_slot(
+                a, ho2, z, e, xstart, code, prm, robust, scale_fixed, min_scale, max_iter,
+                tol, rel_tol, min_obs, n_valid, 2, ith > 0, sc0, True, XS, WS, US, VS, QS, CS,
+                x, w, u, v, qv, cov, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx, xn, wa, zz,
+                w0, valid)
             for k in range(p):
                 xh[k] = XS[0, k] if math.isfinite(XS[0, k]) else xstart[k]
-            sta, ita, cva, s0a, nua = _solve_slot(
+            sta, ita, cva, s0a, nua, _ = _solve_slot(
                 a, ho2, z, e, xh, code, prm, robust, scale_fixed, min_scale, max_iter,
-                tol, rel_tol, min_obs, n_valid, 1, XS, WS, US, VS, QS, CS, x, w, u, v, qv,
-                cov, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx, xn, wa, zz, w0, valid)
-            stb, itb, cvb, s0b, nub = _solve_slot(
-                a, ho2, z, e, xstart, code, prm, robust, scale_fixed, min_scale, max_iter,
-                tol, rel_tol, min_obs, n_valid, 2, XS, WS, US, VS, QS, CS, x, w, u, v, qv,
-                cov, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx, xn, wa, zz, w0, valid)
+                tol, rel_tol, min_obs, n_valid, 1, False, math.nan, True, XS, WS, US, VS, QS,
+                CS, x, w, u, v, qv, cov, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx, xn, wa,
+                zz, w0, valid)
             # one scale for both objectives: the smaller MAD scale of the two starts
             sc = math.nan
             for start in range(2):
