@@ -584,6 +584,11 @@ def fit_ranges(a, ho2, z, sig, x0, code, prm, robust, redescending, scale_fixed,
                              np.empty(p), np.empty(m))
     zz, w0, valid = np.empty(m), np.empty(m), np.empty(m, dtype=np.bool_)
     xstart, xh, res, nojac = np.empty(p), np.empty(p), np.empty(m), np.empty((0, p))
+    hub_prm = _HUBER_WARMUP.copy()
+    # per-slot outcomes: status, iterations, converged, sigma0, n_used, stage scale
+    STS, ITS, NUS = (np.zeros(3, dtype=np.int64), np.zeros(3, dtype=np.int64),
+                     np.zeros(3, dtype=np.int64))
+    CVS, S0S, SCS = np.zeros(3, dtype=np.bool_), np.zeros(3), np.zeros(3)
     for e in range(N):
         n_valid = 0
         for i in range(m):
@@ -593,38 +598,30 @@ def fit_ranges(a, ho2, z, sig, x0, code, prm, robust, redescending, scale_fixed,
             n_valid += valid[i]
         for k in range(p):
             xstart[k] = x0[e, k]
-        if not redescending:
-            t = 1
-            st_, it_, cv_, s0_, nu_, _ = _solve_slot(
-                a, ho2, z, e, xstart, code, prm, robust, scale_fixed, min_scale, max_iter,
-                tol, rel_tol, min_obs, n_valid, 1, False, math.nan, True, XS, WS, US, VS, QS,
-                CS, x, w, u, v, qv, cov, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx, xn, wa,
-                zz, w0, valid)
-        else:
-            # Huber warm-up from the start (slot 0), then the redescending fit from the same
-            # start (slot 2: its Q_vv and scale equal the warm-up's first ones), then from
-            # the warm-up fix (slot 1)
-            sth, ith, _, _, _, sc0 = _solve_slot(
-                a, ho2, z, e, xstart, HUBER, _HUBER_WARMUP, True, scale_fixed, min_scale,
-                max_iter, tol, rel_tol, min_obs, n_valid, 0, False, math.nan, False, XS, WS,
-                US, VS, QS, CS, x, w, u, v, qv, cov, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g,
-                dx, xn, wa, zz, w0, valid)
-            stb, itb, cvb, s0b, nub, _ = _solve_slot(
-                a, ho2, z, e, xstart, code, prm, robust, scale_fixed, min_scale, max_iter,
-                tol, rel_tol, min_obs, n_valid, 2, ith > 0, sc0, True, XS, WS, US, VS, QS, CS,
-                x, w, u, v, qv, cov, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx, xn, wa, zz,
-                w0, valid)
-            for k in range(p):
-                xh[k] = XS[0, k] if math.isfinite(XS[0, k]) else xstart[k]
-            sta, ita, cva, s0a, nua, _ = _solve_slot(
-                a, ho2, z, e, xh, code, prm, robust, scale_fixed, min_scale, max_iter,
-                tol, rel_tol, min_obs, n_valid, 1, False, math.nan, True, XS, WS, US, VS, QS,
-                CS, x, w, u, v, qv, cov, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx, xn, wa,
-                zz, w0, valid)
+        # stages: redescending weights run the Huber warm-up from the start (slot 0), the
+        # redescending fit from the same start (slot 2: its Q_vv and scale equal the
+        # warm-up's first ones) and from the warm-up fix (slot 1); others one fit (slot 1)
+        for stage in range(3 if redescending else 1):
+            start, c, pr, reuse, full, t = xstart, code, prm, False, True, 1
+            if redescending and stage == 0:
+                c, pr, full, t = HUBER, hub_prm, False, 0
+            elif redescending and stage == 1:
+                reuse, t = ITS[0] > 0, 2
+            elif redescending:
+                for k in range(p):
+                    xh[k] = XS[0, k] if math.isfinite(XS[0, k]) else xstart[k]
+                start = xh
+            STS[t], ITS[t], CVS[t], S0S[t], NUS[t], SCS[t] = _solve_slot(
+                a, ho2, z, e, start, c, pr, robust, scale_fixed, min_scale,
+                max_iter, tol, rel_tol, min_obs, n_valid, t, reuse, SCS[0], full, XS, WS, US,
+                VS, QS, CS, x, w, u, v, qv, cov, pred, J, r, qvv, vn, tmp, buf, Nm, Ni, g, dx,
+                xn, wa, zz, w0, valid)
+        t = 1
+        if redescending:
             # one scale for both objectives: the smaller MAD scale of the two starts
             sc = math.nan
-            for start in range(2):
-                _ranges(a, ho2, xh if start == 0 else xstart, pred, nojac)
+            for which in range(2):
+                _ranges(a, ho2, xh if which == 0 else xstart, pred, nojac)
                 for i in range(m):
                     res[i] = (pred[i] - z[e, i]) / sig[e, i]
                 si = _median_abs(res, tmp, buf) / MAD_NORMAL
@@ -632,12 +629,9 @@ def fit_ranges(a, ho2, z, sig, x0, code, prm, robust, redescending, scale_fixed,
                     sc = si
             if not (math.isfinite(sc) and sc > 0):
                 sc = 1.0
-            oa = _objective(a, ho2, z, sig, e, XS, 1, x0, code, prm, sc, sta, x, pred, nojac)
-            ob = _objective(a, ho2, z, sig, e, XS, 2, x0, code, prm, sc, stb, x, pred, nojac)
-            if ob < oa:
-                t, st_, it_, cv_, s0_, nu_ = 2, stb, itb + ith, cvb, s0b, nub
-            else:
-                t, st_, it_, cv_, s0_, nu_ = 1, sta, ita + ith, cva, s0a, nua
+            oa = _objective(a, ho2, z, sig, e, XS, 1, x0, code, prm, sc, STS[1], x, pred, nojac)
+            ob = _objective(a, ho2, z, sig, e, XS, 2, x0, code, prm, sc, STS[2], x, pred, nojac)
+            t = 2 if ob < oa else 1
         for k in range(p):
             X[e, k] = XS[t, k]
             for j in range(p):
@@ -647,9 +641,9 @@ def fit_ranges(a, ho2, z, sig, x0, code, prm, robust, redescending, scale_fixed,
             U[e, i] = US[t, i]
             V[e, i] = VS[t, i]
             QV[e, i] = QS[t, i]
-        STAT[e] = st_
-        IT[e] = it_
-        CONV[e] = cv_
-        S0[e] = s0_
-        NU[e] = nu_
+        STAT[e] = STS[t]
+        IT[e] = ITS[t] + (ITS[0] if redescending else 0)
+        CONV[e] = CVS[t]
+        S0[e] = S0S[t]
+        NU[e] = NUS[t]
     return X, V, W, QV, S0, COV, NU, IT, CONV, STAT, U
