@@ -7,13 +7,17 @@ aggregate steps per second when 1 000 independent tracks advance in one batched 
 The paper's flop counts (:mod:`robustloc.filters.complexity`) are printed beside the
 measured time per step.
 
-Run:  python benchmarks/bench_filters.py [--steps 300] [--tracks 1000] [--sigma-predict]
-The machine's load matters (numbers are wall time, median of 5 repeats); compare the
-ratios, measured in the same run.  Measured here (2 shared cores, load about 2, FilterPy
-itself 3-4x slower than on an idle machine): UKF 6-state CA one track 2.0x FilterPy,
-1 000 tracks batched 86-97x FilterPy's single-track steps/s; EKF 4-state CV one track
-0.3x (NumPy call overhead: our update makes ~35 array calls where FilterPy's EKF makes
-~10), batched 16-20x.
+Run:  OMP_NUM_THREADS=1 python benchmarks/bench_filters.py [--steps 300] [--tracks 1000]
+      [--rounds 7] [--sigma-predict]
+"ours" is the public ``FusionFilter.step`` with its default compiled engine (one numba call
+per step, :mod:`robustloc.filters._compiled`); the "numpy" columns run the same step with
+``engine="numpy"`` (the batched NumPy core).  The machine's load matters (wall time): the
+variants are timed in interleaved rounds and each ratio is the median of the ratios within
+a round.  Measured here (2 shared cores, another benchmark on the other core, load 1-2,
+FilterPy's EKF step 36-87 us depending on that load; five runs): EKF 4-state CV one track
+6.4-7.0x FilterPy, 1 000 tracks batched 104-130x FilterPy's single-track steps/s (NumPy
+engine: 0.3x and 18-20x); UKF 6-state CA one track 44-52x, batched 154-198x (NumPy engine:
+1.7x and 70-95x).  Compiled, per track-step: about 0.35-0.6 us (EKF), 2-3.5 us (UKF).
 """
 
 from __future__ import annotations
@@ -47,20 +51,23 @@ R = np.diag([0.01, 0.01, 4e-4, 1e-3])
 SIGMA_PREDICT = False
 
 
-def _ours(kind: str, motion, z: np.ndarray, x0: np.ndarray, repeats: int = 5) -> float:
-    """Median seconds per step of ``K`` tracks (z: (K, steps, 4))."""
+def _ours(kind: str, motion, z: np.ndarray, x0: np.ndarray, repeats: int = 5,
+          engine: str = "compiled") -> float:
+    """Median seconds per ``FusionFilter.step`` of ``K`` tracks (z: (K, steps, 4))."""
     K, steps, _ = z.shape
     f = FusionFilter(kind, motion, points=SigmaPoints(1.0, 2.0, 0.0), min_speed_mps=0.0,
-                     sigma_point_predict=SIGMA_PREDICT)
+                     sigma_point_predict=SIGMA_PREDICT, engine=engine)
     meas = FusionMeasurement(motion.n_states)
     dt = np.ones(K)
+    zs = [np.ascontiguousarray(z[:, j]) for j in range(steps)]  # data as a caller holds it
+    f.step(x0.copy(), np.tile(np.eye(motion.n_states), (K, 1, 1)), dt, zs[0], R, meas)  # warm
     best = []
     for _ in range(repeats):
         x = x0.copy()
         P = np.tile(np.eye(motion.n_states), (K, 1, 1))
         t0 = time.perf_counter()
         for j in range(steps):
-            r = f.step(x, P, dt, z[:, j], R, meas)
+            r = f.step(x, P, dt, zs[j], R, meas)
             x, P = r.x, r.P
         best.append((time.perf_counter() - t0) / steps)
     return float(np.median(best))
@@ -132,6 +139,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--tracks", type=int, default=1000)
+    ap.add_argument("--rounds", type=int, default=7, help="interleaved timing rounds")
     ap.add_argument("--sigma-predict", action="store_true",
                     help="UKF predict through sigma points (default: exact linear predict)")
     args = ap.parse_args()
@@ -148,22 +156,31 @@ def main() -> None:
     for label, kind, motion, ref, flops in cases:
         z1, x1 = _data(S, 1, motion.n_states)
         zK, xK = _data(max(S // 10, 20), K, motion.n_states)
-        t_ref = ref(z1, x1)
-        t_one = _ours(kind, motion, z1, x1)
-        t_batch = _ours(kind, motion, zK, xK, repeats=3)
-        rows.append((label, flops["total"], t_ref, t_one, t_batch))
+        # interleaved rounds: every variant is timed in each round, so a change of the
+        # machine's load between rounds hits all alike; ratios are taken within a round
+        t = np.array([
+            [ref(z1, x1, repeats=1),
+             _ours(kind, motion, z1, x1, repeats=1),
+             _ours(kind, motion, zK, xK, repeats=1),
+             _ours(kind, motion, z1, x1, repeats=1, engine="numpy"),
+             _ours(kind, motion, zK, xK, repeats=1, engine="numpy")]
+            for _ in range(args.rounds)
+        ])
+        ratio = np.median(t[:, :1] / t[:, 1:] * [1, K, 1, K], axis=0)
+        rows.append((label, flops["total"], *np.median(t, axis=0), *ratio))
     print()
     print(f"{'model':16s} {'flops':>6s} {'FilterPy us':>11s} {'ours 1 us':>9s} "
           f"{'1-track x':>9s} {'ours K us':>9s} {'K steps/s':>11s} {'FilterPy st/s':>13s} "
-          f"{'batch x':>8s} {'ns/flop':>8s}")
-    for label, fl, t_ref, t_one, t_b in rows:
-        agg = K / t_b
+          f"{'batch x':>8s} {'ns/flop':>8s} {'numpy 1 us':>10s} {'numpy K x':>9s}")
+    for label, fl, t_ref, t_one, t_b, t_np, _, x_one, x_b, _, x_np_b in rows:
         print(f"{label:16s} {fl:6d} {t_ref * 1e6:11.1f} {t_one * 1e6:9.1f} "
-              f"{t_ref / t_one:9.2f} {t_b * 1e6:9.0f} {agg:11.0f} {1 / t_ref:13.0f} "
-              f"{agg * t_ref:8.1f} {t_b / K / fl * 1e9:8.3f}")
+              f"{x_one:9.2f} {t_b * 1e6:9.0f} {K / t_b:11.0f} {1 / t_ref:13.0f} "
+              f"{x_b:8.1f} {t_b / K / fl * 1e9:8.3f} {t_np * 1e6:10.1f} {x_np_b:9.1f}")
     print(f"\nK = {K} tracks per batched step; 'batch x' = aggregate steps/s over FilterPy's "
           "single-track steps/s.  ns/flop: batched time per track-step over the paper's "
-          "flop count.")
+          "flop count.  'ours': FusionFilter.step (compiled engine); 'numpy': the same with "
+          "engine='numpy' (one track: us per step; K tracks: batch x).  Times: medians over "
+          "the rounds; ratios: medians of the ratios within a round.")
     print("\nflops per step by the paper's counting rules (n states, l measurements):")
     print(f"{'n':>3s} {'l':>3s} {'EKF':>8s} {'UKF':>8s}")
     for n, l in ((4, 2), (4, 4), (6, 2), (6, 4), (9, 6)):

@@ -16,15 +16,24 @@ heading is undefined at standstill and its Jacobian ``1/v`` explodes.
 Filters (any with any motion model): ``ekf`` -- linear motion prediction, EKF update with the
 analytic Jacobian; ``ukf`` -- unscented predict and update (seed 001 eqs. (20)-(23)).  Both
 use the shared robust update of :mod:`robustloc.filters.core`.
+
+Engines: :meth:`FusionFilter.step` runs the built-in model (``FusionMeasurement``, CV/CA
+motion, ``mode="gain"``, a built-in weight function) through one compiled call per step
+(:mod:`robustloc.filters._compiled`, the same equations as the NumPy core, tested against
+it); any other combination, or ``engine="numpy"``, uses the batched NumPy core.
 """
 
 from __future__ import annotations
 
+import itertools
+import math
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.stats import chi2
 
 from robustloc import status as st
 from robustloc.filters.core import (
@@ -37,10 +46,78 @@ from robustloc.filters.core import (
     update_ekf,
     update_ukf,
 )
-from robustloc.filters.motion import ConstantAcceleration, ConstantVelocity
+from robustloc.filters.motion import ConstantAcceleration, ConstantVelocity, _coefficients
 
 Array = NDArray[np.float64]
 Motion = ConstantVelocity | ConstantAcceleration
+
+#: Output arenas of the compiled step hold about this many floats (several steps of one
+#: track, one step of many tracks).
+_ARENA_FLOATS = 16384
+_new = object.__new__
+_setattr = object.__setattr__
+
+
+def _result(x: Array, P: Array, y: Array, e: Array, w: Array, nis: Array,
+            n_used: NDArray[np.int64], gated: NDArray[np.bool_], status: NDArray[np.str_]
+            ) -> UpdateResult:
+    """An :class:`UpdateResult` without the frozen-dataclass ``__init__`` (hot path).
+
+    ``UpdateResult`` has no ``__post_init__``; filling its instance dictionary at once is
+    what its ``__init__`` does field by field, at a third of the cost.
+    """
+    r = _new(UpdateResult)
+    _setattr(r, "__dict__", {
+        "x": x, "P": P, "innovation": y, "standardized": e, "weights": w, "nis": nis,
+        "n_used": n_used, "gated": gated, "status": status,
+    })
+    return r
+
+
+def _arenas(K: int, n: int, m: int) -> Iterator[tuple]:
+    """Output arena of the compiled step for ``K`` tracks and an iterator over its slots.
+
+    A slot is one step's output: a row of the arena for the kernel and typed views of it
+    shaped like the fields of :class:`UpdateResult`
+    (:func:`robustloc.filters._compiled.layout`).  Slots are handed out once (results are
+    never overwritten); the views of all slots are made in bulk here, so a step only takes
+    the next slot.
+    """
+    from robustloc.filters._compiled import STATUS_CHARS, layout
+
+    o = layout(K, n, m)
+    W = o["size"]
+    B = max(1, min(256, _ARENA_FLOATS // max(W, 1)))
+    status = f"<U{STATUS_CHARS}"
+    if B == 1:  # many tracks: one slot, views by slicing
+        f = np.empty(W)
+
+        def sl(name: str, size: int, shape: tuple[int, ...]) -> Array:
+            return f[o[name] : o[name] + size].reshape(shape)
+
+        return iter([(
+            K, f, sl("x", K * n, (K, n)), sl("P", K * n * n, (K, n, n)),
+            sl("innovation", K * m, (K, m)), sl("standardized", K * m, (K, m)),
+            sl("weights", K * m, (K, m)), sl("nis", K, (K,)),
+            f[o["n_used"] : o["status"]].view(np.int64),
+            f[o["gated"] :].view(np.bool_)[:K],
+            f[o["status"] : o["gated"]].view(status),
+        )])
+    f = np.empty((B, W))
+
+    def block(name: str, shape: tuple[int, ...], dtype: type | str = np.float64) -> list:
+        item = np.dtype(dtype).itemsize
+        strides = [8 * W] + [item * math.prod(shape[d + 1 :]) for d in range(len(shape))]
+        return list(np.ndarray((B, *shape), dtype=dtype, buffer=f, offset=8 * o[name],
+                               strides=strides))
+
+    return zip(
+        itertools.repeat(K), list(f),
+        block("x", (K, n)), block("P", (K, n, n)), block("innovation", (K, m)),
+        block("standardized", (K, m)), block("weights", (K, m)), block("nis", (K,)),
+        block("n_used", (K,), np.int64), block("gated", (K,), np.bool_),
+        block("status", (K,), status),
+    )
 
 
 def _mT3(A: Array) -> Array:
@@ -163,7 +240,14 @@ class FusionFilter:
         (seed 001 eq. (21)).  The CV/CA models are linear, for which the unscented
         transform is exact and equals ``F x, F P F^T + Q`` (tested), so by default the UKF
         predicts with the matrices and uses sigma points in the update only (same result,
-        half the work).
+        half the work).  The compiled engine always predicts with the matrices (for the same
+        reason; the difference is rounding).
+    engine : ``"compiled"`` (default) -- :meth:`step` runs one compiled call per step
+        (:mod:`robustloc.filters._compiled`) when the model is the built-in one:
+        ``FusionMeasurement``, CV/CA motion, ``robust.mode == "gain"`` and a built-in weight
+        function (or none); anything else uses the NumPy core.  ``"numpy"`` -- always the
+        batched NumPy core of :mod:`robustloc.filters.core` (the reference the compiled
+        path is tested against).
     """
 
     kind: Literal["ekf", "ukf"] = "ukf"
@@ -174,12 +258,80 @@ class FusionFilter:
     max_rejected: int = 5
     relock_var: float = 4.0
     sigma_point_predict: bool = False
+    engine: Literal["compiled", "numpy"] = "compiled"
+    #: per-instance state of the compiled engine (settings vector, output arenas)
+    _fast: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.kind not in ("ekf", "ukf"):
             raise ValueError(f"filter must be 'ekf' or 'ukf', got {self.kind!r}")
         if self.motion.dim != 2:
             raise ValueError("fusion works in 2-D (east, north); use a motion model with dim=2")
+        if self.engine not in ("compiled", "numpy"):
+            raise ValueError(f"engine must be 'compiled' or 'numpy', got {self.engine!r}")
+
+    def __getstate__(self) -> dict:
+        """Pickle the settings only (the compiled engine's state is rebuilt on use)."""
+        state = self.__dict__.copy()
+        state["_fast"] = {}
+        return state
+
+    def _prepare(self, meas: FusionMeasurement) -> tuple:
+        """Settings of the compiled step for ``meas``; ``state[1] is None``: use NumPy.
+
+        ``state = (meas, kernel, prm, slots, [(R, R[None])])``: the kernel for the state
+        and measurement sizes, its packed settings
+        (:func:`robustloc.filters._compiled.pack_params`), an iterator over output slots and
+        the last 2-D ``R`` with its 3-D view (one tuple, replaced at once: thread-safe).
+        """
+        state: tuple = (meas, None, None, iter(()), [(None, None)])
+        self._fast["state"] = state
+        motion = self.motion
+        if (
+            self.engine != "compiled"
+            or type(meas) is not FusionMeasurement
+            or type(motion) not in (ConstantVelocity, ConstantAcceleration)
+            or motion.dim != 2
+            or meas.n_states != motion.n_states
+            or self.robust.mode != "gain"
+        ):
+            return state
+        from robustloc.filters import _compiled
+        from robustloc.robust._compiled import weight_spec
+
+        spec = weight_spec(self.robust.weight)
+        n, m, M = motion.n_states, meas.m, meas.n_ranges
+        lam = self.points.lam(n)
+        kernel = _compiled.kernel_for(n, m)
+        if spec is None or kernel is None or (self.kind == "ukf" and not n + lam > 0):
+            return state
+        anchors = np.zeros((0, 2)) if M == 0 else np.asarray(meas.anchors, dtype=float)
+        if anchors.shape != (M, 2):
+            return state
+        wm, wc = self.points.weights(n) if n + lam > 0 else (np.zeros(2 * n + 1),) * 2
+        chi = np.full(m + 1, np.inf)  # no gate: NIS > inf never holds
+        if self.robust.gate_probability is not None:
+            chi[1:] = chi2.ppf(self.robust.gate_probability, np.arange(1, m + 1))
+        C = _coefficients(motion.order, motion.dim)
+        prm = _compiled.pack_params(
+            _compiled.EKF if self.kind == "ekf" else _compiled.UKF, motion.q,
+            self.min_speed_mps, float(n + lam), wm, wc, spec[0], spec[1], chi,
+            C[0], C[2] if motion.noise == "discrete" else C[3], anchors, meas._dz2(),
+        )
+        if prm is not None:
+            state = (meas, kernel, prm, iter(()), [(None, None)])
+            self._fast["state"] = state
+        return state
+
+    @staticmethod
+    def _R3(R: ArrayLike, cache: list) -> Array | None:
+        """``R`` as ``(1, m, m)`` or ``(K, m, m)`` for the kernel (``None``: not usable)."""
+        if type(R) is np.ndarray and R.dtype == np.float64 and R.ndim == 2:
+            pair = (R, R[None])  # a view: follows in-place changes of R
+            cache[0] = pair
+            return pair[1]
+        R = np.asarray(R, dtype=float)
+        return R[None] if R.ndim == 2 else (R if R.ndim == 3 else None)
 
     def step(
         self,
@@ -190,7 +342,52 @@ class FusionFilter:
         R: Array,
         meas: FusionMeasurement,
     ) -> UpdateResult:
-        """One vectorized predict + update of ``K`` tracks with per-track ``dt (K,)``."""
+        """One vectorized predict + update of ``K`` tracks with per-track ``dt (K,)``.
+
+        Parameters
+        ----------
+        x, P : ``(K, n)`` states and ``(K, n, n)`` covariances at the previous event.
+        dt : ``(K,)`` time steps.
+        z : ``(K, m)`` measurements (NaN = missing); the course is ignored where the
+            measured speed is below ``min_speed_mps``.
+        R : ``(m, m)`` or ``(K, m, m)`` measurement noise.
+        meas : the measurement model.
+
+        Returns
+        -------
+        UpdateResult
+            Posterior states and covariances with the update diagnostics (the compiled
+            engine's arrays are views of a shared output arena, written once).
+        """
+        state = self._fast.get("state")
+        if state is None or state[0] is not meas:
+            state = self._prepare(meas)
+        kernel = state[1]
+        if kernel is not None:  # compiled engine: one call, outputs into a fresh arena slot
+            rc = state[4]
+            last = rc[0]
+            R3 = last[1] if last[0] is R else self._R3(R, rc)
+            s = next(state[3], None)
+            if s is None or s[0] != len(x):
+                slots = _arenas(len(x), self.motion.n_states, meas.m)
+                state = (meas, kernel, state[2], slots, rc)
+                self._fast["state"] = state
+                s = next(slots)
+            _, fo, xo, Po, yo, eo, wo, nis, nu, gated, status = s
+            if R3 is not None and kernel(x, P, dt, z, R3, state[2], fo) == 0:
+                return _result(xo, Po, yo, eo, wo, nis, nu, gated, status)
+        return self._step_numpy(x, P, dt, z, R, meas)
+
+    def _step_numpy(
+        self,
+        x: Array,
+        P: Array,
+        dt: Array,
+        z: Array,
+        R: Array,
+        meas: FusionMeasurement,
+    ) -> UpdateResult:
+        """:meth:`step` with the batched NumPy core."""
         if np.all(dt == dt[0]):  # one step for all tracks (the usual case): cached 2-D F, Q
             F, Q = self.motion.FQ(float(dt[0]))
         else:

@@ -1,0 +1,595 @@
+"""Compiled (numba) predict + robust update of the UWB/GPS fusion model for ``K`` tracks.
+
+One call of a kernel of :data:`KERNELS` advances ``K`` tracks of the built-in fusion model of
+:mod:`robustloc.fusion.pipeline` by one event: the linear CV/CA prediction
+``x = F x, P = F P F^T + Q`` (seed 002 eq. (13)) and the EKF or UKF update of
+``FusionMeasurement`` followed by everything :func:`robustloc.filters.core.update_from_moments`
+does in its default ``mode="gain"``: chi-square gate, equivalent weights ``D``, robust gain
+``K_hat = K D`` (seed 002 eq. (12)) and the covariance of that estimator (Joseph form for the
+EKF).  It is the loop-per-track twin of the batched NumPy core for this one model, written
+to remove NumPy's per-call overhead (a single track costs one compiled call instead of a few
+dozen small array calls); tests check it against the NumPy path to rounding.
+
+Measurement ``z`` (seed 001): loose coupling ``[x, y, v, theta]``, tight coupling
+``[r_1 .. r_M, v, theta]`` with ``r_i = sqrt((x - a_ix)^2 + (y - a_iy)^2 + dz_i^2)``,
+``v = sqrt(x'^2 + y'^2)``, ``theta = atan2(x', y')`` (clockwise from north).  The course is
+missing when ``|v_measured| < min_speed``; NaN components are left out of a track's update.
+
+EKF (seed 001 eq. (10)): analytic Jacobian ``H`` at the predicted state (with the guards of
+``FusionMeasurement.jacobian``), ``S = H P H^T + R``, ``P_xz = P H^T``.
+UKF (seed 001 eqs. (20)-(23)): Merwe scaled sigma points of the predicted state,
+``z_hat = sum W_m h(X_s)`` (circular mean for the course), ``S = sum W_c dz dz^T + R``,
+``P_xz = sum W_c dx dz^T``.  The linear CV/CA prediction is the unscented transform of a
+linear ``f`` exactly, so the kernel predicts with ``F`` for the UKF too.  As in
+``update_from_moments``, a missing component gets an identity row and column in ``S`` and a
+zero innovation, cross covariance and weight, so every track solves the same ``m x m``
+system.  The state size (4 for CV, 6 for CA) is a compile-time constant of each kernel, so
+its small matrix loops are unrolled; so is ``m = 4`` in the CV loose-coupling kernel (the
+common single-track case), the others take ``m`` at run time (see :data:`KERNELS`).
+``R`` is taken as symmetric (the Cholesky factor of ``S`` reads its lower triangle).
+
+Parameters travel in one float vector (see :func:`pack_params`); all outputs, including the
+integer counts, the status strings (as ``<U14`` characters) and the gate flags, are written
+into one preallocated row whose typed views the caller made beforehand (:func:`layout`), so
+a single-track step costs one compiled call and no array boxing.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+from numba import njit
+
+from robustloc import status as st
+from robustloc.robust._compiled import weight_value
+
+#: Filter kinds (``prm[_KIND]``).
+EKF, UKF = 0, 1
+#: Statuses written by the kernels, in this order (as ``<U14`` characters, see :func:`layout`).
+STATUSES = (st.OK, st.FAULT_EXCLUDED, st.PREDICTED)
+ST_OK, ST_FAULT_EXCLUDED, ST_PREDICTED = 0, 1, 2
+#: Characters of a status (``numpy`` dtype ``<U14``: the longest is ``fault_excluded``).
+STATUS_CHARS = 14
+#: Return values of the kernels.
+DONE, BAD_SHAPE, NOT_PD = 0, 1, 2
+
+# layout of the parameter vector
+_Q, _MIN_SPEED, _SCALE, _WM0, _WMI, _WC0, _WCI = 0, 1, 2, 3, 4, 5, 6
+_WPRM = 7  # 3 weight parameters
+_WCODE, _KIND, _NPOW, _N, _M, _NANCH = 10, 11, 12, 13, 14, 15
+_HEAD = 16
+
+
+def layout(K: int, n: int, m: int) -> dict[str, int]:
+    """Offsets (in float64 units) of the outputs in the ``fout`` row of ``K`` tracks.
+
+    Blocks, each track-major: ``x`` (K, n), ``P`` (K, n, n), innovations, standardized
+    innovations, weights (K, m) each, NIS (K,) -- float64; components used (K,) -- int64;
+    status (K,) -- ``<U14`` (7 floats a track); gated (K,) -- bool (bytes).  ``size`` is the
+    row length.  The kernels compute the same offsets.
+    """
+    o = {"x": 0, "P": K * n}
+    o["innovation"] = o["P"] + K * n * n
+    o["standardized"] = o["innovation"] + K * m
+    o["weights"] = o["standardized"] + K * m
+    o["nis"] = o["weights"] + K * m
+    o["n_used"] = o["nis"] + K
+    o["status"] = o["n_used"] + K
+    o["gated"] = o["status"] + K * STATUS_CHARS // 2
+    o["size"] = o["gated"] + (K + 7) // 8
+    return o
+
+
+def monomials(C: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(coefficient, power)`` of each entry of ``M(dt) = sum_p dt^p C[p]``.
+
+    The CV/CA matrices have one power of ``dt`` per entry; ``None`` if some entry has more.
+    """
+    nz = C != 0.0
+    if (nz.sum(axis=0) > 1).any():
+        return None
+    power = np.argmax(nz, axis=0).astype(float)
+    coef = C.sum(axis=0)
+    return coef, power
+
+
+def pack_params(
+    kind: int,
+    q: float,
+    min_speed: float,
+    scale: float,
+    wm: np.ndarray,
+    wc: np.ndarray,
+    weight_code: int,
+    weight_prm: np.ndarray,
+    chi2_table: np.ndarray,
+    coef_F: np.ndarray,
+    coef_Q: np.ndarray,
+    anchors: np.ndarray,
+    dz2: np.ndarray,
+) -> np.ndarray | None:
+    """Pack the settings of one filter and measurement model into one float vector.
+
+    Parameters
+    ----------
+    kind : :data:`EKF` or :data:`UKF`.
+    q : process-noise intensity; ``Q(dt) = q sum_p dt^p coef_Q[p]``.
+    min_speed : course measurements with ``|v| < min_speed`` are ignored.
+    scale : ``n + lambda`` of the sigma points (seed 001 eq. (20)).
+    wm, wc : sigma-point mean and covariance weights ``(2n + 1,)`` (uniform but the first).
+    weight_code, weight_prm : compiled weight function
+        (:func:`robustloc.robust._compiled.weight_spec`).
+    chi2_table : ``(m + 1,)`` gate thresholds by degrees of freedom (``inf``: no gate).
+    coef_F, coef_Q : ``(npow, n, n)`` polynomial coefficients in ``dt`` of ``F`` and ``Q / q``
+        (``robustloc.filters.motion._coefficients``).
+    anchors : ``(M, 2)`` anchor positions (``M = 0`` for loose coupling).
+    dz2 : ``(M,)`` squared height offsets.
+
+    Returns
+    -------
+    ndarray or None
+        ``prm`` for a kernel of :data:`KERNELS`; ``None`` if the model has no compiled kernel
+        (state size other than 4 or 6, matrices that are not monomials in ``dt``, or an
+        ``F`` that is not upper triangular).
+    """
+    npow, n, _ = coef_F.shape
+    fm, qm = monomials(coef_F), monomials(coef_Q)
+    m = chi2_table.shape[0] - 1
+    if kernel_for(n, m) is None or fm is None or qm is None or len(wm) != 2 * n + 1:
+        return None
+    if np.any(np.tril(fm[0], -1) != 0.0):  # the kernels use that F is upper triangular
+        return None
+    M = anchors.shape[0]
+    head = np.zeros(_HEAD)
+    head[_Q], head[_MIN_SPEED], head[_SCALE] = q, min_speed, scale
+    head[_WM0], head[_WMI], head[_WC0], head[_WCI] = wm[0], wm[1], wc[0], wc[1]
+    head[_WPRM : _WPRM + 3] = weight_prm[:3]
+    head[_WCODE], head[_KIND], head[_NPOW] = weight_code, kind, npow
+    head[_N], head[_M], head[_NANCH] = n, m, M
+    anch = np.column_stack([np.asarray(anchors, float).reshape(M, 2), dz2]).ravel()
+    chars = np.zeros((len(STATUSES), STATUS_CHARS))
+    for c, name in enumerate(STATUSES):
+        chars[c, : len(name)] = [ord(ch) for ch in name]
+    parts = [head, chi2_table, fm[0].ravel(), fm[1].ravel(), qm[0].ravel(), qm[1].ravel(), anch,
+             chars.ravel()]
+    return np.ascontiguousarray(np.concatenate(parts), dtype=np.float64)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _wrap(a: float) -> float:  # pragma: no cover - jit
+    """Angle wrapped to ``[-pi, pi)``: ``(a + pi) % (2 pi) - pi`` as ``core.wrap_angle``.
+
+    The remainder is skipped when ``a + pi`` is already in ``[0, 2 pi)``, where it is exact,
+    so the result is the same to the bit.
+    """
+    t = a + math.pi
+    if 0.0 <= t < 2.0 * math.pi:
+        return t - math.pi
+    return t % (2.0 * math.pi) - math.pi
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _h(xs, prm, off_a, M, zout):  # pragma: no cover - jit
+    """``h(x)`` of the fusion model (``FusionMeasurement.predict``) into ``zout (m,)``."""
+    if M == 0:
+        zout[0] = xs[0]
+        zout[1] = xs[1]
+    else:
+        for i in range(M):
+            dx = xs[0] - prm[off_a + 3 * i]
+            dy = xs[1] - prm[off_a + 3 * i + 1]
+            zout[i] = math.sqrt((dx * dx + dy * dy) + prm[off_a + 3 * i + 2])
+    nr = 2 if M == 0 else M
+    zout[nr] = math.hypot(xs[2], xs[3])
+    zout[nr + 1] = math.atan2(xs[2], xs[3])
+
+
+@njit(cache=True, nogil=True)
+def _step(n, mc, x, P, dt, z, R, prm, fout):  # pragma: no cover - jit
+    """Body of the kernels for a state size ``n`` (4 or 6) and measurement size ``mc``
+    (0: the run-time ``prm[_M]``), both constants in each kernel's call: LLVM inlines this
+    body into the kernel and unrolls the loops of these sizes."""
+    K = x.shape[0]
+    m = mc if mc > 0 else int(prm[_M])
+    if int(prm[_M]) != m:
+        return BAD_SHAPE
+    M = int(prm[_NANCH])
+    npow = int(prm[_NPOW])
+    kind = int(prm[_KIND])
+    wcode = int(prm[_WCODE])
+    # ---- shapes (numba does not check bounds: anything off goes to the NumPy path)
+    if int(prm[_N]) != n or x.shape[1] != n or P.shape[0] != K or P.shape[1] != n:
+        return BAD_SHAPE
+    if P.shape[2] != n or dt.shape[0] != K or z.shape[0] != K or z.shape[1] != m:
+        return BAD_SHAPE
+    Kr = R.shape[0]
+    if (Kr != 1 and Kr != K) or R.shape[1] != m or R.shape[2] != m or m < 3:
+        return BAD_SHAPE
+    # output blocks (as in :func:`layout`)
+    nn = n * n
+    o_P = K * n
+    o_y = o_P + K * nn
+    o_e = o_y + K * m
+    o_w = o_e + K * m
+    o_nis = o_w + K * m
+    o_nu = o_nis + K
+    o_st = o_nu + K
+    o_g = o_st + K * STATUS_CHARS // 2
+    if fout.shape[0] != o_g + (K + 7) // 8:
+        return BAD_SHAPE
+    iout = fout[o_nu:o_st].view(np.int64)
+    sout = fout[o_st:o_g].view(np.uint32)
+    bout = fout[o_g:].view(np.uint8)
+
+    q = prm[_Q]
+    min_speed = prm[_MIN_SPEED]
+    scale = prm[_SCALE]
+    wprm = prm[_WPRM : _WPRM + 3]
+    off_chi = _HEAD
+    off_F = off_chi + m + 1
+    off_a = off_F + 4 * nn
+    ns = 2 * n + 1
+    ci = m - 1  # course
+    si = m - 2  # speed
+    nr = 2 if M == 0 else M  # position rows
+    off_s = off_a + 3 * M  # status characters
+
+    # ---- scratch (separate small arrays: faster loops than views of one buffer)
+    F = np.empty((n, n))
+    Qm = np.empty((n, n))
+    Pp = np.empty((n, n))
+    T = np.empty((n, n))
+    A = np.empty((n, n))
+    Pn = np.empty((n, n))
+    Ls = np.empty((n, n))
+    sig = np.empty((ns, n))
+    Pxz = np.empty((n, m))  # state-measurement cross covariance
+    Gt = np.empty((m, n))  # robust gain K D, transposed
+    GMG = np.empty((n, n))
+    Mm = np.empty((m, m))
+    V = np.empty((n, m))
+    Li = np.empty(m)
+    y0 = np.empty(m)
+    av = np.empty(m, np.bool_)  # available components
+    sol = np.empty((m, n + 1))
+    S = np.empty((m, m))
+    L = np.empty((m, m))
+    zs = np.empty((ns, m))
+    dz = np.empty((ns, m))
+    hv = np.empty((m, 2))  # EKF: the two non-zero entries of each row of H
+    zh = np.empty(m)
+    y = np.empty(m)
+    xp = np.empty(n)
+    pw = np.empty(npow)
+    chars = np.empty(3 * STATUS_CHARS, np.uint32)
+    for c in range(3 * STATUS_CHARS):
+        chars[c] = np.uint32(prm[off_s + c])
+    wm0, wmi, wc0, wci = prm[_WM0], prm[_WMI], prm[_WC0], prm[_WCI]
+
+    dt_prev = math.nan
+    for k in range(K):
+        rk = k if Kr > 1 else 0
+        # ------------------------------------------------ predict (seed 002 eq. (13))
+        d = dt[k]
+        if not d == dt_prev:  # F(dt), Q(dt): one monomial in dt per entry
+            for p in range(npow):
+                pw[p] = math.pow(d, float(p))
+            for i in range(n):
+                for j in range(n):
+                    F[i, j] = pw[int(prm[off_F + nn + i * n + j])] * prm[off_F + i * n + j]
+                    Qm[i, j] = q * (
+                        pw[int(prm[off_F + 3 * nn + i * n + j])] * prm[off_F + 2 * nn + i * n + j]
+                    )
+            dt_prev = d
+        for i in range(n):
+            s = 0.0
+            for j in range(i, n):
+                s += F[i, j] * x[k, j]
+            xp[i] = s
+        # F is upper triangular (checked by pack_params); only the upper triangle of the
+        # symmetric F P F^T + Q is computed, from sym(P) (sym(F P F^T) = F sym(P) F^T)
+        for i in range(n):
+            for j in range(n):
+                Pn[i, j] = 0.5 * (P[k, i, j] + P[k, j, i])
+        for i in range(n):  # T = F sym(P)
+            for j in range(n):
+                s = 0.0
+                for l in range(i, n):
+                    s += F[i, l] * Pn[l, j]
+                T[i, j] = s
+        for i in range(n):  # Pp = T F^T + Q
+            for j in range(i, n):
+                s = 0.0
+                for l in range(j, n):
+                    s += T[i, l] * F[j, l]
+                Pp[i, j] = s + Qm[i, j]
+                Pp[j, i] = Pp[i, j]
+
+        # ------------------------------------------------ measurement moments
+        if kind == EKF:  # h and its Jacobian at the prediction (seed 001 eq. (10))
+            vx = xp[2]
+            vy = xp[3]
+            if M == 0:
+                zh[0] = xp[0]
+                zh[1] = xp[1]
+                hv[0, 0], hv[0, 1], hv[1, 0], hv[1, 1] = 1.0, 0.0, 0.0, 1.0
+            else:
+                for i in range(M):
+                    dx = xp[0] - prm[off_a + 3 * i]
+                    dy = xp[1] - prm[off_a + 3 * i + 1]
+                    r = math.sqrt((dx * dx + dy * dy) + prm[off_a + 3 * i + 2])
+                    zh[i] = r
+                    r = max(r, 1e-9)
+                    hv[i, 0] = dx / r
+                    hv[i, 1] = dy / r
+            vv = vx * vx + vy * vy
+            zh[si] = math.sqrt(vv)  # hypot(vx, vy) to rounding
+            zh[ci] = math.atan2(vx, vy)
+            v2 = max(vv, 1e-12)
+            v = math.sqrt(v2)
+            hv[si, 0], hv[si, 1] = vx / v, vy / v
+            hv[ci, 0], hv[ci, 1] = vy / v2, -vx / v2
+            # H has two non-zero columns per row: 0, 1 (position rows) or 2, 3
+            for i in range(m):  # Pxz = P H^T
+                b = 0 if i < nr else 2
+                for j in range(n):
+                    Pxz[j, i] = Pp[j, b] * hv[i, 0] + Pp[j, b + 1] * hv[i, 1]
+            for i in range(m):  # S = H Pxz + R
+                b = 0 if i < nr else 2
+                for j in range(m):
+                    S[i, j] = (hv[i, 0] * Pxz[b, j] + hv[i, 1] * Pxz[b + 1, j]) + R[rk, i, j]
+        else:
+            # sigma points of the prediction (seed 001 eq. (20)): chol((n + lambda) P)
+            for i in range(n):
+                for j in range(i + 1):
+                    s = scale * Pp[i, j]
+                    for l in range(j):
+                        s -= Ls[i, l] * Ls[j, l]
+                    if i == j:
+                        if not s > 0.0:
+                            return NOT_PD
+                        Ls[i, i] = math.sqrt(s)
+                    else:
+                        Ls[i, j] = s / Ls[j, j]
+            for j in range(n):
+                sig[0, j] = xp[j]
+            for c in range(n):
+                for j in range(n):
+                    lv = Ls[j, c] if j >= c else 0.0
+                    sig[1 + c, j] = xp[j] + lv
+                    sig[1 + n + c, j] = xp[j] - lv
+            for p in range(ns):
+                _h(sig[p], prm, off_a, M, zs[p])
+            # weighted means (eq. (22)); circular for the course
+            for j in range(m):
+                s = wm0 * zs[0, j]
+                for p in range(1, ns):
+                    s += wmi * zs[p, j]
+                zh[j] = s
+            sn = wm0 * math.sin(zs[0, ci])
+            cs = wm0 * math.cos(zs[0, ci])
+            for p in range(1, ns):
+                sn += wmi * math.sin(zs[p, ci])
+                cs += wmi * math.cos(zs[p, ci])
+            zh[ci] = math.atan2(sn, cs)
+            for p in range(ns):
+                for j in range(m):
+                    dz[p, j] = zs[p, j] - zh[j]
+                dz[p, ci] = _wrap(dz[p, ci])
+            for i in range(m):  # S = sum W_c dz dz^T + R (eq. (23))
+                for j in range(m):
+                    s = (dz[0, i] * wc0) * dz[0, j]
+                    for p in range(1, ns):
+                        s += (dz[p, i] * wci) * dz[p, j]
+                    S[i, j] = s + R[rk, i, j]
+            for i in range(n):  # Pxz = sum W_c dx dz^T
+                for j in range(m):
+                    s = ((sig[0, i] - xp[i]) * wc0) * dz[0, j]
+                    for p in range(1, ns):
+                        s += ((sig[p, i] - xp[i]) * wci) * dz[p, j]
+                    Pxz[i, j] = s
+
+        # ------------------------------------------------ innovation, available components
+        course_ok = abs(z[k, si]) >= min_speed
+        ma = 0
+        for i in range(m):
+            yi = z[k, i] - zh[i]
+            if i == ci:
+                yi = _wrap(yi) if course_ok else math.nan
+            y[i] = yi
+            ok = math.isfinite(yi) and math.isfinite(S[i, i])
+            av[i] = ok
+            y0[i] = yi if ok else 0.0
+            ma += ok
+        # as update_from_moments: S over the available components, identity elsewhere;
+        # Cholesky factor and sol = S^-1 [P_xz^T | y] (zero right-hand side if missing)
+        for i in range(m):
+            for j in range(i + 1):
+                if av[i] and av[j]:
+                    s = S[i, j]
+                else:
+                    s = 1.0 if i == j else 0.0
+                for l in range(j):
+                    s -= L[i, l] * L[j, l]
+                if i == j:
+                    if not s > 0.0:
+                        return NOT_PD
+                    L[i, i] = math.sqrt(s)
+                    Li[i] = 1.0 / L[i, i]
+                else:
+                    L[i, j] = s * Li[j]
+        for i in range(m):  # forward substitution, all right-hand sides at once
+            for c in range(n):
+                sol[i, c] = Pxz[c, i] if av[i] else 0.0
+            sol[i, n] = y0[i]
+            for l in range(i):
+                f = L[i, l]
+                for c in range(n + 1):
+                    sol[i, c] -= f * sol[l, c]
+            f = Li[i]
+            for c in range(n + 1):
+                sol[i, c] *= f
+        for i in range(m - 1, -1, -1):  # back substitution
+            for l in range(i + 1, m):
+                f = L[l, i]
+                for c in range(n + 1):
+                    sol[i, c] -= f * sol[l, c]
+            f = Li[i]
+            for c in range(n + 1):
+                sol[i, c] *= f
+        nis = 0.0
+        for i in range(m):
+            nis += y0[i] * sol[i, n]
+        gated = ma > 0 and nis > prm[off_chi + ma]
+
+        # ------------------------------------------------ weights D, gain K D (seed 002 (12))
+        nu = 0
+        for i in range(m):
+            if av[i]:
+                e = y[i] / math.sqrt(S[i, i])
+                fout[o_y + k * m + i] = y[i]
+                fout[o_e + k * m + i] = e
+                wv = weight_value(wcode, wprm, e)
+                if gated or not math.isfinite(wv):
+                    wv = 0.0
+            else:
+                fout[o_y + k * m + i] = math.nan
+                fout[o_e + k * m + i] = math.nan
+                wv = 0.0
+            fout[o_w + k * m + i] = wv
+            nu += wv > 0.0
+            for j in range(n):  # row i of K_hat^T = (K D)^T
+                Gt[i, j] = sol[i, j] * wv
+        for j in range(n):  # x+ = x + K_hat y
+            s = 0.0
+            for i in range(m):
+                s += Gt[i, j] * y0[i]
+            fout[k * n + j] = xp[j] + s
+
+        # ------------------------------------------------ covariance of x+
+        # GMG = K_hat M K_hat^T, M = R (EKF) or S (UKF) over the available components
+        for i in range(m):
+            for j in range(m):
+                if av[i] and av[j]:
+                    Mm[i, j] = R[rk, i, j] if kind == EKF else S[i, j]
+                else:
+                    Mm[i, j] = 0.0
+        for i in range(n):  # V = G M
+            for j in range(m):
+                s = 0.0
+                for l in range(m):
+                    s += Gt[l, i] * Mm[l, j]
+                V[i, j] = s
+        for i in range(n):
+            for j in range(i, n):
+                s = 0.0
+                for l in range(m):
+                    s += V[i, l] * Gt[l, j]
+                GMG[i, j] = s
+        # P+ is symmetric: its upper triangle is computed and mirrored
+        if kind == EKF:  # Joseph form (I - G H) P (I - G H)^T + G R G^T
+            for i in range(n):
+                for j in range(n):
+                    T[i, j] = 0.0
+            for l in range(m):  # T <- G H (H: two non-zero columns per row)
+                b = 0 if l < nr else 2
+                h0 = hv[l, 0]
+                h1 = hv[l, 1]
+                for j in range(n):
+                    T[j, b] += Gt[l, j] * h0
+                    T[j, b + 1] += Gt[l, j] * h1
+            for i in range(n):
+                for j in range(n):
+                    A[i, j] = (1.0 if i == j else 0.0) - T[i, j]
+            for i in range(n):  # T = A P
+                for j in range(n):
+                    s = 0.0
+                    for l in range(n):
+                        s += A[i, l] * Pp[l, j]
+                    T[i, j] = s
+            for i in range(n):  # P+ = T A^T + G R G^T
+                for j in range(i, n):
+                    s = 0.0
+                    for l in range(n):
+                        s += T[i, l] * A[j, l]
+                    s += GMG[i, j]
+                    fout[o_P + k * nn + i * n + j] = s
+                    fout[o_P + k * nn + j * n + i] = s
+        else:  # P - G Pxz^T - Pxz G^T + G S G^T
+            for i in range(n):  # T = G Pxz^T (missing columns of Pxz are zero)
+                for j in range(n):
+                    s = 0.0
+                    for l in range(m):
+                        if av[l]:
+                            s += Gt[l, i] * Pxz[j, l]
+                    T[i, j] = s
+            for i in range(n):
+                for j in range(i, n):
+                    s = ((Pp[i, j] - T[i, j]) - T[j, i]) + GMG[i, j]
+                    fout[o_P + k * nn + i * n + j] = s
+                    fout[o_P + k * nn + j * n + i] = s
+
+        fout[o_nis + k] = nis if ma > 0 else math.nan
+        iout[k] = nu
+        bout[k] = 1 if gated else 0
+        if ma == 0:
+            code = ST_PREDICTED
+        elif gated or nu < ma:
+            code = ST_FAULT_EXCLUDED
+        else:
+            code = ST_OK
+        for c in range(STATUS_CHARS):
+            sout[k * STATUS_CHARS + c] = chars[code * STATUS_CHARS + c]
+    return DONE
+
+
+_DOC = """Predict + robust update of ``K`` tracks (state size {n}, measurement size {m}).
+
+    Parameters
+    ----------
+    x, P : ``(K, n)`` states and ``(K, n, n)`` covariances at the previous event.
+    dt : ``(K,)`` steps.
+    z : ``(K, m)`` measurements, NaN where missing.
+    R : ``(1, m, m)`` shared or ``(K, m, m)`` per-track measurement noise.
+    prm : settings from :func:`pack_params`.
+    fout : output row, blocks as in :func:`layout` (``x+``, ``P+``, innovations,
+        standardized innovations, weights, NIS, components used, status, gated).
+
+    Returns
+    -------
+    int
+        :data:`DONE`; :data:`BAD_SHAPE` when an input does not fit the model (nothing
+        written); :data:`NOT_PD` when a Cholesky factor failed (``(n + lambda) P`` of the
+        sigma points, or ``S``): the caller then takes the NumPy path for the whole call.
+    """
+
+
+@njit(cache=True, nogil=True)
+def fusion_step_4_4(x, P, dt, z, R, prm, fout):  # pragma: no cover - jit
+    return _step(4, 4, x, P, dt, z, R, prm, fout)
+
+
+@njit(cache=True, nogil=True)
+def fusion_step_4(x, P, dt, z, R, prm, fout):  # pragma: no cover - jit
+    return _step(4, 0, x, P, dt, z, R, prm, fout)
+
+
+@njit(cache=True, nogil=True)
+def fusion_step_6(x, P, dt, z, R, prm, fout):  # pragma: no cover - jit
+    return _step(6, 0, x, P, dt, z, R, prm, fout)
+
+
+fusion_step_4_4.__doc__ = _DOC.format(n=4, m="4 (loose coupling)")
+fusion_step_4.__doc__ = _DOC.format(n=4, m="any")
+fusion_step_6.__doc__ = _DOC.format(n=6, m="any")
+#: Kernels by ``(n, m)``, ``m = 0`` for any measurement size.  Sizes fixed at compile time
+#: let the compiler unroll the small matrix loops; the CV loose-coupling EKF (the common
+#: fast case) has its own kernel, the others share one per state size.
+KERNELS = {(4, 4): fusion_step_4_4, (4, 0): fusion_step_4, (6, 0): fusion_step_6}
+
+
+def kernel_for(n: int, m: int) -> Callable | None:
+    """The compiled kernel for state size ``n`` and measurement size ``m`` (or ``None``)."""
+    return KERNELS.get((n, m), KERNELS.get((n, 0)))
