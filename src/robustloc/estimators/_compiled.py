@@ -179,10 +179,11 @@ def _normal(J, w, r, Nm, g):  # pragma: no cover - jit
 
 
 # ------------------------------------------------------------------------ robust start
-@njit(cache=True, nogil=True, error_model="numpy")
-def initial_fixes(a, d, ho2, combos, Ginv, c0, centre, radius, use_subsets,
-                  nearest):  # pragma: no cover - jit
-    """Per-epoch start of the iterative solvers (``Locator._initial``).
+def initial_fixes(
+    a: np.ndarray, d: np.ndarray, ho2: np.ndarray, combos: np.ndarray, Ginv: np.ndarray,
+    c0: np.ndarray, centre: np.ndarray, radius: float, use_subsets: bool, nearest: bool,
+) -> np.ndarray:
+    """Per-epoch start of the iterative solvers (``Locator._initial``), ``(N, dim)``.
 
     Candidates: the linearized LS fix of seed 000 eq. (3) (reference anchor the first
     heard one, or the nearest) clipped to the anchors' disc; the inverse-square-distance
@@ -193,22 +194,24 @@ def initial_fixes(a, d, ho2, combos, Ginv, c0, centre, radius, use_subsets,
     """
     N, m = d.shape
     dim = a.shape[1]
-    C, q = combos.shape
     ac = a - c0
-    n2 = np.empty(m)
-    for i in range(m):
-        n2[i] = np.sum(ac[i] * ac[i])
     out = np.empty((N, dim))
-    res = np.empty(m)
-    tmp = np.empty(m)
-    buf = np.empty(m)
-    d2 = np.empty(m)
-    cand = np.empty(dim)
-    best = np.empty(dim)
-    Nm = np.empty((dim, dim))
-    Ni = np.empty((dim, dim))
-    b = np.empty(dim)
-    hs = np.empty(dim)
+    _initial_fixes(a, d, ho2, combos, Ginv, c0, centre, float(radius), use_subsets, nearest,
+                   ac, np.sum(ac * ac, axis=1), out, np.empty((4, m)), np.empty((5, dim)),
+                   np.empty((2, dim, dim)))
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def _initial_fixes(a, d, ho2, combos, Ginv, c0, centre, radius, use_subsets, nearest, ac, n2,
+                   out, vm, vp, mp):  # pragma: no cover - jit
+    """The loop of :func:`initial_fixes` (no allocation, no reference counting)."""
+    N, m = d.shape
+    dim = a.shape[1]
+    C, q = combos.shape
+    res, tmp, buf, d2 = vm[0], vm[1], vm[2], vm[3]
+    cand, best, b, hs = vp[0], vp[1], vp[2], vp[3]
+    Nm, Ni = mp[0], mp[1]
     for e in range(N):
         best_c = math.inf
         for k in range(dim):
@@ -549,46 +552,58 @@ def _objective(a, ho2, z, sig, e, XS, t, x0, code, prm, scale, status, x, pred,
     return tot
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def fit_ranges(a, ho2, z, sig, x0, code, prm, robust, redescending, scale_fixed, min_scale,
-               max_iter, tol, rel_tol, min_obs):  # pragma: no cover - jit
+def fit_ranges(
+    a: np.ndarray, ho2: np.ndarray, z: np.ndarray, sig: np.ndarray, x0: np.ndarray, code: int,
+    prm: np.ndarray, robust: bool, redescending: bool, scale_fixed: float, min_scale: float,
+    max_iter: int, tol: float, rel_tol: float, min_obs: int,
+) -> tuple[np.ndarray, ...]:
     """``Locator._gn`` for every epoch: robust Gauss-Newton on the ranges ``z (N, m)``
     with a-priori ``sig (N, m)`` from the starts ``x0 (N, p)``.
 
     Redescending weights: a Huber(1.5) stage from ``x0``, then the redescending fit from
     the Huber fix and from ``x0``, keeping the smaller robust objective (both measured
     with the smaller MAD scale of the two starts).  Returns the arrays of a
-    :class:`~robustloc.estimators.linear.LinearFit` with status codes.
+    :class:`~robustloc.estimators.linear.LinearFit` with status codes:
+    ``x, v, w, qvv, sigma0, cov, n_used, iterations, converged, status, u``.
+
+    Outputs and scratch are allocated here, so the compiled loop runs without numba's
+    reference counting (``_nrt=False``): every array it touches is borrowed.
     """
     N, m = z.shape
     p = a.shape[1]
-    X = np.empty((N, p))
-    W = np.empty((N, m))
-    U = np.empty((N, m))
-    V = np.empty((N, m))
-    QV = np.empty((N, m))
-    COV = np.empty((N, p, p))
-    S0 = np.empty(N)
-    NU = np.empty(N, dtype=np.int64)
-    IT = np.empty(N, dtype=np.int64)
-    CONV = np.empty(N, dtype=np.bool_)
-    STAT = np.empty(N, dtype=np.int64)
+    out = (np.empty((N, p)), np.empty((N, m)), np.empty((N, m)), np.empty((N, m)),
+           np.empty(N), np.empty((N, p, p)), np.empty(N, dtype=np.int64),
+           np.empty(N, dtype=np.int64), np.empty(N, dtype=np.bool_),
+           np.empty(N, dtype=np.int64), np.empty((N, m)))
+    _fit_ranges(a, ho2, z, sig, x0, code, prm, robust, redescending, scale_fixed, min_scale,
+                max_iter, tol, rel_tol, min_obs, *out, np.empty((26, m)), np.empty((9, p)),
+                np.empty((6, p, p)), np.empty((m, p)), np.empty((1, m), dtype=np.bool_),
+                np.zeros((3, 3)), np.zeros((4, 3), dtype=np.int64), np.empty((0, p)),
+                _HUBER_WARMUP.copy())
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def _fit_ranges(a, ho2, z, sig, x0, code, prm, robust, redescending, scale_fixed, min_scale,
+                max_iter, tol, rel_tol, min_obs, X, V, W, QV, S0, COV, NU, IT, CONV, STAT, U,
+                vm, vp, mp, J, vb, sf, si, nojac, hub_prm):  # pragma: no cover - jit
+    """The loop of :func:`fit_ranges` over epochs; ``vm, vp, mp, J, vb, sf, si`` are scratch
+    (rows of m-vectors, p-vectors, p x p matrices, the Jacobian, boolean m-vectors, and the
+    per-slot float and integer outcomes)."""
+    N, m = z.shape
+    p = a.shape[1]
     # slots: 0 Huber warm-up, 1 fit from the warm-up fix, 2 fit from the start
-    XS, CS = np.empty((3, p)), np.empty((3, p, p))
-    WS, US, VS, QS = np.empty((3, m)), np.empty((3, m)), np.empty((3, m)), np.empty((3, m))
-    x, w, u, v, qv, cov = (np.empty(p), np.empty(m), np.empty(m), np.empty(m), np.empty(m),
-                           np.empty((p, p)))
-    pred, J, r, qvv, vn, tmp, buf = (np.empty(m), np.empty((m, p)), np.empty(m),
-                                     np.empty(m), np.empty(m), np.empty(m), np.empty(m))
-    Nm, Ni, g, dx, xn, wa = (np.empty((p, p)), np.empty((p, p)), np.empty(p), np.empty(p),
-                             np.empty(p), np.empty(m))
-    zz, w0, valid = np.empty(m), np.empty(m), np.empty(m, dtype=np.bool_)
-    xstart, xh, res, nojac = np.empty(p), np.empty(p), np.empty(m), np.empty((0, p))
-    hub_prm = _HUBER_WARMUP.copy()
-    # per-slot outcomes: status, iterations, converged, sigma0, n_used, stage scale
-    STS, ITS, NUS = (np.zeros(3, dtype=np.int64), np.zeros(3, dtype=np.int64),
-                     np.zeros(3, dtype=np.int64))
-    CVS, S0S, SCS = np.zeros(3, dtype=np.bool_), np.zeros(3), np.zeros(3)
+    XS, CS = vp[0:3], mp[0:3]
+    WS, US, VS, QS = vm[0:3], vm[3:6], vm[6:9], vm[9:12]
+    x, xstart, xh, g, dx, xn = vp[3], vp[4], vp[5], vp[6], vp[7], vp[8]
+    w, u, v, qv, pred, r, qvv, vn, tmp, buf, wa, zz, w0, res = (
+        vm[12], vm[13], vm[14], vm[15], vm[16], vm[17], vm[18], vm[19], vm[20], vm[21],
+        vm[22], vm[23], vm[24], vm[25])
+    cov, Nm, Ni = mp[3], mp[4], mp[5]
+    valid = vb[0]
+    # per-slot outcomes: sigma0, stage scale (floats); status, iterations, n_used, converged
+    S0S, SCS = sf[0], sf[1]
+    STS, ITS, NUS, CVS = si[0], si[1], si[2], si[3]
     for e in range(N):
         n_valid = 0
         for i in range(m):

@@ -443,7 +443,7 @@ class Locator:
         status[n_heard == 0] = st.INVALID
         x = np.where(np.isin(status, st.USABLE)[:, None], fit.x, np.nan)
         w = fit.w
-        excluded = np.isfinite(z) & (np.nan_to_num(w, nan=1.0) <= 0)
+        excluded = np.isfinite(z) & (w <= 0)  # NaN weight: not heard, not excluded
         if self.method == "lege" or self.method == "snooping":
             excluded |= fit.extra.get("flagged", np.zeros_like(excluded))
         n_used = np.sum(np.isfinite(z), axis=1) - excluded.sum(axis=1)
@@ -617,7 +617,7 @@ class Locator:
         blo, bhi = centre - radius, centre + radius
         x = fit.x
         n_obs = np.sum(np.isfinite(obs), axis=1)
-        rejected = np.sum(np.nan_to_num(fit.w, nan=1.0) <= 0, axis=1)
+        rejected = np.sum(fit.w <= 0, axis=1)  # NaN (not heard) is not rejected
         with np.errstate(invalid="ignore"):
             outside = ~(np.linalg.norm(x - centre, axis=1) <= radius)
         sus = np.flatnonzero((n_obs >= a.shape[1] + 1) & (outside | (rejected * 2 > n_obs)))
