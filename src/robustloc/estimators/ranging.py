@@ -343,9 +343,11 @@ class Locator:
     engine : {"compiled", "numpy"}
         ``"compiled"``: the robust start and the Gauss-Newton fits of ranges (and of RSSI
         converted to ranges) run per epoch in the numba kernels of
-        :mod:`robustloc.estimators._compiled` (about 10x faster); ``"numpy"``: the
-        batched NumPy implementation, which the kernels reproduce (the tests compare
-        them) and which serves the dB-domain model and custom weight functions.
+        :mod:`robustloc.estimators._compiled` (a whole ``solve`` 3-5x faster; the first
+        call in a fresh install compiles them, about 20 s, cached on disk afterwards);
+        ``"numpy"``: the batched NumPy implementation, which the kernels reproduce (the
+        tests compare them) and which serves the dB-domain model and custom weight
+        functions.
     """
 
     method: str = "huber"

@@ -171,6 +171,29 @@ def _wrap(a: float) -> float:  # pragma: no cover - jit
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _cholesky(A, scale, av, size, L, Li):  # pragma: no cover - jit
+    """Lower Cholesky factor ``L`` (and ``Li = 1 / diag(L)``) of ``scale * A[:size, :size]``
+    with the rows and columns where ``av`` is False replaced by the identity (as
+    ``update_from_moments`` does for missing components).  False if not positive definite."""
+    for i in range(size):
+        for j in range(i + 1):
+            if av[i] and av[j]:
+                s = scale * A[i, j]
+            else:
+                s = 1.0 if i == j else 0.0
+            for l in range(j):
+                s -= L[i, l] * L[j, l]
+            if i == j:
+                if not s > 0.0:
+                    return False
+                L[i, i] = math.sqrt(s)
+                Li[i] = 1.0 / L[i, i]
+            else:
+                L[i, j] = s * Li[j]
+    return True
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _h(xs, prm, off_a, M, zout):  # pragma: no cover - jit
     """``h(x)`` of the fusion model (``FusionMeasurement.predict``) into ``zout (m,)``."""
     if M == 0:
@@ -244,6 +267,8 @@ def _step(n, mc, x, P, dt, z, R, prm, fout):  # pragma: no cover - jit
     A = np.empty((n, n))
     Pn = np.empty((n, n))
     Ls = np.empty((n, n))
+    Lsi = np.empty(n)
+    all_n = np.ones(n, np.bool_)
     sig = np.empty((ns, n))
     Pxz = np.empty((n, m))  # state-measurement cross covariance
     Gt = np.empty((m, n))  # robust gain K D, transposed
@@ -342,17 +367,8 @@ def _step(n, mc, x, P, dt, z, R, prm, fout):  # pragma: no cover - jit
                     S[i, j] = (hv[i, 0] * Pxz[b, j] + hv[i, 1] * Pxz[b + 1, j]) + R[rk, i, j]
         else:
             # sigma points of the prediction (seed 001 eq. (20)): chol((n + lambda) P)
-            for i in range(n):
-                for j in range(i + 1):
-                    s = scale * Pp[i, j]
-                    for l in range(j):
-                        s -= Ls[i, l] * Ls[j, l]
-                    if i == j:
-                        if not s > 0.0:
-                            return NOT_PD
-                        Ls[i, i] = math.sqrt(s)
-                    else:
-                        Ls[i, j] = s / Ls[j, j]
+            if not _cholesky(Pp, scale, all_n, n, Ls, Lsi):
+                return NOT_PD
             for j in range(n):
                 sig[0, j] = xp[j]
             for c in range(n):
@@ -405,21 +421,8 @@ def _step(n, mc, x, P, dt, z, R, prm, fout):  # pragma: no cover - jit
             ma += ok
         # as update_from_moments: S over the available components, identity elsewhere;
         # Cholesky factor and sol = S^-1 [P_xz^T | y] (zero right-hand side if missing)
-        for i in range(m):
-            for j in range(i + 1):
-                if av[i] and av[j]:
-                    s = S[i, j]
-                else:
-                    s = 1.0 if i == j else 0.0
-                for l in range(j):
-                    s -= L[i, l] * L[j, l]
-                if i == j:
-                    if not s > 0.0:
-                        return NOT_PD
-                    L[i, i] = math.sqrt(s)
-                    Li[i] = 1.0 / L[i, i]
-                else:
-                    L[i, j] = s * Li[j]
+        if not _cholesky(S, 1.0, av, m, L, Li):
+            return NOT_PD
         for i in range(m):  # forward substitution, all right-hand sides at once
             for c in range(n):
                 sol[i, c] = Pxz[c, i] if av[i] else 0.0
