@@ -141,3 +141,22 @@ def test_custom_weight_falls_back_to_numpy() -> None:
     fit = gauss_newton(model, z, np.full((z.shape[0], 2), 15.0), 1.0, weight=Tukeyish(),
                        warmup=False, **kw)
     assert np.all(np.isfinite(fit.x))
+
+
+def test_compile_notice_only_before_the_first_compilation(tmp_path) -> None:
+    import os
+    import subprocess
+    import sys
+
+    from robustloc._jitnotice import needs_compile
+
+    Locator("igg").solve(A2, _log(np.random.default_rng(1), 5, A2, miss=0.0)[4:])
+    assert not needs_compile("positioning")  # compiled (or loaded) above: cached on disk
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}  # an empty cache: first run
+    code = ("from robustloc._jitnotice import needs_compile, compile_notice;"
+            "print(needs_compile('positioning'), needs_compile('filter'));"
+            "compile_notice('positioning', 'filter')")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.split() == ["True", "True"]
+    assert "compiling the positioning and filter kernels" in out.stderr

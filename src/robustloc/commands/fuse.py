@@ -88,6 +88,9 @@ def run(args: argparse.Namespace) -> int:
 
     anchors = read_anchors(args.anchors)
     meas = read_measurements(args.ranges, anchors)
+    from robustloc._jitnotice import compile_notice
+
+    compile_notice("positioning", "filter")
     if meas.attrs.get("value") != "range":
         raise InputError("the measurements file has no 'range' column", args.ranges)
     origin = None

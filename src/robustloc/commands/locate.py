@@ -104,6 +104,7 @@ def locate_file(args: argparse.Namespace) -> dict:
     """Run ``locate`` as configured by ``args``; returns the summary."""
     from tqdm import tqdm
 
+    from robustloc._jitnotice import compile_notice
     from robustloc.errors import InputError
     from robustloc.estimators.ranging import Locator
     from robustloc.io import iter_epochs, positions_frame, read_anchors
@@ -151,7 +152,8 @@ def locate_file(args: argparse.Namespace) -> dict:
     bar = tqdm(unit=" epochs", disable=args.quiet or not sys.stderr.isatty(), file=sys.stderr)
     try:
         for block in iter_epochs(args.measurements, anchors, chunk_rows=args.chunk_rows):
-            if kind is None:
+            if kind is None:  # the first block: its input is valid, solving starts
+                compile_notice("positioning")
                 kind = block.value
                 if kind == "rssi":
                     A, n = log_distance_arrays(anchors, args.model)

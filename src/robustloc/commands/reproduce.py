@@ -36,6 +36,9 @@ def run(args: argparse.Namespace) -> int:
         for m in section_modules():
             print(f"{m.KEY:24s} {m.TITLE}")
         return 0
+    from robustloc._jitnotice import compile_notice
+
+    compile_notice("positioning", "filter")
     data_dir = resolve_data_dir(args.data)
     ctx = Context(out_dir=Path(args.out), data_dir=data_dir, seed=args.seed, quick=args.quick)
     if data_dir is None:
