@@ -43,7 +43,7 @@ import numpy as np
 from numba import njit
 
 from robustloc import status as st
-from robustloc.robust._compiled import weight_value
+from robustloc.robust._compiled import weight_scalar
 
 #: Filter kinds (``prm[_KIND]``).
 EKF, UKF = 0, 1
@@ -249,7 +249,7 @@ def _step(n, mc, x, P, dt, z, R, prm, fout):  # pragma: no cover - jit
     q = prm[_Q]
     min_speed = prm[_MIN_SPEED]
     scale = prm[_SCALE]
-    wprm = prm[_WPRM : _WPRM + 3]
+    wp0, wp1, wp2 = prm[_WPRM], prm[_WPRM + 1], prm[_WPRM + 2]
     off_chi = _HEAD
     off_F = off_chi + m + 1
     off_a = off_F + 4 * nn
@@ -454,7 +454,7 @@ def _step(n, mc, x, P, dt, z, R, prm, fout):  # pragma: no cover - jit
                 e = y[i] / math.sqrt(S[i, i])
                 fout[o_y + k * m + i] = y[i]
                 fout[o_e + k * m + i] = e
-                wv = weight_value(wcode, wprm, e)
+                wv = weight_scalar(wcode, wp0, wp1, wp2, e)
                 if gated or not math.isfinite(wv):
                     wv = 0.0
             else:

@@ -51,7 +51,16 @@ def weight_spec(weight: WeightFunction | None) -> tuple[int, np.ndarray] | None:
 
 @njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
 def weight_value(code: int, prm: np.ndarray, u: float) -> float:  # pragma: no cover - jit
-    """Equivalent weight ``p(u)`` (NaN for NaN ``u``)."""
+    """Equivalent weight ``p(u)`` (NaN for NaN ``u``), parameters from ``prm[:3]``."""
+    return weight_scalar(code, prm[0], prm[1], prm[2], u)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def weight_scalar(code: int, p0: float, p1: float, p2: float,
+                  u: float) -> float:  # pragma: no cover - jit
+    """Equivalent weight ``p(u)`` with the parameters as scalars (no array passes from a
+    kernel that keeps reference counts, which would cost two atomic operations a call)."""
+    prm = (p0, p1, p2)
     if math.isnan(u):
         return math.nan
     x = abs(u)
