@@ -13,11 +13,13 @@ Run:  OMP_NUM_THREADS=1 python benchmarks/bench_filters.py [--steps 300] [--trac
 per step, :mod:`robustloc.filters._compiled`); the "numpy" columns run the same step with
 ``engine="numpy"`` (the batched NumPy core).  The machine's load matters (wall time): the
 variants are timed in interleaved rounds and each ratio is the median of the ratios within
-a round.  Measured here (2 shared cores, another benchmark on the other core, load 1-2,
-FilterPy's EKF step 36-87 us depending on that load; five runs): EKF 4-state CV one track
-6.4-7.0x FilterPy, 1 000 tracks batched 104-130x FilterPy's single-track steps/s (NumPy
-engine: 0.3x and 18-20x); UKF 6-state CA one track 44-52x, batched 154-198x (NumPy engine:
-1.7x and 70-95x).  Compiled, per track-step: about 0.35-0.6 us (EKF), 2-3.5 us (UKF).
+a round.  From 256 tracks a step runs on numba's threads (all cores by default): "batch x"
+is measured that way and "1-thr x" on one thread.  Measured here (2 cores, FilterPy's EKF
+step 39-87 us depending on the machine's load; several runs): EKF 4-state CV one track
+6.4-7.0x FilterPy, 1 000 tracks batched 167-173x on 2 threads and 100-130x on one (NumPy
+engine: 0.3x and 18-20x); UKF 6-state CA one track 44-52x, batched 287-318x on 2 threads
+and 146-198x on one (NumPy engine: 1.7x and 70-95x).  Compiled, per track-step on one
+thread: about 0.35-0.7 us (EKF), 2-4 us (UKF).
 """
 
 from __future__ import annotations
@@ -52,8 +54,24 @@ SIGMA_PREDICT = False
 
 
 def _ours(kind: str, motion, z: np.ndarray, x0: np.ndarray, repeats: int = 5,
-          engine: str = "compiled") -> float:
-    """Median seconds per ``FusionFilter.step`` of ``K`` tracks (z: (K, steps, 4))."""
+          engine: str = "compiled", threads: int | None = None) -> float:
+    """Median seconds per ``FusionFilter.step`` of ``K`` tracks (z: (K, steps, 4)).
+
+    ``threads``: numba's thread count for the call (None: its default, all cores); a step
+    of 256 tracks or more runs its compiled kernel on that many threads.
+    """
+    import numba
+
+    prev = numba.get_num_threads()
+    numba.set_num_threads(threads or prev)
+    try:
+        return _time_steps(kind, motion, z, x0, repeats, engine)
+    finally:
+        numba.set_num_threads(prev)
+
+
+def _time_steps(kind: str, motion, z: np.ndarray, x0: np.ndarray, repeats: int,
+                engine: str) -> float:
     K, steps, _ = z.shape
     f = FusionFilter(kind, motion, points=SigmaPoints(1.0, 2.0, 0.0), min_speed_mps=0.0,
                      sigma_point_predict=SIGMA_PREDICT, engine=engine)
@@ -163,24 +181,30 @@ def main() -> None:
              _ours(kind, motion, z1, x1, repeats=1),
              _ours(kind, motion, zK, xK, repeats=1),
              _ours(kind, motion, z1, x1, repeats=1, engine="numpy"),
-             _ours(kind, motion, zK, xK, repeats=1, engine="numpy")]
+             _ours(kind, motion, zK, xK, repeats=1, engine="numpy"),
+             _ours(kind, motion, zK, xK, repeats=1, threads=1)]
             for _ in range(args.rounds)
         ])
-        ratio = np.median(t[:, :1] / t[:, 1:] * [1, K, 1, K], axis=0)
+        ratio = np.median(t[:, :1] / t[:, 1:] * [1, K, 1, K, K], axis=0)
         rows.append((label, flops["total"], *np.median(t, axis=0), *ratio))
     print()
     print(f"{'model':16s} {'flops':>6s} {'FilterPy us':>11s} {'ours 1 us':>9s} "
           f"{'1-track x':>9s} {'ours K us':>9s} {'K steps/s':>11s} {'FilterPy st/s':>13s} "
-          f"{'batch x':>8s} {'ns/flop':>8s} {'numpy 1 us':>10s} {'numpy K x':>9s}")
-    for label, fl, t_ref, t_one, t_b, t_np, _, x_one, x_b, _, x_np_b in rows:
+          f"{'batch x':>8s} {'1-thr x':>8s} {'ns/flop':>8s} {'numpy 1 us':>10s} "
+          f"{'numpy K x':>9s}")
+    for label, fl, t_ref, t_one, t_b, t_np, _, t_b1, x_one, x_b, _, x_np_b, x_b1 in rows:
         print(f"{label:16s} {fl:6d} {t_ref * 1e6:11.1f} {t_one * 1e6:9.1f} "
               f"{x_one:9.2f} {t_b * 1e6:9.0f} {K / t_b:11.0f} {1 / t_ref:13.0f} "
-              f"{x_b:8.1f} {t_b / K / fl * 1e9:8.3f} {t_np * 1e6:10.1f} {x_np_b:9.1f}")
+              f"{x_b:8.1f} {x_b1:8.1f} {t_b1 / K / fl * 1e9:8.3f} {t_np * 1e6:10.1f} "
+              f"{x_np_b:9.1f}")
+    import numba
+
     print(f"\nK = {K} tracks per batched step; 'batch x' = aggregate steps/s over FilterPy's "
-          "single-track steps/s.  ns/flop: batched time per track-step over the paper's "
-          "flop count.  'ours': FusionFilter.step (compiled engine); 'numpy': the same with "
-          "engine='numpy' (one track: us per step; K tracks: batch x).  Times: medians over "
-          "the rounds; ratios: medians of the ratios within a round.")
+          f"single-track steps/s, on numba's {numba.get_num_threads()} threads; '1-thr x' the "
+          "same on one thread.  ns/flop: one-thread batched time per track-step over the "
+          "paper's flop count.  'ours': FusionFilter.step (compiled engine); 'numpy': the "
+          "same with engine='numpy' (one track: us per step; K tracks: batch x).  Times: "
+          "medians over the rounds; ratios: medians of the ratios within a round.")
     print("\nflops per step by the paper's counting rules (n states, l measurements):")
     print(f"{'n':>3s} {'l':>3s} {'EKF':>8s} {'UKF':>8s}")
     for n, l in ((4, 2), (4, 4), (6, 2), (6, 4), (9, 6)):

@@ -260,3 +260,36 @@ def test_plain_ekf_matches_filterpy():
         x, P = r.x, r.P
         np.testing.assert_allclose(x[0], ref.x, rtol=1e-9, atol=1e-10)
         np.testing.assert_allclose(P[0], ref.P, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["ekf", "ukf"])
+@pytest.mark.parametrize("motion", [ConstantVelocity(q=0.05), ConstantAcceleration(q=0.02)],
+                         ids=["cv", "ca"])
+@pytest.mark.parametrize("tight", [False, True], ids=["loose", "tight"])
+def test_many_tracks_threaded_kernel(kind, motion, tight):
+    """From 256 tracks the step splits the tracks into blocks over numba's threads: the
+    threaded kernel (called with several blocks even on a one-core machine) gives the
+    same outputs as the serial one and as the NumPy core."""
+    from robustloc.filters import _compiled
+
+    meas, x, P, dt, z, R = _case(motion, tight, K=300, seed=11, per_track=True)
+    robust = RobustUpdate(IGG3(1.5, 3.0), 0.999)
+    a, b = _both(kind, motion, robust, meas, x, P, dt, z, R)  # step: threaded if > 1 thread
+    _assert_same(a, b)
+    f = FusionFilter(kind, motion, robust=robust)
+    f.step(x[:1], P[:1], dt[:1], z[:1], R[0], meas)  # prepares the packed settings
+    prm = f._fast["state"][2]
+    n, m = motion.n_states, meas.m
+    layout = _compiled.layout(len(x), n, m)
+    serial, threaded = np.empty(layout["size"]), np.empty(layout["size"])
+    args = (x, P, dt, np.ascontiguousarray(z), np.ascontiguousarray(R))
+    assert _compiled.kernel_for(n, m)(*args, prm, serial) == _compiled.DONE
+    for blocks in (1, 7, 300, 1000):
+        threaded[:] = np.nan
+        assert _compiled.kernel_for(n, m, threaded=True)(*args, prm, threaded, blocks) == 0
+        g = layout["gated"]  # the gate flags are bytes; the padding after them is unused
+        np.testing.assert_array_equal(threaded[:g].view(np.uint64), serial[:g].view(np.uint64))
+        np.testing.assert_array_equal(threaded[g:].view(np.uint8)[: len(x)],
+                                      serial[g:].view(np.uint8)[: len(x)])
+    np.testing.assert_allclose(serial[: len(x) * n].reshape(-1, n), a.x, rtol=1e-10,
+                               atol=1e-10)

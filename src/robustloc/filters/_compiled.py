@@ -40,7 +40,7 @@ import math
 from collections.abc import Callable
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from robustloc import status as st
 from robustloc.robust._compiled import weight_scalar
@@ -210,10 +210,11 @@ def _h(xs, prm, off_a, M, zout):  # pragma: no cover - jit
 
 
 @njit(cache=True, nogil=True)
-def _step(n, mc, x, P, dt, z, R, prm, fout):  # pragma: no cover - jit
+def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
     """Body of the kernels for a state size ``n`` (4 or 6) and measurement size ``mc``
     (0: the run-time ``prm[_M]``), both constants in each kernel's call: LLVM inlines this
-    body into the kernel and unrolls the loops of these sizes."""
+    body into the kernel and unrolls the loops of these sizes.  Advances tracks
+    ``k0 .. k1 - 1`` (its own scratch: chunks may run in parallel threads)."""
     K = x.shape[0]
     m = mc if mc > 0 else int(prm[_M])
     if int(prm[_M]) != m:
@@ -294,7 +295,7 @@ def _step(n, mc, x, P, dt, z, R, prm, fout):  # pragma: no cover - jit
     wm0, wmi, wc0, wci = prm[_WM0], prm[_WMI], prm[_WC0], prm[_WCI]
 
     dt_prev = math.nan
-    for k in range(K):
+    for k in range(k0, k1):
         rk = k if Kr > 1 else 0
         # ------------------------------------------------ predict (seed 002 eq. (13))
         d = dt[k]
@@ -571,28 +572,74 @@ _DOC = """Predict + robust update of ``K`` tracks (state size {n}, measurement s
 
 @njit(cache=True, nogil=True)
 def fusion_step_4_4(x, P, dt, z, R, prm, fout):  # pragma: no cover - jit
-    return _step(4, 4, x, P, dt, z, R, prm, fout)
+    return _step(4, 4, x, P, dt, z, R, prm, fout, 0, x.shape[0])
 
 
 @njit(cache=True, nogil=True)
 def fusion_step_4(x, P, dt, z, R, prm, fout):  # pragma: no cover - jit
-    return _step(4, 0, x, P, dt, z, R, prm, fout)
+    return _step(4, 0, x, P, dt, z, R, prm, fout, 0, x.shape[0])
 
 
 @njit(cache=True, nogil=True)
 def fusion_step_6(x, P, dt, z, R, prm, fout):  # pragma: no cover - jit
-    return _step(6, 0, x, P, dt, z, R, prm, fout)
+    return _step(6, 0, x, P, dt, z, R, prm, fout, 0, x.shape[0])
+
+
+# multi-threaded twins for many tracks: ``chunks`` blocks of tracks in numba's thread pool
+# (the sizes stay literal constants in each block's call, so the loops still unroll; the
+# caller passes the block count: numba cannot cache a kernel that asks for its threads)
+@njit(cache=True, nogil=True, parallel=True)
+def fusion_step_4_4_mt(x, P, dt, z, R, prm, fout, chunks):  # pragma: no cover - jit
+    K = x.shape[0]
+    chunks = max(1, min(K, chunks))
+    size = (K + chunks - 1) // chunks
+    flags = np.zeros(chunks, np.int64)
+    for c in prange(chunks):
+        flags[c] = _step(4, 4, x, P, dt, z, R, prm, fout, c * size, min(K, (c + 1) * size))
+    return flags.max()
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def fusion_step_4_mt(x, P, dt, z, R, prm, fout, chunks):  # pragma: no cover - jit
+    K = x.shape[0]
+    chunks = max(1, min(K, chunks))
+    size = (K + chunks - 1) // chunks
+    flags = np.zeros(chunks, np.int64)
+    for c in prange(chunks):
+        flags[c] = _step(4, 0, x, P, dt, z, R, prm, fout, c * size, min(K, (c + 1) * size))
+    return flags.max()
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def fusion_step_6_mt(x, P, dt, z, R, prm, fout, chunks):  # pragma: no cover - jit
+    K = x.shape[0]
+    chunks = max(1, min(K, chunks))
+    size = (K + chunks - 1) // chunks
+    flags = np.zeros(chunks, np.int64)
+    for c in prange(chunks):
+        flags[c] = _step(6, 0, x, P, dt, z, R, prm, fout, c * size, min(K, (c + 1) * size))
+    return flags.max()
 
 
 fusion_step_4_4.__doc__ = _DOC.format(n=4, m="4 (loose coupling)")
 fusion_step_4.__doc__ = _DOC.format(n=4, m="any")
 fusion_step_6.__doc__ = _DOC.format(n=6, m="any")
+for _k, _s in ((fusion_step_4_4_mt, fusion_step_4_4), (fusion_step_4_mt, fusion_step_4),
+               (fusion_step_6_mt, fusion_step_6)):
+    _k.__doc__ = (_s.__doc__ or "") + (
+        "\n    Multi-threaded: ``chunks`` (last argument) blocks of tracks run in numba's "
+        "thread pool.\n")
 #: Kernels by ``(n, m)``, ``m = 0`` for any measurement size.  Sizes fixed at compile time
 #: let the compiler unroll the small matrix loops; the CV loose-coupling EKF (the common
 #: fast case) has its own kernel, the others share one per state size.
 KERNELS = {(4, 4): fusion_step_4_4, (4, 0): fusion_step_4, (6, 0): fusion_step_6}
+#: Multi-threaded kernels, same keys; ``FusionFilter.step`` uses them for many tracks
+#: (``robustloc.fusion.pipeline._MT_MIN_TRACKS``) when numba has more than one thread.
+KERNELS_MT = {(4, 4): fusion_step_4_4_mt, (4, 0): fusion_step_4_mt, (6, 0): fusion_step_6_mt}
 
 
-def kernel_for(n: int, m: int) -> Callable | None:
-    """The compiled kernel for state size ``n`` and measurement size ``m`` (or ``None``)."""
-    return KERNELS.get((n, m), KERNELS.get((n, 0)))
+def kernel_for(n: int, m: int, threaded: bool = False) -> Callable | None:
+    """The compiled kernel for state size ``n`` and measurement size ``m`` (or ``None``);
+    ``threaded``: its multi-threaded twin."""
+    table = KERNELS_MT if threaded else KERNELS
+    return table.get((n, m), table.get((n, 0)))

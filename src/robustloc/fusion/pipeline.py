@@ -54,6 +54,17 @@ Motion = ConstantVelocity | ConstantAcceleration
 #: Output arenas of the compiled step hold about this many floats (several steps of one
 #: track, one step of many tracks).
 _ARENA_FLOATS = 16384
+#: From this many tracks a compiled step runs in numba's thread pool (all cores by default;
+#: ``NUMBA_NUM_THREADS=1`` or ``numba.set_num_threads(1)`` for one); below, starting the
+#: threads costs more than it saves.
+_MT_MIN_TRACKS = 256
+
+
+def _threads() -> int:
+    """numba's current thread count (numba is imported with the compiled engine anyway)."""
+    from numba import get_num_threads
+
+    return get_num_threads()
 _new = object.__new__
 _setattr = object.__setattr__
 
@@ -279,12 +290,13 @@ class FusionFilter:
     def _prepare(self, meas: FusionMeasurement) -> tuple:
         """Settings of the compiled step for ``meas``; ``state[1] is None``: use NumPy.
 
-        ``state = (meas, kernel, prm, slots, [(R, R[None])])``: the kernel for the state
+        ``state = (meas, kernel, prm, slots, [(R, R[None])], threaded kernel)``: the kernel
+        (and its multi-threaded twin for many tracks) for the state
         and measurement sizes, its packed settings
         (:func:`robustloc.filters._compiled.pack_params`), an iterator over output slots and
         the last 2-D ``R`` with its 3-D view (one tuple, replaced at once: thread-safe).
         """
-        state: tuple = (meas, None, None, iter(()), [(None, None)])
+        state: tuple = (meas, None, None, iter(()), [(None, None)], None)
         self._fast["state"] = state
         motion = self.motion
         if (
@@ -319,7 +331,8 @@ class FusionFilter:
             C[0], C[2] if motion.noise == "discrete" else C[3], anchors, meas._dz2(),
         )
         if prm is not None:
-            state = (meas, kernel, prm, iter(()), [(None, None)])
+            state = (meas, kernel, prm, iter(()), [(None, None)],
+                     _compiled.kernel_for(n, m, threaded=True))
             self._fast["state"] = state
         return state
 
@@ -370,11 +383,15 @@ class FusionFilter:
             s = next(state[3], None)
             if s is None or s[0] != len(x):
                 slots = _arenas(len(x), self.motion.n_states, meas.m)
-                state = (meas, kernel, state[2], slots, rc)
+                state = (meas, kernel, state[2], slots, rc, state[5])
                 self._fast["state"] = state
                 s = next(slots)
             _, fo, xo, Po, yo, eo, wo, nis, nu, gated, status = s
-            if R3 is not None and kernel(x, P, dt, z, R3, state[2], fo) == 0:
+            if len(x) >= _MT_MIN_TRACKS and (nt := _threads()) > 1:  # many tracks: all cores
+                done = R3 is not None and state[5](x, P, dt, z, R3, state[2], fo, 4 * nt) == 0
+            else:
+                done = R3 is not None and kernel(x, P, dt, z, R3, state[2], fo) == 0
+            if done:
                 return _result(xo, Po, yo, eo, wo, nis, nu, gated, status)
         return self._step_numpy(x, P, dt, z, R, meas)
 
