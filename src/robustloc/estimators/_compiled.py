@@ -539,19 +539,14 @@ def _solve_slot(a, ho2, z, e, xstart, code, prm, robust, scale_fixed, min_scale,
 
 
 @njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
-def _objective(a, ho2, z, sig, e, XS, t, x0, code, prm, scale, status, x, pred,
-               nojac, tag):  # pragma: no cover - jit
-    """Robust objective ``sum rho(v_i / (s sigma_i))`` of the fix in slot ``t`` (inf if
-    unusable; the start ``x0[e]`` stands in for a NaN fix)."""
+def _objective(VS, t, sig, e, code, prm, scale, status):  # pragma: no cover - jit
+    """Robust objective ``sum rho(v_i / (s sigma_i))`` of the fix in slot ``t`` from its
+    residuals ``VS[t]`` (``f(x) - z``, NaN where not observed); inf if unusable."""
     if status == INSUFFICIENT or status == ILL:
         return math.inf
-    use_start = not math.isfinite(XS[t, 0])
-    for k in range(x.shape[0]):
-        x[k] = x0[e, k] if use_start else XS[t, k]
-    _ranges(a, ho2, x, pred, nojac, tag)
     tot = 0.0
-    for i in range(z.shape[1]):
-        uu = (pred[i] - z[e, i]) / (sig[e, i] * scale)
+    for i in range(VS.shape[1]):
+        uu = VS[t, i] / (sig[e, i] * scale)
         if uu == uu:
             tot += rho_value(code, prm, uu)
     return tot
@@ -649,10 +644,8 @@ def _fit_ranges(a, ho2, z, sig, x0, code, prm, robust, redescending, scale_fixed
                     sc = si
             if not (math.isfinite(sc) and sc > 0):
                 sc = 1.0
-            oa = _objective(a, ho2, z, sig, e, XS, 1, x0, code, prm, sc, STS[1], x, pred,
-                            nojac, tag)
-            ob = _objective(a, ho2, z, sig, e, XS, 2, x0, code, prm, sc, STS[2], x, pred,
-                            nojac, tag)
+            oa = _objective(VS, 1, sig, e, code, prm, sc, STS[1])
+            ob = _objective(VS, 2, sig, e, code, prm, sc, STS[2])
             t = 2 if ob < oa else 1
         for k in range(p):
             X[e, k] = XS[t, k]
