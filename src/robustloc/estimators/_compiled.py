@@ -296,16 +296,14 @@ def _initial_fixes(a, d, ho2, combos, Ginv, c0, centre, radius, use_subsets, nea
                 continue
             # the score is the (h+1)-th smallest |residual|: it can only beat best_c if
             # more than h residuals do, i.e. if at most heard - h - 1 of them do not
-            above = 0
-            for i in range(m):
+            for i in range(m):  # branch-free, so the compiler vectorizes it
                 t = ho2[i]
                 for k in range(dim):
                     t += (cand[k] - a[i, k]) ** 2
                 res[i] = math.sqrt(t) - d[e, i]
-                if abs(res[i]) >= best_c:
-                    above += 1
-                    if above > heard - h_idx - 1:
-                        break
+            above = 0
+            for i in range(m):
+                above += abs(res[i]) >= best_c
             if above > heard - h_idx - 1:
                 continue
             score = _lms(res, dim, tmp, buf)
