@@ -80,8 +80,8 @@ def _inv_small(A, out, tag):  # pragma: no cover - jit
         for j in range(p):
             fa += A[i, j] * A[i, j]
             fi += out[i, j] * out[i, j]
-    cond = math.sqrt(fa) * math.sqrt(fi)
-    good = math.isfinite(cond) and det > 0 and cond < COND_LIMIT
+    cond2 = fa * fi  # squared Frobenius condition number (no square roots)
+    good = math.isfinite(cond2) and det > 0 and cond2 < COND_LIMIT * COND_LIMIT
     if not good:
         for i in range(p):
             for j in range(p):
@@ -426,18 +426,19 @@ def _gn_iterate(a, ho2, zz, w0, x, w, u, code, prm, robust, scale_fixed, min_sca
         lam = max(lam / 1.5, 1e-9) if accept else lam * 3.0
         it += 1
         flat = accept and (cost_old - cost_new <= 1e-6 * max(cost_old, 1e-300))
-        dof = max(n_pos - p, 1)
-        trn = 0.0
-        for k in range(p):
-            trn += Ni[k, k]
-        sd = math.sqrt(trn * max(cost_new, 0.0) / dof) if cost_new == cost_new else math.nan
-        if sd != sd:
-            sd = 0.0
-        elif sd == math.inf:
-            sd = 1.7976931348623157e308
-        tiny = accept and step <= rel_tol * sd
         finite = math.isfinite(step)
-        done = (accept and step < tol) or flat or tiny or lam > 1e8 or not finite
+        done = (accept and step < tol) or flat or lam > 1e8 or not finite
+        if accept and not done:  # a step below rel_tol of the fix's standard error
+            dof = max(n_pos - p, 1)
+            trn = 0.0
+            for k in range(p):
+                trn += Ni[k, k]
+            sd = math.sqrt(trn * max(cost_new, 0.0) / dof) if cost_new == cost_new else math.nan
+            if sd != sd:
+                sd = 0.0
+            elif sd == math.inf:
+                sd = 1.7976931348623157e308
+            done = step <= rel_tol * sd
         if done:
             conv = finite
             break
