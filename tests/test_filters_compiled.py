@@ -293,3 +293,18 @@ def test_many_tracks_threaded_kernel(kind, motion, tight):
                                       serial[g:].view(np.uint8)[: len(x)])
     np.testing.assert_allclose(serial[: len(x) * n].reshape(-1, n), a.x, rtol=1e-10,
                                atol=1e-10)
+
+
+def test_fast_result_sets_every_field_of_update_result():
+    """The compiled path builds UpdateResult without its __init__ (hot path): it must set
+    exactly the dataclass's fields, so a field added later cannot go missing silently."""
+    import dataclasses
+
+    from robustloc.filters.core import UpdateResult
+    from robustloc.fusion.pipeline import _result
+
+    names = [f.name for f in dataclasses.fields(UpdateResult)]
+    r = _result(*range(len(names)))
+    assert list(vars(r)) == names
+    assert [getattr(r, n) for n in names] == list(range(len(names)))
+    assert r == UpdateResult(*range(len(names)))
