@@ -67,9 +67,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="a-priori std of one observation (m or dB); default: the anchors' "
                         "`sigma` column (per-anchor, e.g. from calibrate) if present, else "
                         "equal weights")
-    p.add_argument("--robust-scale", choices=("mad", "apriori"), default="mad",
-                   help="robust methods: estimate the noise scale per epoch (mad, default) "
-                        "or trust --sigma")
+    p.add_argument("--robust-scale", choices=("log", "mad", "apriori"), default="log",
+                   help="noise scale of the robust methods and of every fix's test and "
+                        "protection level: per anchor over the log (log, default: a first "
+                        "robust pass over each chunk of --chunk-rows rows), per epoch from "
+                        "its own residuals (mad, the paper's), or trust --sigma (apriori)")
+    p.add_argument("--alert-limit", type=float, default=None, metavar="L",
+                   help="horizontal alert limit (m): a fix whose hpl exceeds it gets status "
+                        "protection_exceeded (not usable)")
+    p.add_argument("--k-noise", type=float, default=None, metavar="K",
+                   help="protection levels: multiplier of the fault-free noise (default "
+                        "N(1 - alpha0/2) = 3.29 for alpha0 = 0.1 %%)")
     p.add_argument("--min-scale", type=float, default=0.0,
                    help="floor of the estimated robust scale (units of --sigma)")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
@@ -107,9 +115,9 @@ def locate_file(args: argparse.Namespace) -> dict:
     from robustloc._jitnotice import compile_notice
     from robustloc.errors import InputError
     from robustloc.estimators.ranging import Locator
+    from robustloc.integrity.fixes import protect
     from robustloc.io import iter_epochs, positions_frame, read_anchors
     from robustloc.io.tables import PositionsWriter
-    from robustloc.models.calibration import apply_range_calibration
     from robustloc.models.pathloss import log_distance_arrays
 
     anchors = read_anchors(args.anchors)
@@ -141,6 +149,8 @@ def locate_file(args: argparse.Namespace) -> dict:
         )
         for m in methods
     ]
+    if any(loc.robust_scale == "log" for loc in locators):
+        locators = _fix_log_scale(args, anchors, locators, xyz, height)
     out = Path(args.out)
     writer = PositionsWriter(out).__enter__()
     counts: dict[str, dict[str, int]] = {m: {} for m in methods}
@@ -157,13 +167,13 @@ def locate_file(args: argparse.Namespace) -> dict:
                 kind = block.value
                 if kind == "rssi":
                     A, n = log_distance_arrays(anchors, args.model)
-            values = block.values
-            if kind == "range" and not args.no_range_calibration:
-                values = apply_range_calibration(anchors, values)
+            values = _prepared_values(args, anchors, block)
             frames = []
             for loc in locators:
                 ts = _time.perf_counter()
-                sol = loc.solve(xyz, values, kind, A=A, n=n, height_offset=height)
+                sol = protect(loc.solve(xyz, values, kind, A=A, n=n, height_offset=height),
+                              alpha0=args.alpha0, beta0=args.beta0, k_noise=args.k_noise,
+                              alert_limit=args.alert_limit)
                 solve_s += _time.perf_counter() - ts
                 frames.append(positions_frame(sol, block.time, block.tag, ids, loc.method))
                 st, c = np.unique(sol.status.astype(str), return_counts=True)
@@ -184,6 +194,57 @@ def locate_file(args: argparse.Namespace) -> dict:
         "solve_seconds": round(solve_s, 3),
         "fixes_per_second": round(n_epochs * len(methods) / max(solve_s, 1e-9), 1),
     }
+
+
+def _prepared_values(args: argparse.Namespace, anchors: pd.DataFrame, block) -> np.ndarray:
+    """A block's observation matrix as the solvers see it (range calibration applied)."""
+    from robustloc.models.calibration import apply_range_calibration
+
+    if block.value == "range" and not args.no_range_calibration:
+        return apply_range_calibration(anchors, block.values)
+    return block.values
+
+
+def _fix_log_scale(args, anchors, locators, xyz, height, cap: int = 20_000) -> list:
+    """First pass over the whole log: each locator's per-anchor noise scale from an even
+    sample of at most ``2 cap`` epochs (every ``k``-th epoch, ``k`` doubling as the log
+    grows), so the scale, and every fix, is the same whatever ``--chunk-rows`` is.
+    Standard input cannot be read twice: there each chunk's own scale is used."""
+    from dataclasses import replace
+
+    from robustloc.io import iter_epochs
+    from robustloc.models.pathloss import log_distance_arrays
+
+    if str(args.measurements) == "-" or not Path(args.measurements).is_file():
+        return locators
+    k, seen, kept, idx = 1, 0, [], []
+    kind = None
+    for block in iter_epochs(args.measurements, anchors, chunk_rows=args.chunk_rows):
+        kind = block.value
+        gi = np.arange(seen, seen + block.n_epochs)
+        seen += block.n_epochs
+        sel = gi % k == 0
+        kept.append(_prepared_values(args, anchors, block)[sel])
+        idx.append(gi[sel])
+        while sum(len(i) for i in idx) > 2 * cap:
+            k *= 2
+            kept = [v[i % k == 0] for v, i in zip(kept, idx)]
+            idx = [i[i % k == 0] for i in idx]
+    if kind is None:
+        return locators
+    sample = np.vstack(kept)
+    A = n = None
+    if kind == "rssi":
+        A, n = log_distance_arrays(anchors, args.model)
+    out = []
+    for loc in locators:
+        if loc.robust_scale != "log":
+            out.append(loc)
+            continue
+        scale = loc.log_scale(xyz, sample, kind, A=A, n=n, height_offset=height,
+                              max_epochs=2 * cap)
+        out.append(replace(loc, log_scale_fixed=tuple(float(v) for v in scale)))
+    return out
 
 
 def run(args: argparse.Namespace) -> int:

@@ -776,8 +776,9 @@ def positions_frame(
 
     Columns ``time, tag, x, y[, z], method, status, n_used, sigma0, excluded`` (the
     ``excluded`` column is the ``;``-joined ids of the observations rejected in each
-    epoch); ``z`` is written when the solution is 3-D.  ``iterations`` is appended as an
-    extra column.
+    epoch); ``z`` is written when the solution is 3-D.  ``hpl`` (and ``vpl`` in 3-D), the
+    protection levels in metres, follow when the solution carries them; ``iterations`` is
+    appended as an extra column.
     """
     pos = np.asarray(solution.position, dtype=float)
     n, dim = pos.shape
@@ -797,6 +798,11 @@ def positions_frame(
     data["n_used"] = np.asarray(solution.n_used, dtype=np.int64)
     data["sigma0"] = np.asarray(solution.sigma0, dtype=float)
     data["excluded"] = solution.excluded_ids(list(anchor_ids))
+    extra = getattr(solution, "extra", {}) or {}
+    if "hpl" in extra:  # protection levels (robustloc.integrity.fixes.protect), metres
+        data["hpl"] = np.asarray(extra["hpl"], dtype=float)
+        if dim >= 3:
+            data["vpl"] = np.asarray(extra["vpl"], dtype=float)
     data["iterations"] = np.asarray(solution.iterations, dtype=np.int64)
     return pd.DataFrame(data)
 
