@@ -24,9 +24,14 @@ For each epoch, at the fix ``x`` of any method, with the range-domain residuals
                              used), nothing flagged, the test passes: a fault of
                              the MDB would be detected but not identified
    ``unverified``            redundancy 0: nothing can be tested; ``hpl = inf``     yes
-   ``unavailable``           the test fails, or a flagged observation leaves no     no
-                             redundancy to confirm the rest (a fault is detected
-                             and cannot be excluded)
+   ``fault_detected``        the test fails (``hpl`` from sigma scaled by the       yes
+                             a-posteriori factor ``sqrt(T / dof)``), or a flagged
+                             observation leaves no redundancy to confirm the rest
+                             (``hpl = inf``): a fault is detected and cannot be
+                             excluded; the position is kept, its bound says how
+                             little it is worth
+   ``unavailable``           usable by the above, but farther than 10 times the     no
+                             heard anchors' extent from them
    ``protection_exceeded``   usable, but ``hpl`` above ``--alert-limit``            no
    ========================  ====================================================  ======
 
@@ -192,16 +197,23 @@ def protect(
     if fallback_rows is None:
         fallback_rows = sol.extra.get("fallback")
     fb = np.zeros(N, dtype=bool) if fallback_rows is None else np.asarray(fallback_rows, bool)
+    failed = testable & has & ~passed
+    blind = testable & any_flag & (dof < 1)
     new[testable & (dof == 0) & ~any_flag] = st.UNVERIFIED
-    new[testable & ((has & ~passed) | (any_flag & (dof < 1)))] = st.UNAVAILABLE
+    new[failed | blind] = st.FAULT_DETECTED
     new[testable & passed & any_flag] = st.FAULT_EXCLUDED
     new[testable & passed & ~any_flag & ((dof == 1) | fb)] = st.LOW_REDUNDANCY
     new[testable & passed & ~any_flag & (dof >= 2) & ~fb] = st.OK
-    # 4. protection levels over the observations kept
-    hpl, vpl, _ = protection_levels_local(J, sig, keep, lam0, k)
+    # 4. protection levels over the observations kept; a failed test scales sigma by the
+    # a-posteriori variance factor sqrt(T / dof) (> 1), the classical remedy when the
+    # a-priori noise is too optimistic for this epoch
+    with np.errstate(invalid="ignore", divide="ignore"):
+        factor = np.where(failed, np.sqrt(T / np.maximum(dof, 1)), 1.0)
+    hpl, vpl, _ = protection_levels_local(J, sig * factor[:, None], keep, lam0, k)
     usable = np.isin(new, st.USABLE)
-    hpl = np.where(usable, np.where(new == st.UNVERIFIED, np.inf, hpl), np.nan)
-    vpl = np.where(usable & (p == 3), np.where(new == st.UNVERIFIED, np.inf, vpl), np.nan)
+    unbounded = (new == st.UNVERIFIED) | blind
+    hpl = np.where(usable, np.where(unbounded, np.inf, hpl), np.nan)
+    vpl = np.where(usable & (p == 3), np.where(unbounded, np.inf, vpl), np.nan)
     # a fix far outside anything its anchors can vouch for is no fix (issue 15: never ok
     # with a non-finite sigma0, or a position outside 10x the anchors' extent)
     pos = sol.position
