@@ -163,6 +163,9 @@ def _prepare_parent(p: Path) -> Path:
     parent = p.parent if str(p.parent) else Path(".")
     try:
         parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise OutputError("a parent of this path is a file, not a folder", p,
+                          errno_=errno.ENOTDIR) from None
     except OSError as exc:
         raise OutputError(describe_oserror(exc), p, errno_=exc.errno) from None
     if not parent.is_dir():
