@@ -90,12 +90,17 @@ def test_locate_cli_settings_errors(tmp_path, capsys, corridor):
             str(corridor / "cal.csv"), "-o", str(tmp_path / "p.csv")]
     # snooping needs sigma: the calibrated anchors carry a per-anchor `sigma` column...
     assert main(base + ["--method", "snooping"]) == 0
-    # ...anchors without it need --sigma
+    # ...anchors without it take the log's per-anchor scale (the default --robust-scale)...
     nosig = pd.read_csv(corridor / "cal.csv").drop(columns=["sigma"])
     nosig.to_csv(tmp_path / "nosig.csv", index=False)
     assert main(["locate", str(corridor / "measurements.csv"), "--anchors",
                  str(tmp_path / "nosig.csv"), "-o", str(tmp_path / "s.csv"),
-                 "--method", "snooping"]) == 2
+                 "--method", "snooping"]) == 0
+    capsys.readouterr()
+    # ...and with the per-epoch scale they need --sigma
+    assert main(["locate", str(corridor / "measurements.csv"), "--anchors",
+                 str(tmp_path / "nosig.csv"), "-o", str(tmp_path / "s2.csv"),
+                 "--method", "snooping", "--robust-scale", "mad"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: invalid settings:") and "--sigma" in err
     assert main(base + ["--method", "nope"]) == 2

@@ -27,6 +27,10 @@ stderr. A value outside the physical limits (robustloc.io.limits: range -50..1e5
 rows`); an epoch with nothing else gets status invalid_measurement.
 
 Methods (comma-separated list allowed; the `method` column tells them apart):
+  auto      the default: Gauss-Newton (nls) on every epoch that passes its own test,
+            the robust huber fit on the epochs whose test finds a fault ("test, then
+            robustify": no efficiency lost where the data agree with the noise model;
+            chosen by measurement, see the report's "out of the box" section)
   ls        the paper's linearized difference system (seed 000 eq. 3)
   wls       the same, weighted by distance (seed 001 eq. 4)
   nls       Gauss-Newton on the raw observations, with covariance
@@ -34,7 +38,19 @@ Methods (comma-separated list allowed; the `method` column tells them apart):
             robust IRLS (seed 000 eqs. 5-7) on the nonlinear equations (--solver
             nonlinear, default) or on the paper's linearized system
   lege      simultaneous location and estimation of gross errors (seed 000 sec. 2.4)
-  snooping  w-test data snooping with the B-method (seed 003); needs --sigma
+  snooping  w-test data snooping with the B-method (seed 003)
+
+Every fix is tested and gets a protection level (robustloc.integrity.fixes): the noise
+scale of each anchor comes from the whole log (--robust-scale log, a first pass over an
+even sample of it), the w-test flags observations the fix does not explain, the global
+test (B-method significance) checks the rest, and `hpl` (`vpl` in 3-D) is the MDB slope
+bound plus k sigma of the fault-free noise (--alpha0, --beta0, --k-noise).  Statuses:
+ok, fault_excluded, low_redundancy (redundancy 1: detectable, not identifiable),
+unverified (redundancy 0, hpl = inf), fault_detected (the test fails; hpl widened by the
+a-posteriori variance factor), unavailable (farther than 10x the anchors' extent),
+protection_exceeded (hpl > --alert-limit), and insufficient_anchors, ill_conditioned,
+not_converged, invalid_measurement.  Usable: every one before unavailable, and
+not_converged.
 
 RSSI input uses the anchors' path-loss parameters (A, n or p0, gamma, faf, d0; see
 `robustloc calibrate`); the nonlinear solvers fit ranges converted by the model, each
@@ -54,6 +70,7 @@ def _method_list(text: str) -> list[str]:
     """``--method`` value: comma-separated known methods, each once."""
     from robustloc.estimators.ranging import METHODS
 
+    METHODS = ("auto",) + METHODS  # noqa: N806 - the default joins the estimators' list
     methods = [m.strip() for m in text.split(",")]
     if not any(methods):
         raise argparse.ArgumentTypeError(
@@ -78,15 +95,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         positive_float,
         positive_int,
     )
-    from robustloc.estimators.ranging import METHODS
+    from robustloc.estimators.ranging import DEFAULT_METHOD, METHODS
 
     p.add_argument("measurements",
                    help="measurements file (time, tag, anchor, rssi|range); - for stdin")
     p.add_argument("--anchors", required=True, help="anchors file (anchor, x, y[, z], ...)")
     p.add_argument(
-        "--method", default=["huber"], type=_method_list,
-        help=f"method or comma-separated methods: {', '.join(METHODS)} (default huber: the "
-             "most accurate on the shared real data; igg is the seed-000 paper's favourite)",
+        "--method", default=[DEFAULT_METHOD], type=_method_list,
+        help=f"method or comma-separated methods: {', '.join(('auto',) + METHODS)} "
+             f"(default {DEFAULT_METHOD}: see above; igg is the seed-000 paper's favourite)",
     )
     p.add_argument("-o", "--out", required=True,
                    help="positions file (.csv or .parquet); - for CSV on standard output")
@@ -254,7 +271,7 @@ def _run_once(
     from tqdm import tqdm
 
     from robustloc._jitnotice import compile_notice
-    from robustloc.integrity.fixes import protect
+    from robustloc.integrity.fixes import locate_protected
     from robustloc.io import iter_epochs, positions_frame
     from robustloc.io.tables import PositionsWriter
     from robustloc.models.pathloss import log_distance_arrays
@@ -284,8 +301,8 @@ def _run_once(
                 frames = []
                 for loc in locators:
                     ts = _time.perf_counter()
-                    sol = protect(
-                        loc.solve(xyz, values, kind, A=A, n=n, height_offset=height),
+                    sol = locate_protected(
+                        loc, xyz, values, kind, A=A, n=n, height_offset=height,
                         alpha0=args.alpha0, beta0=args.beta0, k_noise=args.k_noise,
                         alert_limit=args.alert_limit)
                     solve_s += _time.perf_counter() - ts

@@ -48,7 +48,7 @@ Array = NDArray[np.float64]
 METHODS = ("ls", "wls", "nls", "huber", "hampel", "igg", "igg3", "lege", "snooping")
 #: The method ``robustloc locate`` uses when none is named (chosen by measurement on the
 #: shared real data and the seed-000 simulation: the report's "out of the box" section).
-DEFAULT_METHOD = "huber"
+DEFAULT_METHOD = "auto"
 ROBUST = ("huber", "hampel", "igg", "igg3")
 
 
@@ -385,7 +385,7 @@ class Locator:
     log_scale_fixed: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
-        if self.method not in METHODS:
+        if self.method not in METHODS + ("auto",):
             raise ValueError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
         if self.solver not in ("nonlinear", "linearized"):
             raise ValueError(f"solver must be 'nonlinear' or 'linearized', got {self.solver!r}")
@@ -403,7 +403,7 @@ class Locator:
                 f"robust_scale must be 'log', 'mad' or 'apriori', got {self.robust_scale!r}")
         if self.robust_scale == "apriori" and self.sigma is None:
             raise ValueError("robust_scale='apriori' needs sigma")
-        if self.method == "snooping" and self.sigma is None:
+        if self.method == "snooping" and self.sigma is None and self.robust_scale != "log":
             raise ValueError("method 'snooping' needs the a-priori standard deviation --sigma")
         if self.method in ROBUST:
             get_weight(self.method, **self.weight_params)  # validate early
@@ -436,6 +436,9 @@ class Locator:
         -------
         Solution
         """
+        if self.method == "auto":
+            raise ValueError("method 'auto' chooses per epoch by the fix's own test: solve "
+                             "it with robustloc.integrity.fixes.locate_protected")
         a = np.asarray(anchors, dtype=float)
         z = np.atleast_2d(np.asarray(values, dtype=float))
         if a.ndim != 2 or a.shape[1] not in (2, 3):
@@ -509,6 +512,18 @@ class Locator:
             status=status, n_used=n_used, method=self.method, extra=extra,
         )
 
+    def solve_as(self, method: str, anchors: ArrayLike, values: ArrayLike,
+                 kind: str = "range", **kw: object) -> Solution:
+        """:meth:`solve` with another method and every other setting kept."""
+        return replace(self, method=method).solve(anchors, values, kind, **kw)
+
+    def with_method(self, method: str, log_scale: ArrayLike | None = None) -> Locator:
+        """This locator with another method (and, optionally, a fixed log scale)."""
+        loc = replace(self, method=method)
+        if log_scale is not None:
+            loc = replace(loc, log_scale_fixed=tuple(float(v) for v in np.asarray(log_scale)))
+        return loc
+
     def _solve_heard(self, a, z, kind, heard, A, n, height_offset) -> Solution:
         """Solve with only the anchors heard in the batch, then put the per-anchor arrays
         back in the caller's anchor order (NaN / False for the unheard ones): an anchor
@@ -546,8 +561,8 @@ class Locator:
         )
 
     def _log_scaled(self) -> bool:
-        return (self.robust_scale == "log" and self.method in ROBUST
-                and self.solver == "nonlinear")
+        return self.robust_scale == "log" and (
+            (self.method in ROBUST and self.solver == "nonlinear") or self.method == "snooping")
 
     def log_scale(
         self,

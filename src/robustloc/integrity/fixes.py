@@ -237,3 +237,81 @@ def protect(
                  test_alpha=stats.chi2.sf(crit, np.maximum(dof, 1)))
     return replace(sol, status=new, position=np.where(usable[:, None], pos, np.nan),
                    excluded=excluded, n_used=n_used, extra=extra)
+
+
+#: ``robustloc locate``'s default: Gauss-Newton where the epoch passes its own test, the
+#: robust fit where the test finds a fault (:func:`locate_protected`).
+AUTO = "auto"
+#: The robust method ``auto`` switches to on an epoch whose plain fit fails its test.
+AUTO_ROBUST = "huber"
+
+
+def locate_protected(
+    locator,  # robustloc.estimators.ranging.Locator (method "auto" allowed here)
+    anchors: Array,
+    values: Array,
+    kind: str = "range",
+    *,
+    A: Array | None = None,
+    n: Array | None = None,
+    height_offset: Array | None = None,
+    alpha0: float = ALPHA0,
+    beta0: float = BETA0,
+    k_noise: float | None = None,
+    alert_limit: float | None = None,
+) -> Solution:
+    """Solve every epoch and :func:`protect` it: the one entry point of every front end
+    (``locate``, the service, the Dask engine) for fixes with their integrity.
+
+    ``locator.method == "auto"`` ("test, then robustify") solves every epoch by plain
+    Gauss-Newton (``nls``, the maximum-likelihood fix when the noise is what the log's
+    scale says) and tests it; an epoch whose test fails (``fault_detected``) is solved
+    again by :data:`AUTO_ROBUST` with the log's scale and tested again.  On epochs that
+    agree with the noise model it is exactly ``nls`` (no efficiency lost); on epochs the
+    test proves inconsistent it is the robust fix.  The choice is measured in the report's
+    "out of the box" section: on the shared real data plain Gauss-Newton is as good as any
+    peer, while M-estimation on every epoch loses up to 20 % there (systematic NLOS biases
+    that no residual pattern reveals); on ranges with 20 % gross errors the switch cuts
+    the RMS by 40 %.
+    """
+    from dataclasses import replace as _replace
+
+    kw = dict(A=A, n=n, height_offset=height_offset)
+    pk = dict(alpha0=alpha0, beta0=beta0, k_noise=k_noise, alert_limit=alert_limit)
+    if locator.method != AUTO:
+        return protect(locator.solve(anchors, values, kind, **kw), **pk)
+    plain = protect(locator.solve_as("nls", anchors, values, kind, **kw), **pk)
+    redo = plain.status == st.FAULT_DETECTED
+    if alert_limit is not None:  # a fix the alert limit refused may have failed its test
+        redo |= (plain.status == st.PROTECTION_EXCEEDED) & ~(
+            plain.extra["test_statistic"] <= plain.extra["test_critical"])
+    if not np.any(redo):
+        return _replace(plain, method=AUTO)
+    scale = plain.extra.get("log_scale")
+    robust_loc = locator.with_method(AUTO_ROBUST, log_scale=scale)
+    rows = np.flatnonzero(redo)
+    rob = protect(robust_loc.solve(anchors, np.asarray(values)[rows], kind, **kw), **pk)
+    return _merge_rows(_replace(plain, method=AUTO), rob, rows)
+
+
+def _merge_rows(base: Solution, sub: Solution, rows: NDArray[np.int64]) -> Solution:
+    """``base`` with epochs ``rows`` replaced by ``sub`` (whose epochs are ``rows``)."""
+    out = {}
+    for name in ("position", "covariance", "residuals", "weights", "excluded", "sigma0",
+                 "iterations", "converged", "status", "n_used"):
+        arr = np.array(getattr(base, name), copy=True)
+        arr[rows] = getattr(sub, name)
+        out[name] = arr
+    extra = dict(base.extra)
+    N = base.position.shape[0]
+    for k, v in sub.extra.items():
+        b = extra.get(k)
+        if (isinstance(v, np.ndarray) and isinstance(b, np.ndarray) and b.shape[:1] == (N,)
+                and b.shape[1:] == v.shape[1:]):
+            arr = b.copy()
+            arr[rows] = v
+            extra[k] = arr
+    robust = np.zeros(N, dtype=bool)
+    robust[rows] = True
+    extra["robust_refit"] = robust
+    return replace(base, **out, extra=extra)

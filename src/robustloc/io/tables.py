@@ -807,7 +807,8 @@ def _iter_streamed(
 
     ``time`` must be non-decreasing.  The rows of the last time value of each chunk are
     held back (tags of one time may mix in any order), unless that time group grows beyond
-    ``max(chunk_rows, 100 000)`` rows: then its epochs must be contiguous (each tag's rows together), and all
+    ``max(chunk_rows, 100 000)`` rows: then its epochs must be contiguous (each tag's rows
+    together), and all
     but the last are emitted, remembering the 64-bit hashes of their tags (8 bytes per
     epoch) to refuse a later row of an epoch already emitted.  So memory stays bounded by
     about two chunks whatever the grouping (10 M rows that all have ``time = 0``, each

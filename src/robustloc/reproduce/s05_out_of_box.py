@@ -33,7 +33,7 @@ MAX_ROWS = 1500
 def _ours(case, method: str, rows: np.ndarray, anchors=None) -> tuple[np.ndarray, ...]:
     from robustloc import status as st
     from robustloc.estimators.ranging import Locator
-    from robustloc.integrity.fixes import protect
+    from robustloc.integrity.fixes import locate_protected
 
     vals, xy = case.values, case.xy
     sigma = None
@@ -47,8 +47,8 @@ def _ours(case, method: str, rows: np.ndarray, anchors=None) -> tuple[np.ndarray
     A = anchors["A"].to_numpy(float) if anchors is not None and case.kind == "rssi" else case.A
     n = anchors["n"].to_numpy(float) if anchors is not None and case.kind == "rssi" else case.n
     # the whole log is solved (the log scale is the log's), the table takes ``rows``
-    sol = protect(Locator(method, sigma=sigma).solve(xy, vals, case.kind, A=A, n=n,
-                                                     height_offset=case.height_offset))
+    sol = locate_protected(Locator(method, sigma=sigma), xy, vals, case.kind, A=A, n=n,
+                           height_offset=case.height_offset)
     usable = np.isin(sol.status, st.USABLE)
     return sol.position[rows], usable[rows], sol.extra["hpl"][rows]
 
@@ -85,6 +85,7 @@ def run(ctx: Context) -> Section:
         for label, method, an in (
             (f"robustloc default ({DEFAULT_METHOD})", DEFAULT_METHOD, None),
             ("robustloc nls", "nls", None),
+            ("robustloc huber", "huber", None),
         ):
             pos, use, hpl = _ours(case, method, rows, an)
             table.append({"method": label, **error_stats(pos, truth, use, hpl)})
