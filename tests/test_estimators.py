@@ -211,8 +211,9 @@ def test_irls_linear_downweights_outlier():
 def test_bad_settings_raise():
     with pytest.raises(ValueError, match="unknown method"):
         Locator("foo")
+    # snooping takes the log's scale by default; with the per-epoch scale it needs sigma
     with pytest.raises(ValueError, match="sigma"):
-        Locator("snooping")
+        Locator("snooping", robust_scale="mad")
     with pytest.raises(ValueError, match="path-loss"):
         Locator("ls").solve(SQUARE, np.zeros((1, 8)), "rssi")
 

@@ -561,8 +561,10 @@ class Locator:
         )
 
     def _log_scaled(self) -> bool:
+        # snooping tests against a known sigma: the log's scale stands in only without one
         return self.robust_scale == "log" and (
-            (self.method in ROBUST and self.solver == "nonlinear") or self.method == "snooping")
+            (self.method in ROBUST and self.solver == "nonlinear")
+            or (self.method == "snooping" and self.sigma is None))
 
     def log_scale(
         self,
@@ -575,21 +577,25 @@ class Locator:
         height_offset: ArrayLike | None = None,
         max_epochs: int = 20_000,
         min_count: int = 20,
+        iterations: int = 3,
     ) -> Array:
         """Per-anchor noise scale over a whole log, in units of ``sigma``.
 
-        A first robust pass (this locator with the per-epoch MAD scale) over at most
+        A robust fit (this locator with the per-epoch MAD scale) over at most
         ``max_epochs`` epochs spread evenly over the log gives standardized residuals
-        ``u_ij = v_ij / (sigma_ij sqrt(r_i))`` with ``r_i = (n_i - p) / n_i`` the epoch's
-        mean redundancy number (a fit absorbs ``p`` of ``n_i`` degrees of freedom, so its
-        residuals are ``sqrt(r_i)`` smaller than the noise); epochs without redundancy
-        carry no information on the scale and are skipped.  Anchor ``j``'s scale is the
-        MAD about zero (seed 000 sec. 2.1) of its ``u_ij`` over all epochs,
-        ``s_j = med_i |u_ij| / 0.6745``: a median over hundreds of residuals instead of
-        three to eight, with a 50 % breakdown point over the log, so an anchor's outliers
-        (fades, NLOS) do not inflate it.  An anchor with fewer than ``min_count``
-        residuals gets the scale pooled over every anchor.  For RSSI fitted as ranges the
-        unit is dB (``sigma_ij = d ln10 sigma_dB / (10 n)``), for ranges metres.
+        ``u_ij = v_ij / (sigma_ij s_j sqrt(r_ij))`` with ``r_ij`` the redundancy number of
+        observation ``i`` in epoch ``j``'s a-priori weighted fit (a fit absorbs part of
+        each observation's noise: seed 003's ``Q_vv P``); epochs without redundancy carry
+        no information on the scale.  Anchor ``j``'s scale is updated by the MAD about zero
+        (seed 000 sec. 2.1) of its ``u_ij`` over all epochs, ``s_j <- s_j med |u_ij| /
+        0.6745``, and the fit repeated with the new weights (``iterations`` times: with few
+        anchors an unweighted fit spreads a noisy anchor's errors over the others; the
+        iteration is the robust analogue of Helmert's variance component estimation).  A
+        median over hundreds of residuals instead of three to eight, with a 50 % breakdown
+        point over the log, so an anchor's outliers (fades, NLOS) do not inflate it.  An
+        anchor with fewer than ``min_count`` residuals gets the scale pooled over every
+        anchor.  For RSSI fitted as ranges the unit is dB (``sigma_ij = d ln10 sigma_dB /
+        (10 n)``), for ranges metres.
 
         Returns
         -------
@@ -603,32 +609,50 @@ class Locator:
         if N > max_epochs:
             rows = np.unique(np.linspace(0, N - 1, max_epochs).astype(np.int64))
         if self.method in ROBUST and self.solver == "nonlinear":
-            first = replace(self, robust_scale="mad")
+            first = replace(self, robust_scale="mad", log_scale_fixed=None)
         else:  # the scale of a non-robust method's log still comes from a robust fit
             first = Locator("huber", domain=self.domain, sigma=self.sigma, robust_scale="mad",
                             engine=self.engine, max_iter=self.max_iter, tol=self.tol)
-        sol = first.solve(a, z[rows], kind, A=A, n=n, height_offset=height_offset)
         zz = z[rows]
-        if kind == "rssi" and self.domain == "range":
-            rm = RssiModel(a, A, n, height_offset)
-            s_db = self._sigma_array(zz.shape)
-            sig = np.maximum(rm.distance(zz), 0.1) * LN10 * s_db / (10.0 * rm.n[None, :])
-        else:
-            sig = self._sigma_array(zz.shape)
-        heard = np.isfinite(zz).sum(axis=1)
+        base = self._sigma_array((1, m))[0]
+        rm = RssiModel(a, A, n, height_offset) if kind == "rssi" else None
+        rng_obs = rm.distance(zz) if rm is not None else zz
+        scale = np.ones(m)
         p = a.shape[1]
-        with np.errstate(all="ignore"):
-            rbar = np.where(heard > p, (heard - p) / heard, np.nan)
-            u = np.abs(sol.residuals) / (sig * np.sqrt(rbar)[:, None])
-        u = np.where(np.isin(sol.status, st.USABLE)[:, None] & np.isfinite(u), u, np.nan)
-        count = np.sum(np.isfinite(u), axis=0)
-        pooled = np.nanmedian(u) / MAD_NORMAL if np.any(count) else np.nan
-        with np.errstate(all="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            per = np.nanmedian(u, axis=0) / MAD_NORMAL
-        scale = np.where(count >= min_count, per, pooled)
         floor = max(self.min_scale, 1e-6)
-        scale = np.where(np.isfinite(scale), np.maximum(scale, floor), 1.0)
+        for it in range(iterations):
+            sig_fit = np.broadcast_to(base * scale, zz.shape)
+            # the first fit standardizes by each epoch's own MAD; later ones trust the
+            # scale found so far (fixed, as MM-estimators do), so Gaussian residuals keep
+            # their full weight and the next estimate is not shrunk by down-weighting
+            step_loc = replace(first, sigma=tuple(base * scale),
+                               robust_scale="mad" if it == 0 else "apriori")
+            sol = step_loc.solve(a, zz, kind, A=A, n=n, height_offset=height_offset)
+            if kind == "rssi" and self.domain == "range":
+                sig_fit = self._range_sigma(sig_fit, rng_obs, rm)
+            # redundancy numbers r_ij = 1 - h_ii of the a-priori weighted fit (seed 003),
+            # from the range-domain design (a row's scaling to dB cancels in J_i / sigma_i)
+            sig_r = self._range_sigma(sig_fit, rng_obs, rm) if self.domain == "rssi" and (
+                rm is not None) else sig_fit
+            J = sol.extra["jacobian"]
+            with np.errstate(all="ignore"):
+                Jw = np.where(np.isfinite(zz)[..., None], J / sig_r[..., None], 0.0)
+                Jw = np.where(np.isfinite(Jw), Jw, 0.0)
+                Nm = np.einsum("kip,kiq->kpq", Jw, Jw)
+                ok = np.linalg.cond(Nm) < 1e12
+                Ninv = np.linalg.inv(np.where(ok[:, None, None], Nm, np.eye(p)))
+                r = 1.0 - np.einsum("kip,kpq,kiq->ki", Jw, Ninv, Jw)
+                r = np.where(ok[:, None] & (r > 0.05), r, np.nan)
+                u = np.abs(sol.residuals) / (sig_fit * np.sqrt(r))
+            u = np.where(np.isin(sol.status, st.USABLE)[:, None] & np.isfinite(u), u, np.nan)
+            count = np.sum(np.isfinite(u), axis=0)
+            pooled = np.nanmedian(u) / MAD_NORMAL if np.any(count) else np.nan
+            with np.errstate(all="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                per = np.nanmedian(u, axis=0) / MAD_NORMAL
+            step = np.where(count >= min_count, per, pooled)
+            step = np.where(np.isfinite(step), step, 1.0)
+            scale = np.maximum(scale * step, floor)
         return scale
 
     # ----------------------------------------------------------------- helpers
