@@ -49,6 +49,7 @@ import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
 from robustloc.errors import InputError
+from robustloc.models.selfcal import SelfCalibration
 from robustloc.robust.scale import MAD_NORMAL
 from robustloc.robust.weights import Huber, WeightFunction, get_weight
 
@@ -740,6 +741,59 @@ def _match_truth(
     return out
 
 
+def self_calibration_table(
+    res: SelfCalibration, anchors: pd.DataFrame, model: object | None = None
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The parameter table of a self-calibration and the anchors frame with its columns.
+
+    Ranges: ``bias, scale, sigma, bias_se, scale_se``.  RSSI: the log-distance ``A, n``;
+    for an attenuation-factor model (``model`` from
+    :func:`robustloc.models.pathloss.model_from_anchors`) ``p0 = A - faf - 10 gamma lg d0``
+    and ``gamma`` (its ``faf`` and ``d0`` kept), for Friis ``p0 = A - 20 lg d0``; standard
+    errors propagated from the ``(A, n)`` covariance.  Also ``n_obs``, ``n_used``,
+    ``calib_source = "self"`` and ``calib_fixed`` (the parameters left at their prior).
+    A left-out parameter has an empty standard error.
+    """
+    from robustloc.models.pathloss import AttenuationFactor, FreeSpace
+
+    ids = anchors["anchor"].astype(str).to_numpy()
+    off, slo, cov = res.offset, res.slope, res.cov
+    o_name, s_name = res.param_names
+    fixed = [";".join(n for n, f in zip(res.param_names, fr) if not f) for fr in res.free]
+    cols: dict[str, Array] = {}
+    drop: list[str] = []
+    if res.kind == "range":
+        cols = {"bias": off, "scale": slo, "sigma": res.sigma,
+                "bias_se": res.offset_se, "scale_se": res.slope_se}
+    elif isinstance(model, (AttenuationFactor, FreeSpace)):
+        m = len(ids)
+        d0 = np.broadcast_to(np.asarray(model.d0, dtype=float), (m,))
+        c = 10.0 * np.log10(d0)
+        if isinstance(model, AttenuationFactor):
+            faf = np.broadcast_to(np.asarray(model.faf, dtype=float), (m,))
+            p0 = off - faf - c * slo  # seed 002 eq. (5) as A - 10 gamma lg d
+            var = cov[:, 0, 0] + c * c * cov[:, 1, 1] - 2.0 * c * cov[:, 0, 1]
+            cols = {"p0": p0, "gamma": slo, "faf": faf, "d0": d0, "sigma": res.sigma,
+                    "p0_se": np.where(res.free[:, 0], np.sqrt(np.maximum(var, 0)), np.nan),
+                    "gamma_se": res.slope_se}
+        else:
+            cols = {"p0": off - 2.0 * c, "d0": d0, "sigma": res.sigma, "p0_se": res.offset_se}
+        drop = [c_ for c_ in _ALL_PATHLOSS_COLUMNS if c_ not in cols]
+    else:
+        cols = {"A": off, "n": slo, "sigma": res.sigma, "A_se": res.offset_se,
+                "n_se": res.slope_se}
+        drop = [c_ for c_ in _ALL_PATHLOSS_COLUMNS if c_ not in cols]
+    table = pd.DataFrame({"anchor": ids, **cols, "n_obs": res.n_obs, "n_used": res.n_used,
+                          "calib_fixed": fixed})
+    out = anchors.drop(columns=[c_ for c_ in drop + [f"{c_}_se" for c_ in drop]
+                                if c_ in anchors.columns]).copy()
+    for k, v in cols.items():
+        out[k] = np.asarray(v, dtype=float)
+    out["calib_source"] = "self"
+    out["calib_fixed"] = fixed
+    return table, out
+
+
 def default_p0_from_anchors(anchors: pd.DataFrame | None) -> dict[str, float] | None:
     """``{anchor: p0}`` from an anchors frame's ``p0`` column, if it has finite values."""
     if anchors is None or "p0" not in anchors.columns:
@@ -760,5 +814,6 @@ __all__: Sequence[str] = (
     "calibrate_ranges",
     "default_p0_from_anchors",
     "fit_lines",
+    "self_calibration_table",
     "survey_from_positions",
 )
