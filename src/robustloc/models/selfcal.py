@@ -40,8 +40,9 @@ reweighted least squares (IRLS) on the whole log:
    about 95 % of Gaussian data; zero weight beyond 5 sigma) so that gross errors get
    no weight at all.
 4. Covariance of theta: ``sigma0^2 S^-1`` (``S^-1`` is exactly the theta block of the
-   inverse of the joint normal matrix), ``sigma0^2 = sum W v^2 / (n_used - u)`` the
-   a-posteriori variance factor (the final weights taken as known, as in
+   inverse of the joint normal matrix), ``sigma0^2 = sum W v^2 / kappa / (n_used - u)``
+   the a-posteriori variance factor (``kappa`` the weights' consistency factor, see
+   :meth:`SelfCalibrator._vce`; the final weights taken as known, as in
    :func:`robustloc.models.calibration.fit_lines`).
 
 Bad epochs: an epoch whose position cannot be solved (no start, singular ``N_kk``), whose
@@ -71,14 +72,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from robustloc.robust.scale import MAD_NORMAL
 from robustloc.robust.weights import IGG3, Huber, WeightFunction
 
 Array = NDArray[np.float64]
 
 KINDS = ("range", "rssi")
 _LN10 = np.log(10.0)
-_DEBUG = False
 #: Parameter names per kind: (offset, slope).
 PARAM_NAMES = {"range": ("bias", "scale"), "rssi": ("A", "n")}
 
@@ -310,10 +309,14 @@ class SelfCalibrator:
         converged = False
         it = 0
         last_small = False
+        lam, prev_dth = 1.0, None
         kappa = _consistency(wf)
         n_obs = obs.sum(axis=1)
         no_red = start_ok & (n_obs <= dim)
         base = start_ok & ~no_red
+        lost = np.zeros(N, dtype=bool)
+        centre = a.mean(axis=0)
+        extent = max(float(np.max(np.linalg.norm(a - centre, axis=1))), 1.0)
         for it in range(1, self.max_iter + 1):
             lin = self._linearize(a, zz, obs, x, off, slo, h2)
             v, Jx, fval = lin["v"], lin["Jx"], lin["f"]
@@ -328,20 +331,29 @@ class SelfCalibrator:
                 u = veq / np.sqrt(np.einsum("kji,i->kj", R2, sigma**2))
             w = np.where(obs, np.nan_to_num(wf.weights(np.where(obs, u, 0.0)), nan=0.0), 0.0)
             used, bad = self._epochs(w, obs, base & regular, dim)
-            bad |= base & ~regular
+            bad |= (base & ~regular) | lost
             P = np.where(used[:, None], w / sigma[None, :] ** 2, 0.0)
             Jt = np.stack([np.ones_like(fval), fval], axis=-1)  # (N, m, 2)
             sol = self._solve(Jx, Jt, P, v, free, used, left_out, ids)
             dx, dth = sol["dx"], sol["dth"]
+            # relaxation against the 2-cycles of IRLS (weights flipping between two
+            # states): a step that reverses the previous one is halved, down to 1/8
+            if prev_dth is not None and float(np.sum(dth * prev_dth)) < 0:
+                lam = max(0.5 * lam, 0.125)
+            prev_dth = dth
+            dx, dth = lam * dx, lam * dth
+            # trust region of the positions: a step at most half the anchors' extent, and an
+            # epoch that leaves 3 extents around the anchors is lost (left out, bad)
+            step = np.linalg.norm(dx, axis=1, keepdims=True)
+            dx = dx * np.minimum(1.0, 0.5 * extent / np.maximum(step, 1e-300))
             x = x + np.where(used[:, None], dx, 0.0)
+            lost |= used & (np.linalg.norm(x - centre, axis=1) > 3.0 * extent)
+            base &= ~lost
             off = off + dth[:, 0]
             slo = slo + dth[:, 1]
             se = np.sqrt(np.maximum(np.diagonal(sol["Sinv"], axis1=1, axis2=2), 0.0))
             with np.errstate(invalid="ignore", divide="ignore"):
                 rel = np.where(free & (se > 0), np.abs(dth) / se, 0.0)
-            if _DEBUG:
-                step_x = float(np.max(np.abs(dx[used]))) if used.any() else 0.0
-                print(it, np.max(rel, initial=0.0), step_x, int(used.sum()), sigma.round(3), off.round(3))
             # the calibration is converged when no parameter moves by more than tol of its
             # standard error (twice in a row: IRLS weights of low-redundancy epochs can
             # flip between iterations); positions follow from it
