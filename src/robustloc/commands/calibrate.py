@@ -220,6 +220,16 @@ def run(args: argparse.Namespace) -> int:
         res = calibrate_ranges(survey, scale=bool(args.scale), robust=args.robust,
                                pooled=args.pooled)
     out = res.apply_to_anchors(anchors)
+    if "sigma" in out.columns:
+        sg = out["sigma"].to_numpy(dtype=float)
+        bad = ~(np.isfinite(sg) & (sg > 0))
+        if bad.any():
+            from robustloc.errors import InputError
+
+            raise InputError(
+                f"anchor {out['anchor'].iloc[int(np.argmax(bad))]}: cannot determine sigma: "
+                "the fit is exact (zero residual), `locate` could not weight the anchor",
+                survey.attrs.get("path"))
     path = write_table(out, args.out)
     if args.json:
         table = res.table.replace({np.nan: None})

@@ -200,10 +200,16 @@ def fit_lines(
     a = np.where(few, np.nan, a)
     b = np.where(few, np.nan, b) if slope else b
     return LineFit(
-        a=a, b=b, a_se=np.sqrt(var_a), b_se=np.sqrt(var_b) if slope else var_b,
+        a=a, b=b, a_se=_sqrt(var_a), b_se=_sqrt(var_b) if slope else var_b,
         cov_ab=cov_ab, residual_std=np.sqrt(s2), n_obs=n_obs, n_used=n_used,
         iterations=it, converged=converged, weights=w, residuals=v,
     )
+
+
+def _sqrt(v: Array) -> Array:
+    """Square root of a variance; NaN (no standard error) where it is not >= 0."""
+    with np.errstate(invalid="ignore"):
+        return np.sqrt(v)
 
 
 def _irls(
@@ -503,6 +509,9 @@ def calibrate_pathloss(
     pool = fit_lines(
         x, y, np.zeros_like(g), 1, slope=slope, robust=weight, max_iter=max_iter, weights=sw
     )
+    names = {"log-distance": ("A", "n"), "attenuation-factor": ("faf", "gamma"),
+             "friis": ("p0",)}[model]
+    _check_determined(survey, per, pool, ids, d, g, names, pooled, "RSSI")
     rows = _assemble(per, pool, ids, slope)
     if model == "log-distance":
         table = _table(rows, {"A": "a", "n": "b"})
@@ -553,6 +562,8 @@ def calibrate_ranges(
     pool = fit_lines(
         x, y, np.zeros_like(g), 1, slope=scale, robust=weight, max_iter=max_iter, weights=sw
     )
+    _check_determined(survey, per, pool, ids, d, g, ("bias", "scale") if scale else ("bias",),
+                      pooled, "range")
     rows = _assemble(per, pool, ids, scale)
     table = _table(rows, {"bias": "a", "scale": "b"} if scale else {"bias": "a"})
     if not scale:
@@ -562,6 +573,61 @@ def calibrate_ranges(
         robust=None if weight is None else weight.name, unit="m",
         notes=_notes(per, ids, weight, 2 if scale else 1),
     )
+
+
+def _check_determined(
+    survey: pd.DataFrame, per: LineFit, pool: LineFit, ids: list[str], d: Array,
+    g: NDArray[np.int64], names: tuple[str, ...], pooled: bool, what: str,
+) -> None:
+    """Refuse a calibration whose parameters the survey cannot determine (issue 15).
+
+    * the pooled fit (used by every anchor with too few rows) needs more rows than
+      parameters: with ``n_used <= p`` there is no residual, hence no standard error and
+      no ``sigma``;
+    * a slope (``n``, ``gamma``, ``scale``) needs at least two distinct distances, in each
+      anchor's own fit (unless ``pooled``) and in the pooled one;
+    * the slope must come out positive: ``n <= 0`` (e.g. constant RSSI) cannot turn RSSI
+      into a distance, and ``scale <= 0`` cannot correct a range.
+
+    Raises :class:`InputError` naming the anchor, the parameter and why.
+    """
+    path = survey.attrs.get("path")
+    p = len(names)
+    both = " and ".join(names)
+    n_pool = int(pool.n_used[0])
+    if n_pool <= p:
+        raise InputError(
+            f"cannot determine {both}: {n_pool} usable survey row(s) for {p} "
+            f"parameter(s) (need at least {p + 1}, so that a standard error and the "
+            "noise sigma can be estimated)", path)
+    if p < 2:
+        return
+    slope = names[1]
+    m = len(ids)
+    dmin = np.full(m, np.inf)
+    dmax = np.full(m, -np.inf)
+    np.minimum.at(dmin, g, d)
+    np.maximum.at(dmax, g, d)
+    one = np.isclose(dmin, dmax, rtol=1e-9, atol=0.0)
+    own = per.n_used > p  # anchors with their own fit (the others take the pooled one)
+    for j in np.flatnonzero(one & own & (not pooled)):
+        raise InputError(
+            f"anchor {ids[j]}: cannot determine {slope}: all samples at one distance "
+            f"({dmin[j]:g} m; need at least two distinct distances)", path)
+    if np.isclose(d.min(), d.max(), rtol=1e-9, atol=0.0):
+        raise InputError(
+            f"cannot determine {slope}: all samples at one distance ({d.min():g} m; need "
+            "at least two distinct distances)", path)
+    why = ("the " + what + " does not fall with distance" if what == "RSSI"
+           else "ranges do not grow with distance")
+    check = [(ids[j], per.b[j]) for j in np.flatnonzero(own & (not pooled))]
+    check.append(("(pooled)", pool.b[0]))
+    for name, b in check:
+        if not (np.isfinite(b) and b > 0):
+            who = "pooled fit" if name == "(pooled)" else f"anchor {name}"
+            raise InputError(
+                f"{who}: cannot determine {slope}: fitted {slope} = {b:.3g} is not positive "
+                f"({why}; constant values?)", path)
 
 
 def _assemble(per: LineFit, pool: LineFit, ids: list[str], slope: bool) -> dict[str, Array]:
