@@ -72,9 +72,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="--self: solved dimension of the positions (default 2)")
     p.add_argument("--tag-height", type=finite_float, default=None, metavar="M",
                    help="--self, 2-D: tag height; the anchors' z gives the vertical offsets")
-    p.add_argument("--se-ratio", type=positive_float, default=1.0,
+    p.add_argument("--se-ratio", type=positive_float, default=3.0,
                    help="--self: leave out a parameter whose standard error exceeds this "
-                        "many sigma (default 1)")
+                        "many sigma (default 3)")
     p.add_argument("--measurements", help="build the survey from these measurements ...")
     p.add_argument("--truth", help="... and this truth (needs --anchors)")
     p.add_argument(
@@ -203,6 +203,7 @@ def run(args: argparse.Namespace) -> int:
         return _run_self(args)
     from robustloc.io import read_anchors, write_table
     from robustloc.models.calibration import (
+        POOLED,
         calibrate_pathloss,
         calibrate_ranges,
         default_p0_from_anchors,
@@ -220,16 +221,21 @@ def run(args: argparse.Namespace) -> int:
         res = calibrate_ranges(survey, scale=bool(args.scale), robust=args.robust,
                                pooled=args.pooled)
     out = res.apply_to_anchors(anchors)
-    if "sigma" in out.columns:
-        sg = out["sigma"].to_numpy(dtype=float)
-        bad = ~(np.isfinite(sg) & (sg > 0))
-        if bad.any():
-            from robustloc.errors import InputError
+    # the noise sigma written (and used by `locate` to weight the anchors): each anchor's
+    # residual std, the pooled one with --pooled; 1e-6 m or dB is far below any physical
+    # noise and above the rounding of an exact fit
+    t = res.table
+    rows = t[t["anchor"] == POOLED] if res.pooled else t[t["anchor"] != POOLED]
+    sg = rows["residual_std"].to_numpy(dtype=float)
+    bad = ~(np.isfinite(sg) & (sg > 1e-6))
+    if bad.any():
+        from robustloc.errors import InputError
 
-            raise InputError(
-                f"anchor {out['anchor'].iloc[int(np.argmax(bad))]}: cannot determine sigma: "
-                "the fit is exact (zero residual), `locate` could not weight the anchor",
-                survey.attrs.get("path"))
+        who = rows["anchor"].iloc[int(np.argmax(bad))]
+        who = "pooled fit" if who == POOLED else f"anchor {who}"
+        raise InputError(
+            f"{who}: cannot determine sigma: the fit is exact (zero residual), so `locate` "
+            "could not weight the anchor", survey.attrs.get("path"))
     path = write_table(out, args.out)
     if args.json:
         table = res.table.replace({np.nan: None})

@@ -165,7 +165,7 @@ class SelfCalibrator:
     igg3_k0: float = 2.0
     igg3_k1: float = 5.0
     rank_tol: float = 1e-8
-    se_ratio: float = 1.0
+    se_ratio: float = 3.0
     max_iter: int = 50
     tol: float = 1e-2
     bad_epoch_fraction: float = 0.5
@@ -424,8 +424,8 @@ class SelfCalibrator:
         sigma_i^2``, an ``m x m`` linear system.  Not iterated on the variances
         themselves (so no anchor's estimate can pull itself to zero), the estimate of a
         precise anchor is not inflated by the others' noise (as a plain pooled residual
-        scale is).  Negative or undetermined solutions fall back to the residual scale
-        of the anchor's own residuals.
+        scale is).  Truncated below at half the scale of the anchor's own residuals
+        ``sqrt(sum w v^2 / B_jj)``; an undetermined solution falls back to that scale.
 
         The robust weights shrink the tails: ``sum w v^2`` is divided by
         ``kappa = E[w(u) u^2] / P(w(u) > 0)`` for standard normal ``u``
@@ -439,8 +439,12 @@ class SelfCalibrator:
             var = np.linalg.solve(B, s)
         except np.linalg.LinAlgError:
             var = np.full(m, np.nan)
-        ok = np.isfinite(var) & (var > 0) & (np.sum(W > 0, axis=0) > 0)
-        out = np.where(ok, np.sqrt(np.where(ok, var, 1.0)), naive)
+        ok = np.isfinite(var) & (np.sum(W > 0, axis=0) > 0)
+        # truncated MINQUE: the estimate of a small component is noisy (with 300 epochs it
+        # came out at 0.013 m for a 0.10 m anchor, whose weight then pinned every fix);
+        # it is not allowed below half the scale of the anchor's own residuals
+        var = np.maximum(np.where(ok, var, 0.0), (0.5 * naive) ** 2)
+        out = np.where(ok, np.sqrt(var), naive)
         pos = np.isfinite(out) & (out > 0)
         fill = float(np.median(out[pos])) if pos.any() else 1.0
         return np.where(pos, out, fill)
@@ -489,7 +493,12 @@ class SelfCalibrator:
             if ev[0] >= self.rank_tol:
                 break
             comp = np.abs(vec[:, 0])
-            k = int(F[np.argmax(comp)])
+            # the parameter with the largest share of the null direction; among near
+            # ties (within 10 %) a slope goes first (an offset is the more common need)
+            near = comp >= 0.9 * comp.max()
+            slope_first = near & (F % 2 == 1)
+            pick = np.flatnonzero(slope_first if slope_first.any() else near)
+            k = int(F[pick[np.argmax(comp[pick])]])
             others = [int(F[i]) for i in np.argsort(-comp)[1:4] if comp[i] > 0.2]
             names = PARAM_NAMES[self.kind]
             partners = ", ".join(f"{names[q % 2]} of anchor {ids[q // 2]}" for q in others)
