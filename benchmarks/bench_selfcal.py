@@ -14,7 +14,8 @@ Errors are 2-D, against the truth, over the epochs where every method has a fix
 10 % below the best peer on uwb-labyrinth and on each wifi-rtt-rss room; no harm on
 uwb-dwm1001.  A second table compares the self-calibrated biases with a truth-based
 calibration of the same log (``calibrate_ranges(scale=True, robust="huber")`` on the survey
-built from the log and its truth), with standard errors.
+built from the log and its truth), with standard errors; the columns ``truth-cal rms`` are
+``locate`` with that truth-based calibration (in-sample: a reference, not a peer).
 
 Epochs: wifi-rtt-rss one per scan (test file); uwb-labyrinth (ranges arrive one anchor per
 0.128 s) four consecutive ranges, one per anchor, form an epoch at their mean time, truth
@@ -178,8 +179,20 @@ def run_set(name: str, data: Path, tmp: Path) -> tuple[list[dict], pd.DataFrame,
         truth["z"] = d["tag_height"]
     sv = survey_from_positions(meas.assign(tag=meas["tag"].astype(str)), truth, anchors,
                                dim=3 if d["tag_height"] is not None else 2)
-    tc = calibrate_ranges(sv, scale=True, robust="huber").table
+    tres = calibrate_ranges(sv, scale=True, robust="huber")
+    tc = tres.table
     tc = tc.set_index(tc["anchor"].astype(str))
+    # reference: locate with the truth-based calibration of the same log (in-sample)
+    tpath, ppath = tmp / f"{name}_truthcal.csv", tmp / f"{name}_truthpos.csv"
+    tres.apply_to_anchors(anchors).to_csv(tpath, index=False)
+    _cli(["locate", str(mpath), "--anchors", str(tpath), "-o", str(ppath),
+          "--method", "nls,huber", "--quiet", *th])
+    p = read_table(ppath)
+    for meth, g in p.groupby("method"):
+        g = g.set_index("time").reindex(d["time"])
+        e = np.hypot(g["x"].to_numpy(float) - d["truth"][:, 0],
+                     g["y"].to_numpy(float) - d["truth"][:, 1])
+        row[f"{meth} truth-cal rms"] = _stats(e[common & np.isfinite(e)])[0]
     bias = pd.DataFrame({
         "data set": name, "anchor": ids,
         "self bias": cal.loc[ids, "bias"].to_numpy(float),

@@ -62,6 +62,11 @@ standard error exceeds the documented bound is left out too and the log re-adjus
   ``f(rho)`` over the anchor's observations: the slope's uncertainty moves the predicted
   observations over the anchor's distances by more than one observation's noise).
 
+Far field: when the median start fix lies farther from the anchors' centroid than
+``far_field_ratio`` (3) times the anchors' extent, every slope is left out before the
+adjustment: a scale there is a radial stretch of the fixes, and a scale error is amplified
+into the fixes' angle by about distance / extent.
+
 Each left-out parameter gets a warning naming the anchor, the parameter and the reason.
 """
 
@@ -100,6 +105,9 @@ class SelfCalibration:
     epochs_total, epochs_used, epochs_no_redundancy, epochs_bad, epochs_no_start : int
     observations_rejected : int (weight 0 in epochs used)
     sigma0 : float, a-posteriori variance factor's square root.
+    min_eigenvalue : float, smallest eigenvalue of the correlation form of the reduced
+        normal matrix of the free parameters at the solution (1 / its square root is the
+        standard-error inflation of the worst-determined combination).
     iterations : int
     converged : bool
     warnings : list of str
@@ -128,6 +136,7 @@ class SelfCalibration:
     sigma0: float
     iterations: int
     converged: bool
+    min_eigenvalue: float = float("nan")
     warnings: list[str] = field(default_factory=list)
 
 
@@ -156,6 +165,10 @@ class SelfCalibrator:
         times its standard error.
     bad_epoch_fraction : float
         An epoch with more than this fraction of its observations rejected is left out.
+    far_field_ratio : float
+        Slopes are left out when the median distance of the start fixes from the anchors'
+        centroid exceeds this many times the anchors' extent (largest anchor distance from
+        the centroid).
     """
 
     kind: str = "range"
@@ -169,6 +182,7 @@ class SelfCalibrator:
     max_iter: int = 50
     tol: float = 1e-2
     bad_epoch_fraction: float = 0.5
+    far_field_ratio: float = 3.0
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -242,6 +256,22 @@ class SelfCalibrator:
             warnings.append(f"anchor {ids[j]}: no observation; its parameters are left at "
                             "the prior")
         left_out: dict[tuple[int, int], str] = {}
+        # far field: tags mostly far outside the anchors' extent (e.g. a 2 m cluster heard
+        # 5-50 m away): a scale is then a radial stretch of the fixes to O(extent /
+        # distance), and the amplification of a scale error into the angle of the fixes is
+        # of order distance / extent; slopes are left out (measured on uwb-dwm1001 LOS: a
+        # 0.9 % scale error on one anchor, 1.2 -> 2.9 m RMS)
+        centre = a.mean(axis=0)
+        extent = max(float(np.max(np.linalg.norm(a - centre, axis=1))), 1e-9)
+        if start_ok.any() and free[:, 1].any():
+            far = float(np.median(np.linalg.norm(x[start_ok] - centre, axis=1)))
+            if far > self.far_field_ratio * extent:
+                for j in np.flatnonzero(free[:, 1]):
+                    free[j, 1] = False
+                    left_out[(int(j), 1)] = (
+                        f"far field: the median tag distance from the anchors' centroid, "
+                        f"{far:.3g} m, exceeds {self.far_field_ratio:g} x their extent "
+                        f"{extent:.3g} m (a scale is a radial stretch of the fixes there)")
 
         stages: list[WeightFunction] = [Huber(self.huber_c)]
         if self.igg3_k1 > 0:
@@ -291,7 +321,7 @@ class SelfCalibrator:
             observations_rejected=int(np.sum((state["w"] == 0) & obs
                                              & state["used"][:, None])),
             sigma0=float(state["sigma0"]), iterations=total_it, converged=converged,
-            warnings=warnings,
+            min_eigenvalue=float(state["min_ev"]), warnings=warnings,
         )
 
     # ------------------------------------------------------------------ core
@@ -380,7 +410,7 @@ class SelfCalibrator:
         return {
             "x": x, "off": off, "slo": slo, "sigma": sigma, "w": w, "used": used,
             "no_red": no_red, "bad": bad, "cov": cov, "sigma0": np.sqrt(s02),
-            "iterations": it, "converged": converged, "fsd": fsd,
+            "iterations": it, "converged": converged, "fsd": fsd, "min_ev": sol["min_ev"],
         }
 
     def _linearize(
@@ -519,7 +549,8 @@ class SelfCalibrator:
             Sinv[np.ix_(F, F)] = SFi
         dx = np.einsum("kde,ke->kd", Ninv, gx - np.einsum("kdp,p->kd", Nxt, dth))
         blocks = np.stack([Sinv[2 * j:2 * j + 2, 2 * j:2 * j + 2] for j in range(m)])
-        return {"dx": dx, "dth": dth.reshape(m, 2), "Sinv": blocks}
+        min_ev = float(ev[0]) if F.size else float("nan")
+        return {"dx": dx, "dth": dth.reshape(m, 2), "Sinv": blocks, "min_ev": min_ev}
 
     @staticmethod
     def _leave_out(
