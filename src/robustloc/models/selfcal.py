@@ -523,9 +523,10 @@ class SelfCalibrator:
             if ev[0] >= self.rank_tol:
                 break
             comp = np.abs(vec[:, 0])
-            # the parameter with the largest share of the null direction; among near
-            # ties (within 10 %) a slope goes first (an offset is the more common need)
-            near = comp >= 0.9 * comp.max()
+            # among the parameters involved in the null direction (component at least
+            # 10 % of the largest) a slope goes first (an offset is the more common need),
+            # the one with the largest share of that direction
+            near = comp >= 0.1 * comp.max()
             slope_first = near & (F % 2 == 1)
             pick = np.flatnonzero(slope_first if slope_first.any() else near)
             k = int(F[pick[np.argmax(comp[pick])]])
