@@ -47,7 +47,8 @@ reweighted least squares (IRLS) on the whole log:
 
 Bad epochs: an epoch whose position cannot be solved (no start, singular ``N_kk``), whose
 observations with non-zero weight are at most ``dim`` (no redundancy: it says nothing about
-the calibration), or in which more than half of the observations are rejected (weight 0)
+the calibration), in which more than half of the observations are rejected (weight 0), or
+whose observations in use fail the global test ``sum w u^2 > chi2_{0.999}(n_w - dim)``
 is left out of the adjustment and counted.
 
 Observability: the correlation form ``D^-1/2 S D^-1/2`` of the reduced normal matrix is
@@ -165,6 +166,8 @@ class SelfCalibrator:
         times its standard error.
     bad_epoch_fraction : float
         An epoch with more than this fraction of its observations rejected is left out.
+    epoch_alpha : float
+        Significance of the global test of each epoch (its observations in use).
     far_field_ratio : float
         Slopes are left out when the median distance of the start fixes from the anchors'
         centroid exceeds this many times the anchors' extent (largest anchor distance from
@@ -180,8 +183,9 @@ class SelfCalibrator:
     rank_tol: float = 1e-8
     se_ratio: float = 3.0
     max_iter: int = 50
-    tol: float = 1e-2
+    tol: float = 2e-2
     bad_epoch_fraction: float = 0.5
+    epoch_alpha: float = 1e-3
     far_field_ratio: float = 3.0
 
     def __post_init__(self) -> None:
@@ -360,7 +364,7 @@ class SelfCalibrator:
             with np.errstate(invalid="ignore", divide="ignore"):
                 u = veq / np.sqrt(np.einsum("kji,i->kj", R2, sigma**2))
             w = np.where(obs, np.nan_to_num(wf.weights(np.where(obs, u, 0.0)), nan=0.0), 0.0)
-            used, bad = self._epochs(w, obs, base & regular, dim)
+            used, bad = self._epochs(w, u, obs, base & regular, dim)
             bad |= (base & ~regular) | lost
             P = np.where(used[:, None], w / sigma[None, :] ** 2, 0.0)
             Jt = np.stack([np.ones_like(fval), fval], axis=-1)  # (N, m, 2)
@@ -369,7 +373,7 @@ class SelfCalibrator:
             # relaxation against the 2-cycles of IRLS (weights flipping between two
             # states): a step that reverses the previous one is halved, down to 1/8
             if prev_dth is not None and float(np.sum(dth * prev_dth)) < 0:
-                lam = max(0.5 * lam, 0.125)
+                lam = max(0.5 * lam, 1.0 / 32.0)
             prev_dth = dth
             dx, dth = lam * dx, lam * dth
             # trust region of the positions: a step at most half the anchors' extent, and an
@@ -383,11 +387,17 @@ class SelfCalibrator:
             slo = slo + dth[:, 1]
             se = np.sqrt(np.maximum(np.diagonal(sol["Sinv"], axis1=1, axis2=2), 0.0))
             with np.errstate(invalid="ignore", divide="ignore"):
+                # the step applied (relaxed): at a 2-cycle any point between is as good
                 rel = np.where(free & (se > 0), np.abs(dth) / se, 0.0)
             # the calibration is converged when no parameter moves by more than tol of its
             # standard error (twice in a row: IRLS weights of low-redundancy epochs can
             # flip between iterations); positions follow from it
             small = np.max(rel, initial=0.0) < self.tol
+            if np.max(rel, initial=0.0) < 1.0:
+                # the parameters have settled (steps below one standard error): the bad
+                # epochs found so far stay out, so that the set cannot flip back and forth
+                lost |= bad
+                base &= ~lost
             if small and last_small and it > 2:
                 converged = True
                 break
@@ -480,12 +490,22 @@ class SelfCalibrator:
         return np.where(pos, out, fill)
 
     def _epochs(
-        self, w: Array, obs: NDArray[np.bool_], cand: NDArray[np.bool_], dim: int
+        self, w: Array, u: Array, obs: NDArray[np.bool_], cand: NDArray[np.bool_], dim: int
     ) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
-        """Epochs used, and candidates left out as bad (too many rejections)."""
+        """Epochs used, and candidates left out as bad: too many rejections, no
+        redundancy left, or the global test of the epoch's observations in use fails
+        (``sum w u^2 > chi2_{1 - epoch_alpha}(n_w - dim)``, seed 003's global test)."""
+        from scipy.stats import chi2
+
         n_obs = obs.sum(axis=1)
-        n_w = np.sum((w > 0) & obs, axis=1)
-        bad = cand & ((n_w <= dim) | (n_obs - n_w > self.bad_epoch_fraction * n_obs))
+        inl = (w > 0) & obs
+        n_w = inl.sum(axis=1)
+        red = n_w - dim
+        T = np.sum(np.where(inl, w * np.nan_to_num(u) ** 2, 0.0), axis=1)
+        with np.errstate(invalid="ignore"):
+            crit = chi2.ppf(1.0 - self.epoch_alpha, np.maximum(red, 1))
+        bad = cand & ((red <= 0) | (n_obs - n_w > self.bad_epoch_fraction * n_obs)
+                      | (T > crit))
         return cand & ~bad, bad
 
     def _solve(
