@@ -29,9 +29,15 @@ bias and scale (ranges), or A and n (RSSI, log-distance; p0 and gamma with
 every epoch's position, from the redundancy across epochs, the anchor coordinates being the
 datum (robust joint Gauss-Newton, positions eliminated by the Schur complement; see
 robustloc.models.selfcal).  Bad epochs are left out and counted.  A parameter the log
-cannot determine (inseparable from the positions, or a standard error above sigma) gets a
-warning and is left at its prior (bias 0, scale 1, or the anchors file's A, n).
-Writes the columns bias, scale, sigma (or A, n, sigma) and their standard errors.
+cannot determine (inseparable from the positions, a standard error above --se-ratio
+sigma, or a scale with the tags in the far field of the anchors) gets a warning and is left
+at its prior (bias 0, scale 1, or the anchors file's A, n).  Writes the columns bias,
+scale, sigma (or A, n, sigma) and their standard errors; the start fixes use the anchors
+file's A, n for RSSI.
+
+A survey that cannot determine a parameter (every sample at one distance, fewer rows than
+parameters + 1, constant values, an exact fit) is an error naming the anchor and the
+parameter (exit code 2).
 
 Prints each fit with standard errors and the residual standard deviation (dB or m);
 writes --anchors with the fitted columns added (or, without --anchors, the parameter
