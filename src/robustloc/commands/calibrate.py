@@ -177,6 +177,11 @@ def _run_self(args: argparse.Namespace) -> int:
         cal = SelfCalibrator("range", fit_slope=args.scale is not False,
                              se_ratio=args.se_ratio)
         res = cal.fit(xyz, ep.values, start.position, height_offset=height, anchor_ids=ids)
+    if res.epochs_used == 0:
+        raise InputError(
+            f"nothing to self-calibrate: no epoch has a fix with redundancy (need at least "
+            f"{args.dim + 1} anchors heard in one epoch; {res.epochs_total} epochs, "
+            f"{res.epochs_no_start} without a start fix)", args.self_log)
     table, out = self_calibration_table(res, anchors, model)
     path = write_table(out, args.out)
     summary = {

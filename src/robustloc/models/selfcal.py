@@ -258,7 +258,7 @@ class SelfCalibrator:
         warnings: list[str] = []
         for j in np.flatnonzero(heard == 0):
             warnings.append(f"anchor {ids[j]}: no observation; its parameters are left at "
-                            "the prior")
+                            "the prior and its sigma is the median of the other anchors'")
         left_out: dict[tuple[int, int], str] = {}
         # far field: tags mostly far outside the anchors' extent (e.g. a 2 m cluster heard
         # 5-50 m away): a scale is then a radial stretch of the fixes to O(extent /
@@ -277,6 +277,18 @@ class SelfCalibrator:
                         f"{far:.3g} m, exceeds {self.far_field_ratio:g} x their extent "
                         f"{extent:.3g} m (a scale is a radial stretch of the fixes there)")
 
+        # redundancy left for the calibration: observations of the epochs with a start and
+        # redundancy, minus their positions and the free parameters
+        n_k = obs.sum(axis=1)
+        cand = start_ok & (n_k > dim)
+        red = int(n_k[cand].sum()) - dim * int(cand.sum()) - int(free.sum())
+        if red <= 0 and free.any():
+            for j, p in zip(*np.nonzero(free)):
+                left_out[(int(j), int(p))] = (
+                    f"no redundancy left for it ({int(n_k[cand].sum())} observations in "
+                    f"epochs with a fix, for {dim * int(cand.sum())} position unknowns and "
+                    f"{int(free.sum())} parameters)")
+            free[:] = False
         stages: list[WeightFunction] = [Huber(self.huber_c)]
         if self.igg3_k1 > 0:
             stages.append(IGG3(self.igg3_k0, self.igg3_k1))
@@ -550,7 +562,8 @@ class SelfCalibrator:
             slope_first = near & (F % 2 == 1)
             pick = np.flatnonzero(slope_first if slope_first.any() else near)
             k = int(F[pick[np.argmax(comp[pick])]])
-            others = [int(F[i]) for i in np.argsort(-comp)[1:4] if comp[i] > 0.2]
+            others = [int(F[i]) for i in np.argsort(-comp)[:4]
+                      if comp[i] > 0.2 and int(F[i]) != k][:3]
             names = PARAM_NAMES[self.kind]
             partners = ", ".join(f"{names[q % 2]} of anchor {ids[q // 2]}" for q in others)
             why = ("inseparable from the positions" + (f" and from {partners}" if partners
