@@ -278,3 +278,15 @@ def test_d0_must_be_positive(tmp_path, capsys):
         main(["calibrate", str(s), "-o", str(tmp_path / "o.csv"), "--d0", "-1"])
     assert e.value.code == 2
     assert "--d0" in capsys.readouterr().err
+
+
+def test_cli_self_without_any_usable_epoch_is_an_error(tmp_path, capsys):
+    a = tmp_path / "a.csv"
+    a.write_text("anchor,x,y\na0,0,0\na1,1,0\n")
+    m = tmp_path / "m.csv"
+    m.write_text("time,tag,anchor,range\n0,t,a0,5\n0,t,a1,6\n1,t,a0,5\n1,t,a1,6\n")
+    out = tmp_path / "o.csv"
+    assert main(["calibrate", "--self", str(m), "--anchors", str(a), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {m}: nothing to self-calibrate")
+    assert not out.exists()
