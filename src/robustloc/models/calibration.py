@@ -49,6 +49,7 @@ import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
 from robustloc.errors import InputError
+from robustloc.models.selfcal import SelfCalibration
 from robustloc.robust.scale import MAD_NORMAL
 from robustloc.robust.weights import Huber, WeightFunction, get_weight
 
@@ -199,10 +200,16 @@ def fit_lines(
     a = np.where(few, np.nan, a)
     b = np.where(few, np.nan, b) if slope else b
     return LineFit(
-        a=a, b=b, a_se=np.sqrt(var_a), b_se=np.sqrt(var_b) if slope else var_b,
+        a=a, b=b, a_se=_sqrt(var_a), b_se=_sqrt(var_b) if slope else var_b,
         cov_ab=cov_ab, residual_std=np.sqrt(s2), n_obs=n_obs, n_used=n_used,
         iterations=it, converged=converged, weights=w, residuals=v,
     )
+
+
+def _sqrt(v: Array) -> Array:
+    """Square root of a variance; NaN (no standard error) where it is not >= 0."""
+    with np.errstate(invalid="ignore"):
+        return np.sqrt(v)
 
 
 def _irls(
@@ -502,6 +509,9 @@ def calibrate_pathloss(
     pool = fit_lines(
         x, y, np.zeros_like(g), 1, slope=slope, robust=weight, max_iter=max_iter, weights=sw
     )
+    names = {"log-distance": ("A", "n"), "attenuation-factor": ("faf", "gamma"),
+             "friis": ("p0",)}[model]
+    _check_determined(survey, per, pool, ids, d, g, names, pooled, "RSSI")
     rows = _assemble(per, pool, ids, slope)
     if model == "log-distance":
         table = _table(rows, {"A": "a", "n": "b"})
@@ -552,6 +562,8 @@ def calibrate_ranges(
     pool = fit_lines(
         x, y, np.zeros_like(g), 1, slope=scale, robust=weight, max_iter=max_iter, weights=sw
     )
+    _check_determined(survey, per, pool, ids, d, g, ("bias", "scale") if scale else ("bias",),
+                      pooled, "range")
     rows = _assemble(per, pool, ids, scale)
     table = _table(rows, {"bias": "a", "scale": "b"} if scale else {"bias": "a"})
     if not scale:
@@ -561,6 +573,61 @@ def calibrate_ranges(
         robust=None if weight is None else weight.name, unit="m",
         notes=_notes(per, ids, weight, 2 if scale else 1),
     )
+
+
+def _check_determined(
+    survey: pd.DataFrame, per: LineFit, pool: LineFit, ids: list[str], d: Array,
+    g: NDArray[np.int64], names: tuple[str, ...], pooled: bool, what: str,
+) -> None:
+    """Refuse a calibration whose parameters the survey cannot determine (issue 15).
+
+    * the pooled fit (used by every anchor with too few rows) needs more rows than
+      parameters: with ``n_used <= p`` there is no residual, hence no standard error and
+      no ``sigma``;
+    * a slope (``n``, ``gamma``, ``scale``) needs at least two distinct distances, in each
+      anchor's own fit (unless ``pooled``) and in the pooled one;
+    * the slope must come out positive: ``n <= 0`` (e.g. constant RSSI) cannot turn RSSI
+      into a distance, and ``scale <= 0`` cannot correct a range.
+
+    Raises :class:`InputError` naming the anchor, the parameter and why.
+    """
+    path = survey.attrs.get("path")
+    p = len(names)
+    both = " and ".join(names)
+    n_pool = int(pool.n_used[0])
+    if n_pool <= p:
+        raise InputError(
+            f"cannot determine {both}: {n_pool} usable survey row(s) for {p} "
+            f"parameter(s) (need at least {p + 1}, so that a standard error and the "
+            "noise sigma can be estimated)", path)
+    if p < 2:
+        return
+    slope = names[1]
+    m = len(ids)
+    dmin = np.full(m, np.inf)
+    dmax = np.full(m, -np.inf)
+    np.minimum.at(dmin, g, d)
+    np.maximum.at(dmax, g, d)
+    one = np.isclose(dmin, dmax, rtol=1e-9, atol=0.0)
+    own = per.n_used > p  # anchors with their own fit (the others take the pooled one)
+    for j in np.flatnonzero(one & own & (not pooled)):
+        raise InputError(
+            f"anchor {ids[j]}: cannot determine {slope}: all samples at one distance "
+            f"({dmin[j]:g} m; need at least two distinct distances)", path)
+    if np.isclose(d.min(), d.max(), rtol=1e-9, atol=0.0):
+        raise InputError(
+            f"cannot determine {slope}: all samples at one distance ({d.min():g} m; need "
+            "at least two distinct distances)", path)
+    why = ("the " + what + " does not fall with distance" if what == "RSSI"
+           else "ranges do not grow with distance")
+    check = [(ids[j], per.b[j]) for j in np.flatnonzero(own & (not pooled))]
+    check.append(("(pooled)", pool.b[0]))
+    for name, b in check:
+        if not (np.isfinite(b) and b > 0):
+            who = "pooled fit" if name == "(pooled)" else f"anchor {name}"
+            raise InputError(
+                f"{who}: cannot determine {slope}: fitted {slope} = {b:.3g} is not positive "
+                f"({why}; constant values?)", path)
 
 
 def _assemble(per: LineFit, pool: LineFit, ids: list[str], slope: bool) -> dict[str, Array]:
@@ -740,6 +807,59 @@ def _match_truth(
     return out
 
 
+def self_calibration_table(
+    res: SelfCalibration, anchors: pd.DataFrame, model: object | None = None
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The parameter table of a self-calibration and the anchors frame with its columns.
+
+    Ranges: ``bias, scale, sigma, bias_se, scale_se``.  RSSI: the log-distance ``A, n``;
+    for an attenuation-factor model (``model`` from
+    :func:`robustloc.models.pathloss.model_from_anchors`) ``p0 = A - faf - 10 gamma lg d0``
+    and ``gamma`` (its ``faf`` and ``d0`` kept), for Friis ``p0 = A - 20 lg d0``; standard
+    errors propagated from the ``(A, n)`` covariance.  Also ``n_obs``, ``n_used``,
+    ``calib_source = "self"`` and ``calib_fixed`` (the parameters left at their prior).
+    A left-out parameter has an empty standard error.
+    """
+    from robustloc.models.pathloss import AttenuationFactor, FreeSpace
+
+    ids = anchors["anchor"].astype(str).to_numpy()
+    off, slo, cov = res.offset, res.slope, res.cov
+    o_name, s_name = res.param_names
+    fixed = [";".join(n for n, f in zip(res.param_names, fr) if not f) for fr in res.free]
+    cols: dict[str, Array] = {}
+    drop: list[str] = []
+    if res.kind == "range":
+        cols = {"bias": off, "scale": slo, "sigma": res.sigma,
+                "bias_se": res.offset_se, "scale_se": res.slope_se}
+    elif isinstance(model, (AttenuationFactor, FreeSpace)):
+        m = len(ids)
+        d0 = np.broadcast_to(np.asarray(model.d0, dtype=float), (m,))
+        c = 10.0 * np.log10(d0)
+        if isinstance(model, AttenuationFactor):
+            faf = np.broadcast_to(np.asarray(model.faf, dtype=float), (m,))
+            p0 = off - faf - c * slo  # seed 002 eq. (5) as A - 10 gamma lg d
+            var = cov[:, 0, 0] + c * c * cov[:, 1, 1] - 2.0 * c * cov[:, 0, 1]
+            cols = {"p0": p0, "gamma": slo, "faf": faf, "d0": d0, "sigma": res.sigma,
+                    "p0_se": np.where(res.free[:, 0], np.sqrt(np.maximum(var, 0)), np.nan),
+                    "gamma_se": res.slope_se}
+        else:
+            cols = {"p0": off - 2.0 * c, "d0": d0, "sigma": res.sigma, "p0_se": res.offset_se}
+        drop = [c_ for c_ in _ALL_PATHLOSS_COLUMNS if c_ not in cols]
+    else:
+        cols = {"A": off, "n": slo, "sigma": res.sigma, "A_se": res.offset_se,
+                "n_se": res.slope_se}
+        drop = [c_ for c_ in _ALL_PATHLOSS_COLUMNS if c_ not in cols]
+    table = pd.DataFrame({"anchor": ids, **cols, "n_obs": res.n_obs, "n_used": res.n_used,
+                          "calib_fixed": fixed})
+    out = anchors.drop(columns=[c_ for c_ in drop + [f"{c_}_se" for c_ in drop]
+                                if c_ in anchors.columns]).copy()
+    for k, v in cols.items():
+        out[k] = np.asarray(v, dtype=float)
+    out["calib_source"] = "self"
+    out["calib_fixed"] = fixed
+    return table, out
+
+
 def default_p0_from_anchors(anchors: pd.DataFrame | None) -> dict[str, float] | None:
     """``{anchor: p0}`` from an anchors frame's ``p0`` column, if it has finite values."""
     if anchors is None or "p0" not in anchors.columns:
@@ -760,5 +880,6 @@ __all__: Sequence[str] = (
     "calibrate_ranges",
     "default_p0_from_anchors",
     "fit_lines",
+    "self_calibration_table",
     "survey_from_positions",
 )

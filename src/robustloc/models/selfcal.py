@@ -1,0 +1,664 @@
+"""Self-calibration without truth: per-anchor observation model jointly with the positions.
+
+Every observation of a log is modelled as (anchor ``j``, epoch ``k``)
+
+.. math::  z_{kj} = a_j + b_j f(\\rho_{kj}) + e_{kj},\\quad
+           \\rho_{kj} = \\sqrt{|x_k - p_j|^2 + h_j^2},\\quad e_{kj} \\sim (0, \\sigma_j^2)
+
+* ranges: ``f(rho) = rho``, ``a = bias`` (m), ``b = scale``, prior ``(0, 1)``; this is the
+  survey model of :func:`robustloc.models.calibration.calibrate_ranges`;
+* RSSI (log-distance, seed 000 eq. (1)): ``f(rho) = -10 lg rho``, ``a = A`` (dBm),
+  ``b = n``, prior the anchors file's ``A, n`` (the attenuation-factor and Friis models
+  are the same line, seed 002 eqs. (4)-(5), see :func:`robustloc.models.pathloss`).
+
+The anchor coordinates ``p_j`` are the datum (held fixed); ``h_j`` are known
+anchor-minus-tag heights of a 2-D solution from slant observations (else 0).  The unknowns
+are every epoch's position ``x_k`` (``dim`` each) and the free calibration parameters
+``theta = (a_j, b_j)``.  They are estimated together by Gauss-Newton with iteratively
+reweighted least squares (IRLS) on the whole log:
+
+1. Normal equations of the joint problem, ordered (positions, theta)::
+
+       [ N_xx   N_xt ] [dx]   [g_x]        N_xx block diagonal, one (dim x dim) block
+       [ N_tx   N_tt ] [dt] = [g_t]        per epoch
+
+   with ``N = J^T W J``, ``g = J^T W v``, ``v = z - model``, ``W = w(u) / sigma_j^2``.
+2. The positions are eliminated epoch by epoch (Schur complement, e.g. Triggs et al.,
+   "Bundle adjustment - a modern synthesis", 2000, sec. 6.1)::
+
+       S = N_tt - sum_k N_tk N_kk^-1 N_kt,      S dt = g_t - sum_k N_tk N_kk^-1 g_k
+       dx_k = N_kk^-1 (g_k - N_kt dt)
+
+   ``S`` is small (two parameters per anchor); the eliminations are batched over epochs.
+3. ``sigma_j``: variance components over the whole log (MINQUE, see :meth:`_vce`)
+   from the residuals ``v_eq = R_k v`` of each epoch's fix with the robust weights alone,
+   ``E v_eq,j^2 = sum_i R_k,ji^2 sigma_i^2``.  (The iterated per-anchor scale of
+   weighted residuals, Foerstner's VCE, drifts for a precise anchor of high leverage: on a
+   simulated 5-anchor room it took a 0.10 m anchor to 0.06 m in 30 iterations.)
+   Robust weights ``w(u)``, ``u = v_eq / sqrt(sum_i R^2 sigma_i^2)``: Huber (c = 1.5) until
+   convergence, then the redescending IGG-III (k0 = 2, k1 = 5: full weight within 2 sigma,
+   about 95 % of Gaussian data; zero weight beyond 5 sigma) so that gross errors get
+   no weight at all.
+4. Covariance of theta: ``sigma0^2 S^-1`` (``S^-1`` is exactly the theta block of the
+   inverse of the joint normal matrix), ``sigma0^2 = sum W v^2 / kappa / (n_used - u)``
+   the a-posteriori variance factor (``kappa`` the weights' consistency factor, see
+   :meth:`SelfCalibrator._vce`; the final weights taken as known, as in
+   :func:`robustloc.models.calibration.fit_lines`).
+
+Bad epochs: an epoch whose position cannot be solved (no start, singular ``N_kk``), whose
+observations with non-zero weight are at most ``dim`` (no redundancy: it says nothing about
+the calibration), in which more than half of the observations are rejected (weight 0), or
+whose observations in use fail the global test ``sum w u^2 > chi2_{0.999}(n_w - dim)``
+is left out of the adjustment and counted.
+
+Observability: the correlation form ``D^-1/2 S D^-1/2`` of the reduced normal matrix is
+tested by its eigenvalues.  While the smallest is below ``rank_tol`` the parameter with the
+largest component in that eigenvector is left out (fixed at its prior); this catches
+exactly inseparable parameters (e.g. every epoch at one point: bias and scale of an anchor;
+collinear anchors with the tag on their line).  After convergence a parameter whose
+standard error exceeds the documented bound is left out too and the log re-adjusted:
+
+* offset ``a_j``: ``se(a_j) > se_ratio * sigma_j`` (known no better than one observation);
+* slope ``b_j``: ``se(b_j) * sd_j(f) > se_ratio * sigma_j`` (``sd_j(f)`` the spread of
+  ``f(rho)`` over the anchor's observations: the slope's uncertainty moves the predicted
+  observations over the anchor's distances by more than one observation's noise).
+
+Far field: when the median start fix lies farther from the anchors' centroid than
+``far_field_ratio`` (3) times the anchors' extent, every slope is left out before the
+adjustment: a scale there is a radial stretch of the fixes, and a scale error is amplified
+into the fixes' angle by about distance / extent.
+
+Each left-out parameter gets a warning naming the anchor, the parameter and the reason.
+
+Limits (measured, ``benchmarks/bench_selfcal.py``): every epoch's position is its own
+unknown, so the estimate carries an incidental-parameter bias of order ``sigma^2`` that does
+not shrink with the length of the log (Neyman & Scott 1948); with 2-3 dB RSSI noise it
+reaches several standard errors along the common mode of (A, n).  A common bias and a
+common scale of all anchors are weakly determined when the tags stay near the anchors' line
+(wifi-rtt-rss office: smallest eigenvalue 0.045); there the self-calibration moves
+``locate`` RMS from 1.33 to 1.52 m, while a truth-based calibration reaches 1.21 m.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from robustloc.robust.weights import IGG3, Huber, WeightFunction
+
+Array = NDArray[np.float64]
+
+KINDS = ("range", "rssi")
+_LN10 = np.log(10.0)
+#: Parameter names per kind: (offset, slope).
+PARAM_NAMES = {"range": ("bias", "scale"), "rssi": ("A", "n")}
+
+
+@dataclass(frozen=True)
+class SelfCalibration:
+    """Result of :meth:`SelfCalibrator.fit`.
+
+    Attributes
+    ----------
+    offset, slope : (m,) estimates (``bias, scale`` or ``A, n``); prior where left out.
+    offset_se, slope_se : (m,) standard errors; NaN where left out (fixed).
+    cov : (m, 2, 2) covariance of ``(offset, slope)`` per anchor (0 rows where fixed).
+    sigma : (m,) robust standard deviation of one observation (m or dB).
+    free : (m, 2) bool, which parameters were estimated.
+    positions : (N, dim) adjusted positions (NaN for epochs left out).
+    epoch_used : (N,) bool.
+    weights : (N, m) final robust weights (NaN: not observed).
+    n_obs, n_used : (m,) observations per anchor, and with non-zero weight.
+    epochs_total, epochs_used, epochs_no_redundancy, epochs_bad, epochs_no_start : int
+    observations_rejected : int (weight 0 in epochs used)
+    sigma0 : float, a-posteriori variance factor's square root.
+    min_eigenvalue : float, smallest eigenvalue of the correlation form of the reduced
+        normal matrix of the free parameters at the solution (1 / its square root is the
+        standard-error inflation of the worst-determined combination).
+    iterations : int
+    converged : bool
+    warnings : list of str
+    """
+
+    kind: str
+    param_names: tuple[str, str]
+    offset: Array
+    slope: Array
+    offset_se: Array
+    slope_se: Array
+    cov: Array
+    sigma: Array
+    free: NDArray[np.bool_]
+    positions: Array
+    epoch_used: NDArray[np.bool_]
+    weights: Array
+    n_obs: NDArray[np.int64]
+    n_used: NDArray[np.int64]
+    epochs_total: int
+    epochs_used: int
+    epochs_no_redundancy: int
+    epochs_bad: int
+    epochs_no_start: int
+    observations_rejected: int
+    sigma0: float
+    iterations: int
+    converged: bool
+    min_eigenvalue: float = float("nan")
+    warnings: list[str] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class SelfCalibrator:
+    """Settings of a self-calibration; :meth:`fit` takes the log (see the module notes).
+
+    Parameters
+    ----------
+    kind : {"range", "rssi"}
+    fit_offset, fit_slope : bool
+        Estimate the offset (bias / A) and the slope (scale / n) of every anchor.
+    huber_c : float
+        Huber threshold of the first IRLS stage (standardized residuals).
+    igg3_k0, igg3_k1 : float
+        IGG-III thresholds of the final, redescending stage (``k1 <= 0``: no such stage).
+    rank_tol : float
+        Smallest eigenvalue of the correlation form of the reduced normal matrix below
+        which a parameter is inseparable from the others.
+    se_ratio : float
+        Bound of the standard-error test (module notes), in units of ``sigma_j``.
+    max_iter : int
+        Gauss-Newton/IRLS iterations per stage.
+    tol : float
+        Stop when, in two successive iterations, every parameter step is below ``tol``
+        times its standard error.
+    bad_epoch_fraction : float
+        An epoch with more than this fraction of its observations rejected is left out.
+    epoch_alpha : float
+        Significance of the global test of each epoch (its observations in use).
+    far_field_ratio : float
+        Slopes are left out when the median distance of the start fixes from the anchors'
+        centroid exceeds this many times the anchors' extent (largest anchor distance from
+        the centroid).
+    """
+
+    kind: str = "range"
+    fit_offset: bool = True
+    fit_slope: bool = True
+    huber_c: float = 1.5
+    igg3_k0: float = 2.0
+    igg3_k1: float = 5.0
+    rank_tol: float = 1e-8
+    se_ratio: float = 3.0
+    max_iter: int = 50
+    tol: float = 2e-2
+    bad_epoch_fraction: float = 0.5
+    epoch_alpha: float = 1e-3
+    far_field_ratio: float = 3.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"kind must be 'range' or 'rssi', got {self.kind!r}")
+        for name in ("huber_c", "rank_tol", "se_ratio", "tol"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be positive and finite, got {v}")
+        if self.max_iter < 1:
+            raise ValueError(f"max_iter must be >= 1, got {self.max_iter}")
+        if not 0 < self.bad_epoch_fraction <= 1:
+            raise ValueError("bad_epoch_fraction must be in (0, 1]")
+
+    # ------------------------------------------------------------------ model
+    def _f(self, rho: Array) -> tuple[Array, Array]:
+        """``f(rho)`` and ``f'(rho)``."""
+        if self.kind == "range":
+            return rho, np.ones_like(rho)
+        r = np.maximum(rho, 1e-3)
+        return -10.0 * np.log10(r), -10.0 / (r * _LN10)
+
+    # ------------------------------------------------------------------ fit
+    def fit(
+        self,
+        anchors: ArrayLike,
+        values: ArrayLike,
+        x0: ArrayLike,
+        *,
+        offset0: ArrayLike | None = None,
+        slope0: ArrayLike | None = None,
+        height_offset: ArrayLike | None = None,
+        anchor_ids: list[str] | None = None,
+    ) -> SelfCalibration:
+        """Adjust the log.
+
+        Parameters
+        ----------
+        anchors : (m, dim) anchor coordinates (the datum).
+        values : (N, m) ranges (m) or RSSI (dBm) per epoch; NaN = not heard.
+        x0 : (N, dim) start positions (e.g. robust fixes with the prior calibration);
+            NaN rows are left out (counted as ``epochs_no_start``).
+        offset0, slope0 : (m,) priors (default bias 0 / scale 1; required for RSSI).
+        height_offset : (m,) anchor-minus-tag heights for 2-D fixes from slant values.
+        anchor_ids : names used in the warnings (default ``"0", "1", ...``).
+        """
+        a = np.asarray(anchors, dtype=float)
+        z = np.asarray(values, dtype=float)
+        x = np.array(x0, dtype=float, copy=True)
+        m, dim = a.shape
+        N = z.shape[0]
+        if z.shape != (N, m) or x.shape != (N, dim):
+            raise ValueError(f"values must be (N, {m}) and x0 (N, {dim})")
+        ids = list(anchor_ids) if anchor_ids is not None else [str(i) for i in range(m)]
+        names = PARAM_NAMES[self.kind]
+        if self.kind == "rssi" and (offset0 is None or slope0 is None):
+            raise ValueError("RSSI self-calibration needs the prior A and n of every anchor")
+        off = np.zeros(m) if offset0 is None else np.array(offset0, dtype=float)
+        slo = np.ones(m) if slope0 is None else np.array(slope0, dtype=float)
+        off_prior, slo_prior = off.copy(), slo.copy()
+        h2 = np.zeros(m) if height_offset is None else np.asarray(height_offset, float) ** 2
+        obs = np.isfinite(z)
+        start_ok = np.all(np.isfinite(x), axis=1)
+        x[~start_ok] = 0.0
+        free = np.zeros((m, 2), dtype=bool)
+        free[:, 0] = self.fit_offset
+        free[:, 1] = self.fit_slope
+        heard = obs.sum(axis=0)
+        free[heard == 0] = False
+        warnings: list[str] = []
+        for j in np.flatnonzero(heard == 0):
+            warnings.append(f"anchor {ids[j]}: no observation; its parameters are left at "
+                            "the prior and its sigma is the median of the other anchors'")
+        left_out: dict[tuple[int, int], str] = {}
+        # far field: tags mostly far outside the anchors' extent (e.g. a 2 m cluster heard
+        # 5-50 m away): a scale is then a radial stretch of the fixes to O(extent /
+        # distance), and the amplification of a scale error into the angle of the fixes is
+        # of order distance / extent; slopes are left out (measured on uwb-dwm1001 LOS: a
+        # 0.9 % scale error on one anchor, 1.2 -> 2.9 m RMS)
+        centre = a.mean(axis=0)
+        extent = max(float(np.max(np.linalg.norm(a - centre, axis=1))), 1e-9)
+        if start_ok.any() and free[:, 1].any():
+            far = float(np.median(np.linalg.norm(x[start_ok] - centre, axis=1)))
+            if far > self.far_field_ratio * extent:
+                for j in np.flatnonzero(free[:, 1]):
+                    free[j, 1] = False
+                    left_out[(int(j), 1)] = (
+                        f"far field: the median tag distance from the anchors' centroid, "
+                        f"{far:.3g} m, exceeds {self.far_field_ratio:g} x their extent "
+                        f"{extent:.3g} m (a scale is a radial stretch of the fixes there)")
+
+        # redundancy left for the calibration: observations of the epochs with a start and
+        # redundancy, minus their positions and the free parameters
+        n_k = obs.sum(axis=1)
+        cand = start_ok & (n_k > dim)
+        red = int(n_k[cand].sum()) - dim * int(cand.sum()) - int(free.sum())
+        if red <= 0 and free.any():
+            for j, p in zip(*np.nonzero(free)):
+                left_out[(int(j), int(p))] = (
+                    f"no redundancy left for it ({int(n_k[cand].sum())} observations in "
+                    f"epochs with a fix, for {dim * int(cand.sum())} position unknowns and "
+                    f"{int(free.sum())} parameters)")
+            free[:] = False
+        stages: list[WeightFunction] = [Huber(self.huber_c)]
+        if self.igg3_k1 > 0:
+            stages.append(IGG3(self.igg3_k0, self.igg3_k1))
+        total_it = 0
+        converged = True
+        state = None
+        for _round in range(2 * m + 2):  # re-adjust after each se-test exclusion
+            for wf in stages:
+                state = self._iterate(a, z, obs, x, off, slo, h2, free, start_ok, wf,
+                                      left_out, ids)
+                x, off, slo = state["x"], state["off"], state["slo"]
+                total_it += state["iterations"]
+                converged = state["converged"]
+            # standard-error test: leave out the worst offending parameter, re-adjust
+            worst = self._se_test(state, free, ids, left_out)
+            if worst is None:
+                break
+            j, p = worst
+            free[j, p] = False
+            off[j], slo[j] = (off_prior[j], slo[j]) if p == 0 else (off[j], slo_prior[j])
+        assert state is not None
+        for (j, p), why in left_out.items():
+            warnings.append(f"anchor {ids[j]}: cannot determine {names[p]}: {why}; left out "
+                            f"(fixed at its prior {names[p]} = "
+                            f"{(off_prior if p == 0 else slo_prior)[j]:g})")
+        for (j, p) in left_out:
+            if p == 0:
+                off[j] = off_prior[j]
+            else:
+                slo[j] = slo_prior[j]
+        if not converged:
+            warnings.append(f"self-calibration stopped at the iteration limit ({self.max_iter})")
+        cov = state["cov"]
+        se_off = np.where(free[:, 0], np.sqrt(cov[:, 0, 0]), np.nan)
+        se_slo = np.where(free[:, 1], np.sqrt(cov[:, 1, 1]), np.nan)
+        return SelfCalibration(
+            kind=self.kind, param_names=names, offset=off, slope=slo,
+            offset_se=se_off, slope_se=se_slo, cov=cov, sigma=state["sigma"], free=free,
+            positions=np.where(state["used"][:, None], x, np.nan),
+            epoch_used=state["used"], weights=np.where(obs, state["w"], np.nan),
+            n_obs=heard.astype(np.int64),
+            n_used=np.sum((state["w"] > 0) & state["used"][:, None], axis=0).astype(np.int64),
+            epochs_total=N, epochs_used=int(state["used"].sum()),
+            epochs_no_redundancy=int(state["no_red"].sum()),
+            epochs_bad=int(state["bad"].sum()), epochs_no_start=int((~start_ok).sum()),
+            observations_rejected=int(np.sum((state["w"] == 0) & obs
+                                             & state["used"][:, None])),
+            sigma0=float(state["sigma0"]), iterations=total_it, converged=converged,
+            min_eigenvalue=float(state["min_ev"]), warnings=warnings,
+        )
+
+    # ------------------------------------------------------------------ core
+    def _iterate(
+        self, a: Array, z: Array, obs: NDArray[np.bool_], x: Array, off: Array, slo: Array,
+        h2: Array, free: NDArray[np.bool_], start_ok: NDArray[np.bool_], wf: WeightFunction,
+        left_out: dict[tuple[int, int], str], ids: list[str],
+    ) -> dict:
+        N, m = z.shape
+        dim = a.shape[1]
+        zz = np.where(obs, z, 0.0)
+        x = x.copy()
+        off, slo = off.copy(), slo.copy()
+        sigma = None
+        converged = False
+        it = 0
+        last_small = False
+        lam, prev_dth = 1.0, None
+        kappa = _consistency(wf)
+        n_obs = obs.sum(axis=1)
+        no_red = start_ok & (n_obs <= dim)
+        base = start_ok & ~no_red
+        lost = np.zeros(N, dtype=bool)
+        centre = a.mean(axis=0)
+        extent = max(float(np.max(np.linalg.norm(a - centre, axis=1))), 1.0)
+        for it in range(1, self.max_iter + 1):
+            lin = self._linearize(a, zz, obs, x, off, slo, h2)
+            v, Jx, fval = lin["v"], lin["Jx"], lin["f"]
+            if sigma is None:  # first pass: unit weights, q_vv from the geometry alone
+                w = np.where(obs, 1.0, 0.0)
+                sigma = np.ones(m)
+            # q_vv = 1 - h, h the leverage of the observation within its epoch's fix
+            P = np.where(base[:, None], w, 0.0) / sigma[None, :] ** 2
+            veq, R2, regular = self._robust_fit(Jx, np.where(base[:, None], w, 0.0), v)
+            sigma = self._vce(veq, R2, np.where(base[:, None] & obs, w, 0.0), kappa)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                u = veq / np.sqrt(np.einsum("kji,i->kj", R2, sigma**2))
+            w = np.where(obs, np.nan_to_num(wf.weights(np.where(obs, u, 0.0)), nan=0.0), 0.0)
+            used, bad = self._epochs(w, u, obs, base & regular, dim)
+            bad |= (base & ~regular) | lost
+            P = np.where(used[:, None], w / sigma[None, :] ** 2, 0.0)
+            Jt = np.stack([np.ones_like(fval), fval], axis=-1)  # (N, m, 2)
+            sol = self._solve(Jx, Jt, P, v, free, used, left_out, ids)
+            dx, dth = sol["dx"], sol["dth"]
+            # relaxation against the 2-cycles of IRLS (weights flipping between two
+            # states): a step that reverses the previous one is halved, down to 1/8
+            if prev_dth is not None and float(np.sum(dth * prev_dth)) < 0:
+                lam = max(0.5 * lam, 1.0 / 32.0)
+            prev_dth = dth
+            dx, dth = lam * dx, lam * dth
+            # trust region of the positions: a step at most half the anchors' extent, and an
+            # epoch that leaves 3 extents around the anchors is lost (left out, bad)
+            step = np.linalg.norm(dx, axis=1, keepdims=True)
+            dx = dx * np.minimum(1.0, 0.5 * extent / np.maximum(step, 1e-300))
+            x = x + np.where(used[:, None], dx, 0.0)
+            lost |= used & (np.linalg.norm(x - centre, axis=1) > 3.0 * extent)
+            base &= ~lost
+            off = off + dth[:, 0]
+            slo = slo + dth[:, 1]
+            se = np.sqrt(np.maximum(np.diagonal(sol["Sinv"], axis1=1, axis2=2), 0.0))
+            with np.errstate(invalid="ignore", divide="ignore"):
+                # the step applied (relaxed): at a 2-cycle any point between is as good
+                rel = np.where(free & (se > 0), np.abs(dth) / se, 0.0)
+            # the calibration is converged when no parameter moves by more than tol of its
+            # standard error (twice in a row: IRLS weights of low-redundancy epochs can
+            # flip between iterations); positions follow from it
+            small = np.max(rel, initial=0.0) < self.tol
+            if np.max(rel, initial=0.0) < 1.0:
+                # the parameters have settled (steps below one standard error): the bad
+                # epochs found so far stay out, so that the set cannot flip back and forth
+                lost |= bad
+                base &= ~lost
+            if small and last_small and it > 2:
+                converged = True
+                break
+            last_small = small
+        # final quantities at the solution
+        lin = self._linearize(a, zz, obs, x, off, slo, h2)
+        v, Jx, fval = lin["v"], lin["Jx"], lin["f"]
+        P = np.where(used[:, None], w / sigma[None, :] ** 2, 0.0)
+        Jt = np.stack([np.ones_like(fval), fval], axis=-1)
+        sol = self._solve(Jx, Jt, P, v, free, used, left_out, ids)
+        n_used = int(np.sum(P > 0))
+        n_unk = int(used.sum()) * dim + int(free.sum())
+        dof = max(n_used - n_unk, 1)
+        s02 = float(np.sum(P * v * v) / kappa / dof)
+        cov = s02 * sol["Sinv"]
+        fsd = np.zeros(m)
+        for j in range(m):
+            sel = obs[:, j] & used & (w[:, j] > 0)
+            fsd[j] = float(np.std(fval[sel, j])) if sel.sum() > 1 else 0.0
+        return {
+            "x": x, "off": off, "slo": slo, "sigma": sigma, "w": w, "used": used,
+            "no_red": no_red, "bad": bad, "cov": cov, "sigma0": np.sqrt(s02),
+            "iterations": it, "converged": converged, "fsd": fsd, "min_ev": sol["min_ev"],
+        }
+
+    def _linearize(
+        self, a: Array, zz: Array, obs: NDArray[np.bool_], x: Array, off: Array,
+        slo: Array, h2: Array,
+    ) -> dict:
+        diff = x[:, None, :] - a[None, :, :]  # (N, m, dim)
+        rho = np.sqrt(np.sum(diff * diff, axis=-1) + h2[None, :])
+        rho = np.maximum(rho, 1e-6)
+        f, fp = self._f(rho)
+        pred = off[None, :] + slo[None, :] * f
+        v = np.where(obs, zz - pred, 0.0)
+        Jx = (slo[None, :] * fp / rho)[..., None] * diff  # d pred / d x
+        Jx = np.where(obs[..., None], Jx, 0.0)
+        return {"v": v, "Jx": Jx, "f": np.where(obs, f, 0.0)}
+
+    @staticmethod
+    def _robust_fit(
+        Jx: Array, W: Array, v: Array
+    ) -> tuple[Array, Array, NDArray[np.bool_]]:
+        """Residuals of each epoch's fix with the robust weights alone (no ``sigma``), and
+        the squares of its residual matrix.
+
+        ``R_k = I - J (J^T W J)^-1 J^T W`` maps the observation errors of epoch ``k`` to
+        its residuals: ``v_eq = R_k v`` (a change of the position is annihilated, so the
+        current residuals serve) and ``E v_eq,j^2 = sum_i R_k,ji^2 sigma_i^2``.  Returns
+        ``v_eq (N, m)``, ``R^2 (N, m, m)`` and whether ``J^T W J`` is regular.
+        """
+        Nxx = np.einsum("kjd,kj,kje->kde", Jx, W, Jx)
+        Ninv, regular = _inv_batched(Nxx)
+        H = np.einsum("kjd,kde,kie,ki->kji", Jx, Ninv, Jx, W)
+        R = np.eye(Jx.shape[1])[None] - H
+        veq = np.einsum("kji,ki->kj", R, v)
+        return veq, R * R, regular
+
+    @staticmethod
+    def _vce(veq: Array, R2: Array, W: Array, kappa: float) -> Array:
+        """Per-anchor variances from the whole log, unbiased (MINQUE with the robust
+        weights as the norm, Rao 1971; Koch, "Parameter Estimation and Hypothesis Testing
+        in Linear Models", sec. 3.6): ``sum_k w_kj v_kj^2 = sum_i (sum_k w_kj R_k,ji^2)
+        sigma_i^2``, an ``m x m`` linear system.  Not iterated on the variances
+        themselves (so no anchor's estimate can pull itself to zero), the estimate of a
+        precise anchor is not inflated by the others' noise (as a plain pooled residual
+        scale is).  Truncated below at half the scale of the anchor's own residuals
+        ``sqrt(sum w v^2 / B_jj)``; an undetermined solution falls back to that scale.
+
+        The robust weights shrink the tails: ``sum w v^2`` is divided by
+        ``kappa = E[w(u) u^2] / P(w(u) > 0)`` for standard normal ``u``
+        (:func:`_consistency`) and ``B`` counts the observations in use, so that the
+        estimate is consistent for Gaussian errors."""
+        m = veq.shape[1]
+        s = np.sum(W * veq * veq, axis=0) / kappa
+        B = np.einsum("kj,kji->ji", (W > 0).astype(float), R2)
+        naive = np.sqrt(s / np.maximum(np.diagonal(B), 1e-300))
+        try:
+            var = np.linalg.solve(B, s)
+        except np.linalg.LinAlgError:
+            var = np.full(m, np.nan)
+        ok = np.isfinite(var) & (np.sum(W > 0, axis=0) > 0)
+        # truncated MINQUE: the estimate of a small component is noisy (with 300 epochs it
+        # came out at 0.013 m for a 0.10 m anchor, whose weight then pinned every fix);
+        # it is not allowed below half the scale of the anchor's own residuals
+        var = np.maximum(np.where(ok, var, 0.0), (0.5 * naive) ** 2)
+        out = np.where(ok, np.sqrt(var), naive)
+        pos = np.isfinite(out) & (out > 0)
+        fill = float(np.median(out[pos])) if pos.any() else 1.0
+        return np.where(pos, out, fill)
+
+    def _epochs(
+        self, w: Array, u: Array, obs: NDArray[np.bool_], cand: NDArray[np.bool_], dim: int
+    ) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+        """Epochs used, and candidates left out as bad: too many rejections, no
+        redundancy left, or the global test of the epoch's observations in use fails
+        (``sum w u^2 > chi2_{1 - epoch_alpha}(n_w - dim)``, seed 003's global test)."""
+        from scipy.stats import chi2
+
+        n_obs = obs.sum(axis=1)
+        inl = (w > 0) & obs
+        n_w = inl.sum(axis=1)
+        red = n_w - dim
+        T = np.sum(np.where(inl, w * np.nan_to_num(u) ** 2, 0.0), axis=1)
+        with np.errstate(invalid="ignore"):
+            crit = chi2.ppf(1.0 - self.epoch_alpha, np.maximum(red, 1))
+        bad = cand & ((red <= 0) | (n_obs - n_w > self.bad_epoch_fraction * n_obs)
+                      | (T > crit))
+        return cand & ~bad, bad
+
+    def _solve(
+        self, Jx: Array, Jt: Array, P: Array, v: Array, free: NDArray[np.bool_],
+        used: NDArray[np.bool_], left_out: dict[tuple[int, int], str], ids: list[str],
+    ) -> dict:
+        """One Gauss-Newton step of the joint problem by the Schur complement."""
+        N, m, dim = Jx.shape
+        Nxx = np.einsum("kjd,kj,kje->kde", Jx, P, Jx)  # (N, dim, dim)
+        Nxx[~used] = np.eye(dim)
+        Ninv, _ = _inv_batched(Nxx)
+        gx = np.einsum("kjd,kj,kj->kd", Jx, P, v)
+        # N_xt: (N, dim, m, 2), only anchor j's own parameters touch observation (k, j)
+        Nxt = np.einsum("kjd,kj,kjp->kdjp", Jx, P, Jt).reshape(N, dim, 2 * m)
+        Ntt_blk = np.einsum("kjp,kj,kjq->jpq", Jt, P, Jt)  # (m, 2, 2)
+        gt = np.einsum("kjp,kj,kj->jp", Jt, P, v).reshape(2 * m)
+        M = np.einsum("kde,kep->kdp", Ninv, Nxt)  # N_kk^-1 N_kt
+        S = _block_diag(Ntt_blk) - np.einsum("kdp,kdq->pq", Nxt, M)
+        gr = gt - np.einsum("kdp,kd->p", M, gx)
+        S = 0.5 * (S + S.T)
+        # observability: leave out inseparable parameters until S_FF is regular
+        while True:
+            F = np.flatnonzero(free.reshape(-1))
+            if F.size == 0:
+                break
+            SF = S[np.ix_(F, F)]
+            d = np.sqrt(np.clip(np.diag(SF), 0.0, None))
+            tiny = d <= 1e-300
+            if tiny.any():
+                k = int(F[np.argmax(tiny)])
+                self._leave_out(free, left_out, k, "the log carries no information on it")
+                continue
+            C = SF / np.outer(d, d)
+            ev, vec = np.linalg.eigh(C)
+            if ev[0] >= self.rank_tol:
+                break
+            comp = np.abs(vec[:, 0])
+            # among the parameters involved in the null direction (component at least
+            # 10 % of the largest) a slope goes first (an offset is the more common need),
+            # the one with the largest share of that direction
+            near = comp >= 0.1 * comp.max()
+            slope_first = near & (F % 2 == 1)
+            pick = np.flatnonzero(slope_first if slope_first.any() else near)
+            k = int(F[pick[np.argmax(comp[pick])]])
+            others = [int(F[i]) for i in np.argsort(-comp)[:4]
+                      if comp[i] > 0.2 and int(F[i]) != k][:3]
+            names = PARAM_NAMES[self.kind]
+            partners = ", ".join(f"{names[q % 2]} of anchor {ids[q // 2]}" for q in others)
+            why = ("inseparable from the positions" + (f" and from {partners}" if partners
+                                                       else "")
+                   + f" (eigenvalue {max(ev[0], 0.0):.1e} of the reduced normal matrix "
+                   f"< {self.rank_tol:g})")
+            self._leave_out(free, left_out, k, why)
+        F = np.flatnonzero(free.reshape(-1))
+        dth = np.zeros(2 * m)
+        Sinv = np.zeros((2 * m, 2 * m))
+        if F.size:
+            SF = S[np.ix_(F, F)]
+            d = np.sqrt(np.diag(SF))
+            Ci = np.linalg.inv(SF / np.outer(d, d))
+            SFi = Ci / np.outer(d, d)
+            dth[F] = SFi @ gr[F]
+            Sinv[np.ix_(F, F)] = SFi
+        dx = np.einsum("kde,ke->kd", Ninv, gx - np.einsum("kdp,p->kd", Nxt, dth))
+        blocks = np.stack([Sinv[2 * j:2 * j + 2, 2 * j:2 * j + 2] for j in range(m)])
+        min_ev = float(ev[0]) if F.size else float("nan")
+        return {"dx": dx, "dth": dth.reshape(m, 2), "Sinv": blocks, "min_ev": min_ev}
+
+    @staticmethod
+    def _leave_out(
+        free: NDArray[np.bool_], left_out: dict[tuple[int, int], str], k: int, why: str
+    ) -> None:
+        j, p = divmod(k, 2)
+        free[j, p] = False
+        left_out.setdefault((j, p), why)
+
+    def _se_test(
+        self, state: dict, free: NDArray[np.bool_], ids: list[str],
+        left_out: dict[tuple[int, int], str],
+    ) -> tuple[int, int] | None:
+        cov, sigma, fsd = state["cov"], state["sigma"], state["fsd"]
+        se = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))  # (m, 2)
+        bound = self.se_ratio * sigma
+        ratio = np.zeros_like(se)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio[:, 0] = se[:, 0] / bound
+            ratio[:, 1] = se[:, 1] * fsd / bound
+        ratio = np.where(free, np.nan_to_num(ratio, nan=np.inf), 0.0)
+        j, p = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
+        if ratio[j, p] <= 1.0:
+            return None
+        names = PARAM_NAMES[self.kind]
+        unit = "m" if self.kind == "range" else "dB"
+        if p == 0:
+            why = (f"standard error {se[j, 0]:.3g} {unit} exceeds {self.se_ratio:g} x "
+                   f"sigma = {bound[j]:.3g} {unit}")
+        else:
+            why = (f"standard error {se[j, 1]:.3g} times the spread of the model term "
+                   f"{fsd[j]:.3g} exceeds {self.se_ratio:g} x sigma = {bound[j]:.3g} {unit}")
+        left_out.setdefault((int(j), int(p)), why)
+        _ = names
+        return int(j), int(p)
+
+
+def _consistency(wf: WeightFunction) -> float:
+    """``E[w(u) u^2] / P(w(u) > 0)`` for ``u ~ N(0, 1)`` (trapezoid rule on |u| <= 10,
+    step 1e-3: error far below 1e-6): divides a weighted sum of squared residuals into a
+    consistent variance estimate."""
+    u = np.linspace(-10.0, 10.0, 20001)
+    phi = np.exp(-0.5 * u * u) / np.sqrt(2.0 * np.pi)
+    w = np.nan_to_num(wf.weights(u), nan=0.0)
+    return float(np.trapezoid(w * u * u * phi, u) / np.trapezoid((w > 0) * phi, u))
+
+
+def _inv_batched(Nb: Array) -> tuple[Array, NDArray[np.bool_]]:
+    """Inverse of a batch of small SPD matrices, and which were regular (determinant above
+    1e-10 times the trace's power: condition number below about 1e10); singular blocks
+    give 0."""
+    det = np.linalg.det(Nb)
+    scale = np.einsum("kdd->k", Nb)
+    ok = np.isfinite(det) & (np.abs(det) > 1e-10 * np.maximum(scale, 1e-300) ** Nb.shape[-1])
+    out = np.zeros_like(Nb)
+    if ok.any():
+        out[ok] = np.linalg.inv(Nb[ok])
+    return out, ok
+
+
+def _block_diag(blocks: Array) -> Array:
+    m, p, _ = blocks.shape
+    out = np.zeros((m * p, m * p))
+    for j in range(m):
+        out[j * p:(j + 1) * p, j * p:(j + 1) * p] = blocks[j]
+    return out
+
+
+__all__ = ["PARAM_NAMES", "SelfCalibration", "SelfCalibrator"]

@@ -1,0 +1,292 @@
+"""Self-calibration without truth (`calibrate --self`, robustloc.models.selfcal).
+
+Tolerances: a parameter is recovered when ``|est - true| < 4 se`` (a 4-sigma bound: a
+false failure has probability 6e-5 per parameter for a correct estimator); the standard
+errors are checked against the Monte Carlo spread through the pooled standardized errors
+``z = (est - true) / se``, whose standard deviation must be 1 within 20 % (with 250
+values its own relative standard error is ``1 / sqrt(2 * 250) = 4.5 %``, so 20 % is a
+4.4-sigma bound).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from robustloc.cli import main
+from robustloc.models.selfcal import SelfCalibrator
+
+ANCHORS = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 8.0], [0.0, 8.0], [5.0, -2.0]])
+BIAS = np.array([0.3, -0.2, 0.5, 0.1, 0.0])
+SCALE = np.array([1.01, 0.99, 1.0, 1.02, 1.0])
+SIGMA = np.array([0.10, 0.20, 0.15, 0.10, 0.30])
+
+
+def _range_log(rng, n_epochs, gross=0.0, missing=0.1):
+    x = rng.uniform([1.0, 1.0], [9.0, 7.0], (n_epochs, 2))
+    d = np.linalg.norm(x[:, None, :] - ANCHORS[None], axis=-1)
+    z = SCALE * d + BIAS + rng.normal(size=d.shape) * SIGMA
+    z[rng.random(z.shape) < missing] = np.nan
+    if gross:
+        g = rng.random(z.shape) < gross
+        z[g] += rng.uniform(3.0, 10.0, int(g.sum()))  # NLOS-like, one-sided
+    return x, z
+
+
+def _start(rng, x):
+    return x + rng.normal(size=x.shape) * 0.3
+
+
+def test_range_bias_scale_sigma_recovered_within_standard_errors():
+    rng = np.random.default_rng(1)
+    x, z = _range_log(rng, 1500)
+    r = SelfCalibrator("range").fit(ANCHORS, z, _start(rng, x))
+    assert r.converged and not r.warnings
+    assert np.all(np.abs(r.offset - BIAS) < 4 * r.offset_se)
+    assert np.all(np.abs(r.slope - SCALE) < 4 * r.slope_se)
+    # sigma from ~1350 observations per anchor: relative se about 1/sqrt(2 n) = 2 %,
+    # plus the residual-matrix approximation; 15 % is a loose physical check
+    np.testing.assert_allclose(r.sigma, SIGMA, rtol=0.15)
+    assert 0.9 < r.sigma0 < 1.1
+    # the adjusted positions (epochs with redundancy) improve on the 0.3 m start
+    u = r.epoch_used
+    assert u.sum() > 0.9 * len(x)
+    assert np.sqrt(np.mean((r.positions[u] - x[u]) ** 2)) < 0.15
+
+
+def test_standard_errors_match_monte_carlo_spread():
+    z_all = []
+    for seed in range(25):
+        rng = np.random.default_rng(100 + seed)
+        x, z = _range_log(rng, 300)
+        r = SelfCalibrator("range").fit(ANCHORS, z, _start(rng, x))
+        z_all.append((r.offset - BIAS) / r.offset_se)
+        z_all.append((r.slope - SCALE) / r.slope_se)
+    zs = np.concatenate(z_all)
+    assert zs.size == 250
+    assert 0.8 < np.std(zs) < 1.2, np.std(zs)
+    assert abs(np.mean(zs)) < 4 / np.sqrt(zs.size) + 0.15  # no systematic bias
+
+
+def test_gross_errors_do_not_bias_the_estimate():
+    rng = np.random.default_rng(5)
+    x, z = _range_log(rng, 1500, gross=0.05)
+    r = SelfCalibrator("range").fit(ANCHORS, z, _start(rng, x))
+    assert np.all(np.abs(r.offset - BIAS) < 4 * r.offset_se)
+    assert np.all(np.abs(r.slope - SCALE) < 4 * r.slope_se)
+    n_gross = int(np.sum(np.isfinite(z)) * 0.05)
+    assert r.observations_rejected > 0.5 * n_gross
+
+
+def test_bad_epochs_are_left_out_and_counted():
+    rng = np.random.default_rng(6)
+    x, z = _range_log(rng, 1500, missing=0.0)
+    bad = rng.random(len(x)) < 0.05
+    # in a bad epoch, three of the five ranges carry independent gross errors
+    for k in np.flatnonzero(bad):
+        j = rng.choice(5, 3, replace=False)
+        z[k, j] += rng.uniform(2.0, 8.0, 3)
+    r = SelfCalibrator("range").fit(ANCHORS, z, _start(rng, x))
+    assert r.converged
+    # a majority of corrupted ranges that happens to agree on some position cannot be
+    # told from a good epoch; most are found (measured: 48 to 60 of 75)
+    assert r.epochs_bad >= 0.5 * bad.sum()
+    assert r.epochs_bad <= bad.sum() + 0.01 * len(x)  # few good epochs lost
+    assert r.epochs_used + r.epochs_bad + r.epochs_no_redundancy + r.epochs_no_start == len(x)
+    assert np.all(np.abs(r.offset - BIAS) < 4 * r.offset_se)
+    assert np.all(np.abs(r.slope - SCALE) < 4 * r.slope_se)
+
+
+def test_rssi_A_n_recovered_from_wrong_priors():
+    # 1 dB noise: every epoch's position is its own unknown, and the joint estimate of
+    # (A, n) carries an incidental-parameter bias of order sigma^2 that does not shrink
+    # with the number of epochs (Neyman & Scott 1948); measured here, along the common
+    # mode of all anchors: about -2 se at 1 dB and 1000 epochs, -3 to -6 se at 2 dB and
+    # 3000 epochs.  The test stays in the regime where it is below the 4-se bound.
+    rng = np.random.default_rng(9)
+    A = np.array([-45.0, -50.0, -48.0, -52.0, -47.0])
+    n = np.array([2.0, 2.4, 1.8, 2.2, 2.6])
+    sig = np.array([0.8, 1.2, 1.0, 0.8, 1.4])
+    x = rng.uniform([1.0, 1.0], [9.0, 7.0], (1000, 2))
+    d = np.linalg.norm(x[:, None, :] - ANCHORS[None], axis=-1)
+    rssi = A - 10 * n * np.log10(d) + rng.normal(size=d.shape) * sig
+    x0 = x + rng.normal(size=x.shape) * 1.0
+    r = SelfCalibrator("rssi").fit(ANCHORS, rssi, x0, offset0=A + 2.0, slope0=n + 0.3)
+    assert r.converged
+    assert r.free.all(), r.warnings
+    assert np.all(np.abs(r.offset - A) < 4 * r.offset_se)
+    assert np.all(np.abs(r.slope - n) < 4 * r.slope_se)
+    np.testing.assert_allclose(r.sigma, sig, rtol=0.15)
+
+
+def test_far_field_leaves_the_scales_out():
+    rng = np.random.default_rng(8)
+    a = np.array([[0.0, 0.0], [2.0, 0.0], [0.0, 2.0], [2.0, 2.0]])
+    x = np.c_[rng.uniform(5, 40, 600), rng.uniform(-5, 5, 600)]
+    d = np.linalg.norm(x[:, None, :] - a[None], axis=-1)
+    z = d + 0.1 + rng.normal(size=d.shape) * 0.05
+    r = SelfCalibrator("range").fit(a, z, x + 0.2, anchor_ids=list("ABCD"))
+    assert not r.free[:, 1].any()
+    assert np.all(r.slope == 1.0)
+    assert sum("cannot determine scale: far field" in w for w in r.warnings) == 4
+
+
+def test_every_epoch_at_one_point_is_flagged_and_left_out():
+    rng = np.random.default_rng(3)
+    x = np.tile([[4.0, 3.0]], (400, 1))
+    d = np.linalg.norm(x[:, None, :] - ANCHORS[None], axis=-1)
+    z = SCALE * d + BIAS + rng.normal(size=d.shape) * SIGMA
+    r = SelfCalibrator("range").fit(ANCHORS, z, x + 0.1, anchor_ids=list("ABCDE"))
+    # per anchor, bias and scale act the same at one distance: every scale, and the
+    # biases beyond m - dim = 3, are inseparable from the positions
+    assert r.free.sum() <= 3
+    assert not r.free[:, 1].any()
+    assert np.all(r.slope[~r.free[:, 1]] == 1.0)
+    assert np.all(r.offset[~r.free[:, 0]] == 0.0)
+    assert np.all(np.isnan(r.slope_se))
+    msgs = " ".join(r.warnings)
+    for a in "ABCDE":
+        assert f"anchor {a}: cannot determine scale" in msgs
+
+
+def test_far_cluster_common_bias_is_flagged():
+    # anchors in a 1 m cluster, the tag 40-60 m away in one direction: a common bias of
+    # the anchors is (nearly) a shift of the position along the line of sight
+    rng = np.random.default_rng(4)
+    a = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    x = np.c_[rng.uniform(40, 60, 500), rng.uniform(-5, 5, 500)]
+    d = np.linalg.norm(x[:, None, :] - a[None], axis=-1)
+    z = d + 0.2 + rng.normal(size=d.shape) * 0.1
+    r = SelfCalibrator("range", fit_slope=False).fit(a, z, x + 0.5)
+    assert not r.free[:, 0].all()
+    assert any("cannot determine bias" in w for w in r.warnings)
+
+
+# ------------------------------------------------------------------------------ CLI
+
+
+def _write_log(tmp_path, rng, n=800, rssi=False):
+    x = rng.uniform([1.0, 1.0], [9.0, 7.0], (n, 2))
+    d = np.linalg.norm(x[:, None, :] - ANCHORS[None], axis=-1)
+    ids = [f"a{i}" for i in range(len(ANCHORS))]
+    anchors = pd.DataFrame({"anchor": ids, "x": ANCHORS[:, 0], "y": ANCHORS[:, 1]})
+    if rssi:
+        val = -50.0 - 20 * np.log10(d) + rng.normal(size=d.shape) * 1.0
+        anchors["A"] = -48.0
+        anchors["n"] = 2.3
+        col = "rssi"
+    else:
+        val = SCALE * d + BIAS + rng.normal(size=d.shape) * SIGMA
+        col = "range"
+    k, j = np.nonzero(np.isfinite(val))
+    meas = pd.DataFrame({"time": k.astype(float), "tag": "t", "anchor": np.array(ids)[j],
+                         col: val[k, j]})
+    truth = pd.DataFrame({"time": np.arange(n, dtype=float), "tag": "t", "x": x[:, 0],
+                          "y": x[:, 1]})
+    paths = {name: tmp_path / f"{name}.csv" for name in ("anchors", "meas", "truth")}
+    anchors.to_csv(paths["anchors"], index=False)
+    meas.to_csv(paths["meas"], index=False)
+    truth.to_csv(paths["truth"], index=False)
+    return paths, x
+
+
+def _rms(pos_path, x):
+    p = pd.read_csv(pos_path).sort_values("time")
+    e = np.hypot(p["x"].to_numpy() - x[:, 0], p["y"].to_numpy() - x[:, 1])
+    return float(np.sqrt(np.mean(e**2)))
+
+
+def test_cli_self_calibration_round_trips_through_locate(tmp_path, capsys):
+    rng = np.random.default_rng(21)
+    paths, x = _write_log(tmp_path, rng)
+    cal = tmp_path / "cal.csv"
+    assert main(["calibrate", "--self", str(paths["meas"]), "--anchors",
+                 str(paths["anchors"]), "-o", str(cal)]) == 0
+    out = pd.read_csv(cal)
+    for c in ("bias", "scale", "sigma", "bias_se", "scale_se"):
+        assert c in out.columns and np.isfinite(out[c]).all()
+    assert np.all(np.abs(out["bias"] - BIAS) < 4 * out["bias_se"])
+    before, after = tmp_path / "p0.csv", tmp_path / "p1.csv"
+    assert main(["locate", str(paths["meas"]), "--anchors", str(paths["anchors"]),
+                 "-o", str(before), "--method", "nls", "--quiet"]) == 0
+    assert main(["locate", str(paths["meas"]), "--anchors", str(cal), "-o", str(after),
+                 "--method", "nls", "--quiet"]) == 0
+    assert _rms(after, x) < 0.8 * _rms(before, x)
+
+
+def test_cli_self_calibration_rssi_writes_A_n_sigma(tmp_path, capsys):
+    rng = np.random.default_rng(22)
+    paths, _ = _write_log(tmp_path, rng, n=1000, rssi=True)
+    cal = tmp_path / "cal.csv"
+    assert main(["calibrate", "--self", str(paths["meas"]), "--anchors",
+                 str(paths["anchors"]), "-o", str(cal), "--json"]) == 0
+    out = pd.read_csv(cal)
+    for c in ("A", "n", "sigma", "A_se", "n_se"):
+        assert c in out.columns
+    free = out["calib_fixed"].isna()
+    assert free.any()
+    assert np.all(np.abs(out.loc[free, "n"] - 2.0) < 4 * out.loc[free, "n_se"])
+    assert np.all(np.abs(out.loc[free, "A"] + 50.0) < 4 * out.loc[free, "A_se"])
+    assert main(["locate", str(paths["meas"]), "--anchors", str(cal), "-o",
+                 str(tmp_path / "p.csv"), "--quiet"]) == 0
+
+
+def test_cli_self_unheard_anchor_is_warned_and_left_out(tmp_path, capsys):
+    rng = np.random.default_rng(23)
+    paths, _ = _write_log(tmp_path, rng, n=400)
+    a = pd.read_csv(paths["anchors"])
+    pd.concat([a, pd.DataFrame({"anchor": ["ghost"], "x": [3.0], "y": [3.0]})]).to_csv(
+        paths["anchors"], index=False)
+    cal = tmp_path / "cal.csv"
+    assert main(["calibrate", "--self", str(paths["meas"]), "--anchors",
+                 str(paths["anchors"]), "-o", str(cal)]) == 0
+    err = capsys.readouterr().err
+    assert "warning:" in err and "anchor ghost: no observation" in err
+    out = pd.read_csv(cal).set_index("anchor")
+    assert out.loc["ghost", "bias"] == 0.0 and out.loc["ghost", "scale"] == 1.0
+
+
+@pytest.mark.parametrize(
+    ("text", "args", "words"),
+    [
+        ("anchor,distance,rssi\nb1,5,-60\nb1,5,-62\nb1,5,-61\n", [],
+         "anchor b1: cannot determine n: all samples at one distance"),
+        ("anchor,distance,rssi\nb1,5,-60\n", [], "cannot determine A and n: 1 usable"),
+        ("anchor,distance,rssi\nb1,1,-60\nb1,2,-60\nb1,5,-60\nb1,7,-60\n", [],
+         "anchor b1: cannot determine n: fitted n ="),
+        ("anchor,distance,rssi\nb1,1,-60\nb1,2,-66\n", [], "cannot determine A and n: 2"),
+        ("anchor,distance,range\nb1,5,5.1\nb1,5,5.2\nb1,5,5.0\n", ["--scale"],
+         "anchor b1: cannot determine scale: all samples at one distance"),
+        ("anchor,distance,rssi\nb1,1,-60\nb1,2,-66\nb1,4,-72\n", [],
+         "anchor b1: cannot determine sigma"),
+    ],
+)
+def test_degenerate_survey_is_an_error(tmp_path, capsys, text, args, words):
+    s = tmp_path / "s.csv"
+    s.write_text(text)
+    assert main(["calibrate", str(s), "-o", str(tmp_path / "o.csv"), *args]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {s}: ") and words in err, err
+    assert not (tmp_path / "o.csv").exists()
+
+
+def test_d0_must_be_positive(tmp_path, capsys):
+    s = tmp_path / "s.csv"
+    s.write_text("anchor,distance,rssi\nb1,1,-60\nb1,2,-66\nb1,4,-71\n")
+    with pytest.raises(SystemExit) as e:
+        main(["calibrate", str(s), "-o", str(tmp_path / "o.csv"), "--d0", "-1"])
+    assert e.value.code == 2
+    assert "--d0" in capsys.readouterr().err
+
+
+def test_cli_self_without_any_usable_epoch_is_an_error(tmp_path, capsys):
+    a = tmp_path / "a.csv"
+    a.write_text("anchor,x,y\na0,0,0\na1,1,0\n")
+    m = tmp_path / "m.csv"
+    m.write_text("time,tag,anchor,range\n0,t,a0,5\n0,t,a1,6\n1,t,a0,5\n1,t,a1,6\n")
+    out = tmp_path / "o.csv"
+    assert main(["calibrate", "--self", str(m), "--anchors", str(a), "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {m}: nothing to self-calibrate")
+    assert not out.exists()
