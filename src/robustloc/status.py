@@ -31,15 +31,19 @@ UNVERIFIED = "unverified"
 #: a-posteriori variance factor (infinite when nothing is left to confirm it): trust it only
 #: as far as ``hpl`` says, or set an alert limit.
 FAULT_DETECTED = "fault_detected"
+#: A fix farther than 10 times the heard anchors' extent from their centre: the geometry
+#: is extrapolated (a far tag, a small anchor cluster).  Usable, never ``ok``; its ``hpl``
+#: (large there) says how far to trust it.
+EXTRAPOLATED = "extrapolated"
 #: Usable by its own test, but its protection level exceeds the user's alert limit
 #: (``--alert-limit``): not to be used for the operation that limit protects.
 PROTECTION_EXCEEDED = "protection_exceeded"
 
 ALL = (
     OK, INSUFFICIENT, ILL_CONDITIONED, NOT_CONVERGED, FAULT_EXCLUDED, UNAVAILABLE, INVALID,
-    PREDICTED, LOW_REDUNDANCY, UNVERIFIED, FAULT_DETECTED, PROTECTION_EXCEEDED,
+    PREDICTED, LOW_REDUNDANCY, UNVERIFIED, FAULT_DETECTED, EXTRAPOLATED, PROTECTION_EXCEEDED,
 )
 #: Statuses whose position is a usable fix (a coasting filter's prediction included: its
 #: covariance says how far to trust it).
 USABLE = (OK, FAULT_EXCLUDED, NOT_CONVERGED, PREDICTED, LOW_REDUNDANCY, UNVERIFIED,
-          FAULT_DETECTED)
+          FAULT_DETECTED, EXTRAPOLATED)

@@ -128,13 +128,49 @@ def _fmt(table: pd.DataFrame, unit: str) -> str:
     return t.to_string(index=False)
 
 
-def _run_self(args: argparse.Namespace) -> int:
-    from robustloc.errors import InputError
+def self_calibrate(
+    anchors: pd.DataFrame, xyz: np.ndarray, values: np.ndarray, kind: str, *,
+    height_offset: np.ndarray | None = None, model_name: str | None = "log-distance",
+    fit_scale: bool = True, se_ratio: float = 3.0,
+):
+    """``calibrate --self`` on arrays: robust start fixes (huber), then the joint
+    adjustment of :class:`robustloc.models.selfcal.SelfCalibrator`.
+
+    Returns ``(SelfCalibration, path-loss model or None)``; the anchors frame with the new
+    columns is ``robustloc.models.calibration.self_calibration_table(res, anchors, model)``.
+    """
     from robustloc.estimators.ranging import Locator
-    from robustloc.io import read_anchors, read_measurements, to_epochs, write_table
-    from robustloc.models.calibration import self_calibration_table
     from robustloc.models.pathloss import model_from_anchors
     from robustloc.models.selfcal import SelfCalibrator
+
+    ids = [str(a) for a in anchors["anchor"]]
+    model = None
+    if kind == "rssi":
+        # the model named by --model; the default (log-distance) yields to the anchors'
+        # own attenuation-factor columns when they have no A, n
+        use_default = model_name == "log-distance" and not {"A", "n"} <= set(anchors.columns)
+        model = model_from_anchors(anchors, None if use_default else model_name)
+        A0, n0 = model.log_distance_params()
+        A0 = np.broadcast_to(A0, (len(ids),)).astype(float)
+        n0 = np.broadcast_to(n0, (len(ids),)).astype(float)
+        start = Locator("huber").solve(xyz, values, "rssi", A=A0, n=n0,
+                                       height_offset=height_offset)
+        cal = SelfCalibrator("rssi", fit_slope=type(model).__name__ != "FreeSpace",
+                             se_ratio=se_ratio)
+        res = cal.fit(xyz, values, start.position, offset0=A0, slope0=n0,
+                      height_offset=height_offset, anchor_ids=ids)
+    else:
+        start = Locator("huber").solve(xyz, values, "range", height_offset=height_offset)
+        cal = SelfCalibrator("range", fit_slope=fit_scale, se_ratio=se_ratio)
+        res = cal.fit(xyz, values, start.position, height_offset=height_offset,
+                      anchor_ids=ids)
+    return res, model
+
+
+def _run_self(args: argparse.Namespace) -> int:
+    from robustloc.errors import InputError
+    from robustloc.io import read_anchors, read_measurements, to_epochs, write_table
+    from robustloc.models.calibration import self_calibration_table
 
     if args.survey or args.measurements or args.truth:
         raise ValueError("--self takes the log alone: no SURVEY, --measurements or --truth")
@@ -155,28 +191,11 @@ def _run_self(args: argparse.Namespace) -> int:
     height = None
     if args.tag_height is not None:
         height = anchors["z"].to_numpy(dtype=float) - args.tag_height
-    model = None
-    if kind == "rssi":
-        if args.scale is not None:
-            raise ValueError("--scale is for range data")
-        # the model named by --model; the default (log-distance) yields to the anchors'
-        # own attenuation-factor columns when they have no A, n
-        use_default = args.model == "log-distance" and not {"A", "n"} <= set(anchors.columns)
-        model = model_from_anchors(anchors, None if use_default else args.model)
-        A0, n0 = model.log_distance_params()
-        A0 = np.broadcast_to(A0, (len(ids),)).astype(float)
-        n0 = np.broadcast_to(n0, (len(ids),)).astype(float)
-        start = Locator("huber").solve(xyz, ep.values, "rssi", A=A0, n=n0,
-                                       height_offset=height)
-        cal = SelfCalibrator("rssi", fit_slope=type(model).__name__ != "FreeSpace",
-                             se_ratio=args.se_ratio)
-        res = cal.fit(xyz, ep.values, start.position, offset0=A0, slope0=n0,
-                      height_offset=height, anchor_ids=ids)
-    else:
-        start = Locator("huber").solve(xyz, ep.values, "range", height_offset=height)
-        cal = SelfCalibrator("range", fit_slope=args.scale is not False,
-                             se_ratio=args.se_ratio)
-        res = cal.fit(xyz, ep.values, start.position, height_offset=height, anchor_ids=ids)
+    if kind == "rssi" and args.scale is not None:
+        raise ValueError("--scale is for range data")
+    res, model = self_calibrate(anchors, xyz, ep.values, kind, height_offset=height,
+                                model_name=args.model, fit_scale=args.scale is not False,
+                                se_ratio=args.se_ratio)
     if res.epochs_used == 0:
         raise InputError(
             f"nothing to self-calibrate: no epoch has a fix with redundancy (need at least "

@@ -47,10 +47,9 @@ test (B-method significance) checks the rest, and `hpl` (`vpl` in 3-D) is the MD
 bound plus k sigma of the fault-free noise (--alpha0, --beta0, --k-noise).  Statuses:
 ok, fault_excluded, low_redundancy (redundancy 1: detectable, not identifiable),
 unverified (redundancy 0, hpl = inf), fault_detected (the test fails; hpl widened by the
-a-posteriori variance factor), unavailable (farther than 10x the anchors' extent),
-protection_exceeded (hpl > --alert-limit), and insufficient_anchors, ill_conditioned,
-not_converged, invalid_measurement.  Usable: every one before unavailable, and
-not_converged.
+a-posteriori variance factor), extrapolated (farther than 10x the anchors' extent), all
+usable with not_converged; protection_exceeded (hpl > --alert-limit), insufficient_anchors,
+ill_conditioned and invalid_measurement are not.
 
 RSSI input uses the anchors' path-loss parameters (A, n or p0, gamma, faf, d0; see
 `robustloc calibrate`); the nonlinear solvers fit ranges converted by the model, each

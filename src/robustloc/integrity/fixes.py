@@ -30,8 +30,9 @@ For each epoch, at the fix ``x`` of any method, with the range-domain residuals
                              (``hpl = inf``): a fault is detected and cannot be
                              excluded; the position is kept, its bound says how
                              little it is worth
-   ``unavailable``           usable by the above, but farther than 10 times the     no
-                             heard anchors' extent from them
+   ``extrapolated``          usable by the above, but farther than 10 times the     yes
+                             heard anchors' extent from them: the geometry is
+                             extrapolated, ``hpl`` (large there) says how far
    ``protection_exceeded``   usable, but ``hpl`` above ``--alert-limit``            no
    ========================  ====================================================  ======
 
@@ -223,7 +224,7 @@ def protect(
             centre, radius = span
             with np.errstate(invalid="ignore"):
                 far = np.linalg.norm(pos - centre, axis=1) > 10.0 * max(radius, 1.0)
-            new[usable & far] = st.UNAVAILABLE
+            new[usable & far] = st.EXTRAPOLATED
     if alert_limit is not None:
         with np.errstate(invalid="ignore"):
             new[np.isin(new, st.USABLE) & (new != st.PREDICTED) & ~(hpl <= alert_limit)] = (

@@ -54,17 +54,15 @@ def _ours(case, method: str, rows: np.ndarray, anchors=None) -> tuple[np.ndarray
 
 
 def _self_calibrated(case):
-    """Anchors after ``calibrate --self`` on the case's own log, or None if unavailable."""
-    try:
-        from robustloc.models.calibration import self_calibrate
-    except ImportError:
+    """Anchors after ``calibrate --self`` on the case's own log (no truth)."""
+    from robustloc.commands.calibrate import self_calibrate
+    from robustloc.models.calibration import self_calibration_table
+
+    res, model = self_calibrate(case.anchors, case.xy, case.values, case.kind,
+                                height_offset=case.height_offset)
+    if res.epochs_used == 0:
         return None
-    meas = case.measurements()
-    try:
-        res = self_calibrate(meas, case.anchors, height_offset=case.height_offset)
-    except Exception:  # noqa: BLE001 - reported as a missing row, not a crash of the report
-        return None
-    return getattr(res, "anchors", res)
+    return self_calibration_table(res, case.anchors, model)[1]
 
 
 def run(ctx: Context) -> Section:
