@@ -52,7 +52,7 @@ from numpy.typing import NDArray  # noqa: E402
 
 Array = NDArray[np.float64]
 
-METHODS = ("ls", "wls", "nls", "huber", "hampel", "igg", "igg3", "lege", "snooping")
+METHODS = ("auto", "ls", "wls", "nls", "huber", "hampel", "igg", "igg3", "lege", "snooping")
 SIGMA_M = 0.3
 OUTLIER_RATE = 0.2
 
@@ -130,6 +130,21 @@ def our_solver(
         from robustloc.estimators.ranging import Locator
     except ImportError:
         Locator = None  # noqa: N806
+    if Locator is not None and method == "auto":
+        # the default of `robustloc locate` as a new user gets it: no sigma given; the log's
+        # scale (first pass), Gauss-Newton, every fix tested with its protection level, the
+        # robust refit of the epochs whose test fails
+        from robustloc.integrity.fixes import locate_protected
+
+        auto = Locator(method="auto", engine=engine)
+
+        def run_auto(wl: Workload) -> Fixes:
+            sol = locate_protected(auto, wl.anchors, wl.ranges, "range")
+            return Fixes(_usable(sol.position, sol.status),
+                         "locate_protected(Locator(auto)): log scale + nls + test + hpl + "
+                         "huber refit")
+
+        return run_auto
     if Locator is not None:
         loc = Locator(method=method, solver=solver, sigma=None if mad_scale else SIGMA_M,
                       engine=engine)

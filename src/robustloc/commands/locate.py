@@ -37,6 +37,9 @@ Methods (comma-separated list allowed; the `method` column tells them apart):
   huber, hampel, igg, igg3
             robust IRLS (seed 000 eqs. 5-7) on the nonlinear equations (--solver
             nonlinear, default) or on the paper's linearized system
+  asym      robust IRLS with the asymmetric IGG weight (seed 002 eq. 14) turned to
+            ranges: a long range (NLOS, a fade) is rejected from 3 sigma, a short one
+            only from 5
   lege      simultaneous location and estimation of gross errors (seed 000 sec. 2.4)
   snooping  w-test data snooping with the B-method (seed 003)
 
@@ -159,11 +162,10 @@ def _params(items: list[str], methods: list[str]) -> dict[str, dict[str, float]]
     import math
 
     from robustloc.errors import InputError
-    from robustloc.estimators.ranging import ROBUST
-    from robustloc.robust.weights import get_weight
+    from robustloc.estimators.ranging import ROBUST, method_weight
 
     robust = [m for m in methods if m in ROBUST]
-    known = {m: [f.name for f in dataclasses.fields(type(get_weight(m)))] for m in robust}
+    known = {m: [f.name for f in dataclasses.fields(type(method_weight(m)))] for m in robust}
     out: dict[str, dict[str, float]] = {m: {} for m in robust}
     for it in items:
         name, sep, val = it.partition("=")

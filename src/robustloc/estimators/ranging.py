@@ -45,11 +45,23 @@ from robustloc.robust.weights import Huber, get_weight
 
 Array = NDArray[np.float64]
 
-METHODS = ("ls", "wls", "nls", "huber", "hampel", "igg", "igg3", "lege", "snooping")
+METHODS = ("ls", "wls", "nls", "huber", "hampel", "igg", "igg3", "asym", "lege", "snooping")
 #: The method ``robustloc locate`` uses when none is named (chosen by measurement on the
 #: shared real data and the seed-000 simulation: the report's "out of the box" section).
 DEFAULT_METHOD = "auto"
-ROBUST = ("huber", "hampel", "igg", "igg3")
+ROBUST = ("huber", "hampel", "igg", "igg3", "asym")
+
+
+def method_weight(method: str, **params: float):
+    """The weight function of a robust method: the paper's by name, and ``asym`` the
+    asymmetric IGG of seed 002 eq. (14) turned to ranges: the residual ``v = f(x) - d`` of
+    a range that reads long (NLOS, a faded RSSI) is negative, so the negative branch
+    (linear descent of psi to zero at ``-c``) takes the long ranges and the IGG-III branch
+    up to ``k1`` the short ones; ``k0 = 1.5, c = 3, k1 = 5``: a long range is rejected from
+    3 sigma, a short one (rare: the direct path cannot be beaten) only from 5."""
+    if method == "asym":
+        return get_weight("asymmetric-igg", **{"k0": 1.5, "k1": 5.0, "c": 3.0, **params})
+    return get_weight(method, **params)
 
 
 def _collinear(a: Array, heard: NDArray[np.bool_], rel: float = 1e-3) -> NDArray[np.bool_]:
@@ -406,7 +418,7 @@ class Locator:
         if self.method == "snooping" and self.sigma is None and self.robust_scale != "log":
             raise ValueError("method 'snooping' needs the a-priori standard deviation --sigma")
         if self.method in ROBUST:
-            get_weight(self.method, **self.weight_params)  # validate early
+            method_weight(self.method, **self.weight_params)  # validate early
         if self.engine not in ("compiled", "numpy"):
             raise ValueError(f"engine must be 'compiled' or 'numpy', got {self.engine!r}")
 
@@ -669,7 +681,7 @@ class Locator:
         if meth == "nls":
             return self._gn(model, obs, x0, sig, None)
         if meth in ROBUST:
-            wf = get_weight(meth, **self.weight_params)
+            wf = method_weight(meth, **self.weight_params)
             fit = self._rescue(model, obs, sig, wf, self._gn(model, obs, x0, sig, wf), a)
             # redundancy 0 or 1: robust weights have nothing to compare a residual with;
             # the plain fit and its global test (robustloc.integrity.fixes) say more
@@ -701,7 +713,7 @@ class Locator:
             # start from the least-median-of-squares subset fix (shifted like the system)
             xs, _ = subset_fixes(a, ranges, height_offset)
             fit = irls(
-                G, h, get_weight(robust, **self.weight_params), w,
+                G, h, method_weight(robust, **self.weight_params), w,
                 max_iter=self.max_iter, tol=self.tol, min_scale=self.min_scale, x0=xs - c,
             )
         x = fit.x + c
