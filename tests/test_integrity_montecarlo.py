@@ -176,6 +176,14 @@ def test_reproduce_section_quick(tmp_path):
     sec = s40_integrity.run(ctx)
     assert sec.summary["lambda0"] == pytest.approx(20.90, abs=0.005)
     assert sec.summary["alpha_max_abs_deviation_from_reference"] < 5e-5
+    # the measured rates of the quick run (300 trials per row) against the B-method's
+    # theory, inside the two-sided 99.9 % binomial interval (a Bonferroni split over the
+    # 4 rates would widen it slightly; 99.9 % each keeps the family size below 0.4 %)
+    s = sec.summary
+    assert _in_ci(s["gnss_false_alarm_measured"], 300, s["gnss_alpha_theory"])
+    assert _in_ci(s["corridor_false_alarm_measured"], 300, s["corridor_alpha_theory"])
+    assert _in_ci(s["gnss_detection_at_mdb_measured"], 300, 0.90)  # power 1 - beta0 at MDB
+    assert _in_ci(s["corridor_detection_at_mdb_measured"], 300, 0.90)
     figs = [v[1] for k, v in sec.blocks if k == "figure"]
     assert len(figs) == 6
     for rel in figs:
