@@ -140,6 +140,19 @@ def test_cli_spp_raim_json(tmp_path: Path, capsys) -> None:  # noqa: ANN001
                 "excluded", "global_stat", "hpl", "vpl"):
         assert col in df.columns
     assert df.excluded.fillna("").str.contains("G11").sum() == 1
+    # values: the excluded epoch is the injected one (00:20:00 = GPS 796436400), and the
+    # protection levels bound the error at every solved epoch (errors from pymap3d's ENU
+    # against the station coordinates; with a fault-free 1e-7-class integrity risk budget
+    # a single violation in 115 epochs would already be a failure)
+    import pymap3d
+
+    t_exc = df.time[df.excluded.fillna("").str.contains("G11")].to_numpy()
+    np.testing.assert_allclose(t_exc, [796436400.0], atol=0.01)  # epochs carry ms offsets
+    ok = df.status.isin(["ok", "fault_excluded"])
+    assert ok.sum() == 115  # RTKLIB: 115/120 (the 5 last epochs have GDOP > 30)
+    lat0, lon0, h0 = pymap3d.ecef2geodetic(-3976219.5082, 3382372.5671, 3652512.9849)
+    e, n, u = pymap3d.ecef2enu(df.x[ok], df.y[ok], df.z[ok], lat0, lon0, h0)
+    assert np.all(np.hypot(e, n) < df.hpl[ok]) and np.all(np.abs(u) < df.vpl[ok])
 
 
 def test_cli_spp_text_summary_and_reference(tmp_path: Path, capsys) -> None:  # noqa: ANN001
