@@ -50,6 +50,59 @@ def test_noise_free_constellation_recovered_exactly(nav: NavData) -> None:
     assert np.all(res.n_sats >= 5) and np.all(res.dop[:, 0] > res.dop[:, 1])
 
 
+def test_noise_free_pseudoranges_from_rtklib_orbits(nav: NavData) -> None:
+    """The same exact-recovery check with the pseudoranges built from RTKLIB's own
+    satellite positions and clocks (``satpos`` through PyPI ``pyrtklib``), not from
+    robustloc's ephemeris code: P = |r_s(t_tx) - r| + Sagnac + c dt_r - c (dts - TGD)
+    (RTKLIB pntpos applies TGD to P; robustloc folds it into the satellite clock)."""
+    rtk = pytest.importorskip("pyrtklib")
+    rnav = rtk.nav_t()
+    path = str(GEONET / "07590920_0000-0400.05n")
+    assert rtk.readrnx(path, 1, "", rtk.obs_t(), rnav, rtk.sta_t()) == 1
+    t = read_obs(GEONET / "07590920.05o").t_gps_s[::20]
+    sats = sorted(set(nav.sat.astype(str)))
+    tgd = {}
+    for i in range(rnav.n):
+        prn = rtk.Arr1Dint(1)
+        rtk.satsys(rnav.eph[i].sat, prn)
+        tgd[f"G{prn[0]:02d}"] = rnav.eph[i].tgd[0]
+
+    def gtime(ts: float):
+        g = rtk.gtime_t()
+        g.time, g.sec = int(315964800 + np.floor(ts)), float(ts - np.floor(ts))
+        return g
+
+    clk_rx = 4321.0
+    pr = np.full((t.size, len(sats)), np.nan)
+    for k, tr in enumerate(t):
+        for j, s in enumerate(sats):
+            sat = rtk.satno(rtk.SYS_GPS, int(s[1:]))
+            p = 2.2e7
+            for _ in range(6):
+                rs, dts = rtk.Arr1Ddouble(6), rtk.Arr1Ddouble(2)
+                var, svh = rtk.Arr1Ddouble(1), rtk.Arr1Dint(1)
+                if not rtk.satpos(gtime(tr - p / C_LIGHT), gtime(tr), sat, rtk.EPHOPT_BRDC,
+                                  rnav, rs, dts, var, svh):
+                    p = np.nan
+                    break
+                # RTKLIB satposs: the clock at t_rx - P/c corrects the transmit time
+                rs2, dts2 = rtk.Arr1Ddouble(6), rtk.Arr1Ddouble(2)
+                rtk.satpos(gtime(tr - p / C_LIGHT - dts[0]), gtime(tr), sat, rtk.EPHOPT_BRDC,
+                           rnav, rs2, dts2, var, svh)
+                r_s = np.array([rs2[0], rs2[1], rs2[2]])
+                rho = np.linalg.norm(r_s - TRUE_XYZ)
+                sag = OMEGA_E * (r_s[0] * TRUE_XYZ[1] - r_s[1] * TRUE_XYZ[0]) / C_LIGHT
+                p = rho + sag + clk_rx - C_LIGHT * (dts2[0] - tgd[s])
+            pr[k, j] = p
+    obs = ObsData("synthetic-rtklib", 2.11, t, sats, {"C1": pr}, TRUE_XYZ + 50.0,
+                  np.zeros(t.size, dtype=np.int64), np.arange(t.size, dtype=np.int64))
+    res = SppSolver(systems="G", iono="none", tropo="none", elevation_mask_deg=5.0).solve(obs, nav)
+    assert np.all(res.status == st.OK)
+    # two float64 implementations of IS-GPS-200 agree to sub-millimetre: 1e-3 m
+    np.testing.assert_allclose(res.xyz_m, np.broadcast_to(TRUE_XYZ, res.xyz_m.shape), atol=1e-3)
+    np.testing.assert_allclose(res.clock_m[:, 0], clk_rx, atol=1e-3)
+
+
 def test_one_clock_per_constellation() -> None:
     """Real GPS and Galileo satellites (SLAC excerpt, CODE's precise orbits), noise-free
     pseudoranges with a different receiver clock per constellation: both clocks and the
