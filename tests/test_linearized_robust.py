@@ -101,8 +101,15 @@ class IGG3Norm(norms.RobustNorm):
                         0.5 * k0**2 + g * ((k1 - k0) ** 3 - (k1 - np.minimum(a, k1)) ** 3))
 
 
-# robustloc's defaults (README / seed 000): Huber c = 2, Hampel 1.7/3.4/8.5, IGG 1.5/2.5,
-# IGG-III 1.5/3.0; the statsmodels norms are built with the same constants
+# the paper's constants (seed 000 / digest): Huber c = 2, Hampel 1.7/3.4/8.5, IGG 1.5/2.5,
+# IGG-III 1.5/3.0, passed explicitly to robustloc (so a change of its defaults does not
+# move the comparison) and used to build the statsmodels norms
+PARAMS = {
+    "huber": {"c": 2.0},
+    "hampel": {"a": 1.7, "b": 3.4, "c": 8.5},
+    "igg": {"k0": 1.5, "k1": 2.5, "c": 1e-3},
+    "igg3": {"k0": 1.5, "k1": 3.0},
+}
 REFERENCE_NORMS = {
     "huber": lambda: norms.HuberT(t=2.0),
     "hampel": lambda: norms.Hampel(a=1.7, b=3.4, c=8.5),
@@ -143,7 +150,8 @@ def test_linearized_robust_equals_statsmodels_rlm(method):
     # fixed scale of unit weight in h-units (m^2): h-row noise is about d_i sigma = 1.5 m^2,
     # its MAD from 8 rows stays below 6 m^2, so the floor is the scale used (checked below)
     s = 6.0
-    loc = Locator(method, solver="linearized", min_scale=s, tol=1e-10, max_iter=500)
+    loc = Locator(method, solver="linearized", min_scale=s, tol=1e-10, max_iter=500,
+                  weight_params=PARAMS[method])
     sol = loc.solve(LAYOUT, d)
     assert np.all(sol.status == st.OK)
     G, h, ref, c = linearized_system(LAYOUT, d)
@@ -178,7 +186,8 @@ def test_linearized_robust_exact_on_noise_free_data(method, dim):
     rng = np.random.default_rng(5 + dim)
     a = rng.uniform(0, 30, (7, dim))
     x = rng.uniform(5, 25, (60, dim))
-    sol = Locator(method, solver="linearized").solve(a, ranges_to(a, x))
+    sol = Locator(method, solver="linearized", weight_params=PARAMS[method]).solve(
+        a, ranges_to(a, x))
     assert np.all(sol.status == st.OK)
     # eq. (3) is exact for exact ranges: only rounding remains (|h| ~ 1e3 m^2, cond(G) ~ 10)
     np.testing.assert_allclose(sol.position, x, atol=1e-6)
@@ -212,7 +221,7 @@ def test_linearized_robust_downweights_a_fault_of_four_mdb(method):
     bad = rng.integers(1, K + 1, n)
     d = clean.copy()
     d[np.arange(n), bad] += 4.0 * mdb_m * rng.choice([-1, 1], n)
-    sol = Locator(method, solver="linearized").solve(LAYOUT, d)
+    sol = Locator(method, solver="linearized", weight_params=PARAMS[method]).solve(LAYOUT, d)
     w_bad = sol.weights[np.arange(n), bad]
     u_expected = 4.0 * _mdb_factor()  # |u| ~ 4 delta0 = 18.3 with the true scale
     # the MAD scale of 8 rows (relative standard error ~1.1/sqrt(8) = 0.4) would have to be
