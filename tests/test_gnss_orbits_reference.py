@@ -35,12 +35,12 @@ import pytest
 from robustloc.gnss.ephemeris import broadcast_state, select_ephemeris
 from robustloc.gnss.rinex import NavData, read_nav
 from robustloc.gnss.sp3 import PreciseProducts, read_clk, read_sp3
+from robustloc.paths import default_data_dir
 
 pyrtklib = pytest.importorskip("pyrtklib", reason="test-only reference, in the [test] extra")
 
-MGEX = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "gnss-mgex"
-if not MGEX.is_dir():  # the worktree's ../shared, or the main checkout's
-    MGEX = Path("/work/shared/data/gnss-mgex")
+_DATA = default_data_dir()  # ../shared/data beside the checkout (README "Real data")
+MGEX = (Path(_DATA) if _DATA is not None else Path("missing")) / "gnss-mgex"
 BRDC = MGEX / "BRDC00WRD_S_20230730000_01D_MN.rnx"
 BRDM = MGEX / "BRDM00DLR_S_20230730000_01D_MN.rnx"
 SP3 = MGEX / "COD0OPSRAP_20230730000_01D_05M_ORB.SP3"
