@@ -17,22 +17,6 @@ SLAC = PACKAGE_DATA / "gnss-slac"
 TRUE_XYZ = np.array([-3976219.5082, 3382372.5671, 3652512.9849])
 
 
-def _with_fake_galileo(nav: NavData) -> NavData:
-    """Copy the GPS records as 'Galileo' satellites on other orbit phases (same model code
-    path with the Galileo constants), to exercise one clock per constellation."""
-    g = np.char.startswith(nav.sat.astype(str), "G")
-    e_sat = np.array(["E" + s[1:] for s in nav.sat[g]])
-    pe = {k: v[g].copy() for k, v in nav.params.items()}
-    pe["M0"] = pe["M0"] + 2.0
-    pe["Omega0"] = pe["Omega0"] + 1.0
-    return NavData(
-        np.concatenate([nav.sat, e_sat]), np.concatenate([nav.toc_gps_s, nav.toc_gps_s[g]]),
-        np.concatenate([nav.toe_gps_s, nav.toe_gps_s[g]]),
-        {k: np.concatenate([nav.params[k], pe[k]]) for k in nav.params},
-        nav.ion_alpha, nav.ion_beta, [],
-    )
-
-
 def synthetic(nav: NavData, t: np.ndarray, clocks_m: dict[str, float],
               xyz: np.ndarray = TRUE_XYZ) -> ObsData:
     """Noise-free pseudoranges of every satellite in ``nav`` at receiver times ``t``:
@@ -66,20 +50,91 @@ def test_noise_free_constellation_recovered_exactly(nav: NavData) -> None:
     assert np.all(res.n_sats >= 5) and np.all(res.dop[:, 0] > res.dop[:, 1])
 
 
-def test_one_clock_per_constellation(nav: NavData) -> None:
-    both = _with_fake_galileo(nav)
-    t = read_obs(GEONET / "07590920.05o").t_gps_s[::30]
-    obs = synthetic(both, t, {"G": -3000.0, "E": 2500.0})
+def test_noise_free_pseudoranges_from_rtklib_orbits(nav: NavData) -> None:
+    """The same exact-recovery check with the pseudoranges built from RTKLIB's own
+    satellite positions and clocks (``satpos`` through PyPI ``pyrtklib``), not from
+    robustloc's ephemeris code: P = |r_s(t_tx) - r| + Sagnac + c dt_r - c (dts - TGD)
+    (RTKLIB pntpos applies TGD to P; robustloc folds it into the satellite clock)."""
+    rtk = pytest.importorskip("pyrtklib")
+    rnav = rtk.nav_t()
+    path = str(GEONET / "07590920_0000-0400.05n")
+    assert rtk.readrnx(path, 1, "", rtk.obs_t(), rnav, rtk.sta_t()) == 1
+    t = read_obs(GEONET / "07590920.05o").t_gps_s[::20]
+    sats = sorted(set(nav.sat.astype(str)))
+    tgd = {}
+    for i in range(rnav.n):
+        prn = rtk.Arr1Dint(1)
+        rtk.satsys(rnav.eph[i].sat, prn)
+        tgd[f"G{prn[0]:02d}"] = rnav.eph[i].tgd[0]
+
+    def gtime(ts: float):
+        g = rtk.gtime_t()
+        g.time, g.sec = int(315964800 + np.floor(ts)), float(ts - np.floor(ts))
+        return g
+
+    clk_rx = 4321.0
+    pr = np.full((t.size, len(sats)), np.nan)
+    for k, tr in enumerate(t):
+        for j, s in enumerate(sats):
+            sat = rtk.satno(rtk.SYS_GPS, int(s[1:]))
+            p = 2.2e7
+            for _ in range(6):
+                rs, dts = rtk.Arr1Ddouble(6), rtk.Arr1Ddouble(2)
+                var, svh = rtk.Arr1Ddouble(1), rtk.Arr1Dint(1)
+                if not rtk.satpos(gtime(tr - p / C_LIGHT), gtime(tr), sat, rtk.EPHOPT_BRDC,
+                                  rnav, rs, dts, var, svh):
+                    p = np.nan
+                    break
+                # RTKLIB satposs: the clock at t_rx - P/c corrects the transmit time
+                rs2, dts2 = rtk.Arr1Ddouble(6), rtk.Arr1Ddouble(2)
+                rtk.satpos(gtime(tr - p / C_LIGHT - dts[0]), gtime(tr), sat, rtk.EPHOPT_BRDC,
+                           rnav, rs2, dts2, var, svh)
+                r_s = np.array([rs2[0], rs2[1], rs2[2]])
+                rho = np.linalg.norm(r_s - TRUE_XYZ)
+                sag = OMEGA_E * (r_s[0] * TRUE_XYZ[1] - r_s[1] * TRUE_XYZ[0]) / C_LIGHT
+                p = rho + sag + clk_rx - C_LIGHT * (dts2[0] - tgd[s])
+            pr[k, j] = p
+    obs = ObsData("synthetic-rtklib", 2.11, t, sats, {"C1": pr}, TRUE_XYZ + 50.0,
+                  np.zeros(t.size, dtype=np.int64), np.arange(t.size, dtype=np.int64))
+    res = SppSolver(systems="G", iono="none", tropo="none", elevation_mask_deg=5.0).solve(obs, nav)
+    assert np.all(res.status == st.OK)
+    # two float64 implementations of IS-GPS-200 agree to sub-millimetre: 1e-3 m
+    np.testing.assert_allclose(res.xyz_m, np.broadcast_to(TRUE_XYZ, res.xyz_m.shape), atol=1e-3)
+    np.testing.assert_allclose(res.clock_m[:, 0], clk_rx, atol=1e-3)
+
+
+def test_one_clock_per_constellation() -> None:
+    """Real GPS and Galileo satellites (SLAC excerpt, CODE's precise orbits), noise-free
+    pseudoranges with a different receiver clock per constellation: both clocks and the
+    position come back exactly.  (Galileo's broadcast orbit code is checked against SP3 and
+    RTKLIB in test_gnss_orbits_reference.py.)"""
+    obs0 = read_obs(SLAC / "slac1180_1930-1940.21o")
+    pp = PreciseProducts(read_sp3(SLAC / "COD0MGXFIN_20211181905_60M_05M_ORB.SP3"),
+                         read_clk(SLAC / "COD0MGXFIN_20211181930_12M_30S_CLK.CLK"))
+    xyz = obs0.approx_xyz_m
+    sats = [s for s in obs0.sats if s[0] in "GE" and s in pp.sats]
+    assert sum(s[0] == "E" for s in sats) >= 4  # real Galileo satellites, not relabelled GPS
+    t = obs0.t_gps_s[::5]
+    clocks = {"G": -3000.0, "E": 2500.0}
+    pr = np.full((t.size, len(sats)), 2.2e7)
+    for _ in range(8):  # P = |r_s(t_tx) - r| + Sagnac + c dt_rx(sys) - c dt_s
+        stt = pp.state_at_transmit(sats, t, pr)
+        d = np.linalg.norm(stt.pos_m - xyz, axis=-1)
+        sag = OMEGA_E * (stt.pos_m[..., 0] * xyz[1] - stt.pos_m[..., 1] * xyz[0]) / C_LIGHT
+        pr = d + sag + np.array([clocks[s[0]] for s in sats]) - C_LIGHT * stt.clock_s
+    obs = ObsData("synthetic", 2.11, t, sats, {"C1": pr}, xyz + 50.0,
+                  np.zeros(t.size, dtype=np.int64), np.arange(t.size, dtype=np.int64))
     plain = {"iono": "none", "tropo": "none", "elevation_mask_deg": 5.0}
-    res = SppSolver(systems="GE", **plain).solve(obs, both)
-    assert res.systems == "GE"
-    np.testing.assert_allclose(res.xyz_m, np.broadcast_to(TRUE_XYZ, res.xyz_m.shape), atol=1e-4)
+    res = SppSolver(systems="GE", **plain).solve(obs, None, pp)
+    assert res.systems == "GE" and np.all(res.status == st.OK)
+    # noise-free data: only the solver's convergence threshold and rounding remain (0.1 mm)
+    np.testing.assert_allclose(res.xyz_m, np.broadcast_to(xyz, res.xyz_m.shape), atol=1e-4)
     np.testing.assert_allclose(res.clock_m, np.broadcast_to([-3000.0, 2500.0], (t.size, 2)),
                                atol=1e-4)
     # GPS only from the same data: the Galileo satellites are ignored
-    res_g = SppSolver(systems="G", **plain).solve(obs, both)
+    res_g = SppSolver(systems="G", **plain).solve(obs, None, pp)
     assert res_g.systems == "G" and not res_g.used[:, [s[0] == "E" for s in obs.sats]].any()
-    np.testing.assert_allclose(res_g.xyz_m, np.broadcast_to(TRUE_XYZ, res_g.xyz_m.shape), atol=1e-4)
+    np.testing.assert_allclose(res_g.xyz_m, np.broadcast_to(xyz, res_g.xyz_m.shape), atol=1e-4)
 
 
 def test_starts_from_the_earth_centre_without_header_position(nav: NavData) -> None:
@@ -142,6 +197,14 @@ def test_slac_precise_multi_gnss_beats_broadcast_gps() -> None:
     assert prec.systems == "GRE" and np.all(prec.ok) and np.all(brdc.ok)
     sb = error_summary(brdc, obs.approx_xyz_m)
     sp = error_summary(prec, obs.approx_xyz_m)
+    # absolute, against the station coordinates (header APPROX POSITION, the data README's
+    # reference): measured 2.87 m 3-D RMS on this excerpt (2.9 m on the full 2 h, README);
+    # 10 % regression tolerance -> 3.2 m.  Error budget it must respect: ionosphere-free
+    # code noise ~3x the 0.3-0.5 m code noise (1-1.5 m UERE) with PDOP ~1.5-2 for ~17 GRE
+    # satellites gives 1.5-3 m 3-D.  Broadcast GPS: 4.16 m here (RTKLIB 4.4 m on the full
+    # data, README): within its own 10 % band too.
+    assert sp["rms_3d_m"] < 3.2, sp
+    assert sb["rms_3d_m"] < 4.4 * 1.10, sb
     assert sp["rms_3d_m"] < 0.8 * sb["rms_3d_m"]
     assert np.mean(prec.n_sats) > 1.8 * np.mean(brdc.n_sats)
     # ionosphere-free: coefficients 2.546 and -1.546 for GPS L1/L2 (P1, else C1)

@@ -59,6 +59,27 @@ def test_cli_reliability(tmp_path, capsys):
             "min_redundancy", "dof"} <= set(t.columns)
     for name in ("dop", "crlb_m", "max_mdb", "max_ext_m", "max_abs_rho", "min_redundancy"):
         assert (out / f"reliability_{name}.png").stat().st_size > 1000
+    # the values, at one grid point, from the textbook formulas in numpy: 2-D position from
+    # slant ranges (anchors 2.5 m above the tag), unit line-of-sight rows H, N = H^T H,
+    # DOP = sqrt(tr N^-1), CRLB = sigma DOP, redundancy r_i = (I - H N^-1 H^T)_ii,
+    # rho_ij = R_ij / sqrt(R_ii R_jj), MDB_i = sqrt(lambda0) sigma / sqrt(r_i) with
+    # lambda0 from scipy's ncx2 (alpha0 = 0.1 %, power 90 %)
+    from scipy.optimize import brentq
+    from scipy.stats import chi2, ncx2
+
+    r = t[(t.x == 3) & (t.y == 6)].iloc[0]
+    v = np.c_[np.array([3.0, 6.0]) - SQUARE, np.full(5, -2.5)]
+    H = (v / np.linalg.norm(v, axis=1)[:, None])[:, :2]
+    Ni = np.linalg.inv(H.T @ H)
+    R = np.eye(5) - H @ Ni @ H.T
+    rho = R / np.sqrt(np.outer(np.diag(R), np.diag(R)))
+    lam0 = brentq(lambda L: ncx2.sf(chi2.ppf(0.999, 1), 1, L) - 0.9, 1.0, 100.0)
+    ref = {"dop": np.sqrt(np.trace(Ni)), "crlb_m": 0.3 * np.sqrt(np.trace(Ni)),
+           "min_redundancy": np.diag(R).min(),
+           "max_abs_rho": np.abs(rho[~np.eye(5, dtype=bool)]).max(),
+           "max_mdb": (np.sqrt(lam0) * 0.3 / np.sqrt(np.diag(R))).max()}
+    for k, val in ref.items():  # the CSV holds 6 significant digits
+        assert r[k] == pytest.approx(val, rel=1e-5), (k, r[k], val)
     assert main(["reliability", "--anchors", str(anchors), "--step", "-1", "-o", str(out)]) == 2
     assert main(["reliability", "--anchors", str(tmp_path / "none.csv"), "-o", str(out)]) == 2
 

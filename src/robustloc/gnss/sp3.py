@@ -107,7 +107,9 @@ def read_clk(path: str | PathLike[str]) -> Clk:
     path = str(path)
     lines = _read_lines(path)
     head = lines[0][:60].split() if lines else []
-    if not lines or "RINEX VERSION" not in lines[0] or len(head) < 2 or head[1] != "C":
+    # file type "C": column 21 in RINEX clock 2.xx, where it is written "CLOCK DATA"
+    # (e.g. CODE's COD0OPSRAP files), column 22 in 3.0x: the first letter of the 2nd field
+    if not lines or "RINEX VERSION" not in lines[0] or len(head) < 2 or head[1][0] != "C":
         raise InputError("not a RINEX clock file (type C)", path, 1)
     tt: list[float] = []
     ss: list[str] = []
