@@ -175,3 +175,23 @@ def test_fix_far_outside_the_anchors_is_never_ok():
     d = ranges(a, x) + np.array([[0.001, -0.001, 0.0, 0.001]])
     sol = protect(Locator("nls", sigma=0.01, robust_scale="apriori").solve(a, d))
     assert sol.status[0] != st.OK
+
+
+def test_asym_rejects_a_long_range_sooner_than_a_short_one():
+    # residual v = f(x) - d: a range reading 4 sigma long has v = -4 sigma (past c = 3:
+    # weight 0), one reading 4 sigma short has v = +4 sigma (IGG-III up to k1 = 5: kept,
+    # down-weighted)
+    from robustloc.estimators.ranging import method_weight
+
+    w = method_weight("asym")
+    assert w.weights(np.array([-4.0]))[0] == 0.0
+    assert 0.0 < w.weights(np.array([4.0]))[0] < 1.0
+    x = np.array([[7.0, 11.0]])
+    long_, short = ranges(TEN, x), ranges(TEN, x)
+    long_[0, 2] += 0.4
+    short[0, 2] -= 0.4
+    kw = dict(sigma=0.1, robust_scale="apriori")
+    s_long = Locator("asym", **kw).solve(TEN, long_)
+    s_short = Locator("asym", **kw).solve(TEN, short)
+    assert s_long.weights[0, 2] == 0.0
+    assert s_short.weights[0, 2] > 0.0
