@@ -345,7 +345,7 @@ def _prepared_values(args: argparse.Namespace, anchors: pd.DataFrame, block) -> 
 
 
 def _fix_log_scale(args, anchors, locators, xyz, height, order: str,
-                   cap: int = 20_000) -> list:
+                   cap: int = 5_000) -> list:
     """First pass over the whole log: each locator's per-anchor noise scale from an even
     sample of at most ``2 cap`` epochs (every ``k``-th epoch, ``k`` doubling as the log
     grows), so the scale, and every fix, is the same whatever ``--chunk-rows`` is.

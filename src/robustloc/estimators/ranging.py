@@ -587,7 +587,7 @@ class Locator:
         A: ArrayLike | None = None,
         n: ArrayLike | None = None,
         height_offset: ArrayLike | None = None,
-        max_epochs: int = 20_000,
+        max_epochs: int = 5_000,
         min_count: int = 20,
         iterations: int = 3,
     ) -> Array:
@@ -651,7 +651,9 @@ class Locator:
                 Jw = np.where(np.isfinite(zz)[..., None], J / sig_r[..., None], 0.0)
                 Jw = np.where(np.isfinite(Jw), Jw, 0.0)
                 Nm = np.einsum("kip,kiq->kpq", Jw, Jw)
-                ok = np.linalg.cond(Nm) < 1e12
+                # invertible: det above 1e-12 of trace^p (no SVD per epoch)
+                tr = np.einsum("kii->k", Nm)
+                ok = np.abs(np.linalg.det(Nm)) > 1e-12 * np.maximum(tr, 1e-300) ** p
                 Ninv = np.linalg.inv(np.where(ok[:, None, None], Nm, np.eye(p)))
                 r = 1.0 - np.einsum("kip,kpq,kiq->ki", Jw, Ninv, Jw)
                 r = np.where(ok[:, None] & (r > 0.05), r, np.nan)

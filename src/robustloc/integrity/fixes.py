@@ -66,7 +66,7 @@ from scipy import stats
 from robustloc import status as st
 from robustloc.estimators.solution import Solution
 from robustloc.integrity.bmethod import ALPHA0, BETA0, global_critical, lambda0, w_critical
-from robustloc.integrity.tests import R_MIN, whiten
+from robustloc.integrity.tests import R_MIN
 
 Array = NDArray[np.float64]
 
@@ -100,20 +100,26 @@ def protection_levels_local(
         ``vpl`` is NaN for 2-D fixes.
     """
     N, _, p = J.shape
-    wh = whiten(J, np.where(used, sigma, np.nan), mask=used)
-    r = 1.0 - wh.hat_diagonal()
-    G = np.einsum("kpq,kiq->kip", wh.Ninv, wh.A)  # d x / d (v_i / sigma_i)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        use = used & np.isfinite(sigma) & (sigma > 0) & np.all(np.isfinite(J), axis=2)
+        A = np.where(use[..., None], J / np.where(use, sigma, 1.0)[..., None], 0.0)
+    Nm = np.matmul(np.swapaxes(A, 1, 2), A)  # J^T P J, (N, p, p)
+    tr = np.einsum("kii->k", Nm)
+    ok = (np.abs(np.linalg.det(Nm)) > 1e-12 * np.maximum(tr, 1e-300) ** p) & (
+        use.sum(axis=1) >= p)
+    Ninv = np.linalg.inv(np.where(ok[:, None, None], Nm, np.eye(p)))
+    AN = np.matmul(A, Ninv)  # row i: (N^-1 A_i^T)^T = d x / d (v_i / sigma_i)
+    r = np.where(use, 1.0 - np.sum(AN * A, axis=2), np.nan)
     with np.errstate(invalid="ignore", divide="ignore"):
         kk = np.sqrt(lam0 / np.where(r > R_MIN, r, np.nan))
-        moves = np.linalg.norm(G, axis=2) > 1e-9
-        dx = G * kk[..., None]
+        moves = np.sqrt(np.sum(AN * AN, axis=2)) > 1e-9
+        dx = AN * kk[..., None]
         dh = np.hypot(dx[..., 0], dx[..., 1])
-        blind = wh.used & (r <= R_MIN) & moves
-        dh = np.where(blind, np.inf, np.where(wh.used & moves, dh, 0.0))
-        du = (np.where(blind, np.inf, np.where(wh.used & moves, np.abs(dx[..., 2]), 0.0))
+        blind = use & (r <= R_MIN) & moves
+        dh = np.where(blind, np.inf, np.where(use & moves, dh, 0.0))
+        du = (np.where(blind, np.inf, np.where(use & moves, np.abs(dx[..., 2]), 0.0))
               if p == 3 else None)
-    ok = wh.ok & (wh.n_used >= p)
-    C = wh.Ninv
+    C = Ninv
     cen = C[:, _H, _H]
     tr, det = cen[:, 0, 0] + cen[:, 1, 1], cen[:, 0, 0] * cen[:, 1, 1] - cen[:, 0, 1] ** 2
     lam_max = 0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
@@ -123,7 +129,7 @@ def protection_levels_local(
         vpl = (np.where(ok, np.max(np.nan_to_num(du, nan=0.0), axis=1)
                         + k_noise * np.sqrt(C[:, 2, 2]), np.nan)
                if p == 3 else np.full(N, np.nan))
-    return hpl, vpl, np.where(wh.used, r, np.nan)
+    return hpl, vpl, np.where(use & ok[:, None], r, np.nan)
 
 
 def protect(
@@ -178,7 +184,7 @@ def protect(
     excl = sol.excluded if sol.excluded.shape == (N, n) else np.zeros((N, n), dtype=bool)
     used = heard & ~excl
     # 1. w-test on the observations the estimator kept
-    _, _, r = protection_levels_local(J, sig, used, lam0, k)
+    hpl_used, vpl_used, r = protection_levels_local(J, sig, used, lam0, k)
     with np.errstate(invalid="ignore", divide="ignore"):
         w = np.abs(v) / (sig * np.sqrt(np.where(r > R_MIN, r, np.nan)))
     flagged = used & (w > w_critical(alpha0))
@@ -210,7 +216,11 @@ def protect(
     # a-priori noise is too optimistic for this epoch
     with np.errstate(invalid="ignore", divide="ignore"):
         factor = np.where(failed, np.sqrt(T / np.maximum(dof, 1)), 1.0)
-    hpl, vpl, _ = protection_levels_local(J, sig * factor[:, None], keep, lam0, k)
+    hpl, vpl = hpl_used * factor, vpl_used * factor  # sigma scales the bound linearly
+    again = np.flatnonzero(np.any(keep != used, axis=1))
+    if again.size:
+        hpl[again], vpl[again], _ = protection_levels_local(
+            J[again], sig[again] * factor[again, None], keep[again], lam0, k)
     usable = np.isin(new, st.USABLE)
     unbounded = (new == st.UNVERIFIED) | blind
     hpl = np.where(usable, np.where(unbounded, np.inf, hpl), np.nan)
