@@ -267,7 +267,7 @@ def test_internal_bug_real_process_exit_1(tmp_path):
     (["--method", "ls,ls"], "argument --method: method 'ls' given twice"),
     (["--method", "ls,,nls"], "argument --method: empty method name"),
     (["--param", "zz=3"], "error: --param 'zz' is not a threshold of the chosen method(s) "
-                          "(known: huber: c)"),
+                          "(known: auto: c)"),
     (["--method", "hampel,igg", "--param", "k0=x"], "error: --param expects NAME=NUMBER"),
     (["--method", "hampel", "--param", "c=nan"], "error: --param expects NAME=NUMBER"),
     (["--method", "ls", "--param", "c=1"], "apply only to the robust methods"),

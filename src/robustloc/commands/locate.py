@@ -163,9 +163,12 @@ def _params(items: list[str], methods: list[str]) -> dict[str, dict[str, float]]
 
     from robustloc.errors import InputError
     from robustloc.estimators.ranging import ROBUST, method_weight
+    from robustloc.integrity.fixes import AUTO, AUTO_ROBUST
 
-    robust = [m for m in methods if m in ROBUST]
-    known = {m: [f.name for f in dataclasses.fields(type(method_weight(m)))] for m in robust}
+    # 'auto' refits failing epochs with AUTO_ROBUST: its thresholds apply there
+    robust = [m for m in methods if m in ROBUST or m == AUTO]
+    known = {m: [f.name for f in dataclasses.fields(
+        type(method_weight(AUTO_ROBUST if m == AUTO else m)))] for m in robust}
     out: dict[str, dict[str, float]] = {m: {} for m in robust}
     for it in items:
         name, sep, val = it.partition("=")

@@ -419,6 +419,8 @@ class Locator:
             raise ValueError("method 'snooping' needs the a-priori standard deviation --sigma")
         if self.method in ROBUST:
             method_weight(self.method, **self.weight_params)  # validate early
+        elif self.method == "auto":  # its robust refit is huber (integrity.fixes.AUTO_ROBUST)
+            method_weight("huber", **self.weight_params)
         if self.engine not in ("compiled", "numpy"):
             raise ValueError(f"engine must be 'compiled' or 'numpy', got {self.engine!r}")
 
