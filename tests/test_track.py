@@ -138,11 +138,19 @@ def test_first_epochs_without_fix_keep_a_row():
     v[0, 2:] = np.nan  # two anchors: no fix to start from
     v[1] = np.nan
     ep2 = type(ep)(ep.time, ep.tag, v, ep.anchor_ids, ep.value, ep.line)
-    rows = Tracker(a, sigma=SIGMA_M).step(ep2)
+    rows = Tracker(a, sigma=SIGMA_M, init_window_s=0.0).step(ep2)
     assert len(rows) == 10
     assert rows.status[0] == "insufficient_anchors" and np.isnan(rows.x[0])
     assert rows.status[1] == "invalid_measurement"
     assert rows.status[2] == "ok" and np.isfinite(rows.x[2])
+    # asynchronous ranges: one anchor per epoch, the start combines the last second's
+    v = np.full_like(ep.values, np.nan)
+    v[np.arange(10), np.arange(10) % 6] = ep.values[np.arange(10), np.arange(10) % 6]
+    ep3 = type(ep)(ep.time, ep.tag, v, ep.anchor_ids, ep.value, ep.line)
+    rows = Tracker(a, sigma=SIGMA_M, init_window_s=1.0).step(ep3)
+    assert list(rows.status[:2]) == ["insufficient_anchors"] * 2  # 1, then 2 anchors
+    assert rows.status[2] == "ok" and rows.n_used[2] == 3  # 3 anchors within 1 s
+    assert (rows.status[3:] == "ok").all() and (rows.n_used[3:] == 1).all()
 
 
 def test_link_step_is_held_out_and_readmitted_with_its_offset():
@@ -152,7 +160,7 @@ def test_link_step_is_held_out_and_readmitted_with_its_offset():
     v = ep.values.copy()
     v[40:, 0] += 2.0  # anchor A0 reads 2 m long from epoch 40 on (a moved reflector)
     ep2 = type(ep)(ep.time, ep.tag, v, ep.anchor_ids, ep.value, ep.line)
-    trk = Tracker(a, sigma=SIGMA_M)
+    trk = Tracker(a, sigma=SIGMA_M, cusum_h=10.0)
     rows = trk.step(ep2)
     held = rows.excluded.str.contains("A0").to_numpy()
     assert held[40:60].any() and not held[100:].any()

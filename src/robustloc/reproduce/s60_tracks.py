@@ -35,7 +35,7 @@ PAPER_TABLE3 = {
 DWM_REFERENCE = {"LOS": {"ESKF": 1.20, "fuse": 0.77}, "NLOS": {"ESKF": 1.03, "fuse": 0.75}}
 
 #: Tracker settings per data set (the defaults unless stated; see the text of each part).
-WALK_OPTS: dict[str, Any] = {}
+WALK_OPTS: dict[str, Any] = {"q": 3.0}
 BLE_OPTS: dict[str, Any] = {}
 DWM_OPTS: dict[str, Any] = {"sigma": 0.1, "q": 5.0, "weight": "igg3"}
 LAB_OPTS: dict[str, Any] = {"sigma": 0.1, "q": 0.5}
@@ -81,7 +81,7 @@ def _walk(ctx: Context, sec: Section, plots: list) -> dict[str, float]:
     trk = Tracker(an, record=True, **WALK_OPTS)
     rows = trk.step(ep)
     rts = _smoothed_xy(trk, rows)
-    static_trk = Tracker(an, model="static", q=0.01, record=True, **WALK_OPTS)
+    static_trk = Tracker(an, record=True, **{**WALK_OPTS, "model": "static", "q": 0.01})
     srows = static_trk.step(ep)
     walk = np.asarray(ep.tag == "walk")
     est = {"raw nls (snapshot)": nls, "track cv-ekf": rows[["x", "y"]].to_numpy(float),
