@@ -38,7 +38,7 @@ DWM_REFERENCE = {"LOS": {"ESKF": 1.20, "fuse": 0.77}, "NLOS": {"ESKF": 1.03, "fu
 WALK_OPTS: dict[str, Any] = {"q": 3.0}
 BLE_OPTS: dict[str, Any] = {}
 DWM_OPTS: dict[str, Any] = {"sigma": 0.1, "q": 5.0, "weight": "igg3"}
-LAB_OPTS: dict[str, Any] = {"sigma": 0.1, "q": 0.5}
+LAB_OPTS: dict[str, Any] = {"sigma": 0.1, "q": 2.0}
 
 
 def _rms(e: np.ndarray) -> float:
