@@ -36,9 +36,10 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
    by :func:`robustloc.integrity.bmethod.global_alpha`.  An epoch whose test rejects, or
    whose robust weights rejected half of the components, is checked against the robust
    snapshot fix of the epoch (when its anchors allow one): it fails when the filtered
-   position lies outside the ``1 - alpha0`` ellipse of ``P + C_fix``.  After
+   position lies outside the ``1 - alpha0`` ellipse of the fix's covariance ``C_fix``.  After
    ``max_bad_epochs`` consecutive failing epochs the filter has diverged and re-starts
-   from the robust fix of the current epoch (counted in ``reinit``).
+   from the robust fix of the current epoch (counted in ``reinit``).  So does a filter
+   whose position variance passed ``lost_pos_var`` when the epoch's fix is more certain.
 6. **Measurement noise adapts within bounds.**  After each update the tag's noise scale
    follows the accepted innovations (Sage-Husa, Mehra 1972):
    ``s^2 <- (1 - l) s^2 + l mean_w((y_i^2 - (H P- H^T)_ii) / sigma_i^2)``, ``l =
@@ -132,6 +133,10 @@ class TrackerSettings:
     init_pos_var_min, init_vel_var, init_acc_var : floor of the starting position variance
         (m^2) and the starting velocity ((m/s)^2) and acceleration ((m/s^2)^2) variances.
     tag_height : known tag height (m): 2-D slant ranges use ``z_anchor - tag_height``.
+    lost_pos_var : when the position variance ``var_x + var_y`` (m^2) exceeds this, the
+        epoch's robust fix is computed and, if it is more certain, the filter re-starts
+        from it at once (a filter that lost its track: long coasting, or a UKF whose sigma
+        points spread beyond the measurement's linear range).
     init_window_s : before its first fix, a tag's last observation of each anchor within
         this many seconds joins the current epoch's (asynchronous UWB ranges arrive one
         anchor at a time: the starting fix needs three).
@@ -159,6 +164,7 @@ class TrackerSettings:
     init_acc_var: float = 0.25
     tag_height: float | None = None
     init_window_s: float = 1.0
+    lost_pos_var: float = 25.0
 
     def __post_init__(self) -> None:
         def bad(msg: str) -> None:
@@ -172,7 +178,7 @@ class TrackerSettings:
             bad(f"domain must be 'range' or 'rssi', got {self.domain!r}")
         if self.engine not in ("compiled", "numpy"):
             bad(f"engine must be 'compiled' or 'numpy', got {self.engine!r}")
-        for name in ("q", "init_window_s", "noise_forget", "cusum_k", "init_vel_var",
+        for name in ("q", "init_window_s", "lost_pos_var", "noise_forget", "cusum_k", "init_vel_var",
                      "init_acc_var", "init_pos_var_min"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
@@ -634,6 +640,9 @@ class Tracker:
                                   "dt": dt})
         # --- divergence: re-start from the robust fix of this epoch
         div = bad >= s.max_bad_epochs
+        lost = ~div & (Pn[:, 0, 0] + Pn[:, 1, 1] > s.lost_pos_var)
+        if lost.any():  # a filter less certain than a snapshot fix has lost its track
+            div[lost] = self._better_fix(Pn[lost], z[lost])
         if div.any():
             keep_rows = {a: getattr(out, a)[idx[div]].copy() for a in _Rows.FIELDS}
             ok = self._start(idx[div], sl[div], t[div], z[div], out, reinit=True)
@@ -653,9 +662,27 @@ class Tracker:
             kw["height_offset"] = np.sqrt(link.dz2)
         return self._locator.solve(link.anchors_xy, z, self._kind, **kw)
 
+    def _better_fix(self, P: Array, z: Array) -> NDArray[np.bool_]:
+        """True where this epoch's robust fix is usable and more certain than the filter
+        (``trace C_fix < trace P_pos``)."""
+        sol = self._fix(z)
+        C = np.asarray(sol.covariance, dtype=float)
+        if C.ndim != 3:
+            return np.zeros(len(P), dtype=bool)
+        s0 = np.asarray(sol.sigma0, dtype=float)
+        s0 = np.where(np.isfinite(s0) & (s0 > 0), s0, 1.0)
+        tr = (C[:, 0, 0] + C[:, 1, 1]) / (s0 * s0)
+        ok = np.isin(sol.status, (st.OK, st.FAULT_EXCLUDED)) & np.isfinite(tr)
+        return ok & (tr < P[:, 0, 0] + P[:, 1, 1])
+
     def _disagrees(self, x: Array, P: Array, z: Array) -> NDArray[np.bool_]:
         """True where the robust fix of the epoch is usable and the filtered position is
-        outside its 1 - alpha0 ellipse: ``d^T (P_pos + C_fix)^-1 d > chi2(1 - alpha0, 2)``."""
+        outside its ``1 - alpha0`` ellipse: ``d^T C_fix^-1 d > chi2(1 - alpha0, 2)``.
+
+        The filtered state already contains this epoch's observations, so ``d = x - x_fix``
+        has a covariance near ``C_fix - P`` (Hausman), not ``C_fix + P``; ``C_fix`` alone
+        bounds it and, unlike ``P + C_fix``, does not let a runaway filter with a huge
+        ``P`` pass the test."""
         sol = self._fix(z)
         pos = np.asarray(sol.position, dtype=float)
         C = np.asarray(sol.covariance, dtype=float)
@@ -664,7 +691,7 @@ class Tracker:
             return np.zeros(len(x), dtype=bool)
         ok &= np.all(np.isfinite(C.reshape(len(x), -1)), axis=1)
         d = np.where(ok[:, None], x[:, :2] - pos, 0.0)
-        Sm = np.where(ok[:, None, None], P[:, :2, :2] + C, np.eye(2)[None])
+        Sm = np.where(ok[:, None, None], C, np.eye(2)[None])
         q = np.einsum("ki,ki->k", d, np.linalg.solve(Sm, d[..., None])[..., 0])
         return ok & (q > chi2.isf(self.settings.alpha0, 2))
 
