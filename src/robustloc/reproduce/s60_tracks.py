@@ -110,7 +110,8 @@ def _walk(ctx: Context, sec: Section, plots: list) -> dict[str, float]:
     tab = pd.DataFrame(out_rows)
     tab.to_csv(ctx.out_dir / "s60_table3.csv", index=False)
     sec.table(f"Table 3 beside the paper's (seed 002, wifi-room simulation, seed "
-              f"{ctx.seed}; track = {trk.method}): error in metres. The paper's numbers are its real room and "
+              f"{ctx.seed}; track = {trk.method}): error in metres. The paper's numbers "
+              "are its real room and "
               "walk; ours the simulated ones.", tab)
     e_tr = np.hypot(*(rows[["x", "y"]].to_numpy(float) - txy).T)
     res["mislead"] = _mislead(e_tr, rows["hpl"].to_numpy(float))

@@ -178,7 +178,8 @@ class TrackerSettings:
             bad(f"domain must be 'range' or 'rssi', got {self.domain!r}")
         if self.engine not in ("compiled", "numpy"):
             bad(f"engine must be 'compiled' or 'numpy', got {self.engine!r}")
-        for name in ("q", "init_window_s", "lost_pos_var", "noise_forget", "cusum_k", "init_vel_var",
+        for name in ("q", "init_window_s", "lost_pos_var", "noise_forget", "cusum_k",
+                     "init_vel_var",
                      "init_acc_var", "init_pos_var_min"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
