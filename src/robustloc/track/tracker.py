@@ -444,11 +444,7 @@ class Tracker:
         sol = self._fix(z)
         pos = np.asarray(sol.position, dtype=float)
         ok = np.isin(sol.status, st.USABLE) & np.all(np.isfinite(pos), axis=1)
-        cov = np.asarray(sol.covariance, dtype=float)
-        s0 = np.asarray(sol.sigma0, dtype=float)
-        if cov.ndim == 3:  # the a-priori covariance: the fix's sigma0 is a noisy estimate
-            s0 = np.where(np.isfinite(s0) & (s0 > 0), s0, 1.0)
-            cov = cov / (s0 * s0)[:, None, None]
+        cov = self._fix_cov(pos, z, np.asarray(sol.excluded, bool))
         var = np.diagonal(cov, axis1=1, axis2=2) if cov.ndim == 3 else np.full(pos.shape, np.nan)
         var = np.where(np.isfinite(var), var, 4.0)
         var = np.clip(var, s.init_pos_var_min, 100.0)
@@ -663,16 +659,34 @@ class Tracker:
             kw["height_offset"] = np.sqrt(link.dz2)
         return self._locator.solve(link.anchors_xy, z, self._kind, **kw)
 
+    def _fix_cov(self, pos: Array, z: Array, excluded: NDArray[np.bool_]) -> Array:
+        """A-priori covariance ``(J^T R^-1 J)^-1`` of fixes ``pos (K, 2)`` from the heard,
+        not excluded observations ``z`` (the fix's own a-posteriori covariance scales by
+        its ``sigma0``, a noisy estimate from a handful of residuals -- or 0 for a perfect
+        fit).  NaN where the geometry is singular."""
+        K = len(pos)
+        n = self.n
+        xs = np.zeros((K, n))
+        xs[:, :2] = np.where(np.isfinite(pos), pos, 0.0)
+        J = self._link.jacobian(xs)[:, :, :2]
+        _, var = self._observations(z)
+        w = np.where(np.isfinite(z) & ~excluded & np.isfinite(var), 1.0 / var, 0.0)
+        N = np.einsum("kmi,km,kmj->kij", J, w, J)
+        det = N[:, 0, 0] * N[:, 1, 1] - N[:, 0, 1] ** 2
+        good = np.isfinite(det) & (det > 1e-12 * np.maximum(N[:, 0, 0] * N[:, 1, 1], 1e-300))
+        inv = np.full((K, 2, 2), np.nan)
+        dg = det[good]
+        inv[good, 0, 0] = N[good, 1, 1] / dg
+        inv[good, 1, 1] = N[good, 0, 0] / dg
+        inv[good, 0, 1] = inv[good, 1, 0] = -N[good, 0, 1] / dg
+        return inv
+
     def _better_fix(self, P: Array, z: Array) -> NDArray[np.bool_]:
         """True where this epoch's robust fix is usable and more certain than the filter
         (``trace C_fix < trace P_pos``)."""
         sol = self._fix(z)
-        C = np.asarray(sol.covariance, dtype=float)
-        if C.ndim != 3:
-            return np.zeros(len(P), dtype=bool)
-        s0 = np.asarray(sol.sigma0, dtype=float)
-        s0 = np.where(np.isfinite(s0) & (s0 > 0), s0, 1.0)
-        tr = (C[:, 0, 0] + C[:, 1, 1]) / (s0 * s0)
+        C = self._fix_cov(np.asarray(sol.position, float), z, np.asarray(sol.excluded, bool))
+        tr = C[:, 0, 0] + C[:, 1, 1]
         ok = np.isin(sol.status, (st.OK, st.FAULT_EXCLUDED)) & np.isfinite(tr)
         return ok & (tr < P[:, 0, 0] + P[:, 1, 1])
 
@@ -686,10 +700,8 @@ class Tracker:
         ``P`` pass the test."""
         sol = self._fix(z)
         pos = np.asarray(sol.position, dtype=float)
-        C = np.asarray(sol.covariance, dtype=float)
+        C = self._fix_cov(pos, z, np.asarray(sol.excluded, bool))
         ok = np.isin(sol.status, (st.OK, st.FAULT_EXCLUDED)) & np.all(np.isfinite(pos), 1)
-        if C.ndim != 3:
-            return np.zeros(len(x), dtype=bool)
         ok &= np.all(np.isfinite(C.reshape(len(x), -1)), axis=1)
         d = np.where(ok[:, None], x[:, :2] - pos, 0.0)
         Sm = np.where(ok[:, None, None], C, np.eye(2)[None])
