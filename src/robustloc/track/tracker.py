@@ -1,0 +1,850 @@
+"""A robust tight tracker for every tag: one filter per tag, all tags advanced together.
+
+Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]``
+(``static``) is advanced epoch by epoch with the shared filter core
+(:mod:`robustloc.filters.core`; compiled twin :mod:`robustloc.filters._compiled`):
+
+1. **Start.**  The first state is a robust snapshot fix (:class:`~robustloc.estimators.
+   ranging.Locator`, ``huber``) of the tag's first epoch with enough anchors; its
+   covariance (floored) is the starting position covariance, the velocity starts at 0 with
+   variance ``init_vel_var``.  Until then a tag's rows carry the fix's status
+   (``insufficient_anchors``, ``ill_conditioned``, ...).
+2. **Predict** with the motion model, ``x = F x``, ``P = F P F^T + Q`` (seed 002 eq. (13);
+   ``Q`` of :mod:`robustloc.filters.motion`, ``q`` the white-acceleration variance).
+3. **Tight update** with every heard anchor as one component (:mod:`robustloc.track.
+   measurement`; RSSI in dB through the path-loss model, or calibrated ranges), an epoch
+   with one or two anchors updating too.  The update is the core's robust one: equivalent
+   weights ``D = p(e_i)`` of the standardized innovations, gain ``K D`` (seed 002 eqs.
+   (11)-(12)), default Huber for ranges (measured, or RSSI converted by the path-loss
+   model, the default domain as in ``locate``) and the asymmetric IGG of seed 002 eq. (14)
+   for RSSI in dB (fades read low: ``e < 0`` is the long tail); ``R_ii = (s sigma_i)^2`` with
+   ``sigma_i`` the anchor's a-priori sigma and ``s`` the tag's noise scale (step 6).
+4. **Environment changes** (a door, a person: a link's level steps by several dB for
+   seconds or minutes).  A two-sided CUSUM (Page 1954) runs on each link's standardized
+   innovation ``e_i``: ``g+ = max(0, g+ + e_i - k)``, ``g- = max(0, g- - e_i - k)``; when
+   one passes ``h`` the link is *held out* (no longer used: its weight is 0, the
+   covariance is *not* inflated) while its offset ``b_i = mean(z_i - h_i(x-))`` is
+   estimated against the prediction from the other links; after ``readmit_samples`` held
+   epochs it is re-admitted with the new offset (and the CUSUM restarts).  A step that
+   ends is a second step back, detected and handled the same way.  At most
+   ``max(1, (M - 1) // 2)`` of the ``M`` links may be held at once: when more alarm, the
+   tag moved (or the filter drifted), not the links -- every hold is released and the
+   epoch counts towards divergence instead.
+5. **Innovation tests (B-method, seed 003).**  The global test of the normalized
+   innovation squared ``NIS`` over the ``m`` heard components uses the critical value
+   ``chi2(1 - alpha(m); m)`` with ``alpha(m)`` tied to the w-test (``alpha0``, ``beta0``)
+   by :func:`robustloc.integrity.bmethod.global_alpha`.  An epoch whose test rejects, or
+   whose robust weights rejected half of the components, is checked against the robust
+   snapshot fix of the epoch (when its anchors allow one): it fails when the filtered
+   position lies outside the ``1 - alpha0`` ellipse of the fix's covariance ``C_fix``.  After
+   ``max_bad_epochs`` consecutive failing epochs the filter has diverged and re-starts
+   from the robust fix of the current epoch (counted in ``reinit``).  So does a filter
+   whose position variance passed ``lost_pos_var`` when the epoch's fix is more certain.
+6. **Measurement noise adapts within bounds.**  After each update the tag's noise scale
+   follows the accepted innovations (Sage-Husa, Mehra 1972):
+   ``s^2 <- (1 - l) s^2 + l mean_w((y_i^2 - (H P- H^T)_ii) / sigma_i^2)``, ``l =
+   noise_forget``, clipped to ``[noise_scale_min^2, noise_scale_max^2]``.
+7. **Coasting.**  An epoch without any usable observation is predicted only: status
+   ``predicted``, its covariance grows with ``Q``.
+8. **Protection level.**  ``hpl = max_i |G_pos,i| MDB_i + k sigma_major``: ``G`` the robust
+   gain of the update, ``MDB_i = sqrt(lambda0) sqrt(S_ii)`` the bias of component ``i``
+   the w-test detects with power ``1 - beta0`` (seed 003 eq. (3); the slope form of
+   RAIM/``spp``), ``sigma_major`` the square root of the largest eigenvalue of the
+   position covariance and ``k = sqrt(chi2.isf(integrity_risk, 2))`` (2-D error beyond
+   ``k`` sigma with probability ``integrity_risk`` for a Gaussian error).  Predicted rows
+   get the noise term only.
+
+Engines: ``compiled`` (default) runs the predict + update of the ``cv``/``ca`` range
+models in the numba kernels of the fusion filter (one call for all tags of a round, the
+UWB tight model with the speed and course components absent); ``numpy`` (and RSSI, and
+``static``) runs the batched NumPy core.  The two agree to rounding (tested).
+
+Batching: :meth:`Tracker.step` takes an :class:`~robustloc.io.tables.Epochs` block and
+advances each tag through its epochs in time order; the ``j``-th epochs of all tags are
+one vectorized round.  Every row depends only on its tag's own history, so feeding a file
+in one call or one epoch at a time gives the same rows (tested).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+from scipy.stats import chi2
+
+from robustloc import status as st
+from robustloc.filters.core import (
+    RobustUpdate,
+    SigmaPoints,
+    predict_linear,
+    update_ekf,
+    update_ukf,
+)
+from robustloc.filters.motion import ConstantAcceleration, ConstantVelocity, _Kinematic
+from robustloc.integrity.bmethod import global_critical, lambda0
+from robustloc.robust.weights import get_weight
+from robustloc.track.measurement import LinkModel
+
+Array = NDArray[np.float64]
+
+MODELS = ("cv", "ca", "static")
+FILTERS = ("ekf", "ukf")
+#: Method name written in the ``method`` column (``robustloc evaluate`` groups by it).
+METHOD_PREFIX = "track"
+
+
+@dataclass(frozen=True)
+class TrackerSettings:
+    """Every setting of the tracker (defaults in the parameter list).
+
+    Parameters
+    ----------
+    model : ``cv`` (constant velocity), ``ca`` (constant acceleration) or ``static``
+        (position random walk).
+    filter : ``ekf`` or ``ukf`` (Merwe sigma points ``alpha = 1, kappa = 0``, seed 001).
+    q : process noise: white-acceleration variance ((m/s^2)^2) for ``cv``, jerk variance
+        for ``ca``, position-step variance per s^2 for ``static`` (discrete noise model of
+        :mod:`robustloc.filters.motion`).
+    weight : robust weight of the update (``huber, hampel, igg, igg3, asymmetric-igg, ls``);
+        ``None``: ``asymmetric-igg`` in the dB domain (fades: ``e < 0`` is the long
+        tail), ``huber`` for ranges (measured or converted from RSSI).
+    sigma : a-priori standard deviation of one observation (m or dB); ``None``: the
+        anchors' ``sigma`` column, else 3 dB for RSSI and 0.3 m for ranges.
+    engine : ``compiled`` or ``numpy``.
+    domain : RSSI only: update with ranges converted by the path-loss model (``range``,
+        default; ``sigma_d = d ln10 sigma_dB / (10 n)``) or in dB through the model
+        (``rssi``).  Measured on the seed-002 walk: see the report section ``s60_tracks``.
+    noise_scale_min, noise_scale_max, noise_forget : bounds and forgetting factor of the
+        adaptive noise scale ``s`` (item 6 of the module docstring).
+    cusum_k, cusum_h : CUSUM drift and threshold (standardized innovations); ``cusum_h =
+        None`` (default) disables the step detector: measured on the seed-002 walk (8 dB
+        steps of 10 s) and on uwb-dwm1001, holding links out costs more accuracy than the
+        robust weights lose on the steps (report section ``s60_tracks``); ``10`` is a
+        sensible threshold when steps are long and the anchors many.
+    readmit_samples : held epochs before a link is re-admitted with its new offset.
+    alpha0, beta0 : w-test significance and missed-detection probability (B-method).
+    max_bad_epochs : consecutive failing epochs that count as divergence (re-start).
+    integrity_risk : probability that the position error exceeds the noise part of
+        ``hpl`` (``k = sqrt(chi2.isf(integrity_risk, 2))``).
+    init_pos_var_min, init_vel_var, init_acc_var : floor of the starting position variance
+        (m^2) and the starting velocity ((m/s)^2) and acceleration ((m/s^2)^2) variances.
+    tag_height : known tag height (m): 2-D slant ranges use ``z_anchor - tag_height``.
+    lost_pos_var : when the position variance ``var_x + var_y`` (m^2) exceeds this, the
+        epoch's robust fix is computed and, if it is more certain, the filter re-starts
+        from it at once (a filter that lost its track: long coasting, or a UKF whose sigma
+        points spread beyond the measurement's linear range).
+    init_window_s : before its first fix, a tag's last observation of each anchor within
+        this many seconds joins the current epoch's (asynchronous UWB ranges arrive one
+        anchor at a time: the starting fix needs three).
+    """
+
+    model: str = "cv"
+    filter: str = "ekf"
+    q: float = 1.0
+    weight: str | None = None
+    sigma: float | None = None
+    engine: str = "compiled"
+    domain: str = "range"
+    noise_scale_min: float = 1.0
+    noise_scale_max: float = 4.0
+    noise_forget: float = 0.02
+    cusum_k: float = 1.0
+    cusum_h: float | None = None
+    readmit_samples: int = 6
+    alpha0: float = 0.001
+    beta0: float = 0.10
+    max_bad_epochs: int = 5
+    integrity_risk: float = 1e-3
+    init_pos_var_min: float = 0.25
+    init_vel_var: float = 1.0
+    init_acc_var: float = 0.25
+    tag_height: float | None = None
+    init_window_s: float = 1.0
+    lost_pos_var: float = 25.0
+
+    def __post_init__(self) -> None:
+        def bad(msg: str) -> None:
+            raise ValueError(msg)
+
+        if self.model not in MODELS:
+            bad(f"model must be one of {', '.join(MODELS)}, got {self.model!r}")
+        if self.filter not in FILTERS:
+            bad(f"filter must be 'ekf' or 'ukf', got {self.filter!r}")
+        if self.domain not in ("range", "rssi"):
+            bad(f"domain must be 'range' or 'rssi', got {self.domain!r}")
+        if self.engine not in ("compiled", "numpy"):
+            bad(f"engine must be 'compiled' or 'numpy', got {self.engine!r}")
+        for name in ("q", "init_window_s", "lost_pos_var", "noise_forget", "cusum_k",
+                     "init_vel_var",
+                     "init_acc_var", "init_pos_var_min"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                bad(f"{name} must be finite and >= 0, got {v}")
+        if self.cusum_h is not None and not (math.isfinite(self.cusum_h) and self.cusum_h > 0):
+            bad(f"cusum_h must be positive and finite (or None), got {self.cusum_h}")
+        if not 0 < self.noise_scale_min <= self.noise_scale_max < math.inf:
+            bad("need 0 < noise_scale_min <= noise_scale_max < inf")
+        if not 0 <= self.noise_forget <= 1:
+            bad(f"noise_forget must be in [0, 1], got {self.noise_forget}")
+        if self.sigma is not None and not (math.isfinite(self.sigma) and self.sigma > 0):
+            bad(f"sigma must be positive and finite, got {self.sigma}")
+        for name in ("alpha0", "beta0", "integrity_risk"):
+            v = getattr(self, name)
+            if not 0 < v < 1:
+                bad(f"{name} must be strictly between 0 and 1, got {v}")
+        if self.readmit_samples < 1 or self.max_bad_epochs < 1:
+            bad("readmit_samples and max_bad_epochs must be >= 1")
+        if self.weight is not None:
+            get_weight(self.weight)  # validates the name
+
+    def motion(self) -> _Kinematic:
+        if self.model == "cv":
+            return ConstantVelocity(q=self.q)
+        if self.model == "ca":
+            return ConstantAcceleration(q=self.q)
+        return _Kinematic(q=self.q, order=0, name="static")
+
+
+def _state_size(model: str) -> int:
+    return {"cv": 4, "ca": 6, "static": 2}[model]
+
+
+class Tracker:
+    """Stateful robust tight tracker of many tags (see the module docstring).
+
+    Parameters
+    ----------
+    anchors : DataFrame
+        Anchors frame (``anchor, x, y[, z]`` + path-loss columns for RSSI, ``bias, scale``
+        for ranges, optional ``sigma``), as from :func:`robustloc.io.read_anchors`.
+    model, filter : motion model and filter (see :class:`TrackerSettings`).
+    record : keep every step's filtered and predicted moments for :meth:`smoothed`.
+    **options : any other field of :class:`TrackerSettings`.
+
+    Examples
+    --------
+    >>> trk = Tracker(anchors, model="cv", filter="ekf")      # doctest: +SKIP
+    >>> rows = trk.step(epochs)                                # one row per epoch
+    >>> saved = trk.state_dict(); trk2 = Tracker(anchors); trk2.load_state_dict(saved)
+    """
+
+    def __init__(self, anchors: pd.DataFrame, *, model: str = "cv", filter: str = "ekf",
+                 record: bool = False, **options: Any) -> None:
+        known = {f.name for f in fields(TrackerSettings)}
+        unknown = set(options) - known
+        if unknown:
+            raise TypeError(f"unknown tracker option(s): {', '.join(sorted(unknown))}")
+        self.settings = TrackerSettings(model=model, filter=filter, **options)
+        self.anchors = anchors.reset_index(drop=True)
+        self.anchor_ids = tuple(str(a) for a in self.anchors["anchor"])
+        self.record = record
+        self.n = _state_size(model)
+        self._motion = self.settings.motion()
+        self._kind: str | None = None
+        self._link: LinkModel | None = None
+        self._slot: dict[str, int] = {}
+        M = len(self.anchor_ids)
+        self._alloc(0, M)
+        self._history: list[dict[str, Any]] = []
+        self._fusion = None
+        self._meas = None
+        self._locator = None
+        self._lam0 = lambda0(self.settings.alpha0, self.settings.beta0)
+        self._k_ir = math.sqrt(chi2.isf(self.settings.integrity_risk, 2))
+        self._gcrit = global_critical(np.arange(0, M + 1), None, self.settings.alpha0,
+                                      self.settings.beta0)
+
+    # ------------------------------------------------------------------ state arrays
+    def _alloc(self, S: int, M: int) -> None:
+        n = self.n
+        self._x = np.zeros((S, n))
+        self._P = np.zeros((S, n, n))
+        self._t = np.zeros(S)
+        self._init = np.zeros(S, dtype=bool)
+        self._bias = np.zeros((S, M))
+        self._held = np.zeros((S, M), dtype=bool)
+        self._gp = np.zeros((S, M))
+        self._gm = np.zeros((S, M))
+        self._hsum = np.zeros((S, M))
+        self._hn = np.zeros((S, M), dtype=np.int64)
+        self._scale2 = np.ones(S)
+        self._bad = np.zeros(S, dtype=np.int64)
+        self._reinit = np.zeros(S, dtype=np.int64)
+        self._lastz = np.full((S, M), np.nan)
+        self._lastt = np.full((S, M), np.nan)
+
+    _ARRAYS = ("_x", "_P", "_t", "_init", "_bias", "_held", "_gp", "_gm", "_hsum", "_hn",
+               "_scale2", "_bad", "_reinit", "_lastz", "_lastt")
+
+    def _slots(self, tags: NDArray[np.object_]) -> NDArray[np.int64]:
+        new = [t for t in dict.fromkeys(tags) if t not in self._slot]
+        if new:
+            S0 = len(self._slot)
+            for i, t in enumerate(new):
+                self._slot[t] = S0 + i
+            grow = len(new)
+            for name in self._ARRAYS:
+                a = getattr(self, name)
+                pad = np.zeros((grow, *a.shape[1:]), dtype=a.dtype)
+                if name == "_scale2":
+                    pad[:] = 1.0
+                elif name in ("_lastz", "_lastt"):
+                    pad[:] = np.nan
+                setattr(self, name, np.concatenate([a, pad]))
+        return np.fromiter((self._slot[t] for t in tags), dtype=np.int64, count=len(tags))
+
+    @property
+    def tags(self) -> list[str]:
+        """Tags seen so far."""
+        return list(self._slot)
+
+    # ------------------------------------------------------------------ model setup
+    def _setup(self, kind: str) -> None:
+        from robustloc.errors import InputError
+        from robustloc.models.pathloss import log_distance_arrays
+
+        s = self.settings
+        a = self.anchors
+        M = len(a)
+        xy = a[["x", "y"]].to_numpy(dtype=float)
+        dz2 = np.zeros(M)
+        if s.tag_height is not None:
+            if "z" not in a.columns:
+                raise InputError("tag_height needs a z column in the anchors file",
+                                 a.attrs.get("path"), 1)
+            dz2 = (a["z"].to_numpy(dtype=float) - s.tag_height) ** 2
+        if s.sigma is not None:
+            sigma = np.full(M, s.sigma)
+        elif "sigma" in a.columns:
+            sigma = a["sigma"].to_numpy(dtype=float)
+            if not np.all(np.isfinite(sigma) & (sigma > 0)):
+                raise InputError("anchors' sigma column must be positive and finite",
+                                 a.attrs.get("path"))
+        else:
+            sigma = np.full(M, 3.0 if kind == "rssi" else 0.3)
+        A = nn = None
+        if kind == "rssi":
+            A, nn = log_distance_arrays(a)
+            A, nn = np.asarray(A, float), np.asarray(nn, float)
+        self._kind = kind
+        self._link = LinkModel(xy, "range" if kind == "range" or s.domain == "range"
+                               else "rssi", dz2, sigma, A, nn)
+        wname = s.weight or ("asymmetric-igg" if self._link.kind == "rssi" else "huber")
+        self._weight = get_weight(wname)
+        self._robust = RobustUpdate(weight=self._weight)
+        self._weight_name = wname
+        from robustloc.estimators.ranging import Locator
+
+        self._locator = Locator("huber", sigma=tuple(sigma))
+        self._compiled = (s.engine == "compiled" and self._link.kind == "range"
+                          and s.model in ("cv", "ca"))
+        if self._compiled:
+            from robustloc.filters.core import RobustUpdate as RU
+            from robustloc.fusion.pipeline import FusionFilter, FusionMeasurement
+
+            self._meas = FusionMeasurement(self.n, xy, np.sqrt(dz2))
+            self._fusion = FusionFilter(kind=s.filter, motion=self._motion,
+                                        robust=RU(weight=self._weight), max_rejected=0,
+                                        engine="compiled")
+
+    @property
+    def method(self) -> str:
+        """The ``method`` column value, e.g. ``track-cv-ekf``."""
+        return f"{METHOD_PREFIX}-{self.settings.model}-{self.settings.filter}"
+
+    def _calibrate(self, values: Array) -> Array:
+        z = np.where(np.isfinite(values), values, np.nan)
+        if self._kind == "range":
+            from robustloc.models.calibration import apply_range_calibration
+
+            z = apply_range_calibration(self.anchors, z)
+        return z
+
+    def _observations(self, z: Array) -> tuple[Array, Array]:
+        """Observations in the filter's domain and their a-priori variances ``(K, M)``.
+
+        Ranges (and RSSI with ``domain="rssi"``) as measured, variance ``sigma_i^2``.
+        RSSI with ``domain="range"``: the path-loss model's range
+        ``d = 10^((A - rssi) / (10 n))`` with ``sigma_d = d ln10 sigma_dB / (10 n)`` at
+        the measured ``d``, as ``locate``: a faded link reads long and down-weights itself.
+        Measured on the seed-002 walk (seed 1, q = 3): walk RMS 1.75 m with the measured
+        ``d``, 2.72 m with the predicted distance (which is free of the pull towards
+        short readings but leaves the fades at full weight).
+        """
+        link = self._link
+        var = np.broadcast_to(link.sigma[None] ** 2, z.shape)
+        if self._kind != "rssi" or self.settings.domain == "rssi":
+            return z, var
+        with np.errstate(over="ignore", invalid="ignore"):
+            d = 10.0 ** ((link.A[None] - z) / (10.0 * link.n[None]))
+            sd = d * (np.log(10.0) / 10.0) * link.sigma[None] / link.n[None]
+        return d, sd * sd
+
+    # ------------------------------------------------------------------ public API
+    def step(self, epochs: Any) -> pd.DataFrame:
+        """Advance each tag by the given epochs (time-sorted per tag).
+
+        Parameters
+        ----------
+        epochs : :class:`robustloc.io.tables.Epochs`
+            Its ``anchor_ids`` must be this tracker's anchors in order.
+
+        Returns
+        -------
+        DataFrame
+            One track row per epoch, in the order of ``epochs`` (see :func:`track_columns`).
+        """
+        if tuple(epochs.anchor_ids) != self.anchor_ids:
+            raise ValueError("epochs' anchor columns differ from the tracker's anchors")
+        N = epochs.n_epochs
+        if self._kind is None:
+            self._setup(epochs.value)
+        elif epochs.value != self._kind:
+            raise ValueError(f"tracker runs on {self._kind}, got {epochs.value} epochs")
+        out = _Rows(N, self.n, len(self.anchor_ids))
+        if N == 0:
+            return self._frame(epochs, out)
+        time = np.asarray(epochs.time, dtype=float)
+        tags = np.asarray(epochs.tag, dtype=object)
+        z_all = self._calibrate(np.asarray(epochs.values, dtype=float))
+        slots = self._slots(tags)
+        rank = _rank_within(slots)
+        order = np.argsort(rank, kind="stable")
+        bounds = np.searchsorted(rank[order], np.arange(rank.max() + 2))
+        for r in range(rank.max() + 1):
+            idx = order[bounds[r]: bounds[r + 1]]
+            self._round(idx, slots[idx], time[idx], z_all[idx], out)
+        return self._frame(epochs, out)
+
+    # ------------------------------------------------------------------ one round
+    def _round(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array, z: Array,
+               out: _Rows) -> None:
+        init = self._init[sl]
+        if not init.all():
+            ni = ~init
+            s2, t2, z2 = sl[ni], t[ni], z[ni]
+            heard = np.isfinite(z2)
+            with np.errstate(invalid="ignore"):
+                recent = (t2[:, None] - self._lastt[s2]) <= self.settings.init_window_s
+            zi = np.where(heard, z2, np.where(recent, self._lastz[s2], np.nan))
+            self._lastz[s2] = np.where(heard, z2, self._lastz[s2])
+            self._lastt[s2] = np.where(heard, t2[:, None], self._lastt[s2])
+            self._start(idx[ni], s2, t2, zi, out, reinit=False)
+        if init.any():
+            self._filter(idx[init], sl[init], t[init], z[init], out)
+
+    def _start(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array, z: Array,
+               out: _Rows, reinit: bool) -> NDArray[np.bool_]:
+        """Robust snapshot fixes; usable ones start (or re-start) their tag's filter."""
+        s = self.settings
+        sol = self._fix(z)
+        pos = np.asarray(sol.position, dtype=float)
+        ok = np.isin(sol.status, st.USABLE) & np.all(np.isfinite(pos), axis=1)
+        cov = self._fix_cov(pos, z, np.asarray(sol.excluded, bool))
+        var = np.diagonal(cov, axis1=1, axis2=2) if cov.ndim == 3 else np.full(pos.shape, np.nan)
+        var = np.where(np.isfinite(var), var, 4.0)
+        var = np.clip(var, s.init_pos_var_min, 100.0)
+        n = self.n
+        k = sl[ok]
+        x0 = np.zeros((ok.sum(), n))
+        x0[:, :2] = pos[ok]
+        diag = np.zeros((ok.sum(), n))
+        diag[:, :2] = var[ok]
+        if n >= 4:
+            diag[:, 2:4] = s.init_vel_var
+        if n >= 6:
+            diag[:, 4:6] = s.init_acc_var
+        self._x[k] = x0
+        self._P[k] = diag[:, :, None] * np.eye(n)[None]
+        self._t[k] = t[ok]
+        self._init[k] = True
+        self._bad[k] = 0
+        self._gp[k] = 0.0
+        self._gm[k] = 0.0
+        self._held[k] = False
+        self._hsum[k] = 0.0
+        self._hn[k] = 0
+        if reinit:
+            self._reinit[k] += 1
+        # rows: the fix (its status), or the failed fix's status
+        out.x[idx] = np.nan
+        out.x[idx[ok]] = x0
+        out.var[idx] = np.nan
+        out.var[idx[ok]] = diag
+        out.cxy[idx] = np.where(ok, cov[:, 0, 1] if cov.ndim == 3 else np.nan, np.nan)
+        out.status[idx] = np.asarray(sol.status, dtype=object)
+        out.n_used[idx] = np.asarray(sol.n_used, dtype=np.int64)
+        exc = np.asarray(sol.excluded, dtype=bool)
+        out.excluded[idx] = exc
+        sig = np.sqrt(np.maximum(np.linalg.eigvalsh(np.where(
+            np.isfinite(cov), cov, 0.0)) if cov.ndim == 3 else np.zeros((len(idx), 2)), 0.0))
+        smaj = np.sqrt(var.max(axis=1))
+        if cov.ndim == 3:
+            smaj = np.maximum(smaj, sig[:, -1])
+        out.hpl[idx] = np.where(ok, self._k_ir * smaj, np.nan)
+        out.reinit[idx] = self._reinit[sl]
+        if self.record:
+            self._history.append({"idx": idx[ok], "slot": k, "start": np.ones(ok.sum(), bool),
+                                  "xf": x0, "Pf": self._P[k].copy(), "xp": x0,
+                                  "Pp": self._P[k].copy(), "dt": np.zeros(ok.sum())})
+        return ok
+
+    def _filter(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array, z: Array,
+                out: _Rows) -> None:
+        s = self.settings
+        link = self._link
+        K, _n, M = len(idx), self.n, link.M
+        x, P = self._x[sl], self._P[sl]
+        dt = np.maximum(t - self._t[sl], 0.0)
+        F, Q = self._motion.F(dt), self._motion.Q(dt)
+        xp = (F @ x[:, :, None])[:, :, 0]
+        Pp = F @ P @ np.swapaxes(F, 1, 2) + Q
+        Pp = 0.5 * (Pp + np.swapaxes(Pp, 1, 2))
+        # innovations of every heard link against the prediction (CUSUM, offsets, hpl)
+        bias = self._bias[sl]
+        heard = np.isfinite(z)
+        if self._kind == "rssi":  # offsets live in dB: residual against the path-loss model
+            d_raw = z - link.rssi(xp)
+        else:
+            d_raw = None
+        hp = link.predict(xp)
+        obs, R0 = self._observations(z - bias)
+        if d_raw is None:
+            d_raw = z - hp
+        H = link.jacobian(xp)
+        PHt = Pp @ np.swapaxes(H, 1, 2)  # (K, n, M)
+        HPH = (H * np.swapaxes(PHt, 1, 2)).sum(axis=2)
+        scale2 = self._scale2[sl]
+        Rd = scale2[:, None] * R0
+        y = obs - hp
+        with np.errstate(invalid="ignore"):
+            e = y / np.sqrt(HPH + Rd)
+        # --- step detector (CUSUM) on the links in use
+        held = self._held[sl].copy()
+        gp, gm = self._gp[sl].copy(), self._gm[sl].copy()
+        use = heard & ~held
+        ev = np.where(use, e, 0.0)
+        gp = np.where(use, np.maximum(0.0, gp + ev - s.cusum_k), gp)
+        gm = np.where(use, np.maximum(0.0, gm - ev - s.cusum_k), gm)
+        h_cusum = math.inf if s.cusum_h is None else s.cusum_h
+        alarm = use & ((gp > h_cusum) | (gm > h_cusum))
+        # more links stepping than a minority of the anchors: the tag moved (or the filter
+        # drifted), not its links -- release every hold, count the epoch as failing
+        moved = alarm.any(axis=1) & ((held | alarm).sum(axis=1) > max(1, (M - 1) // 2))
+        reset = moved[:, None] & np.ones((1, M), dtype=bool)
+        alarm &= ~reset
+        held &= ~reset
+        gp = np.where(alarm | reset, 0.0, gp)
+        gm = np.where(alarm | reset, 0.0, gm)
+        held |= alarm
+        hsum = np.where(alarm | reset, 0.0, self._hsum[sl])
+        hn = np.where(alarm | reset, 0, self._hn[sl])
+        # held links: accumulate the new offset, re-admit after readmit_samples
+        acc = held & heard
+        hsum = hsum + np.where(acc, d_raw, 0.0)
+        hn = hn + acc
+        ready = held & (hn >= s.readmit_samples)
+        new_bias = np.where(ready, hsum / np.maximum(hn, 1), bias)
+        zin = np.where(held, np.nan, obs)
+        held_now = held & heard
+        held = held & ~ready
+        hsum = np.where(ready, 0.0, hsum)
+        hn = np.where(ready, 0, hn)
+
+        # --- the filter step: predict + robust update (shared core or its compiled twin)
+        if self._compiled:
+            zf = np.concatenate([zin, np.full((K, 2), np.nan)], axis=1)
+            m = M + 2
+            R = np.zeros((K, m, m))
+            ii = np.arange(M)
+            R[:, ii, ii] = Rd
+            R[:, M, M] = R[:, M + 1, M + 1] = 1.0
+            res = self._fusion.step(np.ascontiguousarray(x), np.ascontiguousarray(P),
+                                    np.ascontiguousarray(dt), zf, R, self._meas)
+            xn, Pn = np.array(res.x), np.array(res.P)
+            w = np.array(res.weights[:, :M])
+            nis, rstat, nu = np.array(res.nis), np.array(res.status), np.array(res.n_used)
+        else:
+            xq, Pq = predict_linear(x, P, F, Q)
+            R = Rd[:, :, None] * np.eye(M)[None]
+            if s.filter == "ekf":
+                res = update_ekf(xq, Pq, zin, link.predict, R, jac=link.jacobian,
+                                 robust=self._robust)
+            else:
+                res = update_ukf(xq, Pq, zin, link.predict, R, points=SigmaPoints(),
+                                 robust=self._robust)
+            xn, Pn, w = res.x, res.P, res.weights
+            nis, rstat, nu = res.nis, res.status, res.n_used
+
+        # --- B-method global test, divergence
+        avail = np.isfinite(zin)
+        dof = avail.sum(axis=1)
+        crit = self._gcrit[dof]
+        with np.errstate(invalid="ignore"):
+            test_fail = (dof > 0) & (nis > crit)
+        # a suspicious epoch (the global test failed, or half the components rejected) is
+        # checked against the robust snapshot fix: a filter that drifted off, or locked
+        # onto a wrong solution (two consistent links, the others rejected), disagrees
+        sus = test_fail | ((dof > 0) & (2 * nu <= dof))
+        fail = moved.copy()
+        if sus.any():
+            fail[sus] |= self._disagrees(xn[sus], Pn[sus], z[sus])
+        bad = np.where(fail, self._bad[sl] + 1, np.where(dof > 0, 0, self._bad[sl]))
+
+        # --- adaptive noise scale (accepted components, robust weights)
+        wa = np.where(avail, w, 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            est = np.where(avail, (y * y - HPH) / R0, 0.0)
+            sw = wa.sum(axis=1)
+            r_hat = np.where(sw > 0, (wa * est).sum(axis=1) / np.maximum(sw, 1e-300), np.nan)
+        lo, hi = s.noise_scale_min**2, s.noise_scale_max**2
+        upd = np.isfinite(r_hat)
+        scale2 = np.where(upd, np.clip((1 - s.noise_forget) * scale2
+                                       + s.noise_forget * np.maximum(r_hat, 0.0), lo, hi),
+                          scale2)
+
+        # --- protection level: robust gain columns times the MDB, plus k sigma
+        hpl = self._hpl(H, HPH, Rd, avail, w, Pn)
+
+        # --- store
+        self._x[sl] = xn
+        self._P[sl] = Pn
+        self._t[sl] = t
+        self._bias[sl] = new_bias
+        self._held[sl] = held
+        self._gp[sl], self._gm[sl] = gp, gm
+        self._hsum[sl], self._hn[sl] = hsum, hn
+        self._scale2[sl] = scale2
+        self._bad[sl] = bad
+        status = np.asarray(rstat, dtype=object).copy()
+        status[(status == st.OK) & held_now.any(axis=1)] = st.FAULT_EXCLUDED
+        out.x[idx] = xn
+        out.var[idx] = np.diagonal(Pn, axis1=1, axis2=2)
+        out.cxy[idx] = Pn[:, 0, 1]
+        out.status[idx] = status
+        out.n_used[idx] = nu
+        out.nis[idx] = nis
+        out.excluded[idx] = (avail & (w <= 0)) | held_now
+        out.hpl[idx] = hpl
+        out.scale[idx] = np.sqrt(scale2)
+        if self.record:
+            self._history.append({"idx": idx, "slot": sl.copy(), "start": np.zeros(K, bool),
+                                  "xf": xn.copy(), "Pf": Pn.copy(), "xp": xp, "Pp": Pp,
+                                  "dt": dt})
+        # --- divergence: re-start from the robust fix of this epoch
+        div = bad >= s.max_bad_epochs
+        lost = ~div & (Pn[:, 0, 0] + Pn[:, 1, 1] > s.lost_pos_var)
+        if lost.any():  # a filter less certain than a snapshot fix has lost its track
+            div[lost] = self._better_fix(Pn[lost], z[lost])
+        if div.any():
+            keep_rows = {a: getattr(out, a)[idx[div]].copy() for a in _Rows.FIELDS}
+            ok = self._start(idx[div], sl[div], t[div], z[div], out, reinit=True)
+            if not ok.all():  # no usable fix: keep the filtered rows, try again next epoch
+                rows = idx[div][~ok]
+                for a, v in keep_rows.items():
+                    getattr(out, a)[rows] = v[~ok]
+        out.reinit[idx] = self._reinit[sl]
+
+    def _fix(self, z: Array) -> Any:
+        s = self.settings
+        link = self._link
+        kw: dict[str, Any] = {}
+        if self._kind == "rssi":
+            kw = {"A": link.A, "n": link.n}
+        if s.tag_height is not None:
+            kw["height_offset"] = np.sqrt(link.dz2)
+        return self._locator.solve(link.anchors_xy, z, self._kind, **kw)
+
+    def _fix_cov(self, pos: Array, z: Array, excluded: NDArray[np.bool_]) -> Array:
+        """A-priori covariance ``(J^T R^-1 J)^-1`` of fixes ``pos (K, 2)`` from the heard,
+        not excluded observations ``z`` (the fix's own a-posteriori covariance scales by
+        its ``sigma0``, a noisy estimate from a handful of residuals -- or 0 for a perfect
+        fit).  NaN where the geometry is singular."""
+        K = len(pos)
+        n = self.n
+        xs = np.zeros((K, n))
+        xs[:, :2] = np.where(np.isfinite(pos), pos, 0.0)
+        J = self._link.jacobian(xs)[:, :, :2]
+        _, var = self._observations(z)
+        w = np.where(np.isfinite(z) & ~excluded & np.isfinite(var), 1.0 / var, 0.0)
+        N = np.einsum("kmi,km,kmj->kij", J, w, J)
+        det = N[:, 0, 0] * N[:, 1, 1] - N[:, 0, 1] ** 2
+        good = np.isfinite(det) & (det > 1e-12 * np.maximum(N[:, 0, 0] * N[:, 1, 1], 1e-300))
+        inv = np.full((K, 2, 2), np.nan)
+        dg = det[good]
+        inv[good, 0, 0] = N[good, 1, 1] / dg
+        inv[good, 1, 1] = N[good, 0, 0] / dg
+        inv[good, 0, 1] = inv[good, 1, 0] = -N[good, 0, 1] / dg
+        return inv
+
+    def _better_fix(self, P: Array, z: Array) -> NDArray[np.bool_]:
+        """True where this epoch's robust fix is usable and more certain than the filter
+        (``trace C_fix < trace P_pos``)."""
+        sol = self._fix(z)
+        C = self._fix_cov(np.asarray(sol.position, float), z, np.asarray(sol.excluded, bool))
+        tr = C[:, 0, 0] + C[:, 1, 1]
+        ok = np.isin(sol.status, (st.OK, st.FAULT_EXCLUDED)) & np.isfinite(tr)
+        return ok & (tr < P[:, 0, 0] + P[:, 1, 1])
+
+    def _disagrees(self, x: Array, P: Array, z: Array) -> NDArray[np.bool_]:
+        """True where the robust fix of the epoch is usable and the filtered position is
+        outside its ``1 - alpha0`` ellipse: ``d^T C_fix^-1 d > chi2(1 - alpha0, 2)``.
+
+        The filtered state already contains this epoch's observations, so ``d = x - x_fix``
+        has a covariance near ``C_fix - P`` (Hausman), not ``C_fix + P``; ``C_fix`` alone
+        bounds it and, unlike ``P + C_fix``, does not let a runaway filter with a huge
+        ``P`` pass the test."""
+        sol = self._fix(z)
+        pos = np.asarray(sol.position, dtype=float)
+        C = self._fix_cov(pos, z, np.asarray(sol.excluded, bool))
+        ok = np.isin(sol.status, (st.OK, st.FAULT_EXCLUDED)) & np.all(np.isfinite(pos), 1)
+        ok &= np.all(np.isfinite(C.reshape(len(x), -1)), axis=1)
+        d = np.where(ok[:, None], x[:, :2] - pos, 0.0)
+        Sm = np.where(ok[:, None, None], C, np.eye(2)[None])
+        q = np.einsum("ki,ki->k", d, np.linalg.solve(Sm, d[..., None])[..., 0])
+        return ok & (q > chi2.isf(self.settings.alpha0, 2))
+
+    def _hpl(self, H: Array, HPH: Array, Rd: Array, avail: NDArray[np.bool_], w: Array,
+             Pn: Array) -> Array:
+        """``max_i |G_pos,i| MDB_i + k sigma_major`` (module docstring, item 8).
+
+        The gain column of component ``i`` is taken as ``G_i = w_i P+ H_i^T / R_ii`` (for
+        the optimal linear(ized) update ``K = P+ H^T R^-1`` exactly; with robust weights
+        the down-weighted components' columns are scaled by their weight), which avoids a
+        second factorization of ``S``.
+        """
+        K, M = avail.shape
+        wr = np.where(avail, w, 0.0) / Rd  # (K, M)
+        Hp = H[:, :, :2]  # position columns
+        G = (Hp @ Pn[:, :2, :2]) * wr[:, :, None]  # (K, M, 2): rows are G_pos,i^T
+        gpos = np.hypot(G[:, :, 0], G[:, :, 1])
+        mdb = math.sqrt(self._lam0) * np.sqrt(np.where(avail, HPH + Rd, 0.0))
+        slope = np.max(np.where(avail, gpos * mdb, 0.0), axis=1) if M else np.zeros(K)
+        P2 = Pn[:, :2, :2]
+        tr = 0.5 * (P2[:, 0, 0] + P2[:, 1, 1])
+        det = P2[:, 0, 0] * P2[:, 1, 1] - P2[:, 0, 1] ** 2
+        lmax = tr + np.sqrt(np.maximum(tr * tr - det, 0.0))
+        return slope + self._k_ir * np.sqrt(np.maximum(lmax, 0.0))
+
+    # ------------------------------------------------------------------ output
+    def _frame(self, epochs: Any, out: _Rows) -> pd.DataFrame:
+        return track_frame(np.asarray(epochs.time, float), np.asarray(epochs.tag, object),
+                           out, self.n, self.anchor_ids, self.method)
+
+    # ------------------------------------------------------------------ persistence
+    def state_dict(self) -> dict:
+        """JSON-serialisable state: settings, anchors, link kind and every tag's filter."""
+        def clean(a: Array) -> Any:
+            a = np.asarray(a)
+            if a.dtype.kind == "f":
+                return [None if not math.isfinite(v) else float(v) for v in a.ravel()] \
+                    if a.ndim else (None if not math.isfinite(float(a)) else float(a))
+            return a.ravel().tolist() if a.ndim else a.item()
+
+        tags = {}
+        for tag, k in self._slot.items():
+            tags[str(tag)] = {name[1:]: clean(getattr(self, name)[k]) for name in self._ARRAYS}
+        return {"version": 1, "settings": asdict(self.settings), "anchors": list(self.anchor_ids),
+                "value": self._kind, "n_states": self.n, "tags": tags}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore a :meth:`state_dict` (the settings and anchors must match this tracker)."""
+        if state.get("version") != 1:
+            raise ValueError(f"unsupported tracker state version {state.get('version')!r}")
+        if tuple(state["anchors"]) != self.anchor_ids:
+            raise ValueError("saved tracker state is for other anchors")
+        if state["settings"] != asdict(self.settings):
+            raise ValueError("saved tracker state has other settings")
+        M = len(self.anchor_ids)
+        self._slot = {}
+        self._alloc(0, M)
+        self._kind = None
+        if state.get("value") is not None:
+            self._setup(state["value"])
+        tags = list(state["tags"])
+        sl = self._slots(np.array(tags, dtype=object))
+        for tag, k in zip(tags, sl):
+            rec = state["tags"][tag]
+            for name in self._ARRAYS:
+                a = getattr(self, name)
+                v = np.array([np.nan if u is None else u for u in np.ravel(rec[name[1:]])]
+                             if isinstance(rec[name[1:]], list) else
+                             [np.nan if rec[name[1:]] is None else rec[name[1:]]])
+                a[k] = v.reshape(a.shape[1:]).astype(a.dtype)
+
+    # ------------------------------------------------------------------ smoothing
+    def smoothed(self, n_rows: int, lag: int | None = None) -> tuple[Array, Array]:
+        """Rauch-Tung-Striebel smoothing of the recorded forward pass (``record=True``).
+
+        Returns smoothed states ``(n_rows, n)`` and covariances ``(n_rows, n, n)`` by row
+        index of the recorded steps (NaN for rows without a filter state); ``lag=None``:
+        fixed interval (all later data), ``lag=N``: fixed lag (the next ``N`` epochs).
+        See :func:`robustloc.track.smooth.rts`.
+        """
+        from robustloc.track.smooth import rts_rows
+
+        if not self.record:
+            raise ValueError("smoothing needs Tracker(..., record=True)")
+        return rts_rows(self._history, n_rows, self.n, self._motion, lag)
+
+
+def _rank_within(slots: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Position of each entry among the earlier entries with the same slot (0, 1, ...)."""
+    order = np.argsort(slots, kind="stable")
+    ss = slots[order]
+    first = np.r_[True, ss[1:] != ss[:-1]]
+    start = np.maximum.accumulate(np.where(first, np.arange(len(ss)), 0))
+    rank = np.empty(len(ss), dtype=np.int64)
+    rank[order] = np.arange(len(ss)) - start
+    return rank
+
+
+class _Rows:
+    """Output buffers of one :meth:`Tracker.step` call."""
+
+    FIELDS = ("x", "var", "cxy", "status", "n_used", "nis", "excluded", "hpl", "scale",
+              "reinit")
+
+    def __init__(self, N: int, n: int, M: int) -> None:
+        self.x = np.full((N, n), np.nan)
+        self.var = np.full((N, n), np.nan)
+        self.cxy = np.full(N, np.nan)
+        self.status = np.full(N, st.INVALID, dtype=object)
+        self.n_used = np.zeros(N, dtype=np.int64)
+        self.nis = np.full(N, np.nan)
+        self.excluded = np.zeros((N, M), dtype=bool)
+        self.hpl = np.full(N, np.nan)
+        self.scale = np.full(N, np.nan)
+        self.reinit = np.zeros(N, dtype=np.int64)
+
+
+def track_frame(time: Array, tag: NDArray[np.object_], out: _Rows, n: int,
+                anchor_ids: tuple[str, ...], method: str) -> pd.DataFrame:
+    """The track table: ``time, tag, x, y, vx, vy[, ax, ay], method, status, var_x,
+    var_y, cov_xy, var_vx, var_vy, hpl, n_used, nis, noise_scale, reinit, excluded``."""
+    data: dict[str, Any] = {"time": time, "tag": tag, "x": out.x[:, 0], "y": out.x[:, 1]}
+    vel = n >= 4
+    data["vx"] = out.x[:, 2] if vel else np.where(np.isfinite(out.x[:, 0]), 0.0, np.nan)
+    data["vy"] = out.x[:, 3] if vel else np.where(np.isfinite(out.x[:, 0]), 0.0, np.nan)
+    if n >= 6:
+        data["ax"], data["ay"] = out.x[:, 4], out.x[:, 5]
+    data["method"] = method
+    data["status"] = out.status
+    data["var_x"], data["var_y"], data["cov_xy"] = out.var[:, 0], out.var[:, 1], out.cxy
+    data["var_vx"] = out.var[:, 2] if vel else np.where(np.isfinite(out.x[:, 0]), 0.0, np.nan)
+    data["var_vy"] = out.var[:, 3] if vel else np.where(np.isfinite(out.x[:, 0]), 0.0, np.nan)
+    data["hpl"] = out.hpl
+    data["n_used"] = out.n_used
+    data["nis"] = out.nis
+    data["noise_scale"] = out.scale
+    data["reinit"] = out.reinit
+    ids = np.asarray(anchor_ids, dtype=object)
+    exc = np.full(len(time), "", dtype=object)
+    for r in np.flatnonzero(out.excluded.any(axis=1)) if len(ids) else ():
+        exc[r] = ";".join(ids[out.excluded[r]])
+    data["excluded"] = exc
+    return pd.DataFrame(data)

@@ -1,0 +1,258 @@
+"""robustloc.track: the robust tight tracker, its smoother and the ``track`` command."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from robustloc.io.tables import to_epochs
+from robustloc.track import Tracker
+from robustloc.track.smooth import rts_segment
+
+SIGMA_M = 0.1
+
+
+def _anchors(M: int = 6) -> pd.DataFrame:
+    ang = np.linspace(0, 2 * np.pi, M, endpoint=False)
+    return pd.DataFrame({"anchor": [f"A{i}" for i in range(M)], "x": 10 + 12 * np.cos(ang),
+                         "y": 10 + 12 * np.sin(ang)})
+
+
+def _walk(K: int = 3, N: int = 80, seed: int = 0, dt: float = 0.5,
+          anchors: pd.DataFrame | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """``K`` tags on smooth curves; ranges with ``SIGMA_M`` noise, long format."""
+    rng = np.random.default_rng(seed)
+    a = _anchors() if anchors is None else anchors
+    xy = a[["x", "y"]].to_numpy()
+    t = np.arange(N) * dt
+    rows, truth = [], []
+    for k in range(K):
+        ph = rng.uniform(0, 2 * np.pi)
+        p = np.stack([10 + 5 * np.cos(0.1 * t + ph), 10 + 4 * np.sin(0.13 * t + ph)], 1)
+        r = np.linalg.norm(p[:, None] - xy[None], axis=2) + rng.normal(0, SIGMA_M, (N, len(a)))
+        for j in range(N):
+            truth.append((t[j], f"tag{k}", *p[j]))
+            for i, an in enumerate(a["anchor"]):
+                rows.append((t[j], f"tag{k}", an, r[j, i]))
+    meas = pd.DataFrame(rows, columns=["time", "tag", "anchor", "range"]).sort_values(
+        ["time", "tag"], kind="mergesort", ignore_index=True)
+    return meas, pd.DataFrame(truth, columns=["time", "tag", "x", "y"])
+
+
+def _epochs(meas: pd.DataFrame, anchors: pd.DataFrame):
+    return to_epochs(meas, anchors["anchor"])
+
+
+def _errors(rows: pd.DataFrame, truth: pd.DataFrame) -> np.ndarray:
+    j = rows.merge(truth, on=["time", "tag"], suffixes=("", "_t"))
+    return np.hypot(j.x - j.x_t, j.y - j.y_t).to_numpy()
+
+
+def test_one_row_per_epoch_and_accuracy():
+    a = _anchors()
+    meas, truth = _walk()
+    ep = _epochs(meas, a)
+    rows = Tracker(a, sigma=SIGMA_M).step(ep)
+    assert len(rows) == ep.n_epochs
+    assert set(rows.status) <= {"ok", "fault_excluded"}
+    e = _errors(rows, truth)
+    # a CV filter on 6 ranges of 0.1 m: the error of one fix is about 0.1 m (GDOP ~1), the
+    # filter must not be worse than 2 sigma in RMS (it averages; 2x covers the start)
+    assert np.sqrt(np.mean(e**2)) < 2 * SIGMA_M
+
+
+def test_batch_equals_one_epoch_at_a_time():
+    a = _anchors()
+    meas, _ = _walk(K=3, N=40, seed=1)
+    ep = _epochs(meas, a)
+    whole = Tracker(a, sigma=SIGMA_M).step(ep)
+    trk = Tracker(a, sigma=SIGMA_M)
+    parts = []
+    for i in range(ep.n_epochs):
+        one = type(ep)(ep.time[i:i + 1], ep.tag[i:i + 1], ep.values[i:i + 1], ep.anchor_ids,
+                       ep.value, ep.line[i:i + 1])
+        parts.append(trk.step(one))
+    pd.testing.assert_frame_equal(whole, pd.concat(parts, ignore_index=True))
+
+
+def test_state_dict_round_trip_through_json():
+    a = _anchors()
+    meas, _ = _walk(K=2, N=40, seed=2)
+    ep = _epochs(meas, a)
+    whole = Tracker(a, sigma=SIGMA_M).step(ep)
+    h = ep.n_epochs // 2
+    def cut(s):
+        return (type(ep)(ep.time[s], ep.tag[s], ep.values[s], ep.anchor_ids, ep.value,
+                                  ep.line[s]))
+    t1 = Tracker(a, sigma=SIGMA_M)
+    first = t1.step(cut(slice(0, h)))
+    saved = json.loads(json.dumps(t1.state_dict()))
+    t2 = Tracker(a, sigma=SIGMA_M)
+    t2.load_state_dict(saved)
+    second = t2.step(cut(slice(h, None)))
+    pd.testing.assert_frame_equal(whole, pd.concat([first, second], ignore_index=True))
+
+
+@pytest.mark.parametrize("filt", ["ekf", "ukf"])
+@pytest.mark.parametrize("model", ["cv", "ca"])
+def test_compiled_agrees_with_numpy(filt, model):
+    a = _anchors()
+    meas, _ = _walk(K=3, N=40, seed=3)
+    ep = _epochs(meas, a)
+    rc = Tracker(a, model=model, filter=filt, sigma=SIGMA_M).step(ep)
+    rn = Tracker(a, model=model, filter=filt, sigma=SIGMA_M, engine="numpy").step(ep)
+    assert (rc.status == rn.status).all()
+    # same equations, different summation order: agreement to rounding, amplified by
+    # the recursion over 40 epochs (1e-9 m on coordinates of 10 m)
+    for c in ("x", "y", "vx", "vy", "var_x", "var_y", "hpl"):
+        np.testing.assert_allclose(rc[c], rn[c], rtol=1e-9, atol=1e-9)
+
+
+def test_coasting_and_few_anchors():
+    a = _anchors()
+    meas, _ = _walk(K=1, N=30, seed=4)
+    ep = _epochs(meas, a)
+    v = ep.values.copy()
+    v[10] = np.nan  # nothing heard: predicted
+    v[12, 2:] = np.nan  # two anchors: still an update
+    v[14, 1:] = np.nan  # one anchor
+    ep2 = type(ep)(ep.time, ep.tag, v, ep.anchor_ids, ep.value, ep.line)
+    rows = Tracker(a, sigma=SIGMA_M).step(ep2)
+    assert rows.status[10] == "predicted" and rows.n_used[10] == 0
+    assert rows.var_x[10] > rows.var_x[9]  # coasting: the covariance grows
+    assert rows.status[12] == "ok" and rows.n_used[12] == 2
+    assert rows.status[14] == "ok" and rows.n_used[14] == 1
+    assert rows.var_x[12] < rows.var_x[12] + 1 and np.isfinite(rows.x).all()
+
+
+def test_first_epochs_without_fix_keep_a_row():
+    a = _anchors()
+    meas, _ = _walk(K=1, N=10, seed=5)
+    ep = _epochs(meas, a)
+    v = ep.values.copy()
+    v[0, 2:] = np.nan  # two anchors: no fix to start from
+    v[1] = np.nan
+    ep2 = type(ep)(ep.time, ep.tag, v, ep.anchor_ids, ep.value, ep.line)
+    rows = Tracker(a, sigma=SIGMA_M, init_window_s=0.0).step(ep2)
+    assert len(rows) == 10
+    assert rows.status[0] == "insufficient_anchors" and np.isnan(rows.x[0])
+    assert rows.status[1] == "invalid_measurement"
+    assert rows.status[2] == "ok" and np.isfinite(rows.x[2])
+    # asynchronous ranges: one anchor per epoch, the start combines the last second's
+    v = np.full_like(ep.values, np.nan)
+    v[np.arange(10), np.arange(10) % 6] = ep.values[np.arange(10), np.arange(10) % 6]
+    ep3 = type(ep)(ep.time, ep.tag, v, ep.anchor_ids, ep.value, ep.line)
+    rows = Tracker(a, sigma=SIGMA_M, init_window_s=1.0).step(ep3)
+    assert list(rows.status[:2]) == ["insufficient_anchors"] * 2  # 1, then 2 anchors
+    assert rows.status[2] == "ok" and rows.n_used[2] == 3  # 3 anchors within 1 s
+    assert (rows.status[3:] == "ok").all() and (rows.n_used[3:] == 1).all()
+
+
+def test_link_step_is_held_out_and_readmitted_with_its_offset():
+    a = _anchors()
+    meas, truth = _walk(K=1, N=120, seed=6)
+    ep = _epochs(meas, a)
+    v = ep.values.copy()
+    v[40:, 0] += 2.0  # anchor A0 reads 2 m long from epoch 40 on (a moved reflector)
+    ep2 = type(ep)(ep.time, ep.tag, v, ep.anchor_ids, ep.value, ep.line)
+    trk = Tracker(a, sigma=SIGMA_M, cusum_h=10.0)
+    rows = trk.step(ep2)
+    held = rows.excluded.str.contains("A0").to_numpy()
+    assert held[40:60].any() and not held[100:].any()
+    bias = trk.state_dict()["tags"]["tag0"]["bias"][0]
+    # offset: mean of readmit_samples residuals of sigma ~0.1 m (plus the prediction's own
+    # error): within 5 sigma / sqrt(6) + prediction error ~0.2 m
+    assert abs(bias - 2.0) < 0.3
+    e = _errors(rows, truth)
+    assert np.sqrt(np.mean(e[100:] ** 2)) < 2 * SIGMA_M
+
+
+def test_divergence_restarts_from_a_fix():
+    a = _anchors()
+    meas, truth = _walk(K=1, N=80, seed=7)
+    ep = _epochs(meas, a)
+    xy = a[["x", "y"]].to_numpy()
+    truth = truth.copy()
+    # from epoch 40 the tag is 6 m away (a teleport the motion model cannot follow)
+    p = truth[["x", "y"]].to_numpy().copy()
+    p[40:] += [6.0, 0.0]
+    truth[["x", "y"]] = p
+    v = np.linalg.norm(p[:, None] - xy[None], axis=2)
+    ep2 = type(ep)(ep.time, ep.tag, v, ep.anchor_ids, ep.value, ep.line)
+    # IGG-III rejects every range of the jumped tag: only a re-start can recover (Huber
+    # would follow the jump by itself)
+    rows = Tracker(a, sigma=SIGMA_M, weight="igg3").step(ep2)
+    assert rows.reinit.iloc[-1] >= 1
+    assert _errors(rows.iloc[60:], truth).max() < 0.05
+
+
+def test_rts_matches_filterpy():
+    filterpy = pytest.importorskip("filterpy.kalman")
+    from robustloc.filters.motion import ConstantVelocity
+
+    rng = np.random.default_rng(8)
+    cv = ConstantVelocity(q=0.3)
+    F, Q = cv.FQ(1.0)
+    H = np.eye(2, 4)
+    R = np.eye(2) * 0.5
+    kf = filterpy.KalmanFilter(dim_x=4, dim_z=2)
+    kf.F, kf.Q, kf.H, kf.R = F, Q, H, R
+    kf.x, kf.P = np.zeros(4), np.eye(4)
+    xs, Ps, xps, Pps = [], [], [], []
+    for k in range(30):
+        kf.predict()
+        xps.append(kf.x.copy())
+        Pps.append(kf.P.copy())
+        kf.update(rng.normal(0, 1, 2) + [k, 0.5 * k])
+        xs.append(kf.x.copy())
+        Ps.append(kf.P.copy())
+    xs, Ps = np.array(xs), np.array(Ps)
+    ref_x, ref_P, _, _ = kf.rts_smoother(xs, Ps, [F] * 30, [Q] * 30)
+    sx, sP = rts_segment(xs, Ps, np.array(xps), np.array(Pps), np.array([F] * 30))
+    np.testing.assert_allclose(sx, ref_x, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(sP, ref_P, rtol=1e-10, atol=1e-10)
+    # fixed lag >= length equals fixed interval; lag 0 is the filter
+    lx, _ = rts_segment(xs, Ps, np.array(xps), np.array(Pps), np.array([F] * 30), lag=40)
+    np.testing.assert_allclose(lx, ref_x, rtol=1e-10, atol=1e-10)
+    l0, _ = rts_segment(xs, Ps, np.array(xps), np.array(Pps), np.array([F] * 30), lag=0)
+    np.testing.assert_array_equal(l0, xs)
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "robustloc.cli", *args], capture_output=True,
+                          text=True)
+
+
+def test_command_writes_a_track_that_evaluate_reads(tmp_path):
+    a = _anchors()
+    meas, truth = _walk(K=2, N=30, seed=9)
+    a.to_csv(tmp_path / "a.csv", index=False)
+    meas.to_csv(tmp_path / "m.csv", index=False)
+    truth.to_csv(tmp_path / "t.csv", index=False)
+    for extra in ([], ["--smooth"], ["--fixed-lag", "3"], ["--model", "static"]):
+        r = _cli("track", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),
+                 "-o", str(tmp_path / "trk.csv"), "--sigma", "0.1", "--quiet", *extra)
+        assert r.returncode == 0, r.stderr
+        out = pd.read_csv(tmp_path / "trk.csv")
+        assert len(out) == 60
+        for c in ("time", "tag", "x", "y", "vx", "vy", "status", "var_x", "var_y", "hpl"):
+            assert c in out.columns
+        r = _cli("evaluate", str(tmp_path / "trk.csv"), "--truth", str(tmp_path / "t.csv"),
+                 "--json")
+        assert r.returncode == 0, r.stderr
+        rec = json.loads(r.stdout)["rows"]
+        assert any(x["tag"] == "all" and x["n"] == 60 for x in rec)
+
+
+def test_command_bad_input(tmp_path):
+    a = _anchors()
+    a.to_csv(tmp_path / "a.csv", index=False)
+    (tmp_path / "m.csv").write_text("time,tag,anchor,range\n0,t,A0,1.0\n0,t,NOPE,2.0\n")
+    r = _cli("track", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),
+             "-o", str(tmp_path / "o.csv"))
+    assert r.returncode == 2 and "error:" in r.stderr and "m.csv:3" in r.stderr

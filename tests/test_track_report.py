@@ -1,0 +1,19 @@
+"""Report section s60_tracks runs on the shipped excerpts (no shared data) in quick mode."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from robustloc.reproduce import Context, s60_tracks
+
+
+def test_s60_quick_on_shipped_excerpts(tmp_path):
+    sec = s60_tracks.run(Context(out_dir=tmp_path, data_dir=None, seed=1, quick=True))
+    assert (tmp_path / "s60_tracks.png").is_file()
+    assert (tmp_path / "s60_table3.csv").is_file()
+    t = sec.summary["targets"]
+    assert len(t) == 14
+    assert all(np.isfinite(v["measured"]) for v in t.values())
+    # the model-correct simulation: the filter is consistent (median NEES near its dof 4;
+    # 40 runs x 4 dof: the mean of one step has a standard deviation sqrt(8 / 40) = 0.45)
+    assert abs(sec.summary["nees"]["nees_median"] - 4.0) < 0.9
