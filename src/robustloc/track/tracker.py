@@ -339,7 +339,8 @@ class Tracker:
         self._weight_name = wname
         from robustloc.estimators.ranging import Locator
 
-        self._locator = Locator("huber", sigma=tuple(sigma))
+        # per-epoch scale: a start fix must not depend on which epochs share its batch
+        self._locator = Locator("huber", sigma=tuple(sigma), robust_scale="mad")
         self._compiled = (s.engine == "compiled" and self._link.kind == "range"
                           and s.model in ("cv", "ca"))
         if self._compiled:
