@@ -82,15 +82,26 @@ def _collinear(a: Array, heard: NDArray[np.bool_], rel: float = 1e-3) -> NDArray
     return lmin <= (rel**2) * np.maximum(lmax, 1e-300)
 
 
-def _area(a: Array, heard: NDArray[np.bool_] | None = None) -> tuple[Array, float]:
+def _sane_anchors(a: Array) -> NDArray[np.bool_]:
+    """Anchors whose coordinates make sense for the layout: finite and within 20 times the
+    median distance (at least 1 m) of the median anchor.  An anchor outside (a typo such as
+    1e200) is not used at all: it would otherwise change every start candidate and the
+    anchors' area while no epoch can hear it.  A property of the anchors file alone, so a
+    fix never depends on which other epochs are solved with it."""
+    a = np.asarray(a, dtype=float)
+    with np.errstate(all="ignore"):
+        fin = np.all(np.isfinite(a), axis=1)
+        if not np.any(fin):
+            return fin
+        med = np.median(a[fin], axis=0)
+        dist = np.linalg.norm(a - med, axis=1)
+        return fin & (dist <= 20.0 * max(float(np.median(dist[fin])), 1.0))
+
+
+def _area(a: Array) -> tuple[Array, float]:
     """The anchors' area: a disc (ball) around their centroid, 1.25 times the farthest
     anchor's distance (at least 1 m).  Rotation- and translation-invariant, unlike a
-    bounding box, so the solvers' results move rigidly with the anchors.
-
-    ``heard`` (m,) restricts it to the anchors heard in the batch: an anchor nobody hears
-    (wherever the anchors file puts it) must change no fix."""
-    if heard is not None and np.any(heard):
-        a = a[heard]
+    bounding box, so the solvers' results move rigidly with the anchors."""
     centre = a.mean(axis=0)
     return centre, 1.25 * max(float(np.max(np.linalg.norm(a - centre, axis=1))), 1.0)
 
@@ -460,9 +471,9 @@ class Locator:
         if z.shape[1] != a.shape[0]:
             raise ValueError(f"values have {z.shape[1]} columns for {a.shape[0]} anchors")
         z = np.where(np.isfinite(z), z, np.nan)
-        heard_cols = np.any(np.isfinite(z), axis=0)
-        if np.any(heard_cols) and not np.all(heard_cols):
-            return self._solve_heard(a, z, kind, heard_cols, A, n, height_offset)
+        sane = _sane_anchors(a)
+        if np.any(sane) and not np.all(sane):
+            return self._solve_subset(a, z, kind, sane, A, n, height_offset)
         if kind == "rssi":
             if A is None or n is None:
                 raise ValueError("RSSI positioning needs path-loss parameters A and n per anchor")
@@ -517,7 +528,7 @@ class Locator:
         extra = dict(fit.extra)
         extra["range_residuals"] = np.where(use, rng_model.predict(xs) - ranges, np.nan)
         extra["jacobian"] = np.where(use[..., None], rng_model.jacobian(xs), np.nan)
-        extra["anchor_extent"] = _area(a, np.any(np.isfinite(z), axis=0))
+        extra["anchor_extent"] = self._the_area(a)
         if self.sigma is not None:
             extra["sigma_obs"] = self._range_sigma(self._sigma_array(z.shape), ranges, rmodel)
         return Solution(
@@ -538,10 +549,10 @@ class Locator:
             loc = replace(loc, log_scale_fixed=tuple(float(v) for v in np.asarray(log_scale)))
         return loc
 
-    def _solve_heard(self, a, z, kind, heard, A, n, height_offset) -> Solution:
-        """Solve with only the anchors heard in the batch, then put the per-anchor arrays
-        back in the caller's anchor order (NaN / False for the unheard ones): an anchor
-        nobody hears, wherever the anchors file puts it, changes no fix."""
+    def _solve_subset(self, a, z, kind, heard, A, n, height_offset) -> Solution:
+        """Solve with the sane anchors only (:func:`_sane_anchors`), then put the
+        per-anchor arrays back in the caller's anchor order (NaN / False for the others):
+        an anchor file's absurd entry changes no fix."""
         m = a.shape[0]
         sub = self
         if self.sigma is not None and np.ndim(self.sigma) == 1 and len(self.sigma) == m:
@@ -573,6 +584,9 @@ class Locator:
             sol, residuals=widen(sol.residuals, np.nan), weights=widen(sol.weights, np.nan),
             excluded=widen(sol.excluded, False), extra=extra,
         )
+
+    def _the_area(self, a: Array) -> tuple[Array, float]:
+        return _area(a)
 
     def _log_scaled(self) -> bool:
         # snooping tests against a known sigma: the log's scale stands in only without one
@@ -737,7 +751,7 @@ class Locator:
         absolute range residual wins (least median of squares): an M-estimator started
         from it is no longer masked by several gross errors pulling the LS start.
         """
-        centre, radius = _area(a, np.any(np.isfinite(ranges), axis=0))
+        centre, radius = self._the_area(a)
         if self.engine == "compiled":
             from robustloc.estimators import _compiled
 
@@ -847,7 +861,7 @@ class Locator:
         squares); the restarted fit replaces the first where its score is smaller.  Only
         those epochs pay for the grid.
         """
-        centre, radius = _area(a, np.any(np.isfinite(obs), axis=0))
+        centre, radius = self._the_area(a)
         blo, bhi = centre - radius, centre + radius
         x = fit.x
         n_obs = np.sum(np.isfinite(obs), axis=1)
