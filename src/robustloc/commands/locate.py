@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from robustloc.engines import add_engine_arguments
+
 NAME = "locate"
 HELP = "position fixes from RSSI or ranges (LS, WLS, Gauss-Newton, robust IRLS, LEGE, ...)"
 DESCRIPTION = """\
@@ -85,6 +87,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--chunk-rows", type=int, default=500_000, help="rows read per chunk")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_engine_arguments(p)
 
 
 def _params(items: list[str]) -> dict[str, float]:
@@ -187,6 +190,9 @@ def locate_file(args: argparse.Namespace) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.engine == "dask":
+        from robustloc.engines.dask import run_locate
+        return run_locate(args, locate_file)
     summary = locate_file(args)
     if args.json:
         print(json.dumps(summary, indent=2))
