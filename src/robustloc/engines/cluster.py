@@ -5,8 +5,12 @@ from __future__ import annotations
 import logging
 import os
 import sys
-from collections.abc import Iterator, Sequence
+import threading
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
+
+from robustloc.errors import InputError
 
 #: Environment of LocalCluster workers: one thread per worker for numba and BLAS, so
 #: ``workers x threads`` never oversubscribes the cores (dask runs one task per worker
@@ -69,7 +73,7 @@ def dask_client(scheduler: str | None, workers: int | None = None,
             extra = {"env": dict(WORKER_ENV)} if processes else {}
             cluster = distributed.LocalCluster(
                 n_workers=n, threads_per_worker=1, processes=processes,
-                memory_limit=WORKER_MEMORY_BYTES, dashboard_address=None, **extra,
+                memory_limit=WORKER_MEMORY_BYTES, dashboard_address=":0", **extra,
             )
             client = distributed.Client(cluster)
         yield client
@@ -88,18 +92,86 @@ def dask_client(scheduler: str | None, workers: int | None = None,
                 nanny.setLevel(level)
 
 
+@dataclass(frozen=True)
+class UserFailure:
+    """A user's mistake found by a task, returned as a value (not raised), so the worker
+    does not log it as a crash and the client re-raises it with its file and line."""
+
+    kind: str
+    message: str
+    path: str | None = None
+    line: int | None = None
+    filename: str | None = None
+
+    def exception(self) -> BaseException:
+        if self.kind == "input":
+            return InputError(self.message, self.path, self.line)
+        if self.kind == "missing":
+            return FileNotFoundError(2, self.message, self.filename)
+        return ValueError(self.message)
+
+
+def user_errors_as_values(fn: Callable[..., object], *args: object, **kwargs: object) -> object:
+    """``fn(*args, **kwargs)`` on a worker, a user's mistake returned as a UserFailure."""
+    try:
+        return fn(*args, **kwargs)
+    except InputError as exc:
+        return UserFailure("input", exc.message, exc.path, exc.line)
+    except FileNotFoundError as exc:
+        return UserFailure("missing", exc.strerror or "file not found", filename=exc.filename)
+    except ValueError as exc:
+        return UserFailure("value", str(exc))
+
+
+def submit_all(client: object, fn: Callable[..., object], arg_lists: Sequence[tuple],
+               **kwargs: object) -> list:
+    """One task per argument tuple, each running ``fn`` through user_errors_as_values."""
+    return [client.submit(user_errors_as_values, fn, *a, pure=False, **kwargs)
+            for a in arg_lists]
+
+
 def gather_with_progress(client: object, futures: Sequence[object], show: bool) -> list:
     """Wait for ``futures`` with dask's progress bar (on a terminal) and gather them.
 
-    The first failed future's exception is raised (an :class:`~robustloc.errors.InputError`
-    from a worker keeps its partition file and line); the others are cancelled.
+    Fails fast: the first task that reports a user's mistake (a :class:`UserFailure`)
+    cancels the others, and its error is raised here (an :class:`InputError` keeps the
+    partition file and line); so is any other exception a task raised.
     """
     distributed = import_distributed()
-    if show and sys.stdout.isatty():
-        distributed.progress(futures)
-        sys.stdout.write("\n")
+    futures = list(futures)
+    index = {f.key: i for i, f in enumerate(futures)}
+    results: list[object] = [None] * len(futures)
+    first: list[BaseException] = []
+
+    def watch() -> None:
+        try:
+            for fut in distributed.as_completed(futures):
+                if fut.status == "finished":
+                    res = fut.result()
+                    results[index[fut.key]] = res
+                    if isinstance(res, UserFailure):
+                        first.append(res.exception())
+                elif fut.status == "error":
+                    first.append(fut.exception())
+                elif fut.status == "cancelled" and not first:
+                    first.append(RuntimeError("a dask task was cancelled"))
+                if first:
+                    client.cancel(futures)
+                    return
+        except BaseException as exc:  # noqa: BLE001 - reported by the main thread
+            first.append(exc)
+            client.cancel(futures)
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
     try:
-        return client.gather(list(futures))
+        if show and sys.stdout.isatty():
+            distributed.progress(futures)
+            sys.stdout.write("\n")
+        watcher.join()
     except BaseException:
-        client.cancel(list(futures))
+        client.cancel(futures)
         raise
+    if first:
+        raise first[0]
+    return results

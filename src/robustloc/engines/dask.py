@@ -26,12 +26,12 @@ directory at the same paths (a shared filesystem on a real cluster).
 from __future__ import annotations
 
 import argparse
-import contextlib
 import io
 import json
 import shutil
 import sys
 import tempfile
+import threading
 import time as _time
 import uuid
 from collections.abc import Callable
@@ -39,7 +39,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from robustloc.engines.cluster import dask_client, gather_with_progress
+from robustloc.engines.cluster import dask_client, gather_with_progress, submit_all
 from robustloc.engines.dataset import (
     Partition,
     PartitionInfo,
@@ -180,7 +180,7 @@ def _tag_task(kernel: TagKernel, settings: dict, parts: list[Partition], out: st
 
 def _plan_infos(client: object, parts: list[Partition], need: tuple[str, ...], show: bool
                 ) -> list[PartitionInfo]:
-    futs = client.map(_inspect_task, parts, need=need, pure=False)
+    futs = submit_all(client, _inspect_task, [(p, need) for p in parts])
     infos = gather_with_progress(client, futs, show)
     values = {}
     for info in infos:
@@ -227,9 +227,8 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
             _say(args, f"{name}: {len(plan)} partitions on "
                        f"{len(client.scheduler_info()['workers'])} workers")
             settings = _settings(args)
-            futs = [client.submit(_file_task, fn, settings, input_attr, info.part, out.part(i),
-                                  pure=False)
-                    for i, info in enumerate(plan)]
+            futs = submit_all(client, _file_task, [(fn, settings, input_attr, info.part,
+                                                    out.part(i)) for i, info in enumerate(plan)])
             summaries = gather_with_progress(client, futs, _show(args))
             n_workers = len(client.scheduler_info()["workers"])
         wall = _time.perf_counter() - t0
@@ -309,9 +308,8 @@ def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
                       file=sys.stderr)
             _say(args, f"{name}: {len(groups)} tag groups on {n_workers} workers")
             settings = _settings(args)
-            futs = [client.submit(_tag_task, kernel, settings, [i.part for i in g],
-                                  out.part(k), pure=False)
-                    for k, g in enumerate(groups)]
+            futs = submit_all(client, _tag_task, [(kernel, settings, [i.part for i in g],
+                                                   out.part(k)) for k, g in enumerate(groups)])
             counts_list = gather_with_progress(client, futs, _show(args))
         total: dict = {}
         for c in counts_list:
@@ -332,14 +330,51 @@ def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
     return 0
 
 
+class _PerThreadStdout(io.TextIOBase):
+    """``sys.stdout`` that a thread can redirect to its own buffer (a worker may run
+    several tasks in threads; ``contextlib.redirect_stdout`` is process-wide)."""
+
+    def __init__(self, real: object) -> None:
+        self.real = real
+        self.local = threading.local()
+
+    def _target(self) -> object:
+        buf = getattr(self.local, "buf", None)
+        return self.real if buf is None else buf
+
+    def write(self, s: str) -> int:
+        return self._target().write(s)
+
+    def flush(self) -> None:
+        self._target().flush()
+
+    def isatty(self) -> bool:
+        return getattr(self.local, "buf", None) is None and self.real.isatty()
+
+
+_STDOUT_LOCK = threading.Lock()
+
+
+def _captured_stdout(fn: Callable[[], object]) -> str:
+    """What ``fn()`` prints on stdout in this thread."""
+    with _STDOUT_LOCK:
+        if not isinstance(sys.stdout, _PerThreadStdout):
+            sys.stdout = _PerThreadStdout(sys.stdout)
+        proxy = sys.stdout
+    proxy.local.buf = io.StringIO()
+    try:
+        fn()
+        return proxy.local.buf.getvalue()
+    finally:
+        proxy.local.buf = None
+
+
 def _spp_task(run: Callable[[argparse.Namespace], int], settings: dict, obs: str, out: str
               ) -> dict:
+    """``spp``'s ``run`` on one observation file; its JSON summary."""
     ns = argparse.Namespace(**settings)
     ns.obs, ns.out, ns.json, ns.engine = obs, out, True, "local"
-    buf = io.StringIO()
-    with contextlib.redirect_stdout(buf):
-        run(ns)
-    return json.loads(buf.getvalue())
+    return json.loads(_captured_stdout(lambda: run(ns)))
 
 
 def run_spp(args: argparse.Namespace, run: Callable[[argparse.Namespace], int]) -> int:
@@ -362,8 +397,8 @@ def run_spp(args: argparse.Namespace, run: Callable[[argparse.Namespace], int]) 
             n_workers = len(client.scheduler_info()["workers"])
             _say(args, f"spp: {len(parts)} observation files on {n_workers} workers")
             settings = _settings(args)
-            futs = [client.submit(_spp_task, run, settings, p.path, out.part(i), pure=False)
-                    for i, p in enumerate(parts)]
+            futs = submit_all(client, _spp_task, [(run, settings, p.path, out.part(i))
+                                                  for i, p in enumerate(parts)])
             summaries = gather_with_progress(client, futs, _show(args))
         summary = {
             "command": "spp", "engine": "dask", "input": str(args.obs), "out": str(args.out),
@@ -434,8 +469,8 @@ def evaluate_dataset(args: argparse.Namespace) -> pd.DataFrame:
     _truth(args.truth)  # a bad truth file fails here, before the cluster starts
     parts = discover(args.positions, what="positions dataset")
     with dask_client(args.scheduler, args.workers) as client:
-        futs = client.map(_errors_task, parts, truth_path=str(args.truth),
-                          tolerance_s=args.time_tolerance, pure=False)
+        futs = submit_all(client, _errors_task, [(p, str(args.truth), args.time_tolerance)
+                                                 for p in parts])
         frames = gather_with_progress(client, futs, _show(args))
     frames = [f for f in frames if len(f)]
     if not frames:

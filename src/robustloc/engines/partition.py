@@ -68,12 +68,23 @@ def _sql_str(s: str) -> str:
     return "'" + s.replace("'", "''") + "'"
 
 
-def _source(files: list[str], fmt: str) -> str:
+def _source(con, files: list[str], fmt: str, spec: str) -> tuple[str, list[str]]:
+    """DuckDB's table function over the input and its column names; ids read as text."""
+    import duckdb
+
     lst = "[" + ", ".join(_sql_str(f) for f in files) + "]"
     if fmt == "csv":
-        return (f"read_csv({lst}, header=true, union_by_name=true, "
-                "types={'tag': 'VARCHAR', 'anchor': 'VARCHAR'})")
-    return f"read_parquet({lst}, union_by_name=true)"
+        src = f"read_csv({lst}, header=true, union_by_name=true"
+    else:
+        src = f"read_parquet({lst}, union_by_name=true"
+    try:
+        names = [r[0] for r in con.execute(f"DESCRIBE SELECT * FROM {src})").fetchall()]
+    except duckdb.Error as exc:
+        raise InputError(f"cannot read: {str(exc).splitlines()[0]}", spec) from None
+    ids = [c for c in ("tag", "anchor") if c in names]
+    if fmt == "csv" and ids:
+        src += ", types={" + ", ".join(f"'{c}': 'VARCHAR'" for c in ids) + "}"
+    return src + ")", names
 
 
 def partition_dataset(
@@ -147,13 +158,9 @@ def _key_expr(by: str, buckets: int, t0: float, span: float | None) -> tuple[str
                        "VARCHAR), 6, '0')"
 
 
-def _stats(con, src: str, spec: str, by: str) -> tuple[int, float, float]:
+def _stats(con, src: str, names: list[str], spec: str, by: str) -> tuple[int, float, float]:
     import duckdb
 
-    try:
-        names = [r[0] for r in con.execute(f"DESCRIBE SELECT * FROM {src}").fetchall()]
-    except duckdb.Error as exc:
-        raise InputError(f"cannot read: {str(exc).splitlines()[0]}", spec) from None
     need = ["time", "tag"] if by == "tag" else ["time"]
     missing = [c for c in need if c not in names]
     if missing:
@@ -190,8 +197,8 @@ def _duckdb(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, me
         con.execute(f"SET threads={int(threads or machine_cores())}")
         tmp = stage / ".duckdb-tmp"
         con.execute(f"SET temp_directory={_sql_str(str(tmp))}")
-        src = _source(files, fmt)
-        n, tmin, tmax = _stats(con, src, spec, by)
+        src, names = _source(con, files, fmt, spec)
+        n, tmin, tmax = _stats(con, src, names, spec, by)
         span = _auto_span(n, tmin, tmax, span_s, rows_per_partition) if by == "time" else None
         key, expr = _key_expr(by, buckets, tmin, span)
         raw = stage / ".unsorted"
