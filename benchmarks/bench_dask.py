@@ -260,11 +260,18 @@ def bench_size(n: int, args: argparse.Namespace, client: object, work: Path) -> 
                           mib, ""))
     if n <= args.shuffle_max_rows:
         out = d / "by_time_dask"
-        s, c, mib = run_in_cluster(client, ["partition", str(meas), "-o", str(out), "--by",
-                                            "time", "--method", "dask",
-                                            "--rows-per-partition", rpp])
-        lines.append(Line(n, "partition --by time", "dask shuffle", s, c, n / s, n / s, None,
-                          None, mib, ""))
+        try:
+            s, c, mib = run_in_cluster(client, ["partition", str(meas), "-o", str(out), "--by",
+                                                "time", "--method", "dask",
+                                                "--rows-per-partition", rpp])
+            lines.append(Line(n, "partition --by time", "dask shuffle", s, c, n / s, n / s,
+                              None, None, mib, ""))
+        except Exception as exc:  # noqa: BLE001 - e.g. workers killed over their memory limit
+            print(f"dask shuffle failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+            lines.append(Line(n, "partition --by time", "dask shuffle", float("nan"),
+                              float("nan"), float("nan"), float("nan"), None, None,
+                              float("nan"), f"failed: {type(exc).__name__}"))
+            client.restart()
         shutil.rmtree(out, ignore_errors=True)
     steps = [("locate huber", ["locate", "--method", "huber"], by_time, n_epochs,
               ["method", "time", "tag"])]

@@ -243,7 +243,7 @@ def _dask(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, sche
         if fmt == "csv":
             ddf = dd.read_csv(files, dtype={"tag": str, "anchor": str}, blocksize="64MB")
         else:
-            ddf = dd.read_parquet(files)
+            ddf = dd.read_parquet(files, split_row_groups=True)  # a task per row group
         need = ["time", "tag"] if by == "tag" else ["time"]
         missing = [c for c in need if c not in ddf.columns]
         if missing:
