@@ -303,8 +303,10 @@ def main() -> int:
     p.add_argument("--tags", type=int, default=500)
     p.add_argument("--workers", type=int, default=2, help="LocalCluster worker processes")
     p.add_argument("--rows-per-partition", type=int, default=1_000_000)
-    p.add_argument("--buckets", type=int, default=16,
-                   help="--by tag: tag buckets (0: a directory per tag)")
+    p.add_argument("--buckets", type=int, default=None,
+                   help="--by tag: tag buckets (0: a directory per tag; default 2 per "
+                        "worker: the filter is vectorized over links, and each partition "
+                        "pays its per-time-step cost once)")
     p.add_argument("--chunk-rows", type=int, default=2_000_000, help="rows written at a time")
     p.add_argument("--shuffle-max-rows", type=int, default=10_000_000,
                    help="time the dask shuffle only up to this size")
@@ -315,6 +317,8 @@ def main() -> int:
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
+    if args.buckets is None:
+        args.buckets = 2 * args.workers
 
     import tempfile
 

@@ -25,6 +25,7 @@ from robustloc.engines.dataset import (  # noqa: E402
     Partition,
     PartitionInfo,
     discover,
+    overlapping,
     plan_snapshot,
     plan_tagwise,
 )
@@ -164,6 +165,14 @@ def test_plan_snapshot_orders_by_time_and_refuses_a_split_epoch():
     with pytest.raises(InputError, match="tag 'y'.*split") as exc:
         plan_snapshot([_info("a", 0, 10, "xy"), _info("b", 10, 20, "y")])
     assert exc.value.path == "b"
+
+
+def test_only_partitions_meeting_in_time_need_their_tags_read():
+    infos = [_info("a", 0, 9, ""), _info("b", 10, 19, ""), _info("c", 15, 30, ""),
+             _info("d", 31, 40, ""), _info("e", 0, 100, "")]
+    assert [i.part.path for i in overlapping(infos[:4])] == ["b", "c"]
+    assert len(overlapping(infos)) == 5  # e meets every other one
+    assert overlapping([_info("a", 0, 9, ""), _info("b", 9, 19, "")]) != []  # shared time
 
 
 def test_plan_tagwise_groups_files_sharing_a_tag_in_time_order():

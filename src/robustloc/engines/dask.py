@@ -46,6 +46,7 @@ from robustloc.engines.dataset import (
     discover,
     inspect,
     materialize,
+    overlapping,
     plan_snapshot,
     plan_tagwise,
     read_partition,
@@ -126,8 +127,8 @@ def _sum_counts(total: dict, part: dict) -> None:
 # --------------------------------------------------------------------------------------
 
 
-def _inspect_task(part: Partition, need: tuple[str, ...]) -> PartitionInfo:
-    return inspect(part, need)
+def _inspect_task(part: Partition, need: tuple[str, ...], tags: bool) -> PartitionInfo:
+    return inspect(part, need, tags)
 
 
 def _value_column(info: PartitionInfo) -> str | None:
@@ -178,10 +179,19 @@ def _tag_task(kernel: TagKernel, settings: dict, parts: list[Partition], out: st
 # --------------------------------------------------------------------------------------
 
 
-def _plan_infos(client: object, parts: list[Partition], need: tuple[str, ...], show: bool
-                ) -> list[PartitionInfo]:
-    futs = submit_all(client, _inspect_task, [(p, need) for p in parts])
+def _plan_infos(client: object, parts: list[Partition], need: tuple[str, ...], show: bool,
+                tags: str = "all") -> list[PartitionInfo]:
+    """Inspect every partition on the workers.  ``tags``: "all" reads every partition's
+    tags; "overlapping" only those of partitions whose time ranges meet (a snapshot
+    method's check needs no more; the time ranges come from the Parquet statistics)."""
+    futs = submit_all(client, _inspect_task, [(p, need, tags == "all") for p in parts])
     infos = gather_with_progress(client, futs, show)
+    if tags == "overlapping":
+        again = overlapping(infos)
+        if again:
+            futs = submit_all(client, _inspect_task, [(i.part, need, True) for i in again])
+            redo = {i.part.path: i for i in gather_with_progress(client, futs, show)}
+            infos = [redo.get(i.part.path, i) for i in infos]
     values = {}
     for info in infos:
         if info.n_rows and "anchor" in need:
@@ -222,7 +232,8 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
     out = DatasetOutput(args.out)
     try:
         with dask_client(args.scheduler, args.workers) as client:
-            infos = _plan_infos(client, parts, ("time", "tag", "anchor"), False)
+            infos = _plan_infos(client, parts, ("time", "tag", "anchor"), False,
+                                tags="overlapping")
             plan = plan_snapshot(infos)
             _say(args, f"{name}: {len(plan)} partitions on "
                        f"{len(client.scheduler_info()['workers'])} workers")

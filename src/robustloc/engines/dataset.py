@@ -183,14 +183,17 @@ def inspect(part: Partition, need: tuple[str, ...] = ("time", "tag"),
     n = pf.metadata.num_rows
     tmin, tmax = np.inf, -np.inf
     if "time" in cols and n:
-        t = pf.read(columns=["time"]).column("time")
-        try:
-            import pyarrow.compute as pc
+        rng = _time_range_from_statistics(pf)
+        if rng is None:
+            t = pf.read(columns=["time"]).column("time")
+            try:
+                import pyarrow.compute as pc
 
-            mm = pc.min_max(t)
-            tmin, tmax = float(mm["min"].as_py()), float(mm["max"].as_py())
-        except Exception:  # noqa: BLE001 - non-numeric time: the reader names the line
-            tmin, tmax = -np.inf, np.inf
+                mm = pc.min_max(t)
+                rng = float(mm["min"].as_py()), float(mm["max"].as_py())
+            except Exception:  # noqa: BLE001 - non-numeric time: the reader names the line
+                rng = -np.inf, np.inf
+        tmin, tmax = rng
     tagset: frozenset[str] = frozenset()
     if tags and n:
         hive_tag = part.key("tag")
@@ -200,6 +203,42 @@ def inspect(part: Partition, need: tuple[str, ...] = ("time", "tag"),
             col = pf.read(columns=["tag"]).column("tag").unique().to_pylist()
             tagset = frozenset(_id_text(v) for v in col if v is not None)
     return PartitionInfo(part, n, cols, tmin, tmax, tagset)
+
+
+def _time_range_from_statistics(pf: object) -> tuple[float, float] | None:
+    """(min, max) of a numeric ``time`` column from the row groups' statistics (no data
+    read), or None when a row group has none."""
+    md = pf.metadata
+    j = next((k for k in range(md.num_columns) if md.schema.column(k).path == "time"), None)
+    if j is None or md.num_row_groups == 0:
+        return None
+    lo, hi = np.inf, -np.inf
+    for i in range(md.num_row_groups):
+        st = md.row_group(i).column(j).statistics
+        if st is None or not st.has_min_max or md.row_group(i).column(j).statistics.null_count:
+            return None
+        try:
+            lo, hi = min(lo, float(st.min)), max(hi, float(st.max))
+        except (TypeError, ValueError):
+            return None
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        return None
+    return lo, hi
+
+
+def overlapping(infos: list[PartitionInfo]) -> list[PartitionInfo]:
+    """The partitions whose time range meets another's (only those can split an epoch,
+    so only their tags need reading)."""
+    use = sorted((i for i in infos if i.n_rows), key=lambda i: (i.time_min, i.part.path))
+    out = []
+    run_max = -np.inf
+    for k, info in enumerate(use):
+        before = k > 0 and info.time_min <= run_max
+        after = k + 1 < len(use) and info.time_max >= use[k + 1].time_min
+        if before or after:
+            out.append(info)
+        run_max = max(run_max, info.time_max)
+    return out
 
 
 def _id_text(v: object) -> str:
