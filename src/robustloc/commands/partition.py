@@ -29,27 +29,27 @@ spills to disk beyond --memory-limit):
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from robustloc.engines import _positive_int
+    from robustloc.commands._argtypes import nonnegative_int, positive_float, positive_int
     from robustloc.engines.partition import BY, METHODS
 
     p.add_argument("input", help="measurements: CSV or Parquet file, directory or glob")
     p.add_argument("-o", "--out", required=True, help="dataset directory to write")
     p.add_argument("--by", required=True, choices=BY, help="partition key")
-    p.add_argument("--span", type=float, default=None, metavar="S",
+    p.add_argument("--span", type=positive_float, default=None, metavar="S",
                    help="--by time: bin width in seconds (default: from --rows-per-partition)")
-    p.add_argument("--rows-per-partition", type=_positive_int, default=2_000_000, metavar="N",
+    p.add_argument("--rows-per-partition", type=positive_int, default=2_000_000, metavar="N",
                    help="--by time without --span: target rows per file (default 2000000)")
-    p.add_argument("--buckets", type=int, default=0, metavar="N",
+    p.add_argument("--buckets", type=nonnegative_int, default=0, metavar="N",
                    help="--by tag: hash the tags into N buckets (default 0: one per tag)")
     p.add_argument("--method", choices=METHODS, default="duckdb",
                    help="duckdb (default, measured faster) or dask (a shuffle)")
     p.add_argument("--memory-limit", default="2GB",
                    help="DuckDB memory limit before spilling to disk (default 2GB)")
-    p.add_argument("--threads", type=_positive_int, default=None,
+    p.add_argument("--threads", type=positive_int, default=None,
                    help="DuckDB threads (default: the cores available)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="--method dask: a running scheduler (default: a LocalCluster)")
-    p.add_argument("--workers", type=_positive_int, default=None, metavar="N",
+    p.add_argument("--workers", type=positive_int, default=None, metavar="N",
                    help="--method dask without --scheduler: LocalCluster workers")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 

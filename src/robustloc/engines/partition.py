@@ -193,7 +193,11 @@ def _duckdb(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, me
 
     con = duckdb.connect()
     try:
-        con.execute(f"SET memory_limit={_sql_str(memory_limit)}")
+        try:
+            con.execute(f"SET memory_limit={_sql_str(memory_limit)}")
+        except duckdb.Error:
+            raise ValueError(f"--memory-limit: expected a size such as 2GB or 500MB, got "
+                             f"{memory_limit!r}") from None
         con.execute(f"SET threads={int(threads or machine_cores())}")
         tmp = stage / ".duckdb-tmp"
         con.execute(f"SET temp_directory={_sql_str(str(tmp))}")
