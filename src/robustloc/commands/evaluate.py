@@ -7,6 +7,8 @@ import json
 
 import numpy as np
 
+from robustloc.engines import add_engine_arguments
+
 NAME = "evaluate"
 HELP = "error statistics of positions against truth, per tag and method"
 DESCRIPTION = """\
@@ -41,6 +43,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="largest |time difference| between a position and its truth (default 1e-6 s)",
     )
     p.add_argument("--baseline", default="ls", help="method improvements refer to (default ls)")
+    add_engine_arguments(p, what="the positions dataset")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -51,9 +54,14 @@ def run(args: argparse.Namespace) -> int:
     from robustloc.io.atomic import check_not_input, writes_to_stdout
 
     check_not_input(args.out, [args.positions, args.truth])
-    pos = read_positions(args.positions)
-    truth = read_truth(args.truth)
-    table = error_table(pos, truth, time_tolerance_s=args.time_tolerance, baseline=args.baseline)
+    if args.engine == "dask":
+        from robustloc.engines.dask import evaluate_dataset
+        table = evaluate_dataset(args)
+    else:
+        pos = read_positions(args.positions)
+        truth = read_truth(args.truth)
+        table = error_table(pos, truth, time_tolerance_s=args.time_tolerance,
+                            baseline=args.baseline)
     if args.out:
         write_table(table, args.out)
     # the report never goes into a data stream: stderr when the table goes to stdout

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from robustloc.engines import add_engine_arguments
+
 NAME = "filter"
 HELP = "robust RSSI Kalman filter per (tag, anchor) link (seed 002); output feeds locate"
 DESCRIPTION = """\
@@ -66,15 +68,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-adaptive", action="store_true",
                    help="standardize by the predicted innovation std only")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_engine_arguments(p)
 
 
-def run(args: argparse.Namespace) -> int:
+def filter_frame(meas, anchors, args: argparse.Namespace, progress: bool = False):
+    """The filter configured by ``args`` over one measurements frame.
+
+    The single core of ``filter``: the whole file here, each tag partition under
+    ``--engine dask``.  Returns :class:`robustloc.filters.rssi.FilteredTable`.
+    """
     from robustloc.filters.rssi import RobustRssiFilter, filter_measurements
-    from robustloc.io import read_anchors, read_measurements, write_table
     from robustloc.robust.weights import get_weight
 
-    anchors = read_anchors(args.anchors)
-    meas = read_measurements(args.measurements, anchors)
     robust = args.robust != "none"
     filt = RobustRssiFilter(
         get_weight(args.robust) if robust else None,
@@ -87,7 +92,24 @@ def run(args: argparse.Namespace) -> int:
         max_rejected=args.max_rejected,
         adaptive=not args.no_adaptive,
     )
-    res = filter_measurements(meas, anchors, filt, progress=True)
+    return filter_measurements(meas, anchors, filt, progress=progress)
+
+
+def filter_partition(meas, anchors, args: argparse.Namespace):
+    """``--engine dask``: one tag partition -> (filtered frame, additive counts)."""
+    res = filter_frame(meas, anchors, args)
+    return res.frame, {k: v for k, v in res.summary.items() if isinstance(v, int)}
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.engine == "dask":
+        from robustloc.engines.dask import run_filter
+        return run_filter(args, filter_partition)
+    from robustloc.io import read_anchors, read_measurements, write_table
+
+    anchors = read_anchors(args.anchors)
+    meas = read_measurements(args.measurements, anchors)
+    res = filter_frame(meas, anchors, args, progress=True)
     write_table(res.frame, args.out)
     s = dict(res.summary, out=str(args.out))
     if args.json:

@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from robustloc.engines import add_engine_arguments
+
 NAME = "locate"
 HELP = "position fixes from RSSI or ranges (LS, WLS, Gauss-Newton, robust IRLS, LEGE, ...)"
 DESCRIPTION = """\
@@ -152,6 +154,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
     p.add_argument("--quiet", action="store_true",
                    help="no progress bar and no text summary")
+    add_engine_arguments(p)
 
 
 def _params(items: list[str], methods: list[str]) -> dict[str, dict[str, float]]:
@@ -192,16 +195,11 @@ def _params(items: list[str], methods: list[str]) -> dict[str, dict[str, float]]
     return out
 
 
-def locate_file(args: argparse.Namespace) -> dict:
-    """Run ``locate`` as configured by ``args``; returns the summary."""
+def _locators(args: argparse.Namespace, anchors: pd.DataFrame) -> tuple:
+    """The configured locators, the anchors' coordinates and height offsets."""
     from robustloc.errors import InputError
     from robustloc.estimators.ranging import Locator
-    from robustloc.io import read_anchors
-    from robustloc.io.atomic import check_not_input, is_stdio
-    from robustloc.io.tables import UnsortedInput
 
-    check_not_input(args.out, [args.measurements, args.anchors])
-    anchors = read_anchors(args.anchors)
     if args.dim == 3 and "z" not in anchors.columns:
         raise InputError("--dim 3 needs a z column in the anchors file", args.anchors, 1)
     cols = ["x", "y"] + (["z"] if args.dim == 3 else [])
@@ -234,6 +232,17 @@ def locate_file(args: argparse.Namespace) -> dict:
         if isinstance(exc, InputError):
             raise
         raise InputError(f"invalid settings: {exc}") from None
+    return locators, anchors, xyz, height
+
+
+def locate_file(args: argparse.Namespace) -> dict:
+    """Run ``locate`` as configured by ``args``; returns the summary."""
+    from robustloc.io import read_anchors
+    from robustloc.io.atomic import check_not_input, is_stdio
+    from robustloc.io.tables import UnsortedInput
+
+    check_not_input(args.out, [args.measurements, args.anchors])
+    locators, anchors, xyz, height = _locators(args, read_anchors(args.anchors))
     if any(loc.robust_scale == "log" for loc in locators):
         try:
             locators = _fix_log_scale(args, anchors, locators, xyz, height, "auto")
@@ -348,23 +357,33 @@ def _prepared_values(args: argparse.Namespace, anchors: pd.DataFrame, block) -> 
 
 
 def _fix_log_scale(args, anchors, locators, xyz, height, order: str,
-                   cap: int = 5_000) -> list:
+                   cap: int = 5_000, paths: list | None = None) -> list:
     """First pass over the whole log: each locator's per-anchor noise scale from an even
     sample of at most ``2 cap`` epochs (every ``k``-th epoch, ``k`` doubling as the log
     grows), so the scale, and every fix, is the same whatever ``--chunk-rows`` is.
-    Standard input cannot be read twice: there each chunk's own scale is used."""
+    ``paths``: the log's files in order (a partitioned dataset; default the one file).
+    ``args.log_scale_fixed`` (set by the Dask engine, which computes it once for the whole
+    dataset) is used as it is.  Standard input cannot be read twice: there each chunk's
+    own scale is used."""
     from dataclasses import replace
 
     from robustloc.io import iter_epochs
     from robustloc.io.atomic import is_stdio
     from robustloc.models.pathloss import log_distance_arrays
 
-    if is_stdio(args.measurements) or not Path(args.measurements).is_file():
-        return locators
+    fixed = getattr(args, "log_scale_fixed", None)
+    if fixed is not None:
+        return [replace(loc, log_scale_fixed=tuple(fixed[loc.method]))
+                if loc.robust_scale == "log" else loc for loc in locators]
+    if paths is None:
+        if is_stdio(args.measurements) or not Path(args.measurements).is_file():
+            return locators
+        paths = [args.measurements]
     k, seen, kept, idx = 1, 0, [], []
     kind = None
-    for block in iter_epochs(args.measurements, anchors, chunk_rows=args.chunk_rows,
-                             order=order):
+    blocks = (b for path in paths for b in iter_epochs(path, anchors,
+                                                       chunk_rows=args.chunk_rows, order=order))
+    for block in blocks:
         kind = block.value
         gi = np.arange(seen, seen + block.n_epochs)
         seen += block.n_epochs
@@ -392,9 +411,28 @@ def _fix_log_scale(args, anchors, locators, xyz, height, order: str,
     return out
 
 
+def log_scales_for(args: argparse.Namespace, paths: list) -> dict[str, tuple[float, ...]]:
+    """Each method's per-anchor log scale over the files ``paths`` (in order), as
+    ``locate`` estimates it in its first pass: what the Dask engine hands to every
+    partition so that each solves with the whole dataset's scale."""
+    from robustloc.io import read_anchors
+    from robustloc.io.tables import UnsortedInput
+
+    locators, anchors, xyz, height = _locators(args, read_anchors(args.anchors))
+    try:
+        fixed = _fix_log_scale(args, anchors, locators, xyz, height, "auto", paths=paths)
+    except UnsortedInput:
+        fixed = _fix_log_scale(args, anchors, locators, xyz, height, "sort", paths=paths)
+    return {loc.method: loc.log_scale_fixed for loc in fixed
+            if loc.log_scale_fixed is not None}
+
+
 def run(args: argparse.Namespace) -> int:
     from robustloc.io.atomic import writes_to_stdout
 
+    if args.engine == "dask":
+        from robustloc.engines.dask import run_locate
+        return run_locate(args, locate_file)
     summary = locate_file(args)
     # the summary never goes into a data stream: stderr when the positions go to stdout
     dest = sys.stderr if writes_to_stdout(args.out) else sys.stdout

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from robustloc.engines import add_engine_arguments
+
 NAME = "spp"
 HELP = "GNSS single-point positioning from RINEX (broadcast or SP3/CLK), with RAIM FDE"
 DESCRIPTION = """\
@@ -69,6 +71,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="end of the injected fault (same formats)")
     p.add_argument("-o", "--out", required=True, help="solution file (.csv or .parquet)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_engine_arguments(p, what="the observation files (OBS: a directory or a glob)")
 
 
 def _parse_time(text: str | None, what: str) -> float | None:
@@ -103,6 +106,9 @@ def _parse_inject(text: str) -> dict[str, float]:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.engine == "dask":
+        from robustloc.engines.dask import run_spp
+        return run_spp(args, run)
     from robustloc.gnss.raim import RaimFde, inject_faults
     from robustloc.gnss.rinex import read_nav, read_obs
     from robustloc.gnss.sp3 import PreciseProducts, read_clk, read_sp3

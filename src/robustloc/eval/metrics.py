@@ -223,15 +223,32 @@ def error_table(
     if "status" not in pos.columns:
         pos["status"] = st.OK
     e = epoch_errors(pos, truth, time_tolerance_s)
+    return error_table_from_errors(e, baseline=baseline, path=positions.attrs.get("path"),
+                                   truth=truth)
+
+
+def error_table_from_errors(
+    errors: pd.DataFrame, *, baseline: str = "ls", path: str | None = None,
+    truth: pd.DataFrame | None = None,
+) -> pd.DataFrame:
+    """The statistics of :func:`error_table` from the rows of :func:`epoch_errors`.
+
+    Only ``tag, method, matched, usable, error_2d[, error_3d]`` are used, so per-row errors
+    computed elsewhere (each partition of a dataset on a worker, then concatenated in the
+    dataset's order) give the table of the whole.  ``path`` names the positions in the
+    error raised when no row matched.  With ``truth`` (the frame the errors were matched
+    against), every truth epoch without a positions row counts as a failed, missing epoch.
+    """
+    e = errors
     n_unmatched = int((~e["matched"]).sum())
-    e = e[e["matched"].to_numpy()]
-    if len(e) > 0:
+    e = e[e["matched"].to_numpy()].copy()
+    if len(e) > 0 and truth is not None:
         e = pd.concat([e.assign(missing=False), _missing_rows(e, truth)], ignore_index=True)
     if len(e) == 0:
         raise InputError(
             "no positions row matches the truth by (time, tag); check the tags, or raise "
             "the time tolerance",
-            positions.attrs.get("path"),
+            path,
         )
     has3d = "error_3d" in e.columns
     e["method"] = e["method"].astype(str)

@@ -1,0 +1,370 @@
+"""``--engine dask`` against the single-process engine, and DuckDB against a dask shuffle.
+
+Workload (issue 13): a site of ``--tags`` tags (default 500) and 8 anchors at 10 Hz, RSSI
+from the log-distance model (A = -40 dBm, n = 2.2, sigma = 2 dB, 5 % of readings 6-20 dB
+low: body blocking), tags walking slowly in a 40 m x 30 m hall.  One time-sorted Parquet
+file of N rows is written chunk by chunk (a pyarrow ParquetWriter, ``--chunk-rows`` rows
+at a time: never the whole log in memory), for each N of ``--rows`` (default 10 M;
+``--rows 10M,50M,200M`` for the issue's full table, about 12 GB of disk and hours on this
+machine).
+
+Per size, one line per step:
+
+* ``partition``: ``robustloc partition --by time`` and ``--by tag`` with DuckDB, and
+  ``--by time`` with a dask shuffle (``--shuffle-max-rows`` bounds the sizes it is timed
+  on; it is the slower of the two);
+* ``locate``: ``robustloc locate --method huber`` in one process (a subprocess, peak RSS
+  polled) vs ``--engine dask`` on the time-partitioned dataset;
+* ``filter`` (the tag-partitioned path ``track`` will use): ``robustloc filter`` in one
+  process vs ``--engine dask`` on the tag-partitioned dataset (``--filter-max-rows``: the
+  single-process filter holds the whole log in memory).
+
+The dask runs use a LocalCluster of ``--workers`` single-threaded worker processes started
+once, before the timings (its start-up, 10-20 s here, is reported apart), reached through
+``--scheduler`` as on a real cluster.  Columns: wall seconds, rows/s, epochs or samples/s,
+per-worker-core throughput as % of the single-process run (the target is >= 70 %), peak
+RSS of the single process or of the largest worker (sampled every 0.2 s; the target is
+<= 2 GiB per worker), and whether the outputs are identical (sorted by key, every column).
+
+Usage::
+
+    python benchmarks/bench_dask.py --rows 1M --workers 2          # a quick look
+    python benchmarks/bench_dask.py                                # the 10 M line
+    python benchmarks/bench_dask.py --rows 10M,50M,200M --dir /big/disk --json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+A_DBM, N_EXP, SIGMA_DB = -40.0, 2.2, 2.0
+HALL_M = (40.0, 30.0)
+ANCHORS = np.array([[0, 0], [20, 0], [40, 0], [40, 15], [40, 30], [20, 30], [0, 30], [0, 15]],
+                   dtype=float)
+RATE_HZ = 10.0
+
+
+@dataclass
+class Line:
+    rows: int
+    step: str
+    engine: str
+    seconds: float
+    cpu_s: float
+    rows_per_s: float
+    units_per_s: float
+    per_core_pct: float | None
+    per_cpu_s_pct: float | None
+    peak_rss_mib: float
+    identical: str
+
+
+def parse_rows(text: str) -> list[int]:
+    out = []
+    for t in text.split(","):
+        t = t.strip().upper()
+        mult = {"K": 10**3, "M": 10**6, "G": 10**9}.get(t[-1:], 1)
+        out.append(int(float(t.rstrip("KMG")) * mult))
+    return out
+
+
+def write_anchors(path: Path) -> None:
+    import pandas as pd
+
+    pd.DataFrame({"anchor": [f"A{i}" for i in range(len(ANCHORS))], "x": ANCHORS[:, 0],
+                  "y": ANCHORS[:, 1], "A": A_DBM, "n": N_EXP}).to_csv(path, index=False)
+
+
+def write_measurements(path: Path, n_rows: int, n_tags: int, chunk_rows: int, seed: int
+                       ) -> None:
+    """A time-sorted RSSI log of ``n_rows`` rows, written ``chunk_rows`` at a time."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    rng = np.random.default_rng(seed)
+    m = len(ANCHORS)
+    tags = np.array([f"T{i:05d}" for i in range(n_tags)], dtype=object)
+    anchors = np.array([f"A{i}" for i in range(m)], dtype=object)
+    start = rng.uniform([2, 2], [HALL_M[0] - 2, HALL_M[1] - 2], size=(n_tags, 2))
+    heading = rng.uniform(0, 2 * np.pi, n_tags)
+    per_step = n_tags * m
+    steps_per_chunk = max(1, chunk_rows // per_step)
+    n_steps = -(-n_rows // per_step)
+    writer = None
+    written = 0
+    try:
+        for s0 in range(0, n_steps, steps_per_chunk):
+            k = np.arange(s0, min(n_steps, s0 + steps_per_chunk))
+            t = k / RATE_HZ
+            # slow walks (0.25 m/s) on circles of 2.5 m around each tag's start
+            ang = heading[None, :] + 0.1 * t[:, None]
+            pos = start[None] + 2.5 * np.stack([np.cos(ang), np.sin(ang)], -1)
+            d = np.linalg.norm(pos[:, :, None, :] - ANCHORS[None, None], axis=-1)
+            rssi = A_DBM - 10 * N_EXP * np.log10(np.maximum(d, 0.5))
+            rssi = rssi + rng.normal(0, SIGMA_DB, rssi.shape)
+            blocked = rng.random(rssi.shape) < 0.05
+            rssi = rssi - blocked * rng.uniform(6, 20, rssi.shape)
+            n = rssi.size
+            take = min(n, n_rows - written)
+            table = pa.table({
+                "time": np.repeat(t, n_tags * m)[:take],
+                "tag": pa.array(np.tile(np.repeat(tags, m), len(k))[:take], pa.string()),
+                "anchor": pa.array(np.tile(anchors, n_tags * len(k))[:take], pa.string()),
+                "rssi": rssi.reshape(-1)[:take],
+            })
+            if writer is None:
+                writer = pq.ParquetWriter(path, table.schema)
+            writer.write_table(table, row_group_size=1_000_000)
+            written += take
+    finally:
+        if writer is not None:
+            writer.close()
+
+
+class RssPoller:
+    """Peak resident memory of a set of processes (and their children), polled."""
+
+    def __init__(self, pids: list[int], interval_s: float = 0.2) -> None:
+        import psutil
+
+        self.procs = [psutil.Process(p) for p in pids]
+        self.peak = {p: 0 for p in pids}
+        self.interval = interval_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        import psutil
+
+        while not self._stop.is_set():
+            for p in self.procs:
+                try:
+                    rss = p.memory_info().rss
+                    for c in p.children(recursive=True):
+                        rss += c.memory_info().rss
+                except psutil.Error:
+                    continue
+                self.peak[p.pid] = max(self.peak[p.pid], rss)
+            self._stop.wait(self.interval)
+
+    def __enter__(self) -> RssPoller:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def max_mib(self) -> float:
+        return max(self.peak.values()) / 2**20
+
+
+def _children_cpu_s() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _cpu_s(pids: list[int]) -> float:
+    """CPU seconds used so far by these processes and by this one (the scheduler, the
+    client's planning): what a dask run costs, counted against dask."""
+    import psutil
+
+    total = 0.0
+    for pid in pids:
+        c = psutil.Process(pid).cpu_times()
+        total += c.user + c.system
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return total + r.ru_utime + r.ru_stime
+
+
+def run_cli(argv: list[str]) -> tuple[float, float, float]:
+    """A robustloc command in a subprocess: (seconds, CPU seconds, peak RSS MiB)."""
+    t0, c0 = time.perf_counter(), _children_cpu_s()
+    proc = subprocess.Popen([sys.executable, "-m", "robustloc.cli", *argv],
+                            stdout=subprocess.DEVNULL)
+    with RssPoller([proc.pid]) as poll:
+        rc = proc.wait()
+    if rc:
+        raise RuntimeError(f"robustloc {' '.join(argv)} exited with {rc}")
+    return time.perf_counter() - t0, _children_cpu_s() - c0, poll.max_mib()
+
+
+def run_in_cluster(client: object, argv: list[str]) -> tuple[float, float, float]:
+    """A command on ``client``'s cluster: (seconds, CPU seconds, peak worker MiB)."""
+    from robustloc.cli import main
+
+    pids = list(client.run(os.getpid).values())
+    t0, c0 = time.perf_counter(), _cpu_s(pids)
+    with RssPoller(pids) as poll:
+        rc = main([*argv, "--scheduler", client.scheduler.address])
+    if rc:
+        raise RuntimeError(f"robustloc {' '.join(argv)} exited with {rc}")
+    return time.perf_counter() - t0, _cpu_s(pids) - c0, poll.max_mib()
+
+
+def same(a_path: Path, b_path: Path, key: list[str]) -> str:
+    """'yes' if two outputs hold the same rows (sorted by key, every column of a)."""
+    import pandas as pd
+    import pyarrow.parquet as pq
+
+    a = pd.read_parquet(a_path)
+    files = sorted(Path(b_path).glob("part-*.parquet"))
+    b = pd.concat([pq.read_table(f).to_pandas() for f in files], ignore_index=True)
+    if len(a) != len(b):
+        return f"no ({len(a)} vs {len(b)} rows)"
+    a = a.sort_values(key, kind="stable").reset_index(drop=True)
+    b = b[a.columns].sort_values(key, kind="stable").reset_index(drop=True)
+    for c in a.columns:
+        x, y = a[c].to_numpy(), b[c].to_numpy()
+        if x.dtype.kind == "f":
+            ok = np.array_equal(x, y.astype(float), equal_nan=True)
+        else:
+            ok = np.array_equal(x.astype(str), y.astype(str))
+        if not ok:
+            return f"no (column {c})"
+    return "yes"
+
+
+def bench_size(n: int, args: argparse.Namespace, client: object, work: Path) -> list[Line]:
+    lines: list[Line] = []
+    d = work / f"n{n}"
+    shutil.rmtree(d, ignore_errors=True)
+    d.mkdir(parents=True)
+    anchors = d / "anchors.csv"
+    write_anchors(anchors)
+    meas = d / "meas.parquet"
+    t0 = time.perf_counter()
+    write_measurements(meas, n, args.tags, args.chunk_rows, args.seed)
+    print(f"[{n:,} rows] written in {time.perf_counter() - t0:.1f} s "
+          f"({meas.stat().st_size / 2**20:.0f} MiB)", file=sys.stderr)
+    n_epochs = -(-n // len(ANCHORS))
+    n_workers = len(client.scheduler_info()["workers"])
+    by_time, by_tag = d / "by_time", d / "by_tag"
+    rpp = str(min(args.rows_per_partition, -(-n // (4 * n_workers))))
+    for by, out in (("time", by_time), ("tag", by_tag)):
+        s, c, mib = run_cli(["partition", str(meas), "-o", str(out), "--by", by,
+                             "--rows-per-partition", rpp, "--buckets", str(args.buckets)])
+        lines.append(Line(n, f"partition --by {by}", "duckdb", s, c, n / s, n / s, None, None,
+                          mib, ""))
+    if n <= args.shuffle_max_rows:
+        out = d / "by_time_dask"
+        try:
+            s, c, mib = run_in_cluster(client, ["partition", str(meas), "-o", str(out), "--by",
+                                                "time", "--method", "dask",
+                                                "--rows-per-partition", rpp])
+            lines.append(Line(n, "partition --by time", "dask shuffle", s, c, n / s, n / s,
+                              None, None, mib, ""))
+        except Exception as exc:  # noqa: BLE001 - e.g. workers killed over their memory limit
+            print(f"dask shuffle failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+            lines.append(Line(n, "partition --by time", "dask shuffle", float("nan"),
+                              float("nan"), float("nan"), float("nan"), None, None,
+                              float("nan"), f"failed: {type(exc).__name__}"))
+            client.restart()
+        shutil.rmtree(out, ignore_errors=True)
+    steps = [("locate huber", ["locate", "--method", "huber"], by_time, n_epochs,
+              ["method", "time", "tag"])]
+    if n <= args.filter_max_rows:
+        steps.append(("filter", ["filter"], by_tag, n, ["tag", "anchor", "time"]))
+    for name, cmd, dataset, units, key in steps:
+        one = d / "one.parquet"
+        s1, c1, m1 = run_cli([cmd[0], str(meas), "--anchors", str(anchors), *cmd[1:],
+                              "-o", str(one)])
+        lines.append(Line(n, name, "single process", s1, c1, n / s1, units / s1, 100.0, 100.0,
+                          m1, ""))
+        ds = d / "out_ds"
+        s2, c2, m2 = run_in_cluster(client, [cmd[0], str(dataset), "--anchors", str(anchors),
+                                             *cmd[1:], "-o", str(ds), "--engine", "dask",
+                                             "--quiet"])
+        lines.append(Line(n, name, f"dask x{n_workers}", s2, c2, n / s2, units / s2,
+                          100.0 * (s1 / s2) / n_workers, 100.0 * c1 / c2, m2,
+                          same(one, ds, key)))
+        shutil.rmtree(ds, ignore_errors=True)
+        one.unlink()
+    if not args.keep:
+        shutil.rmtree(d, ignore_errors=True)
+    return lines
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--rows", default="10M", help="sizes, e.g. 1M or 10M,50M,200M")
+    p.add_argument("--tags", type=int, default=500)
+    p.add_argument("--workers", type=int, default=2, help="LocalCluster worker processes")
+    p.add_argument("--rows-per-partition", type=int, default=1_000_000)
+    p.add_argument("--buckets", type=int, default=None,
+                   help="--by tag: tag buckets (0: a directory per tag; default 2 per "
+                        "worker: the filter is vectorized over links, and each partition "
+                        "pays its per-time-step cost once)")
+    p.add_argument("--chunk-rows", type=int, default=2_000_000, help="rows written at a time")
+    p.add_argument("--shuffle-max-rows", type=int, default=10_000_000,
+                   help="time the dask shuffle only up to this size")
+    p.add_argument("--filter-max-rows", type=int, default=10_000_000,
+                   help="run filter only up to this size (one process holds it whole)")
+    p.add_argument("--dir", default=None, help="work directory (default: a temporary one)")
+    p.add_argument("--keep", action="store_true", help="keep the data")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--json", action="store_true")
+    args = p.parse_args()
+    if args.buckets is None:
+        args.buckets = 2 * args.workers
+
+    import tempfile
+
+    import distributed
+
+    from robustloc.engines.cluster import WORKER_ENV, WORKER_MEMORY_BYTES
+
+    work = Path(args.dir) if args.dir else Path(tempfile.mkdtemp(prefix="bench_dask-"))
+    work.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    cluster = distributed.LocalCluster(n_workers=args.workers, threads_per_worker=1,
+                                       memory_limit=WORKER_MEMORY_BYTES, env=dict(WORKER_ENV),
+                                       dashboard_address=":0")
+    client = distributed.Client(cluster)
+    lines: list[Line] = []
+    try:
+        client.run(lambda: __import__("robustloc.commands.locate")
+                   and __import__("robustloc.filters.rssi"))
+        startup = time.perf_counter() - t0
+        print(f"LocalCluster of {args.workers} workers up (and robustloc imported) in "
+              f"{startup:.1f} s", file=sys.stderr)
+        for n in parse_rows(args.rows):
+            lines += bench_size(n, args, client, work)
+    finally:
+        client.close()
+        cluster.close()
+        if not args.dir and not args.keep:
+            shutil.rmtree(work, ignore_errors=True)
+    if args.json:
+        print(json.dumps({"cluster_startup_s": startup, "lines": [asdict(x) for x in lines]},
+                         indent=2))
+        return 0
+    print(f"{'rows':>11} {'step':20} {'engine':14} {'wall s':>7} {'CPU s':>7} {'rows/s':>8} "
+          f"{'units/s':>8} {'%/core':>6} {'%/CPU-s':>7} {'peak MiB':>8} identical")
+    for x in lines:
+        pc = "" if x.per_core_pct is None else f"{x.per_core_pct:.0f}"
+        pcs = "" if x.per_cpu_s_pct is None else f"{x.per_cpu_s_pct:.0f}"
+        print(f"{x.rows:>11,} {x.step:20} {x.engine:14} {x.seconds:7.1f} {x.cpu_s:7.1f} "
+              f"{x.rows_per_s:8.0f} {x.units_per_s:8.0f} {pc:>6} {pcs:>7} "
+              f"{x.peak_rss_mib:8.0f} {x.identical}")
+    print("units/s: epochs/s for locate, samples/s otherwise.  %/core: dask wall-clock "
+          "throughput per worker as % of one process (meaningful on an idle machine); "
+          "%/CPU-s: rows per CPU second of dask (workers + scheduler + client) as % of one "
+          "process's (robust to other load).  peak MiB: the process, or the largest worker.")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

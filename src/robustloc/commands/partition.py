@@ -1,0 +1,72 @@
+"""``robustloc partition``: big CSV/Parquet input -> a partitioned Parquet dataset."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+NAME = "partition"
+HELP = "repartition big measurements (CSV/Parquet, any order) by tag or time, out of core"
+DESCRIPTION = """\
+Turns measurements in any order (a CSV or Parquet file, a directory or a glob of them)
+into the partitioned Parquet dataset that `--engine dask` runs on, out of core (DuckDB
+spills to disk beyond --memory-limit):
+
+  --by tag   one directory per tag (tag=T1/part-0.parquet), or per bucket of tags with
+             --buckets N; each file sorted by time.  For filter and track: a tag's whole
+             history is in one file, in time order.
+  --by time  contiguous time bins (time_bin=000003/part-0.parquet) of --span seconds
+             (default: about --rows-per-partition rows each), sorted by time, tag, anchor.
+             All rows of one time land in one file, so an epoch is never split.  For
+             locate and evaluate (locate also runs on a dataset by tag).
+
+--method duckdb (default: a partitioned COPY, then a sort of each file) was faster than
+--method dask (a dask shuffle) on this project's benchmark (benchmarks/bench_dask.py).
+
+  robustloc partition big.csv -o meas-by-time --by time
+  robustloc partition 'logs/*.parquet' -o meas-by-tag --by tag
+  robustloc locate meas-by-time --anchors anchors.csv -o positions --engine dask"""
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from robustloc.commands._argtypes import nonnegative_int, positive_float, positive_int
+    from robustloc.engines.partition import BY, METHODS
+
+    p.add_argument("input", help="measurements: CSV or Parquet file, directory or glob")
+    p.add_argument("-o", "--out", required=True, help="dataset directory to write")
+    p.add_argument("--by", required=True, choices=BY, help="partition key")
+    p.add_argument("--span", type=positive_float, default=None, metavar="S",
+                   help="--by time: bin width in seconds (default: from --rows-per-partition)")
+    p.add_argument("--rows-per-partition", type=positive_int, default=2_000_000, metavar="N",
+                   help="--by time without --span: target rows per file (default 2000000)")
+    p.add_argument("--buckets", type=nonnegative_int, default=0, metavar="N",
+                   help="--by tag: hash the tags into N buckets (default 0: one per tag)")
+    p.add_argument("--method", choices=METHODS, default="duckdb",
+                   help="duckdb (default, measured faster) or dask (a shuffle)")
+    p.add_argument("--memory-limit", default="2GB",
+                   help="DuckDB memory limit before spilling to disk (default 2GB)")
+    p.add_argument("--threads", type=positive_int, default=None,
+                   help="DuckDB threads (default: the cores available)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="--method dask: a running scheduler (default: a LocalCluster)")
+    p.add_argument("--workers", type=positive_int, default=None, metavar="N",
+                   help="--method dask without --scheduler: LocalCluster workers")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+
+def run(args: argparse.Namespace) -> int:
+    from robustloc.engines.partition import partition_dataset
+
+    s = partition_dataset(
+        args.input, args.out, args.by, span_s=args.span,
+        rows_per_partition=args.rows_per_partition, buckets=args.buckets, method=args.method,
+        memory_limit=args.memory_limit, threads=args.threads, scheduler=args.scheduler,
+        workers=args.workers,
+    )
+    if args.json:
+        print(json.dumps({**s.__dict__, "out": str(args.out)}, indent=2))
+    else:
+        span = f", {s.span_s:.6g} s bins" if s.span_s is not None else ""
+        print(f"{s.rows} rows -> {s.files} files by {s.key}{span} in {args.out} "
+              f"({s.seconds:.2f} s, {s.method})")
+    return 0

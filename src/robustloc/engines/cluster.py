@@ -1,0 +1,177 @@
+"""A dask.distributed client for one command run, always closed at the end."""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+from robustloc.errors import InputError
+
+#: Environment of LocalCluster workers: one thread per worker for numba and BLAS, so
+#: ``workers x threads`` never oversubscribes the cores (dask runs one task per worker
+#: thread; the kernels are single-threaded per call).
+WORKER_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
+              "MKL_NUM_THREADS": "1"}
+#: Memory limit of one LocalCluster worker (the engine's target is <= 2 GiB per worker).
+WORKER_MEMORY_BYTES = 2 * 1024**3
+
+
+def machine_cores() -> int:
+    """CPU cores this process may use (affinity-aware)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def import_distributed():
+    """Import dask.distributed, or explain how to install it."""
+    try:
+        import distributed
+    except ImportError:
+        raise ValueError(
+            "--engine dask needs dask.distributed: pip install 'robustloc[dask]'"
+        ) from None
+    return distributed
+
+
+@contextmanager
+def dask_client(scheduler: str | None, workers: int | None = None,
+                processes: bool = True) -> Iterator[object]:
+    """A ``distributed.Client``: on ``scheduler``, or on a new LocalCluster.
+
+    Parameters
+    ----------
+    scheduler : str or None
+        Address of a running scheduler (``tcp://host:8786``), or None to start a
+        LocalCluster of ``workers`` single-threaded worker processes (default: the cores
+        available), each limited to :data:`WORKER_MEMORY_BYTES`.
+    workers : int, optional
+        LocalCluster size.
+    processes : bool
+        LocalCluster workers as processes (default) or threads.
+
+    The client, and the LocalCluster when one was started, are closed when the block
+    exits, also on an error or an interrupt.
+    """
+    distributed = import_distributed()
+    cluster = None
+    client = None
+    try:
+        if scheduler is not None:
+            try:
+                client = distributed.Client(scheduler, timeout="20s")
+            except OSError as exc:
+                raise ValueError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
+        else:
+            n = workers or machine_cores()
+            extra = {"env": dict(WORKER_ENV)} if processes else {}
+            cluster = distributed.LocalCluster(
+                n_workers=n, threads_per_worker=1, processes=processes,
+                memory_limit=WORKER_MEMORY_BYTES, dashboard_address=":0", **extra,
+            )
+            client = distributed.Client(cluster)
+        yield client
+    finally:
+        if client is not None:
+            client.close()
+        if cluster is not None:
+            # A worker slow to exit is killed by its nanny, which logs a warning the user
+            # can do nothing about; keep the terminal for the command's own output.
+            nanny = logging.getLogger("distributed.nanny")
+            level = nanny.level
+            nanny.setLevel(logging.ERROR)
+            try:
+                cluster.close()
+            finally:
+                nanny.setLevel(level)
+
+
+@dataclass(frozen=True)
+class UserFailure:
+    """A user's mistake found by a task, returned as a value (not raised), so the worker
+    does not log it as a crash and the client re-raises it with its file and line."""
+
+    kind: str
+    message: str
+    path: str | None = None
+    line: int | None = None
+    filename: str | None = None
+
+    def exception(self) -> BaseException:
+        if self.kind == "input":
+            return InputError(self.message, self.path, self.line)
+        if self.kind == "missing":
+            return FileNotFoundError(2, self.message, self.filename)
+        return ValueError(self.message)
+
+
+def user_errors_as_values(fn: Callable[..., object], *args: object, **kwargs: object) -> object:
+    """``fn(*args, **kwargs)`` on a worker, a user's mistake returned as a UserFailure."""
+    try:
+        return fn(*args, **kwargs)
+    except InputError as exc:
+        return UserFailure("input", exc.message, exc.path, exc.line)
+    except FileNotFoundError as exc:
+        return UserFailure("missing", exc.strerror or "file not found", filename=exc.filename)
+    except ValueError as exc:
+        return UserFailure("value", str(exc))
+
+
+def submit_all(client: object, fn: Callable[..., object], arg_lists: Sequence[tuple],
+               **kwargs: object) -> list:
+    """One task per argument tuple, each running ``fn`` through user_errors_as_values."""
+    return [client.submit(user_errors_as_values, fn, *a, pure=False, **kwargs)
+            for a in arg_lists]
+
+
+def gather_with_progress(client: object, futures: Sequence[object], show: bool) -> list:
+    """Wait for ``futures`` with dask's progress bar (on a terminal) and gather them.
+
+    Fails fast: the first task that reports a user's mistake (a :class:`UserFailure`)
+    cancels the others, and its error is raised here (an :class:`InputError` keeps the
+    partition file and line); so is any other exception a task raised.
+    """
+    distributed = import_distributed()
+    futures = list(futures)
+    index = {f.key: i for i, f in enumerate(futures)}
+    results: list[object] = [None] * len(futures)
+    first: list[BaseException] = []
+
+    def watch() -> None:
+        try:
+            for fut in distributed.as_completed(futures):
+                if fut.status == "finished":
+                    res = fut.result()
+                    results[index[fut.key]] = res
+                    if isinstance(res, UserFailure):
+                        first.append(res.exception())
+                elif fut.status == "error":
+                    first.append(fut.exception())
+                elif fut.status == "cancelled" and not first:
+                    first.append(RuntimeError("a dask task was cancelled"))
+                if first:
+                    client.cancel(futures)
+                    return
+        except BaseException as exc:  # noqa: BLE001 - reported by the main thread
+            first.append(exc)
+            client.cancel(futures)
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    try:
+        if show and sys.stdout.isatty():
+            distributed.progress(futures)
+            sys.stdout.write("\n")
+        watcher.join()
+    except BaseException:
+        client.cancel(futures)
+        raise
+    if first:
+        raise first[0]
+    return results

@@ -1,0 +1,366 @@
+"""Partitioned Parquet datasets and the partitioning rules of the distributed engine.
+
+A *dataset* is a directory (searched recursively), a glob, or one file.  Its Parquet files
+(``*.parquet``, ``*.pq``; names starting with ``_`` or ``.`` are ignored, as Spark, dask,
+pyarrow and DuckDB do) are its *partitions*, and each partition file is the unit of work
+and of error reporting: a problem found in it is ``error: PARTITION_FILE:LINE: what``,
+where LINE counts the file's rows as in CSV (data row ``i`` from 0 is line ``i + 2``).
+
+Hive trees (``tag=T1/date=2026-01-01/part-0.parquet``) are understood: a key of the path
+that is a contract id column (``tag``, ``anchor``) and absent from the file is added to
+its rows (dask's and DuckDB's partitioned writers drop it from the file).  Other keys
+(dates, time bins, buckets) only organize the files.
+
+Partitioning rules
+------------------
+* Snapshot methods (``locate``): every epoch ``(time, tag)`` is solved on its own, so any
+  partitioning is correct as long as **an epoch's rows are never split** between two
+  files.  :func:`plan_snapshot` checks it: two files holding the same tag must have
+  disjoint time ranges (files by time, by tag, or by tag and date all qualify).  Each
+  partition must be sorted by time (the single-process streaming reader's contract).
+* Filters and trackers (``filter``, ``track``): a tag's history must be processed in time
+  order by one task.  :func:`plan_tagwise` groups the files that share a tag (a
+  tag-partitioned dataset gives one group per file; ``tag=/date=`` trees give one group
+  per tag holding its days in time order).  We chose tag partitions over time chunks with
+  the filter state handed from chunk to chunk: tag partitions are independent (no task
+  waits for another, no state crosses the network), the result is trivially identical to
+  the single-process run, and a site has hundreds of tags to spread over the workers.
+  The cost: one tag's history must fit in a worker's memory (a day of a 10 Hz tag with 8
+  anchors is 7 M rows, about 0.5 GB); split longer histories by tag and date.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from urllib.parse import unquote
+
+import numpy as np
+import pandas as pd
+
+from robustloc.errors import InputError
+
+#: Hive keys restored as columns when absent from the partition file.
+HIVE_ID_COLUMNS = ("tag", "anchor")
+_PARQUET_EXT = (".parquet", ".pq")
+
+
+@dataclass(frozen=True)
+class Partition:
+    """One partition file of a dataset.
+
+    Attributes
+    ----------
+    path : str
+        The file.
+    keys : tuple of (str, str)
+        Hive ``key=value`` pairs of its directories, outermost first.
+    """
+
+    path: str
+    keys: tuple[tuple[str, str], ...] = ()
+
+    def key(self, name: str) -> str | None:
+        """The value of hive key ``name`` in the path, or None."""
+        for k, v in self.keys:
+            if k == name:
+                return v
+        return None
+
+
+@dataclass(frozen=True)
+class PartitionInfo:
+    """What the planner knows of a partition (read from its metadata and tag column)."""
+
+    part: Partition
+    n_rows: int
+    columns: tuple[str, ...]
+    time_min: float
+    time_max: float
+    tags: frozenset[str] = field(default_factory=frozenset)
+
+
+def _hidden(name: str) -> bool:
+    return name.startswith(("_", "."))
+
+
+def _hive_keys(path: Path, base: Path | None) -> tuple[tuple[str, str], ...]:
+    parts = path.parent.parts if base is None else path.parent.relative_to(base).parts
+    out = []
+    for p in parts:
+        k, sep, v = p.partition("=")
+        if sep and k:
+            out.append((unquote(k), unquote(v)))
+    return tuple(out)
+
+
+def discover(spec: str | os.PathLike, *, parquet: bool = True, what: str = "dataset"
+             ) -> list[Partition]:
+    """The partition files of a dataset: a directory, a glob, or one file.
+
+    Parameters
+    ----------
+    spec : str or PathLike
+        Directory (searched recursively), glob (``**`` allowed) or file.
+    parquet : bool
+        Keep only Parquet files (default); False keeps every regular file (RINEX inputs).
+    what : str
+        Word for messages.
+
+    Returns
+    -------
+    list of Partition
+        Sorted by path (natural order of zero-padded part numbers).
+
+    Raises
+    ------
+    InputError
+        Nothing matches, or no partition file is found.
+    """
+    s = str(spec)
+    p = Path(s)
+    base: Path | None = None
+    if p.is_dir():
+        base = p
+        files = [f for f in p.rglob("*") if f.is_file()
+                 and not any(_hidden(x) for x in f.relative_to(p).parts)]
+    elif p.is_file():
+        files = [p]
+    elif glob.has_magic(s):
+        files = []
+        for m in sorted(glob.glob(s, recursive=True)):
+            mp = Path(m)
+            if mp.is_dir():
+                files += [f for f in mp.rglob("*") if f.is_file()
+                          and not any(_hidden(x) for x in f.relative_to(mp).parts)]
+            elif not _hidden(mp.name):
+                files.append(mp)
+    else:
+        raise InputError(f"{what} not found (expected a directory, a glob or a file)", s)
+    if parquet:
+        files = [f for f in files if f.name.lower().endswith(_PARQUET_EXT)]
+    if not files:
+        kind = "Parquet files" if parquet else "files"
+        raise InputError(f"no {kind} in this {what}", s)
+    return [Partition(str(f), _hive_keys(f, base)) for f in sorted(set(files))]
+
+
+def _parquet_file(part: Partition):
+    import pyarrow.parquet as pq
+
+    try:
+        return pq.ParquetFile(part.path)
+    except Exception as exc:  # noqa: BLE001 - any pyarrow failure is a bad partition
+        raise InputError(f"cannot read Parquet partition: {exc}", part.path) from None
+
+
+def missing_hive_columns(part: Partition, columns: tuple[str, ...] | list[str]) -> list[str]:
+    """Hive id keys of ``part``'s path that its file lacks (to be added to its rows)."""
+    return [k for k, _ in part.keys if k in HIVE_ID_COLUMNS and k not in columns]
+
+
+def inspect(part: Partition, need: tuple[str, ...] = ("time", "tag"),
+            tags: bool = True) -> PartitionInfo:
+    """Row count, columns, time range (from the Parquet statistics) and tags of ``part``.
+
+    Raises
+    ------
+    InputError
+        Unreadable file, or a column of ``need`` missing (neither in the file nor a hive
+        key of its path) -- naming the partition file.
+    """
+    pf = _parquet_file(part)
+    cols = tuple(pf.schema_arrow.names)
+    have = set(cols) | {k for k, _ in part.keys if k in HIVE_ID_COLUMNS}
+    missing = [c for c in need if c not in have]
+    if missing:
+        raise InputError(
+            f"partition is missing column(s) {', '.join(missing)} (has: {', '.join(cols)})",
+            part.path, 1,
+        )
+    n = pf.metadata.num_rows
+    tmin, tmax = np.inf, -np.inf
+    if "time" in cols and n:
+        rng = _time_range_from_statistics(pf)
+        if rng is None:
+            t = pf.read(columns=["time"]).column("time")
+            try:
+                import pyarrow.compute as pc
+
+                mm = pc.min_max(t)
+                rng = float(mm["min"].as_py()), float(mm["max"].as_py())
+            except Exception:  # noqa: BLE001 - non-numeric time: the reader names the line
+                rng = -np.inf, np.inf
+        tmin, tmax = rng
+    tagset: frozenset[str] = frozenset()
+    if tags and n:
+        hive_tag = part.key("tag")
+        if "tag" not in cols and hive_tag is not None:
+            tagset = frozenset([hive_tag])
+        elif "tag" in cols:
+            col = pf.read(columns=["tag"]).column("tag").unique().to_pylist()
+            tagset = frozenset(_id_text(v) for v in col if v is not None)
+    return PartitionInfo(part, n, cols, tmin, tmax, tagset)
+
+
+def _time_range_from_statistics(pf: object) -> tuple[float, float] | None:
+    """(min, max) of a numeric ``time`` column from the row groups' statistics (no data
+    read), or None when a row group has none."""
+    md = pf.metadata
+    j = next((k for k in range(md.num_columns) if md.schema.column(k).path == "time"), None)
+    if j is None or md.num_row_groups == 0:
+        return None
+    lo, hi = np.inf, -np.inf
+    for i in range(md.num_row_groups):
+        st = md.row_group(i).column(j).statistics
+        if st is None or not st.has_min_max or md.row_group(i).column(j).statistics.null_count:
+            return None
+        try:
+            lo, hi = min(lo, float(st.min)), max(hi, float(st.max))
+        except (TypeError, ValueError):
+            return None
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        return None
+    return lo, hi
+
+
+def overlapping(infos: list[PartitionInfo]) -> list[PartitionInfo]:
+    """The partitions whose time range meets another's (only those can split an epoch,
+    so only their tags need reading)."""
+    use = sorted((i for i in infos if i.n_rows), key=lambda i: (i.time_min, i.part.path))
+    out = []
+    run_max = -np.inf
+    for k, info in enumerate(use):
+        before = k > 0 and info.time_min <= run_max
+        after = k + 1 < len(use) and info.time_max >= use[k + 1].time_min
+        if before or after:
+            out.append(info)
+        run_max = max(run_max, info.time_max)
+    return out
+
+
+def _id_text(v: object) -> str:
+    """An id as the readers spell it (an integral float 3.0 is the id "3")."""
+    if isinstance(v, float) and v.is_integer():
+        return str(int(v))
+    return str(v).strip()
+
+
+def read_partition(part: Partition, columns: list[str] | None = None) -> pd.DataFrame:
+    """A partition's rows, hive id keys added, index = CSV-equivalent line numbers.
+
+    ``frame.attrs["path"]`` is the partition file, so the contract validators
+    (:func:`robustloc.io.tables.validate_measurements` ...) name it in their errors.
+    """
+    pf = _parquet_file(part)
+    try:
+        df = pf.read(columns=columns).to_pandas()
+    except Exception as exc:  # noqa: BLE001
+        raise InputError(f"cannot read Parquet partition: {exc}", part.path) from None
+    for k in missing_hive_columns(part, list(df.columns)):
+        df[k] = part.key(k)
+    df.columns = [str(c).strip() for c in df.columns]
+    df.index = pd.RangeIndex(2, 2 + len(df), name="line")
+    df.attrs["path"] = part.path
+    return df
+
+
+def materialize(part: Partition, directory: str | os.PathLike) -> str:
+    """The path of a file with ``part``'s rows and its hive id keys as columns.
+
+    ``part.path`` itself when nothing is missing; otherwise a copy under ``directory``
+    written row group by row group (bounded memory), for a per-file reader.
+    """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    pf = _parquet_file(part)
+    add = missing_hive_columns(part, pf.schema_arrow.names)
+    if not add:
+        return part.path
+    out = Path(directory) / f"{abs(hash(part.path)):x}-{Path(part.path).name}"
+    writer = None
+    try:
+        for i in range(pf.num_row_groups):
+            t = pf.read_row_group(i)
+            for k in add:
+                t = t.append_column(k, pa.array([part.key(k)] * t.num_rows, pa.string()))
+            if writer is None:
+                writer = pq.ParquetWriter(out, t.schema)
+            writer.write_table(t)
+        if writer is None:  # no row groups: an empty file with the columns
+            schema = pf.schema_arrow
+            for k in add:
+                schema = schema.append(pa.field(k, pa.string()))
+            pq.write_table(schema.empty_table(), out)
+    finally:
+        if writer is not None:
+            writer.close()
+    return str(out)
+
+
+def plan_snapshot(infos: list[PartitionInfo]) -> list[PartitionInfo]:
+    """Order partitions for snapshot methods and check that no epoch is split.
+
+    Returns the non-empty partitions sorted by (first time, path).  Two partitions that
+    hold the same tag must not overlap in time (``t_max`` of one < ``t_min`` of the next),
+    or an epoch ``(time, tag)`` could have rows in both.
+
+    Raises
+    ------
+    InputError
+        Naming the second partition, the first one and the tag.
+    """
+    use = sorted((i for i in infos if i.n_rows), key=lambda i: (i.time_min, i.part.path))
+    by_tag: dict[str, list[PartitionInfo]] = {}
+    for info in use:
+        for t in info.tags:
+            by_tag.setdefault(t, []).append(info)
+    for tag, lst in by_tag.items():
+        for a, b in zip(lst, lst[1:]):  # sorted by time_min
+            if b.time_min <= a.time_max:
+                raise InputError(
+                    f"tag {tag!r} has rows in times [{b.time_min}, {b.time_max}] here and in "
+                    f"[{a.time_min}, {a.time_max}] in {a.part.path}: an epoch's rows could be "
+                    "split between partitions (repartition: robustloc partition INPUT -o "
+                    "DATASET --by time)",
+                    b.part.path,
+                )
+    return use
+
+
+def plan_tagwise(infos: list[PartitionInfo]) -> list[list[PartitionInfo]]:
+    """Group partitions so that each tag's whole history is in exactly one group.
+
+    Files sharing a tag are joined (union-find over tags); each group's files are ordered
+    by (first time, path), so a tag's rows come in time order when concatenated.  Groups
+    are ordered by their smallest tag.  A dataset partitioned by tag gives one group per
+    file; a dataset partitioned by time only gives one group (correct, but serial: the
+    caller warns and suggests ``robustloc partition --by tag``).
+    """
+    use = [i for i in infos if i.n_rows]
+    parent = list(range(len(use)))
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    first: dict[str, int] = {}
+    for i, info in enumerate(use):
+        for t in info.tags:
+            if t in first:
+                ra, rb = find(first[t]), find(i)
+                if ra != rb:
+                    parent[rb] = ra
+            else:
+                first[t] = i
+    groups: dict[int, list[PartitionInfo]] = {}
+    for i, info in enumerate(use):
+        groups.setdefault(find(i), []).append(info)
+    out = [sorted(g, key=lambda i: (i.time_min, i.part.path)) for g in groups.values()]
+    out.sort(key=lambda g: min((t for i in g for t in i.tags), default=""))
+    return out

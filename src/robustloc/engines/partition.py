@@ -1,0 +1,285 @@
+"""Out-of-core repartitioning of measurements into a dataset for ``--engine dask``.
+
+``by="tag"``: one hive directory per tag (``tag=T1/part-0.parquet``), or per bucket of tags
+(``tag_bucket=0007/``, the tags hashed into ``buckets``), each file sorted by time: what
+filters and trackers need (a tag's whole history in one file, in time order).
+
+``by="time"``: contiguous time bins (``time_bin=000003/part-0.parquet``) of ``span_s``
+seconds (default: the span giving about ``rows_per_partition`` rows per file at the log's
+mean rate), each sorted by ``time, tag, anchor``.  Bins are ``floor((time - t0) / span)``,
+so all rows of one time -- hence of one epoch -- land in one file: what snapshot methods
+need.
+
+Two engines, measured by ``benchmarks/bench_dask.py`` (the default is the faster):
+
+* ``duckdb``: one partitioned ``COPY`` (DuckDB spills to disk beyond ``memory_limit``), then
+  each file sorted by a second ``COPY`` -- DuckDB's partitioned writer does not keep the
+  order of the query's ``ORDER BY`` within a file, and a file is bounded, so its sort is
+  cheap;
+* ``dask``: ``read_csv/read_parquet -> shuffle(key) -> sort within partitions ->
+  to_parquet(partition_on=key)`` on a dask cluster.
+
+Ids (``tag``, ``anchor``) are read as text, so ``007`` stays ``007``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time as _time
+from dataclasses import dataclass
+from pathlib import Path
+
+from robustloc.engines.dataset import discover
+from robustloc.errors import InputError
+
+BY = ("tag", "time")
+METHODS = ("duckdb", "dask")
+
+
+@dataclass(frozen=True)
+class PartitionSummary:
+    """What :func:`partition_dataset` wrote."""
+
+    rows: int
+    files: int
+    by: str
+    key: str
+    span_s: float | None
+    seconds: float
+    method: str
+
+
+def _inputs(spec: str) -> tuple[list[str], str]:
+    """Input files and their format (``csv`` or ``parquet``); one format per input."""
+    p = Path(spec)
+    if p.is_file():
+        files = [str(p)]
+    else:
+        files = [x.path for x in discover(spec, parquet=False, what="input")]
+        files = [f for f in files if not f.endswith((".json", ".txt", ".md"))]
+    kinds = {"parquet" if f.lower().endswith((".parquet", ".pq")) else "csv" for f in files}
+    if len(kinds) != 1:
+        raise InputError("input mixes CSV and Parquet files; give one format", spec)
+    return files, kinds.pop()
+
+
+def _sql_str(s: str) -> str:
+    return "'" + s.replace("'", "''") + "'"
+
+
+def _source(con, files: list[str], fmt: str, spec: str) -> tuple[str, list[str]]:
+    """DuckDB's table function over the input and its column names; ids read as text."""
+    import duckdb
+
+    lst = "[" + ", ".join(_sql_str(f) for f in files) + "]"
+    if fmt == "csv":
+        src = f"read_csv({lst}, header=true, union_by_name=true"
+    else:
+        src = f"read_parquet({lst}, union_by_name=true"
+    try:
+        names = [r[0] for r in con.execute(f"DESCRIBE SELECT * FROM {src})").fetchall()]
+    except duckdb.Error as exc:
+        raise InputError(f"cannot read: {str(exc).splitlines()[0]}", spec) from None
+    ids = [c for c in ("tag", "anchor") if c in names]
+    if fmt == "csv" and ids:
+        src += ", types={" + ", ".join(f"'{c}': 'VARCHAR'" for c in ids) + "}"
+    return src + ")", names
+
+
+def partition_dataset(
+    source: str, out: str | os.PathLike, by: str, *, span_s: float | None = None,
+    rows_per_partition: int = 2_000_000, buckets: int = 0, method: str = "duckdb",
+    memory_limit: str = "2GB", threads: int | None = None, scheduler: str | None = None,
+    workers: int | None = None,
+) -> PartitionSummary:
+    """Repartition measurements ``source`` (CSV or Parquet: file, directory or glob).
+
+    Parameters
+    ----------
+    source : str
+        Input file, directory or glob; rows in any order.
+    out : str or PathLike
+        Dataset directory to write (staged, then renamed into place).
+    by : {"tag", "time"}
+        Partition key (see the module docstring).
+    span_s : float, optional
+        ``by="time"``: bin width (s).  Default: ``(t_max - t_min) rows_per_partition / n``.
+    rows_per_partition : int
+        ``by="time"`` without ``span_s``: target rows per file.
+    buckets : int
+        ``by="tag"``: 0 = one directory per tag; N > 0 = tags hashed into N buckets.
+    method : {"duckdb", "dask"}
+        Engine (see the module docstring).
+    memory_limit : str
+        DuckDB's memory limit (it spills beyond it); dask workers use 2 GiB each.
+    threads : int, optional
+        DuckDB threads (default: the cores available).
+    scheduler, workers
+        ``method="dask"``: as ``--scheduler``, ``--workers``.
+    """
+    from robustloc.engines.dask import DatasetOutput
+
+    if by not in BY:
+        raise ValueError(f"--by must be one of {', '.join(BY)}, got {by!r}")
+    if method not in METHODS:
+        raise ValueError(f"--method must be one of {', '.join(METHODS)}, got {method!r}")
+    if span_s is not None and not (span_s > 0 and span_s < float("inf")):
+        raise ValueError(f"--span must be a positive number of seconds, got {span_s}")
+    if rows_per_partition < 1 or buckets < 0:
+        raise ValueError("--rows-per-partition must be >= 1 and --buckets >= 0")
+    t0 = _time.perf_counter()
+    files, fmt = _inputs(source)
+    dest = DatasetOutput(out)
+    try:
+        if method == "duckdb":
+            rows, span, key = _duckdb(files, fmt, dest.stage, by, span_s, rows_per_partition,
+                                      buckets, memory_limit, threads, source)
+        else:
+            rows, span, key = _dask(files, fmt, dest.stage, by, span_s, rows_per_partition,
+                                    buckets, scheduler, workers, source)
+        n_files = sum(1 for _ in dest.stage.rglob("*.parquet"))
+        summary = PartitionSummary(rows, n_files, by, key, span, 0.0, method)
+        dest.commit({"command": "partition", "input": str(source), "by": by, "key": key,
+                     "span_s": span, "rows": rows, "files": n_files, "method": method})
+    except BaseException:
+        dest.abort()
+        raise
+    return PartitionSummary(summary.rows, summary.files, by, key, span,
+                            round(_time.perf_counter() - t0, 3), method)
+
+
+def _key_expr(by: str, buckets: int, t0: float, span: float | None) -> tuple[str, str]:
+    if by == "tag":
+        if buckets:
+            return "tag_bucket", f"lpad(CAST(hash(tag) % {buckets} AS VARCHAR), 4, '0')"
+        return "tag", "tag"
+    return "time_bin", f"lpad(CAST(CAST(floor((time - {t0!r}) / {span!r}) AS BIGINT) AS " \
+                       "VARCHAR), 6, '0')"
+
+
+def _stats(con, src: str, names: list[str], spec: str, by: str) -> tuple[int, float, float]:
+    import duckdb
+
+    need = ["time", "tag"] if by == "tag" else ["time"]
+    missing = [c for c in need if c not in names]
+    if missing:
+        raise InputError(f"input is missing column(s) {', '.join(missing)} "
+                         f"(has: {', '.join(names)})", spec, 1)
+    try:
+        n, tmin, tmax = con.execute(
+            f"SELECT count(*), min(CAST(time AS DOUBLE)), max(CAST(time AS DOUBLE)) FROM {src}"
+        ).fetchone()
+    except duckdb.Error as exc:
+        raise InputError(f"column 'time': {str(exc).splitlines()[0]}", spec) from None
+    if not n:
+        raise InputError("input has no data rows", spec, 2)
+    return int(n), float(tmin), float(tmax)
+
+
+def _auto_span(n: int, tmin: float, tmax: float, span_s: float | None, rows: int) -> float:
+    if span_s is not None:
+        return float(span_s)
+    if tmax <= tmin:
+        return 1.0
+    return (tmax - tmin) * rows / n * (1 + 1e-9) or 1.0
+
+
+def _duckdb(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, memory_limit,
+            threads, spec) -> tuple[int, float | None, str]:
+    import duckdb
+
+    from robustloc.engines.cluster import machine_cores
+
+    con = duckdb.connect()
+    try:
+        try:
+            con.execute(f"SET memory_limit={_sql_str(memory_limit)}")
+        except duckdb.Error:
+            raise ValueError(f"--memory-limit: expected a size such as 2GB or 500MB, got "
+                             f"{memory_limit!r}") from None
+        con.execute(f"SET threads={int(threads or machine_cores())}")
+        tmp = stage / ".duckdb-tmp"
+        con.execute(f"SET temp_directory={_sql_str(str(tmp))}")
+        src, names = _source(con, files, fmt, spec)
+        n, tmin, tmax = _stats(con, src, names, spec, by)
+        span = _auto_span(n, tmin, tmax, span_s, rows_per_partition) if by == "time" else None
+        key, expr = _key_expr(by, buckets, tmin, span)
+        raw = stage / ".unsorted"
+        # Stage 1: one partitioned COPY (out of core).  The key column is written into the
+        # files only when it is a contract column (tag); bins and buckets live in the path.
+        sel = f"SELECT *, {expr} AS __key FROM {src}" if key != "tag" else f"SELECT * FROM {src}"
+        pby = "__key" if key != "tag" else "tag"
+        try:
+            con.execute(f"COPY ({sel}) TO {_sql_str(str(raw))} (FORMAT parquet, "
+                        f"PARTITION_BY ({pby}), WRITE_PARTITION_COLUMNS true)")
+        except duckdb.Error as exc:
+            raise InputError(f"cannot partition: {str(exc).splitlines()[0]}", spec) from None
+        # Stage 2: each key's files sorted into one file.
+        for d in sorted(p for p in raw.iterdir() if p.is_dir()):
+            value = d.name.split("=", 1)[1]
+            target = stage / f"{key}={value}"
+            target.mkdir()
+            parts = sorted(str(f) for f in d.glob("*.parquet"))
+            lst = "[" + ", ".join(_sql_str(f) for f in parts) + "]"
+            drop = " EXCLUDE (__key)" if key != "tag" else ""
+            con.execute(
+                f"COPY (SELECT *{drop} FROM read_parquet({lst}) ORDER BY time, tag, anchor) "
+                f"TO {_sql_str(str(target / 'part-0.parquet'))} (FORMAT parquet)"
+            )
+            shutil.rmtree(d)
+        shutil.rmtree(raw, ignore_errors=True)
+        shutil.rmtree(tmp, ignore_errors=True)
+    finally:
+        con.close()
+    return n, span, key
+
+
+def _dask(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, scheduler, workers,
+          spec) -> tuple[int, float | None, str]:
+    import dask.dataframe as dd
+    import numpy as np
+    import pandas as pd
+
+    from robustloc.engines.cluster import dask_client
+
+    with dask_client(scheduler, workers):
+        if fmt == "csv":
+            ddf = dd.read_csv(files, dtype={"tag": str, "anchor": str}, blocksize="64MB")
+        else:
+            ddf = dd.read_parquet(files, split_row_groups=True)  # a task per row group
+        need = ["time", "tag"] if by == "tag" else ["time"]
+        missing = [c for c in need if c not in ddf.columns]
+        if missing:
+            raise InputError(f"input is missing column(s) {', '.join(missing)}", spec, 1)
+        n = int(ddf.shape[0].compute())
+        span = None
+        if by == "time":
+            tmin, tmax = (float(v) for v in dd.compute(ddf["time"].min(), ddf["time"].max()))
+            span = _auto_span(n, tmin, tmax, span_s, rows_per_partition)
+            key = "time_bin"
+            ddf = ddf.assign(time_bin=((ddf["time"] - tmin) // span).astype("int64"))
+        elif buckets:
+            key = "tag_bucket"
+            ddf = ddf.map_partitions(
+                lambda df: df.assign(tag_bucket=(pd.util.hash_array(
+                    df["tag"].to_numpy(dtype=object)) % np.uint64(buckets)).astype("int64")))
+        else:
+            key = "tag"
+        n_parts = max(1, min(ddf.npartitions, 1 + n // max(rows_per_partition, 1)))
+        ddf = ddf.shuffle(on=key, npartitions=n_parts)
+        ddf = ddf.map_partitions(lambda df: df.sort_values([key, "time", "tag", "anchor"],
+                                                          kind="stable"))
+        ddf.to_parquet(str(stage), partition_on=[key], write_index=False,
+                       write_metadata_file=False)
+    if key == "tag":  # dask drops the partition column from the files; put it back
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        for f in stage.rglob("*.parquet"):
+            t = pq.read_table(f)
+            if "tag" not in t.column_names:
+                tag = f.parent.name.split("=", 1)[1]
+                pq.write_table(t.append_column("tag", pa.array([tag] * t.num_rows,
+                                                              pa.string())), f)
+    return n, span, key

@@ -1,0 +1,375 @@
+"""``--engine dask`` on a real 2-worker LocalCluster: identity with the single-process
+engine, the partitioning rules, ``robustloc partition``, and user errors (exit 2 naming the
+partition file).
+
+The cluster (two single-threaded thread workers, started once for the module, always
+closed) is reached through ``--scheduler ADDRESS`` exactly as a user's cluster would be;
+one test runs without ``--scheduler`` to check that the command's own LocalCluster
+(worker processes) is closed even when the run fails.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+distributed = pytest.importorskip("distributed")
+pytest.importorskip("duckdb")
+
+from robustloc.cli import main  # noqa: E402
+from robustloc.engines.dataset import (  # noqa: E402
+    Partition,
+    PartitionInfo,
+    discover,
+    overlapping,
+    plan_snapshot,
+    plan_tagwise,
+)
+from robustloc.errors import InputError  # noqa: E402
+from robustloc.sim.wifi_room import simulate  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def scheduler():
+    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                                       dashboard_address=None)
+    try:
+        yield cluster.scheduler_address
+    finally:
+        cluster.close()
+
+
+@pytest.fixture(scope="module")
+def sim(tmp_path_factory) -> dict[str, Path]:
+    out = tmp_path_factory.mktemp("wifi")
+    return simulate(out, 4, argparse.Namespace(samples_per_point=10, walk_epochs=60))
+
+
+@pytest.fixture(scope="module")
+def shuffled(sim, tmp_path_factory) -> Path:
+    """The measurements in random row order (what `partition` must accept)."""
+    m = pd.read_csv(sim["measurements"], dtype={"tag": str, "anchor": str})
+    p = tmp_path_factory.mktemp("shuf") / "shuffled.csv"
+    m.sample(frac=1.0, random_state=3).to_csv(p, index=False)
+    return p
+
+
+@pytest.fixture(scope="module")
+def by_time(shuffled, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("ds") / "by_time"
+    assert main(["partition", str(shuffled), "-o", str(out), "--by", "time",
+                 "--span", "5"]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def by_tag(shuffled, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("ds") / "by_tag"
+    assert main(["partition", str(shuffled), "-o", str(out), "--by", "tag"]) == 0
+    return out
+
+
+def _parts(ds: Path) -> list[pd.DataFrame]:
+    return [pd.read_parquet(p.path) for p in discover(ds)]
+
+
+def _rows(df: pd.DataFrame) -> pd.DataFrame:
+    cols = ["time", "tag", "anchor", "rssi"]
+    df = df[cols].astype({"tag": str, "anchor": str})
+    return df.sort_values(cols).reset_index(drop=True)
+
+
+# --------------------------------------------------------------------------------------
+# robustloc partition
+# --------------------------------------------------------------------------------------
+
+
+def test_partition_by_time_keeps_every_row_and_never_splits_an_epoch(sim, by_time):
+    src = pd.read_csv(sim["measurements"], dtype={"tag": str, "anchor": str})
+    parts = _parts(by_time)
+    assert len(parts) >= 3
+    pd.testing.assert_frame_equal(_rows(pd.concat(parts)), _rows(src))
+    ranges = []
+    for df in parts:
+        assert df["time"].is_monotonic_increasing
+        ranges.append((df["time"].min(), df["time"].max()))
+    ranges.sort()
+    for (_, hi), (lo, _) in zip(ranges, ranges[1:]):
+        assert hi < lo  # disjoint time ranges: no (time, tag) epoch in two files
+    meta = json.loads((by_time / "_robustloc.json").read_text())
+    assert meta["rows"] == len(src) and meta["by"] == "time"
+
+
+def test_partition_by_tag_one_file_per_tag_in_time_order(sim, by_tag):
+    src = pd.read_csv(sim["measurements"], dtype={"tag": str, "anchor": str})
+    parts = _parts(by_tag)
+    assert len(parts) == src["tag"].nunique()
+    for df in parts:
+        assert df["tag"].nunique() == 1
+        assert df["time"].is_monotonic_increasing
+    pd.testing.assert_frame_equal(_rows(pd.concat(parts)), _rows(src))
+
+
+def test_partition_buckets_and_dask_method_agree_with_duckdb(sim, shuffled, scheduler,
+                                                             tmp_path):
+    src = pd.read_csv(sim["measurements"], dtype={"tag": str, "anchor": str})
+    out = tmp_path / "buckets"
+    assert main(["partition", str(shuffled), "-o", str(out), "--by", "tag",
+                 "--buckets", "4"]) == 0
+    parts = _parts(out)
+    assert 1 < len(parts) <= 4
+    seen: set[str] = set()
+    for df in parts:
+        tags = set(df["tag"])
+        assert not tags & seen  # a tag lives in one bucket
+        seen |= tags
+        for _, g in df.groupby("tag"):
+            assert g["time"].is_monotonic_increasing
+    out2 = tmp_path / "dask_by_time"
+    assert main(["partition", str(shuffled), "-o", str(out2), "--by", "time",
+                 "--span", "7", "--method", "dask", "--scheduler", scheduler]) == 0
+    parts2 = _parts(out2)
+    pd.testing.assert_frame_equal(_rows(pd.concat(parts2)), _rows(src))
+    for df in parts2:
+        assert df["time"].is_monotonic_increasing
+        assert df["time"].max() - df["time"].min() < 7
+
+
+def test_partition_errors(tmp_path, capsys):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("time,anchor,rssi\n0,A,-50\n")
+    assert main(["partition", str(bad), "-o", str(tmp_path / "o"), "--by", "tag"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {bad}:1: ") and "missing column(s) tag" in err
+    assert not (tmp_path / "o").exists()
+    assert main(["partition", str(tmp_path / "none.csv"), "-o", str(tmp_path / "o"),
+                 "--by", "time"]) == 2
+
+
+# --------------------------------------------------------------------------------------
+# planning rules (hand-made partitions)
+# --------------------------------------------------------------------------------------
+
+
+def _info(name: str, t0: float, t1: float, tags: str) -> PartitionInfo:
+    return PartitionInfo(Partition(name), 10, ("time", "tag"), t0, t1, frozenset(tags))
+
+
+def test_plan_snapshot_orders_by_time_and_refuses_a_split_epoch():
+    a, b, c = _info("a", 10, 19, "xy"), _info("b", 0, 9, "xy"), _info("c", 0, 30, "z")
+    assert [i.part.path for i in plan_snapshot([a, b, c])] == ["b", "c", "a"]
+    with pytest.raises(InputError, match="tag 'y'.*split") as exc:
+        plan_snapshot([_info("a", 0, 10, "xy"), _info("b", 10, 20, "y")])
+    assert exc.value.path == "b"
+
+
+def test_only_partitions_meeting_in_time_need_their_tags_read():
+    infos = [_info("a", 0, 9, ""), _info("b", 10, 19, ""), _info("c", 15, 30, ""),
+             _info("d", 31, 40, ""), _info("e", 0, 100, "")]
+    assert [i.part.path for i in overlapping(infos[:4])] == ["b", "c"]
+    assert len(overlapping(infos)) == 5  # e meets every other one
+    assert overlapping([_info("a", 0, 9, ""), _info("b", 9, 19, "")]) != []  # shared time
+
+
+def test_plan_tagwise_groups_files_sharing_a_tag_in_time_order():
+    groups = plan_tagwise([_info("x2", 10, 19, "x"), _info("y", 0, 9, "y"),
+                           _info("x1", 0, 9, "x"), _info("xz", 20, 29, "xz"),
+                           _info("w", 0, 5, "w")])
+    assert [[i.part.path for i in g] for g in groups] == [["w"], ["x1", "x2", "xz"], ["y"]]
+
+
+# --------------------------------------------------------------------------------------
+# identity with the single-process engine
+# --------------------------------------------------------------------------------------
+
+
+def _locate_local(sim, tmp_path, methods: str) -> pd.DataFrame:
+    out = tmp_path / f"local-{methods.replace(',', '_')}.parquet"
+    assert main(["locate", str(sim["measurements"]), "--anchors", str(sim["anchors"]),
+                 "--method", methods, "-o", str(out), "--quiet"]) == 0
+    return pd.read_parquet(out)
+
+
+def _dataset(out: Path) -> pd.DataFrame:
+    """The output dataset's parts concatenated in part order."""
+    files = sorted(out.glob("part-*.parquet"))
+    return pd.concat([pd.read_parquet(f) for f in files], ignore_index=True)
+
+
+def test_locate_dask_equals_single_process_row_for_row(sim, by_time, scheduler, tmp_path):
+    local = _locate_local(sim, tmp_path, "huber")
+    out = tmp_path / "pos"
+    assert main(["locate", str(by_time), "--anchors", str(sim["anchors"]), "--method",
+                 "huber", "-o", str(out), "--engine", "dask", "--scheduler", scheduler,
+                 "--quiet"]) == 0
+    # one method: the parts in order are the single-process file, row for row
+    pd.testing.assert_frame_equal(_dataset(out), local)
+    meta = json.loads((out / "_robustloc.json").read_text())
+    assert meta["epochs"] == len(local)
+    assert meta["status"]["huber"] == local["status"].value_counts().to_dict()
+
+
+def test_locate_dask_several_methods_on_a_hive_tree_without_the_tag_column(
+        sim, by_tag, scheduler, tmp_path):
+    # the layout dask's and DuckDB's partitioned writers produce by default
+    hive = tmp_path / "hive"
+    for p in discover(by_tag):
+        df = pd.read_parquet(p.path)
+        d = hive / f"tag={df['tag'].iloc[0]}"
+        d.mkdir(parents=True)
+        df.drop(columns="tag").to_parquet(d / "0.parquet", index=False)
+    local = _locate_local(sim, tmp_path, "ls,igg")
+    out = tmp_path / "pos"
+    assert main(["locate", str(hive), "--anchors", str(sim["anchors"]), "--method", "ls,igg",
+                 "-o", str(out), "--engine", "dask", "--scheduler", scheduler,
+                 "--json"]) == 0
+    key = ["method", "time", "tag"]
+    got = _dataset(out).sort_values(key).reset_index(drop=True)
+    pd.testing.assert_frame_equal(got, local.sort_values(key).reset_index(drop=True))
+
+
+def test_filter_dask_equals_single_process(sim, by_tag, by_time, scheduler, tmp_path, capsys):
+    local = tmp_path / "filtered.parquet"
+    assert main(["filter", str(sim["measurements"]), "--anchors", str(sim["anchors"]),
+                 "-o", str(local)]) == 0
+    ref = pd.read_parquet(local)
+    key = ["tag", "anchor", "time"]
+    ref = ref.sort_values(key).reset_index(drop=True)
+    for ds in (by_tag, by_time):  # by time: the tags' files are grouped (with a note)
+        out = tmp_path / f"f-{ds.name}"
+        assert main(["filter", str(ds), "--anchors", str(sim["anchors"]), "-o", str(out),
+                     "--engine", "dask", "--scheduler", scheduler, "--quiet"]) == 0
+        got = _dataset(out)[ref.columns].sort_values(key).reset_index(drop=True)
+        pd.testing.assert_frame_equal(got, ref)
+    assert "partition the data by tag first" in capsys.readouterr().err
+
+
+def test_evaluate_dask_equals_single_process(sim, by_time, scheduler, tmp_path, capsys):
+    pos = tmp_path / "pos"
+    assert main(["locate", str(by_time), "--anchors", str(sim["anchors"]), "--method",
+                 "ls,huber", "-o", str(pos), "--engine", "dask", "--scheduler", scheduler,
+                 "--quiet"]) == 0
+    whole = tmp_path / "pos.parquet"
+    _dataset(pos).to_parquet(whole, index=False)
+    a, b = tmp_path / "a.csv", tmp_path / "b.csv"
+    assert main(["evaluate", str(whole), "--truth", str(sim["truth"]), "-o", str(a)]) == 0
+    assert main(["evaluate", str(pos), "--truth", str(sim["truth"]), "-o", str(b),
+                 "--engine", "dask", "--scheduler", scheduler, "--quiet"]) == 0
+    ta, tb = pd.read_csv(a), pd.read_csv(b)
+    assert len(ta) == 2 * (21 + 2)  # 21 tags + "all" + "mean", two methods
+    pd.testing.assert_frame_equal(ta, tb)
+
+
+def test_spp_dask_equals_single_process_per_file(scheduler, tmp_path):
+    data = Path(__file__).resolve().parents[1] / "../shared/data/gnss-geonet"
+    obs, nav = data / "07590920.05o", data / "07590920.05n"
+    if not obs.is_file():
+        pytest.skip("shared GNSS data not available")
+    d = tmp_path / "obs"
+    d.mkdir()
+    (d / "a.05o").symlink_to(obs.resolve())
+    (d / "b.05o").symlink_to(obs.resolve())
+    local = tmp_path / "one.parquet"
+    assert main(["spp", str(obs), str(nav), "--systems", "G", "--raim", "-o", str(local),
+                 "--json"]) == 0
+    out = tmp_path / "sol"
+    assert main(["spp", str(d), str(nav), "--systems", "G", "--raim", "-o", str(out),
+                 "--engine", "dask", "--scheduler", scheduler, "--json"]) == 0
+    ref = pd.read_parquet(local)
+    for f in ("part-00000.parquet", "part-00001.parquet"):
+        pd.testing.assert_frame_equal(pd.read_parquet(out / f), ref)
+    meta = json.loads((out / "_robustloc.json").read_text())
+    assert meta["epochs"] == 2 * len(ref)
+
+
+# --------------------------------------------------------------------------------------
+# user mistakes: error naming the partition file, exit 2, nothing written
+# --------------------------------------------------------------------------------------
+
+
+def _copy_dataset(src: Path, dst: Path) -> list[Path]:
+    files = []
+    for p in discover(src):
+        rel = Path(p.path).relative_to(src)
+        (dst / rel).parent.mkdir(parents=True, exist_ok=True)
+        pd.read_parquet(p.path).to_parquet(dst / rel, index=False)
+        files.append(dst / rel)
+    return files
+
+
+def test_missing_column_in_one_partition(sim, by_time, scheduler, tmp_path, capsys):
+    ds = tmp_path / "ds"
+    files = _copy_dataset(by_time, ds)
+    pd.read_parquet(files[1]).drop(columns="anchor").to_parquet(files[1], index=False)
+    out = tmp_path / "pos"
+    assert main(["locate", str(ds), "--anchors", str(sim["anchors"]), "-o", str(out),
+                 "--engine", "dask", "--scheduler", scheduler]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {files[1]}:1: ") and "missing column(s) anchor" in err
+    assert not out.exists() and not list(tmp_path.glob(".pos.partial-*"))
+
+
+def test_unknown_anchor_in_one_partition(sim, by_tag, scheduler, tmp_path, capsys):
+    ds = tmp_path / "ds"
+    files = _copy_dataset(by_tag, ds)
+    df = pd.read_parquet(files[2])
+    df.loc[5, "anchor"] = "AP9"
+    df.to_parquet(files[2], index=False)
+    for cmd in ("locate", "filter"):
+        out = tmp_path / f"o-{cmd}"
+        assert main([cmd, str(ds), "--anchors", str(sim["anchors"]), "-o", str(out),
+                     "--engine", "dask", "--scheduler", scheduler]) == 2
+        err = capsys.readouterr().err.splitlines()[-1]
+        # data row 5 of that file is its line 7 (CSV numbering: header = line 1)
+        assert err.startswith(f"error: {files[2]}:7: unknown anchor id 'AP9'"), err
+        assert not out.exists()
+
+
+def test_split_epoch_and_foreign_output_directory_are_refused(sim, by_time, scheduler,
+                                                              tmp_path, capsys):
+    ds = tmp_path / "ds"
+    files = _copy_dataset(by_time, ds)
+    a, b = pd.read_parquet(files[0]), pd.read_parquet(files[1])
+    moved = a[a["time"] == a["time"].max()].iloc[:1]  # one row of a's last epoch into b
+    pd.concat([moved, b]).to_parquet(files[1], index=False)
+    a.drop(index=moved.index).to_parquet(files[0], index=False)
+    assert main(["locate", str(ds), "--anchors", str(sim["anchors"]), "-o",
+                 str(tmp_path / "p"), "--engine", "dask", "--scheduler", scheduler]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {files[1]}: tag ") and "split" in err
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep me")
+    assert main(["locate", str(by_time), "--anchors", str(sim["anchors"]), "-o", str(mine),
+                 "--engine", "dask", "--scheduler", scheduler]) == 2
+    assert "not a robustloc dataset" in capsys.readouterr().err
+    assert (mine / "notes.txt").read_text() == "keep me"
+
+
+def test_own_local_cluster_is_closed_after_a_failed_run(sim, tmp_path, capsys):
+    psutil = pytest.importorskip("psutil")
+    before = {p.pid for p in psutil.Process().children(recursive=True)}
+    ds = tmp_path / "ds"
+    ds.mkdir()
+    pd.DataFrame({"time": [0.0], "tag": ["t"], "rssi": [-50.0]}).to_parquet(
+        ds / "p.parquet", index=False)
+    assert main(["locate", str(ds), "--anchors", str(sim["anchors"]), "-o",
+                 str(tmp_path / "p"), "--engine", "dask", "--workers", "1"]) == 2
+    assert "missing column(s) anchor" in capsys.readouterr().err
+    left = [p for p in psutil.Process().children(recursive=True)
+            if p.pid not in before and p.is_running()
+            and p.status() != psutil.STATUS_ZOMBIE
+            # multiprocessing's resource tracker lives as long as this process
+            and "resource_tracker" not in " ".join(p.cmdline())]
+    assert left == []
+
+
+def test_no_dataset_is_an_input_error(tmp_path):
+    with pytest.raises(InputError, match="no Parquet files"):
+        discover(tmp_path)
+    with pytest.raises(InputError, match="not found"):
+        discover(tmp_path / "missing")
