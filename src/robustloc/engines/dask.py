@@ -244,8 +244,9 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
                 # every partition, as the single-process first pass does for one file
                 from robustloc.commands.locate import log_scales_for
 
-                settings["log_scale_fixed"] = log_scales_for(
-                    args, [info.part.path for info in plan])
+                with tempfile.TemporaryDirectory(prefix="robustloc-") as tmp:
+                    paths = [materialize(info.part, tmp) for info in plan]
+                    settings["log_scale_fixed"] = log_scales_for(args, paths)
             futs = submit_all(client, _file_task, [(fn, settings, input_attr, info.part,
                                                     out.part(i)) for i, info in enumerate(plan)])
             summaries = gather_with_progress(client, futs, _show(args))
@@ -468,7 +469,7 @@ def _errors_task(part: Partition, truth_path: str, tolerance_s: float) -> pd.Dat
         return pd.DataFrame()
     pos = validate_positions(raw, part.path)
     e = epoch_errors(pos, _truth(truth_path), tolerance_s)
-    cols = ["tag", "method", "matched", "usable", "error_2d"]
+    cols = ["tag", "method", "matched", "usable", "error_2d", "_truth_row"]
     cols += ["error_3d"] if "error_3d" in e.columns else []
     return e[cols].reset_index(drop=True)
 
