@@ -13,10 +13,10 @@ pytest.importorskip("starlette")
 mqtt = pytest.importorskip("paho.mqtt.client")
 httpx = pytest.importorskip("httpx")
 
+from test_service import _cli, metric, wait_for  # noqa: E402
+
 from robustloc.io import read_measurements  # noqa: E402
 from robustloc.service.launch import MosquittoProcess, ServerProcess  # noqa: E402
-
-from test_service import _cli, metric, wait_for  # noqa: E402
 
 if not (shutil.which("mosquitto") or Path("/usr/sbin/mosquitto").exists()):
     pytest.skip("the mosquitto binary is missing (apt-get install mosquitto; "
@@ -55,7 +55,7 @@ def test_mqtt_ingest_positions_and_malformed(broker, tmp_path):
             time.sleep(1.0)  # probes still in flight
             n0 = metric(srv.url, "robustloc_rows_accepted_total")
             infos = []
-            for t, g in meas.groupby("time", sort=True):
+            for _t, g in meas.groupby("time", sort=True):
                 # one message per time step, as NDJSON (a gateway's batch)
                 payload = "\n".join(json.dumps({"time": float(r.time), "tag": r.tag,
                                                 "anchor": r.anchor, "rssi": float(r.rssi)})

@@ -111,7 +111,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--floorplan", default=None, metavar="IMAGE",
                    help="floor-plan image shown under the map")
     p.add_argument("--floorplan-extent", type=_extent, default=None,
-                   metavar="XMIN,YMIN,XMAX,YMAX", help="the image's extent in anchor metres")
+                   metavar="XMIN,YMIN,XMAX,YMAX",
+                   help="the image's extent in anchor metres (write --floorplan-extent=-1,... "
+                        "when XMIN is negative)")
     p.add_argument("--max-body-bytes", type=positive_int, default=DEFAULT_MAX_BODY_BYTES,
                    help=f"largest body or message (default {DEFAULT_MAX_BODY_BYTES})")
     p.add_argument("--rate-limit", type=positive_float, default=DEFAULT_RATE_LIMIT_ROWS,
