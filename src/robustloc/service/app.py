@@ -24,6 +24,7 @@ import asyncio
 import hmac
 import json
 import math
+import threading
 import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -79,6 +80,7 @@ class RateLimiter:
     def __init__(self, rate: float) -> None:
         self.rate = rate
         self.buckets: dict[str, _Bucket] = {}
+        self.lock = threading.Lock()
 
     def take(self, client: str, n: int) -> float:
         """0 when ``n`` rows may pass, else the seconds to wait."""
@@ -156,14 +158,20 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
         return refuse("unauthorized", 401, "missing or wrong bearer token",
                       **{"WWW-Authenticate": "Bearer"})
 
-    async def ingest(rows: list, source: str, client: str) -> tuple[int, dict]:
-        wait = limiter.take(client, len(rows))
+    def ingest_sync(data: bytes | str, source: str, client: str) -> tuple[int, dict]:
+        """Parse, rate-limit and ingest one body (in a worker thread, off the event loop)."""
+        try:
+            rows, _ = parse_body(data)
+        except BodyError as exc:
+            engine.metrics.request_rejected("not_rows")
+            return exc.status, {"error": str(exc)}
+        with limiter.lock:
+            wait = limiter.take(client, len(rows))
         if wait > 0:
             engine.metrics.request_rejected("rate_limited")
             return 429, {"error": f"rate limit of {cfg.rate_limit_rows:g} rows/s exceeded",
                          "retry_after_s": round(wait, 3)}
-        res = await anyio.to_thread.run_sync(engine.ingest, rows, source)
-        return 202, res.to_json()
+        return 202, engine.ingest(rows, source).to_json()
 
     async def post_measurements(request: Request) -> Response:
         if not authorized(request.headers, request.query_params):
@@ -177,12 +185,9 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             if size > cfg.max_body_bytes:
                 return refuse("too_large", 413, f"body larger than {cfg.max_body_bytes} bytes")
             chunks.append(chunk)
-        try:
-            rows, _ = parse_body(b"".join(chunks))
-        except BodyError as exc:
-            return refuse("not_rows", exc.status, str(exc))
         client = request.client.host if request.client else "?"
-        status, body = await ingest(rows, "http", client)
+        status, body = await anyio.to_thread.run_sync(ingest_sync, b"".join(chunks), "http",
+                                                      client)
         headers = {"Retry-After": str(math.ceil(body["retry_after_s"]))} if status == 429 else None
         return JSONResponse(body, status_code=status, headers=headers)
 
@@ -310,13 +315,7 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
                 data = msg.get("text")
                 if data is None:
                     data = msg.get("bytes") or b""
-                try:
-                    rows, _ = parse_body(data)
-                except BodyError as exc:
-                    engine.metrics.request_rejected("not_rows")
-                    await ws.send_text(json.dumps({"error": str(exc), "status": exc.status}))
-                    continue
-                status, body = await ingest(rows, "ws", client)
+                status, body = await anyio.to_thread.run_sync(ingest_sync, data, "ws", client)
                 if status != 202:
                     body["status"] = status
                 await ws.send_text(json.dumps(body))
