@@ -113,7 +113,7 @@ class Hub:
         """Called from the solver thread."""
         if not self.subs or self.loop is None or len(frame) == 0:
             return
-        lines = frame.to_json(orient="records", lines=True).splitlines()
+        lines = frame.to_json(orient="records", lines=True, double_precision=15).splitlines()
         tags = frame["tag"].astype(str).tolist()
         self.loop.call_soon_threadsafe(self._deliver, tags, lines)
 
@@ -228,7 +228,9 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
     async def get_latest(request: Request) -> Response:
         if not authorized(request.headers, request.query_params):
             return unauthorized()
-        return _json(list(engine.latest.values()))
+        df = engine.latest()
+        return Response(df.to_json(orient="records", double_precision=15) if len(df) else "[]",
+                        media_type="application/json")
 
     async def get_status(request: Request) -> Response:
         if not authorized(request.headers, request.query_params):

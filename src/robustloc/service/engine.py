@@ -142,7 +142,8 @@ class Engine:
         self._cv = threading.Condition()
         self._queue: list[tuple[pd.DataFrame, float]] = []
         self._listeners: list[Callable[[pd.DataFrame], None]] = []
-        self.latest: dict[str, dict] = {}
+        self._latest: pd.DataFrame | None = None
+        self._latest_lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.solver_errors = 0
@@ -346,8 +347,9 @@ class Engine:
         status = frame["status"].to_numpy() if "status" in frame else np.array(["ok"] * len(frame))
         self.metrics.solved(status, done - ready_wall)
         last = frame.drop_duplicates("tag", keep="last")
-        for rec in json.loads(last.to_json(orient="records")):
-            self.latest[str(rec["tag"])] = rec
+        with self._latest_lock:
+            both = last if self._latest is None else pd.concat([self._latest, last])
+            self._latest = both.drop_duplicates("tag", keep="last").reset_index(drop=True)
         for fn in list(self._listeners):
             try:
                 fn(frame)
@@ -356,6 +358,11 @@ class Engine:
         return len(frame)
 
     # -- queries -------------------------------------------------------------------------
+    def latest(self) -> pd.DataFrame:
+        """The latest position row of every tag solved since the start."""
+        with self._latest_lock:
+            return pd.DataFrame() if self._latest is None else self._latest.copy()
+
     def positions(self, tag: str | None = None, since: float | None = None,
                   until: float | None = None, limit: int = 100_000) -> pd.DataFrame:
         """Stored positions, filtered, sorted by time then tag (latest ``limit`` rows)."""
