@@ -130,6 +130,7 @@ class ProcWatch:
     def stop(self) -> tuple[float, float]:
         self._stop.set()
         cpu = sum(self.p.cpu_times()[:2]) - self.c0
+        self.cpu_s = cpu
         wall = time.monotonic() - self.t0
         return 100 * cpu / wall, self.peak_rss / 2**20
 
@@ -272,6 +273,7 @@ def bench_http(tmp: Path, args) -> dict:
         cpu, rss = watch.stop()
         p50, p99 = _latency(srv.url)
     res.update({"target_rows_per_s": args.tags * 8 * args.rate_hz, "server_cpu_pct": cpu,
+                "server_cpu_us_per_row": 1e6 * watch.cpu_s / max(res["rows_acked"], 1),
                 "server_peak_rss_mib": rss, "positions": total(m, "robustloc_positions_total"),
                 "epochs_sent": args.tags * n_ticks, "pos_latency_p50_ms": p50,
                 "pos_latency_p99_ms": p99, "late_rows": total(m, "robustloc_rows_late_total")})
@@ -330,6 +332,7 @@ def bench_mqtt(tmp: Path, args) -> dict:
             pub.disconnect()
     return {"rows_sent": sent, "rows_acked": got, "wall_s": wall, "rows_per_s": got / wall,
             "target_rows_per_s": args.tags * 8 * args.rate_hz, "server_cpu_pct": cpu,
+            "server_cpu_us_per_row": 1e6 * watch.cpu_s / max(got, 1),
             "server_peak_rss_mib": rss, "pos_latency_p50_ms": p50, "pos_latency_p99_ms": p99,
             "positions": total(m, "robustloc_positions_total")}
 
@@ -576,12 +579,14 @@ def report(r: dict, args) -> None:
          pair(h, "req_p50_ms", "req_p99_ms")),
         ("  server CPU (% of a core) / peak RSS (MiB)",
          f"{f(h.get('server_cpu_pct'))} / {f(h.get('server_peak_rss_mib'))}"),
+        ("  server CPU per row, incl. solving (us)", f(h.get("server_cpu_us_per_row"), "{:.1f}")),
         ("  positions / epochs sent", f"{f(h.get('positions'))} / {f(h.get('epochs_sent'))}"),
         ("MQTT ingest (rows/s)", f(q.get("rows_per_s"))),
         ("  position latency p50 / p99 (ms)",
          pair(q, "pos_latency_p50_ms", "pos_latency_p99_ms")),
         ("  server CPU (%) / peak RSS (MiB)",
          f"{f(q.get('server_cpu_pct'))} / {f(q.get('server_peak_rss_mib'))}"),
+        ("  server CPU per row, incl. solving (us)", f(q.get("server_cpu_us_per_row"), "{:.1f}")),
         ("kill -9: acknowledged rows lost (target 0)",
          f"{f(k.get('acked_rows_lost'))} of {f(k.get('rows_acked_before_kill'))}"),
         ("  epochs solved after restart / stored",

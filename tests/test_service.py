@@ -418,3 +418,36 @@ def test_track_without_tracker_is_a_clear_error(ble, monkeypatch):
 
     with pytest.raises(RuntimeError, match="--track needs robustloc.track"):
         TrackProcessor(read_anchors(ble / "anchors.csv"))
+
+
+def test_track_mode_replay_equals_batch_track(ble, server_factory, tmp_path):
+    """``serve --track`` gives the tracker's rows for the replayed log, to 1e-9 m.
+
+    The batch reference feeds the whole file to the same Tracker in one ``step`` (every
+    tag's epochs in time order); the service feeds blocks as epochs become ready.  The
+    tracker's per-tag recursion makes both identical.
+    """
+    track = pytest.importorskip("robustloc.track")
+    from robustloc.commands.replay import replay
+
+    Tracker = track.Tracker
+
+    anchors = read_anchors(ble / "anchors.csv")
+    ep = to_epochs(read_measurements(ble / "measurements.csv"), anchors["anchor"])
+    want = Tracker(anchors).step(ep)
+    srv = server_factory(["--anchors", str(ble / "anchors.csv"), "--track",
+                          "--store", str(tmp_path / "store"), "--idle-flush", "0.3"])
+    res = replay(str(ble / "measurements.csv"), srv.url, speed=0)
+    assert res["accepted"] == res["rows"]
+    def got():
+        d = pd.DataFrame(httpx.get(srv.url + "/api/positions").json())
+        return d if len(d) == len(want) else None
+
+    g = wait_for(got, what="every epoch solved")
+    key = ["tag", "time"]
+    g = g.sort_values(key).reset_index(drop=True)
+    w = want.assign(tag=want["tag"].astype(str)).sort_values(key).reset_index(drop=True)
+    assert (g["status"] == w["status"]).all()
+    for c in ("x", "y"):
+        np.testing.assert_allclose(g[c].astype(float), w[c], rtol=0, atol=1e-9, equal_nan=True)
+    assert {"hpl", "var_x", "cov_xy"} <= set(g.columns)
