@@ -123,11 +123,12 @@ class EpochAssembler:
             self._chunks = [tuple(np.concatenate(x) for x in zip(*self._chunks))]
         return self._chunks[0]
 
-    def take_ready(self, wall: float, *, flush_all: bool = False) -> pd.DataFrame | None:
-        """Remove and return the rows of the ready epochs (``time, tag, anchor_col, value``).
+    def take_ready(self, wall: float, *, flush_all: bool = False) -> dict | None:
+        """Remove and return the rows of the ready epochs, as columns.
 
         Ready: ``time < newest(tag) - window``, or the tag idle for ``idle_flush_s`` of wall
-        time at ``wall``, or ``flush_all``.  ``None`` when nothing is ready.
+        time at ``wall``, or ``flush_all``.  Returns ``{"time", "tag", "anchor_col",
+        "value"}`` arrays (``tag`` as str objects), or ``None`` when nothing is ready.
         """
         p = self._pending()
         if p is None:
@@ -144,16 +145,16 @@ class EpochAssembler:
         self._chunks = [(t[rest], c[rest], a[rest], v[rest])] if rest.any() else []
         self._n_pending = int(rest.sum())
         names = np.array(self._names, dtype=object)
-        return pd.DataFrame(
-            {"time": t[ready], "tag": names[c[ready]], "anchor_col": a[ready],
-             "value": v[ready]}
-        )
+        return {"time": t[ready], "tag": names[c[ready]], "anchor_col": a[ready],
+                "value": v[ready]}
 
-    def epochs(self, rows: pd.DataFrame, value: str) -> Epochs:
+    def epochs(self, rows: dict, value: str) -> Epochs:
         """Pivot ready rows with :func:`robustloc.io.tables.to_epochs` (the batch path)."""
         ids = np.array(self.anchor_ids, dtype=object)
-        frame = pd.DataFrame(
-            {"time": rows["time"].to_numpy(), "tag": rows["tag"].to_numpy(),
-             "anchor": ids[rows["anchor_col"].to_numpy()], value: rows["value"].to_numpy()}
-        )
+        frame = pd.DataFrame({  # object columns: no string-dtype inference on the hot path
+            "time": rows["time"],
+            "tag": pd.Series(rows["tag"], dtype=object, copy=False),
+            "anchor": pd.Series(ids[rows["anchor_col"]], dtype=object, copy=False),
+            value: rows["value"],
+        })
         return to_epochs(frame, self.anchor_ids, value)

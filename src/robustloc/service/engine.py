@@ -140,9 +140,9 @@ class Engine:
         self._ingest_lock = threading.Lock()
         self._solve_lock = threading.Lock()
         self._cv = threading.Condition()
-        self._queue: list[tuple[pd.DataFrame, float]] = []
+        self._queue: list[tuple[dict, float]] = []
         self._listeners: list[Callable[[pd.DataFrame], None]] = []
-        self._latest: pd.DataFrame | None = None
+        self._latest_frames: list[pd.DataFrame] = []
         self._latest_lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -336,20 +336,28 @@ class Engine:
         """Solve every pending epoch now (tests and benchmarks; not needed in service)."""
         return self.step(flush_all=True)
 
-    def _solve(self, blocks: list[tuple[pd.DataFrame, float]]) -> int:
-        rows = pd.concat([b.assign(ready_wall=w) for b, w in blocks], ignore_index=True)
+    def _solve(self, blocks: list[tuple[dict, float]]) -> int:
+        rows = {k: np.concatenate([b[k] for b, _ in blocks]) for k in blocks[0][0]}
         epochs = self.assembler.epochs(rows, self.kind)
-        ready_wall = rows.groupby(["time", "tag"], sort=True)["ready_wall"].min().to_numpy()
+        if len(blocks) == 1:
+            ready_wall = np.full(epochs.n_epochs, blocks[0][1])
+        else:  # each epoch lies in exactly one block
+            when = {}
+            for b, w in blocks:
+                when.update(dict.fromkeys(zip(b["time"].tolist(), b["tag"].tolist()), w))
+            ready_wall = np.fromiter(
+                map(when.__getitem__, zip(epochs.time.tolist(), epochs.tag.tolist())),
+                float, epochs.n_epochs)
         frame = self.processor.process(epochs)
         if len(frame):
             self.pos.append(pa.Table.from_pandas(frame, preserve_index=False))
         done = time.time()
         status = frame["status"].to_numpy() if "status" in frame else np.array(["ok"] * len(frame))
         self.metrics.solved(status, done - ready_wall)
-        last = frame.drop_duplicates("tag", keep="last")
         with self._latest_lock:
-            both = last if self._latest is None else pd.concat([self._latest, last])
-            self._latest = both.drop_duplicates("tag", keep="last").reset_index(drop=True)
+            self._latest_frames.append(frame)
+            if len(self._latest_frames) > 64:
+                self._compact_latest()
         for fn in list(self._listeners):
             try:
                 fn(frame)
@@ -357,11 +365,18 @@ class Engine:
                 self.solver_errors += 1
         return len(frame)
 
+    def _compact_latest(self) -> None:
+        """Reduce the recent frames to the latest row per tag (caller holds the lock)."""
+        if self._latest_frames:
+            both = pd.concat(self._latest_frames, ignore_index=True)
+            self._latest_frames = [both.drop_duplicates("tag", keep="last")]
+
     # -- queries -------------------------------------------------------------------------
     def latest(self) -> pd.DataFrame:
         """The latest position row of every tag solved since the start."""
         with self._latest_lock:
-            return pd.DataFrame() if self._latest is None else self._latest.copy()
+            self._compact_latest()
+            return self._latest_frames[0].copy() if self._latest_frames else pd.DataFrame()
 
     def positions(self, tag: str | None = None, since: float | None = None,
                   until: float | None = None, limit: int = 100_000) -> pd.DataFrame:
