@@ -187,7 +187,7 @@ def bench_store(tmp: Path, batches: int) -> list[dict]:
     else:
         con = duckdb.connect(str(tmp / "d.duckdb"))
         con.execute("CREATE TABLE m (time DOUBLE, tag VARCHAR, anchor VARCHAR, value DOUBLE)")
-        pa.table(cols)
+        con.register("tab", pa.table(cols))
         t = time.perf_counter()
         for _ in range(batches):
             con.execute("INSERT INTO m SELECT * FROM tab")  # autocommit: WAL synced
