@@ -451,3 +451,24 @@ def test_track_mode_replay_equals_batch_track(ble, server_factory, tmp_path):
     for c in ("x", "y"):
         np.testing.assert_allclose(g[c].astype(float), w[c], rtol=0, atol=1e-9, equal_nan=True)
     assert {"hpl", "var_x", "cov_xy"} <= set(g.columns)
+
+
+def test_serve_cli_errors(ble, tmp_path, capsys):
+    """A user's mistake is `error: ...` on stderr and exit code 2, never a traceback."""
+    from robustloc.cli import main
+
+    a = str(ble / "anchors.csv")
+    assert main(["serve", "--anchors", str(tmp_path / "missing.csv")]) == 2
+    assert "missing.csv" in capsys.readouterr().err
+    assert main(["serve", "--anchors", a, "--floorplan", a]) == 2
+    assert "--floorplan-extent" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        main(["serve", "--anchors", a, "--floorplan-extent", "1,2,3"])
+    assert e.value.code == 2
+    with pytest.raises(SystemExit):
+        main(["serve", "--anchors", a, "--latency-window", "nan"])
+    from robustloc.service.launch import free_port
+
+    nobody = f"http://127.0.0.1:{free_port()}"  # nothing listens there
+    assert main(["replay", str(ble / "measurements.csv"), "--url", nobody]) == 2
+    assert "error:" in capsys.readouterr().err

@@ -175,7 +175,11 @@ def run(args: argparse.Namespace) -> int:
         print("error: robustloc serve needs the [serve] extra: pip install 'robustloc[serve]'",
               file=sys.stderr)
         return 2
-    engine, cfg, app = build(args)
+    try:
+        engine, cfg, app = build(args)
+    except RuntimeError as exc:  # --track without robustloc.track
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     if args.store is None:
         print("warning: no --store: rows and positions are kept in memory only and are lost "
               "when the service stops", file=sys.stderr)

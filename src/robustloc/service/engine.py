@@ -156,7 +156,11 @@ class Engine:
         else:
             self.store_dir.mkdir(parents=True, exist_ok=True)
             self.meas = SegmentLog(self.store_dir / "measurements", seal_rows, fsync)
-            self.pos = SegmentLog(self.store_dir / "positions", seal_rows, fsync)
+            # positions are not synced per block: they are recomputable from the synced
+            # measurements, and a restart re-solves every epoch after the last stored
+            # position of its tag, so a position lost in a crash comes back (the sync
+            # would sit in the latency path of every published position)
+            self.pos = SegmentLog(self.store_dir / "positions", seal_rows, fsync=False)
             self._recover()
 
     # -- persistence ---------------------------------------------------------------------

@@ -10,6 +10,9 @@ segments**.
 * When the active log holds ``seal_rows`` rows it is closed and a new one started; a
   background thread writes the closed log's rows as a Parquet segment (``.tmp``, fsync,
   atomic rename, directory fsync) and only then deletes the log file.
+* The positions log is written the same way without the per-append sync (positions are
+  recomputed from the measurements after a crash; see :mod:`robustloc.service.engine`).
+  Its sealed Parquet segments are synced like the measurements'.
 * On open, Parquet segments are read as they are, and every log file without a segment is
   replayed frame by frame; a torn or corrupt tail (a crash mid-write) ends the replay and is
   truncated (those rows were never acknowledged: the sync had not returned).
