@@ -268,11 +268,14 @@ def test_websockets(tokened):
 
 
 def test_rate_limit(ble, server_factory, tmp_path):
-    srv = server_factory(["--anchors", str(ble / "anchors.csv"), "--rate-limit", "10"])
+    """1 row/s: a 15-row body passes once (burst), then the client owes 13 s."""
+    srv = server_factory(["--anchors", str(ble / "anchors.csv"), "--rate-limit", "1"])
     rows = [{"time": float(i), "tag": "R", "anchor": "1", "rssi": -60.0} for i in range(15)]
     assert httpx.post(srv.url + "/api/measurements", json=rows).status_code == 202
     r = httpx.post(srv.url + "/api/measurements", json=rows)
-    assert r.status_code == 429 and int(r.headers["retry-after"]) >= 1
+    assert r.status_code == 429 and 5 <= int(r.headers["retry-after"]) <= 14
+    assert metric(srv.url, 'robustloc_requests_rejected_total{reason="rate_limited"}') == 1
+    assert metric(srv.url, "robustloc_rows_accepted_total") == 15
 
 
 # --------------------------------------------------------------------------------------

@@ -75,7 +75,12 @@ class _Bucket:
 
 
 class RateLimiter:
-    """Token bucket per client address: ``rate`` rows/s, bursts up to ``2 * rate`` rows."""
+    """Token bucket per client address: ``rate`` rows/s on average, bursts of ``2 * rate``.
+
+    A body is admitted while the client's bucket is not in debt, and its rows are then
+    taken (the bucket may go negative), so a body larger than the burst still passes once
+    and the client then waits until the debt is repaid at ``rate`` rows/s.
+    """
 
     def __init__(self, rate: float) -> None:
         self.rate = rate
@@ -83,7 +88,7 @@ class RateLimiter:
         self.lock = threading.Lock()
 
     def take(self, client: str, n: int) -> float:
-        """0 when ``n`` rows may pass, else the seconds to wait."""
+        """0 when ``n`` rows may pass (and they are taken), else the seconds to wait."""
         if not math.isfinite(self.rate):
             return 0.0
         cap = 2 * self.rate
@@ -95,10 +100,10 @@ class RateLimiter:
         now = time.monotonic()
         b.tokens = min(cap, b.tokens + (now - b.t) * self.rate)
         b.t = now
-        if n <= b.tokens:
-            b.tokens -= n
-            return 0.0
-        return (n - b.tokens) / self.rate
+        if b.tokens <= 0:
+            return max(-b.tokens / self.rate, 1e-3)
+        b.tokens -= n
+        return 0.0
 
 
 class Hub:
