@@ -70,7 +70,8 @@ def test_range_calibration_applied(tmp_path):
         ("time,tag,anchor,range\n0,t,a,nan\n", ":2:"),
         ("time,tag,anchor\n0,t,a\n", "rssi"),
         ("time,tag,anchor,range\n0,t,a,abc\n", ":2:"),
-        ("time,tag,anchor,range\n1,t,a,1\n0,t,b,1\n", "sorted"),
+        ("time,tag,anchor,range,range\n0,t,a,1,1\n", "duplicate column 'range'"),
+        ("time,tag,anchor,range\n0,t,a,1\n0,t\n", ":3: column 'anchor': empty id"),
     ],
 )
 def test_locate_bad_input_exit_2(tmp_path, capsys, meas, message):
@@ -89,17 +90,26 @@ def test_locate_cli_settings_errors(tmp_path, capsys, corridor):
             str(corridor / "cal.csv"), "-o", str(tmp_path / "p.csv")]
     # snooping needs sigma: the calibrated anchors carry a per-anchor `sigma` column...
     assert main(base + ["--method", "snooping"]) == 0
-    # ...anchors without it need --sigma
+    # ...anchors without it take the log's per-anchor scale (the default --robust-scale)...
     nosig = pd.read_csv(corridor / "cal.csv").drop(columns=["sigma"])
     nosig.to_csv(tmp_path / "nosig.csv", index=False)
     assert main(["locate", str(corridor / "measurements.csv"), "--anchors",
                  str(tmp_path / "nosig.csv"), "-o", str(tmp_path / "s.csv"),
-                 "--method", "snooping"]) == 2
-    assert "--sigma" in capsys.readouterr().err
+                 "--method", "snooping"]) == 0
+    capsys.readouterr()
+    # ...and with the per-epoch scale they need --sigma
+    assert main(["locate", str(corridor / "measurements.csv"), "--anchors",
+                 str(tmp_path / "nosig.csv"), "-o", str(tmp_path / "s2.csv"),
+                 "--method", "snooping", "--robust-scale", "mad"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: invalid settings:") and "--sigma" in err
     assert main(base + ["--method", "nope"]) == 2
+    assert "argument --method: unknown method 'nope'" in capsys.readouterr().err
     assert main(base + ["--method", "huber", "--param", "c"]) == 2
+    assert "error: --param expects NAME=NUMBER" in capsys.readouterr().err
     assert main(base[:-2] + ["-o", str(tmp_path / "p.csv"), "--anchors",
                              str(tmp_path / "missing.csv")]) == 2
+    assert capsys.readouterr().err == f"error: {tmp_path / 'missing.csv'}: file not found\n"
     # RSSI with anchors lacking path-loss parameters
     assert main(["locate", str(corridor / "measurements.csv"), "--anchors",
                  str(corridor / "anchors.csv"), "--method", "ls",
@@ -108,4 +118,5 @@ def test_locate_cli_settings_errors(tmp_path, capsys, corridor):
     raw.to_csv(tmp_path / "bare.csv", index=False)
     assert main(["locate", str(corridor / "measurements.csv"), "--anchors",
                  str(tmp_path / "bare.csv"), "--method", "ls", "-o", str(tmp_path / "r.csv")]) == 2
-    assert "calibrate" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {tmp_path / 'bare.csv'}") and "calibrate" in err

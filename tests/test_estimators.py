@@ -112,8 +112,18 @@ def test_huber_huge_threshold_equals_least_squares():
     x = rng.uniform(2, 18, (50, 2))
     d = ranges_to(a, x) + rng.normal(0, 0.5, (50, 8))
     s_nls = Locator("nls", tol=1e-9, rel_tol=0).solve(a, d)
-    s_hub = Locator("huber", weight_params={"c": 1e9}, tol=1e-9, rel_tol=0).solve(a, d)
+    s_hub = Locator("huber", weight_params={"c": 1e9}, tol=1e-9, rel_tol=0,
+                    robust_scale="mad").solve(a, d)
     np.testing.assert_allclose(s_hub.position, s_nls.position, atol=1e-4)
+    # with the log's per-anchor scale (the default) the robust fit is weighted by it:
+    # an infinite threshold gives least squares with those same weights
+    s_log = Locator("huber", weight_params={"c": 1e9}, tol=1e-9, rel_tol=0).solve(a, d)
+    sig = tuple(s_log.extra["log_scale"])
+    s_wls = Locator("nls", sigma=sig, tol=1e-9, rel_tol=0).solve(a, d)
+    # the two start from different points (robust subset start vs LS start) and stop when
+    # the cost falls by less than 1e-6 of itself: the fixes then agree to sqrt(1e-6) of
+    # their standard error (0.5 m noise, 8 anchors: ~0.25 m), i.e. to ~2.5e-4 m
+    np.testing.assert_allclose(s_log.position, s_wls.position, atol=1e-3)
 
 
 def test_robust_ignores_k_outliers_where_ls_does_not():

@@ -67,7 +67,9 @@ def test_error_table_per_tag_aggregates_and_improvement():
 
 def test_failed_status_counts_even_with_coordinates():
     truth, pos, bad = _frames()
-    t = error_table(pd.concat([pos, bad]), truth).set_index(["tag", "method"])
+    # the ill-conditioned row replaces igg's row of the same epoch (a duplicate is refused)
+    keep = ~((pos["method"] == "igg") & (pos["time"] == 0.0) & (pos["tag"] == "A"))
+    t = error_table(pd.concat([pos[keep], bad]), truth).set_index(["tag", "method"])
     assert t.loc[("A", "igg"), "n_failed"] == 1
     assert t.loc[("A", "igg"), "max"] == 2.0  # the 9 m ill-conditioned fix is not scored
 
@@ -97,3 +99,27 @@ def test_duplicate_truth_is_an_error():
     with pytest.raises(InputError, match="duplicate truth") as ei:
         error_table(truth.assign(method="ls"), truth)
     assert ei.value.line == 3
+
+
+def test_missing_truth_epochs_count_as_failed():
+    """Issue 15: truth epochs without a position are failed, in n and in failed_pct."""
+    truth, pos, _ = _frames()
+    drop = (pos["method"] == "igg") & (pos["tag"] == "B") & (pos["time"] > 0)
+    t = error_table(pos[~drop], truth).set_index(["tag", "method"])
+    b = t.loc[("B", "igg")]
+    assert b["n"] == 3 and b["n_missing"] == 2 and b["n_failed"] == 2 and b["n_ok"] == 1
+    np.testing.assert_allclose(b["failed_pct"], 100 * 2 / 3)
+    assert t.loc[("all", "igg"), "n_missing"] == 2 and t.loc[("all", "igg"), "n"] == 6
+    assert t.loc[("B", "ls"), "n_missing"] == 0
+    np.testing.assert_allclose(b["mean"], 1.0)  # the one matched epoch: error 1 m
+
+
+def test_duplicate_positions_rejected_with_line():
+    truth, pos, _ = _frames()
+    twice = pd.concat([pos, pos.iloc[[4]]], ignore_index=True)
+    twice.index = pd.RangeIndex(2, 2 + len(twice), name="line")
+    twice.attrs["path"] = "p.csv"
+    with pytest.raises(InputError, match=r"duplicate position for time 1.0, tag 'B' and "
+                                         r"method 'ls'") as ei:
+        error_table(twice, truth)
+    assert ei.value.path == "p.csv" and ei.value.line == 2 + len(pos)

@@ -6,8 +6,19 @@ Each subcommand lives in its own module under :mod:`robustloc.commands` and expo
 * ``add_arguments(parser)`` and ``run(args) -> int``.
 
 Modules are discovered automatically, so adding a command touches no shared file.
-User errors (:class:`~robustloc.errors.InputError`, ``ValueError``, missing files) print
-``error: ...`` on stderr and exit with code 2, never a traceback.
+One error path:
+
+* a user's mistake (:class:`~robustloc.errors.InputError`, including
+  :class:`~robustloc.errors.OutputError`, or an :class:`OSError` about a path the user gave:
+  missing file, permission, no space, read-only file system, a parent that is a file) prints
+  ``error: FILE[:LINE]: what`` on stderr and exits with code 2, never a traceback;
+* Ctrl-C prints ``error: interrupted`` and exits with 130, SIGTERM ``error: terminated``
+  and 143 (128 + signal number); in both cases ``finally`` blocks run, so no partial
+  output is left at a final path;
+* any other exception is a bug in robustloc, not the user's fault: it prints
+  ``internal error`` with the traceback and exits with code 1 (never 2, so that a bug
+  does not pass for a user error);
+* output piped into ``head`` and closed early is not an error (exit 0).
 """
 
 from __future__ import annotations
@@ -20,7 +31,11 @@ import warnings
 from collections.abc import Sequence
 
 from robustloc import __version__
-from robustloc.errors import InputError
+from robustloc.errors import InputError, Terminated
+
+#: Exit codes: 2 user error, 130 interrupted (128 + SIGINT), 143 terminated (128 + SIGTERM),
+#: 1 internal error (a bug).
+EXIT_USER, EXIT_INTERNAL, EXIT_SIGINT, EXIT_SIGTERM = 2, 1, 130, 143
 
 
 def _command_modules(only: str | None = None) -> list:
@@ -66,38 +81,84 @@ def error(message: str) -> int:
     return 2
 
 
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated()
+
+
+def _install_sigterm() -> object:
+    """SIGTERM raises :class:`Terminated` (main thread only); returns the old handler."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, _raise_terminated)
+
+
+def _restore_sigterm(old: object) -> None:
+    import signal
+
+    if old is not None:
+        signal.signal(signal.SIGTERM, old)
+
+
+def _oserror_path(exc: OSError) -> str | None:
+    name = exc.filename if exc.filename is not None else exc.filename2
+    return None if name is None else str(name)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the process exit code."""
+    import os
+
+    from robustloc.io.atomic import describe_oserror
+
     warnings.filterwarnings("ignore", category=FutureWarning)
     warnings.filterwarnings("ignore", category=DeprecationWarning)
     argv = list(sys.argv[1:] if argv is None else argv)
     first = next((a for a in argv if not a.startswith("-")), None)
     parser = build_parser(first)
-    args = parser.parse_args(argv)
+    try:  # argparse's own errors (unknown option, a refused value) exit with code 2
+        args = parser.parse_args(argv)
+    except SystemExit as exc:
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2
+    old = _install_sigterm()
     try:
         return int(args._run(args) or 0)
     except InputError as exc:
         return error(str(exc))
-    except FileNotFoundError as exc:
-        name = exc.filename if exc.filename is not None else str(exc)
-        return error(f"{name}: file not found")
-    except IsADirectoryError as exc:
-        return error(f"{exc.filename}: is a directory, expected a file")
-    except PermissionError as exc:
-        return error(f"{exc.filename}: permission denied")
-    except ValueError as exc:
-        return error(str(exc))
     except KeyboardInterrupt:
-        return error("interrupted")
+        print("error: interrupted", file=sys.stderr)
+        return EXIT_SIGINT
+    except Terminated:
+        print("error: terminated", file=sys.stderr)
+        return EXIT_SIGTERM
     except BrokenPipeError:  # output piped into `head` and closed: not an error
-        import os
-
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 0
+    except OSError as exc:
+        name = _oserror_path(exc)
+        if name is None:  # an OS error about no path the user gave: a bug
+            return _internal_error()
+        return error(f"{name}: {describe_oserror(exc)}")
+    except Exception:  # noqa: BLE001 - anything else is a bug, shown as one
+        return _internal_error()
+    finally:
+        _restore_sigterm(old)
+
+
+def _internal_error() -> int:
+    """Print ``internal error`` and the traceback (a bug in robustloc); exit code 1."""
+    import traceback
+
+    print("internal error (a bug in robustloc, please report it with this traceback):",
+          file=sys.stderr)
+    traceback.print_exc(file=sys.stderr)
+    return EXIT_INTERNAL
 
 
 if __name__ == "__main__":  # pragma: no cover

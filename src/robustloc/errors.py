@@ -36,3 +36,31 @@ class InputError(ValueError):
         if self.path is not None:
             where = self.path + (f":{self.line}" if self.line is not None else "") + ": "
         return where + self.message
+
+
+class OutputError(InputError):
+    """An output that cannot be written (no space, read-only, a parent that is a file, ...).
+
+    Raised instead of a bare :class:`OSError` by the output writers, naming the final path
+    the user gave; the command line prints ``error: PATH: what`` and exits with code 2.
+
+    Parameters
+    ----------
+    message : str
+        What went wrong, in words (``no space left on device``).
+    path : str or PathLike, optional
+        The output path as the user gave it.
+    errno_ : int, optional
+        The :mod:`errno` code of the underlying OS error, if any.
+    """
+
+    def __init__(
+        self, message: str, path: str | PathLike[str] | None = None, *, errno_: int | None = None
+    ) -> None:
+        self.errno = errno_
+        super().__init__(message, path)
+
+
+class Terminated(BaseException):  # noqa: N818 - named after the signal, like KeyboardInterrupt
+    """Raised by the command line's SIGTERM handler, so that ``finally`` blocks run and no
+    partial output is left (exit code 143 = 128 + SIGTERM)."""

@@ -19,10 +19,27 @@ INVALID = "invalid_measurement"
 #: A filter's state propagated to this epoch without a measurement update (coasting).
 PREDICTED = "predicted"
 
+#: Redundancy 1 (a robust method fell back to the plain fit): the global test passed, so a
+#: fault of the size of the minimal detectable bias would have been detected, but none could
+#: be identified.  Usable; ``hpl`` is valid.
+LOW_REDUNDANCY = "low_redundancy"
+#: Redundancy 0: the fix fits its observations exactly and nothing can be tested.  Usable,
+#: with an infinite protection level.
+UNVERIFIED = "unverified"
+#: The fix's own test failed (a fault is detected) and no observation could be excluded
+#: to make it pass.  The position is kept and usable, with a protection level widened by the
+#: a-posteriori variance factor (infinite when nothing is left to confirm it): trust it only
+#: as far as ``hpl`` says, or set an alert limit.
+FAULT_DETECTED = "fault_detected"
+#: Usable by its own test, but its protection level exceeds the user's alert limit
+#: (``--alert-limit``): not to be used for the operation that limit protects.
+PROTECTION_EXCEEDED = "protection_exceeded"
+
 ALL = (
     OK, INSUFFICIENT, ILL_CONDITIONED, NOT_CONVERGED, FAULT_EXCLUDED, UNAVAILABLE, INVALID,
-    PREDICTED,
+    PREDICTED, LOW_REDUNDANCY, UNVERIFIED, FAULT_DETECTED, PROTECTION_EXCEEDED,
 )
 #: Statuses whose position is a usable fix (a coasting filter's prediction included: its
 #: covariance says how far to trust it).
-USABLE = (OK, FAULT_EXCLUDED, NOT_CONVERGED, PREDICTED)
+USABLE = (OK, FAULT_EXCLUDED, NOT_CONVERGED, PREDICTED, LOW_REDUNDANCY, UNVERIFIED,
+          FAULT_DETECTED)

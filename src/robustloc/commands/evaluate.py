@@ -13,66 +13,82 @@ DESCRIPTION = """\
 Matches each position to the truth of its tag at the same time (--time-tolerance) and
 reports, per tag and method, over the epochs with a usable fix: max, min, mean, RMS (the
 paper's sigma0), spread sigma1, median and 95th percentile of the horizontal error (and
-the 3-D error when both files have z), the number of failed epochs (status not usable or
-no coordinates), and the improvement of mean and RMS over the `ls` method in %.
+the 3-D error when both files have z), the number of failed epochs (status not usable, no
+coordinates, or missing: a truth epoch without a positions row of the method), and the
+improvement of mean and RMS over the `ls` method in %. Two positions rows with the same
+time, tag and method are an error. `-o -` writes the table as CSV to standard output (the
+text report then goes to stderr).
 Aggregates: tag "all" pools every epoch, tag "mean" averages the per-tag statistics (the
 paper's Table 1 average rows).
 
   robustloc evaluate positions.csv --truth truth.csv
   robustloc evaluate positions.csv --truth truth.csv --json -o errors.csv"""
 
-_SHOW = ("tag", "method", "n", "n_failed", "max", "min", "mean", "rms", "sigma1", "median",
-         "p95", "mean_impr_pct", "rms_impr_pct")
+_SHOW = ("tag", "method", "n", "n_missing", "n_failed", "max", "min", "mean", "rms", "sigma1",
+         "median", "p95", "mean_impr_pct", "rms_impr_pct")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from robustloc.commands._argtypes import nonnegative_float
+
     p.add_argument("positions", help="positions file (time, tag, x, y[, z], method, status, ...)")
     p.add_argument("--truth", required=True, help="truth file (time, tag, x, y[, z])")
-    p.add_argument("-o", "--out", help="write the full statistics table (CSV or Parquet)")
+    p.add_argument("-o", "--out",
+                   help="write the full statistics table (CSV or Parquet; - for CSV on stdout)")
     p.add_argument("--json", action="store_true", help="print the table as JSON records")
     p.add_argument(
-        "--time-tolerance", type=float, default=1e-6, metavar="S",
+        "--time-tolerance", type=nonnegative_float, default=1e-6, metavar="S",
         help="largest |time difference| between a position and its truth (default 1e-6 s)",
     )
     p.add_argument("--baseline", default="ls", help="method improvements refer to (default ls)")
 
 
 def run(args: argparse.Namespace) -> int:
+    import sys
+
     from robustloc.eval.metrics import error_table
     from robustloc.io import read_positions, read_truth, write_table
+    from robustloc.io.atomic import check_not_input, writes_to_stdout
 
+    check_not_input(args.out, [args.positions, args.truth])
     pos = read_positions(args.positions)
     truth = read_truth(args.truth)
     table = error_table(pos, truth, time_tolerance_s=args.time_tolerance, baseline=args.baseline)
     if args.out:
         write_table(table, args.out)
+    # the report never goes into a data stream: stderr when the table goes to stdout
+    dest = sys.stderr if writes_to_stdout(args.out) else sys.stdout
     n_unmatched = table.attrs.get("n_unmatched", 0)
     if args.json:
         recs = table.replace({np.nan: None}).to_dict(orient="records")
         for r in recs:  # counts as integers (the "mean" rows may average to a fraction)
-            for c in ("n", "n_failed", "n_ok"):
+            for c in ("n", "n_missing", "n_failed", "n_ok"):
                 v = r.get(c)
                 if v is not None and float(v).is_integer():
                     r[c] = int(v)
-        print(json.dumps({"n_unmatched": n_unmatched, "rows": recs}, indent=2))
+        print(json.dumps({"n_unmatched": n_unmatched, "rows": recs}, indent=2), file=dest)
         return 0
     show = table[[c for c in _SHOW if c in table.columns]].copy()
-    for c in ("n", "n_failed"):
+    for c in ("n", "n_missing", "n_failed"):
         show[c] = show[c].map(lambda v: f"{v:.3g}")
-    for c in show.columns[4:]:
+    for c in show.columns[5:]:
         show[c] = show[c].map(lambda v: "" if not np.isfinite(v) else f"{v:.2f}")
     show = show.rename(columns={"mean_impr_pct": "mean_vs_ls_%", "rms_impr_pct": "rms_vs_ls_%"})
-    print("horizontal error (m)")
-    print(show.to_string(index=False))
+    print("horizontal error (m)", file=dest)
+    print(show.to_string(index=False), file=dest)
     if "rms_3d" in table.columns:
         cols = ["tag", "method", "mean_3d", "rms_3d", "p95_3d", "max_3d"]
         t3 = table[cols].copy()
         for c in cols[2:]:
             t3[c] = t3[c].map(lambda v: "" if not np.isfinite(v) else f"{v:.2f}")
-        print("\n3-D error (m)")
-        print(t3.to_string(index=False))
+        print("\n3-D error (m)", file=dest)
+        print(t3.to_string(index=False), file=dest)
+    n_missing = int(table.loc[table["tag"] == "all", "n_missing"].sum())
+    if n_missing:
+        print(f"note: {n_missing} truth epochs (summed over methods) had no position and "
+              "count as failed", file=dest)
     if n_unmatched:
-        print(f"note: {n_unmatched} position rows had no truth and were not scored")
+        print(f"note: {n_unmatched} position rows had no truth and were not scored", file=dest)
     if args.out:
-        print(f"written: {args.out}")
+        print(f"written: {args.out}", file=dest)
     return 0

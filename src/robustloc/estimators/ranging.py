@@ -28,6 +28,7 @@ Methods
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field, replace
 from itertools import combinations
 
@@ -39,12 +40,15 @@ from robustloc.estimators.linear import LinearFit, irls, lege, solve_wls
 from robustloc.estimators.nonlinear import gauss_newton
 from robustloc.estimators.solution import Solution
 from robustloc.models.ranging import LN10, RangeModel, RssiModel
-from robustloc.robust.scale import mad_scale
+from robustloc.robust.scale import MAD_NORMAL, mad_scale
 from robustloc.robust.weights import Huber, get_weight
 
 Array = NDArray[np.float64]
 
 METHODS = ("ls", "wls", "nls", "huber", "hampel", "igg", "igg3", "lege", "snooping")
+#: The method ``robustloc locate`` uses when none is named (chosen by measurement on the
+#: shared real data and the seed-000 simulation: the report's "out of the box" section).
+DEFAULT_METHOD = "auto"
 ROBUST = ("huber", "hampel", "igg", "igg3")
 
 
@@ -66,10 +70,15 @@ def _collinear(a: Array, heard: NDArray[np.bool_], rel: float = 1e-3) -> NDArray
     return lmin <= (rel**2) * np.maximum(lmax, 1e-300)
 
 
-def _area(a: Array) -> tuple[Array, float]:
+def _area(a: Array, heard: NDArray[np.bool_] | None = None) -> tuple[Array, float]:
     """The anchors' area: a disc (ball) around their centroid, 1.25 times the farthest
     anchor's distance (at least 1 m).  Rotation- and translation-invariant, unlike a
-    bounding box, so the solvers' results move rigidly with the anchors."""
+    bounding box, so the solvers' results move rigidly with the anchors.
+
+    ``heard`` (m,) restricts it to the anchors heard in the batch: an anchor nobody hears
+    (wherever the anchors file puts it) must change no fix."""
+    if heard is not None and np.any(heard):
+        a = a[heard]
     centre = a.mean(axis=0)
     return centre, 1.25 * max(float(np.max(np.linalg.norm(a - centre, axis=1))), 1.0)
 
@@ -325,9 +334,14 @@ class Locator:
         A-priori standard deviation of one observation (metres for ranges, dB for RSSI),
         e.g. the per-anchor residual std of a calibration.  It sets the relative weights
         of the anchors; None: equal weights.  Required by ``snooping``.
-    robust_scale : {"mad", "apriori"}
-        Robust methods: estimate the noise scale of each epoch from its residuals (MAD of
-        the standardized residuals, default) or trust ``sigma`` as the true noise level.
+    robust_scale : {"log", "mad", "apriori"}
+        Robust methods: where the noise scale that standardizes the residuals comes from.
+        ``"log"`` (default): estimated per anchor over the whole batch (the log, or one
+        streaming window of it) by :meth:`log_scale`, a first robust pass, and then held
+        fixed (the MM idea: a scale from many residuals, not from the 3-8 of one epoch);
+        ``"mad"``: per epoch, the MAD of that epoch's standardized residuals (the paper's
+        choice; noisy at redundancy 1-6, where it makes redescending weights throw away
+        good observations); ``"apriori"``: trust ``sigma`` as the true noise level.
     weight_params : dict[str, float]
         Overrides of the weight function's thresholds (e.g. ``{"c": 1.5}`` for Huber).
     min_scale : float
@@ -340,6 +354,10 @@ class Locator:
     reference : {"first", "nearest"}
         Reference anchor of the linearized system (:func:`linearized_system`): the
         paper's first heard anchor, or the one with the shortest range.
+    log_scale_fixed : tuple of float (one per anchor), optional
+        With ``robust_scale="log"``: the per-anchor scale already estimated over the log
+        (e.g. by a first pass over a file too large for one batch, :meth:`log_scale`);
+        None estimates it from the batch being solved.
     engine : {"compiled", "numpy"}
         ``"compiled"``: the robust start and the Gauss-Newton fits of ranges (and of RSSI
         converted to ranges) run per epoch in the numba kernels of
@@ -354,7 +372,7 @@ class Locator:
     solver: str = "nonlinear"
     domain: str = "range"
     sigma: float | tuple[float, ...] | None = None
-    robust_scale: str = "mad"
+    robust_scale: str = "log"
     weight_params: dict[str, float] = field(default_factory=dict)
     min_scale: float = 0.0
     max_iter: int = 100
@@ -364,9 +382,10 @@ class Locator:
     beta0: float = 0.10
     reference: str = "first"
     engine: str = "compiled"
+    log_scale_fixed: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
-        if self.method not in METHODS:
+        if self.method not in METHODS + ("auto",):
             raise ValueError(f"unknown method {self.method!r}; choose one of {', '.join(METHODS)}")
         if self.solver not in ("nonlinear", "linearized"):
             raise ValueError(f"solver must be 'nonlinear' or 'linearized', got {self.solver!r}")
@@ -379,11 +398,12 @@ class Locator:
             object.__setattr__(self, "sigma", float(sg[0]) if sg.size == 1 else tuple(sg))
         if self.reference not in ("first", "nearest"):
             raise ValueError(f"reference must be 'first' or 'nearest', got {self.reference!r}")
-        if self.robust_scale not in ("mad", "apriori"):
-            raise ValueError(f"robust_scale must be 'mad' or 'apriori', got {self.robust_scale!r}")
+        if self.robust_scale not in ("log", "mad", "apriori"):
+            raise ValueError(
+                f"robust_scale must be 'log', 'mad' or 'apriori', got {self.robust_scale!r}")
         if self.robust_scale == "apriori" and self.sigma is None:
             raise ValueError("robust_scale='apriori' needs sigma")
-        if self.method == "snooping" and self.sigma is None:
+        if self.method == "snooping" and self.sigma is None and self.robust_scale != "log":
             raise ValueError("method 'snooping' needs the a-priori standard deviation --sigma")
         if self.method in ROBUST:
             get_weight(self.method, **self.weight_params)  # validate early
@@ -416,6 +436,9 @@ class Locator:
         -------
         Solution
         """
+        if self.method == "auto":
+            raise ValueError("method 'auto' chooses per epoch by the fix's own test: solve "
+                             "it with robustloc.integrity.fixes.locate_protected")
         a = np.asarray(anchors, dtype=float)
         z = np.atleast_2d(np.asarray(values, dtype=float))
         if a.ndim != 2 or a.shape[1] not in (2, 3):
@@ -423,6 +446,9 @@ class Locator:
         if z.shape[1] != a.shape[0]:
             raise ValueError(f"values have {z.shape[1]} columns for {a.shape[0]} anchors")
         z = np.where(np.isfinite(z), z, np.nan)
+        heard_cols = np.any(np.isfinite(z), axis=0)
+        if np.any(heard_cols) and not np.all(heard_cols):
+            return self._solve_heard(a, z, kind, heard_cols, A, n, height_offset)
         if kind == "rssi":
             if A is None or n is None:
                 raise ValueError("RSSI positioning needs path-loss parameters A and n per anchor")
@@ -433,6 +459,26 @@ class Locator:
             ranges = z
         else:
             raise ValueError(f"kind must be 'range' or 'rssi', got {kind!r}")
+        if self.robust_scale == "log":
+            # the log's per-anchor noise scale: the robust pass's a-priori sigma, and the
+            # sigma of every method's integrity statistics (robustloc.integrity.fixes)
+            if self.log_scale_fixed is not None:
+                scale = np.asarray(self.log_scale_fixed, dtype=float)
+                if scale.shape != (a.shape[0],):
+                    raise ValueError(f"log_scale_fixed has {scale.size} values for "
+                                     f"{a.shape[0]} anchors")
+            else:
+                scale = self.log_scale(a, z, kind, A=A, n=n, height_offset=height_offset)
+            base = self._sigma_array((1, a.shape[0]))[0]
+            if self._log_scaled():
+                second = replace(self, sigma=tuple(base * scale), robust_scale="apriori")
+            else:
+                second = replace(self, robust_scale="mad")
+            sol = second.solve(a, z, kind, A=A, n=n, height_offset=height_offset)
+            sol.extra["log_scale"] = scale
+            sol.extra["sigma_obs"] = self._range_sigma(
+                np.broadcast_to(base * scale, z.shape), ranges, rmodel)
+            return sol
         dim = a.shape[1]
         n_heard = np.sum(np.isfinite(z), axis=1)
         fit = self._dispatch(a, z, ranges, rmodel, height_offset)
@@ -449,11 +495,141 @@ class Locator:
         if self.method == "lege" or self.method == "snooping":
             excluded |= fit.extra.get("flagged", np.zeros_like(excluded))
         n_used = np.sum(np.isfinite(z), axis=1) - excluded.sum(axis=1)
+        # what integrity statistics need, in the range domain whatever the fit's domain:
+        # residuals v = f(x) - range and the design d range / d x at the fix
+        rng_model = RangeModel(a, height_offset)
+        xs = np.nan_to_num(x)
+        use = np.isin(status, st.USABLE)[:, None]
+        extra = dict(fit.extra)
+        extra["range_residuals"] = np.where(use, rng_model.predict(xs) - ranges, np.nan)
+        extra["jacobian"] = np.where(use[..., None], rng_model.jacobian(xs), np.nan)
+        extra["anchor_extent"] = _area(a, np.any(np.isfinite(z), axis=0))
+        if self.sigma is not None:
+            extra["sigma_obs"] = self._range_sigma(self._sigma_array(z.shape), ranges, rmodel)
         return Solution(
             position=x, covariance=fit.cov, residuals=fit.v, weights=w, excluded=excluded,
             sigma0=fit.sigma0, iterations=fit.iterations, converged=fit.converged,
-            status=status, n_used=n_used, method=self.method, extra=fit.extra,
+            status=status, n_used=n_used, method=self.method, extra=extra,
         )
+
+    def solve_as(self, method: str, anchors: ArrayLike, values: ArrayLike,
+                 kind: str = "range", **kw: object) -> Solution:
+        """:meth:`solve` with another method and every other setting kept."""
+        return replace(self, method=method).solve(anchors, values, kind, **kw)
+
+    def with_method(self, method: str, log_scale: ArrayLike | None = None) -> Locator:
+        """This locator with another method (and, optionally, a fixed log scale)."""
+        loc = replace(self, method=method)
+        if log_scale is not None:
+            loc = replace(loc, log_scale_fixed=tuple(float(v) for v in np.asarray(log_scale)))
+        return loc
+
+    def _solve_heard(self, a, z, kind, heard, A, n, height_offset) -> Solution:
+        """Solve with only the anchors heard in the batch, then put the per-anchor arrays
+        back in the caller's anchor order (NaN / False for the unheard ones): an anchor
+        nobody hears, wherever the anchors file puts it, changes no fix."""
+        m = a.shape[0]
+        sub = self
+        if self.sigma is not None and np.ndim(self.sigma) == 1 and len(self.sigma) == m:
+            sub = replace(sub, sigma=tuple(np.asarray(self.sigma, dtype=float)[heard]))
+        if self.log_scale_fixed is not None and len(self.log_scale_fixed) == m:
+            sub = replace(sub, log_scale_fixed=tuple(
+                np.asarray(self.log_scale_fixed, dtype=float)[heard]))
+
+        def pick(v: ArrayLike | None) -> Array | None:
+            return None if v is None else np.broadcast_to(np.asarray(v, dtype=float), (m,))[heard]
+
+        sol = sub.solve(a[heard], z[:, heard], kind, A=pick(A), n=pick(n),
+                        height_offset=pick(height_offset))
+        cols = np.flatnonzero(heard)
+
+        def widen(arr: NDArray, fill: object) -> NDArray:
+            out = np.full((arr.shape[0], m) + arr.shape[2:], fill, dtype=arr.dtype)
+            out[:, cols] = arr
+            return out
+
+        extra = {}
+        for k, v in sol.extra.items():
+            if isinstance(v, np.ndarray) and v.ndim >= 2 and v.shape[1] == cols.size:
+                v = widen(v, False if v.dtype == bool else np.nan)
+            elif k == "log_scale":
+                v = widen(v[None, :], np.nan)[0]
+            extra[k] = v
+        return replace(
+            sol, residuals=widen(sol.residuals, np.nan), weights=widen(sol.weights, np.nan),
+            excluded=widen(sol.excluded, False), extra=extra,
+        )
+
+    def _log_scaled(self) -> bool:
+        return self.robust_scale == "log" and (
+            (self.method in ROBUST and self.solver == "nonlinear") or self.method == "snooping")
+
+    def log_scale(
+        self,
+        anchors: ArrayLike,
+        values: ArrayLike,
+        kind: str = "range",
+        *,
+        A: ArrayLike | None = None,
+        n: ArrayLike | None = None,
+        height_offset: ArrayLike | None = None,
+        max_epochs: int = 20_000,
+        min_count: int = 20,
+    ) -> Array:
+        """Per-anchor noise scale over a whole log, in units of ``sigma``.
+
+        A first robust pass (this locator with the per-epoch MAD scale) over at most
+        ``max_epochs`` epochs spread evenly over the log gives standardized residuals
+        ``u_ij = v_ij / (sigma_ij sqrt(r_i))`` with ``r_i = (n_i - p) / n_i`` the epoch's
+        mean redundancy number (a fit absorbs ``p`` of ``n_i`` degrees of freedom, so its
+        residuals are ``sqrt(r_i)`` smaller than the noise); epochs without redundancy
+        carry no information on the scale and are skipped.  Anchor ``j``'s scale is the
+        MAD about zero (seed 000 sec. 2.1) of its ``u_ij`` over all epochs,
+        ``s_j = med_i |u_ij| / 0.6745``: a median over hundreds of residuals instead of
+        three to eight, with a 50 % breakdown point over the log, so an anchor's outliers
+        (fades, NLOS) do not inflate it.  An anchor with fewer than ``min_count``
+        residuals gets the scale pooled over every anchor.  For RSSI fitted as ranges the
+        unit is dB (``sigma_ij = d ln10 sigma_dB / (10 n)``), for ranges metres.
+
+        Returns
+        -------
+        ndarray (m,)
+            Scale factors, positive and finite (1.0 when nothing could be estimated).
+        """
+        a = np.asarray(anchors, dtype=float)
+        z = np.atleast_2d(np.asarray(values, dtype=float))
+        N, m = z.shape
+        rows = np.arange(N)
+        if N > max_epochs:
+            rows = np.unique(np.linspace(0, N - 1, max_epochs).astype(np.int64))
+        if self.method in ROBUST and self.solver == "nonlinear":
+            first = replace(self, robust_scale="mad")
+        else:  # the scale of a non-robust method's log still comes from a robust fit
+            first = Locator("huber", domain=self.domain, sigma=self.sigma, robust_scale="mad",
+                            engine=self.engine, max_iter=self.max_iter, tol=self.tol)
+        sol = first.solve(a, z[rows], kind, A=A, n=n, height_offset=height_offset)
+        zz = z[rows]
+        if kind == "rssi" and self.domain == "range":
+            rm = RssiModel(a, A, n, height_offset)
+            s_db = self._sigma_array(zz.shape)
+            sig = np.maximum(rm.distance(zz), 0.1) * LN10 * s_db / (10.0 * rm.n[None, :])
+        else:
+            sig = self._sigma_array(zz.shape)
+        heard = np.isfinite(zz).sum(axis=1)
+        p = a.shape[1]
+        with np.errstate(all="ignore"):
+            rbar = np.where(heard > p, (heard - p) / heard, np.nan)
+            u = np.abs(sol.residuals) / (sig * np.sqrt(rbar)[:, None])
+        u = np.where(np.isin(sol.status, st.USABLE)[:, None] & np.isfinite(u), u, np.nan)
+        count = np.sum(np.isfinite(u), axis=0)
+        pooled = np.nanmedian(u) / MAD_NORMAL if np.any(count) else np.nan
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            per = np.nanmedian(u, axis=0) / MAD_NORMAL
+        scale = np.where(count >= min_count, per, pooled)
+        floor = max(self.min_scale, 1e-6)
+        scale = np.where(np.isfinite(scale), np.maximum(scale, floor), 1.0)
+        return scale
 
     # ----------------------------------------------------------------- helpers
     def _dispatch(self, a, z, ranges, rmodel, height_offset) -> LinearFit:
@@ -470,8 +646,16 @@ class Locator:
             return self._gn(model, obs, x0, sig, None)
         if meth in ROBUST:
             wf = get_weight(meth, **self.weight_params)
-            fit = self._gn(model, obs, x0, sig, wf)
-            return self._rescue(model, obs, sig, wf, fit, a)
+            fit = self._rescue(model, obs, sig, wf, self._gn(model, obs, x0, sig, wf), a)
+            # redundancy 0 or 1: robust weights have nothing to compare a residual with;
+            # the plain fit and its global test (robustloc.integrity.fixes) say more
+            low = np.sum(np.isfinite(obs), axis=1) - a.shape[1] <= 1
+            if np.any(low):
+                rows = np.flatnonzero(low)
+                plain = self._gn(model, obs[rows], x0[rows], sig[rows], None)
+                fit = _merge(fit, plain, rows, np.ones(rows.size, dtype=bool))
+            fit.extra["fallback"] = low
+            return fit
         if meth == "lege":
             return self._lege_nonlinear(model, obs, x0, sig)
         return self._snooping(model, obs, x0, sig)
@@ -513,7 +697,7 @@ class Locator:
         absolute range residual wins (least median of squares): an M-estimator started
         from it is no longer masked by several gross errors pulling the LS start.
         """
-        centre, radius = _area(a)
+        centre, radius = _area(a, np.any(np.isfinite(ranges), axis=0))
         if self.engine == "compiled":
             from robustloc.estimators import _compiled
 
@@ -551,6 +735,14 @@ class Locator:
             sig = np.maximum(ranges, 0.1) * LN10 * s_db / (10.0 * rmodel.n[None, :])
             return model, ranges, sig
         return model, ranges, self._sigma_array(ranges.shape)
+
+    @staticmethod
+    def _range_sigma(sig: Array, ranges: Array, rmodel: RssiModel | None) -> Array:
+        """A-priori sigma of each observation as a range (m): ``sig`` itself for ranges,
+        ``d ln10 sig_dB / (10 n)`` for RSSI (first-order propagation of seed 000 eq. (1))."""
+        if rmodel is None:
+            return np.array(sig, dtype=float)
+        return np.maximum(ranges, 0.1) * LN10 * sig / (10.0 * rmodel.n[None, :])
 
     def _sigma_array(self, shape: tuple[int, int]) -> Array:
         if self.sigma is None:
@@ -615,7 +807,7 @@ class Locator:
         squares); the restarted fit replaces the first where its score is smaller.  Only
         those epochs pay for the grid.
         """
-        centre, radius = _area(a)
+        centre, radius = _area(a, np.any(np.isfinite(obs), axis=0))
         blo, bhi = centre - radius, centre + radius
         x = fit.x
         n_obs = np.sum(np.isfinite(obs), axis=1)

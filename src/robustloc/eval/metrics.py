@@ -9,8 +9,11 @@ when both files have ``z``).  Per tag and method, over the epochs with a usable 
   divisor ``n``, as in the paper; note ``σ0^2 = Δd̄^2 + σ1^2``);
 * ``median`` and ``p95`` (95th percentile, linear interpolation between order statistics,
   numpy's default);
-* ``n`` (rows), ``n_failed`` (status not usable -- see :data:`robustloc.status.USABLE` -- or
-  a non-finite coordinate), ``n_ok = n - n_failed``, ``failed_pct``.
+* ``n`` (truth epochs scored: matched positions rows plus missing ones), ``n_missing``
+  (truth epochs of the tag with no positions row of the method: they count as failed),
+  ``n_failed`` (missing, status not usable -- see :data:`robustloc.status.USABLE` -- or a
+  non-finite coordinate), ``n_ok = n - n_failed``, ``failed_pct`` (availability is
+  ``100 - failed_pct``).
 
 Aggregate rows per method: ``tag = "all"`` pools the epochs of every tag; ``tag = "mean"``
 is the mean of the per-tag statistics, which is how the paper's Table 1 forms its
@@ -22,7 +25,10 @@ Matching: each positions row is paired with the truth row of the same ``tag`` wh
 ``time`` is nearest, if within ``time_tolerance_s`` (default 1e-6 s, i.e. equal times
 written by the same program; raise it for logs whose fixes are stamped differently from
 the truth).  Positions rows without truth are not scored; their count is in
-``table.attrs["n_unmatched"]``.
+``table.attrs["n_unmatched"]``.  Every truth epoch is scored for every method: one that no
+positions row of the method matched is ``missing`` and failed.  Two positions rows with
+the same ``(time, tag, method)`` are an error naming the second one's line, as duplicate
+truth is.
 """
 
 from __future__ import annotations
@@ -45,7 +51,8 @@ def match_truth(
     Raises
     ------
     InputError
-        Duplicate ``(time, tag)`` in the truth, naming the line.
+        Duplicate ``(time, tag)`` in the truth, or duplicate ``(time, tag, method)`` in the
+        positions, naming the line.
     """
     if time_tolerance_s < 0:
         raise ValueError(f"time tolerance must be >= 0, got {time_tolerance_s}")
@@ -59,8 +66,11 @@ def match_truth(
             f"duplicate truth for time {t['time'].iloc[i]} and tag {t['tag'].iloc[i]!r}",
             truth.attrs.get("path"), line,
         )
+    _refuse_duplicate_positions(positions)
     cols = ["x", "y"] + (["z"] if "z" in t.columns else [])
-    right = t[["time", "tag"] + cols].rename(columns={c: f"{c}_true" for c in cols})
+    t["_truth_row"] = np.arange(len(t))
+    right = t[["time", "tag", "_truth_row"] + cols].rename(
+        columns={c: f"{c}_true" for c in cols})
     right = right.sort_values("time", kind="stable").reset_index(drop=True)
     right["_t_true"] = right["time"]
     left = positions.copy()
@@ -76,9 +86,26 @@ def match_truth(
         off = merged["_t_true"].to_numpy() != merged["time"].to_numpy()
         for c in cols:
             merged.loc[off, f"{c}_true"] = np.nan
+        merged.loc[off, "_truth_row"] = np.nan
     merged = merged.sort_values("_row").drop(columns=["_row", "_t_true"])
     merged.index = positions.index
     return merged
+
+
+def _refuse_duplicate_positions(positions: pd.DataFrame) -> None:
+    """Two rows with the same ``(time, tag, method)`` would count one epoch twice."""
+    keys = ["time", "tag"] + (["method"] if "method" in positions.columns else [])
+    k = positions[keys].copy()
+    k["tag"] = k["tag"].astype(str)
+    dup = k.duplicated().to_numpy()
+    if dup.any():
+        i = int(np.argmax(dup))
+        line = int(positions.index[i]) if positions.index.name == "line" else None
+        meth = f" and method {str(k['method'].iloc[i])!r}" if "method" in k else ""
+        raise InputError(
+            f"duplicate position for time {k['time'].iloc[i]}, tag {k['tag'].iloc[i]!r}"
+            f"{meth} (each epoch once per method)", positions.attrs.get("path"), line,
+        )
 
 
 def epoch_errors(
@@ -121,6 +148,7 @@ def _group_rows(df: pd.DataFrame, keys: dict[str, str], has3d: bool) -> dict[str
     ok = df["usable"].to_numpy()
     row: dict[str, object] = dict(keys)
     row["n"] = int(len(df))
+    row["n_missing"] = int(df["missing"].sum()) if "missing" in df.columns else 0
     row["n_failed"] = int((~ok).sum())
     row["n_ok"] = int(ok.sum())
     row["failed_pct"] = 100.0 * row["n_failed"] / max(len(df), 1)
@@ -129,6 +157,32 @@ def _group_rows(df: pd.DataFrame, keys: dict[str, str], has3d: bool) -> dict[str
         s3 = error_stats(df["error_3d"].to_numpy()[ok])
         row.update({f"{k}_3d": v for k, v in s3.items()})
     return row
+
+
+def _missing_rows(e: pd.DataFrame, truth: pd.DataFrame) -> pd.DataFrame:
+    """One failed row per (truth epoch, method) that no positions row matched."""
+    t = truth.reset_index(drop=True)
+    rows = []
+    for meth, grp in e.groupby("method", sort=False):
+        hit = np.zeros(len(t), dtype=bool)
+        ids = grp["_truth_row"].to_numpy(dtype=float)
+        hit[ids[np.isfinite(ids)].astype(np.int64)] = True
+        if (~hit).any():
+            miss = t.loc[~hit, ["time", "tag"]].copy()
+            miss["tag"] = miss["tag"].astype(str)
+            miss["method"] = meth
+            miss["status"] = "missing"
+            rows.append(miss)
+    if not rows:
+        return e.iloc[:0].assign(missing=pd.Series(dtype=bool))
+    out = pd.concat(rows, ignore_index=True)
+    out["error_2d"] = np.nan
+    if "error_3d" in e.columns:
+        out["error_3d"] = np.nan
+    out["usable"] = False
+    out["matched"] = True
+    out["missing"] = True
+    return out
 
 
 def error_table(
@@ -157,7 +211,8 @@ def error_table(
     DataFrame
         One row per (tag, method), then per method ``tag = "all"`` (pooled epochs) and
         ``tag = "mean"`` (mean of the per-tag statistics, the paper's average rows).
-        Columns: ``tag, method, n, n_failed, n_ok, failed_pct, max, min, mean, rms, sigma1,
+        Columns: ``tag, method, n, n_missing, n_failed, n_ok, failed_pct, max, min, mean,
+        rms, sigma1,
         median, p95`` (metres, horizontal), the same with suffix ``_3d`` when both files
         have ``z``, and ``mean_impr_pct, rms_impr_pct``.  ``attrs["n_unmatched"]``: rows
         without truth (not scored).
@@ -170,6 +225,8 @@ def error_table(
     e = epoch_errors(pos, truth, time_tolerance_s)
     n_unmatched = int((~e["matched"]).sum())
     e = e[e["matched"].to_numpy()]
+    if len(e) > 0:
+        e = pd.concat([e.assign(missing=False), _missing_rows(e, truth)], ignore_index=True)
     if len(e) == 0:
         raise InputError(
             "no positions row matches the truth by (time, tag); check the tags, or raise "
@@ -200,7 +257,7 @@ def error_table(
             row[c] = float(sub[c].mean())
         agg.append(row)
     table = pd.concat([per, pd.DataFrame(agg)], ignore_index=True)
-    for c in ("n", "n_failed", "n_ok"):
+    for c in ("n", "n_missing", "n_failed", "n_ok"):
         table[c] = table[c].astype(float)
     base = table[table["method"] == baseline].set_index("tag")
     for stat in ("mean", "rms"):

@@ -35,6 +35,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from robustloc.errors import InputError
+from robustloc.io.limits import plausible
 
 PathLike = str | os.PathLike
 
@@ -60,43 +61,155 @@ def is_parquet(path: PathLike) -> bool:
     return str(path).lower().endswith(_PARQUET_EXT)
 
 
+_SPOOLED: dict[str, Path] = {}
+_GZIP_MAGIC = b"\x1f\x8b"
+_PARQUET_MAGIC = b"PAR1"
+
+
+def _display(path: PathLike) -> str:
+    """The name of ``path`` in messages (``<stdin>`` for ``-``)."""
+    return "<stdin>" if str(path) == "-" else str(path)
+
+
+def _cleanup_spool() -> None:
+    for tmp in list(_SPOOLED.values()):
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+    _SPOOLED.clear()
+
+
+def _spool(path: PathLike) -> Path:
+    """Copy standard input (``-``) or a FIFO (``<(cat m.csv)``) to a temporary regular
+    file once per process, so that it can be read by name, more than once, and seeked
+    (Parquet).  Removed at exit."""
+    import atexit
+    import shutil
+    import sys
+    import tempfile
+
+    key = str(path)
+    if key in _SPOOLED:
+        return _SPOOLED[key]
+    if not _SPOOLED:
+        atexit.register(_cleanup_spool)
+    suffix = ".parquet" if is_parquet(key) else ".csv"
+    fd, name = tempfile.mkstemp(prefix="robustloc-stdin-", suffix=suffix)
+    tmp = Path(name)
+    _SPOOLED[key] = tmp
+    with os.fdopen(fd, "wb") as out:
+        if key == "-":
+            shutil.copyfileobj(sys.stdin.buffer, out, 1 << 20)
+        else:
+            with open(path, "rb") as src:
+                shutil.copyfileobj(src, out, 1 << 20)
+    return tmp
+
+
 def _check_file(path: PathLike) -> Path:
-    p = Path(path)
-    if not p.exists():
-        raise InputError("file not found", p)
-    if p.is_dir():
-        raise InputError("is a directory, expected a file", p)
+    """The regular file to read for ``path`` (standard input and FIFOs are spooled);
+    missing, a directory, or empty is an :class:`InputError`."""
+    import stat
+
+    name = _display(path)
+    if str(path) == "-":
+        p = _spool(path)
+    else:
+        p = Path(path)
+        if not p.exists():
+            raise InputError("file not found", name)
+        if p.is_dir():
+            raise InputError("is a directory, expected a file", name)
+        if not stat.S_ISREG(p.stat().st_mode):  # FIFO, character device: read, don't stat
+            p = _spool(path)
     if p.stat().st_size == 0:
-        raise InputError("empty file (expected a header line)", p, 1)
+        raise InputError("empty file (expected a header line)", name, 1)
     return p
+
+
+def _magic(p: Path) -> bytes:
+    with open(p, "rb") as fh:
+        return fh.read(4)
+
+
+def _format(p: Path, path: PathLike) -> str:
+    """``parquet``, ``gzip`` (a gzip-compressed CSV, whatever its name) or ``csv``.
+
+    The content decides when it is unambiguous: a gzip file named ``.csv`` is read
+    decompressed (pandas does it when told), a Parquet file named ``.csv`` is read as
+    Parquet.  Otherwise the extension decides (pandas infers ``.bz2``, ``.xz``, ``.zip``,
+    ``.zst`` compression from it).
+    """
+    head = _magic(p)
+    if head.startswith(_GZIP_MAGIC):
+        return "gzip"
+    if is_parquet(path) or head == _PARQUET_MAGIC:
+        return "parquet"
+    return "csv"
+
+
+def _open_bytes(p: Path, fmt: str):
+    import gzip
+
+    return gzip.open(p, "rb") if fmt == "gzip" else open(p, "rb")
+
+
+def _compression(fmt: str) -> str:
+    return "gzip" if fmt == "gzip" else "infer"
 
 
 _TOKENIZE_RE = re.compile(r"Expected (\d+) fields in line (\d+), saw (\d+)")
 
 
-def _parser_error(exc: Exception, path: Path) -> InputError:
+def _parser_error(exc: Exception, p: Path, path: PathLike, fmt: str) -> InputError:
+    name = _display(path)
+    if isinstance(exc, UnicodeDecodeError):
+        return _decode_error(p, path, fmt)
     msg = str(exc)
     m = _TOKENIZE_RE.search(msg)
     if m:
         return InputError(
-            f"expected {m.group(1)} fields, found {m.group(3)}", path, int(m.group(2))
+            f"expected {m.group(1)} fields, found {m.group(3)}", name, int(m.group(2))
         )
-    return InputError(f"cannot parse: {msg.strip()}", path)
+    return InputError(f"cannot parse: {msg.strip()}", name)
 
 
-def _ragged_line(path: Path) -> InputError:
+def _decode_error(p: Path, path: PathLike, fmt: str) -> InputError:
+    """Locate the first line that is not UTF-8 (slow path, only after a failure)."""
+    import codecs
+
+    name = _display(path)
+    try:
+        with _open_bytes(p, fmt) as fh:
+            for i, raw in enumerate(fh, 1):
+                try:
+                    codecs.decode(raw, "utf-8")
+                except UnicodeDecodeError as exc:
+                    return InputError(
+                        f"not UTF-8 text: byte 0x{raw[exc.start]:02x} at column {exc.start + 1}"
+                        " (a binary or compressed file? save it as UTF-8 CSV)", name, i)
+    except OSError as exc:  # e.g. a truncated gzip stream
+        return InputError(f"cannot read: {exc}", name)
+    return InputError("not UTF-8 text", name)
+
+
+def _ragged_line(p: Path, path: PathLike, fmt: str = "csv") -> InputError:
     """Locate the first row whose field count differs from the header's (slow path)."""
     import csv
+    import io
 
-    with open(path, newline="", encoding="utf-8", errors="replace") as fh:
+    name = _display(path)
+    with _open_bytes(p, fmt) as raw:
+        fh = io.TextIOWrapper(raw, encoding="utf-8", errors="replace", newline="")
         reader = csv.reader(fh)
         header = next(reader, [])
         for row in reader:
             if row and len(row) != len(header):
                 return InputError(
-                    f"expected {len(header)} fields, found {len(row)}", path, reader.line_num
+                    f"expected {len(header)} fields, found {len(row)}", name, reader.line_num
                 )
-    return InputError("rows do not match the header's number of fields", path)
+    return InputError("rows do not match the header's number of fields", name)
 
 
 class _RaggedGuard:
@@ -106,8 +219,8 @@ class _RaggedGuard:
     without it, an extra field in the first row silently becomes the index.)
     """
 
-    def __init__(self, path: Path) -> None:
-        self.path = path
+    def __init__(self, p: Path, path: PathLike, fmt: str) -> None:
+        self.p, self.path, self.fmt = p, path, fmt
 
     def __enter__(self) -> _RaggedGuard:
         self._cm = warnings.catch_warnings(record=True)
@@ -125,16 +238,34 @@ class _RaggedGuard:
             if issubclass(w.category, pd.errors.ParserWarning) and "Length of header" in str(
                 w.message
             ):
-                raise _ragged_line(self.path)
+                raise _ragged_line(self.p, self.path, self.fmt)
 
 
 _NA_NUMERIC = ["", "nan", "NaN", "NAN", "NA", "null", "None"]
 
 
-def _csv_kwargs(path: Path, str_columns: Sequence[str]) -> dict:
+def _check_header(names: Sequence[str], path: PathLike) -> None:
+    """A column named twice is an error on line 1 (pandas would rename one ``x.1``)."""
+    seen: set[str] = set()
+    for c in names:
+        c = str(c).strip()
+        if c in seen:
+            raise InputError(f"duplicate column {c!r} in the header", _display(path), 1)
+        seen.add(c)
+
+
+def _csv_kwargs(p: Path, path: PathLike, fmt: str, str_columns: Sequence[str]) -> dict:
     """read_csv options: ids as strings (only an empty field is missing, so an anchor may
     be called "NA"), the usual missing-value spellings in every other column."""
-    header = pd.read_csv(path, nrows=0, skipinitialspace=True, index_col=False)
+    import csv
+    import io
+
+    with _open_bytes(p, fmt) as raw:
+        fh = io.TextIOWrapper(raw, encoding="utf-8", newline="")
+        first = next(csv.reader(fh, skipinitialspace=True), [])
+    _check_header(first, path)
+    header = pd.read_csv(p, nrows=0, skipinitialspace=True, index_col=False,
+                         compression=_compression(fmt))
     names = [str(c) for c in header.columns]
     strs = {c for c in str_columns}
     return dict(
@@ -144,76 +275,91 @@ def _csv_kwargs(path: Path, str_columns: Sequence[str]) -> dict:
         skipinitialspace=True,
         keep_default_na=False,
         na_values={c: ([""] if c.strip() in strs else _NA_NUMERIC) for c in names},
+        compression=_compression(fmt),
     )
 
 
-def _finish_frame(df: pd.DataFrame, path: Path, first_line: int) -> pd.DataFrame:
+def _finish_frame(df: pd.DataFrame, path: PathLike, first_line: int) -> pd.DataFrame:
     """Name the index by source line, strip column names, drop blank lines."""
     df.columns = [str(c).strip() for c in df.columns]
+    _check_header(df.columns, path)
     df.index = pd.RangeIndex(first_line, first_line + len(df), name="line")
     if len(df) and df.shape[1]:
         blank = df.isna().all(axis=1).to_numpy()
         if blank.any():
             df = df.loc[~blank]
-    df.attrs["path"] = str(path)
+    df.attrs["path"] = _display(path)
     return df
+
+
+#: What pandas' C parser raises on a malformed file (besides ParserError): an undecodable
+#: byte, a NUL or other byte it cannot tokenize, a truncated compressed stream.
+_CSV_ERRORS = (pd.errors.ParserError, UnicodeDecodeError, EOFError, OSError, ValueError)
 
 
 def _read_raw(path: PathLike, str_columns: Sequence[str] = ()) -> pd.DataFrame:
     """Read a whole CSV or Parquet file; index = source line number."""
     p = _check_file(path)
-    if is_parquet(p):
+    fmt = _format(p, path)
+    if fmt == "parquet":
         try:
             df = pd.read_parquet(p)
         except Exception as exc:  # noqa: BLE001 - any pyarrow failure is a bad file
-            raise InputError(f"cannot read Parquet file: {exc}", p) from None
-        return _finish_frame(df.reset_index(drop=True), p, 2)
+            raise InputError(f"cannot read Parquet file: {exc}", _display(path)) from None
+        return _finish_frame(df.reset_index(drop=True), path, 2)
     try:
-        with _RaggedGuard(p):
-            df = pd.read_csv(p, **_csv_kwargs(p, str_columns))
+        with _RaggedGuard(p, path, fmt):
+            df = pd.read_csv(p, **_csv_kwargs(p, path, fmt, str_columns))
+    except InputError:
+        raise
     except pd.errors.EmptyDataError:
-        raise InputError("empty file (expected a header line)", p, 1) from None
-    except (pd.errors.ParserError, UnicodeDecodeError) as exc:
-        raise _parser_error(exc, p) from None
-    return _finish_frame(df, p, 2)
+        raise InputError("empty file (expected a header line)", _display(path), 1) from None
+    except _CSV_ERRORS as exc:
+        raise _parser_error(exc, p, path, fmt) from None
+    return _finish_frame(df, path, 2)
 
 
 def _iter_raw(
     path: PathLike, chunk_rows: int, str_columns: Sequence[str] = ()
 ) -> Iterator[pd.DataFrame]:
     """Stream a CSV or Parquet file in chunks of about ``chunk_rows`` rows."""
-    p = _check_file(path)
     if chunk_rows < 1:
         raise ValueError(f"chunk_rows must be >= 1, got {chunk_rows}")
-    if is_parquet(p):
+    p = _check_file(path)
+    fmt = _format(p, path)
+    if fmt == "parquet":
         import pyarrow.parquet as pq
 
         try:
             pf = pq.ParquetFile(p)
+            _check_header(pf.schema_arrow.names, path)
             line = 2
             for batch in pf.iter_batches(batch_size=chunk_rows):
                 df = batch.to_pandas()
-                yield _finish_frame(df, p, line)
+                yield _finish_frame(df, path, line)
                 line += len(df)
         except InputError:
             raise
         except Exception as exc:  # noqa: BLE001
-            raise InputError(f"cannot read Parquet file: {exc}", p) from None
+            raise InputError(f"cannot read Parquet file: {exc}", _display(path)) from None
         return
     try:
         line = 2
-        with _RaggedGuard(p) as guard:
-            reader = pd.read_csv(p, chunksize=chunk_rows, **_csv_kwargs(p, str_columns))
+        with _RaggedGuard(p, path, fmt) as guard:
+            reader = pd.read_csv(p, chunksize=chunk_rows,
+                                 **_csv_kwargs(p, path, fmt, str_columns))
             with reader:
                 for df in reader:
                     guard.check()
                     n = len(df)
-                    yield _finish_frame(df, p, line)
+                    yield _finish_frame(df, path, line)
                     line += n
+    except InputError:
+        raise
     except pd.errors.EmptyDataError:
-        raise InputError("empty file (expected a header line)", p, 1) from None
-    except (pd.errors.ParserError, UnicodeDecodeError) as exc:
-        raise _parser_error(exc, p) from None
+        raise InputError("empty file (expected a header line)", _display(path), 1) from None
+    except _CSV_ERRORS as exc:
+        raise _parser_error(exc, p, path, fmt) from None
 
 
 # --------------------------------------------------------------------------------------
@@ -258,6 +404,8 @@ def _numeric(
 ) -> None:
     """Convert ``df[col]`` to float in place; error at the first bad line."""
     s = df[col]
+    if pd.api.types.is_datetime64_any_dtype(s) or pd.api.types.is_timedelta64_dtype(s):
+        s = pd.Series(_seconds(s), index=s.index, name=col)
     if pd.api.types.is_bool_dtype(s):
         raise InputError(f"column '{col}' holds booleans, expected numbers", _path_of(df, path), 1)
     if pd.api.types.is_numeric_dtype(s):
@@ -287,6 +435,17 @@ def _numeric(
                 f"column '{col}': infinite value {v[i]}", _path_of(df, path), _line_of(df, i)
             )
     df[col] = v
+
+
+def _seconds(s: pd.Series) -> NDArray[np.float64]:
+    """A timestamp column as float seconds since the Unix epoch (UTC), a duration column as
+    float seconds; NaT becomes NaN.  Whatever the stored unit (s, ms, us, ns)."""
+    if pd.api.types.is_timedelta64_dtype(s):
+        return s.dt.total_seconds().to_numpy(dtype=float, na_value=np.nan)
+    if getattr(s.dt, "tz", None) is not None:
+        s = s.dt.tz_convert("UTC").dt.tz_localize(None)
+    epoch = pd.Timestamp("1970-01-01")
+    return (s - epoch).dt.total_seconds().to_numpy(dtype=float, na_value=np.nan)
 
 
 def _ids(df: pd.DataFrame, col: str, path: PathLike | None = None) -> None:
@@ -360,7 +519,7 @@ def read_anchors(path: PathLike) -> pd.DataFrame:
         Missing column, empty file, non-numeric or non-finite coordinate, duplicate or
         empty anchor id -- with file and line.
     """
-    return validate_anchors(_read_raw(path, ("anchor",)), path)
+    return validate_anchors(_read_raw(path, ("anchor",)), _display(path))
 
 
 def read_survey(
@@ -376,7 +535,7 @@ def read_survey(
     ``anchors`` given, an anchor id not among them is an error naming its line.
     """
     df = _read_raw(path, ("anchor",))
-    return validate_survey(df, path, anchors)
+    return validate_survey(df, _display(path), anchors)
 
 
 def _check_known(
@@ -435,7 +594,7 @@ def _value_column(df: pd.DataFrame, what: str, path: PathLike | None) -> str:
 def read_truth(path: PathLike) -> pd.DataFrame:
     """Read a truth file: ``time, tag, x, y[, z]`` (all finite).  Index: source line."""
     df = _read_raw(path, ("tag",))
-    return validate_truth(df, path)
+    return validate_truth(df, _display(path))
 
 
 def validate_truth(df: pd.DataFrame, path: PathLike | None = None) -> pd.DataFrame:
@@ -458,7 +617,7 @@ def read_positions(path: PathLike) -> pd.DataFrame:
     absent (a positions file from another tool).  ``n_used`` and ``excluded`` are optional.
     """
     df = _read_raw(path, ("tag", "method", "status", "excluded"))
-    return validate_positions(df, path)
+    return validate_positions(df, _display(path))
 
 
 def validate_positions(df: pd.DataFrame, path: PathLike | None = None) -> pd.DataFrame:
@@ -493,7 +652,12 @@ def validate_measurements(
     path: PathLike | None = None,
     anchors: pd.DataFrame | Sequence[str] | None = None,
 ) -> pd.DataFrame:
-    """Validate a measurements frame (see :func:`read_measurements`)."""
+    """Validate a measurements frame (see :func:`read_measurements`).
+
+    A finite value or time outside the physical limits of :mod:`robustloc.io.limits` (a
+    range of 1e308 m, an RSSI of -500 dBm) is data, not a file error: the row is kept
+    here; :func:`to_epochs` leaves it out of the fix and counts it (``Epochs.n_invalid``).
+    """
     df = df.copy()
     value = _value_column(df, "measurements", path)
     require_columns(df, ("time", "tag", "anchor"), "measurements", path)
@@ -521,7 +685,7 @@ def read_measurements(
     Parameters
     ----------
     path : str or PathLike
-        CSV or Parquet file.  Rows may come in any order.
+        CSV or Parquet file, or ``-`` for standard input.  Rows may come in any order.
     anchors : DataFrame or sequence of str, optional
         The anchors (frame from :func:`read_anchors`, or ids).  When given, an anchor id
         not among them is an error naming its line.
@@ -529,89 +693,356 @@ def read_measurements(
     Returns
     -------
     DataFrame
-        ``time`` (float s), ``tag`` and ``anchor`` (str), ``rssi`` (dBm) or ``range`` (m)
-        (float), extra columns kept; index = source line; ``frame.attrs["value"]`` names
-        the value column.  A NaN/inf value, time or an empty id is an error naming its line
-        (never a silent drop).  Negative ranges are accepted.
+        ``time`` (float s; a Parquet timestamp column becomes seconds since the Unix
+        epoch), ``tag`` and ``anchor`` (str), ``rssi`` (dBm) or ``range`` (m) (float),
+        extra columns kept;
+        index = source line; ``frame.attrs["value"]`` names the value column.  A NaN/inf
+        value, time or an empty id is an error naming its line (never a silent drop).
+        Negative ranges are accepted.
     """
     df = _read_raw(path, ("tag", "anchor"))
-    _require_rows(df, "measurements", path)
-    return validate_measurements(df, path, anchors)
+    _require_rows(df, "measurements", _display(path))
+    return validate_measurements(df, _display(path), anchors)
+
+
+class UnsortedInput(InputError):
+    """Rows not in streaming order (see :func:`iter_measurements`), found after chunks were
+    already yielded; the consumer restarts with ``order="sort"`` (or ``"check"``)."""
+
+
+def _mem_available_bytes() -> int:
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return 4 << 30
+
+
+def default_memory_budget() -> int:
+    """Memory the in-memory sort may use: half of the available memory (``MemAvailable``
+    of /proc/meminfo; 2 GiB when unknown)."""
+    return _mem_available_bytes() // 2
+
+
+#: Bytes of pandas memory per byte of CSV when a measurements file is read whole (object
+#: strings for tag and anchor, float columns, the sort's copy), measured on generated
+#: files of 10 ranges per epoch: about 6; 8 leaves a margin.
+_MEM_PER_CSV_BYTE = 8.0
+#: The same per uncompressed Parquet byte.
+_MEM_PER_PARQUET_BYTE = 4.0
+
+
+def _in_memory_estimate(path: PathLike) -> float:
+    p = _check_file(path)
+    fmt = _format(p, path)
+    if fmt == "parquet":
+        try:
+            import pyarrow.parquet as pq
+
+            md = pq.ParquetFile(p).metadata
+            raw = sum(md.row_group(i).total_byte_size for i in range(md.num_row_groups))
+        except Exception:  # noqa: BLE001 - unreadable: the reader will say why
+            raw = p.stat().st_size
+        return raw * _MEM_PER_PARQUET_BYTE
+    size = p.stat().st_size
+    if fmt == "gzip":
+        size *= 5  # typical compression ratio of numeric CSV
+    return size * _MEM_PER_CSV_BYTE
+
+
+def _epoch_starts(t: NDArray[np.float64], h: NDArray[np.uint64]) -> NDArray[np.bool_]:
+    """True where a row starts a new (time, tag) run (the first row always does)."""
+    start = np.ones(len(t), dtype=bool)
+    start[1:] = (t[1:] != t[:-1]) | (h[1:] != h[:-1])
+    return start
+
+
+def _tag_hash(tags: pd.Series) -> NDArray[np.uint64]:
+    return pd.util.hash_array(tags.to_numpy(dtype=object))
+
+
+def _finish_chunk(df: pd.DataFrame, path: str, value: str) -> pd.DataFrame:
+    df.attrs["path"] = path
+    df.attrs["value"] = value
+    return df
+
+
+def _cut_sorted(frames: Iterator[pd.DataFrame], path: str) -> Iterator[pd.DataFrame]:
+    """Chunks of rows already in epoch order, cut so that no epoch is split: the rows of
+    the last epoch of each chunk are held back for the next (memory: one chunk plus one
+    epoch)."""
+    carry: pd.DataFrame | None = None
+    value = None
+    for chunk in frames:
+        if len(chunk) == 0:
+            continue
+        value = chunk.attrs.get("value", value)
+        if carry is not None:
+            chunk = pd.concat([carry, chunk])
+        t = chunk["time"].to_numpy()
+        h = _tag_hash(chunk["tag"])
+        starts = np.flatnonzero(_epoch_starts(t, h))
+        last = int(starts[-1])
+        if last == 0:
+            carry = chunk
+            continue
+        carry = chunk.iloc[last:]
+        yield _finish_chunk(chunk.iloc[:last], path, value)
+    if carry is not None and len(carry):
+        yield _finish_chunk(carry, path, value)
+
+
+#: A time group (rows of one time value) is held whole up to this many rows (or
+#: ``chunk_rows`` if larger); beyond, its epochs must be contiguous to stream.
+_MIN_GROUP_ROWS = 100_000
+
+
+def _iter_streamed(
+    path: PathLike, chunk_rows: int, known: list[str] | None
+) -> Iterator[pd.DataFrame]:
+    """The streaming path: rows in time order, checked as they come.
+
+    ``time`` must be non-decreasing.  The rows of the last time value of each chunk are
+    held back (tags of one time may mix in any order), unless that time group grows beyond
+    ``max(chunk_rows, 100 000)`` rows: then its epochs must be contiguous (each tag's rows
+    together), and all
+    but the last are emitted, remembering the 64-bit hashes of their tags (8 bytes per
+    epoch) to refuse a later row of an epoch already emitted.  So memory stays bounded by
+    about two chunks whatever the grouping (10 M rows that all have ``time = 0``, each
+    epoch its own tag, stream like time-sorted rows).  Any other order raises
+    :class:`UnsortedInput` naming the first offending line.
+    """
+    name = _display(path)
+    last_t = -np.inf
+    carry: pd.DataFrame | None = None
+    seen = np.empty(0, dtype=np.uint64)  # tags at time last_t already emitted
+    n_rows = 0
+    value = None
+    for raw in _iter_raw(path, chunk_rows, ("tag", "anchor")):
+        if len(raw) == 0:
+            continue
+        chunk = validate_measurements(raw, name, known)
+        value = chunk.attrs["value"]
+        t = chunk["time"].to_numpy()
+        tb = np.concatenate(([last_t], t))
+        back = tb[1:] < tb[:-1]
+        if back.any():
+            i = int(np.argmax(back))
+            raise UnsortedInput(
+                f"time {t[i]} is earlier than the previous row's (rows not sorted by time)",
+                name, _line_of(chunk, i))
+        if len(seen):
+            hit = (t == last_t) & np.isin(_tag_hash(chunk["tag"]), seen)
+            if hit.any():
+                i = int(np.argmax(hit))
+                raise UnsortedInput(
+                    f"time {t[i]} and tag {chunk['tag'].iloc[i]!r}: a row of an epoch whose "
+                    "rows were interrupted by other epochs of the same time over more than "
+                    "one chunk (rows not grouped by epoch)", name, _line_of(chunk, i))
+        n_rows += len(chunk)
+        frame = chunk if carry is None else pd.concat([carry, chunk])
+        tt = frame["time"].to_numpy()
+        t_end = tt[-1]
+        if t_end != last_t:
+            seen = np.empty(0, dtype=np.uint64)
+        first_tail = int(np.searchsorted(tt, t_end, side="left"))
+        head, tail = frame.iloc[:first_tail], frame.iloc[first_tail:]
+        if len(tail) > max(chunk_rows, _MIN_GROUP_ROWS):  # a big time group: emit its epochs
+            h = _tag_hash(tail["tag"])
+            starts = np.flatnonzero(_epoch_starts(tail["time"].to_numpy(), h))
+            run_h = h[starts]
+            dup = pd.Series(run_h).duplicated().to_numpy()
+            if dup.any():
+                i = int(starts[int(np.argmax(dup))])
+                raise UnsortedInput(
+                    f"time {t_end} and tag {tail['tag'].iloc[i]!r}: {len(tail)} rows of one "
+                    "time with the tags' rows mixed (rows not grouped by epoch)",
+                    name, _line_of(tail, i))
+            last = int(starts[-1])
+            seen = np.union1d(seen, run_h[:-1])
+            out = pd.concat([head, tail.iloc[:last]]) if last else head
+            carry = tail.iloc[last:]
+        else:
+            out, carry = head, tail
+        last_t = t_end
+        if len(out):
+            yield _finish_chunk(out, name, value)
+    if n_rows == 0:
+        raise InputError("measurements file has a header but no data rows", name, 2)
+    if carry is not None and len(carry):
+        yield _finish_chunk(carry, name, value)
+
+
+def _sort_frame(df: pd.DataFrame) -> pd.DataFrame:
+    """Rows in epoch order: by time, then tag, then source line (stable)."""
+    codes, _ = pd.factorize(df["tag"], sort=True)
+    line = (df.index.to_numpy(dtype=np.int64) if df.index.name == "line"
+            else np.arange(len(df), dtype=np.int64))
+    order = np.lexsort((line, codes, df["time"].to_numpy()))
+    out = df.iloc[order]
+    out.attrs = dict(df.attrs)
+    return out
+
+
+def _iter_sorted_in_memory(
+    path: PathLike, chunk_rows: int, known: list[str] | None
+) -> Iterator[pd.DataFrame]:
+    df = _sort_frame(read_measurements(path, known))
+    name = _display(path)
+
+    def frames() -> Iterator[pd.DataFrame]:
+        for i in range(0, len(df), chunk_rows):
+            yield _finish_chunk(df.iloc[i : i + chunk_rows], name, df.attrs["value"])
+
+    yield from _cut_sorted(frames(), name)
+
+
+def _iter_sorted_out_of_core(
+    path: PathLike, chunk_rows: int, known: list[str] | None
+) -> Iterator[pd.DataFrame]:
+    """Sort a file larger than memory: validate it in a streaming pass into a Parquet
+    spool (time, tag, anchor, value, line), then let DuckDB sort the spool with
+    its external (disk-spilling) sort and stream the sorted rows back in record batches.
+    Extra columns are not carried on this path."""
+    import tempfile
+
+    import duckdb
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    name = _display(path)
+    value = None
+    with tempfile.TemporaryDirectory(prefix="robustloc-sort-") as tmp:
+        spool = Path(tmp) / "rows.parquet"
+        writer = None
+        n_rows = 0
+        try:
+            for raw in _iter_raw(path, chunk_rows, ("tag", "anchor")):
+                if len(raw) == 0:
+                    continue
+                chunk = validate_measurements(raw, name, known)
+                value = chunk.attrs["value"]
+                part = pd.DataFrame({
+                    "time": chunk["time"].to_numpy(dtype=float),
+                    "tag": chunk["tag"].astype(str).to_numpy(dtype=object),
+                    "anchor": chunk["anchor"].astype(str).to_numpy(dtype=object),
+                    value: chunk[value].to_numpy(dtype=float),
+                    "line": chunk.index.to_numpy(dtype=np.int64),
+                })
+                table = pa.Table.from_pandas(part, preserve_index=False)
+                if writer is None:
+                    writer = pq.ParquetWriter(spool, table.schema)
+                writer.write_table(table.cast(writer.schema))
+                n_rows += len(part)
+        finally:
+            if writer is not None:
+                writer.close()
+        if n_rows == 0:
+            raise InputError("measurements file has a header but no data rows", name, 2)
+        con = duckdb.connect()
+        try:
+            budget = max(default_memory_budget() // 2, 256 << 20)
+            con.execute(f"SET memory_limit='{budget // (1 << 20)}MB'")
+            con.execute(f"SET temp_directory='{tmp}'")
+            con.execute("SET threads=1")
+            rel = con.execute(
+                f"SELECT * FROM read_parquet('{spool}') ORDER BY time, tag, line")
+            reader = rel.fetch_record_batch(chunk_rows)
+
+            def frames() -> Iterator[pd.DataFrame]:
+                for batch in reader:
+                    df = batch.to_pandas()
+                    df.index = pd.Index(df.pop("line").to_numpy(dtype=np.int64), name="line")
+                    yield _finish_chunk(df, name, value)
+
+            yield from _cut_sorted(frames(), name)
+        finally:
+            con.close()
 
 
 def iter_measurements(
     path: PathLike,
     chunk_rows: int = _DEFAULT_CHUNK_ROWS,
     anchors: pd.DataFrame | Sequence[str] | None = None,
+    *,
+    order: str = "auto",
+    memory_budget_bytes: int | None = None,
 ) -> Iterator[pd.DataFrame]:
     """Stream a measurements file in validated chunks that never split an epoch.
 
-    An epoch is one ``(time, tag)``.  Streaming requires the rows to be sorted by ``time``
-    (non-decreasing; rows of equal time may mix tags and anchors in any order).  The rows
-    of the last ``time`` value of each raw chunk are held back and prepended to the next
-    chunk, so every epoch arrives whole in exactly one yielded chunk, and memory stays
-    bounded by ``chunk_rows`` plus one time step.  A ``time`` that goes backwards is an
-    :class:`InputError` naming its line (sort the file, or use :func:`read_measurements`,
-    which accepts any order).
+    An epoch is one ``(time, tag)``.  Rows may come in any order (several tags' logs one
+    after another, shuffled rows); every epoch arrives whole in exactly one chunk, and
+    the epochs come in time order.
+
+    * **Epoch-ordered input** (``time`` non-decreasing, the rows of each epoch
+      contiguous, tags within one time in any order) is streamed: memory is bounded by
+      ``chunk_rows`` plus one epoch, whatever the grouping (10 M rows that all have
+      ``time = 0``, each epoch its own tag, stream like time-sorted rows).
+    * **Any other order** is sorted by ``(time, tag, line)``: in memory when the estimate
+      fits ``memory_budget_bytes``, else out of core (a validated Parquet spool sorted by
+      DuckDB, which spills to disk; extra columns are dropped on that path).
 
     Parameters
     ----------
     path : str or PathLike
-        CSV or Parquet file.
+        CSV or Parquet file, or ``-`` (standard input, spooled to a temporary file).
     chunk_rows : int
         Rows read per chunk (default 500 000).
     anchors : DataFrame or sequence of str, optional
         As in :func:`read_measurements`.
+    order : {"auto", "check", "sort"}
+        ``auto`` streams and, if disorder appears before the first chunk was yielded,
+        switches to sorting transparently; after that it raises :class:`UnsortedInput`
+        (the consumer discards what it wrote and restarts with ``order="sort"``).
+        ``check`` makes one validating pass first to decide (never raises
+        :class:`UnsortedInput`; for consumers that cannot restart, e.g. writing to
+        standard output).  ``sort`` always sorts.
+    memory_budget_bytes : int, optional
+        Largest estimated memory for the in-memory sort (default
+        :func:`default_memory_budget`: half the available memory).
 
     Yields
     ------
     DataFrame
         Validated chunks, as returned by :func:`read_measurements`.
     """
+    if order not in ("auto", "check", "sort"):
+        raise ValueError(f"order must be 'auto', 'check' or 'sort', got {order!r}")
+    if chunk_rows < 1:
+        raise ValueError(f"chunk_rows must be >= 1, got {chunk_rows}")
     known = None if anchors is None else _anchor_ids(anchors)
-    carry: pd.DataFrame | None = None
-    last_time = -np.inf
-    value: str | None = None
-    n_rows = 0
-    for raw in _iter_raw(path, chunk_rows, ("tag", "anchor")):
-        if len(raw) == 0:
-            continue
-        chunk = validate_measurements(raw, path, known)
-        if value is None:
-            value = chunk.attrs["value"]
-        t = chunk["time"].to_numpy()
-        back = np.diff(np.concatenate(([last_time], t))) < 0
-        if back.any():
-            i = int(np.argmax(back))
-            raise InputError(
-                f"time {t[i]} is earlier than the previous row's; streaming needs rows "
-                "sorted by time (sort the file, or read it whole)",
-                path,
-                _line_of(chunk, i),
-            )
-        last_time = t[-1]
-        n_rows += len(chunk)
-        if carry is not None and len(carry):
-            chunk = pd.concat([carry, chunk])
-            chunk.attrs["path"] = str(path)
-            chunk.attrs["value"] = value
-        tt = chunk["time"].to_numpy()
-        hold = tt == tt[-1]
-        n_hold = int(hold[::-1].argmin()) if not hold.all() else len(hold)
-        if n_hold == len(chunk):
-            carry = chunk
-            continue
-        carry = chunk.iloc[len(chunk) - n_hold :]
-        out = chunk.iloc[: len(chunk) - n_hold]
-        out.attrs["path"] = str(path)
-        out.attrs["value"] = value
-        yield out
-    if n_rows == 0:
-        raise InputError("measurements file has a header but no data rows", path, 2)
-    if carry is not None and len(carry):
-        carry.attrs["path"] = str(path)
-        carry.attrs["value"] = value
-        yield carry
+    budget = default_memory_budget() if memory_budget_bytes is None else memory_budget_bytes
+
+    def resorted() -> Iterator[pd.DataFrame]:
+        if _in_memory_estimate(path) <= budget:
+            return _iter_sorted_in_memory(path, chunk_rows, known)
+        return _iter_sorted_out_of_core(path, chunk_rows, known)
+
+    if order == "sort":
+        yield from resorted()
+        return
+    if order == "check":
+        try:
+            for _ in _iter_streamed(path, chunk_rows, known):
+                pass
+        except UnsortedInput:
+            yield from resorted()
+            return
+        yield from _iter_streamed(path, chunk_rows, known)
+        return
+    stream = _iter_streamed(path, chunk_rows, known)
+    try:
+        first = next(stream)
+    except StopIteration:
+        return
+    except UnsortedInput:
+        yield from resorted()
+        return
+    yield first
+    yield from stream
 
 
 @dataclass(frozen=True)
@@ -637,6 +1068,11 @@ class Epochs:
         Source line of each epoch's first row (0 when the frame had no line index).
     n_duplicates : int
         Rows merged into an earlier row of the same epoch and anchor.
+    n_invalid : ndarray of int, shape (N,)
+        Rows of each epoch whose value or time lay outside the physical limits
+        (:mod:`robustloc.io.limits`): not in ``values`` (NaN, as if not heard), counted here.
+        An epoch whose every row is invalid has ``n_invalid > 0`` and no finite value; its
+        output row gets status ``invalid_measurement``.
     """
 
     time: NDArray[np.float64]
@@ -646,6 +1082,19 @@ class Epochs:
     value: str
     line: NDArray[np.int64]
     n_duplicates: int = 0
+    n_invalid: NDArray[np.int64] | None = None
+
+    def __post_init__(self) -> None:
+        n = int(np.asarray(self.values).shape[0])
+        if self.n_invalid is None:
+            object.__setattr__(self, "n_invalid", np.zeros(n, dtype=np.int64))
+        elif np.shape(self.n_invalid) != (n,):
+            raise ValueError(f"n_invalid has shape {np.shape(self.n_invalid)}, expected ({n},)")
+
+    @property
+    def all_invalid(self) -> NDArray[np.bool_]:
+        """Epochs whose every row was invalid (status ``invalid_measurement``)."""
+        return (self.n_invalid > 0) & ~np.isfinite(self.values).any(axis=1)
 
     @property
     def n_epochs(self) -> int:
@@ -687,7 +1136,7 @@ def to_epochs(
     if len(frame) == 0:
         return Epochs(
             np.empty(0), np.empty(0, dtype=object), np.empty((0, m)), ids, value,
-            np.empty(0, dtype=np.int64), 0,
+            np.empty(0, dtype=np.int64), 0, np.empty(0, dtype=np.int64),
         )
     anchor_col = frame["anchor"]
     if not isinstance(anchor_col.dtype, pd.StringDtype):
@@ -711,6 +1160,9 @@ def to_epochs(
     n = len(ukey)
     flat = epoch.astype(np.int64) * m + col
     v = frame[value].to_numpy(dtype=float)
+    ok = plausible(value, v) & plausible("time", t)  # robustloc.io.limits
+    n_invalid = np.bincount(epoch[~ok], minlength=n).astype(np.int64)
+    flat, v = flat[ok], v[ok]
     sums = np.bincount(flat, weights=v, minlength=n * m)
     counts = np.bincount(flat, minlength=n * m)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -724,21 +1176,25 @@ def to_epochs(
         np.minimum.at(first, epoch, lines_src)
     else:
         first = np.zeros(n, dtype=np.int64)
-    return Epochs(times, tags, values, ids, value, first, n_dup)
+    return Epochs(times, tags, values, ids, value, first, n_dup, n_invalid)
 
 
 def iter_epochs(
     path: PathLike,
     anchors: pd.DataFrame | Sequence[str],
     chunk_rows: int = _DEFAULT_CHUNK_ROWS,
+    *,
+    order: str = "auto",
+    memory_budget_bytes: int | None = None,
 ) -> Iterator[Epochs]:
-    """Stream a (time-sorted) measurements file as :class:`Epochs` blocks.
+    """Stream a measurements file (rows in any order) as :class:`Epochs` blocks.
 
-    Combines :func:`iter_measurements` and :func:`to_epochs`; every epoch is in exactly
-    one block, blocks come in time order.  Memory is bounded by ``chunk_rows``.
+    Combines :func:`iter_measurements` (see it for ``order`` and the memory bound) and
+    :func:`to_epochs`; every epoch is in exactly one block, blocks come in time order.
     """
     ids = _anchor_ids(anchors)
-    for chunk in iter_measurements(path, chunk_rows=chunk_rows, anchors=ids):
+    for chunk in iter_measurements(path, chunk_rows=chunk_rows, anchors=ids, order=order,
+                                   memory_budget_bytes=memory_budget_bytes):
         yield to_epochs(chunk, ids)
 
 
@@ -747,22 +1203,50 @@ def iter_epochs(
 # --------------------------------------------------------------------------------------
 
 
-def write_table(frame: pd.DataFrame, path: PathLike) -> Path:
-    """Write a frame as CSV or Parquet (by extension), creating parent folders.
+def _refuse_parquet_stdout(path: PathLike) -> None:
+    from robustloc.io.atomic import is_stdio
 
-    The index is not written (the ``line`` index of read frames is bookkeeping).  Floats
-    are written with full precision (``repr``), so a CSV round trip is exact.
+    if is_stdio(path) and is_parquet(path):  # pragma: no cover - "-" is never .parquet
+        raise InputError("Parquet cannot be written to standard output", path)
+
+
+def _is_parquet_out(path: PathLike, parquet: bool | None) -> bool:
+    return is_parquet(path) if parquet is None else parquet
+
+
+def write_table(
+    frame: pd.DataFrame, path: PathLike, *, parquet: bool | None = None
+) -> Path:
+    """Write a frame as CSV or Parquet (by extension), atomically, creating parent folders.
+
+    The data go to a temporary file in the target folder that is renamed onto ``path``
+    only when complete (:func:`robustloc.io.atomic.atomic_output`): after an error, an
+    interrupt or a full disk nothing is left at ``path`` (or its previous content stays).
+    ``-`` writes CSV to standard output (``parquet=True`` with ``-`` is an error).  The
+    index is not written (the ``line`` index of read frames is bookkeeping).  Floats are
+    written with full precision (``repr``), so a CSV round trip is exact.
+
+    Raises
+    ------
+    OutputError
+        The output cannot be written (no space, read-only, a parent that is a file).
     """
-    p = Path(path)
-    if p.parent and not p.parent.exists():
-        p.parent.mkdir(parents=True, exist_ok=True)
+    from robustloc.io.atomic import atomic_output, is_stdio
+
+    pq_out = _is_parquet_out(path, parquet)
+    if is_stdio(path) and pq_out:
+        raise InputError("Parquet cannot be written to standard output; write a file, or "
+                         "CSV to -", "-")
     out = frame.reset_index(drop=True)
     out.attrs = {}
-    if is_parquet(p):
-        out.to_parquet(p, index=False)
-    else:
-        out.to_csv(p, index=False)
-    return p
+    with atomic_output(path, binary=False) as (target, stream):
+        if stream is not None:
+            out.to_csv(stream, index=False)
+        elif pq_out:
+            out.to_parquet(target, index=False)
+        else:
+            out.to_csv(target, index=False)
+    return Path(path)
 
 
 def positions_frame(
@@ -776,8 +1260,9 @@ def positions_frame(
 
     Columns ``time, tag, x, y[, z], method, status, n_used, sigma0, excluded`` (the
     ``excluded`` column is the ``;``-joined ids of the observations rejected in each
-    epoch); ``z`` is written when the solution is 3-D.  ``iterations`` is appended as an
-    extra column.
+    epoch); ``z`` is written when the solution is 3-D.  ``hpl`` (and ``vpl`` in 3-D), the
+    protection levels in metres, follow when the solution carries them; ``iterations`` is
+    appended as an extra column.
     """
     pos = np.asarray(solution.position, dtype=float)
     n, dim = pos.shape
@@ -797,6 +1282,11 @@ def positions_frame(
     data["n_used"] = np.asarray(solution.n_used, dtype=np.int64)
     data["sigma0"] = np.asarray(solution.sigma0, dtype=float)
     data["excluded"] = solution.excluded_ids(list(anchor_ids))
+    extra = getattr(solution, "extra", {}) or {}
+    if "hpl" in extra:  # protection levels (robustloc.integrity.fixes.protect), metres
+        data["hpl"] = np.asarray(extra["hpl"], dtype=float)
+        if dim >= 3:
+            data["vpl"] = np.asarray(extra["vpl"], dtype=float)
     data["iterations"] = np.asarray(solution.iterations, dtype=np.int64)
     return pd.DataFrame(data)
 
@@ -817,11 +1307,15 @@ def write_positions(frame: pd.DataFrame, path: PathLike) -> Path:
 
 
 class PositionsWriter:
-    """Write a positions file chunk by chunk (bounded memory for streamed logs).
+    """Write a positions file chunk by chunk (bounded memory for streamed logs), atomically.
 
     CSV chunks are appended under one header; Parquet chunks become row groups of one
     file.  Each chunk is ordered as :func:`write_positions` orders it; every chunk must
-    have the same columns as the first.  Use as a context manager::
+    have the same columns as the first.  The chunks go to a temporary file in the target
+    folder, renamed onto ``path`` by :meth:`close` (see :func:`write_table`); leaving the
+    ``with`` block by an exception (an input error, Ctrl-C, SIGTERM, a full disk) removes
+    it, and the final path keeps its previous content or stays absent.  ``-`` writes CSV
+    to standard output.  Use as a context manager::
 
         with PositionsWriter("positions.csv") as out:
             for epochs in iter_epochs(path, anchors):
@@ -829,18 +1323,27 @@ class PositionsWriter:
     """
 
     def __init__(self, path: PathLike) -> None:
-        self.path = Path(path)
+        self.path = Path(path) if str(path) != "-" else path
         self.n_rows = 0
         self._columns: list[str] | None = None
         self._pq_writer = None
+        self._cm = None
+        self._target: Path | None = None
+        self._stream = None
 
     def __enter__(self) -> PositionsWriter:
-        if self.path.parent and not self.path.parent.exists():
-            self.path.parent.mkdir(parents=True, exist_ok=True)
+        from robustloc.io.atomic import atomic_output, is_stdio
+
+        if is_stdio(self.path) and is_parquet(self.path):  # pragma: no cover
+            raise InputError("Parquet cannot be written to standard output", "-")
+        self._cm = atomic_output(self.path, binary=False)
+        self._target, self._stream = self._cm.__enter__()
         return self
 
     def write(self, frame: pd.DataFrame) -> None:
         """Append one chunk of positions."""
+        if self._cm is None:
+            self.__enter__()
         cols = list(POSITION_COLUMNS)
         if "z" in frame.columns:
             cols.insert(4, "z")
@@ -856,27 +1359,67 @@ class PositionsWriter:
             )
         out = frame[self._columns].reset_index(drop=True)
         out.attrs = {}
-        if is_parquet(self.path):
+        if self._stream is not None:
+            out.to_csv(self._stream, header=self.n_rows == 0, index=False)
+        elif is_parquet(self.path):
             import pyarrow as pa
             import pyarrow.parquet as pq
 
             table = pa.Table.from_pandas(out, preserve_index=False)
             if self._pq_writer is None:
-                self._pq_writer = pq.ParquetWriter(self.path, table.schema)
+                self._pq_writer = pq.ParquetWriter(self._target, table.schema)
             self._pq_writer.write_table(table.cast(self._pq_writer.schema))
         else:
-            out.to_csv(self.path, mode="w" if self.n_rows == 0 else "a",
+            out.to_csv(self._target, mode="w" if self.n_rows == 0 else "a",
                        header=self.n_rows == 0, index=False)
         self.n_rows += len(out)
 
     def close(self) -> None:
-        """Finish the file (Parquet footer)."""
-        if self._pq_writer is not None:
-            self._pq_writer.close()
-            self._pq_writer = None
+        """Finish the file (Parquet footer) and move it to its final path."""
+        self._finish(None)
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def abort(self) -> None:
+        """Discard everything written so far (the final path is not touched)."""
+        self._finish(_Aborted())
+
+    def _finish(self, exc: BaseException | None) -> None:
+        cm, self._cm = self._cm, None
+        try:
+            if self._pq_writer is not None:
+                w, self._pq_writer = self._pq_writer, None
+                w.close()
+        except BaseException as err:
+            if cm is not None and exc is None:
+                exc = err
+            if cm is None:
+                raise
+        if cm is None:
+            return
+        if exc is None:
+            if self._stream is None and self.n_rows == 0 and self._target is not None:
+                self._write_empty()
+            cm.__exit__(None, None, None)
+        else:
+            try:
+                cm.__exit__(type(exc), exc, exc.__traceback__)
+            except _Aborted:
+                pass
+
+    def _write_empty(self) -> None:
+        """No chunk written: still leave a valid file with the header."""
+        cols = list(POSITION_COLUMNS)
+        empty = pd.DataFrame({c: [] for c in cols})
+        if is_parquet(self.path):
+            empty.to_parquet(self._target, index=False)
+        else:
+            empty.to_csv(self._target, index=False)
+
+    def __exit__(self, exc_type: object, exc: BaseException | None, tb: object) -> None:
+        self._finish(exc)
+
+
+class _Aborted(Exception):
+    """Internal: PositionsWriter.abort() passes it to the atomic output to discard it."""
 
 
 def read_table(path: PathLike) -> pd.DataFrame:

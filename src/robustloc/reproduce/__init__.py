@@ -59,6 +59,14 @@ class Section:
     title: str
     blocks: list[tuple[str, Any]] = field(default_factory=list)
     summary: dict[str, Any] = field(default_factory=dict)
+    headlines: list[dict[str, str]] = field(default_factory=list)
+
+    def headline(self, seed: str, what: str, paper: str, ours: str, peer: str,
+                 verdict: str) -> None:
+        """One line of the report's one-screen summary: a paper's headline figure, ours,
+        the best peer's, and a verdict (all as short text)."""
+        self.headlines.append({"seed": seed, "headline": what, "paper": paper,
+                               "robustloc": ours, "best peer": peer, "verdict": verdict})
 
     def text(self, markdown: str) -> None:
         self.blocks.append(("text", markdown))
@@ -114,7 +122,7 @@ def _md_table(frame: pd.DataFrame) -> str:
 
     def cell(v: Any) -> str:
         if isinstance(v, float):
-            return "" if pd.isna(v) else f"{v:.4g}"
+            return "" if pd.isna(v) else f"{v:.3g}"
         return str(v)
 
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
@@ -126,6 +134,12 @@ def render(sections: list[Section], out_dir: Path, elapsed: dict[str, float]) ->
     """Write ``report.md`` and ``report.html`` into ``out_dir``."""
     md = ["# robustloc reproduction report", ""]
     body = ["<h1>robustloc reproduction report</h1>"]
+    heads = [h for s in sections for h in s.headlines]
+    if heads:  # the one-screen summary first: each headline, the paper's, ours, the peer's
+        summ = pd.DataFrame(heads)
+        md += ["## Summary", "", _md_table(summ), ""]
+        body.append("<h2>Summary</h2>")
+        body.append(summ.to_html(index=False, na_rep=""))
     for s in sections:
         md += [f"## {s.title}", ""]
         body.append(f"<h2>{html.escape(s.title)}</h2>")
@@ -137,7 +151,9 @@ def render(sections: list[Section], out_dir: Path, elapsed: dict[str, float]) ->
                 caption, frame = payload
                 md += [f"**{caption}**", "", _md_table(frame), ""]
                 body.append(f"<h4>{html.escape(caption)}</h4>")
-                body.append(frame.to_html(float_format=lambda v: f"{v:.4g}", na_rep=""))
+                named = frame.index.name or not isinstance(frame.index, pd.RangeIndex)
+                body.append(frame.to_html(float_format=lambda v: f"{v:.3g}", na_rep="",
+                                          index=bool(named)))
             elif kind == "figure":
                 caption, rel = payload
                 md += [f"![{caption}]({rel})", "", f"*{caption}*", ""]

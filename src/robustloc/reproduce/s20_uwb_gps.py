@@ -233,6 +233,11 @@ def _dwm_experiment(ctx: Context, sec: Section) -> None:
                 "p95": round(float(sub.loc[m, "p95"]), 3)}
             for m in sub.index
         }
+        if "tight EKF-CV robust" in sub.index and "authors ESKF" in sub.index:
+            ours, eskf = sub.loc["tight EKF-CV robust", "rms"], sub.loc["authors ESKF", "rms"]
+            sec.headline("001", f"uwb-dwm1001 {run} ({where}): 2-D RMS (m)", "-",
+                         f"tight robust EKF {ours:.2f}", f"authors' ESKF {eskf:.2f}",
+                         "better" if ours <= eskf else "worse")
 
 
 def _labyrinth_experiment(ctx: Context, sec: Section) -> None:

@@ -337,6 +337,10 @@ def run(ctx: Context) -> Section:
               "per row)", tn)
     sec.summary["corridor_nonlinear_false_alarm"] = fa_nl
     sec.summary["corridor_nonlinear_detection_at_mdb"] = det_nl
+    sec.headline("003", "w-test detection of an MDB-sized fault (B-method, beta0 = 10 %)",
+                 "0.90 by construction", f"{det_nl:.3f} (false alarms {fa_nl:.3f})", "-",
+                 "as designed" if abs(det_nl - 0.9) <= 3 * np.sqrt(0.09 / trials) else
+                 "off the design value")
     lay_s = rssi_layout(bc.ANCHOR_XY, s2, 2.5, bc.N_EXPONENT, list(bc.ANCHOR_IDS),
                         name="ble-corridor RSSI")
     runs_db = [(0, 0.0, "m"), (1, 12.0, "m"), (2, 12.0, "m")][: 2 if ctx.quick else 3]

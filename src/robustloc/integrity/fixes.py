@@ -1,0 +1,317 @@
+"""Integrity of position fixes from ranges or RSSI: the fix's own test, and a protection
+level on every fix (seed 003 applied to :class:`robustloc.estimators.ranging.Locator`).
+
+For each epoch, at the fix ``x`` of any method, with the range-domain residuals
+``v_i = f_i(x) - d_i``, the design ``J`` (``d f / d x``) and the a-priori standard deviations
+``sigma_i`` (the log's per-anchor scale, :meth:`Locator.log_scale`, or the user's sigma):
+
+1. **Flag** the observations the fix does not explain: the w-statistic
+   ``w_i = v_i / (sigma_i sqrt(r_i))`` (seed 003, eqs. (1)-(2); ``r_i`` the redundancy
+   number of the heard observations) above ``N(1 - alpha0/2)`` (3.29), and observations
+   the estimator itself excluded (weight zero).  A robust fix has already down-weighted
+   them; they leave the test and the protection level.
+2. **Global test** of the remaining observations: ``T = sum v_i^2 / sigma_i^2`` against
+   ``chi2(1 - alpha; n' - p)`` with ``alpha`` from the B-method for that redundancy (seed
+   003, eqs. (3)-(4)).
+3. **Status**:
+
+   ========================  ====================================================  ======
+   status                    when                                                  usable
+   ========================  ====================================================  ======
+   ``ok``                    nothing flagged, the test passes, redundancy >= 2      yes
+   ``fault_excluded``        observations flagged, the test of the rest passes      yes
+   ``low_redundancy``        redundancy 1 (robust methods: the plain fit was        yes
+                             used), nothing flagged, the test passes: a fault of
+                             the MDB would be detected but not identified
+   ``unverified``            redundancy 0: nothing can be tested; ``hpl = inf``     yes
+   ``fault_detected``        the test fails (``hpl`` from sigma scaled by the       yes
+                             a-posteriori factor ``sqrt(T / dof)``), or a flagged
+                             observation leaves no redundancy to confirm the rest
+                             (``hpl = inf``): a fault is detected and cannot be
+                             excluded; the position is kept, its bound says how
+                             little it is worth
+   ``unavailable``           usable by the above, but farther than 10 times the     no
+                             heard anchors' extent from them
+   ``protection_exceeded``   usable, but ``hpl`` above ``--alert-limit``            no
+   ========================  ====================================================  ======
+
+   An epoch that already has a status other than ``ok`` / ``fault_excluded`` keeps it.
+4. **Protection levels** (Baarda's external reliability, the slope method of snapshot RAIM
+   with the B-method's ``lambda0``, as :mod:`robustloc.gnss.raim` does for GNSS): a bias
+   of the size of the minimal detectable bias ``MDB_i = sigma_i sqrt(lambda0 / r_i)`` on
+   observation ``i`` moves the fix by ``dx_i = (J^T P J)^-1 J^T P e_i MDB_i``;
+
+       HPL = max_i |dx_i|_horizontal + k sqrt(lambda_max(C_xy)),
+       VPL = max_i |dz_i|             + k sqrt(C_zz),              k = N(1 - alpha0/2)
+
+   with ``C = (J^T P J)^-1`` over the unflagged observations.  Infinite where an
+   observation that moves the fix has no redundancy (its fault could not be detected).
+   The integrity-risk parameters are ``alpha0`` (false alarm of the w-test, 0.1 %),
+   ``beta0`` (missed detection of an MDB-sized fault, 10 %) and ``k``.
+
+The a-priori ``sigma_i`` carries the whole statistical meaning: with the log's scale it is
+the robust spread of each anchor's residuals over the log, so a fix whose residuals are
+far larger than its anchors usually show fails its test instead of being called ``ok``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import stats
+
+from robustloc import status as st
+from robustloc.estimators.solution import Solution
+from robustloc.integrity.bmethod import ALPHA0, BETA0, global_critical, lambda0, w_critical
+from robustloc.integrity.tests import R_MIN, whiten
+
+Array = NDArray[np.float64]
+
+__all__ = ["protect", "protection_levels_local"]
+
+#: Horizontal axes of the solved dimension (x, y); the third, when present, is vertical.
+_H = slice(0, 2)
+
+
+def protection_levels_local(
+    J: Array, sigma: Array, used: NDArray[np.bool_], lam0: float, k_noise: float
+) -> tuple[Array, Array, Array]:
+    """HPL, VPL (N,) and redundancy numbers (N, n) in a local frame (x, y[, z]).
+
+    Parameters
+    ----------
+    J : ndarray (N, n, p)
+        Design at the fix, ``p`` = 2 or 3 (x, y[, z] in metres).
+    sigma : ndarray (N, n)
+        A-priori standard deviation of each observation (m).
+    used : ndarray of bool (N, n)
+        Observations in the solution.
+    lam0 : float
+        Non-centrality ``lambda0`` of the B-method.
+    k_noise : float
+        Multiplier of the fault-free standard deviation.
+
+    Returns
+    -------
+    hpl, vpl, r
+        ``vpl`` is NaN for 2-D fixes.
+    """
+    N, _, p = J.shape
+    wh = whiten(J, np.where(used, sigma, np.nan), mask=used)
+    r = 1.0 - wh.hat_diagonal()
+    G = np.einsum("kpq,kiq->kip", wh.Ninv, wh.A)  # d x / d (v_i / sigma_i)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        kk = np.sqrt(lam0 / np.where(r > R_MIN, r, np.nan))
+        moves = np.linalg.norm(G, axis=2) > 1e-9
+        dx = G * kk[..., None]
+        dh = np.hypot(dx[..., 0], dx[..., 1])
+        blind = wh.used & (r <= R_MIN) & moves
+        dh = np.where(blind, np.inf, np.where(wh.used & moves, dh, 0.0))
+        du = (np.where(blind, np.inf, np.where(wh.used & moves, np.abs(dx[..., 2]), 0.0))
+              if p == 3 else None)
+    ok = wh.ok & (wh.n_used >= p)
+    C = wh.Ninv
+    cen = C[:, _H, _H]
+    tr, det = cen[:, 0, 0] + cen[:, 1, 1], cen[:, 0, 0] * cen[:, 1, 1] - cen[:, 0, 1] ** 2
+    lam_max = 0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
+    with np.errstate(invalid="ignore"):
+        hpl = np.where(ok, np.max(np.nan_to_num(dh, nan=0.0), axis=1)
+                       + k_noise * np.sqrt(lam_max), np.nan)
+        vpl = (np.where(ok, np.max(np.nan_to_num(du, nan=0.0), axis=1)
+                        + k_noise * np.sqrt(C[:, 2, 2]), np.nan)
+               if p == 3 else np.full(N, np.nan))
+    return hpl, vpl, np.where(wh.used, r, np.nan)
+
+
+def protect(
+    sol: Solution,
+    *,
+    alpha0: float = ALPHA0,
+    beta0: float = BETA0,
+    k_noise: float | None = None,
+    alert_limit: float | None = None,
+    fallback_rows: NDArray[np.bool_] | None = None,
+) -> Solution:
+    """Test every fix and attach its protection levels (see the module docstring).
+
+    Parameters
+    ----------
+    sol : Solution
+        From :meth:`Locator.solve`, whose ``extra`` holds ``range_residuals``,
+        ``jacobian`` and, when known, ``sigma_obs`` (without it the per-epoch
+        ``sigma0`` of the fit stands in, a weaker bound).
+    alpha0, beta0 : float
+        Significance of the w-test and missed-detection probability of the B-method.
+    k_noise : float, optional
+        Multiplier of the fault-free noise; default ``N(1 - alpha0/2)``.
+    alert_limit : float, optional
+        Usable fixes with ``hpl`` above it get ``protection_exceeded`` (metres).
+    fallback_rows : ndarray of bool (N,), optional
+        Epochs a robust method solved by the plain fit (low redundancy): a passing test
+        gives ``low_redundancy`` instead of ``ok``.  Default: ``sol.extra["fallback"]``.
+
+    Returns
+    -------
+    Solution
+        A copy with updated ``status`` and ``position`` (NaN where no longer usable) and
+        ``extra["hpl"]``, ``extra["vpl"]``, ``extra["test_statistic"]``,
+        ``extra["test_critical"]``, ``extra["flagged"]``.
+    """
+    for key in ("range_residuals", "jacobian"):
+        if key not in sol.extra:
+            raise ValueError(f"the solution has no {key!r}: solve it with Locator.solve")
+    v = sol.extra["range_residuals"]
+    J = sol.extra["jacobian"]
+    N, n, p = J.shape
+    sig = sol.extra.get("sigma_obs")
+    if sig is None:  # no a-priori scale: the fit's own sigma0 (NaN at zero redundancy)
+        sig = np.broadcast_to(sol.sigma0[:, None], (N, n))
+    sig = np.where(np.isfinite(sig) & (sig > 0), sig, np.nan)
+    k = w_critical(alpha0) if k_noise is None else float(k_noise)
+    lam0 = lambda0(alpha0, beta0)
+    status = np.array(sol.status, dtype=object)
+    testable = np.isin(status, (st.OK, st.FAULT_EXCLUDED))
+    heard = np.isfinite(v) & np.isfinite(sig) & np.all(np.isfinite(J), axis=2)
+    excl = sol.excluded if sol.excluded.shape == (N, n) else np.zeros((N, n), dtype=bool)
+    used = heard & ~excl
+    # 1. w-test on the observations the estimator kept
+    _, _, r = protection_levels_local(J, sig, used, lam0, k)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.abs(v) / (sig * np.sqrt(np.where(r > R_MIN, r, np.nan)))
+    flagged = used & (w > w_critical(alpha0))
+    keep = used & ~flagged
+    # 2. global test of the rest
+    dof = keep.sum(axis=1) - p
+    with np.errstate(invalid="ignore"):
+        T = np.nansum(np.where(keep, (v / sig) ** 2, 0.0), axis=1)
+    crit = np.full(N, np.nan)
+    has = dof >= 1
+    if np.any(has):
+        crit[has] = global_critical(dof[has], alpha0=alpha0, beta0=beta0)
+    passed = has & (T <= crit)
+    # 3. status
+    new = status.copy()
+    any_flag = flagged.any(axis=1) | excl.any(axis=1)
+    if fallback_rows is None:
+        fallback_rows = sol.extra.get("fallback")
+    fb = np.zeros(N, dtype=bool) if fallback_rows is None else np.asarray(fallback_rows, bool)
+    failed = testable & has & ~passed
+    blind = testable & any_flag & (dof < 1)
+    new[testable & (dof == 0) & ~any_flag] = st.UNVERIFIED
+    new[failed | blind] = st.FAULT_DETECTED
+    new[testable & passed & any_flag] = st.FAULT_EXCLUDED
+    new[testable & passed & ~any_flag & ((dof == 1) | fb)] = st.LOW_REDUNDANCY
+    new[testable & passed & ~any_flag & (dof >= 2) & ~fb] = st.OK
+    # 4. protection levels over the observations kept; a failed test scales sigma by the
+    # a-posteriori variance factor sqrt(T / dof) (> 1), the classical remedy when the
+    # a-priori noise is too optimistic for this epoch
+    with np.errstate(invalid="ignore", divide="ignore"):
+        factor = np.where(failed, np.sqrt(T / np.maximum(dof, 1)), 1.0)
+    hpl, vpl, _ = protection_levels_local(J, sig * factor[:, None], keep, lam0, k)
+    usable = np.isin(new, st.USABLE)
+    unbounded = (new == st.UNVERIFIED) | blind
+    hpl = np.where(usable, np.where(unbounded, np.inf, hpl), np.nan)
+    vpl = np.where(usable & (p == 3), np.where(unbounded, np.inf, vpl), np.nan)
+    # a fix far outside anything its anchors can vouch for is no fix (issue 15: never ok
+    # with a non-finite sigma0, or a position outside 10x the anchors' extent)
+    pos = sol.position
+    if np.any(usable):
+        span = sol.extra.get("anchor_extent")
+        if span is not None:
+            centre, radius = span
+            with np.errstate(invalid="ignore"):
+                far = np.linalg.norm(pos - centre, axis=1) > 10.0 * max(radius, 1.0)
+            new[usable & far] = st.UNAVAILABLE
+    if alert_limit is not None:
+        with np.errstate(invalid="ignore"):
+            new[np.isin(new, st.USABLE) & (new != st.PREDICTED) & ~(hpl <= alert_limit)] = (
+                st.PROTECTION_EXCEEDED)
+    usable = np.isin(new, st.USABLE)
+    excluded = excl | flagged
+    n_used = np.where(np.isfinite(v), ~excluded, False).sum(axis=1)
+    extra = dict(sol.extra)
+    extra.update(hpl=np.where(usable, hpl, np.nan), vpl=np.where(usable, vpl, np.nan),
+                 test_statistic=T, test_critical=crit, flagged=flagged,
+                 test_alpha=stats.chi2.sf(crit, np.maximum(dof, 1)))
+    return replace(sol, status=new, position=np.where(usable[:, None], pos, np.nan),
+                   excluded=excluded, n_used=n_used, extra=extra)
+
+
+#: ``robustloc locate``'s default: Gauss-Newton where the epoch passes its own test, the
+#: robust fit where the test finds a fault (:func:`locate_protected`).
+AUTO = "auto"
+#: The robust method ``auto`` switches to on an epoch whose plain fit fails its test.
+AUTO_ROBUST = "huber"
+
+
+def locate_protected(
+    locator,  # robustloc.estimators.ranging.Locator (method "auto" allowed here)
+    anchors: Array,
+    values: Array,
+    kind: str = "range",
+    *,
+    A: Array | None = None,
+    n: Array | None = None,
+    height_offset: Array | None = None,
+    alpha0: float = ALPHA0,
+    beta0: float = BETA0,
+    k_noise: float | None = None,
+    alert_limit: float | None = None,
+) -> Solution:
+    """Solve every epoch and :func:`protect` it: the one entry point of every front end
+    (``locate``, the service, the Dask engine) for fixes with their integrity.
+
+    ``locator.method == "auto"`` ("test, then robustify") solves every epoch by plain
+    Gauss-Newton (``nls``, the maximum-likelihood fix when the noise is what the log's
+    scale says) and tests it; an epoch whose test fails (``fault_detected``) is solved
+    again by :data:`AUTO_ROBUST` with the log's scale and tested again.  On epochs that
+    agree with the noise model it is exactly ``nls`` (no efficiency lost); on epochs the
+    test proves inconsistent it is the robust fix.  The choice is measured in the report's
+    "out of the box" section: on the shared real data plain Gauss-Newton is as good as any
+    peer, while M-estimation on every epoch loses up to 20 % there (systematic NLOS biases
+    that no residual pattern reveals); on ranges with 20 % gross errors the switch cuts
+    the RMS by 40 %.
+    """
+    from dataclasses import replace as _replace
+
+    kw = dict(A=A, n=n, height_offset=height_offset)
+    pk = dict(alpha0=alpha0, beta0=beta0, k_noise=k_noise, alert_limit=alert_limit)
+    if locator.method != AUTO:
+        return protect(locator.solve(anchors, values, kind, **kw), **pk)
+    plain = protect(locator.solve_as("nls", anchors, values, kind, **kw), **pk)
+    redo = plain.status == st.FAULT_DETECTED
+    if alert_limit is not None:  # a fix the alert limit refused may have failed its test
+        redo |= (plain.status == st.PROTECTION_EXCEEDED) & ~(
+            plain.extra["test_statistic"] <= plain.extra["test_critical"])
+    if not np.any(redo):
+        return _replace(plain, method=AUTO)
+    scale = plain.extra.get("log_scale")
+    robust_loc = locator.with_method(AUTO_ROBUST, log_scale=scale)
+    rows = np.flatnonzero(redo)
+    rob = protect(robust_loc.solve(anchors, np.asarray(values)[rows], kind, **kw), **pk)
+    return _merge_rows(_replace(plain, method=AUTO), rob, rows)
+
+
+def _merge_rows(base: Solution, sub: Solution, rows: NDArray[np.int64]) -> Solution:
+    """``base`` with epochs ``rows`` replaced by ``sub`` (whose epochs are ``rows``)."""
+    out = {}
+    for name in ("position", "covariance", "residuals", "weights", "excluded", "sigma0",
+                 "iterations", "converged", "status", "n_used"):
+        arr = np.array(getattr(base, name), copy=True)
+        arr[rows] = getattr(sub, name)
+        out[name] = arr
+    extra = dict(base.extra)
+    N = base.position.shape[0]
+    for k, v in sub.extra.items():
+        b = extra.get(k)
+        if (isinstance(v, np.ndarray) and isinstance(b, np.ndarray) and b.shape[:1] == (N,)
+                and b.shape[1:] == v.shape[1:]):
+            arr = b.copy()
+            arr[rows] = v
+            extra[k] = arr
+    robust = np.zeros(N, dtype=bool)
+    robust[rows] = True
+    extra["robust_refit"] = robust
+    return replace(base, **out, extra=extra)

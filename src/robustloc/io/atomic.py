@@ -1,0 +1,251 @@
+"""Atomic output files, standard output as ``-``, and the output-over-input guard.
+
+Every file a command writes goes through :func:`atomic_output`: the data are written to a
+temporary file in the target folder (``.NAME.XXXXXX.tmp``), flushed and ``fsync``-ed, and
+renamed onto the final path with :func:`os.replace` only when the whole file is complete.
+So, whatever happens (an error in the input half way, Ctrl-C, ``kill``, a full disk):
+
+* the final path holds either the previous file, intact, or nothing;
+* the temporary file is removed (except after ``kill -9`` or a power cut, when a hidden
+  ``.NAME.*.tmp`` may stay behind: it never shadows the real file);
+* two runs writing the same path at once never interleave: each rename is atomic, the last
+  complete file wins.
+
+Targets that are not regular files cannot be replaced atomically and are written directly:
+``-`` (standard output; CSV only), character devices (``/dev/stdout``, ``/dev/null``,
+``/dev/full``) and FIFOs.  :func:`writes_to_stdout` tells a command that its data go to
+standard output, so that it prints its summary on stderr instead.
+
+An OS error while writing (``ENOSPC``, ``EROFS``, a parent that is a file) is raised as
+:class:`~robustloc.errors.OutputError` naming the final path, never as a bare ``OSError``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import stat
+import sys
+import tempfile
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import IO
+
+from robustloc.errors import InputError, OutputError
+
+PathLike = str | os.PathLike
+
+__all__ = [
+    "STDIO",
+    "atomic_output",
+    "check_not_input",
+    "describe_oserror",
+    "is_stdio",
+    "writes_to_stdout",
+]
+
+#: The name that means standard input (for readers) or standard output (for writers).
+STDIO = "-"
+
+
+def is_stdio(path: PathLike | None) -> bool:
+    """True if ``path`` is ``-`` (standard input or output)."""
+    return path is not None and str(path) == STDIO
+
+
+def _stdout_stat() -> os.stat_result | None:
+    try:
+        return os.fstat(sys.stdout.fileno())
+    except (OSError, ValueError, AttributeError):  # no real fd (pytest capture, closed)
+        return None
+
+
+def writes_to_stdout(path: PathLike | None) -> bool:
+    """True if writing ``path`` puts the data on this process's standard output.
+
+    ``-``, ``/dev/stdout``, ``/dev/fd/1``, or any path that is the same file as fd 1 (a
+    FIFO or terminal it is connected to).  A command then prints its run summary on
+    stderr, so that a summary never mixes into a data stream.
+    """
+    if path is None:
+        return False
+    if is_stdio(path):
+        return True
+    s = str(path)
+    if s in ("/dev/stdout", "/dev/fd/1", "/proc/self/fd/1"):
+        return True
+    out = _stdout_stat()
+    if out is None:
+        return False
+    try:
+        st = os.stat(s)
+    except OSError:
+        return False
+    # a regular file that stdout is redirected to (`> file`) is not "the data stream"
+    # unless it is the output itself: then the summary would land in the data, too.
+    return (st.st_dev, st.st_ino) == (out.st_dev, out.st_ino)
+
+
+def describe_oserror(exc: OSError) -> str:
+    """Short, user-facing words for an OS error on a path (no errno number, no class)."""
+    words = {
+        errno.ENOENT: "file not found",
+        errno.EISDIR: "is a directory, expected a file",
+        errno.EACCES: "permission denied",
+        errno.EPERM: "permission denied",
+        errno.EEXIST: "already exists and is not a folder (a folder was expected)",
+        errno.ENOTDIR: "a parent of this path is a file, not a folder",
+        errno.ENOSPC: "no space left on device",
+        errno.EDQUOT: "disk quota exceeded",
+        errno.EROFS: "read-only file system",
+        errno.ENAMETOOLONG: "file name too long",
+        errno.EFBIG: "file too large",
+        errno.EIO: "input/output error",
+        errno.EPIPE: "broken pipe",
+    }
+    if exc.errno in words:
+        return words[exc.errno]
+    return (exc.strerror or str(exc)).lower()
+
+
+def _samefile(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return a.resolve() == b.resolve()
+
+
+def check_not_input(out: PathLike | None, inputs: Iterable[PathLike | None]) -> None:
+    """Refuse an output that is one of the inputs (same file, or same resolved path).
+
+    Raises
+    ------
+    InputError
+        ``PATH: output would overwrite an input``, before anything is written.
+    """
+    if out is None or is_stdio(out):
+        return
+    o = Path(out)
+    for i in inputs:
+        if i is None or is_stdio(i):
+            continue
+        p = Path(i)
+        if str(o) in ("/dev/null",):
+            return
+        if _samefile(o, p):
+            raise InputError("output would overwrite an input", out)
+
+
+def _is_special(p: Path) -> bool:
+    """An existing target that is not a regular file (device, FIFO): written in place."""
+    try:
+        mode = os.stat(p).st_mode
+    except OSError:
+        return False
+    return not stat.S_ISREG(mode) and not stat.S_ISDIR(mode)
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def _prepare_parent(p: Path) -> Path:
+    parent = p.parent if str(p.parent) else Path(".")
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError):
+        raise OutputError("a parent of this path is a file, not a folder", p,
+                          errno_=errno.ENOTDIR) from None
+    except OSError as exc:
+        raise OutputError(describe_oserror(exc), p, errno_=exc.errno) from None
+    if not parent.is_dir():
+        raise OutputError("a parent of this path is a file, not a folder", p,
+                          errno_=errno.ENOTDIR)
+    if p.is_dir():
+        raise OutputError("is a directory, expected a file", p, errno_=errno.EISDIR)
+    return parent
+
+
+@contextlib.contextmanager
+def atomic_output(path: PathLike, *, binary: bool = True) -> Iterator[tuple[Path, IO | None]]:
+    """Context manager that makes writing ``path`` all-or-nothing.
+
+    Yields ``(target, stream)``:
+
+    * for a regular file, ``target`` is the temporary file to write (by name; ``stream``
+      is None); on a clean exit it is fsync-ed and renamed onto ``path``; on any
+      exception (``KeyboardInterrupt`` and SIGTERM included) it is removed and the
+      exception propagates;
+    * for ``-``, ``target`` is None and ``stream`` is standard output (binary or text by
+      ``binary``);
+    * for a device or FIFO, ``target`` is ``path`` itself, written in place.
+
+    Raises
+    ------
+    OutputError
+        An OS error on the output (no space, read-only, parent is a file), naming ``path``.
+    """
+    if is_stdio(path):
+        stream = sys.stdout.buffer if binary else sys.stdout
+        try:
+            yield None, stream
+            stream.flush()
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            if exc.errno == errno.EPIPE:
+                raise
+            raise OutputError(describe_oserror(exc), "<stdout>", errno_=exc.errno) from None
+        return
+    p = Path(path)
+    if _is_special(p):
+        try:
+            yield p, None
+        except OSError as exc:
+            if isinstance(exc, (BrokenPipeError, OutputError)):
+                raise
+            raise OutputError(describe_oserror(exc), p, errno_=exc.errno) from None
+        return
+    parent = _prepare_parent(p)
+    try:
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=parent)
+    except OSError as exc:
+        raise OutputError(describe_oserror(exc), p, errno_=exc.errno) from None
+    os.close(fd)
+    tmp = Path(tmp_name)
+    done = False
+    try:
+        yield tmp, None
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        with contextlib.suppress(OSError):  # keep the usual permissions (mkstemp: 0600)
+            os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, p)
+        done = True
+        _fsync_dir(parent)
+    except OutputError:
+        raise
+    except OSError as exc:
+        if isinstance(exc, BrokenPipeError) or exc.filename not in (None, str(tmp), tmp_name):
+            raise
+        raise OutputError(describe_oserror(exc), p, errno_=exc.errno) from None
+    finally:
+        if not done:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
