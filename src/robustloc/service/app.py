@@ -249,7 +249,8 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             "floorplan": None if cfg.floorplan is None else {
                 "url": "/floorplan", "extent": list(ext) if ext else None},
             "tags": len(engine.assembler.tags), "pending_rows": engine.assembler.n_pending,
-            "solver_errors": engine.solver_errors, "server_time": time.time(),
+            "solver_errors": engine.solver_errors, "last_solver_error": engine.last_error,
+            "server_time": time.time(),
             **engine.metrics.summary(), **cfg.info,
         })
 

@@ -17,7 +17,8 @@ an optional part of the library).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -48,18 +49,29 @@ class Processor(Protocol):
 
 
 class LocateProcessor:
-    """Per-epoch fixes with one :class:`~robustloc.estimators.ranging.Locator` method.
+    """Per-epoch fixes, each tested with its protection level, as ``robustloc locate``.
+
+    The fixes come from :func:`robustloc.integrity.fixes.locate_protected` (the one entry
+    point of every front end) with a :class:`~robustloc.estimators.ranging.Locator`
+    prepared as ``robustloc locate`` prepares it.
 
     Parameters
     ----------
     anchors : DataFrame
         From :func:`robustloc.io.read_anchors`.
     method : str
-        One of :data:`robustloc.estimators.ranging.METHODS` (default ``huber``, as
-        ``robustloc locate``).
+        ``auto`` (default, as ``robustloc locate``) or one of
+        :data:`robustloc.estimators.ranging.METHODS`.
     dim : {2, 3}
-    solver, domain, reference, robust_scale, min_scale, alpha0, beta0, weight_params
+    solver, domain, reference, min_scale, alpha0, beta0, k_noise, alert_limit, weight_params
         As the ``robustloc locate`` options of the same names.
+    robust_scale : {"mad", "log", "apriori"}
+        Noise scale of the robust methods and of every fix's test.  ``mad`` (default here):
+        per epoch from its own residuals.  ``log`` (``robustloc locate``'s default, a first
+        pass over the whole log) needs ``log_scale``: a live service has no whole log, so
+        the scale comes from a recorded one (:meth:`log_scale_from`).
+    log_scale : sequence of float, optional
+        Per-anchor noise scale for ``robust_scale="log"``.
     sigma : float, optional
         A-priori observation std (m or dB); default the anchors' ``sigma`` column if present.
     model : str, optional
@@ -74,35 +86,45 @@ class LocateProcessor:
         self,
         anchors: pd.DataFrame,
         *,
-        method: str = "huber",
+        method: str | None = None,
         dim: int = 2,
         solver: str = "nonlinear",
         domain: str = "range",
         sigma: float | None = None,
         robust_scale: str = "mad",
+        log_scale: Sequence[float] | None = None,
         reference: str = "first",
         min_scale: float = 0.0,
         alpha0: float = 0.001,
         beta0: float = 0.10,
+        k_noise: float | None = None,
+        alert_limit: float | None = None,
         weight_params: Mapping[str, float] | None = None,
         model: str | None = None,
         range_calibration: bool = True,
         tag_height: float | None = None,
     ) -> None:
-        from robustloc.estimators.ranging import METHODS, ROBUST, Locator
+        from robustloc.estimators.ranging import DEFAULT_METHOD, METHODS, ROBUST, Locator
 
-        if method not in METHODS:
-            raise ValueError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+        method = DEFAULT_METHOD if method is None else method
+        if method not in METHODS + ("auto",):
+            raise ValueError(f"unknown method {method!r}; choose one of auto, "
+                             f"{', '.join(METHODS)}")
         if dim not in (2, 3):
             raise ValueError(f"dim must be 2 or 3, got {dim}")
         if dim == 3 and "z" not in anchors.columns:
             raise ValueError("dim 3 needs a z column in the anchors")
+        if robust_scale == "log" and log_scale is None:
+            raise ValueError("robust scale 'log' needs the noise scale of a recorded log "
+                             "(--scale-from LOG); or use --robust-scale mad")
         self.anchors = anchors
         self.anchor_ids = [str(a) for a in anchors["anchor"]]
         self.name = method
         self.dim = dim
         self.model = model
         self.range_calibration = range_calibration
+        self.alpha0, self.beta0 = alpha0, beta0
+        self.k_noise, self.alert_limit = k_noise, alert_limit
         self.xyz = anchors[["x", "y"] + (["z"] if dim == 3 else [])].to_numpy(dtype=float)
         self.height = None
         if tag_height is not None:
@@ -121,11 +143,46 @@ class LocateProcessor:
             weight_params=dict(weight_params or {}) if method in ROBUST else {},
             min_scale=min_scale, alpha0=alpha0, beta0=beta0,
         )
+        if log_scale is not None:
+            self.locator = replace(self.locator,
+                                   log_scale_fixed=tuple(float(v) for v in log_scale))
         self._pathloss: tuple[np.ndarray, np.ndarray] | None = None
 
+    @staticmethod
+    def log_scale_from(path: str, anchors: pd.DataFrame, *, method: str | None = None,
+                       dim: int = 2, chunk_rows: int = 500_000, **settings: Any
+                       ) -> tuple[float, ...]:
+        """Per-anchor noise scale of a recorded log, by ``robustloc locate``'s first pass.
+
+        ``settings`` are the other :class:`LocateProcessor` settings (``solver``, ``model``,
+        ``range_calibration``, ...).  Calls ``robustloc.commands.locate._fix_log_scale``,
+        so a log replayed through a service started with this scale gives the positions
+        ``robustloc locate`` gives on the file.
+        """
+        import argparse
+
+        from robustloc.commands.locate import _fix_log_scale
+        from robustloc.io.tables import UnsortedInput
+
+        proto = LocateProcessor(anchors, method=method, dim=dim, robust_scale="log",
+                                log_scale=(1.0,) * len(anchors), **settings)
+        loc = replace(proto.locator, log_scale_fixed=None)
+        ns = argparse.Namespace(measurements=str(path), chunk_rows=chunk_rows,
+                                no_range_calibration=not proto.range_calibration,
+                                model=proto.model)
+        try:
+            (out,) = _fix_log_scale(ns, anchors, [loc], proto.xyz, proto.height, "auto")
+        except UnsortedInput:
+            (out,) = _fix_log_scale(ns, anchors, [loc], proto.xyz, proto.height, "sort")
+        if out.log_scale_fixed is None:
+            raise ValueError(f"{path}: no epochs to take the noise scale from")
+        return tuple(out.log_scale_fixed)
+
     def process(self, epochs: Epochs) -> pd.DataFrame:
+        from robustloc.integrity.fixes import locate_protected
         from robustloc.models.calibration import apply_range_calibration
         from robustloc.models.pathloss import log_distance_arrays
+        from robustloc.status import INVALID
 
         values = epochs.values
         A = n = None
@@ -135,10 +192,16 @@ class LocateProcessor:
             A, n = self._pathloss
         elif self.range_calibration:
             values = apply_range_calibration(self.anchors, values)
-        sol = self.locator.solve(
-            self.xyz, values, epochs.value, A=A, n=n, height_offset=self.height
-        )
+        sol = locate_protected(
+            self.locator, self.xyz, values, epochs.value, A=A, n=n,
+            height_offset=self.height, alpha0=self.alpha0, beta0=self.beta0,
+            k_noise=self.k_noise, alert_limit=self.alert_limit)
         frame = positions_frame(sol, epochs.time, epochs.tag, self.anchor_ids, self.name)
+        bad = epochs.all_invalid
+        if bad.any():  # as robustloc locate: every row of the epoch outside the limits
+            frame.loc[bad, "status"] = INVALID
+            frame.loc[bad, [c for c in ("x", "y", "z", "sigma0") if c in frame]] = np.nan
+            frame.loc[bad, "n_used"] = 0
         cov = np.asarray(sol.covariance, dtype=float)
         frame["cov_xx"] = cov[:, 0, 0]
         frame["cov_xy"] = cov[:, 0, 1]
