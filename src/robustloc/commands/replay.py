@@ -1,0 +1,162 @@
+"""``robustloc replay``: drive a running ``robustloc serve`` from a measurements log."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import numpy as np
+
+from robustloc.commands._argtypes import nonnegative_float, positive_int
+
+NAME = "replay"
+HELP = "send a measurements log to a running robustloc serve (HTTP batches or WebSocket)"
+DESCRIPTION = """\
+Reads a measurements file (CSV or Parquet; any row order, sorted by time here) and sends
+its rows to a running service, one batch per time step (or --batch-rows rows), paced at
+--speed times real time (0: as fast as the server acknowledges). Every batch must be
+acknowledged (202); rejected rows are reported with their file line. The exit code is 0
+when every row was accepted, 1 when the server rejected some, 2 on a connection error.
+
+  robustloc replay meas.csv --url http://127.0.0.1:8080 --speed 10
+  robustloc replay meas.csv --url http://127.0.0.1:8080 --speed 0 --transport ws
+  ROBUSTLOC_TOKEN=secret robustloc replay meas.parquet --url http://host:8080"""
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("measurements", help="measurements file (time, tag, anchor, rssi|range)")
+    p.add_argument("--url", required=True, help="service base URL, e.g. http://127.0.0.1:8080")
+    p.add_argument("--speed", type=nonnegative_float, default=1.0,
+                   help="times real time (default 1; 0 = no pacing)")
+    p.add_argument("--token", default=None, help="bearer token (default $ROBUSTLOC_TOKEN)")
+    p.add_argument("--transport", choices=("http", "ws"), default="http",
+                   help="POST /api/measurements batches (default) or WebSocket "
+                        "/ws/measurements")
+    p.add_argument("--batch-rows", type=positive_int, default=None,
+                   help="rows per batch (default: one time step per batch)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _batches(times: np.ndarray, batch_rows: int | None) -> list[tuple[int, int]]:
+    n = len(times)
+    if batch_rows is not None:
+        return [(i, min(i + batch_rows, n)) for i in range(0, n, batch_rows)]
+    cuts = np.flatnonzero(np.diff(times) != 0) + 1
+    edges = np.concatenate(([0], cuts, [n]))
+    return list(zip(edges[:-1].tolist(), edges[1:].tolist()))
+
+
+def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
+           transport: str = "http", batch_rows: int | None = None,
+           progress: bool = False) -> dict:
+    """Send a log to a service; returns ``{rows, accepted, rejected: [...], seconds}``."""
+    import os
+
+    from tqdm import tqdm
+
+    from robustloc.io import read_measurements
+
+    df = read_measurements(path)
+    value = df.attrs["value"]
+    df = df.sort_values("time", kind="stable")
+    lines = df.index.to_numpy()
+    times = df["time"].to_numpy(float)
+    records = [
+        {"time": t, "tag": g, "anchor": a, value: v}
+        for t, g, a, v in zip(times.tolist(), df["tag"].tolist(), df["anchor"].tolist(),
+                              df[value].to_numpy(float).tolist())
+    ]
+    token = token if token is not None else os.environ.get("ROBUSTLOC_TOKEN")
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    base = url.rstrip("/")
+    accepted = 0
+    rejected: list[dict] = []
+    t_start = time.monotonic()
+    bar = tqdm(total=len(records), unit=" rows", disable=not progress, file=sys.stderr)
+    if transport == "ws":
+        from websockets.sync.client import connect
+
+        ws_url = base.replace("http://", "ws://", 1).replace("https://", "wss://", 1)
+        conn = connect(ws_url + "/ws/measurements", additional_headers=headers,
+                       max_size=None).__enter__()
+    else:
+        import httpx
+
+        client = httpx.Client(headers=headers, timeout=60.0)
+        conn = None
+    try:
+        for i0, i1 in _batches(times, batch_rows):
+            if speed > 0:
+                due = (times[i0] - times[0]) / speed
+                wait = due - (time.monotonic() - t_start)
+                if wait > 0:
+                    time.sleep(wait)
+            body = json.dumps(records[i0:i1])
+            while True:
+                if conn is not None:
+                    conn.send(body)
+                    res = json.loads(conn.recv())
+                    status = res.pop("status", 202) if "error" in res or "status" in res else 202
+                else:
+                    r = client.post(base + "/api/measurements", content=body,
+                                    headers={"Content-Type": "application/json"})
+                    status = r.status_code
+                    res = r.json() if r.headers.get("content-type", "").startswith(
+                        "application/json") else {"error": r.text}
+                if status == 429:  # rate limited: wait as told, resend the same batch
+                    time.sleep(float(res.get("retry_after_s", 0.5)))
+                    continue
+                break
+            if status != 202:
+                raise RuntimeError(f"server answered {status}: {res.get('error', res)}")
+            accepted += int(res["accepted"])
+            for r_ in res["rejected"]:
+                rejected.append({"line": int(lines[i0 + r_["index"]]), "error": r_["error"]})
+            bar.update(i1 - i0)
+    finally:
+        bar.close()
+        if conn is not None:
+            conn.__exit__(None, None, None)
+        else:
+            client.close()
+    return {"rows": len(records), "accepted": accepted, "rejected": rejected,
+            "seconds": round(time.monotonic() - t_start, 3)}
+
+
+def _transport_errors() -> tuple[type[BaseException], ...]:
+    errs: list[type[BaseException]] = [OSError, RuntimeError]
+    try:
+        import httpx
+
+        errs.append(httpx.HTTPError)
+    except ImportError:
+        pass
+    try:
+        from websockets.exceptions import WebSocketException
+
+        errs.append(WebSocketException)
+    except ImportError:
+        pass
+    return tuple(errs)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        summary = replay(args.measurements, args.url, speed=args.speed, token=args.token,
+                         transport=args.transport, batch_rows=args.batch_rows,
+                         progress=not args.quiet and sys.stderr.isatty())
+    except _transport_errors() as exc:
+        print(f"error: {args.url}: {exc}", file=sys.stderr)
+        return 2
+    except ImportError as exc:
+        print(f"error: robustloc replay needs the [serve] extra ({exc})", file=sys.stderr)
+        return 2
+    print(f"{summary['accepted']} of {summary['rows']} rows accepted in "
+          f"{summary['seconds']:.2f} s")
+    for r in summary["rejected"][:20]:
+        print(f"  {args.measurements}:{r['line']}: {r['error']}", file=sys.stderr)
+    if len(summary["rejected"]) > 20:
+        print(f"  ... {len(summary['rejected']) - 20} more rejected rows", file=sys.stderr)
+    return 1 if summary["rejected"] else 0

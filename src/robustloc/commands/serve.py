@@ -1,0 +1,222 @@
+"""``robustloc serve``: the live positioning service (HTTP, WebSocket, MQTT, map page)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from robustloc.commands._argtypes import nonnegative_float, positive_float, positive_int
+
+NAME = "serve"
+HELP = "live positioning service: HTTP/WebSocket/MQTT ingest, positions API, live map page"
+DESCRIPTION = """\
+Runs an ASGI service (Starlette on uvicorn) that accepts measurement rows as they arrive,
+assembles them into epochs per tag, solves each epoch with the same estimators as
+`robustloc locate` (or tracks with `robustloc.track` under --track), stores rows and
+positions durably, and publishes positions over HTTP, WebSocket and a live map page at /.
+
+Ingest: POST /api/measurements (JSON array or NDJSON of {"time","tag","anchor","rssi"|
+"range"}), WebSocket /ws/measurements, or MQTT (--mqtt HOST:PORT, topic --mqtt-topic,
+payload = the same JSON). Reads: GET /api/positions?tag=&since=&until=, /api/anchors,
+/metrics (Prometheus), WebSocket /ws/positions[?tag=]. /healthz needs no token.
+
+Epoch assembly: an epoch (time, tag) is solved once it is older than the newest time seen
+for its tag by more than --latency-window seconds (default 0.5 s), or when its tag has been
+silent for --idle-flush seconds of wall time. A later row is stored and counted as late
+(metric robustloc_rows_late_total), never dropped silently.
+
+Durability (--store DIR): every accepted row is synced to a write-ahead log before the 202;
+logs are sealed into Parquet segments (DIR/measurements/*.parquet, DIR/positions/*.parquet).
+After a crash (even kill -9) and a restart on the same DIR, nothing acknowledged is lost
+and each tag resumes where it stopped. Without --store the service keeps everything in
+memory (a warning says so).
+
+Security: binds 127.0.0.1 unless --host says otherwise; --token (or ROBUSTLOC_TOKEN)
+guards ingest and reads (Authorization: Bearer TOKEN; WebSockets may use ?token=);
+body size (--max-body-bytes) and per-client rate (--rate-limit) limits; CORS off unless
+--cors-origin is given.
+
+  robustloc serve --anchors anchors.csv --store live-store
+  robustloc serve --anchors anchors.csv --method igg --latency-window 0.2 --mqtt 127.0.0.1:1883
+  ROBUSTLOC_TOKEN=secret robustloc serve --anchors a.csv --host 0.0.0.0 --floorplan plan.png \\
+      --floorplan-extent 0,0,40,25"""
+
+
+def _extent(text: str) -> tuple[float, float, float, float]:
+    try:
+        v = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected XMIN,YMIN,XMAX,YMAX, got {text!r}") from None
+    if len(v) != 4 or not all(map(lambda x: x == x and abs(x) != float("inf"), v)):
+        raise argparse.ArgumentTypeError(f"expected 4 finite numbers, got {text!r}")
+    if not (v[0] < v[2] and v[1] < v[3]):
+        raise argparse.ArgumentTypeError("extent needs XMIN < XMAX and YMIN < YMAX")
+    return v  # type: ignore[return-value]
+
+
+def _hostport(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise argparse.ArgumentTypeError(f"expected HOST:PORT, got {text!r}")
+    return host, int(port)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from robustloc.estimators.ranging import DEFAULT_METHOD, METHODS
+    from robustloc.service.app import DEFAULT_MAX_BODY_BYTES, DEFAULT_RATE_LIMIT_ROWS
+    from robustloc.service.engine import DEFAULT_IDLE_FLUSH_S, DEFAULT_LATENCY_WINDOW_S
+
+    p.add_argument("--anchors", required=True, help="anchors file (anchor, x, y[, z], ...)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to bind (default 127.0.0.1: this machine only)")
+    p.add_argument("--port", type=int, default=8080, help="TCP port (default 8080)")
+    p.add_argument("--token", default=None,
+                   help="bearer token for ingest and reads (default: $ROBUSTLOC_TOKEN; none)")
+    p.add_argument("--store", default=None, metavar="DIR",
+                   help="durable store folder (default: memory only, lost on exit)")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--method", default=DEFAULT_METHOD, choices=("auto",) + METHODS,
+                      help=f"positioning method, as robustloc locate (default {DEFAULT_METHOD})")
+    mode.add_argument("--track", action="store_true",
+                      help="track with robustloc.track.Tracker instead of per-epoch fixes")
+    p.add_argument("--track-model", default="cv", help="--track: motion model (default cv)")
+    p.add_argument("--track-filter", default="ekf", help="--track: filter (default ekf)")
+    p.add_argument("--dim", type=int, choices=(2, 3), default=2, help="solve in 2-D or 3-D")
+    p.add_argument("--solver", choices=("nonlinear", "linearized"), default="nonlinear",
+                   help="as robustloc locate --solver")
+    p.add_argument("--domain", choices=("range", "rssi"), default="range",
+                   help="as robustloc locate --domain")
+    p.add_argument("--sigma", type=positive_float, default=None,
+                   help="a-priori observation std (m or dB); default the anchors' sigma")
+    p.add_argument("--robust-scale", choices=("mad", "log", "apriori"), default="mad",
+                   help="noise scale of the robust methods and of every fix's test: per "
+                        "epoch from its residuals (mad, default: a live service has no whole "
+                        "log), per anchor from a recorded log (log, needs --scale-from; "
+                        "robustloc locate's default), or --sigma (apriori)")
+    p.add_argument("--scale-from", default=None, metavar="LOG",
+                   help="recorded measurements log whose per-anchor noise scale (robustloc "
+                        "locate's first pass) the service uses; implies --robust-scale log")
+    p.add_argument("--alert-limit", type=positive_float, default=None, metavar="L",
+                   help="horizontal alert limit (m), as robustloc locate")
+    p.add_argument("--k-noise", type=nonnegative_float, default=None, metavar="K",
+                   help="protection levels' noise multiplier, as robustloc locate")
+    p.add_argument("--model", choices=("log-distance", "attenuation-factor", "friis"),
+                   default=None, help="path-loss columns to use (default: what anchors have)")
+    p.add_argument("--no-range-calibration", action="store_true",
+                   help="ignore the anchors' bias/scale columns")
+    p.add_argument("--value", choices=("rssi", "range"), default=None,
+                   help="value the service locates (default: fixed by the first row)")
+    p.add_argument("--latency-window", type=nonnegative_float,
+                   default=DEFAULT_LATENCY_WINDOW_S, metavar="S",
+                   help="seconds (measurement time) an epoch waits for late rows "
+                        f"(default {DEFAULT_LATENCY_WINDOW_S})")
+    p.add_argument("--idle-flush", type=positive_float, default=DEFAULT_IDLE_FLUSH_S,
+                   metavar="S", help="wall-clock seconds after which a silent tag's pending "
+                                     f"epochs are solved (default {DEFAULT_IDLE_FLUSH_S})")
+    p.add_argument("--mqtt", type=_hostport, default=None, metavar="HOST:PORT",
+                   help="also ingest from this MQTT broker")
+    p.add_argument("--mqtt-topic", default="robustloc/measurements/#",
+                   help="MQTT topic filter (default robustloc/measurements/#); payload: a "
+                        "JSON array or NDJSON of rows, as POST /api/measurements")
+    p.add_argument("--floorplan", default=None, metavar="IMAGE",
+                   help="floor-plan image shown under the map")
+    p.add_argument("--floorplan-extent", type=_extent, default=None,
+                   metavar="XMIN,YMIN,XMAX,YMAX",
+                   help="the image's extent in anchor metres (write --floorplan-extent=-1,... "
+                        "when XMIN is negative)")
+    p.add_argument("--max-body-bytes", type=positive_int, default=DEFAULT_MAX_BODY_BYTES,
+                   help=f"largest body or message (default {DEFAULT_MAX_BODY_BYTES})")
+    p.add_argument("--rate-limit", type=positive_float, default=DEFAULT_RATE_LIMIT_ROWS,
+                   metavar="ROWS_PER_S",
+                   help=f"ingest rows/s per client address (default {DEFAULT_RATE_LIMIT_ROWS:g})")
+    p.add_argument("--cors-origin", action="append", default=[],
+                   help="allow this browser origin (repeatable; default: CORS off)")
+    p.add_argument("--log-level", default="warning",
+                   choices=("critical", "error", "warning", "info", "debug"))
+
+
+def build(args: argparse.Namespace):
+    """The engine, app config and app for ``args`` (used by ``run`` and the tests)."""
+    from robustloc.errors import InputError
+    from robustloc.io import read_anchors
+    from robustloc.service.app import ServiceConfig, create_app
+    from robustloc.service.engine import Engine
+    from robustloc.service.processor import LocateProcessor, TrackProcessor
+
+    anchors = read_anchors(args.anchors)
+    if (args.floorplan is None) != (args.floorplan_extent is None):
+        raise InputError("--floorplan and --floorplan-extent go together")
+    if args.floorplan is not None and not Path(args.floorplan).is_file():
+        raise InputError("floor-plan image not found", args.floorplan)
+    try:
+        if args.track:
+            processor = TrackProcessor(anchors, model=args.track_model, filter=args.track_filter)
+        else:
+            settings = dict(dim=args.dim, solver=args.solver, domain=args.domain,
+                            sigma=args.sigma, model=args.model,
+                            range_calibration=not args.no_range_calibration,
+                            k_noise=args.k_noise, alert_limit=args.alert_limit)
+            scale = None
+            robust_scale = args.robust_scale
+            if args.scale_from is not None:
+                scale = LocateProcessor.log_scale_from(args.scale_from, anchors,
+                                                       method=args.method, **settings)
+                robust_scale = "log"
+            processor = LocateProcessor(anchors, method=args.method,
+                                        robust_scale=robust_scale, log_scale=scale,
+                                        **settings)
+    except InputError:
+        raise
+    except ValueError as exc:
+        raise InputError(str(exc), args.anchors) from None
+    engine = Engine(anchors, processor, store_dir=args.store,
+                    latency_window_s=args.latency_window, idle_flush_s=args.idle_flush,
+                    value=args.value)
+    mqtt = None
+    if args.mqtt is not None:
+        from robustloc.service.mqtt import MqttIngest
+
+        mqtt = MqttIngest(engine, args.mqtt[0], args.mqtt[1], args.mqtt_topic,
+                          max_payload_bytes=args.max_body_bytes)
+    token = args.token if args.token is not None else os.environ.get("ROBUSTLOC_TOKEN")
+    cfg = ServiceConfig(
+        token=token or None, max_body_bytes=args.max_body_bytes,
+        rate_limit_rows=args.rate_limit, cors_origins=tuple(args.cors_origin),
+        floorplan=None if args.floorplan is None else Path(args.floorplan),
+        floorplan_extent=args.floorplan_extent, mqtt=mqtt,
+    )
+    return engine, cfg, create_app(engine, cfg)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        import uvicorn
+    except ImportError:
+        print("error: robustloc serve needs the [serve] extra: pip install 'robustloc[serve]'",
+              file=sys.stderr)
+        return 2
+    try:
+        engine, cfg, app = build(args)
+    except RuntimeError as exc:  # --track without robustloc.track
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if args.store is None:
+        print("warning: no --store: rows and positions are kept in memory only and are lost "
+              "when the service stops", file=sys.stderr)
+    if args.host not in ("127.0.0.1", "::1", "localhost") and not cfg.token:
+        print(f"warning: listening on {args.host} without a token: anyone who can reach "
+              "this port can send and read data (set --token or ROBUSTLOC_TOKEN)",
+              file=sys.stderr)
+    if engine.recovered_rows:
+        print(f"resumed from {args.store}: {engine.recovered_rows} stored rows not yet solved",
+              file=sys.stderr)
+    config = uvicorn.Config(app, host=args.host, port=args.port, log_level=args.log_level,
+                            ws_max_size=args.max_body_bytes, lifespan="on",
+                            timeout_keep_alive=30, access_log=False)
+    server = uvicorn.Server(config)
+    print(f"robustloc serve: http://{args.host}:{args.port}/ ({engine.processor.name}, "
+          f"latency window {args.latency_window:g} s)", file=sys.stderr, flush=True)
+    server.run()
+    return 0

@@ -1,0 +1,379 @@
+"""The ASGI application (Starlette) of ``robustloc serve``.
+
+Endpoints (the API is a contract; see the README's "Live service" section)::
+
+    POST /api/measurements      JSON array or NDJSON of rows -> 202 {accepted, rejected}
+    GET  /api/positions         ?tag=&since=&until=&limit=  -> JSON array of position rows
+    GET  /api/anchors           anchors with per-anchor health
+    GET  /api/latest            latest position row per tag
+    GET  /api/status            service settings and counters (for the map page)
+    GET  /healthz               liveness ({"status": "ok"}; no token needed, no data)
+    GET  /metrics               Prometheus text format
+    WS   /ws/positions[?tag=T]  every position row as one JSON text message
+    WS   /ws/measurements       ingest: each message a body as POST; answered like POST
+    GET  /                      the live map page (static; data come with the token)
+
+When a token is set, every endpoint except ``/``, ``/static`` and ``/healthz`` needs
+``Authorization: Bearer TOKEN`` (WebSockets may send ``?token=TOKEN`` instead, since
+browsers cannot set headers on a WebSocket).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import json
+import math
+import threading
+import time
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import anyio
+import pandas as pd
+from starlette.applications import Starlette
+from starlette.requests import Request
+from starlette.responses import FileResponse, JSONResponse, PlainTextResponse, Response
+from starlette.routing import Mount, Route, WebSocketRoute
+from starlette.staticfiles import StaticFiles
+from starlette.websockets import WebSocket, WebSocketDisconnect
+
+from robustloc.service.engine import Engine
+from robustloc.service.rows import BodyError, parse_body
+
+#: Default largest accepted body or WebSocket message (bytes): 32 MiB, ~400 000 rows.
+DEFAULT_MAX_BODY_BYTES = 32 * 1024 * 1024
+#: Default ingest rate limit per client address (rows/s, token bucket holding 2 s).
+DEFAULT_RATE_LIMIT_ROWS = 1_000_000.0
+#: Queued messages per position subscriber before the oldest are dropped (and counted).
+WS_QUEUE = 20_000
+
+
+@dataclass
+class ServiceConfig:
+    """Settings of the HTTP layer (the engine holds the rest)."""
+
+    token: str | None = None
+    max_body_bytes: int = DEFAULT_MAX_BODY_BYTES
+    rate_limit_rows: float = DEFAULT_RATE_LIMIT_ROWS
+    cors_origins: tuple[str, ...] = ()
+    floorplan: Path | None = None
+    floorplan_extent: tuple[float, float, float, float] | None = None
+    mqtt: object | None = None  # a started/stoppable MQTT ingest (robustloc.service.mqtt)
+    info: dict = field(default_factory=dict)
+
+
+class _Bucket:
+    __slots__ = ("tokens", "t")
+
+    def __init__(self, tokens: float) -> None:
+        self.tokens = tokens
+        self.t = time.monotonic()
+
+
+class RateLimiter:
+    """Token bucket per client address: ``rate`` rows/s on average, bursts of ``2 * rate``.
+
+    A body is admitted while the client's bucket is not in debt, and its rows are then
+    taken (the bucket may go negative), so a body larger than the burst still passes once
+    and the client then waits until the debt is repaid at ``rate`` rows/s.
+    """
+
+    def __init__(self, rate: float) -> None:
+        self.rate = rate
+        self.buckets: dict[str, _Bucket] = {}
+        self.lock = threading.Lock()
+
+    def take(self, client: str, n: int) -> float:
+        """0 when ``n`` rows may pass (and they are taken), else the seconds to wait."""
+        if not math.isfinite(self.rate):
+            return 0.0
+        cap = 2 * self.rate
+        b = self.buckets.get(client)
+        if b is None:
+            if len(self.buckets) > 10_000:
+                self.buckets.clear()
+            b = self.buckets[client] = _Bucket(cap)
+        now = time.monotonic()
+        b.tokens = min(cap, b.tokens + (now - b.t) * self.rate)
+        b.t = now
+        if b.tokens <= 0:
+            return max(-b.tokens / self.rate, 1e-3)
+        b.tokens -= n
+        return 0.0
+
+
+class Hub:
+    """Fan-out of position rows to WebSocket subscribers (one bounded queue each)."""
+
+    def __init__(self, engine: Engine) -> None:
+        self.engine = engine
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.subs: dict[int, tuple[asyncio.Queue, str | None]] = {}
+
+    def publish(self, frame: pd.DataFrame) -> None:
+        """Called from the solver thread."""
+        if not self.subs or self.loop is None or len(frame) == 0:
+            return
+        lines = frame.to_json(orient="records", lines=True, double_precision=15).splitlines()
+        tags = frame["tag"].astype(str).tolist()
+        self.loop.call_soon_threadsafe(self._deliver, tags, lines)
+
+    def _deliver(self, tags: list[str], lines: list[str]) -> None:
+        for q, tag in list(self.subs.values()):
+            for t, ln in zip(tags, lines):
+                if tag is not None and t != tag:
+                    continue
+                if q.full():
+                    q.get_nowait()
+                    self.engine.metrics.ws_dropped += 1
+                q.put_nowait(ln)
+
+
+def _static_dir() -> Path:
+    return Path(str(resources.files("robustloc.service") / "static"))
+
+
+def _json(obj: object, status: int = 200) -> JSONResponse:
+    return JSONResponse(obj, status_code=status)
+
+
+def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette:
+    """Build the Starlette app around a (not yet started) :class:`Engine`."""
+    cfg = config or ServiceConfig()
+    hub = Hub(engine)
+    limiter = RateLimiter(cfg.rate_limit_rows)
+    engine.add_listener(hub.publish)
+
+    def authorized(headers, query) -> bool:
+        if not cfg.token:
+            return True
+        auth = headers.get("authorization", "")
+        given = auth[7:] if auth[:7].lower() == "bearer " else query.get("token", "")
+        return hmac.compare_digest(given.encode(), cfg.token.encode())
+
+    def refuse(reason: str, status: int, message: str, **headers: str) -> JSONResponse:
+        engine.metrics.request_rejected(reason)
+        return JSONResponse({"error": message}, status_code=status, headers=headers or None)
+
+    def unauthorized() -> JSONResponse:
+        return refuse("unauthorized", 401, "missing or wrong bearer token",
+                      **{"WWW-Authenticate": "Bearer"})
+
+    def ingest_sync(data: bytes | str, source: str, client: str) -> tuple[int, dict]:
+        """Parse, rate-limit and ingest one body (in a worker thread, off the event loop)."""
+        try:
+            rows, _ = parse_body(data)
+        except BodyError as exc:
+            engine.metrics.request_rejected("not_rows")
+            return exc.status, {"error": str(exc)}
+        with limiter.lock:
+            wait = limiter.take(client, len(rows))
+        if wait > 0:
+            engine.metrics.request_rejected("rate_limited")
+            return 429, {"error": f"rate limit of {cfg.rate_limit_rows:g} rows/s exceeded",
+                         "retry_after_s": round(wait, 3)}
+        return 202, engine.ingest(rows, source).to_json()
+
+    async def post_measurements(request: Request) -> Response:
+        if not authorized(request.headers, request.query_params):
+            return unauthorized()
+        length = request.headers.get("content-length")
+        if length is not None and (not length.isdigit() or int(length) > cfg.max_body_bytes):
+            return refuse("too_large", 413, f"body larger than {cfg.max_body_bytes} bytes")
+        chunks, size = [], 0
+        async for chunk in request.stream():
+            size += len(chunk)
+            if size > cfg.max_body_bytes:
+                return refuse("too_large", 413, f"body larger than {cfg.max_body_bytes} bytes")
+            chunks.append(chunk)
+        client = request.client.host if request.client else "?"
+        status, body = await anyio.to_thread.run_sync(ingest_sync, b"".join(chunks), "http",
+                                                      client)
+        headers = {"Retry-After": str(math.ceil(body["retry_after_s"]))} if status == 429 else None
+        return JSONResponse(body, status_code=status, headers=headers)
+
+    def _float_param(request: Request, name: str) -> float | None:
+        v = request.query_params.get(name)
+        if v is None or v == "":
+            return None
+        x = float(v)
+        if not math.isfinite(x):
+            raise ValueError(f"{name} must be a finite number")
+        return x
+
+    async def get_positions(request: Request) -> Response:
+        if not authorized(request.headers, request.query_params):
+            return unauthorized()
+        try:
+            since = _float_param(request, "since")
+            until = _float_param(request, "until")
+            limit = int(request.query_params.get("limit", "100000"))
+            if not 1 <= limit <= 10_000_000:
+                raise ValueError("limit must be in 1 .. 10000000")
+        except ValueError as exc:
+            return refuse("bad_query", 400, f"bad query: {exc}")
+        tag = request.query_params.get("tag") or None
+        df = await anyio.to_thread.run_sync(lambda: engine.positions(tag, since, until, limit))
+        return Response(df.to_json(orient="records", double_precision=15),
+                        media_type="application/json")
+
+    async def get_anchors(request: Request) -> Response:
+        if not authorized(request.headers, request.query_params):
+            return unauthorized()
+        rows = json.loads(engine.anchors.reset_index(drop=True).to_json(orient="records"))
+        for r, h in zip(rows, engine.metrics.anchor_health()):
+            r["anchor"] = h["anchor"]
+            r.update({k: v for k, v in h.items() if k != "anchor"})
+        return _json(rows)
+
+    async def get_latest(request: Request) -> Response:
+        if not authorized(request.headers, request.query_params):
+            return unauthorized()
+        df = engine.latest()
+        return Response(df.to_json(orient="records", double_precision=15) if len(df) else "[]",
+                        media_type="application/json")
+
+    async def get_status(request: Request) -> Response:
+        if not authorized(request.headers, request.query_params):
+            return unauthorized()
+        ext = cfg.floorplan_extent
+        return _json({
+            "processor": engine.processor.name, "value": engine.kind,
+            "latency_window_s": engine.assembler.window,
+            "idle_flush_s": engine.assembler.idle,
+            "store": None if engine.store_dir is None else str(engine.store_dir),
+            "floorplan": None if cfg.floorplan is None else {
+                "url": "/floorplan", "extent": list(ext) if ext else None},
+            "tags": len(engine.assembler.tags), "pending_rows": engine.assembler.n_pending,
+            "solver_errors": engine.solver_errors, "last_solver_error": engine.last_error,
+            "server_time": time.time(),
+            **engine.metrics.summary(), **cfg.info,
+        })
+
+    async def get_floorplan(request: Request) -> Response:
+        if not authorized(request.headers, request.query_params):
+            return unauthorized()
+        if cfg.floorplan is None:
+            return _json({"error": "no floor plan configured"}, 404)
+        return FileResponse(cfg.floorplan)
+
+    async def healthz(request: Request) -> Response:
+        return _json({"status": "ok"})
+
+    async def metrics(request: Request) -> Response:
+        if not authorized(request.headers, request.query_params):
+            return unauthorized()
+        text = engine.metrics.render(engine.assembler.n_pending, len(engine.assembler.tags))
+        return PlainTextResponse(text, media_type="text/plain; version=0.0.4")
+
+    async def index(request: Request) -> Response:
+        return FileResponse(_static_dir() / "index.html", media_type="text/html")
+
+    async def ws_positions(ws: WebSocket) -> None:
+        if not authorized(ws.headers, ws.query_params):
+            engine.metrics.request_rejected("unauthorized")
+            await ws.close(code=1008)
+            return
+        await ws.accept()
+        q: asyncio.Queue = asyncio.Queue(maxsize=WS_QUEUE)
+        key = id(q)
+        hub.subs[key] = (q, ws.query_params.get("tag") or None)
+
+        async def pump() -> None:
+            while True:
+                await ws.send_text(await q.get())
+
+        async def drain() -> None:  # returns when the client disconnects
+            try:
+                while True:
+                    msg = await ws.receive()
+                    if msg["type"] == "websocket.disconnect":
+                        return
+            except (WebSocketDisconnect, RuntimeError):
+                return
+
+        try:
+            sender = asyncio.ensure_future(pump())
+            receiver = asyncio.ensure_future(drain())
+            done, pend = await asyncio.wait({sender, receiver},
+                                            return_when=asyncio.FIRST_COMPLETED)
+            for t in pend:
+                t.cancel()
+        except Exception:  # a broken socket ends this subscriber only
+            pass
+        finally:
+            hub.subs.pop(key, None)
+
+    async def ws_measurements(ws: WebSocket) -> None:
+        if not authorized(ws.headers, ws.query_params):
+            engine.metrics.request_rejected("unauthorized")
+            await ws.close(code=1008)
+            return
+        await ws.accept()
+        client = ws.client.host if ws.client else "?"
+        try:
+            while True:
+                msg = await ws.receive()
+                if msg["type"] == "websocket.disconnect":
+                    return
+                data = msg.get("text")
+                if data is None:
+                    data = msg.get("bytes") or b""
+                status, body = await anyio.to_thread.run_sync(ingest_sync, data, "ws", client)
+                if status != 202:
+                    body["status"] = status
+                await ws.send_text(json.dumps(body))
+        except WebSocketDisconnect:
+            return
+
+    async def on_error(request: Request, exc: Exception) -> Response:
+        engine.metrics.request_rejected("internal_error")
+        return _json({"error": f"internal error: {type(exc).__name__}"}, 500)
+
+    @asynccontextmanager
+    async def lifespan(app: Starlette) -> AsyncIterator[None]:
+        hub.loop = asyncio.get_running_loop()
+        engine.start()
+        if cfg.mqtt is not None:
+            cfg.mqtt.start()
+        try:
+            yield
+        finally:
+            if cfg.mqtt is not None:
+                cfg.mqtt.stop()
+            await anyio.to_thread.run_sync(engine.stop)
+
+    routes = [
+        Route("/", index),
+        Route("/healthz", healthz),
+        Route("/metrics", metrics),
+        Route("/api/measurements", post_measurements, methods=["POST"]),
+        Route("/api/positions", get_positions),
+        Route("/api/anchors", get_anchors),
+        Route("/api/latest", get_latest),
+        Route("/api/status", get_status),
+        Route("/floorplan", get_floorplan),
+        WebSocketRoute("/ws/positions", ws_positions),
+        WebSocketRoute("/ws/measurements", ws_measurements),
+        Mount("/static", StaticFiles(directory=_static_dir()), name="static"),
+    ]
+    middleware = []
+    if cfg.cors_origins:
+        from starlette.middleware import Middleware
+        from starlette.middleware.cors import CORSMiddleware
+
+        middleware.append(Middleware(CORSMiddleware, allow_origins=list(cfg.cors_origins),
+                                     allow_headers=["Authorization", "Content-Type"],
+                                     allow_methods=["GET", "POST"]))
+    app = Starlette(routes=routes, middleware=middleware, lifespan=lifespan,
+                    exception_handlers={Exception: on_error})
+    app.state.engine = engine
+    app.state.hub = hub
+    return app
+
+
+__all__ = ["ServiceConfig", "create_app", "DEFAULT_MAX_BODY_BYTES"]

@@ -1,0 +1,160 @@
+"""Live epoch assembly: rows arriving in any order become whole epochs ``(time, tag)``.
+
+Rule (issue 12, "Epoch assembly").  Per tag, let ``newest`` be the latest measurement time
+seen.  An epoch ``(t, tag)`` is *ready* (solved) once ``t < newest - window``: it is older
+than the newest time of its tag by more than the latency window, so the rows of ``t`` that
+were still in flight have had ``window`` seconds of measurement time to arrive.  With
+``window = 0`` an epoch is solved as soon as any later epoch of its tag arrives (right for
+gateways that report each epoch whole and in order).
+
+A tag that stops reporting would keep its last epochs forever; they are also solved when no
+row of the tag arrived for ``idle_flush_s`` seconds of wall-clock time.
+
+A row that arrives *late* - its epoch already solved, or older than ``newest - window``
+when it arrives - is stored and counted by the caller, but not solved live (the epoch's
+fix has been published); the batch ``robustloc locate`` of the stored log includes it.
+
+The pending rows are kept as columns (NumPy), so one ``add``/``take_ready`` costs a few
+vectorized passes over the pending rows, whatever the number of tags.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from robustloc.io.tables import Epochs, to_epochs
+
+
+class EpochAssembler:
+    """Pending rows per tag, released as ready :class:`~robustloc.io.tables.Epochs`.
+
+    Parameters
+    ----------
+    anchor_ids : sequence of str
+        Anchor order of the epochs' value columns.
+    latency_window_s : float
+        Measurement-time window (s) an epoch waits for late rows, see the module doc.
+    idle_flush_s : float
+        Wall-clock seconds without a row of a tag after which its pending epochs are solved.
+    """
+
+    def __init__(
+        self, anchor_ids: Sequence[str], latency_window_s: float, idle_flush_s: float
+    ) -> None:
+        if not (np.isfinite(latency_window_s) and latency_window_s >= 0):
+            raise ValueError(f"latency window must be >= 0 s, got {latency_window_s}")
+        if not (np.isfinite(idle_flush_s) and idle_flush_s > 0):
+            raise ValueError(f"idle flush must be > 0 s, got {idle_flush_s}")
+        self.anchor_ids = tuple(str(a) for a in anchor_ids)
+        self.window = float(latency_window_s)
+        self.idle = float(idle_flush_s)
+        self._code: dict[str, int] = {}
+        self._names: list[str] = []
+        self._newest = np.empty(0)
+        self._solved = np.empty(0)
+        self._last_wall = np.empty(0)
+        self._chunks: list[tuple[NDArray, ...]] = []
+        self._n_pending = 0
+
+    # -- tags ----------------------------------------------------------------------------
+    def codes(self, tags: NDArray[np.object_]) -> NDArray[np.int64]:
+        """Integer code of each tag (new tags are registered)."""
+        codes, uniq = pd.factorize(tags)
+        ucode = np.empty(len(uniq), dtype=np.int64)
+        for j, u in enumerate(uniq.tolist()):
+            c = self._code.get(u)
+            if c is None:
+                c = len(self._names)
+                self._code[u] = c
+                self._names.append(u)
+            ucode[j] = c
+        grow = len(self._names) - len(self._newest)
+        if grow > 0:
+            self._newest = np.concatenate([self._newest, np.full(grow, -np.inf)])
+            self._solved = np.concatenate([self._solved, np.full(grow, -np.inf)])
+            self._last_wall = np.concatenate([self._last_wall, np.zeros(grow)])
+        return ucode[codes]
+
+    @property
+    def tags(self) -> list[str]:
+        return list(self._names)
+
+    @property
+    def n_pending(self) -> int:
+        return self._n_pending
+
+    def watermarks(self) -> dict[str, float]:
+        """Per tag, the latest solved epoch time (``-inf``: none yet)."""
+        return {n: float(self._solved[i]) for i, n in enumerate(self._names)}
+
+    def set_watermarks(self, solved: dict[str, float], newest: dict[str, float]) -> None:
+        """Restore per-tag state (after a restart): solved and newest times."""
+        names = np.array(sorted(set(solved) | set(newest)), dtype=object)
+        codes = self.codes(names)
+        for name, c in zip(names.tolist(), codes.tolist()):
+            self._solved[c] = max(self._solved[c], solved.get(name, -np.inf))
+            self._newest[c] = max(self._newest[c], newest.get(name, -np.inf))
+
+    # -- rows ----------------------------------------------------------------------------
+    def add(
+        self, time: NDArray[np.float64], tags: NDArray[np.object_],
+        anchor_col: NDArray[np.int64], value: NDArray[np.float64], wall: float,
+    ) -> NDArray[np.bool_]:
+        """Add rows; returns the mask of *late* rows (not added, see the module doc)."""
+        code = self.codes(tags)
+        late = (time <= self._solved[code]) | (time < self._newest[code] - self.window)
+        keep = ~late
+        if keep.any():
+            c = code[keep]
+            np.maximum.at(self._newest, c, time[keep])
+            self._last_wall[c] = wall
+            self._chunks.append((time[keep], c, anchor_col[keep], value[keep]))
+            self._n_pending += int(keep.sum())
+        return late
+
+    def _pending(self) -> tuple[NDArray, ...] | None:
+        if not self._chunks:
+            return None
+        if len(self._chunks) > 1:
+            self._chunks = [tuple(np.concatenate(x) for x in zip(*self._chunks))]
+        return self._chunks[0]
+
+    def take_ready(self, wall: float, *, flush_all: bool = False) -> dict | None:
+        """Remove and return the rows of the ready epochs, as columns.
+
+        Ready: ``time < newest(tag) - window``, or the tag idle for ``idle_flush_s`` of wall
+        time at ``wall``, or ``flush_all``.  Returns ``{"time", "tag", "anchor_col",
+        "value"}`` arrays (``tag`` as str objects), or ``None`` when nothing is ready.
+        """
+        p = self._pending()
+        if p is None:
+            return None
+        t, c, a, v = p
+        if flush_all:
+            ready = np.ones(len(t), bool)
+        else:
+            ready = (t < self._newest[c] - self.window) | (wall - self._last_wall[c] >= self.idle)
+        if not ready.any():
+            return None
+        np.maximum.at(self._solved, c[ready], t[ready])
+        rest = ~ready
+        self._chunks = [(t[rest], c[rest], a[rest], v[rest])] if rest.any() else []
+        self._n_pending = int(rest.sum())
+        names = np.array(self._names, dtype=object)
+        return {"time": t[ready], "tag": names[c[ready]], "anchor_col": a[ready],
+                "value": v[ready]}
+
+    def epochs(self, rows: dict, value: str) -> Epochs:
+        """Pivot ready rows with :func:`robustloc.io.tables.to_epochs` (the batch path)."""
+        ids = np.array(self.anchor_ids, dtype=object)
+        frame = pd.DataFrame({  # object columns: no string-dtype inference on the hot path
+            "time": rows["time"],
+            "tag": pd.Series(rows["tag"], dtype=object, copy=False),
+            "anchor": pd.Series(ids[rows["anchor_col"]], dtype=object, copy=False),
+            value: rows["value"],
+        })
+        return to_epochs(frame, self.anchor_ids, value)

@@ -1,0 +1,400 @@
+"""The service's core, independent of the transport: validate -> store -> assemble -> solve.
+
+``Engine.ingest`` (called from HTTP, WebSocket and MQTT handlers, any thread) validates a
+batch of rows, appends the accepted ones to the durable store (synced before it returns),
+adds them to the :class:`~robustloc.service.assembly.EpochAssembler` and queues the epochs
+that became ready.  One solver thread runs the :class:`~robustloc.service.processor.Processor`
+on the queued epochs (all queued blocks in one batched call), stores the positions, updates
+the metrics and hands the rows to the listeners (the WebSocket hub).
+
+Restart: the positions store gives each tag's latest solved epoch; accepted rows after it
+(acknowledged, not yet solved at the crash) are put back into the assembler, so every
+acknowledged row's epoch is solved exactly once.  A stateful processor (the tracker) is
+snapshotted every ``snapshot_s`` seconds with the per-tag watermarks it corresponds to;
+a restart loads the snapshot and re-solves the epochs after it (positions queries keep the
+last row of a re-solved epoch).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.dataset as ds
+
+from robustloc.service.assembly import EpochAssembler
+from robustloc.service.metrics import Metrics
+from robustloc.service.processor import Processor
+from robustloc.service.rows import validate_rows
+from robustloc.service.store import SegmentLog, max_by
+
+#: Default latency window (s of measurement time): an epoch waits this long for rows still
+#: in flight.  0.5 s covers the 100-500 ms reporting intervals of BLE/UWB gateways.
+DEFAULT_LATENCY_WINDOW_S = 0.5
+#: Default wall-clock idle time (s) after which a silent tag's pending epochs are solved.
+DEFAULT_IDLE_FLUSH_S = 2.0
+
+MEAS_SCHEMA = pa.schema([
+    ("time", pa.float64()), ("tag", pa.string()), ("anchor", pa.string()),
+    ("value", pa.float64()), ("arrival", pa.float64()), ("late", pa.bool_()),
+    ("source", pa.string()),
+])
+
+
+class _MemoryLog:
+    """In-memory stand-in for :class:`SegmentLog` when the service runs without --store."""
+
+    def __init__(self) -> None:
+        self._tables: list[pa.Table] = []
+        self._lock = threading.Lock()
+
+    def append(self, table: pa.Table) -> None:
+        if table.num_rows:
+            with self._lock:
+                self._tables.append(table)
+
+    def scan(self, columns: list[str] | None = None,
+             expression: ds.Expression | None = None) -> pa.Table:
+        with self._lock:
+            tables = list(self._tables)
+        if not tables:
+            return pa.table({})
+        t = pa.concat_tables(tables, promote_options="default")
+        if expression is not None:
+            t = t.filter(expression)
+        if columns is not None:
+            t = t.select([c for c in columns if c in t.column_names])
+        return t
+
+    def close(self) -> None:
+        return None
+
+    def wait_sealed(self) -> None:
+        return None
+
+
+class IngestResult:
+    """Outcome of one ingested body: rows accepted, and ``(index, error)`` per rejected row."""
+
+    __slots__ = ("accepted", "rejected", "late")
+
+    def __init__(self, accepted: int, rejected: list[tuple[int, str]], late: int) -> None:
+        self.accepted = accepted
+        self.rejected = rejected
+        self.late = late
+
+    def to_json(self) -> dict:
+        return {"accepted": self.accepted,
+                "rejected": [{"index": i, "error": e} for i, e in self.rejected]}
+
+
+class Engine:
+    """Validate, store, assemble and solve live measurement rows.
+
+    Parameters
+    ----------
+    anchors : DataFrame
+        From :func:`robustloc.io.read_anchors`.
+    processor : Processor
+        What to do with ready epochs (locate or track).
+    store_dir : path, optional
+        Durable store (``measurements/``, ``positions/``, ``state/``); in memory when None.
+    latency_window_s, idle_flush_s : float
+        See :mod:`robustloc.service.assembly`.
+    value : {"rssi", "range"}, optional
+        The value located; default: fixed by the first accepted row (and kept in the store).
+    seal_rows : int
+        Rows per write-ahead log before it becomes a Parquet segment.
+    fsync : bool
+        Sync each append (only tests of throw-away stores turn it off).
+    snapshot_s : float
+        Seconds between snapshots of a stateful processor.
+    """
+
+    def __init__(
+        self, anchors: pd.DataFrame, processor: Processor, *,
+        store_dir: str | os.PathLike | None = None,
+        latency_window_s: float = DEFAULT_LATENCY_WINDOW_S,
+        idle_flush_s: float = DEFAULT_IDLE_FLUSH_S,
+        value: str | None = None, seal_rows: int = 1_000_000, fsync: bool = True,
+        snapshot_s: float = 10.0,
+    ) -> None:
+        self.anchors = anchors
+        self.anchor_ids = [str(a) for a in anchors["anchor"]]
+        self._anchor_index = pd.Index(self.anchor_ids, dtype=object)
+        self.processor = processor
+        self.kind = value
+        self.assembler = EpochAssembler(self.anchor_ids, latency_window_s, idle_flush_s)
+        self.metrics = Metrics(self.anchor_ids)
+        self.store_dir = None if store_dir is None else Path(store_dir)
+        self.snapshot_s = snapshot_s
+        self._ingest_lock = threading.Lock()
+        self._solve_lock = threading.Lock()
+        self._cv = threading.Condition()
+        self._queue: list[tuple[dict, float]] = []
+        self._listeners: list[Callable[[pd.DataFrame], None]] = []
+        self._latest_frames: list[pd.DataFrame] = []
+        self._latest_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.solver_errors = 0
+        self.last_error: str | None = None
+        self._last_snapshot = time.monotonic()
+        self.recovered_rows = 0
+        if self.store_dir is None:
+            self.meas: SegmentLog | _MemoryLog = _MemoryLog()
+            self.pos: SegmentLog | _MemoryLog = _MemoryLog()
+        else:
+            self.store_dir.mkdir(parents=True, exist_ok=True)
+            self.meas = SegmentLog(self.store_dir / "measurements", seal_rows, fsync)
+            # positions are not synced per block: they are recomputable from the synced
+            # measurements, and a restart re-solves every epoch after the last stored
+            # position of its tag, so a position lost in a crash comes back (the sync
+            # would sit in the latency path of every published position)
+            self.pos = SegmentLog(self.store_dir / "positions", seal_rows, fsync=False)
+            self._recover()
+
+    # -- persistence ---------------------------------------------------------------------
+    def _meta_path(self) -> Path:
+        assert self.store_dir is not None  # noqa: S101 - internal invariant
+        return self.store_dir / "meta.json"
+
+    def _write_meta(self) -> None:
+        if self.store_dir is None:
+            return
+        p = self._meta_path()
+        tmp = p.with_suffix(".tmp")
+        tmp.write_text(json.dumps({"value": self.kind, "anchors": self.anchor_ids}))
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, p)
+
+    def _recover(self) -> None:
+        meta = self._meta_path()
+        if meta.exists():
+            stored = json.loads(meta.read_text()).get("value")
+            if self.kind is not None and stored is not None and stored != self.kind:
+                raise ValueError(f"the store holds {stored} measurements, not {self.kind}")
+            self.kind = self.kind or stored
+        pos = self.pos.scan(columns=["time", "tag"])
+        solved = max_by(pos, "tag", "time")
+        snap = self.store_dir / "state" / "processor.pkl" if self.store_dir else None
+        if snap is not None and snap.exists():
+            with open(snap, "rb") as f:
+                saved = pickle.load(f)  # noqa: S301 - our own file in the store
+            self.processor.load_state_dict(saved["state"])
+            solved = saved["watermarks"]
+        meas = self.meas.scan(columns=["time", "tag", "anchor", "value", "late"])
+        if meas.num_rows == 0:
+            return
+        df = meas.to_pandas()
+        df = df[~df["late"].to_numpy(bool)]
+        newest = df.groupby("tag")["time"].max().to_dict()
+        self.assembler.set_watermarks(solved, {})
+        sol = df["tag"].map(solved).astype(float).fillna(-np.inf).to_numpy(float)
+        todo = df[df["time"].to_numpy() > sol]
+        # put back the acknowledged rows whose epochs were not solved before the restart
+        if len(todo):
+            col = self._anchor_index.get_indexer(todo["anchor"].to_numpy(object))
+            self.assembler.add(todo["time"].to_numpy(float), todo["tag"].to_numpy(object),
+                               col.astype(np.int64), todo["value"].to_numpy(float),
+                               time.time())
+        self.assembler.set_watermarks({}, newest)
+        self.recovered_rows = len(todo)
+        heard = np.bincount(self._anchor_index.get_indexer(df["anchor"].to_numpy(object)),
+                            minlength=len(self.anchor_ids))
+        self.metrics.heard += heard
+
+    def _snapshot(self) -> None:
+        state = self.processor.state_dict()
+        if self.store_dir is None or not state:
+            return
+        d = self.store_dir / "state"
+        d.mkdir(exist_ok=True)
+        tmp = d / "processor.pkl.tmp"
+        with open(tmp, "wb") as f:
+            pickle.dump({"state": state, "watermarks": self.assembler.watermarks()}, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, d / "processor.pkl")
+
+    # -- ingest --------------------------------------------------------------------------
+    def ingest(self, rows: list[Any], source: str = "http") -> IngestResult:
+        """Validate and durably store rows; returns what was accepted and rejected.
+
+        Thread-safe.  When it returns, the accepted rows are on disk (with a store).
+        """
+        with self._ingest_lock:
+            kind0 = self.kind
+            batch, kind, rejected = validate_rows(rows, self._anchor_index, self.kind)
+            if kind != kind0:
+                self.kind = kind
+                self._write_meta()
+            wall = time.time()
+            n = len(batch)
+            if n:
+                a = self.assembler
+                code = a.codes(batch.tag)
+                late = (batch.time <= a._solved[code]) | (
+                    batch.time < a._newest[code] - a.window)
+                table = pa.table({
+                    "time": batch.time, "tag": pa.array(batch.tag, pa.string()),
+                    "anchor": pa.array(batch.anchor, pa.string()), "value": batch.value,
+                    "arrival": np.full(n, wall), "late": late,
+                    "source": pa.array([source] * n, pa.string()),
+                }, schema=MEAS_SCHEMA)
+                self.meas.append(table)  # durable before we answer
+                a.add(batch.time, batch.tag, batch.anchor_col, batch.value, wall)
+                ready = a.take_ready(wall)
+                n_late = int(late.sum())
+            else:
+                ready, n_late = None, 0
+        rej_cols = self._rejected_anchor_cols(rows, rejected)
+        self.metrics.ingest(source, n, len(rejected), n_late, batch.anchor_col, rej_cols, wall)
+        if ready is not None:
+            with self._cv:
+                self._queue.append((ready, wall))
+                self._cv.notify()
+        return IngestResult(n, rejected, n_late)
+
+    def _rejected_anchor_cols(self, rows: list[Any], rejected: list[tuple[int, str]]) -> np.ndarray:
+        names = []
+        for i, _ in rejected:
+            r = rows[i]
+            if type(r) is dict:
+                a = r.get("anchor")
+                if isinstance(a, str | int) and not isinstance(a, bool):
+                    names.append(str(a).strip())
+        if not names:
+            return np.zeros(0, dtype=np.int64)
+        col = self._anchor_index.get_indexer(pd.Index(names, dtype=object))
+        return col[col >= 0]
+
+    # -- solving -------------------------------------------------------------------------
+    def add_listener(self, fn: Callable[[pd.DataFrame], None]) -> None:
+        """Call ``fn(positions_frame)`` (from the solver thread) for every solved block."""
+        self._listeners.append(fn)
+
+    def start(self) -> None:
+        """Warm the processor up (compiled kernels), then start the solver thread."""
+        warm = getattr(self.processor, "warm_up", None)
+        if warm is not None:
+            warm()
+        if self._thread is None:
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._loop, name="robustloc-solver",
+                                            daemon=True)
+            self._thread.start()
+
+    def stop(self) -> None:
+        """Stop the solver (pending epochs stay in the store for the next start)."""
+        self._stop.set()
+        with self._cv:
+            self._cv.notify()
+        if self._thread is not None:
+            self._thread.join(timeout=30)
+            self._thread = None
+        self._snapshot()
+        self.meas.close()
+        self.pos.close()
+
+    def _loop(self) -> None:
+        tick = min(0.25, self.assembler.idle / 4)
+        while not self._stop.is_set():
+            with self._cv:
+                if not self._queue:
+                    self._cv.wait(timeout=tick)
+            try:
+                self.step()
+            except Exception as exc:  # never let one bad block stop the service
+                self.solver_errors += 1
+                self.last_error = f"{type(exc).__name__}: {exc}"
+
+    def step(self, *, flush_all: bool = False) -> int:
+        """Solve queued (and idle) epochs now; returns the number of position rows."""
+        with self._solve_lock:
+            with self._ingest_lock:
+                idle = self.assembler.take_ready(time.time(), flush_all=flush_all)
+            with self._cv:
+                blocks, self._queue = self._queue, []
+            if idle is not None:
+                blocks.append((idle, time.time()))
+            if not blocks or self.kind is None:
+                return 0
+            out = self._solve(blocks)
+            if self.snapshot_s and time.monotonic() - self._last_snapshot > self.snapshot_s:
+                self._snapshot()
+                self._last_snapshot = time.monotonic()
+            return out
+
+    def flush(self) -> int:
+        """Solve every pending epoch now (tests and benchmarks; not needed in service)."""
+        return self.step(flush_all=True)
+
+    def _solve(self, blocks: list[tuple[dict, float]]) -> int:
+        rows = {k: np.concatenate([b[k] for b, _ in blocks]) for k in blocks[0][0]}
+        epochs = self.assembler.epochs(rows, self.kind)
+        if len(blocks) == 1:
+            ready_wall = np.full(epochs.n_epochs, blocks[0][1])
+        else:  # each epoch lies in exactly one block
+            when = {}
+            for b, w in blocks:
+                when.update(dict.fromkeys(zip(b["time"].tolist(), b["tag"].tolist()), w))
+            ready_wall = np.fromiter(
+                map(when.__getitem__, zip(epochs.time.tolist(), epochs.tag.tolist())),
+                float, epochs.n_epochs)
+        frame = self.processor.process(epochs)
+        if len(frame):
+            self.pos.append(pa.Table.from_pandas(frame, preserve_index=False))
+        done = time.time()
+        status = frame["status"].to_numpy() if "status" in frame else np.array(["ok"] * len(frame))
+        self.metrics.solved(status, done - ready_wall)
+        with self._latest_lock:
+            self._latest_frames.append(frame)
+            if len(self._latest_frames) > 64:
+                self._compact_latest()
+        for fn in list(self._listeners):
+            try:
+                fn(frame)
+            except Exception:  # a listener's failure must not lose the block
+                self.solver_errors += 1
+        return len(frame)
+
+    def _compact_latest(self) -> None:
+        """Reduce the recent frames to the latest row per tag (caller holds the lock)."""
+        if self._latest_frames:
+            both = pd.concat(self._latest_frames, ignore_index=True)
+            self._latest_frames = [both.drop_duplicates("tag", keep="last")]
+
+    # -- queries -------------------------------------------------------------------------
+    def latest(self) -> pd.DataFrame:
+        """The latest position row of every tag solved since the start."""
+        with self._latest_lock:
+            self._compact_latest()
+            return self._latest_frames[0].copy() if self._latest_frames else pd.DataFrame()
+
+    def positions(self, tag: str | None = None, since: float | None = None,
+                  until: float | None = None, limit: int = 100_000) -> pd.DataFrame:
+        """Stored positions, filtered, sorted by time then tag (latest ``limit`` rows)."""
+        expr = None
+        for e in ((ds.field("tag") == tag) if tag is not None else None,
+                  (ds.field("time") >= since) if since is not None else None,
+                  (ds.field("time") <= until) if until is not None else None):
+            if e is not None:
+                expr = e if expr is None else expr & e
+        t = self.pos.scan(expression=expr)
+        if t.num_rows == 0:
+            return pd.DataFrame(columns=["time", "tag", "x", "y", "method", "status"])
+        df = t.to_pandas()
+        keys = [c for c in ("time", "tag", "method") if c in df.columns]
+        df = df.drop_duplicates(keys, keep="last").sort_values(["time", "tag"], kind="stable")
+        return df.tail(limit).reset_index(drop=True)

@@ -1,0 +1,274 @@
+"""What the service does with a block of ready epochs: locate them, or track them.
+
+Both modes implement one small interface, :class:`Processor`: ``process(epochs)`` returns
+one output row per epoch (the positions format of ``robustloc locate``, or the track format
+of ``robustloc track``), and ``state_dict``/``load_state_dict`` carry per-tag state across
+a restart.
+
+:class:`LocateProcessor` prepares the anchors exactly as ``robustloc locate`` does (the same
+:class:`~robustloc.estimators.ranging.Locator`, range calibration, path-loss arrays and
+per-anchor sigma) and builds rows with :func:`robustloc.io.tables.positions_frame`, so a
+log replayed through the service gives the batch command's positions.  It appends the
+horizontal covariance (``cov_xx, cov_xy, cov_yy``, m^2) for the map's uncertainty ellipse.
+
+:class:`TrackProcessor` wraps ``robustloc.track.Tracker`` (imported lazily: the tracker is
+an optional part of the library).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import replace
+from typing import Any, Protocol
+
+import numpy as np
+import pandas as pd
+
+from robustloc.io.tables import Epochs, positions_frame
+
+
+class Processor(Protocol):
+    """A stateful consumer of ready epochs.
+
+    ``name`` labels the output (the ``method`` column for locate).
+    """
+
+    name: str
+
+    def process(self, epochs: Epochs) -> pd.DataFrame:
+        """One output row per epoch of ``epochs`` (epochs come in time order per tag)."""
+        ...
+
+    def state_dict(self) -> dict:
+        """Per-tag state to persist (empty for a stateless processor)."""
+        ...
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore the state saved by :meth:`state_dict`."""
+        ...
+
+
+class LocateProcessor:
+    """Per-epoch fixes, each tested with its protection level, as ``robustloc locate``.
+
+    The fixes come from :func:`robustloc.integrity.fixes.locate_protected` (the one entry
+    point of every front end) with a :class:`~robustloc.estimators.ranging.Locator`
+    prepared as ``robustloc locate`` prepares it.
+
+    Parameters
+    ----------
+    anchors : DataFrame
+        From :func:`robustloc.io.read_anchors`.
+    method : str
+        ``auto`` (default, as ``robustloc locate``) or one of
+        :data:`robustloc.estimators.ranging.METHODS`.
+    dim : {2, 3}
+    solver, domain, reference, min_scale, alpha0, beta0, k_noise, alert_limit, weight_params
+        As the ``robustloc locate`` options of the same names.
+    robust_scale : {"mad", "log", "apriori"}
+        Noise scale of the robust methods and of every fix's test.  ``mad`` (default here):
+        per epoch from its own residuals.  ``log`` (``robustloc locate``'s default, a first
+        pass over the whole log) needs ``log_scale``: a live service has no whole log, so
+        the scale comes from a recorded one (:meth:`log_scale_from`).
+    log_scale : sequence of float, optional
+        Per-anchor noise scale for ``robust_scale="log"``.
+    sigma : float, optional
+        A-priori observation std (m or dB); default the anchors' ``sigma`` column if present.
+    model : str, optional
+        Path-loss columns to use for RSSI (default: what the anchors have).
+    range_calibration : bool
+        Correct ranges with the anchors' ``bias``/``scale`` columns (default True).
+    tag_height : float, optional
+        2-D only: known tag height to reduce slant ranges (m).
+    """
+
+    def __init__(
+        self,
+        anchors: pd.DataFrame,
+        *,
+        method: str | None = None,
+        dim: int = 2,
+        solver: str = "nonlinear",
+        domain: str = "range",
+        sigma: float | None = None,
+        robust_scale: str = "mad",
+        log_scale: Sequence[float] | None = None,
+        reference: str = "first",
+        min_scale: float = 0.0,
+        alpha0: float = 0.001,
+        beta0: float = 0.10,
+        k_noise: float | None = None,
+        alert_limit: float | None = None,
+        weight_params: Mapping[str, float] | None = None,
+        model: str | None = None,
+        range_calibration: bool = True,
+        tag_height: float | None = None,
+    ) -> None:
+        from robustloc.estimators.ranging import DEFAULT_METHOD, METHODS, ROBUST, Locator
+
+        method = DEFAULT_METHOD if method is None else method
+        if method not in METHODS + ("auto",):
+            raise ValueError(f"unknown method {method!r}; choose one of auto, "
+                             f"{', '.join(METHODS)}")
+        if dim not in (2, 3):
+            raise ValueError(f"dim must be 2 or 3, got {dim}")
+        if dim == 3 and "z" not in anchors.columns:
+            raise ValueError("dim 3 needs a z column in the anchors")
+        if robust_scale == "log" and log_scale is None:
+            raise ValueError("robust scale 'log' needs the noise scale of a recorded log "
+                             "(--scale-from LOG); or use --robust-scale mad")
+        self.anchors = anchors
+        self.anchor_ids = [str(a) for a in anchors["anchor"]]
+        self.name = method
+        self.dim = dim
+        self.model = model
+        self.range_calibration = range_calibration
+        self.alpha0, self.beta0 = alpha0, beta0
+        self.k_noise, self.alert_limit = k_noise, alert_limit
+        self.xyz = anchors[["x", "y"] + (["z"] if dim == 3 else [])].to_numpy(dtype=float)
+        self.height = None
+        if tag_height is not None:
+            if dim != 2 or "z" not in anchors.columns:
+                raise ValueError("tag height needs dim 2 and a z column in the anchors")
+            self.height = anchors["z"].to_numpy(dtype=float) - tag_height
+        sig: float | tuple[float, ...] | None = sigma
+        if sig is None and "sigma" in anchors.columns:
+            sg = anchors["sigma"].to_numpy(dtype=float)
+            if not np.all(np.isfinite(sg) & (sg > 0)):
+                raise ValueError("anchors' sigma column must be positive and finite")
+            sig = tuple(sg)
+        self.locator = Locator(
+            method, solver=solver, domain=domain, sigma=sig, robust_scale=robust_scale,
+            reference=reference,
+            weight_params=dict(weight_params or {}) if method in ROBUST else {},
+            min_scale=min_scale, alpha0=alpha0, beta0=beta0,
+        )
+        if log_scale is not None:
+            self.locator = replace(self.locator,
+                                   log_scale_fixed=tuple(float(v) for v in log_scale))
+        self._pathloss: tuple[np.ndarray, np.ndarray] | None = None
+
+    @staticmethod
+    def log_scale_from(path: str, anchors: pd.DataFrame, *, method: str | None = None,
+                       dim: int = 2, chunk_rows: int = 500_000, **settings: Any
+                       ) -> tuple[float, ...]:
+        """Per-anchor noise scale of a recorded log, by ``robustloc locate``'s first pass.
+
+        ``settings`` are the other :class:`LocateProcessor` settings (``solver``, ``model``,
+        ``range_calibration``, ...).  Calls ``robustloc.commands.locate._fix_log_scale``,
+        so a log replayed through a service started with this scale gives the positions
+        ``robustloc locate`` gives on the file.
+        """
+        import argparse
+
+        from robustloc.commands.locate import _fix_log_scale
+        from robustloc.io.tables import UnsortedInput
+
+        proto = LocateProcessor(anchors, method=method, dim=dim, robust_scale="log",
+                                log_scale=(1.0,) * len(anchors), **settings)
+        loc = replace(proto.locator, log_scale_fixed=None)
+        ns = argparse.Namespace(measurements=str(path), chunk_rows=chunk_rows,
+                                no_range_calibration=not proto.range_calibration,
+                                model=proto.model)
+        try:
+            (out,) = _fix_log_scale(ns, anchors, [loc], proto.xyz, proto.height, "auto")
+        except UnsortedInput:
+            (out,) = _fix_log_scale(ns, anchors, [loc], proto.xyz, proto.height, "sort")
+        if out.log_scale_fixed is None:
+            raise ValueError(f"{path}: no epochs to take the noise scale from")
+        return tuple(out.log_scale_fixed)
+
+    def process(self, epochs: Epochs) -> pd.DataFrame:
+        from robustloc.integrity.fixes import locate_protected
+        from robustloc.models.calibration import apply_range_calibration
+        from robustloc.models.pathloss import log_distance_arrays
+        from robustloc.status import INVALID
+
+        values = epochs.values
+        A = n = None
+        if epochs.value == "rssi":
+            if self._pathloss is None:
+                self._pathloss = log_distance_arrays(self.anchors, self.model)
+            A, n = self._pathloss
+        elif self.range_calibration:
+            values = apply_range_calibration(self.anchors, values)
+        sol = locate_protected(
+            self.locator, self.xyz, values, epochs.value, A=A, n=n,
+            height_offset=self.height, alpha0=self.alpha0, beta0=self.beta0,
+            k_noise=self.k_noise, alert_limit=self.alert_limit)
+        frame = positions_frame(sol, epochs.time, epochs.tag, self.anchor_ids, self.name)
+        bad = epochs.all_invalid
+        if bad.any():  # as robustloc locate: every row of the epoch outside the limits
+            frame.loc[bad, "status"] = INVALID
+            frame.loc[bad, [c for c in ("x", "y", "z", "sigma0") if c in frame]] = np.nan
+            frame.loc[bad, "n_used"] = 0
+        cov = np.asarray(sol.covariance, dtype=float)
+        frame["cov_xx"] = cov[:, 0, 0]
+        frame["cov_xy"] = cov[:, 0, 1]
+        frame["cov_yy"] = cov[:, 1, 1]
+        return frame
+
+    def warm_up(self) -> None:
+        """Solve one synthetic epoch per value kind, so the compiled kernels are loaded
+        (or compiled) before the first live epoch rather than during it."""
+        centre = self.xyz.mean(axis=0)
+        rng = np.linalg.norm(self.xyz - centre, axis=1)[None, :] + 1.0
+        kinds = [("range", rng)]
+        try:
+            from robustloc.models.pathloss import log_distance_arrays
+
+            A, n = log_distance_arrays(self.anchors, self.model)
+            kinds.append(("rssi", A - 10.0 * n * np.log10(rng)))
+        except (ValueError, KeyError):
+            pass  # no path-loss columns: this service will only see ranges
+        m = len(self.anchor_ids)
+        for kind, vals in kinds:
+            ep = Epochs(np.zeros(1), np.array(["warm-up"], dtype=object), vals.reshape(1, m),
+                        tuple(self.anchor_ids), kind, np.zeros(1, dtype=np.int64))
+            self.process(ep)
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        return None
+
+
+class TrackProcessor:
+    """Tracks with ``robustloc.track.Tracker`` (motion model + filter per tag).
+
+    Parameters
+    ----------
+    anchors : DataFrame
+    model, filter : str
+        Passed to ``Tracker``.
+    **options
+        Further ``Tracker`` settings.
+
+    Raises
+    ------
+    RuntimeError
+        When ``robustloc.track`` is not available in this installation.
+    """
+
+    def __init__(
+        self, anchors: pd.DataFrame, *, model: str = "cv", filter: str = "ekf", **options: Any
+    ) -> None:
+        try:
+            from robustloc.track import Tracker
+        except ImportError as exc:
+            raise RuntimeError(
+                "--track needs robustloc.track (the tracker), which this installation lacks "
+                f"({exc}); use --method instead"
+            ) from None
+        self.name = f"track-{model}-{filter}"
+        self.tracker = Tracker(anchors, model=model, filter=filter, **options)
+
+    def process(self, epochs: Epochs) -> pd.DataFrame:
+        return self.tracker.step(epochs)
+
+    def state_dict(self) -> dict:
+        return self.tracker.state_dict()
+
+    def load_state_dict(self, state: dict) -> None:
+        self.tracker.load_state_dict(state)

