@@ -5,6 +5,13 @@ from __future__ import annotations
 import argparse
 import json
 
+from robustloc.commands._argtypes import (
+    float_in,
+    nonnegative_float,
+    nonnegative_int,
+    positive_float,
+)
+
 NAME = "filter"
 HELP = "robust RSSI Kalman filter per (tag, anchor) link (seed 002); output feeds locate"
 DESCRIPTION = """\
@@ -35,19 +42,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--robust", choices=WEIGHTS, default="asymmetric-igg",
                    help="equivalent weight of the gain (default asymmetric-igg, eq. 14; "
                         "'none' = plain Kalman filter)")
-    p.add_argument("--sigma-rssi", type=float, default=2.0,
+    p.add_argument("--sigma-rssi", type=positive_float, default=2.0,
                    help="measurement noise std, dB (default 2)")
-    p.add_argument("--sigma-accel", type=float, default=0.5,
+    p.add_argument("--sigma-accel", type=nonnegative_float, default=0.5,
                    help="radial acceleration std, m/s^2 (default 0.5)")
-    p.add_argument("--q-rssi", type=float, default=0.05,
+    p.add_argument("--q-rssi", type=nonnegative_float, default=0.05,
                    help="power random walk, dB^2/s (default 0.05)")
-    p.add_argument("--exponent", type=float, default=None,
+    p.add_argument("--exponent", type=float_in(0.1, 10.0), default=None,
                    help="path-loss exponent of the transition (default: each anchor's "
                         "gamma; 2 = the paper's 20 lg)")
     p.add_argument("--static", action="store_true",
                    help="receivers do not move: speed fixed at 0, no acceleration (the "
                         "filter becomes a robust running mean with a slow power walk)")
-    p.add_argument("--max-rejected", type=int, default=8,
+    p.add_argument("--max-rejected", type=nonnegative_int, default=8,
                    help="consecutive rejections before a link re-locks (0: never; default 8)")
     p.add_argument("--no-adaptive", action="store_true",
                    help="standardize by the predicted innovation std only")

@@ -74,6 +74,8 @@ def run(args: argparse.Namespace) -> int:
         plot_autocorrelation(res, folder / "autocorrelation.png", args.threshold)
         (folder / "summary.json").write_text(json.dumps(summary, indent=2))
 
+    from robustloc.commands._folder import write_folder
+
     write_folder(out, write)
     if args.json:
         print(json.dumps(summary, indent=2))
@@ -95,28 +97,3 @@ def run(args: argparse.Namespace) -> int:
     print(f"tables and figures in {out}")
     return 0
 
-
-def write_folder(out: Path, write) -> None:  # noqa: ANN001
-    """Run ``write(folder)`` on a fresh temporary folder beside ``out``, then move its files
-    into ``out`` (created if missing).  After an error nothing is left behind: neither the
-    temporary folder nor a new ``out``.
-    """
-    import os
-    import shutil
-    import tempfile
-
-    from robustloc.errors import InputError
-
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise InputError("exists and is not a folder", out)
-    parent = out.parent if str(out.parent) else Path(".")
-    parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))
-    try:
-        write(tmp)
-        out.mkdir(exist_ok=True)
-        for f in sorted(tmp.iterdir()):
-            os.replace(f, out / f.name)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
