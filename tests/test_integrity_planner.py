@@ -59,7 +59,9 @@ def test_cli_reliability(tmp_path, capsys):
             "min_redundancy", "dof"} <= set(t.columns)
     for name in ("dop", "crlb_m", "max_mdb", "max_ext_m", "max_abs_rho", "min_redundancy"):
         assert (out / f"reliability_{name}.png").stat().st_size > 1000
-    assert main(["reliability", "--anchors", str(anchors), "--step", "-1", "-o", str(out)]) == 2
+    with pytest.raises(SystemExit) as exc:  # refused by the option's type (argparse)
+        main(["reliability", "--anchors", str(anchors), "--step", "-1", "-o", str(out)])
+    assert exc.value.code == 2
     assert main(["reliability", "--anchors", str(tmp_path / "none.csv"), "-o", str(out)]) == 2
 
 
