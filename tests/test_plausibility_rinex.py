@@ -135,3 +135,23 @@ def test_spp_refuses_absurd_option_values(tmp_path, capsys, opt, value):
     err = capsys.readouterr().err
     assert rc == 2 and "error" in err and opt in err and "Traceback" not in err
     assert not out.exists()
+
+
+SLAC = DATA.parent / "gnss-slac"
+
+
+def test_sp3_and_clock_epochs_must_be_calendar_times(tmp_path):
+    from robustloc.gnss.sp3 import read_clk, read_sp3
+
+    sp3 = (SLAC / "COD0MGXFIN_20211181905_60M_05M_ORB.SP3").read_text().splitlines()
+    i = next(k for k, ln in enumerate(sp3) if ln.startswith("*"))
+    sp3[i] = "*  2021 13 28 19  5  0.00000000"
+    with pytest.raises(InputError, match=rf":{i + 1}: impossible epoch 2021-13-28"):
+        read_sp3(_write(tmp_path, "bad.sp3", sp3))
+    clk = (SLAC / "COD0MGXFIN_20211181930_12M_30S_CLK.CLK").read_text().splitlines()
+    j = next(k for k, ln in enumerate(clk) if ln.startswith("AS "))
+    parts = clk[j].split()
+    parts[7] = "nan"  # seconds
+    clk[j] = " ".join(parts)
+    with pytest.raises(InputError, match=rf":{j + 1}: impossible epoch"):
+        read_clk(_write(tmp_path, "bad.clk", clk))
