@@ -24,7 +24,10 @@ The output is a measurements file with the same rows in the same order: 'rssi' h
 filtered value (so 'robustloc locate' runs on it unchanged), plus 'rssi_raw', 'distance'
 (m, the filtered RSSI through the anchor's path-loss model), 'distance_state' (the filter's
 own d, weakly observable from RSSI alone), 'speed' (m/s), 'weight' (D), 'innovation' (dB)
-and 'relocked'.  Use --static when the receivers do not move.  Path-loss parameters come
+and 'relocked'.  An RSSI outside -150 .. +30 dBm (robustloc.io.limits) is not fed to the
+filter: its row keeps the raw value in 'rssi_raw', 'rssi' is the filter's prediction and
+'status' says invalid_measurement (else ok); such rows are counted in the summary.
+Use --static when the receivers do not move.  Path-loss parameters come
 from the anchors file (p0, gamma, faf, d0 or A, n).
 
 Example:
@@ -62,12 +65,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from robustloc import status as st
     from robustloc.filters.rssi import RobustRssiFilter, filter_measurements
     from robustloc.io import read_anchors, read_measurements, write_table
+    from robustloc.io.limits import LIMITS
     from robustloc.robust.weights import get_weight
 
     anchors = read_anchors(args.anchors)
     meas = read_measurements(args.measurements, anchors)
+    bad = np.zeros(len(meas), dtype=bool)
+    if "rssi" in meas.columns:  # implausible values never reach the filter
+        raw = meas["rssi"].to_numpy(dtype=float)
+        bad = ~np.isnan(raw) & ~LIMITS["rssi"].check(raw)
+        if bad.any():
+            meas = meas.copy()
+            meas["rssi"] = np.where(bad, np.nan, raw)
     robust = args.robust != "none"
     filt = RobustRssiFilter(
         get_weight(args.robust) if robust else None,
@@ -81,12 +95,19 @@ def run(args: argparse.Namespace) -> int:
         adaptive=not args.no_adaptive,
     )
     res = filter_measurements(meas, anchors, filt, progress=True)
-    write_table(res.frame, args.out)
-    s = dict(res.summary, out=str(args.out))
+    frame = res.frame
+    if bad.any():
+        frame = frame.copy()
+        frame["rssi_raw"] = np.where(bad, raw, frame["rssi_raw"].to_numpy(dtype=float))
+    frame["status"] = np.where(bad, st.INVALID, st.OK)
+    write_table(frame, args.out)
+    s = dict(res.summary, out=str(args.out), invalid_measurement=int(bad.sum()))
     if args.json:
         print(json.dumps(s, indent=2))
     else:
         print(f"filtered {s['samples']} samples on {s['links']} links ({s['filter']}): "
               f"{s['downweighted']} down-weighted, {s['rejected']} rejected, "
               f"{s['relocked']} re-locks -> {s['out']}")
+        print(f"invalid_measurement: {s['invalid_measurement']}"
+              + (" (RSSI outside -150 .. +30 dBm, not filtered)" if bad.any() else ""))
     return 0
