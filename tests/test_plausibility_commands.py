@@ -82,6 +82,9 @@ def test_simulate_group_b_line_is_refused_not_silently_diagonal(tmp_path, capsys
     (["montecarlo", "--gnss", "--faults", "1,1"], "--faults"),
     (["montecarlo", "--gnss", "--alpha0", "inf"], "--alpha0"),
     (["montecarlo", "--gnss", "--systems", "GX"], "--systems"),
+    (["montecarlo", "--gnss", "--methods", ","], "--methods"),  # was a KeyError traceback
+    (["montecarlo", "--gnss", "--methods", "ls,ls"], "--methods"),
+    (["simulate", "gnss", "--systems", "X"], "--systems"),
 ])
 def test_absurd_option_values_are_refused(tmp_path, capsys, argv, opt):
     out = tmp_path / "out"
@@ -92,6 +95,7 @@ def test_absurd_option_values_are_refused(tmp_path, capsys, argv, opt):
 
 @pytest.mark.parametrize("cmd,opt,value", [
     ("reliability", "--sigma", "nan"), ("reliability", "--area", "0,0,1,2"),
+    ("reliability", "--area", "0,1e300,0,1"),
     ("reliability", "--rho-threshold", "2"), ("reliability", "--step", "-1"),
     ("filter", "--sigma-rssi", "nan"), ("filter", "--exponent", "0"),
     ("filter", "--max-rejected", "-2"),

@@ -195,8 +195,16 @@ def run(args: argparse.Namespace) -> int:
 
     methods = tuple(m.strip().lower() for m in args.methods.split(",") if m.strip())
     bad = [m for m in methods if m not in METHODS]
-    if bad:
-        raise InputError(f"unknown method(s) {', '.join(bad)}; choose among {', '.join(METHODS)}")
+    if bad or not methods:
+        raise InputError(f"--methods: unknown or no method(s) {', '.join(bad)!r}; choose "
+                         f"among {', '.join(METHODS)}")
+    if len(set(methods)) != len(methods):
+        raise InputError(f"--methods: a method is listed twice in {args.methods!r}")
+    if args.nonlinear and "raim-single" in methods:
+        raise InputError("--methods raim-single is available on the linearized model only "
+                         "(without --nonlinear)")
+    if args.position is not None and max(abs(v) for v in args.position) > 1e7:
+        raise InputError(f"--position: coordinates beyond 1e7 m, got {args.position}")
     if args.nonlinear and args.gnss:
         raise InputError("--nonlinear applies to --anchors layouts only")
     if args.nonlinear and args.alpha is not None:

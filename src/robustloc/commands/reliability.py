@@ -47,6 +47,8 @@ def _area(text: str) -> tuple[float, float, float, float]:
         ) from None
     if len(vals) != 4:
         raise argparse.ArgumentTypeError(f"--area expects 4 numbers, got {text!r}")
+    if max(abs(v) for v in vals) > 1e7:
+        raise argparse.ArgumentTypeError(f"--area: coordinates beyond 1e7 m, got {text!r}")
     if not (vals[0] < vals[1] and vals[2] < vals[3]):
         raise argparse.ArgumentTypeError(f"--area needs xmin < xmax and ymin < ymax, "
                                          f"got {text!r}")

@@ -292,6 +292,12 @@ def generate(
 
 def simulate(out_dir: Path, seed: int, args: argparse.Namespace) -> dict[str, Path]:
     """Write ``pseudoranges.csv`` and ``truth.csv`` into ``out_dir``."""
+    bad = sorted(set(args.systems.upper()) - set("GEC"))
+    if bad or not args.systems:
+        from robustloc.errors import InputError
+
+        raise InputError(f"--systems: unknown GNSS system(s) {''.join(bad)!r}; choose among "
+                         f"G, E, C")
     data = generate(
         seed,
         epochs=args.epochs,
