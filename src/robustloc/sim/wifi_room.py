@@ -238,7 +238,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"epochs of the walk (default {d.walk_epochs})")
     p.add_argument("--rate-hz", type=float_in(1e-3, 1e4), default=d.rate_hz,
                    help=f"scan rate of the walk (default {d.rate_hz})")
-    p.add_argument("--speed", type=float_in(0.0, 515.0), default=d.speed_mps,
+    p.add_argument("--speed", type=float_in(0.01, 515.0), default=d.speed_mps,
                    help=f"walking speed m/s (default {d.speed_mps})")
     p.add_argument("--noise-db", type=float_in(0.0, 100.0), default=d.noise_db,
                    help=f"scale of the skewed RSSI noise, dB (default {d.noise_db})")
