@@ -319,9 +319,13 @@ def _layout_status(time_s: Array, heard: NDArray[np.bool_], a_xy: Array,
         recent = (last >= 0) & (time_s[..., None] - t_last <= window_s)
     cnt = recent.sum(axis=-1)
     w = recent.astype(float)
-    mean = np.einsum("kjm,mi->kji", w, a_xy) / np.maximum(cnt, 1)[..., None]
-    d = a_xy[None, None] - mean[:, :, None, :]  # (K, J, M, 2)
-    S = np.einsum("kjm,kjma,kjmb->kjab", w, d, d).reshape(K * J, 2, 2)
+    # scatter of the recent anchors: sum w c c^T - n m m^T with c the anchors about their
+    # centroid (identical anchors give exactly 0), without a (K, J, M, 2) temporary
+    c = a_xy - a_xy.mean(axis=0)
+    m = np.einsum("kjm,mi->kji", w, c) / np.maximum(cnt, 1)[..., None]
+    S = np.einsum("kjm,ma,mb->kjab", w, c, c) - cnt[..., None, None] * (
+        m[..., :, None] * m[..., None, :])
+    S = S.reshape(K * J, 2, 2)
     _, good = inv_spd(S)
     out[~good.reshape(K, J)] = st.ILL_CONDITIONED
     out[cnt < 3] = st.INSUFFICIENT
