@@ -50,8 +50,7 @@ diagonal), n_used, nis, source.  One row per event (every input epoch is in one)
 The filtered state is written on every row; its var_* columns say how far to trust it.
 Values outside the physical limits are counted in the summary (invalid_measurement N) and
 never reach the filter; an update that would make the state non-finite or absurd (beyond
-1e9 m) is rejected (the
-row is predicted, counted as rejected_updates).
+1e9 m) is rejected: the row is predicted, counted as rejected_updates.
 
 Example:
   robustloc simulate uwb-cart --seed 1 --out cart
