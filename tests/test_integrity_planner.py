@@ -80,7 +80,9 @@ def test_cli_reliability(tmp_path, capsys):
            "max_mdb": (np.sqrt(lam0) * 0.3 / np.sqrt(np.diag(R))).max()}
     for k, val in ref.items():  # the CSV holds 6 significant digits
         assert r[k] == pytest.approx(val, rel=1e-5), (k, r[k], val)
+    # refused by the option's type (argparse's exit code 2, which cli.main returns)
     assert main(["reliability", "--anchors", str(anchors), "--step", "-1", "-o", str(out)]) == 2
+    assert "--step" in capsys.readouterr().err
     assert main(["reliability", "--anchors", str(tmp_path / "none.csv"), "-o", str(out)]) == 2
 
 

@@ -139,15 +139,17 @@ def test_gst_accuracy_rows():
     [
         "GPVTG,1,T,,M,abc,N,x,K,A",
         "GPRMC,12x456,A,3725.5,N,12210.4,W,abc,1e999,071123,,,A",
-        "GPRMC,123456,A,3725.5,N,12210.4,W,1e999,10,071123,,,A",
         "GPGGA,123456,37xx.5,N,12210.4,W,1,08,zz,10,M,0,M,,",
         "GPGST,123456,a,b,c,d,e,f,g",
         "GPRMC,999999,A,3725.5,N,12210.4,W,1.0,2.0,991399,,,A",
     ],
 )
 def test_garbage_fields_with_valid_checksum_are_skipped(body):
+    # unparsable fields are "truncated"; a time or date that is not a calendar value
+    # (12x456, 999999, day 99) is an "invalid_measurement": either way skipped and counted
     log = parse_nmea(["$" + body + "*" + nmea_checksum(body)])
-    assert log.summary.parsed == {} and log.summary.skipped["truncated"] == 1
+    sk = log.summary.skipped
+    assert log.summary.parsed == {} and sk["truncated"] + sk["invalid_measurement"] == 1
 
 
 def test_posix_day_from_rmc_date():

@@ -5,6 +5,12 @@ from __future__ import annotations
 import argparse
 import json
 
+from robustloc.commands._argtypes import (
+    float_in,
+    nonnegative_float,
+    nonnegative_int,
+    positive_float,
+)
 from robustloc.engines import add_engine_arguments
 
 NAME = "filter"
@@ -19,7 +25,10 @@ The output is a measurements file with the same rows in the same order: 'rssi' h
 filtered value (so 'robustloc locate' runs on it unchanged), plus 'rssi_raw', 'distance'
 (m, the filtered RSSI through the anchor's path-loss model), 'distance_state' (the filter's
 own d, weakly observable from RSSI alone), 'speed' (m/s), 'weight' (D), 'innovation' (dB)
-and 'relocked'.  Use --static when the receivers do not move.  Path-loss parameters come
+and 'relocked'.  An RSSI outside -150 .. +30 dBm (robustloc.io.limits) is not fed to the
+filter: its row keeps the raw value in 'rssi_raw', 'rssi' is the filter's prediction and
+'status' says invalid_measurement (else ok); such rows are counted in the summary.
+Use --static when the receivers do not move.  Path-loss parameters come
 from the anchors file (p0, gamma, faf, d0 or A, n).
 
 What it can gain (measured, issue 11): on the wifi-room walk (seed 3), positions from
@@ -51,19 +60,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--robust", choices=WEIGHTS, default="asymmetric-igg",
                    help="equivalent weight of the gain (default asymmetric-igg, eq. 14; "
                         "'none' = plain Kalman filter)")
-    p.add_argument("--sigma-rssi", type=float, default=2.0,
+    p.add_argument("--sigma-rssi", type=positive_float, default=2.0,
                    help="measurement noise std, dB (default 2)")
-    p.add_argument("--sigma-accel", type=float, default=0.5,
+    p.add_argument("--sigma-accel", type=nonnegative_float, default=0.5,
                    help="radial acceleration std, m/s^2 (default 0.5)")
-    p.add_argument("--q-rssi", type=float, default=0.05,
+    p.add_argument("--q-rssi", type=nonnegative_float, default=0.05,
                    help="power random walk, dB^2/s (default 0.05)")
-    p.add_argument("--exponent", type=float, default=None,
+    p.add_argument("--exponent", type=float_in(0.1, 10.0), default=None,
                    help="path-loss exponent of the transition (default: each anchor's "
                         "gamma; 2 = the paper's 20 lg)")
     p.add_argument("--static", action="store_true",
                    help="receivers do not move: speed fixed at 0, no acceleration (the "
                         "filter becomes a robust running mean with a slow power walk)")
-    p.add_argument("--max-rejected", type=int, default=8,
+    p.add_argument("--max-rejected", type=nonnegative_int, default=8,
                    help="consecutive rejections before a link re-locks (0: never; default 8)")
     p.add_argument("--no-adaptive", action="store_true",
                    help="standardize by the predicted innovation std only")
@@ -75,11 +84,25 @@ def filter_frame(meas, anchors, args: argparse.Namespace, progress: bool = False
     """The filter configured by ``args`` over one measurements frame.
 
     The single core of ``filter``: the whole file here, each tag partition under
-    ``--engine dask``.  Returns :class:`robustloc.filters.rssi.FilteredTable`.
+    ``--engine dask``.  RSSI outside the physical limits (robustloc.io.limits) never
+    reaches the filter: its row keeps the raw value in ``rssi_raw``, the prediction in
+    ``rssi`` and status ``invalid_measurement``.  Returns ``(frame, summary)``.
     """
+    import numpy as np
+
+    from robustloc import status as st
     from robustloc.filters.rssi import RobustRssiFilter, filter_measurements
+    from robustloc.io.limits import LIMITS
     from robustloc.robust.weights import get_weight
 
+    bad = np.zeros(len(meas), dtype=bool)
+    raw = None
+    if "rssi" in meas.columns:  # implausible values never reach the filter
+        raw = meas["rssi"].to_numpy(dtype=float)
+        bad = ~np.isnan(raw) & ~LIMITS["rssi"].check(raw)
+        if bad.any():
+            meas = meas.copy()
+            meas["rssi"] = np.where(bad, np.nan, raw)
     robust = args.robust != "none"
     filt = RobustRssiFilter(
         get_weight(args.robust) if robust else None,
@@ -92,13 +115,19 @@ def filter_frame(meas, anchors, args: argparse.Namespace, progress: bool = False
         max_rejected=args.max_rejected,
         adaptive=not args.no_adaptive,
     )
-    return filter_measurements(meas, anchors, filt, progress=progress)
+    res = filter_measurements(meas, anchors, filt, progress=progress)
+    frame = res.frame
+    if bad.any():
+        frame = frame.copy()
+        frame["rssi_raw"] = np.where(bad, raw, frame["rssi_raw"].to_numpy(dtype=float))
+    frame["status"] = np.where(bad, st.INVALID, st.OK)
+    return frame, dict(res.summary, invalid_measurement=int(bad.sum()))
 
 
 def filter_partition(meas, anchors, args: argparse.Namespace):
     """``--engine dask``: one tag partition -> (filtered frame, additive counts)."""
-    res = filter_frame(meas, anchors, args)
-    return res.frame, {k: v for k, v in res.summary.items() if isinstance(v, int)}
+    frame, summary = filter_frame(meas, anchors, args)
+    return frame, {k: v for k, v in summary.items() if isinstance(v, int)}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -109,13 +138,15 @@ def run(args: argparse.Namespace) -> int:
 
     anchors = read_anchors(args.anchors)
     meas = read_measurements(args.measurements, anchors)
-    res = filter_frame(meas, anchors, args, progress=True)
-    write_table(res.frame, args.out)
-    s = dict(res.summary, out=str(args.out))
+    frame, summary = filter_frame(meas, anchors, args, progress=True)
+    write_table(frame, args.out)
+    s = dict(summary, out=str(args.out))
     if args.json:
         print(json.dumps(s, indent=2))
     else:
         print(f"filtered {s['samples']} samples on {s['links']} links ({s['filter']}): "
               f"{s['downweighted']} down-weighted, {s['rejected']} rejected, "
               f"{s['relocked']} re-locks -> {s['out']}")
+        note = " (RSSI outside -150 .. +30 dBm, not filtered)" if s["invalid_measurement"] else ""
+        print(f"invalid_measurement: {s['invalid_measurement']}{note}")
     return 0

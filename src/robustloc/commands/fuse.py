@@ -5,6 +5,13 @@ from __future__ import annotations
 import argparse
 import json
 
+from robustloc.commands._argtypes import (
+    finite_float,
+    float_in,
+    nonnegative_float,
+    positive_float,
+)
+
 NAME = "fuse"
 HELP = "fuse UWB ranges and GPS speed/course (NMEA) with an EKF or UKF (seed 001)"
 DESCRIPTION = """\
@@ -28,8 +35,22 @@ measurements within --merge-window seconds form one filter event.
 Course is ignored below 0.1 m/s.
 
 Output (track contract): time, tag, x, y, vx, vy[, ax, ay], status, var_* (covariance
-diagonal), n_used, nis, source.  status: ok, fault_excluded (a component was rejected by
-the robust weights or the gate), predicted (nothing to update with).
+diagonal), n_used, nis, source.  One row per event (every input epoch is in one); status:
+  ok                    updated, and the anchors heard within --geometry-window fix the
+                        position (three or more, not all on one line or at one point)
+  fault_excluded        as ok, but a component was rejected by the robust weights or gate
+  predicted             nothing to update with: the state is the motion model's prediction
+  invalid_measurement   every value of the event was outside its physical limits
+                        (robustloc.io.limits: range -50..1e5 m, speed 0..515 m/s, course
+                        0..360 deg); they were set aside, the row is the prediction
+  insufficient_anchors  updated, but fewer than three anchors heard within
+                        --geometry-window: ranges cannot fix the position (as in locate)
+  ill_conditioned       updated, but the anchors heard are all at one point or on one line
+                        (as in locate); GPS speed/course do not fix a position either
+The filtered state is written on every row; its var_* columns say how far to trust it.
+Values outside the physical limits are counted in the summary (invalid_measurement N) and
+never reach the filter; an update that would make the state non-finite or absurd (beyond
+1e9 m) is rejected: the row is predicted, counted as rejected_updates.
 
 Example:
   robustloc simulate uwb-cart --seed 1 --out cart
@@ -54,23 +75,29 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "nls (default nls)")
     p.add_argument("--robust", choices=ROBUST, default="none",
                    help="equivalent weight of the robust update (default none)")
-    p.add_argument("--gate", type=float, default=None, metavar="PROB",
+    p.add_argument("--gate", type=float_in(0.5, 1.0 - 1e-12), default=None, metavar="PROB",
                    help="chi-square gate probability on the innovation, e.g. 0.999")
-    p.add_argument("--q", type=float, default=None,
+    p.add_argument("--q", type=positive_float, default=None,
                    help="process noise: acceleration (cv) or jerk (ca) variance "
                         "(default 0.5 cv, 0.1 ca)")
-    p.add_argument("--sigma-range", type=float, default=0.15, help="range std, m (0.15)")
-    p.add_argument("--range-k", type=float, default=0.0,
+    p.add_argument("--sigma-range", type=positive_float, default=0.15,
+                   help="range std, m (0.15)")
+    p.add_argument("--range-k", type=nonnegative_float, default=0.0,
                    help="range std growth with distance, sigma = s0 + k d (default 0)")
-    p.add_argument("--sigma-speed", type=float, default=0.05, help="GPS speed std, m/s")
-    p.add_argument("--sigma-course", type=float, default=5.0, help="GPS course std, deg")
-    p.add_argument("--nmea-offset", type=float, default=None,
+    p.add_argument("--sigma-speed", type=positive_float, default=0.05,
+                   help="GPS speed std, m/s")
+    p.add_argument("--sigma-course", type=float_in(1e-6, 180.0), default=5.0,
+                   help="GPS course std, deg")
+    p.add_argument("--nmea-offset", type=finite_float, default=None,
                    help="seconds added to NMEA times (UTC seconds of day) to reach the "
                         "ranges' clock (default: POSIX time from the RMC date when the "
                         "ranges' times are POSIX seconds, else 0)")
-    p.add_argument("--merge-window", type=float, default=0.02,
+    p.add_argument("--merge-window", type=nonnegative_float, default=0.02,
                    help="measurements closer than this (s) form one event (0.02)")
-    p.add_argument("--tag-height", type=float, default=None,
+    p.add_argument("--geometry-window", type=nonnegative_float, default=1.0, metavar="S",
+                   help="anchors heard within this many seconds up to an event decide "
+                        "whether its position can be ok (default 1)")
+    p.add_argument("--tag-height", type=float_in(-1e4, 1e4), default=None,
                    help="tag height, m: with anchor z, slant ranges are made horizontal")
     p.add_argument("--origin", default=None, metavar="LAT,LON,H",
                    help="ENU origin for GGA positions (default: first fix)")
@@ -101,6 +128,11 @@ def run(args: argparse.Namespace) -> int:
                 raise ValueError
         except ValueError:
             raise InputError(f"--origin must be LAT,LON,H, got {args.origin!r}") from None
+        lat, lon, h = origin
+        if not (abs(lat) <= 90.0 and abs(lon) <= 180.0 and abs(h) <= 1e5):
+            raise InputError(f"--origin: latitude must lie in [-90, 90], longitude in "
+                             f"[-180, 180] deg and height in [-1e5, 1e5] m, got "
+                             f"{args.origin!r}")
     nmea = read_nmea(args.nmea, origin=origin) if args.nmea else None
     q = args.q if args.q is not None else (0.5 if args.motion == "cv" else 0.1)
     robust = RobustUpdate(
@@ -113,6 +145,7 @@ def run(args: argparse.Namespace) -> int:
         range_k=args.range_k, sigma_speed_mps=args.sigma_speed,
         sigma_course_deg=args.sigma_course, nmea_offset_s=args.nmea_offset,
         merge_window_s=args.merge_window, tag_height_m=args.tag_height,
+        geometry_window_s=args.geometry_window,
     )
     res = fuse(meas, anchors, nmea, filt, opts, progress=True)
     write_table(res.track, args.out)
@@ -127,4 +160,9 @@ def run(args: argparse.Namespace) -> int:
         st = ", ".join(f"{k} {v}" for k, v in s["status"].items())
         print(f"fused {s['events']} events of {s['tags']} tag(s) with {args.filter.upper()}/"
               f"{args.motion.upper()} ({args.coupling}): {st} -> {s['out']}")
+        bad = ", ".join(f"{k} {v}" for k, v in s["invalid"].items() if v)
+        print(f"invalid_measurement: {s['invalid_measurement']}"
+              + (f" ({bad}; outside the physical limits, never used)" if bad else ""))
+        if s["rejected_updates"]:
+            print(f"rejected_updates: {s['rejected_updates']}")
     return 0

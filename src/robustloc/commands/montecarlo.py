@@ -10,7 +10,17 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from robustloc.commands._argtypes import (
+    finite_float,
+    float_in,
+    int_in,
+    nonnegative_int,
+    positive_float,
+)
 from robustloc.errors import InputError
+
+#: Largest --trials: 1e9 trials of a 30-satellite snapshot take days, not memory.
+MAX_TRIALS = 10**9
 
 NAME = "montecarlo"
 HELP = "Monte Carlo of fault detection (snooping, LEGE, robust IRLS) against B-method theory"
@@ -22,7 +32,11 @@ method: flag rate (with 0 faults: the false-alarm rate), correct-identification 
 (rejected set == faulty set), unavailability and horizontal position error (mean, RMS,
 95th percentile), beside the theory: global-test rejection probability of the drawn faults
 (alpha of the B-method with 0 faults, 1 - beta0 for one fault of MDB size) and the w-test
-power for single faults. Trials are vectorized: 10 000 trials take seconds.
+power for single faults. Trials are vectorized: 10 000 trials take seconds.  They run in
+chunks of 10 000 with accumulated results, so memory stays that of one chunk for any
+--trials (at most 1e9); a progress bar on stderr counts the trials.  Runs of up to 10 000
+trials give the same numbers as before chunking; larger runs draw one random stream per
+chunk (see robustloc.integrity.montecarlo), so they depend on --seed alone.
 
 The model is linearized at the true position (exactly the model the B-method theory is
 derived for); with --nonlinear (ranging layouts) the ranges themselves are simulated and
@@ -45,18 +59,26 @@ Example:
 
 def _floats(text: str) -> list[float]:
     try:
-        return [float(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        msg = f"expected comma-separated numbers, got {text!r}"
-        raise argparse.ArgumentTypeError(msg) from None
+        out = [finite_float(v) for v in text.split(",") if v.strip()]
+    except argparse.ArgumentTypeError:
+        out = []
+    if not out:
+        msg = f"expected comma-separated finite numbers, got {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    return out
 
 
 def _ints(text: str) -> list[int]:
     try:
-        return [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        msg = f"expected comma-separated integers, got {text!r}"
-        raise argparse.ArgumentTypeError(msg) from None
+        out = [nonnegative_int(v) for v in text.split(",") if v.strip()]
+    except argparse.ArgumentTypeError:
+        out = []
+    if not out:
+        msg = f"expected comma-separated whole numbers >= 0, got {text!r}"
+        raise argparse.ArgumentTypeError(msg)
+    if len(set(out)) != len(out):
+        raise argparse.ArgumentTypeError(f"duplicate values in {text!r}")
+    return out
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -67,22 +89,29 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="true tag position for --anchors (default: anchors' centroid)")
     p.add_argument("--dim", type=int, choices=(2, 3), default=2,
                    help="solved dimension for --anchors (default 2; z = known height offsets)")
-    p.add_argument("--tag-z", type=float, default=0.0, help="tag height for --dim 2 (default 0)")
-    p.add_argument("--sigma", type=float, default=1.0,
+    p.add_argument("--tag-z", type=float_in(-1e5, 1e5), default=0.0,
+                   help="tag height for --dim 2 (default 0)")
+    p.add_argument("--sigma", type=positive_float, default=1.0,
                    help="observation standard deviation for --anchors: m for ranges, dB for "
                         "RSSI (default 1)")
     p.add_argument("--model", choices=("range", "rssi"), default="range",
                    help="observation type for --anchors (default range)")
-    p.add_argument("--n", type=float, default=None,
+    p.add_argument("--n", type=float_in(0.1, 10.0), default=None,
                    help="path-loss exponent for --model rssi (default: anchors' n column, "
                         "else 2)")
     p.add_argument("--systems", default="GEC", help="GNSS systems among G, E, C (default GEC)")
-    p.add_argument("--mask-deg", type=float, default=10.0, help="GNSS elevation mask (deg)")
-    p.add_argument("--lat", type=float, default=30.53, help="GNSS receiver latitude (deg)")
-    p.add_argument("--lon", type=float, default=114.36, help="GNSS receiver longitude (deg)")
-    p.add_argument("--height", type=float, default=30.0, help="GNSS receiver height (m)")
-    p.add_argument("--time-s", type=float, default=0.0, help="GNSS snapshot time (s)")
-    p.add_argument("--trials", type=int, default=10_000, help="trials per experiment (10000)")
+    p.add_argument("--mask-deg", type=float_in(-10.0, 90.0), default=10.0,
+                   help="GNSS elevation mask (deg)")
+    p.add_argument("--lat", type=float_in(-90.0, 90.0), default=30.53,
+                   help="GNSS receiver latitude (deg)")
+    p.add_argument("--lon", type=float_in(-180.0, 360.0), default=114.36,
+                   help="GNSS receiver longitude (deg)")
+    p.add_argument("--height", type=float_in(-1e3, 1e5), default=30.0,
+                   help="GNSS receiver height (m)")
+    p.add_argument("--time-s", type=float_in(-1e12, 1e12), default=0.0,
+                   help="GNSS snapshot time (s)")
+    p.add_argument("--trials", type=int_in(1, MAX_TRIALS), default=10_000,
+                   help="trials per experiment (10000; run in chunks of 10000)")
     p.add_argument("--faults", type=_ints, default=[0, 1, 2], metavar="K[,K...]",
                    help="numbers of gross errors per trial (default 0,1,2)")
     p.add_argument("--size", type=_floats, default=[1.0, 3.0], metavar="S[,S...]",
@@ -92,18 +121,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--methods", default="ls,snooping,lege,huber,igg3",
                    help="comma-separated among ls, snooping, lege, huber, hampel, igg, igg3 "
                         "(default ls,snooping,lege,huber,igg3)")
-    p.add_argument("--alpha0", type=float, default=0.001, help="w-test significance (0.001)")
-    p.add_argument("--beta0", type=float, default=0.10, help="B-method type II error (0.10)")
-    p.add_argument("--alpha", type=float, default=None,
+    p.add_argument("--alpha0", type=float_in(1e-15, 0.5), default=0.001,
+                   help="w-test significance (0.001)")
+    p.add_argument("--beta0", type=float_in(1e-15, 0.5), default=0.10,
+                   help="B-method type II error (0.10)")
+    p.add_argument("--alpha", type=float_in(1e-15, 0.5), default=None,
                    help="fixed global-test significance (default: B-method for each dof)")
-    p.add_argument("--reject-weight", type=float, default=0.1,
+    p.add_argument("--reject-weight", type=float_in(0.0, 1.0), default=0.1,
                    help="IRLS: weight below which an observation counts as rejected (0.1)")
-    p.add_argument("--lege-max-order", type=int, default=3,
+    p.add_argument("--lege-max-order", type=int_in(1, 6), default=3,
                    help="largest number of gross errors LEGE searches (default 3)")
     p.add_argument("--nonlinear", action="store_true",
                    help="--anchors only: simulate ranges and solve them by Gauss-Newton "
                         "(robustloc locate's solvers) instead of the linearized model")
-    p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    p.add_argument("--seed", type=nonnegative_int, default=1, help="random seed (default 1)")
     p.add_argument("-o", "--out", default=None, help="write the table as CSV here")
     p.add_argument("--json", action="store_true", help="print the table as JSON")
 
@@ -113,6 +144,10 @@ def build_layout(args: argparse.Namespace):  # noqa: ANN201
     from robustloc.integrity.montecarlo import gnss_layout, ranging_layout, rssi_layout
 
     if args.gnss:
+        bad = sorted(set(args.systems.upper()) - set("GEC"))
+        if bad or not args.systems:
+            raise InputError(f"--systems: unknown GNSS system(s) {''.join(bad)!r}; choose "
+                             f"among G, E, C")
         lay = gnss_layout(args.time_s, args.lat, args.lon, args.height, args.systems.upper(),
                           args.mask_deg)
         if lay.n <= lay.p:
@@ -160,10 +195,16 @@ def run(args: argparse.Namespace) -> int:
 
     methods = tuple(m.strip().lower() for m in args.methods.split(",") if m.strip())
     bad = [m for m in methods if m not in METHODS]
-    if bad:
-        raise InputError(f"unknown method(s) {', '.join(bad)}; choose among {', '.join(METHODS)}")
-    if args.trials < 1:
-        raise InputError("--trials must be at least 1")
+    if bad or not methods:
+        raise InputError(f"--methods: unknown or no method(s) {', '.join(bad)!r}; choose "
+                         f"among {', '.join(METHODS)}")
+    if len(set(methods)) != len(methods):
+        raise InputError(f"--methods: a method is listed twice in {args.methods!r}")
+    if args.nonlinear and "raim-single" in methods:
+        raise InputError("--methods raim-single is available on the linearized model only "
+                         "(without --nonlinear)")
+    if args.position is not None and max(abs(v) for v in args.position) > 1e7:
+        raise InputError(f"--position: coordinates beyond 1e7 m, got {args.position}")
     if args.nonlinear and args.gnss:
         raise InputError("--nonlinear applies to --anchors layouts only")
     if args.nonlinear and args.alpha is not None:
@@ -176,14 +217,15 @@ def run(args: argparse.Namespace) -> int:
     runs = [(0, 0.0)] if 0 in args.faults else []
     runs += [(k, s) for k in args.faults if k > 0 for s in args.size]
     frames = []
-    for i, (k, s) in enumerate(tqdm(runs, desc="montecarlo", file=sys.stderr,
-                                    disable=not sys.stderr.isatty())):
-        frames.append(run_montecarlo(
-            lay, n_faults=k, size=s, unit=args.unit, trials=args.trials, methods=methods,
-            alpha=args.alpha, alpha0=args.alpha0, beta0=args.beta0,
-            reject_weight=args.reject_weight, lege_max_order=args.lege_max_order,
-            seed=args.seed + i, nonlinear=args.nonlinear,
-        ))
+    with tqdm(total=len(runs) * args.trials, desc="montecarlo", unit="trial",
+              unit_scale=True, file=sys.stderr, disable=not sys.stderr.isatty()) as bar:
+        for i, (k, s) in enumerate(runs):
+            frames.append(run_montecarlo(
+                lay, n_faults=k, size=s, unit=args.unit, trials=args.trials,
+                methods=methods, alpha=args.alpha, alpha0=args.alpha0, beta0=args.beta0,
+                reject_weight=args.reject_weight, lege_max_order=args.lege_max_order,
+                seed=args.seed + i, nonlinear=args.nonlinear, progress=bar.update,
+            ))
     table = pd.concat(frames, ignore_index=True)
     table.insert(0, "layout", lay.name)
     if args.out:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from robustloc.commands._argtypes import finite_float, float_in, positive_float
 from robustloc.errors import InputError
 
 NAME = "reliability"
@@ -39,13 +40,18 @@ Example:
 
 def _area(text: str) -> tuple[float, float, float, float]:
     try:
-        vals = tuple(float(v) for v in text.split(","))
-    except ValueError:
+        vals = tuple(finite_float(v) for v in text.split(","))
+    except argparse.ArgumentTypeError:
         raise argparse.ArgumentTypeError(
-            f"--area expects xmin,xmax,ymin,ymax, got {text!r}"
+            f"--area expects xmin,xmax,ymin,ymax (finite numbers), got {text!r}"
         ) from None
     if len(vals) != 4:
         raise argparse.ArgumentTypeError(f"--area expects 4 numbers, got {text!r}")
+    if max(abs(v) for v in vals) > 1e7:
+        raise argparse.ArgumentTypeError(f"--area: coordinates beyond 1e7 m, got {text!r}")
+    if not (vals[0] < vals[1] and vals[2] < vals[3]):
+        raise argparse.ArgumentTypeError(f"--area needs xmin < xmax and ymin < ymax, "
+                                         f"got {text!r}")
     return vals  # type: ignore[return-value]
 
 
@@ -53,24 +59,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--anchors", required=True, help="anchors file (anchor, x, y[, z])")
     p.add_argument("--area", type=_area, default=None, metavar="XMIN,XMAX,YMIN,YMAX",
                    help="grid extent in metres (default: anchors' bounding box + 10 %%)")
-    p.add_argument("--step", type=float, default=None,
+    p.add_argument("--step", type=positive_float, default=None,
                    help="grid spacing in metres (default: about 150 points along the longer side)")
-    p.add_argument("--sigma", type=float, default=1.0,
+    p.add_argument("--sigma", type=positive_float, default=1.0,
                    help="a-priori standard deviation of one observation: m for ranges, dB for "
                         "RSSI (default 1)")
     p.add_argument("--dim", type=int, choices=(2, 3), default=2,
                    help="solved dimension (default 2)")
-    p.add_argument("--tag-z", type=float, default=0.0, help="tag height in metres (default 0)")
+    p.add_argument("--tag-z", type=float_in(-1e5, 1e5), default=0.0,
+                   help="tag height in metres (default 0)")
     p.add_argument("--model", choices=("range", "rssi"), default="range",
                    help="observation type (default range)")
-    p.add_argument("--n", type=float, default=None,
+    p.add_argument("--n", type=float_in(0.1, 10.0), default=None,
                    help="path-loss exponent for --model rssi (default: anchors' n column, else 2)")
-    p.add_argument("--max-range", type=float, default=None,
+    p.add_argument("--max-range", type=positive_float, default=None,
                    help="anchors farther than this (m) are not heard (default: all heard)")
-    p.add_argument("--alpha0", type=float, default=0.001,
+    p.add_argument("--alpha0", type=float_in(1e-15, 0.5), default=0.001,
                    help="w-test significance (default 0.001)")
-    p.add_argument("--beta0", type=float, default=0.10, help="w-test type II error (default 0.10)")
-    p.add_argument("--rho-threshold", type=float, default=0.9,
+    p.add_argument("--beta0", type=float_in(1e-15, 0.5), default=0.10,
+                   help="w-test type II error (default 0.10)")
+    p.add_argument("--rho-threshold", type=float_in(0.0, 1.0), default=0.9,
                    help="|rho_ij| above which two anchors are flagged as not separable (0.9)")
     p.add_argument("--suggest", action="store_true",
                    help="rank candidate positions for one more anchor")
@@ -148,17 +156,23 @@ def run(args: argparse.Namespace) -> int:
         path_loss_n=n_exp, max_range_m=args.max_range, alpha0=args.alpha0, beta0=args.beta0,
         rho_threshold=args.rho_threshold,
     )
+    from robustloc.commands._folder import write_folder
+
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     csv = out / "reliability.csv"
-    grid.table.to_csv(csv, index=False, float_format="%.6g")
-    sugg = None
-    if args.suggest:
-        sugg = _suggest(args, xyz, area, step, n_exp)
-        sugg.to_csv(out / "suggestions.csv", index=False, float_format="%.6g")
+    sugg = _suggest(args, xyz, area, step, n_exp) if args.suggest else None
     best = None if sugg is None else sugg[["x", "y"]].to_numpy(float)[:3]
-    pngs = [] if args.no_maps else plot_maps(grid, xyz, out, [str(a) for a in df["anchor"]],
-                                             highlight=best)
+
+    def write(folder: Path) -> list:
+        grid.table.to_csv(folder / csv.name, index=False, float_format="%.6g")
+        if sugg is not None:
+            sugg.to_csv(folder / "suggestions.csv", index=False, float_format="%.6g")
+        if args.no_maps:
+            return []
+        maps = plot_maps(grid, xyz, folder, [str(a) for a in df["anchor"]], highlight=best)
+        return [out / Path(m).name for m in maps]
+
+    pngs = write_folder(out, write)
     t = grid.table
     summary = {
         "anchors": int(len(xyz)),

@@ -7,6 +7,8 @@ import json
 import sys
 from pathlib import Path
 
+from robustloc.commands._argtypes import nonnegative_int
+
 NAME = "simulate"
 HELP = "simulate a scenario (ble-corridor, ...) into anchors/measurements/truth/survey files"
 DESCRIPTION = """\
@@ -22,7 +24,7 @@ Every scenario documents its assumed numbers: robustloc simulate SCENARIO --help
 
 
 def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    p.add_argument("--seed", type=nonnegative_int, default=1, help="random seed (default 1)")
     p.add_argument("-o", "--out", required=True, help="output folder (created if missing)")
     p.add_argument("--json", action="store_true", help="print the written files as JSON")
 
@@ -52,11 +54,15 @@ def run(args: argparse.Namespace) -> int:
         for name, mod in mods.items():
             print(f"{name:16s} {mod.HELP}")
         return 0 if args.list else 2
+    from robustloc.commands._folder import write_folder
+
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"{out}: exists and is not a folder")
-    out.mkdir(parents=True, exist_ok=True)
-    files = mods[args.scenario].simulate(out, args.seed, args)
+
+    def write(folder: Path) -> dict[str, Path]:
+        files = mods[args.scenario].simulate(folder, args.seed, args)
+        return {k: out / Path(v).name for k, v in files.items()}
+
+    files = write_folder(out, write)  # whole or not at all
     if args.json:
         print(json.dumps({k: str(v) for k, v in files.items()}, indent=2))
     else:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from robustloc.commands._argtypes import float_in, nonnegative_int
 from robustloc.engines import add_engine_arguments
 
 NAME = "spp"
@@ -28,7 +29,10 @@ satellite.  --inject adds a bias to real pseudoranges to exercise the detector.
 Output: one row per epoch (time as GPS seconds, week, time of week and UTC ISO; ECEF, lat,
 lon, h; receiver clock(s); n_sats; DOPs; sigma0; status; excluded satellites; test
 statistics; hpl/vpl).  Status 'unavailable' (RAIM detected a fault it could not attribute,
-or no redundancy to test) keeps the position but marks it unverified.  A summary of errors
+or no redundancy to test) keeps the position but marks it unverified.  A pseudorange
+outside 1.5e7 .. 5e7 m (robustloc.io.limits) is an invalid measurement: it is never used,
+counted in the summary (invalid_measurement N), and an epoch left without a solution
+because of such values has status 'invalid_measurement'.  A summary of errors
 against --reference (default: the RINEX header's APPROX POSITION XYZ) is printed (--json
 for JSON).
 
@@ -46,19 +50,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--clk", default=None, help="RINEX clock file (with --sp3)")
     p.add_argument("--systems", default="GREC",
                    help="constellations to use, letters of GREC (default GREC: all present)")
-    p.add_argument("--elevation-mask", type=float, default=15.0, metavar="DEG",
+    p.add_argument("--elevation-mask", type=float_in(-90.0, 90.0), default=15.0, metavar="DEG",
                    help="elevation mask in degrees (default 15)")
     p.add_argument("--iono", choices=("klobuchar", "iflc", "none"), default=None,
                    help="ionosphere: broadcast Klobuchar, ionosphere-free combination or none "
                         "(default: iflc with --sp3, else klobuchar)")
     p.add_argument("--tropo", choices=("saastamoinen", "none"), default="saastamoinen")
-    p.add_argument("--smooth", type=int, default=0, metavar="EPOCHS",
+    p.add_argument("--smooth", type=nonnegative_int, default=0, metavar="EPOCHS",
                    help="carrier-smooth the ionosphere-free code over up to EPOCHS epochs "
                         "(Hatch filter, needs --iono iflc; default 0 = off)")
     p.add_argument("--raim", action="store_true", help="fault detection and exclusion + PLs")
-    p.add_argument("--alpha0", type=float, default=0.001, help="w-test significance (0.001)")
-    p.add_argument("--beta0", type=float, default=0.10, help="B-method missed detection (0.10)")
-    p.add_argument("--max-exclusions", type=int, default=None,
+    p.add_argument("--alpha0", type=float_in(1e-15, 0.5), default=0.001,
+                   help="w-test significance (0.001)")
+    p.add_argument("--beta0", type=float_in(1e-15, 0.5), default=0.10,
+                   help="B-method missed detection (0.10)")
+    p.add_argument("--max-exclusions", type=nonnegative_int, default=None,
                    help="at most this many satellites excluded per epoch")
     p.add_argument("--reference", default=None, metavar="X,Y,Z",
                    help="reference ECEF position (m) for the error summary (default: RINEX "
@@ -75,21 +81,41 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _parse_time(text: str | None, what: str) -> float | None:
+    from robustloc.errors import InputError
     from robustloc.gnss.rinex import datetime64_to_gps_s
 
     if text is None:
         return None
     try:
-        return float(text)
+        value = float(text)
     except ValueError:
-        pass
+        try:
+            value = float(datetime64_to_gps_s(np.array([np.datetime64(text)]))[0])
+        except ValueError:
+            value = float("nan")
+    if not np.isfinite(value):
+        raise InputError(f"{what}: expected GPS seconds or an ISO time, got {text!r}")
+    return value
+
+
+def _parse_reference(text: str) -> np.ndarray:
+    from robustloc.errors import InputError
+
     try:
-        return float(datetime64_to_gps_s(np.array([np.datetime64(text)]))[0])
-    except ValueError as exc:
-        raise ValueError(f"{what}: expected GPS seconds or an ISO time, got {text!r}") from exc
+        ref = np.array([float(v) for v in text.split(",")])
+    except ValueError:
+        ref = np.array([])
+    # an ECEF position on or near the Earth: 6 356 km (pole) .. 6 378 km plus 1e5 m slack
+    if ref.shape != (3,) or not np.all(np.isfinite(ref)) or not (
+            6.2e6 <= np.linalg.norm(ref) <= 6.5e6):
+        raise InputError(f"--reference: expected X,Y,Z ECEF metres of a point near the "
+                         f"Earth's surface (norm 6.2e6 .. 6.5e6 m), got {text!r}")
+    return ref
 
 
 def _parse_inject(text: str) -> dict[str, float]:
+    from robustloc.errors import InputError
+
     out: dict[str, float] = {}
     for item in text.split(","):
         try:
@@ -99,9 +125,9 @@ def _parse_inject(text: str) -> dict[str, float]:
                 sat = sat[0] + "0" + sat[1]
             out[sat] = float(bias)
         except ValueError:
-            raise ValueError(f"--inject: expected PRN:BIAS_M, got {item!r}") from None
-        if not np.isfinite(out[sat]):
-            raise ValueError(f"--inject: bias must be finite, got {item!r}")
+            raise InputError(f"--inject: expected PRN:BIAS_M, got {item!r}") from None
+        if not np.isfinite(out[sat]) or abs(out[sat]) > 1e6:
+            raise InputError(f"--inject: bias must be finite, within +-1e6 m, got {item!r}")
     return out
 
 
@@ -109,57 +135,67 @@ def run(args: argparse.Namespace) -> int:
     if args.engine == "dask":
         from robustloc.engines.dask import run_spp
         return run_spp(args, run)
+    from robustloc import status as st
+    from robustloc.errors import InputError
     from robustloc.gnss.raim import RaimFde, inject_faults
     from robustloc.gnss.rinex import read_nav, read_obs
     from robustloc.gnss.sp3 import PreciseProducts, read_clk, read_sp3
     from robustloc.gnss.spp import SppSolver, error_summary
 
     if not args.nav and args.sp3 is None:
-        raise ValueError("give at least one navigation file or --sp3")
+        raise InputError("give at least one navigation file or --sp3")
     if args.clk is not None and args.sp3 is None:
-        raise ValueError("--clk needs --sp3")
+        raise InputError("--clk needs --sp3")
+    bad_sys = sorted(set(args.systems.upper()) - set("GREC"))
+    if not args.systems or bad_sys:
+        raise InputError(f"--systems: unknown constellation(s) {''.join(bad_sys)!r}; use "
+                         f"letters of GREC, got {args.systems!r}")
     for f in [args.obs, *args.nav, args.sp3, args.clk]:
         if f is not None and not Path(f).is_file():
-            raise FileNotFoundError(2, "file not found", f)
+            raise InputError("file not found" if not Path(f).exists()
+                             else "is not a regular file", f)
+    ref = _parse_reference(args.reference) if args.reference is not None else None
+    inject = _parse_inject(args.inject) if args.inject else None
+    t_from = _parse_time(args.inject_from, "--inject-from")
+    t_until = _parse_time(args.inject_until, "--inject-until")
     obs = read_obs(args.obs)
     nav = read_nav(args.nav) if args.nav else None
     precise = None
     if args.sp3 is not None:
         precise = PreciseProducts(read_sp3(args.sp3),
                                   read_clk(args.clk) if args.clk else None)
-    if args.inject:
-        obs = inject_faults(obs, _parse_inject(args.inject),
-                            _parse_time(args.inject_from, "--inject-from"),
-                            _parse_time(args.inject_until, "--inject-until"))
+    if inject:
+        obs = inject_faults(obs, inject, t_from, t_until)
     iono = args.iono or ("iflc" if precise is not None else "klobuchar")
-    solver = SppSolver(systems=args.systems, elevation_mask_deg=args.elevation_mask,
-                       iono=iono, tropo=args.tropo, smoothing_epochs=args.smooth)
+    try:  # settings the solver refuses (e.g. --smooth without iflc) are option errors
+        solver = SppSolver(systems=args.systems, elevation_mask_deg=args.elevation_mask,
+                           iono=iono, tropo=args.tropo, smoothing_epochs=args.smooth)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
     if args.raim:
         res = RaimFde(alpha0=args.alpha0, beta0=args.beta0,
                       max_exclusions=args.max_exclusions).solve(solver, obs, nav, precise)
     else:
         res = solver.solve(obs, nav, precise)
     frame = res.to_frame()
+    n_invalid = obs.invalid_per_epoch
+    if len(frame) == len(n_invalid):
+        # an epoch left without a solution by implausible pseudoranges
+        lost = (n_invalid > 0) & ~frame["status"].isin(st.USABLE).to_numpy()
+        frame.loc[lost, "status"] = st.INVALID
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     if out.suffix.lower() == ".parquet":
         frame.to_parquet(out, index=False)
     else:
         frame.to_csv(out, index=False, float_format="%.6f")
-    if args.reference is not None:
-        try:
-            ref = np.array([float(v) for v in args.reference.split(",")])
-        except ValueError:
-            raise ValueError(f"--reference: expected X,Y,Z in metres, got {args.reference!r}")\
-                from None
-        if ref.shape != (3,) or not np.all(np.isfinite(ref)):
-            raise ValueError(f"--reference: expected X,Y,Z in metres, got {args.reference!r}")
+    if ref is not None:
         ref_src = "--reference"
     else:
         ref = obs.approx_xyz_m
         ref_src = "RINEX header APPROX POSITION XYZ"
     summary = {"obs": args.obs, "out": str(out), "systems": res.systems, "iono": iono,
-               "raim": bool(args.raim)}
+               "raim": bool(args.raim), "invalid_measurement": int(n_invalid.sum())}
     if np.linalg.norm(ref) > 6.0e6:
         summary["reference"] = ref_src
         summary["reference_xyz_m"] = [float(v) for v in ref]
@@ -170,12 +206,17 @@ def run(args: argparse.Namespace) -> int:
                                                                          "max")]:
             del summary[k]
         summary["reference"] = "none (no --reference and no header position)"
+    summary["status_counts"] = {str(k): int(v)
+                                for k, v in frame["status"].value_counts().items()}
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
         print(f"{summary['solved']}/{summary['epochs']} epochs solved "
               f"({', '.join(f'{k} {v}' for k, v in summary['status_counts'].items())}); "
               f"systems {res.systems}, iono {iono}; written to {out}")
+        print(f"invalid_measurement: {summary['invalid_measurement']}"
+              + (" (pseudoranges outside 1.5e7 .. 5e7 m, never used)"
+                 if summary["invalid_measurement"] else ""))
         if "rms_h_m" in summary:
             print(f"errors vs {ref_src}: ENU bias {summary['bias_e_m']:.2f} "
                   f"{summary['bias_n_m']:.2f} {summary['bias_u_m']:.2f} m; RMS horizontal "

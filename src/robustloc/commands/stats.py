@@ -6,6 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
+from robustloc.commands._argtypes import float_in, int_in, positive_float, positive_int
+
 NAME = "stats"
 HELP = "RSSI statistics per anchor and distance bin: moments, autocorrelation, normality"
 DESCRIPTION = """\
@@ -16,7 +18,10 @@ where it drops below 0.2, D'Agostino-Pearson and Shapiro-Wilk normality p-values
 correlation of the variance with distance (paper: 0.578).
 
 Writes into --out: per_anchor.csv, per_bin.csv (with truth), acf.csv, histograms.png,
-autocorrelation.png, summary.json.
+autocorrelation.png, summary.json.  They are written into a temporary folder beside it
+and moved in only when all are complete: after an error nothing is left behind.  RSSI
+values outside -150 .. +30 dBm (robustloc.io.limits) are left out and counted
+(invalid_measurement N).
 
 Example:
   robustloc stats sim/measurements.csv --anchors sim/anchors.csv --truth sim/truth.csv -o stats
@@ -28,13 +33,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--anchors", default=None, help="anchors file (needed with --truth)")
     p.add_argument("--truth", default=None,
                    help="truth file (time, tag, x, y[, z]): enables distance bins")
-    p.add_argument("--max-lag", type=int, default=30,
+    p.add_argument("--max-lag", type=positive_int, default=30,
                    help="largest autocorrelation lag in samples (default 30)")
-    p.add_argument("--bin-width", type=float, default=1.0,
+    p.add_argument("--bin-width", type=positive_float, default=1.0,
                    help="distance bin width, m (default 1)")
-    p.add_argument("--min-samples", type=int, default=10,
+    p.add_argument("--min-samples", type=int_in(2, 10**9), default=10,
                    help="smallest bin reported (default 10 samples)")
-    p.add_argument("--threshold", type=float, default=0.2,
+    p.add_argument("--threshold", type=float_in(1e-6, 1 - 1e-6), default=0.2,
                    help="autocorrelation level of the decorrelation lag (default 0.2)")
     p.add_argument("-o", "--out", required=True, help="output folder")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -61,11 +66,17 @@ def run(args: argparse.Namespace) -> int:
         min_samples=args.min_samples,
     ).compute(meas, anchors, truth)
     out = Path(args.out)
-    res.write_csv(out)
-    plot_histograms(res, out / "histograms.png")
-    plot_autocorrelation(res, out / "autocorrelation.png", args.threshold)
     summary = res.summary()
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+
+    def write(folder: Path) -> None:
+        res.write_csv(folder)
+        plot_histograms(res, folder / "histograms.png")
+        plot_autocorrelation(res, folder / "autocorrelation.png", args.threshold)
+        (folder / "summary.json").write_text(json.dumps(summary, indent=2))
+
+    from robustloc.commands._folder import write_folder
+
+    write_folder(out, write)
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0
@@ -80,5 +91,9 @@ def run(args: argparse.Namespace) -> int:
                 index=False, float_format=lambda v: f"{v:.3g}"))
             print(f"\ncorrelation of variance with distance: "
                   f"{res.variance_distance_corr:.3f} (seed 002: 0.578)")
-    print(f"\ntables and figures in {out}")
+    print(f"\ninvalid_measurement: {summary['invalid_measurement']}"
+          + (" (RSSI outside -150 .. +30 dBm, left out)" if summary["invalid_measurement"]
+             else ""))
+    print(f"tables and figures in {out}")
     return 0
+

@@ -35,6 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy import stats
 
 from robustloc.errors import InputError
+from robustloc.io.limits import LIMITS
 
 Array = NDArray[np.float64]
 
@@ -206,6 +207,8 @@ class RssiStatsResult:
     acf: pd.DataFrame
     variance_distance_corr: float
     samples: pd.DataFrame
+    #: RSSI values outside the physical limits (-150 .. +30 dBm), left out and counted
+    invalid_measurement: int = 0
 
     def write_csv(self, out_dir: Path) -> list[Path]:
         """Write ``per_anchor.csv``, ``per_bin.csv`` (with truth) and ``acf.csv``."""
@@ -235,6 +238,7 @@ class RssiStatsResult:
             "share_anchors_normal_rejected_5pct": _f((pa["normaltest_p"] < 0.05).mean()),
             "variance_distance_corr": _f(self.variance_distance_corr),
             "n_bins": 0 if self.per_bin is None else int(len(self.per_bin)),
+            "invalid_measurement": int(self.invalid_measurement),
         }
 
 
@@ -265,10 +269,12 @@ class RssiStatistics:
     ) -> None:
         if max_lag < 1:
             raise ValueError(f"max_lag must be >= 1, got {max_lag}")
-        if not bin_width_m > 0:
-            raise ValueError(f"bin_width_m must be positive, got {bin_width_m}")
+        if not (np.isfinite(bin_width_m) and bin_width_m > 0):
+            raise ValueError(f"bin_width_m must be positive and finite, got {bin_width_m}")
         if min_samples < 2:
             raise ValueError(f"min_samples must be >= 2, got {min_samples}")
+        if not 0.0 < threshold < 1.0:
+            raise ValueError(f"threshold must lie in (0, 1), got {threshold}")
         self.max_lag = int(max_lag)
         self.bin_width_m = float(bin_width_m)
         self.threshold = float(threshold)
@@ -286,7 +292,7 @@ class RssiStatistics:
             raise InputError("measurements have no 'rssi' column: statistics need RSSI",
                              measurements.attrs.get("path"))
         if truth is not None and anchors is None:
-            raise ValueError("--truth needs --anchors (anchor positions give the distances)")
+            raise InputError("--truth needs --anchors (anchor positions give the distances)")
         df = pd.DataFrame({
             "tag": measurements["tag"].astype(str).to_numpy(),
             "anchor": measurements["anchor"].astype(str).to_numpy(),
@@ -295,7 +301,17 @@ class RssiStatistics:
         })
         if truth is not None:
             df["distance_m"] = truth_distances(measurements, anchors, truth)
-        df = df[np.isfinite(df["rssi"])].sort_values(["anchor", "tag", "time"],
+            if not np.isfinite(df["distance_m"]).any():
+                mt = sorted(set(df["tag"]))[:5]
+                tt = sorted(set(truth["tag"].astype(str)))[:5]
+                raise InputError(
+                    f"no measurement has a truth position: the measurements' tags {mt} and "
+                    f"the truth's tags {tt} have none in common",
+                    truth.attrs.get("path"))
+        finite = np.isfinite(df["rssi"].to_numpy())
+        plausible = LIMITS["rssi"].check(df["rssi"].to_numpy())
+        n_invalid = int((finite & ~plausible).sum())
+        df = df[plausible].sort_values(["anchor", "tag", "time"],
                                                      kind="mergesort").reset_index(drop=True)
         if df.empty:
             raise InputError("no finite RSSI sample to analyse", measurements.attrs.get("path"))
@@ -338,7 +354,7 @@ class RssiStatistics:
             acfs[anchor] = r
         per_anchor = pd.DataFrame(rows)
         acf = pd.DataFrame(acfs, index=pd.RangeIndex(self.max_lag + 1, name="lag"))
-        return RssiStatsResult(per_anchor, per_bin, acf, corr, df)
+        return RssiStatsResult(per_anchor, per_bin, acf, corr, df, n_invalid)
 
     @staticmethod
     def _runs(g: pd.DataFrame) -> NDArray[np.int64]:

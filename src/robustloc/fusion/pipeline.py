@@ -60,6 +60,13 @@ _ARENA_FLOATS = 16384
 _MT_MIN_TRACKS = 256
 
 
+#: Largest magnitude of a state component (m, m/s, m/s^2) and root of a covariance entry
+#: that a posterior may have: 1e9 m is 2.6 times the distance to the Moon, far beyond any
+#: local east/north frame.  An update beyond it (an overflow, a near-singular innovation
+#: covariance) is rejected and the track keeps its prior (:meth:`FusionFilter.run`).
+STATE_LIMIT = 1e9
+
+
 def _threads() -> int:
     """numba's current thread count (numba is imported with the compiled engine anyway)."""
     from numba import get_num_threads
@@ -475,6 +482,7 @@ class FusionFilter:
         t_prev = np.where(np.isfinite(t[:, 0]), t[:, 0], 0.0)
         rejected = np.zeros(K, dtype=np.int64)
         relocks = np.zeros(K, dtype=np.int64)
+        nonfinite = np.zeros(K, dtype=np.int64)
         eye_m = np.eye(m)
         steps = range(J)
         if progress:
@@ -496,11 +504,22 @@ class FusionFilter:
                 Rj = R[:, j]
             zj = np.where(live[:, None], z[:, j], np.nan)
             r = self.step(x, P, dt, zj, Rj, meas)
+            r_status, r_nu, r_nis, r_w = r.status, r.n_used, r.nis, r.weights
+            r_innov = r.innovation
+            x_prior, P_prior = x, P
             x, P = r.x, r.P
+            with np.errstate(invalid="ignore"):
+                sick = ~((np.abs(x) <= STATE_LIMIT).all(axis=1)
+                         & (np.abs(P) <= STATE_LIMIT**2).all(axis=(1, 2)))
+            if sick.any():  # an update that would poison the state is rejected: keep the prior
+                x, P, r_status, r_nu, r_nis, r_w, r_innov = self._reject_update(
+                    sick, x_prior, P_prior, dt, Rj, meas, x, P, r_status, r_nu, r_nis, r_w,
+                    r_innov)
+                nonfinite += sick
             if self.max_rejected > 0:
-                avail = np.isfinite(r.innovation).sum(axis=1)
+                avail = np.isfinite(r_innov).sum(axis=1)
                 had = avail > 0
-                some_rejected = had & (r.n_used < avail)
+                some_rejected = had & (r_nu < avail)
                 rejected = np.where(some_rejected, rejected + 1, np.where(had, 0, rejected))
                 lock = rejected >= self.max_rejected
                 if lock.any():  # re-lock: wide position/velocity, acceleration reset
@@ -516,13 +535,40 @@ class FusionFilter:
             t_prev = np.where(live, tj, t_prev)
             xs[:, j] = x
             vs[:, j] = np.diagonal(P, axis1=1, axis2=2)
-            stat[:, j] = np.where(live, r.status, "")
-            nu[:, j] = r.n_used
-            nis[:, j] = r.nis
-            ws[:, j] = r.weights
+            stat[:, j] = np.where(live, r_status, "")
+            nu[:, j] = r_nu
+            nis[:, j] = r_nis
+            ws[:, j] = r_w
         return FusionTrack(
             time_s=t, x=xs, var=vs, status=stat.astype(str), n_used=nu, nis=nis, weights=ws,
-            P_last=P, extra={"relocks": relocks},
+            P_last=P, extra={"relocks": relocks, "nonfinite": nonfinite},
+        )
+
+    def _reject_update(self, sick, x0, P0, dt, Rj, meas, x, P, status, n_used, nis, w,
+                       innov) -> tuple:
+        """Replace the non-finite or absurd (beyond :data:`STATE_LIMIT`) posteriors of tracks
+        ``sick`` by their prediction.
+
+        No input that reaches the filter should do this (absurd values are refused at the
+        door), but a near-singular innovation covariance or an overflow in a user-supplied
+        model must not poison a track for good: the update of such a track is rejected,
+        its state is the prediction (status ``predicted``, no component used), or the
+        previous state when even the prediction is not finite.
+        """
+        K, m = w.shape
+        zn = np.full((K, m), np.nan)
+        rp = self.step(x0, P0, dt, zn, Rj, meas)
+        xp, Pp = np.array(rp.x), np.array(rp.P)
+        with np.errstate(invalid="ignore"):
+            pred_ok = ((np.abs(xp) <= STATE_LIMIT).all(axis=1)
+                       & (np.abs(Pp) <= STATE_LIMIT**2).all(axis=(1, 2)))
+        xp = np.where(pred_ok[:, None], xp, x0)
+        Pp = np.where(pred_ok[:, None, None], Pp, P0)
+        return (
+            np.where(sick[:, None], xp, x), np.where(sick[:, None, None], Pp, P),
+            np.where(sick, "predicted", status), np.where(sick, 0, n_used),
+            np.where(sick, np.nan, nis), np.where(sick[:, None], np.nan, w),
+            np.where(sick[:, None], np.nan, innov),
         )
 
 

@@ -5,6 +5,21 @@ Loose coupling: per UWB epoch an LS/WLS fix (:mod:`robustloc.fusion.uwb`) with i
 covariance as ``R``; tight coupling: the ranges themselves (:mod:`robustloc.fusion.pipeline`).
 GPS speed and course (RMC/VTG) join as further components.  Streams are aligned as
 documented in :mod:`robustloc.fusion.align`.
+
+Plausibility at the door (:mod:`robustloc.io.limits`): a range outside the ``range`` limits
+(-50 .. 1e5 m; NaN or infinite included) or a GPS speed outside ``speed`` is an *invalid
+measurement*: it is counted (``summary["invalid_measurement"]``), set aside before any fix
+or filter update, and its event still gets a row -- with status ``invalid_measurement``
+when nothing valid arrived with it (the row then carries the filter's prediction).
+
+Honest statuses (consistent with ``robustloc locate``): ranges alone fix a 2-D position
+only from three anchors that are not collinear.  An event is ``ok`` / ``fault_excluded``
+only when the anchors heard by its tag within ``geometry_window_s`` (the event's own and
+the preceding ranges) span such a layout; otherwise it is ``insufficient_anchors`` (fewer
+than three distinct anchors) or ``ill_conditioned`` (three or more, but all at one point or
+on one line -- the anchors' scatter matrix fails the condition test of
+:func:`robustloc.estimators._kernels.inv_spd`).  The filtered state is still written on
+such rows; GPS speed and course (velocity only) cannot make the position observable.
 """
 
 from __future__ import annotations
@@ -16,10 +31,12 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
+from robustloc import status as st
 from robustloc.errors import InputError
 from robustloc.fusion.align import Stream, merge_streams
 from robustloc.fusion.pipeline import FusionFilter, FusionMeasurement, initial_state
 from robustloc.fusion.uwb import range_sigma, uwb_fix
+from robustloc.io.limits import LIMITS
 from robustloc.io.nmea import NmeaLog
 
 Array = NDArray[np.float64]
@@ -43,6 +60,9 @@ class FuseOptions:
     tag_height_m : tag height for slant-range correction when anchors have ``z``.
     init_var_m2 : initial position variance.
     init_acc_var : initial acceleration variance (CA), (m/s^2)^2.
+    geometry_window_s : ranges heard within this many seconds before an event (inclusive)
+        make up the anchor layout that decides whether the event's position can be ``ok``
+        (module docstring).  1 s holds a full round of any UWB/RTT ranging schedule.
     """
 
     coupling: Literal["loose", "tight"] = "tight"
@@ -56,13 +76,19 @@ class FuseOptions:
     tag_height_m: float | None = None
     init_var_m2: float = 4.0
     init_acc_var: float = 0.01
+    geometry_window_s: float = 1.0
 
     def __post_init__(self) -> None:
         if self.coupling not in ("loose", "tight"):
             raise ValueError(f"coupling must be 'loose' or 'tight', got {self.coupling!r}")
         for name in ("sigma_range_m", "sigma_speed_mps", "sigma_course_deg", "init_var_m2"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be positive")
+            if not np.isfinite(getattr(self, name)) or not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive and finite")
+        for name in ("range_k", "merge_window_s", "geometry_window_s", "init_acc_var"):
+            if not np.isfinite(getattr(self, name)) or getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0 and finite")
+        if self.nmea_offset_s is not None and not np.isfinite(self.nmea_offset_s):
+            raise ValueError("nmea_offset_s must be finite")
 
 
 @dataclass(frozen=True)
@@ -124,38 +150,70 @@ def fuse(
         one = np.full((len(rng_m), M), np.nan)
         one[np.arange(len(rng_m)), col] = rng_m
         rng_m = apply_range_calibration(anchors, one)[np.arange(len(rng_m)), col]
+    # plausibility at the door: an absurd range never reaches a fix or the filter
+    bad_range = ~LIMITS["range"].check(rng_m)
+    rng_m = np.where(bad_range, np.nan, rng_m)
+    flag = np.where(bad_range, 1.0, np.nan)[:, None]  # invalid marker, NaN = valid
+    ones = np.ones((len(t), 1))
 
     streams: list[Stream] = []
     summary: dict = {"coupling": opts.coupling, "filter": filt.kind, "motion": filt.motion.name}
+    # Columns of the merged vector after the m filter components: an always-present event
+    # marker (so that an event whose values are all invalid still gets its row), the
+    # invalid marker and, for loose coupling, the fix variances and the anchors heard.
     if opts.coupling == "tight":
         m = M + 2
+        c_mark, c_inv = m, m + 1
+        m_aug = m + 2
         vals = np.full((len(t), M), np.nan)
         vals[np.arange(len(t)), col] = rng_m
-        streams.append(Stream(t, tags, vals, list(range(M))))
+        streams.append(Stream(t, tags, np.concatenate([vals, ones, flag], axis=1),
+                              [*range(M), c_mark, c_inv]))
         meas = FusionMeasurement(n, a_xy, dz)
     else:
         m = 4
+        c_var, c_mark, c_inv, c_heard = 4, 6, 7, 8
+        m_aug = c_heard + M
         # UWB epochs: rows with the same (tag, time within the window) form one fix epoch
         tl_u = merge_streams(
-            [Stream(t, tags, _one_hot(len(t), M, col, rng_m), list(range(M)))], M,
-            opts.merge_window_s,
+            [Stream(t, tags, np.concatenate([_one_hot(len(t), M, col, rng_m), flag], axis=1),
+                    [*range(M), M])], M + 1, opts.merge_window_s,
         )
         K, J = tl_u.time_s.shape
-        flat = tl_u.z.reshape(K * J, M)
+        flat = tl_u.z.reshape(K * J, M + 1)
         live = np.isfinite(tl_u.time_s.reshape(-1))
-        fix = uwb_fix(a_xy, flat[live], opts.fix_method, dz, opts.sigma_range_m, opts.range_k)
+        fix = uwb_fix(a_xy, flat[live, :M], opts.fix_method, dz, opts.sigma_range_m,
+                      opts.range_k)
         summary["fixes"] = int(np.isfinite(fix.position).all(axis=1).sum())
         summary["uwb_epochs"] = int(live.sum())
         tag_rep = np.repeat(tl_u.tags, J)[live]
-        # x, y, the fix variances (columns 4, 5) and an always-present epoch marker
-        # (column 6) so that an epoch without a fix still gets its (predicted) row
+        heard = np.where(np.isfinite(flat[live, :M]), 1.0, np.nan)
+        # x, y, the fix variances, the epoch marker (an epoch without a fix still gets its
+        # predicted row), the invalid marker and the anchors heard
         v = np.concatenate(
             [fix.position, np.diagonal(fix.covariance, axis1=1, axis2=2),
-             np.ones((len(fix.status), 1))], axis=1,
+             np.ones((len(fix.status), 1)), flat[live, M:], heard], axis=1,
         )
-        streams.append(Stream(tl_u.time_s.reshape(-1)[live], tag_rep, v, [0, 1, 4, 5, 6]))
+        streams.append(Stream(tl_u.time_s.reshape(-1)[live], tag_rep, v,
+                              [0, 1, c_var, c_var + 1, c_mark, c_inv,
+                               *range(c_heard, c_heard + M)]))
         meas = FusionMeasurement(n)
+    invalid = {"range": int(bad_range.sum())}
     mo = nmea.motion if isinstance(nmea, NmeaLog) else nmea
+    if isinstance(nmea, NmeaLog):
+        invalid["speed"] = int(nmea.summary.invalid.get("speed", 0))
+        invalid["course"] = int(nmea.summary.invalid.get("course", 0))
+        invalid["nmea_sentence"] = int(nmea.summary.skipped.get("invalid_measurement", 0))
+    if mo is not None and len(mo):
+        spd = mo["speed_mps"].to_numpy(float)
+        crs = mo["course_rad"].to_numpy(float)
+        bad_spd = ~np.isnan(spd) & ~LIMITS["speed"].check(spd)
+        bad_crs = ~np.isnan(crs) & ~(np.abs(crs) <= 2.0 * np.pi)
+        if bad_spd.any() or bad_crs.any():  # a motion frame given directly (Python API)
+            invalid["speed"] = invalid.get("speed", 0) + int(bad_spd.sum())
+            invalid["course"] = invalid.get("course", 0) + int((bad_crs & ~bad_spd).sum())
+            mo = mo.assign(speed_mps=np.where(bad_spd, np.nan, spd),
+                           course_rad=np.where(bad_spd | bad_crs, np.nan, crs))
     offset = opts.nmea_offset_s
     if offset is None:
         day0 = nmea.day0_posix_s if isinstance(nmea, NmeaLog) else None
@@ -163,13 +221,17 @@ def fuse(
     summary["nmea_offset_s"] = float(offset)
     if mo is not None and len(mo):
         ut = np.unique(tags)
+        gv = mo[["speed_mps", "course_rad"]].to_numpy(float)
+        # a sentence whose speed was invalid (NaN speed) marks its event as invalid
+        g_flag = np.where(np.isnan(gv[:, :1]), 1.0, np.nan)
+        gv = np.concatenate([gv, np.ones((len(gv), 1)), g_flag], axis=1)
         for tg in ut:
             streams.append(
                 Stream(mo["time_s"].to_numpy(float), np.full(len(mo), tg, dtype=object),
-                       mo[["speed_mps", "course_rad"]].to_numpy(float), [m - 2, m - 1],
-                       offset)
+                       gv, [m - 2, m - 1, c_mark, c_inv], offset)
             )
-    m_aug = m + (3 if opts.coupling == "loose" else 0)
+    summary["invalid"] = invalid
+    summary["invalid_measurement"] = int(sum(invalid.values()))
     tl = merge_streams(streams, m_aug, opts.merge_window_s)
     K, J = tl.time_s.shape
     z = tl.z[..., :m]
@@ -178,8 +240,9 @@ def fuse(
     if opts.coupling == "tight":
         Rd[..., :M] = range_sigma(np.nan_to_num(z[..., :M]), opts.sigma_range_m, opts.range_k) ** 2
     else:
-        Rd[..., :2] = np.where(np.isfinite(tl.z[..., 4:6]), tl.z[..., 4:6], 1.0)
-        z[..., :2] = np.where(np.isfinite(tl.z[..., 4:6]), z[..., :2], np.nan)
+        fv = tl.z[..., c_var : c_var + 2]
+        Rd[..., :2] = np.where(np.isfinite(fv), fv, 1.0)
+        z[..., :2] = np.where(np.isfinite(fv), z[..., :2], np.nan)
     Rd[..., m - 2] = opts.sigma_speed_mps**2
     Rd[..., m - 1] = np.deg2rad(opts.sigma_course_deg) ** 2
 
@@ -188,7 +251,18 @@ def fuse(
     P0[~has, 0, 0] = P0[~has, 1, 1] = 1e4
     tr = filt.run(tl.time_s, z, Rd, meas, x0, P0, progress=progress)
 
-    frame = _track_frame(tl.tags, tl.time_s, tr, filt, z, m, opts)
+    heard = (np.isfinite(z[..., :M]) if opts.coupling == "tight"
+             else np.isfinite(tl.z[..., c_heard : c_heard + M]))
+    layout = _layout_status(tl.time_s, heard, a_xy, opts.geometry_window_s)
+    status = np.asarray(tr.status, dtype=object).copy()
+    if tr.time_s.size:
+        fixed = np.isin(status, (st.OK, st.FAULT_EXCLUDED))
+        status = np.where(fixed & (layout != ""), layout, status)
+        # nothing valid arrived with the event: its own input was unusable
+        bad_event = np.isfinite(tl.z[..., c_inv]) & (status == st.PREDICTED)
+        status = np.where(bad_event, st.INVALID, status)
+    frame = _track_frame(tl.tags, tl.time_s, tr, filt, z, m, opts, status)
+    summary["rejected_updates"] = int(np.sum(tr.extra.get("nonfinite", 0)))
     summary["events"] = int(np.isfinite(tl.time_s).sum())
     summary["tags"] = int(K)
     summary["status"] = frame["status"].value_counts().to_dict()
@@ -226,7 +300,40 @@ def _initial_positions(tl, z, opts, a_xy, dz, M, max_age_s: float = 1.0):
     return x0, has
 
 
-def _track_frame(tags, time_s, tr, filt: FusionFilter, z, m, opts) -> pd.DataFrame:
+def _layout_status(time_s: Array, heard: NDArray[np.bool_], a_xy: Array,
+                   window_s: float) -> NDArray[np.object_]:
+    """Per event: ``''`` when the anchors heard within ``window_s`` fix a 2-D position,
+    else ``insufficient_anchors`` (fewer than three anchors) or ``ill_conditioned``
+    (their scatter matrix fails the condition test of ``inv_spd``, as in ``locate``)."""
+    from robustloc.estimators._kernels import inv_spd
+
+    K, J, M = heard.shape
+    out = np.full((K, J), "", dtype=object)
+    if K * J == 0:
+        return out
+    idx = np.where(heard, np.arange(J)[None, :, None], -1)
+    last = np.maximum.accumulate(idx, axis=1)  # (K, J, M) latest event that heard anchor m
+    t_last = np.take_along_axis(
+        np.broadcast_to(time_s[:, :, None], (K, J, M)), np.maximum(last, 0), axis=1)
+    with np.errstate(invalid="ignore"):
+        recent = (last >= 0) & (time_s[..., None] - t_last <= window_s)
+    cnt = recent.sum(axis=-1)
+    w = recent.astype(float)
+    # scatter of the recent anchors: sum w c c^T - n m m^T with c the anchors about their
+    # centroid (identical anchors give exactly 0), without a (K, J, M, 2) temporary
+    c = a_xy - a_xy.mean(axis=0)
+    m = np.einsum("kjm,mi->kji", w, c) / np.maximum(cnt, 1)[..., None]
+    S = np.einsum("kjm,ma,mb->kjab", w, c, c) - cnt[..., None, None] * (
+        m[..., :, None] * m[..., None, :])
+    S = S.reshape(K * J, 2, 2)
+    _, good = inv_spd(S)
+    out[~good.reshape(K, J)] = st.ILL_CONDITIONED
+    out[cnt < 3] = st.INSUFFICIENT
+    return out
+
+
+def _track_frame(tags, time_s, tr, filt: FusionFilter, z, m, opts,
+                 status: NDArray[np.object_]) -> pd.DataFrame:
     K, J = time_s.shape
     live = np.isfinite(time_s)
     k_idx, j_idx = np.nonzero(live)
@@ -236,7 +343,7 @@ def _track_frame(tags, time_s, tr, filt: FusionFilter, z, m, opts) -> pd.DataFra
     data: dict[str, object] = {"time": time_s[k_idx, j_idx], "tag": tags[k_idx]}
     for i, c in enumerate(names):
         data[c] = x[:, i]
-    data["status"] = tr.status[k_idx, j_idx]
+    data["status"] = np.asarray(status[k_idx, j_idx], dtype=str)
     for i, c in enumerate(names):
         data["var_" + c] = var[:, i]
     data["n_used"] = tr.n_used[k_idx, j_idx]

@@ -40,6 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from robustloc import status as st
+from robustloc.errors import InputError
 from robustloc.gnss.corrections import enu_matrix, geodetic
 from robustloc.gnss.rinex import NavData, ObsData
 from robustloc.gnss.sp3 import PreciseProducts
@@ -398,10 +399,11 @@ def inject_faults(
     new = {k: v.copy() for k, v in obs.obs.items()}
     for sat, bias in faults.items():
         if sat not in obs.sats:
-            raise ValueError(f"satellite {sat} is not in {obs.path} (has {', '.join(obs.sats)})")
+            raise InputError(f"--inject: satellite {sat} is not in the file (has "
+                             f"{', '.join(obs.sats)})", obs.path)
         j = obs.sats.index(sat)
         for name, arr in new.items():
             if name[0] in "CP":
                 arr[rows, j] += float(bias)
     return ObsData(obs.path, obs.version, obs.t_gps_s, list(obs.sats), new, obs.approx_xyz_m,
-                   obs.epoch_flag, obs.line, dict(obs.header))
+                   obs.epoch_flag, obs.line, dict(obs.header), obs.invalid)

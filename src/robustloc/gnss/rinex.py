@@ -9,6 +9,12 @@
   xarray ``FutureWarning``/``DeprecationWarning`` flood silenced.
 
 Times are GPS time in seconds since 1980-01-06 00:00:00 (``t_gps_s``), a float64.
+
+Every problem of a file (truncated, wrong counts, impossible dates such as month 13, garbage
+numbers) raises :class:`~robustloc.errors.InputError` naming the file and the line.  A
+pseudorange outside the ``pseudorange`` limits of :mod:`robustloc.io.limits`
+(1.5e7 .. 5e7 m) is an *invalid measurement*: it is set to NaN (never reaches a solver) and
+counted per epoch in :attr:`ObsData.invalid`.
 """
 
 from __future__ import annotations
@@ -65,6 +71,11 @@ class ObsData:
         observations and are not epochs.
     line : ndarray of int (N,)
         1-based line number of each epoch header (for messages).
+    header : dict
+        Header records.
+    invalid : ndarray of int (N,), optional
+        Pseudoranges of each epoch outside the physical limits, set to NaN
+        (``invalid_measurement``); ``None`` is read as zeros.
     """
 
     path: str
@@ -76,10 +87,18 @@ class ObsData:
     epoch_flag: NDArray[np.int64]
     line: NDArray[np.int64]
     header: dict[str, str] = field(default_factory=dict)
+    invalid: NDArray[np.int64] | None = None
 
     @property
     def n_epochs(self) -> int:
         return int(self.t_gps_s.shape[0])
+
+    @property
+    def invalid_per_epoch(self) -> NDArray[np.int64]:
+        """Implausible pseudoranges of each epoch (zeros when none were found)."""
+        if self.invalid is None:
+            return np.zeros(self.n_epochs, dtype=np.int64)
+        return np.asarray(self.invalid, dtype=np.int64)
 
     def system_of(self) -> NDArray[np.str_]:
         """One-letter constellation of every column (``G``, ``R``, ``E``, ``C``, ``J``, ``S``)."""
@@ -91,7 +110,45 @@ class ObsData:
             self.path, self.version, self.t_gps_s[rows], list(self.sats),
             {k: v[rows] for k, v in self.obs.items()}, self.approx_xyz_m,
             self.epoch_flag[rows], self.line[rows], dict(self.header),
+            self.invalid_per_epoch[rows],
         )
+
+
+def is_pseudorange(obs_type: str) -> bool:
+    """RINEX 2 ``C1, P1, P2, C2, C5, ...`` or RINEX 3 ``C1C, C2W, ...`` code observations."""
+    return len(obs_type) >= 2 and obs_type[0] in "CP" and obs_type[1].isdigit()
+
+
+def _implausible_pseudoranges(obs: dict[str, NDArray[np.float64]]) -> NDArray[np.int64]:
+    """Set pseudoranges outside the physical limits to NaN (in place); count per epoch."""
+    from robustloc.io.limits import LIMITS
+
+    lim = LIMITS["pseudorange"]
+    count = None
+    for name, a in obs.items():
+        if not is_pseudorange(name):
+            continue
+        bad = ~np.isnan(a) & ~lim.check(a)
+        a[bad] = np.nan
+        count = bad.sum(axis=1) if count is None else count + bad.sum(axis=1)
+    n = next(iter(obs.values())).shape[0] if obs else 0
+    return np.zeros(n, dtype=np.int64) if count is None else count.astype(np.int64)
+
+
+def _calendar(y: int, mo: int, d: int, h: int, mi: int, sec: float, what: str, path: str,
+              line: int) -> None:
+    """Raise :class:`InputError` unless the fields are a calendar date and time of day."""
+    import datetime
+
+    try:
+        datetime.date(y, mo, d)
+        ok = 0 <= h <= 23 and 0 <= mi <= 59 and 0.0 <= sec < 61.0
+    except ValueError:
+        ok = False
+    if not ok:
+        raise InputError(
+            f"impossible {what} {y:04d}-{mo:02d}-{d:02d} {h:02d}:{mi:02d}:{sec:06.3f} (month "
+            "1-12, day of that month, hour 0-23, minute 0-59, second 0-60)", path, line)
 
 
 def _read_lines(path: str | PathLike[str]) -> list[str]:
@@ -204,6 +261,9 @@ def _read_obs_v2(path: str, version: float) -> ObsData:
             nsat = int(ln[29:32])
         except ValueError as exc:
             raise InputError(f"malformed epoch header {ln.rstrip()!r}", path, i + 1) from exc
+        if not 0 <= flag <= 6 or nsat < 0:
+            raise InputError(f"malformed epoch header {ln.rstrip()!r}: epoch flag must be "
+                             f"0-6 and the satellite count >= 0", path, i + 1)
         if flag >= 2 and flag <= 5:
             i += 1 + nsat  # event: nsat special records follow
             continue
@@ -213,8 +273,10 @@ def _read_obs_v2(path: str, version: float) -> ObsData:
                 yy + (2000 if yy < 80 else 1900), int(ln[4:6]), int(ln[7:9]), int(ln[10:12]),
                 int(ln[13:15]), float(ln[15:26]),
             )
+            sec = ep[5]
         except ValueError as exc:
             raise InputError(f"malformed epoch time {ln[:26]!r}", path, i + 1) from exc
+        _calendar(*ep[:5], sec, "epoch time", path, i + 1)
         svtxt = ln[32:68]
         nhead = (nsat + 11) // 12
         for k in range(1, nhead):
@@ -224,6 +286,9 @@ def _read_obs_v2(path: str, version: float) -> ObsData:
         sats = []
         for k in range(nsat):
             s = svtxt[3 * k : 3 * k + 3]
+            if len(s) < 3 or not s.strip():
+                raise InputError(
+                    f"the epoch announces {nsat} satellites but lists {k}", path, i + 1)
             sysch = s[0] if s[0] != " " else default_sys
             try:
                 prn = int(s[1:3])
@@ -292,9 +357,11 @@ def _read_obs_v2(path: str, version: float) -> ObsData:
             for (y, mo, d, h, mi, s) in times
         ]
     )
+    invalid = _implausible_pseudoranges(obs)
     return ObsData(
         path, version, datetime64_to_gps_s(tt), all_sats, obs, _approx(hdr),
         np.asarray(flags, dtype=np.int64), np.asarray(ep_lines, dtype=np.int64), hdr,
+        invalid,
     )
 
 
@@ -337,9 +404,10 @@ def _read_obs_v3(path: str, version: float) -> ObsData:
     # epoch lines: find them for messages
     ep_lines = [k + 1 for k in range(i0, len(lines)) if lines[k].startswith(">")]
     ep_lines = (ep_lines + [0] * len(t))[: len(t)]
+    invalid = _implausible_pseudoranges(obs)
     return ObsData(
         path, version, t, sats, obs, _approx(hdr), np.zeros(len(t), dtype=np.int64),
-        np.asarray(ep_lines, dtype=np.int64), hdr,
+        np.asarray(ep_lines, dtype=np.int64), hdr, invalid,
     )
 
 
@@ -548,6 +616,10 @@ def _read_nav_v2(lines: list[str], i0: int, path: str) -> dict[str, NDArray] | N
         except ValueError as exc:
             raise InputError(f"malformed ephemeris record header {ln[:22]!r}", path,
                              idx[8 * k] + 1) from exc
+        if not 1 <= prn <= 32:
+            raise InputError(f"GPS PRN must be 1-32, got {prn}", path, idx[8 * k] + 1)
+        _calendar(yy + (2000 if yy < 80 else 1900), mo, dd, hh, mi, ss, "clock epoch (toc)",
+                  path, idx[8 * k] + 1)
         sats.append(f"G{prn:02d}")
         tocs.append(
             np.datetime64(f"{yy + (2000 if yy < 80 else 1900):04d}-{mo:02d}-{dd:02d}T"

@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from robustloc.errors import InputError
 from robustloc.gnss.ephemeris import C_LIGHT, SatState
-from robustloc.gnss.rinex import _read_lines, datetime64_to_gps_s
+from robustloc.gnss.rinex import _calendar, _read_lines, datetime64_to_gps_s
 
 #: Orbit + clock error of precise products used in the weights (m).
 PRECISE_SIGMA_M = 0.05
@@ -36,6 +36,7 @@ def _epoch_s(parts: list[str], path: str, line: int) -> float:
         s = float(parts[5])
     except (ValueError, IndexError) as exc:
         raise InputError(f"malformed epoch {' '.join(parts[:6])!r}", path, line) from exc
+    _calendar(y, mo, d, h, mi, s, "epoch", path, line)  # month 13, NaN seconds, ...
     t = np.datetime64(f"{y:04d}-{mo:02d}-{d:02d}T{h:02d}:{mi:02d}", "ns") + np.timedelta64(
         int(round(s * 1e9)), "ns"
     )

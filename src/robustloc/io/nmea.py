@@ -22,10 +22,20 @@ the sentence is the text from ``$`` to the two hex digits after ``*``.  A bad ch
 missing checksum, a truncated sentence (required fields empty), an invalid fix (GGA
 quality 0, RMC status ``V``) or an unsupported type is counted in ``summary.skipped`` and
 skipped -- never an exception.  Only an unreadable *file* raises :class:`InputError`.
+
+Plausibility (:mod:`robustloc.io.limits`): a sentence with a valid checksum can still carry
+absurd values (a bit flip before the checksum was computed, a firmware bug).  A speed
+outside the ``speed`` limits (0 .. 515 m/s) or a course outside ``course`` (0 .. 360 deg)
+is an ``invalid_measurement``: the motion row is *kept* with that value set to NaN (a bad
+speed also blanks the course, whose Jacobian ``1/v`` depends on it), and counted in
+``summary.invalid``.  A sentence whose time or date is not a calendar value (hour 25, day
+32), or a GGA latitude/longitude beyond +-90/+-180 deg, is skipped and counted as
+``invalid_measurement`` in ``summary.skipped`` (it has no time, so no row can carry it).
 """
 
 from __future__ import annotations
 
+import datetime
 import re
 from collections import Counter
 from collections.abc import Iterable
@@ -39,6 +49,7 @@ import pymap3d
 import pynmea2
 
 from robustloc.errors import InputError
+from robustloc.io.limits import LIMITS
 
 KNOT_MPS = 1852.0 / 3600.0
 
@@ -52,6 +63,7 @@ SKIP_REASONS = (
     "truncated",
     "invalid_fix",
     "unsupported",
+    "invalid_measurement",
 )
 
 
@@ -76,13 +88,23 @@ class NmeaSummary:
     skipped : dict[str, int]
         Skipped lines by reason (see :data:`SKIP_REASONS`).
     examples : list[tuple[int, str]]
-        Up to 20 ``(line number, reason)`` of skipped lines, for the user.
+        Up to 20 ``(line number, reason)`` of skipped lines or invalid values, for the user.
+    invalid : dict[str, int]
+        Values outside their physical limits (``speed``, ``course``) in sentences that
+        were kept (the value is NaN in ``motion``).
     """
 
     lines: int
     parsed: dict[str, int]
     skipped: dict[str, int]
     examples: list[tuple[int, str]] = field(default_factory=list)
+    invalid: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def n_invalid(self) -> int:
+        """Invalid measurements: implausible values kept as NaN plus sentences skipped for an
+        impossible time, date or position."""
+        return int(sum(self.invalid.values())) + int(self.skipped.get("invalid_measurement", 0))
 
     @property
     def n_skipped(self) -> int:
@@ -92,7 +114,9 @@ class NmeaSummary:
         """One line for a command's stderr."""
         used = ", ".join(f"{k} {v}" for k, v in sorted(self.parsed.items())) or "none"
         skip = ", ".join(f"{k} {v}" for k, v in sorted(self.skipped.items()) if v) or "none"
-        return f"NMEA: {self.lines} lines; used {used}; skipped {skip}"
+        bad = ", ".join(f"{k} {v}" for k, v in sorted(self.invalid.items()) if v)
+        tail = f"; invalid values {bad} (set to NaN)" if bad else ""
+        return f"NMEA: {self.lines} lines; used {used}; skipped {skip}{tail}"
 
 
 @dataclass(frozen=True)
@@ -107,6 +131,11 @@ class NmeaLog:
     #: POSIX time (s) of 00:00 UTC of day 0 of ``time_s``, from the first RMC date; None
     #: without any dated RMC.  ``time_s + day0_posix_s`` is POSIX time.
     day0_posix_s: float | None = None
+
+
+def _is_time(ts: object) -> bool:
+    """pynmea2 returns the raw text (a ``str``) when a time or date is not a calendar value."""
+    return isinstance(ts, (datetime.time, datetime.datetime))
 
 
 def _tod(ts) -> float:
@@ -137,6 +166,8 @@ def parse_nmea(
         Name used in messages.
     """
     skipped: Counter[str] = Counter({r: 0 for r in SKIP_REASONS})
+    invalid: Counter[str] = Counter()
+    speed_lim, course_lim = LIMITS["speed"], LIMITS["course"]
     parsed: Counter[str] = Counter()
     examples: list[tuple[int, str]] = []
     motion: list[tuple[float, float, float, str, int]] = []
@@ -149,6 +180,20 @@ def parse_nmea(
         skipped[reason] += 1
         if len(examples) < 20:
             examples.append((lineno, reason))
+
+    def checked(lineno: int, speed: float, course_deg: float) -> tuple[float, float]:
+        """Speed (m/s) and course (deg) with implausible values set to NaN and counted."""
+        if not speed_lim.check(speed):
+            invalid["speed"] += 1
+            if len(examples) < 20:
+                examples.append((lineno, f"invalid_measurement: {speed_lim.describe()}"))
+            return float("nan"), float("nan")
+        if np.isfinite(course_deg) and not course_lim.check(course_deg):
+            invalid["course"] += 1
+            if len(examples) < 20:
+                examples.append((lineno, f"invalid_measurement: {course_lim.describe()}"))
+            course_deg = float("nan")
+        return speed, course_deg
 
     order = 0
     for lineno, raw in enumerate(lines, start=1):
@@ -178,6 +223,9 @@ def parse_nmea(
             continue
         try:
             ts = getattr(msg, "timestamp", None)
+            if ts is not None and not _is_time(ts):  # hour 25, minute 61, ...
+                skip(lineno, "invalid_measurement")
+                continue
             if kind == "RMC":
                 if ts is None or not msg.status:
                     skip(lineno, "truncated")
@@ -188,13 +236,17 @@ def parse_nmea(
                 if msg.spd_over_grnd in (None, ""):
                     skip(lineno, "truncated")
                     continue
+                date = getattr(msg, "datestamp", None)
+                if date is not None and not isinstance(date, datetime.date):  # day 32, ...
+                    skip(lineno, "invalid_measurement")
+                    continue
                 speed = float(msg.spd_over_grnd) * KNOT_MPS
-                if not np.isfinite(speed):
+                if np.isnan(speed):
                     skip(lineno, "truncated")
                     continue
-                course = _num(msg.true_course)
-                if first_date is None and msg.datestamp is not None:
-                    first_date = (order, msg.datestamp)
+                speed, course = checked(lineno, speed, _num(msg.true_course))
+                if first_date is None and date is not None:
+                    first_date = (order, date)
                 motion.append((_tod(ts), speed, np.deg2rad(course), "RMC", order))
             elif kind == "VTG":
                 if getattr(msg, "faa_mode", None) == "N":
@@ -202,12 +254,13 @@ def parse_nmea(
                     continue
                 kmh = _num(msg.spd_over_grnd_kmph)
                 kts = _num(msg.spd_over_grnd_kts)
-                speed = kmh / 3.6 if np.isfinite(kmh) else kts * KNOT_MPS
-                if not np.isfinite(speed):
+                speed = kmh / 3.6 if not np.isnan(kmh) else kts * KNOT_MPS
+                if np.isnan(speed):
                     skip(lineno, "truncated")
                     continue
+                speed, course = checked(lineno, speed, _num(msg.true_track))
                 # VTG has no time: it belongs to the last timed sentence
-                motion.append((np.nan, speed, np.deg2rad(_num(msg.true_track)), "VTG", order))
+                motion.append((np.nan, speed, np.deg2rad(course), "VTG", order))
             elif kind == "GGA":
                 if ts is None or msg.gps_qual is None or not msg.lat or not msg.lon:
                     if msg.gps_qual == 0:
@@ -218,14 +271,18 @@ def parse_nmea(
                 if int(msg.gps_qual) == 0:
                     skip(lineno, "invalid_fix")
                     continue
+                lat, lon = float(msg.latitude), float(msg.longitude)
+                if not (abs(lat) <= 90.0 and abs(lon) <= 180.0):
+                    skip(lineno, "invalid_measurement")
+                    continue
                 alt = _num(msg.altitude)
                 sep = _num(msg.geo_sep)
                 h = alt + (sep if np.isfinite(sep) else 0.0)
                 fixes.append(
                     (
                         _tod(ts),
-                        float(msg.latitude),
-                        float(msg.longitude),
+                        lat,
+                        lon,
                         h,
                         int(msg.gps_qual),
                         _num(msg.num_sats),
@@ -312,7 +369,8 @@ def parse_nmea(
     ac = ac.drop(columns="o")
 
     summary = NmeaSummary(
-        lines=n_lines, parsed=dict(parsed), skipped=dict(skipped), examples=examples
+        lines=n_lines, parsed=dict(parsed), skipped=dict(skipped), examples=examples,
+        invalid=dict(invalid),
     )
     day0 = None
     if first_date is not None and first_date[0] in order_to_time:

@@ -199,19 +199,31 @@ def visible_design(
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--epochs", type=int, default=60, help="number of epochs (default 60)")
-    p.add_argument("--interval-s", type=float, default=30.0, help="epoch interval, s (default 30)")
-    p.add_argument("--lat", type=float, default=30.53, help="receiver latitude, deg")
-    p.add_argument("--lon", type=float, default=114.36, help="receiver longitude, deg")
-    p.add_argument("--height", type=float, default=30.0, help="receiver ellipsoidal height, m")
+    from robustloc.commands._argtypes import (  # CLI plumbing only (sim is below commands)
+        float_in,
+        int_in,
+    )
+
+    p.add_argument("--epochs", type=int_in(1, 10**6), default=60,
+                   help="number of epochs (default 60)")
+    p.add_argument("--interval-s", type=float_in(1e-3, 86400.0), default=30.0,
+                   help="epoch interval, s (default 30)")
+    p.add_argument("--lat", type=float_in(-90.0, 90.0), default=30.53,
+                   help="receiver latitude, deg")
+    p.add_argument("--lon", type=float_in(-180.0, 360.0), default=114.36,
+                   help="receiver longitude, deg")
+    p.add_argument("--height", type=float_in(-1e3, 1e5), default=30.0,
+                   help="receiver ellipsoidal height, m")
     p.add_argument("--systems", default="GEC", help="constellations among G, E, C (default GEC)")
-    p.add_argument("--mask-deg", type=float, default=10.0, help="elevation mask, deg (default 10)")
+    p.add_argument("--mask-deg", type=float_in(-10.0, 90.0), default=10.0,
+                   help="elevation mask, deg (default 10)")
     p.add_argument(
         "--no-elevation-weighting", action="store_true",
         help="constant code noise per system instead of sigma / sin(elevation)",
     )
-    p.add_argument("--faults", type=int, default=0, help="gross errors per epoch (default 0)")
-    p.add_argument("--fault-m", type=float, default=20.0,
+    p.add_argument("--faults", type=int_in(0, 100), default=0,
+                   help="gross errors per epoch (default 0)")
+    p.add_argument("--fault-m", type=float_in(0.0, 1e6), default=20.0,
                    help="gross-error scale: size +-U(1, 2) times this, m (default 20)")
 
 
@@ -280,6 +292,12 @@ def generate(
 
 def simulate(out_dir: Path, seed: int, args: argparse.Namespace) -> dict[str, Path]:
     """Write ``pseudoranges.csv`` and ``truth.csv`` into ``out_dir``."""
+    bad = sorted(set(args.systems.upper()) - set("GEC"))
+    if bad or not args.systems:
+        from robustloc.errors import InputError
+
+        raise InputError(f"--systems: unknown GNSS system(s) {''.join(bad)!r}; choose among "
+                         f"G, E, C")
     data = generate(
         seed,
         epochs=args.epochs,

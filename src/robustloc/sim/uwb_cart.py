@@ -126,20 +126,26 @@ def simulate_cart(
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from robustloc.commands._argtypes import float_in  # CLI plumbing only (sim is below commands)
+
     parser.add_argument("--group", choices=["A", "B"], default="A",
                         help="paper's experiment group (default A: 10 m field, T = 1 s)")
-    parser.add_argument("--path", choices=["line", "diagonal"], default="line",
-                        help="cart path: y = 5 (line, group A only) or y = x (diagonal)")
-    parser.add_argument("--nlos-prob", type=float, default=0.0,
+    parser.add_argument("--path", choices=["line", "diagonal"], default=None,
+                        help="cart path: y = 5 (line, group A only; default for A) or y = x "
+                             "(diagonal; group B's only path)")
+    parser.add_argument("--nlos-prob", type=float_in(0.0, 1.0), default=0.0,
                         help="fraction of ranges with a positive NLOS excess U(0.5, 3) m")
 
 
 def simulate(out_dir: Path, seed: int, args: argparse.Namespace) -> dict[str, Path]:
     """Write the scenario files (see the module docstring)."""
     group = getattr(args, "group", "A")
-    path = getattr(args, "path", "line" if group == "A" else "diagonal")
-    if group == "B":
-        path = "diagonal"
+    path = getattr(args, "path", None) or ("line" if group == "A" else "diagonal")
+    if group == "B" and path != "diagonal":
+        from robustloc.errors import InputError
+
+        raise InputError("--group B runs the cart along the diagonal y = x only (seed 001); "
+                         "drop --path or give --path diagonal")
     nlos = float(getattr(args, "nlos_prob", 0.0) or 0.0)
     if not 0.0 <= nlos <= 1.0:
         raise ValueError(f"--nlos-prob must be in [0, 1], got {nlos}")

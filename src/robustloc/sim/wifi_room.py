@@ -226,22 +226,27 @@ def generate(cfg: WifiRoomConfig, seed: int) -> WifiRoomData:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from robustloc.commands._argtypes import (  # CLI plumbing only (sim is below commands)
+        float_in,
+        int_in,
+    )
+
     d = WifiRoomConfig()
-    p.add_argument("--samples-per-point", type=int, default=d.samples_per_point,
+    p.add_argument("--samples-per-point", type=int_in(1, 10**6), default=d.samples_per_point,
                    help=f"scans at each of the 20 static points (default {d.samples_per_point})")
-    p.add_argument("--walk-epochs", type=int, default=d.walk_epochs,
+    p.add_argument("--walk-epochs", type=int_in(1, 10**7), default=d.walk_epochs,
                    help=f"epochs of the walk (default {d.walk_epochs})")
-    p.add_argument("--rate-hz", type=float, default=d.rate_hz,
+    p.add_argument("--rate-hz", type=float_in(1e-3, 1e4), default=d.rate_hz,
                    help=f"scan rate of the walk (default {d.rate_hz})")
-    p.add_argument("--speed", type=float, default=d.speed_mps,
+    p.add_argument("--speed", type=float_in(0.01, 515.0), default=d.speed_mps,
                    help=f"walking speed m/s (default {d.speed_mps})")
-    p.add_argument("--noise-db", type=float, default=d.noise_db,
+    p.add_argument("--noise-db", type=float_in(0.0, 100.0), default=d.noise_db,
                    help=f"scale of the skewed RSSI noise, dB (default {d.noise_db})")
-    p.add_argument("--fade-prob", type=float, default=d.fade_prob,
+    p.add_argument("--fade-prob", type=float_in(0.0, 1.0), default=d.fade_prob,
                    help=f"probability of a 4-10 dB fade per scan (default {d.fade_prob})")
-    p.add_argument("--jump-db", type=float, default=d.jump_db,
+    p.add_argument("--jump-db", type=float_in(0.0, 100.0), default=d.jump_db,
                    help=f"environment-change drop on the walk, dB (default {d.jump_db})")
-    p.add_argument("--ar-phi", type=float, default=d.ar_phi,
+    p.add_argument("--ar-phi", type=float_in(0.0, 0.999999), default=d.ar_phi,
                    help=f"AR(1) coefficient of the correlated noise per scan (default {d.ar_phi})")
     p.add_argument("--no-jumps", action="store_true", help="no environment changes")
 
