@@ -229,9 +229,9 @@ def run(args: argparse.Namespace) -> int:
     table = pd.concat(frames, ignore_index=True)
     table.insert(0, "layout", lay.name)
     if args.out:
-        out = Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        table.to_csv(out, index=False, float_format="%.6g")
+        from robustloc.io import write_table
+
+        write_table(table, Path(args.out))  # atomic: all or nothing at -o
     if args.json:
         print(json.dumps({
             "layout": lay.name, "n_obs": lay.n, "n_unknowns": lay.p,

@@ -184,11 +184,9 @@ def run(args: argparse.Namespace) -> int:
         lost = (n_invalid > 0) & ~frame["status"].isin(st.USABLE).to_numpy()
         frame.loc[lost, "status"] = st.INVALID
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if out.suffix.lower() == ".parquet":
-        frame.to_parquet(out, index=False)
-    else:
-        frame.to_csv(out, index=False, float_format="%.6f")
+    from robustloc.io import write_table
+
+    write_table(frame, out)  # atomic: nothing at -o after an error or an interrupt
     if ref is not None:
         ref_src = "--reference"
     else:

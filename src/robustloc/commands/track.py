@@ -103,55 +103,80 @@ def track_file(args: argparse.Namespace) -> dict:
     from robustloc._jitnotice import compile_notice
     from robustloc.errors import InputError
     from robustloc.io import iter_epochs, read_anchors, write_table
+    from robustloc.io.atomic import atomic_output, check_not_input
+    from robustloc.io.tables import UnsortedInput, is_parquet
     from robustloc.track import Tracker
 
     anchors = read_anchors(args.anchors)
     smooth = args.smooth or args.fixed_lag is not None
     if args.tag_height is not None and "z" not in anchors.columns:
         raise InputError("--tag-height needs a z column in the anchors file", args.anchors, 1)
-    try:
-        trk = Tracker(
-            anchors, model=args.model, filter=args.filter, record=smooth, q=args.q,
-            weight=args.weight, domain=args.domain, sigma=args.sigma, engine=args.engine,
-            noise_scale_min=args.noise_scale_min, noise_scale_max=args.noise_scale_max,
-            cusum_h=args.cusum_h, alpha0=args.alpha0, beta0=args.beta0,
-            integrity_risk=args.integrity_risk, tag_height=args.tag_height,
-        )
-    except ValueError as exc:
-        raise InputError(str(exc)) from None
-    out = Path(args.out)
-    t0 = _time.perf_counter()
-    frames: list[pd.DataFrame] = []
-    n_epochs = 0
-    bar = tqdm(unit=" epochs", disable=args.quiet or not sys.stderr.isatty(), file=sys.stderr)
-    writer = None if smooth else TrackWriter(out)
-    try:
-        for block in iter_epochs(args.measurements, anchors, chunk_rows=args.chunk_rows):
-            if n_epochs == 0:
-                compile_notice("filter")
-            rows = trk.step(block)
-            if writer is None:
-                frames.append(rows)
-            else:
-                writer.write(rows)
-            n_epochs += block.n_epochs
-            bar.update(block.n_epochs)
-    finally:
-        bar.close()
-        if writer is not None:
-            writer.close()
-    if smooth:
-        table = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
-        if len(table):
-            table = apply_smoother(trk, table, args.fixed_lag)
-        write_table(table, out)
-        status = table["status"] if len(table) else pd.Series([], dtype=object)
-    else:
-        from robustloc.io import read_table
+    def make_tracker() -> Tracker:
+        try:
+            return Tracker(
+                anchors, model=args.model, filter=args.filter, record=smooth, q=args.q,
+                weight=args.weight, domain=args.domain, sigma=args.sigma, engine=args.engine,
+                noise_scale_min=args.noise_scale_min, noise_scale_max=args.noise_scale_max,
+                cusum_h=args.cusum_h, alpha0=args.alpha0, beta0=args.beta0,
+                integrity_risk=args.integrity_risk, tag_height=args.tag_height,
+            )
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
 
-        status = read_table(out)["status"] if n_epochs else pd.Series([], dtype=object)
+    check_not_input(args.out, [args.measurements, args.anchors])
+    out = args.out
+    t0 = _time.perf_counter()
+
+    def one_pass(order: str) -> tuple:
+        """Every epoch through a fresh tracker; the streamed file is written atomically
+        (nothing at -o after an error or an interrupt); raises UnsortedInput when rows
+        turn out not to be in time order (the caller sorts and starts again)."""
+        trk = make_tracker()
+        frames: list[pd.DataFrame] = []
+        n = 0
+        bar = tqdm(unit=" epochs", disable=args.quiet or not sys.stderr.isatty(),
+                   file=sys.stderr)
+        status_counts: dict[str, int] = {}
+        try:
+            with atomic_output(out) as (target, _stream):
+                stream = target is not None and not smooth
+                writer = TrackWriter(target, parquet=is_parquet(out)) if stream else None
+                try:
+                    for block in iter_epochs(args.measurements, anchors,
+                                             chunk_rows=args.chunk_rows, order=order):
+                        if n == 0:
+                            compile_notice("filter")
+                        rows = trk.step(block)
+                        for k, v in rows["status"].value_counts().items():
+                            status_counts[str(k)] = status_counts.get(str(k), 0) + int(v)
+                        if writer is None:
+                            frames.append(rows)
+                        else:
+                            writer.write(rows)
+                        n += block.n_epochs
+                        bar.update(block.n_epochs)
+                finally:
+                    if writer is not None:
+                        writer.close()
+                if not stream:
+                    table = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+                    if smooth and len(table):
+                        table = apply_smoother(trk, table, args.fixed_lag)
+                        status_counts = {str(k): int(v) for k, v in
+                                         table["status"].value_counts().items()}
+                    if target is None:
+                        write_table(table, out)
+                    else:
+                        write_table(table, target, parquet=is_parquet(out))
+        finally:
+            bar.close()
+        return trk, n, status_counts
+
+    try:
+        trk, n_epochs, counts = one_pass("auto")
+    except UnsortedInput:
+        trk, n_epochs, counts = one_pass("sort")
     wall = _time.perf_counter() - t0
-    counts = {str(k): int(v) for k, v in status.value_counts().items()}
     return {"measurements": str(args.measurements), "track": str(out), "epochs": n_epochs,
             "tags": len(trk.tags), "method": trk.method, "status": counts,
             "smoother": ("fixed-lag" if args.fixed_lag else "rts") if smooth else None,
@@ -162,19 +187,20 @@ def track_file(args: argparse.Namespace) -> dict:
 class TrackWriter:
     """Append track rows chunk by chunk to a CSV or Parquet file (columns of the first)."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, parquet: bool | None = None) -> None:
+        from robustloc.io.tables import is_parquet
+
         self.path = Path(path)
+        self.parquet = is_parquet(self.path) if parquet is None else parquet
         self._columns: list[str] | None = None
         self._pq = None
 
     def write(self, frame: pd.DataFrame) -> None:
-        from robustloc.io.tables import is_parquet
-
         if self._columns is None:
             self._columns = list(frame.columns)
         out = frame[self._columns].reset_index(drop=True)
         out.attrs = {}
-        if is_parquet(self.path):
+        if self.parquet:
             import pyarrow as pa
             import pyarrow.parquet as pq
 
