@@ -297,15 +297,26 @@ def _finish_frame(df: pd.DataFrame, path: PathLike, first_line: int) -> pd.DataF
 _CSV_ERRORS = (pd.errors.ParserError, UnicodeDecodeError, EOFError, OSError, ValueError)
 
 
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
 def _read_raw(path: PathLike, str_columns: Sequence[str] = ()) -> pd.DataFrame:
     """Read a whole CSV or Parquet file; index = source line number."""
     p = _check_file(path)
     fmt = _format(p, path)
     if fmt == "parquet":
         try:
+            import pyarrow.parquet as pq
+
+            _check_header(pq.read_schema(p).names, path)
             df = pd.read_parquet(p)
+        except InputError:
+            raise
         except Exception as exc:  # noqa: BLE001 - any pyarrow failure is a bad file
-            raise InputError(f"cannot read Parquet file: {exc}", _display(path)) from None
+            raise InputError(f"cannot read Parquet file: {_first_line(exc)}",
+                             _display(path)) from None
         return _finish_frame(df.reset_index(drop=True), path, 2)
     try:
         with _RaggedGuard(p, path, fmt):
@@ -341,7 +352,8 @@ def _iter_raw(
         except InputError:
             raise
         except Exception as exc:  # noqa: BLE001
-            raise InputError(f"cannot read Parquet file: {exc}", _display(path)) from None
+            raise InputError(f"cannot read Parquet file: {_first_line(exc)}",
+                             _display(path)) from None
         return
     try:
         line = 2
@@ -947,9 +959,8 @@ def _iter_sorted_out_of_core(
             con.execute(f"SET memory_limit='{budget // (1 << 20)}MB'")
             con.execute(f"SET temp_directory='{tmp}'")
             con.execute("SET threads=1")
-            rel = con.execute(
-                f"SELECT * FROM read_parquet('{spool}') ORDER BY time, tag, line")
-            reader = rel.fetch_record_batch(chunk_rows)
+            rel = con.sql(f"SELECT * FROM read_parquet('{spool}') ORDER BY time, tag, line")
+            reader = rel.to_arrow_reader(batch_size=chunk_rows)
 
             def frames() -> Iterator[pd.DataFrame]:
                 for batch in reader:
