@@ -773,7 +773,12 @@ def _epoch_starts(t: NDArray[np.float64], h: NDArray[np.uint64]) -> NDArray[np.b
 
 
 def _tag_hash(tags: pd.Series) -> NDArray[np.uint64]:
-    return pd.util.hash_array(tags.to_numpy(dtype=object))
+    """64-bit hash of each tag.  Factorized first (Arrow-native for pandas' string dtype),
+    so that Python string objects are made only for the distinct tags, not for every row
+    (with one tag per epoch, per-row objects cost more memory than the chunk itself)."""
+    codes, uniques = pd.factorize(tags)
+    hu = pd.util.hash_array(np.asarray(uniques, dtype=object), categorize=False)
+    return hu[codes]
 
 
 def _finish_chunk(df: pd.DataFrame, path: str, value: str) -> pd.DataFrame:
@@ -819,7 +824,8 @@ def _iter_streamed(
 
     ``time`` must be non-decreasing.  The rows of the last time value of each chunk are
     held back (tags of one time may mix in any order), unless that time group grows beyond
-    ``max(chunk_rows, 100 000)`` rows: then its epochs must be contiguous (each tag's rows together), and all
+    ``max(chunk_rows, 100 000)`` rows: then its epochs must be contiguous (each tag's rows
+    together), and all
     but the last are emitted, remembering the 64-bit hashes of their tags (8 bytes per
     epoch) to refuse a later row of an epoch already emitted.  So memory stays bounded by
     about two chunks whatever the grouping (10 M rows that all have ``time = 0``, each
@@ -845,8 +851,18 @@ def _iter_streamed(
             raise UnsortedInput(
                 f"time {t[i]} is earlier than the previous row's (rows not sorted by time)",
                 name, _line_of(chunk, i))
+        n_carry = 0 if carry is None else len(carry)
+        frame = chunk if carry is None else pd.concat([carry, chunk])
+        tt = frame["time"].to_numpy()
+        t_end = tt[-1]
+        first_tail = int(np.searchsorted(tt, t_end, side="left"))
+        big = len(frame) - first_tail > max(chunk_rows, _MIN_GROUP_ROWS)
+        # tag hashes, once per chunk, only where needed (a time group over several chunks)
+        lo = min(first_tail, n_carry) if big else n_carry
+        h_from = _tag_hash(frame["tag"].iloc[lo:]) if (big or len(seen)) else None
         if len(seen):
-            hit = (t == last_t) & np.isin(_tag_hash(chunk["tag"]), seen)
+            hc = h_from[n_carry - lo:]
+            hit = (t == last_t) & np.isin(hc, seen)
             if hit.any():
                 i = int(np.argmax(hit))
                 raise UnsortedInput(
@@ -854,15 +870,11 @@ def _iter_streamed(
                     "rows were interrupted by other epochs of the same time over more than "
                     "one chunk (rows not grouped by epoch)", name, _line_of(chunk, i))
         n_rows += len(chunk)
-        frame = chunk if carry is None else pd.concat([carry, chunk])
-        tt = frame["time"].to_numpy()
-        t_end = tt[-1]
         if t_end != last_t:
             seen = np.empty(0, dtype=np.uint64)
-        first_tail = int(np.searchsorted(tt, t_end, side="left"))
         head, tail = frame.iloc[:first_tail], frame.iloc[first_tail:]
-        if len(tail) > max(chunk_rows, _MIN_GROUP_ROWS):  # a big time group: emit its epochs
-            h = _tag_hash(tail["tag"])
+        if big:  # a big time group: emit its closed epochs
+            h = h_from[first_tail - lo:]
             starts = np.flatnonzero(_epoch_starts(tail["time"].to_numpy(), h))
             run_h = h[starts]
             dup = pd.Series(run_h).duplicated().to_numpy()
@@ -874,7 +886,7 @@ def _iter_streamed(
                     name, _line_of(tail, i))
             last = int(starts[-1])
             seen = np.union1d(seen, run_h[:-1])
-            out = pd.concat([head, tail.iloc[:last]]) if last else head
+            out = frame.iloc[: first_tail + last]  # head and the closed epochs: one slice
             carry = tail.iloc[last:]
         else:
             out, carry = head, tail
