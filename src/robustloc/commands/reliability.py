@@ -50,27 +50,31 @@ def _area(text: str) -> tuple[float, float, float, float]:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from robustloc.commands._argtypes import finite_float, float_in, positive_float
+
     p.add_argument("--anchors", required=True, help="anchors file (anchor, x, y[, z])")
     p.add_argument("--area", type=_area, default=None, metavar="XMIN,XMAX,YMIN,YMAX",
                    help="grid extent in metres (default: anchors' bounding box + 10 %%)")
-    p.add_argument("--step", type=float, default=None,
+    p.add_argument("--step", type=positive_float, default=None,
                    help="grid spacing in metres (default: about 150 points along the longer side)")
-    p.add_argument("--sigma", type=float, default=1.0,
+    p.add_argument("--sigma", type=positive_float, default=1.0,
                    help="a-priori standard deviation of one observation: m for ranges, dB for "
                         "RSSI (default 1)")
     p.add_argument("--dim", type=int, choices=(2, 3), default=2,
                    help="solved dimension (default 2)")
-    p.add_argument("--tag-z", type=float, default=0.0, help="tag height in metres (default 0)")
+    p.add_argument("--tag-z", type=finite_float, default=0.0,
+                   help="tag height in metres (default 0)")
     p.add_argument("--model", choices=("range", "rssi"), default="range",
                    help="observation type (default range)")
-    p.add_argument("--n", type=float, default=None,
+    p.add_argument("--n", type=positive_float, default=None,
                    help="path-loss exponent for --model rssi (default: anchors' n column, else 2)")
-    p.add_argument("--max-range", type=float, default=None,
+    p.add_argument("--max-range", type=positive_float, default=None,
                    help="anchors farther than this (m) are not heard (default: all heard)")
-    p.add_argument("--alpha0", type=float, default=0.001,
+    p.add_argument("--alpha0", type=float_in(1e-12, 0.5), default=0.001,
                    help="w-test significance (default 0.001)")
-    p.add_argument("--beta0", type=float, default=0.10, help="w-test type II error (default 0.10)")
-    p.add_argument("--rho-threshold", type=float, default=0.9,
+    p.add_argument("--beta0", type=float_in(1e-6, 0.99), default=0.10,
+                   help="w-test type II error (default 0.10)")
+    p.add_argument("--rho-threshold", type=float_in(0, 1), default=0.9,
                    help="|rho_ij| above which two anchors are flagged as not separable (0.9)")
     p.add_argument("--suggest", action="store_true",
                    help="rank candidate positions for one more anchor")
