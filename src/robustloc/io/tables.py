@@ -967,10 +967,12 @@ def _iter_sorted_out_of_core(
             raise InputError("measurements file has a header but no data rows", name, 2)
         con = duckdb.connect()
         try:
-            budget = max(default_memory_budget() // 2, 256 << 20)
-            con.execute(f"SET memory_limit='{budget // (1 << 20)}MB'")
+            # DuckDB's own memory (the rest spills to `tmp`): 256 MB to 1 GB
+            limit = min(max(default_memory_budget() // 4, 256 << 20), 1 << 30)
+            con.execute(f"SET memory_limit='{limit // (1 << 20)}MB'")
             con.execute(f"SET temp_directory='{tmp}'")
             con.execute("SET threads=1")
+            con.execute("SET enable_progress_bar=false")  # never into a data stream
             rel = con.sql(f"SELECT * FROM read_parquet('{spool}') ORDER BY time, tag, line")
             reader = rel.to_arrow_reader(batch_size=chunk_rows)
 
