@@ -812,6 +812,16 @@ def _cut_sorted(frames: Iterator[pd.DataFrame], path: str) -> Iterator[pd.DataFr
         yield _finish_chunk(carry, path, value)
 
 
+def _in_sorted_parts(h: NDArray[np.uint64], parts: list[NDArray[np.uint64]]) -> NDArray:
+    """Mask of ``h`` found in any of the sorted arrays ``parts`` (binary search)."""
+    hit = np.zeros(len(h), dtype=bool)
+    for arr in parts:
+        if len(arr):
+            i = np.minimum(np.searchsorted(arr, h), len(arr) - 1)
+            hit |= arr[i] == h
+    return hit
+
+
 #: A time group (rows of one time value) is held whole up to this many rows (or
 #: ``chunk_rows`` if larger); beyond, its epochs must be contiguous to stream.
 _MIN_GROUP_ROWS = 100_000
@@ -835,7 +845,7 @@ def _iter_streamed(
     name = _display(path)
     last_t = -np.inf
     carry: pd.DataFrame | None = None
-    seen = np.empty(0, dtype=np.uint64)  # tags at time last_t already emitted
+    seen: list[NDArray[np.uint64]] = []  # sorted hashes of tags emitted at time last_t
     n_rows = 0
     value = None
     for raw in _iter_raw(path, chunk_rows, ("tag", "anchor")):
@@ -859,10 +869,10 @@ def _iter_streamed(
         big = len(frame) - first_tail > max(chunk_rows, _MIN_GROUP_ROWS)
         # tag hashes, once per chunk, only where needed (a time group over several chunks)
         lo = min(first_tail, n_carry) if big else n_carry
-        h_from = _tag_hash(frame["tag"].iloc[lo:]) if (big or len(seen)) else None
-        if len(seen):
+        h_from = _tag_hash(frame["tag"].iloc[lo:]) if (big or seen) else None
+        if seen:
             hc = h_from[n_carry - lo:]
-            hit = (t == last_t) & np.isin(hc, seen)
+            hit = (t == last_t) & _in_sorted_parts(hc, seen)
             if hit.any():
                 i = int(np.argmax(hit))
                 raise UnsortedInput(
@@ -871,7 +881,7 @@ def _iter_streamed(
                     "one chunk (rows not grouped by epoch)", name, _line_of(chunk, i))
         n_rows += len(chunk)
         if t_end != last_t:
-            seen = np.empty(0, dtype=np.uint64)
+            seen = []
         head, tail = frame.iloc[:first_tail], frame.iloc[first_tail:]
         if big:  # a big time group: emit its closed epochs
             h = h_from[first_tail - lo:]
@@ -885,7 +895,7 @@ def _iter_streamed(
                     "time with the tags' rows mixed (rows not grouped by epoch)",
                     name, _line_of(tail, i))
             last = int(starts[-1])
-            seen = np.union1d(seen, run_h[:-1])
+            seen.append(np.unique(run_h[:-1]))  # no merged copy: 8 bytes per epoch
             out = frame.iloc[: first_tail + last]  # head and the closed epochs: one slice
             carry = tail.iloc[last:]
         else:
