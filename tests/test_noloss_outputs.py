@@ -309,3 +309,29 @@ def test_atomic_output_special_targets(tmp_path):
         assert target == Path("/dev/null") and stream is None
         target.write_text("x")
     assert Path("/dev/null").exists() and not Path("/dev/null").is_file()
+
+
+def test_folder_output_that_is_a_file(small, capsys):
+    """Issue 15: `-o` on an existing file where a folder is expected was a FileExistsError
+    traceback; the OS error about the user's path is now `error: PATH: what`, exit 2."""
+    f = small / "a.csv"
+    assert main(["reliability", "--anchors", str(f), "-o", str(f), "--no-maps"]) == 2
+    assert capsys.readouterr().err == (
+        f"error: {f}: already exists and is not a folder (a folder was expected)\n")
+    assert main(["simulate", "ble-corridor", "--seed", "1", "--out", str(f / "sub")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {f / 'sub'}: ") and "Traceback" not in err
+
+
+def test_dev_stdout_redirected_to_a_file(small):
+    """`-o /dev/stdout > file`: the data go to the file, the summary to stderr, and the
+    /dev/stdout symlink is never replaced by a temporary file."""
+    link = os.readlink("/dev/stdout")
+    with open(small / "out.csv", "wb") as fh:
+        r = subprocess.run(CLI + ["locate", str(small / "m.csv"), "--anchors",
+                                  str(small / "a.csv"), "-o", "/dev/stdout", "--method", "ls"],
+                           stdout=fh, stderr=subprocess.PIPE, text=True, env=ENV)
+    assert r.returncode == 0 and "50 epochs of range -> /dev/stdout" in r.stderr
+    assert os.readlink("/dev/stdout") == link
+    pos = pd.read_csv(small / "out.csv")
+    assert len(pos) == 50 and list(pos.columns[:2]) == ["time", "tag"]

@@ -17,7 +17,9 @@ One error path:
   output is left at a final path;
 * any other exception is a bug in robustloc, not the user's fault: it prints
   ``internal error`` with the traceback and exits with code 1 (never 2, so that a bug
-  does not pass for a user error);
+  does not pass for a user error).  One transitional exception: a ``ValueError`` raised
+  by a command module itself (its own option check, innermost frame in
+  ``robustloc/commands/``) is still a user error; from any lower layer it is a bug;
 * output piped into ``head`` and closed early is not an error (exit 0).
 """
 
@@ -145,10 +147,34 @@ def main(argv: Sequence[str] | None = None) -> int:
         if name is None:  # an OS error about no path the user gave: a bug
             return _internal_error()
         return error(f"{name}: {describe_oserror(exc)}")
+    except ValueError as exc:
+        if _raised_by_command_module(exc):  # a command's own check of its options
+            return error(str(exc))
+        return _internal_error()
     except Exception:  # noqa: BLE001 - anything else is a bug, shown as one
         return _internal_error()
     finally:
         _restore_sigterm(old)
+
+
+def _raised_by_command_module(exc: BaseException) -> bool:
+    """True if ``exc`` was raised in a command module itself (``robustloc/commands/``),
+    i.e. by the command's own check of its options, not from deep inside the library.
+
+    Transitional: commands should raise :class:`~robustloc.errors.InputError`; a
+    ``ValueError`` from any lower layer is a bug and exits with code 1.
+    """
+    import os
+
+    tb = exc.__traceback__
+    last = None
+    while tb is not None:
+        last = tb
+        tb = tb.tb_next
+    if last is None:
+        return False
+    path = os.path.normpath(last.tb_frame.f_code.co_filename)
+    return os.path.join("robustloc", "commands") + os.sep in path
 
 
 def _internal_error() -> int:

@@ -56,6 +56,7 @@ def _area(text: str) -> tuple[float, float, float, float]:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+
     p.add_argument("--anchors", required=True, help="anchors file (anchor, x, y[, z])")
     p.add_argument("--area", type=_area, default=None, metavar="XMIN,XMAX,YMIN,YMAX",
                    help="grid extent in metres (default: anchors' bounding box + 10 %%)")

@@ -138,12 +138,18 @@ def check_not_input(out: PathLike | None, inputs: Iterable[PathLike | None]) -> 
 
 
 def _is_special(p: Path) -> bool:
-    """An existing target that is not a regular file (device, FIFO): written in place."""
+    """A target written in place, not replaced: an existing device or FIFO, or any name
+    under /dev or /proc (``/dev/stdout`` redirected to a regular file must not have its
+    symlink replaced by a file), or the file standard output is connected to."""
+    if str(p).startswith(("/dev/", "/proc/")) or str(p.resolve()).startswith(("/dev/", "/proc/")):
+        return True
     try:
         mode = os.stat(p).st_mode
     except OSError:
         return False
-    return not stat.S_ISREG(mode) and not stat.S_ISDIR(mode)
+    if not stat.S_ISREG(mode) and not stat.S_ISDIR(mode):
+        return True
+    return writes_to_stdout(p)
 
 
 def _fsync_dir(folder: Path) -> None:

@@ -297,15 +297,26 @@ def _finish_frame(df: pd.DataFrame, path: PathLike, first_line: int) -> pd.DataF
 _CSV_ERRORS = (pd.errors.ParserError, UnicodeDecodeError, EOFError, OSError, ValueError)
 
 
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
 def _read_raw(path: PathLike, str_columns: Sequence[str] = ()) -> pd.DataFrame:
     """Read a whole CSV or Parquet file; index = source line number."""
     p = _check_file(path)
     fmt = _format(p, path)
     if fmt == "parquet":
         try:
+            import pyarrow.parquet as pq
+
+            _check_header(pq.read_schema(p).names, path)
             df = pd.read_parquet(p)
+        except InputError:
+            raise
         except Exception as exc:  # noqa: BLE001 - any pyarrow failure is a bad file
-            raise InputError(f"cannot read Parquet file: {exc}", _display(path)) from None
+            raise InputError(f"cannot read Parquet file: {_first_line(exc)}",
+                             _display(path)) from None
         return _finish_frame(df.reset_index(drop=True), path, 2)
     try:
         with _RaggedGuard(p, path, fmt):
@@ -341,7 +352,8 @@ def _iter_raw(
         except InputError:
             raise
         except Exception as exc:  # noqa: BLE001
-            raise InputError(f"cannot read Parquet file: {exc}", _display(path)) from None
+            raise InputError(f"cannot read Parquet file: {_first_line(exc)}",
+                             _display(path)) from None
         return
     try:
         line = 2
@@ -761,7 +773,12 @@ def _epoch_starts(t: NDArray[np.float64], h: NDArray[np.uint64]) -> NDArray[np.b
 
 
 def _tag_hash(tags: pd.Series) -> NDArray[np.uint64]:
-    return pd.util.hash_array(tags.to_numpy(dtype=object))
+    """64-bit hash of each tag.  Factorized first (Arrow-native for pandas' string dtype),
+    so that Python string objects are made only for the distinct tags, not for every row
+    (with one tag per epoch, per-row objects cost more memory than the chunk itself)."""
+    codes, uniques = pd.factorize(tags)
+    hu = pd.util.hash_array(np.asarray(uniques, dtype=object), categorize=False)
+    return hu[codes]
 
 
 def _finish_chunk(df: pd.DataFrame, path: str, value: str) -> pd.DataFrame:
@@ -795,6 +812,16 @@ def _cut_sorted(frames: Iterator[pd.DataFrame], path: str) -> Iterator[pd.DataFr
         yield _finish_chunk(carry, path, value)
 
 
+def _in_sorted_parts(h: NDArray[np.uint64], parts: list[NDArray[np.uint64]]) -> NDArray:
+    """Mask of ``h`` found in any of the sorted arrays ``parts`` (binary search)."""
+    hit = np.zeros(len(h), dtype=bool)
+    for arr in parts:
+        if len(arr):
+            i = np.minimum(np.searchsorted(arr, h), len(arr) - 1)
+            hit |= arr[i] == h
+    return hit
+
+
 #: A time group (rows of one time value) is held whole up to this many rows (or
 #: ``chunk_rows`` if larger); beyond, its epochs must be contiguous to stream.
 _MIN_GROUP_ROWS = 100_000
@@ -818,7 +845,7 @@ def _iter_streamed(
     name = _display(path)
     last_t = -np.inf
     carry: pd.DataFrame | None = None
-    seen = np.empty(0, dtype=np.uint64)  # tags at time last_t already emitted
+    seen: list[NDArray[np.uint64]] = []  # sorted hashes of tags emitted at time last_t
     n_rows = 0
     value = None
     for raw in _iter_raw(path, chunk_rows, ("tag", "anchor")):
@@ -834,8 +861,18 @@ def _iter_streamed(
             raise UnsortedInput(
                 f"time {t[i]} is earlier than the previous row's (rows not sorted by time)",
                 name, _line_of(chunk, i))
-        if len(seen):
-            hit = (t == last_t) & np.isin(_tag_hash(chunk["tag"]), seen)
+        n_carry = 0 if carry is None else len(carry)
+        frame = chunk if carry is None else pd.concat([carry, chunk])
+        tt = frame["time"].to_numpy()
+        t_end = tt[-1]
+        first_tail = int(np.searchsorted(tt, t_end, side="left"))
+        big = len(frame) - first_tail > max(chunk_rows, _MIN_GROUP_ROWS)
+        # tag hashes, once per chunk, only where needed (a time group over several chunks)
+        lo = min(first_tail, n_carry) if big else n_carry
+        h_from = _tag_hash(frame["tag"].iloc[lo:]) if (big or seen) else None
+        if seen:
+            hc = h_from[n_carry - lo:]
+            hit = (t == last_t) & _in_sorted_parts(hc, seen)
             if hit.any():
                 i = int(np.argmax(hit))
                 raise UnsortedInput(
@@ -843,15 +880,11 @@ def _iter_streamed(
                     "rows were interrupted by other epochs of the same time over more than "
                     "one chunk (rows not grouped by epoch)", name, _line_of(chunk, i))
         n_rows += len(chunk)
-        frame = chunk if carry is None else pd.concat([carry, chunk])
-        tt = frame["time"].to_numpy()
-        t_end = tt[-1]
         if t_end != last_t:
-            seen = np.empty(0, dtype=np.uint64)
-        first_tail = int(np.searchsorted(tt, t_end, side="left"))
+            seen = []
         head, tail = frame.iloc[:first_tail], frame.iloc[first_tail:]
-        if len(tail) > max(chunk_rows, _MIN_GROUP_ROWS):  # a big time group: emit its epochs
-            h = _tag_hash(tail["tag"])
+        if big:  # a big time group: emit its closed epochs
+            h = h_from[first_tail - lo:]
             starts = np.flatnonzero(_epoch_starts(tail["time"].to_numpy(), h))
             run_h = h[starts]
             dup = pd.Series(run_h).duplicated().to_numpy()
@@ -862,8 +895,8 @@ def _iter_streamed(
                     "time with the tags' rows mixed (rows not grouped by epoch)",
                     name, _line_of(tail, i))
             last = int(starts[-1])
-            seen = np.union1d(seen, run_h[:-1])
-            out = pd.concat([head, tail.iloc[:last]]) if last else head
+            seen.append(np.unique(run_h[:-1]))  # no merged copy: 8 bytes per epoch
+            out = frame.iloc[: first_tail + last]  # head and the closed epochs: one slice
             carry = tail.iloc[last:]
         else:
             out, carry = head, tail
@@ -944,13 +977,14 @@ def _iter_sorted_out_of_core(
             raise InputError("measurements file has a header but no data rows", name, 2)
         con = duckdb.connect()
         try:
-            budget = max(default_memory_budget() // 2, 256 << 20)
-            con.execute(f"SET memory_limit='{budget // (1 << 20)}MB'")
+            # DuckDB's own memory (the rest spills to `tmp`): 256 MB to 1 GB
+            limit = min(max(default_memory_budget() // 4, 256 << 20), 1 << 30)
+            con.execute(f"SET memory_limit='{limit // (1 << 20)}MB'")
             con.execute(f"SET temp_directory='{tmp}'")
             con.execute("SET threads=1")
-            rel = con.execute(
-                f"SELECT * FROM read_parquet('{spool}') ORDER BY time, tag, line")
-            reader = rel.fetch_record_batch(chunk_rows)
+            con.execute("SET enable_progress_bar=false")  # never into a data stream
+            rel = con.sql(f"SELECT * FROM read_parquet('{spool}') ORDER BY time, tag, line")
+            reader = rel.to_arrow_reader(batch_size=chunk_rows)
 
             def frames() -> Iterator[pd.DataFrame]:
                 for batch in reader:
