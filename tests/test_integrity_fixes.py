@@ -107,7 +107,7 @@ def test_outlier_excluded_by_the_w_test_and_fix_stays_ok():
     d[0, 3] += 4.0  # 40 sigma
     sol = protect(Locator("huber", sigma=0.1, robust_scale="apriori").solve(TEN, d))
     assert sol.status[0] == st.FAULT_EXCLUDED
-    assert sol.excluded[0, 3] and sol.excluded[0].sum() == 1
+    assert sol.extra["flagged"][0, 3] and sol.extra["flagged"][0].sum() == 1
     assert np.linalg.norm(sol.position[0] - x[0]) < sol.extra["hpl"][0]
 
 

@@ -6,7 +6,6 @@ import argparse
 import json
 import sys
 import time as _time
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -363,21 +362,17 @@ def _fix_log_scale(args, anchors, locators, xyz, height, order: str,
     grows), so the scale, and every fix, is the same whatever ``--chunk-rows`` is.
     ``paths``: the log's files in order (a partitioned dataset; default the one file).
     ``args.log_scale_fixed`` (set by the Dask engine, which computes it once for the whole
-    dataset) is used as it is.  Standard input cannot be read twice: there each chunk's
-    own scale is used."""
+    dataset) is used as it is."""
     from dataclasses import replace
 
     from robustloc.io import iter_epochs
-    from robustloc.io.atomic import is_stdio
     from robustloc.models.pathloss import log_distance_arrays
 
     fixed = getattr(args, "log_scale_fixed", None)
     if fixed is not None:
         return [replace(loc, log_scale_fixed=tuple(fixed[loc.method]))
                 if loc.robust_scale == "log" else loc for loc in locators]
-    if paths is None:
-        if is_stdio(args.measurements) or not Path(args.measurements).is_file():
-            return locators
+    if paths is None:  # standard input and FIFOs are spooled once (io.tables): re-readable
         paths = [args.measurements]
     k, seen, kept, idx = 1, 0, [], []
     kind = None

@@ -19,7 +19,9 @@ For each epoch, at the fix ``x`` of any method, with the range-domain residuals
    status                    when                                                  usable
    ========================  ====================================================  ======
    ``ok``                    nothing flagged, the test passes, redundancy >= 2      yes
-   ``fault_excluded``        observations flagged, the test of the rest passes      yes
+   ``fault_excluded``        observations flagged (by the estimator or the w-test;  yes
+                             they leave the test and the protection level), the
+                             test of the rest passes
    ``low_redundancy``        redundancy 1 (robust methods: the plain fit was        yes
                              used), nothing flagged, the test passes: a fault of
                              the MDB would be detected but not identified
@@ -240,14 +242,14 @@ def protect(
             new[np.isin(new, st.USABLE) & (new != st.PREDICTED) & ~(hpl <= alert_limit)] = (
                 st.PROTECTION_EXCEEDED)
     usable = np.isin(new, st.USABLE)
-    excluded = excl | flagged
-    n_used = np.where(np.isfinite(v), ~excluded, False).sum(axis=1)
     extra = dict(sol.extra)
     extra.update(hpl=np.where(usable, hpl, np.nan), vpl=np.where(usable, vpl, np.nan),
                  test_statistic=T, test_critical=crit, flagged=flagged,
                  test_alpha=stats.chi2.sf(crit, np.maximum(dof, 1)))
+    # ``excluded`` and ``n_used`` stay the estimator's (what the fix used); the test's
+    # flags are in extra["flagged"]
     return replace(sol, status=new, position=np.where(usable[:, None], pos, np.nan),
-                   excluded=excluded, n_used=n_used, extra=extra)
+                   extra=extra)
 
 
 #: ``robustloc locate``'s default: Gauss-Newton where the epoch passes its own test, the
