@@ -30,20 +30,24 @@ if TYPE_CHECKING:  # the static view of the lazy names below
         write_positions,
     )
 
-#: Names loaded from :mod:`robustloc.api` on first access (PEP 562 module ``__getattr__``).
-_API = (
-    "locate",
+
+__all__ = [
+    "InputError",
+    "__version__",
     "calibrate",
     "evaluate",
-    "spp",
-    "read_measurements",
+    "locate",
     "read_anchors",
-    "read_truth",
+    "read_measurements",
     "read_positions",
+    "read_truth",
+    "spp",
     "write_positions",
-)
+]
 
-__all__ = ["InputError", "__version__", *_API]
+
+#: Names loaded from :mod:`robustloc.api` on first access.
+_API = frozenset(__all__) - {"InputError", "__version__"}
 
 
 def _version() -> str:
@@ -59,7 +63,7 @@ def _version() -> str:
 def __getattr__(name: str) -> Any:
     if name == "__version__":
         value: Any = _version()
-    elif name in _API:
+    elif name in _API:  # loaded on first access (PEP 562 module ``__getattr__``)
         from robustloc import api
 
         value = getattr(api, name)

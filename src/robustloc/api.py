@@ -55,7 +55,7 @@ PathLike = Union[str, "os.PathLike[str]"]
 #: A contract table held in memory, or the path of a CSV / Parquet file holding one.
 FrameOrPath = Union[pd.DataFrame, str, "os.PathLike[str]"]
 #: One option value as the command line takes it (``None``: the command's default).
-_Option = Union[None, bool, int, float, str, Sequence[str], Mapping[str, float]]
+_Option = bool | int | float | str | Sequence[str] | Mapping[str, float] | None
 
 
 class RobustlocWarning(UserWarning):
@@ -501,7 +501,7 @@ min_scale, model, tag_height, alpha0, beta0, chunk_rows
     >>> robustloc.locate(log.assign(anchor=log.anchor.replace("d", "e")), anchors)
     Traceback (most recent call last):
     ...
-    robustloc.errors.InputError: <measurements DataFrame>:5: unknown anchor id 'e' (not in the anchors file)
+    robustloc.errors.InputError: <measurements DataFrame>:5: unknown anchor id 'e' (not in ...)
     """
     methods = [method] if isinstance(method, str) else list(method)
     options: dict[str, _Option] = {
