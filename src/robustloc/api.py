@@ -447,11 +447,12 @@ def locate(
         ``auto`` (default: Gauss-Newton where its test passes, ``huber`` where it finds
         a fault), ``ls``, ``wls``, ``nls``, ``huber``, ``hampel``, ``igg``, ``igg3``,
         ``asym``, ``lege``, ``snooping``; several give several rows per epoch.
-    dim, solver, reference, domain, sigma, robust_scale, alert_limit, k_noise, \
-min_scale, model, tag_height, alpha0, beta0, chunk_rows
-        As the ``robustloc locate`` options of the same name (``--robust-scale`` ->
-        ``robust_scale``); see ``robustloc locate --help``.  ``sigma`` is in m or dB,
-        ``alert_limit`` and ``tag_height`` in m.
+    dim, solver, reference, domain, robust_scale, model
+        As the ``robustloc locate`` options of the same name (``--robust-scale`` is
+        ``robust_scale``); see ``robustloc locate --help``.
+    sigma, alert_limit, k_noise, min_scale, tag_height, alpha0, beta0, chunk_rows
+        As the options of the same name: ``sigma`` in m or dB, ``alert_limit`` and
+        ``tag_height`` in m.
     params : mapping of str to float, optional
         Weight-function thresholds (``--param NAME=VALUE``), e.g. ``{"c": 1.5}``.
     range_calibration : bool
@@ -713,7 +714,7 @@ def evaluate(
     baseline : str
         Method the improvements refer to.
     time_tolerance : float
-        Largest |time difference| between a position and its truth (s).
+        Largest absolute time difference between a position and its truth (s).
 
     Returns
     -------
