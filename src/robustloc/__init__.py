@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 from robustloc.errors import InputError
 
 if TYPE_CHECKING:  # the static view of the lazy names below
+    __version__: str
     from robustloc.api import (
         calibrate,
         evaluate,

@@ -15,6 +15,9 @@ and the line that row would have in ``frame.to_csv(index=False)`` (row position 
 unless the frame came from :func:`read_measurements` & co., whose errors name the source
 file and line.  The checked frame is handed to the command as a temporary Parquet file
 (exact float round trip), deleted afterwards.
+
+The commands' printed output is captured with :func:`contextlib.redirect_stdout`, which is
+process-wide: call these functions from one thread at a time (several processes are fine).
 """
 
 from __future__ import annotations
