@@ -1,0 +1,842 @@
+"""The DataFrame-level Python API: ``robustloc.locate``, ``calibrate``, ``evaluate``, ``spp``.
+
+Each function runs the **same code as the command of the same name** (its
+``add_arguments`` parser checks the options, its ``run`` does the work), so a frame from
+the API equals, row for row, the file the command writes for the same input, and a
+mistake raises :class:`robustloc.InputError` with the message the command prints after
+``error:``.  Inputs are DataFrames or paths (CSV or Parquet; ``pathlib.Path`` or str),
+outputs are DataFrames in the contract formats of ``docs/formats`` (the design's file
+contract).  The command's run summary (what ``--json`` prints) is in
+``frame.attrs["summary"]``; its notes and warnings become :class:`RobustlocWarning`.
+
+A DataFrame input is first checked by the validators of :mod:`robustloc.io` (the same as
+for a file); an error names it ``<measurements DataFrame>`` (or ``<anchors ...>``, ...)
+and the line that row would have in ``frame.to_csv(index=False)`` (row position + 2),
+unless the frame came from :func:`read_measurements` & co., whose errors name the source
+file and line.  The checked frame is handed to the command as a temporary Parquet file
+(exact float round trip), deleted afterwards.
+
+The commands' printed output is captured with :func:`contextlib.redirect_stdout`, which is
+process-wide: call these functions from one thread at a time (several processes are fine).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import importlib
+import io as _stdio
+import json
+import os
+import sys
+import tempfile
+import traceback
+import warnings
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Literal, Union
+
+import pandas as pd
+
+from robustloc.errors import InputError
+
+__all__ = [
+    "RobustlocWarning",
+    "calibrate",
+    "evaluate",
+    "locate",
+    "read_anchors",
+    "read_measurements",
+    "read_positions",
+    "read_truth",
+    "spp",
+    "write_positions",
+]
+
+#: A file path as a str or :class:`os.PathLike`.
+PathLike = Union[str, "os.PathLike[str]"]
+#: A contract table held in memory, or the path of a CSV / Parquet file holding one.
+FrameOrPath = Union[pd.DataFrame, str, "os.PathLike[str]"]
+#: One option value as the command line takes it (``None``: the command's default).
+_Option = bool | int | float | str | Sequence[str] | Mapping[str, float] | None
+
+
+class RobustlocWarning(UserWarning):
+    """A note or warning the command line prints on stderr (``note: ...``,
+    ``warning: ...``), raised through :mod:`warnings` by the API."""
+
+
+# --------------------------------------------------------------------------------------
+# running a command in-process
+# --------------------------------------------------------------------------------------
+
+
+class _RaisingParser(argparse.ArgumentParser):
+    """A command's own parser whose refusals raise :class:`InputError` (argparse's
+    message, as the command line prints it after ``robustloc CMD: error:``)."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        raise InputError(message)
+
+
+def _option_argv(options: Mapping[str, _Option]) -> list[str]:
+    """Keyword options -> command-line arguments: ``alert_limit=30.0`` ->
+    ``--alert-limit=30.0``; ``True`` a flag, ``False`` ``--no-NAME`` for the
+    ``--NAME/--no-NAME`` switches and nothing otherwise; a sequence is comma-joined; a
+    mapping is one ``--NAME=KEY=VALUE`` per item; floats are written with ``repr``
+    (exact)."""
+    argv: list[str] = []
+    for key, value in options.items():
+        flag = "--" + key.replace("_", "-")
+        if value is None:
+            continue
+        if value is True:
+            argv.append(flag)
+        elif value is False:
+            if key in _NEGATABLE:
+                argv.append("--no-" + key.replace("_", "-"))
+        elif isinstance(value, Mapping):
+            argv += [f"{flag}={k}={v!r}" for k, v in value.items()]
+        elif isinstance(value, (list, tuple)):
+            argv.append(f"{flag}={','.join(str(v) for v in value)}")
+        elif isinstance(value, float):
+            argv.append(f"{flag}={value!r}")
+        else:
+            argv.append(f"{flag}={value}")
+    return argv
+
+
+#: Options whose ``False`` is spelled ``--no-NAME`` (argparse.BooleanOptionalAction).
+_NEGATABLE = frozenset({"scale"})
+
+
+def _from_command(exc: BaseException) -> bool:
+    """Was ``exc`` raised by a command module's own argument checks?"""
+    tb = traceback.extract_tb(exc.__traceback__)
+    return bool(tb) and f"{os.sep}commands{os.sep}" in tb[-1].filename
+
+
+@contextlib.contextmanager
+def _labelled(labels: Mapping[str, str]) -> Iterator[None]:
+    """Translate what the command line reports as ``error:`` into :class:`InputError`:
+    a temporary file's name back to what the user passed, an :class:`OSError` about a
+    user's path to its message, a command's own ``ValueError`` check to its text."""
+    from robustloc.io.atomic import describe_oserror
+
+    try:
+        yield
+    except InputError as exc:
+        if exc.path is not None and exc.path in labels:
+            raise InputError(exc.message, labels[exc.path], exc.line) from None
+        raise
+    except OSError as exc:
+        name = exc.filename if exc.filename is not None else exc.filename2
+        if name is None:
+            raise
+        raise InputError(describe_oserror(exc), labels.get(str(name), str(name))) from None
+    except ValueError as exc:
+        if _from_command(exc):
+            raise InputError(str(exc)) from None
+        raise
+
+
+def _run_command(
+    name: str, positional: Sequence[str], options: Mapping[str, _Option],
+    labels: Mapping[str, str],
+) -> tuple[str, str]:
+    """Parse ``positional`` + ``options`` with command ``name``'s own parser and call its
+    ``run``; returns its (stdout, stderr) text.  Notes and warnings on stderr are
+    re-raised as :class:`RobustlocWarning`, other stderr lines (the one-time compile
+    notice) pass through to ``sys.stderr``."""
+    mod = importlib.import_module(f"robustloc.commands.{name}")
+    parser = _RaisingParser(prog=f"robustloc {name}", add_help=False)
+    mod.add_arguments(parser)
+    argv = [*_option_argv(options), "--", *positional]
+    with _labelled(labels):
+        args = parser.parse_args(argv)
+        out, err = _stdio.StringIO(), _stdio.StringIO()
+        try:
+            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+                mod.run(args)
+        finally:
+            _relay(err.getvalue())
+    return out.getvalue(), err.getvalue()
+
+
+def _relay(stderr: str) -> None:
+    for line in stderr.splitlines():
+        if line.startswith(("warning: ", "note: ")):
+            warnings.warn(line.partition(": ")[2], RobustlocWarning, stacklevel=4)
+        elif line.strip():
+            print(line, file=sys.stderr)
+
+
+def _frame_input(
+    src: FrameOrPath, what: str, tmp: Path, labels: dict[str, str],
+    validate: Callable[[pd.DataFrame, str | None], pd.DataFrame],
+) -> str:
+    """A path as given; a DataFrame validated (errors name ``<what DataFrame>`` and its
+    CSV line) and written to a temporary Parquet file whose name is then mapped back."""
+    if isinstance(src, pd.DataFrame):
+        df = _labelled_frame(src, what)
+        df = validate(df, df.attrs.get("path"))
+        path = tmp / f"{what}.parquet"
+        df = df.reset_index(drop=True)
+        df.attrs = {}
+        df.to_parquet(path, index=False)
+        labels[str(path)] = f"<{what} DataFrame>"
+        return str(path)
+    if isinstance(src, (str, os.PathLike)):
+        return os.fspath(src)
+    raise TypeError(f"{what}: expected a DataFrame or a path, got {type(src).__name__}")
+
+
+def _labelled_frame(df: pd.DataFrame, what: str) -> pd.DataFrame:
+    """A frame whose rows the validators can name: its own ``line`` index and ``path``
+    (read from a file) or the line of ``df.to_csv(index=False)`` in ``<what DataFrame>``."""
+    if df.index.name == "line" and df.attrs.get("path"):
+        return df
+    df = df.copy()
+    df.index = pd.RangeIndex(2, len(df) + 2, name="line")
+    df.attrs["path"] = f"<{what} DataFrame>"
+    return df
+
+
+def _read_output(path: Path) -> pd.DataFrame:
+    frame = pd.read_parquet(path)
+    frame.attrs = {}
+    return frame
+
+
+# --------------------------------------------------------------------------------------
+# contract files
+# --------------------------------------------------------------------------------------
+
+
+def _as_anchor_frame(anchors: FrameOrPath | None) -> pd.DataFrame | None:
+    from robustloc import io
+
+    if anchors is None:
+        return None
+    if isinstance(anchors, pd.DataFrame):
+        df = _labelled_frame(anchors, "anchors")
+        return io.validate_anchors(df, df.attrs.get("path"))
+    return io.read_anchors(anchors)
+
+
+def read_anchors(source: FrameOrPath) -> pd.DataFrame:
+    """Read (or check) an anchors table: ``anchor, x, y[, z]`` + optional parameters.
+
+    Parameters
+    ----------
+    source : DataFrame, str or PathLike
+        A CSV or Parquet file, or a frame with the same columns.
+
+    Returns
+    -------
+    DataFrame
+        ``anchor`` (str), ``x, y[, z]`` (float, m), and when present the path-loss
+        columns ``A, n`` or ``p0, gamma, faf, d0``, the range calibration ``bias, scale``
+        and ``sigma`` (float; empty = NaN).  Index: source line.
+
+    Raises
+    ------
+    InputError
+        A missing column, a non-numeric or non-finite coordinate, a duplicate or empty
+        anchor id, with file and line.
+
+    Examples
+    --------
+    >>> import pandas as pd
+    >>> import robustloc
+    >>> robustloc.read_anchors(pd.DataFrame({"anchor": ["a", "b"], "x": [0, 10], "y": [0, 0]}))
+         anchor     x    y
+    line
+    2         a   0.0  0.0
+    3         b  10.0  0.0
+    >>> robustloc.read_anchors(pd.DataFrame({"anchor": ["a", "a"], "x": [0, 1], "y": [0, 0]}))
+    Traceback (most recent call last):
+    ...
+    robustloc.errors.InputError: <anchors DataFrame>:3: duplicate anchor id 'a'
+    """
+    from robustloc import io
+
+    if isinstance(source, pd.DataFrame):
+        df = _labelled_frame(source, "anchors")
+        return io.validate_anchors(df, df.attrs.get("path"))
+    return io.read_anchors(source)
+
+
+def read_measurements(
+    source: FrameOrPath, anchors: FrameOrPath | Sequence[str] | None = None
+) -> pd.DataFrame:
+    """Read (or check) a measurements log: ``time, tag, anchor`` + ``rssi`` or ``range``.
+
+    Parameters
+    ----------
+    source : DataFrame, str or PathLike
+        A CSV or Parquet file (rows in any order), or a frame with the same columns.
+    anchors : DataFrame, path or sequence of str, optional
+        When given, an anchor id not among them is an error naming its line.
+
+    Returns
+    -------
+    DataFrame
+        ``time`` (float s), ``tag``, ``anchor`` (str), ``rssi`` (dBm) or ``range`` (m);
+        extra columns kept; index = source line; ``attrs["value"]`` names the value
+        column.
+
+    Raises
+    ------
+    InputError
+        A missing column, a NaN or non-numeric value or time, an empty id, an unknown
+        anchor, both or neither of ``rssi``/``range``, with file and line.
+
+    Examples
+    --------
+    >>> import pandas as pd
+    >>> import robustloc
+    >>> log = pd.DataFrame({"time": [0.0, 0.0], "tag": "t", "anchor": ["a", "b"],
+    ...                     "range": [1.5, None]})
+    >>> robustloc.read_measurements(log)
+    Traceback (most recent call last):
+    ...
+    robustloc.errors.InputError: <measurements DataFrame>:3: column 'range': missing or NaN value
+    """
+    from robustloc import io
+
+    known: pd.DataFrame | Sequence[str] | None
+    if anchors is None or isinstance(anchors, pd.DataFrame):
+        known = _as_anchor_frame(anchors)
+    elif isinstance(anchors, (str, os.PathLike)):
+        known = io.read_anchors(anchors)
+    else:
+        known = [str(a) for a in anchors]
+    if isinstance(source, pd.DataFrame):
+        df = _labelled_frame(source, "measurements")
+        return io.validate_measurements(df, df.attrs.get("path"), known)
+    return io.read_measurements(source, known)
+
+
+def read_truth(source: FrameOrPath) -> pd.DataFrame:
+    """Read (or check) a truth table: ``time, tag, x, y[, z]``, all finite.
+
+    Examples
+    --------
+    >>> import pandas as pd
+    >>> import robustloc
+    >>> robustloc.read_truth(pd.DataFrame({"time": [0.0], "tag": [7], "x": [1], "y": [2]}))
+          time tag    x    y
+    line
+    2      0.0   7  1.0  2.0
+    """
+    from robustloc import io
+
+    if isinstance(source, pd.DataFrame):
+        df = _labelled_frame(source, "truth")
+        return io.validate_truth(df, df.attrs.get("path"))
+    return io.read_truth(source)
+
+
+def read_positions(source: FrameOrPath) -> pd.DataFrame:
+    """Read (or check) a positions table (``time, tag, x, y[, z], method, status, ...``).
+
+    Empty coordinates are allowed (a failed epoch; its ``status`` says why); ``method``
+    and ``status`` default to ``unknown`` and ``ok`` when absent.
+
+    Examples
+    --------
+    >>> import pandas as pd
+    >>> import robustloc
+    >>> robustloc.read_positions(pd.DataFrame({"time": [0.0], "tag": ["t"], "x": [1.0],
+    ...                                        "y": [2.0]}))[["method", "status"]]
+           method status
+    line
+    2     unknown     ok
+    """
+    from robustloc import io
+
+    if isinstance(source, pd.DataFrame):
+        df = _labelled_frame(source, "positions")
+        return io.validate_positions(df, df.attrs.get("path"))
+    return io.read_positions(source)
+
+
+def write_positions(positions: pd.DataFrame, path: PathLike) -> Path:
+    """Write a positions frame (contract columns first), CSV or Parquet by extension.
+
+    Written atomically: after an error nothing is left at ``path``.  Floats keep full
+    precision, so reading the file back gives the same numbers.
+
+    Returns
+    -------
+    Path
+        ``path``.
+
+    Raises
+    ------
+    InputError
+        A contract column is missing, or the file cannot be written.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> import pandas as pd
+    >>> import robustloc
+    >>> pos = pd.DataFrame({"time": [0.0], "tag": ["t"], "x": [1.0], "y": [2.0],
+    ...                     "method": ["nls"], "status": ["ok"], "n_used": [4],
+    ...                     "sigma0": [0.1], "excluded": [""]})
+    >>> with tempfile.TemporaryDirectory() as d:
+    ...     out = robustloc.write_positions(pos, pathlib.Path(d) / "positions.csv")
+    ...     print(out.read_text().splitlines()[0])
+    time,tag,x,y,method,status,n_used,sigma0,excluded
+    """
+    from robustloc import io
+
+    try:
+        return io.write_positions(positions, path)
+    except InputError:
+        raise
+    except ValueError as exc:  # the missing-column check of io.write_positions
+        raise InputError(str(exc), path) from None
+
+
+# --------------------------------------------------------------------------------------
+# the commands
+# --------------------------------------------------------------------------------------
+
+Method = Literal["auto", "ls", "wls", "nls", "huber", "hampel", "igg", "igg3", "asym",
+                 "lege", "snooping"]
+
+
+def locate(
+    measurements: FrameOrPath,
+    anchors: FrameOrPath,
+    method: str | Sequence[str] = "auto",
+    *,
+    dim: Literal[2, 3] = 2,
+    solver: Literal["nonlinear", "linearized"] = "nonlinear",
+    reference: Literal["first", "nearest"] = "first",
+    domain: Literal["range", "rssi"] = "range",
+    sigma: float | None = None,
+    robust_scale: Literal["log", "mad", "apriori"] = "log",
+    alert_limit: float | None = None,
+    k_noise: float | None = None,
+    min_scale: float = 0.0,
+    params: Mapping[str, float] | None = None,
+    model: Literal["log-distance", "attenuation-factor", "friis"] | None = None,
+    tag_height: float | None = None,
+    range_calibration: bool = True,
+    alpha0: float = 0.001,
+    beta0: float = 0.10,
+    chunk_rows: int = 500_000,
+) -> pd.DataFrame:
+    r"""Position fixes for every epoch of a measurements log (``robustloc locate``).
+
+    Every epoch (one ``time`` and ``tag``) gets one row per method with a ``status``;
+    each fix is tested and carries a protection level (:mod:`robustloc.integrity.fixes`).
+    RSSI is turned into ranges by the anchors' path-loss model, each with
+    :math:`\sigma_d = d \ln 10\, \sigma_{dB} / (10 n)` (seed 000 eq. 1); ranges are
+    corrected by the anchors' ``bias``/``scale``: :math:`r_c = (r - b) / s`.
+
+    Parameters
+    ----------
+    measurements : DataFrame, str or PathLike
+        ``time, tag, anchor`` and ``rssi`` (dBm) or ``range`` (m); rows in any order.
+    anchors : DataFrame, str or PathLike
+        ``anchor, x, y[, z]`` (m) and optional ``A, n`` / ``p0, gamma, faf, d0`` /
+        ``bias, scale`` / ``sigma`` columns (see :func:`calibrate`).
+    method : str or sequence of str
+        ``auto`` (default: Gauss-Newton where its test passes, ``huber`` where it finds
+        a fault), ``ls``, ``wls``, ``nls``, ``huber``, ``hampel``, ``igg``, ``igg3``,
+        ``asym``, ``lege``, ``snooping``; several give several rows per epoch.
+    dim, solver, reference, domain, robust_scale, model
+        As the ``robustloc locate`` options of the same name (``--robust-scale`` is
+        ``robust_scale``); see ``robustloc locate --help``.
+    sigma, alert_limit, k_noise, min_scale, tag_height, alpha0, beta0, chunk_rows
+        As the options of the same name: ``sigma`` in m or dB, ``alert_limit`` and
+        ``tag_height`` in m.
+    params : mapping of str to float, optional
+        Weight-function thresholds (``--param NAME=VALUE``), e.g. ``{"c": 1.5}``.
+    range_calibration : bool
+        Apply the anchors' ``bias``/``scale`` columns (``False`` is
+        ``--no-range-calibration``).
+
+    Returns
+    -------
+    DataFrame
+        The positions contract: ``time, tag, x, y[, z], method, status, n_used,
+        sigma0, excluded`` and the integrity columns (``hpl``, ...), one row per epoch and
+        method, in time order; ``attrs["summary"]`` is the run summary (status counts,
+        duplicate and invalid rows, timings).
+
+    Raises
+    ------
+    InputError
+        A malformed input (file and line, or ``<measurements DataFrame>`` and the row's
+        CSV line) or a refused option, with the command line's message.
+
+    See Also
+    --------
+    robustloc.estimators.ranging.Locator : the array-level solver.
+
+    Examples
+    --------
+    Four anchors at the corners of a 10 m square and one tag at (3, 4) m, two epochs:
+
+    >>> import numpy as np
+    >>> import pandas as pd
+    >>> import robustloc
+    >>> anchors = pd.DataFrame({"anchor": ["a", "b", "c", "d"],
+    ...                         "x": [0.0, 10.0, 10.0, 0.0], "y": [0.0, 0.0, 10.0, 10.0]})
+    >>> d = np.hypot(anchors.x - 3.0, anchors.y - 4.0)
+    >>> log = pd.DataFrame({"time": np.repeat([0.0, 1.0], 4), "tag": "t1",
+    ...                     "anchor": np.tile(anchors.anchor, 2),
+    ...                     "range": np.tile(d, 2) + [0.02, -0.01, 0.03, 0.0,
+    ...                                               -0.02, 0.01, 0.0, 0.02]})
+    >>> pos = robustloc.locate(log, anchors)
+    >>> pos[["time", "tag", "x", "y", "method", "status"]].round(1)
+       time tag    x    y method status
+    0   0.0  t1  3.0  4.0   auto     ok
+    1   1.0  t1  3.0  4.0   auto     ok
+
+    A mistake is an :class:`InputError` naming the row:
+
+    >>> robustloc.locate(log.assign(anchor=log.anchor.replace("d", "e")), anchors)
+    Traceback (most recent call last):
+    ...
+    robustloc.errors.InputError: <measurements DataFrame>:5: unknown anchor id 'e' (not in ...)
+    """
+    methods = [method] if isinstance(method, str) else list(method)
+    options: dict[str, _Option] = {
+        "method": methods, "dim": dim, "solver": solver, "reference": reference,
+        "domain": domain, "sigma": sigma, "robust_scale": robust_scale,
+        "alert_limit": alert_limit, "k_noise": k_noise, "min_scale": min_scale,
+        "model": model, "tag_height": tag_height,
+        "no_range_calibration": not range_calibration, "alpha0": alpha0, "beta0": beta0,
+        "chunk_rows": chunk_rows, "json": True,
+    }
+    with tempfile.TemporaryDirectory(prefix="robustloc-") as d:
+        tmp = Path(d)
+        labels: dict[str, str] = {}
+        anchor_frame = _as_anchor_frame(anchors)
+        anc = _frame_input(anchors, "anchors", tmp, labels, _validated_anchors)
+        meas = _frame_input(
+            measurements, "measurements", tmp, labels,
+            lambda df, p: _validated_measurements(df, p, anchor_frame))
+        out = tmp / "positions.parquet"
+        stdout, _ = _run_command(
+            "locate", [meas],
+            {**options, "param": params, "anchors": anc, "out": str(out)}, labels)
+        frame = _read_output(out)
+    frame.attrs["summary"] = _summary(stdout)
+    return frame
+
+
+def _validated_anchors(df: pd.DataFrame, path: str | None) -> pd.DataFrame:
+    from robustloc import io
+
+    return io.validate_anchors(df, path)
+
+
+def _validated_measurements(
+    df: pd.DataFrame, path: str | None, anchors: pd.DataFrame | None
+) -> pd.DataFrame:
+    from robustloc import io
+
+    return io.validate_measurements(df, path, anchors)
+
+
+def _validated_survey(
+    df: pd.DataFrame, path: str | None, anchors: pd.DataFrame | None
+) -> pd.DataFrame:
+    from robustloc import io
+
+    return io.validate_survey(df, path, anchors)
+
+
+def _validated_truth(df: pd.DataFrame, path: str | None) -> pd.DataFrame:
+    from robustloc import io
+
+    return io.validate_truth(df, path)
+
+
+def _validated_positions(df: pd.DataFrame, path: str | None) -> pd.DataFrame:
+    from robustloc import io
+
+    return io.validate_positions(df, path)
+
+
+def _summary(stdout: str) -> dict[str, object]:
+    """The command's ``--json`` output (empty when it printed none)."""
+    text = stdout.strip()
+    if not text:
+        return {}
+    value = json.loads(text)
+    return value if isinstance(value, dict) else {"value": value}
+
+
+def calibrate(
+    survey: FrameOrPath | None = None,
+    anchors: FrameOrPath | None = None,
+    *,
+    model: Literal["log-distance", "attenuation-factor", "friis"] = "log-distance",
+    robust: bool | str | None = None,
+    scale: bool | None = None,
+    pooled: bool = False,
+    d0: float = 1.0,
+    p0: float | None = None,
+    measurements: FrameOrPath | None = None,
+    truth: FrameOrPath | None = None,
+    time_tolerance: float = 1e-6,
+    self_log: FrameOrPath | None = None,
+    dim: Literal[2, 3] = 2,
+    tag_height: float | None = None,
+    se_ratio: float = 3.0,
+) -> pd.DataFrame:
+    r"""Fit path-loss parameters (RSSI) or range bias/scale per anchor (``robustloc calibrate``).
+
+    Three ways, as on the command line:
+
+    * a **survey** (``anchor, distance, rssi|range``): per anchor and pooled, the
+      log-distance model :math:`RSSI = A - 10 n \lg d` (seed 000 eq. 1), the
+      attenuation-factor or Friis model (seed 002 eqs. 4-5), or for ranges
+      :math:`r = s\,d + b`;
+    * ``measurements`` + ``truth`` (+ ``anchors``): the survey built from positioned data;
+    * ``self_log`` + ``anchors``: **self-calibration** without truth, the parameters and
+      every epoch's position adjusted jointly (:mod:`robustloc.models.selfcal`).
+
+    Parameters
+    ----------
+    survey : DataFrame, str or PathLike, optional
+        The survey.
+    anchors : DataFrame, str or PathLike, optional
+        Anchors to add the fitted columns to (required by ``measurements`` and
+        ``self_log``).
+    model : {"log-distance", "attenuation-factor", "friis"}
+        Path-loss model for RSSI data.
+    robust : bool or str, optional
+        Robust IRLS fit: ``True`` (huber) or a weight name (``hampel``, ``igg``, ``igg3``).
+    scale : bool, optional
+        Range data: fit a scale factor too (default no for a survey, yes for ``self_log``).
+    pooled, d0, p0, time_tolerance, dim, tag_height, se_ratio
+        As the ``robustloc calibrate`` options of the same name.
+    measurements, truth : DataFrame, str or PathLike, optional
+        Positioned data to build the survey from.
+    self_log : DataFrame, str or PathLike, optional
+        A measurements log for self-calibration (``--self``).
+
+    Returns
+    -------
+    DataFrame
+        The anchors with the fitted columns (``A, n`` or ``bias, scale``, ``sigma``, their
+        standard errors, ``calib_source``), or without ``anchors`` the parameter table;
+        ``attrs["summary"]`` holds the fit table and notes (``--json``).
+
+    Raises
+    ------
+    InputError
+        A malformed input, or a survey that cannot determine a parameter (the anchor and
+        parameter named), with the command line's message.
+
+    Examples
+    --------
+    A range survey of two anchors, each reading 5 % long and 0.3 m late:
+
+    >>> import numpy as np
+    >>> import pandas as pd
+    >>> import robustloc
+    >>> d = np.array([1.0, 2.0, 4.0, 6.0, 8.0])
+    >>> noise = [0.01, -0.02, 0.0, 0.02, -0.01]
+    >>> survey = pd.DataFrame({"anchor": np.repeat(["a", "b"], 5), "distance": np.tile(d, 2),
+    ...                        "range": np.tile(1.05 * d + 0.3 + noise, 2)})
+    >>> anchors = pd.DataFrame({"anchor": ["a", "b"], "x": [0.0, 5.0], "y": [0.0, 0.0]})
+    >>> cal = robustloc.calibrate(survey, anchors, scale=True)
+    >>> cal[["anchor", "bias", "scale"]].round(2)
+      anchor  bias  scale
+    0      a   0.3   1.05
+    1      b   0.3   1.05
+    """
+    options: dict[str, _Option] = {
+        "model": model, "robust": robust, "scale": scale, "pooled": pooled, "d0": d0,
+        "p0": p0, "time_tolerance": time_tolerance, "dim": dim, "tag_height": tag_height,
+        "se_ratio": se_ratio, "json": True,
+    }
+    with tempfile.TemporaryDirectory(prefix="robustloc-") as d:
+        tmp = Path(d)
+        labels: dict[str, str] = {}
+        anchor_frame = _as_anchor_frame(anchors)
+        if anchors is not None:
+            options["anchors"] = _frame_input(anchors, "anchors", tmp, labels,
+                                              _validated_anchors)
+        positional: list[str] = []
+        if survey is not None:
+            positional.append(_frame_input(
+                survey, "survey", tmp, labels,
+                lambda df, p: _validated_survey(df, p, anchor_frame)))
+        if measurements is not None:
+            options["measurements"] = _frame_input(
+                measurements, "measurements", tmp, labels,
+                lambda df, p: _validated_measurements(df, p, anchor_frame))
+        if truth is not None:
+            options["truth"] = _frame_input(truth, "truth", tmp, labels, _validated_truth)
+        if self_log is not None:
+            options["self"] = _frame_input(
+                self_log, "measurements", tmp, labels,
+                lambda df, p: _validated_measurements(df, p, anchor_frame))
+        out = tmp / "calibrated.parquet"
+        options["out"] = str(out)
+        stdout, _ = _run_command("calibrate", positional, options, labels)
+        frame = _read_output(out)
+    frame.attrs["summary"] = _summary(stdout)
+    return frame
+
+
+def evaluate(
+    positions: FrameOrPath,
+    truth: FrameOrPath,
+    *,
+    baseline: str = "ls",
+    time_tolerance: float = 1e-6,
+) -> pd.DataFrame:
+    """Error statistics of positions against truth, per tag and method (``robustloc evaluate``).
+
+    Each position is matched to the truth of its tag at the same time (within
+    ``time_tolerance`` s); over the epochs with a usable fix: max, min, mean, RMS (the
+    paper's sigma0), spread sigma1, median and 95th percentile of the horizontal error
+    (3-D too when both have ``z``), failed and missing epochs, and the improvement of mean
+    and RMS over ``baseline`` in %.  Tag ``all`` pools every epoch, tag ``mean`` averages
+    the per-tag rows (the paper's Table 1 average rows).
+
+    Parameters
+    ----------
+    positions : DataFrame, str or PathLike
+        Positions (from :func:`locate`, or a file).
+    truth : DataFrame, str or PathLike
+        ``time, tag, x, y[, z]``.
+    baseline : str
+        Method the improvements refer to.
+    time_tolerance : float
+        Largest absolute time difference between a position and its truth (s).
+
+    Returns
+    -------
+    DataFrame
+        One row per tag and method (plus ``all`` and ``mean``), the command's ``-o`` table;
+        ``attrs["summary"]["n_unmatched"]`` counts positions without truth.
+
+    Examples
+    --------
+    >>> import pandas as pd
+    >>> import robustloc
+    >>> truth = pd.DataFrame({"time": [0.0, 1.0], "tag": "t", "x": [0.0, 1.0], "y": 0.0})
+    >>> pos = truth.assign(x=[0.3, 1.4], method="nls", status="ok")
+    >>> robustloc.evaluate(pos, truth)[["tag", "method", "n", "max", "rms"]].round(3)
+        tag method    n  max    rms
+    0     t    nls  2.0  0.4  0.354
+    1   all    nls  2.0  0.4  0.354
+    2  mean    nls  2.0  0.4  0.354
+    """
+    with tempfile.TemporaryDirectory(prefix="robustloc-") as d:
+        tmp = Path(d)
+        labels: dict[str, str] = {}
+        pos = _frame_input(positions, "positions", tmp, labels, _validated_positions)
+        tru = _frame_input(truth, "truth", tmp, labels, _validated_truth)
+        out = tmp / "errors.parquet"
+        stdout, _ = _run_command(
+            "evaluate", [pos],
+            {"truth": tru, "out": str(out), "baseline": baseline,
+             "time_tolerance": time_tolerance, "json": True}, labels)
+        frame = _read_output(out)
+    summary = _summary(stdout)
+    frame.attrs["summary"] = {"n_unmatched": summary.get("n_unmatched", 0)}
+    return frame
+
+
+def spp(
+    obs: PathLike,
+    nav: PathLike | Sequence[PathLike] = (),
+    *,
+    sp3: PathLike | None = None,
+    clk: PathLike | None = None,
+    systems: str = "GREC",
+    elevation_mask: float = 15.0,
+    iono: Literal["klobuchar", "iflc", "none"] | None = None,
+    tropo: Literal["saastamoinen", "none"] = "saastamoinen",
+    smooth: int = 0,
+    raim: bool = False,
+    alpha0: float = 0.001,
+    beta0: float = 0.10,
+    max_exclusions: int | None = None,
+    reference: tuple[float, float, float] | None = None,
+    inject: Mapping[str, float] | None = None,
+    inject_from: str | None = None,
+    inject_until: str | None = None,
+) -> pd.DataFrame:
+    """GNSS single-point positioning from RINEX files, with optional RAIM (``robustloc spp``).
+
+    Parameters
+    ----------
+    obs : str or PathLike
+        RINEX observation file (2.xx or 3.xx).
+    nav : path or sequence of paths
+        RINEX navigation file(s) (broadcast ephemerides); may be empty with ``sp3``.
+    sp3, clk : str or PathLike, optional
+        Precise orbit (SP3) and clock (RINEX CLK) products.
+    systems : str
+        Constellations, e.g. ``"G"`` or ``"GREC"``.
+    elevation_mask : float
+        Degrees.
+    iono : {"klobuchar", "iflc", "none"}, optional
+        Default ``iflc`` with ``sp3``, else ``klobuchar``.
+    tropo, smooth, alpha0, beta0, max_exclusions, inject_from, inject_until
+        As the ``robustloc spp`` options of the same name.
+    raim : bool
+        Fault detection and exclusion (B-method global test + w-test) and protection
+        levels.
+    reference : (float, float, float), optional
+        ECEF reference position (m) for the summary's errors (default: the RINEX header's
+        approximate position).
+    inject : mapping of str to float, optional
+        Biases to add (m) per satellite, e.g. ``{"G11": 20.0}`` (fault injection).
+
+    Returns
+    -------
+    DataFrame
+        One row per epoch: time, ECEF and geodetic position, clock, status, satellites
+        used and excluded, DOP and (with ``raim``) protection levels;
+        ``attrs["summary"]`` the run summary (errors against the reference, RAIM counts).
+
+    Examples
+    --------
+    The GEONET excerpt shipped with the package (GPS, 30 s epochs):
+
+    >>> from importlib.resources import files
+    >>> import robustloc
+    >>> data = files("robustloc") / "data" / "gnss-geonet"
+    >>> sol = robustloc.spp(data / "07590920.05o", data / "07590920_0000-0400.05n",
+    ...                     systems="G", raim=True)
+    >>> len(sol) > 100, bool((sol["status"] == "ok").mean() > 0.9)
+    (True, True)
+    """
+    navs = [nav] if isinstance(nav, (str, os.PathLike)) else list(nav)
+    options: dict[str, _Option] = {
+        "sp3": None if sp3 is None else os.fspath(sp3),
+        "clk": None if clk is None else os.fspath(clk),
+        "systems": systems, "elevation_mask": elevation_mask, "iono": iono, "tropo": tropo,
+        "smooth": smooth, "raim": raim, "alpha0": alpha0, "beta0": beta0,
+        "max_exclusions": max_exclusions,
+        "reference": None if reference is None else ",".join(repr(float(v))
+                                                              for v in reference),
+        "inject": None if not inject else ",".join(f"{k}:{float(v)!r}"
+                                                   for k, v in inject.items()),
+        "inject_from": inject_from, "inject_until": inject_until, "json": True,
+    }
+    with tempfile.TemporaryDirectory(prefix="robustloc-") as d:
+        out = Path(d) / "spp.parquet"
+        stdout, _ = _run_command(
+            "spp", [os.fspath(obs), *(os.fspath(n) for n in navs)],
+            {**options, "out": str(out)}, {})
+        frame = _read_output(out)
+    frame.attrs["summary"] = _summary(stdout)
+    return frame
