@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from robustloc.filters.core import numerical_jacobian
@@ -34,6 +34,10 @@ def _full_transition(x, dt, n, a):
     dt=st.floats(0.01, 0.3), n=st.floats(1.5, 4.0),
 )
 def test_jacobian_matches_finite_differences(p, d, v, dt, n):
+    # the transition clips the predicted distance at 0.1 m (the log is undefined at 0):
+    # there it is flat in d and v, and not differentiable at the clip itself; compare the
+    # analytic Jacobian where the model is smooth (the finite-difference step is 1e-6 rel.)
+    assume(d + v * dt > 0.11)
     x = np.array([[p, d, v]])
     J = transition_jacobian(x, dt, n)
     Jn = numerical_jacobian(lambda s: transition(s, dt, n), x)
