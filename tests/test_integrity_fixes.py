@@ -92,9 +92,9 @@ def test_gross_error_at_redundancy_one_is_detected_not_ok():
     x = np.array([[8.0, 9.0]])
     d = ranges(a, x) + np.array([[0.0, 5.0, 0.0]])
     sol = protect(Locator("nls", sigma=0.1, robust_scale="apriori").solve(a, d))
-    assert sol.status[0] == st.FAULT_DETECTED
-    assert np.isinf(sol.extra["hpl"][0]) or sol.extra["hpl"][0] > np.linalg.norm(
-        sol.position[0] - x[0])
+    # detected, and nothing left to confirm the other two ranges: no bound, no fix
+    assert sol.status[0] == st.UNAVAILABLE
+    assert np.isnan(sol.position[0]).all() and np.isnan(sol.extra["hpl"][0])
     # the same epoch without the fault: redundancy 1, nothing flagged -> low_redundancy
     clean = protect(Locator("nls", sigma=0.1, robust_scale="apriori").solve(a, ranges(a, x)))
     assert clean.status[0] == st.LOW_REDUNDANCY
@@ -143,9 +143,15 @@ def test_auto_is_gauss_newton_on_clean_data_and_robust_on_outliers():
     bad = np.where(out, clean + rng.uniform(3, 15, (N, 10)), clean)
     auto = locate_protected(Locator("auto"), TEN, bad)
     nls = locate_protected(Locator("nls"), TEN, bad)
-    rms_a = np.sqrt(np.nanmean(np.linalg.norm(auto.position - x, axis=1) ** 2))
-    rms_n = np.sqrt(np.nanmean(np.linalg.norm(nls.position - x, axis=1) ** 2))
-    assert rms_a < 0.75 * rms_n
+    e_a = np.linalg.norm(auto.position - x, axis=1)
+    e_n = np.linalg.norm(nls.position - x, axis=1)
+    # a gross error spreads over every least-squares residual: Gauss-Newton's own test
+    # leaves a quarter of the epochs unbounded (unavailable); auto refits them robustly
+    assert np.isfinite(e_a).mean() > 0.99 > 0.9 > np.isfinite(e_n).mean()
+    # and is more accurate on the epochs both keep: measured 0.76-0.78 of the nls RMS on
+    # seeds 8-10 (4000 epochs each; the ratio's Monte Carlo spread is about 0.01)
+    both = np.isfinite(e_a) & np.isfinite(e_n)
+    assert np.sqrt(np.mean(e_a[both] ** 2)) < 0.85 * np.sqrt(np.mean(e_n[both] ** 2))
 
 
 def test_locator_auto_alone_refuses():

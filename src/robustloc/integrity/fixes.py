@@ -27,11 +27,11 @@ For each epoch, at the fix ``x`` of any method, with the range-domain residuals
                              the MDB would be detected but not identified
    ``unverified``            redundancy 0: nothing can be tested; ``hpl = inf``     yes
    ``fault_detected``        the test fails (``hpl`` from sigma scaled by the       yes
-                             a-posteriori factor ``sqrt(T / dof)``), or a flagged
-                             observation leaves no redundancy to confirm the rest
-                             (``hpl = inf``): a fault is detected and cannot be
-                             excluded; the position is kept, its bound says how
-                             little it is worth
+                             a-posteriori factor ``sqrt(T / dof)``): a fault is
+                             detected and cannot be excluded; the position is
+                             kept, its bound says how little it is worth
+   ``unavailable``           a flagged observation leaves no redundancy to          no
+                             confirm the rest (nothing bounds the fix)
    ``extrapolated``          usable by the above, but farther than 10 times the     yes
                              heard anchors' extent from them: the geometry is
                              extrapolated, ``hpl`` (large there) says how far
@@ -209,7 +209,9 @@ def protect(
     failed = testable & has & ~passed
     blind = testable & any_flag & (dof < 1)
     new[testable & (dof == 0) & ~any_flag] = st.UNVERIFIED
-    new[failed | blind] = st.FAULT_DETECTED
+    new[failed] = st.FAULT_DETECTED
+    # a flagged observation that leaves nothing to confirm the rest: no bound at all
+    new[blind] = st.UNAVAILABLE
     new[testable & passed & any_flag] = st.FAULT_EXCLUDED
     new[testable & passed & ~any_flag & ((dof == 1) | fb)] = st.LOW_REDUNDANCY
     new[testable & passed & ~any_flag & (dof >= 2) & ~fb] = st.OK
@@ -278,7 +280,9 @@ def locate_protected(
 
     ``locator.method == "auto"`` ("test, then robustify") solves every epoch by plain
     Gauss-Newton (``nls``, the maximum-likelihood fix when the noise is what the log's
-    scale says) and tests it; an epoch whose test fails (``fault_detected``) is solved
+    scale says) and tests it; an epoch whose test fails (``fault_detected``, or
+    ``unavailable``: flagged observations left nothing to confirm the rest, as happens
+    when one gross error spreads over every residual of a least-squares fit) is solved
     again by :data:`AUTO_ROBUST` with the log's scale and tested again.  On epochs that
     agree with the noise model it is exactly ``nls`` (no efficiency lost); on epochs the
     test proves inconsistent it is the robust fix.  The choice is measured in the report's
@@ -294,7 +298,7 @@ def locate_protected(
     if locator.method != AUTO:
         return protect(locator.solve(anchors, values, kind, **kw), **pk)
     plain = protect(locator.solve_as("nls", anchors, values, kind, **kw), **pk)
-    redo = plain.status == st.FAULT_DETECTED
+    redo = np.isin(plain.status, (st.FAULT_DETECTED, st.UNAVAILABLE))
     if alert_limit is not None:  # a fix the alert limit refused may have failed its test
         redo |= (plain.status == st.PROTECTION_EXCEEDED) & ~(
             plain.extra["test_statistic"] <= plain.extra["test_critical"])
