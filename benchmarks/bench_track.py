@@ -1,4 +1,4 @@
-"""Benchmark: ``robustloc.track.Tracker`` tag-epochs per second, FilterPy side by side.
+"""Benchmark: ``robustloc.tracking.Tracker`` tag-epochs per second, FilterPy side by side.
 
 Workload (issue 11): CV model, ``--tags`` tags (default 1 000) x ``--anchors`` anchors
 (default 8) of UWB-like ranges (0.1 m noise, 5 % outliers of +1..5 m), ``--epochs`` epochs
@@ -33,7 +33,7 @@ import numpy as np
 import pandas as pd
 
 from robustloc.io.tables import Epochs
-from robustloc.track import Tracker
+from robustloc.tracking import Tracker
 
 SIGMA_M = 0.1
 

@@ -315,3 +315,26 @@ def test_version_from_metadata(capsys):
     assert robustloc.__version__ == importlib.metadata.version("robustloc")
     assert main(["--version"]) == 0
     assert capsys.readouterr().out.strip() == f"robustloc {robustloc.__version__}"
+
+
+def test_track_equals_the_command_line(tmp_path):
+    import numpy as np
+
+    from robustloc.cli import main
+
+    anchors = pd.DataFrame({"anchor": ["a", "b", "c", "d"],
+                            "x": [0.0, 10.0, 10.0, 0.0], "y": [0.0, 0.0, 10.0, 10.0]})
+    t = np.arange(30) * 0.5
+    xy = np.c_[2.0 + 0.2 * t, 5.0 + 0.1 * t]
+    d = np.hypot(anchors.x.to_numpy() - xy[:, :1], anchors.y.to_numpy() - xy[:, 1:])
+    d = d + np.random.default_rng(3).normal(0, 0.05, d.shape)
+    log = pd.DataFrame({"time": np.repeat(t, 4), "tag": "t1",
+                        "anchor": np.tile(anchors.anchor, t.size), "range": d.ravel()})
+    anchors.to_csv(tmp_path / "a.csv", index=False)
+    log.to_csv(tmp_path / "m.csv", index=False)
+    assert main(["track", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),
+                 "-o", str(tmp_path / "t.parquet"), "--quiet"]) == 0
+    cli = pd.read_parquet(tmp_path / "t.parquet")
+    api = robustloc.track(log, anchors)
+    pd.testing.assert_frame_equal(api.reset_index(drop=True), cli, check_dtype=False,
+                                  atol=1e-9, rtol=0)

@@ -92,12 +92,9 @@ def metric(url: str, name: str, headers: dict | None = None) -> float:
 
 @pytest.mark.parametrize(("scenario", "method", "transport", "scale"),
                          [("ble", "auto", "http", "mad"), ("uwb", "igg", "ws", "mad"),
-                          pytest.param("ble", "auto", "http", "log", marks=pytest.mark.xfail(
-                              reason="upstream: with a fixed log scale, Locator fixes depend "
-                                     "on which epochs share a batch (robustloc locate itself "
-                                     "differs by 0.02 m between --chunk-rows 30 and the "
-                                     "default on this log); the service solves small blocks",
-                              strict=False))])
+                          # the log's scale from the recorded log (--scale-from): fixes
+                          # no longer depend on which epochs share a batch
+                          ("ble", "auto", "http", "log")])
 def test_replay_equals_batch_locate(scenario, method, transport, scale, request,
                                     server_factory, tmp_path):
     """Positions computed live equal ``robustloc locate`` on the file to 1e-9 m.
@@ -407,8 +404,8 @@ def test_locate_processor_equals_locator(ble):
 
 
 def test_track_processor(ble):
-    """--track runs robustloc.track.Tracker behind the same processor interface."""
-    pytest.importorskip("robustloc.track")
+    """--track runs robustloc.tracking.Tracker behind the same processor interface."""
+    pytest.importorskip("robustloc.tracking")
     from robustloc.service.processor import TrackProcessor
 
     anchors = read_anchors(ble / "anchors.csv")
@@ -428,14 +425,14 @@ def test_track_without_tracker_is_a_clear_error(ble, monkeypatch):
     real = builtins.__import__
 
     def fake(name, *a, **k):
-        if name == "robustloc.track":
-            raise ImportError("No module named 'robustloc.track'")
+        if name == "robustloc.tracking":
+            raise ImportError("No module named 'robustloc.tracking'")
         return real(name, *a, **k)
 
     monkeypatch.setattr(builtins, "__import__", fake)
     from robustloc.service.processor import TrackProcessor
 
-    with pytest.raises(RuntimeError, match="--track needs robustloc.track"):
+    with pytest.raises(RuntimeError, match="--track needs robustloc.tracking"):
         TrackProcessor(read_anchors(ble / "anchors.csv"))
 
 
@@ -446,7 +443,7 @@ def test_track_mode_replay_equals_batch_track(ble, server_factory, tmp_path):
     tag's epochs in time order); the service feeds blocks as epochs become ready.  The
     tracker's per-tag recursion makes both identical.
     """
-    track = pytest.importorskip("robustloc.track")
+    track = pytest.importorskip("robustloc.tracking")
     from robustloc.commands.replay import replay
 
     Tracker = track.Tracker

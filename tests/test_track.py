@@ -1,4 +1,4 @@
-"""robustloc.track: the robust tight tracker, its smoother and the ``track`` command."""
+"""robustloc.tracking: the robust tight tracker, its smoother and the ``track`` command."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import pandas as pd
 import pytest
 
 from robustloc.io.tables import to_epochs
-from robustloc.track import Tracker
-from robustloc.track.smooth import rts_segment
+from robustloc.tracking import Tracker
+from robustloc.tracking.smooth import rts_segment
 
 SIGMA_M = 0.1
 

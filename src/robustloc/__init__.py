@@ -43,6 +43,7 @@ __all__ = [
     "read_positions",
     "read_truth",
     "spp",
+    "track",
     "write_positions",
 ]
 

@@ -50,6 +50,7 @@ __all__ = [
     "read_positions",
     "read_truth",
     "spp",
+    "track",
     "write_positions",
 ]
 
@@ -528,6 +529,92 @@ def locate(
         stdout, _ = _run_command(
             "locate", [meas],
             {**options, "param": params, "anchors": anc, "out": str(out)}, labels)
+        frame = _read_output(out)
+    frame.attrs["summary"] = _summary(stdout)
+    return frame
+
+
+def track(
+    measurements: FrameOrPath,
+    anchors: FrameOrPath,
+    *,
+    model: Literal["cv", "ca", "static"] = "cv",
+    filter: Literal["ekf", "ukf"] = "ekf",  # noqa: A002 - the command line's name
+    q: float = 1.0,
+    weight: str | None = None,
+    domain: Literal["range", "rssi"] = "range",
+    sigma: float | None = None,
+    smooth: bool = False,
+    fixed_lag: int | None = None,
+    engine: Literal["compiled", "numpy"] = "compiled",
+    cusum_h: float | None = None,
+    tag_height: float | None = None,
+    alpha0: float = 0.001,
+    beta0: float = 0.10,
+    integrity_risk: float = 0.001,
+    chunk_rows: int = 500_000,
+) -> pd.DataFrame:
+    r"""Tracks for every tag of a measurements log (``robustloc track``).
+
+    A tight robust filter per tag (:class:`robustloc.tracking.Tracker`): every epoch's anchor
+    observations update it directly, one row per input epoch with a ``status`` and
+    ``hpl``.
+
+    Parameters
+    ----------
+    measurements : DataFrame, str or PathLike
+        ``time, tag, anchor`` and ``rssi`` (dBm) or ``range`` (m); rows in any order.
+    anchors : DataFrame, str or PathLike
+        ``anchor, x, y[, z]`` and optional path-loss / ``bias, scale, sigma`` columns.
+    model, filter, q, weight, domain, sigma, smooth, fixed_lag, engine, cusum_h
+        As the ``robustloc track`` options of the same name (see its ``--help``).
+    tag_height, alpha0, beta0, integrity_risk, chunk_rows
+        As the options of the same name.
+
+    Returns
+    -------
+    DataFrame
+        The track format: ``time, tag, x, y, vx, vy[, ax, ay], method, status, var_x,
+        var_y, cov_xy, ..., hpl``; ``attrs["summary"]`` is the run summary.
+
+    Raises
+    ------
+    InputError
+        A malformed input or a refused option, with the command line's message.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import pandas as pd
+    >>> import robustloc
+    >>> anchors = pd.DataFrame({"anchor": ["a", "b", "c", "d"],
+    ...                         "x": [0.0, 10.0, 10.0, 0.0], "y": [0.0, 0.0, 10.0, 10.0]})
+    >>> t = np.arange(20) * 0.5
+    >>> xy = np.c_[2.0 + 0.3 * t, np.full(t.size, 5.0)]
+    >>> d = np.hypot(anchors.x.to_numpy() - xy[:, :1], anchors.y.to_numpy() - xy[:, 1:])
+    >>> log = pd.DataFrame({"time": np.repeat(t, 4), "tag": "t1",
+    ...                     "anchor": np.tile(anchors.anchor, t.size), "range": d.ravel()})
+    >>> trk = robustloc.track(log, anchors)
+    >>> len(trk), bool(np.all(np.hypot(trk.x - xy[:, 0], trk.y - xy[:, 1]) < 0.1))
+    (20, True)
+    """
+    options: dict[str, _Option] = {
+        "model": model, "filter": filter, "q": q, "weight": weight, "domain": domain,
+        "sigma": sigma, "smooth": smooth, "fixed_lag": fixed_lag, "engine": engine,
+        "cusum_h": cusum_h, "tag_height": tag_height, "alpha0": alpha0, "beta0": beta0,
+        "integrity_risk": integrity_risk, "chunk_rows": chunk_rows, "json": True,
+    }
+    with tempfile.TemporaryDirectory(prefix="robustloc-") as d:
+        tmp = Path(d)
+        labels: dict[str, str] = {}
+        anchor_frame = _as_anchor_frame(anchors)
+        anc = _frame_input(anchors, "anchors", tmp, labels, _validated_anchors)
+        meas = _frame_input(
+            measurements, "measurements", tmp, labels,
+            lambda df, p: _validated_measurements(df, p, anchor_frame))
+        out = tmp / "track.parquet"
+        stdout, _ = _run_command("track", [meas], {**options, "anchors": anc,
+                                                    "out": str(out)}, labels)
         frame = _read_output(out)
     frame.attrs["summary"] = _summary(stdout)
     return frame

@@ -14,7 +14,7 @@ HELP = "live positioning service: HTTP/WebSocket/MQTT ingest, positions API, liv
 DESCRIPTION = """\
 Runs an ASGI service (Starlette on uvicorn) that accepts measurement rows as they arrive,
 assembles them into epochs per tag, solves each epoch with the same estimators as
-`robustloc locate` (or tracks with `robustloc.track` under --track), stores rows and
+`robustloc locate` (or tracks with `robustloc.tracking` under --track), stores rows and
 positions durably, and publishes positions over HTTP, WebSocket and a live map page at /.
 
 Ingest: POST /api/measurements (JSON array or NDJSON of {"time","tag","anchor","rssi"|
@@ -80,7 +80,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     mode.add_argument("--method", default=DEFAULT_METHOD, choices=("auto",) + METHODS,
                       help=f"positioning method, as robustloc locate (default {DEFAULT_METHOD})")
     mode.add_argument("--track", action="store_true",
-                      help="track with robustloc.track.Tracker instead of per-epoch fixes")
+                      help="track with robustloc.tracking.Tracker instead of per-epoch fixes")
     p.add_argument("--track-model", default="cv", help="--track: motion model (default cv)")
     p.add_argument("--track-filter", default="ekf", help="--track: filter (default ekf)")
     p.add_argument("--dim", type=int, choices=(2, 3), default=2, help="solve in 2-D or 3-D")
@@ -199,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         engine, cfg, app = build(args)
-    except RuntimeError as exc:  # --track without robustloc.track
+    except RuntimeError as exc:  # --track without robustloc.tracking
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if args.store is None:

@@ -48,7 +48,7 @@ ill_conditioned, invalid_measurement). `robustloc evaluate` reads the file.
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from robustloc.commands._argtypes import float_in, positive_float, positive_int
-    from robustloc.track.tracker import TrackerSettings
+    from robustloc.tracking.tracker import TrackerSettings
 
     d = TrackerSettings()
     probability = float_in(0.0, 1.0)
@@ -105,7 +105,7 @@ def track_file(args: argparse.Namespace) -> dict:
     from robustloc.io import iter_epochs, read_anchors, write_table
     from robustloc.io.atomic import atomic_output, check_not_input
     from robustloc.io.tables import UnsortedInput, is_parquet
-    from robustloc.track import Tracker
+    from robustloc.tracking import Tracker
 
     anchors = read_anchors(args.anchors)
     smooth = args.smooth or args.fixed_lag is not None

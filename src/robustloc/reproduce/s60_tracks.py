@@ -72,7 +72,7 @@ def _walk(ctx: Context, sec: Section, plots: list) -> dict[str, float]:
     from robustloc.io import to_epochs
     from robustloc.models.pathloss import log_distance_arrays
     from robustloc.sim.wifi_room import WifiRoomConfig, generate
-    from robustloc.track import Tracker
+    from robustloc.tracking import Tracker
 
     data = generate(WifiRoomConfig(), ctx.seed)
     an = data.anchors
@@ -124,7 +124,7 @@ def _nees(ctx: Context, sec: Section) -> dict[str, float]:
     """NEES per time step over K runs of a CV truth with Gaussian ranges (model correct)."""
     from robustloc.filters.motion import ConstantVelocity
     from robustloc.io.tables import Epochs
-    from robustloc.track import Tracker
+    from robustloc.tracking import Tracker
 
     rng = np.random.default_rng(ctx.seed)
     K = 40 if ctx.quick else 200
@@ -184,7 +184,7 @@ def _ble(ctx: Context, sec: Section, plots: list) -> dict[str, float]:
     from robustloc.io import to_epochs
     from robustloc.models.calibration import calibrate_pathloss
     from robustloc.models.pathloss import log_distance_arrays
-    from robustloc.track import Tracker
+    from robustloc.tracking import Tracker
 
     src = bt.resolve(ctx.data_dir)
     anchors = bt.load_anchors(src.path)
@@ -231,7 +231,7 @@ def _dwm(ctx: Context, sec: Section, plots: list) -> dict[str, Any]:
     from robustloc.datasets import uwb_dwm1001
     from robustloc.datasets.uwb_dwm1001 import error_stats
     from robustloc.io import to_epochs
-    from robustloc.track import Tracker
+    from robustloc.tracking import Tracker
 
     data_dir = None if ctx.quick else ctx.data_dir
     res: dict[str, Any] = {}
@@ -278,7 +278,7 @@ def _lab(ctx: Context, sec: Section, plots: list) -> dict[str, float]:
     from robustloc.datasets.uwb_dwm1001 import error_stats
     from robustloc.estimators.ranging import Locator
     from robustloc.io import to_epochs
-    from robustloc.track import Tracker
+    from robustloc.tracking import Tracker
 
     r = uwb_labyrinth.load(ctx.data_dir if ctx.data_dir is not None and
                            (ctx.data_dir / "uwb-labyrinth").is_dir() else None)

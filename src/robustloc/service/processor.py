@@ -11,7 +11,7 @@ per-anchor sigma) and builds rows with :func:`robustloc.io.tables.positions_fram
 log replayed through the service gives the batch command's positions.  It appends the
 horizontal covariance (``cov_xx, cov_xy, cov_yy``, m^2) for the map's uncertainty ellipse.
 
-:class:`TrackProcessor` wraps ``robustloc.track.Tracker`` (imported lazily: the tracker is
+:class:`TrackProcessor` wraps ``robustloc.tracking.Tracker`` (imported lazily: the tracker is
 an optional part of the library).
 """
 
@@ -235,7 +235,7 @@ class LocateProcessor:
 
 
 class TrackProcessor:
-    """Tracks with ``robustloc.track.Tracker`` (motion model + filter per tag).
+    """Tracks with ``robustloc.tracking.Tracker`` (motion model + filter per tag).
 
     Parameters
     ----------
@@ -248,17 +248,17 @@ class TrackProcessor:
     Raises
     ------
     RuntimeError
-        When ``robustloc.track`` is not available in this installation.
+        When ``robustloc.tracking`` is not available in this installation.
     """
 
     def __init__(
         self, anchors: pd.DataFrame, *, model: str = "cv", filter: str = "ekf", **options: Any
     ) -> None:
         try:
-            from robustloc.track import Tracker
+            from robustloc.tracking import Tracker
         except ImportError as exc:
             raise RuntimeError(
-                "--track needs robustloc.track (the tracker), which this installation lacks "
+                "--track needs robustloc.tracking (the tracker), which this installation lacks "
                 f"({exc}); use --method instead"
             ) from None
         self.name = f"track-{model}-{filter}"

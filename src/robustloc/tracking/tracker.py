@@ -11,7 +11,7 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
    (``insufficient_anchors``, ``ill_conditioned``, ...).
 2. **Predict** with the motion model, ``x = F x``, ``P = F P F^T + Q`` (seed 002 eq. (13);
    ``Q`` of :mod:`robustloc.filters.motion`, ``q`` the white-acceleration variance).
-3. **Tight update** with every heard anchor as one component (:mod:`robustloc.track.
+3. **Tight update** with every heard anchor as one component (:mod:`robustloc.tracking.
    measurement`; RSSI in dB through the path-loss model, or calibrated ranges), an epoch
    with one or two anchors updating too.  The update is the core's robust one: equivalent
    weights ``D = p(e_i)`` of the standardized innovations, gain ``K D`` (seed 002 eqs.
@@ -87,7 +87,7 @@ from robustloc.filters.core import (
 from robustloc.filters.motion import ConstantAcceleration, ConstantVelocity, _Kinematic
 from robustloc.integrity.bmethod import global_critical, lambda0
 from robustloc.robust.weights import get_weight
-from robustloc.track.measurement import LinkModel
+from robustloc.tracking.measurement import LinkModel
 
 Array = NDArray[np.float64]
 
@@ -784,9 +784,9 @@ class Tracker:
         Returns smoothed states ``(n_rows, n)`` and covariances ``(n_rows, n, n)`` by row
         index of the recorded steps (NaN for rows without a filter state); ``lag=None``:
         fixed interval (all later data), ``lag=N``: fixed lag (the next ``N`` epochs).
-        See :func:`robustloc.track.smooth.rts`.
+        See :func:`robustloc.tracking.smooth.rts`.
         """
-        from robustloc.track.smooth import rts_rows
+        from robustloc.tracking.smooth import rts_rows
 
         if not self.record:
             raise ValueError("smoothing needs Tracker(..., record=True)")

@@ -8,7 +8,7 @@
   ``h_i(x) = A_i - 10 n_i lg(max(d_i(x), d_min)) + b_i`` (dB).
 
 ``b_i`` is the link's offset (an environment change detected by the step detector of
-:mod:`robustloc.track.tracker`); 0 until a step is found.  Jacobians are analytic:
+:mod:`robustloc.tracking.tracker`); 0 until a step is found.  Jacobians are analytic:
 ``dd_i/dp = (p - a_i) / d_i``; ``dh_i/dp = -10 n_i / (ln 10 d_i^2) (p - a_i)`` for RSSI
 (zero inside ``d_min``, where the model is clamped).  The state is ``[x, y, (vx, vy, ...)]``:
 only the position columns of ``H`` are non-zero.

@@ -70,7 +70,7 @@ def rts_segment(xf: Array, Pf: Array, xp: Array, Pp: Array, F: Array,
 
 def rts_rows(history: list[dict[str, Any]], n_rows: int, n: int, motion: Any,
              lag: int | None = None) -> tuple[Array, Array]:
-    """Smooth the recorded steps of a :class:`~robustloc.track.Tracker` (by output row).
+    """Smooth the recorded steps of a :class:`~robustloc.tracking.Tracker` (by output row).
 
     ``history`` entries hold ``idx`` (rows), ``slot`` (tag), ``start`` (a (re)start: no
     link to the previous epoch), ``xf, Pf`` (filtered), ``xp, Pp`` (predicted into that
