@@ -499,6 +499,18 @@ def validate_anchors(df: pd.DataFrame, path: PathLike | None = None) -> pd.DataF
     for c in ANCHOR_PARAM_COLUMNS:
         if c in df.columns:
             _numeric(df, c, path, allow_nan=True)
+    # parameters that only make sense positive: a path-loss exponent, a range scale, a
+    # noise sigma (an empty cell is "not given" and stays NaN)
+    for c, what in (("n", "path-loss exponent n"), ("gamma", "path-loss exponent gamma"),
+                    ("scale", "range scale"), ("sigma", "sigma")):
+        if c in df.columns:
+            v = pd.to_numeric(df[c], errors="coerce").to_numpy(dtype=float)
+            bad = ~np.isnan(v) & ~(v > 0)
+            if bad.any():
+                i = int(np.argmax(bad))
+                raise InputError(f"{what} must be positive, got {v[i]:g} for anchor "
+                                 f"{df['anchor'].iloc[i]!r}", _path_of(df, path),
+                                 _line_of(df, i))
     dup = df["anchor"].duplicated().to_numpy()
     if dup.any():
         i = int(np.argmax(dup))
