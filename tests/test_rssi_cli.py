@@ -67,11 +67,12 @@ def test_filter_then_locate_unchanged(sim, tmp_path):
                  "-o", str(pos)]) == 0
     p = pd.read_csv(pos)
     assert len(p) == 20 * 10 + 60  # one row per epoch
-    # every epoch a usable fix (since issue 10 each fix is also tested: the statuses of
-    # a usable fix include fault_excluded, low_redundancy, ...; see robustloc.status)
+    # every epoch a row with a known status; since issue 10 each fix is tested, and an
+    # epoch whose flagged RSSI leaves nothing to confirm the rest is `unavailable`
     from robustloc import status as st
 
-    assert p["status"].isin(st.USABLE).all()
+    assert p["status"].isin(st.ALL).all()
+    assert p["status"].isin(st.USABLE).mean() > 0.95
     # values: at the 20 static reference points (10 samples each) the static filter's
     # averaging makes the fixes more accurate than locating the raw RSSI (measured: 0.98 m
     # against 1.16 m RMS for seed 4); on the walk the static model lags, so it is not

@@ -212,7 +212,14 @@ def test_cli_self_calibration_round_trips_through_locate(tmp_path, capsys):
                  "-o", str(before), "--method", "nls", "--quiet"]) == 0
     assert main(["locate", str(paths["meas"]), "--anchors", str(cal), "-o", str(after),
                  "--method", "nls", "--quiet"]) == 0
-    assert _rms(after, x) < 0.8 * _rms(before, x)
+    # the biased ranges fail their own test on some epochs (unavailable: no fix); compare
+    # on the epochs both runs fix, and the calibrated run fixes at least as many
+    pb, pa = (pd.read_csv(p).sort_values("time") for p in (before, after))
+    eb = np.hypot(pb["x"].to_numpy() - x[:, 0], pb["y"].to_numpy() - x[:, 1])
+    ea = np.hypot(pa["x"].to_numpy() - x[:, 0], pa["y"].to_numpy() - x[:, 1])
+    both = np.isfinite(eb) & np.isfinite(ea)
+    assert both.mean() > 0.5 and np.isfinite(ea).sum() >= np.isfinite(eb).sum()
+    assert np.sqrt(np.mean(ea[both] ** 2)) < 0.8 * np.sqrt(np.mean(eb[both] ** 2))
 
 
 def test_cli_self_calibration_rssi_writes_A_n_sigma(tmp_path, capsys):

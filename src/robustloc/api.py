@@ -517,6 +517,13 @@ def locate(
         "no_range_calibration": not range_calibration, "alpha0": alpha0, "beta0": beta0,
         "chunk_rows": chunk_rows, "json": True,
     }
+    return _run_on_log("locate", measurements, anchors, {**options, "param": params})
+
+
+def _run_on_log(command: str, measurements: FrameOrPath, anchors: FrameOrPath,
+                options: dict[str, _Option]) -> pd.DataFrame:
+    """Run ``command`` (``locate``, ``track``) on a log and anchors given as frames or
+    paths; its Parquet output as a frame with the run summary in ``attrs["summary"]``."""
     with tempfile.TemporaryDirectory(prefix="robustloc-") as d:
         tmp = Path(d)
         labels: dict[str, str] = {}
@@ -525,10 +532,9 @@ def locate(
         meas = _frame_input(
             measurements, "measurements", tmp, labels,
             lambda df, p: _validated_measurements(df, p, anchor_frame))
-        out = tmp / "positions.parquet"
-        stdout, _ = _run_command(
-            "locate", [meas],
-            {**options, "param": params, "anchors": anc, "out": str(out)}, labels)
+        out = tmp / f"{command}.parquet"
+        stdout, _ = _run_command(command, [meas], {**options, "anchors": anc,
+                                                    "out": str(out)}, labels)
         frame = _read_output(out)
     frame.attrs["summary"] = _summary(stdout)
     return frame
@@ -604,20 +610,7 @@ def track(
         "cusum_h": cusum_h, "tag_height": tag_height, "alpha0": alpha0, "beta0": beta0,
         "integrity_risk": integrity_risk, "chunk_rows": chunk_rows, "json": True,
     }
-    with tempfile.TemporaryDirectory(prefix="robustloc-") as d:
-        tmp = Path(d)
-        labels: dict[str, str] = {}
-        anchor_frame = _as_anchor_frame(anchors)
-        anc = _frame_input(anchors, "anchors", tmp, labels, _validated_anchors)
-        meas = _frame_input(
-            measurements, "measurements", tmp, labels,
-            lambda df, p: _validated_measurements(df, p, anchor_frame))
-        out = tmp / "track.parquet"
-        stdout, _ = _run_command("track", [meas], {**options, "anchors": anc,
-                                                    "out": str(out)}, labels)
-        frame = _read_output(out)
-    frame.attrs["summary"] = _summary(stdout)
-    return frame
+    return _run_on_log("track", measurements, anchors, options)
 
 
 def _validated_anchors(df: pd.DataFrame, path: str | None) -> pd.DataFrame:

@@ -28,7 +28,7 @@ def write_folder(out: Path, write: Callable[[Path], T]) -> T:
 
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise InputError("exists and is not a folder", out)
+        raise InputError("already exists and is not a folder (a folder was expected)", out)
     parent = out.parent if str(out.parent) else Path(".")
     parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))
