@@ -65,8 +65,12 @@ def _hostport(text: str) -> tuple[str, int]:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from robustloc.estimators.ranging import DEFAULT_METHOD, METHODS
-    from robustloc.service.app import DEFAULT_MAX_BODY_BYTES, DEFAULT_RATE_LIMIT_ROWS
-    from robustloc.service.engine import DEFAULT_IDLE_FLUSH_S, DEFAULT_LATENCY_WINDOW_S
+    from robustloc.service.defaults import (
+        DEFAULT_IDLE_FLUSH_S,
+        DEFAULT_LATENCY_WINDOW_S,
+        DEFAULT_MAX_BODY_BYTES,
+        DEFAULT_RATE_LIMIT_ROWS,
+    )
 
     p.add_argument("--anchors", required=True, help="anchors file (anchor, x, y[, z], ...)")
     p.add_argument("--host", default="127.0.0.1",

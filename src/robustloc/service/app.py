@@ -41,13 +41,10 @@ from starlette.routing import Mount, Route, WebSocketRoute
 from starlette.staticfiles import StaticFiles
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
+from robustloc.service.defaults import DEFAULT_MAX_BODY_BYTES, DEFAULT_RATE_LIMIT_ROWS
 from robustloc.service.engine import Engine
 from robustloc.service.rows import BodyError, parse_body
 
-#: Default largest accepted body or WebSocket message (bytes): 32 MiB, ~400 000 rows.
-DEFAULT_MAX_BODY_BYTES = 32 * 1024 * 1024
-#: Default ingest rate limit per client address (rows/s, token bucket holding 2 s).
-DEFAULT_RATE_LIMIT_ROWS = 1_000_000.0
 #: Queued messages per position subscriber before the oldest are dropped (and counted).
 WS_QUEUE = 20_000
 

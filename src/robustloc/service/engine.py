@@ -32,16 +32,11 @@ import pyarrow as pa
 import pyarrow.dataset as ds
 
 from robustloc.service.assembly import EpochAssembler
+from robustloc.service.defaults import DEFAULT_IDLE_FLUSH_S, DEFAULT_LATENCY_WINDOW_S
 from robustloc.service.metrics import Metrics
 from robustloc.service.processor import Processor
 from robustloc.service.rows import validate_rows
 from robustloc.service.store import SegmentLog, max_by
-
-#: Default latency window (s of measurement time): an epoch waits this long for rows still
-#: in flight.  0.5 s covers the 100-500 ms reporting intervals of BLE/UWB gateways.
-DEFAULT_LATENCY_WINDOW_S = 0.5
-#: Default wall-clock idle time (s) after which a silent tag's pending epochs are solved.
-DEFAULT_IDLE_FLUSH_S = 2.0
 
 MEAS_SCHEMA = pa.schema([
     ("time", pa.float64()), ("tag", pa.string()), ("anchor", pa.string()),

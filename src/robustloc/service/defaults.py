@@ -1,0 +1,13 @@
+"""Default settings of the live service, importable without its optional dependencies
+(``robustloc serve --help`` and the command list must work on a core install)."""
+
+#: Default latency window (s): an epoch is solved once its tag's newest time is this much
+#: later, so rows still in flight are included.  0.5 s covers the 100-500 ms reporting
+#: intervals of BLE/UWB gateways.
+DEFAULT_LATENCY_WINDOW_S = 0.5
+#: Default wall-clock idle time (s) after which a silent tag's pending epochs are solved.
+DEFAULT_IDLE_FLUSH_S = 2.0
+#: Default largest accepted body or WebSocket message (bytes): 32 MiB, ~400 000 rows.
+DEFAULT_MAX_BODY_BYTES = 32 * 1024 * 1024
+#: Default ingest rate limit per client address (rows/s, token bucket holding 2 s).
+DEFAULT_RATE_LIMIT_ROWS = 1_000_000.0
