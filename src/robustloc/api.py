@@ -1,36 +1,30 @@
-"""The DataFrame-level Python API: ``robustloc.locate``, ``calibrate``, ``evaluate``, ``spp``.
+"""The DataFrame-level Python API: ``robustloc.locate``, ``track``, ``calibrate``,
+``evaluate``, ``spp`` and the contract readers and writer.
 
-Each function runs the **same code as the command of the same name** (its
-``add_arguments`` parser checks the options, its ``run`` does the work), so a frame from
-the API equals, row for row, the file the command writes for the same input, and a
-mistake raises :class:`robustloc.InputError` with the message the command prints after
-``error:``.  Inputs are DataFrames or paths (CSV or Parquet; ``pathlib.Path`` or str),
-outputs are DataFrames in the contract formats of ``docs/formats`` (the design's file
-contract).  The command's run summary (what ``--json`` prints) is in
-``frame.attrs["summary"]``; its notes and warnings become :class:`RobustlocWarning`.
+Each function builds the typed settings of its workflow (:mod:`robustloc.pipelines`) and
+runs it; the command of the same name is a thin layer over the same workflow (it parses
+its options into the same settings and prints the same summary).  So a frame from the API
+equals, row for row, the file the command writes for the same input, and a mistake
+raises :class:`robustloc.InputError` with the message the command prints after
+``error:`` (a refused option reads ``argument --NAME: ...`` as argparse words it).
+Inputs are DataFrames or paths (CSV or Parquet; ``pathlib.Path`` or str), outputs are
+DataFrames in the contract formats of ``docs/formats`` (the design's file contract).  The
+run summary (what ``--json`` prints) is in ``frame.attrs["summary"]``; notes and warnings
+become :class:`RobustlocWarning`.
 
-A DataFrame input is first checked by the validators of :mod:`robustloc.io` (the same as
-for a file); an error names it ``<measurements DataFrame>`` (or ``<anchors ...>``, ...)
-and the line that row would have in ``frame.to_csv(index=False)`` (row position + 2),
-unless the frame came from :func:`read_measurements` & co., whose errors name the source
-file and line.  The checked frame is handed to the command as a temporary Parquet file
-(exact float round trip), deleted afterwards.
-
-The commands' printed output is captured with :func:`contextlib.redirect_stdout`, which is
-process-wide: call these functions from one thread at a time (several processes are fine).
+A DataFrame input is read like a file (:func:`robustloc.io.tables.in_memory_source`; no
+temporary file): an error names it ``<measurements DataFrame>`` (or ``<anchors ...>``,
+...) and the line that row would have in ``frame.to_csv(index=False)`` (row position +
+2), unless the frame came from :func:`read_measurements` & co., whose errors name the
+source file and line.  The functions keep no global state (no redirected streams, no
+temporary files), so they can be called from several threads.
 """
 
 from __future__ import annotations
 
-import argparse
 import contextlib
-import importlib
-import io as _stdio
 import json
 import os
-import sys
-import tempfile
-import traceback
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
@@ -58,8 +52,6 @@ __all__ = [
 PathLike = Union[str, "os.PathLike[str]"]
 #: A contract table held in memory, or the path of a CSV / Parquet file holding one.
 FrameOrPath = Union[pd.DataFrame, str, "os.PathLike[str]"]
-#: One option value as the command line takes it (``None``: the command's default).
-_Option = bool | int | float | str | Sequence[str] | Mapping[str, float] | None
 
 
 class RobustlocWarning(UserWarning):
@@ -68,128 +60,23 @@ class RobustlocWarning(UserWarning):
 
 
 # --------------------------------------------------------------------------------------
-# running a command in-process
+# inputs and errors
 # --------------------------------------------------------------------------------------
 
 
-class _RaisingParser(argparse.ArgumentParser):
-    """A command's own parser whose refusals raise :class:`InputError` (argparse's
-    message, as the command line prints it after ``robustloc CMD: error:``)."""
-
-    def error(self, message: str) -> None:  # type: ignore[override]
-        raise InputError(message)
-
-
-def _option_argv(options: Mapping[str, _Option]) -> list[str]:
-    """Keyword options -> command-line arguments: ``alert_limit=30.0`` ->
-    ``--alert-limit=30.0``; ``True`` a flag, ``False`` ``--no-NAME`` for the
-    ``--NAME/--no-NAME`` switches and nothing otherwise; a sequence is comma-joined; a
-    mapping is one ``--NAME=KEY=VALUE`` per item; floats are written with ``repr``
-    (exact)."""
-    argv: list[str] = []
-    for key, value in options.items():
-        flag = "--" + key.replace("_", "-")
-        if value is None:
-            continue
-        if value is True:
-            argv.append(flag)
-        elif value is False:
-            if key in _NEGATABLE:
-                argv.append("--no-" + key.replace("_", "-"))
-        elif isinstance(value, Mapping):
-            argv += [f"{flag}={k}={v!r}" for k, v in value.items()]
-        elif isinstance(value, (list, tuple)):
-            argv.append(f"{flag}={','.join(str(v) for v in value)}")
-        elif isinstance(value, float):
-            argv.append(f"{flag}={value!r}")
-        else:
-            argv.append(f"{flag}={value}")
-    return argv
-
-
-#: Options whose ``False`` is spelled ``--no-NAME`` (argparse.BooleanOptionalAction).
-_NEGATABLE = frozenset({"scale"})
-
-
-def _from_command(exc: BaseException) -> bool:
-    """Was ``exc`` raised by a command module's own argument checks?"""
-    tb = traceback.extract_tb(exc.__traceback__)
-    return bool(tb) and f"{os.sep}commands{os.sep}" in tb[-1].filename
-
-
 @contextlib.contextmanager
-def _labelled(labels: Mapping[str, str]) -> Iterator[None]:
-    """Translate what the command line reports as ``error:`` into :class:`InputError`:
-    a temporary file's name back to what the user passed, an :class:`OSError` about a
-    user's path to its message, a command's own ``ValueError`` check to its text."""
+def _labelled() -> Iterator[None]:
+    """An :class:`OSError` about a user's path becomes the :class:`InputError` the command
+    line prints (``error: PATH: what``)."""
     from robustloc.io.atomic import describe_oserror
 
     try:
         yield
-    except InputError as exc:
-        if exc.path is not None and exc.path in labels:
-            raise InputError(exc.message, labels[exc.path], exc.line) from None
-        raise
     except OSError as exc:
         name = exc.filename if exc.filename is not None else exc.filename2
         if name is None:
             raise
-        raise InputError(describe_oserror(exc), labels.get(str(name), str(name))) from None
-    except ValueError as exc:
-        if _from_command(exc):
-            raise InputError(str(exc)) from None
-        raise
-
-
-def _run_command(
-    name: str, positional: Sequence[str], options: Mapping[str, _Option],
-    labels: Mapping[str, str],
-) -> tuple[str, str]:
-    """Parse ``positional`` + ``options`` with command ``name``'s own parser and call its
-    ``run``; returns its (stdout, stderr) text.  Notes and warnings on stderr are
-    re-raised as :class:`RobustlocWarning`, other stderr lines (the one-time compile
-    notice) pass through to ``sys.stderr``."""
-    mod = importlib.import_module(f"robustloc.commands.{name}")
-    parser = _RaisingParser(prog=f"robustloc {name}", add_help=False)
-    mod.add_arguments(parser)
-    argv = [*_option_argv(options), "--", *positional]
-    with _labelled(labels):
-        args = parser.parse_args(argv)
-        out, err = _stdio.StringIO(), _stdio.StringIO()
-        try:
-            with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-                mod.run(args)
-        finally:
-            _relay(err.getvalue())
-    return out.getvalue(), err.getvalue()
-
-
-def _relay(stderr: str) -> None:
-    for line in stderr.splitlines():
-        if line.startswith(("warning: ", "note: ")):
-            warnings.warn(line.partition(": ")[2], RobustlocWarning, stacklevel=4)
-        elif line.strip():
-            print(line, file=sys.stderr)
-
-
-def _frame_input(
-    src: FrameOrPath, what: str, tmp: Path, labels: dict[str, str],
-    validate: Callable[[pd.DataFrame, str | None], pd.DataFrame],
-) -> str:
-    """A path as given; a DataFrame validated (errors name ``<what DataFrame>`` and its
-    CSV line) and written to a temporary Parquet file whose name is then mapped back."""
-    if isinstance(src, pd.DataFrame):
-        df = _labelled_frame(src, what)
-        df = validate(df, df.attrs.get("path"))
-        path = tmp / f"{what}.parquet"
-        df = df.reset_index(drop=True)
-        df.attrs = {}
-        df.to_parquet(path, index=False)
-        labels[str(path)] = f"<{what} DataFrame>"
-        return str(path)
-    if isinstance(src, (str, os.PathLike)):
-        return os.fspath(src)
-    raise TypeError(f"{what}: expected a DataFrame or a path, got {type(src).__name__}")
+        raise InputError(describe_oserror(exc), str(name)) from None
 
 
 def _labelled_frame(df: pd.DataFrame, what: str) -> pd.DataFrame:
@@ -201,12 +88,6 @@ def _labelled_frame(df: pd.DataFrame, what: str) -> pd.DataFrame:
     df.index = pd.RangeIndex(2, len(df) + 2, name="line")
     df.attrs["path"] = f"<{what} DataFrame>"
     return df
-
-
-def _read_output(path: Path) -> pd.DataFrame:
-    frame = pd.read_parquet(path)
-    frame.attrs = {}
-    return frame
 
 
 # --------------------------------------------------------------------------------------
@@ -508,36 +389,54 @@ def locate(
     ...
     robustloc.errors.InputError: <measurements DataFrame>:5: unknown anchor id 'e' (not in ...)
     """
-    methods = [method] if isinstance(method, str) else list(method)
-    options: dict[str, _Option] = {
-        "method": methods, "dim": dim, "solver": solver, "reference": reference,
-        "domain": domain, "sigma": sigma, "robust_scale": robust_scale,
-        "alert_limit": alert_limit, "k_noise": k_noise, "min_scale": min_scale,
-        "model": model, "tag_height": tag_height,
-        "no_range_calibration": not range_calibration, "alpha0": alpha0, "beta0": beta0,
-        "chunk_rows": chunk_rows, "json": True,
-    }
-    return _run_on_log("locate", measurements, anchors, {**options, "param": params})
+    from robustloc.pipelines.locate import LocateSettings, run_locate
+
+    with _labelled():
+        settings = LocateSettings(
+            method=(method,) if isinstance(method, str) else tuple(method), dim=dim,
+            solver=solver, reference=reference, domain=domain, sigma=sigma,
+            robust_scale=robust_scale, alert_limit=alert_limit, k_noise=k_noise,
+            min_scale=min_scale, param=_param_items(params), model=model,
+            tag_height=tag_height, range_calibration=range_calibration, alpha0=alpha0,
+            beta0=beta0, chunk_rows=chunk_rows)
+        anchor_frame, source = _log_inputs(measurements, anchors)
+        frame, summary = run_locate(source, anchor_frame, settings)
+    return _with_summary(frame, summary)
 
 
-def _run_on_log(command: str, measurements: FrameOrPath, anchors: FrameOrPath,
-                options: dict[str, _Option]) -> pd.DataFrame:
-    """Run ``command`` (``locate``, ``track``) on a log and anchors given as frames or
-    paths; its Parquet output as a frame with the run summary in ``attrs["summary"]``."""
-    with tempfile.TemporaryDirectory(prefix="robustloc-") as d:
-        tmp = Path(d)
-        labels: dict[str, str] = {}
-        anchor_frame = _as_anchor_frame(anchors)
-        anc = _frame_input(anchors, "anchors", tmp, labels, _validated_anchors)
-        meas = _frame_input(
-            measurements, "measurements", tmp, labels,
-            lambda df, p: _validated_measurements(df, p, anchor_frame))
-        out = tmp / f"{command}.parquet"
-        stdout, _ = _run_command(command, [meas], {**options, "anchors": anc,
-                                                    "out": str(out)}, labels)
-        frame = _read_output(out)
-    frame.attrs["summary"] = _summary(stdout)
-    return frame
+def _param_items(params: Mapping[str, float] | None) -> tuple[str, ...]:
+    """``{"c": 1.5}`` -> ``("c=1.5",)``, the ``--param`` items (floats exact)."""
+    if not params:
+        return ()
+    return tuple(f"{k}={float(v)!r}" for k, v in params.items())
+
+
+def _log_inputs(measurements: FrameOrPath, anchors: FrameOrPath
+                ) -> tuple[pd.DataFrame, str | pd.DataFrame]:
+    """A log and its anchors as the pipelines take them: the anchors validated (a frame
+    named ``<anchors DataFrame>`` in errors), the log a path or an in-memory source
+    (validated as it streams, like a file)."""
+    from robustloc.io.tables import in_memory_source
+
+    if not isinstance(anchors, (pd.DataFrame, str, os.PathLike)):
+        raise TypeError(f"anchors: expected a DataFrame or a path, got "
+                        f"{type(anchors).__name__}")
+    if isinstance(measurements, pd.DataFrame):
+        source: str | pd.DataFrame = in_memory_source(measurements)
+    elif isinstance(measurements, (str, os.PathLike)):
+        source = os.fspath(measurements)
+    else:
+        raise TypeError(f"measurements: expected a DataFrame or a path, got "
+                        f"{type(measurements).__name__}")
+    return read_anchors(anchors), source
+
+
+def _with_summary(frame: pd.DataFrame | None, summary: dict[str, object]) -> pd.DataFrame:
+    """The pipeline's in-memory output with its run summary in ``attrs["summary"]`` (the
+    command's ``--json`` text, as plain JSON types)."""
+    out = pd.DataFrame() if frame is None else frame.reset_index(drop=True)
+    out.attrs = {"summary": json.loads(json.dumps(summary))}
+    return out
 
 
 def track(
@@ -604,19 +503,17 @@ def track(
     >>> len(trk), bool(np.all(np.hypot(trk.x - xy[:, 0], trk.y - xy[:, 1]) < 0.1))
     (20, True)
     """
-    options: dict[str, _Option] = {
-        "model": model, "filter": filter, "q": q, "weight": weight, "domain": domain,
-        "sigma": sigma, "smooth": smooth, "fixed_lag": fixed_lag, "engine": engine,
-        "cusum_h": cusum_h, "tag_height": tag_height, "alpha0": alpha0, "beta0": beta0,
-        "integrity_risk": integrity_risk, "chunk_rows": chunk_rows, "json": True,
-    }
-    return _run_on_log("track", measurements, anchors, options)
+    from robustloc.pipelines.track import TrackSettings, run_track
 
-
-def _validated_anchors(df: pd.DataFrame, path: str | None) -> pd.DataFrame:
-    from robustloc import io
-
-    return io.validate_anchors(df, path)
+    with _labelled():
+        settings = TrackSettings(
+            model=model, filter=filter, q=q, weight=weight, domain=domain, sigma=sigma,
+            smooth=smooth, fixed_lag=fixed_lag, engine=engine, cusum_h=cusum_h,
+            tag_height=tag_height, alpha0=alpha0, beta0=beta0,
+            integrity_risk=integrity_risk, chunk_rows=chunk_rows)
+        anchor_frame, source = _log_inputs(measurements, anchors)
+        frame, summary = run_track(source, anchor_frame, settings)
+    return _with_summary(frame, summary)
 
 
 def _validated_measurements(
@@ -639,21 +536,6 @@ def _validated_truth(df: pd.DataFrame, path: str | None) -> pd.DataFrame:
     from robustloc import io
 
     return io.validate_truth(df, path)
-
-
-def _validated_positions(df: pd.DataFrame, path: str | None) -> pd.DataFrame:
-    from robustloc import io
-
-    return io.validate_positions(df, path)
-
-
-def _summary(stdout: str) -> dict[str, object]:
-    """The command's ``--json`` output (empty when it printed none)."""
-    text = stdout.strip()
-    if not text:
-        return {}
-    value = json.loads(text)
-    return value if isinstance(value, dict) else {"value": value}
 
 
 def calibrate(
@@ -737,39 +619,42 @@ def calibrate(
     0      a   0.3   1.05
     1      b   0.3   1.05
     """
-    options: dict[str, _Option] = {
-        "model": model, "robust": robust, "scale": scale, "pooled": pooled, "d0": d0,
-        "p0": p0, "time_tolerance": time_tolerance, "dim": dim, "tag_height": tag_height,
-        "se_ratio": se_ratio, "json": True,
-    }
-    with tempfile.TemporaryDirectory(prefix="robustloc-") as d:
-        tmp = Path(d)
-        labels: dict[str, str] = {}
+    from robustloc.pipelines.calibrate import CalibrateSettings, run_calibrate
+
+    with _labelled():
+        settings = CalibrateSettings(
+            model=model, robust="huber" if robust is True else (robust or None),
+            scale=scale, pooled=pooled, d0=d0, p0=p0, time_tolerance=time_tolerance,
+            dim=dim, tag_height=tag_height, se_ratio=se_ratio)
         anchor_frame = _as_anchor_frame(anchors)
-        if anchors is not None:
-            options["anchors"] = _frame_input(anchors, "anchors", tmp, labels,
-                                              _validated_anchors)
-        positional: list[str] = []
-        if survey is not None:
-            positional.append(_frame_input(
-                survey, "survey", tmp, labels,
-                lambda df, p: _validated_survey(df, p, anchor_frame)))
-        if measurements is not None:
-            options["measurements"] = _frame_input(
-                measurements, "measurements", tmp, labels,
-                lambda df, p: _validated_measurements(df, p, anchor_frame))
-        if truth is not None:
-            options["truth"] = _frame_input(truth, "truth", tmp, labels, _validated_truth)
-        if self_log is not None:
-            options["self"] = _frame_input(
-                self_log, "measurements", tmp, labels,
-                lambda df, p: _validated_measurements(df, p, anchor_frame))
-        out = tmp / "calibrated.parquet"
-        options["out"] = str(out)
-        stdout, _ = _run_command("calibrate", positional, options, labels)
-        frame = _read_output(out)
-    frame.attrs["summary"] = _summary(stdout)
-    return frame
+        cal = run_calibrate(
+            settings,
+            survey=_checked(survey, "survey",
+                            lambda df, p: _validated_survey(df, p, anchor_frame)),
+            anchors=anchor_frame,
+            measurements=_checked(measurements, "measurements",
+                                  lambda df, p: _validated_measurements(df, p, anchor_frame)),
+            truth=_checked(truth, "truth", _validated_truth),
+            self_log=_checked(self_log, "measurements",
+                              lambda df, p: _validated_measurements(df, p, anchor_frame)))
+    for text in cal.notes + cal.warnings:
+        warnings.warn(text, RobustlocWarning, stacklevel=2)
+    return _with_summary(cal.output, cal.summary)
+
+
+def _checked(src: FrameOrPath | None, what: str,
+             validate: Callable[[pd.DataFrame, str | None], pd.DataFrame]
+             ) -> str | pd.DataFrame | None:
+    """An optional input as a pipeline takes it: a path as given, a frame validated (its
+    errors name ``<what DataFrame>`` and the row's CSV line)."""
+    if src is None:
+        return None
+    if isinstance(src, pd.DataFrame):
+        df = _labelled_frame(src, what)
+        return validate(df, df.attrs.get("path"))
+    if isinstance(src, (str, os.PathLike)):
+        return os.fspath(src)
+    raise TypeError(f"{what}: expected a DataFrame or a path, got {type(src).__name__}")
 
 
 def evaluate(
@@ -817,20 +702,13 @@ def evaluate(
     1   all    nls  2.0  0.4  0.354
     2  mean    nls  2.0  0.4  0.354
     """
-    with tempfile.TemporaryDirectory(prefix="robustloc-") as d:
-        tmp = Path(d)
-        labels: dict[str, str] = {}
-        pos = _frame_input(positions, "positions", tmp, labels, _validated_positions)
-        tru = _frame_input(truth, "truth", tmp, labels, _validated_truth)
-        out = tmp / "errors.parquet"
-        stdout, _ = _run_command(
-            "evaluate", [pos],
-            {"truth": tru, "out": str(out), "baseline": baseline,
-             "time_tolerance": time_tolerance, "json": True}, labels)
-        frame = _read_output(out)
-    summary = _summary(stdout)
-    frame.attrs["summary"] = {"n_unmatched": summary.get("n_unmatched", 0)}
-    return frame
+    from robustloc.eval.metrics import error_table
+
+    with _labelled():
+        pos = read_positions(positions)
+        tru = read_truth(truth)
+        table = error_table(pos, tru, time_tolerance_s=time_tolerance, baseline=baseline)
+    return _with_summary(table, {"n_unmatched": int(table.attrs.get("n_unmatched", 0))})
 
 
 def spp(
@@ -899,24 +777,18 @@ def spp(
     >>> len(sol) > 100, bool((sol["status"] == "ok").mean() > 0.9)
     (True, True)
     """
+    from robustloc.pipelines.spp import SppSettings, run_spp
+
     navs = [nav] if isinstance(nav, (str, os.PathLike)) else list(nav)
-    options: dict[str, _Option] = {
-        "sp3": None if sp3 is None else os.fspath(sp3),
-        "clk": None if clk is None else os.fspath(clk),
-        "systems": systems, "elevation_mask": elevation_mask, "iono": iono, "tropo": tropo,
-        "smooth": smooth, "raim": raim, "alpha0": alpha0, "beta0": beta0,
-        "max_exclusions": max_exclusions,
-        "reference": None if reference is None else ",".join(repr(float(v))
-                                                              for v in reference),
-        "inject": None if not inject else ",".join(f"{k}:{float(v)!r}"
-                                                   for k, v in inject.items()),
-        "inject_from": inject_from, "inject_until": inject_until, "json": True,
-    }
-    with tempfile.TemporaryDirectory(prefix="robustloc-") as d:
-        out = Path(d) / "spp.parquet"
-        stdout, _ = _run_command(
-            "spp", [os.fspath(obs), *(os.fspath(n) for n in navs)],
-            {**options, "out": str(out)}, {})
-        frame = _read_output(out)
-    frame.attrs["summary"] = _summary(stdout)
-    return frame
+    with _labelled():
+        settings = SppSettings(
+            systems=systems, elevation_mask=elevation_mask, iono=iono, tropo=tropo,
+            smooth=smooth, raim=raim, alpha0=alpha0, beta0=beta0,
+            max_exclusions=max_exclusions,
+            reference=None if reference is None else tuple(reference),  # type: ignore[arg-type]
+            inject=inject or None, inject_from=inject_from, inject_until=inject_until)
+        frame, summary = run_spp(
+            os.fspath(obs), [os.fspath(n) for n in navs], settings,
+            sp3=None if sp3 is None else os.fspath(sp3),
+            clk=None if clk is None else os.fspath(clk))
+    return _with_summary(frame, summary)

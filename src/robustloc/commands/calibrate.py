@@ -1,4 +1,7 @@
-"""``robustloc calibrate``: fit path-loss parameters or range bias/scale per anchor."""
+"""``robustloc calibrate``: fit path-loss parameters or range bias/scale per anchor.
+
+The command line over :mod:`robustloc.pipelines.calibrate`.
+"""
 
 from __future__ import annotations
 
@@ -8,8 +11,6 @@ import sys
 
 import numpy as np
 import pandas as pd
-
-from robustloc.commands._argtypes import finite_float, nonnegative_float, positive_float
 
 NAME = "calibrate"
 HELP = "fit path-loss parameters (RSSI) or range bias/scale per anchor from a survey"
@@ -50,9 +51,12 @@ table).  Anchors with too few survey rows, or absent from it, get the pooled fit
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from robustloc.options import finite_float, nonnegative_float, positive_float
+    from robustloc.pipelines.calibrate import CALIBRATION_MODELS
+
     p.add_argument("survey", nargs="?", help="survey file: anchor, distance, rssi|range")
     p.add_argument(
-        "--model", choices=("log-distance", "attenuation-factor", "friis"),
+        "--model", choices=CALIBRATION_MODELS,
         default="log-distance", help="path-loss model for RSSI data (default log-distance)",
     )
     p.add_argument("-o", "--out", required=True, help="anchors (or parameter table) to write")
@@ -90,33 +94,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 
 
-def _load_survey(args: argparse.Namespace, anchors: pd.DataFrame | None) -> pd.DataFrame:
-    from robustloc.io import read_measurements, read_survey, read_truth
-    from robustloc.models.calibration import survey_from_positions
-
-    if args.measurements or args.truth:
-        if args.survey:
-            raise ValueError("give either a SURVEY file or --measurements/--truth, not both")
-        if not (args.measurements and args.truth and anchors is not None):
-            raise ValueError("--measurements needs --truth and --anchors")
-        meas = read_measurements(args.measurements, anchors)
-        truth = read_truth(args.truth)
-        survey = survey_from_positions(meas, truth, anchors, time_tolerance_s=args.time_tolerance)
-        if len(survey) == 0:
-            raise ValueError(
-                f"{args.measurements}: no measurement matches the truth by (time, tag)"
-            )
-        if survey.attrs.get("n_unmatched"):
-            print(
-                f"note: {survey.attrs['n_unmatched']} measurement rows had no truth and "
-                "were not used", file=sys.stderr,
-            )
-        return survey
-    if not args.survey:
-        raise ValueError("give a SURVEY file, or --measurements, --truth and --anchors")
-    return read_survey(args.survey, anchors)
-
-
 def _fmt(table: pd.DataFrame, unit: str) -> str:
     t = table.copy()
     for c in t.columns:
@@ -128,158 +105,24 @@ def _fmt(table: pd.DataFrame, unit: str) -> str:
     return t.to_string(index=False)
 
 
-def self_calibrate(
-    anchors: pd.DataFrame, xyz: np.ndarray, values: np.ndarray, kind: str, *,
-    height_offset: np.ndarray | None = None, model_name: str | None = "log-distance",
-    fit_scale: bool = True, se_ratio: float = 3.0,
-):
-    """``calibrate --self`` on arrays: robust start fixes (huber), then the joint
-    adjustment of :class:`robustloc.models.selfcal.SelfCalibrator`.
-
-    Returns ``(SelfCalibration, path-loss model or None)``; the anchors frame with the new
-    columns is ``robustloc.models.calibration.self_calibration_table(res, anchors, model)``.
-    """
-    from robustloc.estimators.ranging import Locator
-    from robustloc.models.pathloss import model_from_anchors
-    from robustloc.models.selfcal import SelfCalibrator
-
-    ids = [str(a) for a in anchors["anchor"]]
-    model = None
-    if kind == "rssi":
-        # the model named by --model; the default (log-distance) yields to the anchors'
-        # own attenuation-factor columns when they have no A, n
-        use_default = model_name == "log-distance" and not {"A", "n"} <= set(anchors.columns)
-        model = model_from_anchors(anchors, None if use_default else model_name)
-        A0, n0 = model.log_distance_params()
-        A0 = np.broadcast_to(A0, (len(ids),)).astype(float)
-        n0 = np.broadcast_to(n0, (len(ids),)).astype(float)
-        start = Locator("huber").solve(xyz, values, "rssi", A=A0, n=n0,
-                                       height_offset=height_offset)
-        cal = SelfCalibrator("rssi", fit_slope=type(model).__name__ != "FreeSpace",
-                             se_ratio=se_ratio)
-        res = cal.fit(xyz, values, start.position, offset0=A0, slope0=n0,
-                      height_offset=height_offset, anchor_ids=ids)
-    else:
-        start = Locator("huber").solve(xyz, values, "range", height_offset=height_offset)
-        cal = SelfCalibrator("range", fit_slope=fit_scale, se_ratio=se_ratio)
-        res = cal.fit(xyz, values, start.position, height_offset=height_offset,
-                      anchor_ids=ids)
-    return res, model
-
-
-def _run_self(args: argparse.Namespace) -> int:
-    from robustloc.errors import InputError
-    from robustloc.io import read_anchors, read_measurements, to_epochs, write_table
-    from robustloc.models.calibration import self_calibration_table
-
-    if args.survey or args.measurements or args.truth:
-        raise ValueError("--self takes the log alone: no SURVEY, --measurements or --truth")
-    if not args.anchors:
-        raise ValueError("--self needs --anchors (the anchor coordinates are the datum)")
-    anchors = read_anchors(args.anchors)
-    if (args.dim == 3 or args.tag_height is not None) and "z" not in anchors.columns:
-        raise InputError("--dim 3 and --tag-height need a z column in the anchors file",
-                         args.anchors, 1)
-    if args.dim == 3 and args.tag_height is not None:
-        raise ValueError("--tag-height is for --dim 2")
-    ids = [str(a) for a in anchors["anchor"]]
-    meas = read_measurements(args.self_log, anchors)
-    ep = to_epochs(meas, ids)
-    kind = ep.value
-    cols = ["x", "y"] + (["z"] if args.dim == 3 else [])
-    xyz = anchors[cols].to_numpy(dtype=float)
-    height = None
-    if args.tag_height is not None:
-        height = anchors["z"].to_numpy(dtype=float) - args.tag_height
-    if kind == "rssi" and args.scale is not None:
-        raise ValueError("--scale is for range data")
-    res, model = self_calibrate(anchors, xyz, ep.values, kind, height_offset=height,
-                                model_name=args.model, fit_scale=args.scale is not False,
-                                se_ratio=args.se_ratio)
-    if res.epochs_used == 0:
-        raise InputError(
-            f"nothing to self-calibrate: no epoch has a fix with redundancy (need at least "
-            f"{args.dim + 1} anchors heard in one epoch; {res.epochs_total} epochs, "
-            f"{res.epochs_no_start} without a start fix)", args.self_log)
-    table, out = self_calibration_table(res, anchors, model)
-    path = write_table(out, args.out)
-    summary = {
-        "kind": kind, "epochs": res.epochs_total, "epochs_used": res.epochs_used,
-        "epochs_no_redundancy": res.epochs_no_redundancy, "epochs_bad": res.epochs_bad,
-        "epochs_no_start": res.epochs_no_start,
-        "observations_rejected": res.observations_rejected,
-        "sigma0": round(res.sigma0, 4), "iterations": res.iterations,
-        "converged": res.converged, "output": str(path),
-    }
-    if args.json:
-        print(json.dumps({**summary, "parameters": table.replace({np.nan: None})
-                          .to_dict(orient="records"), "warnings": res.warnings}, indent=2))
-    else:
-        unit = "m" if kind == "range" else "dB"
-        print(f"self-calibration ({kind}), {res.epochs_used} of {res.epochs_total} epochs used "
-              f"({res.epochs_no_redundancy} without redundancy, {res.epochs_bad} bad, "
-              f"{res.epochs_no_start} without a start fix; {res.observations_rejected} "
-              f"observations rejected), {res.iterations} iterations, "
-              f"sigma0 {res.sigma0:.3f}")
-        print(_fmt(table, unit))
-        print(f"written: {path}")
-    for w in res.warnings:
-        print(f"warning: {args.self_log}: {w}", file=sys.stderr)
-    return 0
-
-
 def run(args: argparse.Namespace) -> int:
-    if args.self_log:
-        return _run_self(args)
     from robustloc.io import read_anchors, write_table
-    from robustloc.models.calibration import (
-        POOLED,
-        calibrate_pathloss,
-        calibrate_ranges,
-        default_p0_from_anchors,
-    )
+    from robustloc.pipelines.calibrate import CalibrateSettings, run_calibrate
 
+    settings = CalibrateSettings.from_namespace(args)
     anchors = read_anchors(args.anchors) if args.anchors else None
-    survey = _load_survey(args, anchors)
-    value = survey.attrs.get("value") or ("rssi" if "rssi" in survey.columns else "range")
-    if value == "rssi":
-        p0 = args.p0 if args.p0 is not None else default_p0_from_anchors(anchors)
-        res = calibrate_pathloss(
-            survey, args.model, robust=args.robust, pooled=args.pooled, d0=args.d0, p0=p0
-        )
-    else:
-        res = calibrate_ranges(survey, scale=bool(args.scale), robust=args.robust,
-                               pooled=args.pooled)
-    out = res.apply_to_anchors(anchors)
-    # the noise sigma written (and used by `locate` to weight the anchors): each anchor's
-    # residual std, the pooled one with --pooled; 1e-6 m or dB is far below any physical
-    # noise and above the rounding of an exact fit
-    t = res.table
-    rows = t[t["anchor"] == POOLED] if res.pooled else t[t["anchor"] != POOLED]
-    sg = rows["residual_std"].to_numpy(dtype=float)
-    bad = ~(np.isfinite(sg) & (sg > 1e-6))
-    if bad.any():
-        from robustloc.errors import InputError
-
-        who = rows["anchor"].iloc[int(np.argmax(bad))]
-        who = "pooled fit" if who == POOLED else f"anchor {who}"
-        raise InputError(
-            f"{who}: cannot determine sigma: the fit is exact (zero residual), so `locate` "
-            "could not weight the anchor", survey.attrs.get("path"))
-    path = write_table(out, args.out)
+    cal = run_calibrate(settings, survey=args.survey, anchors=anchors,
+                        measurements=args.measurements, truth=args.truth,
+                        self_log=args.self_log)
+    path = write_table(cal.output, args.out)
     if args.json:
-        table = res.table.replace({np.nan: None})
-        print(json.dumps({
-            "model": res.model, "robust": res.robust, "pooled": res.pooled, "unit": res.unit,
-            "output": str(path), "parameters": table.to_dict(orient="records"),
-            "notes": res.notes,
-        }, indent=2))
+        print(json.dumps({**cal.summary, "output": str(path)}, indent=2))
     else:
-        how = f"robust ({res.robust})" if res.robust else "least squares"
-        print(f"{res.model} fit, {how}, {len(survey)} survey rows"
-              + (" (pooled fit written to every anchor)" if res.pooled else ""))
-        print(_fmt(res.table, res.unit))
+        print(cal.headline)
+        print(_fmt(cal.parameters, cal.unit))
         print(f"written: {path}")
-    for note in res.notes:
+    for note in cal.notes:
         print(f"note: {note}", file=sys.stderr)
+    for w in cal.warnings:
+        print(f"warning: {w}", file=sys.stderr)
     return 0

@@ -1,16 +1,21 @@
-"""``robustloc locate``: position fixes for every epoch of a measurements log."""
+"""``robustloc locate``: position fixes for every epoch of a measurements log.
+
+The command line over :mod:`robustloc.pipelines.locate`: its options are parsed into a
+:class:`~robustloc.pipelines.locate.LocateSettings`, the pipeline runs, the summary is
+printed.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
 import sys
-import time as _time
-
-import numpy as np
-import pandas as pd
+from typing import TYPE_CHECKING
 
 from robustloc.engines import add_engine_arguments
+
+if TYPE_CHECKING:
+    from robustloc.pipelines.locate import LocateSettings
 
 NAME = "locate"
 HELP = "position fixes from RSSI or ranges (LS, WLS, Gauss-Newton, robust IRLS, LEGE, ...)"
@@ -69,43 +74,23 @@ are reduced with the known height difference z_anchor - H.
   robustloc locate meas.csv --anchors anchors.csv --method ls,nls,igg,lege -o all.csv"""
 
 
-def _method_list(text: str) -> list[str]:
-    """``--method`` value: comma-separated known methods, each once."""
-    from robustloc.estimators.ranging import METHODS
-
-    METHODS = ("auto",) + METHODS  # noqa: N806 - the default joins the estimators' list
-    methods = [m.strip() for m in text.split(",")]
-    if not any(methods):
-        raise argparse.ArgumentTypeError(
-            f"expected one or more of {', '.join(METHODS)}, got {text!r}")
-    if "" in methods:
-        raise argparse.ArgumentTypeError(f"empty method name in {text!r}")
-    for m in methods:
-        if m not in METHODS:
-            raise argparse.ArgumentTypeError(
-                f"unknown method {m!r}; choose from {', '.join(METHODS)}")
-    dup = [m for i, m in enumerate(methods) if m in methods[:i]]
-    if dup:
-        raise argparse.ArgumentTypeError(f"method {dup[0]!r} given twice in {text!r}")
-    return methods
-
-
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from robustloc.commands._argtypes import (
+    from robustloc.estimators.ranging import DEFAULT_METHOD
+    from robustloc.options import (
         finite_float,
         float_in,
         nonnegative_float,
         positive_float,
         positive_int,
     )
-    from robustloc.estimators.ranging import DEFAULT_METHOD, METHODS
+    from robustloc.pipelines.locate import PATH_LOSS_MODELS, method_list, methods_known
 
     p.add_argument("measurements",
                    help="measurements file (time, tag, anchor, rssi|range); - for stdin")
     p.add_argument("--anchors", required=True, help="anchors file (anchor, x, y[, z], ...)")
     p.add_argument(
-        "--method", default=[DEFAULT_METHOD], type=_method_list,
-        help=f"method or comma-separated methods: {', '.join(('auto',) + METHODS)} "
+        "--method", default=[DEFAULT_METHOD], type=method_list,
+        help=f"method or comma-separated methods: {', '.join(methods_known())} "
              f"(default {DEFAULT_METHOD}: see above; igg is the seed-000 paper's favourite)",
     )
     p.add_argument("-o", "--out", required=True,
@@ -138,7 +123,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="floor of the estimated robust scale (units of --sigma)")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="weight-function threshold, e.g. --param c=1.5 (repeatable)")
-    p.add_argument("--model", choices=("log-distance", "attenuation-factor", "friis"),
+    p.add_argument("--model", choices=PATH_LOSS_MODELS,
                    default=None, help="path-loss columns to use (default: what the anchors have)")
     p.add_argument("--tag-height", type=finite_float, default=None,
                    help="2-D only: known tag height, to reduce slant ranges (m)")
@@ -156,270 +141,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_engine_arguments(p)
 
 
-def _params(items: list[str], methods: list[str]) -> dict[str, dict[str, float]]:
-    """``--param NAME=VALUE`` items -> per robust method, the thresholds it knows.
+def settings_from(args: argparse.Namespace) -> LocateSettings:
+    """The pipeline settings of a parsed command line."""
+    from robustloc.pipelines.locate import LocateSettings
 
-    A name that no chosen robust method has is an error naming the known ones."""
-    import dataclasses
-    import math
-
-    from robustloc.errors import InputError
-    from robustloc.estimators.ranging import ROBUST, method_weight
-    from robustloc.integrity.fixes import AUTO, AUTO_ROBUST
-
-    # 'auto' refits failing epochs with AUTO_ROBUST: its thresholds apply there
-    robust = [m for m in methods if m in ROBUST or m == AUTO]
-    known = {m: [f.name for f in dataclasses.fields(
-        type(method_weight(AUTO_ROBUST if m == AUTO else m)))] for m in robust}
-    out: dict[str, dict[str, float]] = {m: {} for m in robust}
-    for it in items:
-        name, sep, val = it.partition("=")
-        name = name.strip()
-        try:
-            value = float(val) if sep and name else math.nan
-        except ValueError:
-            value = math.nan
-        if not math.isfinite(value):
-            raise InputError(f"--param expects NAME=NUMBER (finite), got {it!r}")
-        if not robust:
-            raise InputError(f"--param {name}: weight-function thresholds apply only to the "
-                             f"robust methods {', '.join(ROBUST)}")
-        users = [m for m in robust if name in known[m]]
-        if not users:
-            names = "; ".join(f"{m}: {', '.join(known[m])}" for m in robust)
-            raise InputError(f"--param {name!r} is not a threshold of the chosen method(s) "
-                             f"(known: {names})")
-        for m in users:
-            out[m][name] = value
-    return out
-
-
-def _locators(args: argparse.Namespace, anchors: pd.DataFrame) -> tuple:
-    """The configured locators, the anchors' coordinates and height offsets."""
-    from robustloc.errors import InputError
-    from robustloc.estimators.ranging import Locator
-
-    if args.dim == 3 and "z" not in anchors.columns:
-        raise InputError("--dim 3 needs a z column in the anchors file", args.anchors, 1)
-    cols = ["x", "y"] + (["z"] if args.dim == 3 else [])
-    xyz = anchors[cols].to_numpy(dtype=float)
-    height = None
-    if args.tag_height is not None:
-        if args.dim != 2 or "z" not in anchors.columns:
-            raise InputError("--tag-height needs --dim 2 and a z column in the anchors file",
-                             args.anchors, 1)
-        height = anchors["z"].to_numpy(dtype=float) - args.tag_height
-    methods = list(args.method)
-    params = _params(args.param, methods)
-    sigma: float | tuple[float, ...] | None = args.sigma
-    if sigma is None and "sigma" in anchors.columns:
-        sg = anchors["sigma"].to_numpy(dtype=float)
-        if not np.all(np.isfinite(sg) & (sg > 0)):
-            raise InputError("anchors' sigma column must be positive and finite", args.anchors)
-        sigma = tuple(sg)
-    try:  # the settings are the user's: a refused combination is a user error
-        locators = [
-            Locator(
-                m, solver=args.solver, domain=args.domain, sigma=sigma,
-                robust_scale=args.robust_scale, reference=args.reference,
-                weight_params=params.get(m, {}),
-                min_scale=args.min_scale, alpha0=args.alpha0, beta0=args.beta0,
-            )
-            for m in methods
-        ]
-    except (ValueError, TypeError) as exc:
-        if isinstance(exc, InputError):
-            raise
-        raise InputError(f"invalid settings: {exc}") from None
-    return locators, anchors, xyz, height
+    return LocateSettings.from_namespace(args)
 
 
 def locate_file(args: argparse.Namespace) -> dict:
-    """Run ``locate`` as configured by ``args``; returns the summary."""
+    """Run the ``locate`` pipeline as configured by ``args`` (the command line, or one
+    partition of the Dask engine); returns the summary."""
     from robustloc.io import read_anchors
-    from robustloc.io.atomic import check_not_input, is_stdio
-    from robustloc.io.tables import UnsortedInput
+    from robustloc.pipelines.locate import run_locate
 
-    check_not_input(args.out, [args.measurements, args.anchors])
-    locators, anchors, xyz, height = _locators(args, read_anchors(args.anchors))
-    if any(loc.robust_scale == "log" for loc in locators):
-        try:
-            locators = _fix_log_scale(args, anchors, locators, xyz, height, "auto")
-        except UnsortedInput:
-            locators = _fix_log_scale(args, anchors, locators, xyz, height, "sort")
-    out = args.out
-    # a restartable output (a regular file: the temporary file is discarded) streams and
-    # restarts sorted if the rows turn out not to be in epoch order; standard output or a
-    # device cannot be taken back, so the order is checked first.
-    rewindable = not is_stdio(out) and not _is_special(out)
-    order = "auto" if rewindable else "check"
-    while True:
-        try:
-            summary = _run_once(args, order, locators, anchors, xyz, height)
-            break
-        except UnsortedInput:
-            if order != "auto":
-                raise
-            order = "sort"
+    _, summary = run_locate(args.measurements, read_anchors(args.anchors),
+                            settings_from(args), args.out, progress=not args.quiet)
     return summary
-
-
-def _is_special(path: str) -> bool:
-    import os
-    import stat
-
-    try:
-        return not stat.S_ISREG(os.stat(path).st_mode)
-    except OSError:
-        return False
-
-
-def _run_once(
-    args: argparse.Namespace, order: str, locators: list, anchors: pd.DataFrame,
-    xyz: np.ndarray, height: np.ndarray | None,
-) -> dict:
-    """One pass over the measurements; raises UnsortedInput (output discarded) when the
-    streamed rows turn out not to be in epoch order."""
-    from tqdm import tqdm
-
-    from robustloc._jitnotice import compile_notice
-    from robustloc.integrity.fixes import locate_protected
-    from robustloc.io import iter_epochs, positions_frame
-    from robustloc.io.tables import PositionsWriter
-    from robustloc.models.pathloss import log_distance_arrays
-    from robustloc.status import INVALID
-
-    out = args.out
-    methods = [loc.method for loc in locators]
-    ids = [str(a) for a in anchors["anchor"]]
-    counts: dict[str, dict[str, int]] = {m: {} for m in methods}
-    n_epochs = n_dup = n_invalid = 0
-    A = n = None
-    kind = None
-    t0 = _time.perf_counter()
-    solve_s = 0.0
-    bar = tqdm(unit=" epochs", disable=args.quiet or not sys.stderr.isatty(), file=sys.stderr)
-    try:
-        with PositionsWriter(out) as writer:
-            for block in iter_epochs(args.measurements, anchors, chunk_rows=args.chunk_rows,
-                                     order=order):
-                if kind is None:  # the first block: its input is valid, solving starts
-                    compile_notice("positioning")
-                    kind = block.value
-                    if kind == "rssi":
-                        A, n = log_distance_arrays(anchors, args.model)
-                values = _prepared_values(args, anchors, block)
-                bad = block.all_invalid
-                frames = []
-                for loc in locators:
-                    ts = _time.perf_counter()
-                    sol = locate_protected(
-                        loc, xyz, values, kind, A=A, n=n, height_offset=height,
-                        alpha0=args.alpha0, beta0=args.beta0, k_noise=args.k_noise,
-                        alert_limit=args.alert_limit)
-                    solve_s += _time.perf_counter() - ts
-                    fr = positions_frame(sol, block.time, block.tag, ids, loc.method)
-                    if bad.any():  # every row of the epoch was outside the physical limits
-                        fr.loc[bad, "status"] = INVALID
-                        fr.loc[bad, [c for c in ("x", "y", "z", "sigma0") if c in fr]] = np.nan
-                        fr.loc[bad, "n_used"] = 0
-                    frames.append(fr)
-                    st, c = np.unique(fr["status"].to_numpy(dtype=str), return_counts=True)
-                    for s_, c_ in zip(st, c):
-                        counts[loc.method][s_] = counts[loc.method].get(s_, 0) + int(c_)
-                writer.write(pd.concat(frames, ignore_index=True) if len(frames) > 1
-                             else frames[0])
-                n_epochs += block.n_epochs
-                n_dup += block.n_duplicates
-                n_invalid += int(block.n_invalid.sum())
-                bar.update(block.n_epochs)
-    finally:
-        bar.close()
-    wall = _time.perf_counter() - t0
-    return {
-        "measurements": str(args.measurements), "positions": str(out), "value": kind,
-        "epochs": n_epochs, "methods": methods, "status": counts,
-        "duplicates_merged": n_dup, "invalid_measurement_rows": n_invalid,
-        "sorted_first": order == "sort", "seconds": round(wall, 3),
-        "solve_seconds": round(solve_s, 3),
-        "fixes_per_second": round(n_epochs * len(methods) / max(solve_s, 1e-9), 1),
-    }
-
-
-def _prepared_values(args: argparse.Namespace, anchors: pd.DataFrame, block) -> np.ndarray:
-    """A block's observation matrix as the solvers see it (range calibration applied)."""
-    from robustloc.models.calibration import apply_range_calibration
-
-    if block.value == "range" and not args.no_range_calibration:
-        return apply_range_calibration(anchors, block.values)
-    return block.values
-
-
-def _fix_log_scale(args, anchors, locators, xyz, height, order: str,
-                   cap: int = 5_000, paths: list | None = None) -> list:
-    """First pass over the whole log: each locator's per-anchor noise scale from an even
-    sample of at most ``2 cap`` epochs (every ``k``-th epoch, ``k`` doubling as the log
-    grows), so the scale, and every fix, is the same whatever ``--chunk-rows`` is.
-    ``paths``: the log's files in order (a partitioned dataset; default the one file).
-    ``args.log_scale_fixed`` (set by the Dask engine, which computes it once for the whole
-    dataset) is used as it is."""
-    from dataclasses import replace
-
-    from robustloc.io import iter_epochs
-    from robustloc.models.pathloss import log_distance_arrays
-
-    fixed = getattr(args, "log_scale_fixed", None)
-    if fixed is not None:
-        return [replace(loc, log_scale_fixed=tuple(fixed[loc.method]))
-                if loc.robust_scale == "log" else loc for loc in locators]
-    if paths is None:  # standard input and FIFOs are spooled once (io.tables): re-readable
-        paths = [args.measurements]
-    k, seen, kept, idx = 1, 0, [], []
-    kind = None
-    blocks = (b for path in paths for b in iter_epochs(path, anchors,
-                                                       chunk_rows=args.chunk_rows, order=order))
-    for block in blocks:
-        kind = block.value
-        gi = np.arange(seen, seen + block.n_epochs)
-        seen += block.n_epochs
-        sel = gi % k == 0
-        kept.append(_prepared_values(args, anchors, block)[sel])
-        idx.append(gi[sel])
-        while sum(len(i) for i in idx) > 2 * cap:
-            k *= 2
-            kept = [v[i % k == 0] for v, i in zip(kept, idx)]
-            idx = [i[i % k == 0] for i in idx]
-    if kind is None:
-        return locators
-    sample = np.vstack(kept)
-    A = n = None
-    if kind == "rssi":
-        A, n = log_distance_arrays(anchors, args.model)
-    out = []
-    for loc in locators:
-        if loc.robust_scale != "log":
-            out.append(loc)
-            continue
-        scale = loc.log_scale(xyz, sample, kind, A=A, n=n, height_offset=height,
-                              max_epochs=2 * cap)
-        out.append(replace(loc, log_scale_fixed=tuple(float(v) for v in scale)))
-    return out
-
-
-def log_scales_for(args: argparse.Namespace, paths: list) -> dict[str, tuple[float, ...]]:
-    """Each method's per-anchor log scale over the files ``paths`` (in order), as
-    ``locate`` estimates it in its first pass: what the Dask engine hands to every
-    partition so that each solves with the whole dataset's scale."""
-    from robustloc.io import read_anchors
-    from robustloc.io.tables import UnsortedInput
-
-    locators, anchors, xyz, height = _locators(args, read_anchors(args.anchors))
-    try:
-        fixed = _fix_log_scale(args, anchors, locators, xyz, height, "auto", paths=paths)
-    except UnsortedInput:
-        fixed = _fix_log_scale(args, anchors, locators, xyz, height, "sort", paths=paths)
-    return {loc.method: loc.log_scale_fixed for loc in fixed
-            if loc.log_scale_fixed is not None}
 
 
 def run(args: argparse.Namespace) -> int:

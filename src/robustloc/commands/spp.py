@@ -1,4 +1,7 @@
-"""``robustloc spp``: GNSS single-point positioning from RINEX, with RAIM FDE."""
+"""``robustloc spp``: GNSS single-point positioning from RINEX, with RAIM FDE.
+
+The command line over :mod:`robustloc.pipelines.spp`.
+"""
 
 from __future__ import annotations
 
@@ -7,9 +10,6 @@ import json
 import sys
 from pathlib import Path
 
-import numpy as np
-
-from robustloc.commands._argtypes import float_in, nonnegative_int
 from robustloc.engines import add_engine_arguments
 
 NAME = "spp"
@@ -44,6 +44,8 @@ Example:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from robustloc.options import float_in, nonnegative_int
+
     p.add_argument("obs", help="RINEX observation file (2.xx or 3.xx)")
     p.add_argument("nav", nargs="*", help="RINEX navigation file(s)")
     p.add_argument("--sp3", default=None, help="SP3 precise orbit file")
@@ -80,143 +82,31 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_engine_arguments(p, what="the observation files (OBS: a directory or a glob)")
 
 
-def _parse_time(text: str | None, what: str) -> float | None:
-    from robustloc.errors import InputError
-    from robustloc.gnss.rinex import datetime64_to_gps_s
-
-    if text is None:
-        return None
-    try:
-        value = float(text)
-    except ValueError:
-        try:
-            value = float(datetime64_to_gps_s(np.array([np.datetime64(text)]))[0])
-        except ValueError:
-            value = float("nan")
-    if not np.isfinite(value):
-        raise InputError(f"{what}: expected GPS seconds or an ISO time, got {text!r}")
-    return value
-
-
-def _parse_reference(text: str) -> np.ndarray:
-    from robustloc.errors import InputError
-
-    try:
-        ref = np.array([float(v) for v in text.split(",")])
-    except ValueError:
-        ref = np.array([])
-    # an ECEF position on or near the Earth: 6 356 km (pole) .. 6 378 km plus 1e5 m slack
-    if ref.shape != (3,) or not np.all(np.isfinite(ref)) or not (
-            6.2e6 <= np.linalg.norm(ref) <= 6.5e6):
-        raise InputError(f"--reference: expected X,Y,Z ECEF metres of a point near the "
-                         f"Earth's surface (norm 6.2e6 .. 6.5e6 m), got {text!r}")
-    return ref
-
-
-def _parse_inject(text: str) -> dict[str, float]:
-    from robustloc.errors import InputError
-
-    out: dict[str, float] = {}
-    for item in text.split(","):
-        try:
-            sat, bias = item.split(":")
-            sat = sat.strip().upper()
-            if len(sat) == 2:
-                sat = sat[0] + "0" + sat[1]
-            out[sat] = float(bias)
-        except ValueError:
-            raise InputError(f"--inject: expected PRN:BIAS_M, got {item!r}") from None
-        if not np.isfinite(out[sat]) or abs(out[sat]) > 1e6:
-            raise InputError(f"--inject: bias must be finite, within +-1e6 m, got {item!r}")
-    return out
-
-
 def run(args: argparse.Namespace) -> int:
     if args.engine == "dask":
         from robustloc.engines.dask import run_spp
         return run_spp(args, run)
-    from robustloc import status as st
-    from robustloc.errors import InputError
-    from robustloc.gnss.raim import RaimFde, inject_faults
-    from robustloc.gnss.rinex import read_nav, read_obs
-    from robustloc.gnss.sp3 import PreciseProducts, read_clk, read_sp3
-    from robustloc.gnss.spp import SppSolver, error_summary
-
-    if not args.nav and args.sp3 is None:
-        raise InputError("give at least one navigation file or --sp3")
-    if args.clk is not None and args.sp3 is None:
-        raise InputError("--clk needs --sp3")
-    bad_sys = sorted(set(args.systems.upper()) - set("GREC"))
-    if not args.systems or bad_sys:
-        raise InputError(f"--systems: unknown constellation(s) {''.join(bad_sys)!r}; use "
-                         f"letters of GREC, got {args.systems!r}")
-    for f in [args.obs, *args.nav, args.sp3, args.clk]:
-        if f is not None and not Path(f).is_file():
-            raise InputError("file not found" if not Path(f).exists()
-                             else "is not a regular file", f)
-    ref = _parse_reference(args.reference) if args.reference is not None else None
-    inject = _parse_inject(args.inject) if args.inject else None
-    t_from = _parse_time(args.inject_from, "--inject-from")
-    t_until = _parse_time(args.inject_until, "--inject-until")
-    obs = read_obs(args.obs)
-    nav = read_nav(args.nav) if args.nav else None
-    precise = None
-    if args.sp3 is not None:
-        precise = PreciseProducts(read_sp3(args.sp3),
-                                  read_clk(args.clk) if args.clk else None)
-    if inject:
-        obs = inject_faults(obs, inject, t_from, t_until)
-    iono = args.iono or ("iflc" if precise is not None else "klobuchar")
-    try:  # settings the solver refuses (e.g. --smooth without iflc) are option errors
-        solver = SppSolver(systems=args.systems, elevation_mask_deg=args.elevation_mask,
-                           iono=iono, tropo=args.tropo, smoothing_epochs=args.smooth)
-    except ValueError as exc:
-        raise InputError(str(exc)) from None
-    if args.raim:
-        res = RaimFde(alpha0=args.alpha0, beta0=args.beta0,
-                      max_exclusions=args.max_exclusions).solve(solver, obs, nav, precise)
-    else:
-        res = solver.solve(obs, nav, precise)
-    frame = res.to_frame()
-    n_invalid = obs.invalid_per_epoch
-    if len(frame) == len(n_invalid):
-        # an epoch left without a solution by implausible pseudoranges
-        lost = (n_invalid > 0) & ~frame["status"].isin(st.USABLE).to_numpy()
-        frame.loc[lost, "status"] = st.INVALID
-    out = Path(args.out)
     from robustloc.io import write_table
+    from robustloc.pipelines.spp import SppSettings
+    from robustloc.pipelines.spp import run_spp as solve
 
+    frame, summary = solve(args.obs, args.nav, SppSettings.from_namespace(args),
+                           sp3=args.sp3, clk=args.clk)
+    out = Path(args.out)
     write_table(frame, out)  # atomic: nothing at -o after an error or an interrupt
-    if ref is not None:
-        ref_src = "--reference"
-    else:
-        ref = obs.approx_xyz_m
-        ref_src = "RINEX header APPROX POSITION XYZ"
-    summary = {"obs": args.obs, "out": str(out), "systems": res.systems, "iono": iono,
-               "raim": bool(args.raim), "invalid_measurement": int(n_invalid.sum())}
-    if np.linalg.norm(ref) > 6.0e6:
-        summary["reference"] = ref_src
-        summary["reference_xyz_m"] = [float(v) for v in ref]
-        summary.update(error_summary(res, ref))
-    else:
-        summary.update(error_summary(res, np.array([6378137.0, 0.0, 0.0])))
-        for k in [k for k in summary if k.endswith("_m") and k[:3] in ("bia", "rms", "p95",
-                                                                         "max")]:
-            del summary[k]
-        summary["reference"] = "none (no --reference and no header position)"
-    summary["status_counts"] = {str(k): int(v)
-                                for k, v in frame["status"].value_counts().items()}
+    summary = {"obs": summary["obs"], "out": str(out),
+               **{k: v for k, v in summary.items() if k != "obs"}}
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
         print(f"{summary['solved']}/{summary['epochs']} epochs solved "
               f"({', '.join(f'{k} {v}' for k, v in summary['status_counts'].items())}); "
-              f"systems {res.systems}, iono {iono}; written to {out}")
+              f"systems {summary['systems']}, iono {summary['iono']}; written to {out}")
         print(f"invalid_measurement: {summary['invalid_measurement']}"
               + (" (pseudoranges outside 1.5e7 .. 5e7 m, never used)"
                  if summary["invalid_measurement"] else ""))
         if "rms_h_m" in summary:
-            print(f"errors vs {ref_src}: ENU bias {summary['bias_e_m']:.2f} "
+            print(f"errors vs {summary['reference']}: ENU bias {summary['bias_e_m']:.2f} "
                   f"{summary['bias_n_m']:.2f} {summary['bias_u_m']:.2f} m; RMS horizontal "
                   f"{summary['rms_h_m']:.2f} m, 3-D {summary['rms_3d_m']:.2f} m; 95 % "
                   f"horizontal {summary['p95_h_m']:.2f} m; max 3-D {summary['max_3d_m']:.2f} m")

@@ -242,11 +242,14 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
                 # the log's noise scale is the whole dataset's: one first pass (an even
                 # sample of its epochs, in the partitions' order) on the client, handed to
                 # every partition, as the single-process first pass does for one file
-                from robustloc.commands.locate import log_scales_for
+                from robustloc.io import read_anchors
+                from robustloc.pipelines.locate import LocateSettings, log_scales_for
 
                 with tempfile.TemporaryDirectory(prefix="robustloc-") as tmp:
                     paths = [materialize(info.part, tmp) for info in plan]
-                    settings["log_scale_fixed"] = log_scales_for(args, paths)
+                    settings["log_scale_fixed"] = log_scales_for(
+                        LocateSettings.from_namespace(args), read_anchors(args.anchors),
+                        paths)
             futs = submit_all(client, _file_task, [(fn, settings, input_attr, info.part,
                                                     out.part(i)) for i, info in enumerate(plan)])
             summaries = gather_with_progress(client, futs, _show(args))

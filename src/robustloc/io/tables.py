@@ -66,9 +66,33 @@ _GZIP_MAGIC = b"\x1f\x8b"
 _PARQUET_MAGIC = b"PAR1"
 
 
-def _display(path: PathLike) -> str:
-    """The name of ``path`` in messages (``<stdin>`` for ``-``)."""
+def _display(path: PathLike | pd.DataFrame) -> str:
+    """The name of ``path`` in messages (``<stdin>`` for ``-``; an in-memory frame's
+    ``attrs["path"]``, else ``<measurements DataFrame>``)."""
+    if isinstance(path, pd.DataFrame):
+        return str(path.attrs.get("path") or "<measurements DataFrame>")
     return "<stdin>" if str(path) == "-" else str(path)
+
+
+def in_memory_source(df: pd.DataFrame, what: str = "measurements") -> pd.DataFrame:
+    """A frame as a source the readers stream like a file (:func:`iter_measurements`,
+    :func:`iter_epochs`): its rows named by their ``line`` index and ``attrs["path"]``
+    (kept when it came from a reader, which names the file), else by the line the row
+    would have in ``df.to_csv(index=False)`` (row position + 2) of ``<WHAT DataFrame>``.
+
+    Examples
+    --------
+    >>> src = in_memory_source(pd.DataFrame({"time": [0.0], "tag": ["t"], "anchor": ["a"],
+    ...                                      "range": [1.0]}))
+    >>> src.attrs["path"], list(src.index)
+    ('<measurements DataFrame>', [2])
+    """
+    if df.index.name == "line" and df.attrs.get("path"):
+        return df
+    out = df.copy()
+    out.index = pd.RangeIndex(2, len(out) + 2, name="line")
+    out.attrs = {"path": f"<{what} DataFrame>"}
+    return out
 
 
 def _cleanup_spool() -> None:
@@ -333,9 +357,16 @@ def _read_raw(path: PathLike, str_columns: Sequence[str] = ()) -> pd.DataFrame:
 def _iter_raw(
     path: PathLike, chunk_rows: int, str_columns: Sequence[str] = ()
 ) -> Iterator[pd.DataFrame]:
-    """Stream a CSV or Parquet file in chunks of about ``chunk_rows`` rows."""
+    """Stream a CSV or Parquet file in chunks of about ``chunk_rows`` rows (an in-memory
+    frame of :func:`in_memory_source`: slices of it)."""
     if chunk_rows < 1:
         raise ValueError(f"chunk_rows must be >= 1, got {chunk_rows}")
+    if isinstance(path, pd.DataFrame):
+        if len(path) == 0:
+            raise InputError("measurements table has no rows", _display(path))
+        for i in range(0, len(path), chunk_rows):
+            yield path.iloc[i: i + chunk_rows]
+        return
     p = _check_file(path)
     fmt = _format(p, path)
     if fmt == "parquet":
@@ -724,6 +755,9 @@ def read_measurements(
         value, time or an empty id is an error naming its line (never a silent drop).
         Negative ranges are accepted.
     """
+    if isinstance(path, pd.DataFrame):  # an in_memory_source
+        _require_rows(path, "measurements", _display(path))
+        return validate_measurements(path, _display(path), anchors)
     df = _read_raw(path, ("tag", "anchor"))
     _require_rows(df, "measurements", _display(path))
     return validate_measurements(df, _display(path), anchors)
@@ -759,7 +793,9 @@ _MEM_PER_CSV_BYTE = 8.0
 _MEM_PER_PARQUET_BYTE = 4.0
 
 
-def _in_memory_estimate(path: PathLike) -> float:
+def _in_memory_estimate(path: PathLike | pd.DataFrame) -> float:
+    if isinstance(path, pd.DataFrame):
+        return 0.0  # already in memory: sorting it there costs one copy
     p = _check_file(path)
     fmt = _format(p, path)
     if fmt == "parquet":
@@ -1033,8 +1069,9 @@ def iter_measurements(
 
     Parameters
     ----------
-    path : str or PathLike
-        CSV or Parquet file, or ``-`` (standard input, spooled to a temporary file).
+    path : str, PathLike or DataFrame
+        CSV or Parquet file, ``-`` (standard input, spooled to a temporary file), or a
+        frame of :func:`in_memory_source` (the Python API's input; read like a file).
     chunk_rows : int
         Rows read per chunk (default 500 000).
     anchors : DataFrame or sequence of str, optional
@@ -1352,6 +1389,10 @@ def write_positions(frame: pd.DataFrame, path: PathLike) -> Path:
     return write_table(frame[cols + extra], path)
 
 
+class _InMemory:
+    """The "open file" of a :class:`PositionsWriter` that keeps its chunks in memory."""
+
+
 class PositionsWriter:
     """Write a positions file chunk by chunk (bounded memory for streamed logs), atomically.
 
@@ -1361,25 +1402,39 @@ class PositionsWriter:
     folder, renamed onto ``path`` by :meth:`close` (see :func:`write_table`); leaving the
     ``with`` block by an exception (an input error, Ctrl-C, SIGTERM, a full disk) removes
     it, and the final path keeps its previous content or stays absent.  ``-`` writes CSV
-    to standard output.  Use as a context manager::
+    to standard output; ``None`` keeps the chunks in memory (the Python API), ordered the
+    same way, for :meth:`frame`.  Use as a context manager::
 
         with PositionsWriter("positions.csv") as out:
             for epochs in iter_epochs(path, anchors):
                 out.write(positions_frame(solver.solve(...), epochs.time, epochs.tag, ids))
     """
 
-    def __init__(self, path: PathLike) -> None:
-        self.path = Path(path) if str(path) != "-" else path
+    def __init__(self, path: PathLike | None) -> None:
+        self.path = None if path is None else Path(path) if str(path) != "-" else path
         self.n_rows = 0
         self._columns: list[str] | None = None
         self._pq_writer = None
         self._cm = None
         self._target: Path | None = None
         self._stream = None
+        self._chunks: list[pd.DataFrame] = []
+
+    def frame(self) -> pd.DataFrame:
+        """In-memory mode: every chunk written, as one frame (index 0..n-1)."""
+        if not self._chunks:
+            return pd.DataFrame({c: [] for c in (self._columns or POSITION_COLUMNS)})
+        out = pd.concat(self._chunks, ignore_index=True) if len(self._chunks) > 1 \
+            else self._chunks[0]
+        out.attrs = {}
+        return out
 
     def __enter__(self) -> PositionsWriter:
         from robustloc.io.atomic import atomic_output, is_stdio
 
+        if self.path is None:
+            self._cm = _InMemory()
+            return self
         if is_stdio(self.path) and is_parquet(self.path):  # pragma: no cover
             raise InputError("Parquet cannot be written to standard output", "-")
         self._cm = atomic_output(self.path, binary=False)
@@ -1405,7 +1460,9 @@ class PositionsWriter:
             )
         out = frame[self._columns].reset_index(drop=True)
         out.attrs = {}
-        if self._stream is not None:
+        if self.path is None:
+            self._chunks.append(out)
+        elif self._stream is not None:
             out.to_csv(self._stream, header=self.n_rows == 0, index=False)
         elif is_parquet(self.path):
             import pyarrow as pa
@@ -1430,6 +1487,10 @@ class PositionsWriter:
 
     def _finish(self, exc: BaseException | None) -> None:
         cm, self._cm = self._cm, None
+        if self.path is None:
+            if exc is not None:
+                self._chunks = []
+            return
         try:
             if self._pq_writer is not None:
                 w, self._pq_writer = self._pq_writer, None

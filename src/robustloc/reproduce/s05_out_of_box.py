@@ -55,8 +55,8 @@ def _ours(case, method: str, rows: np.ndarray, anchors=None) -> tuple[np.ndarray
 
 def _self_calibrated(case):
     """Anchors after ``calibrate --self`` on the case's own log (no truth)."""
-    from robustloc.commands.calibrate import self_calibrate
     from robustloc.models.calibration import self_calibration_table
+    from robustloc.pipelines.calibrate import self_calibrate
 
     res, model = self_calibrate(case.anchors, case.xy, case.values, case.kind,
                                 height_offset=case.height_offset)

@@ -155,25 +155,24 @@ class LocateProcessor:
         """Per-anchor noise scale of a recorded log, by ``robustloc locate``'s first pass.
 
         ``settings`` are the other :class:`LocateProcessor` settings (``solver``, ``model``,
-        ``range_calibration``, ...).  Calls ``robustloc.commands.locate._fix_log_scale``,
-        so a log replayed through a service started with this scale gives the positions
-        ``robustloc locate`` gives on the file.
+        ``range_calibration``, ...).  Runs ``locate``'s own first pass
+        (:func:`robustloc.pipelines.locate.fix_log_scale`), so a log replayed through a
+        service started with this scale gives the positions ``robustloc locate`` gives on
+        the file.
         """
-        import argparse
-
-        from robustloc.commands.locate import _fix_log_scale
         from robustloc.io.tables import UnsortedInput
+        from robustloc.pipelines.locate import Geometry, LocateSettings, fix_log_scale
 
         proto = LocateProcessor(anchors, method=method, dim=dim, robust_scale="log",
                                 log_scale=(1.0,) * len(anchors), **settings)
         loc = replace(proto.locator, log_scale_fixed=None)
-        ns = argparse.Namespace(measurements=str(path), chunk_rows=chunk_rows,
-                                no_range_calibration=not proto.range_calibration,
-                                model=proto.model)
+        first_pass = LocateSettings(chunk_rows=chunk_rows, model=proto.model,
+                                    range_calibration=proto.range_calibration)
+        geo = Geometry([loc], anchors, proto.xyz, proto.height)
         try:
-            (out,) = _fix_log_scale(ns, anchors, [loc], proto.xyz, proto.height, "auto")
+            (out,) = fix_log_scale(first_pass, geo, [str(path)], "auto")
         except UnsortedInput:
-            (out,) = _fix_log_scale(ns, anchors, [loc], proto.xyz, proto.height, "sort")
+            (out,) = fix_log_scale(first_pass, geo, [str(path)], "sort")
         if out.log_scale_fixed is None:
             raise ValueError(f"{path}: no epochs to take the noise scale from")
         return tuple(out.log_scale_fixed)

@@ -199,7 +199,7 @@ def visible_design(
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from robustloc.commands._argtypes import (  # CLI plumbing only (sim is below commands)
+    from robustloc.options import (
         float_in,
         int_in,
     )

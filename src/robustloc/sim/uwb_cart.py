@@ -126,7 +126,7 @@ def simulate_cart(
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from robustloc.commands._argtypes import float_in  # CLI plumbing only (sim is below commands)
+    from robustloc.options import float_in
 
     parser.add_argument("--group", choices=["A", "B"], default="A",
                         help="paper's experiment group (default A: 10 m field, T = 1 s)")

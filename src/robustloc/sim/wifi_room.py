@@ -226,7 +226,7 @@ def generate(cfg: WifiRoomConfig, seed: int) -> WifiRoomData:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from robustloc.commands._argtypes import (  # CLI plumbing only (sim is below commands)
+    from robustloc.options import (
         float_in,
         int_in,
     )

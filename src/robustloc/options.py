@@ -1,0 +1,201 @@
+"""Checked option values, shared by the command line and the Python API.
+
+``type=float`` accepts ``nan``, ``inf`` and any sign, so a typo such as
+``--elevation-mask nan`` would silently disable a check.  These converters refuse such
+values with a message naming the accepted range.  The command line uses them as
+``argparse`` ``type=`` (argparse prints ``robustloc CMD: error: argument --x: ...`` and
+exits with code 2); the settings dataclasses of :mod:`robustloc.pipelines` declare them
+on their fields (``option(...)``) and :func:`check_settings` applies them to values given
+from Python, raising :class:`~robustloc.errors.InputError` with the same
+``argument --x: ...`` text.  One definition of every check, two front ends.
+
+Examples
+--------
+>>> finite_float("1.5")
+1.5
+>>> float_in(0, 90)("45")
+45.0
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import field, fields
+from typing import Any
+
+__all__ = [
+    "check_settings",
+    "option",
+    "finite_float",
+    "positive_float",
+    "nonnegative_float",
+    "float_in",
+    "positive_int",
+    "nonnegative_int",
+    "int_in",
+]
+
+
+def _float(text: str | float) -> float:
+    if isinstance(text, bool):
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}")
+    try:
+        value = float(text)
+    except (ValueError, TypeError):
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def finite_float(text: str) -> float:
+    """A finite float (no NaN, no infinity)."""
+    return _float(text)
+
+
+def positive_float(text: str) -> float:
+    """A finite float > 0."""
+    value = _float(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
+    return value
+
+
+def nonnegative_float(text: str) -> float:
+    """A finite float >= 0."""
+    value = _float(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
+    return value
+
+
+def float_in(low: float, high: float) -> Callable[[str], float]:
+    """Converter for a finite float in the closed interval ``[low, high]``."""
+
+    def convert(text: str) -> float:
+        value = _float(text)
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(
+                f"expected a number in [{low:g}, {high:g}], got {text!r}")
+        return value
+
+    convert.__name__ = f"float_in_{low:g}_{high:g}"
+    return convert
+
+
+def _int(text: str | int) -> int:
+    if isinstance(text, bool) or (isinstance(text, float) and not text.is_integer()):
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}")
+    try:
+        return int(text)
+    except (ValueError, TypeError, OverflowError):
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+
+
+def positive_int(text: str) -> int:
+    """A whole number >= 1."""
+    value = _int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
+    return value
+
+
+def nonnegative_int(text: str) -> int:
+    """A whole number >= 0."""
+    value = _int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
+    return value
+
+
+def int_in(low: int, high: int) -> Callable[[str], int]:
+    """Converter for a whole number in ``[low, high]``."""
+
+    def convert(text: str) -> int:
+        value = _int(text)
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(
+                f"expected a whole number in [{low}, {high}], got {text!r}")
+        return value
+
+    convert.__name__ = f"int_in_{low}_{high}"
+    return convert
+
+
+# --------------------------------------------------------------------------------------
+# settings dataclasses
+# --------------------------------------------------------------------------------------
+
+
+def option(
+    default: Any, *, check: Callable[[Any], Any] | None = None,
+    choices: Sequence[Any] | None = None, flag: str | None = None,
+) -> Any:
+    """A settings-dataclass field that is a command-line option.
+
+    Parameters
+    ----------
+    default : object
+        The default (the command line's).
+    check : callable, optional
+        A converter of this module (``positive_float``, ``float_in(0, 1)``, ...) or any
+        callable raising :class:`argparse.ArgumentTypeError` / :class:`ValueError` on a
+        refused value.
+    choices : sequence, optional
+        The allowed values.
+    flag : str, optional
+        The option's name on the command line (default ``--`` + the field name with
+        dashes), used in messages.
+    """
+    return field(default=default, metadata={"check": check, "choices": choices, "flag": flag})
+
+
+def check_settings(settings: object) -> None:
+    """Apply the checks declared with :func:`option` to a settings dataclass.
+
+    ``None`` is "not given" and is not checked.  A refused value raises
+    :class:`~robustloc.errors.InputError` with argparse's wording, ``argument --NAME:
+    ...``, so the API and the command line say the same.
+
+    Examples
+    --------
+    >>> from dataclasses import dataclass
+    >>> @dataclass(frozen=True)
+    ... class S:
+    ...     sigma: float | None = option(None, check=positive_float)
+    ...     dim: int = option(2, choices=(2, 3))
+    ...     def __post_init__(self): check_settings(self)
+    >>> S(sigma=-1.0)
+    Traceback (most recent call last):
+    ...
+    robustloc.errors.InputError: argument --sigma: expected a number > 0, got '-1.0'
+    >>> S(dim=4)
+    Traceback (most recent call last):
+    ...
+    robustloc.errors.InputError: argument --dim: invalid choice: 4 (choose from 2, 3)
+    """
+    from robustloc.errors import InputError
+
+    for f in fields(settings):  # type: ignore[arg-type]
+        meta = f.metadata
+        if not meta or "check" not in meta:
+            continue
+        value = getattr(settings, f.name)
+        if value is None:
+            continue
+        flag = meta["flag"] or "--" + f.name.replace("_", "-")
+        choices = meta["choices"]
+        if choices is not None and value not in choices:
+            raise InputError(f"argument {flag}: invalid choice: {value!r} (choose from "
+                             f"{', '.join(repr(c) for c in choices)})")
+        if meta["check"] is not None:
+            # a number is checked as the text the command line would get, so the
+            # message is the command line's word for word (``got '-1.0'``)
+            arg = (str(value) if isinstance(value, (int, float)) and not isinstance(value, bool)
+                   else value)
+            try:
+                meta["check"](arg)
+            except (argparse.ArgumentTypeError, ValueError, TypeError) as exc:
+                raise InputError(f"argument {flag}: {exc}") from None

@@ -1,0 +1,307 @@
+"""The ``calibrate`` workflow: path-loss parameters or range bias/scale per anchor.
+
+Three ways in (:func:`run_calibrate`): a survey (``anchor, distance, rssi|range``), a
+survey built from positioned data (``measurements`` + ``truth``), or self-calibration
+from a log without truth (``self_log``; :mod:`robustloc.models.selfcal`).
+:class:`CalibrateSettings` holds every setting.  ``robustloc calibrate`` and
+:func:`robustloc.calibrate` run this code.
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from robustloc.errors import InputError
+from robustloc.options import (
+    check_settings,
+    finite_float,
+    nonnegative_float,
+    option,
+    positive_float,
+)
+
+#: ``model`` values.
+CALIBRATION_MODELS = ("log-distance", "attenuation-factor", "friis")
+
+
+def weight_name(name: str) -> str:
+    """A robust weight function's name (:func:`robustloc.robust.weights.get_weight`
+    refuses an unknown one, naming the known)."""
+    from robustloc.robust.weights import get_weight
+
+    get_weight(str(name))
+    return str(name)
+
+
+@dataclass(frozen=True)
+class CalibrateSettings:
+    """Every setting of ``calibrate`` (the ``robustloc calibrate`` options of the same name).
+
+    Parameters
+    ----------
+    model : {"log-distance", "attenuation-factor", "friis"}
+        Path-loss model for RSSI data.
+    robust : str, optional
+        Robust IRLS fit with this weight (``huber``, ``hampel``, ``igg``, ``igg3``).
+    scale : bool, optional
+        Range data: fit a scale factor too (default no for a survey, yes for a self-log).
+    pooled : bool
+        Write the pooled fit to every anchor.
+    d0, p0 : float
+        Reference distance (m) and ``P_r(d0)`` (dBm) of the attenuation-factor model.
+    time_tolerance : float
+        Largest absolute time difference (s) matching measurements to truth.
+    dim, tag_height, se_ratio
+        Self-calibration: solved dimension, 2-D tag height (m), and the standard-error
+        ratio beyond which a parameter is left at its prior.
+    """
+
+    model: str = option("log-distance", choices=CALIBRATION_MODELS)
+    robust: str | None = option(None, check=weight_name)
+    scale: bool | None = None
+    pooled: bool = False
+    d0: float = option(1.0, check=positive_float)
+    p0: float | None = option(None, check=finite_float)
+    time_tolerance: float = option(1e-6, check=nonnegative_float)
+    dim: int = option(2, choices=(2, 3))
+    tag_height: float | None = option(None, check=finite_float)
+    se_ratio: float = option(3.0, check=positive_float)
+
+    def __post_init__(self) -> None:
+        check_settings(self)
+
+    @classmethod
+    def from_namespace(cls, args: argparse.Namespace) -> CalibrateSettings:
+        """The settings of a parsed ``robustloc calibrate`` command line."""
+        from dataclasses import fields
+
+        return cls(**{f.name: getattr(args, f.name) for f in fields(cls)})
+
+
+@dataclass
+class Calibration:
+    """What :func:`run_calibrate` found.
+
+    Attributes
+    ----------
+    output : DataFrame
+        The anchors with the fitted columns, or without anchors the parameter table:
+        what ``-o`` gets.
+    parameters : DataFrame
+        The fit table (one row per anchor, and the pooled fit), standard errors included.
+    unit : str
+        ``dB`` or ``m``.
+    summary : dict
+        The run summary (``--json``; the output path is the front end's to add).
+    headline : str
+        One line saying what was fitted, for people.
+    notes, warnings : list of str
+        What the command line prints as ``note:`` and ``warning:``.
+    """
+
+    output: pd.DataFrame
+    parameters: pd.DataFrame
+    unit: str
+    summary: dict[str, Any]
+    headline: str
+    notes: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+
+
+def run_calibrate(
+    settings: CalibrateSettings, *, survey: Any = None, anchors: pd.DataFrame | None = None,
+    measurements: Any = None, truth: Any = None, self_log: Any = None,
+) -> Calibration:
+    """Calibrate from a survey, from positioned data, or from a log alone.
+
+    Parameters
+    ----------
+    settings : CalibrateSettings
+    survey, measurements, truth, self_log : str, PathLike or DataFrame, optional
+        Files, or frames validated by :mod:`robustloc.io` (``validate_survey`` & co.).
+    anchors : DataFrame, optional
+        Validated anchors to add the fitted columns to (required by ``measurements`` and
+        ``self_log``).
+    """
+    if self_log is not None:
+        if survey is not None or measurements is not None or truth is not None:
+            raise InputError("--self takes the log alone: no SURVEY, --measurements or "
+                             "--truth")
+        if anchors is None:
+            raise InputError("--self needs --anchors (the anchor coordinates are the datum)")
+        return _self(settings, anchors, self_log)
+    return _from_survey(settings, survey, anchors, measurements, truth)
+
+
+def _name(src: Any) -> str:
+    if isinstance(src, pd.DataFrame):
+        return str(src.attrs.get("path") or "<DataFrame>")
+    return str(src)
+
+
+def _load_survey(settings: CalibrateSettings, survey: Any, anchors: pd.DataFrame | None,
+                 measurements: Any, truth: Any, notes: list[str]) -> pd.DataFrame:
+    from robustloc.io import read_measurements, read_survey, read_truth
+    from robustloc.models.calibration import survey_from_positions
+
+    if measurements is not None or truth is not None:
+        if survey is not None:
+            raise InputError("give either a SURVEY file or --measurements/--truth, not both")
+        if measurements is None or truth is None or anchors is None:
+            raise InputError("--measurements needs --truth and --anchors")
+        meas = (measurements if isinstance(measurements, pd.DataFrame)
+                else read_measurements(measurements, anchors))
+        tru = truth if isinstance(truth, pd.DataFrame) else read_truth(truth)
+        out = survey_from_positions(meas, tru, anchors,
+                                    time_tolerance_s=settings.time_tolerance)
+        if len(out) == 0:
+            raise InputError(f"{_name(measurements)}: no measurement matches the truth by "
+                             "(time, tag)")
+        if out.attrs.get("n_unmatched"):
+            notes.append(f"{out.attrs['n_unmatched']} measurement rows had no truth and "
+                         "were not used")
+        return out
+    if survey is None:
+        raise InputError("give a SURVEY file, or --measurements, --truth and --anchors")
+    return survey if isinstance(survey, pd.DataFrame) else read_survey(survey, anchors)
+
+
+def _from_survey(settings: CalibrateSettings, survey: Any, anchors: pd.DataFrame | None,
+                 measurements: Any, truth: Any) -> Calibration:
+    from robustloc.models.calibration import (
+        POOLED,
+        calibrate_pathloss,
+        calibrate_ranges,
+        default_p0_from_anchors,
+    )
+
+    notes: list[str] = []
+    table = _load_survey(settings, survey, anchors, measurements, truth, notes)
+    value = table.attrs.get("value") or ("rssi" if "rssi" in table.columns else "range")
+    if value == "rssi":
+        p0 = settings.p0 if settings.p0 is not None else default_p0_from_anchors(anchors)
+        res = calibrate_pathloss(table, settings.model, robust=settings.robust,
+                                 pooled=settings.pooled, d0=settings.d0, p0=p0)
+    else:
+        res = calibrate_ranges(table, scale=bool(settings.scale), robust=settings.robust,
+                               pooled=settings.pooled)
+    out = res.apply_to_anchors(anchors)
+    # the noise sigma written (and used by `locate` to weight the anchors): each anchor's
+    # residual std, the pooled one with --pooled; 1e-6 m or dB is far below any physical
+    # noise and above the rounding of an exact fit
+    t = res.table
+    rows = t[t["anchor"] == POOLED] if res.pooled else t[t["anchor"] != POOLED]
+    sg = rows["residual_std"].to_numpy(dtype=float)
+    bad = ~(np.isfinite(sg) & (sg > 1e-6))
+    if bad.any():
+        who = rows["anchor"].iloc[int(np.argmax(bad))]
+        who = "pooled fit" if who == POOLED else f"anchor {who}"
+        raise InputError(
+            f"{who}: cannot determine sigma: the fit is exact (zero residual), so `locate` "
+            "could not weight the anchor", table.attrs.get("path"))
+    how = f"robust ({res.robust})" if res.robust else "least squares"
+    headline = (f"{res.model} fit, {how}, {len(table)} survey rows"
+                + (" (pooled fit written to every anchor)" if res.pooled else ""))
+    summary = {"model": res.model, "robust": res.robust, "pooled": res.pooled,
+               "unit": res.unit, "parameters": _records(res.table),
+               "notes": notes + list(res.notes)}
+    return Calibration(out, res.table, res.unit, summary, headline, notes + list(res.notes))
+
+
+def _records(table: pd.DataFrame) -> list[dict[str, Any]]:
+    return table.replace({np.nan: None}).to_dict(orient="records")
+
+
+def self_calibrate(
+    anchors: pd.DataFrame, xyz: np.ndarray, values: np.ndarray, kind: str, *,
+    height_offset: np.ndarray | None = None, model_name: str | None = "log-distance",
+    fit_scale: bool = True, se_ratio: float = 3.0,
+) -> tuple[Any, Any]:
+    """Self-calibration on arrays: robust start fixes (huber), then the joint adjustment
+    of :class:`robustloc.models.selfcal.SelfCalibrator`.
+
+    Returns ``(SelfCalibration, path-loss model or None)``; the anchors frame with the new
+    columns is ``robustloc.models.calibration.self_calibration_table(res, anchors, model)``.
+    """
+    from robustloc.estimators.ranging import Locator
+    from robustloc.models.pathloss import model_from_anchors
+    from robustloc.models.selfcal import SelfCalibrator
+
+    ids = [str(a) for a in anchors["anchor"]]
+    model = None
+    if kind == "rssi":
+        # the model named by --model; the default (log-distance) yields to the anchors'
+        # own attenuation-factor columns when they have no A, n
+        use_default = model_name == "log-distance" and not {"A", "n"} <= set(anchors.columns)
+        model = model_from_anchors(anchors, None if use_default else model_name)
+        A0, n0 = model.log_distance_params()
+        A0 = np.broadcast_to(A0, (len(ids),)).astype(float)
+        n0 = np.broadcast_to(n0, (len(ids),)).astype(float)
+        start = Locator("huber").solve(xyz, values, "rssi", A=A0, n=n0,
+                                       height_offset=height_offset)
+        cal = SelfCalibrator("rssi", fit_slope=type(model).__name__ != "FreeSpace",
+                             se_ratio=se_ratio)
+        res = cal.fit(xyz, values, start.position, offset0=A0, slope0=n0,
+                      height_offset=height_offset, anchor_ids=ids)
+    else:
+        start = Locator("huber").solve(xyz, values, "range", height_offset=height_offset)
+        cal = SelfCalibrator("range", fit_slope=fit_scale, se_ratio=se_ratio)
+        res = cal.fit(xyz, values, start.position, height_offset=height_offset,
+                      anchor_ids=ids)
+    return res, model
+
+
+def _self(settings: CalibrateSettings, anchors: pd.DataFrame, self_log: Any) -> Calibration:
+    from robustloc.io import read_measurements, to_epochs
+    from robustloc.models.calibration import self_calibration_table
+
+    where = anchors.attrs.get("path")
+    if ((settings.dim == 3 or settings.tag_height is not None)
+            and "z" not in anchors.columns):
+        raise InputError("--dim 3 and --tag-height need a z column in the anchors file",
+                         where, 1)
+    if settings.dim == 3 and settings.tag_height is not None:
+        raise InputError("--tag-height is for --dim 2")
+    ids = [str(a) for a in anchors["anchor"]]
+    meas = (self_log if isinstance(self_log, pd.DataFrame)
+            else read_measurements(self_log, anchors))
+    ep = to_epochs(meas, ids)
+    kind = ep.value
+    cols = ["x", "y"] + (["z"] if settings.dim == 3 else [])
+    xyz = anchors[cols].to_numpy(dtype=float)
+    height = None
+    if settings.tag_height is not None:
+        height = anchors["z"].to_numpy(dtype=float) - settings.tag_height
+    if kind == "rssi" and settings.scale is not None:
+        raise InputError("--scale is for range data")
+    res, model = self_calibrate(anchors, xyz, ep.values, kind, height_offset=height,
+                                model_name=settings.model,
+                                fit_scale=settings.scale is not False,
+                                se_ratio=settings.se_ratio)
+    if res.epochs_used == 0:
+        raise InputError(
+            f"nothing to self-calibrate: no epoch has a fix with redundancy (need at least "
+            f"{settings.dim + 1} anchors heard in one epoch; {res.epochs_total} epochs, "
+            f"{res.epochs_no_start} without a start fix)", _name(self_log))
+    table, out = self_calibration_table(res, anchors, model)
+    summary = {
+        "kind": kind, "epochs": res.epochs_total, "epochs_used": res.epochs_used,
+        "epochs_no_redundancy": res.epochs_no_redundancy, "epochs_bad": res.epochs_bad,
+        "epochs_no_start": res.epochs_no_start,
+        "observations_rejected": res.observations_rejected,
+        "sigma0": round(res.sigma0, 4), "iterations": res.iterations,
+        "converged": res.converged, "parameters": _records(table),
+        "warnings": list(res.warnings),
+    }
+    headline = (f"self-calibration ({kind}), {res.epochs_used} of {res.epochs_total} epochs "
+                f"used ({res.epochs_no_redundancy} without redundancy, {res.epochs_bad} bad, "
+                f"{res.epochs_no_start} without a start fix; {res.observations_rejected} "
+                f"observations rejected), {res.iterations} iterations, "
+                f"sigma0 {res.sigma0:.3f}")
+    return Calibration(out, table, "m" if kind == "range" else "dB", summary, headline,
+                       warnings=[f"{_name(self_log)}: {w}" for w in res.warnings])

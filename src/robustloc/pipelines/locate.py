@@ -1,0 +1,443 @@
+"""The ``locate`` workflow: a fix, its test and its protection level for every epoch.
+
+:func:`run_locate` streams a measurements log (a file, standard input or an in-memory
+frame; rows in any order) through the configured locators
+(:class:`~robustloc.estimators.ranging.Locator` via
+:func:`~robustloc.integrity.fixes.locate_protected`) and writes one positions row per
+epoch and method with a ``status``.  :class:`LocateSettings` holds every setting, checked
+with the command line's wording.  ``robustloc locate``, :func:`robustloc.locate`, the
+Dask engine and the live service all run this code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time as _time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from robustloc.errors import InputError
+from robustloc.options import (
+    check_settings,
+    finite_float,
+    float_in,
+    nonnegative_float,
+    option,
+    positive_float,
+    positive_int,
+)
+
+#: ``model`` values: the path-loss models of :mod:`robustloc.models.pathloss`.
+PATH_LOSS_MODELS = ("log-distance", "attenuation-factor", "friis")
+
+
+def methods_known() -> tuple[str, ...]:
+    """``auto`` and every method of :data:`robustloc.estimators.ranging.METHODS`."""
+    from robustloc.estimators.ranging import METHODS
+
+    return ("auto",) + tuple(METHODS)
+
+
+def method_list(text: str | Sequence[str]) -> list[str]:
+    """Check a ``--method`` value (comma-separated text, or a sequence of names): known
+    methods, each once; raises :class:`argparse.ArgumentTypeError` otherwise."""
+    known = methods_known()
+    if not isinstance(text, str):
+        text = ",".join(str(m) for m in text)
+    methods = [m.strip() for m in text.split(",")]
+    if not any(methods):
+        raise argparse.ArgumentTypeError(
+            f"expected one or more of {', '.join(known)}, got {text!r}")
+    if "" in methods:
+        raise argparse.ArgumentTypeError(f"empty method name in {text!r}")
+    for m in methods:
+        if m not in known:
+            raise argparse.ArgumentTypeError(
+                f"unknown method {m!r}; choose from {', '.join(known)}")
+    dup = [m for i, m in enumerate(methods) if m in methods[:i]]
+    if dup:
+        raise argparse.ArgumentTypeError(f"method {dup[0]!r} given twice in {text!r}")
+    return methods
+
+
+@dataclass(frozen=True)
+class LocateSettings:
+    """Every setting of ``locate`` (the ``robustloc locate`` options of the same name).
+
+    Parameters
+    ----------
+    method : tuple of str
+        Methods, one output row per epoch each (``auto`` the default; see
+        ``robustloc locate --help``).  A comma-separated str is accepted.
+    dim : {2, 3}
+        Solve in 2-D or 3-D.
+    solver, reference, domain, robust_scale, model
+        As the options of the same name.
+    sigma : float, optional
+        A-priori std of one observation (m or dB); default the anchors' ``sigma`` column.
+    alert_limit : float, optional
+        Horizontal alert limit (m): hpl above it -> ``protection_exceeded``.
+    k_noise : float, optional
+        Protection levels' multiplier of the fault-free noise (default 3.29).
+    min_scale : float
+        Floor of the estimated robust scale.
+    param : tuple of str
+        Weight-function thresholds as ``NAME=VALUE`` items (``--param``).
+    tag_height : float, optional
+        2-D: known tag height (m), to reduce slant ranges.
+    range_calibration : bool
+        Apply the anchors' ``bias``/``scale`` columns (``--no-range-calibration``: False).
+    alpha0, beta0 : float
+        w-test significance and B-method type II error.
+    chunk_rows : int
+        Rows read per chunk.
+    log_scale_fixed : mapping of str to tuple of float, optional
+        Per method, the per-anchor log scale to use as it is (the Dask engine computes it
+        once for a whole dataset); default: estimated by a first pass over the log.
+    """
+
+    method: tuple[str, ...] = option(("auto",), check=method_list)
+    dim: int = option(2, choices=(2, 3))
+    solver: str = option("nonlinear", choices=("nonlinear", "linearized"))
+    reference: str = option("first", choices=("first", "nearest"))
+    domain: str = option("range", choices=("range", "rssi"))
+    sigma: float | None = option(None, check=positive_float)
+    robust_scale: str = option("log", choices=("log", "mad", "apriori"))
+    alert_limit: float | None = option(None, check=positive_float)
+    k_noise: float | None = option(None, check=nonnegative_float)
+    min_scale: float = option(0.0, check=nonnegative_float)
+    param: tuple[str, ...] = ()
+    model: str | None = option(None, choices=PATH_LOSS_MODELS)
+    tag_height: float | None = option(None, check=finite_float)
+    range_calibration: bool = True
+    alpha0: float = option(0.001, check=float_in(1e-12, 0.5))
+    beta0: float = option(0.10, check=float_in(1e-6, 0.99))
+    chunk_rows: int = option(500_000, check=positive_int)
+    log_scale_fixed: Mapping[str, tuple[float, ...]] | None = None
+
+    def __post_init__(self) -> None:
+        if isinstance(self.method, str):
+            object.__setattr__(self, "method", tuple(m.strip() for m in self.method.split(",")))
+        else:
+            object.__setattr__(self, "method", tuple(self.method))
+        object.__setattr__(self, "param", tuple(self.param))
+        check_settings(self)
+        object.__setattr__(self, "method", tuple(method_list(self.method)))
+
+    @classmethod
+    def from_namespace(cls, args: argparse.Namespace) -> LocateSettings:
+        """The settings of a parsed ``robustloc locate`` command line."""
+        return cls(
+            method=tuple(args.method), dim=args.dim, solver=args.solver,
+            reference=args.reference, domain=args.domain, sigma=args.sigma,
+            robust_scale=args.robust_scale, alert_limit=args.alert_limit,
+            k_noise=args.k_noise, min_scale=args.min_scale, param=tuple(args.param),
+            model=args.model, tag_height=args.tag_height,
+            range_calibration=not args.no_range_calibration, alpha0=args.alpha0,
+            beta0=args.beta0, chunk_rows=args.chunk_rows,
+            log_scale_fixed=getattr(args, "log_scale_fixed", None),
+        )
+
+
+def weight_params(items: Sequence[str], methods: Sequence[str]) -> dict[str, dict[str, float]]:
+    """``--param NAME=VALUE`` items -> per robust method, the thresholds it knows.
+
+    A name that no chosen robust method has is an error naming the known ones."""
+    import dataclasses
+    import math
+
+    from robustloc.estimators.ranging import ROBUST, method_weight
+    from robustloc.integrity.fixes import AUTO, AUTO_ROBUST
+
+    # 'auto' refits failing epochs with AUTO_ROBUST: its thresholds apply there
+    robust = [m for m in methods if m in ROBUST or m == AUTO]
+    known = {m: [f.name for f in dataclasses.fields(
+        type(method_weight(AUTO_ROBUST if m == AUTO else m)))] for m in robust}
+    out: dict[str, dict[str, float]] = {m: {} for m in robust}
+    for it in items:
+        name, sep, val = it.partition("=")
+        name = name.strip()
+        try:
+            value = float(val) if sep and name else math.nan
+        except ValueError:
+            value = math.nan
+        if not math.isfinite(value):
+            raise InputError(f"--param expects NAME=NUMBER (finite), got {it!r}")
+        if not robust:
+            raise InputError(f"--param {name}: weight-function thresholds apply only to the "
+                             f"robust methods {', '.join(ROBUST)}")
+        users = [m for m in robust if name in known[m]]
+        if not users:
+            names = "; ".join(f"{m}: {', '.join(known[m])}" for m in robust)
+            raise InputError(f"--param {name!r} is not a threshold of the chosen method(s) "
+                             f"(known: {names})")
+        for m in users:
+            out[m][name] = value
+    return out
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """The configured locators and the anchors as the solvers see them."""
+
+    locators: list[Any]
+    anchors: pd.DataFrame
+    xyz: np.ndarray
+    height: np.ndarray | None
+
+
+def configure(settings: LocateSettings, anchors: pd.DataFrame) -> Geometry:
+    """The locators of ``settings`` for ``anchors`` (a validated anchors frame; its
+    ``attrs["path"]`` names it in errors)."""
+    from robustloc.estimators.ranging import Locator
+
+    where = anchors.attrs.get("path")
+    if settings.dim == 3 and "z" not in anchors.columns:
+        raise InputError("--dim 3 needs a z column in the anchors file", where, 1)
+    cols = ["x", "y"] + (["z"] if settings.dim == 3 else [])
+    xyz = anchors[cols].to_numpy(dtype=float)
+    height = None
+    if settings.tag_height is not None:
+        if settings.dim != 2 or "z" not in anchors.columns:
+            raise InputError("--tag-height needs --dim 2 and a z column in the anchors file",
+                             where, 1)
+        height = anchors["z"].to_numpy(dtype=float) - settings.tag_height
+    methods = list(settings.method)
+    params = weight_params(settings.param, methods)
+    sigma: float | tuple[float, ...] | None = settings.sigma
+    if sigma is None and "sigma" in anchors.columns:
+        sg = anchors["sigma"].to_numpy(dtype=float)
+        if not np.all(np.isfinite(sg) & (sg > 0)):
+            raise InputError("anchors' sigma column must be positive and finite", where)
+        sigma = tuple(sg)
+    try:  # the settings are the user's: a refused combination is a user error
+        locators = [
+            Locator(
+                m, solver=settings.solver, domain=settings.domain, sigma=sigma,
+                robust_scale=settings.robust_scale, reference=settings.reference,
+                weight_params=params.get(m, {}),
+                min_scale=settings.min_scale, alpha0=settings.alpha0, beta0=settings.beta0,
+            )
+            for m in methods
+        ]
+    except (ValueError, TypeError) as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise InputError(f"invalid settings: {exc}") from None
+    return Geometry(locators, anchors, xyz, height)
+
+
+def prepared_values(settings: LocateSettings, anchors: pd.DataFrame, block: Any) -> np.ndarray:
+    """A block's observation matrix as the solvers see it (range calibration applied)."""
+    from robustloc.models.calibration import apply_range_calibration
+
+    if block.value == "range" and settings.range_calibration:
+        return apply_range_calibration(anchors, block.values)
+    return block.values
+
+
+def fix_log_scale(settings: LocateSettings, geo: Geometry, sources: Sequence[Any],
+                  order: str, cap: int = 5_000) -> list[Any]:
+    """First pass over the whole log: each locator's per-anchor noise scale from an even
+    sample of at most ``2 cap`` epochs (every ``k``-th epoch, ``k`` doubling as the log
+    grows), so the scale, and every fix, is the same whatever ``chunk_rows`` is.
+    ``sources``: the log's files (or frames) in order (a partitioned dataset: several).
+    ``settings.log_scale_fixed`` (set by the Dask engine, which computes it once for the
+    whole dataset) is used as it is."""
+    from robustloc.io import iter_epochs
+    from robustloc.models.pathloss import log_distance_arrays
+
+    fixed = settings.log_scale_fixed
+    if fixed is not None:
+        return [replace(loc, log_scale_fixed=tuple(fixed[loc.method]))
+                if loc.robust_scale == "log" else loc for loc in geo.locators]
+    anchors = geo.anchors
+    k, seen, kept, idx = 1, 0, [], []
+    kind = None
+    blocks = (b for src in sources for b in iter_epochs(
+        src, anchors, chunk_rows=settings.chunk_rows, order=order))
+    for block in blocks:
+        kind = block.value
+        gi = np.arange(seen, seen + block.n_epochs)
+        seen += block.n_epochs
+        sel = gi % k == 0
+        kept.append(prepared_values(settings, anchors, block)[sel])
+        idx.append(gi[sel])
+        while sum(len(i) for i in idx) > 2 * cap:
+            k *= 2
+            kept = [v[i % k == 0] for v, i in zip(kept, idx)]
+            idx = [i[i % k == 0] for i in idx]
+    if kind is None:
+        return geo.locators
+    sample = np.vstack(kept)
+    A = n = None
+    if kind == "rssi":
+        A, n = log_distance_arrays(anchors, settings.model)
+    out = []
+    for loc in geo.locators:
+        if loc.robust_scale != "log":
+            out.append(loc)
+            continue
+        scale = loc.log_scale(geo.xyz, sample, kind, A=A, n=n, height_offset=geo.height,
+                              max_epochs=2 * cap)
+        out.append(replace(loc, log_scale_fixed=tuple(float(v) for v in scale)))
+    return out
+
+
+def _with_log_scale(settings: LocateSettings, geo: Geometry, sources: Sequence[Any]
+                    ) -> list[Any]:
+    from robustloc.io.tables import UnsortedInput
+
+    try:
+        return fix_log_scale(settings, geo, sources, "auto")
+    except UnsortedInput:
+        return fix_log_scale(settings, geo, sources, "sort")
+
+
+def log_scales_for(settings: LocateSettings, anchors: pd.DataFrame, sources: Sequence[Any]
+                   ) -> dict[str, tuple[float, ...]]:
+    """Each method's per-anchor log scale over ``sources`` (files in order), as
+    :func:`run_locate` estimates it in its first pass: what the Dask engine hands to
+    every partition so that each solves with the whole dataset's scale."""
+    fixed = _with_log_scale(settings, configure(settings, anchors), sources)
+    return {loc.method: loc.log_scale_fixed for loc in fixed
+            if loc.log_scale_fixed is not None}
+
+
+def run_locate(
+    measurements: Any, anchors: pd.DataFrame, settings: LocateSettings,
+    out: str | None = None, *, progress: bool = False,
+) -> tuple[pd.DataFrame | None, dict[str, Any]]:
+    """Locate every epoch of a log.
+
+    Parameters
+    ----------
+    measurements : str, PathLike or DataFrame
+        A measurements file (CSV/Parquet; ``-`` standard input) or a frame of
+        :func:`robustloc.io.tables.in_memory_source`; rows in any order.
+    anchors : DataFrame
+        Validated anchors (:func:`robustloc.io.read_anchors`).
+    settings : LocateSettings
+    out : str, optional
+        Positions file (written atomically; ``-`` CSV on standard output); ``None``
+        returns the positions as a frame.
+    progress : bool
+        Show a progress bar on a terminal.
+
+    Returns
+    -------
+    (DataFrame or None, dict)
+        The positions (``out=None``), and the run summary.
+    """
+    from robustloc.io.atomic import check_not_input, is_stdio
+    from robustloc.io.tables import UnsortedInput, _display
+
+    if out is not None and not isinstance(measurements, pd.DataFrame):
+        check_not_input(out, [measurements, anchors.attrs.get("path") or ""])
+    geo = configure(settings, anchors)
+    if any(loc.robust_scale == "log" for loc in geo.locators):
+        geo = replace(geo, locators=_with_log_scale(settings, geo, [measurements]))
+    # a restartable output (a regular file: the temporary file is discarded; memory)
+    # streams and restarts sorted if the rows turn out not to be in epoch order; standard
+    # output or a device cannot be taken back, so the order is checked first.
+    rewindable = out is None or (not is_stdio(out) and not _is_special(out))
+    order = "auto" if rewindable else "check"
+    while True:
+        try:
+            frame, summary = _run_once(measurements, settings, geo, out, order, progress)
+            break
+        except UnsortedInput:
+            if order != "auto":
+                raise
+            order = "sort"
+    summary = {"measurements": _display(measurements),
+               "positions": "<DataFrame>" if out is None else str(out), **summary}
+    return frame, summary
+
+
+def _is_special(path: str) -> bool:
+    import os
+    import stat
+
+    try:
+        return not stat.S_ISREG(os.stat(path).st_mode)
+    except OSError:
+        return False
+
+
+def _run_once(
+    measurements: Any, settings: LocateSettings, geo: Geometry, out: str | None, order: str,
+    progress: bool,
+) -> tuple[pd.DataFrame | None, dict[str, Any]]:
+    """One pass over the measurements; raises UnsortedInput (output discarded) when the
+    streamed rows turn out not to be in epoch order."""
+    from tqdm import tqdm
+
+    from robustloc._jitnotice import compile_notice
+    from robustloc.integrity.fixes import locate_protected
+    from robustloc.io import iter_epochs, positions_frame
+    from robustloc.io.tables import PositionsWriter
+    from robustloc.models.pathloss import log_distance_arrays
+    from robustloc.status import INVALID
+
+    locators, anchors = geo.locators, geo.anchors
+    methods = [loc.method for loc in locators]
+    ids = [str(a) for a in anchors["anchor"]]
+    counts: dict[str, dict[str, int]] = {m: {} for m in methods}
+    n_epochs = n_dup = n_invalid = 0
+    A = n = None
+    kind = None
+    t0 = _time.perf_counter()
+    solve_s = 0.0
+    bar = tqdm(unit=" epochs", disable=not progress or not sys.stderr.isatty(),
+               file=sys.stderr)
+    try:
+        with PositionsWriter(out) as writer:
+            for block in iter_epochs(measurements, anchors, chunk_rows=settings.chunk_rows,
+                                     order=order):
+                if kind is None:  # the first block: its input is valid, solving starts
+                    compile_notice("positioning")
+                    kind = block.value
+                    if kind == "rssi":
+                        A, n = log_distance_arrays(anchors, settings.model)
+                values = prepared_values(settings, anchors, block)
+                bad = block.all_invalid
+                frames = []
+                for loc in locators:
+                    ts = _time.perf_counter()
+                    sol = locate_protected(
+                        loc, geo.xyz, values, kind, A=A, n=n, height_offset=geo.height,
+                        alpha0=settings.alpha0, beta0=settings.beta0,
+                        k_noise=settings.k_noise, alert_limit=settings.alert_limit)
+                    solve_s += _time.perf_counter() - ts
+                    fr = positions_frame(sol, block.time, block.tag, ids, loc.method)
+                    if bad.any():  # every row of the epoch was outside the physical limits
+                        fr.loc[bad, "status"] = INVALID
+                        fr.loc[bad, [c for c in ("x", "y", "z", "sigma0") if c in fr]] = np.nan
+                        fr.loc[bad, "n_used"] = 0
+                    frames.append(fr)
+                    st, c = np.unique(fr["status"].to_numpy(dtype=str), return_counts=True)
+                    for s_, c_ in zip(st, c):
+                        counts[loc.method][s_] = counts[loc.method].get(s_, 0) + int(c_)
+                writer.write(pd.concat(frames, ignore_index=True) if len(frames) > 1
+                             else frames[0])
+                n_epochs += block.n_epochs
+                n_dup += block.n_duplicates
+                n_invalid += int(block.n_invalid.sum())
+                bar.update(block.n_epochs)
+        frame = writer.frame() if out is None else None
+    finally:
+        bar.close()
+    wall = _time.perf_counter() - t0
+    return frame, {
+        "value": kind, "epochs": n_epochs, "methods": methods, "status": counts,
+        "duplicates_merged": n_dup, "invalid_measurement_rows": n_invalid,
+        "sorted_first": order == "sort", "seconds": round(wall, 3),
+        "solve_seconds": round(solve_s, 3),
+        "fixes_per_second": round(n_epochs * len(methods) / max(solve_s, 1e-9), 1),
+    }

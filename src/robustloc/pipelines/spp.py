@@ -1,0 +1,219 @@
+"""The ``spp`` workflow: GNSS single-point positioning of a RINEX file, with RAIM FDE.
+
+:func:`run_spp` reads the observation and navigation (or SP3/CLK) files, optionally
+injects faults, solves every epoch (:class:`~robustloc.gnss.spp.SppSolver`, with
+:class:`~robustloc.gnss.raim.RaimFde` when ``raim``) and returns the solution frame and
+the run summary.  :class:`SppSettings` holds every setting.  ``robustloc spp``,
+:func:`robustloc.spp` and the Dask engine run this code.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from robustloc.errors import InputError
+from robustloc.options import check_settings, float_in, nonnegative_int, option
+
+
+def parse_time(text: str | float | None, what: str) -> float | None:
+    """GPS seconds, or an ISO time on the GPS scale, as GPS seconds (``None`` passes)."""
+    from robustloc.gnss.rinex import datetime64_to_gps_s
+
+    if text is None:
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        try:
+            value = float(datetime64_to_gps_s(np.array([np.datetime64(str(text))]))[0])
+        except ValueError:
+            value = float("nan")
+    if not np.isfinite(value):
+        raise InputError(f"{what}: expected GPS seconds or an ISO time, got {text!r}")
+    return value
+
+
+def parse_reference(text: str) -> tuple[float, float, float]:
+    """``--reference X,Y,Z`` (ECEF m) -> a checked position (see :func:`check_reference`)."""
+    try:
+        ref = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        ref = ()
+    return check_reference(ref, text)
+
+
+def check_reference(ref: Sequence[float], shown: object = None) -> tuple[float, float, float]:
+    """An ECEF position on or near the Earth: 6 356 km (pole) .. 6 378 km plus 1e5 m slack."""
+    arr = np.asarray(ref, dtype=float).ravel()
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)) or not (
+            6.2e6 <= np.linalg.norm(arr) <= 6.5e6):
+        raise InputError(f"--reference: expected X,Y,Z ECEF metres of a point near the "
+                         f"Earth's surface (norm 6.2e6 .. 6.5e6 m), got "
+                         f"{shown if shown is not None else tuple(ref)!r}")
+    return (float(arr[0]), float(arr[1]), float(arr[2]))
+
+
+def parse_inject(text: str) -> dict[str, float]:
+    """``--inject PRN:BIAS_M[,PRN:BIAS_M]`` -> ``{"G11": 20.0, ...}`` (checked)."""
+    out: dict[str, float] = {}
+    for item in text.split(","):
+        try:
+            sat, bias = item.split(":")
+            out.update(check_inject({sat: float(bias)}, item))
+        except ValueError:
+            raise InputError(f"--inject: expected PRN:BIAS_M, got {item!r}") from None
+    return out
+
+
+def check_inject(inject: Mapping[str, float], shown: str | None = None) -> dict[str, float]:
+    """Per-satellite biases: ids normalized (``G5`` -> ``G05``), finite, within +-1e6 m."""
+    out: dict[str, float] = {}
+    for sat, bias in inject.items():
+        s = str(sat).strip().upper()
+        if len(s) == 2:
+            s = s[0] + "0" + s[1]
+        b = float(bias)
+        if not np.isfinite(b) or abs(b) > 1e6:
+            raise InputError("--inject: bias must be finite, within +-1e6 m, got "
+                             f"{shown if shown is not None else f'{sat}:{bias}'!r}")
+        out[s] = b
+    return out
+
+
+def _systems(text: str) -> str:
+    bad_sys = sorted(set(text.upper()) - set("GREC"))
+    if not text or bad_sys:
+        raise InputError(f"--systems: unknown constellation(s) {''.join(bad_sys)!r}; use "
+                         f"letters of GREC, got {text!r}")
+    return text
+
+
+@dataclass(frozen=True)
+class SppSettings:
+    """Every setting of ``spp`` (the ``robustloc spp`` options of the same name).
+
+    ``reference`` is an ECEF position (m) for the summary's errors (default the RINEX
+    header's); ``inject`` per-satellite biases (m) added between ``inject_from`` and
+    ``inject_until`` (GPS seconds or ISO times); ``iono`` ``None`` means ``iflc`` with
+    precise products, else ``klobuchar``.
+    """
+
+    systems: str = "GREC"
+    elevation_mask: float = option(15.0, check=float_in(-90.0, 90.0))
+    iono: str | None = option(None, choices=("klobuchar", "iflc", "none"))
+    tropo: str = option("saastamoinen", choices=("saastamoinen", "none"))
+    smooth: int = option(0, check=nonnegative_int)
+    raim: bool = False
+    alpha0: float = option(0.001, check=float_in(1e-15, 0.5))
+    beta0: float = option(0.10, check=float_in(1e-15, 0.5))
+    max_exclusions: int | None = option(None, check=nonnegative_int)
+    reference: tuple[float, float, float] | None = None
+    inject: Mapping[str, float] | None = None
+    inject_from: str | float | None = None
+    inject_until: str | float | None = None
+
+    def __post_init__(self) -> None:
+        check_settings(self)
+        _systems(self.systems)
+        if self.reference is not None:
+            object.__setattr__(self, "reference", check_reference(self.reference))
+        if self.inject:
+            object.__setattr__(self, "inject", check_inject(self.inject))
+        parse_time(self.inject_from, "--inject-from")
+        parse_time(self.inject_until, "--inject-until")
+
+    @classmethod
+    def from_namespace(cls, args: argparse.Namespace) -> SppSettings:
+        """The settings of a parsed ``robustloc spp`` command line (text options parsed)."""
+        return cls(
+            systems=args.systems, elevation_mask=args.elevation_mask, iono=args.iono,
+            tropo=args.tropo, smooth=args.smooth, raim=args.raim, alpha0=args.alpha0,
+            beta0=args.beta0, max_exclusions=args.max_exclusions,
+            reference=None if args.reference is None else parse_reference(args.reference),
+            inject=parse_inject(args.inject) if args.inject else None,
+            inject_from=args.inject_from, inject_until=args.inject_until)
+
+
+def run_spp(obs: str, nav: Sequence[str], settings: SppSettings, *, sp3: str | None = None,
+            clk: str | None = None) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """Solve every epoch of a RINEX observation file.
+
+    Returns
+    -------
+    (DataFrame, dict)
+        One row per epoch (``SppResult.to_frame``: time, ECEF and geodetic position,
+        clock, status, satellites used and excluded, DOP, protection levels), and the run
+        summary (errors against the reference, status counts, RAIM counts).
+    """
+    from robustloc import status as st
+    from robustloc.gnss.raim import RaimFde, inject_faults
+    from robustloc.gnss.rinex import read_nav, read_obs
+    from robustloc.gnss.sp3 import PreciseProducts, read_clk, read_sp3
+    from robustloc.gnss.spp import SppSolver, error_summary
+
+    nav = list(nav)
+    if not nav and sp3 is None:
+        raise InputError("give at least one navigation file or --sp3")
+    if clk is not None and sp3 is None:
+        raise InputError("--clk needs --sp3")
+    for f in [obs, *nav, sp3, clk]:
+        if f is not None and not Path(f).is_file():
+            raise InputError("file not found" if not Path(f).exists()
+                             else "is not a regular file", f)
+    t_from = parse_time(settings.inject_from, "--inject-from")
+    t_until = parse_time(settings.inject_until, "--inject-until")
+    observations = read_obs(obs)
+    ephemerides = read_nav(nav) if nav else None
+    precise = None
+    if sp3 is not None:
+        precise = PreciseProducts(read_sp3(sp3), read_clk(clk) if clk else None)
+    if settings.inject:
+        observations = inject_faults(observations, dict(settings.inject), t_from, t_until)
+    iono = settings.iono or ("iflc" if precise is not None else "klobuchar")
+    try:  # settings the solver refuses (e.g. --smooth without iflc) are option errors
+        solver = SppSolver(systems=settings.systems,
+                           elevation_mask_deg=settings.elevation_mask, iono=iono,
+                           tropo=settings.tropo, smoothing_epochs=settings.smooth)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    if settings.raim:
+        res = RaimFde(alpha0=settings.alpha0, beta0=settings.beta0,
+                      max_exclusions=settings.max_exclusions
+                      ).solve(solver, observations, ephemerides, precise)
+    else:
+        res = solver.solve(observations, ephemerides, precise)
+    frame = res.to_frame()
+    n_invalid = observations.invalid_per_epoch
+    if len(frame) == len(n_invalid):
+        # an epoch left without a solution by implausible pseudoranges
+        lost = (n_invalid > 0) & ~frame["status"].isin(st.USABLE).to_numpy()
+        frame.loc[lost, "status"] = st.INVALID
+    if settings.reference is not None:
+        ref = np.asarray(settings.reference, dtype=float)
+        ref_src = "--reference"
+    else:
+        ref = observations.approx_xyz_m
+        ref_src = "RINEX header APPROX POSITION XYZ"
+    summary: dict[str, Any] = {
+        "obs": str(obs), "systems": res.systems, "iono": iono, "raim": bool(settings.raim),
+        "invalid_measurement": int(n_invalid.sum())}
+    if np.linalg.norm(ref) > 6.0e6:
+        summary["reference"] = ref_src
+        summary["reference_xyz_m"] = [float(v) for v in ref]
+        summary.update(error_summary(res, ref))
+    else:
+        summary.update(error_summary(res, np.array([6378137.0, 0.0, 0.0])))
+        for k in [k for k in summary if k.endswith("_m") and k[:3] in ("bia", "rms", "p95",
+                                                                         "max")]:
+            del summary[k]
+        summary["reference"] = "none (no --reference and no header position)"
+    summary["status_counts"] = {str(k): int(v)
+                                for k, v in frame["status"].value_counts().items()}
+    return frame, summary

@@ -1,0 +1,269 @@
+"""The ``track`` workflow: a robust tight filter per tag, one track row per input epoch.
+
+:func:`run_track` streams a measurements log (a file or an in-memory frame; rows in any
+order) through a :class:`~robustloc.tracking.Tracker` and, with ``smooth`` or
+``fixed_lag``, the Rauch-Tung-Striebel smoother over the forward pass.
+:class:`TrackSettings` holds every setting, checked with the command line's wording.
+``robustloc track``, :func:`robustloc.track` and the Dask engine run this code.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time as _time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from robustloc.errors import InputError
+from robustloc.options import (
+    check_settings,
+    finite_float,
+    float_in,
+    option,
+    positive_float,
+    positive_int,
+)
+
+#: ``weight`` values (robust weight functions of :mod:`robustloc.robust.weights`).
+WEIGHTS = ("ls", "huber", "hampel", "igg", "igg3", "asymmetric-igg")
+_PROBABILITY = float_in(0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class TrackSettings:
+    """Every setting of ``track`` (the ``robustloc track`` options of the same name).
+
+    The filter's settings are those of :class:`robustloc.tracking.tracker.TrackerSettings`
+    (same names and defaults); ``smooth``, ``fixed_lag`` (RTS smoothing over the whole
+    log, or over the next ``fixed_lag`` epochs of each tag) and ``chunk_rows`` (rows read
+    per chunk) are the workflow's.
+    """
+
+    model: str = option("cv", choices=("cv", "ca", "static"))
+    filter: str = option("ekf", choices=("ekf", "ukf"))
+    q: float = option(1.0, check=positive_float)
+    weight: str | None = option(None, choices=WEIGHTS)
+    domain: str = option("range", choices=("range", "rssi"))
+    sigma: float | None = option(None, check=positive_float)
+    smooth: bool = False
+    fixed_lag: int | None = option(None, check=positive_int)
+    engine: str = option("compiled", choices=("compiled", "numpy"))
+    noise_scale_min: float = option(1.0, check=positive_float)
+    noise_scale_max: float = option(4.0, check=positive_float)
+    cusum_h: float | None = option(None, check=positive_float)
+    alpha0: float = option(0.001, check=_PROBABILITY)
+    beta0: float = option(0.10, check=_PROBABILITY)
+    integrity_risk: float = option(0.001, check=_PROBABILITY)
+    tag_height: float | None = option(None, check=finite_float)
+    chunk_rows: int = option(500_000, check=positive_int)
+
+    def __post_init__(self) -> None:
+        check_settings(self)
+
+    @property
+    def smoothing(self) -> bool:
+        """RTS smoothing on (``smooth`` or ``fixed_lag``)."""
+        return self.smooth or self.fixed_lag is not None
+
+    @classmethod
+    def from_namespace(cls, args: argparse.Namespace) -> TrackSettings:
+        """The settings of a parsed ``robustloc track`` command line."""
+        from dataclasses import fields
+
+        return cls(**{f.name: getattr(args, f.name) for f in fields(cls)})
+
+    def tracker(self, anchors: pd.DataFrame) -> Any:
+        """A fresh :class:`~robustloc.tracking.Tracker` with these settings (recording its
+        history when smoothing)."""
+        from robustloc.tracking import Tracker
+
+        opts = asdict(self)
+        for k in ("smooth", "fixed_lag", "chunk_rows", "model", "filter"):
+            opts.pop(k)
+        try:
+            return Tracker(anchors, model=self.model, filter=self.filter,
+                           record=self.smoothing, **opts)
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
+
+
+def run_track(
+    measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
+    out: str | None = None, *, progress: bool = False,
+) -> tuple[pd.DataFrame | None, dict[str, Any]]:
+    """Track every tag of a log.
+
+    Parameters
+    ----------
+    measurements : str, PathLike or DataFrame
+        A measurements file or a frame of :func:`robustloc.io.tables.in_memory_source`;
+        rows in any order.
+    anchors : DataFrame
+        Validated anchors (:func:`robustloc.io.read_anchors`).
+    settings : TrackSettings
+    out : str, optional
+        Track file (CSV/Parquet, written atomically); ``None`` returns the frame.
+    progress : bool
+        Show a progress bar on a terminal.
+
+    Returns
+    -------
+    (DataFrame or None, dict)
+        The track rows (``out=None``), and the run summary.
+    """
+    from robustloc.io.atomic import check_not_input
+    from robustloc.io.tables import UnsortedInput, _display
+
+    if settings.tag_height is not None and "z" not in anchors.columns:
+        raise InputError("--tag-height needs a z column in the anchors file",
+                         anchors.attrs.get("path"), 1)
+    if out is not None and not isinstance(measurements, pd.DataFrame):
+        check_not_input(out, [measurements, anchors.attrs.get("path") or ""])
+    t0 = _time.perf_counter()
+    try:
+        trk, frame, n_epochs, counts = _one_pass(measurements, anchors, settings, out,
+                                                 "auto", progress)
+    except UnsortedInput:
+        trk, frame, n_epochs, counts = _one_pass(measurements, anchors, settings, out,
+                                                 "sort", progress)
+    wall = _time.perf_counter() - t0
+    summary = {"measurements": _display(measurements),
+               "track": "<DataFrame>" if out is None else str(out), "epochs": n_epochs,
+               "tags": len(trk.tags), "method": trk.method, "status": counts,
+               "smoother": (("fixed-lag" if settings.fixed_lag else "rts")
+                            if settings.smoothing else None),
+               "seconds": round(wall, 3),
+               "epochs_per_second": round(n_epochs / max(wall, 1e-9), 1)}
+    return frame, summary
+
+
+def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
+              out: str | None, order: str, progress: bool) -> tuple:
+    """Every epoch through a fresh tracker; a file is written atomically (nothing at
+    ``out`` after an error or an interrupt); raises UnsortedInput when rows turn out not
+    to be in time order (the caller sorts and starts again)."""
+    import contextlib
+
+    from tqdm import tqdm
+
+    from robustloc._jitnotice import compile_notice
+    from robustloc.io import iter_epochs, write_table
+    from robustloc.io.atomic import atomic_output
+    from robustloc.io.tables import is_parquet
+
+    trk = settings.tracker(anchors)
+    smooth = settings.smoothing
+    frames: list[pd.DataFrame] = []
+    n = 0
+    bar = tqdm(unit=" epochs", disable=not progress or not sys.stderr.isatty(),
+               file=sys.stderr)
+    status_counts: dict[str, int] = {}
+    result: pd.DataFrame | None = None
+    opened = atomic_output(out) if out is not None else contextlib.nullcontext((None, None))
+    try:
+        with opened as (target, _stream):
+            stream = target is not None and not smooth
+            writer = TrackWriter(target, parquet=is_parquet(out)) if stream else None
+            try:
+                for block in iter_epochs(measurements, anchors,
+                                         chunk_rows=settings.chunk_rows, order=order):
+                    if n == 0:
+                        compile_notice("filter")
+                    rows = trk.step(block)
+                    for k, v in rows["status"].value_counts().items():
+                        status_counts[str(k)] = status_counts.get(str(k), 0) + int(v)
+                    if writer is None:
+                        frames.append(rows)
+                    else:
+                        writer.write(rows)
+                    n += block.n_epochs
+                    bar.update(block.n_epochs)
+            finally:
+                if writer is not None:
+                    writer.close()
+            if not stream:
+                table = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+                if smooth and len(table):
+                    table = apply_smoother(trk, table, settings.fixed_lag)
+                    status_counts = {str(k): int(v) for k, v in
+                                     table["status"].value_counts().items()}
+                if out is None:
+                    result = table
+                elif target is None:
+                    write_table(table, out)
+                else:
+                    write_table(table, target, parquet=is_parquet(out))
+    finally:
+        bar.close()
+    return trk, result, n, status_counts
+
+
+class TrackWriter:
+    """Append track rows chunk by chunk to a CSV or Parquet file (columns of the first)."""
+
+    def __init__(self, path: Path, parquet: bool | None = None) -> None:
+        from robustloc.io.tables import is_parquet
+
+        self.path = Path(path)
+        self.parquet = is_parquet(self.path) if parquet is None else parquet
+        self._columns: list[str] | None = None
+        self._pq: Any = None
+        self._started = False
+
+    def write(self, frame: pd.DataFrame) -> None:
+        if self._columns is None:
+            self._columns = list(frame.columns)
+        out = frame[self._columns].reset_index(drop=True)
+        out.attrs = {}
+        if self.parquet:
+            import pyarrow as pa
+            import pyarrow.parquet as pq
+
+            table = pa.Table.from_pandas(out, preserve_index=False)
+            if self._pq is None:
+                self._pq = pq.ParquetWriter(self.path, table.schema)
+            self._pq.write_table(table.cast(self._pq.schema))
+        else:
+            out.to_csv(self.path, mode="a" if self._started else "w",
+                       header=not self._started, index=False)
+            self._started = True
+
+    def close(self) -> None:
+        if self._pq is not None:
+            self._pq.close()
+        elif self._columns is None:  # nothing written: an empty file with the header
+            self.path.write_text("")
+
+
+def apply_smoother(trk: Any, table: pd.DataFrame, lag: int | None) -> pd.DataFrame:
+    """Replace the filtered states of ``table`` (rows in step order) by smoothed ones."""
+    xs, Ps = trk.smoothed(len(table), lag)
+    have = np.all(np.isfinite(xs), axis=1)
+    t = table.copy()
+    t.loc[have, "x"], t.loc[have, "y"] = xs[have, 0], xs[have, 1]
+    t.loc[have, "var_x"], t.loc[have, "var_y"] = Ps[have, 0, 0], Ps[have, 1, 1]
+    t.loc[have, "cov_xy"] = Ps[have, 0, 1]
+    if xs.shape[1] >= 4:
+        t.loc[have, "vx"], t.loc[have, "vy"] = xs[have, 2], xs[have, 3]
+        t.loc[have, "var_vx"], t.loc[have, "var_vy"] = Ps[have, 2, 2], Ps[have, 3, 3]
+    if xs.shape[1] >= 6:
+        t.loc[have, "ax"], t.loc[have, "ay"] = xs[have, 4], xs[have, 5]
+    # hpl: the filtered slope term carries over; the noise term shrinks with the covariance
+    P2 = Ps[have][:, :2, :2]
+    tr = 0.5 * (P2[:, 0, 0] + P2[:, 1, 1])
+    det = P2[:, 0, 0] * P2[:, 1, 1] - P2[:, 0, 1] ** 2
+    smaj = np.sqrt(np.maximum(tr + np.sqrt(np.maximum(tr * tr - det, 0.0)), 0.0))
+    vf = table.loc[have, ["var_x", "var_y", "cov_xy"]].to_numpy(float)
+    trf = 0.5 * (vf[:, 0] + vf[:, 1])
+    detf = vf[:, 0] * vf[:, 1] - vf[:, 2] ** 2
+    smaj_f = np.sqrt(np.maximum(trf + np.sqrt(np.maximum(trf * trf - detf, 0.0)), 0.0))
+    k = trk._k_ir
+    slope = table.loc[have, "hpl"].to_numpy(float) - k * smaj_f
+    t.loc[have, "hpl"] = np.maximum(slope, 0.0) + k * smaj
+    t["method"] = table["method"] + ("-rts" if lag is None else f"-lag{lag}")
+    return t
