@@ -31,7 +31,7 @@ _SHOW = ("tag", "method", "n", "n_missing", "n_failed", "max", "min", "mean", "r
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from robustloc.commands._argtypes import nonnegative_float
+    from robustloc.options import nonnegative_float
 
     p.add_argument("positions", help="positions file (time, tag, x, y[, z], method, status, ...)")
     p.add_argument("--truth", required=True, help="truth file (time, tag, x, y[, z])")

@@ -5,13 +5,13 @@ from __future__ import annotations
 import argparse
 import json
 
-from robustloc.commands._argtypes import (
+from robustloc.engines import add_engine_arguments
+from robustloc.options import (
     float_in,
     nonnegative_float,
     nonnegative_int,
     positive_float,
 )
-from robustloc.engines import add_engine_arguments
 
 NAME = "filter"
 HELP = "robust RSSI Kalman filter per (tag, anchor) link (seed 002); output feeds locate"

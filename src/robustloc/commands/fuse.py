@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from robustloc.commands._argtypes import (
+from robustloc.options import (
     finite_float,
     float_in,
     nonnegative_float,

@@ -10,14 +10,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from robustloc.commands._argtypes import (
+from robustloc.errors import InputError
+from robustloc.options import (
     finite_float,
     float_in,
     int_in,
     nonnegative_int,
     positive_float,
 )
-from robustloc.errors import InputError
 
 #: Largest --trials: 1e9 trials of a 30-satellite snapshot take days, not memory.
 MAX_TRIALS = 10**9

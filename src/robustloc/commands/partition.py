@@ -29,8 +29,8 @@ spills to disk beyond --memory-limit):
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from robustloc.commands._argtypes import nonnegative_int, positive_float, positive_int
     from robustloc.engines.partition import BY, METHODS
+    from robustloc.options import nonnegative_int, positive_float, positive_int
 
     p.add_argument("input", help="measurements: CSV or Parquet file, directory or glob")
     p.add_argument("-o", "--out", required=True, help="dataset directory to write")

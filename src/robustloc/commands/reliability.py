@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from robustloc.commands._argtypes import finite_float, float_in, positive_float
 from robustloc.errors import InputError
+from robustloc.options import finite_float, float_in, positive_float
 
 NAME = "reliability"
 HELP = "anchor-layout planner: DOP, CRLB, MDB, external reliability, w-test correlation maps"

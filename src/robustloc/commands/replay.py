@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from robustloc.commands._argtypes import nonnegative_float, positive_int
+from robustloc.options import nonnegative_float, positive_int
 
 NAME = "replay"
 HELP = "send a measurements log to a running robustloc serve (HTTP batches or WebSocket)"

@@ -7,7 +7,7 @@ import os
 import sys
 from pathlib import Path
 
-from robustloc.commands._argtypes import nonnegative_float, positive_float, positive_int
+from robustloc.options import nonnegative_float, positive_float, positive_int
 
 NAME = "serve"
 HELP = "live positioning service: HTTP/WebSocket/MQTT ingest, positions API, live map page"

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from robustloc.commands._argtypes import nonnegative_int
+from robustloc.options import nonnegative_int
 
 NAME = "simulate"
 HELP = "simulate a scenario (ble-corridor, ...) into anchors/measurements/truth/survey files"

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from robustloc.commands._argtypes import float_in, int_in, positive_float, positive_int
+from robustloc.options import float_in, int_in, positive_float, positive_int
 
 NAME = "stats"
 HELP = "RSSI statistics per anchor and distance bin: moments, autocorrelation, normality"
