@@ -19,6 +19,7 @@ import numpy as np
 import pandas as pd
 from scipy.stats import chi2
 
+from robustloc.estimators.ranging import DEFAULT_METHOD
 from robustloc.reproduce import Context, Section
 
 TITLE = "Tracks: a robust tight tracker per tag (issue 11)"
@@ -180,7 +181,6 @@ def _nees(ctx: Context, sec: Section) -> dict[str, float]:
 # --------------------------------------------------------------------------- real data
 def _ble(ctx: Context, sec: Section, plots: list) -> dict[str, float]:
     from robustloc.datasets import ble_tetam as bt
-    from robustloc.estimators.ranging import Locator
     from robustloc.io import to_epochs
     from robustloc.models.calibration import calibrate_pathloss
     from robustloc.models.pathloss import log_distance_arrays
@@ -193,17 +193,20 @@ def _ble(ctx: Context, sec: Section, plots: list) -> dict[str, float]:
     A, n = log_distance_arrays(an)
     ids = [str(a) for a in an["anchor"]]
     xy = an[["x", "y"]].to_numpy(float)
-    data = []
+    data, logs = [], []
     for tr in bt.list_tracks(src.path):
         meas, truth = bt.load_track(tr, src.path)
         ep = to_epochs(meas, ids)
         data.append((tr, ep, truth.set_index("time").loc[ep.time]))
+        logs.append(meas[["time", "anchor", "rssi"]].assign(tag=tr))
     z_tag = float(np.mean(np.concatenate([d[2]["z"].to_numpy() for d in data])))
-    h = an["z"].to_numpy(float) - z_tag
+    # the baseline is the default `robustloc locate` on the whole log (every track one
+    # tag, one file, as a user would run it): the default method, the log's noise scale
+    located = _default_locate(pd.concat(logs, ignore_index=True), an, z_tag)
     el, et, es, hp = [], [], [], []
     for i, (tr, ep, tt) in enumerate(data):
         txy = tt[["x", "y"]].to_numpy(float)
-        fix = Locator("huber").solve(xy, ep.values, "rssi", A=A, n=n, height_offset=h).position
+        fix = located.loc[list(zip(ep.time, [tr] * len(ep.time))), ["x", "y"]].to_numpy(float)
         trk = Tracker(an, tag_height=z_tag, record=True, **BLE_OPTS)
         rows = trk.step(ep)
         sm = _smoothed_xy(trk, rows)
@@ -216,7 +219,8 @@ def _ble(ctx: Context, sec: Section, plots: list) -> dict[str, float]:
                           xy))
     el, et, es, hp = map(np.concatenate, (el, et, es, hp))
     tab = pd.DataFrame([
-        {"method": "locate (huber, default)", "rms": _rms(el), "p95": _p95(el)},
+        {"method": f"locate (default: {DEFAULT_METHOD}, log scale)", "rms": _rms(el),
+         "p95": _p95(el)},
         {"method": "track cv-ekf", "rms": _rms(et), "p95": _p95(et)},
         {"method": "track cv-ekf + RTS", "rms": _rms(es), "p95": _p95(es)},
     ])
@@ -225,6 +229,18 @@ def _ble(ctx: Context, sec: Section, plots: list) -> dict[str, float]:
     return {"locate_rms": _rms(el), "locate_p95": _p95(el), "track_rms": _rms(et),
             "track_p95": _p95(et), "rts_rms": _rms(es), "rts_p95": _p95(es),
             "mislead": _mislead(et, hp)}
+
+
+def _default_locate(log: pd.DataFrame, anchors: pd.DataFrame, z_tag: float) -> pd.DataFrame:
+    """The default ``robustloc locate`` of a log (every track one tag), indexed by (time,
+    tag); an epoch without a usable fix has NaN coordinates."""
+    from robustloc import status as st
+    from robustloc.io.tables import in_memory_source
+    from robustloc.pipelines.locate import LocateSettings, run_locate
+
+    pos, _ = run_locate(in_memory_source(log), anchors, LocateSettings(tag_height=z_tag))
+    pos.loc[~pos["status"].isin(st.USABLE), ["x", "y"]] = np.nan
+    return pos.set_index(["time", "tag"])
 
 
 def _dwm(ctx: Context, sec: Section, plots: list) -> dict[str, Any]:
@@ -274,9 +290,9 @@ def _dwm(ctx: Context, sec: Section, plots: list) -> dict[str, Any]:
 
 
 def _lab(ctx: Context, sec: Section, plots: list) -> dict[str, float]:
+    from robustloc import status as st
     from robustloc.datasets import uwb_labyrinth
     from robustloc.datasets.uwb_dwm1001 import error_stats
-    from robustloc.estimators.ranging import Locator
     from robustloc.io import to_epochs
     from robustloc.tracking import Tracker
 
@@ -293,21 +309,26 @@ def _lab(ctx: Context, sec: Section, plots: list) -> dict[str, float]:
     s = error_stats(t, rows[["x", "y"]].to_numpy(float), r.truth, span)
     sm = _smoothed_xy(trk, rows)
     s2 = error_stats(t, sm, r.truth, span)
-    # locate needs three ranges in one epoch: the ranges (one per 0.128 s) binned to windows
+    # locate needs three ranges in one epoch: the ranges (one per 0.128 s) binned to
+    # windows, then the default `robustloc locate` (default method, the log's scale)
+    from robustloc.io.tables import in_memory_source
+    from robustloc.pipelines.locate import LocateSettings, run_locate
+
     loc = {}
     for w in (0.5, 1.0):
         mm = meas.copy()
         mm["time"] = np.floor(mm["time"] / w) * w + w
-        ep2 = to_epochs(mm, ids)
-        sol = Locator("huber").solve(an[["x", "y"]].to_numpy(float), ep2.values, "range")
-        loc[w] = error_stats(ep2.time, sol.position, r.truth, span)
+        pos, _ = run_locate(in_memory_source(mm), an, LocateSettings())
+        usable = pos["status"].isin(st.USABLE).to_numpy()
+        xy_loc = np.where(usable[:, None], pos[["x", "y"]].to_numpy(float), np.nan)
+        loc[w] = error_stats(pos["time"].to_numpy(float), xy_loc, r.truth, span)
     tt = r.truth["time"].to_numpy(float)
     e = np.hypot(rows["x"] - np.interp(t, tt, r.truth["x"]),
                  rows["y"] - np.interp(t, tt, r.truth["y"])).to_numpy()
     inside = (t >= span[0]) & (t <= span[1])
     tab = pd.DataFrame([
-        {"method": "locate huber, 0.5 s windows", **loc[0.5]},
-        {"method": "locate huber, 1 s windows", **loc[1.0]},
+        {"method": f"locate ({DEFAULT_METHOD}), 0.5 s windows", **loc[0.5]},
+        {"method": f"locate ({DEFAULT_METHOD}), 1 s windows", **loc[1.0]},
         {"method": f"{trk.method}", **s}, {"method": f"{trk.method} + RTS", **s2},
     ])
     sec.table("uwb-labyrinth (one range per 0.128 s): 2-D error (m)", tab)
