@@ -1,0 +1,119 @@
+"""Compiled (numba) kernel of :func:`robustloc.integrity.fixes.protection_levels_local`.
+
+The NumPy reference walks the whole batch once per array operation (about twenty
+``(N, n, p)`` temporaries); here each epoch runs in machine code with its ``p x p``
+normal matrix (``p = 2, 3``) inverted in closed form.  Same formulas, same order of the
+tests and the same edge cases (an unused observation, a singular normal matrix, a
+redundancy number at or below ``R_MIN``): the tests compare the two on random geometries
+(:mod:`tests.test_integrity_fixes`).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+# ruff: noqa: N803, N806  (matrix names)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def protection_levels_kernel(J, sigma, used, lam0, k_noise, r_min):  # pragma: no cover - jit
+    """``(hpl, vpl, r)`` of every epoch; arguments and results as
+    :func:`robustloc.integrity.fixes.protection_levels_local`."""
+    N, n, p = J.shape
+    hpl = np.full(N, np.nan)
+    vpl = np.full(N, np.nan)
+    r_out = np.full((N, n), np.nan)
+    A = np.zeros((n, 3))
+    use = np.zeros(n, dtype=np.bool_)
+    Nm = np.zeros((3, 3))
+    C = np.zeros((3, 3))
+    AN = np.zeros(3)
+    for k in range(N):
+        count = 0
+        for i in range(n):
+            s = sigma[k, i]
+            u = used[k, i] and np.isfinite(s) and s > 0.0
+            for j in range(p):
+                if not np.isfinite(J[k, i, j]):
+                    u = False
+            use[i] = u
+            for j in range(p):
+                A[i, j] = J[k, i, j] / s if u else 0.0
+            if u:
+                count += 1
+        # normal matrix J^T P J
+        for a in range(p):
+            for b in range(p):
+                acc = 0.0
+                for i in range(n):
+                    acc += A[i, a] * A[i, b]
+                Nm[a, b] = acc
+        tr = 0.0
+        for a in range(p):
+            tr += Nm[a, a]
+        if p == 2:
+            det = Nm[0, 0] * Nm[1, 1] - Nm[0, 1] * Nm[1, 0]
+        else:
+            det = (Nm[0, 0] * (Nm[1, 1] * Nm[2, 2] - Nm[1, 2] * Nm[2, 1])
+                   - Nm[0, 1] * (Nm[1, 0] * Nm[2, 2] - Nm[1, 2] * Nm[2, 0])
+                   + Nm[0, 2] * (Nm[1, 0] * Nm[2, 1] - Nm[1, 1] * Nm[2, 0]))
+        ok = abs(det) > 1e-12 * max(tr, 1e-300) ** p and count >= p
+        if not ok:
+            continue  # hpl, vpl and r stay NaN, as in the reference
+        s = 1.0 / det
+        if p == 2:
+            C[0, 0] = Nm[1, 1] * s
+            C[0, 1] = -Nm[0, 1] * s
+            C[1, 0] = -Nm[1, 0] * s
+            C[1, 1] = Nm[0, 0] * s
+        else:
+            C[0, 0] = (Nm[1, 1] * Nm[2, 2] - Nm[1, 2] * Nm[2, 1]) * s
+            C[0, 1] = (Nm[0, 2] * Nm[2, 1] - Nm[0, 1] * Nm[2, 2]) * s
+            C[0, 2] = (Nm[0, 1] * Nm[1, 2] - Nm[0, 2] * Nm[1, 1]) * s
+            C[1, 0] = (Nm[1, 2] * Nm[2, 0] - Nm[1, 0] * Nm[2, 2]) * s
+            C[1, 1] = (Nm[0, 0] * Nm[2, 2] - Nm[0, 2] * Nm[2, 0]) * s
+            C[1, 2] = (Nm[0, 2] * Nm[1, 0] - Nm[0, 0] * Nm[1, 2]) * s
+            C[2, 0] = (Nm[1, 0] * Nm[2, 1] - Nm[1, 1] * Nm[2, 0]) * s
+            C[2, 1] = (Nm[0, 1] * Nm[2, 0] - Nm[0, 0] * Nm[2, 1]) * s
+            C[2, 2] = (Nm[0, 0] * Nm[1, 1] - Nm[0, 1] * Nm[1, 0]) * s
+        dh_max = 0.0
+        du_max = 0.0
+        for i in range(n):
+            if not use[i]:
+                continue
+            # row i of A N^-1: d x / d (v_i / sigma_i)
+            dot = 0.0
+            mv = 0.0
+            for b in range(p):
+                acc = 0.0
+                for a in range(p):
+                    acc += A[i, a] * C[a, b]
+                AN[b] = acc
+                dot += acc * A[i, b]
+                mv += acc * acc
+            r = 1.0 - dot
+            r_out[k, i] = r
+            if math.sqrt(mv) <= 1e-9:
+                continue  # the observation does not move the fix
+            if r <= r_min:
+                dh_max = np.inf  # a fault here is undetectable and moves the fix: blind
+                du_max = np.inf
+                continue
+            kk = math.sqrt(lam0 / r)
+            dh = math.hypot(AN[0] * kk, AN[1] * kk)
+            if dh > dh_max:
+                dh_max = dh
+            if p == 3:
+                du = abs(AN[2] * kk)
+                if du > du_max:
+                    du_max = du
+        t2 = C[0, 0] + C[1, 1]
+        d2 = C[0, 0] * C[1, 1] - C[0, 1] ** 2
+        lam_max = 0.5 * t2 + math.sqrt(max(0.25 * t2 * t2 - d2, 0.0))
+        hpl[k] = dh_max + k_noise * math.sqrt(lam_max)
+        if p == 3:
+            vpl[k] = du_max + k_noise * math.sqrt(C[2, 2])
+    return hpl, vpl, r_out
