@@ -156,6 +156,38 @@ def test_auto_is_gauss_newton_on_clean_data_and_robust_on_outliers():
     assert np.sqrt(np.mean(e_a[both] ** 2)) < 0.85 * np.sqrt(np.mean(e_n[both] ** 2))
 
 
+def test_auto_switches_to_a_redescending_fit_on_a_log_full_of_gross_errors():
+    """The first pass measures the log's gross-error share; above AUTO_GROSS_SHARE every
+    epoch is solved by AUTO_HEAVY (igg) -- what `locate` does with the default settings."""
+    from dataclasses import replace
+
+    from robustloc.integrity.fixes import AUTO_GROSS_SHARE, AUTO_HEAVY
+
+    rng = np.random.default_rng(11)
+    N = 3000
+    x = rng.uniform(0, 20, (N, 2))
+    clean = ranges(TEN, x) + rng.normal(0, 0.3, (N, 10))
+    scale, share = Locator("auto").log_statistics(TEN, clean)
+    # Gaussian residuals: P(|u| > 4) = 6.3e-5; over ~25 000 residuals a share above
+    # 0.5 % would be a 60-sigma event
+    assert share < 0.005 < AUTO_GROSS_SHARE
+    bad = clean + np.where(rng.random((N, 10)) < 0.1, rng.uniform(3, 15, (N, 10)), 0.0)
+    scale, share = Locator("auto").log_statistics(TEN, bad)
+    # 10 % of the ranges grossly wrong: the share estimates it (a gross error of 3-15 m
+    # is beyond 4 sigma = 1.2 m whatever its sign)
+    assert 0.08 < share < 0.12
+    auto = replace(Locator("auto"), log_scale_fixed=tuple(scale), log_gross_share=share)
+    heavy = replace(Locator(AUTO_HEAVY), log_scale_fixed=tuple(scale))
+    got = locate_protected(auto, TEN, bad)
+    want = locate_protected(heavy, TEN, bad)
+    np.testing.assert_array_equal(got.position, want.position)
+    assert got.method == "auto" and got.extra["robust_refit"].all()
+    # below the threshold: test-then-robustify (Gauss-Newton where the test passes)
+    low = replace(auto, log_gross_share=AUTO_GROSS_SHARE / 2)
+    plain = locate_protected(low, TEN, bad)
+    assert not plain.extra["robust_refit"].all()
+
+
 def test_locator_auto_alone_refuses():
     with pytest.raises(ValueError, match="locate_protected"):
         Locator("auto").solve(SQUARE, np.full((1, 4), 10.0))

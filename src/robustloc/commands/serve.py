@@ -162,15 +162,15 @@ def build(args: argparse.Namespace):
                             sigma=args.sigma, model=args.model,
                             range_calibration=not args.no_range_calibration,
                             k_noise=args.k_noise, alert_limit=args.alert_limit)
-            scale = None
+            scale = share = None
             robust_scale = args.robust_scale
             if args.scale_from is not None:
-                scale = LocateProcessor.log_scale_from(args.scale_from, anchors,
-                                                       method=args.method, **settings)
+                scale, share = LocateProcessor.log_statistics_from(
+                    args.scale_from, anchors, method=args.method, **settings)
                 robust_scale = "log"
             processor = LocateProcessor(anchors, method=args.method,
                                         robust_scale=robust_scale, log_scale=scale,
-                                        **settings)
+                                        log_gross_share=share, **settings)
     except InputError:
         raise
     except ValueError as exc:

@@ -247,9 +247,9 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
 
                 with tempfile.TemporaryDirectory(prefix="robustloc-") as tmp:
                     paths = [materialize(info.part, tmp) for info in plan]
-                    settings["log_scale_fixed"] = log_scales_for(
+                    settings.update(log_scales_for(
                         LocateSettings.from_namespace(args), read_anchors(args.anchors),
-                        paths)
+                        paths))
             futs = submit_all(client, _file_task, [(fn, settings, input_attr, info.part,
                                                     out.part(i)) for i, info in enumerate(plan)])
             summaries = gather_with_progress(client, futs, _show(args))

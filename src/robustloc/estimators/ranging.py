@@ -50,6 +50,9 @@ METHODS = ("ls", "wls", "nls", "huber", "hampel", "igg", "igg3", "asym", "lege",
 #: shared real data and the seed-000 simulation: the report's "out of the box" section).
 DEFAULT_METHOD = "auto"
 ROBUST = ("huber", "hampel", "igg", "igg3", "asym")
+#: A standardized residual beyond this many sigma counts as a gross error in
+#: :meth:`Locator.log_statistics` (Gaussian: two-sided probability 6.3e-5).
+GROSS_U = 4.0
 
 
 def method_weight(method: str, **params: float):
@@ -381,6 +384,11 @@ class Locator:
         With ``robust_scale="log"``: the per-anchor scale already estimated over the log
         (e.g. by a first pass over a file too large for one batch, :meth:`log_scale`);
         None estimates it from the batch being solved.
+    log_gross_share : float, optional
+        The share of the log's standardized residuals beyond :data:`GROSS_U` (4) in the
+        first pass (:meth:`log_statistics`): how often the log carries gross errors
+        (Gaussian noise: 6e-5).  Method ``auto`` uses it
+        (:func:`robustloc.integrity.fixes.locate_protected`); None: unknown.
     engine : {"compiled", "numpy"}
         ``"compiled"``: the robust start and the Gauss-Newton fits of ranges (and of RSSI
         converted to ranges) run per epoch in the numba kernels of
@@ -406,6 +414,7 @@ class Locator:
     reference: str = "first"
     engine: str = "compiled"
     log_scale_fixed: tuple[float, ...] | None = None
+    log_gross_share: float | None = None
 
     def __post_init__(self) -> None:
         if self.method not in METHODS + ("auto",):
@@ -630,6 +639,37 @@ class Locator:
         ndarray (m,)
             Scale factors, positive and finite (1.0 when nothing could be estimated).
         """
+        return self.log_statistics(anchors, values, kind, A=A, n=n,
+                                   height_offset=height_offset, max_epochs=max_epochs,
+                                   min_count=min_count, iterations=iterations)[0]
+
+    def log_statistics(
+        self,
+        anchors: ArrayLike,
+        values: ArrayLike,
+        kind: str = "range",
+        *,
+        A: ArrayLike | None = None,
+        n: ArrayLike | None = None,
+        height_offset: ArrayLike | None = None,
+        max_epochs: int = 5_000,
+        min_count: int = 20,
+        iterations: int = 3,
+    ) -> tuple[Array, float]:
+        """:meth:`log_scale` and the log's gross-error share.
+
+        Returns
+        -------
+        scale : ndarray (m,)
+            As :meth:`log_scale`.
+        gross_share : float
+            The share of the last pass's standardized residuals ``u_ij`` (in the final
+            scale) with ``|u_ij| > GROSS_U = 4``: 6.3e-5 for Gaussian noise; measured
+            0.13-2.2 % on the shared real logs (NLOS biases and fades), 4.9 % and 20 % on
+            simulated ranges with 5 % and 20 % gross errors
+            (:data:`robustloc.integrity.fixes.AUTO_GROSS_SHARE`).  NaN when no residual
+            could be standardized.
+        """
         a = np.asarray(anchors, dtype=float)
         z = np.atleast_2d(np.asarray(values, dtype=float))
         N, m = z.shape
@@ -683,7 +723,12 @@ class Locator:
             step = np.where(count >= min_count, per, pooled)
             step = np.where(np.isfinite(step), step, 1.0)
             scale = np.maximum(scale * step, floor)
-        return scale
+        # the last residuals in the final scale (u / step, before the floor)
+        with np.errstate(all="ignore"):
+            u_final = u / step[None, :]
+        fin = np.isfinite(u_final)
+        gross = float(np.mean(u_final[fin] > GROSS_U)) if fin.any() else float("nan")
+        return scale, gross
 
     # ----------------------------------------------------------------- helpers
     def _dispatch(self, a, z, ranges, rmodel, height_offset) -> LinearFit:

@@ -99,6 +99,9 @@ class LocateSettings:
     log_scale_fixed : mapping of str to tuple of float, optional
         Per method, the per-anchor log scale to use as it is (the Dask engine computes it
         once for a whole dataset); default: estimated by a first pass over the log.
+    log_gross_share : mapping of str to float, optional
+        Per method, the log's gross-error share found with ``log_scale_fixed``
+        (:meth:`~robustloc.estimators.ranging.Locator.log_statistics`).
     """
 
     method: tuple[str, ...] = option(("auto",), check=method_list)
@@ -119,6 +122,7 @@ class LocateSettings:
     beta0: float = option(0.10, check=float_in(1e-6, 0.99))
     chunk_rows: int = option(500_000, check=positive_int)
     log_scale_fixed: Mapping[str, tuple[float, ...]] | None = None
+    log_gross_share: Mapping[str, float] | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.method, str):
@@ -141,6 +145,7 @@ class LocateSettings:
             range_calibration=not args.no_range_calibration, alpha0=args.alpha0,
             beta0=args.beta0, chunk_rows=args.chunk_rows,
             log_scale_fixed=getattr(args, "log_scale_fixed", None),
+            log_gross_share=getattr(args, "log_gross_share", None),
         )
 
 
@@ -254,7 +259,9 @@ def fix_log_scale(settings: LocateSettings, geo: Geometry, sources: Sequence[Any
 
     fixed = settings.log_scale_fixed
     if fixed is not None:
-        return [replace(loc, log_scale_fixed=tuple(fixed[loc.method]))
+        shares = settings.log_gross_share or {}
+        return [replace(loc, log_scale_fixed=tuple(fixed[loc.method]),
+                        log_gross_share=shares.get(loc.method))
                 if loc.robust_scale == "log" else loc for loc in geo.locators]
     anchors = geo.anchors
     k, seen, kept, idx = 1, 0, [], []
@@ -283,9 +290,10 @@ def fix_log_scale(settings: LocateSettings, geo: Geometry, sources: Sequence[Any
         if loc.robust_scale != "log":
             out.append(loc)
             continue
-        scale = loc.log_scale(geo.xyz, sample, kind, A=A, n=n, height_offset=geo.height,
-                              max_epochs=2 * cap)
-        out.append(replace(loc, log_scale_fixed=tuple(float(v) for v in scale)))
+        scale, share = loc.log_statistics(geo.xyz, sample, kind, A=A, n=n,
+                                          height_offset=geo.height, max_epochs=2 * cap)
+        out.append(replace(loc, log_scale_fixed=tuple(float(v) for v in scale),
+                           log_gross_share=share))
     return out
 
 
@@ -300,13 +308,21 @@ def _with_log_scale(settings: LocateSettings, geo: Geometry, sources: Sequence[A
 
 
 def log_scales_for(settings: LocateSettings, anchors: pd.DataFrame, sources: Sequence[Any]
-                   ) -> dict[str, tuple[float, ...]]:
-    """Each method's per-anchor log scale over ``sources`` (files in order), as
-    :func:`run_locate` estimates it in its first pass: what the Dask engine hands to
-    every partition so that each solves with the whole dataset's scale."""
+                   ) -> dict[str, Any]:
+    """Each method's per-anchor log scale and gross-error share over ``sources`` (files in
+    order), as :func:`run_locate` estimates them in its first pass: what the Dask engine
+    hands to every partition so that each solves with the whole dataset's.
+
+    Returns
+    -------
+    dict
+        ``{"log_scale_fixed": {method: scale}, "log_gross_share": {method: share}}``,
+        the :class:`LocateSettings` fields.
+    """
     fixed = _with_log_scale(settings, configure(settings, anchors), sources)
-    return {loc.method: loc.log_scale_fixed for loc in fixed
-            if loc.log_scale_fixed is not None}
+    done = [loc for loc in fixed if loc.log_scale_fixed is not None]
+    return {"log_scale_fixed": {loc.method: loc.log_scale_fixed for loc in done},
+            "log_gross_share": {loc.method: loc.log_gross_share for loc in done}}
 
 
 def run_locate(

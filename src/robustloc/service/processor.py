@@ -69,9 +69,12 @@ class LocateProcessor:
         Noise scale of the robust methods and of every fix's test.  ``mad`` (default here):
         per epoch from its own residuals.  ``log`` (``robustloc locate``'s default, a first
         pass over the whole log) needs ``log_scale``: a live service has no whole log, so
-        the scale comes from a recorded one (:meth:`log_scale_from`).
+        the scale comes from a recorded one (:meth:`log_statistics_from`).
     log_scale : sequence of float, optional
         Per-anchor noise scale for ``robust_scale="log"``.
+    log_gross_share : float, optional
+        The recorded log's gross-error share (method ``auto`` solves every epoch with
+        ``igg`` above :data:`robustloc.integrity.fixes.AUTO_GROSS_SHARE`).
     sigma : float, optional
         A-priori observation std (m or dB); default the anchors' ``sigma`` column if present.
     model : str, optional
@@ -93,6 +96,7 @@ class LocateProcessor:
         sigma: float | None = None,
         robust_scale: str = "mad",
         log_scale: Sequence[float] | None = None,
+        log_gross_share: float | None = None,
         reference: str = "first",
         min_scale: float = 0.0,
         alpha0: float = 0.001,
@@ -145,20 +149,30 @@ class LocateProcessor:
         )
         if log_scale is not None:
             self.locator = replace(self.locator,
-                                   log_scale_fixed=tuple(float(v) for v in log_scale))
+                                   log_scale_fixed=tuple(float(v) for v in log_scale),
+                                   log_gross_share=log_gross_share)
         self._pathloss: tuple[np.ndarray, np.ndarray] | None = None
 
     @staticmethod
     def log_scale_from(path: str, anchors: pd.DataFrame, *, method: str | None = None,
                        dim: int = 2, chunk_rows: int = 500_000, **settings: Any
                        ) -> tuple[float, ...]:
-        """Per-anchor noise scale of a recorded log, by ``robustloc locate``'s first pass.
+        """Per-anchor noise scale of a recorded log (see :meth:`log_statistics_from`)."""
+        return LocateProcessor.log_statistics_from(path, anchors, method=method, dim=dim,
+                                                   chunk_rows=chunk_rows, **settings)[0]
+
+    @staticmethod
+    def log_statistics_from(path: str, anchors: pd.DataFrame, *, method: str | None = None,
+                            dim: int = 2, chunk_rows: int = 500_000, **settings: Any
+                            ) -> tuple[tuple[float, ...], float | None]:
+        """Per-anchor noise scale and gross-error share of a recorded log, by
+        ``robustloc locate``'s first pass.
 
         ``settings`` are the other :class:`LocateProcessor` settings (``solver``, ``model``,
         ``range_calibration``, ...).  Runs ``locate``'s own first pass
         (:func:`robustloc.pipelines.locate.fix_log_scale`), so a log replayed through a
-        service started with this scale gives the positions ``robustloc locate`` gives on
-        the file.
+        service started with them (``log_scale``, ``log_gross_share``) gives the positions
+        ``robustloc locate`` gives on the file.
         """
         from robustloc.io.tables import UnsortedInput
         from robustloc.pipelines.locate import Geometry, LocateSettings, fix_log_scale
@@ -175,7 +189,7 @@ class LocateProcessor:
             (out,) = fix_log_scale(first_pass, geo, [str(path)], "sort")
         if out.log_scale_fixed is None:
             raise ValueError(f"{path}: no epochs to take the noise scale from")
-        return tuple(out.log_scale_fixed)
+        return tuple(out.log_scale_fixed), out.log_gross_share
 
     def process(self, epochs: Epochs) -> pd.DataFrame:
         from robustloc.integrity.fixes import locate_protected
