@@ -141,8 +141,8 @@ def our_solver(
         def run_auto(wl: Workload) -> Fixes:
             sol = locate_protected(auto, wl.anchors, wl.ranges, "range")
             return Fixes(_usable(sol.position, sol.status),
-                         "locate_protected(Locator(auto)): log scale + nls + test + hpl + "
-                         "huber refit")
+                         "locate_protected(Locator(auto)): log scale + gross share, then "
+                         "nls + test + hpl + huber refit (igg above 3.3 % gross)")
 
         return run_auto
     if Locator is not None:
