@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from robustloc.engines import add_engine_arguments
+
 NAME = "track"
 HELP = "tracks from RSSI or ranges: a robust tight EKF/UKF per tag, with RTS smoothing"
 DESCRIPTION = """\
@@ -74,8 +76,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--smooth", action="store_true", help="fixed-interval RTS smoother")
     p.add_argument("--fixed-lag", type=positive_int, default=None, metavar="N",
                    help="fixed-lag RTS smoother over the next N epochs of each tag")
-    p.add_argument("--engine", choices=("compiled", "numpy"), default=d.engine,
-                   help="compiled kernels (default) or the NumPy reference")
+    p.add_argument("--kernel", choices=("compiled", "numpy"), default=d.engine,
+                   help="the tracker's kernels: compiled (default) or the NumPy reference "
+                        "(Tracker(engine=...); --engine chooses where the command runs)")
     p.add_argument("--noise-scale-min", type=positive_float, default=d.noise_scale_min)
     p.add_argument("--noise-scale-max", type=positive_float, default=d.noise_scale_max)
     p.add_argument("--cusum-h", type=positive_float, default=d.cusum_h,
@@ -94,35 +97,119 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="rows read per chunk")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_engine_arguments(p, what="a tag-partitioned Parquet dataset")
+
+
+def make_tracker(anchors: pd.DataFrame, args: argparse.Namespace) -> object:
+    """The :class:`robustloc.tracking.Tracker` configured by ``args`` (a refused setting
+    is an InputError; ``--smooth``/``--fixed-lag`` record the forward pass)."""
+    from robustloc.errors import InputError
+    from robustloc.tracking import Tracker
+
+    if args.tag_height is not None and "z" not in anchors.columns:
+        raise InputError("--tag-height needs a z column in the anchors file", args.anchors, 1)
+    try:
+        return Tracker(
+            anchors, model=args.model, filter=args.filter, record=_smoothing(args), q=args.q,
+            weight=args.weight, domain=args.domain, sigma=args.sigma, engine=args.kernel,
+            noise_scale_min=args.noise_scale_min, noise_scale_max=args.noise_scale_max,
+            cusum_h=args.cusum_h, alpha0=args.alpha0, beta0=args.beta0,
+            integrity_risk=args.integrity_risk, tag_height=args.tag_height,
+        )
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+
+
+def _smoothing(args: argparse.Namespace) -> bool:
+    return bool(args.smooth or args.fixed_lag is not None)
+
+
+def track_blocks(trk: object, blocks: object, args: argparse.Namespace,
+                 write: object = None, progress: object = None
+                 ) -> tuple[pd.DataFrame | None, int, dict[str, int]]:
+    """The single core of ``track``: every epoch block through ``trk`` in order.
+
+    Parameters
+    ----------
+    trk : Tracker
+        From :func:`make_tracker`.
+    blocks : iterable of Epochs
+        The log's epochs in time order (a file streamed by ``iter_epochs``, or one tag
+        partition under ``--engine dask``).
+    args : argparse.Namespace
+        ``smooth``, ``fixed_lag``.
+    write : callable, optional
+        Without smoothing, each block's rows are handed to ``write`` (streamed, bounded
+        memory) and no table is returned; else they are kept and returned.
+    progress : callable, optional
+        Called with each block's epoch count.
+
+    Returns
+    -------
+    (table or None, epochs, status counts)
+    """
+    from robustloc._jitnotice import compile_notice
+
+    smooth = _smoothing(args)
+    stream = write is not None and not smooth
+    if smooth:
+        # the smoother indexes the recorded steps by their row in one step's output, so
+        # the whole log goes through the tracker in one step (the smoother holds every
+        # epoch anyway); block by block, rows of later blocks were smoothed with the
+        # states of earlier ones (the result depended on --chunk-rows)
+        blocks = [_joined(list(blocks))]
+    frames: list[pd.DataFrame] = []
+    n = 0
+    status_counts: dict[str, int] = {}
+    for block in blocks:
+        if n == 0:
+            compile_notice("filter")
+        rows = trk.step(block)
+        for k, v in rows["status"].value_counts().items():
+            status_counts[str(k)] = status_counts.get(str(k), 0) + int(v)
+        if stream:
+            write(rows)
+        else:
+            frames.append(rows)
+        n += block.n_epochs
+        if progress is not None:
+            progress(block.n_epochs)
+    if stream:
+        return None, n, status_counts
+    table = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    if smooth and len(table):
+        table = apply_smoother(trk, table, args.fixed_lag)
+        status_counts = {str(k): int(v) for k, v in table["status"].value_counts().items()}
+    return table, n, status_counts
+
+
+def _joined(blocks: list) -> object:
+    """Epoch blocks (consecutive, in time order) as one :class:`Epochs`."""
+    from dataclasses import replace
+
+    if len(blocks) == 1:
+        return blocks[0]
+    if not blocks:
+        raise ValueError("no epoch blocks")
+    b0 = blocks[0]
+    return replace(b0, time=np.concatenate([b.time for b in blocks]),
+                   tag=np.concatenate([np.asarray(b.tag, dtype=object) for b in blocks]),
+                   values=np.concatenate([b.values for b in blocks]),
+                   line=np.concatenate([b.line for b in blocks]),
+                   n_duplicates=sum(b.n_duplicates for b in blocks),
+                   n_invalid=np.concatenate([b.n_invalid for b in blocks]))
 
 
 def track_file(args: argparse.Namespace) -> dict:
     """Run ``track`` as configured by ``args``; returns the summary."""
     from tqdm import tqdm
 
-    from robustloc._jitnotice import compile_notice
-    from robustloc.errors import InputError
     from robustloc.io import iter_epochs, read_anchors, write_table
     from robustloc.io.atomic import atomic_output, check_not_input
     from robustloc.io.tables import UnsortedInput, is_parquet
-    from robustloc.tracking import Tracker
 
     anchors = read_anchors(args.anchors)
-    smooth = args.smooth or args.fixed_lag is not None
-    if args.tag_height is not None and "z" not in anchors.columns:
-        raise InputError("--tag-height needs a z column in the anchors file", args.anchors, 1)
-    def make_tracker() -> Tracker:
-        try:
-            return Tracker(
-                anchors, model=args.model, filter=args.filter, record=smooth, q=args.q,
-                weight=args.weight, domain=args.domain, sigma=args.sigma, engine=args.engine,
-                noise_scale_min=args.noise_scale_min, noise_scale_max=args.noise_scale_max,
-                cusum_h=args.cusum_h, alpha0=args.alpha0, beta0=args.beta0,
-                integrity_risk=args.integrity_risk, tag_height=args.tag_height,
-            )
-        except ValueError as exc:
-            raise InputError(str(exc)) from None
-
+    smooth = _smoothing(args)
     check_not_input(args.out, [args.measurements, args.anchors])
     out = args.out
     t0 = _time.perf_counter()
@@ -131,39 +218,23 @@ def track_file(args: argparse.Namespace) -> dict:
         """Every epoch through a fresh tracker; the streamed file is written atomically
         (nothing at -o after an error or an interrupt); raises UnsortedInput when rows
         turn out not to be in time order (the caller sorts and starts again)."""
-        trk = make_tracker()
-        frames: list[pd.DataFrame] = []
-        n = 0
+        trk = make_tracker(anchors, args)
         bar = tqdm(unit=" epochs", disable=args.quiet or not sys.stderr.isatty(),
                    file=sys.stderr)
-        status_counts: dict[str, int] = {}
         try:
             with atomic_output(out) as (target, _stream):
                 stream = target is not None and not smooth
                 writer = TrackWriter(target, parquet=is_parquet(out)) if stream else None
                 try:
-                    for block in iter_epochs(args.measurements, anchors,
-                                             chunk_rows=args.chunk_rows, order=order):
-                        if n == 0:
-                            compile_notice("filter")
-                        rows = trk.step(block)
-                        for k, v in rows["status"].value_counts().items():
-                            status_counts[str(k)] = status_counts.get(str(k), 0) + int(v)
-                        if writer is None:
-                            frames.append(rows)
-                        else:
-                            writer.write(rows)
-                        n += block.n_epochs
-                        bar.update(block.n_epochs)
+                    blocks = iter_epochs(args.measurements, anchors,
+                                         chunk_rows=args.chunk_rows, order=order)
+                    table, n, status_counts = track_blocks(
+                        trk, blocks, args, None if writer is None else writer.write,
+                        bar.update)
                 finally:
                     if writer is not None:
                         writer.close()
-                if not stream:
-                    table = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
-                    if smooth and len(table):
-                        table = apply_smoother(trk, table, args.fixed_lag)
-                        status_counts = {str(k): int(v) for k, v in
-                                         table["status"].value_counts().items()}
+                if table is not None:
                     if target is None:
                         write_table(table, out)
                     else:
@@ -182,6 +253,28 @@ def track_file(args: argparse.Namespace) -> dict:
             "smoother": ("fixed-lag" if args.fixed_lag else "rts") if smooth else None,
             "seconds": round(wall, 3),
             "epochs_per_second": round(n_epochs / max(wall, 1e-9), 1)}
+
+
+def track_partition(meas: pd.DataFrame, anchors: pd.DataFrame, args: argparse.Namespace
+                    ) -> tuple[pd.DataFrame, dict[str, int]]:
+    """``--engine dask``: one tag group read whole (its files concatenated in time order)
+    -> (track rows, additive counts).  Used when a group spans several files; a group of
+    one file is streamed by :func:`track_partition_file`."""
+    from robustloc.io.tables import to_epochs
+
+    trk = make_tracker(anchors, args)
+    epochs = to_epochs(meas, trk.anchor_ids)  # sorted by (time, tag): each tag in order
+    table, n, counts = track_blocks(trk, [epochs], args)
+    return table, {"epochs": n, "tags": len(trk.tags), "status": counts}
+
+
+def track_partition_file(args: argparse.Namespace) -> dict:
+    """``--engine dask``: ``track_file`` on one partition file (streamed in
+    ``--chunk-rows``, so a worker's memory does not grow with the partition) -> the
+    additive counts of its summary."""
+    s = track_file(args)
+    return {"epochs": s["epochs"], "tags": s["tags"], "status": s["status"],
+            "rows_out": s["epochs"]}
 
 
 class TrackWriter:
@@ -250,6 +343,9 @@ def apply_smoother(trk: object, table: pd.DataFrame, lag: int | None) -> pd.Data
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.engine == "dask":
+        from robustloc.engines.dask import run_tagwise
+        return run_tagwise(args, track_partition, "track", file_fn=track_partition_file)
     summary = track_file(args)
     if args.json:
         print(json.dumps(summary, indent=2))

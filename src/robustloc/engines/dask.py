@@ -8,8 +8,9 @@ the command module, so this layer never imports a command and never re-implement
   is never split: :func:`robustloc.engines.dataset.plan_snapshot`), one output file each.
 * :func:`run_tagwise` -- filters and trackers: ``kernel(measurements, anchors, args) ->
   (frame, counts)`` on each tag group (:func:`robustloc.engines.dataset.plan_tagwise`).
-  ``filter`` plugs in as ``run_filter(args, filter_partition)``; ``track`` plugs in the
-  same way with its own per-partition function.
+  ``filter`` plugs in as ``run_filter(args, filter_partition)``; ``track`` as
+  ``run_tagwise(args, track_partition, "track", file_fn=track_partition_file)``: a tag
+  group of one file is streamed by ``track``'s own per-file function.
 * :func:`run_spp` -- ``spp``'s ``run`` on each RINEX observation file.
 * :func:`evaluate_dataset` -- per-row errors of each positions partition on the workers,
   statistics of the whole on the client (exact: pooled medians and percentiles).
@@ -295,7 +296,8 @@ def run_filter(args: argparse.Namespace, kernel: TagKernel) -> int:
 
 
 def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
-                input_attr: str = "measurements") -> int:
+                input_attr: str = "measurements",
+                file_fn: Callable[[argparse.Namespace], dict] | None = None) -> int:
     """Apply ``kernel`` to each tag group of the dataset ``args.<input_attr>``.
 
     Parameters
@@ -311,6 +313,13 @@ def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
         Command name for messages and the metadata.
     input_attr : str
         The attribute of ``args`` holding the input dataset.
+    file_fn : callable, optional
+        The command's per-file function (as ``locate_file``: ``args`` with
+        ``<input_attr>`` and ``out`` set -> a summary of additive counts and
+        ``rows_out``), used instead of ``kernel`` for a tag group of one file: it streams
+        the file, so a worker's memory is bounded by the command's chunk and not by the
+        partition.  Groups of several files (a tag's days in a ``tag=/date=`` tree, a
+        dataset partitioned by time) go to ``kernel``, read whole.
     """
     t0 = _time.perf_counter()
     parts = discover(getattr(args, input_attr), what="measurements dataset")
@@ -328,8 +337,14 @@ def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
                       file=sys.stderr)
             _say(args, f"{name}: {len(groups)} tag groups on {n_workers} workers")
             settings = _settings(args)
-            futs = submit_all(client, _tag_task, [(kernel, settings, [i.part for i in g],
-                                                   out.part(k)) for k, g in enumerate(groups)])
+            futs = []
+            for k, g in enumerate(groups):
+                if file_fn is not None and len(g) == 1:
+                    futs += submit_all(client, _file_task, [(file_fn, settings, input_attr,
+                                                             g[0].part, out.part(k))])
+                else:
+                    futs += submit_all(client, _tag_task, [(kernel, settings,
+                                                            [i.part for i in g], out.part(k))])
             counts_list = gather_with_progress(client, futs, _show(args))
         total: dict = {}
         for c in counts_list:
