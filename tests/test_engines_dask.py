@@ -213,6 +213,39 @@ def test_locate_dask_equals_single_process_row_for_row(sim, by_time, scheduler, 
     assert meta["status"]["huber"] == local["status"].value_counts().to_dict()
 
 
+def test_locate_first_pass_on_the_workers_samples_as_one_process(sim, by_time, scheduler,
+                                                                 tmp_path, monkeypatch):
+    # a small cap makes the sampling step k = 8 (260 epochs, at most 40 kept), so the
+    # partitions' global offsets matter; the thread workers share the patched module
+    import robustloc.commands.locate as loc
+    from robustloc.engines import dask as engine
+
+    monkeypatch.setattr(loc, "LOG_SAMPLE_CAP", 20)
+    assert loc.log_sample_step(260) == 8 and loc.log_sample_step(40) == 1
+    local = _locate_local(sim, tmp_path, "huber,igg")
+    out = tmp_path / "pos"
+    calls = []
+    serial = loc.log_scales_for
+    monkeypatch.setattr(loc, "log_scales_for", lambda *a, **k: calls.append(k) or
+                        serial(*a, **k))
+    assert main(["locate", str(by_time), "--anchors", str(sim["anchors"]), "--method",
+                 "huber,igg", "-o", str(out), "--engine", "dask", "--scheduler", scheduler,
+                 "--quiet"]) == 0
+    assert len(calls) == 1 and calls[0].get("sample") is not None  # not the serial pass
+    key = ["method", "time", "tag"]
+    got = _dataset(out).sort_values(key).reset_index(drop=True)
+    pd.testing.assert_frame_equal(got, local.sort_values(key).reset_index(drop=True))
+    # a quick count that the validating reader contradicts: the pass runs on the client
+    monkeypatch.setattr(engine, "count_epochs", lambda part: 1)
+    calls.clear()
+    assert main(["locate", str(by_time), "--anchors", str(sim["anchors"]), "--method",
+                 "huber,igg", "-o", str(out), "--engine", "dask", "--scheduler", scheduler,
+                 "--quiet"]) == 0
+    assert len(calls) == 1 and calls[0].get("sample") is None
+    got = _dataset(out).sort_values(key).reset_index(drop=True)
+    pd.testing.assert_frame_equal(got, local.sort_values(key).reset_index(drop=True))
+
+
 def test_locate_dask_several_methods_on_a_hive_tree_without_the_tag_column(
         sim, by_tag, scheduler, tmp_path):
     # the layout dask's and DuckDB's partitioned writers produce by default

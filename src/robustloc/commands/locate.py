@@ -355,19 +355,36 @@ def _prepared_values(args: argparse.Namespace, anchors: pd.DataFrame, block) -> 
     return block.values
 
 
+#: The first pass keeps at most ``2 LOG_SAMPLE_CAP`` epochs of the log (an even sample).
+LOG_SAMPLE_CAP = 5_000
+
+
+def log_sample_step(n_epochs: int, cap: int | None = None) -> int:
+    """The first pass's sampling step ``k``: every ``k``-th epoch of the log (global epoch
+    index ``i`` with ``i % k == 0``) is kept, ``k`` the smallest power of two that keeps at
+    most ``2 cap`` of ``n_epochs`` (``ceil(n / k) <= 2 cap``).  The streamed first pass
+    reaches the same ``k`` by doubling as the log grows, whatever the chunks.  ``cap``:
+    default :data:`LOG_SAMPLE_CAP`."""
+    cap = LOG_SAMPLE_CAP if cap is None else cap
+    k = 1
+    while -(-n_epochs // k) > 2 * cap:
+        k *= 2
+    return k
+
+
 def _fix_log_scale(args, anchors, locators, xyz, height, order: str,
-                   cap: int = 5_000, paths: list | None = None) -> list:
+                   cap: int | None = None, paths: list | None = None) -> list:
     """First pass over the whole log: each locator's per-anchor noise scale from an even
     sample of at most ``2 cap`` epochs (every ``k``-th epoch, ``k`` doubling as the log
-    grows), so the scale, and every fix, is the same whatever ``--chunk-rows`` is.
-    ``paths``: the log's files in order (a partitioned dataset; default the one file).
-    ``args.log_scale_fixed`` (set by the Dask engine, which computes it once for the whole
-    dataset) is used as it is."""
+    grows: :func:`log_sample_step`), so the scale, and every fix, is the same whatever
+    ``--chunk-rows`` is.  ``paths``: the log's files in order (a partitioned dataset;
+    default the one file).  ``args.log_scale_fixed`` (set by the Dask engine, which
+    computes it once for the whole dataset) is used as it is."""
     from dataclasses import replace
 
     from robustloc.io import iter_epochs
-    from robustloc.models.pathloss import log_distance_arrays
 
+    cap = LOG_SAMPLE_CAP if cap is None else cap
     fixed = getattr(args, "log_scale_fixed", None)
     if fixed is not None:
         return [replace(loc, log_scale_fixed=tuple(fixed[loc.method]))
@@ -391,7 +408,19 @@ def _fix_log_scale(args, anchors, locators, xyz, height, order: str,
             idx = [i[i % k == 0] for i in idx]
     if kind is None:
         return locators
-    sample = np.vstack(kept)
+    return log_scales_from_sample(args, anchors, locators, xyz, height, kind,
+                                  np.vstack(kept), cap)
+
+
+def log_scales_from_sample(args, anchors, locators, xyz, height, kind: str,
+                           sample: np.ndarray, cap: int | None = None) -> list:
+    """The locators with their per-anchor log scale fixed from the first pass's
+    ``sample`` (its epochs' prepared values, in log order)."""
+    from dataclasses import replace
+
+    from robustloc.models.pathloss import log_distance_arrays
+
+    cap = LOG_SAMPLE_CAP if cap is None else cap
     A = n = None
     if kind == "rssi":
         A, n = log_distance_arrays(anchors, args.model)
@@ -406,18 +435,56 @@ def _fix_log_scale(args, anchors, locators, xyz, height, order: str,
     return out
 
 
-def log_scales_for(args: argparse.Namespace, paths: list) -> dict[str, tuple[float, ...]]:
+def log_sample_of(args: argparse.Namespace, path: str, offset: int, k: int
+                  ) -> tuple[str | None, np.ndarray, int]:
+    """One file's share of the first pass when the log is split in files: its epochs
+    whose global index (``offset`` + index in the file) is a multiple of ``k``.
+
+    Returns ``(kind, prepared values of those epochs, epochs in the file)``; the caller
+    stacks the files' samples in log order (the Dask engine, on the workers)."""
+    from robustloc.io import iter_epochs, read_anchors
+    from robustloc.io.tables import UnsortedInput
+
+    _, anchors, _, _ = _locators(args, read_anchors(args.anchors))
+
+    def sample(order: str) -> tuple[str | None, np.ndarray, int]:
+        kind, seen, kept = None, 0, []
+        for block in iter_epochs(path, anchors, chunk_rows=args.chunk_rows, order=order):
+            kind = block.value
+            gi = offset + np.arange(seen, seen + block.n_epochs)
+            seen += block.n_epochs
+            kept.append(_prepared_values(args, anchors, block)[gi % k == 0])
+        m = len(anchors)
+        return kind, (np.vstack(kept) if kept else np.empty((0, m))), seen
+
+    try:
+        return sample("auto")
+    except UnsortedInput:  # as the whole pass does: sorted, the same epochs in order
+        return sample("sort")
+
+
+def log_scales_for(args: argparse.Namespace, paths: list, cap: int | None = None,
+                   sample: np.ndarray | None = None, kind: str | None = None
+                   ) -> dict[str, tuple[float, ...]]:
     """Each method's per-anchor log scale over the files ``paths`` (in order), as
     ``locate`` estimates it in its first pass: what the Dask engine hands to every
-    partition so that each solves with the whole dataset's scale."""
+    partition so that each solves with the whole dataset's scale.  With ``sample`` and
+    ``kind`` (the files' :func:`log_sample_of` stacked in order, computed elsewhere), the
+    files are not read again."""
     from robustloc.io import read_anchors
     from robustloc.io.tables import UnsortedInput
 
     locators, anchors, xyz, height = _locators(args, read_anchors(args.anchors))
-    try:
-        fixed = _fix_log_scale(args, anchors, locators, xyz, height, "auto", paths=paths)
-    except UnsortedInput:
-        fixed = _fix_log_scale(args, anchors, locators, xyz, height, "sort", paths=paths)
+    if sample is not None:
+        fixed = (log_scales_from_sample(args, anchors, locators, xyz, height, kind, sample,
+                                        cap) if kind is not None else locators)
+    else:
+        try:
+            fixed = _fix_log_scale(args, anchors, locators, xyz, height, "auto", cap,
+                                   paths=paths)
+        except UnsortedInput:
+            fixed = _fix_log_scale(args, anchors, locators, xyz, height, "sort", cap,
+                                   paths=paths)
     return {loc.method: loc.log_scale_fixed for loc in fixed
             if loc.log_scale_fixed is not None}
 

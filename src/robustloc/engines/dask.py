@@ -38,12 +38,14 @@ import uuid
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from robustloc.engines.cluster import dask_client, gather_with_progress, submit_all
 from robustloc.engines.dataset import (
     Partition,
     PartitionInfo,
+    count_epochs,
     discover,
     inspect,
     materialize,
@@ -240,14 +242,7 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
                        f"{len(client.scheduler_info()['workers'])} workers")
             settings = _settings(args)
             if name == "locate" and getattr(args, "robust_scale", None) == "log":
-                # the log's noise scale is the whole dataset's: one first pass (an even
-                # sample of its epochs, in the partitions' order) on the client, handed to
-                # every partition, as the single-process first pass does for one file
-                from robustloc.commands.locate import log_scales_for
-
-                with tempfile.TemporaryDirectory(prefix="robustloc-") as tmp:
-                    paths = [materialize(info.part, tmp) for info in plan]
-                    settings["log_scale_fixed"] = log_scales_for(args, paths)
+                settings["log_scale_fixed"] = _log_scales(client, args, settings, plan)
             futs = submit_all(client, _file_task, [(fn, settings, input_attr, info.part,
                                                     out.part(i)) for i, info in enumerate(plan)])
             summaries = gather_with_progress(client, futs, _show(args))
@@ -273,6 +268,60 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
         raise
     _report(args, summary)
     return 0
+
+
+def _count_task(part: Partition) -> int | None:
+    return count_epochs(part)
+
+
+def _log_sample_task(fn: Callable, settings: dict, part: Partition, offset: int, k: int
+                     ) -> tuple:
+    """``fn`` (``locate``'s :func:`log_sample_of`) on one partition file."""
+    with tempfile.TemporaryDirectory(prefix="robustloc-") as tmp:
+        path = materialize(part, tmp)
+        try:
+            return fn(argparse.Namespace(**settings), path, offset, k)
+        except InputError as exc:
+            if path != part.path:
+                raise InputError(exc.message, part.path, exc.line) from None
+            raise
+
+
+def _log_scales(client: object, args: argparse.Namespace, settings: dict,
+                plan: list[PartitionInfo]) -> dict:
+    """``locate``'s first pass over the dataset, on the workers.
+
+    The log's noise scale is the whole dataset's: an even sample of its epochs (every
+    ``k``-th in the partitions' order), as the single-process first pass takes over one
+    file.  The sample is fixed by the epoch count alone (``log_sample_step``), so (1) each
+    partition's epochs are counted (two columns, pyarrow's group-by), (2) each worker
+    samples its partitions at their global offsets, checking its count, and (3) the
+    client fits the scale on the stacked sample.  Should a validated count differ from
+    the quick one (ids with stray spaces, say), the pass runs again on the client, in
+    order, as before: the result is the single-process one either way.
+    """
+    from robustloc.commands.locate import log_sample_of, log_sample_step, log_scales_for
+
+    counts = gather_with_progress(client, submit_all(client, _count_task,
+                                                     [(i.part,) for i in plan]), False)
+    if all(c is not None for c in counts):
+        offsets = [0]
+        for c in counts[:-1]:
+            offsets.append(offsets[-1] + c)
+        k = log_sample_step(sum(counts))
+        futs = submit_all(client, _log_sample_task,
+                          [(log_sample_of, settings, i.part, off, k)
+                           for i, off in zip(plan, offsets)])
+        res = gather_with_progress(client, futs, False)
+        if all(n == c for (_, _, n), c in zip(res, counts)):
+            kinds = [kind for kind, _, _ in res if kind is not None]
+            if not kinds:
+                return log_scales_for(args, [], sample=np.empty((0, 0)), kind=None)
+            sample = np.vstack([v for _, v, _ in res])
+            return log_scales_for(args, [], sample=sample, kind=kinds[0])
+    with tempfile.TemporaryDirectory(prefix="robustloc-") as tmp:
+        paths = [materialize(info.part, tmp) for info in plan]
+        return log_scales_for(args, paths)
 
 
 def _report(args: argparse.Namespace, summary: dict) -> None:

@@ -267,6 +267,23 @@ def read_partition(part: Partition, columns: list[str] | None = None) -> pd.Data
     return df
 
 
+def count_epochs(part: Partition) -> int | None:
+    """Distinct ``(time, tag)`` pairs of ``part`` (its epochs), from the two columns alone
+    (pyarrow's group-by, no validation); None when they cannot be read as such.  A quick
+    estimate that the caller checks against the validating reader's count."""
+    import pyarrow.parquet as pq
+
+    try:
+        names = pq.read_schema(part.path).names
+        cols = ["time"] + (["tag"] if "tag" in names else [])
+        t = pq.read_table(part.path, columns=cols)
+        if t.num_rows == 0:
+            return 0
+        return int(t.group_by(cols).aggregate([]).num_rows)
+    except Exception:  # noqa: BLE001 - the reader reports the problem with its line
+        return None
+
+
 def materialize(part: Partition, directory: str | os.PathLike) -> str:
     """The path of a file with ``part``'s rows and its hive id keys as columns.
 
