@@ -235,15 +235,31 @@ def test_locate_first_pass_on_the_workers_samples_as_one_process(sim, by_time, s
     key = ["method", "time", "tag"]
     got = _dataset(out).sort_values(key).reset_index(drop=True)
     pd.testing.assert_frame_equal(got, local.sort_values(key).reset_index(drop=True))
-    # a quick count that the validating reader contradicts: the pass runs on the client
+    # a quick count that the validating reader contradicts: sampled again, with its counts
     monkeypatch.setattr(engine, "count_epochs", lambda part: 1)
     calls.clear()
     assert main(["locate", str(by_time), "--anchors", str(sim["anchors"]), "--method",
                  "huber,igg", "-o", str(out), "--engine", "dask", "--scheduler", scheduler,
                  "--quiet"]) == 0
-    assert len(calls) == 1 and calls[0].get("sample") is None
+    assert len(calls) == 1 and calls[0].get("sample") is not None
     got = _dataset(out).sort_values(key).reset_index(drop=True)
     pd.testing.assert_frame_equal(got, local.sort_values(key).reset_index(drop=True))
+
+
+def test_quick_epoch_count(tmp_path):
+    from robustloc.engines.dataset import count_epochs
+
+    f = tmp_path / "p.parquet"
+    pd.DataFrame({"time": [0.0, 0.0, 0.0, 1.0, 1.0, 2.0], "tag": ["a", "a", "b", "b", "b", "a"],
+                  "anchor": list("xyxyxy"), "rssi": -50.0}).to_parquet(f, index=False)
+    assert count_epochs(Partition(str(f))) == 4  # (0,a) (0,b) (1,b) (2,a)
+    h = tmp_path / "tag=a"
+    h.mkdir()
+    pd.DataFrame({"time": [0.0, 0.0, 1.0], "anchor": list("xyx"), "rssi": -50.0}).to_parquet(
+        h / "0.parquet", index=False)
+    assert count_epochs(Partition(str(h / "0.parquet"), (("tag", "a"),))) == 2
+    (tmp_path / "bad.parquet").write_text("not parquet")
+    assert count_epochs(Partition(str(tmp_path / "bad.parquet"))) is None
 
 
 def test_locate_dask_several_methods_on_a_hive_tree_without_the_tag_column(

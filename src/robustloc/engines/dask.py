@@ -293,33 +293,34 @@ def _log_scales(client: object, args: argparse.Namespace, settings: dict,
 
     The log's noise scale is the whole dataset's: an even sample of its epochs (every
     ``k``-th in the partitions' order), as the single-process first pass takes over one
-    file.  The sample is fixed by the epoch count alone (``log_sample_step``), so (1) each
-    partition's epochs are counted (two columns, pyarrow's group-by), (2) each worker
-    samples its partitions at their global offsets, checking its count, and (3) the
-    client fits the scale on the stacked sample.  Should a validated count differ from
-    the quick one (ids with stray spaces, say), the pass runs again on the client, in
-    order, as before: the result is the single-process one either way.
+    file.  The sample is fixed by the epoch counts alone (``log_sample_step``), so (1) each
+    partition's epochs are counted quickly (runs of equal time and tag: exact for
+    ``robustloc partition``'s files), (2) each worker samples its partitions at their
+    global offsets and returns its validated count, and (3) the client fits the scale on
+    the stacked sample.  Should a validated count differ from the quick one, step (2) runs
+    again with the validated counts.  The result is the single-process one either way.
     """
     from robustloc.commands.locate import log_sample_of, log_sample_step, log_scales_for
 
     counts = gather_with_progress(client, submit_all(client, _count_task,
                                                      [(i.part,) for i in plan]), False)
-    if all(c is not None for c in counts):
-        offsets = [0]
-        for c in counts[:-1]:
-            offsets.append(offsets[-1] + c)
+    for _ in range(2):
+        if any(c is None for c in counts):
+            break
+        offsets = np.r_[0, np.cumsum(counts)[:-1]].tolist()
         k = log_sample_step(sum(counts))
         futs = submit_all(client, _log_sample_task,
-                          [(log_sample_of, settings, i.part, off, k)
+                          [(log_sample_of, settings, i.part, int(off), k)
                            for i, off in zip(plan, offsets)])
         res = gather_with_progress(client, futs, False)
         if all(n == c for (_, _, n), c in zip(res, counts)):
             kinds = [kind for kind, _, _ in res if kind is not None]
             if not kinds:
-                return log_scales_for(args, [], sample=np.empty((0, 0)), kind=None)
+                return {}
             sample = np.vstack([v for _, v, _ in res])
             return log_scales_for(args, [], sample=sample, kind=kinds[0])
-    with tempfile.TemporaryDirectory(prefix="robustloc-") as tmp:
+        counts = [n for _, _, n in res]
+    with tempfile.TemporaryDirectory(prefix="robustloc-") as tmp:  # pragma: no cover
         paths = [materialize(info.part, tmp) for info in plan]
         return log_scales_for(args, paths)
 
