@@ -45,7 +45,12 @@ ill_conditioned, invalid_measurement). `robustloc evaluate` reads the file.
   robustloc simulate wifi-room --seed 1 --out room
   robustloc track room/measurements.csv --anchors room/anchors.csv -o room/track.csv
   robustloc track room/measurements.csv --anchors room/anchors.csv --smooth -o smooth.csv
-  robustloc evaluate room/track.csv --truth room/truth.csv"""
+  robustloc evaluate room/track.csv --truth room/truth.csv
+
+Beyond one machine (docs/dask.md): partition by tag, then --engine dask tracks each tag
+group on a worker with this same code; the dataset of part files holds the same rows:
+  robustloc partition big.parquet -o by-tag --by tag --buckets 16
+  robustloc track by-tag --anchors anchors.csv -o tracks --engine dask [--scheduler ADDR]"""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
