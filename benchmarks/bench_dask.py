@@ -69,6 +69,13 @@ class Line:
     per_cpu_s_pct: float | None
     peak_rss_mib: float
     identical: str
+    load: str = ""
+
+    def __post_init__(self) -> None:
+        # the machine's load while this line ran: 1- and 5-minute averages at its end
+        if not self.load:
+            la = os.getloadavg()
+            self.load = f"{la[0]:.1f}/{la[1]:.1f}"
 
 
 def parse_rows(text: str) -> list[int]:
@@ -189,11 +196,19 @@ def _cpu_s(pids: list[int]) -> float:
     return total + r.ru_utime + r.ru_stime
 
 
-def run_cli(argv: list[str]) -> tuple[float, float, float]:
-    """A robustloc command in a subprocess: (seconds, CPU seconds, peak RSS MiB)."""
+def run_cli(argv: list[str], one_thread: bool = False) -> tuple[float, float, float]:
+    """A robustloc command in a subprocess: (seconds, CPU seconds, peak RSS MiB).
+
+    ``one_thread``: with the workers' environment (one numba/BLAS thread), the
+    single-process baseline of a per-core comparison (``track``'s fusion kernel otherwise
+    spreads 256+ tags over every core, and on a loaded machine its threads mostly wait
+    for each other: 1 M rows, load 6: 19.3 s with 2 threads, 7.2 s with one)."""
+    from robustloc.engines.cluster import WORKER_ENV
+
+    env = dict(os.environ, **WORKER_ENV) if one_thread else None
     t0, c0 = time.perf_counter(), _children_cpu_s()
     proc = subprocess.Popen([sys.executable, "-m", "robustloc.cli", *argv],
-                            stdout=subprocess.DEVNULL)
+                            stdout=subprocess.DEVNULL, env=env)
     with RssPoller([proc.pid]) as poll:
         rc = proc.wait()
     if rc:
@@ -215,24 +230,42 @@ def run_in_cluster(client: object, argv: list[str]) -> tuple[float, float, float
 
 
 def same(a_path: Path, b_path: Path, key: list[str]) -> str:
-    """'yes' if two outputs hold the same rows (sorted by key, every column of a)."""
-    import pandas as pd
+    """'yes' if two outputs hold the same rows (sorted by key, every column of a, exactly).
+
+    In Arrow, one column at a time (the key columns once, to order both): no Python
+    objects per row, so the check of a 200 M-row run's output fits the client."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+    import pyarrow.dataset as pads
     import pyarrow.parquet as pq
 
-    a = pd.read_parquet(a_path)
-    files = sorted(Path(b_path).glob("part-*.parquet"))
-    b = pd.concat([pq.read_table(f).to_pandas() for f in files], ignore_index=True)
-    if len(a) != len(b):
-        return f"no ({len(a)} vs {len(b)} rows)"
-    a = a.sort_values(key, kind="stable").reset_index(drop=True)
-    b = b[a.columns].sort_values(key, kind="stable").reset_index(drop=True)
-    for c in a.columns:
-        x, y = a[c].to_numpy(), b[c].to_numpy()
-        if x.dtype.kind == "f":
-            ok = np.array_equal(x, y.astype(float), equal_nan=True)
-        else:
-            ok = np.array_equal(x.astype(str), y.astype(str))
-        if not ok:
+    da = pads.dataset(str(a_path), format="parquet")
+    db = pads.dataset(sorted(str(f) for f in Path(b_path).glob("part-*.parquet")),
+                      format="parquet")
+    if da.count_rows() != db.count_rows():
+        return f"no ({da.count_rows()} vs {db.count_rows()} rows)"
+
+    def column(d: object, c: str) -> pa.Array:
+        col = d.to_table(columns=[c]).column(c).combine_chunks()
+        return col.dictionary_decode() if pa.types.is_dictionary(col.type) else col
+
+    def order(d: object) -> pa.Array:
+        t = pa.table({c: column(d, c) for c in key})
+        return pc.sort_indices(t, sort_keys=[(c, "ascending") for c in key])
+
+    oa, ob = order(da), order(db)
+    for c in pq.read_schema(a_path).names:
+        x, y = column(da, c).take(oa), column(db, c).take(ob)
+        if x.type != y.type:
+            try:
+                y = y.cast(x.type)
+            except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
+                x, y = x.cast(pa.string()), y.cast(pa.string())
+        eq = pc.fill_null(pc.equal(x, y), False)
+        eq = pc.or_(eq, pc.and_(x.is_null(), y.is_null()))
+        if pa.types.is_floating(x.type):
+            eq = pc.or_(eq, pc.fill_null(pc.and_(pc.is_nan(x), pc.is_nan(y)), False))
+        if not pc.all(eq).as_py():
             return f"no (column {c})"
     return "yes"
 
@@ -253,11 +286,16 @@ def bench_size(n: int, args: argparse.Namespace, client: object, work: Path) -> 
     n_workers = len(client.scheduler_info()["workers"])
     by_time, by_tag = d / "by_time", d / "by_tag"
     rpp = str(min(args.rows_per_partition, -(-n // (4 * n_workers))))
-    for by, out in (("time", by_time), ("tag", by_tag)):
+    by_tag_f = d / "by_tag_filter"
+    parts = [("time", by_time, args.buckets), ("tag", by_tag, args.buckets)]
+    if "filter" in args.steps and n <= args.filter_max_rows:
+        parts.append(("tag", by_tag_f, args.filter_buckets))
+    for by, out, buckets in parts:
         s, c, mib = run_cli(["partition", str(meas), "-o", str(out), "--by", by,
-                             "--rows-per-partition", rpp, "--buckets", str(args.buckets)])
-        lines.append(Line(n, f"partition --by {by}", "duckdb", s, c, n / s, n / s, None, None,
-                          mib, ""))
+                             "--rows-per-partition", rpp, "--buckets", str(buckets)])
+        lines.append(Line(n, f"partition --by {by}" + (f" ({buckets} b.)" if by == "tag"
+                                                        else ""),
+                          "duckdb", s, c, n / s, n / s, None, None, mib, ""))
     if n <= args.shuffle_max_rows:
         out = d / "by_time_dask"
         try:
@@ -273,14 +311,18 @@ def bench_size(n: int, args: argparse.Namespace, client: object, work: Path) -> 
                               float("nan"), f"failed: {type(exc).__name__}"))
             client.restart()
         shutil.rmtree(out, ignore_errors=True)
-    steps = [("locate huber", ["locate", "--method", "huber"], by_time, n_epochs,
-              ["method", "time", "tag"])]
-    if n <= args.filter_max_rows:
-        steps.append(("filter", ["filter"], by_tag, n, ["tag", "anchor", "time"]))
+    steps = []
+    if "locate" in args.steps:
+        steps.append(("locate huber", ["locate", "--method", "huber"], by_time, n_epochs,
+                      ["method", "time", "tag"]))
+    if "track" in args.steps:
+        steps.append(("track", ["track"], by_tag, n_epochs, ["time", "tag"]))
+    if "filter" in args.steps and n <= args.filter_max_rows:
+        steps.append(("filter", ["filter"], by_tag_f, n, ["tag", "anchor", "time"]))
     for name, cmd, dataset, units, key in steps:
         one = d / "one.parquet"
         s1, c1, m1 = run_cli([cmd[0], str(meas), "--anchors", str(anchors), *cmd[1:],
-                              "-o", str(one)])
+                              "-o", str(one)], one_thread=True)
         lines.append(Line(n, name, "single process", s1, c1, n / s1, units / s1, 100.0, 100.0,
                           m1, ""))
         ds = d / "out_ds"
@@ -291,10 +333,41 @@ def bench_size(n: int, args: argparse.Namespace, client: object, work: Path) -> 
                           100.0 * (s1 / s2) / n_workers, 100.0 * c1 / c2, m2,
                           same(one, ds, key)))
         shutil.rmtree(ds, ignore_errors=True)
+        if name == "track" and args.cold:
+            # what a user without a cluster sees: the command starts its own LocalCluster
+            # (fresh workers: imports, numba cache loads) and closes it, all timed
+            s3, c3, m3 = run_cli([cmd[0], str(dataset), "--anchors", str(anchors), *cmd[1:],
+                                  "-o", str(ds), "--engine", "dask", "--quiet", "--workers",
+                                  str(n_workers)])
+            lines.append(Line(n, name + " (cold)", f"dask x{n_workers} own", s3, c3, n / s3,
+                              units / s3, 100.0 * (s1 / s3) / n_workers, 100.0 * c1 / c3,
+                              m3, same(one, ds, key) + " (peak: all processes)"))
+            shutil.rmtree(ds, ignore_errors=True)
         one.unlink()
     if not args.keep:
         shutil.rmtree(d, ignore_errors=True)
     return lines
+
+
+def warm_up(client: object, args: argparse.Namespace, work: Path) -> None:
+    """Each timed command once on a small dataset, on the cluster: the workers import
+    robustloc and load the compiled kernels from numba's cache, as the workers of a
+    long-lived cluster (``--scheduler``) have done after their first run.  Not timed."""
+    d = work / "warm"
+    shutil.rmtree(d, ignore_errors=True)
+    d.mkdir(parents=True)
+    write_anchors(d / "anchors.csv")
+    write_measurements(d / "meas.parquet", 40_000, 50, 40_000, args.seed)
+    for by in ("time", "tag"):
+        run_cli(["partition", str(d / "meas.parquet"), "-o", str(d / by), "--by", by,
+                 "--rows-per-partition", "10000", "--buckets", str(args.workers)])
+    for cmd, by in (("locate", "time"), ("track", "tag"), ("filter", "tag")):
+        if cmd in args.steps:
+            extra = ["--method", "huber"] if cmd == "locate" else []
+            run_in_cluster(client, [cmd, str(d / by), "--anchors", str(d / "anchors.csv"),
+                                    *extra, "-o", str(d / f"o-{cmd}"), "--engine", "dask",
+                                    "--quiet"])
+    shutil.rmtree(d, ignore_errors=True)
 
 
 def main() -> int:
@@ -304,21 +377,32 @@ def main() -> int:
     p.add_argument("--workers", type=int, default=2, help="LocalCluster worker processes")
     p.add_argument("--rows-per-partition", type=int, default=1_000_000)
     p.add_argument("--buckets", type=int, default=None,
-                   help="--by tag: tag buckets (0: a directory per tag; default 2 per "
-                        "worker: the filter is vectorized over links, and each partition "
-                        "pays its per-time-step cost once)")
+                   help="--by tag for track: tag buckets (0: a directory per tag; default "
+                        "one per worker: the tracker is vectorized over the tags of a "
+                        "partition and pays a fixed cost per time step, so the fewer the "
+                        "buckets the less it pays; a partition is streamed, its size does "
+                        "not matter)")
+    p.add_argument("--filter-buckets", type=int, default=None,
+                   help="--by tag for filter: tag buckets (default 2 per worker: the filter "
+                        "holds its partition in memory)")
     p.add_argument("--chunk-rows", type=int, default=2_000_000, help="rows written at a time")
     p.add_argument("--shuffle-max-rows", type=int, default=10_000_000,
                    help="time the dask shuffle only up to this size")
     p.add_argument("--filter-max-rows", type=int, default=10_000_000,
                    help="run filter only up to this size (one process holds it whole)")
+    p.add_argument("--steps", default="locate,track,filter",
+                   help="commands to time (default locate,track,filter)")
+    p.add_argument("--no-cold", dest="cold", action="store_false",
+                   help="skip the track run on the command's own fresh LocalCluster")
     p.add_argument("--dir", default=None, help="work directory (default: a temporary one)")
     p.add_argument("--keep", action="store_true", help="keep the data")
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--json", action="store_true")
     args = p.parse_args()
     if args.buckets is None:
-        args.buckets = 2 * args.workers
+        args.buckets = args.workers
+    if args.filter_buckets is None:
+        args.filter_buckets = 2 * args.workers
 
     import tempfile
 
@@ -335,11 +419,12 @@ def main() -> int:
     client = distributed.Client(cluster)
     lines: list[Line] = []
     try:
-        client.run(lambda: __import__("robustloc.commands.locate")
-                   and __import__("robustloc.filters.rssi"))
         startup = time.perf_counter() - t0
-        print(f"LocalCluster of {args.workers} workers up (and robustloc imported) in "
-              f"{startup:.1f} s", file=sys.stderr)
+        t1 = time.perf_counter()
+        warm_up(client, args, work)
+        warm = time.perf_counter() - t1
+        print(f"LocalCluster of {args.workers} workers up in {startup:.1f} s, warmed up in "
+              f"{warm:.1f} s", file=sys.stderr)
         for n in parse_rows(args.rows):
             lines += bench_size(n, args, client, work)
     finally:
@@ -348,17 +433,17 @@ def main() -> int:
         if not args.dir and not args.keep:
             shutil.rmtree(work, ignore_errors=True)
     if args.json:
-        print(json.dumps({"cluster_startup_s": startup, "lines": [asdict(x) for x in lines]},
-                         indent=2))
+        print(json.dumps({"cluster_startup_s": startup, "warm_up_s": warm,
+                          "lines": [asdict(x) for x in lines]}, indent=2))
         return 0
     print(f"{'rows':>11} {'step':20} {'engine':14} {'wall s':>7} {'CPU s':>7} {'rows/s':>8} "
-          f"{'units/s':>8} {'%/core':>6} {'%/CPU-s':>7} {'peak MiB':>8} identical")
+          f"{'units/s':>8} {'%/core':>6} {'%/CPU-s':>7} {'peak MiB':>8} {'load':>9} identical")
     for x in lines:
         pc = "" if x.per_core_pct is None else f"{x.per_core_pct:.0f}"
         pcs = "" if x.per_cpu_s_pct is None else f"{x.per_cpu_s_pct:.0f}"
         print(f"{x.rows:>11,} {x.step:20} {x.engine:14} {x.seconds:7.1f} {x.cpu_s:7.1f} "
               f"{x.rows_per_s:8.0f} {x.units_per_s:8.0f} {pc:>6} {pcs:>7} "
-              f"{x.peak_rss_mib:8.0f} {x.identical}")
+              f"{x.peak_rss_mib:8.0f} {x.load:>9} {x.identical}")
     print("units/s: epochs/s for locate, samples/s otherwise.  %/core: dask wall-clock "
           "throughput per worker as % of one process (meaningful on an idle machine); "
           "%/CPU-s: rows per CPU second of dask (workers + scheduler + client) as % of one "

@@ -1,6 +1,6 @@
 """``--engine dask`` on a real 2-worker LocalCluster: identity with the single-process
-engine, the partitioning rules, ``robustloc partition``, and user errors (exit 2 naming the
-partition file).
+engine (locate, filter, track, evaluate, spp), the partitioning rules, ``robustloc
+partition``, and user errors (exit 2 naming the partition file).
 
 The cluster (two single-threaded thread workers, started once for the module, always
 closed) is reached through ``--scheduler ADDRESS`` exactly as a user's cluster would be;
@@ -213,6 +213,55 @@ def test_locate_dask_equals_single_process_row_for_row(sim, by_time, scheduler, 
     assert meta["status"]["huber"] == local["status"].value_counts().to_dict()
 
 
+def test_locate_first_pass_on_the_workers_samples_as_one_process(sim, by_time, scheduler,
+                                                                 tmp_path, monkeypatch):
+    # a small cap makes the sampling step k = 8 (260 epochs, at most 40 kept), so the
+    # partitions' global offsets matter; the thread workers share the patched module
+    import robustloc.pipelines.locate as loc
+    from robustloc.engines import dask as engine
+
+    monkeypatch.setattr(loc, "LOG_SAMPLE_CAP", 20)
+    assert loc.log_sample_step(260) == 8 and loc.log_sample_step(40) == 1
+    local = _locate_local(sim, tmp_path, "huber,igg")
+    out = tmp_path / "pos"
+    calls = []
+    serial = loc.log_scales_for
+    monkeypatch.setattr(loc, "log_scales_for", lambda *a, **k: calls.append(k) or
+                        serial(*a, **k))
+    assert main(["locate", str(by_time), "--anchors", str(sim["anchors"]), "--method",
+                 "huber,igg", "-o", str(out), "--engine", "dask", "--scheduler", scheduler,
+                 "--quiet"]) == 0
+    assert len(calls) == 1 and calls[0].get("sample") is not None  # not the serial pass
+    key = ["method", "time", "tag"]
+    got = _dataset(out).sort_values(key).reset_index(drop=True)
+    pd.testing.assert_frame_equal(got, local.sort_values(key).reset_index(drop=True))
+    # a quick count that the validating reader contradicts: sampled again, with its counts
+    monkeypatch.setattr(engine, "count_epochs", lambda part: 1)
+    calls.clear()
+    assert main(["locate", str(by_time), "--anchors", str(sim["anchors"]), "--method",
+                 "huber,igg", "-o", str(out), "--engine", "dask", "--scheduler", scheduler,
+                 "--quiet"]) == 0
+    assert len(calls) == 1 and calls[0].get("sample") is not None
+    got = _dataset(out).sort_values(key).reset_index(drop=True)
+    pd.testing.assert_frame_equal(got, local.sort_values(key).reset_index(drop=True))
+
+
+def test_quick_epoch_count(tmp_path):
+    from robustloc.engines.dataset import count_epochs
+
+    f = tmp_path / "p.parquet"
+    pd.DataFrame({"time": [0.0, 0.0, 0.0, 1.0, 1.0, 2.0], "tag": ["a", "a", "b", "b", "b", "a"],
+                  "anchor": list("xyxyxy"), "rssi": -50.0}).to_parquet(f, index=False)
+    assert count_epochs(Partition(str(f))) == 4  # (0,a) (0,b) (1,b) (2,a)
+    h = tmp_path / "tag=a"
+    h.mkdir()
+    pd.DataFrame({"time": [0.0, 0.0, 1.0], "anchor": list("xyx"), "rssi": -50.0}).to_parquet(
+        h / "0.parquet", index=False)
+    assert count_epochs(Partition(str(h / "0.parquet"), (("tag", "a"),))) == 2
+    (tmp_path / "bad.parquet").write_text("not parquet")
+    assert count_epochs(Partition(str(tmp_path / "bad.parquet"))) is None
+
+
 def test_locate_dask_several_methods_on_a_hive_tree_without_the_tag_column(
         sim, by_tag, scheduler, tmp_path):
     # the layout dask's and DuckDB's partitioned writers produce by default
@@ -246,6 +295,40 @@ def test_filter_dask_equals_single_process(sim, by_tag, by_time, scheduler, tmp_
         got = _dataset(out)[ref.columns].sort_values(key).reset_index(drop=True)
         pd.testing.assert_frame_equal(got, ref)
     assert "partition the data by tag first" in capsys.readouterr().err
+
+
+def _track_local(sim, tmp_path, *opts: str) -> pd.DataFrame:
+    out = tmp_path / f"track{'-'.join(opts)}.parquet"
+    assert main(["track", str(sim["measurements"]), "--anchors", str(sim["anchors"]),
+                 *opts, "-o", str(out), "--quiet"]) == 0
+    return pd.read_parquet(out)
+
+
+@pytest.mark.parametrize("opts", [(), ("--smooth",), ("--fixed-lag", "5")])
+def test_track_dask_equals_single_process_row_for_row(sim, by_tag, by_time, scheduler,
+                                                      tmp_path, opts):
+    ref = _track_local(sim, tmp_path, *opts)
+    key = ["time", "tag"]
+    ref = ref.sort_values(key).reset_index(drop=True)
+    assert ref["tag"].nunique() > 2 and len(ref) > 100
+    buckets = tmp_path / "buckets"
+    assert main(["partition", str(sim["measurements"]), "-o", str(buckets), "--by", "tag",
+                 "--buckets", "3"]) == 0
+    # by tag: one streamed file per tag; buckets: several tags per streamed file; by
+    # time: one group of every file, read whole (the kernel path)
+    for ds in (by_tag, buckets, by_time):
+        out = tmp_path / f"t-{ds.name}"
+        assert main(["track", str(ds), "--anchors", str(sim["anchors"]), *opts, "-o",
+                     str(out), "--engine", "dask", "--scheduler", scheduler,
+                     "--quiet"]) == 0
+        got = _dataset(out)
+        assert list(got.columns) == list(ref.columns)
+        # every column, exactly: the same kernels on each tag's whole history
+        pd.testing.assert_frame_equal(got.sort_values(key).reset_index(drop=True), ref,
+                                      check_exact=True)
+        meta = json.loads((out / "_robustloc.json").read_text())
+        assert meta["rows_out"] == len(ref) and meta["counts"]["epochs"] == len(ref)
+        assert meta["counts"]["status"] == ref["status"].value_counts().to_dict()
 
 
 def test_evaluate_dask_equals_single_process(sim, by_time, scheduler, tmp_path, capsys):
@@ -319,7 +402,7 @@ def test_unknown_anchor_in_one_partition(sim, by_tag, scheduler, tmp_path, capsy
     df = pd.read_parquet(files[2])
     df.loc[5, "anchor"] = "AP9"
     df.to_parquet(files[2], index=False)
-    for cmd in ("locate", "filter"):
+    for cmd in ("locate", "filter", "track"):
         out = tmp_path / f"o-{cmd}"
         assert main([cmd, str(ds), "--anchors", str(sim["anchors"]), "-o", str(out),
                      "--engine", "dask", "--scheduler", scheduler]) == 2
@@ -327,6 +410,19 @@ def test_unknown_anchor_in_one_partition(sim, by_tag, scheduler, tmp_path, capsy
         # data row 5 of that file is its line 7 (CSV numbering: header = line 1)
         assert err.startswith(f"error: {files[2]}:7: unknown anchor id 'AP9'"), err
         assert not out.exists()
+
+
+def test_track_missing_column_in_one_tag_partition(sim, by_tag, scheduler, tmp_path,
+                                                   capsys):
+    ds = tmp_path / "ds"
+    files = _copy_dataset(by_tag, ds)
+    pd.read_parquet(files[3]).drop(columns="rssi").to_parquet(files[3], index=False)
+    out = tmp_path / "trk"
+    assert main(["track", str(ds), "--anchors", str(sim["anchors"]), "-o", str(out),
+                 "--engine", "dask", "--scheduler", scheduler]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {files[3]}:1: ") and "rssi, range" in err, err
+    assert not out.exists() and not list(tmp_path.glob(".trk.partial-*"))
 
 
 def test_split_epoch_and_foreign_output_directory_are_refused(sim, by_time, scheduler,

@@ -256,3 +256,31 @@ def test_command_bad_input(tmp_path):
     r = _cli("track", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),
              "-o", str(tmp_path / "o.csv"))
     assert r.returncode == 2 and "error:" in r.stderr and "m.csv:3" in r.stderr
+
+
+@pytest.mark.parametrize("extra", [["--smooth"], ["--fixed-lag", "4"]])
+def test_smoothed_track_does_not_depend_on_chunks_or_other_tags(tmp_path, extra):
+    # the smoother once indexed the recorded steps by their row within one block, so a
+    # log read in several blocks smoothed later rows with earlier blocks' states
+    from robustloc.cli import main
+
+    a = _anchors()
+    meas, _ = _walk(K=3, N=40, seed=4)
+    a.to_csv(tmp_path / "a.csv", index=False)
+    meas.to_csv(tmp_path / "m.csv", index=False)
+    outs = []
+    for chunk in ("1000000", "50"):  # one block, or many
+        o = tmp_path / f"trk-{chunk}.parquet"
+        assert main(["track", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),
+                     "-o", str(o), "--sigma", "0.1", "--quiet", "--chunk-rows", chunk,
+                     *extra]) == 0
+        outs.append(pd.read_parquet(o))
+    pd.testing.assert_frame_equal(outs[0], outs[1], check_exact=True)
+    for tag, g in meas.groupby("tag"):  # a tag's track is its own: the same alone
+        g.to_csv(tmp_path / "one.csv", index=False)
+        o = tmp_path / "one.parquet"
+        assert main(["track", str(tmp_path / "one.csv"), "--anchors", str(tmp_path / "a.csv"),
+                     "-o", str(o), "--sigma", "0.1", "--quiet", "--chunk-rows", "50",
+                     *extra]) == 0
+        mine = outs[1][outs[1]["tag"].astype(str) == str(tag)].reset_index(drop=True)
+        pd.testing.assert_frame_equal(pd.read_parquet(o), mine, check_exact=True)

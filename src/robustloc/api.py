@@ -471,8 +471,10 @@ def track(
         ``time, tag, anchor`` and ``rssi`` (dBm) or ``range`` (m); rows in any order.
     anchors : DataFrame, str or PathLike
         ``anchor, x, y[, z]`` and optional path-loss / ``bias, scale, sigma`` columns.
-    model, filter, q, weight, domain, sigma, smooth, fixed_lag, engine, cusum_h
+    model, filter, q, weight, domain, sigma, smooth, fixed_lag, cusum_h
         As the ``robustloc track`` options of the same name (see its ``--help``).
+    engine : {"compiled", "numpy"}
+        The tracker's kernels (``robustloc track --kernel``; ``Tracker(engine=...)``).
     tag_height, alpha0, beta0, integrity_risk, chunk_rows
         As the options of the same name.
 
@@ -508,7 +510,7 @@ def track(
     with _labelled():
         settings = TrackSettings(
             model=model, filter=filter, q=q, weight=weight, domain=domain, sigma=sigma,
-            smooth=smooth, fixed_lag=fixed_lag, engine=engine, cusum_h=cusum_h,
+            smooth=smooth, fixed_lag=fixed_lag, kernel=engine, cusum_h=cusum_h,
             tag_height=tag_height, alpha0=alpha0, beta0=beta0,
             integrity_risk=integrity_risk, chunk_rows=chunk_rows)
         anchor_frame, source = _log_inputs(measurements, anchors)

@@ -9,6 +9,10 @@ from __future__ import annotations
 import argparse
 import json
 
+import pandas as pd
+
+from robustloc.engines import add_engine_arguments
+
 NAME = "track"
 HELP = "tracks from RSSI or ranges: a robust tight EKF/UKF per tag, with RTS smoothing"
 DESCRIPTION = """\
@@ -41,7 +45,12 @@ ill_conditioned, invalid_measurement). `robustloc evaluate` reads the file.
   robustloc simulate wifi-room --seed 1 --out room
   robustloc track room/measurements.csv --anchors room/anchors.csv -o room/track.csv
   robustloc track room/measurements.csv --anchors room/anchors.csv --smooth -o smooth.csv
-  robustloc evaluate room/track.csv --truth room/truth.csv"""
+  robustloc evaluate room/track.csv --truth room/truth.csv
+
+Beyond one machine (docs/dask.md): partition by tag, then --engine dask tracks each tag
+group on a worker with this same code; the dataset of part files holds the same rows:
+  robustloc partition big.parquet -o by-tag --by tag --buckets 16
+  robustloc track by-tag --anchors anchors.csv -o tracks --engine dask [--scheduler ADDR]"""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -72,8 +81,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--smooth", action="store_true", help="fixed-interval RTS smoother")
     p.add_argument("--fixed-lag", type=positive_int, default=None, metavar="N",
                    help="fixed-lag RTS smoother over the next N epochs of each tag")
-    p.add_argument("--engine", choices=("compiled", "numpy"), default=d.engine,
-                   help="compiled kernels (default) or the NumPy reference")
+    p.add_argument("--kernel", choices=("compiled", "numpy"), default=d.kernel,
+                   help="the tracker's kernels: compiled (default) or the NumPy reference "
+                        "(Tracker(engine=...); --engine chooses where the command runs)")
     p.add_argument("--noise-scale-min", type=positive_float, default=d.noise_scale_min)
     p.add_argument("--noise-scale-max", type=positive_float, default=d.noise_scale_max)
     p.add_argument("--cusum-h", type=positive_float, default=d.cusum_h,
@@ -92,6 +102,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="rows read per chunk")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_engine_arguments(p, what="a tag-partitioned Parquet dataset")
 
 
 def track_file(args: argparse.Namespace) -> dict:
@@ -105,7 +116,34 @@ def track_file(args: argparse.Namespace) -> dict:
     return summary
 
 
+def track_partition(meas: pd.DataFrame, anchors: pd.DataFrame, args: argparse.Namespace
+                    ) -> tuple[pd.DataFrame, dict]:
+    """``--engine dask``: one tag group read whole (its files concatenated in time order)
+    -> (track rows, additive counts).  Used when a group spans several files; a group of
+    one file is streamed by :func:`track_partition_file`."""
+    from robustloc.io.tables import to_epochs
+    from robustloc.pipelines.track import TrackSettings, track_blocks
+
+    settings = TrackSettings.from_namespace(args)
+    trk = settings.tracker(anchors)
+    epochs = to_epochs(meas, trk.anchor_ids)  # sorted by (time, tag): each tag in order
+    table, n, counts = track_blocks(trk, [epochs], settings)
+    return table, {"epochs": n, "tags": len(trk.tags), "status": counts}
+
+
+def track_partition_file(args: argparse.Namespace) -> dict:
+    """``--engine dask``: the pipeline on one partition file (streamed in
+    ``--chunk-rows``, so a worker's memory does not grow with the partition) -> the
+    additive counts of its summary."""
+    s = track_file(args)
+    return {"epochs": s["epochs"], "tags": s["tags"], "status": s["status"],
+            "rows_out": s["epochs"]}
+
+
 def run(args: argparse.Namespace) -> int:
+    if args.engine == "dask":
+        from robustloc.engines.dask import run_tagwise
+        return run_tagwise(args, track_partition, "track", file_fn=track_partition_file)
     summary = track_file(args)
     if args.json:
         print(json.dumps(summary, indent=2))

@@ -8,8 +8,9 @@ the command module, so this layer never imports a command and never re-implement
   is never split: :func:`robustloc.engines.dataset.plan_snapshot`), one output file each.
 * :func:`run_tagwise` -- filters and trackers: ``kernel(measurements, anchors, args) ->
   (frame, counts)`` on each tag group (:func:`robustloc.engines.dataset.plan_tagwise`).
-  ``filter`` plugs in as ``run_filter(args, filter_partition)``; ``track`` plugs in the
-  same way with its own per-partition function.
+  ``filter`` plugs in as ``run_filter(args, filter_partition)``; ``track`` as
+  ``run_tagwise(args, track_partition, "track", file_fn=track_partition_file)``: a tag
+  group of one file is streamed by ``track``'s own per-file function.
 * :func:`run_spp` -- ``spp``'s ``run`` on each RINEX observation file.
 * :func:`evaluate_dataset` -- per-row errors of each positions partition on the workers,
   statistics of the whole on the client (exact: pooled medians and percentiles).
@@ -37,12 +38,14 @@ import uuid
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from robustloc.engines.cluster import dask_client, gather_with_progress, submit_all
 from robustloc.engines.dataset import (
     Partition,
     PartitionInfo,
+    count_epochs,
     discover,
     inspect,
     materialize,
@@ -239,17 +242,10 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
                        f"{len(client.scheduler_info()['workers'])} workers")
             settings = _settings(args)
             if name == "locate" and getattr(args, "robust_scale", None) == "log":
-                # the log's noise scale is the whole dataset's: one first pass (an even
-                # sample of its epochs, in the partitions' order) on the client, handed to
-                # every partition, as the single-process first pass does for one file
-                from robustloc.io import read_anchors
-                from robustloc.pipelines.locate import LocateSettings, log_scales_for
-
-                with tempfile.TemporaryDirectory(prefix="robustloc-") as tmp:
-                    paths = [materialize(info.part, tmp) for info in plan]
-                    settings.update(log_scales_for(
-                        LocateSettings.from_namespace(args), read_anchors(args.anchors),
-                        paths))
+                # the log's noise scale and gross share are the whole dataset's: one
+                # first pass (an even sample of its epochs, in the partitions' order),
+                # handed to every partition, as the single-process first pass does
+                settings.update(_log_scales(client, args, settings, plan))
             futs = submit_all(client, _file_task, [(fn, settings, input_attr, info.part,
                                                     out.part(i)) for i, info in enumerate(plan)])
             summaries = gather_with_progress(client, futs, _show(args))
@@ -277,6 +273,70 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
     return 0
 
 
+def _count_task(part: Partition) -> int | None:
+    return count_epochs(part)
+
+
+def _log_sample_task(settings: dict, part: Partition, offset: int, k: int) -> tuple:
+    """``locate``'s :func:`~robustloc.pipelines.locate.log_sample_of` on one partition
+    file."""
+    from robustloc.io import read_anchors
+    from robustloc.pipelines.locate import LocateSettings, log_sample_of
+
+    args = argparse.Namespace(**settings)
+    with tempfile.TemporaryDirectory(prefix="robustloc-") as tmp:
+        path = materialize(part, tmp)
+        try:
+            return log_sample_of(LocateSettings.from_namespace(args),
+                                 read_anchors(args.anchors), path, offset, k)
+        except InputError as exc:
+            if path != part.path:
+                raise InputError(exc.message, part.path, exc.line) from None
+            raise
+
+
+def _log_scales(client: object, args: argparse.Namespace, settings: dict,
+                plan: list[PartitionInfo]) -> dict:
+    """``locate``'s first pass over the dataset, on the workers.
+
+    The log's noise scale is the whole dataset's: an even sample of its epochs (every
+    ``k``-th in the partitions' order), as the single-process first pass takes over one
+    file.  The sample is fixed by the epoch counts alone (``log_sample_step``), so (1) each
+    partition's epochs are counted quickly (runs of equal time and tag: exact for
+    ``robustloc partition``'s files), (2) each worker samples its partitions at their
+    global offsets and returns its validated count, and (3) the client fits the scale on
+    the stacked sample.  Should a validated count differ from the quick one, step (2) runs
+    again with the validated counts.  The result is the single-process one either way.
+    """
+    from robustloc.io import read_anchors
+    from robustloc.pipelines.locate import LocateSettings, log_sample_step, log_scales_for
+
+    locate_settings = LocateSettings.from_namespace(args)
+    anchors = read_anchors(args.anchors)
+    counts = gather_with_progress(client, submit_all(client, _count_task,
+                                                     [(i.part,) for i in plan]), False)
+    for _ in range(2):
+        if any(c is None for c in counts):
+            break
+        offsets = np.r_[0, np.cumsum(counts)[:-1]].tolist()
+        k = log_sample_step(sum(counts))
+        futs = submit_all(client, _log_sample_task,
+                          [(settings, i.part, int(off), k)
+                           for i, off in zip(plan, offsets)])
+        res = gather_with_progress(client, futs, False)
+        if all(n == c for (_, _, n), c in zip(res, counts)):
+            kinds = [kind for kind, _, _ in res if kind is not None]
+            if not kinds:
+                return {}
+            sample = np.vstack([v for _, v, _ in res])
+            return log_scales_for(locate_settings, anchors, [], sample=sample,
+                                  kind=kinds[0])
+        counts = [n for _, _, n in res]
+    with tempfile.TemporaryDirectory(prefix="robustloc-") as tmp:  # pragma: no cover
+        paths = [materialize(info.part, tmp) for info in plan]
+        return log_scales_for(locate_settings, anchors, paths)
+
+
 def _report(args: argparse.Namespace, summary: dict) -> None:
     if getattr(args, "json", False):
         print(json.dumps({k: v for k, v in summary.items() if k != "files"}, indent=2))
@@ -298,7 +358,8 @@ def run_filter(args: argparse.Namespace, kernel: TagKernel) -> int:
 
 
 def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
-                input_attr: str = "measurements") -> int:
+                input_attr: str = "measurements",
+                file_fn: Callable[[argparse.Namespace], dict] | None = None) -> int:
     """Apply ``kernel`` to each tag group of the dataset ``args.<input_attr>``.
 
     Parameters
@@ -314,6 +375,13 @@ def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
         Command name for messages and the metadata.
     input_attr : str
         The attribute of ``args`` holding the input dataset.
+    file_fn : callable, optional
+        The command's per-file function (as ``locate_file``: ``args`` with
+        ``<input_attr>`` and ``out`` set -> a summary of additive counts and
+        ``rows_out``), used instead of ``kernel`` for a tag group of one file: it streams
+        the file, so a worker's memory is bounded by the command's chunk and not by the
+        partition.  Groups of several files (a tag's days in a ``tag=/date=`` tree, a
+        dataset partitioned by time) go to ``kernel``, read whole.
     """
     t0 = _time.perf_counter()
     parts = discover(getattr(args, input_attr), what="measurements dataset")
@@ -331,8 +399,14 @@ def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
                       file=sys.stderr)
             _say(args, f"{name}: {len(groups)} tag groups on {n_workers} workers")
             settings = _settings(args)
-            futs = submit_all(client, _tag_task, [(kernel, settings, [i.part for i in g],
-                                                   out.part(k)) for k, g in enumerate(groups)])
+            futs = []
+            for k, g in enumerate(groups):
+                if file_fn is not None and len(g) == 1:
+                    futs += submit_all(client, _file_task, [(file_fn, settings, input_attr,
+                                                             g[0].part, out.part(k))])
+                else:
+                    futs += submit_all(client, _tag_task, [(kernel, settings,
+                                                            [i.part for i in g], out.part(k))])
             counts_list = gather_with_progress(client, futs, _show(args))
         total: dict = {}
         for c in counts_list:

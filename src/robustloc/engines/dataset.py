@@ -267,6 +267,41 @@ def read_partition(part: Partition, columns: list[str] | None = None) -> pd.Data
     return df
 
 
+def count_epochs(part: Partition) -> int | None:
+    """A quick count of the epochs of ``part``: the runs of equal ``(time, tag)`` in its
+    row order (no validation, O(rows)); None when the columns cannot be read as such.
+
+    Exact when each epoch's rows are contiguous (``robustloc partition`` sorts by time,
+    tag, anchor; logs written epoch by epoch); an overcount otherwise, which the caller
+    detects against the validating reader's count.
+    """
+    import pyarrow as pa
+    import pyarrow.compute as pc
+    import pyarrow.parquet as pq
+
+    try:
+        schema = pq.read_schema(part.path)
+        has_tag = "tag" in schema.names
+        dict_tag = has_tag and pa.types.is_string(schema.field("tag").type)
+        t = pq.read_table(part.path, columns=["time"] + (["tag"] if has_tag else []),
+                          read_dictionary=["tag"] if dict_tag else None)
+        if t.num_rows == 0:
+            return 0
+        time = np.asarray(t.column("time").to_numpy(), dtype=float)
+        change = time[1:] != time[:-1]
+        if has_tag:  # without it: a hive tree's one tag
+            tag = t.column("tag")
+            if not pa.types.is_dictionary(tag.type):
+                tag = pc.dictionary_encode(tag)
+            tag = tag.unify_dictionaries()
+            idx = np.concatenate([c.indices.to_numpy(zero_copy_only=False)
+                                  for c in tag.chunks])
+            change |= idx[1:] != idx[:-1]
+        return int(1 + np.count_nonzero(change))
+    except Exception:  # noqa: BLE001 - the reader reports the problem with its line
+        return None
+
+
 def materialize(part: Partition, directory: str | os.PathLike) -> str:
     """The path of a file with ``part``'s rows and its hive id keys as columns.
 

@@ -246,17 +246,34 @@ def prepared_values(settings: LocateSettings, anchors: pd.DataFrame, block: Any)
     return block.values
 
 
-def fix_log_scale(settings: LocateSettings, geo: Geometry, sources: Sequence[Any],
-                  order: str, cap: int = 5_000) -> list[Any]:
-    """First pass over the whole log: each locator's per-anchor noise scale from an even
-    sample of at most ``2 cap`` epochs (every ``k``-th epoch, ``k`` doubling as the log
-    grows), so the scale, and every fix, is the same whatever ``chunk_rows`` is.
-    ``sources``: the log's files (or frames) in order (a partitioned dataset: several).
-    ``settings.log_scale_fixed`` (set by the Dask engine, which computes it once for the
-    whole dataset) is used as it is."""
-    from robustloc.io import iter_epochs
-    from robustloc.models.pathloss import log_distance_arrays
+#: The first pass keeps at most ``2 LOG_SAMPLE_CAP`` epochs of the log (an even sample).
+LOG_SAMPLE_CAP = 5_000
 
+
+def log_sample_step(n_epochs: int, cap: int | None = None) -> int:
+    """The first pass's sampling step ``k``: every ``k``-th epoch of the log (global epoch
+    index ``i`` with ``i % k == 0``) is kept, ``k`` the smallest power of two that keeps at
+    most ``2 cap`` of ``n_epochs`` (``ceil(n / k) <= 2 cap``).  The streamed first pass
+    reaches the same ``k`` by doubling as the log grows, whatever the chunks.  ``cap``:
+    default :data:`LOG_SAMPLE_CAP`."""
+    cap = LOG_SAMPLE_CAP if cap is None else cap
+    k = 1
+    while -(-n_epochs // k) > 2 * cap:
+        k *= 2
+    return k
+
+
+def fix_log_scale(settings: LocateSettings, geo: Geometry, sources: Sequence[Any],
+                  order: str, cap: int | None = None) -> list[Any]:
+    """First pass over the whole log: each locator's per-anchor noise scale and gross
+    share from an even sample of at most ``2 cap`` epochs (every ``k``-th epoch, ``k``
+    doubling as the log grows: :func:`log_sample_step`), so the scale, and every fix, is
+    the same whatever ``chunk_rows`` is.  ``sources``: the log's files (or frames) in
+    order (a partitioned dataset: several).  ``settings.log_scale_fixed`` (set by the Dask
+    engine, which computes it once for the whole dataset) is used as it is."""
+    from robustloc.io import iter_epochs
+
+    cap = LOG_SAMPLE_CAP if cap is None else cap
     fixed = settings.log_scale_fixed
     if fixed is not None:
         shares = settings.log_gross_share or {}
@@ -281,10 +298,19 @@ def fix_log_scale(settings: LocateSettings, geo: Geometry, sources: Sequence[Any
             idx = [i[i % k == 0] for i in idx]
     if kind is None:
         return geo.locators
-    sample = np.vstack(kept)
+    return log_scales_from_sample(settings, geo, kind, np.vstack(kept), cap)
+
+
+def log_scales_from_sample(settings: LocateSettings, geo: Geometry, kind: str,
+                           sample: np.ndarray, cap: int | None = None) -> list[Any]:
+    """The locators with their per-anchor log scale and gross share fixed from the first
+    pass's ``sample`` (its epochs' prepared values, in log order)."""
+    from robustloc.models.pathloss import log_distance_arrays
+
+    cap = LOG_SAMPLE_CAP if cap is None else cap
     A = n = None
     if kind == "rssi":
-        A, n = log_distance_arrays(anchors, settings.model)
+        A, n = log_distance_arrays(geo.anchors, settings.model)
     out = []
     for loc in geo.locators:
         if loc.robust_scale != "log":
@@ -297,6 +323,33 @@ def fix_log_scale(settings: LocateSettings, geo: Geometry, sources: Sequence[Any
     return out
 
 
+def log_sample_of(settings: LocateSettings, anchors: pd.DataFrame, path: Any, offset: int,
+                  k: int) -> tuple[str | None, np.ndarray, int]:
+    """One file's share of the first pass when the log is split in files: its epochs
+    whose global index (``offset`` + index in the file) is a multiple of ``k``.
+
+    Returns ``(kind, prepared values of those epochs, epochs in the file)``; the caller
+    stacks the files' samples in log order (the Dask engine, on the workers)."""
+    from robustloc.io import iter_epochs
+    from robustloc.io.tables import UnsortedInput
+
+    def sample(order: str) -> tuple[str | None, np.ndarray, int]:
+        kind, seen, kept = None, 0, []
+        for block in iter_epochs(path, anchors, chunk_rows=settings.chunk_rows,
+                                 order=order):
+            kind = block.value
+            gi = offset + np.arange(seen, seen + block.n_epochs)
+            seen += block.n_epochs
+            kept.append(prepared_values(settings, anchors, block)[gi % k == 0])
+        m = len(anchors)
+        return kind, (np.vstack(kept) if kept else np.empty((0, m))), seen
+
+    try:
+        return sample("auto")
+    except UnsortedInput:  # as the whole pass does: sorted, the same epochs in order
+        return sample("sort")
+
+
 def _with_log_scale(settings: LocateSettings, geo: Geometry, sources: Sequence[Any]
                     ) -> list[Any]:
     from robustloc.io.tables import UnsortedInput
@@ -307,19 +360,27 @@ def _with_log_scale(settings: LocateSettings, geo: Geometry, sources: Sequence[A
         return fix_log_scale(settings, geo, sources, "sort")
 
 
-def log_scales_for(settings: LocateSettings, anchors: pd.DataFrame, sources: Sequence[Any]
-                   ) -> dict[str, Any]:
+def log_scales_for(settings: LocateSettings, anchors: pd.DataFrame, sources: Sequence[Any],
+                   *, sample: np.ndarray | None = None, kind: str | None = None,
+                   cap: int | None = None) -> dict[str, Any]:
     """Each method's per-anchor log scale and gross-error share over ``sources`` (files in
     order), as :func:`run_locate` estimates them in its first pass: what the Dask engine
-    hands to every partition so that each solves with the whole dataset's.
+    hands to every partition so that each solves with the whole dataset's.  With
+    ``sample`` and ``kind`` (the files' :func:`log_sample_of` stacked in order, computed
+    elsewhere), the files are not read again.
 
     Returns
     -------
     dict
         ``{"log_scale_fixed": {method: scale}, "log_gross_share": {method: share}}``,
-        the :class:`LocateSettings` fields.
+        the :class:`LocateSettings` fields (empty mappings when the log had no epoch).
     """
-    fixed = _with_log_scale(settings, configure(settings, anchors), sources)
+    geo = configure(settings, anchors)
+    if sample is not None:
+        fixed = (log_scales_from_sample(settings, geo, kind, sample, cap)
+                 if kind is not None else geo.locators)
+    else:
+        fixed = _with_log_scale(settings, geo, sources)
     done = [loc for loc in fixed if loc.log_scale_fixed is not None]
     return {"log_scale_fixed": {loc.method: loc.log_scale_fixed for loc in done},
             "log_gross_share": {loc.method: loc.log_gross_share for loc in done}}

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time as _time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -39,9 +40,10 @@ class TrackSettings:
     """Every setting of ``track`` (the ``robustloc track`` options of the same name).
 
     The filter's settings are those of :class:`robustloc.tracking.tracker.TrackerSettings`
-    (same names and defaults); ``smooth``, ``fixed_lag`` (RTS smoothing over the whole
-    log, or over the next ``fixed_lag`` epochs of each tag) and ``chunk_rows`` (rows read
-    per chunk) are the workflow's.
+    (same names and defaults; ``kernel`` is its ``engine``, the compiled kernels or the
+    NumPy reference); ``smooth``, ``fixed_lag`` (RTS smoothing over the whole log, or over
+    the next ``fixed_lag`` epochs of each tag) and ``chunk_rows`` (rows read per chunk)
+    are the workflow's.
     """
 
     model: str = option("cv", choices=("cv", "ca", "static"))
@@ -52,7 +54,7 @@ class TrackSettings:
     sigma: float | None = option(None, check=positive_float)
     smooth: bool = False
     fixed_lag: int | None = option(None, check=positive_int)
-    engine: str = option("compiled", choices=("compiled", "numpy"))
+    kernel: str = option("compiled", choices=("compiled", "numpy"))
     noise_scale_min: float = option(1.0, check=positive_float)
     noise_scale_max: float = option(4.0, check=positive_float)
     cusum_h: float | None = option(None, check=positive_float)
@@ -85,6 +87,7 @@ class TrackSettings:
         opts = asdict(self)
         for k in ("smooth", "fixed_lag", "chunk_rows", "model", "filter"):
             opts.pop(k)
+        opts["engine"] = opts.pop("kernel")
         try:
             return Tracker(anchors, model=self.model, filter=self.filter,
                            record=self.smoothing, **opts)
@@ -151,56 +154,113 @@ def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
 
     from tqdm import tqdm
 
-    from robustloc._jitnotice import compile_notice
     from robustloc.io import iter_epochs, write_table
     from robustloc.io.atomic import atomic_output
     from robustloc.io.tables import is_parquet
 
     trk = settings.tracker(anchors)
-    smooth = settings.smoothing
-    frames: list[pd.DataFrame] = []
-    n = 0
     bar = tqdm(unit=" epochs", disable=not progress or not sys.stderr.isatty(),
                file=sys.stderr)
-    status_counts: dict[str, int] = {}
-    result: pd.DataFrame | None = None
     opened = atomic_output(out) if out is not None else contextlib.nullcontext((None, None))
     try:
         with opened as (target, _stream):
-            stream = target is not None and not smooth
+            stream = target is not None and not settings.smoothing
             writer = TrackWriter(target, parquet=is_parquet(out)) if stream else None
             try:
-                for block in iter_epochs(measurements, anchors,
-                                         chunk_rows=settings.chunk_rows, order=order):
-                    if n == 0:
-                        compile_notice("filter")
-                    rows = trk.step(block)
-                    for k, v in rows["status"].value_counts().items():
-                        status_counts[str(k)] = status_counts.get(str(k), 0) + int(v)
-                    if writer is None:
-                        frames.append(rows)
-                    else:
-                        writer.write(rows)
-                    n += block.n_epochs
-                    bar.update(block.n_epochs)
+                blocks = iter_epochs(measurements, anchors, chunk_rows=settings.chunk_rows,
+                                     order=order)
+                table, n, status_counts = track_blocks(
+                    trk, blocks, settings, None if writer is None else writer.write,
+                    bar.update)
             finally:
                 if writer is not None:
                     writer.close()
-            if not stream:
-                table = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
-                if smooth and len(table):
-                    table = apply_smoother(trk, table, settings.fixed_lag)
-                    status_counts = {str(k): int(v) for k, v in
-                                     table["status"].value_counts().items()}
-                if out is None:
-                    result = table
-                elif target is None:
+            if table is not None and out is not None:
+                if target is None:
                     write_table(table, out)
                 else:
                     write_table(table, target, parquet=is_parquet(out))
     finally:
         bar.close()
-    return trk, result, n, status_counts
+    return trk, table if out is None else None, n, status_counts
+
+
+def track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
+                 write: Callable[[pd.DataFrame], None] | None = None,
+                 progress: Callable[[int], Any] | None = None
+                 ) -> tuple[pd.DataFrame | None, int, dict[str, int]]:
+    """The single core of ``track``: every epoch block through ``trk`` in order.
+
+    Parameters
+    ----------
+    trk : Tracker
+        From :meth:`TrackSettings.tracker`.
+    blocks : iterable of Epochs
+        The log's epochs in time order (a file streamed by ``iter_epochs``, or one tag
+        partition under ``--engine dask``).
+    settings : TrackSettings
+        ``smooth``, ``fixed_lag``.
+    write : callable, optional
+        Without smoothing, each block's rows are handed to ``write`` (streamed, bounded
+        memory) and no table is returned; else they are kept and returned.
+    progress : callable, optional
+        Called with each block's epoch count.
+
+    Returns
+    -------
+    (table or None, epochs, status counts)
+    """
+    from robustloc._jitnotice import compile_notice
+
+    smooth = settings.smoothing
+    stream = write is not None and not smooth
+    if smooth:
+        # the smoother indexes the recorded steps by their row in one step's output, so
+        # the whole log goes through the tracker in one step (the smoother holds every
+        # epoch anyway); block by block, rows of later blocks were smoothed with the
+        # states of earlier ones (the result depended on --chunk-rows)
+        joined = list(blocks)
+        blocks = [_joined(joined)] if joined else []
+    frames: list[pd.DataFrame] = []
+    n = 0
+    status_counts: dict[str, int] = {}
+    for block in blocks:
+        if n == 0:
+            compile_notice("filter")
+        rows = trk.step(block)
+        for k, v in rows["status"].value_counts().items():
+            status_counts[str(k)] = status_counts.get(str(k), 0) + int(v)
+        if stream and write is not None:
+            write(rows)
+        else:
+            frames.append(rows)
+        n += block.n_epochs
+        if progress is not None:
+            progress(block.n_epochs)
+    if stream:
+        return None, n, status_counts
+    table = pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+    if smooth and len(table):
+        table = apply_smoother(trk, table, settings.fixed_lag)
+        status_counts = {str(k): int(v) for k, v in table["status"].value_counts().items()}
+    return table, n, status_counts
+
+
+def _joined(blocks: list[Any]) -> Any:
+    """Epoch blocks (consecutive, in time order) as one :class:`Epochs`."""
+    from dataclasses import replace
+
+    if len(blocks) == 1:
+        return blocks[0]
+    if not blocks:
+        raise ValueError("no epoch blocks")
+    b0 = blocks[0]
+    return replace(b0, time=np.concatenate([b.time for b in blocks]),
+                   tag=np.concatenate([np.asarray(b.tag, dtype=object) for b in blocks]),
+                   values=np.concatenate([b.values for b in blocks]),
+                   line=np.concatenate([b.line for b in blocks]),
+                   n_duplicates=sum(b.n_duplicates for b in blocks),
+                   n_invalid=np.concatenate([b.n_invalid for b in blocks]))
 
 
 class TrackWriter:
