@@ -106,7 +106,21 @@ class EpochAssembler:
     ) -> NDArray[np.bool_]:
         """Add rows; returns the mask of *late* rows (not added, see the module doc)."""
         code = self.codes(tags)
-        late = (time <= self._solved[code]) | (time < self._newest[code] - self.window)
+        late = self.late(time, code)
+        self.add_coded(time, code, anchor_col, value, wall, late)
+        return late
+
+    def late(self, time: NDArray[np.float64], code: NDArray[np.int64]) -> NDArray[np.bool_]:
+        """Mask of the rows that would be late now (tags as :meth:`codes`)."""
+        return (time <= self._solved[code]) | (time < self._newest[code] - self.window)
+
+    def add_coded(
+        self, time: NDArray[np.float64], code: NDArray[np.int64],
+        anchor_col: NDArray[np.int64], value: NDArray[np.float64], wall: float,
+        late: NDArray[np.bool_],
+    ) -> None:
+        """:meth:`add` with the tags' :meth:`codes` and :meth:`late` mask already computed
+        (with no change of state in between)."""
         keep = ~late
         if keep.any():
             c = code[keep]
@@ -114,7 +128,6 @@ class EpochAssembler:
             self._last_wall[c] = wall
             self._chunks.append((time[keep], c, anchor_col[keep], value[keep]))
             self._n_pending += int(keep.sum())
-        return late
 
     def _pending(self) -> tuple[NDArray, ...] | None:
         if not self._chunks:
