@@ -25,7 +25,7 @@ from robustloc.io.tables import to_epochs  # noqa: E402
 from robustloc.service.assembly import EpochAssembler  # noqa: E402
 from robustloc.service.launch import ROBUSTLOC, ServerProcess  # noqa: E402
 from robustloc.service.processor import LocateProcessor  # noqa: E402
-from robustloc.service.rows import BodyError, parse_body, validate_rows  # noqa: E402
+from robustloc.service.rows import BodyError, RowDecoder, parse_body, validate_rows  # noqa: E402
 from robustloc.service.store import SegmentLog  # noqa: E402
 
 TOKEN = "s3cret-token"
@@ -380,6 +380,56 @@ def test_validate_rows_vectorized_matches_rowwise():
     with pytest.raises(BodyError) as e:
         parse_body(b"[1,")
     assert e.value.status == 400
+
+
+_REGULAR = {"time": 1.5, "tag": "T1", "anchor": "A1", "range": 2.5}
+
+
+@pytest.mark.parametrize(("rows", "fast_accepts"), [
+    ([_REGULAR, {**_REGULAR, "time": 2, "range": 3}], True),  # ints are numbers
+    ([{**_REGULAR, "time": 1_764_600_000}], True),  # an integer Unix time
+    ([], True),
+    ([{**_REGULAR, "time": True}], False),  # a boolean is not a number
+    ([{**_REGULAR, "range": "2.5"}], False),  # a string number: the row path takes it
+    ([{**_REGULAR, "tag": " T1 "}], False),  # the row path strips ids
+    ([{**_REGULAR, "anchor": " A1"}], False),
+    ([{**_REGULAR, "tag": 7}], False),  # an integer id: the row path takes it
+    ([{**_REGULAR, "tag": ""}], False),
+    ([{**_REGULAR, "tag": "x" * 129}], False),
+    ([{**_REGULAR, "anchor": "nope"}], False),
+    ([{**_REGULAR, "range": 1e9}], False),  # outside the physical limits
+    ([{**_REGULAR, "time": -1.5e12}], False),
+    ([{k: v for k, v in _REGULAR.items() if k != "range"}], False),
+    ([{**_REGULAR, "rssi": -60.0}], False),  # both values
+    ([{**_REGULAR, "extra": 1}], False),  # an unknown key
+    ([{"time": 1.5, "tag": "T1", "anchor": "A1", "rssi": -60.0}], False),  # other value
+    ([_REGULAR, [1, 2]], False),
+])
+def test_fast_decoder_agrees_with_row_path(rows, fast_accepts):
+    """The msgspec fast path takes a body only when every row is regular and valid, and
+    then gives the row-by-row path's columns; any other body it declines (None) and the
+    row path answers it (with the reason of every rejected row)."""
+    if not RowDecoder(["A0"]).available:
+        pytest.skip("msgspec not installed")
+    ids = ["A0", "A1"]
+    body = json.dumps(rows).encode()
+    fast = RowDecoder(ids).decode(body, "range")
+    slow, kind, rejected = validate_rows(parse_body(body)[0], pd.Index(ids, dtype=object),
+                                         "range")
+    assert (fast is not None) == fast_accepts
+    if fast is None:
+        return
+    assert rejected == [] and kind == "range" and len(fast) == len(rows)
+    for f in ("time", "tag", "anchor", "value", "anchor_col"):
+        np.testing.assert_array_equal(getattr(fast, f), getattr(slow, f))
+    assert fast.time.dtype == slow.time.dtype and fast.anchor_col.dtype == np.int64
+
+
+def test_fast_decoder_declines_before_the_value_is_known():
+    body = json.dumps([_REGULAR]).encode()
+    assert RowDecoder(["A1"]).decode(body, None) is None
+    assert RowDecoder(["A1"]).decode(b"[1,", "range") is None
+    assert RowDecoder(["A1"]).decode(b'{"time": 1}', "range") is None
 
 
 def test_locate_processor_equals_locator(ble):
