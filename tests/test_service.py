@@ -541,3 +541,63 @@ def test_serve_cli_errors(ble, tmp_path, capsys):
     nobody = f"http://127.0.0.1:{free_port()}"  # nothing listens there
     assert main(["replay", str(ble / "measurements.csv"), "--url", nobody]) == 2
     assert "error:" in capsys.readouterr().err
+
+
+def test_latency_reservoir_is_uniform():
+    """The vectorized reservoir (algorithm R) keeps each of N latencies with probability
+    cap/N: over 200 runs the first 100 of N = 1 000 (fed in blocks of 37) are kept
+    200 * 100 * cap/N = 1 000 times in expectation, binomial sd ~31; 5 sd allowed."""
+    from robustloc.service import metrics as metrics_mod
+
+    kept = 0
+    for seed in range(200):
+        m = metrics_mod.Metrics(["A0"])
+        m._reservoir = np.empty(50)
+        m._rng = np.random.default_rng(seed)
+        x = np.arange(1000, dtype=float)
+        for i in range(0, 1000, 37):
+            blk = x[i:i + 37]
+            m.solved(np.array(["ok"] * len(blk), dtype=object), blk)
+        s = m.latency_sample()
+        assert len(s) == 50 and len(np.unique(s)) == 50
+        kept += int((s < 100).sum())
+    assert abs(kept - 1000) < 5 * np.sqrt(1000 * 0.95)
+    m = metrics_mod.Metrics(["A0"])  # not yet full: every latency kept, in order
+    m.solved(np.array(["ok"] * 3, dtype=object), np.array([0.3, 0.1, 0.2]))
+    assert m.latency_sample().tolist() == [0.3, 0.1, 0.2]
+
+
+def test_epoch_rows_finds_each_epochs_block():
+    """Blocks solved together: each epoch's ready time is its block's (looked up by its
+    exact (time, tag) among the rows)."""
+    from robustloc.service.engine import _epoch_rows
+
+    t = np.array([0.1, 0.1, 0.2, 0.1, 0.3, 0.2])
+    code = np.array([0, 0, 1, 1, 0, 0])
+    et = np.array([0.1, 0.1, 0.2, 0.2, 0.3])
+    ecode = np.array([0, 1, 0, 1, 0])
+    i = _epoch_rows(t, code, et, ecode)
+    assert (t[i] == et).all() and (code[i] == ecode).all()
+
+
+def test_assembler_epochs_equal_to_epochs():
+    """The live pivot (rows already coded) is the batch pivot: same epochs in the same
+    order (time, then tag name, whatever order the tags were first seen in), duplicates
+    averaged and counted, implausible values counted as invalid."""
+    rng = np.random.default_rng(3)
+    ids = ["A0", "A1", "A2"]
+    n = 400
+    t = np.round(rng.integers(0, 20, n) * 0.1, 1)
+    tags = rng.choice(np.array(["z", "b", "Ä", "a10", "a9"], dtype=object), n)
+    col = rng.integers(0, 3, n)
+    v = rng.normal(5, 1, n)
+    v[::37] = 1e9  # outside the range limits: invalid, counted
+    a = EpochAssembler(ids, 0.0, 1.0)
+    a.add(t, tags, col, v, wall=0.0)
+    rows = a.take_ready(0.0, flush_all=True)
+    got = a.epochs(rows, "range")
+    want = to_epochs(pd.DataFrame({"time": t, "tag": tags, "anchor": np.array(ids)[col],
+                                   "range": v}), ids, "range")
+    for f in ("time", "tag", "values", "line", "n_invalid"):
+        np.testing.assert_array_equal(getattr(got, f), getattr(want, f))
+    assert got.n_duplicates == want.n_duplicates > 0 and want.n_invalid.sum() > 0

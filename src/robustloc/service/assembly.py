@@ -26,7 +26,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
 
-from robustloc.io.tables import Epochs, to_epochs
+from robustloc.io.tables import Epochs, pivot_epochs
 
 
 class EpochAssembler:
@@ -140,8 +140,9 @@ class EpochAssembler:
         """Remove and return the rows of the ready epochs, as columns.
 
         Ready: ``time < newest(tag) - window``, or the tag idle for ``idle_flush_s`` of wall
-        time at ``wall``, or ``flush_all``.  Returns ``{"time", "tag", "anchor_col",
-        "value"}`` arrays (``tag`` as str objects), or ``None`` when nothing is ready.
+        time at ``wall``, or ``flush_all``.  Returns ``{"time", "tag", "tag_code",
+        "anchor_col", "value"}`` arrays (``tag`` as str objects, ``tag_code`` as
+        :meth:`codes`), or ``None`` when nothing is ready.
         """
         p = self._pending()
         if p is None:
@@ -158,16 +159,18 @@ class EpochAssembler:
         self._chunks = [(t[rest], c[rest], a[rest], v[rest])] if rest.any() else []
         self._n_pending = int(rest.sum())
         names = np.array(self._names, dtype=object)
-        return {"time": t[ready], "tag": names[c[ready]], "anchor_col": a[ready],
-                "value": v[ready]}
+        return {"time": t[ready], "tag": names[c[ready]], "tag_code": c[ready],
+                "anchor_col": a[ready], "value": v[ready]}
 
     def epochs(self, rows: dict, value: str) -> Epochs:
-        """Pivot ready rows with :func:`robustloc.io.tables.to_epochs` (the batch path)."""
-        ids = np.array(self.anchor_ids, dtype=object)
-        frame = pd.DataFrame({  # object columns: no string-dtype inference on the hot path
-            "time": rows["time"],
-            "tag": pd.Series(rows["tag"], dtype=object, copy=False),
-            "anchor": pd.Series(ids[rows["anchor_col"]], dtype=object, copy=False),
-            value: rows["value"],
-        })
-        return to_epochs(frame, self.anchor_ids, value)
+        """Pivot ready rows (from :meth:`take_ready`) with
+        :func:`robustloc.io.tables.pivot_epochs`, the core of the batch path's
+        :func:`~robustloc.io.tables.to_epochs`, in its order (time, then tag name)."""
+        code = rows["tag_code"]
+        used = np.flatnonzero(np.bincount(code, minlength=len(self._names)))
+        names = np.array(self._names, dtype=object)[used]
+        order = np.argsort(names, kind="stable")  # str order, as to_epochs' factorize
+        rank = np.empty(len(self._names), dtype=np.int64)
+        rank[used[order]] = np.arange(len(used))
+        return pivot_epochs(rows["time"], rank[code], names[order], rows["anchor_col"],
+                            rows["value"], self.anchor_ids, value)

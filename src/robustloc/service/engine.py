@@ -92,6 +92,18 @@ class IngestResult:
                 "rejected": [{"index": i, "error": e} for i, e in self.rejected]}
 
 
+def _epoch_rows(t: np.ndarray, code: np.ndarray, et: np.ndarray, ecode: np.ndarray
+                ) -> np.ndarray:
+    """Index of a row of each epoch ``(et, ecode)`` among the rows ``(t, code)`` (times
+    compared exactly, as :func:`robustloc.io.tables.to_epochs` groups them)."""
+    tc, tu = pd.factorize(np.concatenate([t, et]))
+    key = tc.astype(np.int64) * (int(max(code.max(initial=0), ecode.max(initial=0))) + 1)
+    key += np.concatenate([code, ecode])
+    rk, ek = key[: len(t)], key[len(t):]
+    order = np.argsort(rk, kind="stable")
+    return order[np.searchsorted(rk[order], ek)]
+
+
 class Engine:
     """Validate, store, assemble and solve live measurement rows.
 
@@ -365,13 +377,10 @@ class Engine:
         epochs = self.assembler.epochs(rows, self.kind)
         if len(blocks) == 1:
             ready_wall = np.full(epochs.n_epochs, blocks[0][1])
-        else:  # each epoch lies in exactly one block
-            when = {}
-            for b, w in blocks:
-                when.update(dict.fromkeys(zip(b["time"].tolist(), b["tag"].tolist()), w))
-            ready_wall = np.fromiter(
-                map(when.__getitem__, zip(epochs.time.tolist(), epochs.tag.tolist())),
-                float, epochs.n_epochs)
+        else:  # each epoch lies in exactly one block: look its (time, tag) up in the rows
+            row_wall = np.repeat([w for _, w in blocks], [len(b["time"]) for b, _ in blocks])
+            ready_wall = row_wall[_epoch_rows(rows["time"], rows["tag_code"], epochs.time,
+                                              self.assembler.codes(epochs.tag))]
         frame = self.processor.process(epochs)
         if len(frame):
             self.pos.append(pa.Table.from_pandas(frame, preserve_index=False))
