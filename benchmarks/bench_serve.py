@@ -318,17 +318,59 @@ def bench_http(tmp: Path, args) -> dict:
     with ServerProcess(["--anchors", str(anchors), "--store", str(tmp / "store-http"),
                         "--method", args.method, "--latency-window", str(args.window),
                         "--idle-flush", "1"]) as srv:
-        watch = ProcWatch(srv.proc.pid)
-        res = _post_paced(srv.url, bodies, args.rate_hz, args.workers, args.tags * 8)
-        m = _settle(srv.url, args.tags * n_ticks, 60)
-        cpu, rss = watch.stop()
-        p50, p99 = _latency(srv.url)
+        subs = _Subscribers(srv.url, args.subscribers)
+        try:
+            watch = ProcWatch(srv.proc.pid)
+            res = _post_paced(srv.url, bodies, args.rate_hz, args.workers, args.tags * 8)
+            m = _settle(srv.url, args.tags * n_ticks, 60)
+            cpu, rss = watch.stop()
+            p50, p99 = _latency(srv.url)
+        finally:
+            res_ws = subs.stop()
+    if args.subscribers:
+        res.update(res_ws)
     res.update({"target_rows_per_s": args.tags * 8 * args.rate_hz, "server_cpu_pct": cpu,
                 "server_cpu_us_per_row": 1e6 * watch.cpu_s / max(res["rows_acked"], 1),
                 "server_peak_rss_mib": rss, "positions": total(m, "robustloc_positions_total"),
                 "epochs_sent": args.tags * n_ticks, "pos_latency_p50_ms": p50,
                 "pos_latency_p99_ms": p99, "late_rows": total(m, "robustloc_rows_late_total")})
     return res
+
+
+class _Subscribers:
+    """``n`` WebSocket clients of /ws/positions (as the map page), counting messages."""
+
+    def __init__(self, url: str, n: int) -> None:
+        from websockets.sync.client import connect
+
+        self.count = [0] * n
+        self._stop = threading.Event()
+        self._socks = [connect(url.replace("http", "ws", 1) + "/ws/positions",
+                               max_size=2**20) for _ in range(n)]
+        self._threads = [threading.Thread(target=self._run, args=(i,), daemon=True)
+                         for i in range(n)]
+        for th in self._threads:
+            th.start()
+
+    def _run(self, i: int) -> None:
+        ws = self._socks[i]
+        while not self._stop.is_set():
+            try:
+                ws.recv(timeout=0.5)
+            except TimeoutError:
+                continue
+            except Exception:  # closed
+                return
+            self.count[i] += 1
+
+    def stop(self) -> dict:
+        self._stop.set()
+        for th in self._threads:
+            th.join(timeout=5)
+        for ws in self._socks:
+            ws.close()
+        return {"ws_subscribers": len(self.count), "ws_messages_min": min(self.count,
+                                                                           default=0)}
 
 
 def bench_capacity(tmp: Path, args) -> dict:
@@ -595,6 +637,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=4, help="concurrent HTTP connections")
     ap.add_argument("--malformed", type=int, default=10_000)
     ap.add_argument("--store-batches", type=int, default=100)
+    ap.add_argument("--subscribers", type=int, default=0,
+                    help="http section: WebSocket clients of /ws/positions (as map pages)")
     ap.add_argument("--capacity-factor", type=float, default=2.5,
                     help="capacity section: bodies for this multiple of the paced rate")
     ap.add_argument("--only", default="store,http,capacity,mqtt,kill9,malformed,replay")
@@ -660,6 +704,8 @@ def report(r: dict, args) -> None:
          f"{f(h.get('server_cpu_pct'))} / {f(h.get('server_peak_rss_mib'))}"),
         ("  server CPU per row, incl. solving (us)", f(h.get("server_cpu_us_per_row"), "{:.1f}")),
         ("  positions / epochs sent", f"{f(h.get('positions'))} / {f(h.get('epochs_sent'))}"),
+        (f"  WebSocket messages, fewest of {h.get('ws_subscribers', 0)} subscribers",
+         f(h.get("ws_messages_min"))),
         ("HTTP capacity, unpaced (rows/s acknowledged)",
          f(c.get("rows_per_s")) + (" (all sent)" if c.get("bodies_exhausted") else "")),
         ("  request p50 / p99 (ms)", pair(c, "req_p50_ms", "req_p99_ms")),

@@ -26,13 +26,13 @@ from __future__ import annotations
 import os
 import re
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from robustloc.errors import InputError
 from robustloc.io.limits import plausible
@@ -1334,6 +1334,7 @@ def positions_frame(
     tag: NDArray[np.object_] | Sequence[str],
     anchor_ids: Sequence[str],
     method: str | None = None,
+    columns: Mapping[str, ArrayLike] | None = None,
 ) -> pd.DataFrame:
     """Build the contract positions frame from a :class:`~robustloc.estimators.Solution`.
 
@@ -1341,7 +1342,8 @@ def positions_frame(
     ``excluded`` column is the ``;``-joined ids of the observations rejected in each
     epoch); ``z`` is written when the solution is 3-D.  ``hpl`` (and ``vpl`` in 3-D), the
     protection levels in metres, follow when the solution carries them; ``iterations`` is
-    appended as an extra column.
+    appended as an extra column, then the ``columns`` given, in their order (the frame is
+    built once: adding columns afterwards copies it each time).
     """
     pos = np.asarray(solution.position, dtype=float)
     n, dim = pos.shape
@@ -1367,6 +1369,7 @@ def positions_frame(
         if dim >= 3:
             data["vpl"] = np.asarray(extra["vpl"], dtype=float)
     data["iterations"] = np.asarray(solution.iterations, dtype=np.int64)
+    data.update(columns or {})
     return pd.DataFrame(data)
 
 
