@@ -318,7 +318,7 @@ def bench_http(tmp: Path, args) -> dict:
     with ServerProcess(["--anchors", str(anchors), "--store", str(tmp / "store-http"),
                         "--method", args.method, "--latency-window", str(args.window),
                         "--idle-flush", "1"]) as srv:
-        subs = _Subscribers(srv.url, args.subscribers)
+        subs = _Subscribers(srv.url, args.subscribers, args.ws_batch)
         try:
             watch = ProcWatch(srv.proc.pid)
             res = _post_paced(srv.url, bodies, args.rate_hz, args.workers, args.tags * 8)
@@ -340,13 +340,15 @@ def bench_http(tmp: Path, args) -> dict:
 class _Subscribers:
     """``n`` WebSocket clients of /ws/positions (as the map page), counting messages."""
 
-    def __init__(self, url: str, n: int) -> None:
+    def __init__(self, url: str, n: int, batch: bool = False) -> None:
         from websockets.sync.client import connect
 
         self.count = [0] * n
+        self.batch = batch
         self._stop = threading.Event()
-        self._socks = [connect(url.replace("http", "ws", 1) + "/ws/positions",
-                               max_size=2**20) for _ in range(n)]
+        q = "?batch=1" if batch else ""
+        self._socks = [connect(url.replace("http", "ws", 1) + "/ws/positions" + q,
+                               max_size=2**26) for _ in range(n)]
         self._threads = [threading.Thread(target=self._run, args=(i,), daemon=True)
                          for i in range(n)]
         for th in self._threads:
@@ -356,12 +358,12 @@ class _Subscribers:
         ws = self._socks[i]
         while not self._stop.is_set():
             try:
-                ws.recv(timeout=0.5)
+                msg = ws.recv(timeout=0.5)
             except TimeoutError:
                 continue
             except Exception:  # closed
                 return
-            self.count[i] += 1
+            self.count[i] += len(json.loads(msg)) if self.batch else 1
 
     def stop(self) -> dict:
         self._stop.set()
@@ -369,8 +371,8 @@ class _Subscribers:
             th.join(timeout=5)
         for ws in self._socks:
             ws.close()
-        return {"ws_subscribers": len(self.count), "ws_messages_min": min(self.count,
-                                                                           default=0)}
+        return {"ws_subscribers": len(self.count), "ws_batch": self.batch,
+                "ws_rows_min": min(self.count, default=0)}
 
 
 def bench_capacity(tmp: Path, args) -> dict:
@@ -638,7 +640,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--malformed", type=int, default=10_000)
     ap.add_argument("--store-batches", type=int, default=100)
     ap.add_argument("--subscribers", type=int, default=0,
-                    help="http section: WebSocket clients of /ws/positions (as map pages)")
+                    help="http section: WebSocket clients of /ws/positions")
+    ap.add_argument("--ws-batch", action="store_true",
+                    help="the subscribers take ?batch=1 (one message per block, as the page)")
     ap.add_argument("--capacity-factor", type=float, default=2.5,
                     help="capacity section: bodies for this multiple of the paced rate")
     ap.add_argument("--only", default="store,http,capacity,mqtt,kill9,malformed,replay")
@@ -704,8 +708,8 @@ def report(r: dict, args) -> None:
          f"{f(h.get('server_cpu_pct'))} / {f(h.get('server_peak_rss_mib'))}"),
         ("  server CPU per row, incl. solving (us)", f(h.get("server_cpu_us_per_row"), "{:.1f}")),
         ("  positions / epochs sent", f"{f(h.get('positions'))} / {f(h.get('epochs_sent'))}"),
-        (f"  WebSocket messages, fewest of {h.get('ws_subscribers', 0)} subscribers",
-         f(h.get("ws_messages_min"))),
+        (f"  WebSocket position rows, fewest of {h.get('ws_subscribers', 0)} subscribers"
+         + (" (batch=1)" if h.get("ws_batch") else ""), f(h.get("ws_rows_min"))),
         ("HTTP capacity, unpaced (rows/s acknowledged)",
          f(c.get("rows_per_s")) + (" (all sent)" if c.get("bodies_exhausted") else "")),
         ("  request p50 / p99 (ms)", pair(c, "req_p50_ms", "req_p99_ms")),

@@ -273,6 +273,25 @@ def test_websockets(tokened):
         assert [m["tag"] for m in msgs] == ["W", "W"]  # the tag filter holds V back
         assert sorted(m["time"] for m in msgs) == [0.0, 1.0]
         assert {"x", "y", "status", "cov_xx", "cov_xy", "cov_yy"} <= set(msgs[0])
+    # batch=1: one message per solved block, the array of its rows (with the tag filter)
+    with connect(ws_url + f"/ws/positions?batch=1&token={TOKEN}") as every, \
+            connect(ws_url + f"/ws/positions?batch=1&tag=B1&token={TOKEN}") as one, \
+            connect(ws_url + "/ws/measurements", additional_headers=AUTH) as pub:
+        rows = [{"time": t, "tag": g, "anchor": a, "rssi": -65.0 - int(a)}
+                for t in (5.0, 6.0) for g in ("B1", "B2") for a in "12345"]
+        pub.send(json.dumps(rows))
+        assert json.loads(pub.recv(timeout=10)) == {"accepted": 20, "rejected": []}
+        got: list[dict] = []
+        while len(got) < 4:  # every epoch once, in arrays (one per solved block)
+            blk = json.loads(every.recv(timeout=30))
+            assert isinstance(blk, list) and blk
+            got += blk
+        assert sorted((r["time"], r["tag"]) for r in got) == [
+            (5.0, "B1"), (5.0, "B2"), (6.0, "B1"), (6.0, "B2")]
+        mine: list[dict] = []
+        while len(mine) < 2:
+            mine += json.loads(one.recv(timeout=30))
+        assert {r["tag"] for r in mine} == {"B1"} and len(mine) == 2
 
 
 def test_rate_limit(ble, server_factory, tmp_path):
