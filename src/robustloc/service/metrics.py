@@ -52,8 +52,9 @@ class Metrics:
             self.rows_rejected[source] = self.rows_rejected.get(source, 0) + rejected
             self.rows_late += late
             if len(anchor_col):
-                self.heard += np.bincount(anchor_col, minlength=len(self.heard))
-                self.last_heard[np.unique(anchor_col)] = wall
+                heard = np.bincount(anchor_col, minlength=len(self.heard))
+                self.heard += heard
+                self.last_heard[heard > 0] = wall
             if len(rejected_cols):
                 self.anchor_rejected += np.bincount(rejected_cols, minlength=len(self.heard))
 
