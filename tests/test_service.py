@@ -620,3 +620,17 @@ def test_assembler_epochs_equal_to_epochs():
     for f in ("time", "tag", "values", "line", "n_invalid"):
         np.testing.assert_array_equal(getattr(got, f), getattr(want, f))
     assert got.n_duplicates == want.n_duplicates > 0 and want.n_invalid.sum() > 0
+
+
+def test_assembler_idle_hint():
+    """The solver asks may_have_idle (no lock) before taking the ingest lock for idle
+    flushes: True exactly when a tag with pending rows has been quiet for idle_flush_s."""
+    a = EpochAssembler(["A0"], 0.5, 100.0)
+    assert not a.may_have_idle(1e9)  # nothing pending
+    obj = lambda *x: np.array(x, dtype=object)  # noqa: E731
+    a.add(np.array([0.0]), obj("t"), np.array([0]), np.array([1.0]), wall=0.0)
+    a.add(np.array([0.0]), obj("u"), np.array([0]), np.array([1.0]), wall=60.0)
+    assert not a.may_have_idle(99.0)
+    assert a.may_have_idle(100.0)  # t quiet for 100 s
+    assert a.take_ready(100.0)["tag"].tolist() == ["t"]
+    assert not a.may_have_idle(100.0) and a.may_have_idle(160.0)

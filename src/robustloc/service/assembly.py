@@ -137,6 +137,20 @@ class EpochAssembler:
             self._chunks = [tuple(np.concatenate(x) for x in zip(*self._chunks))]
         return self._chunks[0]
 
+    def may_have_idle(self, wall: float) -> bool:
+        """Whether a tag with pending rows may be idle at ``wall`` (see :meth:`take_ready`).
+
+        Safe without the caller's lock (it only reads): a row added meanwhile can make it
+        answer True when :meth:`take_ready` then finds nothing, never False when a tag
+        was idle before the call.
+        """
+        chunks = list(self._chunks)
+        last = self._last_wall
+        try:
+            return any(bool(np.any(wall - last[c] >= self.idle)) for _, c, _, _ in chunks)
+        except IndexError:  # tags registered meanwhile: let take_ready decide
+            return True
+
     def take_ready(self, wall: float, *, flush_all: bool = False) -> dict | None:
         """Remove and return the rows of the ready epochs, as columns.
 

@@ -354,8 +354,12 @@ class Engine:
     def step(self, *, flush_all: bool = False) -> int:
         """Solve queued (and idle) epochs now; returns the number of position rows."""
         with self._solve_lock:
-            with self._ingest_lock:
-                idle = self.assembler.take_ready(time.time(), flush_all=flush_all)
+            idle = None
+            # the ingest lock is held through each body's sync: take it only when a tag
+            # may have gone idle, so that solving a queued block never waits for a sync
+            if flush_all or self.assembler.may_have_idle(time.time()):
+                with self._ingest_lock:
+                    idle = self.assembler.take_ready(time.time(), flush_all=flush_all)
             with self._cv:
                 blocks, self._queue = self._queue, []
             if idle is not None:
