@@ -263,3 +263,23 @@ def test_gauss_newton_reaches_the_cramer_rao_bound():
     hub = Locator("huber").solve(SQUARE, d)
     rms_h = np.sqrt(np.mean(np.sum((hub.position - truth) ** 2, axis=1)))
     assert bound <= rms_h < 1.15 * bound
+
+
+@settings(max_examples=60, deadline=None)
+@given(n=hst.integers(0, 40), m=hst.integers(1, 70), p=hst.floats(0, 1),
+       seed=hst.integers(0, 2**32 - 1))
+def test_excluded_ids_is_the_per_epoch_join(n, m, p, seed):
+    """The positions file's ``excluded`` column: one ';'-join per distinct pattern equals
+    the join of every epoch's excluded ids (also past 62 anchors, the bit-packed limit)."""
+    from robustloc.estimators.solution import Solution
+
+    rng = np.random.default_rng(seed)
+    exc = rng.random((n, m)) < p
+    sol = Solution(np.zeros((n, 2)), np.zeros((n, 2, 2)), np.zeros((n, m)),
+                   np.ones((n, m)), exc, np.ones(n), np.zeros(n, np.int64),
+                   np.ones(n, bool), np.array([st.OK] * n, dtype=object),
+                   np.full(n, m, np.int64), "nls")
+    ids = [f"A{i}" for i in range(m - 1)] + [7]  # an integer id is written as text
+    want = [";".join(str(a) for a, e in zip(ids, row) if e) for row in exc]
+    got = sol.excluded_ids(ids)
+    assert got == want and all(type(g) is str for g in got)

@@ -25,7 +25,7 @@ from robustloc.io.tables import to_epochs  # noqa: E402
 from robustloc.service.assembly import EpochAssembler  # noqa: E402
 from robustloc.service.launch import ROBUSTLOC, ServerProcess  # noqa: E402
 from robustloc.service.processor import LocateProcessor  # noqa: E402
-from robustloc.service.rows import BodyError, parse_body, validate_rows  # noqa: E402
+from robustloc.service.rows import BodyError, RowDecoder, parse_body, validate_rows  # noqa: E402
 from robustloc.service.store import SegmentLog  # noqa: E402
 
 TOKEN = "s3cret-token"
@@ -273,6 +273,25 @@ def test_websockets(tokened):
         assert [m["tag"] for m in msgs] == ["W", "W"]  # the tag filter holds V back
         assert sorted(m["time"] for m in msgs) == [0.0, 1.0]
         assert {"x", "y", "status", "cov_xx", "cov_xy", "cov_yy"} <= set(msgs[0])
+    # batch=1: one message per solved block, the array of its rows (with the tag filter)
+    with connect(ws_url + f"/ws/positions?batch=1&token={TOKEN}") as every, \
+            connect(ws_url + f"/ws/positions?batch=1&tag=B1&token={TOKEN}") as one, \
+            connect(ws_url + "/ws/measurements", additional_headers=AUTH) as pub:
+        rows = [{"time": t, "tag": g, "anchor": a, "rssi": -65.0 - int(a)}
+                for t in (5.0, 6.0) for g in ("B1", "B2") for a in "12345"]
+        pub.send(json.dumps(rows))
+        assert json.loads(pub.recv(timeout=10)) == {"accepted": 20, "rejected": []}
+        got: list[dict] = []
+        while len(got) < 4:  # every epoch once, in arrays (one per solved block)
+            blk = json.loads(every.recv(timeout=30))
+            assert isinstance(blk, list) and blk
+            got += blk
+        assert sorted((r["time"], r["tag"]) for r in got) == [
+            (5.0, "B1"), (5.0, "B2"), (6.0, "B1"), (6.0, "B2")]
+        mine: list[dict] = []
+        while len(mine) < 2:
+            mine += json.loads(one.recv(timeout=30))
+        assert {r["tag"] for r in mine} == {"B1"} and len(mine) == 2
 
 
 def test_rate_limit(ble, server_factory, tmp_path):
@@ -380,6 +399,56 @@ def test_validate_rows_vectorized_matches_rowwise():
     with pytest.raises(BodyError) as e:
         parse_body(b"[1,")
     assert e.value.status == 400
+
+
+_REGULAR = {"time": 1.5, "tag": "T1", "anchor": "A1", "range": 2.5}
+
+
+@pytest.mark.parametrize(("rows", "fast_accepts"), [
+    ([_REGULAR, {**_REGULAR, "time": 2, "range": 3}], True),  # ints are numbers
+    ([{**_REGULAR, "time": 1_764_600_000}], True),  # an integer Unix time
+    ([], True),
+    ([{**_REGULAR, "time": True}], False),  # a boolean is not a number
+    ([{**_REGULAR, "range": "2.5"}], False),  # a string number: the row path takes it
+    ([{**_REGULAR, "tag": " T1 "}], False),  # the row path strips ids
+    ([{**_REGULAR, "anchor": " A1"}], False),
+    ([{**_REGULAR, "tag": 7}], False),  # an integer id: the row path takes it
+    ([{**_REGULAR, "tag": ""}], False),
+    ([{**_REGULAR, "tag": "x" * 129}], False),
+    ([{**_REGULAR, "anchor": "nope"}], False),
+    ([{**_REGULAR, "range": 1e9}], False),  # outside the physical limits
+    ([{**_REGULAR, "time": -1.5e12}], False),
+    ([{k: v for k, v in _REGULAR.items() if k != "range"}], False),
+    ([{**_REGULAR, "rssi": -60.0}], False),  # both values
+    ([{**_REGULAR, "extra": 1}], False),  # an unknown key
+    ([{"time": 1.5, "tag": "T1", "anchor": "A1", "rssi": -60.0}], False),  # other value
+    ([_REGULAR, [1, 2]], False),
+])
+def test_fast_decoder_agrees_with_row_path(rows, fast_accepts):
+    """The msgspec fast path takes a body only when every row is regular and valid, and
+    then gives the row-by-row path's columns; any other body it declines (None) and the
+    row path answers it (with the reason of every rejected row)."""
+    if not RowDecoder(["A0"]).available:
+        pytest.skip("msgspec not installed")
+    ids = ["A0", "A1"]
+    body = json.dumps(rows).encode()
+    fast = RowDecoder(ids).decode(body, "range")
+    slow, kind, rejected = validate_rows(parse_body(body)[0], pd.Index(ids, dtype=object),
+                                         "range")
+    assert (fast is not None) == fast_accepts
+    if fast is None:
+        return
+    assert rejected == [] and kind == "range" and len(fast) == len(rows)
+    for f in ("time", "tag", "anchor", "value", "anchor_col"):
+        np.testing.assert_array_equal(getattr(fast, f), getattr(slow, f))
+    assert fast.time.dtype == slow.time.dtype and fast.anchor_col.dtype == np.int64
+
+
+def test_fast_decoder_declines_before_the_value_is_known():
+    body = json.dumps([_REGULAR]).encode()
+    assert RowDecoder(["A1"]).decode(body, None) is None
+    assert RowDecoder(["A1"]).decode(b"[1,", "range") is None
+    assert RowDecoder(["A1"]).decode(b'{"time": 1}', "range") is None
 
 
 def test_locate_processor_equals_locator(ble):
@@ -491,3 +560,77 @@ def test_serve_cli_errors(ble, tmp_path, capsys):
     nobody = f"http://127.0.0.1:{free_port()}"  # nothing listens there
     assert main(["replay", str(ble / "measurements.csv"), "--url", nobody]) == 2
     assert "error:" in capsys.readouterr().err
+
+
+def test_latency_reservoir_is_uniform():
+    """The vectorized reservoir (algorithm R) keeps each of N latencies with probability
+    cap/N: over 200 runs the first 100 of N = 1 000 (fed in blocks of 37) are kept
+    200 * 100 * cap/N = 1 000 times in expectation, binomial sd ~31; 5 sd allowed."""
+    from robustloc.service import metrics as metrics_mod
+
+    kept = 0
+    for seed in range(200):
+        m = metrics_mod.Metrics(["A0"])
+        m._reservoir = np.empty(50)
+        m._rng = np.random.default_rng(seed)
+        x = np.arange(1000, dtype=float)
+        for i in range(0, 1000, 37):
+            blk = x[i:i + 37]
+            m.solved(np.array(["ok"] * len(blk), dtype=object), blk)
+        s = m.latency_sample()
+        assert len(s) == 50 and len(np.unique(s)) == 50
+        kept += int((s < 100).sum())
+    assert abs(kept - 1000) < 5 * np.sqrt(1000 * 0.95)
+    m = metrics_mod.Metrics(["A0"])  # not yet full: every latency kept, in order
+    m.solved(np.array(["ok"] * 3, dtype=object), np.array([0.3, 0.1, 0.2]))
+    assert m.latency_sample().tolist() == [0.3, 0.1, 0.2]
+
+
+def test_epoch_rows_finds_each_epochs_block():
+    """Blocks solved together: each epoch's ready time is its block's (looked up by its
+    exact (time, tag) among the rows)."""
+    from robustloc.service.engine import _epoch_rows
+
+    t = np.array([0.1, 0.1, 0.2, 0.1, 0.3, 0.2])
+    code = np.array([0, 0, 1, 1, 0, 0])
+    et = np.array([0.1, 0.1, 0.2, 0.2, 0.3])
+    ecode = np.array([0, 1, 0, 1, 0])
+    i = _epoch_rows(t, code, et, ecode)
+    assert (t[i] == et).all() and (code[i] == ecode).all()
+
+
+def test_assembler_epochs_equal_to_epochs():
+    """The live pivot (rows already coded) is the batch pivot: same epochs in the same
+    order (time, then tag name, whatever order the tags were first seen in), duplicates
+    averaged and counted, implausible values counted as invalid."""
+    rng = np.random.default_rng(3)
+    ids = ["A0", "A1", "A2"]
+    n = 400
+    t = np.round(rng.integers(0, 20, n) * 0.1, 1)
+    tags = rng.choice(np.array(["z", "b", "Ä", "a10", "a9"], dtype=object), n)
+    col = rng.integers(0, 3, n)
+    v = rng.normal(5, 1, n)
+    v[::37] = 1e9  # outside the range limits: invalid, counted
+    a = EpochAssembler(ids, 0.0, 1.0)
+    a.add(t, tags, col, v, wall=0.0)
+    rows = a.take_ready(0.0, flush_all=True)
+    got = a.epochs(rows, "range")
+    want = to_epochs(pd.DataFrame({"time": t, "tag": tags, "anchor": np.array(ids)[col],
+                                   "range": v}), ids, "range")
+    for f in ("time", "tag", "values", "line", "n_invalid"):
+        np.testing.assert_array_equal(getattr(got, f), getattr(want, f))
+    assert got.n_duplicates == want.n_duplicates > 0 and want.n_invalid.sum() > 0
+
+
+def test_assembler_idle_hint():
+    """The solver asks may_have_idle (no lock) before taking the ingest lock for idle
+    flushes: True exactly when a tag with pending rows has been quiet for idle_flush_s."""
+    a = EpochAssembler(["A0"], 0.5, 100.0)
+    assert not a.may_have_idle(1e9)  # nothing pending
+    obj = lambda *x: np.array(x, dtype=object)  # noqa: E731
+    a.add(np.array([0.0]), obj("t"), np.array([0]), np.array([1.0]), wall=0.0)
+    a.add(np.array([0.0]), obj("u"), np.array([0]), np.array([1.0]), wall=60.0)
+    assert not a.may_have_idle(99.0)
+    assert a.may_have_idle(100.0)  # t quiet for 100 s
+    assert a.take_ready(100.0)["tag"].tolist() == ["t"]
+    assert not a.may_have_idle(100.0) and a.may_have_idle(160.0)

@@ -65,4 +65,14 @@ class Solution:
     def excluded_ids(self, anchor_ids: list[str] | NDArray) -> list[str]:
         """``;``-joined ids of the excluded observations of each epoch (positions file)."""
         ids = np.asarray(anchor_ids, dtype=object)
-        return [";".join(str(a) for a in ids[row]) for row in self.excluded]
+        exc = np.asarray(self.excluded, dtype=bool)
+        if exc.shape[0] == 0:
+            return []
+        if exc.shape[1] > 62:
+            return [";".join(str(a) for a in ids[row]) for row in exc]
+        # one join per distinct exclusion pattern (few), not per epoch (many)
+        bit = np.int64(1) << np.arange(exc.shape[1], dtype=np.int64)
+        codes, which = np.unique(exc.astype(np.int64) @ bit, return_inverse=True)
+        labels = np.array([";".join(str(a) for a in ids[(c & bit) != 0]) for c in codes],
+                          dtype=object)
+        return labels[which].tolist()

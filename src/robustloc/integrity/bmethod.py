@@ -39,6 +39,7 @@ def _check_prob(name: str, value: float) -> float:
     return value
 
 
+@lru_cache(maxsize=256)  # pure; every protected block asks for the same few values
 def lambda0(alpha0: float = ALPHA0, beta0: float = BETA0) -> float:
     """Reference non-centrality ``lambda0 = (N(1-alpha0/2) + N(1-beta0))^2`` (seed 003, eq. (3)).
 
@@ -59,6 +60,7 @@ def lambda0(alpha0: float = ALPHA0, beta0: float = BETA0) -> float:
     return float((stats.norm.ppf(1.0 - a / 2.0) + stats.norm.ppf(1.0 - b)) ** 2)
 
 
+@lru_cache(maxsize=256)
 def w_critical(alpha0: float = ALPHA0) -> float:
     """Critical value ``N(1 - alpha0/2)`` of the two-sided w-test (3.29 for 0.1 %)."""
     return float(stats.norm.ppf(1.0 - _check_prob("alpha0", alpha0) / 2.0))
@@ -126,12 +128,30 @@ def global_critical(
         Critical values with the broadcast shape of ``dof`` and ``alpha``.
     """
     d = np.asarray(dof, dtype=float)
-    a = global_alpha(d, alpha0, beta0) if alpha is None else np.asarray(alpha, dtype=float)
-    if alpha is not None and np.any((a <= 0) | (a >= 1)):
+    if alpha is None:  # one quantile per distinct dof (a block has a handful), cached
+        a0 = _check_prob("alpha0", alpha0)
+        b0 = _check_prob("beta0", beta0)
+        out = np.full(d.shape, np.nan)
+        whole = np.isfinite(d) & (d >= 1) & (d == np.floor(d))
+        if np.any(whole):
+            keys, inv = np.unique(d[whole].astype(np.int64), return_inverse=True)
+            vals = np.array([_critical_one(int(k), a0, b0) for k in keys])
+            out[whole] = vals[inv.reshape(-1)]
+        rest = np.isfinite(d) & (d >= 1) & ~whole
+        if np.any(rest):  # non-integer dof: as asked, directly
+            out[rest] = stats.chi2.isf(global_alpha(d[rest], a0, b0), d[rest])
+        return out
+    a = np.asarray(alpha, dtype=float)
+    if np.any((a <= 0) | (a >= 1)):
         raise ValueError("alpha must be strictly between 0 and 1")
     with np.errstate(invalid="ignore"):
         out = stats.chi2.isf(a, np.where(d >= 1, d, np.nan))
     return np.asarray(out, dtype=float)
+
+
+@lru_cache(maxsize=4096)
+def _critical_one(dof: int, alpha0: float, beta0: float) -> float:
+    return float(stats.chi2.isf(_alpha_one(dof, alpha0, beta0), dof))
 
 
 def detection_power_w(

@@ -26,13 +26,13 @@ from __future__ import annotations
 import os
 import re
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from robustloc.errors import InputError
 from robustloc.io.limits import plausible
@@ -1237,29 +1237,62 @@ def to_epochs(
     if not isinstance(tag_col.dtype, pd.StringDtype):
         tag_col = tag_col.astype(str)
     tag_codes, tag_uniques = pd.factorize(tag_col, sort=True)
+    v = frame[value].to_numpy(dtype=float)
+    lines = frame.index.to_numpy(dtype=np.int64) if frame.index.name == "line" else None
+    return pivot_epochs(t, tag_codes, np.asarray(tag_uniques, dtype=object), col, v, ids,
+                        value, lines)
+
+
+def pivot_epochs(
+    time: NDArray[np.float64], tag_code: NDArray[np.integer],
+    tag_names: NDArray[np.object_], anchor_col: NDArray[np.integer],
+    values: NDArray[np.float64], anchor_ids: Sequence[str], value: str,
+    lines: NDArray[np.int64] | None = None,
+) -> Epochs:
+    """The pivot of :func:`to_epochs` on rows already coded (its core, shared by the live
+    service, whose rows arrive coded).
+
+    Parameters
+    ----------
+    time, values : ndarray (n,)
+        Row times (s) and values (dBm or m).
+    tag_code : ndarray (n,) of int
+        Index of each row's tag in ``tag_names``; epochs are sorted by time, then by tag
+        code, so codes in the sort order of the names give :func:`to_epochs`' order.
+    tag_names : ndarray of str objects
+    anchor_col : ndarray (n,) of int
+        Column of each row's anchor in ``anchor_ids`` (all valid).
+    anchor_ids : sequence of str
+    value : {"rssi", "range"}
+    lines : ndarray (n,) of int, optional
+        Source line of each row (the epochs' ``line`` is the first); zeros when None.
+    """
+    ids = tuple(str(a) for a in anchor_ids)
+    m = len(ids)
+    t = np.asarray(time, dtype=float)
+    v = np.asarray(values, dtype=float)
+    n_tags = max(len(tag_names), 1)
     time_codes, time_uniques = pd.factorize(t, sort=True)
-    key = time_codes.astype(np.int64) * len(tag_uniques) + tag_codes
+    key = time_codes.astype(np.int64) * n_tags + np.asarray(tag_code, dtype=np.int64)
     ukey, epoch = np.unique(key, return_inverse=True)
     n = len(ukey)
-    flat = epoch.astype(np.int64) * m + col
-    v = frame[value].to_numpy(dtype=float)
+    flat = epoch.astype(np.int64) * m + np.asarray(anchor_col, dtype=np.int64)
     ok = plausible(value, v) & plausible("time", t)  # robustloc.io.limits
     n_invalid = np.bincount(epoch[~ok], minlength=n).astype(np.int64)
     flat, v = flat[ok], v[ok]
     sums = np.bincount(flat, weights=v, minlength=n * m)
     counts = np.bincount(flat, minlength=n * m)
     with np.errstate(invalid="ignore", divide="ignore"):
-        values = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan).reshape(n, m)
+        vals = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan).reshape(n, m)
     n_dup = int(np.sum(np.maximum(counts - 1, 0)))
-    times = np.asarray(time_uniques, dtype=float)[ukey // len(tag_uniques)]
-    tags = np.asarray(tag_uniques, dtype=object)[ukey % len(tag_uniques)]
-    if frame.index.name == "line":
-        lines_src = frame.index.to_numpy(dtype=np.int64)
+    times = np.asarray(time_uniques, dtype=float)[ukey // n_tags]
+    tags = np.asarray(tag_names, dtype=object)[ukey % n_tags]
+    if lines is not None:
         first = np.full(n, np.iinfo(np.int64).max, dtype=np.int64)
-        np.minimum.at(first, epoch, lines_src)
+        np.minimum.at(first, epoch, np.asarray(lines, dtype=np.int64))
     else:
         first = np.zeros(n, dtype=np.int64)
-    return Epochs(times, tags, values, ids, value, first, n_dup, n_invalid)
+    return Epochs(times, tags, vals, ids, value, first, n_dup, n_invalid)
 
 
 def iter_epochs(
@@ -1338,6 +1371,7 @@ def positions_frame(
     tag: NDArray[np.object_] | Sequence[str],
     anchor_ids: Sequence[str],
     method: str | None = None,
+    columns: Mapping[str, ArrayLike] | None = None,
 ) -> pd.DataFrame:
     """Build the contract positions frame from a :class:`~robustloc.estimators.Solution`.
 
@@ -1345,7 +1379,8 @@ def positions_frame(
     ``excluded`` column is the ``;``-joined ids of the observations rejected in each
     epoch); ``z`` is written when the solution is 3-D.  ``hpl`` (and ``vpl`` in 3-D), the
     protection levels in metres, follow when the solution carries them; ``iterations`` is
-    appended as an extra column.
+    appended as an extra column, then the ``columns`` given, in their order (the frame is
+    built once: adding columns afterwards copies it each time).
     """
     pos = np.asarray(solution.position, dtype=float)
     n, dim = pos.shape
@@ -1371,6 +1406,7 @@ def positions_frame(
         if dim >= 3:
             data["vpl"] = np.asarray(extra["vpl"], dtype=float)
     data["iterations"] = np.asarray(solution.iterations, dtype=np.int64)
+    data.update(columns or {})
     return pd.DataFrame(data)
 
 

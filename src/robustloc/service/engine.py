@@ -35,7 +35,7 @@ from robustloc.service.assembly import EpochAssembler
 from robustloc.service.defaults import DEFAULT_IDLE_FLUSH_S, DEFAULT_LATENCY_WINDOW_S
 from robustloc.service.metrics import Metrics
 from robustloc.service.processor import Processor
-from robustloc.service.rows import validate_rows
+from robustloc.service.rows import RowBatch, RowDecoder, validate_rows
 from robustloc.service.store import SegmentLog, max_by
 
 MEAS_SCHEMA = pa.schema([
@@ -92,6 +92,18 @@ class IngestResult:
                 "rejected": [{"index": i, "error": e} for i, e in self.rejected]}
 
 
+def _epoch_rows(t: np.ndarray, code: np.ndarray, et: np.ndarray, ecode: np.ndarray
+                ) -> np.ndarray:
+    """Index of a row of each epoch ``(et, ecode)`` among the rows ``(t, code)`` (times
+    compared exactly, as :func:`robustloc.io.tables.to_epochs` groups them)."""
+    tc, tu = pd.factorize(np.concatenate([t, et]))
+    key = tc.astype(np.int64) * (int(max(code.max(initial=0), ecode.max(initial=0))) + 1)
+    key += np.concatenate([code, ecode])
+    rk, ek = key[: len(t)], key[len(t):]
+    order = np.argsort(rk, kind="stable")
+    return order[np.searchsorted(rk[order], ek)]
+
+
 class Engine:
     """Validate, store, assemble and solve live measurement rows.
 
@@ -126,6 +138,8 @@ class Engine:
         self.anchors = anchors
         self.anchor_ids = [str(a) for a in anchors["anchor"]]
         self._anchor_index = pd.Index(self.anchor_ids, dtype=object)
+        self._anchor_arrow = pa.array(self.anchor_ids, pa.string())
+        self.decoder = RowDecoder(self.anchor_ids)
         self.processor = processor
         self.kind = value
         self.assembler = EpochAssembler(self.anchor_ids, latency_window_s, idle_flush_s)
@@ -223,6 +237,12 @@ class Engine:
         os.replace(tmp, d / "processor.pkl")
 
     # -- ingest --------------------------------------------------------------------------
+    def decode(self, body: bytes | str) -> RowBatch | None:
+        """The rows of a body that is a JSON array of regular, valid rows (the common
+        case, decoded in one pass), else None: then :func:`~robustloc.service.rows.parse_body`
+        and :meth:`ingest` validate it row by row."""
+        return self.decoder.decode(body, self.kind)
+
     def ingest(self, rows: list[Any], source: str = "http") -> IngestResult:
         """Validate and durably store rows; returns what was accepted and rejected.
 
@@ -234,26 +254,43 @@ class Engine:
             if kind != kind0:
                 self.kind = kind
                 self._write_meta()
-            wall = time.time()
-            n = len(batch)
-            if n:
-                a = self.assembler
-                code = a.codes(batch.tag)
-                late = (batch.time <= a._solved[code]) | (
-                    batch.time < a._newest[code] - a.window)
-                table = pa.table({
-                    "time": batch.time, "tag": pa.array(batch.tag, pa.string()),
-                    "anchor": pa.array(batch.anchor, pa.string()), "value": batch.value,
-                    "arrival": np.full(n, wall), "late": late,
-                    "source": pa.array([source] * n, pa.string()),
-                }, schema=MEAS_SCHEMA)
-                self.meas.append(table)  # durable before we answer
-                a.add(batch.time, batch.tag, batch.anchor_col, batch.value, wall)
-                ready = a.take_ready(wall)
-                n_late = int(late.sum())
-            else:
-                ready, n_late = None, 0
+            ready, n_late, wall = self._accept(batch, source)
         rej_cols = self._rejected_anchor_cols(rows, rejected)
+        return self._finish(batch, rejected, rej_cols, ready, n_late, wall, source)
+
+    def ingest_batch(self, batch: RowBatch, source: str = "http") -> IngestResult:
+        """Durably store rows already validated by :meth:`decode` (all accepted).
+
+        Thread-safe.  When it returns, the rows are on disk (with a store).
+        """
+        with self._ingest_lock:
+            ready, n_late, wall = self._accept(batch, source)
+        return self._finish(batch, [], np.zeros(0, dtype=np.int64), ready, n_late, wall,
+                            source)
+
+    def _accept(self, batch: RowBatch, source: str) -> tuple[dict | None, int, float]:
+        """Store (synced) and assemble accepted rows; caller holds the ingest lock."""
+        wall = time.time()
+        n = len(batch)
+        if not n:
+            return None, 0, wall
+        a = self.assembler
+        code = a.codes(batch.tag)
+        late = a.late(batch.time, code)
+        table = pa.table({
+            "time": batch.time, "tag": pa.array(batch.tag, pa.string()),
+            "anchor": self._anchor_arrow.take(batch.anchor_col), "value": batch.value,
+            "arrival": np.full(n, wall), "late": late,
+            "source": pa.repeat(pa.scalar(source, pa.string()), n),
+        }, schema=MEAS_SCHEMA)
+        self.meas.append(table)  # durable before we answer
+        a.add_coded(batch.time, code, batch.anchor_col, batch.value, wall, late)
+        return a.take_ready(wall), int(late.sum()), wall
+
+    def _finish(self, batch: RowBatch, rejected: list[tuple[int, str]],
+                rej_cols: np.ndarray, ready: dict | None, n_late: int, wall: float,
+                source: str) -> IngestResult:
+        n = len(batch)
         self.metrics.ingest(source, n, len(rejected), n_late, batch.anchor_col, rej_cols, wall)
         if ready is not None:
             with self._cv:
@@ -317,8 +354,12 @@ class Engine:
     def step(self, *, flush_all: bool = False) -> int:
         """Solve queued (and idle) epochs now; returns the number of position rows."""
         with self._solve_lock:
-            with self._ingest_lock:
-                idle = self.assembler.take_ready(time.time(), flush_all=flush_all)
+            idle = None
+            # the ingest lock is held through each body's sync: take it only when a tag
+            # may have gone idle, so that solving a queued block never waits for a sync
+            if flush_all or self.assembler.may_have_idle(time.time()):
+                with self._ingest_lock:
+                    idle = self.assembler.take_ready(time.time(), flush_all=flush_all)
             with self._cv:
                 blocks, self._queue = self._queue, []
             if idle is not None:
@@ -340,13 +381,10 @@ class Engine:
         epochs = self.assembler.epochs(rows, self.kind)
         if len(blocks) == 1:
             ready_wall = np.full(epochs.n_epochs, blocks[0][1])
-        else:  # each epoch lies in exactly one block
-            when = {}
-            for b, w in blocks:
-                when.update(dict.fromkeys(zip(b["time"].tolist(), b["tag"].tolist()), w))
-            ready_wall = np.fromiter(
-                map(when.__getitem__, zip(epochs.time.tolist(), epochs.tag.tolist())),
-                float, epochs.n_epochs)
+        else:  # each epoch lies in exactly one block: look its (time, tag) up in the rows
+            row_wall = np.repeat([w for _, w in blocks], [len(b["time"]) for b, _ in blocks])
+            ready_wall = row_wall[_epoch_rows(rows["time"], rows["tag_code"], epochs.time,
+                                              self.assembler.codes(epochs.tag))]
         frame = self.processor.process(epochs)
         if len(frame):
             self.pos.append(pa.Table.from_pandas(frame, preserve_index=False))

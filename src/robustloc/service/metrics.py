@@ -9,6 +9,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
+#: Latencies kept (a uniform reservoir sample) for the p50/p99 of ``/api/status``.
+LATENCY_RESERVOIR = 100_000
+
 #: Upper bounds (s) of the latency histogram's buckets: ready epoch -> position published.
 LATENCY_BUCKETS_S = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
 
@@ -38,7 +41,7 @@ class Metrics:
         self.last_heard = np.full(m, np.nan)
         self.latency_counts = np.zeros(len(LATENCY_BUCKETS_S) + 1, dtype=np.int64)
         self.latency_sum = 0.0
-        self.latency_samples: list[float] = []  # bounded reservoir for quantiles
+        self._reservoir = np.empty(LATENCY_RESERVOIR)  # uniform sample for quantiles
         self._lat_seen = 0
         self._rng = np.random.default_rng(0)
 
@@ -49,8 +52,9 @@ class Metrics:
             self.rows_rejected[source] = self.rows_rejected.get(source, 0) + rejected
             self.rows_late += late
             if len(anchor_col):
-                self.heard += np.bincount(anchor_col, minlength=len(self.heard))
-                self.last_heard[np.unique(anchor_col)] = wall
+                heard = np.bincount(anchor_col, minlength=len(self.heard))
+                self.heard += heard
+                self.last_heard[heard > 0] = wall
             if len(rejected_cols):
                 self.anchor_rejected += np.bincount(rejected_cols, minlength=len(self.heard))
 
@@ -66,15 +70,28 @@ class Metrics:
                 self.positions[s] = self.positions.get(s, 0) + c
             self.latency_counts += np.bincount(idx, minlength=len(self.latency_counts))
             self.latency_sum += float(latency_s.sum())
-            # reservoir sample (Vitter's algorithm R) of at most 100 000 latencies
-            for x in latency_s.tolist():
-                self._lat_seen += 1
-                if len(self.latency_samples) < 100_000:
-                    self.latency_samples.append(x)
-                else:
-                    j = int(self._rng.integers(self._lat_seen))
-                    if j < 100_000:
-                        self.latency_samples[j] = x
+            self._sample(np.asarray(latency_s, dtype=float))
+
+    def _sample(self, x: np.ndarray) -> None:
+        """Reservoir sampling (Vitter's algorithm R), vectorized over a block: the k-th
+        latency ever seen (1-based) fills slot k-1 while the reservoir is not full, and
+        later replaces slot j ~ U{0, k-1} when j < capacity (in order, so a later latency
+        drawn for the same slot wins, as in the sequential algorithm)."""
+        cap, seen = len(self._reservoir), self._lat_seen
+        k = seen + np.arange(1, len(x) + 1)
+        fill = k <= cap
+        self._reservoir[k[fill] - 1] = x[fill]
+        if not fill.all():
+            j = self._rng.integers(0, k[~fill])
+            keep = j < cap
+            # numpy assigns repeated indices in order: the last one drawn stays
+            self._reservoir[j[keep]] = x[~fill][keep]
+        self._lat_seen = seen + len(x)
+
+    def latency_sample(self) -> np.ndarray:
+        """A uniform random sample (at most :data:`LATENCY_RESERVOIR`) of the latencies."""
+        with self._lock:
+            return self._reservoir[: min(self._lat_seen, len(self._reservoir))].copy()
 
     def anchor_health(self) -> list[dict]:
         with self._lock:
@@ -91,7 +108,7 @@ class Metrics:
 
     def summary(self) -> dict:
         with self._lock:
-            lat = np.array(self.latency_samples) if self.latency_samples else np.zeros(0)
+            lat = self._reservoir[: min(self._lat_seen, len(self._reservoir))]
             return {
                 "uptime_s": time.time() - self.started,
                 "rows_accepted": sum(self.rows_accepted.values()),

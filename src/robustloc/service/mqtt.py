@@ -69,6 +69,10 @@ class MqttIngest:
             if len(msg.payload) > self.max_payload:
                 m.request_rejected("mqtt_too_large")
                 return
+            batch = self.engine.decode(msg.payload)  # the common payload, in one pass
+            if batch is not None:
+                self.engine.ingest_batch(batch, "mqtt")
+                return
             try:
                 rows, _ = parse_body(msg.payload)
             except BodyError:

@@ -209,16 +209,15 @@ class LocateProcessor:
             self.locator, self.xyz, values, epochs.value, A=A, n=n,
             height_offset=self.height, alpha0=self.alpha0, beta0=self.beta0,
             k_noise=self.k_noise, alert_limit=self.alert_limit)
-        frame = positions_frame(sol, epochs.time, epochs.tag, self.anchor_ids, self.name)
+        cov = np.asarray(sol.covariance, dtype=float)
+        frame = positions_frame(sol, epochs.time, epochs.tag, self.anchor_ids, self.name,
+                                columns={"cov_xx": cov[:, 0, 0], "cov_xy": cov[:, 0, 1],
+                                       "cov_yy": cov[:, 1, 1]})
         bad = epochs.all_invalid
         if bad.any():  # as robustloc locate: every row of the epoch outside the limits
             frame.loc[bad, "status"] = INVALID
             frame.loc[bad, [c for c in ("x", "y", "z", "sigma0") if c in frame]] = np.nan
             frame.loc[bad, "n_used"] = 0
-        cov = np.asarray(sol.covariance, dtype=float)
-        frame["cov_xx"] = cov[:, 0, 0]
-        frame["cov_xy"] = cov[:, 0, 1]
-        frame["cov_yy"] = cov[:, 1, 1]
         return frame
 
     def warm_up(self) -> None:
