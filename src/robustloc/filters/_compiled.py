@@ -194,6 +194,79 @@ def _cholesky(A, scale, av, size, L, Li):  # pragma: no cover - jit
 
 
 @njit(cache=True, nogil=True, inline="always")
+def offsets(prm, n, m):  # pragma: no cover - jit
+    """Offsets in ``prm`` (:func:`pack_params`) of the gate table, the ``F``/``Q``
+    coefficients, the anchors and the status characters for state size ``n`` and
+    measurement size ``m``."""
+    off_chi = _HEAD
+    off_F = off_chi + m + 1
+    off_a = off_F + 4 * n * n
+    off_s = off_a + 3 * int(prm[_NANCH])
+    return off_chi, off_F, off_a, off_s
+
+
+@njit(cache=True, nogil=True, inline="always")
+def transition(n, d, prm, off_F, pw, F, Qm):  # pragma: no cover - jit
+    """``F(dt)`` and ``Q(dt)`` into ``F, Qm (n, n)``: one monomial in ``dt`` per entry
+    (:func:`monomials`; ``pw (npow,)`` scratch)."""
+    nn = n * n
+    q = prm[_Q]
+    for p in range(pw.shape[0]):
+        pw[p] = math.pow(d, float(p))
+    for i in range(n):
+        for j in range(n):
+            F[i, j] = pw[int(prm[off_F + nn + i * n + j])] * prm[off_F + i * n + j]
+            Qm[i, j] = q * (
+                pw[int(prm[off_F + 3 * nn + i * n + j])] * prm[off_F + 2 * nn + i * n + j]
+            )
+
+
+@njit(cache=True, nogil=True, inline="always")
+def predict(n, F, Qm, xk, Pk, xp, Pp, Ps, T):  # pragma: no cover - jit
+    """``xp = F xk``, ``Pp = F Pk F^T + Q`` (seed 002 eq. (13)) for one track.
+
+    ``F`` is upper triangular (checked by :func:`pack_params`); only the upper triangle of
+    the symmetric ``F P F^T + Q`` is computed, from ``sym(P)`` (``sym(F P F^T) = F sym(P)
+    F^T``).  ``Ps, T (n, n)`` are scratch."""
+    for i in range(n):
+        s = 0.0
+        for j in range(i, n):
+            s += F[i, j] * xk[j]
+        xp[i] = s
+    for i in range(n):
+        for j in range(n):
+            Ps[i, j] = 0.5 * (Pk[i, j] + Pk[j, i])
+    for i in range(n):  # T = F sym(P)
+        for j in range(n):
+            s = 0.0
+            for l in range(i, n):
+                s += F[i, l] * Ps[l, j]
+            T[i, j] = s
+    for i in range(n):  # Pp = T F^T + Q
+        for j in range(i, n):
+            s = 0.0
+            for l in range(j, n):
+                s += T[i, l] * F[j, l]
+            Pp[i, j] = s + Qm[i, j]
+            Pp[j, i] = Pp[i, j]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def range_rows(xp, prm, off_a, M, zh, hv):  # pragma: no cover - jit
+    """Ranges ``zh[i] = sqrt((x - a_ix)^2 + (y - a_iy)^2 + dz_i^2)`` of the ``M`` anchors
+    at the state ``xp`` and the non-zero entries ``hv[i] = (x - a_ix, y - a_iy) /
+    max(r_i, 1e-9)`` of their Jacobian rows (position columns)."""
+    for i in range(M):
+        dx = xp[0] - prm[off_a + 3 * i]
+        dy = xp[1] - prm[off_a + 3 * i + 1]
+        r = math.sqrt((dx * dx + dy * dy) + prm[off_a + 3 * i + 2])
+        zh[i] = r
+        r = max(r, 1e-9)
+        hv[i, 0] = dx / r
+        hv[i, 1] = dy / r
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _h(xs, prm, off_a, M, zout):  # pragma: no cover - jit
     """``h(x)`` of the fusion model (``FusionMeasurement.predict``) into ``zout (m,)``."""
     if M == 0:
@@ -247,18 +320,14 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
     sout = fout[o_st:o_g].view(np.uint32)
     bout = fout[o_g:].view(np.uint8)
 
-    q = prm[_Q]
     min_speed = prm[_MIN_SPEED]
     scale = prm[_SCALE]
     wp0, wp1, wp2 = prm[_WPRM], prm[_WPRM + 1], prm[_WPRM + 2]
-    off_chi = _HEAD
-    off_F = off_chi + m + 1
-    off_a = off_F + 4 * nn
+    off_chi, off_F, off_a, off_s = offsets(prm, n, m)
     ns = 2 * n + 1
     ci = m - 1  # course
     si = m - 2  # speed
     nr = 2 if M == 0 else M  # position rows
-    off_s = off_a + 3 * M  # status characters
 
     # ---- scratch (separate small arrays: faster loops than views of one buffer)
     F = np.empty((n, n))
@@ -299,39 +368,10 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
         rk = k if Kr > 1 else 0
         # ------------------------------------------------ predict (seed 002 eq. (13))
         d = dt[k]
-        if not d == dt_prev:  # F(dt), Q(dt): one monomial in dt per entry
-            for p in range(npow):
-                pw[p] = math.pow(d, float(p))
-            for i in range(n):
-                for j in range(n):
-                    F[i, j] = pw[int(prm[off_F + nn + i * n + j])] * prm[off_F + i * n + j]
-                    Qm[i, j] = q * (
-                        pw[int(prm[off_F + 3 * nn + i * n + j])] * prm[off_F + 2 * nn + i * n + j]
-                    )
+        if not d == dt_prev:  # F(dt), Q(dt)
+            transition(n, d, prm, off_F, pw, F, Qm)
             dt_prev = d
-        for i in range(n):
-            s = 0.0
-            for j in range(i, n):
-                s += F[i, j] * x[k, j]
-            xp[i] = s
-        # F is upper triangular (checked by pack_params); only the upper triangle of the
-        # symmetric F P F^T + Q is computed, from sym(P) (sym(F P F^T) = F sym(P) F^T)
-        for i in range(n):
-            for j in range(n):
-                Pn[i, j] = 0.5 * (P[k, i, j] + P[k, j, i])
-        for i in range(n):  # T = F sym(P)
-            for j in range(n):
-                s = 0.0
-                for l in range(i, n):
-                    s += F[i, l] * Pn[l, j]
-                T[i, j] = s
-        for i in range(n):  # Pp = T F^T + Q
-            for j in range(i, n):
-                s = 0.0
-                for l in range(j, n):
-                    s += T[i, l] * F[j, l]
-                Pp[i, j] = s + Qm[i, j]
-                Pp[j, i] = Pp[i, j]
+        predict(n, F, Qm, x[k], P[k], xp, Pp, Pn, T)
 
         # ------------------------------------------------ measurement moments
         if kind == EKF:  # h and its Jacobian at the prediction (seed 001 eq. (10))
@@ -342,14 +382,7 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
                 zh[1] = xp[1]
                 hv[0, 0], hv[0, 1], hv[1, 0], hv[1, 1] = 1.0, 0.0, 0.0, 1.0
             else:
-                for i in range(M):
-                    dx = xp[0] - prm[off_a + 3 * i]
-                    dy = xp[1] - prm[off_a + 3 * i + 1]
-                    r = math.sqrt((dx * dx + dy * dy) + prm[off_a + 3 * i + 2])
-                    zh[i] = r
-                    r = max(r, 1e-9)
-                    hv[i, 0] = dx / r
-                    hv[i, 1] = dy / r
+                range_rows(xp, prm, off_a, M, zh, hv)
             vv = vx * vx + vy * vy
             zh[si] = math.sqrt(vv)  # hypot(vx, vy) to rounding
             zh[ci] = math.atan2(vx, vy)

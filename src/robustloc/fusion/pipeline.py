@@ -343,6 +343,16 @@ class FusionFilter:
             self._fast["state"] = state
         return state
 
+    def compiled_params(self, meas: FusionMeasurement) -> Array | None:
+        """Settings vector of the compiled kernel for ``meas``
+        (:func:`robustloc.filters._compiled.pack_params`), or ``None`` when this filter
+        and model run on the NumPy core (other engine, model or weight).  For callers
+        that run the kernel inside their own compiled loop (the tracker's fused round)."""
+        state = self._fast.get("state")
+        if state is None or state[0] is not meas:
+            state = self._prepare(meas)
+        return None if state[1] is None else state[2]
+
     @staticmethod
     def _R3(R: ArrayLike, cache: list) -> Array | None:
         """``R`` as ``(1, m, m)`` or ``(K, m, m)`` for the kernel (``None``: not usable)."""

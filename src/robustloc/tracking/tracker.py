@@ -250,8 +250,7 @@ class Tracker:
         M = len(self.anchor_ids)
         self._alloc(0, M)
         self._history: list[dict[str, Any]] = []
-        self._fusion = None
-        self._meas = None
+        self._kernel: Any = None
         self._locator = None
         self._lam0 = lambda0(self.settings.alpha0, self.settings.beta0)
         self._k_ir = math.sqrt(chi2.isf(self.settings.integrity_risk, 2))
@@ -341,16 +340,25 @@ class Tracker:
 
         # per-epoch scale: a start fix must not depend on which epochs share its batch
         self._locator = Locator("huber", sigma=tuple(sigma), robust_scale="mad")
-        self._compiled = (s.engine == "compiled" and self._link.kind == "range"
-                          and s.model in ("cv", "ca"))
-        if self._compiled:
-            from robustloc.filters.core import RobustUpdate as RU
+        self._kernel = None
+        if s.engine == "compiled" and self._link.kind == "range" and s.model in ("cv", "ca"):
             from robustloc.fusion.pipeline import FusionFilter, FusionMeasurement
+            from robustloc.tracking import _compiled
 
-            self._meas = FusionMeasurement(self.n, xy, np.sqrt(dz2))
-            self._fusion = FusionFilter(kind=s.filter, motion=self._motion,
-                                        robust=RU(weight=self._weight), max_rejected=0,
-                                        engine="compiled")
+            # the fusion filter's compiled core with the tight model of these anchors (its
+            # speed and course components stay absent): settings for the fused round
+            fusion = FusionFilter(kind=s.filter, motion=self._motion, robust=self._robust,
+                                  max_rejected=0, engine="compiled")
+            prm = fusion.compiled_params(FusionMeasurement(self.n, xy, np.sqrt(dz2)))
+            if prm is not None:
+                self._kernel = _compiled.ROUNDS[self.n]
+                self._prm = prm
+                self._tset = _compiled.pack_settings(
+                    s.cusum_k, math.inf if s.cusum_h is None else s.cusum_h,
+                    s.readmit_samples, s.noise_scale_min**2, s.noise_scale_max**2,
+                    s.noise_forget, math.sqrt(self._lam0), self._k_ir)
+                self._sigma2 = np.ascontiguousarray(self._link.sigma**2, dtype=float)
+                self._gcrit_f = np.ascontiguousarray(self._gcrit, dtype=float)
 
     @property
     def method(self) -> str:
@@ -496,9 +504,42 @@ class Tracker:
 
     def _filter(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array, z: Array,
                 out: _Rows) -> None:
+        """Predict + update the started tags of one round (the fused compiled round, or
+        the NumPy engine when there is none or it cannot do this round)."""
+        if self._kernel is None or not self._filter_compiled(idx, sl, t, z, out):
+            self._filter_numpy(idx, sl, t, z, out)
+
+    def _filter_compiled(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array,
+                         z: Array, out: _Rows) -> bool:
+        """The round in one call of the fused kernel (:mod:`robustloc.tracking._compiled`);
+        False (nothing changed) when the kernel cannot do it."""
+        K, n = len(idx), self.n
+        code = np.empty(K, dtype=np.int64)
+        moved = np.empty(K, dtype=bool)
+        sus = np.empty(K, dtype=bool)
+        dof = np.empty(K, dtype=np.int64)
+        xp = np.empty((K, n))
+        Pp = np.empty((K, n, n))
+        dt = np.empty(K)
+        rc = self._kernel(
+            np.ascontiguousarray(sl), np.ascontiguousarray(t, dtype=float),
+            np.ascontiguousarray(z, dtype=float), self._x, self._P, self._t, self._bias,
+            self._held, self._gp, self._gm, self._hsum, self._hn, self._scale2, self._sigma2,
+            self._prm, self._tset, self._gcrit_f, np.ascontiguousarray(idx), out.x, out.var,
+            out.cxy, out.n_used, out.nis, out.excluded, out.hpl, out.scale, code, moved, sus,
+            dof, xp, Pp, dt)
+        if rc != 0:
+            return False
+        out.status[idx] = _CODE_STATUS[code]
+        self._finish(idx, sl, t, z, out, moved, sus, dof, xp, Pp, dt)
+        return True
+
+    def _filter_numpy(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array,
+                      z: Array, out: _Rows) -> None:
+        """The round with the batched NumPy core (the reference implementation)."""
         s = self.settings
         link = self._link
-        K, _n, M = len(idx), self.n, link.M
+        M = link.M
         x, P = self._x[sl], self._P[sl]
         dt = np.maximum(t - self._t[sl], 0.0)
         F, Q = self._motion.F(dt), self._motion.Q(dt)
@@ -556,30 +597,17 @@ class Tracker:
         hsum = np.where(ready, 0.0, hsum)
         hn = np.where(ready, 0, hn)
 
-        # --- the filter step: predict + robust update (shared core or its compiled twin)
-        if self._compiled:
-            zf = np.concatenate([zin, np.full((K, 2), np.nan)], axis=1)
-            m = M + 2
-            R = np.zeros((K, m, m))
-            ii = np.arange(M)
-            R[:, ii, ii] = Rd
-            R[:, M, M] = R[:, M + 1, M + 1] = 1.0
-            res = self._fusion.step(np.ascontiguousarray(x), np.ascontiguousarray(P),
-                                    np.ascontiguousarray(dt), zf, R, self._meas)
-            xn, Pn = np.array(res.x), np.array(res.P)
-            w = np.array(res.weights[:, :M])
-            nis, rstat, nu = np.array(res.nis), np.array(res.status), np.array(res.n_used)
+        # --- the filter step: predict + robust update (shared core)
+        xq, Pq = predict_linear(x, P, F, Q)
+        R = Rd[:, :, None] * np.eye(M)[None]
+        if s.filter == "ekf":
+            res = update_ekf(xq, Pq, zin, link.predict, R, jac=link.jacobian,
+                             robust=self._robust)
         else:
-            xq, Pq = predict_linear(x, P, F, Q)
-            R = Rd[:, :, None] * np.eye(M)[None]
-            if s.filter == "ekf":
-                res = update_ekf(xq, Pq, zin, link.predict, R, jac=link.jacobian,
-                                 robust=self._robust)
-            else:
-                res = update_ukf(xq, Pq, zin, link.predict, R, points=SigmaPoints(),
-                                 robust=self._robust)
-            xn, Pn, w = res.x, res.P, res.weights
-            nis, rstat, nu = res.nis, res.status, res.n_used
+            res = update_ukf(xq, Pq, zin, link.predict, R, points=SigmaPoints(),
+                             robust=self._robust)
+        xn, Pn, w = res.x, res.P, res.weights
+        nis, rstat, nu = res.nis, res.status, res.n_used
 
         # --- B-method global test, divergence
         avail = np.isfinite(zin)
@@ -591,10 +619,6 @@ class Tracker:
         # checked against the robust snapshot fix: a filter that drifted off, or locked
         # onto a wrong solution (two consistent links, the others rejected), disagrees
         sus = test_fail | ((dof > 0) & (2 * nu <= dof))
-        fail = moved.copy()
-        if sus.any():
-            fail[sus] |= self._disagrees(xn[sus], Pn[sus], z[sus])
-        bad = np.where(fail, self._bad[sl] + 1, np.where(dof > 0, 0, self._bad[sl]))
 
         # --- adaptive noise scale (accepted components, robust weights)
         wa = np.where(avail, w, 0.0)
@@ -620,7 +644,6 @@ class Tracker:
         self._gp[sl], self._gm[sl] = gp, gm
         self._hsum[sl], self._hn[sl] = hsum, hn
         self._scale2[sl] = scale2
-        self._bad[sl] = bad
         status = np.asarray(rstat, dtype=object).copy()
         status[(status == st.OK) & held_now.any(axis=1)] = st.FAULT_EXCLUDED
         out.x[idx] = xn
@@ -632,10 +655,24 @@ class Tracker:
         out.excluded[idx] = (avail & (w <= 0)) | held_now
         out.hpl[idx] = hpl
         out.scale[idx] = np.sqrt(scale2)
+        self._finish(idx, sl, t, z, out, moved, sus, dof, xp, Pp, dt)
+
+    def _finish(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array, z: Array,
+                out: _Rows, moved: NDArray[np.bool_], sus: NDArray[np.bool_],
+                dof: NDArray[np.int64], xp: Array, Pp: Array, dt: Array) -> None:
+        """Divergence bookkeeping of a filtered round (both engines): suspicious epochs
+        against the robust fix, the bad-epoch count, re-starts; the recorded moments."""
+        s = self.settings
+        xn, Pn = self._x[sl], self._P[sl]
+        fail = moved.copy()
+        if sus.any():
+            fail[sus] |= self._disagrees(xn[sus], Pn[sus], z[sus])
+        bad = np.where(fail, self._bad[sl] + 1, np.where(dof > 0, 0, self._bad[sl]))
+        self._bad[sl] = bad
         if self.record:
-            self._history.append({"idx": idx, "slot": sl.copy(), "start": np.zeros(K, bool),
-                                  "xf": xn.copy(), "Pf": Pn.copy(), "xp": xp, "Pp": Pp,
-                                  "dt": dt})
+            self._history.append({"idx": idx, "slot": sl.copy(),
+                                  "start": np.zeros(len(idx), bool), "xf": xn, "Pf": Pn,
+                                  "xp": xp, "Pp": Pp, "dt": dt})
         # --- divergence: re-start from the robust fix of this epoch
         div = bad >= s.max_bad_epochs
         lost = ~div & (Pn[:, 0, 0] + Pn[:, 1, 1] > s.lost_pos_var)
@@ -791,6 +828,10 @@ class Tracker:
         if not self.record:
             raise ValueError("smoothing needs Tracker(..., record=True)")
         return rts_rows(self._history, n_rows, self.n, self._motion, lag)
+
+
+#: Status of the fused kernel's codes (:data:`robustloc.tracking._compiled.CODES`).
+_CODE_STATUS = np.array([st.OK, st.FAULT_EXCLUDED, st.PREDICTED], dtype=object)
 
 
 def _rank_within(slots: NDArray[np.int64]) -> NDArray[np.int64]:
