@@ -247,6 +247,7 @@ class Tracker:
         self._kind: str | None = None
         self._link: LinkModel | None = None
         self._slot: dict[str, int] = {}
+        self._slot_index: pd.Index | None = None  # the keys of _slot, for vector look-ups
         M = len(self.anchor_ids)
         self._alloc(0, M)
         self._history: list[dict[str, Any]] = []
@@ -254,6 +255,7 @@ class Tracker:
         self._locator = None
         self._lam0 = lambda0(self.settings.alpha0, self.settings.beta0)
         self._k_ir = math.sqrt(chi2.isf(self.settings.integrity_risk, 2))
+        self._chi2_fix = float(chi2.isf(self.settings.alpha0, 2))  # 2-D fix ellipse
         self._gcrit = global_critical(np.arange(0, M + 1), None, self.settings.alpha0,
                                       self.settings.beta0)
 
@@ -280,6 +282,12 @@ class Tracker:
                "_scale2", "_bad", "_reinit", "_lastz", "_lastt")
 
     def _slots(self, tags: NDArray[np.object_]) -> NDArray[np.int64]:
+        """Each tag's slot in the state arrays (new tags get new slots)."""
+        if self._slot_index is None or len(self._slot_index) != len(self._slot):
+            self._slot_index = pd.Index(list(self._slot), dtype=object)
+        pos = self._slot_index.get_indexer(tags)  # the slots are numbered in insertion order
+        if pos.size and pos.min() >= 0:
+            return pos.astype(np.int64, copy=False)
         new = [t for t in dict.fromkeys(tags) if t not in self._slot]
         if new:
             S0 = len(self._slot)
@@ -294,6 +302,7 @@ class Tracker:
                 elif name in ("_lastz", "_lastt"):
                     pad[:] = np.nan
                 setattr(self, name, np.concatenate([a, pad]))
+            self._slot_index = None
         return np.fromiter((self._slot[t] for t in tags), dtype=np.int64, count=len(tags))
 
     @property
@@ -744,7 +753,7 @@ class Tracker:
         d = np.where(ok[:, None], x[:, :2] - pos, 0.0)
         Sm = np.where(ok[:, None, None], C, np.eye(2)[None])
         q = np.einsum("ki,ki->k", d, np.linalg.solve(Sm, d[..., None])[..., 0])
-        return ok & (q > chi2.isf(self.settings.alpha0, 2))
+        return ok & (q > self._chi2_fix)
 
     def _hpl(self, H: Array, HPH: Array, Rd: Array, avail: NDArray[np.bool_], w: Array,
              Pn: Array) -> Array:
@@ -799,6 +808,7 @@ class Tracker:
             raise ValueError("saved tracker state has other settings")
         M = len(self.anchor_ids)
         self._slot = {}
+        self._slot_index = None
         self._alloc(0, M)
         self._kind = None
         if state.get("value") is not None:
@@ -884,9 +894,26 @@ def track_frame(time: Array, tag: NDArray[np.object_], out: _Rows, n: int,
     data["nis"] = out.nis
     data["noise_scale"] = out.scale
     data["reinit"] = out.reinit
-    ids = np.asarray(anchor_ids, dtype=object)
-    exc = np.full(len(time), "", dtype=object)
-    for r in np.flatnonzero(out.excluded.any(axis=1)) if len(ids) else ():
-        exc[r] = ";".join(ids[out.excluded[r]])
-    data["excluded"] = exc
+    data["excluded"] = _joined(out.excluded, anchor_ids)
     return pd.DataFrame(data)
+
+
+def _joined(mask: NDArray[np.bool_], names: tuple[str, ...]) -> NDArray[np.object_]:
+    """Per row, the ``names`` where ``mask (N, M)`` is True joined by ``;`` (``""`` if
+    none).  Each distinct row pattern is joined once (few patterns, many rows)."""
+    N, M = mask.shape
+    out = np.full(N, "", dtype=object)
+    rows = np.flatnonzero(mask.any(axis=1)) if M else np.zeros(0, dtype=np.int64)
+    if rows.size == 0:
+        return out
+    ids = np.asarray(names, dtype=object)
+    sub = mask[rows]
+    if M <= 62:  # the row's bits as one integer key
+        key = sub.astype(np.int64) @ (np.int64(1) << np.arange(M, dtype=np.int64))
+        _, first, inv = np.unique(key, return_index=True, return_inverse=True)
+    else:
+        _, first, inv = np.unique(np.packbits(sub, axis=1), axis=0, return_index=True,
+                                  return_inverse=True)
+    text = np.array([";".join(ids[sub[f]]) for f in first], dtype=object)
+    out[rows] = text[inv.ravel()]
+    return out
