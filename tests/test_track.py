@@ -269,7 +269,7 @@ def _assert_engines_agree(a: pd.DataFrame, kw: dict, epochs_list: list) -> pd.Da
     """Run the compiled and the NumPy engine on the same epochs; every row must agree."""
     out = {}
     for eng in ("compiled", "numpy"):
-        trk = Tracker(a, sigma=SIGMA_M, engine=eng, **kw)
+        trk = Tracker(a, engine=eng, **{"sigma": SIGMA_M, **kw})
         out[eng] = pd.concat([trk.step(e) for e in epochs_list], ignore_index=True)
     rc, rn = out["compiled"], out["numpy"]
     for c in ("time", "tag", "method", "status", "n_used", "reinit", "excluded"):
@@ -347,3 +347,21 @@ def test_engines_agree_on_the_recorded_moments_for_smoothing():
         sm[eng] = trk.smoothed(ep.n_epochs)
     for u, v in zip(sm["compiled"], sm["numpy"]):
         np.testing.assert_allclose(u, v, rtol=1e-9, atol=1e-9)  # as above: rounding
+
+
+@pytest.mark.parametrize("domain", ["range", "rssi"])
+def test_engines_agree_on_rssi_with_holds(domain):
+    """RSSI (log-distance, A = -40 dBm, n = 2): the compiled round runs the range domain
+    (held links' offsets in dB through the path-loss model); the dB domain is NumPy only."""
+    a = _anchors(6).assign(A=-40.0, n=2.0)
+    meas, _ = _walk(K=2, N=60, seed=14, anchors=a)
+    rng = np.random.default_rng(14)
+    d = meas["range"].to_numpy()
+    rssi = -40.0 - 20.0 * np.log10(d) + rng.normal(0.0, 2.0, d.size)
+    rssi -= np.where(rng.random(d.size) < 0.05, rng.uniform(5, 15, d.size), 0.0)  # fades
+    rssi[(meas["anchor"] == "A0").to_numpy() & (meas["time"] >= 15).to_numpy()] -= 8.0
+    meas = meas.drop(columns="range").assign(rssi=rssi)
+    ep = to_epochs(meas, a["anchor"])
+    assert ep.value == "rssi"
+    rows = _assert_engines_agree(a, {"cusum_h": 5.0, "domain": domain, "sigma": 2.0}, [ep])
+    assert rows.excluded.str.contains("A0").any()

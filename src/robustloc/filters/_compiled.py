@@ -58,8 +58,8 @@ DONE, BAD_SHAPE, NOT_PD = 0, 1, 2
 # layout of the parameter vector
 _Q, _MIN_SPEED, _SCALE, _WM0, _WMI, _WC0, _WCI = 0, 1, 2, 3, 4, 5, 6
 _WPRM = 7  # 3 weight parameters
-_WCODE, _KIND, _NPOW, _N, _M, _NANCH = 10, 11, 12, 13, 14, 15
-_HEAD = 16
+_WCODE, _KIND, _NPOW, _N, _M, _NANCH, _KIN = 10, 11, 12, 13, 14, 15, 16
+_HEAD = 17
 
 
 def layout(K: int, n: int, m: int) -> dict[str, int]:
@@ -109,6 +109,7 @@ def pack_params(
     coef_Q: np.ndarray,
     anchors: np.ndarray,
     dz2: np.ndarray,
+    kinematic: bool = True,
 ) -> np.ndarray | None:
     """Pack the settings of one filter and measurement model into one float vector.
 
@@ -126,6 +127,9 @@ def pack_params(
         (``robustloc.filters.motion._coefficients``).
     anchors : ``(M, 2)`` anchor positions (``M = 0`` for loose coupling).
     dz2 : ``(M,)`` squared height offsets.
+    kinematic : the measurement ends with the speed and course components (the fusion
+        model, ``m = M + 2``, or ``4`` loose); ``False``: ranges only, ``m = M >= 1`` (the
+        tracker's tight model: the same kernel without the two always-missing rows).
 
     Returns
     -------
@@ -142,12 +146,14 @@ def pack_params(
     if np.any(np.tril(fm[0], -1) != 0.0):  # the kernels use that F is upper triangular
         return None
     M = anchors.shape[0]
+    if m != ((M if M else 2) + 2 if kinematic else M) or m < 1:
+        return None
     head = np.zeros(_HEAD)
     head[_Q], head[_MIN_SPEED], head[_SCALE] = q, min_speed, scale
     head[_WM0], head[_WMI], head[_WC0], head[_WCI] = wm[0], wm[1], wc[0], wc[1]
     head[_WPRM : _WPRM + 3] = weight_prm[:3]
     head[_WCODE], head[_KIND], head[_NPOW] = weight_code, kind, npow
-    head[_N], head[_M], head[_NANCH] = n, m, M
+    head[_N], head[_M], head[_NANCH], head[_KIN] = n, m, M, 1.0 if kinematic else 0.0
     anch = np.column_stack([np.asarray(anchors, float).reshape(M, 2), dz2]).ravel()
     chars = np.zeros((len(STATUSES), STATUS_CHARS))
     for c, name in enumerate(STATUSES):
@@ -267,8 +273,9 @@ def range_rows(xp, prm, off_a, M, zh, hv):  # pragma: no cover - jit
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _h(xs, prm, off_a, M, zout):  # pragma: no cover - jit
-    """``h(x)`` of the fusion model (``FusionMeasurement.predict``) into ``zout (m,)``."""
+def _h(xs, prm, off_a, M, kin, zout):  # pragma: no cover - jit
+    """``h(x)`` of the fusion model (``FusionMeasurement.predict``) into ``zout (m,)``;
+    without the speed and course when ``kin`` is False."""
     if M == 0:
         zout[0] = xs[0]
         zout[1] = xs[1]
@@ -277,9 +284,10 @@ def _h(xs, prm, off_a, M, zout):  # pragma: no cover - jit
             dx = xs[0] - prm[off_a + 3 * i]
             dy = xs[1] - prm[off_a + 3 * i + 1]
             zout[i] = math.sqrt((dx * dx + dy * dy) + prm[off_a + 3 * i + 2])
-    nr = 2 if M == 0 else M
-    zout[nr] = math.hypot(xs[2], xs[3])
-    zout[nr + 1] = math.atan2(xs[2], xs[3])
+    if kin:
+        nr = 2 if M == 0 else M
+        zout[nr] = math.hypot(xs[2], xs[3])
+        zout[nr + 1] = math.atan2(xs[2], xs[3])
 
 
 @njit(cache=True, nogil=True)
@@ -293,6 +301,7 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
     if int(prm[_M]) != m:
         return BAD_SHAPE
     M = int(prm[_NANCH])
+    kin = prm[_KIN] != 0.0  # speed and course rows (else ranges only)
     npow = int(prm[_NPOW])
     kind = int(prm[_KIND])
     wcode = int(prm[_WCODE])
@@ -302,7 +311,7 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
     if P.shape[2] != n or dt.shape[0] != K or z.shape[0] != K or z.shape[1] != m:
         return BAD_SHAPE
     Kr = R.shape[0]
-    if (Kr != 1 and Kr != K) or R.shape[1] != m or R.shape[2] != m or m < 3:
+    if (Kr != 1 and Kr != K) or R.shape[1] != m or R.shape[2] != m or m < (3 if kin else 1):
         return BAD_SHAPE
     # output blocks (as in :func:`layout`)
     nn = n * n
@@ -325,8 +334,8 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
     wp0, wp1, wp2 = prm[_WPRM], prm[_WPRM + 1], prm[_WPRM + 2]
     off_chi, off_F, off_a, off_s = offsets(prm, n, m)
     ns = 2 * n + 1
-    ci = m - 1  # course
-    si = m - 2  # speed
+    ci = m - 1 if kin else -1  # course (-1: none)
+    si = m - 2 if kin else -1  # speed
     nr = 2 if M == 0 else M  # position rows
 
     # ---- scratch (separate small arrays: faster loops than views of one buffer)
@@ -383,13 +392,14 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
                 hv[0, 0], hv[0, 1], hv[1, 0], hv[1, 1] = 1.0, 0.0, 0.0, 1.0
             else:
                 range_rows(xp, prm, off_a, M, zh, hv)
-            vv = vx * vx + vy * vy
-            zh[si] = math.sqrt(vv)  # hypot(vx, vy) to rounding
-            zh[ci] = math.atan2(vx, vy)
-            v2 = max(vv, 1e-12)
-            v = math.sqrt(v2)
-            hv[si, 0], hv[si, 1] = vx / v, vy / v
-            hv[ci, 0], hv[ci, 1] = vy / v2, -vx / v2
+            if kin:
+                vv = vx * vx + vy * vy
+                zh[si] = math.sqrt(vv)  # hypot(vx, vy) to rounding
+                zh[ci] = math.atan2(vx, vy)
+                v2 = max(vv, 1e-12)
+                v = math.sqrt(v2)
+                hv[si, 0], hv[si, 1] = vx / v, vy / v
+                hv[ci, 0], hv[ci, 1] = vy / v2, -vx / v2
             # H has two non-zero columns per row: 0, 1 (position rows) or 2, 3
             for i in range(m):  # Pxz = P H^T
                 b = 0 if i < nr else 2
@@ -411,23 +421,25 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
                     sig[1 + c, j] = xp[j] + lv
                     sig[1 + n + c, j] = xp[j] - lv
             for p in range(ns):
-                _h(sig[p], prm, off_a, M, zs[p])
+                _h(sig[p], prm, off_a, M, kin, zs[p])
             # weighted means (eq. (22)); circular for the course
             for j in range(m):
                 s = wm0 * zs[0, j]
                 for p in range(1, ns):
                     s += wmi * zs[p, j]
                 zh[j] = s
-            sn = wm0 * math.sin(zs[0, ci])
-            cs = wm0 * math.cos(zs[0, ci])
-            for p in range(1, ns):
-                sn += wmi * math.sin(zs[p, ci])
-                cs += wmi * math.cos(zs[p, ci])
-            zh[ci] = math.atan2(sn, cs)
+            if kin:
+                sn = wm0 * math.sin(zs[0, ci])
+                cs = wm0 * math.cos(zs[0, ci])
+                for p in range(1, ns):
+                    sn += wmi * math.sin(zs[p, ci])
+                    cs += wmi * math.cos(zs[p, ci])
+                zh[ci] = math.atan2(sn, cs)
             for p in range(ns):
                 for j in range(m):
                     dz[p, j] = zs[p, j] - zh[j]
-                dz[p, ci] = _wrap(dz[p, ci])
+                if kin:
+                    dz[p, ci] = _wrap(dz[p, ci])
             for i in range(m):  # S = sum W_c dz dz^T + R (eq. (23))
                 for j in range(m):
                     s = (dz[0, i] * wc0) * dz[0, j]
@@ -442,7 +454,7 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
                     Pxz[i, j] = s
 
         # ------------------------------------------------ innovation, available components
-        course_ok = abs(z[k, si]) >= min_speed
+        course_ok = kin and abs(z[k, si]) >= min_speed
         ma = 0
         for i in range(m):
             yi = z[k, i] - zh[i]

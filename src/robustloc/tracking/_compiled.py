@@ -11,8 +11,9 @@ for the range model (items 2-8 of the tracker's docstring, same order, same form
    ``(H P- H^T)_ii`` and ``e_i = y_i / sqrt((H P- H^T)_ii + s^2 sigma_i^2)``;
 2. the CUSUM of each link in use, the ``moved`` rule, holds, offsets and re-admission;
 3. the robust predict + update of the held-out measurement: one call of the fusion filter's
-   kernel (:data:`robustloc.filters._compiled.KERNELS`, the tight model with the speed and
-   course components absent) -- the same compiled filter core as ``FusionFilter``;
+   kernel (:data:`robustloc.filters._compiled.KERNELS`, the tight model of the ranges only:
+   ``pack_params(..., kinematic=False)``) -- the same compiled filter core as
+   ``FusionFilter``;
 4. the B-method global test (``NIS > chi2(1 - alpha(m); m)``, table ``gcrit``) and the
    "half rejected" rule: flags ``sus`` of the epochs the caller checks against the robust
    snapshot fix (a rare NumPy path), and ``moved``;
@@ -33,6 +34,12 @@ import numpy as np
 from numba import njit
 
 from robustloc.filters._compiled import (
+    _KIN,
+    _M,
+    _N,
+    _NANCH,
+    _NPOW,
+    BAD_SHAPE,
     DONE,
     ST_FAULT_EXCLUDED,
     ST_OK,
@@ -68,21 +75,23 @@ def pack_settings(cusum_k: float, cusum_h: float, readmit_samples: int, noise_lo
 
 @njit(cache=True, nogil=True)
 def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s, scale2_s,
-           sigma2, prm, tset, gcrit, idx, out_x, out_var, out_cxy, out_nu, out_nis, out_exc,
-           out_hpl, out_scale, code, moved, sus, dof, xp_o, Pp_o, dt_o):  # pragma: no cover - jit
+           obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x, out_var, out_cxy,
+           out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved, sus, dof, xp_o, Pp_o,
+           dt_o):  # pragma: no cover - jit
     """Body of :func:`track_round_4` / ``_6`` for state size ``n`` (see their docstring)."""
     K = sl.shape[0]
     M = z.shape[1]
-    m = M + 2  # the fusion model's tight measurement: ranges, speed, course
+    m = M  # the fusion model's tight measurement without its speed and course rows
     nn = n * n
-    if int(prm[13]) != n or int(prm[14]) != m or int(prm[15]) != M:  # _N, _M, _NANCH
-        return 1  # BAD_SHAPE
+    if int(prm[_N]) != n or int(prm[_M]) != m or int(prm[_NANCH]) != M or prm[_KIN] != 0.0:
+        return BAD_SHAPE
     off_chi, off_F, off_a, off_s = offsets(prm, n, m)
     ck, ch = tset[_CUSUM_K], tset[_CUSUM_H]
     readmit = int(tset[_READMIT])
     lo, hi, lf = tset[_LO], tset[_HI], tset[_FORGET]
     sl0, kir = tset[_SQRT_LAM0], tset[_K_IR]
     max_held = max(1, (M - 1) // 2)
+    rssi = rssi_A.shape[0] > 0
 
     # ---- round arrays: gathered states, the fusion kernel's inputs and output row
     xg = np.empty((K, n))
@@ -115,7 +124,7 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
     Qm = np.empty((n, n))
     Ps = np.empty((n, n))
     T = np.empty((n, n))
-    pw = np.empty(int(prm[12]))  # _NPOW
+    pw = np.empty(int(prm[_NPOW]))
     zh = np.empty(M)
     hvk = np.empty((M, 2))
     alarm = np.empty(M, np.bool_)
@@ -137,7 +146,7 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
         xp = xp_o[k]
         Pp = Pp_o[k]
         predict(n, F, Qm, xg[k], Pg[k], xp, Pp, Ps, T)
-        range_rows(xp, prm, off_a, M, zh, hvk)
+        range_rows(xp, prm, off_a, M, zh, hvk)  # zh: the distances d_i(x-)
         sc2 = scale2_s[s]
         n_alarm = 0
         n_held = 0
@@ -148,9 +157,9 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
                                                                     + Pp[1, 1] * h1)
             hv[k, i, 0] = h0
             hv[k, i, 1] = h1
-            rd[k, i] = sc2 * sigma2[i]
+            rd[k, i] = sc2 * r0[k, i]
             zi = z[k, i]
-            yi = (zi - bias_s[s, i]) - zh[i]
+            yi = obs[k, i] - zh[i]
             y[k, i] = yi
             e = yi / math.sqrt(hph[k, i] + rd[k, i])
             hd = held_s[s, i]
@@ -187,11 +196,15 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
                 hn = 0
             heard = math.isfinite(zi)
             if hd and heard:  # held: accumulate the new offset against the prediction
-                hs = hs + (zi - zh[i])
+                if rssi:  # in dB, through the path-loss model (LinkModel.rssi)
+                    lg = math.log10(max(zh[i], d_min))
+                    hs = hs + (zi - (rssi_A[i] - 10.0 * rssi_n[i] * lg))
+                else:
+                    hs = hs + (zi - zh[i])
                 hn += 1
             ready = hd and hn >= readmit
             new_bias[k, i] = hs / max(hn, 1) if ready else bias_s[s, i]
-            zin = math.nan if hd else zi - bias_s[s, i]
+            zin = math.nan if hd else obs[k, i]
             zf[k, i] = zin
             R[k, i, i] = rd[k, i]
             if math.isfinite(zin):
@@ -201,10 +214,6 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
             new_hsum[k, i] = 0.0 if ready else hs
             new_hn[k, i] = 0 if ready else hn
         dof[k] = ma
-        zf[k, M] = math.nan
-        zf[k, M + 1] = math.nan
-        R[k, M, M] = 1.0
-        R[k, M + 1, M + 1] = 1.0
 
     # ---- robust predict + update: the fusion filter's compiled kernel (item 3)
     if n == 4:
@@ -241,7 +250,7 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
             if av:
                 # Sage-Husa: weighted mean of (y^2 - (H P- H^T)_ii) / sigma_i^2 (Mehra 1972)
                 sw += wv
-                swe += wv * ((y[k, i] * y[k, i] - hph[k, i]) / sigma2[i])
+                swe += wv * ((y[k, i] * y[k, i] - hph[k, i]) / r0[k, i])
                 # hpl slope: |G_pos,i| MDB_i, G_i = w_i P+ H_i^T / R_ii (seed 003 eq. (3))
                 wr = wv / rd[k, i]
                 g0 = (hv[k, i, 0] * Pn00 + hv[k, i, 1] * Pn10) * wr
@@ -294,9 +303,13 @@ _DOC = """One epoch of ``K`` tags of the range tracker, state size {n} ({model})
         heard) of the round's epochs, one per tag.
     x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s, scale2_s : the tracker's state
         arrays (all slots), read at ``sl`` and written back there on success.
-    sigma2 : ``(M,)`` a-priori variances of the links.
-    prm : the fusion kernel's settings (``FusionFilter.compiled_params``, tight model of
-        the ``M`` anchors).
+    obs, r0 : ``(K, M)`` observations ``z - b`` in the filter's (range) domain and their
+        a-priori variances (``Tracker._observations``: ranges as measured, or RSSI
+        converted by the path-loss model).
+    rssi_A, rssi_n, d_min : RSSI only (else ``(0,)`` arrays): the path-loss model of the
+        links, in which a held link's offset is estimated (dB); its clamping distance.
+    prm : the fusion kernel's settings (``FusionFilter.compiled_params(meas,
+        kinematic=False)``: the ranges of the ``M`` anchors).
     tset : :func:`pack_settings`; gcrit : ``(M + 1,)`` B-method critical values by the
         number of components.
     idx : ``(K,)`` output rows; out_x, out_var ``(N, n)``, out_cxy, out_nu, out_nis,
@@ -316,24 +329,24 @@ _DOC = """One epoch of ``K`` tags of the range tracker, state size {n} ({model})
 
 @njit(cache=True, nogil=True)
 def track_round_4(sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
-                  scale2_s, sigma2, prm, tset, gcrit, idx, out_x, out_var, out_cxy, out_nu,
-                  out_nis, out_exc, out_hpl, out_scale, code, moved, sus, dof, xp_o, Pp_o,
-                  dt_o):  # pragma: no cover - jit
+                  scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
+                  out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
+                  sus, dof, xp_o, Pp_o, dt_o):  # pragma: no cover - jit
     return _round(4, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
-                  scale2_s, sigma2, prm, tset, gcrit, idx, out_x, out_var, out_cxy, out_nu,
-                  out_nis, out_exc, out_hpl, out_scale, code, moved, sus, dof, xp_o, Pp_o,
-                  dt_o)
+                  scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
+                  out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
+                  sus, dof, xp_o, Pp_o, dt_o)
 
 
 @njit(cache=True, nogil=True)
 def track_round_6(sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
-                  scale2_s, sigma2, prm, tset, gcrit, idx, out_x, out_var, out_cxy, out_nu,
-                  out_nis, out_exc, out_hpl, out_scale, code, moved, sus, dof, xp_o, Pp_o,
-                  dt_o):  # pragma: no cover - jit
+                  scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
+                  out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
+                  sus, dof, xp_o, Pp_o, dt_o):  # pragma: no cover - jit
     return _round(6, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
-                  scale2_s, sigma2, prm, tset, gcrit, idx, out_x, out_var, out_cxy, out_nu,
-                  out_nis, out_exc, out_hpl, out_scale, code, moved, sus, dof, xp_o, Pp_o,
-                  dt_o)
+                  scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
+                  out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
+                  sus, dof, xp_o, Pp_o, dt_o)
 
 
 track_round_4.__doc__ = _DOC.format(n=4, model="CV")

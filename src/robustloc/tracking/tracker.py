@@ -354,11 +354,12 @@ class Tracker:
             from robustloc.fusion.pipeline import FusionFilter, FusionMeasurement
             from robustloc.tracking import _compiled
 
-            # the fusion filter's compiled core with the tight model of these anchors (its
-            # speed and course components stay absent): settings for the fused round
+            # the fusion filter's compiled core with the tight model of these anchors (the
+            # ranges only, no speed and course): settings for the fused round
             fusion = FusionFilter(kind=s.filter, motion=self._motion, robust=self._robust,
                                   max_rejected=0, engine="compiled")
-            prm = fusion.compiled_params(FusionMeasurement(self.n, xy, np.sqrt(dz2)))
+            prm = fusion.compiled_params(FusionMeasurement(self.n, xy, np.sqrt(dz2)),
+                                         kinematic=False)
             if prm is not None:
                 self._kernel = _compiled.ROUNDS[self.n]
                 self._prm = prm
@@ -366,7 +367,9 @@ class Tracker:
                     s.cusum_k, math.inf if s.cusum_h is None else s.cusum_h,
                     s.readmit_samples, s.noise_scale_min**2, s.noise_scale_max**2,
                     s.noise_forget, math.sqrt(self._lam0), self._k_ir)
-                self._sigma2 = np.ascontiguousarray(self._link.sigma**2, dtype=float)
+                rssi = self._kind == "rssi"  # held links' offsets live in dB
+                self._rssi_A = np.asarray(A if rssi else np.zeros(0), dtype=float)
+                self._rssi_n = np.asarray(nn if rssi else np.zeros(0), dtype=float)
                 self._gcrit_f = np.ascontiguousarray(self._gcrit, dtype=float)
 
     @property
@@ -530,13 +533,16 @@ class Tracker:
         xp = np.empty((K, n))
         Pp = np.empty((K, n, n))
         dt = np.empty(K)
+        z = np.ascontiguousarray(z, dtype=float)
+        obs, R0 = self._observations(z - self._bias[sl])
         rc = self._kernel(
-            np.ascontiguousarray(sl), np.ascontiguousarray(t, dtype=float),
-            np.ascontiguousarray(z, dtype=float), self._x, self._P, self._t, self._bias,
-            self._held, self._gp, self._gm, self._hsum, self._hn, self._scale2, self._sigma2,
-            self._prm, self._tset, self._gcrit_f, np.ascontiguousarray(idx), out.x, out.var,
-            out.cxy, out.n_used, out.nis, out.excluded, out.hpl, out.scale, code, moved, sus,
-            dof, xp, Pp, dt)
+            np.ascontiguousarray(sl), np.ascontiguousarray(t, dtype=float), z, self._x,
+            self._P, self._t, self._bias, self._held, self._gp, self._gm, self._hsum,
+            self._hn, self._scale2, np.ascontiguousarray(obs, dtype=float),
+            np.ascontiguousarray(R0, dtype=float), self._rssi_A, self._rssi_n,
+            self._link.d_min_m, self._prm, self._tset, self._gcrit_f,
+            np.ascontiguousarray(idx), out.x, out.var, out.cxy, out.n_used, out.nis,
+            out.excluded, out.hpl, out.scale, code, moved, sus, dof, xp, Pp, dt)
         if rc != 0:
             return False
         out.status[idx] = _CODE_STATUS[code]
