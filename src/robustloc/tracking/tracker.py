@@ -54,10 +54,14 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
    ``k`` sigma with probability ``integrity_risk`` for a Gaussian error).  Predicted rows
    get the noise term only.
 
-Engines: ``compiled`` (default) runs the predict + update of the ``cv``/``ca`` range
-models in the numba kernels of the fusion filter (one call for all tags of a round, the
-UWB tight model with the speed and course components absent); ``numpy`` (and RSSI, and
-``static``) runs the batched NumPy core.  The two agree to rounding (tested).
+Engines: ``compiled`` (default) runs the whole round of the ``cv``/``ca`` models in the
+range domain (ranges, or RSSI converted to ranges) in one fused numba kernel
+(:mod:`robustloc.tracking._compiled`: items 2-8 in a loop over the tags, its update the
+fusion filter's compiled kernel on the ranges); only the robust snapshot fixes of
+suspicious epochs and the re-starts (item 5) stay in NumPy, for the tags that need them.
+``numpy`` (and RSSI in dB, and ``static``) runs the batched NumPy core, the reference
+implementation.  The two agree to rounding, 1e-9 m (tested, also on random workloads with
+holds, outliers and re-starts).
 
 Batching: :meth:`Tracker.step` takes an :class:`~robustloc.io.tables.Epochs` block and
 advances each tag through its epochs in time order; the ``j``-th epochs of all tags are
@@ -247,7 +251,6 @@ class Tracker:
         self._kind: str | None = None
         self._link: LinkModel | None = None
         self._slot: dict[str, int] = {}
-        self._slot_index: pd.Index | None = None  # the keys of _slot, for vector look-ups
         M = len(self.anchor_ids)
         self._alloc(0, M)
         self._history: list[dict[str, Any]] = []
@@ -283,11 +286,11 @@ class Tracker:
 
     def _slots(self, tags: NDArray[np.object_]) -> NDArray[np.int64]:
         """Each tag's slot in the state arrays (new tags get new slots)."""
-        if self._slot_index is None or len(self._slot_index) != len(self._slot):
-            self._slot_index = pd.Index(list(self._slot), dtype=object)
-        pos = self._slot_index.get_indexer(tags)  # the slots are numbered in insertion order
-        if pos.size and pos.min() >= 0:
-            return pos.astype(np.int64, copy=False)
+        try:  # the usual case: every tag known
+            return np.fromiter(map(self._slot.__getitem__, tags), dtype=np.int64,
+                               count=len(tags))
+        except KeyError:
+            pass
         new = [t for t in dict.fromkeys(tags) if t not in self._slot]
         if new:
             S0 = len(self._slot)
@@ -302,7 +305,6 @@ class Tracker:
                 elif name in ("_lastz", "_lastt"):
                     pad[:] = np.nan
                 setattr(self, name, np.concatenate([a, pad]))
-            self._slot_index = None
         return np.fromiter((self._slot[t] for t in tags), dtype=np.int64, count=len(tags))
 
     @property
@@ -740,7 +742,7 @@ class Tracker:
         sol = self._fix(z)
         C = self._fix_cov(np.asarray(sol.position, float), z, np.asarray(sol.excluded, bool))
         tr = C[:, 0, 0] + C[:, 1, 1]
-        ok = np.isin(sol.status, (st.OK, st.FAULT_EXCLUDED)) & np.isfinite(tr)
+        ok = _fixed(sol.status) & np.isfinite(tr)
         return ok & (tr < P[:, 0, 0] + P[:, 1, 1])
 
     def _disagrees(self, x: Array, P: Array, z: Array) -> NDArray[np.bool_]:
@@ -754,7 +756,7 @@ class Tracker:
         sol = self._fix(z)
         pos = np.asarray(sol.position, dtype=float)
         C = self._fix_cov(pos, z, np.asarray(sol.excluded, bool))
-        ok = np.isin(sol.status, (st.OK, st.FAULT_EXCLUDED)) & np.all(np.isfinite(pos), 1)
+        ok = _fixed(sol.status) & np.all(np.isfinite(pos), 1)
         ok &= np.all(np.isfinite(C.reshape(len(x), -1)), axis=1)
         d = np.where(ok[:, None], x[:, :2] - pos, 0.0)
         Sm = np.where(ok[:, None, None], C, np.eye(2)[None])
@@ -814,7 +816,6 @@ class Tracker:
             raise ValueError("saved tracker state has other settings")
         M = len(self.anchor_ids)
         self._slot = {}
-        self._slot_index = None
         self._alloc(0, M)
         self._kind = None
         if state.get("value") is not None:
@@ -844,6 +845,12 @@ class Tracker:
         if not self.record:
             raise ValueError("smoothing needs Tracker(..., record=True)")
         return rts_rows(self._history, n_rows, self.n, self._motion, lag)
+
+
+def _fixed(status: NDArray[np.object_]) -> NDArray[np.bool_]:
+    """Fixes whose status is ``ok`` or ``fault_excluded`` (a usable robust fix)."""
+    status = np.asarray(status, dtype=object)
+    return (status == st.OK) | (status == st.FAULT_EXCLUDED)
 
 
 #: Status of the fused kernel's codes (:data:`robustloc.tracking._compiled.CODES`).
