@@ -145,7 +145,7 @@ def track_file(args: argparse.Namespace) -> dict:
                     for block in iter_epochs(args.measurements, anchors,
                                              chunk_rows=args.chunk_rows, order=order):
                         if n == 0:
-                            compile_notice("filter")
+                            compile_notice("filter", "tracker")
                         rows = trk.step(block)
                         for k, v in rows["status"].value_counts().items():
                             status_counts[str(k)] = status_counts.get(str(k), 0) + int(v)
