@@ -365,3 +365,34 @@ def test_engines_agree_on_rssi_with_holds(domain):
     assert ep.value == "rssi"
     rows = _assert_engines_agree(a, {"cusum_h": 5.0, "domain": domain, "sigma": 2.0}, [ep])
     assert rows.excluded.str.contains("A0").any()
+
+
+@pytest.mark.filterwarnings("ignore:invalid value:RuntimeWarning")  # sqrt of HPH < 0
+def test_round_the_kernel_cannot_do_falls_back_to_numpy():
+    """A covariance that is not positive definite (here loaded from a state) stops the
+    compiled UKF's sigma points (NOT_PD): the round runs on the NumPy engine instead,
+    which takes the eigen-clipped square root -- same rows as the NumPy engine."""
+    a = _anchors()
+    meas, _ = _walk(K=2, N=20, seed=15)
+    ep = _epochs(meas, a)
+    h = ep.n_epochs // 2
+
+    def cut(s):
+        return type(ep)(ep.time[s], ep.tag[s], ep.values[s], ep.anchor_ids, ep.value,
+                        ep.line[s])
+
+    trk = Tracker(a, filter="ukf", sigma=SIGMA_M)
+    trk.step(cut(slice(0, h)))
+    saved = json.loads(json.dumps(trk.state_dict()))
+    P = np.array(saved["tags"]["tag0"]["P"]).reshape(4, 4)
+    P[2, 2] = -1.0  # indefinite
+    saved["tags"]["tag0"]["P"] = P.ravel().tolist()
+    rows, calls = {}, []
+    for eng in ("compiled", "numpy"):
+        t2 = Tracker(a, filter="ukf", sigma=SIGMA_M, engine=eng)
+        t2.load_state_dict({**saved, "settings": {**saved["settings"], "engine": eng}})
+        if eng == "compiled":
+            t2._filter_numpy = lambda *args, f=t2._filter_numpy: calls.append(1) or f(*args)
+        rows[eng] = t2.step(cut(slice(h, None)))
+    assert calls  # the fallback ran
+    pd.testing.assert_frame_equal(rows["compiled"], rows["numpy"], rtol=1e-9, atol=1e-9)
