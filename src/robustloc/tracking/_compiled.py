@@ -2,12 +2,13 @@
 for ``K`` tags in one call.
 
 One call of :func:`track_round_4` (CV) or :func:`track_round_6` (CA) advances ``K`` tags by
-one epoch each, doing in a loop over tags what ``Tracker._filter`` does with batched NumPy
-for the range model (items 2-8 of the tracker's docstring, same order, same formulas):
+one epoch each, doing in a loop over tags what ``Tracker._filter_numpy`` does with batched
+NumPy for the range model (items 2-8 of the tracker's docstring, same order, same formulas):
 
 1. prediction ``x- = F x``, ``P- = F P F^T + Q`` and the ranges ``h(x-)`` with their
    Jacobian rows (the fusion kernel's helpers :func:`robustloc.filters._compiled.predict`,
-   :func:`~robustloc.filters._compiled.range_rows`); innovations ``y_i = z_i - b_i - h_i``,
+   :func:`~robustloc.filters._compiled.range_rows`); innovations ``y_i = o_i - h_i`` of
+   the observations ``o_i`` (``z_i - b_i`` in the range domain, ``Tracker._observations``),
    ``(H P- H^T)_ii`` and ``e_i = y_i / sqrt((H P- H^T)_ii + s^2 sigma_i^2)``;
 2. the CUSUM of each link in use, the ``moved`` rule, holds, offsets and re-admission;
 3. the robust predict + update of the held-out measurement: one call of the fusion filter's
@@ -16,7 +17,7 @@ for the range model (items 2-8 of the tracker's docstring, same order, same form
    ``FusionFilter``;
 4. the B-method global test (``NIS > chi2(1 - alpha(m); m)``, table ``gcrit``) and the
    "half rejected" rule: flags ``sus`` of the epochs the caller checks against the robust
-   snapshot fix (a rare NumPy path), and ``moved``;
+   snapshot fix (NumPy, for those tags only), and ``moved``;
 5. the Sage-Husa noise scale, the protection level ``hpl``, the status and the output row.
 
 The state of the tags lives in the tracker's arrays, indexed by slot ``sl[k]``; the kernel
@@ -55,7 +56,6 @@ from robustloc.filters._compiled import (
 
 # layout of the tracker's settings vector (:func:`pack_settings`)
 _CUSUM_K, _CUSUM_H, _READMIT, _LO, _HI, _FORGET, _SQRT_LAM0, _K_IR = range(8)
-_NSET = 8
 #: Status codes written into ``code`` (as :data:`robustloc.filters._compiled.STATUSES`).
 CODES = (ST_OK, ST_FAULT_EXCLUDED, ST_PREDICTED)
 
@@ -85,6 +85,17 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
     nn = n * n
     if int(prm[_N]) != n or int(prm[_M]) != m or int(prm[_NANCH]) != M or prm[_KIN] != 0.0:
         return BAD_SHAPE
+    # numba does not check bounds: the slots and rows must lie inside their arrays
+    S = x_s.shape[0]
+    if x_s.shape[1] != n or P_s.shape[0] != S or t_s.shape[0] != S or bias_s.shape[1] != M:
+        return BAD_SHAPE
+    if t.shape[0] != K or z.shape[0] != K or obs.shape != z.shape or r0.shape != z.shape:
+        return BAD_SHAPE
+    if idx.shape[0] != K or out_x.shape[1] != n or out_exc.shape[1] != M:
+        return BAD_SHAPE
+    for k in range(K):
+        if not (0 <= sl[k] < S and 0 <= idx[k] < out_x.shape[0]):
+            return BAD_SHAPE
     off_chi, off_F, off_a, off_s = offsets(prm, n, m)
     ck, ch = tset[_CUSUM_K], tset[_CUSUM_H]
     readmit = int(tset[_READMIT])
