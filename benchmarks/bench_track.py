@@ -17,16 +17,16 @@ One core: ``NUMBA_NUM_THREADS=1`` keeps the compiled kernels on one thread.  The
 clock is the process's CPU time (``time.process_time``): on a shared machine wall-clock
 time mostly measures the other processes; the load average is printed with the table.
 
-Measured on this project's 2-core machine shared by ~4 agents, load average 5.6-6.4,
-``--clock cpu`` (tag-epochs per CPU second; the numbers still move by ~20 % between runs,
-compare within a table):
+Measured on this project's 2-core machine shared by ~4 agents, load average 4.2-6.4,
+``--clock cpu`` (tag-epochs per CPU second, best of 3 rounds; the numbers still move by
+~20 % between runs, compare within a session), four sessions:
 
-=======  ==================  ==========  =========================  ========
-filter   compiled (before)   numpy       FilterPy (plain, per tag)  target
-=======  ==================  ==========  =========================  ========
-EKF      81 k (56-70 k)      39-42 k     6.4-7.9 k (10-13x slower)  200 k
-UKF      75-77 k (53-59 k)   31-36 k     1.6-1.9 k (40-45x slower)  50 k
-=======  ==================  ==========  =========================  ========
+=======  ====================  ==========  =========================  ========
+filter   compiled (before)     numpy       FilterPy (plain, per tag)  target
+=======  ====================  ==========  =========================  ========
+EKF      81-110 k (56-83 k)    39-47 k     6.4-7.9 k (10-15x slower)  200 k
+UKF      70-77 k (51-59 k)     31-45 k     1.6-2.6 k (27-45x slower)  50 k
+=======  ====================  ==========  =========================  ========
 
 "before": the same script and clock on the previous tracker (the compiled engine ran
 only the filter update in the fusion kernel, everything else per round in NumPy); on the
