@@ -308,3 +308,49 @@ def test_fast_result_sets_every_field_of_update_result():
     assert list(vars(r)) == names
     assert [getattr(r, n) for n in names] == list(range(len(names)))
     assert r == UpdateResult(*range(len(names)))
+
+
+@pytest.mark.parametrize("kind", ["ekf", "ukf"])
+@pytest.mark.parametrize("motion", [ConstantVelocity(q=1.0), ConstantAcceleration(q=0.5)],
+                         ids=["cv", "ca"])
+def test_ranges_only_kernel_equals_missing_speed_and_course(kind, motion):
+    """``pack_params(..., kinematic=False)`` (the range tracker's round) drops the speed and
+    course rows; with them present but missing (identity rows of ``S``, zero gain) the
+    kernel computes the same numbers: equal to the bit, outliers and gaps included."""
+    from robustloc.filters import _compiled
+
+    rng = np.random.default_rng(21)
+    K, M, n = 200, 6, motion.n_states
+    a = rng.uniform(0.0, 20.0, (M, 2))
+    meas = FusionMeasurement(n, a, np.full(M, 0.5))
+    f = FusionFilter(kind, motion, robust=RobustUpdate(Huber(1.5)))
+    p_kin, p_rng = f.compiled_params(meas), f.compiled_params(meas, kinematic=False)
+    assert p_kin is not None and p_rng is not None
+    x = np.zeros((K, n))
+    x[:, :2] = rng.uniform(5.0, 15.0, (K, 2))
+    x[:, 2:4] = rng.normal(0.0, 1.0, (K, 2))
+    A = rng.normal(size=(K, n, n))
+    P = 0.1 * A @ np.swapaxes(A, 1, 2) + 0.1 * np.eye(n)
+    dt = rng.uniform(0.2, 1.0, K)
+    z = meas.predict(x)[:, :M] + rng.normal(0.0, 0.1, (K, M))
+    z[rng.random((K, M)) < 0.2] = np.nan
+    z[rng.random((K, M)) < 0.05] += 3.0
+    R = np.zeros((K, M, M))
+    R[:, range(M), range(M)] = rng.uniform(0.005, 0.02, (K, M))
+    zk = np.concatenate([z, np.full((K, 2), np.nan)], axis=1)
+    Rk = np.zeros((K, M + 2, M + 2))
+    Rk[:, :M, :M] = R
+    Rk[:, M, M] = Rk[:, M + 1, M + 1] = 1.0
+    kern = _compiled.kernel_for(n, 0)
+    lk, lr = _compiled.layout(K, n, M + 2), _compiled.layout(K, n, M)
+    fk, fr = np.empty(lk["size"]), np.empty(lr["size"])
+    assert kern(x, P, dt, zk, Rk, p_kin, fk) == _compiled.DONE
+    assert kern(x, P, dt, z, R, p_rng, fr) == _compiled.DONE
+    np.testing.assert_array_equal(fk[: lk["innovation"]], fr[: lr["innovation"]])  # x, P
+    for name in ("innovation", "standardized", "weights"):
+        nxt = {"innovation": "standardized", "standardized": "weights", "weights": "nis"}[name]
+        np.testing.assert_array_equal(fk[lk[name]: lk[nxt]].reshape(K, M + 2)[:, :M],
+                                      fr[lr[name]: lr[nxt]].reshape(K, M), err_msg=name)
+    np.testing.assert_array_equal(fk[lk["nis"]: lk["gated"]], fr[lr["nis"]: lr["gated"]])
+    # a ranges-only vector needs anchors; a mismatched measurement size is refused
+    assert f.compiled_params(FusionMeasurement(n), kinematic=False) is None

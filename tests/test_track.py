@@ -9,6 +9,8 @@ import sys
 import numpy as np
 import pandas as pd
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as hst
 
 from robustloc.io.tables import to_epochs
 from robustloc.tracking import Tracker
@@ -284,3 +286,141 @@ def test_smoothed_track_does_not_depend_on_chunks_or_other_tags(tmp_path, extra)
                      *extra]) == 0
         mine = outs[1][outs[1]["tag"].astype(str) == str(tag)].reset_index(drop=True)
         pd.testing.assert_frame_equal(pd.read_parquet(o), mine, check_exact=True)
+
+
+# --------------------------------------------------------------------------- engines
+_FLOAT_COLUMNS = ("x", "y", "vx", "vy", "var_x", "var_y", "cov_xy", "var_vx", "var_vy", "hpl",
+                  "nis", "noise_scale")
+
+
+def _assert_engines_agree(a: pd.DataFrame, kw: dict, epochs_list: list) -> pd.DataFrame:
+    """Run the compiled and the NumPy engine on the same epochs; every row must agree."""
+    out = {}
+    for eng in ("compiled", "numpy"):
+        trk = Tracker(a, engine=eng, **{"sigma": SIGMA_M, **kw})
+        out[eng] = pd.concat([trk.step(e) for e in epochs_list], ignore_index=True)
+    rc, rn = out["compiled"], out["numpy"]
+    for c in ("time", "tag", "method", "status", "n_used", "reinit", "excluded"):
+        assert (rc[c] == rn[c]).all(), c
+    # the same formulas in another summation order (the kernel sums over links in order,
+    # NumPy pairwise): agreement to rounding amplified by the recursion, 1e-9 m on
+    # coordinates of 10 m (and 1e-9 relative on the NIS of outliers, ~1e4)
+    for c in _FLOAT_COLUMNS:
+        np.testing.assert_allclose(rc[c], rn[c], rtol=1e-9, atol=1e-9, err_msg=c)
+    return rc
+
+
+def _bad_epochs(seed: int, K: int, M: int, N: int, p_out: float, p_miss: float,
+                step_m: float):
+    """Ranges of ``K`` walking tags with outliers (+1..5 m), missing ranges, a link step of
+    ``step_m`` on anchor 0 from the middle on and a 6 m jump of tag 0 at 3/4."""
+    a = _anchors(M)
+    meas, _ = _walk(K=K, N=N, seed=seed, anchors=a)
+    ep = _epochs(meas, a)
+    rng = np.random.default_rng(seed)
+    v = ep.values.copy()
+    v += np.where(rng.random(v.shape) < p_out, rng.uniform(1.0, 5.0, v.shape), 0.0)
+    v[rng.random(v.shape) < p_miss] = np.nan
+    later = ep.time >= ep.time.max() / 2
+    v[later, 0] += step_m
+    jump = (ep.time >= 0.75 * ep.time.max()) & (ep.tag == "tag0")
+    xy = a[["x", "y"]].to_numpy()
+    v[jump] += 0.5 * np.linalg.norm(xy[None] - xy[None, :1], axis=2)  # an implausible jump
+    return a, type(ep)(ep.time, ep.tag, v, ep.anchor_ids, ep.value, ep.line)
+
+
+@pytest.mark.parametrize("filt", ["ekf", "ukf"])
+def test_engines_agree_with_holds_outliers_and_restarts(filt):
+    a, ep = _bad_epochs(seed=11, K=3, M=8, N=60, p_out=0.05, p_miss=0.05, step_m=2.0)
+    kw = {"filter": filt, "cusum_h": 6.0, "weight": "igg3", "max_bad_epochs": 2}
+    rows = _assert_engines_agree(a, kw, [ep])
+    # the workload reaches the paths the kernel covers: holds, rejected outliers,
+    # suspicious epochs that fail (re-starts), coasting is covered by the next test
+    assert rows.excluded.str.contains("A0").any()
+    assert (rows.status == "fault_excluded").any()
+    assert rows.reinit.max() >= 1
+
+
+def test_engines_agree_one_epoch_at_a_time_with_coasting():
+    a, ep = _bad_epochs(seed=12, K=2, M=6, N=30, p_out=0.1, p_miss=0.2, step_m=0.0)
+    v = ep.values.copy()
+    v[10:14] = np.nan  # nothing heard: predicted rows
+    ep = type(ep)(ep.time, ep.tag, v, ep.anchor_ids, ep.value, ep.line)
+    parts = [type(ep)(ep.time[i:i + 1], ep.tag[i:i + 1], ep.values[i:i + 1], ep.anchor_ids,
+                      ep.value, ep.line[i:i + 1]) for i in range(ep.n_epochs)]
+    rows = _assert_engines_agree(a, {"model": "ca", "filter": "ukf"}, parts)
+    assert (rows.status == "predicted").any()
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=hst.integers(0, 10_000), K=hst.integers(1, 5), M=hst.integers(3, 9),
+       filt=hst.sampled_from(["ekf", "ukf"]), model=hst.sampled_from(["cv", "ca"]),
+       weight=hst.sampled_from(["huber", "igg3", "hampel"]),
+       cusum_h=hst.sampled_from([None, 4.0, 10.0]), p_out=hst.sampled_from([0.0, 0.05, 0.2]),
+       p_miss=hst.sampled_from([0.0, 0.1, 0.4]), step_m=hst.sampled_from([0.0, 1.0, 3.0]))
+def test_engines_agree_on_random_workloads(seed, K, M, filt, model, weight, cusum_h, p_out,
+                                           p_miss, step_m):
+    a, ep = _bad_epochs(seed, K, M, 25, p_out, p_miss, step_m)
+    kw = {"filter": filt, "model": model, "weight": weight, "cusum_h": cusum_h,
+          "readmit_samples": 3}
+    _assert_engines_agree(a, kw, [ep])
+
+
+def test_engines_agree_on_the_recorded_moments_for_smoothing():
+    a, ep = _bad_epochs(seed=13, K=2, M=6, N=30, p_out=0.05, p_miss=0.05, step_m=0.0)
+    sm = {}
+    for eng in ("compiled", "numpy"):
+        trk = Tracker(a, sigma=SIGMA_M, engine=eng, record=True)
+        trk.step(ep)
+        sm[eng] = trk.smoothed(ep.n_epochs)
+    for u, v in zip(sm["compiled"], sm["numpy"]):
+        np.testing.assert_allclose(u, v, rtol=1e-9, atol=1e-9)  # as above: rounding
+
+
+@pytest.mark.parametrize("domain", ["range", "rssi"])
+def test_engines_agree_on_rssi_with_holds(domain):
+    """RSSI (log-distance, A = -40 dBm, n = 2): the compiled round runs the range domain
+    (held links' offsets in dB through the path-loss model); the dB domain is NumPy only."""
+    a = _anchors(6).assign(A=-40.0, n=2.0)
+    meas, _ = _walk(K=2, N=60, seed=14, anchors=a)
+    rng = np.random.default_rng(14)
+    d = meas["range"].to_numpy()
+    rssi = -40.0 - 20.0 * np.log10(d) + rng.normal(0.0, 2.0, d.size)
+    rssi -= np.where(rng.random(d.size) < 0.05, rng.uniform(5, 15, d.size), 0.0)  # fades
+    rssi[(meas["anchor"] == "A0").to_numpy() & (meas["time"] >= 15).to_numpy()] -= 8.0
+    meas = meas.drop(columns="range").assign(rssi=rssi)
+    ep = to_epochs(meas, a["anchor"])
+    assert ep.value == "rssi"
+    rows = _assert_engines_agree(a, {"cusum_h": 5.0, "domain": domain, "sigma": 2.0}, [ep])
+    assert rows.excluded.str.contains("A0").any()
+
+
+@pytest.mark.filterwarnings("ignore:invalid value:RuntimeWarning")  # sqrt of HPH < 0
+def test_round_the_kernel_cannot_do_falls_back_to_numpy():
+    """A covariance that is not positive definite (here loaded from a state) stops the
+    compiled UKF's sigma points (NOT_PD): the round runs on the NumPy engine instead,
+    which takes the eigen-clipped square root -- same rows as the NumPy engine."""
+    a = _anchors()
+    meas, _ = _walk(K=2, N=20, seed=15)
+    ep = _epochs(meas, a)
+    h = ep.n_epochs // 2
+
+    def cut(s):
+        return type(ep)(ep.time[s], ep.tag[s], ep.values[s], ep.anchor_ids, ep.value,
+                        ep.line[s])
+
+    trk = Tracker(a, filter="ukf", sigma=SIGMA_M)
+    trk.step(cut(slice(0, h)))
+    saved = json.loads(json.dumps(trk.state_dict()))
+    P = np.array(saved["tags"]["tag0"]["P"]).reshape(4, 4)
+    P[2, 2] = -1.0  # indefinite
+    saved["tags"]["tag0"]["P"] = P.ravel().tolist()
+    rows, calls = {}, []
+    for eng in ("compiled", "numpy"):
+        t2 = Tracker(a, filter="ukf", sigma=SIGMA_M, engine=eng)
+        t2.load_state_dict({**saved, "settings": {**saved["settings"], "engine": eng}})
+        if eng == "compiled":
+            t2._filter_numpy = lambda *args, f=t2._filter_numpy: calls.append(1) or f(*args)
+        rows[eng] = t2.step(cut(slice(h, None)))
+    assert calls  # the fallback ran
+    pd.testing.assert_frame_equal(rows["compiled"], rows["numpy"], rtol=1e-9, atol=1e-9)

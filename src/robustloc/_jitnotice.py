@@ -16,6 +16,7 @@ KERNELS = {
     "positioning": ("robustloc.estimators._compiled", ("_fit_ranges", "_initial_fixes")),
     "filter": ("robustloc.filters._compiled", ("fusion_step_4_4", "fusion_step_4",
                                                 "fusion_step_6")),
+    "tracker": ("robustloc.tracking._compiled", ("track_round_4", "track_round_6")),
 }
 
 

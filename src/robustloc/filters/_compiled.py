@@ -58,8 +58,8 @@ DONE, BAD_SHAPE, NOT_PD = 0, 1, 2
 # layout of the parameter vector
 _Q, _MIN_SPEED, _SCALE, _WM0, _WMI, _WC0, _WCI = 0, 1, 2, 3, 4, 5, 6
 _WPRM = 7  # 3 weight parameters
-_WCODE, _KIND, _NPOW, _N, _M, _NANCH = 10, 11, 12, 13, 14, 15
-_HEAD = 16
+_WCODE, _KIND, _NPOW, _N, _M, _NANCH, _KIN = 10, 11, 12, 13, 14, 15, 16
+_HEAD = 17
 
 
 def layout(K: int, n: int, m: int) -> dict[str, int]:
@@ -109,6 +109,7 @@ def pack_params(
     coef_Q: np.ndarray,
     anchors: np.ndarray,
     dz2: np.ndarray,
+    kinematic: bool = True,
 ) -> np.ndarray | None:
     """Pack the settings of one filter and measurement model into one float vector.
 
@@ -126,6 +127,9 @@ def pack_params(
         (``robustloc.filters.motion._coefficients``).
     anchors : ``(M, 2)`` anchor positions (``M = 0`` for loose coupling).
     dz2 : ``(M,)`` squared height offsets.
+    kinematic : the measurement ends with the speed and course components (the fusion
+        model, ``m = M + 2``, or ``4`` loose); ``False``: ranges only, ``m = M >= 1`` (the
+        tracker's tight model: the same kernel without the two always-missing rows).
 
     Returns
     -------
@@ -142,12 +146,14 @@ def pack_params(
     if np.any(np.tril(fm[0], -1) != 0.0):  # the kernels use that F is upper triangular
         return None
     M = anchors.shape[0]
+    if m != ((M if M else 2) + 2 if kinematic else M) or m < 1:
+        return None
     head = np.zeros(_HEAD)
     head[_Q], head[_MIN_SPEED], head[_SCALE] = q, min_speed, scale
     head[_WM0], head[_WMI], head[_WC0], head[_WCI] = wm[0], wm[1], wc[0], wc[1]
     head[_WPRM : _WPRM + 3] = weight_prm[:3]
     head[_WCODE], head[_KIND], head[_NPOW] = weight_code, kind, npow
-    head[_N], head[_M], head[_NANCH] = n, m, M
+    head[_N], head[_M], head[_NANCH], head[_KIN] = n, m, M, 1.0 if kinematic else 0.0
     anch = np.column_stack([np.asarray(anchors, float).reshape(M, 2), dz2]).ravel()
     chars = np.zeros((len(STATUSES), STATUS_CHARS))
     for c, name in enumerate(STATUSES):
@@ -194,8 +200,82 @@ def _cholesky(A, scale, av, size, L, Li):  # pragma: no cover - jit
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _h(xs, prm, off_a, M, zout):  # pragma: no cover - jit
-    """``h(x)`` of the fusion model (``FusionMeasurement.predict``) into ``zout (m,)``."""
+def offsets(prm, n, m):  # pragma: no cover - jit
+    """Offsets in ``prm`` (:func:`pack_params`) of the gate table, the ``F``/``Q``
+    coefficients, the anchors and the status characters for state size ``n`` and
+    measurement size ``m``."""
+    off_chi = _HEAD
+    off_F = off_chi + m + 1
+    off_a = off_F + 4 * n * n
+    off_s = off_a + 3 * int(prm[_NANCH])
+    return off_chi, off_F, off_a, off_s
+
+
+@njit(cache=True, nogil=True, inline="always")
+def transition(n, d, prm, off_F, pw, F, Qm):  # pragma: no cover - jit
+    """``F(dt)`` and ``Q(dt)`` into ``F, Qm (n, n)``: one monomial in ``dt`` per entry
+    (:func:`monomials`; ``pw (npow,)`` scratch)."""
+    nn = n * n
+    q = prm[_Q]
+    for p in range(pw.shape[0]):
+        pw[p] = math.pow(d, float(p))
+    for i in range(n):
+        for j in range(n):
+            F[i, j] = pw[int(prm[off_F + nn + i * n + j])] * prm[off_F + i * n + j]
+            Qm[i, j] = q * (
+                pw[int(prm[off_F + 3 * nn + i * n + j])] * prm[off_F + 2 * nn + i * n + j]
+            )
+
+
+@njit(cache=True, nogil=True, inline="always")
+def predict(n, F, Qm, xk, Pk, xp, Pp, Ps, T):  # pragma: no cover - jit
+    """``xp = F xk``, ``Pp = F Pk F^T + Q`` (seed 002 eq. (13)) for one track.
+
+    ``F`` is upper triangular (checked by :func:`pack_params`); only the upper triangle of
+    the symmetric ``F P F^T + Q`` is computed, from ``sym(P)`` (``sym(F P F^T) = F sym(P)
+    F^T``).  ``Ps, T (n, n)`` are scratch."""
+    for i in range(n):
+        s = 0.0
+        for j in range(i, n):
+            s += F[i, j] * xk[j]
+        xp[i] = s
+    for i in range(n):
+        for j in range(n):
+            Ps[i, j] = 0.5 * (Pk[i, j] + Pk[j, i])
+    for i in range(n):  # T = F sym(P)
+        for j in range(n):
+            s = 0.0
+            for l in range(i, n):
+                s += F[i, l] * Ps[l, j]
+            T[i, j] = s
+    for i in range(n):  # Pp = T F^T + Q
+        for j in range(i, n):
+            s = 0.0
+            for l in range(j, n):
+                s += T[i, l] * F[j, l]
+            Pp[i, j] = s + Qm[i, j]
+            Pp[j, i] = Pp[i, j]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def range_rows(xp, prm, off_a, M, zh, hv):  # pragma: no cover - jit
+    """Ranges ``zh[i] = sqrt((x - a_ix)^2 + (y - a_iy)^2 + dz_i^2)`` of the ``M`` anchors
+    at the state ``xp`` and the non-zero entries ``hv[i] = (x - a_ix, y - a_iy) /
+    max(r_i, 1e-9)`` of their Jacobian rows (position columns)."""
+    for i in range(M):
+        dx = xp[0] - prm[off_a + 3 * i]
+        dy = xp[1] - prm[off_a + 3 * i + 1]
+        r = math.sqrt((dx * dx + dy * dy) + prm[off_a + 3 * i + 2])
+        zh[i] = r
+        r = max(r, 1e-9)
+        hv[i, 0] = dx / r
+        hv[i, 1] = dy / r
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _h(xs, prm, off_a, M, kin, zout):  # pragma: no cover - jit
+    """``h(x)`` of the fusion model (``FusionMeasurement.predict``) into ``zout (m,)``;
+    without the speed and course when ``kin`` is False."""
     if M == 0:
         zout[0] = xs[0]
         zout[1] = xs[1]
@@ -204,9 +284,10 @@ def _h(xs, prm, off_a, M, zout):  # pragma: no cover - jit
             dx = xs[0] - prm[off_a + 3 * i]
             dy = xs[1] - prm[off_a + 3 * i + 1]
             zout[i] = math.sqrt((dx * dx + dy * dy) + prm[off_a + 3 * i + 2])
-    nr = 2 if M == 0 else M
-    zout[nr] = math.hypot(xs[2], xs[3])
-    zout[nr + 1] = math.atan2(xs[2], xs[3])
+    if kin:
+        nr = 2 if M == 0 else M
+        zout[nr] = math.hypot(xs[2], xs[3])
+        zout[nr + 1] = math.atan2(xs[2], xs[3])
 
 
 @njit(cache=True, nogil=True)
@@ -220,6 +301,7 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
     if int(prm[_M]) != m:
         return BAD_SHAPE
     M = int(prm[_NANCH])
+    kin = prm[_KIN] != 0.0  # speed and course rows (else ranges only)
     npow = int(prm[_NPOW])
     kind = int(prm[_KIND])
     wcode = int(prm[_WCODE])
@@ -229,7 +311,7 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
     if P.shape[2] != n or dt.shape[0] != K or z.shape[0] != K or z.shape[1] != m:
         return BAD_SHAPE
     Kr = R.shape[0]
-    if (Kr != 1 and Kr != K) or R.shape[1] != m or R.shape[2] != m or m < 3:
+    if (Kr != 1 and Kr != K) or R.shape[1] != m or R.shape[2] != m or m < (3 if kin else 1):
         return BAD_SHAPE
     # output blocks (as in :func:`layout`)
     nn = n * n
@@ -247,18 +329,14 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
     sout = fout[o_st:o_g].view(np.uint32)
     bout = fout[o_g:].view(np.uint8)
 
-    q = prm[_Q]
     min_speed = prm[_MIN_SPEED]
     scale = prm[_SCALE]
     wp0, wp1, wp2 = prm[_WPRM], prm[_WPRM + 1], prm[_WPRM + 2]
-    off_chi = _HEAD
-    off_F = off_chi + m + 1
-    off_a = off_F + 4 * nn
+    off_chi, off_F, off_a, off_s = offsets(prm, n, m)
     ns = 2 * n + 1
-    ci = m - 1  # course
-    si = m - 2  # speed
+    ci = m - 1 if kin else -1  # course (-1: none)
+    si = m - 2 if kin else -1  # speed
     nr = 2 if M == 0 else M  # position rows
-    off_s = off_a + 3 * M  # status characters
 
     # ---- scratch (separate small arrays: faster loops than views of one buffer)
     F = np.empty((n, n))
@@ -299,39 +377,10 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
         rk = k if Kr > 1 else 0
         # ------------------------------------------------ predict (seed 002 eq. (13))
         d = dt[k]
-        if not d == dt_prev:  # F(dt), Q(dt): one monomial in dt per entry
-            for p in range(npow):
-                pw[p] = math.pow(d, float(p))
-            for i in range(n):
-                for j in range(n):
-                    F[i, j] = pw[int(prm[off_F + nn + i * n + j])] * prm[off_F + i * n + j]
-                    Qm[i, j] = q * (
-                        pw[int(prm[off_F + 3 * nn + i * n + j])] * prm[off_F + 2 * nn + i * n + j]
-                    )
+        if not d == dt_prev:  # F(dt), Q(dt)
+            transition(n, d, prm, off_F, pw, F, Qm)
             dt_prev = d
-        for i in range(n):
-            s = 0.0
-            for j in range(i, n):
-                s += F[i, j] * x[k, j]
-            xp[i] = s
-        # F is upper triangular (checked by pack_params); only the upper triangle of the
-        # symmetric F P F^T + Q is computed, from sym(P) (sym(F P F^T) = F sym(P) F^T)
-        for i in range(n):
-            for j in range(n):
-                Pn[i, j] = 0.5 * (P[k, i, j] + P[k, j, i])
-        for i in range(n):  # T = F sym(P)
-            for j in range(n):
-                s = 0.0
-                for l in range(i, n):
-                    s += F[i, l] * Pn[l, j]
-                T[i, j] = s
-        for i in range(n):  # Pp = T F^T + Q
-            for j in range(i, n):
-                s = 0.0
-                for l in range(j, n):
-                    s += T[i, l] * F[j, l]
-                Pp[i, j] = s + Qm[i, j]
-                Pp[j, i] = Pp[i, j]
+        predict(n, F, Qm, x[k], P[k], xp, Pp, Pn, T)
 
         # ------------------------------------------------ measurement moments
         if kind == EKF:  # h and its Jacobian at the prediction (seed 001 eq. (10))
@@ -342,21 +391,15 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
                 zh[1] = xp[1]
                 hv[0, 0], hv[0, 1], hv[1, 0], hv[1, 1] = 1.0, 0.0, 0.0, 1.0
             else:
-                for i in range(M):
-                    dx = xp[0] - prm[off_a + 3 * i]
-                    dy = xp[1] - prm[off_a + 3 * i + 1]
-                    r = math.sqrt((dx * dx + dy * dy) + prm[off_a + 3 * i + 2])
-                    zh[i] = r
-                    r = max(r, 1e-9)
-                    hv[i, 0] = dx / r
-                    hv[i, 1] = dy / r
-            vv = vx * vx + vy * vy
-            zh[si] = math.sqrt(vv)  # hypot(vx, vy) to rounding
-            zh[ci] = math.atan2(vx, vy)
-            v2 = max(vv, 1e-12)
-            v = math.sqrt(v2)
-            hv[si, 0], hv[si, 1] = vx / v, vy / v
-            hv[ci, 0], hv[ci, 1] = vy / v2, -vx / v2
+                range_rows(xp, prm, off_a, M, zh, hv)
+            if kin:
+                vv = vx * vx + vy * vy
+                zh[si] = math.sqrt(vv)  # hypot(vx, vy) to rounding
+                zh[ci] = math.atan2(vx, vy)
+                v2 = max(vv, 1e-12)
+                v = math.sqrt(v2)
+                hv[si, 0], hv[si, 1] = vx / v, vy / v
+                hv[ci, 0], hv[ci, 1] = vy / v2, -vx / v2
             # H has two non-zero columns per row: 0, 1 (position rows) or 2, 3
             for i in range(m):  # Pxz = P H^T
                 b = 0 if i < nr else 2
@@ -378,23 +421,25 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
                     sig[1 + c, j] = xp[j] + lv
                     sig[1 + n + c, j] = xp[j] - lv
             for p in range(ns):
-                _h(sig[p], prm, off_a, M, zs[p])
+                _h(sig[p], prm, off_a, M, kin, zs[p])
             # weighted means (eq. (22)); circular for the course
             for j in range(m):
                 s = wm0 * zs[0, j]
                 for p in range(1, ns):
                     s += wmi * zs[p, j]
                 zh[j] = s
-            sn = wm0 * math.sin(zs[0, ci])
-            cs = wm0 * math.cos(zs[0, ci])
-            for p in range(1, ns):
-                sn += wmi * math.sin(zs[p, ci])
-                cs += wmi * math.cos(zs[p, ci])
-            zh[ci] = math.atan2(sn, cs)
+            if kin:
+                sn = wm0 * math.sin(zs[0, ci])
+                cs = wm0 * math.cos(zs[0, ci])
+                for p in range(1, ns):
+                    sn += wmi * math.sin(zs[p, ci])
+                    cs += wmi * math.cos(zs[p, ci])
+                zh[ci] = math.atan2(sn, cs)
             for p in range(ns):
                 for j in range(m):
                     dz[p, j] = zs[p, j] - zh[j]
-                dz[p, ci] = _wrap(dz[p, ci])
+                if kin:
+                    dz[p, ci] = _wrap(dz[p, ci])
             for i in range(m):  # S = sum W_c dz dz^T + R (eq. (23))
                 for j in range(m):
                     s = (dz[0, i] * wc0) * dz[0, j]
@@ -409,7 +454,7 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
                     Pxz[i, j] = s
 
         # ------------------------------------------------ innovation, available components
-        course_ok = abs(z[k, si]) >= min_speed
+        course_ok = kin and abs(z[k, si]) >= min_speed
         ma = 0
         for i in range(m):
             yi = z[k, i] - zh[i]

@@ -305,6 +305,26 @@ class FusionFilter:
         """
         state: tuple = (meas, None, None, iter(()), [(None, None)], None)
         self._fast["state"] = state
+        prm = self.compiled_params(meas)
+        if prm is not None:
+            from robustloc.filters import _compiled
+
+            n, m = self.motion.n_states, meas.m
+            state = (meas, _compiled.kernel_for(n, m), prm, iter(()), [(None, None)],
+                     _compiled.kernel_for(n, m, threaded=True))
+            self._fast["state"] = state
+        return state
+
+    def compiled_params(self, meas: FusionMeasurement, kinematic: bool = True
+                        ) -> Array | None:
+        """Settings vector of the compiled kernel for ``meas``
+        (:func:`robustloc.filters._compiled.pack_params`), or ``None`` when this filter
+        and model run on the NumPy core (other engine, model or weight).
+
+        ``kinematic=False``: the ranges of ``meas`` only, without its speed and course
+        components (``m = n_ranges``) -- for the range tracker's fused round
+        (:mod:`robustloc.tracking._compiled`), which runs the kernel in its own loop.
+        """
         motion = self.motion
         if (
             self.engine != "compiled"
@@ -313,35 +333,33 @@ class FusionFilter:
             or motion.dim != 2
             or meas.n_states != motion.n_states
             or self.robust.mode != "gain"
+            or (not kinematic and meas.n_ranges == 0)
         ):
-            return state
+            return None
         from robustloc.filters import _compiled
         from robustloc.robust._compiled import weight_spec
 
         spec = weight_spec(self.robust.weight)
-        n, m, M = motion.n_states, meas.m, meas.n_ranges
+        n, M = motion.n_states, meas.n_ranges
+        m = meas.m if kinematic else M
         lam = self.points.lam(n)
         kernel = _compiled.kernel_for(n, m)
         if spec is None or kernel is None or (self.kind == "ukf" and not n + lam > 0):
-            return state
+            return None
         anchors = np.zeros((0, 2)) if M == 0 else np.asarray(meas.anchors, dtype=float)
         if anchors.shape != (M, 2):
-            return state
+            return None
         wm, wc = self.points.weights(n) if n + lam > 0 else (np.zeros(2 * n + 1),) * 2
         chi = np.full(m + 1, np.inf)  # no gate: NIS > inf never holds
         if self.robust.gate_probability is not None:
             chi[1:] = chi2.ppf(self.robust.gate_probability, np.arange(1, m + 1))
         C = _coefficients(motion.order, motion.dim)
-        prm = _compiled.pack_params(
+        return _compiled.pack_params(
             _compiled.EKF if self.kind == "ekf" else _compiled.UKF, motion.q,
             self.min_speed_mps, float(n + lam), wm, wc, spec[0], spec[1], chi,
             C[0], C[2] if motion.noise == "discrete" else C[3], anchors, meas._dz2(),
+            kinematic=kinematic,
         )
-        if prm is not None:
-            state = (meas, kernel, prm, iter(()), [(None, None)],
-                     _compiled.kernel_for(n, m, threaded=True))
-            self._fast["state"] = state
-        return state
 
     @staticmethod
     def _R3(R: ArrayLike, cache: list) -> Array | None:

@@ -226,7 +226,7 @@ def track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
     status_counts: dict[str, int] = {}
     for block in blocks:
         if n == 0:
-            compile_notice("filter")
+            compile_notice("filter", "tracker")
         rows = trk.step(block)
         for k, v in rows["status"].value_counts().items():
             status_counts[str(k)] = status_counts.get(str(k), 0) + int(v)

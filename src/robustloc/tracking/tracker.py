@@ -54,10 +54,14 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
    ``k`` sigma with probability ``integrity_risk`` for a Gaussian error).  Predicted rows
    get the noise term only.
 
-Engines: ``compiled`` (default) runs the predict + update of the ``cv``/``ca`` range
-models in the numba kernels of the fusion filter (one call for all tags of a round, the
-UWB tight model with the speed and course components absent); ``numpy`` (and RSSI, and
-``static``) runs the batched NumPy core.  The two agree to rounding (tested).
+Engines: ``compiled`` (default) runs the whole round of the ``cv``/``ca`` models in the
+range domain (ranges, or RSSI converted to ranges) in one fused numba kernel
+(:mod:`robustloc.tracking._compiled`: items 2-8 in a loop over the tags, its update the
+fusion filter's compiled kernel on the ranges); only the robust snapshot fixes of
+suspicious epochs and the re-starts (item 5) stay in NumPy, for the tags that need them.
+``numpy`` (and RSSI in dB, and ``static``) runs the batched NumPy core, the reference
+implementation.  The two agree to rounding, 1e-9 m (tested, also on random workloads with
+holds, outliers and re-starts).
 
 Batching: :meth:`Tracker.step` takes an :class:`~robustloc.io.tables.Epochs` block and
 advances each tag through its epochs in time order; the ``j``-th epochs of all tags are
@@ -250,11 +254,11 @@ class Tracker:
         M = len(self.anchor_ids)
         self._alloc(0, M)
         self._history: list[dict[str, Any]] = []
-        self._fusion = None
-        self._meas = None
+        self._kernel: Any = None
         self._locator = None
         self._lam0 = lambda0(self.settings.alpha0, self.settings.beta0)
         self._k_ir = math.sqrt(chi2.isf(self.settings.integrity_risk, 2))
+        self._chi2_fix = float(chi2.isf(self.settings.alpha0, 2))  # 2-D fix ellipse
         self._gcrit = global_critical(np.arange(0, M + 1), None, self.settings.alpha0,
                                       self.settings.beta0)
 
@@ -281,6 +285,12 @@ class Tracker:
                "_scale2", "_bad", "_reinit", "_lastz", "_lastt")
 
     def _slots(self, tags: NDArray[np.object_]) -> NDArray[np.int64]:
+        """Each tag's slot in the state arrays (new tags get new slots)."""
+        try:  # the usual case: every tag known
+            return np.fromiter(map(self._slot.__getitem__, tags), dtype=np.int64,
+                               count=len(tags))
+        except KeyError:
+            pass
         new = [t for t in dict.fromkeys(tags) if t not in self._slot]
         if new:
             S0 = len(self._slot)
@@ -341,16 +351,28 @@ class Tracker:
 
         # per-epoch scale: a start fix must not depend on which epochs share its batch
         self._locator = Locator("huber", sigma=tuple(sigma), robust_scale="mad")
-        self._compiled = (s.engine == "compiled" and self._link.kind == "range"
-                          and s.model in ("cv", "ca"))
-        if self._compiled:
-            from robustloc.filters.core import RobustUpdate as RU
+        self._kernel = None
+        if s.engine == "compiled" and self._link.kind == "range" and s.model in ("cv", "ca"):
             from robustloc.fusion.pipeline import FusionFilter, FusionMeasurement
+            from robustloc.tracking import _compiled
 
-            self._meas = FusionMeasurement(self.n, xy, np.sqrt(dz2))
-            self._fusion = FusionFilter(kind=s.filter, motion=self._motion,
-                                        robust=RU(weight=self._weight), max_rejected=0,
-                                        engine="compiled")
+            # the fusion filter's compiled core with the tight model of these anchors (the
+            # ranges only, no speed and course): settings for the fused round
+            fusion = FusionFilter(kind=s.filter, motion=self._motion, robust=self._robust,
+                                  max_rejected=0, engine="compiled")
+            prm = fusion.compiled_params(FusionMeasurement(self.n, xy, np.sqrt(dz2)),
+                                         kinematic=False)
+            if prm is not None:
+                self._kernel = _compiled.ROUNDS[self.n]
+                self._prm = prm
+                self._tset = _compiled.pack_settings(
+                    s.cusum_k, math.inf if s.cusum_h is None else s.cusum_h,
+                    s.readmit_samples, s.noise_scale_min**2, s.noise_scale_max**2,
+                    s.noise_forget, math.sqrt(self._lam0), self._k_ir)
+                rssi = self._kind == "rssi"  # held links' offsets live in dB
+                self._rssi_A = np.asarray(A if rssi else np.zeros(0), dtype=float)
+                self._rssi_n = np.asarray(nn if rssi else np.zeros(0), dtype=float)
+                self._gcrit_f = np.ascontiguousarray(self._gcrit, dtype=float)
 
     @property
     def method(self) -> str:
@@ -496,9 +518,45 @@ class Tracker:
 
     def _filter(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array, z: Array,
                 out: _Rows) -> None:
+        """Predict + update the started tags of one round (the fused compiled round, or
+        the NumPy engine when there is none or it cannot do this round)."""
+        if self._kernel is None or not self._filter_compiled(idx, sl, t, z, out):
+            self._filter_numpy(idx, sl, t, z, out)
+
+    def _filter_compiled(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array,
+                         z: Array, out: _Rows) -> bool:
+        """The round in one call of the fused kernel (:mod:`robustloc.tracking._compiled`);
+        False (nothing changed) when the kernel cannot do it."""
+        K, n = len(idx), self.n
+        code = np.empty(K, dtype=np.int64)
+        moved = np.empty(K, dtype=bool)
+        sus = np.empty(K, dtype=bool)
+        dof = np.empty(K, dtype=np.int64)
+        xp = np.empty((K, n))
+        Pp = np.empty((K, n, n))
+        dt = np.empty(K)
+        z = np.ascontiguousarray(z, dtype=float)
+        obs, R0 = self._observations(z - self._bias[sl])
+        rc = self._kernel(
+            np.ascontiguousarray(sl), np.ascontiguousarray(t, dtype=float), z, self._x,
+            self._P, self._t, self._bias, self._held, self._gp, self._gm, self._hsum,
+            self._hn, self._scale2, np.ascontiguousarray(obs, dtype=float),
+            np.ascontiguousarray(R0, dtype=float), self._rssi_A, self._rssi_n,
+            self._link.d_min_m, self._prm, self._tset, self._gcrit_f,
+            np.ascontiguousarray(idx), out.x, out.var, out.cxy, out.n_used, out.nis,
+            out.excluded, out.hpl, out.scale, code, moved, sus, dof, xp, Pp, dt)
+        if rc != 0:
+            return False
+        out.status[idx] = _CODE_STATUS[code]
+        self._finish(idx, sl, t, z, out, moved, sus, dof, xp, Pp, dt)
+        return True
+
+    def _filter_numpy(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array,
+                      z: Array, out: _Rows) -> None:
+        """The round with the batched NumPy core (the reference implementation)."""
         s = self.settings
         link = self._link
-        K, _n, M = len(idx), self.n, link.M
+        M = link.M
         x, P = self._x[sl], self._P[sl]
         dt = np.maximum(t - self._t[sl], 0.0)
         F, Q = self._motion.F(dt), self._motion.Q(dt)
@@ -556,30 +614,17 @@ class Tracker:
         hsum = np.where(ready, 0.0, hsum)
         hn = np.where(ready, 0, hn)
 
-        # --- the filter step: predict + robust update (shared core or its compiled twin)
-        if self._compiled:
-            zf = np.concatenate([zin, np.full((K, 2), np.nan)], axis=1)
-            m = M + 2
-            R = np.zeros((K, m, m))
-            ii = np.arange(M)
-            R[:, ii, ii] = Rd
-            R[:, M, M] = R[:, M + 1, M + 1] = 1.0
-            res = self._fusion.step(np.ascontiguousarray(x), np.ascontiguousarray(P),
-                                    np.ascontiguousarray(dt), zf, R, self._meas)
-            xn, Pn = np.array(res.x), np.array(res.P)
-            w = np.array(res.weights[:, :M])
-            nis, rstat, nu = np.array(res.nis), np.array(res.status), np.array(res.n_used)
+        # --- the filter step: predict + robust update (shared core)
+        xq, Pq = predict_linear(x, P, F, Q)
+        R = Rd[:, :, None] * np.eye(M)[None]
+        if s.filter == "ekf":
+            res = update_ekf(xq, Pq, zin, link.predict, R, jac=link.jacobian,
+                             robust=self._robust)
         else:
-            xq, Pq = predict_linear(x, P, F, Q)
-            R = Rd[:, :, None] * np.eye(M)[None]
-            if s.filter == "ekf":
-                res = update_ekf(xq, Pq, zin, link.predict, R, jac=link.jacobian,
-                                 robust=self._robust)
-            else:
-                res = update_ukf(xq, Pq, zin, link.predict, R, points=SigmaPoints(),
-                                 robust=self._robust)
-            xn, Pn, w = res.x, res.P, res.weights
-            nis, rstat, nu = res.nis, res.status, res.n_used
+            res = update_ukf(xq, Pq, zin, link.predict, R, points=SigmaPoints(),
+                             robust=self._robust)
+        xn, Pn, w = res.x, res.P, res.weights
+        nis, rstat, nu = res.nis, res.status, res.n_used
 
         # --- B-method global test, divergence
         avail = np.isfinite(zin)
@@ -591,10 +636,6 @@ class Tracker:
         # checked against the robust snapshot fix: a filter that drifted off, or locked
         # onto a wrong solution (two consistent links, the others rejected), disagrees
         sus = test_fail | ((dof > 0) & (2 * nu <= dof))
-        fail = moved.copy()
-        if sus.any():
-            fail[sus] |= self._disagrees(xn[sus], Pn[sus], z[sus])
-        bad = np.where(fail, self._bad[sl] + 1, np.where(dof > 0, 0, self._bad[sl]))
 
         # --- adaptive noise scale (accepted components, robust weights)
         wa = np.where(avail, w, 0.0)
@@ -620,7 +661,6 @@ class Tracker:
         self._gp[sl], self._gm[sl] = gp, gm
         self._hsum[sl], self._hn[sl] = hsum, hn
         self._scale2[sl] = scale2
-        self._bad[sl] = bad
         status = np.asarray(rstat, dtype=object).copy()
         status[(status == st.OK) & held_now.any(axis=1)] = st.FAULT_EXCLUDED
         out.x[idx] = xn
@@ -632,10 +672,24 @@ class Tracker:
         out.excluded[idx] = (avail & (w <= 0)) | held_now
         out.hpl[idx] = hpl
         out.scale[idx] = np.sqrt(scale2)
+        self._finish(idx, sl, t, z, out, moved, sus, dof, xp, Pp, dt)
+
+    def _finish(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array, z: Array,
+                out: _Rows, moved: NDArray[np.bool_], sus: NDArray[np.bool_],
+                dof: NDArray[np.int64], xp: Array, Pp: Array, dt: Array) -> None:
+        """Divergence bookkeeping of a filtered round (both engines): suspicious epochs
+        against the robust fix, the bad-epoch count, re-starts; the recorded moments."""
+        s = self.settings
+        xn, Pn = self._x[sl], self._P[sl]
+        fail = moved.copy()
+        if sus.any():
+            fail[sus] |= self._disagrees(xn[sus], Pn[sus], z[sus])
+        bad = np.where(fail, self._bad[sl] + 1, np.where(dof > 0, 0, self._bad[sl]))
+        self._bad[sl] = bad
         if self.record:
-            self._history.append({"idx": idx, "slot": sl.copy(), "start": np.zeros(K, bool),
-                                  "xf": xn.copy(), "Pf": Pn.copy(), "xp": xp, "Pp": Pp,
-                                  "dt": dt})
+            self._history.append({"idx": idx, "slot": sl.copy(),
+                                  "start": np.zeros(len(idx), bool), "xf": xn, "Pf": Pn,
+                                  "xp": xp, "Pp": Pp, "dt": dt})
         # --- divergence: re-start from the robust fix of this epoch
         div = bad >= s.max_bad_epochs
         lost = ~div & (Pn[:, 0, 0] + Pn[:, 1, 1] > s.lost_pos_var)
@@ -688,7 +742,7 @@ class Tracker:
         sol = self._fix(z)
         C = self._fix_cov(np.asarray(sol.position, float), z, np.asarray(sol.excluded, bool))
         tr = C[:, 0, 0] + C[:, 1, 1]
-        ok = np.isin(sol.status, (st.OK, st.FAULT_EXCLUDED)) & np.isfinite(tr)
+        ok = _fixed(sol.status) & np.isfinite(tr)
         return ok & (tr < P[:, 0, 0] + P[:, 1, 1])
 
     def _disagrees(self, x: Array, P: Array, z: Array) -> NDArray[np.bool_]:
@@ -702,12 +756,12 @@ class Tracker:
         sol = self._fix(z)
         pos = np.asarray(sol.position, dtype=float)
         C = self._fix_cov(pos, z, np.asarray(sol.excluded, bool))
-        ok = np.isin(sol.status, (st.OK, st.FAULT_EXCLUDED)) & np.all(np.isfinite(pos), 1)
+        ok = _fixed(sol.status) & np.all(np.isfinite(pos), 1)
         ok &= np.all(np.isfinite(C.reshape(len(x), -1)), axis=1)
         d = np.where(ok[:, None], x[:, :2] - pos, 0.0)
         Sm = np.where(ok[:, None, None], C, np.eye(2)[None])
         q = np.einsum("ki,ki->k", d, np.linalg.solve(Sm, d[..., None])[..., 0])
-        return ok & (q > chi2.isf(self.settings.alpha0, 2))
+        return ok & (q > self._chi2_fix)
 
     def _hpl(self, H: Array, HPH: Array, Rd: Array, avail: NDArray[np.bool_], w: Array,
              Pn: Array) -> Array:
@@ -793,6 +847,16 @@ class Tracker:
         return rts_rows(self._history, n_rows, self.n, self._motion, lag)
 
 
+def _fixed(status: NDArray[np.object_]) -> NDArray[np.bool_]:
+    """Fixes whose status is ``ok`` or ``fault_excluded`` (a usable robust fix)."""
+    status = np.asarray(status, dtype=object)
+    return (status == st.OK) | (status == st.FAULT_EXCLUDED)
+
+
+#: Status of the fused kernel's codes (:data:`robustloc.tracking._compiled.CODES`).
+_CODE_STATUS = np.array([st.OK, st.FAULT_EXCLUDED, st.PREDICTED], dtype=object)
+
+
 def _rank_within(slots: NDArray[np.int64]) -> NDArray[np.int64]:
     """Position of each entry among the earlier entries with the same slot (0, 1, ...)."""
     order = np.argsort(slots, kind="stable")
@@ -843,9 +907,26 @@ def track_frame(time: Array, tag: NDArray[np.object_], out: _Rows, n: int,
     data["nis"] = out.nis
     data["noise_scale"] = out.scale
     data["reinit"] = out.reinit
-    ids = np.asarray(anchor_ids, dtype=object)
-    exc = np.full(len(time), "", dtype=object)
-    for r in np.flatnonzero(out.excluded.any(axis=1)) if len(ids) else ():
-        exc[r] = ";".join(ids[out.excluded[r]])
-    data["excluded"] = exc
+    data["excluded"] = _joined(out.excluded, anchor_ids)
     return pd.DataFrame(data)
+
+
+def _joined(mask: NDArray[np.bool_], names: tuple[str, ...]) -> NDArray[np.object_]:
+    """Per row, the ``names`` where ``mask (N, M)`` is True joined by ``;`` (``""`` if
+    none).  Each distinct row pattern is joined once (few patterns, many rows)."""
+    N, M = mask.shape
+    out = np.full(N, "", dtype=object)
+    rows = np.flatnonzero(mask.any(axis=1)) if M else np.zeros(0, dtype=np.int64)
+    if rows.size == 0:
+        return out
+    ids = np.asarray(names, dtype=object)
+    sub = mask[rows]
+    if M <= 62:  # the row's bits as one integer key
+        key = sub.astype(np.int64) @ (np.int64(1) << np.arange(M, dtype=np.int64))
+        _, first, inv = np.unique(key, return_index=True, return_inverse=True)
+    else:
+        _, first, inv = np.unique(np.packbits(sub, axis=1), axis=0, return_index=True,
+                                  return_inverse=True)
+    text = np.array([";".join(ids[sub[f]]) for f in first], dtype=object)
+    out[rows] = text[inv.ravel()]
+    return out

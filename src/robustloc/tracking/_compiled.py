@@ -1,0 +1,366 @@
+"""Compiled (numba) round of the range tracker: every step of :mod:`robustloc.tracking.tracker`
+for ``K`` tags in one call.
+
+One call of :func:`track_round_4` (CV) or :func:`track_round_6` (CA) advances ``K`` tags by
+one epoch each, doing in a loop over tags what ``Tracker._filter_numpy`` does with batched
+NumPy for the range model (items 2-8 of the tracker's docstring, same order, same formulas):
+
+1. prediction ``x- = F x``, ``P- = F P F^T + Q`` and the ranges ``h(x-)`` with their
+   Jacobian rows (the fusion kernel's helpers :func:`robustloc.filters._compiled.predict`,
+   :func:`~robustloc.filters._compiled.range_rows`); innovations ``y_i = o_i - h_i`` of
+   the observations ``o_i`` (``z_i - b_i`` in the range domain, ``Tracker._observations``),
+   ``(H P- H^T)_ii`` and ``e_i = y_i / sqrt((H P- H^T)_ii + s^2 sigma_i^2)``;
+2. the CUSUM of each link in use, the ``moved`` rule, holds, offsets and re-admission;
+3. the robust predict + update of the held-out measurement: one call of the fusion filter's
+   kernel (:data:`robustloc.filters._compiled.KERNELS`, the tight model of the ranges only:
+   ``pack_params(..., kinematic=False)``) -- the same compiled filter core as
+   ``FusionFilter``;
+4. the B-method global test (``NIS > chi2(1 - alpha(m); m)``, table ``gcrit``) and the
+   "half rejected" rule: flags ``sus`` of the epochs the caller checks against the robust
+   snapshot fix (NumPy, for those tags only), and ``moved``;
+5. the Sage-Husa noise scale, the protection level ``hpl``, the status and the output row.
+
+The state of the tags lives in the tracker's arrays, indexed by slot ``sl[k]``; the kernel
+reads it and writes it back only when the whole round succeeded, so a round the kernel
+cannot do (:data:`NOT_PD`: a Cholesky factor failed) leaves everything untouched for the
+NumPy engine.  Sums over the links run in link order (NumPy's pairwise sums group them
+differently): the results agree with the NumPy engine to rounding (tested to 1e-9).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from robustloc.filters._compiled import (
+    _KIN,
+    _M,
+    _N,
+    _NANCH,
+    _NPOW,
+    BAD_SHAPE,
+    DONE,
+    ST_FAULT_EXCLUDED,
+    ST_OK,
+    ST_PREDICTED,
+    STATUS_CHARS,
+    fusion_step_4,
+    fusion_step_6,
+    offsets,
+    predict,
+    range_rows,
+    transition,
+)
+
+# layout of the tracker's settings vector (:func:`pack_settings`)
+_CUSUM_K, _CUSUM_H, _READMIT, _LO, _HI, _FORGET, _SQRT_LAM0, _K_IR = range(8)
+#: Status codes written into ``code`` (as :data:`robustloc.filters._compiled.STATUSES`).
+CODES = (ST_OK, ST_FAULT_EXCLUDED, ST_PREDICTED)
+
+
+def pack_settings(cusum_k: float, cusum_h: float, readmit_samples: int, noise_lo: float,
+                  noise_hi: float, noise_forget: float, sqrt_lambda0: float,
+                  k_ir: float) -> np.ndarray:
+    """The tracker's settings as one float vector for :func:`track_round_4` / ``_6``.
+
+    ``cusum_h = inf`` disables the step detector; ``noise_lo, noise_hi`` are the bounds of
+    the squared noise scale ``s^2``; ``sqrt_lambda0`` the root of the w-test's
+    non-centrality (MDB factor), ``k_ir`` the noise multiplier of ``hpl``.
+    """
+    return np.array([cusum_k, cusum_h, float(readmit_samples), noise_lo, noise_hi,
+                     noise_forget, sqrt_lambda0, k_ir], dtype=np.float64)
+
+
+@njit(cache=True, nogil=True)
+def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s, scale2_s,
+           obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x, out_var, out_cxy,
+           out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved, sus, dof, xp_o, Pp_o,
+           dt_o):  # pragma: no cover - jit
+    """Body of :func:`track_round_4` / ``_6`` for state size ``n`` (see their docstring)."""
+    K = sl.shape[0]
+    M = z.shape[1]
+    m = M  # the fusion model's tight measurement without its speed and course rows
+    nn = n * n
+    if int(prm[_N]) != n or int(prm[_M]) != m or int(prm[_NANCH]) != M or prm[_KIN] != 0.0:
+        return BAD_SHAPE
+    # numba does not check bounds: the slots and rows must lie inside their arrays
+    S = x_s.shape[0]
+    if x_s.shape[1] != n or P_s.shape[0] != S or t_s.shape[0] != S or bias_s.shape[1] != M:
+        return BAD_SHAPE
+    if t.shape[0] != K or z.shape[0] != K or obs.shape != z.shape or r0.shape != z.shape:
+        return BAD_SHAPE
+    if idx.shape[0] != K or out_x.shape[1] != n or out_exc.shape[1] != M:
+        return BAD_SHAPE
+    for k in range(K):
+        if not (0 <= sl[k] < S and 0 <= idx[k] < out_x.shape[0]):
+            return BAD_SHAPE
+    off_chi, off_F, off_a, off_s = offsets(prm, n, m)
+    ck, ch = tset[_CUSUM_K], tset[_CUSUM_H]
+    readmit = int(tset[_READMIT])
+    lo, hi, lf = tset[_LO], tset[_HI], tset[_FORGET]
+    sl0, kir = tset[_SQRT_LAM0], tset[_K_IR]
+    max_held = max(1, (M - 1) // 2)
+    rssi = rssi_A.shape[0] > 0
+
+    # ---- round arrays: gathered states, the fusion kernel's inputs and output row
+    xg = np.empty((K, n))
+    Pg = np.empty((K, n, n))
+    zf = np.empty((K, m))
+    R = np.zeros((K, m, m))
+    o_P = K * n
+    o_w = o_P + K * nn + 2 * K * m
+    o_nis = o_w + K * m
+    o_nu = o_nis + K
+    o_st = o_nu + K
+    o_g = o_st + K * STATUS_CHARS // 2
+    fout = np.empty(o_g + (K + 7) // 8)
+    iout = fout[o_nu:o_st].view(np.int64)
+    sout = fout[o_st:o_g].view(np.uint32)
+    # per tag and link: kept from the first pass for the last one
+    y = np.empty((K, M))
+    hph = np.empty((K, M))
+    rd = np.empty((K, M))
+    hv = np.empty((K, M, 2))
+    new_gp = np.empty((K, M))
+    new_gm = np.empty((K, M))
+    new_hsum = np.empty((K, M))
+    new_hn = np.empty((K, M), np.int64)
+    new_bias = np.empty((K, M))
+    new_held = np.empty((K, M), np.bool_)
+    held_now = np.empty((K, M), np.bool_)
+    # scratch of one tag
+    F = np.empty((n, n))
+    Qm = np.empty((n, n))
+    Ps = np.empty((n, n))
+    T = np.empty((n, n))
+    pw = np.empty(int(prm[_NPOW]))
+    zh = np.empty(M)
+    hvk = np.empty((M, 2))
+    alarm = np.empty(M, np.bool_)
+    use = np.empty(M, np.bool_)
+
+    # ---- pass 1: prediction, innovations, CUSUM, holds (items 2 and 4 of the tracker)
+    d_prev = math.nan
+    for k in range(K):
+        s = sl[k]
+        d = max(t[k] - t_s[s], 0.0)
+        dt_o[k] = d
+        if not d == d_prev:
+            transition(n, d, prm, off_F, pw, F, Qm)
+            d_prev = d
+        for i in range(n):
+            xg[k, i] = x_s[s, i]
+            for j in range(n):
+                Pg[k, i, j] = P_s[s, i, j]
+        xp = xp_o[k]
+        Pp = Pp_o[k]
+        predict(n, F, Qm, xg[k], Pg[k], xp, Pp, Ps, T)
+        range_rows(xp, prm, off_a, M, zh, hvk)  # zh: the distances d_i(x-)
+        sc2 = scale2_s[s]
+        n_alarm = 0
+        n_held = 0
+        for i in range(M):
+            h0 = hvk[i, 0]
+            h1 = hvk[i, 1]
+            hph[k, i] = h0 * (Pp[0, 0] * h0 + Pp[0, 1] * h1) + h1 * (Pp[1, 0] * h0
+                                                                    + Pp[1, 1] * h1)
+            hv[k, i, 0] = h0
+            hv[k, i, 1] = h1
+            rd[k, i] = sc2 * r0[k, i]
+            zi = z[k, i]
+            yi = obs[k, i] - zh[i]
+            y[k, i] = yi
+            e = yi / math.sqrt(hph[k, i] + rd[k, i])
+            hd = held_s[s, i]
+            u = math.isfinite(zi) and not hd
+            use[i] = u
+            gp = gp_s[s, i]
+            gm = gm_s[s, i]
+            if u:  # g+ = max(0, g+ + e - k), g- = max(0, g- - e - k) (Page 1954)
+                v = gp + e - ck
+                gp = 0.0 if v < 0.0 else v
+                v = gm - e - ck
+                gm = 0.0 if v < 0.0 else v
+            a = u and (gp > ch or gm > ch)
+            alarm[i] = a
+            if a:
+                n_alarm += 1
+            if hd or a:
+                n_held += 1
+            new_gp[k, i] = gp
+            new_gm[k, i] = gm
+        mv = n_alarm > 0 and n_held > max_held
+        moved[k] = mv
+        ma = 0
+        for i in range(M):
+            zi = z[k, i]
+            a = alarm[i] and not mv
+            hd = (held_s[s, i] and not mv) or a
+            hs = hsum_s[s, i]
+            hn = hn_s[s, i]
+            if a or mv:
+                new_gp[k, i] = 0.0
+                new_gm[k, i] = 0.0
+                hs = 0.0
+                hn = 0
+            heard = math.isfinite(zi)
+            if hd and heard:  # held: accumulate the new offset against the prediction
+                if rssi:  # in dB, through the path-loss model (LinkModel.rssi)
+                    lg = math.log10(max(zh[i], d_min))
+                    hs = hs + (zi - (rssi_A[i] - 10.0 * rssi_n[i] * lg))
+                else:
+                    hs = hs + (zi - zh[i])
+                hn += 1
+            ready = hd and hn >= readmit
+            new_bias[k, i] = hs / max(hn, 1) if ready else bias_s[s, i]
+            zin = math.nan if hd else obs[k, i]
+            zf[k, i] = zin
+            R[k, i, i] = rd[k, i]
+            if math.isfinite(zin):
+                ma += 1
+            held_now[k, i] = hd and heard
+            new_held[k, i] = hd and not ready
+            new_hsum[k, i] = 0.0 if ready else hs
+            new_hn[k, i] = 0 if ready else hn
+        dof[k] = ma
+
+    # ---- robust predict + update: the fusion filter's compiled kernel (item 3)
+    if n == 4:
+        rc = fusion_step_4(xg, Pg, dt_o, zf, R, prm, fout)
+    else:
+        rc = fusion_step_6(xg, Pg, dt_o, zf, R, prm, fout)
+    if rc != DONE:
+        return rc
+
+    # ---- pass 2: B-method test, noise scale, hpl, rows, state (items 5, 6, 8)
+    c_ok = np.uint32(prm[off_s + ST_OK * STATUS_CHARS])
+    c_fe = np.uint32(prm[off_s + ST_FAULT_EXCLUDED * STATUS_CHARS])
+    for k in range(K):
+        s = sl[k]
+        r = idx[k]
+        ma = dof[k]
+        nis = fout[o_nis + k]
+        nu = iout[k]
+        c0 = sout[k * STATUS_CHARS]
+        c = ST_OK if c0 == c_ok else (ST_FAULT_EXCLUDED if c0 == c_fe else ST_PREDICTED)
+        # global test (seed 003) and the "half rejected" rule
+        sus[k] = ma > 0 and (nis > gcrit[ma] or 2 * nu <= ma)
+        Pn00 = fout[o_P + k * nn]
+        Pn01 = fout[o_P + k * nn + 1]
+        Pn10 = fout[o_P + k * nn + n]
+        Pn11 = fout[o_P + k * nn + n + 1]
+        sw = 0.0
+        swe = 0.0
+        slope = 0.0
+        any_held = False
+        for i in range(M):
+            wv = fout[o_w + k * m + i]
+            av = math.isfinite(zf[k, i])
+            if av:
+                # Sage-Husa: weighted mean of (y^2 - (H P- H^T)_ii) / sigma_i^2 (Mehra 1972)
+                sw += wv
+                swe += wv * ((y[k, i] * y[k, i] - hph[k, i]) / r0[k, i])
+                # hpl slope: |G_pos,i| MDB_i, G_i = w_i P+ H_i^T / R_ii (seed 003 eq. (3))
+                wr = wv / rd[k, i]
+                g0 = (hv[k, i, 0] * Pn00 + hv[k, i, 1] * Pn10) * wr
+                g1 = (hv[k, i, 0] * Pn01 + hv[k, i, 1] * Pn11) * wr
+                v = math.hypot(g0, g1) * (sl0 * math.sqrt(hph[k, i] + rd[k, i]))
+                if slope == slope and not v <= slope:  # max, NaN propagating (np.max)
+                    slope = v
+            out_exc[r, i] = (av and wv <= 0.0) or held_now[k, i]
+            any_held = any_held or held_now[k, i]
+            held_s[s, i] = new_held[k, i]
+            gp_s[s, i] = new_gp[k, i]
+            gm_s[s, i] = new_gm[k, i]
+            hsum_s[s, i] = new_hsum[k, i]
+            hn_s[s, i] = new_hn[k, i]
+            bias_s[s, i] = new_bias[k, i]
+        sc2 = scale2_s[s]
+        if sw > 0.0:
+            rh = swe / max(sw, 1e-300)
+            if math.isfinite(rh):
+                v = (1.0 - lf) * sc2 + lf * max(rh, 0.0)
+                sc2 = min(max(v, lo), hi)
+        scale2_s[s] = sc2
+        tr = 0.5 * (Pn00 + Pn11)
+        det = Pn00 * Pn11 - Pn01 * Pn01
+        lmax = tr + math.sqrt(max(tr * tr - det, 0.0))
+        out_hpl[r] = slope + kir * math.sqrt(max(lmax, 0.0))
+        if c == ST_OK and any_held:
+            c = ST_FAULT_EXCLUDED
+        code[k] = c
+        out_nu[r] = nu
+        out_nis[r] = nis
+        out_scale[r] = math.sqrt(sc2)
+        out_cxy[r] = Pn01
+        t_s[s] = t[k]
+        for i in range(n):
+            xi = fout[k * n + i]
+            out_x[r, i] = xi
+            x_s[s, i] = xi
+            out_var[r, i] = fout[o_P + k * nn + i * n + i]
+            for j in range(n):
+                P_s[s, i, j] = fout[o_P + k * nn + i * n + j]
+    return DONE
+
+
+_DOC = """One epoch of ``K`` tags of the range tracker, state size {n} ({model}).
+
+    Parameters
+    ----------
+    sl, t, z : ``(K,)`` slots, ``(K,)`` times and ``(K, M)`` calibrated ranges (NaN: not
+        heard) of the round's epochs, one per tag.
+    x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s, scale2_s : the tracker's state
+        arrays (all slots), read at ``sl`` and written back there on success.
+    obs, r0 : ``(K, M)`` observations ``z - b`` in the filter's (range) domain and their
+        a-priori variances (``Tracker._observations``: ranges as measured, or RSSI
+        converted by the path-loss model).
+    rssi_A, rssi_n, d_min : RSSI only (else ``(0,)`` arrays): the path-loss model of the
+        links, in which a held link's offset is estimated (dB); its clamping distance.
+    prm : the fusion kernel's settings (``FusionFilter.compiled_params(meas,
+        kinematic=False)``: the ranges of the ``M`` anchors).
+    tset : :func:`pack_settings`; gcrit : ``(M + 1,)`` B-method critical values by the
+        number of components.
+    idx : ``(K,)`` output rows; out_x, out_var ``(N, n)``, out_cxy, out_nu, out_nis,
+        out_hpl, out_scale ``(N,)``, out_exc ``(N, M)``: the step's output columns, written
+        at ``idx``.
+    code, moved, sus, dof : ``(K,)`` outputs: status code (:data:`CODES`), the CUSUM's
+        "tag moved" flag, the suspicious-epoch flag, the number of components used.
+    xp_o, Pp_o, dt_o : ``(K, n)``, ``(K, n, n)``, ``(K,)`` outputs: the prediction and step.
+
+    Returns
+    -------
+    int
+        :data:`robustloc.filters._compiled.DONE`, else the fusion kernel's code
+        (``BAD_SHAPE``, ``NOT_PD``): then no state and no row was written.
+    """
+
+
+@njit(cache=True, nogil=True)
+def track_round_4(sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
+                  scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
+                  out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
+                  sus, dof, xp_o, Pp_o, dt_o):  # pragma: no cover - jit
+    return _round(4, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
+                  scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
+                  out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
+                  sus, dof, xp_o, Pp_o, dt_o)
+
+
+@njit(cache=True, nogil=True)
+def track_round_6(sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
+                  scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
+                  out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
+                  sus, dof, xp_o, Pp_o, dt_o):  # pragma: no cover - jit
+    return _round(6, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
+                  scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
+                  out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
+                  sus, dof, xp_o, Pp_o, dt_o)
+
+
+track_round_4.__doc__ = _DOC.format(n=4, model="CV")
+track_round_6.__doc__ = _DOC.format(n=6, model="CA")
+#: Kernels by state size.
+ROUNDS = {4: track_round_4, 6: track_round_6}
