@@ -316,7 +316,9 @@ def bench_size(n: int, args: argparse.Namespace, client: object, work: Path) -> 
     by_time, by_tag = d / "by_time", d / "by_tag"
     rpp = str(min(args.rows_per_partition, -(-n // (4 * n_workers))))
     by_tag_f = d / "by_tag_filter"
-    parts = [("time", by_time, args.buckets), ("tag", by_tag, args.buckets)]
+    parts = [("time", by_time, args.buckets)] if "locate" in args.steps else []
+    if "track" in args.steps:
+        parts.append(("tag", by_tag, args.buckets))
     if "filter" in args.steps and n <= args.filter_max_rows:
         parts.append(("tag", by_tag_f, args.filter_buckets))
     for by, out, buckets in parts:
