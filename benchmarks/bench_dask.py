@@ -45,12 +45,15 @@ rows   step            single (1 thread)       dask x2                 %/core   
 10 M   locate (*)      73 s, 41 CPU-s          63 s, 45 CPU-s          57 / 90      5.4
 10 M   track           75 s, 37 CPU-s          74 s, 62 CPU-s          51 / 59      5.7
 10 M   track (cold)                            85 s, 72 CPU-s          44 / 51      5.3
+50 M   locate (*)      248 s, 224 CPU-s        220 s, 289 CPU-s        56 / 78      3.7
 50 M   locate huber    583 s, 219 CPU-s        437 s, 273 CPU-s        67 / 80      5.7
 50 M   track           358 s, 178 CPU-s        223 s, 256 CPU-s        80 / 69      2.6
 =====  ==============  ======================  ======================  ===========  ====
 
 The first three and the 50 M lines: ``locate``'s log-scale first pass still on the client;
-(*) and the lines after it, a second 10 M run: the first pass on the workers.  ``track``
+(*): the first pass on the workers (the three 10 M lines from (*) are a second run).
+Two single-process runs side by side here take twice the wall clock and ~13 % more CPU-s
+each (the neighbours leave about one core): read the figures against ~50 % / ~88 %.  ``track``
 is bounded near 63 % per core here by the tracker's fixed cost per time step, which every
 tag partition pays (docs/dask.md).  Peak memory per worker 0.64-0.65 GiB (10 M),
 0.67-0.85 GiB (50 M); outputs identical in every run.
