@@ -50,10 +50,10 @@ rows   step            single (1 thread)       dask x2                 %/core   
 50 M   track           358 s, 178 CPU-s        223 s, 256 CPU-s        80 / 69      2.6
 =====  ==============  ======================  ======================  ===========  ====
 
-The first three and the 50 M lines: ``locate``'s log-scale first pass still on the client;
-(*): the first pass on the workers (the three 10 M lines from (*) are a second run).
-Two single-process runs side by side here take twice the wall clock and ~13 % more CPU-s
-each (the neighbours leave about one core): read the figures against ~50 % / ~88 %.  ``track``
+``locate huber``: its log-scale first pass still on the client; ``locate (*)``: on the
+workers (the three 10 M lines from (*) are a second run).  Two single-process runs side
+by side here take twice the wall clock and ~13 % more CPU-s each (the neighbours leave
+about one core): read the figures against ~50 % / ~88 %.  ``track``
 is bounded near 63 % per core here by the tracker's fixed cost per time step, which every
 tag partition pays (docs/dask.md).  Peak memory per worker 0.64-0.65 GiB (10 M),
 0.67-0.85 GiB (50 M); outputs identical in every run.
