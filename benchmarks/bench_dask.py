@@ -5,26 +5,58 @@ from the log-distance model (A = -40 dBm, n = 2.2, sigma = 2 dB, 5 % of readings
 low: body blocking), tags walking slowly in a 40 m x 30 m hall.  One time-sorted Parquet
 file of N rows is written chunk by chunk (a pyarrow ParquetWriter, ``--chunk-rows`` rows
 at a time: never the whole log in memory), for each N of ``--rows`` (default 10 M;
-``--rows 10M,50M,200M`` for the issue's full table, about 12 GB of disk and hours on this
-machine).
+``--rows 10M,50M,200M`` for the issue's full table: 200 M rows are ~1.6 GB of input plus
+two partitioned copies, and hours on a small machine).
 
 Per size, one line per step:
 
-* ``partition``: ``robustloc partition --by time`` and ``--by tag`` with DuckDB, and
-  ``--by time`` with a dask shuffle (``--shuffle-max-rows`` bounds the sizes it is timed
-  on; it is the slower of the two);
-* ``locate``: ``robustloc locate --method huber`` in one process (a subprocess, peak RSS
-  polled) vs ``--engine dask`` on the time-partitioned dataset;
-* ``filter`` (the tag-partitioned path ``track`` will use): ``robustloc filter`` in one
-  process vs ``--engine dask`` on the tag-partitioned dataset (``--filter-max-rows``: the
-  single-process filter holds the whole log in memory).
+* ``partition``: ``robustloc partition --by time`` and ``--by tag`` (``--buckets``, default
+  one per worker) with DuckDB, and ``--by time`` with a dask shuffle
+  (``--shuffle-max-rows`` bounds the sizes it is timed on; it is the slower of the two);
+* ``locate``: ``robustloc locate --method huber`` in one process vs ``--engine dask`` on
+  the time-partitioned dataset;
+* ``track``: ``robustloc track`` in one process vs ``--engine dask`` on the tag-partitioned
+  dataset, on the warm cluster and (``(cold)``, unless ``--no-cold``) on the command's own
+  fresh LocalCluster, all of its start-up timed;
+* ``filter``: ``robustloc filter`` in one process vs ``--engine dask`` on a dataset of
+  ``--filter-buckets`` tag buckets (``--filter-max-rows``: it holds its input in memory).
 
-The dask runs use a LocalCluster of ``--workers`` single-threaded worker processes started
-once, before the timings (its start-up, 10-20 s here, is reported apart), reached through
-``--scheduler`` as on a real cluster.  Columns: wall seconds, rows/s, epochs or samples/s,
-per-worker-core throughput as % of the single-process run (the target is >= 70 %), peak
-RSS of the single process or of the largest worker (sampled every 0.2 s; the target is
-<= 2 GiB per worker), and whether the outputs are identical (sorted by key, every column).
+The single-process runs are subprocesses on one thread (the workers' environment: a
+per-core baseline), peak RSS polled.  The dask runs use a LocalCluster of ``--workers``
+single-threaded worker processes started once and warmed up before the timings (each
+command once on a small dataset: imports and numba cache loads done, as on a long-lived
+cluster), reached through ``--scheduler`` as on a real cluster.  Columns: wall seconds, CPU
+seconds (dask: workers + scheduler + client), rows/s, epochs or samples/s, per-worker-core
+throughput as % of the single-process run by wall clock and by CPU seconds (the target is
+>= 70 %), peak RSS of the single process or of the largest worker (sampled every 0.2 s;
+the target is <= 2 GiB per worker), the load average (1/5 min) at the end of the line, and
+whether the outputs are identical (sorted by key, every column, exactly).
+
+Measured (2 workers; a 2-core machine shared with ~4 other agents, load 2-9; the table
+with notes is in docs/dask.md):
+
+=====  ==============  ======================  ======================  ===========  ====
+rows   step            single (1 thread)       dask x2                 %/core       load
+                                                                       wall / CPU
+=====  ==============  ======================  ======================  ===========  ====
+10 M   locate huber    96 s, 46 CPU-s          97 s, 60 CPU-s          50 / 77      7.0
+10 M   track           98 s, 40 CPU-s          91 s, 61 CPU-s          54 / 65      7.6
+10 M   track (cold)                            106 s, 70 CPU-s         46 / 57      8.7
+10 M   locate (*)      73 s, 41 CPU-s          63 s, 45 CPU-s          57 / 90      5.4
+10 M   track           75 s, 37 CPU-s          74 s, 62 CPU-s          51 / 59      5.7
+10 M   track (cold)                            85 s, 72 CPU-s          44 / 51      5.3
+50 M   locate (*)      248 s, 224 CPU-s        220 s, 289 CPU-s        56 / 78      3.7
+50 M   locate huber    583 s, 219 CPU-s        437 s, 273 CPU-s        67 / 80      5.7
+50 M   track           358 s, 178 CPU-s        223 s, 256 CPU-s        80 / 69      2.6
+=====  ==============  ======================  ======================  ===========  ====
+
+``locate huber``: its log-scale first pass still on the client; ``locate (*)``: on the
+workers (the three 10 M lines from (*) are a second run).  Two single-process runs side
+by side here take twice the wall clock and ~13 % more CPU-s each (the neighbours leave
+about one core): read the figures against ~50 % / ~88 %.  ``track``
+is bounded near 63 % per core here by the tracker's fixed cost per time step, which every
+tag partition pays (docs/dask.md).  Peak memory per worker 0.64-0.65 GiB (10 M),
+0.67-0.85 GiB (50 M); outputs identical in every run.
 
 Usage::
 
@@ -287,7 +319,9 @@ def bench_size(n: int, args: argparse.Namespace, client: object, work: Path) -> 
     by_time, by_tag = d / "by_time", d / "by_tag"
     rpp = str(min(args.rows_per_partition, -(-n // (4 * n_workers))))
     by_tag_f = d / "by_tag_filter"
-    parts = [("time", by_time, args.buckets), ("tag", by_tag, args.buckets)]
+    parts = [("time", by_time, args.buckets)] if "locate" in args.steps else []
+    if "track" in args.steps:
+        parts.append(("tag", by_tag, args.buckets))
     if "filter" in args.steps and n <= args.filter_max_rows:
         parts.append(("tag", by_tag_f, args.filter_buckets))
     for by, out, buckets in parts:
