@@ -415,7 +415,9 @@ def run_locate(
     from robustloc.io.tables import UnsortedInput, _display
 
     if out is not None and not isinstance(measurements, pd.DataFrame):
-        check_not_input(out, [measurements, anchors.attrs.get("path") or ""])
+        # never overwrite an input (an anchors frame read from a file names that file)
+        check_not_input(out, [src for src in (measurements, anchors.attrs.get("path"))
+                              if src])
     geo = configure(settings, anchors)
     if any(loc.robust_scale == "log" for loc in geo.locators):
         geo = replace(geo, locators=_with_log_scale(settings, geo, [measurements]))

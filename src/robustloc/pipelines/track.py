@@ -126,7 +126,9 @@ def run_track(
         raise InputError("--tag-height needs a z column in the anchors file",
                          anchors.attrs.get("path"), 1)
     if out is not None and not isinstance(measurements, pd.DataFrame):
-        check_not_input(out, [measurements, anchors.attrs.get("path") or ""])
+        # never overwrite an input (an anchors frame read from a file names that file)
+        check_not_input(out, [src for src in (measurements, anchors.attrs.get("path"))
+                              if src])
     t0 = _time.perf_counter()
     try:
         trk, frame, n_epochs, counts = _one_pass(measurements, anchors, settings, out,
