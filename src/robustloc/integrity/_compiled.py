@@ -2,7 +2,7 @@
 
 The NumPy reference walks the whole batch once per array operation (about twenty
 ``(N, n, p)`` temporaries); here each epoch runs in machine code with its ``p x p``
-normal matrix (``p = 2, 3``) inverted in closed form.  Same formulas, same order of the
+normal matrix (``p = 2, 3``) inverted through its Cholesky factor.  Same formulas, same order of the
 tests and the same edge cases (an unused observation, a singular normal matrix, a
 redundancy number at or below ``R_MIN``): the tests compare the two on random geometries
 (:mod:`tests.test_integrity_fixes`).
@@ -31,6 +31,9 @@ def protection_levels_kernel(J, sigma, used, lam0, k_noise, r_min):  # pragma: n
     Nm = np.zeros((3, 3))
     C = np.zeros((3, 3))
     AN = np.zeros(3)
+    Z = np.zeros(3)
+    L = np.zeros((3, 3))
+    M = np.zeros((3, 3))
     for k in range(N):
         count = 0
         for i in range(n):
@@ -63,36 +66,62 @@ def protection_levels_kernel(J, sigma, used, lam0, k_noise, r_min):  # pragma: n
         ok = abs(det) > 1e-12 * max(tr, 1e-300) ** p and count >= p
         if not ok:
             continue  # hpl, vpl and r stay NaN, as in the reference
-        s = 1.0 / det
-        if p == 2:
-            C[0, 0] = Nm[1, 1] * s
-            C[0, 1] = -Nm[0, 1] * s
-            C[1, 0] = -Nm[1, 0] * s
-            C[1, 1] = Nm[0, 0] * s
-        else:
-            C[0, 0] = (Nm[1, 1] * Nm[2, 2] - Nm[1, 2] * Nm[2, 1]) * s
-            C[0, 1] = (Nm[0, 2] * Nm[2, 1] - Nm[0, 1] * Nm[2, 2]) * s
-            C[0, 2] = (Nm[0, 1] * Nm[1, 2] - Nm[0, 2] * Nm[1, 1]) * s
-            C[1, 0] = (Nm[1, 2] * Nm[2, 0] - Nm[1, 0] * Nm[2, 2]) * s
-            C[1, 1] = (Nm[0, 0] * Nm[2, 2] - Nm[0, 2] * Nm[2, 0]) * s
-            C[1, 2] = (Nm[0, 2] * Nm[1, 0] - Nm[0, 0] * Nm[1, 2]) * s
-            C[2, 0] = (Nm[1, 0] * Nm[2, 1] - Nm[1, 1] * Nm[2, 0]) * s
-            C[2, 1] = (Nm[0, 1] * Nm[2, 0] - Nm[0, 0] * Nm[2, 1]) * s
-            C[2, 2] = (Nm[0, 0] * Nm[1, 1] - Nm[0, 1] * Nm[1, 0]) * s
+        # N^-1 through the Cholesky factor N = L L^T: the closed-form adjugate loses up
+        # to ~300 cond x eps on the redundancy numbers 1 - a_i^T N^-1 a_i, Cholesky stays
+        # within cond x eps like the LAPACK inverse of the reference
+        pos = True
+        for a in range(p):
+            acc = Nm[a, a]
+            for c in range(a):
+                acc -= L[a, c] * L[a, c]
+            if not acc > 0.0:
+                pos = False
+                break
+            L[a, a] = math.sqrt(acc)
+            for b in range(a + 1, p):
+                acc = Nm[b, a]
+                for c in range(a):
+                    acc -= L[b, c] * L[a, c]
+                L[b, a] = acc / L[a, a]
+        if not pos:
+            continue  # not positive definite in rounding: treated as singular
+        # M = L^-1 (lower triangular), then C = N^-1 = M^T M
+        for a in range(p):
+            for b in range(p):
+                M[a, b] = 0.0
+        for a in range(p):
+            M[a, a] = 1.0 / L[a, a]
+            for b in range(a):
+                acc = 0.0
+                for c in range(b, a):
+                    acc += L[a, c] * M[c, b]
+                M[a, b] = -acc / L[a, a]
+        for a in range(p):
+            for b in range(p):
+                acc = 0.0
+                for c in range(max(a, b), p):
+                    acc += M[c, a] * M[c, b]
+                C[a, b] = acc
         dh_max = 0.0
         du_max = 0.0
         for i in range(n):
             if not use[i]:
                 continue
             # row i of A N^-1: d x / d (v_i / sigma_i)
+            # z = L^-1 a_i, so a_i^T N^-1 a_i = |z|^2 and N^-1 a_i = M^T z
             dot = 0.0
+            for a in range(p):
+                acc = 0.0
+                for c in range(a + 1):
+                    acc += M[a, c] * A[i, c]
+                Z[a] = acc
+                dot += acc * acc
             mv = 0.0
             for b in range(p):
                 acc = 0.0
-                for a in range(p):
-                    acc += A[i, a] * C[a, b]
+                for a in range(b, p):
+                    acc += M[a, b] * Z[a]
                 AN[b] = acc
-                dot += acc * A[i, b]
                 mv += acc * acc
             r = 1.0 - dot
             r_out[k, i] = r
