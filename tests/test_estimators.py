@@ -283,3 +283,29 @@ def test_excluded_ids_is_the_per_epoch_join(n, m, p, seed):
     want = [";".join(str(a) for a, e in zip(ids, row) if e) for row in exc]
     got = sol.excluded_ids(ids)
     assert got == want and all(type(g) is str for g in got)
+
+
+def test_anchor_work_is_cached_by_value_and_read_only():
+    """The anchor-only work of a solve (minimal subsets and their inverted designs, the sane
+    anchors) is cached per anchor array by its values: an array changed in place gives the
+    fix of its new values, equal to a solve without any cache; the cached arrays cannot be
+    written through."""
+    from robustloc.estimators import ranging
+
+    rng = np.random.default_rng(3)
+    a = rng.uniform(0, 20, (6, 2))
+    x = rng.uniform(5, 15, (30, 2))
+    loc = Locator("huber", sigma=0.1, robust_scale="apriori")
+    first = loc.solve(a, np.linalg.norm(x[:, None] - a[None], axis=2)).position
+    np.testing.assert_allclose(first, x, atol=1e-6)  # noise-free: exact
+    a[2] += (3.0, -4.0)  # the same array object, moved anchor
+    second = loc.solve(a, np.linalg.norm(x[:, None] - a[None], axis=2)).position
+    np.testing.assert_allclose(second, x, atol=1e-6)
+    combos, ginv, c0 = ranging.minimal_subsets(a)
+    np.testing.assert_allclose(c0, a.mean(axis=0))
+    sub = (a - c0)[combos]
+    np.testing.assert_allclose(ginv @ (sub[:, 1:] - sub[:, :1]), np.broadcast_to(
+        np.eye(2), ginv.shape), atol=1e-12)  # the inverses of the moved anchors' designs
+    for arr in (combos, ginv, c0, ranging._sane_anchors(a)):
+        with pytest.raises(ValueError):
+            arr.flat[0] = 0

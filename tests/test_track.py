@@ -424,3 +424,65 @@ def test_round_the_kernel_cannot_do_falls_back_to_numpy():
         rows[eng] = t2.step(cut(slice(h, None)))
     assert calls  # the fallback ran
     pd.testing.assert_frame_equal(rows["compiled"], rows["numpy"], rtol=1e-9, atol=1e-9)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=hst.integers(0, 2**31 - 1), M=hst.integers(2, 9))
+def test_one_fault_explains_is_the_global_test_after_one_exclusion(seed, M):
+    """Data snooping with one exclusion, checked by brute force: ``y^T S^-1 y - w_i^2``
+    equals the quadratic form of the innovations with component ``i`` deleted (the Schur
+    complement), and the compiled kernel decides as the NumPy reference.  Decisions within
+    rounding (1e-9 relative) of a critical value are not compared."""
+    from scipy.stats import chi2
+
+    from robustloc.tracking import _compiled
+    from robustloc.tracking.tracker import one_fault_explains
+
+    rng = np.random.default_rng(seed)
+    K = 30
+    H = np.zeros((K, M, 4))
+    ang = rng.uniform(0, 2 * np.pi, (K, M))
+    H[:, :, 0], H[:, :, 1] = np.cos(ang), np.sin(ang)
+    B = rng.normal(0, 1, (K, 4, 4))
+    Pp = B @ np.swapaxes(B, 1, 2) * rng.uniform(1e-3, 1.0, (K, 1, 1)) + 1e-6 * np.eye(4)
+    Rd = rng.uniform(0.005, 0.5, (K, M))
+    avail = rng.random((K, M)) < 0.85
+    S = H @ Pp @ np.swapaxes(H, 1, 2) + Rd[:, :, None] * np.eye(M)
+    y = np.einsum("kij,kj->ki", np.linalg.cholesky(S), rng.normal(0, 1, (K, M)))
+    bad = rng.random(K) < 0.6  # one gross error
+    j = rng.integers(0, M, K)
+    y[bad, j[bad]] += rng.choice([-1, 1], bad.sum()) * rng.uniform(0, 30, bad.sum()) * np.sqrt(
+        Rd[bad, j[bad]])
+    two = bad & (rng.random(K) < 0.4)  # and a second one
+    j2 = (j + 1) % M
+    y[two, j2[two]] += 20.0 * np.sqrt(Rd[two, j2[two]])
+    w2c = float(chi2.isf(1e-3, 1))
+    crit = rng.uniform(0.5, 20.0, K)
+    got = one_fault_explains(H, Pp, Rd, y, avail, w2c, crit)
+    # brute force: delete each available component, quadratic forms of the rest
+    margin = np.zeros(K, dtype=bool)
+    for k in range(K):
+        av = np.flatnonzero(avail[k])
+        Sk = S[k][np.ix_(av, av)]
+        yk = y[k, av]
+        q = yk @ np.linalg.solve(Sk, yk)
+        best, rest = 0.0, np.inf
+        for t in range(av.size):
+            keep = np.delete(np.arange(av.size), t)
+            qr = yk[keep] @ np.linalg.solve(Sk[np.ix_(keep, keep)], yk[keep]) if keep.size else 0.0
+            if q - qr > best:
+                best, rest = q - qr, qr
+        want = best > w2c and rest <= crit[k]
+        margin[k] = (abs(best - w2c) < 1e-9 * max(w2c, best)
+                     or abs(rest - crit[k]) < 1e-9 * max(q, 1.0))
+        if not margin[k]:
+            assert got[k] == want, k
+        # the compiled kernel (position rows of H, as the tracker's round)
+        Ssn, Lsn = np.empty((M, M)), np.empty((M, M))
+        scratch = [np.empty(M) for _ in range(3)]
+        comp = _compiled.one_fault_explains(
+            M, np.ascontiguousarray(H[k, :, :2]), Pp[k], Rd[k], y[k], avail[k], w2c, crit[k],
+            Ssn, Lsn, *scratch)
+        if not margin[k]:
+            assert comp == want, k
+    assert got.any() and not got.all()  # both outcomes are exercised

@@ -218,7 +218,7 @@ def gauss_newton(
         status[bad] = st.ILL_CONDITIONED
         cov[bad] = np.nan
     status[(status == st.OK) & ~conv] = st.NOT_CONVERGED
-    x[~np.isin(status, st.USABLE)] = np.nan
+    x[~st.among(status, st.USABLE)] = np.nan
     return LinearFit(
         x=x, v=v, w=np.where(valid, w, np.nan), qvv=qvv_f, sigma0=sigma0, cov=cov,
         n_used=n_used, iterations=iters, converged=conv, status=status, extra={"u": u_all},

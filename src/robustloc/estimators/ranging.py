@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 from itertools import combinations
 
 import numpy as np
@@ -85,20 +86,44 @@ def _collinear(a: Array, heard: NDArray[np.bool_], rel: float = 1e-3) -> NDArray
     return lmin <= (rel**2) * np.maximum(lmax, 1e-300)
 
 
+def _anchor_key(a: ArrayLike) -> tuple[bytes, tuple[int, ...]]:
+    """Hashable key of an anchor array for the caches of anchor-only work (a solve of a
+    few epochs -- a tracker's check, a live service's message -- would otherwise redo it
+    each call: about half of such a call's time)."""
+    a = np.ascontiguousarray(a, dtype=float)
+    return a.tobytes(), a.shape
+
+
+def _from_key(key: bytes, shape: tuple[int, ...]) -> Array:
+    return np.frombuffer(key, dtype=float).reshape(shape)
+
+
+def _frozen(*arrays: NDArray) -> None:
+    for arr in arrays:
+        arr.setflags(write=False)
+
+
 def _sane_anchors(a: Array) -> NDArray[np.bool_]:
     """Anchors whose coordinates make sense for the layout: finite and within 20 times the
     median distance (at least 1 m) of the median anchor.  An anchor outside (a typo such as
     1e200) is not used at all: it would otherwise change every start candidate and the
     anchors' area while no epoch can hear it.  A property of the anchors file alone, so a
-    fix never depends on which other epochs are solved with it."""
-    a = np.asarray(a, dtype=float)
+    fix never depends on which other epochs are solved with it (cached per anchor array;
+    the result is read-only)."""
+    return _sane_anchors_cached(*_anchor_key(a))
+
+
+@lru_cache(maxsize=64)
+def _sane_anchors_cached(key: bytes, shape: tuple[int, ...]) -> NDArray[np.bool_]:
+    a = _from_key(key, shape)
     with np.errstate(all="ignore"):
         fin = np.all(np.isfinite(a), axis=1)
-        if not np.any(fin):
-            return fin
-        med = np.median(a[fin], axis=0)
-        dist = np.linalg.norm(a - med, axis=1)
-        return fin & (dist <= 20.0 * max(float(np.median(dist[fin])), 1.0))
+        if np.any(fin):
+            med = np.median(a[fin], axis=0)
+            dist = np.linalg.norm(a - med, axis=1)
+            fin = fin & (dist <= 20.0 * max(float(np.median(dist[fin])), 1.0))
+    _frozen(fin)
+    return fin
 
 
 def _area(a: Array) -> tuple[Array, float]:
@@ -222,14 +247,23 @@ def minimal_subsets(
 
     Returns ``combos (C, dim + 1)`` (at most ``max_subsets``, a fixed random choice when
     there are more; near-degenerate subsets dropped), ``Ginv (C, dim, dim)`` the inverses
-    of ``G = a_j - a_0`` of the centroid-shifted anchors, and that centroid ``c0``.
+    of ``G = a_j - a_0`` of the centroid-shifted anchors, and that centroid ``c0``.  A
+    function of the anchors alone: cached per anchor array, the arrays are read-only.
     """
-    a = np.asarray(anchors, dtype=float)
+    return _minimal_subsets_cached(*_anchor_key(anchors), int(max_subsets), int(seed))
+
+
+@lru_cache(maxsize=64)
+def _minimal_subsets_cached(key: bytes, shape: tuple[int, ...], max_subsets: int, seed: int
+                            ) -> tuple[NDArray[np.int64], Array, Array]:
+    a = _from_key(key, shape)
     m, dim = a.shape
     q = dim + 1
     c0 = a.mean(axis=0)
     if m < q:
-        return np.zeros((0, q), dtype=np.int64), np.zeros((0, dim, dim)), c0
+        out = np.zeros((0, q), dtype=np.int64), np.zeros((0, dim, dim)), c0
+        _frozen(*out)
+        return out
     combos = np.array(list(combinations(range(m), q)), dtype=np.int64)
     if combos.shape[0] > max_subsets:
         pick = np.random.default_rng(seed).choice(combos.shape[0], max_subsets, replace=False)
@@ -241,7 +275,9 @@ def minimal_subsets(
         scale = np.prod(np.linalg.norm(G, axis=2), axis=1)
         good = np.abs(det) > 1e-3 * np.maximum(scale, 1e-300)
     combos, G = combos[good], G[good]
-    return combos, np.linalg.inv(G) if combos.shape[0] else np.zeros((0, dim, dim)), c0
+    out = combos, np.linalg.inv(G) if combos.shape[0] else np.zeros((0, dim, dim)), c0
+    _frozen(*out)
+    return out
 
 
 def subset_fixes(
@@ -523,7 +559,7 @@ class Locator:
             )
         status[n_heard < dim + 1] = st.INSUFFICIENT
         status[n_heard == 0] = st.INVALID
-        x = np.where(np.isin(status, st.USABLE)[:, None], fit.x, np.nan)
+        x = np.where(st.among(status, st.USABLE)[:, None], fit.x, np.nan)
         w = fit.w
         excluded = np.isfinite(z) & (w <= 0)  # NaN weight: not heard, not excluded
         if self.method == "lege" or self.method == "snooping":
@@ -533,7 +569,7 @@ class Locator:
         # residuals v = f(x) - range and the design d range / d x at the fix
         rng_model = RangeModel(a, height_offset)
         xs = np.nan_to_num(x)
-        use = np.isin(status, st.USABLE)[:, None]
+        use = st.among(status, st.USABLE)[:, None]
         extra = dict(fit.extra)
         extra["range_residuals"] = np.where(use, rng_model.predict(xs) - ranges, np.nan)
         extra["jacobian"] = np.where(use[..., None], rng_model.jacobian(xs), np.nan)
@@ -714,7 +750,7 @@ class Locator:
                 r = 1.0 - np.einsum("kip,kpq,kiq->ki", Jw, Ninv, Jw)
                 r = np.where(ok[:, None] & (r > 0.05), r, np.nan)
                 u = np.abs(sol.residuals) / (sig_fit * np.sqrt(r))
-            u = np.where(np.isin(sol.status, st.USABLE)[:, None] & np.isfinite(u), u, np.nan)
+            u = np.where(st.among(sol.status, st.USABLE)[:, None] & np.isfinite(u), u, np.nan)
             count = np.sum(np.isfinite(u), axis=0)
             pooled = np.nanmedian(u) / MAD_NORMAL if np.any(count) else np.nan
             with np.errstate(all="ignore"), warnings.catch_warnings():
@@ -891,7 +927,7 @@ class Locator:
             xx = np.where(np.isfinite(f.x), f.x, x0)
             u = (model.predict(xx) - obs) / (sig * s_h)
             val = np.nansum(weight.rho(u), axis=1)
-            return np.where(np.isin(f.status, st.USABLE), val, np.inf)
+            return np.where(st.among(f.status, st.USABLE), val, np.inf)
 
         take_b = objective(fb) < objective(fa)
         fit = _merge(fa, fb, np.arange(len(take_b)), take_b)
@@ -938,7 +974,7 @@ class Locator:
         def score(f: LinearFit, rows: slice | NDArray) -> Array:
             xx = np.nan_to_num(f.x)
             c = lms_score((model.predict(xx) - zs) / ss, dim)
-            return np.where(np.isin(f.status, st.USABLE), c, np.inf)
+            return np.where(st.among(f.status, st.USABLE), c, np.inf)
 
         take = score(refit, sus) < score(_rows(fit, sus), sus)
         if not np.any(take):

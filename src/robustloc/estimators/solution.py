@@ -60,7 +60,7 @@ class Solution:
     @property
     def ok(self) -> NDArray[np.bool_]:
         """Epochs with a usable position."""
-        return np.isin(self.status, st.USABLE) & np.all(np.isfinite(self.position), axis=1)
+        return st.among(self.status, st.USABLE) & np.all(np.isfinite(self.position), axis=1)
 
     def excluded_ids(self, anchor_ids: list[str] | NDArray) -> list[str]:
         """``;``-joined ids of the excluded observations of each epoch (positions file)."""

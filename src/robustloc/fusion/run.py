@@ -256,7 +256,7 @@ def fuse(
     layout = _layout_status(tl.time_s, heard, a_xy, opts.geometry_window_s)
     status = np.asarray(tr.status, dtype=object).copy()
     if tr.time_s.size:
-        fixed = np.isin(status, (st.OK, st.FAULT_EXCLUDED))
+        fixed = st.among(status, (st.OK, st.FAULT_EXCLUDED))
         status = np.where(fixed & (layout != ""), layout, status)
         # nothing valid arrived with the event: its own input was unusable
         bad_event = np.isfinite(tl.z[..., c_inv]) & (status == st.PREDICTED)

@@ -153,7 +153,7 @@ def _nls_fix(
     status[heard < dim + 1] = st.INSUFFICIENT
     # not_converged is a usable fix (every step was damped and lowered the cost): it is
     # kept, and reported as such rather than relabelled ok
-    usable = np.isin(status, st.USABLE)
+    usable = st.among(status, st.USABLE)
     good = usable & np.isfinite(fit.x).all(axis=1)
     status[~good & usable] = st.ILL_CONDITIONED
     return UwbFix(

@@ -204,7 +204,7 @@ class RaimFde:
         far less than the noise."""
         N = res.used.shape[0]
         amb = np.zeros(N, dtype=bool)
-        cand = np.flatnonzero((res.n_excluded > 0) & np.isin(res.status, (st.FAULT_EXCLUDED,)))
+        cand = np.flatnonzero((res.n_excluded > 0) & (res.status == st.FAULT_EXCLUDED))
         if cand.size == 0:
             return amb
         He, le = lin(cand)
@@ -353,7 +353,7 @@ class RaimFde:
         # RTKLIB-like geometry screen on top of the tests
         dop = dops(pred_H, used, xf[:, :3], absent_f)
         gd = dop[:, 0]
-        status[np.isin(status, (st.OK, st.FAULT_EXCLUDED)) & ~(gd <= solver.max_gdop)] = (
+        status[st.among(status, (st.OK, st.FAULT_EXCLUDED)) & ~(gd <= solver.max_gdop)] = (
             st.ILL_CONDITIONED
         )
         extra = {
@@ -367,8 +367,8 @@ class RaimFde:
             "readmitted": readmitted,
             "n_excluded": excluded.sum(axis=1),
             "w": ws[:, :S],
-            "hpl_m": np.where(np.isin(status, st.USABLE), hpl, np.nan),
-            "vpl_m": np.where(np.isin(status, st.USABLE), vpl, np.nan),
+            "hpl_m": np.where(st.among(status, st.USABLE), hpl, np.nan),
+            "vpl_m": np.where(st.among(status, st.USABLE), vpl, np.nan),
             "mdb_m": mdb,
             "lambda0": self.lambda0,
             "w_crit": res.w_crit,

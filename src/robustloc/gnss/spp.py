@@ -247,7 +247,7 @@ class SppResult:
     @property
     def ok(self) -> NDArray[np.bool_]:
         """Epochs with a usable fix."""
-        return np.isin(self.status, st.USABLE) & np.all(np.isfinite(self.xyz_m), axis=1)
+        return st.among(self.status, st.USABLE) & np.all(np.isfinite(self.xyz_m), axis=1)
 
     def enu_errors(self, ref_xyz_m: NDArray[np.float64]) -> NDArray[np.float64]:
         """East, north, up errors (m) of every epoch against a reference ECEF point."""
@@ -586,7 +586,7 @@ class SppSolver:
             status[n_used == 0] = st.INSUFFICIENT
         # positions are kept for 'unavailable' (RAIM: a fix whose integrity could not be
         # established; the status says so and `ok` excludes it)
-        bad = ~np.isin(status, (*st.USABLE, st.UNAVAILABLE))
+        bad = ~st.among(status, (*st.USABLE, st.UNAVAILABLE))
         xyz = np.where(bad[:, None], np.nan, x[:, :3])
         clk = np.where(bad[:, None] | absent, np.nan, x[:, 3:])
         return SppResult(

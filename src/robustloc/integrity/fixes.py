@@ -78,17 +78,6 @@ __all__ = ["protect", "protection_levels_local"]
 _H = slice(0, 2)
 
 
-def _among(status: NDArray[np.object_], values: tuple[str, ...] | frozenset[str]
-           ) -> NDArray[np.bool_]:
-    """``np.isin(status, values)`` for an object array of status strings, without its
-    sort of Python objects (one vectorized comparison per value: 10x faster here)."""
-    status = np.asarray(status, dtype=object)
-    out = np.zeros(status.shape, dtype=bool)
-    for value in values:
-        out |= status == value
-    return out
-
-
 def protection_levels_local(
     J: Array, sigma: Array, used: NDArray[np.bool_], lam0: float, k_noise: float,
     engine: str = "compiled",
@@ -211,7 +200,7 @@ def protect(
     k = w_critical(alpha0) if k_noise is None else float(k_noise)
     lam0 = lambda0(alpha0, beta0)
     status = np.array(sol.status, dtype=object)
-    testable = _among(status, (st.OK, st.FAULT_EXCLUDED))
+    testable = st.among(status, (st.OK, st.FAULT_EXCLUDED))
     heard = np.isfinite(v) & np.isfinite(sig) & np.all(np.isfinite(J), axis=2)
     excl = sol.excluded if sol.excluded.shape == (N, n) else np.zeros((N, n), dtype=bool)
     used = heard & ~excl
@@ -255,7 +244,7 @@ def protect(
     if again.size:
         hpl[again], vpl[again], _ = protection_levels_local(
             J[again], sig[again] * factor[again, None], keep[again], lam0, k)
-    usable = _among(new, st.USABLE)
+    usable = st.among(new, st.USABLE)
     unbounded = (new == st.UNVERIFIED) | blind
     hpl = np.where(usable, np.where(unbounded, np.inf, hpl), np.nan)
     vpl = np.where(usable & (p == 3), np.where(unbounded, np.inf, vpl), np.nan)
@@ -271,9 +260,9 @@ def protect(
             new[usable & far] = st.EXTRAPOLATED
     if alert_limit is not None:
         with np.errstate(invalid="ignore"):
-            new[_among(new, st.USABLE) & (new != st.PREDICTED) & ~(hpl <= alert_limit)] = (
+            new[st.among(new, st.USABLE) & (new != st.PREDICTED) & ~(hpl <= alert_limit)] = (
                 st.PROTECTION_EXCEEDED)
-    usable = _among(new, st.USABLE)
+    usable = st.among(new, st.USABLE)
     extra = dict(sol.extra)
     extra.update(hpl=np.where(usable, hpl, np.nan), vpl=np.where(usable, vpl, np.nan),
                  test_statistic=T, test_critical=crit, flagged=flagged,
@@ -357,7 +346,7 @@ def locate_protected(
         extra["robust_refit"] = np.ones(heavy.position.shape[0], dtype=bool)
         return _replace(heavy, method=AUTO, extra=extra)
     plain = protect(locator.solve_as("nls", anchors, values, kind, **kw), **pk)
-    redo = _among(plain.status, (st.FAULT_DETECTED, st.UNAVAILABLE))
+    redo = st.among(plain.status, (st.FAULT_DETECTED, st.UNAVAILABLE))
     if alert_limit is not None:  # a fix the alert limit refused may have failed its test
         redo |= (plain.status == st.PROTECTION_EXCEEDED) & ~(
             plain.extra["test_statistic"] <= plain.extra["test_critical"])

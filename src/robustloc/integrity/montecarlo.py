@@ -304,7 +304,7 @@ def _run_method(
         else:  # the classical single-exclusion RAIM policy (see module docstring)
             res = snoop_linear(H, y, layout.sigma, alpha=RAIM_SINGLE_ALPHA, alpha0=alpha0,
                                beta0=beta0, require_local=False, max_exclusions=1)
-        usable = np.isin(res.status, (st.OK, st.FAULT_EXCLUDED))
+        usable = st.among(res.status, (st.OK, st.FAULT_EXCLUDED))
         return res.x, res.excluded, res.detected, usable
     from robustloc.estimators import linear
 
@@ -320,7 +320,7 @@ def _run_method(
         fit = linear.irls(H, y, _weight(method), w0, scale=1.0)
         rel = np.nan_to_num(fit.w / w0, nan=1.0)
         rej = rel < reject_weight
-    usable = np.isin(fit.status, st.USABLE)
+    usable = st.among(fit.status, st.USABLE)
     return fit.x, rej, rej.any(axis=1), usable
 
 

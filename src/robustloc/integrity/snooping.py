@@ -160,7 +160,7 @@ class SnoopingResult:
             excluded=self.excluded.copy(),
             sigma0=s0,
             iterations=self.iterations.copy(),
-            converged=np.isin(self.status, (st.OK, st.FAULT_EXCLUDED)),
+            converged=st.among(self.status, (st.OK, st.FAULT_EXCLUDED)),
             status=self.status.copy(),
             n_used=self.n_used.copy(),
             method=method,

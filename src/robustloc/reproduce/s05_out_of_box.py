@@ -49,7 +49,7 @@ def _ours(case, method: str, rows: np.ndarray, anchors=None) -> tuple[np.ndarray
     # the whole log is solved (the log scale is the log's), the table takes ``rows``
     sol = locate_protected(Locator(method, sigma=sigma), xy, vals, case.kind, A=A, n=n,
                            height_offset=case.height_offset)
-    usable = np.isin(sol.status, st.USABLE)
+    usable = st.among(sol.status, st.USABLE)
     return sol.position[rows], usable[rows], sol.extra["hpl"][rows]
 
 

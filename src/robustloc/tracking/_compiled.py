@@ -15,9 +15,10 @@ NumPy for the range model (items 2-8 of the tracker's docstring, same order, sam
    kernel (:data:`robustloc.filters._compiled.KERNELS`, the tight model of the ranges only:
    ``pack_params(..., kinematic=False)``) -- the same compiled filter core as
    ``FusionFilter``;
-4. the B-method global test (``NIS > chi2(1 - alpha(m); m)``, table ``gcrit``) and the
-   "half rejected" rule: flags ``sus`` of the epochs the caller checks against the robust
-   snapshot fix (NumPy, for those tags only), and ``moved``;
+4. the B-method global test (``NIS > chi2(1 - alpha(m); m)``, table ``gcrit``) -- a
+   failure that one w-test exclusion explains (:func:`one_fault_explains`) passes -- and
+   the "half rejected" rule: flags ``sus`` of the epochs the caller checks against the
+   robust snapshot fix (NumPy, for those tags only), and ``moved``;
 5. the Sage-Husa noise scale, the protection level ``hpl``, the status and the output row.
 
 The state of the tags lives in the tracker's arrays, indexed by slot ``sl[k]``; the kernel
@@ -46,6 +47,7 @@ from robustloc.filters._compiled import (
     ST_OK,
     ST_PREDICTED,
     STATUS_CHARS,
+    _cholesky,
     fusion_step_4,
     fusion_step_6,
     offsets,
@@ -55,22 +57,73 @@ from robustloc.filters._compiled import (
 )
 
 # layout of the tracker's settings vector (:func:`pack_settings`)
-_CUSUM_K, _CUSUM_H, _READMIT, _LO, _HI, _FORGET, _SQRT_LAM0, _K_IR = range(8)
+_CUSUM_K, _CUSUM_H, _READMIT, _LO, _HI, _FORGET, _SQRT_LAM0, _K_IR, _W2 = range(9)
 #: Status codes written into ``code`` (as :data:`robustloc.filters._compiled.STATUSES`).
 CODES = (ST_OK, ST_FAULT_EXCLUDED, ST_PREDICTED)
 
 
 def pack_settings(cusum_k: float, cusum_h: float, readmit_samples: int, noise_lo: float,
                   noise_hi: float, noise_forget: float, sqrt_lambda0: float,
-                  k_ir: float) -> np.ndarray:
+                  k_ir: float, w2_crit: float) -> np.ndarray:
     """The tracker's settings as one float vector for :func:`track_round_4` / ``_6``.
 
     ``cusum_h = inf`` disables the step detector; ``noise_lo, noise_hi`` are the bounds of
     the squared noise scale ``s^2``; ``sqrt_lambda0`` the root of the w-test's
-    non-centrality (MDB factor), ``k_ir`` the noise multiplier of ``hpl``.
+    non-centrality (MDB factor), ``k_ir`` the noise multiplier of ``hpl``, ``w2_crit`` the
+    squared critical value of the w-test (``chi2.isf(alpha0, 1)``).
     """
     return np.array([cusum_k, cusum_h, float(readmit_samples), noise_lo, noise_hi,
-                     noise_forget, sqrt_lambda0, k_ir], dtype=np.float64)
+                     noise_forget, sqrt_lambda0, k_ir, w2_crit], dtype=np.float64)
+
+
+@njit(cache=True, nogil=True)
+def one_fault_explains(M, hv, Pp, rd, y, av, w2_crit, crit_less, S, L, Li, u,
+                       c):  # pragma: no cover - jit
+    """Data snooping with one exclusion (seed 003; :func:`robustloc.tracking.tracker.
+    one_fault_explains` is the NumPy reference): True when the largest w-test statistic
+    ``w_i^2 = (S^-1 y)_i^2 / (S^-1)_ii`` of the available components exceeds ``w2_crit``
+    and the global test of the others passes: ``y^T S^-1 y - w_i^2 <= crit_less`` (the
+    innovation quadratic form without component ``i``).  ``S = H P- H^T + diag(rd)`` from
+    the position rows ``hv (M, 2)`` of the range Jacobian; ``S, L (M, M)``, ``Li, u, c
+    (M,)`` are scratch."""
+    for i in range(M):
+        for j in range(i + 1):
+            v = (hv[i, 0] * (Pp[0, 0] * hv[j, 0] + Pp[0, 1] * hv[j, 1])
+                 + hv[i, 1] * (Pp[1, 0] * hv[j, 0] + Pp[1, 1] * hv[j, 1]))
+            if i == j:
+                v += rd[i]
+            S[i, j] = v
+            S[j, i] = v
+    if not _cholesky(S, 1.0, av, M, L, Li):
+        return False
+    for i in range(M):  # u = S^-1 y (zero where not available)
+        v = y[i] if av[i] else 0.0
+        for j in range(i):
+            v -= L[i, j] * u[j]
+        u[i] = v * Li[i]
+    for i in range(M - 1, -1, -1):
+        v = u[i]
+        for j in range(i + 1, M):
+            v -= L[j, i] * u[j]
+        u[i] = v * Li[i]
+    q = 0.0
+    best = 0.0
+    for i in range(M):
+        if not av[i]:
+            continue
+        q += y[i] * u[i]
+        # (S^-1)_ii = |L^-1 e_i|^2: column i of L^-1 by forward substitution
+        d = 0.0
+        for j in range(i, M):
+            v = 1.0 if j == i else 0.0
+            for r in range(i, j):
+                v -= L[j, r] * c[r]
+            c[j] = v * Li[j]
+            d += c[j] * c[j]
+        w2 = u[i] * u[i] / d
+        if w2 > best:
+            best = w2
+    return best > w2_crit and q - best <= crit_less
 
 
 @njit(cache=True, nogil=True)
@@ -101,6 +154,7 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
     readmit = int(tset[_READMIT])
     lo, hi, lf = tset[_LO], tset[_HI], tset[_FORGET]
     sl0, kir = tset[_SQRT_LAM0], tset[_K_IR]
+    w2c = tset[_W2]
     max_held = max(1, (M - 1) // 2)
     rssi = rssi_A.shape[0] > 0
 
@@ -140,6 +194,12 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
     hvk = np.empty((M, 2))
     alarm = np.empty(M, np.bool_)
     use = np.empty(M, np.bool_)
+    avk = np.empty(M, np.bool_)
+    Ssn = np.empty((M, M))
+    Lsn = np.empty((M, M))
+    Lisn = np.empty(M)
+    usn = np.empty(M)
+    csn = np.empty(M)
 
     # ---- pass 1: prediction, innovations, CUSUM, holds (items 2 and 4 of the tracker)
     d_prev = math.nan
@@ -245,8 +305,16 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
         nu = iout[k]
         c0 = sout[k * STATUS_CHARS]
         c = ST_OK if c0 == c_ok else (ST_FAULT_EXCLUDED if c0 == c_fe else ST_PREDICTED)
-        # global test (seed 003) and the "half rejected" rule
-        sus[k] = ma > 0 and (nis > gcrit[ma] or 2 * nu <= ma)
+        # global test (seed 003), unless one w-test exclusion explains its failure, and
+        # the "half rejected" rule
+        fail = ma > 0 and nis > gcrit[ma]
+        if fail and ma >= 2:
+            for i in range(M):
+                avk[i] = math.isfinite(zf[k, i])
+            if one_fault_explains(M, hv[k], Pp_o[k], rd[k], y[k], avk, w2c, gcrit[ma - 1],
+                                  Ssn, Lsn, Lisn, usn, csn):
+                fail = False
+        sus[k] = ma > 0 and (fail or 2 * nu <= ma)
         Pn00 = fout[o_P + k * nn]
         Pn01 = fout[o_P + k * nn + 1]
         Pn10 = fout[o_P + k * nn + n]

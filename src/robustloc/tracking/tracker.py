@@ -33,7 +33,11 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
 5. **Innovation tests (B-method, seed 003).**  The global test of the normalized
    innovation squared ``NIS`` over the ``m`` heard components uses the critical value
    ``chi2(1 - alpha(m); m)`` with ``alpha(m)`` tied to the w-test (``alpha0``, ``beta0``)
-   by :func:`robustloc.integrity.bmethod.global_alpha`.  An epoch whose test rejects, or
+   by :func:`robustloc.integrity.bmethod.global_alpha`.  A rejection that one w-test
+   exclusion explains (data snooping: the largest ``|w_i|`` beyond the w-test's critical
+   value, and the test of the other ``m - 1`` components passing; :func:`one_fault_explains`)
+   is one faulty link, which the robust update already down-weights: the epoch passes.
+   An epoch whose test rejects otherwise, or
    whose robust weights rejected half of the components, is checked against the robust
    snapshot fix of the epoch (when its anchors allow one): it fails when the filtered
    position lies outside the ``1 - alpha0`` ellipse of the fix's covariance ``C_fix``.  After
@@ -259,6 +263,7 @@ class Tracker:
         self._lam0 = lambda0(self.settings.alpha0, self.settings.beta0)
         self._k_ir = math.sqrt(chi2.isf(self.settings.integrity_risk, 2))
         self._chi2_fix = float(chi2.isf(self.settings.alpha0, 2))  # 2-D fix ellipse
+        self._w2_crit = float(chi2.isf(self.settings.alpha0, 1))  # w-test, squared
         self._gcrit = global_critical(np.arange(0, M + 1), None, self.settings.alpha0,
                                       self.settings.beta0)
 
@@ -368,7 +373,7 @@ class Tracker:
                 self._tset = _compiled.pack_settings(
                     s.cusum_k, math.inf if s.cusum_h is None else s.cusum_h,
                     s.readmit_samples, s.noise_scale_min**2, s.noise_scale_max**2,
-                    s.noise_forget, math.sqrt(self._lam0), self._k_ir)
+                    s.noise_forget, math.sqrt(self._lam0), self._k_ir, self._w2_crit)
                 rssi = self._kind == "rssi"  # held links' offsets live in dB
                 self._rssi_A = np.asarray(A if rssi else np.zeros(0), dtype=float)
                 self._rssi_n = np.asarray(nn if rssi else np.zeros(0), dtype=float)
@@ -466,7 +471,7 @@ class Tracker:
         s = self.settings
         sol = self._fix(z)
         pos = np.asarray(sol.position, dtype=float)
-        ok = np.isin(sol.status, st.USABLE) & np.all(np.isfinite(pos), axis=1)
+        ok = st.among(sol.status, st.USABLE) & np.all(np.isfinite(pos), axis=1)
         cov = self._fix_cov(pos, z, np.asarray(sol.excluded, bool))
         var = np.diagonal(cov, axis1=1, axis2=2) if cov.ndim == 3 else np.full(pos.shape, np.nan)
         var = np.where(np.isfinite(var), var, 4.0)
@@ -632,9 +637,15 @@ class Tracker:
         crit = self._gcrit[dof]
         with np.errstate(invalid="ignore"):
             test_fail = (dof > 0) & (nis > crit)
-        # a suspicious epoch (the global test failed, or half the components rejected) is
-        # checked against the robust snapshot fix: a filter that drifted off, or locked
-        # onto a wrong solution (two consistent links, the others rejected), disagrees
+        # a suspicious epoch (the global test failed and one exclusion does not explain
+        # it, or half the components rejected) is checked against the robust snapshot
+        # fix: a filter that drifted off, or locked onto a wrong solution (two consistent
+        # links, the others rejected), disagrees
+        cand = test_fail & (dof >= 2)
+        if cand.any():  # a failure that one w-test exclusion explains passes
+            test_fail[cand] = ~one_fault_explains(
+                H[cand], Pp[cand], Rd[cand], y[cand], avail[cand], self._w2_crit,
+                self._gcrit[dof[cand] - 1])
         sus = test_fail | ((dof > 0) & (2 * nu <= dof))
 
         # --- adaptive noise scale (accepted components, robust weights)
@@ -845,6 +856,38 @@ class Tracker:
         if not self.record:
             raise ValueError("smoothing needs Tracker(..., record=True)")
         return rts_rows(self._history, n_rows, self.n, self._motion, lag)
+
+
+def one_fault_explains(H: Array, Pp: Array, Rd: Array, y: Array, avail: NDArray[np.bool_],
+                       w2_crit: float, crit_less: Array) -> NDArray[np.bool_]:
+    """Data snooping with one exclusion (seed 003): does one faulty component explain a
+    failed global test?
+
+    With ``S = H P- H^T + diag(Rd)`` over the available components and ``u = S^-1 y``,
+    the w-test statistic of component ``i`` is ``w_i = u_i / sqrt((S^-1)_ii)`` and the
+    innovation quadratic form without component ``i`` is ``y^T S^-1 y - w_i^2`` (the
+    Schur complement of ``S``).  True where the largest ``w_i^2`` exceeds ``w2_crit`` and
+    the remaining quadratic form passes ``crit_less`` (the global test's critical value
+    for one component fewer).  NumPy reference of the compiled
+    :func:`robustloc.tracking._compiled.one_fault_explains`.
+
+    Parameters
+    ----------
+    H : ``(K, M, n)`` Jacobians at the prediction; Pp : ``(K, n, n)`` predicted covariances;
+    Rd : ``(K, M)`` measurement variances; y : ``(K, M)`` innovations; avail : ``(K, M)``
+        components in the update; w2_crit : squared w-test critical value;
+    crit_less : ``(K,)`` critical values of the global test with one component fewer.
+    """
+    K, M = avail.shape
+    S = H @ Pp @ np.swapaxes(H, 1, 2) + Rd[:, :, None] * np.eye(M)[None]
+    S = np.where(avail[:, :, None] & avail[:, None, :], S, np.eye(M)[None])
+    Si = np.linalg.inv(S)
+    y0 = np.where(avail, y, 0.0)
+    u = (Si @ y0[:, :, None])[:, :, 0]
+    q = np.sum(y0 * u, axis=1)
+    w2 = np.where(avail, u * u / np.diagonal(Si, axis1=1, axis2=2), 0.0)
+    best = w2.max(axis=1) if M else np.zeros(K)
+    return (best > w2_crit) & (q - best <= crit_less)
 
 
 def _fixed(status: NDArray[np.object_]) -> NDArray[np.bool_]:
