@@ -33,3 +33,21 @@ def test_s10_quick_on_excerpts(tmp_path, no_shared_data):
     html = (tmp_path / "report.html").read_text()
     assert "Table 1" in html and "seed000_ble_cdf.png" in html
     assert (tmp_path / "seed000_wifi_office_cdf.png").stat().st_size > 1000
+
+
+def test_only_takes_a_unique_prefix_and_refuses_unknown_sections(tmp_path, capsys):
+    """``--only s60`` names ``s60_tracks``; an unknown or ambiguous name is the user's
+    mistake: ``error: argument --only: ...`` and exit code 2, before any work."""
+    from robustloc.cli import main
+    from robustloc.reproduce import section_modules
+
+    assert [m.KEY for m in section_modules(["s60"])] == ["s60_tracks"]
+    assert [m.KEY for m in section_modules(["s10_ble_ranging", "s6"])] == [
+        "s10_ble_ranging", "s60_tracks"]
+    for bad in ("s99", "s"):  # unknown; a prefix of every section
+        assert main(["reproduce", "--only", bad, "-o", str(tmp_path / "r")]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: argument --only: unknown or ambiguous section(s) "
+                              f"{bad};"), err
+        assert "Traceback" not in err
+    assert not (tmp_path / "r").exists()

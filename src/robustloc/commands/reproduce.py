@@ -29,6 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from robustloc.errors import InputError
     from robustloc.paths import resolve_data_dir
     from robustloc.reproduce import Context, run_all, section_modules
 
@@ -38,6 +39,10 @@ def run(args: argparse.Namespace) -> int:
         return 0
     from robustloc._jitnotice import compile_notice
 
+    try:  # a mistyped --only is the user's mistake, found before any work
+        section_modules(args.only)
+    except ValueError as exc:
+        raise InputError(f"argument --only: {exc}") from None
     compile_notice("positioning", "filter")
     data_dir = resolve_data_dir(args.data)
     ctx = Context(out_dir=Path(args.out), data_dir=data_dir, seed=args.seed, quick=args.quick)

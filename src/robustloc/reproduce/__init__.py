@@ -92,13 +92,18 @@ def section_modules(only: list[str] | None = None) -> list:
             mods.append(mod)
     mods.sort(key=lambda m: getattr(m, "ORDER", 100))
     if only:
-        unknown = set(only) - {m.KEY for m in mods}
-        if unknown:
+        keys = [m.KEY for m in mods]
+        # a section by its key or a unique prefix of it (``s60`` for ``s60_tracks``)
+        chosen = {o: [k for k in keys if k == o] or [k for k in keys if k.startswith(o)]
+                  for o in only}
+        bad = sorted(o for o, ks in chosen.items() if len(ks) != 1)
+        if bad:
             raise ValueError(
-                f"unknown section(s) {', '.join(sorted(unknown))}; "
-                f"available: {', '.join(m.KEY for m in mods)}"
+                f"unknown or ambiguous section(s) {', '.join(bad)}; "
+                f"available: {', '.join(keys)}"
             )
-        mods = [m for m in mods if m.KEY in only]
+        wanted = {ks[0] for ks in chosen.values()}
+        mods = [m for m in mods if m.KEY in wanted]
     return mods
 
 
