@@ -4,7 +4,7 @@ Modules
 -------
 rinex
     ``read_obs`` (fast RINEX 2 reader, RINEX 3 via georinex), ``read_nav`` (RINEX 2 GPS
-    reader, RINEX 3 GPS/Galileo/BeiDou via georinex, Klobuchar coefficients).
+    and RINEX 3 GPS/Galileo/BeiDou record readers, Klobuchar coefficients).
 ephemeris
     Broadcast orbits and clocks at transmit time (IS-GPS-200 table 20-IV, relativity, TGD/BGD,
     BeiDou GEO, week rollover).

@@ -5,8 +5,15 @@
   the whole file are then cut into fixed-width fields and converted by NumPy in one go.  It is
   about ten times faster than georinex 1.16 on the shared GEONET file and prints no
   warnings; ``tests/test_gnss_rinex.py`` checks it value by value against georinex.
-* RINEX 3 observation files and all navigation files are read through georinex, with its
-  xarray ``FutureWarning``/``DeprecationWarning`` flood silenced.
+* RINEX 2 GPS and RINEX 3 navigation files are read by fixed-width record readers of our
+  own (:func:`read_nav`): georinex 1.16 turns a RINEX 3 record with a blank field (a spare
+  written as blanks, e.g. Galileo BROADCAST ORBIT 5 or BeiDou's) into NaN and the record
+  was lost, and it files a second record of the same epoch (Galileo I/NAV + F/NAV) under a
+  made-up satellite ``E01_1``.  ``tests/test_gnss_orbits_reference.py`` checks the records
+  against RTKLIB.
+* RINEX 3 observation files and the other navigation files (RINEX 2 non-GPS, RINEX 4) are
+  read through georinex, with its xarray ``FutureWarning``/``DeprecationWarning`` flood
+  silenced.
 
 Times are GPS time in seconds since 1980-01-06 00:00:00 (``t_gps_s``), a float64.
 
@@ -481,13 +488,17 @@ def _klobuchar_from_header(hdr_lines: list[str]) -> tuple[NDArray | None, NDArra
 def read_nav(paths: str | PathLike[str] | list) -> NavData:
     """Read one or several RINEX 2/3 navigation files (GPS, Galileo, BeiDou records).
 
-    GLONASS, SBAS and QZSS records are ignored (use SP3 for GLONASS).  Raises
-    :class:`InputError` for a truncated or malformed file.
+    RINEX 2 GPS files and RINEX 3 files are read by the fixed-width record readers of this
+    module (:func:`_read_nav_v2`, :func:`_read_nav_v3`): every GPS, Galileo and BeiDou
+    record of the file becomes one row, including Galileo I/NAV and F/NAV records of the
+    same epoch.  Other RINEX 2 navigation types and RINEX 4 go through georinex.  GLONASS,
+    SBAS, QZSS and NavIC records are skipped (use SP3 for GLONASS).  Raises
+    :class:`InputError` with the file and line for a truncated or malformed record, or a
+    blank orbit or clock parameter, instead of dropping the record.
     """
     if isinstance(paths, (str, PathLike)):
         paths = [paths]
-    sat_l, toc_l, toe_l = [], [], []
-    par_l: dict[str, list] = {k: [] for k in (*_KEPLER, "tgd")}
+    recs: list[dict[str, NDArray]] = []
     alpha = beta = None
     for p in paths:
         p = str(p)
@@ -503,63 +514,77 @@ def read_nav(paths: str | PathLike[str] | list) -> NavData:
             raise InputError("no ephemeris records after the header", p, i0 + 1)
         if version < 3 and ftype == "N":
             rec = _read_nav_v2(lines, i0, p)
-            if rec is not None:
-                for k in _KEPLER:
-                    par_l[k].append(rec[k])
-                par_l["tgd"].append(np.nan_to_num(rec["TGD"]))
-                sat_l.append(rec["sat"])
-                toc_l.append(rec["toc"])
-                toe_l.append(rec["toe"])
-            continue
-        ds = _georinex_load(p)
-        if ds is None or "sv" not in ds.coords:
-            raise InputError("no ephemeris records could be read", p)
-        svs = np.asarray([str(s) for s in ds.sv.values])
-        for sysch, tgd_name in (("G", "TGD"), ("E", "BGDe5a"), ("C", "TGD1")):
-            sel = np.char.startswith(svs, sysch)
-            if not sel.any() or "sqrtA" not in ds:
-                continue
-            sub = ds.isel(sv=np.nonzero(sel)[0])
-            sq = np.asarray(sub["sqrtA"].values)
-            ti, si = np.nonzero(np.isfinite(sq))
-            if ti.size == 0:
-                continue
-            toc = datetime64_to_gps_s(sub.time.values[ti])
-            if sysch == "C":
-                toc = toc + BDT_OFFSET_S  # georinex gives BDT epochs; convert to GPS time
-            toe_sow = np.asarray(sub["Toe"].values)[ti, si]
-            toe_sow = toe_sow + (BDT_OFFSET_S if sysch == "C" else 0.0)
-            toc_sow = np.mod(toc, WEEK_S)
-            d = toe_sow - toc_sow
-            d = d - WEEK_S * np.round(d / WEEK_S)  # week rollover-safe
-            sat_l.append(np.asarray([str(s) for s in sub.sv.values])[si])
-            toc_l.append(toc)
-            toe_l.append(toc + d)
-            for k in _KEPLER:
-                if k in sub:
-                    par_l[k].append(np.asarray(sub[k].values, dtype=np.float64)[ti, si])
-                else:
-                    par_l[k].append(np.zeros(ti.size))
-            tg = sub[tgd_name] if tgd_name in sub else None
-            if tg is None and sysch == "E" and "BGDe5b" in sub:
-                tg = sub["BGDe5b"]
-            par_l["tgd"].append(
-                np.zeros(ti.size) if tg is None
-                else np.nan_to_num(np.asarray(tg.values, dtype=np.float64)[ti, si])
-            )
-    if not sat_l:
+        elif 3 <= version < 4:
+            rec = _read_nav_v3(lines, i0, p)
+        else:
+            rec = _nav_from_georinex(p)
+        if rec is not None:
+            recs.append(rec)
+    if not recs:
         raise InputError("no GPS, Galileo or BeiDou ephemeris in the navigation file(s)",
                          str(paths[0]))
-    sat = np.concatenate(sat_l)
-    params = {k: np.concatenate(v) for k, v in par_l.items()}
-    params["health"] = np.nan_to_num(params["health"])
-    good = np.all(np.isfinite(np.stack([params[k] for k in _KEPLER if k != "health"])), axis=0)
     return NavData(
-        sat[good], np.concatenate(toc_l)[good], np.concatenate(toe_l)[good],
-        {k: v[good] for k, v in params.items()}, alpha, beta, [str(p) for p in paths],
+        np.concatenate([r["sat"] for r in recs]),
+        np.concatenate([r["toc"] for r in recs]),
+        np.concatenate([r["toe"] for r in recs]),
+        {k: np.concatenate([r[k] for r in recs]) for k in (*_KEPLER, "tgd")},
+        alpha, beta, [str(p) for p in paths],
     )
 
 
+def _nav_from_georinex(path: str) -> dict[str, NDArray] | None:
+    """GPS, Galileo and BeiDou records of a navigation file georinex reads (RINEX 2 types
+    other than GPS, RINEX 4).  georinex names the second record of a satellite at the same
+    epoch ``E01_1``: the suffix is removed so that the record stays with its satellite."""
+    ds = _georinex_load(path)
+    if ds is None or "sv" not in ds.coords:
+        raise InputError("no ephemeris records could be read", path)
+    svs = np.asarray([str(s) for s in ds.sv.values])
+    sat_l, toc_l, toe_l = [], [], []
+    par_l: dict[str, list] = {k: [] for k in (*_KEPLER, "tgd")}
+    for sysch, tgd_name in (("G", "TGD"), ("E", "BGDe5a"), ("C", "TGD1")):
+        sel = np.char.startswith(svs, sysch)
+        if not sel.any() or "sqrtA" not in ds:
+            continue
+        sub = ds.isel(sv=np.nonzero(sel)[0])
+        sq = np.asarray(sub["sqrtA"].values)
+        ti, si = np.nonzero(np.isfinite(sq))
+        if ti.size == 0:
+            continue
+        toc = datetime64_to_gps_s(sub.time.values[ti])
+        if sysch == "C":
+            toc = toc + BDT_OFFSET_S  # georinex gives BDT epochs; convert to GPS time
+        toe_sow = np.asarray(sub["Toe"].values)[ti, si]
+        toe_sow = toe_sow + (BDT_OFFSET_S if sysch == "C" else 0.0)
+        sat_l.append(np.asarray([str(s).split("_")[0] for s in sub.sv.values])[si])
+        toc_l.append(toc)
+        toe_l.append(_resolve_toe(toc, toe_sow))
+        for k in _KEPLER:
+            name = "SatH1" if (k == "health" and sysch == "C") else k
+            par_l[k].append(np.asarray(sub[name].values, dtype=np.float64)[ti, si]
+                            if name in sub else np.zeros(ti.size))
+        tg = sub[tgd_name] if tgd_name in sub else None
+        par_l["tgd"].append(
+            np.zeros(ti.size) if tg is None else np.asarray(tg.values, dtype=np.float64)[ti, si]
+        )
+    if not sat_l:
+        return None
+    out = {k: np.concatenate(v) for k, v in par_l.items()}
+    for k in ("health", "tgd"):
+        out[k] = np.nan_to_num(out[k])
+    if not np.all(np.isfinite(np.stack([out[k] for k in _REQUIRED]))):
+        raise InputError("georinex left orbit or clock parameters of a record unreadable",
+                         path)
+    out["sat"] = np.concatenate(sat_l)
+    out["toc"] = np.concatenate(toc_l)
+    out["toe"] = np.concatenate(toe_l)
+    return out
+
+
+#: Parameters without which a record cannot place the satellite: a blank one is an error.
+_REQUIRED = tuple(k for k in _KEPLER if k != "health")
+
+#: Field names line by line of a GPS record (RINEX 2.11 table A4 = RINEX 3.04 table A6).
 _NAV2_FIELDS = (
     ("SVclockBias", "SVclockDrift", "SVclockDriftRate"),
     ("IODE", "Crs", "DeltaN", "M0"),
@@ -570,6 +595,91 @@ _NAV2_FIELDS = (
     ("SVacc", "health", "TGD", "IODC"),
     ("TransTime", "FitIntvl"),
 )
+
+#: RINEX 3.04 broadcast records of the systems NavData holds, field names line by line
+#: (tables A6 GPS, A8 Galileo, A14 BeiDou; ``""`` = spare).  Each record is 8 lines.
+_NAV3_FIELDS = {
+    "G": _NAV2_FIELDS,
+    "E": (
+        _NAV2_FIELDS[0], ("IODnav", "Crs", "DeltaN", "M0"), *_NAV2_FIELDS[2:5],
+        ("IDOT", "DataSrc", "GALWeek", ""), ("SISA", "health", "BGDe5a", "BGDe5b"),
+        ("TransTime",),
+    ),
+    "C": (
+        _NAV2_FIELDS[0], ("AODE", "Crs", "DeltaN", "M0"), *_NAV2_FIELDS[2:5],
+        ("IDOT", "", "BDTWeek", ""), ("SVacc", "SatH1", "TGD1", "TGD2"),
+        ("TransTime", "AODC"),
+    ),
+}
+#: Group delay used as ``tgd`` (GPS TGD; Galileo BGD E1/E5a; BeiDou TGD1 B1I/B3I) and the
+#: health word used as ``health`` (BeiDou: SatH1, the autonomous health flag).
+_TGD_FIELD = {"G": "TGD", "E": "BGDe5a", "C": "TGD1"}
+_HEALTH_FIELD = {"G": "health", "E": "health", "C": "SatH1"}
+#: Orbit lines after the record's first line, per system (RINEX 3.04 tables A6-A16;
+#: GLONASS has a fourth orbit line from RINEX 3.05 on).
+_NAV3_ORBIT_LINES = {"G": (7,), "E": (7,), "C": (7,), "J": (7,), "I": (7,), "R": (3, 4),
+                     "S": (3,)}
+
+
+def _nav_field_grid(lines: list[str], rec_lines: NDArray[np.int64], col_first: int,
+                    col_other: int, path: str) -> NDArray[np.float64]:
+    """Numbers of fixed-width navigation records as an ``(R, L, 4)`` array, NaN if blank.
+
+    ``rec_lines[r]`` are the ``L`` line indices of record ``r``.  The first line holds three
+    19-character fields from column ``col_first`` (after satellite and epoch), the others
+    four from ``col_other`` (RINEX 2.11 table A4: ``22``/``3``, ``3X,4D19.12``; RINEX 3.04
+    tables A6-A14: ``23``/``4``, ``4X,4D19.12``), with ``D`` or ``E`` exponents.  Blank
+    fields (spares, and the trailing fields of right-trimmed lines) are NaN; anything else
+    that is not a number raises :class:`InputError` naming its line.
+    """
+    nrec, nlin = rec_lines.shape
+    block = "".join(
+        lines[j][:80].replace("D", "E").replace("d", "e").ljust(80)
+        for j in rec_lines.ravel().tolist()
+    )
+    buf = np.frombuffer(block.encode("ascii", errors="replace"), dtype="S1")
+    buf = buf.reshape(nrec, nlin, 80)
+    out = np.full((nrec, nlin, 4), np.nan)
+    for li in range(nlin):
+        c0, nf = (col_first, 3) if li == 0 else (col_other, 4)
+        for fi in range(nf):
+            c = c0 + 19 * fi
+            fld = buf[:, li, c : c + 19].copy().view("S19").ravel()
+            blank = np.char.strip(fld) == b""
+            try:
+                out[:, li, fi] = np.where(blank, b"nan", fld).astype(np.float64)
+            except ValueError:
+                bad = next(k for k in range(nrec) if not blank[k] and not _isfloat(fld[k]))
+                raise InputError(
+                    f"malformed number {fld[bad].decode(errors='replace').strip()!r}",
+                    path, int(rec_lines[bad, li]) + 1,
+                ) from None
+    return out
+
+
+def _resolve_toe(toc_gps_s: NDArray[np.float64], toe_sow: NDArray[np.float64]) -> NDArray:
+    """Ephemeris reference time in GPS seconds: the ``toe`` second of week nearest ``toc``
+    (so the week number written in the file, and its rollover, do not matter)."""
+    d = toe_sow - np.mod(toc_gps_s, WEEK_S)
+    return toc_gps_s + (d - WEEK_S * np.round(d / WEEK_S))
+
+
+def _named_params(grid: NDArray[np.float64], layout: tuple[tuple[str, ...], ...],
+                  tgd: str, health: str, sat: NDArray[np.str_], rec_lines: NDArray[np.int64],
+                  path: str) -> dict[str, NDArray[np.float64]]:
+    """NavData parameters of records of one layout; a blank required field is an error."""
+    where = {name: (li, fi) for li, names in enumerate(layout)
+             for fi, name in enumerate(names) if name}
+    out: dict[str, NDArray[np.float64]] = {}
+    for k in (*_KEPLER, "tgd"):
+        li, fi = where[{"tgd": tgd, "health": health}.get(k, k)]
+        v = grid[:, li, fi]
+        if k in _REQUIRED and np.isnan(v).any():
+            r = int(np.flatnonzero(np.isnan(v))[0])
+            raise InputError(f"{sat[r]} record without {k} (blank field {fi + 1} of its "
+                             f"line {li + 1})", path, int(rec_lines[r, li]) + 1)
+        out[k] = np.nan_to_num(v)  # blank health / group delay: not given, read as 0
+    return out
 
 
 def _read_nav_v2(lines: list[str], i0: int, path: str) -> dict[str, NDArray] | None:
@@ -587,25 +697,8 @@ def _read_nav_v2(lines: list[str], i0: int, path: str) -> dict[str, NDArray] | N
     nrec = len(idx) // 8
     if nrec == 0:
         return None
-    block = "".join(
-        lines[j][:79].replace("D", "E").replace("d", "e").ljust(79) for j in idx
-    )
-    buf = np.frombuffer(block.encode("ascii", errors="replace"), dtype="S1").reshape(nrec, 8, 79)
-    out: dict[str, NDArray] = {}
-    for li, names in enumerate(_NAV2_FIELDS):
-        for fi, name in enumerate(names):
-            c0 = 22 + 19 * fi if li == 0 else 3 + 19 * fi
-            fld = buf[:, li, c0 : c0 + 19].copy().view("S19").ravel()
-            blank = np.char.strip(fld) == b""
-            try:
-                vals = np.where(blank, b"nan", fld).astype(np.float64)
-            except ValueError:
-                bad = next(k for k in range(nrec) if not blank[k] and not _isfloat(fld[k]))
-                raise InputError(
-                    f"malformed number {fld[bad].decode(errors='replace').strip()!r}",
-                    path, idx[8 * bad + li] + 1,
-                ) from None
-            out[name] = vals
+    rec_lines = np.asarray(idx, dtype=np.int64).reshape(nrec, 8)
+    grid = _nav_field_grid(lines, rec_lines, 22, 3, path)
     sats, tocs = [], []
     for k in range(nrec):
         ln = lines[idx[8 * k]]
@@ -625,9 +718,79 @@ def _read_nav_v2(lines: list[str], i0: int, path: str) -> dict[str, NDArray] | N
             np.datetime64(f"{yy + (2000 if yy < 80 else 1900):04d}-{mo:02d}-{dd:02d}T"
                           f"{hh:02d}:{mi:02d}", "ns") + np.int64(round(ss * 1e9))
         )
+    out = _named_params(grid, _NAV2_FIELDS, "TGD", "health", np.array(sats), rec_lines, path)
     toc = datetime64_to_gps_s(np.array(tocs, dtype="datetime64[ns]"))
-    d = out["Toe"] - np.mod(toc, WEEK_S)
     out["sat"] = np.array(sats)
     out["toc"] = toc
-    out["toe"] = toc + (d - WEEK_S * np.round(d / WEEK_S))
+    out["toe"] = _resolve_toe(toc, out["Toe"])
+    return out
+
+
+def _read_nav_v3(lines: list[str], i0: int, path: str) -> dict[str, NDArray] | None:
+    """Reader of the GPS, Galileo and BeiDou records of a RINEX 3 navigation file.
+
+    A record starts with a line whose first column holds the system letter
+    (``SNN YYYY MM DD HH MM SS`` + 3 fields), followed by orbit lines indented by four
+    blanks (RINEX 3.04 section 6.11, tables A6-A16).  Records of the other systems are
+    skipped by counting their orbit lines.  Fields are cut by column, never by
+    concatenating lines, so right-trimmed lines and blank spare fields read correctly
+    (georinex 1.16 turns a record with a blank field into NaN and drops it).  Epochs of
+    BeiDou records are BDT and converted to GPS time (+14 s); Galileo system time is
+    aligned with GPS time.
+    """
+    idx = [j for j in range(i0, len(lines)) if lines[j].strip()]
+    heads = [p for p, j in enumerate(idx) if lines[j][:1] != " "]
+    if not heads or heads[0] != 0:
+        raise InputError("orbit line without a record header line (SNN YYYY MM DD ...)",
+                         path, idx[0] + 1)
+    keep: list[int] = []  # positions in idx of the kept records' first lines
+    for h, p in enumerate(heads):
+        ln = lines[idx[p]]
+        n_orbit = (heads[h + 1] if h + 1 < len(heads) else len(idx)) - p - 1
+        sysch = ln[0]
+        if sysch not in _NAV3_ORBIT_LINES:
+            raise InputError(f"unknown satellite system {sysch!r} in record header "
+                             f"{ln[:23]!r} (expected one of GRECJSI)", path, idx[p] + 1)
+        if n_orbit not in _NAV3_ORBIT_LINES[sysch]:
+            want = " or ".join(str(n) for n in _NAV3_ORBIT_LINES[sysch])
+            raise InputError(f"{ln[:3]} record has {n_orbit} orbit lines, expected {want} "
+                             "(truncated record or a line missing)", path, idx[p] + 1)
+        if sysch in _NAV3_FIELDS:
+            keep.append(p)
+    if not keep:
+        return None
+    rec_lines = np.asarray([idx[p : p + 8] for p in keep], dtype=np.int64)
+    sats, tocs = [], []
+    for j in rec_lines[:, 0].tolist():
+        ln = lines[j]
+        try:
+            prn = int(ln[1:3].replace(" ", "0"))
+            y, mo, d, hh, mi, ss = (int(ln[c : c + w]) for c, w in
+                                    ((4, 4), (9, 2), (12, 2), (15, 2), (18, 2), (21, 2)))
+        except ValueError as exc:
+            raise InputError(f"malformed record header {ln[:23]!r} (expected "
+                             "'SNN YYYY MM DD HH MM SS')", path, j + 1) from exc
+        if prn < 1:
+            raise InputError(f"satellite number must be >= 1, got {ln[:3]!r}", path, j + 1)
+        _calendar(y, mo, d, hh, mi, ss, "clock epoch (toc)", path, j + 1)
+        sats.append(f"{ln[0]}{prn:02d}")
+        tocs.append(np.datetime64(f"{y:04d}-{mo:02d}-{d:02d}T{hh:02d}:{mi:02d}:{ss:02d}",
+                                  "ns"))
+    sat = np.array(sats)
+    toc = datetime64_to_gps_s(np.array(tocs, dtype="datetime64[ns]"))
+    system = np.array([s[0] for s in sats])
+    grid = _nav_field_grid(lines, rec_lines, 23, 4, path)
+    out: dict[str, NDArray] = {k: np.zeros(len(sats)) for k in (*_KEPLER, "tgd")}
+    for sysch, layout in _NAV3_FIELDS.items():
+        m = system == sysch
+        if not m.any():
+            continue
+        par = _named_params(grid[m], layout, _TGD_FIELD[sysch], _HEALTH_FIELD[sysch], sat[m],
+                            rec_lines[m], path)
+        for k, v in par.items():
+            out[k][m] = v
+    shift = np.where(system == "C", BDT_OFFSET_S, 0.0)  # BDT = GPST - 14 s
+    out["sat"] = sat
+    out["toc"] = toc + shift
+    out["toe"] = _resolve_toe(out["toc"], out["Toe"] + shift)
     return out
