@@ -226,3 +226,95 @@ def test_rinex3_nav_gps_galileo_beidou(tmp_path: Path) -> None:
     assert c3.sum() == 3
     np.testing.assert_allclose(nav3.toc_gps_s[c3], nav3.toc_gps_s[g3] + 14.0)
     np.testing.assert_allclose(nav3.toe_gps_s[c3], nav3.toe_gps_s[g3] + 14.0)
+
+
+_NAV3_HEAD = [
+    "     3.04           N: GNSS NAV DATA    M: Mixed            RINEX VERSION / TYPE",
+    "                                                            END OF HEADER",
+]
+
+
+def _nav3_body() -> list[str]:
+    """Three Galileo and three BeiDou records (the GEONET GPS records rewritten), 8 lines
+    each, every line padded to 80 columns."""
+    lines = NAV.read_text().splitlines()
+    i0 = next(i for i, ln in enumerate(lines) if "END OF HEADER" in ln) + 1
+    recs = [lines[i : i + 8] for i in range(i0, i0 + 8 * 3, 8)]
+    return [ln.ljust(80) for ln in _nav3_from_nav2(recs, "E") + _nav3_from_nav2(recs, "C")]
+
+
+def _blank(line: str, field: int) -> str:
+    """The line with its orbit field ``field`` (1-4, RINEX 3 columns 4 + 19 (field - 1))
+    replaced by blanks."""
+    c = 4 + 19 * (field - 1)
+    return line[:c] + " " * 19 + line[c + 19 :]
+
+
+def test_rinex3_nav_blank_spares_trimmed_lines_and_other_systems(tmp_path: Path) -> None:
+    """Blank spare fields, right-trimmed lines and GLONASS (3 or, RINEX 3.05, 4 orbit lines)
+    and SBAS records in between read as the padded, zero-filled file (georinex 1.16 turned
+    a record with a blank field into NaN, and read_nav dropped it)."""
+    body = _nav3_body()
+    ref = read_nav(_write(tmp_path, "padded.rnx", "\n".join(_NAV3_HEAD + body) + "\n"))
+    assert ref.sat.tolist() == ["E01", "E03", "E03", "C01", "C03", "C03"]
+    mod = list(body)
+    for r in range(6):
+        bo5 = 8 * r + 5  # BROADCAST ORBIT 5: Galileo spare = field 4, BeiDou fields 2 and 4
+        mod[bo5] = _blank(mod[bo5], 4) if r < 3 else _blank(_blank(mod[bo5], 2), 4)
+    mod = [ln.rstrip() for ln in mod]
+    glo = ["R01 2005 04 02 00 15 00 1.0E-04 0.0E+00 0.0E+00"] + ["     1.0E+00"] * 3
+    glo305 = ["R02 2005 04 02 00 15 00 1.0E-04 0.0E+00 0.0E+00"] + ["     1.0E+00"] * 4
+    sbas = ["S22 2005 04 02 00 15 00 1.0E-04 0.0E+00 0.0E+00"] + ["     1.0E+00"] * 3
+    mod = glo + mod[:8] + glo305 + mod[8:24] + [""] + sbas + mod[24:]
+    nav = read_nav(_write(tmp_path, "trimmed.rnx", "\n".join(_NAV3_HEAD + mod) + "\n"))
+    assert nav.sat.tolist() == ref.sat.tolist() and nav.n_records == 6
+    np.testing.assert_array_equal(nav.toc_gps_s, ref.toc_gps_s)
+    np.testing.assert_array_equal(nav.toe_gps_s, ref.toe_gps_s)
+    for k, v in ref.params.items():
+        np.testing.assert_array_equal(nav.params[k], v, err_msg=k)
+
+
+def _nav3_error(tmp_path: Path, body: list[str]) -> InputError:
+    with pytest.raises(InputError) as e:
+        read_nav(_write(tmp_path, "bad.rnx", "\n".join(_NAV3_HEAD + body) + "\n"))
+    return e.value
+
+
+def test_rinex3_nav_problems_name_the_line(tmp_path: Path) -> None:
+    """A record is never dropped: its problem is reported with the file line (1-based;
+    the header is 2 lines, so body line i is file line i + 3)."""
+    body = _nav3_body()
+    cut = body[:9] + body[10:]  # second Galileo record (lines 8-15) loses an orbit line
+    e = _nav3_error(tmp_path, cut)
+    assert "6 orbit lines, expected 7" in str(e) and e.line == 8 + 3
+    assert e.path is not None and e.path.endswith("bad.rnx")
+    e = _nav3_error(tmp_path, body[:-1])  # the file ends inside the last record
+    assert "orbit lines" in str(e) and e.line == 40 + 3
+    blank = list(body)
+    blank[26] = _blank(blank[26], 4)  # BeiDou record 1, BROADCAST ORBIT 2: sqrtA
+    e = _nav3_error(tmp_path, blank)
+    assert "without sqrtA" in str(e) and e.line == 26 + 3
+    bad = list(body)
+    bad[19] = bad[19][:6] + "1.2345X-08" + bad[19][16:]
+    e = _nav3_error(tmp_path, bad)
+    assert "malformed number" in str(e) and e.line == 19 + 3
+    unknown = list(body)
+    unknown[16] = "X" + unknown[16][1:]
+    e = _nav3_error(tmp_path, unknown)
+    assert "unknown satellite system 'X'" in str(e) and e.line == 16 + 3
+    month = list(body)
+    month[32] = month[32][:9] + "13" + month[32][11:]
+    e = _nav3_error(tmp_path, month)
+    assert "impossible clock epoch" in str(e) and e.line == 32 + 3
+    e = _nav3_error(tmp_path, body[1:])
+    assert "orbit line without a record header" in str(e) and e.line == 0 + 3
+
+
+def test_rinex2_nav_blank_orbit_parameter_is_an_error(tmp_path: Path) -> None:
+    """A blank sqrtA used to make read_nav drop the record silently."""
+    lines = NAV.read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if "END OF HEADER" in ln) + 1 + 8 + 2
+    lines[k] = lines[k][:60] + " " * 19  # second record, BROADCAST ORBIT 2, field 4
+    with pytest.raises(InputError, match="without sqrtA") as e:
+        read_nav(_write(tmp_path, "blank.05n", "\n".join(lines) + "\n"))
+    assert e.value.line == k + 1
