@@ -221,3 +221,58 @@ def test_spp_survives_any_navigation_file(obs_excerpt, tmp_path, capsys, data):
     n_epochs = sum(bool(_EPOCH.match(ln)) for ln in obs_excerpt.read_text().splitlines())
     assert len(sol) == n_epochs
 
+
+
+def _rinex3_nav() -> list[str]:
+    """The shipped GPS navigation excerpt rewritten as a RINEX 3.04 file (4-column indent,
+    4-digit year; the layout of RINEX 3.04 table A6)."""
+    lines = NAV.read_text().splitlines()
+    i0 = next(k for k, ln in enumerate(lines) if "END OF HEADER" in ln) + 1
+    out = ["     3.04           N: GNSS NAV DATA    G: GPS              RINEX VERSION / TYPE"]
+    for ln in lines[:i0]:  # ION ALPHA/BETA (2X,4D12.4) -> IONOSPHERIC CORR GPSA/B (A4,1X,4D12.4)
+        kind = {"ION ALPHA": "GPSA ", "ION BETA": "GPSB "}.get(ln[60:].strip())
+        if kind:
+            out.append((kind + ln[2:50]).ljust(60) + "IONOSPHERIC CORR")
+    out.append(" " * 60 + "END OF HEADER")
+    body = [ln for ln in lines[i0:] if ln.strip()]
+    for r in range(0, len(body) - 7, 8):
+        h = body[r]
+        yy, mo, dd, hh, mi = (int(h[c : c + 3]) for c in (2, 5, 8, 11, 14))
+        out.append(f"G{int(h[:2]):02d} {2000 + yy:04d} {mo:02d} {dd:02d} {hh:02d} {mi:02d} "
+                   f"{int(float(h[17:22])):02d}" + h[22:79])
+        out += ["    " + ln[3:79] for ln in body[r + 1 : r + 8]]
+    return out
+
+
+@settings(FUZZ, max_examples=30)
+@given(data=hs.data())
+def test_spp_survives_any_rinex3_navigation_file(obs_excerpt, tmp_path, capsys, data):
+    """The RINEX 3 record reader (read_nav) on mutated records: an error naming the file,
+    or a solution with a row per epoch."""
+    lines = _rinex3_nav()
+    work = Path(tempfile.mkdtemp(dir=tmp_path))  # one folder per example
+    nav = work / "fuzz.rnx"
+    i0 = next(k for k, ln in enumerate(lines) if "END OF HEADER" in ln) + 1
+    nav.write_text("\n".join(data.draw(_mutated(lines, i0, [4, 23, 42, 61]))) + "\n")
+    out = work / "sol.csv"
+    rc, err = _run(["spp", str(obs_excerpt), str(nav), "--systems", "G", "-o", str(out)],
+                   capsys)
+    if rc == 2:
+        _check_error(err, nav, out)
+        return
+    sol = pd.read_csv(out)
+    assert set(sol["status"]) <= STATUSES
+    n_epochs = sum(bool(_EPOCH.match(ln)) for ln in obs_excerpt.read_text().splitlines())
+    assert len(sol) == n_epochs
+
+
+def test_rinex3_navigation_excerpt_solves_as_the_rinex2_one(obs_excerpt, tmp_path, capsys):
+    """The unmutated base of the fuzz test above is a valid file: same solution as RINEX 2."""
+    nav3 = tmp_path / "nav.rnx"
+    nav3.write_text("\n".join(_rinex3_nav()) + "\n")
+    sols = []
+    for k, nav in enumerate((NAV, nav3)):
+        out = tmp_path / f"sol{k}.csv"
+        assert main(["spp", str(obs_excerpt), str(nav), "--systems", "G", "-o", str(out)]) == 0
+        sols.append(pd.read_csv(out))
+    pd.testing.assert_frame_equal(sols[0], sols[1])
