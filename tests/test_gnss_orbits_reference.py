@@ -96,7 +96,7 @@ _FIELDS = (  # RINEX 3.04 table A6 (GPS/Galileo) and A14 (BeiDou): broadcast orb
 
 def _nav_from_rinex3_records(path: Path, sat: str) -> NavData:
     """The records of one satellite read by this test, independently of ``read_nav`` (so the
-    orbit code is checked even where the parser drops records): 19-character fields."""
+    orbit code is checked apart from the parser): 19-character fields."""
     lines = path.read_text().splitlines()
     start = next(i for i, ln in enumerate(lines) if "END OF HEADER" in ln) + 1
     recs = []
