@@ -292,3 +292,79 @@ def test_compiled_protection_levels_equal_the_numpy_reference(seed, p, n, n_epoc
         else:
             tol = rtol[~edge][fin]
             assert np.all(np.abs(a[fin] - b[fin]) <= tol * np.abs(b[fin]) + 1e-12), name
+
+
+# ---- ambiguity across the anchors' line (issue 10, misleading fixes) ----
+NEAR_LINE = np.array([[0.0, 0.0], [10.0, 0.5], [20.0, -0.5], [30.0, 0.0]])
+
+
+def _at(sol, model, x):
+    """``sol`` with its one fix moved to ``x``: residuals and design recomputed there (the
+    estimator having converged to that minimum)."""
+    from dataclasses import replace
+
+    f, J = model.predict_jacobian(x)
+    d = model.predict(sol.position) - sol.extra["range_residuals"]  # observed ranges
+    extra = dict(sol.extra, range_residuals=f - d, jacobian=J)
+    return replace(sol, position=x, extra=extra)
+
+
+def test_fix_on_the_mirror_side_is_covered_by_the_ambiguity_term():
+    """Four nearly collinear anchors, the tag 3 m on one side, ranges with 5 cm errors and
+    sigma 0.3 m: the second minimum across the anchors' line (found independently by scipy
+    from the reflected truth) fits the ranges within the test, so a fix there is wrong by
+    about 6 m while its residuals are small.  The slope bound alone (no anchors given)
+    does not cover that error; with the anchors the bound covers the distance to the
+    alternative."""
+    from scipy.optimize import least_squares
+
+    from robustloc.models.ranging import RangeModel
+
+    truth = np.array([[15.0, 3.0]])
+    d = ranges(NEAR_LINE, truth) + np.array([0.05, -0.05, 0.05, -0.05])
+    loc = Locator("nls", sigma=0.3, robust_scale="apriori")
+    sol = loc.solve(NEAR_LINE, d)
+    refl = np.array([15.0, -3.0])
+    res = least_squares(lambda p: (np.linalg.norm(p - NEAR_LINE, axis=1) - d[0]) / 0.3, refl)
+    mirror = res.x[None, :]
+    assert mirror[0, 1] < -2.0  # the second minimum is across the line
+    model = RangeModel(NEAR_LINE)
+    wrong = _at(sol, model, mirror)
+    old = protect(wrong)
+    new = protect(wrong, range_model=model)
+    err = float(np.linalg.norm(mirror - truth))
+    # the precondition: the wrong fix passes its own test (a misleading fix, not a failure)
+    assert old.status[0] == st.OK and old.extra["test_statistic"][0] == pytest.approx(
+        2 * res.cost, rel=1e-6)
+    assert old.extra["hpl"][0] < err  # the slope bound misses it
+    assert new.extra["hpl"][0] >= err
+    assert new.extra["ambiguity_distance"][0] == pytest.approx(err, abs=0.2)
+    # and a fix on the right side is bounded as well (its alternative is the mirror)
+    right = protect(_at(sol, model, truth), range_model=model)
+    assert right.extra["hpl"][0] >= float(np.linalg.norm(mirror - truth))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st_.floats(-3.0, 3.0), st_.floats(-20.0, 20.0), st_.floats(1.0, 15.0),
+       st_.floats(-1.5, 1.5))
+def test_mirror_solution_is_the_exact_reflection_for_collinear_anchors(angle, along, off,
+                                                                        shift):
+    """Exactly collinear anchors, noise-free ranges: the mirror image of the fix across
+    the anchors' line fits every range exactly (hand-derived: reflection keeps every
+    distance to a point on the line), and mirror_solution returns it."""
+    from robustloc.integrity.fixes import mirror_solution
+    from robustloc.models.ranging import RangeModel
+
+    u = np.array([np.cos(angle), np.sin(angle)])
+    nrm = np.array([-u[1], u[0]])
+    base = np.array([3.0, -2.0]) + shift * nrm
+    a = base + np.outer([-10.0, -2.0, 5.0, 12.0], u)
+    x = base + along * u + off * nrm
+    model = RangeModel(a)
+    f, J = model.predict_jacobian(x[None])
+    v = np.zeros((1, 4))  # the fix fits exactly
+    x_alt, T_alt, J_alt = mirror_solution(model, x[None], v, np.full((1, 4), 0.5),
+                                          np.ones((1, 4), dtype=bool))
+    np.testing.assert_allclose(x_alt[0], base + along * u - off * nrm, atol=1e-6)
+    assert T_alt[0] < 1e-10
+    assert np.all(np.isfinite(J_alt))
