@@ -68,7 +68,9 @@ For each epoch, at the fix ``x`` of any method, with the range-domain residuals
    wifi-rtt-rss corridor (four nearly collinear access points) after ``calibrate
    --self``: every fix whose error exceeded its bound lay across the anchors' line from
    the truth (cross-line error 8.8 m median, along 0.5 m), and the mirror passed the
-   fix's test in 72 % of them (issue 10).
+   fix's test in 72 % of them (issue 10); the term takes the misleading share there from
+   15 % to 4.3 % (the rest: the mirror fails a test whose sigma, the calibrated sigma
+   times the log's MAD scale, is 0.4-0.8 of the residual spread at the truth).
 
 The a-priori ``sigma_i`` carries the whole statistical meaning: with the log's scale it is
 the robust spread of each anchor's residuals over the log, so a fix whose residuals are
