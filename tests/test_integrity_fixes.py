@@ -368,3 +368,28 @@ def test_mirror_solution_is_the_exact_reflection_for_collinear_anchors(angle, al
     np.testing.assert_allclose(x_alt[0], base + along * u - off * nrm, atol=1e-6)
     assert T_alt[0] < 1e-10
     assert np.all(np.isfinite(J_alt))
+
+
+def test_ambiguity_check_runs_only_where_the_anchors_are_elongated():
+    """Anchors spread over the plane: no alternative is searched and the bound is the slope
+    bound (the nearly collinear case above is searched).  The elongation is the
+    eigenvalue ratio of the kept anchors' scatter (points on a line give 0)."""
+    from robustloc.integrity.fixes import AMBIGUITY_ELONGATION, anchor_elongation
+    from robustloc.models.ranging import RangeModel
+
+    sq = np.array([[0.0, 0.0], [20.0, 0.0], [20.0, 20.0], [0.0, 20.0], [10.0, 0.0]])
+    keep_all = np.ones((1, 5), dtype=bool)
+    line = np.array([[True, True, False, False, True]])
+    assert anchor_elongation(sq, keep_all)[0] == pytest.approx(
+        np.linalg.eigvalsh(np.cov(sq.T))[0] / np.linalg.eigvalsh(np.cov(sq.T))[1])
+    assert anchor_elongation(sq, line)[0] == pytest.approx(0.0, abs=1e-12)
+    assert anchor_elongation(sq, keep_all)[0] > AMBIGUITY_ELONGATION
+    x = np.array([[7.0, 6.0]])
+    d = ranges(sq, x)
+    model = RangeModel(sq)
+    spread = protect(Locator("nls", sigma=0.3, robust_scale="apriori").solve(sq, d),
+                     range_model=model)
+    assert spread.status[0] == st.OK
+    assert np.isnan(spread.extra["ambiguity_distance"][0])  # not searched
+    assert spread.extra["hpl"][0] == pytest.approx(
+        protect(Locator("nls", sigma=0.3, robust_scale="apriori").solve(sq, d)).extra["hpl"][0])
