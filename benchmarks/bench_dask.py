@@ -180,6 +180,9 @@ class RssPoller:
 
         self.procs = [psutil.Process(p) for p in pids]
         self.peak = {p: 0 for p in pids}
+        #: the last CPU seconds seen per process (a worker the nanny restarts -- over its
+        #: memory limit -- is gone at the end; its CPU up to the last poll still counts)
+        self.cpu = {p: 0.0 for p in pids}
         self.interval = interval_s
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -193,6 +196,8 @@ class RssPoller:
                     rss = p.memory_info().rss
                     for c in p.children(recursive=True):
                         rss += c.memory_info().rss
+                    t = p.cpu_times()
+                    self.cpu[p.pid] = t.user + t.system
                 except psutil.Error:
                     continue
                 self.peak[p.pid] = max(self.peak[p.pid], rss)
@@ -215,15 +220,19 @@ def _children_cpu_s() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def _cpu_s(pids: list[int]) -> float:
+def _cpu_s(pids: list[int], last_seen: dict[int, float] | None = None) -> float:
     """CPU seconds used so far by these processes and by this one (the scheduler, the
-    client's planning): what a dask run costs, counted against dask."""
+    client's planning): what a dask run costs, counted against dask.  A process that is
+    gone counts with ``last_seen[pid]`` (its last polled value), else 0."""
     import psutil
 
     total = 0.0
     for pid in pids:
-        c = psutil.Process(pid).cpu_times()
-        total += c.user + c.system
+        try:
+            c = psutil.Process(pid).cpu_times()
+            total += c.user + c.system
+        except psutil.NoSuchProcess:
+            total += (last_seen or {}).get(pid, 0.0)
     r = resource.getrusage(resource.RUSAGE_SELF)
     return total + r.ru_utime + r.ru_stime
 
@@ -258,7 +267,12 @@ def run_in_cluster(client: object, argv: list[str]) -> tuple[float, float, float
         rc = main([*argv, "--scheduler", client.scheduler.address])
     if rc:
         raise RuntimeError(f"robustloc {' '.join(argv)} exited with {rc}")
-    return time.perf_counter() - t0, _cpu_s(pids) - c0, poll.max_mib()
+    wall = time.perf_counter() - t0
+    gone = set(pids) - set(client.run(os.getpid).values())
+    if gone:  # the nanny restarted a worker (over its memory limit): say so, loudly
+        print(f"WARNING: {len(gone)} worker(s) restarted during {argv[0]}; their CPU after "
+              "the last poll and the new workers' memory are not counted", file=sys.stderr)
+    return wall, _cpu_s(pids, poll.cpu) - c0, poll.max_mib()
 
 
 def same(a_path: Path, b_path: Path, key: list[str]) -> str:
