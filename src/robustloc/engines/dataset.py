@@ -151,7 +151,9 @@ def _parquet_file(part: Partition):
     import pyarrow.parquet as pq
 
     try:
-        return pq.ParquetFile(part.path)
+        # no pre-buffering: its read cache grows with every row group read
+        # (robustloc.io.tables._iter_raw)
+        return pq.ParquetFile(part.path, pre_buffer=False)
     except Exception as exc:  # noqa: BLE001 - any pyarrow failure is a bad partition
         raise InputError(f"cannot read Parquet partition: {exc}", part.path) from None
 
