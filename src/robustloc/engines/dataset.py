@@ -187,12 +187,16 @@ def inspect(part: Partition, need: tuple[str, ...] = ("time", "tag"),
     if "time" in cols and n:
         rng = _time_range_from_statistics(pf)
         if rng is None:
-            t = pf.read(columns=["time"]).column("time")
             try:
                 import pyarrow.compute as pc
 
-                mm = pc.min_max(t)
-                rng = float(mm["min"].as_py()), float(mm["max"].as_py())
+                lo, hi = np.inf, -np.inf
+                for b in pf.iter_batches(batch_size=_PLAN_BATCH_ROWS, columns=["time"]):
+                    mm = pc.min_max(b.column(0))
+                    if mm["min"].as_py() is not None:
+                        lo = min(lo, float(mm["min"].as_py()))
+                        hi = max(hi, float(mm["max"].as_py()))
+                rng = lo, hi
             except Exception:  # noqa: BLE001 - non-numeric time: the reader names the line
                 rng = -np.inf, np.inf
         tmin, tmax = rng
@@ -202,9 +206,17 @@ def inspect(part: Partition, need: tuple[str, ...] = ("time", "tag"),
         if "tag" not in cols and hive_tag is not None:
             tagset = frozenset([hive_tag])
         elif "tag" in cols:
-            col = pf.read(columns=["tag"]).column("tag").unique().to_pylist()
-            tagset = frozenset(_id_text(v) for v in col if v is not None)
+            # batch by batch: the whole column of a 100 M-row partition is ~1.4 GiB of
+            # strings, which paused a 2 GiB worker (memory bounded by one batch now)
+            seen: set[object] = set()
+            for b in pf.iter_batches(batch_size=_PLAN_BATCH_ROWS, columns=["tag"]):
+                seen.update(b.column(0).unique().to_pylist())
+            tagset = frozenset(_id_text(v) for v in seen if v is not None)
     return PartitionInfo(part, n, cols, tmin, tmax, tagset)
+
+
+#: Rows per batch when the planner reads a partition's columns (bounded memory).
+_PLAN_BATCH_ROWS = 1 << 20
 
 
 def _time_range_from_statistics(pf: object) -> tuple[float, float] | None:
@@ -285,21 +297,31 @@ def count_epochs(part: Partition) -> int | None:
         schema = pq.read_schema(part.path)
         has_tag = "tag" in schema.names
         dict_tag = has_tag and pa.types.is_string(schema.field("tag").type)
-        t = pq.read_table(part.path, columns=["time"] + (["tag"] if has_tag else []),
-                          read_dictionary=["tag"] if dict_tag else None)
-        if t.num_rows == 0:
-            return 0
-        time = np.asarray(t.column("time").to_numpy(), dtype=float)
-        change = time[1:] != time[:-1]
-        if has_tag:  # without it: a hive tree's one tag
-            tag = t.column("tag")
-            if not pa.types.is_dictionary(tag.type):
-                tag = pc.dictionary_encode(tag)
-            tag = tag.unify_dictionaries()
-            idx = np.concatenate([c.indices.to_numpy(zero_copy_only=False)
-                                  for c in tag.chunks])
-            change |= idx[1:] != idx[:-1]
-        return int(1 + np.count_nonzero(change))
+        pf = pq.ParquetFile(part.path, pre_buffer=False,
+                            read_dictionary=["tag"] if dict_tag else None)
+        runs = 0
+        last: tuple[float, object] | None = None  # the previous batch's last (time, tag)
+        # batch by batch (bounded memory), the run boundary carried across batches
+        for b in pf.iter_batches(batch_size=_PLAN_BATCH_ROWS,
+                                 columns=["time"] + (["tag"] if has_tag else [])):
+            if b.num_rows == 0:
+                continue
+            time = np.asarray(b.column(0).to_numpy(zero_copy_only=False), dtype=float)
+            change = time[1:] != time[:-1]
+            first_tag: object = None
+            last_tag: object = None
+            if has_tag:  # without it: a hive tree's one tag
+                tag = b.column(1)
+                if not pa.types.is_dictionary(tag.type):
+                    tag = pc.dictionary_encode(tag)
+                idx = tag.indices.to_numpy(zero_copy_only=False)
+                change |= idx[1:] != idx[:-1]
+                first_tag, last_tag = tag[0].as_py(), tag[-1].as_py()
+            runs += 1 + int(np.count_nonzero(change))
+            if last is not None and last == (float(time[0]), first_tag):
+                runs -= 1  # the batch continues the previous batch's epoch
+            last = (float(time[-1]), last_tag)
+        return runs
     except Exception:  # noqa: BLE001 - the reader reports the problem with its line
         return None
 
