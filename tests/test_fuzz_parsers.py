@@ -205,11 +205,18 @@ def test_spp_survives_any_observation_file(obs_excerpt, tmp_path, capsys, data):
 @settings(FUZZ, max_examples=30)
 @given(data=hs.data())
 def test_spp_survives_any_navigation_file(obs_excerpt, tmp_path, capsys, data):
-    lines = NAV.read_text().splitlines()
+    _spp_on_mutated_nav(NAV.read_text().splitlines(), "fuzz.05n", [3, 22, 41, 60],
+                        obs_excerpt, tmp_path, capsys, data)
+
+
+def _spp_on_mutated_nav(lines: list[str], name: str, columns: list[int], obs_excerpt,
+                        tmp_path, capsys, data) -> None:
+    """``spp`` on a mutated copy of the navigation file ``lines`` (fields starting at
+    ``columns`` mutated): an error naming the file, or a solution with a row per epoch."""
     i0 = next(k for k, ln in enumerate(lines) if "END OF HEADER" in ln) + 1
     work = Path(tempfile.mkdtemp(dir=tmp_path))  # one folder per example
-    nav = work / "fuzz.05n"
-    nav.write_text("\n".join(data.draw(_mutated(lines, i0, [3, 22, 41, 60]))) + "\n")
+    nav = work / name
+    nav.write_text("\n".join(data.draw(_mutated(lines, i0, columns))) + "\n")
     out = work / "sol.csv"
     rc, err = _run(["spp", str(obs_excerpt), str(nav), "--systems", "G", "-o", str(out)],
                    capsys)
@@ -220,7 +227,6 @@ def test_spp_survives_any_navigation_file(obs_excerpt, tmp_path, capsys, data):
     assert set(sol["status"]) <= STATUSES
     n_epochs = sum(bool(_EPOCH.match(ln)) for ln in obs_excerpt.read_text().splitlines())
     assert len(sol) == n_epochs
-
 
 
 def _rinex3_nav() -> list[str]:
@@ -249,21 +255,8 @@ def _rinex3_nav() -> list[str]:
 def test_spp_survives_any_rinex3_navigation_file(obs_excerpt, tmp_path, capsys, data):
     """The RINEX 3 record reader (read_nav) on mutated records: an error naming the file,
     or a solution with a row per epoch."""
-    lines = _rinex3_nav()
-    work = Path(tempfile.mkdtemp(dir=tmp_path))  # one folder per example
-    nav = work / "fuzz.rnx"
-    i0 = next(k for k, ln in enumerate(lines) if "END OF HEADER" in ln) + 1
-    nav.write_text("\n".join(data.draw(_mutated(lines, i0, [4, 23, 42, 61]))) + "\n")
-    out = work / "sol.csv"
-    rc, err = _run(["spp", str(obs_excerpt), str(nav), "--systems", "G", "-o", str(out)],
-                   capsys)
-    if rc == 2:
-        _check_error(err, nav, out)
-        return
-    sol = pd.read_csv(out)
-    assert set(sol["status"]) <= STATUSES
-    n_epochs = sum(bool(_EPOCH.match(ln)) for ln in obs_excerpt.read_text().splitlines())
-    assert len(sol) == n_epochs
+    _spp_on_mutated_nav(_rinex3_nav(), "fuzz.rnx", [4, 23, 42, 61], obs_excerpt, tmp_path,
+                        capsys, data)
 
 
 def test_rinex3_navigation_excerpt_solves_as_the_rinex2_one(obs_excerpt, tmp_path, capsys):
