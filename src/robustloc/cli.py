@@ -143,18 +143,48 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())
         return 0
     except OSError as exc:
+        if (code := _signalled(exc)) is not None:
+            return code
         name = _oserror_path(exc)
         if name is None:  # an OS error about no path the user gave: a bug
             return _internal_error()
         return error(f"{name}: {describe_oserror(exc)}")
     except ValueError as exc:
+        if (code := _signalled(exc)) is not None:
+            return code
         if _raised_by_command_module(exc):  # a command's own check of its options
             return error(str(exc))
         return _internal_error()
-    except Exception:  # noqa: BLE001 - anything else is a bug, shown as one
+    except Exception as exc:  # noqa: BLE001 - anything else is a bug, shown as one
+        if (code := _signalled(exc)) is not None:
+            return code
         return _internal_error()
     finally:
         _restore_sigterm(old)
+
+
+def _signalled(exc: BaseException) -> int | None:
+    """The exit code of an interrupt that a library turned into another exception.
+
+    A signal handled while a library runs its own Python code can surface wrapped: a
+    SIGINT that lands while numba loads a cached kernel (its ``_numba_unpickle``) reaches
+    the command as numba's error with the ``KeyboardInterrupt`` as its cause or context
+    (seen in ``tests/test_noloss_outputs.py``).  Such a run was interrupted, not a bug:
+    ``error: interrupted`` / ``terminated`` and exit 130 / 143.  None when no interrupt
+    is in ``exc``'s chain.
+    """
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, KeyboardInterrupt):
+            print("error: interrupted", file=sys.stderr)
+            return EXIT_SIGINT
+        if isinstance(e, Terminated):
+            print("error: terminated", file=sys.stderr)
+            return EXIT_SIGTERM
+        e = e.__cause__ or e.__context__
+    return None
 
 
 def _raised_by_command_module(exc: BaseException) -> bool:
