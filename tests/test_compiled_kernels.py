@@ -160,3 +160,28 @@ def test_compile_notice_only_before_the_first_compilation(tmp_path) -> None:
                          check=True)
     assert out.stdout.split() == ["True", "True"]
     assert "compiling the positioning and filter kernels" in out.stderr
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_grid_lms_equals_the_numpy_scoring_of_every_grid_point(dim: int) -> None:
+    """The rescue's compiled grid search returns, per epoch, the first grid point of least
+    :func:`lms_score` over the whole grid (an independent brute-force argmin here), with
+    unheard anchors (NaN), exact ties (a duplicated grid point) and an epoch with nothing
+    heard (index -1, score inf)."""
+    from robustloc.estimators import _compiled
+    from robustloc.estimators.ranging import lms_score
+    from robustloc.models.ranging import RangeModel
+
+    rng = np.random.default_rng(21 + dim)
+    a = A2 if dim == 2 else A3
+    grid = rng.uniform(-5.0, 35.0, (300, dim))
+    grid = np.vstack([grid, grid[:7]])  # ties: the first copy must win
+    pred = RangeModel(a).predict(grid)
+    z = _log(rng, 60, a)
+    sig = rng.uniform(0.2, 0.6, z.shape)
+    idx, score = _compiled.grid_lms(pred, z, sig, dim)
+    ref = lms_score(np.abs(pred[None] - z[:, None]) / sig[:, None], dim, axis=2)  # (S, G)
+    np.testing.assert_array_equal(score, ref.min(axis=1))
+    finite = np.isfinite(ref.min(axis=1))
+    np.testing.assert_array_equal(idx[finite], np.argmin(ref, axis=1)[finite])
+    assert np.all(idx[~finite] == -1) and (~finite).sum() == 1  # the epoch hearing nothing

@@ -393,3 +393,29 @@ def test_ambiguity_check_runs_only_where_the_anchors_are_elongated():
     assert np.isnan(spread.extra["ambiguity_distance"][0])  # not searched
     assert spread.extra["hpl"][0] == pytest.approx(
         protect(Locator("nls", sigma=0.3, robust_scale="apriori").solve(sq, d)).extra["hpl"][0])
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st_.integers(0, 10_000), m=st_.sampled_from([3, 5, 9, 64, 70]),
+       p=st_.sampled_from([2, 3]))
+def test_anchor_elongation_of_each_row_is_its_scatter_eigenvalue_ratio(seed, m, p):
+    """The elongation is computed once per distinct pattern of kept anchors (packed into
+    64-bit keys; more than 64 anchors take the multi-word path) and scattered back: each
+    row must still equal the ratio of the extreme eigenvalues of ``np.cov`` of that row's
+    kept anchors (the scale of the covariance cancels in the ratio), NaN below two
+    anchors.  Rows repeat patterns on purpose (few distinct patterns, as in a log)."""
+    from robustloc.integrity.fixes import anchor_elongation
+
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(-50.0, 50.0, (m, p))
+    pats = rng.random((4, m)) < rng.uniform(0.05, 0.9)
+    keep = pats[rng.integers(0, 4, 30)]
+    got = anchor_elongation(a, keep)
+    for row, g in zip(keep, got, strict=True):
+        if row.sum() < 2:
+            assert np.isnan(g)
+            continue
+        ev = np.linalg.eigvalsh(np.atleast_2d(np.cov(a[row].T)))
+        # eigenvalues of a scatter matrix: absolute error ~ eps * largest; the ratio's
+        # error is then ~ eps in units of 1
+        assert g == pytest.approx(max(ev[0], 0.0) / ev[-1], abs=1e-9)

@@ -661,3 +661,53 @@ def _fit_ranges(a, ho2, z, sig, x0, code, prm, robust, redescending, scale_fixed
         S0[e] = S0S[t]
         NU[e] = NUS[t]
     return X, V, W, QV, S0, COV, NU, IT, CONV, STAT, U
+
+
+# ------------------------------------------------------------------- rescue grid search
+def grid_lms(pred_grid: np.ndarray, z: np.ndarray, sig: np.ndarray, dim: int
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """Per epoch, the grid point of least :func:`~robustloc.estimators.ranging.lms_score`
+    of the scaled residuals ``|pred_grid[g] - z[e]| / sig[e]`` (``Locator._rescue``).
+
+    ``pred_grid (G, m)`` predicted observations at the grid points, ``z, sig (S, m)`` the
+    epochs' observations (NaN: not heard) and their sigmas.  Returns ``index (S,)`` (the
+    first grid point of the least score; -1 where every score is infinite) and that score.
+    The same order statistic and the same first-wins tie rule as the NumPy loop.
+    """
+    S, m = z.shape
+    index = np.empty(S, dtype=np.int64)
+    score = np.empty(S)
+    _grid_lms(np.ascontiguousarray(pred_grid, dtype=float),
+              np.ascontiguousarray(z, dtype=float), np.ascontiguousarray(sig, dtype=float),
+              int(dim), index, score, np.empty((3, m)))
+    return index, score
+
+
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def _grid_lms(pg, z, sig, dim, index, score, scratch):  # pragma: no cover - jit
+    G, m = pg.shape
+    res, tmp, buf = scratch[0], scratch[1], scratch[2]
+    for e in range(z.shape[0]):
+        best, best_c = -1, math.inf
+        for g in range(G):
+            # the score is the h-th smallest of the `heard` residuals (_lms); it can beat
+            # best_c only if more than h of them are below it: a point with more than
+            # heard - h - 1 residuals at or above best_c is skipped without sorting
+            heard, above = 0, 0
+            for i in range(m):
+                r = abs(pg[g, i] - z[e, i]) / sig[e, i]
+                res[i] = r
+                if r == r:
+                    heard += 1
+                    if r >= best_c:
+                        above += 1
+            if heard == 0:
+                continue
+            h = min(max((heard + 1) // 2, dim + 2), heard) - 1
+            if above > heard - h - 1:
+                continue
+            c = _lms(res, dim, tmp, buf)
+            if c < best_c:
+                best, best_c = g, c
+        index[e] = best
+        score[e] = best_c

@@ -957,18 +957,24 @@ class Locator:
         axes = [np.linspace(blo[k], bhi[k], per if dim == 2 or k < 2 else 5) for k in range(dim)]
         grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, dim)
         zs, ss = obs[sus], sig[sus]
-        best = np.full((sus.size, dim), np.nan)
-        best_c = np.full(sus.size, np.inf)
         pred_g = model.predict(grid)  # (G, m)
-        for g0 in range(0, grid.shape[0], 64):
-            pg = pred_g[g0 : g0 + 64]
-            r = np.abs(pg[None, :, :] - zs[:, None, :]) / ss[:, None, :]
-            c = lms_score(r, dim, axis=2)  # (S, G)
-            j = np.argmin(c, axis=1)
-            cj = c[np.arange(sus.size), j]
-            upd = cj < best_c
-            best[upd] = grid[g0 + j[upd]]
-            best_c[upd] = cj[upd]
+        if self.engine == "compiled":
+            from robustloc.estimators import _compiled
+
+            j, _ = _compiled.grid_lms(pred_g, zs, ss, dim)
+            best = np.where((j >= 0)[:, None], grid[np.maximum(j, 0)], np.nan)
+        else:
+            best = np.full((sus.size, dim), np.nan)
+            best_c = np.full(sus.size, np.inf)
+            for g0 in range(0, grid.shape[0], 64):
+                pg = pred_g[g0 : g0 + 64]
+                r = np.abs(pg[None, :, :] - zs[:, None, :]) / ss[:, None, :]
+                c = lms_score(r, dim, axis=2)  # (S, G)
+                j = np.argmin(c, axis=1)
+                cj = c[np.arange(sus.size), j]
+                upd = cj < best_c
+                best[upd] = grid[g0 + j[upd]]
+                best_c[upd] = cj[upd]
         refit = self._gn(model, zs, best, ss, wf)
 
         def score(f: LinearFit, rows: slice | NDArray) -> Array:

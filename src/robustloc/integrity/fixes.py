@@ -198,7 +198,31 @@ def anchor_elongation(anchors: Array, keep: NDArray[np.bool_]) -> Array:
     array([0.    , 0.1681])
     """
     a = np.asarray(anchors, dtype=float)
-    k = np.asarray(keep, dtype=bool).astype(float)
+    keep = np.asarray(keep, dtype=bool)
+    if keep.ndim != 2 or keep.shape[0] == 0:
+        return np.full(keep.shape[:1], np.nan)
+    # a function of the row's pattern alone: solved once per distinct pattern (a log has
+    # a handful; the scatter's eigenvalues cost ~1.5 us an epoch)
+    patterns, inverse = _unique_rows(keep)
+    return _elongation(a, patterns)[inverse]
+
+
+def _unique_rows(mask: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], NDArray[np.intp]]:
+    """The distinct rows of a boolean matrix and each row's index among them."""
+    packed = np.packbits(mask, axis=1)
+    width = -(-packed.shape[1] // 8) * 8
+    packed = np.pad(packed, ((0, 0), (0, width - packed.shape[1])))
+    keys = np.ascontiguousarray(packed).view(np.uint64)
+    if keys.shape[1] == 1:
+        _, first, inverse = np.unique(keys[:, 0], return_index=True, return_inverse=True)
+    else:
+        _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    return mask[first], np.asarray(inverse).reshape(-1)
+
+
+def _elongation(a: Array, keep: NDArray[np.bool_]) -> Array:
+    """:func:`anchor_elongation` row by row (no deduplication)."""
+    k = keep.astype(float)
     cnt = k.sum(axis=1)
     with np.errstate(invalid="ignore", divide="ignore"):
         c = (k @ a) / np.maximum(cnt, 1.0)[:, None]
