@@ -129,8 +129,16 @@ def _sane_anchors_cached(key: bytes, shape: tuple[int, ...]) -> NDArray[np.bool_
 def _area(a: Array) -> tuple[Array, float]:
     """The anchors' area: a disc (ball) around their centroid, 1.25 times the farthest
     anchor's distance (at least 1 m).  Rotation- and translation-invariant, unlike a
-    bounding box, so the solvers' results move rigidly with the anchors."""
+    bounding box, so the solvers' results move rigidly with the anchors.  Cached per
+    anchor array (the centre is read-only)."""
+    return _area_cached(*_anchor_key(a))
+
+
+@lru_cache(maxsize=64)
+def _area_cached(key: bytes, shape: tuple[int, ...]) -> tuple[Array, float]:
+    a = _from_key(key, shape)
     centre = a.mean(axis=0)
+    _frozen(centre)
     return centre, 1.25 * max(float(np.max(np.linalg.norm(a - centre, axis=1))), 1.0)
 
 

@@ -940,7 +940,7 @@ def track_frame(time: Array, tag: NDArray[np.object_], out: _Rows, n: int,
     data["vy"] = out.x[:, 3] if vel else np.where(np.isfinite(out.x[:, 0]), 0.0, np.nan)
     if n >= 6:
         data["ax"], data["ay"] = out.x[:, 4], out.x[:, 5]
-    data["method"] = method
+    data["method"] = np.full(len(time), method, dtype=object)  # (a scalar: +0.7 ms/1 000)
     data["status"] = out.status
     data["var_x"], data["var_y"], data["cov_xy"] = out.var[:, 0], out.var[:, 1], out.cxy
     data["var_vx"] = out.var[:, 2] if vel else np.where(np.isfinite(out.x[:, 0]), 0.0, np.nan)
