@@ -486,3 +486,72 @@ def test_one_fault_explains_is_the_global_test_after_one_exclusion(seed, M):
         if not margin[k]:
             assert comp == want, k
     assert got.any() and not got.all()  # both outcomes are exercised
+
+
+class _EagerChecks(Tracker):
+    """The reference divergence counter: every suspicious epoch checked against its robust
+    snapshot fix in its own round (the tracker before the checks were deferred)."""
+
+    def _count_bad(self, sl, xn, z, moved, sus, dof):
+        fail = moved.copy()
+        if sus.any():
+            fail[sus] |= self._disagrees(xn[sus], None, z[sus])
+        bad = np.where(fail, self._bad[sl] + 1, np.where(dof > 0, 0, self._bad[sl]))
+        self._bad[sl] = bad
+        return bad
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=hst.integers(0, 10_000), K=hst.integers(1, 6), M=hst.integers(4, 9),
+       max_bad=hst.integers(1, 5), engine=hst.sampled_from(["compiled", "numpy"]),
+       cusum_h=hst.sampled_from([None, 4.0]), p_out=hst.sampled_from([0.05, 0.2, 0.4]),
+       chunks=hst.sampled_from([1, 3, 25]))
+def test_deferred_snapshot_checks_equal_checking_every_round(seed, K, M, max_bad, engine,
+                                                             cusum_h, p_out, chunks):
+    """Deferring the snapshot checks (``Tracker._count_bad``) changes no output and no
+    state: same rows, same divergence counters after every step, same re-starts, for any
+    ``max_bad_epochs``, with the CUSUM's "moved" epochs, heavy outliers, a jumping tag,
+    and the log fed in 1, 3 or 25 steps (pending checks carried from step to step, settled
+    by ``state_dict``)."""
+    a, ep = _bad_epochs(seed, K, M, 25, p_out, 0.1, 1.0)
+    kw = {"sigma": SIGMA_M, "weight": "igg3", "cusum_h": cusum_h, "max_bad_epochs": max_bad,
+          "engine": engine}
+    cuts = np.array_split(np.arange(ep.n_epochs), chunks)
+    parts = [type(ep)(ep.time[c], ep.tag[c], ep.values[c], ep.anchor_ids, ep.value,
+                      ep.line[c]) for c in cuts if c.size]
+    lazy, eager = Tracker(a, **kw), _EagerChecks(a, **kw)
+    for i, part in enumerate(parts):
+        pd.testing.assert_frame_equal(lazy.step(part), eager.step(part))
+        if i % 2:  # every other step settles its pending checks; the others carry them on
+            assert lazy.state_dict() == eager.state_dict()
+            assert not lazy._pending
+            np.testing.assert_array_equal(lazy._bad, eager._bad)
+    assert lazy.state_dict() == eager.state_dict()
+
+
+def test_deferred_checks_decide_a_restart_on_the_round_it_happens():
+    """The jumping tag of ``test_divergence_restarts_from_a_fix`` with every epoch in one
+    step: the counter must be resolved in the round where it can reach
+    ``max_bad_epochs`` (not at the step's end), so the re-start happens at the same epoch
+    as with checks in every round, and few checks are solved."""
+    a = _anchors()
+    meas, truth = _walk(K=1, N=80, seed=7)
+    ep = _epochs(meas, a)
+    xy = a[["x", "y"]].to_numpy()
+    p = truth[["x", "y"]].to_numpy().copy()
+    p[40:] += [6.0, 0.0]
+    v = np.linalg.norm(p[:, None] - xy[None], axis=2)
+    ep2 = type(ep)(ep.time, ep.tag, v, ep.anchor_ids, ep.value, ep.line)
+    solved = []
+
+    class Counting(Tracker):
+        def _disagrees(self, x, P, z):
+            solved.append(len(z))
+            return super()._disagrees(x, P, z)
+
+    lazy = Counting(a, sigma=SIGMA_M, weight="igg3").step(ep2)
+    eager = _EagerChecks(a, sigma=SIGMA_M, weight="igg3").step(ep2)
+    pd.testing.assert_frame_equal(lazy, eager)
+    first = int(np.argmax(lazy.reinit.to_numpy() >= 1))
+    assert 40 < first < 40 + 10  # re-started soon after the jump, as the eager one
+    assert sum(solved) <= 10  # the jump's checks, once, not one solve per round

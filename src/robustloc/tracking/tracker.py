@@ -258,6 +258,8 @@ class Tracker:
         M = len(self.anchor_ids)
         self._alloc(0, M)
         self._history: list[dict[str, Any]] = []
+        # deferred snapshot checks (``_finish``): slot -> [lo, b0, fails_after, events]
+        self._pending: dict[int, list[Any]] = {}
         self._kernel: Any = None
         self._locator = None
         self._lam0 = lambda0(self.settings.alpha0, self.settings.beta0)
@@ -491,6 +493,8 @@ class Tracker:
         self._t[k] = t[ok]
         self._init[k] = True
         self._bad[k] = 0
+        for slot in k[np.isin(k, list(self._pending))] if self._pending else ():
+            del self._pending[int(slot)]
         self._gp[k] = 0.0
         self._gm[k] = 0.0
         self._held[k] = False
@@ -692,11 +696,7 @@ class Tracker:
         against the robust fix, the bad-epoch count, re-starts; the recorded moments."""
         s = self.settings
         xn, Pn = self._x[sl], self._P[sl]
-        fail = moved.copy()
-        if sus.any():
-            fail[sus] |= self._disagrees(xn[sus], Pn[sus], z[sus])
-        bad = np.where(fail, self._bad[sl] + 1, np.where(dof > 0, 0, self._bad[sl]))
-        self._bad[sl] = bad
+        bad = self._count_bad(sl, xn, z, moved, sus, dof)
         if self.record:
             self._history.append({"idx": idx, "slot": sl.copy(),
                                   "start": np.zeros(len(idx), bool), "xf": xn, "Pf": Pn,
@@ -714,6 +714,81 @@ class Tracker:
                 for a, v in keep_rows.items():
                     getattr(out, a)[rows] = v[~ok]
         out.reinit[idx] = self._reinit[sl]
+
+    def _count_bad(self, sl: NDArray[np.int64], xn: Array, z: Array, moved: NDArray[np.bool_],
+                   sus: NDArray[np.bool_], dof: NDArray[np.int64]) -> NDArray[np.int64]:
+        """The divergence counter after this round: ``bad + 1`` on a failing epoch (the
+        tag moved, or a suspicious epoch disagrees with its robust fix), 0 on a passing
+        epoch with ``dof > 0``, unchanged otherwise; exact wherever it decides a re-start
+        (the value where it reaches ``max_bad_epochs``, a lower bound elsewhere).
+
+        The snapshot check of a suspicious epoch is deferred, not run each round: the
+        counter's two updates are monotone in it and the failing one is the larger, so
+        counting every pending check as failing (``hi``) or as passing (``lo``) bounds
+        the exact counter.  A passing unsuspicious epoch resets it (0 whatever the
+        pending checks say): those checks are dropped unsolved.  Only a tag with
+        ``lo < max_bad_epochs <= hi`` needs its checks now; the rest are solved together
+        at the end of :meth:`step`.  The robust fix depends on the epoch's observations
+        alone, so the answers, the counters and every output are those of checking each
+        round (tested); most checks are never solved (5 consecutive failing epochs are
+        rare).  Checks still pending stay with the tag across :meth:`step` calls (a live
+        service steps one epoch at a time) and are solved together by
+        :meth:`state_dict`, which needs the exact counters.
+        """
+        hi0 = self._bad[sl]
+        check = sus & ~moved  # a moved epoch fails whatever its check says
+        pos = dof > 0
+        hi = np.where(moved | check, hi0 + 1, np.where(pos, 0, hi0))
+        pend = self._pending
+        if not check.any() and not pend:
+            self._bad[sl] = hi
+            return hi
+        has = np.isin(sl, list(pend)) if pend else np.zeros(len(sl), dtype=bool)
+        lo0 = hi0.copy()
+        for k in np.flatnonzero(has):
+            lo0[k] = pend[int(sl[k])][0]
+        lo = np.where(moved, lo0 + 1, np.where(pos, 0, lo0))
+        for k in np.flatnonzero(check | has):
+            slot = int(sl[k])
+            if lo[k] == hi[k]:  # the bounds meet: exact, the pending checks cannot matter
+                pend.pop(slot, None)
+                continue
+            rec = pend.get(slot)
+            if rec is None:  # [lo, exact counter before the first check, fails since, checks]
+                rec = pend[slot] = [0, int(lo0[k]), 0, []]
+            rec[0] = int(lo[k])
+            if check[k]:  # (fails since the previous check, passing resets, x, z)
+                rec[3].append((rec[2], bool(pos[k]), xn[k, :2].copy(), z[k].copy()))
+                rec[2] = 0
+            elif moved[k]:
+                rec[2] += 1
+        need = (lo < self.settings.max_bad_epochs) & (hi >= self.settings.max_bad_epochs)
+        if need.any():
+            hi[need] = self._resolve(sl[need])
+        self._bad[sl] = hi
+        return hi
+
+    def _settle(self) -> None:
+        """Solve every pending snapshot check: the divergence counters exact."""
+        if self._pending:
+            sl_p = np.fromiter(self._pending, dtype=np.int64, count=len(self._pending))
+            self._bad[sl_p] = self._resolve(sl_p)
+
+    def _resolve(self, slots: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Solve the pending snapshot checks of ``slots`` (one batched call) and return
+        their exact divergence counters; the checks are no longer pending."""
+        recs = [self._pending.pop(int(k)) for k in slots]
+        events = [e for r in recs for e in r[3]]
+        fails = iter(self._disagrees(np.array([e[2] for e in events]), None,
+                                     np.array([e[3] for e in events]))
+                     if events else ())
+        out = np.empty(len(slots), dtype=np.int64)
+        for i, (_, b, after, evs) in enumerate(recs):
+            for gap, reset, _x, _z in evs:
+                b += gap
+                b = b + 1 if next(fails) else (0 if reset else b)
+            out[i] = b + after
+        return out
 
     def _fix(self, z: Array) -> Any:
         s = self.settings
@@ -804,6 +879,7 @@ class Tracker:
     # ------------------------------------------------------------------ persistence
     def state_dict(self) -> dict:
         """JSON-serialisable state: settings, anchors, link kind and every tag's filter."""
+        self._settle()
         def clean(a: Array) -> Any:
             a = np.asarray(a)
             if a.dtype.kind == "f":
@@ -827,6 +903,7 @@ class Tracker:
             raise ValueError("saved tracker state has other settings")
         M = len(self.anchor_ids)
         self._slot = {}
+        self._pending = {}
         self._alloc(0, M)
         self._kind = None
         if state.get("value") is not None:
