@@ -21,7 +21,8 @@ ILL_CONDITIONED = "ill_conditioned"
 NOT_CONVERGED = "not_converged"
 #: One or more observations were found faulty by a test and excluded; the fix is usable.
 FAULT_EXCLUDED = "fault_excluded"
-#: A fault was detected but could not be excluded (redundancy exhausted).
+#: A fault was detected but could not be excluded (redundancy exhausted), or the fix kept
+#: a minority of its observations (half or more flagged: no majority supports it).
 UNAVAILABLE = "unavailable"
 #: The epoch's own input was unusable (all NaN/inf, malformed).
 INVALID = "invalid_measurement"

@@ -258,8 +258,9 @@ class Tracker:
         M = len(self.anchor_ids)
         self._alloc(0, M)
         self._history: list[dict[str, Any]] = []
-        # deferred snapshot checks (``_finish``): slot -> [lo, b0, fails_after, events]
-        self._pending: dict[int, list[Any]] = {}
+        # deferred snapshot checks (``_count_bad``): a log of checked epochs, appended
+        # per round (slot, generation, fails before, passing resets, x, z)
+        self._checks: list[tuple[NDArray[Any], ...]] = []
         self._kernel: Any = None
         self._locator = None
         self._lam0 = lambda0(self.settings.alpha0, self.settings.beta0)
@@ -287,6 +288,22 @@ class Tracker:
         self._reinit = np.zeros(S, dtype=np.int64)
         self._lastz = np.full((S, M), np.nan)
         self._lastt = np.full((S, M), np.nan)
+        self._alloc_pending(S)
+
+    def _alloc_pending(self, S: int) -> None:
+        """Per-slot state of the deferred checks (:meth:`_count_bad`; not part of
+        :meth:`state_dict`, which settles them) for ``S`` slots, kept for the slots that
+        exist: ``on`` (checks pending), the lower bound ``lo`` of the divergence counter
+        (``_bad`` holds the upper one), the exact counter ``b0`` before the first pending
+        check, the known failures ``after`` the last one, and a generation that voids the
+        slot's logged checks when they stop mattering."""
+        have = 0 if S == 0 or not hasattr(self, "_p_on") else self._p_on.shape[0]
+        if have == 0:
+            self._checks = []
+        for name, dtype in (("_p_on", bool), ("_p_lo", np.int64), ("_p_b0", np.int64),
+                            ("_p_after", np.int64), ("_p_gen", np.int64)):
+            head = getattr(self, name)[:have] if have else np.zeros(0, dtype)
+            setattr(self, name, np.concatenate([head, np.zeros(S - have, dtype)]))
 
     _ARRAYS = ("_x", "_P", "_t", "_init", "_bias", "_held", "_gp", "_gm", "_hsum", "_hn",
                "_scale2", "_bad", "_reinit", "_lastz", "_lastt")
@@ -312,6 +329,7 @@ class Tracker:
                 elif name in ("_lastz", "_lastt"):
                     pad[:] = np.nan
                 setattr(self, name, np.concatenate([a, pad]))
+            self._alloc_pending(len(self._slot))
         return np.fromiter((self._slot[t] for t in tags), dtype=np.int64, count=len(tags))
 
     @property
@@ -493,8 +511,7 @@ class Tracker:
         self._t[k] = t[ok]
         self._init[k] = True
         self._bad[k] = 0
-        for slot in k[np.isin(k, list(self._pending))] if self._pending else ():
-            del self._pending[int(slot)]
+        self._drop_pending(k)
         self._gp[k] = 0.0
         self._gm[k] = 0.0
         self._held[k] = False
@@ -739,55 +756,75 @@ class Tracker:
         check = sus & ~moved  # a moved epoch fails whatever its check says
         pos = dof > 0
         hi = np.where(moved | check, hi0 + 1, np.where(pos, 0, hi0))
-        pend = self._pending
-        if not check.any() and not pend:
+        on = self._p_on[sl]
+        if not check.any() and not on.any():
             self._bad[sl] = hi
             return hi
-        has = np.isin(sl, list(pend)) if pend else np.zeros(len(sl), dtype=bool)
-        lo0 = hi0.copy()
-        for k in np.flatnonzero(has):
-            lo0[k] = pend[int(sl[k])][0]
+        lo0 = np.where(on, self._p_lo[sl], hi0)
         lo = np.where(moved, lo0 + 1, np.where(pos, 0, lo0))
-        for k in np.flatnonzero(check | has):
-            slot = int(sl[k])
-            if lo[k] == hi[k]:  # the bounds meet: exact, the pending checks cannot matter
-                pend.pop(slot, None)
-                continue
-            rec = pend.get(slot)
-            if rec is None:  # [lo, exact counter before the first check, fails since, checks]
-                rec = pend[slot] = [0, int(lo0[k]), 0, []]
-            rec[0] = int(lo[k])
-            if check[k]:  # (fails since the previous check, passing resets, x, z)
-                rec[3].append((rec[2], bool(pos[k]), xn[k, :2].copy(), z[k].copy()))
-                rec[2] = 0
-            elif moved[k]:
-                rec[2] += 1
+        exact = lo == hi  # the bounds meet: the pending checks cannot matter any more
+        self._drop_pending(sl[on & exact])
+        new = check & ~on  # a check's bounds never meet: hi = hi0 + 1 > lo
+        if new.any():
+            sn = sl[new]
+            self._p_on[sn] = True
+            self._p_b0[sn] = lo0[new]
+            self._p_after[sn] = 0
+        if check.any():
+            sc = sl[check]
+            self._checks.append((sc, self._p_gen[sc], self._p_after[sc], pos[check],
+                                 xn[check, :2], z[check]))
+            self._p_after[sc] = 0
+        self._p_after[sl[moved & on & ~exact]] += 1
+        self._p_lo[sl[~exact]] = lo[~exact]
         need = (lo < self.settings.max_bad_epochs) & (hi >= self.settings.max_bad_epochs)
         if need.any():
             hi[need] = self._resolve(sl[need])
         self._bad[sl] = hi
+        self._compact_checks()
         return hi
+
+    def _drop_pending(self, slots: NDArray[np.int64]) -> None:
+        """The pending checks of ``slots`` no longer matter (their logged rows are void)."""
+        slots = slots[self._p_on[slots]]
+        if slots.size:
+            self._p_on[slots] = False
+            self._p_gen[slots] += 1
+
+    def _compact_checks(self) -> None:
+        """Forget logged checks that no longer matter: the oldest rounds while all their
+        rows are void, and everything void once the log grows long."""
+        log = self._checks
+        while log and not np.any(log[0][1] == self._p_gen[log[0][0]]):
+            log.pop(0)
+        if len(log) > 256:
+            rows = [tuple(c[live] for c in e) for e in log
+                    if (live := e[1] == self._p_gen[e[0]]).any()]
+            self._checks = [tuple(np.concatenate(cols) for cols in zip(*rows))] if rows else []
 
     def _settle(self) -> None:
         """Solve every pending snapshot check: the divergence counters exact."""
-        if self._pending:
-            sl_p = np.fromiter(self._pending, dtype=np.int64, count=len(self._pending))
-            self._bad[sl_p] = self._resolve(sl_p)
+        slots = np.flatnonzero(self._p_on)
+        if slots.size:
+            self._bad[slots] = self._resolve(slots)
 
     def _resolve(self, slots: NDArray[np.int64]) -> NDArray[np.int64]:
         """Solve the pending snapshot checks of ``slots`` (one batched call) and return
         their exact divergence counters; the checks are no longer pending."""
-        recs = [self._pending.pop(int(k)) for k in slots]
-        events = [e for r in recs for e in r[3]]
-        fails = iter(self._disagrees(np.array([e[2] for e in events]), None,
-                                     np.array([e[3] for e in events]))
-                     if events else ())
-        out = np.empty(len(slots), dtype=np.int64)
-        for i, (_, b, after, evs) in enumerate(recs):
-            for gap, reset, _x, _z in evs:
-                b += gap
-                b = b + 1 if next(fails) else (0 if reset else b)
-            out[i] = b + after
+        want = np.zeros(self._p_on.shape[0], dtype=bool)
+        want[slots] = True
+        parts = [tuple(c[m] for c in e) for e in self._checks
+                 if (m := want[e[0]] & (e[1] == self._p_gen[e[0]])).any()]
+        b = self._p_b0.copy()
+        if parts:
+            sl_e, _, gap, reset, x2, z = (np.concatenate(c) for c in zip(*parts))
+            fails = self._disagrees(x2, None, z)
+            for k, g, r, f in zip(sl_e.tolist(), gap.tolist(), reset.tolist(),
+                                  fails.tolist()):  # in time order
+                b[k] += g
+                b[k] = b[k] + 1 if f else (0 if r else b[k])
+        out = b[slots] + self._p_after[slots]
+        self._drop_pending(slots)
         return out
 
     def _fix(self, z: Array) -> Any:
@@ -903,7 +940,6 @@ class Tracker:
             raise ValueError("saved tracker state has other settings")
         M = len(self.anchor_ids)
         self._slot = {}
-        self._pending = {}
         self._alloc(0, M)
         self._kind = None
         if state.get("value") is not None:
