@@ -17,15 +17,16 @@ One core: ``NUMBA_NUM_THREADS=1`` keeps the compiled kernels on one thread.  The
 clock is the process's CPU time (``time.process_time``): on a shared machine wall-clock
 time mostly measures the other processes; the load average is printed with the table.
 
-Sixth session (2026-12-02), quiet machine (load 0.4-1.2), default arguments, six runs
-over an hour: EKF 122-233 k, UKF 101-203 k tag-epochs per CPU second (one step: 126-233 k
-/ 128-192 k; NumPy engine 62-82 k / 51-72 k; FilterPy 8.1-13.9 k / 1.8-2.7 k in the same
+Sixth session (2026-12-02), quiet machine (load 0.4-1.2), default arguments, seven runs
+over two hours: EKF 122-233 k, UKF 101-203 k tag-epochs per CPU second (one step: 126-233 k
+/ 128-192 k; NumPy engine 62-87 k / 51-78 k; FilterPy 8.1-13.9 k / 1.8-2.7 k in the same
 runs, 15-21x / 55-86x).  This VM's speed moves by ~30 % from one minute to the next (the
 same run's FilterPy moves with it): the 200 k EKF target is reached on the fast minutes,
 not on the slow ones.  Change since the fifth session: the snapshot checks of suspicious
-epochs are deferred and mostly never solved (``Tracker._count_bad``); per round of
-1 000 tags the fused kernel is now ~2.4 ms, the output frame ~1.0 ms, the deferred
-bookkeeping ~0.3 ms.
+epochs are deferred and mostly never solved (``Tracker._count_bad``), their bookkeeping
+in per-slot arrays; per round of 1 000 tags the fused kernel is now ~2.4 ms, the output
+frame ~1.0-1.6 ms, the deferred bookkeeping ~0.24 ms.  Last run of the session (load
+0.9): EKF 206 k (one step 179 k), UKF 161 k, NumPy 87 k / 78 k, FilterPy 11.4 k / 1.9 k.
 
 Fifth session, nearly quiet machine (load 1.7: the test suite on the other core), default
 arguments: EKF 137 k, UKF 96 k tag-epochs per CPU second (NumPy engine 47 k / 45 k,
