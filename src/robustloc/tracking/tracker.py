@@ -42,7 +42,9 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
    snapshot fix of the epoch (when its anchors allow one): it fails when the filtered
    position lies outside the ``1 - alpha0`` ellipse of the fix's covariance ``C_fix``.  After
    ``max_bad_epochs`` consecutive failing epochs the filter has diverged and re-starts
-   from the robust fix of the current epoch (counted in ``reinit``).  So does a filter
+   from the robust fix of the current epoch (counted in ``reinit``).  A check is solved
+   only when its answer can decide a re-start (``Tracker._count_bad``): the rows are
+   those of checking every epoch, at a fraction of the snapshot fixes.  So does a filter
    whose position variance passed ``lost_pos_var`` when the epoch's fix is more certain.
 6. **Measurement noise adapts within bounds.**  After each update the tag's noise scale
    follows the accepted innovations (Sage-Husa, Mehra 1972):
