@@ -148,8 +148,14 @@ def test_auto_is_gauss_newton_on_clean_data_and_robust_on_outliers():
     e_a = np.linalg.norm(auto.position - x, axis=1)
     e_n = np.linalg.norm(nls.position - x, axis=1)
     # a gross error spreads over every least-squares residual: Gauss-Newton's own test
-    # leaves a quarter of the epochs unbounded (unavailable); auto refits them robustly
-    assert np.isfinite(e_a).mean() > 0.99 > 0.9 > np.isfinite(e_n).mean()
+    # leaves a quarter of the epochs unbounded (unavailable); auto refits them robustly.
+    # What auto cannot keep are the epochs where the gross errors are the majority (the
+    # module's item 6): P(Bin(10, 0.2) >= 5) = 3.28 %, so its availability is about
+    # 96.7 % (measured 96.8 %; the binomial sd over 4000 epochs is 0.28 %: the bound
+    # 95.5 % is 4 sd below)
+    assert np.isfinite(e_a).mean() > 0.955
+    assert 0.9 > np.isfinite(e_n).mean()
+    assert np.isfinite(e_a).mean() <= stats.binom.cdf(4, 10, 0.2) + 0.012
     # and is more accurate on the epochs both keep: measured 0.76-0.78 of the nls RMS on
     # seeds 8-10 (4000 epochs each; the ratio's Monte Carlo spread is about 0.01)
     both = np.isfinite(e_a) & np.isfinite(e_n)
