@@ -57,8 +57,10 @@ bound plus k sigma of the fault-free noise (--alpha0, --beta0, --k-noise).  Stat
 ok, fault_excluded, low_redundancy (redundancy 1: detectable, not identifiable),
 unverified (redundancy 0, hpl = inf), fault_detected (the test fails; hpl widened by the
 a-posteriori variance factor), extrapolated (farther than 10x the anchors' extent), all
-usable with not_converged; protection_exceeded (hpl > --alert-limit), insufficient_anchors,
-ill_conditioned and invalid_measurement are not.
+usable with not_converged; unavailable (a flagged observation leaves nothing to confirm
+the rest, or half or more of the heard observations are flagged: no majority supports the
+fix), protection_exceeded (hpl > --alert-limit), insufficient_anchors, ill_conditioned and
+invalid_measurement are not.
 
 RSSI input uses the anchors' path-loss parameters (A, n or p0, gamma, faf, d0; see
 `robustloc calibrate`); the nonlinear solvers fit ranges converted by the model, each
