@@ -160,18 +160,21 @@ def _rows(fit: LinearFit, idx: NDArray) -> LinearFit:
     )
 
 
-def _merge(fit: LinearFit, sub: LinearFit, idx: NDArray, take: NDArray[np.bool_]) -> LinearFit:
-    """Replace epochs ``idx[take]`` of ``fit`` by the matching rows of ``sub``."""
+def _merge(fit: LinearFit, sub: LinearFit, idx: NDArray, take: NDArray[np.bool_],
+           inplace: bool = False) -> LinearFit:
+    """Replace epochs ``idx[take]`` of ``fit`` by the matching rows of ``sub`` (in
+    ``fit``'s own arrays with ``inplace=True``: for a fit no one else holds, it saves a
+    copy of every array of the batch)."""
     out = {}
     for name in ("x", "v", "w", "qvv", "sigma0", "cov", "n_used", "iterations", "converged",
                  "status"):
-        arr = getattr(fit, name).copy()
+        arr = getattr(fit, name) if inplace else getattr(fit, name).copy()
         arr[idx[take]] = getattr(sub, name)[take]
         out[name] = arr
     extra = dict(fit.extra)
     for k, v in sub.extra.items():
         if k in extra and isinstance(v, np.ndarray) and extra[k].shape[1:] == v.shape[1:]:
-            e = extra[k].copy()
+            e = extra[k] if inplace else extra[k].copy()
             e[idx[take]] = v[take]
             extra[k] = e
     return LinearFit(**out, extra=extra)
@@ -579,8 +582,9 @@ class Locator:
         xs = np.nan_to_num(x)
         use = st.among(status, st.USABLE)[:, None]
         extra = dict(fit.extra)
-        extra["range_residuals"] = np.where(use, rng_model.predict(xs) - ranges, np.nan)
-        extra["jacobian"] = np.where(use[..., None], rng_model.jacobian(xs), np.nan)
+        pred, jac = rng_model.predict_jacobian(xs)
+        extra["range_residuals"] = np.where(use, pred - ranges, np.nan)
+        extra["jacobian"] = np.where(use[..., None], jac, np.nan)
         extra["anchor_extent"] = self._the_area(a)
         if self.sigma is not None:
             extra["sigma_obs"] = self._range_sigma(self._sigma_array(z.shape), ranges, rmodel)
@@ -796,7 +800,7 @@ class Locator:
             if np.any(low):
                 rows = np.flatnonzero(low)
                 plain = self._gn(model, obs[rows], x0[rows], sig[rows], None)
-                fit = _merge(fit, plain, rows, np.ones(rows.size, dtype=bool))
+                fit = _merge(fit, plain, rows, np.ones(rows.size, dtype=bool), inplace=True)
             fit.extra["fallback"] = low
             return fit
         if meth == "lege":
@@ -993,7 +997,7 @@ class Locator:
         take = score(refit, sus) < score(_rows(fit, sus), sus)
         if not np.any(take):
             return fit
-        return _merge(fit, refit, sus, take)
+        return _merge(fit, refit, sus, take, inplace=True)  # fit: this call's own
 
     def _lege_nonlinear(self, model, obs, x0, sig) -> LinearFit:
         base = self._gn(model, obs, x0, sig, None)
