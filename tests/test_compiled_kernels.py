@@ -185,3 +185,13 @@ def test_grid_lms_equals_the_numpy_scoring_of_every_grid_point(dim: int) -> None
     finite = np.isfinite(ref.min(axis=1))
     np.testing.assert_array_equal(idx[finite], np.argmin(ref, axis=1)[finite])
     assert np.all(idx[~finite] == -1) and (~finite).sum() == 1  # the epoch hearing nothing
+
+
+@pytest.mark.parametrize("method", ["nls", "huber"])
+def test_locator_engines_agree_3d_coplanar_anchors(method: str) -> None:
+    """Ceiling anchors (one plane): both engines move the start off the plane the same way
+    (``_off_plane`` runs after either start) and agree fix for fix."""
+    rng = np.random.default_rng(15)
+    a = np.c_[A3[:, :2], np.full(len(A3), 3.0)]
+    values = _log(rng, 300, a, outliers=0.05)
+    _compare({"method": method, "sigma": 0.3, "robust_scale": "apriori"}, a, values)

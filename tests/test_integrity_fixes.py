@@ -471,3 +471,53 @@ def test_no_usable_fix_rests_on_a_minority_and_few_mislead_with_frequent_gross_e
     mis = usable & (err > sol.extra["hpl"])
     assert mis.sum() / usable.sum() < 0.002
     assert usable.mean() > 0.95  # only the epochs without a majority of good ranges go
+
+
+@pytest.mark.parametrize("engine", ["compiled", "numpy"])
+def test_ceiling_anchors_in_3d_fix_the_tag_below_and_bound_the_mirror(engine):
+    """Eight anchors on a 3 m ceiling, tags 1.2-2.5 m below, 3-D ``auto``.  Ranges from
+    coplanar anchors fit the tag and its mirror above the ceiling equally well, and the
+    start used to lie in the plane, where the range Jacobian has no vertical component:
+    before ``_off_plane`` every fix was ``ill_conditioned`` under ``nls``.  Now the solver
+    starts below the plane: nearly every fix is usable and below the plane, its error is
+    the noise's, and the vertical protection level covers the
+    mirror solution (``ambiguity_distance`` = twice the tag's depth below the plane)."""
+    rng = np.random.default_rng(5)
+    N = 3000
+    a = np.c_[rng.uniform(0, 20, (8, 2)), np.full(8, 3.0)]
+    x = np.c_[rng.uniform(2, 18, (N, 2)), rng.uniform(0.5, 1.8, N)]
+    d = ranges(a, x) + rng.normal(0, 0.1, (N, 8))
+    sol = locate_protected(Locator("auto", engine=engine), a, d)
+    usable = st.among(sol.status, st.USABLE)
+    assert usable.mean() > 0.99
+    # the lower side; a few fixes (6 of 3000 here) fold onto the plane, where the
+    # vertical is unobservable: their vpl (600-17 000 m) says so
+    err = np.abs(sol.position[usable] - x[usable])
+    flat = sol.position[usable, 2] > 2.9
+    assert flat.mean() < 0.005
+    assert np.all(sol.extra["vpl"][usable][flat] > err[flat, 2])
+    assert np.median(err[:, 2]) < 0.3 and np.median(np.hypot(err[:, 0], err[:, 1])) < 0.15
+    amb = sol.extra["ambiguity_distance"][usable]
+    depth = 2.0 * (3.0 - sol.position[usable, 2])
+    ok = np.isfinite(amb)
+    assert ok.mean() > 0.9
+    # the mirror of a fix across the anchors' plane fits the same ranges exactly as well,
+    # so the refined alternative lies at twice its depth; the few exceptions (0.7 % here)
+    # are fixes whose flagged ranges differ between the two sides
+    close = np.abs(amb[ok] - depth[ok]) <= 0.05 + 0.05 * depth[ok]
+    assert close.mean() > 0.98
+    assert np.all(sol.extra["vpl"][usable][ok] >= amb[ok] - 1e-9)
+
+
+def test_off_plane_orients_the_start_below_and_leaves_other_layouts_alone():
+    from robustloc.estimators.ranging import _off_plane
+
+    ceiling = np.array([[0, 0, 3.0], [10, 0, 3], [10, 10, 3], [0, 10, 3]])
+    x0 = np.array([[5.0, 5, 3.0], [5, 5, 4.0], [5, 5, 0.0]])  # on, above, well below
+    out = _off_plane(ceiling, x0)
+    # area radius 1.25 * 7.07 = 8.84 m: at least 0.884 m below; distances kept if larger
+    np.testing.assert_allclose(out[:, 2], [3.0 - 0.1 * 1.25 * np.hypot(5, 5), 2.0, 0.0])
+    np.testing.assert_allclose(out[:, :2], x0[:, :2])
+    spread = np.array([[0, 0, 3.0], [10, 0, 0.5], [10, 10, 3], [0, 10, 0.5]])
+    np.testing.assert_array_equal(_off_plane(spread, x0), x0)
+    np.testing.assert_array_equal(_off_plane(ceiling[:, :2], x0[:, :2]), x0[:, :2])

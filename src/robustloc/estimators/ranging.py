@@ -142,6 +142,51 @@ def _area_cached(key: bytes, shape: tuple[int, ...]) -> tuple[Array, float]:
     return centre, 1.25 * max(float(np.max(np.linalg.norm(a - centre, axis=1))), 1.0)
 
 
+#: 3-D anchors whose spread out of their best-fitting plane is below this fraction of
+#: their largest spread in it (square root of the smallest over the largest eigenvalue of
+#: their scatter matrix) are coplanar for the solvers' start (:func:`_off_plane`).
+COPLANAR_RATIO = 0.05
+
+
+def _off_plane(a: Array, x0: Array) -> Array:
+    """3-D starts moved off the plane of coplanar anchors, to its lower side.
+
+    Ranges from anchors in one plane (all on the ceiling, say) fit a point and its mirror
+    image across the plane equally well, and on the plane itself the range Jacobian has no
+    component across it: Gauss-Newton started there never leaves it (measured: every
+    epoch ``ill_conditioned`` with 8 ceiling anchors and the tag 1-2.5 m below).  The
+    start is moved to the side of the plane towards lower ``z`` (ceiling-mounted anchors
+    above the tags; a vertical plane: towards negative ``x``, then ``y``), at least
+    a tenth of the anchors' area radius away from it, keeping its distance when larger.
+    The integrity check covers the mirror solution (its vertical protection level spans
+    both sides when the data cannot tell them apart).  Other layouts: ``x0`` unchanged.
+    """
+    if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] < 3 or not np.all(np.isfinite(a)):
+        return x0
+    plane = _plane_cached(*_anchor_key(a))
+    if plane is None:
+        return x0
+    c, nrm, off = plane
+    with np.errstate(invalid="ignore"):
+        s = (x0 - c) @ nrm
+        return x0 + (np.maximum(np.abs(s), off) - s)[:, None] * nrm
+
+
+@lru_cache(maxsize=64)
+def _plane_cached(key: bytes, shape: tuple[int, ...]) -> tuple[Array, Array, float] | None:
+    a = _from_key(key, shape)
+    c = a.mean(axis=0)
+    ev, vec = np.linalg.eigh((a - c).T @ (a - c))
+    if not ev[-1] > 0 or np.sqrt(max(ev[0], 0.0) / ev[-1]) >= COPLANAR_RATIO:
+        return None
+    nrm = vec[:, 0]
+    lead = next((k for k in (2, 0, 1) if abs(nrm[k]) > 1e-9), 2)
+    if nrm[lead] > 0:  # oriented towards lower z (then x, y)
+        nrm = -nrm
+    _frozen(c, nrm)
+    return c, nrm, 0.1 * _area(a)[1]
+
+
 def _clip_disc(x: Array, centre: Array, radius: float) -> Array:
     """Pull points outside the disc back onto its boundary (NaN stays NaN)."""
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -842,7 +887,8 @@ class Locator:
         heard anchors, and (for the robust methods) the exact fixes of minimal subsets of
         ``dim + 1`` anchors (:func:`subset_fixes`).  The candidate with the smallest median
         absolute range residual wins (least median of squares): an M-estimator started
-        from it is no longer masked by several gross errors pulling the LS start.
+        from it is no longer masked by several gross errors pulling the LS start.  With
+        coplanar 3-D anchors the start is moved off their plane (:func:`_off_plane`).
         """
         centre, radius = self._the_area(a)
         if self.engine == "compiled":
@@ -850,11 +896,11 @@ class Locator:
 
             combos, Ginv, c0 = minimal_subsets(a)
             ho2 = _height2(height_offset, a.shape[0])
-            return _compiled.initial_fixes(
+            return _off_plane(a, _compiled.initial_fixes(
                 a, np.ascontiguousarray(ranges, dtype=float), ho2, combos, Ginv, c0, centre,
                 radius, self.method in ROBUST + ("lege", "snooping"),
                 self.reference == "nearest",
-            )
+            ))
         fit = self._linearized(a, ranges, height_offset, None)
         cands = [_clip_disc(fit.x, centre, radius)]
         with np.errstate(all="ignore"):
@@ -871,7 +917,7 @@ class Locator:
             better = c < best_c
             best[better] = xc[better]
             best_c[better] = c[better]
-        return np.where(np.isfinite(best), best, centre)
+        return _off_plane(a, np.where(np.isfinite(best), best, centre))
 
     def _nonlinear_problem(self, a, z, ranges, rmodel, height_offset, x0):
         if rmodel is not None and self.domain == "rssi":
