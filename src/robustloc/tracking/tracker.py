@@ -917,7 +917,10 @@ class Tracker:
 
     # ------------------------------------------------------------------ persistence
     def state_dict(self) -> dict:
-        """JSON-serialisable state: settings, anchors, link kind and every tag's filter."""
+        """JSON-serialisable state: settings, anchors, link kind and every tag's filter.
+
+        Solves the snapshot checks still pending first (:meth:`_count_bad`), so the
+        saved divergence counters are exact; outputs are unaffected."""
         self._settle()
         def clean(a: Array) -> Any:
             a = np.asarray(a)
