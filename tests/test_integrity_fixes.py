@@ -521,3 +521,37 @@ def test_off_plane_orients_the_start_below_and_leaves_other_layouts_alone():
     spread = np.array([[0, 0, 3.0], [10, 0, 0.5], [10, 10, 3], [0, 10, 0.5]])
     np.testing.assert_array_equal(_off_plane(spread, x0), x0)
     np.testing.assert_array_equal(_off_plane(ceiling[:, :2], x0[:, :2]), x0[:, :2])
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st_.integers(0, 10_000), p=st_.sampled_from([2, 3]), m=st_.integers(3, 9),
+       heights=st_.booleans())
+def test_compiled_mirror_solution_equals_the_numpy_reference(seed, p, m, heights):
+    """The numba mirror kernel against the NumPy reference of ``mirror_solution``: nearly
+    collinear (coplanar) anchors, noisy residuals, random keep masks, unusable rows (a NaN
+    fix, a NaN sigma, too few kept).  Both take the same steps; the differences are the
+    summation order (rounding, amplified by the ten Gauss-Newton steps): 1e-6 m on
+    positions of ~10 m, 1e-6 relative on the test statistic, 1e-9 on the unit Jacobian."""
+    from robustloc.integrity.fixes import mirror_solution
+    from robustloc.models.ranging import RangeModel
+
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(-10.0, 10.0, (m, p))
+    a[:, -1] *= rng.choice([0.02, 0.3, 1.0])  # elongated / flat, or spread
+    h = rng.uniform(0.5, 2.0, m) if heights and p == 2 else None
+    model = RangeModel(a, h)
+    N = 40
+    x = rng.uniform(-8.0, 8.0, (N, p))
+    v = rng.normal(0.0, 0.2, (N, m))
+    sig = rng.uniform(0.1, 0.5, (N, m))
+    keep = rng.random((N, m)) < 0.8
+    x[0] = np.nan
+    sig[1, :] = np.nan
+    keep[2, :] = False
+    xa_c, t_c, j_c = mirror_solution(model, x, v, sig, keep, engine="compiled")
+    xa_n, t_n, j_n = mirror_solution(model, x, v, sig, keep, engine="numpy")
+    np.testing.assert_array_equal(np.isnan(t_c), np.isnan(t_n))
+    assert np.isnan(t_c[:3]).all()
+    np.testing.assert_allclose(xa_c, xa_n, rtol=0, atol=1e-6, equal_nan=True)
+    np.testing.assert_allclose(t_c, t_n, rtol=1e-6, atol=1e-9, equal_nan=True)
+    np.testing.assert_allclose(j_c, j_n, rtol=0, atol=1e-9, equal_nan=True)

@@ -146,3 +146,128 @@ def protection_levels_kernel(J, sigma, used, lam0, k_noise, r_min):  # pragma: n
         if p == 3:
             vpl[k] = du_max + k_noise * math.sqrt(C[2, 2])
     return hpl, vpl, r_out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def mirror_kernel(a, h2, x, res, sigma, keep, iterations):  # pragma: no cover - jit
+    """``(x_alt, T_alt, J_alt)`` of :func:`robustloc.integrity.fixes.mirror_solution`, one
+    epoch at a time, the same steps in the same order (the principal line / plane from
+    LAPACK's symmetric eigensolver, each Gauss-Newton step from LAPACK's general solver,
+    as the NumPy reference's batched calls): agreement to rounding, tested.  ``h2`` are
+    the squared height offsets of the anchors (zeros without)."""
+    N, p = x.shape
+    m = a.shape[0]
+    x_alt = np.full((N, p), np.nan)
+    t_alt = np.full(N, np.nan)
+    j_alt = np.full((N, m, p), np.nan)
+    w = np.zeros(m)
+    d = np.zeros(m)
+    f = np.zeros(m)
+    J = np.zeros((m, p))
+    c = np.zeros(p)
+    xa = np.zeros(p)
+    S = np.zeros((p, p))
+    Nm = np.zeros((p, p))
+    g = np.zeros(p)
+    for e in range(N):
+        kc = 0
+        for i in range(m):
+            s = sigma[e, i]
+            wi = 0.0
+            if keep[e, i] and np.isfinite(res[e, i]) and s > 0.0:
+                wi = 1.0 / s
+                if not np.isfinite(wi):
+                    wi = 0.0
+            w[i] = wi
+            if wi > 0.0:
+                kc += 1
+        # observed ranges from the fix and its residuals (v = f(x) - d)
+        for i in range(m):
+            t = h2[i]
+            for q in range(p):
+                xq = x[e, q] if np.isfinite(x[e, q]) else 0.0
+                t += (xq - a[i, q]) ** 2
+            d[i] = math.sqrt(t) - res[e, i] if w[i] > 0.0 else 0.0
+        cnt = max(kc, 1)
+        for q in range(p):
+            acc = 0.0
+            for i in range(m):
+                if w[i] > 0.0:
+                    acc += a[i, q]
+            c[q] = acc / cnt
+        ext2 = 0.0
+        for q in range(p):
+            for r in range(p):
+                S[q, r] = 0.0
+        for i in range(m):
+            if w[i] > 0.0:
+                n2 = 0.0
+                for q in range(p):
+                    dq = a[i, q] - c[q]
+                    n2 += dq * dq
+                    for r in range(p):
+                        S[q, r] += dq * (a[i, r] - c[r])
+                ext2 = max(ext2, n2)
+        extent = max(math.sqrt(ext2), 1.0)
+        _, vec = np.linalg.eigh(S)
+        proj = 0.0
+        for q in range(p):
+            proj += (x[e, q] - c[q]) * vec[q, 0]
+        ok = kc > p
+        for q in range(p):
+            xa[q] = x[e, q] - 2.0 * proj * vec[q, 0]
+            if not np.isfinite(xa[q]):
+                ok = False
+        if not ok:
+            for q in range(p):
+                xa[q] = 0.0
+        for _ in range(iterations):
+            for i in range(m):
+                t = h2[i]
+                for q in range(p):
+                    t += (xa[q] - a[i, q]) ** 2
+                f[i] = math.sqrt(t)
+                for q in range(p):
+                    J[i, q] = (xa[q] - a[i, q]) / max(f[i], 1e-9)
+            for q in range(p):
+                acc = 0.0
+                for i in range(m):
+                    if w[i] > 0.0:
+                        acc += J[i, q] * w[i] * (d[i] - f[i]) * w[i]
+                g[q] = acc
+                for r in range(p):
+                    acc = 0.0
+                    for i in range(m):
+                        if w[i] > 0.0:
+                            acc += J[i, q] * w[i] * J[i, r] * w[i]
+                    Nm[q, r] = acc + (1e-12 if q == r else 0.0)
+            step = np.linalg.solve(Nm, g)
+            ln = 0.0
+            for q in range(p):
+                ln += step[q] * step[q]
+            scale = min(1.0, extent / max(math.sqrt(ln), 1e-300))
+            if ok:
+                for q in range(p):
+                    xa[q] += step[q] * scale
+        tsum = 0.0
+        for i in range(m):
+            t = h2[i]
+            for q in range(p):
+                t += (xa[q] - a[i, q]) ** 2
+            f[i] = math.sqrt(t)
+            for q in range(p):
+                J[i, q] = (xa[q] - a[i, q]) / max(f[i], 1e-9)
+            if w[i] > 0.0:
+                tsum += ((f[i] - d[i]) * w[i]) ** 2
+        good = ok and np.isfinite(tsum)
+        for q in range(p):
+            if not np.isfinite(xa[q]):
+                good = False
+        if good:
+            t_alt[e] = tsum
+            for q in range(p):
+                x_alt[e, q] = xa[q]
+            for i in range(m):
+                for q in range(p):
+                    j_alt[e, i, q] = J[i, q]
+    return x_alt, t_alt, j_alt

@@ -248,7 +248,7 @@ def _elongation(a: Array, keep: NDArray[np.bool_]) -> Array:
 
 def mirror_solution(
     range_model: RangeModel, position: Array, residuals: Array, sigma: Array,
-    keep: NDArray[np.bool_], iterations: int = MIRROR_ITERATIONS,
+    keep: NDArray[np.bool_], iterations: int = MIRROR_ITERATIONS, engine: str = "compiled",
 ) -> tuple[Array, Array, Array]:
     """The fix's mirror solution: reflected across its anchors' principal line, refined.
 
@@ -276,6 +276,10 @@ def mirror_solution(
         Observations the fix's test keeps.
     iterations : int
         Gauss-Newton steps.
+    engine : {"compiled", "numpy"}
+        The numba kernel (:func:`robustloc.integrity._compiled.mirror_kernel`, default:
+        one epoch at a time, ~3x faster in 3-D where nearly every fix is checked) or this
+        NumPy reference; they agree to rounding (tested).
 
     Returns
     -------
@@ -289,6 +293,17 @@ def mirror_solution(
     x = np.asarray(position, dtype=float)
     N, p = x.shape
     a = range_model.anchors
+    if engine not in ("compiled", "numpy"):
+        raise ValueError(f"engine must be 'compiled' or 'numpy', got {engine!r}")
+    if engine == "compiled" and N and p in (2, 3):
+        from robustloc.integrity._compiled import mirror_kernel
+
+        h = range_model.height_offset
+        h2 = np.zeros(a.shape[0]) if h is None else np.asarray(h, dtype=float) ** 2
+        return mirror_kernel(np.ascontiguousarray(a, dtype=float), np.ascontiguousarray(h2),
+                             np.ascontiguousarray(x), np.ascontiguousarray(residuals, float),
+                             np.ascontiguousarray(sigma, dtype=float),
+                             np.ascontiguousarray(keep, dtype=bool), int(iterations))
     with np.errstate(invalid="ignore"):
         w = np.where(keep & np.isfinite(residuals) & (sigma > 0), 1.0 / sigma, 0.0)
     w = np.nan_to_num(w, nan=0.0, posinf=0.0)
