@@ -149,6 +149,18 @@ def protection_levels_kernel(J, sigma, used, lam0, k_noise, r_min):  # pragma: n
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _ranges_jacobian(a, h2, xa, f, J):  # pragma: no cover - jit
+    """Ranges ``f`` and unit-vector Jacobian ``J`` at ``xa`` (as ``RangeModel``)."""
+    for i in range(a.shape[0]):
+        t = h2[i]
+        for q in range(xa.shape[0]):
+            t += (xa[q] - a[i, q]) ** 2
+        f[i] = math.sqrt(t)
+        for q in range(xa.shape[0]):
+            J[i, q] = (xa[q] - a[i, q]) / max(f[i], 1e-9)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def mirror_kernel(a, h2, x, res, sigma, keep, iterations):  # pragma: no cover - jit
     """``(x_alt, T_alt, J_alt)`` of :func:`robustloc.integrity.fixes.mirror_solution`, one
     epoch at a time, the same steps in the same order (the principal line / plane from
@@ -222,13 +234,7 @@ def mirror_kernel(a, h2, x, res, sigma, keep, iterations):  # pragma: no cover -
             for q in range(p):
                 xa[q] = 0.0
         for _ in range(iterations):
-            for i in range(m):
-                t = h2[i]
-                for q in range(p):
-                    t += (xa[q] - a[i, q]) ** 2
-                f[i] = math.sqrt(t)
-                for q in range(p):
-                    J[i, q] = (xa[q] - a[i, q]) / max(f[i], 1e-9)
+            _ranges_jacobian(a, h2, xa, f, J)
             for q in range(p):
                 acc = 0.0
                 for i in range(m):
@@ -249,14 +255,9 @@ def mirror_kernel(a, h2, x, res, sigma, keep, iterations):  # pragma: no cover -
             if ok:
                 for q in range(p):
                     xa[q] += step[q] * scale
+        _ranges_jacobian(a, h2, xa, f, J)
         tsum = 0.0
         for i in range(m):
-            t = h2[i]
-            for q in range(p):
-                t += (xa[q] - a[i, q]) ** 2
-            f[i] = math.sqrt(t)
-            for q in range(p):
-                J[i, q] = (xa[q] - a[i, q]) / max(f[i], 1e-9)
             if w[i] > 0.0:
                 tsum += ((f[i] - d[i]) * w[i]) ** 2
         good = ok and np.isfinite(tsum)
