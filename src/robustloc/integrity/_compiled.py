@@ -247,6 +247,14 @@ def mirror_kernel(a, h2, x, res, sigma, keep, iterations):  # pragma: no cover -
                         if w[i] > 0.0:
                             acc += J[i, q] * w[i] * J[i, r] * w[i]
                     Nm[q, r] = acc + (1e-12 if q == r else 0.0)
+            finite = True
+            for q in range(p):
+                finite = finite and np.isfinite(g[q])
+                for r in range(p):
+                    finite = finite and np.isfinite(Nm[q, r])
+            if not finite:  # (numba's solve refuses what NumPy's turns into NaN)
+                ok = False
+                break
             step = np.linalg.solve(Nm, g)
             ln = 0.0
             for q in range(p):
