@@ -193,5 +193,12 @@ def test_locator_engines_agree_3d_coplanar_anchors(method: str) -> None:
     (``_off_plane`` runs after either start) and agree fix for fix."""
     rng = np.random.default_rng(15)
     a = np.c_[A3[:, :2], np.full(len(A3), 3.0)]
-    values = _log(rng, 300, a, outliers=0.05)
+    x = np.c_[rng.uniform(2, 18, (300, 2)), rng.uniform(0.5, 1.8, 300)]  # tags below
+    values = np.linalg.norm(x[:, None] - a[None], axis=2) + rng.normal(0, 0.1, (300, 8))
+    values += np.where(rng.random(values.shape) < 0.05, rng.uniform(1, 5, values.shape), 0)
+    values[rng.random(values.shape) < 0.1] = np.nan
     _compare({"method": method, "sigma": 0.3, "robust_scale": "apriori"}, a, values)
+    # and both found the tags on the lower side (in the plane they would be ill-conditioned)
+    sol = Locator(method, sigma=0.3, robust_scale="apriori").solve(a, values)
+    fixed = st.among(sol.status, st.USABLE)
+    assert fixed.mean() > 0.95 and np.median(sol.position[fixed, 2]) < 2.0
