@@ -72,8 +72,10 @@ columns when present: range_corrected = (range - bias) / scale. An anchors' `sig
 In 2-D, anchors' z is ignored unless --tag-height H is given, in which case slant ranges
 are reduced with the known height difference z_anchor - H.  In 3-D (--dim 3), anchors in
 one plane (all on the ceiling) cannot tell a tag below them from its mirror image above:
-the solvers start below the plane (lower z) and vpl covers the mirror; with the tag's
-height known, 2-D with --tag-height is the better model.
+the solvers start below the plane (lower z) and vpl covers the mirror.  The plane is that
+of the anchors each epoch hears (an epoch that hears only the ceiling's anchors of a
+layout with a few low ones is the same case); with the tag's height known, 2-D with
+--tag-height is the better model.
 
   robustloc locate meas.csv --anchors anchors.csv -o positions.csv
   robustloc locate meas.csv --anchors anchors.csv --method ls,nls,igg,lege -o all.csv"""

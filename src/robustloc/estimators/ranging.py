@@ -148,7 +148,7 @@ def _area_cached(key: bytes, shape: tuple[int, ...]) -> tuple[Array, float]:
 COPLANAR_RATIO = 0.05
 
 
-def _off_plane(a: Array, x0: Array) -> Array:
+def _off_plane(a: Array, x0: Array, heard: NDArray[np.bool_] | None = None) -> Array:
     """3-D starts moved off the plane of coplanar anchors, to its lower side.
 
     Ranges from anchors in one plane (all on the ceiling, say) fit a point and its mirror
@@ -160,24 +160,48 @@ def _off_plane(a: Array, x0: Array) -> Array:
     a tenth of the anchors' area radius away from it, keeping its distance when larger.
     The integrity check covers the mirror solution (its vertical protection level spans
     both sides when the data cannot tell them apart).  Other layouts: ``x0`` unchanged.
+
+    The plane is that of the anchors each epoch *hears* (``heard (N, m)``, default all):
+    a layout that is not coplanar as a whole (ceiling anchors and two near the floor)
+    still leaves an epoch that hears only the ceiling's in the ambiguous case (measured:
+    99.9 % of such epochs ``ill_conditioned`` before this took the heard anchors).  Three
+    heard anchors always span a plane; collinear ones (no plane) and fewer than three
+    leave the start unchanged.  Planes are found once per distinct heard pattern.
     """
     if a.ndim != 2 or a.shape[1] != 3 or a.shape[0] < 3 or not np.all(np.isfinite(a)):
         return x0
-    plane = _plane_cached(*_anchor_key(a))
-    if plane is None:
-        return x0
-    c, nrm, off = plane
+    if heard is None or bool(np.all(heard)):
+        plane = _plane_cached(*_anchor_key(a))
+        if plane is None:
+            return x0
+        c, nrm, off = (v[None] for v in (plane[0], plane[1], np.asarray(plane[2])))
+        inverse = np.zeros(x0.shape[0], dtype=np.intp)
+    else:
+        patterns, inverse = _unique_rows(np.asarray(heard, dtype=bool))
+        c = np.full((len(patterns), 3), np.nan)
+        nrm = np.zeros((len(patterns), 3))
+        off = np.zeros(len(patterns))
+        for k, pat in enumerate(patterns):
+            plane = _plane_cached(*_anchor_key(a[pat])) if pat.sum() >= 3 else None
+            if plane is not None:
+                c[k], nrm[k], off[k] = plane
     with np.errstate(invalid="ignore"):
-        s = (x0 - c) @ nrm
-        return x0 + (np.maximum(np.abs(s), off) - s)[:, None] * nrm
+        cc, nn = c[inverse], nrm[inverse]
+        s = np.einsum("ij,ij->i", x0 - cc, nn)
+        moved = x0 + (np.maximum(np.abs(s), off[inverse]) - s)[:, None] * nn
+    return np.where(np.isfinite(cc[:, :1]), moved, x0)
 
 
 @lru_cache(maxsize=64)
 def _plane_cached(key: bytes, shape: tuple[int, ...]) -> tuple[Array, Array, float] | None:
+    """Centre, unit normal (towards lower z, then x, y) and start offset of coplanar
+    anchors; None when they are not coplanar, or collinear (no plane)."""
     a = _from_key(key, shape)
     c = a.mean(axis=0)
     ev, vec = np.linalg.eigh((a - c).T @ (a - c))
     if not ev[-1] > 0 or np.sqrt(max(ev[0], 0.0) / ev[-1]) >= COPLANAR_RATIO:
+        return None
+    if np.sqrt(max(ev[1], 0.0) / ev[-1]) < COPLANAR_RATIO:  # collinear: no plane
         return None
     nrm = vec[:, 0]
     lead = next((k for k in (2, 0, 1) if abs(nrm[k]) > 1e-9), 2)
@@ -185,6 +209,19 @@ def _plane_cached(key: bytes, shape: tuple[int, ...]) -> tuple[Array, Array, flo
         nrm = -nrm
     _frozen(c, nrm)
     return c, nrm, 0.1 * _area(a)[1]
+
+
+def _unique_rows(mask: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], NDArray[np.intp]]:
+    """The distinct rows of a boolean matrix and each row's index among them."""
+    packed = np.packbits(mask, axis=1)
+    width = -(-packed.shape[1] // 8) * 8
+    packed = np.pad(packed, ((0, 0), (0, width - packed.shape[1])))
+    keys = np.ascontiguousarray(packed).view(np.uint64)
+    if keys.shape[1] == 1:
+        _, first, inverse = np.unique(keys[:, 0], return_index=True, return_inverse=True)
+    else:
+        _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    return mask[first], np.asarray(inverse).reshape(-1)
 
 
 def _clip_disc(x: Array, centre: Array, radius: float) -> Array:
@@ -900,7 +937,7 @@ class Locator:
                 a, np.ascontiguousarray(ranges, dtype=float), ho2, combos, Ginv, c0, centre,
                 radius, self.method in ROBUST + ("lege", "snooping"),
                 self.reference == "nearest",
-            ))
+            ), np.isfinite(ranges))
         fit = self._linearized(a, ranges, height_offset, None)
         cands = [_clip_disc(fit.x, centre, radius)]
         with np.errstate(all="ignore"):
@@ -917,7 +954,7 @@ class Locator:
             better = c < best_c
             best[better] = xc[better]
             best_c[better] = c[better]
-        return _off_plane(a, np.where(np.isfinite(best), best, centre))
+        return _off_plane(a, np.where(np.isfinite(best), best, centre), np.isfinite(ranges))
 
     def _nonlinear_problem(self, a, z, ranges, rmodel, height_offset, x0):
         if rmodel is not None and self.domain == "rssi":

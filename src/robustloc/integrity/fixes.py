@@ -101,6 +101,7 @@ from numpy.typing import NDArray
 from scipy import stats
 
 from robustloc import status as st
+from robustloc.estimators.ranging import _unique_rows
 from robustloc.estimators.solution import Solution
 from robustloc.integrity.bmethod import ALPHA0, BETA0, global_critical, lambda0, w_critical
 from robustloc.integrity.tests import R_MIN
@@ -219,19 +220,6 @@ def anchor_elongation(anchors: Array, keep: NDArray[np.bool_]) -> Array:
     # a handful; the scatter's eigenvalues cost ~1.5 us an epoch)
     patterns, inverse = _unique_rows(keep)
     return _elongation(a, patterns)[inverse]
-
-
-def _unique_rows(mask: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], NDArray[np.intp]]:
-    """The distinct rows of a boolean matrix and each row's index among them."""
-    packed = np.packbits(mask, axis=1)
-    width = -(-packed.shape[1] // 8) * 8
-    packed = np.pad(packed, ((0, 0), (0, width - packed.shape[1])))
-    keys = np.ascontiguousarray(packed).view(np.uint64)
-    if keys.shape[1] == 1:
-        _, first, inverse = np.unique(keys[:, 0], return_index=True, return_inverse=True)
-    else:
-        _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
-    return mask[first], np.asarray(inverse).reshape(-1)
 
 
 def _elongation(a: Array, keep: NDArray[np.bool_]) -> Array:
