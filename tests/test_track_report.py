@@ -12,7 +12,7 @@ def test_s60_quick_on_shipped_excerpts(tmp_path):
     assert (tmp_path / "s60_tracks.png").is_file()
     assert (tmp_path / "s60_table3.csv").is_file()
     t = sec.summary["targets"]
-    assert len(t) == 14
+    assert len(t) == 17
     assert all(np.isfinite(v["measured"]) for v in t.values())
     # the model-correct simulation: the filter is consistent (median NEES near its dof 4;
     # 40 runs x 4 dof: the mean of one step has a standard deviation sqrt(8 / 40) = 0.45)
