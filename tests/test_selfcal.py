@@ -132,6 +132,39 @@ def test_far_field_leaves_the_scales_out():
     assert sum("cannot determine scale: far field" in w for w in r.warnings) == 4
 
 
+def test_elongated_anchors_leave_the_scales_out_and_keep_the_biases():
+    """Anchors close to a line (a corridor; elongation 0.006 like wifi-rtt-rss's): a fix
+    and its mirror across the line differ only through the anchors' small deviations
+    from it, which per-anchor scales can mimic, so the scales are left out with a warning
+    naming the reason; the biases are still estimated (true scales 1: recovered within
+    4 se).  In 3-D, anchors on one ceiling are the same case across their plane."""
+    rng = np.random.default_rng(12)
+    a = np.array([[1.2, 4.5], [10.2, 4.1], [22.8, 5.4], [28.8, 3.0]])
+    bias = np.array([0.4, -0.3, 0.2, 0.5])
+    x = np.c_[rng.uniform(1, 29, 800), rng.uniform(0.0, 1.0, 800)]
+    d = np.linalg.norm(x[:, None, :] - a[None], axis=-1)
+    z = d + bias + rng.normal(size=d.shape) * 0.1
+    r = SelfCalibrator("range").fit(a, z, x + 0.2, anchor_ids=list("ABCD"))
+    assert not r.free[:, 1].any() and np.all(r.slope == 1.0)
+    assert sum("cannot determine scale: the anchors lie close to a line" in w
+               for w in r.warnings) == 4
+    assert r.free[:, 0].all()
+    assert np.all(np.abs(r.offset - bias) < 4 * r.offset_se)
+    # the same anchors spread off the line: the scales stay in
+    spread = a + np.array([[0, -6.0], [0, 6.0], [0, -6.0], [0, 6.0]])
+    d2 = np.linalg.norm(x[:, None, :] - spread[None], axis=-1)
+    r2 = SelfCalibrator("range").fit(spread, d2 + bias + rng.normal(size=d2.shape) * 0.1,
+                                     x + 0.2)
+    assert r2.free[:, 1].all()
+    # 3-D: eight anchors on a 3 m ceiling
+    a3 = np.c_[rng.uniform(0, 20, (8, 2)), np.full(8, 3.0)]
+    x3 = np.c_[rng.uniform(2, 18, (600, 2)), rng.uniform(0.5, 1.8, 600)]
+    d3 = np.linalg.norm(x3[:, None, :] - a3[None], axis=-1)
+    r3 = SelfCalibrator("range").fit(a3, d3 + rng.normal(size=d3.shape) * 0.1, x3 + 0.1)
+    assert not r3.free[:, 1].any()
+    assert any("lie close to a plane" in w for w in r3.warnings)
+
+
 def test_every_epoch_at_one_point_is_flagged_and_left_out():
     rng = np.random.default_rng(3)
     x = np.tile([[4.0, 3.0]], (400, 1))
