@@ -723,6 +723,15 @@ def apply_range_calibration(anchors: pd.DataFrame, values: ArrayLike) -> Array:
     m = len(anchors)
     if v.shape[-1] != m:
         raise ValueError(f"values have {v.shape[-1]} anchor columns, anchors frame has {m}")
+    bias, scale = range_calibration(anchors)
+    return (v - bias) / scale
+
+
+def range_calibration(anchors: pd.DataFrame) -> tuple[Array, Array]:
+    """The anchors' range ``bias`` and ``scale`` arrays ``(m,)`` as
+    :func:`apply_range_calibration` applies them (a missing column or an empty value:
+    ``bias = 0``, ``scale = 1``); a non-positive scale is an input error."""
+    m = len(anchors)
     bias = (
         np.nan_to_num(anchors["bias"].to_numpy(dtype=float), nan=0.0)
         if "bias" in anchors.columns else np.zeros(m)
@@ -733,7 +742,7 @@ def apply_range_calibration(anchors: pd.DataFrame, values: ArrayLike) -> Array:
     )
     if np.any(scale <= 0):
         raise InputError("anchors file has a non-positive range 'scale'", anchors.attrs.get("path"))
-    return (v - bias) / scale
+    return bias, scale
 
 
 def survey_from_positions(

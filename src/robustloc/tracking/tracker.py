@@ -368,6 +368,10 @@ class Tracker:
             A, nn = log_distance_arrays(a)
             A, nn = np.asarray(A, float), np.asarray(nn, float)
         self._kind = kind
+        if kind == "range":
+            from robustloc.models.calibration import range_calibration
+
+            self._range_cal = range_calibration(a)
         self._link = LinkModel(xy, "range" if kind == "range" or s.domain == "range"
                                else "rssi", dz2, sigma, A, nn)
         wname = s.weight or ("asymmetric-igg" if self._link.kind == "rssi" else "huber")
@@ -407,11 +411,12 @@ class Tracker:
         return f"{METHOD_PREFIX}-{self.settings.model}-{self.settings.filter}"
 
     def _calibrate(self, values: Array) -> Array:
+        """Non-finite values as NaN; ranges corrected with the anchors' ``bias``/``scale``
+        (:func:`robustloc.models.calibration.apply_range_calibration`, read at setup)."""
         z = np.where(np.isfinite(values), values, np.nan)
         if self._kind == "range":
-            from robustloc.models.calibration import apply_range_calibration
-
-            z = apply_range_calibration(self.anchors, z)
+            bias, scale = self._range_cal
+            z = (z - bias) / scale
         return z
 
     def _observations(self, z: Array) -> tuple[Array, Array]:
