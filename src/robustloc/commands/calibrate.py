@@ -30,11 +30,13 @@ bias and scale (ranges), or A and n (RSSI, log-distance; p0 and gamma with
 every epoch's position, from the redundancy across epochs, the anchor coordinates being the
 datum (robust joint Gauss-Newton, positions eliminated by the Schur complement; see
 robustloc.models.selfcal).  Bad epochs are left out and counted.  A parameter the log
-cannot determine (inseparable from the positions, a standard error above --se-ratio
-sigma, or a scale with the tags in the far field of the anchors) gets a warning and is left
-at its prior (bias 0, scale 1, or the anchors file's A, n).  Writes the columns bias,
-scale, sigma (or A, n, sigma) and their standard errors; the start fixes use the anchors
-file's A, n for RSSI.
+cannot determine (inseparable from the positions, a model standard error above --se-ratio
+sigma, a scale with the tags in the far field of the anchors or with the anchors close to
+a line) gets a warning and is left at its prior (bias 0, scale 1, or the anchors file's
+A, n).  Writes the columns bias, scale, sigma (or A, n, sigma) and their standard errors,
+cluster-robust over 50 time blocks of the log (errors that persist while a tag dwells
+make the independent-epoch ones too small); the start fixes use the anchors file's A, n
+for RSSI.
 
 A survey that cannot determine a parameter (every sample at one distance, fewer rows than
 parameters + 1, constant values, an exact fit) is an error naming the anchor and the
@@ -83,8 +85,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tag-height", type=finite_float, default=None, metavar="M",
                    help="--self, 2-D: tag height; the anchors' z gives the vertical offsets")
     p.add_argument("--se-ratio", type=positive_float, default=3.0,
-                   help="--self: leave out a parameter whose standard error exceeds this "
-                        "many sigma (default 3)")
+                   help="--self: leave out a parameter whose model standard error "
+                        "(independent epochs) exceeds this many sigma (default 3)")
     p.add_argument("--measurements", help="build the survey from these measurements ...")
     p.add_argument("--truth", help="... and this truth (needs --anchors)")
     p.add_argument(
