@@ -14,6 +14,10 @@ def test_s60_quick_on_shipped_excerpts(tmp_path):
     t = sec.summary["targets"]
     assert len(t) == 17
     assert all(np.isfinite(v["measured"]) for v in t.values())
+    # seed 002's Table 3 headlines (walk, static points) open the report's summary
+    heads = [h for h in sec.headlines if h["seed"] == "002"]
+    assert [h["headline"].split(":")[0] for h in heads] == ["walk", "static points"]
+    assert all(h["verdict"].endswith(("met", "missed")) for h in heads)
     # the model-correct simulation: the filter is consistent (median NEES near its dof 4;
     # 40 runs x 4 dof: the mean of one step has a standard deviation sqrt(8 / 40) = 0.45)
     assert abs(sec.summary["nees"]["nees_median"] - 4.0) < 0.9
