@@ -216,6 +216,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--sets", default=",".join(SETS), help=f"comma list of {', '.join(SETS)}")
     p.add_argument("-o", "--out", help="write the main table as CSV")
     a = p.parse_args(argv)
+    unknown = [n.strip() for n in a.sets.split(",") if n.strip() not in SETS]
+    if unknown:
+        p.error(f"--sets: unknown {', '.join(unknown)}; choose from {', '.join(SETS)}")
     data = Path(a.data)
     rows, biases = [], []
     t_all = time.perf_counter()
