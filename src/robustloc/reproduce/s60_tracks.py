@@ -133,8 +133,9 @@ def _walk(ctx: Context, sec: Section, plots: list) -> dict[str, float]:
               "a yardstick, not a method: Kalman filters that know the simulator's noise "
               "model, see no fades or environment changes and are linearized at the true "
               "positions (`robustloc.sim.wifi_room.oracle_walk_track`).  Their walk RMS "
-              "over the raw `nls` RMS bounds what a causal tracker can reach on this walk "
-              "(the AR(1) noise, correlated over ~8 scans, does not average out).", tab)
+              "over the raw `nls` RMS shows what a causal tracker can hope for on this "
+              "walk (the AR(1) noise, correlated over ~8 scans, does not average out); "
+              "over seeds: `benchmarks/bench_walk.py`.", tab)
     e_tr = np.hypot(*(rows[["x", "y"]].to_numpy(float) - txy).T)
     res["mislead"] = _mislead(e_tr, rows["hpl"].to_numpy(float))
     plots.append(("wifi-room walk (simulated)", txy[walk], nls[walk],
