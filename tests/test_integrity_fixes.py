@@ -559,6 +559,30 @@ def test_off_plane_takes_the_plane_of_the_heard_anchors():
                                   _off_plane(ceiling, x0))
 
 
+@settings(max_examples=40, deadline=None)
+@given(seed=st_.integers(0, 10_000), m=st_.integers(3, 12), ceiling=st_.booleans())
+def test_batched_planes_equal_the_single_plane_rule(seed, m, ceiling):
+    """``_planes`` (one ``eigh`` for every heard pattern) against ``_plane_cached`` on the
+    pattern's anchors one at a time: the same planes found, the same centres, normals
+    (same orientation) and offsets; no plane for fewer than three anchors."""
+    from robustloc.estimators.ranging import _plane_cached, _planes
+
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(0, 20, (m, 3))
+    if ceiling:  # most anchors on one plane: many patterns are coplanar
+        a[: max(3, m - 2), 2] = 3.0
+    patterns = rng.random((30, m)) < rng.uniform(0.2, 1.0)
+    c, nrm, off = _planes(a, patterns)
+    for k, pat in enumerate(patterns):
+        ref = _plane_cached(a[pat].tobytes(), a[pat].shape) if pat.sum() >= 3 else None
+        if ref is None:
+            assert np.all(np.isnan(c[k]))
+            continue
+        np.testing.assert_allclose(c[k], ref[0], atol=1e-9)
+        np.testing.assert_allclose(nrm[k], ref[1], atol=1e-7)
+        np.testing.assert_allclose(off[k], ref[2], rtol=1e-12)
+
+
 @pytest.mark.parametrize("engine", ["compiled", "numpy"])
 def test_epochs_hearing_only_the_ceiling_are_fixed_below_it(engine):
     """Eight ceiling anchors and two near the floor; half the epochs do not hear the floor

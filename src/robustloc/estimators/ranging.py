@@ -178,13 +178,7 @@ def _off_plane(a: Array, x0: Array, heard: NDArray[np.bool_] | None = None) -> A
         inverse = np.zeros(x0.shape[0], dtype=np.intp)
     else:
         patterns, inverse = _unique_rows(np.asarray(heard, dtype=bool))
-        c = np.full((len(patterns), 3), np.nan)
-        nrm = np.zeros((len(patterns), 3))
-        off = np.zeros(len(patterns))
-        for k, pat in enumerate(patterns):
-            plane = _plane_cached(*_anchor_key(a[pat])) if pat.sum() >= 3 else None
-            if plane is not None:
-                c[k], nrm[k], off[k] = plane
+        c, nrm, off = _planes(a, patterns)
     with np.errstate(invalid="ignore"):
         cc, nn = c[inverse], nrm[inverse]
         s = np.einsum("ij,ij->i", x0 - cc, nn)
@@ -209,6 +203,32 @@ def _plane_cached(key: bytes, shape: tuple[int, ...]) -> tuple[Array, Array, flo
         nrm = -nrm
     _frozen(c, nrm)
     return c, nrm, 0.1 * _area(a)[1]
+
+
+def _planes(a: Array, patterns: NDArray[np.bool_]) -> tuple[Array, Array, Array]:
+    """:func:`_plane_cached` for the anchors of each row of ``patterns (P, m)`` at once:
+    centres ``(P, 3)`` (NaN where no plane: not coplanar, collinear or fewer than three
+    anchors), unit normals ``(P, 3)`` and start offsets ``(P,)`` (batched: a log whose
+    epochs hear many different subsets costs one ``eigh`` call, not one per subset)."""
+    k = patterns.astype(float)
+    cnt = k.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        c = (k @ a) / cnt[:, None]
+        d = np.where(patterns[..., None], a[None] - c[:, None], 0.0)
+        ev, vec = np.linalg.eigh(np.nan_to_num(np.einsum("pmi,pmj->pij", d, d)))
+        top = ev[:, -1]
+        flat = np.sqrt(np.maximum(ev[:, 0], 0.0) / top) < COPLANAR_RATIO
+        line = np.sqrt(np.maximum(ev[:, 1], 0.0) / top) < COPLANAR_RATIO
+    ok = (cnt >= 3) & (top > 0) & flat & ~line
+    nrm = vec[:, :, 0]
+    # oriented towards lower z, then x, then y: the first of those with a component
+    big = np.abs(nrm[:, [2, 0, 1]]) > 1e-9
+    lead = np.array([2, 0, 1])[np.argmax(big, axis=1)]
+    lead = np.where(big.any(axis=1), lead, 2)
+    nrm = np.where((nrm[np.arange(len(nrm)), lead] > 0)[:, None], -nrm, nrm)
+    radius = np.sqrt(np.max(np.sum(d * d, axis=2), axis=1))
+    off = 0.1 * 1.25 * np.maximum(radius, 1.0)  # a tenth of _area's radius
+    return np.where(ok[:, None], c, np.nan), nrm, off
 
 
 def _unique_rows(mask: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], NDArray[np.intp]]:
