@@ -95,6 +95,9 @@ def test_standard_errors_are_honest_when_errors_repeat_within_dwells():
     assert zr.size == 250
     assert 0.8 < np.std(zr) < 1.2, np.std(zr)
     assert np.std(zm) > 2.0, np.std(zm)
+    for bad in (-1, 1):  # one block has no spread to measure
+        with pytest.raises(ValueError, match="se_blocks"):
+            SelfCalibrator("range", se_blocks=bad)
 
 
 def test_gross_errors_do_not_bias_the_estimate():
