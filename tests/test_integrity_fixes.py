@@ -449,6 +449,42 @@ def test_a_fix_kept_by_a_minority_of_its_ranges_is_unavailable(n_flagged, expect
         assert np.isfinite(out.extra["hpl"][0]) and out.extra["test_statistic"][0] < 1e-12
 
 
+@pytest.mark.parametrize("case, expected", [("clean", st.NOT_CONVERGED),
+                                           ("minority", st.UNAVAILABLE),
+                                           ("gross", st.FAULT_DETECTED),
+                                           ("no_redundancy", st.NOT_CONVERGED)])
+def test_a_fix_left_before_convergence_is_tested_and_always_bounded(case, expected):
+    """A ``not_converged`` fix is usable, so it gets the same test as any other (found on
+    uwb-dwm1001 NLOS: a not-converged Huber fix 30 m away, 3 of its 4 ranges flagged, was
+    usable, labelled ``extrapolated`` with a NaN hpl -- never counted as misleading).  A
+    minority kept makes it ``unavailable``, a failed test ``fault_detected`` (widened
+    bound), a passing test keeps the label; every usable fix has a non-NaN ``hpl``."""
+    from dataclasses import replace
+
+    x = np.array([[7.0, 11.0]])
+    a, d = (SQUARE[:2], ranges(SQUARE[:2], x)) if case == "no_redundancy" else (
+        TEN, ranges(TEN, x))
+    if case == "gross":  # noise 2.5x the a-priori sigma: nothing flagged, the test fails
+        d = d + np.random.default_rng(4).normal(0.0, 0.25, d.shape)
+    sol = Locator("nls", sigma=0.1, robust_scale="apriori").solve(a, d)
+    excl = np.zeros_like(sol.excluded)
+    if case == "minority":
+        excl[0, :6] = True
+    out = protect(replace(sol, excluded=excl, status=np.array([st.NOT_CONVERGED], object)))
+    assert out.status[0] == expected
+    hpl = out.extra["hpl"][0]
+    if expected == st.UNAVAILABLE:
+        assert np.isnan(hpl) and np.all(np.isnan(out.position[0]))
+    elif case == "gross":  # the same fix labelled ok gets the same verdict and bound
+        ok = protect(sol)
+        assert ok.status[0] == st.FAULT_DETECTED and ok.extra["hpl"][0] == hpl
+        assert not out.extra["flagged"].any() and np.isfinite(hpl)
+    elif case == "no_redundancy":
+        assert hpl == np.inf
+    else:
+        assert np.isfinite(hpl)
+
+
 def test_no_usable_fix_rests_on_a_minority_and_few_mislead_with_frequent_gross_errors():
     """On ranges with 20 % gross errors (``bench_locate.py``'s workload, 10 anchors), the
     default pipeline never returns a usable fix that flagged half or more of what it

@@ -40,7 +40,10 @@ For each epoch, at the fix ``x`` of any method, with the range-domain residuals
    ``protection_exceeded``   usable, but ``hpl`` above ``--alert-limit``            no
    ========================  ====================================================  ======
 
-   An epoch that already has a status other than ``ok`` / ``fault_excluded`` keeps it.
+   A ``not_converged`` fix (usable: the iterations stopped before the step fell below
+   the tolerance) is tested the same way: a failed test or a minority kept overrides its
+   status, a passing test keeps it.  Any other status an epoch already has is kept.
+   A usable fix whose bound cannot be computed gets ``hpl = inf``, never NaN.
 4. **Protection levels** (Baarda's external reliability, the slope method of snapshot RAIM
    with the B-method's ``lambda0``, as :mod:`robustloc.gnss.raim` does for GNSS): a bias
    of the size of the minimal detectable bias ``MDB_i = sigma_i sqrt(lambda0 / r_i)`` on
@@ -384,6 +387,10 @@ def protect(
     lam0 = lambda0(alpha0, beta0)
     status = np.array(sol.status, dtype=object)
     testable = st.among(status, (st.OK, st.FAULT_EXCLUDED))
+    # a fix the iterations left before convergence is usable: it is tested like the rest
+    # (a failed test or a minority kept overrides its status), and keeps its label when
+    # the test passes
+    unconv = status == st.NOT_CONVERGED
     heard = np.isfinite(v) & np.isfinite(sig) & np.all(np.isfinite(J), axis=2)
     excl = sol.excluded if sol.excluded.shape == (N, n) else np.zeros((N, n), dtype=bool)
     used = heard & ~excl
@@ -408,10 +415,10 @@ def protect(
     if fallback_rows is None:
         fallback_rows = sol.extra.get("fallback")
     fb = np.zeros(N, dtype=bool) if fallback_rows is None else np.asarray(fallback_rows, bool)
-    failed = testable & has & ~passed
+    failed = (testable | unconv) & has & ~passed
     # item 6: a minority kept (flagged by the estimator or the w-test: half or more)
     n_out = np.sum(heard & (excl | flagged), axis=1)
-    blind = testable & any_flag & ((dof < 1) | (2 * n_out >= heard.sum(axis=1)))
+    blind = (testable | unconv) & any_flag & ((dof < 1) | (2 * n_out >= heard.sum(axis=1)))
     failed &= ~blind
     new[testable & (dof == 0) & ~any_flag] = st.UNVERIFIED
     new[failed] = st.FAULT_DETECTED
@@ -451,9 +458,12 @@ def protect(
                 if p == 3:
                     vpl[rows] = np.fmax(vpl[rows], np.abs(d[:, 2]) + v_alt)
     usable = st.among(new, st.USABLE)
-    unbounded = (new == st.UNVERIFIED) | blind
+    # nothing bounds a usable fix whose bound could not be computed (no redundancy, no
+    # scale): infinite, never NaN -- a NaN would pass every ``error > hpl`` check unseen
+    unbounded = (new == st.UNVERIFIED) | blind | ~np.isfinite(hpl)
     hpl = np.where(usable, np.where(unbounded, np.inf, hpl), np.nan)
-    vpl = np.where(usable & (p == 3), np.where(unbounded, np.inf, vpl), np.nan)
+    vpl = np.where(usable & (p == 3),
+                   np.where(unbounded | ~np.isfinite(vpl), np.inf, vpl), np.nan)
     # a fix far outside anything its anchors can vouch for is no fix (issue 15: never ok
     # with a non-finite sigma0, or a position outside 10x the anchors' extent)
     pos = sol.position
