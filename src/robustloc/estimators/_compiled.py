@@ -563,7 +563,9 @@ def fit_ranges(
     the Huber fix and from ``x0``, keeping the smaller robust objective (both measured
     with the smaller MAD scale of the two starts).  Returns the arrays of a
     :class:`~robustloc.estimators.linear.LinearFit` with status codes:
-    ``x, v, w, qvv, sigma0, cov, n_used, iterations, converged, status, u``.
+    ``x, v, w, qvv, sigma0, cov, n_used, iterations, converged, status, u``, and the
+    Jacobian ``jac (N, m, p)`` of the ranges at ``x`` (NaN where ``x`` is not finite; every
+    anchor's row, heard or not: :meth:`RangeModel.predict_jacobian`'s formula).
 
     Outputs and scratch are allocated here, so the compiled loop runs without numba's
     reference counting (``_nrt=False``): every array it touches is borrowed.
@@ -573,7 +575,7 @@ def fit_ranges(
     out = (np.empty((N, p)), np.empty((N, m)), np.empty((N, m)), np.empty((N, m)),
            np.empty(N), np.empty((N, p, p)), np.empty(N, dtype=np.int64),
            np.empty(N, dtype=np.int64), np.empty(N, dtype=np.bool_),
-           np.empty(N, dtype=np.int64), np.empty((N, m)))
+           np.empty(N, dtype=np.int64), np.empty((N, m)), np.empty((N, m, p)))
     _fit_ranges(a, ho2, z, sig, x0, code, prm, robust, redescending, scale_fixed, min_scale,
                 max_iter, tol, rel_tol, min_obs, *out, np.empty((26, m)), np.empty((9, p)),
                 np.empty((6, p, p)), np.empty((m, p)), np.empty((1, m), dtype=np.bool_),
@@ -585,7 +587,7 @@ def fit_ranges(
 @njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
 def _fit_ranges(a, ho2, z, sig, x0, code, prm, robust, redescending, scale_fixed, min_scale,
                 max_iter, tol, rel_tol, min_obs, X, V, W, QV, S0, COV, NU, IT, CONV, STAT, U,
-                vm, vp, mp, J, vb, sf, si, nojac, hub_prm, tag):  # pragma: no cover - jit
+                JAC, vm, vp, mp, J, vb, sf, si, nojac, hub_prm, tag):  # pragma: no cover - jit
     """The loop of :func:`fit_ranges` over epochs; ``vm, vp, mp, J, vb, sf, si`` are scratch
     (rows of m-vectors, p-vectors, p x p matrices, the Jacobian, boolean m-vectors, and the
     per-slot float and integer outcomes)."""
@@ -660,7 +662,17 @@ def _fit_ranges(a, ho2, z, sig, x0, code, prm, robust, redescending, scale_fixed
         CONV[e] = CVS[t]
         S0[e] = S0S[t]
         NU[e] = NUS[t]
-    return X, V, W, QV, S0, COV, NU, IT, CONV, STAT, U
+        # the design at the fix, for the integrity statistics (one range evaluation)
+        finite = True
+        for k in range(p):
+            xn[k] = XS[t, k]
+            finite = finite and math.isfinite(xn[k])
+        if finite:
+            _ranges(a, ho2, xn, pred, J, tag)
+        for i in range(m):
+            for k in range(p):
+                JAC[e, i, k] = J[i, k] if finite else math.nan
+    return X, V, W, QV, S0, COV, NU, IT, CONV, STAT, U, JAC
 
 
 # ------------------------------------------------------------------- rescue grid search
