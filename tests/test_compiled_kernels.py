@@ -83,6 +83,12 @@ def _compare(loc_kw: dict, anchors: np.ndarray, values: np.ndarray, **solve_kw) 
     np.testing.assert_allclose(b.covariance, a.covariance, rtol=1e-4, atol=1e-9,
                                equal_nan=True)
     np.testing.assert_allclose(b.residuals, a.residuals, rtol=0, atol=1e-6, equal_nan=True)
+    # the integrity statistics' inputs: the compiled fit's own Jacobian at its fix against
+    # NumPy's predict_jacobian (unit vectors: a 1e-6 m fix difference moves them by
+    # about 1e-6 / distance)
+    for key in ("jacobian", "range_residuals"):
+        np.testing.assert_allclose(b.extra[key], a.extra[key], rtol=0, atol=1e-6,
+                                   equal_nan=True)
     np.testing.assert_array_equal(np.isnan(a.weights), np.isnan(b.weights))
     np.testing.assert_allclose(b.weights, a.weights, rtol=1e-4, atol=1e-12, equal_nan=True)
     np.testing.assert_array_equal(a.excluded, b.excluded)
