@@ -564,8 +564,8 @@ def fit_ranges(
     with the smaller MAD scale of the two starts).  Returns the arrays of a
     :class:`~robustloc.estimators.linear.LinearFit` with status codes:
     ``x, v, w, qvv, sigma0, cov, n_used, iterations, converged, status, u``, and the
-    Jacobian ``jac (N, m, p)`` of the ranges at ``x`` (NaN where ``x`` is not finite; every
-    anchor's row, heard or not: :meth:`RangeModel.predict_jacobian`'s formula).
+    Jacobian ``jac (N, m, p)`` and ranges ``pred (N, m)`` at ``x`` (NaN where ``x`` is not
+    finite; every anchor's, heard or not: :meth:`RangeModel.predict_jacobian`'s formula).
 
     Outputs and scratch are allocated here, so the compiled loop runs without numba's
     reference counting (``_nrt=False``): every array it touches is borrowed.
@@ -575,7 +575,8 @@ def fit_ranges(
     out = (np.empty((N, p)), np.empty((N, m)), np.empty((N, m)), np.empty((N, m)),
            np.empty(N), np.empty((N, p, p)), np.empty(N, dtype=np.int64),
            np.empty(N, dtype=np.int64), np.empty(N, dtype=np.bool_),
-           np.empty(N, dtype=np.int64), np.empty((N, m)), np.empty((N, m, p)))
+           np.empty(N, dtype=np.int64), np.empty((N, m)), np.empty((N, m, p)),
+           np.empty((N, m)))
     _fit_ranges(a, ho2, z, sig, x0, code, prm, robust, redescending, scale_fixed, min_scale,
                 max_iter, tol, rel_tol, min_obs, *out, np.empty((26, m)), np.empty((9, p)),
                 np.empty((6, p, p)), np.empty((m, p)), np.empty((1, m), dtype=np.bool_),
@@ -587,7 +588,8 @@ def fit_ranges(
 @njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
 def _fit_ranges(a, ho2, z, sig, x0, code, prm, robust, redescending, scale_fixed, min_scale,
                 max_iter, tol, rel_tol, min_obs, X, V, W, QV, S0, COV, NU, IT, CONV, STAT, U,
-                JAC, vm, vp, mp, J, vb, sf, si, nojac, hub_prm, tag):  # pragma: no cover - jit
+                JAC, PRED, vm, vp, mp, J, vb, sf, si, nojac, hub_prm,
+                tag):  # pragma: no cover - jit
     """The loop of :func:`fit_ranges` over epochs; ``vm, vp, mp, J, vb, sf, si`` are scratch
     (rows of m-vectors, p-vectors, p x p matrices, the Jacobian, boolean m-vectors, and the
     per-slot float and integer outcomes)."""
@@ -670,9 +672,10 @@ def _fit_ranges(a, ho2, z, sig, x0, code, prm, robust, redescending, scale_fixed
         if finite:
             _ranges(a, ho2, xn, pred, J, tag)
         for i in range(m):
+            PRED[e, i] = pred[i] if finite else math.nan
             for k in range(p):
                 JAC[e, i, k] = J[i, k] if finite else math.nan
-    return X, V, W, QV, S0, COV, NU, IT, CONV, STAT, U, JAC
+    return X, V, W, QV, S0, COV, NU, IT, CONV, STAT, U, JAC, PRED
 
 
 # ------------------------------------------------------------------- rescue grid search

@@ -479,10 +479,11 @@ def _compiled_gn(
         np.nan if scale is None else float(scale), float(kw["min_scale"]), int(kw["max_iter"]),
         float(kw["tol"]), float(kw["rel_tol"]), int(kw["min_obs"]),
     )
-    x, v, w, qvv, s0, cov, n_used, iters, conv, status, u, jac = out
+    x, v, w, qvv, s0, cov, n_used, iters, conv, status, u, jac, pred = out
     return LinearFit(
         x=x, v=v, w=w, qvv=qvv, sigma0=s0, cov=cov, n_used=n_used, iterations=iters,
-        converged=conv, status=_compiled.CODES[status], extra={"u": u, "jacobian": jac},
+        converged=conv, status=_compiled.CODES[status],
+        extra={"u": u, "jacobian": jac, "predicted": pred},
     )
 
 
@@ -684,11 +685,10 @@ class Locator:
         xs = np.nan_to_num(x)
         use = st.among(status, st.USABLE)[:, None]
         extra = dict(fit.extra)
-        jac = extra.get("jacobian")  # the compiled fit's, at its fix (the same formula)
-        if jac is None or jac.shape != z.shape + (dim,):
+        # the compiled fit's, at its fix (the same formula): no second pass over (N, m, p)
+        jac, pred = extra.pop("jacobian", None), extra.pop("predicted", None)
+        if jac is None or pred is None or jac.shape != z.shape + (dim,):
             pred, jac = rng_model.predict_jacobian(xs)
-        else:
-            pred = rng_model.predict(xs)
         extra["range_residuals"] = np.where(use, pred - ranges, np.nan)
         extra["jacobian"] = np.where(use[..., None], jac, np.nan)
         extra["anchor_extent"] = self._the_area(a)
