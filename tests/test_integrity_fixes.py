@@ -678,3 +678,17 @@ def test_compiled_mirror_solution_equals_the_numpy_reference(seed, p, m, heights
     np.testing.assert_allclose(xa_c, xa_n, rtol=0, atol=1e-6, equal_nan=True)
     np.testing.assert_allclose(t_c, t_n, rtol=1e-6, atol=1e-9, equal_nan=True)
     np.testing.assert_allclose(j_c, j_n, rtol=0, atol=1e-9, equal_nan=True)
+
+
+def test_test_alpha_is_the_chi2_tail_of_each_epoch():
+    """``extra["test_alpha"]`` is evaluated once per distinct (critical value, dof) pair:
+    the same numbers as ``chi2.sf`` row by row, NaN and inf critical values included."""
+    from robustloc.integrity.fixes import _test_alpha
+
+    rng = np.random.default_rng(0)
+    dof = rng.integers(-2, 8, 2000)
+    crit = np.where(dof >= 1, stats.chi2.isf(0.01, np.maximum(dof, 1)), np.nan)
+    crit[:5] = np.inf
+    crit[5:50] = rng.uniform(0.0, 30.0, 45)
+    ref = stats.chi2.sf(crit, np.maximum(dof, 1))
+    np.testing.assert_array_equal(_test_alpha(crit, dof), ref)

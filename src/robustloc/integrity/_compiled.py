@@ -19,10 +19,13 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def protection_levels_kernel(J, sigma, used, lam0, k_noise, r_min):  # pragma: no cover - jit
+def protection_levels_kernel(J, sigma, used, lam0, k_noise, r_min,
+                             tag):  # pragma: no cover - jit
     """``(hpl, vpl, r)`` of every epoch; arguments and results as
-    :func:`robustloc.integrity.fixes.protection_levels_local`."""
-    N, n, p = J.shape
+    :func:`robustloc.integrity.fixes.protection_levels_local`.  ``tag``: a tuple of ``p``
+    floats, so the dimension is a compile-time constant (the small loops unroll)."""
+    N, n = J.shape[0], J.shape[1]
+    p = len(tag)
     hpl = np.full(N, np.nan)
     vpl = np.full(N, np.nan)
     r_out = np.full((N, n), np.nan)
@@ -102,8 +105,9 @@ def protection_levels_kernel(J, sigma, used, lam0, k_noise, r_min):  # pragma: n
                 for c in range(max(a, b), p):
                     acc += M[c, a] * M[c, b]
                 C[a, b] = acc
-        dh_max = 0.0
-        du_max = 0.0
+        # the largest squared slope terms; one square root per epoch at the end
+        dh2_max = 0.0
+        du2_max = 0.0
         for i in range(n):
             if not use[i]:
                 continue
@@ -125,20 +129,22 @@ def protection_levels_kernel(J, sigma, used, lam0, k_noise, r_min):  # pragma: n
                 mv += acc * acc
             r = 1.0 - dot
             r_out[k, i] = r
-            if math.sqrt(mv) <= 1e-9:
-                continue  # the observation does not move the fix
+            if mv <= 1e-18:
+                continue  # the observation does not move the fix (|N^-1 a_i| <= 1e-9)
             if r <= r_min:
-                dh_max = np.inf  # a fault here is undetectable and moves the fix: blind
-                du_max = np.inf
+                dh2_max = np.inf  # a fault here is undetectable and moves the fix: blind
+                du2_max = np.inf
                 continue
-            kk = math.sqrt(lam0 / r)
-            dh = math.hypot(AN[0] * kk, AN[1] * kk)
-            if dh > dh_max:
-                dh_max = dh
+            kk2 = lam0 / r  # (MDB / sigma)^2
+            dh2 = (AN[0] * AN[0] + AN[1] * AN[1]) * kk2
+            if dh2 > dh2_max:
+                dh2_max = dh2
             if p == 3:
-                du = abs(AN[2] * kk)
-                if du > du_max:
-                    du_max = du
+                du2 = AN[2] * AN[2] * kk2
+                if du2 > du2_max:
+                    du2_max = du2
+        dh_max = math.sqrt(dh2_max)
+        du_max = math.sqrt(du2_max)
         t2 = C[0, 0] + C[1, 1]
         d2 = C[0, 0] * C[1, 1] - C[0, 1] ** 2
         lam_max = 0.5 * t2 + math.sqrt(max(0.25 * t2 * t2 - d2, 0.0))
