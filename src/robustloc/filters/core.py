@@ -68,9 +68,9 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.stats import chi2
 
 from robustloc import status as st
+from robustloc._stats import chi2_ppf
 from robustloc.robust.weights import WeightFunction
 
 Array = NDArray[np.float64]
@@ -422,7 +422,7 @@ def update_from_moments(
 
     gated = np.zeros(K, dtype=bool)
     if robust.gate_probability is not None:
-        thr = chi2.ppf(robust.gate_probability, np.maximum(dof, 1))
+        thr = chi2_ppf(robust.gate_probability, np.maximum(dof, 1))
         gated = (dof > 0) & (nis > thr)
 
     if robust.weight is not None:

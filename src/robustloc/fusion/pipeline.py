@@ -33,9 +33,9 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.stats import chi2
 
 from robustloc import status as st
+from robustloc._stats import chi2_ppf
 from robustloc.filters.core import (
     PLAIN,
     RobustUpdate,
@@ -352,7 +352,7 @@ class FusionFilter:
         wm, wc = self.points.weights(n) if n + lam > 0 else (np.zeros(2 * n + 1),) * 2
         chi = np.full(m + 1, np.inf)  # no gate: NIS > inf never holds
         if self.robust.gate_probability is not None:
-            chi[1:] = chi2.ppf(self.robust.gate_probability, np.arange(1, m + 1))
+            chi[1:] = chi2_ppf(self.robust.gate_probability, np.arange(1, m + 1))
         C = _coefficients(motion.order, motion.dim)
         return _compiled.pack_params(
             _compiled.EKF if self.kind == "ekf" else _compiled.UKF, motion.q,

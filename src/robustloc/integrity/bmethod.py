@@ -24,7 +24,8 @@ from functools import lru_cache
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import stats
+
+from robustloc._stats import chi2_isf, chi2_sf, ncx2_ppf, norm_cdf, norm_ppf
 
 #: Default significance of the local w-test (seed 003: 0.1 %).
 ALPHA0 = 0.001
@@ -57,20 +58,20 @@ def lambda0(alpha0: float = ALPHA0, beta0: float = BETA0) -> float:
     """
     a = _check_prob("alpha0", alpha0)
     b = _check_prob("beta0", beta0)
-    return float((stats.norm.ppf(1.0 - a / 2.0) + stats.norm.ppf(1.0 - b)) ** 2)
+    return float((norm_ppf(1.0 - a / 2.0) + norm_ppf(1.0 - b)) ** 2)
 
 
 @lru_cache(maxsize=256)
 def w_critical(alpha0: float = ALPHA0) -> float:
     """Critical value ``N(1 - alpha0/2)`` of the two-sided w-test (3.29 for 0.1 %)."""
-    return float(stats.norm.ppf(1.0 - _check_prob("alpha0", alpha0) / 2.0))
+    return float(norm_ppf(1.0 - _check_prob("alpha0", alpha0) / 2.0))
 
 
 @lru_cache(maxsize=4096)
 def _alpha_one(dof: int, alpha0: float, beta0: float) -> float:
     lam = lambda0(alpha0, beta0)
-    q = stats.ncx2.ppf(beta0, dof, lam)  # seed 003, eq. (4): left side
-    return float(stats.chi2.sf(q, dof))  # 1 - alpha quantile equals q
+    q = ncx2_ppf(beta0, dof, lam)  # seed 003, eq. (4): left side (lam > 0)
+    return float(chi2_sf(q, dof))  # 1 - alpha quantile equals q
 
 
 def global_alpha(
@@ -139,19 +140,19 @@ def global_critical(
             out[whole] = vals[inv.reshape(-1)]
         rest = np.isfinite(d) & (d >= 1) & ~whole
         if np.any(rest):  # non-integer dof: as asked, directly
-            out[rest] = stats.chi2.isf(global_alpha(d[rest], a0, b0), d[rest])
+            out[rest] = chi2_isf(global_alpha(d[rest], a0, b0), d[rest])
         return out
     a = np.asarray(alpha, dtype=float)
     if np.any((a <= 0) | (a >= 1)):
         raise ValueError("alpha must be strictly between 0 and 1")
     with np.errstate(invalid="ignore"):
-        out = stats.chi2.isf(a, np.where(d >= 1, d, np.nan))
+        out = chi2_isf(a, np.where(d >= 1, d, np.nan))
     return np.asarray(out, dtype=float)
 
 
 @lru_cache(maxsize=4096)
 def _critical_one(dof: int, alpha0: float, beta0: float) -> float:
-    return float(stats.chi2.isf(_alpha_one(dof, alpha0, beta0), dof))
+    return float(chi2_isf(_alpha_one(dof, alpha0, beta0), dof))
 
 
 def detection_power_w(
@@ -165,7 +166,7 @@ def detection_power_w(
     """
     k = w_critical(alpha0)
     d = np.abs(np.asarray(bias_over_sigma_w, dtype=float))
-    return stats.norm.cdf(d - k) + stats.norm.cdf(-d - k)
+    return norm_cdf(d - k) + norm_cdf(-d - k)
 
 
 def detection_power_global(
@@ -180,6 +181,8 @@ def detection_power_global(
     ``noncentrality`` is ``lambda = delta^2`` (``lambda0`` for a single bias of MDB size, for
     which the result is ``1 - beta0`` by construction of the B-method).
     """
+    from scipy import stats  # (the planners' and Monte Carlo's, not the pipelines')
+
     crit = global_critical(dof, alpha, alpha0, beta0)
     lam = np.asarray(noncentrality, dtype=float)
     d = np.asarray(dof, dtype=float)

@@ -101,9 +101,9 @@ from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import stats
 
 from robustloc import status as st
+from robustloc._stats import chi2_sf
 from robustloc.estimators.ranging import _unique_rows
 from robustloc.estimators.solution import Solution
 from robustloc.integrity.bmethod import ALPHA0, BETA0, global_critical, lambda0, w_critical
@@ -340,7 +340,7 @@ def _test_alpha(crit: Array, dof: NDArray[np.int64]) -> Array:
     # one complex key per pair: a 1-D sort (np.unique over rows is ~10x slower)
     uniq, inverse = np.unique(code + 1j * dof.astype(float), return_inverse=True)
     c = np.select([uniq.real == -1.0, uniq.real == -2.0], [np.nan, np.inf], uniq.real)
-    vals = stats.chi2.sf(c, np.maximum(uniq.imag, 1))
+    vals = chi2_sf(c, np.maximum(uniq.imag, 1))
     return vals[np.asarray(inverse).reshape(-1)]
 
 

@@ -575,7 +575,7 @@ class SelfCalibrator:
         """Epochs used, and candidates left out as bad: too many rejections, no
         redundancy left, or the global test of the epoch's observations in use fails
         (``sum w u^2 > chi2_{1 - epoch_alpha}(n_w - dim)``, seed 003's global test)."""
-        from scipy.stats import chi2
+        from robustloc._stats import chi2_ppf
 
         n_obs = obs.sum(axis=1)
         inl = (w > 0) & obs
@@ -583,7 +583,7 @@ class SelfCalibrator:
         red = n_w - dim
         T = np.sum(np.where(inl, w * np.nan_to_num(u) ** 2, 0.0), axis=1)
         with np.errstate(invalid="ignore"):
-            crit = chi2.ppf(1.0 - self.epoch_alpha, np.maximum(red, 1))
+            crit = chi2_ppf(1.0 - self.epoch_alpha, np.maximum(red, 1))
         bad = cand & ((red <= 0) | (n_obs - n_w > self.bad_epoch_fraction * n_obs)
                       | (T > crit))
         return cand & ~bad, bad

@@ -84,9 +84,9 @@ from typing import Any
 import numpy as np
 import pandas as pd
 from numpy.typing import NDArray
-from scipy.stats import chi2
 
 from robustloc import status as st
+from robustloc._stats import chi2_isf
 from robustloc.filters.core import (
     RobustUpdate,
     SigmaPoints,
@@ -266,9 +266,9 @@ class Tracker:
         self._kernel: Any = None
         self._locator = None
         self._lam0 = lambda0(self.settings.alpha0, self.settings.beta0)
-        self._k_ir = math.sqrt(chi2.isf(self.settings.integrity_risk, 2))
-        self._chi2_fix = float(chi2.isf(self.settings.alpha0, 2))  # 2-D fix ellipse
-        self._w2_crit = float(chi2.isf(self.settings.alpha0, 1))  # w-test, squared
+        self._k_ir = math.sqrt(chi2_isf(self.settings.integrity_risk, 2))
+        self._chi2_fix = float(chi2_isf(self.settings.alpha0, 2))  # 2-D fix ellipse
+        self._w2_crit = float(chi2_isf(self.settings.alpha0, 1))  # w-test, squared
         self._gcrit = global_critical(np.arange(0, M + 1), None, self.settings.alpha0,
                                       self.settings.beta0)
 
