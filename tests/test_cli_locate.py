@@ -38,6 +38,55 @@ def test_locate_every_epoch_gets_a_row(corridor, capsys):
     assert rms["igg"] < 0.6 * rms["ls"]
 
 
+def test_summary_gives_the_usable_fixes_protection_levels(corridor, tmp_path, capsys):
+    """The run summary's hpl histogram counts every usable fix once (also over chunks of
+    the stream), and its quantiles are within the bins' 6 % of the exact ones."""
+    from robustloc import status as st
+    from robustloc.pipelines.locate import hpl_quantiles
+
+    out = tmp_path / "pos.csv"
+    args = ["locate", str(corridor / "measurements.csv"), "--anchors", str(corridor / "cal.csv"),
+            "--method", "auto,nls", "-o", str(out)]
+    assert main(args + ["--json", "--chunk-rows", "53"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    pos = pd.read_csv(out)
+    for m, g in pos.groupby("method"):
+        use = g["status"].isin(st.USABLE)
+        hist = summary["hpl_histogram"][m]
+        assert sum(hist.values()) == use.sum()
+        q = hpl_quantiles(hist)
+        h = g.loc[use, "hpl"].to_numpy(float)
+        for key, pct in (("p50", 50), ("p95", 95)):
+            exact = np.percentile(h, pct, method="inverted_cdf")
+            assert abs(np.log10(q[key] / exact)) <= 0.5 / 20 + 1e-12, (m, key)
+    assert main(args) == 0  # the text summary says it
+    text = capsys.readouterr().out
+    assert "hpl of the" in text and "median" in text
+
+
+def test_hpl_histogram_quantiles_and_unbounded_fixes():
+    from robustloc.pipelines.locate import hpl_counts, hpl_quantiles
+
+    rng = np.random.default_rng(2)
+    h = 10 ** rng.uniform(-1, 2, 5000)
+    a, b = {}, {}
+    hpl_counts(h[:2000], np.ones(2000, bool), a)
+    hpl_counts(h[2000:], np.ones(3000, bool), a)
+    hpl_counts(h, np.ones(5000, bool), b)
+    assert a == b  # chunks (and Dask partitions) add up exactly
+    q = hpl_quantiles(b, (0.5, 0.95))
+    for key, pct in (("p50", 50), ("p95", 95)):
+        exact = np.percentile(h, pct, method="inverted_cdf")
+        assert abs(np.log10(q[key] / exact)) <= 0.5 / 20 + 1e-12
+    # unusable rows are left out; unbounded usable fixes count as infinite
+    c = {}
+    hpl_counts(np.array([1.0, np.nan, np.inf, np.inf, np.inf]),
+               np.array([True, False, True, True, True]), c)
+    assert c == {"0": 1, "inf": 3}
+    assert hpl_quantiles(c)["p50"] == np.inf
+    assert np.isnan(hpl_quantiles({})["p50"])
+
+
 def test_streaming_in_small_chunks_matches_whole(corridor, tmp_path):
     args = ["locate", str(corridor / "measurements.csv"), "--anchors", str(corridor / "cal.csv"),
             "--method", "nls", "--quiet"]

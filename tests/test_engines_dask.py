@@ -211,6 +211,13 @@ def test_locate_dask_equals_single_process_row_for_row(sim, by_time, scheduler, 
     meta = json.loads((out / "_robustloc.json").read_text())
     assert meta["epochs"] == len(local)
     assert meta["status"]["huber"] == local["status"].value_counts().to_dict()
+    # the partitions' hpl histograms add up to the single process's
+    from robustloc import status as st
+    from robustloc.pipelines.locate import hpl_counts
+
+    ref: dict = {}
+    hpl_counts(local["hpl"].to_numpy(float), local["status"].isin(st.USABLE).to_numpy(), ref)
+    assert meta["hpl_histogram"]["huber"] == ref
 
 
 def test_locate_first_pass_on_the_workers_samples_as_one_process(sim, by_time, scheduler,

@@ -142,7 +142,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="B-method type II error (snooping)")
     p.add_argument("--chunk-rows", type=positive_int, default=500_000,
                    help="rows read per chunk")
-    p.add_argument("--json", action="store_true", help="print the run summary as JSON")
+    p.add_argument("--json", action="store_true",
+                   help="print the run summary as JSON (statuses per method, and "
+                        "hpl_histogram: the usable fixes' hpl counted in bins of 1/20 "
+                        "decade, key floor(20 log10 hpl), 'inf' for unbounded ones)")
     p.add_argument("--quiet", action="store_true",
                    help="no progress bar and no text summary")
     add_engine_arguments(p)
@@ -193,4 +196,24 @@ def run(args: argparse.Namespace) -> int:
               "physical limits of robustloc.io.limits; not used)", file=dest)
     for m, c in summary["status"].items():
         print(f"  {m:9s} " + ", ".join(f"{k}: {v}" for k, v in sorted(c.items())), file=dest)
+    for line in hpl_lines(summary):
+        print(line, file=dest)
     return 0
+
+
+def hpl_lines(summary: dict) -> list[str]:
+    """The summary's protection levels, one line per method: the median and 95th
+    percentile of the usable fixes' ``hpl`` (from the summary's histogram, within 6 %)."""
+    from robustloc.pipelines.locate import hpl_quantiles
+
+    lines = []
+    for m, hist in (summary.get("hpl_histogram") or {}).items():
+        n = sum(hist.values())
+        if not n:
+            continue
+        q = hpl_quantiles(hist)
+        unb = hist.get("inf", 0)
+        lines.append(f"  {m:9s} hpl of the {n} usable fixes: median {q['p50']:.3g} m, "
+                     f"95 % at or below {q['p95']:.3g} m"
+                     + (f" ({unb} unbounded)" if unb else ""))
+    return lines

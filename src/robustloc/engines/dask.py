@@ -259,6 +259,7 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
             "out": str(args.out), "partitions": len(plan), "workers": n_workers,
             "value": summaries[0].get("value"), "methods": summaries[0].get("methods"),
             "epochs": total.get("epochs", 0), "status": total.get("status", {}),
+            "hpl_histogram": total.get("hpl_histogram", {}),
             "duplicates_merged": total.get("duplicates_merged", 0),
             "seconds": round(wall, 3),
             "epochs_per_second": round(total.get("epochs", 0) / max(wall, 1e-9), 1),
@@ -348,6 +349,11 @@ def _report(args: argparse.Namespace, summary: dict) -> None:
           f"({summary['seconds']:.2f} s on {summary['workers']} dask workers)")
     for m, c in summary.get("status", {}).items():
         print(f"  {m:9s} " + ", ".join(f"{k}: {v}" for k, v in sorted(c.items())))
+    if summary.get("hpl_histogram"):
+        from robustloc.commands.locate import hpl_lines
+
+        for line in hpl_lines(summary):
+            print(line)
     for k, v in summary.get("counts", {}).items():
         print(f"  {k}: {v}")
 
