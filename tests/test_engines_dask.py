@@ -336,6 +336,14 @@ def test_track_dask_equals_single_process_row_for_row(sim, by_tag, by_time, sche
         meta = json.loads((out / "_robustloc.json").read_text())
         assert meta["rows_out"] == len(ref) and meta["counts"]["epochs"] == len(ref)
         assert meta["counts"]["status"] == ref["status"].value_counts().to_dict()
+        # the tag groups' hpl histograms add up to the single process's
+        from robustloc import status as st
+        from robustloc.pipelines.locate import hpl_counts
+
+        want: dict = {}
+        hpl_counts(ref["hpl"].to_numpy(float), ref["status"].isin(st.USABLE).to_numpy(),
+                   want)
+        assert list(meta["counts"]["hpl_histogram"].values()) == [want]
 
 
 def test_evaluate_dask_equals_single_process(sim, by_time, scheduler, tmp_path, capsys):

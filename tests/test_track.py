@@ -251,6 +251,30 @@ def test_command_writes_a_track_that_evaluate_reads(tmp_path):
         assert any(x["tag"] == "all" and x["n"] == 60 for x in rec)
 
 
+def test_command_summary_gives_the_usable_rows_protection_levels(tmp_path):
+    """``track --json``: the hpl histogram counts every usable row once, streamed in
+    small chunks or smoothed, and the text summary states its median."""
+    from robustloc import status as st
+    from robustloc.pipelines.locate import hpl_counts
+
+    a = _anchors()
+    meas, _ = _walk(K=2, N=30, seed=9)
+    a.to_csv(tmp_path / "a.csv", index=False)
+    meas.to_csv(tmp_path / "m.csv", index=False)
+    for extra in (["--chunk-rows", "17"], ["--smooth"]):
+        r = _cli("track", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),
+                 "-o", str(tmp_path / "trk.csv"), "--sigma", "0.1", "--json", *extra)
+        assert r.returncode == 0, r.stderr
+        (hist,) = json.loads(r.stdout)["hpl_histogram"].values()
+        out = pd.read_csv(tmp_path / "trk.csv")
+        want: dict = {}
+        hpl_counts(out["hpl"].to_numpy(float), out["status"].isin(st.USABLE).to_numpy(), want)
+        assert hist == want and sum(hist.values()) == out["status"].isin(st.USABLE).sum()
+    r = _cli("track", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),
+             "-o", str(tmp_path / "trk.csv"), "--sigma", "0.1")
+    assert r.returncode == 0 and "hpl of the" in r.stdout and "usable rows" in r.stdout
+
+
 def test_command_bad_input(tmp_path):
     a = _anchors()
     a.to_csv(tmp_path / "a.csv", index=False)

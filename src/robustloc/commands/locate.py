@@ -201,9 +201,10 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def hpl_lines(summary: dict) -> list[str]:
+def hpl_lines(summary: dict, noun: str = "fixes") -> list[str]:
     """The summary's protection levels, one line per method: the median and 95th
-    percentile of the usable fixes' ``hpl`` (from the summary's histogram, within 6 %)."""
+    percentile of the usable fixes' (``noun``: track rows') ``hpl`` (from the summary's
+    histogram, within 6 %)."""
     from robustloc.pipelines.locate import hpl_quantiles
 
     lines = []
@@ -213,7 +214,7 @@ def hpl_lines(summary: dict) -> list[str]:
             continue
         q = hpl_quantiles(hist)
         unb = hist.get("inf", 0)
-        lines.append(f"  {m:9s} hpl of the {n} usable fixes: median {q['p50']:.3g} m, "
+        lines.append(f"  {m:9s} hpl of the {n} usable {noun}: median {q['p50']:.3g} m, "
                      f"95 % at or below {q['p95']:.3g} m"
                      + (f" ({unb} unbounded)" if unb else ""))
     return lines

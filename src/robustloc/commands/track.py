@@ -100,7 +100,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="known tag height, to reduce slant ranges (m; anchors need z)")
     p.add_argument("--chunk-rows", type=positive_int, default=500_000,
                    help="rows read per chunk")
-    p.add_argument("--json", action="store_true", help="print the run summary as JSON")
+    p.add_argument("--json", action="store_true",
+                   help="print the run summary as JSON (statuses, and hpl_histogram: the "
+                        "usable rows' hpl counted in bins of 1/20 decade, key "
+                        "floor(20 log10 hpl), 'inf' for unbounded ones)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_engine_arguments(p, what="a tag-partitioned Parquet dataset")
 
@@ -127,8 +130,10 @@ def track_partition(meas: pd.DataFrame, anchors: pd.DataFrame, args: argparse.Na
     settings = TrackSettings.from_namespace(args)
     trk = settings.tracker(anchors)
     epochs = to_epochs(meas, trk.anchor_ids)  # sorted by (time, tag): each tag in order
-    table, n, counts = track_blocks(trk, [epochs], settings)
-    return table, {"epochs": n, "tags": len(trk.tags), "status": counts}
+    hist: dict[str, int] = {}
+    table, n, counts = track_blocks(trk, [epochs], settings, hpl_histogram=hist)
+    return table, {"epochs": n, "tags": len(trk.tags), "status": counts,
+                   "hpl_histogram": {trk.method: hist}}
 
 
 def track_partition_file(args: argparse.Namespace) -> dict:
@@ -137,7 +142,7 @@ def track_partition_file(args: argparse.Namespace) -> dict:
     additive counts of its summary."""
     s = track_file(args)
     return {"epochs": s["epochs"], "tags": s["tags"], "status": s["status"],
-            "rows_out": s["epochs"]}
+            "hpl_histogram": s["hpl_histogram"], "rows_out": s["epochs"]}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -151,4 +156,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"{summary['epochs']} epochs, {summary['tags']} tags -> {summary['track']} "
           f"({summary['seconds']:.2f} s, {summary['epochs_per_second']:.0f} epochs/s)")
     print("  " + ", ".join(f"{k}: {v}" for k, v in sorted(summary["status"].items())))
+    from robustloc.commands.locate import hpl_lines
+
+    for line in hpl_lines(summary, "rows"):
+        print(line)
     return 0

@@ -355,7 +355,13 @@ def _report(args: argparse.Namespace, summary: dict) -> None:
         for line in hpl_lines(summary):
             print(line)
     for k, v in summary.get("counts", {}).items():
-        print(f"  {k}: {v}")
+        if k == "hpl_histogram":
+            from robustloc.commands.locate import hpl_lines
+
+            for line in hpl_lines({"hpl_histogram": v}, "rows"):
+                print(line)
+        else:
+            print(f"  {k}: {v}")
 
 
 def run_filter(args: argparse.Namespace, kernel: TagKernel) -> int:

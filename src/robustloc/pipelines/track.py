@@ -131,15 +131,16 @@ def run_track(
                               if src])
     t0 = _time.perf_counter()
     try:
-        trk, frame, n_epochs, counts = _one_pass(measurements, anchors, settings, out,
-                                                 "auto", progress)
+        trk, frame, n_epochs, counts, hist = _one_pass(measurements, anchors, settings,
+                                                       out, "auto", progress)
     except UnsortedInput:
-        trk, frame, n_epochs, counts = _one_pass(measurements, anchors, settings, out,
-                                                 "sort", progress)
+        trk, frame, n_epochs, counts, hist = _one_pass(measurements, anchors, settings,
+                                                       out, "sort", progress)
     wall = _time.perf_counter() - t0
     summary = {"measurements": _display(measurements),
                "track": "<DataFrame>" if out is None else str(out), "epochs": n_epochs,
                "tags": len(trk.tags), "method": trk.method, "status": counts,
+               "hpl_histogram": {trk.method: hist},
                "smoother": (("fixed-lag" if settings.fixed_lag else "rts")
                             if settings.smoothing else None),
                "seconds": round(wall, 3),
@@ -161,6 +162,7 @@ def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
     from robustloc.io.tables import is_parquet
 
     trk = settings.tracker(anchors)
+    hist: dict[str, int] = {}
     bar = tqdm(unit=" epochs", disable=not progress or not sys.stderr.isatty(),
                file=sys.stderr)
     opened = atomic_output(out) if out is not None else contextlib.nullcontext((None, None))
@@ -173,7 +175,7 @@ def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
                                      order=order)
                 table, n, status_counts = track_blocks(
                     trk, blocks, settings, None if writer is None else writer.write,
-                    bar.update)
+                    bar.update, hist)
             finally:
                 if writer is not None:
                     writer.close()
@@ -184,12 +186,13 @@ def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
                     write_table(table, target, parquet=is_parquet(out))
     finally:
         bar.close()
-    return trk, table if out is None else None, n, status_counts
+    return trk, table if out is None else None, n, status_counts, hist
 
 
 def track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
                  write: Callable[[pd.DataFrame], None] | None = None,
-                 progress: Callable[[int], Any] | None = None
+                 progress: Callable[[int], Any] | None = None,
+                 hpl_histogram: dict[str, int] | None = None,
                  ) -> tuple[pd.DataFrame | None, int, dict[str, int]]:
     """The single core of ``track``: every epoch block through ``trk`` in order.
 
@@ -207,12 +210,23 @@ def track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
         memory) and no table is returned; else they are kept and returned.
     progress : callable, optional
         Called with each block's epoch count.
+    hpl_histogram : dict, optional
+        Filled with the usable rows' ``hpl``
+        (:func:`robustloc.pipelines.locate.hpl_counts`).
 
     Returns
     -------
     (table or None, epochs, status counts)
     """
     from robustloc._jitnotice import compile_notice
+    from robustloc.pipelines.locate import hpl_counts
+    from robustloc.status import USABLE, among
+
+    hist: dict[str, int] = {} if hpl_histogram is None else hpl_histogram
+
+    def count_hpl(rows: pd.DataFrame) -> None:
+        hpl_counts(rows["hpl"].to_numpy(float),
+                   among(rows["status"].to_numpy(dtype=object), USABLE), hist)
 
     smooth = settings.smoothing
     stream = write is not None and not smooth
@@ -232,6 +246,8 @@ def track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
         rows = trk.step(block)
         for k, v in rows["status"].value_counts().items():
             status_counts[str(k)] = status_counts.get(str(k), 0) + int(v)
+        if not smooth:
+            count_hpl(rows)
         if stream and write is not None:
             write(rows)
         else:
@@ -245,6 +261,7 @@ def track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
     if smooth and len(table):
         table = apply_smoother(trk, table, settings.fixed_lag)
         status_counts = {str(k): int(v) for k, v in table["status"].value_counts().items()}
+        count_hpl(table)
     return table, n, status_counts
 
 
