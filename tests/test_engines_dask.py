@@ -359,6 +359,7 @@ def test_evaluate_dask_equals_single_process(sim, by_time, scheduler, tmp_path, 
                  "--engine", "dask", "--scheduler", scheduler, "--quiet"]) == 0
     ta, tb = pd.read_csv(a), pd.read_csv(b)
     assert len(ta) == 2 * (21 + 2)  # 21 tags + "all" + "mean", two methods
+    assert {"misleading_pct", "hpl_over_error"} <= set(ta.columns)  # the bounds' integrity
     pd.testing.assert_frame_equal(ta, tb)
 
 

@@ -123,3 +123,26 @@ def test_duplicate_positions_rejected_with_line():
                                          r"method 'ls'") as ei:
         error_table(twice, truth)
     assert ei.value.path == "p.csv" and ei.value.line == 2 + len(pos)
+
+
+def test_integrity_columns_hand_values():
+    """Four usable fixes 3-4-5 m off (errors 1, 2, 3, 5 m) with bounds 10, NaN, inf, 4 m
+    and one unusable fix: the NaN bound and the 5 m error over 4 m are misleading (2 of
+    4, 50 %); the median bound takes NaN as unbounded (median of 4, 10, inf, inf = inf);
+    an unusable fix with a tiny bound is not scored.  Without ``hpl`` there are no such
+    columns."""
+    from robustloc.eval.metrics import INTEGRITY_COLUMNS
+
+    truth = pd.DataFrame({"time": [0.0, 1, 2, 3, 4], "tag": "t", "x": 0.0, "y": 0.0})
+    pos = truth.assign(x=[1.0, 2.0, 3.0, 3.0, 9.0], y=[0.0, 0.0, 0.0, 4.0, 0.0],
+                       method="m", status=["ok", "ok", "unverified", "fault_detected",
+                                           "unavailable"],
+                       hpl=[10.0, np.nan, np.inf, 4.0, 0.1])
+    row = error_table(pos, truth).set_index("tag").loc["all"]
+    assert row["n_misleading"] == 2 and row["misleading_pct"] == pytest.approx(50.0)
+    assert row["hpl_median"] == np.inf and row["hpl_over_error"] == np.inf
+    finite = pos.assign(hpl=[10.0, 6.0, 8.0, 4.0, 0.1])
+    row = error_table(finite, truth).set_index("tag").loc["all"]
+    # median bound (6 + 8) / 2 = 7 m over the median error (2 + 3) / 2 = 2.5 m
+    assert row["n_misleading"] == 1 and row["hpl_over_error"] == pytest.approx(7.0 / 2.5)
+    assert not set(INTEGRITY_COLUMNS) & set(error_table(pos.drop(columns="hpl"), truth))

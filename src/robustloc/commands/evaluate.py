@@ -17,7 +17,11 @@ reports, per tag and method, over the epochs with a usable fix: max, min, mean, 
 paper's sigma0), spread sigma1, median and 95th percentile of the horizontal error (and
 the 3-D error when both files have z), the number of failed epochs (status not usable, no
 coordinates, or missing: a truth epoch without a positions row of the method), and the
-improvement of mean and RMS over the `ls` method in %. Two positions rows with the same
+improvement of mean and RMS over the `ls` method in %. When the positions carry `hpl`
+(every `locate` and `track` output does), the integrity of the bounds too: the usable fixes
+whose horizontal error exceeds their `hpl` (n_misleading, misleading_pct; a missing bound
+counts as exceeded), the median hpl and its ratio to the median error (hpl_over_error).
+Two positions rows with the same
 time, tag and method are an error. `-o -` writes the table as CSV to standard output (the
 text report then goes to stderr).
 Aggregates: tag "all" pools every epoch, tag "mean" averages the per-tag statistics (the
@@ -27,7 +31,7 @@ paper's Table 1 average rows).
   robustloc evaluate positions.csv --truth truth.csv --json -o errors.csv"""
 
 _SHOW = ("tag", "method", "n", "n_missing", "n_failed", "max", "min", "mean", "rms", "sigma1",
-         "median", "p95", "mean_impr_pct", "rms_impr_pct")
+         "median", "p95", "misleading_pct", "hpl_over_error", "mean_impr_pct", "rms_impr_pct")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

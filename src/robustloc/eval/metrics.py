@@ -41,6 +41,11 @@ from robustloc import status as st
 from robustloc.errors import InputError
 
 STAT_COLUMNS = ("max", "min", "mean", "rms", "sigma1", "median", "p95")
+#: Integrity columns, when the positions carry ``hpl``: usable fixes whose horizontal
+#: error exceeds their protection level (a NaN bound counts as exceeded), their share of
+#: the usable fixes, the median ``hpl`` and its ratio to the median error (issue 10's
+#: targets: at most 1 % misleading, a median bound at most 12x the median error).
+INTEGRITY_COLUMNS = ("n_misleading", "misleading_pct", "hpl_median", "hpl_over_error")
 
 
 def match_truth(
@@ -144,6 +149,25 @@ def error_stats(errors: NDArray[np.float64]) -> dict[str, float]:
     }
 
 
+def integrity_stats(errors: NDArray[np.float64], hpl: NDArray[np.float64]
+                    ) -> dict[str, float]:
+    """:data:`INTEGRITY_COLUMNS` of the usable fixes' horizontal errors and their
+    ``hpl``.  A missing (NaN) bound counts as exceeded and an infinite one never is; the
+    median takes a missing bound as infinite.  NaN statistics without usable fixes."""
+    e = np.asarray(errors, dtype=float)
+    h = np.asarray(hpl, dtype=float)
+    if e.size == 0:
+        return {k: float("nan") for k in INTEGRITY_COLUMNS}
+    with np.errstate(invalid="ignore"):
+        mis = int(np.sum(~(e <= h)))  # NaN: exceeded
+    h = np.where(np.isnan(h), np.inf, h)
+    med_h, med_e = float(np.median(h)), float(np.median(e))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = med_h / med_e
+    return {"n_misleading": float(mis), "misleading_pct": 100.0 * mis / e.size,
+            "hpl_median": med_h, "hpl_over_error": float(ratio)}
+
+
 def _group_rows(df: pd.DataFrame, keys: dict[str, str], has3d: bool) -> dict[str, object]:
     ok = df["usable"].to_numpy()
     row: dict[str, object] = dict(keys)
@@ -153,6 +177,9 @@ def _group_rows(df: pd.DataFrame, keys: dict[str, str], has3d: bool) -> dict[str
     row["n_ok"] = int(ok.sum())
     row["failed_pct"] = 100.0 * row["n_failed"] / max(len(df), 1)
     row.update(error_stats(df["error_2d"].to_numpy()[ok]))
+    if "hpl" in df.columns:
+        row.update(integrity_stats(df["error_2d"].to_numpy()[ok],
+                                   df["hpl"].to_numpy(dtype=float)[ok]))
     if has3d:
         s3 = error_stats(df["error_3d"].to_numpy()[ok])
         row.update({f"{k}_3d": v for k, v in s3.items()})
@@ -213,8 +240,9 @@ def error_table(
         ``tag = "mean"`` (mean of the per-tag statistics, the paper's average rows).
         Columns: ``tag, method, n, n_missing, n_failed, n_ok, failed_pct, max, min, mean,
         rms, sigma1,
-        median, p95`` (metres, horizontal), the same with suffix ``_3d`` when both files
-        have ``z``, and ``mean_impr_pct, rms_impr_pct``.  ``attrs["n_unmatched"]``: rows
+        median, p95`` (metres, horizontal), :data:`INTEGRITY_COLUMNS` when the positions
+        have ``hpl``, the statistics with suffix ``_3d`` when both files have ``z``, and
+        ``mean_impr_pct, rms_impr_pct``.  ``attrs["n_unmatched"]``: rows
         without truth (not scored).
     """
     pos = positions.copy()
@@ -233,7 +261,7 @@ def error_table_from_errors(
 ) -> pd.DataFrame:
     """The statistics of :func:`error_table` from the rows of :func:`epoch_errors`.
 
-    Only ``tag, method, matched, usable, error_2d[, error_3d]`` are used, so per-row errors
+    Only ``tag, method, matched, usable, error_2d[, error_3d, hpl]`` are used, so per-row errors
     computed elsewhere (each partition of a dataset on a worker, then concatenated in the
     dataset's order) give the table of the whole.  ``path`` names the positions in the
     error raised when no row matched.  With ``truth`` (the frame the errors were matched
