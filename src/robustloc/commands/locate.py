@@ -196,25 +196,9 @@ def run(args: argparse.Namespace) -> int:
               "physical limits of robustloc.io.limits; not used)", file=dest)
     for m, c in summary["status"].items():
         print(f"  {m:9s} " + ", ".join(f"{k}: {v}" for k, v in sorted(c.items())), file=dest)
+    from robustloc.pipelines.locate import hpl_lines
+
     for line in hpl_lines(summary):
         print(line, file=dest)
     return 0
 
-
-def hpl_lines(summary: dict, noun: str = "fixes") -> list[str]:
-    """The summary's protection levels, one line per method: the median and 95th
-    percentile of the usable fixes' (``noun``: track rows') ``hpl`` (from the summary's
-    histogram, within 6 %)."""
-    from robustloc.pipelines.locate import hpl_quantiles
-
-    lines = []
-    for m, hist in (summary.get("hpl_histogram") or {}).items():
-        n = sum(hist.values())
-        if not n:
-            continue
-        q = hpl_quantiles(hist)
-        unb = hist.get("inf", 0)
-        lines.append(f"  {m:9s} hpl of the {n} usable {noun}: median {q['p50']:.3g} m, "
-                     f"95 % at or below {q['p95']:.3g} m"
-                     + (f" ({unb} unbounded)" if unb else ""))
-    return lines

@@ -156,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"{summary['epochs']} epochs, {summary['tags']} tags -> {summary['track']} "
           f"({summary['seconds']:.2f} s, {summary['epochs_per_second']:.0f} epochs/s)")
     print("  " + ", ".join(f"{k}: {v}" for k, v in sorted(summary["status"].items())))
-    from robustloc.commands.locate import hpl_lines
+    from robustloc.pipelines.locate import hpl_lines
 
     for line in hpl_lines(summary, "rows"):
         print(line)

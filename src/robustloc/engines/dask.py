@@ -350,13 +350,13 @@ def _report(args: argparse.Namespace, summary: dict) -> None:
     for m, c in summary.get("status", {}).items():
         print(f"  {m:9s} " + ", ".join(f"{k}: {v}" for k, v in sorted(c.items())))
     if summary.get("hpl_histogram"):
-        from robustloc.commands.locate import hpl_lines
+        from robustloc.pipelines.locate import hpl_lines
 
         for line in hpl_lines(summary):
             print(line)
     for k, v in summary.get("counts", {}).items():
         if k == "hpl_histogram":
-            from robustloc.commands.locate import hpl_lines
+            from robustloc.pipelines.locate import hpl_lines
 
             for line in hpl_lines({"hpl_histogram": v}, "rows"):
                 print(line)

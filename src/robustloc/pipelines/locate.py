@@ -485,6 +485,23 @@ def hpl_quantiles(hist: dict[str, int], qs: tuple[float, ...] = (0.5, 0.95)
     return out
 
 
+def hpl_lines(summary: dict, noun: str = "fixes") -> list[str]:
+    """The summary's protection levels, one line per method: the median and 95th
+    percentile of the usable fixes' (``noun``: track rows') ``hpl`` (from the summary's
+    histogram, within 6 %)."""
+    lines = []
+    for m, hist in (summary.get("hpl_histogram") or {}).items():
+        n = sum(hist.values())
+        if not n:
+            continue
+        q = hpl_quantiles(hist)
+        unb = hist.get("inf", 0)
+        lines.append(f"  {m:9s} hpl of the {n} usable {noun}: median {q['p50']:.3g} m, "
+                     f"95 % at or below {q['p95']:.3g} m"
+                     + (f" ({unb} unbounded)" if unb else ""))
+    return lines
+
+
 def _is_special(path: str) -> bool:
     import os
     import stat
