@@ -88,6 +88,9 @@ def test_missing_file(tmp_path, capsys):
         ("time,tag,x\n0,T,1\n", 1, "missing column(s) y"),
         ("time,tag,x,y\n0,T,1,2\n0,T,a,2\n", 3, "not a number"),
         ("time,tag,x,y\n0,T,1,2\nnan,T,1,2\n", 3, "NaN"),
+        ("time,tag,x,y,hpl\n0,T,1,2,abc\n", 2, "column 'hpl': 'abc' is not a number"),
+        ("time,tag,x,y,hpl\n0,T,1,2,inf\n1,T,1,2,-3\n", 3, "negative protection level"),
+        ("time,tag,x,y,z,vpl\n0,T,1,2,0,-1\n", 2, "column 'vpl': negative"),
     ],
 )
 def test_evaluate_bad_positions(tmp_path, capsys, pos, line, words):

@@ -691,6 +691,14 @@ def validate_positions(df: pd.DataFrame, path: PathLike | None = None) -> pd.Dat
             _numeric(df, c, path, allow_nan=True, allow_inf=False)
     if "n_used" in df.columns:
         _numeric(df, "n_used", path, allow_nan=True)
+    for c in ("hpl", "vpl"):  # protection levels: metres, >= 0; inf = unbounded, NaN = none
+        if c in df.columns:
+            _numeric(df, c, path, allow_nan=True, allow_inf=True)
+            neg = (df[c].to_numpy(dtype=float) < 0)
+            if neg.any():
+                i = int(np.argmax(neg))
+                raise InputError(f"column '{c}': negative protection level {df[c].iloc[i]}",
+                                 _path_of(df, path), _line_of(df, i))
     for c, default in (("method", "unknown"), ("status", "ok")):
         if c not in df.columns:
             df[c] = default
