@@ -146,3 +146,17 @@ def test_integrity_columns_hand_values():
     # median bound (6 + 8) / 2 = 7 m over the median error (2 + 3) / 2 = 2.5 m
     assert row["n_misleading"] == 1 and row["hpl_over_error"] == pytest.approx(7.0 / 2.5)
     assert not set(INTEGRITY_COLUMNS) & set(error_table(pos.drop(columns="hpl"), truth))
+
+
+def test_integrity_columns_with_exact_fixes_and_the_vertical_bound():
+    """Fixes exactly at the truth (median error 0: the ratio is inf, no exception -- it
+    raised ZeroDivisionError); vertical errors 0.5, 2 and 1 m against vpl 1, 1 and inf:
+    one misleading (2 > 1), median vpl 1 m over median vertical error 1 m."""
+    truth = pd.DataFrame({"time": [0.0, 1, 2], "tag": "t", "x": 0.0, "y": 0.0, "z": 1.0})
+    pos = truth.assign(z=[1.5, 3.0, 0.0], method="m", status="ok", hpl=5.0,
+                       vpl=[1.0, 1.0, np.inf])
+    row = error_table(pos, truth).set_index("tag").loc["all"]
+    assert row["n_misleading"] == 0 and row["hpl_median"] == 5.0
+    assert row["hpl_over_error"] == np.inf
+    assert row["n_misleading_v"] == 1 and row["misleading_pct_v"] == pytest.approx(100 / 3)
+    assert row["vpl_median"] == 1.0 and row["vpl_over_error"] == pytest.approx(1.0)

@@ -20,7 +20,9 @@ coordinates, or missing: a truth epoch without a positions row of the method), a
 improvement of mean and RMS over the `ls` method in %. When the positions carry `hpl`
 (every `locate` and `track` output does), the integrity of the bounds too: the usable fixes
 whose horizontal error exceeds their `hpl` (n_misleading, misleading_pct; a missing bound
-counts as exceeded), the median hpl and its ratio to the median error (hpl_over_error).
+counts as exceeded), the median hpl and its ratio to the median error (hpl_over_error);
+in 3-D with `vpl`, the vertical bound likewise (n_misleading_v, misleading_pct_v,
+vpl_median, vpl_over_error).
 Two positions rows with the same
 time, tag and method are an error. `-o -` writes the table as CSV to standard output (the
 text report then goes to stderr).

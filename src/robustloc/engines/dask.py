@@ -559,7 +559,7 @@ def _errors_task(part: Partition, truth_path: str, tolerance_s: float) -> pd.Dat
     pos = validate_positions(raw, part.path)
     e = epoch_errors(pos, _truth(truth_path), tolerance_s)
     cols = ["tag", "method", "matched", "usable", "error_2d", "_truth_row"]
-    cols += [c for c in ("error_3d", "hpl") if c in e.columns]
+    cols += [c for c in ("error_3d", "error_v", "hpl", "vpl") if c in e.columns]
     return e[cols].reset_index(drop=True)
 
 

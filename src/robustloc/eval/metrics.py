@@ -116,8 +116,8 @@ def _refuse_duplicate_positions(positions: pd.DataFrame) -> None:
 def epoch_errors(
     positions: pd.DataFrame, truth: pd.DataFrame, time_tolerance_s: float = 1e-6
 ) -> pd.DataFrame:
-    """Per-row errors: the positions frame plus ``error_2d`` (m), ``error_3d`` (when both
-    have ``z``), ``usable`` (bool) and ``matched`` (bool)."""
+    """Per-row errors: the positions frame plus ``error_2d`` (m), ``error_3d`` and the
+    vertical ``error_v`` (when both have ``z``), ``usable`` (bool) and ``matched`` (bool)."""
     m = match_truth(positions, truth, time_tolerance_s)
     dx = m["x"].to_numpy(dtype=float) - m["x_true"].to_numpy(dtype=float)
     dy = m["y"].to_numpy(dtype=float) - m["y_true"].to_numpy(dtype=float)
@@ -125,6 +125,7 @@ def epoch_errors(
     if "z" in m.columns and "z_true" in m.columns:
         dz = m["z"].to_numpy(dtype=float) - m["z_true"].to_numpy(dtype=float)
         m["error_3d"] = np.sqrt(dx * dx + dy * dy + dz * dz)
+        m["error_v"] = np.abs(dz)
     status = m["status"].astype(str) if "status" in m.columns else pd.Series("ok", index=m.index)
     m["matched"] = np.isfinite(m["x_true"].to_numpy(dtype=float))
     m["usable"] = status.isin(st.USABLE).to_numpy() & np.isfinite(m["error_2d"].to_numpy())
@@ -161,11 +162,11 @@ def integrity_stats(errors: NDArray[np.float64], hpl: NDArray[np.float64]
     with np.errstate(invalid="ignore"):
         mis = int(np.sum(~(e <= h)))  # NaN: exceeded
     h = np.where(np.isnan(h), np.inf, h)
-    med_h, med_e = float(np.median(h)), float(np.median(e))
+    med_h, med_e = np.median(h), np.median(e)
     with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = med_h / med_e
+        ratio = np.float64(med_h) / np.float64(med_e)  # a zero median error: inf (or NaN)
     return {"n_misleading": float(mis), "misleading_pct": 100.0 * mis / e.size,
-            "hpl_median": med_h, "hpl_over_error": float(ratio)}
+            "hpl_median": float(med_h), "hpl_over_error": float(ratio)}
 
 
 def _group_rows(df: pd.DataFrame, keys: dict[str, str], has3d: bool) -> dict[str, object]:
@@ -183,6 +184,11 @@ def _group_rows(df: pd.DataFrame, keys: dict[str, str], has3d: bool) -> dict[str
     if has3d:
         s3 = error_stats(df["error_3d"].to_numpy()[ok])
         row.update({f"{k}_3d": v for k, v in s3.items()})
+        if "vpl" in df.columns and "error_v" in df.columns:  # the vertical bound likewise
+            iv = integrity_stats(df["error_v"].to_numpy()[ok],
+                                 df["vpl"].to_numpy(dtype=float)[ok])
+            row.update({k.replace("hpl", "vpl") + ("" if "hpl" in k else "_v"): v
+                        for k, v in iv.items()})
     return row
 
 
@@ -204,8 +210,9 @@ def _missing_rows(e: pd.DataFrame, truth: pd.DataFrame) -> pd.DataFrame:
         return e.iloc[:0].assign(missing=pd.Series(dtype=bool))
     out = pd.concat(rows, ignore_index=True)
     out["error_2d"] = np.nan
-    if "error_3d" in e.columns:
-        out["error_3d"] = np.nan
+    for c in ("error_3d", "error_v"):
+        if c in e.columns:
+            out[c] = np.nan
     out["usable"] = False
     out["matched"] = True
     out["missing"] = True
@@ -241,9 +248,10 @@ def error_table(
         Columns: ``tag, method, n, n_missing, n_failed, n_ok, failed_pct, max, min, mean,
         rms, sigma1,
         median, p95`` (metres, horizontal), :data:`INTEGRITY_COLUMNS` when the positions
-        have ``hpl``, the statistics with suffix ``_3d`` when both files have ``z``, and
-        ``mean_impr_pct, rms_impr_pct``.  ``attrs["n_unmatched"]``: rows
-        without truth (not scored).
+        have ``hpl``, the statistics with suffix ``_3d`` when both files have ``z`` (and
+        then, with ``vpl``, the vertical bound's ``n_misleading_v, misleading_pct_v,
+        vpl_median, vpl_over_error``), and ``mean_impr_pct, rms_impr_pct``.
+        ``attrs["n_unmatched"]``: rows without truth (not scored).
     """
     pos = positions.copy()
     if "method" not in pos.columns:
@@ -261,11 +269,12 @@ def error_table_from_errors(
 ) -> pd.DataFrame:
     """The statistics of :func:`error_table` from the rows of :func:`epoch_errors`.
 
-    Only ``tag, method, matched, usable, error_2d[, error_3d, hpl]`` are used, so per-row errors
-    computed elsewhere (each partition of a dataset on a worker, then concatenated in the
-    dataset's order) give the table of the whole.  ``path`` names the positions in the
-    error raised when no row matched.  With ``truth`` (the frame the errors were matched
-    against), every truth epoch without a positions row counts as a failed, missing epoch.
+    Only ``tag, method, matched, usable, error_2d[, error_3d, error_v, hpl, vpl]`` are
+    used, so per-row errors computed elsewhere (each partition of a dataset on a worker,
+    then concatenated in the dataset's order) give the table of the whole.  ``path``
+    names the positions in the error raised when no row matched.  With ``truth`` (the
+    frame the errors were matched against), every truth epoch without a positions row
+    counts as a failed, missing epoch.
     """
     e = errors
     n_unmatched = int((~e["matched"]).sum())
