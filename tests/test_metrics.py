@@ -160,3 +160,22 @@ def test_integrity_columns_with_exact_fixes_and_the_vertical_bound():
     assert row["hpl_over_error"] == np.inf
     assert row["n_misleading_v"] == 1 and row["misleading_pct_v"] == pytest.approx(100 / 3)
     assert row["vpl_median"] == 1.0 and row["vpl_over_error"] == pytest.approx(1.0)
+
+
+def test_the_report_counts_misleading_fixes_as_evaluate_does():
+    """One definition of a misleading fix: the report's out-of-the-box table
+    (``eval.realdata.error_stats``) and its track section (``s60_tracks._mislead``) give
+    ``evaluate``'s numbers on the same fixes (a NaN bound exceeded, an infinite one not,
+    unusable rows left out)."""
+    from robustloc.eval.realdata import error_stats as report_stats
+    from robustloc.reproduce.s60_tracks import _mislead
+
+    truth = np.zeros((5, 2))
+    pos = np.array([[1.0, 0], [2, 0], [3, 0], [3, 4], [9, 0]])
+    hpl = np.array([10.0, np.nan, np.inf, 4.0, 0.1])
+    usable = np.array([True, True, True, True, False])
+    rep = report_stats(pos, truth, usable, hpl)
+    assert rep["misleading"] == pytest.approx(0.5)  # 2 of the 4 usable fixes
+    assert rep["hpl_median_over_err_median"] == np.inf
+    err = np.where(usable, np.hypot(*pos.T), np.nan)  # a track's rows without a fix: NaN
+    assert _mislead(err, hpl) == pytest.approx(0.5)

@@ -284,9 +284,10 @@ def error_stats(pos: Array, truth: Array, usable: NDArray[np.bool_] | None = Non
         "availability": float(use.mean()),
         "n": int(use.sum()),
     }
-    if hpl is not None:
-        with np.errstate(invalid="ignore"):
-            mis = use & ~(err <= hpl)
-        out["misleading"] = float(mis.sum() / max(use.sum(), 1))
-        out["hpl_median_over_err_median"] = float(np.nanmedian(hpl[use]) / np.median(e))
+    if hpl is not None:  # the definitions of `robustloc evaluate`
+        from robustloc.eval.metrics import integrity_stats
+
+        iv = integrity_stats(e, np.asarray(hpl, dtype=float)[use])
+        out["misleading"] = iv["misleading_pct"] / 100.0
+        out["hpl_median_over_err_median"] = iv["hpl_over_error"]
     return out

@@ -225,6 +225,8 @@ def track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
     hist: dict[str, int] = {} if hpl_histogram is None else hpl_histogram
 
     def count_hpl(rows: pd.DataFrame) -> None:
+        if "hpl" not in rows:  # (an empty frame)
+            return
         hpl_counts(rows["hpl"].to_numpy(float),
                    among(rows["status"].to_numpy(dtype=object), USABLE), hist)
 

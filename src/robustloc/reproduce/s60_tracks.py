@@ -58,8 +58,12 @@ def _p95(e: np.ndarray) -> float:
 
 
 def _mislead(e: np.ndarray, hpl: np.ndarray) -> float:
-    ok = np.isfinite(e) & np.isfinite(hpl)
-    return float(np.mean(e[ok] > hpl[ok])) if ok.any() else float("nan")
+    """Share of the rows with a position (finite error) whose error exceeds their
+    ``hpl``, as ``robustloc evaluate`` counts it (a missing bound is exceeded)."""
+    from robustloc.eval.metrics import integrity_stats
+
+    ok = np.isfinite(e)
+    return integrity_stats(e[ok], np.asarray(hpl, dtype=float)[ok])["misleading_pct"] / 100.0
 
 
 #: Fixed-lag smoothing in the report (``track --fixed-lag N``, near real time): the
