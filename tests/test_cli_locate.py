@@ -169,3 +169,48 @@ def test_locate_cli_settings_errors(tmp_path, capsys, corridor):
                  str(tmp_path / "bare.csv"), "--method", "ls", "-o", str(tmp_path / "r.csv")]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"error: {tmp_path / 'bare.csv'}") and "calibrate" in err
+
+
+def _corridor_files(tmp_path, seed=3, n=400):
+    """A log of tags beside four nearly collinear anchors, always on one side (the
+    wifi-rtt corridor's situation), as measurements / anchors / truth files."""
+    rng = np.random.default_rng(seed)
+    a = np.array([[0.0, 0.0], [10.0, 0.6], [20.0, -0.5], [30.0, 0.3]])
+    truth = np.column_stack((rng.uniform(2.0, 28.0, n), -rng.uniform(1.5, 4.0, n)))
+    r = np.linalg.norm(truth[:, None, :] - a[None], axis=2) + rng.normal(0, 0.1, (n, 4))
+    t = np.repeat(np.arange(n, dtype=float), 4)
+    pd.DataFrame({"time": t, "tag": "t1", "anchor": np.tile(list("ABCD"), n),
+                  "range": r.ravel()}).to_csv(tmp_path / "m.csv", index=False)
+    pd.DataFrame({"anchor": list("ABCD"), "x": a[:, 0], "y": a[:, 1]}).to_csv(
+        tmp_path / "a.csv", index=False)
+    return truth
+
+
+def test_side_prior_is_the_logs_whatever_the_chunks(tmp_path, capsys):
+    """The side comes from the first pass over the whole log, so streaming the log in
+    chunks of 37 rows moves the same fixes as reading it at once; the summary counts
+    them; --side-prior none leaves them on the wrong side."""
+    truth = _corridor_files(tmp_path)
+    base = ["locate", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv")]
+    assert main(base + ["-o", str(tmp_path / "whole.csv"), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert main(base + ["-o", str(tmp_path / "chunked.csv"), "--chunk-rows", "37",
+                        "--quiet"]) == 0
+    assert main(base + ["-o", str(tmp_path / "none.csv"), "--side-prior", "none"]) == 0
+    text = capsys.readouterr().out
+    assert "placed on the log's side" not in text
+    whole, chunked, none = (pd.read_csv(tmp_path / f"{k}.csv")
+                            for k in ("whole", "chunked", "none"))
+    pd.testing.assert_frame_equal(whole, chunked)
+    moved = summary["side_from_log"]["auto"]
+    assert moved >= 3 and summary["log_sides"]["auto"] == [[[0, 1, 2, 3], -1]]
+    w, o = whole[["x", "y"]].to_numpy(), none[["x", "y"]].to_numpy()
+    changed = ((w != o) & ~(np.isnan(w) & np.isnan(o))).any(axis=1)
+    assert changed.sum() == moved and (none.y[changed] > 0).all()
+    assert (whole.y[changed] < 0).all()
+    pd.testing.assert_series_equal(whole.status, none.status)
+    err = np.hypot(whole.x - truth[:, 0], whole.y - truth[:, 1])
+    assert (err[changed] < 1.0).all()  # 10 cm ranges: back beside the truth
+    # the text summary says so
+    assert main(base + ["-o", str(tmp_path / "whole.csv")]) == 0
+    assert f"{moved} ambiguous fixes placed on the log's side" in capsys.readouterr().out

@@ -692,3 +692,123 @@ def test_test_alpha_is_the_chi2_tail_of_each_epoch():
     crit[5:50] = rng.uniform(0.0, 30.0, 45)
     ref = stats.chi2.sf(crit, np.maximum(dof, 1))
     np.testing.assert_array_equal(_test_alpha(crit, dof), ref)
+
+
+# ------------------------------------------------------------------ the log's side (item 7)
+
+CORRIDOR = np.array([[0.0, 0.0], [10.0, 0.6], [20.0, -0.5], [30.0, 0.3]])
+
+
+def _corridor_log(seed: int, sides: tuple[float, ...] = (-1.0,), n: int = 400):
+    """Tags beside the nearly collinear CORRIDOR anchors, 1.5-4 m off their line on the
+    given sides (one side each, in turn), ranges with 10 cm Gaussian noise."""
+    rng = np.random.default_rng(seed)
+    off = rng.uniform(1.5, 4.0, n) * np.resize(np.asarray(sides), n)
+    truth = np.column_stack((rng.uniform(2.0, 28.0, n), off))
+    return truth, ranges(CORRIDOR, truth) + rng.normal(0.0, 0.1, (n, 4))
+
+
+def test_ambiguous_fixes_move_to_the_side_the_log_shows():
+    """Every tag is on the y < 0 side.  Most fixes are unambiguous (the anchors are 0.5 m
+    off a line, so the mirror misfits 10 cm ranges); those whose mirror passes the test
+    may sit on either side.  The log's unambiguous fixes put the side beyond doubt, and
+    every ambiguous fix across the line is moved back: none is left there, the RMS falls
+    to the noise's, and each moved fix's bound still covers where it was."""
+    from robustloc.integrity.fixes import ambiguity_sides, range_model_of
+
+    truth, z = _corridor_log(3)
+    off = locate_protected(Locator("auto", log_sides=()), CORRIDOR, z)
+    on = locate_protected(Locator("auto"), CORRIDOR, z)
+    u = st.among(off.status, st.USABLE)
+    np.testing.assert_array_equal(on.status, off.status)  # a move never changes a status
+    alt = off.extra["ambiguity_position"]
+    amb = np.isfinite(alt[:, 0])
+    # the anchors' principal line (centroid y = 0.1, normal +y to within 0.2 degrees)
+    side = np.sign(off.position[:, 1] - 0.1 - 0.002 * (off.position[:, 0] - 15.0))
+    alt_side = np.sign(alt[:, 1] - 0.1 - 0.002 * (alt[:, 0] - 15.0))
+    wrong = u & amb & (side > 0) & (alt_side < 0)
+    assert amb.sum() >= 10 and wrong.sum() >= 3  # the precondition
+    # (an ambiguous fix whose refined mirror returned to its own side stays: there the
+    # geometry is weak, not ambiguous)
+    assert not np.any(u & ~amb & (side > 0))
+    # the normal of the anchors' line, oriented by its largest component: +y
+    assert ambiguity_sides(off, range_model_of(CORRIDOR, None)) == (((0, 1, 2, 3), -1),)
+    moved = on.extra["side_from_log"]
+    np.testing.assert_array_equal(moved, wrong)
+    np.testing.assert_allclose(on.position[moved], off.extra["ambiguity_position"][moved])
+    np.testing.assert_allclose(on.extra["ambiguity_position"][moved], off.position[moved])
+    np.testing.assert_array_equal(on.position[~moved], off.position[~moved])
+    err = np.linalg.norm(on.position - truth, axis=1)
+    # 10 cm ranges through this geometry: well under a metre once on the right side
+    assert np.sqrt(np.mean(err[u] ** 2)) < 0.3 < np.sqrt(np.mean(
+        np.linalg.norm(off.position - truth, axis=1)[u] ** 2))
+    assert np.all(err[u] <= on.extra["hpl"][u])
+    jump = np.linalg.norm(on.position[moved] - off.position[moved], axis=1)
+    assert np.all(on.extra["hpl"][moved] >= jump)
+    # the moved fix carries the mirror's residuals: its test statistic is the mirror's
+    terms = off.extra["ambiguity_terms"][moved]
+    np.testing.assert_allclose(on.extra["test_statistic"][moved], terms[:, 4])
+    f = np.linalg.norm(on.position[moved][:, None, :] - CORRIDOR[None], axis=2)
+    np.testing.assert_allclose(on.extra["range_residuals"][moved], f - z[moved], atol=1e-9)
+    kept = on.extra["test_kept"][moved]  # (the test's sum: over the observations kept)
+    np.testing.assert_allclose(
+        np.sum(np.where(kept, on.extra["range_residuals"][moved]
+                        / on.extra["sigma_obs"][moved], 0.0) ** 2, axis=1),
+        terms[:, 4], rtol=1e-6)
+
+
+def test_no_side_without_evidence():
+    """Tags on both sides in turn: the sign test finds no preferred side and no fix
+    moves; collinear anchors make every fix ambiguous, so there is no evidence at all."""
+    _, z = _corridor_log(4, sides=(-1.0, 1.0))
+    sol = locate_protected(Locator("auto"), CORRIDOR, z)
+    assert np.isfinite(sol.extra["ambiguity_position"][:, 0]).sum() >= 10
+    assert not sol.extra["side_from_log"].any()
+    line = CORRIDOR * np.array([1.0, 0.0])
+    rng = np.random.default_rng(5)
+    truth = np.column_stack((rng.uniform(2, 28, 200), rng.uniform(-4, -1.5, 200)))
+    z = ranges(line, truth) + rng.normal(0.0, 0.1, (200, 4))
+    sol = locate_protected(Locator("auto"), line, z)
+    u = st.among(sol.status, st.USABLE)
+    assert np.all(np.isfinite(sol.extra["ambiguity_position"][u, 0]))
+    assert not sol.extra["side_from_log"].any()
+
+
+def test_sign_test_threshold():
+    """The side is taken when 2 P(X <= min) < 1 % for X ~ Binomial(n, 1/2): 8 of 8 on one
+    side (p = 0.0078) suffices, 7 of 7 (0.0156) and 12 of 15 (0.035) do not."""
+    from scipy.stats import binomtest
+
+    from robustloc.estimators.solution import Solution
+    from robustloc.integrity.fixes import ambiguity_sides, range_model_of
+
+    def sides_of(n_neg: int, n_pos: int):
+        n = n_neg + n_pos + 1
+        pos = np.zeros((n, 2))
+        pos[:n_neg, 1] = -2.0
+        pos[n_neg:-1, 1] = 2.0
+        alt = np.full((n, 2), np.nan)
+        alt[-1] = (5.0, 2.0)  # one ambiguous fix, so that there is a side to decide
+        sol = Solution(position=pos, covariance=np.zeros((n, 2, 2)),
+                       residuals=np.zeros((n, 4)), weights=np.ones((n, 4)),
+                       excluded=np.zeros((n, 4), bool), sigma0=np.ones(n),
+                       iterations=np.ones(n, int), converged=np.ones(n, bool),
+                       status=np.full(n, st.OK, dtype=object), n_used=np.full(n, 4),
+                       method="nls",
+                       extra={"ambiguity_position": alt, "hpl": np.ones(n),
+                              "test_kept": np.ones((n, 4), bool)})
+        return ambiguity_sides(sol, range_model_of(CORRIDOR, None))
+
+    for n_neg, n_pos in ((8, 0), (7, 0), (12, 3), (13, 2), (0, 9)):
+        p_value = binomtest(n_neg, n_neg + n_pos, 0.5).pvalue
+        expected = (((0, 1, 2, 3), -1 if n_neg > n_pos else 1),) if p_value < 0.01 else ()
+        assert sides_of(n_neg, n_pos) == expected, (n_neg, n_pos, p_value)
+    assert sides_of(8, 0) and not sides_of(7, 0) and not sides_of(12, 3)
+
+
+def test_log_sides_are_validated():
+    with pytest.raises(ValueError, match="log_sides"):
+        Locator("nls", log_sides=(((0, 1), 2),))
+    with pytest.raises(ValueError, match="log_sides"):
+        Locator("nls", log_sides=((0, 1),))
+    assert Locator("nls", log_sides=([[0, 1, 2], -1],)).log_sides == (((0, 1, 2), -1),)

@@ -50,6 +50,24 @@ def uwb(tmp_path_factory) -> Path:
     return d
 
 
+@pytest.fixture(scope="module")
+def corridor(tmp_path_factory) -> Path:
+    """Four nearly collinear anchors, the tag always on one side: fixes whose mirror fits
+    as well are placed by the log's side prior (``--side-prior``)."""
+    d = tmp_path_factory.mktemp("corridor")
+    rng = np.random.default_rng(3)
+    a = np.array([[0.0, 0.0], [10.0, 0.6], [20.0, -0.5], [30.0, 0.3]])
+    n = 300
+    truth = np.column_stack((rng.uniform(2.0, 28.0, n), -rng.uniform(1.5, 4.0, n)))
+    r = np.linalg.norm(truth[:, None, :] - a[None], axis=2) + rng.normal(0, 0.1, (n, 4))
+    pd.DataFrame({"time": np.repeat(np.arange(n, dtype=float), 4), "tag": "T1",
+                  "anchor": np.tile(list("ABCD"), n), "range": r.ravel()}).to_csv(
+        d / "measurements.csv", index=False)
+    pd.DataFrame({"anchor": list("ABCD"), "x": a[:, 0], "y": a[:, 1]}).to_csv(
+        d / "anchors.csv", index=False)
+    return d
+
+
 @pytest.fixture
 def server_factory(tmp_path):
     started: list[ServerProcess] = []
@@ -94,7 +112,9 @@ def metric(url: str, name: str, headers: dict | None = None) -> float:
                          [("ble", "auto", "http", "mad"), ("uwb", "igg", "ws", "mad"),
                           # the log's scale from the recorded log (--scale-from): fixes
                           # no longer depend on which epochs share a batch
-                          ("ble", "auto", "http", "log")])
+                          ("ble", "auto", "http", "log"),
+                          # and the side of ambiguous fixes is the recorded log's
+                          ("corridor", "auto", "http", "log")])
 def test_replay_equals_batch_locate(scenario, method, transport, scale, request,
                                     server_factory, tmp_path):
     """Positions computed live equal ``robustloc locate`` on the file to 1e-9 m.
@@ -136,6 +156,11 @@ def test_replay_equals_batch_locate(scenario, method, transport, scale, request,
         np.testing.assert_allclose(g[c].astype(float), w[c], rtol=0, atol=1e-9,
                                    equal_nan=True)
     assert (g["excluded"].fillna("") == w["excluded"].fillna("")).all()
+    if scenario == "corridor":  # the precondition: the side prior moved fixes
+        off = tmp_path / "off.parquet"
+        _cli("locate", meas, "--anchors", str(d / "anchors.csv"), "--method", method,
+             "-o", str(off), "--quiet", "--side-prior", "none")
+        assert (pd.read_parquet(off)["y"] > 0).sum() >= 3 and not (w["y"] > 0).any()
 
 
 # --------------------------------------------------------------------------------------

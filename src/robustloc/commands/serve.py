@@ -162,15 +162,15 @@ def build(args: argparse.Namespace):
                             sigma=args.sigma, model=args.model,
                             range_calibration=not args.no_range_calibration,
                             k_noise=args.k_noise, alert_limit=args.alert_limit)
-            scale = share = None
+            scale = share = sides = None
             robust_scale = args.robust_scale
             if args.scale_from is not None:
-                scale, share = LocateProcessor.log_statistics_from(
-                    args.scale_from, anchors, method=args.method, **settings)
+                scale, share, sides = LocateProcessor.log_statistics_from(
+                    args.scale_from, anchors, method=args.method, sides=True, **settings)
                 robust_scale = "log"
             processor = LocateProcessor(anchors, method=args.method,
                                         robust_scale=robust_scale, log_scale=scale,
-                                        log_gross_share=share, **settings)
+                                        log_gross_share=share, log_sides=sides, **settings)
     except InputError:
         raise
     except ValueError as exc:

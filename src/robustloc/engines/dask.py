@@ -260,6 +260,7 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
             "value": summaries[0].get("value"), "methods": summaries[0].get("methods"),
             "epochs": total.get("epochs", 0), "status": total.get("status", {}),
             "hpl_histogram": total.get("hpl_histogram", {}),
+            "side_from_log": total.get("side_from_log", {}),
             "duplicates_merged": total.get("duplicates_merged", 0),
             "seconds": round(wall, 3),
             "epochs_per_second": round(total.get("epochs", 0) / max(wall, 1e-9), 1),

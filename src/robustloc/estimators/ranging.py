@@ -539,6 +539,13 @@ class Locator:
         first pass (:meth:`log_statistics`): how often the log carries gross errors
         (Gaussian noise: 6e-5).  Method ``auto`` uses it
         (:func:`robustloc.integrity.fixes.locate_protected`); None: unknown.
+    log_sides : tuple of ((anchor indices), side) pairs, optional
+        With ``robust_scale="log"``: for each set of nearly collinear (coplanar) kept
+        anchors, the side of their line (plane) on which the log's unambiguous fixes lie,
+        +1 or -1 (:func:`robustloc.integrity.fixes.ambiguity_sides`, from the first pass);
+        an ambiguous fix on the other side is moved to its mirror solution
+        (:func:`robustloc.integrity.fixes.resolve_sides`).  None: found from the batch
+        being solved; an empty tuple: no side preferred.
     engine : {"compiled", "numpy"}
         ``"compiled"``: the robust start and the Gauss-Newton fits of ranges (and of RSSI
         converted to ranges) run per epoch in the numba kernels of
@@ -565,6 +572,7 @@ class Locator:
     engine: str = "compiled"
     log_scale_fixed: tuple[float, ...] | None = None
     log_gross_share: float | None = None
+    log_sides: tuple[tuple[tuple[int, ...], int], ...] | None = None
 
     def __post_init__(self) -> None:
         if self.method not in METHODS + ("auto",):
@@ -593,6 +601,17 @@ class Locator:
             method_weight("huber", **self.weight_params)
         if self.engine not in ("compiled", "numpy"):
             raise ValueError(f"engine must be 'compiled' or 'numpy', got {self.engine!r}")
+        if self.log_sides is not None:
+            try:
+                sides = tuple((tuple(int(i) for i in idx), int(side))
+                              for idx, side in self.log_sides)
+            except (TypeError, ValueError) as exc:
+                raise ValueError("log_sides must be ((anchor indices), side) pairs, got "
+                                 f"{self.log_sides!r}") from exc
+            if any(side not in (-1, 1) or min(idx, default=-1) < 0 for idx, side in sides):
+                raise ValueError(f"log_sides: each side is +1 or -1 of non-negative anchor "
+                                 f"indices, got {self.log_sides!r}")
+            object.__setattr__(self, "log_sides", sides)
 
     # ------------------------------------------------------------------ public
     def solve(

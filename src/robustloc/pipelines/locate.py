@@ -103,6 +103,15 @@ class LocateSettings:
     log_gross_share : mapping of str to float, optional
         Per method, the log's gross-error share found with ``log_scale_fixed``
         (:meth:`~robustloc.estimators.ranging.Locator.log_statistics`).
+    side_prior : {"log", "none"}
+        ``log``: an ambiguous fix (nearly collinear anchors: it and its mirror image
+        across their line pass the same test) is placed on the side of the line where the
+        log's unambiguous fixes lie, when they lie there significantly more often
+        (:func:`robustloc.integrity.fixes.ambiguity_sides`); ``none``: each fix stays
+        where its estimator put it.  With ``robust_scale="log"`` only.
+    log_sides : mapping of str to tuple, optional
+        Per method, the sides found with ``log_scale_fixed``
+        (:attr:`~robustloc.estimators.ranging.Locator.log_sides`).
     """
 
     method: tuple[str, ...] = option(("auto",), check=method_list)
@@ -124,6 +133,8 @@ class LocateSettings:
     chunk_rows: int = option(500_000, check=positive_int)
     log_scale_fixed: Mapping[str, tuple[float, ...]] | None = None
     log_gross_share: Mapping[str, float] | None = None
+    side_prior: str = option("log", choices=("log", "none"))
+    log_sides: Mapping[str, tuple] | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.method, str):
@@ -147,6 +158,8 @@ class LocateSettings:
             beta0=args.beta0, chunk_rows=args.chunk_rows,
             log_scale_fixed=getattr(args, "log_scale_fixed", None),
             log_gross_share=getattr(args, "log_gross_share", None),
+            side_prior=getattr(args, "side_prior", "log"),
+            log_sides=getattr(args, "log_sides", None),
         )
 
 
@@ -228,6 +241,7 @@ def configure(settings: LocateSettings, anchors: pd.DataFrame) -> Geometry:
                 robust_scale=settings.robust_scale, reference=settings.reference,
                 weight_params=params.get(m, {}),
                 min_scale=settings.min_scale, alpha0=settings.alpha0, beta0=settings.beta0,
+                log_sides=() if settings.side_prior == "none" else None,
             )
             for m in methods
         ]
@@ -278,8 +292,11 @@ def fix_log_scale(settings: LocateSettings, geo: Geometry, sources: Sequence[Any
     fixed = settings.log_scale_fixed
     if fixed is not None:
         shares = settings.log_gross_share or {}
+        sides = settings.log_sides or {}
         return [replace(loc, log_scale_fixed=tuple(fixed[loc.method]),
-                        log_gross_share=shares.get(loc.method))
+                        log_gross_share=shares.get(loc.method),
+                        log_sides=(loc.log_sides if loc.log_sides is not None
+                                   else sides.get(loc.method, ())))
                 if loc.robust_scale == "log" else loc for loc in geo.locators]
     anchors = geo.anchors
     k, seen, kept, idx = 1, 0, [], []
@@ -304,8 +321,9 @@ def fix_log_scale(settings: LocateSettings, geo: Geometry, sources: Sequence[Any
 
 def log_scales_from_sample(settings: LocateSettings, geo: Geometry, kind: str,
                            sample: np.ndarray, cap: int | None = None) -> list[Any]:
-    """The locators with their per-anchor log scale and gross share fixed from the first
-    pass's ``sample`` (its epochs' prepared values, in log order)."""
+    """The locators with their per-anchor log scale, gross share and ambiguity sides fixed
+    from the first pass's ``sample`` (its epochs' prepared values, in log order).  The
+    sides come from the sample's fixes with that scale (:func:`log_sides_of`)."""
     from robustloc.models.pathloss import log_distance_arrays
 
     cap = LOG_SAMPLE_CAP if cap is None else cap
@@ -319,9 +337,27 @@ def log_scales_from_sample(settings: LocateSettings, geo: Geometry, kind: str,
             continue
         scale, share = loc.log_statistics(geo.xyz, sample, kind, A=A, n=n,
                                           height_offset=geo.height, max_epochs=2 * cap)
-        out.append(replace(loc, log_scale_fixed=tuple(float(v) for v in scale),
-                           log_gross_share=share))
+        loc = replace(loc, log_scale_fixed=tuple(float(v) for v in scale),
+                      log_gross_share=share)
+        if loc.log_sides is None:
+            loc = replace(loc, log_sides=log_sides_of(loc, geo, kind, sample, A, n))
+        out.append(loc)
     return out
+
+
+def log_sides_of(locator: Any, geo: Geometry, kind: str, sample: np.ndarray,
+                 A: np.ndarray | None, n: np.ndarray | None) -> tuple:
+    """The ambiguity sides of the first pass's ``sample`` solved by ``locator`` (its log
+    scale fixed): :func:`robustloc.integrity.fixes.ambiguity_sides`; ``()`` when no fix
+    of the sample is ambiguous or none can be."""
+    from robustloc.integrity.fixes import ambiguity_sides, locate_protected, range_model_of
+
+    rm = range_model_of(geo.xyz, geo.height)
+    if rm is None or not len(sample):
+        return ()
+    sol = locate_protected(replace(locator, log_sides=()), geo.xyz, sample, kind, A=A, n=n,
+                           height_offset=geo.height)
+    return ambiguity_sides(sol, rm)
 
 
 def log_sample_of(settings: LocateSettings, anchors: pd.DataFrame, path: Any, offset: int,
@@ -384,7 +420,8 @@ def log_scales_for(settings: LocateSettings, anchors: pd.DataFrame, sources: Seq
         fixed = _with_log_scale(settings, geo, sources)
     done = [loc for loc in fixed if loc.log_scale_fixed is not None]
     return {"log_scale_fixed": {loc.method: loc.log_scale_fixed for loc in done},
-            "log_gross_share": {loc.method: loc.log_gross_share for loc in done}}
+            "log_gross_share": {loc.method: loc.log_gross_share for loc in done},
+            "log_sides": {loc.method: loc.log_sides or () for loc in done}}
 
 
 def run_locate(
@@ -499,6 +536,10 @@ def hpl_lines(summary: dict, noun: str = "fixes") -> list[str]:
         lines.append(f"  {m:9s} hpl of the {n} usable {noun}: median {q['p50']:.3g} m, "
                      f"95 % at or below {q['p95']:.3g} m"
                      + (f" ({unb} unbounded)" if unb else ""))
+    for m, k in (summary.get("side_from_log") or {}).items():
+        if k:
+            lines.append(f"  {m:9s} {k} ambiguous fixes placed on the log's side of their "
+                         "anchors' line (--side-prior log)")
     return lines
 
 
@@ -532,6 +573,7 @@ def _run_once(
     ids = [str(a) for a in anchors["anchor"]]
     counts: dict[str, dict[str, int]] = {m: {} for m in methods}
     hpl_hist: dict[str, dict[str, int]] = {m: {} for m in methods}
+    moved: dict[str, int] = {m: 0 for m in methods}
     n_epochs = n_dup = n_invalid = 0
     A = n = None
     kind = None
@@ -558,6 +600,9 @@ def _run_once(
                         alpha0=settings.alpha0, beta0=settings.beta0,
                         k_noise=settings.k_noise, alert_limit=settings.alert_limit)
                     solve_s += _time.perf_counter() - ts
+                    side = sol.extra.get("side_from_log")
+                    if side is not None:
+                        moved[loc.method] += int(np.sum(side & ~bad))
                     fr = positions_frame(sol, block.time, block.tag, ids, loc.method)
                     if bad.any():  # every row of the epoch was outside the physical limits
                         fr.loc[bad, "status"] = INVALID
@@ -583,7 +628,9 @@ def _run_once(
     wall = _time.perf_counter() - t0
     return frame, {
         "value": kind, "epochs": n_epochs, "methods": methods, "status": counts,
-        "hpl_histogram": hpl_hist,
+        "hpl_histogram": hpl_hist, "side_from_log": moved,
+        "log_sides": {loc.method: [[list(i), s] for i, s in loc.log_sides or ()]
+                      for loc in locators},
         "duplicates_merged": n_dup, "invalid_measurement_rows": n_invalid,
         "sorted_first": order == "sort", "seconds": round(wall, 3),
         "solve_seconds": round(solve_s, 3),

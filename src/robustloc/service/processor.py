@@ -75,6 +75,10 @@ class LocateProcessor:
     log_gross_share : float, optional
         The recorded log's gross-error share (method ``auto`` solves every epoch with
         ``igg`` above :data:`robustloc.integrity.fixes.AUTO_GROSS_SHARE`).
+    log_sides : tuple, optional
+        The recorded log's ambiguity sides (:attr:`Locator.log_sides`, from
+        :meth:`log_statistics_from` with ``sides=True``).  With ``log_scale`` and without
+        it no side is preferred: a request is no log.
     sigma : float, optional
         A-priori observation std (m or dB); default the anchors' ``sigma`` column if present.
     model : str, optional
@@ -97,6 +101,7 @@ class LocateProcessor:
         robust_scale: str = "mad",
         log_scale: Sequence[float] | None = None,
         log_gross_share: float | None = None,
+        log_sides: tuple | None = None,
         reference: str = "first",
         min_scale: float = 0.0,
         alpha0: float = 0.001,
@@ -150,7 +155,8 @@ class LocateProcessor:
         if log_scale is not None:
             self.locator = replace(self.locator,
                                    log_scale_fixed=tuple(float(v) for v in log_scale),
-                                   log_gross_share=log_gross_share)
+                                   log_gross_share=log_gross_share,
+                                   log_sides=() if log_sides is None else log_sides)
         self._pathloss: tuple[np.ndarray, np.ndarray] | None = None
 
     @staticmethod
@@ -163,10 +169,11 @@ class LocateProcessor:
 
     @staticmethod
     def log_statistics_from(path: str, anchors: pd.DataFrame, *, method: str | None = None,
-                            dim: int = 2, chunk_rows: int = 500_000, **settings: Any
-                            ) -> tuple[tuple[float, ...], float | None]:
+                            dim: int = 2, chunk_rows: int = 500_000, sides: bool = False,
+                            **settings: Any) -> tuple:
         """Per-anchor noise scale and gross-error share of a recorded log, by
-        ``robustloc locate``'s first pass.
+        ``robustloc locate``'s first pass (with ``sides=True`` also its ambiguity sides,
+        :attr:`Locator.log_sides`, as a third item).
 
         ``settings`` are the other :class:`LocateProcessor` settings (``solver``, ``model``,
         ``range_calibration``, ...).  Runs ``locate``'s own first pass
@@ -179,7 +186,7 @@ class LocateProcessor:
 
         proto = LocateProcessor(anchors, method=method, dim=dim, robust_scale="log",
                                 log_scale=(1.0,) * len(anchors), **settings)
-        loc = replace(proto.locator, log_scale_fixed=None)
+        loc = replace(proto.locator, log_scale_fixed=None, log_sides=None)
         first_pass = LocateSettings(chunk_rows=chunk_rows, model=proto.model,
                                     range_calibration=proto.range_calibration)
         geo = Geometry([loc], anchors, proto.xyz, proto.height)
@@ -189,6 +196,8 @@ class LocateProcessor:
             (out,) = fix_log_scale(first_pass, geo, [str(path)], "sort")
         if out.log_scale_fixed is None:
             raise ValueError(f"{path}: no epochs to take the noise scale from")
+        if sides:
+            return tuple(out.log_scale_fixed), out.log_gross_share, out.log_sides or ()
         return tuple(out.log_scale_fixed), out.log_gross_share
 
     def process(self, epochs: Epochs) -> pd.DataFrame:
