@@ -102,15 +102,18 @@ def run(ctx: Context) -> Section:
         peer_tab = tab[~tab["method"].str.startswith("robustloc")]
         best = peer_tab.loc[peer_tab["rms"].idxmin()]
         d = tab.iloc[0]
-        ok = (d["rms"] <= best["rms"] and d["p95"] <= peer_tab["p95"].min()
-              and d["availability"] >= best["availability"])
+        worse = [k for k, bad in (("rms", d["rms"] > best["rms"]),
+                                  ("p95", d["p95"] > peer_tab["p95"].min()),
+                                  ("availability", d["availability"] < best["availability"]))
+                 if bad]
         verdicts.append({
             "data set": f"{case.name} ({case.source})", "default rms": d["rms"],
             "default p95": d["p95"], "default availability": d["availability"],
             "misleading": d.get("misleading", np.nan),
             "best peer": best["method"], "peer rms": best["rms"],
             "peer p95": peer_tab["p95"].min(), "peer availability": best["availability"],
-            "verdict": "at or below the best peer" if ok else "worse than the best peer",
+            "verdict": ("at or below the best peer" if not worse
+                        else "worse than the best peer: " + ", ".join(worse)),
         })
     full = pd.concat(rows_all, ignore_index=True)
     full.to_csv(ctx.out_dir / "out_of_box.csv", index=False)
