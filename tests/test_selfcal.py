@@ -361,3 +361,30 @@ def test_cli_self_without_any_usable_epoch_is_an_error(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith(f"error: {m}: nothing to self-calibrate")
     assert not out.exists()
+
+
+def test_corridor_self_calibration_starts_on_the_logs_side():
+    """Four nearly collinear anchors with biases, the tags always 1.5-4 m on one side:
+    plain start fixes put a third of the tags across the line, and the joint adjustment
+    stays there with biases off by up to 0.25 m; started from the tested fixes, the
+    ambiguous ones on the side the log's unambiguous fixes show (as locate
+    --side-prior log), it recovers every bias within 4 se (the module's tolerance)."""
+    from robustloc.estimators.ranging import Locator
+    from robustloc.models.selfcal import SelfCalibrator
+    from robustloc.pipelines.calibrate import _start_fixes, self_calibrate
+
+    rng = np.random.default_rng(0)
+    a = np.array([[0.0, 0.0], [10.0, 0.6], [20.0, -0.5], [30.0, 0.3]])
+    n = 600
+    truth = np.column_stack((rng.uniform(2.0, 28.0, n), -rng.uniform(1.5, 4.0, n)))
+    bias = np.array([0.15, -0.1, 0.12, -0.15])
+    z = np.linalg.norm(truth[:, None] - a[None], axis=2) + bias + rng.normal(0, 0.1, (n, 4))
+    plain = Locator("huber").solve(a, z).position
+    start = _start_fixes(a, z, "range")
+    assert np.sum(plain[:, 1] > 0.1) > n // 4  # the precondition: many across the line
+    assert np.sum(start[:, 1] > 0.1) <= 5
+    old = SelfCalibrator("range", fit_slope=False).fit(a, z, plain)
+    assert np.any(np.abs(old.offset - bias) > 4 * old.offset_se)
+    anchors = pd.DataFrame({"anchor": list("ABCD"), "x": a[:, 0], "y": a[:, 1]})
+    res, _ = self_calibrate(anchors, a, z, "range", fit_scale=False)
+    assert np.all(np.abs(res.offset - bias) < 4 * res.offset_se)

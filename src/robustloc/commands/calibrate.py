@@ -36,7 +36,10 @@ a line) gets a warning and is left at its prior (bias 0, scale 1, or the anchors
 A, n).  Writes the columns bias, scale, sigma (or A, n, sigma) and their standard errors,
 cluster-robust over 50 time blocks of the log (errors that persist while a tag dwells
 make the independent-epoch ones too small); the start fixes use the anchors file's A, n
-for RSSI.
+for RSSI.  The start fixes are tested as `locate` tests them: an epoch whose fix is not
+usable is left out (counted without a start fix), and with nearly collinear anchors an
+ambiguous fix starts on the side of their line where the log's unambiguous fixes lie
+(as `locate --side-prior log`).
 
 A survey that cannot determine a parameter (every sample at one distance, fewer rows than
 parameters + 1, constant values, an exact fit) is an error naming the anchor and the
