@@ -110,6 +110,8 @@ def metric(url: str, name: str, headers: dict | None = None) -> float:
 
 @pytest.mark.parametrize(("scenario", "method", "transport", "scale"),
                          [("ble", "auto", "http", "mad"), ("uwb", "igg", "ws", "mad"),
+                          # --side-prior none on both sides: the fixes stay unmoved
+                          ("corridor", "auto", "ws", "log,none"),
                           # the log's scale from the recorded log (--scale-from): fixes
                           # no longer depend on which epochs share a batch
                           ("ble", "auto", "http", "log"),
@@ -130,13 +132,17 @@ def test_replay_equals_batch_locate(scenario, method, transport, scale, request,
     d = request.getfixturevalue(scenario)
     batch = tmp_path / "batch.parquet"
     meas = str(d / "measurements.csv")
+    scale, _, side = scale.partition(",")
     extra = ["--robust-scale", "mad"] if scale == "mad" else []
+    if side:
+        extra += ["--side-prior", side]
     _cli("locate", meas, "--anchors", str(d / "anchors.csv"), "--method", method,
          "-o", str(batch), "--quiet", *extra)
     want = pd.read_parquet(batch)
     srv = server_factory(["--anchors", str(d / "anchors.csv"), "--method", method,
                           "--store", str(tmp_path / "store"), "--idle-flush", "0.3",
-                          *(["--scale-from", meas] if scale == "log" else [])])
+                          *(["--scale-from", meas] if scale == "log" else []),
+                          *(["--side-prior", side] if side else [])])
     res = replay(str(d / "measurements.csv"), srv.url, speed=0, transport=transport)
     assert res["accepted"] == res["rows"] and not res["rejected"]
 
@@ -156,7 +162,7 @@ def test_replay_equals_batch_locate(scenario, method, transport, scale, request,
         np.testing.assert_allclose(g[c].astype(float), w[c], rtol=0, atol=1e-9,
                                    equal_nan=True)
     assert (g["excluded"].fillna("") == w["excluded"].fillna("")).all()
-    if scenario == "corridor":  # the precondition: the side prior moved fixes
+    if scenario == "corridor" and not side:  # the precondition: the prior moved fixes
         off = tmp_path / "off.parquet"
         _cli("locate", meas, "--anchors", str(d / "anchors.csv"), "--method", method,
              "-o", str(off), "--quiet", "--side-prior", "none")

@@ -102,6 +102,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scale-from", default=None, metavar="LOG",
                    help="recorded measurements log whose per-anchor noise scale (robustloc "
                         "locate's first pass) the service uses; implies --robust-scale log")
+    p.add_argument("--side-prior", choices=("log", "none"), default="log",
+                   help="with --scale-from: place a fix that fits either side of nearly "
+                        "collinear anchors on the side where the recorded log's "
+                        "unambiguous fixes lie (log, default, as robustloc locate), or "
+                        "leave it (none)")
     p.add_argument("--alert-limit", type=positive_float, default=None, metavar="L",
                    help="horizontal alert limit (m), as robustloc locate")
     p.add_argument("--k-noise", type=nonnegative_float, default=None, metavar="K",
@@ -168,6 +173,8 @@ def build(args: argparse.Namespace):
                 scale, share, sides = LocateProcessor.log_statistics_from(
                     args.scale_from, anchors, method=args.method, sides=True, **settings)
                 robust_scale = "log"
+                if args.side_prior == "none":
+                    sides = ()
             processor = LocateProcessor(anchors, method=args.method,
                                         robust_scale=robust_scale, log_scale=scale,
                                         log_gross_share=share, log_sides=sides, **settings)

@@ -2,8 +2,9 @@
 
 What a new user gets with an anchors file, a measurements file and nothing else (no
 truth, no train split, no tuning), on every shared real data set: the default method
-(:data:`robustloc.estimators.ranging.DEFAULT_METHOD`, with the log's per-anchor noise scale
-and every fix's own test and protection level, :mod:`robustloc.integrity.fixes`), plain
+(:data:`robustloc.estimators.ranging.DEFAULT_METHOD`, with the log's per-anchor noise scale,
+every fix's own test and protection level, and the log's side of nearly collinear anchors
+for a fix that fits either side, :mod:`robustloc.integrity.fixes`), plain
 Gauss-Newton (`nls`), and the peers a user would otherwise write by hand: scipy
 ``least_squares`` (``linear``, ``soft_l1``, ``huber``) per epoch and statsmodels ``RLM``
 (Huber's T) on the paper's linearized system (:func:`robustloc.eval.realdata.peer_fixes`).
