@@ -579,3 +579,48 @@ def test_deferred_checks_decide_a_restart_on_the_round_it_happens():
     first = int(np.argmax(lazy.reinit.to_numpy() >= 1))
     assert 40 < first < 40 + 10  # re-started soon after the jump, as the eager one
     assert sum(solved) <= 10  # the jump's checks, once, not one solve per round
+
+
+@pytest.mark.parametrize("engine", ["compiled", "numpy"])
+def test_hpl_covers_the_mirror_of_collinear_anchors(engine, monkeypatch):
+    """Four anchors within 0.3 m of the x axis, one tag walking 3 m beside them, ranges
+    with 5 cm noise and the filter's sigma 0.3 m: the tag's mirror image across the
+    anchors' line (found independently by scipy from the reflected position) fits every
+    epoch's ranges within the test, so every row's bound reaches beyond it, where the
+    filter's own bound (the check switched off) stays below the distance.  With anchors
+    that span the plane the rows are exactly those without the check."""
+    from scipy.optimize import least_squares
+
+    line = pd.DataFrame({"anchor": list("ABCD"), "x": [0.0, 10.0, 20.0, 30.0],
+                         "y": [0.0, 0.3, -0.3, 0.1]})
+    a = line[["x", "y"]].to_numpy()
+    rng = np.random.default_rng(1)
+    N = 60
+    t = np.arange(N) * 0.5
+    p = np.column_stack((5.0 + 0.4 * t, np.full(N, -3.0)))
+    r = np.linalg.norm(p[:, None] - a[None], axis=2) + rng.normal(0, 0.05, (N, 4))
+    meas = pd.DataFrame({"time": np.repeat(t, 4), "tag": "T",
+                         "anchor": np.tile(list("ABCD"), N), "range": r.ravel()})
+    rows = Tracker(line, sigma=0.3, engine=engine).step(_epochs(meas, line))
+    assert (rows["status"] == "ok").all()
+    xy = rows[["x", "y"]].to_numpy()
+    mirror = np.array([least_squares(lambda q, k=k: np.linalg.norm(q - a, axis=1) - r[k],
+                                     xy[k] * [1.0, -1.0]).x for k in range(N)])
+    assert np.all(mirror[:, 1] > 2.0)  # the second minimum, across the line
+    dist = np.hypot(*(xy - mirror).T)
+    monkeypatch.setattr(Tracker, "_cover_mirror", lambda self, *args: None)
+    off = Tracker(line, sigma=0.3, engine=engine).step(_epochs(meas, line))
+    assert np.all(off["hpl"].to_numpy() < dist)
+    # the bound: the row's own plus the distance to the mirror (the filter is unchanged)
+    np.testing.assert_array_equal(rows[["x", "y"]].to_numpy(), off[["x", "y"]].to_numpy())
+    assert np.all(rows["hpl"].to_numpy() >= dist)
+    # (the check's Gauss-Newton refinement and scipy's trust region reach the same
+    # minimum: scipy stops at relative steps of 1e-8, ~1e-7 m here; 8e-7 m measured)
+    np.testing.assert_allclose(rows["hpl"] - off["hpl"], dist, atol=1e-5)
+    monkeypatch.undo()
+    meas2, _ = _walk(K=2, N=40)
+    spread = _anchors()
+    with_check = Tracker(spread, sigma=SIGMA_M, engine=engine).step(_epochs(meas2, spread))
+    monkeypatch.setattr(Tracker, "_cover_mirror", lambda self, *args: None)
+    without = Tracker(spread, sigma=SIGMA_M, engine=engine).step(_epochs(meas2, spread))
+    pd.testing.assert_frame_equal(with_check, without)

@@ -32,7 +32,9 @@ RSSI (converted by the anchors' path-loss model to ranges with sigma_d = d ln10 
                fails repeatedly or disagrees with the robust fix re-starts (reinit column)
   noise        the measurement noise scale adapts within [--noise-scale-min, -max]
   coasting     nothing heard: status `predicted`
-  hpl          max_i |gain_i| MDB_i + k sigma_major, k from --integrity-risk (2-D)
+  hpl          max_i |gain_i| MDB_i + k sigma_major, k from --integrity-risk (2-D); with
+               nearly collinear anchors, plus the distance to the mirror solution across
+               their line when that fits the epoch as well
   --smooth     fixed-interval Rauch-Tung-Striebel smoother over the forward pass (keeps its
                robust weights); --fixed-lag N uses only the next N epochs
 
@@ -77,7 +79,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="RSSI input: update with converted ranges (default) or in dB")
     p.add_argument("--sigma", type=positive_float, default=None,
                    help="a-priori std of one observation (m or dB); default the anchors' "
-                        "sigma column, else 0.3 m / 3 dB")
+                        "sigma column, else 0.3 m / 3 dB.  0.3 m suits UWB; WiFi RTT ranges "
+                        "are several times noisier: run `calibrate --self` first (it "
+                        "writes the log's sigma per anchor), or the track's covariance and "
+                        "hpl will be too small (WiFi RTT corridor: 4.9 %% of the rows beyond "
+                        "hpl at 0.3 m, none with the self-calibrated sigma)")
     p.add_argument("--smooth", action="store_true", help="fixed-interval RTS smoother")
     p.add_argument("--fixed-lag", type=positive_int, default=None, metavar="N",
                    help="fixed-lag RTS smoother over the next N epochs of each tag")

@@ -58,7 +58,10 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
    RAIM/``spp``), ``sigma_major`` the square root of the largest eigenvalue of the
    position covariance and ``k = sqrt(chi2.isf(integrity_risk, 2))`` (2-D error beyond
    ``k`` sigma with probability ``integrity_risk`` for a Gaussian error).  Predicted rows
-   get the noise term only.
+   get the noise term only.  Where the anchors a row's update kept are nearly collinear
+   and the row's position reflected across their line (refined on the epoch's
+   observations) passes the epoch's global test, ``hpl = max(hpl, |x' - x| + hpl)``: the
+   mirror is as consistent as the track (``Tracker._cover_mirror``).
 
 Engines: ``compiled`` (default) runs the whole round of the ``cv``/``ca`` models in the
 range domain (ranges, or RSSI converted to ranges) in one fused numba kernel
@@ -491,6 +494,90 @@ class Tracker:
             self._start(idx[ni], s2, t2, zi, out, reinit=False)
         if init.any():
             self._filter(idx[init], sl[init], t[init], z[init], out)
+        self._cover_mirror(idx, sl, z, out)
+
+    def _cover_mirror(self, idx: NDArray[np.int64], sl: NDArray[np.int64], z: Array,
+                      out: _Rows) -> None:
+        """Widen ``hpl`` over the mirror solution where the epoch's kept anchors are nearly
+        collinear (module docstring, item 8; :mod:`robustloc.integrity.fixes`, item 5).
+
+        The row's position reflected across the principal line of the anchors its update
+        kept, refined by Gauss-Newton on the epoch's observations (ranges, or RSSI turned
+        to ranges), passes the global test at the row's noise scale, or fits the epoch at
+        least as well as the row's own position: the epoch cannot tell the two apart, and
+        the motion model, built from such epochs, need not either
+        (on the wifi-rtt-rss corridor the tracker followed the mirror side for whole
+        stretches: 5.7 % of its rows beyond their ``hpl``, 86 % of them across the line).
+        Then ``hpl = max(hpl, |x' - x| + hpl)``.  RSSI fitted in dB is not checked."""
+        from robustloc.integrity.fixes import AMBIGUITY_ELONGATION, mirror_solution
+        from robustloc.models.ranging import RangeModel
+
+        if self._link is None or (self._kind == "rssi" and self.settings.domain == "rssi"):
+            return
+        link = self._link
+        # the anchors each row's update kept, and whether they are nearly collinear: a
+        # function of the pattern alone, cached (a few hundred patterns at most)
+        keep_all = np.isfinite(z) & ~out.excluded[idx]
+        elong = self._pattern_elongation(keep_all)
+        dof_all = keep_all.sum(axis=1) - 2
+        pre = (dof_all >= 1) & (elong < AMBIGUITY_ELONGATION)
+        if not pre.any():
+            return
+        x = out.x[idx, :2]
+        cand_rows = np.flatnonzero(pre)
+        use = (st.among(out.status[idx[cand_rows]], st.USABLE)
+               & (out.status[idx[cand_rows]] != st.PREDICTED)
+               & np.all(np.isfinite(x[cand_rows]), axis=1)
+               & np.isfinite(out.hpl[idx[cand_rows]]))
+        rows = cand_rows[use]
+        if rows.size == 0:
+            return
+        obs, var = self._observations(z[rows] - self._bias[sl[rows]])
+        keep = keep_all[rows] & np.isfinite(obs)
+        dof = keep.sum(axis=1) - 2
+        ok = dof >= 1
+        changed = np.flatnonzero(np.any(keep != keep_all[rows], axis=1))
+        if changed.size:  # (an observation the conversion could not use)
+            ok[changed] &= self._pattern_elongation(keep[changed]) < AMBIGUITY_ELONGATION
+        cand = np.flatnonzero(ok)
+        r, kc = rows[cand], keep[cand]
+        scale = out.scale[idx[r]]
+        sig = np.sqrt(var[cand]) * np.where(np.isfinite(scale), scale, 1.0)[:, None]
+        model = RangeModel(link.anchors_xy, np.sqrt(link.dz2))
+        xr = x[r]
+        v = np.where(kc, model.predict(xr) - obs[cand], np.nan)
+        x_alt, T_alt, _ = mirror_solution(model, xr, v, sig, kc)
+        crit = global_critical(dof[cand], alpha0=self.settings.alpha0,
+                               beta0=self.settings.beta0)
+        # ambiguous: the mirror passes the test, or fits at least as well as the row does
+        T_x = np.nansum(np.where(kc, (v / sig) ** 2, 0.0), axis=1)
+        amb = np.isfinite(T_alt) & (T_alt <= np.fmax(crit, T_x))
+        if np.any(amb):
+            rr = idx[r[amb]]
+            d = np.hypot(*(x_alt[amb] - xr[amb]).T)
+            out.hpl[rr] = np.fmax(out.hpl[rr], d + out.hpl[rr])
+
+    def _pattern_elongation(self, keep: NDArray[np.bool_]) -> Array:
+        """:func:`robustloc.integrity.fixes.anchor_elongation` of each row's kept anchors,
+        each distinct pattern computed once per tracker."""
+        from robustloc.integrity.fixes import anchor_elongation
+
+        M = keep.shape[1]
+        if M > 20:  # (a lookup table of 2^M entries would be too large)
+            return anchor_elongation(self._link.anchors_xy, keep)
+        table = self.__dict__.get("_elong_table")
+        if table is None or table.size != 1 << M:
+            table = self._elong_table = np.full(1 << M, np.nan)  # NaN: not computed yet
+        key = keep.astype(np.int64) @ (np.int64(1) << np.arange(M, dtype=np.int64))
+        el = table[key]
+        todo = np.isnan(el)
+        if todo.any():
+            uk, first = np.unique(key[todo], return_index=True)
+            table[uk] = np.nan_to_num(
+                anchor_elongation(self._link.anchors_xy, keep[np.flatnonzero(todo)[first]]),
+                nan=np.inf)  # (fewer than two anchors: never elongated)
+            el = table[key]
+        return el
 
     def _start(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array, z: Array,
                out: _Rows, reinit: bool) -> NDArray[np.bool_]:
