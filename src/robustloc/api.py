@@ -312,6 +312,7 @@ def locate(
     alpha0: float = 0.001,
     beta0: float = 0.10,
     chunk_rows: int = 500_000,
+    side_prior: Literal["log", "none"] = "log",
 ) -> pd.DataFrame:
     r"""Position fixes for every epoch of a measurements log (``robustloc locate``).
 
@@ -343,6 +344,9 @@ def locate(
     range_calibration : bool
         Apply the anchors' ``bias``/``scale`` columns (``False`` is
         ``--no-range-calibration``).
+    side_prior : {"log", "none"}
+        Nearly collinear anchors: place a fix that fits either side of their line on the
+        side where the log's unambiguous fixes lie (``--side-prior``).
 
     Returns
     -------
@@ -398,7 +402,7 @@ def locate(
             robust_scale=robust_scale, alert_limit=alert_limit, k_noise=k_noise,
             min_scale=min_scale, param=_param_items(params), model=model,
             tag_height=tag_height, range_calibration=range_calibration, alpha0=alpha0,
-            beta0=beta0, chunk_rows=chunk_rows)
+            beta0=beta0, chunk_rows=chunk_rows, side_prior=side_prior)
         anchor_frame, source = _log_inputs(measurements, anchors)
         frame, summary = run_locate(source, anchor_frame, settings)
     return _with_summary(frame, summary)
