@@ -343,14 +343,9 @@ def test_track_equals_the_command_line(tmp_path):
 def test_locate_side_prior_equals_cli(tmp_path):
     """side_prior is --side-prior: on a log beside nearly collinear anchors the default
     moves ambiguous fixes to the log's side, "none" leaves them (the CLI's rows both)."""
-    rng = np.random.default_rng(3)
-    a = np.array([[0.0, 0.0], [10.0, 0.6], [20.0, -0.5], [30.0, 0.3]])
-    n = 300
-    truth = np.column_stack((rng.uniform(2.0, 28.0, n), -rng.uniform(1.5, 4.0, n)))
-    r = np.linalg.norm(truth[:, None, :] - a[None], axis=2) + rng.normal(0, 0.1, (n, 4))
-    log = pd.DataFrame({"time": np.repeat(np.arange(n, dtype=float), 4), "tag": "t1",
-                        "anchor": np.tile(list("ABCD"), n), "range": r.ravel()})
-    anchors = pd.DataFrame({"anchor": list("ABCD"), "x": a[:, 0], "y": a[:, 1]})
+    from _corridor import side_frames  # (tests/_corridor.py)
+
+    log, anchors, _ = side_frames(n=300)
     log.to_csv(tmp_path / "m.csv", index=False)
     anchors.to_csv(tmp_path / "a.csv", index=False)
     got = {}

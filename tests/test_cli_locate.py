@@ -6,6 +6,7 @@ import json
 import numpy as np
 import pandas as pd
 import pytest
+from _corridor import write_side_files  # (tests/_corridor.py)
 
 from robustloc.cli import main
 
@@ -171,27 +172,13 @@ def test_locate_cli_settings_errors(tmp_path, capsys, corridor):
     assert err.startswith(f"error: {tmp_path / 'bare.csv'}") and "calibrate" in err
 
 
-def _corridor_files(tmp_path, seed=3, n=400):
-    """A log of tags beside four nearly collinear anchors, always on one side (the
-    wifi-rtt corridor's situation), as measurements / anchors / truth files."""
-    rng = np.random.default_rng(seed)
-    a = np.array([[0.0, 0.0], [10.0, 0.6], [20.0, -0.5], [30.0, 0.3]])
-    truth = np.column_stack((rng.uniform(2.0, 28.0, n), -rng.uniform(1.5, 4.0, n)))
-    r = np.linalg.norm(truth[:, None, :] - a[None], axis=2) + rng.normal(0, 0.1, (n, 4))
-    t = np.repeat(np.arange(n, dtype=float), 4)
-    pd.DataFrame({"time": t, "tag": "t1", "anchor": np.tile(list("ABCD"), n),
-                  "range": r.ravel()}).to_csv(tmp_path / "m.csv", index=False)
-    pd.DataFrame({"anchor": list("ABCD"), "x": a[:, 0], "y": a[:, 1]}).to_csv(
-        tmp_path / "a.csv", index=False)
-    return truth
-
-
 def test_side_prior_is_the_logs_whatever_the_chunks(tmp_path, capsys):
     """The side comes from the first pass over the whole log, so streaming the log in
     chunks of 37 rows moves the same fixes as reading it at once; the summary counts
     them; --side-prior none leaves them on the wrong side."""
-    truth = _corridor_files(tmp_path)
-    base = ["locate", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv")]
+    truth = write_side_files(tmp_path)
+    base = ["locate", str(tmp_path / "measurements.csv"), "--anchors",
+            str(tmp_path / "anchors.csv")]
     assert main(base + ["-o", str(tmp_path / "whole.csv"), "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert main(base + ["-o", str(tmp_path / "chunked.csv"), "--chunk-rows", "37",

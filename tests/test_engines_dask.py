@@ -14,7 +14,6 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 import pytest
 
@@ -514,25 +513,18 @@ def test_planner_reads_partitions_in_batches(tmp_path, monkeypatch, batch_rows):
 def test_locate_dask_places_ambiguous_fixes_as_one_process(scheduler, tmp_path):
     """Nearly collinear anchors, every tag on one side: the side prior comes from the
     whole dataset's first pass (on the workers) and moves the same fixes as one process."""
-    rng = np.random.default_rng(3)
-    a = np.array([[0.0, 0.0], [10.0, 0.6], [20.0, -0.5], [30.0, 0.3]])
-    n = 400
-    truth = np.column_stack((rng.uniform(2.0, 28.0, n), -rng.uniform(1.5, 4.0, n)))
-    r = np.linalg.norm(truth[:, None, :] - a[None], axis=2) + rng.normal(0, 0.1, (n, 4))
-    pd.DataFrame({"time": np.repeat(np.arange(n, dtype=float), 4), "tag": "t1",
-                  "anchor": np.tile(list("ABCD"), n), "range": r.ravel()}).to_csv(
-        tmp_path / "m.csv", index=False)
-    pd.DataFrame({"anchor": list("ABCD"), "x": a[:, 0], "y": a[:, 1]}).to_csv(
-        tmp_path / "a.csv", index=False)
-    assert main(["partition", str(tmp_path / "m.csv"), "-o", str(tmp_path / "ds"),
-                 "--by", "time", "--span", "50"]) == 0
-    assert main(["locate", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),
-                 "-o", str(tmp_path / "local.parquet"), "--quiet"]) == 0
+    from _corridor import write_side_files  # (tests/_corridor.py)
+
+    write_side_files(tmp_path)
+    m, a = tmp_path / "measurements.csv", tmp_path / "anchors.csv"
+    assert main(["partition", str(m), "-o", str(tmp_path / "ds"), "--by", "time",
+                 "--span", "50"]) == 0
+    assert main(["locate", str(m), "--anchors", str(a), "-o", str(tmp_path / "local.parquet"),
+                 "--quiet"]) == 0
     local = pd.read_parquet(tmp_path / "local.parquet")
     out = tmp_path / "pos"
-    assert main(["locate", str(tmp_path / "ds"), "--anchors", str(tmp_path / "a.csv"),
-                 "-o", str(out), "--engine", "dask", "--scheduler", scheduler,
-                 "--quiet"]) == 0
+    assert main(["locate", str(tmp_path / "ds"), "--anchors", str(a), "-o", str(out),
+                 "--engine", "dask", "--scheduler", scheduler, "--quiet"]) == 0
     pd.testing.assert_frame_equal(_dataset(out), local)
     meta = json.loads((out / "_robustloc.json").read_text())
     assert meta["side_from_log"]["auto"] >= 3

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from _corridor import NEAR_LINE as CORRIDOR  # (tests/_corridor.py)
+from _corridor import side_log
 from hypothesis import given, settings
 from hypothesis import strategies as st_
 from scipy import stats
@@ -696,18 +698,6 @@ def test_test_alpha_is_the_chi2_tail_of_each_epoch():
 
 # ------------------------------------------------------------------ the log's side (item 7)
 
-CORRIDOR = np.array([[0.0, 0.0], [10.0, 0.6], [20.0, -0.5], [30.0, 0.3]])
-
-
-def _corridor_log(seed: int, sides: tuple[float, ...] = (-1.0,), n: int = 400):
-    """Tags beside the nearly collinear CORRIDOR anchors, 1.5-4 m off their line on the
-    given sides (one side each, in turn), ranges with 10 cm Gaussian noise."""
-    rng = np.random.default_rng(seed)
-    off = rng.uniform(1.5, 4.0, n) * np.resize(np.asarray(sides), n)
-    truth = np.column_stack((rng.uniform(2.0, 28.0, n), off))
-    return truth, ranges(CORRIDOR, truth) + rng.normal(0.0, 0.1, (n, 4))
-
-
 def test_ambiguous_fixes_move_to_the_side_the_log_shows():
     """Every tag is on the y < 0 side.  Most fixes are unambiguous (the anchors are 0.5 m
     off a line, so the mirror misfits 10 cm ranges); those whose mirror passes the test
@@ -716,7 +706,7 @@ def test_ambiguous_fixes_move_to_the_side_the_log_shows():
     to the noise's, and each moved fix's bound still covers where it was."""
     from robustloc.integrity.fixes import ambiguity_sides, range_model_of
 
-    truth, z = _corridor_log(3)
+    truth, z = side_log(3)
     off = locate_protected(Locator("auto", log_sides=()), CORRIDOR, z)
     on = locate_protected(Locator("auto"), CORRIDOR, z)
     u = st.among(off.status, st.USABLE)
@@ -760,7 +750,7 @@ def test_ambiguous_fixes_move_to_the_side_the_log_shows():
 def test_no_side_without_evidence():
     """Tags on both sides in turn: the sign test finds no preferred side and no fix
     moves; collinear anchors make every fix ambiguous, so there is no evidence at all."""
-    _, z = _corridor_log(4, sides=(-1.0, 1.0))
+    _, z = side_log(4, sides=(-1.0, 1.0))
     sol = locate_protected(Locator("auto"), CORRIDOR, z)
     assert np.isfinite(sol.extra["ambiguity_position"][:, 0]).sum() >= 10
     assert not sol.extra["side_from_log"].any()

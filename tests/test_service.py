@@ -54,17 +54,10 @@ def uwb(tmp_path_factory) -> Path:
 def corridor(tmp_path_factory) -> Path:
     """Four nearly collinear anchors, the tag always on one side: fixes whose mirror fits
     as well are placed by the log's side prior (``--side-prior``)."""
+    from _corridor import write_side_files  # (tests/_corridor.py)
+
     d = tmp_path_factory.mktemp("corridor")
-    rng = np.random.default_rng(3)
-    a = np.array([[0.0, 0.0], [10.0, 0.6], [20.0, -0.5], [30.0, 0.3]])
-    n = 300
-    truth = np.column_stack((rng.uniform(2.0, 28.0, n), -rng.uniform(1.5, 4.0, n)))
-    r = np.linalg.norm(truth[:, None, :] - a[None], axis=2) + rng.normal(0, 0.1, (n, 4))
-    pd.DataFrame({"time": np.repeat(np.arange(n, dtype=float), 4), "tag": "T1",
-                  "anchor": np.tile(list("ABCD"), n), "range": r.ravel()}).to_csv(
-        d / "measurements.csv", index=False)
-    pd.DataFrame({"anchor": list("ABCD"), "x": a[:, 0], "y": a[:, 1]}).to_csv(
-        d / "anchors.csv", index=False)
+    write_side_files(d, n=300, tag="T1")
     return d
 
 
