@@ -419,11 +419,17 @@ def ambiguity_sides(sol: Solution, range_model: RangeModel, alpha: float = SIDE_
         sets.append(every)  # the whole layout is one line (plane): a corridor
     sets = list({tuple(m): m for m in sets}.values())  # each set once
     x, kx = pos[rows], keep[rows]
+    m = a.shape[0]
+    bits = np.int64(1) << np.arange(m, dtype=np.int64) if m <= 62 else None
+    kkey = kx.astype(np.int64) @ bits if bits is not None else None
     out = []
     for anchor_set in sets:
         c, u, _ = _side_frame(a, anchor_set)
         # evidence: the fixes that kept none but these anchors
-        inside = ~np.any(kx & ~anchor_set, axis=1)
+        if kkey is not None:
+            inside = (kkey & ~np.int64(anchor_set.astype(np.int64) @ bits)) == 0
+        else:
+            inside = ~np.any(kx & ~anchor_set, axis=1)
         side = np.sign((x[inside] - c) @ u)
         n_pos, n_neg = int(np.sum(side > 0)), int(np.sum(side < 0))
         n = n_pos + n_neg
