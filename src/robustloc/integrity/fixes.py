@@ -357,16 +357,15 @@ def mirror_solution(
 SIDE_ALPHA = 0.01
 
 
-def _side_frame(anchors: Array, pattern: NDArray[np.bool_]) -> tuple[Array, Array, Array]:
-    """Centroid ``c``, unit normal ``u`` and in-line (in-plane) axes ``E`` (p, p - 1) of
-    the principal line (plane) of the anchors in ``pattern``; ``u`` is oriented so that
-    its largest component (the first of equal ones) is positive: the same anchors give
-    the same side everywhere."""
+def _side_frame(anchors: Array, pattern: NDArray[np.bool_]) -> tuple[Array, Array]:
+    """Centroid ``c`` and unit normal ``u`` of the principal line (plane) of the anchors
+    in ``pattern``; ``u`` is oriented so that its largest component (the first of equal
+    ones) is positive: the same anchors give the same side everywhere."""
     a = anchors[pattern]
     c = a.mean(axis=0)
     _, vec = np.linalg.eigh((a - c).T @ (a - c))
     u = vec[:, 0]
-    return c, (u if u[np.argmax(np.abs(u))] > 0 else -u), vec[:, 1:]
+    return c, (u if u[np.argmax(np.abs(u))] > 0 else -u)
 
 
 def ambiguity_sides(sol: Solution, range_model: RangeModel, alpha: float = SIDE_ALPHA
@@ -424,7 +423,7 @@ def ambiguity_sides(sol: Solution, range_model: RangeModel, alpha: float = SIDE_
     kkey = kx.astype(np.int64) @ bits if bits is not None else None
     out = []
     for anchor_set in sets:
-        c, u, _ = _side_frame(a, anchor_set)
+        c, u = _side_frame(a, anchor_set)
         # evidence: the fixes that kept none but these anchors
         if kkey is not None:
             inside = (kkey & ~np.int64(anchor_set.astype(np.int64) @ bits)) == 0
@@ -483,7 +482,7 @@ def resolve_sides(sol: Solution, sides: tuple[tuple[tuple[int, ...], int], ...],
             continue
         mask, side = match
         sel = inverse == j
-        c, u, _ = _side_frame(a, mask)
+        c, u = _side_frame(a, mask)
         # of the fix and its mirror, the one on the log's side of this line
         swap[sel] = ((np.sign((pos[rows[sel]] - c) @ u) != side)
                      & (np.sign((alt[rows[sel]] - c) @ u) == side))
