@@ -802,3 +802,46 @@ def test_log_sides_are_validated():
     with pytest.raises(ValueError, match="log_sides"):
         Locator("nls", log_sides=((0, 1),))
     assert Locator("nls", log_sides=([[0, 1, 2], -1],)).log_sides == (((0, 1, 2), -1),)
+
+
+def test_resolve_sides_in_3d_keeps_the_bounds_over_both_solutions():
+    """3-D, five anchors within 0.3 m of a floor plane, tags 1-2.5 m above it: the
+    solvers start below a plane of anchors (the ceiling case), so every fix lands below,
+    ambiguous with its mirror above.  Told that the upper side is preferred,
+    ``resolve_sides`` moves each to its mirror, and each moved fix's bounds still reach
+    the old position (vpl over |dz|, hpl over the horizontal distance), its covariance
+    is the reflection of the old one (same eigenvalues), its test statistic the
+    mirror's, and its status unchanged; the truth is then within the bounds."""
+    from robustloc.integrity.fixes import range_model_of, resolve_sides
+
+    rng = np.random.default_rng(0)
+    a = np.array([[0, 0, 0.0], [10, 0, 0.3], [10, 10, -0.3], [0, 10, 0.2], [5, 5, -0.1]])
+    n = 200
+    truth = np.column_stack((rng.uniform(1, 9, n), rng.uniform(1, 9, n),
+                             rng.uniform(1.0, 2.5, n)))
+    z = np.linalg.norm(truth[:, None] - a[None], axis=2) + rng.normal(0, 0.05, (n, 5))
+    sol = locate_protected(Locator("auto", log_sides=()), a, z, "range")
+    alt = sol.extra["ambiguity_position"]
+    u = st.among(sol.status, st.USABLE)
+    assert u.all() and np.all(np.isfinite(alt[:, 0]))  # the precondition: all ambiguous
+    assert np.all(sol.position[:, 2] < 0) and np.all(alt[:, 2] > 0)
+    # the plane's normal, oriented by its largest component, is +z: prefer that side
+    moved = resolve_sides(sol, (((0, 1, 2, 3, 4), 1),), range_model_of(a, None))
+    assert moved.extra["side_from_log"].all()
+    np.testing.assert_array_equal(moved.position, alt)
+    np.testing.assert_array_equal(moved.extra["ambiguity_position"], sol.position)
+    np.testing.assert_array_equal(moved.status, sol.status)
+    d = alt - sol.position
+    assert np.all(moved.extra["vpl"] >= np.abs(d[:, 2]))
+    assert np.all(moved.extra["hpl"] >= np.hypot(d[:, 0], d[:, 1]))
+    np.testing.assert_allclose(np.linalg.eigvalsh(moved.covariance),
+                               np.linalg.eigvalsh(sol.covariance), rtol=1e-9)
+    np.testing.assert_allclose(moved.extra["test_statistic"],
+                               sol.extra["ambiguity_terms"][:, 4])
+    err = moved.position - truth
+    assert np.all(np.abs(err[:, 2]) <= moved.extra["vpl"])
+    assert np.all(np.hypot(err[:, 0], err[:, 1]) <= moved.extra["hpl"])
+    # (measured 0.13 m after, 3.6 m before: the mirror is the truth's side, the old fix
+    # twice the height away)
+    assert np.sqrt(np.mean(np.sum(err**2, axis=1))) < 0.5 < np.sqrt(np.mean(np.sum(
+        (sol.position - truth) ** 2, axis=1)))
