@@ -802,6 +802,13 @@ def test_log_sides_are_validated():
     with pytest.raises(ValueError, match="log_sides"):
         Locator("nls", log_sides=((0, 1),))
     assert Locator("nls", log_sides=([[0, 1, 2], -1],)).log_sides == (((0, 1, 2), -1),)
+    # sides naming an anchor this layout does not have (another anchors file's) are not
+    # these anchors' sides: ignored, not truncated to the anchors that exist
+    _, z = side_log(3)
+    off = locate_protected(Locator("auto", log_sides=()), CORRIDOR, z)
+    on = locate_protected(Locator("auto", log_sides=(((0, 1, 2, 3, 7), -1),)), CORRIDOR, z)
+    assert not on.extra["side_from_log"].any()
+    np.testing.assert_array_equal(on.position, off.position)
 
 
 def test_resolve_sides_in_3d_keeps_the_bounds_over_both_solutions():

@@ -468,8 +468,10 @@ def resolve_sides(sol: Solution, sides: tuple[tuple[tuple[int, ...], int], ...],
     m = a.shape[0]
     known = []  # (size, mask, side): the most specific set first
     for idx, side in sides:
+        if not idx or max(idx) >= m:  # (sides of another layout: not these anchors')
+            continue
         mask = np.zeros(m, dtype=bool)
-        mask[[i for i in idx if i < m]] = True
+        mask[list(idx)] = True
         known.append((len(idx), mask, side))
     known.sort(key=lambda k: k[0])
     patterns, inverse = _unique_rows(extra["test_kept"][rows])
