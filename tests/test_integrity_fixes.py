@@ -852,3 +852,26 @@ def test_resolve_sides_in_3d_keeps_the_bounds_over_both_solutions():
     # twice the height away)
     assert np.sqrt(np.mean(np.sum(err**2, axis=1))) < 0.5 < np.sqrt(np.mean(np.sum(
         (sol.position - truth) ** 2, axis=1)))
+
+
+def test_auto_refit_with_as_many_epochs_as_anchors():
+    """``_merge_rows`` took every extra array of the epochs' length for a per-epoch one:
+    with as many epochs as anchors the per-anchor ``log_scale`` met a refit of one row
+    and raised "shape mismatch" (found by the live service, whose blocks often hold as
+    many epochs as there are anchors; batch ``locate`` of such a file too).  Now the
+    refit row is merged, the log scale stays the anchors' own."""
+    anchors = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0], [5.0, -3.0],
+                        [5.0, 13.0]])
+    truth = np.array([[3.0, 4.0], [6.0, 2.0], [5.0, 7.0], [2.0, 8.0], [8.0, 5.0], [4.0, 3.0]])
+    rng = np.random.default_rng(3)
+    ranges = np.hypot(*(anchors[None] - truth[:, None]).transpose(2, 0, 1))
+    ranges = ranges + rng.normal(0.0, 0.05, ranges.shape)
+    ranges[2, 1] += 6.0  # one gross error (1 of 36: below auto's heavy-log share)
+    sol = locate_protected(Locator("auto"), anchors, ranges, "range")
+    refit = sol.extra["robust_refit"]
+    assert refit.tolist() == [False, False, True, False, False, False]
+    plain = locate_protected(Locator("nls"), anchors, ranges, "range")
+    assert sol.extra["log_scale"].shape == (6,)
+    np.testing.assert_array_equal(sol.extra["log_scale"], plain.extra["log_scale"])
+    np.testing.assert_array_equal(sol.position[~refit], plain.position[~refit])
+    assert np.hypot(*(sol.position[2] - truth[2])) < 0.5  # the refit kept the good five

@@ -831,6 +831,10 @@ def range_model_of(anchors: Array, height_offset: Array | None) -> RangeModel | 
     return RangeModel(np.nan_to_num(a), h)
 
 
+#: ``Solution.extra`` entries that hold one value per anchor, not per epoch.
+_PER_ANCHOR = frozenset({"log_scale"})
+
+
 def _merge_rows(base: Solution, sub: Solution, rows: NDArray[np.int64]) -> Solution:
     """``base`` with epochs ``rows`` replaced by ``sub`` (whose epochs are ``rows``)."""
     out = {}
@@ -843,7 +847,10 @@ def _merge_rows(base: Solution, sub: Solution, rows: NDArray[np.int64]) -> Solut
     N = base.position.shape[0]
     for k, v in sub.extra.items():
         b = extra.get(k)
-        if (isinstance(v, np.ndarray) and isinstance(b, np.ndarray) and b.shape[:1] == (N,)
+        # per-epoch arrays only: one row per epoch in both (a per-anchor array such as
+        # ``log_scale`` has the epochs' length when there are as many epochs as anchors)
+        if (k not in _PER_ANCHOR and isinstance(v, np.ndarray) and isinstance(b, np.ndarray)
+                and b.shape[:1] == (N,) and v.shape[:1] == (len(rows),)
                 and b.shape[1:] == v.shape[1:]):
             arr = b.copy()
             arr[rows] = v
