@@ -290,7 +290,8 @@ def test_websockets(tokened):
         rows = [{"time": t, "tag": g, "anchor": a, "rssi": -65.0 - int(a)}
                 for t in (0.0, 1.0) for g in ("W", "V") for a in "12345"]
         pub.send(json.dumps(rows))
-        assert json.loads(pub.recv(timeout=10)) == {"accepted": 20, "rejected": []}
+        assert json.loads(pub.recv(timeout=10)) == {"accepted": 20, "rejected": [],
+                                                     "n_rejected": 0, "late": 0}
         pub.send("not json [")
         assert json.loads(pub.recv(timeout=10))["status"] == 400
         msgs = [json.loads(sub.recv(timeout=30)) for _ in range(2)]
@@ -304,7 +305,8 @@ def test_websockets(tokened):
         rows = [{"time": t, "tag": g, "anchor": a, "rssi": -65.0 - int(a)}
                 for t in (5.0, 6.0) for g in ("B1", "B2") for a in "12345"]
         pub.send(json.dumps(rows))
-        assert json.loads(pub.recv(timeout=10)) == {"accepted": 20, "rejected": []}
+        assert json.loads(pub.recv(timeout=10)) == {"accepted": 20, "rejected": [],
+                                                     "n_rejected": 0, "late": 0}
         got: list[dict] = []
         while len(got) < 4:  # every epoch once, in arrays (one per solved block)
             blk = json.loads(every.recv(timeout=30))
@@ -658,3 +660,177 @@ def test_assembler_idle_hint():
     assert a.may_have_idle(100.0)  # t quiet for 100 s
     assert a.take_ready(100.0)["tag"].tolist() == ["t"]
     assert not a.may_have_idle(100.0) and a.may_have_idle(160.0)
+
+
+# --------------------------------------------------------------------------------------
+# defects found by fuzzing the live service (2026-12-02): each test fails on the old code
+# --------------------------------------------------------------------------------------
+
+
+def test_deep_json_huge_numbers_and_many_rows_are_4xx(ble, server_factory, tmp_path):
+    """A body of 100 000 nested objects killed the server (orjson's stack overflow,
+    SIGSEGV); an integer beyond float range gave a 500; a body of 1.2 M tiny rows held the
+    server for minutes and answered with one `rejected` entry per row.  Now: 400 (too
+    deep), the row rejected with its reason, 413 (too many rows), and a reply listing at
+    most 1 000 rejected rows with their count."""
+    s = server_factory(["--anchors", str(ble / "anchors.csv"),
+                        "--max-body-bytes", "4000000"])
+    u = s.url
+    post = lambda b: httpx.post(u + "/api/measurements", content=b, timeout=60)  # noqa: E731
+    for deep in (b'{"a":' * 100_000 + b"1" + b"}" * 100_000,
+                 b'[{"time":' + b'{"a":' * 100_000 + b"1" + b"}" * 100_000 + b"}]"):
+        r = post(deep)
+        assert r.status_code == 400 and "nested too deeply" in r.json()["error"], r.text
+    huge = b'[{"time": 1' + b"0" * 400 + b', "tag": "T", "anchor": "1", "rssi": -60}]'
+    r = post(huge)
+    assert r.status_code == 202 and "beyond the range of a float" in r.json()["rejected"][0][
+        "error"]
+    r = post(b"[" + b"0," * 1_200_000 + b"0]")
+    assert r.status_code == 413 and "rows" in r.json()["error"]
+    r = post(json.dumps([1] * 1500).encode())
+    body = r.json()
+    assert r.status_code == 202 and body["n_rejected"] == 1500
+    assert len(body["rejected"]) == 1000 and body["rejected"][-1]["index"] == 999
+    assert s.proc.poll() is None and httpx.get(u + "/healthz").status_code == 200
+    assert metric(u, 'robustloc_requests_rejected_total{reason="too_many_rows"}') == 1
+
+
+def test_unknown_routes_and_methods_are_json_and_counted(tokened):
+    u = tokened.url
+    r = httpx.get(u + "/nope", headers=AUTH)
+    assert r.status_code == 404 and "/nope" in r.json()["error"]
+    r = httpx.put(u + "/api/measurements", headers=AUTH)
+    assert r.status_code == 405 and "POST" in r.json()["error"]
+    assert metric(u, 'robustloc_requests_rejected_total{reason="not_found"}', AUTH) == 1
+    assert metric(u, 'robustloc_requests_rejected_total{reason="method_not_allowed"}',
+                  AUTH) == 1
+
+
+def test_a_body_that_stops_arriving_gets_408(ble, server_factory):
+    """A client that announces 100 bytes and sends 10 held its connection forever."""
+    import socket
+
+    s = server_factory(["--anchors", str(ble / "anchors.csv"), "--body-timeout", "1"])
+    with socket.create_connection(("127.0.0.1", s.port), timeout=20) as c:
+        c.sendall(b"POST /api/measurements HTTP/1.1\r\nHost: x\r\nContent-Length: 100\r\n"
+                  b"Content-Type: application/json\r\n\r\n[{\"time\":")
+        reply = c.recv(4096)
+    assert reply.startswith(b"HTTP/1.1 408"), reply[:80]
+    assert metric(s.url, 'robustloc_requests_rejected_total{reason="body_timeout"}') == 1
+
+
+def test_times_round_trip_and_late_rows_are_reported(ble, server_factory):
+    """Positions came back with 15 decimals (3.3000000000000003 -> 3.3, 1/3 ->
+    0.333333333333333): a client matching its epochs by time missed them.  The reply
+    now also counts the late rows it accepted."""
+    s = server_factory(["--anchors", str(ble / "anchors.csv"), "--latency-window", "0",
+                        "--idle-flush", "0.3"])
+    u = s.url
+    times = [1.1 + 2.2, 10 + 1 / 3, 20.0]
+    rows = [{"time": t, "tag": "R", "anchor": a, "rssi": -65.0 - int(a)}
+            for t in times for a in "12345"]
+    assert httpx.post(u + "/api/measurements", json=rows).json()["late"] == 0
+    late = [{"time": 1.0, "tag": "R", "anchor": "1", "rssi": -60.0}]
+    body = httpx.post(u + "/api/measurements", json=late).json()
+    assert body["accepted"] == 1 and body["late"] == 1
+    got = wait_for(lambda: (p := httpx.get(u + "/api/positions?tag=R").json())
+                   and len(p) == 3 and p, what="three positions")
+    assert [p["time"] for p in got] == times  # exactly, as sent
+    latest = httpx.get(u + "/api/latest").json()
+    assert [p["time"] for p in latest] == [20.0]
+
+
+def test_rssi_rows_cannot_lock_a_range_service(server_factory, tmp_path):
+    """Anchors without path loss: the first accepted row fixed the service's value, so one
+    stray RSSI row locked it to RSSI for good (even across restarts) and every range row
+    was refused.  Now RSSI rows are refused with the reason and ranges are located."""
+    anchors = tmp_path / "a.csv"
+    anchors.write_text("anchor,x,y\nA1,0,0\nA2,10,0\nA3,10,10\nA4,0,10\nA5,5,12\n")
+    store = tmp_path / "store"
+    s = server_factory(["--anchors", str(anchors), "--store", str(store),
+                        "--latency-window", "0", "--idle-flush", "0.3"])
+    u = s.url
+    r = httpx.post(u + "/api/measurements",
+                   json=[{"time": 1, "tag": "x", "anchor": "A1", "rssi": -60}])
+    assert r.status_code == 202 and r.json()["accepted"] == 0
+    assert "path-loss" in r.json()["rejected"][0]["error"]
+    xy = {"A1": (0, 0), "A2": (10, 0), "A3": (10, 10), "A4": (0, 10), "A5": (5, 12)}
+    rows = [{"time": t, "tag": "x", "anchor": a, "range": float(np.hypot(3 - p[0], 4 - p[1]))}
+            for t in (2.0, 3.0) for a, p in xy.items()]
+    r = httpx.post(u + "/api/measurements", json=rows)
+    assert r.json()["accepted"] == 10 and r.json()["n_rejected"] == 0
+    got = wait_for(lambda: (p := httpx.get(u + "/api/positions?tag=x").json())
+                   and len(p) == 2 and p, what="two fixes")
+    assert [(round(p["x"], 6), round(p["y"], 6)) for p in got] == [(3.0, 4.0)] * 2
+    assert httpx.get(u + "/api/status").json()["value"] == "range"
+
+
+def test_new_tags_while_solving_lose_no_epoch(ble):
+    """The solver thread read (and grew) the assembler's tag registry without the ingest
+    lock: with many tags, blocks failed ("Inconsistent object during array creation") and
+    their epochs were lost.  Four threads now register new tags while the solver runs;
+    every accepted epoch gets exactly one position row and the solver never fails."""
+    import threading
+
+    from robustloc.service.engine import Engine
+
+    anchors = read_anchors(ble / "anchors.csv")
+    ids = [str(a) for a in anchors["anchor"]]
+    eng = Engine(anchors, LocateProcessor(anchors, method="ls"), latency_window_s=0.0,
+                 idle_flush_s=0.05, fsync=False)
+    eng.assembler.codes(np.array([f"pre{i}" for i in range(50_000)], dtype=object))
+    eng.start()
+    try:
+        def feed(k: int) -> None:
+            for j in range(40):
+                rows = [{"time": t, "tag": f"w{k}-{j}-{g}", "anchor": a, "rssi": -70.0}
+                        for g in range(20) for t in (0.0, 1.0) for a in ids[:4]]
+                assert eng.ingest(rows).accepted == len(rows)
+
+        threads = [threading.Thread(target=feed, args=(k,)) for k in range(4)]
+        for th in threads:
+            th.start()
+        for th in threads:
+            th.join()
+        eng.flush()
+        pos = eng.positions(limit=10_000_000)
+    finally:
+        eng.stop()
+    assert eng.solver_errors == 0, eng.last_error
+    assert len(pos) == 4 * 40 * 20 * 2
+    assert not pos.duplicated(["time", "tag"]).any()
+
+
+def test_a_failing_block_costs_only_its_failing_tag():
+    """A processor that raises lost every epoch of its block.  Now a stateless processor's
+    block is split by tag and retried: the other tags get their fixes, the failing tag's
+    epochs a `solver_error` row each, and the failure is counted and reported."""
+    from robustloc.io.tables import Epochs
+    from robustloc.service.engine import Engine
+
+    anchors = pd.DataFrame({"anchor": ["A1", "A2", "A3", "A4"], "x": [0, 10, 10, 0.0],
+                            "y": [0, 0, 10, 10.0]})
+
+    class Flaky(LocateProcessor):
+        def process(self, epochs: Epochs) -> pd.DataFrame:
+            if "bad" in set(epochs.tag.tolist()):
+                raise FloatingPointError("boom")
+            return super().process(epochs)
+
+    eng = Engine(anchors, Flaky(anchors, method="nls"), latency_window_s=0.0,
+                 idle_flush_s=10.0, value="range", fsync=False)
+    xy = anchors[["x", "y"]].to_numpy(float)
+    rng = np.hypot(*(xy - [3.0, 4.0]).T)
+    rows = [{"time": t, "tag": g, "anchor": a, "range": float(r)}
+            for t in (0.0, 1.0, 2.0) for g in ("a", "bad", "c", "d", "e")
+            for a, r in zip(anchors["anchor"], rng)]
+    assert eng.ingest(rows).accepted == len(rows)
+    eng.flush()
+    pos = eng.positions()
+    assert len(pos) == 15 and not pos.duplicated(["time", "tag"]).any()
+    bad = pos["tag"] == "bad"
+    assert (pos.loc[bad, "status"] == "solver_error").all() and pos.loc[bad, "x"].isna().all()
+    np.testing.assert_allclose(pos.loc[~bad, ["x", "y"]].to_numpy(float),
+                               np.tile([3.0, 4.0], (12, 1)), atol=1e-6)
+    assert eng.solver_errors >= 1 and "FloatingPointError: boom" in eng.last_error
+    eng.stop()

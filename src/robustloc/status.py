@@ -48,10 +48,15 @@ EXTRAPOLATED = "extrapolated"
 #: Usable by its own test, but its protection level exceeds the user's alert limit
 #: (``--alert-limit``): not to be used for the operation that limit protects.
 PROTECTION_EXCEEDED = "protection_exceeded"
+#: The live service's solver raised on this epoch (a defect: the reason is in the service's
+#: ``/api/status``).  Its measurement rows are stored (the batch ``robustloc locate`` of the
+#: stored log solves it); this row says that no fix was published.  Not usable.
+SOLVER_ERROR = "solver_error"
 
 ALL = (
     OK, INSUFFICIENT, ILL_CONDITIONED, NOT_CONVERGED, FAULT_EXCLUDED, UNAVAILABLE, INVALID,
     PREDICTED, LOW_REDUNDANCY, UNVERIFIED, FAULT_DETECTED, EXTRAPOLATED, PROTECTION_EXCEEDED,
+    SOLVER_ERROR,
 )
 #: Statuses whose position is a usable fix (a coasting filter's prediction included: its
 #: covariance says how far to trust it).

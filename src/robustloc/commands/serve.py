@@ -66,6 +66,7 @@ def _hostport(text: str) -> tuple[str, int]:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from robustloc.estimators.ranging import DEFAULT_METHOD, METHODS
     from robustloc.service.defaults import (
+        DEFAULT_BODY_TIMEOUT_S,
         DEFAULT_IDLE_FLUSH_S,
         DEFAULT_LATENCY_WINDOW_S,
         DEFAULT_MAX_BODY_BYTES,
@@ -137,6 +138,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "when XMIN is negative)")
     p.add_argument("--max-body-bytes", type=positive_int, default=DEFAULT_MAX_BODY_BYTES,
                    help=f"largest body or message (default {DEFAULT_MAX_BODY_BYTES})")
+    p.add_argument("--body-timeout", type=positive_float, default=DEFAULT_BODY_TIMEOUT_S,
+                   metavar="S",
+                   help="seconds a client may take to send a body; then 408 and the "
+                        f"connection is closed (default {DEFAULT_BODY_TIMEOUT_S:g})")
     p.add_argument("--rate-limit", type=positive_float, default=DEFAULT_RATE_LIMIT_ROWS,
                    metavar="ROWS_PER_S",
                    help=f"ingest rows/s per client address (default {DEFAULT_RATE_LIMIT_ROWS:g})")
@@ -182,9 +187,12 @@ def build(args: argparse.Namespace):
         raise
     except ValueError as exc:
         raise InputError(str(exc), args.anchors) from None
-    engine = Engine(anchors, processor, store_dir=args.store,
-                    latency_window_s=args.latency_window, idle_flush_s=args.idle_flush,
-                    value=args.value)
+    try:
+        engine = Engine(anchors, processor, store_dir=args.store,
+                        latency_window_s=args.latency_window, idle_flush_s=args.idle_flush,
+                        value=args.value)
+    except ValueError as exc:  # --value the anchors cannot locate, or a store of another
+        raise InputError(str(exc), args.anchors) from None
     mqtt = None
     if args.mqtt is not None:
         from robustloc.service.mqtt import MqttIngest
@@ -194,6 +202,7 @@ def build(args: argparse.Namespace):
     token = args.token if args.token is not None else os.environ.get("ROBUSTLOC_TOKEN")
     cfg = ServiceConfig(
         token=token or None, max_body_bytes=args.max_body_bytes,
+        body_timeout_s=args.body_timeout,
         rate_limit_rows=args.rate_limit, cors_origins=tuple(args.cors_origin),
         floorplan=None if args.floorplan is None else Path(args.floorplan),
         floorplan_extent=args.floorplan_extent, mqtt=mqtt,

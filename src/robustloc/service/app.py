@@ -39,13 +39,19 @@ from pathlib import Path
 import anyio
 import pandas as pd
 from starlette.applications import Starlette
+from starlette.exceptions import HTTPException
 from starlette.requests import Request
 from starlette.responses import FileResponse, JSONResponse, PlainTextResponse, Response
 from starlette.routing import Mount, Route, WebSocketRoute
 from starlette.staticfiles import StaticFiles
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
-from robustloc.service.defaults import DEFAULT_MAX_BODY_BYTES, DEFAULT_RATE_LIMIT_ROWS
+from robustloc.service.defaults import (
+    DEFAULT_BODY_TIMEOUT_S,
+    DEFAULT_MAX_BODY_BYTES,
+    DEFAULT_RATE_LIMIT_ROWS,
+    MAX_ROWS_PER_BODY,
+)
 from robustloc.service.engine import Engine
 from robustloc.service.rows import BodyError, parse_body
 
@@ -59,6 +65,7 @@ class ServiceConfig:
 
     token: str | None = None
     max_body_bytes: int = DEFAULT_MAX_BODY_BYTES
+    body_timeout_s: float = DEFAULT_BODY_TIMEOUT_S
     rate_limit_rows: float = DEFAULT_RATE_LIMIT_ROWS
     cors_origins: tuple[str, ...] = ()
     floorplan: Path | None = None
@@ -123,7 +130,7 @@ class Hub:
         """Called from the solver thread."""
         if not self.subs or self.loop is None or len(frame) == 0:
             return
-        lines = frame.to_json(orient="records", lines=True, double_precision=15).splitlines()
+        lines = records_json(frame)
         tags = frame["tag"].astype(str).tolist()
         whole = ("[" + ",".join(lines) + "]"
                  if any(b and t is None for _, t, b in list(self.subs.values())) else None)
@@ -149,6 +156,34 @@ class Hub:
             q.get_nowait()
             self.engine.metrics.ws_dropped += 1
         q.put_nowait(msg)
+
+
+try:  # round-trip float formatting (shortest repr), NaN and infinities as null
+    from msgspec.json import encode as _encode
+except ImportError:  # pragma: no cover - depends on the environment
+    def _encode(obj: object) -> bytes:
+        return json.dumps(_nan_to_none(obj), separators=(",", ":")).encode()
+
+
+def _nan_to_none(obj: object) -> object:
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _nan_to_none(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_nan_to_none(v) for v in obj]
+    return obj
+
+
+def records_json(frame: pd.DataFrame) -> list[str]:
+    """One JSON object per row of ``frame``, every float written so that it reads back
+    exactly (``time`` 3.3000000000000003 stays that; pandas' ``to_json`` keeps at most 15
+    decimals), NaN and infinities as ``null`` (JSON has neither)."""
+    return [_encode(r).decode() for r in frame.to_dict("records")]
+
+
+def _array_json(frame: pd.DataFrame) -> str:
+    return "[" + ",".join(records_json(frame)) + "]"
 
 
 def _static_dir() -> Path:
@@ -190,6 +225,10 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             except BodyError as exc:
                 engine.metrics.request_rejected("not_rows")
                 return exc.status, {"error": str(exc)}
+            if len(rows) > MAX_ROWS_PER_BODY:  # refused before any per-row work
+                engine.metrics.request_rejected("too_many_rows")
+                return 413, {"error": f"body holds {len(rows)} rows, more than "
+                                      f"{MAX_ROWS_PER_BODY}: send it in parts"}
         with limiter.lock:
             wait = limiter.take(client, len(rows) if batch is None else len(batch))
         if wait > 0:
@@ -207,11 +246,17 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
         if length is not None and (not length.isdigit() or int(length) > cfg.max_body_bytes):
             return refuse("too_large", 413, f"body larger than {cfg.max_body_bytes} bytes")
         chunks, size = [], 0
-        async for chunk in request.stream():
-            size += len(chunk)
-            if size > cfg.max_body_bytes:
-                return refuse("too_large", 413, f"body larger than {cfg.max_body_bytes} bytes")
-            chunks.append(chunk)
+        try:
+            with anyio.fail_after(cfg.body_timeout_s):
+                async for chunk in request.stream():
+                    size += len(chunk)
+                    if size > cfg.max_body_bytes:
+                        return refuse("too_large", 413,
+                                      f"body larger than {cfg.max_body_bytes} bytes")
+                    chunks.append(chunk)
+        except TimeoutError:  # a client that stops sending holds no connection forever
+            return refuse("body_timeout", 408, f"body not received within "
+                                               f"{cfg.body_timeout_s:g} s", Connection="close")
         client = request.client.host if request.client else "?"
         status, body = await anyio.to_thread.run_sync(ingest_sync, b"".join(chunks), "http",
                                                       client)
@@ -240,8 +285,7 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             return refuse("bad_query", 400, f"bad query: {exc}")
         tag = request.query_params.get("tag") or None
         df = await anyio.to_thread.run_sync(lambda: engine.positions(tag, since, until, limit))
-        return Response(df.to_json(orient="records", double_precision=15),
-                        media_type="application/json")
+        return Response(_array_json(df), media_type="application/json")
 
     async def get_anchors(request: Request) -> Response:
         if not authorized(request.headers, request.query_params):
@@ -256,8 +300,7 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
         if not authorized(request.headers, request.query_params):
             return unauthorized()
         df = engine.latest()
-        return Response(df.to_json(orient="records", double_precision=15) if len(df) else "[]",
-                        media_type="application/json")
+        return Response(_array_json(df), media_type="application/json")
 
     async def get_status(request: Request) -> Response:
         if not authorized(request.headers, request.query_params):
@@ -289,7 +332,8 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
     async def metrics(request: Request) -> Response:
         if not authorized(request.headers, request.query_params):
             return unauthorized()
-        text = engine.metrics.render(engine.assembler.n_pending, len(engine.assembler.tags))
+        text = engine.metrics.render(engine.assembler.n_pending, len(engine.assembler.tags),
+                                     engine.solver_errors)
         return PlainTextResponse(text, media_type="text/plain; version=0.0.4")
 
     async def index(request: Request) -> Response:
@@ -357,6 +401,21 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
         engine.metrics.request_rejected("internal_error")
         return _json({"error": f"internal error: {type(exc).__name__}"}, 500)
 
+    async def on_http_error(request: Request, exc: Exception) -> Response:
+        """404 (no such route), 405 (method) and other HTTP errors: a JSON reason, counted."""
+        code = int(getattr(exc, "status_code", 400))
+        reason = {404: "not_found", 405: "method_not_allowed"}.get(code, f"http_{code}")
+        headers = dict(getattr(exc, "headers", None) or {})
+        if code == 404:
+            msg = f"no such endpoint: {request.url.path} (see the README's live service API)"
+        elif code == 405:
+            msg = (f"method {request.method} not allowed on {request.url.path}"
+                   + "".join(f"; allowed: {v}" for k, v in headers.items()
+                             if k.lower() == "allow"))
+        else:
+            msg = str(getattr(exc, "detail", "")) or "bad request"
+        return refuse(reason, code, msg, **headers)
+
     @asynccontextmanager
     async def lifespan(app: Starlette) -> AsyncIterator[None]:
         hub.loop = asyncio.get_running_loop()
@@ -399,7 +458,7 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
                                      allow_headers=["Authorization", "Content-Type"],
                                      allow_methods=["GET", "POST"]))
     app = Starlette(routes=routes, middleware=middleware, lifespan=lifespan,
-                    exception_handlers={Exception: on_error})
+                    exception_handlers={Exception: on_error, HTTPException: on_http_error})
     app.state.engine = engine
     app.state.hub = hub
     return app

@@ -176,19 +176,23 @@ class EpochAssembler:
         rest = ~ready
         self._chunks = [(t[rest], c[rest], a[rest], v[rest])] if rest.any() else []
         self._n_pending = int(rest.sum())
-        names = np.array(self._names, dtype=object)
+        names = np.array(self._names, dtype=object)  # (the caller holds the ingest lock)
         return {"time": t[ready], "tag": names[c[ready]], "tag_code": c[ready],
                 "anchor_col": a[ready], "value": v[ready]}
 
     def epochs(self, rows: dict, value: str) -> Epochs:
         """Pivot ready rows (from :meth:`take_ready`) with
         :func:`robustloc.io.tables.pivot_epochs`, the core of the batch path's
-        :func:`~robustloc.io.tables.to_epochs`, in its order (time, then tag name)."""
+        :func:`~robustloc.io.tables.to_epochs`, in its order (time, then tag name).
+
+        Reads only ``rows`` (their tag names and codes), never the registry of tags: the
+        solver thread calls it while ingest threads register new tags under their lock.
+        """
         code = rows["tag_code"]
-        used = np.flatnonzero(np.bincount(code, minlength=len(self._names)))
-        names = np.array(self._names, dtype=object)[used]
+        used, first = np.unique(code, return_index=True)
+        names = np.asarray(rows["tag"], dtype=object)[first]
         order = np.argsort(names, kind="stable")  # str order, as to_epochs' factorize
-        rank = np.empty(len(self._names), dtype=np.int64)
-        rank[used[order]] = np.arange(len(used))
-        return pivot_epochs(rows["time"], rank[code], names[order], rows["anchor_col"],
-                            rows["value"], self.anchor_ids, value)
+        rank = np.empty(len(used), dtype=np.int64)
+        rank[order] = np.arange(len(used))
+        return pivot_epochs(rows["time"], rank[np.searchsorted(used, code)], names[order],
+                            rows["anchor_col"], rows["value"], self.anchor_ids, value)

@@ -11,3 +11,10 @@ DEFAULT_IDLE_FLUSH_S = 2.0
 DEFAULT_MAX_BODY_BYTES = 32 * 1024 * 1024
 #: Default ingest rate limit per client address (rows/s, token bucket holding 2 s).
 DEFAULT_RATE_LIMIT_ROWS = 1_000_000.0
+#: Most rows one body may hold (a valid row takes at least ~40 bytes, so a body within the
+#: default size limit holds fewer): more is refused as a whole (413) before validation.
+MAX_ROWS_PER_BODY = 1_000_000
+#: Rejected rows listed in a reply (``rejected``); ``n_rejected`` counts them all.
+MAX_REJECTED_LISTED = 1000
+#: Seconds a client may take to send a body once its request started; then 408.
+DEFAULT_BODY_TIMEOUT_S = 60.0

@@ -31,12 +31,18 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.dataset as ds
 
+from robustloc.io.tables import Epochs
 from robustloc.service.assembly import EpochAssembler
-from robustloc.service.defaults import DEFAULT_IDLE_FLUSH_S, DEFAULT_LATENCY_WINDOW_S
+from robustloc.service.defaults import (
+    DEFAULT_IDLE_FLUSH_S,
+    DEFAULT_LATENCY_WINDOW_S,
+    MAX_REJECTED_LISTED,
+)
 from robustloc.service.metrics import Metrics
 from robustloc.service.processor import Processor
 from robustloc.service.rows import RowBatch, RowDecoder, validate_rows
 from robustloc.service.store import SegmentLog, max_by
+from robustloc.status import SOLVER_ERROR
 
 MEAS_SCHEMA = pa.schema([
     ("time", pa.float64()), ("tag", pa.string()), ("anchor", pa.string()),
@@ -88,8 +94,22 @@ class IngestResult:
         self.late = late
 
     def to_json(self) -> dict:
+        """``{"accepted", "rejected": [{"index", "error"}], "n_rejected", "late"}``: the
+        first :data:`~robustloc.service.defaults.MAX_REJECTED_LISTED` rejected rows are
+        listed (a reply stays small whatever the body), ``n_rejected`` counts them all;
+        ``late`` counts the accepted rows whose epoch was already solved (stored, not
+        solved live)."""
         return {"accepted": self.accepted,
-                "rejected": [{"index": i, "error": e} for i, e in self.rejected]}
+                "rejected": [{"index": i, "error": e}
+                             for i, e in self.rejected[:MAX_REJECTED_LISTED]],
+                "n_rejected": len(self.rejected), "late": self.late}
+
+
+def _subset(epochs: Epochs, rows: np.ndarray) -> Epochs:
+    """The epochs ``rows`` of ``epochs`` (same anchors and value)."""
+    return Epochs(epochs.time[rows], epochs.tag[rows], epochs.values[rows],
+                  epochs.anchor_ids, epochs.value, epochs.line[rows], 0,
+                  None if epochs.n_invalid is None else epochs.n_invalid[rows])
 
 
 def _epoch_rows(t: np.ndarray, code: np.ndarray, et: np.ndarray, ecode: np.ndarray
@@ -141,6 +161,12 @@ class Engine:
         self._anchor_arrow = pa.array(self.anchor_ids, pa.string())
         self.decoder = RowDecoder(self.anchor_ids)
         self.processor = processor
+        #: the values the processor can locate (RSSI needs the anchors' path loss): a row
+        #: of another value is rejected, and never fixes the service's value
+        self.values: tuple[str, ...] = tuple(getattr(processor, "values", ("rssi", "range")))
+        if value is not None and value not in self.values:
+            raise ValueError(f"cannot locate from {value}: the anchors have no path-loss "
+                             "parameters (columns A, n; run `robustloc calibrate`)")
         self.kind = value
         self.assembler = EpochAssembler(self.anchor_ids, latency_window_s, idle_flush_s)
         self.metrics = Metrics(self.anchor_ids)
@@ -194,6 +220,10 @@ class Engine:
             if self.kind is not None and stored is not None and stored != self.kind:
                 raise ValueError(f"the store holds {stored} measurements, not {self.kind}")
             self.kind = self.kind or stored
+            if self.kind is not None and self.kind not in self.values:
+                raise ValueError(f"the store holds {self.kind} measurements, which these "
+                                 "anchors cannot locate (no path-loss parameters: columns "
+                                 "A, n; run `robustloc calibrate`)")
         pos = self.pos.scan(columns=["time", "tag"])
         solved = max_by(pos, "tag", "time")
         snap = self.store_dir / "state" / "processor.pkl" if self.store_dir else None
@@ -231,7 +261,9 @@ class Engine:
         d.mkdir(exist_ok=True)
         tmp = d / "processor.pkl.tmp"
         with open(tmp, "wb") as f:
-            pickle.dump({"state": state, "watermarks": self.assembler.watermarks()}, f)
+            with self._ingest_lock:  # the tag registry grows under this lock
+                marks = self.assembler.watermarks()
+            pickle.dump({"state": state, "watermarks": marks}, f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, d / "processor.pkl")
@@ -250,7 +282,8 @@ class Engine:
         """
         with self._ingest_lock:
             kind0 = self.kind
-            batch, kind, rejected = validate_rows(rows, self._anchor_index, self.kind)
+            batch, kind, rejected = validate_rows(rows, self._anchor_index, self.kind,
+                                                  self.values)
             if kind != kind0:
                 self.kind = kind
                 self._write_meta()
@@ -383,9 +416,12 @@ class Engine:
             ready_wall = np.full(epochs.n_epochs, blocks[0][1])
         else:  # each epoch lies in exactly one block: look its (time, tag) up in the rows
             row_wall = np.repeat([w for _, w in blocks], [len(b["time"]) for b, _ in blocks])
-            ready_wall = row_wall[_epoch_rows(rows["time"], rows["tag_code"], epochs.time,
-                                              self.assembler.codes(epochs.tag))]
-        frame = self.processor.process(epochs)
+            # (the epochs' tag codes from the rows' own names: the assembler's registry is
+            # the ingest threads', not to be read or grown here without their lock)
+            names = pd.Index(pd.unique(rows["tag"]))
+            ready_wall = row_wall[_epoch_rows(rows["time"], names.get_indexer(rows["tag"]),
+                                              epochs.time, names.get_indexer(epochs.tag))]
+        frame = self._process(epochs)
         if len(frame):
             self.pos.append(pa.Table.from_pandas(frame, preserve_index=False))
         done = time.time()
@@ -401,6 +437,33 @@ class Engine:
             except Exception:  # a listener's failure must not lose the block
                 self.solver_errors += 1
         return len(frame)
+
+    def _process(self, epochs: Epochs) -> pd.DataFrame:
+        """The processor's rows of ``epochs``; never raises, never drops an epoch.
+
+        A processor that raises is a defect, counted with its reason (``/api/status``,
+        ``/metrics``).  A stateless one (``locate``) is retried on each half of the block's
+        tags, down to one tag, so one tag's failure costs no other tag its fixes; the
+        epochs that still fail, and a stateful processor's block (its state may have
+        advanced part-way: not to be repeated), get one row each with status
+        ``solver_error``.  Their measurements are stored either way.
+        """
+        try:
+            return self.processor.process(epochs)
+        except Exception as exc:  # noqa: BLE001 - counted, reported, rows kept
+            self.solver_errors += 1
+            self.last_error = f"{type(exc).__name__}: {exc}"
+        tags = pd.unique(epochs.tag)
+        if getattr(self.processor, "stateless", False) and len(tags) > 1:
+            first = pd.Index(tags[: len(tags) // 2]).get_indexer(epochs.tag) >= 0
+            parts = [np.flatnonzero(first), np.flatnonzero(~first)]
+            frames = [self._process(_subset(epochs, rows)) for rows in parts]
+            order = np.argsort(np.concatenate(parts), kind="stable")
+            both = pd.concat(frames, ignore_index=True)
+            return both.iloc[order].reset_index(drop=True)
+        return pd.DataFrame({"time": epochs.time, "tag": epochs.tag,
+                             "method": self.processor.name, "x": np.nan, "y": np.nan,
+                             "status": SOLVER_ERROR})
 
     def _compact_latest(self) -> None:
         """Reduce the recent frames to the latest row per tag (caller holds the lock)."""

@@ -120,8 +120,9 @@ class Metrics:
                 "latency_p99_s": float(np.percentile(lat, 99)) if len(lat) else None,
             }
 
-    def render(self, pending_rows: int, tags: int) -> str:
-        """Prometheus text format."""
+    def render(self, pending_rows: int, tags: int, solver_errors: int = 0) -> str:
+        """Prometheus text format (``solver_errors``: the engine's count of processor
+        failures, each a defect whose epochs got ``solver_error`` rows or were retried)."""
         def esc(s: str) -> str:
             return s.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
 
@@ -150,6 +151,10 @@ class Metrics:
                    "Requests refused as a whole, by reason.")
             for r, c in sorted(self.requests_rejected.items()):
                 lines.append(f'robustloc_requests_rejected_total{{reason="{esc(r)}"}} {c}')
+            family("robustloc_solver_errors_total", "counter",
+                   "Failures of the solver on a block of epochs (a defect; the last reason "
+                   "is in /api/status).")
+            lines.append(f"robustloc_solver_errors_total {int(solver_errors)}")
             family("robustloc_positions_total", "counter", "Position rows computed, by status.")
             for s, c in sorted(self.positions.items()):
                 lines.append(f'robustloc_positions_total{{status="{esc(s)}"}} {c}')

@@ -27,13 +27,29 @@ import pandas as pd
 from robustloc.io.tables import Epochs, positions_frame
 
 
+def solvable_values(anchors: pd.DataFrame, model: str | None = None) -> tuple[str, ...]:
+    """The measurement values these anchors can be located from: ranges always, RSSI only
+    when they carry path-loss parameters (:func:`robustloc.models.pathloss.
+    log_distance_arrays` accepts them)."""
+    from robustloc.errors import InputError
+    from robustloc.models.pathloss import log_distance_arrays
+
+    try:
+        log_distance_arrays(anchors, model)
+    except (InputError, ValueError, KeyError):
+        return ("range",)
+    return ("rssi", "range")
+
+
 class Processor(Protocol):
     """A stateful consumer of ready epochs.
 
-    ``name`` labels the output (the ``method`` column for locate).
+    ``name`` labels the output (the ``method`` column for locate); ``values`` the
+    measurement values it can process (:func:`solvable_values`).
     """
 
     name: str
+    values: tuple[str, ...]
 
     def process(self, epochs: Epochs) -> pd.DataFrame:
         """One output row per epoch of ``epochs`` (epochs come in time order per tag)."""
@@ -129,6 +145,9 @@ class LocateProcessor:
         self.anchors = anchors
         self.anchor_ids = [str(a) for a in anchors["anchor"]]
         self.name = method
+        self.values = solvable_values(anchors, model)
+        #: each epoch is solved on its own: a block may be split and retried (the engine)
+        self.stateless = True
         self.dim = dim
         self.model = model
         self.range_calibration = range_calibration
@@ -283,6 +302,8 @@ class TrackProcessor:
                 f"({exc}); use --method instead"
             ) from None
         self.name = f"track-{model}-{filter}"
+        self.values = solvable_values(anchors)
+        self.stateless = False  # per-tag filter state: a block is never processed twice
         self.tracker = Tracker(anchors, model=model, filter=filter, **options)
 
     def process(self, epochs: Epochs) -> pd.DataFrame:

@@ -34,19 +34,22 @@ from numpy.typing import NDArray
 
 from robustloc.io.limits import limits_for
 
-try:  # orjson parses 3-5x faster than the standard library; optional
-    import orjson as _orjson
-
-    _loads = _orjson.loads
-    _JSONError: tuple[type[Exception], ...] = (_orjson.JSONDecodeError, ValueError)
-except ImportError:  # pragma: no cover - depends on the environment
-    _loads = json.loads
-    _JSONError = (ValueError,)
-
 try:  # msgspec decodes a body against the row schema 2x faster than orjson; optional
     import msgspec as _msgspec
 except ImportError:  # pragma: no cover - depends on the environment
     _msgspec = None
+
+if _msgspec is not None:  # generic JSON: msgspec parses 3-5x faster than the standard library
+    _loads: Any = _msgspec.json.decode
+    _JSONError: tuple[type[Exception], ...] = (_msgspec.DecodeError, ValueError)
+else:  # pragma: no cover - depends on the environment
+    _loads = json.loads
+    _JSONError = (ValueError,)
+# JSON nested deeper than the parser's limit (a valid row nests two levels) raises
+# RecursionError in msgspec and the standard library; orjson 3.8 segfaulted on 60 000 levels
+# of objects, which killed the service (the reason it is no longer used here)
+_TOO_DEEP = "body is nested too deeply to be rows"
+
 
 #: Longest accepted tag or anchor id (characters).
 MAX_ID_CHARS = 128
@@ -100,6 +103,8 @@ def parse_body(body: bytes | str) -> tuple[list[Any], list[tuple[int, str]]]:
             doc = _loads(text)
         except _JSONError as exc:
             raise BodyError(f"body is not valid JSON: {exc}", 400) from None
+        except RecursionError:
+            raise BodyError(_TOO_DEEP, 400) from None
         if not isinstance(doc, list):  # pragma: no cover - '[' always decodes to a list
             raise BodyError("body is not a JSON array of rows", 422)
         return doc, []
@@ -112,10 +117,14 @@ def parse_body(body: bytes | str) -> tuple[list[Any], list[tuple[int, str]]]:
         except _JSONError as exc:
             rows.append(_NotJSON(str(exc)))
             bad.append((i, f"line is not JSON: {exc}"))
+        except RecursionError:
+            rows.append(_NotJSON(_TOO_DEEP))
+            bad.append((i, f"line is not JSON: {_TOO_DEEP}"))
     if len(lines) == 1 and not isinstance(rows[0], dict | _NotJSON):
         raise BodyError("body is not rows: send a JSON array or NDJSON of objects", 422)
     if bad and len(bad) == len(lines) and len(lines) == 1:
-        raise BodyError(f"body is not valid JSON: {bad[0][1]}", 400)
+        why = rows[0].error if isinstance(rows[0], _NotJSON) else bad[0][1]
+        raise BodyError(why if why == _TOO_DEEP else f"body is not valid JSON: {why}", 400)
     return rows, bad
 
 
@@ -132,12 +141,21 @@ def _floats(col: list[Any], name: str, err: list[str | None]) -> NDArray[np.floa
     """Column to float; sets ``err[i]`` for a missing, boolean or non-numeric value."""
     kinds = set(map(type, col))
     if kinds <= {float, int}:
-        return np.array(col, dtype=float)
+        try:
+            return np.array(col, dtype=float)
+        except OverflowError:  # an integer beyond float range: say which row below
+            pass
     out = np.full(len(col), np.nan)
     for i, x in enumerate(col):
         t = type(x)
-        if t is float or t is int:
+        if t is float:
             out[i] = x
+        elif t is int:
+            try:
+                out[i] = x
+            except OverflowError:
+                if err[i] is None:
+                    err[i] = f"'{name}' is beyond the range of a float"
         elif err[i] is not None:
             continue
         elif x is None:
@@ -182,7 +200,10 @@ def _ids(col: list[Any], name: str, err: list[str | None]) -> NDArray[np.object_
                 if x is None:
                     err[i] = f"missing '{name}'"
                 elif t is int:
-                    arr[i] = str(x)
+                    if -(10**MAX_ID_CHARS) < x < 10**MAX_ID_CHARS:
+                        arr[i] = str(x)
+                    else:  # (str() of a huge integer is slow, or refused past 4 300 digits)
+                        err[i] = f"'{name}' longer than {MAX_ID_CHARS} characters"
                 elif t is float and x == x and x == int(x):
                     arr[i] = str(int(x))
                 else:
@@ -304,7 +325,7 @@ class RowDecoder:
             return None
         try:
             rows = dec.decode(body)
-        except (_msgspec.DecodeError, _msgspec.ValidationError):
+        except (_msgspec.DecodeError, _msgspec.ValidationError, RecursionError):
             return None
         t = [r.time for r in rows]
         tag = [r.tag for r in rows]
@@ -314,7 +335,8 @@ class RowDecoder:
 
 
 def validate_rows(
-    rows: list[Any], anchor_index: pd.Index, kind: str | None
+    rows: list[Any], anchor_index: pd.Index, kind: str | None,
+    allowed: tuple[str, ...] = ("rssi", "range"),
 ) -> tuple[RowBatch, str | None, list[tuple[int, str]]]:
     """Validate decoded rows against the service's anchors and value kind.
 
@@ -326,6 +348,10 @@ def validate_rows(
         The anchor ids, in the service's anchor (column) order.
     kind : {"rssi", "range"} or None
         The value the service locates; ``None`` until the first accepted row fixes it.
+    allowed : tuple of str
+        The values the service can locate at all (``("range",)`` when the anchors have no
+        path-loss parameters): a row with another value is rejected with the reason, and
+        never fixes ``kind``.
 
     Returns
     -------
@@ -365,6 +391,14 @@ def validate_rows(
     rg = [r.get("range") for r in objs]
     has_rs = np.fromiter((x is not None for x in rs), bool, n)
     has_rg = np.fromiter((x is not None for x in rg), bool, n)
+    for name, has in (("rssi", has_rs), ("range", has_rg)):
+        if name not in allowed:
+            why = (f"this service cannot locate from {name}: the anchors have no path-loss "
+                   "parameters (columns A, n; run `robustloc calibrate`)" if name == "rssi"
+                   else f"this service cannot locate from {name}")
+            for i in np.flatnonzero(has & ~(has_rs & has_rg)).tolist():
+                if err[i] is None:
+                    err[i] = why
     if kind is None:
         first = np.flatnonzero((has_rs ^ has_rg) & np.array([e is None for e in err], bool))
         if len(first):
