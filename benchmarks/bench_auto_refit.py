@@ -1,0 +1,130 @@
+"""What the default ``auto`` does with a fix whose test flags an observation, measured.
+
+``auto`` (:func:`robustloc.integrity.fixes.locate_protected`) solves every epoch by plain
+Gauss-Newton with the log's per-anchor scale and tests it.  An epoch whose global test
+fails is refitted by Huber.  An epoch whose w-test flags an observation while the test of
+the rest passes (``fault_excluded``) keeps the plain fix: the flagged observation leaves the
+test and the bound, not the position.  Two textbook alternatives for those epochs, measured
+here on every shared real data set on the report's epochs (``s05``: every k-th epoch, at
+most 1 500 per set), against the best scipy / statsmodels peer
+(:func:`robustloc.eval.realdata.peer_fixes`):
+
+* ``refit huber``: the ``fault_excluded`` epochs refitted by Huber with the log's scale,
+  like the failed ones;
+* ``snooping``: the flagged observations removed and the epoch re-solved by Gauss-Newton
+  (data snooping, seed 003: exclude what the w-test identifies).
+
+Every variant then takes the log's side of nearly collinear anchors (item 7 of
+:mod:`robustloc.integrity.fixes`) as the default does, so the rows differ only in those
+epochs.  Columns: RMS and p95 of the 2-D error over the usable fixes, availability, the
+number of ``fault_excluded`` epochs in the table's rows (``n_flagged``).
+
+Measured (2026-12-02, ``../shared/data``): snooping is worse on every WiFi room and on
+ble-tetam (the flagged range is rarely the only wrong one, and dropping it leaves the
+others unaveraged); the Huber refit helps the corridor and ble-tetam but costs the
+lecture theatre, the office and uwb-labyrinth 3-7 %.  Neither beats keeping the plain fix
+everywhere, so ``auto`` keeps it.
+
+Usage::
+
+    python benchmarks/bench_auto_refit.py                  # every data set
+    python benchmarks/bench_auto_refit.py --sets "wifi-rtt office" --data ../shared/data
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from robustloc import status as st
+from robustloc.estimators.ranging import Locator
+from robustloc.eval.realdata import CASES, error_stats, load_cases, peer_fixes
+from robustloc.integrity import fixes as fx
+from robustloc.paths import default_data_dir
+
+MAX_ROWS = 1500  # as the report's s05 section
+
+
+def variants(case) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Positions and usable flags of the default and the two alternatives."""
+    kw = dict(A=case.A, n=case.n, height_offset=case.height_offset)
+    rm = fx.range_model_of(case.xy, case.height_offset)
+    default = fx.locate_protected(Locator("auto"), case.xy, case.values, case.kind, **kw)
+    scale = default.extra["log_scale"]
+    pk = dict(range_model=rm)
+    nls = Locator("nls").with_method("nls", log_scale=scale)
+    plain = fx.protect(nls.solve(case.xy, case.values, case.kind, **kw), **pk)
+    out = {"auto (keep the plain fix)": default}
+    flagged = plain.extra["flagged"]
+    rows = np.flatnonzero((plain.status == st.FAULT_EXCLUDED) & flagged.any(axis=1))
+    failed = np.flatnonzero(st.among(plain.status, (st.FAULT_DETECTED, st.UNAVAILABLE)))
+    huber = nls.with_method("huber", log_scale=scale)
+    # refit huber: the failed epochs (as auto) and the flagged ones
+    redo = np.union1d(failed, rows)
+    rob = fx.protect(huber.solve(case.xy, case.values[redo], case.kind, **kw), **pk)
+    out["refit huber"] = fx._merge_rows(plain, rob, redo)
+    # snooping: the flagged observations removed, Gauss-Newton again; the failed epochs
+    # refitted by huber as auto does
+    vals = case.values[rows].copy()
+    vals[flagged[rows]] = np.nan
+    snoop = fx.protect(nls.solve(case.xy, vals, case.kind, **kw), **pk)
+    sol = fx._merge_rows(plain, snoop, rows)
+    rob_f = fx.protect(huber.solve(case.xy, case.values[failed], case.kind, **kw), **pk)
+    out["snooping"] = fx._merge_rows(sol, rob_f, failed)
+    res = {}
+    for name, s in out.items():
+        if name != "auto (keep the plain fix)" and rm is not None:  # the default's step 7
+            s = fx.resolve_sides(s, fx.ambiguity_sides(s, rm), rm)
+        res[name] = (s.position, st.among(s.status, st.USABLE))
+    res["_n_flagged"] = (rows, failed)
+    return res
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=None,
+                    help="real-data folder (default ../shared/data; else the excerpts)")
+    ap.add_argument("--sets", default=None,
+                    help=f"comma-separated data sets (default all: {', '.join(CASES)})")
+    ap.add_argument("-o", "--out", type=Path, default=None, help="also write the table (CSV)")
+    args = ap.parse_args(argv)
+    data = args.data if args.data is not None else default_data_dir()
+    only = None if args.sets is None else [s.strip() for s in args.sets.split(",")]
+    if only is not None and set(only) - set(CASES):
+        ap.error(f"unknown data set(s) {sorted(set(only) - set(CASES))}; choose from {CASES}")
+    table = []
+    for case in load_cases(data, only=only):
+        t0 = time.perf_counter()
+        N = len(case.time)
+        R = np.arange(0, N, max(1, int(np.ceil(N / MAX_ROWS))))
+        res = variants(case)
+        flagged_rows, _ = res.pop("_n_flagged")
+        n_flag = int(np.isin(R, flagged_rows).sum())
+        for name, (pos, use) in res.items():
+            s = error_stats(pos[R], case.truth[R], use[R])
+            table.append({"data set": f"{case.name} ({case.source})", "method": name,
+                          "rms": s["rms"], "p95": s["p95"],
+                          "availability": s["availability"], "n_flagged": n_flag})
+        peers = peer_fixes(case, R)
+        best = min(peers, key=lambda p: error_stats(peers[p][R], case.truth[R])["rms"])
+        s = error_stats(peers[best][R], case.truth[R])
+        table.append({"data set": f"{case.name} ({case.source})", "method": f"{best} (best peer)",
+                      "rms": s["rms"], "p95": s["p95"], "availability": s["availability"],
+                      "n_flagged": n_flag})
+        print(f"  {case.name}: {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    df = pd.DataFrame(table)
+    with pd.option_context("display.width", 200, "display.max_rows", 200):
+        print(df.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
+    if args.out is not None:
+        df.to_csv(args.out, index=False)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
