@@ -875,3 +875,18 @@ def test_auto_refit_with_as_many_epochs_as_anchors():
     np.testing.assert_array_equal(sol.extra["log_scale"], plain.extra["log_scale"])
     np.testing.assert_array_equal(sol.position[~refit], plain.position[~refit])
     assert np.hypot(*(sol.position[2] - truth[2])) < 0.5  # the refit kept the good five
+
+
+def test_a_fix_without_a_scale_is_unverified_not_ok():
+    """Exactly consistent ranges with the per-epoch scale: the epoch's sigma0 is 0, so no
+    observation has a scale, the test tests nothing and no bound exists.  Such a fix was
+    ``ok`` with an infinite ``hpl`` (the service wrote ``ok`` with ``hpl: null``); it is
+    ``unverified`` (usable, ``hpl`` infinite), as the status table says."""
+    a = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0], [5.0, 12.0]])
+    r = np.hypot(*(a - [3.0, 4.0]).T)[None]
+    sol = locate_protected(Locator("auto", robust_scale="mad"), a, r, "range")
+    assert sol.status.tolist() == [st.UNVERIFIED] and np.isinf(sol.extra["hpl"][0])
+    np.testing.assert_allclose(sol.position[0], [3.0, 4.0], atol=1e-9)
+    noisy = r + np.array([[0.01, -0.02, 0.015, 0.0, -0.01]])  # a scale: tested, bounded
+    sol = locate_protected(Locator("auto", robust_scale="mad"), a, noisy, "range")
+    assert sol.status.tolist() == [st.OK] and np.isfinite(sol.extra["hpl"][0])

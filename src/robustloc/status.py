@@ -33,8 +33,9 @@ PREDICTED = "predicted"
 #: fault of the size of the minimal detectable bias would have been detected, but none could
 #: be identified.  Usable; ``hpl`` is valid.
 LOW_REDUNDANCY = "low_redundancy"
-#: Redundancy 0: the fix fits its observations exactly and nothing can be tested.  Usable,
-#: with an infinite protection level.
+#: Redundancy 0 (or no noise scale to test with: a per-epoch scale of 0): the fix fits its
+#: observations exactly and nothing can be tested.  Usable, with an infinite protection
+#: level.
 UNVERIFIED = "unverified"
 #: The fix's own test failed (a fault is detected) and no observation could be excluded
 #: to make it pass.  The position is kept and usable, with a protection level widened by the

@@ -25,7 +25,10 @@ For each epoch, at the fix ``x`` of any method, with the range-domain residuals
    ``low_redundancy``        redundancy 1 (robust methods: the plain fit was        yes
                              used), nothing flagged, the test passes: a fault of
                              the MDB would be detected but not identified
-   ``unverified``            redundancy 0: nothing can be tested; ``hpl = inf``     yes
+   ``unverified``            redundancy 0, or no scale to test with (the epoch's    yes
+                             own ``sigma0`` is 0: exactly consistent observations
+                             under a per-epoch scale): nothing can be tested;
+                             ``hpl = inf``
    ``fault_detected``        the test fails (``hpl`` from sigma scaled by the       yes
                              a-posteriori factor ``sqrt(T / dof)``): a fault is
                              detected and cannot be excluded; the position is
@@ -643,6 +646,10 @@ def protect(
     new[testable & passed & any_flag & ~blind] = st.FAULT_EXCLUDED
     new[testable & passed & ~any_flag & ((dof == 1) | fb)] = st.LOW_REDUNDANCY
     new[testable & passed & ~any_flag & (dof >= 2) & ~fb] = st.OK
+    # no scale to test with (the epoch's own sigma0 is 0: its residuals vanish, as on
+    # noise-free ranges with a per-epoch scale): the test said nothing, nothing bounds it
+    noscale = testable & ~heard.any(axis=1) & np.isfinite(v).any(axis=1)
+    new[noscale] = st.UNVERIFIED
     # 4. protection levels over the observations kept; a failed test scales sigma by the
     # a-posteriori variance factor sqrt(T / dof) (> 1), the classical remedy when the
     # a-priori noise is too optimistic for this epoch
