@@ -12,7 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as hst
 
-from robustloc.io.tables import to_epochs
+from robustloc.io.tables import Epochs, to_epochs
 from robustloc.tracking import Tracker
 from robustloc.tracking.smooth import rts_segment
 
@@ -624,3 +624,202 @@ def test_hpl_covers_the_mirror_of_collinear_anchors(engine, monkeypatch):
     monkeypatch.setattr(Tracker, "_cover_mirror", lambda self, *args: None)
     without = Tracker(spread, sigma=SIGMA_M, engine=engine).step(_epochs(meas2, spread))
     pd.testing.assert_frame_equal(with_check, without)
+
+
+# --------------------------------------------------------------------------- lost filters
+#: Five anchors around a tag standing at (3, 4): noise-free ranges, so the robust fix of
+#: every epoch with three or more of them is (3, 4) to the solver's rounding.
+_STILL_ANCHORS = pd.DataFrame({"anchor": ["A1", "A2", "A3", "A4", "A5"],
+                               "x": [0.0, 10.0, 10.0, 0.0, 5.0],
+                               "y": [0.0, 0.0, 10.0, 10.0, 12.0]})
+_STILL_XY = (3.0, 4.0)
+
+
+def _still_epochs(times: dict[str, list[float]], heard: dict[float, list[str]] | None = None,
+                  at: dict[str, tuple[float, float]] | None = None) -> Epochs:
+    """Epochs of tags standing still (at ``_STILL_XY``, or ``at[tag]``): noise-free ranges
+    to ``_STILL_ANCHORS`` at each tag's ``times``; ``heard`` limits the anchors of the
+    epochs at the given times."""
+    heard, at = heard or {}, at or {}
+    rows = []
+    for tag, ts in times.items():
+        px, py = at.get(tag, _STILL_XY)
+        for t in ts:
+            for a, x, y in _STILL_ANCHORS[["anchor", "x", "y"]].itertuples(index=False):
+                if t not in heard or a in heard[t]:
+                    rows.append((t, tag, a, float(np.hypot(px - x, py - y))))
+    meas = pd.DataFrame(rows, columns=["time", "tag", "anchor", "range"])
+    return to_epochs(meas, _STILL_ANCHORS["anchor"])
+
+
+def _one_by_one(trk: Tracker, ep: Epochs) -> pd.DataFrame:
+    """``trk`` stepped one epoch per call (as the live service does)."""
+    return pd.concat([trk.step(type(ep)(ep.time[i:i + 1], ep.tag[i:i + 1], ep.values[i:i + 1],
+                                        ep.anchor_ids, ep.value, ep.line[i:i + 1]))
+                      for i in range(ep.n_epochs)], ignore_index=True)
+
+
+def _assert_rows_equal(a: pd.DataFrame, b: pd.DataFrame, exact: bool) -> None:
+    """Equal rows; ``exact=False`` allows the last bits of NumPy's UKF, whose sigma-point
+    sums are one BLAS product over all tags of a round (their blocking depends on the
+    round's size: 1e-15 m between one tag alone and two, measured, also without any
+    jump)."""
+    a, b = a.reset_index(drop=True), b.reset_index(drop=True)
+    if exact:
+        pd.testing.assert_frame_equal(a, b, check_exact=True)
+    else:
+        pd.testing.assert_frame_equal(a, b, check_exact=False, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("model", ["cv", "ca", "static"])
+@pytest.mark.parametrize("filt", ["ekf", "ukf"])
+@pytest.mark.parametrize("engine", ["compiled", "numpy"])
+def test_a_clock_jump_restarts_the_tag_from_its_fix(engine, filt, model):
+    """Tag G's clock jumps ahead by 1e5, 1e7 or 1e9 s after three epochs (tag V beside it
+    keeps time).  Over such a gap G's prediction is meaningless (position variance 5e19
+    m^2 and more for ``cv``, ``q dt^4 / 4`` per axis; 2e10 m^2 for ``static``, ``q dt^2``):
+    the innovation covariance of its update kept little or nothing of the ranges' 0.09
+    m^2, and the update raised LinAlgError (losing V's epochs of the same call) or
+    returned garbage.  Now G's filter is dropped before its update and G starts again
+    from the epoch's fix: one row per epoch, stepping all at once or one epoch per call;
+    V's rows are those of V alone; G's rows after the jump are usable, count one
+    re-start, and are those of a freshly started tag (V's first rows).  Their distance to
+    (3, 4): rounding for the EKF (noise-free ranges: the fix is exact and the innovations
+    stay zero); within 2 cm for the UKF, whose sigma points lie 1.6-2.5 m from the tag
+    after the first 1-s prediction, where a 5 m range curves by ``s^2 / (2 d)``: the
+    weighted predicted range is biased by 0.1-0.15 m, and 0.9-1.0 cm of position error
+    remain (measured) -- V, started afresh, has the same."""
+    kw = {"engine": engine, "filter": filt, "model": model}
+    # the compiled kernel's sums and NumPy's EKF do not depend on the other tags of a round
+    exact = filt == "ekf" or (engine == "compiled" and model != "static")
+    alone = Tracker(_STILL_ANCHORS, **kw).step(_still_epochs({"V": list(range(8))}))
+    for gap in (1e5, 1e7, 1e9):
+        g_times = [0.0, 1.0, 2.0] + [gap + k for k in range(1, 6)]
+        ep = _still_epochs({"G": g_times, "V": list(range(8))})
+        rows = Tracker(_STILL_ANCHORS, **kw).step(ep)
+        _assert_rows_equal(rows, _one_by_one(Tracker(_STILL_ANCHORS, **kw), ep), exact)
+        # one row per epoch, in the order of the epochs
+        assert len(rows) == ep.n_epochs
+        np.testing.assert_array_equal(rows["time"], ep.time)
+        np.testing.assert_array_equal(rows["tag"].astype(str), ep.tag.astype(str))
+        # the jump of G does not touch V
+        _assert_rows_equal(rows[rows["tag"] == "V"], alone, exact)
+        g = rows[rows["tag"] == "G"].reset_index(drop=True)
+        before, after = g.iloc[:3], g.iloc[3:].reset_index(drop=True)
+        assert (before["status"] == "ok").all() and (before["reinit"] == 0).all()
+        assert (after["status"] == "ok").all(), after["status"].tolist()
+        assert (after["reinit"] == 1).all()
+        assert np.isfinite(after[["x", "y", "var_x", "var_y", "hpl"]].to_numpy()).all()
+        err = np.hypot(after["x"] - _STILL_XY[0], after["y"] - _STILL_XY[1])
+        assert err.max() <= (1e-9 if filt == "ekf" else 0.02), (gap, err.tolist())
+        cols = ["x", "y", "vx", "vy", "status", "var_x", "var_y", "cov_xy", "var_vx",
+                "var_vy", "hpl", "n_used", "nis", "noise_scale", "excluded"]
+        _assert_rows_equal(after[cols], alone.iloc[:5][cols], exact)
+
+
+def test_the_lost_prediction_rule_is_the_same_in_both_engines():
+    """The bound of item 9 (``V > lost_pos_var`` and ``sqrt(eps) V >= r_min``; NaN is
+    lost) in the compiled kernel and its NumPy twin, on both sides of each bound."""
+    from robustloc.tracking import _compiled
+    from robustloc.tracking.tracker import _SQRT_EPS, _prediction_lost
+
+    assert _SQRT_EPS == _compiled.SQRT_EPS == 2.0**-26
+    r = 0.09
+    edge = r / _SQRT_EPS  # exact: a power of two times r
+    cases = [(30.0, r, False),  # beyond lost_pos_var, but updates fine
+             (20.0, 1e-12, False),  # R lost in rounding, but within lost_pos_var (item 5)
+             (edge, r, True), (np.nextafter(edge, 0.0), r, False), (1e27, r, True),
+             (1e27, np.inf, False),  # (no component: nothing to update)
+             (np.nan, r, True), (np.inf, r, True), (1e27, np.nan, True)]
+    v, rm, want = (np.array(c) for c in zip(*cases))
+    np.testing.assert_array_equal(_prediction_lost(v, rm, 25.0), want.astype(bool))
+    got = [_compiled.prediction_lost(a, b, 25.0) for a, b in zip(v, rm)]
+    assert got == want.tolist()
+
+
+@pytest.mark.parametrize("filt", ["ekf", "ukf"])
+@pytest.mark.parametrize("engine", ["compiled", "numpy"])
+def test_a_lost_tag_without_a_fix_gets_the_fix_status_until_it_has_one(engine, filt):
+    """After G's clock jumps, its first epoch hears two anchors (no fix: the row says
+    ``insufficient_anchors``, no position, and counts the re-start), the next, 0.5 s later,
+    three others: with the two of the previous epoch (``init_window_s = 1``) G starts
+    again at (3, 4); V is as alone."""
+    kw = {"engine": engine, "filter": filt}
+    jump = 1e7
+    heard = {jump + 1.0: ["A1", "A2"], jump + 1.5: ["A3", "A4", "A5"]}
+    ep = _still_epochs({"G": [0.0, 1.0, 2.0, jump + 1.0, jump + 1.5, jump + 2.5],
+                        "V": list(range(6))}, heard)
+    alone = Tracker(_STILL_ANCHORS, **kw).step(_still_epochs({"V": list(range(6))}))
+    for rows in (Tracker(_STILL_ANCHORS, **kw).step(ep),
+                 _one_by_one(Tracker(_STILL_ANCHORS, **kw), ep)):
+        assert len(rows) == ep.n_epochs
+        g = rows[rows["tag"] == "G"].reset_index(drop=True)
+        assert g["status"].tolist() == ["ok"] * 3 + ["insufficient_anchors", "ok", "ok"]
+        assert g["reinit"].tolist() == [0, 0, 0, 1, 1, 1]
+        assert np.isnan(g.loc[3, ["x", "y"]].astype(float)).all()
+        np.testing.assert_allclose(g.loc[4, ["x", "y"]].astype(float), _STILL_XY, atol=1e-9)
+        _assert_rows_equal(rows[rows["tag"] == "V"], alone,
+                           exact=engine == "compiled" or filt == "ekf")
+
+
+@pytest.mark.filterwarnings("ignore:invalid value:RuntimeWarning")  # sqrt of S_ii < 0
+@pytest.mark.parametrize("filt", ["ekf", "ukf"])
+@pytest.mark.parametrize("engine", ["compiled", "numpy"])
+def test_a_tag_whose_filter_breaks_starts_again_and_the_others_go_on(engine, filt):
+    """A saved state whose covariance of G is broken -- a null (NaN) position variance,
+    or a negative velocity variance -- no longer leaves G ``predicted`` for ever (NaN) or
+    with negative variances (the update's arithmetic on an indefinite ``P``): its filter
+    is dropped at the next epoch and G starts again from that epoch's fix; V goes on as
+    if G were fine.  (To rounding with the compiled engine: a round its kernel cannot do
+    -- G's indefinite ``S`` stops a Cholesky factor -- goes to the NumPy engine whole, so
+    V's row of that round is NumPy's; exact with NumPy's EKF.)"""
+    kw = {"engine": engine, "filter": filt}
+    first = _still_epochs({"G": [0.0, 1.0, 2.0], "V": [0.0, 1.0, 2.0]})
+    later = _still_epochs({"G": [3.0, 4.0, 5.0], "V": [3.0, 4.0, 5.0]})
+    trk = Tracker(_STILL_ANCHORS, **kw)
+    trk.step(first)
+    saved = json.loads(json.dumps(trk.state_dict()))
+    reference = Tracker(_STILL_ANCHORS, **kw)
+    reference.load_state_dict(saved)
+    ref = reference.step(later)
+    for i, value in ((0, None), (10, -1.0)):  # P[0, 0] null, P[2, 2] = -1
+        P = list(saved["tags"]["G"]["P"])
+        P[i] = value
+        broken = Tracker(_STILL_ANCHORS, **kw)
+        broken.load_state_dict({**saved, "tags": {**saved["tags"],
+                                                  "G": {**saved["tags"]["G"], "P": P}}})
+        rows = broken.step(later)
+        g = rows[rows["tag"] == "G"]
+        assert (g["status"] == "ok").all() and (g["reinit"] == 1).all()
+        assert (g[["var_x", "var_y", "var_vx", "var_vy"]].to_numpy() >= 0).all()
+        err = np.hypot(g["x"] - _STILL_XY[0], g["y"] - _STILL_XY[1])
+        assert err.max() <= (1e-9 if filt == "ekf" else 0.02)  # as in the clock jump test
+        _assert_rows_equal(rows[rows["tag"] == "V"], ref[ref["tag"] == "V"],
+                           exact=engine == "numpy" and filt == "ekf")
+
+
+def test_a_singular_update_of_one_tag_does_not_stop_the_others(monkeypatch):
+    """Whatever makes one tag's update raise LinAlgError (here injected: the update of
+    any batch holding G, which stands at x = 6 beside V at x = 3; the NumPy engine solves
+    both in one batch), the round is redone tag by tag: G starts again from each epoch's
+    fix (one re-start per epoch, usable rows at its place), V's rows are those of V
+    alone."""
+    from robustloc.tracking import tracker as tracker_mod
+
+    real = tracker_mod.update_ekf
+
+    def singular_for_g(x, *args, **kwargs):
+        if np.any(x[:, 0] > 5.0):
+            raise np.linalg.LinAlgError("Singular matrix")
+        return real(x, *args, **kwargs)
+
+    monkeypatch.setattr(tracker_mod, "update_ekf", singular_for_g)
+    ep = _still_epochs({"G": list(range(6)), "V": list(range(6))}, at={"G": (6.0, 5.0)})
+    alone = Tracker(_STILL_ANCHORS, engine="numpy").step(_still_epochs({"V": list(range(6))}))
+    rows = Tracker(_STILL_ANCHORS, engine="numpy").step(ep)
+    assert len(rows) == ep.n_epochs
+    g = rows[rows["tag"] == "G"].reset_index(drop=True)
+    assert (g["status"] == "ok").all()
+    assert g["reinit"].tolist() == [0, 1, 2, 3, 4, 5]
+    np.testing.assert_allclose(g[["x", "y"]].to_numpy(float), [[6.0, 5.0]] * 6, atol=1e-9)
+    pd.testing.assert_frame_equal(rows[rows["tag"] == "V"].reset_index(drop=True), alone)

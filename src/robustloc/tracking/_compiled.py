@@ -21,6 +21,14 @@ NumPy for the range model (items 2-8 of the tracker's docstring, same order, sam
    robust snapshot fix (NumPy, for those tags only), and ``moved``;
 5. the Sage-Husa noise scale, the protection level ``hpl``, the status and the output row.
 
+A tag whose filter is lost (item 9 of the tracker's docstring) is flagged in ``lost``: its
+prediction is meaningless (``var_x + var_y > lost_pos_var`` and ``sqrt(eps) (var_x +
+var_y) >= min_i R_ii`` over the components of the update, :func:`prediction_lost`; found in
+step 1, before the update), or its update failed numerically (a non-finite state or
+covariance, or a negative variance, after step 3).  The kernel then returns :data:`LOST`
+without writing anything; the caller re-starts the flagged tags and runs the round again
+without them.
+
 The state of the tags lives in the tracker's arrays, indexed by slot ``sl[k]``; the kernel
 reads it and writes it back only when the whole round succeeded, so a round the kernel
 cannot do (:data:`NOT_PD`: a Cholesky factor failed) leaves everything untouched for the
@@ -57,23 +65,46 @@ from robustloc.filters._compiled import (
 )
 
 # layout of the tracker's settings vector (:func:`pack_settings`)
-_CUSUM_K, _CUSUM_H, _READMIT, _LO, _HI, _FORGET, _SQRT_LAM0, _K_IR, _W2 = range(9)
+_CUSUM_K, _CUSUM_H, _READMIT, _LO, _HI, _FORGET, _SQRT_LAM0, _K_IR, _W2, _LOST_VAR = range(10)
 #: Status codes written into ``code`` (as :data:`robustloc.filters._compiled.STATUSES`).
 CODES = (ST_OK, ST_FAULT_EXCLUDED, ST_PREDICTED)
+#: Return code of a round with lost filters (flagged in ``lost``; nothing written).  Beside
+#: the fusion kernel's ``DONE, BAD_SHAPE, NOT_PD = 0, 1, 2``.
+LOST = 3
+#: ``sqrt(eps)`` of float64 (``2^-26``): a variance ``r`` added to ``V`` keeps fewer than
+#: half of its significant digits in ``V + r`` once ``sqrt(eps) V >= r`` (its rounding
+#: error ``eps V`` is then ``>= sqrt(eps) r``).
+SQRT_EPS = 2.0**-26
 
 
 def pack_settings(cusum_k: float, cusum_h: float, readmit_samples: int, noise_lo: float,
                   noise_hi: float, noise_forget: float, sqrt_lambda0: float,
-                  k_ir: float, w2_crit: float) -> np.ndarray:
+                  k_ir: float, w2_crit: float, lost_pos_var: float) -> np.ndarray:
     """The tracker's settings as one float vector for :func:`track_round_4` / ``_6``.
 
     ``cusum_h = inf`` disables the step detector; ``noise_lo, noise_hi`` are the bounds of
     the squared noise scale ``s^2``; ``sqrt_lambda0`` the root of the w-test's
     non-centrality (MDB factor), ``k_ir`` the noise multiplier of ``hpl``, ``w2_crit`` the
-    squared critical value of the w-test (``chi2.isf(alpha0, 1)``).
+    squared critical value of the w-test (``chi2.isf(alpha0, 1)``), ``lost_pos_var`` the
+    tracker's setting of that name (:func:`prediction_lost`).
     """
     return np.array([cusum_k, cusum_h, float(readmit_samples), noise_lo, noise_hi,
-                     noise_forget, sqrt_lambda0, k_ir, w2_crit], dtype=np.float64)
+                     noise_forget, sqrt_lambda0, k_ir, w2_crit, lost_pos_var],
+                    dtype=np.float64)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def prediction_lost(v_pos, r_min, lost_pos_var):  # pragma: no cover - jit
+    """True when a prediction with position variance ``v_pos = var_x + var_y`` is
+    meaningless for an update whose smallest measurement variance is ``r_min`` (``inf``
+    without components; NaN propagates): beyond ``lost_pos_var`` and so wide that
+    ``sqrt(eps) v_pos >= r_min``.  The innovation covariance ``S = H P- H^T + R`` then
+    carries ``R`` to fewer than half of its digits (``(H P- H^T)_ii <= v_pos`` for the
+    unit rows of ranges, its rounding ``eps v_pos``), and the update's ``P- - P- H^T S^-1
+    H P-`` cancels as many: ``S`` turns singular or indefinite as ``eps v_pos`` nears
+    ``r_min`` (a clock jump of hours).  NaN ``v_pos`` is lost.  The NumPy twin is
+    ``robustloc.tracking.tracker._prediction_lost``."""
+    return not (v_pos <= lost_pos_var or v_pos * SQRT_EPS < r_min)
 
 
 @njit(cache=True, nogil=True)
@@ -130,7 +161,7 @@ def one_fault_explains(M, hv, Pp, rd, y, av, w2_crit, crit_less, S, L, Li, u,
 def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s, scale2_s,
            obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x, out_var, out_cxy,
            out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved, sus, dof, xp_o, Pp_o,
-           dt_o):  # pragma: no cover - jit
+           dt_o, lost):  # pragma: no cover - jit
     """Body of :func:`track_round_4` / ``_6`` for state size ``n`` (see their docstring)."""
     K = sl.shape[0]
     M = z.shape[1]
@@ -146,6 +177,8 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
         return BAD_SHAPE
     if idx.shape[0] != K or out_x.shape[1] != n or out_exc.shape[1] != M:
         return BAD_SHAPE
+    if lost.shape[0] != K:
+        return BAD_SHAPE
     for k in range(K):
         if not (0 <= sl[k] < S and 0 <= idx[k] < out_x.shape[0]):
             return BAD_SHAPE
@@ -155,6 +188,7 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
     lo, hi, lf = tset[_LO], tset[_HI], tset[_FORGET]
     sl0, kir = tset[_SQRT_LAM0], tset[_K_IR]
     w2c = tset[_W2]
+    lost_var = tset[_LOST_VAR]
     max_held = max(1, (M - 1) // 2)
     rssi = rssi_A.shape[0] > 0
 
@@ -203,6 +237,7 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
 
     # ---- pass 1: prediction, innovations, CUSUM, holds (items 2 and 4 of the tracker)
     d_prev = math.nan
+    any_lost = False
     for k in range(K):
         s = sl[k]
         d = max(t[k] - t_s[s], 0.0)
@@ -285,6 +320,17 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
             new_hsum[k, i] = 0.0 if ready else hs
             new_hn[k, i] = 0 if ready else hn
         dof[k] = ma
+        # a meaningless prediction (item 9 of the tracker): the smallest variance of the
+        # update's components (NaN propagating, as np.min) against the position variance
+        r_min = math.inf
+        for i in range(M):
+            if math.isfinite(zf[k, i]) and r_min == r_min and not rd[k, i] >= r_min:
+                r_min = rd[k, i]
+        lk = ma > 0 and prediction_lost(Pp[0, 0] + Pp[1, 1], r_min, lost_var)
+        lost[k] = lk
+        any_lost = any_lost or lk
+    if any_lost:  # nothing written: the caller re-starts these tags, runs the others again
+        return LOST
 
     # ---- robust predict + update: the fusion filter's compiled kernel (item 3)
     if n == 4:
@@ -293,6 +339,18 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
         rc = fusion_step_6(xg, Pg, dt_o, zf, R, prm, fout)
     if rc != DONE:
         return rc
+    # an update that failed numerically (a non-finite moment, a negative variance): lost
+    for k in range(K):
+        ok = True
+        for i in range(n):
+            ok = ok and math.isfinite(fout[k * n + i])
+            for j in range(n):
+                v = fout[o_P + k * nn + i * n + j]
+                ok = ok and math.isfinite(v) and (i != j or v >= 0.0)
+        lost[k] = not ok
+        any_lost = any_lost or not ok
+    if any_lost:
+        return LOST
 
     # ---- pass 2: B-method test, noise scale, hpl, rows, state (items 5, 6, 8)
     c_ok = np.uint32(prm[off_s + ST_OK * STATUS_CHARS])
@@ -397,12 +455,14 @@ _DOC = """One epoch of ``K`` tags of the range tracker, state size {n} ({model})
     code, moved, sus, dof : ``(K,)`` outputs: status code (:data:`CODES`), the CUSUM's
         "tag moved" flag, the suspicious-epoch flag, the number of components used.
     xp_o, Pp_o, dt_o : ``(K, n)``, ``(K, n, n)``, ``(K,)`` outputs: the prediction and step.
+    lost : ``(K,)`` output: the tags whose filter is lost (see the module docstring).
 
     Returns
     -------
     int
-        :data:`robustloc.filters._compiled.DONE`, else the fusion kernel's code
-        (``BAD_SHAPE``, ``NOT_PD``): then no state and no row was written.
+        :data:`robustloc.filters._compiled.DONE`; :data:`LOST` (the tags in ``lost``), or
+        the fusion kernel's code (``BAD_SHAPE``, ``NOT_PD``): then no state and no row was
+        written.
     """
 
 
@@ -410,22 +470,22 @@ _DOC = """One epoch of ``K`` tags of the range tracker, state size {n} ({model})
 def track_round_4(sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
                   scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
                   out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
-                  sus, dof, xp_o, Pp_o, dt_o):  # pragma: no cover - jit
+                  sus, dof, xp_o, Pp_o, dt_o, lost):  # pragma: no cover - jit
     return _round(4, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
                   scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
                   out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
-                  sus, dof, xp_o, Pp_o, dt_o)
+                  sus, dof, xp_o, Pp_o, dt_o, lost)
 
 
 @njit(cache=True, nogil=True)
 def track_round_6(sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
                   scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
                   out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
-                  sus, dof, xp_o, Pp_o, dt_o):  # pragma: no cover - jit
+                  sus, dof, xp_o, Pp_o, dt_o, lost):  # pragma: no cover - jit
     return _round(6, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
                   scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
                   out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
-                  sus, dof, xp_o, Pp_o, dt_o)
+                  sus, dof, xp_o, Pp_o, dt_o, lost)
 
 
 track_round_4.__doc__ = _DOC.format(n=4, model="CV")

@@ -45,7 +45,8 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
    from the robust fix of the current epoch (counted in ``reinit``).  A check is solved
    only when its answer can decide a re-start (``Tracker._count_bad``): the rows are
    those of checking every epoch, at a fraction of the snapshot fixes.  So does a filter
-   whose position variance passed ``lost_pos_var`` when the epoch's fix is more certain.
+   whose position variance passed ``lost_pos_var`` when the epoch's fix is more certain
+   (after the update; a prediction too wide to update is item 9).
 6. **Measurement noise adapts within bounds.**  After each update the tag's noise scale
    follows the accepted innovations (Sage-Husa, Mehra 1972):
    ``s^2 <- (1 - l) s^2 + l mean_w((y_i^2 - (H P- H^T)_ii) / sigma_i^2)``, ``l =
@@ -62,12 +63,32 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
    and the row's position reflected across their line (refined on the epoch's
    observations) passes the epoch's global test, ``hpl = max(hpl, |x' - x| + hpl)``: the
    mirror is as consistent as the track (``Tracker._cover_mirror``).
+9. **A lost filter starts again.**  A prediction can be too wide to update: over a long
+   gap (a tag's clock jumping ahead by hours) ``P-`` grows as ``q dt^4 / 4`` (``cv``), and
+   once its position variance ``V = var_x + var_y`` reaches ``r_min / sqrt(eps)`` (``r_min``
+   the smallest variance ``R_ii`` of the epoch's components, ``eps`` that of float64) the
+   innovation covariance ``S = H P- H^T + R`` carries ``R`` to fewer than half of its
+   digits (``(H P- H^T)_ii <= V``, rounded to ``eps V``): ``S`` turns singular or
+   indefinite as ``eps V`` nears ``r_min``, and the update fails or returns a negative
+   variance before the rule of item 5 could see it.  So the rule also runs *before* the
+   update: a prediction with ``V > lost_pos_var`` and ``sqrt(eps) V >= r_min`` is
+   meaningless -- the filter is dropped and the tag starts again as in item 1, from the
+   epoch's robust fix (counted in ``reinit`` when dropped).  With the defaults (``cv``,
+   ``q = 1``, ranges of 0.3 m) that is a gap beyond 59 s (``V = dt^4 / 2``; a 1.7 km
+   standard deviation).  Without a usable fix the row carries the fix's status and the
+   tag starts at its next epoch that gives one (with ``init_window_s``).  (Measured
+   on the 44 199 filtered epochs of the report's section ``s60_tracks``: ``V <= 57 m^2``,
+   ``eps V / r_min <= 4e-13``, four decades below ``sqrt(eps) = 1.5e-8``: none is
+   dropped, every row is as before.)  A filter whose update fails numerically all the
+   same (a singular system, a non-finite state or covariance, a negative variance) is
+   dropped alike; the other tags of the round are advanced as if it were not there.
 
 Engines: ``compiled`` (default) runs the whole round of the ``cv``/``ca`` models in the
 range domain (ranges, or RSSI converted to ranges) in one fused numba kernel
 (:mod:`robustloc.tracking._compiled`: items 2-8 in a loop over the tags, its update the
 fusion filter's compiled kernel on the ranges); only the robust snapshot fixes of
-suspicious epochs and the re-starts (item 5) stay in NumPy, for the tags that need them.
+suspicious epochs and the re-starts (items 5 and 9) stay in NumPy, for the tags that need
+them.
 ``numpy`` (and RSSI in dB, and ``static``) runs the batched NumPy core, the reference
 implementation.  The two agree to rounding, 1e-9 m (tested, also on random workloads with
 holds, outliers and re-starts).
@@ -81,6 +102,7 @@ in one call or one epoch at a time gives the same rows (tested).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
@@ -108,6 +130,9 @@ MODELS = ("cv", "ca", "static")
 FILTERS = ("ekf", "ukf")
 #: Method name written in the ``method`` column (``robustloc evaluate`` groups by it).
 METHOD_PREFIX = "track"
+#: ``sqrt(eps)`` of float64, ``2^-26`` (:data:`robustloc.tracking._compiled.SQRT_EPS`, not
+#: imported here: that module needs numba).
+_SQRT_EPS = float(np.sqrt(np.finfo(np.float64).eps))
 
 
 @dataclass(frozen=True)
@@ -149,7 +174,9 @@ class TrackerSettings:
     lost_pos_var : when the position variance ``var_x + var_y`` (m^2) exceeds this, the
         epoch's robust fix is computed and, if it is more certain, the filter re-starts
         from it at once (a filter that lost its track: long coasting, or a UKF whose sigma
-        points spread beyond the measurement's linear range).
+        points spread beyond the measurement's linear range).  A prediction beyond it and
+        too wide to update in float64 is dropped before its update (item 9 of the module
+        docstring).
     init_window_s : before its first fix, a tag's last observation of each anchor within
         this many seconds joins the current epoch's (asynchronous UWB ranges arrive one
         anchor at a time: the starting fix needs three).
@@ -402,7 +429,8 @@ class Tracker:
                 self._tset = _compiled.pack_settings(
                     s.cusum_k, math.inf if s.cusum_h is None else s.cusum_h,
                     s.readmit_samples, s.noise_scale_min**2, s.noise_scale_max**2,
-                    s.noise_forget, math.sqrt(self._lam0), self._k_ir, self._w2_crit)
+                    s.noise_forget, math.sqrt(self._lam0), self._k_ir, self._w2_crit,
+                    s.lost_pos_var)
                 rssi = self._kind == "rssi"  # held links' offsets live in dB
                 self._rssi_A = np.asarray(A if rssi else np.zeros(0), dtype=float)
                 self._rssi_n = np.asarray(nn if rssi else np.zeros(0), dtype=float)
@@ -484,17 +512,38 @@ class Tracker:
         init = self._init[sl]
         if not init.all():
             ni = ~init
-            s2, t2, z2 = sl[ni], t[ni], z[ni]
-            heard = np.isfinite(z2)
-            with np.errstate(invalid="ignore"):
-                recent = (t2[:, None] - self._lastt[s2]) <= self.settings.init_window_s
-            zi = np.where(heard, z2, np.where(recent, self._lastz[s2], np.nan))
-            self._lastz[s2] = np.where(heard, z2, self._lastz[s2])
-            self._lastt[s2] = np.where(heard, t2[:, None], self._lastt[s2])
-            self._start(idx[ni], s2, t2, zi, out, reinit=False)
+            self._start_new(idx[ni], sl[ni], t[ni], z[ni], out)
         if init.any():
-            self._filter(idx[init], sl[init], t[init], z[init], out)
+            i = np.flatnonzero(init)
+            lost = self._filter(idx[i], sl[i], t[i], z[i], out)
+            if lost.any():  # dropped filters (item 9): their tags start again, now
+                i = i[lost]
+                self._drop(sl[i])
+                self._start_new(idx[i], sl[i], t[i], z[i], out)
         self._cover_mirror(idx, sl, z, out)
+
+    def _start_new(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array, z: Array,
+                   out: _Rows) -> None:
+        """Start tags without a filter (item 1): the epoch's observations, completed by
+        each anchor's last observation within ``init_window_s``, to a robust fix."""
+        heard = np.isfinite(z)
+        with np.errstate(invalid="ignore"):
+            recent = (t[:, None] - self._lastt[sl]) <= self.settings.init_window_s
+        zi = np.where(heard, z, np.where(recent, self._lastz[sl], np.nan))
+        self._lastz[sl] = np.where(heard, z, self._lastz[sl])
+        self._lastt[sl] = np.where(heard, t[:, None], self._lastt[sl])
+        self._start(idx, sl, t, zi, out, reinit=False)
+
+    def _drop(self, sl: NDArray[np.int64]) -> None:
+        """Drop the filters of ``sl`` (item 9): the tags have no filter, as before their
+        first fix, and count one re-start each.  The observations they collected before
+        their first fix are forgotten (only those from now on complete a start)."""
+        self._init[sl] = False
+        self._reinit[sl] += 1
+        self._bad[sl] = 0
+        self._drop_pending(sl)
+        self._lastz[sl] = np.nan
+        self._lastt[sl] = np.nan
 
     def _cover_mirror(self, idx: NDArray[np.int64], sl: NDArray[np.int64], z: Array,
                       out: _Rows) -> None:
@@ -637,16 +686,22 @@ class Tracker:
         return ok
 
     def _filter(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array, z: Array,
-                out: _Rows) -> None:
+                out: _Rows) -> NDArray[np.bool_]:
         """Predict + update the started tags of one round (the fused compiled round, or
-        the NumPy engine when there is none or it cannot do this round)."""
-        if self._kernel is None or not self._filter_compiled(idx, sl, t, z, out):
-            self._filter_numpy(idx, sl, t, z, out)
+        the NumPy engine when there is none or it cannot do this round).
+
+        Returns the mask of the tags whose filter is lost (item 9): nothing was written
+        for them (state or row); every other tag was advanced as without them."""
+        lost = None if self._kernel is None else self._filter_compiled(idx, sl, t, z, out)
+        return self._filter_numpy(idx, sl, t, z, out) if lost is None else lost
 
     def _filter_compiled(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array,
-                         z: Array, out: _Rows) -> bool:
+                         z: Array, out: _Rows) -> NDArray[np.bool_] | None:
         """The round in one call of the fused kernel (:mod:`robustloc.tracking._compiled`);
-        False (nothing changed) when the kernel cannot do it."""
+        ``None`` (nothing changed) when the kernel cannot do it, else the lost tags (as
+        :meth:`_filter`; the kernel flags them, the others run again without them)."""
+        from robustloc.tracking import _compiled
+
         K, n = len(idx), self.n
         code = np.empty(K, dtype=np.int64)
         moved = np.empty(K, dtype=bool)
@@ -655,6 +710,7 @@ class Tracker:
         xp = np.empty((K, n))
         Pp = np.empty((K, n, n))
         dt = np.empty(K)
+        lost = np.zeros(K, dtype=bool)
         z = np.ascontiguousarray(z, dtype=float)
         obs, R0 = self._observations(z - self._bias[sl])
         rc = self._kernel(
@@ -664,16 +720,33 @@ class Tracker:
             np.ascontiguousarray(R0, dtype=float), self._rssi_A, self._rssi_n,
             self._link.d_min_m, self._prm, self._tset, self._gcrit_f,
             np.ascontiguousarray(idx), out.x, out.var, out.cxy, out.n_used, out.nis,
-            out.excluded, out.hpl, out.scale, code, moved, sus, dof, xp, Pp, dt)
+            out.excluded, out.hpl, out.scale, code, moved, sus, dof, xp, Pp, dt, lost)
+        if rc == _compiled.LOST:
+            return self._without(lost, idx, sl, t, z, out, self._filter)
         if rc != 0:
-            return False
+            return None
         out.status[idx] = _CODE_STATUS[code]
         self._finish(idx, sl, t, z, out, moved, sus, dof, xp, Pp, dt)
-        return True
+        return lost
+
+    @staticmethod
+    def _without(lost: NDArray[np.bool_], idx: NDArray[np.int64], sl: NDArray[np.int64],
+                 t: Array, z: Array, out: _Rows,
+                 engine: Callable[..., NDArray[np.bool_]]) -> NDArray[np.bool_]:
+        """The round of the tags not ``lost`` through ``engine`` (as :meth:`_filter`; each
+        tag's row depends on its own history only, so they are the rows without the
+        lost ones); returns every lost tag."""
+        lost = lost.copy()
+        keep = np.flatnonzero(~lost)
+        if keep.size:
+            lost[keep] = engine(idx[keep], sl[keep], t[keep], z[keep], out)
+        return lost
 
     def _filter_numpy(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array,
-                      z: Array, out: _Rows) -> None:
-        """The round with the batched NumPy core (the reference implementation)."""
+                      z: Array, out: _Rows) -> NDArray[np.bool_]:
+        """The round with the batched NumPy core (the reference implementation); returns
+        the lost tags (as :meth:`_filter`: a meaningless prediction before the update, a
+        numerical failure of the update; nothing is written before both are known)."""
         s = self.settings
         link = self._link
         M = link.M
@@ -733,34 +806,53 @@ class Tracker:
         held = held & ~ready
         hsum = np.where(ready, 0.0, hsum)
         hn = np.where(ready, 0, hn)
-
-        # --- the filter step: predict + robust update (shared core)
-        xq, Pq = predict_linear(x, P, F, Q)
-        R = Rd[:, :, None] * np.eye(M)[None]
-        if s.filter == "ekf":
-            res = update_ekf(xq, Pq, zin, link.predict, R, jac=link.jacobian,
-                             robust=self._robust)
-        else:
-            res = update_ukf(xq, Pq, zin, link.predict, R, points=SigmaPoints(),
-                             robust=self._robust)
-        xn, Pn, w = res.x, res.P, res.weights
-        nis, rstat, nu = res.nis, res.status, res.n_used
-
-        # --- B-method global test, divergence
         avail = np.isfinite(zin)
-        dof = avail.sum(axis=1)
-        crit = self._gcrit[dof]
-        with np.errstate(invalid="ignore"):
-            test_fail = (dof > 0) & (nis > crit)
-        # a suspicious epoch (the global test failed and one exclusion does not explain
-        # it, or half the components rejected) is checked against the robust snapshot
-        # fix: a filter that drifted off, or locked onto a wrong solution (two consistent
-        # links, the others rejected), disagrees
-        cand = test_fail & (dof >= 2)
-        if cand.any():  # a failure that one w-test exclusion explains passes
-            test_fail[cand] = ~one_fault_explains(
-                H[cand], Pp[cand], Rd[cand], y[cand], avail[cand], self._w2_crit,
-                self._gcrit[dof[cand] - 1])
+        # --- a meaningless prediction (item 9): dropped before its update
+        r_min = np.min(np.where(avail, Rd, np.inf), axis=1) if M else np.full(len(sl), np.inf)
+        lost = avail.any(axis=1) & _prediction_lost(Pp[:, 0, 0] + Pp[:, 1, 1], r_min,
+                                                    s.lost_pos_var)
+        if lost.any():
+            return self._without(lost, idx, sl, t, z, out, self._filter_numpy)
+
+        try:
+            # --- the filter step: predict + robust update (shared core)
+            xq, Pq = predict_linear(x, P, F, Q)
+            R = Rd[:, :, None] * np.eye(M)[None]
+            if s.filter == "ekf":
+                res = update_ekf(xq, Pq, zin, link.predict, R, jac=link.jacobian,
+                                 robust=self._robust)
+            else:
+                res = update_ukf(xq, Pq, zin, link.predict, R, points=SigmaPoints(),
+                                 robust=self._robust)
+            xn, Pn, w = res.x, res.P, res.weights
+            nis, rstat, nu = res.nis, res.status, res.n_used
+
+            # --- B-method global test, divergence
+            dof = avail.sum(axis=1)
+            crit = self._gcrit[dof]
+            with np.errstate(invalid="ignore"):
+                test_fail = (dof > 0) & (nis > crit)
+            # a suspicious epoch (the global test failed and one exclusion does not explain
+            # it, or half the components rejected) is checked against the robust snapshot
+            # fix: a filter that drifted off, or locked onto a wrong solution (two
+            # consistent links, the others rejected), disagrees
+            cand = test_fail & (dof >= 2)
+            if cand.any():  # a failure that one w-test exclusion explains passes
+                test_fail[cand] = ~one_fault_explains(
+                    H[cand], Pp[cand], Rd[cand], y[cand], avail[cand], self._w2_crit,
+                    self._gcrit[dof[cand] - 1])
+        except np.linalg.LinAlgError:
+            # a singular system of some tag (the batched solvers stop at the first): the
+            # tags one at a time, so that only those that fail alone are lost
+            if len(idx) == 1:
+                return np.ones(1, dtype=bool)
+            return np.concatenate([self._filter_numpy(idx[k:k + 1], sl[k:k + 1], t[k:k + 1],
+                                                      z[k:k + 1], out)
+                                   for k in range(len(idx))])
+        # --- an update that failed numerically (item 9): non-finite, negative variance
+        lost = ~_finite_moments(xn, Pn)
+        if lost.any():
+            return self._without(lost, idx, sl, t, z, out, self._filter_numpy)
         sus = test_fail | ((dof > 0) & (2 * nu <= dof))
 
         # --- adaptive noise scale (accepted components, robust weights)
@@ -799,6 +891,7 @@ class Tracker:
         out.hpl[idx] = hpl
         out.scale[idx] = np.sqrt(scale2)
         self._finish(idx, sl, t, z, out, moved, sus, dof, xp, Pp, dt)
+        return lost
 
     def _finish(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array, z: Array,
                 out: _Rows, moved: NDArray[np.bool_], sus: NDArray[np.bool_],
@@ -1104,6 +1197,24 @@ def _fixed(status: NDArray[np.object_]) -> NDArray[np.bool_]:
     """Fixes whose status is ``ok`` or ``fault_excluded`` (a usable robust fix)."""
     status = np.asarray(status, dtype=object)
     return (status == st.OK) | (status == st.FAULT_EXCLUDED)
+
+
+def _prediction_lost(v_pos: Array, r_min: Array, lost_pos_var: float) -> NDArray[np.bool_]:
+    """A meaningless prediction (module docstring, item 9): position variance ``v_pos =
+    var_x + var_y`` beyond ``lost_pos_var`` and ``sqrt(eps) v_pos >= r_min`` (the smallest
+    variance of the update's components: ``S = H P- H^T + R`` keeps fewer than half of the
+    digits of ``R``); NaN is lost.  NumPy twin of the compiled
+    :func:`robustloc.tracking._compiled.prediction_lost`."""
+    with np.errstate(invalid="ignore"):
+        return ~((v_pos <= lost_pos_var) | (v_pos * _SQRT_EPS < r_min))
+
+
+def _finite_moments(x: Array, P: Array) -> NDArray[np.bool_]:
+    """Updated moments that are usable: ``x (K, n)`` and ``P (K, n, n)`` finite, and no
+    negative variance on the diagonal of ``P`` (an update whose arithmetic failed).  The
+    compiled kernel checks the same (:mod:`robustloc.tracking._compiled`)."""
+    return (np.isfinite(x).all(axis=1) & np.isfinite(P).all(axis=(1, 2))
+            & (np.diagonal(P, axis1=1, axis2=2) >= 0.0).all(axis=1))
 
 
 #: Status of the fused kernel's codes (:data:`robustloc.tracking._compiled.CODES`).
