@@ -91,6 +91,9 @@ def test_missing_file(tmp_path, capsys):
         ("time,tag,x,y,hpl\n0,T,1,2,abc\n", 2, "column 'hpl': 'abc' is not a number"),
         ("time,tag,x,y,hpl\n0,T,1,2,inf\n1,T,1,2,-3\n", 3, "negative protection level"),
         ("time,tag,x,y,z,vpl\n0,T,1,2,0,-1\n", 2, "column 'vpl': negative"),
+        # a status decides the scoring: "OK" was counted as failed, an empty one as usable
+        ("time,tag,x,y,status\n0,T,1,2,ok\n1,T,1,2,OK\n", 3, "unknown status 'OK'"),
+        ("time,tag,x,y,status\n0,T,1,2,\n", 2, "empty status"),
     ],
 )
 def test_evaluate_bad_positions(tmp_path, capsys, pos, line, words):
@@ -160,3 +163,52 @@ def test_calibrate_range_survey_text_output(tmp_path, capsys):
     cal = read_anchors(out).set_index("anchor")
     assert cal.loc["1", "bias"] == pytest.approx(0.5)
     assert cal.loc["3", "calib_source"] == "pooled"  # anchor 3 not in the survey
+
+
+def test_evaluate_json_is_strict_json(tmp_path, capsys):
+    """An unbounded fix's infinite hpl gave ``"hpl_median": Infinity``, which JSON parsers
+    (JavaScript's JSON.parse) reject: non-finite numbers are null."""
+    t = _w(tmp_path, "t.csv", "time,tag,x,y\n0,t1,2,3\n1,t1,2,3\n")
+    p = _w(tmp_path, "p.csv", "time,tag,x,y,method,status,hpl\n"
+           "0,t1,2.1,3,nls,unverified,inf\n1,t1,2.0,3.1,nls,unverified,inf\n")
+    assert main(["evaluate", p, "--truth", t, "--json"]) == 0
+
+    def strict(token: str) -> None:
+        raise AssertionError(f"non-JSON number {token}")
+
+    doc = json.loads(capsys.readouterr().out, parse_constant=strict)
+    assert doc["rows"][0]["hpl_median"] is None
+
+
+RANGES_4 = ("time,tag,anchor,range\n" + "".join(
+    f"{t},t1,{a},{r}\n" for t in (0, 1) for a, r in
+    (("A1", 3.6056), ("A2", 8.5440), ("A3", 10.6301), ("A4", 7.2801))))
+ANCHORS_4 = "anchor,x,y\nA1,0,0\nA2,10,0\nA3,10,10\nA4,0,10\n"
+
+
+@pytest.mark.parametrize("command", ["track", "calibrate --self", "filter"])
+def test_summaries_stay_out_of_stdout_data(tmp_path, command):
+    """With ``-o -`` the run summary went to stdout after the table and corrupted the
+    stream (track, filter, calibrate); it goes to stderr, as locate's does."""
+    a = _w(tmp_path, "a.csv", ANCHORS_4 if command != "filter" else
+           "anchor,x,y,A,n\nA1,0,0,-60,2\nA2,10,0,-60,2\nA3,10,10,-60,2\nA4,0,10,-60,2\n")
+    m = _w(tmp_path, "m.csv", RANGES_4 if command != "filter" else
+           "time,tag,anchor,rssi\n0,t,A1,-50\n1,t,A1,-52\n")
+    argv = [*command.split(), m, "--anchors", a, "-o", "-"]
+    r = subprocess.run([sys.executable, "-m", "robustloc.cli", *argv],
+                       capture_output=True, text=True, check=False)
+    assert r.returncode == 0, r.stderr
+    lines = r.stdout.strip().splitlines()
+    width = lines[0].count(",")
+    assert len(lines) >= 3 and all(ln.count(",") == width for ln in lines), r.stdout
+    assert r.stderr.strip()  # the summary is there
+
+
+def test_filter_warns_without_path_loss(tmp_path, capsys):
+    """Anchors without path-loss columns: the distance columns come from p0 = -40 dBm,
+    gamma = 2; the run says so instead of writing them as if they were real."""
+    a = _w(tmp_path, "a.csv", ANCHORS_4)
+    m = _w(tmp_path, "m.csv", "time,tag,anchor,rssi\n0,t,A1,-50\n1,t,A1,-52\n")
+    assert main(["filter", m, "--anchors", a, "-o", str(tmp_path / "f.csv")]) == 0
+    err = capsys.readouterr().err
+    assert err.startswith(f"warning: {a}: anchors have no path-loss parameters"), err

@@ -120,12 +120,16 @@ def run(args: argparse.Namespace) -> int:
                         measurements=args.measurements, truth=args.truth,
                         self_log=args.self_log)
     path = write_table(cal.output, args.out)
+    from robustloc.io.atomic import writes_to_stdout
+
+    # the summary never goes into a data stream: stderr when the table goes to stdout
+    dest = sys.stderr if writes_to_stdout(args.out) else sys.stdout
     if args.json:
-        print(json.dumps({**cal.summary, "output": str(path)}, indent=2))
+        print(json.dumps({**cal.summary, "output": str(path)}, indent=2), file=dest)
     else:
-        print(cal.headline)
-        print(_fmt(cal.parameters, cal.unit))
-        print(f"written: {path}")
+        print(cal.headline, file=dest)
+        print(_fmt(cal.parameters, cal.unit), file=dest)
+        print(f"written: {path}", file=dest)
     for note in cal.notes:
         print(f"note: {note}", file=sys.stderr)
     for w in cal.warnings:

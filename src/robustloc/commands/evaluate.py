@@ -74,13 +74,16 @@ def run(args: argparse.Namespace) -> int:
     dest = sys.stderr if writes_to_stdout(args.out) else sys.stdout
     n_unmatched = table.attrs.get("n_unmatched", 0)
     if args.json:
-        recs = table.replace({np.nan: None}).to_dict(orient="records")
+        # JSON has no NaN or infinity: both are null (an infinite hpl: unbounded fixes)
+        recs = table.replace({np.nan: None, np.inf: None, -np.inf: None}).to_dict(
+            orient="records")
         for r in recs:  # counts as integers (the "mean" rows may average to a fraction)
             for c in ("n", "n_missing", "n_failed", "n_ok"):
                 v = r.get(c)
                 if v is not None and float(v).is_integer():
                     r[c] = int(v)
-        print(json.dumps({"n_unmatched": n_unmatched, "rows": recs}, indent=2), file=dest)
+        print(json.dumps({"n_unmatched": n_unmatched, "rows": recs}, indent=2,
+                         allow_nan=False), file=dest)
         return 0
     show = table[[c for c in _SHOW if c in table.columns]].copy()
     for c in ("n", "n_missing", "n_failed"):

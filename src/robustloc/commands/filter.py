@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 from robustloc.engines import add_engine_arguments
 from robustloc.options import (
@@ -137,16 +138,26 @@ def run(args: argparse.Namespace) -> int:
     from robustloc.io import read_anchors, read_measurements, write_table
 
     anchors = read_anchors(args.anchors)
+    cols = set(anchors.columns)
+    if not ({"A", "n"} <= cols or {"p0", "gamma"} <= cols):
+        # the filtered RSSI barely depends on it, but the distance columns would look real
+        print(f"warning: {args.anchors}: anchors have no path-loss parameters (A, n or p0, "
+              "gamma): the distance columns use p0 = -40 dBm, gamma = 2 and are only "
+              "indicative; run `robustloc calibrate` for real distances", file=sys.stderr)
     meas = read_measurements(args.measurements, anchors)
     frame, summary = filter_frame(meas, anchors, args, progress=True)
     write_table(frame, args.out)
     s = dict(summary, out=str(args.out))
+    from robustloc.io.atomic import writes_to_stdout
+
+    # the summary never goes into a data stream: stderr when the output goes to stdout
+    dest = sys.stderr if writes_to_stdout(args.out) else sys.stdout
     if args.json:
-        print(json.dumps(s, indent=2))
+        print(json.dumps(s, indent=2), file=dest)
     else:
         print(f"filtered {s['samples']} samples on {s['links']} links ({s['filter']}): "
               f"{s['downweighted']} down-weighted, {s['rejected']} rejected, "
-              f"{s['relocked']} re-locks -> {s['out']}")
+              f"{s['relocked']} re-locks -> {s['out']}", file=dest)
         note = " (RSSI outside -150 .. +30 dBm, not filtered)" if s["invalid_measurement"] else ""
-        print(f"invalid_measurement: {s['invalid_measurement']}{note}")
+        print(f"invalid_measurement: {s['invalid_measurement']}{note}", file=dest)
     return 0

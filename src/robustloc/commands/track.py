@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 import pandas as pd
 
@@ -155,15 +156,21 @@ def run(args: argparse.Namespace) -> int:
     if args.engine == "dask":
         from robustloc.engines.dask import run_tagwise
         return run_tagwise(args, track_partition, "track", file_fn=track_partition_file)
+    from robustloc.io.atomic import writes_to_stdout
+
     summary = track_file(args)
+    # the summary never goes into a data stream: stderr when the track goes to stdout
+    dest = sys.stderr if writes_to_stdout(args.out) else sys.stdout
     if args.json:
-        print(json.dumps(summary, indent=2))
+        print(json.dumps(summary, indent=2), file=dest)
         return 0
     print(f"{summary['epochs']} epochs, {summary['tags']} tags -> {summary['track']} "
-          f"({summary['seconds']:.2f} s, {summary['epochs_per_second']:.0f} epochs/s)")
-    print("  " + ", ".join(f"{k}: {v}" for k, v in sorted(summary["status"].items())))
+          f"({summary['seconds']:.2f} s, {summary['epochs_per_second']:.0f} epochs/s)",
+          file=dest)
+    print("  " + ", ".join(f"{k}: {v}" for k, v in sorted(summary["status"].items())),
+          file=dest)
     from robustloc.pipelines.locate import hpl_lines
 
     for line in hpl_lines(summary, "rows"):
-        print(line)
+        print(line, file=dest)
     return 0

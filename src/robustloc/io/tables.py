@@ -702,8 +702,20 @@ def validate_positions(df: pd.DataFrame, path: PathLike | None = None) -> pd.Dat
     for c, default in (("method", "unknown"), ("status", "ok")):
         if c not in df.columns:
             df[c] = default
-        else:
+        elif c == "method":
             df[c] = df[c].fillna(default).astype(str).str.strip().astype(object)
+        else:  # a status decides whether a fix is scored: an unknown one is refused, never
+            # silently counted as failed (or an empty one as usable)
+            from robustloc import status as st
+
+            df[c] = df[c].fillna("").astype(str).str.strip().astype(object)
+            bad = ~st.among(df[c].to_numpy(object), st.ALL)
+            if bad.any():
+                i = int(np.argmax(bad))
+                v = df[c].iloc[i]
+                raise InputError(
+                    ("empty status" if v == "" else f"unknown status {v[:40]!r}")
+                    + f" (one of: {', '.join(st.ALL)})", _path_of(df, path), _line_of(df, i))
     if "excluded" in df.columns:
         df["excluded"] = df["excluded"].fillna("").astype(str).astype(object)
     return df
