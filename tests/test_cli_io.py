@@ -46,6 +46,13 @@ def _fails(capsys, argv, path, line, words):
         ("empty.csv", "", 1, "empty file"),
         ("header_only.csv", "anchor,distance,rssi\n", 2, "no data rows"),
         ("ragged.csv", "anchor,distance,rssi\n1,2,-50,7\n", 2, "expected 3 fields"),
+        # outside the physical limits: fitted as if real before (A moved by 14 dB)
+        ("loud.csv", "anchor,distance,rssi\n1,2,-50\n1,3,500\n", 3,
+         "'rssi': 500 is implausible (rssi must lie in"),
+        ("far.csv", "anchor,distance,range\n1,2,2.1\n1,3,1e7\n", 3,
+         "'range': 1e+07 is implausible"),
+        ("distant.csv", "anchor,distance,range\n1,2e6,2.1\n", 2,
+         "'distance': 2e+06 is implausible (distance must lie in"),
     ],
 )
 def test_calibrate_bad_survey(tmp_path, capsys, name, text, line, words):

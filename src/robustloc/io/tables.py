@@ -631,6 +631,18 @@ def validate_survey(
         raise InputError(
             f"column 'distance': {d[i]} must be {need}", _path_of(df, path), _line_of(df, i)
         )
+    # a survey value outside the physical limits (robustloc.io.limits) is a typo or a
+    # unit mix-up, not a measurement: one such row moved a fitted A by 14 dB (locate sets
+    # such rows aside per epoch; a fit has no row to give them, so it refuses them)
+    from robustloc.io.limits import limits_for
+
+    for col, lim in ((value, limits_for(value)), ("distance", limits_for("range"))):
+        out = ~lim.check(df[col].to_numpy(dtype=float))
+        if out.any():
+            i = int(np.argmax(out))
+            raise InputError(f"column '{col}': {df[col].iloc[i]:g} is implausible "
+                             f"({lim.describe().replace(lim.name, col, 1)})",
+                             _path_of(df, path), _line_of(df, i))
     if anchors is not None:
         _check_known(df, anchors, path)
     df.attrs["value"] = value
