@@ -834,3 +834,47 @@ def test_a_failing_block_costs_only_its_failing_tag():
                                np.tile([3.0, 4.0], (12, 1)), atol=1e-6)
     assert eng.solver_errors >= 1 and "FloatingPointError: boom" in eng.last_error
     eng.stop()
+
+
+def test_track_snapshot_does_not_claim_blocks_queued_meanwhile(tmp_path):
+    """The tracker's snapshot saved the assembler's watermarks, which also count blocks the
+    ingest threads queued while the solver was busy; after a restart those epochs were
+    taken as solved and never got a row.  The snapshot now saves the epochs the processor
+    has processed: every epoch gets exactly one row across the restart."""
+    pytest.importorskip("robustloc.tracking")
+    from robustloc.service.engine import Engine
+    from robustloc.service.processor import TrackProcessor
+
+    anchors = pd.DataFrame({"anchor": ["A1", "A2", "A3", "A4"], "x": [0, 10, 10, 0.0],
+                            "y": [0, 0, 10, 10.0]})
+    xy = anchors[["x", "y"]].to_numpy(float)
+    rng = np.hypot(*(xy - [3.0, 4.0]).T)
+
+    def rows(times):
+        return [{"time": float(t), "tag": "T", "anchor": a, "range": float(r)}
+                for t in times for a, r in zip(anchors["anchor"], rng)]
+
+    store = tmp_path / "store"
+    eng = Engine(anchors, TrackProcessor(anchors), store_dir=store, latency_window_s=0.0,
+                 idle_flush_s=600.0, value="range", fsync=False, snapshot_s=0)
+    inner = eng.processor.process
+    calls = []
+
+    def busy(epochs):  # rows arrive while the solver works: epochs 2 and 3 become ready
+        if not calls:
+            eng.ingest(rows([3.0, 4.0]))
+        calls.append(epochs.n_epochs)
+        return inner(epochs)
+
+    eng.processor.process = busy
+    eng.ingest(rows([0.0, 1.0, 2.0]))  # 0 and 1 ready (window 0)
+    eng.step()  # solves 0, 1; meanwhile 2, 3 are queued
+    eng._snapshot()
+    eng.stop()  # the queued block is not solved: a crash at this point
+    assert calls == [2]
+    eng2 = Engine(anchors, TrackProcessor(anchors), store_dir=store, latency_window_s=0.0,
+                  idle_flush_s=600.0, value="range", fsync=False, snapshot_s=0)
+    eng2.flush()
+    pos = eng2.positions()
+    eng2.stop()
+    assert sorted(pos["time"].tolist()) == [0.0, 1.0, 2.0, 3.0, 4.0]

@@ -183,6 +183,9 @@ class Engine:
         self._thread: threading.Thread | None = None
         self.solver_errors = 0
         self.last_error: str | None = None
+        #: per tag, the latest epoch time the processor has processed (its state's
+        #: watermark, saved with a snapshot)
+        self._processed: dict[str, float] = {}
         self._last_snapshot = time.monotonic()
         self.recovered_rows = 0
         if self.store_dir is None:
@@ -232,6 +235,7 @@ class Engine:
                 saved = pickle.load(f)  # noqa: S301 - our own file in the store
             self.processor.load_state_dict(saved["state"])
             solved = saved["watermarks"]
+            self._processed = dict(solved)
         meas = self.meas.scan(columns=["time", "tag", "anchor", "value", "late"])
         if meas.num_rows == 0:
             return
@@ -261,9 +265,10 @@ class Engine:
         d.mkdir(exist_ok=True)
         tmp = d / "processor.pkl.tmp"
         with open(tmp, "wb") as f:
-            with self._ingest_lock:  # the tag registry grows under this lock
-                marks = self.assembler.watermarks()
-            pickle.dump({"state": state, "watermarks": marks}, f)
+            # the state's watermarks are the epochs the processor has processed, not the
+            # assembler's (which also count blocks queued meanwhile by the ingest threads:
+            # a restart would then skip them, and a tracker would never give them a row)
+            pickle.dump({"state": state, "watermarks": dict(self._processed)}, f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, d / "processor.pkl")
@@ -422,6 +427,10 @@ class Engine:
             ready_wall = row_wall[_epoch_rows(rows["time"], names.get_indexer(rows["tag"]),
                                               epochs.time, names.get_indexer(epochs.tag))]
         frame = self._process(epochs)
+        if epochs.n_epochs:
+            latest = pd.Series(epochs.time).groupby(epochs.tag).max()
+            for tag, t in latest.items():
+                self._processed[tag] = max(self._processed.get(tag, -np.inf), float(t))
         if len(frame):
             self.pos.append(pa.Table.from_pandas(frame, preserve_index=False))
         done = time.time()
