@@ -204,3 +204,38 @@ def test_filter_keeps_implausible_rssi_out_of_the_filter(tmp_path, capsys):
     assert f.loc[[100, 200], "rssi_raw"].tolist() == [-500.0, 1e300]
     assert f["rssi"].between(-150, 30).all()  # the prediction, not the absurd value
     assert np.isnan(f.loc[[100, 200], "weight"]).all()
+
+
+def test_filter_keeps_implausible_times_out_of_the_filter(tmp_path, capsys):
+    """A time of 1e300 s (or 2e12 s) passed through the filter: its prediction overflowed
+    (numpy RuntimeWarnings) and the row came out `ok` with NaN values; `locate` and `track`
+    give such rows `invalid_measurement`, and so does `filter` now, without a warning,
+    and the other rows are filtered exactly as without them."""
+    import warnings
+
+    sim = tmp_path / "room"
+    assert main(["simulate", "wifi-room", "--seed", "1", "--out", str(sim)]) == 0
+    m = pd.read_csv(sim / "measurements.csv").iloc[:400].reset_index(drop=True)
+    clean = tmp_path / "clean.csv"
+    m.to_csv(clean, index=False)
+    bad_rows = [100, 200]
+    m2 = m.copy()
+    m2.loc[100, "time"] = 1e300
+    m2.loc[200, "time"] = 2e12
+    bad = tmp_path / "m.csv"
+    m2.to_csv(bad, index=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        assert main(["filter", str(bad), "--anchors", str(sim / "anchors.csv"), "-o",
+                     str(tmp_path / "f.csv")]) == 0
+    keep = m.drop(index=bad_rows)
+    keep.to_csv(clean, index=False)
+    assert main(["filter", str(clean), "--anchors", str(sim / "anchors.csv"), "-o",
+                 str(tmp_path / "g.csv")]) == 0
+    capsys.readouterr()
+    f, g = pd.read_csv(tmp_path / "f.csv"), pd.read_csv(tmp_path / "g.csv")
+    assert len(f) == len(m)
+    assert list(f.index[f["status"] == "invalid_measurement"]) == bad_rows
+    assert f.loc[bad_rows, "rssi_raw"].tolist() == m.loc[bad_rows, "rssi"].tolist()
+    assert f.loc[bad_rows, "rssi"].isna().all()
+    pd.testing.assert_frame_equal(f.drop(index=bad_rows).reset_index(drop=True), g)

@@ -87,7 +87,8 @@ def filter_frame(meas, anchors, args: argparse.Namespace, progress: bool = False
     The single core of ``filter``: the whole file here, each tag partition under
     ``--engine dask``.  RSSI outside the physical limits (robustloc.io.limits) never
     reaches the filter: its row keeps the raw value in ``rssi_raw``, the prediction in
-    ``rssi`` and status ``invalid_measurement``.  Returns ``(frame, summary)``.
+    ``rssi`` and status ``invalid_measurement``; a row whose time is outside the limits
+    likewise (no prediction: ``rssi`` empty).  Returns ``(frame, summary)``.
     """
     import numpy as np
 
@@ -116,13 +117,26 @@ def filter_frame(meas, anchors, args: argparse.Namespace, progress: bool = False
         max_rejected=args.max_rejected,
         adaptive=not args.no_adaptive,
     )
-    res = filter_measurements(meas, anchors, filt, progress=progress)
+    # a time outside the limits (|t| >= 1e12 s) never reaches the filter either: its
+    # prediction over such a gap overflows (and would pass every later sample's state
+    # through it); the row keeps its values and gets invalid_measurement
+    late = ~LIMITS["time"].check(meas["time"].to_numpy(dtype=float))
+    res = filter_measurements(meas[~late] if late.any() else meas, anchors, filt,
+                              progress=progress)
     frame = res.frame
-    if bad.any():
+    if late.any():
+        frame = frame.reindex(meas.index)
+        for c in ("time", "tag", "anchor"):
+            frame[c] = meas[c].to_numpy()
+        frame["relocked"] = frame["relocked"].fillna(False).astype(bool)
+    if bad.any() or late.any():
         frame = frame.copy()
-        frame["rssi_raw"] = np.where(bad, raw, frame["rssi_raw"].to_numpy(dtype=float))
+        values = raw if raw is not None else meas["rssi"].to_numpy(dtype=float)
+        frame["rssi_raw"] = np.where(bad | late, values,
+                                     frame["rssi_raw"].to_numpy(dtype=float))
+    bad = bad | late
     frame["status"] = np.where(bad, st.INVALID, st.OK)
-    return frame, dict(res.summary, invalid_measurement=int(bad.sum()))
+    return frame, dict(res.summary, samples=int(len(meas)), invalid_measurement=int(bad.sum()))
 
 
 def filter_partition(meas, anchors, args: argparse.Namespace):
@@ -158,6 +172,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"filtered {s['samples']} samples on {s['links']} links ({s['filter']}): "
               f"{s['downweighted']} down-weighted, {s['rejected']} rejected, "
               f"{s['relocked']} re-locks -> {s['out']}", file=dest)
-        note = " (RSSI outside -150 .. +30 dBm, not filtered)" if s["invalid_measurement"] else ""
+        note = (" (RSSI outside -150 .. +30 dBm or time beyond +-1e12 s: not filtered)"
+                if s["invalid_measurement"] else "")
         print(f"invalid_measurement: {s['invalid_measurement']}{note}", file=dest)
     return 0
