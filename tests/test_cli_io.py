@@ -219,3 +219,21 @@ def test_filter_warns_without_path_loss(tmp_path, capsys):
     assert main(["filter", m, "--anchors", a, "-o", str(tmp_path / "f.csv")]) == 0
     err = capsys.readouterr().err
     assert err.startswith(f"warning: {a}: anchors have no path-loss parameters"), err
+
+
+def test_options_that_would_be_ignored_are_refused(tmp_path, capsys):
+    """`evaluate --baseline foo` (no such method) and `track --smooth --fixed-lag 3` (which
+    smoother?) ran as if the option were not there."""
+    t = _w(tmp_path, "t.csv", "time,tag,x,y\n0,t1,2,3\n1,t1,2,3\n")
+    p = _w(tmp_path, "p.csv", "time,tag,x,y,method,status\n0,t1,2.1,3,nls,ok\n1,t1,2.1,3,nls,ok\n")
+    _fails(capsys, ["evaluate", p, "--truth", t, "--baseline", "foo"], p, None,
+           "--baseline 'foo' is not a method of this file (methods: nls)")
+    a = _w(tmp_path, "a.csv", ANCHORS_4)
+    m = _w(tmp_path, "m.csv", RANGES_4)
+    try:  # argparse errors: exit 2, raised or returned
+        code = main(["track", m, "--anchors", a, "-o", str(tmp_path / "o.csv"), "--smooth",
+                     "--fixed-lag", "3"])
+    except SystemExit as e:
+        code = int(e.code)
+    assert code == 2 and "not allowed with argument" in capsys.readouterr().err
+    assert not (tmp_path / "o.csv").exists()

@@ -48,7 +48,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--time-tolerance", type=nonnegative_float, default=1e-6, metavar="S",
         help="largest |time difference| between a position and its truth (default 1e-6 s)",
     )
-    p.add_argument("--baseline", default="ls", help="method improvements refer to (default ls)")
+    p.add_argument("--baseline", default="ls",
+                   help="method improvements refer to (default ls, when the file has it; "
+                        "another must be one of the file's methods)")
     add_engine_arguments(p, what="the positions dataset")
 
 
@@ -65,6 +67,12 @@ def run(args: argparse.Namespace) -> int:
         table = evaluate_dataset(args)
     else:
         pos = read_positions(args.positions)
+        if args.baseline != "ls" and args.baseline not in set(pos["method"]):
+            from robustloc.errors import InputError
+
+            methods = ", ".join(sorted(set(pos["method"])))
+            raise InputError(f"--baseline {args.baseline!r} is not a method of this file "
+                             f"(methods: {methods})", args.positions)
         truth = read_truth(args.truth)
         table = error_table(pos, truth, time_tolerance_s=args.time_tolerance,
                             baseline=args.baseline)

@@ -85,9 +85,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "writes the log's sigma per anchor), or the track's covariance and "
                         "hpl will be too small (WiFi RTT corridor: 4.9 %% of the rows beyond "
                         "hpl at 0.3 m, none with the self-calibrated sigma)")
-    p.add_argument("--smooth", action="store_true", help="fixed-interval RTS smoother")
-    p.add_argument("--fixed-lag", type=positive_int, default=None, metavar="N",
-                   help="fixed-lag RTS smoother over the next N epochs of each tag")
+    smoothers = p.add_mutually_exclusive_group()  # (both at once: which one was meant?)
+    smoothers.add_argument("--smooth", action="store_true",
+                           help="fixed-interval RTS smoother")
+    smoothers.add_argument("--fixed-lag", type=positive_int, default=None, metavar="N",
+                           help="fixed-lag RTS smoother over the next N epochs of each tag")
     p.add_argument("--kernel", choices=("compiled", "numpy"), default=d.kernel,
                    help="the tracker's kernels: compiled (default) or the NumPy reference "
                         "(Tracker(engine=...); --engine chooses where the command runs)")
