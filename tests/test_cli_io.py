@@ -237,3 +237,20 @@ def test_options_that_would_be_ignored_are_refused(tmp_path, capsys):
         code = int(e.code)
     assert code == 2 and "not allowed with argument" in capsys.readouterr().err
     assert not (tmp_path / "o.csv").exists()
+
+
+@pytest.mark.parametrize(("col", "value", "words"), [
+    ("A", "1e300", "RSSI at 1 m A must lie in [-150, 30], got 1e+300"),
+    ("n", "1e-300", "path-loss exponent n must lie in [0.01, 20], got 1e-300"),
+    ("n", "50", "path-loss exponent n must lie in [0.01, 20], got 50"),
+])
+def test_absurd_path_loss_parameters_are_refused(tmp_path, capsys, col, value, words):
+    """A = 1e300 or n = 1e-300 overflowed the path-loss model (RuntimeWarnings) and left
+    every epoch `insufficient_anchors`; the anchors reader names the line instead."""
+    vals = {"A": ["-60"] * 3, "n": ["2"] * 3}
+    vals[col][1] = value
+    a = _w(tmp_path, "a.csv", "anchor,x,y,A,n\n" + "".join(
+        f"{i},{x},{y},{vals['A'][i - 1]},{vals['n'][i - 1]}\n"
+        for i, (x, y) in enumerate(((0, 0), (10, 0), (0, 10)), start=1)))
+    m = _w(tmp_path, "m.csv", "time,tag,anchor,rssi\n0,t,1,-70\n0,t,2,-70\n0,t,3,-70\n")
+    _fails(capsys, ["locate", m, "--anchors", a, "-o", str(tmp_path / "o.csv")], a, 3, words)

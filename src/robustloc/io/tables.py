@@ -546,6 +546,23 @@ def validate_anchors(df: pd.DataFrame, path: PathLike | None = None) -> pd.DataF
                 raise InputError(f"{what} must be positive, got {v[i]:g} for anchor "
                                  f"{df['anchor'].iloc[i]!r}", _path_of(df, path),
                                  _line_of(df, i))
+    # path-loss parameters far outside anything physical (a typo, a unit slip) overflowed
+    # the models silently and left every epoch without a fix: refused with their line
+    from robustloc.io.limits import limits_for
+
+    rssi = limits_for("rssi")
+    for c, what, lo, hi in (("A", "RSSI at 1 m A", rssi.low, rssi.high),
+                            ("p0", "RSSI at d0 p0", rssi.low, rssi.high),
+                            ("n", "path-loss exponent n", 0.01, 20.0),
+                            ("gamma", "path-loss exponent gamma", 0.01, 20.0)):
+        if c in df.columns:
+            v = pd.to_numeric(df[c], errors="coerce").to_numpy(dtype=float)
+            bad = ~np.isnan(v) & ~((v >= lo) & (v <= hi))
+            if bad.any():
+                i = int(np.argmax(bad))
+                raise InputError(f"{what} must lie in [{lo:g}, {hi:g}], got {v[i]:g} for "
+                                 f"anchor {df['anchor'].iloc[i]!r}", _path_of(df, path),
+                                 _line_of(df, i))
     dup = df["anchor"].duplicated().to_numpy()
     if dup.any():
         i = int(np.argmax(dup))
