@@ -113,7 +113,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="print the run summary as JSON (statuses, and hpl_histogram: the "
                         "usable rows' hpl counted in bins of 1/20 decade, key "
                         "floor(20 log10 hpl), 'inf' for unbounded ones)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress bar and no text summary (as locate)")
     add_engine_arguments(p, what="a tag-partitioned Parquet dataset")
 
 
@@ -165,6 +166,8 @@ def run(args: argparse.Namespace) -> int:
     dest = sys.stderr if writes_to_stdout(args.out) else sys.stdout
     if args.json:
         print(json.dumps(summary, indent=2), file=dest)
+        return 0
+    if args.quiet:
         return 0
     print(f"{summary['epochs']} epochs, {summary['tags']} tags -> {summary['track']} "
           f"({summary['seconds']:.2f} s, {summary['epochs_per_second']:.0f} epochs/s)",
