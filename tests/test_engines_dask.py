@@ -528,3 +528,161 @@ def test_locate_dask_places_ambiguous_fixes_as_one_process(scheduler, tmp_path):
     pd.testing.assert_frame_equal(_dataset(out), local)
     meta = json.loads((out / "_robustloc.json").read_text())
     assert meta["side_from_log"]["auto"] >= 3
+
+
+# --------------------------------------------------------------------------------------
+# outputs over inputs, and partition's checks of its input
+# --------------------------------------------------------------------------------------
+
+
+def _snapshot(folder: Path) -> dict[str, bytes]:
+    """Every file under ``folder`` (hidden ones too), by relative path, byte for byte."""
+    return {str(p.relative_to(folder)): p.read_bytes()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_dask_output_over_an_input_dataset_is_refused(sim, by_tag, scheduler, tmp_path,
+                                                      capsys):
+    """`locate|track|filter DS -o DS --engine dask` replaced the input dataset by the
+    output (exit 0, the measurements gone); so did an output holding the input, or the
+    anchors.  Refused before anything is written (exit 2), every file byte for byte."""
+    outer = tmp_path / "outer"
+    ds = outer / "ds"
+    _copy_dataset(by_tag, ds)
+    (ds / "_robustloc.json").write_text("{}\n")  # a robustloc dataset: replaceable
+    anchors = outer / "anchors.csv"
+    anchors.write_bytes(Path(sim["anchors"]).read_bytes())
+    before = _snapshot(tmp_path)
+    part = discover(ds)[0].path
+    cases = [
+        (ds, str(ds), anchors, f"error: {ds}: output would overwrite an input\n"),
+        (ds, str(ds / "."), anchors, f"error: {ds / '.'}: output would overwrite an input\n"),
+        (ds, str(outer), sim["anchors"], f"error: {outer}: output would overwrite an "
+                                         f"input (it holds {ds})\n"),
+        (ds, str(ds / "positions"), anchors,
+         f"error: {ds / 'positions'}: output would be written inside an input ({ds})\n"),
+        (f"{ds}/*/*.parquet", str(ds), anchors,
+         f"error: {ds}: output would overwrite an input (it holds {part})\n"),
+    ]
+    for cmd in ("locate", "track", "filter"):
+        for inp, out, anc, message in cases:
+            assert main([cmd, str(inp), "--anchors", str(anc), "-o", out, "--engine", "dask",
+                         "--scheduler", scheduler, "--quiet"]) == 2, (cmd, out)
+            assert capsys.readouterr().err == message, (cmd, out)
+            assert _snapshot(tmp_path) == before, (cmd, out)
+    # the anchors inside the output directory
+    pos = tmp_path / "pos"
+    pos.mkdir()
+    (pos / "_robustloc.json").write_text("{}\n")
+    (pos / "anchors.csv").write_bytes(anchors.read_bytes())
+    before = _snapshot(tmp_path)
+    assert main(["locate", str(ds), "--anchors", str(pos / "anchors.csv"), "-o", str(pos),
+                 "--engine", "dask", "--scheduler", scheduler, "--quiet"]) == 2
+    assert capsys.readouterr().err == (f"error: {pos}: output would overwrite an input (it "
+                                       f"holds {pos / 'anchors.csv'})\n")
+    assert _snapshot(tmp_path) == before
+    assert not [p for p in tmp_path.rglob("*partial*")]
+
+
+def test_partition_output_over_its_input_is_refused(tmp_path, capsys):
+    """`partition DS/tag=t1 -o DS` replaced the whole dataset by tag t1's rows (t2 gone);
+    an input that is the output, lies inside it, or holds it is refused (exit 2)."""
+    m2 = tmp_path / "m2.csv"
+    m2.write_text("time,tag,anchor,range\n0,t1,A1,3.6\n0,t2,A1,3.6\n")
+    ds = tmp_path / "ds2"
+    assert main(["partition", str(m2), "-o", str(ds), "--by", "tag"]) == 0
+    capsys.readouterr()
+    cases = [
+        (ds / "tag=t1", ds, f"output would overwrite an input (it holds {ds / 'tag=t1'})"),
+        (ds, ds, "output would overwrite an input"),
+        (ds, ds / "sub", f"output would be written inside an input ({ds})"),
+        (m2, tmp_path, f"output would overwrite an input (it holds {m2})"),
+        (ds / "raw.csv", ds, f"output would overwrite an input (it holds {ds / 'raw.csv'})"),
+    ]
+    for inp, out, message in cases:
+        if inp.name == "raw.csv":  # an input kept in the dataset folder
+            inp.write_bytes(m2.read_bytes())
+        before = _snapshot(tmp_path)
+        assert main(["partition", str(inp), "-o", str(out), "--by", "tag"]) == 2, (inp, out)
+        assert capsys.readouterr().err == f"error: {out}: {message}\n", (inp, out)
+        assert _snapshot(tmp_path) == before, (inp, out)
+    assert not [p for p in tmp_path.iterdir() if "partial" in p.name]
+
+
+def test_partition_missing_anchor_column_and_bad_memory_limit(tmp_path, capsys):
+    """A missing anchor column was a DuckDB BinderException traceback (exit 1), a bad
+    --memory-limit a ValueError traceback: both exit 2 with the message now."""
+    nocol = tmp_path / "nocol.csv"
+    nocol.write_text("time,tag,range\n0,t1,5\n")
+    assert main(["partition", str(nocol), "-o", str(tmp_path / "d1"), "--by", "tag"]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"error: {nocol}:1: input is missing column(s) anchor "
+                   "(has: time, tag, range)\n")
+    m = tmp_path / "m.csv"
+    m.write_text("time,tag,anchor,range\n0,t1,A1,3.6\n")
+    for bad in ("abc", "100", "0GB", "150%", "-1GB", "inf GB"):
+        assert main(["partition", str(m), "-o", str(tmp_path / "d2"), "--by", "tag",
+                     f"--memory-limit={bad}"]) == 2
+        err = capsys.readouterr().err
+        assert "argument --memory-limit: expected a size" in err and "Traceback" not in err
+    for good in ("500MB", "1.5GiB", "50%"):
+        assert main(["partition", str(m), "-o", str(tmp_path / "d2"), "--by", "tag",
+                     "--memory-limit", good]) == 0
+    capsys.readouterr()
+    assert not (tmp_path / "d1").exists()
+
+
+@pytest.mark.parametrize("method", ["duckdb", "dask"])
+def test_partition_refuses_the_values_locate_refuses(tmp_path, capsys, scheduler, method):
+    """An `inf` time was written as an infinite DATE (then a traceback in `locate --engine
+    dask`); NaN, empty ids and words are checked too: the same `FILE:LINE: what` as the
+    single-process reader gives, exit 2, nothing written."""
+    a = tmp_path / "a.csv"
+    a.write_text("anchor,x,y\nA1,0,0\nA2,10,0\nA3,10,10\nA4,0,10\n")
+    head = "time,tag,anchor,range\n"
+    good = "0,t1,A1,7\n0,t1,A2,7\n"
+    cases = {
+        "inf_time.csv": (head + "inf,t1,A1,7\ninf,t1,A2,7\ninf,t1,A3,7\n", 2,
+                         "column 'time': infinite value inf"),
+        "nan_range.csv": (head + good + "1,t1,A1,nan\n", 4, "column 'range': missing or NaN"),
+        "word_range.csv": (head + good + "1,t1,A1,far\n", 4, "column 'range': 'far' is not"),
+        "empty_tag.csv": (head + good + "1,,A1,7\n", 4, "column 'tag': empty id"),
+        "neg_inf_time.csv": (head + good + "-inf,t1,A1,7\n", 4,
+                             "column 'time': infinite value -inf"),
+    }
+    extra = ["--scheduler", scheduler] if method == "dask" else []
+    for name, (text, line, words) in cases.items():
+        f = tmp_path / name
+        f.write_text(text)
+        for by in ("tag", "time"):
+            out = tmp_path / f"ds-{name}-{by}"
+            assert main(["partition", str(f), "-o", str(out), "--by", by,
+                         "--method", method, *extra]) == 2, (name, by)
+            err = capsys.readouterr().err
+            assert err.startswith(f"error: {f}:{line}: {words}"), (name, err)
+            assert not out.exists() and not list(tmp_path.glob(f".{out.name}.partial-*"))
+        # the single-process reader says the same
+        assert main(["locate", str(f), "--anchors", str(a), "-o", str(tmp_path / "p.csv"),
+                     "--quiet"]) == 2
+        assert capsys.readouterr().err == err, name
+
+
+def test_dask_engine_on_a_dataset_with_a_date_time_column(sim, scheduler, tmp_path, capsys):
+    """A dataset written by the old `partition` from `inf` times (an infinite date32
+    column) gave an OverflowError traceback in the planner: exit 2 naming the file."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    ds = tmp_path / "dsi"
+    (ds / "tag=t1").mkdir(parents=True)
+    f = ds / "tag=t1" / "part-0.parquet"
+    days = pa.array([2**31 - 1] * 3, pa.int32()).cast(pa.date32())
+    pq.write_table(pa.table({"time": days, "tag": ["t1"] * 3, "anchor": ["AP1", "AP2", "AP3"],
+                             "rssi": [-50.0] * 3}), f)
+    for cmd in ("locate", "track", "filter"):
+        out = tmp_path / f"o-{cmd}"
+        assert main([cmd, str(ds), "--anchors", str(sim["anchors"]), "-o", str(out),
+                     "--engine", "dask", "--scheduler", scheduler, "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"error: {f}:1: column 'time' holds date32[day] values"), err
+        assert not out.exists()

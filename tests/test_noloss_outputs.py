@@ -374,3 +374,140 @@ def test_an_interrupt_a_library_wrapped_is_still_an_interrupt(monkeypatch, capsy
     assert main(["locate", "m.csv", "--anchors", "a.csv", "-o", "p.csv"]) == code
     err = capsys.readouterr().err
     assert err == f"error: {word}\n"
+
+
+# ------------------------------------------------------------------ folder outputs over inputs
+
+
+def test_stats_folder_never_replaces_an_input_of_the_same_name(tmp_path, capsys):
+    """`stats st/per_anchor.csv -o st` replaced its input by the table of the same name
+    (exit 0): refused, exit 2, the input byte for byte, nothing moved into the folder."""
+    st = tmp_path / "st"
+    st.mkdir()
+    inp = st / "per_anchor.csv"
+    inp.write_text("time,tag,anchor,rssi\n0,t,A1,-50\n1,t,A1,-52\n2,t,A1,-51\n")
+    before = inp.read_bytes()
+    assert main(["stats", str(inp), "-o", str(st)]) == 2
+    assert capsys.readouterr().err == f"error: {inp}: output would overwrite an input\n"
+    assert inp.read_bytes() == before
+    assert sorted(p.name for p in st.iterdir()) == ["per_anchor.csv"]
+    assert [p.name for p in tmp_path.iterdir() if p.name.endswith(".tmp")] == []
+    # the same through another spelling of the folder and a symbolic link to the input
+    os.symlink(inp, tmp_path / "link.csv")
+    assert main(["stats", str(tmp_path / "link.csv"), "-o", str(st / ".")]) == 2
+    assert "output would overwrite an input" in capsys.readouterr().err
+    assert inp.read_bytes() == before
+    # an input elsewhere is fine
+    other = tmp_path / "m.csv"
+    other.write_bytes(before)
+    assert main(["stats", str(other), "-o", str(tmp_path / "st2")]) == 0
+    capsys.readouterr()
+
+
+def test_reliability_folder_never_replaces_its_anchors(small, capsys):
+    rel = small / "rel"
+    rel.mkdir()
+    anchors = rel / "reliability.csv"
+    anchors.write_text(ANCHORS)
+    before = anchors.read_bytes()
+    assert main(["reliability", "--anchors", str(anchors), "-o", str(rel), "--no-maps"]) == 2
+    assert capsys.readouterr().err == f"error: {anchors}: output would overwrite an input\n"
+    assert anchors.read_bytes() == before
+    assert sorted(p.name for p in rel.iterdir()) == ["reliability.csv"]
+    # --candidates is an input too
+    cand = rel / "suggestions.csv"
+    cand.write_text("x,y\n5,5\n15,15\n")
+    cbefore = cand.read_bytes()
+    assert main(["reliability", "--anchors", str(small / "a.csv"), "-o", str(rel),
+                 "--no-maps", "--suggest", "--candidates", str(cand), "--step", "2"]) == 2
+    assert capsys.readouterr().err == f"error: {cand}: output would overwrite an input\n"
+    assert cand.read_bytes() == cbefore and anchors.read_bytes() == before
+
+
+def test_write_folder_checks_every_file_before_moving_any(tmp_path):
+    from robustloc.commands._folder import write_folder
+
+    out = tmp_path / "out"
+    out.mkdir()
+    keep = out / "b.csv"
+    keep.write_text("input\n")
+    os.link(keep, tmp_path / "hard.csv")  # the input by another name (a hard link)
+
+    def write(folder: Path) -> str:
+        (folder / "a.csv").write_text("new a\n")  # sorted first: would be moved first
+        (folder / "b.csv").write_text("new b\n")
+        return "done"
+
+    with pytest.raises(InputError, match="output would overwrite an input") as ei:
+        write_folder(out, write, [tmp_path / "hard.csv", None])
+    assert ei.value.path == str(out / "b.csv")
+    assert sorted(p.name for p in out.iterdir()) == ["b.csv"]
+    assert keep.read_text() == "input\n"
+    assert write_folder(out, write, [tmp_path / "elsewhere.csv"]) == "done"
+    assert keep.read_text() == "new b\n"
+
+
+# ------------------------------------------------------------------ compressed outputs
+
+
+def test_gz_output_is_gzip_for_every_writer(small, capsys):
+    """`-o X.csv.gz` wrote plain CSV under a .gz name (`evaluate` then failed "Not a
+    gzipped file"): locate (streamed), track, filter and evaluate write gzip now, read
+    back equal to the plain output; no temporary file is left."""
+    import gzip
+
+    base = ["--anchors", str(small / "a.csv"), "--quiet"]
+    m = str(small / "m.csv")
+    assert main(["locate", m, *base, "-o", str(small / "p.csv"), "--method", "ls"]) == 0
+    assert main(["locate", m, *base, "-o", str(small / "p.csv.gz"), "--method", "ls",
+                 "--chunk-rows", "40"]) == 0
+    assert main(["track", m, *base, "-o", str(small / "t.csv")]) == 0
+    assert main(["track", m, *base, "-o", str(small / "t.csv.gz")]) == 0
+    assert main(["track", m, *base, "-o", str(small / "ts.csv.gz"), "--smooth"]) == 0
+    capsys.readouterr()
+    for name in ("p.csv.gz", "t.csv.gz", "ts.csv.gz"):
+        raw = (small / name).read_bytes()
+        assert raw[:2] == b"\x1f\x8b", name
+        assert gzip.decompress(raw).startswith(b"time,tag,x,y"), name
+    assert gzip.decompress((small / "p.csv.gz").read_bytes()) == (small / "p.csv").read_bytes()
+    assert gzip.decompress((small / "t.csv.gz").read_bytes()) == (small / "t.csv").read_bytes()
+    pd.testing.assert_frame_equal(read_positions(small / "p.csv.gz"),
+                                  read_positions(small / "p.csv"))
+    truth = small / "truth.csv"
+    truth.write_text("time,tag,x,y\n" + "".join(f"{0.5 * k},T0,10,10\n" for k in range(50)))
+    assert main(["evaluate", str(small / "p.csv.gz"), "--truth", str(truth),
+                 "-o", str(small / "e.csv.gz")]) == 0
+    capsys.readouterr()
+    assert gzip.decompress((small / "e.csv.gz").read_bytes()).startswith(b"tag,")
+    write_table(pd.DataFrame({"a": [1.5, 2.5]}), small / "w.csv.gz")
+    assert pd.read_csv(small / "w.csv.gz")["a"].tolist() == [1.5, 2.5]
+    _no_temp_left(small)
+
+
+@pytest.mark.parametrize("suffix", [".bz2", ".xz", ".zip", ".zst"])
+def test_compressed_names_the_readers_cannot_read_back_are_refused(small, capsys, suffix):
+    out = small / f"p.csv{suffix}"
+    assert main(["locate", str(small / "m.csv"), "--anchors", str(small / "a.csv"),
+                 "-o", str(out), "--method", "ls", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {out}: cannot write {suffix} compressed output"), err
+    assert not out.exists()
+    _no_temp_left(small)
+
+
+def test_gz_output_interrupted_while_compressing_leaves_nothing(tmp_path, monkeypatch):
+    """An error while compressing: no file at the final path (or the previous one intact)
+    and neither temporary file left."""
+    import shutil
+
+    out = tmp_path / "p.csv.gz"
+    out.write_bytes(b"previous")
+
+    def boom(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(shutil, "copyfileobj", boom)
+    with pytest.raises(KeyboardInterrupt):
+        write_table(pd.DataFrame({"a": [1]}), out)
+    assert out.read_bytes() == b"previous"
+    _no_temp_left(tmp_path)

@@ -2,31 +2,59 @@
 
 Commands that write several files into an output folder build them in a temporary folder
 beside it and move them in only when every file is complete, so an error or an interrupt
-never leaves a half-written folder behind.
+never leaves a half-written folder behind, and a file of the folder that is one of the
+command's inputs is never replaced.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import os
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TypeVar
 
 T = TypeVar("T")
 
 
-def write_folder(out: Path, write: Callable[[Path], T]) -> T:
-    """Run ``write(folder)`` on a fresh temporary folder beside ``out``, then move its files
-    into ``out`` (created if missing); returns what ``write`` returned.  After an error
-    nothing is left behind: neither the temporary folder nor a new ``out`` (files already in
-    an existing ``out`` stay as they were).
+def write_folder(out: Path, write: Callable[[Path], T],
+                 inputs: Iterable[str | os.PathLike | None] = ()) -> T:
+    """Write files into the folder ``out``, whole or not at all.
+
+    Runs ``write(folder)`` on a fresh temporary folder beside ``out``, then moves its files
+    into ``out`` (created if missing).  After an error nothing is left behind: neither the
+    temporary folder nor a new ``out`` (files already in an existing ``out`` stay as they
+    were).
+
+    Parameters
+    ----------
+    out : Path
+        The output folder.
+    write : callable
+        ``write(folder)`` writes the files (no sub-folders) into ``folder``.
+    inputs : iterable of path, optional
+        The command's input files (None entries are skipped).  A file ``write`` made that
+        would replace one of them (the same file, by :func:`robustloc.io.atomic.
+        check_not_input`: a path, a symbolic or a hard link) is refused before any file is
+        moved.
+
+    Returns
+    -------
+    What ``write`` returned.
+
+    Raises
+    ------
+    InputError
+        ``out`` is a file; or ``OUT/NAME: output would overwrite an input`` (nothing
+        moved, ``out`` untouched).
     """
-    import os
     import shutil
     import tempfile
 
     from robustloc.errors import InputError
+    from robustloc.io.atomic import check_not_input
 
     out = Path(out)
+    inputs = [i for i in inputs if i is not None]
     if out.exists() and not out.is_dir():
         raise InputError("already exists and is not a folder (a folder was expected)", out)
     parent = out.parent if str(out.parent) else Path(".")
@@ -34,10 +62,13 @@ def write_folder(out: Path, write: Callable[[Path], T]) -> T:
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))
     try:
         result = write(tmp)
-        if any(p.is_dir() for p in tmp.iterdir()):
+        files = sorted(tmp.iterdir())
+        if any(p.is_dir() for p in files):
             raise RuntimeError("write_folder moves files only, not sub-folders")
+        for f in files:  # every target checked before the first move
+            check_not_input(out / f.name, inputs)
         out.mkdir(exist_ok=True)
-        for f in sorted(tmp.iterdir()):
+        for f in files:
             os.replace(f, out / f.name)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

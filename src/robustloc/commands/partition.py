@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 
 NAME = "partition"
 HELP = "repartition big measurements (CSV/Parquet, any order) by tag or time, out of core"
@@ -43,8 +44,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="--by tag: hash the tags into N buckets (default 0: one per tag)")
     p.add_argument("--method", choices=METHODS, default="duckdb",
                    help="duckdb (default, measured faster) or dask (a shuffle)")
-    p.add_argument("--memory-limit", default="2GB",
-                   help="DuckDB memory limit before spilling to disk (default 2GB)")
+    p.add_argument("--memory-limit", type=memory_size, default="2GB", metavar="SIZE",
+                   help="DuckDB memory limit before spilling to disk, e.g. 500MB, 2GB, "
+                        "1.5GiB or 50%% of the RAM (default 2GB)")
     p.add_argument("--threads", type=positive_int, default=None,
                    help="DuckDB threads (default: the cores available)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
@@ -52,6 +54,30 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=positive_int, default=None, metavar="N",
                    help="--method dask without --scheduler: LocalCluster workers")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+
+_SIZE = re.compile(r"^\s*(\d+(\.\d*)?|\.\d+)\s*(KB|MB|GB|TB|KIB|MIB|GIB|TIB|%)\s*$",
+                   re.IGNORECASE)
+
+
+def memory_size(text: str) -> str:
+    """``--memory-limit``: a positive size with its unit (``500MB``, ``2GB``, ``1.5GiB``)
+    or a share of the RAM (``50%``), as DuckDB's ``memory_limit`` takes it.
+
+    Raises
+    ------
+    argparse.ArgumentTypeError
+        Anything else (``abc``, ``100`` without a unit, ``0GB``, ``150%``).
+    """
+    m = _SIZE.match(text)
+    ok = m is not None and 0 < float(m.group(1)) < float("inf")
+    if ok and m.group(3) == "%":
+        ok = float(m.group(1)) <= 100
+    if not ok:
+        raise argparse.ArgumentTypeError(
+            f"expected a size with its unit such as 500MB, 2GB or 1.5GiB, or a share of "
+            f"the RAM such as 50%, got {text!r}")
+    return text.strip()
 
 
 def run(args: argparse.Namespace) -> int:

@@ -173,7 +173,8 @@ def run(args: argparse.Namespace) -> int:
         maps = plot_maps(grid, xyz, folder, [str(a) for a in df["anchor"]], highlight=best)
         return [out / Path(m).name for m in maps]
 
-    pngs = write_folder(out, write)
+    # an input named like an output (rel/reliability.csv as --anchors) is refused
+    pngs = write_folder(out, write, [args.anchors, args.candidates])
     t = grid.table
     summary = {
         "anchors": int(len(xyz)),

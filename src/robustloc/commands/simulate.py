@@ -62,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
         files = mods[args.scenario].simulate(folder, args.seed, args)
         return {k: out / Path(v).name for k, v in files.items()}
 
-    files = write_folder(out, write)  # whole or not at all
+    files = write_folder(out, write, inputs=())  # whole or not at all; reads no file
     if args.json:
         print(json.dumps({k: str(v) for k, v in files.items()}, indent=2))
     else:

@@ -76,7 +76,8 @@ def run(args: argparse.Namespace) -> int:
 
     from robustloc.commands._folder import write_folder
 
-    write_folder(out, write)
+    # a file of the folder that is an input (stats -o . on ./per_anchor.csv) is refused
+    write_folder(out, write, [args.measurements, args.anchors, args.truth])
     if args.json:
         print(json.dumps(summary, indent=2))
         return 0

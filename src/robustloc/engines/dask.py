@@ -27,15 +27,17 @@ directory at the same paths (a shared filesystem on a real cluster).
 from __future__ import annotations
 
 import argparse
+import glob
 import io
 import json
+import os
 import shutil
 import sys
 import tempfile
 import threading
 import time as _time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
@@ -77,10 +79,20 @@ class DatasetOutput:
         The dataset directory.  An existing robustloc dataset (it holds
         ``_robustloc.json``) or empty directory is replaced on :meth:`commit`; a file, or a
         non-empty directory that is not a robustloc dataset, is refused (exit 2).
+    inputs : iterable of path, optional
+        The run's inputs (datasets, their partition files, anchors; see
+        :func:`input_paths`).  An ``out`` that is an input, holds one or lies inside one
+        is refused before anything is written
+        (:func:`robustloc.io.atomic.check_not_input_tree`): replacing it would delete
+        the input.
     """
 
-    def __init__(self, out: str | Path) -> None:
+    def __init__(self, out: str | Path,
+                 inputs: Iterable[str | os.PathLike | None] = ()) -> None:
+        from robustloc.io.atomic import check_not_input_tree
+
         self.out = Path(out)
+        check_not_input_tree(self.out, inputs)
         if self.out.exists():
             if not self.out.is_dir():
                 raise InputError("exists and is a file; --engine dask writes a dataset "
@@ -110,6 +122,30 @@ class DatasetOutput:
     def abort(self) -> None:
         """Remove the staging directory."""
         shutil.rmtree(self.stage, ignore_errors=True)
+
+
+def input_paths(spec: str | os.PathLike | None, parts: Iterable[Partition] = (),
+                *others: str | os.PathLike | None) -> list[str]:
+    """The paths a run reads, for :class:`DatasetOutput`'s output-over-input check.
+
+    Parameters
+    ----------
+    spec : str or PathLike, optional
+        A dataset (directory, file or glob: a glob gives the paths it matches).
+    parts : iterable of Partition
+        Its partition files.
+    *others : str or PathLike, optional
+        Further input files (anchors, navigation files); None is skipped.
+    """
+    out: list[str] = []
+    if spec is not None:
+        s = str(spec)
+        out.append(s)
+        if not os.path.exists(s) and glob.has_magic(s):
+            out += sorted(glob.glob(s, recursive=True))
+    out += [p.path for p in parts]
+    out += [str(o) for o in others if o is not None]
+    return out
 
 
 def _settings(args: argparse.Namespace) -> dict:
@@ -232,7 +268,8 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
                   input_attr: str, name: str) -> int:
     t0 = _time.perf_counter()
     parts = discover(getattr(args, input_attr), what="measurements dataset")
-    out = DatasetOutput(args.out)
+    out = DatasetOutput(args.out, input_paths(getattr(args, input_attr), parts,
+                                              getattr(args, "anchors", None)))
     try:
         with dask_client(args.scheduler, args.workers) as client:
             infos = _plan_infos(client, parts, ("time", "tag", "anchor"), False,
@@ -398,7 +435,8 @@ def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
     """
     t0 = _time.perf_counter()
     parts = discover(getattr(args, input_attr), what="measurements dataset")
-    out = DatasetOutput(args.out)
+    out = DatasetOutput(args.out, input_paths(getattr(args, input_attr), parts,
+                                              getattr(args, "anchors", None)))
     try:
         with dask_client(args.scheduler, args.workers) as client:
             infos = _plan_infos(client, parts, ("time", "tag", "anchor"), False)
@@ -501,7 +539,7 @@ def run_spp(args: argparse.Namespace, run: Callable[[argparse.Namespace], int]) 
         if f is not None and not Path(f).is_file():
             raise FileNotFoundError(2, "file not found", f)
     parts = discover(args.obs, parquet=False, what="observation files")
-    out = DatasetOutput(args.out)
+    out = DatasetOutput(args.out, input_paths(args.obs, parts, *args.nav, args.sp3, args.clk))
     try:
         with dask_client(args.scheduler, args.workers) as client:
             n_workers = len(client.scheduler_info()["workers"])

@@ -182,6 +182,8 @@ def inspect(part: Partition, need: tuple[str, ...] = ("time", "tag"),
             f"partition is missing column(s) {', '.join(missing)} (has: {', '.join(cols)})",
             part.path, 1,
         )
+    if "time" in cols:
+        _check_time_type(pf.schema_arrow.field("time").type, part.path)
     n = pf.metadata.num_rows
     tmin, tmax = np.inf, -np.inf
     if "time" in cols and n:
@@ -215,6 +217,29 @@ def inspect(part: Partition, need: tuple[str, ...] = ("time", "tag"),
     return PartitionInfo(part, n, cols, tmin, tmax, tagset)
 
 
+def _check_time_type(t: object, path: str) -> None:
+    """Refuse a ``time`` column the readers cannot turn into seconds: dates (an ``inf``
+    that DuckDB sniffed as an infinite date, in a dataset written by an older ``robustloc
+    partition``), times of day, booleans, nested values.  Numbers, numbers as text,
+    timestamps and durations pass (the reader converts them, and names a bad row).
+
+    Raises
+    ------
+    InputError
+        ``PARTITION:1: column 'time' holds TYPE values, expected numbers (seconds)``.
+    """
+    import pyarrow as pa
+
+    if isinstance(t, pa.DictionaryType):
+        t = t.value_type
+    ok = (pa.types.is_integer(t) or pa.types.is_floating(t) or pa.types.is_decimal(t)
+          or pa.types.is_timestamp(t) or pa.types.is_duration(t) or pa.types.is_string(t)
+          or pa.types.is_large_string(t) or pa.types.is_null(t))
+    if not ok:
+        raise InputError(f"column 'time' holds {t} values, expected numbers (seconds); "
+                         "repartition the input", path, 1)
+
+
 #: Rows per batch when the planner reads a partition's columns (bounded memory).
 _PLAN_BATCH_ROWS = 1 << 20
 
@@ -233,7 +258,7 @@ def _time_range_from_statistics(pf: object) -> tuple[float, float] | None:
             return None
         try:
             lo, hi = min(lo, float(st.min)), max(hi, float(st.max))
-        except (TypeError, ValueError):
+        except Exception:  # noqa: BLE001 - not numbers (an infinite date overflows)
             return None
     if not (np.isfinite(lo) and np.isfinite(hi)):
         return None

@@ -20,11 +20,18 @@ Two engines, measured by ``benchmarks/bench_dask.py`` (the default is the faster
   to_parquet(partition_on=key)`` on a dask cluster.
 
 Ids (``tag``, ``anchor``) are read as text, so ``007`` stays ``007``.
+
+The input is checked before anything is written, as the commands' readers check a file
+(``time``, ``tag`` and ``anchor`` columns; no empty id; ``time``, ``rssi`` and ``range``
+numbers, not missing, NaN or infinite): a bad row is ``error: FILE:LINE: what``, found by
+one DuckDB scan and located by the project's reader.  The output directory must not be an
+input, hold one or lie inside one (it is replaced whole).
 """
 
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import time as _time
 from dataclasses import dataclass
@@ -35,6 +42,13 @@ from robustloc.errors import InputError
 
 BY = ("tag", "time")
 METHODS = ("duckdb", "dask")
+#: Columns every input must have: the sort within a file is by time, tag, anchor.
+REQUIRED = ("time", "tag", "anchor")
+#: Columns read as numbers (and checked finite), and as ids (checked non-empty).
+NUMERIC = ("time", "rssi", "range")
+IDS = ("tag", "anchor")
+_NUMERIC_TYPE = re.compile(r"^(U?(TINY|SMALL|BIG|HUGE)?INT(EGER)?|FLOAT|DOUBLE|REAL"
+                           r"|DECIMAL(\(.*\))?)$", re.IGNORECASE)
 
 
 @dataclass(frozen=True)
@@ -68,8 +82,18 @@ def _sql_str(s: str) -> str:
     return "'" + s.replace("'", "''") + "'"
 
 
+def _q(name: str) -> str:
+    """A quoted SQL identifier."""
+    return '"' + name.replace('"', '""') + '"'
+
+
 def _source(con, files: list[str], fmt: str, spec: str) -> tuple[str, list[str]]:
-    """DuckDB's table function over the input and its column names; ids read as text."""
+    """DuckDB's table function over the input and its column names; ids read as text.
+
+    A CSV column of :data:`NUMERIC` that DuckDB's sniffer did not type as a number (``inf``
+    is sniffed as an infinite DATE, a stray word as VARCHAR) is read as DOUBLE, so that
+    the check of :func:`_stats` sees numbers (or fails on the row that is not one).
+    """
     import duckdb
 
     lst = "[" + ", ".join(_sql_str(f) for f in files) + "]"
@@ -78,13 +102,42 @@ def _source(con, files: list[str], fmt: str, spec: str) -> tuple[str, list[str]]
     else:
         src = f"read_parquet({lst}, union_by_name=true"
     try:
-        names = [r[0] for r in con.execute(f"DESCRIBE SELECT * FROM {src})").fetchall()]
+        described = con.execute(f"DESCRIBE SELECT * FROM {src})").fetchall()
     except duckdb.Error as exc:
         raise InputError(f"cannot read: {str(exc).splitlines()[0]}", spec) from None
-    ids = [c for c in ("tag", "anchor") if c in names]
-    if fmt == "csv" and ids:
-        src += ", types={" + ", ".join(f"'{c}': 'VARCHAR'" for c in ids) + "}"
+    names = [r[0] for r in described]
+    if fmt == "csv":
+        types = {c: "VARCHAR" for c in IDS if c in names}
+        types.update({r[0]: "DOUBLE" for r in described
+                      if r[0] in NUMERIC and not _NUMERIC_TYPE.match(str(r[1]))})
+        if types:
+            src += ", types={" + ", ".join(f"{_sql_str(c)}: {_sql_str(t)}"
+                                           for c, t in types.items()) + "}"
     return src + ")", names
+
+
+def _first_bad_row(files: list[str], names: list[str]) -> InputError | None:
+    """The first row, in file order, that the commands' reader refuses (a missing,
+    non-numeric, NaN or infinite number, an empty id), as its ``FILE:LINE`` error; None
+    if the reader accepts every row.  Streamed (bounded memory); only run once the DuckDB
+    scan found a bad value."""
+    from robustloc.io.tables import _ids, _iter_raw, _numeric
+
+    numeric = [c for c in NUMERIC if c in names]
+    ids = [c for c in IDS if c in names]
+    for f in files:
+        try:
+            for chunk in _iter_raw(f, 200_000, IDS):
+                chunk = chunk.copy()
+                for c in ids:
+                    if c in chunk.columns:
+                        _ids(chunk, c, f)
+                for c in numeric:
+                    if c in chunk.columns:
+                        _numeric(chunk, c, f)
+        except InputError as exc:
+            return exc
+    return None
 
 
 def partition_dataset(
@@ -128,14 +181,18 @@ def partition_dataset(
         raise ValueError(f"--span must be a positive number of seconds, got {span_s}")
     if rows_per_partition < 1 or buckets < 0:
         raise ValueError("--rows-per-partition must be >= 1 and --buckets >= 0")
+    from robustloc.engines.dask import input_paths
+
     t0 = _time.perf_counter()
     files, fmt = _inputs(source)
-    dest = DatasetOutput(out)
+    # the output replaces a whole directory: never one that is, holds or lies in an input
+    dest = DatasetOutput(out, input_paths(source, (), *files))
     try:
         if method == "duckdb":
             rows, span, key = _duckdb(files, fmt, dest.stage, by, span_s, rows_per_partition,
                                       buckets, memory_limit, threads, source)
         else:
+            _check_with_duckdb(files, fmt, dest.stage, memory_limit, threads, source)
             rows, span, key = _dask(files, fmt, dest.stage, by, span_s, rows_per_partition,
                                     buckets, scheduler, workers, source)
         n_files = sum(1 for _ in dest.stage.rglob("*.parquet"))
@@ -158,23 +215,83 @@ def _key_expr(by: str, buckets: int, t0: float, span: float | None) -> tuple[str
                        "VARCHAR), 6, '0')"
 
 
-def _stats(con, src: str, names: list[str], spec: str, by: str) -> tuple[int, float, float]:
+def _stats(con, src: str, names: list[str], spec: str, files: list[str]
+           ) -> tuple[int, float, float]:
+    """Rows and time range of the input, after checking it as the commands' reader does.
+
+    One scan counts, per column, the values the reader refuses (:data:`NUMERIC`: missing,
+    NaN or infinite; :data:`IDS`: missing or empty); if any, :func:`_first_bad_row`
+    names the first such row with its line.
+
+    Raises
+    ------
+    InputError
+        A missing column (line 1), a bad value (``FILE:LINE``), no data rows.
+    """
     import duckdb
 
-    need = ["time", "tag"] if by == "tag" else ["time"]
-    missing = [c for c in need if c not in names]
+    missing = [c for c in REQUIRED if c not in names]
     if missing:
         raise InputError(f"input is missing column(s) {', '.join(missing)} "
                          f"(has: {', '.join(names)})", spec, 1)
+    checks = [(c, f"{_q(c)} IS NULL OR NOT isfinite(CAST({_q(c)} AS DOUBLE))",
+               "missing, NaN or infinite value(s)") for c in NUMERIC if c in names]
+    checks += [(c, f"{_q(c)} IS NULL OR trim(CAST({_q(c)} AS VARCHAR)) = ''",
+                "empty id(s)") for c in IDS if c in names]
+    counts = ", ".join(f"count(*) FILTER (WHERE {cond})" for _, cond, _ in checks)
     try:
-        n, tmin, tmax = con.execute(
-            f"SELECT count(*), min(CAST(time AS DOUBLE)), max(CAST(time AS DOUBLE)) FROM {src}"
+        n, tmin, tmax, *bad = con.execute(
+            f"SELECT count(*), min(CAST(time AS DOUBLE)), max(CAST(time AS DOUBLE)), "
+            f"{counts} FROM {src}"
         ).fetchone()
-    except duckdb.Error as exc:
+    except duckdb.Error as exc:  # a value that is not a number: the reader names its line
+        found = _first_bad_row(files, names)
+        if found is not None:
+            raise found from None
         raise InputError(f"column 'time': {str(exc).splitlines()[0]}", spec) from None
+    for (col, _, what), k in zip(checks, bad):
+        if k:
+            found = _first_bad_row(files, names)
+            if found is not None:
+                raise found from None
+            raise InputError(f"column '{col}': {k} {what}", spec)
     if not n:
         raise InputError("input has no data rows", spec, 2)
     return int(n), float(tmin), float(tmax)
+
+
+def _connect(memory_limit: str, threads: int | None, tmp: Path):
+    """A DuckDB connection with the memory limit, threads and spill directory."""
+    import duckdb
+
+    from robustloc.engines.cluster import machine_cores
+
+    con = duckdb.connect()
+    try:
+        try:
+            con.execute(f"SET memory_limit={_sql_str(memory_limit)}")
+        except duckdb.Error:
+            raise InputError(f"--memory-limit: expected a size such as 2GB or 500MB, got "
+                             f"{memory_limit!r}") from None
+        con.execute(f"SET threads={int(threads or machine_cores())}")
+        con.execute(f"SET temp_directory={_sql_str(str(tmp))}")
+    except BaseException:
+        con.close()
+        raise
+    return con
+
+
+def _check_with_duckdb(files: list[str], fmt: str, stage: Path, memory_limit: str,
+                       threads: int | None, spec: str) -> None:
+    """``method="dask"``: the input checked by :func:`_stats` first (one DuckDB scan)."""
+    tmp = stage / ".duckdb-tmp"
+    con = _connect(memory_limit, threads, tmp)
+    try:
+        src, names = _source(con, files, fmt, spec)
+        _stats(con, src, names, spec, files)
+    finally:
+        con.close()
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _auto_span(n: int, tmin: float, tmax: float, span_s: float | None, rows: int) -> float:
@@ -189,20 +306,11 @@ def _duckdb(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, me
             threads, spec) -> tuple[int, float | None, str]:
     import duckdb
 
-    from robustloc.engines.cluster import machine_cores
-
-    con = duckdb.connect()
+    tmp = stage / ".duckdb-tmp"
+    con = _connect(memory_limit, threads, tmp)
     try:
-        try:
-            con.execute(f"SET memory_limit={_sql_str(memory_limit)}")
-        except duckdb.Error:
-            raise ValueError(f"--memory-limit: expected a size such as 2GB or 500MB, got "
-                             f"{memory_limit!r}") from None
-        con.execute(f"SET threads={int(threads or machine_cores())}")
-        tmp = stage / ".duckdb-tmp"
-        con.execute(f"SET temp_directory={_sql_str(str(tmp))}")
         src, names = _source(con, files, fmt, spec)
-        n, tmin, tmax = _stats(con, src, names, spec, by)
+        n, tmin, tmax = _stats(con, src, names, spec, files)
         span = _auto_span(n, tmin, tmax, span_s, rows_per_partition) if by == "time" else None
         key, expr = _key_expr(by, buckets, tmin, span)
         raw = stage / ".unsorted"
@@ -248,8 +356,7 @@ def _dask(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, sche
             ddf = dd.read_csv(files, dtype={"tag": str, "anchor": str}, blocksize="64MB")
         else:
             ddf = dd.read_parquet(files, split_row_groups=True)  # a task per row group
-        need = ["time", "tag"] if by == "tag" else ["time"]
-        missing = [c for c in need if c not in ddf.columns]
+        missing = [c for c in REQUIRED if c not in ddf.columns]
         if missing:
             raise InputError(f"input is missing column(s) {', '.join(missing)}", spec, 1)
         n = int(ddf.shape[0].compute())

@@ -16,8 +16,18 @@ Targets that are not regular files cannot be replaced atomically and are written
 ``/dev/full``) and FIFOs.  :func:`writes_to_stdout` tells a command that its data go to
 standard output, so that it prints its summary on stderr instead.
 
+A final name ending in ``.gz`` is written gzip-compressed, whatever wrote the temporary
+file (the writers write plain CSV; the readers decompress gzip): the complete temporary
+file is compressed into a second temporary file, which is renamed into place.  Names of
+compressions the readers cannot read back (``.bz2``, ``.xz``, ``.zip``, ``.zst``) are
+refused before anything is written.
+
 An OS error while writing (``ENOSPC``, ``EROFS``, a parent that is a file) is raised as
 :class:`~robustloc.errors.OutputError` naming the final path, never as a bare ``OSError``.
+
+:func:`check_not_input` refuses an output file that is an input;
+:func:`check_not_input_tree` refuses an output directory (a dataset) that is an input,
+holds one, or lies inside one -- replacing the directory would delete the input.
 """
 
 from __future__ import annotations
@@ -40,6 +50,7 @@ __all__ = [
     "STDIO",
     "atomic_output",
     "check_not_input",
+    "check_not_input_tree",
     "describe_oserror",
     "is_stdio",
     "writes_to_stdout",
@@ -137,6 +148,118 @@ def check_not_input(out: PathLike | None, inputs: Iterable[PathLike | None]) -> 
             raise InputError("output would overwrite an input", out)
 
 
+def _stat_id(p: Path) -> tuple[int, int] | None:
+    try:
+        st = os.stat(p)
+    except (OSError, ValueError):
+        return None
+    return st.st_dev, st.st_ino
+
+
+def _resolved(p: Path) -> Path:
+    try:
+        return p.resolve()
+    except (OSError, RuntimeError):  # a symlink loop
+        return Path(os.path.abspath(p))
+
+
+def check_not_input_tree(out: PathLike | None, inputs: Iterable[PathLike | None]) -> None:
+    """Refuse an output directory that is an input, holds an input, or lies inside one.
+
+    For outputs written as a whole directory (``--engine dask`` datasets, ``partition``),
+    which replace ``out`` on success: an input at ``out`` or below it would be deleted, and
+    an ``out`` inside an input dataset would add its files to that dataset.  Paths are
+    compared resolved (symbolic links, ``..``) and by device and inode (hard links, bind
+    mounts).  Inputs that do not exist (a glob pattern) are skipped; give the paths they
+    match.
+
+    Raises
+    ------
+    InputError
+        ``OUT: output would overwrite an input`` (``out`` is an input, or holds one, named
+        in the message), or ``OUT: output would be written inside an input (INPUT)``;
+        before anything is written.
+    """
+    if out is None or is_stdio(out):
+        return
+    o = Path(out)
+    o_path, o_id = _resolved(o), _stat_id(o)
+    o_up = set(o_path.parents)
+    o_up_ids = {i for a in o_up if (i := _stat_id(a)) is not None}
+    dir_ids: dict[Path, tuple[int, int] | None] = {}  # partition files share folders
+
+    def holds(p_path: Path) -> bool:
+        if o_path in p_path.parents:
+            return True
+        if o_id is None:
+            return False
+        for a in p_path.parents:
+            if a not in dir_ids:
+                dir_ids[a] = _stat_id(a)
+            if dir_ids[a] == o_id:
+                return True
+        return False
+
+    for i in inputs:
+        if i is None or is_stdio(i):
+            continue
+        p = Path(i)
+        p_id = _stat_id(p)
+        if p_id is None:
+            continue
+        p_path = _resolved(p)
+        if p_path == o_path or p_id == o_id:
+            raise InputError("output would overwrite an input", out)
+        if holds(p_path):
+            raise InputError(f"output would overwrite an input (it holds {p})", out)
+        if p_path in o_up or p_id in o_up_ids:
+            raise InputError(f"output would be written inside an input ({p})", out)
+
+
+#: The compression written for a final name ending in ``.gz`` (the readers decompress
+#: gzip, whatever the name), and the magic bytes of a file a writer compressed already.
+_GZIP_SUFFIX = ".gz"
+_GZIP_MAGIC = b"\x1f\x8b"
+#: Compressed names the readers cannot read back, refused before writing.
+_REFUSED_COMPRESSION = (".bz2", ".xz", ".zip", ".zst", ".zstd", ".tar", ".tgz")
+
+
+def _gzip_wanted(p: Path) -> bool:
+    """True if ``p`` ends in ``.gz`` (the file is written gzip-compressed).
+
+    Raises
+    ------
+    InputError
+        Another compression's name (``.bz2``, ``.xz``, ``.zip``, ``.zst``).
+    """
+    suffix = p.suffix.lower()
+    if suffix in _REFUSED_COMPRESSION:
+        raise InputError(f"cannot write {suffix} compressed output; name it .csv.gz for a "
+                         "compressed CSV, or .csv or .parquet", p)
+    return suffix == _GZIP_SUFFIX
+
+
+def _gzip(tmp: Path, final: Path, temps: list[Path]) -> Path:
+    """``tmp`` gzip-compressed into a new temporary file beside it (appended to
+    ``temps``, so that the caller removes it on failure); ``tmp`` itself if a writer
+    compressed it already."""
+    import gzip
+    import shutil
+
+    with open(tmp, "rb") as fh:
+        if fh.read(len(_GZIP_MAGIC)) == _GZIP_MAGIC:
+            return tmp
+    fd, name = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=tmp.parent)
+    z = Path(name)
+    temps.append(z)
+    with os.fdopen(fd, "wb") as raw, open(tmp, "rb") as src:
+        # the header names the final file (without .gz), not the temporary one
+        with gzip.GzipFile(filename=final.name, mode="wb", fileobj=raw,
+                           compresslevel=6) as dst:
+            shutil.copyfileobj(src, dst, 1 << 20)
+    return z
+
+
 def _is_special(p: Path) -> bool:
     """A target written in place, not replaced: an existing device or FIFO, or any name
     under /dev or /proc (``/dev/stdout`` redirected to a regular file must not have its
@@ -189,9 +312,9 @@ def atomic_output(path: PathLike, *, binary: bool = True) -> Iterator[tuple[Path
     Yields ``(target, stream)``:
 
     * for a regular file, ``target`` is the temporary file to write (by name; ``stream``
-      is None); on a clean exit it is fsync-ed and renamed onto ``path``; on any
-      exception (``KeyboardInterrupt`` and SIGTERM included) it is removed and the
-      exception propagates;
+      is None); on a clean exit it is gzip-compressed if ``path`` ends in ``.gz``,
+      fsync-ed and renamed onto ``path``; on any exception (``KeyboardInterrupt`` and
+      SIGTERM included) it is removed and the exception propagates;
     * for ``-``, ``target`` is None and ``stream`` is standard output (binary or text by
       ``binary``);
     * for a device or FIFO, ``target`` is ``path`` itself, written in place.
@@ -200,6 +323,8 @@ def atomic_output(path: PathLike, *, binary: bool = True) -> Iterator[tuple[Path
     ------
     OutputError
         An OS error on the output (no space, read-only, parent is a file), naming ``path``.
+    InputError
+        A ``.bz2``, ``.xz``, ``.zip`` or ``.zst`` name (before anything is written).
     """
     if is_stdio(path):
         stream = sys.stdout.buffer if binary else sys.stdout
@@ -222,6 +347,7 @@ def atomic_output(path: PathLike, *, binary: bool = True) -> Iterator[tuple[Path
                 raise
             raise OutputError(describe_oserror(exc), p, errno_=exc.errno) from None
         return
+    compress = _gzip_wanted(p)
     parent = _prepare_parent(p)
     try:
         fd, tmp_name = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=parent)
@@ -229,9 +355,12 @@ def atomic_output(path: PathLike, *, binary: bool = True) -> Iterator[tuple[Path
         raise OutputError(describe_oserror(exc), p, errno_=exc.errno) from None
     os.close(fd)
     tmp = Path(tmp_name)
+    temps = [tmp]
     done = False
     try:
-        yield tmp, None
+        yield temps[0], None
+        if compress:
+            tmp = _gzip(temps[0], p, temps)
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
         with contextlib.suppress(OSError):  # keep the usual permissions (mkstemp: 0600)
@@ -242,13 +371,15 @@ def atomic_output(path: PathLike, *, binary: bool = True) -> Iterator[tuple[Path
     except OutputError:
         raise
     except OSError as exc:
-        if isinstance(exc, BrokenPipeError) or exc.filename not in (None, str(tmp), tmp_name):
+        if isinstance(exc, BrokenPipeError) or exc.filename not in (
+                None, *(str(t) for t in temps)):
             raise
         raise OutputError(describe_oserror(exc), p, errno_=exc.errno) from None
     finally:
-        if not done:
-            with contextlib.suppress(OSError):
-                tmp.unlink()
+        for t in temps:
+            if not done or t != tmp:
+                with contextlib.suppress(OSError):
+                    t.unlink()
 
 
 def _umask() -> int:
