@@ -331,3 +331,184 @@ def test_fuse_aligns_posix_ranges_with_nmea_automatically(cart):
     res = fuse(shifted, anchors, log, FusionFilter("ekf", ConstantVelocity(q=1e-4)))
     assert res.summary["nmea_offset_s"] == 1704067200.0
     assert set(res.track["source"]) == {"uwb+gps"}  # every epoch fused with its sentence
+
+
+# --- events: one per input epoch, whatever the sampling rate (fuzzing, seed 001) ---------
+
+SQ10 = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])
+
+
+def _moving_tag_log(rate_hz: float, J: int, speed: float = 5.0
+                    ) -> tuple[pd.DataFrame, np.ndarray]:
+    """Noise-free ranges of a tag moving east at ``speed`` m/s from (2, 3), all four
+    anchors of ``SQ10`` stamped together at each of ``J`` epochs (rounded as a log would
+    print them: 4 decimals)."""
+    t = np.round(np.arange(J) / rate_hz, 6)
+    pos = np.stack([2.0 + speed * t, np.full(J, 3.0)], axis=1)
+    d = np.round(np.linalg.norm(pos[:, None] - SQ10[None], axis=-1), 4)
+    m = pd.DataFrame({"time": np.repeat(t, 4), "tag": "t1",
+                      "anchor": np.tile(["A1", "A2", "A3", "A4"], J), "range": d.ravel()})
+    return m, pos
+
+
+ANCH10 = pd.DataFrame({"anchor": ["A1", "A2", "A3", "A4"], "x": SQ10[:, 0], "y": SQ10[:, 1]})
+
+
+@pytest.mark.parametrize("rate_hz", [100.0, 66.0, 50.0, 10.0])
+def test_fuse_gives_one_row_per_epoch_faster_than_the_merge_window(rate_hz):
+    # before: the 0.02 s window chained from one sample to the next and a 100 Hz log of
+    # 100 epochs became ONE row at time 0 (x = 4.48, vx = 0) while the tag went 2 -> 6.95
+    m, pos = _moving_tag_log(rate_hz, 100)
+    res = fuse(m, ANCH10, None, FusionFilter("ukf", ConstantVelocity(q=0.5)))
+    tr = res.track
+    assert len(tr) == 100 and res.summary["events"] == 100
+    np.testing.assert_allclose(tr["time"], m["time"].unique())
+    assert (tr["status"] == "ok").all()
+    # The ranges are exact to their 4 printed decimals (0.5e-4 m), the filter assumes
+    # sigma = 0.15 m: its position can trail a 5 m/s tag by the CV lag while the velocity
+    # converges, bounded by its own reported 4-sigma (var_x ~ 0.015-0.08 m^2 -> < 1.2 m);
+    # after 30 epochs the velocity has settled and the error is a few mm-cm: 0.05 m is a
+    # third of one range sigma.
+    e = np.hypot(tr["x"] - pos[:, 0], tr["y"] - pos[:, 1]).to_numpy()
+    assert np.all(e < 4 * np.sqrt(tr["var_x"] + tr["var_y"]))
+    assert e[30:].max() < 0.05
+    assert tr["vx"].iloc[-1] == pytest.approx(5.0, abs=0.05)
+
+
+def test_merge_window_does_not_chain_and_a_repeated_anchor_starts_an_event():
+    # one anchor per time stamp, 5 ms apart: A0 A1 A2 A3 A0 A1 ... (a TWR round of 20 ms)
+    t = np.arange(12) * 0.005
+    a = Stream(t, np.full(12, "t", object), np.arange(12.0)[:, None] + 1, [0])
+    cols = np.arange(12) % 4
+    vals = np.full((12, 4), np.nan)
+    vals[np.arange(12), cols] = np.arange(12.0) + 1
+    s = Stream(t, np.full(12, "t", object), vals, [0, 1, 2, 3])
+    # rounds of four stamps: the fifth repeats anchor 0 (inside the window, 0.02 s after)
+    tl = merge_streams([s], 4, merge_window_s=0.02, distinct=range(4))
+    np.testing.assert_allclose(tl.time_s[0], [0.0, 0.02, 0.04])
+    np.testing.assert_allclose(tl.z[0, 1], [5.0, 6.0, 7.0, 8.0])
+    # without the anchor rule the window is anchored at the event's first stamp: 0.0 to
+    # 0.021 holds five stamps (0 .. 0.02), and the chain stops there (before: one event of
+    # all twelve stamps, gaps of 5 ms <= 0.021 s chained); 0.021, not 0.02, keeps the
+    # boundary clear of rounding
+    tl = merge_streams([a], 1, merge_window_s=0.021)
+    np.testing.assert_allclose(tl.time_s[0], [0.0, 0.025, 0.05])
+    np.testing.assert_allclose(tl.z[0, :, 0], [3.0, 8.0, 11.5])  # means of 1-5, 6-10, 11-12
+    # values at one time stamp stay together and are averaged (duplicates)
+    d = Stream(np.array([0.0, 0.0, 0.01]), np.full(3, "t", object),
+               np.array([[1.0], [3.0], [5.0]]), [0])
+    tl = merge_streams([d], 1, merge_window_s=0.02, distinct=[0])
+    np.testing.assert_allclose(tl.time_s[0], [0.0, 0.01])
+    np.testing.assert_allclose(tl.z[0, :, 0], [2.0, 5.0])
+
+
+def test_loose_coupling_one_fix_per_epoch_at_100_hz():
+    m, pos = _moving_tag_log(100.0, 60)
+    res = fuse(m, ANCH10, None, FusionFilter("ekf", ConstantVelocity(q=0.5)),
+               FuseOptions(coupling="loose"))
+    assert res.summary["uwb_epochs"] == 60 and res.summary["fixes"] == 60
+    assert len(res.track) == 60 and (res.track["status"] == "ok").all()
+
+
+# --- a filter lost after a long gap starts again (fuzzing, seed 001) ------------------------
+
+def _gap_log(gap_s: float, first_after: tuple[int, ...] = (0, 1, 2, 3)) -> pd.DataFrame:
+    """Tag at rest at (2, 3) for 5 epochs at 1 Hz, then, ``gap_s`` later, at (7, 6) for
+    8 epochs at 1 Hz (the first hearing the anchors ``first_after`` only).  Exact ranges."""
+    rows = []
+
+    def add(t, p, which):
+        for i in which:
+            rows.append((t, "t1", f"A{i + 1}", float(np.hypot(*(p - SQ10[i])))))
+
+    for k in range(5):
+        add(float(k), np.array([2.0, 3.0]), range(4))
+    add(4.0 + gap_s, np.array([7.0, 6.0]), first_after)
+    for k in range(1, 8):
+        add(4.0 + gap_s + k, np.array([7.0, 6.0]), range(4))
+    return pd.DataFrame(rows, columns=["time", "tag", "anchor", "range"])
+
+
+@pytest.mark.parametrize("gap_s", [86400.0, 1e8, 1e9, 1e11, 9e11])
+@pytest.mark.parametrize("motion", ["cv", "ca"])
+@pytest.mark.parametrize("kind", ["ekf", "ukf"])
+def test_fuse_restarts_a_track_lost_after_a_long_gap(gap_s, motion, kind):
+    # before: LinAlgError (Singular matrix) from the update after the gap (ca from 5e4 s,
+    # cv from 1e9 s): the prediction's position variance rounds R out of S
+    m = _gap_log(gap_s)
+    mot = ConstantVelocity(q=0.5) if motion == "cv" else ConstantAcceleration(q=0.1)
+    out = {}
+    for engine in ("compiled", "numpy"):
+        res = fuse(m, ANCH10, None, FusionFilter(kind, mot, engine=engine))
+        tr = res.track
+        assert len(tr) == 13 and (tr["status"] == "ok").all(), engine
+        assert res.summary["restarts"] == 1 and res.summary["rejected_updates"] == 0
+        truth = np.where((tr["time"] < 5.0).to_numpy()[:, None], [2.0, 3.0], [7.0, 6.0])
+        e = np.hypot(*(tr[["x", "y"]].to_numpy() - truth).T)
+        # exact ranges, four anchors: the restart is at the event's LS fix (exact), so the
+        # first row after the gap is already at the new place: the EKF (zero innovation)
+        # stays there to rounding; the UKF's sigma points (spread by the restart's 4 m^2)
+        # see the ranges' curvature and move it by a fraction of its own standard
+        # deviation -- bounded by one sigma (~0.1 m), and by a third of the 0.15 m range
+        # sigma
+        sd = np.sqrt(tr["var_x"] + tr["var_y"]).to_numpy()
+        assert np.all(e[5:] < (1e-6 if kind == "ekf" else np.minimum(sd[5:], 0.05))), engine
+        assert np.isfinite(tr[["var_x", "var_y"]].to_numpy()).all()
+        assert tr["var_x"].iloc[5] < 4.0  # the restart's covariance, updated: not the gap's
+        out[engine] = tr
+    # the lost-track test runs in NumPy ahead of either engine: they agree
+    np.testing.assert_allclose(out["compiled"][["x", "y"]], out["numpy"][["x", "y"]],
+                               atol=1e-9)
+
+
+def test_lost_track_without_a_fix_coasts_until_an_event_gives_one():
+    # the first event after a one-day gap hears two anchors: no fix to restart at.  Its row
+    # coasts (predicted, the last estimate with the day-long prediction's variance), the
+    # next event (four anchors) restarts the track at its fix
+    m = _gap_log(86400.0, first_after=(0, 1))
+    for kind in ("ekf", "ukf"):
+        res = fuse(m, ANCH10, None, FusionFilter(kind, ConstantAcceleration(q=0.1)))
+        tr = res.track
+        assert len(tr) == 13
+        row = tr.iloc[5]
+        assert row["status"] == "predicted" and row["n_used"] == 0
+        np.testing.assert_allclose(row[["x", "y"]].to_numpy(float), tr.iloc[4][["x", "y"]]
+                                   .to_numpy(float))
+        assert row["var_x"] > 1e20  # CA over a day: q dt^5 / 20 ~ 2.4e23 m^2
+        assert (tr["status"].iloc[6:] == "ok").all() and res.summary["restarts"] == 1
+        e = np.hypot(tr["x"].iloc[6:] - 7.0, tr["y"].iloc[6:] - 6.0)
+        assert e.max() < (1e-6 if kind == "ekf" else 0.05)  # as in the test above
+
+
+def test_fusion_filter_run_step_failure_restarts_only_that_track(monkeypatch):
+    # an update that raises below the bound (here: injected for track 1 at event 3) is
+    # retried track by track; the failing track restarts at its fix, the other is untouched
+    from robustloc.filters import core
+
+    t, pos, z = _round_robin(J=12)
+    z[0, :, :4] = np.linalg.norm(pos[:, None] - SQUARE[None], axis=-1)
+    Z = np.concatenate([z, z])
+    T = np.stack([t, t])
+    fm = FusionMeasurement(4, SQUARE)
+    x0, P0 = initial_state(pos[:1].repeat(2, axis=0), 4, 0.01)
+    R = np.diag([0.05**2] * 4 + [1, 1])
+    fixes = np.broadcast_to(pos[None], (2, 12, 2)).copy()
+    f = FusionFilter("ekf", ConstantVelocity(q=0.01), engine="numpy")
+    ref = f.run(T, Z, R, fm, x0, P0, restart=fixes)
+    real = core.update_ekf
+    calls = {"n": 0}
+
+    def flaky(x, *a, **k):
+        calls["n"] += 1
+        if calls["n"] == 4 and len(x) == 2:  # the batched update of event 3
+            raise np.linalg.LinAlgError("Singular matrix")
+        if calls["n"] == 6 and len(x) == 1:  # then track 1 alone
+            raise np.linalg.LinAlgError("Singular matrix")
+        return real(x, *a, **k)
+
+    monkeypatch.setattr("robustloc.fusion.pipeline.update_ekf", flaky)
+    tr = f.run(T, Z, R, fm, x0, P0, restart=fixes)
+    assert list(tr.extra["restarts"]) == [0, 1]
+    np.testing.assert_allclose(tr.x[0], ref.x[0], atol=1e-12)
+    assert (tr.status[1] != "").all() and np.isfinite(tr.x[1]).all()
+    assert np.hypot(*(tr.x[1, 3, :2] - pos[3])) < 0.01  # restarted at its fix

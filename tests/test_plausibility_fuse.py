@@ -8,6 +8,9 @@ triple per epoch).
 
 from __future__ import annotations
 
+import io
+import warnings
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -212,3 +215,99 @@ def test_fuse_refuses_absurd_option_values(cart, tmp_path, capsys, opt, value):
     assert rc == 2
     assert "error" in err and opt in err and "Traceback" not in err
     assert not (tmp_path / "track.csv").exists()
+
+
+# --- fuzzing (seed 001): the run summary, times outside the limits, a day-long gap -------
+
+def test_fuse_to_stdout_keeps_the_summary_out_of_the_csv(cart, tmp_path, capsys):
+    for extra in ((), ("--json",)):
+        rc = main(["fuse", "--ranges", str(cart / "measurements.csv"), "--anchors",
+                   str(cart / "anchors.csv"), "--nmea", str(cart / "gps.nmea"), "-o", "-",
+                   *extra])
+        cap = capsys.readouterr()
+        assert rc == 0, cap.err
+        lines = cap.out.splitlines()
+        assert len(lines) == 1 + 51  # the header and one row per epoch, nothing else
+        tr = pd.read_csv(io.StringIO(cap.out))
+        assert list(tr.columns[:2]) == ["time", "tag"] and tr["time"].notna().all()
+        assert "fused 51 events" in cap.err or '"events": 51' in cap.err
+
+
+def test_times_outside_the_limits_are_invalid_rows_as_in_locate(cart, tmp_path, capsys):
+    m = pd.read_csv(cart / "measurements.csv")
+    n_ok = m["time"].nunique()
+    bad = pd.DataFrame({"time": [2e12, 2e12, 1e300, -5e12], "tag": m["tag"].iloc[0],
+                        "anchor": m["anchor"].iloc[[0, 1, 0, 2]].to_numpy(),
+                        "range": m["range"].iloc[:4].to_numpy()})
+    p = tmp_path / "m.csv"
+    pd.concat([m, bad]).to_csv(p, index=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # before: overflow RuntimeWarnings
+        rc, cap, out = _fuse(cart, tmp_path, capsys, "--nmea", str(cart / "gps.nmea"),
+                             "--motion", "ca", ranges=p)
+    assert rc == 0, cap.err
+    assert "invalid_measurement: 4 (time 4;" in cap.out
+    tr = pd.read_csv(out)
+    assert len(tr) == n_ok + 3  # one row per (tag, time), as locate gives
+    inv = tr[tr["status"] == st.INVALID]
+    np.testing.assert_allclose(inv["time"], [-5e12, 2e12, 1e300])
+    assert inv[["x", "y", "var_x"]].isna().all().all()  # the filter never saw them
+    # the rest is the clean run, row for row (before: 2e12 and 1e300 were ok rows)
+    rc, cap, clean = _fuse(cart, tmp_path, capsys, "--nmea", str(cart / "gps.nmea"),
+                           "--motion", "ca")
+    ref = pd.read_csv(clean)
+    pd.testing.assert_frame_equal(tr[tr["status"] != st.INVALID].reset_index(drop=True), ref)
+    # locate agrees on these epochs
+    rc = main(["locate", str(p), "--anchors", str(cart / "anchors.csv"), "-o",
+               str(tmp_path / "pos.csv")])
+    capsys.readouterr()
+    pos = pd.read_csv(tmp_path / "pos.csv")
+    np.testing.assert_allclose(np.sort(pos.loc[pos["status"] == st.INVALID, "time"]),
+                               [-5e12, 2e12, 1e300])
+
+
+def test_nmea_times_beyond_the_limits_are_invalid_and_absurd_offset_refused(cart, tmp_path,
+                                                                            capsys):
+    # offset 1e12 - 25 s: the sentences of seconds 0..24 land inside the limits, those of
+    # 26..50 beyond (second 25 is exactly 1e12: the limits are inclusive); the ranges'
+    # clock is far away, so every sentence is its own gps event
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rc, cap, out = _fuse(cart, tmp_path, capsys, "--nmea", str(cart / "gps.nmea"),
+                             "--nmea-offset", str(1e12 - 25))
+    assert rc == 0, cap.err
+    n_sent = len(parse_nmea((cart / "gps.nmea").read_text().splitlines()).motion)
+    per_s = n_sent // 51  # RMC and VTG of one second share its time
+    assert f"time {25 * per_s}" in cap.out
+    tr = pd.read_csv(out)
+    gps_bad = tr[(tr["source"] == "gps") & (tr["status"] == st.INVALID)]
+    assert len(gps_bad) == 25 and gps_bad[["x", "y"]].isna().all().all()
+    assert len(tr) == 51 + 26 + 25
+    rc, cap, out = _fuse(cart, tmp_path, capsys, "--nmea", str(cart / "gps.nmea"),
+                         "--nmea-offset", "1e300")
+    assert rc == 2 and "--nmea-offset" in cap.err and "Traceback" not in cap.err
+
+
+def test_fuse_day_long_gap_is_a_restart_not_a_traceback(tmp_path, capsys):
+    # the fuzzer's reproduction: two identical epochs one day apart, --motion ca; before:
+    # exit 1, LinAlgError (Singular matrix) in the UKF update after the gap
+    a = tmp_path / "a.csv"
+    a.write_text("anchor,x,y\nA1,0,0\nA2,10,0\nA3,10,10\nA4,0,10\n")
+    g = tmp_path / "gap.csv"
+    body = "".join(f"{t},t1,{k},{r}\n" for t in (0, 86400)
+                   for k, r in (("A1", 3.6), ("A2", 8.5), ("A3", 10.6), ("A4", 7.3)))
+    g.write_text("time,tag,anchor,range\n" + body)
+    for motion in ("ca", "cv"):
+        out = tmp_path / "f.csv"
+        rc = main(["fuse", "--ranges", str(g), "--anchors", str(a), "--motion", motion,
+                   "-o", str(out)])
+        cap = capsys.readouterr()
+        assert rc == 0 and "Traceback" not in cap.err, cap.err
+        assert "restarts: 1" in cap.out
+        tr = pd.read_csv(out)
+        assert len(tr) == 2 and (tr["status"] == st.OK).all()
+        # the same ranges after the gap: the restarted track is where the first row was
+        # (both the LS solution of the same four ranges; 1 cm covers the UKF's sigma-point
+        # shift at the restart's 4 m^2 prior, a fifteenth of the 0.15 m range sigma)
+        assert np.hypot(*(tr[["x", "y"]].iloc[1] - tr[["x", "y"]].iloc[0])) < 0.01
+        assert tr["var_x"].iloc[1] < 1.0

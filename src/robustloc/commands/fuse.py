@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 from robustloc.options import (
-    finite_float,
     float_in,
     nonnegative_float,
     positive_float,
@@ -30,8 +30,11 @@ From the NMEA log only speed and course are fused (the paper's GPS measurements)
 positions are parsed (ENU about --origin) but not used as measurements.
 
 Time alignment: NMEA times (seconds of the UTC day) plus --nmea-offset must match the
-ranges' time column (automatic for POSIX-time ranges and dated RMC sentences);
-measurements within --merge-window seconds form one filter event.
+ranges' time column (automatic for POSIX-time ranges and dated RMC sentences).
+Measurements stamped at most --merge-window seconds after an event's first time stamp (the
+asynchronous ranges of one ranging cycle) form one filter event; windows do not chain, and
+a second range of an anchor (or a second GPS speed) already in the event starts the next
+one, so every epoch of the log gets its own row however fast it is sampled.
 Course is ignored below 0.1 m/s.
 
 Output (track contract): time, tag, x, y, vx, vy[, ax, ay], status, var_* (covariance
@@ -42,15 +45,26 @@ diagonal), n_used, nis, source.  One row per event (every input epoch is in one)
   predicted             nothing to update with: the state is the motion model's prediction
   invalid_measurement   every value of the event was outside its physical limits
                         (robustloc.io.limits: range -50..1e5 m, speed 0..515 m/s, course
-                        0..360 deg); they were set aside, the row is the prediction
+                        0..360 deg); they were set aside, the row is the prediction.
+                        A time outside |t| < 1e12 s (ranges, or NMEA times plus
+                        --nmea-offset) cannot be placed on the timeline: one such row
+                        per (tag, time), without a state (as in locate)
   insufficient_anchors  updated, but fewer than three anchors heard within
                         --geometry-window: ranges cannot fix the position (as in locate)
   ill_conditioned       updated, but the anchors heard are all at one point or on one line
                         (as in locate); GPS speed/course do not fix a position either
 The filtered state is written on every row; its var_* columns say how far to trust it.
+A track whose prediction is too wide to update (a gap of a day, a clock jump: position
+variance var_x + var_y beyond 1e4 m^2 and beyond R_min / sqrt(eps), R_min the event's
+smallest measurement variance -- about 50 s without measurements for cv at the default q
+and 0.15 m ranges) starts again from the event's own fix, counted as restarts; without a
+fix its rows are predicted (the last estimate, with the prediction's variances) until an
+event gives one.
 Values outside the physical limits are counted in the summary (invalid_measurement N) and
 never reach the filter; an update that would make the state non-finite or absurd (beyond
 1e9 m) is rejected: the row is predicted, counted as rejected_updates.
+
+`-o -` writes the track as CSV to standard output and the run summary to stderr.
 
 Example:
   robustloc simulate uwb-cart --seed 1 --out cart
@@ -88,12 +102,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="GPS speed std, m/s")
     p.add_argument("--sigma-course", type=float_in(1e-6, 180.0), default=5.0,
                    help="GPS course std, deg")
-    p.add_argument("--nmea-offset", type=finite_float, default=None,
+    p.add_argument("--nmea-offset", type=float_in(-1e12, 1e12), default=None,
                    help="seconds added to NMEA times (UTC seconds of day) to reach the "
                         "ranges' clock (default: POSIX time from the RMC date when the "
                         "ranges' times are POSIX seconds, else 0)")
     p.add_argument("--merge-window", type=nonnegative_float, default=0.02,
-                   help="measurements closer than this (s) form one event (0.02)")
+                   help="measurements at most this long (s) after an event's first time "
+                        "stamp join it, unless they repeat an anchor (0.02)")
     p.add_argument("--geometry-window", type=nonnegative_float, default=1.0, metavar="S",
                    help="anchors heard within this many seconds up to an event decide "
                         "whether its position can be ok (default 1)")
@@ -110,6 +125,7 @@ def run(args: argparse.Namespace) -> int:
     from robustloc.fusion.pipeline import FusionFilter
     from robustloc.fusion.run import FuseOptions, fuse
     from robustloc.io import read_anchors, read_measurements, write_table
+    from robustloc.io.atomic import writes_to_stdout
     from robustloc.io.nmea import read_nmea
     from robustloc.robust.weights import get_weight
 
@@ -148,21 +164,27 @@ def run(args: argparse.Namespace) -> int:
         geometry_window_s=args.geometry_window,
     )
     res = fuse(meas, anchors, nmea, filt, opts, progress=True)
+    # the summary never goes into a data stream: stderr when the track goes to stdout
+    dest = sys.stderr if writes_to_stdout(args.out) else sys.stdout
     write_table(res.track, args.out)
     s = dict(res.summary, out=str(args.out))
     if nmea is not None:
         s["nmea"] = nmea.summary.text()
     if args.json:
-        print(json.dumps(s, indent=2, default=str))
+        print(json.dumps(s, indent=2, default=str), file=dest)
     else:
         if nmea is not None:
-            print(s["nmea"])
+            print(s["nmea"], file=dest)
         st = ", ".join(f"{k} {v}" for k, v in s["status"].items())
         print(f"fused {s['events']} events of {s['tags']} tag(s) with {args.filter.upper()}/"
-              f"{args.motion.upper()} ({args.coupling}): {st} -> {s['out']}")
+              f"{args.motion.upper()} ({args.coupling}): {st} -> {s['out']}", file=dest)
         bad = ", ".join(f"{k} {v}" for k, v in s["invalid"].items() if v)
         print(f"invalid_measurement: {s['invalid_measurement']}"
-              + (f" ({bad}; outside the physical limits, never used)" if bad else ""))
+              + (f" ({bad}; outside the physical limits, never used)" if bad else ""),
+              file=dest)
         if s["rejected_updates"]:
-            print(f"rejected_updates: {s['rejected_updates']}")
+            print(f"rejected_updates: {s['rejected_updates']}", file=dest)
+        if s["restarts"]:
+            print(f"restarts: {s['restarts']} (a prediction too wide to update after a gap: "
+                  f"the track started again from its event's fix)", file=dest)
     return 0

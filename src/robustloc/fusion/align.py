@@ -4,13 +4,20 @@ Policy (event-driven, no interpolation of measurements):
 
 1. every stream is shifted onto the UWB clock by its own offset (``t + offset_s``; GPS
    sentences carry UTC time of day, UWB logs their own clock);
-2. all measurement times of one tag are merged into one sorted timeline; consecutive times
-   separated by at most ``merge_window_s`` form one *event* (its time is the first one), so
-   ranges reported a few milliseconds apart by one TWR round become one update (keep the
-   window below the sampling interval, or chains of samples merge);
+2. all measurement times of one tag are merged into one sorted timeline and cut into
+   *events*, one per input epoch.  Values sharing one time stamp (an epoch of the log)
+   always stay together.  The merge window groups what one ranging cycle reports
+   asynchronously -- ranges of one TWR round stamped a few milliseconds apart, a GPS
+   sentence arriving with them -- into one update: a time stamp joins the current event
+   when it lies at most ``merge_window_s`` after the event's *first* time (so windows do
+   not chain: a log sampled faster than the window still gives one event per sample)
+   and brings no value of a ``distinct`` component the event already holds from an
+   earlier time stamp (a second range of the same anchor is the next cycle: it starts a
+   new event, whatever the window).  An event's time is its first time stamp;
 3. the filter predicts from event to event with the actual ``dt`` and updates with whatever
    arrived -- missing components are NaN, so the update only uses what is there.  A value
-   arriving twice inside one event (same anchor twice) is averaged.
+   reported twice at one time stamp (a duplicate row of one anchor, an RMC and a VTG
+   sentence of one GPS fix) is averaged.
 
 Several tags are processed together by *event index*: row ``k`` of every output holds the
 events of tag ``k`` padded with NaN times at the end, so the ``j``-th step of all tags is one
@@ -68,16 +75,24 @@ class Timeline:
         return np.isfinite(self.time_s).sum(axis=1)
 
 
-def merge_streams(streams: Sequence[Stream], m: int, merge_window_s: float = 0.0) -> Timeline:
+def merge_streams(
+    streams: Sequence[Stream], m: int, merge_window_s: float = 0.0,
+    distinct: Sequence[int] = (),
+) -> Timeline:
     """Merge streams into one event timeline per tag (module docstring, steps 1-2).
 
     Parameters
     ----------
     streams : the measurement streams; their ``columns`` index a vector of length ``m``.
     m : length of the fused measurement vector.
-    merge_window_s : events closer than this to their group's first time are merged.
+    merge_window_s : a time stamp at most this long after its event's first time joins the
+        event (windows never chain).
+    distinct : components an event holds from one time stamp only: a later value of one
+        of them starts a new event (the ranges of the anchors, the GPS speed and course:
+        the next cycle's measurement, not this one's).  Values at one time stamp are
+        averaged whatever ``distinct`` says.
     """
-    if merge_window_s < 0:
+    if not merge_window_s >= 0:
         raise ValueError("merge_window_s must be >= 0")
     ts, tags, cols, vals = [], [], [], []
     for s in streams:
@@ -103,15 +118,15 @@ def merge_streams(streams: Sequence[Stream], m: int, merge_window_s: float = 0.0
     order = np.lexsort((t, tag_i))
     t, tag_i, col, val = t[order], tag_i[order], col[order], val[order]
     K = tag_u.size
-    # event grouping: a new event starts at a new tag or after a gap > merge_window_s
-    new = np.ones(t.size, dtype=bool)
-    if t.size:
-        same_tag = np.r_[False, tag_i[1:] == tag_i[:-1]]
-        gap = np.r_[np.inf, np.diff(t)]
-        new = ~same_tag | (gap > merge_window_s) | ((merge_window_s == 0) & (gap > 0))
-    ev = np.cumsum(new) - 1  # global event id
-    ev_tag = tag_i[new]
-    ev_time = t[new]
+    # time stamps (one tag, one time): the atoms of the event grouping
+    stamp = np.r_[True, (tag_i[1:] != tag_i[:-1]) | (t[1:] != t[:-1])] if t.size else (
+        np.zeros(0, dtype=bool))
+    first_row = np.flatnonzero(stamp)
+    new = _event_starts(t[first_row], tag_i[first_row], first_row, col,
+                        np.asarray(list(distinct), dtype=int), merge_window_s)
+    ev = (np.cumsum(new) - 1)[np.cumsum(stamp) - 1]  # global event id of every value
+    ev_tag = tag_i[first_row][new]
+    ev_time = t[first_row][new]
     first_ev = np.searchsorted(ev_tag, np.arange(K))
     j_of_ev = np.arange(ev.max() + 1 if ev.size else 0) - first_ev[ev_tag]
     J = int(j_of_ev.max() + 1) if j_of_ev.size else 0
@@ -124,6 +139,53 @@ def merge_streams(streams: Sequence[Stream], m: int, merge_window_s: float = 0.0
     with np.errstate(invalid="ignore"):
         z = np.where(counts > 0, sums / np.maximum(counts, 1.0), np.nan)
     return Timeline(tags=tag_u.astype(object), time_s=time_s, z=z)
+
+
+def _event_starts(
+    g_time: Array, g_tag: NDArray[np.int64], first_row: NDArray[np.int64],
+    col: NDArray[np.int64], distinct: NDArray[np.int64], window_s: float,
+) -> NDArray[np.bool_]:
+    """Which time stamps start an event (module docstring, step 2).
+
+    Parameters
+    ----------
+    g_time, g_tag : (G,) time and tag index of each time stamp, sorted by tag then time.
+    first_row : (G,) first value of each time stamp in ``col`` (its values run to the next
+        stamp's first value).
+    col : (L,) component of every value.
+    distinct : components an event may hold from one time stamp only.
+    window_s : the merge window.
+    """
+    G = g_time.size
+    # certain starts: a new tag, or the previous stamp already more than the window back
+    # (the event's first time is no later than that stamp)
+    start = np.ones(G, dtype=bool)
+    if G > 1:
+        start[1:] = (g_tag[1:] != g_tag[:-1]) | (np.diff(g_time) > window_s)
+    maybe = np.flatnonzero(~start)
+    if maybe.size == 0:
+        return start
+    # The rest depends on where the current event began, which depends on the earlier
+    # decisions: a sequential pass, over the stamps that can join their predecessor's
+    # event and those predecessors only (none when the window is below the sampling
+    # interval).
+    dcol = np.where(np.isin(col, distinct), col, -1)
+    bounds = np.r_[first_row, col.size]
+    visit = np.union1d(maybe - 1, maybe).tolist()
+    is_start = start.tolist()
+    times = g_time.tolist()
+    t0 = 0.0
+    held: set[int] = set()
+    for g in visit:
+        here = set(dcol[bounds[g] : bounds[g + 1]].tolist())
+        here.discard(-1)
+        if is_start[g] or times[g] - t0 > window_s or not held.isdisjoint(here):
+            start[g] = True
+            t0 = times[g]
+            held = here
+        else:
+            held |= here
+    return start
 
 
 def interp_at(t_query: ArrayLike, t: ArrayLike, values: ArrayLike) -> Array:

@@ -65,6 +65,11 @@ _MT_MIN_TRACKS = 256
 #: local east/north frame.  An update beyond it (an overflow, a near-singular innovation
 #: covariance) is rejected and the track keeps its prior (:meth:`FusionFilter.run`).
 STATE_LIMIT = 1e9
+#: ``sqrt(eps)`` of float64 (``2^-26``): a variance ``r`` added to ``V`` keeps fewer than
+#: half of its significant digits in ``V + r`` once ``sqrt(eps) V >= r`` (the rounding
+#: error ``eps V`` of the sum is then ``>= sqrt(eps) r``); the tracker's rule
+#: (:mod:`robustloc.tracking.tracker`, item 9) uses the same bound.
+SQRT_EPS = 2.0**-26
 
 
 def _threads() -> int:
@@ -260,6 +265,14 @@ class FusionFilter:
         predicts with the matrices and uses sigma points in the update only (same result,
         half the work).  The compiled engine always predicts with the matrices (for the same
         reason; the difference is rounding).
+    lost_pos_var : a prediction whose position variance ``V = var_x + var_y`` (m^2)
+        exceeds this *and* is too wide to update, ``sqrt(eps) V >= r_min`` (``r_min`` the
+        smallest variance ``R_ii`` of the event's components, :data:`SQRT_EPS`), is lost:
+        the track restarts from the event's measurements (:meth:`run`).  The default
+        1e4 m^2 is a 70 m standard deviation per axis, wider than any UWB cell; the second
+        condition is the one that bites (with 0.15 m ranges ``V >= 1.5e6 m^2``: a
+        settled CV track at ``q = 0.5`` after a gap of about 50 s without measurements, a
+        CA track at ``q = 0.1`` after about 25 s -- predictions 0.9 km wide).
     engine : ``"compiled"`` (default) -- :meth:`step` runs one compiled call per step
         (:mod:`robustloc.filters._compiled`) when the model is the built-in one:
         ``FusionMeasurement``, CV/CA motion, ``robust.mode == "gain"`` and a built-in weight
@@ -275,6 +288,7 @@ class FusionFilter:
     min_speed_mps: float = 0.1
     max_rejected: int = 5
     relock_var: float = 4.0
+    lost_pos_var: float = 1e4
     sigma_point_predict: bool = False
     engine: Literal["compiled", "numpy"] = "compiled"
     #: per-instance state of the compiled engine (settings vector, output arenas)
@@ -287,6 +301,8 @@ class FusionFilter:
             raise ValueError("fusion works in 2-D (east, north); use a motion model with dim=2")
         if self.engine not in ("compiled", "numpy"):
             raise ValueError(f"engine must be 'compiled' or 'numpy', got {self.engine!r}")
+        if not (np.isfinite(self.lost_pos_var) and self.lost_pos_var > 0):
+            raise ValueError("lost_pos_var must be positive and finite")
 
     def __getstate__(self) -> dict:
         """Pickle the settings only (the compiled engine's state is rebuilt on use)."""
@@ -472,6 +488,7 @@ class FusionFilter:
         x0: ArrayLike,
         P0: ArrayLike,
         progress: bool = False,
+        restart: ArrayLike | None = None,
     ) -> FusionTrack:
         """Filter ``K`` event-indexed tracks (see :mod:`robustloc.fusion.align`).
 
@@ -483,6 +500,28 @@ class FusionFilter:
         meas : the measurement model.
         x0, P0 : (K, n) and (K, n, n) initial states at each track's first event time.
         progress : show a tqdm bar on stderr (only when stderr is a terminal).
+        restart : (K, J, 2) a position fix from each event's measurements (NaN: none), where
+            a lost track restarts (below); ``None``: no fixes.
+
+        Notes
+        -----
+        A lost track starts again.  Over a long gap (a day without measurements, a clock
+        jump) the prediction's position variance grows as ``q dt^4 / 4`` (CV) or faster
+        (CA), and once ``sqrt(eps) V`` reaches the smallest measurement variance the
+        innovation covariance ``S = H P- H^T + R`` keeps ``R`` to fewer than half of its
+        digits: ``S`` turns singular or indefinite and the update fails (``LinAlgError``)
+        or returns garbage.  Such a prediction (``lost_pos_var``) is meaningless, so before
+        the update of an event with measurements it is dropped, in both engines alike (the
+        test is NumPy, ahead of the step): the track restarts as a new one at the event's
+        fix ``restart``, at rest with the covariance ``P0``, and the event updates it with
+        ``dt = 0`` (counted in ``extra["restarts"]``).  Without a fix the event's
+        measurements cannot place it (and a wide guess misleads the UKF's sigma points):
+        the track is adrift until its next event with a fix, where it restarts; its rows
+        till then coast (status ``predicted``, counted in ``extra["lost_coasts"]``) with
+        the last estimate and the variances of its prediction to the row's time.  So does
+        a track whose prediction passes ``STATE_LIMIT**2`` at an event without
+        measurements.  An update that raises all the same (a near-singular ``S`` below the
+        bound) restarts only its own track, or sets it adrift likewise.
         """
         t = np.asarray(time_s, dtype=float)
         z = np.asarray(z, dtype=float)
@@ -501,6 +540,12 @@ class FusionFilter:
         rejected = np.zeros(K, dtype=np.int64)
         relocks = np.zeros(K, dtype=np.int64)
         nonfinite = np.zeros(K, dtype=np.int64)
+        restarts = np.zeros(K, dtype=np.int64)
+        coasts = np.zeros(K, dtype=np.int64)
+        adrift = np.zeros(K, dtype=bool)  # lost, waiting for a fix to restart at
+        P_init = P.copy()
+        fixes = (np.full((K, J, 2), np.nan) if restart is None
+                 else np.asarray(restart, dtype=float).reshape(K, J, 2))
         eye_m = np.eye(m)
         steps = range(J)
         if progress:
@@ -521,14 +566,38 @@ class FusionFilter:
             else:
                 Rj = R[:, j]
             zj = np.where(live[:, None], z[:, j], np.nan)
-            r = self.step(x, P, dt, zj, Rj, meas)
+            # a lost track (Notes): restart at this event's fix, or coast until one comes
+            lost = live & (adrift | self._prediction_lost(x, P, dt, zj, Rj, meas))
+            coast = np.zeros(K, dtype=bool)
+            if lost.any():
+                fix = fixes[:, j]
+                go = lost & np.isfinite(fix).all(axis=1)
+                coast = lost & ~go
+                x, P = self._restart(go, x, P, P_init, fix)
+                dt = np.where(go, 0.0, dt)
+                zj = np.where(coast[:, None], np.nan, zj)
+                restarts += go
+            try:
+                r = self.step(x, P, dt, zj, Rj, meas)
+            except np.linalg.LinAlgError:  # below the bound all the same: track by track
+                r, x, P, dt, go, failed = self._step_each(x, P, dt, zj, Rj, meas, P_init,
+                                                          fixes[:, j])
+                restarts += go
+                coast |= failed
             r_status, r_nu, r_nis, r_w = r.status, r.n_used, r.nis, r.weights
             r_innov = r.innovation
             x_prior, P_prior = x, P
             x, P = r.x, r.P
+            var_row = np.diagonal(P, axis1=1, axis2=2)
+            if coast.any():  # the row: the last estimate, with its prediction's variances
+                x = np.where(coast[:, None], x_prior, x)
+                P = np.where(coast[:, None, None], P_prior, P)
+                r_status = np.where(coast, st.PREDICTED, r_status)
+                coasts += coast
+            adrift = coast | (adrift & ~live)
             with np.errstate(invalid="ignore"):
-                sick = ~((np.abs(x) <= STATE_LIMIT).all(axis=1)
-                         & (np.abs(P) <= STATE_LIMIT**2).all(axis=(1, 2)))
+                sick = ~coast & ~((np.abs(x) <= STATE_LIMIT).all(axis=1)
+                                  & (np.abs(P) <= STATE_LIMIT**2).all(axis=(1, 2)))
             if sick.any():  # an update that would poison the state is rejected: keep the prior
                 x, P, r_status, r_nu, r_nis, r_w, r_innov = self._reject_update(
                     sick, x_prior, P_prior, dt, Rj, meas, x, P, r_status, r_nu, r_nis, r_w,
@@ -550,17 +619,100 @@ class FusionFilter:
                     x[np.ix_(lock, np.arange(4, n))] = 0.0
                     rejected[lock] = 0
                     relocks += lock
-            t_prev = np.where(live, tj, t_prev)
+            t_prev = np.where(live & ~coast, tj, t_prev)  # a lost track's clock stops
             xs[:, j] = x
-            vs[:, j] = np.diagonal(P, axis1=1, axis2=2)
+            vs[:, j] = np.where(coast[:, None], var_row, np.diagonal(P, axis1=1, axis2=2))
             stat[:, j] = np.where(live, r_status, "")
             nu[:, j] = r_nu
             nis[:, j] = r_nis
             ws[:, j] = r_w
         return FusionTrack(
             time_s=t, x=xs, var=vs, status=stat.astype(str), n_used=nu, nis=nis, weights=ws,
-            P_last=P, extra={"relocks": relocks, "nonfinite": nonfinite},
+            P_last=P, extra={"relocks": relocks, "nonfinite": nonfinite,
+                             "restarts": restarts, "lost_coasts": coasts},
         )
+
+    def _prediction_lost(self, x: Array, P: Array, dt: Array, z: Array, R: Array,
+                         meas: FusionMeasurement) -> NDArray[np.bool_]:
+        """Tracks whose prediction over ``dt`` is too wide to update with ``z`` (the
+        ``lost_pos_var`` rule, :meth:`run`): ``V = var_x + var_y`` of ``F P F^T + Q`` beyond
+        ``lost_pos_var`` and ``sqrt(eps) V >= r_min``, the smallest ``R_ii`` of the
+        components present (a course below ``min_speed_mps`` is not used).  NaN ``V`` is
+        lost; without components only a ``V`` beyond ``STATE_LIMIT**2`` is."""
+        K = x.shape[0]
+        if R.ndim == 2:
+            rd = np.broadcast_to(np.diagonal(R), (K, R.shape[0]))
+        else:
+            rd = np.diagonal(R, axis1=-2, axis2=-1)
+        use = np.isfinite(z)
+        ci, si = meas.course_index, meas.speed_index
+        use[:, ci] &= np.abs(z[:, si]) >= self.min_speed_mps
+        with np.errstate(invalid="ignore"):
+            r_min = np.where(use, rd, np.inf).min(axis=1)
+        avail = use.any(axis=1)
+        if np.all(dt == dt[0]):
+            F, Q = self.motion.FQ(float(dt[0]))
+            Fp = F[:2]
+            V = np.einsum("ia,kab,ib->k", Fp, P, Fp) + (Q[0, 0] + Q[1, 1])
+        else:
+            F, Q = self.motion.F(dt), self.motion.Q(dt)
+            Fp = F[:, :2]
+            V = np.einsum("kia,kab,kib->k", Fp, P, Fp) + (Q[:, 0, 0] + Q[:, 1, 1])
+        with np.errstate(invalid="ignore", over="ignore"):
+            fine = (V <= self.lost_pos_var) | (V * SQRT_EPS < r_min)
+            # beyond what a posterior may hold (STATE_LIMIT): lost even without an update
+            absurd = ~(V <= STATE_LIMIT**2)
+        return (avail & ~fine) | absurd
+
+    @staticmethod
+    def _restart(go: NDArray[np.bool_], x: Array, P: Array, P_init: Array, fix: Array
+                 ) -> tuple[Array, Array]:
+        """States and covariances with the tracks ``go`` re-initialised at their event's
+        ``fix (K, 2)``, at rest, with the covariance ``P_init`` (:meth:`run`, Notes)."""
+        xr = np.zeros_like(x)
+        xr[:, :2] = fix
+        return (np.where(go[:, None], xr, x), np.where(go[:, None, None], P_init, P))
+
+    def _step_each(self, x: Array, P: Array, dt: Array, z: Array, R: Array,
+                   meas: FusionMeasurement, P_init: Array, fix: Array) -> tuple:
+        """:meth:`step` track by track after the batched step raised ``LinAlgError``: a
+        track whose update raises restarts at its event's fix (:meth:`_restart`, ``dt =
+        0``) and updates again; without a fix, or if that raises too, it coasts (the
+        prediction, status ``predicted``).
+
+        Returns the step's result, the priors and steps it started from (restarted where
+        it restarted), and which tracks restarted and which coasted.
+        """
+        K, m = z.shape
+        R3 = np.broadcast_to(R, (K, m, m)) if R.ndim == 2 else R
+        has = np.isfinite(fix).all(axis=1)
+        go = np.zeros(K, dtype=bool)
+        coast = np.zeros(K, dtype=bool)
+        parts = []
+        for k in range(K):
+            sl = slice(k, k + 1)
+            try:
+                rk = self.step(x[sl], P[sl], dt[sl], z[sl], R3[sl], meas)
+            except np.linalg.LinAlgError:
+                rk = None
+                if has[k]:
+                    xk, Pk = self._restart(np.ones(1, bool), x[sl], P[sl], P_init[sl],
+                                           fix[sl])
+                    try:
+                        rk = self.step(xk, Pk, np.zeros(1), z[sl], R3[sl], meas)
+                        go[k] = True
+                    except np.linalg.LinAlgError:
+                        pass
+                if rk is None:  # nothing can be updated: coast
+                    coast[k] = True
+                    rk = self.step(x[sl], P[sl], dt[sl], np.full((1, m), np.nan), R3[sl],
+                                   meas)
+            parts.append([np.array(getattr(rk, f)) for f in (
+                "x", "P", "innovation", "standardized", "weights", "nis", "n_used", "gated",
+                "status")])
+        cols = [np.concatenate([p[i] for p in parts]) for i in range(9)]
+        x, P = self._restart(go, x, P, P_init, fix)
+        return _result(*cols), x, P, np.where(go, 0.0, dt), go, coast
 
     def _reject_update(self, sick, x0, P0, dt, Rj, meas, x, P, status, n_used, nis, w,
                        innov) -> tuple:

@@ -10,7 +10,11 @@ Plausibility at the door (:mod:`robustloc.io.limits`): a range outside the ``ran
 (-50 .. 1e5 m; NaN or infinite included) or a GPS speed outside ``speed`` is an *invalid
 measurement*: it is counted (``summary["invalid_measurement"]``), set aside before any fix
 or filter update, and its event still gets a row -- with status ``invalid_measurement``
-when nothing valid arrived with it (the row then carries the filter's prediction).
+when nothing valid arrived with it (the row then carries the filter's prediction).  A
+time outside the ``time`` limits (``|t| < 1e12`` s; ranges, or NMEA times plus the offset)
+cannot be placed on the timeline: such rows are counted (``invalid["time"]``), never reach
+the filter, and each (tag, time) gets an ``invalid_measurement`` row without a state, as in
+``robustloc locate``.
 
 Honest statuses (consistent with ``robustloc locate``): ranges alone fix a 2-D position
 only from three anchors that are not collinear.  An event is ``ok`` / ``fault_excluded``
@@ -56,7 +60,9 @@ class FuseOptions:
         automatic -- POSIX time (``NmeaLog.day0_posix_s``) when the ranges' times look like
         POSIX seconds (median above 1e8) and the log has a dated RMC, else 0 (simulated
         logs: NMEA time of day 0 = time 0 of the ranges).
-    merge_window_s : events closer than this are merged (see align).
+    merge_window_s : a time stamp at most this long after an event's first one joins it,
+        unless it repeats a measured component (an anchor's range, a GPS speed) the event
+        already holds (:mod:`robustloc.fusion.align`, step 2).
     tag_height_m : tag height for slant-range correction when anchors have ``z``.
     init_var_m2 : initial position variance.
     init_acc_var : initial acceleration variance (CA), (m/s^2)^2.
@@ -87,8 +93,10 @@ class FuseOptions:
         for name in ("range_k", "merge_window_s", "geometry_window_s", "init_acc_var"):
             if not np.isfinite(getattr(self, name)) or getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0 and finite")
-        if self.nmea_offset_s is not None and not np.isfinite(self.nmea_offset_s):
-            raise ValueError("nmea_offset_s must be finite")
+        # the offset moves NMEA times onto the ranges' clock, whose times lie within the
+        # time limits of robustloc.io.limits
+        if self.nmea_offset_s is not None and not LIMITS["time"].check(self.nmea_offset_s):
+            raise ValueError("nmea_offset_s must be finite, within +-1e12 s")
 
 
 @dataclass(frozen=True)
@@ -143,7 +151,16 @@ def fuse(
     n = filt.motion.n_states
     t = measurements["time"].to_numpy(float)
     tags = measurements["tag"].astype(str).to_numpy(object)
+    all_tags = np.unique(tags.astype(str))  # GPS speed and course go to every tag
     rng_m = measurements["range"].to_numpy(float)
+    # plausibility at the door: a time outside the limits (|t| < 1e12 s) cannot be placed
+    # on the timeline (a filter step over 1e300 s overflows): its rows are set aside and
+    # get one invalid_measurement row per (tag, time), as in locate
+    bad_time = ~LIMITS["time"].check(t)
+    aside = [pd.DataFrame({"time": t[bad_time], "tag": tags[bad_time], "source": "uwb"})]
+    if bad_time.any():
+        keep = ~bad_time
+        t, tags, col, rng_m = t[keep], tags[keep], col[keep], rng_m[keep]
     if {"bias", "scale"} & set(anchors.columns):  # per-anchor range calibration
         from robustloc.models.calibration import apply_range_calibration
 
@@ -177,7 +194,7 @@ def fuse(
         # UWB epochs: rows with the same (tag, time within the window) form one fix epoch
         tl_u = merge_streams(
             [Stream(t, tags, np.concatenate([_one_hot(len(t), M, col, rng_m), flag], axis=1),
-                    [*range(M), M])], M + 1, opts.merge_window_s,
+                    [*range(M), M])], M + 1, opts.merge_window_s, distinct=range(M),
         )
         K, J = tl_u.time_s.shape
         flat = tl_u.z.reshape(K * J, M + 1)
@@ -198,7 +215,7 @@ def fuse(
                               [0, 1, c_var, c_var + 1, c_mark, c_inv,
                                *range(c_heard, c_heard + M)]))
         meas = FusionMeasurement(n)
-    invalid = {"range": int(bad_range.sum())}
+    invalid = {"range": int(bad_range.sum()), "time": int(bad_time.sum())}
     mo = nmea.motion if isinstance(nmea, NmeaLog) else nmea
     if isinstance(nmea, NmeaLog):
         invalid["speed"] = int(nmea.summary.invalid.get("speed", 0))
@@ -220,7 +237,15 @@ def fuse(
         offset = day0 if (day0 is not None and len(t) and np.median(t) > 1e8) else 0.0
     summary["nmea_offset_s"] = float(offset)
     if mo is not None and len(mo):
-        ut = np.unique(tags)
+        g_t = mo["time_s"].to_numpy(float) + offset
+        bad_gt = ~LIMITS["time"].check(g_t)
+        if bad_gt.any():  # a sentence's time on the ranges' clock beyond the limits
+            invalid["time"] += int(bad_gt.sum())
+            for tg in all_tags:
+                aside.append(pd.DataFrame({"time": g_t[bad_gt], "tag": tg, "source": "gps"}))
+            mo = mo[~bad_gt]
+    if mo is not None and len(mo):
+        ut = all_tags
         gv = mo[["speed_mps", "course_rad"]].to_numpy(float)
         # a sentence whose speed was invalid (NaN speed) marks its event as invalid
         g_flag = np.where(np.isnan(gv[:, :1]), 1.0, np.nan)
@@ -232,7 +257,11 @@ def fuse(
             )
     summary["invalid"] = invalid
     summary["invalid_measurement"] = int(sum(invalid.values()))
-    tl = merge_streams(streams, m_aug, opts.merge_window_s)
+    # the measured components (ranges or fixes with the anchors they heard, speed, course)
+    # come once per event: a second value of one is the next epoch (align, step 2)
+    distinct = ([*range(M), m - 2, m - 1] if opts.coupling == "tight"
+                else [*range(m), *range(c_heard, c_heard + M)])
+    tl = merge_streams(streams, m_aug, opts.merge_window_s, distinct=distinct)
     K, J = tl.time_s.shape
     z = tl.z[..., :m]
     # per-event diagonal R
@@ -246,10 +275,12 @@ def fuse(
     Rd[..., m - 2] = opts.sigma_speed_mps**2
     Rd[..., m - 1] = np.deg2rad(opts.sigma_course_deg) ** 2
 
-    x0pos, has = _initial_positions(tl, z, opts, a_xy, dz, M)
+    x0pos, has, fixes = _initial_positions(tl, z, opts, a_xy, dz, M)
     x0, P0 = initial_state(x0pos, n, opts.init_var_m2, acc_var=opts.init_acc_var)
     P0[~has, 0, 0] = P0[~has, 1, 1] = 1e4
-    tr = filt.run(tl.time_s, z, Rd, meas, x0, P0, progress=progress)
+    # a track whose prediction is lost (a long gap) restarts from its event's fix, with
+    # its initial covariance (FusionFilter.run, Notes)
+    tr = filt.run(tl.time_s, z, Rd, meas, x0, P0, progress=progress, restart=fixes)
 
     heard = (np.isfinite(z[..., :M]) if opts.coupling == "tight"
              else np.isfinite(tl.z[..., c_heard : c_heard + M]))
@@ -262,11 +293,35 @@ def fuse(
         bad_event = np.isfinite(tl.z[..., c_inv]) & (status == st.PREDICTED)
         status = np.where(bad_event, st.INVALID, status)
     frame = _track_frame(tl.tags, tl.time_s, tr, filt, z, m, opts, status)
+    frame = _with_set_aside(frame, pd.concat(aside, ignore_index=True))
     summary["rejected_updates"] = int(np.sum(tr.extra.get("nonfinite", 0)))
+    summary["restarts"] = int(np.sum(tr.extra.get("restarts", 0)))
     summary["events"] = int(np.isfinite(tl.time_s).sum())
     summary["tags"] = int(K)
     summary["status"] = frame["status"].value_counts().to_dict()
     return FuseResult(track=frame, summary=summary)
+
+
+def _with_set_aside(frame: pd.DataFrame, aside: pd.DataFrame) -> pd.DataFrame:
+    """``frame`` with one ``invalid_measurement`` row per distinct (tag, time, source) of
+    the rows ``aside`` (times outside the limits), in tag then time order.
+
+    Their state is NaN: the filter never saw them (like ``locate``'s rows of such epochs).
+    """
+    if aside.empty:
+        return frame
+    rows = aside.drop_duplicates(["tag", "time", "source"])
+    add = pd.DataFrame({c: np.full(len(rows), np.nan) for c in frame.columns})
+    add["time"] = rows["time"].to_numpy(float)
+    add["tag"] = rows["tag"].astype(str).to_numpy(object)
+    add["status"] = st.INVALID
+    add["n_used"] = 0
+    add["source"] = rows["source"].to_numpy(object)
+    out = pd.concat([frame, add.astype({"n_used": frame["n_used"].dtype})],
+                    ignore_index=True)
+    # the filtered rows are already in tag, time order: a stable sort only places the rest
+    order = np.lexsort((out["time"].to_numpy(float), out["tag"].astype(str).to_numpy()))
+    return out.iloc[order].reset_index(drop=True)
 
 
 def _one_hot(L: int, M: int, col: NDArray[np.int64], v: Array) -> Array:
@@ -278,7 +333,11 @@ def _one_hot(L: int, M: int, col: NDArray[np.int64], v: Array) -> Array:
 def _initial_positions(tl, z, opts, a_xy, dz, M, max_age_s: float = 1.0):
     """First usable position of each tag: a fix (loose), or in tight coupling an LS fix of
     the latest range of every anchor heard within ``max_age_s`` (ranges of one TWR round
-    rarely share a time stamp)."""
+    rarely share a time stamp).
+
+    Returns the ``(K, 2)`` first positions (the anchors' centroid without any), whether
+    each tag has one, and the ``(K, J, 2)`` fixes of every event (NaN: none), where a lost
+    track restarts."""
     K, J = tl.time_s.shape
     if opts.coupling == "loose":
         pos = z[..., :2]
@@ -297,7 +356,7 @@ def _initial_positions(tl, z, opts, a_xy, dz, M, max_age_s: float = 1.0):
     first = np.argmax(ok, axis=1)
     has = ok[np.arange(K), first]
     x0 = np.where(has[:, None], pos[np.arange(K), first], a_xy.mean(axis=0)[None])
-    return x0, has
+    return x0, has, np.where(ok[..., None], pos, np.nan)
 
 
 def _layout_status(time_s: Array, heard: NDArray[np.bool_], a_xy: Array,
