@@ -254,3 +254,26 @@ def test_absurd_path_loss_parameters_are_refused(tmp_path, capsys, col, value, w
         for i, (x, y) in enumerate(((0, 0), (10, 0), (0, 10)), start=1)))
     m = _w(tmp_path, "m.csv", "time,tag,anchor,rssi\n0,t,1,-70\n0,t,2,-70\n0,t,3,-70\n")
     _fails(capsys, ["locate", m, "--anchors", a, "-o", str(tmp_path / "o.csv")], a, 3, words)
+
+
+@pytest.mark.parametrize(("opts", "where", "words"), [
+    (["--step", "1e-6"], None, "points is too large; increase --step"),
+    (["--dim", "3"], 1, "--dim 3 needs anchor heights (a z column)"),
+])
+def test_reliability_option_errors_are_user_errors(tmp_path, capsys, opts, where, words):
+    """These ended in a traceback ("internal error"), exit 1."""
+    a = _w(tmp_path, "a.csv", ANCHORS_4)
+    argv = ["reliability", "--anchors", a, "-o", str(tmp_path / "r"), "--no-maps", *opts]
+    if where is None:
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and words in err and "Traceback" not in err
+    else:
+        _fails(capsys, argv, a, where, words)
+    assert not (tmp_path / "r").exists()
+    try:  # argparse: (0, 1] was documented, 0 accepted, then refused inside
+        code = main(["reliability", "--anchors", a, "-o", str(tmp_path / "r"), "--no-maps",
+                     "--rho-threshold", "0"])
+    except SystemExit as e:
+        code = int(e.code)
+    assert code == 2 and "--rho-threshold" in capsys.readouterr().err

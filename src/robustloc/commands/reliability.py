@@ -79,7 +79,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="w-test significance (default 0.001)")
     p.add_argument("--beta0", type=float_in(1e-15, 0.5), default=0.10,
                    help="w-test type II error (default 0.10)")
-    p.add_argument("--rho-threshold", type=float_in(0.0, 1.0), default=0.9,
+    p.add_argument("--rho-threshold", type=float_in(1e-9, 1.0), default=0.9,
                    help="|rho_ij| above which two anchors are flagged as not separable (0.9)")
     p.add_argument("--suggest", action="store_true",
                    help="rank candidate positions for one more anchor")
@@ -152,11 +152,16 @@ def run(args: argparse.Namespace) -> int:
             n_exp = args.n
         elif "n" in df.columns and np.all(np.isfinite(df["n"].to_numpy(float))):
             n_exp = df["n"].to_numpy(float)
-    grid = plan(
-        xyz, area, step, args.sigma, dim=args.dim, tag_z=args.tag_z, model=args.model,
-        path_loss_n=n_exp, max_range_m=args.max_range, alpha0=args.alpha0, beta0=args.beta0,
-        rho_threshold=args.rho_threshold,
-    )
+    if args.dim == 3 and "z" not in df.columns:
+        raise InputError("--dim 3 needs anchor heights (a z column)", args.anchors, 1)
+    try:
+        grid = plan(
+            xyz, area, step, args.sigma, dim=args.dim, tag_z=args.tag_z, model=args.model,
+            path_loss_n=n_exp, max_range_m=args.max_range, alpha0=args.alpha0,
+            beta0=args.beta0, rho_threshold=args.rho_threshold,
+        )
+    except ValueError as exc:  # an option the planner refuses (grid too large, ...)
+        raise InputError(str(exc)) from None
     from robustloc.commands._folder import write_folder
 
     out = Path(args.out)
