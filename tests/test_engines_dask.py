@@ -200,12 +200,15 @@ def _dataset(out: Path) -> pd.DataFrame:
     return pd.concat([pd.read_parquet(f) for f in files], ignore_index=True)
 
 
-def test_locate_dask_equals_single_process_row_for_row(sim, by_time, scheduler, tmp_path):
+def test_locate_dask_equals_single_process_row_for_row(sim, by_time, scheduler, tmp_path,
+                                                       capsys):
     local = _locate_local(sim, tmp_path, "huber")
     out = tmp_path / "pos"
+    capsys.readouterr()
     assert main(["locate", str(by_time), "--anchors", str(sim["anchors"]), "--method",
                  "huber", "-o", str(out), "--engine", "dask", "--scheduler", scheduler,
                  "--quiet"]) == 0
+    assert capsys.readouterr().out == ""  # --quiet: no summary (it printed one)
     # one method: the parts in order are the single-process file, row for row
     pd.testing.assert_frame_equal(_dataset(out), local)
     meta = json.loads((out / "_robustloc.json").read_text())

@@ -380,6 +380,8 @@ def _report(args: argparse.Namespace, summary: dict) -> None:
     if getattr(args, "json", False):
         print(json.dumps({k: v for k, v in summary.items() if k != "files"}, indent=2))
         return
+    if getattr(args, "quiet", False):  # no text summary, as the single-machine commands
+        return
     what = summary.get("value") or "rows"
     n = summary.get("epochs", summary.get("samples", summary.get("rows_out", 0)))
     print(f"{n} {'epochs of ' + what if 'epochs' in summary else 'rows'} in "
