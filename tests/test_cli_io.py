@@ -277,3 +277,74 @@ def test_reliability_option_errors_are_user_errors(tmp_path, capsys, opts, where
     except SystemExit as e:
         code = int(e.code)
     assert code == 2 and "--rho-threshold" in capsys.readouterr().err
+
+
+def _code(argv: list[str]) -> int:
+    """Exit code of the command line (argparse errors raise SystemExit(2))."""
+    try:
+        return main(argv)
+    except SystemExit as e:
+        return int(e.code)
+
+
+def test_spp_never_writes_over_its_inputs(tmp_path, capsys):
+    """`spp obs nav -o obs` replaced the observation file by the solution (exit 0)."""
+    import shutil
+
+    from robustloc.paths import PACKAGE_DATA
+
+    g = PACKAGE_DATA / "gnss-geonet"
+    obs, nav = tmp_path / "ip.05o", tmp_path / "ip.05n"
+    shutil.copy(g / "07590920.05o", obs)
+    shutil.copy(g / "07590920_0000-0400.05n", nav)
+    before = {p: p.read_bytes() for p in (obs, nav)}
+    for out in (str(obs), str(tmp_path / "x" / ".." / "ip.05n")):
+        assert main(["spp", str(obs), str(nav), "-o", out, "--quiet"]) == 2
+        assert "output would overwrite an input" in capsys.readouterr().err
+    assert {p: p.read_bytes() for p in (obs, nav)} == before
+
+
+def test_gnss_masks_below_the_horizon_and_absurd_montecarlo_options_are_refused(
+        tmp_path, capsys):
+    """A negative --mask-deg gave negative sigmas (simulate gnss: 372 of them) and a
+    ValueError traceback (montecarlo --gnss); --sigma 1e160 or --size 1e300 an all-NaN
+    table with exit 0."""
+    for argv in (["montecarlo", "--gnss", "--trials", "50", "--mask-deg=-0.5"],
+                 ["simulate", "gnss", "--mask-deg=-10", "-o", str(tmp_path / "sg")],
+                 ["montecarlo", "--anchors", _w(tmp_path, "a.csv", ANCHORS_4), "--trials",
+                  "50", "--sigma", "1e160"],
+                 ["montecarlo", "--anchors", str(tmp_path / "a.csv"), "--trials", "50",
+                  "--size", "1,1e300"]):
+        assert _code(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert "error: argument" in err and "Traceback" not in err
+    assert not (tmp_path / "sg").exists()
+
+
+def test_gnss_elevation_weighting_is_finite_at_the_horizon():
+    """sigma / sin(elevation) is floored at 1 deg: positive and finite down to 0 deg."""
+    import math
+
+    from robustloc.sim.gnss import visible_design
+
+    s = visible_design(0.0, 30.53, 114.36, 30.0, "GEC", 0.0)  # one satellite at 0.23 deg
+    flat = visible_design(0.0, 30.53, 114.36, 30.0, "GEC", 0.0, elevation_weighting=False)
+    assert np.all(np.isfinite(s.sigma)) and np.all(s.sigma > 0)
+    low = s.elevation_deg < 1.0
+    assert low.any()
+    np.testing.assert_allclose(s.sigma[low], flat.sigma[low] / math.sin(math.radians(1.0)))
+    np.testing.assert_allclose(s.sigma[~low],
+                               flat.sigma[~low] / np.sin(np.deg2rad(s.elevation_deg[~low])))
+
+
+def test_replay_refuses_bad_urls_speeds_and_times(tmp_path, capsys):
+    """A malformed --url, --speed 1e-300 and a time of 1e15 ended in tracebacks (httpx
+    InvalidURL, OverflowError in the pacing sleep); nothing is sent now."""
+    m = _w(tmp_path, "m.csv", "time,tag,anchor,range\n0,T,A1,1\n")
+    for url in ("http://[::1", "http://127.0.0.1:abc", "ftp://host"):
+        _fails(capsys, ["replay", m, "--url", url, "--speed", "0"], url, None, "invalid URL")
+    assert _code(["replay", m, "--url", "http://127.0.0.1:9", "--speed", "1e-300"]) == 2
+    assert "--speed" in capsys.readouterr().err
+    far = _w(tmp_path, "far.csv", "time,tag,anchor,range\n1e15,T,A1,1\n-5,T,A2,1\n")
+    _fails(capsys, ["replay", far, "--url", "http://127.0.0.1:9", "--speed", "1"], far, 2,
+           "column 'time': 1e+15 is implausible")

@@ -16,7 +16,6 @@ from robustloc.options import (
     float_in,
     int_in,
     nonnegative_int,
-    positive_float,
 )
 
 #: Largest --trials: 1e9 trials of a 30-satellite snapshot take days, not memory.
@@ -57,13 +56,19 @@ Example:
   robustloc montecarlo --gnss --trials 10000 --faults 0,1,2 --size 1,3 --json"""
 
 
+#: Largest fault size accepted (MDB multiples or metres): beyond it the simulated
+#: observations overflow (1e300 gave an all-NaN table).
+MAX_FAULT_SIZE = 1e6
+
+
 def _floats(text: str) -> list[float]:
     try:
         out = [finite_float(v) for v in text.split(",") if v.strip()]
     except argparse.ArgumentTypeError:
         out = []
-    if not out:
-        msg = f"expected comma-separated finite numbers, got {text!r}"
+    if not out or any(abs(v) > MAX_FAULT_SIZE for v in out):
+        msg = (f"expected comma-separated numbers within +-{MAX_FAULT_SIZE:g}, "
+               f"got {text!r}")
         raise argparse.ArgumentTypeError(msg)
     return out
 
@@ -91,7 +96,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="solved dimension for --anchors (default 2; z = known height offsets)")
     p.add_argument("--tag-z", type=float_in(-1e5, 1e5), default=0.0,
                    help="tag height for --dim 2 (default 0)")
-    p.add_argument("--sigma", type=positive_float, default=1.0,
+    p.add_argument("--sigma", type=float_in(1e-6, 1e6), default=1.0,
                    help="observation standard deviation for --anchors: m for ranges, dB for "
                         "RSSI (default 1)")
     p.add_argument("--model", choices=("range", "rssi"), default="range",
@@ -100,8 +105,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="path-loss exponent for --model rssi (default: anchors' n column, "
                         "else 2)")
     p.add_argument("--systems", default="GEC", help="GNSS systems among G, E, C (default GEC)")
-    p.add_argument("--mask-deg", type=float_in(-10.0, 90.0), default=10.0,
-                   help="GNSS elevation mask (deg)")
+    p.add_argument("--mask-deg", type=float_in(0.0, 90.0), default=10.0,
+                   help="GNSS elevation mask (deg, 0 .. 90)")
     p.add_argument("--lat", type=float_in(-90.0, 90.0), default=30.53,
                    help="GNSS receiver latitude (deg)")
     p.add_argument("--lon", type=float_in(-180.0, 360.0), default=114.36,

@@ -9,7 +9,37 @@ import time
 
 import numpy as np
 
+from robustloc.errors import InputError
 from robustloc.options import nonnegative_float, positive_int
+
+#: Slowest replay (``--speed``): 1 000 times slower than real time; 0 means no pacing.
+MIN_SPEED = 1e-3
+
+
+def _speed(text: str) -> float:
+    """``--speed``: 0 (no pacing) or at least :data:`MIN_SPEED` (1e-300 overflowed the
+    pacing sleep; 1e-9 would wait decades)."""
+    v = nonnegative_float(text)
+    if 0 < v < MIN_SPEED:
+        raise argparse.ArgumentTypeError(f"expected 0 (no pacing) or at least {MIN_SPEED:g}, "
+                                         f"got {text!r}")
+    return v
+
+
+def check_url(url: str) -> None:
+    """Refuse a service URL that is not ``http(s)://HOST[:PORT][/...]`` (a malformed
+    one reached httpx / websockets and ended in a traceback)."""
+    from urllib.parse import urlsplit
+
+    try:
+        parts = urlsplit(url)
+        port = parts.port  # raises on a port that is not a number in 0..65535
+    except ValueError as exc:
+        raise InputError(f"invalid URL: {exc}", url) from None
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise InputError("invalid URL: expected http://HOST[:PORT] or https://...", url)
+    if port == 0:
+        raise InputError("invalid URL: port 0", url)
 
 NAME = "replay"
 HELP = "send a measurements log to a running robustloc serve (HTTP batches or WebSocket)"
@@ -28,8 +58,8 @@ when every row was accepted, 1 when the server rejected some, 2 on a connection 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("measurements", help="measurements file (time, tag, anchor, rssi|range)")
     p.add_argument("--url", required=True, help="service base URL, e.g. http://127.0.0.1:8080")
-    p.add_argument("--speed", type=nonnegative_float, default=1.0,
-                   help="times real time (default 1; 0 = no pacing)")
+    p.add_argument("--speed", type=_speed, default=1.0,
+                   help=f"times real time (default 1; 0 = no pacing; at least {MIN_SPEED:g})")
     p.add_argument("--token", default=None, help="bearer token (default $ROBUSTLOC_TOKEN)")
     p.add_argument("--transport", choices=("http", "ws"), default="http",
                    help="POST /api/measurements batches (default) or WebSocket "
@@ -57,9 +87,16 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
     from tqdm import tqdm
 
     from robustloc.io import read_measurements
+    from robustloc.io.limits import limits_for
 
     df = read_measurements(path)
     value = df.attrs["value"]
+    lim = limits_for("time")  # the service refuses such rows; here they would set the pace
+    out = ~lim.check(df["time"].to_numpy(float))
+    if out.any():
+        i = int(np.argmax(out))
+        raise InputError(f"column 'time': {df['time'].iloc[i]:g} is implausible "
+                         f"({lim.describe()})", path, int(df.index[i]))
     df = df.sort_values("time", kind="stable")
     lines = df.index.to_numpy()
     times = df["time"].to_numpy(float)
@@ -91,8 +128,9 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
             if speed > 0:
                 due = (times[i0] - times[0]) / speed
                 wait = due - (time.monotonic() - t_start)
-                if wait > 0:
-                    time.sleep(wait)
+                while wait > 0:  # in steps: one sleep of a long pause can overflow
+                    time.sleep(min(wait, 60.0))
+                    wait = due - (time.monotonic() - t_start)
             body = json.dumps(records[i0:i1])
             while True:
                 if conn is not None:
@@ -143,6 +181,7 @@ def _transport_errors() -> tuple[type[BaseException], ...]:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_url(args.url)
     try:
         summary = replay(args.measurements, args.url, speed=args.speed, token=args.token,
                          transport=args.transport, batch_rows=args.batch_rows,

@@ -87,9 +87,12 @@ def run(args: argparse.Namespace) -> int:
         from robustloc.engines.dask import run_spp
         return run_spp(args, run)
     from robustloc.io import write_table
+    from robustloc.io.atomic import check_not_input
     from robustloc.pipelines.spp import SppSettings
     from robustloc.pipelines.spp import run_spp as solve
 
+    # before any work: -o naming the observation, a navigation, SP3 or CLK file replaced it
+    check_not_input(args.out, [args.obs, *args.nav, args.sp3, args.clk])
     frame, summary = solve(args.obs, args.nav, SppSettings.from_namespace(args),
                            sp3=args.sp3, clk=args.clk)
     out = Path(args.out)

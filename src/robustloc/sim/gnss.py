@@ -165,6 +165,10 @@ class Snapshot:
     clock_systems: str
 
 
+#: Elevation (deg) below which the elevation weighting ``1 / sin(el)`` stops growing.
+MIN_WEIGHT_ELEVATION_DEG = 1.0
+
+
 def visible_design(
     t_s: float,
     lat_deg: float = 30.53,
@@ -176,7 +180,7 @@ def visible_design(
 ) -> Snapshot:
     """Visible satellites and the linearized pseudorange design at a receiver.
 
-    ``sigma = sigma_sys / sin(elevation)`` when ``elevation_weighting``.
+    ``sigma = sigma_sys / sin(max(elevation, 1 deg))`` when ``elevation_weighting``.
     """
     ids, xyz, sig0 = constellation(t_s, systems)
     az, el, rng = pymap3d.ecef2aer(xyz[:, 0], xyz[:, 1], xyz[:, 2], lat_deg, lon_deg, height_m)
@@ -191,7 +195,10 @@ def visible_design(
     clocks = np.array([[1.0 if s == c else 0.0 for c in present] for s in sys_v]).reshape(
         len(sys_v), len(present)
     )
-    sigma = sig0 / np.sin(ea) if elevation_weighting else sig0
+    # the weighting's elevation floored at 1 deg: at or below the horizon 1/sin(el) is
+    # infinite or negative (a negative --mask-deg gave negative sigmas; now refused too)
+    sin_el = np.sin(np.maximum(ea, np.deg2rad(MIN_WEIGHT_ELEVATION_DEG)))
+    sigma = sig0 / sin_el if elevation_weighting else sig0
     return Snapshot(
         ids=ids_v, systems=sys_v, sat_xyz=xyz, elevation_deg=el, azimuth_deg=az, range_m=rng,
         sigma=sigma, H_enu=np.hstack([-los, clocks]), clock_systems=present,
@@ -215,8 +222,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--height", type=float_in(-1e3, 1e5), default=30.0,
                    help="receiver ellipsoidal height, m")
     p.add_argument("--systems", default="GEC", help="constellations among G, E, C (default GEC)")
-    p.add_argument("--mask-deg", type=float_in(-10.0, 90.0), default=10.0,
-                   help="elevation mask, deg (default 10)")
+    p.add_argument("--mask-deg", type=float_in(0.0, 90.0), default=10.0,
+                   help="elevation mask, deg (default 10; 0 .. 90)")
     p.add_argument(
         "--no-elevation-weighting", action="store_true",
         help="constant code noise per system instead of sigma / sin(elevation)",
