@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 import warnings
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
+from robustloc.cli import main
 from robustloc.errors import InputError
 from robustloc.gnss.rinex import datetime64_to_gps_s, read_nav, read_obs
 from robustloc.gnss.sp3 import read_clk, read_sp3
@@ -318,3 +323,246 @@ def test_rinex2_nav_blank_orbit_parameter_is_an_error(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="without sqrtA") as e:
         read_nav(_write(tmp_path, "blank.05n", "\n".join(lines) + "\n"))
     assert e.value.line == k + 1
+
+
+# ------------------------------------------------ epochs without satellites, RINEX 3 reader
+
+
+def _first_epoch(lines: list[str]) -> int:
+    return next(k for k, ln in enumerate(lines) if "END OF HEADER" in ln) + 1
+
+
+def _v2_epochs(lines: list[str], ntypes: int) -> list[tuple[str, list[str], list[str]]]:
+    """Epochs of a RINEX 2 file: ``(epoch line, satellite ids, records)``; the records of an
+    event (flags 2-5) are its special records."""
+    nl = (ntypes + 4) // 5
+    out = []
+    i = _first_epoch(lines)
+    while i < len(lines):
+        e = lines[i]
+        ns = int(e[29:32])
+        if 2 <= int(e[26:29]) <= 5:  # event: ns special records
+            out.append((e, [], lines[i + 1 : i + 1 + ns]))
+            i += 1 + ns
+            continue
+        nh = (ns + 11) // 12
+        svtxt = "".join(lines[i + k][32:68] for k in range(nh))
+        sats = [svtxt[3 * k : 3 * k + 3].replace(" ", "0") for k in range(ns)]
+        i += nh
+        recs = []
+        for _ in sats:
+            recs.append("".join(lines[i + m][:80].ljust(80) for m in range(nl))[: 16 * ntypes])
+            i += nl
+        out.append((e, sats, recs))
+    return out
+
+
+def _rinex3_from_rinex2(src: Path, n_epochs: int | None = None,
+                        rename: dict[str, str] | None = None) -> tuple[list[str], list[str]]:
+    """The RINEX 2 file ``src`` rewritten as RINEX 3.03 (same values, every system with the
+    same observation types, renamed by ``rename`` or else ``type + "X"``); returns the lines
+    and the RINEX 3 types."""
+    lines = src.read_text().splitlines()
+    hdr = lines[: _first_epoch(lines)]
+    types: list[str] = []
+    for ln in hdr:
+        if ln[60:].strip() == "# / TYPES OF OBSERV":
+            types += ln[6:60].split()
+    names = [(rename or {}).get(t, t + "X") for t in types]
+    epochs = _v2_epochs(lines, len(types))[:n_epochs]
+    systems = sorted({s[0] for _, sats, _ in epochs for s in sats})
+    out = ["     3.03           OBSERVATION DATA    M".ljust(60) + "RINEX VERSION / TYPE",
+           " -3976219.5082  3382372.5671  3652512.9849".ljust(60) + "APPROX POSITION XYZ"]
+    for sysch in systems:
+        for k in range(0, len(names), 13):
+            head = f"{sysch}  {len(names):3d}" if k == 0 else " " * 6
+            out.append((head + "".join(f" {t:3s}" for t in names[k : k + 13])).ljust(60)
+                       + "SYS / # / OBS TYPES")
+    e = next(e for e, sats, _ in epochs if sats)
+    yy = int(e[1:3])
+    out.append(f"  {yy + (2000 if yy < 80 else 1900):04d}{int(e[4:6]):6d}{int(e[7:9]):6d}"
+               f"{int(e[10:12]):6d}{int(e[13:15]):6d}{float(e[15:26]):13.7f}     GPS".ljust(60)
+               + "TIME OF FIRST OBS")
+    out.append(" " * 60 + "END OF HEADER")
+    for e, sats, recs in epochs:
+        if 2 <= int(e[26:29]) <= 5:
+            out += [f">{int(e[26:29]):31d}{len(recs):3d}", *recs]
+            continue
+        yy = int(e[1:3])
+        out.append(f"> {yy + (2000 if yy < 80 else 1900):04d} {int(e[4:6]):02d} "
+                   f"{int(e[7:9]):02d} {int(e[10:12]):02d} {int(e[13:15]):02d}"
+                   f"{float(e[15:26]):11.7f}  {int(e[26:29])}{len(sats):3d}")
+        out += [(s + r).rstrip() for s, r in zip(sats, recs)]
+    return out, names
+
+
+def _write_lines(tmp_path: Path, name: str, lines: list[str]) -> Path:
+    return _write(tmp_path, name, "\n".join(lines) + "\n")
+
+
+_RUN_CLI = "import sys; from robustloc.cli import main; sys.exit(main(sys.argv[1:]))"
+_READ = ("import sys, json, numpy as np; from robustloc.gnss.rinex import read_obs; "
+         "o = read_obs(sys.argv[1]); "
+         "print(json.dumps([o.n_epochs, o.line.tolist(), o.epoch_flag.tolist(), "
+         "[int(np.isfinite(o.obs['C1'][k]).sum()) for k in range(o.n_epochs)]]))")
+
+
+def _subprocess(args: list[str]) -> subprocess.CompletedProcess:
+    """Run a Python snippet in a child process; an endless loop fails after 60 s."""
+    return subprocess.run([sys.executable, "-c", *args], capture_output=True, text=True,
+                          timeout=60, check=False)
+
+
+@pytest.mark.parametrize("flag", [0, 1, 6])
+def test_rinex2_epoch_without_satellites_alone(tmp_path: Path, flag: int) -> None:
+    """An epoch listing 0 satellites used to loop forever (its header took 0 lines)."""
+    lines = OBS.read_text().splitlines()
+    i = _first_epoch(lines)
+    p = _write_lines(tmp_path, "zero.05o", [*lines[:i], f" 05  4  2  0  0  0.0000000  {flag}  0"])
+    r = _subprocess([_READ, str(p)])
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout) == [1, [i + 1], [flag], [0]]
+
+
+def test_rinex2_epoch_without_satellites_in_the_middle(tmp_path: Path) -> None:
+    """The empty epoch is a row of its own (non-usable status in spp), the rest unchanged."""
+    lines = OBS.read_text().splitlines()
+    ep = [k for k, ln in enumerate(lines) if ln.startswith(" 05  4  2")]
+    k = ep[9]
+    ns = int(lines[k][29:32])
+    p = _write_lines(tmp_path, "zmid.05o", [*lines[:k], lines[k][:29] + "  0",
+                                            *lines[k + 1 + ns :]])
+    r = _subprocess([_READ, str(p)])
+    assert r.returncode == 0, r.stderr
+    n, ep_lines, flags, n_c1 = json.loads(r.stdout)
+    assert n == 120 and n_c1[9] == 0 and min(n_c1[:9] + n_c1[10:]) >= 4
+    assert ep_lines[9] == k + 1 and ep_lines[10] == k + 2
+    o, ref = read_obs(p), read_obs(OBS)
+    keep = np.arange(120) != 9
+    np.testing.assert_array_equal(o.t_gps_s, ref.t_gps_s)
+    for name in ref.obs:
+        a = o.obs[name][:, [o.sats.index(s) for s in ref.sats]]
+        np.testing.assert_array_equal(a[keep], ref.obs[name][keep])
+        assert np.isnan(o.obs[name][9]).all()
+    out = tmp_path / "sol.csv"
+    r = _subprocess([_RUN_CLI, "spp", str(p), str(NAV), "-o", str(out), "--quiet"])
+    assert r.returncode == 0, r.stderr
+    sol = pd.read_csv(out)
+    assert len(sol) == 120
+    assert sol["status"][9] == "insufficient_anchors" and sol["n_sats"][9] == 0
+    assert (sol["status"].drop(index=9) != "insufficient_anchors").all()
+
+
+@pytest.mark.parametrize("src,n_epochs", [(OBS, 20), (OBS, None), (SLAC_OBS, None)])
+def test_rinex3_reader_matches_rinex2_reader(tmp_path: Path, src: Path,
+                                             n_epochs: int | None) -> None:
+    """The same values written as RINEX 3 read the same (GPS and mixed files)."""
+    lines, names = _rinex3_from_rinex2(src, n_epochs)
+    o3 = read_obs(_write_lines(tmp_path, "x.rnx", lines))
+    o2 = read_obs(src).select(slice(0, n_epochs))
+    assert o3.version == 3.03 and o3.n_epochs == o2.n_epochs
+    cols = [o2.sats.index(s) for s in o3.sats]  # the satellites of these epochs, in order
+    assert cols == sorted(cols)
+    assert all(np.isnan(a[:, np.setdiff1d(np.arange(len(o2.sats)), cols)]).all()
+               for a in o2.obs.values())
+    np.testing.assert_array_equal(o3.t_gps_s, o2.t_gps_s)
+    np.testing.assert_array_equal(o3.epoch_flag, o2.epoch_flag)
+    assert [lines[k - 1][0] for k in o3.line] == [">"] * o3.n_epochs
+    np.testing.assert_array_equal(o3.invalid_per_epoch, o2.invalid_per_epoch)
+    assert sorted(o3.obs) == sorted(names)
+    for name in o2.obs:
+        np.testing.assert_array_equal(o3.obs[name + "X"], o2.obs[name][:, cols], err_msg=name)
+
+
+def _rinex3_geonet(tmp_path: Path) -> tuple[list[str], Path]:
+    """The first 20 epochs of the GEONET excerpt as RINEX 3 (``C1C``, ``L1C`` ...)."""
+    lines, _ = _rinex3_from_rinex2(OBS, 20, {"L1": "L1C", "C1": "C1C", "L2": "L2W",
+                                             "P2": "C2W"})
+    return lines, _write_lines(tmp_path, "v3.05o", lines)
+
+
+def _spp_rc(capsys: pytest.CaptureFixture[str], obs: Path, out: Path) -> tuple[int, str]:
+    rc = main(["spp", str(obs), str(NAV), "-o", str(out), "--quiet"])
+    return rc, capsys.readouterr().err
+
+
+@pytest.mark.parametrize("nth", [0, 9])
+def test_rinex3_impossible_epoch_time_names_file_and_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], nth: int) -> None:
+    """georinex dropped the epoch and every later one (9/9 epochs solved, exit 0)."""
+    lines, good = _rinex3_geonet(tmp_path)
+    rc, err = _spp_rc(capsys, good, tmp_path / "ok.csv")
+    assert rc == 0 and len(pd.read_csv(tmp_path / "ok.csv")) == 20
+    k = [j for j, ln in enumerate(lines) if ln.startswith(">")][nth]
+    assert lines[k].startswith("> 2005 04 02")
+    for a, b, value in ((7, 9, "13"), (10, 12, "31"), (13, 15, "24"), (16, 18, "60")):
+        bad = list(lines)
+        bad[k] = bad[k][:a] + value + bad[k][b:]
+        p = _write_lines(tmp_path, "m.05o", bad)
+        with pytest.raises(InputError) as e:
+            read_obs(p)
+        assert e.value.line == k + 1 and "impossible epoch time" in str(e.value)
+        out = tmp_path / "m.csv"
+        rc, err = _spp_rc(capsys, p, out)
+        assert rc == 2 and err.startswith(f"error: {p}:{k + 1}: impossible epoch time")
+        assert "Traceback" not in err and not out.exists()
+
+
+def test_rinex3_malformed_value_names_file_and_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """georinex dropped the satellite of a value that is not a number, silently."""
+    lines, _ = _rinex3_geonet(tmp_path)
+    k = next(j for j, ln in enumerate(lines) if ln.startswith("G07"))
+    assert "24361933.475" in lines[k]
+    bad = list(lines)
+    bad[k] = bad[k].replace("24361933.475", "2436X933.475")
+    p = _write_lines(tmp_path, "bad.05o", bad)
+    with pytest.raises(InputError) as e:
+        read_obs(p)
+    assert e.value.line == k + 1 and "malformed C1C value '  2436X933.475'" in str(e.value)
+    rc, err = _spp_rc(capsys, p, tmp_path / "b.csv")
+    assert rc == 2 and err.startswith(f"error: {p}:{k + 1}: malformed C1C value")
+
+
+def test_rinex3_epoch_without_satellites_gets_a_row(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """georinex left out an epoch listing 0 satellites (19 rows for 20 epochs)."""
+    lines, _ = _rinex3_geonet(tmp_path)
+    i = _first_epoch(lines)
+    assert lines[i].endswith("  0  8")
+    z = [*lines[:i], lines[i][:-3] + "  0", *lines[i + 9 :]]
+    p = _write_lines(tmp_path, "z.05o", z)
+    o = read_obs(p)
+    assert o.n_epochs == 20 and o.line[0] == i + 1 and o.line[1] == i + 2
+    assert all(np.isnan(a[0]).all() for a in o.obs.values())
+    assert np.isfinite(o.obs["C1C"][1:]).sum(axis=1).min() >= 4
+    out = tmp_path / "z.csv"
+    rc, err = _spp_rc(capsys, p, out)
+    assert rc == 0, err
+    sol = pd.read_csv(out)
+    assert len(sol) == 20 and sol["status"][0] == "insufficient_anchors"
+    assert (sol["status"][1:] == "ok").all()
+
+
+def test_rinex3_events_counts_and_truncation(tmp_path: Path) -> None:
+    """Event records (flags 2-5) are skipped; wrong counts and truncation name the line."""
+    lines, _ = _rinex3_geonet(tmp_path)
+    i = _first_epoch(lines)
+    ev = [*lines[: i + 9], "> 2005 04 02 00 00 15.0000000  4  1",
+          "event comment".ljust(60) + "COMMENT", *lines[i + 9 :]]
+    o = read_obs(_write_lines(tmp_path, "ev.05o", ev))
+    assert o.n_epochs == 20 and o.line[1] == i + 12
+    assert [ev[k - 1][0] for k in o.line] == [">"] * 20
+    more = list(lines)
+    more[i] = more[i][:-3] + "  9"  # announces 9, lists 8 (the next line is an epoch)
+    with pytest.raises(InputError, match="announces 9 satellites but lists 8") as e:
+        read_obs(_write_lines(tmp_path, "n.05o", more))
+    assert e.value.line == i + 1
+    last = max(k for k, ln in enumerate(lines) if ln.startswith(">"))
+    with pytest.raises(InputError, match="ends inside") as e:
+        read_obs(_write_lines(tmp_path, "cut.05o", lines[:-2]))
+    assert e.value.line == last + 1
+    garbage = [*lines[: i + 9], "G99 this is not an epoch line", *lines[i + 9 :]]
+    with pytest.raises(InputError, match="expected an epoch line") as e:
+        read_obs(_write_lines(tmp_path, "g.05o", garbage))
+    assert e.value.line == i + 10

@@ -11,9 +11,14 @@
   was lost, and it files a second record of the same epoch (Galileo I/NAV + F/NAV) under a
   made-up satellite ``E01_1``.  ``tests/test_gnss_orbits_reference.py`` checks the records
   against RTKLIB.
-* RINEX 3 observation files and the other navigation files (RINEX 2 non-GPS, RINEX 4) are
-  read through georinex, with its xarray ``FutureWarning``/``DeprecationWarning`` flood
-  silenced.
+* RINEX 3 observation files are read by a fixed-width reader of our own
+  (:func:`_read_obs_v3`): georinex 1.16 silently dropped an epoch with an impossible date
+  and every epoch after it, a value that is not a number, and epochs listing 0 satellites.
+* The other navigation files (RINEX 2 non-GPS, RINEX 4) are read through georinex, with its
+  xarray ``FutureWarning``/``DeprecationWarning`` flood silenced.
+
+An epoch that lists 0 satellites is an epoch without observations (a row of NaN), so that
+every epoch of the file reaches the solver and gets an output row.
 
 Times are GPS time in seconds since 1980-01-06 00:00:00 (``t_gps_s``), a float64.
 
@@ -229,8 +234,25 @@ def _approx(hdr: dict[str, str]) -> NDArray[np.float64]:
 def read_obs(path: str | PathLike[str]) -> ObsData:
     """Read a RINEX 2 or 3 observation file.
 
-    RINEX 2 is read by the fast reader of this module; RINEX 3 through georinex.  Raises
-    :class:`InputError` (with file and line) for a truncated or malformed file.
+    Both versions are read by the fixed-width readers of this module
+    (:func:`_read_obs_v2`, :func:`_read_obs_v3`).
+
+    Parameters
+    ----------
+    path : str or path-like
+        Observation file, optionally gzip-compressed.
+
+    Returns
+    -------
+    ObsData
+        One row per epoch of the file (flags 0, 1 and 6), including epochs that list no
+        satellites (all NaN).
+
+    Raises
+    ------
+    InputError
+        With file and line, for a truncated or malformed file (impossible epoch time,
+        satellite count that does not match the records, a value that is not a number).
     """
     path = str(path)
     version, ftype = rinex_version(path)
@@ -285,7 +307,9 @@ def _read_obs_v2(path: str, version: float) -> ObsData:
             raise InputError(f"malformed epoch time {ln[:26]!r}", path, i + 1) from exc
         _calendar(*ep[:5], sec, "epoch time", path, i + 1)
         svtxt = ln[32:68]
-        nhead = (nsat + 11) // 12
+        # the epoch header takes one line per 12 satellites, and one line with none: an
+        # epoch that lists 0 satellites is an epoch without observations, not an endless loop
+        nhead = max(1, (nsat + 11) // 12)
         for k in range(1, nhead):
             if i + k >= n:
                 raise InputError("file ends inside an epoch header", path, i + k)
@@ -322,7 +346,7 @@ def _read_obs_v2(path: str, version: float) -> ObsData:
 
     # vectorized field extraction: each record -> nlines_sat padded 80-char lines
     nrec = len(rec_start)
-    starts = np.asarray(rec_start)
+    starts = np.asarray(rec_start, dtype=np.int64)
     idx = (starts[:, None] + np.arange(nlines_sat)[None, :]).ravel()
     block = "".join(lines[j][:80].ljust(80) for j in idx.tolist())
     buf = np.frombuffer(block.encode("ascii", errors="replace"), dtype="S1").reshape(
@@ -349,8 +373,8 @@ def _read_obs_v2(path: str, version: float) -> ObsData:
 
     all_sats = sorted(set(sat_ids), key=lambda s: ("GRECJS".find(s[0]), s))
     col_of = {s: k for k, s in enumerate(all_sats)}
-    cols = np.array([col_of[s] for s in sat_ids])
-    rows = np.asarray(rec_epoch)
+    cols = np.array([col_of[s] for s in sat_ids], dtype=np.int64)
+    rows = np.asarray(rec_epoch, dtype=np.int64)
     nep = len(times)
     obs = {}
     for t, name in enumerate(types):
@@ -393,28 +417,162 @@ def _georinex_load(path: str, **kw):  # noqa: ANN202
             raise InputError(f"georinex could not read the file: {exc}", path) from exc
 
 
+def _obs_types_v3(hdr: dict[str, str], path: str) -> dict[str, list[str]]:
+    """Observation types of each system from the ``SYS / # / OBS TYPES`` records.
+
+    A record starts with the system letter and the number of types (``A1,2X,I3``), followed
+    by up to 13 types (``13(1X,A3)``); continuation lines have a blank system and count.
+    """
+    rec = hdr.get("SYS / # / OBS TYPES")
+    if rec is None:
+        raise InputError("missing 'SYS / # / OBS TYPES' header record", path)
+    types: dict[str, list[str]] = {}
+    want: dict[str, int] = {}
+    sysch = ""
+    for part in rec.split("\n"):
+        if part[:1].strip():
+            sysch = part[0]
+            try:
+                want[sysch] = int(part[3:6])
+            except ValueError as exc:
+                raise InputError(f"unreadable number of {sysch} observation types in "
+                                 f"{part.rstrip()!r}", path) from exc
+            types[sysch] = []
+        elif not sysch:
+            raise InputError("'SYS / # / OBS TYPES' continuation line without a system",
+                             path)
+        types[sysch] += part[7:60].split()
+    for sysch, n in want.items():
+        if len(types[sysch]) < n:
+            raise InputError(f"header lists {len(types[sysch])} {sysch} observation types, "
+                             f"expected {n}", path)
+        types[sysch] = types[sysch][:n]
+    return types
+
+
 def _read_obs_v3(path: str, version: float) -> ObsData:
+    """Fixed-width reader of RINEX 3 observation files (RINEX 3.04 section 6.6, table A3).
+
+    An epoch is a line ``> YYYY MM DD HH MM SS.SSSSSSS  F NNN`` (columns 3-6 year, 8-9
+    month, 11-12 day, 14-15 hour, 17-18 minute, 19-29 second, 32 epoch flag, 33-35 number
+    of satellites) followed by one line per satellite: ``SNN`` and 16 characters per
+    observation type of that system (``F14.3`` value, loss-of-lock and signal-strength
+    indicators).  Epoch flags 2-5 are events followed by as many special records as the
+    count says; they carry no observations and are skipped.  An epoch that lists 0
+    satellites is an epoch without observations (all NaN).  Blank fields and ``0.000``
+    (not observed) are NaN; an impossible epoch time, a count that does not match the
+    records, a truncated file or a value that is not a number raises :class:`InputError`
+    naming the file and the line (georinex, used before, dropped such epochs or values
+    silently, and with them every later epoch).
+    """
     lines = _read_lines(path)
     hdr, i0 = _header(lines, path)
-    ds = _georinex_load(path, fast=False)
-    if ds is None or "time" not in ds.coords or ds.sizes.get("time", 0) == 0:
+    types = _obs_types_v3(hdr, path)
+    times: list[tuple[int, int, int, int, int, float]] = []
+    flags: list[int] = []
+    ep_lines: list[int] = []
+    rec_sat: list[str] = []  # one per satellite record
+    rec_epoch: list[int] = []
+    rec_line: list[int] = []  # index in lines of each record
+    i = i0
+    n = len(lines)
+    while i < n:
+        ln = lines[i]
+        if not ln.strip():
+            i += 1
+            continue
+        if ln[:1] != ">":
+            raise InputError(f"expected an epoch line '> YYYY MM DD HH MM SS.SSSSSSS  F NNN', "
+                             f"got {ln.rstrip()[:40]!r}", path, i + 1)
+        try:
+            flag = int(ln[29:32] or 0)
+            nsat = int(ln[32:35])
+        except ValueError as exc:
+            raise InputError(f"malformed epoch line {ln.rstrip()!r}", path, i + 1) from exc
+        if not 0 <= flag <= 6 or nsat < 0:
+            raise InputError(f"malformed epoch line {ln.rstrip()!r}: epoch flag must be 0-6 "
+                             "and the satellite count >= 0", path, i + 1)
+        if 2 <= flag <= 5:
+            i += 1 + nsat  # event: nsat special records follow
+            continue
+        try:
+            ep = (int(ln[2:6]), int(ln[7:9]), int(ln[10:12]), int(ln[13:15]),
+                  int(ln[16:18]), float(ln[18:29]))
+        except ValueError as exc:
+            raise InputError(f"malformed epoch time {ln[:29]!r}", path, i + 1) from exc
+        _calendar(*ep, "epoch time", path, i + 1)
+        if i + 1 + nsat > n:
+            raise InputError(
+                f"file ends inside the epoch starting here ({nsat} satellites announced)",
+                path, i + 1)
+        epoch_idx = len(times)
+        times.append(ep)
+        flags.append(flag)
+        ep_lines.append(i + 1)
+        for k in range(1, nsat + 1):
+            rec = lines[i + k]
+            if rec[:1] == ">" or not rec.strip():
+                raise InputError(f"the epoch announces {nsat} satellites but lists {k - 1}",
+                                 path, i + 1)
+            sysch = rec[0]
+            try:
+                prn = int(rec[1:3].replace(" ", "0"))
+            except ValueError as exc:
+                raise InputError(f"malformed satellite id {rec[:3]!r}", path,
+                                 i + k + 1) from exc
+            if sysch not in types:
+                raise InputError(f"satellite {rec[:3]!r} of a system without "
+                                 "'SYS / # / OBS TYPES' in the header", path, i + k + 1)
+            rec_sat.append(f"{sysch}{prn:02d}")
+            rec_epoch.append(epoch_idx)
+            rec_line.append(i + k)
+        i += 1 + nsat
+    if not times:
         raise InputError("no observation epochs after the header", path, i0 + 1)
-    sats = [str(s) for s in ds.sv.values]
-    order = sorted(range(len(sats)), key=lambda k: ("GRECJS".find(sats[k][0]), sats[k]))
-    sats = [sats[k] for k in order]
-    obs = {
-        str(name): np.asarray(ds[name].values, dtype=np.float64)[:, order]
-        for name in ds.data_vars
-        if ds[name].dims == ("time", "sv")
-    }
-    t = datetime64_to_gps_s(ds.time.values)
-    # epoch lines: find them for messages
-    ep_lines = [k + 1 for k in range(i0, len(lines)) if lines[k].startswith(">")]
-    ep_lines = (ep_lines + [0] * len(t))[: len(t)]
+
+    names = list(dict.fromkeys(t for ts in types.values() for t in ts))
+    all_sats = sorted(set(rec_sat), key=lambda s: ("GRECJS".find(s[0]), s))
+    col_of = {s: k for k, s in enumerate(all_sats)}
+    nep = len(times)
+    obs = {name: np.full((nep, len(all_sats)), np.nan) for name in names}
+    rec_sys = np.array([s[0] for s in rec_sat], dtype="U1")
+    rows_all = np.asarray(rec_epoch, dtype=np.int64)
+    cols_all = np.array([col_of[s] for s in rec_sat], dtype=np.int64)
+    lines_all = np.asarray(rec_line, dtype=np.int64)
+    for sysch, sys_types in types.items():
+        sel = np.flatnonzero(rec_sys == sysch)
+        if sel.size == 0 or not sys_types:
+            continue
+        width = 3 + 16 * len(sys_types)
+        block = "".join(lines[j][:width].ljust(width) for j in lines_all[sel].tolist())
+        buf = np.frombuffer(block.encode("ascii", errors="replace"), dtype="S1").reshape(
+            sel.size, width)
+        for t, name in enumerate(sys_types):
+            fld = buf[:, 3 + 16 * t : 17 + 16 * t].copy().view("S14").ravel()
+            blank = np.char.strip(fld) == b""
+            try:
+                vals = np.where(blank, b"nan", fld).astype(np.float64)
+            except ValueError:
+                bad = next(k for k in range(sel.size) if not blank[k] and not _isfloat(fld[k]))
+                raise InputError(
+                    f"malformed {name} value {fld[bad].decode(errors='replace')!r} of "
+                    f"{rec_sat[sel[bad]]}", path, int(lines_all[sel[bad]]) + 1,
+                ) from None
+            vals[vals == 0.0] = np.nan  # 0.000: not observed
+            obs[name][rows_all[sel], cols_all[sel]] = vals
+    tt = np.array(
+        [
+            np.datetime64(f"{y:04d}-{mo:02d}-{d:02d}T{h:02d}:{mi:02d}", "ns")
+            + np.int64(round(sec * 1e9)).astype("timedelta64[ns]")
+            for (y, mo, d, h, mi, sec) in times
+        ],
+        dtype="datetime64[ns]",
+    )
     invalid = _implausible_pseudoranges(obs)
     return ObsData(
-        path, version, t, sats, obs, _approx(hdr), np.zeros(len(t), dtype=np.int64),
-        np.asarray(ep_lines, dtype=np.int64), hdr, invalid,
+        path, version, datetime64_to_gps_s(tt), all_sats, obs, _approx(hdr),
+        np.asarray(flags, dtype=np.int64), np.asarray(ep_lines, dtype=np.int64), hdr,
+        invalid,
     )
 
 
