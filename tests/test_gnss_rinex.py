@@ -566,3 +566,26 @@ def test_rinex3_events_counts_and_truncation(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="expected an epoch line") as e:
         read_obs(_write_lines(tmp_path, "g.05o", garbage))
     assert e.value.line == i + 10
+
+
+def test_rinex3_reader_matches_georinex_on_a_valid_file(tmp_path: Path) -> None:
+    """The own RINEX 3 reader against the independent reference (georinex) on a valid
+    mixed-system file without event records (georinex's losses are on bad input and
+    events): the same epochs, satellites and values."""
+    lines, _ = _rinex3_from_rinex2(SLAC_OBS, None)
+    path = _write_lines(tmp_path, "slac3.rnx", lines)
+    ours = read_obs(path)
+    ref = _georinex(path)
+    assert ours.n_epochs == ref.sizes["time"]
+    np.testing.assert_allclose(ours.t_gps_s, datetime64_to_gps_s(ref.time.values), atol=1e-6)
+    sv = [str(s) for s in ref.sv.values]
+    assert sorted(ours.sats) == sorted(sv)
+    cols = [sv.index(s) for s in ours.sats]
+    n_compared = 0
+    for name, arr in ours.obs.items():
+        theirs = np.asarray(ref[name].values)[:, cols]
+        theirs = np.where(theirs == 0.0, np.nan, theirs)  # 0.000 ("absent") is NaN in ours
+        np.testing.assert_allclose(arr, theirs, rtol=0, atol=1e-9, equal_nan=True,
+                                   err_msg=name)
+        n_compared += int(np.isfinite(arr).sum())
+    assert n_compared > 1000

@@ -3,8 +3,9 @@
 Modules
 -------
 rinex
-    ``read_obs`` (fast RINEX 2 reader, RINEX 3 via georinex), ``read_nav`` (RINEX 2 GPS
-    and RINEX 3 GPS/Galileo/BeiDou record readers, Klobuchar coefficients).
+    ``read_obs`` (own fixed-width RINEX 2 and 3 readers, checked against georinex),
+    ``read_nav`` (RINEX 2 GPS and RINEX 3 GPS/Galileo/BeiDou record readers, Klobuchar
+    coefficients).
 ephemeris
     Broadcast orbits and clocks at transmit time (IS-GPS-200 table 20-IV, relativity, TGD/BGD,
     BeiDou GEO, week rollover).
