@@ -201,3 +201,28 @@ def test_side_prior_is_the_logs_whatever_the_chunks(tmp_path, capsys):
     # the text summary says so
     assert main(base + ["-o", str(tmp_path / "whole.csv")]) == 0
     assert f"{moved} ambiguous fixes placed on the log's side" in capsys.readouterr().out
+
+
+def test_an_anchor_far_outside_the_layout_is_named(tmp_path, capsys):
+    """An anchor at x = 1e30 (a typo) was left out of every fix without a word (status
+    `ok`, `excluded` empty); the run now names it on stderr, even with --quiet, and the
+    fixes are those of the file without it."""
+    from robustloc.cli import main
+
+    a = tmp_path / "a.csv"
+    a.write_text("anchor,x,y\nA1,0,0\nA2,10,0\nA3,10,10\nA4,0,10\nA5,1e30,0\n")
+    b = tmp_path / "b.csv"
+    b.write_text("anchor,x,y\nA1,0,0\nA2,10,0\nA3,10,10\nA4,0,10\n")
+    m = tmp_path / "m.csv"
+    m.write_text("time,tag,anchor,range\n" + "".join(
+        f"{t},t1,{k},{r}\n" for t in (0, 1) for k, r in
+        (("A1", 3.6056), ("A2", 8.5440), ("A3", 10.6301), ("A4", 7.2801))))
+    assert main(["locate", str(m), "--anchors", str(a), "-o", str(tmp_path / "o.csv"),
+                 "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert f"warning: {a}: anchor(s) A5 lie far outside the others" in err
+    assert main(["locate", str(m), "--anchors", str(b), "-o", str(tmp_path / "p.csv"),
+                 "--quiet"]) == 0
+    assert "warning" not in capsys.readouterr().err
+    got, want = (pd.read_csv(tmp_path / n) for n in ("o.csv", "p.csv"))
+    pd.testing.assert_frame_equal(got[["x", "y", "status"]], want[["x", "y", "status"]])

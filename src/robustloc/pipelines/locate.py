@@ -472,8 +472,14 @@ def run_locate(
             if order != "auto":
                 raise
             order = "sort"
+    from robustloc.estimators.ranging import _sane_anchors
+
+    # an anchor far outside the layout (a typo such as x = 1e30) is never used by any fix
+    # (estimators.ranging._sane_anchors): say so, by id, instead of dropping it silently
+    far = ~_sane_anchors(np.asarray(geo.xyz, dtype=float))
     summary = {"measurements": _display(measurements),
-               "positions": "<DataFrame>" if out is None else str(out), **summary}
+               "positions": "<DataFrame>" if out is None else str(out), **summary,
+               "anchors_not_used": [str(a) for a in geo.anchors["anchor"].to_numpy()[far]]}
     return frame, summary
 
 
