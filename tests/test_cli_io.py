@@ -348,3 +348,34 @@ def test_replay_refuses_bad_urls_speeds_and_times(tmp_path, capsys):
     far = _w(tmp_path, "far.csv", "time,tag,anchor,range\n1e15,T,A1,1\n-5,T,A2,1\n")
     _fails(capsys, ["replay", far, "--url", "http://127.0.0.1:9", "--speed", "1"], far, 2,
            "column 'time': 1e+15 is implausible")
+
+
+def test_dask_options_without_the_dask_engine_are_refused(tmp_path, capsys):
+    """`locate --scheduler ADDRESS` (or --workers) without `--engine dask` ran locally
+    and ignored them: the user meant the cluster."""
+    a = _w(tmp_path, "a.csv", ANCHORS_4)
+    m = _w(tmp_path, "m.csv", RANGES_4)
+    for opts, words in ((["--scheduler", "tcp://head:8786"], "--scheduler only applies"),
+                        (["--workers", "2"], "--workers only applies"),
+                        (["--scheduler", "tcp://h:1", "--workers", "2"],
+                         "--scheduler and --workers only apply")):
+        for cmd in ("locate", "track"):
+            assert main([cmd, m, "--anchors", a, "-o", str(tmp_path / "o.csv"), *opts]) == 2
+            err = capsys.readouterr().err
+            assert err == f"error: {words} with --engine dask\n", err
+            assert not (tmp_path / "o.csv").exists()
+
+
+def test_spp_inject_twice_and_stats_out_of_limits_say_what_is_wrong(tmp_path, capsys):
+    """`spp --inject G11:20,G11:30` kept the last bias silently; `stats` on RSSI that is
+    all outside the limits said "no finite RSSI sample" (-500 is finite)."""
+    from robustloc.paths import PACKAGE_DATA
+
+    g = PACKAGE_DATA / "gnss-geonet"
+    assert main(["spp", str(g / "07590920.05o"), str(g / "07590920_0000-0400.05n"), "-o",
+                 str(tmp_path / "s.csv"), "--inject", "G11:20,G11:30", "--quiet"]) == 2
+    assert "--inject: G11 given twice" in capsys.readouterr().err
+    m = _w(tmp_path, "st.csv", "time,tag,anchor,rssi\n0,t,A1,-500\n1,t,A1,-600\n")
+    _fails(capsys, ["stats", m, "-o", str(tmp_path / "out")], m, None,
+           "no RSSI sample within the physical limits to analyse (rssi must lie in "
+           "[-150, 30] dBm; 2 outside)")

@@ -127,6 +127,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2
+    if getattr(args, "engine", None) == "local":  # options of the dask engine, given alone
+        given = [o for o, v in (("--scheduler", getattr(args, "scheduler", None)),
+                                ("--workers", getattr(args, "workers", None))) if v is not None]
+        if given:
+            verb = "apply" if len(given) > 1 else "applies"
+            return error(f"{' and '.join(given)} only {verb} with --engine dask")
     old = _install_sigterm()
     try:
         return int(args._run(args) or 0)

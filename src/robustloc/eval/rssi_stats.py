@@ -314,7 +314,10 @@ class RssiStatistics:
         df = df[plausible].sort_values(["anchor", "tag", "time"],
                                                      kind="mergesort").reset_index(drop=True)
         if df.empty:
-            raise InputError("no finite RSSI sample to analyse", measurements.attrs.get("path"))
+            raise InputError("no RSSI sample within the physical limits to analyse ("
+                             f"{LIMITS['rssi'].describe()}; {n_invalid} outside)"
+                             if n_invalid else "no finite RSSI sample to analyse",
+                             measurements.attrs.get("path"))
 
         per_bin = None
         corr = float("nan")

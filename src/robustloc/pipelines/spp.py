@@ -66,9 +66,13 @@ def parse_inject(text: str) -> dict[str, float]:
     for item in text.split(","):
         try:
             sat, bias = item.split(":")
-            out.update(check_inject({sat: float(bias)}, item))
+            one = check_inject({sat: float(bias)}, item)
         except ValueError:
             raise InputError(f"--inject: expected PRN:BIAS_M, got {item!r}") from None
+        (key,) = one
+        if key in out:  # G11:20,G11:30 kept the last silently: say which was meant
+            raise InputError(f"--inject: {key} given twice ({text!r}); one bias per satellite")
+        out.update(one)
     return out
 
 
