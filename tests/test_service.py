@@ -803,17 +803,17 @@ def test_new_tags_while_solving_lose_no_epoch(ble):
 
 def test_a_failing_block_costs_only_its_failing_tag():
     """A processor that raises lost every epoch of its block.  Now a stateless processor's
-    block is split by tag and retried: the other tags get their fixes, the failing tag's
-    epochs a `solver_error` row each, and the failure is counted and reported."""
+    block is split by tag, then by epoch, and retried: every other epoch gets its fix, the
+    failing epoch a `solver_error` row, and the failure is counted and reported."""
     from robustloc.io.tables import Epochs
     from robustloc.service.engine import Engine
 
     anchors = pd.DataFrame({"anchor": ["A1", "A2", "A3", "A4"], "x": [0, 10, 10, 0.0],
                             "y": [0, 0, 10, 10.0]})
 
-    class Flaky(LocateProcessor):
+    class Flaky(LocateProcessor):  # fails on any block holding tag "bad" at t = 1
         def process(self, epochs: Epochs) -> pd.DataFrame:
-            if "bad" in set(epochs.tag.tolist()):
+            if ((epochs.tag == "bad") & (epochs.time == 1.0)).any():
                 raise FloatingPointError("boom")
             return super().process(epochs)
 
@@ -828,10 +828,11 @@ def test_a_failing_block_costs_only_its_failing_tag():
     eng.flush()
     pos = eng.positions()
     assert len(pos) == 15 and not pos.duplicated(["time", "tag"]).any()
-    bad = pos["tag"] == "bad"
+    bad = (pos["tag"] == "bad") & (pos["time"] == 1.0)  # only the failing epoch
     assert (pos.loc[bad, "status"] == "solver_error").all() and pos.loc[bad, "x"].isna().all()
+    assert bad.sum() == 1
     np.testing.assert_allclose(pos.loc[~bad, ["x", "y"]].to_numpy(float),
-                               np.tile([3.0, 4.0], (12, 1)), atol=1e-6)
+                               np.tile([3.0, 4.0], (14, 1)), atol=1e-6)
     assert eng.solver_errors >= 1 and "FloatingPointError: boom" in eng.last_error
     eng.stop()
 

@@ -452,10 +452,10 @@ class Engine:
 
         A processor that raises is a defect, counted with its reason (``/api/status``,
         ``/metrics``).  A stateless one (``locate``) is retried on each half of the block's
-        tags, down to one tag, so one tag's failure costs no other tag its fixes; the
-        epochs that still fail, and a stateful processor's block (its state may have
-        advanced part-way: not to be repeated), get one row each with status
-        ``solver_error``.  Their measurements are stored either way.
+        tags, then of the one tag's epochs, down to one epoch, so a failing epoch costs no
+        other epoch its fix; the epochs that still fail, and a stateful processor's block
+        (its state may have advanced part-way: not to be repeated), get one row each with
+        status ``solver_error``.  Their measurements are stored either way.
         """
         try:
             return self.processor.process(epochs)
@@ -463,8 +463,11 @@ class Engine:
             self.solver_errors += 1
             self.last_error = f"{type(exc).__name__}: {exc}"
         tags = pd.unique(epochs.tag)
-        if getattr(self.processor, "stateless", False) and len(tags) > 1:
-            first = pd.Index(tags[: len(tags) // 2]).get_indexer(epochs.tag) >= 0
+        if getattr(self.processor, "stateless", False) and epochs.n_epochs > 1:
+            if len(tags) > 1:  # halves of the tags, then (one tag left) of its epochs
+                first = pd.Index(tags[: len(tags) // 2]).get_indexer(epochs.tag) >= 0
+            else:
+                first = np.arange(epochs.n_epochs) < epochs.n_epochs // 2
             parts = [np.flatnonzero(first), np.flatnonzero(~first)]
             frames = [self._process(_subset(epochs, rows)) for rows in parts]
             order = np.argsort(np.concatenate(parts), kind="stable")
