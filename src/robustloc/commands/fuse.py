@@ -130,6 +130,10 @@ def run(args: argparse.Namespace) -> int:
     from robustloc.robust.weights import get_weight
 
     anchors = read_anchors(args.anchors)
+    if args.tag_height is not None and "z" not in anchors.columns:
+        # the slant-range correction needs the anchors' heights: never ignore it silently
+        raise InputError("--tag-height needs a z column in the anchors file",
+                         anchors.attrs.get("path", args.anchors), 1)
     meas = read_measurements(args.ranges, anchors)
     from robustloc._jitnotice import compile_notice
 

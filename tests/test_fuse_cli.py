@@ -1,0 +1,50 @@
+"""Options of the ``fuse`` command refused as user errors (exit 2, ``error: FILE:LINE: what``).
+
+Every case runs the real command line in-process (``robustloc.cli.main``) on the simulated
+cart of ``robustloc simulate uwb-cart`` (3 anchors ``anchor, x, y`` without ``z``, 51 epochs).
+"""
+
+from __future__ import annotations
+
+import pandas as pd
+import pytest
+
+from robustloc.cli import main
+
+
+@pytest.fixture(scope="module")
+def cart(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cart")
+    assert main(["simulate", "uwb-cart", "--seed", "1", "--out", str(d)]) == 0
+    return d
+
+
+def test_tag_height_without_anchor_z_is_refused(cart, tmp_path, capsys):
+    anchors = cart / "anchors.csv"
+    assert "z" not in pd.read_csv(anchors).columns
+    out = tmp_path / "track.csv"
+    rc = main(["fuse", "--ranges", str(cart / "measurements.csv"), "--anchors", str(anchors),
+               "--tag-height", "1.0", "-o", str(out)])
+    err = capsys.readouterr().err
+    # the slant-range correction needs the anchors' heights: it was silently ignored
+    assert rc == 2
+    assert err.startswith(f"error: {anchors}:1: ")
+    assert "--tag-height" in err and "z column" in err
+    assert "Traceback" not in err
+    assert not out.exists()  # refused before anything is written
+
+
+def test_tag_height_with_anchor_z_corrects_the_slant_ranges(cart, tmp_path, capsys):
+    a = pd.read_csv(cart / "anchors.csv").assign(z=2.5)
+    anchors = tmp_path / "anchors.csv"
+    a.to_csv(anchors, index=False)
+    tracks = []
+    for extra in ([], ["--tag-height", "1.0"]):
+        out = tmp_path / f"track{len(tracks)}.csv"
+        rc = main(["fuse", "--ranges", str(cart / "measurements.csv"), "--anchors",
+                   str(anchors), "-o", str(out), *extra])
+        assert rc == 0, capsys.readouterr().err
+        tracks.append(pd.read_csv(out))
+    assert len(tracks[0]) == len(tracks[1]) == 51  # every epoch a row
+    # a 1.5 m height difference shortens every range: the positions move
+    assert not tracks[0][["x", "y"]].equals(tracks[1][["x", "y"]])
