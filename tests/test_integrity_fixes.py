@@ -50,12 +50,23 @@ def test_log_scale_recovers_per_anchor_noise():
     x = rng.uniform(2, 18, (N, 2))
     sig = np.linspace(0.1, 0.4, 10)
     d = ranges(TEN, x) + rng.normal(0, 1, (N, 10)) * sig
-    s = Locator("huber").log_scale(TEN, d)
+    s = Locator("huber").log_scale(TEN, d, weighting=1.0)
     # the MAD of N Gaussian values has a standard error of 1.167 sigma / sqrt(N) (37 %
     # efficiency): 4 standard errors of 3000 residuals = 8.5 %; the variance-component
     # iteration leaves at most 4 % after its 3 steps for a 4:1 noise ratio (measured over
     # 20 000 epochs, where the MAD's own error is 0.8 %): 12 % in all
     np.testing.assert_allclose(s, sig, rtol=0.12)
+    # the default weights with each scale shrunk halfway (in log) toward the pooled one:
+    # the anchors keep their order, and the scales spread between those of equal weights
+    # (an unweighted fit spreads the noisy anchors' errors over the quiet ones) and those
+    # of the full iteration
+    half = Locator("huber").log_scale(TEN, d)
+    equal = Locator("huber").log_scale(TEN, d, weighting=0.0)
+    assert np.all(np.diff(half) > 0)
+    spread = [np.std(np.log(v)) for v in (equal, half, s)]
+    assert spread[0] < spread[1] < spread[2]
+    with pytest.raises(ValueError, match="weighting"):
+        Locator("huber").log_scale(TEN, d, weighting=1.5)
     # equal noise: unbiased (the fixed-scale refits keep Gaussian residuals at full weight)
     d = ranges(TEN, x) + rng.normal(0, 0.3, (N, 10))
     s = Locator("huber").log_scale(TEN, d)

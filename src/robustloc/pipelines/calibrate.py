@@ -255,33 +255,31 @@ def self_calibrate(
 
 
 def _start_fixes(xyz: np.ndarray, values: np.ndarray, kind: str, **kw: Any) -> np.ndarray:
-    """The self-calibration's start positions: ``huber`` with the log's scale on every
-    epoch, tested (:func:`robustloc.integrity.fixes.protect`): a fix that is not usable
-    (a minority of its observations kept, ...) gives no start and its epoch is left out;
-    an ambiguous fix (nearly collinear anchors) starts on the side of their line that the
-    log's unambiguous fixes show (:func:`robustloc.integrity.fixes.ambiguity_sides`, as
-    ``locate --side-prior log``).  The joint adjustment stays in the basin of its start.
-    Measured on the wifi-rtt corridor, whose tags walk on one side of the access points'
-    line (``locate`` after ``calibrate --self``, RMS / p95 / misleading fixes): every
-    plain fix as a start, 3.43 / 5.83 m / 0.89 %; the usable ones, 3.34 / 5.62 m /
-    0.74 %; the usable ones on the log's side, 3.15 / 4.89 m / 0.52 %.  uwb-dwm1001 LOS
-    0.922 -> 0.894 m; the lecture theatre 0.967 -> 0.974 m; uwb-labyrinth's ranging cycles
-    (report ``s60``) 0.149 -> 0.151 m; the office and ble-tetam unchanged."""
-    from robustloc.estimators.ranging import Locator
-    from robustloc.integrity.fixes import (
-        ambiguity_sides,
-        protect,
-        range_model_of,
-        resolve_sides,
-    )
+    """The self-calibration's start positions: the fixes ``robustloc locate`` gives with
+    its defaults (:func:`robustloc.integrity.fixes.locate_protected` with
+    :data:`~robustloc.estimators.ranging.DEFAULT_METHOD`: the log's scale, every fix
+    tested, an ambiguous fix of nearly collinear anchors on the side of their line that
+    the log's unambiguous fixes show).  A fix that is not usable (a minority of its
+    observations kept, ...) gives no start and its epoch is left out.  The joint
+    adjustment stays in the basin of its start.
 
-    sol = Locator("huber").solve(xyz, values, kind, **kw)
-    rm = range_model_of(xyz, kw.get("height_offset"))
-    if rm is None:
-        return sol.position
-    tested = protect(sol, range_model=rm)
-    moved = resolve_sides(tested, ambiguity_sides(tested, rm), rm)
-    return moved.position
+    Measured on the wifi-rtt corridor, whose tags walk on one side of the access points'
+    line (``locate`` after ``calibrate --self``, RMS / p95 / misleading fixes): every plain
+    fix as a start, 3.43 / 5.83 m / 0.89 %; the usable ``huber`` fixes on the log's side,
+    3.15 / 4.89 m / 0.52 % with the log scale's full variance-component weighting, but
+    3.60 / 7.20 m / 0.67 % with :data:`~robustloc.estimators.ranging.LOG_SCALE_WEIGHTING`
+    (the starts' side of the line is that fragile); the default fixes, 3.22 / 5.09 m /
+    0.59 %.  The default fixes also take the office from 1.29 to 1.27 m and ble-tetam from
+    2.76 to 2.74 m; the lecture theatre, uwb-dwm1001 and uwb-labyrinth move by less than
+    1 %."""
+    from robustloc import status as st
+    from robustloc.estimators.ranging import DEFAULT_METHOD, Locator
+    from robustloc.integrity.fixes import locate_protected
+
+    sol = locate_protected(Locator(DEFAULT_METHOD), xyz, values, kind, **kw)
+    pos = np.array(sol.position, dtype=float)
+    pos[~st.among(sol.status, st.USABLE)] = np.nan
+    return pos
 
 
 def _self(settings: CalibrateSettings, anchors: pd.DataFrame, self_log: Any) -> Calibration:
