@@ -879,3 +879,27 @@ def test_track_snapshot_does_not_claim_blocks_queued_meanwhile(tmp_path):
     pos = eng2.positions()
     eng2.stop()
     assert sorted(pos["time"].tolist()) == [0.0, 1.0, 2.0, 3.0, 4.0]
+
+
+def test_websocket_frame_over_the_size_limit_is_counted(tokened):
+    """A WebSocket frame larger than ``--max-body-bytes`` is closed by the server (1009,
+    message too big) before the app sees it; the refusal is counted in ``/metrics`` as an
+    HTTP body of that size is (``reason="too_large"``), and the service keeps serving."""
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    ws_url = tokened.url.replace("http://", "ws://")
+    name = 'robustloc_requests_rejected_total{reason="too_large"}'
+    before = metric(tokened.url, name, AUTH)
+    with connect(ws_url + "/ws/measurements", additional_headers=AUTH,
+                 max_size=None) as pub:
+        pub.send("[" + " " * 300_000 + "]")  # 300 kB against the limit of 200 000 bytes
+        with pytest.raises(ConnectionClosed) as info:
+            pub.recv(timeout=10)
+    assert info.value.rcvd is not None and info.value.rcvd.code == 1009
+    wait_for(lambda: metric(tokened.url, name, AUTH) == before + 1, timeout=10,
+             what="the oversized frame counted")
+    # still serving WebSocket ingest
+    with connect(ws_url + "/ws/measurements", additional_headers=AUTH) as pub:
+        pub.send(json.dumps([{"time": 0.0, "tag": "Z", "anchor": "1", "rssi": -70.0}]))
+        assert json.loads(pub.recv(timeout=10))["accepted"] == 1

@@ -57,6 +57,8 @@ from robustloc.service.rows import BodyError, parse_body
 
 #: Queued messages per position subscriber before the oldest are dropped (and counted).
 WS_QUEUE = 20_000
+#: WebSocket close code "message too big" (RFC 6455 sec. 7.4.1).
+WS_MESSAGE_TOO_BIG = 1009
 
 
 @dataclass
@@ -362,6 +364,8 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
                 while True:
                     msg = await ws.receive()
                     if msg["type"] == "websocket.disconnect":
+                        if msg.get("code") == WS_MESSAGE_TOO_BIG:
+                            engine.metrics.request_rejected("too_large")
                         return
             except (WebSocketDisconnect, RuntimeError):
                 return
@@ -389,6 +393,10 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             while True:
                 msg = await ws.receive()
                 if msg["type"] == "websocket.disconnect":
+                    # 1009: uvicorn closed a frame over --max-body-bytes (ws_max_size)
+                    # before it reached this handler; counted as an HTTP body that size is
+                    if msg.get("code") == WS_MESSAGE_TOO_BIG:
+                        engine.metrics.request_rejected("too_large")
                     return
                 data = msg.get("text")
                 if data is None:
