@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 
 from robustloc.gnss.corrections import klobuchar, saastamoinen
-from robustloc.gnss.ephemeris import C_LIGHT, broadcast_state, select_ephemeris
+from robustloc.gnss.ephemeris import C_LIGHT, broadcast_state, nav_state, select_ephemeris
 from robustloc.gnss.rinex import WEEK_S, NavData, read_nav, read_obs
 from robustloc.gnss.sp3 import PreciseProducts, Sp3, read_clk, read_sp3
 from robustloc.paths import PACKAGE_DATA
@@ -38,6 +40,52 @@ def test_broadcast_orbits_and_clocks_agree_with_sp3_clk(slac) -> None:  # noqa: 
     dc = (b.clock_s + nav.params["tgd"][rec] - p.clock_s) * C_LIGHT
     dc -= dc.mean(axis=1, keepdims=True)
     assert np.max(np.abs(dc)) < 2.0 and np.std(dc) < 0.8
+
+
+def test_impossible_record_in_memory_counts_as_none(slac) -> None:  # noqa: ANN001
+    """A NavData built in memory (read_nav sets such records aside) with records no
+    satellite can fly: sqrt(A) = 0 divided by zero and e = 1.5 took the square root of a
+    negative number, warnings also from the elements without a record (computed on record
+    0 and masked).  Such a record now counts as none: NaN and not valid, no RuntimeWarning,
+    never selected; every other element is unchanged, bit for bit."""
+    nav, obs, _ = slac
+    sats = [s for s in obs.sats if s[0] == "G"]
+    rec = select_ephemeris(nav, sats, obs.t_gps_s)
+    rec[:, -1] = -1  # a satellite without a record
+    t = np.broadcast_to(obs.t_gps_s[:, None], rec.shape)
+    ref = broadcast_state(nav, rec, t)
+    k = int(rec[0, 0])
+    assert k != 0 and not np.any(rec == 0)
+    params = {n: v.copy() for n, v in nav.params.items()}
+    params["sqrtA"][k] = 0.0
+    params["Eccentricity"][0] = 1.5
+    bad = NavData(nav.sat, nav.toc_gps_s, nav.toe_gps_s, params, nav.ion_alpha,
+                  nav.ion_beta, nav.paths)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        b = broadcast_state(bad, rec, t)
+        pr = np.full(rec.shape, 2.2e7)
+        n = nav_state(bad, sats, obs.t_gps_s, pr)
+        sel = select_ephemeris(bad, sats, obs.t_gps_s)
+    gone = rec == k
+    assert gone.any() and not np.any(b.valid[gone]) and np.all(np.isnan(b.pos_m[gone]))
+    assert np.all(np.isnan(b.clock_s[gone]))
+    keep = ~gone & (rec >= 0)
+    np.testing.assert_array_equal(b.valid, keep)
+    np.testing.assert_array_equal(b.pos_m[keep], ref.pos_m[keep])
+    np.testing.assert_array_equal(b.clock_s[keep], ref.clock_s[keep])
+    assert not np.any(np.isin(sel, [0, k]))  # never selected: the next record is
+    np.testing.assert_array_equal(n.valid, sel >= 0)
+
+
+def test_saastamoinen_of_a_receiver_iterated_far_off_is_zero_without_warnings() -> None:
+    """A solver iteration pulled hundreds of km up by a bad satellite: the standard
+    atmosphere's (1 - 2.2557e-5 h)^5.2568 had a negative base above 44.3 km (RuntimeWarning
+    'invalid value encountered in power'); above 10 km the delay is 0."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        z = saastamoinen(np.zeros(3), np.array([5e4, 5e5, 1e9]), np.full(3, np.pi / 2))
+    np.testing.assert_array_equal(z, 0.0)
 
 
 def test_lagrange_interpolation_reproduces_polynomials() -> None:

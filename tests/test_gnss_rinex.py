@@ -330,6 +330,102 @@ def test_rinex2_nav_blank_orbit_parameter_is_an_error(tmp_path: Path) -> None:
     assert e.value.line == k + 1
 
 
+#: Values no satellite can have: (orbit line of the record, field 0-3, text, message).
+IMPOSSIBLE_NAV = [
+    (2, 1, "1.5", "Eccentricity = 1.5 must lie in [0, 1)"),
+    (2, 1, "-0.5", "Eccentricity = -0.5 must lie in [0, 1)"),
+    (2, 1, "0.9", "perigee sqrtA^2 (1 - Eccentricity) below the Earth's surface"),
+    (2, 3, "0.0", "sqrtA = 0 must lie in [1000, 100000]"),
+    (2, 3, "1.0D+30", "sqrtA = 1e+30 must lie in [1000, 100000]"),
+    (2, 3, "NaN", "sqrtA = nan must be a finite number"),
+    (1, 2, "1.0D+300", "DeltaN = 1e+300 must lie within +-1e-05"),
+    (3, 0, "1.0D+999", "Toe = inf must be a finite number"),
+    (6, 2, "-1.0D+999", "tgd = -inf must be a finite number"),
+]
+
+
+def impossible_nav(tmp_path: Path, orbit_line: int, field: int, text: str,
+                   record: int = 8) -> tuple[Path, Path, int]:
+    """The GEONET navigation excerpt with one value of a record replaced by ``text``
+    (record 8: G11 at 00:00, used by the observation excerpt's epochs), the same file
+    without that record, and the 1-based file line of the value."""
+    lines = NAV.read_text().splitlines()
+    first = next(i for i, ln in enumerate(lines) if "END OF HEADER" in ln) + 1 + 8 * record
+    k = first + orbit_line
+    c = 3 + 19 * field  # RINEX 2.11 table A4: 3X,4D19.12
+    lines[k] = lines[k].ljust(79)[:c] + text.rjust(19) + lines[k].ljust(79)[c + 19 :]
+    bad = _write(tmp_path, "bad.05n", "\n".join(lines) + "\n")
+    gone = _write(tmp_path, "gone.05n", "\n".join(lines[:first] + lines[first + 8 :]) + "\n")
+    return bad, gone, k + 1
+
+
+@pytest.mark.parametrize(("orbit_line", "field", "text", "what"), IMPOSSIBLE_NAV)
+def test_rinex2_nav_impossible_record_is_set_aside_naming_file_and_line(
+        tmp_path: Path, orbit_line: int, field: int, text: str, what: str) -> None:
+    """A record no satellite can fly (its orbit or clock values) was read as it was and made
+    numpy warn (overflow, invalid value) in the orbit arithmetic: it is set aside with a
+    warning naming the file and line, and the file reads as if it were not there."""
+    from robustloc.gnss.rinex import NavRecordWarning
+
+    bad, gone, line = impossible_nav(tmp_path, orbit_line, field, text)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        nav = read_nav(bad)
+    assert [w.category for w in caught] == [NavRecordWarning]
+    message = str(caught[0].message)
+    assert message.startswith(f"{bad}:{line}: G11 record set aside: "), message
+    assert what in message and message.endswith("it is not used"), message
+    assert nav.rejected == (message,)
+    ref = read_nav(gone)
+    assert ref.rejected == () and nav.n_records == ref.n_records
+    np.testing.assert_array_equal(nav.sat, ref.sat)
+    np.testing.assert_array_equal(nav.toe_gps_s, ref.toe_gps_s)
+    np.testing.assert_array_equal(nav.toc_gps_s, ref.toc_gps_s)
+    for k, v in ref.params.items():
+        np.testing.assert_array_equal(nav.params[k], v, err_msg=k)
+
+
+@pytest.mark.parametrize(("orbit_line", "field", "text", "what"), IMPOSSIBLE_NAV)
+def test_spp_on_impossible_ephemeris_no_runtime_warning_same_solution_without_it(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], orbit_line: int, field: int,
+        text: str, what: str) -> None:
+    """``spp`` with the impossible G11 record: no numpy RuntimeWarning (overflow, invalid
+    value) reaches the user, ``warning: FILE:LINE: ...`` on stderr, every epoch has its
+    row, and the solution is the one of the file without the record (the other
+    satellites, and G11's next record, untouched)."""
+    from robustloc import status as st
+
+    bad, gone, line = impossible_nav(tmp_path, orbit_line, field, text)
+    sols = []
+    for nav in (bad, gone):
+        out = tmp_path / f"{nav.stem}.csv"
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", RuntimeWarning)
+            rc = main(["spp", str(OBS), str(nav), "-o", str(out)])
+        err = capsys.readouterr().err
+        assert rc == 0, err
+        sols.append(pd.read_csv(out))
+        if nav == bad:
+            assert err.startswith(f"warning: {bad}:{line}: G11 record set aside: "), err
+            assert what in err and "Traceback" not in err
+        else:
+            assert "warning" not in err, err
+    assert len(sols[0]) == read_obs(OBS).n_epochs  # every epoch a row
+    assert set(sols[0]["status"]) <= set(st.ALL)
+    pd.testing.assert_frame_equal(sols[0], sols[1])
+
+
+def test_nav_every_record_impossible_is_an_error(tmp_path: Path) -> None:
+    lines = NAV.read_text().splitlines()
+    i0 = next(i for i, ln in enumerate(lines) if "END OF HEADER" in ln) + 1
+    for k in range(i0 + 2, len(lines), 8):  # BROADCAST ORBIT 2 of every record: e = 2
+        lines[k] = lines[k][:22] + "2.0".rjust(19) + lines[k][41:]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with pytest.raises(InputError, match="all 26 records set aside"):
+            read_nav(_write(tmp_path, "all.05n", "\n".join(lines) + "\n"))
+
+
 # ------------------------------------------------ epochs without satellites, RINEX 3 reader
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
 from pathlib import Path
 
 from robustloc.engines import add_engine_arguments
@@ -86,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
     if args.engine == "dask":
         from robustloc.engines.dask import run_spp
         return run_spp(args, run)
+    from robustloc.gnss.rinex import NavRecordWarning
     from robustloc.io import write_table
     from robustloc.io.atomic import check_not_input
     from robustloc.pipelines.spp import SppSettings
@@ -93,8 +95,12 @@ def run(args: argparse.Namespace) -> int:
 
     # before any work: -o naming the observation, a navigation, SP3 or CLK file replaced it
     check_not_input(args.out, [args.obs, *args.nav, args.sp3, args.clk])
-    frame, summary = solve(args.obs, args.nav, SppSettings.from_namespace(args),
-                           sp3=args.sp3, clk=args.clk)
+    with warnings.catch_warnings():  # printed once below, as `warning: FILE:LINE: ...`
+        warnings.simplefilter("ignore", NavRecordWarning)
+        frame, summary = solve(args.obs, args.nav, SppSettings.from_namespace(args),
+                               sp3=args.sp3, clk=args.clk)
+    for text in summary.get("nav_records_set_aside", []):  # a warning, even with --json
+        print(f"warning: {text}", file=sys.stderr)
     out = Path(args.out)
     write_table(frame, out)  # atomic: nothing at -o after an error or an interrupt
     summary = {"obs": summary["obs"], "out": str(out),

@@ -149,7 +149,9 @@ def saastamoinen(
     """
     h = np.asarray(h_m, dtype=float)
     el = np.asarray(el_rad, dtype=float)
-    hg = np.clip(h, 0.0, None)
+    # the standard atmosphere of heights up to 10 km (the delay is 0 above): a receiver
+    # position iterated far off (hundreds of km up) must not reach the power's negative base
+    hg = np.clip(h, 0.0, 1e4)
     pres = 1013.25 * (1.0 - 2.2557e-5 * hg) ** 5.2568
     temp = 15.0 - 6.5e-3 * hg + 273.16
     e = 6.108 * humidity * np.exp((17.15 * temp - 4684.0) / (temp - 38.45))

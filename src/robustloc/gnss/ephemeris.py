@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from robustloc.gnss.rinex import WEEK_S, NavData
+from robustloc.gnss.rinex import WEEK_S, NavData, plausible_records
 
 #: Speed of light (m/s).
 C_LIGHT = 299792458.0
@@ -35,6 +35,11 @@ BROADCAST_SIGMA_M = 0.8
 MU = {"G": 3.986005e14, "E": 3.986004418e14, "C": 3.986004418e14}
 #: Maximum |t - toe| accepted (s): GPS/BDS 2 h + margin, Galileo 4 h (RTKLIB MAXDTOE*).
 MAX_AGE_S = {"G": 7201.0, "E": 14401.0, "C": 21601.0}
+#: Stand-in values (a circular GPS orbit at the reference time) computed in place of the
+#: records an element has not got (``rec = -1``, or a record that cannot describe an
+#: orbit): their results are replaced by NaN, the stand-in only keeps the arithmetic of
+#: the masked elements finite.
+_STAND_IN = {"sqrtA": 5153.7}
 
 
 def is_bds_geo(sat: NDArray) -> NDArray[np.bool_]:
@@ -60,11 +65,12 @@ def select_ephemeris(
     """Index of the record to use for every (epoch, satellite): nearest ``toe``, healthy.
 
     Returns an ``(N, S)`` array of record indices, ``-1`` when none is valid (no record,
-    unhealthy, or older than :data:`MAX_AGE_S`).  Loops over satellites only.
+    unhealthy, older than :data:`MAX_AGE_S`, or values that cannot describe an orbit:
+    :func:`~robustloc.gnss.rinex.nav_record_problems`).  Loops over satellites only.
     """
     t = np.asarray(t_gps_s, dtype=np.float64)
     out = np.full((t.size, len(sats)), -1, dtype=np.int64)
-    healthy = nav.params["health"] == 0
+    healthy = (nav.params["health"] == 0) & plausible_records(nav.params)
     for j, s in enumerate(sats):
         rec = np.nonzero((nav.sat == s) & healthy)[0]
         if rec.size == 0:
@@ -80,16 +86,34 @@ def _wrap(dt: NDArray) -> NDArray:
     return dt - WEEK_S * np.round(dt / WEEK_S)
 
 
+def _record_values(
+    nav: NavData, rec: NDArray, t_gps_s: NDArray,
+) -> tuple[NDArray[np.bool_], NDArray[np.int64], dict[str, NDArray], NDArray, NDArray]:
+    """Parameters of the record of every element, ``rec`` any shape.
+
+    Returns ``valid`` (a record that can describe an orbit: ``rec >= 0`` and
+    :func:`~robustloc.gnss.rinex.plausible_records`), the record index (0 where not valid),
+    the parameters, ``toe`` and ``toc`` (GPS s); where not valid the parameters are
+    :data:`_STAND_IN` (0 otherwise) and both reference times ``t_gps_s``, so nothing
+    computed from them can overflow; the caller sets those results to NaN.
+    """
+    rec = np.asarray(rec)
+    valid = rec >= 0
+    valid &= plausible_records(nav.params)[np.where(valid, rec, 0)]
+    r = np.where(valid, rec, 0)
+    p = {k: np.where(valid, v[r], _STAND_IN.get(k, 0.0)) for k, v in nav.params.items()}
+    t = np.asarray(t_gps_s, dtype=np.float64)
+    return valid, r, p, np.where(valid, nav.toe_gps_s[r], t), np.where(valid, nav.toc_gps_s[r], t)
+
+
 def broadcast_clock(nav: NavData, rec: NDArray, t_gps_s: NDArray) -> NDArray[np.float64]:
     """Satellite clock polynomial (s) without relativity/TGD, to correct transmit time."""
-    r = np.where(rec >= 0, rec, 0)
-    p = nav.params
-    dt = _wrap(t_gps_s - nav.toc_gps_s[r])
+    valid, _, p, _, toc = _record_values(nav, rec, t_gps_s)
+    dt = _wrap(t_gps_s - toc)
     for _ in range(2):  # dt is in satellite time; iterate as in RTKLIB eph2clk
-        dt = dt - (p["SVclockBias"][r] + p["SVclockDrift"][r] * dt
-                   + p["SVclockDriftRate"][r] * dt * dt)
-    clk = p["SVclockBias"][r] + p["SVclockDrift"][r] * dt + p["SVclockDriftRate"][r] * dt * dt
-    return np.where(rec >= 0, clk, np.nan)
+        dt = dt - (p["SVclockBias"] + p["SVclockDrift"] * dt + p["SVclockDriftRate"] * dt * dt)
+    clk = p["SVclockBias"] + p["SVclockDrift"] * dt + p["SVclockDriftRate"] * dt * dt
+    return np.where(valid, clk, np.nan)
 
 
 def broadcast_state(
@@ -102,7 +126,9 @@ def broadcast_state(
     ----------
     nav : NavData
     rec : ndarray of int
-        Record index per element (``-1`` = none), any shape.
+        Record index per element (``-1`` = none), any shape.  A record whose values cannot
+        describe an orbit (:func:`~robustloc.gnss.rinex.nav_record_problems`; not in a
+        :func:`~robustloc.gnss.rinex.read_nav` result) counts as none.
     t_gps_s : ndarray
         Transmit time (GPS seconds), same shape as ``rec``.
     systems : ndarray of str, optional
@@ -112,18 +138,17 @@ def broadcast_state(
     -------
     SatState
         ``clock_s`` includes relativity and minus the group delay (single-frequency user,
-        IS-GPS-200 20.3.3.3.3.2); ``var_m2`` is ``BROADCAST_SIGMA_M**2``.
+        IS-GPS-200 20.3.3.3.3.2); ``var_m2`` is ``BROADCAST_SIGMA_M**2``.  NaN and
+        ``valid`` False where there is no usable record.
     """
     rec = np.asarray(rec)
     t = np.asarray(t_gps_s, dtype=np.float64)
-    valid = rec >= 0
-    r = np.where(valid, rec, 0)
-    p = {k: v[r] for k, v in nav.params.items()}
+    valid, r, p, toe, toc = _record_values(nav, rec, t)
     sysl = np.asarray([s[0] for s in nav.sat])[r] if systems is None else np.asarray(systems)
     mu = np.where(sysl == "G", MU["G"], MU["E"])
     omge = np.where(sysl == "C", OMEGA_E_BDS, OMEGA_E)
     A = p["sqrtA"] ** 2
-    tk = _wrap(t - nav.toe_gps_s[r])
+    tk = _wrap(t - toe)
     n = np.sqrt(mu / A**3) + p["DeltaN"]
     M = p["M0"] + n * tk
     e = p["Eccentricity"]
@@ -139,7 +164,7 @@ def broadcast_state(
     inc = p["Io"] + p["IDOT"] * tk + p["Cis"] * s2 + p["Cic"] * c2
     xp, yp = rr * np.cos(u), rr * np.sin(u)
     cosi, sini = np.cos(inc), np.sin(inc)
-    toe_sow = np.mod(nav.toe_gps_s[r] - np.where(sysl == "C", 14.0, 0.0), WEEK_S)
+    toe_sow = np.mod(toe - np.where(sysl == "C", 14.0, 0.0), WEEK_S)
     geo = is_bds_geo(np.asarray(nav.sat)[r]) & (sysl == "C")
     # MEO/IGSO (and GPS, Galileo): IS-GPS-200 table 20-IV
     Om = p["Omega0"] + (p["OmegaDot"] - omge) * tk - omge * toe_sow
@@ -162,7 +187,7 @@ def broadcast_state(
         z = np.where(geo, zg, z)
     pos = np.stack([x, y, z], axis=-1)
     # clock (IS-GPS-200 20.3.3.3.3.1): polynomial + relativistic term - TGD
-    dt = _wrap(t - nav.toc_gps_s[r])
+    dt = _wrap(t - toc)
     clk = p["SVclockBias"] + p["SVclockDrift"] * dt + p["SVclockDriftRate"] * dt * dt
     F = -2.0 * np.sqrt(mu) / C_LIGHT**2
     clk = clk + F * e * p["sqrtA"] * sinE - p["tgd"]

@@ -587,6 +587,114 @@ _KEPLER = (
     "OmegaDot", "IDOT", "health",
 )
 
+#: Largest magnitude of a broadcast parameter that can belong to a real orbit or clock: at
+#: least 100 times the largest value the GPS (IS-GPS-200 table 20-III), Galileo (OS SIS ICD
+#: tables 60 and 63) and BeiDou (B1I ICD section 5.2.4) messages can encode, rounded up to
+#: a power of ten.  RINEX units: s, s/s, s/s^2, m, rad, rad/s.
+NAV_MAX_ABS = {
+    "SVclockBias": 10.0,  # encodable: 2^-4 s (Galileo af0)
+    "SVclockDrift": 1e-5,  # 2^-26 s/s (Galileo af1)
+    "SVclockDriftRate": 1e-12,  # 2^-48 s/s^2 (GPS af2)
+    "Crs": 1e6, "Crc": 1e6,  # 2048 m (BeiDou)
+    "Cuc": 1e-2, "Cus": 1e-2, "Cic": 1e-2, "Cis": 1e-2,  # 2^-14 rad
+    "DeltaN": 1e-5,  # 2^-28 semicircles/s = 1.2e-8 rad/s
+    "M0": 1e3, "Omega0": 1e3, "omega": 1e3, "Io": 1e3,  # one semicircle = pi rad
+    "OmegaDot": 1e-3,  # 2^-20 semicircles/s = 3.0e-6 rad/s
+    "IDOT": 1e-6,  # 2^-30 semicircles/s = 2.9e-9 rad/s
+    "tgd": 1e-4,  # 2^-23 s (Galileo BGD)
+}
+#: sqrt(A) of an Earth orbit (sqrt(m); GNSS 5153 .. 6493): A = 1e6 m is inside the Earth
+#: (the perigee test below is the sharper one), 1e10 m far beyond the Earth's sphere of
+#: influence (about 1e9 m).
+NAV_SQRT_A_RANGE = (1e3, 1e5)
+#: Polar radius of the Earth (m): an orbit whose perigee A (1 - e) is below it crosses the
+#: Earth.
+EARTH_POLAR_RADIUS_M = 6356752.0
+
+
+class NavRecordWarning(UserWarning):
+    """A navigation record that cannot describe a satellite was set aside (not used); the
+    message names the file and line (``FILE:LINE: ...``)."""
+
+
+def nav_record_problems(
+    params: dict[str, NDArray[np.float64]],
+) -> list[tuple[str, NDArray[np.bool_], str]]:
+    """Broadcast records that cannot describe an orbit and a clock, check by check.
+
+    A record must have every parameter finite, ``0 <= e < 1`` (a closed orbit),
+    ``sqrt(A)`` in :data:`NAV_SQRT_A_RANGE`, a perigee ``A (1 - e)`` above the Earth's
+    surface, ``0 <= Toe <= 604800`` s (a second of the week) and every parameter of
+    :data:`NAV_MAX_ABS` within its limit.  Only comparisons: no arithmetic on values out
+    of range (nothing can overflow).
+
+    Parameters
+    ----------
+    params : dict of str -> ndarray (R,)
+        :attr:`NavData.params` (or the same keys for records being read).
+
+    Returns
+    -------
+    list of (str, ndarray of bool (R,), str)
+        For each check, in the order above: the parameter it is about, the records that
+        fail it, and what the parameter must be (for messages).
+    """
+    out: list[tuple[str, NDArray[np.bool_], str]] = [
+        (k, ~np.isfinite(v), "must be a finite number") for k, v in params.items()
+    ]
+    e = params["Eccentricity"]
+    sqrt_a = params["sqrtA"]
+    lo, hi = NAV_SQRT_A_RANGE
+    e_ok = (e >= 0.0) & (e < 1.0)
+    a_ok = (sqrt_a >= lo) & (sqrt_a <= hi)
+    out.append(("Eccentricity", ~e_ok, "must lie in [0, 1) (a closed orbit)"))
+    out.append(("sqrtA", ~a_ok, f"must lie in [{lo:g}, {hi:g}] sqrt(m) (an Earth orbit)"))
+    both = e_ok & a_ok  # the perigee of values in range: no overflow
+    perigee = np.where(both, sqrt_a, 0.0) ** 2 * (1.0 - np.where(both, e, 0.0))
+    out.append(("sqrtA", both & ~(perigee >= EARTH_POLAR_RADIUS_M),
+                "gives a perigee sqrtA^2 (1 - Eccentricity) below the Earth's surface "
+                f"({EARTH_POLAR_RADIUS_M:.0f} m)"))
+    toe = params["Toe"]
+    out.append(("Toe", ~((toe >= 0.0) & (toe <= WEEK_S)),
+                f"must lie in [0, {WEEK_S:.0f}] s (a second of the week)"))
+    for k, lim in NAV_MAX_ABS.items():
+        out.append((k, ~(np.abs(params[k]) <= lim), f"must lie within +-{lim:g}"))
+    return out
+
+
+def plausible_records(params: dict[str, NDArray[np.float64]]) -> NDArray[np.bool_]:
+    """Records that pass every check of :func:`nav_record_problems`."""
+    bad = np.zeros(np.shape(params["sqrtA"]), dtype=bool)
+    for _, fails, _ in nav_record_problems(params):
+        bad |= fails
+    return ~bad
+
+
+def _without_impossible(
+    rec: dict[str, NDArray], lines: dict[str, NDArray[np.int64]] | None, path: str,
+) -> tuple[dict[str, NDArray], list[str]]:
+    """The records of ``rec`` that pass :func:`nav_record_problems`, and one message
+    ``FILE:LINE: ...`` per record set aside (its first problem; ``lines`` are the 0-based
+    file lines of each parameter, ``None`` when unknown).  ``rec`` holds the parameters,
+    ``sat`` and ``toc``."""
+    checks = nav_record_problems({k: rec[k] for k in (*_KEPLER, "tgd")})
+    fails = np.stack([f for _, f, _ in checks])  # (checks, R)
+    bad = fails.any(axis=0)
+    messages = []
+    for r in np.flatnonzero(bad).tolist():
+        name, _, what = checks[int(np.argmax(fails[:, r]))]
+        line = None if lines is None else int(lines[name][r]) + 1
+        which = str(rec["sat"][r])
+        if line is None:  # no line to point at: the record's clock epoch (GPS time)
+            toc = gps_s_to_datetime64(rec["toc"][r : r + 1])[0]
+            which += " record of " + np.datetime_as_string(toc, unit="s").replace("T", " ")
+        else:
+            which += " record"
+        messages.append(str(InputError(
+            f"{which} set aside: {name} = {rec[name][r]:.12g} {what}; it is not used",
+            path, line)))
+    return {k: v[~bad] for k, v in rec.items()}, messages
+
 
 @dataclass(frozen=True)
 class NavData:
@@ -605,6 +713,9 @@ class NavData:
     ion_alpha, ion_beta : ndarray (4,) or None
         GPS Klobuchar coefficients from the header.
     paths : list of str
+    rejected : tuple of str
+        One message ``FILE:LINE: ...`` per record of the files set aside because it cannot
+        describe a satellite (:func:`nav_record_problems`); those records are not here.
     """
 
     sat: NDArray[np.str_]
@@ -614,6 +725,7 @@ class NavData:
     ion_alpha: NDArray[np.float64] | None
     ion_beta: NDArray[np.float64] | None
     paths: list[str]
+    rejected: tuple[str, ...] = ()
 
     @property
     def n_records(self) -> int:
@@ -653,10 +765,17 @@ def read_nav(paths: str | PathLike[str] | list) -> NavData:
     SBAS, QZSS and NavIC records are skipped (use SP3 for GLONASS).  Raises
     :class:`InputError` with the file and line for a truncated or malformed record, or a
     blank orbit or clock parameter, instead of dropping the record.
+
+    A record whose values cannot describe a satellite (:func:`nav_record_problems`: an
+    eccentricity of 1.5, sqrt(A) of 0, an infinite value, ...) is set aside with a
+    :class:`NavRecordWarning` ``FILE:LINE: ...`` (also in :attr:`NavData.rejected`): the
+    other records are used as if it were not in the file.  An error when no record is
+    left.
     """
     if isinstance(paths, (str, PathLike)):
         paths = [paths]
     recs: list[dict[str, NDArray]] = []
+    rejected: list[str] = []
     alpha = beta = None
     for p in paths:
         p = str(p)
@@ -671,34 +790,43 @@ def read_nav(paths: str | PathLike[str] | list) -> NavData:
         if not any(ln.strip() for ln in lines[i0:]):
             raise InputError("no ephemeris records after the header", p, i0 + 1)
         if version < 3 and ftype == "N":
-            rec = _read_nav_v2(lines, i0, p)
+            rec, bad = _read_nav_v2(lines, i0, p)
         elif 3 <= version < 4:
-            rec = _read_nav_v3(lines, i0, p)
+            rec, bad = _read_nav_v3(lines, i0, p)
         else:
-            rec = _nav_from_georinex(p)
+            rec, bad = _nav_from_georinex(p)
+        for text in bad:
+            warnings.warn(text, NavRecordWarning, stacklevel=2)
+        rejected += bad
         if rec is not None:
             recs.append(rec)
     if not recs:
         raise InputError("no GPS, Galileo or BeiDou ephemeris in the navigation file(s)",
                          str(paths[0]))
+    sat = np.concatenate([r["sat"] for r in recs])
+    if sat.size == 0:
+        raise InputError(f"no usable GPS, Galileo or BeiDou ephemeris: all {len(rejected)} "
+                         "records set aside (impossible orbit or clock values)",
+                         str(paths[0]))
     return NavData(
-        np.concatenate([r["sat"] for r in recs]),
+        sat,
         np.concatenate([r["toc"] for r in recs]),
         np.concatenate([r["toe"] for r in recs]),
         {k: np.concatenate([r[k] for r in recs]) for k in (*_KEPLER, "tgd")},
-        alpha, beta, [str(p) for p in paths],
+        alpha, beta, [str(p) for p in paths], tuple(rejected),
     )
 
 
-def _nav_from_georinex(path: str) -> dict[str, NDArray] | None:
+def _nav_from_georinex(path: str) -> tuple[dict[str, NDArray] | None, list[str]]:
     """GPS, Galileo and BeiDou records of a navigation file georinex reads (RINEX 2 types
     other than GPS, RINEX 4).  georinex names the second record of a satellite at the same
-    epoch ``E01_1``: the suffix is removed so that the record stays with its satellite."""
+    epoch ``E01_1``: the suffix is removed so that the record stays with its satellite.
+    Returns the records and the messages of those set aside (without line numbers)."""
     ds = _georinex_load(path)
     if ds is None or "sv" not in ds.coords:
         raise InputError("no ephemeris records could be read", path)
     svs = np.asarray([str(s) for s in ds.sv.values])
-    sat_l, toc_l, toe_l = [], [], []
+    sat_l, toc_l, shift_l = [], [], []
     par_l: dict[str, list] = {k: [] for k in (*_KEPLER, "tgd")}
     for sysch, tgd_name in (("G", "TGD"), ("E", "BGDe5a"), ("C", "TGD1")):
         sel = np.char.startswith(svs, sysch)
@@ -712,11 +840,9 @@ def _nav_from_georinex(path: str) -> dict[str, NDArray] | None:
         toc = datetime64_to_gps_s(sub.time.values[ti])
         if sysch == "C":
             toc = toc + BDT_OFFSET_S  # georinex gives BDT epochs; convert to GPS time
-        toe_sow = np.asarray(sub["Toe"].values)[ti, si]
-        toe_sow = toe_sow + (BDT_OFFSET_S if sysch == "C" else 0.0)
         sat_l.append(np.asarray([str(s).split("_")[0] for s in sub.sv.values])[si])
         toc_l.append(toc)
-        toe_l.append(_resolve_toe(toc, toe_sow))
+        shift_l.append(np.full(ti.size, BDT_OFFSET_S if sysch == "C" else 0.0))
         for k in _KEPLER:
             name = "SatH1" if (k == "health" and sysch == "C") else k
             par_l[k].append(np.asarray(sub[name].values, dtype=np.float64)[ti, si]
@@ -726,17 +852,19 @@ def _nav_from_georinex(path: str) -> dict[str, NDArray] | None:
             np.zeros(ti.size) if tg is None else np.asarray(tg.values, dtype=np.float64)[ti, si]
         )
     if not sat_l:
-        return None
+        return None, []
     out = {k: np.concatenate(v) for k, v in par_l.items()}
     for k in ("health", "tgd"):
-        out[k] = np.nan_to_num(out[k])
-    if not np.all(np.isfinite(np.stack([out[k] for k in _REQUIRED]))):
+        out[k] = np.where(np.isnan(out[k]), 0.0, out[k])
+    if np.isnan(np.stack([out[k] for k in _REQUIRED])).any():
         raise InputError("georinex left orbit or clock parameters of a record unreadable",
                          path)
     out["sat"] = np.concatenate(sat_l)
     out["toc"] = np.concatenate(toc_l)
-    out["toe"] = np.concatenate(toe_l)
-    return out
+    out["shift"] = np.concatenate(shift_l)
+    out, rejected = _without_impossible(out, None, path)
+    out["toe"] = _resolve_toe(out["toc"], out["Toe"] + out.pop("shift"))
+    return out, rejected
 
 
 #: Parameters without which a record cannot place the satellite: a blank one is an error.
@@ -780,8 +908,9 @@ _NAV3_ORBIT_LINES = {"G": (7,), "E": (7,), "C": (7,), "J": (7,), "I": (7,), "R":
 
 
 def _nav_field_grid(lines: list[str], rec_lines: NDArray[np.int64], col_first: int,
-                    col_other: int, path: str) -> NDArray[np.float64]:
-    """Numbers of fixed-width navigation records as an ``(R, L, 4)`` array, NaN if blank.
+                    col_other: int, path: str) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Numbers of fixed-width navigation records as an ``(R, L, 4)`` array, NaN if blank,
+    and which fields are blank (a field reading ``NaN`` is NaN but not blank).
 
     ``rec_lines[r]`` are the ``L`` line indices of record ``r``.  The first line holds three
     19-character fields from column ``col_first`` (after satellite and epoch), the others
@@ -798,12 +927,14 @@ def _nav_field_grid(lines: list[str], rec_lines: NDArray[np.int64], col_first: i
     buf = np.frombuffer(block.encode("ascii", errors="replace"), dtype="S1")
     buf = buf.reshape(nrec, nlin, 80)
     out = np.full((nrec, nlin, 4), np.nan)
+    blanks = np.ones((nrec, nlin, 4), dtype=bool)
     for li in range(nlin):
         c0, nf = (col_first, 3) if li == 0 else (col_other, 4)
         for fi in range(nf):
             c = c0 + 19 * fi
             fld = buf[:, li, c : c + 19].copy().view("S19").ravel()
             blank = np.char.strip(fld) == b""
+            blanks[:, li, fi] = blank
             try:
                 out[:, li, fi] = np.where(blank, b"nan", fld).astype(np.float64)
             except ValueError:
@@ -812,7 +943,7 @@ def _nav_field_grid(lines: list[str], rec_lines: NDArray[np.int64], col_first: i
                     f"malformed number {fld[bad].decode(errors='replace').strip()!r}",
                     path, int(rec_lines[bad, li]) + 1,
                 ) from None
-    return out
+    return out, blanks
 
 
 def _resolve_toe(toc_gps_s: NDArray[np.float64], toe_sow: NDArray[np.float64]) -> NDArray:
@@ -822,29 +953,46 @@ def _resolve_toe(toc_gps_s: NDArray[np.float64], toe_sow: NDArray[np.float64]) -
     return toc_gps_s + (d - WEEK_S * np.round(d / WEEK_S))
 
 
-def _named_params(grid: NDArray[np.float64], layout: tuple[tuple[str, ...], ...],
-                  tgd: str, health: str, sat: NDArray[np.str_], rec_lines: NDArray[np.int64],
-                  path: str) -> dict[str, NDArray[np.float64]]:
-    """NavData parameters of records of one layout; a blank required field is an error."""
+def _field_at(layout: tuple[tuple[str, ...], ...], tgd: str,
+              health: str) -> dict[str, tuple[int, int]]:
+    """``(line, field)`` of each NavData parameter in a record of ``layout`` (0-based)."""
     where = {name: (li, fi) for li, names in enumerate(layout)
              for fi, name in enumerate(names) if name}
+    return {k: where[{"tgd": tgd, "health": health}.get(k, k)] for k in (*_KEPLER, "tgd")}
+
+
+def _param_lines(layout: tuple[tuple[str, ...], ...], tgd: str, health: str,
+                 rec_lines: NDArray[np.int64]) -> dict[str, NDArray[np.int64]]:
+    """0-based file line of each NavData parameter of every record (for messages)."""
+    return {k: rec_lines[:, li] for k, (li, _) in _field_at(layout, tgd, health).items()}
+
+
+def _named_params(grid: tuple[NDArray[np.float64], NDArray[np.bool_]],
+                  layout: tuple[tuple[str, ...], ...], tgd: str, health: str,
+                  sat: NDArray[np.str_], rec_lines: NDArray[np.int64],
+                  path: str) -> dict[str, NDArray[np.float64]]:
+    """NavData parameters of records of one layout (``grid``: :func:`_nav_field_grid`'s
+    values and blanks); a blank required field is an error (values that cannot be an orbit,
+    ``NaN`` written out included, are :func:`_without_impossible`'s)."""
+    values, blanks = grid
     out: dict[str, NDArray[np.float64]] = {}
-    for k in (*_KEPLER, "tgd"):
-        li, fi = where[{"tgd": tgd, "health": health}.get(k, k)]
-        v = grid[:, li, fi]
-        if k in _REQUIRED and np.isnan(v).any():
-            r = int(np.flatnonzero(np.isnan(v))[0])
+    for k, (li, fi) in _field_at(layout, tgd, health).items():
+        v, blank = values[:, li, fi], blanks[:, li, fi]
+        if k in _REQUIRED and blank.any():
+            r = int(np.flatnonzero(blank)[0])
             raise InputError(f"{sat[r]} record without {k} (blank field {fi + 1} of its "
                              f"line {li + 1})", path, int(rec_lines[r, li]) + 1)
-        out[k] = np.nan_to_num(v)  # blank health / group delay: not given, read as 0
+        out[k] = np.where(blank, 0.0, v)  # blank health / group delay: not given, 0
     return out
 
 
-def _read_nav_v2(lines: list[str], i0: int, path: str) -> dict[str, NDArray] | None:
+def _read_nav_v2(lines: list[str], i0: int,
+                 path: str) -> tuple[dict[str, NDArray] | None, list[str]]:
     """Fast reader of RINEX 2 GPS navigation records (8 lines each, 19-character fields).
 
     georinex 1.16 needs about 0.5 s for the GEONET file and turns malformed numbers into
-    NaN silently; this reader takes a few milliseconds and reports file and line.
+    NaN silently; this reader takes a few milliseconds and reports file and line.  Returns
+    the records and the messages of those set aside (:func:`_without_impossible`).
     """
     idx = [j for j in range(i0, len(lines)) if lines[j].strip()]
     if len(idx) % 8 != 0:
@@ -854,7 +1002,7 @@ def _read_nav_v2(lines: list[str], i0: int, path: str) -> dict[str, NDArray] | N
         )
     nrec = len(idx) // 8
     if nrec == 0:
-        return None
+        return None, []
     rec_lines = np.asarray(idx, dtype=np.int64).reshape(nrec, 8)
     grid = _nav_field_grid(lines, rec_lines, 22, 3, path)
     sats, tocs = [], []
@@ -877,14 +1025,16 @@ def _read_nav_v2(lines: list[str], i0: int, path: str) -> dict[str, NDArray] | N
                           f"{hh:02d}:{mi:02d}", "ns") + np.int64(round(ss * 1e9))
         )
     out = _named_params(grid, _NAV2_FIELDS, "TGD", "health", np.array(sats), rec_lines, path)
-    toc = datetime64_to_gps_s(np.array(tocs, dtype="datetime64[ns]"))
     out["sat"] = np.array(sats)
-    out["toc"] = toc
-    out["toe"] = _resolve_toe(toc, out["Toe"])
-    return out
+    out["toc"] = datetime64_to_gps_s(np.array(tocs, dtype="datetime64[ns]"))
+    out, rejected = _without_impossible(
+        out, _param_lines(_NAV2_FIELDS, "TGD", "health", rec_lines), path)
+    out["toe"] = _resolve_toe(out["toc"], out["Toe"])
+    return out, rejected
 
 
-def _read_nav_v3(lines: list[str], i0: int, path: str) -> dict[str, NDArray] | None:
+def _read_nav_v3(lines: list[str], i0: int,
+                 path: str) -> tuple[dict[str, NDArray] | None, list[str]]:
     """Reader of the GPS, Galileo and BeiDou records of a RINEX 3 navigation file.
 
     A record starts with a line whose first column holds the system letter
@@ -894,7 +1044,8 @@ def _read_nav_v3(lines: list[str], i0: int, path: str) -> dict[str, NDArray] | N
     concatenating lines, so right-trimmed lines and blank spare fields read correctly
     (georinex 1.16 turns a record with a blank field into NaN and drops it).  Epochs of
     BeiDou records are BDT and converted to GPS time (+14 s); Galileo system time is
-    aligned with GPS time.
+    aligned with GPS time.  Returns the records and the messages of those set aside
+    (:func:`_without_impossible`).
     """
     idx = [j for j in range(i0, len(lines)) if lines[j].strip()]
     heads = [p for p, j in enumerate(idx) if lines[j][:1] != " "]
@@ -916,7 +1067,7 @@ def _read_nav_v3(lines: list[str], i0: int, path: str) -> dict[str, NDArray] | N
         if sysch in _NAV3_FIELDS:
             keep.append(p)
     if not keep:
-        return None
+        return None, []
     rec_lines = np.asarray([idx[p : p + 8] for p in keep], dtype=np.int64)
     sats, tocs = [], []
     for j in rec_lines[:, 0].tolist():
@@ -939,16 +1090,22 @@ def _read_nav_v3(lines: list[str], i0: int, path: str) -> dict[str, NDArray] | N
     system = np.array([s[0] for s in sats])
     grid = _nav_field_grid(lines, rec_lines, 23, 4, path)
     out: dict[str, NDArray] = {k: np.zeros(len(sats)) for k in (*_KEPLER, "tgd")}
+    at: dict[str, NDArray[np.int64]] = {k: np.zeros(len(sats), dtype=np.int64)
+                                        for k in (*_KEPLER, "tgd")}
     for sysch, layout in _NAV3_FIELDS.items():
         m = system == sysch
         if not m.any():
             continue
-        par = _named_params(grid[m], layout, _TGD_FIELD[sysch], _HEALTH_FIELD[sysch], sat[m],
-                            rec_lines[m], path)
+        par = _named_params((grid[0][m], grid[1][m]), layout, _TGD_FIELD[sysch],
+                            _HEALTH_FIELD[sysch], sat[m], rec_lines[m], path)
         for k, v in par.items():
             out[k][m] = v
-    shift = np.where(system == "C", BDT_OFFSET_S, 0.0)  # BDT = GPST - 14 s
+        for k, where in _param_lines(layout, _TGD_FIELD[sysch], _HEALTH_FIELD[sysch],
+                                     rec_lines[m]).items():
+            at[k][m] = where
     out["sat"] = sat
-    out["toc"] = toc + shift
+    out["toc"] = toc + np.where(system == "C", BDT_OFFSET_S, 0.0)  # BDT = GPST - 14 s
+    out, rejected = _without_impossible(out, at, path)
+    shift = np.where(np.char.startswith(out["sat"].astype(str), "C"), BDT_OFFSET_S, 0.0)
     out["toe"] = _resolve_toe(out["toc"], out["Toe"] + shift)
-    return out
+    return out, rejected

@@ -154,7 +154,10 @@ def run_spp(obs: str, nav: Sequence[str], settings: SppSettings, *, sp3: str | N
     (DataFrame, dict)
         One row per epoch (``SppResult.to_frame``: time, ECEF and geodetic position,
         clock, status, satellites used and excluded, DOP, protection levels), and the run
-        summary (errors against the reference, status counts, RAIM counts).
+        summary (errors against the reference, status counts, RAIM counts, and
+        ``nav_records_set_aside``: a ``FILE:LINE: ...`` message per navigation record that
+        cannot describe a satellite, when there are any; :func:`read_nav` also issues each
+        as a :class:`~robustloc.gnss.rinex.NavRecordWarning`).
     """
     from robustloc import status as st
     from robustloc.gnss.raim import RaimFde, inject_faults
@@ -208,6 +211,8 @@ def run_spp(obs: str, nav: Sequence[str], settings: SppSettings, *, sp3: str | N
     summary: dict[str, Any] = {
         "obs": str(obs), "systems": res.systems, "iono": iono, "raim": bool(settings.raim),
         "invalid_measurement": int(n_invalid.sum())}
+    if ephemerides is not None and ephemerides.rejected:
+        summary["nav_records_set_aside"] = list(ephemerides.rejected)
     if np.linalg.norm(ref) > 6.0e6:
         summary["reference"] = ref_src
         summary["reference_xyz_m"] = [float(v) for v in ref]
