@@ -97,6 +97,39 @@ def test_integer_anchor_ids_from_parquet_become_strings(tmp_path):
     assert list(read_anchors(tmp_path / "a.parquet")["anchor"]) == ["1", "2"]
 
 
+
+def test_float_ids_do_not_depend_on_their_chunk(tmp_path):
+    """Float tag and anchor ids are named value by value: a whole-column rule named the tag
+    1.0 "1" in a chunk of whole numbers and "1.0" in a chunk holding 1.5, so one tag
+    became two and the epoch across the chunks two epochs of two ranges each (found by
+    fuzzing the API; the CLI on Parquet did the same with --chunk-rows)."""
+    import robustloc
+    from robustloc.cli import main
+
+    anchors = pd.DataFrame({"anchor": [1.0, 2.0, 3.0, 4.5], "x": [0.0, 10, 10, 0],
+                            "y": [0.0, 0, 10, 10]})
+    d = np.hypot(anchors.x - 3, anchors.y - 4).to_numpy()
+    log = pd.DataFrame({"time": np.repeat([0.0, 1.0, 2.0], 4),
+                        "tag": np.repeat([1.0, 1.0, 1.5], 4),
+                        "anchor": np.tile(anchors.anchor, 3), "range": np.tile(d, 3)})
+    whole = robustloc.locate(log, anchors)
+    assert list(whole["tag"]) == ["1", "1", "1.5"]
+    assert list(whole["status"]) == ["ok"] * 3
+    for rows in (1, 5, 6, 7):
+        pd.testing.assert_frame_equal(robustloc.locate(log, anchors, chunk_rows=rows), whole)
+    # the anchors' float ids meet the measurements' whole ones (1.0 in both: "1")
+    first = log[log.anchor != 4.5].iloc[:3]
+    assert robustloc.locate(first, anchors)["status"].tolist() == ["low_redundancy"]
+    # the command line on Parquet, read in chunks
+    write_table(anchors, tmp_path / "a.parquet")
+    write_table(log, tmp_path / "m.parquet")
+    out = tmp_path / "p.csv"
+    assert main(["locate", str(tmp_path / "m.parquet"), "--anchors", str(tmp_path / "a.parquet"),
+                 "--chunk-rows", "6", "-o", str(out), "--quiet"]) == 0
+    got = pd.read_csv(out, dtype={"tag": str})
+    assert list(got["tag"]) == ["1", "1", "1.5"] and list(got["status"]) == ["ok"] * 3
+
+
 MEAS = (
     "time,tag,anchor,rssi\n"
     "0,S1,1,-60\n0,S1,2,-70\n0,S1,2,-72\n0,S2,1,-50\n"

@@ -496,12 +496,17 @@ def _seconds(s: pd.Series) -> NDArray[np.float64]:
 
 
 def _ids(df: pd.DataFrame, col: str, path: PathLike | None = None) -> None:
-    """Convert an id column to stripped strings; empty ids are an error."""
+    """Convert an id column to stripped strings; empty ids are an error.
+
+    Floating-point ids (a DataFrame or Parquet column of numbers) are written value by
+    value: a whole number without its ``.0`` (``1.0`` -> ``"1"``), any other as Python
+    prints it (``1.5`` -> ``"1.5"``).  The id of a value never depends on the other values
+    of its chunk (a whole-column rule named 1.0 ``"1"`` in one chunk and ``"1.0"`` in the
+    next, so one tag became two and an epoch across the chunks two epochs).  Text ids (a
+    CSV column) are kept as written."""
     s = df[col]
     if pd.api.types.is_float_dtype(s):
-        v = s.to_numpy(dtype=float)
-        if np.all(np.isnan(v) | (v == np.round(v))):
-            s = s.astype("Int64")
+        s = _float_ids(s)
     missing = s.isna().to_numpy()
     out = s if isinstance(s.dtype, pd.StringDtype) else s.astype(str)
     out = out.str.strip()
@@ -510,6 +515,15 @@ def _ids(df: pd.DataFrame, col: str, path: PathLike | None = None) -> None:
         i = int(np.argmax(empty))
         raise InputError(f"column '{col}': empty id", _path_of(df, path), _line_of(df, i))
     df[col] = out
+
+
+def _float_ids(s: pd.Series) -> pd.Series:
+    """Float ids as text, each by its own value (:func:`_ids`); NaN stays missing."""
+    v = s.to_numpy(dtype=float, na_value=np.nan)
+    whole = np.isfinite(v) & (v == np.round(v)) & (np.abs(v) < 2.0**63)
+    text = s.astype(str).to_numpy(dtype=object)
+    text[whole] = v[whole].astype(np.int64).astype(str)
+    return pd.Series(np.where(np.isnan(v), None, text), index=s.index, dtype=object)
 
 
 def _require_rows(df: pd.DataFrame, what: str, path: PathLike | None = None) -> None:
