@@ -175,3 +175,25 @@ def test_a_frame_error_names_its_row():
     with pytest.raises(InputError) as exc:
         list(iter_epochs(in_memory_source(log), ["a", "b"]))
     assert (exc.value.path, exc.value.line) == ("<measurements DataFrame>", 4)
+
+
+def test_several_methods_come_out_in_time_order_whatever_the_chunking():
+    """With several methods the rows were grouped method by method inside each block, so
+    the output was out of time order and its order depended on --chunk-rows (0, 1, 0, 1,
+    2, 2 against 0, 0, 1, 1, 2, 2); now each epoch's methods follow each other."""
+    import robustloc
+
+    a4 = pd.DataFrame({"anchor": list("abcd"), "x": [0.0, 10, 10, 0], "y": [0.0, 0, 10, 10]})
+    d = np.hypot(a4.x - 3, a4.y - 4).to_numpy()
+    log = pd.DataFrame({"time": np.repeat([0.0, 1.0, 2.0], 4), "tag": "t",
+                        "anchor": np.tile(a4.anchor, 3),
+                        "range": np.tile(d, 3) + np.random.default_rng(0).normal(0, 0.05, 12)})
+    whole = robustloc.locate(log, a4, ["nls", "ls"])
+    assert whole["time"].tolist() == [0.0, 0.0, 1.0, 1.0, 2.0, 2.0]
+    assert whole["method"].tolist() == ["nls", "ls"] * 3
+    for rows in (1, 5, 7):
+        pd.testing.assert_frame_equal(robustloc.locate(log, a4, ["nls", "ls"], chunk_rows=rows),
+                                      whole)
+    # the values are each method's own, as when solved alone
+    alone = robustloc.locate(log, a4, "ls")
+    np.testing.assert_array_equal(whole.loc[whole.method == "ls", "x"], alone["x"])

@@ -278,6 +278,18 @@ def log_sample_step(n_epochs: int, cap: int | None = None) -> int:
     return k
 
 
+def _epoch_major(frames: list[pd.DataFrame]) -> pd.DataFrame:
+    """One block's rows of every method, epoch by epoch (each epoch's methods in the
+    order given): the output stays in time order with several methods, whatever the
+    chunking (block by block and method by method it was 0, 1, 0, 1, 2, 2)."""
+    if len(frames) == 1:
+        return frames[0]
+    n = len(frames[0])
+    both = pd.concat(frames, ignore_index=True)
+    order = np.arange(n * len(frames)).reshape(len(frames), n).T.ravel()
+    return both.iloc[order].reset_index(drop=True)
+
+
 def fix_log_scale(settings: LocateSettings, geo: Geometry, sources: Sequence[Any],
                   order: str, cap: int | None = None) -> list[Any]:
     """First pass over the whole log: each locator's per-anchor noise scale and gross
@@ -622,8 +634,7 @@ def _run_once(
                         hpl_counts(fr["hpl"].to_numpy(float),
                                    among(fr["status"].to_numpy(dtype=object), USABLE),
                                    hpl_hist[loc.method])
-                writer.write(pd.concat(frames, ignore_index=True) if len(frames) > 1
-                             else frames[0])
+                writer.write(_epoch_major(frames))
                 n_epochs += block.n_epochs
                 n_dup += block.n_duplicates
                 n_invalid += int(block.n_invalid.sum())
