@@ -38,12 +38,18 @@ def rts_segment(xf: Array, Pf: Array, xp: Array, Pp: Array, F: Array,
                 lag: int | None = None) -> tuple[Array, Array]:
     """Smooth one segment (``L`` epochs).  ``xp[k], Pp[k], F[k]``: prediction into ``k``.
 
-    ``lag=None``: fixed interval; ``lag=N``: fixed lag ``N`` epochs.
+    ``lag=None``: fixed interval; ``lag=N``: fixed lag ``N`` epochs.  A lag of ``L - 1``
+    epochs or more reaches the segment's end from every epoch: it is the fixed-interval
+    smoother, at the same cost (the work is bounded by the segment, not by ``lag``).
     """
     L = len(xf)
     if L < 2 or lag == 0:
         return xf.copy(), Pf.copy()
     C = _rts_steps(xf, Pf, xp, Pp, F)
+    if lag is not None and lag >= L - 1:
+        # every epoch's window reaches the segment's end: the fixed-interval smoother
+        # (the backward steps beyond the end would do nothing, ``lag`` times over)
+        lag = None
     if lag is None:
         xs, Ps = xf.copy(), Pf.copy()
         for k in range(L - 2, -1, -1):
