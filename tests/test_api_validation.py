@@ -12,8 +12,11 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+import pytest
 
 import robustloc
+from robustloc import InputError
+from robustloc.cli import main
 
 ANCHORS = pd.DataFrame({"anchor": list("abcd"), "x": [0.0, 10.0, 10.0, 0.0],
                         "y": [0.0, 0.0, 10.0, 10.0]})
@@ -83,3 +86,17 @@ def test_fixed_lag_longer_than_the_log_cli_is_quick(tmp_path):
                     str(anchors), "--fixed-lag", str(10**9), "-o", str(tmp_path / "t.csv")],
                    check=True, timeout=60, capture_output=True)
     assert len(pd.read_csv(tmp_path / "t.csv")) == 30
+
+
+def test_smooth_and_fixed_lag_are_exclusive_as_on_the_command_line(tmp_path, capsys):
+    log = tmp_path / "m.csv"
+    anchors = tmp_path / "a.csv"
+    _walk(10).to_csv(log, index=False)
+    ANCHORS.to_csv(anchors, index=False)
+    assert main(["track", str(log), "--anchors", str(anchors), "--smooth", "--fixed-lag",
+                 "2", "-o", str(tmp_path / "t.csv")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    with pytest.raises(InputError) as exc:
+        robustloc.track(log, anchors, smooth=True, fixed_lag=2)
+    assert str(exc.value) == "argument --fixed-lag: not allowed with argument --smooth"
+    assert err.endswith(str(exc.value))

@@ -476,7 +476,8 @@ def track(
     anchors : DataFrame, str or PathLike
         ``anchor, x, y[, z]`` and optional path-loss / ``bias, scale, sigma`` columns.
     model, filter, q, weight, domain, sigma, smooth, fixed_lag, cusum_h
-        As the ``robustloc track`` options of the same name (see its ``--help``).
+        As the ``robustloc track`` options of the same name (see its ``--help``);
+        ``smooth`` and ``fixed_lag`` are exclusive (one smoother or the other).
     engine : {"compiled", "numpy"}
         The tracker's kernels (``robustloc track --kernel``; ``Tracker(engine=...)``).
     tag_height, alpha0, beta0, integrity_risk, chunk_rows
@@ -511,6 +512,8 @@ def track(
     """
     from robustloc.pipelines.track import TrackSettings, run_track
 
+    if smooth and fixed_lag is not None:  # the command's mutually exclusive options
+        raise InputError("argument --fixed-lag: not allowed with argument --smooth")
     with _labelled():
         settings = TrackSettings(
             model=model, filter=filter, q=q, weight=weight, domain=domain, sigma=sigma,
