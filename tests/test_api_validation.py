@@ -100,3 +100,63 @@ def test_smooth_and_fixed_lag_are_exclusive_as_on_the_command_line(tmp_path, cap
         robustloc.track(log, anchors, smooth=True, fixed_lag=2)
     assert str(exc.value) == "argument --fixed-lag: not allowed with argument --smooth"
     assert err.endswith(str(exc.value))
+
+
+# ---------------------------------------------------------------- frames: duplicate columns
+
+
+def _twice(df: pd.DataFrame, column: str) -> pd.DataFrame:
+    return pd.concat([df, df[[column]]], axis=1)
+
+
+def _truth(log: pd.DataFrame) -> pd.DataFrame:
+    t = np.unique(log["time"].to_numpy())
+    return pd.DataFrame({"time": t, "tag": "t", "x": 2.0 + 0.2 * t,
+                         "y": 5.0 + np.sin(0.3 * t)})
+
+
+def _positions(log: pd.DataFrame) -> pd.DataFrame:
+    return _truth(log).assign(method="nls", status="ok")
+
+
+def _survey() -> pd.DataFrame:
+    d = np.array([1.0, 2.0, 4.0, 6.0, 8.0])
+    return pd.DataFrame({"anchor": np.repeat(["a", "b"], 5), "distance": np.tile(d, 2),
+                         "range": np.tile(1.05 * d + 0.3 + [0.01, -0.02, 0.0, 0.02, -0.01],
+                                          2)})
+
+
+@pytest.mark.parametrize(("what", "column", "call"), [
+    ("measurements", "range", lambda m: robustloc.locate(_twice(m, "range"), ANCHORS)),
+    ("measurements", "tag", lambda m: robustloc.track(_twice(m, "tag"), ANCHORS)),
+    ("measurements", "range", lambda m: robustloc.read_measurements(_twice(m, "range"))),
+    ("anchors", "x", lambda m: robustloc.locate(m, _twice(ANCHORS, "x"))),
+    ("anchors", "anchor", lambda m: robustloc.read_anchors(_twice(ANCHORS, "anchor"))),
+    ("anchors", "y", lambda m: robustloc.read_measurements(m, _twice(ANCHORS, "y"))),
+    ("truth", "x", lambda m: robustloc.evaluate(_positions(m), _twice(_truth(m), "x"))),
+    ("positions", "time",
+     lambda m: robustloc.evaluate(_twice(_positions(m), "time"), _truth(m))),
+    ("positions", "status", lambda m: robustloc.read_positions(_twice(_positions(m), "status"))),
+    ("survey", "range", lambda m: robustloc.calibrate(_twice(_survey(), "range"))),
+    ("truth", "time", lambda m: robustloc.calibrate(measurements=m, anchors=ANCHORS,
+                                                    truth=_twice(_truth(m), "time"))),
+    ("measurements", "anchor",
+     lambda m: robustloc.calibrate(measurements=_twice(m, "anchor"), anchors=ANCHORS,
+                                   truth=_truth(m))),
+    ("measurements", "range",
+     lambda m: robustloc.calibrate(self_log=_twice(m, "range"), anchors=ANCHORS)),
+])
+def test_a_frame_naming_a_column_twice_is_an_input_error(what, column, call):
+    """A file naming a column twice is refused on its header line; a frame was a raw
+    pandas TypeError (or one of the two columns silently used)."""
+    with pytest.raises(InputError) as exc:
+        call(_walk(10))
+    assert str(exc.value) == f"<{what} DataFrame>: duplicate column {column!r}"
+
+
+def test_a_read_frame_naming_a_column_twice_names_its_file(tmp_path):
+    path = tmp_path / "m.csv"
+    _walk(10).to_csv(path, index=False)
+    log = robustloc.read_measurements(path)
+    with pytest.raises(InputError, match=f"^{path}: duplicate column 'range'$"):
+        robustloc.locate(_twice(log, "range"), ANCHORS)

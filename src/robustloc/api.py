@@ -82,12 +82,21 @@ def _labelled() -> Iterator[None]:
 def _labelled_frame(df: pd.DataFrame, what: str) -> pd.DataFrame:
     """A frame whose rows the validators can name: its own ``line`` index and ``path``
     (read from a file) or the line of ``df.to_csv(index=False)`` in ``<what DataFrame>``."""
-    if df.index.name == "line" and df.attrs.get("path"):
-        return df
-    df = df.copy()
-    df.index = pd.RangeIndex(2, len(df) + 2, name="line")
-    df.attrs["path"] = f"<{what} DataFrame>"
+    if not (df.index.name == "line" and df.attrs.get("path")):
+        df = df.copy()
+        df.index = pd.RangeIndex(2, len(df) + 2, name="line")
+        df.attrs["path"] = f"<{what} DataFrame>"
+    _refuse_duplicate_columns(df)
     return df
+
+
+def _refuse_duplicate_columns(df: pd.DataFrame) -> None:
+    """A column named twice is an error naming the frame, as a file's header naming a
+    column twice is (pandas would raise a raw error on ``df[name]``, or use either)."""
+    dup = df.columns.duplicated()
+    if dup.any():
+        name = str(df.columns[dup.argmax()])
+        raise InputError(f"duplicate column {name!r}", df.attrs.get("path"))
 
 
 # --------------------------------------------------------------------------------------
@@ -427,6 +436,7 @@ def _log_inputs(measurements: FrameOrPath, anchors: FrameOrPath
                         f"{type(anchors).__name__}")
     if isinstance(measurements, pd.DataFrame):
         source: str | pd.DataFrame = in_memory_source(measurements)
+        _refuse_duplicate_columns(source)
     elif isinstance(measurements, (str, os.PathLike)):
         source = os.fspath(measurements)
     else:
