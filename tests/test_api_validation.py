@@ -160,3 +160,45 @@ def test_a_read_frame_naming_a_column_twice_names_its_file(tmp_path):
     log = robustloc.read_measurements(path)
     with pytest.raises(InputError, match=f"^{path}: duplicate column 'range'$"):
         robustloc.locate(_twice(log, "range"), ANCHORS)
+
+
+# ---------------------------------------------------------------- evaluate: options
+
+
+@pytest.mark.parametrize(("options", "argv"), [
+    ({"time_tolerance": -1}, ["--time-tolerance", "-1"]),
+    ({"time_tolerance": -1.0}, ["--time-tolerance", "-1.0"]),
+    ({"time_tolerance": float("nan")}, ["--time-tolerance", "nan"]),
+    ({"time_tolerance": float("inf")}, ["--time-tolerance", "inf"]),
+    ({"time_tolerance": "abc"}, ["--time-tolerance", "abc"]),
+    ({"baseline": "zzz"}, ["--baseline", "zzz"]),
+])
+def test_evaluate_refuses_what_the_command_refuses(tmp_path, capsys, options, argv):
+    """A negative tolerance was a raw ValueError, a NaN one matched every position to the
+    nearest truth, an unknown baseline gave NaN improvements, silently."""
+    log = _walk(10)
+    pos, truth = tmp_path / "pos.csv", tmp_path / "truth.csv"
+    _positions(log).assign(x=lambda f: f.x + 0.1).to_csv(pos, index=False)
+    # truth 10 ms off the positions: matched only by a (wrongly) unbounded tolerance
+    off = 0.01 if "time_tolerance" in options else 0.0
+    _truth(log).assign(time=lambda f: f.time + off).to_csv(truth, index=False)
+    assert main(["evaluate", str(pos), "--truth", str(truth), *argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    for p in (pos, pd.read_csv(pos)):
+        with pytest.raises(InputError) as exc:
+            robustloc.evaluate(p, truth, **options)
+        name = str(pos) if p is pos else "<positions DataFrame>"
+        # argparse prefixes its refusals with "robustloc evaluate: error: ", ours "error: "
+        assert err.endswith(str(exc.value).replace(name, str(pos)))
+    assert "time_tolerance" not in options or str(exc.value).startswith(
+        "argument --time-tolerance: expected a")
+
+
+def test_evaluate_takes_a_baseline_of_the_file_or_ls():
+    log = _walk(10)
+    pos = pd.concat([_positions(log).assign(x=lambda f: f.x + 0.2),
+                     _positions(log).assign(x=lambda f: f.x + 0.1, method="igg")])
+    got = robustloc.evaluate(pos, _truth(log), baseline="nls")
+    assert np.allclose(got.loc[got.method == "igg", "rms_impr_pct"], 50.0)
+    no_ls = robustloc.evaluate(pos, _truth(log))  # the default, absent: NaN, no error
+    assert no_ls["rms_impr_pct"].isna().all()

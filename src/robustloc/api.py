@@ -79,6 +79,20 @@ def _labelled() -> Iterator[None]:
         raise InputError(describe_oserror(exc), str(name)) from None
 
 
+def _check_option(flag: str, value: object, check: Callable[[str], object]) -> None:
+    """Refuse ``value`` as the command line refuses ``flag VALUE`` (a converter of
+    :mod:`robustloc.options`): :class:`InputError` ``argument FLAG: ...``, the words
+    :func:`robustloc.options.check_settings` gives a settings field."""
+    import argparse
+
+    arg = (str(value) if isinstance(value, (int, float)) and not isinstance(value, bool)
+           else value)
+    try:
+        check(arg)  # type: ignore[arg-type]
+    except (argparse.ArgumentTypeError, ValueError, TypeError) as exc:
+        raise InputError(f"argument {flag}: {exc}") from None
+
+
 def _labelled_frame(df: pd.DataFrame, what: str) -> pd.DataFrame:
     """A frame whose rows the validators can name: its own ``line`` index and ``path``
     (read from a file) or the line of ``df.to_csv(index=False)`` in ``<what DataFrame>``."""
@@ -699,9 +713,11 @@ def evaluate(
     truth : DataFrame, str or PathLike
         ``time, tag, x, y[, z]``.
     baseline : str
-        Method the improvements refer to.
+        Method the improvements refer to: ``ls`` (its improvements are NaN when the
+        positions have no ``ls`` rows) or one of the positions' methods.
     time_tolerance : float
-        Largest absolute time difference between a position and its truth (s).
+        Largest absolute time difference between a position and its truth (s), finite
+        and >= 0.
 
     Returns
     -------
@@ -722,9 +738,15 @@ def evaluate(
     2  mean    nls  2.0  0.4  0.354
     """
     from robustloc.eval.metrics import error_table
+    from robustloc.options import nonnegative_float
 
+    _check_option("--time-tolerance", time_tolerance, nonnegative_float)
     with _labelled():
         pos = read_positions(positions)
+        if baseline != "ls" and baseline not in set(pos["method"]):  # as the command
+            methods = ", ".join(sorted(set(pos["method"])))
+            raise InputError(f"--baseline {baseline!r} is not a method of this file "
+                             f"(methods: {methods})", pos.attrs.get("path"))
         tru = read_truth(truth)
         table = error_table(pos, tru, time_tolerance_s=time_tolerance, baseline=baseline)
     return _with_summary(table, {"n_unmatched": int(table.attrs.get("n_unmatched", 0))})
