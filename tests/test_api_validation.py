@@ -202,3 +202,54 @@ def test_evaluate_takes_a_baseline_of_the_file_or_ls():
     assert np.allclose(got.loc[got.method == "igg", "rms_impr_pct"], 50.0)
     no_ls = robustloc.evaluate(pos, _truth(log))  # the default, absent: NaN, no error
     assert no_ls["rms_impr_pct"].isna().all()
+
+
+# ---------------------------------------------------------------- calibrate: truth
+
+
+def _range_log() -> tuple[pd.DataFrame, pd.DataFrame]:
+    """40 epochs of ranges 5 % long and 0.3 m late, and their truth."""
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(1, 9, (40, 2))
+    d = np.hypot(ANCHORS.x.to_numpy() - xy[:, :1], ANCHORS.y.to_numpy() - xy[:, 1:])
+    d = d * 1.05 + 0.3 + rng.normal(0, 0.05, (40, 4))
+    log = pd.DataFrame({"time": np.repeat(np.arange(40.0), 4), "tag": "t",
+                        "anchor": np.tile(ANCHORS.anchor, 40), "range": d.ravel()})
+    truth = pd.DataFrame({"time": np.arange(40.0), "tag": "t", "x": xy[:, 0], "y": xy[:, 1]})
+    return log, truth
+
+
+def test_calibrate_refuses_duplicate_truth_as_evaluate_does(tmp_path, capsys):
+    """Two truth rows for one (time, tag) were used silently, the fit depending on their
+    order; evaluate refused the same truth."""
+    log, truth = _range_log()
+    good = robustloc.calibrate(measurements=log, truth=truth, anchors=ANCHORS, scale=True)
+    assert np.allclose(good["scale"], 1.05, atol=0.02)
+    dup = pd.concat([truth, truth.assign(x=truth.x + 5)], ignore_index=True)
+    want = "<truth DataFrame>:42: duplicate truth for time 0.0 and tag 't'"
+    with pytest.raises(InputError) as exc:
+        robustloc.calibrate(measurements=log, truth=dup, anchors=ANCHORS, scale=True)
+    assert str(exc.value) == want
+    with pytest.raises(InputError) as exc:  # the other order: the same refusal
+        robustloc.calibrate(measurements=log, truth=dup[::-1], anchors=ANCHORS, scale=True)
+    assert str(exc.value) == "<truth DataFrame>:42: duplicate truth for time 39.0 and tag 't'"
+    with pytest.raises(InputError) as exc:
+        robustloc.evaluate(truth.assign(method="nls", status="ok"), dup)
+    assert str(exc.value) == want
+
+
+def test_calibrate_command_refuses_duplicate_truth_naming_the_line(tmp_path, capsys):
+    log, truth = _range_log()
+    dup = pd.concat([truth, truth.assign(x=truth.x + 5)], ignore_index=True)
+    paths = {k: tmp_path / f"{k}.csv" for k in ("m", "t", "a")}
+    log.to_csv(paths["m"], index=False)
+    dup.to_csv(paths["t"], index=False)
+    ANCHORS.to_csv(paths["a"], index=False)
+    assert main(["calibrate", "--measurements", str(paths["m"]), "--truth", str(paths["t"]),
+                 "--anchors", str(paths["a"]), "--scale", "-o", str(tmp_path / "c.csv")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err == f"error: {paths['t']}:42: duplicate truth for time 0.0 and tag 't'"
+    with pytest.raises(InputError) as exc:
+        robustloc.calibrate(measurements=paths["m"], truth=paths["t"], anchors=paths["a"],
+                            scale=True)
+    assert err == f"error: {exc.value}"
