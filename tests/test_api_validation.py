@@ -16,6 +16,7 @@ import pytest
 
 import robustloc
 from robustloc import InputError
+from robustloc.api import RobustlocWarning
 from robustloc.cli import main
 
 ANCHORS = pd.DataFrame({"anchor": list("abcd"), "x": [0.0, 10.0, 10.0, 0.0],
@@ -253,3 +254,36 @@ def test_calibrate_command_refuses_duplicate_truth_naming_the_line(tmp_path, cap
         robustloc.calibrate(measurements=paths["m"], truth=paths["t"], anchors=paths["a"],
                             scale=True)
     assert err == f"error: {exc.value}"
+
+
+# ---------------------------------------------------------------- locate: warnings
+
+
+def test_locate_warns_of_an_anchor_it_does_not_use_as_the_command_does(tmp_path, capsys):
+    """An anchor far outside the layout (a typo) was dropped with only the summary's
+    anchors_not_used; the command warns on stderr, the API now warns too."""
+    log = pd.concat([_walk(10), _walk(10).query("anchor == 'a'").assign(anchor="far")])
+    anchors = pd.concat([ANCHORS, pd.DataFrame({"anchor": ["far"], "x": [1e4], "y": [0.0]})])
+    paths = {"m": tmp_path / "m.csv", "a": tmp_path / "a.csv"}
+    log.to_csv(paths["m"], index=False)
+    anchors.to_csv(paths["a"], index=False)
+    assert main(["locate", str(paths["m"]), "--anchors", str(paths["a"]),
+                 "-o", str(tmp_path / "p.csv"), "--quiet"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("warning: ")
+    for a, name in ((paths["a"], str(paths["a"])), (anchors, "<anchors DataFrame>")):
+        with pytest.warns(RobustlocWarning) as rec:
+            pos = robustloc.locate(paths["m"], a)
+        assert [str(w.message) for w in rec] == [
+            err[0][len("warning: "):].replace(str(paths["a"]), name)]
+        assert rec[0].filename == __file__  # points at the caller
+        assert pos.attrs["summary"]["anchors_not_used"] == ["far"]
+        assert "far" not in ",".join(pos["excluded"])
+
+
+def test_locate_without_a_far_anchor_does_not_warn():
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RobustlocWarning)
+        robustloc.locate(_walk(10), ANCHORS)

@@ -377,7 +377,13 @@ def locate(
         The positions contract: ``time, tag, x, y[, z], method, status, n_used,
         sigma0, excluded`` and the integrity columns (``hpl``, ...), one row per epoch and
         method, in time order; ``attrs["summary"]`` is the run summary (status counts,
-        duplicate and invalid rows, timings).
+        duplicate and invalid rows, timings, ``anchors_not_used``).
+
+    Warns
+    -----
+    RobustlocWarning
+        An anchor lies far outside the others (more than 20 times their median spread:
+        a typo?) and is not used by any fix, as the command warns.
 
     Raises
     ------
@@ -428,6 +434,12 @@ def locate(
             beta0=beta0, chunk_rows=chunk_rows, side_prior=side_prior)
         anchor_frame, source = _log_inputs(measurements, anchors)
         frame, summary = run_locate(source, anchor_frame, settings)
+    if summary.get("anchors_not_used"):  # the command's warning
+        warnings.warn(
+            f"{anchor_frame.attrs.get('path')}: anchor(s) "
+            f"{', '.join(summary['anchors_not_used'])} lie far outside the others (more "
+            "than 20 times their median spread: a typo?) and are not used by any fix",
+            RobustlocWarning, stacklevel=2)
     return _with_summary(frame, summary)
 
 
