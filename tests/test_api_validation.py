@@ -8,6 +8,7 @@ import subprocess
 import sys
 import threading
 from collections.abc import Callable
+from importlib.resources import files
 from typing import Any
 
 import numpy as np
@@ -287,3 +288,83 @@ def test_locate_without_a_far_anchor_does_not_warn():
     with warnings.catch_warnings():
         warnings.simplefilter("error", RobustlocWarning)
         robustloc.locate(_walk(10), ANCHORS)
+
+
+# ---------------------------------------------------------------- arguments of the wrong kind
+
+GEONET = files("robustloc") / "data" / "gnss-geonet"
+OBS, NAV = GEONET / "07590920.05o", GEONET / "07590920_0000-0400.05n"
+METHODS = "auto, ls, wls, nls, huber, hampel, igg, igg3, asym, lege, snooping"
+
+
+@pytest.mark.parametrize(("call", "message"), [
+    (lambda m: robustloc.locate(m, ANCHORS, "huber", params={"c": "abc"}),
+     "--param expects NAME=NUMBER (finite), got 'c=abc'"),
+    (lambda m: robustloc.locate(m, ANCHORS, "huber", params=[("c", 1.0)]),
+     "argument --param: expected a mapping of NAME to NUMBER, got list"),
+    (lambda m: robustloc.locate(m, ANCHORS, method=None),
+     f"argument --method: expected one or more of {METHODS}, got None"),
+    (lambda m: robustloc.locate(m, ANCHORS, method=5),
+     f"argument --method: expected one or more of {METHODS}, got 5"),
+    (lambda m: robustloc.spp(OBS, NAV, reference="1,2,3"),
+     "--reference: expected X,Y,Z ECEF metres of a point near the Earth's surface (norm "
+     "6.2e6 .. 6.5e6 m), got '1,2,3'"),
+    (lambda m: robustloc.spp(OBS, NAV, reference=("x", 1.0, 2.0)),
+     "--reference: expected X,Y,Z ECEF metres of a point near the Earth's surface (norm "
+     "6.2e6 .. 6.5e6 m), got ('x', 1.0, 2.0)"),
+    (lambda m: robustloc.spp(OBS, NAV, inject={"G11": "x"}),
+     "--inject: expected PRN:BIAS_M, got 'G11:x'"),
+    (lambda m: robustloc.spp(OBS, NAV, inject=[("G11", 20.0)]),
+     "--inject: expected a mapping of PRN to BIAS_M, got list"),
+    (lambda m: robustloc.spp(OBS, None), "give at least one navigation file or --sp3"),
+])
+def test_a_misused_option_is_an_input_error(call, message):
+    """Each raised a raw ValueError / TypeError / AttributeError."""
+    with pytest.raises(InputError) as exc:
+        call(_walk(4))
+    assert str(exc.value) == message
+
+
+@pytest.mark.parametrize(("call", "message"), [
+    (lambda p: robustloc.read_positions(None),
+     "positions: expected a DataFrame or a path, got NoneType"),
+    (lambda p: robustloc.read_anchors(5), "anchors: expected a DataFrame or a path, got int"),
+    (lambda p: robustloc.read_truth(b"truth.csv"),
+     "truth: expected a DataFrame or a path, got bytes"),
+    (lambda p: robustloc.read_measurements(_walk(4), 5),
+     "anchors: expected a DataFrame, a path or a sequence of anchor ids, got int"),
+    (lambda p: robustloc.evaluate(None, _truth(_walk(4))),
+     "positions: expected a DataFrame or a path, got NoneType"),
+    (lambda p: robustloc.evaluate(_positions(_walk(4)), 1.5),
+     "truth: expected a DataFrame or a path, got float"),
+    (lambda p: robustloc.write_positions(_positions(_walk(4)), None),
+     "path: expected a path, got NoneType"),
+    (lambda p: robustloc.write_positions(_positions(_walk(4))["x"], p),
+     "positions: expected a DataFrame, got Series"),
+    (lambda p: robustloc.calibrate(survey=[1, 2]),
+     "survey: expected a DataFrame or a path, got list"),
+    (lambda p: robustloc.calibrate(_survey(), anchors=3),
+     "anchors: expected a DataFrame or a path, got int"),
+    (lambda p: robustloc.track(_walk(4), None),
+     "anchors: expected a DataFrame or a path, got NoneType"),
+    (lambda p: robustloc.spp(None, NAV), "obs: expected a path, got NoneType"),
+    (lambda p: robustloc.spp(OBS, [NAV, 3]), "nav: expected a path, got int"),
+    (lambda p: robustloc.spp(OBS, sp3=1), "sp3: expected a path, got int"),
+])
+def test_an_argument_of_the_wrong_type_is_an_input_error_and_a_type_error(
+        tmp_path, call, message):
+    """Each raised a raw TypeError or AttributeError from pandas or os.fspath; now the
+    InputError of every mistake, still a TypeError (as ``locate(42, ...)`` was)."""
+    with pytest.raises(InputError) as exc:
+        call(tmp_path / "p.csv")
+    assert str(exc.value) == message
+    assert isinstance(exc.value, TypeError)
+    assert not (tmp_path / "p.csv").exists()
+
+
+def test_spp_takes_the_command_lines_text_for_reference_and_inject():
+    ref = (-3961904.9, 3348993.8, 3698211.9)
+    a = robustloc.spp(OBS, NAV, systems="G", raim=True, reference=ref, inject={"G11": 20.0})
+    b = robustloc.spp(OBS, NAV, systems="G", raim=True, reference=",".join(map(str, ref)),
+                      inject="G11:20")
+    assert a.attrs["summary"] == b.attrs["summary"]

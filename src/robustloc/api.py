@@ -26,7 +26,7 @@ import contextlib
 import json
 import os
 import warnings
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Literal, Union
 
@@ -62,6 +62,30 @@ class RobustlocWarning(UserWarning):
 # --------------------------------------------------------------------------------------
 # inputs and errors
 # --------------------------------------------------------------------------------------
+
+
+class _InputTypeError(InputError, TypeError):
+    """An argument of the wrong type (``None`` or a number for a path, a Series for a
+    frame): an :class:`InputError`, as every mistake in a call is, and the
+    :class:`TypeError` Python raises for a wrong type."""
+
+
+def _path(src: object, what: str, expected: str = "a path") -> str:
+    """``src`` (str or PathLike) as a str; anything else is an :class:`InputError` (and
+    :class:`TypeError`) naming ``what``: ``WHAT: expected a path, got NoneType``."""
+    if isinstance(src, (str, os.PathLike)):
+        path = os.fspath(src)
+        if isinstance(path, str):
+            return path
+    raise _InputTypeError(f"{what}: expected {expected}, got {type(src).__name__}")
+
+
+def _source(src: object, what: str) -> pd.DataFrame | str:
+    """``src`` as a table input: a DataFrame as given, a path as a str; anything else is
+    an :class:`InputError` (and :class:`TypeError`) naming ``what``."""
+    if isinstance(src, pd.DataFrame):
+        return src
+    return _path(src, what, "a DataFrame or a path")
 
 
 @contextlib.contextmanager
@@ -109,7 +133,7 @@ def _refuse_duplicate_columns(df: pd.DataFrame) -> None:
     column twice is (pandas would raise a raw error on ``df[name]``, or use either)."""
     dup = df.columns.duplicated()
     if dup.any():
-        name = str(df.columns[dup.argmax()])
+        name = str(df.columns[int(dup.argmax())])
         raise InputError(f"duplicate column {name!r}", df.attrs.get("path"))
 
 
@@ -119,14 +143,7 @@ def _refuse_duplicate_columns(df: pd.DataFrame) -> None:
 
 
 def _as_anchor_frame(anchors: FrameOrPath | None) -> pd.DataFrame | None:
-    from robustloc import io
-
-    if anchors is None:
-        return None
-    if isinstance(anchors, pd.DataFrame):
-        df = _labelled_frame(anchors, "anchors")
-        return io.validate_anchors(df, df.attrs.get("path"))
-    return io.read_anchors(anchors)
+    return None if anchors is None else read_anchors(anchors)
 
 
 def read_anchors(source: FrameOrPath) -> pd.DataFrame:
@@ -166,10 +183,11 @@ def read_anchors(source: FrameOrPath) -> pd.DataFrame:
     """
     from robustloc import io
 
-    if isinstance(source, pd.DataFrame):
-        df = _labelled_frame(source, "anchors")
+    src = _source(source, "anchors")
+    if isinstance(src, pd.DataFrame):
+        df = _labelled_frame(src, "anchors")
         return io.validate_anchors(df, df.attrs.get("path"))
-    return io.read_anchors(source)
+    return io.read_anchors(src)
 
 
 def read_measurements(
@@ -210,17 +228,19 @@ def read_measurements(
     """
     from robustloc import io
 
+    src = _source(source, "measurements")
     known: pd.DataFrame | Sequence[str] | None
-    if anchors is None or isinstance(anchors, pd.DataFrame):
+    if anchors is None or isinstance(anchors, (pd.DataFrame, str, os.PathLike)):
         known = _as_anchor_frame(anchors)
-    elif isinstance(anchors, (str, os.PathLike)):
-        known = io.read_anchors(anchors)
-    else:
+    elif isinstance(anchors, Iterable):
         known = [str(a) for a in anchors]
-    if isinstance(source, pd.DataFrame):
-        df = _labelled_frame(source, "measurements")
+    else:
+        raise _InputTypeError(f"anchors: expected a DataFrame, a path or a sequence of "
+                              f"anchor ids, got {type(anchors).__name__}")
+    if isinstance(src, pd.DataFrame):
+        df = _labelled_frame(src, "measurements")
         return io.validate_measurements(df, df.attrs.get("path"), known)
-    return io.read_measurements(source, known)
+    return io.read_measurements(src, known)
 
 
 def read_truth(source: FrameOrPath) -> pd.DataFrame:
@@ -237,10 +257,11 @@ def read_truth(source: FrameOrPath) -> pd.DataFrame:
     """
     from robustloc import io
 
-    if isinstance(source, pd.DataFrame):
-        df = _labelled_frame(source, "truth")
+    src = _source(source, "truth")
+    if isinstance(src, pd.DataFrame):
+        df = _labelled_frame(src, "truth")
         return io.validate_truth(df, df.attrs.get("path"))
-    return io.read_truth(source)
+    return io.read_truth(src)
 
 
 def read_positions(source: FrameOrPath) -> pd.DataFrame:
@@ -261,10 +282,11 @@ def read_positions(source: FrameOrPath) -> pd.DataFrame:
     """
     from robustloc import io
 
-    if isinstance(source, pd.DataFrame):
-        df = _labelled_frame(source, "positions")
+    src = _source(source, "positions")
+    if isinstance(src, pd.DataFrame):
+        df = _labelled_frame(src, "positions")
         return io.validate_positions(df, df.attrs.get("path"))
-    return io.read_positions(source)
+    return io.read_positions(src)
 
 
 def write_positions(positions: pd.DataFrame, path: PathLike) -> Path:
@@ -281,7 +303,8 @@ def write_positions(positions: pd.DataFrame, path: PathLike) -> Path:
     Raises
     ------
     InputError
-        A contract column is missing, or the file cannot be written.
+        A contract column is missing, or the file cannot be written; ``positions`` not a
+        DataFrame or ``path`` not a path (also a :class:`TypeError`).
 
     Examples
     --------
@@ -298,6 +321,10 @@ def write_positions(positions: pd.DataFrame, path: PathLike) -> Path:
     """
     from robustloc import io
 
+    if not isinstance(positions, pd.DataFrame):
+        raise _InputTypeError(f"positions: expected a DataFrame, got "
+                              f"{type(positions).__name__}")
+    path = _path(path, "path")
     try:
         return io.write_positions(positions, path)
     except InputError:
@@ -426,7 +453,7 @@ def locate(
 
     with _labelled():
         settings = LocateSettings(
-            method=(method,) if isinstance(method, str) else tuple(method), dim=dim,
+            method=_method_names(method), dim=dim,
             solver=solver, reference=reference, domain=domain, sigma=sigma,
             robust_scale=robust_scale, alert_limit=alert_limit, k_noise=k_noise,
             min_scale=min_scale, param=_param_items(params), model=model,
@@ -443,11 +470,35 @@ def locate(
     return _with_summary(frame, summary)
 
 
+def _method_names(method: object) -> tuple[str, ...]:
+    """``"huber"`` -> ``("huber",)``, a sequence of names as a tuple (checked by the
+    settings as ``--method``); no name at all is the command's refusal of an empty one."""
+    if isinstance(method, str):
+        return (method,)
+    if isinstance(method, Iterable) and not isinstance(method, (bytes, Mapping)):
+        return tuple(method)
+    from robustloc.pipelines.locate import methods_known
+
+    raise InputError(f"argument --method: expected one or more of "
+                     f"{', '.join(methods_known())}, got {method!r}")
+
+
 def _param_items(params: Mapping[str, float] | None) -> tuple[str, ...]:
-    """``{"c": 1.5}`` -> ``("c=1.5",)``, the ``--param`` items (floats exact)."""
-    if not params:
+    """``{"c": 1.5}`` -> ``("c=1.5",)``, the ``--param`` items (floats exact; a value that
+    is not a number is passed as text, for the settings to refuse as the command does)."""
+    if params is None:
         return ()
-    return tuple(f"{k}={float(v)!r}" for k, v in params.items())
+    if not isinstance(params, Mapping):
+        raise InputError(f"argument --param: expected a mapping of NAME to NUMBER, got "
+                         f"{type(params).__name__}")
+
+    def item(name: object, value: object) -> str:
+        try:
+            return f"{name}={float(value)!r}"  # type: ignore[arg-type]
+        except (TypeError, ValueError):
+            return f"{name}={value}"
+
+    return tuple(item(k, v) for k, v in params.items())
 
 
 def _log_inputs(measurements: FrameOrPath, anchors: FrameOrPath
@@ -457,18 +508,12 @@ def _log_inputs(measurements: FrameOrPath, anchors: FrameOrPath
     (validated as it streams, like a file)."""
     from robustloc.io.tables import in_memory_source
 
-    if not isinstance(anchors, (pd.DataFrame, str, os.PathLike)):
-        raise TypeError(f"anchors: expected a DataFrame or a path, got "
-                        f"{type(anchors).__name__}")
-    if isinstance(measurements, pd.DataFrame):
-        source: str | pd.DataFrame = in_memory_source(measurements)
+    anchor_src = _source(anchors, "anchors")
+    source = _source(measurements, "measurements")
+    if isinstance(source, pd.DataFrame):
+        source = in_memory_source(source)
         _refuse_duplicate_columns(source)
-    elif isinstance(measurements, (str, os.PathLike)):
-        source = os.fspath(measurements)
-    else:
-        raise TypeError(f"measurements: expected a DataFrame or a path, got "
-                        f"{type(measurements).__name__}")
-    return read_anchors(anchors), source
+    return read_anchors(anchor_src), source
 
 
 def _with_summary(frame: pd.DataFrame | None, summary: dict[str, object]) -> pd.DataFrame:
@@ -694,12 +739,11 @@ def _checked(src: FrameOrPath | None, what: str,
     errors name ``<what DataFrame>`` and the row's CSV line)."""
     if src is None:
         return None
-    if isinstance(src, pd.DataFrame):
-        df = _labelled_frame(src, what)
+    checked = _source(src, what)
+    if isinstance(checked, pd.DataFrame):
+        df = _labelled_frame(checked, what)
         return validate(df, df.attrs.get("path"))
-    if isinstance(src, (str, os.PathLike)):
-        return os.fspath(src)
-    raise TypeError(f"{what}: expected a DataFrame or a path, got {type(src).__name__}")
+    return checked
 
 
 def evaluate(
@@ -766,7 +810,7 @@ def evaluate(
 
 def spp(
     obs: PathLike,
-    nav: PathLike | Sequence[PathLike] = (),
+    nav: PathLike | Sequence[PathLike] | None = (),
     *,
     sp3: PathLike | None = None,
     clk: PathLike | None = None,
@@ -779,8 +823,8 @@ def spp(
     alpha0: float = 0.001,
     beta0: float = 0.10,
     max_exclusions: int | None = None,
-    reference: tuple[float, float, float] | None = None,
-    inject: Mapping[str, float] | None = None,
+    reference: tuple[float, float, float] | str | None = None,
+    inject: Mapping[str, float] | str | None = None,
     inject_from: str | None = None,
     inject_until: str | None = None,
 ) -> pd.DataFrame:
@@ -791,7 +835,8 @@ def spp(
     obs : str or PathLike
         RINEX observation file (2.xx or 3.xx).
     nav : path or sequence of paths
-        RINEX navigation file(s) (broadcast ephemerides); may be empty with ``sp3``.
+        RINEX navigation file(s) (broadcast ephemerides); may be empty (or ``None``) with
+        ``sp3``.
     sp3, clk : str or PathLike, optional
         Precise orbit (SP3) and clock (RINEX CLK) products.
     systems : str
@@ -805,11 +850,12 @@ def spp(
     raim : bool
         Fault detection and exclusion (B-method global test + w-test) and protection
         levels.
-    reference : (float, float, float), optional
+    reference : (float, float, float) or str, optional
         ECEF reference position (m) for the summary's errors (default: the RINEX header's
-        approximate position).
-    inject : mapping of str to float, optional
-        Biases to add (m) per satellite, e.g. ``{"G11": 20.0}`` (fault injection).
+        approximate position); also the command's ``"X,Y,Z"`` text.
+    inject : mapping of str to float, or str, optional
+        Biases to add (m) per satellite, e.g. ``{"G11": 20.0}`` or the command's
+        ``"G11:20"`` text (fault injection).
 
     Returns
     -------
@@ -832,16 +878,58 @@ def spp(
     """
     from robustloc.pipelines.spp import SppSettings, run_spp
 
-    navs = [nav] if isinstance(nav, (str, os.PathLike)) else list(nav)
+    obs_path = _path(obs, "obs")
+    if nav is None:
+        nav = ()
+    if isinstance(nav, (str, os.PathLike)) or not isinstance(nav, Iterable):
+        nav = [nav]  # type: ignore[list-item]
+    nav_paths = [_path(n, "nav") for n in nav]
+    sp3_path = None if sp3 is None else _path(sp3, "sp3")
+    clk_path = None if clk is None else _path(clk, "clk")
     with _labelled():
         settings = SppSettings(
             systems=systems, elevation_mask=elevation_mask, iono=iono, tropo=tropo,
             smooth=smooth, raim=raim, alpha0=alpha0, beta0=beta0,
-            max_exclusions=max_exclusions,
-            reference=None if reference is None else tuple(reference),  # type: ignore[arg-type]
-            inject=inject or None, inject_from=inject_from, inject_until=inject_until)
-        frame, summary = run_spp(
-            os.fspath(obs), [os.fspath(n) for n in navs], settings,
-            sp3=None if sp3 is None else os.fspath(sp3),
-            clk=None if clk is None else os.fspath(clk))
+            max_exclusions=max_exclusions, reference=_spp_reference(reference),
+            inject=_spp_inject(inject), inject_from=inject_from, inject_until=inject_until)
+        frame, summary = run_spp(obs_path, nav_paths, settings, sp3=sp3_path, clk=clk_path)
     return _with_summary(frame, summary)
+
+
+def _spp_reference(reference: object) -> tuple[float, float, float] | None:
+    """``reference`` as ``SppSettings`` takes it: three numbers, or the command's
+    ``"X,Y,Z"`` text; anything else is the command's refusal of ``--reference``."""
+    from robustloc.pipelines.spp import check_reference, parse_reference
+
+    if reference is None:
+        return None
+    if isinstance(reference, str):
+        return parse_reference(reference)
+    try:
+        return check_reference(tuple(reference))  # type: ignore[call-overload,arg-type]
+    except InputError:
+        raise
+    except (TypeError, ValueError):  # not three numbers: the same refusal, naming them
+        return check_reference((), reference)
+
+
+def _spp_inject(inject: object) -> dict[str, float] | None:
+    """``inject`` as ``SppSettings`` takes it: a mapping of satellite to bias (m), or the
+    command's ``"PRN:BIAS_M[,...]"`` text; a bias that is not a number is the command's
+    refusal of ``--inject``."""
+    from robustloc.pipelines.spp import check_inject, parse_inject
+
+    if not inject:
+        return None
+    if isinstance(inject, str):
+        return parse_inject(inject)
+    if not isinstance(inject, Mapping):
+        raise InputError(f"--inject: expected a mapping of PRN to BIAS_M, got "
+                         f"{type(inject).__name__}")
+    for sat, bias in inject.items():
+        try:
+            float(bias)
+        except (TypeError, ValueError):
+            raise InputError(f"--inject: expected PRN:BIAS_M, got {f'{sat}:{bias}'!r}"
+                             ) from None
+    return check_inject(inject)
