@@ -368,3 +368,14 @@ def test_spp_takes_the_command_lines_text_for_reference_and_inject():
     b = robustloc.spp(OBS, NAV, systems="G", raim=True, reference=",".join(map(str, ref)),
                       inject="G11:20")
     assert a.attrs["summary"] == b.attrs["summary"]
+
+
+def test_write_positions_refuses_a_frame_naming_a_column_twice(tmp_path):
+    """It wrote a header naming the column twice, a file read_positions refuses."""
+    pos = robustloc.locate(_walk(4), ANCHORS)
+    with pytest.raises(InputError) as exc:
+        robustloc.write_positions(_twice(pos, "x"), tmp_path / "p.csv")
+    assert str(exc.value) == "<positions DataFrame>: duplicate column 'x'"
+    assert not (tmp_path / "p.csv").exists()
+    robustloc.write_positions(pos, tmp_path / "p.csv")
+    assert robustloc.read_positions(tmp_path / "p.csv")["x"].tolist() == pos["x"].tolist()

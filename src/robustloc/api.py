@@ -128,13 +128,15 @@ def _labelled_frame(df: pd.DataFrame, what: str) -> pd.DataFrame:
     return df
 
 
-def _refuse_duplicate_columns(df: pd.DataFrame) -> None:
-    """A column named twice is an error naming the frame, as a file's header naming a
-    column twice is (pandas would raise a raw error on ``df[name]``, or use either)."""
+def _refuse_duplicate_columns(df: pd.DataFrame, what: str | None = None) -> None:
+    """A column named twice is an error naming the frame (its ``attrs["path"]``, else
+    ``<what DataFrame>``), as a file's header naming a column twice is (pandas would raise
+    a raw error on ``df[name]``, or use either)."""
     dup = df.columns.duplicated()
     if dup.any():
         name = str(df.columns[int(dup.argmax())])
-        raise InputError(f"duplicate column {name!r}", df.attrs.get("path"))
+        where = df.attrs.get("path") or (None if what is None else f"<{what} DataFrame>")
+        raise InputError(f"duplicate column {name!r}", where)
 
 
 # --------------------------------------------------------------------------------------
@@ -325,6 +327,7 @@ def write_positions(positions: pd.DataFrame, path: PathLike) -> Path:
         raise _InputTypeError(f"positions: expected a DataFrame, got "
                               f"{type(positions).__name__}")
     path = _path(path, "path")
+    _refuse_duplicate_columns(positions, "positions")  # a file read_positions refuses
     try:
         return io.write_positions(positions, path)
     except InputError:
