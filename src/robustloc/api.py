@@ -885,7 +885,7 @@ def spp(
     if nav is None:
         nav = ()
     if isinstance(nav, (str, os.PathLike)) or not isinstance(nav, Iterable):
-        nav = [nav]  # type: ignore[list-item]
+        nav = [nav]
     nav_paths = [_path(n, "nav") for n in nav]
     sp3_path = None if sp3 is None else _path(sp3, "sp3")
     clk_path = None if clk is None else _path(clk, "clk")
@@ -909,7 +909,7 @@ def _spp_reference(reference: object) -> tuple[float, float, float] | None:
     if isinstance(reference, str):
         return parse_reference(reference)
     try:
-        return check_reference(tuple(reference))  # type: ignore[call-overload,arg-type]
+        return check_reference(tuple(reference))  # type: ignore[arg-type]
     except InputError:
         raise
     except (TypeError, ValueError):  # not three numbers: the same refusal, naming them
