@@ -379,3 +379,17 @@ def test_write_positions_refuses_a_frame_naming_a_column_twice(tmp_path):
     assert not (tmp_path / "p.csv").exists()
     robustloc.write_positions(pos, tmp_path / "p.csv")
     assert robustloc.read_positions(tmp_path / "p.csv")["x"].tolist() == pos["x"].tolist()
+
+
+def test_empty_measurements_frame_is_refused_as_an_empty_file_is(tmp_path):
+    """``read_measurements`` of an empty DataFrame returned 0 rows where an empty file,
+    ``read_truth`` of an empty frame and ``locate`` refuse one ("no data rows")."""
+    import robustloc
+
+    empty = pd.DataFrame({"time": [], "tag": [], "anchor": [], "range": []})
+    with pytest.raises(robustloc.InputError, match="no data rows"):
+        robustloc.read_measurements(empty)
+    f = tmp_path / "m.csv"
+    f.write_text("time,tag,anchor,range\n")
+    with pytest.raises(robustloc.InputError, match="no data rows"):
+        robustloc.read_measurements(f)

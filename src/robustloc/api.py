@@ -241,6 +241,9 @@ def read_measurements(
                               f"anchor ids, got {type(anchors).__name__}")
     if isinstance(src, pd.DataFrame):
         df = _labelled_frame(src, "measurements")
+        if len(df) == 0:  # as an empty file is, and as read_truth refuses an empty frame
+            raise InputError("measurements file has a header but no data rows",
+                             df.attrs.get("path"), 2)
         return io.validate_measurements(df, df.attrs.get("path"), known)
     return io.read_measurements(src, known)
 
