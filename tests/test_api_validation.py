@@ -393,3 +393,19 @@ def test_empty_measurements_frame_is_refused_as_an_empty_file_is(tmp_path):
     f.write_text("time,tag,anchor,range\n")
     with pytest.raises(robustloc.InputError, match="no data rows"):
         robustloc.read_measurements(f)
+
+
+def test_write_positions_writes_a_timestamp_time_as_the_readers_read_it(tmp_path):
+    """A datetime ``time`` column was written as text that ``read_positions`` refuses; it
+    is written as seconds since the Unix epoch, the value a Parquet timestamp column is
+    read as, so the file reads back."""
+    import robustloc
+
+    t = pd.to_datetime(["2026-12-02T10:00:00", "2026-12-02T10:00:01.500"], utc=True,
+                       format="ISO8601")
+    pos = pd.DataFrame({"time": t, "tag": "t", "x": [1.0, 2.0], "y": [0.0, 0.5],
+                        "method": "nls", "status": "ok", "n_used": 4, "sigma0": 0.1,
+                        "excluded": ""})
+    for name in ("p.csv", "p.parquet"):
+        back = robustloc.read_positions(robustloc.write_positions(pos, tmp_path / name))
+        np.testing.assert_array_equal(back["time"], [1796205600.0, 1796205601.5])

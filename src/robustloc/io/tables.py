@@ -1480,7 +1480,9 @@ def positions_frame(
 def write_positions(frame: pd.DataFrame, path: PathLike) -> Path:
     """Write a positions frame with the contract columns first, in contract order.
 
-    Missing contract columns are an error (``ValueError``); extra columns follow.
+    Missing contract columns are an error (``ValueError``); extra columns follow.  A
+    timestamp ``time`` column is written as seconds since the Unix epoch (a duration as
+    seconds), as the readers read one.
     """
     cols = list(POSITION_COLUMNS)
     if "z" in frame.columns:
@@ -1489,7 +1491,13 @@ def write_positions(frame: pd.DataFrame, path: PathLike) -> Path:
     if missing:
         raise ValueError(f"positions frame is missing column(s): {', '.join(missing)}")
     extra = [c for c in frame.columns if c not in cols]
-    return write_table(frame[cols + extra], path)
+    out = frame[cols + extra]
+    t = out["time"]
+    if pd.api.types.is_datetime64_any_dtype(t) or pd.api.types.is_timedelta64_dtype(t):
+        # seconds, as the readers turn a timestamp column (a datetime written as text was
+        # a file read_positions refuses)
+        out = out.assign(time=_seconds(t))
+    return write_table(out, path)
 
 
 class _InMemory:
