@@ -409,3 +409,38 @@ def test_write_positions_writes_a_timestamp_time_as_the_readers_read_it(tmp_path
     for name in ("p.csv", "p.parquet"):
         back = robustloc.read_positions(robustloc.write_positions(pos, tmp_path / name))
         np.testing.assert_array_equal(back["time"], [1796205600.0, 1796205601.5])
+
+
+def test_yes_no_arguments_take_only_booleans(tmp_path):
+    """``range_calibration="no"`` was taken as true (a non-empty string); a yes/no
+    argument of another kind is now refused, NumPy booleans and ``scale=None`` (the
+    default) accepted."""
+    import robustloc
+
+    a4 = pd.DataFrame({"anchor": list("abcd"), "x": [0.0, 10, 10, 0], "y": [0.0, 0, 10, 10]})
+    d = np.hypot(a4.x - 3, a4.y - 4).to_numpy()
+    log = pd.DataFrame({"time": 0.0, "tag": "t", "anchor": a4.anchor, "range": d})
+    for bad in ("no", 0, [True]):
+        with pytest.raises(InputError, match="range_calibration: expected True or False"):
+            robustloc.locate(log, a4, range_calibration=bad)
+        with pytest.raises(TypeError):
+            robustloc.track(log, a4, smooth=bad)
+    ok = robustloc.locate(log, a4, range_calibration=np.bool_(False))
+    assert ok["status"].tolist() == robustloc.locate(log, a4, range_calibration=False)[
+        "status"].tolist()
+
+
+def test_frame_column_names_are_stripped_as_csv_headers_are(tmp_path):
+    """A CSV header's names are stripped of surrounding spaces; a DataFrame column named
+    ``" time"`` was "missing column time".  Both now give the same positions."""
+    import robustloc
+
+    a4 = pd.DataFrame({"anchor": list("abcd"), "x": [0.0, 10, 10, 0], "y": [0.0, 0, 10, 10]})
+    d = np.hypot(a4.x - 3, a4.y - 4).to_numpy()
+    log = pd.DataFrame({"time": 0.0, "tag": "t", "anchor": a4.anchor, "range": d})
+    spaced = log.rename(columns={"time": " time", "range": "range "})
+    pd.testing.assert_frame_equal(robustloc.locate(spaced, a4), robustloc.locate(log, a4))
+    f = tmp_path / "m.csv"
+    spaced.to_csv(f, index=False)
+    pd.testing.assert_frame_equal(robustloc.locate(f, a4).drop(columns=[]),
+                                  robustloc.locate(log, a4))

@@ -124,8 +124,29 @@ def _labelled_frame(df: pd.DataFrame, what: str) -> pd.DataFrame:
         df = df.copy()
         df.index = pd.RangeIndex(2, len(df) + 2, name="line")
         df.attrs["path"] = f"<{what} DataFrame>"
+        df = _stripped_names(df)
     _refuse_duplicate_columns(df)
     return df
+
+
+def _stripped_names(df: pd.DataFrame) -> pd.DataFrame:
+    """The frame with its column names stripped of surrounding spaces, as a CSV header's
+    are (``" time"`` is ``time``); the caller's frame is not changed."""
+    names = [c.strip() if isinstance(c, str) else c for c in df.columns]
+    return df if names == list(df.columns) else df.set_axis(names, axis=1)
+
+
+def _flag(name: str, value: object, none_ok: bool = False) -> bool | None:
+    """A yes/no argument: ``True``/``False`` (NumPy's too; ``None`` where it means "the
+    default"); anything else (``"no"``, ``0``, a list) is an :class:`InputError` (and
+    :class:`TypeError`): Python would take a non-empty string such as ``"no"`` as true."""
+    import numpy as np
+
+    if value is None and none_ok:
+        return None
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    raise _InputTypeError(f"{name}: expected True or False, got {value!r}")
 
 
 def _refuse_duplicate_columns(df: pd.DataFrame, what: str | None = None) -> None:
@@ -463,7 +484,8 @@ def locate(
             solver=solver, reference=reference, domain=domain, sigma=sigma,
             robust_scale=robust_scale, alert_limit=alert_limit, k_noise=k_noise,
             min_scale=min_scale, param=_param_items(params), model=model,
-            tag_height=tag_height, range_calibration=range_calibration, alpha0=alpha0,
+            tag_height=tag_height,
+            range_calibration=_flag("range_calibration", range_calibration), alpha0=alpha0,
             beta0=beta0, chunk_rows=chunk_rows, side_prior=side_prior)
         anchor_frame, source = _log_inputs(measurements, anchors)
         frame, summary = run_locate(source, anchor_frame, settings)
@@ -517,7 +539,7 @@ def _log_inputs(measurements: FrameOrPath, anchors: FrameOrPath
     anchor_src = _source(anchors, "anchors")
     source = _source(measurements, "measurements")
     if isinstance(source, pd.DataFrame):
-        source = in_memory_source(source)
+        source = in_memory_source(_stripped_names(source))
         _refuse_duplicate_columns(source)
     return read_anchors(anchor_src), source
 
@@ -599,6 +621,7 @@ def track(
     """
     from robustloc.pipelines.track import TrackSettings, run_track
 
+    smooth = _flag("smooth", smooth)
     if smooth and fixed_lag is not None:  # the command's mutually exclusive options
         raise InputError("argument --fixed-lag: not allowed with argument --smooth")
     with _labelled():
@@ -720,7 +743,8 @@ def calibrate(
     with _labelled():
         settings = CalibrateSettings(
             model=model, robust="huber" if robust is True else (robust or None),
-            scale=scale, pooled=pooled, d0=d0, p0=p0, time_tolerance=time_tolerance,
+            scale=_flag("scale", scale, none_ok=True), pooled=_flag("pooled", pooled), d0=d0,
+            p0=p0, time_tolerance=time_tolerance,
             dim=dim, tag_height=tag_height, se_ratio=se_ratio)
         anchor_frame = _as_anchor_frame(anchors)
         cal = run_calibrate(
@@ -895,7 +919,7 @@ def spp(
     with _labelled():
         settings = SppSettings(
             systems=systems, elevation_mask=elevation_mask, iono=iono, tropo=tropo,
-            smooth=smooth, raim=raim, alpha0=alpha0, beta0=beta0,
+            smooth=smooth, raim=_flag("raim", raim), alpha0=alpha0, beta0=beta0,
             max_exclusions=max_exclusions, reference=_spp_reference(reference),
             inject=_spp_inject(inject), inject_from=inject_from, inject_until=inject_until)
         frame, summary = run_spp(obs_path, nav_paths, settings, sp3=sp3_path, clk=clk_path)
