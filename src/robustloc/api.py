@@ -136,14 +136,12 @@ def _stripped_names(df: pd.DataFrame) -> pd.DataFrame:
     return df if names == list(df.columns) else df.set_axis(names, axis=1)
 
 
-def _flag(name: str, value: object, none_ok: bool = False) -> bool | None:
-    """A yes/no argument: ``True``/``False`` (NumPy's too; ``None`` where it means "the
-    default"); anything else (``"no"``, ``0``, a list) is an :class:`InputError` (and
-    :class:`TypeError`): Python would take a non-empty string such as ``"no"`` as true."""
+def _flag(name: str, value: object) -> bool:
+    """A yes/no argument: ``True`` or ``False`` (NumPy's too); anything else (``"no"``,
+    ``0``, a list) is an :class:`InputError` (and :class:`TypeError`): Python would take a
+    non-empty string such as ``"no"`` as true."""
     import numpy as np
 
-    if value is None and none_ok:
-        return None
     if isinstance(value, (bool, np.bool_)):
         return bool(value)
     raise _InputTypeError(f"{name}: expected True or False, got {value!r}")
@@ -743,8 +741,8 @@ def calibrate(
     with _labelled():
         settings = CalibrateSettings(
             model=model, robust="huber" if robust is True else (robust or None),
-            scale=_flag("scale", scale, none_ok=True), pooled=_flag("pooled", pooled), d0=d0,
-            p0=p0, time_tolerance=time_tolerance,
+            scale=None if scale is None else _flag("scale", scale),
+            pooled=_flag("pooled", pooled), d0=d0, p0=p0, time_tolerance=time_tolerance,
             dim=dim, tag_height=tag_height, se_ratio=se_ratio)
         anchor_frame = _as_anchor_frame(anchors)
         cal = run_calibrate(
