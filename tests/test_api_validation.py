@@ -368,6 +368,11 @@ def test_spp_takes_the_command_lines_text_for_reference_and_inject():
     b = robustloc.spp(OBS, NAV, systems="G", raim=True, reference=",".join(map(str, ref)),
                       inject="G11:20")
     assert a.attrs["summary"] == b.attrs["summary"]
+    pd.testing.assert_frame_equal(a, b)  # every epoch's solution, not only the counts
+    # and the injected bias is applied: without it the solutions differ
+    c = robustloc.spp(OBS, NAV, systems="G", raim=True, reference=ref)
+    assert not np.allclose(a[["x", "y", "z"]].to_numpy(float), c[["x", "y", "z"]].to_numpy(float),
+                           equal_nan=True)
 
 
 def test_write_positions_refuses_a_frame_naming_a_column_twice(tmp_path):
