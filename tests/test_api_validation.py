@@ -449,3 +449,85 @@ def test_frame_column_names_are_stripped_as_csv_headers_are(tmp_path):
     spaced.to_csv(f, index=False)
     pd.testing.assert_frame_equal(robustloc.locate(f, a4).drop(columns=[]),
                                   robustloc.locate(log, a4))
+
+
+def test_a_partly_empty_sigma_column_is_refused_naming_the_anchor(tmp_path):
+    """An anchors file giving ``sigma`` for some anchors and leaving it empty for others
+    was refused without naming the anchor ("must be positive and finite") by locate, track
+    and the service alike.  Now each names the first anchor without one and its line; an
+    all-empty column means "not given" (equal weights), and ``--sigma`` overrides it."""
+    from robustloc.io import read_anchors
+    from robustloc.service.processor import LocateProcessor
+
+    path = tmp_path / "anchors.csv"
+    path.write_text("anchor,x,y,sigma\na,0,0,0.1\nb,10,0,\nc,10,10,0.1\nd,0,10,0.2\n")
+    log = tmp_path / "m.csv"
+    _walk().to_csv(log, index=False)
+    want = f"{path}:3: anchor 'b' has no sigma while other anchors have one"
+    for cmd in ("locate", "track"):
+        with pytest.raises(InputError) as err:
+            getattr(robustloc, cmd)(log, path)
+        assert str(err.value).startswith(want)
+        assert main([cmd, str(log), "--anchors", str(path), "-o", str(tmp_path / "o.csv")]) == 2
+        assert not (tmp_path / "o.csv").exists()
+    with pytest.raises(InputError, match="anchor 'b' has no sigma"):
+        LocateProcessor(read_anchors(path))
+    frame = ANCHORS.assign(sigma=[0.1, 0.1, np.nan, 0.1])
+    with pytest.raises(InputError, match="anchor 'c' has no sigma"):
+        robustloc.locate(_walk(), frame)
+    # the whole column empty: not given, the fixes of no column at all; --sigma overrides
+    empty = robustloc.locate(_walk(), ANCHORS.assign(sigma=np.nan))
+    pd.testing.assert_frame_equal(empty, robustloc.locate(_walk(), ANCHORS))
+    assert robustloc.locate(_walk(), path, sigma=0.1)["status"].isin(["ok"]).any()
+
+
+@pytest.mark.parametrize(("cmd", "argv", "api", "words"), [
+    ("locate", ["--domain", "rssi"], {"domain": "rssi"}, "--domain rssi applies"),
+    ("locate", ["--model", "friis"], {"model": "friis"}, "--model friis applies"),
+    ("locate", ["--domain", "rssi", "--model", "friis"], {"domain": "rssi", "model": "friis"},
+     "--domain rssi and --model friis apply"),
+    ("track", ["--domain", "rssi"], {"domain": "rssi"}, "--domain rssi applies"),
+])
+def test_rssi_only_options_on_a_range_log_are_refused(tmp_path, cmd, argv, api, words):
+    """``--domain rssi`` and ``--model`` (path-loss columns) mean nothing for ranges; they
+    were accepted and silently ignored (exit 0).  Now the command and the API refuse them,
+    naming the log's header, and write nothing."""
+    log = tmp_path / "m.csv"
+    _walk().to_csv(log, index=False)
+    anchors = tmp_path / "a.csv"
+    ANCHORS.to_csv(anchors, index=False)
+    out = tmp_path / "o.csv"
+    assert main([cmd, str(log), "--anchors", str(anchors), "-o", str(out), *argv]) == 2
+    assert not out.exists()
+    with pytest.raises(InputError) as err:
+        getattr(robustloc, cmd)(log, anchors, **api)
+    pronoun = "them" if " and " in words else "it"
+    assert str(err.value) == (f"{log}:1: {words} to RSSI measurements, but this log holds "
+                              f"ranges (a range column): leave {pronoun} out")
+    # without them, the same log runs
+    assert main([cmd, str(log), "--anchors", str(anchors), "-o", str(out)]) == 0
+
+
+def test_standard_input_is_read_anew_by_each_call(monkeypatch):
+    """The copy of standard input (``-``) lived as long as the process: a program calling
+    the API twice on ``-`` got the first call's data the second time.  Each call now
+    reads its own input, and leaves no copy behind."""
+    import glob
+    import io
+    import tempfile
+
+    def spools() -> set[str]:
+        return set(glob.glob(f"{tempfile.gettempdir()}/robustloc-stdin-*"))
+
+    before = spools()
+    for seed in (0, 1):
+        log = _walk(seed=seed)
+        monkeypatch.setattr(sys, "stdin", io.TextIOWrapper(io.BytesIO(
+            log.to_csv(index=False).encode())))
+        got = robustloc.read_measurements("-")
+        np.testing.assert_allclose(got["range"].to_numpy(), log["range"].to_numpy())
+        monkeypatch.setattr(sys, "stdin", io.TextIOWrapper(io.BytesIO(
+            log.to_csv(index=False).encode())))
+        pos = robustloc.locate("-", ANCHORS)
+        pd.testing.assert_frame_equal(pos, robustloc.locate(log, ANCHORS))
+        assert spools() == before

@@ -308,6 +308,8 @@ def test_positions_frame_and_writer_round_trip(tmp_path):
         ("anchor,x,y\n1,0,0,7\n2,1,1\n", 2, "expected 3 fields, found 4"),  # not an index
         ("anchor,x,y\n1,0,0\n2,1\n", 3, "column 'y': missing"),  # short row: empty field
         ("anchor,x,y\n1,0,0\n2,1,1,9\n", 3, "expected 3 fields, found 4"),
+        # a short row before a long one: the first to fix (pandas named the long one)
+        ("anchor,x,y\n1,0,0\n2,1\n3,1,1,9\n", 3, "expected 3 fields, found 2"),
     ],
 )
 def test_ragged_rows_are_errors_not_shifted_columns(tmp_path, text, line, words):
@@ -319,6 +321,10 @@ def test_ragged_rows_are_errors_not_shifted_columns(tmp_path, text, line, words)
     with pytest.raises(InputError, match="expected 4 fields, found 5") as ei:
         list(iter_measurements(m, chunk_rows=1))
     assert ei.value.line == 2
+    m = _write(tmp_path, "m.csv", "time,tag,anchor,rssi\n0,A,1,-50\n1,A,1\n2,A,1,-50,3\n")
+    with pytest.raises(InputError, match="expected 4 fields, found 3") as ei:
+        list(iter_measurements(m))
+    assert ei.value.line == 3
 
 
 @pytest.mark.parametrize("ext", ["csv", "parquet"])

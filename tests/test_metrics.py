@@ -65,6 +65,41 @@ def test_error_table_per_tag_aggregates_and_improvement():
     assert "rms_3d" not in t.columns
 
 
+def test_tags_named_all_and_mean_stay_apart_from_the_aggregates(tmp_path, capsys):
+    """A real tag named ``all`` (or ``mean``) made the baseline's rows share a tag with
+    the aggregates: ``evaluate`` died with a pandas traceback.  Now column ``aggregate``
+    tells them apart, each row is compared with the baseline's row of its own kind (the
+    same hand values as :func:`test_error_table_per_tag_aggregates_and_improvement`,
+    tags renamed), and the report brackets the aggregates."""
+    from robustloc.cli import main
+
+    truth, pos, _ = _frames()
+    names = {"A": "all", "B": "mean"}
+    truth, pos = truth.replace({"tag": names}), pos.replace({"tag": names})
+    t = error_table(pos, truth)
+    assert t["aggregate"].tolist() == [False] * 4 + [True] * 4
+    per = t[~t["aggregate"]].set_index(["tag", "method"])
+    agg = t[t["aggregate"]].set_index(["tag", "method"])
+    assert per.loc[("all", "ls"), "mean"] == 3.5 and per.loc[("all", "ls"), "n"] == 3
+    np.testing.assert_allclose(per.loc[("all", "igg"), "mean_impr_pct"],
+                               100 * (3.5 - 5 / 3) / 3.5)
+    assert agg.loc[("all", "ls"), "n"] == 6
+    np.testing.assert_allclose(agg.loc[("all", "ls"), "mean"], 12 / 5)
+    np.testing.assert_allclose(agg.loc[("mean", "ls"), "mean"], (3.5 + 5 / 3) / 2)
+    np.testing.assert_allclose(
+        agg.loc[("all", "igg"), "mean_impr_pct"],
+        100 * (agg.loc[("all", "ls"), "mean"] - agg.loc[("all", "igg"), "mean"])
+        / agg.loc[("all", "ls"), "mean"])
+    truth.to_csv(tmp_path / "t.csv", index=False)
+    pos.to_csv(tmp_path / "p.csv", index=False)
+    assert main(["evaluate", str(tmp_path / "p.csv"), "--truth", str(tmp_path / "t.csv")]) == 0
+    tags = [ln.split()[0] for ln in capsys.readouterr().out.splitlines()[2:]]
+    assert tags == ["all", "all", "mean", "mean", "[all]", "[all]", "[mean]", "[mean]"]
+    # without such a tag, the aggregates keep their plain names
+    t2 = error_table(*_frames()[1::-1])
+    assert t2.loc[t2["aggregate"], "tag"].tolist() == ["all", "all", "mean", "mean"]
+
+
 def test_failed_status_counts_even_with_coordinates():
     truth, pos, bad = _frames()
     # the ill-conditioned row replaces igg's row of the same epoch (a duplicate is refused)

@@ -252,6 +252,24 @@ def test_tracks_one_after_another_restart_sorted(files, capsys):
                                   pd.read_csv(files / "ref.csv"))
 
 
+@pytest.mark.parametrize("cmd", ["locate", "track"])
+def test_the_summary_says_when_rows_were_sorted_in_memory(files, capsys, cmd):
+    """A shuffled log that fits in memory is sorted before anything is written (no
+    restart): ``sorted_first`` was false then, and the "rows were not in epoch order" line
+    missing; ``track``'s summary had no such key.  Sorted input: false, no line."""
+    m = _ranges(12, tags=2)
+    m.to_csv(files / "sorted.csv", index=False)
+    m.sample(frac=1.0, random_state=3).to_csv(files / "shuffled.csv", index=False)
+    line = "rows were not in epoch order: sorted by time and tag first"
+    for name, want in (("shuffled.csv", True), ("sorted.csv", False)):
+        argv = [cmd, str(files / name), "--anchors", str(files / "a.csv"),
+                "-o", str(files / "p.csv")]
+        assert main([*argv, "--json"]) == 0
+        assert json.loads(capsys.readouterr().out)["sorted_first"] is want
+        assert main(argv) == 0
+        assert (line in capsys.readouterr().out) is want
+
+
 def test_out_of_core_sort_equals_in_memory(tmp_path):
     m = _ranges(60, tags=3)
     m["extra"] = 1

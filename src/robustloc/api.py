@@ -91,11 +91,14 @@ def _source(src: object, what: str) -> pd.DataFrame | str:
 @contextlib.contextmanager
 def _labelled() -> Iterator[None]:
     """An :class:`OSError` about a user's path becomes the :class:`InputError` the command
-    line prints (``error: PATH: what``)."""
+    line prints (``error: PATH: what``); inputs spooled from standard input or a FIFO
+    live as long as the call (:func:`robustloc.io.tables.spool_scope`)."""
     from robustloc.io.atomic import describe_oserror
+    from robustloc.io.tables import spool_scope
 
     try:
-        yield
+        with spool_scope():  # standard input / a FIFO: read anew by each call
+            yield
     except OSError as exc:
         name = exc.filename if exc.filename is not None else exc.filename2
         if name is None:
@@ -208,7 +211,8 @@ def read_anchors(source: FrameOrPath) -> pd.DataFrame:
     if isinstance(src, pd.DataFrame):
         df = _labelled_frame(src, "anchors")
         return io.validate_anchors(df, df.attrs.get("path"))
-    return io.read_anchors(src)
+    with _labelled():
+        return io.read_anchors(src)
 
 
 def read_measurements(
@@ -264,7 +268,8 @@ def read_measurements(
             raise InputError("measurements file has a header but no data rows",
                              df.attrs.get("path"), 2)
         return io.validate_measurements(df, df.attrs.get("path"), known)
-    return io.read_measurements(src, known)
+    with _labelled():
+        return io.read_measurements(src, known)
 
 
 def read_truth(source: FrameOrPath) -> pd.DataFrame:
@@ -285,7 +290,8 @@ def read_truth(source: FrameOrPath) -> pd.DataFrame:
     if isinstance(src, pd.DataFrame):
         df = _labelled_frame(src, "truth")
         return io.validate_truth(df, df.attrs.get("path"))
-    return io.read_truth(src)
+    with _labelled():
+        return io.read_truth(src)
 
 
 def read_positions(source: FrameOrPath) -> pd.DataFrame:
@@ -310,7 +316,8 @@ def read_positions(source: FrameOrPath) -> pd.DataFrame:
     if isinstance(src, pd.DataFrame):
         df = _labelled_frame(src, "positions")
         return io.validate_positions(df, df.attrs.get("path"))
-    return io.read_positions(src)
+    with _labelled():
+        return io.read_positions(src)
 
 
 def write_positions(positions: pd.DataFrame, path: PathLike) -> Path:

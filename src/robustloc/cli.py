@@ -135,7 +135,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             return error(f"{' and '.join(given)} only {verb} with --engine dask")
     old = _install_sigterm()
     try:
-        return int(args._run(args) or 0)
+        from robustloc.io.tables import spool_scope
+
+        with spool_scope():  # standard input / a FIFO: copied once for the command
+            return int(args._run(args) or 0)
     except InputError as exc:
         return error(str(exc))
     except KeyboardInterrupt:

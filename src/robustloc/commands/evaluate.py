@@ -27,7 +27,8 @@ Two positions rows with the same
 time, tag and method are an error. `-o -` writes the table as CSV to standard output (the
 text report then goes to stderr).
 Aggregates: tag "all" pools every epoch, tag "mean" averages the per-tag statistics (the
-paper's Table 1 average rows).
+paper's Table 1 average rows); column `aggregate` is true on them (and the report shows
+them as [all] and [mean] when a real tag bears one of those names).
 
   robustloc evaluate positions.csv --truth truth.csv
   robustloc evaluate positions.csv --truth truth.csv --json -o errors.csv"""
@@ -94,6 +95,10 @@ def run(args: argparse.Namespace) -> int:
                          allow_nan=False), file=dest)
         return 0
     show = table[[c for c in _SHOW if c in table.columns]].copy()
+    agg = table["aggregate"].to_numpy(dtype=bool)
+    if np.isin(table.loc[~agg, "tag"].astype(str), ("all", "mean")).any():
+        # a real tag bears an aggregate's name: the aggregates are shown bracketed
+        show.loc[agg, "tag"] = "[" + show.loc[agg, "tag"].astype(str) + "]"
     for c in ("n", "n_missing", "n_failed"):
         show[c] = show[c].map(lambda v: f"{v:.3g}")
     for c in show.columns[5:]:
@@ -108,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
             t3[c] = t3[c].map(lambda v: "" if not np.isfinite(v) else f"{v:.2f}")
         print("\n3-D error (m)", file=dest)
         print(t3.to_string(index=False), file=dest)
-    n_missing = int(table.loc[table["tag"] == "all", "n_missing"].sum())
+    n_missing = int(table.loc[agg & (table["tag"] == "all"), "n_missing"].sum())
     if n_missing:
         print(f"note: {n_missing} truth epochs (summed over methods) had no position and "
               "count as failed", file=dest)

@@ -141,7 +141,7 @@ def track_partition(meas: pd.DataFrame, anchors: pd.DataFrame, args: argparse.Na
     trk = settings.tracker(anchors)
     epochs = to_epochs(meas, trk.anchor_ids)  # sorted by (time, tag): each tag in order
     hist: dict[str, int] = {}
-    table, n, counts = track_blocks(trk, [epochs], settings, hpl_histogram=hist)
+    table, n, counts = track_blocks(trk, [epochs], settings, hpl_histogram=hist, source=meas)
     return table, {"epochs": n, "tags": len(trk.tags), "status": counts,
                    "hpl_histogram": {trk.method: hist}}
 
@@ -172,6 +172,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"{summary['epochs']} epochs, {summary['tags']} tags -> {summary['track']} "
           f"({summary['seconds']:.2f} s, {summary['epochs_per_second']:.0f} epochs/s)",
           file=dest)
+    if summary.get("sorted_first"):  # (the Dask engine's summary has no such key)
+        print("  rows were not in epoch order: sorted by time and tag first", file=dest)
     print("  " + ", ".join(f"{k}: {v}" for k, v in sorted(summary["status"].items())),
           file=dest)
     from robustloc.pipelines.locate import hpl_lines

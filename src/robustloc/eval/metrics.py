@@ -17,9 +17,10 @@ when both files have ``z``).  Per tag and method, over the epochs with a usable 
 
 Aggregate rows per method: ``tag = "all"`` pools the epochs of every tag; ``tag = "mean"``
 is the mean of the per-tag statistics, which is how the paper's Table 1 forms its
-"average over the points" rows.  ``mean_impr_pct`` and ``rms_impr_pct`` give the
-improvement over the ``ls`` row of the same tag, ``100 (ls - method) / ls``, when the
-positions contain method ``ls``.
+"average over the points" rows.  Column ``aggregate`` is True on those rows only, so a
+real tag named ``all`` or ``mean`` stays apart from them.  ``mean_impr_pct`` and
+``rms_impr_pct`` give the improvement over the ``ls`` row of the same tag,
+``100 (ls - method) / ls``, when the positions contain method ``ls``.
 
 Matching: each positions row is paired with the truth row of the same ``tag`` whose
 ``time`` is nearest, if within ``time_tolerance_s`` (default 1e-6 s, i.e. equal times
@@ -250,7 +251,8 @@ def error_table(
         median, p95`` (metres, horizontal), :data:`INTEGRITY_COLUMNS` when the positions
         have ``hpl``, the statistics with suffix ``_3d`` when both files have ``z`` (and
         then, with ``vpl``, the vertical bound's ``n_misleading_v, misleading_pct_v,
-        vpl_median, vpl_over_error``), and ``mean_impr_pct, rms_impr_pct``.
+        vpl_median, vpl_over_error``), ``mean_impr_pct, rms_impr_pct`` and
+        ``aggregate`` (True on the ``all`` and ``mean`` rows: a tag may bear those names).
         ``attrs["n_unmatched"]``: rows without truth (not scored).
     """
     pos = positions.copy()
@@ -313,10 +315,16 @@ def error_table_from_errors(
     table = pd.concat([per, pd.DataFrame(agg)], ignore_index=True)
     for c in ("n", "n_missing", "n_failed", "n_ok"):
         table[c] = table[c].astype(float)
-    base = table[table["method"] == baseline].set_index("tag")
+    aggregate = np.r_[np.zeros(len(per), dtype=bool), np.ones(len(agg), dtype=bool)]
+    # each row against the baseline's row of the same tag, aggregates against aggregates
+    # (a real tag named "all" is not the pooled row)
+    key = pd.MultiIndex.from_arrays([table["tag"].astype(str), aggregate])
+    is_base = (table["method"] == baseline).to_numpy()
     for stat in ("mean", "rms"):
-        ref = table["tag"].map(base[stat]) if len(base) else np.nan
+        ref = (pd.Series(table[stat].to_numpy()[is_base], index=key[is_base])
+               .reindex(key).to_numpy(dtype=float))
         with np.errstate(invalid="ignore", divide="ignore"):
-            table[f"{stat}_impr_pct"] = 100.0 * (ref - table[stat]) / ref
+            table[f"{stat}_impr_pct"] = 100.0 * (ref - table[stat].to_numpy()) / ref
+    table["aggregate"] = aggregate
     table.attrs["n_unmatched"] = n_unmatched
     return table

@@ -23,11 +23,13 @@ or shorter than the height difference: that is data, not an error.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
+import threading
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -104,10 +106,33 @@ def _cleanup_spool() -> None:
     _SPOOLED.clear()
 
 
+_SPOOL_DEPTH = [0]
+_SPOOL_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def spool_scope() -> Iterator[None]:
+    """The life of spooled inputs (:func:`_spool`): one command, or one call of the Python
+    API.  Standard input and FIFOs are copied once per scope (a command reads its input
+    twice: the log's scale, then the fixes) and the copies removed when the outermost
+    scope ends, so the next call reads its input anew.  (The copies used to live as long
+    as the process: a program calling ``robustloc.locate("-")`` twice got the first
+    call's data again.)"""
+    with _SPOOL_LOCK:
+        _SPOOL_DEPTH[0] += 1
+    try:
+        yield
+    finally:
+        with _SPOOL_LOCK:
+            _SPOOL_DEPTH[0] -= 1
+            if _SPOOL_DEPTH[0] == 0:
+                _cleanup_spool()
+
+
 def _spool(path: PathLike) -> Path:
     """Copy standard input (``-``) or a FIFO (``<(cat m.csv)``) to a temporary regular
-    file once per process, so that it can be read by name, more than once, and seeked
-    (Parquet).  Removed at exit."""
+    file once per :func:`spool_scope` (else per process), so that it can be read by name,
+    more than once, and seeked (Parquet).  Removed when the scope ends, or at exit."""
     import atexit
     import shutil
     import sys
@@ -193,6 +218,11 @@ def _parser_error(exc: Exception, p: Path, path: PathLike, fmt: str) -> InputErr
     msg = str(exc)
     m = _TOKENIZE_RE.search(msg)
     if m:
+        # pandas names the first row with too many fields; an earlier row with too few
+        # (which it fills with NaN) is the first one to fix: the same scan as the guard's
+        first = _ragged_line(p, path, fmt)
+        if first.line is not None and first.line < int(m.group(2)):
+            return first
         return InputError(
             f"expected {m.group(1)} fields, found {m.group(3)}", name, int(m.group(2))
         )
@@ -425,6 +455,33 @@ def _line_of(df: pd.DataFrame, pos: int) -> int | None:
     if idx.name == "line":
         return int(idx[pos])
     return None
+
+
+def anchor_sigma(anchors: pd.DataFrame) -> NDArray[np.float64] | None:
+    """The anchors' ``sigma`` column as the solvers' per-anchor a-priori sigma (m or dB).
+
+    None when there is no such column or every cell is empty (not given).  A column given
+    for some anchors and empty for others is refused naming the first anchor without one
+    and its line: the solvers need one sigma per anchor, and guessing the missing ones
+    would weight that anchor by a number nobody chose.  A value that is not positive and
+    finite is refused the same way (the readers refuse it already; a hand-made frame may
+    not have passed them).
+    """
+    if "sigma" not in anchors.columns:
+        return None
+    sg = pd.to_numeric(anchors["sigma"], errors="coerce").to_numpy(dtype=float)
+    if np.all(np.isnan(sg)):
+        return None
+    bad = ~(np.isfinite(sg) & (sg > 0))
+    if bad.any():
+        i = int(np.argmax(bad))
+        name = anchors["anchor"].iloc[i] if "anchor" in anchors.columns else i
+        what = ("has no sigma while other anchors have one: give every anchor a sigma "
+                "(robustloc calibrate writes them) or none" if np.isnan(sg[i])
+                else f"sigma must be positive and finite, got {sg[i]:g}")
+        raise InputError(f"anchor {str(name)!r} {what}", _path_of(anchors, None),
+                         _line_of(anchors, i))
+    return sg
 
 
 def require_columns(
@@ -1157,7 +1214,8 @@ def iter_measurements(
     Yields
     ------
     DataFrame
-        Validated chunks, as returned by :func:`read_measurements`.
+        Validated chunks, as returned by :func:`read_measurements`; ``attrs["resorted"]``
+        is True on chunks of a log that had to be sorted.
     """
     if order not in ("auto", "check", "sort"):
         raise ValueError(f"order must be 'auto', 'check' or 'sort', got {order!r}")
@@ -1168,8 +1226,12 @@ def iter_measurements(
 
     def resorted() -> Iterator[pd.DataFrame]:
         if _in_memory_estimate(path) <= budget:
-            return _iter_sorted_in_memory(path, chunk_rows, known)
-        return _iter_sorted_out_of_core(path, chunk_rows, known)
+            chunks = _iter_sorted_in_memory(path, chunk_rows, known)
+        else:
+            chunks = _iter_sorted_out_of_core(path, chunk_rows, known)
+        for chunk in chunks:  # marked: the run summary says the rows were sorted
+            chunk.attrs["resorted"] = True
+            yield chunk
 
     if order == "sort":
         yield from resorted()
@@ -1223,6 +1285,9 @@ class Epochs:
         (:mod:`robustloc.io.limits`): not in ``values`` (NaN, as if not heard), counted here.
         An epoch whose every row is invalid has ``n_invalid > 0`` and no finite value; its
         output row gets status ``invalid_measurement``.
+    resorted : bool
+        The block comes from a log whose rows were not in epoch order and were sorted
+        (:func:`iter_epochs`); the run summaries say so.
     """
 
     time: NDArray[np.float64]
@@ -1233,6 +1298,7 @@ class Epochs:
     line: NDArray[np.int64]
     n_duplicates: int = 0
     n_invalid: NDArray[np.int64] | None = None
+    resorted: bool = False
 
     def __post_init__(self) -> None:
         n = int(np.asarray(self.values).shape[0])
@@ -1378,7 +1444,8 @@ def iter_epochs(
     ids = _anchor_ids(anchors)
     for chunk in iter_measurements(path, chunk_rows=chunk_rows, anchors=ids, order=order,
                                    memory_budget_bytes=memory_budget_bytes):
-        yield to_epochs(chunk, ids)
+        block = to_epochs(chunk, ids)
+        yield replace(block, resorted=True) if chunk.attrs.get("resorted") else block
 
 
 # --------------------------------------------------------------------------------------

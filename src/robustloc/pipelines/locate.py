@@ -214,6 +214,7 @@ def configure(settings: LocateSettings, anchors: pd.DataFrame) -> Geometry:
     """The locators of ``settings`` for ``anchors`` (a validated anchors frame; its
     ``attrs["path"]`` names it in errors)."""
     from robustloc.estimators.ranging import Locator
+    from robustloc.io.tables import anchor_sigma
 
     where = anchors.attrs.get("path")
     if settings.dim == 3 and "z" not in anchors.columns:
@@ -229,11 +230,9 @@ def configure(settings: LocateSettings, anchors: pd.DataFrame) -> Geometry:
     methods = list(settings.method)
     params = weight_params(settings.param, methods)
     sigma: float | tuple[float, ...] | None = settings.sigma
-    if sigma is None and "sigma" in anchors.columns:
-        sg = anchors["sigma"].to_numpy(dtype=float)
-        if not np.all(np.isfinite(sg) & (sg > 0)):
-            raise InputError("anchors' sigma column must be positive and finite", where)
-        sigma = tuple(sg)
+    if sigma is None:
+        sg = anchor_sigma(anchors)
+        sigma = None if sg is None else tuple(float(v) for v in sg)
     try:  # the settings are the user's: a refused combination is a user error
         locators = [
             Locator(
@@ -252,10 +251,34 @@ def configure(settings: LocateSettings, anchors: pd.DataFrame) -> Geometry:
     return Geometry(locators, anchors, xyz, height)
 
 
-def prepared_values(settings: LocateSettings, anchors: pd.DataFrame, block: Any) -> np.ndarray:
-    """A block's observation matrix as the solvers see it (range calibration applied)."""
+def refuse_rssi_options(kind: str, given: dict[str, bool], source: Any = None) -> None:
+    """Refuse options that apply only to RSSI (``given``: each option's words and whether
+    the user set it) on a log of ``kind`` ``"range"``, naming ``source`` (the log's file
+    or frame) at its header, whose value column says what the log holds."""
+    from robustloc.io.tables import _display
+
+    opts = [opt for opt, on in given.items() if on]
+    if kind != "range" or not opts:
+        return
+    one = len(opts) == 1
+    raise InputError(f"{' and '.join(opts)} {'applies' if one else 'apply'} to RSSI "
+                     "measurements, but this log holds ranges (a range column): leave "
+                     f"{'it' if one else 'them'} out",
+                     None if source is None else _display(source), None if source is None else 1)
+
+
+def prepared_values(settings: LocateSettings, anchors: pd.DataFrame, block: Any,
+                    source: Any = None) -> np.ndarray:
+    """A block's observation matrix as the solvers see it (range calibration applied).
+
+    Settings that apply only to RSSI (``--domain rssi``, ``--model``) are refused on a
+    range log rather than ignored (``source``, the block's file or frame, names it): the
+    user asked for something this log cannot give."""
     from robustloc.models.calibration import apply_range_calibration
 
+    refuse_rssi_options(block.value, {"--domain rssi": settings.domain == "rssi",
+                                      f"--model {settings.model}": settings.model is not None},
+                        source)
     if block.value == "range" and settings.range_calibration:
         return apply_range_calibration(anchors, block.values)
     return block.values
@@ -313,14 +336,14 @@ def fix_log_scale(settings: LocateSettings, geo: Geometry, sources: Sequence[Any
     anchors = geo.anchors
     k, seen, kept, idx = 1, 0, [], []
     kind = None
-    blocks = (b for src in sources for b in iter_epochs(
+    blocks = ((src, b) for src in sources for b in iter_epochs(
         src, anchors, chunk_rows=settings.chunk_rows, order=order))
-    for block in blocks:
+    for src, block in blocks:
         kind = block.value
         gi = np.arange(seen, seen + block.n_epochs)
         seen += block.n_epochs
         sel = gi % k == 0
-        kept.append(prepared_values(settings, anchors, block)[sel])
+        kept.append(prepared_values(settings, anchors, block, src)[sel])
         idx.append(gi[sel])
         while sum(len(i) for i in idx) > 2 * cap:
             k *= 2
@@ -389,7 +412,7 @@ def log_sample_of(settings: LocateSettings, anchors: pd.DataFrame, path: Any, of
             kind = block.value
             gi = offset + np.arange(seen, seen + block.n_epochs)
             seen += block.n_epochs
-            kept.append(prepared_values(settings, anchors, block)[gi % k == 0])
+            kept.append(prepared_values(settings, anchors, block, path)[gi % k == 0])
         m = len(anchors)
         return kind, (np.vstack(kept) if kept else np.empty((0, m))), seen
 
@@ -593,6 +616,7 @@ def _run_once(
     hpl_hist: dict[str, dict[str, int]] = {m: {} for m in methods}
     moved: dict[str, int] = {m: 0 for m in methods}
     n_epochs = n_dup = n_invalid = 0
+    resorted = order == "sort"
     A = n = None
     kind = None
     t0 = _time.perf_counter()
@@ -608,7 +632,7 @@ def _run_once(
                     kind = block.value
                     if kind == "rssi":
                         A, n = log_distance_arrays(anchors, settings.model)
-                values = prepared_values(settings, anchors, block)
+                values = prepared_values(settings, anchors, block, measurements)
                 bad = block.all_invalid
                 frames = []
                 for loc in locators:
@@ -638,6 +662,7 @@ def _run_once(
                 n_epochs += block.n_epochs
                 n_dup += block.n_duplicates
                 n_invalid += int(block.n_invalid.sum())
+                resorted |= block.resorted
                 bar.update(block.n_epochs)
         frame = writer.frame() if out is None else None
     finally:
@@ -649,7 +674,7 @@ def _run_once(
         "log_sides": {loc.method: [[list(i), s] for i, s in loc.log_sides or ()]
                       for loc in locators},
         "duplicates_merged": n_dup, "invalid_measurement_rows": n_invalid,
-        "sorted_first": order == "sort", "seconds": round(wall, 3),
+        "sorted_first": resorted, "seconds": round(wall, 3),
         "solve_seconds": round(solve_s, 3),
         "fixes_per_second": round(n_epochs * len(methods) / max(solve_s, 1e-9), 1),
     }

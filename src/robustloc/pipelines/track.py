@@ -131,11 +131,11 @@ def run_track(
                               if src])
     t0 = _time.perf_counter()
     try:
-        trk, frame, n_epochs, counts, hist = _one_pass(measurements, anchors, settings,
-                                                       out, "auto", progress)
+        trk, frame, n_epochs, counts, hist, resorted = _one_pass(
+            measurements, anchors, settings, out, "auto", progress)
     except UnsortedInput:
-        trk, frame, n_epochs, counts, hist = _one_pass(measurements, anchors, settings,
-                                                       out, "sort", progress)
+        trk, frame, n_epochs, counts, hist, resorted = _one_pass(
+            measurements, anchors, settings, out, "sort", progress)
     wall = _time.perf_counter() - t0
     summary = {"measurements": _display(measurements),
                "track": "<DataFrame>" if out is None else str(out), "epochs": n_epochs,
@@ -143,7 +143,7 @@ def run_track(
                "hpl_histogram": {trk.method: hist},
                "smoother": (("fixed-lag" if settings.fixed_lag else "rts")
                             if settings.smoothing else None),
-               "seconds": round(wall, 3),
+               "sorted_first": resorted, "seconds": round(wall, 3),
                "epochs_per_second": round(n_epochs / max(wall, 1e-9), 1)}
     return frame, summary
 
@@ -163,6 +163,7 @@ def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
 
     trk = settings.tracker(anchors)
     hist: dict[str, int] = {}
+    resorted = [order == "sort"]
     bar = tqdm(unit=" epochs", disable=not progress or not sys.stderr.isatty(),
                file=sys.stderr)
     opened = atomic_output(out) if out is not None else contextlib.nullcontext((None, None))
@@ -171,11 +172,12 @@ def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
             stream = target is not None and not settings.smoothing
             writer = TrackWriter(target, parquet=is_parquet(out)) if stream else None
             try:
-                blocks = iter_epochs(measurements, anchors, chunk_rows=settings.chunk_rows,
-                                     order=order)
+                blocks = _noting_sort(iter_epochs(
+                    measurements, anchors, chunk_rows=settings.chunk_rows, order=order),
+                    resorted)
                 table, n, status_counts = track_blocks(
                     trk, blocks, settings, None if writer is None else writer.write,
-                    bar.update, hist)
+                    bar.update, hist, source=measurements)
             finally:
                 if writer is not None:
                     writer.close()
@@ -186,13 +188,21 @@ def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
                     write_table(table, target, parquet=is_parquet(out))
     finally:
         bar.close()
-    return trk, table if out is None else None, n, status_counts, hist
+    return trk, table if out is None else None, n, status_counts, hist, resorted[0]
+
+
+def _noting_sort(blocks: Any, resorted: list[bool]) -> Any:
+    """``blocks``, setting ``resorted[0]`` when one comes from a log that was sorted."""
+    for block in blocks:
+        resorted[0] |= block.resorted
+        yield block
 
 
 def track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
                  write: Callable[[pd.DataFrame], None] | None = None,
                  progress: Callable[[int], Any] | None = None,
                  hpl_histogram: dict[str, int] | None = None,
+                 source: Any = None,
                  ) -> tuple[pd.DataFrame | None, int, dict[str, int]]:
     """The single core of ``track``: every epoch block through ``trk`` in order.
 
@@ -213,13 +223,16 @@ def track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
     hpl_histogram : dict, optional
         Filled with the usable rows' ``hpl``
         (:func:`robustloc.pipelines.locate.hpl_counts`).
+    source : path or DataFrame, optional
+        The log, to name in errors: ``--domain rssi`` on a range log is refused
+        (:func:`robustloc.pipelines.locate.refuse_rssi_options`), not ignored.
 
     Returns
     -------
     (table or None, epochs, status counts)
     """
     from robustloc._jitnotice import compile_notice
-    from robustloc.pipelines.locate import hpl_counts
+    from robustloc.pipelines.locate import hpl_counts, refuse_rssi_options
     from robustloc.status import USABLE, among
 
     hist: dict[str, int] = {} if hpl_histogram is None else hpl_histogram
@@ -243,6 +256,7 @@ def track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
     n = 0
     status_counts: dict[str, int] = {}
     for block in blocks:
+        refuse_rssi_options(block.value, {"--domain rssi": settings.domain == "rssi"}, source)
         if n == 0:
             compile_notice("filter", "tracker")
         rows = trk.step(block)

@@ -24,7 +24,7 @@ from typing import Any, Protocol
 import numpy as np
 import pandas as pd
 
-from robustloc.io.tables import Epochs, positions_frame
+from robustloc.io.tables import Epochs, anchor_sigma, positions_frame
 
 
 def solvable_values(anchors: pd.DataFrame, model: str | None = None) -> tuple[str, ...]:
@@ -160,11 +160,9 @@ class LocateProcessor:
                 raise ValueError("tag height needs dim 2 and a z column in the anchors")
             self.height = anchors["z"].to_numpy(dtype=float) - tag_height
         sig: float | tuple[float, ...] | None = sigma
-        if sig is None and "sigma" in anchors.columns:
-            sg = anchors["sigma"].to_numpy(dtype=float)
-            if not np.all(np.isfinite(sg) & (sg > 0)):
-                raise ValueError("anchors' sigma column must be positive and finite")
-            sig = tuple(sg)
+        if sig is None:
+            sg = anchor_sigma(anchors)  # an InputError (a ValueError) names the anchor
+            sig = None if sg is None else tuple(float(v) for v in sg)
         self.locator = Locator(
             method, solver=solver, domain=domain, sigma=sig, robust_scale=robust_scale,
             reference=reference,

@@ -121,6 +121,7 @@ from robustloc.filters.core import (
 )
 from robustloc.filters.motion import ConstantAcceleration, ConstantVelocity, _Kinematic
 from robustloc.integrity.bmethod import global_critical, lambda0
+from robustloc.io.tables import anchor_sigma
 from robustloc.robust.weights import get_weight
 from robustloc.tracking.measurement import LinkModel
 
@@ -279,6 +280,8 @@ class Tracker:
         if unknown:
             raise TypeError(f"unknown tracker option(s): {', '.join(sorted(unknown))}")
         self.settings = TrackerSettings(model=model, filter=filter, **options)
+        if self.settings.sigma is None:
+            anchor_sigma(anchors)  # a partly empty column: refused now, with its line
         self.anchors = anchors.reset_index(drop=True)
         self.anchor_ids = tuple(str(a) for a in self.anchors["anchor"])
         self.record = record
@@ -386,11 +389,8 @@ class Tracker:
             dz2 = (a["z"].to_numpy(dtype=float) - s.tag_height) ** 2
         if s.sigma is not None:
             sigma = np.full(M, s.sigma)
-        elif "sigma" in a.columns:
-            sigma = a["sigma"].to_numpy(dtype=float)
-            if not np.all(np.isfinite(sigma) & (sigma > 0)):
-                raise InputError("anchors' sigma column must be positive and finite",
-                                 a.attrs.get("path"))
+        elif (given := anchor_sigma(a)) is not None:
+            sigma = given
         else:
             sigma = np.full(M, 3.0 if kind == "rssi" else 0.3)
         A = nn = None
