@@ -185,12 +185,13 @@ def _normal(J, w, r, Nm, g, tag):  # pragma: no cover - jit
 # ------------------------------------------------------------------------ robust start
 def initial_fixes(
     a: np.ndarray, d: np.ndarray, ho2: np.ndarray, combos: np.ndarray, Ginv: np.ndarray,
-    c0: np.ndarray, centre: np.ndarray, radius: float, use_subsets: bool, nearest: bool,
+    c0: np.ndarray, centre: np.ndarray, radius: float, use_subsets: bool, rank: np.ndarray,
 ) -> np.ndarray:
     """Per-epoch start of the iterative solvers (``Locator._initial``), ``(N, dim)``.
 
-    Candidates: the linearized LS fix of seed 000 eq. (3) (reference anchor the first
-    heard one, or the nearest) clipped to the anchors' disc; the inverse-square-distance
+    Candidates: the linearized LS fix of seed 000 eq. (3) (reference anchor the nearest;
+    of equal ranges, the one of smallest ``rank``, :func:`ranging.canonical_rank`) clipped
+    to the anchors' disc; the inverse-square-distance
     weighted centroid of the heard anchors; with ``use_subsets``, the exact fixes of the
     minimal anchor subsets ``combos (C, dim + 1)`` (inverted designs ``Ginv (C, dim, dim)``
     of the centroid-shifted anchors, shift ``c0``).  The smallest least-median-of-squares
@@ -200,14 +201,15 @@ def initial_fixes(
     dim = a.shape[1]
     ac = a - c0
     out = np.empty((N, dim))
-    _initial_fixes(a, d, ho2, combos, Ginv, c0, centre, float(radius), use_subsets, nearest,
-                   ac, np.sum(ac * ac, axis=1), out, np.empty((4, m)), np.empty((5, dim)),
-                   np.empty((2, dim, dim)), (0.0,) * dim)
+    _initial_fixes(a, d, ho2, combos, Ginv, c0, centre, float(radius), use_subsets,
+                   np.ascontiguousarray(rank, dtype=np.int64), ac, np.sum(ac * ac, axis=1),
+                   out, np.empty((4, m)), np.empty((5, dim)), np.empty((2, dim, dim)),
+                   (0.0,) * dim)
     return out
 
 
 @njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
-def _initial_fixes(a, d, ho2, combos, Ginv, c0, centre, radius, use_subsets, nearest, ac, n2,
+def _initial_fixes(a, d, ho2, combos, Ginv, c0, centre, radius, use_subsets, rank, ac, n2,
                    out, vm, vp, mp, tag):  # pragma: no cover - jit
     """The loop of :func:`initial_fixes` (no allocation, no reference counting)."""
     N, m = d.shape
@@ -225,7 +227,8 @@ def _initial_fixes(a, d, ho2, combos, Ginv, c0, centre, radius, use_subsets, nea
         for i in range(m):
             d2[i] = d[e, i] * d[e, i] - ho2[i]
             if math.isfinite(d2[i]):
-                if ref < 0 or (nearest and d[e, i] < d[e, ref]):
+                if ref < 0 or d[e, i] < d[e, ref] or (
+                        d[e, i] == d[e, ref] and rank[i] < rank[ref]):
                     ref = i
             if d[e, i] == d[e, i]:
                 heard += 1

@@ -120,6 +120,44 @@ def _frozen(*arrays: NDArray) -> None:
         arr.setflags(write=False)
 
 
+#: The iterative solvers' least-median-of-squares start tries every minimal anchor subset
+#: when there are at most this many (2-D: up to 6 anchors; 3-D: up to 6), and a fixed
+#: pseudo-random choice of about this many otherwise (:func:`minimal_subsets`).  Every
+#: subset is not better: on the seed-000 corridor (10 beacons, 120 subsets; seeds 1-10)
+#: IGG's mean error rose 1.60 -> 1.76 m (scheme 1) and 2.44 -> 2.64 m (scheme 2) with all
+#: of them, and the robust fits took twice as long (measured 2026-12-02).
+MAX_SUBSETS = 24
+
+
+def canonical_rank(anchors: ArrayLike) -> NDArray[np.int64]:
+    """Each anchor's rank in an order that depends on where the anchors are, not on the
+    order of the anchors file: by distance from their centroid (equal to 1e-9 of the
+    largest), then by x, y and z (equal anchors by index).
+
+    The iterative solvers' start breaks ties between equal ranges and chooses minimal
+    subsets in this order (:meth:`Locator._initial`), so listing the anchors in another
+    order gives the same fixes.  The distance comes first so that the order, and the fixes,
+    also survive a rotation or translation of the frame, unless two anchors lie at the
+    same distance from the centroid (a regular grid) and the choice reaches them."""
+    return _canonical_rank_cached(*_anchor_key(anchors))
+
+
+@lru_cache(maxsize=64)
+def _canonical_rank_cached(key: bytes, shape: tuple[int, ...]) -> NDArray[np.int64]:
+    a = _from_key(key, shape)
+    if a.ndim != 2 or a.shape[0] == 0:
+        return np.arange(shape[0], dtype=np.int64)
+    with np.errstate(all="ignore"):
+        dist = np.linalg.norm(a - np.nanmean(a, axis=0), axis=1)
+        top = np.nanmax(dist) if np.any(np.isfinite(dist)) else 1.0
+        level = np.round(dist / (1e-9 * max(float(top), 1e-300)))
+    order = np.lexsort(tuple(a.T[::-1]) + (level,))
+    rank = np.empty(shape[0], dtype=np.int64)
+    rank[order] = np.arange(shape[0])
+    _frozen(rank)
+    return rank
+
+
 def _sane_anchors(a: Array) -> NDArray[np.bool_]:
     """Anchors whose coordinates make sense for the layout: finite and within 20 times the
     median distance (at least 1 m) of the median anchor.  An anchor outside (a typo such as
@@ -309,7 +347,9 @@ def linearized_system(
 
     The reference is the first anchor heard in each epoch (the paper's choice,
     ``reference="first"``) or the one with the shortest range (``"nearest"``: its error,
-    which enters every row, is then the smallest); the other rows are
+    which enters every row, is then the smallest; of equal ranges, the first anchor in
+    :func:`canonical_rank` order, so that the system does not depend on the anchors'
+    order in their file); the other rows are
     ``G_i = a_i - a_r`` and ``h_i = (d_r^2 - d_i^2 - |a_r|^2 + |a_i|^2) / 2``.  Anchors are
     first shifted to their centroid (returned) so the system is well scaled; known height
     offsets turn slant ranges into horizontal ones (``d^2 - dz^2``).
@@ -333,7 +373,10 @@ def linearized_system(
     if reference == "first":
         ref = np.where(heard.any(axis=1), np.argmax(heard, axis=1), -1)
     elif reference == "nearest":
-        ref = np.where(heard.any(axis=1), np.argmin(np.where(heard, d, np.inf), axis=1), -1)
+        dd = np.where(heard, d, np.inf)
+        tie = dd == dd.min(axis=1, keepdims=True)  # equal ranges: the canonical first
+        rank = canonical_rank(a)
+        ref = np.where(heard.any(axis=1), np.argmin(np.where(tie, rank, m), axis=1), -1)
     else:
         raise ValueError(f"reference must be 'first' or 'nearest', got {reference!r}")
     rr = np.maximum(ref, 0)
@@ -371,14 +414,22 @@ def lms_score(residuals: Array, dim: int, axis: int = -1) -> Array:
 
 
 def minimal_subsets(
-    anchors: ArrayLike, max_subsets: int = 24, seed: int = 0
+    anchors: ArrayLike, max_subsets: int = MAX_SUBSETS, seed: int = 0
 ) -> tuple[NDArray[np.int64], Array, Array]:
     """The minimal anchor subsets of :func:`subset_fixes` and their inverted designs.
 
-    Returns ``combos (C, dim + 1)`` (at most ``max_subsets``, a fixed random choice when
-    there are more; near-degenerate subsets dropped), ``Ginv (C, dim, dim)`` the inverses
-    of ``G = a_j - a_0`` of the centroid-shifted anchors, and that centroid ``c0``.  A
+    Returns ``combos (C, dim + 1)``, ``Ginv (C, dim, dim)`` the inverses of
+    ``G = a_j - a_0`` of the centroid-shifted anchors, and that centroid ``c0``.  A
     function of the anchors alone: cached per anchor array, the arrays are read-only.
+
+    Every subset when there are at most ``max_subsets``; otherwise a pseudo-random choice
+    that depends on the subsets' shapes alone, so that the same anchors listed in another
+    order, rotated or shifted give the same subsets: each subset is keyed by its sorted
+    pairwise distances (to 1e-9 of the layout's size), the keys are ordered by a hash of
+    the key and ``seed`` (a random order, but the same for congruent subsets wherever and
+    however listed), and the first ``max_subsets`` are taken together with every subset
+    congruent to the last one taken (a symmetric layout's subsets come in whole classes;
+    so ``C`` may exceed ``max_subsets`` a little).  Near-degenerate subsets are dropped.
     """
     return _minimal_subsets_cached(*_anchor_key(anchors), int(max_subsets), int(seed))
 
@@ -394,10 +445,10 @@ def _minimal_subsets_cached(key: bytes, shape: tuple[int, ...], max_subsets: int
         out = np.zeros((0, q), dtype=np.int64), np.zeros((0, dim, dim)), c0
         _frozen(*out)
         return out
-    combos = np.array(list(combinations(range(m), q)), dtype=np.int64)
+    order = np.argsort(_canonical_rank_cached(key, shape))  # anchor indices, canonical
+    combos = order[np.array(list(combinations(range(m), q)), dtype=np.int64)]
     if combos.shape[0] > max_subsets:
-        pick = np.random.default_rng(seed).choice(combos.shape[0], max_subsets, replace=False)
-        combos = combos[np.sort(pick)]
+        combos = _shape_choice(a, combos, max_subsets, seed)
     sub = (a - c0)[combos]  # (C, q, dim)
     G = sub[:, 1:, :] - sub[:, :1, :]  # (C, dim, dim)
     with np.errstate(all="ignore"):
@@ -410,11 +461,35 @@ def _minimal_subsets_cached(key: bytes, shape: tuple[int, ...], max_subsets: int
     return out
 
 
+def _shape_choice(a: Array, combos: NDArray[np.int64], k: int, seed: int
+                  ) -> NDArray[np.int64]:
+    """The first ``k`` of ``combos`` in a pseudo-random order of their shapes, with every
+    subset congruent to the last taken (:func:`minimal_subsets`)."""
+    import hashlib
+
+    pts = a[combos]  # (C, q, dim)
+    i, j = np.triu_indices(combos.shape[1], 1)
+    dist = np.sort(np.linalg.norm(pts[:, i] - pts[:, j], axis=2), axis=1)  # (C, pairs)
+    size = float(np.nanmax(dist)) if np.any(np.isfinite(dist)) else 1.0
+    shape_key = np.nan_to_num(np.round(dist / (1e-9 * max(size, 1e-300))),
+                              nan=-1.0).astype(np.int64)
+    salt = int(seed).to_bytes(8, "little", signed=True)
+    h = np.array([int.from_bytes(hashlib.blake2b(row.tobytes() + salt, digest_size=8)
+                                 .digest(), "little") >> 1 for row in shape_key],
+                 dtype=np.int64)
+    rank = np.lexsort(tuple(shape_key.T[::-1]) + (h,))  # by hash, then by the key itself
+    last = shape_key[rank[k - 1]]
+    take = np.zeros(combos.shape[0], dtype=bool)
+    take[rank[:k]] = True
+    take |= np.all(shape_key == last, axis=1)
+    return combos[rank[take[rank]]]
+
+
 def subset_fixes(
     anchors: ArrayLike,
     ranges: ArrayLike,
     height_offset: ArrayLike | None = None,
-    max_subsets: int = 24,
+    max_subsets: int = MAX_SUBSETS,
     seed: int = 0,
 ) -> tuple[Array, Array]:
     """Least-median-of-squares start: exact fixes from minimal anchor subsets.
@@ -423,9 +498,10 @@ def subset_fixes(
     system (seed 000 eq. (3) with ``dim`` rows); its design depends only on the anchors, so
     it is inverted once per subset and applied to all epochs.  Each epoch keeps the subset
     fix with the smallest :func:`lms_score` over all heard anchors.  At most
-    ``max_subsets`` subsets are used (a fixed random choice when there are more): with a
-    fraction ``e`` of gross errors a subset is clean with probability ``(1 - e)^(dim+1)``,
-    so 24 subsets all fail with probability 4e-8 at e = 20 % and 3e-3 at e = 40 % (2-D).
+    ``max_subsets`` subsets are used (:data:`MAX_SUBSETS`; a fixed pseudo-random choice
+    by shape when there are more, :func:`minimal_subsets`): with a fraction ``e`` of gross
+    errors a subset is clean with probability ``(1 - e)^(dim+1)``, so 24 subsets all fail
+    with probability 4e-8 at e = 20 % and 3e-3 at e = 40 % (2-D).
 
     Returns
     -------
@@ -546,7 +622,9 @@ class Locator:
     alpha0, beta0 : significance and power of the w-test (``snooping``, B-method).
     reference : {"first", "nearest"}
         Reference anchor of the linearized system (:func:`linearized_system`): the
-        paper's first heard anchor, or the one with the shortest range.
+        paper's first heard anchor, or the one with the shortest range.  The linearized
+        solver's; the iterative solvers start from the nearest anchor's system whatever
+        it says (:meth:`_initial`: fixes independent of the anchors' order).
     log_scale_fixed : tuple of float (one per anchor), optional
         With ``robust_scale="log"``: the per-anchor scale already estimated over the log
         (e.g. by a first pass over a file too large for one batch, :meth:`log_scale`);
@@ -878,7 +956,8 @@ class Locator:
             first = replace(self, robust_scale="mad", log_scale_fixed=None)
         else:  # the scale of a non-robust method's log still comes from a robust fit
             first = Locator("huber", domain=self.domain, sigma=self.sigma, robust_scale="mad",
-                            engine=self.engine, max_iter=self.max_iter, tol=self.tol)
+                            engine=self.engine, max_iter=self.max_iter, tol=self.tol,
+                            solver=self.solver, reference=self.reference)
         zz = z[rows]
         base = self._sigma_array((1, m))[0]
         rm = RssiModel(a, A, n, height_offset) if kind == "rssi" else None
@@ -967,8 +1046,10 @@ class Locator:
         power = 4.0 if rmodel is not None else 2.0
         return 1.0 / d**power
 
-    def _linearized(self, a, ranges, height_offset, w, robust: str | None = None) -> LinearFit:
-        G, h, ref, c = linearized_system(a, ranges, height_offset, self.reference)
+    def _linearized(self, a, ranges, height_offset, w, robust: str | None = None,
+                    reference: str | None = None) -> LinearFit:
+        G, h, ref, c = linearized_system(a, ranges, height_offset,
+                                         self.reference if reference is None else reference)
         if robust is None:
             fit = solve_wls(G, h, w)
         elif robust == "lege":
@@ -998,6 +1079,14 @@ class Locator:
         absolute range residual wins (least median of squares): an M-estimator started
         from it is no longer masked by several gross errors pulling the LS start.  With
         coplanar 3-D anchors the start is moved off their plane (:func:`_off_plane`).
+
+        The linearized candidate is referenced to the nearest anchor whatever
+        :attr:`reference` says (that option is the linearized solver's), and ties and
+        subsets follow :func:`canonical_rank`: the start, and so the fix, does not depend
+        on the order of the anchors file.  Referenced to the first heard anchor, the
+        default's RMS on the wifi-rtt-rss office ranged from 1.174 to 1.307 m over the 120
+        orders of its five access points (measured 2026-12-02); now 1.177 m for every
+        order.
         """
         centre, radius = self._the_area(a)
         if self.engine == "compiled":
@@ -1007,10 +1096,9 @@ class Locator:
             ho2 = _height2(height_offset, a.shape[0])
             return _off_plane(a, _compiled.initial_fixes(
                 a, np.ascontiguousarray(ranges, dtype=float), ho2, combos, Ginv, c0, centre,
-                radius, self.method in ROBUST + ("lege", "snooping"),
-                self.reference == "nearest",
+                radius, self.method in ROBUST + ("lege", "snooping"), canonical_rank(a),
             ), np.isfinite(ranges))
-        fit = self._linearized(a, ranges, height_offset, None)
+        fit = self._linearized(a, ranges, height_offset, None, reference="nearest")
         cands = [_clip_disc(fit.x, centre, radius)]
         with np.errstate(all="ignore"):
             wts = np.where(np.isfinite(ranges), 1.0 / np.maximum(ranges, 0.5) ** 2, 0.0)

@@ -454,7 +454,9 @@ def resolve_sides(sol: Solution, sides: tuple[tuple[tuple[int, ...], int], ...],
     the covariance is reflected across the anchors' line (plane), ``H C H`` with ``H = I -
     2 u u^T`` (exact for collinear anchors), and ``sigma0`` is scaled by ``sqrt(T' / T)``.
     The status stays (both passed the same test); ``residuals`` and ``weights`` stay the
-    estimator's at the original fix.  ``extra["side_from_log"]`` marks the moved fixes.
+    estimator's at the original fix; ``test_kept`` and ``flagged`` become the
+    alternative's (``extra["ambiguity_kept"]``: after a wrong exclusion, another
+    observation is the one left out).  ``extra["side_from_log"]`` marks the moved fixes.
     """
     extra = sol.extra
     alt = extra.get("ambiguity_position")
@@ -523,6 +525,14 @@ def resolve_sides(sol: Solution, sides: tuple[tuple[tuple[int, ...], int], ...],
     J[r] = np.where(heard[..., None], J_a, np.nan)
     T = np.array(extra["test_statistic"], dtype=float)
     T[r] = T_alt
+    swapped = {}
+    if "ambiguity_kept" in extra:  # the alternative's test may keep other observations
+        kept = np.array(extra["test_kept"], dtype=bool)
+        alt_kept = np.array(extra["ambiguity_kept"], dtype=bool)
+        kept[r], alt_kept[r] = alt_kept[r], kept[r].copy()
+        flagged = np.array(extra["flagged"], dtype=bool)
+        flagged[r] = heard & ~kept[r]
+        swapped = {"test_kept": kept, "ambiguity_kept": alt_kept, "flagged": flagged}
     sigma0 = np.array(sol.sigma0, dtype=float)
     with np.errstate(invalid="ignore", divide="ignore"):
         sigma0[r] *= np.sqrt(np.where(T_fix > 0, T_alt / T_fix, np.nan))
@@ -530,7 +540,7 @@ def resolve_sides(sol: Solution, sides: tuple[tuple[tuple[int, ...], int], ...],
     cov[r] = H @ cov[r] @ H
     new_extra = {**extra, "ambiguity_position": new_alt, "ambiguity_terms": terms,
                  "hpl": hpl, "vpl": vpl, "range_residuals": v, "jacobian": J,
-                 "test_statistic": T, "side_from_log": moved}
+                 "test_statistic": T, "side_from_log": moved, **swapped}
     return replace(sol, position=new_pos, covariance=cov, sigma0=sigma0, extra=new_extra)
 
 
@@ -587,8 +597,17 @@ def protect(
         ``extra["ambiguity_distance"]`` (metres from the fix to an alternative solution
         that passes its test; NaN where none does), ``extra["ambiguity_position"]`` (that
         alternative), ``extra["ambiguity_terms"]`` (N, 5: the fix's own hpl and vpl, the
-        alternative's, and its test statistic) and ``extra["test_kept"]`` (the
-        observations the test kept), which :func:`resolve_sides` uses.
+        alternative's, and its test statistic), ``extra["test_kept"]`` (the
+        observations the test kept) and ``extra["ambiguity_kept"]`` (those the
+        alternative's test keeps), which :func:`resolve_sides` uses.
+
+        The alternative is the mirror refined on the kept observations; where that fails
+        and the test had left observations out, the mirror refined on every heard
+        observation with one exclusion of its own by the w-test (a wrong exclusion: a
+        robust fit can reach the far side of nearly collinear anchors by rejecting the
+        one anchor off their line that tells the sides apart; on the corridor of
+        ``test_ambiguous_fixes_move_to_the_side_the_log_shows`` such a fix was 6.2 m off
+        with hpl 4.8 m).
     """
     for key in ("range_residuals", "jacobian"):
         if key not in sol.extra:
@@ -663,6 +682,7 @@ def protect(
     amb_dist = np.full(N, np.nan)
     amb_pos = np.full((N, p), np.nan)
     amb_terms = np.full((N, 5), np.nan)  # the fix's own hpl, vpl; the alternative's; T'
+    amb_kept = keep.copy()  # the observations the alternative's test keeps
     if range_model is not None:
         cand = np.flatnonzero(st.among(new, st.USABLE) & has
                               & np.isfinite(hpl) & np.all(np.isfinite(sol.position), axis=1))
@@ -672,19 +692,54 @@ def protect(
             x_alt, T_alt, J_alt = mirror_solution(range_model, sol.position[cand], v[cand],
                                                   sc, keep[cand])
             amb = np.isfinite(T_alt) & (T_alt <= crit[cand])
-            if np.any(amb):
-                rows = cand[amb]
-                d = x_alt[amb] - sol.position[rows]
-                h_alt, v_alt, _ = protection_levels_local(J_alt[amb], sc[amb], keep[rows],
-                                                          lam0, k)
+
+            def ambiguous(rows, x_a, J_a, s_a, keep_a, T_a) -> None:
+                d = x_a - sol.position[rows]
+                h_alt, v_alt, _ = protection_levels_local(J_a, s_a, keep_a, lam0, k)
                 dh = np.hypot(d[:, 0], d[:, 1])
                 amb_dist[rows] = np.linalg.norm(d, axis=1)
-                amb_pos[rows] = x_alt[amb]
-                amb_terms[rows] = np.column_stack(
-                    (hpl[rows], vpl[rows], h_alt, v_alt, T_alt[amb]))
+                amb_pos[rows] = x_a
+                amb_terms[rows] = np.column_stack((hpl[rows], vpl[rows], h_alt, v_alt, T_a))
+                amb_kept[rows] = keep_a
                 hpl[rows] = np.fmax(hpl[rows], dh + h_alt)  # NaN h_alt: keep the fix's
                 if p == 3:
                     vpl[rows] = np.fmax(vpl[rows], np.abs(d[:, 2]) + v_alt)
+
+            if np.any(amb):
+                rows = cand[amb]
+                ambiguous(rows, x_alt[amb], J_alt[amb], sc[amb], keep[rows], T_alt[amb])
+            # a wrong exclusion: where the test left observations out and the mirror on
+            # the kept ones failed, the mirror refined on every heard observation, with
+            # one exclusion of its own by the w-test, may pass (the excluded anchor was
+            # the one off the line that told the sides apart)
+            ex = ~amb & np.any(heard[cand] & ~keep[cand], axis=1)
+            if np.any(ex):
+                rows2, sc2 = cand[ex], sc[ex]
+                hk = heard[rows2]
+                x2, _, J2 = mirror_solution(range_model, sol.position[rows2], v[rows2], sc2,
+                                            hk)
+                obs2 = range_model.predict(sol.position[rows2]) - v[rows2]
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    u2 = np.where(hk, (range_model.predict(np.nan_to_num(x2)) - obs2) / sc2,
+                                  np.nan)
+                    _, _, r2 = protection_levels_local(J2, sc2, hk, lam0, k)
+                    w2 = np.abs(u2) / np.sqrt(np.where(r2 > R_MIN, r2, np.nan))
+                w2 = np.where(np.isfinite(w2), w2, -1.0)
+                jj = np.argmax(w2, axis=1)
+                ii = np.arange(jj.size)
+                keep2 = hk.copy()
+                drop = w2[ii, jj] > w_critical(alpha0)
+                keep2[ii[drop], jj[drop]] = False
+                T2 = np.nansum(np.where(keep2, u2 * u2, 0.0), axis=1)
+                dof2 = keep2.sum(axis=1) - p
+                crit2 = np.full(jj.size, np.nan)
+                if np.any(dof2 >= 1):
+                    crit2[dof2 >= 1] = global_critical(dof2[dof2 >= 1], alpha0=alpha0,
+                                                       beta0=beta0)
+                amb2 = np.isfinite(x2[:, 0]) & (dof2 >= 1) & (T2 <= crit2)
+                if np.any(amb2):
+                    ambiguous(rows2[amb2], x2[amb2], J2[amb2], sc2[amb2], keep2[amb2],
+                              T2[amb2])
     usable = st.among(new, st.USABLE)
     # nothing bounds a usable fix whose bound could not be computed (no redundancy, no
     # scale): infinite, never NaN -- a NaN would pass every ``error > hpl`` check unseen
@@ -716,6 +771,7 @@ def protect(
         extra["ambiguity_position"] = np.where(usable[:, None], amb_pos, np.nan)
         extra["ambiguity_terms"] = np.where(usable[:, None], amb_terms, np.nan)
         extra["test_kept"] = keep
+        extra["ambiguity_kept"] = amb_kept
     # ``excluded`` and ``n_used`` stay the estimator's (what the fix used); the test's
     # flags are in extra["flagged"]
     return replace(sol, status=new, position=np.where(usable[:, None], pos, np.nan),
