@@ -125,7 +125,7 @@ from numpy.typing import NDArray
 
 from robustloc import status as st
 from robustloc._stats import chi2_sf
-from robustloc.estimators.ranging import _unique_rows
+from robustloc.estimators.ranging import _unique_rows, canonical_rank
 from robustloc.estimators.solution import Solution
 from robustloc.integrity.bmethod import ALPHA0, BETA0, global_critical, lambda0, w_critical
 from robustloc.integrity.tests import R_MIN
@@ -472,13 +472,16 @@ def resolve_sides(sol: Solution, sides: tuple[tuple[tuple[int, ...], int], ...],
     a = range_model.anchors
     m = a.shape[0]
     known = []  # (size, mask, side): the most specific set first
+    rank = canonical_rank(a)
     for idx, side in sides:
         if not idx or max(idx) >= m:  # (sides of another layout: not these anchors')
             continue
         mask = np.zeros(m, dtype=bool)
         mask[list(idx)] = True
         known.append((len(idx), mask, side))
-    known.sort(key=lambda k: k[0])
+    # of sets of one size, the first in the layout's own order (canonical_rank), not the
+    # anchors file's: the same anchors listed in another order move the same fixes
+    known.sort(key=lambda k: (k[0], sorted(rank[k[1]].tolist())))
     patterns, inverse = _unique_rows(extra["test_kept"][rows])
     swap = np.zeros(rows.size, dtype=bool)
     H = np.zeros((rows.size, p, p))
