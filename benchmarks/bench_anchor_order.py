@@ -86,36 +86,27 @@ def real_sets(data: Path, k: int) -> pd.DataFrame:
 
 
 def seed000(seeds: int, orders: int) -> pd.DataFrame:
-    from robustloc.io import to_epochs
-    from robustloc.models.calibration import calibrate_pathloss
-    from robustloc.models.pathloss import log_distance_arrays
-    from robustloc.sim import ble_corridor as bc
+    from robustloc.sim.ble_corridor import calibrated_log
 
     out: dict[tuple[int, str, str], list[float]] = {}
     for scheme, dist in ((1, False), (2, True)):
         for seed in range(1, seeds + 1):
-            fr = bc.simulate_ble_corridor(seed=seed, disturbance=dist)
-            cal = calibrate_pathloss(fr["survey"], "log-distance", pooled=True)
-            anchors = cal.apply_to_anchors(fr["anchors"][["anchor", "x", "y"]])
-            ids = [str(a) for a in anchors["anchor"]]
-            A, n = (np.asarray(v) for v in log_distance_arrays(anchors))
-            xy = anchors[["x", "y"]].to_numpy(float)
-            ep = to_epochs(fr["measurements"], ids)
-            truth = (fr["truth"].set_index(["time", "tag"])
-                     .loc[list(zip(ep.time, ep.tag))][["x", "y"]].to_numpy())
-            perms = [("file", np.arange(len(ids)))] + [
-                ("random", np.random.default_rng(1000 * r + seed).permutation(len(ids)))
+            log = calibrated_log(seed, dist)
+            xy, A, n, ep, truth = (log[k] for k in ("xy", "A", "n", "epochs", "truth"))
+            m = xy.shape[0]
+            perms = [("file", np.arange(m))] + [
+                ("random", np.random.default_rng(1000 * r + seed).permutation(m))
                 for r in range(1, orders + 1)]
             for label, p in perms:
-                for m in ("nls", "huber", "igg", "auto"):
-                    loc = Locator(m)
-                    if m == "auto":
+                for meth in ("nls", "huber", "igg", "auto"):
+                    loc = Locator(meth)
+                    if meth == "auto":
                         sol = locate_protected(loc, xy[p], ep.values[:, p], "rssi", A=A[p],
                                                n=n[p])
                     else:
                         sol = loc.solve(xy[p], ep.values[:, p], "rssi", A=A[p], n=n[p])
                     err = np.linalg.norm(sol.position - truth, axis=1)
-                    out.setdefault((scheme, m, label), []).append(float(np.nanmean(err)))
+                    out.setdefault((scheme, meth, label), []).append(float(np.nanmean(err)))
     rows = [{"scheme": s, "method": m, "anchor order": lab, "mean error (m)": np.mean(v)}
             for (s, m, lab), v in sorted(out.items())]
     return pd.DataFrame(rows)

@@ -910,19 +910,11 @@ def test_the_log_side_does_not_depend_on_the_anchors_order():
     other fixes (the default's mean error 1.107 -> 1.117 m).  Sets of one size now go in
     the layout's own order (canonical_rank): every fix, status and bound the same, to the
     rounding of sums taken in another order."""
-    from robustloc.io import to_epochs
-    from robustloc.models.calibration import calibrate_pathloss
-    from robustloc.models.pathloss import log_distance_arrays
-    from robustloc.sim import ble_corridor as bc
+    from robustloc.sim.ble_corridor import calibrated_log
 
-    fr = bc.simulate_ble_corridor(seed=10, disturbance=False)
-    cal = calibrate_pathloss(fr["survey"], "log-distance", pooled=True)
-    anchors = cal.apply_to_anchors(fr["anchors"][["anchor", "x", "y"]])
-    ids = [str(a) for a in anchors["anchor"]]
-    A, n = (np.asarray(v) for v in log_distance_arrays(anchors))
-    xy = anchors[["x", "y"]].to_numpy(float)
-    ep = to_epochs(fr["measurements"], ids)
-    p = np.random.default_rng(1010).permutation(len(ids))
+    log = calibrated_log(seed=10)
+    xy, A, n, ep = log["xy"], log["A"], log["n"], log["epochs"]
+    p = np.random.default_rng(1010).permutation(xy.shape[0])
     s0 = locate_protected(Locator("auto"), xy, ep.values, "rssi", A=A, n=n)
     s1 = locate_protected(Locator("auto"), xy[p], ep.values[:, p], "rssi", A=A[p], n=n[p])
     assert s0.extra["side_from_log"].sum() > 0  # the log's side moved fixes here

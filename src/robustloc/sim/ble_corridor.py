@@ -225,6 +225,34 @@ def simulate_ble_corridor(seed: int = 1, disturbance: bool = False) -> dict[str,
     return out
 
 
+def calibrated_log(seed: int = 1, disturbance: bool = False) -> dict[str, object]:
+    """A simulated log as the seed-000 workflow solves it: the path loss calibrated from
+    the survey (log-distance, pooled), then the measurements pivoted to epochs.
+
+    Returns
+    -------
+    dict
+        ``xy`` (m, 2) beacon coordinates, ``A`` and ``n`` (m,) calibrated path-loss
+        parameters, ``epochs`` (:class:`robustloc.io.tables.Epochs`, columns in the
+        beacons' order), ``truth`` ``(N, 2)`` the true position of each epoch, and
+        ``frames`` (:func:`simulate_ble_corridor`'s output).
+    """
+    from robustloc.io.tables import to_epochs
+    from robustloc.models.calibration import calibrate_pathloss
+    from robustloc.models.pathloss import log_distance_arrays
+
+    fr = simulate_ble_corridor(seed=seed, disturbance=disturbance)
+    cal = calibrate_pathloss(fr["survey"], "log-distance", pooled=True)
+    anchors = cal.apply_to_anchors(fr["anchors"][["anchor", "x", "y"]])
+    ids = [str(a) for a in anchors["anchor"]]
+    A, n = (np.asarray(v, dtype=float) for v in log_distance_arrays(anchors))
+    ep = to_epochs(fr["measurements"], ids)
+    truth = (fr["truth"].set_index(["time", "tag"]).loc[list(zip(ep.time, ep.tag))]
+             [["x", "y"]].to_numpy(dtype=float))
+    return {"xy": anchors[["x", "y"]].to_numpy(dtype=float), "A": A, "n": n, "epochs": ep,
+            "truth": truth, "frames": fr}
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Scenario options of ``robustloc simulate ble-corridor``."""
     parser.add_argument(
