@@ -122,8 +122,8 @@ def _frozen(*arrays: NDArray) -> None:
 
 #: The iterative solvers' least-median-of-squares start tries every minimal anchor subset
 #: when there are at most this many (2-D: up to 6 anchors; 3-D: up to 6), and a fixed
-#: pseudo-random choice of about this many otherwise (:func:`minimal_subsets`).  Every
-#: subset is not better: on the seed-000 corridor (10 beacons, 120 subsets; seeds 1-10)
+#: pseudo-random choice of about this many otherwise (:func:`minimal_subsets`).  Trying
+#: every subset is not better: on the seed-000 corridor (10 beacons, 120 subsets; seeds 1-10)
 #: IGG's mean error rose 1.60 -> 1.76 m (scheme 1) and 2.44 -> 2.64 m (scheme 2) with all
 #: of them, and the robust fits took twice as long (measured 2026-12-02).
 MAX_SUBSETS = 24
