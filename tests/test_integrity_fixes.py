@@ -363,6 +363,71 @@ def test_fix_on_the_mirror_side_is_covered_by_the_ambiguity_term():
     assert right.extra["hpl"][0] >= float(np.linalg.norm(mirror - truth))
 
 
+def test_a_wrong_exclusion_of_the_anchor_off_the_line_makes_the_fix_ambiguous():
+    """Four nearly collinear anchors and a fifth, D, 8 m off their line on the tag's side;
+    the tag 3 m off the line, exact ranges except a 1.5 m NLOS bias on the first anchor,
+    sigma 0.3 m.  A fix at the second minimum of the four line ranges (found by scipy from
+    the reflected truth), D excluded as the estimator would (its residual there is
+    metres), passes its own test: wrong by 6.9 m with a slope bound of 2.9 m.  The mirror
+    on the four kept ranges fails its test (the NLOS range misfits there), so the plain
+    ambiguity check does not see it; refined on every heard range with one w-test
+    exclusion, the mirror keeps D, drops the biased range and passes.  The fix is then
+    ambiguous: its bound covers the truth.  Without D heard nothing tells the sides apart
+    and the fix stays as it was (the check adds no term out of nothing)."""
+    from dataclasses import replace
+
+    from scipy.optimize import least_squares
+
+    from robustloc.integrity.bmethod import global_critical
+    from robustloc.integrity.fixes import mirror_solution
+    from robustloc.models.ranging import RangeModel
+
+    an = np.vstack([NEAR_LINE, [[15.0, -8.0]]])
+    model, sig = RangeModel(an), 0.3
+    truth = np.array([[12.0, -3.0]])
+    d = np.linalg.norm(truth - an, axis=1)
+    d[0] += 1.5
+    res = least_squares(lambda p: (np.linalg.norm(p - NEAR_LINE, axis=1) - d[:4]) / sig,
+                        [12.0, 3.0])
+    wrong = res.x[None, :]
+    err = float(np.linalg.norm(wrong - truth))
+    assert wrong[0, 1] > 2.0 and err > 6.0  # the second minimum, across the line
+
+    def fix_at(obs, excluded):
+        sol = Locator("nls", sigma=sig, robust_scale="apriori").solve(an, obs[None])
+        f, J = model.predict_jacobian(wrong)
+        return replace(sol, position=wrong, excluded=excluded,
+                       extra=dict(sol.extra, range_residuals=f - obs[None], jacobian=J))
+
+    sol = fix_at(d, np.array([[False] * 4 + [True]]))
+    crit = float(global_critical(np.array([2]))[0])
+    # preconditions: the wrong fix passes its test on the kept ranges, its mirror on
+    # them does not, and the slope bound alone misses the error
+    assert 2 * res.cost <= crit
+    kept = np.array([[True] * 4 + [False]])
+    _, T_first, _ = mirror_solution(model, wrong, sol.extra["range_residuals"],
+                                    np.full((1, 5), sig), kept)
+    assert T_first[0] > crit
+    plain = protect(sol)
+    assert plain.status[0] == st.FAULT_EXCLUDED and plain.extra["hpl"][0] < err
+    out = protect(sol, range_model=model)
+    assert out.status[0] == st.FAULT_EXCLUDED  # a bound, never a new status
+    assert out.extra["hpl"][0] >= err
+    alt = out.extra["ambiguity_position"][0]
+    # on the tag's side, within the alternative's own slope bound (refined with the
+    # biased range in, which pulls it 0.4 m)
+    assert alt[1] < 0 and np.linalg.norm(alt - truth[0]) <= out.extra["ambiguity_terms"][0, 2]
+    assert out.extra["ambiguity_terms"][0, 4] <= crit  # the alternative passes
+    np.testing.assert_array_equal(out.extra["ambiguity_kept"][0],
+                                  [False, True, True, True, True])
+    # control: D not heard -- no excluded anchor to re-admit, no ambiguity
+    d_unheard = d.copy()
+    d_unheard[4] = np.nan
+    blind = protect(fix_at(d_unheard, np.zeros((1, 5), dtype=bool)), range_model=model)
+    assert np.isnan(blind.extra["ambiguity_position"][0, 0])
+    assert blind.extra["hpl"][0] == pytest.approx(plain.extra["hpl"][0], rel=1e-9)
+
+
 @settings(max_examples=40, deadline=None)
 @given(st_.floats(-3.0, 3.0), st_.floats(-20.0, 20.0), st_.floats(1.0, 15.0),
        st_.floats(-1.5, 1.5))
