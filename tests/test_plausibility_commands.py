@@ -4,6 +4,8 @@ Monte Carlo memory of ``simulate``, ``stats``, ``reliability``, ``filter`` and
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -202,8 +204,47 @@ def test_filter_keeps_implausible_rssi_out_of_the_filter(tmp_path, capsys):
     assert len(f) == len(m)  # every row kept
     assert list(f.index[f["status"] == "invalid_measurement"]) == [100, 200]
     assert f.loc[[100, 200], "rssi_raw"].tolist() == [-500.0, 1e300]
-    assert f["rssi"].between(-150, 30).all()  # the prediction, not the absurd value
-    assert np.isnan(f.loc[[100, 200], "weight"]).all()
+    # the raw value stays in 'rssi' too, so `locate` sets the row aside (the filter's
+    # prediction there made `locate` count it as heard: the helper-24 report)
+    assert f.loc[[100, 200], "rssi"].tolist() == [-500.0, 1e300]
+    assert f.drop(index=[100, 200])["rssi"].between(-150, 30).all()
+    assert np.isnan(f.loc[[100, 200], ["weight", "distance"]].to_numpy()).all()
+    assert np.isfinite(f.loc[[100, 200], "distance_state"]).all()  # the prediction
+
+
+def test_locate_on_the_filtered_file_sets_invalid_rows_aside_as_on_the_raw_file(
+        tmp_path, capsys):
+    """filter -> locate: an invalid row (RSSI or time out of limits) of the filtered file
+    is not heard and is counted, exactly as in the raw file.  Before, the first row of a
+    link became an empty 'rssi' (locate: "column 'rssi': missing or NaN value", exit 2)
+    and a later one the filter's prediction, which locate counted as heard (n_used 4
+    where the raw file gives 3)."""
+    sim = tmp_path / "room"
+    assert main(["simulate", "wifi-room", "--seed", "1", "--out", str(sim)]) == 0
+    m = pd.read_csv(sim / "measurements.csv").iloc[:600].reset_index(drop=True)
+    first = m.groupby("anchor").head(1).index[0]  # the first sample of its link
+    bad_rows = [first, 300, 450]
+    m.loc[first, "rssi"] = 500.0
+    m.loc[300, "rssi"] = -500.0
+    m.loc[450, "time"] = 5e12
+    raw = tmp_path / "m.csv"
+    m.to_csv(raw, index=False)
+    anchors = str(sim / "anchors.csv")
+    assert main(["filter", raw.as_posix(), "--anchors", anchors, "-o",
+                 str(tmp_path / "f.csv")]) == 0
+    capsys.readouterr()
+    for name in ("m.csv", "f.csv"):
+        assert main(["locate", str(tmp_path / name), "--anchors", anchors, "--json",
+                     "-o", str(tmp_path / f"pos_{name}")]) == 0
+        summary = json.loads(capsys.readouterr().out)
+        assert summary["invalid_measurement_rows"] == 3, name
+    a = pd.read_csv(tmp_path / "pos_m.csv")
+    b = pd.read_csv(tmp_path / "pos_f.csv")
+    assert len(a) == len(b)
+    assert (a["n_used"].to_numpy() == b["n_used"].to_numpy()).all()
+    # n_used counts the observations a fix kept; none of this walk's is excluded, so
+    # the fixes keep every valid row and no invalid one
+    assert int(b["n_used"].sum()) == len(m) - len(bad_rows)
 
 
 def test_filter_keeps_implausible_times_out_of_the_filter(tmp_path, capsys):
@@ -237,5 +278,6 @@ def test_filter_keeps_implausible_times_out_of_the_filter(tmp_path, capsys):
     assert len(f) == len(m)
     assert list(f.index[f["status"] == "invalid_measurement"]) == bad_rows
     assert f.loc[bad_rows, "rssi_raw"].tolist() == m.loc[bad_rows, "rssi"].tolist()
-    assert f.loc[bad_rows, "rssi"].isna().all()
+    assert f.loc[bad_rows, "rssi"].tolist() == m.loc[bad_rows, "rssi"].tolist()
+    assert f.loc[bad_rows, "time"].tolist() == [1e300, 2e12]
     pd.testing.assert_frame_equal(f.drop(index=bad_rows).reset_index(drop=True), g)

@@ -27,8 +27,10 @@ filtered value (so 'robustloc locate' runs on it unchanged), plus 'rssi_raw', 'd
 (m, the filtered RSSI through the anchor's path-loss model), 'distance_state' (the filter's
 own d, weakly observable from RSSI alone), 'speed' (m/s), 'weight' (D), 'innovation' (dB)
 and 'relocked'.  An RSSI outside -150 .. +30 dBm (robustloc.io.limits) is not fed to the
-filter: its row keeps the raw value in 'rssi_raw', 'rssi' is the filter's prediction and
-'status' says invalid_measurement (else ok); such rows are counted in the summary.
+filter, nor is a row whose time is beyond +-1e12 s: the row keeps the raw value in 'rssi'
+and 'rssi_raw' (so 'locate' sets it aside as on the raw file), 'distance' is empty,
+'distance_state' and 'speed' are the filter's prediction, and 'status' says
+invalid_measurement (else ok); such rows are counted in the summary.
 Use --static when the receivers do not move.  Path-loss parameters come
 from the anchors file (p0, gamma, faf, d0 or A, n).
 
@@ -86,9 +88,10 @@ def filter_frame(meas, anchors, args: argparse.Namespace, progress: bool = False
 
     The single core of ``filter``: the whole file here, each tag partition under
     ``--engine dask``.  RSSI outside the physical limits (robustloc.io.limits) never
-    reaches the filter: its row keeps the raw value in ``rssi_raw``, the prediction in
-    ``rssi`` and status ``invalid_measurement``; a row whose time is outside the limits
-    likewise (no prediction: ``rssi`` empty).  Returns ``(frame, summary)``.
+    reaches the filter: its row keeps the raw value in ``rssi`` and ``rssi_raw``, no
+    ``distance``, and status ``invalid_measurement``; a row whose time is outside the
+    limits likewise.  So ``locate`` on the output sets such rows aside as it does on the
+    raw file.  Returns ``(frame, summary)``.
     """
     import numpy as np
 
@@ -129,12 +132,17 @@ def filter_frame(meas, anchors, args: argparse.Namespace, progress: bool = False
         for c in ("time", "tag", "anchor"):
             frame[c] = meas[c].to_numpy()
         frame["relocked"] = frame["relocked"].fillna(False).astype(bool)
-    if bad.any() or late.any():
+    bad = bad | late
+    if bad.any():
+        # an invalid row keeps its raw value in 'rssi' too, so that `locate` on the
+        # filtered file sets it aside exactly as on the raw file (it never counts as
+        # heard); 'distance' (the filtered RSSI through the model) has no value, while
+        # 'distance_state' and 'speed' keep the filter's prediction of the link
         frame = frame.copy()
         values = raw if raw is not None else meas["rssi"].to_numpy(dtype=float)
-        frame["rssi_raw"] = np.where(bad | late, values,
-                                     frame["rssi_raw"].to_numpy(dtype=float))
-    bad = bad | late
+        for c in ("rssi", "rssi_raw"):
+            frame[c] = np.where(bad, values, frame[c].to_numpy(dtype=float))
+        frame["distance"] = np.where(bad, np.nan, frame["distance"].to_numpy(dtype=float))
     frame["status"] = np.where(bad, st.INVALID, st.OK)
     return frame, dict(res.summary, samples=int(len(meas)), invalid_measurement=int(bad.sum()))
 
