@@ -381,6 +381,38 @@ def test_epoch_with_only_absurd_rows_gets_status_invalid(files, capsys):
     np.testing.assert_array_equal(e.all_invalid, [True, False, True])
 
 
+def test_track_sets_absurd_rows_aside_and_counts_them(files, capsys):
+    """``track``: an epoch at a time of 1e13 s (after the last fix, and -1e13 s before the
+    first) went through the filter's prediction: a `predicted` row at x ~ 1e12 m with an
+    hpl of 1e26 m, counted usable; and rows outside the limits were never counted.  Now
+    such an epoch is invalid_measurement with no state (as in ``locate``), the others are
+    tracked exactly as without it, and the summary counts the rows."""
+    rows = _ranges(12)
+    clean = rows.copy()
+    rows.loc[len(rows)] = [1e13, "T0", "a", 10.0]  # a whole epoch beyond the limits
+    rows.loc[len(rows)] = [-1e13, "T0", "b", 10.0]
+    rows.loc[9, "range"] = 2e5  # one absurd range in an epoch of four
+    rows.to_csv(files / "bad.csv", index=False)
+    clean.loc[9, "range"] = np.nan
+    clean.dropna().to_csv(files / "clean.csv", index=False)
+    for name in ("bad", "clean"):
+        assert main(["track", str(files / f"{name}.csv"), "--anchors", str(files / "a.csv"),
+                     "-o", str(files / f"t_{name}.csv"), "--json"]) == 0
+        summary = json.loads(capsys.readouterr().out)
+        assert summary["invalid_measurement_rows"] == (3 if name == "bad" else 0)
+    assert summary["status"] == {"ok": 12}
+    t = pd.read_csv(files / "t_bad.csv")
+    assert len(t) == 14
+    far = t[t["time"].abs() > 1e12]
+    assert (far["status"] == "invalid_measurement").all()
+    assert far[["x", "y", "hpl"]].isna().all().all()
+    ref = pd.read_csv(files / "t_clean.csv")
+    pd.testing.assert_frame_equal(t[t["time"].abs() < 1e12].reset_index(drop=True), ref)
+    assert main(["track", str(files / "bad.csv"), "--anchors", str(files / "a.csv"),
+                 "-o", str(files / "t_bad.csv")]) == 0
+    assert "invalid_measurement: 3 rows" in capsys.readouterr().out
+
+
 def test_rssi_limits(tmp_path):
     p = tmp_path / "m.csv"
     p.write_text("time,tag,anchor,rssi\n0,T,a,-500\n0,T,b,50\n0,T,c,-60\n0,T,d,-150\n")

@@ -141,9 +141,12 @@ def track_partition(meas: pd.DataFrame, anchors: pd.DataFrame, args: argparse.Na
     trk = settings.tracker(anchors)
     epochs = to_epochs(meas, trk.anchor_ids)  # sorted by (time, tag): each tag in order
     hist: dict[str, int] = {}
-    table, n, counts = track_blocks(trk, [epochs], settings, hpl_histogram=hist, source=meas)
+    tally: dict[str, int] = {}
+    table, n, counts = track_blocks(trk, [epochs], settings, hpl_histogram=hist, source=meas,
+                                    tally=tally)
     return table, {"epochs": n, "tags": len(trk.tags), "status": counts,
-                   "hpl_histogram": {trk.method: hist}}
+                   "hpl_histogram": {trk.method: hist},
+                   "invalid_measurement_rows": tally.get("invalid_measurement_rows", 0)}
 
 
 def track_partition_file(args: argparse.Namespace) -> dict:
@@ -152,7 +155,8 @@ def track_partition_file(args: argparse.Namespace) -> dict:
     additive counts of its summary."""
     s = track_file(args)
     return {"epochs": s["epochs"], "tags": s["tags"], "status": s["status"],
-            "hpl_histogram": s["hpl_histogram"], "rows_out": s["epochs"]}
+            "hpl_histogram": s["hpl_histogram"], "rows_out": s["epochs"],
+            "invalid_measurement_rows": s["invalid_measurement_rows"]}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -174,6 +178,9 @@ def run(args: argparse.Namespace) -> int:
           file=dest)
     if summary.get("sorted_first"):  # (the Dask engine's summary has no such key)
         print("  rows were not in epoch order: sorted by time and tag first", file=dest)
+    if summary["invalid_measurement_rows"]:
+        print(f"  invalid_measurement: {summary['invalid_measurement_rows']} rows (outside "
+              "the physical limits of robustloc.io.limits; not used)", file=dest)
     print("  " + ", ".join(f"{k}: {v}" for k, v in sorted(summary["status"].items())),
           file=dest)
     from robustloc.pipelines.locate import hpl_lines

@@ -299,6 +299,7 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
             "hpl_histogram": total.get("hpl_histogram", {}),
             "side_from_log": total.get("side_from_log", {}),
             "duplicates_merged": total.get("duplicates_merged", 0),
+            "invalid_measurement_rows": total.get("invalid_measurement_rows", 0),
             "seconds": round(wall, 3),
             "epochs_per_second": round(total.get("epochs", 0) / max(wall, 1e-9), 1),
             "files": [{"input": info.part.path, "output": Path(out.part(i)).name}
@@ -387,6 +388,9 @@ def _report(args: argparse.Namespace, summary: dict) -> None:
     print(f"{n} {'epochs of ' + what if 'epochs' in summary else 'rows'} in "
           f"{summary['partitions']} partitions -> {summary['out']} "
           f"({summary['seconds']:.2f} s on {summary['workers']} dask workers)")
+    if summary.get("invalid_measurement_rows"):
+        print(f"  invalid_measurement: {summary['invalid_measurement_rows']} rows (outside "
+              "the physical limits of robustloc.io.limits; not used)")
     for m, c in summary.get("status", {}).items():
         print(f"  {m:9s} " + ", ".join(f"{k}: {v}" for k, v in sorted(c.items())))
     if summary.get("hpl_histogram"):

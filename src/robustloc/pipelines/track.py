@@ -131,15 +131,16 @@ def run_track(
                               if src])
     t0 = _time.perf_counter()
     try:
-        trk, frame, n_epochs, counts, hist, resorted = _one_pass(
+        trk, frame, n_epochs, counts, hist, resorted, n_invalid = _one_pass(
             measurements, anchors, settings, out, "auto", progress)
     except UnsortedInput:
-        trk, frame, n_epochs, counts, hist, resorted = _one_pass(
+        trk, frame, n_epochs, counts, hist, resorted, n_invalid = _one_pass(
             measurements, anchors, settings, out, "sort", progress)
     wall = _time.perf_counter() - t0
     summary = {"measurements": _display(measurements),
                "track": "<DataFrame>" if out is None else str(out), "epochs": n_epochs,
                "tags": len(trk.tags), "method": trk.method, "status": counts,
+               "invalid_measurement_rows": n_invalid,
                "hpl_histogram": {trk.method: hist},
                "smoother": (("fixed-lag" if settings.fixed_lag else "rts")
                             if settings.smoothing else None),
@@ -163,6 +164,7 @@ def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
 
     trk = settings.tracker(anchors)
     hist: dict[str, int] = {}
+    tally: dict[str, int] = {}
     resorted = [order == "sort"]
     bar = tqdm(unit=" epochs", disable=not progress or not sys.stderr.isatty(),
                file=sys.stderr)
@@ -177,7 +179,7 @@ def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
                     resorted)
                 table, n, status_counts = track_blocks(
                     trk, blocks, settings, None if writer is None else writer.write,
-                    bar.update, hist, source=measurements)
+                    bar.update, hist, source=measurements, tally=tally)
             finally:
                 if writer is not None:
                     writer.close()
@@ -188,7 +190,8 @@ def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
                     write_table(table, target, parquet=is_parquet(out))
     finally:
         bar.close()
-    return trk, table if out is None else None, n, status_counts, hist, resorted[0]
+    return (trk, table if out is None else None, n, status_counts, hist, resorted[0],
+            tally.get("invalid_measurement_rows", 0))
 
 
 def _noting_sort(blocks: Any, resorted: list[bool]) -> Any:
@@ -203,6 +206,7 @@ def track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
                  progress: Callable[[int], Any] | None = None,
                  hpl_histogram: dict[str, int] | None = None,
                  source: Any = None,
+                 tally: dict[str, int] | None = None,
                  ) -> tuple[pd.DataFrame | None, int, dict[str, int]]:
     """The single core of ``track``: every epoch block through ``trk`` in order.
 
@@ -226,6 +230,9 @@ def track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
     source : path or DataFrame, optional
         The log, to name in errors: ``--domain rssi`` on a range log is refused
         (:func:`robustloc.pipelines.locate.refuse_rssi_options`), not ignored.
+    tally : dict, optional
+        Its ``invalid_measurement_rows`` is increased by the rows outside the physical
+        limits (robustloc.io.limits), which no update uses.
 
     Returns
     -------
@@ -260,6 +267,9 @@ def track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
         if n == 0:
             compile_notice("filter", "tracker")
         rows = trk.step(block)
+        if tally is not None:
+            tally["invalid_measurement_rows"] = (tally.get("invalid_measurement_rows", 0)
+                                                 + int(np.sum(block.n_invalid)))
         for k, v in rows["status"].value_counts().items():
             status_counts[str(k)] = status_counts.get(str(k), 0) + int(v)
         if not smooth:

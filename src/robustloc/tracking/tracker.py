@@ -498,12 +498,18 @@ class Tracker:
         tags = np.asarray(epochs.tag, dtype=object)
         z_all = self._calibrate(np.asarray(epochs.values, dtype=float))
         slots = self._slots(tags)
+        # an epoch whose every row is outside the physical limits (robustloc.io.limits,
+        # e.g. a time of 1e13 s) keeps status invalid_measurement and no state: it never
+        # reaches the filter (a prediction to such a time was an absurd `predicted` row)
+        live = ~np.asarray(epochs.all_invalid, dtype=bool)
         rank = _rank_within(slots)
         order = np.argsort(rank, kind="stable")
         bounds = np.searchsorted(rank[order], np.arange(rank.max() + 2))
         for r in range(rank.max() + 1):
             idx = order[bounds[r]: bounds[r + 1]]
-            self._round(idx, slots[idx], time[idx], z_all[idx], out)
+            idx = idx[live[idx]]
+            if idx.size:
+                self._round(idx, slots[idx], time[idx], z_all[idx], out)
         return self._frame(epochs, out)
 
     # ------------------------------------------------------------------ one round
