@@ -191,3 +191,38 @@ def test_reproduce_section_quick_without_shared_data(tmp_path):
     assert any("Table 3" in c for c in captions) and any("Table 1" in c for c in captions)
     figs = [p[1] for k, p in sec.blocks if k == "figure"]
     assert all((tmp_path / f).is_file() for f in figs) and len(figs) >= 2
+
+
+def test_friis_anchors_from_calibrate_work_in_locate_track_and_filter(sim, tmp_path, capsys):
+    """`calibrate --model friis` writes ``p0, d0`` and no ``gamma``.  Before, `locate`
+    refused that file without ``--model friis`` ("anchors have no path-loss parameters"),
+    `track` (which has no ``--model``) could not use it at all, and `filter` ignored
+    ``p0`` for its distances (-40 dBm, the no-parameters default).  Friis is the
+    attenuation-factor model with gamma = 2 and no FAF (seed 002, eqs. (1) and (5)), so
+    each command must give exactly what it gives on that file."""
+    fr = tmp_path / "friis.csv"
+    assert main(["calibrate", str(sim["survey"]), "--model", "friis",
+                 "--anchors", str(sim["anchors"]), "-o", str(fr)]) == 0
+    a = pd.read_csv(fr)
+    assert "p0" in a and "gamma" not in a
+    att = tmp_path / "att.csv"
+    a.assign(gamma=2.0, faf=0.0).to_csv(att, index=False)
+    meas = str(sim["measurements"])
+    for cmd, extra in (("locate", []), ("track", []), ("filter", [])):
+        outs = []
+        for anchors in (fr, att):
+            out = tmp_path / f"{cmd}_{anchors.stem}.csv"
+            assert main([cmd, meas, "--anchors", str(anchors), "-o", str(out), "--quiet"]
+                        + extra) == 0, cmd
+            outs.append(pd.read_csv(out))
+        pd.testing.assert_frame_equal(outs[0], outs[1], obj=cmd)
+    f = pd.read_csv(tmp_path / "filter_friis.csv")
+    first = f.groupby(["tag", "anchor"]).head(1).iloc[0]
+    p0 = float(a.set_index("anchor").loc[first["anchor"], "p0"])
+    # the first sample of a link: its distance is the model's at its RSSI (gamma = 2)
+    np.testing.assert_allclose(first["distance"], 10 ** ((p0 - first["rssi"]) / 20), rtol=1e-9)
+    explicit = tmp_path / "locate_explicit.csv"
+    assert main(["locate", meas, "--anchors", str(fr), "--model", "friis", "-o",
+                 str(explicit), "--quiet"]) == 0
+    pd.testing.assert_frame_equal(pd.read_csv(explicit),
+                                  pd.read_csv(tmp_path / "locate_friis.csv"))

@@ -32,7 +32,7 @@ and 'rssi_raw' (so 'locate' sets it aside as on the raw file), 'distance' is emp
 'distance_state' and 'speed' are the filter's prediction, and 'status' says
 invalid_measurement (else ok); such rows are counted in the summary.
 Use --static when the receivers do not move.  Path-loss parameters come
-from the anchors file (p0, gamma, faf, d0 or A, n).
+from the anchors file (p0, gamma, faf, d0; p0, d0 for friis; or A, n).
 
 What it can gain (measured, issue 11): on the wifi-room walk (seed 3), positions from
 the filtered file (locate --method nls) against positions from the raw file:
@@ -161,11 +161,12 @@ def run(args: argparse.Namespace) -> int:
 
     anchors = read_anchors(args.anchors)
     cols = set(anchors.columns)
-    if not ({"A", "n"} <= cols or {"p0", "gamma"} <= cols):
+    if not ({"A", "n"} <= cols or "p0" in cols):
         # the filtered RSSI barely depends on it, but the distance columns would look real
-        print(f"warning: {args.anchors}: anchors have no path-loss parameters (A, n or p0, "
-              "gamma): the distance columns use p0 = -40 dBm, gamma = 2 and are only "
-              "indicative; run `robustloc calibrate` for real distances", file=sys.stderr)
+        print(f"warning: {args.anchors}: anchors have no path-loss parameters (A, n, or p0 "
+              "with gamma or alone for friis): the distance columns use p0 = -40 dBm, "
+              "gamma = 2 and are only indicative; run `robustloc calibrate` for real "
+              "distances", file=sys.stderr)
     meas = read_measurements(args.measurements, anchors)
     frame, summary = filter_frame(meas, anchors, args, progress=True)
     write_table(frame, args.out)

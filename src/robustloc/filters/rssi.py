@@ -673,9 +673,11 @@ def link_params_from_anchors(anchors: object, anchor_of_link: ArrayLike) -> Link
     """Path-loss parameters of each link from an anchors table.
 
     Attenuation-factor columns ``p0, gamma, faf, d0`` (seed 002 eq. (5)) when present and
-    finite for the anchor; else log-distance ``A, n`` (``p0 = A, gamma = n, FAF = 0,
-    d0 = 1 m``); else ``p0 = -40 dBm, gamma = 2`` (the distance state is then only
-    indicative; the filtered RSSI does not depend on it much).
+    finite for the anchor (``p0[, d0]`` without a ``gamma`` column: the free-space
+    model, ``gamma = 2``, as ``calibrate --model friis`` writes it); else
+    log-distance ``A, n`` (``p0 = A, gamma = n, FAF = 0, d0 = 1 m``); else
+    ``p0 = -40 dBm, gamma = 2`` (the distance state is then only indicative; the
+    filtered RSSI does not depend on it much).
     """
     import pandas as pd
 
@@ -690,6 +692,9 @@ def link_params_from_anchors(anchors: object, anchor_of_link: ArrayLike) -> Link
 
     p0, g, faf, d0 = col("p0"), col("gamma"), col("faf"), col("d0")
     A, nn = col("A"), col("n")
+    if "gamma" not in a.columns:  # friis: free space, gamma = 2 (seed 002, eq. (1)),
+        # where the anchor has no A, n (which locate would take first)
+        g = np.where(np.isfinite(p0) & ~(np.isfinite(A) & np.isfinite(nn)), 2.0, np.nan)
     att = np.isfinite(p0) & np.isfinite(g) & (g > 0)
     logd = ~att & np.isfinite(A) & np.isfinite(nn) & (nn > 0)
     return LinkParams(

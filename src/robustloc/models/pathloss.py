@@ -217,7 +217,8 @@ def model_from_anchors(anchors: pd.DataFrame, model: str | None = None) -> PathL
     model : {"log-distance", "attenuation-factor", "friis"}, optional
         Which columns to use.  Default: ``log-distance`` if ``A`` and ``n`` are present,
         else ``attenuation-factor`` if ``p0`` and ``gamma`` are (``faf`` defaults to 0 and
-        ``d0`` to 1 when absent).
+        ``d0`` to 1 when absent), else ``friis`` if ``p0`` is (the columns
+        ``calibrate --model friis`` writes).
 
     Raises
     ------
@@ -230,10 +231,13 @@ def model_from_anchors(anchors: pd.DataFrame, model: str | None = None) -> PathL
             model = "log-distance"
         elif {"p0", "gamma"} <= cols:
             model = "attenuation-factor"
+        elif "p0" in cols:  # as `calibrate --model friis` writes them
+            model = "friis"
         else:
             raise InputError(
-                "anchors have no path-loss parameters: need columns A, n (log-distance) "
-                "or p0, gamma[, faf, d0] (attenuation factor); run `robustloc calibrate`",
+                "anchors have no path-loss parameters: need columns A, n (log-distance), "
+                "p0, gamma[, faf, d0] (attenuation factor) or p0[, d0] (friis); run "
+                "`robustloc calibrate`",
                 anchors.attrs.get("path"),
                 1,
             )
