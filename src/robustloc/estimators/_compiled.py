@@ -30,13 +30,14 @@ import numpy as np
 from numba import njit
 
 from robustloc import status as st
-from robustloc.robust._compiled import HUBER, rho_value, weight_value
+from robustloc.robust._compiled import HAMPEL, HUBER, rho_value, weight_value
 
 OK, INSUFFICIENT, ILL, NOT_CONVERGED = 0, 1, 2, 3
 #: Status strings of the kernels' codes.
 CODES = np.array([st.OK, st.INSUFFICIENT, st.ILL_CONDITIONED, st.NOT_CONVERGED], dtype=object)
 COND_LIMIT = 1e10  # as robustloc.estimators._kernels.COND_LIMIT
 MAD_NORMAL = 0.6744897501960817
+COFACTOR_UPDATES = 20  # as robustloc.estimators.nonlinear.COFACTOR_UPDATES
 _HUBER_WARMUP = np.array([1.5, 0.0, 0.0])  # Huber(1.5), the redescending fits' first stage
 
 # ruff: noqa: N803, N806  (matrix names)
@@ -180,6 +181,54 @@ def _normal(J, w, r, Nm, g, tag):  # pragma: no cover - jit
     for k in range(p):
         for j in range(k):
             Nm[k, j] = Nm[j, k]
+
+
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def _sandwich(J, w0, w, qvv, out, Nm, Ni, tag):  # pragma: no cover - jit
+    """``out[i] = 1 / sqrt(Q_vv,ii)`` (NaN: untestable) of the fit weighted by ``w`` when
+    the observations' cofactors are ``1 / w0``, as
+    :func:`robustloc.estimators.nonlinear.sandwich_qvv`; the a-priori ``qvv`` where
+    ``J^T W J`` is singular or the value is not finite.  Overwrites ``Nm`` and ``Ni``."""
+    m, p = J.shape[0], len(tag)
+    for k in range(p):
+        for j in range(p):
+            Nm[k, j] = 0.0
+    for i in range(m):
+        wi = w[i]
+        if wi == 0.0:
+            continue
+        for k in range(p):
+            for j in range(k, p):
+                Nm[k, j] += J[i, k] * wi * J[i, j]
+    for k in range(p):
+        for j in range(k):
+            Nm[k, j] = Nm[j, k]
+    good = _inv_small(Nm, Ni, tag)
+    for i in range(m):
+        if not w0[i] > 0:
+            out[i] = math.nan
+            continue
+        if not good:
+            out[i] = qvv[i]
+            continue
+        q0 = 1.0 / w0[i]
+        q = q0
+        for kk in range(m):
+            if w[kk] == 0.0 and kk != i:
+                continue
+            gik = 0.0
+            for k in range(p):
+                for j in range(p):
+                    gik += J[i, k] * Ni[k, j] * J[kk, j]
+            if kk == i:
+                q -= 2.0 * gik * w[i] * q0
+            if w[kk] != 0.0:
+                q += gik * gik * w[kk] * w[kk] / w0[kk]
+        if not math.isfinite(q):
+            out[i] = qvv[i]
+            continue
+        q = max(q, 0.0)
+        out[i] = 1.0 / math.sqrt(q) if q > 1e-10 / max(w0[i], 1e-300) else math.nan
 
 
 # ------------------------------------------------------------------------ robust start
@@ -339,6 +388,11 @@ def _gn_iterate(a, ho2, zz, w0, x, w, u, code, prm, robust, scale_fixed, min_sca
     conv = False
     it = 0
     fresh = False  # pred and J hold the values at x (kept across a rejected step)
+    # redescending weights: the cofactors in use (vn, as 1 / sqrt(Q_vv)) follow the
+    # weights until the fit has converged once, then are held (as gauss_newton)
+    update = robust and code >= HAMPEL
+    frozen = False
+    pending = False
     while it < max_iter:
         if not fresh:
             _ranges(a, ho2, x, pred, J, tag)
@@ -372,11 +426,17 @@ def _gn_iterate(a, ho2, zz, w0, x, w, u, code, prm, robust, scale_fixed, min_sca
                 if not sc == sc:
                     sc = 0.0
                 stage_scale = max(sc, max(min_scale, 1e-12))
+            if it == 0:
+                for i in range(m):
+                    vn[i] = qvv[i]
+            elif update and not frozen:
+                _sandwich(J, w0, w, qvv, vn, Nm, Ni, tag)
+                frozen = pending or it >= COFACTOR_UPDATES
             inv_scale = 1.0 / stage_scale
             n_pos = 0
             for i in range(m):
                 if w0[i] > 0 and math.isfinite(r[i]):
-                    u[i] = -r[i] * qvv[i] * inv_scale if qvv[i] == qvv[i] else 0.0
+                    u[i] = -r[i] * vn[i] * inv_scale if vn[i] == vn[i] else 0.0
                 else:
                     u[i] = math.nan
                 pw = weight_value(code, prm, u[i])
@@ -431,6 +491,9 @@ def _gn_iterate(a, ho2, zz, w0, x, w, u, code, prm, robust, scale_fixed, min_sca
         flat = accept and (cost_old - cost_new <= 1e-6 * max(cost_old, 1e-300))
         finite = math.isfinite(step)
         done = (accept and step < tol) or flat or lam > 1e8 or not finite
+        if done and update and not frozen and finite and lam <= 1e8:
+            pending = True  # converged with moving cofactors: once more with them held
+            done = False
         if accept and not done:  # a step below rel_tol of the fix's standard error
             dof = max(n_pos - p, 1)
             trn = 0.0
@@ -442,6 +505,9 @@ def _gn_iterate(a, ho2, zz, w0, x, w, u, code, prm, robust, scale_fixed, min_sca
             elif sd == math.inf:
                 sd = 1.7976931348623157e308
             done = step <= rel_tol * sd
+            if done and update and not frozen:
+                pending = True
+                done = False
         if done:
             conv = finite
             break
@@ -653,6 +719,13 @@ def _fit_ranges(a, ho2, z, sig, x0, code, prm, robust, redescending, scale_fixed
             oa = _objective(VS, 1, sig, e, code, prm, sc, STS[1])
             ob = _objective(VS, 2, sig, e, code, prm, sc, STS[2])
             t = 2 if ob < oa else 1
+            # both starts reached one fix (within the step tolerance): the warm-up's, so
+            # the choice does not rest on rounding
+            same = True
+            for k in range(p):
+                same = same and abs(XS[1, k] - XS[2, k]) <= tol
+            if same:
+                t = 1
         for k in range(p):
             X[e, k] = XS[t, k]
             for j in range(p):
