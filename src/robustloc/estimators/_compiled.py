@@ -184,12 +184,21 @@ def _normal(J, w, r, Nm, g, tag):  # pragma: no cover - jit
 
 
 @njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
-def _sandwich(J, w0, w, qvv, out, Nm, Ni, tag):  # pragma: no cover - jit
+def _sandwich(J, w0, w, qvv, out, Nm, Ni, a, tag):  # pragma: no cover - jit
     """``out[i] = 1 / sqrt(Q_vv,ii)`` (NaN: untestable) of the fit weighted by ``w`` when
     the observations' cofactors are ``1 / w0``, as
-    :func:`robustloc.estimators.nonlinear.sandwich_qvv`; the a-priori ``qvv`` where
-    ``J^T W J`` is singular or the value is not finite.  Overwrites ``Nm`` and ``Ni``."""
+    :func:`robustloc.estimators.linear.sandwich_qvv`; the a-priori ``qvv`` where every
+    weight is full, ``J^T W J`` is singular or a value is not finite.  Overwrites ``Nm``,
+    ``Ni`` and the p-vector ``a``."""
     m, p = J.shape[0], len(tag)
+    full = True
+    for i in range(m):
+        if w[i] != w0[i]:
+            full = False
+    if full:
+        for i in range(m):
+            out[i] = qvv[i] if w0[i] > 0 else math.nan
+        return
     for k in range(p):
         for j in range(p):
             Nm[k, j] = 0.0
@@ -211,6 +220,11 @@ def _sandwich(J, w0, w, qvv, out, Nm, Ni, tag):  # pragma: no cover - jit
         if not good:
             out[i] = qvv[i]
             continue
+        for k in range(p):  # a = (J^T W J)^-1 J_i
+            t = 0.0
+            for j in range(p):
+                t += Ni[k, j] * J[i, j]
+            a[k] = t
         q0 = 1.0 / w0[i]
         q = q0
         for kk in range(m):
@@ -218,8 +232,7 @@ def _sandwich(J, w0, w, qvv, out, Nm, Ni, tag):  # pragma: no cover - jit
                 continue
             gik = 0.0
             for k in range(p):
-                for j in range(p):
-                    gik += J[i, k] * Ni[k, j] * J[kk, j]
+                gik += J[kk, k] * a[k]
             if kk == i:
                 q -= 2.0 * gik * w[i] * q0
             if w[kk] != 0.0:
@@ -430,7 +443,7 @@ def _gn_iterate(a, ho2, zz, w0, x, w, u, code, prm, robust, scale_fixed, min_sca
                 for i in range(m):
                     vn[i] = qvv[i]
             elif update and not frozen:
-                _sandwich(J, w0, w, qvv, vn, Nm, Ni, tag)
+                _sandwich(J, w0, w, qvv, vn, Nm, Ni, dx, tag)
                 frozen = pending or it >= COFACTOR_UPDATES
             inv_scale = 1.0 / stage_scale
             n_pos = 0

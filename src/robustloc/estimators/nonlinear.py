@@ -177,7 +177,10 @@ def gauss_newton(
                     upd = ~frozen[act]
                     if upd.any():
                         ia = act[upd]
-                        q_now[ia] = sandwich_qvv(J[upd], wa0[upd], w[ia], stage_qvv[ia])
+                        # (every weight full: the a-priori cofactors, as at the start)
+                        q_now[ia] = np.where(
+                            np.all(w[ia] == wa0[upd], axis=1)[:, None], stage_qvv[ia],
+                            sandwich_qvv(J[upd], wa0[upd], w[ia], stage_qvv[ia]))
                         frozen[ia] = pending[ia] | (it >= COFACTOR_UPDATES)
                 u, s_used = standardized_residuals(
                     np.where(wa0 > 0, -r, np.nan), q_now[act], wa0,
