@@ -388,3 +388,36 @@ def test_corridor_self_calibration_starts_on_the_logs_side():
     anchors = pd.DataFrame({"anchor": list("ABCD"), "x": a[:, 0], "y": a[:, 1]})
     res, _ = self_calibrate(anchors, a, z, "range", fit_scale=False)
     assert np.all(np.abs(res.offset - bias) < 4 * res.offset_se)
+
+
+@pytest.mark.parametrize("opts, words", [
+    (["--robust"], "--robust applies to a survey fit"),
+    (["--robust", "igg3", "--pooled"], "--robust, --pooled applies to a survey fit"),
+    (["--d0", "2"], "--d0 applies to a survey fit"),
+    (["--p0", "-40"], "--p0 applies to a survey fit"),
+    (["--model", "friis"], "--model friis is a path-loss model for RSSI"),
+])
+def test_cli_self_refuses_the_survey_fit_options(tmp_path, capsys, opts, words):
+    """`calibrate --self` ran, and wrote its usual result, whatever --robust, --pooled,
+    --d0, --p0 or (on ranges) --model said: the user believed they had been applied."""
+    paths, _ = _write_log(tmp_path, np.random.default_rng(3), n=50)
+    out = tmp_path / "o.csv"
+    assert main(["calibrate", "--self", str(paths["meas"]), "--anchors",
+                 str(paths["anchors"]), "-o", str(out), *opts]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and words in err, err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("opts", [["--tag-height", "1.2"], ["--dim", "3"],
+                                  ["--se-ratio", "5"]])
+def test_cli_survey_refuses_the_self_options(tmp_path, capsys, opts):
+    """--tag-height, --dim and --se-ratio with --measurements/--truth were ignored."""
+    paths, _ = _write_log(tmp_path, np.random.default_rng(4), n=50)
+    out = tmp_path / "o.csv"
+    assert main(["calibrate", "--measurements", str(paths["meas"]), "--truth",
+                 str(paths["truth"]), "--anchors", str(paths["anchors"]), "-o", str(out),
+                 *opts]) == 2
+    err = capsys.readouterr().err
+    assert f"error: {opts[0]} applies to --self only" in err, err
+    assert not out.exists()

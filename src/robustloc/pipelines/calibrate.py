@@ -134,7 +134,22 @@ def run_calibrate(
                              "--truth")
         if anchors is None:
             raise InputError("--self needs --anchors (the anchor coordinates are the datum)")
+        # options of the survey fit mean nothing here: refused, not silently ignored
+        survey_only = {"--robust": settings.robust is not None,
+                       "--pooled": settings.pooled,
+                       "--d0": settings.d0 != 1.0, "--p0": settings.p0 is not None}
+        given = [k for k, v in survey_only.items() if v]
+        if given:
+            raise InputError(
+                f"{', '.join(given)} applies to a survey fit, not to --self (which is "
+                "always robust, per anchor, and takes p0 and d0 from the anchors file)")
         return _self(settings, anchors, self_log)
+    self_only = {"--dim": settings.dim != 2, "--tag-height": settings.tag_height is not None,
+                 "--se-ratio": settings.se_ratio != 3.0}
+    given = [k for k, v in self_only.items() if v]
+    if given:
+        raise InputError(f"{', '.join(given)} applies to --self only (a survey, or "
+                         "--measurements with --truth, has its distances already)")
     return _from_survey(settings, survey, anchors, measurements, truth)
 
 
@@ -321,6 +336,9 @@ def _self(settings: CalibrateSettings, anchors: pd.DataFrame, self_log: Any) -> 
         height = anchors["z"].to_numpy(dtype=float) - settings.tag_height
     if kind == "rssi" and settings.scale is not None:
         raise InputError("--scale is for range data")
+    if kind == "range" and settings.model != "log-distance":
+        raise InputError(f"--model {settings.model} is a path-loss model for RSSI, but "
+                         "this log holds ranges", _name(self_log))
     res, model = self_calibrate(anchors, xyz, ep.values, kind, height_offset=height,
                                 model_name=settings.model,
                                 fit_scale=settings.scale is not False,
