@@ -379,3 +379,20 @@ def test_spp_inject_twice_and_stats_out_of_limits_say_what_is_wrong(tmp_path, ca
     _fails(capsys, ["stats", m, "-o", str(tmp_path / "out")], m, None,
            "no RSSI sample within the physical limits to analyse (rssi must lie in "
            "[-150, 30] dBm; 2 outside)")
+
+
+def test_evaluate_prints_and_writes_counts_as_integers(tmp_path, capsys):
+    """`evaluate` printed n = 1500 as ``1.5e+03`` (``.3g``) and wrote ``1500.0``."""
+    from robustloc.cli import main
+
+    t = np.arange(1500, dtype=float)
+    pd.DataFrame({"time": t, "tag": "T", "x": 0.0, "y": 0.0}).to_csv(tmp_path / "truth.csv",
+                                                                     index=False)
+    pd.DataFrame({"time": t, "tag": "T", "x": 0.1, "y": 0.0, "method": "nls",
+                  "status": "ok"}).to_csv(tmp_path / "pos.csv", index=False)
+    assert main(["evaluate", str(tmp_path / "pos.csv"), "--truth", str(tmp_path / "truth.csv"),
+                 "-o", str(tmp_path / "ev.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "1500" in out and "e+03" not in out
+    text = (tmp_path / "ev.csv").read_text().splitlines()
+    assert text[1].startswith("T,nls,1500,0,0,1500,"), text[1]

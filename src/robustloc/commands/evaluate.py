@@ -78,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
         table = error_table(pos, truth, time_tolerance_s=args.time_tolerance,
                             baseline=args.baseline)
     if args.out:
-        write_table(table, args.out)
+        write_table(_integral_counts(table), args.out)
     # the report never goes into a data stream: stderr when the table goes to stdout
     dest = sys.stderr if writes_to_stdout(args.out) else sys.stdout
     n_unmatched = table.attrs.get("n_unmatched", 0)
@@ -100,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
         # a real tag bears an aggregate's name: the aggregates are shown bracketed
         show.loc[agg, "tag"] = "[" + show.loc[agg, "tag"].astype(str) + "]"
     for c in ("n", "n_missing", "n_failed"):
-        show[c] = show[c].map(lambda v: f"{v:.3g}")
+        show[c] = show[c].map(_count)
     for c in show.columns[5:]:
         show[c] = show[c].map(lambda v: "" if not np.isfinite(v) else f"{v:.2f}")
     show = show.rename(columns={"mean_impr_pct": "mean_vs_ls_%", "rms_impr_pct": "rms_vs_ls_%"})
@@ -122,3 +122,27 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         print(f"written: {args.out}", file=dest)
     return 0
+
+
+COUNTS = ("n", "n_missing", "n_failed", "n_ok", "n_misleading", "n_misleading_v")
+
+
+def _count(v: float) -> str:
+    """A count as people read it: ``1234``, or ``617.5`` for a ``mean`` row's average
+    (it printed ``1.23e+03``)."""
+    if not np.isfinite(v):
+        return ""
+    return f"{int(v)}" if float(v).is_integer() else f"{v:.1f}"
+
+
+def _integral_counts(table):
+    """The count columns as integers where every value is whole (the CSV showed
+    ``2000.0``); a ``mean`` row's fractional average keeps its column float."""
+    out = table.copy()
+    for c in COUNTS:
+        if c in out.columns:
+            v = out[c].to_numpy(dtype=float)
+            fin = np.isfinite(v)
+            if np.all(v[fin] == np.round(v[fin])):
+                out[c] = out[c].astype("Int64")
+    return out
