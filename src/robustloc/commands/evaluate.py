@@ -52,7 +52,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--baseline", default="ls",
                    help="method improvements refer to (default ls, when the file has it; "
                         "another must be one of the file's methods)")
-    add_engine_arguments(p, what="the positions dataset")
+    add_engine_arguments(p, what="the positions dataset",
+                         output="the one statistics table of -o, as without it")
 
 
 def run(args: argparse.Namespace) -> int:

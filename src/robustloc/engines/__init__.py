@@ -25,7 +25,8 @@ import argparse
 ENGINES = ("local", "dask")
 
 
-def add_engine_arguments(p: argparse.ArgumentParser, *, what: str = "a Parquet dataset") -> None:
+def add_engine_arguments(p: argparse.ArgumentParser, *, what: str = "a Parquet dataset",
+                         output: str = "a partitioned Parquet dataset (directory)") -> None:
     """Add ``--engine``, ``--scheduler``, ``--workers`` (and ``--quiet`` if absent) to ``p``.
 
     Parameters
@@ -34,12 +35,14 @@ def add_engine_arguments(p: argparse.ArgumentParser, *, what: str = "a Parquet d
         A command's parser.
     what : str
         What the command's input is under ``--engine dask`` (for the help text).
+    output : str
+        What it writes then (for the help text).
     """
     g = p.add_argument_group("distributed engine (needs robustloc[dask])")
     g.add_argument(
         "--engine", choices=ENGINES, default="local",
         help=f"local: this process (default); dask: every partition of {what} on a "
-             "dask.distributed cluster, output a partitioned Parquet dataset (directory)",
+             f"dask.distributed cluster, output {output}",
     )
     g.add_argument(
         "--scheduler", default=None, metavar="ADDRESS",
