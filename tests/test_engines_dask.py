@@ -635,6 +635,30 @@ def test_partition_missing_anchor_column_and_bad_memory_limit(tmp_path, capsys):
     assert not (tmp_path / "d1").exists()
 
 
+def test_partition_reads_a_log_with_mixed_line_endings(tmp_path, capsys):
+    """Lines ending in CRLF and LF in one file (logs pasted together): `locate` and
+    `track` read it, `partition` stopped at DuckDB's sniffer ("cannot read: Invalid
+    Input Error: Error when sniffing file").  Now it partitions every row, and a row the
+    commands refuse is still that row's FILE:LINE error."""
+    m = tmp_path / "m.csv"
+    m.write_bytes(b"time,tag,anchor,range\r\n0,T1,a,5\r\n0,T1,b,6\n0,T2,c,7\n"
+                  b"1,T1,a,5.5\r\n1,T2,b,6\n")
+    assert main(["partition", str(m), "-o", str(tmp_path / "ds"), "--by", "tag"]) == 0
+    capsys.readouterr()
+    got = pd.concat([pd.read_parquet(f) for f in sorted((tmp_path / "ds").rglob("*.parquet"))])
+
+    def rows(df: pd.DataFrame) -> list[tuple]:
+        return sorted(zip(df["time"].astype(float), df["tag"].astype(str),
+                          df["anchor"].astype(str), df["range"].astype(float)))
+
+    assert rows(got) == rows(pd.read_csv(m))
+    bad = tmp_path / "bad.csv"
+    bad.write_bytes(b"time,tag,anchor,range\r\n0,T,a,5\r\n0,T,b,6,9\n0,T,c,7\n")
+    assert main(["partition", str(bad), "-o", str(tmp_path / "ds2"), "--by", "tag"]) == 2
+    assert capsys.readouterr().err == f"error: {bad}:3: expected 4 fields, found 5\n"
+    assert not (tmp_path / "ds2").exists()
+
+
 @pytest.mark.parametrize("method", ["duckdb", "dask"])
 def test_partition_refuses_the_values_locate_refuses(tmp_path, capsys, scheduler, method):
     """An `inf` time was written as an infinite DATE (then a traceback in `locate --engine

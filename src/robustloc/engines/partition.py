@@ -104,7 +104,20 @@ def _source(con, files: list[str], fmt: str, spec: str) -> tuple[str, list[str]]
     try:
         described = con.execute(f"DESCRIBE SELECT * FROM {src})").fetchall()
     except duckdb.Error as exc:
-        raise InputError(f"cannot read: {str(exc).splitlines()[0]}", spec) from None
+        if fmt != "csv":
+            raise InputError(f"cannot read: {str(exc).splitlines()[0]}", spec) from None
+        # DuckDB's sniffer refuses what the commands read (lines ending in CRLF and LF
+        # in one file, say): the commands' own reader decides.  A row it refuses is that
+        # row's FILE:LINE error; a file it accepts is read again without DuckDB's strict
+        # mode (which would otherwise stop the partitioning of a readable log)
+        bad = _first_bad_row(files, list(NUMERIC) + list(IDS))
+        if bad is not None:
+            raise bad from None
+        src += ", strict_mode=false"
+        try:
+            described = con.execute(f"DESCRIBE SELECT * FROM {src})").fetchall()
+        except duckdb.Error as exc2:
+            raise InputError(f"cannot read: {str(exc2).splitlines()[0]}", spec) from None
     names = [r[0] for r in described]
     if fmt == "csv":
         types = {c: "VARCHAR" for c in IDS if c in names}
