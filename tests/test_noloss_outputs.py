@@ -511,3 +511,39 @@ def test_gz_output_interrupted_while_compressing_leaves_nothing(tmp_path, monkey
         write_table(pd.DataFrame({"a": [1]}), out)
     assert out.read_bytes() == b"previous"
     _no_temp_left(tmp_path)
+
+
+@pytest.mark.parametrize("cmd", ["locate", "track", "calibrate", "evaluate"])
+@pytest.mark.parametrize("name", ["out.json", "out.xlsx", "out.tsv", "out.parquet.gz"])
+def test_an_output_named_for_another_format_is_refused(small, capsys, cmd, name):
+    """`-o out.json` (or .xlsx, .tsv) was written as CSV without a word: a script then
+    reading it as JSON failed far from the cause.  Now exit 2 before any work, nothing
+    written."""
+    out = small / name
+    m, a = str(small / "m.csv"), str(small / "a.csv")
+    if cmd == "evaluate":
+        assert main(["locate", m, "--anchors", a, "-o", str(small / "p.csv"), "--quiet"]) == 0
+        truth = small / "truth.csv"
+        pd.DataFrame({"time": [0.0], "tag": ["T0"], "x": [1.0], "y": [1.0]}).to_csv(
+            truth, index=False)
+        argv = ["evaluate", str(small / "p.csv"), "--truth", str(truth), "-o", str(out)]
+    elif cmd == "calibrate":  # a command that writes its table at the end
+        argv = ["calibrate", "--self", m, "--anchors", a, "-o", str(out)]
+    else:
+        argv = [cmd, m, "--anchors", a, "-o", str(out), "--quiet"]
+    capsys.readouterr()
+    assert main(argv) == 2
+    suffix = ".parquet.gz" if name.endswith(".gz") else name[name.index("."):]
+    assert capsys.readouterr().err.startswith(
+        f"error: {out}: cannot write a table as '{suffix}': the output is CSV")
+    assert not out.exists()
+    _no_temp_left(small)
+
+
+@pytest.mark.parametrize("name", ["out.txt", "out", "out.csv.gz", "out.pq"])
+def test_table_outputs_named_as_csv_or_parquet_are_written(small, capsys, name):
+    out = small / name
+    assert main(["locate", str(small / "m.csv"), "--anchors", str(small / "a.csv"), "-o",
+                 str(out), "--quiet"]) == 0
+    got = pd.read_parquet(out) if name.endswith(".pq") else pd.read_csv(out)
+    assert len(got) == 50

@@ -1464,6 +1464,41 @@ def _is_parquet_out(path: PathLike, parquet: bool | None) -> bool:
     return is_parquet(path) if parquet is None else parquet
 
 
+#: What a table output's name may end in: CSV (also plain text or no extension, and
+#: gzip-compressed with .gz) or Parquet.
+TABLE_SUFFIXES = (".csv", ".txt", "") + _PARQUET_EXT
+_COMPRESSION_SUFFIXES = (".gz",)  # (the others: robustloc.io.atomic refuses them)
+
+
+def check_table_path(path: PathLike) -> None:
+    """Refuse a table output whose extension names another format (``.json``, ``.xlsx``,
+    ``.tsv``, ...): it was written as CSV without a word.  ``-`` is CSV on standard
+    output.
+
+    Raises
+    ------
+    InputError
+        Naming the extension and the formats written.
+    """
+    if str(path) == "-":
+        return
+    name = Path(path).name.lower()
+    stem, suffix = os.path.splitext(name)
+    shown = suffix
+    ok = suffix in TABLE_SUFFIXES
+    if suffix in _COMPRESSION_SUFFIXES:  # gzip-compressed CSV (robustloc.io.atomic)
+        inner = os.path.splitext(stem)[1]
+        shown = inner + suffix
+        ok = inner in (".csv", ".txt", "")
+    elif suffix in (".bz2", ".xz", ".zip", ".zst"):
+        return  # robustloc.io.atomic names the compressions it writes
+    if not ok:
+        raise InputError(f"cannot write a table as {shown!r}: the output is CSV (.csv, "
+                         ".txt or no extension, optionally .gz) or "
+                         "Parquet (.parquet, .pq); - writes CSV to standard output",
+                         str(path))
+
+
 def write_table(
     frame: pd.DataFrame, path: PathLike, *, parquet: bool | None = None
 ) -> Path:
@@ -1483,6 +1518,8 @@ def write_table(
     """
     from robustloc.io.atomic import atomic_output, is_stdio
 
+    if parquet is None:  # a name the user gave (a temporary target comes with `parquet`)
+        check_table_path(path)
     pq_out = _is_parquet_out(path, parquet)
     if is_stdio(path) and pq_out:
         raise InputError("Parquet cannot be written to standard output; write a file, or "
@@ -1589,6 +1626,8 @@ class PositionsWriter:
     """
 
     def __init__(self, path: PathLike | None) -> None:
+        if path is not None:
+            check_table_path(path)
         self.path = None if path is None else Path(path) if str(path) != "-" else path
         self.n_rows = 0
         self._columns: list[str] | None = None

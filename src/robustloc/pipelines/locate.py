@@ -485,8 +485,10 @@ def run_locate(
         The positions (``out=None``), and the run summary.
     """
     from robustloc.io.atomic import check_not_input, is_stdio
-    from robustloc.io.tables import UnsortedInput, _display
+    from robustloc.io.tables import UnsortedInput, _display, check_table_path
 
+    if out is not None:  # before any work: a format the name promises is refused now
+        check_table_path(out)
     if out is not None and not isinstance(measurements, pd.DataFrame):
         # never overwrite an input (an anchors frame read from a file names that file)
         check_not_input(out, [src for src in (measurements, anchors.attrs.get("path"))

@@ -120,11 +120,13 @@ def run_track(
         The track rows (``out=None``), and the run summary.
     """
     from robustloc.io.atomic import check_not_input
-    from robustloc.io.tables import UnsortedInput, _display
+    from robustloc.io.tables import UnsortedInput, _display, check_table_path
 
     if settings.tag_height is not None and "z" not in anchors.columns:
         raise InputError("--tag-height needs a z column in the anchors file",
                          anchors.attrs.get("path"), 1)
+    if out is not None:  # before any work: a format the name promises is refused now
+        check_table_path(out)
     if out is not None and not isinstance(measurements, pd.DataFrame):
         # never overwrite an input (an anchors frame read from a file names that file)
         check_not_input(out, [src for src in (measurements, anchors.attrs.get("path"))
