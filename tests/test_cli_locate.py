@@ -226,3 +226,30 @@ def test_an_anchor_far_outside_the_layout_is_named(tmp_path, capsys):
     assert "warning" not in capsys.readouterr().err
     got, want = (pd.read_csv(tmp_path / n) for n in ("o.csv", "p.csv"))
     pd.testing.assert_frame_equal(got[["x", "y", "status"]], want[["x", "y", "status"]])
+
+
+def test_one_sigma_value_moves_nothing_under_the_log_scale(tmp_path, capsys):
+    """--robust-scale log measures the noise in units of --sigma, so one value for every
+    anchor changes no fix, status or hpl; sigma0, the ratio of the residuals to it,
+    scales by 1/sigma (the help says so: the helper found --sigma "had no effect")."""
+    rng = np.random.default_rng(8)
+    anchors = pd.DataFrame({"anchor": list("abcde"), "x": [0, 20, 0, 20, 10],
+                            "y": [0, 0, 20, 20, -5]})
+    anchors.to_csv(tmp_path / "a.csv", index=False)
+    xy = anchors[["x", "y"]].to_numpy(float)
+    pos = rng.uniform(2, 18, (60, 2))
+    d = np.linalg.norm(pos[:, None] - xy[None], axis=2) + rng.normal(0, 0.2, (60, 5))
+    d[::7, 1] += 3.0
+    k, j = np.nonzero(np.isfinite(d))
+    pd.DataFrame({"time": k.astype(float), "tag": "T", "anchor": anchors["anchor"].to_numpy()[j],
+                  "range": d[k, j]}).to_csv(tmp_path / "m.csv", index=False)
+    out = {}
+    for s in ("0.1", "1.0"):
+        assert main(["locate", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),
+                     "--method", "auto,nls,igg", "--sigma", s, "-o",
+                     str(tmp_path / f"p{s}.csv"), "--quiet"]) == 0
+        out[s] = pd.read_csv(tmp_path / f"p{s}.csv")
+    a, b = out["0.1"], out["1.0"]
+    pd.testing.assert_frame_equal(a.drop(columns="sigma0"), b.drop(columns="sigma0"),
+                                  rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(a["sigma0"], 10 * b["sigma0"], rtol=1e-9)

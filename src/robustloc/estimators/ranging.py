@@ -773,6 +773,17 @@ class Locator:
             else:
                 second = replace(self, robust_scale="mad")
             sol = second.solve(a, z, kind, A=A, n=n, height_offset=height_offset)
+            if self._log_scaled():
+                # sigma0 as every method reports it: the ratio of the residuals to the
+                # a-priori sigma, not to the log's scale times it (the robust fit's
+                # weights are p / (s sigma)^2: times s^2 they are p / sigma^2)
+                w = np.where(np.asarray(sol.weights) > 0, sol.weights, 0.0) * scale**2
+                dof = np.sum(w > 0, axis=1) - a.shape[1]
+                with np.errstate(all="ignore"):
+                    vpv = np.nansum(w * np.asarray(sol.residuals) ** 2, axis=1)
+                    s0 = np.sqrt(vpv / np.maximum(dof, 1))
+                sol = replace(sol, sigma0=np.where(np.isfinite(sol.sigma0) & (dof > 0), s0,
+                                                   sol.sigma0))
             sol.extra["log_scale"] = scale
             sol.extra["sigma_obs"] = self._range_sigma(
                 np.broadcast_to(base * scale, z.shape), ranges, rmodel)
