@@ -113,10 +113,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--solver", choices=("nonlinear", "linearized"), default="nonlinear",
                    help="robust methods and LEGE: nonlinear equations (default) or linearized")
     p.add_argument("--reference", choices=("first", "nearest"), default="first",
-                   help="linearized solver: reference anchor = first heard (paper) or the "
-                        "one with the shortest range (the iterative solvers always start "
-                        "from the nearest, so their fixes do not depend on the anchors' "
-                        "order)")
+                   help="linearized solver (ls, wls, --solver linearized): reference "
+                        "anchor = the first heard in the anchors file's order (the paper's; "
+                        "its fixes then depend on that order) or the one with the shortest "
+                        "range (the iterative solvers always start from the nearest, so "
+                        "their fixes do not depend on the anchors' order)")
     p.add_argument("--domain", choices=("range", "rssi"), default="range",
                    help="RSSI input, nonlinear solvers: fit ranges converted by the model "
                         "(default; fades then down-weight themselves) or fit in dB")
