@@ -255,3 +255,17 @@ def test_carrier_smoothing_reduces_noise_and_resets_on_slips() -> None:
     assert np.std(err_sm[180:]) < 0.35 * np.std(err_raw[60:120])
     with pytest.raises(ValueError, match="iflc"):
         SppSolver(smoothing_epochs=30)
+
+
+def test_spp_on_a_simulated_pseudorange_table_says_what_it_reads(tmp_path, capsys):
+    """`spp` on `simulate gnss` output said "give at least one navigation file or --sp3",
+    as if a navigation file would have made the table readable."""
+    from robustloc.cli import main
+
+    assert main(["simulate", "gnss", "--epochs", "2", "--out", str(tmp_path / "g")]) == 0
+    capsys.readouterr()
+    table = tmp_path / "g" / "pseudoranges.csv"
+    assert main(["spp", str(table), "-o", str(tmp_path / "x.csv")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {table}: spp solves a RINEX observation file"), err
+    assert "navigation file or --sp3" not in err and not (tmp_path / "x.csv").exists()

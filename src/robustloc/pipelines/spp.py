@@ -166,6 +166,14 @@ def run_spp(obs: str, nav: Sequence[str], settings: SppSettings, *, sp3: str | N
     from robustloc.gnss.spp import SppSolver, error_summary
 
     nav = list(nav)
+    if str(obs).lower().endswith((".csv", ".parquet", ".pq")):
+        # a table (the pseudoranges and satellite positions `simulate gnss` writes) is
+        # not an observation file; without this, the first complaint was the missing
+        # navigation file
+        raise InputError("spp solves a RINEX observation file with navigation files (or "
+                         "--sp3); a table of pseudoranges with satellite positions, as "
+                         "`robustloc simulate gnss` writes, is for integrity studies from "
+                         "Python (robustloc.gnss.raim.RaimFde, robustloc.integrity)", obs)
     if not nav and sp3 is None:
         raise InputError("give at least one navigation file or --sp3")
     if clk is not None and sp3 is None:
