@@ -547,3 +547,16 @@ def test_table_outputs_named_as_csv_or_parquet_are_written(small, capsys, name):
                  str(out), "--quiet"]) == 0
     got = pd.read_parquet(out) if name.endswith(".pq") else pd.read_csv(out)
     assert len(got) == 50
+
+
+def test_an_output_that_cannot_be_created_is_not_called_missing(small, capsys):
+    """`-o /proc/x.csv` said "file not found" (the words of a missing input) and `-o ""`
+    ". is a directory"."""
+    args = [str(small / "m.csv"), "--anchors", str(small / "a.csv"), "--quiet"]
+    for cmd in ("locate", "track"):
+        assert main([cmd, *args, "-o", "/proc/robustloc-no-such.csv"]) == 2
+        assert capsys.readouterr().err == (
+            "error: /proc/robustloc-no-such.csv: cannot create a file in /proc (no such "
+            "file or directory)\n")
+        assert main([cmd, *args, "-o", ""]) == 2
+        assert capsys.readouterr().err.startswith("error: the output name is empty")

@@ -288,6 +288,15 @@ def _fsync_dir(folder: Path) -> None:
         os.close(fd)
 
 
+def _output_words(exc: OSError, parent: Path) -> str:
+    """:func:`describe_oserror` for an output: one that cannot be created is not a
+    "file not found" (the words of a missing input) but a file the folder cannot hold
+    (``/proc``, a vanished mount)."""
+    if exc.errno == errno.ENOENT:
+        return f"cannot create a file in {parent or '.'} (no such file or directory)"
+    return describe_oserror(exc)
+
+
 def _prepare_parent(p: Path) -> Path:
     parent = p.parent if str(p.parent) else Path(".")
     try:
@@ -345,14 +354,14 @@ def atomic_output(path: PathLike, *, binary: bool = True) -> Iterator[tuple[Path
         except OSError as exc:
             if isinstance(exc, (BrokenPipeError, OutputError)):
                 raise
-            raise OutputError(describe_oserror(exc), p, errno_=exc.errno) from None
+            raise OutputError(_output_words(exc, p.parent), p, errno_=exc.errno) from None
         return
     compress = _gzip_wanted(p)
     parent = _prepare_parent(p)
     try:
         fd, tmp_name = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=parent)
     except OSError as exc:
-        raise OutputError(describe_oserror(exc), p, errno_=exc.errno) from None
+        raise OutputError(_output_words(exc, parent), p, errno_=exc.errno) from None
     os.close(fd)
     tmp = Path(tmp_name)
     temps = [tmp]

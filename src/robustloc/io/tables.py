@@ -1482,6 +1482,9 @@ def check_table_path(path: PathLike) -> None:
     """
     if str(path) == "-":
         return
+    if not str(path).strip():
+        raise InputError("the output name is empty (give a file name, or - for standard "
+                         "output)")
     name = Path(path).name.lower()
     stem, suffix = os.path.splitext(name)
     shown = suffix
