@@ -396,3 +396,17 @@ def test_evaluate_prints_and_writes_counts_as_integers(tmp_path, capsys):
     assert "1500" in out and "e+03" not in out
     text = (tmp_path / "ev.csv").read_text().splitlines()
     assert text[1].startswith("T,nls,1500,0,0,1500,"), text[1]
+
+
+def test_a_capitalized_column_is_named_in_the_message(tmp_path, capsys):
+    """`Time,Tag,Anchor,Range` or `anchor,X,Y`: the message listed the columns but did not
+    say that names are lower case."""
+    from robustloc.cli import main
+
+    (tmp_path / "a.csv").write_text("anchor,X,Y\na0,0,0\n")
+    (tmp_path / "m.csv").write_text("time,tag,anchor,range\n0,T,a0,5\n")
+    assert main(["locate", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),
+                 "-o", str(tmp_path / "p.csv")]) == 2
+    assert capsys.readouterr().err.endswith(
+        "(has: anchor, X, Y); column names are lower case without spaces: rename "
+        "'X' -> 'x', 'Y' -> 'y'\n")

@@ -491,8 +491,14 @@ def require_columns(
     missing = [c for c in columns if c not in df.columns]
     if missing:
         have = ", ".join(map(str, df.columns)) or "none"
+        # a column there in other case or with spaces ("Time", " x"): say which to rename
+        near = {str(c).strip().lower(): str(c) for c in df.columns}
+        wanted = [w for c in missing for w in c.split(" or ")]
+        hints = [f"{near[w]!r} -> {w!r}" for w in wanted if w in near and near[w] != w]
+        hint = (f"; column names are lower case without spaces: rename {', '.join(hints)}"
+                if hints else "")
         raise InputError(
-            f"{what} file is missing column(s) {', '.join(missing)} (has: {have})",
+            f"{what} file is missing column(s) {', '.join(missing)} (has: {have}){hint}",
             _path_of(df, path),
             1,
         )
