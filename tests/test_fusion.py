@@ -214,6 +214,8 @@ def test_fuse_command(cart, tmp_path, capsys):
     assert list(tr.columns[:6]) == ["time", "tag", "x", "y", "vx", "vy"]
     assert "status" in tr.columns and "var_ax" in tr.columns
     assert '"events": ' in capsys.readouterr().out
+    # named as `track` names its rows, so `evaluate` reports the method (it said unknown)
+    assert set(tr["method"]) == {"fuse-ca-ekf"}
     # an unknown anchor id is a user error: exit 2, message names the file and line
     bad = tmp_path / "bad.csv"
     pd.read_csv(cart["measurements"]).assign(anchor="nope").to_csv(bad, index=False)

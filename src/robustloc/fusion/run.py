@@ -293,7 +293,7 @@ def fuse(
         bad_event = np.isfinite(tl.z[..., c_inv]) & (status == st.PREDICTED)
         status = np.where(bad_event, st.INVALID, status)
     frame = _track_frame(tl.tags, tl.time_s, tr, filt, z, m, opts, status)
-    frame = _with_set_aside(frame, pd.concat(aside, ignore_index=True))
+    frame = _with_set_aside(frame, pd.concat(aside, ignore_index=True), fusion_method(filt))
     summary["rejected_updates"] = int(np.sum(tr.extra.get("nonfinite", 0)))
     summary["restarts"] = int(np.sum(tr.extra.get("restarts", 0)))
     summary["events"] = int(np.isfinite(tl.time_s).sum())
@@ -302,7 +302,13 @@ def fuse(
     return FuseResult(track=frame, summary=summary)
 
 
-def _with_set_aside(frame: pd.DataFrame, aside: pd.DataFrame) -> pd.DataFrame:
+def fusion_method(filt: FusionFilter) -> str:
+    """The ``method`` column of a fused track, as ``track`` names its rows: ``fuse-cv-ukf``,
+    ``fuse-ca-ekf``, ..."""
+    return f"fuse-{'cv' if filt.motion.n_states == 4 else 'ca'}-{filt.kind}"
+
+
+def _with_set_aside(frame: pd.DataFrame, aside: pd.DataFrame, method: str) -> pd.DataFrame:
     """``frame`` with one ``invalid_measurement`` row per distinct (tag, time, source) of
     the rows ``aside`` (times outside the limits), in tag then time order.
 
@@ -315,6 +321,7 @@ def _with_set_aside(frame: pd.DataFrame, aside: pd.DataFrame) -> pd.DataFrame:
     add["time"] = rows["time"].to_numpy(float)
     add["tag"] = rows["tag"].astype(str).to_numpy(object)
     add["status"] = st.INVALID
+    add["method"] = method
     add["n_used"] = 0
     add["source"] = rows["source"].to_numpy(object)
     out = pd.concat([frame, add.astype({"n_used": frame["n_used"].dtype})],
@@ -402,6 +409,8 @@ def _track_frame(tags, time_s, tr, filt: FusionFilter, z, m, opts,
     data: dict[str, object] = {"time": time_s[k_idx, j_idx], "tag": tags[k_idx]}
     for i, c in enumerate(names):
         data[c] = x[:, i]
+    # as `track` names its rows (track-cv-ekf): what made them, for `evaluate`
+    data["method"] = fusion_method(filt)
     data["status"] = np.asarray(status[k_idx, j_idx], dtype=str)
     for i, c in enumerate(names):
         data["var_" + c] = var[:, i]
