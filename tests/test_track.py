@@ -61,7 +61,16 @@ def test_one_row_per_epoch_and_accuracy():
     ep = _epochs(meas, a)
     rows = Tracker(a, sigma=SIGMA_M).step(ep)
     assert len(rows) == ep.n_epochs
-    assert set(rows.status) <= {"ok", "fault_excluded"}
+    assert set(rows.status) <= {"ok", "fault_excluded", "fault_detected"}
+    # fault_detected: the innovations' global test failed (unexplained) -- on clean data
+    # only at its false-alarm rate, the B-method's alpha for 6 components (1.9 %): at most
+    # the binomial 99.9 % quantile of 240 rows, 12 (measured: 3)
+    from scipy import stats
+
+    from robustloc.integrity.bmethod import global_alpha
+
+    limit = stats.binom.ppf(0.999, len(rows), float(global_alpha(6)))
+    assert (rows.status == "fault_detected").sum() <= limit
     e = _errors(rows, truth)
     # a CV filter on 6 ranges of 0.1 m: the error of one fix is about 0.1 m (GDOP ~1), the
     # filter must not be worse than 2 sigma in RMS (it averages; 2x covers the start)
@@ -827,3 +836,33 @@ def test_a_singular_update_of_one_tag_does_not_stop_the_others(monkeypatch):
     assert g["reinit"].tolist() == [0, 1, 2, 3, 4, 5]
     np.testing.assert_allclose(g[["x", "y"]].to_numpy(float), [[6.0, 5.0]] * 6, atol=1e-9)
     pd.testing.assert_frame_equal(rows[rows["tag"] == "V"].reset_index(drop=True), alone)
+
+
+@pytest.mark.parametrize("engine", ["compiled", "numpy"])
+def test_an_unexplained_test_failure_is_fault_detected_with_a_wider_hpl(engine):
+    """Two ranges of one epoch 3 m long: the innovations' global test fails and no single
+    exclusion explains it.  The row was `ok` with its usual bound (the helper's report:
+    `ok` rows beyond their hpl with a failing NIS).  As `locate` labels a failed test, it
+    is fault_detected now, its hpl widened by sqrt(NIS / dof) (the a-posteriori variance
+    factor); clean epochs stay `ok` and keep their bounds."""
+    from robustloc import status as st
+
+    a = _anchors(6)
+    meas, _ = _walk(K=1, N=60, seed=3, anchors=a)
+    bad = meas.copy()
+    hit = (bad["time"] == bad["time"].unique()[40]) & bad["anchor"].isin(["A1", "A2"])
+    bad.loc[hit, "range"] += 3.0
+    rows = {}
+    for name, m in (("clean", meas), ("bad", bad)):
+        rows[name] = Tracker(a, sigma=SIGMA_M, engine=engine).step(_epochs(m, a))
+    clean, faulty = rows["clean"], rows["bad"]
+    assert (clean["status"] == st.OK).all()
+    row = faulty.iloc[40]
+    assert row["status"] == st.FAULT_DETECTED, row["status"]
+    dof = row["n_used"]  # every component kept: dof = n_used (one per range)
+    assert row["nis"] > 30  # two 3 m errors on 0.1 m ranges: far beyond chi2(6)
+    # the update that down-weighted two components is less certain than the clean one
+    # (its P is larger), so its plain bound is at least the clean row's; widened by the
+    # factor (measured: 1.79 m plain, 22.2 m widened, against 0.555 m clean)
+    assert row["hpl"] >= clean["hpl"].iloc[40] * np.sqrt(row["nis"] / dof)
+    assert (faulty["status"].iloc[:40] == st.OK).all()

@@ -42,8 +42,12 @@ RSSI (converted by the anchors' path-loss model to ranges with sigma_d = d ln10 
 Output, one row per input epoch (never a dropped epoch): time, tag, x, y, vx, vy[, ax, ay],
 method, status, var_x, var_y, cov_xy, var_vx, var_vy, hpl, n_used, nis, noise_scale,
 reinit, excluded. Statuses: ok, fault_excluded (a component rejected or a link held out),
-predicted, and before a tag's first fix the fix's own status (insufficient_anchors,
-ill_conditioned, invalid_measurement). `robustloc evaluate` reads the file.
+fault_detected (the innovations' global test failed and one exclusion does not explain
+it, or half the components were rejected: hpl widened by sqrt(NIS / dof); on clean data
+at the test's false-alarm rate, about 2 %), predicted, and before a tag's first fix the
+fix's own status (insufficient_anchors, ill_conditioned, invalid_measurement); an epoch
+wholly outside the physical limits is invalid_measurement.  `robustloc evaluate` reads
+the file.
 
   robustloc simulate wifi-room --seed 1 --out room
   robustloc track room/measurements.csv --anchors room/anchors.csv -o room/track.csv

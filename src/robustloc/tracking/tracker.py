@@ -906,6 +906,17 @@ class Tracker:
         against the robust fix, the bad-epoch count, re-starts; the recorded moments."""
         s = self.settings
         xn, Pn = self._x[sl], self._P[sl]
+        # a suspicious epoch (the global test on the innovations failed and one exclusion
+        # does not explain it, or half the components were rejected) is not `ok`: as
+        # `locate`'s failed test, fault_detected, its hpl widened by the a-posteriori
+        # variance factor sqrt(NIS / dof) (the rows were `ok`, some beyond their hpl)
+        fd = sus & st.among(out.status[idx], (st.OK, st.FAULT_EXCLUDED))
+        if fd.any():
+            rows = idx[fd]
+            out.status[rows] = st.FAULT_DETECTED
+            with np.errstate(invalid="ignore", divide="ignore"):
+                f = np.sqrt(np.maximum(out.nis[rows] / np.maximum(dof[fd], 1), 1.0))
+            out.hpl[rows] = out.hpl[rows] * np.where(np.isfinite(f), f, 1.0)
         bad = self._count_bad(sl, xn, z, moved, sus, dof)
         if self.record:
             self._history.append({"idx": idx, "slot": sl.copy(),
