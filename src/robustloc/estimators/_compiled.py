@@ -199,19 +199,7 @@ def _sandwich(J, w0, w, qvv, out, Nm, Ni, a, tag):  # pragma: no cover - jit
         for i in range(m):
             out[i] = qvv[i] if w0[i] > 0 else math.nan
         return
-    for k in range(p):
-        for j in range(p):
-            Nm[k, j] = 0.0
-    for i in range(m):
-        wi = w[i]
-        if wi == 0.0:
-            continue
-        for k in range(p):
-            for j in range(k, p):
-                Nm[k, j] += J[i, k] * wi * J[i, j]
-    for k in range(p):
-        for j in range(k):
-            Nm[k, j] = Nm[j, k]
+    _normal(J, w, w, Nm, a, tag)  # J^T W J (its right-hand side, into a, unused)
     good = _inv_small(Nm, Ni, tag)
     for i in range(m):
         if not w0[i] > 0:
