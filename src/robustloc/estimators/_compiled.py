@@ -30,6 +30,7 @@ import numpy as np
 from numba import njit
 
 from robustloc import status as st
+from robustloc.estimators.linear import COFACTOR_UPDATES
 from robustloc.robust._compiled import HAMPEL, HUBER, rho_value, weight_value
 
 OK, INSUFFICIENT, ILL, NOT_CONVERGED = 0, 1, 2, 3
@@ -37,7 +38,6 @@ OK, INSUFFICIENT, ILL, NOT_CONVERGED = 0, 1, 2, 3
 CODES = np.array([st.OK, st.INSUFFICIENT, st.ILL_CONDITIONED, st.NOT_CONVERGED], dtype=object)
 COND_LIMIT = 1e10  # as robustloc.estimators._kernels.COND_LIMIT
 MAD_NORMAL = 0.6744897501960817
-COFACTOR_UPDATES = 20  # as robustloc.estimators.nonlinear.COFACTOR_UPDATES
 _HUBER_WARMUP = np.array([1.5, 0.0, 0.0])  # Huber(1.5), the redescending fits' first stage
 
 # ruff: noqa: N803, N806  (matrix names)

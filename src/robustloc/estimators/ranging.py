@@ -37,8 +37,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from robustloc import status as st
-from robustloc.estimators.linear import LinearFit, irls, lege, solve_wls
-from robustloc.estimators.nonlinear import gauss_newton, sandwich_qvv
+from robustloc.estimators.linear import LinearFit, irls, lege, sandwich_qvv, solve_wls
+from robustloc.estimators.nonlinear import gauss_newton
 from robustloc.estimators.solution import Solution
 from robustloc.models.ranging import LN10, RangeModel, RssiModel
 from robustloc.robust.scale import MAD_NORMAL, mad_scale
@@ -1015,10 +1015,10 @@ class Locator:
                 r = 1.0 - np.einsum("kip,kpq,kiq->ki", Jw, Ninv, Jw)
                 r = np.where(ok[:, None] & (r > 0.05), r, np.nan)
                 # each residual's own cofactor in the fit that gave it (its robust
-                # weights, p = w sigma^2, down-weighted rows included): a redescending
-                # fit leaves its rejected rows' residuals at their prediction variance
-                # (1 + h), the others below 1 - h; standardized by the a-priori r alone,
-                # the log scale of igg came out 0.79 of the true noise on Gaussian ranges
+                # weights, p = w sigma^2, down-weighted rows included): a row the fit
+                # down-weighted is left nearer its prediction variance (1 + h) than the
+                # a-priori 1 - h (for Huber's passes the two differ little; it is the
+                # Huber pass above that keeps the scale of a redescending method right)
                 p_w = np.where(np.isfinite(zz), np.nan_to_num(sol.weights) * sig_fit**2, 0.0)
                 q = sandwich_qvv(Jw, np.isfinite(zz).astype(float), p_w, r)
                 u = np.abs(sol.residuals) / (sig_fit * np.sqrt(np.where(np.isfinite(r), q,

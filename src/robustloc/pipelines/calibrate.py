@@ -135,17 +135,20 @@ def run_calibrate(
         if anchors is None:
             raise InputError("--self needs --anchors (the anchor coordinates are the datum)")
         # options of the survey fit mean nothing here: refused, not silently ignored
-        survey_only = {"--robust": settings.robust is not None,
-                       "--pooled": settings.pooled,
-                       "--d0": settings.d0 != 1.0, "--p0": settings.p0 is not None}
+        default = CalibrateSettings()
+        survey_only = {"--robust": settings.robust != default.robust,
+                       "--pooled": settings.pooled != default.pooled,
+                       "--d0": settings.d0 != default.d0, "--p0": settings.p0 != default.p0}
         given = [k for k, v in survey_only.items() if v]
         if given:
             raise InputError(
                 f"{', '.join(given)} applies to a survey fit, not to --self (which is "
                 "always robust, per anchor, and takes p0 and d0 from the anchors file)")
         return _self(settings, anchors, self_log)
-    self_only = {"--dim": settings.dim != 2, "--tag-height": settings.tag_height is not None,
-                 "--se-ratio": settings.se_ratio != 3.0}
+    default = CalibrateSettings()
+    self_only = {"--dim": settings.dim != default.dim,
+                 "--tag-height": settings.tag_height != default.tag_height,
+                 "--se-ratio": settings.se_ratio != default.se_ratio}
     given = [k for k, v in self_only.items() if v]
     if given:
         raise InputError(f"{', '.join(given)} applies to --self only (a survey, or "
