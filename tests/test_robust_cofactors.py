@@ -70,6 +70,45 @@ def test_sandwich_cofactors_match_the_residuals_spread():
     np.testing.assert_allclose(v.var(axis=0), q, rtol=3.3 * np.sqrt(2 / n))
 
 
+def _exact_sandwich(J: np.ndarray, w0: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """diag((I - H) Q (I - H)^T) in exact rational arithmetic (2-D designs)."""
+    from fractions import Fraction as F
+
+    m = J.shape[0]
+    Jf = [[F(float(v)) for v in row] for row in J]
+    w0f, wf = [F(float(v)) for v in w0], [F(float(v)) for v in w]
+    N = [[sum(Jf[i][a] * wf[i] * Jf[i][b] for i in range(m)) for b in range(2)]
+         for a in range(2)]
+    det = N[0][0] * N[1][1] - N[0][1] * N[1][0]
+    Ni = [[N[1][1] / det, -N[0][1] / det], [-N[1][0] / det, N[0][0] / det]]
+    g = [[sum(Jf[i][a] * Ni[a][b] * Jf[k][b] for a in range(2) for b in range(2))
+          for k in range(m)] for i in range(m)]
+    return np.array([float(sum(((1 if i == k else 0) - g[i][k] * wf[k]) ** 2 / w0f[k]
+                               for k in range(m))) for i in range(m)])
+
+
+def test_sandwich_cofactors_of_a_high_leverage_row_keep_their_digits():
+    """Row 0 alone fixes x (leverage 1 - 2e-10): its cofactor 2e-10 is what is left of
+    ``1/P - 2 h w / P + ...`` after the leading digits cancel.  Summed as
+    ``sum_k (delta_ik - g_ik w_k)^2 / P_k`` (nonnegative terms) both engines keep it to
+    rounding, relative error below 1e-12 against exact rational arithmetic (a few
+    roundings of 1.1e-16 per term of 4); the expanded form lost 8e-8 (NumPy) and 4.5e-10
+    (compiled) of it."""
+    from robustloc.estimators import _compiled
+
+    J = np.array([[1.0, 0.0], [1e-5, 1.0], [-1e-5, 1.0], [2e-5, 1.0]])
+    w0 = np.array([1.0, 2.0, 1.0, 1.0])
+    w = np.array([1.0, 2.0, 0.5, 1.0])
+    ref = _exact_sandwich(J, w0, w)
+    assert ref[0] == pytest.approx(2e-10, rel=1e-3)
+    q = sandwich_qvv(J[None], w0[None], w[None], np.full((1, 4), np.nan))[0]
+    np.testing.assert_allclose(q, ref, rtol=1e-12, atol=0)
+    out = np.empty(4)
+    _compiled._sandwich(J, w0, w, np.full(4, np.nan), out, np.empty((2, 2)),
+                        np.empty((2, 2)), np.empty(2), np.empty(4), (0.0, 0.0))
+    np.testing.assert_allclose(1.0 / out**2, ref, rtol=1e-12, atol=0)
+
+
 def _gaussian_log(n: int, sigma: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
     pos = rng.uniform(2, 18, (n, 2))

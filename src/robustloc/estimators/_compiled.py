@@ -184,12 +184,17 @@ def _normal(J, w, r, Nm, g, tag):  # pragma: no cover - jit
 
 
 @njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
-def _sandwich(J, w0, w, qvv, out, Nm, Ni, a, tag):  # pragma: no cover - jit
+def _sandwich(J, w0, w, qvv, out, Nm, Ni, a, c, tag):  # pragma: no cover - jit
     """``out[i] = 1 / sqrt(Q_vv,ii)`` (NaN: untestable) of the fit weighted by ``w`` when
     the observations' cofactors are ``1 / w0``, as
     :func:`robustloc.estimators.linear.sandwich_qvv`; the a-priori ``qvv`` where every
-    weight is full, ``J^T W J`` is singular or a value is not finite.  Overwrites ``Nm``,
-    ``Ni`` and the p-vector ``a``."""
+    weight is full, ``J^T W J`` is singular or a value is not finite.
+
+    The diagonal is summed as ``Q_vv,ii = sum_k (delta_ik - g_ik w_k)^2 / w0_k`` with
+    ``g_ik = J_i^T (J^T W J)^-1 J_k``: nonnegative terms, no cancellation (expanded,
+    ``1/w0_i - 2 g_ii w_i / w0_i + ...`` loses digits on high-leverage rows), with the
+    ``w_k^2 / w0_k`` computed once per call, not per pair.  Overwrites ``Nm``, ``Ni``,
+    the p-vector ``a`` and the m-vector ``c``."""
     m, p = J.shape[0], len(tag)
     full = True
     for i in range(m):
@@ -201,6 +206,8 @@ def _sandwich(J, w0, w, qvv, out, Nm, Ni, a, tag):  # pragma: no cover - jit
         return
     _normal(J, w, w, Nm, a, tag)  # J^T W J (its right-hand side, into a, unused)
     good = _inv_small(Nm, Ni, tag)
+    for k in range(m):  # w_k^2 / w0_k, 0 for a row the fit leaves out
+        c[k] = w[k] * w[k] / w0[k] if w[k] != 0.0 else 0.0
     for i in range(m):
         if not w0[i] > 0:
             out[i] = math.nan
@@ -213,22 +220,21 @@ def _sandwich(J, w0, w, qvv, out, Nm, Ni, a, tag):  # pragma: no cover - jit
             for j in range(p):
                 t += Ni[k, j] * J[i, j]
             a[k] = t
-        q0 = 1.0 / w0[i]
-        q = q0
+        q = 0.0
         for kk in range(m):
-            if w[kk] == 0.0 and kk != i:
+            if c[kk] == 0.0 and kk != i:  # a left-out or unheard row adds nothing
                 continue
             gik = 0.0
             for k in range(p):
                 gik += J[kk, k] * a[k]
             if kk == i:
-                q -= 2.0 * gik * w[i] * q0
-            if w[kk] != 0.0:
-                q += gik * gik * w[kk] * w[kk] / w0[kk]
+                d = 1.0 - gik * w[i]
+                q += d * d / w0[i]
+            else:
+                q += gik * gik * c[kk]
         if not math.isfinite(q):
             out[i] = qvv[i]
             continue
-        q = max(q, 0.0)
         out[i] = 1.0 / math.sqrt(q) if q > 1e-10 / max(w0[i], 1e-300) else math.nan
 
 
@@ -431,7 +437,7 @@ def _gn_iterate(a, ho2, zz, w0, x, w, u, code, prm, robust, scale_fixed, min_sca
                 for i in range(m):
                     vn[i] = qvv[i]
             elif update and not frozen:
-                _sandwich(J, w0, w, qvv, vn, Nm, Ni, dx, tag)
+                _sandwich(J, w0, w, qvv, vn, Nm, Ni, dx, buf, tag)
                 frozen = pending or it >= COFACTOR_UPDATES
             inv_scale = 1.0 / stage_scale
             n_pos = 0

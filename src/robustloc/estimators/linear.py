@@ -185,11 +185,13 @@ def sandwich_qvv(J: Array, w0: Array, w: Array, fallback: Array) -> Array:
     with np.errstate(all="ignore"):
         G = np.matmul(np.matmul(J, Qx), np.swapaxes(J, 1, 2))  # (K, m, m)
         q0 = np.where(w0 > 0, 1.0 / np.where(w0 > 0, w0, 1.0), 0.0)
-        h = np.einsum("kii->ki", G)
-        # (a plain sum over the rows: an unheard row adds exact zeros, so a layout with
-        # an extra unheard anchor gives bit-identical cofactors)
-        out = q0 - 2.0 * h * w * q0 + np.sum(G * G * (w * w * q0)[:, None, :], axis=2)
-        out = np.where(w0 > 0, np.maximum(out, 0.0), np.nan)
+        # Q_vv,ii = sum_k (delta_ik - G_ik w_k)^2 q0_k: nonnegative terms, no cancellation
+        # (expanded, q0 - 2 G_ii w_i q0 + ..., it loses digits on high-leverage rows).  A
+        # plain sum over the rows: an unheard row adds exact zeros, so a layout with an
+        # extra unheard anchor gives bit-identical cofactors
+        D = np.eye(J.shape[1]) - G * np.where(w > 0, w, 0.0)[:, None, :]
+        out = np.sum(D * D * q0[:, None, :], axis=2)
+        out = np.where(w0 > 0, out, np.nan)
     return np.where(good[:, None] & np.isfinite(out), out, fallback)
 
 
