@@ -377,9 +377,19 @@ def main(argv: list[str] | None = None) -> int:
                     help="timed calls per method, the best is reported (default 3)")
     ap.add_argument("--numpy-methods", default="nls,huber,igg",
                     help="methods also timed with the NumPy engine ('' for none)")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="threads of the compiled kernels (numba.set_num_threads; default: "
+                         "numba's, all cores unless NUMBA_NUM_THREADS says otherwise); "
+                         "a batch of 4 096 epochs or more is split over them")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
     ap.add_argument("-o", "--out", help="also write the rows to this CSV file")
     args = ap.parse_args(argv)
+    import numba
+
+    if args.threads is not None:
+        if not 1 <= args.threads <= numba.config.NUMBA_NUM_THREADS:
+            ap.error(f"--threads must lie in 1..{numba.config.NUMBA_NUM_THREADS}")
+        numba.set_num_threads(args.threads)
     if args.quick:
         args.epochs, args.peer_epochs = 5_000, 200
     if args.epochs < 1 or args.peer_epochs < 1:
@@ -409,7 +419,8 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"{args.epochs} epochs x 10 anchors, 2-D, range sigma {SIGMA_M} m, "
             f"{OUTLIER_RATE:.0%} outliers U(3,15) m, seed {args.seed}; "
-            f"peers timed on {min(args.peer_epochs, args.epochs)} epochs"
+            f"peers timed on {min(args.peer_epochs, args.epochs)} epochs; "
+            f"compiled kernels on {numba.get_num_threads()} thread(s), peers on one"
         )
         print(format_table(rows))
     return 0

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as hs
 
 from robustloc import status as st
 from robustloc.estimators.ranging import Locator
@@ -208,3 +210,71 @@ def test_locator_engines_agree_3d_coplanar_anchors(method: str) -> None:
     sol = Locator(method, sigma=0.3, robust_scale="apriori").solve(a, values)
     fixed = st.among(sol.status, st.USABLE)
     assert fixed.mean() > 0.95 and np.median(sol.position[fixed, 2]) < 2.0
+
+
+# ------------------------------------------------------------------------------ threads
+@given(n=hs.integers(0, 100_000), threads=hs.integers(1, 64))
+@settings(max_examples=200, deadline=None)
+def test_thread_spans_cover_the_batch_once(n: int, threads: int) -> None:
+    from robustloc.estimators._compiled import MIN_CHUNK, thread_spans
+
+    spans = thread_spans(n, threads)
+    assert spans[0][0] == 0 and spans[-1][1] == n
+    assert all(a[1] == b[0] for a, b in zip(spans, spans[1:]))  # contiguous, no gap
+    assert 1 <= len(spans) <= threads
+    if len(spans) > 1:  # a span is worth a thread
+        assert min(hi - lo for lo, hi in spans) >= MIN_CHUNK
+    assert max(hi - lo for lo, hi in spans) - min(hi - lo for lo, hi in spans) <= 1
+
+
+@pytest.mark.parametrize("method", ["nls", "huber", "igg", "auto"])
+def test_the_fixes_do_not_depend_on_the_thread_count(method: str, monkeypatch) -> None:
+    """Every epoch is solved by the same code on its own scratch, whichever thread takes
+    it: one thread and three (each span at least MIN_CHUNK epochs) give bit-identical
+    outputs, with the threads really used (the spans of three)."""
+    import numba
+
+    from robustloc.estimators import _compiled
+    from robustloc.integrity.fixes import locate_protected
+
+    rng = np.random.default_rng(21)
+    n = 3 * _compiled.MIN_CHUNK + 37
+    values = _log(rng, n, A2)
+    seen: list[int] = []
+    spans = _compiled.thread_spans
+
+    def counted(n_: int, threads: int | None = None) -> list[tuple[int, int]]:
+        out = spans(n_, threads)
+        seen.append(len(out))
+        return out
+
+    monkeypatch.setattr(_compiled, "thread_spans", counted)
+    runs = []
+    for threads in (1, 3):
+        monkeypatch.setattr(numba, "get_num_threads", lambda t=threads: t)
+        loc = Locator(method)
+        runs.append(locate_protected(loc, A2, values, "range") if method == "auto"
+                    else loc.solve(A2, values, "range"))
+    assert max(seen) == 3
+    a, b = runs
+    np.testing.assert_array_equal(a.status, b.status)
+    for name in ("position", "covariance", "residuals", "weights", "sigma0", "iterations"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    np.testing.assert_array_equal(a.extra["jacobian"], b.extra["jacobian"])
+    if method == "auto":
+        np.testing.assert_array_equal(a.extra["hpl"], b.extra["hpl"])
+
+
+def test_an_error_in_one_span_is_raised_after_every_span_ends() -> None:
+    from robustloc.estimators._compiled import MIN_CHUNK, in_threads
+
+    done: list[int] = []
+
+    def run(lo: int, hi: int) -> None:
+        if lo > 0:
+            raise RuntimeError(f"span {lo}")
+        done.append(lo)
+
+    with pytest.raises(RuntimeError, match="span"):
+        in_threads(run, 3 * MIN_CHUNK, 3)
+    assert done == [0]  # the calling thread's span ran to its end

@@ -14,7 +14,8 @@ from robustloc.errors import InputError
 
 #: Environment of LocalCluster workers: one thread per worker for numba and BLAS, so
 #: ``workers x threads`` never oversubscribes the cores (dask runs one task per worker
-#: thread; the kernels are single-threaded per call).
+#: thread; the compiled kernels split a long batch over numba's thread count, which this
+#: sets to 1).
 WORKER_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1",
               "MKL_NUM_THREADS": "1"}
 #: Memory limit of one LocalCluster worker (the engine's target is <= 2 GiB per worker).

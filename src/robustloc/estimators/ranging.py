@@ -645,7 +645,10 @@ class Locator:
         ``"compiled"``: the robust start and the Gauss-Newton fits of ranges (and of RSSI
         converted to ranges) run per epoch in the numba kernels of
         :mod:`robustloc.estimators._compiled` (a whole ``solve`` 3-5x faster; the first
-        call in a fresh install compiles them, about 20 s, cached on disk afterwards);
+        call in a fresh install compiles them, about 20 s, cached on disk afterwards; a
+        batch of 4 096 epochs or more is split over numba's threads, all cores unless
+        ``NUMBA_NUM_THREADS`` or ``numba.set_num_threads`` says otherwise, with
+        bit-identical results for any count);
         ``"numpy"``: the batched NumPy implementation, which the kernels reproduce (the
         tests compare them) and which serves the dB-domain model and custom weight
         functions.
