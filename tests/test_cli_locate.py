@@ -228,6 +228,57 @@ def test_an_anchor_far_outside_the_layout_is_named(tmp_path, capsys):
     pd.testing.assert_frame_equal(got[["x", "y", "status"]], want[["x", "y", "status"]])
 
 
+def _room_with_a_misplaced_anchor(tmp_path, dx_m: float):
+    """Eight anchors around a 30 m room, 300 epochs of ranges with 0.1 m noise, and an
+    anchors file with anchor A2 moved ``dx_m`` along x (the measurements are not)."""
+    rng = np.random.default_rng(3)
+    A = np.array([[0, 0], [30, 0], [30, 30], [0, 30], [15, 0], [30, 15], [15, 30], [0, 15]],
+                 dtype=float)
+    x = rng.uniform(5, 25, (300, 2))
+    d = np.linalg.norm(x[:, None] - A[None], axis=2) + rng.normal(0, 0.1, (300, 8))
+    m = tmp_path / "m.csv"
+    pd.DataFrame([(t, "t1", f"A{j}", d[t, j]) for t in range(300) for j in range(8)],
+                 columns=["time", "tag", "anchor", "range"]).to_csv(m, index=False)
+    an = pd.DataFrame({"anchor": [f"A{j}" for j in range(8)], "x": A[:, 0], "y": A[:, 1]})
+    an.loc[2, "x"] += dx_m
+    a = tmp_path / f"anchors_{dx_m:g}.csv"
+    an.to_csv(a, index=False)
+    return m, a, x
+
+
+@pytest.mark.parametrize(("dx_m", "named"), [(100.0, True), (2.0, True), (0.5, False)])
+def test_an_anchor_whose_ranges_disagree_with_the_fixes_is_named(tmp_path, capsys, dx_m,
+                                                                  named):
+    """An anchor 100 m (or 2 m) from where its ranges say it is was given little weight by
+    the log's scale and the fixes stayed good, without a word to the user.  The run now
+    names it on stderr (even with --quiet) with its scale against the median anchor's, and
+    in the summary's ``anchors_suspect``; 0.5 m off (5 noise sigmas) it is not named.  The
+    threshold (SUSPECT_SCALE_RATIO = 5) lies above every shared real log's largest ratio
+    (1.92) and below the 2 m case's 20.8."""
+    m, a, truth = _room_with_a_misplaced_anchor(tmp_path, dx_m)
+    out = tmp_path / "o.csv"
+    assert main(["locate", str(m), "--anchors", str(a), "-o", str(out), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert ("warning: " in err and "anchor(s) A2 (" in err
+            and "calibrate --self" in err) is named
+    assert main(["locate", str(m), "--anchors", str(a), "-o", str(out), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert list(summary["anchors_suspect"]) == (["A2"] if named else [])
+    if dx_m == 100.0:  # the fixes were, and stay, good: the anchor has little weight
+        pos = pd.read_csv(out)
+        err_m = np.hypot(pos["x"] - truth[:, 0], pos["y"] - truth[:, 1])
+        assert np.sqrt(np.mean(err_m**2)) < 0.3
+
+
+def test_the_library_warns_about_a_suspect_anchor(tmp_path):
+    import robustloc
+    from robustloc.api import RobustlocWarning
+
+    m, a, _ = _room_with_a_misplaced_anchor(tmp_path, 100.0)
+    with pytest.warns(RobustlocWarning, match=r"anchor\(s\) A2 \("):
+        robustloc.locate(str(m), str(a))
+
+
 def test_one_sigma_value_moves_nothing_under_the_log_scale(tmp_path, capsys):
     """--robust-scale log measures the noise in units of --sigma, so one value for every
     anchor changes no fix, status or hpl; sigma0, the ratio of the residuals to it,

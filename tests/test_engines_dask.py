@@ -533,6 +533,29 @@ def test_locate_dask_places_ambiguous_fixes_as_one_process(scheduler, tmp_path):
     assert meta["side_from_log"]["auto"] >= 3
 
 
+def test_locate_dask_names_a_suspect_anchor_as_one_process(scheduler, tmp_path, capsys):
+    """An anchor placed 100 m from where its ranges say: the dask run names it on stderr
+    and in its summary, with the ratio of the single process (one first pass, the whole
+    dataset's)."""
+    from test_cli_locate import _room_with_a_misplaced_anchor
+
+    m, a, _ = _room_with_a_misplaced_anchor(tmp_path, 100.0)
+    assert main(["partition", str(m), "-o", str(tmp_path / "ds"), "--by", "time",
+                 "--span", "100"]) == 0
+    capsys.readouterr()
+    assert main(["locate", str(m), "--anchors", str(a), "-o", str(tmp_path / "one.csv"),
+                 "--json"]) == 0
+    one = json.loads(capsys.readouterr().out)["anchors_suspect"]
+    assert list(one) == ["A2"]
+    out = tmp_path / "pos"
+    assert main(["locate", str(tmp_path / "ds"), "--anchors", str(a), "-o", str(out),
+                 "--engine", "dask", "--scheduler", scheduler, "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert f"warning: {a}: the measurements of anchor(s) A2 ({one['A2']:g}x)" in err
+    meta = json.loads((out / "_robustloc.json").read_text())
+    assert meta["anchors_suspect"] == one
+
+
 # --------------------------------------------------------------------------------------
 # outputs over inputs, and partition's checks of its input
 # --------------------------------------------------------------------------------------

@@ -436,13 +436,16 @@ def locate(
         The positions contract: ``time, tag, x, y[, z], method, status, n_used,
         sigma0, excluded`` and the integrity columns (``hpl``, ...), one row per epoch and
         method, in time order; ``attrs["summary"]`` is the run summary (status counts,
-        duplicate and invalid rows, timings, ``anchors_not_used``).
+        duplicate and invalid rows, timings, ``anchors_not_used``, ``anchors_suspect``).
 
     Warns
     -----
     RobustlocWarning
         An anchor lies far outside the others (more than 20 times their median spread:
-        a typo?) and is not used by any fix, as the command warns.
+        a typo?) and is not used by any fix, or its measurements disagree with the fixes
+        far more than the median anchor's (its noise scale over the log above
+        :data:`robustloc.pipelines.locate.SUSPECT_SCALE_RATIO` times the median's), as
+        the command warns.
 
     Raises
     ------
@@ -494,12 +497,10 @@ def locate(
             beta0=beta0, chunk_rows=chunk_rows, side_prior=side_prior)
         anchor_frame, source = _log_inputs(measurements, anchors)
         frame, summary = run_locate(source, anchor_frame, settings)
-    if summary.get("anchors_not_used"):  # the command's warning
-        warnings.warn(
-            f"{anchor_frame.attrs.get('path')}: anchor(s) "
-            f"{', '.join(summary['anchors_not_used'])} lie far outside the others (more "
-            "than 20 times their median spread: a typo?) and are not used by any fix",
-            RobustlocWarning, stacklevel=2)
+    from robustloc.pipelines.locate import anchor_warnings
+
+    for line in anchor_warnings(summary, anchor_frame.attrs.get("path")):  # the command's
+        warnings.warn(line, RobustlocWarning, stacklevel=2)
     return _with_summary(frame, summary)
 
 

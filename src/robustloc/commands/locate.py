@@ -197,10 +197,10 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(summary, indent=2), file=dest)
         return 0
-    if summary.get("anchors_not_used"):  # a warning, even with --quiet
-        print(f"warning: {args.anchors}: anchor(s) {', '.join(summary['anchors_not_used'])} "
-              "lie far outside the others (more than 20 times their median spread: a typo?) "
-              "and are not used by any fix", file=sys.stderr)
+    from robustloc.pipelines.locate import anchor_warnings
+
+    for line in anchor_warnings(summary, args.anchors):  # warnings, even with --quiet
+        print(f"warning: {line}", file=sys.stderr)
     if args.quiet:
         return 0
     print(f"{summary['epochs']} epochs of {summary['value']} -> {summary['positions']} "

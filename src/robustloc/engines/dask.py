@@ -305,6 +305,10 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
             "files": [{"input": info.part.path, "output": Path(out.part(i)).name}
                       for i, info in enumerate(plan)],
         }
+        for key in ("anchors_not_used", "anchors_suspect"):
+            # one anchors file and one first pass for every partition: the same lists
+            if summaries and key in summaries[0]:
+                summary[key] = summaries[0][key]
         out.commit(summary)
     except BaseException:
         out.abort()
@@ -381,6 +385,11 @@ def _report(args: argparse.Namespace, summary: dict) -> None:
     if getattr(args, "json", False):
         print(json.dumps({k: v for k, v in summary.items() if k != "files"}, indent=2))
         return
+    if "anchors_suspect" in summary or "anchors_not_used" in summary:
+        from robustloc.pipelines.locate import anchor_warnings
+
+        for line in anchor_warnings(summary, getattr(args, "anchors", None)):
+            print(f"warning: {line}", file=sys.stderr)  # as the command, even with --quiet
     if getattr(args, "quiet", False):  # no text summary, as the single-machine commands
         return
     what = summary.get("value") or "rows"
