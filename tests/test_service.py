@@ -903,3 +903,23 @@ def test_websocket_frame_over_the_size_limit_is_counted(tokened):
     with connect(ws_url + "/ws/measurements", additional_headers=AUTH) as pub:
         pub.send(json.dumps([{"time": 0.0, "tag": "Z", "anchor": "1", "rssi": -70.0}]))
         assert json.loads(pub.recv(timeout=10))["accepted"] == 1
+
+
+def test_serve_names_a_suspect_anchor_of_its_recorded_log(server_factory, tmp_path):
+    """``serve --scale-from LOG`` runs locate's first pass: an anchor placed 100 m from
+    where its ranges say is named at start, as ``locate`` names it (same message, same
+    ratio); the correctly placed layout starts without a warning."""
+    from test_cli_locate import _room_with_a_misplaced_anchor
+
+    m, a, _ = _room_with_a_misplaced_anchor(tmp_path, 100.0)
+    out = subprocess.run([*ROBUSTLOC, "locate", str(m), "--anchors", str(a), "-o",
+                          str(tmp_path / "f.csv"), "--json"], check=True,
+                         capture_output=True, text=True).stdout
+    ratio = json.loads(out)["anchors_suspect"]["A2"]
+    srv = server_factory(["--anchors", str(a), "--scale-from", str(m),
+                          "--store", str(tmp_path / "store")])
+    assert f"warning: {a}: the measurements of anchor(s) A2 ({ratio:g}x)" in srv.log()
+    m0, a0, _ = _room_with_a_misplaced_anchor(tmp_path, 0.0)
+    ok = server_factory(["--anchors", str(a0), "--scale-from", str(m0),
+                         "--store", str(tmp_path / "store0")])
+    assert "warning" not in ok.log()

@@ -180,6 +180,11 @@ def build(args: argparse.Namespace):
                 robust_scale = "log"
                 if args.side_prior == "none":
                     sides = ()
+                from robustloc.pipelines.locate import anchor_warnings, suspect_of_scale
+
+                suspect = suspect_of_scale(scale, [str(a) for a in anchors["anchor"]])
+                for line in anchor_warnings({"anchors_suspect": suspect}, args.anchors):
+                    print(f"warning: {line}", file=sys.stderr, flush=True)
             processor = LocateProcessor(anchors, method=args.method,
                                         robust_scale=robust_scale, log_scale=scale,
                                         log_gross_share=share, log_sides=sides, **settings)

@@ -541,15 +541,19 @@ def suspect_anchors(locators: Sequence[Any], ids: Sequence[str]) -> dict[str, fl
     --self``."""
     out: dict[str, float] = {}
     for loc in locators:
-        scale = getattr(loc, "log_scale_fixed", None)
-        if scale is None or len(scale) != len(ids) or len(scale) < 3:
-            continue
-        sc = np.asarray(scale, dtype=float)
-        ratio = sc / np.median(sc)
-        for a, r in zip(ids, ratio):
-            if r > SUSPECT_SCALE_RATIO:
-                out[a] = max(out.get(a, 0.0), float(f"{r:.3g}"))
+        for a, r in suspect_of_scale(getattr(loc, "log_scale_fixed", None), ids).items():
+            out[a] = max(out.get(a, 0.0), r)
     return out
+
+
+def suspect_of_scale(scale: Sequence[float] | None, ids: Sequence[str]) -> dict[str, float]:
+    """:func:`suspect_anchors` of one per-anchor log scale (``None``, or fewer than three
+    anchors: none)."""
+    if scale is None or len(scale) != len(ids) or len(scale) < 3:
+        return {}
+    sc = np.asarray(scale, dtype=float)
+    ratio = sc / np.median(sc)
+    return {a: float(f"{r:.3g}") for a, r in zip(ids, ratio) if r > SUSPECT_SCALE_RATIO}
 
 
 def anchor_warnings(summary: dict[str, Any], anchors: object) -> list[str]:
