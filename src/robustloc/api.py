@@ -577,6 +577,9 @@ def track(
     beta0: float = 0.10,
     integrity_risk: float = 0.001,
     chunk_rows: int = 500_000,
+    range_offset: bool = False,
+    range_offset_sd: float = 0.5,
+    range_offset_q: float = 1e-4,
 ) -> pd.DataFrame:
     r"""Tracks for every tag of a measurements log (``robustloc track``).
 
@@ -597,6 +600,10 @@ def track(
         The tracker's kernels (``robustloc track --kernel``; ``Tracker(engine=...)``).
     tag_height, alpha0, beta0, integrity_risk, chunk_rows
         As the options of the same name.
+    range_offset, range_offset_sd, range_offset_q
+        Ranges: estimate each tag's common range offset (m) as one more state, its
+        a-priori standard deviation (m) and random-walk growth (m^2/s)
+        (``--range-offset``; columns ``range_offset, var_range_offset``).
 
     Returns
     -------
@@ -635,7 +642,9 @@ def track(
             model=model, filter=filter, q=q, weight=weight, domain=domain, sigma=sigma,
             smooth=smooth, fixed_lag=fixed_lag, kernel=engine, cusum_h=cusum_h,
             tag_height=tag_height, alpha0=alpha0, beta0=beta0,
-            integrity_risk=integrity_risk, chunk_rows=chunk_rows)
+            integrity_risk=integrity_risk, chunk_rows=chunk_rows,
+            range_offset=_flag("range_offset", range_offset), range_offset_sd=range_offset_sd,
+            range_offset_q=range_offset_q)
         anchor_frame, source = _log_inputs(measurements, anchors)
         frame, summary = run_track(source, anchor_frame, settings)
     return _with_summary(frame, summary)

@@ -169,6 +169,69 @@ class ConstantAcceleration(_Kinematic):
     name: str = "ca"
 
 
+@dataclass(frozen=True)
+class RandomWalkAugmented:
+    """A kinematic model with ``extra`` random-walk states appended to its state vector.
+
+    ``x = [kinematic states, c_1 .. c_extra]``: the kinematic block moves as ``base``, each
+    appended state is a random walk ``c(k+1) = c(k) + w``, ``w ~ N(0, q_extra dt)`` (a
+    slowly drifting constant such as a receiver's range offset; Brown & Hwang 2012,
+    sec. 9.2, the clock-bias state of GNSS filters).  ``F = diag(F_base, I)``,
+    ``Q = diag(Q_base, q_extra dt I)``.
+
+    Parameters
+    ----------
+    base : the kinematic model (``cv``, ``ca`` or a position random walk).
+    q_extra : variance growth of each appended state per second (unit^2 / s).
+    extra : number of appended states.
+    """
+
+    base: _Kinematic
+    q_extra: float = 0.0
+    extra: int = 1
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.q_extra) and self.q_extra >= 0):
+            raise ValueError(f"q_extra must be finite and >= 0, got {self.q_extra}")
+        if self.extra < 1:
+            raise ValueError(f"extra must be >= 1, got {self.extra}")
+
+    @property
+    def n_states(self) -> int:
+        """State dimension: the base model's plus ``extra``."""
+        return self.base.n_states + self.extra
+
+    def _pad(self, A: Array, diag: Array) -> Array:
+        nb = A.shape[-1]
+        out = np.zeros(A.shape[:-2] + (nb + self.extra, nb + self.extra))
+        out[..., :nb, :nb] = A
+        i = np.arange(nb, nb + self.extra)
+        out[..., i, i] = diag[..., None]
+        return out
+
+    def F(self, dt: ArrayLike) -> Array:
+        """``diag(F_base(dt), I)``."""
+        dt = np.asarray(dt, dtype=float)
+        return self._pad(self.base.F(dt), np.ones_like(dt))
+
+    def Q(self, dt: ArrayLike) -> Array:
+        """``diag(Q_base(dt), q_extra |dt| I)``."""
+        dt = np.asarray(dt, dtype=float)
+        return self._pad(self.base.Q(dt), self.q_extra * np.abs(dt))
+
+    def FQ(self, dt: float) -> tuple[Array, Array]:
+        """``(F(dt), Q(dt))`` for a scalar step."""
+        return self.F(float(dt)), self.Q(float(dt))
+
+    def f(self, x: ArrayLike, dt: ArrayLike) -> Array:
+        """Propagate states ``x (K, n)`` by ``dt`` (linear: ``F x``)."""
+        x = np.asarray(x, dtype=float)
+        F = self.F(dt)
+        if F.ndim == 2:
+            return x @ F.T
+        return np.einsum("kij,kj->ki", F, x)
+
+
 @lru_cache(maxsize=256)
 def _fq_cached(model: _Kinematic, dt: float) -> tuple[Array, Array]:
     F, Q = model.F(dt), model.Q(dt)

@@ -25,6 +25,7 @@ from robustloc.options import (
     check_settings,
     finite_float,
     float_in,
+    nonnegative_float,
     option,
     positive_float,
     positive_int,
@@ -62,6 +63,9 @@ class TrackSettings:
     beta0: float = option(0.10, check=_PROBABILITY)
     integrity_risk: float = option(0.001, check=_PROBABILITY)
     tag_height: float | None = option(None, check=finite_float)
+    range_offset: bool = False
+    range_offset_sd: float = option(0.5, check=positive_float)
+    range_offset_q: float = option(1e-4, check=nonnegative_float)
     chunk_rows: int = option(500_000, check=positive_int)
 
     def __post_init__(self) -> None:
@@ -355,11 +359,15 @@ def apply_smoother(trk: Any, table: pd.DataFrame, lag: int | None) -> pd.DataFra
     t.loc[have, "x"], t.loc[have, "y"] = xs[have, 0], xs[have, 1]
     t.loc[have, "var_x"], t.loc[have, "var_y"] = Ps[have, 0, 0], Ps[have, 1, 1]
     t.loc[have, "cov_xy"] = Ps[have, 0, 1]
-    if xs.shape[1] >= 4:
+    n = trk.n_motion  # kinematic states; the range offset (if estimated) follows them
+    if n >= 4:
         t.loc[have, "vx"], t.loc[have, "vy"] = xs[have, 2], xs[have, 3]
         t.loc[have, "var_vx"], t.loc[have, "var_vy"] = Ps[have, 2, 2], Ps[have, 3, 3]
-    if xs.shape[1] >= 6:
+    if n >= 6:
         t.loc[have, "ax"], t.loc[have, "ay"] = xs[have, 4], xs[have, 5]
+    if xs.shape[1] > n:
+        t.loc[have, "range_offset"] = xs[have, n]
+        t.loc[have, "var_range_offset"] = Ps[have, n, n]
     # hpl: the filtered slope term carries over; the noise term shrinks with the covariance
     P2 = Ps[have][:, :2, :2]
     tr = 0.5 * (P2[:, 0, 0] + P2[:, 1, 1])

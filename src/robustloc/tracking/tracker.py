@@ -83,15 +83,29 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
    same (a singular system, a non-finite state or covariance, a negative variance) is
    dropped alike; the other tags of the round are advanced as if it were not there.
 
+10. **A tag's range offset** (``range_offset``, ranges only).  Every range a tag measures
+   can carry the same offset ``b``: a UWB tag's uncalibrated antenna delay, a phone's WiFi
+   RTT offset.  ``b`` is then the state's last component, ``h_i(x) = d_i(p) + b``
+   (``dh_i/db = 1``), a random walk of ``range_offset_q`` m^2/s started at 0 with the
+   standard deviation ``range_offset_sd`` (the clock-bias state of a GNSS filter; Brown &
+   Hwang 2012, sec. 9.2).  In one epoch ``b`` is nearly confounded with the position (a
+   tag amid its anchors reads every range long and stays put); as the tag moves the
+   geometry changes and the filter separates them.  The robust fixes of the checks and
+   re-starts use the ranges with the current ``b`` removed; a re-start keeps ``b`` and its
+   variance.  Measured (report section ``s60_tracks``): uwb-labyrinth, whose ranges read
+   0.07-0.15 m long at every anchor, 0.215 -> 0.144 m RMS (``b`` -> 0.085 m; after
+   ``calibrate --self`` it stays near 0); uwb-dwm1001 LOS 0.77 -> 0.91 m, whose range
+   errors differ in sign by anchor.  An option, not the default.
+
 Engines: ``compiled`` (default) runs the whole round of the ``cv``/``ca`` models in the
 range domain (ranges, or RSSI converted to ranges) in one fused numba kernel
 (:mod:`robustloc.tracking._compiled`: items 2-8 in a loop over the tags, its update the
 fusion filter's compiled kernel on the ranges); only the robust snapshot fixes of
 suspicious epochs and the re-starts (items 5 and 9) stay in NumPy, for the tags that need
 them.
-``numpy`` (and RSSI in dB, and ``static``) runs the batched NumPy core, the reference
-implementation.  The two agree to rounding, 1e-9 m (tested, also on random workloads with
-holds, outliers and re-starts).
+``numpy`` (and RSSI in dB, ``static`` and ``range_offset``) runs the batched NumPy core,
+the reference implementation.  The two agree to rounding, 1e-9 m (tested, also on random
+workloads with holds, outliers and re-starts).
 
 Batching: :meth:`Tracker.step` takes an :class:`~robustloc.io.tables.Epochs` block and
 advances each tag through its epochs in time order; the ``j``-th epochs of all tags are
@@ -119,7 +133,12 @@ from robustloc.filters.core import (
     update_ekf,
     update_ukf,
 )
-from robustloc.filters.motion import ConstantAcceleration, ConstantVelocity, _Kinematic
+from robustloc.filters.motion import (
+    ConstantAcceleration,
+    ConstantVelocity,
+    RandomWalkAugmented,
+    _Kinematic,
+)
 from robustloc.integrity.bmethod import global_critical, lambda0
 from robustloc.io.tables import anchor_sigma
 from robustloc.robust.weights import get_weight
@@ -181,6 +200,12 @@ class TrackerSettings:
     init_window_s : before its first fix, a tag's last observation of each anchor within
         this many seconds joins the current epoch's (asynchronous UWB ranges arrive one
         anchor at a time: the starting fix needs three).
+    range_offset : ranges only: estimate the tag's common range offset ``b`` (m, added to
+        every range it measures: a UWB tag's uncalibrated antenna delay, a phone's WiFi
+        RTT offset) as one more state (item 10 of the module docstring).  Runs on the
+        NumPy engine.
+    range_offset_sd : a-priori standard deviation of that offset (m) at a tag's start.
+    range_offset_q : its random-walk variance growth (m^2/s): 0 for a constant offset.
     """
 
     model: str = "cv"
@@ -206,6 +231,9 @@ class TrackerSettings:
     tag_height: float | None = None
     init_window_s: float = 1.0
     lost_pos_var: float = 25.0
+    range_offset: bool = False
+    range_offset_sd: float = 0.5
+    range_offset_q: float = 1e-4
 
     def __post_init__(self) -> None:
         def bad(msg: str) -> None:
@@ -221,7 +249,7 @@ class TrackerSettings:
             bad(f"engine must be 'compiled' or 'numpy', got {self.engine!r}")
         for name in ("q", "init_window_s", "lost_pos_var", "noise_forget", "cusum_k",
                      "init_vel_var",
-                     "init_acc_var", "init_pos_var_min"):
+                     "init_acc_var", "init_pos_var_min", "range_offset_q"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 bad(f"{name} must be finite and >= 0, got {v}")
@@ -233,6 +261,8 @@ class TrackerSettings:
             bad(f"noise_forget must be in [0, 1], got {self.noise_forget}")
         if self.sigma is not None and not (math.isfinite(self.sigma) and self.sigma > 0):
             bad(f"sigma must be positive and finite, got {self.sigma}")
+        if not (math.isfinite(self.range_offset_sd) and self.range_offset_sd > 0):
+            bad(f"range_offset_sd must be positive and finite, got {self.range_offset_sd}")
         for name in ("alpha0", "beta0", "integrity_risk"):
             v = getattr(self, name)
             if not 0 < v < 1:
@@ -242,12 +272,18 @@ class TrackerSettings:
         if self.weight is not None:
             get_weight(self.weight)  # validates the name
 
-    def motion(self) -> _Kinematic:
+    def motion(self) -> _Kinematic | RandomWalkAugmented:
+        """The motion model of the state (with the range offset's random walk appended)."""
+        base: _Kinematic
         if self.model == "cv":
-            return ConstantVelocity(q=self.q)
-        if self.model == "ca":
-            return ConstantAcceleration(q=self.q)
-        return _Kinematic(q=self.q, order=0, name="static")
+            base = ConstantVelocity(q=self.q)
+        elif self.model == "ca":
+            base = ConstantAcceleration(q=self.q)
+        else:
+            base = _Kinematic(q=self.q, order=0, name="static")
+        if self.range_offset:
+            return RandomWalkAugmented(base, q_extra=self.range_offset_q)
+        return base
 
 
 def _state_size(model: str) -> int:
@@ -285,7 +321,9 @@ class Tracker:
         self.anchors = anchors.reset_index(drop=True)
         self.anchor_ids = tuple(str(a) for a in self.anchors["anchor"])
         self.record = record
-        self.n = _state_size(model)
+        #: kinematic states, then the range offset (``range_offset``) as the last one
+        self.n_motion = _state_size(model)
+        self.n = self.n_motion + int(self.settings.range_offset)
         self._motion = self.settings.motion()
         self._kind: str | None = None
         self._link: LinkModel | None = None
@@ -379,6 +417,10 @@ class Tracker:
 
         s = self.settings
         a = self.anchors
+        if s.range_offset and kind != "range":
+            raise InputError("range_offset is for ranges: this log has RSSI (a device's "
+                             "RSSI offset is the path-loss model's A: calibrate it)",
+                             a.attrs.get("path"), 1)
         M = len(a)
         xy = a[["x", "y"]].to_numpy(dtype=float)
         dz2 = np.zeros(M)
@@ -413,7 +455,8 @@ class Tracker:
         # per-epoch scale: a start fix must not depend on which epochs share its batch
         self._locator = Locator("huber", sigma=tuple(sigma), robust_scale="mad")
         self._kernel = None
-        if s.engine == "compiled" and self._link.kind == "range" and s.model in ("cv", "ca"):
+        if (s.engine == "compiled" and self._link.kind == "range" and s.model in ("cv", "ca")
+                and not s.range_offset):
             from robustloc.fusion.pipeline import FusionFilter, FusionMeasurement
             from robustloc.tracking import _compiled
 
@@ -440,6 +483,24 @@ class Tracker:
     def method(self) -> str:
         """The ``method`` column value, e.g. ``track-cv-ekf``."""
         return f"{METHOD_PREFIX}-{self.settings.model}-{self.settings.filter}"
+
+    def _predict(self, x: Array) -> Array:
+        """``h(x) (K, M)``: the link model's, plus the range offset state when estimated."""
+        h = self._link.predict(x)
+        return h + x[:, -1:] if self.settings.range_offset else h
+
+    def _jacobian(self, x: Array) -> Array:
+        """``dh/dx (K, M, n)``: the link model's; ``dh_i/db = 1`` for the range offset."""
+        J = self._link.jacobian(x)
+        if self.settings.range_offset:
+            J[:, :, -1] = 1.0
+        return J
+
+    def _offset(self, sl: NDArray[np.int64]) -> Array:
+        """The tags' range offset estimates ``(K, 1)`` (0 without the state)."""
+        if not self.settings.range_offset:
+            return np.zeros((len(sl), 1))
+        return self._x[sl, -1:]
 
     def _calibrate(self, values: Array) -> Array:
         """Non-finite values as NaN; ranges corrected with the anchors' ``bias``/``scale``
@@ -587,7 +648,8 @@ class Tracker:
         rows = cand_rows[use]
         if rows.size == 0:
             return
-        obs, var = self._observations(z[rows] - self._bias[sl[rows]])
+        obs, var = self._observations(z[rows] - self._bias[sl[rows]]
+                                      - self._offset(sl[rows]))
         keep = keep_all[rows] & np.isfinite(obs)
         dof = keep.sum(axis=1) - 2
         ok = dof >= 1
@@ -651,10 +713,17 @@ class Tracker:
         x0[:, :2] = pos[ok]
         diag = np.zeros((ok.sum(), n))
         diag[:, :2] = var[ok]
-        if n >= 4:
+        if self.n_motion >= 4:
             diag[:, 2:4] = s.init_vel_var
-        if n >= 6:
+        if self.n_motion >= 6:
             diag[:, 4:6] = s.init_acc_var
+        if s.range_offset:
+            # a re-start keeps the tag's offset (its fix used ranges with it removed); a
+            # new tag starts from the a-priori offset 0 +- range_offset_sd
+            diag[:, -1] = s.range_offset_sd**2
+            if reinit:
+                x0[:, -1] = self._x[k, -1]
+                diag[:, -1] = self._P[k, -1, -1]
         self._x[k] = x0
         self._P[k] = diag[:, :, None] * np.eye(n)[None]
         self._t[k] = t[ok]
@@ -769,11 +838,11 @@ class Tracker:
             d_raw = z - link.rssi(xp)
         else:
             d_raw = None
-        hp = link.predict(xp)
+        hp = self._predict(xp)
         obs, R0 = self._observations(z - bias)
         if d_raw is None:
             d_raw = z - hp
-        H = link.jacobian(xp)
+        H = self._jacobian(xp)
         PHt = Pp @ np.swapaxes(H, 1, 2)  # (K, n, M)
         HPH = (H * np.swapaxes(PHt, 1, 2)).sum(axis=2)
         scale2 = self._scale2[sl]
@@ -825,10 +894,10 @@ class Tracker:
             xq, Pq = predict_linear(x, P, F, Q)
             R = Rd[:, :, None] * np.eye(M)[None]
             if s.filter == "ekf":
-                res = update_ekf(xq, Pq, zin, link.predict, R, jac=link.jacobian,
+                res = update_ekf(xq, Pq, zin, self._predict, R, jac=self._jacobian,
                                  robust=self._robust)
             else:
-                res = update_ukf(xq, Pq, zin, link.predict, R, points=SigmaPoints(),
+                res = update_ukf(xq, Pq, zin, self._predict, R, points=SigmaPoints(),
                                  robust=self._robust)
             xn, Pn, w = res.x, res.P, res.weights
             nis, rstat, nu = res.nis, res.status, res.n_used
@@ -896,6 +965,8 @@ class Tracker:
         out.excluded[idx] = (avail & (w <= 0)) | held_now
         out.hpl[idx] = hpl
         out.scale[idx] = np.sqrt(scale2)
+        if s.range_offset:  # the snapshot fixes of checks and re-starts: offset removed
+            z = z - xn[:, -1:]
         self._finish(idx, sl, t, z, out, moved, sus, dof, xp, Pp, dt)
         return lost
 
@@ -1101,8 +1172,11 @@ class Tracker:
         """
         K, M = avail.shape
         wr = np.where(avail, w, 0.0) / Rd  # (K, M)
-        Hp = H[:, :, :2]  # position columns
-        G = (Hp @ Pn[:, :2, :2]) * wr[:, :, None]  # (K, M, 2): rows are G_pos,i^T
+        if self.settings.range_offset:  # the offset's column feeds the position rows too
+            G = (H @ Pn[:, :, :2]) * wr[:, :, None]
+        else:
+            Hp = H[:, :, :2]  # position columns
+            G = (Hp @ Pn[:, :2, :2]) * wr[:, :, None]  # (K, M, 2): rows are G_pos,i^T
         gpos = np.hypot(G[:, :, 0], G[:, :, 1])
         mdb = math.sqrt(self._lam0) * np.sqrt(np.where(avail, HPH + Rd, 0.0))
         slope = np.max(np.where(avail, gpos * mdb, 0.0), axis=1) if M else np.zeros(K)
@@ -1115,7 +1189,8 @@ class Tracker:
     # ------------------------------------------------------------------ output
     def _frame(self, epochs: Any, out: _Rows) -> pd.DataFrame:
         return track_frame(np.asarray(epochs.time, float), np.asarray(epochs.tag, object),
-                           out, self.n, self.anchor_ids, self.method)
+                           out, self.n_motion, self.anchor_ids, self.method,
+                           range_offset=self.settings.range_offset)
 
     # ------------------------------------------------------------------ persistence
     def state_dict(self) -> dict:
@@ -1269,9 +1344,12 @@ class _Rows:
 
 
 def track_frame(time: Array, tag: NDArray[np.object_], out: _Rows, n: int,
-                anchor_ids: tuple[str, ...], method: str) -> pd.DataFrame:
+                anchor_ids: tuple[str, ...], method: str,
+                range_offset: bool = False) -> pd.DataFrame:
     """The track table: ``time, tag, x, y, vx, vy[, ax, ay], method, status, var_x,
-    var_y, cov_xy, var_vx, var_vy, hpl, n_used, nis, noise_scale, reinit, excluded``."""
+    var_y, cov_xy, var_vx, var_vy, hpl, n_used, nis, noise_scale, reinit, excluded`` and,
+    with ``range_offset`` (the state's last component), ``range_offset,
+    var_range_offset`` (m, m^2).  ``n``: the kinematic states."""
     data: dict[str, Any] = {"time": time, "tag": tag, "x": out.x[:, 0], "y": out.x[:, 1]}
     vel = n >= 4
     data["vx"] = out.x[:, 2] if vel else np.where(np.isfinite(out.x[:, 0]), 0.0, np.nan)
@@ -1289,6 +1367,9 @@ def track_frame(time: Array, tag: NDArray[np.object_], out: _Rows, n: int,
     data["noise_scale"] = out.scale
     data["reinit"] = out.reinit
     data["excluded"] = _joined(out.excluded, anchor_ids)
+    if range_offset:
+        data["range_offset"] = out.x[:, -1]
+        data["var_range_offset"] = out.var[:, -1]
     return pd.DataFrame(data)
 
 
