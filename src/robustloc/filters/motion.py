@@ -223,14 +223,6 @@ class RandomWalkAugmented:
         """``(F(dt), Q(dt))`` for a scalar step."""
         return self.F(float(dt)), self.Q(float(dt))
 
-    def f(self, x: ArrayLike, dt: ArrayLike) -> Array:
-        """Propagate states ``x (K, n)`` by ``dt`` (linear: ``F x``)."""
-        x = np.asarray(x, dtype=float)
-        F = self.F(dt)
-        if F.ndim == 2:
-            return x @ F.T
-        return np.einsum("kij,kj->ki", F, x)
-
 
 @lru_cache(maxsize=256)
 def _fq_cached(model: _Kinematic, dt: float) -> tuple[Array, Array]:
