@@ -564,6 +564,44 @@ def test_track_mode_replay_equals_batch_track(ble, server_factory, tmp_path):
     assert {"hpl", "var_x", "cov_xy"} <= set(g.columns)
 
 
+def test_track_range_offset_replay_equals_batch_track(uwb, server_factory, tmp_path):
+    """``serve --track --track-range-offset`` gives the rows of ``Tracker(range_offset=True)``
+    on the replayed range log (to 1e-9 m, offset column included), and refuses an RSSI row
+    with the reason (the service locates from ranges only)."""
+    track = pytest.importorskip("robustloc.tracking")
+    from robustloc.commands.replay import replay
+
+    # anchors with path-loss columns: RSSI rows would be solvable, the option refuses them
+    read_anchors(uwb / "anchors.csv").assign(A=-40.0, n=2.0).to_csv(tmp_path / "a.csv",
+                                                                    index=False)
+    anchors = read_anchors(tmp_path / "a.csv")
+    ep = to_epochs(read_measurements(uwb / "measurements.csv"), anchors["anchor"])
+    want = track.Tracker(anchors, range_offset=True).step(ep)
+    srv = server_factory(["--anchors", str(tmp_path / "a.csv"), "--track",
+                          "--track-range-offset", "--store", str(tmp_path / "store"),
+                          "--idle-flush", "0.3"])
+    # the first row is RSSI: refused (without the option it would fix the service's value)
+    a0 = str(anchors["anchor"].iloc[0])
+    r = httpx.post(srv.url + "/api/measurements",
+                   json=[{"time": 0.0, "tag": "x", "anchor": a0, "rssi": -60.0}])
+    assert r.status_code == 202 and r.json()["accepted"] == 0
+    assert "locates from range" in r.json()["rejected"][0]["error"]
+    res = replay(str(uwb / "measurements.csv"), srv.url, speed=0)
+    assert res["accepted"] == res["rows"]
+
+    def got():
+        d = pd.DataFrame(httpx.get(srv.url + "/api/positions").json())
+        return d if len(d) == len(want) else None
+
+    g = wait_for(got, what="every epoch solved")
+    key = ["tag", "time"]
+    g = g.sort_values(key).reset_index(drop=True)
+    w = want.assign(tag=want["tag"].astype(str)).sort_values(key).reset_index(drop=True)
+    assert (g["status"] == w["status"]).all()
+    for c in ("x", "y", "range_offset", "var_range_offset"):
+        np.testing.assert_allclose(g[c].astype(float), w[c], rtol=0, atol=1e-9, equal_nan=True)
+
+
 def test_serve_cli_errors(ble, tmp_path, capsys):
     """A user's mistake is `error: ...` on stderr and exit code 2, never a traceback."""
     from robustloc.cli import main
@@ -581,6 +619,12 @@ def test_serve_cli_errors(ble, tmp_path, capsys):
 
     assert code(["serve", "--anchors", a, "--floorplan-extent", "1,2,3"]) == 2
     assert code(["serve", "--anchors", a, "--latency-window", "nan"]) == 2
+    # the range offset is a tracker's, and for ranges
+    assert main(["serve", "--anchors", a, "--track-range-offset"]) == 2
+    assert "goes with --track" in capsys.readouterr().err
+    assert main(["serve", "--anchors", a, "--track", "--track-range-offset",
+                 "--value", "rssi"]) == 2
+    assert "is for ranges" in capsys.readouterr().err
     from robustloc.service.launch import free_port
 
     nobody = f"http://127.0.0.1:{free_port()}"  # nothing listens there

@@ -88,6 +88,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                       help="track with robustloc.tracking.Tracker instead of per-epoch fixes")
     p.add_argument("--track-model", default="cv", help="--track: motion model (default cv)")
     p.add_argument("--track-filter", default="ekf", help="--track: filter (default ekf)")
+    p.add_argument("--track-range-offset", action="store_true",
+                   help="--track on ranges: estimate each tag's common range offset (a UWB "
+                        "antenna delay) as a state, as robustloc track --range-offset; "
+                        "the service then locates from ranges only")
     p.add_argument("--dim", type=int, choices=(2, 3), default=2, help="solve in 2-D or 3-D")
     p.add_argument("--solver", choices=("nonlinear", "linearized"), default="nonlinear",
                    help="as robustloc locate --solver")
@@ -164,9 +168,18 @@ def build(args: argparse.Namespace):
         raise InputError("--floorplan and --floorplan-extent go together")
     if args.floorplan is not None and not Path(args.floorplan).is_file():
         raise InputError("floor-plan image not found", args.floorplan)
+    value = args.value
+    if args.track_range_offset:
+        if not args.track:
+            raise InputError("--track-range-offset goes with --track")
+        if value == "rssi":
+            raise InputError("--track-range-offset is for ranges: not with --value rssi")
+        value = "range"  # an RSSI row is refused: "this service locates from range"
     try:
         if args.track:
-            processor = TrackProcessor(anchors, model=args.track_model, filter=args.track_filter)
+            opts = {"range_offset": True} if args.track_range_offset else {}
+            processor = TrackProcessor(anchors, model=args.track_model, filter=args.track_filter,
+                                       **opts)
         else:
             settings = dict(dim=args.dim, solver=args.solver, domain=args.domain,
                             sigma=args.sigma, model=args.model,
@@ -195,7 +208,7 @@ def build(args: argparse.Namespace):
     try:
         engine = Engine(anchors, processor, store_dir=args.store,
                         latency_window_s=args.latency_window, idle_flush_s=args.idle_flush,
-                        value=args.value)
+                        value=value)
     except ValueError as exc:  # --value the anchors cannot locate, or a store of another
         raise InputError(str(exc), args.anchors) from None
     mqtt = None
