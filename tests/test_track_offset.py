@@ -4,6 +4,7 @@ every range of a tag reads ``b`` long (a UWB antenna delay); the filter estimate
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -211,6 +212,18 @@ def test_command_range_offset_columns_smoothing_and_refusal(tmp_path):
         got[bool(extra)] = out = pd.read_csv(tmp_path / "o.csv")
         assert len(out) == ep.n_epochs and out["range_offset"].notna().all()
     last = got[False].groupby("tag").tail(1).set_index("tag")["range_offset"]
+    # the summary names each tag's final offset, as --json and as text
+    r = _cli("track", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),
+             "-o", str(tmp_path / "o.csv"), "--sigma", "0.1", "--range-offset", "--json")
+    off = json.loads(r.stdout)["range_offset_m"]
+    assert sorted(off) == ["t0", "t1", "t2"]
+    for tag in off:
+        assert off[tag]["estimate"] == pytest.approx(last[tag], abs=1e-4)
+        assert 0 < off[tag]["sd"] < 0.5
+    r = _cli("track", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),
+             "-o", str(tmp_path / "o.csv"), "--sigma", "0.1", "--range-offset")
+    assert r.returncode == 0
+    assert re.search(r"range offset of t0: \+0\.\d{3} m \(sd 0\.\d{3}\)", r.stdout)
     np.testing.assert_allclose(last.loc[["t0", "t1", "t2"]], [0.3, -0.1, 0.0], atol=0.05)
     # smoothing: the first rows' offset uses the whole log (its variance no larger)
     first = got[True].groupby("tag").head(1)
@@ -223,5 +236,6 @@ def test_command_range_offset_columns_smoothing_and_refusal(tmp_path):
     rssi.to_csv(tmp_path / "r.csv", index=False)
     r = _cli("track", str(tmp_path / "r.csv"), "--anchors", str(tmp_path / "a.csv"),
              "-o", str(tmp_path / "o2.csv"), "--range-offset", "--quiet")
-    assert r.returncode == 2 and "error:" in r.stderr and "range_offset is for ranges" in r.stderr
+    assert r.returncode == 2 and "error:" in r.stderr and "r.csv:1" in r.stderr
+    assert "--range-offset applies to ranges" in r.stderr
     assert "Traceback" not in r.stderr

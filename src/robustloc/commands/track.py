@@ -213,4 +213,11 @@ def run(args: argparse.Namespace) -> int:
 
     for line in hpl_lines(summary, "rows"):
         print(line, file=dest)
+    offsets = summary.get("range_offset_m") or {}
+    for tag, v in list(offsets.items())[:10]:
+        if v["estimate"] is not None:
+            print(f"  range offset of {tag}: {v['estimate']:+.3f} m (sd {v['sd']:.3f})",
+                  file=dest)
+    if len(offsets) > 10:
+        print(f"  ... and {len(offsets) - 10} more tags (--json lists every one)", file=dest)
     return 0

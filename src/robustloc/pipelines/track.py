@@ -152,7 +152,20 @@ def run_track(
                             if settings.smoothing else None),
                "sorted_first": resorted, "seconds": round(wall, 3),
                "epochs_per_second": round(n_epochs / max(wall, 1e-9), 1)}
+    if settings.range_offset:
+        summary["range_offset_m"] = range_offsets(trk)
     return frame, summary
+
+
+def range_offsets(trk: Any) -> dict[str, dict[str, float | None]]:
+    """Each started tag's range offset at the end of the log: ``{tag: {"estimate": b,
+    "sd": sqrt(var b)}}`` (m; None where not finite)."""
+    def num(v: float) -> float | None:
+        return round(float(v), 4) if np.isfinite(v) else None
+
+    return {str(tag): {"estimate": num(trk._x[k, -1]),
+                       "sd": num(np.sqrt(max(trk._P[k, -1, -1], 0.0)))}
+            for tag, k in trk._slot.items() if trk._init[k]}
 
 
 def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
@@ -270,6 +283,14 @@ def track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
     status_counts: dict[str, int] = {}
     for block in blocks:
         refuse_rssi_options(block.value, {"--domain rssi": settings.domain == "rssi"}, source)
+        if settings.range_offset and block.value != "range":
+            from robustloc.io.tables import _display
+
+            raise InputError("--range-offset applies to ranges, but this log holds RSSI (an "
+                             "rssi column): leave it out (a device's RSSI offset is the "
+                             "path-loss model's A: calibrate it)",
+                             None if source is None else _display(source),
+                             None if source is None else 1)
         if n == 0:
             compile_notice("filter", "tracker")
         rows = trk.step(block)
