@@ -539,8 +539,6 @@ def test_track_mode_replay_equals_batch_track(ble, server_factory, tmp_path):
     tracker's per-tag recursion makes both identical.
     """
     track = pytest.importorskip("robustloc.tracking")
-    from robustloc.commands.replay import replay
-
     Tracker = track.Tracker
 
     anchors = read_anchors(ble / "anchors.csv")
@@ -548,8 +546,19 @@ def test_track_mode_replay_equals_batch_track(ble, server_factory, tmp_path):
     want = Tracker(anchors).step(ep)
     srv = server_factory(["--anchors", str(ble / "anchors.csv"), "--track",
                           "--store", str(tmp_path / "store"), "--idle-flush", "0.3"])
-    res = replay(str(ble / "measurements.csv"), srv.url, speed=0)
+    g = _replayed_rows_equal(srv, ble / "measurements.csv", want, ("x", "y"))
+    assert {"hpl", "var_x", "cov_xy"} <= set(g.columns)
+
+
+def _replayed_rows_equal(srv, log, want: pd.DataFrame, columns: tuple[str, ...]
+                         ) -> pd.DataFrame:
+    """Replay ``log`` into ``srv``, wait for one position per epoch of ``want`` and check
+    the statuses and ``columns`` against it (to 1e-9); returns the service's rows."""
+    from robustloc.commands.replay import replay
+
+    res = replay(str(log), srv.url, speed=0)
     assert res["accepted"] == res["rows"]
+
     def got():
         d = pd.DataFrame(httpx.get(srv.url + "/api/positions").json())
         return d if len(d) == len(want) else None
@@ -559,9 +568,9 @@ def test_track_mode_replay_equals_batch_track(ble, server_factory, tmp_path):
     g = g.sort_values(key).reset_index(drop=True)
     w = want.assign(tag=want["tag"].astype(str)).sort_values(key).reset_index(drop=True)
     assert (g["status"] == w["status"]).all()
-    for c in ("x", "y"):
+    for c in columns:
         np.testing.assert_allclose(g[c].astype(float), w[c], rtol=0, atol=1e-9, equal_nan=True)
-    assert {"hpl", "var_x", "cov_xy"} <= set(g.columns)
+    return g
 
 
 def test_track_range_offset_replay_equals_batch_track(uwb, server_factory, tmp_path):
@@ -569,8 +578,6 @@ def test_track_range_offset_replay_equals_batch_track(uwb, server_factory, tmp_p
     on the replayed range log (to 1e-9 m, offset column included), and refuses an RSSI row
     with the reason (the service locates from ranges only)."""
     track = pytest.importorskip("robustloc.tracking")
-    from robustloc.commands.replay import replay
-
     # anchors with path-loss columns: RSSI rows would be solvable, the option refuses them
     read_anchors(uwb / "anchors.csv").assign(A=-40.0, n=2.0).to_csv(tmp_path / "a.csv",
                                                                     index=False)
@@ -586,20 +593,8 @@ def test_track_range_offset_replay_equals_batch_track(uwb, server_factory, tmp_p
                    json=[{"time": 0.0, "tag": "x", "anchor": a0, "rssi": -60.0}])
     assert r.status_code == 202 and r.json()["accepted"] == 0
     assert "locates from range" in r.json()["rejected"][0]["error"]
-    res = replay(str(uwb / "measurements.csv"), srv.url, speed=0)
-    assert res["accepted"] == res["rows"]
-
-    def got():
-        d = pd.DataFrame(httpx.get(srv.url + "/api/positions").json())
-        return d if len(d) == len(want) else None
-
-    g = wait_for(got, what="every epoch solved")
-    key = ["tag", "time"]
-    g = g.sort_values(key).reset_index(drop=True)
-    w = want.assign(tag=want["tag"].astype(str)).sort_values(key).reset_index(drop=True)
-    assert (g["status"] == w["status"]).all()
-    for c in ("x", "y", "range_offset", "var_range_offset"):
-        np.testing.assert_allclose(g[c].astype(float), w[c], rtol=0, atol=1e-9, equal_nan=True)
+    _replayed_rows_equal(srv, uwb / "measurements.csv", want,
+                         ("x", "y", "range_offset", "var_range_offset"))
 
 
 def test_serve_cli_errors(ble, tmp_path, capsys):
