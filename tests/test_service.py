@@ -512,6 +512,14 @@ def test_track_processor(ble):
     q = TrackProcessor(anchors)
     q.load_state_dict(state)
     assert isinstance(state, dict)
+    # a store written before a setting existed (range_offset: added later) still loads,
+    # the setting at its default; one written with other options is refused, named
+    old = json.loads(json.dumps(state))
+    for k in ("range_offset", "range_offset_sd", "range_offset_q"):
+        del old["settings"][k]
+    TrackProcessor(anchors).load_state_dict(old)
+    with pytest.raises(ValueError, match=r"range_offset False \(now True\).*new --store"):
+        TrackProcessor(anchors, range_offset=True).load_state_dict(state)
 
 
 def test_track_without_tracker_is_a_clear_error(ble, monkeypatch):

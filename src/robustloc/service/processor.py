@@ -311,4 +311,8 @@ class TrackProcessor:
         return self.tracker.state_dict()
 
     def load_state_dict(self, state: dict) -> None:
-        self.tracker.load_state_dict(state)
+        try:
+            self.tracker.load_state_dict(state)
+        except ValueError as exc:  # the store was written by a tracker set up otherwise
+            raise ValueError(f"the store's {exc}: start with the --track options it was "
+                             "written with, or with a new --store") from None

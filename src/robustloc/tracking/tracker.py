@@ -1218,8 +1218,13 @@ class Tracker:
             raise ValueError(f"unsupported tracker state version {state.get('version')!r}")
         if tuple(state["anchors"]) != self.anchor_ids:
             raise ValueError("saved tracker state is for other anchors")
-        if state["settings"] != asdict(self.settings):
-            raise ValueError("saved tracker state has other settings")
+        now = asdict(self.settings)
+        # a setting added after the state was saved (e.g. range_offset) had its default
+        saved = {**{f.name: f.default for f in fields(TrackerSettings)}, **state["settings"]}
+        other = [k for k in now if saved.get(k) != now[k]] + [k for k in saved if k not in now]
+        if other:
+            raise ValueError("saved tracker state has other settings: " + ", ".join(
+                f"{k} {saved.get(k)!r} (now {now.get(k)!r})" for k in other))
         M = len(self.anchor_ids)
         self._slot = {}
         self._alloc(0, M)
