@@ -342,7 +342,9 @@ def _assert_engines_agree(a: pd.DataFrame, kw: dict, epochs_list: list) -> pd.Da
     # the same formulas in another summation order (the kernel sums over links in order,
     # NumPy pairwise): agreement to rounding amplified by the recursion, 1e-9 m on
     # coordinates of 10 m (and 1e-9 relative on the NIS of outliers, ~1e4)
-    for c in _FLOAT_COLUMNS:
+    assert list(rc.columns) == list(rn.columns)
+    offset = ("range_offset", "var_range_offset") if "range_offset" in rc else ()
+    for c in _FLOAT_COLUMNS + offset:
         np.testing.assert_allclose(rc[c], rn[c], rtol=1e-9, atol=1e-9, err_msg=c)
     return rc
 
@@ -367,9 +369,11 @@ def _bad_epochs(seed: int, K: int, M: int, N: int, p_out: float, p_miss: float,
 
 
 @pytest.mark.parametrize("filt", ["ekf", "ukf"])
-def test_engines_agree_with_holds_outliers_and_restarts(filt):
+@pytest.mark.parametrize("range_offset", [False, True])
+def test_engines_agree_with_holds_outliers_and_restarts(filt, range_offset):
     a, ep = _bad_epochs(seed=11, K=3, M=8, N=60, p_out=0.05, p_miss=0.05, step_m=2.0)
-    kw = {"filter": filt, "cusum_h": 6.0, "weight": "igg3", "max_bad_epochs": 2}
+    kw = {"filter": filt, "cusum_h": 6.0, "weight": "igg3", "max_bad_epochs": 2,
+          "range_offset": range_offset}
     rows = _assert_engines_agree(a, kw, [ep])
     # the workload reaches the paths the kernel covers: holds, rejected outliers,
     # suspicious epochs that fail (re-starts), coasting is covered by the next test
@@ -378,28 +382,31 @@ def test_engines_agree_with_holds_outliers_and_restarts(filt):
     assert rows.reinit.max() >= 1
 
 
-def test_engines_agree_one_epoch_at_a_time_with_coasting():
+@pytest.mark.parametrize("range_offset", [False, True])
+def test_engines_agree_one_epoch_at_a_time_with_coasting(range_offset):
     a, ep = _bad_epochs(seed=12, K=2, M=6, N=30, p_out=0.1, p_miss=0.2, step_m=0.0)
     v = ep.values.copy()
     v[10:14] = np.nan  # nothing heard: predicted rows
     ep = type(ep)(ep.time, ep.tag, v, ep.anchor_ids, ep.value, ep.line)
     parts = [type(ep)(ep.time[i:i + 1], ep.tag[i:i + 1], ep.values[i:i + 1], ep.anchor_ids,
                       ep.value, ep.line[i:i + 1]) for i in range(ep.n_epochs)]
-    rows = _assert_engines_agree(a, {"model": "ca", "filter": "ukf"}, parts)
+    rows = _assert_engines_agree(a, {"model": "ca", "filter": "ukf",
+                                     "range_offset": range_offset}, parts)
     assert (rows.status == "predicted").any()
 
 
-@settings(max_examples=12, deadline=None)
+@settings(max_examples=16, deadline=None)
 @given(seed=hst.integers(0, 10_000), K=hst.integers(1, 5), M=hst.integers(3, 9),
        filt=hst.sampled_from(["ekf", "ukf"]), model=hst.sampled_from(["cv", "ca"]),
        weight=hst.sampled_from(["huber", "igg3", "hampel"]),
        cusum_h=hst.sampled_from([None, 4.0, 10.0]), p_out=hst.sampled_from([0.0, 0.05, 0.2]),
-       p_miss=hst.sampled_from([0.0, 0.1, 0.4]), step_m=hst.sampled_from([0.0, 1.0, 3.0]))
+       p_miss=hst.sampled_from([0.0, 0.1, 0.4]), step_m=hst.sampled_from([0.0, 1.0, 3.0]),
+       range_offset=hst.booleans())
 def test_engines_agree_on_random_workloads(seed, K, M, filt, model, weight, cusum_h, p_out,
-                                           p_miss, step_m):
+                                           p_miss, step_m, range_offset):
     a, ep = _bad_epochs(seed, K, M, 25, p_out, p_miss, step_m)
     kw = {"filter": filt, "model": model, "weight": weight, "cusum_h": cusum_h,
-          "readmit_samples": 3}
+          "readmit_samples": 3, "range_offset": range_offset}
     _assert_engines_agree(a, kw, [ep])
 
 
@@ -464,12 +471,13 @@ def test_round_the_kernel_cannot_do_falls_back_to_numpy():
 
 
 @settings(max_examples=40, deadline=None)
-@given(seed=hst.integers(0, 2**31 - 1), M=hst.integers(2, 9))
-def test_one_fault_explains_is_the_global_test_after_one_exclusion(seed, M):
+@given(seed=hst.integers(0, 2**31 - 1), M=hst.integers(2, 9), roff=hst.booleans())
+def test_one_fault_explains_is_the_global_test_after_one_exclusion(seed, M, roff):
     """Data snooping with one exclusion, checked by brute force: ``y^T S^-1 y - w_i^2``
     equals the quadratic form of the innovations with component ``i`` deleted (the Schur
     complement), and the compiled kernel decides as the NumPy reference.  Decisions within
-    rounding (1e-9 relative) of a critical value are not compared."""
+    rounding (1e-9 relative) of a critical value are not compared.  ``roff``: a fifth
+    state, the range offset (a last column of ones in ``H``)."""
     from scipy.stats import chi2
 
     from robustloc.tracking import _compiled
@@ -477,11 +485,14 @@ def test_one_fault_explains_is_the_global_test_after_one_exclusion(seed, M):
 
     rng = np.random.default_rng(seed)
     K = 30
-    H = np.zeros((K, M, 4))
+    n = 5 if roff else 4
+    H = np.zeros((K, M, n))
     ang = rng.uniform(0, 2 * np.pi, (K, M))
     H[:, :, 0], H[:, :, 1] = np.cos(ang), np.sin(ang)
-    B = rng.normal(0, 1, (K, 4, 4))
-    Pp = B @ np.swapaxes(B, 1, 2) * rng.uniform(1e-3, 1.0, (K, 1, 1)) + 1e-6 * np.eye(4)
+    if roff:
+        H[:, :, 4] = 1.0
+    B = rng.normal(0, 1, (K, n, n))
+    Pp = B @ np.swapaxes(B, 1, 2) * rng.uniform(1e-3, 1.0, (K, 1, 1)) + 1e-6 * np.eye(n)
     Rd = rng.uniform(0.005, 0.5, (K, M))
     avail = rng.random((K, M)) < 0.85
     S = H @ Pp @ np.swapaxes(H, 1, 2) + Rd[:, :, None] * np.eye(M)
@@ -519,7 +530,7 @@ def test_one_fault_explains_is_the_global_test_after_one_exclusion(seed, M):
         scratch = [np.empty(M) for _ in range(3)]
         comp = _compiled.one_fault_explains(
             M, np.ascontiguousarray(H[k, :, :2]), Pp[k], Rd[k], y[k], avail[k], w2c, crit[k],
-            Ssn, Lsn, *scratch)
+            Ssn, Lsn, *scratch, roff)
         if not margin[k]:
             assert comp == want, k
     assert got.any() and not got.all()  # both outcomes are exercised

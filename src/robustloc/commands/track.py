@@ -126,7 +126,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "more state, written as range_offset, var_range_offset.  Measured: "
                         "uwb-labyrinth 0.215 -> 0.144 m RMS (its ranges read ~0.1 m long "
                         "at every anchor); uwb-dwm1001 LOS 0.77 -> 0.91 m (its errors "
-                        "differ by anchor: use calibrate --self there).  NumPy kernels")
+                        "differ by anchor: use calibrate --self there)")
     p.add_argument("--range-offset-sd", type=positive_float, default=d.range_offset_sd,
                    help="a-priori std of the offset at a tag's start "
                         f"(m, default {d.range_offset_sd})")

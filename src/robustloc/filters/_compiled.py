@@ -27,6 +27,9 @@ system.  The state size (4 for CV, 6 for CA) is a compile-time constant of each 
 its small matrix loops are unrolled; so is ``m = 4`` in the CV loose-coupling kernel (the
 common single-track case), the others take ``m`` at run time (see :data:`KERNELS`).
 ``R`` is taken as symmetric (the Cholesky factor of ``S`` reads its lower triangle).
+The range tracker (:mod:`robustloc.tracking._compiled`) adds state sizes 5 and 7: CV and CA
+with a tag's range offset ``b`` as the last state, ranges only, ``r_i = d_i + b``
+(``Tracker(range_offset=True)``; ``pack_params(..., range_offset=True)``).
 
 Parameters travel in one float vector (see :func:`pack_params`); all outputs, including the
 integer counts, the status strings (as ``<U14`` characters) and the gate flags, are written
@@ -59,7 +62,8 @@ DONE, BAD_SHAPE, NOT_PD = 0, 1, 2
 _Q, _MIN_SPEED, _SCALE, _WM0, _WMI, _WC0, _WCI = 0, 1, 2, 3, 4, 5, 6
 _WPRM = 7  # 3 weight parameters
 _WCODE, _KIND, _NPOW, _N, _M, _NANCH, _KIN = 10, 11, 12, 13, 14, 15, 16
-_HEAD = 17
+_ROFF = 17  # 1.0: the state's last component is a range offset (the tracker's)
+_HEAD = 18
 
 
 def layout(K: int, n: int, m: int) -> dict[str, int]:
@@ -110,6 +114,7 @@ def pack_params(
     anchors: np.ndarray,
     dz2: np.ndarray,
     kinematic: bool = True,
+    range_offset: bool = False,
 ) -> np.ndarray | None:
     """Pack the settings of one filter and measurement model into one float vector.
 
@@ -130,13 +135,16 @@ def pack_params(
     kinematic : the measurement ends with the speed and course components (the fusion
         model, ``m = M + 2``, or ``4`` loose); ``False``: ranges only, ``m = M >= 1`` (the
         tracker's tight model: the same kernel without the two always-missing rows).
+    range_offset : the state's last component is a range offset ``b`` added to every
+        range, ``r_i = d_i + b`` (``dr_i/db = 1``; the tracker's ``range_offset``, state
+        size 5 for CV and 7 for CA).  Ranges only: requires ``kinematic=False``.
 
     Returns
     -------
     ndarray or None
         ``prm`` for a kernel of :data:`KERNELS`; ``None`` if the model has no compiled kernel
-        (state size other than 4 or 6, matrices that are not monomials in ``dt``, or an
-        ``F`` that is not upper triangular).
+        (state size other than 4 or 6, or 5 or 7 with ``range_offset``; matrices that are
+        not monomials in ``dt``, or an ``F`` that is not upper triangular).
     """
     npow, n, _ = coef_F.shape
     fm, qm = monomials(coef_F), monomials(coef_Q)
@@ -148,12 +156,15 @@ def pack_params(
     M = anchors.shape[0]
     if m != ((M if M else 2) + 2 if kinematic else M) or m < 1:
         return None
+    if (n in (5, 7)) != range_offset or (range_offset and (kinematic or M == 0)):
+        return None
     head = np.zeros(_HEAD)
     head[_Q], head[_MIN_SPEED], head[_SCALE] = q, min_speed, scale
     head[_WM0], head[_WMI], head[_WC0], head[_WCI] = wm[0], wm[1], wc[0], wc[1]
     head[_WPRM : _WPRM + 3] = weight_prm[:3]
     head[_WCODE], head[_KIND], head[_NPOW] = weight_code, kind, npow
     head[_N], head[_M], head[_NANCH], head[_KIN] = n, m, M, 1.0 if kinematic else 0.0
+    head[_ROFF] = 1.0 if range_offset else 0.0
     anch = np.column_stack([np.asarray(anchors, float).reshape(M, 2), dz2]).ravel()
     chars = np.zeros((len(STATUSES), STATUS_CHARS))
     for c, name in enumerate(STATUSES):
@@ -273,17 +284,20 @@ def range_rows(xp, prm, off_a, M, zh, hv):  # pragma: no cover - jit
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _h(xs, prm, off_a, M, kin, zout):  # pragma: no cover - jit
+def _h(xs, prm, off_a, M, kin, roff, zout):  # pragma: no cover - jit
     """``h(x)`` of the fusion model (``FusionMeasurement.predict``) into ``zout (m,)``;
-    without the speed and course when ``kin`` is False."""
+    without the speed and course when ``kin`` is False; with ``roff`` the state's last
+    component is added to every range (``Tracker._predict``)."""
     if M == 0:
         zout[0] = xs[0]
         zout[1] = xs[1]
     else:
+        b = xs[xs.shape[0] - 1] if roff else 0.0
         for i in range(M):
             dx = xs[0] - prm[off_a + 3 * i]
             dy = xs[1] - prm[off_a + 3 * i + 1]
-            zout[i] = math.sqrt((dx * dx + dy * dy) + prm[off_a + 3 * i + 2])
+            r = math.sqrt((dx * dx + dy * dy) + prm[off_a + 3 * i + 2])
+            zout[i] = r + b if roff else r
     if kin:
         nr = 2 if M == 0 else M
         zout[nr] = math.hypot(xs[2], xs[3])
@@ -302,6 +316,8 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
         return BAD_SHAPE
     M = int(prm[_NANCH])
     kin = prm[_KIN] != 0.0  # speed and course rows (else ranges only)
+    roff = prm[_ROFF] != 0.0  # range offset: last state, dr_i/db = 1 (ranges only)
+    nl = n - 1  # its index
     npow = int(prm[_NPOW])
     kind = int(prm[_KIND])
     wcode = int(prm[_WCODE])
@@ -392,6 +408,9 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
                 hv[0, 0], hv[0, 1], hv[1, 0], hv[1, 1] = 1.0, 0.0, 0.0, 1.0
             else:
                 range_rows(xp, prm, off_a, M, zh, hv)
+                if roff:
+                    for i in range(M):
+                        zh[i] += xp[nl]
             if kin:
                 vv = vx * vx + vy * vy
                 zh[si] = math.sqrt(vv)  # hypot(vx, vy) to rounding
@@ -400,15 +419,20 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
                 v = math.sqrt(v2)
                 hv[si, 0], hv[si, 1] = vx / v, vy / v
                 hv[ci, 0], hv[ci, 1] = vy / v2, -vx / v2
-            # H has two non-zero columns per row: 0, 1 (position rows) or 2, 3
+            # H has two non-zero columns per row: 0, 1 (position rows) or 2, 3; with the
+            # range offset a position row has a third, its last column (entry 1)
             for i in range(m):  # Pxz = P H^T
                 b = 0 if i < nr else 2
                 for j in range(n):
-                    Pxz[j, i] = Pp[j, b] * hv[i, 0] + Pp[j, b + 1] * hv[i, 1]
+                    v = Pp[j, b] * hv[i, 0] + Pp[j, b + 1] * hv[i, 1]
+                    Pxz[j, i] = v + Pp[j, nl] if roff else v
             for i in range(m):  # S = H Pxz + R
                 b = 0 if i < nr else 2
                 for j in range(m):
-                    S[i, j] = (hv[i, 0] * Pxz[b, j] + hv[i, 1] * Pxz[b + 1, j]) + R[rk, i, j]
+                    v = hv[i, 0] * Pxz[b, j] + hv[i, 1] * Pxz[b + 1, j]
+                    if roff:
+                        v += Pxz[nl, j]
+                    S[i, j] = v + R[rk, i, j]
         else:
             # sigma points of the prediction (seed 001 eq. (20)): chol((n + lambda) P)
             if not _cholesky(Pp, scale, all_n, n, Ls, Lsi):
@@ -421,7 +445,7 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
                     sig[1 + c, j] = xp[j] + lv
                     sig[1 + n + c, j] = xp[j] - lv
             for p in range(ns):
-                _h(sig[p], prm, off_a, M, kin, zs[p])
+                _h(sig[p], prm, off_a, M, kin, roff, zs[p])
             # weighted means (eq. (22)); circular for the course
             for j in range(m):
                 s = wm0 * zs[0, j]
@@ -549,6 +573,8 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
                 for j in range(n):
                     T[j, b] += Gt[l, j] * h0
                     T[j, b + 1] += Gt[l, j] * h1
+                    if roff:
+                        T[j, nl] += Gt[l, j]
             for i in range(n):
                 for j in range(n):
                     A[i, j] = (1.0 if i == j else 0.0) - T[i, j]
@@ -630,6 +656,16 @@ def fusion_step_6(x, P, dt, z, R, prm, fout):  # pragma: no cover - jit
     return _step(6, 0, x, P, dt, z, R, prm, fout, 0, x.shape[0])
 
 
+@njit(cache=True, nogil=True)
+def fusion_step_5(x, P, dt, z, R, prm, fout):  # pragma: no cover - jit
+    return _step(5, 0, x, P, dt, z, R, prm, fout, 0, x.shape[0])
+
+
+@njit(cache=True, nogil=True)
+def fusion_step_7(x, P, dt, z, R, prm, fout):  # pragma: no cover - jit
+    return _step(7, 0, x, P, dt, z, R, prm, fout, 0, x.shape[0])
+
+
 # multi-threaded twins for many tracks: ``chunks`` blocks of tracks in numba's thread pool
 # (the sizes stay literal constants in each block's call, so the loops still unroll; the
 # caller passes the block count: numba cannot cache a kernel that asks for its threads)
@@ -669,6 +705,8 @@ def fusion_step_6_mt(x, P, dt, z, R, prm, fout, chunks):  # pragma: no cover - j
 fusion_step_4_4.__doc__ = _DOC.format(n=4, m="4 (loose coupling)")
 fusion_step_4.__doc__ = _DOC.format(n=4, m="any")
 fusion_step_6.__doc__ = _DOC.format(n=6, m="any")
+fusion_step_5.__doc__ = _DOC.format(n="5 (CV and a range offset)", m="any (ranges)")
+fusion_step_7.__doc__ = _DOC.format(n="7 (CA and a range offset)", m="any (ranges)")
 for _k, _s in ((fusion_step_4_4_mt, fusion_step_4_4), (fusion_step_4_mt, fusion_step_4),
                (fusion_step_6_mt, fusion_step_6)):
     _k.__doc__ = (_s.__doc__ or "") + (
@@ -676,8 +714,10 @@ for _k, _s in ((fusion_step_4_4_mt, fusion_step_4_4), (fusion_step_4_mt, fusion_
         "thread pool.\n")
 #: Kernels by ``(n, m)``, ``m = 0`` for any measurement size.  Sizes fixed at compile time
 #: let the compiler unroll the small matrix loops; the CV loose-coupling EKF (the common
-#: fast case) has its own kernel, the others share one per state size.
-KERNELS = {(4, 4): fusion_step_4_4, (4, 0): fusion_step_4, (6, 0): fusion_step_6}
+#: fast case) has its own kernel, the others share one per state size.  State sizes 5 and 7
+#: are CV and CA with a range offset (the tracker's ``range_offset``: ranges only).
+KERNELS = {(4, 4): fusion_step_4_4, (4, 0): fusion_step_4, (6, 0): fusion_step_6,
+           (5, 0): fusion_step_5, (7, 0): fusion_step_7}
 #: Multi-threaded kernels, same keys; ``FusionFilter.step`` uses them for many tracks
 #: (``robustloc.fusion.pipeline._MT_MIN_TRACKS``) when numba has more than one thread.
 KERNELS_MT = {(4, 4): fusion_step_4_4_mt, (4, 0): fusion_step_4_mt, (6, 0): fusion_step_6_mt}

@@ -201,6 +201,11 @@ class RandomWalkAugmented:
         """State dimension: the base model's plus ``extra``."""
         return self.base.n_states + self.extra
 
+    @property
+    def dim(self) -> int:
+        """Spatial axes of the kinematic block (the base model's)."""
+        return self.base.dim
+
     def _pad(self, A: Array, diag: Array) -> Array:
         nb = A.shape[-1]
         out = np.zeros(A.shape[:-2] + (nb + self.extra, nb + self.extra))

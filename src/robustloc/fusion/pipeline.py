@@ -46,7 +46,12 @@ from robustloc.filters.core import (
     update_ekf,
     update_ukf,
 )
-from robustloc.filters.motion import ConstantAcceleration, ConstantVelocity, _coefficients
+from robustloc.filters.motion import (
+    ConstantAcceleration,
+    ConstantVelocity,
+    RandomWalkAugmented,
+    _coefficients,
+)
 
 Array = NDArray[np.float64]
 Motion = ConstantVelocity | ConstantAcceleration
@@ -339,17 +344,23 @@ class FusionFilter:
 
         ``kinematic=False``: the ranges of ``meas`` only, without its speed and course
         components (``m = n_ranges``) -- for the range tracker's fused round
-        (:mod:`robustloc.tracking._compiled`), which runs the kernel in its own loop.
+        (:mod:`robustloc.tracking._compiled`), which runs the kernel in its own loop.  Its
+        motion may then carry the tag's range offset: ``RandomWalkAugmented`` of a CV/CA
+        model with one extra state, added to every range (``Tracker(range_offset=True)``).
         """
         motion = self.motion
+        roff = (not kinematic and type(motion) is RandomWalkAugmented
+                and motion.extra == 1)
+        base = motion.base if roff else motion
         if (
             self.engine != "compiled"
             or type(meas) is not FusionMeasurement
-            or type(motion) not in (ConstantVelocity, ConstantAcceleration)
-            or motion.dim != 2
+            or type(base) not in (ConstantVelocity, ConstantAcceleration)
+            or base.dim != 2
             or meas.n_states != motion.n_states
             or self.robust.mode != "gain"
             or (not kinematic and meas.n_ranges == 0)
+            or (roff and not base.q > 0)  # the offset's Q enters as a multiple of base.q
         ):
             return None
         from robustloc.filters import _compiled
@@ -369,12 +380,17 @@ class FusionFilter:
         chi = np.full(m + 1, np.inf)  # no gate: NIS > inf never holds
         if self.robust.gate_probability is not None:
             chi[1:] = chi2_ppf(self.robust.gate_probability, np.arange(1, m + 1))
-        C = _coefficients(motion.order, motion.dim)
+        C = _coefficients(base.order, base.dim)
+        cF, cQ = C[0], C[2] if base.noise == "discrete" else C[3]
+        if roff:  # F = diag(F_base, 1), Q = diag(Q_base, q_extra dt): powers 0 and 1
+            nb = base.n_states
+            cF, cQ = (np.pad(c, ((0, 0), (0, 1), (0, 1))) for c in (cF, cQ))
+            cF[0, nb, nb] = 1.0
+            cQ[1, nb, nb] = motion.q_extra / base.q
         return _compiled.pack_params(
-            _compiled.EKF if self.kind == "ekf" else _compiled.UKF, motion.q,
+            _compiled.EKF if self.kind == "ekf" else _compiled.UKF, base.q,
             self.min_speed_mps, float(n + lam), wm, wc, spec[0], spec[1], chi,
-            C[0], C[2] if motion.noise == "discrete" else C[3], anchors, meas._dz2(),
-            kinematic=kinematic,
+            cF, cQ, anchors, meas._dz2(), kinematic=kinematic, range_offset=roff,
         )
 
     @staticmethod

@@ -1,9 +1,11 @@
 """Compiled (numba) round of the range tracker: every step of :mod:`robustloc.tracking.tracker`
 for ``K`` tags in one call.
 
-One call of :func:`track_round_4` (CV) or :func:`track_round_6` (CA) advances ``K`` tags by
-one epoch each, doing in a loop over tags what ``Tracker._filter_numpy`` does with batched
-NumPy for the range model (items 2-8 of the tracker's docstring, same order, same formulas):
+One call of :func:`track_round_4` (CV) or :func:`track_round_6` (CA) -- :func:`track_round_5`
+and :func:`track_round_7` with the tag's range offset ``b`` as the last state (ranges
+``d_i + b``, ``Tracker(range_offset=True)``) -- advances ``K`` tags by one epoch each,
+doing in a loop over tags what ``Tracker._filter_numpy`` does with batched NumPy for the
+range model (items 2-8 and 10 of the tracker's docstring, same order, same formulas):
 
 1. prediction ``x- = F x``, ``P- = F P F^T + Q`` and the ranges ``h(x-)`` with their
    Jacobian rows (the fusion kernel's helpers :func:`robustloc.filters._compiled.predict`,
@@ -49,6 +51,7 @@ from robustloc.filters._compiled import (
     _N,
     _NANCH,
     _NPOW,
+    _ROFF,
     BAD_SHAPE,
     DONE,
     ST_FAULT_EXCLUDED,
@@ -57,7 +60,9 @@ from robustloc.filters._compiled import (
     STATUS_CHARS,
     _cholesky,
     fusion_step_4,
+    fusion_step_5,
     fusion_step_6,
+    fusion_step_7,
     offsets,
     predict,
     range_rows,
@@ -109,18 +114,23 @@ def prediction_lost(v_pos, r_min, lost_pos_var):  # pragma: no cover - jit
 
 @njit(cache=True, nogil=True)
 def one_fault_explains(M, hv, Pp, rd, y, av, w2_crit, crit_less, S, L, Li, u,
-                       c):  # pragma: no cover - jit
+                       c, roff):  # pragma: no cover - jit
     """Data snooping with one exclusion (seed 003; :func:`robustloc.tracking.tracker.
     one_fault_explains` is the NumPy reference): True when the largest w-test statistic
     ``w_i^2 = (S^-1 y)_i^2 / (S^-1)_ii`` of the available components exceeds ``w2_crit``
     and the global test of the others passes: ``y^T S^-1 y - w_i^2 <= crit_less`` (the
     innovation quadratic form without component ``i``).  ``S = H P- H^T + diag(rd)`` from
-    the position rows ``hv (M, 2)`` of the range Jacobian; ``S, L (M, M)``, ``Li, u, c
-    (M,)`` are scratch."""
+    the position rows ``hv (M, 2)`` of the range Jacobian (with ``roff``, the state's last
+    column of ``H`` is 1: the range offset); ``S, L (M, M)``, ``Li, u, c (M,)`` are
+    scratch."""
+    nl = Pp.shape[0] - 1
     for i in range(M):
         for j in range(i + 1):
             v = (hv[i, 0] * (Pp[0, 0] * hv[j, 0] + Pp[0, 1] * hv[j, 1])
                  + hv[i, 1] * (Pp[1, 0] * hv[j, 0] + Pp[1, 1] * hv[j, 1]))
+            if roff:  # + h_i,pos P_pos,b + P_b,pos h_j,pos + P_bb
+                v += ((hv[i, 0] * Pp[0, nl] + hv[i, 1] * Pp[1, nl])
+                      + (Pp[nl, 0] * hv[j, 0] + Pp[nl, 1] * hv[j, 1]) + Pp[nl, nl])
             if i == j:
                 v += rd[i]
             S[i, j] = v
@@ -191,6 +201,8 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
     lost_var = tset[_LOST_VAR]
     max_held = max(1, (M - 1) // 2)
     rssi = rssi_A.shape[0] > 0
+    roff = prm[_ROFF] != 0.0  # the tag's range offset: the last state, dr_i/db = 1
+    nl = n - 1
 
     # ---- round arrays: gathered states, the fusion kernel's inputs and output row
     xg = np.empty((K, n))
@@ -253,14 +265,20 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
         Pp = Pp_o[k]
         predict(n, F, Qm, xg[k], Pg[k], xp, Pp, Ps, T)
         range_rows(xp, prm, off_a, M, zh, hvk)  # zh: the distances d_i(x-)
+        if roff:  # the predicted ranges d_i(x-) + b
+            for i in range(M):
+                zh[i] += xp[nl]
         sc2 = scale2_s[s]
         n_alarm = 0
         n_held = 0
         for i in range(M):
             h0 = hvk[i, 0]
             h1 = hvk[i, 1]
-            hph[k, i] = h0 * (Pp[0, 0] * h0 + Pp[0, 1] * h1) + h1 * (Pp[1, 0] * h0
-                                                                    + Pp[1, 1] * h1)
+            v = h0 * (Pp[0, 0] * h0 + Pp[0, 1] * h1) + h1 * (Pp[1, 0] * h0 + Pp[1, 1] * h1)
+            if roff:  # H_i = (h0, h1, 0.., 1): + 2 h_pos P_pos,b + P_bb
+                v += (h0 * Pp[0, nl] + h1 * Pp[1, nl]) + (Pp[nl, 0] * h0 + Pp[nl, 1] * h1) \
+                    + Pp[nl, nl]
+            hph[k, i] = v
             hv[k, i, 0] = h0
             hv[k, i, 1] = h1
             rd[k, i] = sc2 * r0[k, i]
@@ -335,8 +353,12 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
     # ---- robust predict + update: the fusion filter's compiled kernel (item 3)
     if n == 4:
         rc = fusion_step_4(xg, Pg, dt_o, zf, R, prm, fout)
-    else:
+    elif n == 5:
+        rc = fusion_step_5(xg, Pg, dt_o, zf, R, prm, fout)
+    elif n == 6:
         rc = fusion_step_6(xg, Pg, dt_o, zf, R, prm, fout)
+    else:
+        rc = fusion_step_7(xg, Pg, dt_o, zf, R, prm, fout)
     if rc != DONE:
         return rc
     # an update that failed numerically (a non-finite moment, a negative variance): lost
@@ -370,13 +392,15 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
             for i in range(M):
                 avk[i] = math.isfinite(zf[k, i])
             if one_fault_explains(M, hv[k], Pp_o[k], rd[k], y[k], avk, w2c, gcrit[ma - 1],
-                                  Ssn, Lsn, Lisn, usn, csn):
+                                  Ssn, Lsn, Lisn, usn, csn, roff):
                 fail = False
         sus[k] = ma > 0 and (fail or 2 * nu <= ma)
         Pn00 = fout[o_P + k * nn]
         Pn01 = fout[o_P + k * nn + 1]
         Pn10 = fout[o_P + k * nn + n]
         Pn11 = fout[o_P + k * nn + n + 1]
+        Pnb0 = fout[o_P + k * nn + nl * n] if roff else 0.0  # P+ row of the offset
+        Pnb1 = fout[o_P + k * nn + nl * n + 1] if roff else 0.0
         sw = 0.0
         swe = 0.0
         slope = 0.0
@@ -390,8 +414,9 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
                 swe += wv * ((y[k, i] * y[k, i] - hph[k, i]) / r0[k, i])
                 # hpl slope: |G_pos,i| MDB_i, G_i = w_i P+ H_i^T / R_ii (seed 003 eq. (3))
                 wr = wv / rd[k, i]
-                g0 = (hv[k, i, 0] * Pn00 + hv[k, i, 1] * Pn10) * wr
-                g1 = (hv[k, i, 0] * Pn01 + hv[k, i, 1] * Pn11) * wr
+                # (with the range offset H_i has a third entry, 1: + P+_b,pos)
+                g0 = (hv[k, i, 0] * Pn00 + hv[k, i, 1] * Pn10 + Pnb0) * wr
+                g1 = (hv[k, i, 0] * Pn01 + hv[k, i, 1] * Pn11 + Pnb1) * wr
                 v = math.hypot(g0, g1) * (sl0 * math.sqrt(hph[k, i] + rd[k, i]))
                 if slope == slope and not v <= slope:  # max, NaN propagating (np.max)
                     slope = v
@@ -488,7 +513,33 @@ def track_round_6(sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, h
                   sus, dof, xp_o, Pp_o, dt_o, lost)
 
 
+
+@njit(cache=True, nogil=True)
+def track_round_5(sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
+                  scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
+                  out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
+                  sus, dof, xp_o, Pp_o, dt_o, lost):  # pragma: no cover - jit
+    return _round(5, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
+                  scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
+                  out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
+                  sus, dof, xp_o, Pp_o, dt_o, lost)
+
+
+
+@njit(cache=True, nogil=True)
+def track_round_7(sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
+                  scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
+                  out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
+                  sus, dof, xp_o, Pp_o, dt_o, lost):  # pragma: no cover - jit
+    return _round(7, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
+                  scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
+                  out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
+                  sus, dof, xp_o, Pp_o, dt_o, lost)
+
+
 track_round_4.__doc__ = _DOC.format(n=4, model="CV")
 track_round_6.__doc__ = _DOC.format(n=6, model="CA")
-#: Kernels by state size.
-ROUNDS = {4: track_round_4, 6: track_round_6}
+track_round_5.__doc__ = _DOC.format(n=5, model="CV and the tag's range offset")
+track_round_7.__doc__ = _DOC.format(n=7, model="CA and the tag's range offset")
+#: Kernels by state size (5 and 7: with the range offset, ``Tracker(range_offset=True)``).
+ROUNDS = {4: track_round_4, 6: track_round_6, 5: track_round_5, 7: track_round_7}

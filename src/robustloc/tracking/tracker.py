@@ -98,12 +98,12 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
    errors differ in sign by anchor.  An option, not the default.
 
 Engines: ``compiled`` (default) runs the whole round of the ``cv``/``ca`` models in the
-range domain (ranges, or RSSI converted to ranges) in one fused numba kernel
-(:mod:`robustloc.tracking._compiled`: items 2-8 in a loop over the tags, its update the
-fusion filter's compiled kernel on the ranges); only the robust snapshot fixes of
-suspicious epochs and the re-starts (items 5 and 9) stay in NumPy, for the tags that need
-them.
-``numpy`` (and RSSI in dB, ``static`` and ``range_offset``) runs the batched NumPy core,
+range domain (ranges, or RSSI converted to ranges), with or without the range offset
+(item 10), in one fused numba kernel (:mod:`robustloc.tracking._compiled`: items 2-8 in a
+loop over the tags, its update the fusion filter's compiled kernel on the ranges); only
+the robust snapshot fixes of suspicious epochs and the re-starts (items 5 and 9) stay in
+NumPy, for the tags that need them.
+``numpy`` (and RSSI in dB and ``static``) runs the batched NumPy core,
 the reference implementation.  The two agree to rounding, 1e-9 m (tested, also on random
 workloads with holds, outliers and re-starts).
 
@@ -455,8 +455,7 @@ class Tracker:
         # per-epoch scale: a start fix must not depend on which epochs share its batch
         self._locator = Locator("huber", sigma=tuple(sigma), robust_scale="mad")
         self._kernel = None
-        if (s.engine == "compiled" and self._link.kind == "range" and s.model in ("cv", "ca")
-                and not s.range_offset):
+        if s.engine == "compiled" and self._link.kind == "range" and s.model in ("cv", "ca"):
             from robustloc.fusion.pipeline import FusionFilter, FusionMeasurement
             from robustloc.tracking import _compiled
 
@@ -801,6 +800,8 @@ class Tracker:
         if rc != 0:
             return None
         out.status[idx] = _CODE_STATUS[code]
+        if self.settings.range_offset:  # the snapshot fixes of checks and re-starts
+            z = z - self._x[sl, -1:]
         self._finish(idx, sl, t, z, out, moved, sus, dof, xp, Pp, dt)
         return lost
 
