@@ -14,6 +14,7 @@ import argparse
 import json
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -736,3 +737,44 @@ def test_dask_engine_on_a_dataset_with_a_date_time_column(sim, scheduler, tmp_pa
         err = capsys.readouterr().err
         assert err.startswith(f"error: {f}:1: column 'time' holds date32[day] values"), err
         assert not out.exists()
+
+
+def test_track_range_offset_dask_gives_each_tags_offset(scheduler, tmp_path, capsys):
+    """``track --range-offset --engine dask``: the rows equal the single process's, and
+    the tag groups' final offsets (disjoint tags) merge into one ``range_offset_m`` in the
+    summary, the metadata and the text, as the single process gives them."""
+    from test_track_offset import _labyrinth_like
+
+    a, ep = _labyrinth_like()
+    a.to_csv(tmp_path / "a.csv", index=False)
+    ids = list(ep.anchor_ids)
+    long = pd.DataFrame({"time": np.repeat(ep.time, len(ids)),
+                         "tag": np.repeat(ep.tag, len(ids)),
+                         "anchor": np.tile(ids, ep.n_epochs), "range": ep.values.ravel()})
+    long.to_csv(tmp_path / "m.csv", index=False)
+    opts = ["--anchors", str(tmp_path / "a.csv"), "--sigma", "0.1", "--range-offset"]
+    assert main(["track", str(tmp_path / "m.csv"), *opts, "-o", str(tmp_path / "ref.parquet"),
+                 "--json"]) == 0
+    want = json.loads(capsys.readouterr().out)["range_offset_m"]
+    assert sorted(want) == ["t0", "t1", "t2"]
+    ref = pd.read_parquet(tmp_path / "ref.parquet").sort_values(["time", "tag"])
+    for by in ("tag", "time"):  # one streamed file per tag; one group read whole
+        ds = tmp_path / f"by_{by}"
+        assert main(["partition", str(tmp_path / "m.csv"), "-o", str(ds), "--by", by,
+                     *(["--span", "10"] if by == "time" else [])]) == 0
+        out = tmp_path / f"t-{by}"
+        capsys.readouterr()
+        assert main(["track", str(ds), *opts, "-o", str(out), "--engine", "dask",
+                     "--scheduler", scheduler, "--json"]) == 0
+        summary = json.loads(capsys.readouterr().out)
+        assert summary["range_offset_m"] == want, by
+        meta = json.loads((out / "_robustloc.json").read_text())
+        assert meta["range_offset_m"] == want and "per_tag" not in meta["counts"]
+        got = _dataset(out).sort_values(["time", "tag"])
+        pd.testing.assert_frame_equal(got.reset_index(drop=True), ref.reset_index(drop=True),
+                                      check_exact=True)
+    assert main(["track", str(tmp_path / "by_tag"), *opts, "-o", str(tmp_path / "t-text"),
+                 "--engine", "dask", "--scheduler", scheduler]) == 0
+    text = capsys.readouterr().out
+    for tag in ("t0", "t1", "t2"):
+        assert f"range offset of {tag}: {want[tag]['estimate']:+.3f} m" in text

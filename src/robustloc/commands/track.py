@@ -161,7 +161,7 @@ def track_partition(meas: pd.DataFrame, anchors: pd.DataFrame, args: argparse.Na
     -> (track rows, additive counts).  Used when a group spans several files; a group of
     one file is streamed by :func:`track_partition_file`."""
     from robustloc.io.tables import to_epochs
-    from robustloc.pipelines.track import TrackSettings, track_blocks
+    from robustloc.pipelines.track import TrackSettings, range_offsets, track_blocks
 
     settings = TrackSettings.from_namespace(args)
     trk = settings.tracker(anchors)
@@ -170,9 +170,12 @@ def track_partition(meas: pd.DataFrame, anchors: pd.DataFrame, args: argparse.Na
     tally: dict[str, int] = {}
     table, n, counts = track_blocks(trk, [epochs], settings, hpl_histogram=hist, source=meas,
                                     tally=tally)
-    return table, {"epochs": n, "tags": len(trk.tags), "status": counts,
-                   "hpl_histogram": {trk.method: hist},
-                   "invalid_measurement_rows": tally.get("invalid_measurement_rows", 0)}
+    summary = {"epochs": n, "tags": len(trk.tags), "status": counts,
+               "hpl_histogram": {trk.method: hist},
+               "invalid_measurement_rows": tally.get("invalid_measurement_rows", 0)}
+    if settings.range_offset:  # per tag, merged (not summed) over the tag groups
+        summary["per_tag"] = {"range_offset_m": range_offsets(trk)}
+    return table, summary
 
 
 def track_partition_file(args: argparse.Namespace) -> dict:
@@ -180,9 +183,12 @@ def track_partition_file(args: argparse.Namespace) -> dict:
     ``--chunk-rows``, so a worker's memory does not grow with the partition) -> the
     additive counts of its summary."""
     s = track_file(args)
-    return {"epochs": s["epochs"], "tags": s["tags"], "status": s["status"],
-            "hpl_histogram": s["hpl_histogram"], "rows_out": s["epochs"],
-            "invalid_measurement_rows": s["invalid_measurement_rows"]}
+    summary = {"epochs": s["epochs"], "tags": s["tags"], "status": s["status"],
+               "hpl_histogram": s["hpl_histogram"], "rows_out": s["epochs"],
+               "invalid_measurement_rows": s["invalid_measurement_rows"]}
+    if "range_offset_m" in s:  # per tag, merged (not summed) over the tag groups
+        summary["per_tag"] = {"range_offset_m": s["range_offset_m"]}
+    return summary
 
 
 def run(args: argparse.Namespace) -> int:
@@ -213,11 +219,8 @@ def run(args: argparse.Namespace) -> int:
 
     for line in hpl_lines(summary, "rows"):
         print(line, file=dest)
-    offsets = summary.get("range_offset_m") or {}
-    for tag, v in list(offsets.items())[:10]:
-        if v["estimate"] is not None:
-            print(f"  range offset of {tag}: {v['estimate']:+.3f} m (sd {v['sd']:.3f})",
-                  file=dest)
-    if len(offsets) > 10:
-        print(f"  ... and {len(offsets) - 10} more tags (--json lists every one)", file=dest)
+    from robustloc.pipelines.track import range_offset_lines
+
+    for line in range_offset_lines(summary):
+        print(line, file=dest)
     return 0

@@ -415,6 +415,11 @@ def _report(args: argparse.Namespace, summary: dict) -> None:
                 print(line)
         else:
             print(f"  {k}: {v}")
+    if summary.get("range_offset_m"):  # track --range-offset: each tag's final offset
+        from robustloc.pipelines.track import range_offset_lines
+
+        for line in range_offset_lines(summary):
+            print(line)
 
 
 def run_filter(args: argparse.Namespace, kernel: TagKernel) -> int:
@@ -435,7 +440,10 @@ def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
         A module-level function ``(measurements, anchors, args) -> (frame, counts)``:
         the command's single-process core on one tag group (every row of each of its
         tags, validated against the anchors; rows of a file in file order, files in time
-        order).  ``counts`` values are summed over the groups.
+        order).  ``counts`` values are summed over the groups, except ``counts["per_tag"]``
+        (``{key: {tag: value}}``, e.g. ``track --range-offset``'s final offsets): the
+        groups hold disjoint tags, so these are merged as one ``{tag: value}`` dict per key
+        and go to the summary under ``key``, as in the single-process summary.
     name : str
         Command name for messages and the metadata.
     input_attr : str
@@ -475,7 +483,10 @@ def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
                                                             [i.part for i in g], out.part(k))])
             counts_list = gather_with_progress(client, futs, _show(args))
         total: dict = {}
+        per_tag: dict[str, dict] = {}
         for c in counts_list:
+            for key, values in c.pop("per_tag", {}).items():
+                per_tag.setdefault(key, {}).update(values)
             _sum_counts(total, c)
         summary = {
             "command": name, "engine": "dask", "input": str(getattr(args, input_attr)),
@@ -484,6 +495,7 @@ def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
             "seconds": round(_time.perf_counter() - t0, 3),
             "files": [{"inputs": [i.part.path for i in g], "output": Path(out.part(k)).name}
                       for k, g in enumerate(groups)],
+            **{key: dict(sorted(v.items())) for key, v in per_tag.items()},
         }
         out.commit(summary)
     except BaseException:

@@ -168,6 +168,18 @@ def range_offsets(trk: Any) -> dict[str, dict[str, float | None]]:
             for tag, k in trk._slot.items() if trk._init[k]}
 
 
+def range_offset_lines(summary: dict, most: int = 10) -> list[str]:
+    """The text summary's lines of :func:`range_offsets` (``summary["range_offset_m"]``):
+    the first ``most`` tags, then how many more (``--json`` lists every one)."""
+    offsets = summary.get("range_offset_m") or {}
+    lines = [f"  range offset of {tag}: {v['estimate']:+.3f} m (sd "
+             + ("n/a" if v["sd"] is None else f"{v['sd']:.3f}") + ")"
+             for tag, v in list(offsets.items())[:most] if v["estimate"] is not None]
+    if len(offsets) > most:
+        lines.append(f"  ... and {len(offsets) - most} more tags (--json lists every one)")
+    return lines
+
+
 def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
               out: str | None, order: str, progress: bool) -> tuple:
     """Every epoch through a fresh tracker; a file is written atomically (nothing at
