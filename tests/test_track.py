@@ -877,3 +877,43 @@ def test_an_unexplained_test_failure_is_fault_detected_with_a_wider_hpl(engine):
     # factor (measured: 1.79 m plain, 22.2 m widened, against 0.555 m clean)
     assert row["hpl"] >= clean["hpl"].iloc[40] * np.sqrt(row["nis"] / dof)
     assert (faulty["status"].iloc[:40] == st.OK).all()
+
+
+@pytest.mark.parametrize("range_offset", [False, True])
+def test_state_dict_holds_every_tags_arrays_as_json_values(range_offset):
+    """Each tag's saved arrays are its state's values, flattened, as JSON types (Python
+    float, int, bool; None for a non-finite float), and a tracker loaded from them goes
+    on as the one that saved them."""
+    a, ep = _bad_epochs(seed=21, K=4, M=6, N=40, p_out=0.1, p_miss=0.3, step_m=2.0)
+    half = ep.n_epochs // 2
+
+    def cut(s):
+        return type(ep)(ep.time[s], ep.tag[s], ep.values[s], ep.anchor_ids, ep.value,
+                        ep.line[s])
+    trk = Tracker(a, sigma=SIGMA_M, cusum_h=6.0, range_offset=range_offset)
+    trk.step(cut(slice(0, half)))
+    state = trk.state_dict()
+    assert json.loads(json.dumps(state, allow_nan=False)) == state  # strict JSON
+    assert set(state["tags"]) == {str(t) for t in trk._slot}
+    n_none = 0
+    for tag, k in trk._slot.items():
+        rec = state["tags"][str(tag)]
+        for name in Tracker._ARRAYS:
+            want = np.asarray(getattr(trk, name)[k])
+            got = rec[name[1:]]
+            vals = got if want.ndim else [got]
+            assert len(vals) == want.size, name
+            for v, w in zip(vals, want.ravel()):
+                if want.dtype.kind == "f":
+                    if np.isfinite(w):
+                        assert type(v) is float and v == w, name
+                    else:
+                        assert v is None, name
+                        n_none += 1
+                else:
+                    assert type(v) is type(w.item()) and v == w.item(), name
+    assert n_none > 0  # the workload has unheard links (NaN last ranges)
+    t2 = Tracker(a, sigma=SIGMA_M, cusum_h=6.0, range_offset=range_offset)
+    t2.load_state_dict(state)
+    pd.testing.assert_frame_equal(t2.step(cut(slice(half, None))),
+                                  trk.step(cut(slice(half, None))))

@@ -1200,16 +1200,19 @@ class Tracker:
         Solves the snapshot checks still pending first (:meth:`_count_bad`), so the
         saved divergence counters are exact; outputs are unaffected."""
         self._settle()
-        def clean(a: Array) -> Any:
-            a = np.asarray(a)
-            if a.dtype.kind == "f":
-                return [None if not math.isfinite(v) else float(v) for v in a.ravel()] \
-                    if a.ndim else (None if not math.isfinite(float(a)) else float(a))
-            return a.ravel().tolist() if a.ndim else a.item()
-
-        tags = {}
-        for tag, k in self._slot.items():
-            tags[str(tag)] = {name[1:]: clean(getattr(self, name)[k]) for name in self._ARRAYS}
+        slots = np.fromiter(self._slot.values(), dtype=np.int64, count=len(self._slot))
+        per_name = {}  # each array's per-tag values, converted for all tags at once
+        for name in self._ARRAYS:
+            a = np.asarray(getattr(self, name))[slots]
+            flat = a.reshape(len(slots), -1)
+            if a.dtype.kind == "f":  # Python floats; None for NaN and infinities
+                obj = flat.astype(object)
+                obj[~np.isfinite(flat)] = None
+                flat = obj
+            rows = flat.tolist()  # per tag: its values flattened (a scalar: one value)
+            per_name[name[1:]] = rows if a.ndim > 1 else [r[0] for r in rows]
+        tags = {str(tag): {key: rows[j] for key, rows in per_name.items()}
+                for j, tag in enumerate(self._slot)}
         return {"version": 1, "settings": asdict(self.settings), "anchors": list(self.anchor_ids),
                 "value": self._kind, "n_states": self.n, "tags": tags}
 
