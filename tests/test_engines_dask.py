@@ -739,10 +739,14 @@ def test_dask_engine_on_a_dataset_with_a_date_time_column(sim, scheduler, tmp_pa
         assert not out.exists()
 
 
-def test_track_range_offset_dask_gives_each_tags_offset(scheduler, tmp_path, capsys):
-    """``track --range-offset --engine dask``: the rows equal the single process's, and
-    the tag groups' final offsets (disjoint tags) merge into one ``range_offset_m`` in the
-    summary, the metadata and the text, as the single process gives them."""
+@pytest.mark.parametrize("option, key", [("--range-offset", "range_offset_m"),
+                                         ("--link-offsets", "link_offset_m")])
+def test_track_offsets_dask_gives_each_tags_offsets(scheduler, tmp_path, capsys, option,
+                                                    key):
+    """``track --range-offset`` / ``--link-offsets`` with ``--engine dask``: the rows equal
+    the single process's, and the tag groups' final offsets (disjoint tags) merge into one
+    ``range_offset_m`` / ``link_offset_m`` in the summary, the metadata and the text, as
+    the single process gives them."""
     from test_track_offset import _labyrinth_like
 
     a, ep = _labyrinth_like()
@@ -752,10 +756,10 @@ def test_track_range_offset_dask_gives_each_tags_offset(scheduler, tmp_path, cap
                          "tag": np.repeat(ep.tag, len(ids)),
                          "anchor": np.tile(ids, ep.n_epochs), "range": ep.values.ravel()})
     long.to_csv(tmp_path / "m.csv", index=False)
-    opts = ["--anchors", str(tmp_path / "a.csv"), "--sigma", "0.1", "--range-offset"]
+    opts = ["--anchors", str(tmp_path / "a.csv"), "--sigma", "0.1", option]
     assert main(["track", str(tmp_path / "m.csv"), *opts, "-o", str(tmp_path / "ref.parquet"),
                  "--json"]) == 0
-    want = json.loads(capsys.readouterr().out)["range_offset_m"]
+    want = json.loads(capsys.readouterr().out)[key]
     assert sorted(want) == ["t0", "t1", "t2"]
     ref = pd.read_parquet(tmp_path / "ref.parquet").sort_values(["time", "tag"])
     for by in ("tag", "time"):  # one streamed file per tag; one group read whole
@@ -767,9 +771,9 @@ def test_track_range_offset_dask_gives_each_tags_offset(scheduler, tmp_path, cap
         assert main(["track", str(ds), *opts, "-o", str(out), "--engine", "dask",
                      "--scheduler", scheduler, "--json"]) == 0
         summary = json.loads(capsys.readouterr().out)
-        assert summary["range_offset_m"] == want, by
+        assert summary[key] == want, by
         meta = json.loads((out / "_robustloc.json").read_text())
-        assert meta["range_offset_m"] == want and "per_tag" not in meta["counts"]
+        assert meta[key] == want and "per_tag" not in meta["counts"]
         got = _dataset(out).sort_values(["time", "tag"])
         pd.testing.assert_frame_equal(got.reset_index(drop=True), ref.reset_index(drop=True),
                                       check_exact=True)
@@ -777,4 +781,7 @@ def test_track_range_offset_dask_gives_each_tags_offset(scheduler, tmp_path, cap
                  "--engine", "dask", "--scheduler", scheduler]) == 0
     text = capsys.readouterr().out
     for tag in ("t0", "t1", "t2"):
-        assert f"range offset of {tag}: {want[tag]['estimate']:+.3f} m" in text
+        if key == "range_offset_m":
+            assert f"range offset of {tag}: {want[tag]['estimate']:+.3f} m" in text
+        else:
+            assert f"link offsets of {tag} (m): A0 {want[tag]['A0']['estimate']:+.2f}" in text

@@ -12,7 +12,7 @@ def test_s60_quick_on_shipped_excerpts(tmp_path):
     assert (tmp_path / "s60_tracks.png").is_file()
     assert (tmp_path / "s60_table3.csv").is_file()
     t = sec.summary["targets"]
-    assert len(t) == 20
+    assert len(t) == 24
     assert all(np.isfinite(v["measured"]) for v in t.values())
     # seed 002's Table 3 headlines (walk, static points) open the report's summary
     heads = [h for h in sec.headlines if h["seed"] == "002"]

@@ -580,6 +580,9 @@ def track(
     range_offset: bool = False,
     range_offset_sd: float = 0.5,
     range_offset_q: float = 1e-4,
+    link_offsets: bool = False,
+    link_offset_sd: float | None = None,
+    link_offset_q: float = 0.0,
 ) -> pd.DataFrame:
     r"""Tracks for every tag of a measurements log (``robustloc track``).
 
@@ -604,6 +607,11 @@ def track(
         Ranges: estimate each tag's common range offset (m) as one more state, its
         a-priori standard deviation (m) and random-walk growth (m^2/s)
         (``--range-offset``; columns ``range_offset, var_range_offset``).
+    link_offsets, link_offset_sd, link_offset_q
+        Estimate an offset of each link of each tag (dB of RSSI, m of ranges) as one more
+        state per anchor, its a-priori standard deviation (None: 1 dB or 0.1 m) and
+        random-walk growth (``--link-offsets``; the summary's ``link_offset_db`` or
+        ``link_offset_m`` gives each tag's final offsets).  Not with ``range_offset``.
 
     Returns
     -------
@@ -644,7 +652,8 @@ def track(
             tag_height=tag_height, alpha0=alpha0, beta0=beta0,
             integrity_risk=integrity_risk, chunk_rows=chunk_rows,
             range_offset=_flag("range_offset", range_offset), range_offset_sd=range_offset_sd,
-            range_offset_q=range_offset_q)
+            range_offset_q=range_offset_q, link_offsets=_flag("link_offsets", link_offsets),
+            link_offset_sd=link_offset_sd, link_offset_q=link_offset_q)
         anchor_frame, source = _log_inputs(measurements, anchors)
         frame, summary = run_track(source, anchor_frame, settings)
     return _with_summary(frame, summary)

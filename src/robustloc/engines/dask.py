@@ -415,10 +415,10 @@ def _report(args: argparse.Namespace, summary: dict) -> None:
                 print(line)
         else:
             print(f"  {k}: {v}")
-    if summary.get("range_offset_m"):  # track --range-offset: each tag's final offset
-        from robustloc.pipelines.track import range_offset_lines
+    if any(summary.get(k) for k in ("range_offset_m", "link_offset_m", "link_offset_db")):
+        from robustloc.pipelines.track import offset_lines  # track's final offsets per tag
 
-        for line in range_offset_lines(summary):
+        for line in offset_lines(summary):
             print(line)
 
 

@@ -66,10 +66,17 @@ class TrackSettings:
     range_offset: bool = False
     range_offset_sd: float = option(0.5, check=positive_float)
     range_offset_q: float = option(1e-4, check=nonnegative_float)
+    link_offsets: bool = False
+    link_offset_sd: float | None = option(None, check=positive_float)
+    link_offset_q: float = option(0.0, check=nonnegative_float)
     chunk_rows: int = option(500_000, check=positive_int)
 
     def __post_init__(self) -> None:
         check_settings(self)
+        if self.range_offset and self.link_offsets:
+            raise InputError("--range-offset and --link-offsets exclude each other: the "
+                             "links' offsets include the common one (their mean); choose "
+                             "one")
 
     @property
     def smoothing(self) -> bool:
@@ -154,29 +161,63 @@ def run_track(
                "epochs_per_second": round(n_epochs / max(wall, 1e-9), 1)}
     if settings.range_offset:
         summary["range_offset_m"] = range_offsets(trk)
+    if settings.link_offsets:
+        summary[link_offset_key(trk)] = link_offsets(trk)
     return frame, summary
+
+
+def link_offset_key(trk: Any) -> str:
+    """The summary's key of :func:`link_offsets`: ``link_offset_db`` for RSSI,
+    ``link_offset_m`` for ranges."""
+    return "link_offset_db" if trk._kind == "rssi" else "link_offset_m"
+
+
+def link_offsets(trk: Any) -> dict[str, dict[str, dict[str, float | None]]]:
+    """Each started tag's links' offsets at the end of the log (``link_offsets``):
+    ``{tag: {anchor: {"estimate": b_i, "sd": sqrt(var b_i)}}}`` in the measurement's unit
+    (dB or m; None where not finite)."""
+    nm = trk.n_motion
+    out = {}
+    for tag, k in trk._slot.items():
+        if not trk._init[k]:
+            continue
+        b = trk._x[k, nm:]
+        sd = np.sqrt(np.maximum(np.diagonal(trk._P[k])[nm:], 0.0))
+        out[str(tag)] = {a: {"estimate": _num(u), "sd": _num(v)}
+                         for a, u, v in zip(trk.anchor_ids, b, sd)}
+    return out
+
+
+def _num(v: float) -> float | None:
+    return round(float(v), 4) if np.isfinite(v) else None
 
 
 def range_offsets(trk: Any) -> dict[str, dict[str, float | None]]:
     """Each started tag's range offset at the end of the log: ``{tag: {"estimate": b,
     "sd": sqrt(var b)}}`` (m; None where not finite)."""
-    def num(v: float) -> float | None:
-        return round(float(v), 4) if np.isfinite(v) else None
-
-    return {str(tag): {"estimate": num(trk._x[k, -1]),
-                       "sd": num(np.sqrt(max(trk._P[k, -1, -1], 0.0)))}
+    return {str(tag): {"estimate": _num(trk._x[k, -1]),
+                       "sd": _num(np.sqrt(max(trk._P[k, -1, -1], 0.0)))}
             for tag, k in trk._slot.items() if trk._init[k]}
 
 
-def range_offset_lines(summary: dict, most: int = 10) -> list[str]:
-    """The text summary's lines of :func:`range_offsets` (``summary["range_offset_m"]``):
-    the first ``most`` tags, then how many more (``--json`` lists every one)."""
+def offset_lines(summary: dict, most: int = 10) -> list[str]:
+    """The text summary's lines of :func:`range_offsets` (``summary["range_offset_m"]``)
+    and :func:`link_offsets`: the first ``most`` tags, then how many more (``--json``
+    lists every one)."""
     offsets = summary.get("range_offset_m") or {}
     lines = [f"  range offset of {tag}: {v['estimate']:+.3f} m (sd "
              + ("n/a" if v["sd"] is None else f"{v['sd']:.3f}") + ")"
              for tag, v in list(offsets.items())[:most] if v["estimate"] is not None]
     if len(offsets) > most:
         lines.append(f"  ... and {len(offsets) - most} more tags (--json lists every one)")
+    for key, unit in (("link_offset_m", "m"), ("link_offset_db", "dB")):
+        links = summary.get(key) or {}
+        for tag, per in list(links.items())[:most]:
+            lines.append(f"  link offsets of {tag} ({unit}): " + ", ".join(
+                f"{a} {v['estimate']:+.2f}" for a, v in per.items()
+                if v["estimate"] is not None))
+        if len(links) > most:
+            lines.append(f"  ... and {len(links) - most} more tags (--json lists every one)")
     return lines
 
 
