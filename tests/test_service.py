@@ -605,6 +605,22 @@ def test_track_range_offset_replay_equals_batch_track(uwb, server_factory, tmp_p
                          ("x", "y", "range_offset", "var_range_offset"))
 
 
+def test_track_link_offsets_replay_equals_batch_track(ble, server_factory, tmp_path):
+    """``serve --track --track-link-offsets`` gives the rows of
+    ``Tracker(link_offsets=True)`` on the replayed RSSI log (to 1e-9 m), whose positions
+    differ from the plain tracker's (the offsets are estimated)."""
+    track = pytest.importorskip("robustloc.tracking")
+    anchors = read_anchors(ble / "anchors.csv")
+    ep = to_epochs(read_measurements(ble / "measurements.csv"), anchors["anchor"])
+    want = track.Tracker(anchors, link_offsets=True).step(ep)
+    plain = track.Tracker(anchors).step(ep)
+    assert np.abs(want["x"] - plain["x"]).max() > 1e-3
+    srv = server_factory(["--anchors", str(ble / "anchors.csv"), "--track",
+                          "--track-link-offsets", "--store", str(tmp_path / "store"),
+                          "--idle-flush", "0.3"])
+    _replayed_rows_equal(srv, ble / "measurements.csv", want, ("x", "y", "hpl"))
+
+
 def test_serve_cli_errors(ble, tmp_path, capsys):
     """A user's mistake is `error: ...` on stderr and exit code 2, never a traceback."""
     from robustloc.cli import main
@@ -628,6 +644,11 @@ def test_serve_cli_errors(ble, tmp_path, capsys):
     assert main(["serve", "--anchors", a, "--track", "--track-range-offset",
                  "--value", "rssi"]) == 2
     assert "is for ranges" in capsys.readouterr().err
+    assert main(["serve", "--anchors", a, "--track-link-offsets"]) == 2
+    assert "goes with --track" in capsys.readouterr().err
+    assert main(["serve", "--anchors", a, "--track", "--track-link-offsets",
+                 "--track-range-offset"]) == 2
+    assert "exclude each other" in capsys.readouterr().err
     from robustloc.service.launch import free_port
 
     nobody = f"http://127.0.0.1:{free_port()}"  # nothing listens there

@@ -92,6 +92,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="--track on ranges: estimate each tag's common range offset (a UWB "
                         "antenna delay) as a state, as robustloc track --range-offset; "
                         "the service then locates from ranges only")
+    p.add_argument("--track-link-offsets", action="store_true",
+                   help="--track: estimate an offset of each link of each tag (dB of RSSI, m "
+                        "of ranges) as states, as robustloc track --link-offsets")
     p.add_argument("--dim", type=int, choices=(2, 3), default=2, help="solve in 2-D or 3-D")
     p.add_argument("--solver", choices=("nonlinear", "linearized"), default="nonlinear",
                    help="as robustloc locate --solver")
@@ -175,9 +178,17 @@ def build(args: argparse.Namespace):
         if value == "rssi":
             raise InputError("--track-range-offset is for ranges: not with --value rssi")
         value = "range"  # an RSSI row is refused: "this service locates from range"
+    if args.track_link_offsets:
+        if not args.track:
+            raise InputError("--track-link-offsets goes with --track")
+        if args.track_range_offset:
+            raise InputError("--track-range-offset and --track-link-offsets exclude each "
+                             "other: the links' offsets include the common one; choose one")
     try:
         if args.track:
             opts = {"range_offset": True} if args.track_range_offset else {}
+            if args.track_link_offsets:
+                opts["link_offsets"] = True
             processor = TrackProcessor(anchors, model=args.track_model, filter=args.track_filter,
                                        **opts)
         else:
