@@ -259,3 +259,19 @@ def test_command_link_offsets_summary_and_refusal(tmp_path):
     r = _cli(*base, "--range-offset")
     assert r.returncode == 2 and r.stderr.startswith("error: ")
     assert "exclude each other" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_link_offsets_table_is_the_state():
+    a = _ring(M=4, radius=5.0)
+    truth = _cv_truth(2, 30, 0.5, seed=7)
+    ep = _concat(_link_ranges(a, truth, np.tile([0.2, -0.1, 0.05, 0.0], (2, 1)), seed=8))
+    trk = Tracker(a, sigma=SIGMA_M, link_offsets=True)
+    trk.step(ep)
+    tab = trk.link_offsets()
+    assert list(tab.columns) == ["tag", "anchor", "offset", "sd"] and len(tab) == 8
+    for row in tab.itertuples():
+        k, i = trk._slot[row.tag], list(trk.anchor_ids).index(row.anchor)
+        assert row.offset == trk._x[k, 4 + i]
+        assert row.sd == math.sqrt(trk._P[k, 4 + i, 4 + i])
+    with pytest.raises(ValueError, match="link_offsets=False"):
+        Tracker(a).link_offsets()

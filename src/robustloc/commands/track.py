@@ -140,7 +140,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "(what the anchors' calibration misses where the tag walks); the "
                         "summary gives each tag's final offsets.  Measured: ble-tetam "
                         "0.77x -> 0.71x the default locate's RMS (the offsets it finds "
-                        "correlate 0.94 with the truth's); uwb-dwm1001 LOS 0.77 -> 0.55 m, "
+                        "correlate 0.93 with the truth's); uwb-dwm1001 LOS 0.77 -> 0.55 m, "
                         "NLOS 0.74 -> 0.61 m; uwb-labyrinth 0.215 -> 0.172 m; where there "
                         "are no offsets it costs (simulated walk, 4 APs: 0.93x -> 1.25x "
                         "the snapshot fixes' RMS).  NumPy kernels (slower); not with "

@@ -176,15 +176,10 @@ def link_offsets(trk: Any) -> dict[str, dict[str, dict[str, float | None]]]:
     """Each started tag's links' offsets at the end of the log (``link_offsets``):
     ``{tag: {anchor: {"estimate": b_i, "sd": sqrt(var b_i)}}}`` in the measurement's unit
     (dB or m; None where not finite)."""
-    nm = trk.n_motion
-    out = {}
-    for tag, k in trk._slot.items():
-        if not trk._init[k]:
-            continue
-        b = trk._x[k, nm:]
-        sd = np.sqrt(np.maximum(np.diagonal(trk._P[k])[nm:], 0.0))
-        out[str(tag)] = {a: {"estimate": _num(u), "sd": _num(v)}
-                         for a, u, v in zip(trk.anchor_ids, b, sd)}
+    out: dict[str, dict[str, dict[str, float | None]]] = {}
+    for row in trk.link_offsets().itertuples(index=False):
+        out.setdefault(str(row.tag), {})[str(row.anchor)] = {"estimate": _num(row.offset),
+                                                             "sd": _num(row.sd)}
     return out
 
 

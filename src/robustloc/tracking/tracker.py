@@ -112,7 +112,7 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
    held-link offsets: those follow a step, these a standing offset from the first epoch.
    Measured (report section ``s60_tracks``, default priors): ble-tetam, whose RSSI
    differs from the survey's calibration by -2.5 to +1.5 dB per receiver on the walks
-   (against the truth; the filter's offsets correlate 0.94 with those), RMS 2.20 -> 2.03 m
+   (against the truth; the filter's offsets correlate 0.93 with those), RMS 2.20 -> 2.03 m
    (0.77x -> 0.71x the default ``locate``'s); uwb-dwm1001 LOS 0.77 -> 0.55 m, NLOS 0.74
    -> 0.61 m; uwb-labyrinth 0.215 -> 0.172 m (after ``calibrate --self`` 0.139 -> 0.148
    m: the calibration had removed the offsets).  Where there are no offsets to find it
@@ -461,6 +461,29 @@ class Tracker:
     def tags(self) -> list[str]:
         """Tags seen so far."""
         return list(self._slot)
+
+    def link_offsets(self) -> pd.DataFrame:
+        """The links' offsets (``link_offsets``, item 11 of the module docstring) of every
+        started tag at its last epoch: one row per tag and anchor, columns ``tag, anchor,
+        offset, sd`` in the measurement's unit (dB of RSSI, m of ranges).
+
+        Raises
+        ------
+        ValueError
+            The tracker does not estimate the links' offsets.
+        """
+        if not self.settings.link_offsets:
+            raise ValueError("this tracker does not estimate the links' offsets "
+                             "(link_offsets=False)")
+        nm, M = self.n_motion, len(self.anchor_ids)
+        tags = [t for t, k in self._slot.items() if self._init[k]]
+        sl = np.fromiter((self._slot[t] for t in tags), dtype=np.int64, count=len(tags))
+        b = self._x[sl, nm:]
+        var = np.diagonal(self._P[sl], axis1=1, axis2=2)[:, nm:]
+        return pd.DataFrame({"tag": np.repeat(np.asarray(tags, dtype=object), M),
+                             "anchor": np.tile(np.asarray(self.anchor_ids, dtype=object),
+                                               len(tags)),
+                             "offset": b.ravel(), "sd": np.sqrt(np.maximum(var, 0.0)).ravel()})
 
     # ------------------------------------------------------------------ model setup
     def _setup(self, kind: str) -> None:
