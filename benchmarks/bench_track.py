@@ -13,7 +13,9 @@ a Python loop over tags -- how one would track many tags with it; timed on
 
 Columns ``+offset`` and ``+offset numpy``: the tag's range offset as a fifth state
 (``Tracker(range_offset=True)``, ``track --range-offset``) on the compiled engine (the fused
-kernel of state size 5) and on the NumPy engine.
+kernel of state size 5) and on the NumPy engine.  Columns ``+links`` and ``+links numpy``:
+each link's offset as a state (``link_offsets=True``, ``track --link-offsets``: 4 + 8
+states here), compiled (``track_round_n``) and NumPy.
 
 Run:  NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1 python benchmarks/bench_track.py
       [--tags 1000] [--anchors 8] [--epochs 40] [--rounds 3] [--clock cpu|wall]
@@ -106,9 +108,10 @@ def _data(K: int, M: int, N: int, seed: int = 0) -> tuple[pd.DataFrame, list[Epo
 
 
 def _ours(anchors: pd.DataFrame, blocks: list[Epochs], filt: str, engine: str,
-          clock: Callable[[], float] = time.process_time, range_offset: bool = False) -> float:
+          clock: Callable[[], float] = time.process_time, range_offset: bool = False,
+          link_offsets: bool = False) -> float:
     trk = Tracker(anchors, model="cv", filter=filt, sigma=SIGMA_M, engine=engine,
-                  range_offset=range_offset)
+                  range_offset=range_offset, link_offsets=link_offsets)
     trk.step(blocks[0])  # start: robust fixes
     trk.step(blocks[1])  # warm (compiles on first use)
     t0 = clock()
@@ -200,7 +203,8 @@ def main() -> None:
           f"per tag (best of {a.rounds} rounds; tag-epochs per {a.clock} second)")
     print(f"load average at start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     print(f"{'filter':6s} {'compiled':>12s} {'one step':>12s} {'numpy':>12s} {'+offset':>12s}"
-          f" {'+offset numpy':>14s} {'FilterPy':>12s} {'x FilterPy':>11s} {'target':>9s}")
+          f" {'+offset numpy':>14s} {'+links':>10s} {'+links numpy':>13s} {'FilterPy':>12s}"
+          f" {'x FilterPy':>11s} {'target':>9s}")
     for filt, target in (("ekf", 200_000), ("ukf", 50_000)):
         comp = max(_ours(anchors, blocks, filt, "compiled", clock) for _ in range(a.rounds))
         batch = max(_ours_batch(anchors, blocks, filt, clock) for _ in range(a.rounds))
@@ -209,9 +213,14 @@ def main() -> None:
                    for _ in range(a.rounds))
         offn = max(_ours(anchors, blocks, filt, "numpy", clock, range_offset=True)
                    for _ in range(a.rounds))
+        lnk = max(_ours(anchors, blocks, filt, "compiled", clock, link_offsets=True)
+                  for _ in range(a.rounds))
+        lnn = max(_ours(anchors, blocks, filt, "numpy", clock, link_offsets=True)
+                  for _ in range(a.rounds))
         peer = _filterpy(anchors, blocks, filt, min(a.peer_tags, a.tags), clock)
         print(f"{filt:6s} {comp:12,.0f} {batch:12,.0f} {nump:12,.0f} {offs:12,.0f}"
-              f" {offn:14,.0f} {peer:12,.0f} {comp / peer:10.0f}x {target:9,d}")
+              f" {offn:14,.0f} {lnk:10,.0f} {lnn:13,.0f} {peer:12,.0f} {comp / peer:10.0f}x"
+              f" {target:9,d}")
     print(f"load average at end: {os.getloadavg()[0]:.1f}")
 
 

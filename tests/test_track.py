@@ -369,11 +369,11 @@ def _bad_epochs(seed: int, K: int, M: int, N: int, p_out: float, p_miss: float,
 
 
 @pytest.mark.parametrize("filt", ["ekf", "ukf"])
-@pytest.mark.parametrize("range_offset", [False, True])
-def test_engines_agree_with_holds_outliers_and_restarts(filt, range_offset):
+@pytest.mark.parametrize("offsets", ["", "range_offset", "link_offsets"])
+def test_engines_agree_with_holds_outliers_and_restarts(filt, offsets):
     a, ep = _bad_epochs(seed=11, K=3, M=8, N=60, p_out=0.05, p_miss=0.05, step_m=2.0)
     kw = {"filter": filt, "cusum_h": 6.0, "weight": "igg3", "max_bad_epochs": 2,
-          "range_offset": range_offset}
+          **({offsets: True} if offsets else {})}
     rows = _assert_engines_agree(a, kw, [ep])
     # the workload reaches the paths the kernel covers: holds, rejected outliers,
     # suspicious epochs that fail (re-starts), coasting is covered by the next test
@@ -382,8 +382,8 @@ def test_engines_agree_with_holds_outliers_and_restarts(filt, range_offset):
     assert rows.reinit.max() >= 1
 
 
-@pytest.mark.parametrize("range_offset", [False, True])
-def test_engines_agree_one_epoch_at_a_time_with_coasting(range_offset):
+@pytest.mark.parametrize("offsets", ["", "range_offset", "link_offsets"])
+def test_engines_agree_one_epoch_at_a_time_with_coasting(offsets):
     a, ep = _bad_epochs(seed=12, K=2, M=6, N=30, p_out=0.1, p_miss=0.2, step_m=0.0)
     v = ep.values.copy()
     v[10:14] = np.nan  # nothing heard: predicted rows
@@ -391,7 +391,7 @@ def test_engines_agree_one_epoch_at_a_time_with_coasting(range_offset):
     parts = [type(ep)(ep.time[i:i + 1], ep.tag[i:i + 1], ep.values[i:i + 1], ep.anchor_ids,
                       ep.value, ep.line[i:i + 1]) for i in range(ep.n_epochs)]
     rows = _assert_engines_agree(a, {"model": "ca", "filter": "ukf",
-                                     "range_offset": range_offset}, parts)
+                                     **({offsets: True} if offsets else {})}, parts)
     assert (rows.status == "predicted").any()
 
 
@@ -401,12 +401,12 @@ def test_engines_agree_one_epoch_at_a_time_with_coasting(range_offset):
        weight=hst.sampled_from(["huber", "igg3", "hampel"]),
        cusum_h=hst.sampled_from([None, 4.0, 10.0]), p_out=hst.sampled_from([0.0, 0.05, 0.2]),
        p_miss=hst.sampled_from([0.0, 0.1, 0.4]), step_m=hst.sampled_from([0.0, 1.0, 3.0]),
-       range_offset=hst.booleans())
+       offsets=hst.sampled_from(["", "range_offset", "link_offsets"]))
 def test_engines_agree_on_random_workloads(seed, K, M, filt, model, weight, cusum_h, p_out,
-                                           p_miss, step_m, range_offset):
+                                           p_miss, step_m, offsets):
     a, ep = _bad_epochs(seed, K, M, 25, p_out, p_miss, step_m)
     kw = {"filter": filt, "model": model, "weight": weight, "cusum_h": cusum_h,
-          "readmit_samples": 3, "range_offset": range_offset}
+          "readmit_samples": 3, **({offsets: True} if offsets else {})}
     _assert_engines_agree(a, kw, [ep])
 
 
@@ -422,9 +422,11 @@ def test_engines_agree_on_the_recorded_moments_for_smoothing():
 
 
 @pytest.mark.parametrize("domain", ["range", "rssi"])
-def test_engines_agree_on_rssi_with_holds(domain):
+@pytest.mark.parametrize("link_offsets", [False, True])
+def test_engines_agree_on_rssi_with_holds(domain, link_offsets):
     """RSSI (log-distance, A = -40 dBm, n = 2): the compiled round runs the range domain
-    (held links' offsets in dB through the path-loss model); the dB domain is NumPy only."""
+    (held links' offsets in dB through the path-loss model; with ``link_offsets`` each
+    link's offset state scales its range), the dB domain is NumPy only."""
     a = _anchors(6).assign(A=-40.0, n=2.0)
     meas, _ = _walk(K=2, N=60, seed=14, anchors=a)
     rng = np.random.default_rng(14)
@@ -435,7 +437,8 @@ def test_engines_agree_on_rssi_with_holds(domain):
     meas = meas.drop(columns="range").assign(rssi=rssi)
     ep = to_epochs(meas, a["anchor"])
     assert ep.value == "rssi"
-    rows = _assert_engines_agree(a, {"cusum_h": 5.0, "domain": domain, "sigma": 2.0}, [ep])
+    rows = _assert_engines_agree(a, {"cusum_h": 5.0, "domain": domain, "sigma": 2.0,
+                                     "link_offsets": link_offsets}, [ep])
     assert rows.excluded.str.contains("A0").any()
 
 
@@ -528,9 +531,11 @@ def test_one_fault_explains_is_the_global_test_after_one_exclusion(seed, M, roff
         # the compiled kernel (position rows of H, as the tracker's round)
         Ssn, Lsn = np.empty((M, M)), np.empty((M, M))
         scratch = [np.empty(M) for _ in range(3)]
+        hb = np.ones(M) if roff else np.zeros(M)  # the offset's column of H (common: 4)
+        oc = np.full(M, 4 if roff else -1, dtype=np.int64)
         comp = _compiled.one_fault_explains(
-            M, np.ascontiguousarray(H[k, :, :2]), Pp[k], Rd[k], y[k], avail[k], w2c, crit[k],
-            Ssn, Lsn, *scratch, roff)
+            M, np.ascontiguousarray(H[k, :, :2]), hb, oc, Pp[k], Rd[k], y[k], avail[k], w2c,
+            crit[k], Ssn, Lsn, *scratch)
         if not margin[k]:
             assert comp == want, k
     assert got.any() and not got.all()  # both outcomes are exercised

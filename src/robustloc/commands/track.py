@@ -143,7 +143,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "correlate 0.93 with the truth's); uwb-dwm1001 LOS 0.77 -> 0.55 m, "
                         "NLOS 0.74 -> 0.61 m; uwb-labyrinth 0.215 -> 0.172 m; where there "
                         "are no offsets it costs (simulated walk, 4 APs: 0.93x -> 1.25x "
-                        "the snapshot fixes' RMS).  NumPy kernels (slower); not with "
+                        "the snapshot fixes' RMS); 4 + M states: slower.  Not with "
                         "--range-offset")
     p.add_argument("--link-offset-sd", type=positive_float, default=None,
                    help="a-priori std of each link's offset at a tag's start, in the "

@@ -62,8 +62,14 @@ DONE, BAD_SHAPE, NOT_PD = 0, 1, 2
 _Q, _MIN_SPEED, _SCALE, _WM0, _WMI, _WC0, _WCI = 0, 1, 2, 3, 4, 5, 6
 _WPRM = 7  # 3 weight parameters
 _WCODE, _KIND, _NPOW, _N, _M, _NANCH, _KIN = 10, 11, 12, 13, 14, 15, 16
-_ROFF = 17  # 1.0: the state's last component is a range offset (the tracker's)
+_ROFF = 17  # the tracker's offset states: one of OFF_NONE .. OFF_LINKS_SCALED
 _HEAD = 18
+#: Offset states of the range tracker (``prm[_ROFF]``, :func:`pack_params` ``offsets``):
+#: none; a common range offset as the last state (``r_i = d_i + b``); one offset per link
+#: after the kinematic states (``r_i = d_i + b_i``: ranges, or RSSI fitted in dB); one per
+#: link of RSSI turned into ranges (``r_i = d_i 10^(-b_i / (10 n_i))``, ``b_i`` in dB).
+OFF_NONE, OFF_COMMON, OFF_LINKS, OFF_LINKS_SCALED = 0, 1, 2, 3
+_LN10 = math.log(10.0)
 
 
 def layout(K: int, n: int, m: int) -> dict[str, int]:
@@ -114,7 +120,8 @@ def pack_params(
     anchors: np.ndarray,
     dz2: np.ndarray,
     kinematic: bool = True,
-    range_offset: bool = False,
+    offsets: int = OFF_NONE,
+    link_n: np.ndarray | None = None,
 ) -> np.ndarray | None:
     """Pack the settings of one filter and measurement model into one float vector.
 
@@ -135,42 +142,62 @@ def pack_params(
     kinematic : the measurement ends with the speed and course components (the fusion
         model, ``m = M + 2``, or ``4`` loose); ``False``: ranges only, ``m = M >= 1`` (the
         tracker's tight model: the same kernel without the two always-missing rows).
-    range_offset : the state's last component is a range offset ``b`` added to every
-        range, ``r_i = d_i + b`` (``dr_i/db = 1``; the tracker's ``range_offset``, state
-        size 5 for CV and 7 for CA).  Ranges only: requires ``kinematic=False``.
+    offsets : the tracker's offset states (ranges only: requires ``kinematic=False``):
+        :data:`OFF_COMMON`, the state's last component is a range offset ``b`` added to
+        every range, ``r_i = d_i + b`` (``dr_i/db = 1``; ``range_offset``, state size 5 for
+        CV and 7 for CA); :data:`OFF_LINKS`, the last ``M`` components are the links'
+        offsets, ``r_i = d_i + b_i``; :data:`OFF_LINKS_SCALED`, the same for RSSI turned
+        into ranges, ``r_i = d_i 10^(-b_i / (10 n_i))`` (``link_offsets``; state size
+        ``4 + M`` or ``6 + M``, the kernel :func:`fusion_step_n`).
+    link_n : ``(M,)`` path-loss exponents ``n_i`` of :data:`OFF_LINKS_SCALED`.
 
     Returns
     -------
     ndarray or None
-        ``prm`` for a kernel of :data:`KERNELS`; ``None`` if the model has no compiled kernel
-        (state size other than 4 or 6, or 5 or 7 with ``range_offset``; matrices that are
-        not monomials in ``dt``, or an ``F`` that is not upper triangular).
+        ``prm`` for a kernel of :data:`KERNELS` (:func:`fusion_step_n` with the links'
+        offsets); ``None`` if the model has no compiled kernel (state size other than 4
+        or 6, 5 or 7 with the common offset, 4 + M or 6 + M with the links' offsets;
+        matrices that are not monomials in ``dt``, or an ``F`` that is not upper
+        triangular).
     """
     npow, n, _ = coef_F.shape
     fm, qm = monomials(coef_F), monomials(coef_Q)
     m = chi2_table.shape[0] - 1
-    if kernel_for(n, m) is None or fm is None or qm is None or len(wm) != 2 * n + 1:
+    M = anchors.shape[0]
+    links = offsets in (OFF_LINKS, OFF_LINKS_SCALED)
+    kernel = fusion_step_n if links else kernel_for(n, m)
+    if kernel is None or fm is None or qm is None or len(wm) != 2 * n + 1:
         return None
     if np.any(np.tril(fm[0], -1) != 0.0):  # the kernels use that F is upper triangular
         return None
-    M = anchors.shape[0]
     if m != ((M if M else 2) + 2 if kinematic else M) or m < 1:
         return None
-    if (n in (5, 7)) != range_offset or (range_offset and (kinematic or M == 0)):
+    if offsets not in (OFF_NONE, OFF_COMMON, OFF_LINKS, OFF_LINKS_SCALED):
         return None
+    if offsets != OFF_NONE and (kinematic or M == 0):
+        return None
+    if (n in (5, 7)) != (offsets == OFF_COMMON) and not links:
+        return None
+    if links and n - M not in (4, 6):
+        return None
+    ln = np.zeros(0)
+    if offsets == OFF_LINKS_SCALED:
+        ln = np.asarray(link_n, dtype=float).reshape(-1)
+        if ln.shape != (M,) or not np.all(np.isfinite(ln) & (ln > 0)):
+            return None
     head = np.zeros(_HEAD)
     head[_Q], head[_MIN_SPEED], head[_SCALE] = q, min_speed, scale
     head[_WM0], head[_WMI], head[_WC0], head[_WCI] = wm[0], wm[1], wc[0], wc[1]
     head[_WPRM : _WPRM + 3] = weight_prm[:3]
     head[_WCODE], head[_KIND], head[_NPOW] = weight_code, kind, npow
     head[_N], head[_M], head[_NANCH], head[_KIN] = n, m, M, 1.0 if kinematic else 0.0
-    head[_ROFF] = 1.0 if range_offset else 0.0
+    head[_ROFF] = float(offsets)
     anch = np.column_stack([np.asarray(anchors, float).reshape(M, 2), dz2]).ravel()
     chars = np.zeros((len(STATUSES), STATUS_CHARS))
     for c, name in enumerate(STATUSES):
         chars[c, : len(name)] = [ord(ch) for ch in name]
     parts = [head, chi2_table, fm[0].ravel(), fm[1].ravel(), qm[0].ravel(), qm[1].ravel(), anch,
-             chars.ravel()]
+             chars.ravel(), ln]
     return np.ascontiguousarray(np.concatenate(parts), dtype=np.float64)
 
 
@@ -284,20 +311,59 @@ def range_rows(xp, prm, off_a, M, zh, hv):  # pragma: no cover - jit
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _h(xs, prm, off_a, M, kin, roff, zout):  # pragma: no cover - jit
+def offset_rows(mode, xs, M, prm, off_ln, zh, hv, hb, oc):  # pragma: no cover - jit
+    """The offset states of the range tracker (``mode``, :data:`OFF_NONE` ..) applied to the
+    ``M`` ranges ``zh`` and their position Jacobian rows ``hv (M, 2)`` at the state ``xs``
+    (``Tracker._predict`` / ``_jacobian``): the offset's column of each row in ``oc[i]``
+    (-1: none) with its entry ``hb[i]``.  Common offset: ``zh_i + b``, entry 1; links'
+    offsets ``zh_i + b_i``, entry 1; scaled: ``zh_i f_i``, ``hv_i f_i``, entry ``-zh_i f_i
+    ln10 / (10 n_i)`` with ``f_i = 10^(-b_i / (10 n_i))``."""
+    n = xs.shape[0]
+    nm = n - M
+    for i in range(M):
+        if mode == OFF_COMMON:
+            zh[i] += xs[n - 1]
+            hb[i] = 1.0
+            oc[i] = n - 1
+        elif mode == OFF_LINKS:
+            zh[i] += xs[nm + i]
+            hb[i] = 1.0
+            oc[i] = nm + i
+        elif mode == OFF_LINKS_SCALED:
+            ni = prm[off_ln + i]
+            f = 10.0 ** (-xs[nm + i] / (10.0 * ni))
+            zh[i] *= f
+            hv[i, 0] *= f
+            hv[i, 1] *= f
+            hb[i] = -zh[i] * (_LN10 / 10.0) / ni
+            oc[i] = nm + i
+        else:
+            hb[i] = 0.0
+            oc[i] = -1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _h(xs, prm, off_a, M, kin, mode, off_ln, zout):  # pragma: no cover - jit
     """``h(x)`` of the fusion model (``FusionMeasurement.predict``) into ``zout (m,)``;
-    without the speed and course when ``kin`` is False; with ``roff`` the state's last
-    component is added to every range (``Tracker._predict``)."""
+    without the speed and course when ``kin`` is False; with the offset states of
+    ``mode`` (:func:`offset_rows`) on the ranges (``Tracker._predict``)."""
     if M == 0:
         zout[0] = xs[0]
         zout[1] = xs[1]
     else:
-        b = xs[xs.shape[0] - 1] if roff else 0.0
+        n = xs.shape[0]
+        nm = n - M
         for i in range(M):
             dx = xs[0] - prm[off_a + 3 * i]
             dy = xs[1] - prm[off_a + 3 * i + 1]
             r = math.sqrt((dx * dx + dy * dy) + prm[off_a + 3 * i + 2])
-            zout[i] = r + b if roff else r
+            if mode == OFF_COMMON:
+                r = r + xs[n - 1]
+            elif mode == OFF_LINKS:
+                r = r + xs[nm + i]
+            elif mode == OFF_LINKS_SCALED:
+                r = r * 10.0 ** (-xs[nm + i] / (10.0 * prm[off_ln + i]))
+            zout[i] = r
     if kin:
         nr = 2 if M == 0 else M
         zout[nr] = math.hypot(xs[2], xs[3])
@@ -316,8 +382,7 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
         return BAD_SHAPE
     M = int(prm[_NANCH])
     kin = prm[_KIN] != 0.0  # speed and course rows (else ranges only)
-    roff = prm[_ROFF] != 0.0  # range offset: last state, dr_i/db = 1 (ranges only)
-    nl = n - 1  # its index
+    omode = int(prm[_ROFF])  # offset states of the range tracker (ranges only)
     npow = int(prm[_NPOW])
     kind = int(prm[_KIND])
     wcode = int(prm[_WCODE])
@@ -349,6 +414,7 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
     scale = prm[_SCALE]
     wp0, wp1, wp2 = prm[_WPRM], prm[_WPRM + 1], prm[_WPRM + 2]
     off_chi, off_F, off_a, off_s = offsets(prm, n, m)
+    off_ln = off_s + len(STATUSES) * STATUS_CHARS  # offset states' path-loss exponents
     ns = 2 * n + 1
     ci = m - 1 if kin else -1  # course (-1: none)
     si = m - 2 if kin else -1  # speed
@@ -379,6 +445,8 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
     zs = np.empty((ns, m))
     dz = np.empty((ns, m))
     hv = np.empty((m, 2))  # EKF: the two non-zero entries of each row of H
+    hb = np.zeros(m)  # and the offset state's (offset_rows), in column oc
+    oc = np.full(m, -1, np.int64)
     zh = np.empty(m)
     y = np.empty(m)
     xp = np.empty(n)
@@ -408,9 +476,7 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
                 hv[0, 0], hv[0, 1], hv[1, 0], hv[1, 1] = 1.0, 0.0, 0.0, 1.0
             else:
                 range_rows(xp, prm, off_a, M, zh, hv)
-                if roff:
-                    for i in range(M):
-                        zh[i] += xp[nl]
+                offset_rows(omode, xp, M, prm, off_ln, zh, hv, hb, oc)
             if kin:
                 vv = vx * vx + vy * vy
                 zh[si] = math.sqrt(vv)  # hypot(vx, vy) to rounding
@@ -419,19 +485,21 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
                 v = math.sqrt(v2)
                 hv[si, 0], hv[si, 1] = vx / v, vy / v
                 hv[ci, 0], hv[ci, 1] = vy / v2, -vx / v2
-            # H has two non-zero columns per row: 0, 1 (position rows) or 2, 3; with the
-            # range offset a position row has a third, its last column (entry 1)
+            # H has two non-zero columns per row: 0, 1 (position rows) or 2, 3; with an
+            # offset state a range row has a third, column oc[i] (entry hb[i])
             for i in range(m):  # Pxz = P H^T
                 b = 0 if i < nr else 2
+                oci = oc[i] if i < nr else -1
                 for j in range(n):
                     v = Pp[j, b] * hv[i, 0] + Pp[j, b + 1] * hv[i, 1]
-                    Pxz[j, i] = v + Pp[j, nl] if roff else v
+                    Pxz[j, i] = v + Pp[j, oci] * hb[i] if oci >= 0 else v
             for i in range(m):  # S = H Pxz + R
                 b = 0 if i < nr else 2
+                oci = oc[i] if i < nr else -1
                 for j in range(m):
                     v = hv[i, 0] * Pxz[b, j] + hv[i, 1] * Pxz[b + 1, j]
-                    if roff:
-                        v += Pxz[nl, j]
+                    if oci >= 0:
+                        v += hb[i] * Pxz[oci, j]
                     S[i, j] = v + R[rk, i, j]
         else:
             # sigma points of the prediction (seed 001 eq. (20)): chol((n + lambda) P)
@@ -445,7 +513,7 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
                     sig[1 + c, j] = xp[j] + lv
                     sig[1 + n + c, j] = xp[j] - lv
             for p in range(ns):
-                _h(sig[p], prm, off_a, M, kin, roff, zs[p])
+                _h(sig[p], prm, off_a, M, kin, omode, off_ln, zs[p])
             # weighted means (eq. (22)); circular for the course
             for j in range(m):
                 s = wm0 * zs[0, j]
@@ -570,11 +638,12 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
                 b = 0 if l < nr else 2
                 h0 = hv[l, 0]
                 h1 = hv[l, 1]
+                oci = oc[l] if l < nr else -1
                 for j in range(n):
                     T[j, b] += Gt[l, j] * h0
                     T[j, b + 1] += Gt[l, j] * h1
-                    if roff:
-                        T[j, nl] += Gt[l, j]
+                    if oci >= 0:
+                        T[j, oci] += Gt[l, j] * hb[l]
             for i in range(n):
                 for j in range(n):
                     A[i, j] = (1.0 if i == j else 0.0) - T[i, j]
@@ -657,6 +726,11 @@ def fusion_step_6(x, P, dt, z, R, prm, fout):  # pragma: no cover - jit
 
 
 @njit(cache=True, nogil=True)
+def fusion_step_n(x, P, dt, z, R, prm, fout):  # pragma: no cover - jit
+    return _step(x.shape[1], 0, x, P, dt, z, R, prm, fout, 0, x.shape[0])
+
+
+@njit(cache=True, nogil=True)
 def fusion_step_5(x, P, dt, z, R, prm, fout):  # pragma: no cover - jit
     return _step(5, 0, x, P, dt, z, R, prm, fout, 0, x.shape[0])
 
@@ -707,6 +781,8 @@ fusion_step_4.__doc__ = _DOC.format(n=4, m="any")
 fusion_step_6.__doc__ = _DOC.format(n=6, m="any")
 fusion_step_5.__doc__ = _DOC.format(n="5 (CV and a range offset)", m="any (ranges)")
 fusion_step_7.__doc__ = _DOC.format(n="7 (CA and a range offset)", m="any (ranges)")
+fusion_step_n.__doc__ = _DOC.format(n="any, at run time (the links' offsets: 4 + M or 6 + M)",
+                                    m="any (ranges)")
 for _k, _s in ((fusion_step_4_4_mt, fusion_step_4_4), (fusion_step_4_mt, fusion_step_4),
                (fusion_step_6_mt, fusion_step_6)):
     _k.__doc__ = (_s.__doc__ or "") + (

@@ -336,8 +336,8 @@ class FusionFilter:
             self._fast["state"] = state
         return state
 
-    def compiled_params(self, meas: FusionMeasurement, kinematic: bool = True
-                        ) -> Array | None:
+    def compiled_params(self, meas: FusionMeasurement, kinematic: bool = True,
+                        offsets: int = 0, link_n: Array | None = None) -> Array | None:
         """Settings vector of the compiled kernel for ``meas``
         (:func:`robustloc.filters._compiled.pack_params`), or ``None`` when this filter
         and model run on the NumPy core (other engine, model or weight).
@@ -345,12 +345,20 @@ class FusionFilter:
         ``kinematic=False``: the ranges of ``meas`` only, without its speed and course
         components (``m = n_ranges``) -- for the range tracker's fused round
         (:mod:`robustloc.tracking._compiled`), which runs the kernel in its own loop.  Its
-        motion may then carry the tag's range offset: ``RandomWalkAugmented`` of a CV/CA
-        model with one extra state, added to every range (``Tracker(range_offset=True)``).
+        motion may then carry offset states, ``offsets``
+        (:data:`robustloc.filters._compiled.OFF_COMMON` ..): ``RandomWalkAugmented`` of a
+        CV/CA model with one extra state added to every range (``Tracker(range_offset=
+        True)``), or one per anchor (``Tracker(link_offsets=True)``; ``link_n``: the
+        path-loss exponents of RSSI turned into ranges, ``OFF_LINKS_SCALED``).
         """
+        from robustloc.filters import _compiled
+
         motion = self.motion
-        roff = (not kinematic and type(motion) is RandomWalkAugmented
-                and motion.extra == 1)
+        roff = offsets != _compiled.OFF_NONE
+        extra = 1 if offsets == _compiled.OFF_COMMON else meas.n_ranges
+        if roff and (kinematic or type(motion) is not RandomWalkAugmented
+                     or motion.extra != extra):
+            return None
         base = motion.base if roff else motion
         if (
             self.engine != "compiled"
@@ -363,15 +371,13 @@ class FusionFilter:
             or (roff and not base.q > 0)  # the offset's Q enters as a multiple of base.q
         ):
             return None
-        from robustloc.filters import _compiled
         from robustloc.robust._compiled import weight_spec
 
         spec = weight_spec(self.robust.weight)
         n, M = motion.n_states, meas.n_ranges
         m = meas.m if kinematic else M
         lam = self.points.lam(n)
-        kernel = _compiled.kernel_for(n, m)
-        if spec is None or kernel is None or (self.kind == "ukf" and not n + lam > 0):
+        if spec is None or (self.kind == "ukf" and not n + lam > 0):
             return None
         anchors = np.zeros((0, 2)) if M == 0 else np.asarray(meas.anchors, dtype=float)
         if anchors.shape != (M, 2):
@@ -382,15 +388,16 @@ class FusionFilter:
             chi[1:] = chi2_ppf(self.robust.gate_probability, np.arange(1, m + 1))
         C = _coefficients(base.order, base.dim)
         cF, cQ = C[0], C[2] if base.noise == "discrete" else C[3]
-        if roff:  # F = diag(F_base, 1), Q = diag(Q_base, q_extra dt): powers 0 and 1
+        if roff:  # F = diag(F_base, I), Q = diag(Q_base, q_extra dt I): powers 0 and 1
             nb = base.n_states
-            cF, cQ = (np.pad(c, ((0, 0), (0, 1), (0, 1))) for c in (cF, cQ))
-            cF[0, nb, nb] = 1.0
-            cQ[1, nb, nb] = motion.q_extra / base.q
+            cF, cQ = (np.pad(c, ((0, 0), (0, extra), (0, extra))) for c in (cF, cQ))
+            i = np.arange(nb, nb + extra)
+            cF[0, i, i] = 1.0
+            cQ[1, i, i] = motion.q_extra / base.q
         return _compiled.pack_params(
             _compiled.EKF if self.kind == "ekf" else _compiled.UKF, base.q,
             self.min_speed_mps, float(n + lam), wm, wc, spec[0], spec[1], chi,
-            cF, cQ, anchors, meas._dz2(), kinematic=kinematic, range_offset=roff,
+            cF, cQ, anchors, meas._dz2(), kinematic=kinematic, offsets=offsets, link_n=link_n,
         )
 
     @staticmethod

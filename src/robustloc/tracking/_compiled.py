@@ -54,15 +54,19 @@ from robustloc.filters._compiled import (
     _ROFF,
     BAD_SHAPE,
     DONE,
+    OFF_LINKS,
     ST_FAULT_EXCLUDED,
     ST_OK,
     ST_PREDICTED,
     STATUS_CHARS,
+    STATUSES,
     _cholesky,
     fusion_step_4,
     fusion_step_5,
     fusion_step_6,
     fusion_step_7,
+    fusion_step_n,
+    offset_rows,
     offsets,
     predict,
     range_rows,
@@ -113,24 +117,27 @@ def prediction_lost(v_pos, r_min, lost_pos_var):  # pragma: no cover - jit
 
 
 @njit(cache=True, nogil=True)
-def one_fault_explains(M, hv, Pp, rd, y, av, w2_crit, crit_less, S, L, Li, u,
-                       c, roff):  # pragma: no cover - jit
+def one_fault_explains(M, hv, hb, oc, Pp, rd, y, av, w2_crit, crit_less, S, L, Li, u,
+                       c):  # pragma: no cover - jit
     """Data snooping with one exclusion (seed 003; :func:`robustloc.tracking.tracker.
     one_fault_explains` is the NumPy reference): True when the largest w-test statistic
     ``w_i^2 = (S^-1 y)_i^2 / (S^-1)_ii`` of the available components exceeds ``w2_crit``
     and the global test of the others passes: ``y^T S^-1 y - w_i^2 <= crit_less`` (the
     innovation quadratic form without component ``i``).  ``S = H P- H^T + diag(rd)`` from
-    the position rows ``hv (M, 2)`` of the range Jacobian (with ``roff``, the state's last
-    column of ``H`` is 1: the range offset); ``S, L (M, M)``, ``Li, u, c (M,)`` are
-    scratch."""
-    nl = Pp.shape[0] - 1
+    the position rows ``hv (M, 2)`` of the range Jacobian and, where ``oc[i] >= 0``, the
+    entry ``hb[i]`` of an offset state in column ``oc[i]`` (the tag's range offset, or the
+    link's: :func:`robustloc.filters._compiled.offset_rows`); ``S, L (M, M)``, ``Li, u, c
+    (M,)`` are scratch."""
     for i in range(M):
+        ci = oc[i]
         for j in range(i + 1):
+            cj = oc[j]
             v = (hv[i, 0] * (Pp[0, 0] * hv[j, 0] + Pp[0, 1] * hv[j, 1])
                  + hv[i, 1] * (Pp[1, 0] * hv[j, 0] + Pp[1, 1] * hv[j, 1]))
-            if roff:  # + h_i,pos P_pos,b + P_b,pos h_j,pos + P_bb
-                v += ((hv[i, 0] * Pp[0, nl] + hv[i, 1] * Pp[1, nl])
-                      + (Pp[nl, 0] * hv[j, 0] + Pp[nl, 1] * hv[j, 1]) + Pp[nl, nl])
+            if ci >= 0 and cj >= 0:  # + h_i,pos P_pos,cj hb_j + hb_i P_ci,pos h_j,pos + ..
+                v += (((hv[i, 0] * Pp[0, cj] + hv[i, 1] * Pp[1, cj]) * hb[j]
+                       + (Pp[ci, 0] * hv[j, 0] + Pp[ci, 1] * hv[j, 1]) * hb[i])
+                      + hb[i] * hb[j] * Pp[ci, cj])
             if i == j:
                 v += rd[i]
             S[i, j] = v
@@ -201,8 +208,9 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
     lost_var = tset[_LOST_VAR]
     max_held = max(1, (M - 1) // 2)
     rssi = rssi_A.shape[0] > 0
-    roff = prm[_ROFF] != 0.0  # the tag's range offset: the last state, dr_i/db = 1
-    nl = n - 1
+    omode = int(prm[_ROFF])  # offset states (OFF_NONE ..): the tag's, or each link's
+    off_ln = off_s + len(STATUSES) * STATUS_CHARS  # their path-loss exponents (scaled)
+    nm = n - M if omode >= OFF_LINKS else n  # the kinematic states (+ common offset)
 
     # ---- round arrays: gathered states, the fusion kernel's inputs and output row
     xg = np.empty((K, n))
@@ -230,6 +238,8 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
     new_bias = np.empty((K, M))
     new_held = np.empty((K, M), np.bool_)
     held_now = np.empty((K, M), np.bool_)
+    hbv = np.zeros((K, M))  # offset states: each row's entry and column (offset_rows)
+    ocv = np.full((K, M), -1, np.int64)
     # scratch of one tag
     F = np.empty((n, n))
     Qm = np.empty((n, n))
@@ -237,6 +247,7 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
     T = np.empty((n, n))
     pw = np.empty(int(prm[_NPOW]))
     zh = np.empty(M)
+    dist = np.empty(M)
     hvk = np.empty((M, 2))
     alarm = np.empty(M, np.bool_)
     use = np.empty(M, np.bool_)
@@ -265,9 +276,10 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
         Pp = Pp_o[k]
         predict(n, F, Qm, xg[k], Pg[k], xp, Pp, Ps, T)
         range_rows(xp, prm, off_a, M, zh, hvk)  # zh: the distances d_i(x-)
-        if roff:  # the predicted ranges d_i(x-) + b
-            for i in range(M):
-                zh[i] += xp[nl]
+        for i in range(M):
+            dist[i] = zh[i]
+        # the predicted ranges with the offset states (d_i + b, d_i + b_i, d_i f_i)
+        offset_rows(omode, xp, M, prm, off_ln, zh, hvk, hbv[k], ocv[k])
         sc2 = scale2_s[s]
         n_alarm = 0
         n_held = 0
@@ -275,9 +287,11 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
             h0 = hvk[i, 0]
             h1 = hvk[i, 1]
             v = h0 * (Pp[0, 0] * h0 + Pp[0, 1] * h1) + h1 * (Pp[1, 0] * h0 + Pp[1, 1] * h1)
-            if roff:  # H_i = (h0, h1, 0.., 1): + 2 h_pos P_pos,b + P_bb
-                v += (h0 * Pp[0, nl] + h1 * Pp[1, nl]) + (Pp[nl, 0] * h0 + Pp[nl, 1] * h1) \
-                    + Pp[nl, nl]
+            oci = ocv[k, i]
+            if oci >= 0:  # H_i = (h0, h1, .., hb at oci): + 2 hb h_pos P_pos,oci + ..
+                hb = hbv[k, i]
+                v += ((h0 * Pp[0, oci] + h1 * Pp[1, oci]) * hb
+                      + (Pp[oci, 0] * h0 + Pp[oci, 1] * h1) * hb) + hb * hb * Pp[oci, oci]
             hph[k, i] = v
             hv[k, i, 0] = h0
             hv[k, i, 1] = h1
@@ -321,8 +335,11 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
             heard = math.isfinite(zi)
             if hd and heard:  # held: accumulate the new offset against the prediction
                 if rssi:  # in dB, through the path-loss model (LinkModel.rssi)
-                    lg = math.log10(max(zh[i], d_min))
-                    hs = hs + (zi - (rssi_A[i] - 10.0 * rssi_n[i] * lg))
+                    lg = math.log10(max(dist[i], d_min))
+                    dr = zi - (rssi_A[i] - 10.0 * rssi_n[i] * lg)
+                    if omode >= OFF_LINKS:  # (and the link's offset state, dB)
+                        dr = dr - xp[nm + i]
+                    hs = hs + dr
                 else:
                     hs = hs + (zi - zh[i])
                 hn += 1
@@ -351,7 +368,9 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
         return LOST
 
     # ---- robust predict + update: the fusion filter's compiled kernel (item 3)
-    if n == 4:
+    if omode >= OFF_LINKS:
+        rc = fusion_step_n(xg, Pg, dt_o, zf, R, prm, fout)
+    elif n == 4:
         rc = fusion_step_4(xg, Pg, dt_o, zf, R, prm, fout)
     elif n == 5:
         rc = fusion_step_5(xg, Pg, dt_o, zf, R, prm, fout)
@@ -391,16 +410,14 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
         if fail and ma >= 2:
             for i in range(M):
                 avk[i] = math.isfinite(zf[k, i])
-            if one_fault_explains(M, hv[k], Pp_o[k], rd[k], y[k], avk, w2c, gcrit[ma - 1],
-                                  Ssn, Lsn, Lisn, usn, csn, roff):
+            if one_fault_explains(M, hv[k], hbv[k], ocv[k], Pp_o[k], rd[k], y[k], avk, w2c,
+                                  gcrit[ma - 1], Ssn, Lsn, Lisn, usn, csn):
                 fail = False
         sus[k] = ma > 0 and (fail or 2 * nu <= ma)
         Pn00 = fout[o_P + k * nn]
         Pn01 = fout[o_P + k * nn + 1]
         Pn10 = fout[o_P + k * nn + n]
         Pn11 = fout[o_P + k * nn + n + 1]
-        Pnb0 = fout[o_P + k * nn + nl * n] if roff else 0.0  # P+ row of the offset
-        Pnb1 = fout[o_P + k * nn + nl * n + 1] if roff else 0.0
         sw = 0.0
         swe = 0.0
         slope = 0.0
@@ -414,9 +431,15 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
                 swe += wv * ((y[k, i] * y[k, i] - hph[k, i]) / r0[k, i])
                 # hpl slope: |G_pos,i| MDB_i, G_i = w_i P+ H_i^T / R_ii (seed 003 eq. (3))
                 wr = wv / rd[k, i]
-                # (with the range offset H_i has a third entry, 1: + P+_b,pos)
-                g0 = (hv[k, i, 0] * Pn00 + hv[k, i, 1] * Pn10 + Pnb0) * wr
-                g1 = (hv[k, i, 0] * Pn01 + hv[k, i, 1] * Pn11 + Pnb1) * wr
+                # (with an offset state H_i has a third entry: + hb_i P+_c,pos)
+                oci = ocv[k, i]
+                g0 = hv[k, i, 0] * Pn00 + hv[k, i, 1] * Pn10
+                g1 = hv[k, i, 0] * Pn01 + hv[k, i, 1] * Pn11
+                if oci >= 0:
+                    g0 += hbv[k, i] * fout[o_P + k * nn + oci * n]
+                    g1 += hbv[k, i] * fout[o_P + k * nn + oci * n + 1]
+                g0 *= wr
+                g1 *= wr
                 v = math.hypot(g0, g1) * (sl0 * math.sqrt(hph[k, i] + rd[k, i]))
                 if slope == slope and not v <= slope:  # max, NaN propagating (np.max)
                     slope = v
@@ -537,9 +560,25 @@ def track_round_7(sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, h
                   sus, dof, xp_o, Pp_o, dt_o, lost)
 
 
+
+@njit(cache=True, nogil=True)
+def track_round_n(sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
+                  scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
+                  out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
+                  sus, dof, xp_o, Pp_o, dt_o, lost):  # pragma: no cover - jit
+    return _round(x_s.shape[1], sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
+                  scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
+                  out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
+                  sus, dof, xp_o, Pp_o, dt_o, lost)
+
+
 track_round_4.__doc__ = _DOC.format(n=4, model="CV")
 track_round_6.__doc__ = _DOC.format(n=6, model="CA")
 track_round_5.__doc__ = _DOC.format(n=5, model="CV and the tag's range offset")
 track_round_7.__doc__ = _DOC.format(n=7, model="CA and the tag's range offset")
-#: Kernels by state size (5 and 7: with the range offset, ``Tracker(range_offset=True)``).
+track_round_n.__doc__ = _DOC.format(
+    n="4 + M or 6 + M, at run time", model="CV or CA and the links' offsets")
+#: Kernels by state size (5 and 7: with the range offset, ``Tracker(range_offset=True)``);
+#: with the links' offsets (``Tracker(link_offsets=True)``, any state size):
+#: :func:`track_round_n`.
 ROUNDS = {4: track_round_4, 6: track_round_6, 5: track_round_5, 7: track_round_7}

@@ -117,12 +117,13 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
    -> 0.61 m; uwb-labyrinth 0.215 -> 0.172 m (after ``calibrate --self`` 0.139 -> 0.148
    m: the calibration had removed the offsets).  Where there are no offsets to find it
    costs accuracy: the simulated wifi-room walk (4 access points, an exact path-loss
-   model) 0.93x -> 1.25x the snapshot fixes' RMS.  An option, not the default; it runs
-   on the NumPy engine (``4 + M`` states).
+   model) 0.93x -> 1.25x the snapshot fixes' RMS.  An option, not the default (``4 +
+   M`` states cost time: ``benchmarks/bench_track.py``, 8 anchors, EKF 38 k tag-epochs per
+   second compiled, 24 k on NumPy, against 144 k without them).
 
 Engines: ``compiled`` (default) runs the whole round of the ``cv``/``ca`` models in the
-range domain (ranges, or RSSI converted to ranges), with or without the range offset
-(item 10), in one fused numba kernel (:mod:`robustloc.tracking._compiled`: items 2-8 in a
+range domain (ranges, or RSSI converted to ranges), with or without the offset states
+(items 10 and 11), in one fused numba kernel (:mod:`robustloc.tracking._compiled`: items 2-8 in a
 loop over the tags, its update the fusion filter's compiled kernel on the ranges); only
 the robust snapshot fixes of suspicious epochs and the re-starts (items 5 and 9) stay in
 NumPy, for the tags that need them.
@@ -232,15 +233,13 @@ class TrackerSettings:
         anchor at a time: the starting fix needs three).
     range_offset : ranges only: estimate the tag's common range offset ``b`` (m, added to
         every range it measures: a UWB tag's uncalibrated antenna delay, a phone's WiFi
-        RTT offset) as one more state (item 10 of the module docstring).  Runs on the
-        NumPy engine.
+        RTT offset) as one more state (item 10 of the module docstring).
     range_offset_sd : a-priori standard deviation of that offset (m) at a tag's start.
     range_offset_q : its random-walk variance growth (m^2/s): 0 for a constant offset.
     link_offsets : estimate an offset of each link (anchor) of each tag as one more state
         per anchor (item 11 of the module docstring): metres added to its ranges, or dB
         added to its RSSI (what the anchors file's calibration misses where the tag is).
-        Not with ``range_offset`` (their mean is the common offset).  Runs on the NumPy
-        engine.
+        Not with ``range_offset`` (their mean is the common offset).
     link_offset_sd : a-priori standard deviation of each link's offset at a tag's start, in
         the measurement's unit (m or dB); None: 0.1 m for ranges, 1 dB for RSSI.
     link_offset_q : its random-walk variance growth (unit^2/s): 0 for constant offsets.
@@ -533,8 +532,8 @@ class Tracker:
         # per-epoch scale: a start fix must not depend on which epochs share its batch
         self._locator = Locator("huber", sigma=tuple(sigma), robust_scale="mad")
         self._kernel = None
-        if (s.engine == "compiled" and self._link.kind == "range" and s.model in ("cv", "ca")
-                and not s.link_offsets):
+        if s.engine == "compiled" and self._link.kind == "range" and s.model in ("cv", "ca"):
+            from robustloc.filters import _compiled as fc
             from robustloc.fusion.pipeline import FusionFilter, FusionMeasurement
             from robustloc.tracking import _compiled
 
@@ -542,10 +541,16 @@ class Tracker:
             # ranges only, no speed and course): settings for the fused round
             fusion = FusionFilter(kind=s.filter, motion=self._motion, robust=self._robust,
                                   max_rejected=0, engine="compiled")
+            offsets = (fc.OFF_COMMON if s.range_offset else
+                       (fc.OFF_LINKS_SCALED if self._scaled_links() else fc.OFF_LINKS)
+                       if s.link_offsets else fc.OFF_NONE)
             prm = fusion.compiled_params(FusionMeasurement(self.n, xy, np.sqrt(dz2)),
-                                         kinematic=False)
+                                         kinematic=False, offsets=offsets,
+                                         link_n=self._link.n if offsets == fc.OFF_LINKS_SCALED
+                                         else None)
             if prm is not None:
-                self._kernel = _compiled.ROUNDS[self.n]
+                self._kernel = (_compiled.track_round_n if s.link_offsets
+                                else _compiled.ROUNDS[self.n])
                 self._prm = prm
                 self._tset = _compiled.pack_settings(
                     s.cusum_k, math.inf if s.cusum_h is None else s.cusum_h,
@@ -919,8 +924,8 @@ class Tracker:
         if rc != 0:
             return None
         out.status[idx] = _CODE_STATUS[code]
-        if self.settings.range_offset:  # the snapshot fixes of checks and re-starts
-            z = z - self._offset(sl)
+        if self.n > self.n_motion:  # the snapshot fixes of checks and re-starts: the
+            z = z - self._offset(sl)  # offsets removed
         self._finish(idx, sl, t, z, out, moved, sus, dof, xp, Pp, dt)
         return lost
 
