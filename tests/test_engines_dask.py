@@ -14,7 +14,6 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 import pytest
 
@@ -747,15 +746,11 @@ def test_track_offsets_dask_gives_each_tags_offsets(scheduler, tmp_path, capsys,
     the single process's, and the tag groups' final offsets (disjoint tags) merge into one
     ``range_offset_m`` / ``link_offset_m`` in the summary, the metadata and the text, as
     the single process gives them."""
-    from test_track_offset import _labyrinth_like
+    from test_track_offset import _labyrinth_like, write_long
 
     a, ep = _labyrinth_like()
     a.to_csv(tmp_path / "a.csv", index=False)
-    ids = list(ep.anchor_ids)
-    long = pd.DataFrame({"time": np.repeat(ep.time, len(ids)),
-                         "tag": np.repeat(ep.tag, len(ids)),
-                         "anchor": np.tile(ids, ep.n_epochs), "range": ep.values.ravel()})
-    long.to_csv(tmp_path / "m.csv", index=False)
+    write_long(ep, tmp_path / "m.csv")
     opts = ["--anchors", str(tmp_path / "a.csv"), "--sigma", "0.1", option]
     assert main(["track", str(tmp_path / "m.csv"), *opts, "-o", str(tmp_path / "ref.parquet"),
                  "--json"]) == 0

@@ -13,7 +13,13 @@ import numpy as np
 import pandas as pd
 import pytest
 from scipy.stats import chi2
-from test_track_offset import _concat, _cv_truth, _ring
+from test_track_offset import (
+    _concat,
+    _cv_truth,
+    _ring,
+    assert_chunks_and_saved_state_give_the_rows,
+    write_long,
+)
 
 from robustloc.io.tables import Epochs
 from robustloc.tracking import Tracker
@@ -187,20 +193,9 @@ def test_link_offsets_run_compiled_step_in_chunks_and_survive_a_saved_state():
         assert (whole[c] == ref[c]).all(), c
     for c in ("x", "y", "vx", "vy", "var_x", "var_y", "cov_xy", "hpl", "nis", "noise_scale"):
         np.testing.assert_allclose(whole[c], ref[c], rtol=1e-9, atol=1e-9, err_msg=c)
-    parts = [trk.step(Epochs(ep.time[i:i + 7], ep.tag[i:i + 7], ep.values[i:i + 7],
-                             ep.anchor_ids, ep.value, ep.line[i:i + 7]))
-             for i in range(0, ep.n_epochs, 7)]
+    trk.step(ep)
     assert trk._kernel is not None and trk.n == 8
-    pd.testing.assert_frame_equal(whole, pd.concat(parts, ignore_index=True))
-    h = ep.n_epochs // 2
-    t1 = Tracker(a, sigma=SIGMA_M, link_offsets=True)
-    first = t1.step(Epochs(ep.time[:h], ep.tag[:h], ep.values[:h], ep.anchor_ids, ep.value,
-                           ep.line[:h]))
-    t2 = Tracker(a, sigma=SIGMA_M, link_offsets=True)
-    t2.load_state_dict(json.loads(json.dumps(t1.state_dict())))
-    second = t2.step(Epochs(ep.time[h:], ep.tag[h:], ep.values[h:], ep.anchor_ids, ep.value,
-                            ep.line[h:]))
-    pd.testing.assert_frame_equal(whole, pd.concat([first, second], ignore_index=True))
+    assert_chunks_and_saved_state_give_the_rows(a, ep, whole, sigma=SIGMA_M, link_offsets=True)
 
 
 def test_a_restart_keeps_the_links_offsets():
@@ -241,11 +236,8 @@ def test_command_link_offsets_summary_and_refusal(tmp_path):
     b = np.array([[0.2, -0.1, 0.05, 0.0], [0.0, 0.1, -0.2, 0.15]])
     ep = _concat(_link_ranges(a, truth, b, seed=8))
     a.to_csv(tmp_path / "a.csv", index=False)
+    write_long(ep, tmp_path / "m.csv")
     ids = list(ep.anchor_ids)
-    long = pd.DataFrame({"time": np.repeat(ep.time, len(ids)),
-                         "tag": np.repeat(ep.tag, len(ids)),
-                         "anchor": np.tile(ids, ep.n_epochs), "range": ep.values.ravel()})
-    long.to_csv(tmp_path / "m.csv", index=False)
     base = ["track", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),
             "-o", str(tmp_path / "o.csv"), "--sigma", "0.1", "--link-offsets"]
     r = _cli(*base, "--json")

@@ -66,6 +66,34 @@ def _concat(blocks: list[Epochs]) -> Epochs:
                   np.concatenate([b.line for b in blocks]))
 
 
+def _cut(ep: Epochs, s: slice) -> Epochs:
+    return Epochs(ep.time[s], ep.tag[s], ep.values[s], ep.anchor_ids, ep.value, ep.line[s])
+
+
+def assert_chunks_and_saved_state_give_the_rows(a: pd.DataFrame, ep: Epochs, whole: pd.DataFrame,
+                                                **kw) -> None:
+    """``Tracker(a, **kw)`` stepped 7 epochs at a time, and through a saved state (JSON)
+    half-way, gives ``whole`` (the rows of one step over ``ep``)."""
+    trk = Tracker(a, **kw)
+    parts = [trk.step(_cut(ep, slice(i, i + 7))) for i in range(0, ep.n_epochs, 7)]
+    pd.testing.assert_frame_equal(whole, pd.concat(parts, ignore_index=True))
+    h = ep.n_epochs // 2
+    t1 = Tracker(a, **kw)
+    first = t1.step(_cut(ep, slice(0, h)))
+    t2 = Tracker(a, **kw)
+    t2.load_state_dict(json.loads(json.dumps(t1.state_dict())))
+    second = t2.step(_cut(ep, slice(h, None)))
+    pd.testing.assert_frame_equal(whole, pd.concat([first, second], ignore_index=True))
+
+
+def write_long(ep: Epochs, path) -> None:
+    """``ep`` (ranges) as a measurements file: one row per epoch and anchor."""
+    ids = list(ep.anchor_ids)
+    pd.DataFrame({"time": np.repeat(ep.time, len(ids)), "tag": np.repeat(ep.tag, len(ids)),
+                  "anchor": np.tile(ids, ep.n_epochs),
+                  "range": ep.values.ravel()}).to_csv(path, index=False)
+
+
 def test_random_walk_augmented_model_is_block_diagonal():
     for base in (ConstantVelocity(q=0.7), ConstantAcceleration(q=0.3)):
         m = RandomWalkAugmented(base, q_extra=0.02)
@@ -172,21 +200,7 @@ def test_offset_runs_on_the_compiled_kernel_as_on_numpy(filt, model):
 def test_offset_steps_in_any_chunks():
     a, ep = _labyrinth_like()
     whole = Tracker(a, sigma=SIGMA_M, range_offset=True).step(ep)
-    trk = Tracker(a, sigma=SIGMA_M, range_offset=True)
-    parts = [trk.step(Epochs(ep.time[i:i + 7], ep.tag[i:i + 7], ep.values[i:i + 7],
-                             ep.anchor_ids, ep.value, ep.line[i:i + 7]))
-             for i in range(0, ep.n_epochs, 7)]
-    pd.testing.assert_frame_equal(whole, pd.concat(parts, ignore_index=True))
-    # and through a saved state
-    h = ep.n_epochs // 2
-    t1 = Tracker(a, sigma=SIGMA_M, range_offset=True)
-    first = t1.step(Epochs(ep.time[:h], ep.tag[:h], ep.values[:h], ep.anchor_ids, ep.value,
-                           ep.line[:h]))
-    t2 = Tracker(a, sigma=SIGMA_M, range_offset=True)
-    t2.load_state_dict(json.loads(json.dumps(t1.state_dict())))
-    second = t2.step(Epochs(ep.time[h:], ep.tag[h:], ep.values[h:], ep.anchor_ids, ep.value,
-                            ep.line[h:]))
-    pd.testing.assert_frame_equal(whole, pd.concat([first, second], ignore_index=True))
+    assert_chunks_and_saved_state_give_the_rows(a, ep, whole, sigma=SIGMA_M, range_offset=True)
     assert whole["var_range_offset"].iloc[-1] < 0.5**2  # the prior's variance shrank
 
 
@@ -215,11 +229,8 @@ def _cli(*args: str) -> subprocess.CompletedProcess:
 def test_command_range_offset_columns_smoothing_and_refusal(tmp_path):
     a, ep = _labyrinth_like()
     a.to_csv(tmp_path / "a.csv", index=False)
-    ids = list(ep.anchor_ids)
-    long = pd.DataFrame({"time": np.repeat(ep.time, len(ids)),
-                         "tag": np.repeat(ep.tag, len(ids)),
-                         "anchor": np.tile(ids, ep.n_epochs), "range": ep.values.ravel()})
-    long.to_csv(tmp_path / "m.csv", index=False)
+    write_long(ep, tmp_path / "m.csv")
+    long = pd.read_csv(tmp_path / "m.csv")
     got = {}
     for extra in ([], ["--smooth"]):
         r = _cli("track", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),

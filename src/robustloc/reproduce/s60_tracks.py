@@ -321,15 +321,23 @@ def _offsets_plot(ctx: Context, sec: Section, ids: list[str], truth_db: np.ndarr
     ax.set_ylabel("offset (dB)")
     ax.set_title(f"ble-tetam receivers' RSSI offsets (correlation {corr:.2f})", fontsize=9)
     ax.legend(fontsize=7)
+    _save_figure(ctx, sec, fig, "s60_ble_link_offsets.png",
+                 "ble-tetam: each receiver's RSSI offset against the survey's calibration, "
+                 "from the truth and as `track --link-offsets` estimates it without truth "
+                 f"(correlation {corr:.2f}; the tracker's common level is weakly observable: "
+                 "a common dB offset scales every range alike)")
+
+
+def _save_figure(ctx: Context, sec: Section, fig: Any, name: str, caption: str) -> None:
+    """``fig`` laid out, saved as ``name`` in the report folder, closed, and cited."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
-    png = ctx.out_dir / "s60_ble_link_offsets.png"
+    png = ctx.out_dir / name
     png.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(png, dpi=100)
     plt.close(fig)
-    sec.figure("ble-tetam: each receiver's RSSI offset against the survey's calibration, "
-               "from the truth and as `track --link-offsets` estimates it without truth "
-               f"(correlation {corr:.2f}; the tracker's common level is weakly observable: a "
-               "common dB offset scales every range alike)", png.name)
+    sec.figure(caption, png.name)
 
 
 def _default_locate(log: pd.DataFrame, anchors: pd.DataFrame, z_tag: float) -> pd.DataFrame:
@@ -553,13 +561,8 @@ def _plot(ctx: Context, sec: Section, plots: list) -> None:
         ax.legend(fontsize=6)
     for ax in axes.ravel()[n:]:
         ax.axis("off")
-    fig.tight_layout()
-    png = ctx.out_dir / "s60_tracks.png"
-    png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(png, dpi=100)
-    plt.close(fig)
-    sec.figure("Tracks against truth: snapshot fixes, the tracker and its RTS smoothing",
-               png.name)
+    _save_figure(ctx, sec, fig, "s60_tracks.png",
+                 "Tracks against truth: snapshot fixes, the tracker and its RTS smoothing")
 
 
 def _verdict(value: float, limit: float) -> str:

@@ -1,11 +1,12 @@
 """Compiled (numba) round of the range tracker: every step of :mod:`robustloc.tracking.tracker`
 for ``K`` tags in one call.
 
-One call of :func:`track_round_4` (CV) or :func:`track_round_6` (CA) -- :func:`track_round_5`
-and :func:`track_round_7` with the tag's range offset ``b`` as the last state (ranges
-``d_i + b``, ``Tracker(range_offset=True)``) -- advances ``K`` tags by one epoch each,
-doing in a loop over tags what ``Tracker._filter_numpy`` does with batched NumPy for the
-range model (items 2-8 and 10 of the tracker's docstring, same order, same formulas):
+One call of :func:`track_round_4` (CV) or :func:`track_round_6` (CA) -- :func:`track_round_n`
+with offset states: the tag's range offset ``b`` as the last state (ranges ``d_i + b``,
+``Tracker(range_offset=True)``), or each link's (``Tracker(link_offsets=True)``) --
+advances ``K`` tags by one epoch each, doing in a loop over tags what
+``Tracker._filter_numpy`` does with batched NumPy for the range model (items 2-8, 10 and 11
+of the tracker's docstring, same order, same formulas):
 
 1. prediction ``x- = F x``, ``P- = F P F^T + Q`` and the ranges ``h(x-)`` with their
    Jacobian rows (the fusion kernel's helpers :func:`robustloc.filters._compiled.predict`,
@@ -537,28 +538,6 @@ def track_round_6(sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, h
 
 
 
-@njit(cache=True, nogil=True)
-def track_round_5(sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
-                  scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
-                  out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
-                  sus, dof, xp_o, Pp_o, dt_o, lost):  # pragma: no cover - jit
-    return _round(5, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
-                  scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
-                  out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
-                  sus, dof, xp_o, Pp_o, dt_o, lost)
-
-
-
-@njit(cache=True, nogil=True)
-def track_round_7(sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
-                  scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
-                  out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
-                  sus, dof, xp_o, Pp_o, dt_o, lost):  # pragma: no cover - jit
-    return _round(7, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
-                  scale2_s, obs, r0, rssi_A, rssi_n, d_min, prm, tset, gcrit, idx, out_x,
-                  out_var, out_cxy, out_nu, out_nis, out_exc, out_hpl, out_scale, code, moved,
-                  sus, dof, xp_o, Pp_o, dt_o, lost)
-
 
 
 @njit(cache=True, nogil=True)
@@ -574,11 +553,10 @@ def track_round_n(sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, h
 
 track_round_4.__doc__ = _DOC.format(n=4, model="CV")
 track_round_6.__doc__ = _DOC.format(n=6, model="CA")
-track_round_5.__doc__ = _DOC.format(n=5, model="CV and the tag's range offset")
-track_round_7.__doc__ = _DOC.format(n=7, model="CA and the tag's range offset")
 track_round_n.__doc__ = _DOC.format(
-    n="4 + M or 6 + M, at run time", model="CV or CA and the links' offsets")
-#: Kernels by state size (5 and 7: with the range offset, ``Tracker(range_offset=True)``);
-#: with the links' offsets (``Tracker(link_offsets=True)``, any state size):
-#: :func:`track_round_n`.
-ROUNDS = {4: track_round_4, 6: track_round_6, 5: track_round_5, 7: track_round_7}
+    n="any, at run time", model="with offset states: the tag's range offset (5 or 7), or "
+    "the links' offsets (4 + M or 6 + M)")
+#: Kernels by state size; with offset states (``Tracker(range_offset=True)``,
+#: ``Tracker(link_offsets=True)``): :func:`track_round_n` (its fusion update is unrolled
+#: for the common offset's sizes 5 and 7).
+ROUNDS = {4: track_round_4, 6: track_round_6}

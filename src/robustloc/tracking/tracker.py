@@ -549,7 +549,7 @@ class Tracker:
                                          link_n=self._link.n if offsets == fc.OFF_LINKS_SCALED
                                          else None)
             if prm is not None:
-                self._kernel = (_compiled.track_round_n if s.link_offsets
+                self._kernel = (_compiled.track_round_n if offsets != fc.OFF_NONE
                                 else _compiled.ROUNDS[self.n])
                 self._prm = prm
                 self._tset = _compiled.pack_settings(
