@@ -474,13 +474,16 @@ def test_round_the_kernel_cannot_do_falls_back_to_numpy():
 
 
 @settings(max_examples=40, deadline=None)
-@given(seed=hst.integers(0, 2**31 - 1), M=hst.integers(2, 9), roff=hst.booleans())
-def test_one_fault_explains_is_the_global_test_after_one_exclusion(seed, M, roff):
+@given(seed=hst.integers(0, 2**31 - 1), M=hst.integers(2, 9),
+       offsets=hst.sampled_from(["", "common", "links"]))
+def test_one_fault_explains_is_the_global_test_after_one_exclusion(seed, M, offsets):
     """Data snooping with one exclusion, checked by brute force: ``y^T S^-1 y - w_i^2``
     equals the quadratic form of the innovations with component ``i`` deleted (the Schur
     complement), and the compiled kernel decides as the NumPy reference.  Decisions within
-    rounding (1e-9 relative) of a critical value are not compared.  ``roff``: a fifth
-    state, the range offset (a last column of ones in ``H``)."""
+    rounding (1e-9 relative) of a critical value are not compared.  ``offsets``: a fifth
+    state, the range offset (a last column of ones in ``H``), or one state per link (row
+    ``i`` has the entry ``hb_i``, any sign, in column ``4 + i``: the links' offsets of RSSI
+    turned into ranges)."""
     from scipy.stats import chi2
 
     from robustloc.tracking import _compiled
@@ -488,12 +491,17 @@ def test_one_fault_explains_is_the_global_test_after_one_exclusion(seed, M, roff
 
     rng = np.random.default_rng(seed)
     K = 30
-    n = 5 if roff else 4
+    n = {"": 4, "common": 5, "links": 4 + M}[offsets]
     H = np.zeros((K, M, n))
     ang = rng.uniform(0, 2 * np.pi, (K, M))
     H[:, :, 0], H[:, :, 1] = np.cos(ang), np.sin(ang)
-    if roff:
+    hb, oc = np.zeros((K, M)), np.full(M, -1, dtype=np.int64)  # the kernel's offset entries
+    if offsets == "common":
+        hb[:], oc[:] = 1.0, 4
         H[:, :, 4] = 1.0
+    elif offsets == "links":
+        hb, oc = rng.uniform(-1.5, 0.5, (K, M)), 4 + np.arange(M)
+        H[:, np.arange(M), oc] = hb
     B = rng.normal(0, 1, (K, n, n))
     Pp = B @ np.swapaxes(B, 1, 2) * rng.uniform(1e-3, 1.0, (K, 1, 1)) + 1e-6 * np.eye(n)
     Rd = rng.uniform(0.005, 0.5, (K, M))
@@ -531,11 +539,9 @@ def test_one_fault_explains_is_the_global_test_after_one_exclusion(seed, M, roff
         # the compiled kernel (position rows of H, as the tracker's round)
         Ssn, Lsn = np.empty((M, M)), np.empty((M, M))
         scratch = [np.empty(M) for _ in range(3)]
-        hb = np.ones(M) if roff else np.zeros(M)  # the offset's column of H (common: 4)
-        oc = np.full(M, 4 if roff else -1, dtype=np.int64)
         comp = _compiled.one_fault_explains(
-            M, np.ascontiguousarray(H[k, :, :2]), hb, oc, Pp[k], Rd[k], y[k], avail[k], w2c,
-            crit[k], Ssn, Lsn, *scratch)
+            M, np.ascontiguousarray(H[k, :, :2]), hb[k], oc, Pp[k], Rd[k], y[k], avail[k],
+            w2c, crit[k], Ssn, Lsn, *scratch)
         if not margin[k]:
             assert comp == want, k
     assert got.any() and not got.all()  # both outcomes are exercised
