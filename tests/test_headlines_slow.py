@@ -140,3 +140,9 @@ def test_readme_real_data_table(report: Path) -> None:
     check_all(report)
     html = (report / "report.html").read_text()
     assert "Table 1" in html and "gnss_errors_pl.png" in html
+    # every figure the report shows was written (the Stanford diagrams of s05 among them)
+    import re
+
+    shown = set(re.findall(r'src="([^"]+\.png)"', html))
+    assert "s05_stanford.png" in shown
+    assert all((report / name).is_file() for name in shown), sorted(shown)

@@ -30,8 +30,13 @@ Aggregates: tag "all" pools every epoch, tag "mean" averages the per-tag statist
 paper's Table 1 average rows); column `aggregate` is true on them (and the report shows
 them as [all] and [mean] when a real tag bears one of those names).
 
+`--plot FILE.png` draws the figure a person would rather look at: the error CDF of each
+method and, when the positions carry `hpl`, each method's Stanford diagram (error against
+hpl, log-log; fixes below the diagonal are misleading, counted as n_misleading counts them).
+
   robustloc evaluate positions.csv --truth truth.csv
-  robustloc evaluate positions.csv --truth truth.csv --json -o errors.csv"""
+  robustloc evaluate positions.csv --truth truth.csv --json -o errors.csv
+  robustloc evaluate positions.csv --truth truth.csv --plot evaluation.png"""
 
 _SHOW = ("tag", "method", "n", "n_missing", "n_failed", "max", "min", "mean", "rms", "sigma1",
          "median", "p95", "misleading_pct", "hpl_over_error", "mean_impr_pct", "rms_impr_pct")
@@ -52,8 +57,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--baseline", default="ls",
                    help="method improvements refer to (default ls, when the file has it; "
                         "another must be one of the file's methods)")
+    p.add_argument("--plot", type=_figure_path, metavar="FILE",
+                   help="draw the error CDF per method and each method's Stanford diagram "
+                        "(error against hpl) into FILE (.png, .svg or .pdf; --engine "
+                        "local)")
     add_engine_arguments(p, what="the positions dataset",
                          output="the one statistics table of -o, as without it")
+
+
+def _figure_path(text: str) -> str:
+    """``--plot``'s file name: a figure format matplotlib writes (checked before any work)."""
+    from robustloc.eval.plots import FORMATS
+
+    if text.rsplit(".", 1)[-1].lower() not in FORMATS:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: the figure's name must end in {', '.join('.' + f for f in FORMATS)}")
+    return text
 
 
 def run(args: argparse.Namespace) -> int:
@@ -64,6 +83,12 @@ def run(args: argparse.Namespace) -> int:
     from robustloc.io.atomic import check_not_input, writes_to_stdout
 
     check_not_input(args.out, [args.positions, args.truth])
+    check_not_input(args.plot, [args.positions, args.truth])
+    if args.plot and args.engine == "dask":
+        from robustloc.errors import InputError
+
+        raise InputError("--plot draws from the whole table in memory: use it with "
+                         "--engine local (the default)")
     if args.engine == "dask":
         from robustloc.engines.dask import evaluate_dataset
         table = evaluate_dataset(args)
@@ -78,6 +103,11 @@ def run(args: argparse.Namespace) -> int:
         truth = read_truth(args.truth)
         table = error_table(pos, truth, time_tolerance_s=args.time_tolerance,
                             baseline=args.baseline)
+        if args.plot:
+            from robustloc.eval.metrics import epoch_errors
+            from robustloc.eval.plots import evaluation_figure
+
+            evaluation_figure(epoch_errors(pos, truth, args.time_tolerance), args.plot)
     if args.out:
         write_table(_integral_counts(table), args.out)
     # the report never goes into a data stream: stderr when the table goes to stdout
@@ -122,6 +152,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"note: {n_unmatched} position rows had no truth and were not scored", file=dest)
     if args.out:
         print(f"written: {args.out}", file=dest)
+    if args.plot:
+        print(f"figure: {args.plot}", file=dest)
     return 0
 
 

@@ -1,0 +1,222 @@
+"""Figures of an evaluation: the error distribution and the Stanford diagram of each method.
+
+The **Stanford diagram** is the standard picture of a protection level's integrity (it
+was drawn first for WAAS at Stanford; RTCA DO-229 uses it to state the requirement): each
+usable fix is a point at (its horizontal error, its ``hpl``).  Points above the diagonal
+``hpl = error`` are bounded; points below it are *misleading* (the error exceeds the bound,
+the event the integrity risk limits).  How far above the diagonal the cloud sits says how
+useful the bound is (issue 10's target: the median ``hpl`` at most 12x the median error).
+The regions are counted as :func:`robustloc.eval.metrics.integrity_stats` counts them, so
+the figure and ``robustloc evaluate``'s ``n_misleading`` agree: a missing (NaN) bound is
+misleading, an infinite one ("unbounded": nothing confirms the fix) is bounded and drawn
+on the top edge.
+
+:func:`evaluation_figure` is ``robustloc evaluate --plot``; :func:`plot_stanford` draws one
+panel and also serves the report (section ``s05_out_of_box``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pandas as pd
+from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+
+#: At most this many methods get a Stanford panel (the CDF panel shows every method).
+MAX_METHODS = 6
+#: Formats :func:`evaluation_figure` writes, by the file's suffix.
+FORMATS = ("png", "svg", "pdf")
+
+
+@dataclass(frozen=True)
+class StanfordCounts:
+    """The regions of a Stanford diagram over ``n`` usable fixes (``hpl >= error``:
+    bounded, of which ``unbounded`` have an infinite bound; ``error > hpl`` or a missing
+    bound: ``misleading``)."""
+
+    n: int
+    bounded: int
+    unbounded: int
+    misleading: int
+
+    @property
+    def misleading_pct(self) -> float:
+        """Misleading share of the usable fixes, % (NaN without fixes)."""
+        return 100.0 * self.misleading / self.n if self.n else float("nan")
+
+
+def stanford_counts(error_m: NDArray[np.float64], hpl_m: NDArray[np.float64]) -> StanfordCounts:
+    """Count the regions of the Stanford diagram of fixes with horizontal errors
+    ``error_m`` and bounds ``hpl_m`` (same length; non-finite errors are left out).
+
+    >>> c = stanford_counts(np.array([1.0, 2.0, 3.0, 4.0]), np.array([5.0, 1.0, np.inf, np.nan]))
+    >>> (c.n, c.bounded, c.unbounded, c.misleading)
+    (4, 2, 1, 2)
+    """
+    e = np.asarray(error_m, dtype=float)
+    h = np.asarray(hpl_m, dtype=float)
+    if e.shape != h.shape:
+        raise ValueError(f"error and hpl differ in shape: {e.shape} and {h.shape}")
+    keep = np.isfinite(e)
+    e, h = e[keep], h[keep]
+    with np.errstate(invalid="ignore"):
+        ok = e <= h  # NaN bound: not ok (as integrity_stats)
+    return StanfordCounts(n=int(e.size), bounded=int(ok.sum()),
+                          unbounded=int(np.sum(ok & np.isinf(h))),
+                          misleading=int(e.size - ok.sum()))
+
+
+def plot_stanford(ax: Axes, error_m: NDArray[np.float64], hpl_m: NDArray[np.float64],
+                  title: str = "", bins: int = 60) -> StanfordCounts:
+    """Draw the Stanford diagram of ``error_m`` against ``hpl_m`` on ``ax`` and return its
+    counts (:func:`stanford_counts`).
+
+    Log-log axes spanning the data; a 2-D histogram with a logarithmic colour scale (many
+    fixes stay readable); the diagonal ``hpl = error``; misleading fixes (below it) in red
+    with their count; unbounded fixes (``hpl = inf``) as ticks on the top edge; fixes with
+    no bound (NaN) are counted as misleading and listed in the legend text.
+    """
+    from matplotlib.colors import LogNorm
+    from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
+
+    counts = stanford_counts(error_m, hpl_m)
+    e = np.asarray(error_m, dtype=float)
+    h = np.asarray(hpl_m, dtype=float)
+    fin = np.isfinite(e) & np.isfinite(h)
+    pos = fin & (e > 0) & (h > 0)
+    if pos.any():
+        lo = 10.0 ** np.floor(np.log10(min(e[pos].min(), h[pos].min())))
+        hi = 10.0 ** np.ceil(np.log10(max(e[pos].max(), h[pos].max())))
+    else:
+        lo, hi = 0.01, 100.0
+    hi = max(hi, lo * 100.0)
+    edges = np.geomspace(lo, hi, bins + 1)
+    if pos.any():
+        ee, hh = np.clip(e[pos], lo, hi), np.clip(h[pos], lo, hi)
+        H, _, _ = np.histogram2d(ee, hh, bins=(edges, edges))
+        mesh = ax.pcolormesh(edges, edges, np.ma.masked_equal(H.T, 0), cmap="viridis",
+                             norm=LogNorm(vmin=1, vmax=max(H.max(), 2)), shading="flat")
+        cb = ax.figure.colorbar(mesh, ax=ax, label="fixes per cell", fraction=0.046,
+                                pad=0.02)
+        cb.ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+        cb.ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+        cb.ax.yaxis.set_minor_formatter(NullFormatter())
+        bad = e[pos] > h[pos]
+        if bad.any():
+            ax.plot(ee[bad], hh[bad], "r.", ms=4, label="misleading")
+    unb = np.isfinite(e) & np.isposinf(h) & (e > 0)
+    if unb.any():
+        ax.plot(np.clip(e[unb], lo, hi), np.full(int(unb.sum()), hi), "|", color="0.3", ms=8,
+                clip_on=False, label=f"unbounded (hpl = inf): {int(unb.sum())}")
+    ax.plot([lo, hi], [lo, hi], "k-", lw=1)
+    ax.fill_between([lo, hi], [lo, lo], [lo, hi], color="red", alpha=0.07, lw=0)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlim(lo, hi)
+    ax.set_ylim(lo, hi)
+    ax.set_aspect("equal")
+    ax.set_xlabel("horizontal error (m)")
+    ax.set_ylabel("hpl (m)")
+    nan_h = int(np.sum(np.isfinite(e) & np.isnan(h)))
+    text = (f"{counts.n} usable fixes\nmisleading {counts.misleading} "
+            f"({counts.misleading_pct:.2f} %)" if counts.n else "no usable fix")
+    if nan_h:
+        text += f"\n(no hpl: {nan_h}, counted misleading)"
+    if counts.n and fin.any():
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.median(np.where(np.isnan(h), np.inf, h)[np.isfinite(e)]) / np.median(
+                e[np.isfinite(e)])
+        text += f"\nmedian hpl / median error {ratio:.1f}"
+    ax.text(0.97, 0.03, text, transform=ax.transAxes, ha="right", va="bottom", fontsize=7,
+            bbox={"facecolor": "white", "alpha": 0.8, "lw": 0})
+    if unb.any() or (pos.any() and np.any(e[pos] > h[pos])):
+        ax.legend(loc="upper left", fontsize=7)
+    if title:
+        ax.set_title(title, fontsize=9)
+    return counts
+
+
+def evaluation_figure(errors: pd.DataFrame, path: str | Path,
+                      max_methods: int = MAX_METHODS) -> dict[str, StanfordCounts]:
+    """``robustloc evaluate --plot``: the figure of an evaluation, written atomically.
+
+    Parameters
+    ----------
+    errors : the per-row errors of :func:`robustloc.eval.metrics.epoch_errors` (columns
+        ``error_2d``, ``usable``, ``method`` and, when the positions have it, ``hpl``).
+    path : ``.png``, ``.svg`` or ``.pdf``.
+    max_methods : at most this many methods get a Stanford panel (in the order of the
+        file); the CDF panel shows every method.
+
+    Returns
+    -------
+    dict
+        Per method with a panel, its :class:`StanfordCounts` (empty without ``hpl``).
+
+    Panels: the empirical CDF of the horizontal error of the usable fixes per method (its
+    95th percentile marked), then, when the positions carry ``hpl``, one Stanford diagram
+    per method (:func:`plot_stanford`).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from robustloc.io.atomic import atomic_output
+
+    fmt = Path(path).suffix.lower().lstrip(".")
+    if fmt not in FORMATS:
+        from robustloc.errors import InputError
+
+        raise InputError(f"--plot {path}: the figure's name must end in "
+                         f"{', '.join('.' + f for f in FORMATS)}")
+    methods = (list(dict.fromkeys(errors["method"].astype(str))) if "method" in errors.columns
+               else ["positions"])
+    meth = (errors["method"].astype(str).to_numpy() if "method" in errors.columns
+            else np.full(len(errors), "positions", dtype=object))
+    usable = errors["usable"].to_numpy(dtype=bool)
+    e_all = errors["error_2d"].to_numpy(dtype=float)
+    has_hpl = "hpl" in errors.columns
+    shown = methods[:max_methods] if has_hpl else []
+    ncol = min(3, 1 + len(shown))
+    nrow = int(np.ceil((1 + len(shown)) / ncol))
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4.6 * ncol, 4.2 * nrow), squeeze=False)
+    ax0 = axes[0, 0]
+    for m in methods:
+        e = np.sort(e_all[usable & (meth == m)])
+        if e.size == 0:
+            continue
+        q = np.arange(1, e.size + 1) / e.size
+        (line,) = ax0.step(e, q, where="post", lw=1.2,
+                           label=f"{m} (n={e.size}, p95 {np.percentile(e, 95):.2f} m)")
+        ax0.plot([np.percentile(e, 95)], [0.95], "o", color=line.get_color(), ms=4)
+    ax0.axhline(0.95, color="0.6", lw=0.6)
+    ax0.set_xscale("log")
+    ax0.set_xlabel("horizontal error (m)")
+    ax0.set_ylabel("share of usable fixes")
+    ax0.set_title("error distribution (usable fixes)", fontsize=9)
+    ax0.grid(alpha=0.3, which="both")
+    if ax0.lines:
+        ax0.legend(fontsize=7, loc="upper left")
+    out: dict[str, StanfordCounts] = {}
+    hpl = errors["hpl"].to_numpy(dtype=float) if has_hpl else None
+    for i, m in enumerate(shown, start=1):
+        ax = axes.flat[i]
+        sel = usable & (meth == m)
+        out[m] = plot_stanford(ax, e_all[sel], hpl[sel], title=f"Stanford diagram: {m}")
+    for ax in axes.flat[1 + len(shown):]:
+        ax.axis("off")
+    if has_hpl and len(methods) > max_methods:
+        fig.suptitle(f"Stanford diagrams of the first {max_methods} of {len(methods)} "
+                     "methods", fontsize=9)
+    fig.tight_layout()
+    with atomic_output(path) as (target, stream):
+        fig.savefig(target if target is not None else stream, format=fmt, dpi=110)
+    plt.close(fig)
+    return out

@@ -1,0 +1,112 @@
+"""``robustloc evaluate --plot`` and the Stanford diagram (:mod:`robustloc.eval.plots`).
+
+The regions are checked against hand-counted cases and against ``evaluate``'s own
+``n_misleading`` (:func:`robustloc.eval.metrics.integrity_stats`, a separate code path), so
+the figure cannot say something other than the table.
+"""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from robustloc.cli import main
+from robustloc.eval.metrics import epoch_errors, error_table
+from robustloc.eval.plots import evaluation_figure, stanford_counts
+
+
+def test_stanford_counts_by_hand():
+    # errors 1..6 against bounds: above, below, equal (bounded: error <= hpl), infinite,
+    # missing (NaN: misleading, as evaluate counts it), and a NaN error (left out)
+    e = np.array([1.0, 2.0, 3.0, 4.0, 5.0, np.nan])
+    h = np.array([5.0, 1.0, 3.0, np.inf, np.nan, 1.0])
+    c = stanford_counts(e, h)
+    assert (c.n, c.bounded, c.unbounded, c.misleading) == (5, 3, 1, 2)
+    assert c.misleading_pct == pytest.approx(40.0)
+    assert np.isnan(stanford_counts(np.zeros(0), np.zeros(0)).misleading_pct)
+    with pytest.raises(ValueError, match="shape"):
+        stanford_counts(np.zeros(3), np.zeros(2))
+
+
+def _files(tmp_path, with_hpl=True):
+    """Two methods on one tag, errors and bounds chosen so that ``a`` has 2 misleading
+    fixes of 6 usable (one with no bound) and ``b`` none; one unusable row each."""
+    t = np.arange(7.0)
+    truth = pd.DataFrame({"time": t, "tag": "T", "x": 0.0, "y": 0.0})
+    err_a = np.array([0.5, 1.0, 2.0, 3.0, 0.2, 0.1, 9.0])
+    hpl_a = np.array([5.0, 0.5, 4.0, np.nan, np.inf, 1.0, 1.0])
+    err_b = np.array([0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9])
+    hpl_b = np.full(7, 10.0)
+    st_unusable = ["ok"] * 6 + ["unavailable"]
+    rows = []
+    for m, e, h in (("a", err_a, hpl_a), ("b", err_b, hpl_b)):
+        d = pd.DataFrame({"time": t, "tag": "T", "x": e, "y": 0.0, "method": m,
+                          "status": st_unusable})
+        if with_hpl:
+            d["hpl"] = h
+        rows.append(d)
+    pos = pd.concat(rows, ignore_index=True)
+    pos.to_csv(tmp_path / "pos.csv", index=False)
+    truth.to_csv(tmp_path / "truth.csv", index=False)
+    return pos, truth
+
+
+def test_figure_counts_agree_with_the_table(tmp_path):
+    pos, truth = _files(tmp_path)
+    counts = evaluation_figure(epoch_errors(pos, truth), tmp_path / "f.png")
+    assert (tmp_path / "f.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    table = error_table(pos, truth)
+    for m in ("a", "b"):
+        row = table[(table["tag"] == "all") & (table["method"] == m)].iloc[0]
+        assert counts[m].n == row["n_ok"] == 6
+        assert counts[m].misleading == row["n_misleading"]
+    assert (counts["a"].misleading, counts["a"].unbounded) == (2, 1)
+    assert counts["b"].misleading == 0
+    assert not list(tmp_path.glob("*.tmp*")) and sorted(p.name for p in tmp_path.iterdir()) == [
+        "f.png", "pos.csv", "truth.csv"]  # written atomically: no temporary left
+
+
+def test_figure_without_hpl_draws_the_cdf_only(tmp_path):
+    pos, truth = _files(tmp_path, with_hpl=False)
+    out = tmp_path / "f.svg"
+    assert evaluation_figure(epoch_errors(pos, truth), out) == {}
+    svg = out.read_text()
+    assert "error distribution" in svg and "Stanford" not in svg
+
+
+def test_figure_names_every_panel_up_to_the_limit(tmp_path):
+    pos, truth = _files(tmp_path)
+    a = pos[pos["method"] == "a"]
+    many = pd.concat([a.assign(method=f"a{k}") for k in range(4)], ignore_index=True)
+    out = tmp_path / "f.svg"
+    counts = evaluation_figure(epoch_errors(many, truth), out, max_methods=3)
+    assert list(counts) == ["a0", "a1", "a2"]
+    assert "first 3 of 4" in out.read_text()
+
+
+def test_evaluate_plot_cli(tmp_path, capsys):
+    _files(tmp_path)
+    rc = main(["evaluate", str(tmp_path / "pos.csv"), "--truth", str(tmp_path / "truth.csv"),
+               "--plot", str(tmp_path / "ev.png")])
+    assert rc == 0
+    assert "figure:" in capsys.readouterr().out
+    assert (tmp_path / "ev.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--plot", "ev.txt"], "must end in .png, .svg, .pdf"),
+    (["--plot", "ev.png", "--engine", "dask"], "--engine local"),
+    (["--plot", "{pos}"], "error:"),
+])
+def test_evaluate_plot_mistakes_exit_2(tmp_path, capsys, extra, message):
+    _files(tmp_path)
+    before = (tmp_path / "pos.csv").read_bytes()
+    extra = [a.replace("{pos}", str(tmp_path / "pos.csv")) if "{pos}" in a
+             else (str(tmp_path / a) if a.startswith("ev.") else a) for a in extra]
+    with pytest.raises(SystemExit) as exc:
+        rc = main(["evaluate", str(tmp_path / "pos.csv"), "--truth",
+                   str(tmp_path / "truth.csv"), *extra])
+        raise SystemExit(rc)
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().err
+    assert (tmp_path / "pos.csv").read_bytes() == before  # the input is never written
+    assert not (tmp_path / "ev.png").exists()
