@@ -71,6 +71,7 @@ def test_figure_without_hpl_draws_the_cdf_only(tmp_path):
     assert evaluation_figure(epoch_errors(pos, truth), out) == {}
     svg = out.read_text()
     assert "error distribution" in svg and "Stanford" not in svg
+    assert "usable fixes and the truth" in svg
 
 
 def test_figure_names_every_panel_up_to_the_limit(tmp_path):

@@ -142,6 +142,37 @@ def plot_stanford(ax: Axes, error_m: NDArray[np.float64], hpl_m: NDArray[np.floa
     return counts
 
 
+#: At most this many fixes per method are drawn on the map (an even subsample beyond).
+MAP_POINTS = 20_000
+
+
+def _plot_map(ax: Axes, errors: pd.DataFrame, methods: list[str], meth: NDArray[np.object_],
+              usable: NDArray[np.bool_]) -> None:
+    """The usable fixes of each method over the truth (black), equal axes."""
+    xt = errors["x_true"].to_numpy(dtype=float)
+    yt = errors["y_true"].to_numpy(dtype=float)
+    x = errors["x"].to_numpy(dtype=float)
+    y = errors["y"].to_numpy(dtype=float)
+    for m in methods:
+        sel = np.flatnonzero(usable & (meth == m))
+        if sel.size > MAP_POINTS:
+            sel = sel[np.linspace(0, sel.size - 1, MAP_POINTS).astype(np.int64)]
+        ax.plot(x[sel], y[sel], ".", ms=2, alpha=0.5, label=m)
+    t = np.isfinite(xt) & np.isfinite(yt)
+    if t.any():
+        pts = np.unique(np.column_stack((xt[t], yt[t])), axis=0)
+        if len(pts) > MAP_POINTS:
+            pts = pts[np.linspace(0, len(pts) - 1, MAP_POINTS).astype(np.int64)]
+        ax.plot(pts[:, 0], pts[:, 1], "k.", ms=2, label="truth")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title("usable fixes and the truth", fontsize=9)
+    ax.grid(alpha=0.3)
+    if ax.lines:
+        ax.legend(fontsize=7, markerscale=4, loc="best")
+
+
 def evaluation_figure(errors: pd.DataFrame, path: str | Path,
                       max_methods: int = MAX_METHODS) -> dict[str, StanfordCounts]:
     """``robustloc evaluate --plot``: the figure of an evaluation, written atomically.
@@ -160,8 +191,9 @@ def evaluation_figure(errors: pd.DataFrame, path: str | Path,
         Per method with a panel, its :class:`StanfordCounts` (empty without ``hpl``).
 
     Panels: the empirical CDF of the horizontal error of the usable fixes per method (its
-    95th percentile marked), then, when the positions carry ``hpl``, one Stanford diagram
-    per method (:func:`plot_stanford`).
+    95th percentile marked), a map of the usable fixes over the truth (at most
+    :data:`MAP_POINTS` per method), then, when the positions carry ``hpl``, one Stanford
+    diagram per method (:func:`plot_stanford`).
     """
     import matplotlib
 
@@ -184,8 +216,9 @@ def evaluation_figure(errors: pd.DataFrame, path: str | Path,
     e_all = errors["error_2d"].to_numpy(dtype=float)
     has_hpl = "hpl" in errors.columns
     shown = methods[:max_methods] if has_hpl else []
-    ncol = min(3, 1 + len(shown))
-    nrow = int(np.ceil((1 + len(shown)) / ncol))
+    first = 2  # the CDF and the map come first
+    ncol = min(3, first + len(shown))
+    nrow = int(np.ceil((first + len(shown)) / ncol))
     fig, axes = plt.subplots(nrow, ncol, figsize=(4.6 * ncol, 4.2 * nrow), squeeze=False)
     ax0 = axes[0, 0]
     for m in methods:
@@ -204,13 +237,14 @@ def evaluation_figure(errors: pd.DataFrame, path: str | Path,
     ax0.grid(alpha=0.3, which="both")
     if ax0.lines:
         ax0.legend(fontsize=7, loc="upper left")
+    _plot_map(axes.flat[1], errors, methods, meth, usable)
     out: dict[str, StanfordCounts] = {}
     hpl = errors["hpl"].to_numpy(dtype=float) if has_hpl else None
-    for i, m in enumerate(shown, start=1):
+    for i, m in enumerate(shown, start=first):
         ax = axes.flat[i]
         sel = usable & (meth == m)
         out[m] = plot_stanford(ax, e_all[sel], hpl[sel], title=f"Stanford diagram: {m}")
-    for ax in axes.flat[1 + len(shown):]:
+    for ax in axes.flat[first + len(shown):]:
         ax.axis("off")
     if has_hpl and len(methods) > max_methods:
         fig.suptitle(f"Stanford diagrams of the first {max_methods} of {len(methods)} "
