@@ -9,7 +9,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
+import robustloc
 from robustloc.cli import main
+from robustloc.errors import InputError
 from robustloc.eval.metrics import epoch_errors, error_table
 from robustloc.eval.plots import evaluation_figure, stanford_counts
 
@@ -96,7 +98,7 @@ def test_evaluate_plot_cli(tmp_path, capsys):
 @pytest.mark.parametrize("extra, message", [
     (["--plot", "ev.txt"], "must end in .png, .svg, .pdf"),
     (["--plot", "ev.png", "--engine", "dask"], "--engine local"),
-    (["--plot", "{pos}"], "error:"),
+    (["--plot", "{pos}"], "must end in"),
 ])
 def test_evaluate_plot_mistakes_exit_2(tmp_path, capsys, extra, message):
     _files(tmp_path)
@@ -111,3 +113,31 @@ def test_evaluate_plot_mistakes_exit_2(tmp_path, capsys, extra, message):
     assert message in capsys.readouterr().err
     assert (tmp_path / "pos.csv").read_bytes() == before  # the input is never written
     assert not (tmp_path / "ev.png").exists()
+
+
+def test_the_library_draws_the_same_figure(tmp_path, capsys):
+    pos, truth = _files(tmp_path)
+    table = robustloc.evaluate(tmp_path / "pos.csv", tmp_path / "truth.csv",
+                               plot=tmp_path / "lib.svg")
+    svg = (tmp_path / "lib.svg").read_text()
+    assert "Stanford diagram: a" in svg and "Stanford diagram: b" in svg
+    pd.testing.assert_frame_equal(table, robustloc.evaluate(pos, truth), check_like=True)
+    # refused as the command refuses it, in the same words
+    assert main(["evaluate", str(tmp_path / "pos.csv"), "--truth", str(tmp_path / "truth.csv"),
+                 "--plot", "ev.txt"]) == 2
+    cli = capsys.readouterr().err.strip().splitlines()[-1]
+    with pytest.raises(InputError) as exc:
+        robustloc.evaluate(tmp_path / "pos.csv", tmp_path / "truth.csv", plot="ev.txt")
+    assert cli.endswith(str(exc.value))
+    assert str(exc.value).startswith("argument --plot: ")
+    with pytest.raises(InputError, match="must end in"):
+        robustloc.evaluate(pos, truth, plot=3.5)
+    # a positions file that happens to bear a figure's name is never overwritten
+    odd = tmp_path / "pos.svg"
+    odd.write_bytes((tmp_path / "pos.csv").read_bytes())
+    with pytest.raises(InputError, match="would overwrite an input"):
+        robustloc.evaluate(odd, tmp_path / "truth.csv", plot=odd)
+    assert main(["evaluate", str(odd), "--truth", str(tmp_path / "truth.csv"),
+                 "--plot", str(odd)]) == 2
+    assert "would overwrite an input" in capsys.readouterr().err
+    assert odd.read_bytes() == (tmp_path / "pos.csv").read_bytes()

@@ -806,6 +806,7 @@ def evaluate(
     *,
     baseline: str = "ls",
     time_tolerance: float = 1e-6,
+    plot: PathLike | None = None,
 ) -> pd.DataFrame:
     """Error statistics of positions against truth, per tag and method (``robustloc evaluate``).
 
@@ -828,6 +829,10 @@ def evaluate(
     time_tolerance : float
         Largest absolute time difference between a position and its truth (s), finite
         and >= 0.
+    plot : str or PathLike, optional
+        Also draw the figure of ``evaluate --plot`` into this ``.png``, ``.svg`` or ``.pdf``
+        file (:func:`robustloc.eval.plots.evaluation_figure`: the error CDF, a map of the
+        fixes over the truth, each method's Stanford diagram).
 
     Returns
     -------
@@ -848,9 +853,16 @@ def evaluate(
     2  mean    nls  2.0  0.4  0.354
     """
     from robustloc.eval.metrics import error_table
-    from robustloc.options import nonnegative_float
+    from robustloc.options import figure_path, nonnegative_float
 
     _check_option("--time-tolerance", time_tolerance, nonnegative_float)
+    if plot is not None:
+        from robustloc.io.atomic import check_not_input
+
+        _check_option("--plot", os.fspath(plot) if isinstance(plot, os.PathLike) else plot,
+                      figure_path)
+        check_not_input(plot, [p for p in (positions, truth)
+                               if isinstance(p, (str, os.PathLike))])
     with _labelled():
         pos = read_positions(positions)
         if baseline != "ls" and baseline not in set(pos["method"]):  # as the command
@@ -859,6 +871,11 @@ def evaluate(
                              f"(methods: {methods})", pos.attrs.get("path"))
         tru = read_truth(truth)
         table = error_table(pos, tru, time_tolerance_s=time_tolerance, baseline=baseline)
+        if plot is not None:
+            from robustloc.eval.metrics import epoch_errors
+            from robustloc.eval.plots import evaluation_figure
+
+            evaluation_figure(epoch_errors(pos, tru, time_tolerance), plot)
     return _with_summary(table, {"n_unmatched": int(table.attrs.get("n_unmatched", 0))})
 
 

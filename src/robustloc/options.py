@@ -71,6 +71,20 @@ def nonnegative_float(text: str) -> float:
     return value
 
 
+#: Figure formats a ``--plot FILE`` may name, by its suffix (matplotlib writes each).
+FIGURE_FORMATS = ("png", "svg", "pdf")
+
+
+def figure_path(text: str) -> str:
+    """A figure's file name whose suffix is one of :data:`FIGURE_FORMATS` (checked before
+    any work is done)."""
+    if not isinstance(text, str) or text.rsplit(".", 1)[-1].lower() not in FIGURE_FORMATS:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: the figure's name must end in "
+            f"{', '.join('.' + f for f in FIGURE_FORMATS)}")
+    return text
+
+
 def float_in(low: float, high: float) -> Callable[[str], float]:
     """Converter for a finite float in the closed interval ``[low, high]``."""
 

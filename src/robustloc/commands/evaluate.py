@@ -43,7 +43,7 @@ _SHOW = ("tag", "method", "n", "n_missing", "n_failed", "max", "min", "mean", "r
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from robustloc.options import nonnegative_float
+    from robustloc.options import figure_path, nonnegative_float
 
     p.add_argument("positions", help="positions file (time, tag, x, y[, z], method, status, ...)")
     p.add_argument("--truth", required=True, help="truth file (time, tag, x, y[, z])")
@@ -57,22 +57,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--baseline", default="ls",
                    help="method improvements refer to (default ls, when the file has it; "
                         "another must be one of the file's methods)")
-    p.add_argument("--plot", type=_figure_path, metavar="FILE",
+    p.add_argument("--plot", type=figure_path, metavar="FILE",
                    help="draw the error CDF per method and each method's Stanford diagram "
                         "(error against hpl) into FILE (.png, .svg or .pdf; --engine "
                         "local)")
     add_engine_arguments(p, what="the positions dataset",
                          output="the one statistics table of -o, as without it")
-
-
-def _figure_path(text: str) -> str:
-    """``--plot``'s file name: a figure format matplotlib writes (checked before any work)."""
-    from robustloc.eval.plots import FORMATS
-
-    if text.rsplit(".", 1)[-1].lower() not in FORMATS:
-        raise argparse.ArgumentTypeError(
-            f"{text!r}: the figure's name must end in {', '.join('.' + f for f in FORMATS)}")
-    return text
 
 
 def run(args: argparse.Namespace) -> int:

@@ -17,6 +17,8 @@ panel and also serves the report (section ``s05_out_of_box``).
 
 from __future__ import annotations
 
+import argparse
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -30,8 +32,6 @@ if TYPE_CHECKING:
 
 #: At most this many methods get a Stanford panel (the CDF panel shows every method).
 MAX_METHODS = 6
-#: Formats :func:`evaluation_figure` writes, by the file's suffix.
-FORMATS = ("png", "svg", "pdf")
 
 
 @dataclass(frozen=True)
@@ -173,7 +173,7 @@ def _plot_map(ax: Axes, errors: pd.DataFrame, methods: list[str], meth: NDArray[
         ax.legend(fontsize=7, markerscale=4, loc="best")
 
 
-def evaluation_figure(errors: pd.DataFrame, path: str | Path,
+def evaluation_figure(errors: pd.DataFrame, path: str | os.PathLike[str],
                       max_methods: int = MAX_METHODS) -> dict[str, StanfordCounts]:
     """``robustloc evaluate --plot``: the figure of an evaluation, written atomically.
 
@@ -181,7 +181,8 @@ def evaluation_figure(errors: pd.DataFrame, path: str | Path,
     ----------
     errors : the per-row errors of :func:`robustloc.eval.metrics.epoch_errors` (columns
         ``error_2d``, ``usable``, ``method`` and, when the positions have it, ``hpl``).
-    path : ``.png``, ``.svg`` or ``.pdf``.
+    path : ``.png``, ``.svg`` or ``.pdf`` (:data:`robustloc.options.FIGURE_FORMATS`; another
+        suffix: ``ValueError``).
     max_methods : at most this many methods get a Stanford panel (in the order of the
         file); the CDF panel shows every method.
 
@@ -201,13 +202,13 @@ def evaluation_figure(errors: pd.DataFrame, path: str | Path,
     import matplotlib.pyplot as plt
 
     from robustloc.io.atomic import atomic_output
+    from robustloc.options import figure_path
 
+    try:
+        figure_path(str(path))
+    except argparse.ArgumentTypeError as exc:
+        raise ValueError(str(exc)) from None
     fmt = Path(path).suffix.lower().lstrip(".")
-    if fmt not in FORMATS:
-        from robustloc.errors import InputError
-
-        raise InputError(f"--plot {path}: the figure's name must end in "
-                         f"{', '.join('.' + f for f in FORMATS)}")
     methods = (list(dict.fromkeys(errors["method"].astype(str))) if "method" in errors.columns
                else ["positions"])
     meth = (errors["method"].astype(str).to_numpy() if "method" in errors.columns
