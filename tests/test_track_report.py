@@ -10,6 +10,9 @@ from robustloc.reproduce import Context, s60_tracks
 def test_s60_quick_on_shipped_excerpts(tmp_path):
     sec = s60_tracks.run(Context(out_dir=tmp_path, data_dir=None, seed=1, quick=True))
     assert (tmp_path / "s60_tracks.png").is_file()
+    # the tracker's Stanford diagrams: one panel per data set the misleading targets count
+    assert (tmp_path / "s60_stanford.png").is_file()
+    assert [c for c, f in sec.blocks if c == "figure" and f[1] == "s60_stanford.png"]
     assert (tmp_path / "s60_table3.csv").is_file()
     t = sec.summary["targets"]
     assert len(t) == 24

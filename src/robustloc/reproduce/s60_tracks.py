@@ -86,7 +86,7 @@ def _smoothed_xy(trk: Any, rows: pd.DataFrame, lag: int | None = None) -> np.nda
 
 
 # --------------------------------------------------------------------------- simulation
-def _walk(ctx: Context, sec: Section, plots: list) -> dict[str, float]:
+def _walk(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, float]:
     from robustloc.estimators.ranging import Locator
     from robustloc.io import to_epochs
     from robustloc.models.pathloss import log_distance_arrays
@@ -153,6 +153,7 @@ def _walk(ctx: Context, sec: Section, plots: list) -> dict[str, float]:
               "over seeds: `benchmarks/bench_walk.py`.", tab)
     e_tr = np.hypot(*(rows[["x", "y"]].to_numpy(float) - txy).T)
     res["mislead"] = _mislead(e_tr, rows["hpl"].to_numpy(float))
+    stanford.append(("wifi-room walk (simulated)", e_tr, rows["hpl"].to_numpy(float)))
     plots.append(("wifi-room walk (simulated)", txy[walk], nls[walk],
                   rows[["x", "y"]].to_numpy(float)[walk], rts[walk], xy))
     return res
@@ -216,7 +217,7 @@ def _nees(ctx: Context, sec: Section) -> dict[str, float]:
 
 
 # --------------------------------------------------------------------------- real data
-def _ble(ctx: Context, sec: Section, plots: list) -> dict[str, float]:
+def _ble(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, float]:
     from robustloc.datasets import ble_tetam as bt
     from robustloc.io import to_epochs
     from robustloc.models.calibration import calibrate_pathloss
@@ -272,6 +273,7 @@ def _ble(ctx: Context, sec: Section, plots: list) -> dict[str, float]:
             plots.append((f"ble-tetam {tr}", txy, fix, rows[["x", "y"]].to_numpy(float), sm,
                           xy))
     el, et, es, ef, hp, elk, hlk = map(np.concatenate, (el, et, es, ef, hp, elk, hlk))
+    stanford.append(("ble-tetam", et, hp))
     tab = pd.DataFrame([
         {"method": f"locate (default: {DEFAULT_METHOD}, log scale)", "rms": _rms(el),
          "p95": _p95(el)},
@@ -352,7 +354,7 @@ def _default_locate(log: pd.DataFrame, anchors: pd.DataFrame, z_tag: float) -> p
     return pos.set_index(["time", "tag"])
 
 
-def _dwm(ctx: Context, sec: Section, plots: list) -> dict[str, Any]:
+def _dwm(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, Any]:
     from robustloc.datasets import uwb_dwm1001
     from robustloc.datasets.uwb_dwm1001 import error_stats
     from robustloc.io import to_epochs
@@ -378,6 +380,7 @@ def _dwm(ctx: Context, sec: Section, plots: list) -> dict[str, Any]:
         e = np.hypot(rows["x"] - np.interp(t, tt, r.truth["x"]),
                      rows["y"] - np.interp(t, tt, r.truth["y"])).to_numpy()
         mis = _mislead(e[inside], rows["hpl"].to_numpy(float)[inside])
+        stanford.append((f"uwb-dwm1001 {run}", e[inside], rows["hpl"].to_numpy(float)[inside]))
         ref = DWM_REFERENCE[run]
         rows_out += [
             {"run": run, "method": "authors ESKF (full run)", "rms": ref["ESKF"]},
@@ -453,7 +456,7 @@ def _lab_selfcal(anchors: pd.DataFrame, epochs: pd.DataFrame) -> pd.DataFrame:
     return self_calibration_table(res, anchors, model)[1]
 
 
-def _lab(ctx: Context, sec: Section, plots: list) -> dict[str, float]:
+def _lab(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, float]:
     from robustloc import status as st
     from robustloc.datasets import uwb_labyrinth
     from robustloc.datasets.uwb_dwm1001 import error_stats
@@ -519,6 +522,8 @@ def _lab(ctx: Context, sec: Section, plots: list) -> dict[str, float]:
             if okey == "off_":
                 out[f"{k}offset_m"] = float(rows["range_offset"].iloc[-1])
             if not label and not okey:
+                stanford.append(("uwb-labyrinth", e[inside],
+                                 rows["hpl"].to_numpy(float)[inside]))
                 txy = np.c_[np.interp(t, tt, r.truth["x"]), np.interp(t, tt, r.truth["y"])]
                 plots.append(("uwb-labyrinth", txy, None, rows[["x", "y"]].to_numpy(float),
                               sm, an[["x", "y"]].to_numpy(float)))
@@ -565,6 +570,28 @@ def _plot(ctx: Context, sec: Section, plots: list) -> None:
                  "Tracks against truth: snapshot fixes, the tracker and its RTS smoothing")
 
 
+def _plot_stanford(ctx: Context, sec: Section, panels: list) -> None:
+    """The Stanford diagram of the tracker's rows on each data set
+    (:func:`robustloc.eval.plots.plot_stanford`; the rows the misleading target counts)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from robustloc.eval.plots import plot_stanford
+
+    cols = min(3, len(panels))
+    rws = (len(panels) + cols - 1) // cols
+    fig, axes = plt.subplots(rws, cols, figsize=(4.6 * cols, 4.2 * rws), squeeze=False)
+    for ax, (title, err, hpl) in zip(axes.ravel(), panels):
+        plot_stanford(ax, err, hpl, title=f"track: {title}")
+    for ax in axes.ravel()[len(panels):]:
+        ax.axis("off")
+    _save_figure(ctx, sec, fig, "s60_stanford.png",
+                 "Stanford diagrams of the tracker's rows (default settings of each data "
+                 "set): each row at its error and its hpl; below the diagonal, misleading")
+
+
 def _verdict(value: float, limit: float) -> str:
     if not np.isfinite(value):
         return "not measured"
@@ -585,12 +612,14 @@ def run(ctx: Context) -> Section:
         "set.  "
         "Rerun: `robustloc reproduce --only s60_tracks`.")
     plots: list = []
-    walk = _walk(ctx, sec, plots)
+    stanford: list = []  # (data set, error, hpl) of the tracker's rows (default settings)
+    walk = _walk(ctx, sec, plots, stanford)
     nees = _nees(ctx, sec)
-    ble = _ble(ctx, sec, plots)
-    dwm = _dwm(ctx, sec, plots)
-    lab = _lab(ctx, sec, plots)
+    ble = _ble(ctx, sec, plots, stanford)
+    dwm = _dwm(ctx, sec, plots, stanford)
+    lab = _lab(ctx, sec, plots, stanford)
     _plot(ctx, sec, plots)
+    _plot_stanford(ctx, sec, stanford)
     raw = walk["raw nls (snapshot)"]
     tr = walk["track"]
     st_ = walk["track static-ekf (static points)"]
