@@ -141,3 +141,26 @@ def test_the_library_draws_the_same_figure(tmp_path, capsys):
                  "--plot", str(odd)]) == 2
     assert "would overwrite an input" in capsys.readouterr().err
     assert odd.read_bytes() == (tmp_path / "pos.csv").read_bytes()
+
+
+@pytest.mark.parametrize("err, hpl", [
+    (np.zeros(5), np.full(5, 1.0)),  # exact fixes: nothing to put on log axes
+    (np.full(5, 0.5), np.full(5, np.inf)),  # every fix unbounded
+    (np.full(5, 0.5), np.full(5, np.nan)),  # no bound at all: every fix misleading
+    (np.zeros(0), np.zeros(0)),  # no usable fix
+    (np.array([1e-9, 1e6]), np.array([1e7, 1e-9])),  # twelve decades apart
+])
+def test_stanford_panel_draws_degenerate_sets(tmp_path, err, hpl):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from robustloc.eval.plots import plot_stanford
+
+    fig, ax = plt.subplots()
+    c = plot_stanford(ax, err, hpl, title="degenerate")
+    fig.savefig(tmp_path / "p.png")
+    plt.close(fig)
+    assert c == stanford_counts(err, hpl)
+    assert c.n == err.size and c.bounded + c.misleading == c.n
