@@ -164,3 +164,56 @@ def test_stanford_panel_draws_degenerate_sets(tmp_path, err, hpl):
     plt.close(fig)
     assert c == stanford_counts(err, hpl)
     assert c.n == err.size and c.bounded + c.misleading == c.n
+
+
+# ---------------------------------------------------------------- locate / track --plot
+@pytest.fixture(scope="module")
+def corridor_log(tmp_path_factory):
+    d = tmp_path_factory.mktemp("sim")
+    assert main(["simulate", "ble-corridor", "--seed", "1", "--out", str(d)]) == 0
+    return d
+
+
+def test_locate_plot_counts_every_row_as_the_summary(corridor_log, tmp_path, capsys):
+    import json
+
+    from robustloc.eval.plots import positions_figure, read_positions_for_plot
+    from robustloc.io import read_anchors
+
+    out, fig = tmp_path / "pos.csv", tmp_path / "loc.png"
+    args = [str(corridor_log / "measurements.csv"), "--anchors",
+            str(corridor_log / "anchors.csv"), "-o", str(out), "--method", "auto,nls"]
+    assert main(["locate", *args, "--plot", str(fig), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert fig.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    counts = positions_figure(read_positions_for_plot(out),
+                              read_anchors(corridor_log / "anchors.csv"), tmp_path / "x.svg")
+    assert counts == summary["status"]  # every row, per method and status
+    assert sum(counts["auto"].values()) == summary["epochs"]
+    svg = (tmp_path / "x.svg").read_text()
+    assert "status of every row" in svg and "protection levels" in svg
+
+
+def test_track_plot_and_its_refusals(corridor_log, tmp_path, capsys):
+    base = ["track", str(corridor_log / "measurements.csv"), "--anchors",
+            str(corridor_log / "anchors.csv")]
+    out, fig = tmp_path / "t.parquet", tmp_path / "t.pdf"
+    assert main([*base, "-o", str(out), "--plot", str(fig)]) == 0
+    assert f"figure: {fig}" in capsys.readouterr().out
+    assert fig.read_bytes()[:5] == b"%PDF-"
+    refusals = [
+        (["-o", "-", "--plot", str(tmp_path / "a.png")], "give a file, not -"),
+        (["-o", str(tmp_path / "b.csv"), "--plot", str(tmp_path / "b.png"), "--engine",
+          "dask"], "--engine local"),
+        (["-o", str(tmp_path / "c.svg"), "--plot", str(tmp_path / "c.svg")],
+         "name the same file"),
+        (["-o", str(tmp_path / "d.csv"), "--plot", str(corridor_log / "anchors.csv")],
+         "must end in"),
+    ]
+    for extra, message in refusals:
+        with pytest.raises(SystemExit) as exc:
+            raise SystemExit(main([*base, *extra]))
+        assert exc.value.code == 2, extra
+        assert message in capsys.readouterr().err, extra
+    # nothing was written by a refused run
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["t.parquet", "t.pdf"]

@@ -164,6 +164,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "decade, key floor(20 log10 hpl), 'inf' for unbounded ones)")
     p.add_argument("--quiet", action="store_true",
                    help="no progress bar and no text summary")
+    from robustloc.commands._plot import add_plot_argument
+
+    add_plot_argument(p, "positions")
     add_engine_arguments(p)
 
 
@@ -186,12 +189,16 @@ def locate_file(args: argparse.Namespace) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    from robustloc.commands._plot import check_plot, draw_plot
+
+    check_plot(args, "positions")
     from robustloc.io.atomic import writes_to_stdout
 
     if args.engine == "dask":
         from robustloc.engines.dask import run_locate
         return run_locate(args, locate_file)
     summary = locate_file(args)
+    draw_plot(args)
     # the summary never goes into a data stream: stderr when the positions go to stdout
     dest = sys.stderr if writes_to_stdout(args.out) else sys.stdout
     if args.json:

@@ -159,6 +159,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "floor(20 log10 hpl), 'inf' for unbounded ones)")
     p.add_argument("--quiet", action="store_true",
                    help="no progress bar and no text summary (as locate)")
+    from robustloc.commands._plot import add_plot_argument
+
+    add_plot_argument(p, "track")
     add_engine_arguments(p, what="a tag-partitioned Parquet dataset")
 
 
@@ -223,12 +226,16 @@ def track_partition_file(args: argparse.Namespace) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    from robustloc.commands._plot import check_plot, draw_plot
+
+    check_plot(args, "track")
     if args.engine == "dask":
         from robustloc.engines.dask import run_tagwise
         return run_tagwise(args, track_partition, "track", file_fn=track_partition_file)
     from robustloc.io.atomic import writes_to_stdout
 
     summary = track_file(args)
+    draw_plot(args)
     # the summary never goes into a data stream: stderr when the track goes to stdout
     dest = sys.stderr if writes_to_stdout(args.out) else sys.stdout
     if args.json:

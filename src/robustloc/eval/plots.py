@@ -72,6 +72,16 @@ def stanford_counts(error_m: NDArray[np.float64], hpl_m: NDArray[np.float64]) ->
                           misleading=int(e.size - ok.sum()))
 
 
+def _log_ticks(axis) -> None:  # noqa: ANN001 - a matplotlib Axis
+    """Log-axis ticks at 1, 2, 5 per decade labelled as plain numbers (``0.5``, ``20``),
+    readable when the data span less than a decade."""
+    from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
+
+    axis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+    axis.set_major_formatter(FormatStrFormatter("%g"))
+    axis.set_minor_formatter(NullFormatter())
+
+
 def plot_stanford(ax: Axes, error_m: NDArray[np.float64], hpl_m: NDArray[np.float64],
                   title: str = "", bins: int = 60) -> StanfordCounts:
     """Draw the Stanford diagram of ``error_m`` against ``hpl_m`` on ``ax`` and return its
@@ -232,6 +242,7 @@ def evaluation_figure(errors: pd.DataFrame, path: str | os.PathLike[str],
         ax0.plot([np.percentile(e, 95)], [0.95], "o", color=line.get_color(), ms=4)
     ax0.axhline(0.95, color="0.6", lw=0.6)
     ax0.set_xscale("log")
+    _log_ticks(ax0.xaxis)
     ax0.set_xlabel("horizontal error (m)")
     ax0.set_ylabel("share of usable fixes")
     ax0.set_title("error distribution (usable fixes)", fontsize=9)
@@ -255,3 +266,145 @@ def evaluation_figure(errors: pd.DataFrame, path: str | os.PathLike[str],
         fig.savefig(target if target is not None else stream, format=fmt, dpi=110)
     plt.close(fig)
     return out
+
+
+#: Usable statuses the map marks (a fix the user should look at before trusting it).
+_FLAGGED = ("fault_detected", "extrapolated", "unverified")
+#: At most this many tags get their own colour on the map (the rest share one).
+MAX_TAG_COLOURS = 10
+
+
+def read_positions_for_plot(path: str | os.PathLike[str]) -> pd.DataFrame:
+    """The columns :func:`positions_figure` draws (``time, tag, x, y, method, status,
+    hpl`` where present) of a positions or track file that a command has just written
+    (``.csv``, ``.csv.gz`` or ``.parquet``)."""
+    wanted = ("time", "tag", "x", "y", "method", "status", "hpl")
+    p = Path(path)
+    if p.suffix.lower() in (".parquet", ".pq"):
+        import pyarrow.parquet as pq
+
+        have = set(pq.read_schema(p).names)
+        return pd.read_parquet(p, columns=[c for c in wanted if c in have])
+    return pd.read_csv(p, usecols=lambda c: c in wanted, dtype={"tag": str})
+
+
+def positions_figure(positions: pd.DataFrame, anchors: pd.DataFrame,
+                     path: str | os.PathLike[str], title: str = "") -> dict[str, dict[str, int]]:
+    """``robustloc locate|track --plot``: what an output holds, for a person to look at,
+    written atomically (no truth needed).
+
+    Panels: a map of the anchors and the usable fixes (coloured by tag when there are at
+    most :data:`MAX_TAG_COLOURS` tags; a track's rows joined per tag; fixes whose status
+    says to look twice -- ``fault_detected``, ``extrapolated``, ``unverified`` -- crossed
+    in red; at most :data:`MAP_POINTS` fixes per method, an even subsample beyond), the
+    count of each status per method, and the distribution of the usable fixes' ``hpl``
+    per method (what an ``--alert-limit`` would keep).
+
+    Returns
+    -------
+    dict
+        Per method, its rows per status (as the summary counts them).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from robustloc import status as st
+    from robustloc.io.atomic import atomic_output
+    from robustloc.options import figure_path
+
+    try:
+        figure_path(str(path))
+    except argparse.ArgumentTypeError as exc:
+        raise ValueError(str(exc)) from None
+    fmt = Path(path).suffix.lower().lstrip(".")
+    n = len(positions)
+    meth = (positions["method"].astype(str).to_numpy() if "method" in positions.columns
+            else np.full(n, "positions", dtype=object))
+    status = (positions["status"].astype(str).to_numpy() if "status" in positions.columns
+              else np.full(n, st.OK, dtype=object))
+    methods = list(dict.fromkeys(meth))
+    x = positions["x"].to_numpy(dtype=float)
+    y = positions["y"].to_numpy(dtype=float)
+    usable = st.among(status, st.USABLE) & np.isfinite(x) & np.isfinite(y)
+    tags = positions["tag"].astype(str).to_numpy() if "tag" in positions.columns else None
+    counts = {m: {str(k): int(v) for k, v in
+                  pd.Series(status[meth == m]).value_counts(sort=False).items()}
+              for m in methods}
+
+    fig, axes = plt.subplots(1, 3, figsize=(15.5, 4.8), squeeze=False,
+                             gridspec_kw={"width_ratios": [1.35, 1.0, 1.0]})
+    ax_map, ax_st, ax_h = axes[0]
+    # --- map
+    ax_map.plot(anchors["x"].to_numpy(float), anchors["y"].to_numpy(float), "r^", ms=7,
+                label="anchors", zorder=5)
+    for (_, a) in anchors.iterrows():
+        ax_map.annotate(str(a["anchor"]), (float(a["x"]), float(a["y"])), fontsize=6,
+                        xytext=(3, 3), textcoords="offset points")
+    by_tag = tags is not None and len(methods) == 1 and len(set(tags)) <= MAX_TAG_COLOURS
+    for m in methods:
+        sel = np.flatnonzero(usable & (meth == m))
+        if sel.size > MAP_POINTS:
+            sel = sel[np.linspace(0, sel.size - 1, MAP_POINTS).astype(np.int64)]
+        track = m.startswith("track")
+        if by_tag and tags is not None:
+            for tg in dict.fromkeys(tags[sel]):
+                s = sel[tags[sel] == tg]
+                ax_map.plot(x[s], y[s], "-" if track else ".", lw=0.8, ms=2, alpha=0.7,
+                            label=f"tag {tg}")
+        else:
+            ax_map.plot(x[sel], y[sel], ".", ms=2, alpha=0.5, label=m)
+        flag = sel[np.isin(status[sel], _FLAGGED)]
+        if flag.size:
+            ax_map.plot(x[flag], y[flag], "x", color="red", ms=4, alpha=0.8,
+                        label=f"{m}: {flag.size} to look at ({', '.join(_FLAGGED)})")
+    ax_map.set_aspect("equal", adjustable="datalim")
+    ax_map.set_xlabel("x (m)")
+    ax_map.set_ylabel("y (m)")
+    ax_map.grid(alpha=0.3)
+    ax_map.set_title(title or "anchors and usable fixes", fontsize=9)
+    ax_map.legend(fontsize=6, loc="best")
+    # --- statuses
+    names = [s for s in st.ALL if any(s in c for c in counts.values())]
+    names += sorted({k for c in counts.values() for k in c} - set(names))
+    ypos = np.arange(len(names))
+    h = 0.8 / max(len(methods), 1)
+    for i, m in enumerate(methods):
+        v = [counts[m].get(s, 0) for s in names]
+        ax_st.barh(ypos + i * h, v, height=h, label=m)
+    ax_st.set_yticks(ypos + 0.4 - h / 2, names, fontsize=7)
+    ax_st.invert_yaxis()
+    ax_st.set_xlabel("rows")
+    ax_st.set_title("status of every row", fontsize=9)
+    ax_st.grid(alpha=0.3, axis="x")
+    if len(methods) > 1:
+        ax_st.legend(fontsize=7)
+    # --- hpl
+    if "hpl" in positions.columns:
+        hpl = positions["hpl"].to_numpy(dtype=float)
+        for m in methods:
+            hm = hpl[usable & (meth == m)]
+            fin = np.sort(hm[np.isfinite(hm) & (hm > 0)])
+            if fin.size == 0:
+                continue
+            q = np.arange(1, fin.size + 1) / hm.size  # unbounded fixes never reach 1
+            n_inf = int(np.sum(np.isposinf(hm)))
+            ax_h.step(fin, q, where="post", lw=1.2,
+                      label=f"{m}: median {np.median(hm):.3g} m, {n_inf} unbounded")
+        ax_h.set_xscale("log")
+        _log_ticks(ax_h.xaxis)
+        ax_h.set_xlabel("hpl (m)")
+        ax_h.set_ylabel("share of usable fixes with hpl at most x")
+        ax_h.set_title("protection levels (an --alert-limit keeps the left of it)",
+                       fontsize=9)
+        ax_h.grid(alpha=0.3, which="both")
+        if ax_h.lines:
+            ax_h.legend(fontsize=7, loc="upper left")
+    else:
+        ax_h.axis("off")
+    fig.tight_layout()
+    with atomic_output(path) as (target, stream):
+        fig.savefig(target if target is not None else stream, format=fmt, dpi=110)
+    plt.close(fig)
+    return counts
