@@ -48,6 +48,7 @@ from numba import njit
 
 from robustloc.filters._compiled import (
     _KIN,
+    _KIND,
     _M,
     _N,
     _NANCH,
@@ -61,6 +62,7 @@ from robustloc.filters._compiled import (
     ST_PREDICTED,
     STATUS_CHARS,
     STATUSES,
+    UKF,
     _cholesky,
     fusion_step_4,
     fusion_step_5,
@@ -117,18 +119,11 @@ def prediction_lost(v_pos, r_min, lost_pos_var):  # pragma: no cover - jit
     return not (v_pos <= lost_pos_var or v_pos * SQRT_EPS < r_min)
 
 
-@njit(cache=True, nogil=True)
-def one_fault_explains(M, hv, hb, oc, Pp, rd, y, av, w2_crit, crit_less, S, L, Li, u,
-                       c):  # pragma: no cover - jit
-    """Data snooping with one exclusion (seed 003; :func:`robustloc.tracking.tracker.
-    one_fault_explains` is the NumPy reference): True when the largest w-test statistic
-    ``w_i^2 = (S^-1 y)_i^2 / (S^-1)_ii`` of the available components exceeds ``w2_crit``
-    and the global test of the others passes: ``y^T S^-1 y - w_i^2 <= crit_less`` (the
-    innovation quadratic form without component ``i``).  ``S = H P- H^T + diag(rd)`` from
-    the position rows ``hv (M, 2)`` of the range Jacobian and, where ``oc[i] >= 0``, the
-    entry ``hb[i]`` of an offset state in column ``oc[i]`` (the tag's range offset, or the
-    link's: :func:`robustloc.filters._compiled.offset_rows`); ``S, L (M, M)``, ``Li, u, c
-    (M,)`` are scratch."""
+@njit(cache=True, nogil=True, inline="always")
+def innovation_cov(M, hv, hb, oc, Pp, rd, S):  # pragma: no cover - jit
+    """``S = H P- H^T + diag(rd)`` (M x M) of the range rows: position rows ``hv (M, 2)``
+    and, where ``oc[i] >= 0``, the entry ``hb[i]`` of an offset state in column ``oc[i]``
+    (:func:`robustloc.filters._compiled.offset_rows`)."""
     for i in range(M):
         ci = oc[i]
         for j in range(i + 1):
@@ -143,6 +138,48 @@ def one_fault_explains(M, hv, hb, oc, Pp, rd, y, av, w2_crit, crit_less, S, L, L
                 v += rd[i]
             S[i, j] = v
             S[j, i] = v
+
+
+@njit(cache=True, nogil=True)
+def linearized_gain_pos(M, hv, hb, oc, Pp, rd, av, S, L, Li, X):  # pragma: no cover - jit
+    """The position rows of the linearized gain ``G = P- H^T S^-1`` over the available
+    components ``av``, transposed into ``X (M, 2)`` (row ``i``: component ``i``'s column;
+    zero where not available): the UKF's hpl (``Tracker._hpl``).  False when ``S`` is not
+    positive definite."""
+    innovation_cov(M, hv, hb, oc, Pp, rd, S)
+    if not _cholesky(S, 1.0, av, M, L, Li):
+        return False
+    for c in range(2):  # X[:, c] = S^-1 a_c, a_c,i = (P- H_i^T)_c
+        for i in range(M):
+            v = 0.0
+            if av[i]:
+                v = Pp[c, 0] * hv[i, 0] + Pp[c, 1] * hv[i, 1]
+                if oc[i] >= 0:
+                    v += Pp[c, oc[i]] * hb[i]
+            for j in range(i):
+                v -= L[i, j] * X[j, c]
+            X[i, c] = v * Li[i]
+        for i in range(M - 1, -1, -1):
+            v = X[i, c]
+            for j in range(i + 1, M):
+                v -= L[j, i] * X[j, c]
+            X[i, c] = v * Li[i]
+    return True
+
+
+@njit(cache=True, nogil=True)
+def one_fault_explains(M, hv, hb, oc, Pp, rd, y, av, w2_crit, crit_less, S, L, Li, u,
+                       c):  # pragma: no cover - jit
+    """Data snooping with one exclusion (seed 003; :func:`robustloc.tracking.tracker.
+    one_fault_explains` is the NumPy reference): True when the largest w-test statistic
+    ``w_i^2 = (S^-1 y)_i^2 / (S^-1)_ii`` of the available components exceeds ``w2_crit``
+    and the global test of the others passes: ``y^T S^-1 y - w_i^2 <= crit_less`` (the
+    innovation quadratic form without component ``i``).  ``S = H P- H^T + diag(rd)`` from
+    the position rows ``hv (M, 2)`` of the range Jacobian and, where ``oc[i] >= 0``, the
+    entry ``hb[i]`` of an offset state in column ``oc[i]`` (the tag's range offset, or the
+    link's: :func:`robustloc.filters._compiled.offset_rows`); ``S, L (M, M)``, ``Li, u, c
+    (M,)`` are scratch."""
+    innovation_cov(M, hv, hb, oc, Pp, rd, S)
     if not _cholesky(S, 1.0, av, M, L, Li):
         return False
     for i in range(M):  # u = S^-1 y (zero where not available)
@@ -258,6 +295,8 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
     Lisn = np.empty(M)
     usn = np.empty(M)
     csn = np.empty(M)
+    Xg = np.empty((M, 2))  # the UKF's linearized gain, position rows (transposed)
+    ukf = int(prm[_KIND]) == UKF
 
     # ---- pass 1: prediction, innovations, CUSUM, holds (items 2 and 4 of the tracker)
     d_prev = math.nan
@@ -419,6 +458,14 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
         Pn01 = fout[o_P + k * nn + 1]
         Pn10 = fout[o_P + k * nn + n]
         Pn11 = fout[o_P + k * nn + n + 1]
+        # UKF: its P+ is the sigma points', for which G = P+ H^T R^-1 does not hold: the
+        # linearized gain P- H^T S^-1 instead (Tracker._hpl)
+        gain_ok = False
+        if ukf and ma > 0:
+            for i in range(M):
+                avk[i] = math.isfinite(zf[k, i])
+            gain_ok = linearized_gain_pos(M, hv[k], hbv[k], ocv[k], Pp_o[k], rd[k], avk,
+                                          Ssn, Lsn, Lisn, Xg)
         sw = 0.0
         swe = 0.0
         slope = 0.0
@@ -434,13 +481,17 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
                 wr = wv / rd[k, i]
                 # (with an offset state H_i has a third entry: + hb_i P+_c,pos)
                 oci = ocv[k, i]
-                g0 = hv[k, i, 0] * Pn00 + hv[k, i, 1] * Pn10
-                g1 = hv[k, i, 0] * Pn01 + hv[k, i, 1] * Pn11
-                if oci >= 0:
-                    g0 += hbv[k, i] * fout[o_P + k * nn + oci * n]
-                    g1 += hbv[k, i] * fout[o_P + k * nn + oci * n + 1]
-                g0 *= wr
-                g1 *= wr
+                if ukf:
+                    g0 = wv * Xg[i, 0] if gain_ok else math.inf  # no gain: unbounded
+                    g1 = wv * Xg[i, 1] if gain_ok else math.inf
+                else:
+                    g0 = hv[k, i, 0] * Pn00 + hv[k, i, 1] * Pn10
+                    g1 = hv[k, i, 0] * Pn01 + hv[k, i, 1] * Pn11
+                    if oci >= 0:
+                        g0 += hbv[k, i] * fout[o_P + k * nn + oci * n]
+                        g1 += hbv[k, i] * fout[o_P + k * nn + oci * n + 1]
+                    g0 *= wr
+                    g1 *= wr
                 v = math.hypot(g0, g1) * (sl0 * math.sqrt(hph[k, i] + rd[k, i]))
                 if slope == slope and not v <= slope:  # max, NaN propagating (np.max)
                     slope = v

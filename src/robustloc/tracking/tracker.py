@@ -54,9 +54,11 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
 7. **Coasting.**  An epoch without any usable observation is predicted only: status
    ``predicted``, its covariance grows with ``Q``.
 8. **Protection level.**  ``hpl = max_i |G_pos,i| MDB_i + k sigma_major``: ``G`` the robust
-   gain of the update, ``MDB_i = sqrt(lambda0) sqrt(S_ii)`` the bias of component ``i``
-   the w-test detects with power ``1 - beta0`` (seed 003 eq. (3); the slope form of
-   RAIM/``spp``), ``sigma_major`` the square root of the largest eigenvalue of the
+   gain of the update (EKF: ``w_i P+ H_i^T / R_ii``; UKF: the linearized ``w_i P- H^T
+   S^-1 e_i``, since its sigma-point ``P+`` does not satisfy the EKF identity),
+   ``MDB_i = sqrt(lambda0) sqrt(S_ii)`` the bias of component ``i`` the w-test detects
+   with power ``1 - beta0`` (seed 003 eq. (3); the slope form of RAIM/``spp``),
+   ``sigma_major`` the square root of the largest eigenvalue of the
    position covariance and ``k = sqrt(chi2.isf(integrity_risk, 2))`` (2-D error beyond
    ``k`` sigma with probability ``integrity_risk`` for a Gaussian error).  Predicted rows
    get the noise term only.  Where the anchors a row's update kept are nearly collinear
@@ -1070,7 +1072,7 @@ class Tracker:
                           scale2)
 
         # --- protection level: robust gain columns times the MDB, plus k sigma
-        hpl = self._hpl(H, HPH, Rd, avail, w, Pn)
+        hpl = self._hpl(H, HPH, Rd, avail, w, Pn, Pp)
 
         # --- store
         self._x[sl] = xn
@@ -1289,21 +1291,42 @@ class Tracker:
         return ok & (q > self._chi2_fix)
 
     def _hpl(self, H: Array, HPH: Array, Rd: Array, avail: NDArray[np.bool_], w: Array,
-             Pn: Array) -> Array:
+             Pn: Array, Pp: Array) -> Array:
         """``max_i |G_pos,i| MDB_i + k sigma_major`` (module docstring, item 8).
 
-        The gain column of component ``i`` is taken as ``G_i = w_i P+ H_i^T / R_ii`` (for
-        the optimal linear(ized) update ``K = P+ H^T R^-1`` exactly; with robust weights
-        the down-weighted components' columns are scaled by their weight), which avoids a
-        second factorization of ``S``.
+        EKF: the gain column of component ``i`` is taken as ``G_i = w_i P+ H_i^T / R_ii``
+        (for the linearized update ``K = P+ H^T R^-1`` exactly; with robust weights the
+        down-weighted components' columns are scaled by their weight), which avoids a
+        second factorization of ``S``.  UKF: its ``P+`` comes from the sigma points, for
+        which that identity does not hold -- next to an anchor, where the range bends within
+        the points' spread and an RSSI range's variance ``R_ii`` is small, ``P+ H_i^T /
+        R_ii`` reached 10^3 m in a 10 m room -- so the gain is the linearized ``G = w P-
+        H^T S^-1``, ``S = H P- H^T + R`` over the available components (the innovation
+        covariance the MDB and the w-test use).
         """
         K, M = avail.shape
-        wr = np.where(avail, w, 0.0) / Rd  # (K, M)
-        if self.n > self.n_motion:  # the offsets' columns feed the position rows too
-            G = (H @ Pn[:, :, :2]) * wr[:, :, None]
+        if self.settings.filter == "ukf" and M:
+            S = H @ Pp @ np.swapaxes(H, 1, 2) + Rd[:, :, None] * np.eye(M)[None]
+            both = avail[:, :, None] & avail[:, None, :]
+            S = np.where(both, S, np.eye(M)[None])  # identity over missing components
+            A = np.where(avail[:, :, None], (H @ Pp)[:, :, :2], 0.0)  # rows: (P- H_i^T)_pos
+            try:
+                X = np.linalg.solve(S, A)
+            except np.linalg.LinAlgError:  # a singular S of some tag: its bound unbounded
+                X = np.empty_like(A)
+                for k in range(K):
+                    try:
+                        X[k] = np.linalg.solve(S[k], A[k])
+                    except np.linalg.LinAlgError:
+                        X[k] = np.inf
+            G = np.where(np.isinf(X), np.inf, X * np.where(avail, w, 0.0)[:, :, None])
         else:
-            Hp = H[:, :, :2]  # position columns
-            G = (Hp @ Pn[:, :2, :2]) * wr[:, :, None]  # (K, M, 2): rows are G_pos,i^T
+            wr = np.where(avail, w, 0.0) / Rd  # (K, M)
+            if self.n > self.n_motion:  # the offsets' columns feed the position rows too
+                G = (H @ Pn[:, :, :2]) * wr[:, :, None]
+            else:
+                Hp = H[:, :, :2]  # position columns
+                G = (Hp @ Pn[:, :2, :2]) * wr[:, :, None]  # (K, M, 2): rows are G_pos,i^T
         gpos = np.hypot(G[:, :, 0], G[:, :, 1])
         mdb = math.sqrt(self._lam0) * np.sqrt(np.where(avail, HPH + Rd, 0.0))
         slope = np.max(np.where(avail, gpos * mdb, 0.0), axis=1) if M else np.zeros(K)
