@@ -152,6 +152,30 @@ def plot_stanford(ax: Axes, error_m: NDArray[np.float64], hpl_m: NDArray[np.floa
     return counts
 
 
+def _figure_format(path: str | os.PathLike[str]) -> str:
+    """The format of a figure's file name (:func:`robustloc.options.figure_path`'s check;
+    ``ValueError`` for another suffix), checked before anything is drawn."""
+    from robustloc.options import figure_path
+
+    try:
+        figure_path(str(path))
+    except argparse.ArgumentTypeError as exc:
+        raise ValueError(str(exc)) from None
+    return Path(path).suffix.lower().lstrip(".")
+
+
+def _write_figure(fig, path: str | os.PathLike[str], fmt: str) -> None:  # noqa: ANN001
+    """Lay out, write atomically (:func:`robustloc.io.atomic.atomic_output`) and close."""
+    import matplotlib.pyplot as plt
+
+    from robustloc.io.atomic import atomic_output
+
+    fig.tight_layout()
+    with atomic_output(path) as (target, stream):
+        fig.savefig(target if target is not None else stream, format=fmt, dpi=110)
+    plt.close(fig)
+
+
 #: At most this many fixes per method are drawn on the map (an even subsample beyond).
 MAP_POINTS = 20_000
 
@@ -211,14 +235,7 @@ def evaluation_figure(errors: pd.DataFrame, path: str | os.PathLike[str],
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from robustloc.io.atomic import atomic_output
-    from robustloc.options import figure_path
-
-    try:
-        figure_path(str(path))
-    except argparse.ArgumentTypeError as exc:
-        raise ValueError(str(exc)) from None
-    fmt = Path(path).suffix.lower().lstrip(".")
+    fmt = _figure_format(path)
     methods = (list(dict.fromkeys(errors["method"].astype(str))) if "method" in errors.columns
                else ["positions"])
     meth = (errors["method"].astype(str).to_numpy() if "method" in errors.columns
@@ -261,10 +278,7 @@ def evaluation_figure(errors: pd.DataFrame, path: str | os.PathLike[str],
     if has_hpl and len(methods) > max_methods:
         fig.suptitle(f"Stanford diagrams of the first {max_methods} of {len(methods)} "
                      "methods", fontsize=9)
-    fig.tight_layout()
-    with atomic_output(path) as (target, stream):
-        fig.savefig(target if target is not None else stream, format=fmt, dpi=110)
-    plt.close(fig)
+    _write_figure(fig, path, fmt)
     return out
 
 
@@ -311,14 +325,7 @@ def positions_figure(positions: pd.DataFrame, anchors: pd.DataFrame,
     import matplotlib.pyplot as plt
 
     from robustloc import status as st
-    from robustloc.io.atomic import atomic_output
-    from robustloc.options import figure_path
-
-    try:
-        figure_path(str(path))
-    except argparse.ArgumentTypeError as exc:
-        raise ValueError(str(exc)) from None
-    fmt = Path(path).suffix.lower().lstrip(".")
+    fmt = _figure_format(path)
     n = len(positions)
     meth = (positions["method"].astype(str).to_numpy() if "method" in positions.columns
             else np.full(n, "positions", dtype=object))
@@ -403,8 +410,5 @@ def positions_figure(positions: pd.DataFrame, anchors: pd.DataFrame,
             ax_h.legend(fontsize=7, loc="upper left")
     else:
         ax_h.axis("off")
-    fig.tight_layout()
-    with atomic_output(path) as (target, stream):
-        fig.savefig(target if target is not None else stream, format=fmt, dpi=110)
-    plt.close(fig)
+    _write_figure(fig, path, fmt)
     return counts
