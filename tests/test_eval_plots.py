@@ -217,3 +217,20 @@ def test_track_plot_and_its_refusals(corridor_log, tmp_path, capsys):
         assert message in capsys.readouterr().err, extra
     # nothing was written by a refused run
     assert sorted(p.name for p in tmp_path.iterdir()) == ["t.parquet", "t.pdf"]
+
+
+def test_figures_of_logs_without_a_usable_fix(tmp_path):
+    """Every row unusable: the figures are drawn, with empty panels and no warning."""
+    import warnings
+
+    from robustloc.eval.plots import positions_figure
+
+    pos, truth = _files(tmp_path)
+    bad = pos.assign(status="insufficient_anchors", x=np.nan, y=np.nan)
+    anchors = pd.DataFrame({"anchor": ["A", "B"], "x": [0.0, 5.0], "y": [0.0, 0.0]})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        counts = evaluation_figure(epoch_errors(bad, truth), tmp_path / "e.png")
+        rows = positions_figure(bad, anchors, tmp_path / "p.png")
+    assert all(c.n == 0 and c.misleading == 0 for c in counts.values())
+    assert rows == {"a": {"insufficient_anchors": 7}, "b": {"insufficient_anchors": 7}}

@@ -203,7 +203,7 @@ def _plot_map(ax: Axes, errors: pd.DataFrame, methods: list[str], meth: NDArray[
     ax.set_ylabel("y (m)")
     ax.set_title("usable fixes and the truth", fontsize=9)
     ax.grid(alpha=0.3)
-    if ax.lines:
+    if ax.get_legend_handles_labels()[0]:
         ax.legend(fontsize=7, markerscale=4, loc="best")
 
 
@@ -264,7 +264,7 @@ def evaluation_figure(errors: pd.DataFrame, path: str | os.PathLike[str],
     ax0.set_ylabel("share of usable fixes")
     ax0.set_title("error distribution (usable fixes)", fontsize=9)
     ax0.grid(alpha=0.3, which="both")
-    if ax0.lines:
+    if ax0.get_legend_handles_labels()[0]:
         ax0.legend(fontsize=7, loc="upper left")
     _plot_map(axes.flat[1], errors, methods, meth, usable)
     out: dict[str, StanfordCounts] = {}
@@ -406,7 +406,7 @@ def positions_figure(positions: pd.DataFrame, anchors: pd.DataFrame,
         ax_h.set_title("protection levels (an --alert-limit keeps the left of it)",
                        fontsize=9)
         ax_h.grid(alpha=0.3, which="both")
-        if ax_h.lines:
+        if ax_h.get_legend_handles_labels()[0]:
             ax_h.legend(fontsize=7, loc="upper left")
     else:
         ax_h.axis("off")
