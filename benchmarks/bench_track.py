@@ -27,7 +27,9 @@ time mostly measures the other processes; the load average is printed with the t
 EKF 273 k, 229 k, 149 k; UKF 157 k, 121 k, 201 k (one step: EKF 312 k, 257 k, 165 k;
 +links 78 k, 50 k, 45 k; FilterPy 12.5 k, 11.9 k, 22.9 k in the same runs).  The 200 k
 EKF target is met in two runs of three; the spread is the machine's (FilterPy's moves by
-2x with it).
+2x with it).  After the UKF's hpl took its linearized gain (a Cholesky of ``S`` per
+tag, about 0.5 ms per round: 198-217 k -> 172-195 k interleaved), two runs on slower
+minutes (FilterPy 10.3 k, 10.9 k): EKF 149 k, 188 k; UKF 98 k, 96 k.
 
 Sixth session (2026-12-02), quiet machine (load 0.4-1.2), default arguments, seven runs
 over two hours: EKF 122-233 k, UKF 101-203 k tag-epochs per CPU second (one step: 126-233 k
