@@ -21,13 +21,14 @@ def check_plot(args: argparse.Namespace, what: str) -> None:
     if getattr(args, "plot", None) is None:
         return
     from robustloc.errors import InputError
-    from robustloc.io.atomic import check_not_input, is_stdio
+    from robustloc.io.atomic import check_not_input, written_in_place
 
     if args.engine == "dask":
         raise InputError("--plot draws from the one output file: use it with --engine local "
                          "(the default)")
-    if is_stdio(args.out):
-        raise InputError(f"--plot reads the {what} back from -o FILE: give a file, not -")
+    if written_in_place(args.out):
+        raise InputError(f"--plot reads the {what} back from -o FILE: give a regular file, "
+                         f"not - or a device ({args.out})")
     from pathlib import Path
 
     if Path(args.plot).resolve() == Path(args.out).resolve():

@@ -260,6 +260,13 @@ def _gzip(tmp: Path, final: Path, temps: list[Path]) -> Path:
     return z
 
 
+def written_in_place(path: PathLike) -> bool:
+    """True when :func:`atomic_output` would write ``path`` in place rather than replace a
+    regular file: a device, a FIFO, a name under /dev or /proc, or standard output's file.
+    Nothing can be read back from such an output."""
+    return is_stdio(path) or _is_special(Path(path))
+
+
 def _is_special(p: Path) -> bool:
     """A target written in place, not replaced: an existing device or FIFO, or any name
     under /dev or /proc (``/dev/stdout`` redirected to a regular file must not have its
