@@ -986,3 +986,36 @@ def test_the_log_side_does_not_depend_on_the_anchors_order():
     np.testing.assert_array_equal(s1.status, s0.status)
     np.testing.assert_allclose(s1.position, s0.position, atol=1e-6)
     np.testing.assert_allclose(s1.extra["hpl"], s0.extra["hpl"], rtol=1e-6)
+
+
+@pytest.mark.parametrize("engine", ["compiled", "numpy"])
+def test_mirror_solution_of_one_dominant_observation_does_not_raise(engine):
+    """An RSSI of -10 dBm at A = -61.4 dB, n = 1.48 is a range of 0.3 mm, its sigma
+    1.6e-4 m: the normal matrix is rank one at entries ~1e7 and the absolute ridge
+    (1e-12) vanished in rounding; LAPACK's solve raised "singular matrix" and ``robustloc
+    track`` (and the service's tracker, for the whole block) ended in a traceback.  The
+    values are those of the failing epoch (ble-tetam anchors, found by the service
+    review).  Now the ridge is relative to the trace: both engines return, and agree
+    within what rounding allows at that conditioning: the ridge caps the condition
+    number near 1 / MIRROR_RIDGE = 1e12, so the engines' summation orders (2.2e-16)
+    may move each step by up to ~1e12 x 2.2e-16 of its length, which the trust region
+    caps at the anchors' extent (10 m here): 10 steps x 10 m x 2.2e-4 = 0.022 m."""
+    from robustloc.integrity.fixes import mirror_solution
+    from robustloc.models.ranging import RangeModel
+
+    a = np.array([[7.18, 0.68], [13.14, 12.33], [12.82, 16.83]])
+    model = RangeModel(a, np.zeros(3))
+    x = np.array([[12.835522059451723, 16.83750526601228]])
+    v = np.array([[-388.4907900079472, -3621.746564796565, 0.01690479422186639]])
+    sig = np.array([[189.31426345512995, 1692.5234223777156, 1.5707325912896265e-04]])
+    keep = np.ones((1, 3), dtype=bool)
+    xa, T, J = mirror_solution(model, x, v, sig, keep, engine=engine)
+    assert xa.shape == (1, 2) and T.shape == (1,) and J.shape == (1, 3, 2)
+    other = mirror_solution(model, x, v, sig, keep,
+                            engine="numpy" if engine == "compiled" else "compiled")
+    from robustloc.integrity.fixes import MIRROR_ITERATIONS, MIRROR_RIDGE
+
+    extent = np.max(np.linalg.norm(a - a.mean(axis=0), axis=1))
+    tol = MIRROR_ITERATIONS * extent * np.finfo(float).eps / MIRROR_RIDGE
+    np.testing.assert_array_equal(np.isnan(T), np.isnan(other[1]))
+    np.testing.assert_allclose(xa, other[0], rtol=0, atol=tol, equal_nan=True)

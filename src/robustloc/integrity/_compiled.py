@@ -167,7 +167,7 @@ def _ranges_jacobian(a, h2, xa, f, J):  # pragma: no cover - jit
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def mirror_kernel(a, h2, x, res, sigma, keep, iterations):  # pragma: no cover - jit
+def mirror_kernel(a, h2, x, res, sigma, keep, iterations, ridge):  # pragma: no cover - jit
     """``(x_alt, T_alt, J_alt)`` of :func:`robustloc.integrity.fixes.mirror_solution`, one
     epoch at a time, the same steps in the same order (the principal line / plane from
     LAPACK's symmetric eigensolver, each Gauss-Newton step from LAPACK's general solver,
@@ -252,7 +252,12 @@ def mirror_kernel(a, h2, x, res, sigma, keep, iterations):  # pragma: no cover -
                     for i in range(m):
                         if w[i] > 0.0:
                             acc += J[i, q] * w[i] * J[i, r] * w[i]
-                    Nm[q, r] = acc + (1e-12 if q == r else 0.0)
+                    Nm[q, r] = acc
+            tr = 0.0
+            for q in range(p):
+                tr += Nm[q, q]
+            for q in range(p):  # the ridge of mirror_solution (MIRROR_RIDGE, relative)
+                Nm[q, q] += ridge * max(tr, 1.0)
             finite = True
             for q in range(p):
                 finite = finite and np.isfinite(g[q])

@@ -217,6 +217,14 @@ def protection_levels_local(
 
 #: Gauss-Newton iterations of the mirror solution (:func:`mirror_solution`).
 MIRROR_ITERATIONS = 10
+#: Ridge of the mirror solution's normal matrix, relative to its trace (at least 1):
+#: ``N + MIRROR_RIDGE max(tr N, 1) I``.  One kept observation of tiny sigma (an RSSI of
+#: -10 dBm is a range of centimetres, its sigma ~1e-4 m) makes ``N`` rank one at
+#: entries ~1e7; an absolute ridge of 1e-12 vanished in rounding there and LAPACK's
+#: solve raised "singular matrix".  Relative, the ridge stays ~1e4 times the
+#: elimination's rounding (2.2e-16 tr N); the Gauss-Newton step along the flat direction
+#: is then large and the trust region (the kept anchors' extent) limits it.
+MIRROR_RIDGE = 1e-12
 #: The ambiguity check (module docstring, item 5) runs on the epochs whose kept anchors
 #: are elongated: :func:`anchor_elongation` below this.  The reflection across the
 #: anchors' line starts a second minimum only when they are close to a line; where they
@@ -316,7 +324,8 @@ def mirror_solution(
         return mirror_kernel(np.ascontiguousarray(a, dtype=float), np.ascontiguousarray(h2),
                              np.ascontiguousarray(x), np.ascontiguousarray(residuals, float),
                              np.ascontiguousarray(sigma, dtype=float),
-                             np.ascontiguousarray(keep, dtype=bool), int(iterations))
+                             np.ascontiguousarray(keep, dtype=bool), int(iterations),
+                             MIRROR_RIDGE)
     with np.errstate(invalid="ignore"):
         w = np.where(keep & np.isfinite(residuals) & (sigma > 0), 1.0 / sigma, 0.0)
     w = np.nan_to_num(w, nan=0.0, posinf=0.0)
@@ -341,7 +350,9 @@ def mirror_solution(
         f, J = range_model.predict_jacobian(xa)
         A = np.where(w[..., None] > 0, J * w[..., None], 0.0)
         b = np.where(w > 0, (d - f) * w, 0.0)
-        Nm = np.einsum("kmi,kmj->kij", A, A) + 1e-12 * np.eye(p)[None]
+        Nm = np.einsum("kmi,kmj->kij", A, A)
+        tr = np.maximum(np.trace(Nm, axis1=1, axis2=2), 1.0)
+        Nm = Nm + (MIRROR_RIDGE * tr)[:, None, None] * np.eye(p)[None]
         g = np.einsum("kmi,km->ki", A, b)
         step = np.linalg.solve(Nm, g[..., None])[..., 0]
         ln = np.linalg.norm(step, axis=1)
