@@ -928,3 +928,35 @@ def test_state_dict_holds_every_tags_arrays_as_json_values(range_offset):
     t2.load_state_dict(state)
     pd.testing.assert_frame_equal(t2.step(cut(slice(half, None))),
                                   trk.step(cut(slice(half, None))))
+
+
+def test_track_of_centimetre_rssi_ranges_writes_every_row(tmp_path):
+    """Three anchors heard at -100, -114 and -10 dBm (path loss A = -61.4 dB, n = 1.48:
+    the last a range of 0.3 mm) ended ``robustloc track`` in a LinAlgError traceback
+    (the mirror check's normal matrix; the service review found it).  Now every epoch
+    gets its row, and each row's covariance terms form a covariance: the start row
+    clipped the fix's variances (to at most 100 m^2) and kept its cov_xy of -27 588 m^2,
+    |cov_xy| > sqrt(var_x var_y)."""
+    from robustloc.cli import main
+
+    anchors = tmp_path / "anchors.csv"
+    anchors.write_text("anchor,x,y,z,A,n\n"
+                       "s11,7.18,0.68,2.3,-61.4,1.48\n"
+                       "s30,13.14,12.33,1.22,-61.4,1.48\n"
+                       "s31,12.82,16.83,2.3,-61.4,1.48\n"
+                       "s42,12.76,0.27,2.3,-61.4,1.48\n")
+    meas = tmp_path / "m.csv"
+    meas.write_text("time,tag,anchor,rssi\n"
+                    "100,evil,s11,-100\n100,evil,s30,-114.08\n100,evil,s31,-10\n"
+                    "101,evil,s11,-149.9\n101,evil,s30,-114.08\n101,evil,s31,0\n"
+                    "102,evil,s11,-100\n102,evil,s30,-100\n102,evil,s31,10\n")
+    out = tmp_path / "t.csv"
+    for engine in ("compiled", "numpy"):
+        assert main(["track", str(meas), "--anchors", str(anchors), "-o", str(out),
+                     "--kernel", engine]) == 0
+        t = pd.read_csv(out)
+        assert len(t) == 3 and t["status"].notna().all()
+        fixed = t["var_x"].notna()
+        assert fixed.any()
+        c = t.loc[fixed]
+        assert (c["cov_xy"].abs() <= np.sqrt(c["var_x"] * c["var_y"]) * (1 + 1e-12)).all()

@@ -820,9 +820,18 @@ class Tracker:
         pos = np.asarray(sol.position, dtype=float)
         ok = st.among(sol.status, st.USABLE) & np.all(np.isfinite(pos), axis=1)
         cov = self._fix_cov(pos, z, np.asarray(sol.excluded, bool))
-        var = np.diagonal(cov, axis1=1, axis2=2) if cov.ndim == 3 else np.full(pos.shape, np.nan)
-        var = np.where(np.isfinite(var), var, 4.0)
-        var = np.clip(var, s.init_pos_var_min, 100.0)
+        var0 = (np.diagonal(cov, axis1=1, axis2=2) if cov.ndim == 3
+                else np.full(pos.shape, np.nan))
+        var = np.clip(np.where(np.isfinite(var0), var0, 4.0), s.init_pos_var_min, 100.0)
+        # the row's cov_xy: the fix's correlation at the clipped variances (the fix's own
+        # cov_xy beside clipped variances is no covariance: |cov_xy| > sqrt(var_x var_y));
+        # 0 where the fix has none, as the filter's diagonal start
+        rho = np.zeros(len(pos))
+        if cov.ndim == 3:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                rho = np.clip(cov[:, 0, 1] / np.sqrt(var0[:, 0] * var0[:, 1]), -1.0, 1.0)
+            rho = np.where(np.isfinite(rho), rho, 0.0)
+        cxy = rho * np.sqrt(var[:, 0] * var[:, 1])
         n = self.n
         k = sl[ok]
         x0 = np.zeros((ok.sum(), n))
@@ -867,7 +876,7 @@ class Tracker:
         out.x[idx[ok]] = x0
         out.var[idx] = np.nan
         out.var[idx[ok]] = diag
-        out.cxy[idx] = np.where(ok, cov[:, 0, 1] if cov.ndim == 3 else np.nan, np.nan)
+        out.cxy[idx] = np.where(ok, cxy, np.nan)
         out.status[idx] = np.asarray(sol.status, dtype=object)
         out.n_used[idx] = np.asarray(sol.n_used, dtype=np.int64)
         exc = np.asarray(sol.excluded, dtype=bool)
