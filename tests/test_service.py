@@ -991,3 +991,80 @@ def test_serve_names_a_suspect_anchor_of_its_recorded_log(server_factory, tmp_pa
     ok = server_factory(["--anchors", str(a0), "--scale-from", str(m0),
                          "--store", str(tmp_path / "store0")])
     assert "warning" not in ok.log()
+
+
+def test_store_scan_has_every_segments_columns(tmp_path):
+    """A dataset of several Parquet files takes the first file's schema: a first segment
+    of the engine's fallback rows (six columns, ``solver_error``) hid ``hpl`` and the
+    covariance terms of every later segment after a restart (the service review found
+    it).  The scan now reads the union of the segments' columns."""
+    import pyarrow as pa
+    import pyarrow.dataset as ds
+
+    log = SegmentLog(tmp_path, seal_rows=1, fsync=False)
+    log.append(pa.table({"time": [1.0], "tag": ["a"], "x": pa.nulls(1, pa.float64()),
+                         "status": ["solver_error"]}))
+    log.append(pa.table({"time": [2.0], "tag": ["g"], "x": [1.5], "status": ["ok"],
+                         "hpl": [3.0], "n_used": pa.array([4], pa.int64())}))
+    log.wait_sealed()
+    log.close()
+    log2 = SegmentLog(tmp_path, fsync=False)
+    assert len(list(tmp_path.glob("*.parquet"))) == 2
+    t = log2.scan().to_pandas().sort_values("time")
+    assert list(t.columns) == ["time", "tag", "x", "status", "hpl", "n_used"]
+    assert t["hpl"].isna().tolist() == [True, False] and t["hpl"].iloc[1] == 3.0
+    g = log2.scan(columns=["time", "hpl"], expression=ds.field("tag") == "g").to_pandas()
+    assert g.to_dict("list") == {"time": [2.0], "hpl": [3.0]}
+    log2.close()
+
+
+def test_a_store_of_track_rows_refuses_a_locate_service_and_back(tmp_path):
+    """Track rows and position rows in one store: after a restart the later rows lost the
+    columns the first kind lacked.  The store records its kind of rows (``meta.json``)
+    and a service of the other kind is refused with a message naming the flag."""
+    pytest.importorskip("robustloc.tracking")
+    from robustloc.service.engine import Engine
+    from robustloc.service.processor import TrackProcessor
+
+    anchors = pd.DataFrame({"anchor": ["A1", "A2", "A3", "A4"], "x": [0, 10, 10, 0.0],
+                            "y": [0, 0, 10, 10.0]})
+    rng = np.hypot(*(anchors[["x", "y"]].to_numpy(float) - [3.0, 4.0]).T)
+    rows = [{"time": t, "tag": "T", "anchor": a, "range": float(r)}
+            for t in (0.0, 1.0, 2.0) for a, r in zip(anchors["anchor"], rng)]
+    for first, second, flag in (("locate", "track", "without --track"),
+                                ("track", "locate", "with --track")):
+        store = tmp_path / first
+
+        def make(kind, store=store):
+            proc = (TrackProcessor(anchors) if kind == "track"
+                    else LocateProcessor(anchors, method="nls"))
+            return Engine(anchors, proc, store_dir=store, latency_window_s=0.0,
+                          idle_flush_s=600.0, fsync=False)
+
+        eng = make(first)
+        eng.ingest(rows)
+        eng.flush()
+        eng.stop()
+        with pytest.raises(ValueError, match=flag):
+            make(second)
+        eng = make(first)  # the same kind restarts
+        assert len(eng.positions()) == 3
+        eng.stop()
+
+
+def test_a_client_that_leaves_mid_body_is_counted_as_its_own_reason(ble, server_factory):
+    """A client that closed its connection mid-body was logged with a traceback and
+    counted as ``internal_error`` (a server defect).  It is the client's doing: counted
+    as ``client_disconnect``, nothing stored, the server keeps serving."""
+    import socket
+
+    s = server_factory(["--anchors", str(ble / "anchors.csv")])
+    for _ in range(3):
+        with socket.create_connection(("127.0.0.1", s.port), timeout=20) as c:
+            c.sendall(b"POST /api/measurements HTTP/1.1\r\nHost: x\r\nContent-Length: 100"
+                      b"\r\n\r\n[{\"time\":1")
+    wait_for(lambda: metric(s.url, 'robustloc_requests_rejected_total'
+                                   '{reason="client_disconnect"}') == 3,
+             what="three client_disconnect rejections")
+    assert metric(s.url, 'robustloc_requests_rejected_total{reason="internal_error"}') == 0
+    assert httpx.get(s.url + "/healthz").status_code == 200

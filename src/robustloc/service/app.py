@@ -40,7 +40,7 @@ import anyio
 import pandas as pd
 from starlette.applications import Starlette
 from starlette.exceptions import HTTPException
-from starlette.requests import Request
+from starlette.requests import ClientDisconnect, Request
 from starlette.responses import FileResponse, JSONResponse, PlainTextResponse, Response
 from starlette.routing import Mount, Route, WebSocketRoute
 from starlette.staticfiles import StaticFiles
@@ -262,6 +262,9 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
         except TimeoutError:  # a client that stops sending holds no connection forever
             return refuse("body_timeout", 408, f"body not received within "
                                                f"{cfg.body_timeout_s:g} s", Connection="close")
+        except ClientDisconnect:  # the client left mid-body: its mistake, nothing stored
+            return refuse("client_disconnect", 400, "the client disconnected before the "
+                                                    "body was complete")
         client = request.client.host if request.client else "?"
         status, body = await anyio.to_thread.run_sync(ingest_sync, b"".join(chunks), "http",
                                                       client)

@@ -199,7 +199,13 @@ class Engine:
             # position of its tag, so a position lost in a crash comes back (the sync
             # would sit in the latency path of every published position)
             self.pos = SegmentLog(self.store_dir / "positions", seal_rows, fsync=False)
-            self._recover()
+            try:
+                self._recover()
+            except BaseException:  # a refused store: its logs closed, their sealing done
+                self.meas.close()
+                self.pos.close()
+                raise
+            self._write_meta()  # the kind of rows from the start (and the value if known)
 
     # -- persistence ---------------------------------------------------------------------
     def _meta_path(self) -> Path:
@@ -211,15 +217,36 @@ class Engine:
             return
         p = self._meta_path()
         tmp = p.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"value": self.kind, "anchors": self.anchor_ids}))
+        tmp.write_text(json.dumps({"value": self.kind, "anchors": self.anchor_ids,
+                                   "rows": self._rows_kind()}))
         with open(tmp, "rb") as f:
             os.fsync(f.fileno())
         os.replace(tmp, p)
 
+    def _rows_kind(self) -> str:
+        """``"locate"`` (position rows) or ``"track"`` (track rows, with a per-tag state)."""
+        return "locate" if getattr(self.processor, "stateless", False) else "track"
+
+    def _check_rows_kind(self, stored: str | None) -> None:
+        """Refuse a store of the other kind of rows: a tracker started on a store of
+        position rows (or the reverse) mixed two formats in one positions log (the track
+        rows lost their velocity and covariance columns to the earlier rows' schema)."""
+        if stored is None:  # a store of an earlier version: its rows tell
+            cols = self.pos.scan(columns=["vx"]).column_names
+            stored = "track" if "vx" in cols else None
+        mine = self._rows_kind()
+        if stored is not None and stored != mine:
+            flag = "with --track" if stored == "track" else "without --track"
+            raise ValueError(f"the store {self.store_dir} holds {stored} rows: start the "
+                             f"service {flag}, or give another --store")
+
     def _recover(self) -> None:
         meta = self._meta_path()
+        stored_rows = None
         if meta.exists():
-            stored = json.loads(meta.read_text()).get("value")
+            saved = json.loads(meta.read_text())
+            stored_rows = saved.get("rows")
+            stored = saved.get("value")
             if self.kind is not None and stored is not None and stored != self.kind:
                 raise ValueError(f"the store holds {stored} measurements, not {self.kind}")
             self.kind = self.kind or stored
@@ -227,6 +254,7 @@ class Engine:
                 raise ValueError(f"the store holds {self.kind} measurements, which these "
                                  "anchors cannot locate (no path-loss parameters: columns "
                                  "A, n; run `robustloc calibrate`)")
+        self._check_rows_kind(stored_rows)
         pos = self.pos.scan(columns=["time", "tag"])
         solved = max_by(pos, "tag", "time")
         snap = self.store_dir / "state" / "processor.pkl" if self.store_dir else None

@@ -113,6 +113,7 @@ class SegmentLog:
         self.fsync = fsync
         self._lock = threading.Lock()
         self._segments: list[Path] = []
+        self._schemas: dict[Path, pa.Schema] = {}  # a sealed segment's (immutable) schema
         self._memory: dict[int, list[pa.Table]] = {}  # log seq -> tables not yet in Parquet
         self._sealers: list[threading.Thread] = []
         self.recovered_rows = 0
@@ -216,8 +217,16 @@ class SegmentLog:
             memory = [t for seq in sorted(self._memory) for t in self._memory[seq]]
         parts: list[pa.Table] = []
         if segments:
-            parts.append(ds.dataset([str(p) for p in segments], format="parquet").to_table(
-                columns=columns, filter=expression))
+            # the union of the segments' columns: a dataset of several files takes the
+            # first file's schema, and the columns only later segments have (a segment
+            # of fallback rows of six columns sealed first: every later row lost its
+            # hpl and covariance terms after a restart) were dropped
+            schema = pa.unify_schemas([self._schema(p) for p in segments],
+                                      promote_options="permissive")
+            cols = None if columns is None else [c for c in columns if c in schema.names]
+            parts.append(ds.dataset([str(p) for p in segments], schema=schema,
+                                    format="parquet").to_table(columns=cols,
+                                                               filter=expression))
         if memory:
             mem = pa.concat_tables(memory, promote_options="default")
             if expression is not None:
@@ -228,6 +237,13 @@ class SegmentLog:
         if not parts:
             return pa.table({})
         return pa.concat_tables(parts, promote_options="default")
+
+    def _schema(self, path: Path) -> pa.Schema:
+        """The schema of a sealed segment (read once: segments never change)."""
+        sch = self._schemas.get(path)
+        if sch is None:
+            sch = self._schemas[path] = pq.read_schema(path)
+        return sch
 
     def close(self) -> None:
         with self._lock:
