@@ -1068,3 +1068,73 @@ def test_a_client_that_leaves_mid_body_is_counted_as_its_own_reason(ble, server_
              what="three client_disconnect rejections")
     assert metric(s.url, 'robustloc_requests_rejected_total{reason="internal_error"}') == 0
     assert httpx.get(s.url + "/healthz").status_code == 200
+
+
+def test_assembler_rebases_a_tag_whose_clock_jumped():
+    """One row at 9e11 s made every later row of its tag late (stored, never solved)
+    for good (the service review).  A row more than ``time_jump_s`` behind the tag's
+    newest time, nothing near that time for ``idle_flush_s``, re-bases the tag; a
+    delayed row while the tag's stream stays current does not."""
+    a = EpochAssembler(["A"], latency_window_s=0.0, idle_flush_s=2.0, time_jump_s=3600.0)
+    obj = lambda *x: np.array(x, dtype=object)  # noqa: E731
+
+    def add(t, tag="v", wall=0.0):
+        code = a.codes(obj(*([tag] * len(t))))
+        reb = a.rebase(np.array(t, float), code, wall)
+        late = a.late(np.array(t, float), code)
+        a.add_coded(np.array(t, float), code, np.zeros(len(t), np.int64),
+                    np.ones(len(t)), wall, late)
+        return reb.size, late.tolist()
+
+    assert add([10.0, 11.0, 12.0]) == (0, [False] * 3)
+    assert a.take_ready(0.0)["time"].tolist() == [10.0, 11.0]
+    assert add([9e11]) == (0, [False])  # ahead: not late; 12 becomes ready
+    assert a.take_ready(0.1)["time"].tolist() == [12.0]
+    # the stream goes on at 13: within the idle time of the 9e11 row, late (one delayed
+    # row is not a jump); after it, the tag re-bases and its 9e11 epoch is released
+    assert add([13.0], wall=1.0) == (0, [True])
+    assert add([13.0], wall=3.0) == (1, [False])
+    r = a.take_ready(3.0)
+    assert r["time"].tolist() == [9e11]
+    assert add([14.0], wall=3.5) == (0, [False])
+    assert a.take_ready(3.5)["time"].tolist() == [13.0]
+    assert a.rebased == 1 and a.watermarks()["v"] == 13.0
+    # a gateway uploading rows buffered for two hours while the tag stays current:
+    # late, no re-base
+    for k in range(10):
+        add([20_000.0 + k], tag="g", wall=100.0 + k)
+        assert add([20_000.0 + k - 7200.0], tag="g", wall=100.0 + k) == (0, [True])
+    assert a.rebased == 1
+
+
+@pytest.mark.parametrize("track", [False, True])
+def test_a_tag_whose_clock_jumped_gets_its_rows_solved_again(ble, server_factory, track):
+    """The review's reproduction on a real server: epochs 10-12, one row at 9e11, then
+    13-15.  They were accepted as late and never solved; now the tag re-bases once
+    (counted) and every epoch after the jump gets its row (the tracker's too: its time
+    goes back from 9e11 to 13)."""
+    if track:
+        pytest.importorskip("robustloc.tracking")
+    s = server_factory(["--anchors", str(ble / "anchors.csv"), "--latency-window", "0",
+                        "--idle-flush", "0.3", *(["--track"] if track else [])])
+    u = s.url
+
+    def epochs(times):
+        return [{"time": t, "tag": "V", "anchor": a, "rssi": -65.0 - int(a)}
+                for t in times for a in "12345"]
+
+    httpx.post(u + "/api/measurements", json=epochs([10.0, 11.0, 12.0]))
+    httpx.post(u + "/api/measurements",
+               json=[{"time": 9e11, "tag": "V", "anchor": "1", "rssi": -70.0}])
+    wait_for(lambda: len(httpx.get(u + "/api/positions?tag=V").json()) == 4,
+             what="the 9e11 epoch solved by the idle flush")
+    time.sleep(0.5)  # nothing near 9e11 for the idle flush: the next rows re-base
+    body = httpx.post(u + "/api/measurements", json=epochs([13.0, 14.0, 15.0])).json()
+    assert body["accepted"] == 15 and body["late"] == 0
+    got = wait_for(lambda: (p := httpx.get(u + "/api/positions?tag=V").json())
+                   and len(p) == 7 and p, what="seven positions")
+    assert sorted(p["time"] for p in got) == [10.0, 11.0, 12.0, 13.0, 14.0, 15.0, 9e11]
+    after = [p for p in got if 13.0 <= p["time"] <= 15.0]
+    assert all(p["status"] != "solver_error" and p["x"] is not None for p in after)
+    assert metric(u, "robustloc_tags_rebased_total") == 1
+    assert httpx.get(u + "/api/status").json()["tags_rebased"] == 1

@@ -25,7 +25,9 @@ payload = the same JSON). Reads: GET /api/positions?tag=&since=&until=, /api/anc
 Epoch assembly: an epoch (time, tag) is solved once it is older than the newest time seen
 for its tag by more than --latency-window seconds (default 0.5 s), or when its tag has been
 silent for --idle-flush seconds of wall time. A later row is stored and counted as late
-(metric robustloc_rows_late_total), never dropped silently.
+(metric robustloc_rows_late_total), never dropped silently. A row more than --time-jump
+seconds behind its tag's newest time, nothing near that time for --idle-flush, means the
+tag's clock jumped: the tag restarts from the new time (metric robustloc_tags_rebased_total).
 
 Durability (--store DIR): every accepted row is synced to a write-ahead log before the 202;
 logs are sealed into Parquet segments (DIR/measurements/*.parquet, DIR/positions/*.parquet).
@@ -71,6 +73,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         DEFAULT_LATENCY_WINDOW_S,
         DEFAULT_MAX_BODY_BYTES,
         DEFAULT_RATE_LIMIT_ROWS,
+        DEFAULT_TIME_JUMP_S,
     )
 
     p.add_argument("--anchors", required=True, help="anchors file (anchor, x, y[, z], ...)")
@@ -132,6 +135,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--idle-flush", type=positive_float, default=DEFAULT_IDLE_FLUSH_S,
                    metavar="S", help="wall-clock seconds after which a silent tag's pending "
                                      f"epochs are solved (default {DEFAULT_IDLE_FLUSH_S})")
+    p.add_argument("--time-jump", type=positive_float, default=DEFAULT_TIME_JUMP_S,
+                   metavar="S", help="a tag's row more than S seconds (measurement time) "
+                                     "behind its newest time, nothing near that time for "
+                                     "--idle-flush, means its clock jumped (a restart from "
+                                     "0, or one row far ahead): the tag restarts from the "
+                                     "new time instead of every later row being late "
+                                     f"(default {DEFAULT_TIME_JUMP_S:g})")
     p.add_argument("--mqtt", type=_hostport, default=None, metavar="HOST:PORT",
                    help="also ingest from this MQTT broker")
     p.add_argument("--mqtt-topic", default="robustloc/measurements/#",
@@ -172,6 +182,9 @@ def build(args: argparse.Namespace):
     if args.floorplan is not None and not Path(args.floorplan).is_file():
         raise InputError("floor-plan image not found", args.floorplan)
     value = args.value
+    if args.time_jump <= args.latency_window:
+        raise InputError(f"--time-jump ({args.time_jump:g} s) must be more than "
+                         f"--latency-window ({args.latency_window:g} s)")
     if args.track_range_offset:
         if not args.track:
             raise InputError("--track-range-offset goes with --track")
@@ -219,7 +232,7 @@ def build(args: argparse.Namespace):
     try:
         engine = Engine(anchors, processor, store_dir=args.store,
                         latency_window_s=args.latency_window, idle_flush_s=args.idle_flush,
-                        value=value)
+                        time_jump_s=args.time_jump, value=value)
     except ValueError as exc:  # --value the anchors cannot locate, or a store of another
         raise InputError(str(exc), args.anchors) from None
     mqtt = None

@@ -14,6 +14,16 @@ A row that arrives *late* - its epoch already solved, or older than ``newest - w
 when it arrives - is stored and counted by the caller, but not solved live (the epoch's
 fix has been published); the batch ``robustloc locate`` of the stored log includes it.
 
+A tag's clock can jump: a device restarts its time from 0, or one row carries a time far
+ahead (9e11 s: a unit mistake).  Every later row of the tag was then late, stored and
+never solved, for good.  So a row more than ``time_jump_s`` behind its tag's newest time,
+while no row near that newest time has arrived for ``idle_flush_s`` of wall time (the
+tag's stream has moved, not merely one delayed row arrived), **re-bases** the tag: its
+pending epochs are released as they are, its watermarks restart, and the row is solved
+as any other (:meth:`EpochAssembler.rebase`; counted).  A gateway that uploads rows
+buffered for hours while another keeps the tag's newest time current re-bases nothing:
+its rows stay late, as above.
+
 The pending rows are kept as columns (NumPy), so one ``add``/``take_ready`` costs a few
 vectorized passes over the pending rows, whatever the number of tags.
 """
@@ -27,6 +37,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from robustloc.io.tables import Epochs, pivot_epochs
+from robustloc.service.defaults import DEFAULT_TIME_JUMP_S
 
 
 class EpochAssembler:
@@ -40,18 +51,29 @@ class EpochAssembler:
         Measurement-time window (s) an epoch waits for late rows, see the module doc.
     idle_flush_s : float
         Wall-clock seconds without a row of a tag after which its pending epochs are solved.
+    time_jump_s : float
+        A row this far behind its tag's newest time, the tag silent near that time for
+        ``idle_flush_s``, re-bases the tag (module doc); ``inf``: never.
     """
 
     def __init__(
-        self, anchor_ids: Sequence[str], latency_window_s: float, idle_flush_s: float
+        self, anchor_ids: Sequence[str], latency_window_s: float, idle_flush_s: float,
+        time_jump_s: float = DEFAULT_TIME_JUMP_S,
     ) -> None:
         if not (np.isfinite(latency_window_s) and latency_window_s >= 0):
             raise ValueError(f"latency window must be >= 0 s, got {latency_window_s}")
         if not (np.isfinite(idle_flush_s) and idle_flush_s > 0):
             raise ValueError(f"idle flush must be > 0 s, got {idle_flush_s}")
+        if not (time_jump_s > latency_window_s):  # (NaN refused too)
+            raise ValueError(f"time jump must be more than the latency window "
+                             f"({latency_window_s:g} s), got {time_jump_s}")
         self.anchor_ids = tuple(str(a) for a in anchor_ids)
         self.window = float(latency_window_s)
         self.idle = float(idle_flush_s)
+        self.time_jump = float(time_jump_s)
+        #: tags re-based so far (:meth:`rebase`)
+        self.rebased = 0
+        self._released: list[tuple[NDArray, ...]] = []  # pending rows of re-based tags
         self._code: dict[str, int] = {}
         self._names: list[str] = []
         self._newest = np.empty(0)
@@ -114,6 +136,34 @@ class EpochAssembler:
         self.add_coded(time, code, anchor_col, value, wall, late)
         return late
 
+    def rebase(self, time: NDArray[np.float64], code: NDArray[np.int64], wall: float
+               ) -> NDArray[np.int64]:
+        """Re-base the tags whose clock jumped (module doc): rows more than
+        ``time_jump_s`` behind their tag's newest time, no row of the tag added for
+        ``idle_flush_s`` of wall time.  Their pending rows are released at the next
+        :meth:`take_ready` (without advancing the solved time), their watermarks reset.
+        Call before :meth:`late`; returns the codes of the re-based tags."""
+        far = time < self._newest[code] - self.time_jump
+        if not far.any():
+            return np.zeros(0, dtype=np.int64)
+        tags = np.unique(code[far])
+        tags = tags[wall - self._last_wall[tags] >= self.idle]
+        if not tags.size:
+            return tags
+        p = self._pending()
+        if p is not None:
+            t, c, a, v = p
+            out = np.isin(c, tags)
+            if out.any():
+                self._released.append((t[out], c[out], a[out], v[out]))
+                rest = ~out
+                self._chunks = [(t[rest], c[rest], a[rest], v[rest])] if rest.any() else []
+                self._n_pending = int(rest.sum())
+        self._newest[tags] = -np.inf
+        self._solved[tags] = -np.inf
+        self.rebased += int(tags.size)
+        return tags
+
     def late(self, time: NDArray[np.float64], code: NDArray[np.int64]) -> NDArray[np.bool_]:
         """Mask of the rows that would be late now (tags as :meth:`codes`)."""
         return (time <= self._solved[code]) | (time < self._newest[code] - self.window)
@@ -162,23 +212,30 @@ class EpochAssembler:
         "anchor_col", "value"}`` arrays (``tag`` as str objects, ``tag_code`` as
         :meth:`codes`), or ``None`` when nothing is ready.
         """
+        released, self._released = self._released, []
         p = self._pending()
-        if p is None:
+        if p is None and not released:
             return None
-        t, c, a, v = p
-        if flush_all:
-            ready = np.ones(len(t), bool)
-        else:
-            ready = (t < self._newest[c] - self.window) | (wall - self._last_wall[c] >= self.idle)
-        if not ready.any():
+        cols: list[tuple[NDArray, ...]] = []
+        if p is not None:
+            t, c, a, v = p
+            if flush_all:
+                ready = np.ones(len(t), bool)
+            else:
+                ready = ((t < self._newest[c] - self.window)
+                         | (wall - self._last_wall[c] >= self.idle))
+            if ready.any():
+                np.maximum.at(self._solved, c[ready], t[ready])
+                rest = ~ready
+                self._chunks = [(t[rest], c[rest], a[rest], v[rest])] if rest.any() else []
+                self._n_pending = int(rest.sum())
+                cols.append((t[ready], c[ready], a[ready], v[ready]))
+        cols = released + cols  # a re-based tag's old epochs do not advance its solved time
+        if not cols:
             return None
-        np.maximum.at(self._solved, c[ready], t[ready])
-        rest = ~ready
-        self._chunks = [(t[rest], c[rest], a[rest], v[rest])] if rest.any() else []
-        self._n_pending = int(rest.sum())
+        t, c, a, v = (np.concatenate(x) for x in zip(*cols))
         names = np.array(self._names, dtype=object)  # (the caller holds the ingest lock)
-        return {"time": t[ready], "tag": names[c[ready]], "tag_code": c[ready],
-                "anchor_col": a[ready], "value": v[ready]}
+        return {"time": t, "tag": names[c], "tag_code": c, "anchor_col": a, "value": v}
 
     def epochs(self, rows: dict, value: str) -> Epochs:
         """Pivot ready rows (from :meth:`take_ready`) with

@@ -7,6 +7,11 @@
 DEFAULT_LATENCY_WINDOW_S = 0.5
 #: Default wall-clock idle time (s) after which a silent tag's pending epochs are solved.
 DEFAULT_IDLE_FLUSH_S = 2.0
+#: Default time jump (s) that re-bases a tag (:mod:`robustloc.service.assembly`): a row
+#: an hour behind its tag's newest time, the tag silent near that time for the idle
+#: flush, means the tag's clock jumped (a restart from 0, or one row far ahead), not a
+#: delayed row.
+DEFAULT_TIME_JUMP_S = 3600.0
 #: Default largest accepted body or WebSocket message (bytes): 32 MiB, ~400 000 rows.
 DEFAULT_MAX_BODY_BYTES = 32 * 1024 * 1024
 #: Default ingest rate limit per client address (rows/s, token bucket holding 2 s).

@@ -36,6 +36,7 @@ from robustloc.service.assembly import EpochAssembler
 from robustloc.service.defaults import (
     DEFAULT_IDLE_FLUSH_S,
     DEFAULT_LATENCY_WINDOW_S,
+    DEFAULT_TIME_JUMP_S,
     MAX_REJECTED_LISTED,
 )
 from robustloc.service.metrics import Metrics
@@ -135,7 +136,7 @@ class Engine:
         What to do with ready epochs (locate or track).
     store_dir : path, optional
         Durable store (``measurements/``, ``positions/``, ``state/``); in memory when None.
-    latency_window_s, idle_flush_s : float
+    latency_window_s, idle_flush_s, time_jump_s : float
         See :mod:`robustloc.service.assembly`.
     value : {"rssi", "range"}, optional
         The value located; default: fixed by the first accepted row (and kept in the store).
@@ -152,6 +153,7 @@ class Engine:
         store_dir: str | os.PathLike | None = None,
         latency_window_s: float = DEFAULT_LATENCY_WINDOW_S,
         idle_flush_s: float = DEFAULT_IDLE_FLUSH_S,
+        time_jump_s: float = DEFAULT_TIME_JUMP_S,
         value: str | None = None, seal_rows: int = 1_000_000, fsync: bool = True,
         snapshot_s: float = 10.0,
     ) -> None:
@@ -168,7 +170,8 @@ class Engine:
             raise ValueError(f"cannot locate from {value}: the anchors have no path-loss "
                              "parameters (columns A, n; run `robustloc calibrate`)")
         self.kind = value
-        self.assembler = EpochAssembler(self.anchor_ids, latency_window_s, idle_flush_s)
+        self.assembler = EpochAssembler(self.anchor_ids, latency_window_s, idle_flush_s,
+                                        time_jump_s)
         self.metrics = Metrics(self.anchor_ids)
         self.store_dir = None if store_dir is None else Path(store_dir)
         self.snapshot_s = snapshot_s
@@ -342,6 +345,10 @@ class Engine:
             return None, 0, wall
         a = self.assembler
         code = a.codes(batch.tag)
+        rebased = a.rebase(batch.time, code, wall)  # a tag's clock jumped: it restarts
+        if rebased.size:
+            with self.metrics._lock:
+                self.metrics.tags_rebased += int(rebased.size)
         late = a.late(batch.time, code)
         table = pa.table({
             "time": batch.time, "tag": pa.array(batch.tag, pa.string()),

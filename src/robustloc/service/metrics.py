@@ -33,6 +33,7 @@ class Metrics:
         self.rows_accepted: dict[str, int] = {}
         self.rows_rejected: dict[str, int] = {}
         self.rows_late = 0
+        self.tags_rebased = 0  # tags whose clock jumped (robustloc.service.assembly)
         self.requests_rejected: dict[str, int] = {}  # reason -> count (401, 413, 429, ...)
         self.positions: dict[str, int] = {}  # status -> count
         self.ws_dropped = 0
@@ -114,6 +115,7 @@ class Metrics:
                 "rows_accepted": sum(self.rows_accepted.values()),
                 "rows_rejected": sum(self.rows_rejected.values()),
                 "rows_late": self.rows_late,
+                "tags_rebased": self.tags_rebased,
                 "requests_rejected": dict(self.requests_rejected),
                 "positions": sum(self.positions.values()),
                 "latency_p50_s": float(np.percentile(lat, 50)) if len(lat) else None,
@@ -147,6 +149,11 @@ class Metrics:
                    "Accepted rows that arrived after their epoch was solved (stored, not "
                    "solved live).")
             lines.append(f"robustloc_rows_late_total {self.rows_late}")
+            family("robustloc_tags_rebased_total", "counter",
+                   "Times a tag's clock jumped (a row more than --time-jump behind its "
+                   "newest time, nothing near it for --idle-flush) and its epochs "
+                   "restarted from the new time.")
+            lines.append(f"robustloc_tags_rebased_total {self.tags_rebased}")
             family("robustloc_requests_rejected_total", "counter",
                    "Requests refused as a whole, by reason.")
             for r, c in sorted(self.requests_rejected.items()):
