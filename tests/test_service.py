@@ -1138,3 +1138,33 @@ def test_a_tag_whose_clock_jumped_gets_its_rows_solved_again(ble, server_factory
     assert all(p["status"] != "solver_error" and p["x"] is not None for p in after)
     assert metric(u, "robustloc_tags_rebased_total") == 1
     assert httpx.get(u + "/api/status").json()["tags_rebased"] == 1
+
+
+def test_latest_positions_survive_a_restart(tmp_path):
+    """``/api/latest`` was empty after a restart until new rows came (the map page
+    started blank; the review found it).  It is seeded from the store: each tag's
+    latest stored row, the same as before the restart."""
+    from robustloc.service.engine import Engine
+
+    anchors = pd.DataFrame({"anchor": ["A1", "A2", "A3", "A4"], "x": [0, 10, 10, 0.0],
+                            "y": [0, 0, 10, 10.0]})
+    xy = anchors[["x", "y"]].to_numpy(float)
+    rows = [{"time": t, "tag": g, "anchor": a, "range": float(r)}
+            for g, p, times in (("a", [3.0, 4.0], (0.0, 1.0, 2.0)), ("b", [6.0, 2.0], (5.0,)))
+            for t in times for a, r in zip(anchors["anchor"], np.hypot(*(xy - p).T))]
+
+    def make():
+        return Engine(anchors, LocateProcessor(anchors, method="nls"),
+                      store_dir=tmp_path / "s", latency_window_s=0.0, idle_flush_s=600.0,
+                      fsync=False)
+
+    eng = make()
+    eng.ingest(rows)
+    eng.flush()
+    before = eng.latest().sort_values("tag").reset_index(drop=True)
+    eng.stop()
+    assert before["time"].tolist() == [2.0, 5.0]
+    eng = make()
+    after = eng.latest().sort_values("tag").reset_index(drop=True)
+    eng.stop()
+    pd.testing.assert_frame_equal(after[before.columns], before, check_dtype=False)

@@ -260,6 +260,7 @@ class Engine:
         self._check_rows_kind(stored_rows)
         pos = self.pos.scan(columns=["time", "tag"])
         solved = max_by(pos, "tag", "time")
+        self._seed_latest(solved)
         snap = self.store_dir / "state" / "processor.pkl" if self.store_dir else None
         if snap is not None and snap.exists():
             with open(snap, "rb") as f:
@@ -287,6 +288,18 @@ class Engine:
         heard = np.bincount(self._anchor_index.get_indexer(df["anchor"].to_numpy(object)),
                             minlength=len(self.anchor_ids))
         self.metrics.heard += heard
+
+    def _seed_latest(self, solved: dict[str, float]) -> None:
+        """``/api/latest`` after a restart: each tag's latest stored row (it was empty
+        until new rows came, and the map page started blank).  Only the rows from the
+        oldest of the tags' latest times on are read."""
+        if not solved:
+            return
+        since = min(solved.values())
+        df = self.pos.scan(expression=ds.field("time") >= since).to_pandas()
+        df = df[df["time"].to_numpy(float) == df["tag"].map(solved).to_numpy(float)]
+        self._latest_frames = [df.drop_duplicates("tag", keep="last")
+                               .sort_values("tag", kind="stable").reset_index(drop=True)]
 
     def _snapshot(self) -> None:
         state = self.processor.state_dict()
