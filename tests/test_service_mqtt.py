@@ -82,3 +82,35 @@ def test_mqtt_ingest_positions_and_malformed(broker, tmp_path):
                  what="every epoch solved")
     finally:
         srv.stop()
+
+
+def test_mqtt_payload_of_too_many_rows_is_refused_as_a_body(monkeypatch):
+    """A body of more than MAX_ROWS_PER_BODY rows is refused (413) before any per-row
+    work; an MQTT payload was validated row by row whatever its count (the review read
+    it in the code).  Now it is refused alike, counted as ``mqtt_too_many_rows``.  (The
+    limit is lowered to 3 rows so the payload stays small; no broker is needed to call
+    the message handler.)"""
+    import pandas as pd
+
+    import robustloc.service.mqtt as mq
+    from robustloc.service.engine import Engine
+    from robustloc.service.processor import LocateProcessor
+
+    anchors = pd.DataFrame({"anchor": ["A1", "A2", "A3"], "x": [0, 10, 0.0],
+                            "y": [0, 0, 10.0]})
+    eng = Engine(anchors, LocateProcessor(anchors, method="nls"), latency_window_s=0.0,
+                 idle_flush_s=600.0, fsync=False)
+    ing = mq.MqttIngest(eng, "127.0.0.1", 1)  # never connected
+    monkeypatch.setattr(mq, "MAX_ROWS_PER_BODY", 3)
+
+    class Msg:
+        def __init__(self, rows):  # NDJSON: not the one-pass array decoder's
+            self.payload = "\n".join(json.dumps(r) for r in rows).encode()
+
+    rows = [{"time": float(t), "tag": "T", "anchor": a, "range": 5.0}
+            for t in range(2) for a in ("A1", "A2")]
+    ing._on_message(None, None, Msg(rows))
+    assert eng.metrics.requests_rejected == {"mqtt_too_many_rows": 1}
+    ing._on_message(None, None, Msg(rows[:3]))
+    assert eng.metrics.summary()["rows_accepted"] == 3
+    eng.stop()

@@ -9,13 +9,18 @@ one per gateway ``robustloc/measurements/gw-7``.  Payload: UTF-8 JSON, the same 
 Subscribed with QoS 1.  paho acknowledges a QoS 1 message (PUBACK) only after the message
 callback returns, and the callback returns after the rows are synced to the store, so a
 message the broker considers delivered is on disk.  Rejected rows and payloads that are not
-rows are counted in the metrics (``source="mqtt"``, ``reason="mqtt_not_rows"``).
+rows are counted in the metrics (``source="mqtt"``, ``reason="mqtt_not_rows"``); a
+payload over ``--max-body-bytes`` or of more than
+:data:`~robustloc.service.defaults.MAX_ROWS_PER_BODY` rows is refused as a body would be
+(``mqtt_too_large``, ``mqtt_too_many_rows``).  ``--rate-limit`` is per client address
+and does not apply: the service's one MQTT client is the broker (limit publishers there).
 """
 
 from __future__ import annotations
 
 import threading
 
+from robustloc.service.defaults import MAX_ROWS_PER_BODY
 from robustloc.service.engine import Engine
 from robustloc.service.rows import BodyError, parse_body
 
@@ -77,6 +82,9 @@ class MqttIngest:
                 rows, _ = parse_body(msg.payload)
             except BodyError:
                 m.request_rejected("mqtt_not_rows")
+                return
+            if len(rows) > MAX_ROWS_PER_BODY:  # as an HTTP body: refused before the rows
+                m.request_rejected("mqtt_too_many_rows")
                 return
             self.engine.ingest(rows, "mqtt")
         except Exception:  # never let one message stop the network loop
