@@ -1168,3 +1168,13 @@ def test_latest_positions_survive_a_restart(tmp_path):
     after = eng.latest().sort_values("tag").reset_index(drop=True)
     eng.stop()
     pd.testing.assert_frame_equal(after[before.columns], before, check_dtype=False)
+
+
+def test_an_ndjson_line_that_is_not_json_is_named_so_in_the_reply():
+    """The reply listed such a line with the decoder's message alone ("JSON is
+    malformed: ..."), not saying which kind of mistake it was."""
+    idx = pd.Index(["A1"], dtype=object)
+    rows, _ = parse_body(b'{"time": 1, "tag": "t", "anchor": "A1", "range": 3}\n{bad\n')
+    _, _, rejected = validate_rows(rows, idx, None, ("range", "rssi"))
+    assert [i for i, _ in rejected] == [1]
+    assert rejected[0][1].startswith("line is not JSON: ")

@@ -377,7 +377,7 @@ def validate_rows(
                 objs.append(r)
             else:
                 objs.append({})
-                err[i] = r.error if isinstance(r, _NotJSON) else (
+                err[i] = f"line is not JSON: {r.error}" if isinstance(r, _NotJSON) else (
                     f"row is a JSON {_json_type(r)}, expected an object")
     t = _floats([r.get("time") for r in objs], "time", err)
     tag = _ids([r.get("tag") for r in objs], "tag", err)
