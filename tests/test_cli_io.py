@@ -410,3 +410,48 @@ def test_a_capitalized_column_is_named_in_the_message(tmp_path, capsys):
     assert capsys.readouterr().err.endswith(
         "(has: anchor, X, Y); column names are lower case without spaces: rename "
         "'X' -> 'x', 'Y' -> 'y'\n")
+
+
+def test_calibrate_filter_and_fuse_never_write_over_their_inputs(tmp_path, capsys):
+    """`-o` naming an input replaced it with exit 0 in `calibrate` (the survey, the log
+    of --self, the truth, the anchors), `filter` (the RSSI log, or its anchors) and
+    `fuse` (the range log), where `locate` and `track` refused (the CLI review found
+    it).  Each is now refused before any work, the file unchanged."""
+    import shutil
+
+    for scen in ("uwb-cart", "ble-corridor"):
+        assert main(["simulate", scen, "--seed", "1", "--out", str(tmp_path / scen)]) == 0
+    u, b = tmp_path / "uwb-cart", tmp_path / "ble-corridor"
+    cases = {
+        "calibrate survey": (b / "survey.csv", ["calibrate", "{f}", "-o", "{f}"]),
+        "calibrate --self log": (u / "measurements.csv",
+                                 ["calibrate", "--self", "{f}", "--anchors",
+                                  str(u / "anchors.csv"), "-o", "{f}"]),
+        "calibrate --self anchors": (u / "anchors.csv",
+                                     ["calibrate", "--self", str(u / "measurements.csv"),
+                                      "--anchors", "{f}", "-o", "{f}"]),
+        "calibrate truth": (b / "truth.csv",
+                            ["calibrate", "--measurements", str(b / "measurements.csv"),
+                             "--truth", "{f}", "--anchors", str(b / "anchors.csv"),
+                             "-o", "{f}"]),
+        "filter log": (b / "measurements.csv",
+                       ["filter", "{f}", "--anchors", str(b / "anchors.csv"), "-o", "{f}"]),
+        "filter anchors": (b / "anchors.csv",
+                           ["filter", str(b / "measurements.csv"), "--anchors", "{f}",
+                            "-o", "{f}"]),
+        "fuse ranges": (u / "measurements.csv",
+                        ["fuse", "--ranges", "{f}", "--anchors", str(u / "anchors.csv"),
+                         "-o", "{f}"]),
+        "fuse nmea": (u / "gps.nmea",
+                      ["fuse", "--ranges", str(u / "measurements.csv"), "--anchors",
+                       str(u / "anchors.csv"), "--nmea", "{f}", "-o", "{f}"]),
+    }
+    for name, (f, argv) in cases.items():
+        copy = tmp_path / "copies" / name.replace(" ", "_") / f.name
+        copy.parent.mkdir(parents=True)
+        shutil.copy(f, copy)
+        before = copy.read_bytes()
+        args = [a.replace("{f}", str(copy)) for a in argv]
+        assert _code(args) == 2, name
+        assert f"error: {copy}: output would overwrite an input" in capsys.readouterr().err
+        assert copy.read_bytes() == before, name

@@ -112,8 +112,13 @@ def _fmt(table: pd.DataFrame, unit: str) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from robustloc.io import read_anchors, write_table
+    from robustloc.io.atomic import check_not_input
     from robustloc.pipelines.calibrate import CalibrateSettings, run_calibrate
 
+    # before any work: -o naming an input replaced it (the log, the survey, the truth or
+    # the anchors themselves), where `locate` and `track` refused
+    check_not_input(args.out, [args.survey, args.anchors, args.measurements, args.truth,
+                               args.self_log])
     settings = CalibrateSettings.from_namespace(args)
     anchors = read_anchors(args.anchors) if args.anchors else None
     cal = run_calibrate(settings, survey=args.survey, anchors=anchors,

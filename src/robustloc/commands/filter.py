@@ -154,6 +154,10 @@ def filter_partition(meas, anchors, args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    from robustloc.io.atomic import check_not_input
+
+    if args.engine != "dask":  # (the Dask engine checks its output tree itself)
+        check_not_input(args.out, [args.measurements, args.anchors])
     if args.engine == "dask":
         from robustloc.engines.dask import run_filter
         return run_filter(args, filter_partition)

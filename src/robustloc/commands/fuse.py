@@ -125,10 +125,11 @@ def run(args: argparse.Namespace) -> int:
     from robustloc.fusion.pipeline import FusionFilter
     from robustloc.fusion.run import FuseOptions, fuse
     from robustloc.io import read_anchors, read_measurements, write_table
-    from robustloc.io.atomic import writes_to_stdout
+    from robustloc.io.atomic import check_not_input, writes_to_stdout
     from robustloc.io.nmea import read_nmea
     from robustloc.robust.weights import get_weight
 
+    check_not_input(args.out, [args.ranges, args.anchors, args.nmea])
     anchors = read_anchors(args.anchors)
     if args.tag_height is not None and "z" not in anchors.columns:
         # the slant-range correction needs the anchors' heights: never ignore it silently
