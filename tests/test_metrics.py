@@ -214,3 +214,20 @@ def test_the_report_counts_misleading_fixes_as_evaluate_does():
     assert rep["hpl_median_over_err_median"] == np.inf
     err = np.where(usable, np.hypot(*pos.T), np.nan)  # a track's rows without a fix: NaN
     assert _mislead(err, hpl) == pytest.approx(0.5)
+
+
+def test_error_stats_of_huge_errors_do_not_overflow():
+    """An error of 1e300 m (an absurd position in a positions file) squared to inf: a
+    RuntimeWarning on `evaluate`'s stderr and an infinite rms where the rms is 1e300.
+    The squares are now scaled by the largest error; small errors give the same numbers
+    as the formula (to rounding)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        s = error_stats(np.array([1e300, 1e300]))
+    assert s["rms"] == pytest.approx(1e300, rel=1e-12) and s["sigma1"] == 0.0
+    e = np.array([3.0, 4.0, 5.0])
+    s = error_stats(e)
+    assert s["rms"] == pytest.approx(np.sqrt(np.mean(e * e)), rel=1e-15)
+    assert s["sigma1"] == pytest.approx(np.std(e), rel=1e-15)

@@ -143,3 +143,23 @@ def test_bad_inputs():
     bad.loc[3, "anchor"] = "nope"
     with pytest.raises(InputError, match="unknown anchor"):
         RssiStatistics().compute(bad, anchors, truth)
+
+
+def test_stats_with_no_distance_bin_of_min_samples(tmp_path, capsys):
+    """`robustloc stats --truth` ended in a KeyError traceback when no distance bin held
+    --min-samples samples, and its per_bin.csv was one empty line (the CLI review).
+    Now the table has its columns and no rows, and the command says why."""
+    from robustloc.cli import main
+
+    (tmp_path / "a.csv").write_text("anchor,x,y,A,n\nA1,0,0,-40,2\nA2,10,0,-40,2\n"
+                                    "A3,0,10,-40,2\n")
+    (tmp_path / "m.csv").write_text("time,tag,anchor,rssi\n0,T,A1,-60\n0,T,A2,-62\n"
+                                    "0,T,A3,-61\n1,T,A1,-59\n1,T,A2,-63\n1,T,A3,-60\n")
+    (tmp_path / "t.csv").write_text("time,tag,x,y\n0,T,5,5\n1,T,5,5\n")
+    out = tmp_path / "st"
+    assert main(["stats", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),
+                 "--truth", str(tmp_path / "t.csv"), "-o", str(out)]) == 0
+    assert "none of 1 m holds --min-samples 10 samples" in capsys.readouterr().out
+    pb = pd.read_csv(out / "per_bin.csv")
+    assert pb.empty and list(pb.columns[:4]) == ["anchor", "distance_m", "n", "mean"]
+    assert {"variance", "decorrelation_lag", "normaltest_p"} <= set(pb.columns)

@@ -65,6 +65,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                          output="the one statistics table of -o, as without it")
 
 
+def _metres(v: float) -> str:
+    """A table cell: 2 decimals, or 3 significant digits beyond 1e9 (an absurd position
+    of 1e300 m printed 300 digits per cell)."""
+    if not np.isfinite(v):
+        return ""
+    return f"{v:.2f}" if abs(v) < 1e9 else f"{v:.3g}"
+
+
 def run(args: argparse.Namespace) -> int:
     import sys
 
@@ -123,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
     for c in ("n", "n_missing", "n_failed"):
         show[c] = show[c].map(_count)
     for c in show.columns[5:]:
-        show[c] = show[c].map(lambda v: "" if not np.isfinite(v) else f"{v:.2f}")
+        show[c] = show[c].map(_metres)
     show = show.rename(columns={"mean_impr_pct": "mean_vs_ls_%", "rms_impr_pct": "rms_vs_ls_%"})
     print("horizontal error (m)", file=dest)
     print(show.to_string(index=False), file=dest)
@@ -131,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
         cols = ["tag", "method", "mean_3d", "rms_3d", "p95_3d", "max_3d"]
         t3 = table[cols].copy()
         for c in cols[2:]:
-            t3[c] = t3[c].map(lambda v: "" if not np.isfinite(v) else f"{v:.2f}")
+            t3[c] = t3[c].map(_metres)
         print("\n3-D error (m)", file=dest)
         print(t3.to_string(index=False), file=dest)
     n_missing = int(table.loc[agg & (table["tag"] == "all"), "n_missing"].sum())

@@ -86,7 +86,10 @@ def run(args: argparse.Namespace) -> int:
                 "decorrelation_lag", "normaltest_p"]
         print("per anchor:")
         print(res.per_anchor[cols].to_string(index=False, float_format=lambda v: f"{v:.3g}"))
-        if res.per_bin is not None:
+        if res.per_bin is not None and res.per_bin.empty:
+            print(f"\nper distance bin: none of {args.bin_width:g} m holds --min-samples "
+                  f"{args.min_samples} samples")
+        elif res.per_bin is not None:
             print("\nper distance bin:")
             print(res.per_bin[["anchor", "distance_m"] + cols[1:]].to_string(
                 index=False, float_format=lambda v: f"{v:.3g}"))

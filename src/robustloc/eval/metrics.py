@@ -140,12 +140,16 @@ def error_stats(errors: NDArray[np.float64]) -> dict[str, float]:
     if e.size == 0:
         return {k: float("nan") for k in STAT_COLUMNS}
     mean = e.mean()
+    # the squares scaled by the largest error: an error of 1e300 m squared overflowed (a
+    # RuntimeWarning on stderr, an infinite rms) where the rms is finite
+    top = float(np.max(np.abs(e)))
+    scale = top if top > 0 else 1.0
     return {
         "max": float(e.max()),
         "min": float(e.min()),
         "mean": float(mean),
-        "rms": float(np.sqrt(np.mean(e * e))),  # seed 000: sigma0
-        "sigma1": float(np.sqrt(np.mean((e - mean) ** 2))),  # seed 000: sigma1
+        "rms": scale * float(np.sqrt(np.mean((e / scale) ** 2))),  # seed 000: sigma0
+        "sigma1": scale * float(np.sqrt(np.mean(((e - mean) / scale) ** 2))),  # sigma1
         "median": float(np.median(e)),
         "p95": float(np.percentile(e, 95)),
     }

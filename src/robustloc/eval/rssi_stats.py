@@ -333,7 +333,11 @@ class RssiStatistics:
                     continue
                 rows.append({"anchor": anchor, "distance_m": b,
                              **self._stats(g["rssi"].to_numpy(), self._runs(g))})
-            per_bin = pd.DataFrame(rows)
+            # no bin with min_samples: the table's columns all the same (its CSV was one
+            # empty line, and `robustloc stats` ended in a KeyError printing it)
+            per_bin = pd.DataFrame(rows, columns=[
+                "anchor", "distance_m", *moments(np.empty(0)), "decorrelation_lag",
+                *normality(np.empty(0))])
             if len(per_bin) >= 3 and per_bin["variance"].std() > 0:
                 corr = float(np.corrcoef(per_bin["distance_m"], per_bin["variance"])[0, 1])
             bin_mean = df.groupby(["anchor", "bin_m"])["rssi"].transform("mean")
