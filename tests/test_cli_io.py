@@ -455,3 +455,26 @@ def test_calibrate_filter_and_fuse_never_write_over_their_inputs(tmp_path, capsy
         assert _code(args) == 2, name
         assert f"error: {copy}: output would overwrite an input" in capsys.readouterr().err
         assert copy.read_bytes() == before, name
+
+
+def test_an_output_named_like_a_folder_is_refused(tmp_path, capsys):
+    """`-o new/` (a folder that does not exist yet) wrote a file named `new` with exit 0
+    (`Path` drops the separator; the CLI review found it).  Refused before any work, by
+    the commands that write one file; a Dask dataset's `-o positions/` stays a folder."""
+    assert main(["simulate", "uwb-cart", "--seed", "1", "--out", str(tmp_path / "u")]) == 0
+    u = tmp_path / "u"
+    for argv in (["locate", str(u / "measurements.csv"), "--anchors", str(u / "anchors.csv")],
+                 ["track", str(u / "measurements.csv"), "--anchors", str(u / "anchors.csv")],
+                 ["fuse", "--ranges", str(u / "measurements.csv"), "--anchors",
+                  str(u / "anchors.csv")]):
+        out = str(tmp_path / "new") + "/"
+        assert _code([*argv, "-o", out]) == 2, argv[0]
+        assert (f"error: {out}: names a folder (ends with a separator), expected a file"
+                in capsys.readouterr().err)
+        assert not (tmp_path / "new").exists()
+    from robustloc.errors import OutputError
+    from robustloc.io.atomic import atomic_output
+
+    with pytest.raises(OutputError, match="names a folder"):
+        with atomic_output(str(tmp_path / "x") + "/"):
+            pass

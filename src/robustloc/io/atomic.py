@@ -137,6 +137,7 @@ def check_not_input(out: PathLike | None, inputs: Iterable[PathLike | None]) -> 
     """
     if out is None or is_stdio(out):
         return
+    _refuse_folder_name(out)  # before any work, as the rest of this check
     o = Path(out)
     for i in inputs:
         if i is None or is_stdio(i):
@@ -146,6 +147,16 @@ def check_not_input(out: PathLike | None, inputs: Iterable[PathLike | None]) -> 
             return
         if _samefile(o, p):
             raise InputError("output would overwrite an input", out)
+
+
+def _refuse_folder_name(path: PathLike) -> None:
+    """An output file named with a trailing separator (``-o new/``) is a folder's name:
+    ``Path`` drops the separator, and a file named ``new`` was written where the user
+    expected a folder.  Refused (an existing folder is refused by its kind)."""
+    name = os.fspath(path)
+    if isinstance(name, str) and name.endswith(tuple(filter(None, (os.sep, os.altsep)))):
+        raise OutputError("names a folder (ends with a separator), expected a file", name,
+                          errno_=errno.EISDIR)
 
 
 def _stat_id(p: Path) -> tuple[int, int] | None:
@@ -354,6 +365,7 @@ def atomic_output(path: PathLike, *, binary: bool = True) -> Iterator[tuple[Path
                 raise
             raise OutputError(describe_oserror(exc), "<stdout>", errno_=exc.errno) from None
         return
+    _refuse_folder_name(path)
     p = Path(path)
     if _is_special(p):
         try:
