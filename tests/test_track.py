@@ -960,3 +960,30 @@ def test_track_of_centimetre_rssi_ranges_writes_every_row(tmp_path):
         assert fixed.any()
         c = t.loc[fixed]
         assert (c["cov_xy"].abs() <= np.sqrt(c["var_x"] * c["var_y"]) * (1 + 1e-12)).all()
+
+
+def test_track_names_an_anchor_far_outside_the_layout(tmp_path, capsys):
+    """An anchor at y = 1e300 (a typo) is named by `locate` and was silently listed as
+    excluded in every `track` row (the CLI review).  `track` now warns as `locate` does,
+    and its summary lists it (``anchors_not_used``)."""
+    from robustloc.cli import main
+
+    a = tmp_path / "a.csv"
+    a.write_text("anchor,x,y\nA1,0,0\nA2,10,0\nA3,0,1e300\nA4,10,10\nA5,0,10\n")
+    xy = np.array([[0, 0], [10, 0], [0, 1e300], [10, 10], [0, 10]], float)
+    lines = ["time,tag,anchor,range"]
+    for t in range(4):
+        for i in range(5):
+            r = 5.0 if i == 2 else float(np.hypot(*(xy[i] - [3.0, 4.0])))
+            lines.append(f"{t},T,A{i + 1},{r}")
+    m = tmp_path / "m.csv"
+    m.write_text("\n".join(lines) + "\n")
+    assert main(["track", str(m), "--anchors", str(a), "-o", str(tmp_path / "t.csv"),
+                 "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert f"warning: {a}: anchor(s) A3 lie far outside the others" in err
+    assert main(["track", str(m), "--anchors", str(a), "-o", str(tmp_path / "t.csv"),
+                 "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["anchors_not_used"] == ["A3"]
+    t = pd.read_csv(tmp_path / "t.csv")
+    assert len(t) == 4 and np.allclose(t[["x", "y"]].to_numpy(float), [3.0, 4.0], atol=1e-6)

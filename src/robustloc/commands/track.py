@@ -241,6 +241,10 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(summary, indent=2), file=dest)
         return 0
+    from robustloc.pipelines.locate import anchor_warnings
+
+    for line in anchor_warnings(summary, args.anchors):  # warnings, even with --quiet
+        print(f"warning: {line}", file=sys.stderr)
     if args.quiet:
         return 0
     print(f"{summary['epochs']} epochs, {summary['tags']} tags -> {summary['track']} "

@@ -159,6 +159,12 @@ def run_track(
                             if settings.smoothing else None),
                "sorted_first": resorted, "seconds": round(wall, 3),
                "epochs_per_second": round(n_epochs / max(wall, 1e-9), 1)}
+    from robustloc.estimators.ranging import _sane_anchors
+
+    # as locate: an anchor far outside the layout (a typo such as y = 1e300) is named
+    dims = [c for c in ("x", "y", "z") if c in anchors.columns]
+    far = ~_sane_anchors(anchors[dims].to_numpy(dtype=float))
+    summary["anchors_not_used"] = [str(a) for a, f in zip(anchors["anchor"], far) if f]
     if settings.range_offset:
         summary["range_offset_m"] = range_offsets(trk)
     if settings.link_offsets:
