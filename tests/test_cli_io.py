@@ -478,3 +478,24 @@ def test_an_output_named_like_a_folder_is_refused(tmp_path, capsys):
     with pytest.raises(OutputError, match="names a folder"):
         with atomic_output(str(tmp_path / "x") + "/"):
             pass
+
+
+@pytest.mark.parametrize(("text", "line", "words"), [
+    ("\n\ntime,tag,anchor,range\n0,T,a,5\n", 1, "line 1 is blank: the first line must be "
+                                                "the header"),
+    ("time,tag,anchor,range\n0,\"T,a,5\n0,T,b,6\n", 2, "a quoted field opens here and "
+                                                       "is never closed"),
+    ("time,tag,anchor,range\n0,T,a,5\n0,T,b,6\n1,\"T,a,5\n", 4, "a quoted field opens "
+                                                                "here"),
+    ("", 1, "empty file (expected a header line)"),
+])
+def test_a_blank_first_line_and_an_unclosed_quote_are_named(tmp_path, capsys, text, line,
+                                                            words):
+    """A file whose first line is blank was an "empty file"; an unclosed quote gave
+    pandas' "EOF inside string starting at row N" without a line (N counts records).
+    Both now name the line (the CLI review)."""
+    a = _w(tmp_path, "a.csv", "anchor,x,y\na,0,0\nb,10,0\nc,0,10\n")
+    m = _w(tmp_path, "m.csv", text)
+    _fails(capsys, ["locate", m, "--anchors", a, "-o", str(tmp_path / "p.csv")], m, line,
+           words)
+    assert not (tmp_path / "p.csv").exists()

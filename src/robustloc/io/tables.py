@@ -226,7 +226,34 @@ def _parser_error(exc: Exception, p: Path, path: PathLike, fmt: str) -> InputErr
         return InputError(
             f"expected {m.group(1)} fields, found {m.group(3)}", name, int(m.group(2))
         )
+    if "EOF inside string" in msg:
+        return _unclosed_quote(p, path, fmt)
     return InputError(f"cannot parse: {msg.strip()}", name)
+
+
+def _unclosed_quote(p: Path, path: PathLike, fmt: str) -> InputError:
+    """The line where a quoted field opens and is never closed (slow path, after pandas'
+    "EOF inside string starting at row N", whose N counts records, not lines)."""
+    start, inside = None, False
+    with _open_bytes(p, fmt) as raw:
+        for k, line in enumerate(raw, start=1):
+            if line.count(b'"') % 2:
+                inside = not inside
+                start = k if inside else start
+    return InputError('a quoted field opens here and is never closed (a " without its '
+                      'closing ")', _display(path), start if inside else None)
+
+
+def _empty_error(p: Path, path: PathLike, fmt: str) -> InputError:
+    """pandas' "No columns to parse": the file is empty, or its first line is blank."""
+    with _open_bytes(p, fmt) as raw:
+        first = raw.readline()
+    if first.strip(b"\r\n\t \xef\xbb\xbf"):
+        return InputError("no columns in the header line", _display(path), 1)
+    if first:
+        return InputError("line 1 is blank: the first line must be the header "
+                          "(time,tag,anchor,...)", _display(path), 1)
+    return InputError("empty file (expected a header line)", _display(path), 1)
 
 
 def _decode_error(p: Path, path: PathLike, fmt: str) -> InputError:
@@ -378,7 +405,7 @@ def _read_raw(path: PathLike, str_columns: Sequence[str] = ()) -> pd.DataFrame:
     except InputError:
         raise
     except pd.errors.EmptyDataError:
-        raise InputError("empty file (expected a header line)", _display(path), 1) from None
+        raise _empty_error(p, path, fmt) from None
     except _CSV_ERRORS as exc:
         raise _parser_error(exc, p, path, fmt) from None
     return _finish_frame(df, path, 2)
@@ -434,7 +461,7 @@ def _iter_raw(
     except InputError:
         raise
     except pd.errors.EmptyDataError:
-        raise InputError("empty file (expected a header line)", _display(path), 1) from None
+        raise _empty_error(p, path, fmt) from None
     except _CSV_ERRORS as exc:
         raise _parser_error(exc, p, path, fmt) from None
 
