@@ -499,3 +499,15 @@ def test_a_blank_first_line_and_an_unclosed_quote_are_named(tmp_path, capsys, te
     _fails(capsys, ["locate", m, "--anchors", a, "-o", str(tmp_path / "p.csv")], m, line,
            words)
     assert not (tmp_path / "p.csv").exists()
+
+
+def test_fuse_and_filter_on_the_other_kind_of_log_name_the_header(tmp_path, capsys):
+    """`fuse` on an RSSI log and `filter` on a range log said so without a line, where
+    `locate` names line 1 for a header problem (the CLI review)."""
+    a = _w(tmp_path, "a.csv", "anchor,x,y,A,n\na,0,0,-40,2\nb,10,0,-40,2\nc,0,10,-40,2\n")
+    rssi = _w(tmp_path, "rssi.csv", "time,tag,anchor,rssi\n0,T,a,-60\n0,T,b,-62\n")
+    rng = _w(tmp_path, "rng.csv", "time,tag,anchor,range\n0,T,a,5\n0,T,b,6\n")
+    _fails(capsys, ["fuse", "--ranges", rssi, "--anchors", a, "-o",
+                    str(tmp_path / "f.csv")], rssi, 1, "no 'range' column")
+    _fails(capsys, ["filter", rng, "--anchors", a, "-o", str(tmp_path / "g.csv")], rng, 1,
+           "needs an 'rssi' column")

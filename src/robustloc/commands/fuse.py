@@ -140,7 +140,8 @@ def run(args: argparse.Namespace) -> int:
 
     compile_notice("positioning", "filter")
     if meas.attrs.get("value") != "range":
-        raise InputError("the measurements file has no 'range' column", args.ranges)
+        raise InputError("the measurements file has no 'range' column (fuse takes UWB "
+                         "ranges)", args.ranges, 1)  # the header line
     origin = None
     if args.origin:
         try:

@@ -744,7 +744,7 @@ def filter_measurements(
     m = pd.DataFrame(measurements)
     if "rssi" not in m.columns:
         raise InputError("the filter needs an 'rssi' column (this file has none)",
-                         getattr(measurements, "attrs", {}).get("path"))
+                         getattr(measurements, "attrs", {}).get("path"), 1)  # the header
     key = m["tag"].astype(str) + "\x1f" + m["anchor"].astype(str)
     link, uniq = pd.factorize(key, sort=True)
     anchor_of_link = np.array([u.split("\x1f", 1)[1] for u in uniq], dtype=object)
