@@ -511,3 +511,11 @@ def test_fuse_and_filter_on_the_other_kind_of_log_name_the_header(tmp_path, caps
                     str(tmp_path / "f.csv")], rssi, 1, "no 'range' column")
     _fails(capsys, ["filter", rng, "--anchors", a, "-o", str(tmp_path / "g.csv")], rng, 1,
            "needs an 'rssi' column")
+
+
+def test_evaluate_refuses_an_empty_method_cell(tmp_path, capsys):
+    """An empty `method` cell was scored as a method named "unknown" beside the file's
+    named ones, where an empty tag or status is an error (the CLI review)."""
+    p = _w(tmp_path, "p.csv", "time,tag,x,y,method,status\n0,T,1,1,nls,ok\n1,T,1,1,,ok\n")
+    t = _w(tmp_path, "t.csv", "time,tag,x,y\n0,T,0,0\n1,T,0,0\n")
+    _fails(capsys, ["evaluate", p, "--truth", t], p, 3, "column 'method': empty value")

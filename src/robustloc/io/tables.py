@@ -806,7 +806,8 @@ def read_positions(path: PathLike) -> pd.DataFrame:
 
     ``x, y, z`` and ``sigma0`` may be empty/NaN (a failed epoch: its ``status`` says why);
     ``method`` defaults to ``"unknown"`` and ``status`` to ``"ok"`` when the columns are
-    absent (a positions file from another tool).  ``n_used`` and ``excluded`` are optional.
+    absent (a positions file from another tool); an empty ``method`` or ``status`` cell
+    is an :class:`InputError` naming its line.  ``n_used`` and ``excluded`` are optional.
     """
     df = _read_raw(path, ("tag", "method", "status", "excluded"))
     return validate_positions(df, _display(path))
@@ -836,7 +837,15 @@ def validate_positions(df: pd.DataFrame, path: PathLike | None = None) -> pd.Dat
         if c not in df.columns:
             df[c] = default
         elif c == "method":
-            df[c] = df[c].fillna(default).astype(str).str.strip().astype(object)
+            # an empty cell is a mistake, as an empty tag (it was scored as "unknown",
+            # beside the file's named methods)
+            df[c] = df[c].fillna("").astype(str).str.strip().astype(object)
+            empty = (df[c] == "").to_numpy()
+            if empty.any():
+                i = int(np.argmax(empty))
+                raise InputError("column 'method': empty value (name the method, or drop "
+                                 "the column for one unnamed method)", _path_of(df, path),
+                                 _line_of(df, i))
         else:  # a status decides whether a fix is scored: an unknown one is refused, never
             # silently counted as failed (or an empty one as usable)
             from robustloc import status as st
