@@ -48,3 +48,33 @@ def test_tag_height_with_anchor_z_corrects_the_slant_ranges(cart, tmp_path, caps
     assert len(tracks[0]) == len(tracks[1]) == 51  # every epoch a row
     # a 1.5 m height difference shortens every range: the positions move
     assert not tracks[0][["x", "y"]].equals(tracks[1][["x", "y"]])
+
+
+def test_one_gps_log_and_several_tags(cart, tmp_path, capsys):
+    """One NMEA log, the ranges of two tags: the GPS speed and course went into both
+    tracks without a word (the CLI review).  Now a warning says so, and `--nmea-tag`
+    names the tag that carries the receiver: the other tag is tracked from its ranges
+    alone (its rows' source is `uwb`), the named tag's rows are those of a run on its
+    ranges alone."""
+    m = pd.read_csv(cart / "measurements.csv")
+    two = tmp_path / "two.csv"
+    pd.concat([m, m.assign(tag="other")]).to_csv(two, index=False)
+    base = ["fuse", "--ranges", str(two), "--anchors", str(cart / "anchors.csv"),
+            "--nmea", str(cart / "gps.nmea")]
+    assert main([*base, "-o", str(tmp_path / "all.csv")]) == 0
+    assert "one GPS log and 2 tags" in capsys.readouterr().err
+    tag = str(m["tag"].iloc[0])
+    assert main([*base, "--nmea-tag", tag, "-o", str(tmp_path / "one.csv")]) == 0
+    assert "one GPS log" not in capsys.readouterr().err
+    every, one = pd.read_csv(tmp_path / "all.csv"), pd.read_csv(tmp_path / "one.csv")
+    assert set(every["source"]) == {"uwb+gps"}
+    assert set(one.loc[one["tag"] == "other", "source"]) == {"uwb"}
+    assert set(one.loc[one["tag"] == tag, "source"]) == {"uwb+gps"}
+    alone = tmp_path / "alone.csv"
+    assert main(["fuse", "--ranges", str(cart / "measurements.csv"), "--anchors",
+                 str(cart / "anchors.csv"), "--nmea", str(cart / "gps.nmea"), "-o",
+                 str(alone)]) == 0
+    pd.testing.assert_frame_equal(one[one["tag"] == tag].reset_index(drop=True),
+                                  pd.read_csv(alone))
+    assert main([*base, "--nmea-tag", "nope", "-o", str(tmp_path / "x.csv")]) == 2
+    assert "--nmea-tag nope: no such tag" in capsys.readouterr().err

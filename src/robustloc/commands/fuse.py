@@ -16,8 +16,9 @@ NAME = "fuse"
 HELP = "fuse UWB ranges and GPS speed/course (NMEA) with an EKF or UKF (seed 001)"
 DESCRIPTION = """\
 Fuses UWB ranges with GPS speed and course (RMC/VTG sentences of an NMEA log) for every tag
-(seed 001).  State [x, y, vx, vy] (cv) or [x, y, vx, vy, ax, ay] (ca), east/north metres;
-any filter with any motion model.
+(seed 001; --nmea-tag: the GPS only for the tag that carries the receiver).  State
+[x, y, vx, vy] (cv) or [x, y, vx, vy, ax, ay] (ca), east/north metres; any filter with any
+motion model.
 
 Coupling:
   loose  per UWB epoch a linearized LS/WLS fix (--fix) is the measurement [x, y] with its
@@ -106,6 +107,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="seconds added to NMEA times (UTC seconds of day) to reach the "
                         "ranges' clock (default: POSIX time from the RMC date when the "
                         "ranges' times are POSIX seconds, else 0)")
+    p.add_argument("--nmea-tag", action="append", default=None, metavar="TAG",
+                   help="the tag that carries the NMEA log's GPS receiver: its speed and "
+                        "course are fused into this tag's track only (repeatable; default: "
+                        "every tag, with a warning when the ranges hold several)")
     p.add_argument("--merge-window", type=nonnegative_float, default=0.02,
                    help="measurements at most this long (s) after an event's first time "
                         "stamp join it, unless they repeat an anchor (0.02)")
@@ -156,6 +161,19 @@ def run(args: argparse.Namespace) -> int:
                              f"[-180, 180] deg and height in [-1e5, 1e5] m, got "
                              f"{args.origin!r}")
     nmea = read_nmea(args.nmea, origin=origin) if args.nmea else None
+    tags = sorted(set(meas["tag"].astype(str)))
+    if args.nmea_tag is not None:
+        if nmea is None:
+            raise InputError("--nmea-tag goes with --nmea")
+        missing = sorted(set(args.nmea_tag) - set(tags))
+        if missing:
+            raise InputError(f"--nmea-tag {', '.join(missing)}: no such tag in the ranges "
+                             f"(tags: {', '.join(tags[:10])}"
+                             f"{', ...' if len(tags) > 10 else ''})", args.ranges)
+    elif nmea is not None and len(tags) > 1:
+        print(f"warning: {args.nmea}: one GPS log and {len(tags)} tags: its speed and "
+              "course are fused into every tag's track; --nmea-tag TAG names the tag "
+              "that carries the receiver", file=sys.stderr)
     q = args.q if args.q is not None else (0.5 if args.motion == "cv" else 0.1)
     robust = RobustUpdate(
         weight=None if args.robust == "none" else get_weight(args.robust),
@@ -168,6 +186,7 @@ def run(args: argparse.Namespace) -> int:
         sigma_course_deg=args.sigma_course, nmea_offset_s=args.nmea_offset,
         merge_window_s=args.merge_window, tag_height_m=args.tag_height,
         geometry_window_s=args.geometry_window,
+        nmea_tags=None if args.nmea_tag is None else tuple(args.nmea_tag),
     )
     res = fuse(meas, anchors, nmea, filt, opts, progress=True)
     # the summary never goes into a data stream: stderr when the track goes to stdout

@@ -69,6 +69,8 @@ class FuseOptions:
     geometry_window_s : ranges heard within this many seconds before an event (inclusive)
         make up the anchor layout that decides whether the event's position can be ``ok``
         (module docstring).  1 s holds a full round of any UWB/RTT ranging schedule.
+    nmea_tags : the tags that carry the GPS receiver of the NMEA log (its speed and course
+        are fused into their tracks only); ``None`` (default): every tag.
     """
 
     coupling: Literal["loose", "tight"] = "tight"
@@ -83,6 +85,7 @@ class FuseOptions:
     init_var_m2: float = 4.0
     init_acc_var: float = 0.01
     geometry_window_s: float = 1.0
+    nmea_tags: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.coupling not in ("loose", "tight"):
@@ -151,7 +154,10 @@ def fuse(
     n = filt.motion.n_states
     t = measurements["time"].to_numpy(float)
     tags = measurements["tag"].astype(str).to_numpy(object)
-    all_tags = np.unique(tags.astype(str))  # GPS speed and course go to every tag
+    all_tags = np.unique(tags.astype(str))
+    # GPS speed and course go to every tag, or to the tags that carry the receiver
+    gps_tags = (all_tags if opts.nmea_tags is None
+                else all_tags[np.isin(all_tags, np.asarray(opts.nmea_tags, dtype=str))])
     rng_m = measurements["range"].to_numpy(float)
     # plausibility at the door: a time outside the limits (|t| < 1e12 s) cannot be placed
     # on the timeline (a filter step over 1e300 s overflows): its rows are set aside and
@@ -241,11 +247,11 @@ def fuse(
         bad_gt = ~LIMITS["time"].check(g_t)
         if bad_gt.any():  # a sentence's time on the ranges' clock beyond the limits
             invalid["time"] += int(bad_gt.sum())
-            for tg in all_tags:
+            for tg in gps_tags:
                 aside.append(pd.DataFrame({"time": g_t[bad_gt], "tag": tg, "source": "gps"}))
             mo = mo[~bad_gt]
     if mo is not None and len(mo):
-        ut = all_tags
+        ut = gps_tags
         gv = mo[["speed_mps", "course_rad"]].to_numpy(float)
         # a sentence whose speed was invalid (NaN speed) marks its event as invalid
         g_flag = np.where(np.isnan(gv[:, :1]), 1.0, np.nan)
