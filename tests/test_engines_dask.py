@@ -780,3 +780,62 @@ def test_track_offsets_dask_gives_each_tags_offsets(scheduler, tmp_path, capsys,
             assert f"range offset of {tag}: {want[tag]['estimate']:+.3f} m" in text
         else:
             assert f"link offsets of {tag} (m): A0 {want[tag]['A0']['estimate']:+.2f}" in text
+
+
+def _small_log(tmp_path: Path) -> tuple[Path, pd.DataFrame]:
+    import numpy as np
+
+    a = pd.DataFrame({"anchor": list("abcd"), "x": [0, 10, 10, 0.0], "y": [0, 0, 10, 10.0]})
+    a.to_csv(tmp_path / "a.csv", index=False)
+    m = pd.DataFrame([(t, "T", k, float(np.hypot(x - 3, y - 4)))
+                      for t in (9.0, 10.0, 11.0) for k, x, y in zip(a.anchor, a.x, a.y)],
+                     columns=["time", "tag", "anchor", "range"])
+    return tmp_path / "a.csv", m
+
+
+def test_text_and_timestamp_times_are_planned_in_seconds(scheduler, tmp_path, capsys):
+    """The planner read each partition's time range from the Parquet statistics: of text
+    times they order text ("10" < "9"), so an epoch split between two files passed the
+    check and came out as two rows of 2 anchors each; of timestamps they are dates, so
+    every such dataset was refused as overlapping (the API review).  Now both are
+    read in seconds, as the reader converts them: the split epoch is refused, disjoint
+    timestamp partitions give the local rows."""
+    anchors, m = _small_log(tmp_path)
+    text = tmp_path / "text"
+    text.mkdir()
+    mt = m.astype({"time": str})
+    mt.iloc[:10].to_parquet(text / "p0.parquet", index=False)  # epoch 11 split 2 + 2
+    mt.iloc[10:].to_parquet(text / "p1.parquet", index=False)
+    assert main(["locate", str(text), "--anchors", str(anchors), "-o", str(tmp_path / "o1"),
+                 "--engine", "dask", "--scheduler", scheduler]) == 2
+    assert "an epoch's rows could be split between partitions" in capsys.readouterr().err
+    stamps = tmp_path / "stamps"
+    stamps.mkdir()
+    ms = m.assign(time=pd.to_datetime(m["time"], unit="s", utc=True))
+    ms.iloc[:8].to_parquet(stamps / "p0.parquet", index=False)  # disjoint: 9, 10 | 11
+    ms.iloc[8:].to_parquet(stamps / "p1.parquet", index=False)
+    assert main(["locate", str(stamps), "--anchors", str(anchors), "-o", str(tmp_path / "o2"),
+                 "--engine", "dask", "--scheduler", scheduler, "--quiet"]) == 0
+    got = _dataset(tmp_path / "o2")
+    assert got["time"].tolist() == [9.0, 10.0, 11.0] and (got["status"] == "ok").all()
+
+
+@pytest.mark.parametrize("kind", ["timestamp", "timestamp-utc", "duration-us"])
+def test_partition_takes_timestamp_and_duration_times_in_seconds(tmp_path, capsys, kind):
+    """`partition` refused a Parquet timestamp time column (DuckDB: no cast from
+    TIMESTAMP to DOUBLE), and took a duration -- which DuckDB reads as a BIGINT of its
+    unit -- as seconds: 9 s in microseconds became 9e6 s.  Both are now seconds, as the
+    commands' reader turns them."""
+    anchors, m = _small_log(tmp_path)
+    t = m["time"]
+    m["time"] = {"timestamp": pd.to_datetime(t, unit="s"),
+                 "timestamp-utc": pd.to_datetime(t, unit="s", utc=True),
+                 "duration-us": pd.to_timedelta(t, unit="s").astype("timedelta64[us]")}[kind]
+    src = tmp_path / "m.parquet"
+    m.to_parquet(src, index=False)
+    for by in ("time", "tag"):
+        out = tmp_path / f"p_{by}"
+        assert main(["partition", str(src), "-o", str(out), "--by", by]) == 0
+        got = pd.concat(_parts(out))
+        assert sorted(got["time"].astype(float).unique()) == [9.0, 10.0, 11.0]
+    capsys.readouterr()

@@ -190,14 +190,11 @@ def inspect(part: Partition, need: tuple[str, ...] = ("time", "tag"),
         rng = _time_range_from_statistics(pf)
         if rng is None:
             try:
-                import pyarrow.compute as pc
-
                 lo, hi = np.inf, -np.inf
                 for b in pf.iter_batches(batch_size=_PLAN_BATCH_ROWS, columns=["time"]):
-                    mm = pc.min_max(b.column(0))
-                    if mm["min"].as_py() is not None:
-                        lo = min(lo, float(mm["min"].as_py()))
-                        hi = max(hi, float(mm["max"].as_py()))
+                    v = _time_seconds(b.column(0))
+                    if v.size:
+                        lo, hi = min(lo, float(v.min())), max(hi, float(v.max()))
                 rng = lo, hi
             except Exception:  # noqa: BLE001 - non-numeric time: the reader names the line
                 rng = -np.inf, np.inf
@@ -244,9 +241,37 @@ def _check_time_type(t: object, path: str) -> None:
 _PLAN_BATCH_ROWS = 1 << 20
 
 
+def _time_seconds(col: object) -> np.ndarray:
+    """The finite times of a ``time`` column batch in seconds, as the readers convert them
+    (:func:`robustloc.io.tables._numeric`: a timestamp as seconds since the Unix epoch, a
+    duration as seconds, text as the number it spells; what is no number is left to the
+    reader, which names its line)."""
+    from robustloc.io.tables import _seconds
+
+    s = col.to_pandas()
+    if pd.api.types.is_datetime64_any_dtype(s) or pd.api.types.is_timedelta64_dtype(s):
+        v = _seconds(s)
+    elif pd.api.types.is_numeric_dtype(s) and not pd.api.types.is_bool_dtype(s):
+        v = s.to_numpy(dtype=float, na_value=np.nan)
+    else:
+        v = pd.to_numeric(s, errors="coerce").to_numpy(dtype=float, na_value=np.nan)
+    return v[np.isfinite(v)]
+
+
 def _time_range_from_statistics(pf: object) -> tuple[float, float] | None:
     """(min, max) of a numeric ``time`` column from the row groups' statistics (no data
-    read), or None when a row group has none."""
+    read), or None when a row group has none -- or when the column is not numbers: the
+    statistics of text order it as text ("10" < "9") and those of a timestamp are dates,
+    so a split epoch passed the overlap check (text) or every partition overlapped
+    (timestamps); those are read (:func:`_time_seconds`)."""
+    import pyarrow as pa
+
+    t = pf.schema_arrow.field("time").type if "time" in pf.schema_arrow.names else None
+    if isinstance(t, pa.DictionaryType):
+        t = t.value_type
+    if t is None or not (pa.types.is_integer(t) or pa.types.is_floating(t)
+                         or pa.types.is_decimal(t)):
+        return None
     md = pf.metadata
     j = next((k for k in range(md.num_columns) if md.schema.column(k).path == "time"), None)
     if j is None or md.num_row_groups == 0:

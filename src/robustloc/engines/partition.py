@@ -119,6 +119,10 @@ def _source(con, files: list[str], fmt: str, spec: str) -> tuple[str, list[str]]
         except duckdb.Error as exc2:
             raise InputError(f"cannot read: {str(exc2).splitlines()[0]}", spec) from None
     names = [r[0] for r in described]
+    if fmt != "csv" and "time" in names:
+        seconds = _parquet_time_seconds(files, spec)
+        if seconds is not None:
+            return f"(SELECT * REPLACE ({seconds} AS time) FROM {src}))", names
     if fmt == "csv":
         types = {c: "VARCHAR" for c in IDS if c in names}
         types.update({r[0]: "DOUBLE" for r in described
@@ -127,6 +131,43 @@ def _source(con, files: list[str], fmt: str, spec: str) -> tuple[str, list[str]]
             src += ", types={" + ", ".join(f"{_sql_str(c)}: {_sql_str(t)}"
                                            for c, t in types.items()) + "}"
     return src + ")", names
+
+
+def _parquet_time_seconds(files: list[str], spec: str) -> str | None:
+    """The SQL of a Parquet ``time`` column in seconds, as the commands' reader turns it
+    (:func:`robustloc.io.tables._seconds`), or None for numbers.  A timestamp is seconds
+    since the Unix epoch (``CAST(time AS DOUBLE)`` refused it); a duration, which DuckDB
+    reads as a BIGINT of its unit, is divided by the unit (it was taken as seconds: a
+    duration of 9 s in microseconds became 9e6 s).
+
+    Raises
+    ------
+    InputError
+        Files whose ``time`` columns are timestamps or durations of different kinds.
+    """
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    kinds = set()
+    for f in files:
+        try:
+            t = pq.read_schema(f).field("time").type
+        except (KeyError, OSError, pa.ArrowException):
+            continue  # (a file without the column or unreadable: DuckDB's scan says so)
+        if isinstance(t, pa.DictionaryType):
+            t = t.value_type
+        kinds.add(("timestamp", None) if pa.types.is_timestamp(t)
+                  else ("duration", t.unit) if pa.types.is_duration(t) else ("number", None))
+    if len(kinds) > 1 and any(k != "number" for k, _ in kinds):
+        raise InputError("the files' time columns differ in kind ("
+                         + ", ".join(sorted(f"{k} {u}" if u else k for k, u in kinds))
+                         + "): write them with one", spec)
+    if kinds == {("timestamp", None)}:
+        return "epoch(time)"
+    if len(kinds) == 1 and next(iter(kinds))[0] == "duration":
+        per_s = {"s": 1, "ms": 1_000, "us": 1_000_000, "ns": 1_000_000_000}
+        return f"CAST(time AS DOUBLE) / {per_s[next(iter(kinds))[1]]}"
+    return None
 
 
 def _first_bad_row(files: list[str], names: list[str]) -> InputError | None:
