@@ -422,3 +422,34 @@ def test_rssi_limits(tmp_path):
     e = to_epochs(read_measurements(p), IDS)
     np.testing.assert_array_equal(e.n_invalid, [2])
     np.testing.assert_array_equal(np.isfinite(e.values[0]), [False, False, True, True])
+
+
+@pytest.mark.parametrize("dtype", ["float", "object", "category"])
+def test_a_numeric_id_is_the_same_text_whatever_its_column_dtype(dtype):
+    """A tag of 1.0 was "1" in a float column and "1.0" in an object or categorical one
+    (after a concat, say); an object column of float anchor ids then failed against the
+    anchors "1", "2" (the API review).  Every dtype now names it "1"."""
+    from robustloc import locate
+
+    anchors = pd.DataFrame({"anchor": [1, 2, 3], "x": [0, 10, 0.0], "y": [0, 0, 10.0]})
+    m = pd.DataFrame({"time": [0.0] * 3, "tag": [1.0] * 3, "anchor": [1.0, 2.0, 3.0],
+                      "range": [5.0, np.hypot(7, 4), np.hypot(3, 6)]})
+    m = m.astype({"tag": dtype, "anchor": dtype})
+    got = read_measurements(m)
+    assert got["tag"].tolist() == ["1"] * 3 and got["anchor"].tolist() == ["1", "2", "3"]
+    pos = locate(m, anchors)
+    assert pos["tag"].tolist() == ["1"]
+    mixed = pd.DataFrame({"time": [0.0, 0.0], "tag": pd.Series([1.5, "x"], dtype=object),
+                          "anchor": ["1", "2"], "range": [1.0, 2.0]})
+    assert read_measurements(mixed)["tag"].tolist() == ["1.5", "x"]
+
+
+def test_a_period_time_is_its_start_in_seconds():
+    """A Period time column was read as its ordinal (milliseconds since 1970 for "ms",
+    minutes for "min": times in the wrong unit, silently for coarse ones)."""
+    ts = pd.to_datetime([0.0, 0.0, 120.0], unit="s")
+    m = pd.DataFrame({"time": ts, "tag": ["T"] * 3, "anchor": ["a", "b", "a"],
+                      "range": [1.0, 2.0, 3.0]})
+    for unit in ("ms", "s", "min"):
+        got = read_measurements(m.assign(time=m["time"].dt.to_period(unit)))
+        assert got["time"].tolist() == [0.0, 0.0, 120.0], unit

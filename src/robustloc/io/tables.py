@@ -31,6 +31,7 @@ import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -541,6 +542,8 @@ def _numeric(
 ) -> None:
     """Convert ``df[col]`` to float in place; error at the first bad line."""
     s = df[col]
+    if isinstance(s.dtype, pd.PeriodDtype):  # its start (its ordinal counted periods)
+        s = s.dt.to_timestamp()
     if pd.api.types.is_datetime64_any_dtype(s) or pd.api.types.is_timedelta64_dtype(s):
         s = pd.Series(_seconds(s), index=s.index, name=col)
     if pd.api.types.is_bool_dtype(s):
@@ -595,8 +598,14 @@ def _ids(df: pd.DataFrame, col: str, path: PathLike | None = None) -> None:
     next, so one tag became two and an epoch across the chunks two epochs).  Text ids (a
     CSV column) are kept as written."""
     s = df[col]
+    if isinstance(s.dtype, pd.CategoricalDtype) and _holds_floats(s.cat.categories):
+        s = s.astype(object)  # (a categorical of 1.0 named its tag "1.0")
     if pd.api.types.is_float_dtype(s):
         s = _float_ids(s)
+    elif s.dtype == object and _holds_floats(s):
+        # floats in an object column (after a concat, say): each by the same rule as a
+        # float column's (it was "1.0" there and "1" in a float column)
+        s = s.map(_float_id, na_action="ignore")
     missing = s.isna().to_numpy()
     out = s if isinstance(s.dtype, pd.StringDtype) else s.astype(str)
     out = out.str.strip()
@@ -605,6 +614,23 @@ def _ids(df: pd.DataFrame, col: str, path: PathLike | None = None) -> None:
         i = int(np.argmax(empty))
         raise InputError(f"column '{col}': empty id", _path_of(df, path), _line_of(df, i))
     df[col] = out
+
+
+def _holds_floats(values: Any) -> bool:
+    """Whether an object (or category) column holds floating-point values (one C pass:
+    a column of text answers "string")."""
+    if getattr(values, "dtype", None) is not None and values.dtype.kind == "f":
+        return True
+    return pd.api.types.infer_dtype(values, skipna=True) in (
+        "floating", "mixed-integer-float", "mixed")
+
+
+def _float_id(v: object) -> object:
+    """One value of an id column: a float by :func:`_float_ids`' rule, others as they are."""
+    if isinstance(v, float | np.floating) and np.isfinite(v):
+        f = float(v)
+        return str(int(f)) if f == round(f) and abs(f) < 2.0**63 else str(f)
+    return v
 
 
 def _float_ids(s: pd.Series) -> pd.Series:
