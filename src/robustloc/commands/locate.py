@@ -66,7 +66,7 @@ Nearly collinear anchors (a corridor) fit a fix and its mirror image across thei
 equally well; such a fix's hpl covers both.  With --side-prior log (default, with
 --robust-scale log) an ambiguous fix is placed on the side of the line where the log's
 unambiguous fixes lie, when a sign test finds them significantly more often on one side
-(the wifi-rtt corridor: 6.25 -> 3.80 m RMS); --side-prior none leaves each fix where its
+(the wifi-rtt corridor: 6.13 -> 3.68 m RMS); --side-prior none leaves each fix where its
 estimator put it.
 
 RSSI input uses the anchors' path-loss parameters (A, n or p0, gamma, faf, d0; see
@@ -153,9 +153,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-range-calibration", action="store_true",
                    help="ignore the anchors' bias/scale columns")
     p.add_argument("--alpha0", type=float_in(1e-12, 0.5), default=0.001,
-                   help="w-test significance (snooping)")
+                   help="w-test significance (every fix's test and hpl; snooping)")
     p.add_argument("--beta0", type=float_in(1e-6, 0.99), default=0.10,
-                   help="B-method type II error (snooping)")
+                   help="B-method type II error (every fix's test and hpl; snooping)")
     p.add_argument("--chunk-rows", type=positive_int, default=500_000,
                    help="rows read per chunk")
     p.add_argument("--json", action="store_true",
