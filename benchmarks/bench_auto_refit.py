@@ -19,11 +19,11 @@ Every variant then takes the log's side of nearly collinear anchors (item 7 of
 epochs.  Columns: RMS and p95 of the 2-D error over the usable fixes, availability, the
 number of ``fault_excluded`` epochs in the table's rows (``n_flagged``).
 
-Measured (2026-12-02; again 2026-12-03, the same verdicts, ``../shared/data``): snooping is worse on every WiFi room and on
-ble-tetam (the flagged range is rarely the only wrong one, and dropping it leaves the
-others unaveraged); the Huber refit helps the corridor and ble-tetam but costs the
-lecture theatre, the office and uwb-labyrinth 3-7 %.  Neither beats keeping the plain fix
-everywhere, so ``auto`` keeps it.
+Measured (2026-12-02, again 2026-12-03 with the same verdicts, ``../shared/data``):
+snooping is worse on every WiFi room and on ble-tetam (the flagged range is rarely the
+only wrong one, and dropping it leaves the others unaveraged); the Huber refit helps the
+corridor and ble-tetam but costs the lecture theatre, the office and uwb-labyrinth
+1-7 %.  Neither beats keeping the plain fix everywhere, so ``auto`` keeps it.
 
 Usage::
 
