@@ -519,3 +519,77 @@ def test_evaluate_refuses_an_empty_method_cell(tmp_path, capsys):
     p = _w(tmp_path, "p.csv", "time,tag,x,y,method,status\n0,T,1,1,nls,ok\n1,T,1,1,,ok\n")
     t = _w(tmp_path, "t.csv", "time,tag,x,y\n0,T,0,0\n1,T,0,0\n")
     _fails(capsys, ["evaluate", p, "--truth", t], p, 3, "column 'method': empty value")
+
+
+def test_a_folder_output_that_fails_leaves_the_folder_as_it_was(tmp_path, capsys,
+                                                               monkeypatch):
+    """`simulate -o part` with a folder `part/truth.csv` replaced anchors, measurements
+    and survey, then failed on truth.csv naming its temporary folder (the review).
+    Every target is now checked before the first move, and a move that fails puts back
+    what it replaced."""
+    import os
+    from pathlib import Path
+
+    import robustloc.commands._folder as folder
+
+    part = tmp_path / "part"
+    part.mkdir()
+    for name in ("anchors.csv", "measurements.csv", "survey.csv"):
+        (part / name).write_text("old\n")
+    (part / "truth.csv").mkdir()
+    assert _code(["simulate", "ble-corridor", "--out", str(part)]) == 2
+    assert (f"error: {part / 'truth.csv'}: is a folder, where this command writes a file"
+            in capsys.readouterr().err)
+    assert sorted(p.name for p in part.iterdir()) == ["anchors.csv", "measurements.csv",
+                                                     "survey.csv", "truth.csv"]
+    assert all((part / n).read_text() == "old\n"
+               for n in ("anchors.csv", "measurements.csv", "survey.csv"))
+    (part / "truth.csv").rmdir()
+    real = os.replace
+    calls = []
+
+    def flaky(src, dst):  # the third move into the folder fails (a full disk, say)
+        if Path(dst).parent == part and not str(Path(src).parent).endswith(".replaced"):
+            calls.append(dst)
+            if len(calls) == 3:
+                raise OSError(28, "No space left on device")
+        return real(src, dst)
+
+    monkeypatch.setattr(folder.os, "replace", flaky)
+    with pytest.raises(OSError):
+        folder.write_folder(part, lambda d: [(d / n).write_text("new\n") for n in
+                                             ("anchors.csv", "measurements.csv",
+                                              "survey.csv", "truth.csv")])
+    assert sorted(p.name for p in part.iterdir()) == ["anchors.csv", "measurements.csv",
+                                                     "survey.csv"]
+    assert all((part / n).read_text() == "old\n"
+               for n in ("anchors.csv", "measurements.csv", "survey.csv"))
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".part")]
+
+
+def test_montecarlo_and_spp_keep_their_inputs_and_their_stdout_data(tmp_path, capsys):
+    """`montecarlo --anchors A -o A` replaced the anchors with the table (exit 0), and
+    `-o -` of `montecarlo` and `spp` appended the text summary to the CSV on standard
+    output (the review).  The input is refused; the summary goes to stderr."""
+    import io
+
+    from robustloc.paths import PACKAGE_DATA
+
+    a = tmp_path / "sq.csv"
+    a.write_text("anchor,x,y\nA,0,0\nB,10,0\nC,10,10\nD,0,10\n")
+    before = a.read_bytes()
+    assert _code(["montecarlo", "--anchors", str(a), "--trials", "50", "-o", str(a)]) == 2
+    assert "output would overwrite an input" in capsys.readouterr().err
+    assert a.read_bytes() == before
+    assert _code(["montecarlo", "--anchors", str(a), "--trials", "50", "-o", "-"]) == 0
+    cap = capsys.readouterr()
+    table = pd.read_csv(io.StringIO(cap.out))
+    assert "layout" in table.columns and table["trials"].eq(50).all()
+    assert "observations" in cap.err
+    g = PACKAGE_DATA / "gnss-geonet"
+    assert _code(["spp", str(g / "07590920.05o"), str(g / "07590920_0000-0400.05n"),
+                  "-o", "-"]) == 0
+    cap = capsys.readouterr()
+    sol = pd.read_csv(io.StringIO(cap.out))
+    assert len(sol) == 120 and sol["time"].notna().all()
+    assert "epochs solved" in cap.err

@@ -67,9 +67,36 @@ def write_folder(out: Path, write: Callable[[Path], T],
             raise RuntimeError("write_folder moves files only, not sub-folders")
         for f in files:  # every target checked before the first move
             check_not_input(out / f.name, inputs)
+            if (out / f.name).is_dir():  # (os.replace failed there, files already moved)
+                raise InputError("is a folder, where this command writes a file",
+                                 out / f.name)
         out.mkdir(exist_ok=True)
-        for f in files:
-            os.replace(f, out / f.name)
+        _move_all(files, out, tmp)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return result
+
+
+def _move_all(files: list[Path], out: Path, tmp: Path) -> None:
+    """Move ``files`` into ``out``, all or none: the files they replace are set aside in
+    ``tmp`` first and put back if a move fails (a full disk, a permission), so a failed
+    run never leaves ``out`` with some files new and some old."""
+    aside = tmp / ".replaced"
+    aside.mkdir()
+    kept: list[tuple[Path, Path]] = []
+    moved: list[Path] = []
+    try:
+        for f in files:
+            target = out / f.name
+            if target.exists():
+                os.replace(target, aside / f.name)
+                kept.append((aside / f.name, target))
+        for f in files:
+            os.replace(f, out / f.name)
+            moved.append(out / f.name)
+    except BaseException:
+        for m in moved:
+            m.unlink(missing_ok=True)
+        for src, dst in kept:
+            os.replace(src, dst)
+        raise

@@ -197,7 +197,10 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from robustloc.integrity.montecarlo import METHODS, run_montecarlo
+    from robustloc.io.atomic import check_not_input, writes_to_stdout
 
+    # before any work: -o naming the anchors file replaced it with the table (exit 0)
+    check_not_input(args.out, [getattr(args, "anchors", None)])
     methods = tuple(m.strip().lower() for m in args.methods.split(",") if m.strip())
     bad = [m for m in methods if m not in METHODS]
     if bad or not methods:
@@ -236,16 +239,19 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         from robustloc.io import write_table
 
-        write_table(table, Path(args.out))  # atomic: all or nothing at -o
+        write_table(table, args.out)  # atomic: all or nothing at -o
+    # the summary never goes into a data stream: stderr when the table goes to stdout
+    dest = sys.stderr if args.out and writes_to_stdout(args.out) else sys.stdout
     if args.json:
         print(json.dumps({
             "layout": lay.name, "n_obs": lay.n, "n_unknowns": lay.p,
             "rows": json.loads(table.to_json(orient="records")),
-        }, indent=2))
+        }, indent=2), file=dest)
     else:
         print(f"layout {lay.name}: {lay.n} observations, {lay.p} unknowns, "
-              f"{args.trials} trials per row")
+              f"{args.trials} trials per row", file=dest)
         cols = ["n_faults", "size", "method", "flag_rate", "theory_global", "theory_w",
                 "identified", "unavailable", "err_mean_m", "err_rms_m", "err_p95_m", "seconds"]
-        print(table[cols].to_string(index=False, float_format=lambda v: f"{v:.4f}"))
+        print(table[cols].to_string(index=False, float_format=lambda v: f"{v:.4f}"),
+              file=dest)
     return 0

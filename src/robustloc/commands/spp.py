@@ -9,7 +9,6 @@ import argparse
 import json
 import sys
 import warnings
-from pathlib import Path
 
 from robustloc.engines import add_engine_arguments
 
@@ -101,27 +100,34 @@ def run(args: argparse.Namespace) -> int:
                                sp3=args.sp3, clk=args.clk)
     for text in summary.get("nav_records_set_aside", []):  # a warning, even with --json
         print(f"warning: {text}", file=sys.stderr)
-    out = Path(args.out)
+    from robustloc.io.atomic import writes_to_stdout
+
+    out = args.out
     write_table(frame, out)  # atomic: nothing at -o after an error or an interrupt
     summary = {"obs": summary["obs"], "out": str(out),
                **{k: v for k, v in summary.items() if k != "obs"}}
+    # the summary never goes into a data stream: stderr when the table goes to stdout
+    # (it was appended to the CSV of `-o -`)
+    dest = sys.stderr if writes_to_stdout(out) else sys.stdout
     if args.json:
-        print(json.dumps(summary, indent=2))
+        print(json.dumps(summary, indent=2), file=dest)
     else:
         print(f"{summary['solved']}/{summary['epochs']} epochs solved "
               f"({', '.join(f'{k} {v}' for k, v in summary['status_counts'].items())}); "
-              f"systems {summary['systems']}, iono {summary['iono']}; written to {out}")
+              f"systems {summary['systems']}, iono {summary['iono']}; written to {out}", file=dest)
         print(f"invalid_measurement: {summary['invalid_measurement']}"
               + (" (pseudoranges outside 1.5e7 .. 5e7 m, never used)"
-                 if summary["invalid_measurement"] else ""))
+                 if summary["invalid_measurement"] else ""), file=dest)
         if "rms_h_m" in summary:
             print(f"errors vs {summary['reference']}: ENU bias {summary['bias_e_m']:.2f} "
                   f"{summary['bias_n_m']:.2f} {summary['bias_u_m']:.2f} m; RMS horizontal "
                   f"{summary['rms_h_m']:.2f} m, 3-D {summary['rms_3d_m']:.2f} m; 95 % "
-                  f"horizontal {summary['p95_h_m']:.2f} m; max 3-D {summary['max_3d_m']:.2f} m")
+                  f"horizontal {summary['p95_h_m']:.2f} m; max 3-D {summary['max_3d_m']:.2f} m",
+                  file=dest)
         if "median_hpl_m" in summary:
             print(f"RAIM: faults detected in {summary['faults_detected']} epochs, exclusions "
                   f"in {summary['epochs_with_exclusion']}; median HPL "
-                  f"{summary['median_hpl_m']:.1f} m, VPL {summary['median_vpl_m']:.1f} m")
+                  f"{summary['median_hpl_m']:.1f} m, VPL {summary['median_vpl_m']:.1f} m",
+                  file=dest)
     sys.stdout.flush()
     return 0
