@@ -593,3 +593,17 @@ def test_montecarlo_and_spp_keep_their_inputs_and_their_stdout_data(tmp_path, ca
     sol = pd.read_csv(io.StringIO(cap.out))
     assert len(sol) == 120 and sol["time"].notna().all()
     assert "epochs solved" in cap.err
+
+
+def test_reproduce_seed_and_an_empty_candidates_file_are_users_mistakes(tmp_path, capsys):
+    """`reproduce --seed -1` ended in a ValueError traceback from the Monte Carlo (and left
+    an empty report folder); `reliability --suggest --candidates` of a header-only file
+    in a KeyError traceback (the review)."""
+    assert _code(["reproduce", "--seed", "-1", "--only", "s40_integrity", "-o",
+                  str(tmp_path / "rp")]) == 2
+    assert "--seed" in capsys.readouterr().err and not (tmp_path / "rp").exists()
+    a = _w(tmp_path, "sq.csv", "anchor,x,y\nA,0,0\nB,10,0\nC,10,10\nD,0,10\n")
+    c = _w(tmp_path, "c0.csv", "x,y\n")
+    _fails(capsys, ["reliability", "--anchors", a, "--suggest", "--candidates", c, "-o",
+                    str(tmp_path / "rc"), "--no-maps"], c, 2,
+           "candidates file has a header but no data rows")

@@ -839,3 +839,22 @@ def test_partition_takes_timestamp_and_duration_times_in_seconds(tmp_path, capsy
         got = pd.concat(_parts(out))
         assert sorted(got["time"].astype(float).unique()) == [9.0, 10.0, 11.0]
     capsys.readouterr()
+
+
+def test_an_unreachable_scheduler_is_a_users_mistake(tmp_path, capsys, monkeypatch):
+    """`spp --engine dask --scheduler tcp://127.0.0.1:1` ended in a ValueError traceback
+    after its wait (the message was written, but only `locate`'s path caught it).  The
+    connection failure is an InputError: `error: ...` and exit 2 in every command.
+    (The client is replaced by one that fails at once, as after its 20 s timeout.)"""
+    from robustloc.paths import PACKAGE_DATA
+
+    def refused(*args, **kwargs):
+        raise OSError("Timed out trying to connect to tcp://127.0.0.1:1 after 20 s")
+
+    monkeypatch.setattr(distributed, "Client", refused)
+    g = PACKAGE_DATA / "gnss-geonet"
+    assert main(["spp", str(g / "07590920.05o"), str(g / "07590920_0000-0400.05n"),
+                 "--engine", "dask", "--scheduler", "tcp://127.0.0.1:1",
+                 "-o", str(tmp_path / "dk")]) == 2
+    assert "error: --scheduler tcp://127.0.0.1:1: cannot connect" in capsys.readouterr().err
+    assert not (tmp_path / "dk").exists()

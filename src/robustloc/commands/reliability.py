@@ -117,6 +117,9 @@ def _suggest(args: argparse.Namespace, xyz: np.ndarray, area, step: float, n_exp
         missing = [c for c in cols if c not in cdf.columns]
         if missing:
             raise InputError(f"candidates file needs columns {', '.join(cols)}", args.candidates)
+        if cdf.empty:  # (a KeyError traceback from the empty ranking)
+            raise InputError("candidates file has a header but no data rows",
+                             args.candidates, 2)
         cand = cdf[cols].apply(pd.to_numeric, errors="coerce").to_numpy(float)
         bad = ~np.all(np.isfinite(cand), axis=1)
         if bad.any():

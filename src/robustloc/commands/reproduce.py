@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from robustloc.options import nonnegative_int
+
 NAME = "reproduce"
 HELP = "reproduce every paper's experiment (simulation and real data) into a report"
 DESCRIPTION = """\
@@ -19,7 +21,8 @@ excerpts shipped in the package are used and the report says so."""
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--out", default="report", help="output folder (default: report)")
     p.add_argument("--data", default=None, help="real-data folder (default: ../shared/data)")
-    p.add_argument("--seed", type=int, default=1, help="seed for every simulation (default 1)")
+    p.add_argument("--seed", type=nonnegative_int, default=1,
+                   help="seed for every simulation (default 1)")
     p.add_argument("--quick", action="store_true", help="fewer trials, for a fast smoke run")
     p.add_argument(
         "--only", action="append", default=None, metavar="SECTION",

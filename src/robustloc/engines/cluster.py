@@ -68,7 +68,10 @@ def dask_client(scheduler: str | None, workers: int | None = None,
             try:
                 client = distributed.Client(scheduler, timeout="20s")
             except OSError as exc:
-                raise ValueError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
+                # a user's mistake in every command (spp ended in a traceback here)
+                from robustloc.errors import InputError
+
+                raise InputError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
         else:
             n = workers or machine_cores()
             extra = {"env": dict(WORKER_ENV)} if processes else {}
