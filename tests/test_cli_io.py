@@ -607,3 +607,30 @@ def test_reproduce_seed_and_an_empty_candidates_file_are_users_mistakes(tmp_path
     _fails(capsys, ["reliability", "--anchors", a, "--suggest", "--candidates", c, "-o",
                     str(tmp_path / "rc"), "--no-maps"], c, 2,
            "candidates file has a header but no data rows")
+
+
+def test_gnss_systems_and_reliability_options_that_did_nothing_or_broke(tmp_path, capsys):
+    """From the review of the other commands: `--systems GG` put every satellite in twice
+    (montecarlo: every epoch unavailable; simulate gnss: each satellite twice per epoch);
+    `reliability --sigma 1e300` overflowed into blank maps; `reliability -o -` made a
+    folder named "-"; `--candidates` without `--suggest` was ignored."""
+    from robustloc.paths import PACKAGE_DATA
+
+    g = PACKAGE_DATA / "gnss-geonet"
+    for argv in (["montecarlo", "--gnss", "--systems", "GG", "--trials", "10"],
+                 ["simulate", "gnss", "--systems", "gEg", "--out", str(tmp_path / "s")],
+                 ["spp", str(g / "07590920.05o"), str(g / "07590920_0000-0400.05n"),
+                  "--systems", "GG", "-o", str(tmp_path / "x.csv")]):
+        assert _code(argv) == 2, argv[0]
+        assert "listed twice" in capsys.readouterr().err
+    a = _w(tmp_path, "sq.csv", "anchor,x,y\nA,0,0\nB,10,0\nC,10,10\nD,0,10\n")
+    c = _w(tmp_path, "c.csv", "x,y\n5,12\n")
+    assert _code(["reliability", "--anchors", a, "-o", str(tmp_path / "r"), "--sigma",
+                  "1e300", "--no-maps"]) == 2
+    assert "--sigma" in capsys.readouterr().err
+    assert _code(["reliability", "--anchors", a, "-o", "-", "--no-maps"]) == 2
+    assert "standard output cannot hold a folder" in capsys.readouterr().err
+    assert _code(["reliability", "--anchors", a, "--candidates", c, "-o",
+                  str(tmp_path / "r"), "--no-maps"]) == 2
+    assert "--candidates goes with --suggest" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists() and not (tmp_path / "s").exists()

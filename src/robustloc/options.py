@@ -213,3 +213,27 @@ def check_settings(settings: object) -> None:
                 meta["check"](arg)
             except (argparse.ArgumentTypeError, ValueError, TypeError) as exc:
                 raise InputError(f"argument {flag}: {exc}") from None
+
+
+def check_systems(text: str, allowed: str) -> str:
+    """``--systems``: letters of ``allowed`` (GNSS constellations: G, R, E, C), each at most
+    once, as upper case.  (A repeated letter put each satellite in twice: every epoch of
+    ``montecarlo --gnss --systems GG`` was unavailable.)
+
+    Raises
+    ------
+    InputError
+        No letter, a letter outside ``allowed``, or a letter given twice.
+    """
+    from robustloc.errors import InputError
+
+    up = str(text).upper()
+    bad = sorted(set(up) - set(allowed))
+    if not up or bad:
+        raise InputError(f"--systems: unknown constellation(s) {''.join(bad)!r}; use "
+                         f"letters of {allowed}, got {text!r}")
+    twice = sorted({c for c in up if up.count(c) > 1})
+    if twice:
+        raise InputError(f"--systems: {''.join(twice)!r} listed twice in {text!r}; give "
+                         "each constellation once")
+    return up

@@ -53,6 +53,8 @@ def write_folder(out: Path, write: Callable[[Path], T],
     from robustloc.errors import InputError
     from robustloc.io.atomic import check_not_input
 
+    if str(out) == "-":  # (a folder named "-" was created)
+        raise InputError("standard output cannot hold a folder of files: give a folder name")
     out = Path(out)
     inputs = [i for i in inputs if i is not None]
     if out.exists() and not out.is_dir():

@@ -149,12 +149,10 @@ def build_layout(args: argparse.Namespace):  # noqa: ANN201
     from robustloc.integrity.montecarlo import gnss_layout, ranging_layout, rssi_layout
 
     if args.gnss:
-        bad = sorted(set(args.systems.upper()) - set("GEC"))
-        if bad or not args.systems:
-            raise InputError(f"--systems: unknown GNSS system(s) {''.join(bad)!r}; choose "
-                             f"among G, E, C")
-        lay = gnss_layout(args.time_s, args.lat, args.lon, args.height, args.systems.upper(),
-                          args.mask_deg)
+        from robustloc.options import check_systems
+
+        lay = gnss_layout(args.time_s, args.lat, args.lon, args.height,
+                          check_systems(args.systems, "GEC"), args.mask_deg)
         if lay.n <= lay.p:
             raise InputError(f"only {lay.n} satellites visible for {lay.p} unknowns")
         return lay

@@ -62,9 +62,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="grid extent in metres (default: anchors' bounding box + 10 %%)")
     p.add_argument("--step", type=positive_float, default=None,
                    help="grid spacing in metres (default: about 150 points along the longer side)")
-    p.add_argument("--sigma", type=positive_float, default=1.0,
+    p.add_argument("--sigma", type=float_in(1e-9, 1e9), default=1.0,
                    help="a-priori standard deviation of one observation: m for ranges, dB for "
-                        "RSSI (default 1)")
+                        "RSSI, 1e-9 .. 1e9 (default 1)")
     p.add_argument("--dim", type=int, choices=(2, 3), default=2,
                    help="solved dimension (default 2)")
     p.add_argument("--tag-z", type=float_in(-1e5, 1e5), default=0.0,
@@ -139,6 +139,9 @@ def _suggest(args: argparse.Namespace, xyz: np.ndarray, area, step: float, n_exp
 def run(args: argparse.Namespace) -> int:
     from robustloc.integrity.planner import MAPS, plan, plot_maps
 
+    if args.candidates is not None and not args.suggest:  # (it was silently ignored)
+        raise InputError("--candidates goes with --suggest (the positions to try for one "
+                         "more anchor)")
     df, xyz = _read(args.anchors)
     if args.area is None:
         lo, hi = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)

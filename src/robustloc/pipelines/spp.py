@@ -92,10 +92,9 @@ def check_inject(inject: Mapping[str, float], shown: str | None = None) -> dict[
 
 
 def _systems(text: str) -> str:
-    bad_sys = sorted(set(text.upper()) - set("GREC"))
-    if not text or bad_sys:
-        raise InputError(f"--systems: unknown constellation(s) {''.join(bad_sys)!r}; use "
-                         f"letters of GREC, got {text!r}")
+    from robustloc.options import check_systems
+
+    check_systems(text, "GREC")
     return text
 
 

@@ -299,12 +299,9 @@ def generate(
 
 def simulate(out_dir: Path, seed: int, args: argparse.Namespace) -> dict[str, Path]:
     """Write ``pseudoranges.csv`` and ``truth.csv`` into ``out_dir``."""
-    bad = sorted(set(args.systems.upper()) - set("GEC"))
-    if bad or not args.systems:
-        from robustloc.errors import InputError
+    from robustloc.options import check_systems
 
-        raise InputError(f"--systems: unknown GNSS system(s) {''.join(bad)!r}; choose among "
-                         f"G, E, C")
+    check_systems(args.systems, "GEC")
     data = generate(
         seed,
         epochs=args.epochs,
