@@ -675,3 +675,31 @@ def test_rinex3_reader_matches_georinex_on_a_valid_file(tmp_path: Path) -> None:
     events): the same epochs, satellites and values."""
     lines, _ = _rinex3_from_rinex2(SLAC_OBS, None)
     _assert_matches_georinex(_write_lines(tmp_path, "slac3.rnx", lines))
+
+
+def test_cycle_slip_records_of_flag_6_are_not_epochs(tmp_path: Path) -> None:
+    """An epoch flag 6 announces cycle-slip records of an epoch already given, in the
+    format of observations (slips in the values' places).  They were read as an epoch:
+    a second row at that time, its slip counts taken as pseudoranges (the review).
+    Now they are skipped in both versions; every observation epoch reads as before."""
+    v3 = RINEX3_OBS.replace(
+        "> 2021 04 28 19 30 30.0000000  0  2\n",
+        "> 2021 04 28 19 30  0.0000000  6  1\nG05         1.000\n"
+        "> 2021 04 28 19 30 30.0000000  0  2\n")
+    o = read_obs(_write(tmp_path, "s.rnx", v3))
+    ref = read_obs(_write(tmp_path, "x.rnx", RINEX3_OBS))
+    assert o.n_epochs == 2 and o.t_gps_s.tolist() == ref.t_gps_s.tolist()
+    np.testing.assert_array_equal(o.obs["C1C"], ref.obs["C1C"])
+    lines = OBS.read_text().splitlines(True)
+    k = next(j for j, ln in enumerate(lines) if ln.startswith(" 05  4  2  0  0 30.0000000"))
+    nsat = int(lines[k][29:32])
+    ntypes = int(next(ln for ln in lines if "TYPES OF OBSERV" in ln)[:6])
+    end = k + max(1, (nsat + 11) // 12) + nsat * ((ntypes + 4) // 5)
+    slip = [" 05  4  2  0  0 30.0000000  6  1G03\n"] + ["         1.000\n"] * (
+        (ntypes + 4) // 5)
+    o2 = read_obs(_write(tmp_path, "s.05o", "".join(lines[:end] + slip + lines[end:])))
+    ref2 = read_obs(OBS)
+    assert o2.n_epochs == ref2.n_epochs and o2.sats == ref2.sats
+    assert o2.t_gps_s.tolist() == ref2.t_gps_s.tolist()
+    for name in ref2.obs:
+        np.testing.assert_array_equal(o2.obs[name], ref2.obs[name])

@@ -79,7 +79,8 @@ class ObsData:
     approx_xyz_m : ndarray (3,)
         Header APPROX POSITION XYZ (zeros when absent).
     epoch_flag : ndarray of int (N,)
-        RINEX epoch flag (0 ok, 1 power failure, 6 cycle slips); flags 2-5 carry no
+        RINEX epoch flag (0 ok, 1 power failure); flags 2-5 (events) and 6 (cycle-slip
+        records of an epoch already given: slips in the observations' places) carry no
         observations and are not epochs.
     line : ndarray of int (N,)
         1-based line number of each epoch header (for messages).
@@ -245,8 +246,10 @@ def read_obs(path: str | PathLike[str]) -> ObsData:
     Returns
     -------
     ObsData
-        One row per epoch of the file (flags 0, 1 and 6), including epochs that list no
-        satellites (all NaN).
+        One row per epoch of the file (flags 0 and 1), including epochs that list no
+        satellites (all NaN).  A flag-6 record (cycle slips, in the format of
+        observations) is skipped: its values were read as pseudoranges, and its time,
+        an epoch's already, gave a second row.
 
     Raises
     ------
@@ -326,6 +329,12 @@ def _read_obs_v2(path: str, version: float) -> ObsData:
             except ValueError as exc:
                 raise InputError(f"malformed satellite id {s!r}", path, i + 1) from exc
             sats.append(f"{sysch}{prn:02d}")
+        if flag == 6:  # cycle slips in the observations' places: not an epoch
+            if i + nhead + nsat * nlines_sat > n:
+                raise InputError(f"file ends inside the cycle-slip records starting here "
+                                 f"({nsat} satellites announced)", path, i + 1)
+            i += nhead + nsat * nlines_sat
+            continue
         epoch_idx = len(times)
         times.append(ep)  # type: ignore[arg-type]
         flags.append(flag)
@@ -458,7 +467,8 @@ def _read_obs_v3(path: str, version: float) -> ObsData:
     of satellites) followed by one line per satellite: ``SNN`` and 16 characters per
     observation type of that system (``F14.3`` value, loss-of-lock and signal-strength
     indicators).  Epoch flags 2-5 are events followed by as many special records as the
-    count says; they carry no observations and are skipped.  An epoch that lists 0
+    count says, and flag 6 reports cycle slips in the records of an epoch already given;
+    they carry no observations and are skipped.  An epoch that lists 0
     satellites is an epoch without observations (all NaN).  Blank fields and ``0.000``
     (not observed) are NaN; an impossible epoch time, a count that does not match the
     records, a truncated file or a value that is not a number raises :class:`InputError`
@@ -505,6 +515,9 @@ def _read_obs_v3(path: str, version: float) -> ObsData:
             raise InputError(
                 f"file ends inside the epoch starting here ({nsat} satellites announced)",
                 path, i + 1)
+        if flag == 6:  # cycle slips in the observations' places: not an epoch
+            i += 1 + nsat
+            continue
         epoch_idx = len(times)
         times.append(ep)
         flags.append(flag)
