@@ -516,11 +516,17 @@ def _subprocess(args: list[str]) -> subprocess.CompletedProcess:
 
 @pytest.mark.parametrize("flag", [0, 1, 6])
 def test_rinex2_epoch_without_satellites_alone(tmp_path: Path, flag: int) -> None:
-    """An epoch listing 0 satellites used to loop forever (its header took 0 lines)."""
+    """An epoch listing 0 satellites used to loop forever (its header took 0 lines).
+    Flag 6 (cycle-slip records, RINEX 2.11 table A2: "same format as OBSERVATIONS
+    records; slip instead of observation") is no observation epoch: alone after the
+    header it leaves the file without one, which the reader says, at once."""
     lines = OBS.read_text().splitlines()
     i = _first_epoch(lines)
     p = _write_lines(tmp_path, "zero.05o", [*lines[:i], f" 05  4  2  0  0  0.0000000  {flag}  0"])
     r = _subprocess([_READ, str(p)])
+    if flag == 6:
+        assert r.returncode == 1 and "no observation epochs after the header" in r.stderr
+        return
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout) == [1, [i + 1], [flag], [0]]
 
