@@ -634,3 +634,20 @@ def test_gnss_systems_and_reliability_options_that_did_nothing_or_broke(tmp_path
                   str(tmp_path / "r"), "--no-maps"]) == 2
     assert "--candidates goes with --suggest" in capsys.readouterr().err
     assert not (tmp_path / "r").exists() and not (tmp_path / "s").exists()
+
+
+def test_spp_refuses_a_clock_file_of_another_day(tmp_path, capsys):
+    """A --clk of another day gave no clock value, and the SP3's clocks were used without
+    a word: the solution was byte-identical to the run without --clk (the review).
+    A precise product that shares no time with the observations is refused."""
+    from robustloc.paths import PACKAGE_DATA
+
+    s = PACKAGE_DATA / "gnss-slac"
+    clk = s / "COD0MGXFIN_20211181930_12M_30S_CLK.CLK"
+    other = tmp_path / "next_day.CLK"
+    other.write_text(clk.read_text().replace(" 2021 04 28 ", " 2021 04 29 "))
+    argv = ["spp", str(s / "slac1180_1930-1940.21o"), "--sp3",
+            str(s / "COD0MGXFIN_20211181905_60M_05M_ORB.SP3"), "-o", str(tmp_path / "x.csv")]
+    assert _code([*argv, "--clk", str(other)]) == 2
+    assert f"error: {other}: covers GPS seconds" in capsys.readouterr().err
+    assert _code([*argv, "--clk", str(clk)]) == 0

@@ -188,6 +188,18 @@ def run_spp(obs: str, nav: Sequence[str], settings: SppSettings, *, sp3: str | N
     precise = None
     if sp3 is not None:
         precise = PreciseProducts(read_sp3(sp3), read_clk(clk) if clk else None)
+        for name, product in ((sp3, precise.sp3), (clk, precise.clk)):
+            # a product of another day gave no value, and the clocks of the SP3 (or no
+            # satellite) were used without a word
+            if product is None or not len(product.t_gps_s) or not observations.n_epochs:
+                continue
+            t0, t1 = float(np.nanmin(product.t_gps_s)), float(np.nanmax(product.t_gps_s))
+            o0 = float(np.nanmin(observations.t_gps_s))
+            o1 = float(np.nanmax(observations.t_gps_s))
+            if t1 < o0 or t0 > o1:
+                raise InputError(f"covers GPS seconds {t0:.0f} .. {t1:.0f}, the observations "
+                                 f"{o0:.0f} .. {o1:.0f}: no epoch in common (another day?)",
+                                 name)
     if settings.inject:
         observations = inject_faults(observations, dict(settings.inject), t_from, t_until)
     iono = settings.iono or ("iflc" if precise is not None else "klobuchar")
