@@ -651,3 +651,24 @@ def test_spp_refuses_a_clock_file_of_another_day(tmp_path, capsys):
     assert _code([*argv, "--clk", str(other)]) == 2
     assert f"error: {other}: covers GPS seconds" in capsys.readouterr().err
     assert _code([*argv, "--clk", str(clk)]) == 0
+
+
+def test_spp_and_reproduce_options_that_did_nothing_or_spoke_internals(tmp_path, capsys):
+    """From the review of the other commands: `--inject-from` later than `--inject-until`
+    injected nothing without a word; `--smooth` without `--iono iflc` answered in the
+    solver's terms (`iono='iflc'`); `reproduce --data FILE` said the folder did not
+    exist."""
+    from robustloc.paths import PACKAGE_DATA
+
+    g = PACKAGE_DATA / "gnss-geonet"
+    base = ["spp", str(g / "07590920.05o"), str(g / "07590920_0000-0400.05n"), "-o",
+            str(tmp_path / "s.csv")]
+    assert _code([*base, "--raim", "--inject", "G11:20", "--inject-from", "796436400",
+                  "--inject-until", "796436000"]) == 2
+    assert "--inject-from (796436400) is later than --inject-until" in capsys.readouterr().err
+    assert _code([*base, "--smooth", "10"]) == 2
+    assert "--smooth needs --iono iflc" in capsys.readouterr().err
+    assert not (tmp_path / "s.csv").exists()
+    assert _code(["reproduce", "--data", str(g / "07590920.05o"), "--only", "s05_out_of_box",
+                  "-o", str(tmp_path / "r")]) == 2
+    assert "is a file, not a data folder" in capsys.readouterr().err

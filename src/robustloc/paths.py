@@ -32,6 +32,7 @@ def resolve_data_dir(data: str | Path | None) -> Path | None:
         if not p.is_dir():
             from robustloc.errors import InputError
 
-            raise InputError(f"data folder does not exist: {p}")
+            raise InputError(f"--data: {p} is a file, not a data folder" if p.exists()
+                             else f"data folder does not exist: {p}")
         return p.resolve()
     return default_data_dir()

@@ -124,7 +124,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--unit", choices=("mdb", "m"), default="mdb",
                    help="unit of --size: multiples of the MDB (default) or metres")
     p.add_argument("--methods", default="ls,snooping,lege,huber,igg3",
-                   help="comma-separated among ls, snooping, lege, huber, hampel, igg, igg3 "
+                   help="comma-separated among ls, snooping, raim-single (linearized "
+                        "model only), lege, huber, hampel, igg, igg3 "
                         "(default ls,snooping,lege,huber,igg3)")
     p.add_argument("--alpha0", type=float_in(1e-15, 0.5), default=0.001,
                    help="w-test significance (0.001)")

@@ -183,6 +183,10 @@ def run_spp(obs: str, nav: Sequence[str], settings: SppSettings, *, sp3: str | N
                              else "is not a regular file", f)
     t_from = parse_time(settings.inject_from, "--inject-from")
     t_until = parse_time(settings.inject_until, "--inject-until")
+    if t_from is not None and t_until is not None and t_from > t_until:
+        # (nothing was injected, without a word)
+        raise InputError(f"--inject-from ({settings.inject_from}) is later than "
+                         f"--inject-until ({settings.inject_until}): no epoch between them")
     observations = read_obs(obs)
     ephemerides = read_nav(nav) if nav else None
     precise = None
@@ -203,6 +207,9 @@ def run_spp(obs: str, nav: Sequence[str], settings: SppSettings, *, sp3: str | N
     if settings.inject:
         observations = inject_faults(observations, dict(settings.inject), t_from, t_until)
     iono = settings.iono or ("iflc" if precise is not None else "klobuchar")
+    if settings.smooth and iono != "iflc":  # (the solver's words were iono='iflc')
+        raise InputError(f"--smooth needs --iono iflc (it smooths the ionosphere-free "
+                         f"combination with carrier phase); the ionosphere is {iono}")
     try:  # settings the solver refuses (e.g. --smooth without iflc) are option errors
         solver = SppSolver(systems=settings.systems,
                            elevation_mask_deg=settings.elevation_mask, iono=iono,
