@@ -672,3 +672,16 @@ def test_spp_and_reproduce_options_that_did_nothing_or_spoke_internals(tmp_path,
     assert _code(["reproduce", "--data", str(g / "07590920.05o"), "--only", "s05_out_of_box",
                   "-o", str(tmp_path / "r")]) == 2
     assert "is a file, not a data folder" in capsys.readouterr().err
+
+
+def test_montecarlo_refuses_a_geometry_that_fixes_nothing(tmp_path, capsys):
+    """Four anchors on a line with the tag on it (the default position is their centroid)
+    gave an all-NaN table with exit 0 (the review); it is refused, while the same
+    anchors with the tag off the line run."""
+    a = _w(tmp_path, "col.csv", "anchor,x,y\nA,0,0\nB,5,0\nC,10,0\nD,15,0\n")
+    assert _code(["montecarlo", "--anchors", a, "--trials", "20"]) == 2
+    assert "the geometry is singular" in capsys.readouterr().err
+    assert _code(["montecarlo", "--anchors", a, "--trials", "20", "--position", "7.5,3",
+                  "-o", str(tmp_path / "t.csv")]) == 0
+    t = pd.read_csv(tmp_path / "t.csv")
+    assert t.loc[t["n_faults"] == 0, "err_rms_m"].notna().all()

@@ -189,6 +189,15 @@ def build_layout(args: argparse.Namespace):  # noqa: ANN201
         lay = ranging_layout(xy, pos, args.sigma, ids, hoff, name=Path(args.anchors).stem)
     if lay.n <= lay.p:
         raise InputError(f"{lay.n} anchors for {lay.p} unknowns: no redundancy", args.anchors)
+    Hw = lay.H / lay.sigma[:, None]
+    finite = bool(np.all(np.isfinite(Hw)))  # (a tag on an anchor: a 0/0 direction)
+    sv = np.linalg.svd(Hw, compute_uv=False) if finite else np.zeros(1)
+    if not (finite and sv[-1] > 1e-9 * sv[0]):
+        # collinear (coplanar in 3-D) anchors fix no position: every row was NaN, exit 0
+        at = tuple(round(float(v), 3) for v in pos)
+        raise InputError(f"the anchors fix no position at {at} (they lie on one "
+                         f"{'line' if args.dim == 2 else 'plane'}, or the tag "
+                         "sits on an anchor): the geometry is singular", args.anchors)
     return lay
 
 
