@@ -501,6 +501,35 @@ def test_a_blank_first_line_and_an_unclosed_quote_are_named(tmp_path, capsys, te
     assert not (tmp_path / "p.csv").exists()
 
 
+@pytest.mark.parametrize("command", ["locate", "track"])
+@pytest.mark.parametrize("newline", ["\n", "\r\n"])
+def test_a_line_after_a_quoted_line_break_is_named_by_its_line(tmp_path, capsys, command,
+                                                               newline):
+    """A quoted field may hold a line break (RFC 4180 section 2.6).  Rows were numbered as
+    records, so every error after one named a line too early: here the bad value is on
+    line 8 (header 1, then four records of two lines each), and it was named line 5."""
+    a = _w(tmp_path, "a.csv", "anchor,x,y\nA,0,0\nB,10,0\nC,0,10\nD,10,10\n")
+    rows = "".join(f'0,"t{newline}1",{k},{v}\n'
+                   for k, v in zip("ABCD", ("5", "5", "5", "abc"), strict=True))
+    m = _w(tmp_path, "m.csv", "time,tag,anchor,range\n" + rows)
+    _fails(capsys, [command, m, "--anchors", a, "-o", str(tmp_path / "p.csv")], m, 8,
+           "column 'range': 'abc' is not a number")
+
+
+def test_quoted_line_breaks_keep_line_numbers_across_chunks(tmp_path):
+    """The streaming reader numbers each chunk from where the previous one ended, counting
+    the lines its quoted fields took, and reads the same lines as the whole-file reader."""
+    from robustloc.io import tables
+
+    rows = ["0,T,A,5", '0,"T\nx",B,5', "1,T,A,5", '1,"a\r\nb\nc",B,6', "2,T,A,7"]
+    m = _w(tmp_path, "m.csv", "time,tag,anchor,range\n" + "\n".join(rows) + "\n")
+    whole = tables._read_raw(m, ["tag", "anchor"])
+    assert whole.index.tolist() == [2, 3, 5, 6, 9]
+    for chunk in (1, 2, 3):
+        lines = [i for df in tables._iter_raw(m, chunk, ["tag", "anchor"]) for i in df.index]
+        assert lines == [2, 3, 5, 6, 9], chunk
+
+
 def test_fuse_and_filter_on_the_other_kind_of_log_name_the_header(tmp_path, capsys):
     """`fuse` on an RSSI log and `filter` on a range log said so without a line, where
     `locate` names line 1 for a header problem (the CLI review)."""

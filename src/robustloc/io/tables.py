@@ -361,17 +361,53 @@ def _csv_kwargs(p: Path, path: PathLike, fmt: str, str_columns: Sequence[str]) -
     )
 
 
-def _finish_frame(df: pd.DataFrame, path: PathLike, first_line: int) -> pd.DataFrame:
-    """Name the index by source line, strip column names, drop blank lines."""
+_NEWLINE_RE = r"\r\n|\r|\n"
+
+
+def _quoted_newlines(df: pd.DataFrame) -> np.ndarray | None:
+    """Line breaks inside each row's quoted fields, or None when there are none.
+
+    A CSV record that holds a quoted field with a line break spans several physical lines;
+    numbering records as lines would point every later error at the wrong line.  Only
+    text columns can hold one, and ids repeat, so the unique values are checked first.
+    """
+    counts = None
+    for col in df.columns:
+        s = df[col]
+        if s.dtype != object and not pd.api.types.is_string_dtype(s.dtype):
+            continue
+        uniq = pd.unique(s.dropna())
+        if not any(isinstance(v, str) and ("\n" in v or "\r" in v) for v in uniq):
+            continue
+        n = s.str.count(_NEWLINE_RE).fillna(0).to_numpy(dtype=np.int64)
+        counts = n if counts is None else counts + n
+    return counts
+
+
+def _finish_frame(
+    df: pd.DataFrame, path: PathLike, first_line: int, *, text: bool = False
+) -> tuple[pd.DataFrame, int]:
+    """Name the index by source line, strip column names, drop blank lines.
+
+    Returns the frame and the line after its last row.  With ``text`` (a CSV file) a record
+    whose quoted field holds line breaks takes as many lines as it spans.
+    """
     df.columns = [str(c).strip() for c in df.columns]
     _check_header(df.columns, path)
-    df.index = pd.RangeIndex(first_line, first_line + len(df), name="line")
+    extra = _quoted_newlines(df) if text else None
+    if extra is None:
+        df.index = pd.RangeIndex(first_line, first_line + len(df), name="line")
+        next_line = first_line + len(df)
+    else:
+        start = first_line + np.arange(len(df), dtype=np.int64) + np.cumsum(extra) - extra
+        df.index = pd.Index(start, name="line")
+        next_line = first_line + len(df) + int(extra.sum())
     if len(df) and df.shape[1]:
         blank = df.isna().all(axis=1).to_numpy()
         if blank.any():
             df = df.loc[~blank]
     df.attrs["path"] = _display(path)
-    return df
+    return df, next_line
 
 
 #: What pandas' C parser raises on a malformed file (besides ParserError): an undecodable
@@ -399,7 +435,7 @@ def _read_raw(path: PathLike, str_columns: Sequence[str] = ()) -> pd.DataFrame:
         except Exception as exc:  # noqa: BLE001 - any pyarrow failure is a bad file
             raise InputError(f"cannot read Parquet file: {_first_line(exc)}",
                              _display(path)) from None
-        return _finish_frame(df.reset_index(drop=True), path, 2)
+        return _finish_frame(df.reset_index(drop=True), path, 2)[0]
     try:
         with _RaggedGuard(p, path, fmt):
             df = pd.read_csv(p, **_csv_kwargs(p, path, fmt, str_columns))
@@ -409,7 +445,7 @@ def _read_raw(path: PathLike, str_columns: Sequence[str] = ()) -> pd.DataFrame:
         raise _empty_error(p, path, fmt) from None
     except _CSV_ERRORS as exc:
         raise _parser_error(exc, p, path, fmt) from None
-    return _finish_frame(df, path, 2)
+    return _finish_frame(df, path, 2, text=True)[0]
 
 
 def _iter_raw(
@@ -439,9 +475,8 @@ def _iter_raw(
             _check_header(pf.schema_arrow.names, path)
             line = 2
             for batch in pf.iter_batches(batch_size=chunk_rows):
-                df = batch.to_pandas()
-                yield _finish_frame(df, path, line)
-                line += len(df)
+                df, line = _finish_frame(batch.to_pandas(), path, line)
+                yield df
         except InputError:
             raise
         except Exception as exc:  # noqa: BLE001
@@ -456,9 +491,8 @@ def _iter_raw(
             with reader:
                 for df in reader:
                     guard.check()
-                    n = len(df)
-                    yield _finish_frame(df, path, line)
-                    line += n
+                    df, line = _finish_frame(df, path, line, text=True)
+                    yield df
     except InputError:
         raise
     except pd.errors.EmptyDataError:
