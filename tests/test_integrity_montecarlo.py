@@ -249,3 +249,27 @@ def test_single_exclusion_policy_cannot_handle_two_faults():
     assert _in_ci(h0["flag_rate"].iloc[0], 4000, 0.001)
     with pytest.raises(ValueError):
         run_montecarlo(lay, trials=10, methods=("raim-single",), nonlinear=True)
+
+
+@pytest.mark.parametrize(("layout", "options", "words"), [
+    ("--anchors", ["--systems", "GE"], "--systems applies to --gnss layouts only"),
+    ("--anchors", ["--mask-deg", "5", "--lat", "10"],
+     "--mask-deg, --lat apply to --gnss layouts only"),
+    ("--gnss", ["--sigma", "2"], "--sigma applies to --anchors layouts only"),
+    ("--gnss", ["--dim", "3", "--model", "rssi"], "--dim, --model apply to --anchors"),
+])
+def test_an_option_of_the_other_layout_is_refused(tmp_path, capsys, layout, options, words):
+    """`montecarlo --anchors A --systems GE` (or `--gnss --sigma 2`) ran with the option
+    silently ignored (review 5 of stop 32).  Refused before any trial, exit 2."""
+    argv = ["montecarlo", "--gnss"]
+    if layout == "--anchors":
+        anchors = tmp_path / "a.csv"
+        pd.DataFrame({"anchor": [f"b{i}" for i in range(7)], "x": ANCHORS[:, 0],
+                      "y": ANCHORS[:, 1]}).to_csv(anchors, index=False)
+        argv = ["montecarlo", "--anchors", str(anchors)]
+    assert main([*argv, *options, "--trials", "10"]) == 2
+    assert words in capsys.readouterr().err
+    # the defaults still hold when the option is not given
+    assert main([*argv, "--trials", "10", "--faults", "0", "--methods", "ls", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["n_unknowns"] == (6 if layout == "--gnss"
+                                                                 else 2)

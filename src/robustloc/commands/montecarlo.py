@@ -92,29 +92,29 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     lay.add_argument("--gnss", action="store_true", help="simulated GNSS snapshot layout")
     p.add_argument("--position", type=_floats, default=None, metavar="X,Y[,Z]",
                    help="true tag position for --anchors (default: anchors' centroid)")
-    p.add_argument("--dim", type=int, choices=(2, 3), default=2,
+    p.add_argument("--dim", type=int, choices=(2, 3), default=None,
                    help="solved dimension for --anchors (default 2; z = known height offsets)")
-    p.add_argument("--tag-z", type=float_in(-1e5, 1e5), default=0.0,
+    p.add_argument("--tag-z", type=float_in(-1e5, 1e5), default=None,
                    help="tag height for --dim 2 (default 0)")
-    p.add_argument("--sigma", type=float_in(1e-6, 1e6), default=1.0,
+    p.add_argument("--sigma", type=float_in(1e-6, 1e6), default=None,
                    help="observation standard deviation for --anchors: m for ranges, dB for "
                         "RSSI (default 1)")
-    p.add_argument("--model", choices=("range", "rssi"), default="range",
+    p.add_argument("--model", choices=("range", "rssi"), default=None,
                    help="observation type for --anchors (default range)")
     p.add_argument("--n", type=float_in(0.1, 10.0), default=None,
                    help="path-loss exponent for --model rssi (default: anchors' n column, "
                         "else 2)")
-    p.add_argument("--systems", default="GEC", help="GNSS systems among G, E, C (default GEC)")
-    p.add_argument("--mask-deg", type=float_in(0.0, 90.0), default=10.0,
-                   help="GNSS elevation mask (deg, 0 .. 90)")
-    p.add_argument("--lat", type=float_in(-90.0, 90.0), default=30.53,
-                   help="GNSS receiver latitude (deg)")
-    p.add_argument("--lon", type=float_in(-180.0, 360.0), default=114.36,
-                   help="GNSS receiver longitude (deg)")
-    p.add_argument("--height", type=float_in(-1e3, 1e5), default=30.0,
-                   help="GNSS receiver height (m)")
-    p.add_argument("--time-s", type=float_in(-1e12, 1e12), default=0.0,
-                   help="GNSS snapshot time (s)")
+    p.add_argument("--systems", default=None, help="GNSS systems among G, E, C (default GEC)")
+    p.add_argument("--mask-deg", type=float_in(0.0, 90.0), default=None,
+                   help="GNSS elevation mask (deg, 0 .. 90; default 10)")
+    p.add_argument("--lat", type=float_in(-90.0, 90.0), default=None,
+                   help="GNSS receiver latitude (deg; default 30.53)")
+    p.add_argument("--lon", type=float_in(-180.0, 360.0), default=None,
+                   help="GNSS receiver longitude (deg; default 114.36)")
+    p.add_argument("--height", type=float_in(-1e3, 1e5), default=None,
+                   help="GNSS receiver height (m; default 30)")
+    p.add_argument("--time-s", type=float_in(-1e12, 1e12), default=None,
+                   help="GNSS snapshot time (s; default 0)")
     p.add_argument("--trials", type=int_in(1, MAX_TRIALS), default=10_000,
                    help="trials per experiment (10000; run in chunks of 10000)")
     p.add_argument("--faults", type=_ints, default=[0, 1, 2], metavar="K[,K...]",
@@ -143,6 +143,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=nonnegative_int, default=1, help="random seed (default 1)")
     p.add_argument("-o", "--out", default=None, help="write the table as CSV here")
     p.add_argument("--json", action="store_true", help="print the table as JSON")
+
+
+#: Options of one layout only, with their defaults (None on the parser, so that an option
+#: given with the other layout is told from its default: it was silently ignored).
+_RANGING_OPTIONS = {"position": None, "dim": 2, "tag_z": 0.0, "sigma": 1.0, "model": "range",
+                    "n": None}
+_GNSS_OPTIONS = {"systems": "GEC", "mask_deg": 10.0, "lat": 30.53, "lon": 114.36,
+                 "height": 30.0, "time_s": 0.0}
+
+
+def _layout_options(args: argparse.Namespace) -> None:
+    """Refuse the options of the layout not chosen, then fill in the defaults."""
+    mine, other, layout = ((_GNSS_OPTIONS, _RANGING_OPTIONS, "--anchors") if args.gnss
+                           else (_RANGING_OPTIONS, _GNSS_OPTIONS, "--gnss"))
+    given = ["--" + k.replace("_", "-") for k in other if getattr(args, k) is not None]
+    if given:
+        verb = "applies" if len(given) == 1 else "apply"
+        raise InputError(f"{', '.join(given)} {verb} to {layout} layouts only")
+    for k, default in mine.items():
+        if getattr(args, k) is None:
+            setattr(args, k, default)
 
 
 def build_layout(args: argparse.Namespace):  # noqa: ANN201
@@ -221,6 +242,7 @@ def run(args: argparse.Namespace) -> int:
                          "(without --nonlinear)")
     if args.position is not None and max(abs(v) for v in args.position) > 1e7:
         raise InputError(f"--position: coordinates beyond 1e7 m, got {args.position}")
+    _layout_options(args)
     if args.nonlinear and args.gnss:
         raise InputError("--nonlinear applies to --anchors layouts only")
     if args.nonlinear and args.alpha is not None:
