@@ -714,3 +714,24 @@ def test_montecarlo_refuses_a_geometry_that_fixes_nothing(tmp_path, capsys):
                   "-o", str(tmp_path / "t.csv")]) == 0
     t = pd.read_csv(tmp_path / "t.csv")
     assert t.loc[t["n_faults"] == 0, "err_rms_m"].notna().all()
+
+
+def test_a_navigation_file_after_an_option_is_read(tmp_path, capsys):
+    """`spp OBS --raim NAV` was refused as "unrecognized arguments: NAV" (argparse fills
+    a positional from the first run of positionals only; review 5 of stop 32).  It now
+    gives the same rows as `spp OBS NAV --raim`; a leftover that is not a positional
+    still gets argparse's message."""
+    from robustloc.paths import PACKAGE_DATA
+
+    slac = PACKAGE_DATA / "gnss-slac"
+    obs, nav = str(slac / "slac1180_1930-1940.21o"), str(slac / "brdc1180_1700-2200.21n")
+    a, b = tmp_path / "a.csv", tmp_path / "b.csv"
+    assert main(["spp", obs, nav, "--raim", "--quiet", "-o", str(a)]) == 0
+    assert main(["spp", obs, "--raim", nav, "--quiet", "-o", str(b)]) == 0
+    assert a.read_bytes() == b.read_bytes()
+    assert len(a.read_text().splitlines()) > 10
+    capsys.readouterr()
+    assert _code(["spp", obs, "--raim", nav, "--bogus", "-o", str(b)]) == 2
+    assert "unrecognized arguments: --bogus" in capsys.readouterr().err
+    assert _code(["locate", "--anchors", nav, "-o", str(b), obs, "extra"]) == 2
+    assert "unrecognized arguments: extra" in capsys.readouterr().err

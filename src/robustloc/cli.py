@@ -77,6 +77,30 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def _parse(parser: argparse.ArgumentParser, argv: list[str],
+           command: str | None) -> argparse.Namespace:
+    """Parse ``argv``; a command's positional given after its options is still read.
+
+    ``robustloc spp OBS --raim NAV`` was refused as "unrecognized arguments: NAV": argparse
+    fills a positional from the first run of positionals only.  When something is left
+    over, the command's own parser reads the line again intermixed (positionals anywhere
+    among the options), and reports only what is still left over.
+    """
+    args, extra = parser.parse_known_args(argv)
+    if not extra or command is None or command not in argv:
+        return parser.parse_args(argv)  # argparse's own message for what is left over
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    own = sub.choices[command]
+    try:
+        ns = own.parse_intermixed_args(argv[argv.index(command) + 1:])
+    except TypeError:  # a parser intermixed parsing does not support (argparse's rule)
+        return parser.parse_args(argv)
+    for key, value in vars(args).items():
+        if not hasattr(ns, key):
+            setattr(ns, key, value)
+    return ns
+
+
 def error(message: str) -> int:
     """Print ``error: message`` on stderr and return exit code 2."""
     print(f"error: {message}", file=sys.stderr)
@@ -121,7 +145,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     first = next((a for a in argv if not a.startswith("-")), None)
     parser = build_parser(first)
     try:  # argparse's own errors (unknown option, a refused value) exit with code 2
-        args = parser.parse_args(argv)
+        args = _parse(parser, argv, first)
     except SystemExit as exc:
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
     if not getattr(args, "_run", None):
