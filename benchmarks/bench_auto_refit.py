@@ -3,13 +3,14 @@
 ``auto`` (:func:`robustloc.integrity.fixes.locate_protected`) solves every epoch by plain
 Gauss-Newton with the log's per-anchor scale and tests it.  An epoch whose global test
 fails is refitted by Huber.  An epoch whose w-test flags an observation while the test of
-the rest passes (``fault_excluded``) keeps the plain fix: the flagged observation leaves the
-test and the bound, not the position.  Two textbook alternatives for those epochs, measured
+the rest passes (``extra["flags_kept"]``; status ``fault_detected`` since 2026-12-04,
+``fault_excluded`` before) keeps the plain fix, flagged observation and all, with the
+bound of that fix.  Two textbook alternatives for those epochs, measured
 here on every shared real data set on the report's epochs (``s05``: every k-th epoch, at
 most 1 500 per set), against the best scipy / statsmodels peer
 (:func:`robustloc.eval.realdata.peer_fixes`):
 
-* ``refit huber``: the ``fault_excluded`` epochs refitted by Huber with the log's scale,
+* ``refit huber``: those epochs refitted by Huber with the log's scale,
   like the failed ones;
 * ``snooping``: the flagged observations removed and the epoch re-solved by Gauss-Newton
   (data snooping, seed 003: exclude what the w-test identifies).
@@ -17,7 +18,7 @@ most 1 500 per set), against the best scipy / statsmodels peer
 Every variant then takes the log's side of nearly collinear anchors (item 7 of
 :mod:`robustloc.integrity.fixes`) as the default does, so the rows differ only in those
 epochs.  Columns: RMS and p95 of the 2-D error over the usable fixes, availability, the
-number of ``fault_excluded`` epochs in the table's rows (``n_flagged``).
+number of those epochs in the table's rows (``n_flagged``).
 
 Measured (2026-12-02, again 2026-12-03 with the same verdicts, ``../shared/data``):
 snooping is worse on every WiFi room and on ble-tetam (the flagged range is rarely the
@@ -61,8 +62,10 @@ def variants(case) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     plain = fx.protect(nls.solve(case.xy, case.values, case.kind, **kw), **pk)
     out = {"auto (keep the plain fix)": default}
     flagged = plain.extra["flagged"]
-    rows = np.flatnonzero((plain.status == st.FAULT_EXCLUDED) & flagged.any(axis=1))
-    failed = np.flatnonzero(st.among(plain.status, (st.FAULT_DETECTED, st.UNAVAILABLE)))
+    kept = plain.extra["flags_kept"]  # flagged, the rest passes: auto keeps the plain fix
+    rows = np.flatnonzero(kept)
+    failed = np.flatnonzero(st.among(plain.status, (st.FAULT_DETECTED, st.UNAVAILABLE))
+                            & ~kept)
     huber = nls.with_method("huber", log_scale=scale)
     # refit huber: the failed epochs (as auto) and the flagged ones
     redo = np.union1d(failed, rows)

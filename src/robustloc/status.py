@@ -38,7 +38,9 @@ LOW_REDUNDANCY = "low_redundancy"
 #: level.
 UNVERIFIED = "unverified"
 #: The fix's own test failed (a fault is detected) and no observation could be excluded
-#: to make it pass.  The position is kept and usable, with a protection level widened by the
+#: to make it pass, or the w-test flagged an observation that the fix keeps at full weight
+#: (a plain fit: ``ls``, ``wls``, ``nls``, and ``auto`` where it keeps the Gauss-Newton
+#: fix).  The position is kept and usable, with a protection level widened by the
 #: a-posteriori variance factor (infinite when nothing is left to confirm it): trust it only
 #: as far as ``hpl`` says, or set an alert limit.
 FAULT_DETECTED = "fault_detected"

@@ -55,7 +55,8 @@ even sample of it), the w-test flags observations the fix does not explain, the 
 test (B-method significance) checks the rest, and `hpl` (`vpl` in 3-D) is the MDB slope
 bound plus k sigma of the fault-free noise (--alpha0, --beta0, --k-noise).  Statuses:
 ok, fault_excluded, low_redundancy (redundancy 1: detectable, not identifiable),
-unverified (redundancy 0, hpl = inf), fault_detected (the test fails; hpl widened by the
+unverified (redundancy 0, hpl = inf), fault_detected (the test fails, or the w-test flags
+a range that a plain fit, ls, wls or nls, keeps; hpl of the fix as it is, widened by the
 a-posteriori variance factor), extrapolated (farther than 10x the anchors' extent), all
 usable with not_converged; unavailable (a flagged observation leaves nothing to confirm
 the rest, or half or more of the heard observations are flagged: no majority supports the
@@ -140,8 +141,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="horizontal alert limit (m): a fix whose hpl exceeds it gets status "
                         "protection_exceeded (not usable)")
     p.add_argument("--k-noise", type=nonnegative_float, default=None, metavar="K",
-                   help="protection levels: multiplier of the fault-free noise (default "
-                        "N(1 - alpha0/2) = 3.29 for alpha0 = 0.1 %%)")
+                   help="protection levels: multiplier of the fault-free noise on the "
+                        "major semi-axis (default N(1 - alpha0/2) = 3.29 for alpha0 = 0.1 %%, "
+                        "the 1-D quantile, as WAAS; 3.72 = sqrt(chi2(1 - alpha0; 2)) bounds "
+                        "the 2-D noise at alpha0 as the tracker does)")
     p.add_argument("--min-scale", type=nonnegative_float, default=0.0,
                    help="floor of the estimated robust scale (units of --sigma)")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",

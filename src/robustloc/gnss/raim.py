@@ -29,7 +29,13 @@ a-priori covariance ``C = (H^T P H)^-1`` of the position in ENU::
 over the satellites in the solution; infinite when a satellite that moves the position has
 zero redundancy (its fault could not be detected).  The first term is the slope method of
 snapshot RAIM (slope_i times sqrt(lambda0)) with the B-method's ``lambda0``, the second the
-noise bound at the test's own significance.
+fault-free noise along the major semi-axis, with the one-dimensional quantile as the WAAS
+MOPS does (``K_H d_major``).  That quantile holds along the axis (and for ``VPL``); the
+horizontal error's probability of exceeding ``k`` major semi-axes is higher in 2-D: at most
+``exp(-k^2 / 2)`` = 0.0045 for a circular ellipse (4.5 ``alpha0``), 0.0015 at axis ratio
+0.7, 0.0010 for a thin ellipse.  ``sqrt(chi2.isf(alpha0, 2))`` = 3.72 bounds it at
+``alpha0`` whatever the shape (the tracker's choice, :mod:`robustloc.tracking.tracker`);
+pass it as ``k_noise`` for that.
 """
 
 from __future__ import annotations

@@ -9,7 +9,9 @@ For each epoch, at the fix ``x`` of any method, with the range-domain residuals
    ``w_i = v_i / (sigma_i sqrt(r_i))`` (seed 003, eqs. (1)-(2); ``r_i`` the redundancy
    number of the heard observations) above ``N(1 - alpha0/2)`` (3.29), and observations
    the estimator itself excluded (weight zero).  A robust fix has already down-weighted
-   them; they leave the test and the protection level.
+   them; they leave the test and the protection level.  A plain fit (``ls``, ``wls``,
+   ``nls``) keeps them at full weight: its test and bound stay over every observation of
+   the fix, and a flag makes it ``fault_detected``.
 2. **Global test** of the remaining observations: ``T = sum v_i^2 / sigma_i^2`` against
    ``chi2(1 - alpha; n' - p)`` with ``alpha`` from the B-method for that redundancy (seed
    003, eqs. (3)-(4)).
@@ -19,9 +21,10 @@ For each epoch, at the fix ``x`` of any method, with the range-domain residuals
    status                    when                                                  usable
    ========================  ====================================================  ======
    ``ok``                    nothing flagged, the test passes, redundancy >= 2      yes
-   ``fault_excluded``        observations flagged (by the estimator or the w-test;  yes
-                             they leave the test and the protection level), the
-                             test of the rest passes
+   ``fault_excluded``        observations flagged (excluded or down-weighted by     yes
+                             the estimator, or flagged by the w-test where the
+                             estimator down-weights; they leave the test and the
+                             protection level), the test of the rest passes
    ``low_redundancy``        redundancy 1 (robust methods: the plain fit was        yes
                              used), nothing flagged, the test passes: a fault of
                              the MDB would be detected but not identified
@@ -30,9 +33,13 @@ For each epoch, at the fix ``x`` of any method, with the range-domain residuals
                              under a per-epoch scale): nothing can be tested;
                              ``hpl = inf``
    ``fault_detected``        the test fails (``hpl`` from sigma scaled by the       yes
-                             a-posteriori factor ``sqrt(T / dof)``): a fault is
-                             detected and cannot be excluded; the position is
-                             kept, its bound says how little it is worth
+                             a-posteriori factor ``sqrt(T / dof)``), or the w-test
+                             flags an observation that a plain fit (``ls``,
+                             ``wls``, ``nls``: :data:`PLAIN_FIT_METHODS`) keeps
+                             at full weight (test and bound then over every
+                             observation of the fix): a fault is detected and
+                             cannot be excluded; the position is kept, its bound
+                             says how little it is worth
    ``unavailable``           a flagged observation leaves no redundancy to          no
                              confirm the rest (nothing bounds the fix); or half
                              or more of the heard observations are flagged
@@ -40,7 +47,7 @@ For each epoch, at the fix ``x`` of any method, with the range-domain residuals
    ``extrapolated``          usable by the above, but farther than 10 times the     yes
                              heard anchors' extent from them: the geometry is
                              extrapolated, ``hpl`` (large there) says how far
-   ``protection_exceeded``   usable, but ``hpl`` above ``--alert-limit``            no
+   ``protection_exceeded``   usable, but ``hpl`` (kept) above ``--alert-limit``     no
    ========================  ====================================================  ======
 
    A ``not_converged`` fix (usable: the iterations stopped before the step fell below
@@ -58,7 +65,11 @@ For each epoch, at the fix ``x`` of any method, with the range-domain residuals
    with ``C = (J^T P J)^-1`` over the unflagged observations.  Infinite where an
    observation that moves the fix has no redundancy (its fault could not be detected).
    The integrity-risk parameters are ``alpha0`` (false alarm of the w-test, 0.1 %),
-   ``beta0`` (missed detection of an MDB-sized fault, 10 %) and ``k``.
+   ``beta0`` (missed detection of an MDB-sized fault, 10 %) and ``k``.  The default ``k``
+   is the one-dimensional quantile on the major semi-axis, as in
+   :mod:`robustloc.gnss.raim` (whose docstring gives the 2-D exceedance it allows: up to
+   4.5 ``alpha0`` for a circular ellipse); ``k_noise = sqrt(chi2.isf(alpha0, 2))`` = 3.72,
+   the tracker's, bounds it at ``alpha0`` (``--k-noise 3.72``).
 5. **Ambiguity** (with the anchors known, :func:`locate_protected` passes them): ranges
    from collinear anchors (2-D; coplanar in 3-D) fit the fix and its mirror image across
    the anchors' line (plane) equally well, and nearly collinear anchors leave a second
@@ -105,8 +116,8 @@ For each epoch, at the fix ``x`` of any method, with the range-domain residuals
    streaming).  An ambiguous fix on the other side, whose alternative lies on the
    preferred one, becomes its alternative (:func:`resolve_sides`); the bound covers both
    as before and the status is unchanged.  The wifi-rtt-rss corridor (every scan,
-   ``auto``; 2026-12-03): 1 961 of 6 827 usable fixes moved, RMS 6.13 -> 3.68 m and p95
-   11.3 -> 5.95 m, against scipy's 6.10 / 11.2; no fix moves on the other shared data sets
+   ``auto``; 2026-12-04): 2 104 of 6 827 usable fixes moved, RMS 6.13 -> 3.59 m and p95
+   11.3 -> 5.70 m, against scipy's 6.10 / 11.2; no fix moves on the other shared data sets
    (lecture theatre and office: 8 and 38 ambiguous fixes, no significant side).  A log
    whose tags are on both sides of the line gets no preference, and an ambiguous fix
    with a weak (not significant) prior stays where its estimator put it.
@@ -400,8 +411,8 @@ def ambiguity_sides(sol: Solution, range_model: RangeModel, alpha: float = SIDE_
     fair coin, ``2 P(X <= min(n+, n-)) < alpha`` with ``X ~ Binomial(n+ + n-, 1/2)``
     (:func:`resolve_sides` then uses the smallest preferred set that contains a fix's
     kept anchors).  Measured on the wifi-rtt-rss corridor: the tags are 3.2-4.6 m to one
-    side of the four access points' line; 73 % of the 422 unambiguous fixes lie on that
-    side, 59 % of the 6 361 ambiguous ones.
+    side of the four access points' line; 86 % of the 478 unambiguous fixes lie on that
+    side, 62 % of the 6 348 ambiguous ones (``auto``, every scan, 2026-12-04).
 
     Returns
     -------
@@ -570,6 +581,20 @@ def _test_alpha(crit: Array, dof: NDArray[np.int64]) -> Array:
     return vals[np.asarray(inverse).reshape(-1)]
 
 
+def _global_test(v: Array, sig: Array, keep: NDArray[np.bool_], p: int, alpha0: float,
+                 beta0: float) -> tuple[Array, Array, NDArray[np.int64]]:
+    """``T = sum v_i^2 / sigma_i^2`` over ``keep``, its B-method critical value (NaN without
+    redundancy) and the redundancy ``dof``, per epoch."""
+    dof = keep.sum(axis=1) - p
+    with np.errstate(invalid="ignore"):
+        T = np.nansum(np.where(keep, (v / sig) ** 2, 0.0), axis=1)
+    crit = np.full(dof.shape, np.nan)
+    has = dof >= 1
+    if np.any(has):
+        crit[has] = global_critical(dof[has], alpha0=alpha0, beta0=beta0)
+    return T, crit, dof
+
+
 def protect(
     sol: Solution,
     *,
@@ -651,16 +676,23 @@ def protect(
     with np.errstate(invalid="ignore", divide="ignore"):
         w = np.abs(v) / (sig * np.sqrt(np.where(r > R_MIN, r, np.nan)))
     flagged = used & (w > w_critical(alpha0))
-    keep = used & ~flagged
-    # 2. global test of the rest
-    dof = keep.sum(axis=1) - p
-    with np.errstate(invalid="ignore"):
-        T = np.nansum(np.where(keep, (v / sig) ** 2, 0.0), axis=1)
-    crit = np.full(N, np.nan)
+    # a plain fit (ls, wls, nls) keeps a flagged observation at its full weight: the fix
+    # carries the fault, so the test and the bound are those of the fix itself (the
+    # statistics review: such fixes said fault_excluded with the fault still in them)
+    carries = flagged.any(axis=1) & (sol.method in PLAIN_FIT_METHODS)
+    rest = used & ~flagged
+    keep = np.where(carries[:, None], used, rest)
+    # 2. global test of the rest (of the whole fix where it carries its flags)
+    T, crit, dof = _global_test(v, sig, keep, p, alpha0, beta0)
     has = dof >= 1
-    if np.any(has):
-        crit[has] = global_critical(dof[has], alpha0=alpha0, beta0=beta0)
     passed = has & (T <= crit)
+    # the flagged observations are all that is wrong with a fix that carries them: the
+    # test of the rest passes (``auto`` keeps such a fix, measured best on real logs)
+    rest_passes = np.zeros(N, dtype=bool)
+    if np.any(carries):
+        T_r, crit_r, dof_r = _global_test(v[carries], sig[carries], rest[carries], p,
+                                          alpha0, beta0)
+        rest_passes[carries] = (dof_r >= 1) & (T_r <= crit_r)
     # 3. status
     new = status.copy()
     any_flag = flagged.any(axis=1) | excl.any(axis=1)
@@ -670,13 +702,17 @@ def protect(
     failed = (testable | unconv) & has & ~passed
     # item 6: a minority kept (flagged by the estimator or the w-test: half or more)
     n_out = np.sum(heard & (excl | flagged), axis=1)
-    blind = (testable | unconv) & any_flag & ((dof < 1) | (2 * n_out >= heard.sum(axis=1)))
+    dof_rest = np.sum(used & ~flagged, axis=1) - p  # what a removal would leave
+    blind = (testable | unconv) & any_flag & ((dof_rest < 1)
+                                              | (2 * n_out >= heard.sum(axis=1)))
     failed &= ~blind
+    # a fault detected by the w-test and left in the fix by a plain fit: not excluded
+    failed |= (testable | unconv) & carries & ~blind
     new[testable & (dof == 0) & ~any_flag] = st.UNVERIFIED
     new[failed] = st.FAULT_DETECTED
     # a flagged observation that leaves nothing to confirm the rest: no bound at all
     new[blind] = st.UNAVAILABLE
-    new[testable & passed & any_flag & ~blind] = st.FAULT_EXCLUDED
+    new[testable & passed & any_flag & ~blind & ~carries] = st.FAULT_EXCLUDED
     new[testable & passed & ~any_flag & ((dof == 1) | fb)] = st.LOW_REDUNDANCY
     new[testable & passed & ~any_flag & (dof >= 2) & ~fb] = st.OK
     # no scale to test with (the epoch's own sigma0 is 0: its residuals vanish, as on
@@ -687,7 +723,7 @@ def protect(
     # a-posteriori variance factor sqrt(T / dof) (> 1), the classical remedy when the
     # a-priori noise is too optimistic for this epoch
     with np.errstate(invalid="ignore", divide="ignore"):
-        factor = np.where(failed, np.sqrt(T / np.maximum(dof, 1)), 1.0)
+        factor = np.where(failed, np.fmax(np.sqrt(T / np.maximum(dof, 1)), 1.0), 1.0)
     hpl, vpl = hpl_used * factor, vpl_used * factor  # sigma scales the bound linearly
     again = np.flatnonzero(np.any(keep != used, axis=1))
     if again.size:
@@ -776,10 +812,11 @@ def protect(
             new[st.among(new, st.USABLE) & (new != st.PREDICTED) & ~(hpl <= alert_limit)] = (
                 st.PROTECTION_EXCEEDED)
     usable = st.among(new, st.USABLE)
+    bounded = usable | (new == st.PROTECTION_EXCEEDED)  # a refused fix: by how much
     extra = dict(sol.extra)
-    extra.update(hpl=np.where(usable, hpl, np.nan), vpl=np.where(usable, vpl, np.nan),
+    extra.update(hpl=np.where(bounded, hpl, np.nan), vpl=np.where(bounded, vpl, np.nan),
                  test_statistic=T, test_critical=crit, flagged=flagged,
-                 test_alpha=_test_alpha(crit, dof))
+                 test_alpha=_test_alpha(crit, dof), flags_kept=carries & rest_passes & ~blind)
     if range_model is not None:
         extra["ambiguity_distance"] = np.where(usable, amb_dist, np.nan)
         extra["ambiguity_position"] = np.where(usable[:, None], amb_pos, np.nan)
@@ -791,6 +828,11 @@ def protect(
     return replace(sol, status=new, position=np.where(usable[:, None], pos, np.nan),
                    extra=extra)
 
+
+#: Methods whose fit keeps every observation at its a-priori weight: an observation the
+#: w-test flags stays in their fix (:func:`protect` gives ``fault_detected``, not
+#: ``fault_excluded``; ``auto`` then solves the epoch again robustly).
+PLAIN_FIT_METHODS = frozenset({"ls", "wls", "nls"})
 
 #: ``robustloc locate``'s default: Gauss-Newton where the epoch passes its own test, the
 #: robust fit where the test finds a fault (:func:`locate_protected`).
@@ -881,12 +923,18 @@ def _locate_tested(locator, anchors: Array, values: Array, kind: str, kw: dict,
         extra["robust_refit"] = np.ones(heavy.position.shape[0], dtype=bool)
         return _replace(heavy, method=AUTO, extra=extra)
     plain = protect(locator.solve_as("nls", anchors, values, kind, **kw), **pk)
-    redo = st.among(plain.status, (st.FAULT_DETECTED, st.UNAVAILABLE))
+    # (a fix whose flagged ranges are all that fails its test is kept: refitting those
+    # epochs by huber, or dropping the flagged range, lost 1-7 % on four real logs,
+    # docs/choosing-a-method.md, benchmarks/bench_auto_refit.py)
+    redo = st.among(plain.status, (st.FAULT_DETECTED, st.UNAVAILABLE)) & ~plain.extra[
+        "flags_kept"]
     if alert_limit is not None:  # a fix the alert limit refused may have failed its test
         redo |= (plain.status == st.PROTECTION_EXCEEDED) & ~(
-            plain.extra["test_statistic"] <= plain.extra["test_critical"])
+            plain.extra["test_statistic"] <= plain.extra["test_critical"]) & ~plain.extra[
+            "flags_kept"]
     if not np.any(redo):
-        return _replace(plain, method=AUTO)
+        return _replace(plain, method=AUTO,
+                        extra={**plain.extra, "robust_refit": np.zeros(redo.shape, bool)})
     scale = plain.extra.get("log_scale")
     robust_loc = locator.with_method(AUTO_ROBUST, log_scale=scale)
     rows = np.flatnonzero(redo)
