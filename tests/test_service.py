@@ -1178,3 +1178,46 @@ def test_an_ndjson_line_that_is_not_json_is_named_so_in_the_reply():
     _, _, rejected = validate_rows(rows, idx, None, ("range", "rssi"))
     assert [i for i, _ in rejected] == [1]
     assert rejected[0][1].startswith("line is not JSON: ")
+
+
+def test_a_restart_reads_only_the_latest_rows_of_the_tags(tmp_path, monkeypatch):
+    """Seeding ``/api/latest`` read every row since the oldest of the tags' latest times:
+    one tag silent since the start made a restart read the whole store (left out in
+    stop 32's note).  It now reads the rows at the tags' latest times only.  (The
+    recovery still reads the time and tag of every row: it looks for unsolved epochs.)"""
+    from robustloc.service.engine import Engine
+    from robustloc.service.store import SegmentLog as Store
+
+    anchors = pd.DataFrame({"anchor": ["A1", "A2", "A3", "A4"], "x": [0, 10, 10, 0.0],
+                            "y": [0, 0, 10, 10.0]})
+    xy = anchors[["x", "y"]].to_numpy(float)
+    rows = [{"time": float(t), "tag": g, "anchor": a, "range": float(r)}
+            for g, p, times in (("silent", [6.0, 2.0], (0,)), ("busy", [3.0, 4.0], range(300)))
+            for t in times for a, r in zip(anchors["anchor"], np.hypot(*(xy - p).T))]
+
+    def make():
+        return Engine(anchors, LocateProcessor(anchors, method="nls"),
+                      store_dir=tmp_path / "s", latency_window_s=0.0, idle_flush_s=600.0,
+                      fsync=False)
+
+    eng = make()
+    eng.ingest(rows)
+    eng.flush()
+    before = eng.latest().sort_values("tag").reset_index(drop=True)
+    eng.stop()
+    read = []
+    scan = Store.scan
+
+    def counting(self, columns=None, expression=None):
+        table = scan(self, columns, expression)
+        if columns is None:  # whole rows (the recovery reads two columns of each)
+            read.append(table.num_rows)
+        return table
+
+    monkeypatch.setattr(Store, "scan", counting)
+    eng = make()
+    after = eng.latest().sort_values("tag").reset_index(drop=True)
+    eng.stop()
+    pd.testing.assert_frame_equal(after[before.columns], before, check_dtype=False)
+    assert before["time"].tolist() == [299.0, 0.0]
+    assert sum(read) <= 3, read  # busy's rows at times 0 and 299, silent's at 0 (was 301)

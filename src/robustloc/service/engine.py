@@ -291,12 +291,13 @@ class Engine:
 
     def _seed_latest(self, solved: dict[str, float]) -> None:
         """``/api/latest`` after a restart: each tag's latest stored row (it was empty
-        until new rows came, and the map page started blank).  Only the rows from the
-        oldest of the tags' latest times on are read."""
+        until new rows came, and the map page started blank).  Only the rows at one of the
+        tags' latest times are read (not everything since the oldest of them: a tag silent
+        for a month made a restart read a month of rows)."""
         if not solved:
             return
-        since = min(solved.values())
-        df = self.pos.scan(expression=ds.field("time") >= since).to_pandas()
+        times = sorted({float(t) for t in solved.values()})
+        df = self.pos.scan(expression=ds.field("time").isin(times)).to_pandas()
         df = df[df["time"].to_numpy(float) == df["tag"].map(solved).to_numpy(float)]
         self._latest_frames = [df.drop_duplicates("tag", keep="last")
                                .sort_values("tag", kind="stable").reset_index(drop=True)]
