@@ -253,6 +253,13 @@ def test_command_link_offsets_summary_and_refusal(tmp_path):
     assert len(out) == ep.n_epochs and (out["status"] == "ok").mean() > 0.9
     r = _cli(*base)
     assert r.returncode == 0 and "link offsets of t0 (m): A0 +0." in r.stdout
+    # smoothed: the same columns (the smoother wrote the first link's offset as a
+    # `range_offset` column, the tracker review)
+    for smooth in (["--smooth"], ["--fixed-lag", "3"]):
+        r = _cli(*[str(tmp_path / "s.csv") if a == str(tmp_path / "o.csv") else a
+                   for a in base], *smooth)
+        assert r.returncode == 0, r.stderr
+        assert list(pd.read_csv(tmp_path / "s.csv").columns) == list(out.columns), smooth
     # with --range-offset: a user's mistake, exit 2, no traceback
     r = _cli(*base, "--range-offset")
     assert r.returncode == 2 and r.stderr.startswith("error: ")

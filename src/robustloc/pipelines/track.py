@@ -434,13 +434,15 @@ def apply_smoother(trk: Any, table: pd.DataFrame, lag: int | None) -> pd.DataFra
     t.loc[have, "x"], t.loc[have, "y"] = xs[have, 0], xs[have, 1]
     t.loc[have, "var_x"], t.loc[have, "var_y"] = Ps[have, 0, 0], Ps[have, 1, 1]
     t.loc[have, "cov_xy"] = Ps[have, 0, 1]
-    n = trk.n_motion  # kinematic states; the range offset (if estimated) follows them
+    n = trk.n_motion  # kinematic states
     if n >= 4:
         t.loc[have, "vx"], t.loc[have, "vy"] = xs[have, 2], xs[have, 3]
         t.loc[have, "var_vx"], t.loc[have, "var_vy"] = Ps[have, 2, 2], Ps[have, 3, 3]
     if n >= 6:
         t.loc[have, "ax"], t.loc[have, "ay"] = xs[have, 4], xs[have, 5]
-    if xs.shape[1] > n:
+    # the tag's range offset (--range-offset) follows them; link offsets (--link-offsets,
+    # reported in the summary, not per row) were written here as a range offset
+    if trk.settings.range_offset and xs.shape[1] > n:
         t.loc[have, "range_offset"] = xs[have, n]
         t.loc[have, "var_range_offset"] = Ps[have, n, n]
     # hpl: the filtered slope term carries over; the noise term shrinks with the covariance
