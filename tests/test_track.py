@@ -987,3 +987,34 @@ def test_track_names_an_anchor_far_outside_the_layout(tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["anchors_not_used"] == ["A3"]
     t = pd.read_csv(tmp_path / "t.csv")
     assert len(t) == 4 and np.allclose(t[["x", "y"]].to_numpy(float), [3.0, 4.0], atol=1e-6)
+
+
+def test_the_first_row_reports_the_covariance_the_filter_starts_from(tmp_path):
+    """The first row of a tag gave the start fix's covariance with its ``cov_xy`` while
+    the filter started from the diagonal alone, and the smoothed first row was not within
+    the forward one (``P_f - P_s`` indefinite for 6 of 21 tags; the tracker review).  The
+    row now gives the filter's own start (no correlation; the tracker's ``_start`` says
+    why the start stays diagonal), and on the simulated room the smoothed covariance of
+    every row is within the forward one."""
+    from robustloc.cli import main
+
+    assert main(["simulate", "wifi-room", "--seed", "1", "--out", str(tmp_path / "r")]) == 0
+    r = tmp_path / "r"
+    files = {}
+    for name, extra in (("f", []), ("s", ["--smooth"])):
+        files[name] = tmp_path / f"{name}.csv"
+        assert main(["track", str(r / "measurements.csv"), "--anchors",
+                     str(r / "anchors.csv"), "-o", str(files[name]), "--quiet", *extra]) == 0
+    f, s = pd.read_csv(files["f"]), pd.read_csv(files["s"])
+
+    def cov(df):
+        return np.stack([np.stack([df.var_x, df.cov_xy], -1),
+                         np.stack([df.cov_xy, df.var_y], -1)], -2)
+
+    ok = f[["var_x", "var_y", "cov_xy"]].notna().all(axis=1).to_numpy()
+    first = (~f.duplicated("tag")).to_numpy()
+    assert first.sum() > 10 and np.all(f.cov_xy[first & ok] == 0.0)
+    # (rounded to the written digits: a relative tolerance of 1e-9)
+    low = np.linalg.eigvalsh(cov(f[ok]) - cov(s[ok])).min(axis=1)
+    scale = f.loc[ok, ["var_x", "var_y"]].max(axis=1).to_numpy()
+    assert np.all(low >= -1e-9 * scale), np.sort(low / scale)[:5]
