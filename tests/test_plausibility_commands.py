@@ -87,6 +87,12 @@ def test_simulate_group_b_line_is_refused_not_silently_diagonal(tmp_path, capsys
     (["montecarlo", "--gnss", "--methods", ","], "--methods"),  # was a KeyError traceback
     (["montecarlo", "--gnss", "--methods", "ls,ls"], "--methods"),
     (["simulate", "gnss", "--systems", "X"], "--systems"),
+    # the tracker review: 0 and 1 passed argparse and were refused in the settings' own
+    # words ("alpha0 must be ..."); a sigma of 1e-300 gave every fix ill_conditioned
+    (["track", "m.csv", "--anchors", "a.csv", "--alpha0", "0"], "--alpha0"),
+    (["track", "m.csv", "--anchors", "a.csv", "--integrity-risk", "1"], "--integrity-risk"),
+    (["track", "m.csv", "--anchors", "a.csv", "--sigma", "1e-300"], "--sigma"),
+    (["locate", "m.csv", "--anchors", "a.csv", "--sigma", "1e-300"], "--sigma"),
 ])
 def test_absurd_option_values_are_refused(tmp_path, capsys, argv, opt):
     out = tmp_path / "out"

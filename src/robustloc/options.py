@@ -99,6 +99,12 @@ def float_in(low: float, high: float) -> Callable[[str], float]:
     return convert
 
 
+#: An observation's a-priori standard deviation (``--sigma``, metres or dB): 1 um to 1000 km.
+#: 1e-300 passed as positive and made every fix ``ill_conditioned`` with numpy warnings on
+#: stderr (the tracker review); ``montecarlo --sigma`` had this range already.
+sigma_value = float_in(1e-6, 1e6)
+
+
 def _int(text: str | int) -> int:
     if isinstance(text, bool) or (isinstance(text, float) and not text.is_integer()):
         raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}")

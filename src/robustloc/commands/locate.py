@@ -97,6 +97,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         nonnegative_float,
         positive_float,
         positive_int,
+        sigma_value,
     )
     from robustloc.pipelines.locate import PATH_LOSS_MODELS, method_list, methods_known
 
@@ -122,7 +123,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--domain", choices=("range", "rssi"), default="range",
                    help="RSSI input, nonlinear solvers: fit ranges converted by the model "
                         "(default; fades then down-weight themselves) or fit in dB")
-    p.add_argument("--sigma", type=positive_float, default=None,
+    p.add_argument("--sigma", type=sigma_value, default=None,
                    help="a-priori std of one observation (m or dB); default: the anchors' "
                         "`sigma` column (per-anchor, e.g. from calibrate) if present, else "
                         "equal weights.  With --robust-scale log (default) the log's noise "

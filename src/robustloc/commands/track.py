@@ -71,11 +71,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         nonnegative_float,
         positive_float,
         positive_int,
+        sigma_value,
     )
     from robustloc.pipelines.track import WEIGHTS, TrackSettings
 
     d = TrackSettings()
-    probability = float_in(0.0, 1.0)
+    # (0 and 1 passed argparse and were refused by the settings in their Python name;
+    # the range of locate's and spp's --alpha0: the tracker review)
+    probability = float_in(1e-15, 0.5)
     p.add_argument("measurements", help="measurements file (time, tag, anchor, rssi|range)")
     p.add_argument("--anchors", required=True, help="anchors file (anchor, x, y[, z], ...)")
     p.add_argument("-o", "--out", required=True, help="track file (.csv or .parquet)")
@@ -92,7 +95,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "--domain rssi)")
     p.add_argument("--domain", choices=("range", "rssi"), default=d.domain,
                    help="RSSI input: update with converted ranges (default) or in dB")
-    p.add_argument("--sigma", type=positive_float, default=None,
+    p.add_argument("--sigma", type=sigma_value, default=None,
                    help="a-priori std of one observation (m or dB); default the anchors' "
                         "sigma column, else 0.3 m / 3 dB.  0.3 m suits UWB; WiFi RTT ranges "
                         "are several times noisier: run `calibrate --self` first (it "
