@@ -1018,3 +1018,22 @@ def test_the_first_row_reports_the_covariance_the_filter_starts_from(tmp_path):
     low = np.linalg.eigvalsh(cov(f[ok]) - cov(s[ok])).min(axis=1)
     scale = f.loc[ok, ["var_x", "var_y"]].max(axis=1).to_numpy()
     assert np.all(low >= -1e-9 * scale), np.sort(low / scale)[:5]
+
+
+def test_track_says_how_many_duplicate_rows_it_averaged(tmp_path, capsys):
+    """An anchor heard twice in one epoch is averaged; ``locate`` says how many rows it
+    merged, ``track`` said nothing (the tracker review)."""
+    from robustloc.cli import main
+
+    a = tmp_path / "a.csv"
+    a.write_text("anchor,x,y\nA,0,0\nB,10,0\nC,0,10\nD,10,10\n")
+    rows = [f"{t},T,{k},{r}" for t in range(5) for k, r in zip("ABCD", (5, 5.1, 4.9, 5))]
+    m = tmp_path / "m.csv"
+    m.write_text("time,tag,anchor,range\n" + "\n".join(rows + ["2,T,B,5.3", "3,T,C,4.7"])
+                 + "\n")
+    out = str(tmp_path / "t.csv")
+    assert main(["track", str(m), "--anchors", str(a), "-o", out, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["duplicates_merged"] == 2
+    assert main(["track", str(m), "--anchors", str(a), "-o", out]) == 0
+    assert "2 duplicate rows (same epoch and anchor) averaged" in capsys.readouterr().out
+    assert len(pd.read_csv(out)) == 5  # one row per epoch

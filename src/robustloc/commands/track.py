@@ -202,7 +202,8 @@ def track_partition(meas: pd.DataFrame, anchors: pd.DataFrame, args: argparse.Na
                                     tally=tally)
     summary = {"epochs": n, "tags": len(trk.tags), "status": counts,
                "hpl_histogram": {trk.method: hist},
-               "invalid_measurement_rows": tally.get("invalid_measurement_rows", 0)}
+               "invalid_measurement_rows": tally.get("invalid_measurement_rows", 0),
+               "duplicates_merged": tally.get("duplicates_merged", 0)}
     per_tag = {}  # per tag, merged (not summed) over the tag groups
     if settings.range_offset:
         per_tag["range_offset_m"] = range_offsets(trk)
@@ -220,7 +221,8 @@ def track_partition_file(args: argparse.Namespace) -> dict:
     s = track_file(args)
     summary = {"epochs": s["epochs"], "tags": s["tags"], "status": s["status"],
                "hpl_histogram": s["hpl_histogram"], "rows_out": s["epochs"],
-               "invalid_measurement_rows": s["invalid_measurement_rows"]}
+               "invalid_measurement_rows": s["invalid_measurement_rows"],
+               "duplicates_merged": s["duplicates_merged"]}
     per_tag = {k: s[k] for k in ("range_offset_m", "link_offset_m", "link_offset_db")
                if k in s}
     if per_tag:  # per tag, merged (not summed) over the tag groups
@@ -258,6 +260,9 @@ def run(args: argparse.Namespace) -> int:
     if summary["invalid_measurement_rows"]:
         print(f"  invalid_measurement: {summary['invalid_measurement_rows']} rows (outside "
               "the physical limits of robustloc.io.limits; not used)", file=dest)
+    if summary.get("duplicates_merged"):
+        print(f"  {summary['duplicates_merged']} duplicate rows (same epoch and anchor) "
+              "averaged", file=dest)
     print("  " + ", ".join(f"{k}: {v}" for k, v in sorted(summary["status"].items())),
           file=dest)
     from robustloc.pipelines.locate import hpl_lines

@@ -400,6 +400,9 @@ def _report(args: argparse.Namespace, summary: dict) -> None:
     if summary.get("invalid_measurement_rows"):
         print(f"  invalid_measurement: {summary['invalid_measurement_rows']} rows (outside "
               "the physical limits of robustloc.io.limits; not used)")
+    if summary.get("duplicates_merged"):
+        print(f"  {summary['duplicates_merged']} duplicate rows (same epoch and anchor) "
+              "averaged")
     for m, c in summary.get("status", {}).items():
         print(f"  {m:9s} " + ", ".join(f"{k}: {v}" for k, v in sorted(c.items())))
     if summary.get("hpl_histogram"):

@@ -144,16 +144,17 @@ def run_track(
                               if src])
     t0 = _time.perf_counter()
     try:
-        trk, frame, n_epochs, counts, hist, resorted, n_invalid = _one_pass(
+        trk, frame, n_epochs, counts, hist, resorted, tally = _one_pass(
             measurements, anchors, settings, out, "auto", progress)
     except UnsortedInput:
-        trk, frame, n_epochs, counts, hist, resorted, n_invalid = _one_pass(
+        trk, frame, n_epochs, counts, hist, resorted, tally = _one_pass(
             measurements, anchors, settings, out, "sort", progress)
     wall = _time.perf_counter() - t0
     summary = {"measurements": _display(measurements),
                "track": "<DataFrame>" if out is None else str(out), "epochs": n_epochs,
                "tags": len(trk.tags), "method": trk.method, "status": counts,
-               "invalid_measurement_rows": n_invalid,
+               "invalid_measurement_rows": tally.get("invalid_measurement_rows", 0),
+               "duplicates_merged": tally.get("duplicates_merged", 0),
                "hpl_histogram": {trk.method: hist},
                "smoother": (("fixed-lag" if settings.fixed_lag else "rts")
                             if settings.smoothing else None),
@@ -263,8 +264,7 @@ def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
                     write_table(table, target, parquet=is_parquet(out))
     finally:
         bar.close()
-    return (trk, table if out is None else None, n, status_counts, hist, resorted[0],
-            tally.get("invalid_measurement_rows", 0))
+    return (trk, table if out is None else None, n, status_counts, hist, resorted[0], tally)
 
 
 def _noting_sort(blocks: Any, resorted: list[bool]) -> Any:
@@ -305,7 +305,8 @@ def track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
         (:func:`robustloc.pipelines.locate.refuse_rssi_options`), not ignored.
     tally : dict, optional
         Its ``invalid_measurement_rows`` is increased by the rows outside the physical
-        limits (robustloc.io.limits), which no update uses.
+        limits (robustloc.io.limits), which no update uses, and ``duplicates_merged`` by
+        the rows of an epoch's anchor heard twice (averaged, as ``locate`` does).
 
     Returns
     -------
@@ -351,6 +352,8 @@ def track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
         if tally is not None:
             tally["invalid_measurement_rows"] = (tally.get("invalid_measurement_rows", 0)
                                                  + int(np.sum(block.n_invalid)))
+            tally["duplicates_merged"] = (tally.get("duplicates_merged", 0)
+                                          + int(block.n_duplicates))
         for k, v in rows["status"].value_counts().items():
             status_counts[str(k)] = status_counts.get(str(k), 0) + int(v)
         if not smooth:
