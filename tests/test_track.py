@@ -1037,3 +1037,31 @@ def test_track_says_how_many_duplicate_rows_it_averaged(tmp_path, capsys):
     assert main(["track", str(m), "--anchors", str(a), "-o", out]) == 0
     assert "2 duplicate rows (same epoch and anchor) averaged" in capsys.readouterr().out
     assert len(pd.read_csv(out)) == 5  # one row per epoch
+
+
+def test_an_anchor_far_outside_the_layout_is_not_used(tmp_path):
+    """An anchor at y = 1e300 (a typo) was "heard": named in every row's ``excluded``
+    while the status stayed ``ok`` (the tracker review).  It is not used, as by
+    ``locate``: the track is the one without that anchor's rows."""
+    from robustloc.cli import main
+
+    a = tmp_path / "a.csv"
+    a.write_text("anchor,x,y\nA1,0,0\nA2,10,0\nA3,10,1e300\nA4,0,10\n")
+    b = tmp_path / "b.csv"
+    b.write_text("anchor,x,y\nA1,0,0\nA2,10,0\nA3,10,10\nA4,0,10\n")
+    rng = np.random.default_rng(3)
+    xy = {"A1": (0, 0), "A2": (10, 0), "A4": (0, 10)}
+    rows = [f"{t},T,{k},{np.hypot(2 - x, 5 - y) + rng.normal(0, 0.05):.4f}"
+            for t in range(20) for k, (x, y) in xy.items()]
+    m = tmp_path / "m.csv"
+    m.write_text("time,tag,anchor,range\n" + "\n".join(rows + [f"{t},T,A3,7.0"
+                                                               for t in range(20)]) + "\n")
+    m3 = tmp_path / "m3.csv"
+    m3.write_text("time,tag,anchor,range\n" + "\n".join(rows) + "\n")
+    assert main(["track", str(m), "--anchors", str(a), "-o", str(tmp_path / "t.csv"),
+                 "--quiet"]) == 0
+    assert main(["track", str(m3), "--anchors", str(b), "-o", str(tmp_path / "u.csv"),
+                 "--quiet"]) == 0
+    t, u = pd.read_csv(tmp_path / "t.csv"), pd.read_csv(tmp_path / "u.csv")
+    assert t["excluded"].isna().all() and (t["n_used"] == 3).all()
+    pd.testing.assert_frame_equal(t, u)

@@ -54,7 +54,8 @@ class LinkModel:
     def distances(self, pos: Array) -> tuple[Array, Array]:
         """``d (K, M)`` and the differences ``p - a (K, M, 2)`` for positions ``(K, 2)``."""
         diff = pos[:, None, :2] - self.anchors_xy[None]
-        d = np.sqrt((diff * diff).sum(-1) + self.dz2[None])
+        with np.errstate(over="ignore"):  # an anchor at 1e300 (not used: inf is harmless)
+            d = np.sqrt((diff * diff).sum(-1) + self.dz2[None])
         return d, diff
 
     def rssi(self, x: Array) -> Array:

@@ -371,6 +371,10 @@ class Tracker:
             anchor_sigma(anchors)  # a partly empty column: refused now, with its line
         self.anchors = anchors.reset_index(drop=True)
         self.anchor_ids = tuple(str(a) for a in self.anchors["anchor"])
+        from robustloc.estimators.ranging import _sane_anchors
+
+        dims = [c for c in ("x", "y", "z") if c in self.anchors.columns]
+        self._sane = _sane_anchors(self.anchors[dims].to_numpy(dtype=float))
         self.record = record
         M = len(self.anchor_ids)
         #: kinematic states, then the range offset (``range_offset``) as the last one, or
@@ -622,6 +626,10 @@ class Tracker:
         """Non-finite values as NaN; ranges corrected with the anchors' ``bias``/``scale``
         (:func:`robustloc.models.calibration.apply_range_calibration`, read at setup)."""
         z = np.where(np.isfinite(values), values, np.nan)
+        # an anchor far outside the layout (a typo such as y = 1e300; the command names it)
+        # is not used, as by locate: it was "heard" and listed as excluded in every row
+        # while the status stayed ok (the tracker review)
+        z[:, ~self._sane] = np.nan
         if self._kind == "range":
             bias, scale = self._range_cal
             z = (z - bias) / scale
