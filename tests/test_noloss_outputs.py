@@ -560,3 +560,70 @@ def test_an_output_that_cannot_be_created_is_not_called_missing(small, capsys):
             "file or directory)\n")
         assert main([cmd, *args, "-o", ""]) == 2
         assert capsys.readouterr().err.startswith("error: the output name is empty")
+
+
+@pytest.mark.parametrize(("sig", "code", "words"), [
+    (signal.SIGINT, 130, "error: interrupted"), (signal.SIGTERM, 143, "error: terminated")])
+def test_an_interrupt_a_library_swallows_is_still_an_interrupt(monkeypatch, capsys, sig,
+                                                              code, words):
+    """DuckDB catches the KeyboardInterrupt (or the SIGTERM handler's exception) that
+    lands in its query and raises ``RuntimeError: Query interrupted`` with no chain:
+    Ctrl-C during the out-of-core sort or ``partition`` was reported as an internal error,
+    exit 1 (the no-loss review).  The command's handlers note the signal."""
+    import robustloc.commands.stats as stats_cmd
+
+    def swallowing(args):
+        caught = False
+        try:
+            os.kill(os.getpid(), sig)
+            time.sleep(5)
+        except BaseException:  # noqa: BLE001 - what the library does
+            caught = True
+        if caught:
+            raise RuntimeError("Query interrupted")
+        return 0
+
+    monkeypatch.setattr(stats_cmd, "run", swallowing)
+    assert main(["stats", "m.csv", "-o", "out"]) == code
+    err = capsys.readouterr().err
+    assert words in err and "internal error" not in err
+    # the handlers are restored, and the next command starts with a clean slate
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    from robustloc import cli
+
+    assert cli._received == []
+
+
+@pytest.mark.parametrize("stage", ["PARTITION_BY", "ORDER BY time"])
+def test_partition_onto_a_full_disk_names_the_output(tmp_path, monkeypatch, capsys, stage):
+    """``partition`` onto a full disk: when the per-key sort's COPY failed it was an
+    internal error with a traceback, and when the first COPY failed the input file was
+    blamed (the no-loss review, on a 1-2 MiB tmpfs).  Both name the output; nothing is
+    left behind.  (The disk is full here by a connection whose COPY fails as DuckDB's
+    does, ``IOException ... No space left on device``.)"""
+    import duckdb
+
+    import robustloc.engines.partition as part
+
+    class Full:
+        def __init__(self, con):
+            self.con = con
+
+        def execute(self, sql, *a, **k):
+            if sql.startswith("COPY") and stage in sql:
+                raise duckdb.IOException('IO Error: Could not write file "x": No space '
+                                         'left on device')
+            return self.con.execute(sql, *a, **k)
+
+        def __getattr__(self, name):
+            return getattr(self.con, name)
+
+    connect = part._connect
+    monkeypatch.setattr(part, "_connect", lambda *a, **k: Full(connect(*a, **k)))
+    m = tmp_path / "m.csv"
+    _ranges(40, tags=2).to_csv(m, index=False)
+    out = tmp_path / "pt"
+    assert main(["partition", str(m), "-o", str(out), "--by", "time"]) == 2
+    err = capsys.readouterr().err
+    assert err == f"error: {out}: cannot write the partitions: no space left on device\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.csv"]

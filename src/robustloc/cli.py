@@ -107,25 +107,46 @@ def error(message: str) -> int:
     return 2
 
 
+#: The signals received during the current command (SIGINT, SIGTERM numbers): a library
+#: that catches the exception a handler raises and raises its own (DuckDB: "RuntimeError:
+#: Query interrupted") still leaves the run marked as interrupted (:func:`_signalled`).
+_received: list[int] = []
+
+
 def _raise_terminated(signum: int, frame: object) -> None:
+    _received.append(signum)
     raise Terminated()
 
 
+def _raise_interrupt(signum: int, frame: object) -> None:
+    _received.append(signum)
+    raise KeyboardInterrupt()
+
+
 def _install_sigterm() -> object:
-    """SIGTERM raises :class:`Terminated` (main thread only); returns the old handler."""
+    """SIGTERM raises :class:`Terminated`, SIGINT :class:`KeyboardInterrupt`, both noted in
+    :data:`_received` (main thread only); returns the old handlers."""
     import signal
     import threading
 
+    _received.clear()
     if threading.current_thread() is not threading.main_thread():
         return None
-    return signal.signal(signal.SIGTERM, _raise_terminated)
+    old_int = signal.getsignal(signal.SIGINT)
+    # (a SIGINT ignored by the parent, as for a background job of a shell, stays ignored)
+    if old_int is signal.default_int_handler:
+        signal.signal(signal.SIGINT, _raise_interrupt)
+    return signal.signal(signal.SIGTERM, _raise_terminated), old_int
 
 
 def _restore_sigterm(old: object) -> None:
     import signal
 
+    _received.clear()
     if old is not None:
-        signal.signal(signal.SIGTERM, old)
+        term, intr = old  # type: ignore[misc]
+        signal.signal(signal.SIGTERM, term)
+        signal.signal(signal.SIGINT, intr)
 
 
 def _oserror_path(exc: OSError) -> str | None:
@@ -164,6 +185,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         with spool_scope():  # standard input / a FIFO: copied once for the command
             return int(args._run(args) or 0)
     except InputError as exc:
+        if _received and (code := _signalled(exc)) is not None:  # (a wrapped interrupt)
+            return code
         return error(str(exc))
     except KeyboardInterrupt:
         print("error: interrupted", file=sys.stderr)
@@ -202,9 +225,11 @@ def _signalled(exc: BaseException) -> int | None:
     A signal handled while a library runs its own Python code can surface wrapped: a
     SIGINT that lands while numba loads a cached kernel (its ``_numba_unpickle``) reaches
     the command as numba's error with the ``KeyboardInterrupt`` as its cause or context
-    (seen in ``tests/test_noloss_outputs.py``).  Such a run was interrupted, not a bug:
-    ``error: interrupted`` / ``terminated`` and exit 130 / 143.  None when no interrupt
-    is in ``exc``'s chain.
+    (seen in ``tests/test_noloss_outputs.py``); DuckDB drops it and raises "Query
+    interrupted" (the no-loss review): the handlers note every signal in
+    :data:`_received`.  Such a run was interrupted, not a bug: ``error: interrupted`` /
+    ``terminated`` and exit 130 / 143.  None when no interrupt is in ``exc``'s chain and
+    no signal was noted.
     """
     seen: set[int] = set()
     e: BaseException | None = exc
@@ -217,6 +242,14 @@ def _signalled(exc: BaseException) -> int | None:
             print("error: terminated", file=sys.stderr)
             return EXIT_SIGTERM
         e = e.__cause__ or e.__context__
+    import signal
+
+    if signal.SIGTERM in _received:  # the interrupt was swallowed by a library (DuckDB)
+        print("error: terminated", file=sys.stderr)
+        return EXIT_SIGTERM
+    if signal.SIGINT in _received:
+        print("error: interrupted", file=sys.stderr)
+        return EXIT_SIGINT
     return None
 
 

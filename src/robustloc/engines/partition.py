@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from robustloc.engines.dataset import discover
-from robustloc.errors import InputError
+from robustloc.errors import InputError, OutputError
 
 BY = ("tag", "time")
 METHODS = ("duckdb", "dask")
@@ -244,7 +244,7 @@ def partition_dataset(
     try:
         if method == "duckdb":
             rows, span, key = _duckdb(files, fmt, dest.stage, by, span_s, rows_per_partition,
-                                      buckets, memory_limit, threads, source)
+                                      buckets, memory_limit, threads, source, str(out))
         else:
             _check_with_duckdb(files, fmt, dest.stage, memory_limit, threads, source)
             rows, span, key = _dask(files, fmt, dest.stage, by, span_s, rows_per_partition,
@@ -356,8 +356,28 @@ def _auto_span(n: int, tmin: float, tmax: float, span_s: float | None, rows: int
     return (tmax - tmin) * rows / n * (1 + 1e-9) or 1.0
 
 
+def _output_error(exc: BaseException, out: str) -> OutputError:
+    """An error of writing the partitions, against the output folder as the user named it
+    (a full disk was reported against the input, or as an internal error: the no-loss
+    review)."""
+    text = str(exc)
+    for words in ("No space left on device", "Read-only file system"):
+        if words in text:
+            return OutputError(f"cannot write the partitions: {words.lower()}", out,
+                               errno_=28 if words.startswith("No space") else 30)
+    return OutputError(f"cannot write the partitions: {text.splitlines()[0]}", out)
+
+
+def _output_failed(exc: BaseException, stage: Path) -> bool:
+    """A DuckDB error that is about writing the output (no space, a read-only or missing
+    folder at the staging path), not about reading the input."""
+    text = str(exc)
+    return ("No space left" in text or "Read-only file system" in text
+            or str(stage) in text)
+
+
 def _duckdb(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, memory_limit,
-            threads, spec) -> tuple[int, float | None, str]:
+            threads, spec, out: str) -> tuple[int, float | None, str]:
     import duckdb
 
     tmp = stage / ".duckdb-tmp"
@@ -376,6 +396,8 @@ def _duckdb(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, me
             con.execute(f"COPY ({sel}) TO {_sql_str(str(raw))} (FORMAT parquet, "
                         f"PARTITION_BY ({pby}), WRITE_PARTITION_COLUMNS true)")
         except duckdb.Error as exc:
+            if _output_failed(exc, stage):  # the output's disk, not the input, failed
+                raise _output_error(exc, out) from None
             raise InputError(f"cannot partition: {str(exc).splitlines()[0]}", spec) from None
         # Stage 2: each key's files sorted into one file.
         for d in sorted(p for p in raw.iterdir() if p.is_dir()):
@@ -385,10 +407,13 @@ def _duckdb(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, me
             parts = sorted(str(f) for f in d.glob("*.parquet"))
             lst = "[" + ", ".join(_sql_str(f) for f in parts) + "]"
             drop = " EXCLUDE (__key)" if key != "tag" else ""
-            con.execute(
-                f"COPY (SELECT *{drop} FROM read_parquet({lst}) ORDER BY time, tag, anchor) "
-                f"TO {_sql_str(str(target / 'part-0.parquet'))} (FORMAT parquet)"
-            )
+            try:  # (reads and writes the staged files only: a failure is the output's)
+                con.execute(
+                    f"COPY (SELECT *{drop} FROM read_parquet({lst}) ORDER BY time, tag, "
+                    f"anchor) TO {_sql_str(str(target / 'part-0.parquet'))} (FORMAT parquet)"
+                )
+            except duckdb.IOException as exc:
+                raise _output_error(exc, out) from None
             shutil.rmtree(d)
         shutil.rmtree(raw, ignore_errors=True)
         shutil.rmtree(tmp, ignore_errors=True)
