@@ -735,3 +735,24 @@ def test_a_navigation_file_after_an_option_is_read(tmp_path, capsys):
     assert "unrecognized arguments: --bogus" in capsys.readouterr().err
     assert _code(["locate", "--anchors", nav, "-o", str(b), obs, "extra"]) == 2
     assert "unrecognized arguments: extra" in capsys.readouterr().err
+
+
+def test_a_file_an_earlier_run_left_in_an_output_folder_is_named(tmp_path, capsys):
+    """``simulate --disturbance`` then ``simulate`` without it into the same folder left
+    the first run's ``blocked.csv`` beside the new files, without a word (the no-loss
+    review; ``stats`` did the same with ``per_bin.csv``).  It is named on stderr, and
+    kept: it may be the user's."""
+    out = tmp_path / "sim"
+    assert main(["simulate", "ble-corridor", "--seed", "1", "--disturbance", "--out",
+                 str(out)]) == 0
+    assert (out / "blocked.csv").is_file()
+    old = (out / "blocked.csv").read_bytes()
+    capsys.readouterr()
+    assert main(["simulate", "ble-corridor", "--seed", "2", "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert (f"warning: {out / 'blocked.csv'} is from an earlier run: this run wrote no "
+            "blocked.csv") in err
+    assert (out / "blocked.csv").read_bytes() == old
+    assert main(["simulate", "ble-corridor", "--seed", "2", "--disturbance", "--out",
+                 str(out)]) == 0
+    assert "earlier run" not in capsys.readouterr().err

@@ -9,6 +9,7 @@ command's inputs is never replaced.
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TypeVar
@@ -17,7 +18,8 @@ T = TypeVar("T")
 
 
 def write_folder(out: Path, write: Callable[[Path], T],
-                 inputs: Iterable[str | os.PathLike | None] = ()) -> T:
+                 inputs: Iterable[str | os.PathLike | None] = (),
+                 owns: Iterable[str] = ()) -> T:
     """Write files into the folder ``out``, whole or not at all.
 
     Runs ``write(folder)`` on a fresh temporary folder beside ``out``, then moves its files
@@ -36,6 +38,12 @@ def write_folder(out: Path, write: Callable[[Path], T],
         would replace one of them (the same file, by :func:`robustloc.io.atomic.
         check_not_input`: a path, a symbolic or a hard link) is refused before any file is
         moved.
+    owns : iterable of str, optional
+        Every file name the command can write.  One of them left in ``out`` by an earlier
+        run that this run did not write (``per_bin.csv`` of a ``stats --truth`` run, the
+        ``blocked.csv`` of ``simulate --disturbance``) gets a warning on stderr: it is not
+        removed (it may be the user's), and it no longer belongs with the others (the
+        no-loss review).
 
     Returns
     -------
@@ -76,6 +84,11 @@ def write_folder(out: Path, write: Callable[[Path], T],
         _move_all(files, out, tmp)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+    written = {f.name for f in files}
+    for name in sorted(set(owns) - written):
+        if (out / name).is_file():
+            print(f"warning: {out / name} is from an earlier run: this run wrote no {name} "
+                  "(remove it, or write into a new folder)", file=sys.stderr)
     return result
 
 

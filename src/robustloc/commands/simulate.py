@@ -62,7 +62,11 @@ def run(args: argparse.Namespace) -> int:
         files = mods[args.scenario].simulate(folder, args.seed, args)
         return {k: out / Path(v).name for k, v in files.items()}
 
-    files = write_folder(out, write, inputs=())  # whole or not at all; reads no file
+    # whole or not at all; reads no file.  The files of every scenario: one an earlier run
+    # left (another scenario's survey, blocked.csv of --disturbance) is named
+    files = write_folder(out, write, inputs=(),
+                         owns=("anchors.csv", "measurements.csv", "survey.csv", "truth.csv",
+                               "blocked.csv", "pseudoranges.csv"))
     if args.json:
         print(json.dumps({k: str(v) for k, v in files.items()}, indent=2))
     else:
