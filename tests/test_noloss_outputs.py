@@ -627,3 +627,27 @@ def test_partition_onto_a_full_disk_names_the_output(tmp_path, monkeypatch, caps
     err = capsys.readouterr().err
     assert err == f"error: {out}: cannot write the partitions: no space left on device\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.csv"]
+
+
+def test_an_output_through_a_symbolic_link_writes_its_target(tmp_path):
+    """``-o latest.csv`` where ``latest.csv`` links to an archived file replaced the link
+    by a regular file and left the target with its old content; and a file of mode 0640
+    came back 0644 (the no-loss review).  The target is written (the link stays), and an
+    existing file keeps its permissions."""
+    archive = tmp_path / "archive"
+    archive.mkdir()
+    target = archive / "positions-1.csv"
+    target.write_text("old\n")
+    os.chmod(target, 0o640)
+    link = tmp_path / "latest.csv"
+    link.symlink_to(target)
+    write_table(pd.DataFrame({"a": [1, 2]}), link)
+    assert link.is_symlink() and os.path.realpath(link) == str(target)
+    assert target.read_text() == "a\n1\n2\n"
+    assert (target.stat().st_mode & 0o777) == 0o640
+    assert sorted(p.name for p in archive.iterdir()) == ["positions-1.csv"]  # no temp
+    # a link to a file not there yet: created where the link points, as a shell's ">"
+    dangling = tmp_path / "next.csv"
+    dangling.symlink_to(archive / "positions-2.csv")
+    write_table(pd.DataFrame({"a": [3]}), dangling)
+    assert (archive / "positions-2.csv").read_text() == "a\n3\n" and dangling.is_symlink()

@@ -376,6 +376,14 @@ def atomic_output(path: PathLike, *, binary: bool = True) -> Iterator[tuple[Path
             raise OutputError(_output_words(exc, p.parent), p, errno_=exc.errno) from None
         return
     compress = _gzip_wanted(p)
+    if p.is_symlink():
+        # write the file the link names, as a shell's ">" does: the link was replaced by a
+        # regular file and its target kept the old content (the no-loss review)
+        p = Path(os.path.realpath(p))
+    try:  # an existing file keeps its permissions (0640 became 0644)
+        mode = stat.S_IMODE(os.stat(p).st_mode)
+    except OSError:
+        mode = 0o666 & ~_umask()
     parent = _prepare_parent(p)
     try:
         fd, tmp_name = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=parent)
@@ -391,8 +399,8 @@ def atomic_output(path: PathLike, *, binary: bool = True) -> Iterator[tuple[Path
             tmp = _gzip(temps[0], p, temps)
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
-        with contextlib.suppress(OSError):  # keep the usual permissions (mkstemp: 0600)
-            os.chmod(tmp, 0o666 & ~_umask())
+        with contextlib.suppress(OSError):  # the old file's or the usual (mkstemp: 0600)
+            os.chmod(tmp, mode)
         os.replace(tmp, p)
         done = True
         _fsync_dir(parent)
