@@ -453,3 +453,23 @@ def test_a_period_time_is_its_start_in_seconds():
     for unit in ("ms", "s", "min"):
         got = read_measurements(m.assign(time=m["time"].dt.to_period(unit)))
         assert got["time"].tolist() == [0.0, 0.0, 120.0], unit
+
+
+def test_a_file_that_grows_while_it_is_read_is_refused(tmp_path):
+    """A log still being written was read up to its half-written last line, silently: the
+    epoch was solved on part of its rows, or a cut value ("-7" of "-79.0") was used as a
+    measurement, exit 0 (the no-loss review).  A file whose size or time changes while it
+    is read is refused once read (the outputs are atomic: nothing is written)."""
+    from robustloc.errors import InputError
+    from robustloc.io import tables
+
+    m = tmp_path / "m.csv"
+    m.write_text("time,tag,anchor,rssi\n0,T,a,-60\n0,T,b,-61\n1,T,a,-7")
+    chunks = tables._iter_raw(m, 1, ["tag", "anchor"])
+    next(chunks)
+    with open(m, "a") as fh:  # the logger finishes its line, and writes another
+        fh.write("9.0\n1,T,b,-62\n")
+    with pytest.raises(InputError, match="the file changed while it was read"):
+        list(chunks)
+    # read whole: the same (the size is compared at the end of the read)
+    assert len(tables._read_raw(m, ["tag", "anchor"])) == 4

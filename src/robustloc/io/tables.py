@@ -26,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import os
 import re
+import stat
 import threading
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
@@ -299,12 +300,25 @@ class _RaggedGuard:
 
     (With ``index_col=False`` pandas truncates a row with extra fields and only warns;
     without it, an extra field in the first row silently becomes the index.)
+
+    Also refuses a file that changed while it was read (its size or modification time
+    differs at the end): a log still being written was read up to a half-written line,
+    whose epoch was solved on part of its rows or with a cut value ("-7" of "-79.0"),
+    with exit 0 (the no-loss review).
     """
 
     def __init__(self, p: Path, path: PathLike, fmt: str) -> None:
         self.p, self.path, self.fmt = p, path, fmt
 
+    def _stamp(self) -> tuple[int, int] | None:
+        try:
+            s = os.stat(self.p)
+        except OSError:
+            return None
+        return (s.st_size, s.st_mtime_ns) if stat.S_ISREG(s.st_mode) else None
+
     def __enter__(self) -> _RaggedGuard:
+        self._before = self._stamp()
         self._cm = warnings.catch_warnings(record=True)
         self._log = self._cm.__enter__()
         warnings.simplefilter("always", pd.errors.ParserWarning)
@@ -314,6 +328,10 @@ class _RaggedGuard:
         self._cm.__exit__(*exc)
         if exc[0] is None:
             self.check()
+            if self._before is not None and self._stamp() != self._before:
+                raise InputError("the file changed while it was read (is it still being "
+                                 "written?): run again on a complete copy",
+                                 _display(self.path))
 
     def check(self) -> None:
         for w in self._log:
