@@ -651,3 +651,25 @@ def test_an_output_through_a_symbolic_link_writes_its_target(tmp_path):
     dangling.symlink_to(archive / "positions-2.csv")
     write_table(pd.DataFrame({"a": [3]}), dangling)
     assert (archive / "positions-2.csv").read_text() == "a\n3\n" and dangling.is_symlink()
+
+
+def test_a_plot_that_cannot_be_written_says_the_rows_were(tmp_path, monkeypatch, capsys):
+    """``--plot`` into a folder that cannot take it: exit 2 after ``-o`` was written whole,
+    with a message that named only the figure, so the user could think nothing was written
+    (the no-loss review).  The message says the rows are there."""
+    import robustloc.eval.plots as plots
+
+    def full(*a, **k):
+        raise OutputError("no space left on device", tmp_path / "fig.png", errno_=28)
+
+    monkeypatch.setattr(plots, "positions_figure", full)
+    m = tmp_path / "m.csv"
+    _ranges(5).to_csv(m, index=False)
+    a = tmp_path / "a.csv"
+    a.write_text("anchor,x,y\na,0,0\nb,10,0\nc,0,10\nd,10,10\n")
+    out = tmp_path / "p.csv"
+    assert main(["locate", str(m), "--anchors", str(a), "-o", str(out), "--plot",
+                 str(tmp_path / "fig.png"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"(the rows are written to {out}; only the figure is missing)" in err
+    assert len(pd.read_csv(out)) == 5

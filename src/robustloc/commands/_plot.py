@@ -41,10 +41,15 @@ def draw_plot(args: argparse.Namespace) -> None:
     """Draw ``--plot`` from the output file; says where unless ``--quiet`` or ``--json``."""
     if getattr(args, "plot", None) is None:
         return
+    from robustloc.errors import OutputError
     from robustloc.eval.plots import positions_figure, read_positions_for_plot
     from robustloc.io import read_anchors
 
-    positions_figure(read_positions_for_plot(args.out), read_anchors(args.anchors), args.plot,
-                     title=f"{args.measurements}: anchors and usable fixes")
+    try:
+        positions_figure(read_positions_for_plot(args.out), read_anchors(args.anchors),
+                         args.plot, title=f"{args.measurements}: anchors and usable fixes")
+    except OutputError as exc:  # -o is complete: say so (the user may think nothing was)
+        raise OutputError(f"{exc.message} (the rows are written to {args.out}; only the "
+                          "figure is missing)", exc.path, errno_=exc.errno) from None
     if not args.quiet and not args.json:
         print(f"figure: {args.plot}")
