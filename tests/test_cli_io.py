@@ -756,3 +756,15 @@ def test_a_file_an_earlier_run_left_in_an_output_folder_is_named(tmp_path, capsy
     assert main(["simulate", "ble-corridor", "--seed", "2", "--disturbance", "--out",
                  str(out)]) == 0
     assert "earlier run" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("sep", "name"), [(";", "semicolons"), ("\t", "tabs")])
+def test_a_file_with_another_separator_is_named_so(tmp_path, capsys, sep, name):
+    """A semicolon- or tab-separated file got "missing column(s) rssi or range (has:
+    time;tag;...)" without a word on the separator (the no-loss review)."""
+    a = _w(tmp_path, "a.csv", "anchor,x,y\na,0,0\nb,10,0\nc,0,10\n")
+    m = _w(tmp_path, "m.csv", sep.join(["time", "tag", "anchor", "range"]) + "\n"
+           + sep.join(["0", "T", "a", "5"]) + "\n")
+    _fails(capsys, ["locate", m, "--anchors", a, "-o", str(tmp_path / "p.csv")], m, 1,
+           f"the header is one column: its fields are separated by {name}, and robustloc "
+           "reads commas (CSV)")

@@ -577,6 +577,13 @@ def require_columns(
         hints = [f"{near[w]!r} -> {w!r}" for w in wanted if w in near and near[w] != w]
         hint = (f"; column names are lower case without spaces: rename {', '.join(hints)}"
                 if hints else "")
+        # one column whose name holds the others: another separator (the no-loss review)
+        if len(df.columns) == 1:
+            for sep, name in ((";", "semicolons"), ("\t", "tabs"), ("|", "bars")):
+                if sep in str(df.columns[0]):
+                    hint += (f"; the header is one column: its fields are separated by "
+                             f"{name}, and robustloc reads commas (CSV)")
+                    break
         raise InputError(
             f"{what} file is missing column(s) {', '.join(missing)} (has: {have}){hint}",
             _path_of(df, path),
