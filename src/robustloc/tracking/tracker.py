@@ -64,7 +64,11 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
    get the noise term only.  Where the anchors a row's update kept are nearly collinear
    and the row's position reflected across their line (refined on the epoch's
    observations) passes the epoch's global test, ``hpl = max(hpl, |x' - x| + hpl)``: the
-   mirror is as consistent as the track (``Tracker._cover_mirror``).
+   mirror is as consistent as the track (``Tracker._cover_mirror``).  A usable row whose
+   bound exceeds :data:`SNAPSHOT_BOUND_RATIO` times its noise term (after a gap, where
+   ``(H P- H^T)_ii`` and with it the MDB grow without bound) also takes the epoch's own
+   protected fix's bound ``|x - x_s| + HPL_s`` where smaller
+   (``Tracker._snapshot_bound``).
 9. **A lost filter starts again.**  A prediction can be too wide to update: over a long
    gap (a tag's clock jumping ahead by hours) ``P-`` grows as ``q dt^4 / 4`` (``cv``), and
    once its position variance ``V = var_x + var_y`` reaches ``r_min / sqrt(eps)`` (``r_min``
@@ -169,6 +173,10 @@ from robustloc.integrity.bmethod import global_critical, lambda0
 from robustloc.io.tables import anchor_sigma
 from robustloc.robust.weights import get_weight
 from robustloc.tracking.measurement import LN10, LinkModel
+
+#: A usable row whose ``hpl`` exceeds this many times its noise term ``k sigma_major`` is
+#: also bounded by the epoch's own protected fix (:meth:`Tracker._snapshot_bound`).
+SNAPSHOT_BOUND_RATIO = 10.0
 
 Array = NDArray[np.float64]
 #: Default a-priori sd of a link's offset (``link_offsets``) by measurement: metres for
@@ -537,6 +545,9 @@ class Tracker:
 
         # per-epoch scale: a start fix must not depend on which epochs share its batch
         self._locator = Locator("huber", sigma=tuple(sigma), robust_scale="mad")
+        # the epoch's own protected fix, which bounds a row whose filter bound exploded
+        # (:meth:`_snapshot_bound`): ``locate``'s default with the a-priori sigma
+        self._bound_locator = Locator("auto", sigma=tuple(sigma), robust_scale="apriori")
         self._kernel = None
         if s.engine == "compiled" and self._link.kind == "range" and s.model in ("cv", "ca"):
             from robustloc.filters import _compiled as fc
@@ -1134,6 +1145,7 @@ class Tracker:
             with np.errstate(invalid="ignore", divide="ignore"):
                 f = np.sqrt(np.maximum(out.nis[rows] / np.maximum(dof[fd], 1), 1.0))
             out.hpl[rows] = out.hpl[rows] * np.where(np.isfinite(f), f, 1.0)
+        self._snapshot_bound(idx, xn, Pn, z, out)
         bad = self._count_bad(sl, xn, z, moved, sus, dof)
         if self.record:
             self._history.append({"idx": idx, "slot": sl.copy(),
@@ -1152,6 +1164,47 @@ class Tracker:
                 for a, v in keep_rows.items():
                     getattr(out, a)[rows] = v[~ok]
         out.reinit[idx] = self._reinit[sl]
+
+    def _snapshot_bound(self, idx: NDArray[np.int64], xn: Array, Pn: Array, z: Array,
+                        out: _Rows) -> None:
+        """Bound a row whose filter bound exploded by the epoch's own protected fix.
+
+        After a gap the predicted ranges' variance ``(H P- H^T)_ii`` dominates the
+        innovation's, and with it the MDB of the component-wise w-test: the first row after
+        a 50 s gap had ``hpl`` 3.6 km for an error of 0.8 m (the tracker review), where
+        ``locate`` bounds the same epoch by 0.6 m.  The error of the filtered position
+        ``x`` is at most ``|x - x_s| + HPL_s`` whenever the snapshot fix ``x_s`` of the
+        epoch (``locate``'s default, the a-priori sigma) is within its bound ``HPL_s``, so
+        a usable row whose ``hpl`` exceeds :data:`SNAPSHOT_BOUND_RATIO` times its noise
+        term takes ``min(hpl, |x - x_s| + HPL_s)``.  Either bound fails with its own
+        integrity risk, so the smaller one fails at most with their sum.
+        """
+        from robustloc.integrity.fixes import locate_protected
+
+        P2 = Pn[:, :2, :2]
+        tr = 0.5 * (P2[:, 0, 0] + P2[:, 1, 1])
+        det = P2[:, 0, 0] * P2[:, 1, 1] - P2[:, 0, 1] ** 2
+        noise = self._k_ir * np.sqrt(np.maximum(tr + np.sqrt(np.maximum(tr * tr - det, 0.0)),
+                                                0.0))
+        hpl = out.hpl[idx]
+        with np.errstate(invalid="ignore"):
+            wide = (st.among(out.status[idx], st.USABLE) & ~(hpl <= SNAPSHOT_BOUND_RATIO * noise)
+                    & (np.isfinite(z).sum(axis=1) > 2))
+        if not wide.any():
+            return
+        link, kw = self._link, {}
+        if self._kind == "rssi":
+            kw = {"A": link.A, "n": link.n}
+        if self.settings.tag_height is not None:
+            kw["height_offset"] = np.sqrt(link.dz2)
+        snap = locate_protected(self._bound_locator, link.anchors_xy, z[wide], self._kind,
+                                **kw)
+        with np.errstate(invalid="ignore"):
+            alt = (np.hypot(*(xn[wide, :2] - snap.position[:, :2]).T)
+                   + np.asarray(snap.extra["hpl"], dtype=float))
+        alt = np.where(st.among(snap.status, st.USABLE) & np.isfinite(alt), alt, np.inf)
+        rows = idx[wide]
+        out.hpl[rows] = np.fmin(out.hpl[rows], alt)
 
     def _count_bad(self, sl: NDArray[np.int64], xn: Array, z: Array, moved: NDArray[np.bool_],
                    sus: NDArray[np.bool_], dof: NDArray[np.int64]) -> NDArray[np.int64]:
