@@ -359,3 +359,22 @@ def test_locate_side_prior_equals_cli(tmp_path):
     moved &= np.isfinite(got["log"]["y"].to_numpy())
     assert moved.sum() >= 3 and (got["none"]["y"][moved] > 0).all()
     assert got["log"].attrs["summary"]["side_from_log"]["auto"] == moved.sum()
+
+
+def test_track_takes_the_noise_scale_bounds_of_the_command_line():
+    """``--noise-scale-min`` and ``--noise-scale-max`` had no ``api.track`` keyword (the
+    tracker review): the adaptive noise scale of every row stays within them."""
+    anchors = pd.DataFrame({"anchor": ["a", "b", "c", "d"], "x": [0, 10, 10, 0.0],
+                            "y": [0, 0, 10, 10.0]})
+    t = np.arange(40) * 0.5
+    xy = np.c_[2 + 0.3 * t, np.full(t.size, 5.0)]
+    d = (np.hypot(anchors.x.to_numpy() - xy[:, :1], anchors.y.to_numpy() - xy[:, 1:])
+         + np.random.default_rng(0).normal(0, 0.5, (t.size, 4)))
+    log = pd.DataFrame({"time": np.repeat(t, 4), "tag": "t1",
+                        "anchor": np.tile(anchors.anchor, t.size), "range": d.ravel()})
+    wide = robustloc.track(log, anchors)
+    assert wide["noise_scale"].max() > 1.1  # (0.5 m of noise against sigma 0.3 m)
+    capped = robustloc.track(log, anchors, noise_scale_max=1.0)
+    assert np.nanmax(capped["noise_scale"]) <= 1.0 + 1e-12
+    with pytest.raises(robustloc.InputError, match="--noise-scale-min"):
+        robustloc.track(log, anchors, noise_scale_min=-1.0)

@@ -583,6 +583,8 @@ def track(
     link_offsets: bool = False,
     link_offset_sd: float | None = None,
     link_offset_q: float = 0.0,
+    noise_scale_min: float = 1.0,
+    noise_scale_max: float = 4.0,
 ) -> pd.DataFrame:
     r"""Tracks for every tag of a measurements log (``robustloc track``).
 
@@ -601,8 +603,9 @@ def track(
         ``smooth`` and ``fixed_lag`` are exclusive (one smoother or the other).
     engine : {"compiled", "numpy"}
         The tracker's kernels (``robustloc track --kernel``; ``Tracker(engine=...)``).
-    tag_height, alpha0, beta0, integrity_risk, chunk_rows
-        As the options of the same name.
+    tag_height, alpha0, beta0, integrity_risk, chunk_rows, noise_scale_min, noise_scale_max
+        As the options of the same name (the last two bound the adaptive measurement
+        noise scale, ``--noise-scale-min`` and ``--noise-scale-max``).
     range_offset, range_offset_sd, range_offset_q
         Ranges: estimate each tag's common range offset (m) as one more state, its
         a-priori standard deviation (m) and random-walk growth (m^2/s)
@@ -653,7 +656,8 @@ def track(
             integrity_risk=integrity_risk, chunk_rows=chunk_rows,
             range_offset=_flag("range_offset", range_offset), range_offset_sd=range_offset_sd,
             range_offset_q=range_offset_q, link_offsets=_flag("link_offsets", link_offsets),
-            link_offset_sd=link_offset_sd, link_offset_q=link_offset_q)
+            link_offset_sd=link_offset_sd, link_offset_q=link_offset_q,
+            noise_scale_min=noise_scale_min, noise_scale_max=noise_scale_max)
         anchor_frame, source = _log_inputs(measurements, anchors)
         frame, summary = run_track(source, anchor_frame, settings)
     return _with_summary(frame, summary)
