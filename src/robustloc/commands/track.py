@@ -67,7 +67,6 @@ group on a worker with this same code; the dataset of part files holds the same 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from robustloc.options import (
         finite_float,
-        float_in,
         nonnegative_float,
         positive_float,
         positive_int,
@@ -78,7 +77,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     d = TrackSettings()
     # (0 and 1 passed argparse and were refused by the settings in their Python name;
     # the range of locate's and spp's --alpha0: the tracker review)
-    probability = float_in(1e-15, 0.5)
+    from robustloc.pipelines.track import _PROBABILITY as probability
     p.add_argument("measurements", help="measurements file (time, tag, anchor, rssi|range)")
     p.add_argument("--anchors", required=True, help="anchors file (anchor, x, y[, z], ...)")
     p.add_argument("-o", "--out", required=True, help="track file (.csv or .parquet)")

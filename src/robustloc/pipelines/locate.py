@@ -31,6 +31,7 @@ from robustloc.options import (
     option,
     positive_float,
     positive_int,
+    sigma_value,
 )
 
 #: ``model`` values: the path-loss models of :mod:`robustloc.models.pathloss`.
@@ -119,7 +120,7 @@ class LocateSettings:
     solver: str = option("nonlinear", choices=("nonlinear", "linearized"))
     reference: str = option("first", choices=("first", "nearest"))
     domain: str = option("range", choices=("range", "rssi"))
-    sigma: float | None = option(None, check=positive_float)
+    sigma: float | None = option(None, check=sigma_value)
     robust_scale: str = option("log", choices=("log", "mad", "apriori"))
     alert_limit: float | None = option(None, check=positive_float)
     k_noise: float | None = option(None, check=nonnegative_float)

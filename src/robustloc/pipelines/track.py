@@ -29,11 +29,12 @@ from robustloc.options import (
     option,
     positive_float,
     positive_int,
+    sigma_value,
 )
 
 #: ``weight`` values (robust weight functions of :mod:`robustloc.robust.weights`).
 WEIGHTS = ("ls", "huber", "hampel", "igg", "igg3", "asymmetric-igg")
-_PROBABILITY = float_in(0.0, 1.0)
+_PROBABILITY = float_in(1e-15, 0.5)  # as --alpha0 of locate and spp
 
 
 @dataclass(frozen=True)
@@ -52,7 +53,7 @@ class TrackSettings:
     q: float = option(1.0, check=positive_float)
     weight: str | None = option(None, choices=WEIGHTS)
     domain: str = option("range", choices=("range", "rssi"))
-    sigma: float | None = option(None, check=positive_float)
+    sigma: float | None = option(None, check=sigma_value)
     smooth: bool = False
     fixed_lag: int | None = option(None, check=positive_int)
     kernel: str = option("compiled", choices=("compiled", "numpy"))
