@@ -768,3 +768,16 @@ def test_a_file_with_another_separator_is_named_so(tmp_path, capsys, sep, name):
     _fails(capsys, ["locate", m, "--anchors", a, "-o", str(tmp_path / "p.csv")], m, 1,
            f"the header is one column: its fields are separated by {name}, and robustloc "
            "reads commas (CSV)")
+
+
+def test_a_line_of_white_space_is_a_blank_line(tmp_path):
+    """Blank lines are skipped, but a line holding only a tab was an "empty id" error
+    (the no-loss review): it is blank too.  A tab in a field of a real row is still
+    refused with its line."""
+    a = _w(tmp_path, "a.csv", "anchor,x,y\na,0,0\nb,10,0\nc,0,10\n")
+    m = _w(tmp_path, "m.csv", "time,tag,anchor,range\n0,T,a,5\n0,T,b,6\n\t\n0,T,c,7\n \t \n")
+    out = tmp_path / "p.csv"
+    assert main(["locate", m, "--anchors", a, "-o", str(out), "--quiet"]) == 0
+    assert len(pd.read_csv(out)) == 1
+    bad = _w(tmp_path, "bad.csv", "time,tag,anchor,range\n0,T,a,5\n\t,T,b,6\n")
+    assert _code(["locate", bad, "--anchors", a, "-o", str(out)]) == 2

@@ -421,7 +421,15 @@ def _finish_frame(
         df.index = pd.Index(start, name="line")
         next_line = first_line + len(df) + int(extra.sum())
     if len(df) and df.shape[1]:
-        blank = df.isna().all(axis=1).to_numpy()
+        na = df.isna()
+        blank = na.all(axis=1).to_numpy().copy()
+        # a line of only white space other than spaces (a tab: skipinitialspace strips
+        # spaces alone) is blank too; it was an "empty id" error (the no-loss review)
+        one = np.flatnonzero(na.sum(axis=1).to_numpy() == df.shape[1] - 1)
+        if one.size:
+            first = df.iloc[one, 0]
+            blank[one] = first.map(lambda v: isinstance(v, str) and not v.strip()).to_numpy(
+                dtype=bool)
         if blank.any():
             df = df.loc[~blank]
     df.attrs["path"] = _display(path)
