@@ -781,3 +781,12 @@ def test_a_line_of_white_space_is_a_blank_line(tmp_path):
     assert len(pd.read_csv(out)) == 1
     bad = _w(tmp_path, "bad.csv", "time,tag,anchor,range\n0,T,a,5\n\t,T,b,6\n")
     assert _code(["locate", bad, "--anchors", a, "-o", str(out)]) == 2
+
+
+def test_a_comment_line_above_the_header_is_named(tmp_path, capsys):
+    """A ``#`` comment as line 1 became the header: "expected 1 fields, found 4" (the
+    no-loss review).  The message says that line 1 looks like a comment."""
+    a = _w(tmp_path, "a.csv", "anchor,x,y\na,0,0\nb,10,0\nc,0,10\n")
+    m = _w(tmp_path, "m.csv", "# logged 2026-12-04\ntime,tag,anchor,range\n0,T,a,5\n")
+    _fails(capsys, ["locate", m, "--anchors", a, "-o", str(tmp_path / "p.csv")], m, 2,
+           "line 1 looks like a comment: robustloc reads no comment lines")

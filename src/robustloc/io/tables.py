@@ -289,9 +289,12 @@ def _ragged_line(p: Path, path: PathLike, fmt: str = "csv") -> InputError:
         header = next(reader, [])
         for row in reader:
             if row and len(row) != len(header):
-                return InputError(
-                    f"expected {len(header)} fields, found {len(row)}", name, reader.line_num
-                )
+                # a comment line read as the header (the no-loss review): say so
+                hint = ("; line 1 looks like a comment: robustloc reads no comment lines, "
+                        "the first line must be the header"
+                        if header and header[0].lstrip().startswith("#") else "")
+                return InputError(f"expected {len(header)} fields, found {len(row)}{hint}",
+                                  name, reader.line_num)
     return InputError("rows do not match the header's number of fields", name)
 
 
