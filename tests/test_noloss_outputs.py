@@ -673,3 +673,17 @@ def test_a_plot_that_cannot_be_written_says_the_rows_were(tmp_path, monkeypatch,
     err = capsys.readouterr().err
     assert f"(the rows are written to {out}; only the figure is missing)" in err
     assert len(pd.read_csv(out)) == 5
+
+
+def test_an_interrupt_while_the_libraries_load_is_an_interrupt(monkeypatch, capsys):
+    """Ctrl-C in the first second (numpy, pandas and the command modules loading, before
+    the command's handlers) printed a raw KeyboardInterrupt traceback, exit -2 (the
+    no-loss review).  It is ``error: interrupted``, exit 130."""
+    from robustloc import cli
+
+    def loading(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "build_parser", loading)
+    assert main(["locate", "--help"]) == 130
+    assert capsys.readouterr().err == "error: interrupted\n"

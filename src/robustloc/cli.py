@@ -156,6 +156,14 @@ def _oserror_path(exc: OSError) -> str | None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the process exit code."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:  # while the libraries load, before the command's handlers
+        print("error: interrupted", file=sys.stderr)
+        return EXIT_SIGINT
+
+
+def _main(argv: Sequence[str] | None) -> int:
     import os
 
     from robustloc.io.atomic import describe_oserror
