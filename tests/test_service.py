@@ -1140,17 +1140,16 @@ def test_a_tag_whose_clock_jumped_gets_its_rows_solved_again(ble, server_factory
     assert httpx.get(u + "/api/status").json()["tags_rebased"] == 1
 
 
-def test_latest_positions_survive_a_restart(tmp_path):
-    """``/api/latest`` was empty after a restart until new rows came (the map page
-    started blank; the review found it).  It is seeded from the store: each tag's
-    latest stored row, the same as before the restart."""
+def _latest_across_a_restart(tmp_path, tags, between=None):
+    """``/api/latest`` of an Engine fed ``tags`` ((tag, position, times), ...), then of a
+    new Engine on the same store (``between()`` runs before the restart)."""
     from robustloc.service.engine import Engine
 
     anchors = pd.DataFrame({"anchor": ["A1", "A2", "A3", "A4"], "x": [0, 10, 10, 0.0],
                             "y": [0, 0, 10, 10.0]})
     xy = anchors[["x", "y"]].to_numpy(float)
-    rows = [{"time": t, "tag": g, "anchor": a, "range": float(r)}
-            for g, p, times in (("a", [3.0, 4.0], (0.0, 1.0, 2.0)), ("b", [6.0, 2.0], (5.0,)))
+    rows = [{"time": float(t), "tag": g, "anchor": a, "range": float(r)}
+            for g, p, times in tags
             for t in times for a, r in zip(anchors["anchor"], np.hypot(*(xy - p).T))]
 
     def make():
@@ -1163,10 +1162,21 @@ def test_latest_positions_survive_a_restart(tmp_path):
     eng.flush()
     before = eng.latest().sort_values("tag").reset_index(drop=True)
     eng.stop()
-    assert before["time"].tolist() == [2.0, 5.0]
+    if between is not None:
+        between()
     eng = make()
     after = eng.latest().sort_values("tag").reset_index(drop=True)
     eng.stop()
+    return before, after
+
+
+def test_latest_positions_survive_a_restart(tmp_path):
+    """``/api/latest`` was empty after a restart until new rows came (the map page
+    started blank; the review found it).  It is seeded from the store: each tag's
+    latest stored row, the same as before the restart."""
+    before, after = _latest_across_a_restart(
+        tmp_path, (("a", [3.0, 4.0], (0.0, 1.0, 2.0)), ("b", [6.0, 2.0], (5.0,))))
+    assert before["time"].tolist() == [2.0, 5.0]
     pd.testing.assert_frame_equal(after[before.columns], before, check_dtype=False)
 
 
@@ -1185,26 +1195,8 @@ def test_a_restart_reads_only_the_latest_rows_of_the_tags(tmp_path, monkeypatch)
     one tag silent since the start made a restart read the whole store (left out in
     stop 32's note).  It now reads the rows at the tags' latest times only.  (The
     recovery still reads the time and tag of every row: it looks for unsolved epochs.)"""
-    from robustloc.service.engine import Engine
     from robustloc.service.store import SegmentLog as Store
 
-    anchors = pd.DataFrame({"anchor": ["A1", "A2", "A3", "A4"], "x": [0, 10, 10, 0.0],
-                            "y": [0, 0, 10, 10.0]})
-    xy = anchors[["x", "y"]].to_numpy(float)
-    rows = [{"time": float(t), "tag": g, "anchor": a, "range": float(r)}
-            for g, p, times in (("silent", [6.0, 2.0], (0,)), ("busy", [3.0, 4.0], range(300)))
-            for t in times for a, r in zip(anchors["anchor"], np.hypot(*(xy - p).T))]
-
-    def make():
-        return Engine(anchors, LocateProcessor(anchors, method="nls"),
-                      store_dir=tmp_path / "s", latency_window_s=0.0, idle_flush_s=600.0,
-                      fsync=False)
-
-    eng = make()
-    eng.ingest(rows)
-    eng.flush()
-    before = eng.latest().sort_values("tag").reset_index(drop=True)
-    eng.stop()
     read = []
     scan = Store.scan
 
@@ -1214,10 +1206,9 @@ def test_a_restart_reads_only_the_latest_rows_of_the_tags(tmp_path, monkeypatch)
             read.append(table.num_rows)
         return table
 
-    monkeypatch.setattr(Store, "scan", counting)
-    eng = make()
-    after = eng.latest().sort_values("tag").reset_index(drop=True)
-    eng.stop()
+    before, after = _latest_across_a_restart(
+        tmp_path, (("silent", [6.0, 2.0], (0,)), ("busy", [3.0, 4.0], range(300))),
+        between=lambda: monkeypatch.setattr(Store, "scan", counting))
     pd.testing.assert_frame_equal(after[before.columns], before, check_dtype=False)
     assert before["time"].tolist() == [299.0, 0.0]
     assert sum(read) <= 3, read  # busy's rows at times 0 and 299, silent's at 0 (was 301)
