@@ -94,8 +94,11 @@ Each left-out parameter gets a warning naming the anchor, the parameter and the 
 
 Limits (measured, ``benchmarks/bench_selfcal.py``): every epoch's position is its own
 unknown, so the estimate carries an incidental-parameter bias of order ``sigma^2`` that does
-not shrink with the length of the log (Neyman & Scott 1948); with 2-3 dB RSSI noise it
-reaches several standard errors along the common mode of (A, n).  A common bias and a
+not shrink with the length of the log (Neyman & Scott 1948); for RSSI it reaches several
+standard errors along the common mode of (A, n) already at 1 dB of noise (A -2.2 dB, n
+-0.2 on a simulated 5-anchor room; the self-calibration review, 2026-12-04), and 10 %
+one-sided gross errors (10-25 dB weak) can drive the fit far off: ``robustloc calibrate
+--self`` prints a note with every RSSI run.  A common bias and a
 common scale of all anchors are weakly determined when the tags stay near the anchors' line
 (wifi-rtt-rss office: smallest eigenvalue 0.045); there the self-calibration moves
 ``locate`` RMS from 1.33 to 1.52 m, while a truth-based calibration reaches 1.21 m.
