@@ -231,3 +231,20 @@ def test_error_stats_of_huge_errors_do_not_overflow():
     s = error_stats(e)
     assert s["rms"] == pytest.approx(np.sqrt(np.mean(e * e)), rel=1e-15)
     assert s["sigma1"] == pytest.approx(np.std(e), rel=1e-15)
+
+
+def test_the_mean_row_is_over_every_tag_or_none():
+    """The ``mean`` row skipped the tags where a method had no usable fix: ``nls`` was
+    averaged over tag A alone and ``ls`` over A and B, and ``mean_impr_pct`` compared the
+    two (-56 % in the self-calibration review).  An error statistic of the mean row is
+    now NaN for a method without a usable fix on some tag."""
+    truth = pd.DataFrame({"time": [0.0, 1] * 2, "tag": ["A", "A", "B", "B"],
+                          "x": 0.0, "y": 0.0})
+    ls = truth.assign(x=[1.0, 1.0, 3.0, 3.0], method="ls", status="ok")
+    nls = truth.assign(x=[0.5, 0.5, np.nan, np.nan], method="nls",
+                       status=["ok", "ok", "unavailable", "unavailable"])
+    t = error_table(pd.concat([ls, nls], ignore_index=True), truth)
+    mean = t[t["aggregate"] & (t["tag"] == "mean")].set_index("method")
+    assert mean.loc["ls", "rms"] == 2.0  # (1 + 3) / 2
+    assert np.isnan(mean.loc["nls", "rms"]) and np.isnan(mean.loc["nls", "mean_impr_pct"])
+    assert mean.loc["nls", "n_failed"] == 1.0  # counts still average (0 and 2 failed)

@@ -9,7 +9,9 @@ when both files have ``z``).  Per tag and method, over the epochs with a usable 
   divisor ``n``, as in the paper; note ``σ0^2 = Δd̄^2 + σ1^2``);
 * ``median`` and ``p95`` (95th percentile, linear interpolation between order statistics,
   numpy's default);
-* ``n`` (truth epochs scored: matched positions rows plus missing ones), ``n_missing``
+* ``n`` (the epochs scored: matched positions rows plus missing truth epochs; with a
+  ``time_tolerance_s`` wider than the positions' spacing several positions rows can match
+  one truth row, and each is scored), ``n_missing``
   (truth epochs of the tag with no positions row of the method: they count as failed),
   ``n_failed`` (missing, status not usable -- see :data:`robustloc.status.USABLE` -- or a
   non-finite coordinate), ``n_ok = n - n_failed``, ``failed_pct`` (availability is
@@ -17,7 +19,10 @@ when both files have ``z``).  Per tag and method, over the epochs with a usable 
 
 Aggregate rows per method: ``tag = "all"`` pools the epochs of every tag; ``tag = "mean"``
 is the mean of the per-tag statistics, which is how the paper's Table 1 forms its
-"average over the points" rows.  Column ``aggregate`` is True on those rows only, so a
+"average over the points" rows; an error statistic of that row is NaN when the method has
+no usable fix on some tag (the mean skipped those tags, so methods were averaged over
+different tags: the self-calibration review).  Column ``aggregate`` is True on those rows
+only, so a
 real tag named ``all`` or ``mean`` stays apart from them.  ``mean_impr_pct`` and
 ``rms_impr_pct`` give the improvement over the ``ls`` row of the same tag,
 ``100 (ls - method) / ls``, when the positions contain method ``ls``.
@@ -314,7 +319,9 @@ def error_table_from_errors(
         for c in sub.columns:
             if c in ("tag", "method"):
                 continue
-            row[c] = float(sub[c].mean())
+            # an error statistic over every tag or none: a tag without a usable fix would
+            # drop out of this method's mean only (apples to oranges with the others')
+            row[c] = float(sub[c].mean(skipna=c not in STAT_COLUMNS))
         agg.append(row)
     table = pd.concat([per, pd.DataFrame(agg)], ignore_index=True)
     for c in ("n", "n_missing", "n_failed", "n_ok"):
