@@ -116,8 +116,8 @@ For each epoch, at the fix ``x`` of any method, with the range-domain residuals
    streaming).  An ambiguous fix on the other side, whose alternative lies on the
    preferred one, becomes its alternative (:func:`resolve_sides`); the bound covers both
    as before and the status is unchanged.  The wifi-rtt-rss corridor (every scan,
-   ``auto``; 2026-12-04): 2 104 of 6 827 usable fixes moved, RMS 6.13 -> 3.59 m and p95
-   11.3 -> 5.70 m, against scipy's 6.10 / 11.2; no fix moves on the other shared data sets
+   ``auto``; 2026-12-04): 1 961 of 6 827 usable fixes moved, RMS 6.13 -> 3.68 m and p95
+   11.3 -> 5.95 m, against scipy's 6.10 / 11.2; no fix moves on the other shared data sets
    (lecture theatre and office: 8 and 38 ambiguous fixes, no significant side).  A log
    whose tags are on both sides of the line gets no preference, and an ambiguous fix
    with a weak (not significant) prior stays where its estimator put it.
@@ -411,8 +411,8 @@ def ambiguity_sides(sol: Solution, range_model: RangeModel, alpha: float = SIDE_
     fair coin, ``2 P(X <= min(n+, n-)) < alpha`` with ``X ~ Binomial(n+ + n-, 1/2)``
     (:func:`resolve_sides` then uses the smallest preferred set that contains a fix's
     kept anchors).  Measured on the wifi-rtt-rss corridor: the tags are 3.2-4.6 m to one
-    side of the four access points' line; 86 % of the 478 unambiguous fixes lie on that
-    side, 62 % of the 6 348 ambiguous ones (``auto``, every scan, 2026-12-04).
+    side of the four access points' line; 94 % of the 267 unambiguous fixes lie on that
+    side, 62 % of the 6 559 ambiguous ones (``auto``, every scan, 2026-12-04).
 
     Returns
     -------
@@ -729,19 +729,31 @@ def protect(
     if again.size:
         hpl[again], vpl[again], _ = protection_levels_local(
             J[again], sig[again] * factor[again, None], keep[again], lam0, k)
+    # the ambiguity check of a plain fix that keeps its flagged observations while the
+    # rest passes is that of the rest, as before those fixes said fault_detected: with
+    # every observation and the widened sigma the mirror passed far more often, and the
+    # corridor excerpt's side prior lost its evidence (348 scans: 122 fixes moved, RMS
+    # 3.49 m; then none, 6.28 m)
+    kept_rest = carries & rest_passes & ~blind
+    keep_a = np.where(kept_rest[:, None], rest, keep)
+    factor_a = np.where(kept_rest, 1.0, factor)
+    crit_a, has_a = crit.copy(), has.copy()
+    if np.any(kept_rest):
+        crit_a[carries] = np.where(kept_rest[carries], crit_r, crit[carries])
+        has_a |= kept_rest
     amb_dist = np.full(N, np.nan)
     amb_pos = np.full((N, p), np.nan)
     amb_terms = np.full((N, 5), np.nan)  # the fix's own hpl, vpl; the alternative's; T'
-    amb_kept = keep.copy()  # the observations the alternative's test keeps
+    amb_kept = keep_a.copy()  # the observations the alternative's test keeps
     if range_model is not None:
-        cand = np.flatnonzero(st.among(new, st.USABLE) & has
+        cand = np.flatnonzero(st.among(new, st.USABLE) & has_a
                               & np.isfinite(hpl) & np.all(np.isfinite(sol.position), axis=1))
-        cand = cand[anchor_elongation(range_model.anchors, keep[cand]) < AMBIGUITY_ELONGATION]
+        cand = cand[anchor_elongation(range_model.anchors, keep_a[cand]) < AMBIGUITY_ELONGATION]
         if cand.size:
-            sc = sig[cand] * factor[cand, None]
+            sc = sig[cand] * factor_a[cand, None]
             x_alt, T_alt, J_alt = mirror_solution(range_model, sol.position[cand], v[cand],
-                                                  sc, keep[cand])
-            amb = np.isfinite(T_alt) & (T_alt <= crit[cand])
+                                                  sc, keep_a[cand])
+            amb = np.isfinite(T_alt) & (T_alt <= crit_a[cand])
 
             def ambiguous(rows, x_a, J_a, s_a, keep_a, T_a) -> None:
                 d = x_a - sol.position[rows]
@@ -757,12 +769,12 @@ def protect(
 
             if np.any(amb):
                 rows = cand[amb]
-                ambiguous(rows, x_alt[amb], J_alt[amb], sc[amb], keep[rows], T_alt[amb])
+                ambiguous(rows, x_alt[amb], J_alt[amb], sc[amb], keep_a[rows], T_alt[amb])
             # a wrong exclusion: where the test left observations out and the mirror on
             # the kept ones failed, the mirror refined on every heard observation, with
             # one exclusion of its own by the w-test, may pass (the excluded anchor was
             # the one off the line that told the sides apart)
-            ex = ~amb & np.any(heard[cand] & ~keep[cand], axis=1)
+            ex = ~amb & np.any(heard[cand] & ~keep_a[cand], axis=1)
             if np.any(ex):
                 rows2, sc2 = cand[ex], sc[ex]
                 hk = heard[rows2]
@@ -816,12 +828,12 @@ def protect(
     extra = dict(sol.extra)
     extra.update(hpl=np.where(bounded, hpl, np.nan), vpl=np.where(bounded, vpl, np.nan),
                  test_statistic=T, test_critical=crit, flagged=flagged,
-                 test_alpha=_test_alpha(crit, dof), flags_kept=carries & rest_passes & ~blind)
+                 test_alpha=_test_alpha(crit, dof), flags_kept=kept_rest)
     if range_model is not None:
         extra["ambiguity_distance"] = np.where(usable, amb_dist, np.nan)
         extra["ambiguity_position"] = np.where(usable[:, None], amb_pos, np.nan)
         extra["ambiguity_terms"] = np.where(usable[:, None], amb_terms, np.nan)
-        extra["test_kept"] = keep
+        extra["test_kept"] = keep_a
         extra["ambiguity_kept"] = amb_kept
     # ``excluded`` and ``n_used`` stay the estimator's (what the fix used); the test's
     # flags are in extra["flagged"]
