@@ -13,7 +13,8 @@ import numpy as np
 import pandas as pd
 
 NAME = "calibrate"
-HELP = "fit path-loss parameters (RSSI) or range bias/scale per anchor from a survey"
+HELP = ("fit path-loss parameters (RSSI) or range bias/scale per anchor from a survey, "
+        "a log with truth, or the log alone (--self)")
 DESCRIPTION = """\
 RSSI survey (anchor, distance, rssi): fits per anchor, and pooled over all anchors,
   log-distance          RSSI = A - 10 n lg d                   (seed 000 eq. 1)  -> A, n
