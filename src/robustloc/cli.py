@@ -87,7 +87,9 @@ def _parse(parser: argparse.ArgumentParser, argv: list[str],
     among the options), and reports only what is still left over.
     """
     args, extra = parser.parse_known_args(argv)
-    if not extra or command is None or command not in argv:
+    if not extra:  # the usual case: parsed once
+        return args
+    if command is None or command not in argv:
         return parser.parse_args(argv)  # argparse's own message for what is left over
     sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     own = sub.choices[command]
