@@ -202,16 +202,81 @@ def test_every_epoch_at_one_point_is_flagged_and_left_out():
     d = np.linalg.norm(x[:, None, :] - ANCHORS[None], axis=-1)
     z = SCALE * d + BIAS + rng.normal(size=d.shape) * SIGMA
     r = SelfCalibrator("range").fit(ANCHORS, z, x + 0.1, anchor_ids=list("ABCDE"))
-    # per anchor, bias and scale act the same at one distance: every scale, and the
-    # biases beyond m - dim = 3, are inseparable from the positions
-    assert r.free.sum() <= 3
-    assert not r.free[:, 1].any()
-    assert np.all(r.slope[~r.free[:, 1]] == 1.0)
-    assert np.all(r.offset[~r.free[:, 0]] == 0.0)
-    assert np.all(np.isnan(r.slope_se))
-    msgs = " ".join(r.warnings)
-    for a in "ABCDE":
-        assert f"anchor {a}: cannot determine scale" in msgs
+    # per anchor, bias and scale act the same at one distance, and the biases are a
+    # shift of the one position: the log gives one value per anchor (the start fixes do
+    # not spread at all), every parameter is left out with one reason
+    assert not r.free.any()
+    assert np.all(r.slope == 1.0) and np.all(r.offset == 0.0)
+    assert np.all(np.isnan(r.slope_se)) and np.all(np.isnan(r.offset_se))
+    assert r.warnings == [w for w in r.warnings if "anchors A, B, C, D, E: cannot "
+                          "determine bias or scale: the tag does not move" in w]
+    assert len(r.warnings) == 1
+
+
+def _static_or_circling(rng, path):
+    from robustloc.pipelines.calibrate import _start_fixes
+
+    x = path(np.arange(400.0))
+    d = np.linalg.norm(x[:, None, :] - ANCHORS[None], axis=-1)
+    z = SCALE * d + BIAS + rng.normal(size=d.shape) * SIGMA
+    return x, z, _start_fixes(ANCHORS, z, "range")  # the start `calibrate --self` takes
+
+
+def test_static_tag_with_noisy_start_fixes_leaves_every_parameter_out():
+    # the self-calibration review (2026-12-04): with the start fixes jittering by their
+    # noise, the eigenvalue test caught one scale, the standard-error test three biases,
+    # and the rest came out "determined": scales 0.25-3.2 (truth 0.97-1.03), a bias of
+    # 12.8 m.  The spread of the start fixes is noise: nothing can be calibrated.
+    rng = np.random.default_rng(11)
+    _, z, x0 = _static_or_circling(rng, lambda t: np.c_[4.0 + 0 * t, 3.0 + 0 * t])
+    r = SelfCalibrator("range").fit(ANCHORS, z, x0, anchor_ids=list("ABCDE"))
+    assert not r.free.any()
+    assert np.all(r.slope == 1.0) and np.all(r.offset == 0.0)
+    assert len(r.warnings) == 1 and "the tag does not move" in r.warnings[0]
+    # the same log with the tag moving is calibrated (no motion test fires)
+    _, z2, x2 = _static_or_circling(np.random.default_rng(11), lambda t: np.c_[
+        5 + 3 * np.sin(t / 23), 4 + 2.5 * np.cos(t / 31)])
+    r2 = SelfCalibrator("range").fit(ANCHORS, z2, x2, anchor_ids=list("ABCDE"))
+    assert r2.free.all() and not any("does not move" in w or "vary too little" in w
+                                     for w in r2.warnings)
+
+
+def test_static_rssi_tag_leaves_A_and_n_out():
+    # RSSI fixes are far from their linearized covariance (a linearized test of the
+    # spread predicted a fifth of it); the test compares with a simulated tag at rest.
+    # Before: A -81..-51 dBm and n 0.42-2.7 "determined" (truth -62..-58, 1.8-2.2).
+    from robustloc.pipelines.calibrate import _start_fixes
+
+    rng = np.random.default_rng(13)
+    A = np.array([-60.0, -62.0, -58.0, -61.0, -59.5])
+    n = np.array([2.0, 2.2, 1.8, 2.1, 1.9])
+    d = np.linalg.norm(np.array([6.0, 3.0]) - ANCHORS, axis=-1)
+    rssi = A - 10 * n * np.log10(d) + rng.normal(size=(400, 5)) * np.array([2, 2.5, 2, 3, 2])
+    A0, n0 = np.full(5, -60.0), np.full(5, 2.0)
+    x0 = _start_fixes(ANCHORS, rssi, "rssi", A=A0, n=n0)
+    r = SelfCalibrator("rssi").fit(ANCHORS, rssi, x0, offset0=A0, slope0=n0,
+                                   anchor_ids=list("ABCDE"))
+    assert not r.free.any()
+    assert np.all(r.offset == -60.0) and np.all(r.slope == 2.0)
+    assert len(r.warnings) == 1 and "A or n: the tag does not move" in r.warnings[0]
+
+
+def test_constant_distance_to_an_anchor_leaves_its_scale_out_and_keeps_its_bias():
+    # the tag circles anchor E (5, -2) at 4 m: bias_E + scale_E * 4 is all the log says
+    # of E.  Before, the standard-error test left out E's bias (se 0.29 m > 3 sigma) and
+    # E's scale was fitted to the fixes' noise (0.46 for 0.97 in the review's case).
+    rng = np.random.default_rng(12)
+    x, z, x0 = _static_or_circling(
+        rng, lambda t: np.c_[5 + 4 * np.cos(t / 20), -2 + 4 * np.sin(t / 20)])
+    r = SelfCalibrator("range").fit(ANCHORS, z, x0, anchor_ids=list("ABCDE"))
+    assert r.free[:4].all() and r.free[4, 0] and not r.free[4, 1]
+    assert r.slope[4] == 1.0
+    # E's bias absorbs its scale at the constant distance: BIAS + (SCALE - 1) * 4 (4 se)
+    want = BIAS[4] + (SCALE[4] - 1.0) * 4.0
+    assert abs(r.offset[4] - want) < 4 * r.offset_se[4]
+    msgs = [w for w in r.warnings if w.startswith("anchor E: cannot determine scale")]
+    assert len(msgs) == 1 and "vary too little" in msgs[0]
+    assert not any(w.startswith("anchor E: cannot determine bias") for w in r.warnings)
 
 
 def test_far_cluster_common_bias_is_flagged():

@@ -33,11 +33,12 @@ datum (robust joint Gauss-Newton, positions eliminated by the Schur complement; 
 robustloc.models.selfcal).  Bad epochs are left out and counted.  A parameter the log
 cannot determine (inseparable from the positions, a model standard error above --se-ratio
 sigma, a scale with the tags in the far field of the anchors or with the anchors close to
-a line) gets a warning and is left at its prior (bias 0, scale 1, or the anchors file's
-A, n).  Writes the columns bias, scale, sigma (or A, n, sigma) and their standard errors,
-cluster-robust over 50 time blocks of the log (errors that persist while a tag dwells
-make the independent-epoch ones too small); the start fixes use the anchors file's A, n
-for RSSI.  The start fixes are tested as `locate` tests them: an epoch whose fix is not
+a line, a scale of an anchor whose distance to the tag hardly varies, every parameter when
+the tag does not move) gets a warning and is left at its prior (bias 0, scale 1, or the
+anchors file's A, n).  Writes the columns bias, scale, sigma (or A, n, sigma) and their
+standard errors, cluster-robust over 50 time blocks of the log (errors that persist while
+a tag dwells make the independent-epoch ones too small); the start fixes use the anchors
+file's A, n for RSSI.  The start fixes are tested as `locate` tests them: an epoch whose fix is not
 usable is left out (counted without a start fix), and with nearly collinear anchors an
 ambiguous fix starts on the side of their line where the log's unambiguous fixes lie
 (as `locate --side-prior log`).

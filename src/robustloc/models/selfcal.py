@@ -65,14 +65,25 @@ is left out of the adjustment and counted.
 Observability: the correlation form ``D^-1/2 S D^-1/2`` of the reduced normal matrix is
 tested by its eigenvalues.  While the smallest is below ``rank_tol`` the parameter with the
 largest component in that eigenvector is left out (fixed at its prior); this catches
-exactly inseparable parameters (e.g. every epoch at one point: bias and scale of an anchor;
-collinear anchors with the tag on their line).  After convergence a parameter whose
+exactly inseparable parameters (e.g. every epoch exactly at one point: bias and scale of
+an anchor; collinear anchors with the tag on their line).  After convergence a parameter whose
 standard error exceeds the documented bound is left out too and the log re-adjusted:
 
 * offset ``a_j``: ``se(a_j) > se_ratio * sigma_j`` (known no better than one observation);
 * slope ``b_j``: ``se(b_j) * sd_j(f) > se_ratio * sigma_j`` (``sd_j(f)`` the spread of
   ``f(rho)`` over the anchor's observations: the slope's uncertainty moves the predicted
   observations over the anchor's distances by more than one observation's noise).
+
+Motion: after a first adjustment, the log must show the tag moving, and the distance to
+each anchor varying, by more than the fixes' noise explains (the share of the spread
+that the noise explains at most ``max_dilution`` = 0.5; ``SelfCalibrator._motion_test``
+has the tests).  A tag that does not move gives one value per anchor, which its
+position and the anchor's parameters share: every parameter is left out (with the fixes
+jittering by their noise, the tests above caught a few and let the rest pass as
+determined: scales of 0.25-3.2 for a truth near 1).  A distance that hardly varies (a tag
+circling an anchor) leaves that anchor's slope out and keeps its offset: a slope fitted
+there is diluted toward the fixes' noise (0.46 for a true 0.97).  What either leaves out
+is re-adjusted from the start.
 
 Far field: when the median start fix lies farther from the anchors' centroid than
 ``far_field_ratio`` (3) times the anchors' extent, every slope is left out before the
@@ -117,6 +128,8 @@ Array = NDArray[np.float64]
 
 KINDS = ("range", "rssi")
 _LN10 = np.log(10.0)
+#: Start of the reason given when the tag does not move (:meth:`SelfCalibrator._motion_test`).
+STATIC_REASON = "the tag does not move"
 #: Parameter names per kind: (offset, slope).
 PARAM_NAMES = {"range": ("bias", "scale"), "rssi": ("A", "n")}
 
@@ -225,6 +238,11 @@ class SelfCalibrator:
         The reported covariance is cluster-robust over this many contiguous blocks of
         epochs (in the log's order, i.e. time), never below the model-based one (module
         notes, item 4); ``0``: the model-based covariance only.
+    max_dilution : float
+        Motion tests (module notes, "Motion"): when the fixes' noise explains more than
+        this share of the start fixes' spread, every parameter is left out (the tag does
+        not move); of the spread of the distances to an anchor, its slope (the regression
+        dilution of the slope estimate).
     """
 
     kind: str = "range"
@@ -242,6 +260,7 @@ class SelfCalibrator:
     far_field_ratio: float = 3.0
     elongation_ratio: float = 0.05
     se_blocks: int = 50
+    max_dilution: float = 0.5
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:
@@ -256,6 +275,8 @@ class SelfCalibrator:
             raise ValueError(f"se_blocks must be 0 or >= 2, got {self.se_blocks}")
         if not 0 < self.bad_epoch_fraction <= 1:
             raise ValueError("bad_epoch_fraction must be in (0, 1]")
+        if not 0 < self.max_dilution < 1:
+            raise ValueError(f"max_dilution must be in (0, 1), got {self.max_dilution}")
 
     # ------------------------------------------------------------------ model
     def _f(self, rho: Array) -> tuple[Array, Array]:
@@ -364,13 +385,25 @@ class SelfCalibrator:
         total_it = 0
         converged = True
         state = None
-        for _round in range(2 * m + 2):  # re-adjust after each se-test exclusion
+        x_start = x.copy()
+        for _round in range(2 * m + 3):  # re-adjust after each se-test exclusion
             for wf in stages:
                 state = self._iterate(a, z, obs, x, off, slo, h2, free, start_ok, wf,
                                       left_out, ids)
                 x, off, slo = state["x"], state["off"], state["slo"]
                 total_it += state["iterations"]
                 converged = state["converged"]
+            if _round == 0 and free.any():
+                # motion tests on the start fixes, with the noise of this first adjustment
+                # (module notes): what they leave out is re-adjusted from the start
+                out = self._motion_test(a, z, obs, x_start, off_prior, slo_prior, h2,
+                                        state, free, ids, left_out)
+                if out:
+                    for j, p in out:
+                        free[j, p] = False
+                    # re-adjusted from scratch, as if left out from the start
+                    off, slo, x = off_prior.copy(), slo_prior.copy(), x_start.copy()
+                    continue
             # standard-error test: leave out the worst offending parameter, re-adjust
             worst = self._se_test(state, free, ids, left_out)
             if worst is None:
@@ -379,10 +412,22 @@ class SelfCalibrator:
             free[j, p] = False
             off[j], slo[j] = (off_prior[j], slo[j]) if p == 0 else (off[j], slo_prior[j])
         assert state is not None
+        by_reason: dict[str, list[tuple[int, int]]] = {}
         for (j, p), why in left_out.items():
-            warnings.append(f"anchor {ids[j]}: cannot determine {names[p]}: {why}; left out "
-                            f"(fixed at its prior {names[p]} = "
-                            f"{(off_prior if p == 0 else slo_prior)[j]:g})")
+            by_reason.setdefault(why, []).append((j, p))
+        for why, items in by_reason.items():
+            if len(items) == 1 or not why.startswith(STATIC_REASON):
+                for j, p in items:
+                    warnings.append(f"anchor {ids[j]}: cannot determine {names[p]}: "
+                                    f"{why}; left out (fixed at its prior {names[p]} = "
+                                    f"{(off_prior if p == 0 else slo_prior)[j]:g})")
+                continue
+            # a static tag: every parameter of every anchor, one line
+            params = [q for q in (0, 1) if any(p == q for _, p in items)]
+            who = sorted({j for j, _ in items})
+            warnings.append(f"anchors {', '.join(ids[j] for j in who)}: cannot determine "
+                            f"{' or '.join(names[q] for q in params)}: {why}; left out "
+                            f"(fixed at their priors)")
         for (j, p) in left_out:
             if p == 0:
                 off[j] = off_prior[j]
@@ -694,6 +739,152 @@ class SelfCalibrator:
         dm = np.diagonal(cov_model, axis1=1, axis2=2)
         dr = np.diagonal(blocks, axis1=1, axis2=2)
         return blocks + np.einsum("jp,pq->jpq", np.maximum(dm - dr, 0.0), np.eye(2))
+
+    def _motion_test(
+        self, a: Array, z: Array, obs: NDArray[np.bool_], x0: Array, off0: Array,
+        slo0: Array, h2: Array, state: dict, free: NDArray[np.bool_], ids: list[str],
+        left_out: dict[tuple[int, int], str],
+    ) -> list[tuple[int, int]]:
+        """Does the tag move, and do the distances to each anchor vary, by more than the
+        fixes' noise explains?  (Module notes, "Motion".)  Returns the parameters to leave
+        out, their reasons recorded in ``left_out``.
+
+        ``D`` is the share of a typical spread that the noise explains (``1 - D``
+        estimates the reliability ratio, var(signal) / var(signal + noise), whose
+        shortfall is the regression dilution of a slope fitted to noisy regressors:
+        Fuller, "Measurement Error Models", 1987, sec. 1.1).  Medians throughout: the
+        fixes' errors have heavy tails.
+
+        * Positions (:meth:`_static_share`): the spread of the log's fixes with the prior
+          calibration against the spread of fixes of a simulated static tag at their
+          median point, with the same anchors heard and the log's per-anchor sigmas
+          (a parametric bootstrap of "the tag does not move", so that the fixes'
+          nonlinearity is in both: for RSSI a linearized covariance predicted a fifth of
+          a simulated static tag's spread).
+        * Anchor ``j``, on the first adjustment's positions and model (the start fixes
+          carry the prior calibration's errors, which move with the tag: on a circle
+          around an anchor they spread the start distances to it by 0.25 m, 2.5 times the
+          noise): ``D_j = chi2_0.5(1) / median_k t_kj``, ``t_kj = (f_kj - fmed_j)^2 /
+          var f_kj``, ``var f_kj = f'(rho)^2 g^T C_k g`` (``C_k`` the fix's covariance
+          with the adjustment's weights and sigmas, ``g`` the unit vector from the
+          anchor).
+
+        ``D > max_dilution``: on a static tag every offset and slope is left out (the log
+        gives one value per anchor, which the position and the anchor's parameters share;
+        a simulated static tag gave scales of 0.25-3.2 for a truth of 0.97-1.03 with the
+        slopes in); at a constant distance from an anchor, its slope (its offset stays,
+        the more common need; a simulated tag circling an anchor, D = 0.71, fitted a scale
+        of 0.46 for 0.97).  Measured on the shared real logs: positions, D at most 0.02
+        for ranges and 0.11 for ble-tetam; anchors, at most 0.03 for ranges and 0.11-0.22
+        for ble-tetam's RSSI.  A simulated static RSSI tag (2-3 dB): D above 1."""
+        from robustloc._stats import chi2_ppf
+
+        names = PARAM_NAMES[self.kind]
+        out: list[tuple[int, int]] = []
+        D, n = self._static_share(a, z, obs, x0, off0, slo0, h2, state)
+        if D > self.max_dilution:
+            why = (f"{STATIC_REASON}: the spread of its {n} fixes is {min(D, 1.0):.0%} or "
+                   f"more noise (more than {self.max_dilution:.0%}; a simulated static "
+                   f"tag's), so the log gives one value per anchor, which the position and "
+                   f"the anchor's parameters share")
+            for j in range(free.shape[0]):
+                for p in range(2):
+                    if free[j, p] or (j, p) in left_out:
+                        left_out[(j, p)] = why  # the reason, whatever round 0 found
+                        if free[j, p]:
+                            out.append((j, p))
+            return out
+        sigma, w = state["sigma"], np.nan_to_num(state["w"], nan=0.0)
+        slo, used = state["slo"], state["used"]
+        ob = obs[used]
+        lin = self._linearize(a, np.where(ob, z[used], 0.0), ob, state["x"][used],
+                              np.zeros(a.shape[0]), slo, h2)
+        C, reg = _inv_batched(np.einsum("kjd,kj,kje->kde", lin["Jx"],
+                                        np.where(ob, w[used], 0.0) / sigma**2, lin["Jx"]))
+        # d f / d x = f'(rho) g = Jx / slope
+        G = lin["Jx"] / np.where(slo == 0, 1.0, slo)[None, :, None]
+        var = np.einsum("kjd,kde,kje->kj", G, C, G)
+        for j in np.flatnonzero(free[:, 1]):
+            sel = reg & ob[:, j] & (var[:, j] > 0)
+            nj = int(sel.sum())
+            if nj < 2:
+                continue
+            fj = lin["f"][sel, j]
+            tj = (fj - np.median(fj)) ** 2 / var[sel, j]
+            Dj = float(chi2_ppf(0.5, 1)) / max(float(np.median(tj)), 1e-300)
+            if Dj > self.max_dilution:
+                left_out[(int(j), 1)] = (
+                    f"the distances to it vary too little: the fixes' noise explains "
+                    f"{min(Dj, 1.0):.0%} of their spread over {nj} fixes (more than "
+                    f"{self.max_dilution:.0%}), so its {names[1]} cannot be told from its "
+                    f"{names[0]} (a {names[1]} fitted there is diluted toward the noise)")
+                out.append((int(j), 1))
+        return out
+
+    def _static_share(
+        self, a: Array, z: Array, obs: NDArray[np.bool_], x0: Array, off0: Array,
+        slo0: Array, h2: Array, state: dict,
+    ) -> tuple[float, int]:
+        """The share of the spread of the log's fixes that a tag at rest would show:
+        ``D = median_k |s_k - smed|^2 / median_k |x_k - xmed|^2`` and the number of fixes.
+
+        ``x_k``: each epoch's fix with the prior calibration (:meth:`_fixes`, from the
+        start fix ``x0``; the start fixes come from another estimator, and on a
+        simulated static tag they spread 1.2-1.6 times the noise of these).  ``s_k``: the
+        same estimator's fixes of a simulated tag at rest at ``xmed`` with the same
+        anchors heard, observations ``offset + slope f(rho) + sigma_j e`` (a fixed seed:
+        the test is reproducible).  ``sigma_j``: the robust per-anchor scale of the
+        residuals of the ``x_k`` (:meth:`_vce` with the first adjustment's final robust
+        weights); at rest it includes the prior calibration's inconsistency, so that a
+        tag at rest shows ``D`` at or above 1."""
+        dim = a.shape[1]
+        rows = np.all(np.isfinite(x0), axis=1) & (obs.sum(axis=1) > dim)
+        w = np.nan_to_num(state["w"], nan=0.0)
+        ob = obs[rows]
+        zz = np.where(ob, z[rows], 0.0)
+        wr = np.where(ob, w[rows], 0.0)
+        x = self._fixes(a, zz, ob, x0[rows], off0, slo0, h2, wr / state["sigma"] ** 2)
+        ok = np.all(np.isfinite(x), axis=1)
+        if ok.sum() < 2:
+            return 0.0, int(ok.sum())
+        x, ob, zz, wr = x[ok], ob[ok], zz[ok], wr[ok]
+        lin = self._linearize(a, zz, ob, x, off0, slo0, h2)
+        veq, R2, _ = self._robust_fit(lin["Jx"], wr, lin["v"])
+        kappa = _consistency(IGG3(self.igg3_k0, self.igg3_k1) if self.igg3_k1 > 0
+                             else Huber(self.huber_c))
+        sigma = self._vce(veq, R2, wr, kappa)
+        xmed = np.median(x, axis=0)
+        rho = np.sqrt(np.sum((xmed - a) ** 2, axis=1) + h2)
+        f, _ = self._f(np.maximum(rho, 1e-6))
+        e = np.random.default_rng(0).standard_normal(ob.shape)
+        zs = np.where(ob, off0 + slo0 * f + sigma * e, 0.0)
+        xs_ = self._fixes(a, zs, ob, np.broadcast_to(xmed, x.shape).copy(), off0, slo0, h2,
+                          np.where(ob, 1.0, 0.0) / sigma**2)
+        oks = np.all(np.isfinite(xs_), axis=1)
+        if oks.sum() < 2:
+            return 0.0, int(ok.sum())
+        rs = np.sum((xs_[oks] - np.median(xs_[oks], axis=0)) ** 2, axis=1)
+        ro = np.sum((x - xmed) ** 2, axis=1)
+        return float(np.median(rs)) / max(float(np.median(ro)), 1e-300), int(x.shape[0])
+
+    def _fixes(
+        self, a: Array, zz: Array, ob: NDArray[np.bool_], x: Array, off: Array, slo: Array,
+        h2: Array, P: Array, steps: int = 5,
+    ) -> Array:
+        """Each epoch's weighted fix (weights ``P``) with the model ``off, slo``: Gauss-
+        Newton from ``x``, each step at most half the anchors' extent; NaN where ``J^T P
+        J`` is singular."""
+        extent = max(float(np.max(np.linalg.norm(a - a.mean(axis=0), axis=1))), 1.0)
+        x = x.copy()
+        for _ in range(steps):
+            lin = self._linearize(a, zz, ob, x, off, slo, h2)
+            C, _ = _inv_batched(np.einsum("kjd,kj,kje->kde", lin["Jx"], P, lin["Jx"]))
+            dx = np.einsum("kde,kjd,kj,kj->ke", C, lin["Jx"], P, lin["v"])
+            step = np.linalg.norm(dx, axis=1, keepdims=True)
+            x = x + dx * np.minimum(1.0, 0.5 * extent / np.maximum(step, 1e-300))
+        lin = self._linearize(a, zz, ob, x, off, slo, h2)
+        _, reg = _inv_batched(np.einsum("kjd,kj,kje->kde", lin["Jx"], P, lin["Jx"]))
+        return np.where(reg[:, None], x, np.nan)
 
     @staticmethod
     def _leave_out(
