@@ -201,7 +201,11 @@ def _nav3_from_nav2(records: list[list[str]], sys_letter: str) -> list[str]:
         ss = int(float(rec[0][17:22]))
         out.append(f"{sys_letter}{prn:02d} {2000 + yy:04d} {mo:02d} {dd:02d} {hh:02d} {mi:02d} "
                    f"{ss:02d}" + rec[0][22:79])
-        out += ["    " + ln[3:79] for ln in rec[1:]]
+        orbit = ["    " + ln[3:79] for ln in rec[1:]]
+        if sys_letter == "C":
+            # the 7th line's fourth field is BeiDou's TGD2 (GPS: IODC, a count, not a delay)
+            orbit[5] = orbit[5][:61].ljust(61) + f"{-2.9e-9:19.12E}"
+        out += orbit
     return out
 
 
@@ -231,9 +235,13 @@ def test_rinex3_nav_gps_galileo_beidou(tmp_path: Path) -> None:
         assert nav3.toe_gps_s[g3][k] == nav2.toe_gps_s[j]
     # Galileo: the 7th line's third field is BGD(E1,E5a), used as the group delay
     np.testing.assert_allclose(nav3.params["tgd"][e3], nav3.params["tgd"][g3])
-    # BeiDou: epochs in BDT = GPST - 14 s
+    # BeiDou: epochs in BDT = GPST - 14 s; TGD1 in the third field of the 7th line, TGD2
+    # in the fourth (the other systems have no second group delay: 0)
     c3 = np.char.startswith(nav3.sat.astype(str), "C")
     assert c3.sum() == 3
+    np.testing.assert_allclose(nav3.params["tgd"][c3], nav3.params["tgd"][g3])
+    assert np.all(nav3.params["tgd2"][c3] == -2.9e-9)
+    assert np.all(nav3.params["tgd2"][~c3] == 0.0) and np.all(nav2.params["tgd2"] == 0.0)
     np.testing.assert_allclose(nav3.toc_gps_s[c3], nav3.toc_gps_s[g3] + 14.0)
     np.testing.assert_allclose(nav3.toe_gps_s[c3], nav3.toe_gps_s[g3] + 14.0)
 

@@ -100,6 +100,8 @@ def run(args: argparse.Namespace) -> int:
                                sp3=args.sp3, clk=args.clk)
     for text in summary.get("nav_records_set_aside", []):  # a warning, even with --json
         print(f"warning: {text}", file=sys.stderr)
+    for text in summary.get("notes", []):
+        print(f"note: {text}", file=sys.stderr)
     from robustloc.io.atomic import writes_to_stdout
 
     out = args.out

@@ -593,7 +593,8 @@ def _read_obs_v3(path: str, version: float) -> ObsData:
 
 
 #: Broadcast ephemeris fields kept (georinex names); system-specific group delays are
-#: mapped to ``tgd`` (GPS TGD, Galileo BGD E1/E5a, BeiDou TGD1).
+#: mapped to ``tgd`` (GPS TGD, Galileo BGD E1/E5a, BeiDou TGD1) and, for BeiDou, ``tgd2``
+#: (TGD2, B2I against the B3I clock; 0 for the other systems).
 _KEPLER = (
     "SVclockBias", "SVclockDrift", "SVclockDriftRate", "Crs", "DeltaN", "M0", "Cuc",
     "Eccentricity", "Cus", "sqrtA", "Toe", "Cic", "Omega0", "Cis", "Io", "Crc", "omega",
@@ -615,6 +616,7 @@ NAV_MAX_ABS = {
     "OmegaDot": 1e-3,  # 2^-20 semicircles/s = 3.0e-6 rad/s
     "IDOT": 1e-6,  # 2^-30 semicircles/s = 2.9e-9 rad/s
     "tgd": 1e-4,  # 2^-23 s (Galileo BGD)
+    "tgd2": 1e-4,  # 51.2 ns (BeiDou TGD2: 10 bits of 0.1 ns)
 }
 #: sqrt(A) of an Earth orbit (sqrt(m); GNSS 5153 .. 6493): A = 1e6 m is inside the Earth
 #: (the perigee test below is the sharper one), 1e10 m far beyond the Earth's sphere of
@@ -671,7 +673,8 @@ def nav_record_problems(
     out.append(("Toe", ~((toe >= 0.0) & (toe <= WEEK_S)),
                 f"must lie in [0, {WEEK_S:.0f}] s (a second of the week)"))
     for k, lim in NAV_MAX_ABS.items():
-        out.append((k, ~(np.abs(params[k]) <= lim), f"must lie within +-{lim:g}"))
+        if k in params:  # (tgd2: BeiDou's, absent from NavData built by hand)
+            out.append((k, ~(np.abs(params[k]) <= lim), f"must lie within +-{lim:g}"))
     return out
 
 
@@ -690,7 +693,7 @@ def _without_impossible(
     ``FILE:LINE: ...`` per record set aside (its first problem; ``lines`` are the 0-based
     file lines of each parameter, ``None`` when unknown).  ``rec`` holds the parameters,
     ``sat`` and ``toc``."""
-    checks = nav_record_problems({k: rec[k] for k in (*_KEPLER, "tgd")})
+    checks = nav_record_problems({k: rec[k] for k in (*_KEPLER, "tgd", "tgd2") if k in rec})
     fails = np.stack([f for _, f, _ in checks])  # (checks, R)
     bad = fails.any(axis=0)
     messages = []
@@ -722,7 +725,9 @@ class NavData:
         Ephemeris reference time, GPS seconds, week resolved from ``toc`` (so week-number
         rollover in the file does not matter).
     params : dict of str -> ndarray (R,)
-        Keplerian and clock parameters (georinex names) plus ``tgd`` (s).
+        Keplerian and clock parameters (georinex names) plus the group delays ``tgd``
+        (s; GPS TGD, Galileo BGD E1/E5a, BeiDou TGD1) and ``tgd2`` (s; BeiDou TGD2, else
+        0).
     ion_alpha, ion_beta : ndarray (4,) or None
         GPS Klobuchar coefficients from the header.
     paths : list of str
@@ -825,7 +830,7 @@ def read_nav(paths: str | PathLike[str] | list) -> NavData:
         sat,
         np.concatenate([r["toc"] for r in recs]),
         np.concatenate([r["toe"] for r in recs]),
-        {k: np.concatenate([r[k] for r in recs]) for k in (*_KEPLER, "tgd")},
+        {k: np.concatenate([r[k] for r in recs]) for k in (*_KEPLER, "tgd", "tgd2")},
         alpha, beta, [str(p) for p in paths], tuple(rejected),
     )
 
@@ -840,7 +845,7 @@ def _nav_from_georinex(path: str) -> tuple[dict[str, NDArray] | None, list[str]]
         raise InputError("no ephemeris records could be read", path)
     svs = np.asarray([str(s) for s in ds.sv.values])
     sat_l, toc_l, shift_l = [], [], []
-    par_l: dict[str, list] = {k: [] for k in (*_KEPLER, "tgd")}
+    par_l: dict[str, list] = {k: [] for k in (*_KEPLER, "tgd", "tgd2")}
     for sysch, tgd_name in (("G", "TGD"), ("E", "BGDe5a"), ("C", "TGD1")):
         sel = np.char.startswith(svs, sysch)
         if not sel.any() or "sqrtA" not in ds:
@@ -860,14 +865,14 @@ def _nav_from_georinex(path: str) -> tuple[dict[str, NDArray] | None, list[str]]
             name = "SatH1" if (k == "health" and sysch == "C") else k
             par_l[k].append(np.asarray(sub[name].values, dtype=np.float64)[ti, si]
                             if name in sub else np.zeros(ti.size))
-        tg = sub[tgd_name] if tgd_name in sub else None
-        par_l["tgd"].append(
-            np.zeros(ti.size) if tg is None else np.asarray(tg.values, dtype=np.float64)[ti, si]
-        )
+        for key, name in (("tgd", tgd_name), ("tgd2", "TGD2" if sysch == "C" else "")):
+            tg = sub[name] if name and name in sub else None
+            par_l[key].append(np.zeros(ti.size) if tg is None
+                              else np.asarray(tg.values, dtype=np.float64)[ti, si])
     if not sat_l:
         return None, []
     out = {k: np.concatenate(v) for k, v in par_l.items()}
-    for k in ("health", "tgd"):
+    for k in ("health", "tgd", "tgd2"):
         out[k] = np.where(np.isnan(out[k]), 0.0, out[k])
     if np.isnan(np.stack([out[k] for k in _REQUIRED])).any():
         raise InputError("georinex left orbit or clock parameters of a record unreadable",
@@ -1038,6 +1043,7 @@ def _read_nav_v2(lines: list[str], i0: int,
                           f"{hh:02d}:{mi:02d}", "ns") + np.int64(round(ss * 1e9))
         )
     out = _named_params(grid, _NAV2_FIELDS, "TGD", "health", np.array(sats), rec_lines, path)
+    out["tgd2"] = np.zeros(len(sats))  # GPS: the clock refers to the L1/L2 pair
     out["sat"] = np.array(sats)
     out["toc"] = datetime64_to_gps_s(np.array(tocs, dtype="datetime64[ns]"))
     out, rejected = _without_impossible(
@@ -1116,6 +1122,13 @@ def _read_nav_v3(lines: list[str], i0: int,
         for k, where in _param_lines(layout, _TGD_FIELD[sysch], _HEALTH_FIELD[sysch],
                                      rec_lines[m]).items():
             at[k][m] = where
+    out["tgd2"] = np.zeros(len(sats))
+    m = system == "C"
+    if m.any():  # BeiDou TGD2 (blank: not given, 0)
+        li, fi = next((li, fi) for li, names in enumerate(_NAV3_FIELDS["C"])
+                      for fi, name in enumerate(names) if name == "TGD2")
+        out["tgd2"][m] = np.where(grid[1][m, li, fi], 0.0, grid[0][m, li, fi])
+        at["tgd2"] = np.where(m, rec_lines[:, li], rec_lines[:, 0])
     out["sat"] = sat
     out["toc"] = toc + np.where(system == "C", BDT_OFFSET_S, 0.0)  # BDT = GPST - 14 s
     out, rejected = _without_impossible(out, at, path)

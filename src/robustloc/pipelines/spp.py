@@ -144,6 +144,25 @@ class SppSettings:
             inject_from=args.inject_from, inject_until=args.inject_until)
 
 
+def _model_notes(iono: str, nav: bool, precise: bool, systems: str) -> list[str]:
+    """What the run's models could not take from its inputs (printed as notes)."""
+    notes = []
+    if iono == "klobuchar" and not nav:
+        notes.append("Klobuchar ionosphere with RTKLIB's default coefficients: no "
+                     "navigation file gives the day's")
+    if precise and iono != "iflc":
+        if not nav:
+            notes.append("single-frequency code with precise clocks (they refer to the "
+                         "ionosphere-free pair) and no navigation file: the satellites' "
+                         "group delays (TGD/BGD, up to a few metres) are not applied; give "
+                         "the navigation file too, or use --iono iflc")
+        elif set(systems) & set("RC"):
+            notes.append("single-frequency code with precise clocks: the group delays of "
+                         "GPS and Galileo come from the navigation file, those of GLONASS "
+                         "and BeiDou are not applied")
+    return notes
+
+
 def run_spp(obs: str, nav: Sequence[str], settings: SppSettings, *, sp3: str | None = None,
             clk: str | None = None) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Solve every epoch of a RINEX observation file.
@@ -239,6 +258,9 @@ def run_spp(obs: str, nav: Sequence[str], settings: SppSettings, *, sp3: str | N
         "invalid_measurement": int(n_invalid.sum())}
     if ephemerides is not None and ephemerides.rejected:
         summary["nav_records_set_aside"] = list(ephemerides.rejected)
+    notes = _model_notes(iono, ephemerides is not None, precise is not None, res.systems)
+    if notes:
+        summary["notes"] = notes
     if np.linalg.norm(ref) > 6.0e6:
         summary["reference"] = ref_src
         summary["reference_xyz_m"] = [float(v) for v in ref]
