@@ -93,6 +93,38 @@ def test_two_simultaneous_faults_multi_gnss() -> None:
     assert rms["raim"] < 1.5 * rms["clean"] and rms["plain"] > 3 * rms["clean"]
 
 
+def test_protection_levels_when_a_constellation_is_missing_from_an_epoch() -> None:
+    """The GNSS review (2026-12-04): with Galileo absent from some epochs of a GE run, the
+    absent clock's zero column made those epochs' hpl, vpl and MDB NaN while their status
+    was ok.  Such an epoch is a GPS-only epoch: its protection levels and MDBs are the
+    GPS-only run's (same satellites, same sigmas)."""
+    import dataclasses
+
+    obs = read_obs(SLAC / "slac1180_1930-1940.21o")
+    pp = PreciseProducts(read_sp3(SLAC / "COD0MGXFIN_20211181905_60M_05M_ORB.SP3"),
+                         read_clk(SLAC / "COD0MGXFIN_20211181930_12M_30S_CLK.CLK"))
+    e = np.array([s[0] == "E" for s in obs.sats])
+    gone = np.zeros(obs.n_epochs, dtype=bool)
+    gone[:6] = True
+    no_e = dataclasses.replace(obs, obs={k: np.where(gone[:, None] & e[None, :], np.nan, v)
+                                         for k, v in obs.obs.items()})
+    ge = RaimFde().solve(SppSolver(systems="GE", iono="iflc"), no_e, None, pp)
+    g = RaimFde().solve(SppSolver(systems="G", iono="iflc"), no_e, None, pp)
+    ok = gone & (ge.status == st.OK)
+    assert ok.sum() >= 3
+    for k in ("hpl_m", "vpl_m"):
+        assert np.all(np.isfinite(ge.extra[k][ok]))
+        np.testing.assert_allclose(ge.extra[k][ok], g.extra[k][ok], rtol=1e-9)
+    gi = [i for i, s in enumerate(obs.sats) if s[0] == "G"]
+    mdb_ge, mdb_g = ge.extra["mdb_m"][ok][:, gi], g.extra["mdb_m"][ok][:, gi]
+    assert np.all(np.isfinite(mdb_ge) == np.isfinite(mdb_g)) and np.isfinite(mdb_ge).any()
+    np.testing.assert_allclose(mdb_ge[np.isfinite(mdb_ge)], mdb_g[np.isfinite(mdb_g)],
+                               rtol=1e-9)
+    # the epochs with both constellations keep their (smaller) levels
+    both = ~gone & (ge.status == st.OK)
+    assert both.any() and np.all(np.isfinite(ge.extra["hpl_m"][both]))
+
+
 def test_protection_levels_equal_external_reliability() -> None:
     rng = np.random.default_rng(3)
     N, n = 5, 8

@@ -354,8 +354,16 @@ class RaimFde:
             "ks,sj->kj", used.astype(float),
             (P.sys_idx[:, None] == np.arange(K)[None, :]).astype(float),
         ) == 0
-        hpl, vpl, mdb = protection_levels_and_mdb(pred_H, sig_fixed, used, xf[:, :3],
-                                                  self.lambda0, w_critical(self.alpha0))
+        # the clocks of constellations without a satellite in use pinned by pseudo-rows, as
+        # in the tests (without them a zero clock column made every such epoch's
+        # protection levels NaN: the GNSS review, 2026-12-04); a pseudo-row moves no
+        # position, so it adds no slope
+        hpl, vpl, mdb = protection_levels_and_mdb(
+            np.concatenate([pred_H, np.broadcast_to(pseudo_H, (N, K, p))], axis=1),
+            np.concatenate([sig_fixed, np.ones((N, K))], axis=1),
+            np.concatenate([used, absent_f], axis=1), xf[:, :3], self.lambda0,
+            w_critical(self.alpha0))
+        mdb = mdb[:, :S]
         # RTKLIB-like geometry screen on top of the tests
         dop = dops(pred_H, used, xf[:, :3], absent_f)
         gd = dop[:, 0]
