@@ -128,6 +128,29 @@ def test_malformed_epoch_header(tmp_path: Path) -> None:
     assert e.value.line == 18
 
 
+@pytest.mark.parametrize("version", ["1.00", "9.99", "0.50", "5.00"])
+def test_unsupported_rinex_version_is_refused_on_line_1(tmp_path: Path, version: str) -> None:
+    # the GNSS review (2026-12-04): 1.00 was read as RINEX 2 without a word, 9.99 as 3
+    for path in (OBS, NAV):
+        lines = path.read_text().splitlines()
+        lines[0] = f"{version:>9}" + lines[0][9:]
+        bad = _write(tmp_path, "v" + path.name, "\n".join(lines) + "\n")
+        with pytest.raises(InputError) as e:
+            (read_obs if path == OBS else read_nav)(bad)
+        assert e.value.line == 1
+        assert f"RINEX version {version} is not supported" in str(e.value)
+
+
+def test_rinex2_content_under_a_version_4_line_names_the_header_end(tmp_path: Path) -> None:
+    # the review: "missing 'SYS / # / OBS TYPES' header record" without a line
+    lines = OBS.read_text().splitlines()
+    lines[0] = "     4.01" + lines[0][9:]
+    end = next(i for i, ln in enumerate(lines) if "END OF HEADER" in ln) + 1
+    with pytest.raises(InputError) as e:
+        read_obs(_write(tmp_path, "v4.05o", "\n".join(lines) + "\n"))
+    assert e.value.line == end and "is the version on line 1 right?" in str(e.value)
+
+
 def test_not_rinex_and_missing_header(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="RINEX VERSION"):
         read_obs(_write(tmp_path, "x.05o", "hello\n"))

@@ -205,13 +205,17 @@ def rinex_version(path: str | PathLike[str]) -> tuple[float, str]:
         version = float(first[:9])
     except ValueError as exc:
         raise InputError(f"unreadable RINEX version {first[:9]!r}", path, 1) from exc
+    if not 2.0 <= version < 5.0:  # (1.00 was read as 2, 9.99 as 3: the GNSS review)
+        raise InputError(f"RINEX version {first[:9].strip()} is not supported (2.xx, 3.xx "
+                         "and 4.xx are)", path, 1)
     return version, first[20:21].upper()
 
 
-def _obs_types_v2(hdr: dict[str, str], path: str) -> list[str]:
+def _obs_types_v2(hdr: dict[str, str], path: str, end_line: int | None = None) -> list[str]:
     rec = hdr.get("# / TYPES OF OBSERV")
     if rec is None:
-        raise InputError("missing '# / TYPES OF OBSERV' header record", path)
+        raise InputError("missing '# / TYPES OF OBSERV' header record (a RINEX 2 observation "
+                         "header needs it)", path, end_line)
     parts = rec.split("\n")
     try:
         n = int(parts[0][:6])
@@ -269,7 +273,7 @@ def read_obs(path: str | PathLike[str]) -> ObsData:
 def _read_obs_v2(path: str, version: float) -> ObsData:
     lines = _read_lines(path)
     hdr, i0 = _header(lines, path)
-    types = _obs_types_v2(hdr, path)
+    types = _obs_types_v2(hdr, path, i0)
     ntypes = len(types)
     nlines_sat = (ntypes + 4) // 5
     default_sys = hdr.get("RINEX VERSION / TYPE", " " * 41)[40:41].strip() or "G"
@@ -426,7 +430,8 @@ def _georinex_load(path: str, **kw):  # noqa: ANN202
             raise InputError(f"georinex could not read the file: {exc}", path) from exc
 
 
-def _obs_types_v3(hdr: dict[str, str], path: str) -> dict[str, list[str]]:
+def _obs_types_v3(hdr: dict[str, str], path: str,
+                  end_line: int | None = None) -> dict[str, list[str]]:
     """Observation types of each system from the ``SYS / # / OBS TYPES`` records.
 
     A record starts with the system letter and the number of types (``A1,2X,I3``), followed
@@ -434,7 +439,9 @@ def _obs_types_v3(hdr: dict[str, str], path: str) -> dict[str, list[str]]:
     """
     rec = hdr.get("SYS / # / OBS TYPES")
     if rec is None:
-        raise InputError("missing 'SYS / # / OBS TYPES' header record", path)
+        raise InputError("missing 'SYS / # / OBS TYPES' header record (a RINEX 3/4 "
+                         "observation header needs it; is the version on line 1 right?)",
+                         path, end_line)
     types: dict[str, list[str]] = {}
     want: dict[str, int] = {}
     sysch = ""
@@ -477,7 +484,7 @@ def _read_obs_v3(path: str, version: float) -> ObsData:
     """
     lines = _read_lines(path)
     hdr, i0 = _header(lines, path)
-    types = _obs_types_v3(hdr, path)
+    types = _obs_types_v3(hdr, path, i0)
     times: list[tuple[int, int, int, int, int, float]] = []
     flags: list[int] = []
     ep_lines: list[int] = []
