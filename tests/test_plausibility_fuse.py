@@ -123,6 +123,18 @@ def test_nmea_gga_latitude_beyond_90_is_skipped_as_invalid():
     assert log.summary.skipped["invalid_measurement"] == 1 and len(log.fixes) == 0
 
 
+def test_nmea_field_that_is_not_a_number_is_malformed_not_truncated():
+    # the GNSS review (2026-12-04): a GGA latitude "30XY.002135" under a valid checksum
+    # was counted as truncated; an empty field still is
+    bad = "GPGGA,000003.00,30XY.002135,N,12000.000604,E,1,08,1.0,10.00,M,0.0,M,,"
+    rmc = "GPRMC,000003.00,A,3000.0,N,12000.0,E,0.3x31,93.73,010124,,,A"
+    empty = "GPRMC,000003.00,A,3000.0,N,12000.0,E,,93.73,010124,,,A"
+    log = parse_nmea(["$" + b + "*" + nmea_checksum(b) for b in (bad, rmc, empty)])
+    assert log.summary.skipped["malformed"] == 2
+    assert log.summary.skipped["truncated"] == 1
+    assert len(log.fixes) == 0 and len(log.motion) == 0
+
+
 def test_rmc_date_320124_is_skipped_not_a_traceback(cart, tmp_path, capsys):
     nm = _nmea_with(cart, tmp_path, 0, lambda p: p.__setitem__(9, "320124"))
     rc, cap, out = _fuse(cart, tmp_path, capsys, "--nmea", str(nm))

@@ -19,9 +19,10 @@ roll-overs counted when the time of day jumps back by more than 12 h.  With a da
 
 Robustness: lines may carry a prefix or suffix (Android GnssLogger ``NMEA,$GP...*hh,ms``):
 the sentence is the text from ``$`` to the two hex digits after ``*``.  A bad checksum, a
-missing checksum, a truncated sentence (required fields empty), an invalid fix (GGA
-quality 0, RMC status ``V``) or an unsupported type is counted in ``summary.skipped`` and
-skipped -- never an exception.  Only an unreadable *file* raises :class:`InputError`.
+missing checksum, a truncated sentence (required fields empty), a malformed one (a field
+that must be a number is not: ``30XY.0021`` for a latitude), an invalid fix (GGA quality 0,
+RMC status ``V``) or an unsupported type is counted in ``summary.skipped`` and skipped --
+never an exception.  Only an unreadable *file* raises :class:`InputError`.
 
 Plausibility (:mod:`robustloc.io.limits`): a sentence with a valid checksum can still carry
 absurd values (a bit flip before the checksum was computed, a firmware bug).  A speed
@@ -61,6 +62,7 @@ SKIP_REASONS = (
     "bad_checksum",
     "missing_checksum",
     "truncated",
+    "malformed",
     "invalid_fix",
     "unsupported",
     "invalid_measurement",
@@ -297,7 +299,10 @@ def parse_nmea(
                     skip(lineno, "truncated")
                     continue
                 acc.append((_tod(ts), *vals, order))
-        except (ValueError, TypeError, AttributeError, IndexError, ArithmeticError):
+        except ValueError:  # a field that must be a number is not (the GNSS review)
+            skip(lineno, "malformed")
+            continue
+        except (TypeError, AttributeError, IndexError, ArithmeticError):
             skip(lineno, "truncated")
             continue
         parsed[kind] += 1
