@@ -372,6 +372,28 @@ def test_cli_self_calibration_rssi_writes_A_n_sigma(tmp_path, capsys):
         in capsys.readouterr().err
 
 
+def test_cli_self_rssi_says_which_columns_of_another_model_it_leaves_out(tmp_path, capsys):
+    # the self-calibration review: an anchors file with both A, n and p0, gamma, faf, d0
+    # lost the latter without a word
+    rng = np.random.default_rng(23)
+    paths, _ = _write_log(tmp_path, rng, n=600, rssi=True)
+    a = pd.read_csv(paths["anchors"]).assign(p0=-48.0, gamma=2.3, faf=0.0, d0=1.0)
+    a.to_csv(paths["anchors"], index=False)
+    cal = tmp_path / "cal.csv"
+    assert main(["calibrate", "--self", str(paths["meas"]), "--anchors",
+                 str(paths["anchors"]), "-o", str(cal)]) == 0
+    out = pd.read_csv(cal)
+    assert {"A", "n"} <= set(out.columns) and not {"p0", "gamma"} & set(out.columns)
+    err = capsys.readouterr().err
+    assert "note: columns p0, gamma, faf, d0 of the anchors file are not in the output" in err
+    assert main(["calibrate", "--self", str(paths["meas"]), "--anchors",
+                 str(paths["anchors"]), "--model", "attenuation-factor", "-o", str(cal)]) == 0
+    out = pd.read_csv(cal)
+    assert {"p0", "gamma", "faf", "d0"} <= set(out.columns) and "A" not in out.columns
+    assert "note: columns A, n of the anchors file are not in the output" in \
+        capsys.readouterr().err
+
+
 def test_cli_self_on_a_log_whose_every_epoch_fails_says_so(tmp_path, capsys):
     """Tags 240 m from five anchors 13 m apart: every epoch with a fix failed its test,
     and the error said that no epoch had a fix with redundancy -- though all five anchors

@@ -363,6 +363,14 @@ def _self(settings: CalibrateSettings, anchors: pd.DataFrame, self_log: Any) -> 
             f"{res.epochs_no_start} without a start fix)", _name(self_log))
     table, out = self_calibration_table(res, anchors, model)
     notes = []
+    gone = [c for c in anchors.columns if c not in out.columns]
+    if gone:
+        # another path-loss model's columns, which the new ones replace (they were dropped
+        # without a word: the self-calibration review)
+        notes.append(f"columns {', '.join(gone)} of the anchors file are not in the output: "
+                     f"they describe another path-loss model, which the calibrated "
+                     f"{', '.join(c for c in ('A', 'n', 'p0', 'gamma') if c in out.columns)} "
+                     f"replace (--model names the model to calibrate)")
     if kind == "rssi":
         # the self-calibration review: on simulated logs the (A, n) estimates were off by
         # several standard errors already at 1 dB of noise (A by -2.2 dB, n by -0.2), and
