@@ -783,6 +783,18 @@ def test_a_line_of_white_space_is_a_blank_line(tmp_path):
     assert _code(["locate", bad, "--anchors", a, "-o", str(out)]) == 2
 
 
+def test_a_comment_line_between_data_lines_is_named(tmp_path, capsys):
+    """A ``#`` line in the middle of a file was "column 'tag': empty id" (the no-loss
+    review): it is named as a comment, with its line, in every reader that meets it."""
+    a = _w(tmp_path, "a.csv", "anchor,x,y\na,0,0\nb,10,0\nc,0,10\n")
+    m = _w(tmp_path, "m.csv", "time,tag,anchor,range\n0,T,a,5\n0,T,b,6\n"
+           "  # tag restarted\n0,T,c,7\n")
+    for extra in ([], ["--chunk-rows", "1"]):
+        _fails(capsys, ["locate", m, "--anchors", a, "-o", str(tmp_path / "p.csv"), *extra],
+               m, 4, "the line looks like a comment ('# tag restarted'): robustloc reads "
+               "no comment lines")
+
+
 def test_a_comment_line_above_the_header_is_named(tmp_path, capsys):
     """A ``#`` comment as line 1 became the header: "expected 1 fields, found 4" (the
     no-loss review).  The message says that line 1 looks like a comment."""

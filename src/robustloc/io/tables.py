@@ -433,6 +433,14 @@ def _finish_frame(
             first = df.iloc[one, 0]
             blank[one] = first.map(lambda v: isinstance(v, str) and not v.strip()).to_numpy(
                 dtype=bool)
+            # a comment line between data lines ('#' first, no other field) is named as
+            # one above the header is (it was an "empty id" error: the no-loss review)
+            hashed = first.map(lambda v: isinstance(v, str) and v.lstrip().startswith("#"))
+            if hashed.any():
+                k = int(one[int(np.argmax(hashed.to_numpy(dtype=bool)))])
+                raise InputError(f"the line looks like a comment ({str(df.iloc[k, 0])[:40]!r}):"
+                                 " robustloc reads no comment lines; remove it",
+                                 _display(path), int(df.index[k]))
         if blank.any():
             df = df.loc[~blank]
     df.attrs["path"] = _display(path)
