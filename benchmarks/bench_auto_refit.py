@@ -17,8 +17,9 @@ most 1 500 per set), against the best scipy / statsmodels peer
 
 Every variant then takes the log's side of nearly collinear anchors (item 7 of
 :mod:`robustloc.integrity.fixes`) as the default does, so the rows differ only in those
-epochs.  Columns: RMS and p95 of the 2-D error over the usable fixes, availability, the
-number of those epochs in the table's rows (``n_flagged``).
+epochs.  Columns: RMS and p95 of the 2-D error over the usable fixes in metres
+(``rms_m``, ``p95_m``), availability, the number of those epochs in the table's rows
+(``n_flagged``).
 
 Measured (2026-12-02, again 2026-12-03 with the same verdicts, ``../shared/data``):
 snooping is worse on every WiFi room and on ble-tetam (the flagged range is rarely the
@@ -112,13 +113,13 @@ def main(argv: list[str] | None = None) -> int:
         for name, (pos, use) in res.items():
             s = error_stats(pos[R], case.truth[R], use[R])
             table.append({"data set": f"{case.name} ({case.source})", "method": name,
-                          "rms": s["rms"], "p95": s["p95"],
+                          "rms_m": s["rms"], "p95_m": s["p95"],
                           "availability": s["availability"], "n_flagged": n_flag})
         peers = peer_fixes(case, R)
         best = min(peers, key=lambda p: error_stats(peers[p][R], case.truth[R])["rms"])
         s = error_stats(peers[best][R], case.truth[R])
         table.append({"data set": f"{case.name} ({case.source})", "method": f"{best} (best peer)",
-                      "rms": s["rms"], "p95": s["p95"], "availability": s["availability"],
+                      "rms_m": s["rms"], "p95_m": s["p95"], "availability": s["availability"],
                       "n_flagged": n_flag})
         print(f"  {case.name}: {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     df = pd.DataFrame(table)

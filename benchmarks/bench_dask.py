@@ -32,31 +32,16 @@ throughput as % of the single-process run by wall clock and by CPU seconds (the 
 the target is <= 2 GiB per worker), the load average (1/5 min) at the end of the line, and
 whether the outputs are identical (sorted by key, every column, exactly).
 
-Measured (2 workers; a 2-core machine shared with ~4 other agents, load 2-9; the table
-with notes is in docs/dask.md):
+The single-process baseline runs as a new process, so its wall clock and CPU seconds
+include the interpreter's start-up, robustloc's imports and the numba cache loads, which
+the warm cluster has already paid.  That start-up is measured once per command (the same
+command, one thread, on a 4 000-row input, ``STARTUP_ROWS``; best of two runs) and
+subtracted from the baseline's wall and CPU seconds before the %/core columns are
+computed; the ``(cold)`` track line is compared with the baseline as measured (both pay
+a start-up).
 
-=====  ==============  ======================  ======================  ===========  ====
-rows   step            single (1 thread)       dask x2                 %/core       load
-                                                                       wall / CPU
-=====  ==============  ======================  ======================  ===========  ====
-10 M   locate huber    96 s, 46 CPU-s          97 s, 60 CPU-s          50 / 77      7.0
-10 M   track           98 s, 40 CPU-s          91 s, 61 CPU-s          54 / 65      7.6
-10 M   track (cold)                            106 s, 70 CPU-s         46 / 57      8.7
-10 M   locate (*)      73 s, 41 CPU-s          63 s, 45 CPU-s          57 / 90      5.4
-10 M   track           75 s, 37 CPU-s          74 s, 62 CPU-s          51 / 59      5.7
-10 M   track (cold)                            85 s, 72 CPU-s          44 / 51      5.3
-50 M   locate (*)      248 s, 224 CPU-s        220 s, 289 CPU-s        56 / 78      3.7
-50 M   locate huber    583 s, 219 CPU-s        437 s, 273 CPU-s        67 / 80      5.7
-50 M   track           358 s, 178 CPU-s        223 s, 256 CPU-s        80 / 69      2.6
-=====  ==============  ======================  ======================  ===========  ====
-
-``locate huber``: its log-scale first pass still on the client; ``locate (*)``: on the
-workers (the three 10 M lines from (*) are a second run).  Two single-process runs side
-by side here take twice the wall clock and ~13 % more CPU-s each (the neighbours leave
-about one core): read the figures against ~50 % / ~88 %.  ``track``
-is bounded near 63 % per core here by the tracker's fixed cost per time step, which every
-tag partition pays (docs/dask.md).  Peak memory per worker 0.64-0.65 GiB (10 M),
-0.67-0.85 GiB (50 M); outputs identical in every run.
+The measured figures (and their notes) are in docs/dask.md (section "Performance"; its
+single-process figures still include the ~2 s start-up, small beside 70-600 s runs).
 
 Usage::
 
@@ -68,6 +53,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import resource
@@ -86,6 +72,11 @@ HALL_M = (40.0, 30.0)
 ANCHORS = np.array([[0, 0], [20, 0], [40, 0], [40, 15], [40, 30], [20, 30], [0, 30], [0, 15]],
                    dtype=float)
 RATE_HZ = 10.0
+#: The commands --steps may name.
+STEPS = ("locate", "track", "filter")
+#: Rows of the input on which each command's start-up (interpreter, imports, numba cache
+#: loads, a few epochs of work) is timed, to be subtracted from the single-process runs.
+STARTUP_ROWS = 4_000
 
 
 @dataclass
@@ -108,6 +99,16 @@ class Line:
         if not self.load:
             la = os.getloadavg()
             self.load = f"{la[0]:.1f}/{la[1]:.1f}"
+
+
+def parse_steps(text: str) -> frozenset[str]:
+    """``--steps``: a comma-separated subset of :data:`STEPS` (empty: partitioning only)."""
+    names = {t.strip() for t in text.split(",") if t.strip()}
+    unknown = sorted(names - set(STEPS))
+    if unknown:
+        raise argparse.ArgumentTypeError(
+            f"unknown step(s) {', '.join(unknown)}; choose from {', '.join(STEPS)}")
+    return frozenset(names)
 
 
 def parse_rows(text: str) -> list[int]:
@@ -237,16 +238,20 @@ def _cpu_s(pids: list[int], last_seen: dict[int, float] | None = None) -> float:
     return total + r.ru_utime + r.ru_stime
 
 
-def run_cli(argv: list[str], one_thread: bool = False) -> tuple[float, float, float]:
+def run_cli(argv: list[str], one_thread: bool = False, scratch: Path | None = None
+            ) -> tuple[float, float, float]:
     """A robustloc command in a subprocess: (seconds, CPU seconds, peak RSS MiB).
 
     ``one_thread``: with the workers' environment (one numba/BLAS thread), the
     single-process baseline of a per-core comparison (``track``'s fusion kernel otherwise
     spreads 256+ tags over every core, and on a loaded machine its threads mostly wait
-    for each other: 1 M rows, load 6: 19.3 s with 2 threads, 7.2 s with one)."""
+    for each other: 1 M rows, load 6: 19.3 s with 2 threads, 7.2 s with one).
+    ``scratch``: dask's temporary directory for a cluster the command starts itself."""
     from robustloc.engines.cluster import WORKER_ENV
 
     env = dict(os.environ, **WORKER_ENV) if one_thread else None
+    if scratch is not None:
+        env = dict(env or os.environ, DASK_TEMPORARY_DIRECTORY=str(scratch))
     t0, c0 = time.perf_counter(), _children_cpu_s()
     proc = subprocess.Popen([sys.executable, "-m", "robustloc.cli", *argv],
                             stdout=subprocess.DEVNULL, env=env)
@@ -263,7 +268,8 @@ def run_in_cluster(client: object, argv: list[str]) -> tuple[float, float, float
 
     pids = list(client.run(os.getpid).values())
     t0, c0 = time.perf_counter(), _cpu_s(pids)
-    with RssPoller(pids) as poll:
+    # the command's own report to stderr: stdout carries only the table (or the JSON)
+    with RssPoller(pids) as poll, contextlib.redirect_stdout(sys.stderr):
         rc = main([*argv, "--scheduler", client.scheduler.address])
     if rc:
         raise RuntimeError(f"robustloc {' '.join(argv)} exited with {rc}")
@@ -316,7 +322,10 @@ def same(a_path: Path, b_path: Path, key: list[str]) -> str:
     return "yes"
 
 
-def bench_size(n: int, args: argparse.Namespace, client: object, work: Path) -> list[Line]:
+def bench_size(n: int, args: argparse.Namespace, client: object, work: Path,
+               startup: dict[str, tuple[float, float]]) -> list[Line]:
+    """One size's lines; ``startup``: per command, the wall and CPU seconds of a
+    single-process run's start-up (:func:`measure_startup`), taken off the baseline."""
     lines: list[Line] = []
     d = work / f"n{n}"
     shutil.rmtree(d, ignore_errors=True)
@@ -369,8 +378,12 @@ def bench_size(n: int, args: argparse.Namespace, client: object, work: Path) -> 
         steps.append(("filter", ["filter"], by_tag_f, n, ["tag", "anchor", "time"]))
     for name, cmd, dataset, units, key in steps:
         one = d / "one.parquet"
-        s1, c1, m1 = run_cli([cmd[0], str(meas), "--anchors", str(anchors), *cmd[1:],
+        s0, c0, m1 = run_cli([cmd[0], str(meas), "--anchors", str(anchors), *cmd[1:],
                               "-o", str(one)], one_thread=True)
+        # the process's start-up (interpreter, imports, numba cache loads), which the warm
+        # cluster does not pay, taken off the baseline (never below 1 % of the run)
+        su_s, su_c = startup[cmd[0]]
+        s1, c1 = max(s0 - su_s, 0.01 * s0), max(c0 - su_c, 0.01 * c0)
         lines.append(Line(n, name, "single process", s1, c1, n / s1, units / s1, 100.0, 100.0,
                           m1, ""))
         ds = d / "out_ds"
@@ -386,15 +399,38 @@ def bench_size(n: int, args: argparse.Namespace, client: object, work: Path) -> 
             # (fresh workers: imports, numba cache loads) and closes it, all timed
             s3, c3, m3 = run_cli([cmd[0], str(dataset), "--anchors", str(anchors), *cmd[1:],
                                   "-o", str(ds), "--engine", "dask", "--quiet", "--workers",
-                                  str(n_workers)])
+                                  str(n_workers)], scratch=work / "dask-scratch")
+            # against the baseline as measured: both pay a process start-up
             lines.append(Line(n, name + " (cold)", f"dask x{n_workers} own", s3, c3, n / s3,
-                              units / s3, 100.0 * (s1 / s3) / n_workers, 100.0 * c1 / c3,
+                              units / s3, 100.0 * (s0 / s3) / n_workers, 100.0 * c0 / c3,
                               m3, same(one, ds, key) + " (peak: all processes)"))
             shutil.rmtree(ds, ignore_errors=True)
         one.unlink()
     if not args.keep:
         shutil.rmtree(d, ignore_errors=True)
     return lines
+
+
+def measure_startup(args: argparse.Namespace, work: Path) -> dict[str, tuple[float, float]]:
+    """Per command of ``--steps``: wall and CPU seconds of the single-process run (one
+    thread, as the baseline) on a ``STARTUP_ROWS``-row input, best of two: the
+    interpreter's start-up, the imports and the numba cache loads that every
+    single-process run pays and the warm cluster does not."""
+    d = work / "startup"
+    shutil.rmtree(d, ignore_errors=True)
+    d.mkdir(parents=True)
+    write_anchors(d / "anchors.csv")
+    write_measurements(d / "meas.parquet", STARTUP_ROWS, 50, STARTUP_ROWS, args.seed)
+    out: dict[str, tuple[float, float]] = {}
+    for cmd in STEPS:
+        if cmd in args.steps:
+            extra = ["--method", "huber"] if cmd == "locate" else []
+            runs = [run_cli([cmd, str(d / "meas.parquet"), "--anchors", str(d / "anchors.csv"),
+                             *extra, "-o", str(d / f"o-{cmd}.parquet")], one_thread=True)
+                    for _ in range(2)]
+            out[cmd] = (min(r[0] for r in runs), min(r[1] for r in runs))
+    shutil.rmtree(d, ignore_errors=True)
+    return out
 
 
 def warm_up(client: object, args: argparse.Namespace, work: Path) -> None:
@@ -419,11 +455,17 @@ def warm_up(client: object, args: argparse.Namespace, work: Path) -> None:
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--rows", default="10M", help="sizes, e.g. 1M or 10M,50M,200M")
-    p.add_argument("--tags", type=int, default=500)
-    p.add_argument("--workers", type=int, default=2, help="LocalCluster worker processes")
-    p.add_argument("--rows-per-partition", type=int, default=1_000_000)
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--rows", default="10M",
+                   help="sizes, e.g. 1M or 10M,50M,200M (default: %(default)s)")
+    p.add_argument("--tags", type=int, default=500,
+                   help="tags of the simulated site (default: %(default)s)")
+    p.add_argument("--workers", type=int, default=2,
+                   help="LocalCluster worker processes (default: %(default)s)")
+    p.add_argument("--rows-per-partition", type=int, default=1_000_000,
+                   help="robustloc partition --rows-per-partition, capped at rows / (4 x "
+                        "workers) (default: %(default)s)")
     p.add_argument("--buckets", type=int, default=None,
                    help="--by tag for track: tag buckets (0: a directory per tag; default "
                         "one per worker: the tracker is vectorized over the tags of a "
@@ -433,19 +475,25 @@ def main() -> int:
     p.add_argument("--filter-buckets", type=int, default=None,
                    help="--by tag for filter: tag buckets (default 2 per worker: the filter "
                         "holds its partition in memory)")
-    p.add_argument("--chunk-rows", type=int, default=2_000_000, help="rows written at a time")
+    p.add_argument("--chunk-rows", type=int, default=2_000_000,
+                   help="rows written at a time (default: %(default)s)")
     p.add_argument("--shuffle-max-rows", type=int, default=10_000_000,
-                   help="time the dask shuffle only up to this size")
+                   help="time the dask shuffle only up to this size (default: %(default)s)")
     p.add_argument("--filter-max-rows", type=int, default=10_000_000,
-                   help="run filter only up to this size (one process holds it whole)")
-    p.add_argument("--steps", default="locate,track,filter",
-                   help="commands to time (default locate,track,filter)")
+                   help="run filter only up to this size (one process holds it whole) "
+                        "(default: %(default)s)")
+    p.add_argument("--steps", type=parse_steps, default=",".join(STEPS),
+                   help="comma-separated commands to time, from "
+                        f"{', '.join(STEPS)}; '' times only the partitioning "
+                        "(default: %(default)s)")
     p.add_argument("--no-cold", dest="cold", action="store_false",
                    help="skip the track run on the command's own fresh LocalCluster")
     p.add_argument("--dir", default=None, help="work directory (default: a temporary one)")
     p.add_argument("--keep", action="store_true", help="keep the data")
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--seed", type=int, default=1,
+                   help="seed of the simulated measurements (default: %(default)s)")
+    p.add_argument("--json", action="store_true",
+                   help="print the lines (and the start-up figures) as JSON instead of a table")
     args = p.parse_args()
     if args.buckets is None:
         args.buckets = args.workers
@@ -454,16 +502,21 @@ def main() -> int:
 
     import tempfile
 
+    import dask
     import distributed
 
     from robustloc.engines.cluster import WORKER_ENV, WORKER_MEMORY_BYTES
 
     work = Path(args.dir) if args.dir else Path(tempfile.mkdtemp(prefix="bench_dask-"))
     work.mkdir(parents=True, exist_ok=True)
+    # the scheduler's, the workers' and a command's own cluster's scratch space inside the
+    # work directory, removed with it (else dask leaves /tmp/dask-scratch-space behind)
+    scratch = work / "dask-scratch"
+    dask.config.set({"temporary-directory": str(scratch)})
     t0 = time.perf_counter()
     cluster = distributed.LocalCluster(n_workers=args.workers, threads_per_worker=1,
                                        memory_limit=WORKER_MEMORY_BYTES, env=dict(WORKER_ENV),
-                                       dashboard_address=":0")
+                                       dashboard_address=":0", local_directory=str(scratch))
     client = distributed.Client(cluster)
     lines: list[Line] = []
     try:
@@ -473,29 +526,48 @@ def main() -> int:
         warm = time.perf_counter() - t1
         print(f"LocalCluster of {args.workers} workers up in {startup:.1f} s, warmed up in "
               f"{warm:.1f} s", file=sys.stderr)
+        single_startup = measure_startup(args, work)
+        for cmd, (su_s, su_c) in single_startup.items():
+            print(f"single-process start-up of {cmd} ({STARTUP_ROWS:,} rows, one thread): "
+                  f"{su_s:.1f} s, {su_c:.1f} CPU-s", file=sys.stderr)
         for n in parse_rows(args.rows):
-            lines += bench_size(n, args, client, work)
+            lines += bench_size(n, args, client, work, single_startup)
     finally:
         client.close()
         cluster.close()
         if not args.dir and not args.keep:
             shutil.rmtree(work, ignore_errors=True)
+        elif not args.keep:
+            shutil.rmtree(scratch, ignore_errors=True)
     if args.json:
         print(json.dumps({"cluster_startup_s": startup, "warm_up_s": warm,
+                          "single_process_startup": {
+                              cmd: {"wall_s": w, "cpu_s": c, "rows": STARTUP_ROWS}
+                              for cmd, (w, c) in single_startup.items()},
                           "lines": [asdict(x) for x in lines]}, indent=2))
         return 0
-    print(f"{'rows':>11} {'step':20} {'engine':14} {'wall s':>7} {'CPU s':>7} {'rows/s':>8} "
+    sw = max([len("step")] + [len(x.step) for x in lines])
+    ew = max([len("engine")] + [len(x.engine) for x in lines])
+    print(f"{'rows':>11} {'step':{sw}} {'engine':{ew}} {'wall s':>7} {'CPU s':>7} {'rows/s':>8} "
           f"{'units/s':>8} {'%/core':>6} {'%/CPU-s':>7} {'peak MiB':>8} {'load':>9} identical")
     for x in lines:
         pc = "" if x.per_core_pct is None else f"{x.per_core_pct:.0f}"
         pcs = "" if x.per_cpu_s_pct is None else f"{x.per_cpu_s_pct:.0f}"
-        print(f"{x.rows:>11,} {x.step:20} {x.engine:14} {x.seconds:7.1f} {x.cpu_s:7.1f} "
+        print(f"{x.rows:>11,} {x.step:{sw}} {x.engine:{ew}} {x.seconds:7.1f} {x.cpu_s:7.1f} "
               f"{x.rows_per_s:8.0f} {x.units_per_s:8.0f} {pc:>6} {pcs:>7} "
               f"{x.peak_rss_mib:8.0f} {x.load:>9} {x.identical}")
     print("units/s: epochs/s for locate, samples/s otherwise.  %/core: dask wall-clock "
           "throughput per worker as % of one process (meaningful on an idle machine); "
           "%/CPU-s: rows per CPU second of dask (workers + scheduler + client) as % of one "
           "process's (robust to other load).  peak MiB: the process, or the largest worker.")
+    if single_startup:
+        su = "; ".join(f"{cmd} {w:.1f} s, {c:.1f} CPU-s"
+                       for cmd, (w, c) in single_startup.items())
+        print(f"single process: wall and CPU seconds with the process's start-up taken off "
+              f"(interpreter, imports, numba cache loads; measured as the same command on a "
+              f"{STARTUP_ROWS:,}-row input, one thread, best of two: {su}), as the warm "
+              "cluster has paid it already; the (cold) line is compared with the baseline "
+              "as measured, start-up included.")
     return 0
 
 

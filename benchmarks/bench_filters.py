@@ -154,10 +154,15 @@ def _filterpy_ekf(z: np.ndarray, x0: np.ndarray, repeats: int = 5) -> float:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--steps", type=int, default=300)
-    ap.add_argument("--tracks", type=int, default=1000)
-    ap.add_argument("--rounds", type=int, default=7, help="interleaved timing rounds")
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--steps", type=int, default=300,
+                    help="filter steps of the one-track runs; the K-track batches run a tenth "
+                         "of them, at least 20 (default: %(default)s)")
+    ap.add_argument("--tracks", type=int, default=1000,
+                    help="K: tracks advanced in one batched step (default: %(default)s)")
+    ap.add_argument("--rounds", type=int, default=7,
+                    help="interleaved timing rounds (default: %(default)s)")
     ap.add_argument("--sigma-predict", action="store_true",
                     help="UKF predict through sigma points (default: exact linear predict)")
     args = ap.parse_args()

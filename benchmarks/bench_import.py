@@ -53,8 +53,11 @@ def _importtime(code: str, module: str, env: dict[str, str]) -> float:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--repeat", type=int, default=7)
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--repeat", type=int, default=7,
+                    help="fresh interpreters per statement, best and median reported "
+                         "(default: %(default)s)")
     args = ap.parse_args()
     env = dict(os.environ)
     print(f"{'statement':36s} {'best s':>8s} {'median s':>9s} {'best - start-up':>16s} "

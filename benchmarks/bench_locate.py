@@ -24,6 +24,15 @@ Columns: fixes/s, microseconds per fix, ratio to the statsmodels loop, peak trac
 of the call (``tracemalloc``, a separate run so tracing does not slow the timing), RMS and
 95th percentile of the 2-D position error over usable fixes, % epochs without a usable fix.
 
+Options that do not reach every row: ``--solver`` applies to the robust methods and
+``lege`` (and, with ``--mad-scale``, to ``snooping``'s first pass for the log's scale);
+``auto``, ``ls``, ``wls`` and ``nls`` run as without it; with ``--solver linearized`` the
+``[numpy]`` rows of the robust methods and ``lege`` are dropped (the linearized solver has
+no compiled kernel: they would repeat the compiled rows).  ``--mad-scale`` does not apply
+to ``auto`` (it estimates the log's scale itself), nor change the fixes of ``ls`` and
+``wls`` (a sigma common to every anchor weights them alike).  A ``--numpy-methods`` name
+not in ``--methods`` gives no row.  The script says so in a note when it happens.
+
 Usage::
 
     python benchmarks/bench_locate.py            # 100 000 epochs (a few minutes)
@@ -53,6 +62,8 @@ from numpy.typing import NDArray  # noqa: E402
 Array = NDArray[np.float64]
 
 METHODS = ("auto", "ls", "wls", "nls", "huber", "hampel", "igg", "igg3", "lege", "snooping")
+#: The methods ``--solver`` applies to (``Locator.solver``: the robust ones and LEGE).
+SOLVER_METHODS = ("huber", "hampel", "igg", "igg3", "lege")
 SIGMA_M = 0.3
 OUTLIER_RATE = 0.2
 
@@ -332,7 +343,7 @@ def run(
         try:
             fn = our_solver(m, mad_scale, solver)
             rows.append(measure(m, fn, wl, memory, repeats))
-            if m in numpy_methods and solver == "nonlinear":
+            if m in numpy_methods and (solver == "nonlinear" or m not in SOLVER_METHODS):
                 fn = our_solver(m, mad_scale, solver, engine="numpy")
                 rows.append(measure(f"{m}[numpy]", fn, wl, False))
         except NotImplementedError as e:
@@ -341,6 +352,33 @@ def run(
     for r in rows:
         r.ratio_vs_statsmodels = ref / r.us_per_fix
     return rows
+
+
+def option_notes(methods: list[str], numpy_methods: tuple[str, ...], solver: str,
+                 mad_scale: bool) -> list[str]:
+    """One line per requested row that is not run, or option that does not apply."""
+    notes = []
+    if solver == "linearized":
+        applies = SOLVER_METHODS + (("snooping",) if mad_scale else ())
+        same = [m for m in methods if m not in applies]
+        if same:
+            notes.append(f"--solver linearized does not apply to {', '.join(same)} "
+                         f"(only to {', '.join(applies)}): run as without it")
+        dropped = [m for m in numpy_methods if m in methods and m in SOLVER_METHODS]
+        if dropped:
+            notes.append(f"--solver linearized: no [numpy] row for {', '.join(dropped)} (the "
+                         "linearized solver has no compiled kernel: it would repeat the row)")
+    if mad_scale and "auto" in methods:
+        notes.append("--mad-scale does not apply to auto (it estimates the log's scale "
+                     "itself): run as without it")
+    linear = [m for m in ("ls", "wls") if m in methods]
+    if mad_scale and linear:
+        notes.append(f"--mad-scale does not change the fixes of {', '.join(linear)} (a sigma "
+                     "common to every anchor weights them alike)")
+    absent = [m for m in numpy_methods if m not in methods]
+    if absent:
+        notes.append(f"--numpy-methods {', '.join(absent)}: not in --methods, no [numpy] row")
+    return notes
 
 
 def format_table(rows: list[Row]) -> str:
@@ -359,28 +397,36 @@ def format_table(rows: list[Row]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--epochs", type=int, default=100_000, help="epochs for our methods")
     ap.add_argument("--peer-epochs", type=int, default=500, help="epochs for per-epoch peers")
     ap.add_argument("--quick", action="store_true", help="5 000 epochs, 200 peer epochs")
     ap.add_argument("--methods", default=",".join(METHODS), help="comma-separated methods")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0,
+                    help="seed of the simulated workload (default: %(default)s)")
     ap.add_argument("--no-memory", action="store_true", help="skip the traced memory run")
-    ap.add_argument("--mad-scale", action="store_true", help="robust methods: per-epoch MAD scale")
+    ap.add_argument("--mad-scale", action="store_true",
+                    help="no a-priori sigma: the robust methods, nls and snooping scale "
+                         "their residuals themselves (no effect on auto, which estimates the "
+                         "log's scale itself, nor on the fixes of ls and wls)")
     ap.add_argument(
         "--solver",
         choices=("nonlinear", "linearized"),
         default="nonlinear",
-        help="robust methods and lege: nonlinear (default) or the paper's linearized system",
+        help="robust methods and lege: nonlinear (default) or the paper's linearized system "
+             "(not auto, ls, wls, nls; snooping only with --mad-scale; with linearized the "
+             "[numpy] rows of the robust methods and lege are dropped)",
     )
     ap.add_argument("--repeats", type=int, default=3,
                     help="timed calls per method, the best is reported (default 3)")
     ap.add_argument("--numpy-methods", default="nls,huber,igg",
-                    help="methods also timed with the NumPy engine ('' for none)")
+                    help="methods (of --methods) also timed with the NumPy engine ('' for "
+                         "none; default: %(default)s)")
     ap.add_argument("--threads", type=int, default=None,
                     help="threads of the compiled kernels (numba.set_num_threads; default: "
                          "numba's, all cores unless NUMBA_NUM_THREADS says otherwise); "
-                         "a batch of 4 096 epochs or more is split over them")
+                         "a batch of 4096 epochs or more is split over them")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON")
     ap.add_argument("-o", "--out", help="also write the rows to this CSV file")
     args = ap.parse_args(argv)
@@ -398,6 +444,14 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [m for m in methods if m not in METHODS]
     if unknown:
         ap.error(f"unknown method(s) {unknown}; choose from {', '.join(METHODS)}")
+    numpy_methods = tuple(m.strip() for m in args.numpy_methods.split(",") if m.strip())
+    unknown = [m for m in numpy_methods if m not in METHODS]
+    if unknown:
+        ap.error(f"--numpy-methods: unknown method(s) {unknown}; choose from "
+                 f"{', '.join(METHODS)}")
+    notes = option_notes(methods, numpy_methods, args.solver, args.mad_scale)
+    for note in notes:  # before the run, and under the table
+        print(f"note: {note}", file=sys.stderr)
     rows = run(
         args.epochs,
         args.peer_epochs,
@@ -407,7 +461,7 @@ def main(argv: list[str] | None = None) -> int:
         mad_scale=args.mad_scale,
         solver=args.solver,
         repeats=args.repeats,
-        numpy_methods=tuple(m.strip() for m in args.numpy_methods.split(",") if m.strip()),
+        numpy_methods=numpy_methods,
     )
     if args.out:
         import pandas as pd
@@ -423,6 +477,8 @@ def main(argv: list[str] | None = None) -> int:
             f"compiled kernels on {numba.get_num_threads()} thread(s), peers on one"
         )
         print(format_table(rows))
+        for note in notes:
+            print(f"note: {note}")
     return 0
 
 

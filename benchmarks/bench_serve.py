@@ -635,33 +635,63 @@ def bench_replay(tmp: Path, args) -> dict:
             "status_equal": bool((g["status"] == w["status"]).all())}
 
 
+#: The sections, in the order they run (``--only`` picks some).
+SECTIONS = ("store", "http", "capacity", "mqtt", "kill9", "malformed", "replay")
+
+
+def parse_sections(text: str) -> set[str]:
+    """``--only``: a comma-separated subset of :data:`SECTIONS`."""
+    names = {t.strip() for t in text.split(",") if t.strip()}
+    unknown = sorted(names - set(SECTIONS))
+    if unknown:
+        raise argparse.ArgumentTypeError(
+            f"unknown section(s) {', '.join(unknown)}; choose from {', '.join(SECTIONS)}")
+    if not names:
+        raise argparse.ArgumentTypeError(f"no section named; choose from {', '.join(SECTIONS)}")
+    return names
+
+
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--tags", type=int, default=1000)
-    ap.add_argument("--rate-hz", type=float, default=10.0)
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog="Exit status: 0, or 1 when any section failed (its "
+                                        "error is printed under the table / in the JSON).")
+    ap.add_argument("--tags", type=int, default=1000,
+                    help="tags, 8 range rows each per tick (default: %(default)s)")
+    ap.add_argument("--rate-hz", type=float, default=10.0,
+                    help="ticks per second of the paced ingest (default: %(default)s)")
     ap.add_argument("--seconds", type=float, default=20.0, help="ingest seconds per section")
-    ap.add_argument("--method", default="huber")
+    ap.add_argument("--method", default="huber",
+                    help="robustloc serve --method: the server's estimator "
+                         "(default: %(default)s)")
     ap.add_argument("--window", type=float, default=0.5, help="--latency-window of the server")
     ap.add_argument("--workers", type=int, default=4, help="concurrent HTTP connections")
-    ap.add_argument("--malformed", type=int, default=10_000)
-    ap.add_argument("--store-batches", type=int, default=100)
+    ap.add_argument("--malformed", type=int, default=10_000,
+                    help="malformed section: messages sent (default: %(default)s)")
+    ap.add_argument("--store-batches", type=int, default=100,
+                    help="store section: 8 000-row batches appended per store "
+                         "(default: %(default)s)")
     ap.add_argument("--subscribers", type=int, default=0,
                     help="http section: WebSocket clients of /ws/positions")
     ap.add_argument("--ws-batch", action="store_true",
                     help="the subscribers take ?batch=1 (one message per block, as the page)")
     ap.add_argument("--capacity-factor", type=float, default=2.5,
                     help="capacity section: bodies for this multiple of the paced rate")
-    ap.add_argument("--only", default="store,http,capacity,mqtt,kill9,malformed,replay")
+    ap.add_argument("--only", type=parse_sections, default=",".join(SECTIONS),
+                    help="comma-separated sections to run, from "
+                         f"{', '.join(SECTIONS)} (default: all)")
     ap.add_argument("--quick", action="store_true", help="8 s sections, 2 000 malformed")
-    ap.add_argument("--json", action="store_true")
+    ap.add_argument("--json", action="store_true",
+                    help="print the results as JSON instead of the table")
     args = ap.parse_args(argv)
     if args.quick:
         args.seconds, args.malformed, args.store_batches = 8.0, 2000, 30
-    only = set(args.only.split(","))
+    only = args.only
     results: dict[str, object] = {"cpus": os.cpu_count(),
                                   "loadavg_at_start": os.getloadavg()}
     with tempfile.TemporaryDirectory() as td:
         tmp = Path(td)
+        # in the order of SECTIONS
         for name, fn in (("store", lambda: bench_store(tmp, args.store_batches)),
                          ("http", lambda: bench_http(tmp, args)),
                          ("capacity", lambda: bench_capacity(tmp, args)),
@@ -679,10 +709,14 @@ def main(argv: list[str] | None = None) -> int:
             print(f"[{name}] {json.dumps(results[name], default=str)}", file=sys.stderr,
                   flush=True)
     results["loadavg_at_end"] = os.getloadavg()
+    failed = [n for n in SECTIONS if isinstance(results.get(n), dict) and "error" in results[n]]
     if args.json:
         print(json.dumps(results, indent=2, default=str))
-        return 0
-    report(results, args)
+    else:
+        report(results, args)
+    if failed:
+        print(f"failed section(s): {', '.join(failed)}", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -740,7 +774,7 @@ def report(r: dict, args) -> None:
     ]
     for a, b in rows:
         print(f"{a:52s} {b:>22s}")
-    for name in ("http", "capacity", "mqtt", "kill9", "malformed", "replay"):
+    for name in SECTIONS:
         if isinstance(r.get(name), dict) and "error" in r[name]:
             print(f"{name}: {r[name]['error']}")
 

@@ -32,11 +32,13 @@ VARIANTS = {
 
 
 def _generate(path: Path, rows: int, shuffled: bool) -> None:
+    """``rows`` rows, 4 anchors per epoch (the last epoch short when ``rows`` is not a
+    multiple of 4)."""
     rng = np.random.default_rng(0)
-    n_ep = rows // 4
-    k = np.repeat(np.arange(n_ep), 4)
+    n_ep = -(-rows // 4)
+    k = np.repeat(np.arange(n_ep), 4)[:rows]
     df = pd.DataFrame({"time": (k // 3) * 0.1, "tag": np.char.add("T", (k % 3).astype(str)),
-                       "anchor": np.tile(np.array(list("abcd")), n_ep),
+                       "anchor": np.tile(np.array(list("abcd")), n_ep)[:rows],
                        "range": rng.uniform(1, 30, rows).round(3)})
     if shuffled:
         df = df.sample(frac=1, random_state=1)
@@ -63,9 +65,22 @@ def _child(mode: str, path: str) -> None:
     print(f"{n} {wall:.2f} {rss:.0f}")
 
 
+def _positive(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
+    return v
+
+
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--rows", type=int, default=2_000_000)
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--rows", type=_positive, default=2_000_000,
+                    help="rows of the measurements file, 4 anchors per epoch, 3 tags; any "
+                         "count >= 1 (default: %(default)s)")
     ap.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
     ap.add_argument("--gen", nargs=3, help=argparse.SUPPRESS)
     args = ap.parse_args()

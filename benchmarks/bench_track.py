@@ -168,8 +168,7 @@ def _filterpy(anchors: pd.DataFrame, blocks: list[Epochs], filt: str, K: int,
         return H
 
     filters = []
-    for k in range(K):
-        z0 = blocks[0].values[k]
+    for _ in range(K):
         if filt == "ekf":
             f = ExtendedKalmanFilter(dim_x=4, dim_z=M)
             f.F, f.Q, f.R = F, Q, R
@@ -178,7 +177,9 @@ def _filterpy(anchors: pd.DataFrame, blocks: list[Epochs], filt: str, K: int,
             f = UnscentedKalmanFilter(dim_x=4, dim_z=M, dt=0.5, hx=hx,
                                       fx=lambda x, dt: F @ x, points=pts)
             f.Q, f.R = Q, R
-        f.x = np.array([10.0, 10.0, 0.0, 0.0]) + 0 * z0[:4]
+        # the 4-D CV state [x, y, vx, vy] from the site's centre, whatever the number of
+        # anchors (the measurement is M-D)
+        f.x = np.array([10.0, 10.0, 0.0, 0.0])
         f.P = np.eye(4)
         filters.append(f)
     t0 = clock()
@@ -195,13 +196,35 @@ def _filterpy(anchors: pd.DataFrame, blocks: list[Epochs], filt: str, K: int,
     return K * (len(blocks) - 2) / dt
 
 
+def _at_least(low: int) -> Callable[[str], int]:
+    """An argparse type: an integer >= ``low``."""
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        if v < low:
+            raise argparse.ArgumentTypeError(f"must be >= {low}, got {v}")
+        return v
+    return parse
+
+
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--tags", type=int, default=1000)
-    ap.add_argument("--anchors", type=int, default=8)
-    ap.add_argument("--epochs", type=int, default=40)
-    ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--peer-tags", type=int, default=50)
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--tags", type=_at_least(1), default=1000,
+                    help="tags tracked at once (default: %(default)s)")
+    ap.add_argument("--anchors", type=_at_least(3), default=8,
+                    help="anchors on a circle of radius 12 m, one range each per tag and epoch; "
+                         "at least 3 (default: %(default)s)")
+    ap.add_argument("--epochs", type=_at_least(3), default=40,
+                    help="epochs per tag at 2 Hz: the first starts the tracks, the second "
+                         "warms up, the rest are timed; at least 3 (default: %(default)s)")
+    ap.add_argument("--rounds", type=_at_least(1), default=3,
+                    help="timed rounds per column, the best is reported (default: %(default)s)")
+    ap.add_argument("--peer-tags", type=_at_least(1), default=50,
+                    help="tags the FilterPy peer is timed on (at most --tags), reported per "
+                         "tag-epoch (default: %(default)s)")
     ap.add_argument("--clock", choices=tuple(CLOCKS), default="cpu",
                     help="cpu: CPU seconds of this process (default); wall: elapsed time")
     a = ap.parse_args()

@@ -98,7 +98,8 @@ def run_seed(seed: int, qs: tuple[float, ...]) -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--seeds", type=int, default=5, help="seeds 0 .. N-1 (default 5)")
     p.add_argument("--q", default="0.3,1,3", help="oracle process noises (default 0.3,1,3)")
     a = p.parse_args(argv)
