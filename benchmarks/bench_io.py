@@ -25,6 +25,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from robustloc.options import positive_int
+
 
 def _make(path: Path, rows: int, m: int = 10, block: int = 1_000_000) -> None:
     rng = np.random.default_rng(0)
@@ -84,23 +86,13 @@ def _child(fn, *args) -> tuple[int, float, float]:
     return out
 
 
-def _positive(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
-    return v
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--rows", type=_positive, default=2_000_000,
+    ap.add_argument("--rows", type=positive_int, default=2_000_000,
                     help="rows of the measurements file (10 anchors per epoch, one tag); "
                          ">= 1 (default: %(default)s)")
-    ap.add_argument("--chunk-rows", type=_positive, default=500_000,
+    ap.add_argument("--chunk-rows", type=positive_int, default=500_000,
                     help="rows per chunk of the streamed read (and per Parquet row group); "
                          ">= 1 (default: %(default)s)")
     ap.add_argument("--skip-whole", action="store_true", help="skip the read-whole comparison")

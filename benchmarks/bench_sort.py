@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from robustloc.options import positive_int
+
 VARIANTS = {
     "streamed (sorted file)": "stream",
     "pandas in memory": "memory",
@@ -65,20 +67,10 @@ def _child(mode: str, path: str) -> None:
     print(f"{n} {wall:.2f} {rss:.0f}")
 
 
-def _positive(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
-    return v
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--rows", type=_positive, default=2_000_000,
+    ap.add_argument("--rows", type=positive_int, default=2_000_000,
                     help="rows of the measurements file, 4 anchors per epoch, 3 tags; any "
                          "count >= 1 (default: %(default)s)")
     ap.add_argument("--child", nargs=2, help=argparse.SUPPRESS)

@@ -86,6 +86,7 @@ import numpy as np
 import pandas as pd
 
 from robustloc.io.tables import Epochs
+from robustloc.options import int_in
 from robustloc.tracking import Tracker
 
 SIGMA_M = 0.1
@@ -196,33 +197,20 @@ def _filterpy(anchors: pd.DataFrame, blocks: list[Epochs], filt: str, K: int,
     return K * (len(blocks) - 2) / dt
 
 
-def _at_least(low: int) -> Callable[[str], int]:
-    """An argparse type: an integer >= ``low``."""
-    def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-        if v < low:
-            raise argparse.ArgumentTypeError(f"must be >= {low}, got {v}")
-        return v
-    return parse
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--tags", type=_at_least(1), default=1000,
+    ap.add_argument("--tags", type=int_in(1, 10**9), default=1000,
                     help="tags tracked at once (default: %(default)s)")
-    ap.add_argument("--anchors", type=_at_least(3), default=8,
+    ap.add_argument("--anchors", type=int_in(3, 10**9), default=8,
                     help="anchors on a circle of radius 12 m, one range each per tag and epoch; "
                          "at least 3 (default: %(default)s)")
-    ap.add_argument("--epochs", type=_at_least(3), default=40,
+    ap.add_argument("--epochs", type=int_in(3, 10**9), default=40,
                     help="epochs per tag at 2 Hz: the first starts the tracks, the second "
                          "warms up, the rest are timed; at least 3 (default: %(default)s)")
-    ap.add_argument("--rounds", type=_at_least(1), default=3,
+    ap.add_argument("--rounds", type=int_in(1, 10**9), default=3,
                     help="timed rounds per column, the best is reported (default: %(default)s)")
-    ap.add_argument("--peer-tags", type=_at_least(1), default=50,
+    ap.add_argument("--peer-tags", type=int_in(1, 10**9), default=50,
                     help="tags the FilterPy peer is timed on (at most --tags), reported per "
                          "tag-epoch (default: %(default)s)")
     ap.add_argument("--clock", choices=tuple(CLOCKS), default="cpu",
