@@ -905,6 +905,62 @@ def test_a_failing_block_costs_only_its_failing_tag():
     eng.stop()
 
 
+def test_a_failing_track_block_is_rolled_back_and_costs_only_its_failing_tag():
+    """`serve --track`: a tracker that raised gave its whole block `solver_error` rows
+    (stop 33's left-out list), and its state might have advanced part-way.  Now the
+    tracker is rolled back to its state before the block and the block retried tag by tag:
+    the other tags' rows are exactly a tracker's that never met the failure, and the
+    failing tag's state stays as before the block (its next rows are a tracker's that never
+    saw the failed epoch)."""
+    from robustloc.io.tables import Epochs
+    from robustloc.service.engine import Engine
+    from robustloc.service.processor import TrackProcessor
+    from robustloc.tracking import Tracker
+
+    anchors = pd.DataFrame({"anchor": ["A1", "A2", "A3", "A4"], "x": [0, 10, 10, 0.0],
+                            "y": [0, 0, 10, 10.0]})
+
+    class Flaky(TrackProcessor):  # advances every tag's state, then fails on "bad" at t=2
+        def process(self, epochs: Epochs) -> pd.DataFrame:
+            out = super().process(epochs)
+            if ((epochs.tag == "bad") & (epochs.time == 2.0)).any():
+                raise FloatingPointError("boom")
+            return out
+
+    eng = Engine(anchors, Flaky(anchors), latency_window_s=0.0, idle_flush_s=10.0,
+                 value="range", fsync=False)
+    xy = anchors[["x", "y"]].to_numpy(float)
+    tags = ("a", "bad", "c")
+    rows_at = {t: [{"time": t, "tag": g, "anchor": a,
+                    "range": float(np.hypot(*(p - [3.0 + 0.5 * t + i, 4.0])))}
+                   for i, g in enumerate(tags) for a, p in zip(anchors["anchor"], xy)]
+               for t in (0.0, 1.0, 2.0, 3.0, 4.0)}
+    try:
+        for rows in rows_at.values():
+            assert eng.ingest(rows).accepted == len(rows)
+            eng.flush()  # one block per time
+        pos = eng.positions().sort_values(["time", "tag"]).reset_index(drop=True)
+    finally:
+        eng.stop()
+    assert len(pos) == 15 and not pos.duplicated(["time", "tag"]).any()
+    failed = (pos["tag"] == "bad") & (pos["time"] == 2.0)
+    assert (pos.loc[failed, "status"] == "solver_error").all() and failed.sum() == 1
+    assert not (pos.loc[~failed, "status"] == "solver_error").any()
+    assert eng.solver_errors >= 1 and "FloatingPointError: boom" in eng.last_error
+    # the reference: a tracker fed the same blocks without the failed epoch
+    ref = Tracker(anchors)
+    want = []
+    for t, rows in rows_at.items():
+        keep = [r for r in rows if not (r["tag"] == "bad" and t == 2.0)]
+        ep = to_epochs(pd.DataFrame(keep), ["A1", "A2", "A3", "A4"])
+        want.append(ref.step(ep))
+    want = pd.concat(want).sort_values(["time", "tag"]).reset_index(drop=True)
+    got = pos.loc[~failed].reset_index(drop=True)
+    np.testing.assert_allclose(got[["x", "y"]].to_numpy(float),
+                               want[["x", "y"]].to_numpy(float), rtol=0, atol=1e-9)
+    assert got["status"].tolist() == want["status"].tolist()
+
+
 def test_track_snapshot_does_not_claim_blocks_queued_meanwhile(tmp_path):
     """The tracker's snapshot saved the assembler's watermarks, which also count blocks the
     ingest threads queued while the solver was busy; after a restart those epochs were

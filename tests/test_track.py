@@ -110,6 +110,37 @@ def test_state_dict_round_trip_through_json():
 
 
 @pytest.mark.parametrize("filt", ["ekf", "ukf"])
+def test_checkpoint_rollback_undoes_a_block_exactly(filt):
+    """`serve --track` rolls a failed block back: after a wrong block and a rollback the
+    tracker goes on exactly as one that never saw it (rows, saved state, and the recorded
+    history that smoothing reads), and a checkpoint serves more than one rollback."""
+    a = _anchors()
+    meas, _ = _walk(K=3, N=60, seed=2)
+    ep = _epochs(meas, a)
+
+    def cut(s):
+        return type(ep)(ep.time[s], ep.tag[s], ep.values[s], ep.anchor_ids, ep.value,
+                        ep.line[s])
+
+    n = ep.n_epochs
+    parts = [slice(0, n // 3), slice(n // 3, 2 * n // 3), slice(2 * n // 3, None)]
+    ref = Tracker(a, sigma=SIGMA_M, filter=filt, record=True)
+    want = [ref.step(cut(p)) for p in parts]
+    t = Tracker(a, sigma=SIGMA_M, filter=filt, record=True)
+    got = [t.step(cut(parts[0]))]
+    cp = t.checkpoint()
+    for _ in range(2):  # a wrong block (the last one, early), undone twice
+        t.step(cut(parts[2]))
+        t.rollback(cp)
+    got += [t.step(cut(parts[1])), t.step(cut(parts[2]))]
+    for w, g in zip(want, got):
+        pd.testing.assert_frame_equal(w, g)
+    assert json.dumps(ref.state_dict(), sort_keys=True) == json.dumps(t.state_dict(),
+                                                                     sort_keys=True)
+    np.testing.assert_array_equal(ref.smoothed(n)[0], t.smoothed(n)[0])
+
+
+@pytest.mark.parametrize("filt", ["ekf", "ukf"])
 @pytest.mark.parametrize("model", ["cv", "ca"])
 def test_compiled_agrees_with_numpy(filt, model):
     a = _anchors()

@@ -502,16 +502,25 @@ class Engine:
         A processor that raises is a defect, counted with its reason (``/api/status``,
         ``/metrics``).  A stateless one (``locate``) is retried on each half of the block's
         tags, then of the one tag's epochs, down to one epoch, so a failing epoch costs no
-        other epoch its fix; the epochs that still fail, and a stateful processor's block
-        (its state may have advanced part-way: not to be repeated), get one row each with
-        status ``solver_error``.  Their measurements are stored either way.
+        other epoch its fix.  A stateful one with a ``checkpoint``/``rollback`` (the
+        tracker) is rolled back to its state before the block and retried tag by tag, each
+        tag rolled back again if it fails (its state stays as before the block), so a
+        failing tag costs no other tag its rows.  The epochs that still fail, and the block
+        of a stateful processor without a checkpoint (its state may have advanced
+        part-way: not to be repeated), get one row each with status ``solver_error``.
+        Their measurements are stored either way.
         """
+        checkpoint = getattr(self.processor, "checkpoint", None)
+        saved = (checkpoint() if checkpoint is not None
+                 and not getattr(self.processor, "stateless", False) else None)
         try:
             return self.processor.process(epochs)
         except Exception as exc:  # noqa: BLE001 - counted, reported, rows kept
             self.solver_errors += 1
             self.last_error = f"{type(exc).__name__}: {exc}"
         tags = pd.unique(epochs.tag)
+        if saved is not None:
+            return self._retry_by_tag(epochs, tags, saved)
         if getattr(self.processor, "stateless", False) and epochs.n_epochs > 1:
             if len(tags) > 1:  # halves of the tags, then (one tag left) of its epochs
                 first = pd.Index(tags[: len(tags) // 2]).get_indexer(epochs.tag) >= 0
@@ -525,6 +534,40 @@ class Engine:
         return pd.DataFrame({"time": epochs.time, "tag": epochs.tag,
                              "method": self.processor.name, "x": np.nan, "y": np.nan,
                              "status": SOLVER_ERROR})
+
+    def _retry_by_tag(self, epochs: Epochs, tags: np.ndarray, saved: object) -> pd.DataFrame:
+        """A stateful processor's failed block, tag by tag from its state before the block
+        (:meth:`_process`); a tag that fails again is rolled back and gets
+        ``solver_error`` rows."""
+        self.processor.rollback(saved)  # type: ignore[attr-defined]
+        codes = pd.Index(tags).get_indexer(epochs.tag)
+        parts, frames = [], []
+        for k in range(len(tags)):
+            rows = np.flatnonzero(codes == k)
+            sub = _subset(epochs, rows)
+            before = self.processor.checkpoint()  # type: ignore[attr-defined]
+            try:
+                frames.append(self.processor.process(sub))
+            except Exception as exc:  # noqa: BLE001 - counted, reported, rows kept
+                self.solver_errors += 1
+                self.last_error = f"{type(exc).__name__}: {exc}"
+                self.processor.rollback(before)  # type: ignore[attr-defined]
+                frames.append(pd.DataFrame({"time": sub.time, "tag": sub.tag,
+                                            "method": self.processor.name, "x": np.nan,
+                                            "y": np.nan, "status": SOLVER_ERROR}))
+            parts.append(rows)
+        order = np.argsort(np.concatenate(parts), kind="stable")
+        both = pd.concat(frames, ignore_index=True)
+        # the failed tags' rows in the solved tags' column types (the store's blocks must
+        # agree: an int64 ``n_used`` beside a float one cannot be read back as one table);
+        # a count they lack is 0, a flag False
+        solved = [f for f in frames if f["status"].ne(SOLVER_ERROR).any()]
+        for col in both.columns:
+            kinds = {f[col].dtype for f in solved if col in f}
+            kind = kinds.pop() if len(kinds) == 1 else None
+            if kind is not None and kind.kind in "iub" and both[col].dtype != kind:
+                both[col] = both[col].fillna(False if kind.kind == "b" else 0).astype(kind)
+        return both.iloc[order].reset_index(drop=True)
 
     def _compact_latest(self) -> None:
         """Reduce the recent frames to the latest row per tag (caller holds the lock)."""

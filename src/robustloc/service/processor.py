@@ -307,6 +307,14 @@ class TrackProcessor:
     def process(self, epochs: Epochs) -> pd.DataFrame:
         return self.tracker.step(epochs)
 
+    def checkpoint(self) -> object:
+        """The tracker's in-memory state before a block (``Tracker.checkpoint``)."""
+        return self.tracker.checkpoint()
+
+    def rollback(self, checkpoint: object) -> None:
+        """Back to a :meth:`checkpoint` (a block the tracker failed on is undone)."""
+        self.tracker.rollback(checkpoint)  # type: ignore[arg-type]
+
     def state_dict(self) -> dict:
         return self.tracker.state_dict()
 

@@ -1435,6 +1435,22 @@ class Tracker:
                            range_offset=self.settings.range_offset)
 
     # ------------------------------------------------------------------ persistence
+    def checkpoint(self) -> dict[str, Any]:
+        """An in-memory copy of everything :meth:`step` changes, for :meth:`rollback`.
+
+        Arrays are copied, lists, dicts and sets shallowly (their items are not changed in
+        place once stored: the per-tag state lives in arrays); the rest (settings, the
+        anchors' model, compiled kernels) is shared.  Cheap next to a step: about the size
+        of the per-tag state, without :meth:`state_dict`'s conversion (8-10 ms for 1 000
+        tags).  A service keeps one before each block, so that a block the tracker fails
+        on can be rolled back and retried tag by tag (``robustloc serve --track``)."""
+        return _copy_attributes(self.__dict__)
+
+    def rollback(self, checkpoint: dict[str, Any]) -> None:
+        """Return to a :meth:`checkpoint` (usable again: it is copied, not consumed)."""
+        self.__dict__.clear()
+        self.__dict__.update(_copy_attributes(checkpoint))
+
     def state_dict(self) -> dict:
         """JSON-serialisable state: settings, anchors, link kind and every tag's filter.
 
@@ -1641,4 +1657,18 @@ def _joined(mask: NDArray[np.bool_], names: tuple[str, ...]) -> NDArray[np.objec
                                   return_inverse=True)
     text = np.array([";".join(ids[sub[f]]) for f in first], dtype=object)
     out[rows] = text[inv.ravel()]
+    return out
+
+
+def _copy_attributes(attrs: dict[str, Any]) -> dict[str, Any]:
+    """``attrs`` with arrays copied and lists, dicts and sets copied shallowly
+    (:meth:`Tracker.checkpoint`)."""
+    out: dict[str, Any] = {}
+    for k, v in attrs.items():
+        if isinstance(v, np.ndarray):
+            out[k] = v.copy()
+        elif isinstance(v, (list, dict, set)):
+            out[k] = type(v)(v) if not isinstance(v, dict) else dict(v)
+        else:
+            out[k] = v
     return out
