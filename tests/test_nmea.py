@@ -145,11 +145,14 @@ def test_gst_accuracy_rows():
     ],
 )
 def test_garbage_fields_with_valid_checksum_are_skipped(body):
-    # unparsable fields are "truncated"; a time or date that is not a calendar value
-    # (12x456, 999999, day 99) is an "invalid_measurement": either way skipped and counted
+    # a required number that is not one is "malformed" (37xx.5; it was counted as
+    # "truncated" until the GNSS review), fields read as missing leave the sentence
+    # "truncated", and a time or date that is not a calendar value (12x456, 999999, day 99)
+    # is an "invalid_measurement": either way skipped and counted, once
     log = parse_nmea(["$" + body + "*" + nmea_checksum(body)])
     sk = log.summary.skipped
-    assert log.summary.parsed == {} and sk["truncated"] + sk["invalid_measurement"] == 1
+    assert log.summary.parsed == {}
+    assert sk["truncated"] + sk["malformed"] + sk["invalid_measurement"] == 1
 
 
 def test_posix_day_from_rmc_date():
