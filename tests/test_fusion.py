@@ -35,6 +35,30 @@ def test_uwb_fix_exact_without_noise(method):
     np.testing.assert_allclose(fix3.position, pts, atol=1e-9)
 
 
+def test_uwb_nls_fix_covariance_is_the_a_priori_one():
+    """The Gauss-Newton fix of loose coupling (`fuse --coupling loose`, default --fix nls)
+    trusts its sigmas, but its covariance carried the one-epoch estimate of the unit-weight
+    variance: 0 on noise-free ranges, 23 times too small at (8, 5) in the filter/fuse
+    review, normalized errors 38 and 143 in the filter.  Now sigma^2 (J^T W J)^-1 at the
+    fix, whatever the residuals, and it matches the Monte Carlo spread (as in the test
+    below; 3 entries at a two-sided 0.1 % with Bonferroni: |z| < 3.59)."""
+    x = np.array([[1.0, 1.5]])
+    d = np.linalg.norm(x[:, None] - SQUARE[None], axis=-1)
+    sig = 0.05 + 0.05 * d
+    exact = uwb_fix(SQUARE, d, "nls", sigma0_m=0.05, k=0.05)
+    u = (x[0] - SQUARE) / d[0][:, None]
+    want = np.linalg.inv(u.T @ np.diag(1.0 / sig[0] ** 2) @ u)
+    np.testing.assert_allclose(exact.covariance[0], want, rtol=1e-9)
+    rng = np.random.default_rng(5)
+    n = 4000
+    D = d + rng.normal(size=(n, 4)) * sig
+    f = uwb_fix(SQUARE, D, "nls", sigma0_m=0.05, k=0.05)
+    emp = np.cov((f.position - x).T)
+    sd = np.sqrt((want**2 + np.outer(np.diag(want), np.diag(want))) / (n - 1))
+    z = ((emp - want) / sd)[np.triu_indices(2)]
+    assert np.all(np.abs(z) < norm.ppf(1 - 0.001 / 6)), z
+
+
 def test_uwb_fix_missing_and_insufficient():
     d = np.linalg.norm(np.array([2.0, 2.0]) - SQUARE, axis=1)
     D = np.tile(d, (3, 1))
@@ -333,6 +357,25 @@ def test_fuse_aligns_posix_ranges_with_nmea_automatically(cart):
     res = fuse(shifted, anchors, log, FusionFilter("ekf", ConstantVelocity(q=1e-4)))
     assert res.summary["nmea_offset_s"] == 1704067200.0
     assert set(res.track["source"]) == {"uwb+gps"}  # every epoch fused with its sentence
+
+
+def test_fuse_warns_when_no_gps_sentence_meets_the_ranges(cart, capsys):
+    """A GPS log a day away from the ranges was fused into nothing without a word (the
+    filter/fuse review): the summary and the command now say so; an aligned log does not."""
+    meas = pd.read_csv(cart["measurements"])
+    anchors = pd.read_csv(cart["anchors"])
+    log = read_nmea(cart["nmea"])
+    filt = FusionFilter("ekf", ConstantVelocity(q=1e-4))
+    assert "warnings" not in fuse(meas, anchors, log, filt).summary
+    far = fuse(meas, anchors, log, filt, FuseOptions(nmea_offset_s=86_400.0))
+    assert len(far.summary["warnings"]) == 1
+    assert "no GPS sentence falls within the ranges' time span" in far.summary["warnings"][0]
+    assert "uwb+gps" not in set(far.track["source"])
+    assert main(["fuse", "--ranges", str(cart["measurements"]), "--anchors",
+                 str(cart["anchors"]), "--nmea", str(cart["nmea"]), "--nmea-offset", "86400",
+                 "-o", "-"]) == 0
+    err = capsys.readouterr().err
+    assert f"warning: {cart['nmea']}: no GPS sentence falls within" in err
 
 
 # --- events: one per input epoch, whatever the sampling rate (fuzzing, seed 001) ---------

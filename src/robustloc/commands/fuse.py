@@ -21,8 +21,10 @@ Fuses UWB ranges with GPS speed and course (RMC/VTG sentences of an NMEA log) fo
 motion model.
 
 Coupling:
-  loose  per UWB epoch a linearized LS/WLS fix (--fix) is the measurement [x, y] with its
-         covariance, plus [v, course] from GPS (the paper's model);
+  loose  per UWB epoch a fix (--fix: linearized LS/WLS or Gauss-Newton) is the measurement
+         [x, y] with the variances of its a-priori covariance (the x-y correlation of a
+         fix, 0.2-0.6 on a simulated cart, is not used), plus [v, course] from GPS (the
+         paper's model);
   tight  the raw ranges are measurements (default): epochs with fewer than three anchors
          still update, and a robust update (--robust) down-weights one bad range instead
          of a whole fix.
@@ -89,7 +91,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="UWB fix for loose coupling: linearized ls/wls or Gauss-Newton "
                         "nls (default nls)")
     p.add_argument("--robust", choices=ROBUST, default="none",
-                   help="equivalent weight of the robust update (default none)")
+                   help="equivalent weight of the robust update (default none: the "
+                        "paper's filter; on real UWB ranges use one, e.g. igg3: on "
+                        "uwb-dwm1001 the default's RMS was 3.7 m (LOS) and 4.9 m (NLOS) "
+                        "with 20 m excursions, igg3's 0.90 and 0.84 m)")
     p.add_argument("--gate", type=float_in(0.5, 1.0 - 1e-12), default=None, metavar="PROB",
                    help="chi-square gate probability on the innovation, e.g. 0.999")
     p.add_argument("--q", type=positive_float, default=None,
@@ -193,6 +198,8 @@ def run(args: argparse.Namespace) -> int:
     dest = sys.stderr if writes_to_stdout(args.out) else sys.stdout
     write_table(res.track, args.out)
     s = dict(res.summary, out=str(args.out))
+    for text in s.get("warnings", []):  # a warning, even with --json
+        print(f"warning: {args.nmea}: {text}", file=sys.stderr)
     if nmea is not None:
         s["nmea"] = nmea.summary.text()
     if args.json:

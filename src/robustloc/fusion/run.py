@@ -250,6 +250,18 @@ def fuse(
             for tg in gps_tags:
                 aside.append(pd.DataFrame({"time": g_t[bad_gt], "tag": tg, "source": "gps"}))
             mo = mo[~bad_gt]
+    if mo is not None and len(mo) and np.isfinite(t).any():
+        # GPS sentences all outside the ranges' span: nothing of the log is fused (a log of
+        # another day, a missing --nmea-offset), which went without a word (the filter/
+        # fuse review: 48 sentences a day away, "ok 51, predicted 48")
+        g_t = mo["time_s"].to_numpy(float) + offset
+        t0, t1 = float(np.nanmin(t)), float(np.nanmax(t))
+        if not np.any((g_t >= t0 - opts.merge_window_s) & (g_t <= t1 + opts.merge_window_s)):
+            summary.setdefault("warnings", []).append(
+                f"no GPS sentence falls within the ranges' time span ({t0:.6g} .. {t1:.6g} "
+                f"s): on the ranges' clock (offset {offset:.6g} s) they lie at "
+                f"{float(g_t.min()):.6g} .. {float(g_t.max()):.6g} s, so no speed or course "
+                "is fused; --nmea-offset S aligns the two clocks")
     if mo is not None and len(mo):
         ut = gps_tags
         gv = mo[["speed_mps", "course_rad"]].to_numpy(float)
