@@ -7,7 +7,7 @@ import argparse
 import numpy as np
 import pandas as pd
 import pytest
-from scipy.stats import norm
+from scipy.stats import binom, chi2, norm
 
 from robustloc.cli import main
 from robustloc.filters import ConstantAcceleration, ConstantVelocity, RobustUpdate
@@ -16,8 +16,9 @@ from robustloc.fusion.align import Stream, merge_streams
 from robustloc.fusion.pipeline import FusionFilter, FusionMeasurement, initial_state
 from robustloc.fusion.run import FuseOptions, fuse
 from robustloc.fusion.uwb import uwb_fix
+from robustloc.integrity.bmethod import global_critical
 from robustloc.io.nmea import read_nmea
-from robustloc.robust.weights import IGG3
+from robustloc.robust.weights import IGG3, get_weight
 from robustloc.sim import uwb_cart
 
 SQUARE = np.array([[0.0, 0.0], [5.0, 0.0], [5.0, 5.0], [0.0, 5.0]])
@@ -218,7 +219,14 @@ def test_fuse_on_cart_beats_uwb_fixes(cart, coupling, kind):
                FuseOptions(coupling=coupling, sigma_range_m=0.1, sigma_speed_mps=0.02,
                            sigma_course_deg=2.0))
     tr = res.track
-    assert len(tr) == len(truth) and set(tr["status"]) <= {"ok", "fault_excluded"}
+    assert len(tr) == len(truth)
+    assert set(tr["status"]) <= {"ok", "fault_excluded", "fault_detected"}
+    # clean data: the per-event test (B-method global alpha for the event's dof) flags
+    # events at its false-alarm rate only -- at most the binomial 99.9 % quantile (before
+    # the first velocity came from the GPS, the start-up at rest failed events 2-5)
+    dof = 5 if coupling == "tight" else 4
+    alpha = float(chi2.sf(global_critical(dof), dof))
+    assert (tr["status"] == "fault_detected").sum() <= binom.ppf(0.999, len(tr), alpha)
     e = np.hypot(tr["x"] - truth["x"], tr["y"] - truth["y"])
     piv = meas.pivot(index="time", columns="anchor", values="range")[anchors["anchor"]]
     fix = uwb_fix(anchors[["x", "y"]].to_numpy(), piv.to_numpy())
@@ -557,3 +565,115 @@ def test_fusion_filter_run_step_failure_restarts_only_that_track(monkeypatch):
     np.testing.assert_allclose(tr.x[0], ref.x[0], atol=1e-12)
     assert (tr.status[1] != "").all() and np.isfinite(tr.x[1]).all()
     assert np.hypot(*(tr.x[1, 3, :2] - pos[3])) < 0.01  # restarted at its fix
+
+
+# --- the per-event innovation test, the start from the GPS velocity, the CLI defaults --------
+
+
+def _square_track(J: int, seed: int, pos=(2.0, 2.5)) -> tuple[np.ndarray, np.ndarray]:
+    """A tag at rest: four ranges to ``SQUARE`` (sigma 0.05 m) every 0.25 s, no GPS."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(J) * 0.25
+    z = np.full((1, J, 6), np.nan)
+    z[0, :, :4] = np.linalg.norm(np.asarray(pos) - SQUARE, axis=-1) + rng.normal(0, 0.05, (J, 4))
+    return t[None], z
+
+
+def test_event_test_flags_a_fault_the_plain_filter_keeps():
+    # one range 2 m long at event 30: 40 sigma, far beyond chi2(1 - alpha; 4) of the
+    # B-method (12.5 for NIS).  The plain filter keeps it (fault_detected) and is pulled
+    # off by it, so the next events fail too (measured: 31-34 and 36, NIS 74 .. 16): five
+    # in a row are one divergence.  Hampel (c = 8.5) gives it weight 0 (fault_excluded)
+    # and every other event passes at this noise.
+    t, z = _square_track(60, 3)
+    z[0, 30, 1] += 2.0
+    fm = FusionMeasurement(4, SQUARE)
+    x0, P0 = initial_state([[2.0, 2.5]], 4, 0.01, 0.01)
+    R = np.diag([0.05**2] * 4 + [1, 1])
+    plain = FusionFilter("ekf", ConstantVelocity(q=1e-3)).run(t, z, R, fm, x0, P0)
+    robust = FusionFilter("ekf", ConstantVelocity(q=1e-3),
+                          RobustUpdate(weight=get_weight("hampel"))).run(t, z, R, fm, x0, P0)
+    assert plain.nis[0, 30] > global_critical(4)
+    assert (plain.status[0, :30] == "ok").all()
+    assert (plain.status[0, 30:35] == "fault_detected").all()
+    assert plain.extra["diverged"][0] == 1
+    assert robust.status[0, 30] == "fault_excluded"
+    assert (np.delete(robust.status[0], 30) == "ok").all()
+    assert robust.extra["diverged"][0] == 0
+    # max_failed = 0: no count, the same statuses
+    off = FusionFilter("ekf", ConstantVelocity(q=1e-3), max_failed=0).run(t, z, R, fm, x0, P0)
+    assert off.extra["diverged"][0] == 0
+    assert (off.status == plain.status).all()
+
+
+def test_event_test_skips_speed_and_course_at_an_undetermined_speed():
+    # a track at rest (v = 0) receiving a GPS speed of 1 m/s and course 90 deg: speed and
+    # course are linearized at v = 0, where both Jacobian rows are 0 and the course
+    # innovation is the whole course (NIS ~ 1e3): no test; once the predicted speed
+    # exceeds min_speed_mps the same contradiction (course 90 deg off) fails it
+    fm = FusionMeasurement(4, SQUARE)
+    R = np.diag([0.05**2] * 4 + [0.05**2, np.deg2rad(2.0) ** 2])
+    z = np.full((1, 1, 6), np.nan)
+    z[0, 0, 4:] = [1.0, np.pi / 2]
+    t = np.zeros((1, 1))
+    x0, P0 = initial_state([[2.0, 2.5]], 4, 0.01, 0.01)
+    rest = FusionFilter("ekf", ConstantVelocity(q=1e-3)).run(t, z, R, fm, x0, P0)
+    assert rest.nis[0, 0] > 100 and rest.status[0, 0] == "ok"
+    x0[0, 2:4] = [0.0, 1.0]  # moving north at 1 m/s; the GPS says east
+    moving = FusionFilter("ekf", ConstantVelocity(q=1e-3)).run(t, z, R, fm, x0, P0)
+    assert moving.status[0, 0] == "fault_detected"
+
+
+def test_event_test_settings_are_checked():
+    for bad in ({"alpha0": 0.0}, {"beta0": 1.0}, {"max_failed": -1}):
+        with pytest.raises(ValueError):
+            FusionFilter("ekf", **bad)
+
+
+def test_fuse_starts_with_the_first_gps_velocity(cart):
+    # the first event's GPS speed and course give the initial velocity and its variance
+    # (speed variance plus (v sigma_course)^2 per axis); started at rest instead, the
+    # velocity overshot (0.38 m/s for 0.2) and the test failed events 2-5
+    meas = pd.read_csv(cart["measurements"])
+    anchors = pd.read_csv(cart["anchors"])
+    log = read_nmea(cart["nmea"])
+    opts = FuseOptions(sigma_range_m=0.1, sigma_speed_mps=0.02, sigma_course_deg=2.0)
+    tr = fuse(meas, anchors, log, FusionFilter("ekf", ConstantVelocity(q=1e-4)), opts).track
+    first = log.motion[log.motion["sentence"] == "RMC"].iloc[0]
+    v_gps = first["speed_mps"] * np.array([np.sin(first["course_rad"]),
+                                           np.cos(first["course_rad"])])
+    # the first row is the update of that start: within 3 sigma of the GPS velocity
+    sd = np.sqrt(0.02**2 + (first["speed_mps"] * np.deg2rad(2.0)) ** 2)
+    assert np.all(np.abs(tr[["vx", "vy"]].to_numpy()[0] - v_gps) < 3 * sd)
+    assert (tr["status"].to_numpy()[:6] == "ok").all()
+
+
+def test_fuse_command_defaults_and_a_diverging_ukf(tmp_path, capsys):
+    # the defaults are the EKF with hampel weights (bench_fuse_defaults.py)
+    d = tmp_path / "b"
+    assert main(["simulate", "uwb-cart", "--group", "B", "--seed", "1", "-o", str(d)]) == 0
+    truth = pd.read_csv(d / "truth.csv")
+    args = ["fuse", "--ranges", str(d / "measurements.csv"), "--anchors",
+            str(d / "anchors.csv"), "--nmea", str(d / "gps.nmea")]
+    out, explicit = tmp_path / "default.csv", tmp_path / "explicit.csv"
+    assert main([*args, "-o", str(out)]) == 0
+    assert main([*args, "--filter", "ekf", "--robust", "hampel", "-o", str(explicit)]) == 0
+    tr = pd.read_csv(out)
+    pd.testing.assert_frame_equal(tr, pd.read_csv(explicit))
+    assert set(tr["method"]) == {"fuse-cv-ekf"}
+    e = np.hypot(tr["x"] - truth["x"], tr["y"] - truth["y"])
+    assert np.sqrt(np.mean(e**2)) < 0.3  # measured 0.18 m (range sigma 0.2 m, 3 anchors)
+    capsys.readouterr()
+    # the UKF with the paper's alpha = 1 diverges there (T = 10 s: its sigma points are
+    # +-70 m, 100 m from the anchors): it used to write every row ok, 15 km off; now the
+    # rows far off are fault_detected and the command warns
+    out = tmp_path / "ukf.csv"
+    assert main([*args, "--filter", "ukf", "--robust", "none", "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "warning: the innovation test failed on 5 or more consecutive events" in err
+    assert "--filter ekf" in err
+    tr = pd.read_csv(out)
+    e = np.hypot(tr["x"] - truth["x"], tr["y"] - truth["y"])
+    assert e.max() > 100.0  # the divergence itself is the paper filter's, not fixed here
+    far = e > 50.0
+    assert far.sum() > 10 and (tr.loc[far, "status"] == "fault_detected").all()
