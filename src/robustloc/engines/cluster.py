@@ -42,6 +42,41 @@ def import_distributed():
 
 
 @contextmanager
+def _signals_held() -> Iterator[list[int]]:
+    """SIGINT and SIGTERM held while the block runs (main thread only): a handler notes
+    them in the yielded list, the old handlers come back at the end, and the caller
+    delivers what was noted.  A second SIGINT raises ``KeyboardInterrupt`` at once (the
+    way out of a start that hangs).  A signal ignored stays ignored.
+
+    Used around the start of a LocalCluster: interrupted half-way, its worker processes
+    never reach a state ``close()`` accepts, distributed's ``atexit`` hook then fails on
+    it (``AssertionError: Status.init`` with two tracebacks after ``error: interrupted``),
+    and the variable our cleanup would close was never assigned.
+    """
+    import signal
+
+    got: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield got
+        return
+
+    def note(signum: int, frame: object) -> None:
+        got.append(signum)
+        if signum == signal.SIGINT and got.count(signum) >= 2:
+            raise KeyboardInterrupt()
+
+    old = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        if signal.getsignal(sig) is not signal.SIG_IGN:
+            old[sig] = signal.signal(sig, note)
+    try:
+        yield got
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
+@contextmanager
 def dask_client(scheduler: str | None, workers: int | None = None,
                 processes: bool = True) -> Iterator[object]:
     """A ``distributed.Client``: on ``scheduler``, or on a new LocalCluster.
@@ -58,7 +93,9 @@ def dask_client(scheduler: str | None, workers: int | None = None,
         LocalCluster workers as processes (default) or threads.
 
     The client, and the LocalCluster when one was started, are closed when the block
-    exits, also on an error or an interrupt.
+    exits, also on an error or an interrupt.  An interrupt (SIGINT, SIGTERM) while the
+    LocalCluster starts (1-3 s) is held until it has started, then it is closed and the
+    signal delivered (:func:`_signals_held`).
     """
     distributed = import_distributed()
     cluster = None
@@ -75,25 +112,38 @@ def dask_client(scheduler: str | None, workers: int | None = None,
         else:
             n = workers or machine_cores()
             extra = {"env": dict(WORKER_ENV)} if processes else {}
-            cluster = distributed.LocalCluster(
-                n_workers=n, threads_per_worker=1, processes=processes,
-                memory_limit=WORKER_MEMORY_BYTES, dashboard_address=":0", **extra,
-            )
+            with _signals_held() as got:
+                cluster = distributed.LocalCluster(
+                    n_workers=n, threads_per_worker=1, processes=processes,
+                    memory_limit=WORKER_MEMORY_BYTES, dashboard_address=":0", **extra,
+                )
+            if got:  # interrupted while it started: close it, then deliver the signal
+                import signal
+
+                _close_cluster(cluster)
+                cluster = None
+                for signum in dict.fromkeys(got):
+                    signal.raise_signal(signum)
             client = distributed.Client(cluster)
         yield client
     finally:
         if client is not None:
             client.close()
         if cluster is not None:
-            # A worker slow to exit is killed by its nanny, which logs a warning the user
-            # can do nothing about; keep the terminal for the command's own output.
-            nanny = logging.getLogger("distributed.nanny")
-            level = nanny.level
-            nanny.setLevel(logging.ERROR)
-            try:
-                cluster.close()
-            finally:
-                nanny.setLevel(level)
+            _close_cluster(cluster)
+
+
+def _close_cluster(cluster: object) -> None:
+    """Close a LocalCluster.  A worker slow to exit is killed by its nanny, which logs a
+    warning the user can do nothing about; keep the terminal for the command's own
+    output."""
+    nanny = logging.getLogger("distributed.nanny")
+    level = nanny.level
+    nanny.setLevel(logging.ERROR)
+    try:
+        cluster.close()  # type: ignore[attr-defined]
+    finally:
+        nanny.setLevel(level)
 
 
 @dataclass(frozen=True)
