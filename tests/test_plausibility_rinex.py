@@ -155,3 +155,28 @@ def test_sp3_and_clock_epochs_must_be_calendar_times(tmp_path):
     clk[j] = " ".join(parts)
     with pytest.raises(InputError, match=rf":{j + 1}: impossible epoch"):
         read_clk(_write(tmp_path, "bad.clk", clk))
+
+
+@pytest.mark.parametrize("offset", [1, 4, 8, 12])
+def test_a_stray_line_among_the_records_is_named_at_its_own_line(tmp_path, capsys, offset):
+    # records are counted, not recognized: a stray line shifts the records after it and
+    # the reader stumbled only at the line it took for the next epoch's header, up to an
+    # epoch later (measured: stray at line 20 -> reported at 27, at 31 -> 36)
+    lines, i = _lines(OBS)
+    # lines[i] is the first epoch's header, 8 record lines follow, then the next epoch:
+    # offsets 1-8 put the stray line among the first epoch's records, 12 the second's
+    assert lines[i].startswith(" 05  4  2") and lines[i + 9].startswith(" 05  4  2")
+    at = i + offset
+    lines.insert(at, "this is a stray line of garbage")
+    bad = _write(tmp_path, "stray.05o", lines)
+    err = _spp_error(capsys, bad, NAV, tmp_path)
+    assert f"{bad}:{at + 1}:" in err, err
+    assert "not an observation record 'this is a stray line of garbage'" in err
+
+
+def test_a_missing_record_line_names_the_epoch_header_read_as_a_record(tmp_path, capsys):
+    lines, i = _lines(OBS)
+    del lines[i + 3]  # one of the first epoch's 8 records: the next header is read as one
+    bad = _write(tmp_path, "short.05o", lines)
+    err = _spp_error(capsys, bad, NAV, tmp_path)
+    assert f"{bad}:{i + 9}:" in err and "not an observation record ' 05  4  2" in err

@@ -287,6 +287,7 @@ def _read_obs_v2(path: str, version: float) -> ObsData:
     rec_start: list[int] = []  # index in lines of the first line of each record
     i = i0
     n = len(lines)
+    block = i0  # first line of the last epoch's records
     while i < n:
         ln = lines[i]
         if not ln.strip():
@@ -296,8 +297,10 @@ def _read_obs_v2(path: str, version: float) -> ObsData:
             flag = int(ln[26:29] or 0)
             nsat = int(ln[29:32])
         except ValueError as exc:
+            _stray_record(lines, block, i, path)
             raise InputError(f"malformed epoch header {ln.rstrip()!r}", path, i + 1) from exc
         if not 0 <= flag <= 6 or nsat < 0:
+            _stray_record(lines, block, i, path)
             raise InputError(f"malformed epoch header {ln.rstrip()!r}: epoch flag must be "
                              f"0-6 and the satellite count >= 0", path, i + 1)
         if flag >= 2 and flag <= 5:
@@ -311,6 +314,7 @@ def _read_obs_v2(path: str, version: float) -> ObsData:
             )
             sec = ep[5]
         except ValueError as exc:
+            _stray_record(lines, block, i, path)
             raise InputError(f"malformed epoch time {ln[:26]!r}", path, i + 1) from exc
         _calendar(*ep[:5], sec, "epoch time", path, i + 1)
         svtxt = ln[32:68]
@@ -344,6 +348,7 @@ def _read_obs_v2(path: str, version: float) -> ObsData:
         flags.append(flag)
         ep_lines.append(i + 1)
         i += nhead
+        block = i
         if i + nsat * nlines_sat > n:
             raise InputError(
                 f"file ends inside the epoch starting here ({nsat} satellites announced)",
@@ -407,6 +412,26 @@ def _read_obs_v2(path: str, version: float) -> ObsData:
         np.asarray(flags, dtype=np.int64), np.asarray(ep_lines, dtype=np.int64), hdr,
         invalid,
     )
+
+
+def _stray_record(lines: list[str], start: int, stop: int, path: str) -> None:
+    """Raise for the first line of ``lines[start:stop]`` (the last epoch's observation
+    records) that is not an observation record: a field of columns ``16 c .. 16 c + 14``
+    that is neither blank nor a number, or a loss-of-lock / strength flag that is not a
+    digit.  Records are counted, not recognized, so a stray line inside an epoch shifts
+    the records after it and the reader stumbles only at the line taken for the next
+    epoch's header, up to a whole epoch later: the stray line itself is the place to
+    name.  Returns when every line is a record.
+    """
+    for j in range(max(start, 0), stop):
+        text = lines[j].rstrip("\r\n")
+        for c in range(5):
+            fld = text[16 * c : 16 * c + 14]
+            flags = text[16 * c + 14 : 16 * c + 16]
+            if (fld.strip() and not _isfloat(fld.encode(errors="replace"))) or any(
+                    ch not in " 0123456789" for ch in flags):
+                raise InputError(f"not an observation record {text!r} (a stray line, or "
+                                 "a line missing, in the epoch's records)", path, j + 1)
 
 
 def _isfloat(b: bytes) -> bool:
