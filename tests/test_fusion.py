@@ -677,3 +677,61 @@ def test_fuse_command_defaults_and_a_diverging_ukf(tmp_path, capsys):
     assert e.max() > 100.0  # the divergence itself is the paper filter's, not fixed here
     far = e > 50.0
     assert far.sum() > 10 and (tr.loc[far, "status"] == "fault_detected").all()
+
+
+def test_loose_coupling_uses_the_fix_full_covariance_as_filterpy_does(cart):
+    # loose coupling, plain EKF-CV: the same track as FilterPy's ExtendedKalmanFilter fed
+    # with the LS fixes and their full 2 x 2 covariance (x-y correlation 0.2-0.6 here);
+    # with the variances alone (before) the states differed by up to ~1e-2 m
+    from filterpy.kalman import ExtendedKalmanFilter
+
+    meas = pd.read_csv(cart["measurements"])
+    anchors = pd.read_csv(cart["anchors"])
+    log = read_nmea(cart["nmea"])
+    opts = FuseOptions(coupling="loose", fix_method="ls", sigma_range_m=0.1,
+                       sigma_speed_mps=0.02, sigma_course_deg=2.0)
+    motion = ConstantVelocity(q=0.5)
+    tr = fuse(meas, anchors, log, FusionFilter("ekf", motion, max_rejected=0), opts).track
+    piv = meas.pivot(index="time", columns="anchor", values="range")[anchors["anchor"]]
+    fix = uwb_fix(anchors[["x", "y"]].to_numpy(), piv.to_numpy(), "ls", sigma0_m=0.1)
+    # RMC and VTG of one time stamp are averaged (fusion.align.merge_streams)
+    rmc = log.motion.groupby("time_s")[["speed_mps", "course_rad"]].mean()
+    corr = fix.covariance[:, 0, 1] / np.sqrt(fix.covariance[:, 0, 0] * fix.covariance[:, 1, 1])
+    assert np.abs(corr).max() > 0.2
+
+    def hx(x):
+        return np.r_[x[:2], np.hypot(x[2], x[3]), np.arctan2(x[2], x[3])]
+
+    def H(x):
+        J = np.zeros((4, 4))
+        J[0, 0] = J[1, 1] = 1.0
+        v2 = x[2] ** 2 + x[3] ** 2
+        J[2, 2:] = x[2:4] / np.sqrt(v2)
+        J[3, 2:] = [x[3] / v2, -x[2] / v2]
+        return J
+
+    def residual(a, b):
+        y = a - b
+        y[3] = (y[3] + np.pi) % (2 * np.pi) - np.pi
+        return y
+
+    times = piv.index.to_numpy(float)
+    f = ExtendedKalmanFilter(4, 4)
+    v0, c0 = rmc["speed_mps"].iloc[0], rmc["course_rad"].iloc[0]
+    f.x = np.r_[fix.position[0], v0 * np.sin(c0), v0 * np.cos(c0)]
+    var_v = 0.02**2 + (v0 * np.deg2rad(2.0)) ** 2
+    f.P = np.diag([4.0, 4.0, var_v, var_v])
+    states = []
+    for j, t in enumerate(times):
+        if j:
+            dt = t - times[j - 1]
+            f.F, f.Q = motion.F(dt), motion.Q(dt)
+            f.predict()
+        R = np.zeros((4, 4))
+        R[:2, :2] = fix.covariance[j]
+        R[2, 2], R[3, 3] = 0.02**2, np.deg2rad(2.0) ** 2
+        z = np.r_[fix.position[j], rmc.loc[t, "speed_mps"], rmc.loc[t, "course_rad"]]
+        f.update(z, H, hx, R=R, residual=residual)
+        states.append(f.x.copy())
+    np.testing.assert_allclose(tr[["x", "y", "vx", "vy"]].to_numpy(), np.array(states),
+                               atol=1e-9)
