@@ -183,8 +183,7 @@ def fuse(
     summary: dict = {"coupling": opts.coupling, "filter": filt.kind, "motion": filt.motion.name}
     # Columns of the merged vector after the m filter components: an always-present event
     # marker (so that an event whose values are all invalid still gets its row), the
-    # invalid marker and, for loose coupling, the fix variances, the anchors heard and
-    # the fix's x-y covariance.
+    # invalid marker and, for loose coupling, the fix variances and the anchors heard.
     if opts.coupling == "tight":
         m = M + 2
         c_mark, c_inv = m, m + 1
@@ -197,8 +196,7 @@ def fuse(
     else:
         m = 4
         c_var, c_mark, c_inv, c_heard = 4, 6, 7, 8
-        c_cov = c_heard + M  # the fix's x-y covariance
-        m_aug = c_cov + 1
+        m_aug = c_heard + M
         # UWB epochs: rows with the same (tag, time within the window) form one fix epoch
         tl_u = merge_streams(
             [Stream(t, tags, np.concatenate([_one_hot(len(t), M, col, rng_m), flag], axis=1),
@@ -214,15 +212,14 @@ def fuse(
         tag_rep = np.repeat(tl_u.tags, J)[live]
         heard = np.where(np.isfinite(flat[live, :M]), 1.0, np.nan)
         # x, y, the fix variances, the epoch marker (an epoch without a fix still gets its
-        # predicted row), the invalid marker, the anchors heard and the x-y covariance
+        # predicted row), the invalid marker and the anchors heard
         v = np.concatenate(
             [fix.position, np.diagonal(fix.covariance, axis1=1, axis2=2),
-             np.ones((len(fix.status), 1)), flat[live, M:], heard,
-             fix.covariance[:, 0, 1:2]], axis=1,
+             np.ones((len(fix.status), 1)), flat[live, M:], heard], axis=1,
         )
         streams.append(Stream(tl_u.time_s.reshape(-1)[live], tag_rep, v,
                               [0, 1, c_var, c_var + 1, c_mark, c_inv,
-                               *range(c_heard, c_heard + M), c_cov]))
+                               *range(c_heard, c_heard + M)]))
         meas = FusionMeasurement(n)
     invalid = {"range": int(bad_range.sum()), "time": int(bad_time.sum())}
     mo = nmea.motion if isinstance(nmea, NmeaLog) else nmea
@@ -295,14 +292,6 @@ def fuse(
         z[..., :2] = np.where(np.isfinite(fv), z[..., :2], np.nan)
     Rd[..., m - 2] = opts.sigma_speed_mps**2
     Rd[..., m - 1] = np.deg2rad(opts.sigma_course_deg) ** 2
-    R: Array = Rd
-    if opts.coupling == "loose":
-        # the fix's full 2 x 2 covariance: its x-y correlation (0.2-0.6 on a simulated cart)
-        # says along which direction the fix is poor
-        R = Rd[..., :, None] * np.eye(m)
-        cxy = tl.z[..., c_cov]
-        cxy = np.where(np.isfinite(cxy) & np.isfinite(fv).all(axis=-1), cxy, 0.0)
-        R[..., 0, 1] = R[..., 1, 0] = cxy
 
     x0pos, has, fixes = _initial_positions(tl, z, opts, a_xy, dz, M)
     x0, P0 = initial_state(x0pos, n, opts.init_var_m2, acc_var=opts.init_acc_var)
@@ -322,7 +311,7 @@ def fuse(
     P0[~has, 0, 0] = P0[~has, 1, 1] = 1e4
     # a track whose prediction is lost (a long gap) restarts from its event's fix, with
     # its initial covariance (FusionFilter.run, Notes)
-    tr = filt.run(tl.time_s, z, R, meas, x0, P0, progress=progress, restart=fixes)
+    tr = filt.run(tl.time_s, z, Rd, meas, x0, P0, progress=progress, restart=fixes)
 
     heard = (np.isfinite(z[..., :M]) if opts.coupling == "tight"
              else np.isfinite(tl.z[..., c_heard : c_heard + M]))
