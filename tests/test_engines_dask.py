@@ -366,6 +366,37 @@ def test_evaluate_dask_equals_single_process(sim, by_time, scheduler, tmp_path, 
     pd.testing.assert_frame_equal(ta, tb)
 
 
+def test_evaluate_dask_refuses_what_the_single_process_refuses(sim, scheduler, tmp_path,
+                                                              capsys):
+    # the same epoch in two partitions counted twice (n = 4 for 3 truth epochs, exit 0),
+    # and an unknown --baseline accepted with empty improvement columns: both are refused
+    # as the local engine refuses them, the duplicate naming both files
+    truth = tmp_path / "truth.csv"
+    pd.DataFrame({"time": [0.0, 1.0, 2.0], "tag": "A", "x": 0.0, "y": 0.0}).to_csv(
+        truth, index=False)
+    ds = tmp_path / "ds"
+    ds.mkdir()
+    row = {"tag": "A", "x": 1.0, "y": 0.0, "method": "ls", "status": "ok"}
+    pd.DataFrame([{**row, "time": 0.0}, {**row, "time": 1.0}]).to_parquet(
+        ds / "part-0.parquet", index=False)
+    pd.DataFrame([{**row, "time": 1.0}, {**row, "time": 2.0}]).to_parquet(
+        ds / "part-1.parquet", index=False)
+    args = ["evaluate", str(ds), "--truth", str(truth), "--engine", "dask", "--scheduler",
+            scheduler, "--quiet"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "duplicate position for time 1.0, tag 'A' and method 'ls'" in err
+    assert "part-0.parquet and " in err and "part-1.parquet" in err
+    pd.DataFrame([{**row, "time": 2.0}]).to_parquet(ds / "part-1.parquet", index=False)
+    assert main([*args, "--baseline", "nosuch"]) == 2
+    assert "--baseline 'nosuch' is not a method of this file (methods: ls)" in (
+        capsys.readouterr().err)
+    out = tmp_path / "t.csv"
+    assert main([*args, "-o", str(out)]) == 0
+    t = pd.read_csv(out)
+    assert t.loc[t["tag"] == "A", "n"].item() == 3 and t.loc[t["tag"] == "A", "rms"].item() == 1
+
+
 def test_spp_dask_equals_single_process_per_file(scheduler, tmp_path):
     data = Path(__file__).resolve().parents[1] / "../shared/data/gnss-geonet"
     obs, nav = data / "07590920.05o", data / "07590920.05n"

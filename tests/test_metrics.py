@@ -248,3 +248,47 @@ def test_the_mean_row_is_over_every_tag_or_none():
     assert mean.loc["ls", "rms"] == 2.0  # (1 + 3) / 2
     assert np.isnan(mean.loc["nls", "rms"]) and np.isnan(mean.loc["nls", "mean_impr_pct"])
     assert mean.loc["nls", "n_failed"] == 1.0  # counts still average (0 and 2 failed)
+
+
+def test_a_method_none_of_whose_rows_meets_the_truth_is_all_failed(tmp_path, capsys):
+    # every row of `rob` is stamped 0.5 s off the truth epochs: its three epochs are
+    # missing (failed), not absent from the table (it vanished: the missing rows were
+    # built from the matched rows' methods only)
+    truth = pd.DataFrame({"time": [0.0, 1.0, 2.0], "tag": "A", "x": 0.0, "y": 0.0})
+    ls = truth.assign(x=[0.0, 1.0, 5.0], method="ls", status="ok")
+    rob = truth.assign(time=truth["time"] + 0.5, method="rob", status="ok")
+    t = error_table(pd.concat([ls, rob], ignore_index=True), truth).set_index(
+        ["tag", "method"])
+    r = t.loc[("A", "rob")]
+    assert r["n"] == 3 and r["n_missing"] == 3 and r["n_failed"] == 3 and r["n_ok"] == 0
+    assert r["failed_pct"] == 100.0 and np.isnan(r["rms"])
+    assert t.loc[("all", "rob"), "n_failed"] == 3
+    assert t.attrs["n_unmatched"] == 3
+    # the command says so too
+    from robustloc.cli import main
+
+    pd.concat([ls, rob]).to_csv(tmp_path / "p.csv", index=False)
+    truth.to_csv(tmp_path / "t.csv", index=False)
+    assert main(["evaluate", str(tmp_path / "p.csv"), "--truth", str(tmp_path / "t.csv"),
+                 "--json"]) == 0
+    import json
+
+    rows = json.loads(capsys.readouterr().out)["rows"]
+    assert {(r["tag"], r["method"], r["n_failed"]) for r in rows if r["method"] == "rob"} == {
+        ("A", "rob", 3), ("all", "rob", 3), ("mean", "rob", 3)}
+
+
+def test_the_mean_row_3d_and_integrity_statistics_are_over_every_tag_or_none():
+    # tag A: errors 5 and 1 (3-D as 2-D, z = 0), hpl 10; tag B: no usable fix.  The mean
+    # row's 2-D statistics were NaN but its 3-D ones and hpl_median averaged over A alone
+    truth = pd.DataFrame({"time": [0.0, 1.0, 0.0], "tag": ["A", "A", "B"], "x": 0.0,
+                          "y": 0.0, "z": 0.0})
+    pos = truth.assign(x=[5.0, 1.0, np.nan], y=0.0, z=0.0, method="ls",
+                       status=["ok", "ok", "unavailable"], hpl=[10.0, 10.0, np.nan])
+    t = error_table(pos, truth)
+    mean = t[t["aggregate"] & (t["tag"] == "mean")].iloc[0]
+    a = t[(t["tag"] == "A") & ~t["aggregate"]].iloc[0]
+    assert a["mean_3d"] == 3.0 and a["hpl_median"] == 10.0
+    np.testing.assert_allclose(a["rms_3d"], np.sqrt(13.0), rtol=1e-15)  # sqrt((25 + 1) / 2)
+    for c in ("mean", "rms", "mean_3d", "rms_3d", "max_3d", "hpl_median", "hpl_over_error"):
+        assert np.isnan(mean[c]), c

@@ -91,13 +91,10 @@ def run(args: argparse.Namespace) -> int:
         from robustloc.engines.dask import evaluate_dataset
         table = evaluate_dataset(args)
     else:
-        pos = read_positions(args.positions)
-        if args.baseline != "ls" and args.baseline not in set(pos["method"]):
-            from robustloc.errors import InputError
+        from robustloc.eval.metrics import check_baseline
 
-            methods = ", ".join(sorted(set(pos["method"])))
-            raise InputError(f"--baseline {args.baseline!r} is not a method of this file "
-                             f"(methods: {methods})", args.positions)
+        pos = read_positions(args.positions)
+        check_baseline(args.baseline, pos["method"], args.positions)
         truth = read_truth(args.truth)
         table = error_table(pos, truth, time_tolerance_s=args.time_tolerance,
                             baseline=args.baseline)

@@ -618,7 +618,8 @@ def _truth(path: str) -> pd.DataFrame:
 
 
 def _errors_task(part: Partition, truth_path: str, tolerance_s: float) -> pd.DataFrame:
-    """Per-row errors of one positions partition (the columns the statistics need)."""
+    """Per-row errors of one positions partition (the columns the statistics need, and
+    ``time`` for the duplicate check across partitions)."""
     from robustloc.eval.metrics import epoch_errors
     from robustloc.io.tables import validate_positions
 
@@ -627,9 +628,30 @@ def _errors_task(part: Partition, truth_path: str, tolerance_s: float) -> pd.Dat
         return pd.DataFrame()
     pos = validate_positions(raw, part.path)
     e = epoch_errors(pos, _truth(truth_path), tolerance_s)
-    cols = ["tag", "method", "matched", "usable", "error_2d", "_truth_row"]
+    cols = ["time", "tag", "method", "matched", "usable", "error_2d", "_truth_row"]
     cols += [c for c in ("error_3d", "error_v", "hpl", "vpl") if c in e.columns]
     return e[cols].reset_index(drop=True)
+
+
+def _refuse_duplicates_across(frames: list[pd.DataFrame], paths: list[str],
+                              dataset: object) -> None:
+    """Two rows with the same ``(time, tag, method)`` count one epoch twice, in one
+    partition (refused by the task) or in two: name both files."""
+    e = pd.concat([f[["time", "tag", "method"]].assign(_part=k)
+                   for k, f in enumerate(frames)], ignore_index=True)
+    e["tag"] = e["tag"].astype(str)
+    e["method"] = e["method"].astype(str)
+    dup = e.duplicated(["time", "tag", "method"], keep=False).to_numpy()
+    if dup.any():
+        first = e[dup].iloc[0]
+        where = sorted({paths[int(k)] for k in e.loc[
+            dup & (e["time"] == first["time"]).to_numpy()
+            & (e["tag"] == first["tag"]).to_numpy()
+            & (e["method"] == first["method"]).to_numpy(), "_part"]})
+        raise InputError(
+            f"duplicate position for time {first['time']}, tag {first['tag']!r} and "
+            f"method {first['method']!r} in {' and '.join(where)} (each epoch once per "
+            "method)", dataset)
 
 
 def evaluate_dataset(args: argparse.Namespace) -> pd.DataFrame:
@@ -640,7 +662,7 @@ def evaluate_dataset(args: argparse.Namespace) -> pd.DataFrame:
     the table exactly as the single-process ``evaluate`` does (pooled medians and 95th
     percentiles need every error).
     """
-    from robustloc.eval.metrics import error_table_from_errors
+    from robustloc.eval.metrics import check_baseline, error_table_from_errors
 
     if args.time_tolerance < 0:
         raise ValueError(f"--time-tolerance must be >= 0, got {args.time_tolerance}")
@@ -650,9 +672,12 @@ def evaluate_dataset(args: argparse.Namespace) -> pd.DataFrame:
         futs = submit_all(client, _errors_task, [(p, str(args.truth), args.time_tolerance)
                                                  for p in parts])
         frames = gather_with_progress(client, futs, _show(args))
+    paths = [str(p.path) for p, f in zip(parts, frames) if len(f)]
     frames = [f for f in frames if len(f)]
     if not frames:
         raise InputError("every partition of this dataset is empty", args.positions)
+    _refuse_duplicates_across(frames, paths, args.positions)
     e = pd.concat(frames, ignore_index=True)
+    check_baseline(args.baseline, e["method"], args.positions)
     return error_table_from_errors(e, baseline=args.baseline, path=str(args.positions),
                                    truth=_truth(args.truth))

@@ -52,6 +52,11 @@ STAT_COLUMNS = ("max", "min", "mean", "rms", "sigma1", "median", "p95")
 #: the usable fixes, the median ``hpl`` and its ratio to the median error (issue 10's
 #: targets: at most 1 % misleading, a median bound at most 12x the median error).
 INTEGRITY_COLUMNS = ("n_misleading", "misleading_pct", "hpl_median", "hpl_over_error")
+#: Statistics of a tag's usable fixes (NaN without one): horizontal, 3-D, integrity and
+#: the vertical bound's (the ``mean`` row averages them over every tag or none).
+_USABLE_STATS = frozenset(
+    (*STAT_COLUMNS, *(f"{c}_3d" for c in STAT_COLUMNS), *INTEGRITY_COLUMNS,
+     "n_misleading_v", "misleading_pct_v", "vpl_median", "vpl_over_error"))
 
 
 def match_truth(
@@ -101,6 +106,15 @@ def match_truth(
     merged = merged.sort_values("_row").drop(columns=["_row", "_t_true"])
     merged.index = positions.index
     return merged
+
+
+def check_baseline(baseline: str, methods: object, path: object = None) -> None:
+    """Refuse a ``--baseline`` that is not one of the positions' ``methods`` (``ls``, the
+    default, may be absent: its improvement columns are then empty)."""
+    found = sorted({str(m) for m in methods})  # type: ignore[attr-defined]
+    if baseline != "ls" and baseline not in found:
+        raise InputError(f"--baseline {baseline!r} is not a method of this file "
+                         f"(methods: {', '.join(found)})", path)
 
 
 def _refuse_duplicate_positions(positions: pd.DataFrame) -> None:
@@ -202,13 +216,17 @@ def _group_rows(df: pd.DataFrame, keys: dict[str, str], has3d: bool) -> dict[str
     return row
 
 
-def _missing_rows(e: pd.DataFrame, truth: pd.DataFrame) -> pd.DataFrame:
-    """One failed row per (truth epoch, method) that no positions row matched."""
+def _missing_rows(e: pd.DataFrame, truth: pd.DataFrame, methods: list[str]) -> pd.DataFrame:
+    """One failed row per (truth epoch, method) that no positions row of the matched rows
+    ``e`` hit; ``methods``: every method of the positions, matched or not (a method whose
+    rows all missed the truth has every truth epoch missing)."""
     t = truth.reset_index(drop=True)
     rows = []
-    for meth, grp in e.groupby("method", sort=False):
+    ids_of = {str(m): g["_truth_row"].to_numpy(dtype=float)
+              for m, g in e.groupby("method", sort=False)}
+    for meth in methods:
         hit = np.zeros(len(t), dtype=bool)
-        ids = grp["_truth_row"].to_numpy(dtype=float)
+        ids = ids_of.get(meth, np.zeros(0))
         hit[ids[np.isfinite(ids)].astype(np.int64)] = True
         if (~hit).any():
             miss = t.loc[~hit, ["time", "tag"]].copy()
@@ -289,9 +307,13 @@ def error_table_from_errors(
     """
     e = errors
     n_unmatched = int((~e["matched"]).sum())
+    # every method of the positions, also one none of whose rows met the truth (it was
+    # left out of the table: its epochs all failed, not absent)
+    all_methods = list(dict.fromkeys(e["method"].astype(str)))
     e = e[e["matched"].to_numpy()].copy()
     if len(e) > 0 and truth is not None:
-        e = pd.concat([e.assign(missing=False), _missing_rows(e, truth)], ignore_index=True)
+        e = pd.concat([e.assign(missing=False), _missing_rows(e, truth, all_methods)],
+                      ignore_index=True)
     if len(e) == 0:
         raise InputError(
             "no positions row matches the truth by (time, tag); check the tags, or raise "
@@ -320,8 +342,9 @@ def error_table_from_errors(
             if c in ("tag", "method"):
                 continue
             # an error statistic over every tag or none: a tag without a usable fix would
-            # drop out of this method's mean only (apples to oranges with the others')
-            row[c] = float(sub[c].mean(skipna=c not in STAT_COLUMNS))
+            # drop out of this method's mean only (apples to oranges with the others'),
+            # horizontal, 3-D, and the protection levels' alike
+            row[c] = float(sub[c].mean(skipna=c not in _USABLE_STATS))
         agg.append(row)
     table = pd.concat([per, pd.DataFrame(agg)], ignore_index=True)
     for c in ("n", "n_missing", "n_failed", "n_ok"):
