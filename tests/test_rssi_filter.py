@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import argparse
+import tempfile
+from pathlib import Path
+
 import numpy as np
+import pandas as pd
 import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
@@ -19,6 +24,7 @@ from robustloc.filters.rssi import (
 )
 from robustloc.models.pathloss import AttenuationFactor
 from robustloc.robust.weights import AsymmetricIGG
+from robustloc.sim import wifi_room
 
 
 def _full_transition(x, dt, n, a):
@@ -300,3 +306,56 @@ def test_path_loss_tie_keeps_distance_state_on_the_model():
     assert err_tied < np.median(np.abs(d_raw[100:] - d[100:]))
     with pytest.raises(ValueError):
         RobustRssiFilter(model_sigma_db=0.0)
+
+
+def test_a_fade_on_the_first_sample_no_longer_rejects_the_good_ones():
+    # first sample 12 dB weak, then the true -50 dBm: with one sample behind it the
+    # filter rejected five good ones (re-lock only after max_rejected = 8; it drifted in
+    # at sample 8).  Rejections that outnumber the samples a link has taken re-lock it:
+    # at the second rejection here (sample 2), back on -50 dBm from there on
+    z = np.full(20, -50.0)
+    z[0] = -62.0
+    r = RobustRssiFilter().filter_samples(np.zeros(20, dtype=np.int64), np.arange(20) * 0.5, z)
+    assert r.weight[1] == 0.0 and r.relocked[2] and r.relocked.sum() == 1
+    np.testing.assert_allclose(r.rssi_dbm[2:], -50.0, atol=0.6)  # measured: within 0.5 dB
+    # a settled link is not young: 7 weak samples after 30 good ones re-lock nothing
+    # (its first three are rejected; its prediction then widens and lets the level in,
+    # as before this rule)
+    z = np.r_[np.full(30, -50.0), np.full(7, -62.0), np.full(5, -50.0)]
+    r = RobustRssiFilter().filter_samples(np.zeros(z.size, dtype=np.int64),
+                                          np.arange(z.size) * 0.5, z)
+    assert not r.relocked.any() and (r.weight[30:33] == 0.0).all()
+
+
+def test_a_link_restarts_after_a_gap_that_leaves_nothing_of_its_prior():
+    # the simulated walk's AP1 link with a 600 s gap after its 30th sample: the prediction
+    # across it is far wider than 25 R, so the link starts again at sample 30 -- the
+    # filtered power is the sample, the distance the path-loss model's for it, speed 0
+    # (the speed carried across the gap put the distance state at its floor, 0.1 m, for
+    # ~120 samples); before the gap the two runs are the same
+    from robustloc.io import read_anchors
+    from robustloc.models.pathloss import AttenuationFactor
+
+    out = Path(tempfile.mkdtemp(prefix="robustloc-test-"))
+    files = wifi_room.simulate(out, 1, argparse.Namespace(samples_per_point=5,
+                                                          walk_epochs=120))
+    m = pd.read_csv(files["measurements"])
+    w = m[(m["tag"] == "walk") & (m["anchor"] == "AP1")]
+    a = read_anchors(files["anchors"]).set_index("anchor").loc["AP1"]
+    params = LinkParams.broadcast(1, p0_dbm=a["p0"], gamma=a["gamma"], faf_db=a["faf"],
+                                  d0_m=a["d0"])
+    t = w["time"].to_numpy(float)
+    z = w["rssi"].to_numpy(float)
+    filt = RobustRssiFilter()
+    plain = filt.filter_samples(np.zeros(z.size, dtype=np.int64), t, z, params)
+    assert not plain.restarted[28:32].any()
+    tg = t + np.where(np.arange(z.size) >= 30, 600.0, 0.0)
+    r = filt.filter_samples(np.zeros(z.size, dtype=np.int64), tg, z, params)
+    assert r.restarted[30] and (r.restarted[:30] == plain.restarted[:30]).all()
+    np.testing.assert_array_equal(r.rssi_dbm[:30], plain.rssi_dbm[:30])
+    assert r.rssi_dbm[30] == z[30] and r.speed_mps[30] == 0.0 and r.weight[30] == 1.0
+    d30 = AttenuationFactor(a["p0"], a["gamma"], a["faf"], a["d0"]).distance(z[30])
+    np.testing.assert_allclose(r.distance_m[30], d30, rtol=1e-12)
+    assert (r.distance_m[31:60] > 0.5).all()
+    with pytest.raises(ValueError, match="restart_var_ratio"):
+        RobustRssiFilter(restart_var_ratio=0.0)

@@ -31,15 +31,19 @@ filter, nor is a row whose time is beyond +-1e12 s: the row keeps the raw value 
 and 'rssi_raw' (so 'locate' sets it aside as on the raw file), 'distance' is empty,
 'distance_state' and 'speed' are the filter's prediction, and 'status' says
 invalid_measurement (else ok); such rows are counted in the summary.
+A link whose predicted RSSI variance exceeds 25 times the measurement's (after a gap, or
+within decimetres of an anchor) starts again at its sample, as at its first one: the
+prior then weighs under 4 % of the update, and the distance and speed states are drawn
+from the sample instead of carried across the gap (counted as restarts).
 Use --static when the receivers do not move.  Path-loss parameters come
 from the anchors file (p0, gamma, faf, d0; p0, d0 for friis; or A, n).
 
 What it can gain (measured, issue 11): on the wifi-room walk (seed 3), positions from
 the filtered file (locate --method nls) against positions from the raw file:
-  white RSSI noise (--ar-phi 0), no environment changes   1.33 -> 1.03 m RMS (0.77x)
-  white noise, three 8 dB environment changes              1.57 -> 1.46 m (0.93x)
-  correlated noise (AR(1) phi 0.88 per scan, the default)  1.35 -> 1.26 m (0.93x)
-  correlated noise and the environment changes             1.56 -> 1.61 m (1.03x)
+  white RSSI noise (--ar-phi 0), no environment changes   1.33 -> 1.04 m RMS (0.78x)
+  white noise, three 8 dB environment changes              1.56 -> 1.40 m (0.90x)
+  correlated noise (AR(1) phi 0.88 per scan, the default)  1.36 -> 1.27 m (0.93x)
+  correlated noise and the environment changes             1.56 -> 1.56 m (1.00x)
 A per-link filter averages successive samples of one link.  With noise correlated from
 scan to scan (phi = 0.88: N scans carry about N (1 - phi)/(1 + phi) = N/16 independent
 samples) the samples it averages share their error, and a window long enough to hold
@@ -184,7 +188,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(f"filtered {s['samples']} samples on {s['links']} links ({s['filter']}): "
               f"{s['downweighted']} down-weighted, {s['rejected']} rejected, "
-              f"{s['relocked']} re-locks -> {s['out']}", file=dest)
+              f"{s['relocked']} re-locks, {s['restarted']} restarts -> {s['out']}",
+              file=dest)
         note = (" (RSSI outside -150 .. +30 dBm or time beyond +-1e12 s: not filtered)"
                 if s["invalid_measurement"] else "")
         print(f"invalid_measurement: {s['invalid_measurement']}{note}", file=dest)
