@@ -23,6 +23,14 @@ and moved in only when all are complete: after an error nothing is left behind. 
 values outside -150 .. +30 dBm (robustloc.io.limits) are left out and counted
 (invalid_measurement N).
 
+With --truth, each row's distance comes from its tag's truth position interpolated
+linearly at the row's time, within the tag's truth time span [t_min, t_max] (exact ends,
+no tolerance; the truth is never extrapolated).  A tag with a single truth row is a static
+point, its position valid at every time.  Rows whose tag has no truth (n_without_truth) or
+that lie outside their tag's truth span (n_outside_truth_span) are left out of every
+statistic and counted: a note on stderr and in summary.json.  Two truth rows for one
+(time, tag) are an error, as in `robustloc evaluate`.
+
 Example:
   robustloc stats sim/measurements.csv --anchors sim/anchors.csv --truth sim/truth.csv -o stats
 """
@@ -32,7 +40,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("measurements", help="measurements file (time, tag, anchor, rssi)")
     p.add_argument("--anchors", default=None, help="anchors file (needed with --truth)")
     p.add_argument("--truth", default=None,
-                   help="truth file (time, tag, x, y[, z]): enables distance bins")
+                   help="truth file (time, tag, x, y[, z]): enables distance bins; rows "
+                        "without truth or outside their tag's truth time span are left "
+                        "out and counted")
     p.add_argument("--max-lag", type=positive_int, default=30,
                    help="largest autocorrelation lag in samples (default 30)")
     p.add_argument("--bin-width", type=positive_float, default=1.0,
@@ -67,6 +77,16 @@ def run(args: argparse.Namespace) -> int:
     ).compute(meas, anchors, truth)
     out = Path(args.out)
     summary = res.summary()
+    import sys
+
+    # what was left out, on stderr (also with --json: stdout stays the summary alone)
+    if summary["n_without_truth"]:
+        print(f"note: {summary['n_without_truth']} measurement rows had no truth (their "
+              "tag is not in the truth) and were not analysed", file=sys.stderr)
+    if summary["n_outside_truth_span"]:
+        print(f"note: {summary['n_outside_truth_span']} measurement rows lay outside their "
+              "tag's truth time span and were not analysed (the truth is not "
+              "extrapolated)", file=sys.stderr)
 
     def write(folder: Path) -> None:
         res.write_csv(folder)

@@ -45,6 +45,7 @@ from numpy.typing import NDArray
 
 from robustloc import status as st
 from robustloc.errors import InputError
+from robustloc.io.tables import refuse_duplicate_truth
 
 STAT_COLUMNS = ("max", "min", "mean", "rms", "sigma1", "median", "p95")
 #: Integrity columns, when the positions carry ``hpl``: usable fixes whose horizontal
@@ -72,16 +73,9 @@ def match_truth(
     """
     if time_tolerance_s < 0:
         raise ValueError(f"time tolerance must be >= 0, got {time_tolerance_s}")
+    refuse_duplicate_truth(truth)  # a frame given directly, not through read_truth
     t = truth.copy()
     t["tag"] = t["tag"].astype(str)
-    dup = t.duplicated(["time", "tag"]).to_numpy()
-    if dup.any():
-        i = int(np.argmax(dup))
-        line = int(t.index[i]) if t.index.name == "line" else None
-        raise InputError(
-            f"duplicate truth for time {t['time'].iloc[i]} and tag {t['tag'].iloc[i]!r}",
-            truth.attrs.get("path"), line,
-        )
     _refuse_duplicate_positions(positions)
     cols = ["x", "y"] + (["z"] if "z" in t.columns else [])
     t["_truth_row"] = np.arange(len(t))

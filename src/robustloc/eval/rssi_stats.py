@@ -36,6 +36,7 @@ from scipy import stats
 
 from robustloc.errors import InputError
 from robustloc.io.limits import LIMITS
+from robustloc.io.tables import refuse_duplicate_truth
 
 Array = NDArray[np.float64]
 
@@ -141,10 +142,35 @@ def truth_distances(
 ) -> Array:
     """True tag-anchor distance of every measurement row (truth interpolated in time).
 
-    The truth position of the row's tag is linearly interpolated at the row's time (held
-    constant outside the truth span); 3-D when both anchors and truth have ``z``.  Rows
-    whose tag has no truth get NaN.
+    The truth position of the row's tag is linearly interpolated at the row's time, within
+    the tag's truth time span ``[t_min, t_max]`` (ends included, no tolerance); 3-D when
+    both anchors and truth have ``z``.  Rows outside that span get NaN (the truth is not
+    extrapolated: a moving tag is not held at its last known position), as do rows whose
+    tag has no truth.  A tag with a single truth row is a static point: that position
+    applies at every time (a survey point; give two rows to bound it in time).
+
+    Parameters
+    ----------
+    measurements : DataFrame
+        ``time, tag, anchor`` per row.
+    anchors : DataFrame
+        ``anchor, x, y[, z]``.
+    truth : DataFrame
+        ``time, tag, x, y[, z]``.
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        Distance in metres, NaN where the row has no truth.
+
+    Raises
+    ------
+    InputError
+        Duplicate ``(time, tag)`` in the truth (see
+        :func:`robustloc.io.tables.refuse_duplicate_truth`), or an anchor id not in the
+        anchors.
     """
+    refuse_duplicate_truth(truth)
     n = len(measurements)
     pos = np.full((n, 3), np.nan)
     use_z = "z" in anchors.columns and "z" in truth.columns
@@ -157,6 +183,8 @@ def truth_distances(
             continue
         g = grp.sort_values("time")
         tt = g["time"].to_numpy(dtype=float)
+        if tt.size > 1:  # two rows or more: only within their span, never extrapolated
+            rows = rows[(mt[rows] >= tt[0]) & (mt[rows] <= tt[-1])]
         for j, c in enumerate(dims):
             pos[rows, j] = np.interp(mt[rows], tt, g[c].to_numpy(dtype=float))
     idx = pd.Index(anchors["anchor"].astype(str)).get_indexer(
@@ -200,6 +228,10 @@ class RssiStatsResult:
     samples : DataFrame
         The samples analysed (``tag, anchor, time, rssi`` and ``distance_m`` with truth),
         for the histograms.
+    invalid_measurement, n_without_truth, n_outside_truth_span : int
+        Rows left out: RSSI outside the physical limits; with truth, rows of plausible RSSI
+        whose tag has no truth, and those outside their tag's truth time span (see
+        :func:`truth_distances`).  Disjoint counts.
     """
 
     per_anchor: pd.DataFrame
@@ -209,6 +241,11 @@ class RssiStatsResult:
     samples: pd.DataFrame
     #: RSSI values outside the physical limits (-150 .. +30 dBm), left out and counted
     invalid_measurement: int = 0
+    #: With truth: rows (of plausible RSSI) whose tag has no truth, left out and counted
+    n_without_truth: int = 0
+    #: With truth: rows (of plausible RSSI) outside their tag's truth time span, left out
+    #: and counted (the truth is not extrapolated)
+    n_outside_truth_span: int = 0
 
     def write_csv(self, out_dir: Path) -> list[Path]:
         """Write ``per_anchor.csv``, ``per_bin.csv`` (with truth) and ``acf.csv``."""
@@ -239,6 +276,8 @@ class RssiStatsResult:
             "variance_distance_corr": _f(self.variance_distance_corr),
             "n_bins": 0 if self.per_bin is None else int(len(self.per_bin)),
             "invalid_measurement": int(self.invalid_measurement),
+            "n_without_truth": int(self.n_without_truth),
+            "n_outside_truth_span": int(self.n_outside_truth_span),
         }
 
 
@@ -286,7 +325,10 @@ class RssiStatistics:
     ) -> RssiStatsResult:
         """Analyse a measurements frame (``time, tag, anchor, rssi``).
 
-        ``truth`` requires ``anchors`` (for the distances).
+        ``truth`` requires ``anchors`` (for the distances).  With truth, only the rows with
+        a true distance are analysed (:func:`truth_distances`: a tag in the truth, a time
+        within its truth span); the others are counted in ``n_without_truth`` and
+        ``n_outside_truth_span``.
         """
         if "rssi" not in measurements.columns:
             raise InputError("measurements have no 'rssi' column: statistics need RSSI",
@@ -301,12 +343,17 @@ class RssiStatistics:
         })
         if truth is not None:
             df["distance_m"] = truth_distances(measurements, anchors, truth)
+            truth_tags = set(truth["tag"].astype(str))
+            df["_tag_in_truth"] = df["tag"].isin(truth_tags)
             if not np.isfinite(df["distance_m"]).any():
                 mt = sorted(set(df["tag"]))[:5]
-                tt = sorted(set(truth["tag"].astype(str)))[:5]
+                tt = sorted(truth_tags)[:5]
                 raise InputError(
-                    f"no measurement has a truth position: the measurements' tags {mt} and "
-                    f"the truth's tags {tt} have none in common",
+                    "no measurement has a truth position: " + (
+                        "none lies within its tag's truth time span (the truth is not "
+                        "extrapolated)" if df["_tag_in_truth"].any() else
+                        f"the measurements' tags {mt} and the truth's tags {tt} have none "
+                        "in common"),
                     truth.attrs.get("path"))
         finite = np.isfinite(df["rssi"].to_numpy())
         plausible = LIMITS["rssi"].check(df["rssi"].to_numpy())
@@ -321,10 +368,19 @@ class RssiStatistics:
 
         per_bin = None
         corr = float("nan")
-        resid = df["rssi"].to_numpy()
+        n_no_tag = n_outside = 0
         if truth is not None:
             ok = np.isfinite(df["distance_m"].to_numpy())
+            in_truth = df.pop("_tag_in_truth").to_numpy(dtype=bool)
+            n_no_tag = int((~in_truth).sum())
+            n_outside = int((in_truth & ~ok).sum())
             df = df[ok].reset_index(drop=True)
+            if df.empty:
+                raise InputError(
+                    f"no RSSI sample within the physical limits has a truth position "
+                    f"({n_no_tag} of tags without truth, {n_outside} outside their tag's "
+                    f"truth time span, {n_invalid} outside the limits)",
+                    measurements.attrs.get("path"))
             w = self.bin_width_m
             df["bin_m"] = np.maximum(np.round(df["distance_m"] / w), 1) * w
             rows = []
@@ -342,6 +398,8 @@ class RssiStatistics:
                 corr = float(np.corrcoef(per_bin["distance_m"], per_bin["variance"])[0, 1])
             bin_mean = df.groupby(["anchor", "bin_m"])["rssi"].transform("mean")
             resid = (df["rssi"] - bin_mean).to_numpy()
+        else:
+            resid = df["rssi"].to_numpy()
 
         rows = []
         acfs = {}
@@ -361,7 +419,8 @@ class RssiStatistics:
             acfs[anchor] = r
         per_anchor = pd.DataFrame(rows)
         acf = pd.DataFrame(acfs, index=pd.RangeIndex(self.max_lag + 1, name="lag"))
-        return RssiStatsResult(per_anchor, per_bin, acf, corr, df, n_invalid)
+        return RssiStatsResult(per_anchor, per_bin, acf, corr, df, n_invalid, n_no_tag,
+                               n_outside)
 
     @staticmethod
     def _runs(g: pd.DataFrame) -> NDArray[np.int64]:

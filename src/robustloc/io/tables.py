@@ -11,8 +11,9 @@ Every problem in a file raises :class:`~robustloc.errors.InputError` naming the 
 1-based line (the CSV header is line 1, the first data row line 2).  For Parquet files the
 "line" is the same number the row would have in the equivalent CSV (data row ``i``, counted
 from 0, is line ``i + 2``).  Checked: missing file, empty file, missing required column,
-non-numeric value, NaN/inf in a numeric field, empty id, duplicate anchor id, unknown anchor
-id (when the anchors are given), malformed rows.  Blank lines are skipped.
+non-numeric value, NaN/inf in a numeric field, empty id, duplicate anchor id, duplicate
+``(time, tag)`` truth row, unknown anchor id (when the anchors are given), malformed rows.
+Blank lines are skipped.
 
 The frames returned keep the source line numbers as their index (named ``line``), so a
 consumer can still point at a line after filtering; ``frame.attrs["path"]`` holds the file.
@@ -888,7 +889,8 @@ def _value_column(df: pd.DataFrame, what: str, path: PathLike | None) -> str:
 
 
 def read_truth(path: PathLike) -> pd.DataFrame:
-    """Read a truth file: ``time, tag, x, y[, z]`` (all finite).  Index: source line."""
+    """Read a truth file: ``time, tag, x, y[, z]`` (all finite; each ``(time, tag)`` once,
+    see :func:`refuse_duplicate_truth`).  Index: source line."""
     df = _read_raw(path, ("tag",))
     return validate_truth(df, _display(path))
 
@@ -902,7 +904,36 @@ def validate_truth(df: pd.DataFrame, path: PathLike | None = None) -> pd.DataFra
     for c in ("time", "x", "y", "z"):
         if c in df.columns:
             _numeric(df, c, path)
+    refuse_duplicate_truth(df, path)
     return df
+
+
+def refuse_duplicate_truth(truth: pd.DataFrame, path: PathLike | None = None) -> None:
+    """Refuse two truth rows for one ``(time, tag)``.
+
+    The consumers would place the epoch at either position (whichever they met first):
+    ``evaluate``, ``calibrate`` and ``stats`` refuse such truth alike.
+
+    Parameters
+    ----------
+    truth : DataFrame
+        Truth frame with ``time`` and ``tag`` columns.
+    path : str or PathLike, optional
+        The file named in the error; default ``truth.attrs["path"]``.
+
+    Raises
+    ------
+    InputError
+        Naming the second row's line: ``duplicate truth for time T and tag 'X'``.
+    """
+    key = pd.DataFrame({"time": truth["time"].to_numpy(),
+                        "tag": truth["tag"].astype(str).to_numpy()})
+    dup = key.duplicated().to_numpy()
+    if dup.any():
+        i = int(np.argmax(dup))
+        raise InputError(
+            f"duplicate truth for time {key['time'].iloc[i]} and tag {key['tag'].iloc[i]!r}",
+            _path_of(truth, path), _line_of(truth, i))
 
 
 def read_positions(path: PathLike) -> pd.DataFrame:

@@ -17,6 +17,7 @@ import numpy as np
 import pandas as pd
 
 from robustloc.errors import InputError
+from robustloc.io.tables import refuse_duplicate_truth
 from robustloc.options import (
     check_settings,
     finite_float,
@@ -175,7 +176,7 @@ def _load_survey(settings: CalibrateSettings, survey: Any, anchors: pd.DataFrame
         meas = (measurements if isinstance(measurements, pd.DataFrame)
                 else read_measurements(measurements, anchors))
         tru = truth if isinstance(truth, pd.DataFrame) else read_truth(truth)
-        _refuse_duplicate_truth(tru)
+        refuse_duplicate_truth(tru)
         out = survey_from_positions(meas, tru, anchors,
                                     time_tolerance_s=settings.time_tolerance)
         if len(out) == 0:
@@ -188,21 +189,6 @@ def _load_survey(settings: CalibrateSettings, survey: Any, anchors: pd.DataFrame
     if survey is None:
         raise InputError("give a SURVEY file, or --measurements, --truth and --anchors")
     return survey if isinstance(survey, pd.DataFrame) else read_survey(survey, anchors)
-
-
-def _refuse_duplicate_truth(truth: pd.DataFrame) -> None:
-    """Two truth rows for one ``(time, tag)`` would place the epoch's measurements at
-    either position (whichever the matching met first): an error naming the second
-    row's line, as ``evaluate`` refuses the same truth."""
-    key = pd.DataFrame({"time": truth["time"].to_numpy(),
-                        "tag": truth["tag"].astype(str).to_numpy()})
-    dup = key.duplicated().to_numpy()
-    if dup.any():
-        i = int(np.argmax(dup))
-        line = int(truth.index[i]) if truth.index.name == "line" else None
-        raise InputError(
-            f"duplicate truth for time {key['time'].iloc[i]} and tag {key['tag'].iloc[i]!r}",
-            truth.attrs.get("path"), line)
 
 
 def _from_survey(settings: CalibrateSettings, survey: Any, anchors: pd.DataFrame | None,
