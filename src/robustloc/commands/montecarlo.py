@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -38,8 +39,14 @@ trials give the same numbers as before chunking; larger runs draw one random str
 chunk (see robustloc.integrity.montecarlo), so they depend on --seed alone.
 
 The model is linearized at the true position (exactly the model the B-method theory is
-derived for); with --nonlinear (ranging layouts) the ranges themselves are simulated and
-solved by Gauss-Newton, re-linearized after each exclusion, as `robustloc locate` does.
+derived for); with --nonlinear (ranging and RSSI layouts) the observations themselves are
+simulated and solved by Gauss-Newton, re-linearized after each exclusion, as `robustloc
+locate --robust-scale apriori --sigma S` does (the trials are independent draws with a
+known sigma; a scale learnt from the whole batch would be inflated by the faults).
+IRLS rejects an observation whose relative weight (the weight function's value, 1 for a
+clean one) is below --reject-weight.  LEGE keeps at least 4 residual degrees of freedom
+(as `locate` runs it): on a layout of redundancy n - p <= 4 it searches no gross error and
+equals ls, and with n - p - 4 < --lege-max-order it searches fewer; a `note:` says so.
 Layout, one of:
   --anchors FILE [--position X,Y[,Z]] [--sigma S]   ranging (sigma in metres; default
                                                      position: centroid of the anchors)
@@ -50,7 +57,8 @@ Layout, one of:
                                                      (robustloc.sim.gnss), code noise of
                                                      the seed-003 table / sin(elevation)
 Fault sizes: --size in multiples of each observation's MDB (--unit mdb, default) or in
-metres (--unit m); each fault gets a random sign.
+metres (--unit m); each fault gets a random sign.  An observation of redundancy number 0
+has no finite MDB: --unit mdb is then refused (use --unit m).
 
 Example:
   robustloc montecarlo --gnss --trials 10000 --faults 0,1,2 --size 1,3 --json"""
@@ -122,7 +130,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--size", type=_floats, default=[1.0, 3.0], metavar="S[,S...]",
                    help="fault sizes (default 1,3)")
     p.add_argument("--unit", choices=("mdb", "m"), default="mdb",
-                   help="unit of --size: multiples of the MDB (default) or metres")
+                   help="unit of --size: multiples of the MDB (default; refused when an "
+                        "observation has redundancy number 0) or metres")
     p.add_argument("--methods", default="ls,snooping,lege,huber,igg3",
                    help="comma-separated among ls, snooping, raim-single (linearized "
                         "model only), lege, huber, hampel, igg, igg3 "
@@ -134,12 +143,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--alpha", type=float_in(1e-15, 0.5), default=None,
                    help="fixed global-test significance (default: B-method for each dof)")
     p.add_argument("--reject-weight", type=float_in(0.0, 1.0), default=0.1,
-                   help="IRLS: weight below which an observation counts as rejected (0.1)")
+                   help="IRLS: relative weight (1 = clean) below which an observation "
+                        "counts as rejected (0.1)")
     p.add_argument("--lege-max-order", type=int_in(1, 6), default=3,
-                   help="largest number of gross errors LEGE searches (default 3)")
+                   help="largest number of gross errors LEGE searches (default 3; at most "
+                        "n - p - 4, see above; linearized model only)")
     p.add_argument("--nonlinear", action="store_true",
-                   help="--anchors only: simulate ranges and solve them by Gauss-Newton "
-                        "(robustloc locate's solvers) instead of the linearized model")
+                   help="--anchors only: simulate the observations and solve them by "
+                        "Gauss-Newton (robustloc locate's solvers, with the a-priori --sigma "
+                        "as the noise scale) instead of the linearized model")
     p.add_argument("--seed", type=nonnegative_int, default=1, help="random seed (default 1)")
     p.add_argument("-o", "--out", default=None, help="write the table as CSV here")
     p.add_argument("--json", action="store_true", help="print the table as JSON")
@@ -225,7 +237,13 @@ def build_layout(args: argparse.Namespace):  # noqa: ANN201
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from robustloc.integrity.montecarlo import METHODS, run_montecarlo
+    from robustloc.integrity.montecarlo import (
+        METHODS,
+        MonteCarloNote,
+        check_fault_unit,
+        lege_note,
+        run_montecarlo,
+    )
     from robustloc.io.atomic import check_not_input, writes_to_stdout
 
     # before any work: -o naming the anchors file replaced it with the table (exit 0)
@@ -252,11 +270,19 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"--faults must be within 0..{lay.n - lay.p} (the redundancy)")
     if any(not np.isfinite(s) or s <= 0 for s in args.size):
         raise InputError("--size values must be positive")
+    # before any work: --unit mdb on an observation of redundancy number 0 (infinite faults)
+    check_fault_unit(lay, max(args.faults), args.unit, args.alpha0, args.beta0)
+    notes = [n for n in [lege_note(lay, args.lege_max_order, args.nonlinear)]
+             if n and "lege" in methods]
+    for note in notes:  # before a possibly long run, and never silent
+        print(f"note: {note}", file=sys.stderr)
     runs = [(0, 0.0)] if 0 in args.faults else []
     runs += [(k, s) for k in args.faults if k > 0 for s in args.size]
     frames = []
     with tqdm(total=len(runs) * args.trials, desc="montecarlo", unit="trial",
-              unit_scale=True, file=sys.stderr, disable=not sys.stderr.isatty()) as bar:
+              unit_scale=True, file=sys.stderr, disable=not sys.stderr.isatty()) as bar, \
+            warnings.catch_warnings():
+        warnings.simplefilter("ignore", MonteCarloNote)  # printed once above as `note:`
         for i, (k, s) in enumerate(runs):
             frames.append(run_montecarlo(
                 lay, n_faults=k, size=s, unit=args.unit, trials=args.trials,
@@ -274,7 +300,7 @@ def run(args: argparse.Namespace) -> int:
     dest = sys.stderr if args.out and writes_to_stdout(args.out) else sys.stdout
     if args.json:
         print(json.dumps({
-            "layout": lay.name, "n_obs": lay.n, "n_unknowns": lay.p,
+            "layout": lay.name, "n_obs": lay.n, "n_unknowns": lay.p, "notes": notes,
             "rows": json.loads(table.to_json(orient="records")),
         }, indent=2), file=dest)
     else:
@@ -284,4 +310,7 @@ def run(args: argparse.Namespace) -> int:
                 "identified", "unavailable", "err_mean_m", "err_rms_m", "err_p95_m", "seconds"]
         print(table[cols].to_string(index=False, float_format=lambda v: f"{v:.4f}"),
               file=dest)
+        if dest is not sys.stderr:  # (on stderr they were printed above)
+            for note in notes:
+                print(f"note: {note}", file=dest)
     return 0
