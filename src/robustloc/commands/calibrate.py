@@ -19,11 +19,23 @@ DESCRIPTION = """\
 RSSI survey (anchor, distance, rssi): fits per anchor, and pooled over all anchors,
   log-distance          RSSI = A - 10 n lg d                   (seed 000 eq. 1)  -> A, n
   attenuation-factor    P = p0 + 10 gamma lg(d0/d) + FAF       (seed 002 eq. 5)  -> gamma, faf
-                        (p0 from --p0, the anchors' p0 column, or the mean RSSI at d0)
+                        (p0 from --p0 at --d0, the anchors' p0 column at their d0
+                        column (or --d0), or the mean RSSI at d0)
   friis                 P = p0 + 20 lg(d0/d)                   (seed 002 eq. 4)  -> p0
 Range survey (anchor, distance, range): per-anchor bias (and scale with --scale) of
   range = scale * distance + bias;  `locate` applies range_corrected = (range - bias) / scale.
-Instead of a survey, --measurements M --truth T --anchors A builds one from positioned data.
+A survey may have a column weight: frequency weights, how many observations each row counts
+for (e.g. histogram counts); its total minus the parameters is the residual degrees of
+freedom, so probabilities summing to 1 are too little weight.
+Instead of a survey, --measurements M --truth T --anchors A builds one from positioned data
+(each measurement matched to the truth of its tag within --time-tolerance).  The distances
+are 3-D when both the truth and the anchors have z, else horizontal (even when the anchors
+have z).  Rows outside the physical limits (robustloc.io.limits; invalid_measurement in
+`locate`) and RSSI rows with the truth on the anchor (distance 0) are not used and are
+counted in a note; a SURVEY file with such a value is an error.
+Options that do not apply to a survey fit are refused: --p0 (attenuation-factor only), --d0
+(attenuation-factor, friis), --model and --scale by the data kind, --time-tolerance
+without --measurements.
 
 Self-calibration without truth (--self MEASUREMENTS --anchors A): the per-anchor range
 bias and scale (ranges), or A and n (RSSI, log-distance; p0 and gamma with
@@ -44,13 +56,18 @@ ambiguous fix starts on the side of their line where the log's unambiguous fixes
 (as `locate --side-prior log`).
 
 A survey that cannot determine a parameter (every sample at one distance, fewer rows than
-parameters + 1, constant values, an exact fit) is an error naming the anchor and the
-parameter (exit code 2).
+parameters + 1, constant values, an exact fit, a fitted level at the reference distance
+outside the RSSI limits or an exponent outside (0, 10]) is an error naming the anchor and
+the parameter (exit code 2).
 
 Prints each fit with standard errors and the residual standard deviation (dB or m);
-writes --anchors with the fitted columns added (or, without --anchors, the parameter
-table).  Anchors with too few survey rows, or absent from it, get the pooled fit
-(column calib_source).  --robust fits by IRLS (default weight huber; igg3, hampel, ...).
+writes --anchors with the fitted columns, their standard errors (<col>_se) and sigma (the
+residual standard deviation, by which `locate` weights the anchors) added or replaced --
+earlier standard errors and calib_fixed are dropped -- or, without --anchors, the
+parameter table with the same columns.  Anchors with too few survey rows, or absent from
+it, get the pooled fit (column calib_source; a note names the absent ones, which keep
+their own p0 and d0 with attenuation-factor).  --robust fits by IRLS (default weight
+huber; igg3, hampel, ...).
 
   robustloc calibrate survey.csv --model log-distance --anchors anchors.csv -o calibrated.csv
   robustloc calibrate --measurements train.csv --truth truth.csv --anchors aps.csv -o aps_cal.csv
@@ -78,7 +95,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="range data: fit a scale factor too (default: no for a survey, yes for --self)",
     )
     p.add_argument("--d0", type=positive_float, default=1.0,
-                   help="reference distance d0 in m (default 1)")
+                   help="reference distance d0 in m (default 1; attenuation-factor with the "
+                        "anchors' p0: their d0 column)")
     p.add_argument("--p0", type=finite_float, default=None,
                    help="attenuation factor: P_r(d0) in dBm")
     p.add_argument(
@@ -96,7 +114,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--truth", help="... and this truth (needs --anchors)")
     p.add_argument(
         "--time-tolerance", type=nonnegative_float, default=1e-6, metavar="S",
-        help="largest |time difference| to match measurements to truth (default 1e-6 s)",
+        help="--measurements: largest |time difference| to match measurements to truth "
+             "(default 1e-6 s)",
     )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 

@@ -28,8 +28,10 @@ Attenuation factor: only ``p0 + faf`` is identifiable from RSSI alone.  As in th
 else as the mean survey RSSI of that anchor within 5 % of ``d0``, else as the pooled mean
 there; with no sample near ``d0`` and no ``p0`` given it is an error.
 
-A survey may carry a ``weight`` column: frequency weights of its rows (e.g. the
-probability of each bin of an RSSI histogram, or a sample count), used in every sum above.
+A survey may carry a ``weight`` column: frequency weights of its rows (how many
+observations each row counts for, e.g. a sample count or the count of each bin of an RSSI
+histogram), used in every sum above; the residual degrees of freedom are their total
+minus the parameters, so probabilities summing to 1 are too little weight.
 
 Anchors with fewer survey rows than parameters + 1 get the pooled parameters (column
 ``calib_source = "pooled"``), so that every anchor is usable after calibration.
@@ -145,7 +147,7 @@ def fit_lines(
     max_iter, tol : int, float
         IRLS stop: ``max |delta a|, |delta b| < tol`` or ``max_iter`` iterations.
     weights : array_like, shape (k,), optional
-        Prior (frequency) weights of the rows, e.g. histogram probabilities or counts;
+        Prior (frequency) weights of the rows, e.g. histogram counts;
         the robust weights multiply them.  The residual variance is
         ``sum(w v^2) / (sum of the prior weights of the rows in use - p)``.
 
@@ -328,44 +330,83 @@ class CalibrationResult:
         if self.pooled:
             per = per.copy()
             for c in FIT_COLUMNS[self.model]:
-                if self.model == "attenuation-factor" and c == "p0":
-                    continue  # gamma, faf pooled relative to each anchor's own p0
+                if self.model == "attenuation-factor" and c in ("p0", "d0"):
+                    continue  # gamma, faf pooled relative to each anchor's own p0 at d0
                 per[c] = t.loc[POOLED, c]
+                if f"{c}_se" in per.columns:
+                    per[f"{c}_se"] = t.loc[POOLED, f"{c}_se"]
             per["calib_source"] = "pooled"
         return per
+
+    def se_columns(self) -> list[str]:
+        """The standard-error columns (``<col>_se``) of the fitted parameters."""
+        return [f"{c}_se" for c in FIT_COLUMNS[self.model] if f"{c}_se" in self.table.columns]
+
+    def _sigma(self, ids: pd.Series) -> Array:
+        """The ``sigma`` written per anchor id (see :meth:`apply_to_anchors`)."""
+        par = self.parameters()
+        pooled_sd = float(self.table.set_index("anchor").loc[POOLED, "residual_std"])
+        sd = ids.map(par["residual_std"]).astype(float).to_numpy()
+        use_pooled = self.pooled | ~(np.isfinite(sd) & (sd > 0))
+        return np.where(use_pooled, pooled_sd, sd)
 
     def apply_to_anchors(self, anchors: pd.DataFrame | None) -> pd.DataFrame:
         """Anchors frame with the fitted columns set (added or replaced).
 
-        Anchors absent from the survey get the pooled parameters.  For a path-loss model
-        the columns of the *other* path-loss models are dropped, so ``locate`` cannot
-        pick stale parameters.  Without ``anchors``, returns ``anchor`` + parameters only.
+        Anchors absent from the survey get the pooled parameters, except that with the
+        attenuation-factor model an anchor keeps the anchors file's own ``p0`` and ``d0``
+        where it has a ``p0`` (``gamma`` and ``faf`` are pooled relative to each anchor's
+        own ``p0``).  For a path-loss model the columns of the *other* path-loss models are
+        dropped, so ``locate`` cannot pick stale parameters; so are the standard errors
+        (``<col>_se``) of every path-loss column and a self-calibration's ``calib_fixed``,
+        which would describe an earlier calibration.  Without ``anchors``, returns
+        ``anchor`` + parameters.
 
-        A ``sigma`` column is written too: the fit's residual standard deviation (dB for
-        RSSI, m for ranges; the pooled one for pooled fits or where an anchor's own is not
-        positive).  ``robustloc locate`` weights each anchor by it.
+        Written with the parameters: their standard errors (``<col>_se``, the pooled ones
+        where the pooled fit is written) and ``sigma``, the fit's residual standard
+        deviation (dB for RSSI, m for ranges; the pooled one for pooled fits or where an
+        anchor's own is not positive).  ``robustloc locate`` weights each anchor by it.
         """
         cols = list(FIT_COLUMNS[self.model])
+        se = self.se_columns()
         par = self.parameters()
         pooled_row = self.table.set_index("anchor").loc[POOLED]
         if anchors is None:
             out = par[cols + ["calib_source"]].reset_index()
+            out["sigma"] = self._sigma(out["anchor"].astype(str))
+            for c in se:
+                out[c] = par[c].to_numpy(dtype=float)
             return out
         out = anchors.copy()
+        fitted = cols if self.model == "range" else list(_ALL_PATHLOSS_COLUMNS)
+        stale = [f"{c}_se" for c in fitted] + ["calib_fixed"]
         if self.model in PATHLOSS_MODELS:
-            stale = [c for c in _ALL_PATHLOSS_COLUMNS if c in out.columns and c not in cols]
-            out = out.drop(columns=stale)
+            stale += [c for c in _ALL_PATHLOSS_COLUMNS if c not in cols]
+        out = out.drop(columns=[c for c in out.columns if c in stale])
         ids = out["anchor"].astype(str)
+        own = ["p0", "d0"] if self.model == "attenuation-factor" and "p0" in anchors.columns else []
+        has_own = (pd.to_numeric(anchors["p0"], errors="coerce").notna().to_numpy()
+                   if own else np.zeros(len(ids), dtype=bool))
         for c in cols:
             vals = ids.map(par[c]).astype(float)
+            if c in own and c in anchors.columns:
+                # an absent anchor keeps its own p0 (and the d0 that goes with it)
+                mine = pd.to_numeric(anchors[c], errors="coerce").where(has_own)
+                vals = vals.fillna(pd.Series(mine.to_numpy(dtype=float), index=vals.index))
             out[c] = vals.fillna(float(pooled_row[c])).to_numpy()
         src = ids.map(par["calib_source"])
         out["calib_source"] = src.fillna("pooled").to_numpy()
-        pooled_sd = float(pooled_row["residual_std"])
-        sd = ids.map(par["residual_std"]).astype(float).to_numpy()
-        use_pooled = self.pooled | ~(np.isfinite(sd) & (sd > 0))
-        out["sigma"] = np.where(use_pooled, pooled_sd, sd)
+        out["sigma"] = self._sigma(ids)
+        for c in se:
+            out[c] = ids.map(par[c]).astype(float).fillna(float(pooled_row[c])).to_numpy()
         return out
+
+    def absent_anchors(self, anchors: pd.DataFrame | None) -> list[str]:
+        """Ids of ``anchors`` without a survey row (they get the pooled fit)."""
+        if anchors is None:
+            return []
+        known = set(self.table["anchor"].astype(str)) - {POOLED}
+        return [a for a in anchors["anchor"].astype(str) if a not in known]
 
     def summary(self) -> pd.DataFrame:
         """The table with parameters and standard errors, for printing."""
@@ -417,9 +458,10 @@ def _p0_per_anchor(
     survey: pd.DataFrame,
     g: NDArray[np.int64],
     ids: list[str],
-    d0: float,
+    d0: Array,
     p0: float | Mapping[str, float] | None,
 ) -> Array:
+    """``p0`` per anchor (module notes); ``d0`` per anchor, shape ``(m,)``."""
     m = len(ids)
     if isinstance(p0, Mapping):
         vals = np.array([float(p0.get(a, np.nan)) for a in ids])
@@ -431,7 +473,7 @@ def _p0_per_anchor(
         return vals
     d = survey["distance"].to_numpy(dtype=float)
     r = survey["rssi"].to_numpy(dtype=float)
-    near = np.abs(d - d0) <= 0.05 * d0
+    near = np.abs(d - d0[g]) <= 0.05 * d0[g]
     cnt = np.bincount(g[near], minlength=m)
     s = np.bincount(g[near], weights=r[near], minlength=m)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -441,7 +483,8 @@ def _p0_per_anchor(
     vals = np.where(np.isfinite(vals), vals, pooled_near)
     if not np.all(np.isfinite(vals)):
         raise InputError(
-            f"attenuation-factor fit needs the reference power p0 at d0 = {d0} m: give p0 "
+            f"attenuation-factor fit needs the reference power p0 at d0 = "
+            f"{', '.join(f'{v:g}' for v in np.unique(d0))} m: give p0 "
             "(--p0, or a p0 column in the anchors file) or survey rows at that distance",
             survey.attrs.get("path"),
         )
@@ -454,7 +497,7 @@ def calibrate_pathloss(
     *,
     robust: str | WeightFunction | None = None,
     pooled: bool = False,
-    d0: float = 1.0,
+    d0: float | Mapping[str, float] = 1.0,
     p0: float | Mapping[str, float] | None = None,
     max_iter: int = 50,
 ) -> CalibrationResult:
@@ -471,8 +514,10 @@ def calibrate_pathloss(
         Robust IRLS (e.g. ``"huber"``, ``"igg3"``); default least squares.
     pooled : bool
         Write the pooled fit (all anchors together) to every anchor.
-    d0 : float
-        Reference distance (m) of the attenuation-factor and Friis models.
+    d0 : float or mapping anchor -> float
+        Reference distance (m) of the attenuation-factor and Friis models; per anchor
+        (every survey anchor, e.g. the anchors file's ``d0`` that goes with its ``p0``)
+        for the attenuation-factor model only.
     p0 : float or mapping anchor -> float, optional
         Reference power for the attenuation-factor fit (see the module notes).
     max_iter : int
@@ -489,21 +534,30 @@ def calibrate_pathloss(
             "path-loss calibration needs an RSSI survey (anchor, distance, rssi)",
             survey.attrs.get("path"), 1,
         )
-    if not d0 > 0:
-        raise ValueError(f"d0 must be positive, got {d0}")
     weight = _robust_weight(robust)
     g, ids = _groups(survey)
     d = survey["distance"].to_numpy(dtype=float)
     r = survey["rssi"].to_numpy(dtype=float)
     m = len(ids)
-    p0_arr = None
+    if isinstance(d0, Mapping):
+        if model != "attenuation-factor":
+            raise ValueError("d0 per anchor is for the attenuation-factor model")
+        missing = [a for a in ids if a not in d0]
+        if missing:
+            raise ValueError(f"d0 per anchor has no value for anchor(s) {', '.join(missing)}")
+        d0_arr = np.array([float(d0[a]) for a in ids])
+    else:
+        d0_arr = np.full(m, float(d0))
+    if not np.all(d0_arr > 0):  # NaN too
+        raise ValueError(f"d0 must be positive, got {d0}")
+    p0_arr = np.zeros(m)  # the level offset: the attenuation-factor p0, else 0
     if model == "log-distance":
         x, y, slope = -10.0 * np.log10(d), r, True
     elif model == "attenuation-factor":
-        p0_arr = _p0_per_anchor(survey, g, ids, d0, p0)
-        x, y, slope = 10.0 * np.log10(d0 / d), r - p0_arr[g], True
+        p0_arr = _p0_per_anchor(survey, g, ids, d0_arr, p0)
+        x, y, slope = 10.0 * np.log10(d0_arr[g] / d), r - p0_arr[g], True
     else:
-        x, y, slope = np.zeros_like(d), r - 20.0 * np.log10(d0 / d), False
+        x, y, slope = np.zeros_like(d), r - 20.0 * np.log10(d0_arr[g] / d), False
     sw = _survey_weights(survey)
     per = fit_lines(x, y, g, m, slope=slope, robust=weight, max_iter=max_iter, weights=sw)
     pool = fit_lines(
@@ -512,17 +566,27 @@ def calibrate_pathloss(
     names = {"log-distance": ("A", "n"), "attenuation-factor": ("faf", "gamma"),
              "friis": ("p0",)}[model]
     _check_determined(survey, per, pool, ids, d, g, names, pooled, "RSSI")
+    _check_plausible(survey, per, pool, ids, model, pooled,
+                     p0_arr, d0_arr)
     rows = _assemble(per, pool, ids, slope)
     if model == "log-distance":
         table = _table(rows, {"A": "a", "n": "b"})
     elif model == "attenuation-factor":
         table = _table(rows, {"faf": "a", "gamma": "b"})
-        pooled_p0 = float(np.mean(p0_arr)) if p0 is None or isinstance(p0, Mapping) else p0
+        # the pooled row's p0 (for anchors absent from the survey with no p0 of their
+        # own): the anchors' p0 brought to one reference distance with the pooled gamma,
+        # P(d0') = p0 + 10 gamma lg(d0 / d0') (seed 002 eq. (5)), and averaged
+        d0_pool = float(np.median(d0_arr))
+        if p0 is None or isinstance(p0, Mapping):
+            gam = float(pool.b[0])
+            pooled_p0 = float(np.mean(p0_arr + 10.0 * gam * np.log10(d0_arr / d0_pool)))
+        else:
+            pooled_p0 = float(p0)
         table.insert(1, "p0", np.append(p0_arr, pooled_p0))
-        table["d0"] = d0
+        table["d0"] = np.append(d0_arr, d0_pool)
     else:
         table = _table(rows, {"p0": "a"})
-        table["d0"] = d0
+        table["d0"] = np.append(d0_arr, d0_arr[0])
     notes = _notes(per, ids, weight, 2 if slope else 1)
     return CalibrationResult(
         model=model, table=table, pooled=pooled,
@@ -628,6 +692,52 @@ def _check_determined(
             raise InputError(
                 f"{who}: cannot determine {slope}: fitted {slope} = {b:.3g} is not positive "
                 f"({why}; constant values?)", path)
+
+
+#: Largest plausible path-loss exponent ``n`` / ``gamma``.  Free space is 2; measured
+#: indoor and obstructed exponents stay below about 6 (Rappaport, Wireless
+#: Communications, table 4.2: 4-6 in obstructed buildings).  10 means 100 dB per decade
+#: of distance, beyond any propagation: such a fit is the survey's noise divided by a
+#: tiny spread of distances (3.000 and 3.003 m gave n = 461).
+MAX_EXPONENT = 10.0
+
+
+def _check_plausible(
+    survey: pd.DataFrame, per: LineFit, pool: LineFit, ids: list[str], model: str,
+    pooled: bool, p0_arr: Array, d0_arr: Array,
+) -> None:
+    """Refuse a path-loss fit the survey determines only on paper.
+
+    The fitted level at the reference distance (``A`` at 1 m, ``p0 + faf`` or the Friis
+    ``p0`` at ``d0``) is an RSSI, so it must lie within the physical RSSI limits of
+    :mod:`robustloc.io.limits` (-150 .. +30 dBm: no received power exceeds the +30 dBm
+    EIRP ceiling); the exponent must lie in ``(0, MAX_EXPONENT]``.  Checked for each
+    anchor with its own fit (unless ``pooled``) and for the pooled fit.
+    """
+    from robustloc.io.limits import limits_for
+
+    lim = limits_for("rssi")
+    slope = model != "friis"
+    level_name, at = {"log-distance": ("A", "1 m"),
+                      "attenuation-factor": ("p0 + faf", "d0"),
+                      "friis": ("p0", "d0")}[model]
+    exp_name = "n" if model == "log-distance" else "gamma"
+    own = (per.n_used > (2 if slope else 1)) & (not pooled)
+    check = [(f"anchor {ids[j]}", per.a[j] + p0_arr[j], per.b[j], d0_arr[j])
+             for j in np.flatnonzero(own)]
+    check += [("pooled fit", pool.a[0] + p, pool.b[0], d) for p, d in zip(p0_arr, d0_arr)]
+    for who, level, b, d0 in check:
+        where = "1 m" if at == "1 m" else f"d0 = {d0:g} m"
+        if not lim.check(level):
+            raise InputError(
+                f"{who}: fitted {level_name} = {level:.4g} dBm at {where} is implausible "
+                f"({lim.describe()}): the survey does not determine the path loss (too "
+                "small a spread of distances?)", survey.attrs.get("path"))
+        if slope and not b <= MAX_EXPONENT:
+            raise InputError(
+                f"{who}: fitted {exp_name} = {b:.4g} is implausible (a path-loss exponent "
+                f"lies in (0, {MAX_EXPONENT:g}]): the survey does not determine it (too "
+                "small a spread of distances?)", survey.attrs.get("path"))
 
 
 def _assemble(per: LineFit, pool: LineFit, ids: list[str], slope: bool) -> dict[str, Array]:
@@ -759,8 +869,22 @@ def survey_from_positions(
     ``time`` within ``time_tolerance_s``; unmatched rows are dropped (their count is in
     ``frame.attrs["n_unmatched"]``).  ``distance`` is 3-D when ``dim == 3`` or when both
     anchors and truth have ``z`` (``dim=None``), else horizontal.
+
+    Rows that cannot be fitted are dropped and counted, as ``locate`` sets them aside
+    (:func:`robustloc.io.read_measurements` keeps them on purpose):
+
+    * ``attrs["n_invalid"]``: a value outside the physical limits of
+      :mod:`robustloc.io.limits` (``invalid_measurement``; a survey file refuses them);
+    * ``attrs["n_zero_distance"]``: RSSI rows whose truth position is on the anchor
+      (distance 0, where a log-distance model has no value).
     """
+    from robustloc.io.limits import limits_for
+
     value = measurements.attrs.get("value") or ("rssi" if "rssi" in measurements else "range")
+    plausible = limits_for(value).check(measurements[value].to_numpy(dtype=float))
+    n_invalid = int((~plausible).sum())
+    if n_invalid:
+        measurements = measurements.loc[plausible]
     pos = _match_truth(measurements, truth, time_tolerance_s)
     ok = np.isfinite(pos[:, 0])
     meas = measurements.loc[ok] if not ok.all() else measurements
@@ -780,12 +904,17 @@ def survey_from_positions(
     if use3:
         az = a["z"].to_numpy(dtype=float)[ai] if "z" in a.columns else 0.0
         dist2 = dist2 + (az - pos[:, 2]) ** 2
+    dist = np.sqrt(dist2)
+    at_anchor = (dist <= 0) if value == "rssi" else np.zeros(len(dist), dtype=bool)
     out = pd.DataFrame(
-        {"anchor": meas["anchor"].astype(str).to_numpy(), "distance": np.sqrt(dist2),
-         value: meas[value].to_numpy(dtype=float)}
+        {"anchor": meas["anchor"].astype(str).to_numpy()[~at_anchor],
+         "distance": dist[~at_anchor], value: meas[value].to_numpy(dtype=float)[~at_anchor]},
+        index=meas.index[~at_anchor],
     )
     out.attrs["value"] = value
     out.attrs["n_unmatched"] = int((~ok).sum())
+    out.attrs["n_invalid"] = n_invalid
+    out.attrs["n_zero_distance"] = int(at_anchor.sum())
     out.attrs["path"] = measurements.attrs.get("path")
     return out
 

@@ -179,9 +179,28 @@ def _load_survey(settings: CalibrateSettings, survey: Any, anchors: pd.DataFrame
         refuse_duplicate_truth(tru)
         out = survey_from_positions(meas, tru, anchors,
                                     time_tolerance_s=settings.time_tolerance)
+        # rows outside the physical limits are set aside and counted, as `locate` and
+        # `stats` do with the same file (read_measurements keeps them on purpose; a
+        # SURVEY file, which holds nothing else, refuses them); so are RSSI rows whose
+        # truth is on the anchor (distance 0: no log-distance value there)
+        from robustloc.io.limits import limits_for
+
+        value = out.attrs["value"]
+        lim = limits_for(value).describe()
+        dropped = []
+        if out.attrs.get("n_invalid"):
+            dropped.append(f"{out.attrs['n_invalid']} measurement row(s) outside the "
+                           f"physical limits ({lim}; invalid_measurement)")
+        if out.attrs.get("n_zero_distance"):
+            dropped.append(f"{out.attrs['n_zero_distance']} RSSI row(s) with the truth "
+                           "position on the anchor (distance 0, where the path-loss "
+                           "models have no value)")
+        for d in dropped:
+            notes.append(f"{d} were not used")
         if len(out) == 0:
+            why = "; ".join(dropped)
             raise InputError(f"{_name(measurements)}: no measurement matches the truth by "
-                             "(time, tag)")
+                             "(time, tag)" + (f" and can be fitted ({why})" if why else ""))
         if out.attrs.get("n_unmatched"):
             notes.append(f"{out.attrs['n_unmatched']} measurement rows had no truth and "
                          "were not used")
@@ -201,16 +220,51 @@ def _from_survey(settings: CalibrateSettings, survey: Any, anchors: pd.DataFrame
     )
 
     notes: list[str] = []
+    default = CalibrateSettings()
+    if settings.time_tolerance != default.time_tolerance and measurements is None:
+        raise InputError("--time-tolerance applies to --measurements with --truth only (a "
+                         "SURVEY file has its distances already)")
     table = _load_survey(settings, survey, anchors, measurements, truth, notes)
     value = table.attrs.get("value") or ("rssi" if "rssi" in table.columns else "range")
+    # options that do not apply to this fit are refused, not silently ignored (as --self
+    # refuses the survey options); a default value is not "given"
+    given = {"--scale": settings.scale is not None,
+             "--d0": settings.d0 != default.d0, "--p0": settings.p0 != default.p0}
+    if value == "range":
+        wrong = [k for k in ("--d0", "--p0") if given[k]]
+        if settings.model != default.model:
+            wrong.insert(0, f"--model {settings.model}")
+        if wrong:
+            raise InputError(f"{', '.join(wrong)} applies to RSSI data (a path-loss model), "
+                             "but the survey holds ranges", table.attrs.get("path"))
+    else:
+        if given["--scale"]:
+            raise InputError("--scale is for range data", table.attrs.get("path"))
+        # friis takes d0 (its p0 is fitted); log-distance has neither
+        wrong = [k for k in ("--p0", "--d0") if given[k] and not (
+            settings.model == "attenuation-factor"
+            or (k == "--d0" and settings.model == "friis"))]
+        if wrong:
+            raise InputError(
+                f"{', '.join(wrong)} does not apply to --model {settings.model} (--p0 is "
+                "for attenuation-factor, --d0 for attenuation-factor and friis)",
+                table.attrs.get("path"))
     if value == "rssi":
         p0 = settings.p0 if settings.p0 is not None else default_p0_from_anchors(anchors)
+        d0 = _d0_with_p0(settings, table, anchors) if settings.p0 is None else settings.d0
         res = calibrate_pathloss(table, settings.model, robust=settings.robust,
-                                 pooled=settings.pooled, d0=settings.d0, p0=p0)
+                                 pooled=settings.pooled, d0=d0, p0=p0)
     else:
         res = calibrate_ranges(table, scale=bool(settings.scale), robust=settings.robust,
                                pooled=settings.pooled)
     out = res.apply_to_anchors(anchors)
+    absent = res.absent_anchors(anchors)
+    if absent:
+        kept = ("; each keeps the anchors file's own p0 and d0 where it has a p0"
+                if res.model == "attenuation-factor" and anchors is not None
+                and "p0" in anchors.columns else "")
+        notes.append(f"anchor(s) {', '.join(absent)} have no survey row: the pooled fit "
+                     f"was written to them (calib_source pooled{kept})")
     # the noise sigma written (and used by `locate` to weight the anchors): each anchor's
     # residual std, the pooled one with --pooled; 1e-6 m or dB is far below any physical
     # noise and above the rounding of an exact fit
@@ -221,9 +275,16 @@ def _from_survey(settings: CalibrateSettings, survey: Any, anchors: pd.DataFrame
     if bad.any():
         who = rows["anchor"].iloc[int(np.argmax(bad))]
         who = "pooled fit" if who == POOLED else f"anchor {who}"
+        why = "the fit is exact (zero residual)"
+        if "weight" in table.columns and not np.isfinite(sg[bad][0]):
+            # no residual degree of freedom: sum(weight) - parameters <= 0
+            why = ("the total weight of its rows is too small for the parameters (the "
+                   "'weight' column holds frequency weights, how many observations each "
+                   "row counts for, such as histogram counts; probabilities summing to 1 "
+                   "leave no degree of freedom)")
         raise InputError(
-            f"{who}: cannot determine sigma: the fit is exact (zero residual), so `locate` "
-            "could not weight the anchor", table.attrs.get("path"))
+            f"{who}: cannot determine sigma: {why}, so `locate` could not weight the "
+            "anchor", table.attrs.get("path"))
     how = f"robust ({res.robust})" if res.robust else "least squares"
     headline = (f"{res.model} fit, {how}, {len(table)} survey rows"
                 + (" (pooled fit written to every anchor)" if res.pooled else ""))
@@ -231,6 +292,33 @@ def _from_survey(settings: CalibrateSettings, survey: Any, anchors: pd.DataFrame
                "unit": res.unit, "parameters": _records(res.table),
                "notes": notes + list(res.notes)}
     return Calibration(out, res.table, res.unit, summary, headline, notes + list(res.notes))
+
+
+def _d0_with_p0(settings: CalibrateSettings, table: pd.DataFrame,
+                anchors: pd.DataFrame | None) -> float | dict[str, float]:
+    """The attenuation-factor ``d0``: the anchors file's own ``d0`` where its ``p0`` is
+    used (a p0 is a power at its own d0), else ``--d0``; an explicit ``--d0`` that
+    differs from the file's is refused."""
+    if (settings.model != "attenuation-factor" or anchors is None
+            or "p0" not in anchors.columns or "d0" not in anchors.columns):
+        return settings.d0
+    ids = anchors["anchor"].astype(str).to_numpy()
+    p0 = pd.to_numeric(anchors["p0"], errors="coerce").to_numpy(dtype=float)
+    d0 = pd.to_numeric(anchors["d0"], errors="coerce").to_numpy(dtype=float)
+    use = np.isfinite(p0) & np.isfinite(d0)
+    if not use.any():
+        return settings.d0
+    bad = use & ~(d0 > 0)
+    if bad.any():
+        raise InputError(f"anchor {ids[np.argmax(bad)]}: d0 must be positive, got "
+                         f"{d0[np.argmax(bad)]:g}", anchors.attrs.get("path"))
+    if settings.d0 != CalibrateSettings().d0 and np.any(d0[use] != settings.d0):
+        raise InputError(
+            f"--d0 {settings.d0:g} contradicts the anchors file's d0 "
+            f"({', '.join(f'{v:g}' for v in np.unique(d0[use]))}) that goes with its p0: "
+            "drop --d0, or give --p0 with it", anchors.attrs.get("path"))
+    own = dict(zip(ids[use], d0[use].tolist()))
+    return {a: own.get(a, settings.d0) for a in table["anchor"].astype(str).unique()}
 
 
 def _records(table: pd.DataFrame) -> list[dict[str, Any]]:
