@@ -32,7 +32,9 @@ def corridor(tmp_path_factory):
 def test_stats_truth_without_a_matching_tag_is_an_error_leaving_nothing(
         corridor, tmp_path, capsys):
     truth = pd.read_csv(corridor / "truth.csv")
-    truth["tag"] = "nosuchtag"
+    # (one new name per tag: all tags renamed to one name gave duplicate (time, tag)
+    # rows, refused first since read_truth checks them)
+    truth["tag"] = "nosuch_" + truth["tag"].astype(str)
     bad = tmp_path / "truth.csv"
     truth.to_csv(bad, index=False)
     out = tmp_path / "stats"
