@@ -11,6 +11,7 @@ from scipy import stats
 from robustloc.cli import main
 from robustloc.integrity import global_alpha, reliability
 from robustloc.integrity.montecarlo import (
+    MonteCarloNote,
     draw_trials,
     gnss_layout,
     ranging_layout,
@@ -79,8 +80,11 @@ def _snooping_reference(H, y, sigma, alpha0=0.001, beta0=0.10):
 def test_large_faults_identified_by_snooping_and_lege():
     lay = ranging_layout(ANCHORS, [8.0, 6.0], 0.3)
     n = 2000
-    df = run_montecarlo(lay, n_faults=1, size=8.0, trials=n,
-                        methods=("ls", "snooping", "lege", "hampel"), seed=5).set_index("method")
+    # redundancy 5 leaves LEGE (4 residual dof kept) one order, not the 3 asked: said so
+    with pytest.warns(MonteCarloNote, match="lege searches at most 1 gross error"):
+        df = run_montecarlo(lay, n_faults=1, size=8.0, trials=n,
+                            methods=("ls", "snooping", "lege", "hampel"),
+                            seed=5).set_index("method")
     # Expected identification, from the layout's reliability: with one fault of 8 MDB
     # (delta = 8 x 4.57 = 36.6 in w units) the faulty w-test is the largest unless a clean
     # one with correlation rho_ij overtakes it: P = Phi(-delta sqrt((1 - |rho_ij|) / 2)),
