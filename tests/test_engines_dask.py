@@ -916,9 +916,14 @@ def test_interrupt_while_the_local_cluster_starts_ends_cleanly(sim, tmp_path):
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
             # Ctrl-C's default action, whatever this process does with SIGINT
             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-        time.sleep(delay)
-        proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=120)
+        try:
+            time.sleep(delay)
+            proc.send_signal(signal.SIGINT)
+            _, err = proc.communicate(timeout=120)
+        finally:  # never leave the command (and its cluster) running
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
         codes.append(proc.returncode)
         assert proc.returncode in (0, 130), err
         assert "Traceback" not in err and "Exception ignored" not in err, (delay, err)
