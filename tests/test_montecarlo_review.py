@@ -9,9 +9,9 @@ import pytest
 
 from robustloc.cli import main
 from robustloc.errors import InputError
+from robustloc.estimators.linear import LEGE_MIN_DOF
 from robustloc.integrity.montecarlo import (
     MonteCarloNote,
-    _lege_min_dof,
     lege_note,
     lege_orders,
     ranging_layout,
@@ -117,7 +117,7 @@ def test_lege_order_cap_is_reported_and_help_states_the_default():
     assert lege_note(lay7, 3, nonlinear=True) is None
     from robustloc.commands import montecarlo as cmd
 
-    assert _lege_min_dof() == 4 and "at least 4 residual degrees of freedom" in cmd.DESCRIPTION
+    assert LEGE_MIN_DOF == 4 and "at least 4 residual degrees of freedom" in cmd.DESCRIPTION
 
 
 # --------------------------------------------------------------------------- D6

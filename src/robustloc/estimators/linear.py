@@ -312,6 +312,11 @@ def irls(
     )
 
 
+#: Residual degrees of freedom LEGE keeps by default (:func:`lege`, ``min_dof``): the
+#: order search stops ``LEGE_MIN_DOF`` short of the redundancy.
+LEGE_MIN_DOF = 4
+
+
 def lege(
     H: ArrayLike,
     y: ArrayLike,
@@ -319,7 +324,7 @@ def lege(
     *,
     rho_stop: float = 3.0,
     max_order: int | None = None,
-    min_dof: int = 4,
+    min_dof: int = LEGE_MIN_DOF,
     chunk: int = 4096,
 ) -> LinearFit:
     """LEGE: simultaneous location and estimation of several gross errors (seed 000 sec. 2.4).

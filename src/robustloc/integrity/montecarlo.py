@@ -65,6 +65,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from robustloc import status as st
 from robustloc.errors import InputError
+from robustloc.estimators.linear import LEGE_MIN_DOF
 from robustloc.integrity.bmethod import (
     ALPHA0,
     BETA0,
@@ -258,26 +259,17 @@ def check_fault_unit(
         )
 
 
-def _lege_min_dof() -> int:
-    """Residual degrees of freedom :func:`robustloc.estimators.linear.lege` keeps by
-    default (its ``min_dof``): the value ``robustloc locate`` runs LEGE with."""
-    import inspect
-
-    from robustloc.estimators.linear import lege
-
-    return int(inspect.signature(lege).parameters["min_dof"].default)
-
-
 def lege_orders(layout: Layout, lege_max_order: int = 3, nonlinear: bool = False) -> int:
     """Largest number of gross errors LEGE searches for on ``layout``.
 
     ``min(r - 1, r - min_dof)`` with ``r = n - p`` the redundancy and ``min_dof`` LEGE's
-    default (:func:`_lege_min_dof`), capped by ``lege_max_order`` on the linearized model
-    (the nonlinear runs use the :class:`~robustloc.estimators.ranging.Locator`'s own
-    setting, no cap).  0 means LEGE equals plain least squares on this layout.
+    default (:data:`robustloc.estimators.linear.LEGE_MIN_DOF`), capped by
+    ``lege_max_order`` on the linearized model (the nonlinear runs use the
+    :class:`~robustloc.estimators.ranging.Locator`'s own setting, no cap).  0 means LEGE
+    equals plain least squares on this layout.
     """
     r = layout.n - layout.p
-    k = max(min(r - 1, r - _lege_min_dof()), 0)
+    k = max(min(r - 1, r - LEGE_MIN_DOF), 0)
     return k if nonlinear else min(k, int(lege_max_order))
 
 
@@ -288,7 +280,7 @@ def lege_note(layout: Layout, lege_max_order: int = 3, nonlinear: bool = False) 
     redundancy ``r <= min_dof`` it searches no gross error at all and equals ``ls``; with
     ``r - min_dof < lege_max_order`` (linearized model) it searches fewer than asked.
     """
-    m = _lege_min_dof()
+    m = LEGE_MIN_DOF
     r = layout.n - layout.p
     k = lege_orders(layout, lege_max_order, nonlinear)
     if k == 0:
@@ -426,7 +418,7 @@ def _run_method(
         # trials, min_dof=2 19 % (4000 trials).  The Monte Carlo measures the method
         # robustloc ships (and --nonlinear's Locator keeps the default too), so it keeps
         # the guard and says where it binds (lege_note).
-        fit = linear.lege(H, y, w0, max_order=lege_max_order, min_dof=_lege_min_dof())
+        fit = linear.lege(H, y, w0, max_order=lege_max_order, min_dof=LEGE_MIN_DOF)
         ge = np.asarray(fit.extra.get("gross_errors", np.zeros(y.shape)))
         rej = np.nan_to_num(ge) != 0
     else:
