@@ -92,6 +92,8 @@ def test_map_page_shows_tags_where_the_api_says(tmp_path):
                 page.wait_for_function("window.robustloc && window.robustloc.ready "
                                        "&& window.robustloc.connected", timeout=30_000)
                 assert page.locator("path.anchor-marker").count() == 10
+                # the plan is fetched after the anchors are drawn (asynchronously)
+                page.wait_for_selector("#floorplan-image", state="attached", timeout=30_000)
                 assert page.locator("#floorplan-image").count() == 1
                 res = replay(str(short), srv.url, speed=20, token=token)
                 assert res["accepted"] == res["rows"]
@@ -261,6 +263,41 @@ def test_map_page_follows_a_tag_whose_clock_went_back(tmp_path):
             _wait_marker_x(page, "T", row["x"])
             trail = page.get_attribute('polyline.tag-trail[data-tag="T"]', "points")
             assert all(float(p.split(",")[0]) > 15 for p in trail.split()), trail
+    finally:
+        srv.stop()
+
+
+def test_map_page_retries_a_floor_plan_that_failed_to_load(tmp_path):
+    """The first request for the floor plan fails (a dropped connection): the page tries
+    again on its next resync instead of staying without its plan, and draws it once."""
+    extent = (-2.0, -2.0, 32.0, 12.0)
+    plan = tmp_path / "plan.png"
+    _floorplan(plan, extent)
+    srv = ServerProcess(["--anchors", str(_write_anchors(tmp_path / "a.csv")),
+                         "--floorplan", str(plan),
+                         "--floorplan-extent=" + ",".join(map(str, extent))])
+    fetched: list[str] = []
+    try:
+        srv.start()
+        with _Chromium() as browser:
+            page = browser.new_page(viewport={"width": 1280, "height": 720})
+
+            def first_fails(route):
+                fetched.append(route.request.url)
+                if len(fetched) == 1:
+                    route.abort("connectionreset")
+                else:
+                    route.continue_()
+
+            page.route("**/floorplan", first_fails)
+            page.goto(srv.url + "/")
+            _ready(page)
+            page.wait_for_selector("#floorplan-image", state="attached", timeout=30_000)
+            assert len(fetched) >= 2
+            assert page.locator("#floorplan-image").count() == 1
+            img = page.locator("#floorplan-image")
+            assert [float(img.get_attribute(k)) for k in ("x", "y", "width", "height")] == [
+                extent[0], -extent[3], extent[2] - extent[0], extent[3] - extent[1]]
     finally:
         srv.stop()
 
