@@ -48,7 +48,9 @@ Reads a measurements file (CSV or Parquet; any row order, sorted by time here) a
 its rows to a running service, one batch per time step (or --batch-rows rows), paced at
 --speed times real time (0: as fast as the server acknowledges). Every batch must be
 acknowledged (202); rejected rows are reported with their file line. The exit code is 0
-when every row was accepted, 1 when the server rejected some, 2 on a connection error.
+when every row was accepted, 1 when the server rejected some, 2 when the replay stopped:
+a connection error or an error answer (401, 413, 5xx, ...); the message then says how
+many rows the server had accepted before it stopped.
 
   robustloc replay meas.csv --url http://127.0.0.1:8080 --speed 10
   robustloc replay meas.csv --url http://127.0.0.1:8080 --speed 0 --transport ws
@@ -81,7 +83,22 @@ def _batches(times: np.ndarray, batch_rows: int | None) -> list[tuple[int, int]]
 def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
            transport: str = "http", batch_rows: int | None = None,
            progress: bool = False) -> dict:
-    """Send a log to a service; returns ``{rows, accepted, rejected: [...], seconds}``."""
+    """Send a log to a service.
+
+    Returns
+    -------
+    dict
+        ``{rows, accepted, n_rejected, rejected: [{line, error}], seconds}``: ``rejected``
+        lists the rows the server listed (at most
+        :data:`~robustloc.service.defaults.MAX_REJECTED_LISTED` per batch), ``n_rejected``
+        counts every rejected row.
+
+    Raises
+    ------
+    ReplayStopped
+        The connection failed or the server answered an error; ``accepted`` and ``sent``
+        say how far the replay got.
+    """
     import os
 
     from tqdm import tqdm
@@ -109,6 +126,8 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
     headers = {"Authorization": f"Bearer {token}"} if token else {}
     base = url.rstrip("/")
     accepted = 0
+    n_rejected = 0
+    sent = 0
     rejected: list[dict] = []
     t_start = time.monotonic()
     bar = tqdm(total=len(records), unit=" rows", disable=not progress, file=sys.stderr)
@@ -150,17 +169,34 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
             if status != 202:
                 raise RuntimeError(f"server answered {status}: {res.get('error', res)}")
             accepted += int(res["accepted"])
+            n_rejected += int(res.get("n_rejected", len(res["rejected"])))
+            sent = i1
             for r_ in res["rejected"]:
                 rejected.append({"line": int(lines[i0 + r_["index"]]), "error": r_["error"]})
             bar.update(i1 - i0)
+    except _transport_errors() as exc:
+        raise ReplayStopped(str(exc), accepted=accepted, sent=sent,
+                            rows=len(records)) from exc
     finally:
         bar.close()
         if conn is not None:
             conn.__exit__(None, None, None)
         else:
             client.close()
-    return {"rows": len(records), "accepted": accepted, "rejected": rejected,
-            "seconds": round(time.monotonic() - t_start, 3)}
+    return {"rows": len(records), "accepted": accepted, "n_rejected": n_rejected,
+            "rejected": rejected, "seconds": round(time.monotonic() - t_start, 3)}
+
+
+class ReplayStopped(RuntimeError):
+    """A replay that stopped before its end (connection error or an error answer).
+
+    Attributes ``accepted`` (rows the server accepted), ``sent`` (rows acknowledged,
+    accepted or rejected) and ``rows`` (rows in the log).
+    """
+
+    def __init__(self, message: str, *, accepted: int, sent: int, rows: int) -> None:
+        super().__init__(message)
+        self.accepted, self.sent, self.rows = accepted, sent, rows
 
 
 def _transport_errors() -> tuple[type[BaseException], ...]:
@@ -186,6 +222,10 @@ def run(args: argparse.Namespace) -> int:
         summary = replay(args.measurements, args.url, speed=args.speed, token=args.token,
                          transport=args.transport, batch_rows=args.batch_rows,
                          progress=not args.quiet and sys.stderr.isatty())
+    except ReplayStopped as exc:
+        print(f"error: {args.url}: {exc} (stopped after {exc.sent} of {exc.rows} rows; "
+              f"{exc.accepted} accepted)", file=sys.stderr)
+        return 2
     except _transport_errors() as exc:
         print(f"error: {args.url}: {exc}", file=sys.stderr)
         return 2
@@ -194,8 +234,12 @@ def run(args: argparse.Namespace) -> int:
         return 2
     print(f"{summary['accepted']} of {summary['rows']} rows accepted in "
           f"{summary['seconds']:.2f} s")
+    n_rej = summary["n_rejected"]
+    if n_rej:
+        print(f"{n_rej} rows rejected", file=sys.stderr)
     for r in summary["rejected"][:20]:
         print(f"  {args.measurements}:{r['line']}: {r['error']}", file=sys.stderr)
-    if len(summary["rejected"]) > 20:
-        print(f"  ... {len(summary['rejected']) - 20} more rejected rows", file=sys.stderr)
-    return 1 if summary["rejected"] else 0
+    if n_rej > 20:
+        print(f"  ... {n_rej - min(len(summary['rejected']), 20)} more rejected rows",
+              file=sys.stderr)
+    return 1 if n_rej else 0

@@ -1,0 +1,59 @@
+"""``robustloc replay`` against a real server: every rejected row is counted (the server
+lists at most MAX_REJECTED_LISTED per reply), and a replay that stops part-way says how
+many rows the server had accepted (exit 2)."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("starlette")
+pytest.importorskip("httpx")
+
+from robustloc.service.defaults import MAX_REJECTED_LISTED  # noqa: E402
+from robustloc.service.launch import ROBUSTLOC, ServerProcess  # noqa: E402
+
+ANCHORS = [("1", 0.0, 0.0), ("2", 10.0, 0.0), ("3", 0.0, 10.0), ("4", 10.0, 10.0)]
+
+
+def _anchors(path: Path) -> Path:
+    path.write_text("anchor,x,y\n" + "".join(f"{a},{x},{y}\n" for a, x, y in ANCHORS))
+    return path
+
+
+def _replay(log: Path, url: str, *extra: str) -> subprocess.CompletedProcess:
+    return subprocess.run([*ROBUSTLOC, "replay", str(log), "--url", url, "--speed", "0",
+                           *extra], capture_output=True, text=True, timeout=120)
+
+
+def test_replay_counts_every_rejected_row_of_a_large_batch(tmp_path):
+    n_bad = 3 * MAX_REJECTED_LISTED  # one time step: one batch, more than the server lists
+    log = tmp_path / "bad.csv"
+    log.write_text("time,tag,anchor,range\n"
+                   + "".join(f"0,T{k},99,5.0\n" for k in range(n_bad))  # unknown anchor
+                   + "".join(f"0,G,{a},5.0\n" for a, _, _ in ANCHORS))
+    with ServerProcess(["--anchors", str(_anchors(tmp_path / "a.csv"))]) as srv:
+        p = _replay(log, srv.url)
+    assert p.returncode == 1, p.stderr
+    assert p.stdout.strip().startswith(f"{len(ANCHORS)} of {n_bad + len(ANCHORS)} rows "
+                                       "accepted")
+    assert f"{n_bad} rows rejected" in p.stderr
+    assert f"... {n_bad - 20} more rejected rows" in p.stderr
+
+
+def test_replay_stopped_by_an_error_answer_says_how_far_it_got(tmp_path):
+    # three small time steps, then one whose body exceeds --max-body-bytes: 413
+    good = "".join(f"{t},T,{a},{5.0 + t}\n" for t in range(3) for a, _, _ in ANCHORS)
+    big = "".join(f"3,T{k},{ANCHORS[k % 4][0]},7.0\n" for k in range(400))
+    log = tmp_path / "log.csv"
+    log.write_text("time,tag,anchor,range\n" + good + big)
+    with ServerProcess(["--anchors", str(_anchors(tmp_path / "a.csv")),
+                        "--max-body-bytes", "4000"]) as srv:
+        p = _replay(log, srv.url)
+    assert p.returncode == 2, p.stderr
+    n_good, n = 3 * len(ANCHORS), 3 * len(ANCHORS) + 400
+    assert "413" in p.stderr
+    assert f"stopped after {n_good} of {n} rows; {n_good} accepted" in p.stderr
+    assert "Traceback" not in p.stderr
