@@ -223,10 +223,14 @@ def test_locate_dask_equals_single_process_row_for_row(sim, by_time, scheduler, 
     assert meta["hpl_histogram"]["huber"] == ref
 
 
-def test_locate_first_pass_on_the_workers_samples_as_one_process(sim, by_time, scheduler,
-                                                                 tmp_path, monkeypatch):
-    # a small cap makes the sampling step k = 8 (260 epochs, at most 40 kept), so the
-    # partitions' global offsets matter; the thread workers share the patched module
+@pytest.mark.parametrize("layout", ["by_time", "by_tag"])
+def test_locate_first_pass_on_the_workers_samples_as_one_process(sim, layout, scheduler,
+                                                                 tmp_path, monkeypatch,
+                                                                 request):
+    # a small cap makes the sampling step k = 8 (260 epochs, about 33 kept), so which
+    # epochs the partitions contribute matters (by tag: each partition holds every time,
+    # in an order of its own); the thread workers share the patched module
+    by_time = request.getfixturevalue(layout)
     import robustloc.pipelines.locate as loc
     from robustloc.engines import dask as engine
 

@@ -39,8 +39,8 @@ import time as _time
 import uuid
 from collections.abc import Callable, Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
 import pandas as pd
 
 from robustloc.engines.cluster import dask_client, gather_with_progress, submit_all
@@ -57,6 +57,9 @@ from robustloc.engines.dataset import (
     read_partition,
 )
 from robustloc.errors import InputError
+
+if TYPE_CHECKING:
+    from robustloc.pipelines.locate import LogSample
 
 #: Per-partition function of a tag-partitioned command: (validated measurements of one
 #: tag group, anchors, args) -> (output frame, integer counts summed over the groups).
@@ -321,7 +324,7 @@ def _count_task(part: Partition) -> int | None:
     return count_epochs(part)
 
 
-def _log_sample_task(settings: dict, part: Partition, offset: int, k: int) -> tuple:
+def _log_sample_task(settings: dict, part: Partition, k: int) -> LogSample:
     """``locate``'s :func:`~robustloc.pipelines.locate.log_sample_of` on one partition
     file."""
     from robustloc.io import read_anchors
@@ -332,7 +335,7 @@ def _log_sample_task(settings: dict, part: Partition, offset: int, k: int) -> tu
         path = materialize(part, tmp)
         try:
             return log_sample_of(LocateSettings.from_namespace(args),
-                                 read_anchors(args.anchors), path, offset, k)
+                                 read_anchors(args.anchors), path, k)
         except InputError as exc:
             if path != part.path:
                 raise InputError(exc.message, part.path, exc.line) from None
@@ -343,17 +346,23 @@ def _log_scales(client: object, args: argparse.Namespace, settings: dict,
                 plan: list[PartitionInfo]) -> dict:
     """``locate``'s first pass over the dataset, on the workers.
 
-    The log's noise scale is the whole dataset's: an even sample of its epochs (every
-    ``k``-th in the partitions' order), as the single-process first pass takes over one
-    file.  The sample is fixed by the epoch counts alone (``log_sample_step``), so (1) each
-    partition's epochs are counted quickly (runs of equal time and tag: exact for
-    ``robustloc partition``'s files), (2) each worker samples its partitions at their
-    global offsets and returns its validated count, and (3) the client fits the scale on
-    the stacked sample.  Should a validated count differ from the quick one, step (2) runs
-    again with the validated counts.  The result is the single-process one either way.
+    The log's noise scale is the whole dataset's: the sample of its epochs that the
+    single-process first pass takes (those whose ``epoch_hash`` is a multiple of the step
+    ``k``, in the canonical order time, tag), fixed by the epoch count alone
+    (``log_sample_step``).  So (1) each partition's epochs are counted quickly (runs of
+    equal time and tag: exact for ``robustloc partition``'s files), (2) each worker
+    samples its partitions with that ``k`` and returns its validated count, and (3) the
+    client joins the samples and fits the scale.  Should a validated count differ from
+    the quick one, step (2) runs again with the validated counts.  The result is the
+    single-process one either way, whatever the partitions' order.
     """
     from robustloc.io import read_anchors
-    from robustloc.pipelines.locate import LocateSettings, log_sample_step, log_scales_for
+    from robustloc.pipelines.locate import (
+        LocateSettings,
+        LogSample,
+        log_sample_step,
+        log_scales_for,
+    )
 
     locate_settings = LocateSettings.from_namespace(args)
     anchors = read_anchors(args.anchors)
@@ -362,20 +371,16 @@ def _log_scales(client: object, args: argparse.Namespace, settings: dict,
     for _ in range(2):
         if any(c is None for c in counts):
             break
-        offsets = np.r_[0, np.cumsum(counts)[:-1]].tolist()
         k = log_sample_step(sum(counts))
-        futs = submit_all(client, _log_sample_task,
-                          [(settings, i.part, int(off), k)
-                           for i, off in zip(plan, offsets)])
+        futs = submit_all(client, _log_sample_task, [(settings, i.part, k) for i in plan])
         res = gather_with_progress(client, futs, False)
-        if all(n == c for (_, _, n), c in zip(res, counts)):
-            kinds = [kind for kind, _, _ in res if kind is not None]
-            if not kinds:
+        if all(r.n_epochs == c for r, c in zip(res, counts)):
+            sample = LogSample.joined(res, len(anchors))
+            if sample.kind is None:
                 return {}
-            sample = np.vstack([v for _, v, _ in res])
-            return log_scales_for(locate_settings, anchors, [], sample=sample,
-                                  kind=kinds[0])
-        counts = [n for _, _, n in res]
+            return log_scales_for(locate_settings, anchors, [], sample=sample.values,
+                                  kind=sample.kind)
+        counts = [r.n_epochs for r in res]
     with tempfile.TemporaryDirectory(prefix="robustloc-") as tmp:  # pragma: no cover
         paths = [materialize(info.part, tmp) for info in plan]
         return log_scales_for(locate_settings, anchors, paths)

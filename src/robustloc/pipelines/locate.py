@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time as _time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -290,16 +290,97 @@ LOG_SAMPLE_CAP = 5_000
 
 
 def log_sample_step(n_epochs: int, cap: int | None = None) -> int:
-    """The first pass's sampling step ``k``: every ``k``-th epoch of the log (global epoch
-    index ``i`` with ``i % k == 0``) is kept, ``k`` the smallest power of two that keeps at
-    most ``2 cap`` of ``n_epochs`` (``ceil(n / k) <= 2 cap``).  The streamed first pass
-    reaches the same ``k`` by doubling as the log grows, whatever the chunks.  ``cap``:
-    default :data:`LOG_SAMPLE_CAP`."""
+    """The first pass's sampling step ``k``: the epochs whose :func:`epoch_hash` is a
+    multiple of ``k`` are kept, ``k`` the smallest power of two with ``ceil(n / k) <= 2
+    cap`` for a log of ``n_epochs`` epochs (about ``n / k`` of them are kept; all when
+    ``k = 1``).  ``cap``: default :data:`LOG_SAMPLE_CAP`."""
     cap = LOG_SAMPLE_CAP if cap is None else cap
     k = 1
     while -(-n_epochs // k) > 2 * cap:
         k *= 2
     return k
+
+
+def epoch_hash(time_s: np.ndarray, tags: Any) -> NDArray[np.uint64]:
+    """A 64-bit hash of each epoch's ``(time, tag)`` (pandas' ``hash_array``: the same in
+    every process and run).  The first pass samples epochs by it, not by their position
+    in the log, so that the sample -- and the noise scale, and every fix -- is the same
+    whatever the rows' order, the chunks (``--chunk-rows``: a time with more rows than a
+    chunk is streamed in the file's order), or the files a dataset is split into."""
+    h_time = pd.util.hash_array(np.asarray(time_s, dtype=np.float64) + 0.0)  # -0.0 as 0.0
+    h_tag = pd.util.hash_array(np.asarray(tags, dtype=object), categorize=True)
+    return pd.util.hash_array(h_time ^ (h_tag * np.uint64(0x9E3779B97F4A7C15)))
+
+
+def _kept(h: NDArray[np.uint64], k: int) -> NDArray[np.bool_]:
+    """Epochs of hash ``h`` in the sample of step ``k`` (a power of two: the samples of
+    larger steps are subsets of smaller steps', so a streamed pass can thin as it goes)."""
+    return (h & np.uint64(k - 1)) == 0
+
+
+@dataclass
+class LogSample:
+    """The first pass's sample of a log (or of one of its files): the kept epochs'
+    prepared values with their times and tags, and the epochs seen."""
+
+    kind: str | None
+    values: np.ndarray
+    time_s: np.ndarray
+    tags: np.ndarray
+    hashes: NDArray[np.uint64]
+    n_epochs: int
+
+    @classmethod
+    def empty(cls, m: int) -> LogSample:
+        return cls(None, np.empty((0, m)), np.empty(0), np.empty(0, dtype=object),
+                   np.empty(0, dtype=np.uint64), 0)
+
+    def thinned(self, k: int) -> LogSample:
+        """Only the epochs of the sample of step ``k``."""
+        sel = _kept(self.hashes, k)
+        return LogSample(self.kind, self.values[sel], self.time_s[sel], self.tags[sel],
+                         self.hashes[sel], self.n_epochs)
+
+    @classmethod
+    def joined(cls, parts: Sequence[LogSample], m: int) -> LogSample:
+        """The parts together, in the canonical order (time, then tag): the same sample
+        whatever the order of the files or of the rows in them."""
+        parts = [p for p in parts if len(p.values)] or [cls.empty(m)]
+        kinds = [p.kind for p in parts if p.kind is not None]
+        t = np.concatenate([p.time_s for p in parts])
+        g = np.concatenate([p.tags for p in parts])
+        order = np.asarray(pd.DataFrame({"t": t, "g": g.astype(str)}).sort_values(
+            ["t", "g"], kind="stable").index)
+        return cls(kinds[0] if kinds else None,
+                   np.vstack([p.values for p in parts])[order], t[order], g[order],
+                   np.concatenate([p.hashes for p in parts])[order],
+                   sum(p.n_epochs for p in parts))
+
+
+def _sample_blocks(settings: LocateSettings, anchors: pd.DataFrame,
+                   blocks: Iterator[tuple[Any, Any]], k_min: int = 1,
+                   cap: int | None = None) -> LogSample:
+    """Stream ``(source, block)`` pairs, keeping the epochs of the sample of step
+    ``max(k_min, log_sample_step(epochs seen so far))`` (memory: about ``2 cap`` epochs)."""
+    keep: list[LogSample] = []
+    kind, seen, k = None, 0, k_min
+    for src, block in blocks:
+        kind = block.value
+        seen += block.n_epochs
+        k = max(k, log_sample_step(seen, cap))
+        h = epoch_hash(block.time, block.tag)
+        sel = _kept(h, k)
+        keep.append(LogSample(kind, prepared_values(settings, anchors, block, src)[sel],
+                              np.asarray(block.time, dtype=float)[sel],
+                              np.asarray(block.tag, dtype=object)[sel], h[sel],
+                              block.n_epochs))
+        if sum(len(p.values) for p in keep) > 4 * (LOG_SAMPLE_CAP if cap is None else cap):
+            keep = [p.thinned(k) for p in keep]
+    if not keep:
+        return LogSample.empty(len(anchors))
+    out = LogSample.joined([p.thinned(k) for p in keep], len(anchors))
+    out.kind, out.n_epochs = kind, seen
+    return out
 
 
 def _epoch_major(frames: list[pd.DataFrame]) -> pd.DataFrame:
@@ -317,11 +398,13 @@ def _epoch_major(frames: list[pd.DataFrame]) -> pd.DataFrame:
 def fix_log_scale(settings: LocateSettings, geo: Geometry, sources: Sequence[Any],
                   order: str, cap: int | None = None) -> list[Any]:
     """First pass over the whole log: each locator's per-anchor noise scale and gross
-    share from an even sample of at most ``2 cap`` epochs (every ``k``-th epoch, ``k``
-    doubling as the log grows: :func:`log_sample_step`), so the scale, and every fix, is
-    the same whatever ``chunk_rows`` is.  ``sources``: the log's files (or frames) in
-    order (a partitioned dataset: several).  ``settings.log_scale_fixed`` (set by the Dask
-    engine, which computes it once for the whole dataset) is used as it is."""
+    share from a sample of about ``2 cap`` epochs at most (those whose
+    :func:`epoch_hash` is a multiple of :func:`log_sample_step`; every epoch of a log of
+    up to ``2 cap``), taken in the canonical order (time, tag), so the scale, and every
+    fix, is the same whatever ``chunk_rows``, the rows' order or the files' split.
+    ``sources``: the log's files (or frames; a partitioned dataset: several).
+    ``settings.log_scale_fixed`` (set by the Dask engine, which computes it once for the
+    whole dataset) is used as it is."""
     from robustloc.io import iter_epochs
 
     cap = LOG_SAMPLE_CAP if cap is None else cap
@@ -334,25 +417,12 @@ def fix_log_scale(settings: LocateSettings, geo: Geometry, sources: Sequence[Any
                         log_sides=(loc.log_sides if loc.log_sides is not None
                                    else sides.get(loc.method, ())))
                 if loc.robust_scale == "log" else loc for loc in geo.locators]
-    anchors = geo.anchors
-    k, seen, kept, idx = 1, 0, [], []
-    kind = None
     blocks = ((src, b) for src in sources for b in iter_epochs(
-        src, anchors, chunk_rows=settings.chunk_rows, order=order))
-    for src, block in blocks:
-        kind = block.value
-        gi = np.arange(seen, seen + block.n_epochs)
-        seen += block.n_epochs
-        sel = gi % k == 0
-        kept.append(prepared_values(settings, anchors, block, src)[sel])
-        idx.append(gi[sel])
-        while sum(len(i) for i in idx) > 2 * cap:
-            k *= 2
-            kept = [v[i % k == 0] for v, i in zip(kept, idx)]
-            idx = [i[i % k == 0] for i in idx]
-    if kind is None:
+        src, geo.anchors, chunk_rows=settings.chunk_rows, order=order))
+    sample = _sample_blocks(settings, geo.anchors, blocks, cap=cap)
+    if sample.kind is None:
         return geo.locators
-    return log_scales_from_sample(settings, geo, kind, np.vstack(kept), cap)
+    return log_scales_from_sample(settings, geo, sample.kind, sample.values, cap)
 
 
 def log_scales_from_sample(settings: LocateSettings, geo: Geometry, kind: str,
@@ -396,26 +466,22 @@ def log_sides_of(locator: Any, geo: Geometry, kind: str, sample: np.ndarray,
     return ambiguity_sides(sol, rm)
 
 
-def log_sample_of(settings: LocateSettings, anchors: pd.DataFrame, path: Any, offset: int,
-                  k: int) -> tuple[str | None, np.ndarray, int]:
-    """One file's share of the first pass when the log is split in files: its epochs
-    whose global index (``offset`` + index in the file) is a multiple of ``k``.
+def log_sample_of(settings: LocateSettings, anchors: pd.DataFrame, path: Any,
+                  k: int) -> LogSample:
+    """One file's share of the first pass when the log is split in files: its epochs in
+    the sample of step ``k`` (:func:`log_sample_step` of the whole log's epoch count).
 
-    Returns ``(kind, prepared values of those epochs, epochs in the file)``; the caller
-    stacks the files' samples in log order (the Dask engine, on the workers)."""
+    The caller joins the files' samples (:meth:`LogSample.joined`: the Dask engine, on
+    the workers' results) and checks each file's ``n_epochs`` against the count that
+    gave ``k``."""
     from robustloc.io import iter_epochs
     from robustloc.io.tables import UnsortedInput
 
-    def sample(order: str) -> tuple[str | None, np.ndarray, int]:
-        kind, seen, kept = None, 0, []
-        for block in iter_epochs(path, anchors, chunk_rows=settings.chunk_rows,
-                                 order=order):
-            kind = block.value
-            gi = offset + np.arange(seen, seen + block.n_epochs)
-            seen += block.n_epochs
-            kept.append(prepared_values(settings, anchors, block, path)[gi % k == 0])
-        m = len(anchors)
-        return kind, (np.vstack(kept) if kept else np.empty((0, m))), seen
+    def sample(order: str) -> LogSample:
+        blocks = ((path, b) for b in iter_epochs(path, anchors,
+                                                  chunk_rows=settings.chunk_rows,
+                                                  order=order))
+        return _sample_blocks(settings, anchors, blocks, k_min=k)
 
     try:
         return sample("auto")
