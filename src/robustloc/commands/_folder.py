@@ -17,7 +17,7 @@ from typing import TypeVar
 T = TypeVar("T")
 
 
-def write_folder(out: Path, write: Callable[[Path], T],
+def write_folder(out: str | os.PathLike, write: Callable[[Path], T],
                  inputs: Iterable[str | os.PathLike | None] = (),
                  owns: Iterable[str] = ()) -> T:
     """Write files into the folder ``out``, whole or not at all.
@@ -29,8 +29,9 @@ def write_folder(out: Path, write: Callable[[Path], T],
 
     Parameters
     ----------
-    out : Path
-        The output folder.
+    out : str or PathLike
+        The output folder, as the user named it: pass the text, not ``Path(text)``
+        (``Path("")`` is ``.``, so a blank name could no longer be told from ``.``).
     write : callable
         ``write(folder)`` writes the files (no sub-folders) into ``folder``.
     inputs : iterable of path, optional
@@ -52,8 +53,9 @@ def write_folder(out: Path, write: Callable[[Path], T],
     Raises
     ------
     InputError
-        ``out`` is a file; or ``OUT/NAME: output would overwrite an input`` (nothing
-        moved, ``out`` untouched).
+        ``out`` is empty or blank (``Path("")`` is the working folder, whose files would
+        be replaced); ``out`` is a file; or ``OUT/NAME: output would overwrite an input``
+        (nothing moved, ``out`` untouched).
     """
     import shutil
     import tempfile
@@ -63,6 +65,8 @@ def write_folder(out: Path, write: Callable[[Path], T],
 
     if str(out) == "-":  # (a folder named "-" was created)
         raise InputError("standard output cannot hold a folder of files: give a folder name")
+    if not str(out).strip():  # Path("") is "." (an unset $DIR): the files there replaced
+        raise InputError("--out: empty output name (give a folder name)")
     out = Path(out)
     inputs = [i for i in inputs if i is not None]
     if out.exists() and not out.is_dir():

@@ -26,7 +26,10 @@ The output is a measurements file with the same rows in the same order: 'rssi' h
 filtered value (so 'robustloc locate' runs on it unchanged), plus 'rssi_raw', 'distance'
 (m, the filtered RSSI through the anchor's path-loss model), 'distance_state' (the filter's
 own d, weakly observable from RSSI alone), 'speed' (m/s), 'weight' (D), 'innovation' (dB)
-and 'relocked'.  An RSSI outside -150 .. +30 dBm (robustloc.io.limits) is not fed to the
+and 'relocked'.  Rows of one link (tag, anchor) at the same time are one sample of the
+filter, their RSSI averaged as 'locate' averages them (counted in the summary): each keeps
+its own 'rssi_raw' and gets the merged sample's filtered values, whatever the row order.
+An RSSI outside -150 .. +30 dBm (robustloc.io.limits) is not fed to the
 filter, nor is a row whose time is beyond +-1e12 s: the row keeps the raw value in 'rssi'
 and 'rssi_raw' (so 'locate' sets it aside as on the raw file), 'distance' is empty,
 'distance_state' and 'speed' are the filter's prediction, and 'status' says
@@ -132,9 +135,12 @@ def filter_frame(meas, anchors, args: argparse.Namespace, progress: bool = False
                               progress=progress)
     frame = res.frame
     if late.any():
-        frame = frame.reindex(meas.index)
-        for c in ("time", "tag", "anchor"):
-            frame[c] = meas[c].to_numpy()
+        # the late rows back in their places with every input column (extra columns
+        # too: the output has the same rows), the filter's columns empty
+        import pandas as pd
+
+        pos = np.r_[np.flatnonzero(~late), np.flatnonzero(late)]
+        frame = pd.concat([frame, meas[late]]).iloc[np.argsort(pos, kind="stable")]
         frame["relocked"] = frame["relocked"].fillna(False).astype(bool)
     bad = bad | late
     if bad.any():
@@ -193,4 +199,7 @@ def run(args: argparse.Namespace) -> int:
         note = (" (RSSI outside -150 .. +30 dBm or time beyond +-1e12 s: not filtered)"
                 if s["invalid_measurement"] else "")
         print(f"invalid_measurement: {s['invalid_measurement']}{note}", file=dest)
+        if s.get("duplicates_merged"):  # (as locate reports them)
+            print(f"  {s['duplicates_merged']} duplicate rows (same time, tag and anchor) "
+                  "averaged", file=dest)
     return 0

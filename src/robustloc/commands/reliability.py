@@ -185,7 +185,7 @@ def run(args: argparse.Namespace) -> int:
         return [out / Path(m).name for m in maps]
 
     # an input named like an output (rel/reliability.csv as --anchors) is refused
-    pngs = write_folder(out, write, [args.anchors, args.candidates],
+    pngs = write_folder(args.out, write, [args.anchors, args.candidates],
                         owns=("reliability.csv", "suggestions.csv",
                               *(f"reliability_{c}.png" for c in MAPS)))
     t = grid.table

@@ -64,7 +64,8 @@ def run(args: argparse.Namespace) -> int:
 
     # whole or not at all; reads no file.  The files of every scenario: one an earlier run
     # left (another scenario's survey, blocked.csv of --disturbance) is named
-    files = write_folder(out, write, inputs=(),
+    # (the name as given: Path("") is ".", so the blank name is refused before Path)
+    files = write_folder(args.out, write, inputs=(),
                          owns=("anchors.csv", "measurements.csv", "survey.csv", "truth.csv",
                                "blocked.csv", "pseudoranges.csv"))
     if args.json:

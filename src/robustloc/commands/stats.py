@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     from robustloc.commands._folder import write_folder
 
     # a file of the folder that is an input (stats -o . on ./per_anchor.csv) is refused
-    write_folder(out, write, [args.measurements, args.anchors, args.truth],
+    write_folder(args.out, write, [args.measurements, args.anchors, args.truth],
                  owns=("per_anchor.csv", "per_bin.csv", "acf.csv", "histograms.png",
                        "autocorrelation.png", "summary.json"))
     if args.json:

@@ -87,18 +87,82 @@ def _q(name: str) -> str:
     return '"' + name.replace('"', '""') + '"'
 
 
+#: What :meth:`str.strip` strips (the readers' ids, :func:`robustloc.io.tables._ids`).
+_WHITESPACE = "".join(c for c in map(chr, range(0x110000)) if c.isspace())
+
+
+def _csv_headers(files: list[str]) -> list[list[str]]:
+    """Each CSV file's column names as the commands' reader takes them (stripped), after
+    the reader's checks of the header: a column named twice, a missing ``time``, ``tag``
+    or ``anchor`` (with the reader's hints: a name in other case, another separator), an
+    empty file or blank first line -- each ``FILE:1``."""
+    import pandas as pd
+
+    from robustloc.io.tables import (
+        _CSV_ERRORS,
+        _check_file,
+        _compression,
+        _csv_kwargs,
+        _empty_error,
+        _format,
+        _parser_error,
+        require_columns,
+    )
+
+    headers = []
+    for f in files:
+        p = _check_file(f)
+        fmt = _format(p, f)
+        if fmt == "parquet":  # (a Parquet file named .csv: DuckDB's scan says so)
+            continue
+        try:
+            _csv_kwargs(p, f, fmt, IDS)  # (refuses a duplicate column name)
+            names = [str(c).strip() for c in pd.read_csv(
+                p, nrows=0, skipinitialspace=True, index_col=False,
+                skip_blank_lines=False, compression=_compression(fmt)).columns]
+        except InputError:
+            raise
+        except pd.errors.EmptyDataError:
+            raise _empty_error(p, f, fmt) from None
+        except _CSV_ERRORS as exc:
+            raise _parser_error(exc, p, f, fmt) from None
+        if not names:  # a blank first line
+            raise _empty_error(p, f, fmt)
+        missing = [c for c in REQUIRED if c not in names]
+        if missing:  # partition's words, with the reader's hints (a rename, a separator)
+            try:
+                require_columns(pd.DataFrame(columns=names), REQUIRED, "measurements", f)
+            except InputError as exc:
+                said = (f"measurements file is missing column(s) {', '.join(missing)} "
+                        f"(has: {', '.join(names) or 'none'})")
+                hint = exc.message[len(said):] if exc.message.startswith(said) else ""
+                raise InputError(f"input is missing column(s) {', '.join(missing)} "
+                                 f"(has: {', '.join(names)}){hint}", f, 1) from None
+        headers.append(names)
+    return headers
+
+
 def _source(con, files: list[str], fmt: str, spec: str) -> tuple[str, list[str]]:
     """DuckDB's table function over the input and its column names; ids read as text.
 
-    A CSV column of :data:`NUMERIC` that DuckDB's sniffer did not type as a number (``inf``
-    is sniffed as an infinite DATE, a stray word as VARCHAR) is read as DOUBLE, so that
-    the check of :func:`_stats` sees numbers (or fails on the row that is not one).
+    A CSV is read in the commands' dialect, told, not sniffed: comma, double quote
+    (doubled inside a field), no comment lines, a header (its names stripped, checked by
+    :func:`_csv_headers`).  A row DuckDB cannot read (a ragged or garbage line) is
+    located by the commands' reader (:func:`_first_bad_row`).  Text ids are stripped as
+    the readers strip them, so ``T1`` and ``T1 `` are one tag.  A CSV column of
+    :data:`NUMERIC` that DuckDB's sniffer did not type as a number (``inf`` is sniffed as
+    an infinite DATE, a stray word as VARCHAR) is read as DOUBLE, so that the check of
+    :func:`_stats` sees numbers (or fails on the row that is not one).
     """
     import duckdb
 
     lst = "[" + ", ".join(_sql_str(f) for f in files) + "]"
     if fmt == "csv":
-        src = f"read_csv({lst}, header=true, union_by_name=true"
+        src = (f"read_csv({lst}, header=true, union_by_name=true, delim=',', quote='\"', "
+               "escape='\"', comment='', skip=0")
+        headers = _csv_headers(files)
+        if headers and all(h == headers[0] for h in headers):  # (" tag" is "tag")
+            src += ", names=[" + ", ".join(_sql_str(c) for c in headers[0]) + "]"
     else:
         src = f"read_parquet({lst}, union_by_name=true"
     try:
@@ -119,10 +183,11 @@ def _source(con, files: list[str], fmt: str, spec: str) -> tuple[str, list[str]]
         except duckdb.Error as exc2:
             raise InputError(f"cannot read: {str(exc2).splitlines()[0]}", spec) from None
     names = [r[0] for r in described]
+    replace = []
     if fmt != "csv" and "time" in names:
         seconds = _parquet_time_seconds(files, spec)
         if seconds is not None:
-            return f"(SELECT * REPLACE ({seconds} AS time) FROM {src}))", names
+            replace.append(f"{seconds} AS time")
     if fmt == "csv":
         types = {c: "VARCHAR" for c in IDS if c in names}
         types.update({r[0]: "DOUBLE" for r in described
@@ -130,6 +195,11 @@ def _source(con, files: list[str], fmt: str, spec: str) -> tuple[str, list[str]]
         if types:
             src += ", types={" + ", ".join(f"{_sql_str(c)}: {_sql_str(t)}"
                                            for c, t in types.items()) + "}"
+    text_ids = [r[0] for r in described if r[0] in IDS
+                and (fmt == "csv" or str(r[1]).upper() == "VARCHAR")]
+    replace += [f"trim({_q(c)}, {_sql_str(_WHITESPACE)}) AS {_q(c)}" for c in text_ids]
+    if replace:
+        return f"(SELECT * REPLACE ({', '.join(replace)}) FROM {src}))", names
     return src + ")", names
 
 
@@ -237,6 +307,8 @@ def partition_dataset(
         raise ValueError("--rows-per-partition must be >= 1 and --buckets >= 0")
     from robustloc.engines.dask import input_paths
 
+    if not str(out).strip():  # Path("") is ".": the working folder would be replaced
+        raise InputError("--out: empty output name (give a dataset directory name)")
     t0 = _time.perf_counter()
     files, fmt = _inputs(source)
     # the output replaces a whole directory: never one that is, holds or lies in an input
@@ -431,8 +503,11 @@ def _dask(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, sche
     from robustloc.engines.cluster import dask_client
 
     with dask_client(scheduler, workers):
-        if fmt == "csv":
-            ddf = dd.read_csv(files, dtype={"tag": str, "anchor": str}, blocksize="64MB")
+        if fmt == "csv":  # (the ids stripped as the readers strip them)
+            ddf = dd.read_csv(files, dtype={"tag": str, "anchor": str}, blocksize="64MB",
+                              skipinitialspace=True)
+            ddf = ddf.rename(columns={c: str(c).strip() for c in ddf.columns})
+            ddf = ddf.assign(**{c: ddf[c].str.strip() for c in IDS if c in ddf.columns})
         else:
             ddf = dd.read_parquet(files, split_row_groups=True)  # a task per row group
         missing = [c for c in REQUIRED if c not in ddf.columns]

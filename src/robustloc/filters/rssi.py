@@ -321,6 +321,39 @@ class StepLayout:
         return np.where(np.isfinite(dt), dt, 0.0)
 
 
+def _merge_same_time(
+    link: NDArray[np.int64], t: Array, z: Array,
+) -> tuple[NDArray[np.int64] | None, NDArray[np.int64], Array, Array, int]:
+    """Samples of one link at one time merged into one, whatever their input order.
+
+    Returns ``(group, link_g, t_g, z_g, n_dup)``: the merged sample of each input sample
+    (None when no two samples share a link and a time: the inputs are returned as they
+    are), the merged samples' link, time and value (the mean of the finite values, NaN
+    if none), and the number of finite values beyond the first of each merged sample.
+    The values of a merged sample are summed in value order, so its mean does not depend
+    on the input order even in the last bit.
+    """
+    n = link.size
+    if n < 2:
+        return None, link, t, z, 0
+    order = np.lexsort((z, t, link))
+    sl, st, sz = link[order], t[order], z[order]
+    first = np.r_[True, (np.diff(sl) != 0) | (st[1:] != st[:-1])]
+    if first.all():
+        return None, link, t, z, 0
+    g_sorted = np.cumsum(first) - 1
+    n_g = int(g_sorted[-1]) + 1
+    ok = np.isfinite(sz)
+    sums = np.bincount(g_sorted[ok], weights=sz[ok], minlength=n_g)
+    counts = np.bincount(g_sorted[ok], minlength=n_g)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z_g = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
+    group = np.empty(n, dtype=np.int64)
+    group[order] = g_sorted
+    n_dup = int(np.sum(np.maximum(counts - 1, 0)))
+    return group, sl[first], st[first], z_g, n_dup
+
+
 # ---------------------------------------------------------------------------------------
 # The filter
 # ---------------------------------------------------------------------------------------
@@ -357,6 +390,16 @@ class RssiFilterResult:
     relocked: NDArray[np.bool_]
     extra: dict = field(default_factory=dict)
     restarted: NDArray[np.bool_] | None = None
+
+    def take(self, index: ArrayLike) -> RssiFilterResult:
+        """The per-sample result of samples ``index`` (of a per-sample result)."""
+        i = np.asarray(index, dtype=np.int64)
+        return RssiFilterResult(
+            self.rssi_dbm[i], self.distance_m[i], self.speed_mps[i], self.rssi_var_db2[i],
+            self.innovation_db[i], self.standardized[i], self.scale_db[i], self.weight[i],
+            self.relocked[i], dict(self.extra),
+            None if self.restarted is None else self.restarted[i],
+        )
 
     def gather(self, layout: StepLayout) -> RssiFilterResult:
         """The same result per sample (input order) from the ``(T, L)`` layout."""
@@ -542,6 +585,13 @@ class RobustRssiFilter:
         Returns per-sample results in the input order.  Non-finite RSSI values are
         missing measurements (prediction only, weight NaN).  ``progress`` shows a bar on
         stderr when it is a terminal.
+
+        Samples of one link at the same time are one sample, their finite values averaged
+        (as :func:`robustloc.io.to_epochs` merges an epoch's duplicates for ``locate``):
+        each gets that merged sample's result, whatever their order in the input (ranked
+        by input order, their filtered values depended on which came first).  How many
+        were merged is ``extra["duplicates_merged"]`` (finite values beyond the first of
+        each time and link).
         """
         link = np.asarray(link, dtype=np.int64)
         t = np.asarray(time_s, dtype=float)
@@ -552,11 +602,16 @@ class RobustRssiFilter:
             raise ValueError("link indices must be >= 0")
         if not np.all(np.isfinite(t)):
             raise ValueError("time_s must be finite")
-        layout = StepLayout.build(link, t)
+        group, link_g, t_g, z_g, n_dup = _merge_same_time(link, t, z)
+        layout = StepLayout.build(link_g, t_g)
         if params is None:
             params = LinkParams.broadcast(layout.n_links)
-        res = self.run(layout.scatter(z), layout.intervals(t), params, progress=progress)
-        return res.gather(layout)
+        res = self.run(layout.scatter(z_g), layout.intervals(t_g), params,
+                       progress=progress).gather(layout)
+        if group is not None:
+            res = res.take(group)
+        res.extra["duplicates_merged"] = n_dup
+        return res
 
     def run(
         self, rssi_dbm: ArrayLike, dt_s: ArrayLike, params: LinkParams, progress: bool = False
@@ -765,7 +820,11 @@ class FilteredTable:
     inverse of the link's path-loss model, eq. (5) -- what positioning uses),
     ``distance_state`` (the filter's own ``d``, see the module docstring on its weak
     observability), ``speed`` (radial speed state, m/s), ``weight`` (equivalent weight
-    ``D``), ``innovation`` (dB) and ``relocked``.  ``summary`` holds the counts.
+    ``D``), ``innovation`` (dB) and ``relocked``.  Rows of one link at one time are one
+    sample of the filter (their RSSI averaged, as ``locate`` averages an epoch's
+    duplicates): each such row has the merged sample's filtered columns and its own
+    ``rssi_raw``.  ``summary`` holds the counts (``duplicates_merged``: rows merged
+    into another's sample).
     """
 
     frame: object
@@ -813,6 +872,7 @@ def filter_measurements(
     out["innovation"] = res.innovation_db
     out["relocked"] = res.relocked
     w = res.weight[np.isfinite(res.innovation_db)]
+    diff = (out["rssi_raw"] - out["rssi"]).to_numpy(dtype=float)
     summary = {
         "filter": filt.name,
         "samples": int(len(m)),
@@ -821,7 +881,9 @@ def filter_measurements(
         "rejected": int(np.sum(w == 0)),
         "relocked": int(res.relocked.sum()),
         "restarted": int(0 if res.restarted is None else res.restarted.sum()),
+        "duplicates_merged": int(res.extra.get("duplicates_merged", 0)),
         "share_downweighted": float(np.mean(w < 1)) if w.size else 0.0,
-        "raw_minus_filtered_std_db": float(np.nanstd(out["rssi_raw"] - out["rssi"])),
+        "raw_minus_filtered_std_db": (float(np.nanstd(diff)) if np.isfinite(diff).any()
+                                      else float("nan")),
     }
     return FilteredTable(out, summary)

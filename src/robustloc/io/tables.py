@@ -406,17 +406,112 @@ def _quoted_newlines(df: pd.DataFrame) -> np.ndarray | None:
     return counts
 
 
+#: Bytes read at a time by the scan for line breaks in quoted fields.
+_SCAN_BLOCK = 1 << 20
+#: Record breaks of a file whose records each take one line.
+_NO_BREAKS: tuple[NDArray[np.int64], NDArray[np.int64]] = (
+    np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+
+
+def _csv_bytes(p: Path, fmt: str):
+    """The file's text as bytes, decompressed as pandas reads it (gzip found by content,
+    other compressions by the extension): a handle whose ``.handle`` is a binary stream."""
+    from pandas.io.common import get_handle
+
+    return get_handle(p, "rb", compression=_compression(fmt), is_text=False)
+
+
+def _may_break_in_quotes(p: Path, fmt: str) -> bool:
+    """Whether a line break byte may lie inside a quoted field: one after an odd number of
+    ``"`` bytes (a doubled ``""`` inside a field counts two).  False for a file without
+    any ``"`` after one fast pass; a stray quote inside an unquoted field may answer True
+    wrongly, never False wrongly."""
+    odd = 0
+    with _csv_bytes(p, fmt) as h:
+        while True:
+            block = h.handle.read(_SCAN_BLOCK)
+            if not block:
+                return False
+            if not odd and b'"' not in block:
+                continue
+            a = np.frombuffer(block, dtype=np.uint8)
+            quotes = np.flatnonzero(a == 34)
+            breaks = np.flatnonzero((a == 10) | (a == 13))
+            # the quotes before each break: odd (with the blocks before) = inside one
+            if np.any((np.searchsorted(quotes, breaks) + odd) & 1):
+                return True
+            odd = (odd + quotes.size) & 1
+
+
+def _record_breaks(
+    p: Path, fmt: str
+) -> tuple[NDArray[np.int64], NDArray[np.int64]] | None:
+    """Line breaks inside the quoted fields of each data record, counted on the file's
+    text (any column: a number such as ``"5\n"`` is read as 5 and its break was lost).
+
+    Returns ``(records, extra)``: the 0-based data records (the record after the header
+    is 0; a blank line is a record, as pandas reads it) that span more than one line, and
+    how many lines each spans beyond its first; empty arrays when every record takes one
+    line (one fast pass over a file without quotes).  None when the text cannot be
+    scanned (the CSV reader then reports the file's fault, or the breaks are counted in
+    the text columns).
+    """
+    import csv
+    import io
+
+    try:
+        if not _may_break_in_quotes(p, fmt):
+            return _NO_BREAKS
+        recs: list[int] = []
+        extra: list[int] = []
+        with _csv_bytes(p, fmt) as h:
+            fh = io.TextIOWrapper(h.handle, encoding="utf-8", errors="replace", newline="")
+            # (skipinitialspace as the reader's: `, "5` opens a quoted field)
+            reader = csv.reader(fh, skipinitialspace=True)
+            prev = 0
+            for rec, _ in enumerate(reader, start=-1):
+                k = reader.line_num - prev - 1
+                if k > 0 and rec >= 0:
+                    recs.append(rec)
+                    extra.append(k)
+                prev = reader.line_num
+    except (OSError, EOFError, ValueError, csv.Error):
+        return None
+    return np.asarray(recs, dtype=np.int64), np.asarray(extra, dtype=np.int64)
+
+
+def _extra_lines(
+    breaks: tuple[NDArray[np.int64], NDArray[np.int64]], first_record: int, n: int
+) -> NDArray[np.int64] | None:
+    """Lines beyond the first of records ``first_record .. first_record + n - 1`` (None
+    when each takes one), from :func:`_record_breaks`."""
+    recs, extra = breaks
+    lo, hi = np.searchsorted(recs, [first_record, first_record + n])
+    if lo == hi:
+        return None
+    out = np.zeros(n, dtype=np.int64)
+    out[recs[lo:hi] - first_record] = extra[lo:hi]
+    return out
+
+
 def _finish_frame(
-    df: pd.DataFrame, path: PathLike, first_line: int, *, text: bool = False
+    df: pd.DataFrame, path: PathLike, first_line: int, *, text: bool = False,
+    breaks: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None,
+    first_record: int = 0,
 ) -> tuple[pd.DataFrame, int]:
     """Name the index by source line, strip column names, drop blank lines.
 
     Returns the frame and the line after its last row.  With ``text`` (a CSV file) a record
-    whose quoted field holds line breaks takes as many lines as it spans.
+    whose quoted field holds line breaks takes as many lines as it spans: by ``breaks``
+    (:func:`_record_breaks` of the file; ``first_record`` is the frame's first record),
+    else by the breaks found in the frame's text columns.
     """
     df.columns = [str(c).strip() for c in df.columns]
     _check_header(df.columns, path)
-    extra = _quoted_newlines(df) if text else None
+    extra = None
+    if text:
+        extra = (_quoted_newlines(df) if breaks is None
+                 else _extra_lines(breaks, first_record, len(df)))
     if extra is None:
         df.index = pd.RangeIndex(first_line, first_line + len(df), name="line")
         next_line = first_line + len(df)
@@ -483,7 +578,7 @@ def _read_raw(path: PathLike, str_columns: Sequence[str] = ()) -> pd.DataFrame:
         raise _empty_error(p, path, fmt) from None
     except _CSV_ERRORS as exc:
         raise _parser_error(exc, p, path, fmt) from None
-    return _finish_frame(df, path, 2, text=True)[0]
+    return _finish_frame(df, path, 2, text=True, breaks=_record_breaks(p, fmt))[0]
 
 
 def _iter_raw(
@@ -523,13 +618,18 @@ def _iter_raw(
         return
     try:
         line = 2
+        record = 0
         with _RaggedGuard(p, path, fmt) as guard:
             reader = pd.read_csv(p, chunksize=chunk_rows,
                                  **_csv_kwargs(p, path, fmt, str_columns))
+            breaks = _record_breaks(p, fmt)
             with reader:
                 for df in reader:
                     guard.check()
-                    df, line = _finish_frame(df, path, line, text=True)
+                    n = len(df)
+                    df, line = _finish_frame(df, path, line, text=True, breaks=breaks,
+                                             first_record=record)
+                    record += n
                     yield df
     except InputError:
         raise
@@ -740,7 +840,8 @@ def validate_anchors(df: pd.DataFrame, path: PathLike | None = None) -> pd.DataF
     for c in ("x", "y", "z"):
         if c in df.columns:
             _numeric(df, c, path)
-    for c in ANCHOR_PARAM_COLUMNS:
+    # (sigma too: text there was read as "no sigma", the anchors silently unweighted)
+    for c in (*ANCHOR_PARAM_COLUMNS, "sigma"):
         if c in df.columns:
             _numeric(df, c, path, allow_nan=True)
     # parameters that only make sense positive: a path-loss exponent, a range scale, a
@@ -794,9 +895,9 @@ def read_anchors(path: PathLike) -> pd.DataFrame:
     DataFrame
         ``anchor`` (str), ``x, y[, z]`` (float, metres, finite), and when present the
         path-loss columns ``A, n`` (log-distance, seed 000 eq. (1)), ``p0, gamma, faf, d0``
-        (attenuation factor, seed 002 eq. (5)) and the range calibration ``bias, scale``
-        (float; an empty value is NaN, meaning "not set for this anchor").  Extra columns
-        are kept.  Index: source line.
+        (attenuation factor, seed 002 eq. (5)), the range calibration ``bias, scale``
+        and the a-priori ``sigma`` (float; an empty value is NaN, meaning "not set for
+        this anchor"; text is an error).  Extra columns are kept.  Index: source line.
 
     Raises
     ------
