@@ -33,7 +33,21 @@ Durability (--store DIR): every accepted row is synced to a write-ahead log befo
 logs are sealed into Parquet segments (DIR/measurements/*.parquet, DIR/positions/*.parquet).
 After a crash (even kill -9) and a restart on the same DIR, nothing acknowledged is lost
 and each tag resumes where it stopped. Without --store the service keeps everything in
-memory (a warning says so).
+memory (a warning says so). One service per store: the service locks DIR/.lock while it
+runs, and a second one on the same DIR exits with an error (2) before serving. A body the
+store cannot write (disk full) is answered 507 and nothing of it is stored (counted as
+store_error in /metrics): send it again later. A damaged store file (meta.json, a Parquet
+segment) is named in the error at start-up.
+
+MQTT with --store: the service connects with a stable client id (--mqtt-client-id; by
+default robustloc- and a hash of the store's absolute path) and a persistent session,
+subscribed with QoS 1, so the broker queues the messages published while the service is
+down (restart, upgrade) and delivers them when it is back. A message is acknowledged only
+once its rows are stored; one the store cannot write is delivered again later.
+
+Shutdown (SIGTERM, SIGINT): requests in progress get up to --shutdown-grace seconds
+(default 5) to finish, then they are cancelled (a client still sending a body gets no 202:
+nothing of that body is stored).
 
 Security: binds 127.0.0.1 unless --host says otherwise; --token (or ROBUSTLOC_TOKEN)
 guards ingest and reads (Authorization: Bearer TOKEN; WebSockets may use ?token=);
@@ -44,6 +58,11 @@ body size (--max-body-bytes) and per-client rate (--rate-limit) limits; CORS off
   robustloc serve --anchors anchors.csv --method igg --latency-window 0.2 --mqtt 127.0.0.1:1883
   ROBUSTLOC_TOKEN=secret robustloc serve --anchors a.csv --host 0.0.0.0 --floorplan plan.png \\
       --floorplan-extent 0,0,40,25"""
+
+
+#: Seconds requests in progress get to finish at shutdown (uvicorn's graceful timeout):
+#: a client that sent half a body kept the service alive for --body-timeout (60 s).
+DEFAULT_SHUTDOWN_GRACE_S = 5.0
 
 
 def _extent(text: str) -> tuple[float, float, float, float]:
@@ -147,6 +166,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mqtt-topic", default="robustloc/measurements/#",
                    help="MQTT topic filter (default robustloc/measurements/#); payload: a "
                         "JSON array or NDJSON of rows, as POST /api/measurements")
+    p.add_argument("--mqtt-client-id", default=None, metavar="ID",
+                   help="MQTT client id (default with --store: robustloc- and a hash "
+                        "of the store's absolute path, so the broker keeps the service's "
+                        "session and queues messages while it is down; without --store a "
+                        "random id and a clean session)")
     p.add_argument("--floorplan", default=None, metavar="IMAGE",
                    help="floor-plan image shown under the map")
     p.add_argument("--floorplan-extent", type=_extent, default=None,
@@ -162,6 +186,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rate-limit", type=positive_float, default=DEFAULT_RATE_LIMIT_ROWS,
                    metavar="ROWS_PER_S",
                    help=f"ingest rows/s per client address (default {DEFAULT_RATE_LIMIT_ROWS:g})")
+    p.add_argument("--shutdown-grace", type=positive_float, default=DEFAULT_SHUTDOWN_GRACE_S,
+                   metavar="S",
+                   help="seconds requests in progress get to finish at SIGTERM/SIGINT, then "
+                        "they are cancelled (a body still arriving is not stored; default "
+                        f"{DEFAULT_SHUTDOWN_GRACE_S:g}, under a container's usual 10 s)")
     p.add_argument("--cors-origin", action="append", default=[],
                    help="allow this browser origin (repeatable; default: CORS off)")
     p.add_argument("--log-level", default="warning",
@@ -173,7 +202,6 @@ def build(args: argparse.Namespace):
     from robustloc.errors import InputError
     from robustloc.io import read_anchors
     from robustloc.service.app import ServiceConfig, create_app
-    from robustloc.service.engine import Engine
     from robustloc.service.processor import LocateProcessor, TrackProcessor
 
     anchors = read_anchors(args.anchors)
@@ -229,27 +257,109 @@ def build(args: argparse.Namespace):
         raise
     except ValueError as exc:
         raise InputError(str(exc), args.anchors) from None
+    lock = _lock_store(args.store)
     try:
-        engine = Engine(anchors, processor, store_dir=args.store,
-                        latency_window_s=args.latency_window, idle_flush_s=args.idle_flush,
-                        time_jump_s=args.time_jump, value=value)
-    except ValueError as exc:  # --value the anchors cannot locate, or a store of another
-        raise InputError(str(exc), args.anchors) from None
-    mqtt = None
-    if args.mqtt is not None:
-        from robustloc.service.mqtt import MqttIngest
+        engine = _open_engine(args, anchors, processor, value)
+        mqtt = None
+        if args.mqtt is not None:
+            from robustloc.service.mqtt import MqttIngest, client_id_for_store
 
-        mqtt = MqttIngest(engine, args.mqtt[0], args.mqtt[1], args.mqtt_topic,
-                          max_payload_bytes=args.max_body_bytes)
-    token = args.token if args.token is not None else os.environ.get("ROBUSTLOC_TOKEN")
-    cfg = ServiceConfig(
-        token=token or None, max_body_bytes=args.max_body_bytes,
-        body_timeout_s=args.body_timeout,
-        rate_limit_rows=args.rate_limit, cors_origins=tuple(args.cors_origin),
-        floorplan=None if args.floorplan is None else Path(args.floorplan),
-        floorplan_extent=args.floorplan_extent, mqtt=mqtt,
-    )
-    return engine, cfg, create_app(engine, cfg)
+            client_id = args.mqtt_client_id
+            if client_id is None and args.store is not None:
+                client_id = client_id_for_store(args.store)
+            mqtt = MqttIngest(engine, args.mqtt[0], args.mqtt[1], args.mqtt_topic,
+                              max_payload_bytes=args.max_body_bytes,
+                              client_id=client_id or "",
+                              persistent=bool(client_id) and args.store is not None)
+        token = args.token if args.token is not None else os.environ.get("ROBUSTLOC_TOKEN")
+        cfg = ServiceConfig(
+            token=token or None, max_body_bytes=args.max_body_bytes,
+            body_timeout_s=args.body_timeout,
+            rate_limit_rows=args.rate_limit, cors_origins=tuple(args.cors_origin),
+            floorplan=None if args.floorplan is None else Path(args.floorplan),
+            floorplan_extent=args.floorplan_extent, mqtt=mqtt, store_lock=lock,
+        )
+        return engine, cfg, create_app(engine, cfg)
+    except BaseException:
+        if lock is not None:
+            lock.release()
+        raise
+
+
+def _lock_store(store: str | None):
+    """The store's lock (``DIR/.lock``, held for the service's life), or None without a
+    store.  Taken before the store is opened: opening seals the logs it finds, and two
+    services on one store lost the first one's acknowledged rows."""
+    from robustloc.errors import InputError
+    from robustloc.service.store import StoreError, StoreLock
+
+    if store is None:
+        return None
+    try:
+        return StoreLock(store, what="server")
+    except StoreError as exc:
+        raise InputError(exc.message, exc.path) from None
+
+
+def _open_engine(args: argparse.Namespace, anchors, processor, value: str | None):
+    """The :class:`Engine`, its start-up errors named by the file they concern: a damaged
+    store file by that file (they were all named the anchors file)."""
+    import json
+    import pickle
+
+    import pyarrow as pa
+
+    from robustloc.errors import InputError
+    from robustloc.service.engine import Engine
+    from robustloc.service.store import StoreError
+
+    store = None if args.store is None else Path(args.store)
+    if store is not None:
+        _check_meta(store / "meta.json")
+    try:
+        return Engine(anchors, processor, store_dir=args.store,
+                      latency_window_s=args.latency_window, idle_flush_s=args.idle_flush,
+                      time_jump_s=args.time_jump, value=value)
+    except StoreError as exc:  # in use, or a damaged segment: named by its file
+        raise InputError(exc.message, exc.path) from None
+    except (pickle.UnpicklingError, EOFError, AttributeError, ImportError) as exc:
+        if store is None:
+            raise
+        raise InputError(f"damaged tracker snapshot ({type(exc).__name__}: {exc}); move it "
+                         "aside to start the tracks anew",
+                         store / "state" / "processor.pkl") from None
+    except pa.ArrowException as exc:  # a segment whose footer reads but whose data do not
+        if store is None:
+            raise
+        raise InputError(f"damaged store: {exc}", store) from None
+    except json.JSONDecodeError as exc:
+        raise InputError(f"damaged store metadata (not JSON: {exc})",
+                         store / "meta.json" if store else args.anchors) from None
+    except ValueError as exc:  # --value the anchors cannot locate, or a store of another
+        # kind of rows or values ("the store ..."): named by the store
+        where = store if store is not None and str(exc).startswith("the store") else None
+        raise InputError(str(exc), where or args.anchors) from None
+
+
+def _check_meta(meta: Path) -> None:
+    """Refuse a damaged ``meta.json`` by name (a truncated file gave a JSON message
+    attributed to the anchors file)."""
+    import json
+
+    from robustloc.errors import InputError
+
+    try:
+        text = meta.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        return
+    except UnicodeDecodeError:
+        raise InputError("damaged store metadata (not UTF-8 text)", meta) from None
+    try:
+        saved = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(f"damaged store metadata (not JSON: {exc})", meta) from None
+    if not isinstance(saved, dict):
+        raise InputError("damaged store metadata (not a JSON object)", meta)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -274,11 +384,18 @@ def run(args: argparse.Namespace) -> int:
     if engine.recovered_rows:
         print(f"resumed from {args.store}: {engine.recovered_rows} stored rows not yet solved",
               file=sys.stderr)
+    # timeout_graceful_shutdown: at SIGTERM a request still receiving its body (a client
+    # that stopped sending) held the process for --body-timeout; now it is cancelled
     config = uvicorn.Config(app, host=args.host, port=args.port, log_level=args.log_level,
                             ws_max_size=args.max_body_bytes, lifespan="on",
-                            timeout_keep_alive=30, access_log=False)
+                            timeout_keep_alive=30, access_log=False,
+                            timeout_graceful_shutdown=args.shutdown_grace)
     server = uvicorn.Server(config)
     print(f"robustloc serve: http://{args.host}:{args.port}/ ({engine.processor.name}, "
           f"latency window {args.latency_window:g} s)", file=sys.stderr, flush=True)
-    server.run()
+    try:
+        server.run()
+    finally:
+        if cfg.store_lock is not None:
+            cfg.store_lock.release()
     return 0

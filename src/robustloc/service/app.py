@@ -14,6 +14,14 @@ Endpoints (the API is a contract; see the README's "Live service" section)::
                                 its rows (what the map page uses: one message per row
                                 costs the server as much as solving the row)
     WS   /ws/measurements       ingest: each message a body as POST; answered like POST
+                                (a store write failure: the 507 answer, then the socket
+                                is closed with 1013 "try again later")
+    WS   any other path         accepted, then closed with 1008 and a reason (counted as
+                                ``not_found``, as an HTTP request to an unknown path)
+
+A body the store cannot write (disk full, I/O error) is answered ``507 Insufficient
+Storage`` with the reason and counted as ``store_error``; none of its rows is stored, so
+the client may resend it whole.
     GET  /                      the live map page (static; data come with the token)
 
 When a token is set, every endpoint except ``/``, ``/static`` and ``/healthz`` needs
@@ -24,6 +32,7 @@ browsers cannot set headers on a WebSocket).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import gc
 import hmac
 import json
@@ -54,11 +63,28 @@ from robustloc.service.defaults import (
 )
 from robustloc.service.engine import Engine
 from robustloc.service.rows import BodyError, parse_body
+from robustloc.service.store import StoreLock, StoreWriteError
 
 #: Queued messages per position subscriber before the oldest are dropped (and counted).
 WS_QUEUE = 20_000
 #: WebSocket close code "message too big" (RFC 6455 sec. 7.4.1).
 WS_MESSAGE_TOO_BIG = 1009
+#: WebSocket close code "policy violation" (RFC 6455 sec. 7.4.1).
+WS_POLICY_VIOLATION = 1008
+#: WebSocket close code "internal error" (RFC 6455 sec. 7.4.1, IANA registry).
+WS_INTERNAL_ERROR = 1011
+#: WebSocket close code "try again later" (IANA registry): the store cannot write now.
+WS_TRY_AGAIN_LATER = 1013
+#: HTTP status of a body the store could not write (RFC 4918 sec. 11.5).
+INSUFFICIENT_STORAGE = 507
+#: Seconds a client is told to wait after a store write failure (``Retry-After``).
+STORE_RETRY_AFTER_S = 5
+
+
+def _close_reason(text: str) -> str:
+    """``text`` cut to fit a close frame's reason (at most 123 bytes of UTF-8)."""
+    data = text.encode()
+    return text if len(data) <= 123 else data[:120].decode(errors="ignore") + "..."
 
 
 @dataclass
@@ -74,6 +100,8 @@ class ServiceConfig:
     floorplan_extent: tuple[float, float, float, float] | None = None
     mqtt: object | None = None  # a started/stoppable MQTT ingest (robustloc.service.mqtt)
     info: dict = field(default_factory=dict)
+    #: the store's lock (``robustloc serve --store``), released when the app shuts down
+    store_lock: StoreLock | None = None
 
 
 class _Bucket:
@@ -240,9 +268,15 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             engine.metrics.request_rejected("rate_limited")
             return 429, {"error": f"rate limit of {cfg.rate_limit_rows:g} rows/s exceeded",
                          "retry_after_s": round(wait, 3)}
-        if batch is None:
-            return 202, engine.ingest(rows, source).to_json()
-        return 202, engine.ingest_batch(batch, source).to_json()
+        try:
+            if batch is None:
+                return 202, engine.ingest(rows, source).to_json()
+            return 202, engine.ingest_batch(batch, source).to_json()
+        except StoreWriteError as exc:  # disk full, I/O error: nothing of the body stored
+            engine.metrics.request_rejected("store_error")
+            return INSUFFICIENT_STORAGE, {
+                "error": f"{exc.message}: none of the body's rows was stored; send it "
+                         "again later", "retry_after_s": STORE_RETRY_AFTER_S}
 
     async def post_measurements(request: Request) -> Response:
         if not authorized(request.headers, request.query_params):
@@ -268,7 +302,8 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
         client = request.client.host if request.client else "?"
         status, body = await anyio.to_thread.run_sync(ingest_sync, b"".join(chunks), "http",
                                                       client)
-        headers = {"Retry-After": str(math.ceil(body["retry_after_s"]))} if status == 429 else None
+        headers = ({"Retry-After": str(math.ceil(body["retry_after_s"]))}
+                   if status in (429, INSUFFICIENT_STORAGE) else None)
         return JSONResponse(body, status_code=status, headers=headers)
 
     def _float_param(request: Request, name: str) -> float | None:
@@ -323,6 +358,8 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
                 "url": "/floorplan", "extent": list(ext) if ext else None},
             "tags": len(engine.assembler.tags), "pending_rows": engine.assembler.n_pending,
             "solver_errors": engine.solver_errors, "last_solver_error": engine.last_error,
+            "position_store_errors": engine.position_store_errors,
+            "positions_not_stored": engine.positions_not_stored,
             "server_time": time.time(),
             **engine.metrics.summary(), **cfg.info,
         })
@@ -341,7 +378,7 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
         if not authorized(request.headers, request.query_params):
             return unauthorized()
         text = engine.metrics.render(engine.assembler.n_pending, len(engine.assembler.tags),
-                                     engine.solver_errors)
+                                     engine.solver_errors, engine.position_store_errors)
         return PlainTextResponse(text, media_type="text/plain; version=0.0.4")
 
     async def index(request: Request) -> Response:
@@ -408,8 +445,25 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
                 if status != 202:
                     body["status"] = status
                 await ws.send_text(json.dumps(body))
+                if status == INSUFFICIENT_STORAGE:  # answered (counted); then the close
+                    await ws.close(code=WS_TRY_AGAIN_LATER,
+                                   reason=_close_reason(body["error"]))
+                    return
         except WebSocketDisconnect:
             return
+        except Exception as exc:  # noqa: BLE001 - a defect: counted, closed with a reason
+            engine.metrics.request_rejected("internal_error")
+            with contextlib.suppress(Exception):  # the socket may be gone already
+                await ws.close(code=WS_INTERNAL_ERROR,
+                               reason=_close_reason(f"internal error: {type(exc).__name__}"))
+
+    async def ws_not_found(ws: WebSocket) -> None:
+        """A WebSocket to a path that is no WebSocket endpoint: counted as an HTTP request
+        to an unknown path is, and closed with a reason (a bare 403 said nothing)."""
+        engine.metrics.request_rejected("not_found")
+        await ws.accept()
+        await ws.close(code=WS_POLICY_VIOLATION, reason=_close_reason(
+            f"no such WebSocket endpoint: {ws.url.path} (/ws/positions, /ws/measurements)"))
 
     async def on_error(request: Request, exc: Exception) -> Response:
         engine.metrics.request_rejected("internal_error")
@@ -448,6 +502,8 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             if cfg.mqtt is not None:
                 cfg.mqtt.stop()
             await anyio.to_thread.run_sync(engine.stop)
+            if cfg.store_lock is not None:  # the store is closed: another may open it
+                cfg.store_lock.release()
 
     routes = [
         Route("/", index),
@@ -461,6 +517,8 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
         Route("/floorplan", get_floorplan),
         WebSocketRoute("/ws/positions", ws_positions),
         WebSocketRoute("/ws/measurements", ws_measurements),
+        # before the Mount: a Mount takes WebSockets too (StaticFiles then failed)
+        WebSocketRoute("/{path:path}", ws_not_found),
         Mount("/static", StaticFiles(directory=_static_dir()), name="static"),
     ]
     middleware = []

@@ -7,16 +7,33 @@ that became ready.  One solver thread runs the :class:`~robustloc.service.proces
 on the queued epochs (all queued blocks in one batched call), stores the positions, updates
 the metrics and hands the rows to the listeners (the WebSocket hub).
 
-Restart: the positions store gives each tag's latest solved epoch; accepted rows after it
-(acknowledged, not yet solved at the crash) are put back into the assembler, so every
-acknowledged row's epoch is solved exactly once.  A stateful processor (the tracker) is
-snapshotted every ``snapshot_s`` seconds with the per-tag watermarks it corresponds to;
-a restart loads the snapshot and re-solves the epochs after it (positions queries keep the
-last row of a re-solved epoch).
+Runs: a tag whose clock jumped is re-based by the assembler (its device restarted, its
+times start again, e.g. from 0).  Each re-base starts a new *run* of the tag, numbered 0, 1,
+... per tag; the run is stored with every measurement row and every position row (column
+``run`` of both logs, int64; rows of a store written before it are run 0).  Two runs of
+a tag may hold epochs at the same times: they are two epochs, solved apart (never pivoted
+into one) and both kept by :meth:`Engine.positions`.  The column stays in the store: the
+rows of the API and the WebSocket have no ``run`` column.
+
+Restart: the positions store gives each (tag, run)'s latest solved epoch; accepted rows
+after it (acknowledged, not yet solved at the crash) are put back - the tag's latest run
+into the assembler, an earlier run's rows (released by a re-base, not yet solved) straight
+into the solver's queue - so every acknowledged row's epoch is solved exactly once.  A
+stateful processor (the tracker) is snapshotted every ``snapshot_s`` seconds with the
+per-(tag, run) watermarks it corresponds to; a restart loads the snapshot and re-solves the
+epochs after it (positions queries keep the last row of a re-solved epoch).
+
+Order: the ready blocks are queued for the solver under the ingest lock, in the order the
+assembler released them, so the epochs of a (tag, run) are solved in time order whatever
+the number of ingest threads (the restart's watermarks rely on it, and so does a tracker).
+
+Stop: :meth:`Engine.stop` solves every pending epoch before it closes the store, so every
+acknowledged epoch has a position row at a graceful shutdown (with or without a store).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import pickle
@@ -42,13 +59,13 @@ from robustloc.service.defaults import (
 from robustloc.service.metrics import Metrics
 from robustloc.service.processor import Processor
 from robustloc.service.rows import RowBatch, RowDecoder, validate_rows
-from robustloc.service.store import SegmentLog, max_by
+from robustloc.service.store import SegmentLog, StoreWriteError
 from robustloc.status import SOLVER_ERROR
 
 MEAS_SCHEMA = pa.schema([
     ("time", pa.float64()), ("tag", pa.string()), ("anchor", pa.string()),
     ("value", pa.float64()), ("arrival", pa.float64()), ("late", pa.bool_()),
-    ("source", pa.string()),
+    ("source", pa.string()), ("run", pa.int64()),
 ])
 
 
@@ -104,6 +121,32 @@ class IngestResult:
                 "rejected": [{"index": i, "error": e}
                              for i, e in self.rejected[:MAX_REJECTED_LISTED]],
                 "n_rejected": len(self.rejected), "late": self.late}
+
+
+def _run_key(key: object) -> tuple[str, int]:
+    """A snapshot's watermark key as ``(tag, run)`` (a snapshot of an earlier version is
+    keyed by tag alone: its run 0)."""
+    if isinstance(key, tuple):
+        return str(key[0]), int(key[1])
+    return str(key), 0
+
+
+def _runs_of(table: pa.Table) -> np.ndarray:
+    """The ``run`` column of a stored table as int64 (0 where missing: rows of a store
+    written before runs were stored)."""
+    if "run" not in table.column_names:
+        return np.zeros(table.num_rows, dtype=np.int64)
+    return table["run"].to_pandas().fillna(0).to_numpy(np.int64)
+
+
+def _latest_by_run(table: pa.Table) -> dict[tuple[str, int], float]:
+    """``{(tag, run): latest time}`` of stored rows (columns ``time, tag[, run]``)."""
+    if table.num_rows == 0:
+        return {}
+    df = pd.DataFrame({"tag": table["tag"].to_pandas(), "run": _runs_of(table),
+                       "time": table["time"].to_pandas()})
+    g = df.groupby(["tag", "run"], sort=False)["time"].max()
+    return {(str(k[0]), int(k[1])): float(v) for k, v in g.items()}
 
 
 def _subset(epochs: Epochs, rows: np.ndarray) -> Epochs:
@@ -186,11 +229,19 @@ class Engine:
         self._thread: threading.Thread | None = None
         self.solver_errors = 0
         self.last_error: str | None = None
-        #: per tag, the latest epoch time the processor has processed (its state's
+        #: per (tag, run), the latest epoch time the processor has processed (its state's
         #: watermark, saved with a snapshot)
-        self._processed: dict[str, float] = {}
+        self._processed: dict[tuple[str, int], float] = {}
+        #: each tag's current run, by the assembler's tag code (grown on demand; written
+        #: under the ingest lock)
+        self._run_arr = np.zeros(0, dtype=np.int64)
         self._last_snapshot = time.monotonic()
         self.recovered_rows = 0
+        #: position tables solved but not yet in the positions log (its append failed:
+        #: disk full), stored in order before the next ones (:meth:`_store_positions`)
+        self._pos_backlog: list[pa.Table] = []
+        #: failed appends of the positions log
+        self.position_store_errors = 0
         if self.store_dir is None:
             self.meas: SegmentLog | _MemoryLog = _MemoryLog()
             self.pos: SegmentLog | _MemoryLog = _MemoryLog()
@@ -201,7 +252,11 @@ class Engine:
             # measurements, and a restart re-solves every epoch after the last stored
             # position of its tag, so a position lost in a crash comes back (the sync
             # would sit in the latency path of every published position)
-            self.pos = SegmentLog(self.store_dir / "positions", seal_rows, fsync=False)
+            try:
+                self.pos = SegmentLog(self.store_dir / "positions", seal_rows, fsync=False)
+            except BaseException:  # (a damaged positions segment): the first log released
+                self.meas.close()
+                raise
             try:
                 self._recover()
             except BaseException:  # a refused store: its logs closed, their sealing done
@@ -215,16 +270,31 @@ class Engine:
         assert self.store_dir is not None  # noqa: S101 - internal invariant
         return self.store_dir / "meta.json"
 
-    def _write_meta(self) -> None:
+    def _write_meta(self, kind: str | None = None) -> None:
+        """Write ``meta.json`` (atomically) with the kind of rows ``kind`` (default the
+        engine's).
+
+        Raises
+        ------
+        StoreWriteError
+            The file could not be written (disk full): the old one stays.
+        """
         if self.store_dir is None:
             return
         p = self._meta_path()
         tmp = p.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"value": self.kind, "anchors": self.anchor_ids,
-                                   "rows": self._rows_kind()}))
-        with open(tmp, "rb") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, p)
+        try:
+            tmp.write_text(json.dumps({"value": self.kind if kind is None else kind,
+                                       "anchors": self.anchor_ids,
+                                       "rows": self._rows_kind()}))
+            with open(tmp, "rb") as f:
+                os.fsync(f.fileno())
+            os.replace(tmp, p)
+        except OSError as exc:
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+            raise StoreWriteError(f"store write failed: {exc.strerror or exc}", p,
+                                  exc.errno) from None
 
     def _rows_kind(self) -> str:
         """``"locate"`` (position rows) or ``"track"`` (track rows, with a per-tag state)."""
@@ -258,47 +328,105 @@ class Engine:
                                  "anchors cannot locate (no path-loss parameters: columns "
                                  "A, n; run `robustloc calibrate`)")
         self._check_rows_kind(stored_rows)
-        pos = self.pos.scan(columns=["time", "tag"])
-        solved = max_by(pos, "tag", "time")
+        solved = _latest_by_run(self.pos.scan(columns=["time", "tag", "run"]))
         self._seed_latest(solved)
         snap = self.store_dir / "state" / "processor.pkl" if self.store_dir else None
         if snap is not None and snap.exists():
             with open(snap, "rb") as f:
                 saved = pickle.load(f)  # noqa: S301 - our own file in the store
             self.processor.load_state_dict(saved["state"])
-            solved = saved["watermarks"]
+            solved = {_run_key(k): float(v) for k, v in saved["watermarks"].items()}
             self._processed = dict(solved)
-        meas = self.meas.scan(columns=["time", "tag", "anchor", "value", "late"])
+        meas = self.meas.scan(columns=["time", "tag", "anchor", "value", "late", "run"])
         if meas.num_rows == 0:
             return
-        df = meas.to_pandas()
+        self._check_anchors(meas)
+        df = meas.select(["time", "tag", "anchor", "value", "late"]).to_pandas()
+        df["run"] = _runs_of(meas)
+        # each tag's current run: the latest re-base the stored rows tell (late rows too)
+        current = df.groupby("tag", sort=False)["run"].max()
+        a = self.assembler
+        codes = a.codes(current.index.to_numpy(object))
+        self._runs_for(codes)[codes] = current.to_numpy(np.int64)
         df = df[~df["late"].to_numpy(bool)]
-        newest = df.groupby("tag")["time"].max().to_dict()
-        self.assembler.set_watermarks(solved, {})
-        sol = df["tag"].map(solved).astype(float).fillna(-np.inf).to_numpy(float)
-        todo = df[df["time"].to_numpy() > sol]
+        if solved:
+            sol = (pd.Series(list(solved.values()), index=pd.MultiIndex.from_tuples(list(solved)))
+                   .reindex(pd.MultiIndex.from_arrays([df["tag"], df["run"]]))
+                   .to_numpy(float))
+            sol = np.where(np.isnan(sol), -np.inf, sol)
+        else:
+            sol = np.full(len(df), -np.inf)
+        todo = df[df["time"].to_numpy(float) > sol]
+        is_cur = (todo["run"].to_numpy(np.int64)
+                  == todo["tag"].map(current).to_numpy(np.int64))
+        cur, old = todo[is_cur], todo[~is_cur]
+        live = df[df["run"].to_numpy(np.int64) == df["tag"].map(current).to_numpy(np.int64)]
+        # the tags' latest runs resume in the assembler (their solved and newest times)
+        a.set_watermarks({tag: solved[(tag, int(r))] for tag, r in current.items()
+                          if (tag, int(r)) in solved}, {})
         # put back the acknowledged rows whose epochs were not solved before the restart
-        if len(todo):
-            col = self._anchor_index.get_indexer(todo["anchor"].to_numpy(object))
-            self.assembler.add(todo["time"].to_numpy(float), todo["tag"].to_numpy(object),
-                               col.astype(np.int64), todo["value"].to_numpy(float),
-                               time.time())
-        self.assembler.set_watermarks({}, newest)
+        if len(cur):
+            col = self._anchor_index.get_indexer(cur["anchor"].to_numpy(object))
+            a.add(cur["time"].to_numpy(float), cur["tag"].to_numpy(object),
+                  col.astype(np.int64), cur["value"].to_numpy(float), time.time())
+        a.set_watermarks({}, live.groupby("tag")["time"].max().to_dict())
+        # an earlier run's unsolved rows were released by its re-base: solved as they are
+        if len(old):
+            tags = old["tag"].to_numpy(object)
+            self._queue.append(({
+                "time": old["time"].to_numpy(float), "tag": tags, "tag_code": a.codes(tags),
+                "anchor_col": self._anchor_index.get_indexer(
+                    old["anchor"].to_numpy(object)).astype(np.int64),
+                "value": old["value"].to_numpy(float), "run": old["run"].to_numpy(np.int64),
+            }, time.time()))
         self.recovered_rows = len(todo)
         heard = np.bincount(self._anchor_index.get_indexer(df["anchor"].to_numpy(object)),
                             minlength=len(self.anchor_ids))
         self.metrics.heard += heard
 
-    def _seed_latest(self, solved: dict[str, float]) -> None:
-        """``/api/latest`` after a restart: each tag's latest stored row (it was empty
-        until new rows came, and the map page started blank).  Only the rows at one of the
-        tags' latest times are read (not everything since the oldest of them: a tag silent
-        for a month made a restart read a month of rows)."""
+    def _check_anchors(self, meas: pa.Table) -> None:
+        """Refuse a store with rows of anchors the anchors file lacks (an anchor removed
+        from the file): its rows could not be assembled (nor counted per anchor).
+
+        Raises
+        ------
+        ValueError
+            Naming the missing anchor ids and the store (``robustloc serve`` prefixes
+            the anchors file: ``error: ANCHORS: anchor 'A5' missing ...``, exit 2).
+        """
+        stored = meas["anchor"].unique().drop_null().to_pylist()
+        known = set(self.anchor_ids)
+        missing = sorted({str(x) for x in stored} - known)
+        if not missing:
+            return
+        listed = ", ".join(repr(m) for m in missing[:20])
+        more = f" and {len(missing) - 20} more" if len(missing) > 20 else ""
+        it = "them" if len(missing) > 1 else "it"
+        # (not "the store ...": `robustloc serve` names the anchors file of such an error)
+        raise ValueError(
+            f"anchor{'s' if len(missing) > 1 else ''} {listed}{more} missing from the "
+            f"anchors file: the store {self.store_dir} holds measurements of {it}; add {it} "
+            "back to the anchors file, or give another --store")
+
+    def _seed_latest(self, solved: dict[tuple[str, int], float]) -> None:
+        """``/api/latest`` after a restart: each tag's latest stored row (of its latest
+        run; it was empty until new rows came, and the map page started blank).  Only
+        the rows at one of the tags' latest times are read (not everything since the
+        oldest of them: a tag silent for a month made a restart read a month of rows)."""
         if not solved:
             return
-        times = sorted({float(t) for t in solved.values()})
-        df = self.pos.scan(expression=ds.field("time").isin(times)).to_pandas()
-        df = df[df["time"].to_numpy(float) == df["tag"].map(solved).to_numpy(float)]
+        last: dict[str, tuple[int, float]] = {}
+        for (tag, run), t in solved.items():
+            if tag not in last or run > last[tag][0]:
+                last[tag] = (run, t)
+        times = sorted({t for _, t in last.values()})
+        table = self.pos.scan(expression=ds.field("time").isin(times))
+        runs = _runs_of(table)
+        df = table.to_pandas()
+        want = df["tag"].map(last)
+        keep = np.array([w == (r, t) for w, r, t in
+                         zip(want.tolist(), runs.tolist(), df["time"].tolist())], dtype=bool)
+        df = df.loc[keep].drop(columns="run", errors="ignore")
         self._latest_frames = [df.drop_duplicates("tag", keep="last")
                                .sort_values("tag", kind="stable").reset_index(drop=True)]
 
@@ -334,12 +462,12 @@ class Engine:
             kind0 = self.kind
             batch, kind, rejected = validate_rows(rows, self._anchor_index, self.kind,
                                                   self.values)
-            if kind != kind0:
+            if kind != kind0:  # the store's metadata first: a failed write changes nothing
+                self._write_meta(kind)
                 self.kind = kind
-                self._write_meta()
-            ready, n_late, wall = self._accept(batch, source)
+            n_late, wall = self._accept(batch, source)
         rej_cols = self._rejected_anchor_cols(rows, rejected)
-        return self._finish(batch, rejected, rej_cols, ready, n_late, wall, source)
+        return self._finish(batch, rejected, rej_cols, n_late, wall, source)
 
     def ingest_batch(self, batch: RowBatch, source: str = "http") -> IngestResult:
         """Durably store rows already validated by :meth:`decode` (all accepted).
@@ -347,42 +475,73 @@ class Engine:
         Thread-safe.  When it returns, the rows are on disk (with a store).
         """
         with self._ingest_lock:
-            ready, n_late, wall = self._accept(batch, source)
-        return self._finish(batch, [], np.zeros(0, dtype=np.int64), ready, n_late, wall,
-                            source)
+            n_late, wall = self._accept(batch, source)
+        return self._finish(batch, [], np.zeros(0, dtype=np.int64), n_late, wall, source)
 
-    def _accept(self, batch: RowBatch, source: str) -> tuple[dict | None, int, float]:
-        """Store (synced) and assemble accepted rows; caller holds the ingest lock."""
+    def _runs_for(self, code: np.ndarray) -> np.ndarray:
+        """The per-code run array, grown to cover ``code`` (caller holds the ingest lock,
+        or is the constructor)."""
+        need = int(code.max(initial=-1)) + 1
+        if need > len(self._run_arr):
+            self._run_arr = np.concatenate(
+                [self._run_arr, np.zeros(need - len(self._run_arr), dtype=np.int64)])
+        return self._run_arr
+
+    def _take(self, wall: float, *, flush_all: bool = False) -> dict | None:
+        """The assembler's ready rows with each row's run (caller holds the ingest lock)."""
+        ready = self.assembler.take_ready(wall, flush_all=flush_all)
+        if ready is not None:
+            ready["run"] = self._runs_for(ready["tag_code"])[ready["tag_code"]]
+        return ready
+
+    def _enqueue(self, blocks: list[dict | None], wall: float) -> None:
+        """Queue ready blocks for the solver (caller holds the ingest lock: the queue's
+        order is the order the assembler released them, so a (tag, run)'s epochs are
+        solved in time order whatever the number of ingest threads)."""
+        blocks = [b for b in blocks if b is not None]
+        if blocks:
+            with self._cv:
+                self._queue.extend((b, wall) for b in blocks)
+                self._cv.notify()
+
+    def _accept(self, batch: RowBatch, source: str) -> tuple[int, float]:
+        """Store (synced), assemble and queue accepted rows; caller holds the ingest lock.
+
+        Returns the number of late rows and the wall time of the batch.
+        """
         wall = time.time()
         n = len(batch)
         if not n:
-            return None, 0, wall
+            return 0, wall
         a = self.assembler
         code = a.codes(batch.tag)
         rebased = a.rebase(batch.time, code, wall)  # a tag's clock jumped: it restarts
         if rebased.size:
             with self.metrics._lock:
                 self.metrics.tags_rebased += int(rebased.size)
+            # the re-based tags' pending rows (their earlier run), released before this
+            # batch's rows are added: queued now, with their run (queued even if the
+            # append below fails), and a new run begins
+            self._enqueue([self._take(-np.inf)], wall)
+            self._runs_for(rebased)[rebased] += 1
         late = a.late(batch.time, code)
         table = pa.table({
             "time": batch.time, "tag": pa.array(batch.tag, pa.string()),
             "anchor": self._anchor_arrow.take(batch.anchor_col), "value": batch.value,
             "arrival": np.full(n, wall), "late": late,
             "source": pa.repeat(pa.scalar(source, pa.string()), n),
+            "run": self._runs_for(code)[code],
         }, schema=MEAS_SCHEMA)
         self.meas.append(table)  # durable before we answer
         a.add_coded(batch.time, code, batch.anchor_col, batch.value, wall, late)
-        return a.take_ready(wall), int(late.sum()), wall
+        self._enqueue([self._take(wall)], wall)
+        return int(late.sum()), wall
 
     def _finish(self, batch: RowBatch, rejected: list[tuple[int, str]],
-                rej_cols: np.ndarray, ready: dict | None, n_late: int, wall: float,
+                rej_cols: np.ndarray, n_late: int, wall: float,
                 source: str) -> IngestResult:
         n = len(batch)
         self.metrics.ingest(source, n, len(rejected), n_late, batch.anchor_col, rej_cols, wall)
-        if ready is not None:
-            with self._cv:
-                self._queue.append((ready, wall))
-                self._cv.notify()
         return IngestResult(n, rejected, n_late)
 
     def _rejected_anchor_cols(self, rows: list[Any], rejected: list[tuple[int, str]]) -> np.ndarray:
@@ -415,13 +574,28 @@ class Engine:
             self._thread.start()
 
     def stop(self) -> None:
-        """Stop the solver (pending epochs stay in the store for the next start)."""
+        """Stop the solver, solve every pending epoch, close the store.
+
+        Call it once the transports have stopped ingesting.  An engine whose solver was
+        started (:meth:`start`, the service) solves what is queued or pending now, so
+        every acknowledged epoch has a position row after a graceful stop (SIGTERM), with
+        or without a store.  An engine never started (tests that :meth:`step` it by hand)
+        solves nothing more: its pending epochs stay in the store for the next start, as
+        after a crash.
+        """
+        started = self._thread is not None
         self._stop.set()
         with self._cv:
             self._cv.notify()
         if self._thread is not None:
             self._thread.join(timeout=30)
             self._thread = None
+        if started:
+            try:
+                self.step(flush_all=True)
+            except Exception as exc:  # noqa: BLE001 - counted; the rows stay in the store
+                self.solver_errors += 1
+                self.last_error = f"{type(exc).__name__}: {exc}"
         self._snapshot()
         self.meas.close()
         self.pos.close()
@@ -441,16 +615,16 @@ class Engine:
     def step(self, *, flush_all: bool = False) -> int:
         """Solve queued (and idle) epochs now; returns the number of position rows."""
         with self._solve_lock:
-            idle = None
             # the ingest lock is held through each body's sync: take it only when a tag
-            # may have gone idle, so that solving a queued block never waits for a sync
+            # may have gone idle, so that solving a queued block never waits for a sync;
+            # the queue is taken with the idle rows, which come after it (the order the
+            # assembler released them)
             if flush_all or self.assembler.may_have_idle(time.time()):
                 with self._ingest_lock:
-                    idle = self.assembler.take_ready(time.time(), flush_all=flush_all)
+                    now = time.time()
+                    self._enqueue([self._take(now, flush_all=flush_all)], now)
             with self._cv:
                 blocks, self._queue = self._queue, []
-            if idle is not None:
-                blocks.append((idle, time.time()))
             if not blocks or self.kind is None:
                 return 0
             out = self._solve(blocks)
@@ -465,23 +639,52 @@ class Engine:
 
     def _solve(self, blocks: list[tuple[dict, float]]) -> int:
         rows = {k: np.concatenate([b[k] for b, _ in blocks]) for k in blocks[0][0]}
+        row_wall = np.repeat([w for _, w in blocks], [len(b["time"]) for b, _ in blocks])
+        return sum(self._solve_rows(rows if idx is None else {k: v[idx] for k, v in rows.items()},
+                                    row_wall if idx is None else row_wall[idx])
+                   for idx in self._run_passes(rows))
+
+    @staticmethod
+    def _run_passes(rows: dict) -> list[np.ndarray | None]:
+        """The rows of each solving pass: one pass (None: all rows) unless a tag has rows
+        of two runs (a re-base), whose epochs may share times but are distinct: then pass
+        ``k`` holds the rows of each tag's ``k``-th run present (earlier runs first)."""
+        run = rows["run"]
+        if not run.any():
+            return [None]
+        rank = (pd.DataFrame({"c": rows["tag_code"], "r": run}).groupby("c")["r"]
+                .rank(method="dense").to_numpy(np.int64) - 1)
+        if not rank.any():
+            return [None]
+        return [np.flatnonzero(rank == k) for k in range(int(rank.max()) + 1)]
+
+    def _solve_rows(self, rows: dict, row_wall: np.ndarray) -> int:
+        """Solve ready rows (at most one run per tag), store, count and publish them."""
         epochs = self.assembler.epochs(rows, self.kind)
-        if len(blocks) == 1:
-            ready_wall = np.full(epochs.n_epochs, blocks[0][1])
+        if not len(row_wall) or (row_wall == row_wall[0]).all():
+            ready_wall = np.full(epochs.n_epochs, row_wall[0] if len(row_wall) else time.time())
         else:  # each epoch lies in exactly one block: look its (time, tag) up in the rows
-            row_wall = np.repeat([w for _, w in blocks], [len(b["time"]) for b, _ in blocks])
             # (the epochs' tag codes from the rows' own names: the assembler's registry is
             # the ingest threads', not to be read or grown here without their lock)
             names = pd.Index(pd.unique(rows["tag"]))
             ready_wall = row_wall[_epoch_rows(rows["time"], names.get_indexer(rows["tag"]),
                                               epochs.time, names.get_indexer(epochs.tag))]
+        # each tag's run in this pass (one per tag)
+        run = rows["run"]
+        tag_run = (pd.Series(run, index=rows["tag"]).groupby(level=0).first()
+                   if run.any() else pd.Series(dtype=np.int64))
         frame = self._process(epochs)
         if epochs.n_epochs:
             latest = pd.Series(epochs.time).groupby(epochs.tag).max()
             for tag, t in latest.items():
-                self._processed[tag] = max(self._processed.get(tag, -np.inf), float(t))
+                key = (str(tag), int(tag_run.get(tag, 0)))
+                self._processed[key] = max(self._processed.get(key, -np.inf), float(t))
         if len(frame):
-            self.pos.append(pa.Table.from_pandas(frame, preserve_index=False))
+            runs = (frame["tag"].map(tag_run).fillna(0).to_numpy(np.int64) if len(tag_run)
+                    else np.zeros(len(frame), dtype=np.int64))
+            self._pos_backlog.append(pa.Table.from_pandas(frame.assign(run=runs),
+                                                          preserve_index=False))
+        self._store_positions()
         done = time.time()
         status = frame["status"].to_numpy() if "status" in frame else np.array(["ok"] * len(frame))
         self.metrics.solved(status, done - ready_wall)
@@ -495,6 +698,26 @@ class Engine:
             except Exception:  # a listener's failure must not lose the block
                 self.solver_errors += 1
         return len(frame)
+
+    @property
+    def positions_not_stored(self) -> int:
+        """Position rows solved and published but not yet in the positions log."""
+        return sum(t.num_rows for t in list(self._pos_backlog))
+
+    def _store_positions(self) -> None:
+        """Append the solved position tables to the positions log, oldest first.  A
+        failed append (disk full) keeps them, in order, for the next call: the rows were
+        published all the same, and a stateful processor must not solve them twice.  Kept
+        in order, the log's latest row per tag stays a true watermark: should the service
+        stop before they are stored, a restart solves those epochs again."""
+        while self._pos_backlog:
+            try:
+                self.pos.append(self._pos_backlog[0])
+            except StoreWriteError as exc:
+                self.position_store_errors += 1
+                self.last_error = str(exc)
+                return
+            self._pos_backlog.pop(0)
 
     def _process(self, epochs: Epochs) -> pd.DataFrame:
         """The processor's rows of ``epochs``; never raises, never drops an epoch.
@@ -594,7 +817,11 @@ class Engine:
         t = self.pos.scan(expression=expr)
         if t.num_rows == 0:
             return pd.DataFrame(columns=["time", "tag", "x", "y", "method", "status"])
-        df = t.to_pandas()
+        runs = _runs_of(t)
+        df = t.to_pandas().drop(columns="run", errors="ignore")
+        # an epoch re-solved after a restart: its last row; two runs of a re-based tag
+        # at the same time: two epochs, both kept
         keys = [c for c in ("time", "tag", "method") if c in df.columns]
-        df = df.drop_duplicates(keys, keep="last").sort_values(["time", "tag"], kind="stable")
+        dup = pd.DataFrame({"run": runs, **{c: df[c] for c in keys}}).duplicated(keep="last")
+        df = df.loc[~dup.to_numpy()].sort_values(["time", "tag"], kind="stable")
         return df.tail(limit).reset_index(drop=True)

@@ -122,9 +122,11 @@ class Metrics:
                 "latency_p99_s": float(np.percentile(lat, 99)) if len(lat) else None,
             }
 
-    def render(self, pending_rows: int, tags: int, solver_errors: int = 0) -> str:
+    def render(self, pending_rows: int, tags: int, solver_errors: int = 0,
+               position_store_errors: int = 0) -> str:
         """Prometheus text format (``solver_errors``: the engine's count of processor
-        failures, each a defect whose epochs got ``solver_error`` rows or were retried)."""
+        failures, each a defect whose epochs got ``solver_error`` rows or were retried;
+        ``position_store_errors``: failed appends of solved positions to the store)."""
         def esc(s: str) -> str:
             return s.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
 
@@ -162,6 +164,11 @@ class Metrics:
                    "Failures of the solver on a block of epochs (a defect; the last reason "
                    "is in /api/status).")
             lines.append(f"robustloc_solver_errors_total {int(solver_errors)}")
+            family("robustloc_position_store_errors_total", "counter",
+                   "Failed appends of solved positions to the store (disk full); the "
+                   "positions were published and are stored with the next append that "
+                   "succeeds (or solved again at the next start).")
+            lines.append(f"robustloc_position_store_errors_total {int(position_store_errors)}")
             family("robustloc_positions_total", "counter", "Position rows computed, by status.")
             for s, c in sorted(self.positions.items()):
                 lines.append(f'robustloc_positions_total{{status="{esc(s)}"}} {c}')

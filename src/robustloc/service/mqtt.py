@@ -6,23 +6,65 @@ one per gateway ``robustloc/measurements/gw-7``.  Payload: UTF-8 JSON, the same 
 
     [{"time": 12.5, "tag": "T1", "anchor": "A3", "rssi": -71.0}, ...]
 
-Subscribed with QoS 1.  paho acknowledges a QoS 1 message (PUBACK) only after the message
-callback returns, and the callback returns after the rows are synced to the store, so a
-message the broker considers delivered is on disk.  Rejected rows and payloads that are not
-rows are counted in the metrics (``source="mqtt"``, ``reason="mqtt_not_rows"``); a
-payload over ``--max-body-bytes`` or of more than
-:data:`~robustloc.service.defaults.MAX_ROWS_PER_BODY` rows is refused as a body would be
-(``mqtt_too_large``, ``mqtt_too_many_rows``).  ``--rate-limit`` is per client address
-and does not apply: the service's one MQTT client is the broker (limit publishers there).
+Subscribed with QoS 1 and acknowledged by hand (paho's ``manual_ack``): a message is
+acknowledged (PUBACK) only after its rows are synced to the store, or after it was refused
+for good (counted).  Rejected rows and payloads that are not rows are counted in the
+metrics (``source="mqtt"``, ``reason="mqtt_not_rows"``); a payload over
+``--max-body-bytes`` or of more than :data:`~robustloc.service.defaults.MAX_ROWS_PER_BODY`
+rows is refused as a body would be (``mqtt_too_large``, ``mqtt_too_many_rows``).
+``--rate-limit`` is per client address and does not apply: the service's one MQTT client
+is the broker (limit publishers there).
+
+A message the store cannot write (disk full, I/O error) is **not** acknowledged: it is
+counted (``mqtt_store_error``), one line is logged, and the client reconnects after
+:data:`STORE_RETRY_S` seconds so that the broker delivers it again.
+
+With a store (``--store``) the service connects with a stable client id,
+:func:`client_id_for_store` (``robustloc-`` and a hash of the store's absolute path), and
+a persistent session (``clean_session=False``): while the service is down (a restart, an
+upgrade) the broker keeps its subscription and queues the QoS 1 messages for it (up to the
+broker's ``max_queued_messages``), delivered when it reconnects.  Messages published
+before the store's first connection are not queued (there was no session yet).
+Without a store the session is clean and the client id random: nothing would keep the
+rows anyway.
 """
 
 from __future__ import annotations
 
+import hashlib
+import os
+import socket
+import sys
 import threading
+from pathlib import Path
 
 from robustloc.service.defaults import MAX_ROWS_PER_BODY
 from robustloc.service.engine import Engine
 from robustloc.service.rows import BodyError, parse_body
+from robustloc.service.store import StoreWriteError
+
+#: Seconds after a store write failure before the client reconnects (and the broker
+#: delivers the unacknowledged messages again).
+STORE_RETRY_S = 5.0
+
+
+def client_id_for_store(store: str | os.PathLike) -> str:
+    """The MQTT client id of a service on ``store``: stable across restarts (the broker
+    keeps its session), different for another store.
+
+    Parameters
+    ----------
+    store : path
+        The ``--store`` folder.
+
+    Returns
+    -------
+    str
+        ``robustloc-`` and 13 hex digits of the SHA-256 of the absolute path: 23
+        characters, the longest client id every MQTT 3.1.1 broker must accept.
+    """
+    path = os.path.abspath(Path(store).expanduser())
+    return "robustloc-" + hashlib.sha256(path.encode()).hexdigest()[:13]
 
 
 class MqttIngest:
@@ -39,21 +81,31 @@ class MqttIngest:
         Larger payloads are refused (counted).
     qos : int
         Subscription QoS (default 1: at least once, acknowledged after storing).
+    client_id : str
+        The client id; default ``""`` (the library draws a random one).
+    persistent : bool
+        Ask the broker to keep the session (``clean_session=False``): its subscription
+        and queued QoS 1 messages outlive a disconnection.  Needs a stable ``client_id``.
     """
 
     def __init__(self, engine: Engine, host: str, port: int,
                  topic: str = "robustloc/measurements/#", *,
                  max_payload_bytes: int = 32 * 1024 * 1024, qos: int = 1,
-                 client_id: str = "") -> None:
+                 client_id: str = "", persistent: bool = False) -> None:
         import paho.mqtt.client as mqtt
 
+        if persistent and not client_id:
+            raise ValueError("a persistent MQTT session needs a stable client id")
         self.engine = engine
         self.host, self.port, self.topic, self.qos = host, port, topic, qos
         self.max_payload = max_payload_bytes
         self.connected = threading.Event()
         self.messages = 0
+        self.client_id = client_id
+        self._retry: threading.Timer | None = None
+        self._retry_lock = threading.Lock()
         self.client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id,
-                                  clean_session=True)
+                                  clean_session=not persistent, manual_ack=True)
         self.client.on_connect = self._on_connect
         self.client.on_disconnect = self._on_disconnect
         self.client.on_message = self._on_message
@@ -70,25 +122,65 @@ class MqttIngest:
     def _on_message(self, client, userdata, msg) -> None:
         self.messages += 1
         m = self.engine.metrics
+        topic = getattr(msg, "topic", "?")
         try:
-            if len(msg.payload) > self.max_payload:
-                m.request_rejected("mqtt_too_large")
-                return
-            batch = self.engine.decode(msg.payload)  # the common payload, in one pass
-            if batch is not None:
-                self.engine.ingest_batch(batch, "mqtt")
-                return
-            try:
-                rows, _ = parse_body(msg.payload)
-            except BodyError:
-                m.request_rejected("mqtt_not_rows")
-                return
-            if len(rows) > MAX_ROWS_PER_BODY:  # as an HTTP body: refused before the rows
-                m.request_rejected("mqtt_too_many_rows")
-                return
-            self.engine.ingest(rows, "mqtt")
-        except Exception:  # never let one message stop the network loop
+            self._ingest(msg.payload)
+        except StoreWriteError as exc:  # not acknowledged: the broker sends it again
+            m.request_rejected("mqtt_store_error")
+            print(f"error: MQTT message on {topic} not stored and not acknowledged "
+                  f"({exc}); reconnecting in {STORE_RETRY_S:g} s to receive it again",
+                  file=sys.stderr, flush=True)
+            self._reconnect_later()
+            return
+        except Exception as exc:  # noqa: BLE001 - never let one message stop the loop
+            # a defect of the service, not of the message: counted and logged; the
+            # message is acknowledged (sent again, it would fail again, forever)
             m.request_rejected("mqtt_internal_error")
+            print(f"error: MQTT message on {topic} dropped by an internal error: "
+                  f"{type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
+        qos = getattr(msg, "qos", 0)  # (a message object without qos: nothing to ack)
+        if qos > 0:
+            self.client.ack(msg.mid, qos)
+
+    def _ingest(self, payload: bytes) -> None:
+        """Ingest one payload; a refused payload is counted (and then acknowledged)."""
+        m = self.engine.metrics
+        if len(payload) > self.max_payload:
+            m.request_rejected("mqtt_too_large")
+            return
+        batch = self.engine.decode(payload)  # the common payload, in one pass
+        if batch is not None:
+            self.engine.ingest_batch(batch, "mqtt")
+            return
+        try:
+            rows, _ = parse_body(payload)
+        except BodyError:
+            m.request_rejected("mqtt_not_rows")
+            return
+        if len(rows) > MAX_ROWS_PER_BODY:  # as an HTTP body: refused before the rows
+            m.request_rejected("mqtt_too_many_rows")
+            return
+        self.engine.ingest(rows, "mqtt")
+
+    def _reconnect_later(self) -> None:
+        """After :data:`STORE_RETRY_S`, drop the connection (the network loop reconnects):
+        the broker sends the unacknowledged messages again on the new connection.  The
+        socket is shut down rather than ``disconnect()``-ed, which would end the loop."""
+        with self._retry_lock:
+            if self._retry is not None and self._retry.is_alive():
+                return
+
+            def drop() -> None:
+                sock = self.client.socket()
+                if sock is not None:
+                    try:
+                        sock.shutdown(socket.SHUT_RDWR)
+                    except OSError:
+                        pass
+
+            self._retry = threading.Timer(STORE_RETRY_S, drop)
+            self._retry.daemon = True
+            self._retry.start()
 
     def start(self) -> None:
         """Connect (asynchronously; retried until the broker answers) and start the loop."""
@@ -96,5 +188,13 @@ class MqttIngest:
         self.client.loop_start()
 
     def stop(self) -> None:
+        """Disconnect and stop the network loop (unacknowledged messages stay with the
+        broker's session)."""
+        with self._retry_lock:
+            if self._retry is not None:
+                self._retry.cancel()
         self.client.disconnect()
         self.client.loop_stop()
+
+
+__all__ = ["MqttIngest", "STORE_RETRY_S", "client_id_for_store"]

@@ -16,6 +16,14 @@ segments**.
 * On open, Parquet segments are read as they are, and every log file without a segment is
   replayed frame by frame; a torn or corrupt tail (a crash mid-write) ends the replay and is
   truncated (those rows were never acknowledged: the sync had not returned).
+* One writer per folder: a :class:`SegmentLog` holds an exclusive ``flock`` on its folder's
+  ``.lock`` file while it is open (opening seals every log file it finds, which would take
+  the active log of another writer); a second opener gets :class:`StoreInUse`.
+  ``robustloc serve`` also locks the whole store (:class:`StoreLock` on ``DIR/.lock``).
+* A failed append (disk full, I/O error) leaves the log file as it was: the log is written
+  unbuffered, and on any ``OSError`` it is truncated back to its length before the append
+  and :class:`StoreWriteError` is raised; nothing of the refused rows is kept (in memory
+  or on disk), so a caller that answers an error has stored nothing.
 
 Why not DuckDB or SQLite: both were considered.  The write path here is the hot path
 (80 000 rows/s target) and needs exactly one primitive - "append a batch and make it
@@ -29,6 +37,8 @@ the measured ingest rate.
 from __future__ import annotations
 
 import contextlib
+import errno
+import fcntl
 import io
 import os
 import struct
@@ -43,6 +53,119 @@ import pyarrow.parquet as pq
 
 _MAGIC = b"RLW1"
 _HEADER = struct.Struct("<4sII")  # magic, payload length, crc32
+
+
+class StoreError(OSError):
+    """A store that cannot be used: in use by another writer, damaged, or not writable.
+
+    Parameters
+    ----------
+    message : str
+        What is wrong, in words a user understands.
+    path : path, optional
+        The store file or folder concerned.
+    """
+
+    def __init__(self, message: str, path: str | os.PathLike | None = None) -> None:
+        super().__init__(message)
+        self.message = message
+        self.path = None if path is None else str(path)
+
+    def __str__(self) -> str:
+        return self.message if self.path is None else f"{self.path}: {self.message}"
+
+
+class StoreInUse(StoreError):
+    """The store (folder) is locked by another open :class:`SegmentLog` or server."""
+
+
+class StoreWriteError(StoreError):
+    """An append failed (disk full, I/O error); the log file is as it was before it.
+
+    ``insufficient_space`` is True for ``ENOSPC``, ``EDQUOT`` and ``EFBIG`` (a file size
+    limit): the storage is full rather than broken.
+    """
+
+    def __init__(self, message: str, path: str | os.PathLike | None = None,
+                 errno_: int | None = None) -> None:
+        super().__init__(message, path)
+        self.errno = errno_
+        self.insufficient_space = errno_ in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
+class StoreLock:
+    """An exclusive, non-blocking ``flock`` on ``DIRECTORY/.lock`` (held until released).
+
+    The lock file holds the holder's pid (for the message of a refused opener).  The
+    operating system releases the lock when the holder exits, even after ``kill -9``: a
+    stale lock file never blocks a restart.
+
+    Parameters
+    ----------
+    directory : path
+        The folder to lock (created if missing).
+    what : str
+        How the holder is named in the refusal ("store in use by another WHAT").
+
+    Raises
+    ------
+    StoreInUse
+        The lock is held by another process (or another open lock in this process).
+    """
+
+    def __init__(self, directory: str | os.PathLike, what: str = "writer") -> None:
+        self._fd: int | None = None
+        self.dir = Path(directory)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.path = self.dir / ".lock"
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            try:
+                holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
+            except OSError:
+                holder = ""
+            os.close(fd)
+            pid = f"pid {holder}" if holder.isdigit() else "pid unknown"
+            raise StoreInUse(f"store in use by another {what} ({pid}); stop it first, or "
+                             "give another folder", self.dir) from None
+        except BaseException:
+            os.close(fd)
+            raise
+        with contextlib.suppress(OSError):  # the pid is informative only
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        self._fd = fd
+
+    @property
+    def held(self) -> bool:
+        """True until :meth:`release`."""
+        return self._fd is not None
+
+    def release(self) -> None:
+        """Release the lock (idempotent).  The lock file stays: deleting it would let a
+        second opener lock a new file while a third still waits on the old one."""
+        fd, self._fd = self._fd, None
+        if fd is not None:
+            os.close(fd)  # closing the only descriptor releases the flock
+
+    def __enter__(self) -> StoreLock:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+    def __del__(self) -> None:
+        self.release()
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    """``os.write`` until all of ``data`` is written (a short write is not an error)."""
+    view = memoryview(data)
+    while view:
+        n = os.write(fd, view)
+        view = view[n:]
 
 
 def _fsync_dir(path: Path) -> None:
@@ -109,6 +232,15 @@ class SegmentLog:
                  fsync: bool = True) -> None:
         self.dir = Path(directory)
         self.dir.mkdir(parents=True, exist_ok=True)
+        # one writer per folder, taken before anything is read, sealed or deleted
+        self._dir_lock = StoreLock(self.dir)
+        try:
+            self._open(seal_rows, fsync)
+        except BaseException:
+            self._dir_lock.release()
+            raise
+
+    def _open(self, seal_rows: int, fsync: bool) -> None:
         self.seal_rows = int(seal_rows)
         self.fsync = fsync
         self._lock = threading.Lock()
@@ -122,6 +254,12 @@ class SegmentLog:
         for p in sorted(self.dir.glob("seg-*.parquet.tmp")):
             p.unlink()
         for p in sorted(self.dir.glob("seg-*.parquet")):
+            # a damaged segment is named now, not by a later query's Arrow message
+            try:
+                self._schemas[p] = pq.read_schema(p)
+            except (pa.ArrowException, OSError) as exc:
+                raise StoreError(f"damaged Parquet segment of the store ({exc}); move it "
+                                 "aside to start without its rows", p) from None
             self._segments.append(p)
             seqs.add(int(p.name[4:12]))
         for p in sorted(self.dir.glob("seg-*.wal")):
@@ -141,7 +279,8 @@ class SegmentLog:
             seqs.add(seq)
         self._seq = max(seqs, default=-1) + 1
         self._rows = 0
-        self._file = open(self._path(self._seq, "wal"), "ab")  # noqa: SIM115 - long-lived
+        self._file = self._open_log(self._seq)
+        self._size = 0  # the log's length: every frame before it was written completely
         self._memory[self._seq] = []
         # seal logs recovered from a crash (they are complete: their frames were synced)
         for seq in sorted(self._memory):
@@ -154,32 +293,70 @@ class SegmentLog:
     def _path(self, seq: int, ext: str) -> Path:
         return self.dir / f"seg-{seq:08d}.{ext}"
 
+    def _open_log(self, seq: int) -> io.FileIO:
+        """A new, empty log file, unbuffered: a failed write leaves nothing in a buffer
+        that a later write would flush (a refused body's rows appeared on disk)."""
+        return open(self._path(seq, "wal"), "ab", buffering=0)  # noqa: SIM115 - long-lived
+
     def append(self, table: pa.Table | pa.RecordBatch) -> None:
-        """Append rows durably (synced to disk when this returns)."""
+        """Append rows durably (synced to disk when this returns).
+
+        Raises
+        ------
+        StoreWriteError
+            The write or the sync failed (disk full, I/O error).  The log file is then as
+            it was before the call and the rows are not kept: the caller must report the
+            rows as not stored.
+        """
         if table.num_rows == 0:
             return
         if isinstance(table, pa.RecordBatch):
             table = pa.Table.from_batches([table])
         frame = _encode(table)
         with self._lock:
-            self._file.write(frame)
-            self._file.flush()
-            if self.fsync:
-                os.fdatasync(self._file.fileno())
+            fd = self._file.fileno()
+            try:
+                if os.fstat(fd).st_size != self._size:  # an earlier cut-back had failed
+                    os.ftruncate(fd, self._size)
+                _write_all(fd, frame)
+                if self.fsync:
+                    os.fdatasync(fd)
+            except OSError as exc:
+                self._cut_back(fd)
+                raise StoreWriteError(f"store write failed: {exc.strerror or exc}",
+                                      self._path(self._seq, "wal"), exc.errno) from None
+            self._size += len(frame)
             self._memory[self._seq].append(table)
             self._rows += table.num_rows
             if self._rows >= self.seal_rows:
                 self._rotate()
 
+    def _cut_back(self, fd: int) -> None:
+        """Truncate the log to its length before a failed append (best effort: when this
+        fails too, the next append retries it before writing)."""
+        with contextlib.suppress(OSError):
+            os.ftruncate(fd, self._size)
+            if self.fsync:
+                os.fdatasync(fd)
+
     def _rotate(self) -> None:
+        """Start a new log and seal the full one.  The rows are already durable: a new log
+        that cannot be created (disk full) keeps the current one open, retried at the
+        next append, rather than failing an append whose rows are on disk."""
+        try:
+            new = self._open_log(self._seq + 1)
+        except OSError:
+            return
         old = self._seq
         self._file.close()
         self._seq += 1
         self._rows = 0
-        self._file = open(self._path(self._seq, "wal"), "ab")  # noqa: SIM115
+        self._size = 0
+        self._file = new
         self._memory[self._seq] = []
         if self.fsync:
-            _fsync_dir(self.dir)
+            with contextlib.suppress(OSError):  # the new log's entry; retried by the seal
+                _fsync_dir(self.dir)
         self._seal_async(old)
 
     def _seal_async(self, seq: int) -> None:
@@ -193,11 +370,19 @@ class SegmentLog:
         table = pa.concat_tables(tables, promote_options="default")
         final = self._path(seq, "parquet")
         tmp = final.with_name(final.name + ".tmp")
-        pq.write_table(table, tmp, compression="zstd")
-        with open(tmp, "rb") as f:
-            os.fsync(f.fileno())
-        os.replace(tmp, final)
-        _fsync_dir(self.dir)
+        try:
+            pq.write_table(table, tmp, compression="zstd")
+            with open(tmp, "rb") as f:
+                os.fsync(f.fileno())
+            os.replace(tmp, final)
+            _fsync_dir(self.dir)
+        except OSError as exc:  # disk full: the log stays (its rows stay readable from
+            # memory and are sealed at the next start); one line, no traceback
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+            print(f"warning: {final}: sealing the log into Parquet failed ({exc}); the log "
+                  "is kept and sealed at the next start", file=sys.stderr, flush=True)
+            return
         with self._lock:
             self._segments.append(final)
             del self._memory[seq]
@@ -246,9 +431,11 @@ class SegmentLog:
         return sch
 
     def close(self) -> None:
+        """Close the active log, wait for the sealing threads, release the folder."""
         with self._lock:
             self._file.close()
         self.wait_sealed()
+        self._dir_lock.release()
 
 
 def max_by(table: pa.Table, key: str, value: str) -> dict[str, float]:
@@ -259,4 +446,4 @@ def max_by(table: pa.Table, key: str, value: str) -> dict[str, float]:
     return dict(zip(g[key].to_pylist(), g[f"{value}_max"].to_pylist()))
 
 
-__all__ = ["SegmentLog", "max_by"]
+__all__ = ["SegmentLog", "StoreError", "StoreInUse", "StoreLock", "StoreWriteError", "max_by"]

@@ -1,0 +1,395 @@
+"""Durability of the live service under hostile operations (the service review's 1, 4, 5,
+6, 9 and 10): a second server on one store, a full disk, MQTT downtime, a stuck client at
+shutdown, damaged store files, WebSockets to unknown paths.
+
+Every server is a real ``robustloc serve`` on a free loopback port (``ServerProcess``) and
+every broker a real Mosquitto, each stopped in a ``finally``/fixture teardown.  A full disk
+is a file size limit (``RLIMIT_FSIZE``) set on the running server with ``prlimit``: no
+root and no mount needed (Python ignores ``SIGXFSZ``, so a write past the limit fails with
+``EFBIG`` as one past a full disk fails with ``ENOSPC``).
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import shutil
+import signal
+import socket
+import subprocess
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("starlette")
+pytest.importorskip("uvicorn")
+httpx = pytest.importorskip("httpx")
+
+from robustloc.service.launch import (  # noqa: E402
+    ROBUSTLOC,
+    MosquittoProcess,
+    ServerProcess,
+    free_port,
+)
+
+ANCHORS = {"A1": (0.0, 0.0), "A2": (10.0, 0.0), "A3": (10.0, 10.0), "A4": (0.0, 10.0)}
+#: Options that keep every epoch pending (nothing solved, so only the measurements log is
+#: written while a test limits the server's file size).
+PENDING = ["--latency-window", "1000", "--time-jump", "5000", "--idle-flush", "1000"]
+
+
+def _rows(times: range | list[float], tag: str = "T") -> list[dict]:
+    xy = np.array(list(ANCHORS.values()))
+    d = np.hypot(*(xy - [3.0, 4.0]).T)
+    return [{"time": float(t), "tag": tag, "anchor": a, "range": float(r)}
+            for t in times for a, r in zip(ANCHORS, d)]
+
+
+def _metric(url: str, name: str) -> float:
+    total = 0.0
+    for ln in httpx.get(url + "/metrics", timeout=10).text.splitlines():
+        if ln.startswith(name + " ") or ln.startswith(name + "{"):
+            total += float(ln.rsplit(" ", 1)[1])
+    return total
+
+
+def _wait(cond: Callable[[], object], timeout: float, what: str) -> object:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        v = cond()
+        if v:
+            return v
+        time.sleep(0.1)
+    raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+
+
+def _stored_times(store: Path) -> list[float]:
+    """The times of the rows in a (closed) store's measurements log."""
+    from robustloc.service.store import SegmentLog
+
+    log = SegmentLog(store / "measurements", fsync=False)
+    try:
+        return sorted(log.scan(columns=["time"])["time"].to_pylist())
+    finally:
+        log.close()
+
+
+def _limit_file_size(pid: int, nbytes: int | None) -> None:
+    """Set (``None``: lift) the soft file size limit of a running process."""
+    _, hard = resource.prlimit(pid, resource.RLIMIT_FSIZE)
+    resource.prlimit(pid, resource.RLIMIT_FSIZE,
+                     (resource.RLIM_INFINITY if nbytes is None else nbytes, hard))
+
+
+@pytest.fixture
+def anchors(tmp_path) -> Path:
+    p = tmp_path / "anchors.csv"
+    p.write_text("anchor,x,y\n" + "".join(f"{a},{x},{y}\n" for a, (x, y) in ANCHORS.items()))
+    return p
+
+
+@pytest.fixture
+def servers() -> Iterator[Callable[..., ServerProcess]]:
+    """``servers(args)``: a started ``ServerProcess``; every one is stopped at teardown."""
+    started: list[ServerProcess] = []
+
+    def make(args: list[str], **kw) -> ServerProcess:
+        s = ServerProcess(args, startup_timeout_s=120, **kw)
+        started.append(s)
+        return s.start()
+
+    try:
+        yield make
+    finally:
+        for s in started:
+            s.stop()
+
+
+@pytest.fixture
+def broker() -> Iterator[MosquittoProcess]:
+    if not (shutil.which("mosquitto") or Path("/usr/sbin/mosquitto").exists()):
+        pytest.skip("the mosquitto binary is missing (apt-get install mosquitto)")
+    b = MosquittoProcess()
+    try:
+        yield b.start()
+    finally:
+        b.stop()
+
+
+# --------------------------------------------------------------------------------------
+# 1. one server per store
+# --------------------------------------------------------------------------------------
+
+
+def test_a_second_server_on_a_store_is_refused_and_nothing_acknowledged_is_lost(
+        anchors, servers, tmp_path):
+    """A second server on the same --store sealed and deleted the first one's active log:
+    the first kept answering 202 into a deleted file and lost those rows.  Now the second
+    one exits 2 before serving, naming the store, and every acknowledged row is kept."""
+    store = tmp_path / "s"
+    args = ["--anchors", str(anchors), "--store", str(store), *PENDING]
+    a = servers(args)
+    acked: list[float] = []
+    r = httpx.post(a.url + "/api/measurements", json=_rows(range(0, 5)))
+    assert r.status_code == 202
+    acked += [float(t) for t in range(0, 5)]
+    with pytest.raises(RuntimeError, match="exited with 2") as err:
+        servers(args)
+    assert f"error: {store}: store in use by another server" in str(err.value)
+    assert "Traceback" not in str(err.value)
+    r = httpx.post(a.url + "/api/measurements", json=_rows(range(5, 10)))
+    assert r.status_code == 202
+    acked += [float(t) for t in range(5, 10)]
+    a.stop()
+    assert _stored_times(store) == sorted(t for t in acked for _ in ANCHORS)
+    # the lock dies with its holder: the store opens again
+    b = servers(args)
+    assert httpx.get(b.url + "/healthz").status_code == 200
+
+
+def test_a_store_folder_opens_once(tmp_path):
+    """The store's own guard: a second open of a log folder is refused (it would seal and
+    delete the first one's active log) until the first is closed."""
+    import pyarrow as pa
+
+    from robustloc.service.store import SegmentLog, StoreInUse
+
+    log = SegmentLog(tmp_path, fsync=False)
+    log.append(pa.table({"time": [1.0]}))
+    with pytest.raises(StoreInUse, match="store in use"):
+        SegmentLog(tmp_path, fsync=False)
+    assert len(list(tmp_path.glob("*.wal"))) == 1  # the active log is untouched
+    log.close()
+    log2 = SegmentLog(tmp_path, fsync=False)
+    assert log2.scan()["time"].to_pylist() == [1.0]
+    log2.close()
+
+
+# --------------------------------------------------------------------------------------
+# 4. disk full
+# --------------------------------------------------------------------------------------
+
+
+def test_a_body_the_store_cannot_write_is_507_and_not_stored(anchors, servers, tmp_path):
+    """The log was written buffered: a body whose write failed was answered 500, its frame
+    stayed in the buffer and the next body's flush stored it.  Now a failed append leaves
+    the log as it was, the body is answered 507 with a reason (counted as store_error);
+    over a WebSocket the 507 answer comes, then a close with 1013 and the reason."""
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    store = tmp_path / "s"
+    srv = servers(["--anchors", str(anchors), "--store", str(store), *PENDING])
+    url = srv.url + "/api/measurements"
+    assert httpx.post(url, json=_rows(range(0, 20))).status_code == 202
+    (wal,) = (store / "measurements").glob("seg-*.wal")
+    size = wal.stat().st_size
+    _limit_file_size(srv.proc.pid, size + 500)  # less than one more body's frame
+    try:
+        r = httpx.post(url, json=_rows(range(20, 40)))
+        assert r.status_code == 507, r.text
+        assert "store write failed" in r.json()["error"]
+        assert r.headers["retry-after"] == "5"
+        assert wal.stat().st_size == size  # the partial frame was cut back
+        with connect(srv.url.replace("http", "ws") + "/ws/measurements") as ws:
+            ws.send(json.dumps(_rows(range(40, 60))))
+            reply = json.loads(ws.recv(timeout=30))
+            assert reply["status"] == 507 and "store write failed" in reply["error"]
+            with pytest.raises(ConnectionClosed):
+                ws.recv(timeout=30)
+            assert ws.close_code == 1013
+            assert "store write failed" in ws.close_reason
+    finally:
+        _limit_file_size(srv.proc.pid, None)
+    assert httpx.post(url, json=_rows(range(60, 80))).status_code == 202
+    assert _metric(srv.url, 'robustloc_requests_rejected_total{reason="store_error"}') == 2
+    assert _metric(srv.url, 'robustloc_requests_rejected_total{reason="internal_error"}') == 0
+    srv.stop()
+    assert "Traceback" not in srv.log()
+    want = [float(t) for t in [*range(0, 20), *range(60, 80)] for _ in ANCHORS]
+    assert _stored_times(store) == sorted(want)
+
+
+def test_an_mqtt_message_the_store_cannot_write_is_not_acknowledged(
+        anchors, servers, broker, tmp_path):
+    """MQTT counted a store failure as an internal error and acknowledged the message: the
+    broker dropped it.  Now it is not acknowledged, counted (mqtt_store_error), logged in
+    one line, and delivered again once the store can write."""
+    mqtt = pytest.importorskip("paho.mqtt.client")
+    store = tmp_path / "s"
+    srv = servers(["--anchors", str(anchors), "--store", str(store), *PENDING,
+                   "--mqtt", f"127.0.0.1:{broker.port}"])
+    topic = "robustloc/measurements/gw-1"
+    pub = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2)
+    pub.connect("127.0.0.1", broker.port)
+    pub.loop_start()
+    try:
+        t = -1000.0
+        while _metric(srv.url, "robustloc_rows_accepted_total") == 0:  # until subscribed
+            assert t < -900, "the service never subscribed"
+            pub.publish(topic, json.dumps(_rows([t], tag="probe")), qos=1).wait_for_publish(5)
+            t += 1
+            time.sleep(0.5)
+        time.sleep(1.0)
+        n0 = _metric(srv.url, "robustloc_rows_accepted_total")
+        (wal,) = (store / "measurements").glob("seg-*.wal")
+        _limit_file_size(srv.proc.pid, wal.stat().st_size + 100)
+        try:
+            pub.publish(topic, json.dumps(_rows(range(0, 10))), qos=1).wait_for_publish(5)
+            _wait(lambda: _metric(srv.url, 'robustloc_requests_rejected_total'
+                                           '{reason="mqtt_store_error"}') >= 1,
+                  30, "the store failure counted")
+            assert _metric(srv.url, "robustloc_rows_accepted_total") == n0
+        finally:
+            _limit_file_size(srv.proc.pid, None)
+        _wait(lambda: _metric(srv.url, "robustloc_rows_accepted_total") == n0 + 40,
+              60, "the message delivered again and stored")
+    finally:
+        pub.loop_stop()
+        pub.disconnect()
+    assert _metric(srv.url, 'robustloc_requests_rejected_total'
+                            '{reason="mqtt_internal_error"}') == 0
+    srv.stop()
+    log = srv.log()
+    assert "not stored and not acknowledged" in log and "Traceback" not in log
+    times = _stored_times(store)
+    assert [x for x in times if x >= 0] == sorted(float(t) for t in range(10) for _ in ANCHORS)
+
+
+# --------------------------------------------------------------------------------------
+# 5. MQTT downtime
+# --------------------------------------------------------------------------------------
+
+
+def test_mqtt_rows_published_while_the_service_is_down_arrive_after_the_restart(
+        anchors, servers, broker, tmp_path):
+    """A clean session and a random client id: the broker queued nothing for the service
+    while it was down and those rows were lost.  With --store the session is persistent
+    under a client id derived from the store."""
+    mqtt = pytest.importorskip("paho.mqtt.client")
+    store = tmp_path / "s"
+    args = ["--anchors", str(anchors), "--store", str(store), *PENDING,
+            "--mqtt", f"127.0.0.1:{broker.port}"]
+    topic = "robustloc/measurements/gw-1"
+    pub = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2)
+    pub.connect("127.0.0.1", broker.port)
+    pub.loop_start()
+    try:
+        srv = servers(args)
+        t = -1000.0
+        while _metric(srv.url, "robustloc_rows_accepted_total") == 0:  # until subscribed
+            assert t < -900, "the service never subscribed"
+            pub.publish(topic, json.dumps(_rows([t], tag="probe")), qos=1).wait_for_publish(5)
+            t += 1
+            time.sleep(0.5)
+        srv.stop()
+        for k in range(10):  # the service is down
+            pub.publish(topic, json.dumps(_rows([float(k)])), qos=1).wait_for_publish(5)
+        srv2 = servers(args)
+        _wait(lambda: _metric(srv2.url, 'robustloc_rows_accepted_total{source="mqtt"}') >= 40,
+              60, "the queued messages delivered")
+        time.sleep(0.5)
+        assert _metric(srv2.url, 'robustloc_rows_accepted_total{source="mqtt"}') == 40
+    finally:
+        pub.loop_stop()
+        pub.disconnect()
+    srv2.stop()
+    times = _stored_times(store)
+    assert [x for x in times if x >= 0] == sorted(float(t) for t in range(10) for _ in ANCHORS)
+
+
+def test_mqtt_client_id_is_stable_per_store(tmp_path):
+    from robustloc.service.mqtt import client_id_for_store
+
+    a = client_id_for_store(tmp_path / "a")
+    assert a == client_id_for_store(str(tmp_path / "a"))
+    assert a != client_id_for_store(tmp_path / "b")
+    assert a.startswith("robustloc-") and len(a) <= 23  # what every MQTT 3.1.1 broker takes
+
+
+# --------------------------------------------------------------------------------------
+# 6. shutdown with a stuck client
+# --------------------------------------------------------------------------------------
+
+
+def test_a_half_sent_body_does_not_hold_the_shutdown(anchors, servers):
+    """A client that sent half a body kept the service alive after SIGTERM for up to
+    --body-timeout; uvicorn's graceful shutdown is now bounded (--shutdown-grace)."""
+    srv = servers(["--anchors", str(anchors), "--body-timeout", "60"])
+    with socket.create_connection(("127.0.0.1", srv.port), timeout=10) as k:
+        k.sendall(b"POST /api/measurements HTTP/1.1\r\nHost: x\r\n"
+                  b"Content-Length: 1000\r\n\r\n[{")
+        time.sleep(0.5)
+        t0 = time.monotonic()
+        srv.proc.send_signal(signal.SIGTERM)
+        try:
+            srv.proc.wait(timeout=15)
+        except subprocess.TimeoutExpired:
+            srv.kill9()
+            pytest.fail("still running 15 s after SIGTERM (a half-sent body holds it)")
+    assert time.monotonic() - t0 < 15
+
+
+# --------------------------------------------------------------------------------------
+# 9. damaged store files named at start-up
+# --------------------------------------------------------------------------------------
+
+
+def _serve_once(args: list[str]) -> subprocess.CompletedProcess:
+    """``robustloc serve ARGS`` expected to refuse to start (bounded: it must not serve)."""
+    return subprocess.run([*ROBUSTLOC, "serve", *args, "--port", str(free_port())],
+                          capture_output=True, text=True, timeout=120)
+
+
+def test_damaged_store_files_are_named_at_start(anchors, servers, tmp_path):
+    """A truncated meta.json and a damaged Parquet segment were reported against the
+    anchors file (the JSON or Arrow message with the wrong file name)."""
+    store = tmp_path / "s"
+    args = ["--anchors", str(anchors), "--store", str(store), *PENDING]
+    srv = servers(args)
+    assert httpx.post(srv.url + "/api/measurements", json=_rows(range(3))).status_code == 202
+    srv.stop()
+    servers(args).stop()  # a restart seals the log into a Parquet segment
+    (seg,) = (store / "measurements").glob("seg-*.parquet")
+
+    meta = store / "meta.json"
+    good = meta.read_text()
+    meta.write_text(good[:10])
+    p = _serve_once(args)
+    assert p.returncode == 2, p.stderr
+    assert p.stderr.strip().splitlines()[-1].startswith(f"error: {meta}: ")
+    assert "Traceback" not in p.stderr and str(anchors) not in p.stderr
+    meta.write_text(good)
+
+    data = seg.read_bytes()
+    seg.write_bytes(data[:100])
+    p = _serve_once(args)
+    assert p.returncode == 2, p.stderr
+    assert p.stderr.strip().splitlines()[-1].startswith(f"error: {seg}: ")
+    assert "Traceback" not in p.stderr and str(anchors) not in p.stderr
+    seg.write_bytes(data)
+    assert _stored_times(store) == sorted(float(t) for t in range(3) for _ in ANCHORS)
+
+
+# --------------------------------------------------------------------------------------
+# 10. WebSocket to an unknown path
+# --------------------------------------------------------------------------------------
+
+
+def test_a_websocket_to_an_unknown_path_is_closed_with_a_reason_and_counted(anchors, servers):
+    from websockets.exceptions import ConnectionClosed
+    from websockets.sync.client import connect
+
+    srv = servers(["--anchors", str(anchors)])
+    paths = ("/ws/nope", "/api/positions", "/static/x")
+    for path in paths:
+        with connect(srv.url.replace("http", "ws") + path, open_timeout=10) as ws:
+            with pytest.raises(ConnectionClosed):
+                ws.recv(timeout=10)
+            assert ws.close_code == 1008
+            assert f"no such WebSocket endpoint: {path}" in ws.close_reason
+    assert _metric(srv.url, 'robustloc_requests_rejected_total{reason="not_found"}') == len(paths)
+    assert httpx.get(srv.url + "/healthz").status_code == 200
