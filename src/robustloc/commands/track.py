@@ -13,6 +13,7 @@ import sys
 import pandas as pd
 
 from robustloc.engines import add_engine_arguments
+from robustloc.errors import InputError
 
 NAME = "track"
 HELP = "tracks from RSSI or ranges: a robust tight EKF/UKF per tag, with RTS smoothing"
@@ -64,6 +65,57 @@ group on a worker with this same code; the dataset of part files holds the same 
   robustloc track by-tag --anchors anchors.csv -o tracks --engine dask [--scheduler ADDR]"""
 
 
+def noise_scale_value(text: str) -> float:
+    """``--noise-scale-min`` / ``--noise-scale-max``: a factor in [1e-6, 1e6], the range of
+    ``--sigma``.  (Only "positive and finite" before: the tracker squares it, so 1e200
+    ended in an OverflowError traceback and 1e-170 in a ZeroDivisionError.)"""
+    from robustloc.options import float_in
+
+    return float_in(1e-6, 1e6)(text)
+
+
+def check_options(args: argparse.Namespace) -> None:
+    """The refusals that involve two options, named as on the command line.
+
+    Raises
+    ------
+    InputError
+        ``--noise-scale-min: 5 is above --noise-scale-max 1`` (the tracker said
+        ``need 0 < noise_scale_min <= noise_scale_max``, its Python names).
+    """
+    lo, hi = args.noise_scale_min, args.noise_scale_max
+    if lo > hi:
+        raise InputError(f"{lo:g} is above --noise-scale-max {hi:g} (the noise scale adapts "
+                         "within [--noise-scale-min, --noise-scale-max])",
+                         "--noise-scale-min")
+
+
+def _check_anchors_on_client(args: argparse.Namespace) -> None:
+    """``--engine dask``: the anchors file read and checked here first, as the local
+    command does before any work (``--tag-height`` without a z column: the workers said
+    ``tag_height needs ...``, the tracker's Python name)."""
+    from robustloc.io import read_anchors
+
+    _tag_height_needs_z(args.tag_height, read_anchors(args.anchors))
+
+
+def _tag_height_needs_z(tag_height: float | None, anchors: pd.DataFrame) -> None:
+    """Refuse ``--tag-height`` with anchors that have no z (as ``run_track`` does)."""
+    if tag_height is not None and "z" not in anchors.columns:
+        raise InputError("--tag-height needs a z column in the anchors file",
+                         anchors.attrs.get("path"), 1)
+
+
+def _far_anchors(anchors: pd.DataFrame) -> list[str]:
+    """The anchors far outside the others (a typo), as ``run_track``'s summary names
+    them in ``anchors_not_used``."""
+    from robustloc.estimators.ranging import _sane_anchors
+
+    dims = [c for c in ("x", "y", "z") if c in anchors.columns]
+    far = ~_sane_anchors(anchors[dims].to_numpy(dtype=float))
+    return [str(a) for a, f in zip(anchors["anchor"], far) if f]
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from robustloc.options import (
         finite_float,
@@ -72,6 +124,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         positive_int,
         sigma_value,
     )
+
+    scale = noise_scale_value
     from robustloc.pipelines.track import WEIGHTS, TrackSettings
 
     d = TrackSettings()
@@ -109,8 +163,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--kernel", choices=("compiled", "numpy"), default=d.kernel,
                    help="the tracker's kernels: compiled (default) or the NumPy reference "
                         "(Tracker(engine=...); --engine chooses where the command runs)")
-    p.add_argument("--noise-scale-min", type=positive_float, default=d.noise_scale_min)
-    p.add_argument("--noise-scale-max", type=positive_float, default=d.noise_scale_max)
+    p.add_argument("--noise-scale-min", type=scale, default=d.noise_scale_min,
+                   help="lower bound of the adaptive measurement noise scale (a factor of "
+                        f"--sigma, in [1e-6, 1e6]; default {d.noise_scale_min:g})")
+    p.add_argument("--noise-scale-max", type=scale, default=d.noise_scale_max,
+                   help="upper bound of the adaptive measurement noise scale (>= "
+                        f"--noise-scale-min; default {d.noise_scale_max:g})")
     p.add_argument("--cusum-h", type=positive_float, default=d.cusum_h,
                    help="enable the per-link step detector (environment changes) with this "
                         "CUSUM threshold, e.g. 10 (default off: measured to cost accuracy "
@@ -130,7 +188,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "uwb-labyrinth 0.215 -> 0.144 m RMS (its ranges read ~0.1 m long "
                         "at every anchor); uwb-dwm1001 LOS 0.77 -> 0.91 m (its errors "
                         "differ by anchor: use calibrate --self there)")
-    p.add_argument("--range-offset-sd", type=positive_float, default=d.range_offset_sd,
+    p.add_argument("--range-offset-sd", type=sigma_value, default=d.range_offset_sd,
                    help="a-priori std of the offset at a tag's start "
                         f"(m, default {d.range_offset_sd})")
     p.add_argument("--range-offset-q", type=nonnegative_float, default=d.range_offset_q,
@@ -147,7 +205,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "are no offsets it costs (simulated walk, 4 APs: 0.93x -> 1.25x "
                         "the snapshot fixes' RMS); 4 + M states: slower.  Not with "
                         "--range-offset")
-    p.add_argument("--link-offset-sd", type=positive_float, default=None,
+    p.add_argument("--link-offset-sd", type=sigma_value, default=None,
                    help="a-priori std of each link's offset at a tag's start, in the "
                         "measurement's unit (default 1 dB for RSSI, 0.1 m for ranges)")
     p.add_argument("--link-offset-q", type=nonnegative_float, default=d.link_offset_q,
@@ -193,6 +251,7 @@ def track_partition(meas: pd.DataFrame, anchors: pd.DataFrame, args: argparse.Na
     )
 
     settings = TrackSettings.from_namespace(args)
+    _tag_height_needs_z(settings.tag_height, anchors)  # as run_track, before any work
     trk = settings.tracker(anchors)
     epochs = to_epochs(meas, trk.anchor_ids)  # sorted by (time, tag): each tag in order
     hist: dict[str, int] = {}
@@ -202,7 +261,13 @@ def track_partition(meas: pd.DataFrame, anchors: pd.DataFrame, args: argparse.Na
     summary = {"epochs": n, "tags": len(trk.tags), "status": counts,
                "hpl_histogram": {trk.method: hist},
                "invalid_measurement_rows": tally.get("invalid_measurement_rows", 0),
-               "duplicates_merged": tally.get("duplicates_merged", 0)}
+               "duplicates_merged": tally.get("duplicates_merged", 0),
+               # the same in every group: the single-process summary's keys
+               "shared": {"method": trk.method,
+                          "smoother": (("fixed-lag" if settings.fixed_lag else "rts")
+                                       if settings.smoothing else None),
+                          "sorted_first": False,  # (read whole and sorted by to_epochs)
+                          "anchors_not_used": _far_anchors(anchors)}}
     per_tag = {}  # per tag, merged (not summed) over the tag groups
     if settings.range_offset:
         per_tag["range_offset_m"] = range_offsets(trk)
@@ -221,7 +286,9 @@ def track_partition_file(args: argparse.Namespace) -> dict:
     summary = {"epochs": s["epochs"], "tags": s["tags"], "status": s["status"],
                "hpl_histogram": s["hpl_histogram"], "rows_out": s["epochs"],
                "invalid_measurement_rows": s["invalid_measurement_rows"],
-               "duplicates_merged": s["duplicates_merged"]}
+               "duplicates_merged": s["duplicates_merged"],
+               "shared": {k: s[k] for k in ("method", "smoother", "sorted_first",
+                                            "anchors_not_used") if k in s}}
     per_tag = {k: s[k] for k in ("range_offset_m", "link_offset_m", "link_offset_db")
                if k in s}
     if per_tag:  # per tag, merged (not summed) over the tag groups
@@ -232,10 +299,15 @@ def track_partition_file(args: argparse.Namespace) -> dict:
 def run(args: argparse.Namespace) -> int:
     from robustloc.commands._plot import check_plot, draw_plot
 
+    check_options(args)
     check_plot(args, "track")
     if args.engine == "dask":
         from robustloc.engines.dask import run_tagwise
-        return run_tagwise(args, track_partition, "track", file_fn=track_partition_file)
+
+        _check_anchors_on_client(args)
+        return run_tagwise(args, track_partition, "track", file_fn=track_partition_file,
+                           local_keys={"measurements": str(args.measurements),
+                                       "track": str(args.out)})
     from robustloc.io.atomic import writes_to_stdout
 
     summary = track_file(args)

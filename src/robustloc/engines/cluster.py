@@ -20,6 +20,12 @@ WORKER_ENV = {"NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_TH
               "MKL_NUM_THREADS": "1"}
 #: Memory limit of one LocalCluster worker (the engine's target is <= 2 GiB per worker).
 WORKER_MEMORY_BYTES = 2 * 1024**3
+#: Seconds to wait for a first worker on a ``--scheduler`` that has none yet (an adaptive
+#: cluster starting its workers) before ``error: --scheduler ADDRESS: no workers after N
+#: s``, exit 2 (without it, a scheduler with no workers made every command wait forever).
+WORKER_WAIT_SECONDS = 30.0
+#: Seconds to wait for a connection to a ``--scheduler``.
+CONNECT_TIMEOUT_SECONDS = 20.0
 
 
 def machine_cores() -> int:
@@ -84,7 +90,9 @@ def dask_client(scheduler: str | None, workers: int | None = None,
     Parameters
     ----------
     scheduler : str or None
-        Address of a running scheduler (``tcp://host:8786``), or None to start a
+        Address of a running scheduler (``tcp://host:8786``; a malformed one, one that
+        cannot be reached, or one without a worker after :data:`WORKER_WAIT_SECONDS` is
+        an :class:`~robustloc.errors.InputError`), or None to start a
         LocalCluster of ``workers`` single-threaded worker processes (default: the cores
         available), each limited to :data:`WORKER_MEMORY_BYTES`.
     workers : int, optional
@@ -102,13 +110,7 @@ def dask_client(scheduler: str | None, workers: int | None = None,
     client = None
     try:
         if scheduler is not None:
-            try:
-                client = distributed.Client(scheduler, timeout="20s")
-            except OSError as exc:
-                # a user's mistake in every command (spp ended in a traceback here)
-                from robustloc.errors import InputError
-
-                raise InputError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
+            client = _connect(distributed, scheduler)
         else:
             n = workers or machine_cores()
             extra = {"env": dict(WORKER_ENV)} if processes else {}
@@ -125,12 +127,93 @@ def dask_client(scheduler: str | None, workers: int | None = None,
                 for signum in dict.fromkeys(got):
                     signal.raise_signal(signum)
             client = distributed.Client(cluster)
+            _quiet_worker_logs(client)
         yield client
     finally:
         if client is not None:
             client.close()
         if cluster is not None:
             _close_cluster(cluster)
+
+
+def check_scheduler_address(scheduler: str) -> None:
+    """Refuse a malformed ``--scheduler`` address before any connection is tried.
+
+    Parameters
+    ----------
+    scheduler : str
+        The address as given (``tcp://host:8786``, ``host:8786``, ``tls://...``).
+
+    Raises
+    ------
+    InputError
+        ``--scheduler ADDRESS: not a scheduler address (...)``: no port
+        (``127.0.0.1``), an unknown scheme (``foo://h:1``), a port that is not a number.
+        (distributed raised a ValueError, shown as an internal error with a traceback.)
+    """
+    from distributed.comm import get_address_host_port
+    from distributed.comm.addressing import parse_address
+
+    try:
+        scheme, _ = parse_address(scheduler)
+        if scheme != "inproc":  # (an in-process cluster's address has no host and port)
+            get_address_host_port(scheduler)
+    except (ValueError, TypeError) as exc:
+        raise InputError(f"--scheduler {scheduler}: not a scheduler address ({exc}); "
+                         "expected e.g. tcp://HOST:8786") from None
+
+
+def _connect(distributed: object, scheduler: str) -> object:
+    """A client of the running scheduler ``scheduler`` that has at least one worker.
+
+    Raises
+    ------
+    InputError
+        A malformed address, a scheduler that cannot be reached, or one without a worker
+        after :data:`WORKER_WAIT_SECONDS` (``--scheduler ADDRESS: no workers after N s``).
+    """
+    check_scheduler_address(scheduler)
+    try:
+        client = distributed.Client(  # type: ignore[attr-defined]
+            scheduler, timeout=f"{CONNECT_TIMEOUT_SECONDS:g}s")
+    except (OSError, ValueError, TypeError) as exc:
+        # a user's mistake in every command (spp ended in a traceback here)
+        raise InputError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
+    try:
+        if not client.scheduler_info().get("workers"):  # type: ignore[attr-defined]
+            print(f"note: --scheduler {scheduler} has no workers yet; waiting up to "
+                  f"{WORKER_WAIT_SECONDS:g} s", file=sys.stderr)
+        client.wait_for_workers(1, timeout=WORKER_WAIT_SECONDS)
+    except (OSError, TimeoutError):  # (asyncio's and dask's TimeoutError are builtins')
+        client.close()
+        raise InputError(f"--scheduler {scheduler}: no workers after "
+                         f"{WORKER_WAIT_SECONDS:g} s (start workers: dask worker "
+                         f"{scheduler})") from None
+    except BaseException:
+        client.close()
+        raise
+    return client
+
+
+#: distributed's loggers whose warnings a LocalCluster's workers print on the user's
+#: terminal about what the command did on purpose: "Async instruction ... ended with
+#: CancelledError" when a failed run cancels the tasks still running and closes them.
+_QUIET_LOGGERS = ("distributed.worker.state_machine",)
+
+
+def _quiet_loggers() -> None:
+    """Run on each worker: only errors from :data:`_QUIET_LOGGERS`."""
+    for name in _QUIET_LOGGERS:
+        logging.getLogger(name).setLevel(logging.ERROR)
+
+
+def _quiet_worker_logs(client: object) -> None:
+    """:func:`_quiet_loggers` on the workers of the command's own LocalCluster (a user's
+    ``--scheduler`` workers keep their own logging)."""
+    try:
+        client.run(_quiet_loggers)  # type: ignore[attr-defined]
+    except Exception:  # noqa: BLE001 - only cosmetic
+        pass
 
 
 def _close_cluster(cluster: object) -> None:

@@ -21,7 +21,11 @@ plus ``_robustloc.json`` (command, partition files, counts).  It is written in a
 directory next to the output and renamed into place only when every task succeeded, so a
 failed run never leaves a half-written dataset, and never replaces a directory that is not
 a robustloc dataset.  Workers must see the input, the anchors and the output's parent
-directory at the same paths (a shared filesystem on a real cluster).
+directory at the same paths (a shared filesystem on a real cluster): every path handed to
+them is made absolute on the client first (:func:`_settings`, ``discover(...,
+absolute=True)``; a worker resolves a relative path in its own working directory), and
+the run fails, writing nothing, if a part is not where the client looks for it
+(:meth:`DatasetOutput.check_parts`).  ``-o -`` is refused: the output is a folder.
 """
 
 from __future__ import annotations
@@ -92,27 +96,67 @@ class DatasetOutput:
 
     def __init__(self, out: str | Path,
                  inputs: Iterable[str | os.PathLike | None] = ()) -> None:
-        from robustloc.io.atomic import check_not_input_tree
+        from robustloc.io.atomic import check_not_input_tree, is_stdio
 
-        self.out = Path(out)
+        if is_stdio(out):  # (a folder named "-" was written, exit 0, nothing on stdout)
+            raise InputError("--engine dask writes a dataset folder, not standard output",
+                             "-o")
+        given = Path(out)  # as the user gave it, for messages
+        # absolute: the tasks write their parts on workers, which resolve a relative
+        # path in their own working directory (the parts were lost, exit 0)
+        self.out = Path(os.path.abspath(out))
         check_not_input_tree(self.out, inputs)
         if self.out.exists():
             if not self.out.is_dir():
                 raise InputError("exists and is a file; --engine dask writes a dataset "
-                                 "directory (give a new or a dataset directory)", self.out)
+                                 "directory (give a new or a dataset directory)", given)
             if any(self.out.iterdir()) and not (self.out / META_FILE).exists():
                 raise InputError("directory exists and is not a robustloc dataset; refusing "
-                                 "to replace it", self.out)
+                                 "to replace it", given)
+        self.given = given
         self.out.parent.mkdir(parents=True, exist_ok=True)
         self.stage = self.out.parent / f".{self.out.name}.partial-{uuid.uuid4().hex[:8]}"
         self.stage.mkdir()
 
     def part(self, i: int) -> str:
-        """Path of output partition ``i`` (in the staging directory)."""
+        """Absolute path of output partition ``i`` (in the staging directory)."""
         return str(self.stage / f"part-{i:05d}.parquet")
 
-    def commit(self, meta: dict) -> None:
-        """Write the metadata and move the dataset into place."""
+    def check_parts(self, n: int, rows: list[int | None] | None = None) -> None:
+        """Refuse to commit unless the tasks wrote every part ``0 .. n-1`` (and, where
+        ``rows`` gives a task's row count, that many rows).
+
+        Raises
+        ------
+        OutputError
+            ``OUT: part-NNNNN.parquet was not written ...``: the workers wrote elsewhere
+            (they do not see this folder at this path) or lost it.
+        """
+        import pyarrow.parquet as pq
+
+        from robustloc.errors import OutputError
+
+        for i in range(n):
+            p = Path(self.part(i))
+            if not p.is_file():
+                raise OutputError(
+                    f"{p.name} of this run is missing from {self.stage}: the dask workers "
+                    "must see the output's folder at the same path as this machine (a "
+                    "shared filesystem); nothing was written", self.given)
+            want = None if rows is None else rows[i]
+            if want is not None:
+                got = pq.ParquetFile(p).metadata.num_rows
+                if got != want:
+                    raise OutputError(
+                        f"{p.name} holds {got} rows where its task wrote {want}; nothing "
+                        "was written", self.given)
+
+    def commit(self, meta: dict, n_parts: int | None = None,
+               rows: list[int | None] | None = None) -> None:
+        """Check the parts (:meth:`check_parts`, when ``n_parts`` is given), write the
+        metadata and move the dataset into place."""
+        if n_parts is not None:
+            self.check_parts(n_parts, rows)
         (self.stage / META_FILE).write_text(json.dumps(meta, indent=2) + "\n")
         old = None
         if self.out.exists():
@@ -123,8 +167,38 @@ class DatasetOutput:
             shutil.rmtree(old, ignore_errors=True)
 
     def abort(self) -> None:
-        """Remove the staging directory."""
-        shutil.rmtree(self.stage, ignore_errors=True)
+        """Remove the staging directory.
+
+        A task still running when the run failed cannot re-create it (the tasks write
+        with :func:`robustloc.io.atomic.parents_not_created`); one that was between
+        creating its temporary file and renaming it may keep the folder from being
+        removed at once, so the removal is tried again for a moment.
+        """
+        for k in range(_ABORT_TRIES):
+            shutil.rmtree(self.stage, ignore_errors=True)
+            if not self.stage.exists():
+                return
+            _time.sleep(0.1 * (k + 1))
+
+
+#: Attempts to remove a failed run's staging directory (:meth:`DatasetOutput.abort`).
+_ABORT_TRIES = 5
+#: Attributes of a command's arguments that name files or datasets, made absolute before
+#: they are handed to the workers (:func:`_settings`).
+PATH_ARGS = ("measurements", "obs", "positions", "anchors", "truth", "nav", "sp3", "clk",
+             "out")
+
+
+def absolute_path(path: str | os.PathLike) -> str:
+    """``path`` as an absolute path for a worker (``-``, standard input, kept).
+
+    A worker resolves a relative path in its own working directory: with ``--scheduler``
+    a relative ``--anchors`` silently read another file of the same name there.
+    """
+    from robustloc.io.atomic import is_stdio
+
+    s = os.fspath(path)
+    return s if is_stdio(s) else os.path.abspath(os.path.expanduser(s))
 
 
 def input_paths(spec: str | os.PathLike | None, parts: Iterable[Partition] = (),
@@ -152,8 +226,17 @@ def input_paths(spec: str | os.PathLike | None, parts: Iterable[Partition] = (),
 
 
 def _settings(args: argparse.Namespace) -> dict:
-    """The command's settings, picklable (the dispatch function is dropped)."""
-    return {k: v for k, v in vars(args).items() if not k.startswith("_")}
+    """The command's settings, picklable (the dispatch function is dropped), every path
+    of :data:`PATH_ARGS` absolute (:func:`absolute_path`)."""
+    out = {k: v for k, v in vars(args).items() if not k.startswith("_")}
+    for k in PATH_ARGS:
+        v = out.get(k)
+        if isinstance(v, (str, os.PathLike)):
+            out[k] = absolute_path(v)
+        elif isinstance(v, (list, tuple)):
+            out[k] = [absolute_path(x) if isinstance(x, (str, os.PathLike)) else x
+                      for x in v]
+    return out
 
 
 def _sum_counts(total: dict, part: dict) -> None:
@@ -180,8 +263,13 @@ def _value_column(info: PartitionInfo) -> str | None:
 
 def _file_task(fn: Callable[[argparse.Namespace], dict], settings: dict, input_attr: str,
                part: Partition, out: str) -> dict:
-    """``fn`` (a command's per-file function) on one partition file."""
-    with tempfile.TemporaryDirectory(prefix="robustloc-") as tmp:
+    """``fn`` (a command's per-file function) on one partition file.  (Every task writes
+    its part with :func:`~robustloc.io.atomic.parents_not_created`: only the client
+    creates the staging directory, so a task still running after a failed run removed
+    it cannot leave it behind.)"""
+    from robustloc.io.atomic import parents_not_created
+
+    with tempfile.TemporaryDirectory(prefix="robustloc-") as tmp, parents_not_created():
         path = materialize(part, tmp)
         ns = argparse.Namespace(**settings)
         setattr(ns, input_attr, path)
@@ -199,6 +287,7 @@ def _tag_task(kernel: TagKernel, settings: dict, parts: list[Partition], out: st
               ) -> dict[str, int]:
     """``kernel`` on one tag group: its partitions read, validated, concatenated."""
     from robustloc.io import read_anchors, write_table
+    from robustloc.io.atomic import parents_not_created
     from robustloc.io.tables import validate_measurements
 
     ns = argparse.Namespace(**settings)
@@ -212,7 +301,8 @@ def _tag_task(kernel: TagKernel, settings: dict, parts: list[Partition], out: st
     meas = frames[0] if len(frames) == 1 else pd.concat(frames)
     meas.attrs = dict(frames[0].attrs)
     frame, counts = kernel(meas, anchors, ns)
-    write_table(frame, out)
+    with parents_not_created():
+        write_table(frame, out)
     return dict(counts, rows_out=int(len(frame)))
 
 
@@ -270,7 +360,7 @@ def run_locate(args: argparse.Namespace, locate_file: Callable[[argparse.Namespa
 def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], dict],
                   input_attr: str, name: str) -> int:
     t0 = _time.perf_counter()
-    parts = discover(getattr(args, input_attr), what="measurements dataset")
+    parts = discover(getattr(args, input_attr), what="measurements dataset", absolute=True)
     out = DatasetOutput(args.out, input_paths(getattr(args, input_attr), parts,
                                               getattr(args, "anchors", None)))
     try:
@@ -312,7 +402,7 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
             # one anchors file and one first pass for every partition: the same lists
             if summaries and key in summaries[0]:
                 summary[key] = summaries[0][key]
-        out.commit(summary)
+        out.commit(summary, len(plan))
     except BaseException:
         out.abort()
         raise
@@ -386,10 +476,15 @@ def _log_scales(client: object, args: argparse.Namespace, settings: dict,
         return log_scales_for(locate_settings, anchors, paths)
 
 
-def _report(args: argparse.Namespace, summary: dict) -> None:
+def _report(args: argparse.Namespace, summary: dict, skip: Iterable[str] = ()) -> None:
+    """Print the run's summary: as JSON (``--json``), else its warnings and (unless
+    ``--quiet``) its text.  ``skip``: keys the text leaves out (a tag-wise run's copies
+    of its counts at the top level, printed from ``counts``)."""
     if getattr(args, "json", False):
         print(json.dumps({k: v for k, v in summary.items() if k != "files"}, indent=2))
         return
+    skip = set(skip) - {"anchors_not_used", "anchors_suspect"}
+    summary = {k: v for k, v in summary.items() if k not in skip}
     if "anchors_suspect" in summary or "anchors_not_used" in summary:
         from robustloc.pipelines.locate import anchor_warnings
 
@@ -437,7 +532,8 @@ def run_filter(args: argparse.Namespace, kernel: TagKernel) -> int:
 
 def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
                 input_attr: str = "measurements",
-                file_fn: Callable[[argparse.Namespace], dict] | None = None) -> int:
+                file_fn: Callable[[argparse.Namespace], dict] | None = None,
+                local_keys: dict | None = None) -> int:
     """Apply ``kernel`` to each tag group of the dataset ``args.<input_attr>``.
 
     Parameters
@@ -463,9 +559,20 @@ def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
         the file, so a worker's memory is bounded by the command's chunk and not by the
         partition.  Groups of several files (a tag's days in a ``tag=/date=`` tree, a
         dataset partitioned by time) go to ``kernel``, read whole.
+    local_keys : dict, optional
+        Further keys of the single-process summary (``track``: ``measurements``,
+        ``track``), added at the top level of the summary.
+
+    The summary (``--json``, ``_robustloc.json``) holds the Dask keys (``command``,
+    ``engine``, ``input``, ``out``, ``partitions``, ``workers``, ``rows_out``,
+    ``counts``, ``seconds``, ``files``) and the single-process summary's keys at the top
+    level: the counts summed over the groups (``epochs``, ``tags``, ``status``,
+    ``hpl_histogram``, ...), what every group shares (the kernels' ``counts["shared"]``:
+    ``method``, ``anchors_not_used``, ...; a flag such as ``sorted_first`` is true if
+    any group's is) and ``epochs_per_second``.
     """
     t0 = _time.perf_counter()
-    parts = discover(getattr(args, input_attr), what="measurements dataset")
+    parts = discover(getattr(args, input_attr), what="measurements dataset", absolute=True)
     out = DatasetOutput(args.out, input_paths(getattr(args, input_attr), parts,
                                               getattr(args, "anchors", None)))
     try:
@@ -490,26 +597,41 @@ def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
                     futs += submit_all(client, _tag_task, [(kernel, settings,
                                                             [i.part for i in g], out.part(k))])
             counts_list = gather_with_progress(client, futs, _show(args))
+        rows = [c.get("rows_out") for c in counts_list]
         total: dict = {}
         per_tag: dict[str, dict] = {}
+        shared: dict[str, object] = {}
         for c in counts_list:
             for key, values in c.pop("per_tag", {}).items():
                 per_tag.setdefault(key, {}).update(values)
+            for key, value in c.pop("shared", {}).items():
+                if isinstance(value, bool):  # a flag of any group (sorted_first)
+                    shared[key] = bool(shared.get(key, False)) or value
+                else:  # one anchors file and one setting for every group: the same
+                    shared.setdefault(key, value)
             _sum_counts(total, c)
+        wall = _time.perf_counter() - t0
         summary = {
             "command": name, "engine": "dask", "input": str(getattr(args, input_attr)),
             "out": str(args.out), "partitions": len(groups), "workers": n_workers,
             "rows_out": total.pop("rows_out", 0), "counts": total,
-            "seconds": round(_time.perf_counter() - t0, 3),
+            "seconds": round(wall, 3),
             "files": [{"inputs": [i.part.path for i in g], "output": Path(out.part(k)).name}
                       for k, g in enumerate(groups)],
             **{key: dict(sorted(v.items())) for key, v in per_tag.items()},
         }
-        out.commit(summary)
+        # the single-process summary's keys at the top level too (a script reading
+        # summary["status"] works with either engine); "counts" stays as it was
+        local = {**total, **shared, **(local_keys or {})}
+        if "epochs" in total:
+            local["epochs_per_second"] = round(total["epochs"] / max(wall, 1e-9), 1)
+        top = [k for k in local if k not in summary]
+        summary.update({k: local[k] for k in top})
+        out.commit(summary, len(groups), rows)
     except BaseException:
         out.abort()
         raise
-    _report(args, summary)
+    _report(args, summary, skip=top)
     return 0
 
 
@@ -555,9 +677,12 @@ def _captured_stdout(fn: Callable[[], object]) -> str:
 def _spp_task(run: Callable[[argparse.Namespace], int], settings: dict, obs: str, out: str
               ) -> dict:
     """``spp``'s ``run`` on one observation file; its JSON summary."""
+    from robustloc.io.atomic import parents_not_created
+
     ns = argparse.Namespace(**settings)
     ns.obs, ns.out, ns.json, ns.engine = obs, out, True, "local"
-    return json.loads(_captured_stdout(lambda: run(ns)))
+    with parents_not_created():
+        return json.loads(_captured_stdout(lambda: run(ns)))
 
 
 def run_spp(args: argparse.Namespace, run: Callable[[argparse.Namespace], int]) -> int:
@@ -573,7 +698,7 @@ def run_spp(args: argparse.Namespace, run: Callable[[argparse.Namespace], int]) 
     for f in [*args.nav, args.sp3, args.clk]:
         if f is not None and not Path(f).is_file():
             raise FileNotFoundError(2, "file not found", f)
-    parts = discover(args.obs, parquet=False, what="observation files")
+    parts = discover(args.obs, parquet=False, what="observation files", absolute=True)
     out = DatasetOutput(args.out, input_paths(args.obs, parts, *args.nav, args.sp3, args.clk))
     try:
         with dask_client(args.scheduler, args.workers) as client:
@@ -591,7 +716,7 @@ def run_spp(args: argparse.Namespace, run: Callable[[argparse.Namespace], int]) 
             "seconds": round(_time.perf_counter() - t0, 3),
             "files": [dict(s, output=Path(out.part(i)).name) for i, s in enumerate(summaries)],
         }
-        out.commit(summary)
+        out.commit(summary, len(parts))
     except BaseException:
         out.abort()
         raise
@@ -672,9 +797,9 @@ def evaluate_dataset(args: argparse.Namespace) -> pd.DataFrame:
     if args.time_tolerance < 0:
         raise ValueError(f"--time-tolerance must be >= 0, got {args.time_tolerance}")
     _truth(args.truth)  # a bad truth file fails here, before the cluster starts
-    parts = discover(args.positions, what="positions dataset")
+    parts = discover(args.positions, what="positions dataset", absolute=True)
     with dask_client(args.scheduler, args.workers) as client:
-        futs = submit_all(client, _errors_task, [(p, str(args.truth), args.time_tolerance)
+        futs = submit_all(client, _errors_task, [(p, absolute_path(args.truth), args.time_tolerance)
                                                  for p in parts])
         frames = gather_with_progress(client, futs, _show(args))
     paths = [str(p.path) for p, f in zip(parts, frames) if len(f)]

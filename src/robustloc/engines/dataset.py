@@ -15,8 +15,8 @@ Partitioning rules
 ------------------
 * Snapshot methods (``locate``): every epoch ``(time, tag)`` is solved on its own, so any
   partitioning is correct as long as **an epoch's rows are never split** between two
-  files.  :func:`plan_snapshot` checks it: two files holding the same tag must have
-  disjoint time ranges (files by time, by tag, or by tag and date all qualify).  Each
+  files.  :func:`plan_snapshot` checks it: the times of a tag in two files must not meet
+  (files by time, by tag, or by tag and date all qualify).  Each
   partition must be sorted by time (the single-process streaming reader's contract).
 * Filters and trackers (``filter``, ``track``): a tag's history must be processed in time
   order by one task.  :func:`plan_tagwise` groups the files that share a tag (a
@@ -96,8 +96,8 @@ def _hive_keys(path: Path, base: Path | None) -> tuple[tuple[str, str], ...]:
     return tuple(out)
 
 
-def discover(spec: str | os.PathLike, *, parquet: bool = True, what: str = "dataset"
-             ) -> list[Partition]:
+def discover(spec: str | os.PathLike, *, parquet: bool = True, what: str = "dataset",
+             absolute: bool = False) -> list[Partition]:
     """The partition files of a dataset: a directory, a glob, or one file.
 
     Parameters
@@ -108,6 +108,11 @@ def discover(spec: str | os.PathLike, *, parquet: bool = True, what: str = "data
         Keep only Parquet files (default); False keeps every regular file (RINEX inputs).
     what : str
         Word for messages.
+    absolute : bool
+        Give each partition's path as an absolute path (``os.path.abspath``, symbolic
+        links kept): what a task on a worker needs, since a worker resolves a relative
+        path in its own working directory (a ``--scheduler`` cluster's workers started
+        elsewhere read other files, or none).
 
     Returns
     -------
@@ -144,7 +149,8 @@ def discover(spec: str | os.PathLike, *, parquet: bool = True, what: str = "data
     if not files:
         kind = "Parquet files" if parquet else "files"
         raise InputError(f"no {kind} in this {what}", s)
-    return [Partition(str(f), _hive_keys(f, base)) for f in sorted(set(files))]
+    return [Partition(os.path.abspath(f) if absolute else str(f), _hive_keys(f, base))
+            for f in sorted(set(files))]
 
 
 def _parquet_file(part: Partition):
@@ -241,20 +247,26 @@ def _check_time_type(t: object, path: str) -> None:
 _PLAN_BATCH_ROWS = 1 << 20
 
 
+def _time_values(col: object) -> np.ndarray:
+    """A ``time`` column batch in seconds, row for row (NaN where there is no number):
+    a timestamp as seconds since the Unix epoch, a duration as seconds, text as the
+    number it spells."""
+    from robustloc.io.tables import _seconds
+
+    s = col.to_pandas()
+    if pd.api.types.is_datetime64_any_dtype(s) or pd.api.types.is_timedelta64_dtype(s):
+        return np.asarray(_seconds(s), dtype=float)
+    if pd.api.types.is_numeric_dtype(s) and not pd.api.types.is_bool_dtype(s):
+        return s.to_numpy(dtype=float, na_value=np.nan)
+    return pd.to_numeric(s, errors="coerce").to_numpy(dtype=float, na_value=np.nan)
+
+
 def _time_seconds(col: object) -> np.ndarray:
     """The finite times of a ``time`` column batch in seconds, as the readers convert them
     (:func:`robustloc.io.tables._numeric`: a timestamp as seconds since the Unix epoch, a
     duration as seconds, text as the number it spells; what is no number is left to the
     reader, which names its line)."""
-    from robustloc.io.tables import _seconds
-
-    s = col.to_pandas()
-    if pd.api.types.is_datetime64_any_dtype(s) or pd.api.types.is_timedelta64_dtype(s):
-        v = _seconds(s)
-    elif pd.api.types.is_numeric_dtype(s) and not pd.api.types.is_bool_dtype(s):
-        v = s.to_numpy(dtype=float, na_value=np.nan)
-    else:
-        v = pd.to_numeric(s, errors="coerce").to_numpy(dtype=float, na_value=np.nan)
+    v = _time_values(col)
     return v[np.isfinite(v)]
 
 
@@ -414,8 +426,11 @@ def plan_snapshot(infos: list[PartitionInfo]) -> list[PartitionInfo]:
     """Order partitions for snapshot methods and check that no epoch is split.
 
     Returns the non-empty partitions sorted by (first time, path).  Two partitions that
-    hold the same tag must not overlap in time (``t_max`` of one < ``t_min`` of the next),
-    or an epoch ``(time, tag)`` could have rows in both.
+    hold the same tag must not overlap in that tag's time (its last time in one < its
+    first time in the next), or an epoch ``(time, tag)`` could have rows in both.  The
+    partitions' time ranges (:class:`PartitionInfo`) decide alone when they do not meet;
+    when they do, the tag's own times in each are read (:func:`_tag_time_ranges`), and
+    the message quotes those.
 
     Raises
     ------
@@ -427,17 +442,68 @@ def plan_snapshot(infos: list[PartitionInfo]) -> list[PartitionInfo]:
     for info in use:
         for t in info.tags:
             by_tag.setdefault(t, []).append(info)
+    ranges: dict[str, dict[str, tuple[float, float]] | None] = {}  # per partition, read once
     for tag, lst in by_tag.items():
-        for a, b in zip(lst, lst[1:]):  # sorted by time_min
-            if b.time_min <= a.time_max:
+        if not any(b.time_min <= a.time_max for a, b in zip(lst, lst[1:])):  # by time_min
+            continue
+        # the partitions' time ranges meet: compare the tag's own times in each (the
+        # message quoted the partitions' ranges, which the tag need not span)
+        own = []
+        for info in lst:
+            if info.part.path not in ranges:
+                ranges[info.part.path] = _tag_time_ranges(info.part)
+            per = ranges[info.part.path]
+            lo, hi = (info.time_min, info.time_max) if per is None else per.get(
+                tag, (info.time_min, info.time_max))
+            own.append((lo, hi, info))
+        own.sort(key=lambda r: (r[0], r[2].part.path))
+        a_lo, a_hi, a = own[0]
+        for b_lo, b_hi, b in own[1:]:
+            if b_lo <= a_hi:
                 raise InputError(
-                    f"tag {tag!r} has rows in times [{b.time_min}, {b.time_max}] here and in "
-                    f"[{a.time_min}, {a.time_max}] in {a.part.path}: an epoch's rows could be "
+                    f"tag {tag!r} has rows in times [{b_lo}, {b_hi}] here and in "
+                    f"[{a_lo}, {a_hi}] in {a.part.path}: an epoch's rows could be "
                     "split between partitions (repartition: robustloc partition INPUT -o "
                     "DATASET --by time)",
                     b.part.path,
                 )
+            if b_hi > a_hi:
+                a_lo, a_hi, a = b_lo, b_hi, b
     return use
+
+
+def _tag_time_ranges(part: Partition) -> dict[str, tuple[float, float]] | None:
+    """Each tag's (first, last) time in ``part`` (in seconds, as the readers convert
+    them; read batch by batch), or None when the file cannot be read so (the caller then
+    uses the partition's range)."""
+    try:
+        pf = _parquet_file(part)
+        names = pf.schema_arrow.names
+        if "time" not in names:
+            return None
+        hive_tag = part.key("tag")
+        if "tag" not in names and hive_tag is None:
+            return None
+        cols = ["time"] + (["tag"] if "tag" in names else [])
+        out: dict[str, tuple[float, float]] = {}
+        for b in pf.iter_batches(batch_size=_PLAN_BATCH_ROWS, columns=cols):
+            t = _time_values(b.column(0))
+            if "tag" in names:
+                tags = pd.Series(b.column(1).to_pylist(), dtype=object)
+            else:
+                tags = pd.Series([hive_tag] * len(t), dtype=object)
+            ok = np.isfinite(t) & tags.notna().to_numpy()
+            if not ok.any():
+                continue
+            g = pd.DataFrame({"t": t[ok], "tag": tags[ok].map(_id_text).to_numpy()}
+                             ).groupby("tag")["t"].agg(["min", "max"])
+            for tag, lo, hi in zip(g.index, g["min"], g["max"]):
+                old = out.get(tag)
+                out[tag] = ((float(lo), float(hi)) if old is None
+                            else (min(old[0], float(lo)), max(old[1], float(hi))))
+        return out
+    except Exception:  # noqa: BLE001 - unreadable here: the partition's range is used
+        return None
 
 
 def plan_tagwise(infos: list[PartitionInfo]) -> list[list[PartitionInfo]]:

@@ -33,6 +33,7 @@ holds one, or lies inside one -- replacing the directory would delete the input.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import errno
 import os
 import stat
@@ -53,6 +54,7 @@ __all__ = [
     "check_not_input_tree",
     "describe_oserror",
     "is_stdio",
+    "parents_not_created",
     "writes_to_stdout",
 ]
 
@@ -315,10 +317,37 @@ def _output_words(exc: OSError, parent: Path) -> str:
     return describe_oserror(exc)
 
 
+#: False within :func:`parents_not_created` (in this thread or task): a missing parent
+#: folder of an output is an error, not created.
+_MAKE_PARENTS: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "robustloc_make_parents", default=True)
+
+
+@contextlib.contextmanager
+def parents_not_created() -> Iterator[None]:
+    """Within the block (this thread's or task's context only), :func:`atomic_output`
+    does not create a missing parent folder: the write fails with :class:`OutputError`.
+
+    For the Dask engine's tasks, which write their part into a staging folder that only
+    the client creates: a task still running when a failed run removed that folder
+    re-created it, and its part was left behind as a hidden ``.OUT.partial-XXXX``
+    folder (the Dask review).
+    """
+    token = _MAKE_PARENTS.set(False)
+    try:
+        yield
+    finally:
+        _MAKE_PARENTS.reset(token)
+
+
 def _prepare_parent(p: Path) -> Path:
     parent = p.parent if str(p.parent) else Path(".")
     try:
-        parent.mkdir(parents=True, exist_ok=True)
+        if _MAKE_PARENTS.get():
+            parent.mkdir(parents=True, exist_ok=True)
+        elif not parent.exists():
+            raise OutputError(f"cannot create a file in {parent} (the folder is gone)", p,
+                              errno_=errno.ENOENT)
     except (FileExistsError, NotADirectoryError):
         raise OutputError("a parent of this path is a file, not a folder", p,
                           errno_=errno.ENOTDIR) from None

@@ -199,6 +199,11 @@ METHOD_PREFIX = "track"
 _SQRT_EPS = float(np.sqrt(np.finfo(np.float64).eps))
 
 
+#: Range of the settings the tracker squares (the noise scale's bounds, the offsets'
+#: a-priori standard deviations): their squares stay normal floats.
+_SQUARED_MIN, _SQUARED_MAX = 1e-100, 1e100
+
+
 @dataclass(frozen=True)
 class TrackerSettings:
     """Every setting of the tracker (defaults in the parameter list).
@@ -310,6 +315,12 @@ class TrackerSettings:
             bad(f"cusum_h must be positive and finite (or None), got {self.cusum_h}")
         if not 0 < self.noise_scale_min <= self.noise_scale_max < math.inf:
             bad("need 0 < noise_scale_min <= noise_scale_max < inf")
+        for name in ("noise_scale_min", "noise_scale_max", "range_offset_sd",
+                     "link_offset_sd"):
+            # squared as Python floats: 1e200 raised OverflowError, 1e-170 divided by 0
+            v = getattr(self, name)
+            if v is not None and not _SQUARED_MIN <= v <= _SQUARED_MAX:
+                bad(f"{name} must be in [{_SQUARED_MIN:g}, {_SQUARED_MAX:g}], got {v}")
         if not 0 <= self.noise_forget <= 1:
             bad(f"noise_forget must be in [0, 1], got {self.noise_forget}")
         if self.sigma is not None and not (math.isfinite(self.sigma) and self.sigma > 0):
