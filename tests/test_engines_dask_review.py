@@ -459,3 +459,33 @@ def test_split_epoch_message_quotes_the_tags_own_times(tmp_path):
     infos = [inspect(p) for p in discover(ds)]
     assert [Path(i.part.path).name for i in plan_snapshot(infos)] == ["a.parquet",
                                                                       "b.parquet"]
+
+
+def test_filter_json_summary_has_the_local_keys(sim, scheduler, tmp_path, capsys):
+    """``filter --engine dask --json`` lacked the single-process summary's ``filter``,
+    ``share_downweighted`` and ``raw_minus_filtered_std_db``; they are now there, the
+    spread pooled from the partitions' moments (equal up to round-off), with invalid
+    rows (kept raw, not filtered) left out as in the single process."""
+    meas = pd.read_csv(sim["measurements"], dtype={"tag": str, "anchor": str})
+    meas.loc[meas.index[::37], "rssi"] = 99.0  # outside -150 .. +30 dBm: invalid
+    log = tmp_path / "m.csv"
+    meas.to_csv(log, index=False)
+    ds = tmp_path / "by_tag"
+    assert main(["partition", str(log), "-o", str(ds), "--by", "tag"]) == 0
+    capsys.readouterr()
+    assert main(["filter", str(log), "--anchors", str(sim["anchors"]), "-o",
+                 str(tmp_path / "f.csv"), "--json"]) == 0
+    local = json.loads(capsys.readouterr().out)
+    assert local["invalid_measurement"] > 0
+    assert main(["filter", str(ds), "--anchors", str(sim["anchors"]), "-o",
+                 str(tmp_path / "d"), "--engine", "dask", "--scheduler", scheduler,
+                 "--json"]) == 0
+    dask = json.loads(capsys.readouterr().out)
+    assert set(local) - {"out"} <= set(dask), set(local) - set(dask)
+    for k in ("filter", "samples", "links", "downweighted", "rejected", "relocked",
+              "restarted", "invalid_measurement", "duplicates_merged"):
+        assert dask[k] == local[k], k
+    # sums in another order: a few ulps (float64, a few thousand terms)
+    for k in ("share_downweighted", "raw_minus_filtered_std_db"):
+        assert dask[k] == pytest.approx(local[k], rel=1e-12), k
+    assert not any(k.startswith("_") for k in dask) and "_moments" not in dask["counts"]

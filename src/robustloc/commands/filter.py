@@ -6,6 +6,8 @@ import argparse
 import json
 import sys
 
+import numpy as np
+
 from robustloc.engines import add_engine_arguments
 from robustloc.options import (
     float_in,
@@ -158,9 +160,50 @@ def filter_frame(meas, anchors, args: argparse.Namespace, progress: bool = False
 
 
 def filter_partition(meas, anchors, args: argparse.Namespace):
-    """``--engine dask``: one tag partition -> (filtered frame, additive counts)."""
+    """``--engine dask``: one tag partition -> (filtered frame, additive counts, plus
+    ``shared`` (the filter's name) and ``_moments`` for :func:`combine_partitions`)."""
     frame, summary = filter_frame(meas, anchors, args)
-    return frame, {k: v for k, v in summary.items() if isinstance(v, int)}
+    counts = {k: v for k, v in summary.items() if isinstance(v, int)}
+    counts["shared"] = {"filter": summary["filter"]}
+    from robustloc import status as st
+
+    # as filter_measurements' summary: over the rows fed to the filter (an invalid row
+    # keeps its raw value in both columns: not a difference of the filter's)
+    fed = frame["status"].to_numpy() == st.OK
+    diff = (frame["rssi_raw"] - frame["rssi"]).to_numpy(dtype=float)[fed]
+    diff = diff[np.isfinite(diff)]
+    innovated = np.isfinite(frame["innovation"].to_numpy(dtype=float))
+    w = frame["weight"].to_numpy(dtype=float)[innovated]
+    mean = float(diff.mean()) if diff.size else 0.0
+    counts["_moments"] = {"n_weighted": int(innovated.sum()), "n_diff": int(diff.size),
+                          "mean": mean, "m2": float(np.sum((diff - mean) ** 2)),
+                          "downweighted": int(np.sum(w < 1))}
+    return frame, counts
+
+
+def combine_partitions(counts_list: list[dict]) -> dict:
+    """The filter summary's ``share_downweighted`` and ``raw_minus_filtered_std_db`` over
+    every partition, as the single process computes them on the whole file: the spread
+    pooled from each partition's count, mean and sum of squared deviations (Chan, Golub &
+    LeVeque 1983, the pairwise update), equal to ``np.nanstd`` up to round-off."""
+    n = n_w = down = 0
+    mean = m2 = 0.0
+    for c in counts_list:
+        mo = c.pop("_moments", None)
+        if mo is None:
+            continue
+        n_w += mo["n_weighted"]
+        down += mo["downweighted"]
+        nb = mo["n_diff"]
+        if nb == 0:
+            continue
+        delta = mo["mean"] - mean
+        tot = n + nb
+        m2 += mo["m2"] + delta * delta * n * nb / tot  # Chan et al. (1983), eq. (2.1b)
+        mean += delta * nb / tot
+        n = tot
+    return {"share_downweighted": down / n_w if n_w else 0.0,
+            "raw_minus_filtered_std_db": float(np.sqrt(m2 / n)) if n else float("nan")}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -170,7 +213,7 @@ def run(args: argparse.Namespace) -> int:
         check_not_input(args.out, [args.measurements, args.anchors])
     if args.engine == "dask":
         from robustloc.engines.dask import run_filter
-        return run_filter(args, filter_partition)
+        return run_filter(args, filter_partition, combine_partitions)
     from robustloc.io import read_anchors, read_measurements, write_table
 
     anchors = read_anchors(args.anchors)

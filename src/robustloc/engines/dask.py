@@ -525,15 +525,18 @@ def _report(args: argparse.Namespace, summary: dict, skip: Iterable[str] = ()) -
             print(line)
 
 
-def run_filter(args: argparse.Namespace, kernel: TagKernel) -> int:
-    """``filter --engine dask``: ``kernel`` on every tag group of the dataset."""
-    return run_tagwise(args, kernel, "filter")
+def run_filter(args: argparse.Namespace, kernel: TagKernel,
+               combine: Callable[[list[dict]], dict] | None = None) -> int:
+    """``filter --engine dask``: ``kernel`` on every tag group of the dataset
+    (``combine``: as :func:`run_tagwise`'s, the summary's non-additive keys)."""
+    return run_tagwise(args, kernel, "filter", combine=combine)
 
 
 def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
                 input_attr: str = "measurements",
                 file_fn: Callable[[argparse.Namespace], dict] | None = None,
-                local_keys: dict | None = None) -> int:
+                local_keys: dict | None = None,
+                combine: Callable[[list[dict]], dict] | None = None) -> int:
     """Apply ``kernel`` to each tag group of the dataset ``args.<input_attr>``.
 
     Parameters
@@ -562,6 +565,11 @@ def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
     local_keys : dict, optional
         Further keys of the single-process summary (``track``: ``measurements``,
         ``track``), added at the top level of the summary.
+    combine : callable, optional
+        ``combine(counts_list) -> dict``: the single-process summary's keys that are not
+        sums (``filter``: the share of down-weighted samples, the spread of raw minus
+        filtered RSSI), from every group's counts before they are summed; it removes the
+        private keys it used from each group's counts.
 
     The summary (``--json``, ``_robustloc.json``) holds the Dask keys (``command``,
     ``engine``, ``input``, ``out``, ``partitions``, ``workers``, ``rows_out``,
@@ -598,6 +606,7 @@ def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
                                                             [i.part for i in g], out.part(k))])
             counts_list = gather_with_progress(client, futs, _show(args))
         rows = [c.get("rows_out") for c in counts_list]
+        combined = combine(counts_list) if combine is not None else {}
         total: dict = {}
         per_tag: dict[str, dict] = {}
         shared: dict[str, object] = {}
@@ -622,7 +631,7 @@ def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
         }
         # the single-process summary's keys at the top level too (a script reading
         # summary["status"] works with either engine); "counts" stays as it was
-        local = {**total, **shared, **(local_keys or {})}
+        local = {**total, **shared, **(local_keys or {}), **combined}
         if "epochs" in total:
             local["epochs_per_second"] = round(total["epochs"] / max(wall, 1e-9), 1)
         top = [k for k in local if k not in summary]
