@@ -61,22 +61,6 @@ def corridor(tmp_path_factory) -> Path:
     return d
 
 
-@pytest.fixture
-def server_factory(tmp_path):
-    started: list[ServerProcess] = []
-
-    def make(args: list[str], **kw) -> ServerProcess:
-        s = ServerProcess(args, **kw)
-        started.append(s)
-        return s.start()
-
-    try:
-        yield make
-    finally:
-        for s in started:
-            s.stop()
-
-
 def wait_for(cond, timeout: float = 60.0, what: str = "condition"):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:

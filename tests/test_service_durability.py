@@ -92,20 +92,10 @@ def anchors(tmp_path) -> Path:
 
 
 @pytest.fixture
-def servers() -> Iterator[Callable[..., ServerProcess]]:
-    """``servers(args)``: a started ``ServerProcess``; every one is stopped at teardown."""
-    started: list[ServerProcess] = []
-
-    def make(args: list[str], **kw) -> ServerProcess:
-        s = ServerProcess(args, startup_timeout_s=120, **kw)
-        started.append(s)
-        return s.start()
-
-    try:
-        yield make
-    finally:
-        for s in started:
-            s.stop()
+def servers(server_factory) -> Callable[..., ServerProcess]:
+    """``servers(args)``: a started ``ServerProcess`` (a slow machine: 120 s to start);
+    every one is stopped at teardown (conftest's ``server_factory``)."""
+    return lambda args, **kw: server_factory(args, **{"startup_timeout_s": 120, **kw})
 
 
 @pytest.fixture

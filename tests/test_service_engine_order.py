@@ -24,7 +24,7 @@ pytest.importorskip("uvicorn")
 httpx = pytest.importorskip("httpx")
 
 from robustloc.service.engine import Engine  # noqa: E402
-from robustloc.service.launch import ROBUSTLOC, ServerProcess, free_port  # noqa: E402
+from robustloc.service.launch import ROBUSTLOC, free_port  # noqa: E402
 from robustloc.service.processor import LocateProcessor  # noqa: E402
 from robustloc.service.store import SegmentLog  # noqa: E402
 
@@ -66,19 +66,9 @@ def anchors_csv(tmp_path) -> Path:
 
 
 @pytest.fixture
-def servers():
-    started: list[ServerProcess] = []
-
-    def make(args: list[str]) -> ServerProcess:
-        s = ServerProcess(args)
-        started.append(s)
-        return s.start()
-
-    try:
-        yield make
-    finally:
-        for s in started:
-            s.stop()
+def servers(server_factory):
+    """conftest's ``server_factory``: started servers, stopped at teardown."""
+    return server_factory
 
 
 # --------------------------------------------------------------------------------------
