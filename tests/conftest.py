@@ -1,4 +1,5 @@
-"""Fixtures shared by the service tests."""
+"""Fixtures shared by several test modules: a started ``robustloc serve`` (the service
+tests) and a dask scheduler (the Dask engine tests)."""
 
 from __future__ import annotations
 
@@ -26,3 +27,16 @@ def server_factory() -> Iterator[Callable[..., object]]:
     finally:
         for s in started:
             s.stop()
+
+
+@pytest.fixture(scope="module")
+def scheduler() -> Iterator[str]:
+    """The address of a LocalCluster of two single-threaded thread workers (the engine is
+    reached with ``--scheduler``, as a user's cluster); closed at the module's end."""
+    distributed = pytest.importorskip("distributed")
+    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                                       dashboard_address=None)
+    try:
+        yield cluster.scheduler_address
+    finally:
+        cluster.close()

@@ -34,16 +34,6 @@ from robustloc.sim.wifi_room import simulate  # noqa: E402
 
 
 @pytest.fixture(scope="module")
-def scheduler():
-    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
-                                       dashboard_address=None)
-    try:
-        yield cluster.scheduler_address
-    finally:
-        cluster.close()
-
-
-@pytest.fixture(scope="module")
 def sim(tmp_path_factory) -> dict[str, Path]:
     out = tmp_path_factory.mktemp("wifi")
     return simulate(out, 4, argparse.Namespace(samples_per_point=10, walk_epochs=60))

@@ -32,18 +32,6 @@ from robustloc.sim.wifi_room import simulate  # noqa: E402
 
 
 @pytest.fixture(scope="module")
-def scheduler():
-    """Two single-threaded thread workers, reached with ``--scheduler``; closed at the
-    end."""
-    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
-                                       dashboard_address=":0")
-    try:
-        yield cluster.scheduler_address
-    finally:
-        cluster.close()
-
-
-@pytest.fixture(scope="module")
 def sim(tmp_path_factory) -> dict[str, Path]:
     out = tmp_path_factory.mktemp("wifi")
     return simulate(out, 4, argparse.Namespace(samples_per_point=5, walk_epochs=30))

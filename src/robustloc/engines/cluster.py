@@ -114,20 +114,24 @@ def dask_client(scheduler: str | None, workers: int | None = None,
         else:
             n = workers or machine_cores()
             extra = {"env": dict(WORKER_ENV)} if processes else {}
+            # the client's start and its first call to the workers too: an interrupt
+            # inside distributed's synchronous calls can leave its event loop mid-way
             with _signals_held() as got:
                 cluster = distributed.LocalCluster(
                     n_workers=n, threads_per_worker=1, processes=processes,
                     memory_limit=WORKER_MEMORY_BYTES, dashboard_address=":0", **extra,
                 )
+                client = distributed.Client(cluster)
+                _quiet_worker_logs(client)
             if got:  # interrupted while it started: close it, then deliver the signal
                 import signal
 
+                client.close()
+                client = None
                 _close_cluster(cluster)
                 cluster = None
                 for signum in dict.fromkeys(got):
                     signal.raise_signal(signum)
-            client = distributed.Client(cluster)
-            _quiet_worker_logs(client)
         yield client
     finally:
         if client is not None:
