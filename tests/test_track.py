@@ -783,6 +783,34 @@ def test_a_clock_jump_restarts_the_tag_from_its_fix(engine, filt, model):
         _assert_rows_equal(after[cols], alone.iloc[:5][cols], exact)
 
 
+@pytest.mark.parametrize("filt", ["ekf", "ukf"])
+@pytest.mark.parametrize("engine", ["compiled", "numpy"])
+def test_a_clock_that_restarts_restarts_the_tag_from_its_fix(engine, filt):
+    """Tag G stands at (3, 4) for times 0..9 s, then its device restarts: the clock
+    begins again at 0 and the tag stands at (7, 6) (the live service's re-base solves the
+    new run after the old one, through the same tracker).  The filter predicted over
+    ``dt = max(t - t_last, 0) = 0`` and kept the old position: the first row of the new
+    run was 3.9 m off, and the filter took several epochs to get back (statuses
+    ``fault_detected`` meanwhile).  Now G starts again from the epoch's fix: its new-run
+    rows count one re-start and are those of a tag standing at (7, 6) from the start
+    (noise-free ranges: within rounding for the EKF, 2 cm for the UKF as in
+    :func:`test_a_clock_jump_restarts_the_tag_from_its_fix`)."""
+    kw = {"engine": engine, "filter": filt}
+    exact = filt == "ekf" or engine == "compiled"
+    trk = Tracker(_STILL_ANCHORS, **kw)
+    old = trk.step(_still_epochs({"G": [float(k) for k in range(10)]}))
+    assert (old["status"] == "ok").all() and (old["reinit"] == 0).all()
+    new_run = _still_epochs({"G": [float(k) for k in range(5)]}, at={"G": (7.0, 6.0)})
+    rows = trk.step(new_run)
+    assert (rows["status"] == "ok").all(), rows["status"].tolist()
+    assert (rows["reinit"] == 1).all()
+    err = np.hypot(rows["x"] - 7.0, rows["y"] - 6.0)
+    assert err.max() <= (1e-9 if filt == "ekf" else 0.02), err.tolist()
+    fresh = Tracker(_STILL_ANCHORS, **kw).step(new_run)
+    cols = ["x", "y", "vx", "vy", "status", "var_x", "var_y", "cov_xy", "hpl", "n_used"]
+    _assert_rows_equal(rows[cols], fresh[cols], exact)
+
+
 def test_the_lost_prediction_rule_is_the_same_in_both_engines():
     """The bound of item 9 (``V > lost_pos_var`` and ``sqrt(eps) V >= r_min``; NaN is
     lost) in the compiled kernel and its NumPy twin, on both sides of each bound."""

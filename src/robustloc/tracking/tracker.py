@@ -684,6 +684,9 @@ class Tracker:
     def step(self, epochs: Any) -> pd.DataFrame:
         """Advance each tag by the given epochs (time-sorted per tag).
 
+        A tag whose epoch is earlier than its previous one (a device clock that restarted)
+        starts again from a robust fix, as after a divergence.
+
         Parameters
         ----------
         epochs : :class:`robustloc.io.tables.Epochs`
@@ -725,6 +728,14 @@ class Tracker:
     # ------------------------------------------------------------------ one round
     def _round(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array, z: Array,
                out: _Rows) -> None:
+        # an epoch earlier than its tag's last filtered one: the device's clock restarted
+        # (the service re-bases such a tag and solves its new run after the old one).  How
+        # long the tag was away and where it went are unknown, so its filter is dropped
+        # and it starts again from a robust fix, counted as a re-start (a prediction over
+        # dt = 0 kept the old run's position: metres off for the first epochs)
+        back = self._init[sl] & (t < self._t[sl])
+        if back.any():
+            self._drop(sl[back])
         init = self._init[sl]
         if not init.all():
             ni = ~init
