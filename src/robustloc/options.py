@@ -149,6 +149,13 @@ def int_in(low: int, high: int) -> Callable[[str], int]:
 # --------------------------------------------------------------------------------------
 
 
+#: A tag height in m (``--tag-height``): within +-10 km of the datum.  A tag 10 km or more
+#: above or below the anchors is no indoor or terrestrial ranging problem (a range of
+#: 1e5 m is the plausibility limit, :mod:`robustloc.io.limits`); 1e200 squared overflowed
+#: to every epoch ``ill_conditioned`` and exit code 0.
+tag_height_m = float_in(-1e4, 1e4)
+
+
 def option(
     default: Any, *, check: Callable[[Any], Any] | None = None,
     choices: Sequence[Any] | None = None, flag: str | None = None,

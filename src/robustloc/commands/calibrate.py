@@ -75,7 +75,7 @@ huber; igg3, hampel, ...).
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from robustloc.options import finite_float, nonnegative_float, positive_float
+    from robustloc.options import finite_float, nonnegative_float, positive_float, tag_height_m
     from robustloc.pipelines.calibrate import CALIBRATION_MODELS
 
     p.add_argument("survey", nargs="?", help="survey file: anchor, distance, rssi|range")
@@ -105,7 +105,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--dim", type=int, choices=(2, 3), default=2,
                    help="--self: solved dimension of the positions (default 2)")
-    p.add_argument("--tag-height", type=finite_float, default=None, metavar="M",
+    p.add_argument("--tag-height", type=tag_height_m, default=None, metavar="M",
                    help="--self, 2-D: tag height; the anchors' z gives the vertical offsets")
     p.add_argument("--se-ratio", type=positive_float, default=3.0,
                    help="--self: leave out a parameter whose model standard error "

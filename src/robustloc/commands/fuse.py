@@ -10,6 +10,7 @@ from robustloc.options import (
     float_in,
     nonnegative_float,
     positive_float,
+    tag_height_m,
 )
 
 NAME = "fuse"
@@ -148,7 +149,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--geometry-window", type=nonnegative_float, default=1.0, metavar="S",
                    help="anchors heard within this many seconds up to an event decide "
                         "whether its position can be ok (default 1)")
-    p.add_argument("--tag-height", type=float_in(-1e4, 1e4), default=None,
+    p.add_argument("--tag-height", type=tag_height_m, default=None,
                    help="tag height, m: with anchor z, slant ranges are made horizontal")
     p.add_argument("--origin", default=None, metavar="LAT,LON,H",
                    help="ENU origin for GGA positions (default: first fix)")

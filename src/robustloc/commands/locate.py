@@ -92,12 +92,12 @@ layout with a few low ones is the same case); with the tag's height known, 2-D w
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from robustloc.estimators.ranging import DEFAULT_METHOD
     from robustloc.options import (
-        finite_float,
         float_in,
         nonnegative_float,
         positive_float,
         positive_int,
         sigma_value,
+        tag_height_m,
     )
     from robustloc.pipelines.locate import PATH_LOSS_MODELS, method_list, methods_known
 
@@ -152,7 +152,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="weight-function threshold, e.g. --param c=1.5 (repeatable)")
     p.add_argument("--model", choices=PATH_LOSS_MODELS,
                    default=None, help="path-loss columns to use (default: what the anchors have)")
-    p.add_argument("--tag-height", type=finite_float, default=None,
+    p.add_argument("--tag-height", type=tag_height_m, default=None,
                    help="2-D only: known tag height, to reduce slant ranges (m)")
     p.add_argument("--no-range-calibration", action="store_true",
                    help="ignore the anchors' bias/scale columns")

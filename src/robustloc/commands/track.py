@@ -118,11 +118,11 @@ def _far_anchors(anchors: pd.DataFrame) -> list[str]:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from robustloc.options import (
-        finite_float,
         nonnegative_float,
         positive_float,
         positive_int,
         sigma_value,
+        tag_height_m,
     )
 
     scale = noise_scale_value
@@ -179,7 +179,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="w-test missed-detection probability (B-method)")
     p.add_argument("--integrity-risk", type=probability, default=d.integrity_risk,
                    help="probability of the error exceeding hpl's noise term (default 1e-3)")
-    p.add_argument("--tag-height", type=finite_float, default=None,
+    p.add_argument("--tag-height", type=tag_height_m, default=None,
                    help="known tag height, to reduce slant ranges (m; anchors need z)")
     p.add_argument("--range-offset", action="store_true",
                    help="ranges: estimate each tag's common range offset (m, added to every "

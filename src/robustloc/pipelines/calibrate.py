@@ -24,6 +24,7 @@ from robustloc.options import (
     nonnegative_float,
     option,
     positive_float,
+    tag_height_m,
 )
 
 #: ``model`` values.
@@ -70,7 +71,7 @@ class CalibrateSettings:
     p0: float | None = option(None, check=finite_float)
     time_tolerance: float = option(1e-6, check=nonnegative_float)
     dim: int = option(2, choices=(2, 3))
-    tag_height: float | None = option(None, check=finite_float)
+    tag_height: float | None = option(None, check=tag_height_m)
     se_ratio: float = option(3.0, check=positive_float)
 
     def __post_init__(self) -> None:

@@ -25,13 +25,13 @@ from numpy.typing import NDArray
 from robustloc.errors import InputError
 from robustloc.options import (
     check_settings,
-    finite_float,
     float_in,
     nonnegative_float,
     option,
     positive_float,
     positive_int,
     sigma_value,
+    tag_height_m,
 )
 
 #: ``model`` values: the path-loss models of :mod:`robustloc.models.pathloss`.
@@ -127,7 +127,7 @@ class LocateSettings:
     min_scale: float = option(0.0, check=nonnegative_float)
     param: tuple[str, ...] = ()
     model: str | None = option(None, choices=PATH_LOSS_MODELS)
-    tag_height: float | None = option(None, check=finite_float)
+    tag_height: float | None = option(None, check=tag_height_m)
     range_calibration: bool = True
     alpha0: float = option(0.001, check=float_in(1e-12, 0.5))
     beta0: float = option(0.10, check=float_in(1e-6, 0.99))

@@ -23,13 +23,13 @@ import pandas as pd
 from robustloc.errors import InputError
 from robustloc.options import (
     check_settings,
-    finite_float,
     float_in,
     nonnegative_float,
     option,
     positive_float,
     positive_int,
     sigma_value,
+    tag_height_m,
 )
 
 #: ``weight`` values (robust weight functions of :mod:`robustloc.robust.weights`).
@@ -63,7 +63,7 @@ class TrackSettings:
     alpha0: float = option(0.001, check=_PROBABILITY)
     beta0: float = option(0.10, check=_PROBABILITY)
     integrity_risk: float = option(0.001, check=_PROBABILITY)
-    tag_height: float | None = option(None, check=finite_float)
+    tag_height: float | None = option(None, check=tag_height_m)
     range_offset: bool = False
     range_offset_sd: float = option(0.5, check=positive_float)
     range_offset_q: float = option(1e-4, check=nonnegative_float)

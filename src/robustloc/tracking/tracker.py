@@ -323,6 +323,10 @@ class TrackerSettings:
                 bad(f"{name} must be in [{_SQUARED_MIN:g}, {_SQUARED_MAX:g}], got {v}")
         if not 0 <= self.noise_forget <= 1:
             bad(f"noise_forget must be in [0, 1], got {self.noise_forget}")
+        if self.tag_height is not None and not abs(self.tag_height) <= 1e4:
+            # as robustloc.options.tag_height_m (squared: 1e200 made every row
+            # ill_conditioned)
+            bad(f"tag_height must be in [-10000, 10000] m, got {self.tag_height}")
         if self.sigma is not None and not (math.isfinite(self.sigma) and self.sigma > 0):
             bad(f"sigma must be positive and finite, got {self.sigma}")
         if not (math.isfinite(self.range_offset_sd) and self.range_offset_sd > 0):
