@@ -61,6 +61,50 @@ def gps_s_to_datetime64(t_gps_s: NDArray) -> NDArray:
     return _GPS_EPOCH + us.astype("timedelta64[us]")
 
 
+#: Offset (s) to add to an epoch of each RINEX observation time system to get GPS time
+#: (RINEX 2.11 / 3.04 ``TIME OF FIRST OBS``): GPS, Galileo (GST), QZSS and NavIC system
+#: times are aligned with GPS time (to nanoseconds), BDT = GPST - 14 s; ``GLO`` is UTC
+#: (RINEX: "GLO (=UTC time system)") and gets GPS - UTC (:func:`_utc_to_gps_s`).
+_OBS_TIME_SYSTEM_S = {"GPS": 0.0, "GAL": 0.0, "QZS": 0.0, "IRN": 0.0, "BDT": BDT_OFFSET_S}
+#: Time system of a file without one in ``TIME OF FIRST OBS`` (RINEX 3.04 table A2: the
+#: field is compulsory in mixed files; default GPS for pure GPS files, GLO for GLONASS,
+#: GAL for Galileo, QZS for QZSS, BDT for BeiDou, IRN for NavIC).
+_DEFAULT_TIME_SYSTEM = {"G": "GPS", "R": "GLO", "E": "GAL", "J": "QZS", "C": "BDT",
+                        "I": "IRN", "M": "GPS", "S": "GPS"}
+
+
+def _utc_to_gps_s(t_utc_s: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Epochs on the UTC scale (seconds since 1980-01-06 UTC) as GPS seconds."""
+    from robustloc.gnss.spp import leap_seconds
+
+    t = np.asarray(t_utc_s, dtype=np.float64)
+    return t + leap_seconds(t + leap_seconds(t))
+
+
+def _obs_time_system(hdr: dict[str, str], lines: list[str], path: str) -> str:
+    """Time system of an observation file's epochs (``TIME OF FIRST OBS``, columns 49-51,
+    else the default of the file's satellite system); an unknown one is an error."""
+    rec = hdr.get("TIME OF FIRST OBS", "")
+    code = rec.split("\n")[0][48:51].strip().upper()
+    if not code:
+        letter = hdr.get("RINEX VERSION / TYPE", " " * 41)[40:41].strip().upper() or "G"
+        return _DEFAULT_TIME_SYSTEM.get(letter, "GPS")
+    if code not in _OBS_TIME_SYSTEM_S and code != "GLO":
+        line = next((i + 1 for i, ln in enumerate(lines)
+                     if ln[60:80].strip() == "TIME OF FIRST OBS"), None)
+        raise InputError(f"unknown time system {code!r} in TIME OF FIRST OBS (expected GPS, "
+                         "GLO, GAL, QZS, BDT or IRN)", path, line)
+    return code
+
+
+def _epochs_to_gps_s(t: NDArray, system: str) -> NDArray[np.float64]:
+    """``datetime64`` epochs of an observation file on ``system``'s scale, as GPS seconds."""
+    s = datetime64_to_gps_s(t)
+    if system == "GLO":
+        return _utc_to_gps_s(s)
+    return s + _OBS_TIME_SYSTEM_S[system]
+
+
 @dataclass(frozen=True)
 class ObsData:
     """Observations of one receiver file, as epoch x satellite arrays.
@@ -408,7 +452,8 @@ def _read_obs_v2(path: str, version: float) -> ObsData:
     )
     invalid = _implausible_pseudoranges(obs)
     return ObsData(
-        path, version, datetime64_to_gps_s(tt), all_sats, obs, _approx(hdr),
+        path, version, _epochs_to_gps_s(tt, _obs_time_system(hdr, lines, path)), all_sats,
+        obs, _approx(hdr),
         np.asarray(flags, dtype=np.int64), np.asarray(ep_lines, dtype=np.int64), hdr,
         invalid,
     )
@@ -615,7 +660,8 @@ def _read_obs_v3(path: str, version: float) -> ObsData:
     )
     invalid = _implausible_pseudoranges(obs)
     return ObsData(
-        path, version, datetime64_to_gps_s(tt), all_sats, obs, _approx(hdr),
+        path, version, _epochs_to_gps_s(tt, _obs_time_system(hdr, lines, path)), all_sats,
+        obs, _approx(hdr),
         np.asarray(flags, dtype=np.int64), np.asarray(ep_lines, dtype=np.int64), hdr,
         invalid,
     )

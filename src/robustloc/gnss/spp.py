@@ -62,24 +62,29 @@ CODE_PRIORITY = {
     "G": (["C1", "P1", "C1C", "C1W", "C1P", "C1X"], ["P2", "C2", "C2W", "C2P", "C2X", "C2L"]),
     "R": (["C1", "P1", "C1C", "C1P"], ["P2", "C2", "C2P", "C2C"]),
     "E": (["C1", "C1C", "C1X", "C1B"], ["C5", "C5Q", "C5X", "C5I"]),
-    "C": (["C2", "C1", "C2I", "C1I", "C2X"], ["C7", "C7I", "C7X", "C6I"]),
+    # second signal: B2I only (1207.14 MHz, the frequency of FREQ_HZ and of TGD2); B3I
+    # (C6I, 1268.52 MHz) combined with B2I coefficients left 0.235 I_B1 of ionosphere
+    "C": (["C2", "C1", "C2I", "C1I", "C2X"], ["C7", "C7I", "C7Q", "C7X"]),
 }
 #: For the ionosphere-free combination with precise clocks (P1/P2 referenced), GPS prefers P1.
 IFLC_FIRST = {"G": ["P1", "C1W", "C1P", "C1", "C1C", "C1X"]}
 
 #: GPS - UTC leap seconds: (first GPS second it applies, value).
 _LEAPS = [
+    ("1981-07-01", 1), ("1982-07-01", 2), ("1983-07-01", 3), ("1985-07-01", 4),
+    ("1988-01-01", 5), ("1990-01-01", 6), ("1991-01-01", 7), ("1992-07-01", 8),
+    ("1993-07-01", 9), ("1994-07-01", 10), ("1996-01-01", 11), ("1997-07-01", 12),
     ("1999-01-01", 13), ("2006-01-01", 14), ("2009-01-01", 15), ("2012-07-01", 16),
     ("2015-07-01", 17), ("2017-01-01", 18),
 ]
 
 
 def leap_seconds(t_gps_s: NDArray) -> NDArray[np.int64]:
-    """GPS - UTC (s) at GPS times ``t_gps_s`` (table from 1999 on; 13 s before)."""
+    """GPS - UTC (s) at GPS times ``t_gps_s`` (IERS Bulletin C table since 1980)."""
     from robustloc.gnss.rinex import datetime64_to_gps_s
 
     t = np.asarray(t_gps_s, dtype=float)
-    out = np.full(t.shape, 13, dtype=np.int64)
+    out = np.zeros(t.shape, dtype=np.int64)
     for day, ls in _LEAPS:
         t0 = datetime64_to_gps_s(np.array([np.datetime64(day)]))[0] + ls
         out = np.where(t >= t0, ls, out)
@@ -121,7 +126,7 @@ def pseudoranges(obs: ObsData, iono: str) -> NDArray[np.float64]:
 PHASE_PRIORITY = {
     "G": (["L1", "L1C", "L1W", "L1X"], ["L2", "L2W", "L2L", "L2X", "L2S"]),
     "E": (["L1", "L1C", "L1X"], ["L5", "L5Q", "L5X", "L5I"]),
-    "C": (["L2", "L1", "L2I", "L1I"], ["L7", "L7I", "L6I"]),
+    "C": (["L2", "L1", "L2I", "L1I"], ["L7", "L7I", "L7Q", "L7X"]),
 }
 
 
