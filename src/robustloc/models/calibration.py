@@ -431,7 +431,7 @@ def _survey_weights(survey: pd.DataFrame) -> Array | None:
         i = int(np.argmax(bad))
         line = int(survey.index[i]) if survey.index.name == "line" else None
         raise InputError(
-            f"column 'weight': {survey['weight'].iloc[i]!r} must be a finite number >= 0",
+            f"column 'weight': {str(survey['weight'].iloc[i])!r} must be a finite number >= 0",
             survey.attrs.get("path"), line,
         )
     return w
