@@ -221,6 +221,17 @@ def test_filter_warns_without_path_loss(tmp_path, capsys):
     assert err.startswith(f"warning: {a}: anchors have no path-loss parameters"), err
 
 
+def test_evaluate_names_the_baseline_it_compares_with(tmp_path, capsys):
+    """The text table said ``rms_vs_ls_%`` whatever ``--baseline`` was (the numbers were
+    against the chosen one; ``-o`` and ``--json`` named them rightly)."""
+    t = _w(tmp_path, "t.csv", "time,tag,x,y\n0,t1,2,3\n1,t1,2,3\n")
+    p = _w(tmp_path, "p.csv", "time,tag,x,y,method,status\n0,t1,2.1,3,nls,ok\n"
+           "1,t1,2.1,3,nls,ok\n0,t1,2.4,3,huber,ok\n1,t1,2.4,3,huber,ok\n")
+    assert main(["evaluate", p, "--truth", t, "--baseline", "nls"]) == 0
+    out = capsys.readouterr().out
+    assert "rms_vs_nls_%" in out and "mean_vs_nls_%" in out and "_vs_ls_" not in out, out
+
+
 def test_options_that_would_be_ignored_are_refused(tmp_path, capsys):
     """`evaluate --baseline foo` (no such method) and `track --smooth --fixed-lag 3` (which
     smoother?) ran as if the option were not there."""

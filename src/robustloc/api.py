@@ -275,6 +275,11 @@ def read_measurements(
 def read_truth(source: FrameOrPath) -> pd.DataFrame:
     """Read (or check) a truth table: ``time, tag, x, y[, z]``, all finite.
 
+    Parameters
+    ----------
+    source : DataFrame, str or PathLike
+        A CSV or Parquet file, or a frame with the same columns.
+
     Examples
     --------
     >>> import pandas as pd
@@ -299,6 +304,11 @@ def read_positions(source: FrameOrPath) -> pd.DataFrame:
 
     Empty coordinates are allowed (a failed epoch; its ``status`` says why); ``method``
     and ``status`` default to ``unknown`` and ``ok`` when absent.
+
+    Parameters
+    ----------
+    source : DataFrame, str or PathLike
+        A CSV or Parquet file, or a frame with the same columns.
 
     Examples
     --------
@@ -325,6 +335,14 @@ def write_positions(positions: pd.DataFrame, path: PathLike) -> Path:
 
     Written atomically: after an error nothing is left at ``path``.  Floats keep full
     precision, so reading the file back gives the same numbers.
+
+    Parameters
+    ----------
+    positions : DataFrame
+        Positions with at least the contract columns (``time, tag, x, y[, z], method,
+        status, n_used, sigma0, excluded``); extra columns are written after them.
+    path : str or PathLike
+        Output file: ``.parquet`` for Parquet, anything else CSV (``.gz`` compressed).
 
     Returns
     -------

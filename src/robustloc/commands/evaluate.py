@@ -129,7 +129,8 @@ def run(args: argparse.Namespace) -> int:
         show[c] = show[c].map(_count)
     for c in show.columns[5:]:
         show[c] = show[c].map(_metres)
-    show = show.rename(columns={"mean_impr_pct": "mean_vs_ls_%", "rms_impr_pct": "rms_vs_ls_%"})
+    show = show.rename(columns={"mean_impr_pct": f"mean_vs_{args.baseline}_%",
+                                "rms_impr_pct": f"rms_vs_{args.baseline}_%"})
     print("horizontal error (m)", file=dest)
     print(show.to_string(index=False), file=dest)
     if "rms_3d" in table.columns:

@@ -41,8 +41,9 @@ a second range of an anchor (or a second GPS speed) already in the event starts 
 one, so every epoch of the log gets its own row however fast it is sampled.
 Course is ignored below 0.1 m/s.
 
-Output (track contract): time, tag, x, y, vx, vy[, ax, ay], status, var_* (covariance
-diagonal), n_used, nis, source.  One row per event (every input epoch is in one); status:
+Output (track contract): time, tag, x, y, vx, vy[, ax, ay], method, status, var_*
+(covariance diagonal), n_used, nis, source.  One row per event (every input epoch is in
+one); status:
   ok                    updated, and the anchors heard within --geometry-window fix the
                         position (three or more, not all on one line or at one point)
   fault_excluded        as ok, but a component was rejected by the robust weights or gate
@@ -57,7 +58,7 @@ diagonal), n_used, nis, source.  One row per event (every input epoch is in one)
   invalid_measurement   every value of the event was outside its physical limits
                         (robustloc.io.limits: range -50..1e5 m, speed 0..515 m/s, course
                         0..360 deg); they were set aside, the row is the prediction.
-                        A time outside |t| < 1e12 s (ranges, or NMEA times plus
+                        A time outside |t| <= 1e12 s (ranges, or NMEA times plus
                         --nmea-offset) cannot be placed on the timeline: one such row
                         per (tag, time), without a state (as in locate)
   insufficient_anchors  updated, but fewer than three anchors heard within

@@ -29,7 +29,7 @@ sorted first (in memory when it fits, else out of core with DuckDB). `-` reads s
 input. The positions file is written atomically (nothing is left at -o after an error,
 Ctrl-C or a full disk); `-o -` writes CSV to standard output and the run summary to
 stderr. A value outside the physical limits (robustloc.io.limits: range -50..1e5 m, RSSI
--150..+30 dBm, |time| < 1e12 s) is not used and is counted (`invalid_measurement: N
+-150..+30 dBm, |time| <= 1e12 s) is not used and is counted (`invalid_measurement: N
 rows`); an epoch with nothing else gets status invalid_measurement.
 
 Methods (comma-separated list allowed; the `method` column tells them apart):

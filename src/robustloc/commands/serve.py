@@ -17,7 +17,7 @@ assembles them into epochs per tag, solves each epoch with the same estimators a
 `robustloc locate` (or tracks with `robustloc.tracking` under --track), stores rows and
 positions durably, and publishes positions over HTTP, WebSocket and a live map page at /.
 
-Ingest: POST /api/measurements (JSON array or NDJSON of {"time","tag","anchor","rssi"|
+Ingest: POST /api/measurements (JSON array, NDJSON or one object of {"time","tag","anchor","rssi"|
 "range"}), WebSocket /ws/measurements, or MQTT (--mqtt HOST:PORT, topic --mqtt-topic,
 payload = the same JSON). Reads: GET /api/positions?tag=&since=&until=, /api/anchors,
 /metrics (Prometheus), WebSocket /ws/positions[?tag=]. /healthz needs no token.
@@ -165,7 +165,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="also ingest from this MQTT broker")
     p.add_argument("--mqtt-topic", default="robustloc/measurements/#",
                    help="MQTT topic filter (default robustloc/measurements/#); payload: a "
-                        "JSON array or NDJSON of rows, as POST /api/measurements")
+                        "JSON array, NDJSON or one object of rows, as POST /api/measurements")
     p.add_argument("--mqtt-client-id", default=None, metavar="ID",
                    help="MQTT client id (default with --store: robustloc- and a hash "
                         "of the store's absolute path, so the broker keeps the service's "

@@ -29,7 +29,7 @@ pseudorange (m)      1.5e7 .. 5e7           GNSS satellites at 19 100 - 35 786 k
                                             are 19 100 - 41 700 km from the Earth's
                                             surface; the bounds leave room for receiver
                                             clock offsets of several ms (1 ms = 300 km).
-time (s)             finite, |t| < 1e12     seconds since any epoch up to 31 700 years.
+time (s)             finite, |t| <= 1e12    seconds since any epoch up to 31 700 years.
 ===================  =====================  ===============================================
 """
 

@@ -382,8 +382,9 @@ class Tracker:
     Examples
     --------
     >>> trk = Tracker(anchors, model="cv", filter="ekf")      # doctest: +SKIP
-    >>> rows = trk.step(epochs)                                # one row per epoch
-    >>> saved = trk.state_dict(); trk2 = Tracker(anchors); trk2.load_state_dict(saved)
+    >>> rows = trk.step(epochs)                                # doctest: +SKIP
+    >>> saved = trk.state_dict()                               # doctest: +SKIP
+    >>> trk2 = Tracker(anchors); trk2.load_state_dict(saved)   # doctest: +SKIP
     """
 
     def __init__(self, anchors: pd.DataFrame, *, model: str = "cv", filter: str = "ekf",
