@@ -41,9 +41,9 @@ a second range of an anchor (or a second GPS speed) already in the event starts 
 one, so every epoch of the log gets its own row however fast it is sampled.
 Course is ignored below 0.1 m/s.
 
-Output (track contract): time, tag, x, y, vx, vy[, ax, ay], method, status, var_*
-(covariance diagonal), n_used, nis, source.  One row per event (every input epoch is in
-one); status:
+Output (track contract): time, tag, x, y, vx, vy[, ax, ay], method, status, var_x, var_y,
+cov_xy, var_vx, var_vy[, var_ax, var_ay], n_used, nis, source.  One row per event (every
+input epoch is in one); status:
   ok                    updated, and the anchors heard within --geometry-window fix the
                         position (three or more, not all on one line or at one point)
   fault_excluded        as ok, but a component was rejected by the robust weights or gate

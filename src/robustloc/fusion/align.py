@@ -77,7 +77,7 @@ class Timeline:
 
 def merge_streams(
     streams: Sequence[Stream], m: int, merge_window_s: float = 0.0,
-    distinct: Sequence[int] = (),
+    distinct: Sequence[int] = (), angles: Sequence[int] = (),
 ) -> Timeline:
     """Merge streams into one event timeline per tag (module docstring, steps 1-2).
 
@@ -91,6 +91,10 @@ def merge_streams(
         of them starts a new event (the ranges of the anchors, the GPS speed and course:
         the next cycle's measurement, not this one's).  Values at one time stamp are
         averaged whatever ``distinct`` says.
+    angles : angular components (radians): their values at one time stamp are averaged
+        on the circle, ``atan2(mean sin, mean cos)`` (an RMC course of 179.97 deg and a VTG
+        course of 180.0 deg, wrapped to +3.1411 and -3.1416 rad, averaged to 0 deg, due
+        north, with the arithmetic mean).
     """
     if not merge_window_s >= 0:
         raise ValueError("merge_window_s must be >= 0")
@@ -138,6 +142,14 @@ def merge_streams(
     np.add.at(counts, (tag_i, j_of_ev[ev], col), 1.0)
     with np.errstate(invalid="ignore"):
         z = np.where(counts > 0, sums / np.maximum(counts, 1.0), np.nan)
+    ang = np.asarray(list(angles), dtype=int)
+    if ang.size:  # circular mean of the angular components
+        a = np.isin(col, ang)
+        sc = np.zeros((K, J, m, 2))
+        np.add.at(sc, (tag_i[a], j_of_ev[ev[a]], col[a]),
+                  np.stack([np.sin(val[a]), np.cos(val[a])], axis=-1))
+        circ = np.arctan2(sc[..., 0], sc[..., 1])
+        z[..., ang] = np.where(counts[..., ang] > 0, circ[..., ang], np.nan)
     return Timeline(tags=tag_u.astype(object), time_s=time_s, z=z)
 
 

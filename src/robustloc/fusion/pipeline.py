@@ -234,6 +234,8 @@ class FusionTrack:
     nis : (K, J) normalized innovation squared.
     weights : (K, J, m) equivalent weights of each component.
     P_last : (K, n, n) final covariances.
+    cov_xy : (K, J) posterior covariance of ``x`` and ``y`` (the track contract's
+        ``cov_xy``; NaN on padding).
     """
 
     time_s: Array
@@ -245,6 +247,7 @@ class FusionTrack:
     weights: Array
     P_last: Array
     extra: dict = field(default_factory=dict)
+    cov_xy: Array | None = None
 
 
 @dataclass(frozen=True)
@@ -589,6 +592,7 @@ class FusionFilter:
         P = np.array(P0, dtype=float).reshape(K, n, n)
         xs = np.full((K, J, n), np.nan)
         vs = np.full((K, J, n), np.nan)
+        cxy = np.full((K, J), np.nan)
         stat = np.full((K, J), "", dtype=object)
         nu = np.zeros((K, J), dtype=np.int64)
         nis = np.full((K, J), np.nan)
@@ -650,6 +654,7 @@ class FusionFilter:
             x_prior, P_prior = x, P
             x, P = r.x, r.P
             var_row = np.diagonal(P, axis1=1, axis2=2)
+            cxy_row = P[:, 0, 1]
             if coast.any():  # the row: the last estimate, with its prediction's variances
                 x = np.where(coast[:, None], x_prior, x)
                 P = np.where(coast[:, None, None], P_prior, P)
@@ -693,6 +698,7 @@ class FusionFilter:
             t_prev = np.where(live & ~coast, tj, t_prev)  # a lost track's clock stops
             xs[:, j] = x
             vs[:, j] = np.where(coast[:, None], var_row, np.diagonal(P, axis1=1, axis2=2))
+            cxy[:, j] = np.where(live, np.where(coast, cxy_row, P[:, 0, 1]), np.nan)
             stat[:, j] = np.where(live, r_status, "")
             nu[:, j] = r_nu
             nis[:, j] = r_nis
@@ -702,6 +708,7 @@ class FusionFilter:
             P_last=P, extra={"relocks": relocks, "nonfinite": nonfinite,
                              "restarts": restarts, "lost_coasts": coasts,
                              "diverged": diverged},
+            cov_xy=cxy,
         )
 
     def _prediction_lost(self, x: Array, P: Array, dt: Array, z: Array, R: Array,

@@ -279,7 +279,9 @@ def fuse(
     # come once per event: a second value of one is the next epoch (align, step 2)
     distinct = ([*range(M), m - 2, m - 1] if opts.coupling == "tight"
                 else [*range(m), *range(c_heard, c_heard + M)])
-    tl = merge_streams(streams, m_aug, opts.merge_window_s, distinct=distinct)
+    # the course (m - 1) of an RMC and a VTG sentence of one fix: a circular mean
+    tl = merge_streams(streams, m_aug, opts.merge_window_s, distinct=distinct,
+                       angles=[m - 1])
     K, J = tl.time_s.shape
     z = tl.z[..., :m]
     # per-event diagonal R
@@ -446,6 +448,8 @@ def _track_frame(tags, time_s, tr, filt: FusionFilter, z, m, opts,
     data["status"] = np.asarray(status[k_idx, j_idx], dtype=str)
     for i, c in enumerate(names):
         data["var_" + c] = var[:, i]
+        if c == "y":  # the track contract (docs/formats.md): var_x, var_y, cov_xy, ...
+            data["cov_xy"] = tr.cov_xy[k_idx, j_idx]
     data["n_used"] = tr.n_used[k_idx, j_idx]
     data["nis"] = tr.nis[k_idx, j_idx]
     zz = z[k_idx, j_idx]
