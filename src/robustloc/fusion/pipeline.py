@@ -2,9 +2,10 @@
 
 Measurement vector (seed 001, EKF/UKF models), state ``[x, y, x', y'(, x'', y'')]``:
 
-* loose coupling: ``z = [x, y, v, theta]`` -- ``x, y`` a UWB fix (LS/WLS, with its
-  covariance as ``R``), ``v = sqrt(x'^2 + y'^2)`` the GPS speed and
-  ``theta = atan2(x', y')`` the GPS course, clockwise from north (seed 001);
+* loose coupling: ``z = [x, y, v, theta]`` -- ``x, y`` a UWB fix (LS/WLS, the diagonal
+  of its covariance in ``R``, as seed 001's ``R = diag(...)``),
+  ``v = sqrt(x'^2 + y'^2)`` the GPS speed and ``theta = atan2(x', y')`` the GPS course,
+  clockwise from north (seed 001);
 * tight coupling: ``z = [r_1 .. r_M, v, theta]`` -- the raw ranges
   ``r_i = sqrt((x - a_ix)^2 + (y - a_iy)^2 + dz_i^2)`` are filter measurements, so an epoch
   with one or two anchors still updates the filter and one bad range is one down-weighted

@@ -1,8 +1,9 @@
 """End-to-end fusion of contract frames: ranges + anchors (+ NMEA) -> track frame.
 
 Used by ``robustloc fuse``, the ``uwb_gps`` report section and the real-data loaders.
-Loose coupling: per UWB epoch an LS/WLS fix (:mod:`robustloc.fusion.uwb`) with its
-covariance as ``R``; tight coupling: the ranges themselves (:mod:`robustloc.fusion.pipeline`).
+Loose coupling: per UWB epoch an LS/WLS fix (:mod:`robustloc.fusion.uwb`) with the
+diagonal of its covariance as ``R`` (seed 001's ``R = diag(...)``: the fix's x-y
+correlation is not used); tight coupling: the ranges themselves (:mod:`robustloc.fusion.pipeline`).
 GPS speed and course (RMC/VTG) join as further components.  Streams are aligned as
 documented in :mod:`robustloc.fusion.align`.
 
