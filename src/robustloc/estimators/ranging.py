@@ -85,6 +85,112 @@ def method_weight(method: str, **params: float):
     return get_weight(method, **params)
 
 
+class _WhitenedLinear:
+    """The linear model ``f(x) = H x`` of whitened design rows ``H`` (K, m, p), in the
+    interface :func:`~robustloc.estimators.nonlinear.gauss_newton` solves."""
+
+    def __init__(self, H: Array) -> None:
+        self.H = H
+
+    def subset(self, rows: NDArray[np.int64]) -> _WhitenedLinear:
+        return _WhitenedLinear(self.H[rows])
+
+    def predict(self, x: Array) -> Array:
+        return np.einsum("kip,kp->ki", self.H, x)
+
+    def jacobian(self, x: Array) -> Array:
+        return self.H
+
+
+#: Seed of the Gaussian draws of :func:`_gaussian_mad_factor` (fixed: a log's scale is a
+#: function of the log).
+MAD_FACTOR_SEED = 20261204
+#: Standardized residuals :func:`_gaussian_mad_factor` draws at least (the log's epochs
+#: repeated with new draws, at most 32 times).  The MAD of ``n`` Gaussian values alone
+#: has a relative standard error of ``1.166 / sqrt(n)``, 0.5 % here, the same for every
+#: log of one layout; as a ratio to the least-squares MAD of the same draws the factor
+#: varies by 0.06 % between seeds (0.9872-0.9885 at Huber ``c = 2`` on six anchors),
+#: against the 1.1-5 % it corrects.
+MAD_FACTOR_DRAWS = 50_000
+
+
+def _gaussian_mad_factor(fit_loc: Locator, Jw: Array, heard: NDArray[np.bool_],
+                         r: Array) -> float:
+    """What ``med |u| / 0.6745`` of :meth:`Locator.log_statistics` reads for Gaussian noise
+    of unit scale, at the log's own geometry.
+
+    A Huber-type fit with a known scale leaves its standardized residuals more peaked than
+    Gaussian: it follows the small residuals and lets the large ones be (down-weighted
+    rows keep their error), so the MAD of Gaussian residuals of unit variance reads low
+    (the integrity review: 0.983 at Huber ``c = 2``, 0.943 at ``c = 1.5``, 0.996 in the
+    least-squares limit, on six anchors), and a test at that scale rejects more often than
+    its alpha (1.27 % of fault-free epochs against the B-method's 1.10 %).  The factor
+    depends on the weight, its constants and the redundancy, so it is measured on the log
+    itself: unit Gaussian noise on the fits' whitened design rows ``Jw`` (K, m, p; the
+    rows the epochs ``heard``), the same robust fit (``fit_loc``'s weight, scale 1,
+    :func:`~robustloc.estimators.nonlinear.gauss_newton` as :meth:`Locator.solve` runs
+    it) and the same standardization (``r``: the redundancy numbers, NaN where
+    unusable; :func:`~robustloc.estimators.linear.sandwich_qvv`), pooled over the anchors
+    (an anchor's own factor differs from the pooled one by less than the noise of its
+    estimate), from :data:`MAD_FACTOR_DRAWS` residuals, as the ratio of their MAD to the
+    MAD of the least-squares residuals of the same draws (unit scale exactly: a control
+    variate).  In each epoch the draws go to the heard observations in the order of their
+    redundancy numbers (largest first), a function of the geometry alone: the factor, like
+    the fixes, does not depend on the anchors' order, the frame's rotation or an unheard
+    anchor (a symmetric layout's equal numbers trade draws between mirror images, which
+    leaves the residuals' median as it is).
+
+    Returns
+    -------
+    float
+        The factor; 1.0 where nothing could be measured.
+    """
+    p = Jw.shape[2]
+    rows = np.flatnonzero(np.isfinite(r).any(axis=1))
+    n_res = int(np.sum(np.isfinite(r[rows]))) if rows.size else 0
+    if n_res == 0:
+        return 1.0
+    reps = int(min(32, -(-MAD_FACTOR_DRAWS // n_res)))
+    H = np.tile(Jw[rows], (reps, 1, 1))
+    hd = np.tile(heard[rows], (reps, 1))
+    rr = np.tile(r[rows], (reps, 1))
+    # each epoch's heard rows by decreasing redundancy (its own a-priori fit's 1 - h)
+    with np.errstate(all="ignore"):
+        Hh = np.where(hd[..., None], H, 0.0)
+        Ninv = np.linalg.pinv(np.einsum("kip,kiq->kpq", Hh, Hh))
+        r_all = 1.0 - np.einsum("kip,kpq,kiq->ki", Hh, Ninv, Hh)
+    key = np.where(hd & np.isfinite(r_all), r_all, -np.inf)
+    width = int(hd.sum(axis=1).max())
+    # the heard rows, in that order, in the first columns (the unheard ones dropped: the
+    # arithmetic below is then the same whatever the anchors' number and order)
+    idx = np.argsort(-key, axis=1, kind="stable")[:, :width]
+    H = np.take_along_axis(H, idx[..., None], axis=1)
+    hd = np.take_along_axis(hd, idx, axis=1)
+    rr = np.take_along_axis(rr, idx, axis=1)
+    draws = np.random.default_rng(MAD_FACTOR_SEED).standard_normal((hd.shape[0], width))
+    e = np.where(hd, draws, np.nan)
+    wf = method_weight(fit_loc.method, **fit_loc.weight_params)
+    fit = gauss_newton(_WhitenedLinear(H), e, np.zeros((H.shape[0], p)), 1.0, weight=wf,
+                       scale=1.0, min_scale=0.0, max_iter=fit_loc.max_iter, tol=fit_loc.tol,
+                       min_obs=p + 1, rel_tol=fit_loc.rel_tol, warmup=False)
+    ls = solve_wls(H, e, hd.astype(float))
+    with np.errstate(all="ignore"):
+        v = np.einsum("kip,kp->ki", H, fit.x) - e
+        q = sandwich_qvv(H, hd.astype(float), np.where(hd, np.nan_to_num(fit.w), 0.0), rr)
+        u = np.abs(v) / np.sqrt(np.where(np.isfinite(rr), q, np.nan))
+        # control variate: the least-squares fit of the same draws, whose standardized
+        # residuals v / sqrt(r) are exactly N(0, 1) (seed 003's Q_vv), so their MAD's
+        # own sampling error divides out (seeds 1-4: 0.9862-0.9895 alone, 0.9885-0.9893
+        # as the ratio, at Huber c = 2 on the review's six anchors)
+        v_ls = np.einsum("kip,kp->ki", H, ls.x) - e
+        u_ls = np.abs(v_ls) / np.sqrt(rr)
+    keep = st.among(fit.status, st.USABLE)[:, None] & np.isfinite(u) & np.isfinite(u_ls)
+    if not keep.any():
+        return 1.0
+    kappa = float(np.median(u[keep]) / np.median(u_ls[keep]))
+    return kappa if np.isfinite(kappa) and kappa > 0 else 1.0
+
+
 def _collinear(a: Array, heard: NDArray[np.bool_], rel: float = 1e-3) -> NDArray[np.bool_]:
     """Epochs whose heard anchors lie on one line (2-D: the fix is ambiguous by mirror).
 
@@ -920,8 +1026,13 @@ class Locator:
         median over hundreds of residuals instead of three to eight, with a 50 % breakdown
         point over the log, so an anchor's outliers (fades, NLOS) do not inflate it.  An
         anchor with fewer than ``min_count`` residuals gets the scale pooled over every
-        anchor.  For RSSI fitted as ranges the unit is dB (``sigma_ij = d ln10 sigma_dB /
-        (10 n)``), for ranges metres.
+        anchor.  From the second iteration on (the fits of a known scale) the MAD is
+        divided by its Gaussian consistency factor for the fit, measured on the log's own
+        geometry (:func:`_gaussian_mad_factor`: a Huber fit's residuals are more peaked
+        than Gaussian, and the MAD read 0.983 of a Gaussian scale at ``c = 2``, 0.943 at
+        ``c = 1.5``; now 0.996 and 0.989, the least-squares limit's 0.996 -- the
+        integrity review's six anchors).  For RSSI fitted as ranges the unit is dB
+        (``sigma_ij = d ln10 sigma_dB / (10 n)``), for ranges metres.
 
         Returns
         -------
@@ -990,6 +1101,7 @@ class Locator:
         common = 1.0  # the scale pooled over every anchor
         p = a.shape[1]
         floor = max(self.min_scale, 1e-6)
+        kappa: float | None = None
         for it in range(iterations):
             # the fits' weights: each anchor's scale shrunk toward the pooled one
             fit_scale = common * (scale / common) ** weighting
@@ -1027,6 +1139,13 @@ class Locator:
                 u = np.abs(sol.residuals) / (sig_fit * np.sqrt(np.where(np.isfinite(r), q,
                                                                         np.nan)))
             u = np.where(st.among(sol.status, st.USABLE)[:, None] & np.isfinite(u), u, np.nan)
+            if it >= 1:
+                # the fits of a known scale (not the first, per-epoch MAD one): their
+                # MAD reads low of a Gaussian scale by a factor measured once on this
+                # log's own geometry (_gaussian_mad_factor), divided out here
+                if kappa is None:
+                    kappa = _gaussian_mad_factor(step_loc, Jw, np.isfinite(zz), r)
+                u = u / kappa
             count = np.sum(np.isfinite(u), axis=0)
             pooled = np.nanmedian(u) / MAD_NORMAL if np.any(count) else np.nan
             with np.errstate(all="ignore"), warnings.catch_warnings():
