@@ -105,13 +105,16 @@ class _WhitenedLinear:
 #: Seed of the Gaussian draws of :func:`_gaussian_mad_factor` (fixed: a log's scale is a
 #: function of the log).
 MAD_FACTOR_SEED = 20261204
-#: Standardized residuals :func:`_gaussian_mad_factor` draws at least (the log's epochs
-#: repeated with new draws, at most 32 times).  The MAD of ``n`` Gaussian values alone
-#: has a relative standard error of ``1.166 / sqrt(n)``, 0.5 % here, the same for every
-#: log of one layout; as a ratio to the least-squares MAD of the same draws the factor
-#: varies by 0.06 % between seeds (0.9872-0.9885 at Huber ``c = 2`` on six anchors),
-#: against the 1.1-5 % it corrects.
-MAD_FACTOR_DRAWS = 50_000
+#: Standardized residuals :func:`_gaussian_mad_factor` draws, about (every k-th epoch of
+#: the log's sample, or its epochs repeated with new draws, at most 32 times).  The MAD of
+#: ``n`` Gaussian values alone has a relative standard error of ``1.166 / sqrt(n)``, 0.8 %
+#: here, the same for every log of one layout; as a ratio to the least-squares MAD of the
+#: same draws the factor varies by about 0.1 % between seeds (0.06 % at 50 000 draws:
+#: 0.9872-0.9885 at Huber ``c = 2`` on six anchors), against the 1.1-5 % it corrects.  The
+#: draws add a few hundredths of a second to the first pass of a 10-anchor log (about
+#: 0.13 s at 50 000 draws, which cost ``bench_locate.py``'s ``auto`` row a tenth of its
+#: speed).
+MAD_FACTOR_DRAWS = 20_000
 
 
 def _gaussian_mad_factor(fit_loc: Locator, Jw: Array, heard: NDArray[np.bool_],
@@ -146,10 +149,14 @@ def _gaussian_mad_factor(fit_loc: Locator, Jw: Array, heard: NDArray[np.bool_],
         The factor; 1.0 where nothing could be measured.
     """
     p = Jw.shape[2]
+    r = np.where(heard, r, np.nan)  # (an unheard row's zero design row has r = 1)
     rows = np.flatnonzero(np.isfinite(r).any(axis=1))
     n_res = int(np.sum(np.isfinite(r[rows]))) if rows.size else 0
     if n_res == 0:
         return 1.0
+    if n_res > MAD_FACTOR_DRAWS:  # every k-th epoch: about MAD_FACTOR_DRAWS residuals
+        rows = rows[:: -(-n_res // MAD_FACTOR_DRAWS)]
+        n_res = int(np.sum(np.isfinite(r[rows])))
     reps = int(min(32, -(-MAD_FACTOR_DRAWS // n_res)))
     H = np.tile(Jw[rows], (reps, 1, 1))
     hd = np.tile(heard[rows], (reps, 1))
