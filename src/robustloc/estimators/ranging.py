@@ -1193,13 +1193,6 @@ class Locator:
                 plain = self._gn(model, obs[rows], x0[rows], sig[rows], None)
                 fit = _merge(fit, plain, rows, np.ones(rows.size, dtype=bool), inplace=True)
             fit.extra["fallback"] = low
-            # each observation's robust weight factor p(u) in [0, 1] (the fit's weights
-            # are p / sigma^2 in its own domain): the integrity tests take a residual's
-            # variance under these weights (robustloc.integrity.fixes.protect)
-            with np.errstate(all="ignore"):
-                fit.extra["weight_factor"] = np.clip(
-                    np.where(np.isfinite(obs), np.nan_to_num(fit.w) * sig * sig, np.nan),
-                    0.0, 1.0)
             return fit
         if meth == "lege":
             return self._lege_nonlinear(model, obs, x0, sig)

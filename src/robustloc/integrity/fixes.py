@@ -9,18 +9,12 @@ For each epoch, at the fix ``x`` of any method, with the range-domain residuals
    ``w_i = v_i / (sigma_i sqrt(r_i))`` (seed 003, eqs. (1)-(2); ``r_i`` the redundancy
    number of the heard observations) above ``N(1 - alpha0/2)`` (3.29), and observations
    the estimator itself excluded (weight zero).  A robust fix has already down-weighted
-   them; they leave the test and the protection level.  A robust fit's residual is
-   tested against its own variance under the fit's weights instead of
-   ``sigma_i^2 r_i`` (seed 003's ``Q_vv`` for equivalent weights,
-   :func:`~robustloc.estimators.linear.sandwich_qvv`, with the fit's
-   ``extra["weight_factor"]``): a row it down-weighted keeps most of its error, and with
-   ``r_i`` the w-test flagged 3.6x (huber) to 18x (igg3) ``alpha0`` of Gaussian rows.  A
-   plain fit (``ls``, ``wls``, ``nls``) keeps them at full weight: its test and bound
-   stay over every observation of the fix, and a flag makes it ``fault_detected``.
+   them; they leave the test and the protection level.  A plain fit (``ls``, ``wls``,
+   ``nls``) keeps them at full weight: its test and bound stay over every observation of
+   the fix, and a flag makes it ``fault_detected``.
 2. **Global test** of the remaining observations: ``T = sum v_i^2 / sigma_i^2`` against
    ``chi2(1 - alpha; n' - p)`` with ``alpha`` from the B-method for that redundancy (seed
-   003, eqs. (3)-(4)); of a robust fit, ``T`` of the least-squares re-solution over the
-   remaining observations (linearized at the fix), the test after the exclusion.
+   003, eqs. (3)-(4)).
 3. **Status**:
 
    ========================  ====================================================  ======
@@ -142,8 +136,6 @@ from numpy.typing import NDArray
 
 from robustloc import status as st
 from robustloc._stats import chi2_sf
-from robustloc.estimators._kernels import inv_spd
-from robustloc.estimators.linear import sandwich_qvv
 from robustloc.estimators.ranging import _unique_rows, canonical_rank
 from robustloc.estimators.solution import Solution
 from robustloc.integrity.bmethod import ALPHA0, BETA0, global_critical, lambda0, w_critical
@@ -590,28 +582,12 @@ def _test_alpha(crit: Array, dof: NDArray[np.int64]) -> Array:
 
 
 def _global_test(v: Array, sig: Array, keep: NDArray[np.bool_], p: int, alpha0: float,
-                 beta0: float, J: Array | None = None,
-                 ) -> tuple[Array, Array, NDArray[np.int64]]:
+                 beta0: float) -> tuple[Array, Array, NDArray[np.int64]]:
     """``T = sum v_i^2 / sigma_i^2`` over ``keep``, its B-method critical value (NaN without
-    redundancy) and the redundancy ``dof``, per epoch.
-
-    With the design ``J`` (N, n, p), ``T`` is that of the least-squares re-solution over
-    ``keep`` from the fix (linearized: ``T - b^T N^-1 b`` with ``N = J^T P J`` and
-    ``b = J^T P v`` over the kept rows), which equals ``T`` at a least-squares fix of
-    those rows."""
+    redundancy) and the redundancy ``dof``, per epoch."""
     dof = keep.sum(axis=1) - p
     with np.errstate(invalid="ignore"):
         T = np.nansum(np.where(keep, (v / sig) ** 2, 0.0), axis=1)
-    if J is not None:
-        with np.errstate(invalid="ignore", divide="ignore"):
-            P = np.where(keep, 1.0 / (sig * sig), 0.0)
-            Jz = np.where(keep[..., None], np.nan_to_num(J), 0.0)
-            vz = np.where(keep, np.nan_to_num(v), 0.0)
-            Nm = np.einsum("kip,ki,kiq->kpq", Jz, P, Jz)
-            b = np.einsum("kip,ki,ki->kp", Jz, P, vz)
-        Ninv, good = inv_spd(Nm)
-        red = np.einsum("kp,kpq,kq->k", b, Ninv, b)
-        T = np.where(good & (dof >= 1) & np.isfinite(red), np.maximum(T - red, 0.0), T)
     crit = np.full(dof.shape, np.nan)
     has = dof >= 1
     if np.any(has):
@@ -698,25 +674,7 @@ def protect(
     # 1. w-test on the observations the estimator kept
     hpl_used, vpl_used, r = protection_levels_local(J, sig, used, lam0, k)
     with np.errstate(invalid="ignore", divide="ignore"):
-        qv = sig * sig * np.where(r > R_MIN, r, np.nan)  # Q_vv,ii of the a-priori fit
-    pw = sol.extra.get("weight_factor")
-    robust_fit = (sol.method not in PLAIN_FIT_METHODS and pw is not None
-                  and np.shape(pw) == (N, n))
-    if robust_fit:
-        # a robust fit's residual is not that of the a-priori weighted adjustment: a row
-        # it down-weighted keeps most of its error (variance up to sigma^2 (1 + h), not
-        # sigma^2 (1 - h)).  Each is tested against its own variance under the fit's
-        # weights (seed 003's Q_vv for equivalent weights, sandwich_qvv): with the
-        # a-priori one the w-test flagged 3.6x (huber) to 18x (igg3) alpha0 of Gaussian
-        # rows, and 2.2-10 % of fault-free fixes said fault_excluded (integrity review D1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            w0 = np.where(used, 1.0 / (sig * sig), 0.0)
-            wf = np.where(used, np.nan_to_num(np.asarray(pw, dtype=float)), 0.0) * w0
-            Jz = np.where(used[..., None], np.nan_to_num(J), 0.0)
-        qs = sandwich_qvv(Jz, w0, wf, qv)
-        qv = np.where(used & np.isfinite(qv) & np.isfinite(qs) & (qs > 0), qs, qv)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        w = np.abs(v) / np.sqrt(qv)
+        w = np.abs(v) / (sig * np.sqrt(np.where(r > R_MIN, r, np.nan)))
     flagged = used & (w > w_critical(alpha0))
     # a plain fit (ls, wls, nls) keeps a flagged observation at its full weight: the fix
     # carries the fault, so the test and the bound are those of the fix itself (the
@@ -724,13 +682,8 @@ def protect(
     carries = flagged.any(axis=1) & (sol.method in PLAIN_FIT_METHODS)
     rest = used & ~flagged
     keep = np.where(carries[:, None], used, rest)
-    # 2. global test of the rest (of the whole fix where it carries its flags); of a
-    # robust fit, that of the least-squares re-solution over the rows it keeps (seed 003:
-    # the test after the exclusion), not of its own residuals, which its down-weighted
-    # rows inflate (with the w-test above alone, huber's fault_detected went from 0.29 to
-    # 0.72 % of Gaussian epochs where the B-method means 1.1 % for both tests together)
-    T, crit, dof = _global_test(v, sig, keep, p, alpha0, beta0,
-                                J=J if robust_fit else None)
+    # 2. global test of the rest (of the whole fix where it carries its flags)
+    T, crit, dof = _global_test(v, sig, keep, p, alpha0, beta0)
     has = dof >= 1
     passed = has & (T <= crit)
     # the flagged observations are all that is wrong with a fix that carries them: the
