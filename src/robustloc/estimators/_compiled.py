@@ -47,6 +47,7 @@ OK, INSUFFICIENT, ILL, NOT_CONVERGED = 0, 1, 2, 3
 #: Status strings of the kernels' codes.
 CODES = np.array([st.OK, st.INSUFFICIENT, st.ILL_CONDITIONED, st.NOT_CONVERGED], dtype=object)
 COND_LIMIT = 1e10  # as robustloc.estimators._kernels.COND_LIMIT
+ADJUGATE_RANK = 1e-12  # as robustloc.estimators._kernels.ADJUGATE_RANK
 MAD_NORMAL = 0.6744897501960817
 _HUBER_WARMUP = np.array([1.5, 0.0, 0.0])  # Huber(1.5), the redescending fits' first stage
 
@@ -144,6 +145,8 @@ def _inv_small(A, out, tag):  # pragma: no cover - jit
             fi += out[i, j] * out[i, j]
     cond2 = fa * fi  # squared Frobenius condition number (no square roots)
     good = math.isfinite(cond2) and det > 0 and cond2 < COND_LIMIT * COND_LIMIT
+    if p == 3:  # numerical rank one: ||adj|| = ||A^-1|| det (ADJUGATE_RANK)
+        good = good and fi * det * det > ADJUGATE_RANK * ADJUGATE_RANK * fa * fa
     if not good:
         for i in range(p):
             for j in range(p):

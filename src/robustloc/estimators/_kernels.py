@@ -9,6 +9,13 @@ Array = NDArray[np.float64]
 
 #: Normal matrices with a (Frobenius) condition number above this are ill-conditioned.
 COND_LIMIT = 1e10
+#: A 3 x 3 matrix whose adjugate (its 2 x 2 minors) is below this times ``||A||_F^2`` is
+#: of numerical rank one: its minors are rounding noise, ``~eps ||A||^2``, and so is its
+#: determinant, and the closed-form inverse, noise over noise, can look well conditioned
+#: (45 % of random rank-one matrices ``w j j^T`` passed the condition test).  A matrix
+#: of condition number below ``COND_LIMIT`` has minors of at least ``||A||^2 / 1e10``
+#: (its two largest eigenvalues' product), so none is refused that passed before.
+ADJUGATE_RANK = 1e-12
 
 
 def normal_matrix(J: Array, w: Array) -> Array:
@@ -64,6 +71,8 @@ def inv_spd(Nm: Array) -> tuple[Array, NDArray[np.bool_]]:
         fro_inv = np.sqrt(np.sum(inv * inv, axis=(1, 2)))
         cond = fro * fro_inv
         good = np.isfinite(cond) & (det > 0) & (cond < COND_LIMIT)
+        if p == 3:  # numerical rank one (ADJUGATE_RANK)
+            good &= fro_inv * np.abs(det) > ADJUGATE_RANK * fro * fro
     if not np.all(good):
         inv = np.where(good[:, None, None], inv, np.eye(p))
     return inv, good
