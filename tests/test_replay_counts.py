@@ -4,6 +4,7 @@ many rows the server had accepted (exit 2)."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 from pathlib import Path
 
@@ -36,11 +37,22 @@ def test_replay_counts_every_rejected_row_of_a_large_batch(tmp_path):
                    + "".join(f"0,G,{a},5.0\n" for a, _, _ in ANCHORS))
     with ServerProcess(["--anchors", str(_anchors(tmp_path / "a.csv"))]) as srv:
         p = _replay(log, srv.url)
+        pj = _replay(log, srv.url, "--json")
     assert p.returncode == 1, p.stderr
     assert p.stdout.strip().startswith(f"{len(ANCHORS)} of {n_bad + len(ANCHORS)} rows "
                                        "accepted")
     assert f"{n_bad} rows rejected" in p.stderr
     assert f"... {n_bad - 20} more rejected rows" in p.stderr
+    # --json: the same counts on stdout, the listed rows with their file lines, same code
+    assert pj.returncode == 1, pj.stderr
+    s = json.loads(pj.stdout)
+    assert (s["rows"], s["accepted"], s["n_rejected"]) == (n_bad + len(ANCHORS),
+                                                           len(ANCHORS), n_bad)
+    assert s["measurements"] == str(log) and s["url"] == srv.url
+    assert len(s["rejected"]) == MAX_REJECTED_LISTED
+    assert all(r["line"] == k + 2 and "99" in r["error"]
+               for k, r in enumerate(s["rejected"]))
+    assert pj.stderr == ""
 
 
 def test_replay_stopped_by_an_error_answer_says_how_far_it_got(tmp_path):

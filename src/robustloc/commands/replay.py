@@ -69,6 +69,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch-rows", type=positive_int, default=None,
                    help="rows per batch (default: one time step per batch)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--json", action="store_true",
+                   help="print the summary as JSON (rows, accepted, n_rejected, the "
+                        "rejected rows the server listed with their file line and "
+                        "reason, seconds); no progress bar")
 
 
 def _batches(times: np.ndarray, batch_rows: int | None) -> list[tuple[int, int]]:
@@ -221,7 +225,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         summary = replay(args.measurements, args.url, speed=args.speed, token=args.token,
                          transport=args.transport, batch_rows=args.batch_rows,
-                         progress=not args.quiet and sys.stderr.isatty())
+                         progress=not (args.quiet or args.json) and sys.stderr.isatty())
     except ReplayStopped as exc:
         print(f"error: {args.url}: {exc} (stopped after {exc.sent} of {exc.rows} rows; "
               f"{exc.accepted} accepted)", file=sys.stderr)
@@ -232,9 +236,13 @@ def run(args: argparse.Namespace) -> int:
     except ImportError as exc:
         print(f"error: robustloc replay needs the [serve] extra ({exc})", file=sys.stderr)
         return 2
+    n_rej = summary["n_rejected"]
+    if args.json:
+        print(json.dumps({"measurements": str(args.measurements), "url": args.url,
+                          **summary}, indent=2))
+        return 1 if n_rej else 0
     print(f"{summary['accepted']} of {summary['rows']} rows accepted in "
           f"{summary['seconds']:.2f} s")
-    n_rej = summary["n_rejected"]
     if n_rej:
         print(f"{n_rej} rows rejected", file=sys.stderr)
     for r in summary["rejected"][:20]:
