@@ -23,7 +23,9 @@ class Solution:
     residuals : ndarray, shape (N, m)
         Observation residuals ``v = f(x) - z`` at the solution (NaN: not observed).
     weights : ndarray, shape (N, m)
-        Final weights of the observations (1 = full, 0 = rejected; NaN: not observed).
+        Final weights of the observations, ``p / sigma^2`` in the fit's domain (``p`` the
+        robust weight factor: 1 full, 0 rejected; NaN: not observed).  A robust nonlinear
+        fit also gives ``p`` alone, ``extra["weight_factor"]``.
     excluded : ndarray of bool, shape (N, m)
         Observations rejected (weight zero) or excluded by a test.
     sigma0 : ndarray, shape (N,)

@@ -1,11 +1,16 @@
-"""Compiled (numba) kernel of :func:`robustloc.integrity.fixes.protection_levels_local`.
+"""Compiled (numba) kernels of :mod:`robustloc.integrity.fixes`: the protection levels
+(:func:`~robustloc.integrity.fixes.protection_levels_local`), the mirror solution, a
+robust fit's own residual cofactors (:func:`~robustloc.integrity.fixes.robust_fit_cofactors`)
+and the least-squares re-solution's statistic
+(:func:`~robustloc.integrity.fixes.resolution_reduction`).
 
-The NumPy reference walks the whole batch once per array operation (about twenty
+The NumPy references walk the whole batch once per array operation (about twenty
 ``(N, n, p)`` temporaries); here each epoch runs in machine code with its ``p x p``
-normal matrix (``p = 2, 3``) inverted through its Cholesky factor.  Same formulas, same order of the
-tests and the same edge cases (an unused observation, a singular normal matrix, a
-redundancy number at or below ``R_MIN``): the tests compare the two on random geometries
-(:mod:`tests.test_integrity_fixes`).
+normal matrix (``p = 2, 3``).  Same formulas, same order of the tests and the same edge
+cases (an unused observation, a singular normal matrix, a redundancy number at or below
+``R_MIN``): the tests compare each kernel with its reference on random geometries
+(:mod:`tests.test_integrity_fixes`, :mod:`tests.test_robust_wtest`).  The wrappers run
+long batches in two or more threads (:func:`robustloc.estimators._compiled.in_threads`).
 """
 
 from __future__ import annotations
@@ -14,6 +19,8 @@ import math
 
 import numpy as np
 from numba import njit
+
+from robustloc.estimators._compiled import _inv_small
 
 # ruff: noqa: N803, N806  (matrix names)
 
@@ -291,3 +298,137 @@ def mirror_kernel(a, h2, x, res, sigma, keep, iterations, ridge):  # pragma: no 
                 for q in range(p):
                     j_alt[e, i, q] = J[i, q]
     return x_alt, t_alt, j_alt
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def resolution_reduction_kernel(J, sigma, keep, v, tag):  # pragma: no cover - jit
+    """Per epoch ``b^T N^-1 b`` with ``N = sum J_i J_i^T / sigma_i^2`` and
+    ``b = sum J_i v_i / sigma_i^2`` over the rows ``keep`` (finite there): what the
+    least-squares re-solution of those rows from the fix takes off ``T``, as the NumPy
+    reference in :func:`robustloc.integrity.fixes.resolution_reduction`.  NaN where ``N``
+    is not good (:func:`robustloc.estimators._kernels.inv_spd`'s test, by the same
+    closed-form inverse).  ``tag``: a tuple of ``p`` floats (``p <= 3``)."""
+    N, n = keep.shape
+    p = len(tag)
+    red = np.full(N, np.nan)
+    Nm = np.zeros((p, p))
+    Ni = np.zeros((p, p))
+    b = np.zeros(p)
+    for e in range(N):
+        for a in range(p):
+            b[a] = 0.0
+            for c in range(p):
+                Nm[a, c] = 0.0
+        for i in range(n):
+            if not keep[e, i]:
+                continue
+            s = sigma[e, i]
+            w = 1.0 / (s * s)
+            vi = v[e, i]
+            for a in range(p):
+                ja = J[e, i, a] * w
+                b[a] += ja * vi
+                for c in range(a, p):
+                    Nm[a, c] += ja * J[e, i, c]
+        for a in range(p):
+            for c in range(a):
+                Nm[a, c] = Nm[c, a]
+        if not _inv_small(Nm, Ni, tag):
+            continue
+        acc = 0.0
+        for a in range(p):
+            t = 0.0
+            for c in range(p):
+                t += Ni[a, c] * b[c]
+            acc += b[a] * t
+        red[e] = acc
+    return red
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def robust_cofactors_kernel(J, sigma, used, pw, qv, r_min, tag):  # pragma: no cover - jit
+    """:func:`robustloc.integrity.fixes.robust_fit_cofactors`, one epoch at a time: the
+    same terms in the same order as its NumPy reference
+    (:func:`robustloc.estimators.linear.sandwich_qvv`: ``Q_vv,ii = sum_k (delta_ik -
+    g_ik w_k)^2 / w0_k`` over the used rows, nonnegative terms), the rows that add
+    nothing (unused, or left out by the fit) skipped instead of zeroed.  ``tag``: a
+    tuple of ``p`` floats (``p <= 3``)."""
+    N, n = used.shape
+    p = len(tag)
+    out = qv.copy()
+    Nm = np.zeros((p, p))
+    Ni = np.zeros((p, p))
+    a = np.zeros(p)
+    w0 = np.zeros(n)
+    w = np.zeros(n)
+    c = np.zeros(n)
+    Jl = np.zeros((n, p))  # the epoch's design rows, contiguous
+    act = np.zeros(n, dtype=np.int64)  # the rows with c_k != 0
+    for e in range(N):
+        full = True
+        na = 0
+        for i in range(n):
+            w0[i] = 0.0
+            w[i] = 0.0
+            c[i] = 0.0
+            if used[e, i]:
+                s = sigma[e, i]
+                f = pw[e, i]
+                f = 0.0 if not f == f else min(max(f, 0.0), 1.0)
+                if f != 1.0:
+                    full = False
+                w0[i] = 1.0 / (s * s)
+                w[i] = f * w0[i]
+                c[i] = w[i] * f  # w_k^2 / w0_k
+                for q in range(p):
+                    Jl[i, q] = J[e, i, q]
+                if c[i] != 0.0:
+                    act[na] = i
+                    na += 1
+        if full:
+            continue  # the fit's weights are the a-priori ones: qv as it is
+        for q in range(p):
+            for t in range(p):
+                Nm[q, t] = 0.0
+        for j in range(na):
+            i = act[j]
+            for q in range(p):
+                jw = Jl[i, q] * w[i]
+                for t in range(q, p):
+                    Nm[q, t] += jw * Jl[i, t]
+        for q in range(p):
+            for t in range(q):
+                Nm[q, t] = Nm[t, q]
+        if not _inv_small(Nm, Ni, tag):
+            continue
+        for i in range(n):
+            if not (used[e, i] and np.isfinite(qv[e, i])):
+                continue
+            for q in range(p):  # a = (J^T W J)^-1 J_i
+                t = 0.0
+                for j in range(p):
+                    t += Ni[q, j] * Jl[i, j]
+                a[q] = t
+            # the row's own term, then the others in row order (as the reference's sum;
+            # a row with c_k = 0 adds an exact zero there)
+            g = 0.0
+            for q in range(p):
+                g += Jl[i, q] * a[q]
+            d = 1.0 - g * w[i]
+            own = d * d / w0[i]
+            acc = 0.0
+            for j in range(na):
+                kk = act[j]
+                if kk == i:
+                    acc += own
+                    continue
+                g = 0.0
+                for q in range(p):
+                    g += Jl[kk, q] * a[q]
+                acc += g * g * c[kk]
+            if c[i] == 0.0:
+                acc += own  # (a left-out row: its own term, last)
+            s = sigma[e, i]
+            if math.isfinite(acc) and acc > r_min * s * s:
+                out[e, i] = acc
+    return out
