@@ -383,3 +383,70 @@ def test_a_websocket_to_an_unknown_path_is_closed_with_a_reason_and_counted(anch
             assert f"no such WebSocket endpoint: {path}" in ws.close_reason
     assert _metric(srv.url, 'robustloc_requests_rejected_total{reason="not_found"}') == len(paths)
     assert httpx.get(srv.url + "/healthz").status_code == 200
+
+
+def test_an_mqtt_message_an_internal_error_stops_is_kept_in_the_dead_letter_folder(
+        anchors, broker, tmp_path, capsys):
+    """A defect of the service (here: ingest raises) acknowledged the message and the
+    broker dropped it, rows and all.  Now its payload is first kept, byte for byte, in
+    ``STORE/dead-letter`` (then acknowledged: sent again it would fail again); where that
+    file cannot be written the message is not acknowledged, and the broker delivers it
+    again after the reconnect.  A real Mosquitto, the real MqttIngest and Engine; the
+    defect is injected by replacing the engine's ingest."""
+    mqtt = pytest.importorskip("paho.mqtt.client")
+    from robustloc.io import read_anchors
+    from robustloc.service import mqtt as service_mqtt
+    from robustloc.service.engine import Engine
+    from robustloc.service.processor import LocateProcessor
+
+    a = read_anchors(anchors)
+    eng = Engine(a, LocateProcessor(a, method="ls"), store_dir=tmp_path / "s",
+                 latency_window_s=0.0, idle_flush_s=600.0, value="range", fsync=False,
+                 snapshot_s=0)
+
+    def defect(*args, **kw):
+        raise RuntimeError("injected defect")
+
+    eng.ingest_batch = defect
+    eng.ingest = defect
+    ing = service_mqtt.MqttIngest(eng, "127.0.0.1", broker.port,
+                                  client_id="robustloc-dead-letter-test", persistent=True)
+    acked: list[int] = []
+    real_ack = ing.client.ack
+    ing.client.ack = lambda mid, qos: (acked.append(mid), real_ack(mid, qos))[1]
+    dead = tmp_path / "s" / "dead-letter"
+    pub = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2)
+    pub.connect("127.0.0.1", broker.port)
+    pub.loop_start()
+    ing.start()
+    try:
+        _wait(ing.connected.is_set, 30, "the service's MQTT connection")
+        time.sleep(0.5)  # (the subscription)
+        first = json.dumps(_rows([1.0, 2.0])).encode()
+        pub.publish("robustloc/measurements/gw", first, qos=1).wait_for_publish(5)
+        files = _wait(lambda: sorted(dead.glob("*.payload")), 30, "the dead-letter file")
+        assert [f.read_bytes() for f in files] == [first]
+        _wait(lambda: len(acked) == 1, 10, "the acknowledgement")
+        # the folder cannot be written (a file in its place): not acknowledged, delivered
+        # again after the reconnect, then kept once it can be
+        shutil.rmtree(dead)
+        dead.write_text("in the way")
+        second = json.dumps(_rows([3.0])).encode()
+        pub.publish("robustloc/measurements/gw", second, qos=1).wait_for_publish(5)
+        _wait(lambda: eng.metrics.requests_rejected.get("mqtt_internal_error", 0) >= 2, 30,
+              "the second message")
+        time.sleep(0.5)
+        assert len(acked) == 1
+        dead.unlink()
+        files = _wait(lambda: sorted(dead.glob("*.payload")) if dead.is_dir() else [],
+                      service_mqtt.STORE_RETRY_S + 30, "the message delivered again")
+        assert [f.read_bytes() for f in files] == [second]
+        _wait(lambda: len(acked) == 2, 10, "its acknowledgement")
+    finally:
+        ing.stop()
+        pub.loop_stop()
+        pub.disconnect()
+        eng.stop()
+    err = capsys.readouterr().err
+    assert "its payload is kept in" in err and "not acknowledged; reconnecting" in err
+    assert "Traceback" not in err

@@ -19,6 +19,16 @@ A message the store cannot write (disk full, I/O error) is **not** acknowledged:
 counted (``mqtt_store_error``), one line is logged, and the client reconnects after
 :data:`STORE_RETRY_S` seconds so that the broker delivers it again.
 
+A message an internal error stops (a defect of the service, not of the message: sent
+again it would fail again, forever) is counted (``mqtt_internal_error``) and logged; with a
+store its payload is first written, whole and fsync-ed, to
+``STORE/dead-letter/mqtt-<unix ns>-<n>.payload`` and the log line names the file, then the
+message is acknowledged.  The file holds the message's bytes as published, a body that
+``POST /api/measurements`` takes (``curl --data-binary @FILE URL/api/measurements``) once
+the defect is fixed; an error after some rows were stored repeats those.  Where the file
+cannot be written the message is not acknowledged (as a store failure).  Without a store
+it is acknowledged and dropped: nothing would keep its rows anyway.
+
 With a store (``--store``) the service connects with a stable client id,
 :func:`client_id_for_store` (``robustloc-`` and a hash of the store's absolute path), and
 a persistent session (``clean_session=False``): while the service is down (a restart, an
@@ -36,6 +46,7 @@ import os
 import socket
 import sys
 import threading
+import time
 from pathlib import Path
 
 from robustloc.service.defaults import MAX_ROWS_PER_BODY
@@ -102,6 +113,9 @@ class MqttIngest:
         self.connected = threading.Event()
         self.messages = 0
         self.client_id = client_id
+        #: where a payload stopped by an internal error is kept (module docstring)
+        self.dead_letter_dir = (None if engine.store_dir is None
+                                else Path(engine.store_dir) / "dead-letter")
         self._retry: threading.Timer | None = None
         self._retry_lock = threading.Lock()
         self.client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id,
@@ -134,13 +148,43 @@ class MqttIngest:
             return
         except Exception as exc:  # noqa: BLE001 - never let one message stop the loop
             # a defect of the service, not of the message: counted and logged; the
-            # message is acknowledged (sent again, it would fail again, forever)
+            # message is acknowledged (sent again, it would fail again, forever), its
+            # payload first kept in the store's dead-letter folder
             m.request_rejected("mqtt_internal_error")
-            print(f"error: MQTT message on {topic} dropped by an internal error: "
-                  f"{type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
+            what = f"{type(exc).__name__}: {exc}"
+            try:
+                kept = self._dead_letter(msg.payload)
+            except OSError as err:  # not kept: not acknowledged, as a store failure
+                print(f"error: MQTT message on {topic} stopped by an internal error "
+                      f"({what}) and not kept in the dead-letter folder ({err}): not "
+                      f"acknowledged; reconnecting in {STORE_RETRY_S:g} s",
+                      file=sys.stderr, flush=True)
+                self._reconnect_later()
+                return
+            where = (f"; its payload is kept in {kept}" if kept is not None
+                     else " (no --store: dropped)")
+            print(f"error: MQTT message on {topic} stopped by an internal error: {what}"
+                  f"{where}", file=sys.stderr, flush=True)
         qos = getattr(msg, "qos", 0)  # (a message object without qos: nothing to ack)
         if qos > 0:
             self.client.ack(msg.mid, qos)
+
+    def _dead_letter(self, payload: bytes) -> Path | None:
+        """Write ``payload`` whole to a new file of :attr:`dead_letter_dir` (None without
+        a store); raises ``OSError`` where it cannot."""
+        if self.dead_letter_dir is None:
+            return None
+        from robustloc.errors import OutputError
+        from robustloc.io.atomic import atomic_output
+
+        self.dead_letter_dir.mkdir(parents=True, exist_ok=True)
+        path = self.dead_letter_dir / f"mqtt-{time.time_ns()}-{self.messages}.payload"
+        try:
+            with atomic_output(path) as (tmp, _):
+                Path(tmp).write_bytes(bytes(payload))
+        except OutputError as exc:
+            raise OSError(str(exc)) from None
+        return path
 
     def _ingest(self, payload: bytes) -> None:
         """Ingest one payload; a refused payload is counted (and then acknowledged)."""
