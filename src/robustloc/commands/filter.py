@@ -89,6 +89,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-adaptive", action="store_true",
                    help="standardize by the predicted innovation std only")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="no progress bar and no text summary (as locate; warnings stay)")
     add_engine_arguments(p)
 
 
@@ -225,7 +227,7 @@ def run(args: argparse.Namespace) -> int:
               "gamma = 2 and are only indicative; run `robustloc calibrate` for real "
               "distances", file=sys.stderr)
     meas = read_measurements(args.measurements, anchors)
-    frame, summary = filter_frame(meas, anchors, args, progress=True)
+    frame, summary = filter_frame(meas, anchors, args, progress=not args.quiet)
     write_table(frame, args.out)
     s = dict(summary, out=str(args.out))
     from robustloc.io.atomic import writes_to_stdout
@@ -234,7 +236,7 @@ def run(args: argparse.Namespace) -> int:
     dest = sys.stderr if writes_to_stdout(args.out) else sys.stdout
     if args.json:
         print(json.dumps(s, indent=2), file=dest)
-    else:
+    elif not args.quiet:
         print(f"filtered {s['samples']} samples on {s['links']} links ({s['filter']}): "
               f"{s['downweighted']} down-weighted, {s['rejected']} rejected, "
               f"{s['relocked']} re-locks, {s['restarted']} restarts -> {s['out']}",

@@ -155,6 +155,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--origin", default=None, metavar="LAT,LON,H",
                    help="ENU origin for GGA positions (default: first fix)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="no progress bar and no text summary (as locate; warnings stay)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -221,7 +223,7 @@ def run(args: argparse.Namespace) -> int:
         geometry_window_s=args.geometry_window,
         nmea_tags=None if args.nmea_tag is None else tuple(args.nmea_tag),
     )
-    res = fuse(meas, anchors, nmea, filt, opts, progress=True)
+    res = fuse(meas, anchors, nmea, filt, opts, progress=not args.quiet)
     # the summary never goes into a data stream: stderr when the track goes to stdout
     dest = sys.stderr if writes_to_stdout(args.out) else sys.stdout
     write_table(res.track, args.out)
@@ -241,7 +243,7 @@ def run(args: argparse.Namespace) -> int:
         s["nmea"] = nmea.summary.text()
     if args.json:
         print(json.dumps(s, indent=2, default=str), file=dest)
-    else:
+    elif not args.quiet:
         if nmea is not None:
             print(s["nmea"], file=dest)
         st = ", ".join(f"{k} {v}" for k, v in s["status"].items())

@@ -166,7 +166,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="print the run summary as JSON (statuses per method, and "
                         "hpl_histogram: the usable fixes' hpl counted in bins of 1/20 "
                         "decade, key floor(20 log10 hpl), 'inf' for unbounded ones)")
-    p.add_argument("--quiet", action="store_true",
+    p.add_argument("-q", "--quiet", action="store_true",
                    help="no progress bar and no text summary")
     from robustloc.commands._plot import add_plot_argument
 

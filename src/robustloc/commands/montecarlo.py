@@ -155,6 +155,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=nonnegative_int, default=1, help="random seed (default 1)")
     p.add_argument("-o", "--out", default=None, help="write the table as CSV here")
     p.add_argument("--json", action="store_true", help="print the table as JSON")
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="no progress bar (the table is still printed)")
 
 
 #: Options of one layout only, with their defaults (None on the parser, so that an option
@@ -280,7 +282,8 @@ def run(args: argparse.Namespace) -> int:
     runs += [(k, s) for k in args.faults if k > 0 for s in args.size]
     frames = []
     with tqdm(total=len(runs) * args.trials, desc="montecarlo", unit="trial",
-              unit_scale=True, file=sys.stderr, disable=not sys.stderr.isatty()) as bar, \
+              unit_scale=True, file=sys.stderr,
+              disable=args.quiet or not sys.stderr.isatty()) as bar, \
             warnings.catch_warnings():
         warnings.simplefilter("ignore", MonteCarloNote)  # printed once above as `note:`
         for i, (k, s) in enumerate(runs):

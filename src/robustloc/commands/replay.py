@@ -68,7 +68,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "/ws/measurements")
     p.add_argument("--batch-rows", type=positive_int, default=None,
                    help="rows per batch (default: one time step per batch)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true",
                    help="print the summary as JSON (rows, accepted, n_rejected, the "
                         "rejected rows the server listed with their file line and "
