@@ -248,18 +248,54 @@ def _normal(J, w, r, Nm, g, tag):  # pragma: no cover - jit
 
 
 @njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def _sandwich_prepare(J, w0, w, Nm, Ni, a, c, tag):  # pragma: no cover - jit
+    """The shared part of the rows' ``Q_vv,ii`` (:func:`_sandwich_row`): ``Ni`` the
+    inverse of ``J^T W J`` and ``c_k = w_k^2 / w0_k`` (0 for a row the fit leaves out);
+    returns whether the normal matrix is good (:func:`_inv_small`).  Overwrites ``Nm``,
+    ``Ni``, the p-vector ``a`` and the m-vector ``c``."""
+    _normal(J, w, w, Nm, a, tag)  # J^T W J (its right-hand side, into a, unused)
+    good = _inv_small(Nm, Ni, tag)
+    for k in range(J.shape[0]):
+        c[k] = w[k] * w[k] / w0[k] if w[k] != 0.0 else 0.0
+    return good
+
+
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
+def _sandwich_row(J, w0, w, c, Ni, a, i, tag):  # pragma: no cover - jit
+    """``Q_vv,ii`` of row ``i`` of the fit weighted by ``w`` when the observations'
+    cofactors are ``1 / w0``, as :func:`robustloc.estimators.linear.sandwich_qvv`, after
+    :func:`_sandwich_prepare`: ``sum_k (delta_ik - g_ik w_k)^2 / w0_k`` with
+    ``g_ik = J_i^T (J^T W J)^-1 J_k``, nonnegative terms in row order, no cancellation
+    (expanded, ``1/w0_i - 2 g_ii w_i / w0_i + ...`` loses digits on high-leverage rows).
+    Overwrites the p-vector ``a``."""
+    m, p = J.shape[0], len(tag)
+    for k in range(p):  # a = (J^T W J)^-1 J_i
+        t = 0.0
+        for j in range(p):
+            t += Ni[k, j] * J[i, j]
+        a[k] = t
+    q = 0.0
+    for kk in range(m):
+        if c[kk] == 0.0 and kk != i:  # a left-out or unheard row adds nothing
+            continue
+        gik = 0.0
+        for k in range(p):
+            gik += J[kk, k] * a[k]
+        if kk == i:
+            d = 1.0 - gik * w[i]
+            q += d * d / w0[i]
+        else:
+            q += gik * gik * c[kk]
+    return q
+
+
+@njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
 def _sandwich(J, w0, w, qvv, out, Nm, Ni, a, c, tag):  # pragma: no cover - jit
     """``out[i] = 1 / sqrt(Q_vv,ii)`` (NaN: untestable) of the fit weighted by ``w`` when
-    the observations' cofactors are ``1 / w0``, as
-    :func:`robustloc.estimators.linear.sandwich_qvv`; the a-priori ``qvv`` where every
-    weight is full, ``J^T W J`` is singular or a value is not finite.
-
-    The diagonal is summed as ``Q_vv,ii = sum_k (delta_ik - g_ik w_k)^2 / w0_k`` with
-    ``g_ik = J_i^T (J^T W J)^-1 J_k``: nonnegative terms, no cancellation (expanded,
-    ``1/w0_i - 2 g_ii w_i / w0_i + ...`` loses digits on high-leverage rows), with the
-    ``w_k^2 / w0_k`` computed once per call, not per pair.  Overwrites ``Nm``, ``Ni``,
-    the p-vector ``a`` and the m-vector ``c``."""
-    m, p = J.shape[0], len(tag)
+    the observations' cofactors are ``1 / w0`` (:func:`_sandwich_row`); the a-priori
+    ``qvv`` where every weight is full, ``J^T W J`` is singular or a value is not finite.
+    Overwrites ``Nm``, ``Ni``, the p-vector ``a`` and the m-vector ``c``."""
+    m = J.shape[0]
     full = True
     for i in range(m):
         if w[i] != w0[i]:
@@ -268,10 +304,7 @@ def _sandwich(J, w0, w, qvv, out, Nm, Ni, a, c, tag):  # pragma: no cover - jit
         for i in range(m):
             out[i] = qvv[i] if w0[i] > 0 else math.nan
         return
-    _normal(J, w, w, Nm, a, tag)  # J^T W J (its right-hand side, into a, unused)
-    good = _inv_small(Nm, Ni, tag)
-    for k in range(m):  # w_k^2 / w0_k, 0 for a row the fit leaves out
-        c[k] = w[k] * w[k] / w0[k] if w[k] != 0.0 else 0.0
+    good = _sandwich_prepare(J, w0, w, Nm, Ni, a, c, tag)
     for i in range(m):
         if not w0[i] > 0:
             out[i] = math.nan
@@ -279,23 +312,7 @@ def _sandwich(J, w0, w, qvv, out, Nm, Ni, a, c, tag):  # pragma: no cover - jit
         if not good:
             out[i] = qvv[i]
             continue
-        for k in range(p):  # a = (J^T W J)^-1 J_i
-            t = 0.0
-            for j in range(p):
-                t += Ni[k, j] * J[i, j]
-            a[k] = t
-        q = 0.0
-        for kk in range(m):
-            if c[kk] == 0.0 and kk != i:  # a left-out or unheard row adds nothing
-                continue
-            gik = 0.0
-            for k in range(p):
-                gik += J[kk, k] * a[k]
-            if kk == i:
-                d = 1.0 - gik * w[i]
-                q += d * d / w0[i]
-            else:
-                q += gik * gik * c[kk]
+        q = _sandwich_row(J, w0, w, c, Ni, a, i, tag)
         if not math.isfinite(q):
             out[i] = qvv[i]
             continue

@@ -20,7 +20,7 @@ import math
 import numpy as np
 from numba import njit
 
-from robustloc.estimators._compiled import _inv_small
+from robustloc.estimators._compiled import _inv_small, _sandwich_prepare, _sandwich_row
 
 # ruff: noqa: N803, N806  (matrix names)
 
@@ -347,12 +347,11 @@ def resolution_reduction_kernel(J, sigma, keep, v, tag):  # pragma: no cover - j
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def robust_cofactors_kernel(J, sigma, used, pw, qv, r_min, tag):  # pragma: no cover - jit
-    """:func:`robustloc.integrity.fixes.robust_fit_cofactors`, one epoch at a time: the
-    same terms in the same order as its NumPy reference
-    (:func:`robustloc.estimators.linear.sandwich_qvv`: ``Q_vv,ii = sum_k (delta_ik -
-    g_ik w_k)^2 / w0_k`` over the used rows, nonnegative terms), the rows that add
-    nothing (unused, or left out by the fit) skipped instead of zeroed.  ``tag``: a
-    tuple of ``p`` floats (``p <= 3``)."""
+    """:func:`robustloc.integrity.fixes.robust_fit_cofactors`, one epoch at a time, by the
+    Gauss-Newton kernel's own sandwich (:func:`robustloc.estimators._compiled._sandwich_row`:
+    the terms and their order of the NumPy reference,
+    :func:`robustloc.estimators.linear.sandwich_qvv`), the unused rows weighted zero.
+    ``tag``: a tuple of ``p`` floats (``p <= 3``)."""
     N, n = used.shape
     p = len(tag)
     out = qv.copy()
@@ -362,15 +361,11 @@ def robust_cofactors_kernel(J, sigma, used, pw, qv, r_min, tag):  # pragma: no c
     w0 = np.zeros(n)
     w = np.zeros(n)
     c = np.zeros(n)
-    Jl = np.zeros((n, p))  # the epoch's design rows, contiguous
-    act = np.zeros(n, dtype=np.int64)  # the rows with c_k != 0
     for e in range(N):
         full = True
-        na = 0
         for i in range(n):
             w0[i] = 0.0
             w[i] = 0.0
-            c[i] = 0.0
             if used[e, i]:
                 s = sigma[e, i]
                 f = pw[e, i]
@@ -379,56 +374,16 @@ def robust_cofactors_kernel(J, sigma, used, pw, qv, r_min, tag):  # pragma: no c
                     full = False
                 w0[i] = 1.0 / (s * s)
                 w[i] = f * w0[i]
-                c[i] = w[i] * f  # w_k^2 / w0_k
-                for q in range(p):
-                    Jl[i, q] = J[e, i, q]
-                if c[i] != 0.0:
-                    act[na] = i
-                    na += 1
         if full:
             continue  # the fit's weights are the a-priori ones: qv as it is
-        for q in range(p):
-            for t in range(p):
-                Nm[q, t] = 0.0
-        for j in range(na):
-            i = act[j]
-            for q in range(p):
-                jw = Jl[i, q] * w[i]
-                for t in range(q, p):
-                    Nm[q, t] += jw * Jl[i, t]
-        for q in range(p):
-            for t in range(q):
-                Nm[q, t] = Nm[t, q]
-        if not _inv_small(Nm, Ni, tag):
+        Je = J[e]
+        if not _sandwich_prepare(Je, w0, w, Nm, Ni, a, c, tag):
             continue
         for i in range(n):
             if not (used[e, i] and np.isfinite(qv[e, i])):
                 continue
-            for q in range(p):  # a = (J^T W J)^-1 J_i
-                t = 0.0
-                for j in range(p):
-                    t += Ni[q, j] * Jl[i, j]
-                a[q] = t
-            # the row's own term, then the others in row order (as the reference's sum;
-            # a row with c_k = 0 adds an exact zero there)
-            g = 0.0
-            for q in range(p):
-                g += Jl[i, q] * a[q]
-            d = 1.0 - g * w[i]
-            own = d * d / w0[i]
-            acc = 0.0
-            for j in range(na):
-                kk = act[j]
-                if kk == i:
-                    acc += own
-                    continue
-                g = 0.0
-                for q in range(p):
-                    g += Jl[kk, q] * a[q]
-                acc += g * g * c[kk]
-            if c[i] == 0.0:
-                acc += own  # (a left-out row: its own term, last)
+            q = _sandwich_row(Je, w0, w, c, Ni, a, i, tag)
             s = sigma[e, i]
-            if math.isfinite(acc) and acc > r_min * s * s:
-                out[e, i] = acc
+            if math.isfinite(q) and q > r_min * s * s:
+                out[e, i] = q
     return out

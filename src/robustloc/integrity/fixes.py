@@ -601,6 +601,24 @@ def _test_alpha(crit: Array, dof: NDArray[np.int64]) -> Array:
     return vals[np.asarray(inverse).reshape(-1)]
 
 
+def _rows_compiled(kernel, arrays: tuple, out_shape: tuple[int, ...], *extra) -> Array:
+    """``kernel(*arrays, *extra)`` of a row-wise compiled kernel (each epoch on its own,
+    one output array), over spans of epochs in threads
+    (:func:`robustloc.estimators._compiled.in_threads`): masks as bool, the rest as
+    contiguous float64."""
+    from robustloc.estimators._compiled import in_threads
+
+    args = tuple(np.ascontiguousarray(a, dtype=np.bool_ if np.asarray(a).dtype == bool
+                                      else np.float64) for a in arrays)
+    out = np.empty(out_shape)
+
+    def run(lo: int, hi: int) -> None:
+        out[lo:hi] = kernel(*(a[lo:hi] for a in args), *extra)
+
+    in_threads(run, out_shape[0])
+    return out
+
+
 def robust_fit_cofactors(J: Array, sig: Array, used: NDArray[np.bool_], weight_factor: Array,
                          qv: Array, engine: str = "compiled") -> Array:
     """The variances ``Q_vv,ii`` of a robust fit's residuals under its own weights: the
@@ -639,22 +657,10 @@ def robust_fit_cofactors(J: Array, sig: Array, used: NDArray[np.bool_], weight_f
         raise ValueError(f"engine must be 'compiled' or 'numpy', got {engine!r}")
     p = J.shape[2]
     if engine == "compiled" and J.shape[0] and 1 <= p <= 3:
-        from robustloc.estimators._compiled import in_threads
         from robustloc.integrity._compiled import robust_cofactors_kernel
 
-        args = (np.ascontiguousarray(J, dtype=np.float64),
-                np.ascontiguousarray(sig, dtype=np.float64),
-                np.ascontiguousarray(used, dtype=np.bool_),
-                np.ascontiguousarray(weight_factor, dtype=np.float64),
-                np.ascontiguousarray(qv, dtype=np.float64))
-        out = np.empty(used.shape)
-
-        def run(lo: int, hi: int) -> None:
-            out[lo:hi] = robust_cofactors_kernel(*(a[lo:hi] for a in args), float(R_MIN),
-                                                 (0.0,) * p)
-
-        in_threads(run, J.shape[0])
-        return out
+        return _rows_compiled(robust_cofactors_kernel, (J, sig, used, weight_factor, qv),
+                              used.shape, float(R_MIN), (0.0,) * p)
     with np.errstate(invalid="ignore", divide="ignore"):
         f = np.where(used, np.clip(np.nan_to_num(weight_factor), 0.0, 1.0), 0.0)
         w0 = np.where(used, 1.0 / (sig * sig), 0.0)
@@ -695,20 +701,10 @@ def resolution_reduction(J: Array, sig: Array, keep: NDArray[np.bool_], v: Array
         raise ValueError(f"engine must be 'compiled' or 'numpy', got {engine!r}")
     p = J.shape[2]
     if engine == "compiled" and J.shape[0] and 1 <= p <= 3:
-        from robustloc.estimators._compiled import in_threads
         from robustloc.integrity._compiled import resolution_reduction_kernel
 
-        args = (np.ascontiguousarray(J, dtype=np.float64),
-                np.ascontiguousarray(sig, dtype=np.float64),
-                np.ascontiguousarray(keep, dtype=np.bool_),
-                np.ascontiguousarray(v, dtype=np.float64))
-        out = np.empty(keep.shape[0])
-
-        def run(lo: int, hi: int) -> None:
-            out[lo:hi] = resolution_reduction_kernel(*(a[lo:hi] for a in args), (0.0,) * p)
-
-        in_threads(run, J.shape[0])
-        return out
+        return _rows_compiled(resolution_reduction_kernel, (J, sig, keep, v),
+                              keep.shape[:1], (0.0,) * p)
     with np.errstate(invalid="ignore", divide="ignore"):
         P = np.where(keep, 1.0 / (sig * sig), 0.0)
         Jz = np.where(keep[..., None], np.nan_to_num(J), 0.0)
