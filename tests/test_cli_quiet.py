@@ -63,3 +63,52 @@ def test_montecarlo_quiet_keeps_its_table(capsys):
     loud = table()
     assert main([*args, "-q"]) == 0
     assert loud and table() == loud
+
+
+def _stderr_on_a_terminal(args: list[str]) -> str:
+    """Run the command line in a subprocess whose stderr is a pseudo-terminal (the bars
+    show only on a terminal) and return what it wrote there."""
+    import fcntl
+    import os
+    import pty
+    import struct
+    import subprocess
+    import termios
+
+    from robustloc.service.launch import ROBUSTLOC
+
+    master, slave = pty.openpty()
+    # an 80-column window (a new pty has 0 columns, and tqdm then draws an empty bar)
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 80, 0, 0))
+    try:
+        proc = subprocess.Popen([*ROBUSTLOC, *args], stdout=subprocess.DEVNULL,
+                                stderr=slave, stdin=subprocess.DEVNULL)
+        os.close(slave)
+        chunks = []
+        while True:
+            try:
+                data = os.read(master, 65536)
+            except OSError:  # EIO: the terminal's other end closed with the process
+                break
+            if not data:
+                break
+            chunks.append(data)
+        assert proc.wait(timeout=300) == 0
+    finally:
+        os.close(master)
+    return b"".join(chunks).decode(errors="replace")
+
+
+@pytest.mark.parametrize("command", ["filter", "fuse", "locate"])
+def test_quiet_silences_the_progress_bar_on_a_terminal(command, room, cart, tmp_path):
+    """On a terminal each command draws its tqdm bar on stderr (``it/s`` or ``step/s``
+    and a ``|`` gauge); with ``-q`` nothing is written there."""
+    if command == "fuse":
+        args = ["fuse", "--ranges", str(cart / "measurements.csv"), "--anchors",
+                str(cart / "anchors.csv")]
+    else:
+        args = [command, str(room["measurements"]), "--anchors", str(room["anchors"])]
+    loud = _stderr_on_a_terminal([*args, "-o", str(tmp_path / "a.csv")])
+    assert "/s]" in loud or "|" in loud, loud
+    quiet = _stderr_on_a_terminal([*args, "-o", str(tmp_path / "b.csv"), "-q"])
+    assert quiet.strip() == "", quiet
