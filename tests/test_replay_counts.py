@@ -64,8 +64,15 @@ def test_replay_stopped_by_an_error_answer_says_how_far_it_got(tmp_path):
     with ServerProcess(["--anchors", str(_anchors(tmp_path / "a.csv")),
                         "--max-body-bytes", "4000"]) as srv:
         p = _replay(log, srv.url)
+        pj = _replay(log, srv.url, "--json")
     assert p.returncode == 2, p.stderr
     n_good, n = 3 * len(ANCHORS), 3 * len(ANCHORS) + 400
     assert "413" in p.stderr
     assert f"stopped after {n_good} of {n} rows; {n_good} accepted" in p.stderr
     assert "Traceback" not in p.stderr
+    # --json: how far it got on stdout too (the same error line on stderr).  The second
+    # replay re-sends the first three steps, accepted again (as any client's retry)
+    assert pj.returncode == 2, pj.stderr
+    sj = json.loads(pj.stdout)
+    assert (sj["rows"], sj["sent"], sj["accepted"]) == (n, n_good, n_good)
+    assert "413" in sj["stopped"] and "413" in pj.stderr

@@ -72,7 +72,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true",
                    help="print the summary as JSON (rows, accepted, n_rejected, the "
                         "rejected rows the server listed with their file line and "
-                        "reason, seconds); no progress bar")
+                        "reason, seconds; a replay that stopped: rows, sent, accepted "
+                        "and why); no progress bar")
 
 
 def _batches(times: np.ndarray, batch_rows: int | None) -> list[tuple[int, int]]:
@@ -229,6 +230,10 @@ def run(args: argparse.Namespace) -> int:
     except ReplayStopped as exc:
         print(f"error: {args.url}: {exc} (stopped after {exc.sent} of {exc.rows} rows; "
               f"{exc.accepted} accepted)", file=sys.stderr)
+        if args.json:  # how far it got, for a script that reads stdout
+            print(json.dumps({"measurements": str(args.measurements), "url": args.url,
+                              "rows": exc.rows, "sent": exc.sent, "accepted": exc.accepted,
+                              "stopped": str(exc)}, indent=2))
         return 2
     except _transport_errors() as exc:
         print(f"error: {args.url}: {exc}", file=sys.stderr)
