@@ -948,6 +948,12 @@ class Locator:
         extra["range_residuals"] = np.where(use, pred - ranges, np.nan)
         extra["jacobian"] = np.where(use[..., None], jac, np.nan)
         extra["anchor_extent"] = self._the_area(a)
+        # which fix it is: a least-squares or robust fit of the ranges, or one of the
+        # paper's linearized difference system (robustloc.integrity.fixes.protect)
+        # (``ls`` and ``wls`` are always the latter, as :meth:`_dispatch` solves them)
+        extra["solver"] = ("linearized" if self.method in ("ls", "wls") or (
+            self.solver == "linearized" and self.method in ROBUST + ("lege",))
+            else "nonlinear")
         if self.sigma is not None:
             extra["sigma_obs"] = self._range_sigma(self._sigma_array(z.shape), ranges, rmodel)
         return Solution(
