@@ -903,6 +903,11 @@ def protect(
     linearized = sol.extra.get("solver") == "linearized"
     vt, Jt, x_ls = v, J, None
     if linearized:
+        # every heard row: the bound holds whichever rows the fix used, and the rows that
+        # a redescending fit of the difference system rejected are often the good ones
+        # (igg, one range in five grossly long: 1.7 % of its fixes misleading when tested
+        # on the rows it kept, 0.35 % on every row)
+        used = heard.copy()
         if range_model is not None:
             x_ls, vt, Jt = least_squares_resolution(range_model, sol.position, v, sig, used)
             vt = np.where(heard, vt, np.nan)
