@@ -671,6 +671,20 @@ def robust_fit_cofactors(J: Array, sig: Array, used: NDArray[np.bool_], weight_f
                         & (qs > R_MIN * sig * sig), qs, qv)
 
 
+def _reduced_normals(J: Array, sig: Array, keep: NDArray[np.bool_],
+                     v: Array) -> tuple[Array, NDArray[np.bool_], Array]:
+    """``N^-1``, whether ``N`` is well conditioned, and ``b`` of the least-squares step
+    over the rows ``keep``: ``N = J^T P J``, ``b = J^T P v``, ``P = 1 / sig^2``."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        P = np.where(keep, 1.0 / (sig * sig), 0.0)
+        Jz = np.where(keep[..., None], np.nan_to_num(J), 0.0)
+        vz = np.where(keep, np.nan_to_num(v), 0.0)
+        Nm = np.einsum("kip,ki,kiq->kpq", Jz, P, Jz)
+        b = np.einsum("kip,ki,ki->kp", Jz, P, vz)
+    Ninv, good = inv_spd(Nm)
+    return Ninv, good, b
+
+
 def resolution_reduction(J: Array, sig: Array, keep: NDArray[np.bool_], v: Array,
                          engine: str = "compiled") -> Array:
     """What the least-squares re-solution of the rows ``keep`` from the fix takes off
@@ -705,13 +719,7 @@ def resolution_reduction(J: Array, sig: Array, keep: NDArray[np.bool_], v: Array
 
         return _rows_compiled(resolution_reduction_kernel, (J, sig, keep, v),
                               keep.shape[:1], (0.0,) * p)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        P = np.where(keep, 1.0 / (sig * sig), 0.0)
-        Jz = np.where(keep[..., None], np.nan_to_num(J), 0.0)
-        vz = np.where(keep, np.nan_to_num(v), 0.0)
-        Nm = np.einsum("kip,ki,kiq->kpq", Jz, P, Jz)
-        b = np.einsum("kip,ki,ki->kp", Jz, P, vz)
-    Ninv, good = inv_spd(Nm)
+    Ninv, good, b = _reduced_normals(J, sig, keep, v)
     red = np.einsum("kp,kpq,kq->k", b, Ninv, b)
     return np.where(good, red, np.nan)
 
@@ -728,13 +736,7 @@ def resolution_step(J: Array, sig: Array, keep: NDArray[np.bool_], v: Array) -> 
     ndarray (N, p)
         NaN where ``N`` is singular or ill-conditioned.
     """
-    with np.errstate(invalid="ignore", divide="ignore"):
-        P = np.where(keep, 1.0 / (sig * sig), 0.0)
-        Jz = np.where(keep[..., None], np.nan_to_num(J), 0.0)
-        vz = np.where(keep, np.nan_to_num(v), 0.0)
-        Nm = np.einsum("kip,ki,kiq->kpq", Jz, P, Jz)
-        b = np.einsum("kip,ki,ki->kp", Jz, P, vz)
-    Ninv, good = inv_spd(Nm)
+    Ninv, good, b = _reduced_normals(J, sig, keep, v)
     dx = -np.einsum("kpq,kq->kp", Ninv, b)
     return np.where(good[:, None], dx, np.nan)
 
