@@ -898,7 +898,7 @@ def protect(
     # least-squares fix of the ranges: its range residuals exceed those of one, and
     # tested as such they failed 3.4 % (ls) to 40 % (igg) of fault-free Gaussian epochs
     # where the B-method means 1.1 %.  The tests take the residuals of the least-squares
-    # re-solution of the rows the fix used, Gauss-Newton from the fix with the anchors
+    # re-solution of every heard row, Gauss-Newton from the fix with the anchors
     # (one linearized step without them; seed 003's tests are those of the least-squares
     # adjustment), and its design; the bound adds the fix's distance from that
     # re-solution (step 4: |x - x_hat| <= |x - x_ls| + |x_ls - x_hat|)
@@ -918,7 +918,7 @@ def protect(
             with np.errstate(invalid="ignore"):
                 dx_used = resolution_step(J, sig, used, v)
                 vt = v + np.einsum("kip,kp->ki", J, np.nan_to_num(dx_used))
-    # 1. w-test on the observations the estimator kept
+    # 1. w-test on the observations the estimator kept (a linearized fix: every one)
     hpl_used, vpl_used, r = protection_levels_local(Jt, sig, used, lam0, k)
     with np.errstate(invalid="ignore", divide="ignore"):
         qv = sig * sig * np.where(r > R_MIN, r, np.nan)  # Q_vv,ii of the a-priori fit
@@ -956,22 +956,24 @@ def protect(
     # the test after the exclusion), not of its own residuals, which its down-weighted
     # rows inflate (with the w-test above alone, huber's fault_detected went from 0.29 to
     # 0.72 % of Gaussian epochs where the B-method means 1.1 % for both tests together)
-    vk, Jk, xk = vt, Jt, x_ls
+    vk, Jk, xk = vt, Jt, x_ls  # residuals, design and fix of the rows ``keep``
+    v_rest, J_rest = vt, Jt  # of the rows ``rest``
     if x_ls is not None:
         # the least-squares fix of the rest, re-solved in full: one linear step from the
         # fix of every row, which a 15 m fault had pulled metres away, left its T
         # inflated by the curvature (39 % of such epochs fault_detected)
         out = np.flatnonzero(np.any(rest != used, axis=1))
-        vk, Jk, xk = vt.copy(), Jt.copy(), x_ls.copy()
+        v_rest, J_rest, x_rest = vt.copy(), Jt.copy(), x_ls.copy()
         if out.size:
             xo, vo, Jo = least_squares_resolution(range_model, x_ls[out], vt[out],
                                                   sig[out], rest[out])
-            vk[out] = np.where(heard[out], vo, np.nan)
-            Jk[out] = np.where(heard[out][..., None], Jo, np.nan)
-            xk[out] = xo
-        vk = np.where(carries[:, None], vt, vk)  # a fix that carries its flags: all rows
-        Jk = np.where(carries[:, None, None], Jt, Jk)
-        xk = np.where(carries[:, None], x_ls, xk)
+            v_rest[out] = np.where(heard[out], vo, np.nan)
+            J_rest[out] = np.where(heard[out][..., None], Jo, np.nan)
+            x_rest[out] = xo
+        # a fix that carries its flags is tested on all its rows
+        vk = np.where(carries[:, None], vt, v_rest)
+        Jk = np.where(carries[:, None, None], Jt, J_rest)
+        xk = np.where(carries[:, None], x_ls, x_rest)
     T, crit, dof = _global_test(vk, sig, keep, p, alpha0, beta0,
                                 J=Jk if robust_fit or linearized else None)
     has = dof >= 1
@@ -980,17 +982,9 @@ def protect(
     # test of the rest passes (``auto`` keeps such a fix, measured best on real logs)
     rest_passes = np.zeros(N, dtype=bool)
     if np.any(carries):
-        vr = vt if x_ls is None else np.where(carries[:, None], vk, vt)
-        if x_ls is not None:  # the rest's own least-squares fix (above, before carries)
-            out = np.flatnonzero(carries & np.any(rest != used, axis=1))
-            if out.size:
-                _, vo, _ = least_squares_resolution(range_model, x_ls[out], vt[out],
-                                                    sig[out], rest[out])
-                vr = vr.copy()
-                vr[out] = np.where(heard[out], vo, np.nan)
-        T_r, crit_r, dof_r = _global_test(vr[carries], sig[carries], rest[carries], p,
+        T_r, crit_r, dof_r = _global_test(v_rest[carries], sig[carries], rest[carries], p,
                                           alpha0, beta0,
-                                          J=Jt[carries] if linearized else None)
+                                          J=J_rest[carries] if linearized else None)
         rest_passes[carries] = (dof_r >= 1) & (T_r <= crit_r)
     # 3. status
     new = status.copy()
