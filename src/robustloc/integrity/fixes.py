@@ -848,7 +848,12 @@ def protect(
     range_model : RangeModel, optional
         The anchors (and known height offsets) of the solution, in its anchor order: with
         it the bound covers the mirror solution when that passes the fix's test (module
-        docstring, item 5); without it no ambiguity is checked.
+        docstring, item 5); without it no ambiguity is checked.  A fix of the linearized
+        difference system (``sol.extra["solver"] == "linearized"``) is tested on the
+        least-squares re-solution of its ranges: with the anchors by Gauss-Newton
+        (:func:`least_squares_resolution`), without them by one linearized step from the
+        fix (:func:`resolution_step`), which identified one 15 m range in six in 82-98 %
+        of the epochs where the Gauss-Newton re-solution found it in all.
 
     Returns
     -------
