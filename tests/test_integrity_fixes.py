@@ -1083,3 +1083,35 @@ def test_the_shipped_corridor_excerpt_keeps_its_side_prior():
     rms = {side: float(robustloc.evaluate(p, corridor.truth).query("tag == 'all'")["rms"]
                        .iloc[0]) for side, p in fixes.items()}
     assert rms["log"] < 0.7 * rms["none"]  # 3.49 against 6.28 m
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st_.integers(0, 2**31 - 1), dim=st_.sampled_from([2, 3]))
+def test_least_squares_resolution_is_scipy_least_squares(seed, dim):
+    """The re-solution that tests a linearized fix equals scipy's ``least_squares``
+    (trust-region reflective, its own code) on the kept ranges, from a start 1 m off:
+    weighted, with one range left out.  Tolerance 1e-5 m: both converge to the same
+    minimum far below the 0.1 m noise (scipy's ``xtol`` 1e-12)."""
+    from scipy.optimize import least_squares
+
+    from robustloc.integrity.fixes import least_squares_resolution, range_model_of
+
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(0.0, 20.0, (7, dim))
+    x = rng.uniform(5.0, 15.0, dim)
+    d = np.linalg.norm(a - x, axis=1) + rng.normal(0.0, 0.1, 7)
+    sig = rng.uniform(0.05, 0.3, 7)
+    keep = np.ones(7, dtype=bool)
+    keep[rng.integers(7)] = False
+    start = x + rng.normal(0.0, 1.0 / np.sqrt(dim), dim)
+    rm = range_model_of(a, None)
+    v0 = rm.predict(start[None])[0] - d
+    x_ls, v_ls, J_ls = least_squares_resolution(rm, start[None], v0[None], sig[None],
+                                                keep[None])
+    ref = least_squares(lambda p: (np.linalg.norm(a[keep] - p, axis=1) - d[keep])
+                        / sig[keep], start, xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    np.testing.assert_allclose(x_ls[0], ref.x, atol=1e-5)
+    np.testing.assert_allclose(v_ls[0], np.linalg.norm(a - x_ls[0], axis=1) - d, atol=1e-9)
+    np.testing.assert_allclose(J_ls[0], (x_ls[0] - a) / np.linalg.norm(a - x_ls[0],
+                                                                        axis=1)[:, None],
+                               atol=1e-9)
