@@ -247,3 +247,21 @@ def test_linearized_robust_downweights_a_fault_of_four_mdb(method):
     assert rms(sol.position) < bound, (rms(sol.position), rms(ls_clean), bias_ls)
     # and least squares on the faulty ranges is visibly pulled (so the test can fail)
     assert rms(ls_bad) > 4.0 * bound
+
+
+@pytest.mark.parametrize("method", ["huber", "igg", "ls"])
+def test_the_log_scale_of_a_linearized_fit_is_that_of_the_ranges(method):
+    """The log's noise scale is a property of the ranges, whatever the solver: the
+    linearized fits' scale is the nonlinear Huber fit's, exactly, and on Gaussian ranges of
+    the given sigma it reads 1 at every anchor within 0.1 (four standard errors of a MAD
+    scale from 2 000 residuals, 1.17 / sqrt(2000) = 2.6 %).  Before, it came from the
+    linearized fit's difference-equation residuals (m^2): 8.5 to 19 here, and on
+    uwb-dwm1001 NLOS 1e-6 (the floor) at three of four anchors, which made every test of
+    those fixes meaningless."""
+    a = np.array([[0, 0], [20, 0], [20, 15], [0, 15], [10, -3], [5, 8]], dtype=float)
+    rng = np.random.default_rng(2)
+    x = rng.uniform(3.0, 17.0, (2000, 2))
+    z = np.linalg.norm(x[:, None] - a[None], axis=-1) + rng.normal(0.0, 0.3, (2000, 6))
+    lin = Locator(method, solver="linearized", sigma=0.3).log_scale(a, z)
+    np.testing.assert_array_equal(lin, Locator("huber", sigma=0.3).log_scale(a, z))
+    assert np.all(np.abs(lin - 1.0) < 0.1), lin
