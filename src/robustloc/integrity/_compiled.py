@@ -1,8 +1,10 @@
 """Compiled (numba) kernels of :mod:`robustloc.integrity.fixes`: the protection levels
 (:func:`~robustloc.integrity.fixes.protection_levels_local`), the mirror solution, a
-robust fit's own residual cofactors (:func:`~robustloc.integrity.fixes.robust_fit_cofactors`)
-and the least-squares re-solution's statistic
-(:func:`~robustloc.integrity.fixes.resolution_reduction`).
+robust fit's own residual cofactors (:func:`~robustloc.integrity.fixes.robust_fit_cofactors`),
+the least-squares re-solution's statistic
+(:func:`~robustloc.integrity.fixes.resolution_reduction`) and the least-squares
+re-solution itself, Newton's method on the ranges, that tests a linearized fix
+(:func:`~robustloc.integrity.fixes.least_squares_resolution`).
 
 The NumPy references walk the whole batch once per array operation (about twenty
 ``(N, n, p)`` temporaries); here each epoch runs in machine code with its ``p x p``
@@ -387,3 +389,131 @@ def robust_cofactors_kernel(J, sigma, used, pw, qv, r_min, tag):  # pragma: no c
             if math.isfinite(q) and q > r_min * s * s:
                 out[e, i] = q
     return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _weighted_cost(a, h2, xa, d, w):  # pragma: no cover - jit
+    """``sum_i ((d_i - |xa - a_i|) w_i)^2`` over the rows with ``w_i > 0`` (a NaN term
+    counts 0, as ``np.nan_to_num`` in the NumPy reference)."""
+    c = 0.0
+    for i in range(a.shape[0]):
+        if w[i] > 0.0:
+            t = h2[i]
+            for q in range(xa.shape[0]):
+                t += (xa[q] - a[i, q]) ** 2
+            r = (d[i] - math.sqrt(t)) * w[i]
+            if math.isfinite(r):
+                c += r * r
+    return c
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def least_squares_resolution_kernel(a, h2, x0, res, sigma, keep, iterations, halvings,
+                                    tol, extent, tag):  # pragma: no cover - jit
+    """``(x_ls, v_ls, J_ls)`` of :func:`robustloc.integrity.fixes.least_squares_resolution`,
+    one epoch at a time: the same Newton steps (Gauss-Newton's matrix where Newton's is
+    not positive definite), the same trust region, halvings and stopping rule as the NumPy
+    reference, which walks the batch once per array operation.  ``h2`` are the anchors'
+    squared height offsets (zeros without), ``extent`` the trust region (m), ``tag`` a
+    tuple of ``p`` floats (the dimension at compile time)."""
+    N, m = res.shape
+    p = len(tag)
+    x_out = np.full((N, p), np.nan)
+    v_out = np.full((N, m), np.nan)
+    j_out = np.zeros((N, m, p))
+    w = np.zeros(m)
+    d = np.zeros(m)
+    f = np.zeros(m)
+    J = np.zeros((m, p))
+    xa = np.zeros(p)
+    xt = np.zeros(p)
+    g = np.zeros(p)
+    step = np.zeros(p)
+    Ngn = np.zeros((p, p))
+    Nn = np.zeros((p, p))
+    Igs = np.zeros((p, p))
+    Inw = np.zeros((p, p))
+    for e in range(N):
+        fin = True
+        for q in range(p):
+            fin = fin and math.isfinite(x0[e, q])
+        for q in range(p):
+            xa[q] = x0[e, q] if fin else 0.0
+        # observed ranges from the fix and its residuals (v = f(x) - d); their weights
+        _ranges_jacobian(a, h2, xa, f, J)
+        kc = 0
+        for i in range(m):
+            d[i] = f[i] - res[e, i]
+            wi = 0.0
+            s = sigma[e, i]
+            if keep[e, i] and math.isfinite(d[i]) and s > 0.0:
+                wi = 1.0 / s
+                if not math.isfinite(wi):
+                    wi = 0.0
+            w[i] = wi
+            if wi > 0.0:
+                kc += 1
+        if fin and kc > p:
+            for _ in range(iterations):
+                _ranges_jacobian(a, h2, xa, f, J)
+                c0 = 0.0
+                csum = 0.0
+                for q in range(p):
+                    g[q] = 0.0
+                    for s2 in range(p):
+                        Ngn[q, s2] = 0.0
+                        Nn[q, s2] = 0.0
+                for i in range(m):
+                    if w[i] > 0.0:
+                        r = (d[i] - f[i]) * w[i]
+                        if not math.isfinite(r):
+                            r = 0.0
+                        c0 += r * r
+                        # Newton's curvature term w^2 r (I - u u^T) / rho (NumPy reference)
+                        ci = r * w[i] / max(f[i], 1e-9)
+                        csum += ci
+                        for q in range(p):
+                            aq = J[i, q] * w[i]
+                            g[q] += aq * r
+                            for s2 in range(p):
+                                Ngn[q, s2] += aq * J[i, s2] * w[i]
+                                Nn[q, s2] -= J[i, q] * ci * J[i, s2]
+                for q in range(p):
+                    Nn[q, q] += csum
+                    for s2 in range(p):
+                        Nn[q, s2] = Ngn[q, s2] - Nn[q, s2]
+                newton = _inv_small(Nn, Inw, tag)
+                good = _inv_small(Ngn, Igs, tag)
+                ln = 0.0
+                for q in range(p):
+                    acc = 0.0
+                    for s2 in range(p):
+                        acc += (Inw[q, s2] if newton else Igs[q, s2]) * g[s2]
+                    step[q] = acc
+                    ln += acc * acc
+                good = good or newton
+                scale = min(1.0, extent / max(math.sqrt(ln), 1e-300))
+                for q in range(p):
+                    step[q] = step[q] * scale if good else 0.0
+                for _h in range(halvings):
+                    for q in range(p):
+                        xt[q] = xa[q] + step[q]
+                    if not _weighted_cost(a, h2, xt, d, w) > c0:
+                        break
+                    for q in range(p):
+                        step[q] *= 0.5
+                ln = 0.0
+                for q in range(p):
+                    xa[q] += step[q]
+                    ln += step[q] * step[q]
+                if not (good and math.sqrt(ln) > tol):
+                    break
+        _ranges_jacobian(a, h2, xa, f, J)
+        for i in range(m):
+            v_out[e, i] = f[i] - d[i]
+            for q in range(p):
+                j_out[e, i, q] = J[i, q]
+        if fin:
+            for q in range(p):
+                x_out[e, q] = xa[q]
+    return x_out, v_out, j_out

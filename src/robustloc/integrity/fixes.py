@@ -752,6 +752,7 @@ LS_RESOLUTION_HALVINGS = 20
 def least_squares_resolution(
     range_model: RangeModel, position: Array, residuals: Array, sigma: Array,
     keep: NDArray[np.bool_], iterations: int = LS_RESOLUTION_ITERATIONS,
+    engine: str = "compiled",
 ) -> tuple[Array, Array, Array]:
     """The least-squares fix of the rows ``keep``, Newton's method from ``position``.
 
@@ -763,6 +764,10 @@ def least_squares_resolution(
     :data:`LS_RESOLUTION_TOL` or after ``iterations``.  An epoch without
     redundancy over ``keep`` or with a singular normal matrix keeps its start.
 
+    ``engine="compiled"`` (default, ``p <= 3``) runs each epoch in the numba kernel
+    :func:`robustloc.integrity._compiled.least_squares_resolution_kernel`; ``"numpy"``
+    is this function's batched reference.  They take the same steps (tested).
+
     Returns
     -------
     x_ls : ndarray (N, p)
@@ -772,9 +777,15 @@ def least_squares_resolution(
     J_ls : ndarray (N, m, p)
         The design ``d f / d x`` at ``x_ls``.
     """
+    if engine not in ("compiled", "numpy"):
+        raise ValueError(f"engine must be 'compiled' or 'numpy', got {engine!r}")
     x0 = np.asarray(position, dtype=float)
     p = x0.shape[1]
     a = range_model.anchors
+    extent = max(float(np.max(np.linalg.norm(a - a.mean(axis=0), axis=1))), 1.0)
+    if engine == "compiled" and x0.shape[0] and 1 <= p <= 3:
+        return _resolution_compiled(range_model, x0, residuals, sigma, keep, iterations,
+                                    extent)
     fin = np.all(np.isfinite(x0), axis=1)
     x = np.where(fin[:, None], x0, 0.0)
     d = range_model.predict(x) - residuals  # observed ranges (NaN: not heard)
@@ -782,7 +793,7 @@ def least_squares_resolution(
         w = np.where(keep & np.isfinite(d) & (sigma > 0), 1.0 / sigma, 0.0)
     w = np.nan_to_num(w, nan=0.0, posinf=0.0)
     ok = fin & ((w > 0).sum(axis=1) > p)
-    extent = max(float(np.max(np.linalg.norm(a - a.mean(axis=0), axis=1))), 1.0)
+
     def cost(rows: NDArray[np.int64], xr: Array) -> Array:
         r = np.where(w[rows] > 0, (d[rows] - range_model.predict(xr)) * w[rows], 0.0)
         return np.sum(np.nan_to_num(r) ** 2, axis=1)
@@ -830,6 +841,34 @@ def least_squares_resolution(
     f, Jm = range_model.predict_jacobian(x)
     x = np.where(fin[:, None], x, np.nan)
     return x, f - d, Jm
+
+
+def _resolution_compiled(range_model: RangeModel, x0: Array, residuals: Array, sigma: Array,
+                         keep: NDArray[np.bool_], iterations: int,
+                         extent: float) -> tuple[Array, Array, Array]:
+    """:func:`least_squares_resolution` by its numba kernel, spans of epochs in threads."""
+    from robustloc.estimators._compiled import in_threads
+    from robustloc.integrity._compiled import least_squares_resolution_kernel
+
+    N, p = x0.shape
+    a = np.ascontiguousarray(range_model.anchors, dtype=np.float64)
+    h = range_model.height_offset
+    h2 = np.zeros(len(a)) if h is None else np.ascontiguousarray(h, dtype=np.float64) ** 2
+    xc = np.ascontiguousarray(x0, dtype=np.float64)
+    rc = np.ascontiguousarray(residuals, dtype=np.float64)
+    sc = np.ascontiguousarray(sigma, dtype=np.float64)
+    kc = np.ascontiguousarray(keep, dtype=np.bool_)
+    m = rc.shape[1]
+    out = (np.empty((N, p)), np.empty((N, m)), np.empty((N, m, p)))
+
+    def run(lo: int, hi: int) -> None:
+        for o, part in zip(out, least_squares_resolution_kernel(
+                a, h2, xc[lo:hi], rc[lo:hi], sc[lo:hi], kc[lo:hi], int(iterations),
+                LS_RESOLUTION_HALVINGS, LS_RESOLUTION_TOL, extent, (0.0,) * p), strict=True):
+            o[lo:hi] = part
+
+    in_threads(run, N)
+    return out
 
 
 def _global_test(v: Array, sig: Array, keep: NDArray[np.bool_], p: int, alpha0: float,
