@@ -133,9 +133,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--range-k", type=nonnegative_float, default=0.0,
                    help="range std growth with distance, sigma = s0 + k d (default 0)")
     p.add_argument("--sigma-speed", type=positive_float, default=0.05,
-                   help="GPS speed std, m/s")
+                   help="GPS speed std, m/s (default %(default)s)")
     p.add_argument("--sigma-course", type=float_in(1e-6, 180.0), default=5.0,
-                   help="GPS course std, deg")
+                   help="GPS course std, deg (default %(default)s)")
     p.add_argument("--nmea-offset", type=float_in(-1e12, 1e12), default=None,
                    help="seconds added to NMEA times (UTC seconds of day) to reach the "
                         "ranges' clock (default: POSIX time from the RMC date when the "

@@ -149,7 +149,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--min-scale", type=nonnegative_float, default=0.0,
                    help="floor of the estimated robust scale (units of --sigma)")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
-                   help="weight-function threshold, e.g. --param c=1.5 (repeatable)")
+                   help="weight-function threshold, e.g. --param c=1.5 (repeatable; default: the "
+                        "method's own constants)")
     p.add_argument("--model", choices=PATH_LOSS_MODELS,
                    default=None, help="path-loss columns to use (default: what the anchors have)")
     p.add_argument("--tag-height", type=tag_height_m, default=None,
@@ -157,11 +158,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-range-calibration", action="store_true",
                    help="ignore the anchors' bias/scale columns")
     p.add_argument("--alpha0", type=float_in(1e-12, 0.5), default=0.001,
-                   help="w-test significance (every fix's test and hpl; snooping)")
+                   help="w-test significance (every fix's test and hpl; snooping; default "
+                        "%(default)s)")
     p.add_argument("--beta0", type=float_in(1e-6, 0.99), default=0.10,
-                   help="B-method type II error (every fix's test and hpl; snooping)")
+                   help="B-method type II error (every fix's test and hpl; snooping; default "
+                        "%(default)s)")
     p.add_argument("--chunk-rows", type=positive_int, default=500_000,
-                   help="rows read per chunk")
+                   help="rows read per chunk (default %(default)s)")
     p.add_argument("--json", action="store_true",
                    help="print the run summary as JSON (statuses per method, and "
                         "hpl_histogram: the usable fixes' hpl counted in bins of 1/20 "

@@ -87,7 +87,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="candidate positions file (columns x, y[, z]) for --suggest")
     p.add_argument("--suggest-metric", default="max_ext_m",
                    choices=("max_ext_m", "max_mdb", "crlb_m", "dop", "max_abs_rho"),
-                   help="figure whose 95th percentile over the area --suggest minimizes")
+                   help="figure whose 95th percentile over the area --suggest minimizes "
+                        "(default %(default)s)")
     p.add_argument("--no-maps", action="store_true", help="write the CSV only, no PNG maps")
     p.add_argument("-o", "--out", required=True, help="output folder")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")

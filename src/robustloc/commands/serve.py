@@ -119,9 +119,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "of ranges) as states, as robustloc track --link-offsets")
     p.add_argument("--dim", type=int, choices=(2, 3), default=2, help="solve in 2-D or 3-D")
     p.add_argument("--solver", choices=("nonlinear", "linearized"), default="nonlinear",
-                   help="as robustloc locate --solver")
+                   help="as robustloc locate --solver (default %(default)s)")
     p.add_argument("--domain", choices=("range", "rssi"), default="range",
-                   help="as robustloc locate --domain")
+                   help="as robustloc locate --domain (default %(default)s)")
     p.add_argument("--sigma", type=positive_float, default=None,
                    help="a-priori observation std (m or dB); default the anchors' sigma")
     p.add_argument("--robust-scale", choices=("mad", "log", "apriori"), default="mad",

@@ -174,9 +174,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "CUSUM threshold, e.g. 10 (default off: measured to cost accuracy "
                         "on the seed-002 walk and uwb-dwm1001, see the report)")
     p.add_argument("--alpha0", type=probability, default=d.alpha0,
-                   help="w-test significance (B-method)")
+                   help="w-test significance (B-method; default %(default)s)")
     p.add_argument("--beta0", type=probability, default=d.beta0,
-                   help="w-test missed-detection probability (B-method)")
+                   help="w-test missed-detection probability (B-method; default %(default)s)")
     p.add_argument("--integrity-risk", type=probability, default=d.integrity_risk,
                    help="probability of the error exceeding hpl's noise term (default 1e-3)")
     p.add_argument("--tag-height", type=tag_height_m, default=None,
@@ -213,7 +213,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="random-walk variance growth of the links' offsets (unit^2/s, "
                         f"default {d.link_offset_q}: constant)")
     p.add_argument("--chunk-rows", type=positive_int, default=500_000,
-                   help="rows read per chunk")
+                   help="rows read per chunk (default %(default)s)")
     p.add_argument("--json", action="store_true",
                    help="print the run summary as JSON (statuses, and hpl_histogram: the "
                         "usable rows' hpl counted in bins of 1/20 decade, key "

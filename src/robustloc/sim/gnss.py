@@ -216,11 +216,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--interval-s", type=float_in(1e-3, 86400.0), default=30.0,
                    help="epoch interval, s (default 30)")
     p.add_argument("--lat", type=float_in(-90.0, 90.0), default=30.53,
-                   help="receiver latitude, deg")
+                   help="receiver latitude, deg (default %(default)s, Wuhan)")
     p.add_argument("--lon", type=float_in(-180.0, 360.0), default=114.36,
-                   help="receiver longitude, deg")
+                   help="receiver longitude, deg (default %(default)s)")
     p.add_argument("--height", type=float_in(-1e3, 1e5), default=30.0,
-                   help="receiver ellipsoidal height, m")
+                   help="receiver ellipsoidal height, m (default %(default)s)")
     p.add_argument("--systems", default="GEC", help="constellations among G, E, C (default GEC)")
     p.add_argument("--mask-deg", type=float_in(0.0, 90.0), default=10.0,
                    help="elevation mask, deg (default 10; 0 .. 90)")
