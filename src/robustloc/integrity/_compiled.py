@@ -176,6 +176,25 @@ def _ranges_jacobian(a, h2, xa, f, J):  # pragma: no cover - jit
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _inverse_sigmas(keep, res, sigma, w):  # pragma: no cover - jit
+    """Weights ``w_i = 1 / sigma_i`` of one epoch's kept rows with a finite residual and
+    a positive sigma (0 elsewhere, and where ``1 / sigma`` overflows); returns how many
+    rows have a weight."""
+    kc = 0
+    for i in range(w.shape[0]):
+        s = sigma[i]
+        wi = 0.0
+        if keep[i] and math.isfinite(res[i]) and s > 0.0:
+            wi = 1.0 / s
+            if not math.isfinite(wi):
+                wi = 0.0
+        w[i] = wi
+        if wi > 0.0:
+            kc += 1
+    return kc
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def mirror_kernel(a, h2, x, res, sigma, keep, iterations, ridge):  # pragma: no cover - jit
     """``(x_alt, T_alt, J_alt)`` of :func:`robustloc.integrity.fixes.mirror_solution`, one
     epoch at a time, the same steps in the same order (the principal line / plane from
@@ -197,17 +216,7 @@ def mirror_kernel(a, h2, x, res, sigma, keep, iterations, ridge):  # pragma: no 
     Nm = np.zeros((p, p))
     g = np.zeros(p)
     for e in range(N):
-        kc = 0
-        for i in range(m):
-            s = sigma[e, i]
-            wi = 0.0
-            if keep[e, i] and np.isfinite(res[e, i]) and s > 0.0:
-                wi = 1.0 / s
-                if not np.isfinite(wi):
-                    wi = 0.0
-            w[i] = wi
-            if wi > 0.0:
-                kc += 1
+        kc = _inverse_sigmas(keep[e], res[e], sigma[e], w)
         # observed ranges from the fix and its residuals (v = f(x) - d)
         for i in range(m):
             t = h2[i]
@@ -441,18 +450,9 @@ def least_squares_resolution_kernel(a, h2, x0, res, sigma, keep, iterations, hal
             xa[q] = x0[e, q] if fin else 0.0
         # observed ranges from the fix and its residuals (v = f(x) - d); their weights
         _ranges_jacobian(a, h2, xa, f, J)
-        kc = 0
+        kc = _inverse_sigmas(keep[e], res[e], sigma[e], w)
         for i in range(m):
             d[i] = f[i] - res[e, i]
-            wi = 0.0
-            s = sigma[e, i]
-            if keep[e, i] and math.isfinite(d[i]) and s > 0.0:
-                wi = 1.0 / s
-                if not math.isfinite(wi):
-                    wi = 0.0
-            w[i] = wi
-            if wi > 0.0:
-                kc += 1
         if fin and kc > p:
             for _ in range(iterations):
                 _ranges_jacobian(a, h2, xa, f, J)
