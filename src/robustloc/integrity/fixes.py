@@ -856,8 +856,9 @@ def _resolution_compiled(range_model: RangeModel, x0: Array, residuals: Array, s
     h2 = np.zeros(len(a)) if h is None else np.ascontiguousarray(h, dtype=np.float64) ** 2
     xc = np.ascontiguousarray(x0, dtype=np.float64)
     rc = np.ascontiguousarray(residuals, dtype=np.float64)
-    sc = np.ascontiguousarray(sigma, dtype=np.float64)
-    kc = np.ascontiguousarray(keep, dtype=np.bool_)
+    # (sigma and keep broadcast against the residuals, as in the NumPy reference)
+    sc = np.ascontiguousarray(np.broadcast_to(sigma, rc.shape), dtype=np.float64)
+    kc = np.ascontiguousarray(np.broadcast_to(keep, rc.shape), dtype=np.bool_)
     m = rc.shape[1]
     out = (np.empty((N, p)), np.empty((N, m)), np.empty((N, m, p)))
 
