@@ -111,7 +111,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("-o", "--out", required=True,
                    help="positions file (.csv or .parquet); - for CSV on standard output")
-    p.add_argument("--dim", type=int, choices=(2, 3), default=2, help="solve in 2-D or 3-D")
+    p.add_argument("--dim", type=int, choices=(2, 3), default=2,
+                   help="solve in 2-D or 3-D (default %(default)s)")
     p.add_argument("--solver", choices=("nonlinear", "linearized"), default="nonlinear",
                    help="robust methods and LEGE: nonlinear equations (default) or linearized")
     p.add_argument("--reference", choices=("first", "nearest"), default="first",
@@ -119,7 +120,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "anchor = the first heard in the anchors file's order (the paper's; "
                         "its fixes then depend on that order) or the one with the shortest "
                         "range (the iterative solvers always start from the nearest, so "
-                        "their fixes do not depend on the anchors' order)")
+                        "their fixes do not depend on the anchors' order; default %(default)s)")
     p.add_argument("--domain", choices=("range", "rssi"), default="range",
                    help="RSSI input, nonlinear solvers: fit ranges converted by the model "
                         "(default; fades then down-weight themselves) or fit in dB")

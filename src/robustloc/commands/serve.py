@@ -117,7 +117,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--track-link-offsets", action="store_true",
                    help="--track: estimate an offset of each link of each tag (dB of RSSI, m "
                         "of ranges) as states, as robustloc track --link-offsets")
-    p.add_argument("--dim", type=int, choices=(2, 3), default=2, help="solve in 2-D or 3-D")
+    p.add_argument("--dim", type=int, choices=(2, 3), default=2,
+                   help="solve in 2-D or 3-D (default %(default)s)")
     p.add_argument("--solver", choices=("nonlinear", "linearized"), default="nonlinear",
                    help="as robustloc locate --solver (default %(default)s)")
     p.add_argument("--domain", choices=("range", "rssi"), default="range",
