@@ -426,6 +426,35 @@ def test_engines_agree_one_epoch_at_a_time_with_coasting(offsets):
     assert (rows.status == "predicted").any()
 
 
+@pytest.mark.parametrize("filt", ["ekf", "ukf"])
+@pytest.mark.parametrize("offsets", ["", "range_offset"])
+def test_engines_agree_on_a_site_of_many_anchors_each_tag_hearing_a_few(filt, offsets):
+    """A site of many anchors, each tag hearing a few: the compiled round works on the
+    anchors heard (``filters._compiled.cholesky_at``, a diagonal ``R``); the NumPy
+    engine on every anchor's row with the unheard ones masked.  40 anchors that no tag
+    hears, interleaved with the 8 that are: every row agrees (as
+    :func:`_assert_engines_agree`).  The workload has outliers, a link step (holds),
+    re-starts and, with the UKF, the linearized gain of its hpl; the one-exclusion test
+    of a failed epoch runs too.  (Rows with and without the 40 anchors are not compared:
+    the robust start's minimal subsets and rescue grid are drawn over the whole site.)"""
+    a, ep = _bad_epochs(seed=11, K=3, M=8, N=60, p_out=0.05, p_miss=0.05, step_m=2.0)
+    kw = {"filter": filt, "cusum_h": 6.0, "weight": "igg3", "max_bad_epochs": 2,
+          **({offsets: True} if offsets else {})}
+    rng = np.random.default_rng(5)
+    extra = pd.DataFrame({"anchor": [f"X{i}" for i in range(40)],
+                          "x": rng.uniform(-2, 22, 40), "y": rng.uniform(-2, 22, 40)})
+    order = np.r_[0, 8, 9, 10, 1, 11:24, 2, 3, 24:30, 4, 5, 6, 30:48, 7]  # interleaved
+    big = pd.concat([a, extra], ignore_index=True).iloc[order].reset_index(drop=True)
+    cols = {name: j for j, name in enumerate(big["anchor"])}
+    v = np.full((ep.n_epochs, len(big)), np.nan)
+    for i, name in enumerate(a["anchor"]):
+        v[:, cols[name]] = ep.values[:, i]
+    wide = type(ep)(ep.time, ep.tag, v, tuple(big["anchor"]), ep.value, ep.line)
+    rows = _assert_engines_agree(big, kw, [wide])
+    assert (rows.status == "fault_excluded").any() and rows.reinit.max() >= 1
+    assert rows.excluded.str.contains("A0").any()
+
+
 @settings(max_examples=16, deadline=None)
 @given(seed=hst.integers(0, 10_000), K=hst.integers(1, 5), M=hst.integers(3, 9),
        filt=hst.sampled_from(["ekf", "ukf"]), model=hst.sampled_from(["cv", "ca"]),
@@ -572,7 +601,7 @@ def test_one_fault_explains_is_the_global_test_after_one_exclusion(seed, M, offs
         scratch = [np.empty(M) for _ in range(3)]
         comp = _compiled.one_fault_explains(
             M, np.ascontiguousarray(H[k, :, :2]), hb[k], oc, Pp[k], Rd[k], y[k], avail[k],
-            w2c, crit[k], Ssn, Lsn, *scratch)
+            w2c, crit[k], Ssn, Lsn, *scratch, np.empty(M, np.int64))
         if not margin[k]:
             assert comp == want, k
     assert got.any() and not got.all()  # both outcomes are exercised

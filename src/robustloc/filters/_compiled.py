@@ -238,6 +238,55 @@ def _cholesky(A, scale, av, size, L, Li):  # pragma: no cover - jit
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _r(R, k, i, j):  # pragma: no cover - jit
+    """``R_k[i, j]`` of a measurement noise given whole, ``R (Kr, m, m)``, or as its
+    diagonal, ``R (Kr, m, 1)`` (the range tracker's: an ``m x m`` matrix per tag would be
+    80 MB per round of 1 000 tags that each could hear 100 anchors)."""
+    if R.shape[2] == 1:
+        return R[k, i, 0] if i == j else 0.0
+    return R[k, i, j]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def avail_index(av, size, ia):  # pragma: no cover - jit
+    """The indices ``i < size`` where ``av[i]`` is True, in order, into ``ia``; returns
+    their count."""
+    c = 0
+    for i in range(size):
+        if av[i]:
+            ia[c] = i
+            c += 1
+    return c
+
+
+@njit(cache=True, nogil=True)
+def cholesky_at(A, scale, ia, ma, L, Li):  # pragma: no cover - jit
+    """Lower Cholesky factor ``L[:ma, :ma]`` (and ``Li = 1 / diag(L)``) of ``scale *
+    A[ia, ia]``, the rows and columns ``ia[:ma]`` of ``A`` (:func:`avail_index`).  False
+    if not positive definite.
+
+    It is :func:`_cholesky` with the unavailable rows and columns left out instead of
+    replaced by the identity: those rows' entries of the identity-padded factor are
+    exact zeros, whose products the padded sums add and this one skips, so the two
+    factors agree to the bit on the available rows; the work falls from ``size^3 / 6``
+    to ``ma^3 / 6`` (a tag that hears 12 of 100 anchors: 580x fewer operations)."""
+    for a in range(ma):
+        i = ia[a]
+        for b in range(a + 1):
+            s = scale * A[i, ia[b]]
+            for c in range(b):
+                s -= L[a, c] * L[b, c]
+            if a == b:
+                if not s > 0.0:
+                    return False
+                L[a, a] = math.sqrt(s)
+                Li[a] = 1.0 / L[a, a]
+            else:
+                L[a, b] = s * Li[b]
+    return True
+
+
+@njit(cache=True, nogil=True, inline="always")
 def offsets(prm, n, m):  # pragma: no cover - jit
     """Offsets in ``prm`` (:func:`pack_params`) of the gate table, the ``F``/``Q``
     coefficients, the anchors and the status characters for state size ``n`` and
@@ -392,7 +441,8 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
     if P.shape[2] != n or dt.shape[0] != K or z.shape[0] != K or z.shape[1] != m:
         return BAD_SHAPE
     Kr = R.shape[0]
-    if (Kr != 1 and Kr != K) or R.shape[1] != m or R.shape[2] != m or m < (3 if kin else 1):
+    if ((Kr != 1 and Kr != K) or R.shape[1] != m or (R.shape[2] != m and R.shape[2] != 1)
+            or m < (3 if kin else 1)):
         return BAD_SHAPE
     # output blocks (as in :func:`layout`)
     nn = n * n
@@ -439,6 +489,9 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
     Li = np.empty(m)
     y0 = np.empty(m)
     av = np.empty(m, np.bool_)  # available components
+    pre = np.empty(m, np.bool_)  # components with a measurement
+    ia = np.empty(m, np.int64)  # the available components' indices (avail_index)
+    solc = np.empty((m, n + 1))  # sol over the available components, compact
     sol = np.empty((m, n + 1))
     S = np.empty((m, m))
     L = np.empty((m, m))
@@ -459,6 +512,8 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
     dt_prev = math.nan
     for k in range(k0, k1):
         rk = k if Kr > 1 else 0
+        for i in range(m):  # the components with a measurement (S is needed only there)
+            pre[i] = math.isfinite(z[k, i])
         # ------------------------------------------------ predict (seed 002 eq. (13))
         d = dt[k]
         if not d == dt_prev:  # F(dt), Q(dt)
@@ -493,14 +548,18 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
                 for j in range(n):
                     v = Pp[j, b] * hv[i, 0] + Pp[j, b + 1] * hv[i, 1]
                     Pxz[j, i] = v + Pp[j, oci] * hb[i] if oci >= 0 else v
-            for i in range(m):  # S = H Pxz + R
+            for i in range(m):  # S = H Pxz + R (where measured: the rest is never read)
+                if not pre[i]:
+                    continue
                 b = 0 if i < nr else 2
                 oci = oc[i] if i < nr else -1
                 for j in range(m):
+                    if not pre[j]:
+                        continue
                     v = hv[i, 0] * Pxz[b, j] + hv[i, 1] * Pxz[b + 1, j]
                     if oci >= 0:
                         v += hb[i] * Pxz[oci, j]
-                    S[i, j] = v + R[rk, i, j]
+                    S[i, j] = v + _r(R, rk, i, j)
         else:
             # sigma points of the prediction (seed 001 eq. (20)): chol((n + lambda) P)
             if not _cholesky(Pp, scale, all_n, n, Ls, Lsi):
@@ -532,12 +591,16 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
                     dz[p, j] = zs[p, j] - zh[j]
                 if kin:
                     dz[p, ci] = _wrap(dz[p, ci])
-            for i in range(m):  # S = sum W_c dz dz^T + R (eq. (23))
+            for i in range(m):  # S = sum W_c dz dz^T + R (eq. (23)), where measured
+                if not pre[i]:
+                    continue
                 for j in range(m):
+                    if not pre[j]:
+                        continue
                     s = (dz[0, i] * wc0) * dz[0, j]
                     for p in range(1, ns):
                         s += (dz[p, i] * wci) * dz[p, j]
-                    S[i, j] = s + R[rk, i, j]
+                    S[i, j] = s + _r(R, rk, i, j)
             for i in range(n):  # Pxz = sum W_c dx dz^T
                 for j in range(m):
                     s = ((sig[0, i] - xp[i]) * wc0) * dz[0, j]
@@ -557,32 +620,42 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
             av[i] = ok
             y0[i] = yi if ok else 0.0
             ma += ok
-        # as update_from_moments: S over the available components, identity elsewhere;
-        # Cholesky factor and sol = S^-1 [P_xz^T | y] (zero right-hand side if missing)
-        if not _cholesky(S, 1.0, av, m, L, Li):
+        # as update_from_moments: S over the available components (identity elsewhere,
+        # whose rows of the solution are zero); Cholesky factor and sol = S^-1 [P_xz^T |
+        # y], on the available components only (cholesky_at: the same numbers, the work
+        # of the anchors heard rather than of every anchor)
+        na = avail_index(av, m, ia)
+        if not cholesky_at(S, 1.0, ia, na, L, Li):
             return NOT_PD
-        for i in range(m):  # forward substitution, all right-hand sides at once
+        for a in range(na):  # forward substitution, all right-hand sides at once
+            i = ia[a]
             for c in range(n):
-                sol[i, c] = Pxz[c, i] if av[i] else 0.0
-            sol[i, n] = y0[i]
-            for l in range(i):
-                f = L[i, l]
+                solc[a, c] = Pxz[c, i]
+            solc[a, n] = y0[i]
+            for l in range(a):
+                f = L[a, l]
                 for c in range(n + 1):
-                    sol[i, c] -= f * sol[l, c]
-            f = Li[i]
+                    solc[a, c] -= f * solc[l, c]
+            f = Li[a]
             for c in range(n + 1):
-                sol[i, c] *= f
-        for i in range(m - 1, -1, -1):  # back substitution
-            for l in range(i + 1, m):
-                f = L[l, i]
+                solc[a, c] *= f
+        for a in range(na - 1, -1, -1):  # back substitution
+            for l in range(a + 1, na):
+                f = L[l, a]
                 for c in range(n + 1):
-                    sol[i, c] -= f * sol[l, c]
-            f = Li[i]
+                    solc[a, c] -= f * solc[l, c]
+            f = Li[a]
             for c in range(n + 1):
-                sol[i, c] *= f
-        nis = 0.0
+                solc[a, c] *= f
         for i in range(m):
-            nis += y0[i] * sol[i, n]
+            for c in range(n + 1):
+                sol[i, c] = 0.0
+        for a in range(na):
+            for c in range(n + 1):
+                sol[ia[a], c] = solc[a, c]
+        nis = 0.0
+        for a in range(na):
+            nis += y0[ia[a]] * sol[ia[a], n]
         gated = ma > 0 and nis > prm[off_chi + ma]
 
         # ------------------------------------------------ weights D, gain K D (seed 002 (12))
@@ -611,30 +684,31 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
 
         # ------------------------------------------------ covariance of x+
         # GMG = K_hat M K_hat^T, M = R (EKF) or S (UKF) over the available components
-        for i in range(m):
-            for j in range(m):
-                if av[i] and av[j]:
-                    Mm[i, j] = R[rk, i, j] if kind == EKF else S[i, j]
-                else:
-                    Mm[i, j] = 0.0
+        # (K_hat's other rows are zero: the sums skip them)
+        for a in range(na):
+            i = ia[a]
+            for b in range(na):
+                j = ia[b]
+                Mm[a, b] = _r(R, rk, i, j) if kind == EKF else S[i, j]
         for i in range(n):  # V = G M
-            for j in range(m):
+            for b in range(na):
                 s = 0.0
-                for l in range(m):
-                    s += Gt[l, i] * Mm[l, j]
-                V[i, j] = s
+                for a in range(na):
+                    s += Gt[ia[a], i] * Mm[a, b]
+                V[i, b] = s
         for i in range(n):
             for j in range(i, n):
                 s = 0.0
-                for l in range(m):
-                    s += V[i, l] * Gt[l, j]
+                for b in range(na):
+                    s += V[i, b] * Gt[ia[b], j]
                 GMG[i, j] = s
         # P+ is symmetric: its upper triangle is computed and mirrored
         if kind == EKF:  # Joseph form (I - G H) P (I - G H)^T + G R G^T
             for i in range(n):
                 for j in range(n):
                     T[i, j] = 0.0
-            for l in range(m):  # T <- G H (H: two non-zero columns per row)
+            for a in range(na):  # T <- G H (H: two non-zero columns per row)
+                l = ia[a]
                 b = 0 if l < nr else 2
                 h0 = hv[l, 0]
                 h1 = hv[l, 1]
@@ -665,9 +739,9 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
             for i in range(n):  # T = G Pxz^T (missing columns of Pxz are zero)
                 for j in range(n):
                     s = 0.0
-                    for l in range(m):
-                        if av[l]:
-                            s += Gt[l, i] * Pxz[j, l]
+                    for a in range(na):
+                        l = ia[a]
+                        s += Gt[l, i] * Pxz[j, l]
                     T[i, j] = s
             for i in range(n):
                 for j in range(i, n):
@@ -696,7 +770,8 @@ _DOC = """Predict + robust update of ``K`` tracks (state size {n}, measurement s
     x, P : ``(K, n)`` states and ``(K, n, n)`` covariances at the previous event.
     dt : ``(K,)`` steps.
     z : ``(K, m)`` measurements, NaN where missing.
-    R : ``(1, m, m)`` shared or ``(K, m, m)`` per-track measurement noise.
+    R : ``(1, m, m)`` shared or ``(K, m, m)`` per-track measurement noise, or its diagonal
+        alone, ``(1, m, 1)`` or ``(K, m, 1)``.
     prm : settings from :func:`pack_params`.
     fout : output row, blocks as in :func:`layout` (``x+``, ``P+``, innovations,
         standardized innovations, weights, NIS, components used, status, gated).

@@ -63,7 +63,8 @@ from robustloc.filters._compiled import (
     STATUS_CHARS,
     STATUSES,
     UKF,
-    _cholesky,
+    avail_index,
+    cholesky_at,
     fusion_step_4,
     fusion_step_5,
     fusion_step_6,
@@ -120,13 +121,18 @@ def prediction_lost(v_pos, r_min, lost_pos_var):  # pragma: no cover - jit
 
 
 @njit(cache=True, nogil=True, inline="always")
-def innovation_cov(M, hv, hb, oc, Pp, rd, S):  # pragma: no cover - jit
-    """``S = H P- H^T + diag(rd)`` (M x M) of the range rows: position rows ``hv (M, 2)``
-    and, where ``oc[i] >= 0``, the entry ``hb[i]`` of an offset state in column ``oc[i]``
-    (:func:`robustloc.filters._compiled.offset_rows`)."""
+def innovation_cov(M, hv, hb, oc, Pp, rd, av, S):  # pragma: no cover - jit
+    """``S = H P- H^T + diag(rd)`` (M x M) of the range rows, on the rows and columns
+    where ``av`` is True (the others are left as they are, never read): position rows
+    ``hv (M, 2)`` and, where ``oc[i] >= 0``, the entry ``hb[i]`` of an offset state in
+    column ``oc[i]`` (:func:`robustloc.filters._compiled.offset_rows`)."""
     for i in range(M):
+        if not av[i]:
+            continue
         ci = oc[i]
         for j in range(i + 1):
+            if not av[j]:
+                continue
             cj = oc[j]
             v = (hv[i, 0] * (Pp[0, 0] * hv[j, 0] + Pp[0, 1] * hv[j, 1])
                  + hv[i, 1] * (Pp[1, 0] * hv[j, 0] + Pp[1, 1] * hv[j, 1]))
@@ -141,35 +147,39 @@ def innovation_cov(M, hv, hb, oc, Pp, rd, S):  # pragma: no cover - jit
 
 
 @njit(cache=True, nogil=True)
-def linearized_gain_pos(M, hv, hb, oc, Pp, rd, av, S, L, Li, X):  # pragma: no cover - jit
+def linearized_gain_pos(M, hv, hb, oc, Pp, rd, av, S, L, Li, X, ia):  # pragma: no cover - jit
     """The position rows of the linearized gain ``G = P- H^T S^-1`` over the available
     components ``av``, transposed into ``X (M, 2)`` (row ``i``: component ``i``'s column;
     zero where not available): the UKF's hpl (``Tracker._hpl``).  False when ``S`` is not
-    positive definite."""
-    innovation_cov(M, hv, hb, oc, Pp, rd, S)
-    if not _cholesky(S, 1.0, av, M, L, Li):
+    positive definite.  Solved on the available components only (``ia (M,)`` scratch;
+    :func:`robustloc.filters._compiled.cholesky_at`)."""
+    innovation_cov(M, hv, hb, oc, Pp, rd, av, S)
+    na = avail_index(av, M, ia)
+    if not cholesky_at(S, 1.0, ia, na, L, Li):
         return False
-    for c in range(2):  # X[:, c] = S^-1 a_c, a_c,i = (P- H_i^T)_c
-        for i in range(M):
-            v = 0.0
-            if av[i]:
-                v = Pp[c, 0] * hv[i, 0] + Pp[c, 1] * hv[i, 1]
-                if oc[i] >= 0:
-                    v += Pp[c, oc[i]] * hb[i]
-            for j in range(i):
-                v -= L[i, j] * X[j, c]
-            X[i, c] = v * Li[i]
-        for i in range(M - 1, -1, -1):
-            v = X[i, c]
-            for j in range(i + 1, M):
-                v -= L[j, i] * X[j, c]
-            X[i, c] = v * Li[i]
+    for i in range(M):
+        X[i, 0] = 0.0
+        X[i, 1] = 0.0
+    for c in range(2):  # X[ia, c] = S^-1 a_c, a_c,i = (P- H_i^T)_c, compact in L's rows
+        for a in range(na):
+            i = ia[a]
+            v = Pp[c, 0] * hv[i, 0] + Pp[c, 1] * hv[i, 1]
+            if oc[i] >= 0:
+                v += Pp[c, oc[i]] * hb[i]
+            for b in range(a):
+                v -= L[a, b] * X[ia[b], c]
+            X[i, c] = v * Li[a]
+        for a in range(na - 1, -1, -1):
+            v = X[ia[a], c]
+            for b in range(a + 1, na):
+                v -= L[b, a] * X[ia[b], c]
+            X[ia[a], c] = v * Li[a]
     return True
 
 
 @njit(cache=True, nogil=True)
 def one_fault_explains(M, hv, hb, oc, Pp, rd, y, av, w2_crit, crit_less, S, L, Li, u,
-                       c):  # pragma: no cover - jit
+                       c, ia):  # pragma: no cover - jit
     """Data snooping with one exclusion (seed 003; :func:`robustloc.tracking.tracker.
     one_fault_explains` is the NumPy reference): True when the largest w-test statistic
     ``w_i^2 = (S^-1 y)_i^2 / (S^-1)_ii`` of the available components exceeds ``w2_crit``
@@ -177,36 +187,36 @@ def one_fault_explains(M, hv, hb, oc, Pp, rd, y, av, w2_crit, crit_less, S, L, L
     innovation quadratic form without component ``i``).  ``S = H P- H^T + diag(rd)`` from
     the position rows ``hv (M, 2)`` of the range Jacobian and, where ``oc[i] >= 0``, the
     entry ``hb[i]`` of an offset state in column ``oc[i]`` (the tag's range offset, or the
-    link's: :func:`robustloc.filters._compiled.offset_rows`); ``S, L (M, M)``, ``Li, u, c
-    (M,)`` are scratch."""
-    innovation_cov(M, hv, hb, oc, Pp, rd, S)
-    if not _cholesky(S, 1.0, av, M, L, Li):
+    link's: :func:`robustloc.filters._compiled.offset_rows`); ``S, L (M, M)``, ``Li, u, c,
+    ia (M,)`` are scratch.  Solved on the available components only
+    (:func:`robustloc.filters._compiled.cholesky_at`; ``u`` and ``c`` compact)."""
+    innovation_cov(M, hv, hb, oc, Pp, rd, av, S)
+    na = avail_index(av, M, ia)
+    if not cholesky_at(S, 1.0, ia, na, L, Li):
         return False
-    for i in range(M):  # u = S^-1 y (zero where not available)
-        v = y[i] if av[i] else 0.0
-        for j in range(i):
-            v -= L[i, j] * u[j]
-        u[i] = v * Li[i]
-    for i in range(M - 1, -1, -1):
-        v = u[i]
-        for j in range(i + 1, M):
-            v -= L[j, i] * u[j]
-        u[i] = v * Li[i]
+    for a in range(na):  # u = S^-1 y over the available components
+        v = y[ia[a]]
+        for b in range(a):
+            v -= L[a, b] * u[b]
+        u[a] = v * Li[a]
+    for a in range(na - 1, -1, -1):
+        v = u[a]
+        for b in range(a + 1, na):
+            v -= L[b, a] * u[b]
+        u[a] = v * Li[a]
     q = 0.0
     best = 0.0
-    for i in range(M):
-        if not av[i]:
-            continue
-        q += y[i] * u[i]
-        # (S^-1)_ii = |L^-1 e_i|^2: column i of L^-1 by forward substitution
+    for a in range(na):
+        q += y[ia[a]] * u[a]
+        # (S^-1)_ii = |L^-1 e_i|^2: column a of L^-1 by forward substitution
         d = 0.0
-        for j in range(i, M):
-            v = 1.0 if j == i else 0.0
-            for r in range(i, j):
+        for j in range(a, na):
+            v = 1.0 if j == a else 0.0
+            for r in range(a, j):
                 v -= L[j, r] * c[r]
             c[j] = v * Li[j]
             d += c[j] * c[j]
-        w2 = u[i] * u[i] / d
+        w2 = u[a] * u[a] / d
         if w2 > best:
             best = w2
     return best > w2_crit and q - best <= crit_less
@@ -254,7 +264,7 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
     xg = np.empty((K, n))
     Pg = np.empty((K, n, n))
     zf = np.empty((K, m))
-    R = np.zeros((K, m, m))
+    R = np.empty((K, m, 1))  # diagonal (filters._compiled._r)
     o_P = K * n
     o_w = o_P + K * nn + 2 * K * m
     o_nis = o_w + K * m
@@ -295,6 +305,7 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
     Lisn = np.empty(M)
     usn = np.empty(M)
     csn = np.empty(M)
+    iasn = np.empty(M, np.int64)
     Xg = np.empty((M, 2))  # the UKF's linearized gain, position rows (transposed)
     ukf = int(prm[_KIND]) == UKF
 
@@ -387,7 +398,7 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
             new_bias[k, i] = hs / max(hn, 1) if ready else bias_s[s, i]
             zin = math.nan if hd else obs[k, i]
             zf[k, i] = zin
-            R[k, i, i] = rd[k, i]
+            R[k, i, 0] = rd[k, i]
             if math.isfinite(zin):
                 ma += 1
             held_now[k, i] = hd and heard
@@ -451,7 +462,7 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
             for i in range(M):
                 avk[i] = math.isfinite(zf[k, i])
             if one_fault_explains(M, hv[k], hbv[k], ocv[k], Pp_o[k], rd[k], y[k], avk, w2c,
-                                  gcrit[ma - 1], Ssn, Lsn, Lisn, usn, csn):
+                                  gcrit[ma - 1], Ssn, Lsn, Lisn, usn, csn, iasn):
                 fail = False
         sus[k] = ma > 0 and (fail or 2 * nu <= ma)
         Pn00 = fout[o_P + k * nn]
@@ -465,7 +476,7 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
             for i in range(M):
                 avk[i] = math.isfinite(zf[k, i])
             gain_ok = linearized_gain_pos(M, hv[k], hbv[k], ocv[k], Pp_o[k], rd[k], avk,
-                                          Ssn, Lsn, Lisn, Xg)
+                                          Ssn, Lsn, Lisn, Xg, iasn)
         sw = 0.0
         swe = 0.0
         slope = 0.0
