@@ -358,7 +358,8 @@ def lege(
         ``n = 10, p = 2``, false detections are 0 % while ``r - k >= 5``, 1.3 % at 4, 6 % at
         3, 25 % at 2 and 64 % at 1.  Default 4; ``min_dof=1`` is the paper's full search.
     chunk : int
-        Epochs processed at once (bounds memory).
+        Epochs processed at once at most (bounds memory; fewer where an order has many
+        sets, so that a chunk's block of sets stays within 256 MB).
 
     Returns
     -------
@@ -393,16 +394,31 @@ def lege(
     best_set = np.full((N, max(kmax, 1)), -1, dtype=np.int64)
     rho_found = np.full(N, np.nan)
     searching = (fit0.status == st.OK) & (orders_max >= 1) & (sig_prev > 0)
+    # the sets are drawn from each epoch's observed rows, moved to the front in their
+    # order (the same sets in the same order as over all n rows, the unobserved ones
+    # left out): a site of 100 anchors of which an epoch hears 10 has C(100, 4) = 3.9e6
+    # sets of order 4, which took 66 GB per chunk, where C(10, 4) = 210 do
+    nc = int(n_valid.max()) if N else 0
+    if nc < n:
+        front = np.argsort(~observed, axis=1, kind="stable")[:, :nc]  # (N, nc)
+        Mc = M[np.arange(N)[:, None, None], front[:, :, None], front[:, None, :]]
+        Pvc = np.take_along_axis(Pv, front, axis=1)
+        obsc = np.take_along_axis(observed, front, axis=1)
+    else:
+        front, Mc, Pvc, obsc = None, M, Pv, observed
     for k in range(1, kmax + 1):
-        combos = np.array(list(combinations(range(n), k)), dtype=np.int64)  # (C, k)
+        combos = np.array(list(combinations(range(nc), k)), dtype=np.int64)  # (C, k)
         idx = np.flatnonzero(searching & (orders_max >= k))
         if idx.size == 0:
             break
-        for s in range(0, idx.size, chunk):
-            e = idx[s : s + chunk]
-            Me = M[e][:, combos[:, :, None], combos[:, None, :]]  # (E, C, k, k)
-            qe = Pv[e][:, combos]  # (E, C, k)
-            valid = np.all(observed[e][:, combos], axis=2)  # (E, C)
+        # epochs per chunk: at most ``chunk``, and the (E, C, k, k) block at most 32e6
+        # values (256 MB): C(30, 4) = 27 405 sets took 14 GB at 4 096 epochs
+        step = max(1, min(chunk, int(32e6 // max(combos.shape[0] * k * k, 1))))
+        for s in range(0, idx.size, step):
+            e = idx[s : s + step]
+            Me = Mc[e][:, combos[:, :, None], combos[:, None, :]]  # (E, C, k, k)
+            qe = Pvc[e][:, combos]  # (E, C, k)
+            valid = np.all(obsc[e][:, combos], axis=2)  # (E, C)
             eye = np.eye(k)
             with np.errstate(all="ignore"):
                 det_ok = np.linalg.det(Me) > 1e-12 * np.prod(
@@ -420,7 +436,8 @@ def lege(
             stop = np.isfinite(sbest) & ((rho > rho_stop) | (sbest <= 1e-12 * sig_prev[e]))
             hit = e[stop]
             found[hit] = k
-            best_set[hit, :k] = combos[best[stop]]
+            best_set[hit, :k] = (combos[best[stop]] if front is None else np.take_along_axis(
+                front[hit], combos[best[stop]], axis=1))
             rho_found[hit] = rho[stop]
             searching[hit] = False
             upd = np.isfinite(sbest) & ~stop
