@@ -114,3 +114,26 @@ def test_the_default_on_a_large_site_stays_within_a_memory_bound():
         tracemalloc.stop()
     assert sol.position.shape == (2000, 2)
     assert peak < 250e6, peak / 1e6
+
+
+def test_self_calibration_on_a_large_site_keeps_each_epochs_anchors(monkeypatch):
+    """``calibrate --self`` on a site of 36 anchors of which each epoch hears 8: its
+    residual matrices are kept on the anchors each epoch observed (``selfcal._Residuals``;
+    the rows of the others are the identity's), and the estimates equal those of the
+    whole matrices (1e-9: the same sums in another order).  200 epochs of a site of 100
+    took 4 min whole, 12 s compact."""
+    import pandas as pd
+
+    from robustloc.models import selfcal
+    from robustloc.pipelines.calibrate import self_calibrate
+
+    axy, r, _ = _site(side=6, heard=8, N=150, seed=4)
+    r = np.where(np.isfinite(r), r + 0.2 * (np.arange(36) % 3 == 0), r)  # biased anchors
+    anchors = pd.DataFrame({"anchor": [f"A{i}" for i in range(36)], "x": axy[:, 0],
+                            "y": axy[:, 1]})
+    compact, _ = self_calibrate(anchors, axy, r, "range")
+    monkeypatch.setattr(selfcal, "_front", lambda keep: None)  # every anchor's row
+    whole, _ = self_calibrate(anchors, axy, r, "range")
+    for name in ("offset", "slope", "sigma", "offset_se", "slope_se"):
+        np.testing.assert_allclose(getattr(compact, name), getattr(whole, name), rtol=1e-9,
+                                   atol=1e-9, equal_nan=True, err_msg=name)
