@@ -477,3 +477,31 @@ def test_filter_json_summary_has_the_local_keys(sim, scheduler, tmp_path, capsys
     for k in ("share_downweighted", "raw_minus_filtered_std_db"):
         assert dask[k] == pytest.approx(local[k], rel=1e-12), k
     assert not any(k.startswith("_") for k in dask) and "_moments" not in dask["counts"]
+
+
+def _worker_logger_view() -> tuple[bool, bool]:
+    """On a worker: whether ``distributed.worker`` drops the heartbeat error of a closing
+    cluster, and whether it still passes another error."""
+    import logging
+
+    lg = logging.getLogger("distributed.worker")
+
+    def rec(msg: str) -> logging.LogRecord:
+        return lg.makeRecord(lg.name, logging.ERROR, __file__, 1, msg, (), None)
+
+    dropped = not lg.filter(rec("Failed to communicate with scheduler during heartbeat."))
+    kept = bool(lg.filter(rec("Compute Failed")))
+    return dropped, kept
+
+
+def test_the_commands_workers_drop_only_the_heartbeat_error_of_their_closing_cluster():
+    """On an interrupt the command closes its LocalCluster, and a worker whose heartbeat
+    finds the scheduler gone logged "Failed to communicate with scheduler during
+    heartbeat" with a traceback on the user's terminal (seen once under load in
+    ``test_interrupt_while_the_local_cluster_starts_ends_cleanly``).  The command's own
+    workers (real processes here) drop that record and keep every other error."""
+    from robustloc.engines.cluster import dask_client
+
+    with dask_client(None, workers=1) as client:
+        views = client.run(_worker_logger_view)
+    assert views and all(v == (True, True) for v in views.values()), views
