@@ -32,13 +32,16 @@ def _site(side: int = 10, heard: int = 10, N: int = 120, seed: int = 3):
     return axy, r, p
 
 
+@pytest.mark.parametrize("side", [10, 15])
 @pytest.mark.parametrize("method", ["huber", "igg3", "lege", "snooping"])
-def test_a_fix_on_a_large_site_is_the_fix_from_the_anchors_heard(method):
+def test_a_fix_on_a_large_site_is_the_fix_from_the_anchors_heard(method, side):
     """Each epoch's fix from the whole site's anchors equals (1e-9 m: the same arithmetic)
     its fix from the anchors it hears alone -- the per-epoch scale, so that no other epoch
     enters.  The site's area (the start's disc, the rescue's grid) is the one thing the
-    unheard anchors set; on this site it does not decide any epoch."""
-    axy, r, p = _site()
+    unheard anchors set; on this site it does not decide any epoch.  Sites of 100 anchors
+    (the site's subsets chosen among all 161 700) and 225 (among the local ones:
+    C(225, 3) = 1.9e6 is above ``LARGE_ENUMERATION``)."""
+    axy, r, p = _site(side=side)
     loc = Locator(method, sigma=0.15, robust_scale="mad")
     whole = loc.solve(axy, r, "range")
     for k in range(r.shape[0]):
@@ -95,6 +98,34 @@ def test_residual_cofactors_in_blocks_equal_the_whole(monkeypatch):
     np.testing.assert_array_equal(linear.sandwich_qvv(J, w0, w, fb), whole)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_residual_cofactors_on_the_observed_rows_equal_the_whole(monkeypatch, seed):
+    """On a site of 60 rows of which each epoch observes at most 12 (some rows weighted
+    zero, some left out by the weights, a row in the fit with ``w0 = 0``, an epoch
+    observing none, a singular epoch taking its fallback) the cofactors formed on each
+    epoch's observed rows equal the ``(K, m, m)`` form's to 1e-12 (relative: the same sums
+    without the exact zeros, grouped otherwise); the unobserved rows get the fallback."""
+    from robustloc.estimators import linear
+
+    rng = np.random.default_rng(seed)
+    K, m, p = 40, 60, 3
+    J = rng.normal(size=(K, m, p))
+    w0 = np.zeros((K, m))
+    for k in range(1, K):
+        heard = rng.choice(m, rng.integers(2, 13), replace=False)
+        w0[k, heard] = 1.0 / rng.uniform(0.01, 0.1, heard.size)
+    w = w0 * np.where(rng.random((K, m)) < 0.2, 0.0, rng.uniform(0.2, 1.0, (K, m)))
+    w[5, np.flatnonzero(w0[5] == 0)[0]] = 3.0  # in the fit, not in a sum
+    J[7, np.flatnonzero(w0[7])] = J[7, np.flatnonzero(w0[7])[:1]]  # rank one: singular
+    fb = rng.uniform(size=(K, m))
+    fast = linear.sandwich_qvv(J, w0, w, fb)
+    monkeypatch.setattr(linear, "SANDWICH_COMPACT_ROWS", 10**9)  # the plain form
+    plain = linear.sandwich_qvv(J, w0, w, fb)
+    np.testing.assert_allclose(fast, plain, rtol=1e-12, atol=0)
+    np.testing.assert_array_equal(fast[w0 <= 0], fb[w0 <= 0])
+    np.testing.assert_array_equal(fast[7], fb[7])
+
+
 def test_the_default_on_a_large_site_stays_within_a_memory_bound():
     """The default ``locate`` of 2 000 epochs on a site of 100 anchors, 10 heard: the log
     scale's pass held three ``(K, 100, 100)`` products of its 2 000 epochs at once (480 MB
@@ -137,3 +168,68 @@ def test_self_calibration_on_a_large_site_keeps_each_epochs_anchors(monkeypatch)
     for name in ("offset", "slope", "sigma", "offset_se", "slope_se"):
         np.testing.assert_allclose(getattr(compact, name), getattr(whole, name), rtol=1e-9,
                                    atol=1e-9, equal_nan=True, err_msg=name)
+
+
+def _random_site(m: int, dim: int, seed: int) -> np.ndarray:
+    return np.random.default_rng(seed).uniform(0.0, 10.0 * np.sqrt(m), (m, dim))
+
+
+def _as_coordinates(a: np.ndarray, combos: np.ndarray) -> set:
+    """Subsets as sets of anchor coordinates (rounded): comparable across listings."""
+    return {frozenset(tuple(np.round(p, 6)) for p in a[c]) for c in combos}
+
+
+@pytest.mark.parametrize("dim, m", [(2, 160), (3, 60)])
+def test_a_large_sites_subsets_are_local_and_independent_of_order_and_frame(dim, m):
+    """Above ``LARGE_ENUMERATION`` subsets (C(160, 3) = 669 920; C(60, 4) = 487 635) the
+    site's subsets are chosen among each anchor with its nearest neighbours: every chosen
+    subset lies within the pool of :func:`_local_subsets` (each anchor's
+    ``LOCAL_NEIGHBOURS`` nearest, found here by brute force), the choice is the same set
+    of anchors when the file lists them in another order, and when the frame is rotated
+    and shifted."""
+    from math import comb
+
+    from scipy.spatial.transform import Rotation
+
+    from robustloc.estimators import ranging
+
+    assert comb(m, dim + 1) > ranging.LARGE_ENUMERATION
+    a = _random_site(m, dim, seed=m)
+    combos = ranging.minimal_subsets(a)[0]
+    assert combos.shape[0] >= ranging.MAX_SUBSETS
+    d = np.linalg.norm(a[:, None] - a[None], axis=2)
+    near = np.argsort(d, axis=1)[:, 1:ranging.LOCAL_NEIGHBOURS + 1]  # no ties: random
+    for c in combos:  # some anchor of the subset has the others among its nearest
+        assert any(set(c) - {i} <= set(near[i]) for i in c), c
+    want = _as_coordinates(a, combos)
+    perm = np.random.default_rng(1).permutation(m)
+    assert _as_coordinates(a[perm], ranging.minimal_subsets(a[perm])[0]) == want
+    rot = Rotation.from_euler("z", 0.7).as_matrix()[:dim, :dim]
+    moved = a @ rot.T + np.arange(1.0, dim + 1.0) * 123.0
+    got = ranging.minimal_subsets(moved)[0]
+    back = (moved - np.arange(1.0, dim + 1.0) * 123.0) @ rot  # the subsets' own anchors
+    assert _as_coordinates(np.round(back, 6), got) == {
+        frozenset(tuple(np.round(p, 6)) for p in s) for s in want}
+
+
+def test_a_large_sites_subsets_do_not_enumerate_every_subset():
+    """The site's subsets of 600 anchors (C(600, 3) = 3.6e7 triples: 0.86 GB as an index
+    array, 7.7 GB of traced memory with the tuples they were listed from) stay within
+    20 MB of traced memory; the pool is 15 triples per anchor."""
+    import tracemalloc
+
+    from robustloc.estimators import ranging
+
+    a = _random_site(600, 2, seed=5)
+    ranging._minimal_subsets_cached.cache_clear()
+    tracemalloc.start()
+    try:
+        combos, ginv, c0 = ranging.minimal_subsets(a)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 20e6, peak
+    assert combos.shape[0] >= ranging.MAX_SUBSETS
+    sub = (a - c0)[combos]
+    np.testing.assert_allclose(ginv @ (sub[:, 1:] - sub[:, :1]),
+                               np.broadcast_to(np.eye(2), ginv.shape), atol=1e-9)
