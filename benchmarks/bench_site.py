@@ -46,6 +46,14 @@ The default re-solves robustly only the epochs whose plain fit fails its test an
 withholds the few it cannot confirm, so the start matters little to it; the explicit
 robust methods gain.  Times are of the order of a second either way (the subsets are
 found once per pattern of anchors heard and cached).
+
+2026-12-05, ``--side 20`` (400 anchors, 2 000 epochs; ``/usr/bin/time -v``): 97 s and 2.3
+GB resident before the site's subsets were chosen among local ones (the whole site's
+C(400, 3) = 1.1e7 triples had been listed and hashed) and the residuals' cofactors formed
+on each epoch's heard anchors; 14 s and 0.40 GB after, every row the same (nls 2.770 /
+5.244, huber log scale 0.715 / 0.358, igg3 log scale 0.645 / 0.209, the default 0.113 /
+0.200 at 99.2 %, scipy 0.439 / 0.273).  ``--side 30`` (900 anchors): the default 0.119 /
+0.212 at 99.0 % in 3.3 s, scipy 0.804 / 0.288 in 5.6 s.
 """
 
 from __future__ import annotations
