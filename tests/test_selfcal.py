@@ -562,3 +562,54 @@ def test_cli_survey_refuses_the_self_options(tmp_path, capsys, opts):
     err = capsys.readouterr().err
     assert f"error: {opts[0]} applies to --self only" in err, err
     assert not out.exists()
+
+
+def _se_state(m: int, groups: int, offenders: dict[tuple[int, int], float]):
+    """A state for ``SelfCalibrator._se_test``: ``m`` anchors heard in ``groups`` groups
+    (each group's anchors together in its own 5 epochs, never with another group's),
+    sigma 1, unit model-term spread, and standard errors giving each listed parameter its
+    ratio to the bound (``se_ratio * sigma`` = 3); every other parameter at ratio 0.5."""
+    per = m // groups
+    heard = np.zeros((5 * groups, m), dtype=bool)
+    for g in range(groups):
+        heard[5 * g:5 * g + 5, g * per:(g + 1) * per] = True
+    ratio = np.full((m, 2), 0.5)
+    for (j, p), r in offenders.items():
+        ratio[j, p] = r
+    se = 3.0 * ratio
+    cov = np.zeros((m, 2, 2))
+    cov[:, 0, 0], cov[:, 1, 1] = se[:, 0] ** 2, se[:, 1] ** 2
+    state = {"cov_model": cov, "sigma": np.ones(m), "fsd": np.ones(m),
+             "used": np.ones(heard.shape[0], dtype=bool)}
+    return state, heard
+
+
+def test_the_standard_error_test_takes_offenders_heard_apart_together_on_a_large_site():
+    """Hand-made case: 40 anchors in 4 groups of 10 heard apart.  The offenders by ratio:
+    anchor 3's bias 5 (the worst), anchor 5's bias 4 (heard with 3: waits for the
+    re-adjustment), anchor 12's bias 3 (another group: taken), anchor 12's scale 2.5
+    (its anchor taken: waits), anchor 25's scale 2 (taken), anchor 31's bias 1.0 (at the
+    bound: not an offender).  On 20 anchors (below ``SE_TEST_SEPARATE_FROM``) the worst
+    alone, as one at a time."""
+    from robustloc.models import selfcal
+
+    offenders = {(3, 0): 5.0, (5, 0): 4.0, (12, 0): 3.0, (12, 1): 2.5, (25, 1): 2.0,
+                 (31, 0): 1.0}
+    state, heard = _se_state(40, 4, offenders)
+    free = np.ones((40, 2), dtype=bool)
+    left: dict = {}
+    cal = SelfCalibrator()
+    got = cal._se_test(state, free, [f"A{j}" for j in range(40)], left, heard)
+    assert got == [(3, 0), (12, 0), (25, 1)]
+    assert set(left) == set(got) and "exceeds 3 x sigma" in left[(3, 0)]
+    free[5, 0] = False  # a parameter already left out is not an offender
+    assert cal._se_test(state, free, [f"A{j}" for j in range(40)], {}, heard)[:2] == [
+        (3, 0), (12, 0)]
+    small = {k: v for k, v in offenders.items() if k[0] < 20}
+    state, heard = _se_state(20, 2, small)
+    assert 20 < selfcal.SE_TEST_SEPARATE_FROM
+    assert cal._se_test(state, np.ones((20, 2), dtype=bool), [str(j) for j in range(20)],
+                        {}, heard) == [(3, 0)]
+    state["cov_model"][:] = 0.0  # no offender
+    assert cal._se_test(state, np.ones((20, 2), dtype=bool), [str(j) for j in range(20)],
+                        {}, heard) == []
