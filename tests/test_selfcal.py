@@ -613,3 +613,27 @@ def test_the_standard_error_test_takes_offenders_heard_apart_together_on_a_large
     state["cov_model"][:] = 0.0  # no offender
     assert cal._se_test(state, np.ones((20, 2), dtype=bool), [str(j) for j in range(20)],
                         {}, heard) == []
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_reduced_normal_matrix_on_the_touched_anchors_equals_the_dense_sum(
+        monkeypatch, seed):
+    """``_schur_sum`` on 50 anchors of which each epoch touches at most 8 (one epoch none,
+    one all but the threshold's half): the products added in place equal the dense
+    ``einsum`` to 1e-12 (relative to the largest entry: the same terms, summed in another
+    order), and the untouched columns of an epoch contribute nothing."""
+    from robustloc.models import selfcal
+
+    rng = np.random.default_rng(seed)
+    N, m, dim = 30, 50, 2
+    touched = np.zeros((N, m), dtype=bool)
+    for k in range(1, N):
+        touched[k, rng.choice(m, rng.integers(3, 9), replace=False)] = True
+    live = np.repeat(touched, 2, axis=1)[:, None, :]
+    Nxt = np.where(live, rng.normal(size=(N, dim, 2 * m)), 0.0)
+    M = np.where(live, rng.normal(size=(N, dim, 2 * m)), 0.0)
+    dense = np.einsum("kdp,kdq->pq", Nxt, M)
+    got = selfcal._schur_sum(Nxt, M, touched)
+    np.testing.assert_allclose(got, dense, rtol=0, atol=1e-12 * np.abs(dense).max())
+    monkeypatch.setattr(selfcal, "SCHUR_SPARSE_FROM", 10**9)
+    np.testing.assert_array_equal(selfcal._schur_sum(Nxt, M, touched), dense)

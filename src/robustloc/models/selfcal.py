@@ -770,7 +770,7 @@ class SelfCalibrator:
         Ntt_blk = np.einsum("kjp,kj,kjq->jpq", Jt, P, Jt)  # (m, 2, 2)
         gt = np.einsum("kjp,kj,kj->jp", Jt, P, v).reshape(2 * m)
         M = np.einsum("kde,kep->kdp", Ninv, Nxt)  # N_kk^-1 N_kt
-        S = _block_diag(Ntt_blk) - np.einsum("kdp,kdq->pq", Nxt, M)
+        S = _block_diag(Ntt_blk) - _schur_sum(Nxt, M, P != 0)
         gr = gt - np.einsum("kdp,kd->p", M, gx)
         S = 0.5 * (S + S.T)
         # observability: leave out inseparable parameters until S_FF is regular
@@ -786,6 +786,10 @@ class SelfCalibrator:
                 self._leave_out(free, left_out, k, "the log carries no information on it")
                 continue
             C = SF / np.outer(d, d)
+            if F.size >= 2 * SCHUR_SPARSE_FROM:  # a large site: the vectors only if needed
+                ev = np.linalg.eigvalsh(C)
+                if ev[0] >= self.rank_tol:
+                    break
             ev, vec = np.linalg.eigh(C)
             if ev[0] >= self.rank_tol:
                 break
@@ -1149,6 +1153,36 @@ def _inv_batched(Nb: Array) -> tuple[Array, NDArray[np.bool_]]:
     if ok.any():
         out[ok] = np.linalg.inv(Nb[ok])
     return out, ok
+
+
+#: From this many anchors :func:`_schur_sum` adds each epoch's products on the anchors it
+#: touches, when those are at most half of them.
+SCHUR_SPARSE_FROM = 32
+
+
+def _schur_sum(Nxt: Array, M: Array, touched: NDArray[np.bool_]) -> Array:
+    """``sum_k N_tk N_kk^-1 N_kt`` of the reduced normal matrix: ``Nxt, M (N, dim, 2m)``,
+    ``touched (N, m)`` the anchors whose parameters epoch ``k`` involves (its columns
+    ``2j, 2j + 1`` are zero elsewhere).
+
+    On a site of many anchors of which each epoch hears a few, the products are formed on
+    each epoch's own columns and added into place (``N (2h)^2`` terms, not ``N (2m)^2``:
+    on 196 anchors with 10 heard the dense sum was half of ``calibrate --self``'s time);
+    otherwise the dense sum, unchanged."""
+    N, _, q = Nxt.shape
+    m = q // 2
+    h = int(touched.sum(axis=1).max()) if N else 0
+    if m < SCHUR_SPARSE_FROM or 2 * h > m:
+        return np.einsum("kdp,kdq->pq", Nxt, M)
+    idx = np.argsort(~touched, axis=1, kind="stable")[:, :h]  # touched first
+    keep = np.take_along_axis(touched, idx, axis=1)
+    cols = np.stack([2 * idx, 2 * idx + 1], axis=2).reshape(N, 2 * h)
+    live = np.repeat(keep, 2, axis=1)
+    Nc = np.where(live[:, None, :], np.take_along_axis(Nxt, cols[:, None, :], axis=2), 0.0)
+    Mc = np.where(live[:, None, :], np.take_along_axis(M, cols[:, None, :], axis=2), 0.0)
+    prod = np.einsum("kdp,kdq->kpq", Nc, Mc)  # (N, 2h, 2h)
+    lin = cols[:, :, None] * q + cols[:, None, :]
+    return np.bincount(lin.ravel(), weights=prod.ravel(), minlength=q * q).reshape(q, q)
 
 
 def _block_diag(blocks: Array) -> Array:
