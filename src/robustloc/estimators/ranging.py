@@ -735,6 +735,33 @@ def subset_fixes(
     return best, best_c
 
 
+#: Epochs x anchors of one solve where a batch is solved in parts (:func:`_solve_in_parts`,
+#: ``robustloc locate``'s blocks): every batch of a small site is one part (12 anchors:
+#: 166 000 epochs), a site of 900 anchors is solved 2 222 epochs at a time.  The fits'
+#: ``(epochs, anchors)`` arrays, about 15 of them, are then bounded (16 MB each).
+SOLVE_CELLS = 2_000_000
+
+
+def _solve_in_parts(loc: Locator, a: Array, z: Array, kind: str, **kw
+                    ) -> tuple[NDArray, Array, Array, Array]:
+    """``loc.solve(a, z, kind, **kw)`` in parts of at most :data:`SOLVE_CELLS` epochs x
+    anchors: the ``status``, ``residuals``, ``weights`` and Jacobian that
+    :meth:`Locator.log_statistics` reads, joined (the same numbers: each epoch's fix is its
+    own, ``loc`` with a per-epoch or a given scale).  Each part's other arrays (a
+    solution holds some 16 of ``(epochs, anchors)``) are dropped as it ends: on a site of
+    900 anchors the log-scale pass over 5 000 epochs peaked at 1.2 GB of traced memory."""
+    step = max(1, SOLVE_CELLS // max(z.shape[1], 1))
+    out: list[tuple[NDArray, Array, Array, Array]] = []
+    for s0 in range(0, max(z.shape[0], 1), step):
+        sol = loc.solve(a, z[s0:s0 + step], kind, **kw)
+        out.append((sol.status, sol.residuals, sol.weights, sol.extra["jacobian"]))
+        del sol
+    if len(out) == 1:
+        return out[0]
+    status, residuals, weights, jac = (np.concatenate(c) for c in zip(*out))
+    return status, residuals, weights, jac
+
+
 #: A pattern of heard anchors with fewer of the site's minimal subsets than this takes
 #: its own (:func:`_heard_groups`): the least-median-of-squares start needs candidates.
 MIN_HEARD_SUBSETS = 3
@@ -1263,14 +1290,14 @@ class Locator:
             # their full weight and the next estimate is not shrunk by down-weighting
             step_loc = replace(first, sigma=tuple(base * fit_scale),
                                robust_scale="mad" if it == 0 else "apriori")
-            sol = step_loc.solve(a, zz, kind, A=A, n=n, height_offset=height_offset)
+            status, residuals, weights, J = _solve_in_parts(
+                step_loc, a, zz, kind, A=A, n=n, height_offset=height_offset)
             if kind == "rssi" and self.domain == "range":
                 sig_fit = self._range_sigma(sig_fit, rng_obs, rm)
             # redundancy numbers r_ij = 1 - h_ii of the a-priori weighted fit (seed 003),
             # from the range-domain design (a row's scaling to dB cancels in J_i / sigma_i)
             sig_r = self._range_sigma(sig_fit, rng_obs, rm) if self.domain == "rssi" and (
                 rm is not None) else sig_fit
-            J = sol.extra["jacobian"]
             with np.errstate(all="ignore"):
                 Jw = np.where(np.isfinite(zz)[..., None], J / sig_r[..., None], 0.0)
                 Jw = np.where(np.isfinite(Jw), Jw, 0.0)
@@ -1286,11 +1313,11 @@ class Locator:
                 # down-weighted is left nearer its prediction variance (1 + h) than the
                 # a-priori 1 - h (for Huber's passes the two differ little; it is the
                 # Huber pass above that keeps the scale of a redescending method right)
-                p_w = np.where(np.isfinite(zz), np.nan_to_num(sol.weights) * sig_fit**2, 0.0)
+                p_w = np.where(np.isfinite(zz), np.nan_to_num(weights) * sig_fit**2, 0.0)
                 q = sandwich_qvv(Jw, np.isfinite(zz).astype(float), p_w, r)
-                u = np.abs(sol.residuals) / (sig_fit * np.sqrt(np.where(np.isfinite(r), q,
+                u = np.abs(residuals) / (sig_fit * np.sqrt(np.where(np.isfinite(r), q,
                                                                         np.nan)))
-            u = np.where(st.among(sol.status, st.USABLE)[:, None] & np.isfinite(u), u, np.nan)
+            u = np.where(st.among(status, st.USABLE)[:, None] & np.isfinite(u), u, np.nan)
             if it >= 1:
                 # the fits of a known scale (not the first, per-epoch MAD one): their
                 # MAD reads low of a Gaussian scale by a factor measured once on this

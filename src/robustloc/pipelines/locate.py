@@ -289,6 +289,7 @@ def prepared_values(settings: LocateSettings, anchors: pd.DataFrame, block: Any,
 LOG_SAMPLE_CAP = 5_000
 
 
+
 def log_sample_step(n_epochs: int, cap: int | None = None) -> int:
     """The first pass's sampling step ``k``: the epochs whose :func:`epoch_hash` is a
     multiple of ``k`` are kept, ``k`` the smallest power of two with ``ceil(n / k) <= 2
@@ -728,6 +729,7 @@ def _run_once(
     from tqdm import tqdm
 
     from robustloc._jitnotice import compile_notice
+    from robustloc.estimators.ranging import SOLVE_CELLS
     from robustloc.integrity.fixes import locate_protected
     from robustloc.io import iter_epochs, positions_frame
     from robustloc.io.tables import PositionsWriter
@@ -760,17 +762,27 @@ def _run_once(
                 values = prepared_values(settings, anchors, block, measurements)
                 bad = block.all_invalid
                 frames = []
+                # a site of many anchors: the fits' (epochs, anchors) arrays bounded
+                # (robustloc.estimators.ranging.SOLVE_CELLS: each fix is its epoch's own,
+                # so the rows are those of one solve)
+                step = max(1, SOLVE_CELLS // max(values.shape[1], 1))
                 for loc in locators:
-                    ts = _time.perf_counter()
-                    sol = locate_protected(
-                        loc, geo.xyz, values, kind, A=A, n=n, height_offset=geo.height,
-                        alpha0=settings.alpha0, beta0=settings.beta0,
-                        k_noise=settings.k_noise, alert_limit=settings.alert_limit)
-                    solve_s += _time.perf_counter() - ts
-                    side = sol.extra.get("side_from_log")
-                    if side is not None:
-                        moved[loc.method] += int(np.sum(side & ~bad))
-                    fr = positions_frame(sol, block.time, block.tag, ids, loc.method)
+                    parts = []
+                    for s0 in range(0, max(block.n_epochs, 1), step):
+                        sl = slice(s0, s0 + step)
+                        ts = _time.perf_counter()
+                        sol = locate_protected(
+                            loc, geo.xyz, values[sl], kind, A=A, n=n,
+                            height_offset=geo.height, alpha0=settings.alpha0,
+                            beta0=settings.beta0, k_noise=settings.k_noise,
+                            alert_limit=settings.alert_limit)
+                        solve_s += _time.perf_counter() - ts
+                        side = sol.extra.get("side_from_log")
+                        if side is not None:
+                            moved[loc.method] += int(np.sum(side & ~bad[sl]))
+                        parts.append(positions_frame(sol, block.time[sl], block.tag[sl], ids,
+                                                     loc.method))
+                    fr = parts[0] if len(parts) == 1 else pd.concat(parts, ignore_index=True)
                     if bad.any():  # every row of the epoch was outside the physical limits
                         fr.loc[bad, "status"] = INVALID
                         fr.loc[bad, [c for c in ("x", "y", "z", "sigma0") if c in fr]] = np.nan
