@@ -658,13 +658,18 @@ class SelfCalibrator:
         ok = np.isfinite(var) & (np.sum(W > 0, axis=0) > 0)
         cap = (0.5 * naive) ** 2
         plug = np.maximum(np.where(ok, var, 0.0), cap)
-        if R.front is None:
-            C = np.einsum("kjl,l,kil->kji", R.R, np.nan_to_num(plug), R.R)
-            cov_s = 2.0 * np.einsum("kj,ki,kji->ji", W, W, C * C) / kappa**2
-        else:
-            C = np.einsum("kjl,kl,kil->kji", R.R, R.take(np.nan_to_num(plug)), R.R)
-            cov_s = 2.0 * R.gather_sum(np.einsum("kj,ki,kji->kji", Wc, Wc, C * C)) / kappa**2
-        with np.errstate(invalid="ignore"):
+        # (an anchor heard in a handful of epochs can leave B nearly singular and its
+        # plug-in variance beyond float range: its se_var is then not finite, and the
+        # variance undetermined below -- no warning; 200 epochs of 900 anchors)
+        with np.errstate(over="ignore", invalid="ignore"):
+            if R.front is None:
+                C = np.einsum("kjl,l,kil->kji", R.R, np.nan_to_num(plug), R.R)
+                cov_s = 2.0 * np.einsum("kj,ki,kji->ji", W, W, C * C) / kappa**2
+            else:
+                C = np.einsum("kjl,kl,kil->kji", R.R, R.take(np.nan_to_num(plug)), R.R)
+                cov_s = 2.0 * R.gather_sum(np.einsum("kj,ki,kji->kji", Wc, Wc, C * C)
+                                           ) / kappa**2
+        with np.errstate(invalid="ignore", over="ignore"):
             se_var = np.sqrt(np.maximum(np.diagonal(Binv @ cov_s @ Binv.T), 0.0))
         raw = np.where(ok, var, 0.0)
         # not told from zero (within one standard error of it): the conservative floor
