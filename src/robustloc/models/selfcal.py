@@ -1033,8 +1033,9 @@ class SelfCalibrator:
         time costs one re-adjustment each: a site of 196 anchors (14 x 14, 10 heard per
         epoch) with 200 epochs took 34 rounds and 78 s, and 400 anchors did not finish in
         15 minutes; taken together, 6 rounds and 19 s, with 47 parameters left out instead
-        of 45 (two more biases) and the others' estimates within 0.27 of their standard
-        errors of the one-at-a-time result.  Below, and on every shared data set (at most
+        of 45 (two more biases; one of those anchors' scale then absorbs its bias, 2.2
+        standard errors from the one-at-a-time value) and every other estimate within 0.29
+        of its standard error of the one-at-a-time result.  Below, and on every shared data set (at most
         12 anchors), the worst alone."""
         # the geometry's question (does the log determine it?): the model covariance
         cov, sigma, fsd = state["cov_model"], state["sigma"], state["fsd"]
