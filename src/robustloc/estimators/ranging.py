@@ -605,7 +605,8 @@ def _minimal_subsets_cached(key: bytes, shape: tuple[int, ...], max_subsets: int
 #: Above this many minimal subsets of a site's anchors (2-D: 116 anchors and more; 3-D:
 #: 52), :func:`minimal_subsets` chooses among the local ones (:func:`_local_subsets`)
 #: instead of enumerating all, whose count grows with the cube (2-D) or fourth power
-#: (3-D) of the anchors: 2.8 s and 0.5 GB for 196 anchors, 47 s for 500.
+#: (3-D) of the anchors: 2.8 s for 196 anchors, and 7.7 GB of traced memory to list those
+#: of 600 (``tests/test_large_site.py``).
 LARGE_ENUMERATION = 250_000
 
 #: Neighbours of each anchor whose subsets with it form the local pool (2-D: 15 triples

@@ -1035,8 +1035,8 @@ class SelfCalibrator:
         15 minutes; taken together, 6 rounds and 19 s, with 47 parameters left out instead
         of 45 (two more biases; one of those anchors' scale then absorbs its bias, 2.2
         standard errors from the one-at-a-time value) and every other estimate within 0.29
-        of its standard error of the one-at-a-time result.  Below, and on every shared data set (at most
-        12 anchors), the worst alone."""
+        of its standard error of the one-at-a-time result.  Below, and on every shared
+        data set (at most 12 anchors), the worst alone."""
         # the geometry's question (does the log determine it?): the model covariance
         cov, sigma, fsd = state["cov_model"], state["sigma"], state["fsd"]
         se = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))  # (m, 2)
