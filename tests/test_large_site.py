@@ -262,3 +262,19 @@ def test_a_block_solved_in_parts_gives_the_rows_of_one_solve(monkeypatch, method
     parts, _ = run_locate(in_memory_source(meas), anchors, settings)
     assert len(whole) == 60
     pd.testing.assert_frame_equal(parts, whole)
+
+
+def test_a_large_sites_local_subsets_leave_out_anchors_that_make_no_sense():
+    """A typo in a large site's anchors file (an anchor at x = 1e200, one duplicated, one
+    at x = 1e6): the local pool raised scipy's overflow error on the first; now the pool
+    takes only the sane anchors (``_sane_anchors``), and no subset holds the bad ones."""
+    from robustloc.estimators import ranging
+
+    g = np.arange(169)
+    base = np.stack([10.0 * (g % 13), 10.0 * (g // 13)], 1)
+    for bad in ([1e200, 0.0], [1e6, 0.0]):
+        a = base.copy()
+        a[8] = bad
+        a[5] = a[6]
+        pool = ranging._local_subsets(a, ranging.canonical_rank(a), 3)
+        assert pool.shape[0] > 0 and not (pool == 8).any()

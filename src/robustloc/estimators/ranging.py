@@ -625,12 +625,13 @@ def _local_subsets(a: Array, rank: NDArray[np.int64], q: int) -> NDArray[np.int6
     anchors are, not on their order in the file: the neighbours are taken by distance
     (equal to 1e-9 of the layout's size), then by :func:`canonical_rank`, and every anchor
     at the same distance as the last neighbour taken is taken too (the 4 or 8 equidistant
-    neighbours of a grid).  Anchors that are not finite take no part.
+    neighbours of a grid).  Anchors that make no sense for the layout (not finite, or far
+    outside it: :func:`_sane_anchors`) take no part.
     """
     from scipy.spatial import cKDTree
 
     m, dim = a.shape
-    fin = np.flatnonzero(np.all(np.isfinite(a), axis=1))
+    fin = np.flatnonzero(_sane_anchors(a))
     if fin.size < q:
         return np.zeros((0, q), dtype=np.int64)
     pts = a[fin]
