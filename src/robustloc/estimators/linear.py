@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from robustloc import status as st
+from robustloc._arrays import true_first
 from robustloc.estimators._kernels import inv_spd, normal_matrix
 from robustloc.robust.scale import mad_scale
 from robustloc.robust.weights import Huber, WeightFunction
@@ -201,7 +202,7 @@ def sandwich_qvv(J: Array, w0: Array, w: Array, fallback: Array) -> Array:
         # sums over the observed rows only (q0 = 0 elsewhere) and an unobserved row takes
         # its fallback, so the products are formed on each epoch's observed rows, heard
         # first (K, h, h) instead of (K, m, m)
-        idx = np.argsort(~avail, axis=1, kind="stable")[:, :h]
+        idx = true_first(avail, h)
         keep = np.take_along_axis(avail, idx, axis=1)
         fb = np.broadcast_to(fallback, (K, m))
         qc = sandwich_qvv(np.take_along_axis(J, idx[:, :, None], axis=1),
@@ -436,7 +437,7 @@ def lege(
     # sets of order 4, which took 66 GB per chunk, where C(10, 4) = 210 do
     nc = int(n_valid.max()) if N else 0
     if nc < n:
-        front = np.argsort(~observed, axis=1, kind="stable")[:, :nc]  # (N, nc)
+        front = true_first(observed, nc)  # (N, nc)
         Mc = M[np.arange(N)[:, None, None], front[:, :, None], front[:, None, :]]
         Pvc = np.take_along_axis(Pv, front, axis=1)
         obsc = np.take_along_axis(observed, front, axis=1)

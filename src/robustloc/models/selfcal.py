@@ -130,6 +130,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from robustloc._arrays import true_first
 from robustloc.robust.weights import IGG3, Huber, WeightFunction
 
 Array = NDArray[np.float64]
@@ -1094,7 +1095,7 @@ def _front(keep: NDArray[np.bool_]) -> NDArray[np.intp] | None:
     nc = max(int(keep.sum(axis=1).max()), 1)
     if nc >= keep.shape[1]:
         return None
-    return np.argsort(~keep, axis=1, kind="stable")[:, :nc]
+    return true_first(keep, nc)
 
 
 @dataclass(frozen=True)
@@ -1180,7 +1181,7 @@ def _schur_sum(Nxt: Array, M: Array, touched: NDArray[np.bool_]) -> Array:
     h = int(touched.sum(axis=1).max()) if N else 0
     if m < SCHUR_SPARSE_FROM or 2 * h > m:
         return np.einsum("kdp,kdq->pq", Nxt, M)
-    idx = np.argsort(~touched, axis=1, kind="stable")[:, :h]  # touched first
+    idx = true_first(touched, h)  # touched first
     keep = np.take_along_axis(touched, idx, axis=1)
     cols = np.stack([2 * idx, 2 * idx + 1], axis=2).reshape(N, 2 * h)
     live = np.repeat(keep, 2, axis=1)

@@ -1,0 +1,24 @@
+"""Array helpers shared by the layers (no robustloc imports)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+def true_first(mask: NDArray[np.bool_], width: int | None = None) -> NDArray[np.intp]:
+    """Indices of each row's ``True`` entries first, in their order, then the others,
+    cut to ``width`` columns (default: the most ``True`` any row holds).
+
+    A large site's epochs hear a few of its anchors: their rows are gathered to the front
+    (``np.take_along_axis(values, idx, axis=1)``) and the work is done on ``width``
+    columns instead of every anchor's (``sandwich_qvv``, ``lege``, the self-calibration's
+    residual blocks and reduced normal matrix).
+
+    >>> true_first(np.array([[False, True, False, True], [True, False, False, False]]))
+    array([[1, 3],
+           [0, 1]])
+    """
+    if width is None:
+        width = int(mask.sum(axis=1).max()) if mask.shape[0] else 0
+    return np.argsort(~mask, axis=1, kind="stable")[:, :width]
