@@ -637,3 +637,27 @@ def test_the_reduced_normal_matrix_on_the_touched_anchors_equals_the_dense_sum(
     np.testing.assert_allclose(got, dense, rtol=0, atol=1e-12 * np.abs(dense).max())
     monkeypatch.setattr(selfcal, "SCHUR_SPARSE_FROM", 10**9)
     np.testing.assert_array_equal(selfcal._schur_sum(Nxt, M, touched), dense)
+
+
+@pytest.mark.parametrize("times", [1, 2, 3])
+def test_an_anchor_heard_in_too_few_epochs_keeps_its_prior(times):
+    """A sixth anchor heard in 1, 2 or 3 epochs of a 600-epoch log, one of its ranges 6 m
+    long: with offset and scale free it needs 2 + ``OWN_REDUNDANCY`` = 4 observations, so
+    both are left out with the reason, and its bias stays 0 (before, the anchor heard once
+    got the gross range as its "bias").  The other anchors are calibrated as usual."""
+    from robustloc.models import selfcal
+
+    rng = np.random.default_rng(7)
+    x, z = _range_log(rng, 600)
+    a6 = np.vstack([ANCHORS, [[5.0, 10.0]]])
+    d6 = np.linalg.norm(x - a6[5], axis=1)
+    z6 = np.full(len(x), np.nan)
+    z6[:times] = d6[:times] + rng.normal(0, 0.1, times)
+    z6[0] += 6.0
+    r = SelfCalibrator("range").fit(a6, np.c_[z, z6], _start(rng, x))
+    assert selfcal.OWN_REDUNDANCY == 2
+    assert not r.free[5].any() and r.offset[5] == 0.0 and r.slope[5] == 1.0
+    assert any(f"heard in {times} epoch(s) with a fix" in w and "anchor 5" in w
+               for w in r.warnings), r.warnings
+    assert r.free[:5].all()
+    assert np.all(np.abs(r.offset[:5] - BIAS) < 4 * r.offset_se[:5])
