@@ -46,7 +46,8 @@ robustloc.models.selfcal).  Bad epochs are left out and counted.  A parameter th
 cannot determine (inseparable from the positions, a model standard error above --se-ratio
 sigma, a scale with the tags in the far field of the anchors or with the anchors close to
 a line, a scale of an anchor whose distance to the tag hardly varies, every parameter when
-the tag does not move) gets a warning and is left at its prior (bias 0, scale 1, or the
+the tag does not move, those of an anchor heard in fewer epochs than its parameters + 2)
+gets a warning and is left at its prior (bias 0, scale 1, or the
 anchors file's A, n).  Writes the columns bias, scale, sigma (or A, n, sigma) and their
 standard errors, cluster-robust over 50 time blocks of the log (errors that persist while
 a tag dwells make the independent-epoch ones too small); the start fixes use the anchors
