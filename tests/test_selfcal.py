@@ -657,7 +657,32 @@ def test_an_anchor_heard_in_too_few_epochs_keeps_its_prior(times):
     r = SelfCalibrator("range").fit(a6, np.c_[z, z6], _start(rng, x))
     assert selfcal.OWN_REDUNDANCY == 2
     assert not r.free[5].any() and r.offset[5] == 0.0 and r.slope[5] == 1.0
-    assert any(f"heard in {times} epoch(s) with a fix" in w and "anchor 5" in w
-               for w in r.warnings), r.warnings
+    assert [w for w in r.warnings if selfcal.FEW_REASON in w] == [
+        f"anchors 5: cannot determine bias or scale: {selfcal.FEW_REASON}; left out (fixed "
+        "at their priors)"], r.warnings
+    assert r.n_used[5] == times
     assert r.free[:5].all()
     assert np.all(np.abs(r.offset[:5] - BIAS) < 4 * r.offset_se[:5])
+
+
+def test_many_anchors_left_out_for_one_reason_get_one_warning_line():
+    """A short log of a large site: 25 anchors never heard and 24 heard once give two
+    warning lines, each naming 20 anchors and how many more, not one line per anchor and
+    parameter (a 3-epoch log of 196 anchors printed 226 lines)."""
+    from robustloc.models import selfcal
+
+    rng = np.random.default_rng(3)
+    x, z = _range_log(rng, 400)
+    extra = np.c_[rng.uniform(-5, 15, 49), rng.uniform(-5, 13, 49)]
+    a = np.vstack([ANCHORS, extra])
+    d = np.linalg.norm(x[:, None] - extra[None], axis=2)
+    ze = np.full(d.shape, np.nan)
+    ze[np.arange(24), 25 + np.arange(24)] = d[np.arange(24), 25 + np.arange(24)]
+    r = SelfCalibrator("range").fit(a, np.c_[z, ze], _start(rng, x))
+    ids = [str(j) for j in range(len(a))]
+    silent = [w for w in r.warnings if "no observation" in w]
+    few = [w for w in r.warnings if selfcal.FEW_REASON in w]
+    assert silent == [f"anchors {', '.join(ids[5:25])} and 5 more: no observation; "
+                      "parameters left at the prior, sigma the median of the other anchors'"]
+    assert len(few) == 1 and few[0].startswith(f"anchors {', '.join(ids[30:50])} and 4 more")
+    assert not r.free[5:].any() and r.free[:5].all()

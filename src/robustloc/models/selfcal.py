@@ -144,6 +144,10 @@ KINDS = ("range", "rssi")
 _LN10 = np.log(10.0)
 #: Start of the reason given when the tag does not move (:meth:`SelfCalibrator._motion_test`).
 STATIC_REASON = "the tag does not move"
+#: The reason given for the parameters of an anchor heard in too few epochs (one warning
+#: line for every such anchor: a short log of a large site has hundreds).
+FEW_REASON = ("heard in fewer epochs with a fix than its free parameters + 2 (a gross "
+              "range would be taken for a parameter; n_used gives the count)")
 #: Parameter names per kind: (offset, slope).
 PARAM_NAMES = {"range": ("bias", "scale"), "rssi": ("A", "n")}
 #: Gaussian draws (observations) from which :meth:`SelfCalibrator._sigma_consistency`
@@ -353,9 +357,13 @@ class SelfCalibrator:
         heard = obs.sum(axis=0)
         free[heard == 0] = False
         warnings: list[str] = []
-        for j in np.flatnonzero(heard == 0):
-            warnings.append(f"anchor {ids[j]}: no observation; its parameters are left at "
-                            "the prior and its sigma is the median of the other anchors'")
+        silent = np.flatnonzero(heard == 0)  # one line (a large site's short log: many)
+        if silent.size:
+            named = ", ".join(ids[j] for j in silent[:20]) + (
+                f" and {silent.size - 20} more" if silent.size > 20 else "")
+            warnings.append(f"anchor{'s' if silent.size > 1 else ''} {named}: no observation; "
+                            "parameters left at the prior, sigma the median of the other "
+                            "anchors'")
         left_out: dict[tuple[int, int], str] = {}
         # an anchor heard in too few epochs with a fix: its own parameters need a
         # redundancy of OWN_REDUNDANCY among its observations (module notes)
@@ -364,10 +372,7 @@ class SelfCalibrator:
         need = free.sum(axis=1) + OWN_REDUNDANCY
         for j in np.flatnonzero(free.any(axis=1) & (in_fit < need)):
             for p in np.flatnonzero(free[j]):
-                left_out[(int(j), int(p))] = (
-                    f"heard in {int(in_fit[j])} epoch(s) with a fix, fewer than its "
-                    f"{int(need[j] - OWN_REDUNDANCY)} parameter(s) + {OWN_REDUNDANCY} (a "
-                    f"gross range would be taken for its {names[p]})")
+                left_out[(int(j), int(p))] = FEW_REASON
             free[j] = False
         # far field: tags mostly far outside the anchors' extent (e.g. a 2 m cluster heard
         # 5-50 m away): a scale is then a radial stretch of the fixes to O(extent /
@@ -452,16 +457,19 @@ class SelfCalibrator:
         for (j, p), why in left_out.items():
             by_reason.setdefault(why, []).append((j, p))
         for why, items in by_reason.items():
-            if len(items) == 1 or not why.startswith(STATIC_REASON):
+            if len(items) == 1 or not (why.startswith(STATIC_REASON) or why == FEW_REASON):
                 for j, p in items:
                     warnings.append(f"anchor {ids[j]}: cannot determine {names[p]}: "
                                     f"{why}; left out (fixed at its prior {names[p]} = "
                                     f"{(off_prior if p == 0 else slo_prior)[j]:g})")
                 continue
-            # a static tag: every parameter of every anchor, one line
+            # a static tag (every parameter of every anchor), or anchors heard in too few
+            # epochs: one line, naming at most 20 anchors
             params = [q for q in (0, 1) if any(p == q for _, p in items)]
             who = sorted({j for j, _ in items})
-            warnings.append(f"anchors {', '.join(ids[j] for j in who)}: cannot determine "
+            named = ", ".join(ids[j] for j in who[:20]) + (
+                f" and {len(who) - 20} more" if len(who) > 20 else "")
+            warnings.append(f"anchors {named}: cannot determine "
                             f"{' or '.join(names[q] for q in params)}: {why}; left out "
                             f"(fixed at their priors)")
         for (j, p) in left_out:
