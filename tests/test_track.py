@@ -1044,6 +1044,8 @@ def test_track_of_centimetre_rssi_ranges_writes_every_row(tmp_path):
                      "--kernel", engine]) == 0
         t = pd.read_csv(out)
         assert len(t) == 3 and t["status"].notna().all()
+        assert t["status"].iloc[0] == "fault_detected"  # `locate`: unavailable
+        assert np.isinf(t["hpl"].iloc[0])
         fixed = t["var_x"].notna()
         assert fixed.any()
         c = t.loc[fixed]

@@ -101,3 +101,32 @@ def test_the_bound_after_a_gap_is_the_epochs_own_at_worst(tmp_path, kernel):
     after = tr.time >= 90
     assert (err <= tr.hpl).all()
     assert tr.loc[after, "hpl"].max() < 10.0, tr.loc[after, "hpl"].head(3).tolist()
+
+
+@pytest.mark.parametrize("kernel", ["compiled", "numpy"])
+def test_a_start_from_an_inconsistent_epoch_is_not_ok(kernel):
+    """A tag's first epoch with ranges of 40, 1, 40, 1 and 20 m to five anchors around
+    (2, 3), where they are 1.8-11 m (the input review: ``track`` started 19 m off and
+    called it ``ok`` with hpl 2 m; ``locate`` says ``unavailable``, half the ranges being
+    flagged).  The start row is ``fault_detected`` with no bound (the snapshot has none),
+    and a consistent start (the second tag, exact ranges) stays ``ok`` with a finite
+    one, on both engines."""
+    a = pd.DataFrame({"anchor": ["A1", "A2", "A3", "A4", "A5"],
+                      "x": [0.0, 10.0, 10.0, 0.0, 5.0], "y": [0.0, 0.0, 10.0, 10.0, 12.0]})
+    axy = a[["x", "y"]].to_numpy()
+    d_t1 = np.hypot(*(axy - [2.0, 3.0]).T)
+    d_t2 = np.hypot(*(axy - [7.0, 6.0]).T)
+    rows = []
+    for tag, d in [("T1", [40.0, 1.0, 40.0, 1.0, 20.0]), ("T2", d_t2)]:
+        rows += [(0.0, tag, an, float(v)) for an, v in zip(a["anchor"], d)]
+    rows += [(1.0, "T2", an, float(v)) for an, v in zip(a["anchor"], d_t2)]
+    m = pd.DataFrame(rows, columns=["time", "tag", "anchor", "range"])
+    ep = to_epochs(m, list(a["anchor"]), value="range")
+    out = Tracker(a, sigma=1.0, engine=kernel).step(ep)
+    first = out[out["time"] == 0.0].set_index("tag")
+    assert first.loc["T1", "status"] == "fault_detected"
+    err = np.hypot(first.loc["T1", "x"] - 2.0, first.loc["T1", "y"] - 3.0)
+    assert err > 5.0 and np.isinf(first.loc["T1", "hpl"])
+    assert first.loc["T2", "status"] == "ok" and np.isfinite(first.loc["T2", "hpl"])
+    assert np.hypot(first.loc["T2", "x"] - 7.0, first.loc["T2", "y"] - 6.0) < 1e-6
+    assert d_t1.min() > 1.0  # the premise: the 1 m ranges are wrong

@@ -873,6 +873,19 @@ class Tracker:
         sol = self._fix(z)
         pos = np.asarray(sol.position, dtype=float)
         ok = st.among(sol.status, st.USABLE) & np.all(np.isfinite(pos), axis=1)
+        # the start's own test: Huber's fit with the epoch's own scale tests nothing, and a
+        # start from ranges of 40, 1, 40, 1 and 20 m (a tag 2 m from its true place at 1 m
+        # noise) began 19 m off as `ok` with hpl 2 m, where `locate` says `unavailable`
+        # (the input review).  The epoch's protected fix is the judge: where it detects a
+        # fault it cannot exclude, or gives no fix at all, the start row is
+        # `fault_detected`, bounded as the snapshot bounds it (:meth:`_snapshot_bound`),
+        # or without a bound (hpl inf) when the snapshot has none.  The filter still
+        # starts there (refusing it, a tag whose a-priori sigma is too small for its log
+        # never started) and re-starts if it then diverges.
+        snap = self._protected_fix(z)
+        snap_status = np.asarray(snap.status, dtype=object)
+        detected = ok & ((snap_status == st.FAULT_DETECTED)
+                         | ~st.among(snap_status, st.USABLE))
         cov = self._fix_cov(pos, z, np.asarray(sol.excluded, bool))
         var0 = (np.diagonal(cov, axis1=1, axis2=2) if cov.ndim == 3
                 else np.full(pos.shape, np.nan))
@@ -931,7 +944,8 @@ class Tracker:
         out.var[idx] = np.nan
         out.var[idx[ok]] = diag
         out.cxy[idx] = np.where(ok, cxy, np.nan)
-        out.status[idx] = np.asarray(sol.status, dtype=object)
+        out.status[idx] = np.where(detected, st.FAULT_DETECTED,
+                                   np.asarray(sol.status, dtype=object))
         out.n_used[idx] = np.asarray(sol.n_used, dtype=np.int64)
         exc = np.asarray(sol.excluded, dtype=bool)
         out.excluded[idx] = exc
@@ -940,7 +954,13 @@ class Tracker:
         smaj = np.sqrt(var.max(axis=1))
         if cov.ndim == 3:
             smaj = np.maximum(smaj, sig[:, -1])
-        out.hpl[idx] = np.where(ok, self._k_ir * smaj, np.nan)
+        hpl = self._k_ir * smaj
+        if detected.any():  # |x - x_s| + HPL_s (:meth:`_snapshot_bound`), never narrower
+            with np.errstate(invalid="ignore"):
+                alt = (np.hypot(*(pos[detected] - snap.position[detected, :2]).T)
+                       + np.asarray(snap.extra["hpl"], dtype=float)[detected])
+            hpl[detected] = np.fmax(hpl[detected], np.where(np.isnan(alt), np.inf, alt))
+        out.hpl[idx] = np.where(ok, hpl, np.nan)
         out.reinit[idx] = self._reinit[sl]
         if self.record:
             self._history.append({"idx": idx[ok], "slot": k, "start": np.ones(ok.sum(), bool),
@@ -1221,8 +1241,6 @@ class Tracker:
         sum.  (Rows widened by a failed test in steady state are left alone: solving
         their epochs cost ``bench_track.py`` 60 % of its speed.)
         """
-        from robustloc.integrity.fixes import locate_protected
-
         P2 = Pn[:, :2, :2]
         tr = 0.5 * (P2[:, 0, 0] + P2[:, 1, 1])
         det = P2[:, 0, 0] * P2[:, 1, 1] - P2[:, 0, 1] ** 2
@@ -1237,13 +1255,7 @@ class Tracker:
         wide &= st.among(out.status[idx], st.USABLE) & (np.isfinite(z).sum(axis=1) > 2)
         if not wide.any():
             return
-        link, kw = self._link, {}
-        if self._kind == "rssi":
-            kw = {"A": link.A, "n": link.n}
-        if self.settings.tag_height is not None:
-            kw["height_offset"] = np.sqrt(link.dz2)
-        snap = locate_protected(self._bound_locator, link.anchors_xy, z[wide], self._kind,
-                                **kw)
+        snap = self._protected_fix(z[wide])
         with np.errstate(invalid="ignore"):
             alt = (np.hypot(*(xn[wide, :2] - snap.position[:, :2]).T)
                    + np.asarray(snap.extra["hpl"], dtype=float))
@@ -1345,6 +1357,18 @@ class Tracker:
         out = b[slots] + self._p_after[slots]
         self._drop_pending(slots)
         return out
+
+    def _protected_fix(self, z: Array) -> Any:
+        """The epochs' own protected fixes: ``locate``'s default with the a-priori sigma
+        (:func:`robustloc.integrity.fixes.locate_protected`: tested status and ``hpl``)."""
+        from robustloc.integrity.fixes import locate_protected
+
+        link, kw = self._link, {}
+        if self._kind == "rssi":
+            kw = {"A": link.A, "n": link.n}
+        if self.settings.tag_height is not None:
+            kw["height_offset"] = np.sqrt(link.dz2)
+        return locate_protected(self._bound_locator, link.anchors_xy, z, self._kind, **kw)
 
     def _fix(self, z: Array) -> Any:
         s = self.settings
