@@ -109,6 +109,10 @@ def test_absurd_option_values_are_refused(tmp_path, capsys, argv, opt):
     ("reliability", "--rho-threshold", "2"), ("reliability", "--step", "-1"),
     ("filter", "--sigma-rssi", "nan"), ("filter", "--exponent", "0"),
     ("filter", "--max-rejected", "-2"),
+    # the input review: 1e300 raised OverflowError (a traceback), 1e-300 wrote NaN into
+    # every filtered value with status ok, --q-rssi 1e300 into 19 of 70
+    ("filter", "--sigma-rssi", "1e300"), ("filter", "--sigma-rssi", "1e-300"),
+    ("filter", "--q-rssi", "1e300"), ("filter", "--sigma-accel", "1e300"),
 ])
 def test_absurd_option_values_of_layout_commands(corridor, tmp_path, capsys, cmd, opt, value):
     out = tmp_path / "out"

@@ -213,6 +213,10 @@ def test_missing_values_predict_only():
 def test_bad_settings_and_shapes():
     with pytest.raises(ValueError):
         RobustRssiFilter(sigma_rssi_db=0)
+    for kw in ({"sigma_rssi_db": 1e300}, {"sigma_rssi_db": 1e-300},
+               {"q_rssi_db2_per_s": 1e300}, {"sigma_accel_mps2": 1e300}):
+        with pytest.raises(ValueError, match=next(iter(kw))):
+            RobustRssiFilter(**kw)
     with pytest.raises(ValueError):
         RobustRssiFilter(engine="gpu")
     with pytest.raises(ValueError):
@@ -359,3 +363,24 @@ def test_a_link_restarts_after_a_gap_that_leaves_nothing_of_its_prior():
     assert (r.distance_m[31:60] > 0.5).all()
     with pytest.raises(ValueError, match="restart_var_ratio"):
         RobustRssiFilter(restart_var_ratio=0.0)
+
+
+@pytest.mark.parametrize("sigma", [1e-6, 1e6])
+@pytest.mark.parametrize("q", [0.0, 1e6])
+@pytest.mark.parametrize("accel", [0.0, 1e3])
+def test_the_settings_ranges_corners_give_finite_values(sigma, q, accel):
+    """Every corner of the accepted ranges of ``sigma_rssi_db``, ``q_rssi_db2_per_s`` and
+    ``sigma_accel_mps2`` filters a log with gaps (0.1 s to 100 s), 20 dB jumps and samples
+    next to the anchor into finite values: the ranges are where the filter works, not a
+    guess (outside them it gave NaN or raised OverflowError)."""
+    rng = np.random.default_rng(3)
+    n = 120
+    link = np.repeat([0, 1], n // 2)
+    t = np.r_[np.cumsum(rng.choice([0.1, 1.0, 100.0], n // 2, p=[0.45, 0.5, 0.05])),
+              np.cumsum(rng.choice([0.1, 1.0, 100.0], n // 2, p=[0.45, 0.5, 0.05]))]
+    z = -60.0 + rng.normal(0.0, 3.0, n) + np.where(rng.random(n) < 0.1, -20.0, 0.0)
+    z[::17] = -35.0  # within decimetres of the anchor
+    res = RobustRssiFilter(sigma_rssi_db=sigma, q_rssi_db2_per_s=q,
+                           sigma_accel_mps2=accel).filter_samples(link, t, z)
+    assert np.all(np.isfinite(res.rssi_dbm))
+    assert np.all(np.isfinite(res.distance_m))

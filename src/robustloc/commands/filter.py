@@ -9,12 +9,7 @@ import sys
 import numpy as np
 
 from robustloc.engines import add_engine_arguments
-from robustloc.options import (
-    float_in,
-    nonnegative_float,
-    nonnegative_int,
-    positive_float,
-)
+from robustloc.options import float_in, nonnegative_int, sigma_value
 
 NAME = "filter"
 HELP = "robust RSSI Kalman filter per (tag, anchor) link (seed 002); output feeds locate"
@@ -76,12 +71,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--robust", choices=WEIGHTS, default="asymmetric-igg",
                    help="equivalent weight of the gain (default asymmetric-igg, eq. 14; "
                         "'none' = plain Kalman filter)")
-    p.add_argument("--sigma-rssi", type=positive_float, default=2.0,
-                   help="measurement noise std, dB (default 2)")
-    p.add_argument("--sigma-accel", type=nonnegative_float, default=0.5,
-                   help="radial acceleration std, m/s^2 (default 0.5)")
-    p.add_argument("--q-rssi", type=nonnegative_float, default=0.05,
-                   help="power random walk, dB^2/s (default 0.05)")
+    p.add_argument("--sigma-rssi", type=sigma_value, default=2.0,
+                   help="measurement noise std, dB (default 2; 1e-6 to 1e6)")
+    p.add_argument("--sigma-accel", type=float_in(0.0, 1e3), default=0.5,
+                   help="radial acceleration std, m/s^2 (default 0.5; 0 to 1000)")
+    p.add_argument("--q-rssi", type=float_in(0.0, 1e6), default=0.05,
+                   help="power random walk, dB^2/s (default 0.05; 0 to 1e6)")
     p.add_argument("--exponent", type=float_in(0.1, 10.0), default=None,
                    help="path-loss exponent of the transition (default: each anchor's "
                         "gamma; 2 = the paper's 20 lg)")

@@ -445,11 +445,14 @@ class RobustRssiFilter:
         :class:`AsymmetricIGG` ``(K0=2, K1=3, C=3)`` (eq. (14)).  ``None``: the plain
         Kalman filter (``D = 1``).
     sigma_rssi_db : float
-        Measurement noise standard deviation ``sqrt(R)`` (eq. (16)).
+        Measurement noise standard deviation ``sqrt(R)`` (eq. (16)), 1e-6 to 1e6 dB.
     sigma_accel_mps2 : float
-        Standard deviation of the radial acceleration ``a`` of eq. (15).
+        Standard deviation of the radial acceleration ``a`` of eq. (15), 0 to 1e3 m/s^2.
     q_rssi_db2_per_s : float
-        Random-walk intensity of the power level (environment changes).
+        Random-walk intensity of the power level (environment changes), 0 to 1e6 dB^2/s.
+        (Outside these ranges the covariances overflow or underflow: ``sigma_rssi_db =
+        1e300`` raised ``OverflowError``, ``1e-300`` and ``q_rssi_db2_per_s = 1e300`` gave
+        NaN filtered values.)
     exponent : float or None
         Path-loss exponent of the transition; ``None``: each link's ``gamma`` (see module
         docstring); ``2.0``: the paper's ``20 lg`` literally.
@@ -524,6 +527,13 @@ class RobustRssiFilter:
         ]:
             if not (np.isfinite(val) and val >= 0):
                 raise ValueError(f"{name} must be >= 0, got {val}")
+        for name, val, lo, hi in [
+            ("sigma_rssi_db", sigma_rssi_db, 1e-6, 1e6),
+            ("sigma_accel_mps2", sigma_accel_mps2, 0.0, 1e3),
+            ("q_rssi_db2_per_s", q_rssi_db2_per_s, 0.0, 1e6),
+        ]:
+            if not lo <= val <= hi:
+                raise ValueError(f"{name} must lie in [{lo:g}, {hi:g}], got {val}")
         if exponent is not None and not exponent > 0:
             raise ValueError(f"exponent must be positive, got {exponent}")
         if max_rejected < 0:
