@@ -15,9 +15,16 @@ from robustloc.cli import main
      "an.csv:3: range scale must be positive, got -1 for anchor 'b'"),
     ("anchor,x,y,sigma", ["a,0,0,0.1", "b,10,0,0.2", "c,0,10,0"],
      "an.csv:4: sigma must be positive, got 0 for anchor 'c'"),
+    # the input review: these overflowed into every range (every epoch
+    # invalid_measurement, the file unnamed) or made every fix ill_conditioned
+    ("anchor,x,y,bias,scale", ["a,0,0,1e300,1", "b,10,0,0,1", "c,0,10,0,1"],
+     "an.csv:2: range bias must lie in [-100000, 100000], got 1e+300 for anchor 'a'"),
+    ("anchor,x,y,bias,scale", ["a,0,0,0,1", "b,10,0,0,1e-300", "c,0,10,0,1"],
+     "an.csv:3: range scale must lie in [0.001, 1000], got 1e-300 for anchor 'b'"),
+    ("anchor,x,y,sigma", ["a,0,0,0.1", "b,10,0,0.2", "c,0,10,1e-300"],
+     "an.csv:4: sigma must lie in [1e-06, 1e+06], got 1e-300 for anchor 'c'"),
 ])
-def test_non_positive_anchor_parameters_name_the_line(tmp_path, capsys, header, rows,
-                                                      message):
+def test_absurd_anchor_parameters_name_the_line(tmp_path, capsys, header, rows, message):
     (tmp_path / "an.csv").write_text("\n".join([header, *rows]) + "\n")
     value = "rssi" if ",A,n" in header else "range"
     (tmp_path / "m.csv").write_text(f"time,tag,anchor,{value}\n0,t,a,-70\n0,t,b,-70\n"
@@ -29,3 +36,31 @@ def test_non_positive_anchor_parameters_name_the_line(tmp_path, capsys, header, 
     assert rc == 2
     assert err.startswith("error: ") and message in err and "Traceback" not in err
     assert not (tmp_path / "p.csv").exists()
+
+
+def test_a_calibration_of_near_exact_ranges_is_read_back(tmp_path):
+    """Ranges with 1e-9 m of noise: ``calibrate --self`` finds sigmas of some 1e-9 m,
+    below what an anchors file may carry (1e-6, as ``--sigma``).  It writes the floor, so
+    that ``locate`` reads the calibrated file (refused otherwise, naming the line)."""
+    import numpy as np
+    import pandas as pd
+
+    a = pd.DataFrame({"anchor": ["a", "b", "c", "e"], "x": [0, 10, 10, 0.0],
+                      "y": [0, 0, 10, 10.0]})
+    a.to_csv(tmp_path / "an.csv", index=False)
+    rng = np.random.default_rng(0)
+    rows = []
+    for k in range(40):
+        p = rng.uniform(1, 9, 2)
+        rows += [(float(k), "t", r.anchor, float(np.hypot(p[0] - r.x, p[1] - r.y)) + 0.2
+                  + rng.normal(0.0, 1e-9)) for r in a.itertuples()]
+    pd.DataFrame(rows, columns=["time", "tag", "anchor", "range"]).to_csv(
+        tmp_path / "m.csv", index=False)
+    assert main(["calibrate", "--self", str(tmp_path / "m.csv"), "--anchors",
+                 str(tmp_path / "an.csv"), "-o", str(tmp_path / "cal.csv")]) == 0
+    cal = pd.read_csv(tmp_path / "cal.csv")
+    assert (cal["sigma"] == 1e-6).all()
+    assert np.allclose(cal["bias"], 0.2, atol=1e-6)
+    assert main(["locate", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "cal.csv"),
+                 "-o", str(tmp_path / "p.csv")]) == 0
+    assert len(pd.read_csv(tmp_path / "p.csv")) == 40

@@ -95,6 +95,8 @@ def test_simulate_group_b_line_is_refused_not_silently_diagonal(tmp_path, capsys
     (["track", "m.csv", "--anchors", "a.csv", "--integrity-risk", "1"], "--integrity-risk"),
     (["track", "m.csv", "--anchors", "a.csv", "--sigma", "1e-300"], "--sigma"),
     (["locate", "m.csv", "--anchors", "a.csv", "--sigma", "1e-300"], "--sigma"),
+    # (the input review: every bound inf on fixes still called ok)
+    (["locate", "m.csv", "--anchors", "a.csv", "--min-scale", "1e300"], "--min-scale"),
 ])
 def test_absurd_option_values_are_refused(tmp_path, capsys, argv, opt):
     out = tmp_path / "out"

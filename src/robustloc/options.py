@@ -104,6 +104,11 @@ def float_in(low: float, high: float) -> Callable[[str], float]:
 #: stderr (the tracker review); ``montecarlo --sigma`` had this range already.
 sigma_value = float_in(1e-6, 1e6)
 
+#: The floor of an estimated robust scale (``--min-scale``, units of sigma): 0 to 1e6.
+#: 1e300 passed and made every bound infinite on fixes still called ``ok`` (the input
+#: review).
+scale_floor = float_in(0.0, 1e6)
+
 
 def _int(text: str | int) -> int:
     if isinstance(text, bool) or (isinstance(text, float) and not text.is_integer()):

@@ -96,6 +96,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         nonnegative_float,
         positive_float,
         positive_int,
+        scale_floor,
         sigma_value,
         tag_height_m,
     )
@@ -147,8 +148,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "major semi-axis (default N(1 - alpha0/2) = 3.29 for alpha0 = 0.1 %%, "
                         "the 1-D quantile, as WAAS; 3.72 = sqrt(chi2(1 - alpha0; 2)) bounds "
                         "the 2-D noise at alpha0 as the tracker does)")
-    p.add_argument("--min-scale", type=nonnegative_float, default=0.0,
-                   help="floor of the estimated robust scale (units of --sigma)")
+    p.add_argument("--min-scale", type=scale_floor, default=0.0,
+                   help="floor of the estimated robust scale (units of --sigma; default 0, "
+                        "at most 1e6)")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="weight-function threshold, e.g. --param c=1.5 (repeatable; default: the "
                         "method's own constants)")

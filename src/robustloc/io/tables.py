@@ -663,22 +663,23 @@ def anchor_sigma(anchors: pd.DataFrame) -> NDArray[np.float64] | None:
     None when there is no such column or every cell is empty (not given).  A column given
     for some anchors and empty for others is refused naming the first anchor without one
     and its line: the solvers need one sigma per anchor, and guessing the missing ones
-    would weight that anchor by a number nobody chose.  A value that is not positive and
-    finite is refused the same way (the readers refuse it already; a hand-made frame may
-    not have passed them).
+    would weight that anchor by a number nobody chose.  A value outside
+    :data:`SIGMA_RANGE` is refused the same way (the readers refuse it already; a
+    hand-made frame may not have passed them).
     """
     if "sigma" not in anchors.columns:
         return None
     sg = pd.to_numeric(anchors["sigma"], errors="coerce").to_numpy(dtype=float)
     if np.all(np.isnan(sg)):
         return None
-    bad = ~(np.isfinite(sg) & (sg > 0))
+    lo, hi = SIGMA_RANGE
+    bad = ~((sg >= lo) & (sg <= hi))
     if bad.any():
         i = int(np.argmax(bad))
         name = anchors["anchor"].iloc[i] if "anchor" in anchors.columns else i
         what = ("has no sigma while other anchors have one: give every anchor a sigma "
                 "(robustloc calibrate writes them) or none" if np.isnan(sg[i])
-                else f"sigma must be positive and finite, got {sg[i]:g}")
+                else f"sigma must lie in [{lo:g}, {hi:g}], got {sg[i]:g}")
         raise InputError(f"anchor {str(name)!r} {what}", _path_of(anchors, None),
                          _line_of(anchors, i))
     return sg
@@ -831,6 +832,11 @@ def _require_rows(df: pd.DataFrame, what: str, path: PathLike | None = None) -> 
 # --------------------------------------------------------------------------------------
 
 
+#: The a-priori sigma an anchors file may give (m for ranges, dB for RSSI), as ``--sigma``
+#: (:data:`robustloc.options.sigma_value`).
+SIGMA_RANGE = (1e-6, 1e6)
+
+
 def validate_anchors(df: pd.DataFrame, path: PathLike | None = None) -> pd.DataFrame:
     """Validate an anchors frame in place-like fashion and return it (see :func:`read_anchors`)."""
     df = df.copy()
@@ -860,11 +866,19 @@ def validate_anchors(df: pd.DataFrame, path: PathLike | None = None) -> pd.DataF
     # the models silently and left every epoch without a fix: refused with their line
     from robustloc.io.limits import limits_for
 
-    rssi = limits_for("rssi")
+    # (and the range calibration and sigma: a bias of 1e300 m with a scale of 1e-300
+    # overflowed into every range and made every epoch invalid_measurement without naming
+    # the anchors file; a sigma of 1e-300 made every fix ill_conditioned -- the input
+    # review.  A bias as long as the longest plausible range, a scale of 1e-3 to 1e3 and
+    # sigma as --sigma, SIGMA_RANGE)
+    rssi, rng = limits_for("rssi"), limits_for("range")
     for c, what, lo, hi in (("A", "RSSI at 1 m A", rssi.low, rssi.high),
                             ("p0", "RSSI at d0 p0", rssi.low, rssi.high),
                             ("n", "path-loss exponent n", 0.01, 20.0),
-                            ("gamma", "path-loss exponent gamma", 0.01, 20.0)):
+                            ("gamma", "path-loss exponent gamma", 0.01, 20.0),
+                            ("bias", "range bias", -rng.high, rng.high),
+                            ("scale", "range scale", 1e-3, 1e3),
+                            ("sigma", "sigma", *SIGMA_RANGE)):
         if c in df.columns:
             v = pd.to_numeric(df[c], errors="coerce").to_numpy(dtype=float)
             bad = ~np.isnan(v) & ~((v >= lo) & (v <= hi))

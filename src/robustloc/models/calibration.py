@@ -98,6 +98,18 @@ class LineFit:
     residuals: Array
 
 
+
+def _sigma_floor(sigma: ArrayLike) -> Array:
+    """A fitted ``sigma`` as an anchors file may carry it: at least the lower end of
+    :data:`robustloc.io.tables.SIGMA_RANGE` (1e-6), which an exact simulation's residual
+    standard deviation (some 1e-12) would undercut, so that ``locate`` reads the
+    calibrated file back."""
+    from robustloc.io.tables import SIGMA_RANGE
+
+    with np.errstate(invalid="ignore"):
+        return np.where(np.isnan(sigma), np.nan, np.maximum(np.asarray(sigma, float),
+                                                            SIGMA_RANGE[0]))
+
 def _group_sums(g: NDArray[np.int64], n_groups: int, *cols: Array) -> list[Array]:
     return [np.bincount(g, weights=c, minlength=n_groups) for c in cols]
 
@@ -348,7 +360,7 @@ class CalibrationResult:
         pooled_sd = float(self.table.set_index("anchor").loc[POOLED, "residual_std"])
         sd = ids.map(par["residual_std"]).astype(float).to_numpy()
         use_pooled = self.pooled | ~(np.isfinite(sd) & (sd > 0))
-        return np.where(use_pooled, pooled_sd, sd)
+        return _sigma_floor(np.where(use_pooled, pooled_sd, sd))
 
     def apply_to_anchors(self, anchors: pd.DataFrame | None) -> pd.DataFrame:
         """Anchors frame with the fitted columns set (added or replaced).
@@ -991,6 +1003,7 @@ def self_calibration_table(
                           "calib_fixed": fixed})
     out = anchors.drop(columns=[c_ for c_ in drop + [f"{c_}_se" for c_ in drop]
                                 if c_ in anchors.columns]).copy()
+    cols["sigma"] = _sigma_floor(cols["sigma"])
     for k, v in cols.items():
         out[k] = np.asarray(v, dtype=float)
     out["calib_source"] = "self"

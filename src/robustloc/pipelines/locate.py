@@ -30,6 +30,7 @@ from robustloc.options import (
     option,
     positive_float,
     positive_int,
+    scale_floor,
     sigma_value,
     tag_height_m,
 )
@@ -124,7 +125,7 @@ class LocateSettings:
     robust_scale: str = option("log", choices=("log", "mad", "apriori"))
     alert_limit: float | None = option(None, check=positive_float)
     k_noise: float | None = option(None, check=nonnegative_float)
-    min_scale: float = option(0.0, check=nonnegative_float)
+    min_scale: float = option(0.0, check=scale_floor)
     param: tuple[str, ...] = ()
     model: str | None = option(None, choices=PATH_LOSS_MODELS)
     tag_height: float | None = option(None, check=tag_height_m)
