@@ -284,14 +284,16 @@ def test_implausible_exponent_refused(tmp_path, capsys):
     assert "anchor 1: fitted n = 48.32 is implausible" in err
 
 
-@pytest.mark.parametrize("bad, shown", [(-1, "'-1.0'"), (np.inf, "'inf'")])
+@pytest.mark.parametrize("bad, shown", [(-1, "'-1.0'"), (np.inf, "'inf'"),
+                                        (1e300, "'1e+300'")])
 def test_a_bad_weight_is_named_as_written(tmp_path, capsys, bad, shown):
-    """The message said ``np.int64(-1)`` / ``np.float64(inf)`` (NumPy's repr)."""
+    """The message said ``np.int64(-1)`` / ``np.float64(inf)`` (NumPy's repr); 1e300
+    (the input review) overflowed the fit into ``fitted n = nan is not positive``."""
     s = _ld_survey({"1": (-40, 2)})
     s["weight"] = 1.0
     s.loc[1, "weight"] = bad
     code, _, err = _cli([_write(tmp_path / "s.csv", s), "-o", str(tmp_path / "o.csv")],
                         capsys)
     assert code == 2
-    assert f"column 'weight': {shown} must be a finite number >= 0" in err, err
+    assert f"column 'weight': {shown} must be a finite number in [0, 1e+09]" in err, err
     assert "np." not in err

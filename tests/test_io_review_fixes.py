@@ -49,6 +49,30 @@ def test_write_folder_refuses_a_blank_name_before_writing(tmp_path, monkeypatch)
     assert not called and not any(tmp_path.iterdir())
 
 
+def test_a_folder_output_that_cannot_be_made_is_named_as_given(tmp_path, monkeypatch,
+                                                               capsys):
+    """A parent folder that refuses new entries (``chattr +i``: root ignores modes) made
+    ``stats`` say ``error: ro/.st.js4z0ecj.tmp: permission denied``, naming the hidden
+    temporary folder (the input review).  Now the folder the user asked for, and
+    nothing is written."""
+    import errno
+    import tempfile
+
+    def refuse(prefix="", suffix="", dir=None):  # noqa: A002 - mkdtemp's own name
+        raise PermissionError(errno.EACCES, "Permission denied",
+                              str(Path(dir) / f"{prefix}abcd1234{suffix}"))
+
+    monkeypatch.chdir(tmp_path)
+    rows = "".join(f"{t},T1,A{a},{-50 - a - (t % 3)}\n" for t in range(30) for a in (1, 2, 3))
+    _write(tmp_path / "m.csv", "time,tag,anchor,rssi\n" + rows)
+    (tmp_path / "ro").mkdir()
+    monkeypatch.setattr(tempfile, "mkdtemp", refuse)
+    assert main(["stats", "m.csv", "-o", "ro/st"]) == 2
+    err = capsys.readouterr().err
+    assert "error: ro/st: permission denied" in err and ".tmp" not in err
+    assert not any((tmp_path / "ro").iterdir())
+
+
 def test_stats_and_reliability_refuse_a_blank_output_name(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     _write(tmp_path / "a.csv", "anchor,x,y,A,n\nA1,0,0,-40,2\nA2,10,0,-40,2\nA3,0,10,-40,2\n")

@@ -97,6 +97,8 @@ def test_simulate_group_b_line_is_refused_not_silently_diagonal(tmp_path, capsys
     (["locate", "m.csv", "--anchors", "a.csv", "--sigma", "1e-300"], "--sigma"),
     # (the input review: every bound inf on fixes still called ok)
     (["locate", "m.csv", "--anchors", "a.csv", "--min-scale", "1e300"], "--min-scale"),
+    # (DuckDB's "can't be cast" text: more time bins than an int64 holds)
+    (["partition", "m.csv", "--by", "time", "--span", "1e-300"], "--span"),
 ])
 def test_absurd_option_values_are_refused(tmp_path, capsys, argv, opt):
     out = tmp_path / "out"

@@ -73,7 +73,13 @@ def write_folder(out: str | os.PathLike, write: Callable[[Path], T],
         raise InputError("already exists and is not a folder (a folder was expected)", out)
     parent = out.parent if str(out.parent) else Path(".")
     parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))
+    try:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))
+    except OSError as exc:  # named as the folder asked for, not the hidden temporary one
+        from robustloc.errors import OutputError
+        from robustloc.io.atomic import describe_oserror
+
+        raise OutputError(describe_oserror(exc), out, errno_=exc.errno) from None
     try:
         result = write(tmp)
         files = sorted(tmp.iterdir())

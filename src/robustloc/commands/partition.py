@@ -31,13 +31,16 @@ spills to disk beyond --memory-limit):
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from robustloc.engines.partition import BY, METHODS
-    from robustloc.options import nonnegative_int, positive_float, positive_int
+    from robustloc.options import float_in, nonnegative_int, positive_int
 
     p.add_argument("input", help="measurements: CSV or Parquet file, directory or glob")
     p.add_argument("-o", "--out", required=True, help="dataset directory to write")
     p.add_argument("--by", required=True, choices=BY, help="partition key")
-    p.add_argument("--span", type=positive_float, default=None, metavar="S",
-                   help="--by time: bin width in seconds (default: from --rows-per-partition)")
+    # (1e-300 surfaced DuckDB's "can't be cast" text: times up to 1e12 s over a span
+    # below 1e-6 s number more bins than an int64 holds -- the input review)
+    p.add_argument("--span", type=float_in(1e-6, 1e12), default=None, metavar="S",
+                   help="--by time: bin width in seconds, 1e-6 to 1e12 (default: from "
+                        "--rows-per-partition)")
     p.add_argument("--rows-per-partition", type=positive_int, default=2_000_000, metavar="N",
                    help="--by time without --span: target rows per file (default 2000000)")
     p.add_argument("--buckets", type=nonnegative_int, default=0, metavar="N",

@@ -433,18 +433,24 @@ def _robust_weight(robust: str | WeightFunction | None) -> WeightFunction | None
     return get_weight(str(robust))
 
 
+#: The largest frequency weight of a survey row (the copies of it the fit counts).
+SURVEY_WEIGHT_MAX = 1e9
+
+
 def _survey_weights(survey: pd.DataFrame) -> Array | None:
     """The survey's optional ``weight`` column (frequency weights), validated."""
     if "weight" not in survey.columns:
         return None
     w = pd.to_numeric(survey["weight"], errors="coerce").to_numpy(dtype=float)
-    bad = ~np.isfinite(w) | (w < 0)
+    # at most SURVEY_WEIGHT_MAX copies of a row: 1e300 on every row overflowed the fit's
+    # sums into "fitted n = nan is not positive" (the input review)
+    bad = ~((w >= 0) & (w <= SURVEY_WEIGHT_MAX))
     if bad.any():
         i = int(np.argmax(bad))
         line = int(survey.index[i]) if survey.index.name == "line" else None
         raise InputError(
-            f"column 'weight': {str(survey['weight'].iloc[i])!r} must be a finite number >= 0",
-            survey.attrs.get("path"), line,
+            f"column 'weight': {str(survey['weight'].iloc[i])!r} must be a finite number in "
+            f"[0, {SURVEY_WEIGHT_MAX:g}]", survey.attrs.get("path"), line,
         )
     return w
 
