@@ -116,6 +116,26 @@ def test_rotation_translation_invariance(theta, shift, seed):
         np.testing.assert_allclose(s2.position, s1.position @ R.T + t, atol=1e-6)
 
 
+@pytest.mark.parametrize("offset", [1e6, 1e9, 1e12])
+def test_a_layout_far_from_the_origin_gives_the_same_fixes(offset):
+    """The layout shifted by up to 1e12 m (the input review: from 1e9 m every epoch was
+    ``ill_conditioned``, the collinearity test's ``E[x^2] - E[x]^2`` having lost every
+    digit).  Same statuses; positions within the coordinates' resolution: an anchor
+    rounded by ulp(offset) / 2 moves a range by as much, a fix by a few times that
+    (DOP), so 10 ulp."""
+    rng = np.random.default_rng(4)
+    x = rng.uniform(2, 18, (20, 2))
+    d = ranges_to(SQUARE, x) + rng.normal(0, 0.3, (20, 8))
+    d[:, 3] += 4.0
+    tol = 10 * np.spacing(offset)
+    for method in ("ls", "nls", "huber", "igg3", "lege"):
+        s1 = Locator(method).solve(SQUARE, d)
+        s2 = Locator(method).solve(SQUARE + offset, d)
+        np.testing.assert_array_equal(s1.status, s2.status)
+        assert np.all(s1.status == st.OK)
+        np.testing.assert_allclose(s2.position - offset, s1.position, atol=max(tol, 1e-6))
+
+
 def test_huber_huge_threshold_equals_least_squares():
     rng = np.random.default_rng(3)
     H = rng.normal(size=(100, 8, 3))

@@ -203,8 +203,15 @@ def _collinear(a: Array, heard: NDArray[np.bool_], rel: float = 1e-3) -> NDArray
     """Epochs whose heard anchors lie on one line (2-D: the fix is ambiguous by mirror).
 
     The smaller eigenvalue of the heard anchors' scatter matrix, relative to the larger,
-    below ``rel**2`` (anchors within 0.1 % of their spread from a line).
+    below ``rel**2`` (anchors within 0.1 % of their spread from a line).  The moments are
+    taken about the anchors' median (``E[x^2] - E[x]^2`` of coordinates near 1e9 m lost
+    every digit: the input review's layout shifted by 1e12 m was `ill_conditioned` at
+    every epoch); a coordinate far outside the layout (a typo, :func:`_sane_anchors`)
+    does not move that centre.
     """
+    fin = np.all(np.isfinite(a), axis=1)
+    if fin.any():
+        a = a - np.median(a[fin], axis=0)
     h = heard.astype(float)
     cnt = np.maximum(h.sum(axis=1), 1.0)
     mean = (h @ a) / cnt[:, None]
