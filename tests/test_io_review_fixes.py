@@ -293,3 +293,15 @@ def test_read_measurements_lines_after_a_quoted_break_in_a_number(tmp_path):
     df = read_measurements(m)
     assert list(df.index) == [2, 4, 5, 8]
     assert list(df["range"]) == [5.0, 7.0, 7.0, 8.0]
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").is_file(), reason="needs Linux /proc")
+def test_a_file_that_reports_no_size_is_read_not_called_empty(tmp_path, capsys):
+    """``/proc`` files report size 0 but have content: ``locate /proc/self/status`` said
+    ``empty file`` (the input review).  Now it is read, and refused for what it is."""
+    _write(tmp_path / "a.csv", "anchor,x,y\nA1,0,0\nA2,10,0\nA3,0,10\n")
+    assert main(["locate", "/proc/self/status", "--anchors", str(tmp_path / "a.csv"),
+                 "-o", str(tmp_path / "p.csv")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: /proc/self/status:") and "empty file" not in err
+    assert "Traceback" not in err

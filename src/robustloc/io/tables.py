@@ -176,7 +176,12 @@ def _check_file(path: PathLike) -> Path:
         if not stat.S_ISREG(p.stat().st_mode):  # FIFO, character device: read, don't stat
             p = _spool(path)
     if p.stat().st_size == 0:
-        raise InputError("empty file (expected a header line)", name, 1)
+        # (a file of /proc or /sys has content but reports size 0: `/proc/self/status:1:
+        # empty file` -- the input review; such a file is read once, as a FIFO)
+        with open(p, "rb") as fh:
+            if not fh.read(1):
+                raise InputError("empty file (expected a header line)", name, 1)
+        p = _spool(path)
     return p
 
 
