@@ -8,8 +8,6 @@ printed.
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 from typing import TYPE_CHECKING
 
 from robustloc.engines import add_engine_arguments
@@ -202,35 +200,20 @@ def run(args: argparse.Namespace) -> int:
     from robustloc.commands._plot import check_plot, draw_plot
 
     check_plot(args, "positions")
-    from robustloc.io.atomic import writes_to_stdout
-
     if args.engine == "dask":
         from robustloc.engines.dask import run_locate
         return run_locate(args, locate_file)
     summary = locate_file(args)
     draw_plot(args)
-    # the summary never goes into a data stream: stderr when the positions go to stdout
-    dest = sys.stderr if writes_to_stdout(args.out) else sys.stdout
-    if args.json:
-        print(json.dumps(summary, indent=2), file=dest)
-        return 0
-    from robustloc.pipelines.locate import anchor_warnings
+    from robustloc.commands._summary import input_notes, summary_head
 
-    for line in anchor_warnings(summary, args.anchors):  # warnings, even with --quiet
-        print(f"warning: {line}", file=sys.stderr)
-    if args.quiet:
+    if (dest := summary_head(args, summary)) is None:
         return 0
     print(f"{summary['epochs']} epochs of {summary['value']} -> {summary['positions']} "
           f"({summary['seconds']:.2f} s, {summary['fixes_per_second']:.0f} fixes/s solving)",
           file=dest)
-    if summary["sorted_first"]:
-        print("  rows were not in epoch order: sorted by time and tag first", file=dest)
-    if summary["duplicates_merged"]:
-        print(f"  {summary['duplicates_merged']} duplicate rows (same epoch and anchor) averaged",
-              file=dest)
-    if summary["invalid_measurement_rows"]:
-        print(f"  invalid_measurement: {summary['invalid_measurement_rows']} rows (outside the "
-              "physical limits of robustloc.io.limits; not used)", file=dest)
+    for line in input_notes(summary):
+        print(line, file=dest)
     for m, c in summary["status"].items():
         print(f"  {m:9s} " + ", ".join(f"{k}: {v}" for k, v in sorted(c.items())), file=dest)
     from robustloc.pipelines.locate import hpl_lines

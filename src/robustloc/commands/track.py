@@ -7,8 +7,6 @@ The command line over :mod:`robustloc.pipelines.track` (options parsed into its
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 
 import pandas as pd
 
@@ -311,32 +309,17 @@ def run(args: argparse.Namespace) -> int:
         return run_tagwise(args, track_partition, "track", file_fn=track_partition_file,
                            local_keys={"measurements": str(args.measurements),
                                        "track": str(args.out)})
-    from robustloc.io.atomic import writes_to_stdout
-
     summary = track_file(args)
     draw_plot(args)
-    # the summary never goes into a data stream: stderr when the track goes to stdout
-    dest = sys.stderr if writes_to_stdout(args.out) else sys.stdout
-    if args.json:
-        print(json.dumps(summary, indent=2), file=dest)
-        return 0
-    from robustloc.pipelines.locate import anchor_warnings
+    from robustloc.commands._summary import input_notes, summary_head
 
-    for line in anchor_warnings(summary, args.anchors):  # warnings, even with --quiet
-        print(f"warning: {line}", file=sys.stderr)
-    if args.quiet:
+    if (dest := summary_head(args, summary)) is None:
         return 0
     print(f"{summary['epochs']} epochs, {summary['tags']} tags -> {summary['track']} "
           f"({summary['seconds']:.2f} s, {summary['epochs_per_second']:.0f} epochs/s)",
           file=dest)
-    if summary.get("sorted_first"):  # (the Dask engine's summary has no such key)
-        print("  rows were not in epoch order: sorted by time and tag first", file=dest)
-    if summary["invalid_measurement_rows"]:
-        print(f"  invalid_measurement: {summary['invalid_measurement_rows']} rows (outside "
-              "the physical limits of robustloc.io.limits; not used)", file=dest)
-    if summary.get("duplicates_merged"):
-        print(f"  {summary['duplicates_merged']} duplicate rows (same epoch and anchor) "
-              "averaged", file=dest)
+    for line in input_notes(summary):
+        print(line, file=dest)
     print("  " + ", ".join(f"{k}: {v}" for k, v in sorted(summary["status"].items())),
           file=dest)
     from robustloc.pipelines.locate import hpl_lines
