@@ -1252,3 +1252,89 @@ def test_a_restart_reads_only_the_latest_rows_of_the_tags(tmp_path, monkeypatch)
     pd.testing.assert_frame_equal(after[before.columns], before, check_dtype=False)
     assert before["time"].tolist() == [299.0, 0.0]
     assert sum(read) <= 3, read  # busy's rows at times 0 and 299, silent's at 0 (was 301)
+
+
+@pytest.mark.parametrize("ndjson", [False, True])
+def test_a_number_beyond_the_parsers_range_costs_only_its_row(ndjson):
+    """``1e400`` and integers of 5 000 digits are valid JSON; msgspec refuses them
+    ("Number out of range"), and the whole body was refused as "not valid JSON" with its
+    good rows (the service review).  Now only the rows holding them are refused, each
+    with its reason; and a ``null`` row is named ``null``, not ``NoneType``."""
+    idx = pd.Index(["A1"], dtype=object)
+    good = b'{"time": 2, "tag": "t", "anchor": "A1", "range": 3}'
+    bad = [b'{"time": 1e400, "tag": "t", "anchor": "A1", "range": 3}',
+           b'{"time": 1, "tag": "t", "anchor": "A1", "range": -1e400}',
+           b'{"time": 1, "tag": ' + b"7" * 5000 + b', "anchor": "A1", "range": 3}',
+           b'{"time": ' + b"9" * 5000 + b', "tag": "t", "anchor": "A1", "range": 3}',
+           b"null"]
+    parts = [*bad, good]
+    body = b"\n".join(parts) if ndjson else b"[" + b",".join(parts) + b"]"
+    rows, _ = parse_body(body)
+    batch, _, rejected = validate_rows(rows, idx, None, ("range", "rssi"))
+    assert len(batch) == 1 and batch.time[0] == 2.0
+    why = dict(rejected)
+    assert sorted(why) == [0, 1, 2, 3, 4]
+    assert "not finite" in why[0] and "range" in why[1]
+    assert "longer than" in why[2] and "not finite" in why[3]
+    assert why[4] == "row is a JSON null, expected an object"
+
+
+def test_subscribers_that_stop_reading_then_vanish_leave_no_traceback(uwb, server_factory):
+    """Position subscribers that never read (their sends block on a full socket) and then
+    abort their connection: each one's sender ended with ``WebSocketDisconnect`` that
+    nobody read, and asyncio printed "Task exception was never retrieved" with a traceback
+    on the service's stderr (the service review: 20 subscribers, 20 tracebacks).  Bounded:
+    20 subscribers, 24 bodies of 6 000 rows, on loopback."""
+    import asyncio
+
+    import websockets
+
+    s = server_factory(["--anchors", str(uwb / "anchors.csv")])
+    port = s.port
+    anchors = [str(a) for a in read_anchors(uwb / "anchors.csv")["anchor"]]
+
+    async def dead_subscriber():
+        r, w = await asyncio.open_connection("127.0.0.1", port, limit=1024)
+        w.transport.set_write_buffer_limits(0)
+        w.write(b"GET /ws/positions HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\n"
+                b"Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
+                b"Sec-WebSocket-Version: 13\r\n\r\n")
+        await w.drain()
+        await r.readuntil(b"\r\n\r\n")
+        w.transport.pause_reading()
+        return w
+
+    async def run():
+        subs = [await dead_subscriber() for _ in range(20)]
+        async with websockets.connect(f"ws://127.0.0.1:{port}/ws/measurements",
+                                      max_size=None) as ws:
+            for k in range(24):
+                body = [{"time": 1000.0 + k * 100 + i // 50, "tag": f"t{i % 50}",
+                         "anchor": a, "range": 5.0} for i in range(2000) for a in anchors]
+                await ws.send(json.dumps(body))
+                await ws.recv()
+        await asyncio.sleep(2.0)
+        for w in subs:
+            w.transport.abort()
+        await asyncio.sleep(2.0)
+
+    asyncio.run(run())
+    assert httpx.get(s.url + "/healthz", timeout=10).status_code == 200
+    log = s.log()
+    assert "never retrieved" not in log and "Traceback" not in log, log[-2000:]
+
+
+def test_no_floorplan_and_plain_http_to_a_websocket_are_counted_with_a_reason(
+        uwb, server_factory):
+    """``GET /floorplan`` without one was a 404 that was not counted; ``GET /ws/positions``
+    said "no such endpoint" for an endpoint that exists (the service review).  Now both
+    are counted, and the second is 426 Upgrade Required saying to use ws://."""
+    s = server_factory(["--anchors", str(uwb / "anchors.csv")])
+    r = httpx.get(s.url + "/floorplan")
+    assert r.status_code == 404 and "floor plan" in r.json()["error"]
+    for path in ("/ws/positions", "/ws/measurements"):
+        r = httpx.get(s.url + path)
+        assert r.status_code == 426 and "WebSocket endpoint" in r.json()["error"]
+        assert r.headers["upgrade"] == "websocket"
+    assert metric(s.url, 'robustloc_requests_rejected_total{reason="not_found"}') == 1
+    assert metric(s.url, 'robustloc_requests_rejected_total{reason="upgrade_required"}') == 2

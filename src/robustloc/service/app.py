@@ -367,8 +367,8 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
     async def get_floorplan(request: Request) -> Response:
         if not authorized(request.headers, request.query_params):
             return unauthorized()
-        if cfg.floorplan is None:
-            return _json({"error": "no floor plan configured"}, 404)
+        if cfg.floorplan is None:  # (counted as every refused request is)
+            return refuse("not_found", 404, "no floor plan configured (serve --floorplan)")
         return FileResponse(cfg.floorplan)
 
     async def healthz(request: Request) -> Response:
@@ -417,6 +417,12 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
                                             return_when=asyncio.FIRST_COMPLETED)
             for t in pend:
                 t.cancel()
+            # a send to a client that left ends ``pump`` with WebSocketDisconnect: read
+            # it, or asyncio prints "Task exception was never retrieved" with a traceback
+            # on the service's stderr for every such subscriber (the service review)
+            for t in done:
+                if not t.cancelled():
+                    t.exception()
         except Exception:  # a broken socket ends this subscriber only
             pass
         finally:
@@ -474,7 +480,11 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
         code = int(getattr(exc, "status_code", 400))
         reason = {404: "not_found", 405: "method_not_allowed"}.get(code, f"http_{code}")
         headers = dict(getattr(exc, "headers", None) or {})
-        if code == 404:
+        if code == 404 and request.url.path in ("/ws/positions", "/ws/measurements"):
+            # a plain HTTP request to a WebSocket endpoint: it exists, it needs the upgrade
+            code, reason, headers = 426, "upgrade_required", {**headers, "Upgrade": "websocket"}
+            msg = f"{request.url.path} is a WebSocket endpoint: connect with ws:// or wss://"
+        elif code == 404:
             msg = f"no such endpoint: {request.url.path} (see the README's live service API)"
         elif code == 405:
             msg = (f"method {request.method} not allowed on {request.url.path}"

@@ -24,6 +24,7 @@ every invalid one.
 from __future__ import annotations
 
 import json
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -45,6 +46,28 @@ if _msgspec is not None:  # generic JSON: msgspec parses 3-5x faster than the st
 else:  # pragma: no cover - depends on the environment
     _loads = json.loads
     _JSONError = (ValueError,)
+
+
+def _loads_any(text: bytes) -> Any:
+    """:data:`_loads`, and for a number beyond the parser's range (``1e400``, an integer
+    of thousands of digits: valid JSON) the standard library's reading (``inf``, a
+    Python int), so that only the rows holding one are refused, each with its reason (the
+    service review: the whole body was refused as "not valid JSON" with its good rows)."""
+    try:
+        return _loads(text)
+    except _JSONError as exc:
+        if "out of range" not in str(exc):
+            raise
+        return json.loads(text, parse_int=_int_or_digits)
+
+
+def _int_or_digits(digits: str) -> int | str:
+    """An integer literal as an int, or as its digits beyond Python's conversion limit
+    (4 300 digits): a value then reads as an infinite float, an id as a too-long id."""
+    limit = getattr(sys, "get_int_max_str_digits", lambda: 0)()
+    return digits if limit and len(digits.lstrip("-")) > limit else int(digits)
+
+
 # JSON nested deeper than the parser's limit (a valid row nests two levels) raises
 # RecursionError in msgspec and the standard library; orjson 3.8 segfaulted on 60 000 levels
 # of objects, which killed the service (the reason it is no longer used here)
@@ -100,7 +123,7 @@ def parse_body(body: bytes | str) -> tuple[list[Any], list[tuple[int, str]]]:
         raise BodyError("empty body: send a JSON array or NDJSON of rows", 400)
     if text[:1] == b"[":
         try:
-            doc = _loads(text)
+            doc = _loads_any(text)
         except _JSONError as exc:
             raise BodyError(f"body is not valid JSON: {exc}", 400) from None
         except RecursionError:
@@ -113,7 +136,7 @@ def parse_body(body: bytes | str) -> tuple[list[Any], list[tuple[int, str]]]:
     lines = [ln for ln in text.split(b"\n") if ln.strip()]
     for i, ln in enumerate(lines):
         try:
-            rows.append(_loads(ln))
+            rows.append(_loads_any(ln))
         except _JSONError as exc:
             rows.append(_NotJSON(str(exc)))
             bad.append((i, f"line is not JSON: {exc}"))
@@ -179,7 +202,11 @@ def _json_type(x: Any) -> str:
         return "array"
     if isinstance(x, str):
         return "string"
-    return type(x).__name__
+    if x is None:
+        return "null"
+    if isinstance(x, bool):
+        return "boolean"
+    return "number" if isinstance(x, int | float) else type(x).__name__
 
 
 def _ids(col: list[Any], name: str, err: list[str | None]) -> NDArray[np.object_]:
