@@ -1338,3 +1338,53 @@ def test_no_floorplan_and_plain_http_to_a_websocket_are_counted_with_a_reason(
         assert r.headers["upgrade"] == "websocket"
     assert metric(s.url, 'robustloc_requests_rejected_total{reason="not_found"}') == 1
     assert metric(s.url, 'robustloc_requests_rejected_total{reason="upgrade_required"}') == 2
+
+
+def test_new_tags_beyond_max_tags_are_refused_row_by_row(uwb):
+    """A gateway sending random tag ids grew the service by ~4 kB per id, for good: 0.9 GB
+    after 200 000 (the service review).  With ``max_tags`` the rows of a new tag beyond it
+    are rejected, each with its reason and its place in the body, on both ingest paths
+    (decoded in one pass, or row by row); known tags go on being accepted; the refused
+    tags are counted."""
+    from robustloc.service.engine import Engine
+
+    anchors = read_anchors(uwb / "anchors.csv")
+    ids = [str(a) for a in anchors["anchor"]]
+    eng = Engine(anchors, LocateProcessor(anchors, method="nls"), latency_window_s=0.0,
+                 fsync=False, max_tags=3, value="range")
+
+    def rows(tags, t=0.0):
+        return [{"time": t, "tag": g, "anchor": a, "range": 5.0} for g in tags for a in ids]
+
+    m = len(ids)
+    body = json.dumps(rows(["a", "b", "c", "d", "e"])).encode()
+    batch = eng.decode(body)
+    assert batch is not None  # the one-pass path
+    res = eng.ingest_batch(batch).to_json()
+    assert res["accepted"] == 3 * m and res["n_rejected"] == 2 * m
+    assert [r["index"] for r in res["rejected"]] == list(range(3 * m, 5 * m))
+    assert all("at most 3 tags" in r["error"] and "new" in r["error"]
+               for r in res["rejected"])
+    # row by row (a malformed row among them keeps its own reason and place)
+    mixed = [{"time": 1.0, "tag": "f", "anchor": ids[0], "range": 5.0},
+             {"time": 1.0, "tag": "a", "anchor": "nope", "range": 5.0},
+             *rows(["a", "c"], 1.0)]
+    res = eng.ingest(mixed).to_json()
+    assert res["accepted"] == 2 * m
+    assert [r["index"] for r in res["rejected"]] == [0, 1]
+    assert "at most 3 tags" in res["rejected"][0]["error"]
+    assert "at most 3 tags" not in res["rejected"][1]["error"]
+    assert eng.metrics.tags_refused == 3 and len(eng.assembler.tags) == 3
+    with pytest.raises(ValueError):
+        Engine(anchors, LocateProcessor(anchors), max_tags=0)
+
+
+def test_serve_max_tags_refuses_new_tags_and_counts_them(uwb, server_factory):
+    s = server_factory(["--anchors", str(uwb / "anchors.csv"), "--max-tags", "2"])
+    a = str(read_anchors(uwb / "anchors.csv")["anchor"].iloc[0])
+    rows = [{"time": 0.0, "tag": g, "anchor": a, "range": 5.0} for g in ("x", "y", "z")]
+    r = httpx.post(s.url + "/api/measurements", json=rows)
+    assert r.status_code == 202 and r.json()["accepted"] == 2
+    assert [e["index"] for e in r.json()["rejected"]] == [2]
+    assert metric(s.url, "robustloc_tags_refused_total") == 1
+    assert httpx.get(s.url + "/api/status").json()["tags"] == 2

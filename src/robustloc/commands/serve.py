@@ -91,6 +91,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         DEFAULT_IDLE_FLUSH_S,
         DEFAULT_LATENCY_WINDOW_S,
         DEFAULT_MAX_BODY_BYTES,
+        DEFAULT_MAX_TAGS,
         DEFAULT_RATE_LIMIT_ROWS,
         DEFAULT_TIME_JUMP_S,
     )
@@ -187,6 +188,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rate-limit", type=positive_float, default=DEFAULT_RATE_LIMIT_ROWS,
                    metavar="ROWS_PER_S",
                    help=f"ingest rows/s per client address (default {DEFAULT_RATE_LIMIT_ROWS:g})")
+    p.add_argument("--max-tags", type=positive_int, default=DEFAULT_MAX_TAGS, metavar="N",
+                   help="most tags the service holds state for; the rows of a new tag beyond "
+                        "it are rejected with their reason and the tag counted "
+                        "(robustloc_tags_refused_total).  Each tag costs some 1.5 kB, 4 kB "
+                        f"with --track, while the service runs (default {DEFAULT_MAX_TAGS})")
     p.add_argument("--shutdown-grace", type=positive_float, default=DEFAULT_SHUTDOWN_GRACE_S,
                    metavar="S",
                    help="seconds requests in progress get to finish at SIGTERM/SIGINT, then "
@@ -320,7 +326,7 @@ def _open_engine(args: argparse.Namespace, anchors, processor, value: str | None
     try:
         return Engine(anchors, processor, store_dir=args.store,
                       latency_window_s=args.latency_window, idle_flush_s=args.idle_flush,
-                      time_jump_s=args.time_jump, value=value)
+                      time_jump_s=args.time_jump, value=value, max_tags=args.max_tags)
     except StoreError as exc:  # in use, or a damaged segment: named by its file
         raise InputError(exc.message, exc.path) from None
     except (pickle.UnpicklingError, EOFError, AttributeError, ImportError) as exc:

@@ -30,7 +30,8 @@ vectorized passes over the pending rows, whatever the number of tags.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from types import MappingProxyType
 
 import numpy as np
 import pandas as pd
@@ -108,6 +109,11 @@ class EpochAssembler:
     @property
     def tags(self) -> list[str]:
         return list(self._names)
+
+    @property
+    def known(self) -> Mapping[str, int]:
+        """The tags registered so far and their codes (a read-only view, not a copy)."""
+        return MappingProxyType(self._code)
 
     @property
     def n_pending(self) -> int:

@@ -53,6 +53,7 @@ from robustloc.service.assembly import EpochAssembler
 from robustloc.service.defaults import (
     DEFAULT_IDLE_FLUSH_S,
     DEFAULT_LATENCY_WINDOW_S,
+    DEFAULT_MAX_TAGS,
     DEFAULT_TIME_JUMP_S,
     MAX_REJECTED_LISTED,
 )
@@ -189,6 +190,10 @@ class Engine:
         Sync each append (only tests of throw-away stores turn it off).
     snapshot_s : float
         Seconds between snapshots of a stateful processor.
+    max_tags : int
+        Most tags held (:data:`~robustloc.service.defaults.DEFAULT_MAX_TAGS`): the rows of
+        a new tag beyond it are rejected with their reason (the tags a restart recovers
+        from the store count, and are never refused).
     """
 
     def __init__(
@@ -198,8 +203,11 @@ class Engine:
         idle_flush_s: float = DEFAULT_IDLE_FLUSH_S,
         time_jump_s: float = DEFAULT_TIME_JUMP_S,
         value: str | None = None, seal_rows: int = 1_000_000, fsync: bool = True,
-        snapshot_s: float = 10.0,
+        snapshot_s: float = 10.0, max_tags: int = DEFAULT_MAX_TAGS,
     ) -> None:
+        if not (isinstance(max_tags, int) and max_tags >= 1):
+            raise ValueError(f"max_tags must be a whole number >= 1, got {max_tags!r}")
+        self.max_tags = max_tags
         self.anchors = anchors
         self.anchor_ids = [str(a) for a in anchors["anchor"]]
         self._anchor_index = pd.Index(self.anchor_ids, dtype=object)
@@ -465,6 +473,12 @@ class Engine:
             if kind != kind0:  # the store's metadata first: a failed write changes nothing
                 self._write_meta(kind)
                 self.kind = kind
+            if len(batch):
+                bad = {i for i, _ in rejected}
+                index = np.array([i for i in range(len(rows)) if i not in bad], np.int64)
+                batch, over = self._within_max_tags(batch, index)
+                if over:
+                    rejected = sorted(rejected + over)
             n_late, wall = self._accept(batch, source)
         rej_cols = self._rejected_anchor_cols(rows, rejected)
         return self._finish(batch, rejected, rej_cols, n_late, wall, source)
@@ -475,8 +489,31 @@ class Engine:
         Thread-safe.  When it returns, the rows are on disk (with a store).
         """
         with self._ingest_lock:
+            batch, over = self._within_max_tags(batch, np.arange(len(batch)))
             n_late, wall = self._accept(batch, source)
-        return self._finish(batch, [], np.zeros(0, dtype=np.int64), n_late, wall, source)
+        return self._finish(batch, over, np.zeros(0, dtype=np.int64), n_late, wall, source)
+
+    def _within_max_tags(self, batch: RowBatch, index: np.ndarray
+                         ) -> tuple[RowBatch, list[tuple[int, str]]]:
+        """``batch`` without the rows of new tags beyond :attr:`max_tags` (new tags taken
+        in order of appearance while there is room), and those rows as ``(index, reason)``
+        with ``index`` their place in the body (caller holds the ingest lock)."""
+        known = self.assembler.known
+        new = [t for t in pd.unique(batch.tag).tolist() if t not in known]
+        room = self.max_tags - len(known)
+        if len(new) <= room:
+            return batch, []
+        refused = set(new[max(room, 0):])
+        out = np.fromiter((t in refused for t in batch.tag.tolist()), bool, len(batch))
+        with self.metrics._lock:
+            self.metrics.tags_refused += len(refused)
+        why = (f"the service holds at most {self.max_tags} tags (serve --max-tags); this "
+               "tag is new")
+        keep = ~out
+        kept = RowBatch(batch.time[keep], batch.tag[keep], batch.anchor[keep],
+                        batch.value[keep], batch.anchor_col[keep])
+        return kept, [(int(i), f"tag {str(t)[:40]!r}: {why}")
+                      for i, t in zip(index[out].tolist(), batch.tag[out].tolist())]
 
     def _runs_for(self, code: np.ndarray) -> np.ndarray:
         """The per-code run array, grown to cover ``code`` (caller holds the ingest lock,

@@ -34,6 +34,7 @@ class Metrics:
         self.rows_rejected: dict[str, int] = {}
         self.rows_late = 0
         self.tags_rebased = 0  # tags whose clock jumped (robustloc.service.assembly)
+        self.tags_refused = 0  # new tags beyond serve --max-tags (their rows rejected)
         self.requests_rejected: dict[str, int] = {}  # reason -> count (401, 413, 429, ...)
         self.positions: dict[str, int] = {}  # status -> count
         self.ws_dropped = 0
@@ -116,6 +117,7 @@ class Metrics:
                 "rows_rejected": sum(self.rows_rejected.values()),
                 "rows_late": self.rows_late,
                 "tags_rebased": self.tags_rebased,
+                "tags_refused": self.tags_refused,
                 "requests_rejected": dict(self.requests_rejected),
                 "positions": sum(self.positions.values()),
                 "latency_p50_s": float(np.percentile(lat, 50)) if len(lat) else None,
@@ -156,6 +158,10 @@ class Metrics:
                    "newest time, nothing near it for --idle-flush) and its epochs "
                    "restarted from the new time.")
             lines.append(f"robustloc_tags_rebased_total {self.tags_rebased}")
+            family("robustloc_tags_refused_total", "counter",
+                   "New tags refused because the service holds --max-tags already (their "
+                   "rows rejected, counted in robustloc_rows_rejected_total).")
+            lines.append(f"robustloc_tags_refused_total {self.tags_refused}")
             family("robustloc_requests_rejected_total", "counter",
                    "Requests refused as a whole, by reason.")
             for r, c in sorted(self.requests_rejected.items()):
