@@ -1388,3 +1388,34 @@ def test_serve_max_tags_refuses_new_tags_and_counts_them(uwb, server_factory):
     assert [e["index"] for e in r.json()["rejected"]] == [2]
     assert metric(s.url, "robustloc_tags_refused_total") == 1
     assert httpx.get(s.url + "/api/status").json()["tags"] == 2
+
+
+def test_what_the_http_server_refuses_itself_is_counted_without_a_traceback(
+        uwb, server_factory):
+    """A request that is not HTTP and a WebSocket text frame that is not UTF-8 are refused
+    by uvicorn before the application sees them (400, close 1007): neither was counted,
+    and the second printed a traceback on the service's stderr (the service review)."""
+    import socket
+
+    s = server_factory(["--anchors", str(uwb / "anchors.csv")])
+    for raw in (b"POST /api/measurements HTTP/1.1\r\nHost: x\r\nContent-Length: abc\r\n\r\n",
+                b"BREW /pot HTTP/1.1\r\nHost: x\r\n\r\n"):
+        with socket.create_connection(("127.0.0.1", s.port), timeout=10) as c:
+            c.sendall(raw)
+            assert c.recv(4096).startswith(b"HTTP/1.1 400")
+    with socket.create_connection(("127.0.0.1", s.port), timeout=10) as c:
+        c.sendall(b"GET /ws/measurements HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\n"
+                  b"Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
+                  b"Sec-WebSocket-Version: 13\r\n\r\n")
+        buf = b""
+        while b"\r\n\r\n" not in buf:
+            buf += c.recv(4096)
+        c.sendall(bytes([0x81, 0x82]) + b"\x00\x00\x00\x00" + b"\xff\xfe")  # masked, ff fe
+        close = c.recv(4096)
+        assert close[:1] == b"\x88" and close[2:4] == (1007).to_bytes(2, "big")
+    time.sleep(0.5)
+    assert metric(s.url, 'robustloc_requests_rejected_total{reason="invalid_http"}') == 2
+    assert metric(s.url, 'robustloc_requests_rejected_total{reason="invalid_utf8"}') == 1
+    assert httpx.get(s.url + "/healthz").status_code == 200
+    log = s.log()
+    assert "Traceback" not in log and "Invalid UTF-8" in log, log[-2000:]

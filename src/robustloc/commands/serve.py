@@ -397,6 +397,9 @@ def run(args: argparse.Namespace) -> int:
                             ws_max_size=args.max_body_bytes, lifespan="on",
                             timeout_keep_alive=30, access_log=False,
                             timeout_graceful_shutdown=args.shutdown_grace)
+    from robustloc.service.serverlog import count_server_refusals
+
+    count_server_refusals(engine.metrics)  # (after the Config: it configures the loggers)
     server = uvicorn.Server(config)
     print(f"robustloc serve: http://{args.host}:{args.port}/ ({engine.processor.name}, "
           f"latency window {args.latency_window:g} s)", file=sys.stderr, flush=True)

@@ -1,0 +1,49 @@
+"""What the ASGI server (uvicorn) refuses before the application sees it, counted.
+
+A request line or header that is not HTTP (``Content-Length: abc``, a method such as
+``BREW``) is answered ``400 Invalid HTTP request received.`` by uvicorn itself, and a
+WebSocket text frame that is not UTF-8 is closed with code 1007; the application never
+sees either, so neither was counted, and the second printed a traceback on the service's
+stderr (the service review).  uvicorn logs both on its error logger: this filter counts
+them under a reason of their own and keeps a one-line warning, without the traceback.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from robustloc.service.metrics import Metrics
+
+#: uvicorn's log message (0.30-0.55) -> the reason counted in
+#: ``robustloc_requests_rejected_total``.
+REFUSED_BY_SERVER = {
+    "Invalid HTTP request received.": "invalid_http",
+    "Invalid UTF-8 sequence received from client.": "invalid_utf8",
+}
+
+
+class CountRefused(logging.Filter):
+    """Count uvicorn's own refusals (:data:`REFUSED_BY_SERVER`) in ``metrics`` and log
+    each as one warning line (no traceback)."""
+
+    def __init__(self, metrics: Metrics) -> None:
+        super().__init__()
+        self.metrics = metrics
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        reason = REFUSED_BY_SERVER.get(record.getMessage())
+        if reason is not None:
+            self.metrics.request_rejected(reason)
+            record.exc_info = None
+            record.exc_text = None
+            record.levelno, record.levelname = logging.WARNING, "WARNING"
+        return True
+
+
+def count_server_refusals(metrics: Metrics, logger: str = "uvicorn.error") -> CountRefused:
+    """Install :class:`CountRefused` on the server's error logger; returns it."""
+    f = CountRefused(metrics)
+    logging.getLogger(logger).addFilter(f)
+    return f
