@@ -1175,3 +1175,44 @@ def test_compiled_least_squares_resolution_equals_the_numpy_reference(seed, p, m
     d_obs = model.predict(x[fin]) - v[fin]  # the observed ranges both recover
     np.testing.assert_allclose(v_c[fin], f - d_obs, rtol=0, atol=1e-9, equal_nan=True)
     np.testing.assert_allclose(j_c[fin], J, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("engine", ["compiled", "numpy"])
+def test_the_kernels_wrappers_check_shapes_and_broadcast_alike(engine):
+    """The compiled kernels read without bounds checks.  A ``used`` of 100 columns beside
+    a ``J`` of 4 corrupted the heap (SIGSEGV / "double free" in 5 of 8 runs: the API
+    review); an ``(N, 1)`` sigma gave three of 50 ``hpl`` that differed from the NumPy
+    reference's broadcast; a position of 3 axes beside 2-D anchors read a third anchor
+    coordinate that does not exist.  Now a wrong shape is a ValueError naming the
+    argument, and whatever broadcasts is broadcast by both engines the same way."""
+    from robustloc.integrity import fixes as F
+    from robustloc.models.ranging import RangeModel
+
+    rng = np.random.default_rng(0)
+    N, n = 50, 4
+    a = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])
+    x = rng.uniform(2, 8, (N, 2))
+    d = x[:, None, :] - a[None]
+    J = d / np.linalg.norm(d, axis=2)[..., None]
+    ones = np.ones((N, n))
+    used = np.ones((N, n), bool)
+    with pytest.raises(ValueError, match="used has shape"):
+        F.robust_fit_cofactors(J, ones, np.ones((N, 100), bool), ones, ones, engine=engine)
+    with pytest.raises(ValueError, match="J has shape"):
+        F.robust_fit_cofactors(J[0], ones, used, ones, ones, engine=engine)
+    with pytest.raises(ValueError, match="v has shape"):
+        F.resolution_reduction(J, ones, used, np.ones((N, 3)), engine=engine)
+    model = RangeModel(a)
+    v = rng.normal(0, 0.1, (N, n))
+    with pytest.raises(ValueError, match="position has shape"):
+        F.mirror_solution(model, np.c_[x, np.ones(N)], v, ones, used, engine=engine)
+    with pytest.raises(ValueError, match="residuals has shape"):
+        F.least_squares_resolution(model, x, v[:, :3], ones, used, engine=engine)
+    full = F.protection_levels_local(J, ones, used, 17.0, 3.0, engine=engine)
+    col = F.protection_levels_local(J, ones[:, :1], used, 17.0, 3.0, engine=engine)
+    one = F.protection_levels_local(J, 1.0, used, 17.0, 3.0, engine=engine)
+    for other in (col, one):
+        for u, w in zip(full, other, strict=True):
+            np.testing.assert_array_equal(u, w)
+    np.testing.assert_array_equal(F.resolution_reduction(J, ones, used, v, engine=engine),
+                                  F.resolution_reduction(J, 1.0, True, v, engine=engine))

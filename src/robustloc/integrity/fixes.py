@@ -138,7 +138,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from robustloc import status as st
 from robustloc._stats import chi2_sf
@@ -157,6 +157,49 @@ __all__ = ["ambiguity_sides", "anchor_elongation", "locate_protected", "mirror_s
 
 #: Horizontal axes of the solved dimension (x, y); the third, when present, is vertical.
 _H = slice(0, 2)
+
+
+def _per_observation(shape: tuple[int, int], **arrays: ArrayLike) -> list[Array]:
+    """Each of ``arrays`` broadcast to ``shape`` (epochs, observations), named in the
+    error when it cannot be: the compiled kernels read every row and column without
+    bounds checks (the API review: a ``used`` of 100 columns beside a ``J`` of 4 wrote
+    past an array's end -- "double free or corruption", SIGSEGV), and the NumPy
+    reference broadcasts where they did not (an ``(N, 1)`` sigma: three ``hpl`` of 50
+    differed)."""
+    out = []
+    for name, arr in arrays.items():
+        a = np.asarray(arr)
+        try:
+            out.append(np.broadcast_to(a, shape))
+        except ValueError:
+            raise ValueError(f"{name} has shape {a.shape}; expected {shape} (epochs, "
+                             "observations) or one that broadcasts to it") from None
+    return out
+
+
+def _design(J: ArrayLike) -> Array:
+    """``J`` as a float array (epochs, observations, axes), axes 1 to 3."""
+    Ja = np.asarray(J, dtype=float)
+    if Ja.ndim != 3 or not 1 <= Ja.shape[2] <= 3:
+        raise ValueError(f"J has shape {Ja.shape}; expected (epochs, observations, p) "
+                         "with p = 1, 2 or 3")
+    return Ja
+
+
+def _fix_rows(range_model: RangeModel, position: ArrayLike, residuals: ArrayLike,
+              **arrays: ArrayLike) -> tuple[Array, Array, list[Array]]:
+    """``position (N, p)`` with ``p`` the anchors' axes, ``residuals (N, m)`` with ``m``
+    the anchors, and ``arrays`` broadcast to ``(N, m)`` (:func:`_per_observation`)."""
+    a = range_model.anchors
+    x = np.asarray(position, dtype=float)
+    if x.ndim != 2 or x.shape[1] != a.shape[1]:
+        raise ValueError(f"position has shape {x.shape}; expected (epochs, "
+                         f"{a.shape[1]}) for anchors of {a.shape[1]} axes")
+    res = np.asarray(residuals, dtype=float)
+    if res.shape != (x.shape[0], a.shape[0]):
+        raise ValueError(f"residuals has shape {res.shape}; expected "
+                         f"{(x.shape[0], a.shape[0])} (epochs, anchors)")
+    return x, res, _per_observation(res.shape, **arrays)
 
 
 def protection_levels_local(
@@ -191,7 +234,9 @@ def protection_levels_local(
     hpl, vpl, r
         ``vpl`` is NaN for 2-D fixes.
     """
-    N, _, p = J.shape
+    J = _design(J)
+    N, n, p = J.shape
+    sigma, used = _per_observation((N, n), sigma=sigma, used=used)
     if engine == "compiled" and p in (2, 3) and N:
         from robustloc.estimators._compiled import in_threads
         from robustloc.integrity._compiled import protection_levels_kernel
@@ -339,7 +384,8 @@ def mirror_solution(
     J_alt : ndarray (N, m, p)
         The design ``d f / d x`` at the alternative (for its protection level).
     """
-    x = np.asarray(position, dtype=float)
+    x, residuals, (sigma, keep) = _fix_rows(range_model, position, residuals, sigma=sigma,
+                                            keep=keep)
     N, p = x.shape
     a = range_model.anchors
     if engine not in ("compiled", "numpy"):
@@ -655,7 +701,10 @@ def robust_fit_cofactors(J: Array, sig: Array, used: NDArray[np.bool_], weight_f
     """
     if engine not in ("compiled", "numpy"):
         raise ValueError(f"engine must be 'compiled' or 'numpy', got {engine!r}")
+    J = _design(J)
     p = J.shape[2]
+    sig, used, weight_factor, qv = _per_observation(
+        J.shape[:2], sig=sig, used=used, weight_factor=weight_factor, qv=qv)
     if engine == "compiled" and J.shape[0] and 1 <= p <= 3:
         from robustloc.integrity._compiled import robust_cofactors_kernel
 
@@ -713,7 +762,9 @@ def resolution_reduction(J: Array, sig: Array, keep: NDArray[np.bool_], v: Array
     """
     if engine not in ("compiled", "numpy"):
         raise ValueError(f"engine must be 'compiled' or 'numpy', got {engine!r}")
+    J = _design(J)
     p = J.shape[2]
+    sig, keep, v = _per_observation(J.shape[:2], sig=sig, keep=keep, v=v)
     if engine == "compiled" and J.shape[0] and 1 <= p <= 3:
         from robustloc.integrity._compiled import resolution_reduction_kernel
 
@@ -779,7 +830,8 @@ def least_squares_resolution(
     """
     if engine not in ("compiled", "numpy"):
         raise ValueError(f"engine must be 'compiled' or 'numpy', got {engine!r}")
-    x0 = np.asarray(position, dtype=float)
+    x0, residuals, (sigma, keep) = _fix_rows(range_model, position, residuals, sigma=sigma,
+                                             keep=keep)
     p = x0.shape[1]
     a = range_model.anchors
     extent = max(float(np.max(np.linalg.norm(a - a.mean(axis=0), axis=1))), 1.0)
