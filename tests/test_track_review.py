@@ -132,3 +132,82 @@ def test_fuse_with_rmc_and_vtg_equals_rmc_alone():
     assert np.max(np.abs(a["vx"] - b["vx"])) < 1e-3
     assert np.max(np.abs(a["vy"] - b["vy"])) < 1e-3
     assert (a["status"] == "ok").all()
+
+
+# --------------------------------------------------------------------------------------
+# the API review (2026-12-05): the Tracker's own checks and its saved state
+# --------------------------------------------------------------------------------------
+def _two_tag_log():
+    from robustloc.io.tables import Epochs, to_epochs
+
+    anc = pd.DataFrame({"anchor": list("abcd"), "x": [0.0, 10, 10, 0], "y": [0.0, 0, 10, 10]})
+    rng = np.random.default_rng(0)
+    rows = []
+    for tag in ("t1", "t2"):
+        for k in range(20):
+            t = 0.5 * k
+            p = (2 + 0.3 * t, 5.0)
+            rows += [(t, tag, a.anchor, np.hypot(a.x - p[0], a.y - p[1]) + rng.normal(0, 0.05))
+                     for a in anc.itertuples()]
+    log = pd.DataFrame(rows, columns=["time", "tag", "anchor", "range"])
+
+    def ep(df):  # tags 1 and 2, ints (what Epochs and step accept)
+        e = to_epochs(df, list(anc.anchor), "range")
+        tags = np.where(e.tag == "t1", 1, 2).astype(object)
+        return Epochs(e.time, tags, e.values, e.anchor_ids, "range", e.line)
+
+    return anc, ep(log[log.time < 5]), ep(log[log.time >= 5])
+
+
+def test_a_saved_tracker_keeps_tags_that_are_not_strings():
+    """JSON keys are strings: tags 1 and 2 came back as '1' and '2', and the next step
+    started new filters for 1 and 2 (fixes differing from the uninterrupted run, no
+    warning).  A fresh tracker's state_dict raised ValueError (reshape of empty arrays)."""
+    import json
+
+    from robustloc.tracking import Tracker
+
+    anc, e1, e2 = _two_tag_log()
+    tr = Tracker(anc)
+    tr.step(e1)
+    ref = tr.step(e2)
+    tr = Tracker(anc)
+    tr.step(e1)
+    saved = json.loads(json.dumps(tr.state_dict()))
+    tr2 = Tracker(anc)
+    tr2.load_state_dict(saved)
+    out = tr2.step(e2)
+    assert tr2.tags == [1, 2]
+    np.testing.assert_array_equal(out[["x", "y", "var_x"]], ref[["x", "y", "var_x"]])
+    fresh = Tracker(anc).state_dict()
+    assert fresh["tags"] == {} and fresh["tag_ids"] == []
+    Tracker(anc).load_state_dict(json.loads(json.dumps(fresh)))
+
+
+def test_a_tracker_refuses_bad_input_before_changing_its_state():
+    """An Epochs whose time is shorter than its values raised IndexError after earlier
+    rounds had moved the filters; a saved state with one malformed tag cleared the
+    tracker, then failed part-way.  Now both raise ValueError and leave it as it was.
+    Epochs whose time is not finite get invalid_measurement rows (they were `ok`)."""
+    from robustloc.io.tables import Epochs
+    from robustloc.tracking import Tracker
+
+    anc, e1, e2 = _two_tag_log()
+    tr = Tracker(anc)
+    tr.step(e1)
+    ref = Tracker(anc)
+    ref.step(e1)
+    short = Epochs(e2.time[:3], e2.tag, e2.values, e2.anchor_ids, "range", e2.line)
+    with pytest.raises(ValueError, match="time"):
+        tr.step(short)
+    state = tr.state_dict()
+    bad = {**state, "tags": {**state["tags"], "2": {**state["tags"]["2"], "x": [1.0]}}}
+    with pytest.raises(ValueError, match="tag 2: x has 1 values"):
+        tr.load_state_dict(bad)
+    with pytest.raises(TypeError):
+        tr.step(pd.DataFrame())
+    np.testing.assert_array_equal(tr.step(e2)[["x", "y"]], ref.step(e2)[["x", "y"]])
+    nan_t = Epochs(np.full(e2.n_epochs, np.nan), e2.tag, e2.values, e2.anchor_ids, "range",
+                   e2.line)
+    rows = Tracker(anc).step(nan_t)
+    assert (rows["status"] == "invalid_measurement").all()

@@ -702,9 +702,24 @@ class Tracker:
         DataFrame
             One track row per epoch, in the order of ``epochs`` (see :func:`track_columns`).
         """
+        if not all(hasattr(epochs, k) for k in ("time", "tag", "values", "anchor_ids",
+                                                   "value")):
+            raise TypeError("epochs must be robustloc.io.tables.Epochs (to_epochs(frame, "
+                            f"anchor_ids)), got {type(epochs).__name__}")
         if tuple(epochs.anchor_ids) != self.anchor_ids:
             raise ValueError("epochs' anchor columns differ from the tracker's anchors")
+        if epochs.value not in ("rssi", "range"):
+            raise ValueError(f"epochs' value must be 'rssi' or 'range', got {epochs.value!r}")
+        # every shape checked before any state changes (the API review: a time array
+        # shorter than the values raised IndexError after earlier rounds had moved the
+        # filters)
         N = epochs.n_epochs
+        shapes = {"time": np.shape(epochs.time), "tag": np.shape(epochs.tag),
+                  "values": np.shape(epochs.values)}
+        want = {"time": (N,), "tag": (N,), "values": (N, len(self.anchor_ids))}
+        bad = [f"{k} {shapes[k]} (expected {want[k]})" for k in want if shapes[k] != want[k]]
+        if bad:
+            raise ValueError("epochs' arrays disagree: " + ", ".join(bad))
         if self._kind is None:
             self._setup(epochs.value)
         elif epochs.value != self._kind:
@@ -719,7 +734,8 @@ class Tracker:
         # an epoch whose every row is outside the physical limits (robustloc.io.limits,
         # e.g. a time of 1e13 s) keeps status invalid_measurement and no state: it never
         # reaches the filter (a prediction to such a time was an absurd `predicted` row)
-        live = ~np.asarray(epochs.all_invalid, dtype=bool)
+        # (and so does one whose time is not finite: NaN times were filtered as `ok`)
+        live = ~np.asarray(epochs.all_invalid, dtype=bool) & np.isfinite(time)
         rank = _rank_within(slots)
         order = np.argsort(rank, kind="stable")
         bounds = np.searchsorted(rank[order], np.arange(rank.max() + 2))
@@ -1512,7 +1528,8 @@ class Tracker:
         per_name = {}  # each array's per-tag values, converted for all tags at once
         for name in self._ARRAYS:
             a = np.asarray(getattr(self, name))[slots]
-            flat = a.reshape(len(slots), -1)
+            # (explicit width: a fresh tracker's (0, ...) arrays cannot infer -1)
+            flat = a.reshape(len(slots), int(np.prod(a.shape[1:], dtype=np.int64)))
             if a.dtype.kind == "f":  # Python floats; None for NaN and infinities
                 obj = flat.astype(object)
                 obj[~np.isfinite(flat)] = None
@@ -1521,11 +1538,34 @@ class Tracker:
             per_name[name[1:]] = rows if a.ndim > 1 else [r[0] for r in rows]
         tags = {str(tag): {key: rows[j] for key, rows in per_name.items()}
                 for j, tag in enumerate(self._slot)}
+        # the tags as given (JSON keys are strings: tags 1 and 2 came back as '1' and '2',
+        # and the next step started new filters for 1 and 2 -- the API review)
+        ids = [t.item() if isinstance(t, np.generic) else t for t in self._slot]
         return {"version": 1, "settings": asdict(self.settings), "anchors": list(self.anchor_ids),
-                "value": self._kind, "n_states": self.n, "tags": tags}
+                "value": self._kind, "n_states": self.n, "tags": tags, "tag_ids": ids}
 
     def load_state_dict(self, state: dict) -> None:
-        """Restore a :meth:`state_dict` (the settings and anchors must match this tracker)."""
+        """Restore a :meth:`state_dict` (the settings and anchors must match this tracker).
+
+        All or nothing: a state that cannot be loaded raises ``ValueError`` and leaves the
+        tracker as it was (one malformed tag had cleared it and loaded the others)."""
+        if not isinstance(state, dict):
+            raise TypeError(f"state must be a dict from state_dict(), got "
+                            f"{type(state).__name__}")
+        missing = [k for k in ("version", "settings", "anchors", "tags") if k not in state]
+        if missing:
+            raise ValueError("saved tracker state lacks " + ", ".join(missing))
+        before = dict(self.__dict__)
+        try:
+            self._load_state(state)
+        except (ValueError, TypeError, KeyError) as exc:
+            self.__dict__.clear()
+            self.__dict__.update(before)
+            if isinstance(exc, KeyError):
+                raise ValueError(f"saved tracker state lacks {exc}") from None
+            raise
+
+    def _load_state(self, state: dict) -> None:
         if state.get("version") != 1:
             raise ValueError(f"unsupported tracker state version {state.get('version')!r}")
         if tuple(state["anchors"]) != self.anchor_ids:
@@ -1543,15 +1583,27 @@ class Tracker:
         self._kind = None
         if state.get("value") is not None:
             self._setup(state["value"])
-        tags = list(state["tags"])
-        sl = self._slots(np.array(tags, dtype=object))
-        for tag, k in zip(tags, sl):
-            rec = state["tags"][tag]
+        if state.get("value") not in (None, "rssi", "range"):
+            raise ValueError(f"saved tracker state's value must be 'rssi' or 'range', got "
+                             f"{state.get('value')!r}")
+        if state.get("value") is not None and state.get("n_states", self.n) != self.n:
+            raise ValueError(f"saved tracker state has {state.get('n_states')} states per "
+                             f"tag, this tracker {self.n}")
+        keys = list(state["tags"])
+        ids = state.get("tag_ids", keys)  # (states saved before tag_ids: the keys)
+        if len(ids) != len(keys) or [str(t) for t in ids] != keys:
+            raise ValueError("saved tracker state's tag_ids do not match its tags")
+        sl = self._slots(np.array(ids, dtype=object))
+        for key, tag, k in zip(keys, ids, sl):
+            rec = state["tags"][key]
             for name in self._ARRAYS:
                 a = getattr(self, name)
                 v = np.array([np.nan if u is None else u for u in np.ravel(rec[name[1:]])]
                              if isinstance(rec[name[1:]], list) else
                              [np.nan if rec[name[1:]] is None else rec[name[1:]]])
+                if v.size != int(np.prod(a.shape[1:], dtype=np.int64)):
+                    raise ValueError(f"saved state of tag {tag!r}: {name[1:]} has {v.size} "
+                                     f"values, expected {a.shape[1:] or 1}")
                 a[k] = v.reshape(a.shape[1:]).astype(a.dtype)
 
     # ------------------------------------------------------------------ smoothing
