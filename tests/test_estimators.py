@@ -398,3 +398,25 @@ def test_canonical_rank_is_the_layout_s_not_the_file_s():
     b = np.array([[0.0, 0.0], [7.0, 1.0], [2.0, 9.0], [11.0, 3.0]])  # distinct distances
     R = np.array([[np.cos(0.7), -np.sin(0.7)], [np.sin(0.7), np.cos(0.7)]])
     np.testing.assert_array_equal(canonical_rank(b @ R.T + (100.0, -50.0)), canonical_rank(b))
+
+
+@pytest.mark.parametrize("engine", ["compiled", "numpy"])
+def test_locator_refuses_what_it_cannot_solve_by_name(engine):
+    """The API review: a NaN ``height_offset`` gave `ok` fixes on the compiled engine and
+    `ill_conditioned` on the NumPy one; an ``(N, m)`` one raised IndexError; values of
+    three axes "too many values to unpack"; no anchors "zero-size array to reduction
+    operation".  Each is now a ValueError that says what is wrong."""
+    a = np.array([[0, 0], [10, 0], [10, 10], [0, 10]], float)
+    z = np.tile(np.hypot(*(a - [3.0, 4.0]).T), (5, 1))
+    loc = Locator("huber", engine=engine)
+    for h, words in (([np.nan, 1, 1, 1], "finite"), (np.ones((5, 4)), "one per anchor"),
+                     ([1.0, 1.0, 1.0], "one per anchor")):
+        with pytest.raises(ValueError, match=words):
+            loc.solve(a, z, height_offset=h)
+    with pytest.raises(ValueError, match="epochs, anchors"):
+        loc.solve(a, z[:, :, None])
+    with pytest.raises(ValueError, match="m >= 1"):
+        loc.solve(np.empty((0, 2)), np.empty((5, 0)))
+    # a number is one height for every anchor
+    np.testing.assert_array_equal(loc.solve(a, z, height_offset=1.0).position,
+                                  loc.solve(a, z, height_offset=[1.0] * 4).position)

@@ -384,3 +384,35 @@ def test_the_settings_ranges_corners_give_finite_values(sigma, q, accel):
                            sigma_accel_mps2=accel).filter_samples(link, t, z)
     assert np.all(np.isfinite(res.rssi_dbm))
     assert np.all(np.isfinite(res.distance_m))
+
+
+def test_values_and_parameters_it_cannot_filter_are_refused_by_name():
+    """The API review: one RSSI of -1e308 turned 18 of its link's 20 filtered values into
+    NaN, one time of -1e308 19; ``p0 = NaN`` all 60, ``faf = inf`` most; a negative or
+    NaN ``dt_s`` and ``exponent = inf`` passed.  Each is now a ValueError naming it (the
+    command line sets implausible rows aside before, with status invalid_measurement)."""
+    rng = np.random.default_rng(1)
+    link = np.repeat([0, 1, 2], 20)
+    t = np.tile(np.arange(20.0), 3)
+    z = -60.0 + rng.normal(0, 2, 60)
+    f = RobustRssiFilter()
+    with pytest.raises(ValueError, match="rssi_dbm: 1 value"):
+        f.filter_samples(link, t, np.r_[-1e308, z[1:]])
+    with pytest.raises(ValueError, match="time_s: 1 value"):
+        f.filter_samples(link, np.r_[-1e308, t[1:]], z)
+    for kw, name in (({"p0_dbm": np.nan}, "p0_dbm"), ({"faf_db": np.inf}, "faf_db"),
+                     ({"gamma": -1.0}, "gamma")):
+        with pytest.raises(ValueError, match=name):
+            f.filter_samples(link, t, z, LinkParams.broadcast(3, **kw))
+    zz, dt = z.reshape(3, 20).T, np.ones((20, 3))
+    for bad in (-1.0, np.nan):
+        d = dt.copy()
+        d[5, 1] = bad
+        with pytest.raises(ValueError, match="dt_s"):
+            f.run(zz, d, LinkParams.broadcast(3))
+    with pytest.raises(ValueError, match="exponent"):
+        RobustRssiFilter(exponent=np.inf)
+    # NaN samples are "no sample", as before
+    zn = z.copy()
+    zn[::7] = np.nan
+    assert np.isfinite(f.filter_samples(link, t, zn).rssi_dbm[~np.isnan(zn)]).all()

@@ -1026,10 +1026,22 @@ class Locator:
                              "it with robustloc.integrity.fixes.locate_protected")
         a = np.asarray(anchors, dtype=float)
         z = np.atleast_2d(np.asarray(values, dtype=float))
-        if a.ndim != 2 or a.shape[1] not in (2, 3):
-            raise ValueError(f"anchors must be (m, 2) or (m, 3), got {a.shape}")
+        if a.ndim != 2 or a.shape[1] not in (2, 3) or a.shape[0] == 0:
+            raise ValueError(f"anchors must be (m, 2) or (m, 3) with m >= 1, got {a.shape}")
+        if z.ndim != 2:
+            raise ValueError(f"values must be (epochs, anchors), got shape {z.shape}")
         if z.shape[1] != a.shape[0]:
             raise ValueError(f"values have {z.shape[1]} columns for {a.shape[0]} anchors")
+        if height_offset is not None:
+            # one per anchor (or one for all), finite: a NaN made the compiled engine's
+            # fixes `ok` and the NumPy engine's `ill_conditioned` (the API review)
+            h = np.asarray(height_offset, dtype=float)
+            if h.ndim > 1 or (h.ndim == 1 and h.shape[0] != a.shape[0]):
+                raise ValueError(f"height_offset has shape {h.shape}; expected a number or "
+                                 f"({a.shape[0]},), one per anchor")
+            if not np.all(np.isfinite(h)):
+                raise ValueError("height_offset must be finite")
+            height_offset = np.broadcast_to(h, (a.shape[0],)).copy()
         z = np.where(np.isfinite(z), z, np.nan)
         sane = _sane_anchors(a)
         if np.any(sane) and not np.all(sane):

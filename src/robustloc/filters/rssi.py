@@ -412,6 +412,38 @@ class RssiFilterResult:
         )
 
 
+def _check_limits(name: str, values: Array, quantity: str) -> None:
+    """``ValueError`` naming ``name`` when a value lies outside the physical limits of
+    ``quantity`` (:mod:`robustloc.io.limits`)."""
+    from robustloc.io.limits import limits_for
+
+    lim = limits_for(quantity)
+    bad = ~lim.check(values)
+    if bad.any():
+        raise ValueError(f"{name}: {int(bad.sum())} value(s) outside [{lim.low:g}, "
+                         f"{lim.high:g}] {lim.unit}, the first {values[bad][0]:g} (set a "
+                         "sample that is not one to NaN)")
+
+
+def _check_link_params(p: LinkParams) -> None:
+    """Each link's path loss usable: ``p0`` within the RSSI limits, ``gamma`` positive
+    (NaN: the default 2), ``faf`` finite, ``d0`` positive (``p0 = NaN`` made all 60
+    filtered values NaN, ``faf = inf`` most -- the API review)."""
+    from robustloc.io.limits import limits_for
+
+    rssi = limits_for("rssi")
+    checks = (("p0_dbm", rssi.check(p.p0_dbm), f"within [{rssi.low:g}, {rssi.high:g}] dBm"),
+              ("gamma", np.isnan(p.gamma) | ((p.gamma > 0) & np.isfinite(p.gamma)),
+               "positive and finite (or NaN)"),
+              ("faf_db", np.isfinite(p.faf_db), "finite"),
+              ("d0_m", np.isfinite(p.d0_m) & (p.d0_m > 0), "positive and finite"))
+    for name, ok, what in checks:
+        if not np.all(ok):
+            i = int(np.argmin(ok))
+            raise ValueError(f"link {i}: {name} must be {what}, got "
+                             f"{np.asarray(getattr(p, name))[i]!r}")
+
+
 @dataclass(frozen=True)
 class LinkParams:
     """Attenuation-factor path-loss parameters of each link (seed 002 eq. (5)), shape ``(L,)``.
@@ -534,8 +566,8 @@ class RobustRssiFilter:
         ]:
             if not lo <= val <= hi:
                 raise ValueError(f"{name} must lie in [{lo:g}, {hi:g}], got {val}")
-        if exponent is not None and not exponent > 0:
-            raise ValueError(f"exponent must be positive, got {exponent}")
+        if exponent is not None and not (np.isfinite(exponent) and exponent > 0):
+            raise ValueError(f"exponent must be positive and finite, got {exponent}")
         if max_rejected < 0:
             raise ValueError(f"max_rejected must be >= 0, got {max_rejected}")
         if restart_var_ratio is not None and not (np.isfinite(restart_var_ratio)
@@ -612,6 +644,12 @@ class RobustRssiFilter:
             raise ValueError("link indices must be >= 0")
         if not np.all(np.isfinite(t)):
             raise ValueError("time_s must be finite")
+        # values a receiver cannot report, and times a clock cannot read: one RSSI of
+        # -1e308 turned 18 of its link's 20 filtered values into NaN, a time of -1e308
+        # 19 (the API review); the command line sets such rows aside before (status
+        # invalid_measurement), a caller of this method says which
+        _check_limits("rssi_dbm", z[~np.isnan(z)], "rssi")
+        _check_limits("time_s", t, "time")
         group, link_g, t_g, z_g, n_dup = _merge_same_time(link, t, z)
         layout = StepLayout.build(link_g, t_g)
         if params is None:
@@ -637,8 +675,15 @@ class RobustRssiFilter:
             raise ValueError("rssi_dbm and dt_s must both have shape (T, L)")
         T, L = z_all.shape
         p = params
+        if not isinstance(p, LinkParams):
+            raise TypeError(f"params must be LinkParams, got {type(p).__name__}")
         if p.p0_dbm.shape != (L,):
             raise ValueError(f"link parameters must have shape ({L},), got {p.p0_dbm.shape}")
+        _check_link_params(p)
+        with np.errstate(invalid="ignore"):
+            if not np.all((dt_all >= 0) & np.isfinite(dt_all)):
+                raise ValueError("dt_s must be finite and >= 0 (a sample's interval since "
+                                 "its link's previous one)")
         expo = np.full(L, float(self.exponent)) if self.exponent is not None else np.where(
             np.isfinite(p.gamma) & (p.gamma > 0), p.gamma, 2.0
         )
