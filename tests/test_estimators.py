@@ -420,3 +420,18 @@ def test_locator_refuses_what_it_cannot_solve_by_name(engine):
     # a number is one height for every anchor
     np.testing.assert_array_equal(loc.solve(a, z, height_offset=1.0).position,
                                   loc.solve(a, z, height_offset=[1.0] * 4).position)
+    rssi = -40.0 - 20.0 * np.log10(z)
+    with pytest.raises(ValueError, match="A has shape"):
+        loc.solve(a, rssi, "rssi", A=[-40.0] * 3, n=2.0)
+    # settings, by name ("'<' not supported", blamed on sigma, or accepted)
+    for kw, name in (({"min_scale": np.nan}, "min_scale"), ({"min_scale": -1}, "min_scale"),
+                     ({"alpha0": 2}, "alpha0"), ({"tol": -1}, "tol"),
+                     ({"max_iter": 0}, "max_iter"), ({"max_iter": 1.5}, "max_iter"),
+                     ({"log_scale_fixed": (-1, 1, 1, 1)}, "log_scale_fixed"),
+                     ({"weight_params": {"c": "x"}}, "weight parameter c")):
+        with pytest.raises(ValueError, match=name):
+            Locator("huber", engine=engine, **kw)
+    # no epochs: an empty solution for every method (snooping raised a broadcast error)
+    for method in ("snooping", "lege", "nls"):
+        sol = Locator(method, sigma=0.1, engine=engine).solve(a, np.empty((0, 4)))
+        assert sol.position.shape == (0, 2) and sol.status.shape == (0,)

@@ -983,6 +983,29 @@ class Locator:
             method_weight("huber", **self.weight_params)
         if self.engine not in ("compiled", "numpy"):
             raise ValueError(f"engine must be 'compiled' or 'numpy', got {self.engine!r}")
+        # the numeric settings, by name (the API review: min_scale=nan was blamed on
+        # sigma; alpha0=2, min_scale=-1, max_iter=0 and tol=-1 passed; max_iter=1.5 ran on
+        # one engine and raised TypeError on the other)
+        if isinstance(self.max_iter, bool) or not (
+                isinstance(self.max_iter, int | np.integer) and self.max_iter >= 1):
+            raise ValueError(f"max_iter must be a whole number >= 1, got {self.max_iter!r}")
+        for name, lo, hi, closed in (("min_scale", 0.0, 1e6, True), ("tol", 0.0, np.inf, True),
+                                     ("rel_tol", 0.0, np.inf, True),
+                                     ("alpha0", 0.0, 0.5, False), ("beta0", 0.0, 1.0, False)):
+            v = getattr(self, name)
+            try:
+                v = float(v)
+            except (TypeError, ValueError):
+                raise ValueError(f"{name} must be a number, got {v!r}") from None
+            inside = (lo <= v <= hi) if closed else (lo < v < hi)
+            if not (inside and np.isfinite(v)):
+                raise ValueError(f"{name} must lie in {'[' if closed else '('}{lo:g}, "
+                                 f"{hi:g}{']' if closed else ')'}, got {v!r}")
+        if self.log_scale_fixed is not None:
+            ls = np.asarray(self.log_scale_fixed, dtype=float)
+            if ls.ndim != 1 or not np.all(np.isfinite(ls) & (ls > 0)):
+                raise ValueError("log_scale_fixed must be positive finite scales, one per "
+                                 f"anchor, got {self.log_scale_fixed!r}")
         if self.log_sides is not None:
             try:
                 sides = tuple((tuple(int(i) for i in idx), int(side))
@@ -1049,6 +1072,10 @@ class Locator:
         if kind == "rssi":
             if A is None or n is None:
                 raise ValueError("RSSI positioning needs path-loss parameters A and n per anchor")
+            for name, v in (("A", A), ("n", n)):
+                if np.ndim(v) > 1 or (np.ndim(v) == 1 and np.shape(v)[0] != a.shape[0]):
+                    raise ValueError(f"{name} has shape {np.shape(v)}; expected a number or "
+                                     f"({a.shape[0]},), one per anchor")
             rmodel = RssiModel(a, A, n, height_offset)
             ranges = rmodel.distance(z)
         elif kind == "range":
@@ -1097,7 +1124,9 @@ class Locator:
             )
         status[n_heard < dim + 1] = st.INSUFFICIENT
         status[n_heard == 0] = st.INVALID
-        x = np.where(st.among(status, st.USABLE)[:, None], fit.x, np.nan)
+        # (reshaped: the snooping fit of no epochs is (0, 0), and broke the range model)
+        x = np.where(st.among(status, st.USABLE)[:, None], fit.x, np.nan).reshape(
+            z.shape[0], dim)
         w = fit.w
         excluded = np.isfinite(z) & (w <= 0)  # NaN weight: not heard, not excluded
         if self.method == "lege" or self.method == "snooping":

@@ -304,4 +304,7 @@ def get_weight(name: str, **params: float) -> WeightFunction:
         raise ValueError(
             f"unknown weight function {name!r}; choose one of {', '.join(_REGISTRY)}"
         ) from None
+    for key, value in params.items():  # ({'c': 'x'} said "'<' not supported ...")
+        if isinstance(value, bool) or not isinstance(value, int | float | np.number):
+            raise ValueError(f"weight parameter {key} must be a number, got {value!r}")
     return cls(**params)
