@@ -234,3 +234,24 @@ def test_weighted_mad_equals_repeated_median():
         got = _grouped_mad(v, g, 1, c.astype(float))[0]
         want = np.median(np.abs(np.repeat(v, c))) / 0.6744897501960817
         np.testing.assert_allclose(got, want, rtol=1e-12)
+
+
+def test_a_hand_made_survey_with_distances_it_cannot_use_is_refused_by_column():
+    """The API review: one NaN distance gave an anchor's bias (and the pooled one) NaN
+    with ``n_used`` 5 and no error; negative distances a bias of 8.9 m; a distance of 0
+    in a path-loss survey was blamed on "constant values?"."""
+    from robustloc.errors import InputError
+    from robustloc.models.calibration import calibrate_pathloss, calibrate_ranges
+
+    s = pd.DataFrame({"anchor": np.repeat(["a", "b"], 5),
+                      "distance": np.tile([1.0, 2, 4, 6, 8], 2),
+                      "range": np.tile([1.3, 2.4, 4.5, 6.6, 8.7], 2)})
+    for d, words in ((np.r_[np.nan, s.distance[1:]], "'nan'"), (-s.distance, "'-1.0'")):
+        with pytest.raises(InputError, match=f"column 'distance': {words}"):
+            calibrate_ranges(s.assign(distance=d))
+    with pytest.raises(InputError, match="column 'range'"):
+        calibrate_ranges(s.assign(range=np.r_[np.inf, s["range"][1:]]))
+    p = s.drop(columns="range").assign(rssi=np.tile([-40.0, -46, -52, -55, -58], 2))
+    with pytest.raises(InputError, match="'0.0' must be a finite distance > 0"):
+        calibrate_pathloss(p.assign(distance=np.r_[0.0, p.distance[1:]]))
+    assert np.allclose(calibrate_ranges(s).table["bias"], 0.5)  # the clean survey

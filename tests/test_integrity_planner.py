@@ -127,3 +127,19 @@ def test_suggest_with_per_anchor_path_loss_exponents():
                         model="rssi", path_loss_n=np.array([2.0, 2.1, 2.2, 2.3]))
     assert len(df) == 8 and np.isfinite(df["score"]).all()
     assert (df["improvement"] > 0).all()
+
+
+def test_plan_and_reliability_refuse_bad_settings_by_name():
+    """The API review: chunk=0 said "range() arg 3 must not be zero", an area of three
+    numbers "not enough values to unpack", a mask of the wrong width "operands could not
+    be broadcast"."""
+    a = np.array([[0, 0], [10, 0], [10, 10], [0, 10]], float)
+    with pytest.raises(ValueError, match="chunk"):
+        plan(a, (0, 10, 0, 10), 1.0, 0.1, chunk=0)
+    with pytest.raises(ValueError, match="four numbers"):
+        plan(a, (0, 10, 0), 1.0, 0.1)
+    H = np.random.default_rng(0).normal(size=(10, 4, 2))
+    with pytest.raises(ValueError, match="chunk"):
+        reliability(H, 1.0, chunk=0)
+    with pytest.raises(ValueError, match="mask has shape"):
+        reliability(H, 1.0, np.ones((10, 3), bool))

@@ -416,3 +416,13 @@ def test_values_and_parameters_it_cannot_filter_are_refused_by_name():
     zn = z.copy()
     zn[::7] = np.nan
     assert np.isfinite(f.filter_samples(link, t, zn).rssi_dbm[~np.isnan(zn)]).all()
+
+
+def test_link_ids_that_are_not_indices_are_refused():
+    """A link id of 1e12 asked for (T, 1e12) arrays: MemoryError (the API review)."""
+    f = RobustRssiFilter()
+    with pytest.raises(ValueError, match="0 .. L-1"):
+        f.filter_samples(np.array([0, 10**12]), np.array([0.0, 1.0]), np.array([-60.0, -61.0]))
+    with pytest.raises(ValueError, match="for 2 links"):
+        f.filter_samples(np.array([0, 2]), np.array([0.0, 1.0]), np.array([-60.0, -61.0]),
+                         LinkParams.broadcast(2))

@@ -642,6 +642,15 @@ class RobustRssiFilter:
             raise ValueError("link, time_s and rssi_dbm must be 1-D arrays of equal length")
         if link.size and link.min() < 0:
             raise ValueError("link indices must be >= 0")
+        # links are indices 0 .. L-1 into (T, L) arrays: a link id of 1e12 asked for
+        # 7 TiB (MemoryError: the API review)
+        n_links = None if params is None else len(params.p0_dbm)
+        if link.size and n_links is not None and link.max() >= n_links:
+            raise ValueError(f"link index {int(link.max())} for {n_links} links' parameters: "
+                             "links are numbered 0 .. L-1")
+        if link.size and n_links is None and link.max() >= max(4 * link.size, 1024):
+            raise ValueError(f"link indices run to {int(link.max())} for {link.size} samples: "
+                             "number the links 0 .. L-1 (np.unique(ids, return_inverse=True))")
         if not np.all(np.isfinite(t)):
             raise ValueError("time_s must be finite")
         # values a receiver cannot report, and times a clock cannot read: one RSSI of

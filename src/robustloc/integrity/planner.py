@@ -30,7 +30,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from robustloc.eval.crlb import crlb_range, crlb_rssi, dop
 from robustloc.integrity.bmethod import ALPHA0, BETA0
-from robustloc.integrity.reliability import RHO_THRESHOLD, reliability
+from robustloc.integrity.reliability import RHO_THRESHOLD, check_chunk, reliability
 
 Array = NDArray[np.float64]
 
@@ -60,6 +60,8 @@ class Grid:
 
 def grid_axes(area: tuple[float, float, float, float], step: float) -> tuple[Array, Array]:
     """Grid coordinates covering ``area = (xmin, xmax, ymin, ymax)`` with spacing ``step``."""
+    if np.shape(area) != (4,):  # ("not enough values to unpack": the API review)
+        raise ValueError(f"area must be four numbers xmin, xmax, ymin, ymax, got {area!r}")
     xmin, xmax, ymin, ymax = map(float, area)
     if not (np.isfinite([xmin, xmax, ymin, ymax]).all() and xmax > xmin and ymax > ymin):
         raise ValueError(f"area must be xmin,xmax,ymin,ymax with xmin < xmax, ymin < ymax, "
@@ -128,6 +130,7 @@ def plan(
         raise ValueError(f"model must be 'range' or 'rssi', got {model!r}")
     if not (np.isfinite(sigma) and sigma > 0):
         raise ValueError(f"sigma must be positive, got {sigma}")
+    check_chunk(chunk)
     gx, gy = grid_axes(area, step)
     X, Y = np.meshgrid(gx, gy)
     pts = np.column_stack([X.ravel(), Y.ravel()])

@@ -111,6 +111,13 @@ def _nan_reduce(fn, a: Array) -> Array:  # noqa: ANN001
     return out
 
 
+def check_chunk(chunk: int) -> None:
+    """``chunk`` (epochs processed at once) a whole number >= 1: 0 said "range() arg 3
+    must not be zero" (the API review)."""
+    if isinstance(chunk, bool) or not (isinstance(chunk, int | np.integer) and chunk >= 1):
+        raise ValueError(f"chunk must be a whole number >= 1, got {chunk!r}")
+
+
 def reliability(
     H: ArrayLike,
     sigma: ArrayLike,
@@ -150,6 +157,13 @@ def reliability(
     Reliability
     """
     Hm = np.asarray(H, dtype=float)
+    check_chunk(chunk)
+    if mask is not None and Hm.ndim in (2, 3):
+        try:  # (a mask of the wrong width said "operands could not be broadcast")
+            np.broadcast_to(np.asarray(mask, dtype=bool), Hm.shape[:-1])
+        except ValueError:
+            raise ValueError(f"mask has shape {np.shape(mask)}; expected {Hm.shape[:-1]} "
+                             "(epochs, observations) or one that broadcasts to it") from None
     if Hm.ndim == 3 and Hm.shape[0] > chunk:
         N = Hm.shape[0]
         sig = np.broadcast_to(np.asarray(sigma, dtype=float), Hm.shape[:2])

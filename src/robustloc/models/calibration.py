@@ -433,6 +433,31 @@ def _robust_weight(robust: str | WeightFunction | None) -> WeightFunction | None
     return get_weight(str(robust))
 
 
+def _survey_values(survey: pd.DataFrame, value: str, path_loss: bool) -> tuple[Array, Array]:
+    """The survey's ``distance`` and ``value`` columns as floats, checked: distances finite
+    and positive (``>= 0`` for ranges: a log of 0 has no path loss), values finite within
+    their physical limits.  ``read_survey`` checks a file's rows; a hand-made frame had
+    given an anchor's bias NaN from one NaN distance, with no error, and a distance of 0
+    was blamed on "constant values?" (the API review)."""
+    from robustloc.io.limits import limits_for
+
+    d = pd.to_numeric(survey["distance"], errors="coerce").to_numpy(dtype=float)
+    v = pd.to_numeric(survey[value], errors="coerce").to_numpy(dtype=float)
+    lim = limits_for(value)
+    with np.errstate(invalid="ignore"):
+        bad_d = ~(np.isfinite(d) & ((d > 0) if path_loss else (d >= 0)))
+    for bad, col, what in ((bad_d, "distance", "a finite distance " +
+                            ("> 0 m" if path_loss else ">= 0 m")),
+                           (~lim.check(v), value, f"finite, within [{lim.low:g}, "
+                            f"{lim.high:g}] {lim.unit}")):
+        if bad.any():
+            i = int(np.argmax(bad))
+            line = int(survey.index[i]) if survey.index.name == "line" else None
+            raise InputError(f"column '{col}': {str(survey[col].iloc[i])!r} must be {what}",
+                             survey.attrs.get("path"), line)
+    return d, v
+
+
 #: The largest frequency weight of a survey row (the copies of it the fit counts).
 SURVEY_WEIGHT_MAX = 1e9
 
@@ -554,8 +579,7 @@ def calibrate_pathloss(
         )
     weight = _robust_weight(robust)
     g, ids = _groups(survey)
-    d = survey["distance"].to_numpy(dtype=float)
-    r = survey["rssi"].to_numpy(dtype=float)
+    d, r = _survey_values(survey, "rssi", path_loss=True)
     m = len(ids)
     if isinstance(d0, Mapping):
         if model != "attenuation-factor":
@@ -633,8 +657,7 @@ def calibrate_ranges(
         )
     weight = _robust_weight(robust)
     g, ids = _groups(survey)
-    d = survey["distance"].to_numpy(dtype=float)
-    r = survey["range"].to_numpy(dtype=float)
+    d, r = _survey_values(survey, "range", path_loss=False)
     if scale:
         x, y = d, r
     else:
