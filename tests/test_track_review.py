@@ -187,7 +187,9 @@ def test_a_saved_tracker_keeps_tags_that_are_not_strings():
 def test_a_tracker_refuses_bad_input_before_changing_its_state():
     """An Epochs whose time is shorter than its values raised IndexError after earlier
     rounds had moved the filters; a saved state with one malformed tag cleared the
-    tracker, then failed part-way.  Now both raise ValueError and leave it as it was.
+    tracker, then failed part-way, and values a tracker never holds (a noise scale of NaN
+    or 0, a NaN bias) loaded and left tags `predicted`.  Now each raises ValueError and
+    leaves the tracker as it was.
     Epochs whose time is not finite get invalid_measurement rows (they were `ok`)."""
     from robustloc.io.tables import Epochs
     from robustloc.tracking import Tracker
@@ -204,6 +206,12 @@ def test_a_tracker_refuses_bad_input_before_changing_its_state():
     bad = {**state, "tags": {**state["tags"], "2": {**state["tags"]["2"], "x": [1.0]}}}
     with pytest.raises(ValueError, match="tag 2: x has 1 values"):
         tr.load_state_dict(bad)
+    for field, value in (("scale2", None), ("scale2", 0.0), ("bias", [None] * 4),
+                         ("hn", [-1] * 4)):
+        tampered = {**state, "tags": {**state["tags"],
+                                      "2": {**state["tags"]["2"], field: value}}}
+        with pytest.raises(ValueError, match=f"tag 2: {field} is not a value"):
+            tr.load_state_dict(tampered)
     with pytest.raises(TypeError):
         tr.step(pd.DataFrame())
     np.testing.assert_array_equal(tr.step(e2)[["x", "y"]], ref.step(e2)[["x", "y"]])
