@@ -474,9 +474,7 @@ class Engine:
                 self._write_meta(kind)
                 self.kind = kind
             if len(batch):
-                bad = {i for i, _ in rejected}
-                index = np.array([i for i in range(len(rows)) if i not in bad], np.int64)
-                batch, over = self._within_max_tags(batch, index)
+                batch, over = self._within_max_tags(batch, rejected)
                 if over:
                     rejected = sorted(rejected + over)
             n_late, wall = self._accept(batch, source)
@@ -489,20 +487,27 @@ class Engine:
         Thread-safe.  When it returns, the rows are on disk (with a store).
         """
         with self._ingest_lock:
-            batch, over = self._within_max_tags(batch, np.arange(len(batch)))
+            batch, over = self._within_max_tags(batch, [])
             n_late, wall = self._accept(batch, source)
         return self._finish(batch, over, np.zeros(0, dtype=np.int64), n_late, wall, source)
 
-    def _within_max_tags(self, batch: RowBatch, index: np.ndarray
+    def _within_max_tags(self, batch: RowBatch, rejected: list[tuple[int, str]]
                          ) -> tuple[RowBatch, list[tuple[int, str]]]:
         """``batch`` without the rows of new tags beyond :attr:`max_tags` (new tags taken
         in order of appearance while there is room), and those rows as ``(index, reason)``
-        with ``index`` their place in the body (caller holds the ingest lock)."""
+        with ``index`` their place in the body, whose ``rejected`` rows are not in
+        ``batch`` (caller holds the ingest lock)."""
         known = self.assembler.known
-        new = [t for t in pd.unique(batch.tag).tolist() if t not in known]
         room = self.max_tags - len(known)
+        tags = pd.unique(batch.tag)
+        if len(tags) <= room:  # (the usual case: no look-up at all)
+            return batch, []
+        new = [t for t in tags.tolist() if t not in known]
         if len(new) <= room:
             return batch, []
+        # the batch's rows' places in the body: the body's rows without the rejected ones
+        index = np.delete(np.arange(len(batch) + len(rejected)),
+                          np.array([i for i, _ in rejected], dtype=np.int64))
         refused = set(new[max(room, 0):])
         out = np.fromiter((t in refused for t in batch.tag.tolist()), bool, len(batch))
         with self.metrics._lock:
