@@ -1390,14 +1390,17 @@ def test_serve_max_tags_refuses_new_tags_and_counts_them(uwb, server_factory):
     assert httpx.get(s.url + "/api/status").json()["tags"] == 2
 
 
+@pytest.mark.parametrize("level", ["warning", "error"])
 def test_what_the_http_server_refuses_itself_is_counted_without_a_traceback(
-        uwb, server_factory):
+        uwb, server_factory, level):
     """A request that is not HTTP and a WebSocket text frame that is not UTF-8 are refused
     by uvicorn before the application sees them (400, close 1007): neither was counted,
-    and the second printed a traceback on the service's stderr (the service review)."""
+    and the second printed a traceback on the service's stderr (the service review).
+    With ``--log-level error`` neither warning line is shown, and both are counted (the
+    first was not even logged, so not counted, at that level)."""
     import socket
 
-    s = server_factory(["--anchors", str(uwb / "anchors.csv")])
+    s = server_factory(["--anchors", str(uwb / "anchors.csv"), "--log-level", level])
     for raw in (b"POST /api/measurements HTTP/1.1\r\nHost: x\r\nContent-Length: abc\r\n\r\n",
                 b"BREW /pot HTTP/1.1\r\nHost: x\r\n\r\n"):
         with socket.create_connection(("127.0.0.1", s.port), timeout=10) as c:
@@ -1418,4 +1421,6 @@ def test_what_the_http_server_refuses_itself_is_counted_without_a_traceback(
     assert metric(s.url, 'robustloc_requests_rejected_total{reason="invalid_utf8"}') == 1
     assert httpx.get(s.url + "/healthz").status_code == 200
     log = s.log()
-    assert "Traceback" not in log and "Invalid UTF-8" in log, log[-2000:]
+    assert "Traceback" not in log, log[-2000:]
+    for line in ("Invalid UTF-8", "Invalid HTTP request"):  # one warning line each
+        assert (line in log) == (level == "warning"), log[-2000:]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import sys
 from pathlib import Path
@@ -399,7 +400,8 @@ def run(args: argparse.Namespace) -> int:
                             timeout_graceful_shutdown=args.shutdown_grace)
     from robustloc.service.serverlog import count_server_refusals
 
-    count_server_refusals(engine.metrics)  # (after the Config: it configures the loggers)
+    # (after the Config: it configures the loggers)
+    count_server_refusals(engine.metrics, logging.getLevelName(args.log_level.upper()))
     server = uvicorn.Server(config)
     print(f"robustloc serve: http://{args.host}:{args.port}/ ({engine.processor.name}, "
           f"latency window {args.latency_window:g} s)", file=sys.stderr, flush=True)

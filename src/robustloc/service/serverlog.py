@@ -42,8 +42,20 @@ class CountRefused(logging.Filter):
         return True
 
 
-def count_server_refusals(metrics: Metrics, logger: str = "uvicorn.error") -> CountRefused:
-    """Install :class:`CountRefused` on the server's error logger; returns it."""
+def count_server_refusals(metrics: Metrics, level: int = logging.WARNING) -> CountRefused:
+    """Install :class:`CountRefused` on uvicorn's error logger; returns it.
+
+    ``level`` is the log level the user asked for (``serve --log-level``).  uvicorn logs
+    a request that is not HTTP as a warning, which a logger at ``error`` would not even
+    create, so the logger is kept at ``warning`` at least and the level is applied by the
+    ``uvicorn`` logger's handlers instead: the refusal is counted, and shown only if the
+    level lets warnings through.
+    """
     f = CountRefused(metrics)
-    logging.getLogger(logger).addFilter(f)
+    err = logging.getLogger("uvicorn.error")
+    err.addFilter(f)
+    if err.getEffectiveLevel() > logging.WARNING:
+        err.setLevel(logging.WARNING)
+    for h in logging.getLogger("uvicorn").handlers + err.handlers:
+        h.setLevel(max(h.level, level))
     return f
