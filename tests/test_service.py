@@ -1414,7 +1414,11 @@ def test_what_the_http_server_refuses_itself_is_counted_without_a_traceback(
         while b"\r\n\r\n" not in buf:
             buf += c.recv(4096)
         c.sendall(bytes([0x81, 0x82]) + b"\x00\x00\x00\x00" + b"\xff\xfe")  # masked, ff fe
-        close = c.recv(4096)
+        close = b""
+        while len(close) < 4:  # the close frame: opcode, length, then the code
+            chunk = c.recv(4096)
+            assert chunk, f"connection closed after {close!r}"
+            close += chunk
         assert close[:1] == b"\x88" and close[2:4] == (1007).to_bytes(2, "big")
     time.sleep(0.5)
     assert metric(s.url, 'robustloc_requests_rejected_total{reason="invalid_http"}') == 2
