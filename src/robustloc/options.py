@@ -99,10 +99,12 @@ def float_in(low: float, high: float) -> Callable[[str], float]:
     return convert
 
 
-#: An observation's a-priori standard deviation (``--sigma``, metres or dB): 1 um to 1000 km.
+#: An observation's a-priori standard deviation (``--sigma``, an anchors file's ``sigma``,
+#: ``RobustRssiFilter``'s ``sigma_rssi_db``; metres or dB): 1 um to 1000 km.
 #: 1e-300 passed as positive and made every fix ``ill_conditioned`` with numpy warnings on
 #: stderr (the tracker review); ``montecarlo --sigma`` had this range already.
-sigma_value = float_in(1e-6, 1e6)
+SIGMA_RANGE = (1e-6, 1e6)
+sigma_value = float_in(*SIGMA_RANGE)
 
 #: The floor of an estimated robust scale (``--min-scale``, units of sigma): 0 to 1e6.
 #: 1e300 passed and made every bound infinite on fixes still called ``ok`` (the input

@@ -559,8 +559,10 @@ class RobustRssiFilter:
         ]:
             if not (np.isfinite(val) and val >= 0):
                 raise ValueError(f"{name} must be >= 0, got {val}")
+        from robustloc.options import SIGMA_RANGE
+
         for name, val, lo, hi in [
-            ("sigma_rssi_db", sigma_rssi_db, 1e-6, 1e6),
+            ("sigma_rssi_db", sigma_rssi_db, *SIGMA_RANGE),
             ("sigma_accel_mps2", sigma_accel_mps2, 0.0, 1e3),
             ("q_rssi_db2_per_s", q_rssi_db2_per_s, 0.0, 1e6),
         ]:

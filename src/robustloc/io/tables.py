@@ -41,6 +41,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from robustloc.errors import InputError
 from robustloc.io.limits import plausible
+from robustloc.options import SIGMA_RANGE
 
 PathLike = str | os.PathLike
 
@@ -669,7 +670,7 @@ def anchor_sigma(anchors: pd.DataFrame) -> NDArray[np.float64] | None:
     for some anchors and empty for others is refused naming the first anchor without one
     and its line: the solvers need one sigma per anchor, and guessing the missing ones
     would weight that anchor by a number nobody chose.  A value outside
-    :data:`SIGMA_RANGE` is refused the same way (the readers refuse it already; a
+    :data:`robustloc.options.SIGMA_RANGE` is refused the same way (the readers refuse it already; a
     hand-made frame may not have passed them).
     """
     if "sigma" not in anchors.columns:
@@ -835,11 +836,6 @@ def _require_rows(df: pd.DataFrame, what: str, path: PathLike | None = None) -> 
 # --------------------------------------------------------------------------------------
 # anchors, survey, truth, positions
 # --------------------------------------------------------------------------------------
-
-
-#: The a-priori sigma an anchors file may give (m for ranges, dB for RSSI), as ``--sigma``
-#: (:data:`robustloc.options.sigma_value`).
-SIGMA_RANGE = (1e-6, 1e6)
 
 
 def validate_anchors(df: pd.DataFrame, path: PathLike | None = None) -> pd.DataFrame:

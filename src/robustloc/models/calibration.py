@@ -101,10 +101,10 @@ class LineFit:
 
 def _sigma_floor(sigma: ArrayLike) -> Array:
     """A fitted ``sigma`` as an anchors file may carry it: at least the lower end of
-    :data:`robustloc.io.tables.SIGMA_RANGE` (1e-6), which an exact simulation's residual
+    :data:`robustloc.options.SIGMA_RANGE` (1e-6), which an exact simulation's residual
     standard deviation (some 1e-12) would undercut, so that ``locate`` reads the
     calibrated file back."""
-    from robustloc.io.tables import SIGMA_RANGE
+    from robustloc.options import SIGMA_RANGE
 
     with np.errstate(invalid="ignore"):
         return np.where(np.isnan(sigma), np.nan, np.maximum(np.asarray(sigma, float),
