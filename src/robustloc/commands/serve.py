@@ -29,6 +29,9 @@ silent for --idle-flush seconds of wall time. A later row is stored and counted 
 (metric robustloc_rows_late_total), never dropped silently. A row more than --time-jump
 seconds behind its tag's newest time, nothing near that time for --idle-flush, means the
 tag's clock jumped: the tag restarts from the new time (metric robustloc_tags_rebased_total).
+A tag silent for --forget-after (default 7 days) is forgotten: its state goes, its stored
+rows stay, and heard again it starts afresh (metric robustloc_tags_forgotten_total); so
+--max-tags bounds the tags heard within that time, not every tag ever heard.
 
 Durability (--store DIR): every accepted row is synced to a write-ahead log before the 202;
 logs are sealed into Parquet segments (DIR/measurements/*.parquet, DIR/positions/*.parquet).
@@ -85,10 +88,18 @@ def _hostport(text: str) -> tuple[str, int]:
     return host, int(port)
 
 
+def _forget_after(text: str) -> float:
+    """``--forget-after``: seconds > 0, or ``never`` (infinity)."""
+    if text.strip().lower() in ("never", "inf"):
+        return float("inf")
+    return positive_float(text)
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from robustloc.estimators.ranging import DEFAULT_METHOD, METHODS
     from robustloc.service.defaults import (
         DEFAULT_BODY_TIMEOUT_S,
+        DEFAULT_FORGET_AFTER_S,
         DEFAULT_IDLE_FLUSH_S,
         DEFAULT_LATENCY_WINDOW_S,
         DEFAULT_MAX_BODY_BYTES,
@@ -193,7 +204,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="most tags the service holds state for; the rows of a new tag beyond "
                         "it are rejected with their reason and the tag counted "
                         "(robustloc_tags_refused_total).  Each tag costs some 1.5 kB, 4 kB "
-                        f"with --track, while the service runs (default {DEFAULT_MAX_TAGS})")
+                        "with --track, while it is held (see --forget-after; default "
+                        f"{DEFAULT_MAX_TAGS})")
+    p.add_argument("--forget-after", type=_forget_after, default=DEFAULT_FORGET_AFTER_S,
+                   metavar="S",
+                   help="wall-clock seconds without a row after which a tag is forgotten: "
+                        "its state (filter, watermarks, row of /api/latest and the map) "
+                        "goes, its stored rows stay (GET /api/positions?tag=), and heard "
+                        "again it starts afresh; counted in robustloc_tags_forgotten_total "
+                        f"(default {DEFAULT_FORGET_AFTER_S:g}: 7 days; 'never' keeps every "
+                        "tag while the service runs)")
     p.add_argument("--shutdown-grace", type=positive_float, default=DEFAULT_SHUTDOWN_GRACE_S,
                    metavar="S",
                    help="seconds requests in progress get to finish at SIGTERM/SIGINT, then "
@@ -327,7 +347,8 @@ def _open_engine(args: argparse.Namespace, anchors, processor, value: str | None
     try:
         return Engine(anchors, processor, store_dir=args.store,
                       latency_window_s=args.latency_window, idle_flush_s=args.idle_flush,
-                      time_jump_s=args.time_jump, value=value, max_tags=args.max_tags)
+                      time_jump_s=args.time_jump, value=value, max_tags=args.max_tags,
+                      forget_after_s=args.forget_after)
     except StoreError as exc:  # in use, or a damaged segment: named by its file
         raise InputError(exc.message, exc.path) from None
     except (pickle.UnpicklingError, EOFError, AttributeError, ImportError) as exc:

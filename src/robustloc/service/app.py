@@ -356,7 +356,7 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             "store": None if engine.store_dir is None else str(engine.store_dir),
             "floorplan": None if cfg.floorplan is None else {
                 "url": "/floorplan", "extent": list(ext) if ext else None},
-            "tags": len(engine.assembler.tags), "pending_rows": engine.assembler.n_pending,
+            "tags": engine.assembler.n_tags, "pending_rows": engine.assembler.n_pending,
             "solver_errors": engine.solver_errors, "last_solver_error": engine.last_error,
             "position_store_errors": engine.position_store_errors,
             "positions_not_stored": engine.positions_not_stored,
@@ -377,7 +377,7 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
     async def metrics(request: Request) -> Response:
         if not authorized(request.headers, request.query_params):
             return unauthorized()
-        text = engine.metrics.render(engine.assembler.n_pending, len(engine.assembler.tags),
+        text = engine.metrics.render(engine.assembler.n_pending, engine.assembler.n_tags,
                                      engine.solver_errors, engine.position_store_errors)
         return PlainTextResponse(text, media_type="text/plain; version=0.0.4")
 

@@ -24,6 +24,10 @@ as any other (:meth:`EpochAssembler.rebase`; counted).  A gateway that uploads r
 buffered for hours while another keeps the tag's newest time current re-bases nothing:
 its rows stay late, as above.
 
+A tag silent for long is *forgotten* (:meth:`EpochAssembler.idle_tags`,
+:meth:`EpochAssembler.forget`): its watermarks go and its code is given to the next new
+tag, so a service whose tags come and go holds only the tags heard lately.
+
 The pending rows are kept as columns (NumPy), so one ``add``/``take_ready`` costs a few
 vectorized passes over the pending rows, whatever the number of tags.
 """
@@ -76,16 +80,21 @@ class EpochAssembler:
         self.rebased = 0
         self._released: list[tuple[NDArray, ...]] = []  # pending rows of re-based tags
         self._code: dict[str, int] = {}
-        self._names: list[str] = []
+        self._names: list[str | None] = []  # None: a forgotten tag's free code
+        self._free: list[int] = []  # free codes, reused before new ones
         self._newest = np.empty(0)
         self._solved = np.empty(0)
         self._last_wall = np.empty(0)
+        #: wall time of each tag's latest accepted row, late ones included (``-inf``: a
+        #: tag whose code is free)
+        self._heard = np.empty(0)
         self._chunks: list[tuple[NDArray, ...]] = []
         self._n_pending = 0
 
     # -- tags ----------------------------------------------------------------------------
     def codes(self, tags: NDArray[np.object_]) -> NDArray[np.int64]:
-        """Integer code of each tag (new tags are registered, in order of appearance).
+        """Integer code of each tag (new tags are registered, in order of appearance,
+        on the codes of forgotten tags first).
 
         One factorization of the rows, then a dict look-up per distinct tag (4x faster
         than a pandas index look-up per row, which converts the strings).
@@ -95,20 +104,87 @@ class EpochAssembler:
         for j, u in enumerate(uniq.tolist()):
             c = self._code.get(u)
             if c is None:
-                c = len(self._names)
+                if self._free:
+                    c = self._free.pop()
+                    self._names[c] = u
+                else:
+                    c = len(self._names)
+                    self._names.append(u)
                 self._code[u] = c
-                self._names.append(u)
             ucode[j] = c
         grow = len(self._names) - len(self._newest)
         if grow > 0:
             self._newest = np.concatenate([self._newest, np.full(grow, -np.inf)])
             self._solved = np.concatenate([self._solved, np.full(grow, -np.inf)])
             self._last_wall = np.concatenate([self._last_wall, np.zeros(grow)])
+            self._heard = np.concatenate([self._heard, np.full(grow, -np.inf)])
         return ucode[codes]
 
     @property
     def tags(self) -> list[str]:
-        return list(self._names)
+        """The tags held (registered and not forgotten), in order of their codes."""
+        return [n for n in self._names if n is not None]
+
+    @property
+    def n_tags(self) -> int:
+        """The number of tags held."""
+        return len(self._code)
+
+    def name(self, code: int) -> str:
+        """The tag of a held ``code``."""
+        n = self._names[code]
+        if n is None:
+            raise KeyError(f"tag code {code} is free")
+        return n
+
+    def set_heard(self, heard: Mapping[str, float]) -> None:
+        """Each named tag's latest accepted row's wall time (a restart: the stored rows'
+        latest arrival), at least as recent as what the assembler holds."""
+        if not heard:
+            return
+        names = np.array(list(heard), dtype=object)
+        codes = self.codes(names)
+        np.maximum.at(self._heard, codes, np.array(list(heard.values()), dtype=float))
+
+    def idle_tags(self, cutoff_wall: float) -> NDArray[np.int64]:
+        """Codes of the held tags last heard at or before ``cutoff_wall`` (wall time) that
+        hold no pending rows: the tags :meth:`forget` may drop."""
+        idle = self._heard <= cutoff_wall  # (free codes hold -inf: excluded below)
+        if not idle.any():
+            return np.zeros(0, dtype=np.int64)
+        held = np.fromiter((n is not None for n in self._names), bool, len(self._names))
+        idle &= held
+        for chunk in [*self._chunks, *self._released]:
+            idle[chunk[1]] = False
+        return np.flatnonzero(idle)
+
+    def forget(self, codes: NDArray[np.int64]) -> list[str]:
+        """Forget the tags ``codes`` (from :meth:`idle_tags`): their watermarks go, their
+        codes go to the next new tags; a forgotten tag heard again is a new tag.
+
+        Returns their names.
+
+        Raises
+        ------
+        ValueError
+            A code that is free, or whose tag holds pending rows (its epochs unsolved).
+        """
+        codes = np.unique(np.asarray(codes, dtype=np.int64))
+        pending = np.zeros(len(self._names), dtype=bool)
+        for chunk in [*self._chunks, *self._released]:
+            pending[chunk[1]] = True
+        if codes.size and pending[codes].any():
+            raise ValueError("cannot forget a tag with pending rows")
+        names = [self.name(int(c)) for c in codes.tolist()]  # (KeyError before any change)
+        for n, c in zip(names, codes.tolist()):
+            del self._code[n]
+            self._names[c] = None
+            self._free.append(c)
+        self._newest[codes] = -np.inf
+        self._solved[codes] = -np.inf
+        self._last_wall[codes] = 0.0
+        self._heard[codes] = -np.inf
+        return names
 
     @property
     def known(self) -> Mapping[str, int]:
@@ -120,8 +196,8 @@ class EpochAssembler:
         return self._n_pending
 
     def watermarks(self) -> dict[str, float]:
-        """Per tag, the latest solved epoch time (``-inf``: none yet)."""
-        return {n: float(self._solved[i]) for i, n in enumerate(self._names)}
+        """Per tag held, the latest solved epoch time (``-inf``: none yet)."""
+        return {n: float(self._solved[i]) for i, n in enumerate(self._names) if n is not None}
 
     def set_watermarks(self, solved: dict[str, float], newest: dict[str, float]) -> None:
         """Restore per-tag state (after a restart): solved and newest times."""
@@ -182,6 +258,8 @@ class EpochAssembler:
         """:meth:`add` with the tags' :meth:`codes` and :meth:`late` mask already computed
         (with no change of state in between)."""
         keep = ~late
+        if len(code):
+            self._heard[code] = wall  # (late rows too: a tag uploading old rows is heard)
         if keep.any():
             c = code[keep]
             np.maximum.at(self._newest, c, time[keep])

@@ -28,3 +28,9 @@ DEFAULT_BODY_TIMEOUT_S = 60.0
 #: sending random ids grew the service by 0.9 GB per 200 000 (the service review).  Rows
 #: of a tag beyond it are refused, each with its reason.
 DEFAULT_MAX_TAGS = 100_000
+#: Default wall-clock seconds after which a silent tag is forgotten (``serve
+#: --forget-after``): 7 days.  Its state goes (assembly watermarks, filter, its row of
+#: ``/api/latest``); its stored rows stay.  A site whose tags come and go (visitors'
+#: badges) then holds only the tags heard in the last week, and never reaches --max-tags
+#: for tags long gone.
+DEFAULT_FORGET_AFTER_S = 7 * 86400.0

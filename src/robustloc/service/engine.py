@@ -27,6 +27,15 @@ Order: the ready blocks are queued for the solver under the ingest lock, in the 
 assembler released them, so the epochs of a (tag, run) are solved in time order whatever
 the number of ingest threads (the restart's watermarks rely on it, and so does a tracker).
 
+Forgetting: a tag with no accepted row for ``forget_after_s`` seconds of wall time (and
+no epoch pending) is forgotten: its assembly watermarks, its run, its processor state
+(the tracker's filter), its watermark and its row of :meth:`Engine.latest` go; its stored
+rows stay (``GET /api/positions?tag=``).  Heard again, it is a new tag: a new run (above
+every run of the forgotten tags, so its epochs are never taken for solved ones), and a
+tracker starts it afresh.  A restart forgets again the tags of the store silent that long
+(their last row's arrival tells), and takes their epochs as solved up to their stored
+positions, not from a snapshot that no longer holds them.
+
 Stop: :meth:`Engine.stop` solves every pending epoch before it closes the store, so every
 acknowledged epoch has a position row at a graceful shutdown (with or without a store).
 """
@@ -35,6 +44,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import pickle
 import threading
@@ -51,6 +61,7 @@ import pyarrow.dataset as ds
 from robustloc.io.tables import Epochs
 from robustloc.service.assembly import EpochAssembler
 from robustloc.service.defaults import (
+    DEFAULT_FORGET_AFTER_S,
     DEFAULT_IDLE_FLUSH_S,
     DEFAULT_LATENCY_WINDOW_S,
     DEFAULT_MAX_TAGS,
@@ -194,6 +205,9 @@ class Engine:
         Most tags held (:data:`~robustloc.service.defaults.DEFAULT_MAX_TAGS`): the rows of
         a new tag beyond it are rejected with their reason (the tags a restart recovers
         from the store count, and are never refused).
+    forget_after_s : float
+        Wall-clock seconds without an accepted row after which a tag is forgotten (module
+        doc; :data:`~robustloc.service.defaults.DEFAULT_FORGET_AFTER_S`); ``inf``: never.
     """
 
     def __init__(
@@ -204,10 +218,19 @@ class Engine:
         time_jump_s: float = DEFAULT_TIME_JUMP_S,
         value: str | None = None, seal_rows: int = 1_000_000, fsync: bool = True,
         snapshot_s: float = 10.0, max_tags: int = DEFAULT_MAX_TAGS,
+        forget_after_s: float = DEFAULT_FORGET_AFTER_S,
     ) -> None:
         if not (isinstance(max_tags, int) and max_tags >= 1):
             raise ValueError(f"max_tags must be a whole number >= 1, got {max_tags!r}")
+        if not (isinstance(forget_after_s, int | float) and forget_after_s > 0):
+            raise ValueError(f"forget_after_s must be > 0 (inf: never), got {forget_after_s!r}")
         self.max_tags = max_tags
+        self.forget_after_s = float(forget_after_s)
+        #: wall-clock seconds between passes that forget silent tags
+        self._forget_every = min(60.0, self.forget_after_s / 4)
+        self._last_forget = -math.inf
+        #: the run a new tag starts in: above every run of a forgotten tag (module doc)
+        self._run_base = 0
         self.anchors = anchors
         self.anchor_ids = [str(a) for a in anchors["anchor"]]
         self._anchor_index = pd.Index(self.anchor_ids, dtype=object)
@@ -272,6 +295,7 @@ class Engine:
                 self.pos.close()
                 raise
             self._write_meta()  # the kind of rows from the start (and the value if known)
+            self._forget_idle(time.time())  # the store's tags silent for long: forgotten
 
     # -- persistence ---------------------------------------------------------------------
     def _meta_path(self) -> Path:
@@ -336,26 +360,40 @@ class Engine:
                                  "anchors cannot locate (no path-loss parameters: columns "
                                  "A, n; run `robustloc calibrate`)")
         self._check_rows_kind(stored_rows)
-        solved = _latest_by_run(self.pos.scan(columns=["time", "tag", "run"]))
-        self._seed_latest(solved)
+        stored_solved = _latest_by_run(self.pos.scan(columns=["time", "tag", "run"]))
+        self._seed_latest(stored_solved)
+        solved = stored_solved
         snap = self.store_dir / "state" / "processor.pkl" if self.store_dir else None
+        snap_forget, snap_at = math.inf, math.nan
         if snap is not None and snap.exists():
             with open(snap, "rb") as f:
                 saved = pickle.load(f)  # noqa: S301 - our own file in the store
             self.processor.load_state_dict(saved["state"])
             solved = {_run_key(k): float(v) for k, v in saved["watermarks"].items()}
             self._processed = dict(solved)
-        meas = self.meas.scan(columns=["time", "tag", "anchor", "value", "late", "run"])
+            snap_forget = float(saved.get("forget_after", math.inf))
+            snap_at = float(saved.get("saved_at", math.nan))
+        meas = self.meas.scan(columns=["time", "tag", "anchor", "value", "late", "run",
+                                       "arrival"])
         if meas.num_rows == 0:
             return
         self._check_anchors(meas)
-        df = meas.select(["time", "tag", "anchor", "value", "late"]).to_pandas()
+        df = meas.select(["time", "tag", "anchor", "value", "late", "arrival"]).to_pandas()
         df["run"] = _runs_of(meas)
         # each tag's current run: the latest re-base the stored rows tell (late rows too)
         current = df.groupby("tag", sort=False)["run"].max()
         a = self.assembler
         codes = a.codes(current.index.to_numpy(object))
         self._runs_for(codes)[codes] = current.to_numpy(np.int64)
+        a.set_heard(df.groupby("tag", sort=False)["arrival"].max().to_dict())
+        if math.isfinite(snap_forget):
+            # a (tag, run) the snapshot lacks, silent for forget_after when it was taken,
+            # had been forgotten: solved up to its stored positions (not all re-solved)
+            arrived = df.groupby(["tag", "run"], sort=False)["arrival"].max()
+            for (tag, run), t in arrived.items():
+                key = (str(tag), int(run))
+                if key not in solved and key in stored_solved and t <= snap_at - snap_forget:
+                    solved[key] = stored_solved[key]
         df = df[~df["late"].to_numpy(bool)]
         if solved:
             sol = (pd.Series(list(solved.values()), index=pd.MultiIndex.from_tuples(list(solved)))
@@ -449,7 +487,10 @@ class Engine:
             # the state's watermarks are the epochs the processor has processed, not the
             # assembler's (which also count blocks queued meanwhile by the ingest threads:
             # a restart would then skip them, and a tracker would never give them a row)
-            pickle.dump({"state": state, "watermarks": dict(self._processed)}, f)
+            # (with the forgetting rule it was taken under: a restart tells the tags it
+            # lacks because they were forgotten, see _recover)
+            pickle.dump({"state": state, "watermarks": dict(self._processed),
+                         "saved_at": time.time(), "forget_after": self.forget_after_s}, f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, d / "processor.pkl")
@@ -524,9 +565,10 @@ class Engine:
         """The per-code run array, grown to cover ``code`` (caller holds the ingest lock,
         or is the constructor)."""
         need = int(code.max(initial=-1)) + 1
-        if need > len(self._run_arr):
+        if need > len(self._run_arr):  # new tags start in the run base (module doc)
             self._run_arr = np.concatenate(
-                [self._run_arr, np.zeros(need - len(self._run_arr), dtype=np.int64)])
+                [self._run_arr, np.full(need - len(self._run_arr), self._run_base,
+                                        dtype=np.int64)])
         return self._run_arr
 
     def _take(self, wall: float, *, flush_all: bool = False) -> dict | None:
@@ -667,13 +709,58 @@ class Engine:
                     self._enqueue([self._take(now, flush_all=flush_all)], now)
             with self._cv:
                 blocks, self._queue = self._queue, []
-            if not blocks or self.kind is None:
-                return 0
-            out = self._solve(blocks)
-            if self.snapshot_s and time.monotonic() - self._last_snapshot > self.snapshot_s:
-                self._snapshot()
-                self._last_snapshot = time.monotonic()
+            out = 0
+            if blocks and self.kind is not None:
+                out = self._solve(blocks)
+                if (self.snapshot_s
+                        and time.monotonic() - self._last_snapshot > self.snapshot_s):
+                    self._snapshot()
+                    self._last_snapshot = time.monotonic()
+            now = time.time()
+            if now - self._last_forget >= self._forget_every:
+                self._forget_idle(now)
             return out
+
+    def forget_idle(self, now: float | None = None) -> int:
+        """Forget now the tags silent for ``forget_after_s`` at wall time ``now`` (default
+        the clock's; the solver does it every minute at most); returns how many."""
+        with self._solve_lock:
+            return self._forget_idle(time.time() if now is None else now)
+
+    def _forget_idle(self, now: float) -> int:
+        """:meth:`forget_idle`, called by the solver (it holds the solve lock, or is the
+        constructor): no block is being processed meanwhile."""
+        self._last_forget = now
+        if not math.isfinite(self.forget_after_s):
+            return 0
+        with self._ingest_lock:
+            a = self.assembler
+            codes = a.idle_tags(now - self.forget_after_s)
+            if codes.size:
+                with self._cv:  # (blocks queued since this step took the queue)
+                    queued = [b["tag_code"] for b, _ in self._queue]
+                if queued:
+                    codes = codes[~np.isin(codes, np.concatenate(queued))]
+            if not codes.size:
+                return 0
+            runs = self._runs_for(codes)[codes]
+            self._run_base = max(self._run_base, int(runs.max()) + 1)
+            self._run_arr[codes] = self._run_base  # (their codes' next tags)
+            names = a.forget(codes)
+        gone = set(names)
+        forget = getattr(self.processor, "forget", None)
+        if forget is not None:
+            forget(names)
+        self._processed = {k: v for k, v in self._processed.items() if k[0] not in gone}
+        with self._latest_lock:
+            self._compact_latest()
+            if self._latest_frames and len(self._latest_frames[0]):
+                f = self._latest_frames[0]
+                self._latest_frames = [f[~f["tag"].isin(gone).to_numpy()]
+                                       .reset_index(drop=True)]
+        with self.metrics._lock:
+            self.metrics.tags_forgotten += len(names)
+        return len(names)
 
     def flush(self) -> int:
         """Solve every pending epoch now (tests and benchmarks; not needed in service)."""

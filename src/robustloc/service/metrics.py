@@ -35,6 +35,7 @@ class Metrics:
         self.rows_late = 0
         self.tags_rebased = 0  # tags whose clock jumped (robustloc.service.assembly)
         self.tags_refused = 0  # new tags beyond serve --max-tags (their rows rejected)
+        self.tags_forgotten = 0  # tags silent for serve --forget-after (state dropped)
         self.requests_rejected: dict[str, int] = {}  # reason -> count (401, 413, 429, ...)
         self.positions: dict[str, int] = {}  # status -> count
         self.ws_dropped = 0
@@ -118,6 +119,7 @@ class Metrics:
                 "rows_late": self.rows_late,
                 "tags_rebased": self.tags_rebased,
                 "tags_refused": self.tags_refused,
+                "tags_forgotten": self.tags_forgotten,
                 "requests_rejected": dict(self.requests_rejected),
                 "positions": sum(self.positions.values()),
                 "latency_p50_s": float(np.percentile(lat, 50)) if len(lat) else None,
@@ -162,6 +164,10 @@ class Metrics:
                    "New tags refused because the service holds --max-tags already (their "
                    "rows rejected, counted in robustloc_rows_rejected_total).")
             lines.append(f"robustloc_tags_refused_total {self.tags_refused}")
+            family("robustloc_tags_forgotten_total", "counter",
+                   "Tags forgotten after --forget-after seconds without a row (their state "
+                   "dropped, their stored rows kept; heard again, a tag starts afresh).")
+            lines.append(f"robustloc_tags_forgotten_total {self.tags_forgotten}")
             family("robustloc_requests_rejected_total", "counter",
                    "Requests refused as a whole, by reason.")
             for r, c in sorted(self.requests_rejected.items()):

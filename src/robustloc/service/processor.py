@@ -63,6 +63,10 @@ class Processor(Protocol):
         """Restore the state saved by :meth:`state_dict`."""
         ...
 
+    def forget(self, tags: list[str]) -> None:
+        """Drop the state of ``tags`` (silent for long): heard again, each starts afresh."""
+        ...
+
 
 class LocateProcessor:
     """Per-epoch fixes, each tested with its protection level, as ``robustloc locate``.
@@ -271,6 +275,10 @@ class LocateProcessor:
     def load_state_dict(self, state: dict) -> None:
         return None
 
+    def forget(self, tags: list[str]) -> None:
+        """Nothing to drop: a fix uses no state of its tag."""
+        return None
+
 
 class TrackProcessor:
     """Tracks with ``robustloc.tracking.Tracker`` (motion model + filter per tag).
@@ -317,6 +325,10 @@ class TrackProcessor:
 
     def state_dict(self) -> dict:
         return self.tracker.state_dict()
+
+    def forget(self, tags: list[str]) -> None:
+        """Drop the filters of ``tags`` (``Tracker.forget``)."""
+        self.tracker.forget(tags)
 
     def load_state_dict(self, state: dict) -> None:
         try:

@@ -491,8 +491,47 @@ class Tracker:
 
     @property
     def tags(self) -> list[str]:
-        """Tags seen so far."""
+        """Tags seen so far (and not forgotten)."""
         return list(self._slot)
+
+    def forget(self, tags: Any) -> int:
+        """Drop every state of ``tags``: each given again is a new tag, started afresh
+        from a fix (a long-running service forgets the tags that stopped reporting;
+        ``robustloc serve --forget-after``).  Tags not held are ignored.
+
+        The other tags' states are kept exactly: their snapshot checks still pending are
+        solved first (as :meth:`state_dict` does; outputs are unaffected), then the state
+        arrays lose the forgotten tags' rows.
+
+        Returns
+        -------
+        int
+            The number of tags forgotten.
+
+        Raises
+        ------
+        ValueError
+            A recording tracker (``record=True``): its history for :meth:`smoothed` holds
+            the tags' state rows.
+        """
+        if self.record:
+            raise ValueError("a recording tracker (record=True) cannot forget tags: its "
+                             "history for smoothed() refers to their state rows")
+        gone = [t for t in dict.fromkeys(tags) if t in self._slot]
+        if not gone:
+            return 0
+        self._settle()  # every logged check void after it: the log can restart empty
+        S = len(self._slot)
+        keep = np.ones(S, dtype=bool)
+        keep[np.fromiter((self._slot[t] for t in gone), dtype=np.int64, count=len(gone))] = False
+        new = np.cumsum(keep) - 1
+        self._slot = {t: int(new[k]) for t, k in self._slot.items() if keep[k]}
+        for name in self._ARRAYS:
+            setattr(self, name, getattr(self, name)[keep])
+        for name in ("_p_on", "_p_lo", "_p_b0", "_p_after", "_p_gen"):
+            setattr(self, name, np.zeros(0, getattr(self, name).dtype))
+        self._alloc_pending(len(self._slot))
+        return len(gone)
 
     def link_offsets(self) -> pd.DataFrame:
         """The links' offsets (``link_offsets``, item 11 of the module docstring) of every
