@@ -1428,3 +1428,22 @@ def test_what_the_http_server_refuses_itself_is_counted_without_a_traceback(
     assert "Traceback" not in log, log[-2000:]
     for line in ("Invalid UTF-8", "Invalid HTTP request"):  # one warning line each
         assert (line in log) == (level == "warning"), log[-2000:]
+
+
+def test_floor_plan_deleted_after_start_is_a_404_with_its_reason(uwb, tmp_path, server_factory):
+    """The image given to --floorplan deleted while the service runs: every request for it
+    (the map page asks every 2 s) was a 500 with a traceback in the server's log (the map
+    review).  Now a 404 naming the image, counted, and no traceback."""
+    plan = tmp_path / "plan.png"
+    plan.write_bytes(b"\x89PNG\r\n\x1a\n" + b"\0" * 64)
+    s = server_factory(["--anchors", str(uwb / "anchors.csv"), "--floorplan", str(plan),
+                        "--floorplan-extent", "0,0,10,10"])
+    assert httpx.get(s.url + "/floorplan").status_code == 200
+    plan.unlink()
+    for _ in range(3):
+        r = httpx.get(s.url + "/floorplan")
+        assert r.status_code == 404
+        assert "plan.png cannot be read" in r.json()["error"]
+    assert metric(s.url, 'robustloc_requests_rejected_total{reason="not_found"}') == 3
+    assert metric(s.url, 'robustloc_requests_rejected_total{reason="internal_error"}') == 0
+    assert "Traceback" not in s.log()

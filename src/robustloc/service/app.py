@@ -369,6 +369,15 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             return unauthorized()
         if cfg.floorplan is None:  # (counted as every refused request is)
             return refuse("not_found", 404, "no floor plan configured (serve --floorplan)")
+        try:  # the image may have gone since the start (a 500 with a traceback, every 2 s)
+            if not cfg.floorplan.is_file():
+                raise FileNotFoundError("not a file any more")
+            with open(cfg.floorplan, "rb"):
+                pass
+        except OSError as exc:
+            why = exc.strerror or str(exc)
+            return refuse("not_found", 404, f"the floor-plan image {cfg.floorplan.name} "
+                          f"cannot be read ({why}): it was there when the service started")
         return FileResponse(cfg.floorplan)
 
     async def healthz(request: Request) -> Response:
