@@ -1447,3 +1447,15 @@ def test_floor_plan_deleted_after_start_is_a_404_with_its_reason(uwb, tmp_path, 
     assert metric(s.url, 'robustloc_requests_rejected_total{reason="not_found"}') == 3
     assert metric(s.url, 'robustloc_requests_rejected_total{reason="internal_error"}') == 0
     assert "Traceback" not in s.log()
+
+
+def test_serve_refuses_an_anchor_id_no_row_could_name(tmp_path):
+    """The anchors file took a 300-character id, but every row naming it is rejected (ids
+    of at most 128 characters): the anchor could never be heard, and nothing said so (the
+    map review).  Now ``serve`` refuses it at start, with the file and line."""
+    p = tmp_path / "a.csv"
+    p.write_text("anchor,x,y\nA1,0,0\n" + "B" * 300 + ",10,0\nA3,5,5\n")
+    r = subprocess.run([*ROBUSTLOC, "serve", "--anchors", str(p)], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.startswith(f"error: {p}:3: anchor id of 300 characters")

@@ -225,6 +225,25 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    choices=("critical", "error", "warning", "info", "debug"))
 
 
+def _check_anchor_ids(anchors, path: str) -> None:
+    """Refuse an anchor id longer than the service accepts in a row: no row could name it,
+    so the anchor would never be heard, silently (the map review: a 3 000-character id)."""
+    from robustloc.errors import InputError
+    from robustloc.service.rows import MAX_ID_CHARS
+
+    for a in anchors["anchor"].astype(str):
+        if len(a) > MAX_ID_CHARS:
+            line = None
+            try:
+                with open(path, encoding="utf-8", errors="replace") as f:
+                    line = next((i for i, ln in enumerate(f, 1) if a in ln), None)
+            except OSError:
+                pass
+            raise InputError(f"anchor id of {len(a)} characters ({a[:24]!r}...): the service "
+                             f"accepts ids of at most {MAX_ID_CHARS} characters, so no row "
+                             "could name this anchor; shorten it", path, line)
+
+
 def build(args: argparse.Namespace):
     """The engine, app config and app for ``args`` (used by ``run`` and the tests)."""
     from robustloc.errors import InputError
@@ -233,6 +252,7 @@ def build(args: argparse.Namespace):
     from robustloc.service.processor import LocateProcessor, TrackProcessor
 
     anchors = read_anchors(args.anchors)
+    _check_anchor_ids(anchors, args.anchors)
     if (args.floorplan is None) != (args.floorplan_extent is None):
         raise InputError("--floorplan and --floorplan-extent go together")
     if args.floorplan is not None and not Path(args.floorplan).is_file():
