@@ -11,6 +11,8 @@ tags forgotten (``/metrics``) and the server's resident memory (``/proc/PID/stat
 Without forgetting (``--forget-after never``), the second wave is refused whole once the
 first filled ``--max-tags``; with it, every wave is accepted and the memory levels off.
 
+Each server has a store on disk (in a temporary folder): without one, the service keeps
+every row and position in memory, which grows with the rows whatever happens to the tags.
 Everything runs on 127.0.0.1, and the servers are stopped in a ``finally``.
 
 Usage::
@@ -69,7 +71,10 @@ def run(forget: str, args: argparse.Namespace) -> list[dict]:
     out = []
     with tempfile.TemporaryDirectory() as tmp:
         (Path(tmp) / "anchors.csv").write_text(ANCHORS)
-        cmd = ["--anchors", str(Path(tmp) / "anchors.csv"), "--latency-window", "0",
+        # (a store on disk: without one, the service keeps every row and position in
+        # memory, which grows with the rows whatever happens to the tags)
+        cmd = ["--anchors", str(Path(tmp) / "anchors.csv"), "--store", str(Path(tmp) / "st"),
+               "--latency-window", "0",
                "--idle-flush", "0.5", "--max-tags", str(args.max_tags),
                "--forget-after", forget, "--log-level", "error"]
         if args.track:
@@ -97,9 +102,11 @@ def run(forget: str, args: argparse.Namespace) -> list[dict]:
                     solved = metric(s.url, "robustloc_positions_total")
                     held_peak = c.get(s.url + "/api/status").json()["tags"]
                     rss_peak = rss_mb(pid)
-                    if forget != "never":  # until the wave is forgotten
+                    if forget != "never":  # until the wave is forgotten (and counted)
                         deadline = time.monotonic() + float(forget) + 120
-                        while (c.get(s.url + "/api/status").json()["tags"] > 0
+                        while ((c.get(s.url + "/api/status").json()["tags"] > 0
+                                or metric(s.url, "robustloc_tags_forgotten_total")
+                                < (w + 1) * args.tags)
                                and time.monotonic() < deadline):
                             time.sleep(0.5)
                     out.append({
