@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import field, fields
 from typing import Any
@@ -127,6 +128,29 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
     return value
+
+
+def local_workers(text: str) -> int:
+    """``--workers``: a whole number from 1 to :func:`max_local_workers` (a million
+    LocalCluster worker processes took 2.8 GB and 10 minutes without starting one, and
+    held the SIGTERM of ``timeout`` meanwhile: the Dask review)."""
+    value = positive_int(text)
+    limit, cores = max_local_workers()
+    if value > limit:
+        raise argparse.ArgumentTypeError(
+            f"expected at most {limit} (4 per core, at least 8; this machine has {cores}; "
+            f"for a bigger cluster start one and give --scheduler), got {text!r}")
+    return value
+
+
+def max_local_workers() -> tuple[int, int]:
+    """The most LocalCluster workers ``--workers`` takes, and the cores available: 4 per
+    core, at least 8 (one worker process per core is what a machine can run at once)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        cores = os.cpu_count() or 1
+    return max(8, 4 * cores), cores
 
 
 def nonnegative_int(text: str) -> int:

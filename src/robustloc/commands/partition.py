@@ -31,7 +31,7 @@ spills to disk beyond --memory-limit):
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from robustloc.engines.partition import BY, METHODS
-    from robustloc.options import float_in, nonnegative_int, positive_int
+    from robustloc.options import float_in, local_workers, nonnegative_int, positive_int
 
     p.add_argument("input", help="measurements: CSV or Parquet file, directory or glob")
     p.add_argument("-o", "--out", required=True, help="dataset directory to write")
@@ -54,7 +54,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="DuckDB threads (default: the cores available)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="--method dask: a running scheduler (default: a LocalCluster)")
-    p.add_argument("--workers", type=positive_int, default=None, metavar="N",
+    p.add_argument("--workers", type=local_workers, default=None, metavar="N",
                    help="--method dask without --scheduler: LocalCluster workers")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 

@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import argparse
 
+from robustloc.options import local_workers
+
 ENGINES = ("local", "dask")
 
 
@@ -50,7 +52,7 @@ def add_engine_arguments(p: argparse.ArgumentParser, *, what: str = "a Parquet d
              "default: start a LocalCluster on this machine and close it at the end",
     )
     g.add_argument(
-        "--workers", type=_positive_int, default=None, metavar="N",
+        "--workers", type=local_workers, default=None, metavar="N",
         help="--engine dask without --scheduler: LocalCluster worker processes (default: "
              "the CPU cores available; one thread each)",
     )
@@ -58,11 +60,4 @@ def add_engine_arguments(p: argparse.ArgumentParser, *, what: str = "a Parquet d
         g.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
-    return v
+

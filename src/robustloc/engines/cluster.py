@@ -26,6 +26,8 @@ WORKER_MEMORY_BYTES = 2 * 1024**3
 WORKER_WAIT_SECONDS = 30.0
 #: Seconds to wait for a connection to a ``--scheduler``.
 CONNECT_TIMEOUT_SECONDS = 20.0
+#: Most seconds an interrupt is held while a LocalCluster starts (:func:`_signals_held`).
+SIGNAL_HOLD_SECONDS = 10.0
 
 
 def machine_cores() -> int:
@@ -66,10 +68,20 @@ def _signals_held() -> Iterator[list[int]]:
         yield got
         return
 
+    import _thread
+
+    timer: list[threading.Timer] = []
+
     def note(signum: int, frame: object) -> None:
         got.append(signum)
-        if signum == signal.SIGINT and got.count(signum) >= 2:
+        if len(got) >= 2:  # a second signal (or the deadline below): out at once
             raise KeyboardInterrupt()
+        # held for SIGNAL_HOLD_SECONDS at most: a start that hangs must not keep a
+        # SIGTERM (``timeout``'s only one) waiting for ever (the Dask review)
+        t = threading.Timer(SIGNAL_HOLD_SECONDS, _thread.interrupt_main)
+        t.daemon = True
+        t.start()
+        timer.append(t)
 
     old = {}
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -78,6 +90,8 @@ def _signals_held() -> Iterator[list[int]]:
     try:
         yield got
     finally:
+        for t in timer:
+            t.cancel()
         for sig, handler in old.items():
             signal.signal(sig, handler)
 
@@ -167,6 +181,41 @@ def check_scheduler_address(scheduler: str) -> None:
                          "expected e.g. tcp://HOST:8786") from None
 
 
+def _probe(scheduler: str) -> None:
+    """Open and close one connection to a ``tcp://`` scheduler within
+    :data:`CONNECT_TIMEOUT_SECONDS`, handshake included.
+
+    ``Client(timeout=...)`` bounds the TCP connect, not the handshake's read: a port that
+    accepts and never answers hung the command for good, and one that sent a banner (an
+    SSH server) made distributed allocate 2.8 EiB for the frame it read (the Dask review).
+
+    Raises
+    ------
+    InputError
+        ``--scheduler ADDRESS: cannot connect (...)``.
+    """
+    import asyncio
+
+    from distributed.comm import connect
+    from distributed.comm.addressing import parse_address
+
+    if parse_address(scheduler)[0] != "tcp":  # (tls needs its security; inproc no probe)
+        return
+
+    async def once() -> None:
+        comm = await connect(scheduler, timeout=CONNECT_TIMEOUT_SECONDS)
+        await comm.close()
+
+    try:
+        asyncio.run(asyncio.wait_for(once(), CONNECT_TIMEOUT_SECONDS))
+    except (TimeoutError, asyncio.TimeoutError):
+        raise InputError(f"--scheduler {scheduler}: cannot connect (no dask scheduler "
+                         f"answered within {CONNECT_TIMEOUT_SECONDS:g} s)") from None
+    except Exception as exc:  # noqa: BLE001 - whatever the address answered
+        raise InputError(f"--scheduler {scheduler}: cannot connect ({type(exc).__name__}: "
+                         f"{exc}; is it a dask scheduler?)") from None
+
+
 def _connect(distributed: object, scheduler: str) -> object:
     """A client of the running scheduler ``scheduler`` that has at least one worker.
 
@@ -177,12 +226,14 @@ def _connect(distributed: object, scheduler: str) -> object:
         after :data:`WORKER_WAIT_SECONDS` (``--scheduler ADDRESS: no workers after N s``).
     """
     check_scheduler_address(scheduler)
+    _probe(scheduler)
     try:
         client = distributed.Client(  # type: ignore[attr-defined]
             scheduler, timeout=f"{CONNECT_TIMEOUT_SECONDS:g}s")
-    except (OSError, ValueError, TypeError) as exc:
+    except Exception as exc:  # noqa: BLE001 - whatever the address answered
         # a user's mistake in every command (spp ended in a traceback here)
-        raise InputError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
+        raise InputError(f"--scheduler {scheduler}: cannot connect "
+                         f"({type(exc).__name__}: {exc})") from None
     try:
         if not client.scheduler_info().get("workers"):  # type: ignore[attr-defined]
             print(f"note: --scheduler {scheduler} has no workers yet; waiting up to "
@@ -333,5 +384,26 @@ def gather_with_progress(client: object, futures: Sequence[object], show: bool) 
         client.cancel(futures)
         raise
     if first:
-        raise first[0]
+        raise _cluster_failure(first[0], client) or first[0]
     return results
+
+
+def _cluster_failure(exc: BaseException, client: object) -> InputError | None:
+    """The cluster's own failure as an :class:`InputError` (``error: ...``, exit 2), or
+    None for a task's error: workers that died (killed, or over their memory limit) or a
+    scheduler lost were reported as a bug in robustloc, with a traceback (the Dask
+    review)."""
+    distributed = import_distributed()
+    from distributed.comm.core import CommClosedError
+
+    name = type(exc).__name__
+    if isinstance(exc, distributed.KilledWorker):
+        return InputError(f"the dask workers running a task died ({name}: {exc}); a worker "
+                          "over its memory limit is stopped by its nanny: rerun with more "
+                          "memory per worker, smaller partitions, or fewer workers")
+    lost = getattr(client, "status", "running") != "running"
+    if isinstance(exc, CommClosedError) or (
+            isinstance(exc, RuntimeError) and "cancelled" in str(exc) and lost):
+        return InputError(f"lost the dask scheduler or its workers mid-run ({name}: {exc}); "
+                          "the output was not written: rerun once the cluster is back")
+    return None

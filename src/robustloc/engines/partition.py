@@ -36,6 +36,7 @@ import shutil
 import time as _time
 from dataclasses import dataclass
 from pathlib import Path
+from urllib.parse import quote
 
 from robustloc.engines.dataset import discover
 from robustloc.errors import InputError, OutputError
@@ -321,7 +322,9 @@ def partition_dataset(
             _check_with_duckdb(files, fmt, dest.stage, memory_limit, threads, source)
             rows, span, key = _dask(files, fmt, dest.stage, by, span_s, rows_per_partition,
                                     buckets, scheduler, workers, source)
-        n_files = sum(1 for _ in dest.stage.rglob("*.parquet"))
+        written = list(dest.stage.rglob("*.parquet"))
+        n_files = len(written)
+        _check_rows_written(written, rows, out)
         summary = PartitionSummary(rows, n_files, by, key, span, 0.0, method)
         dest.commit({"command": "partition", "input": str(source), "by": by, "key": key,
                      "span_s": span, "rows": rows, "files": n_files, "method": method})
@@ -405,6 +408,18 @@ def _connect(memory_limit: str, threads: int | None, tmp: Path):
         con.close()
         raise
     return con
+
+
+def _check_rows_written(files: list[Path], rows: int, out: str | os.PathLike) -> None:
+    """Refuse a dataset whose files hold other than the ``rows`` read (from their
+    metadata): rows written elsewhere were lost, silently (the Dask review: 529 of 2 158
+    rows went outside the output, and the summary said 2 158)."""
+    import pyarrow.parquet as pq
+
+    have = sum(pq.ParquetFile(f).metadata.num_rows for f in files)
+    if have != rows:
+        raise OutputError(f"the partitioned dataset holds {have} rows of the {rows} read: "
+                          "not written (a bug in robustloc; please report it)", out)
 
 
 def _check_with_duckdb(files: list[str], fmt: str, stage: Path, memory_limit: str,
@@ -494,6 +509,10 @@ def _duckdb(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, me
     return n, span, key
 
 
+#: The column holding each row's tag id while dask writes folders of escaped ids.
+_RAW_TAG = "__robustloc_tag"
+
+
 def _dask(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, scheduler, workers,
           spec) -> tuple[int, float | None, str]:
     import dask.dataframe as dd
@@ -527,20 +546,27 @@ def _dask(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, sche
                     df["tag"].to_numpy(dtype=object)) % np.uint64(buckets)).astype("int64")))
         else:
             key = "tag"
+            # dask names each folder by the raw value: a tag holding "/" made folders in
+            # folders (a traceback, a tag renamed, rows written outside -o: the Dask
+            # review).  The folders get the id escaped as DuckDB's (tag=a%2Fb, which the
+            # readers unescape), the files the id itself (put back below)
+            ddf = ddf.map_partitions(lambda df: df.assign(**{
+                _RAW_TAG: df["tag"].astype(str),
+                "tag": [quote(str(t), safe="") for t in df["tag"].tolist()]}))
         n_parts = max(1, min(ddf.npartitions, 1 + n // max(rows_per_partition, 1)))
         ddf = ddf.shuffle(on=key, npartitions=n_parts)
         ddf = ddf.map_partitions(lambda df: df.sort_values([key, "time", "tag", "anchor"],
                                                           kind="stable"))
         ddf.to_parquet(str(stage), partition_on=[key], write_index=False,
                        write_metadata_file=False)
-    if key == "tag":  # dask drops the partition column from the files; put it back
-        import pyarrow as pa
+    if key == "tag":  # the files' tag: the id itself (dask dropped the escaped one)
         import pyarrow.parquet as pq
 
         for f in stage.rglob("*.parquet"):
             t = pq.read_table(f)
-            if "tag" not in t.column_names:
-                tag = f.parent.name.split("=", 1)[1]
-                pq.write_table(t.append_column("tag", pa.array([tag] * t.num_rows,
-                                                              pa.string())), f)
+            if _RAW_TAG in t.column_names:
+                if "tag" in t.column_names:
+                    t = t.drop_columns(["tag"])
+                t = t.rename_columns(["tag" if c == _RAW_TAG else c for c in t.column_names])
+                pq.write_table(t, f)
     return n, span, key
