@@ -208,3 +208,15 @@ def test_an_interrupt_is_held_for_a_bounded_time(monkeypatch):
         time.sleep(0.1)
     assert got == [signal.SIGTERM]
     time.sleep(0.7)  # (its timer was cancelled: no late KeyboardInterrupt)
+
+
+def test_an_output_folder_that_cannot_be_made_is_named_as_given():
+    """``-o /proc/xx --engine dask`` said "/proc/.xx.partial-cc3fd4a5: file not found":
+    the staging folder's name, which the user never gave."""
+    from robustloc.engines.dask import DatasetOutput
+    from robustloc.errors import OutputError
+
+    with pytest.raises(OutputError) as exc:
+        DatasetOutput("/proc/xx")
+    assert exc.value.path is not None and str(exc.value.path) == "/proc/xx"
+    assert "partial" not in str(exc.value)

@@ -114,9 +114,16 @@ class DatasetOutput:
                 raise InputError("directory exists and is not a robustloc dataset; refusing "
                                  "to replace it", given)
         self.given = given
-        self.out.parent.mkdir(parents=True, exist_ok=True)
         self.stage = self.out.parent / f".{self.out.name}.partial-{uuid.uuid4().hex[:8]}"
-        self.stage.mkdir()
+        try:
+            self.out.parent.mkdir(parents=True, exist_ok=True)
+            self.stage.mkdir()
+        except OSError as exc:  # named as given (the staging folder's name meant nothing
+            # to the user: "/proc/.xx.partial-cc3fd4a5: file not found", the Dask review)
+            from robustloc.errors import OutputError
+
+            raise OutputError(f"cannot create the dataset folder here "
+                              f"({exc.strerror or exc})", given, errno_=exc.errno) from None
 
     def part(self, i: int) -> str:
         """Absolute path of output partition ``i`` (in the staging directory)."""
