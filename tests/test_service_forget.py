@@ -308,3 +308,52 @@ def test_serve_forget_after_option_values(tmp_path):
     from robustloc.commands.serve import _forget_after
 
     assert _forget_after("never") == float("inf") and _forget_after("86400") == 86400.0
+
+
+def test_a_tag_forgotten_twice_comes_back_in_a_run_it_never_had(tmp_path):
+    """Tags A and X forgotten in one pass, A back (run 1) and forgotten again, a new tag Z,
+    then A back once more: A took X's old code, whose run was still the first pass's base
+    (1), so A's third visit shared run 1 with its second: its epochs were solved twice in
+    one run, the positions query kept one of each, and after a crash acknowledged rows
+    below the run's watermark never got a position (the forget review)."""
+    store = tmp_path / "s"
+    eng = _engine(store_dir=store, forget_after_s=10.0)
+    later = lambda: eng.forget_idle(time.time() + 11.0)  # noqa: E731
+    eng.ingest(_ranges("A", [0.0, 1.0]) + _ranges("X", [0.0, 1.0]))
+    eng.flush()
+    assert later() == 2
+    eng.ingest(_ranges("A", [0.0, 1.0], start=(5.0, 5.0)))
+    eng.flush()
+    assert later() == 1
+    eng.ingest(_ranges("Z", [0.0, 1.0]))
+    eng.ingest(_ranges("A", [0.0, 1.0], start=(7.0, 7.0)))
+    eng.flush()
+    assert len(eng.positions(tag="A")) == 6
+    eng.stop()
+    pos = _stored_positions(store, "A")
+    assert sorted(zip(pos["run"], pos["time"])) == [
+        (0, 0.0), (0, 1.0), (1, 0.0), (1, 1.0), (2, 0.0), (2, 1.0)]
+
+
+def test_restarts_with_a_longer_forget_after_do_not_solve_a_forgotten_tag_again(tmp_path):
+    """A forgotten under --forget-after 0.5 s; a restart with 'never' held it again but
+    its next snapshot lacked A's watermark; the restart after that tracked A's whole
+    stored history again (the forget review)."""
+    store = tmp_path / "s"
+    eng = _engine(TrackProcessor(ANCHORS), store_dir=store, forget_after_s=0.5,
+                  snapshot_s=0.0)
+    eng.ingest(_ranges("a", np.arange(6) * 0.5) + _ranges("b", np.arange(6) * 0.5))
+    eng.flush()
+    time.sleep(0.6)
+    eng.ingest(_ranges("b", 3 + np.arange(4) * 0.5))
+    eng.flush()
+    assert eng.processor.tracker.tags == ["b"]
+    eng.stop()
+    for _ in range(2):
+        eng = _engine(TrackProcessor(ANCHORS), store_dir=store, forget_after_s=float("inf"))
+        try:
+            eng.flush()
+            assert eng.recovered_rows == 0
+        finally:
+            eng.stop()
+    assert len(_stored_positions(store, "a")) == 6

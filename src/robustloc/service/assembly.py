@@ -130,6 +130,11 @@ class EpochAssembler:
         """The number of tags held."""
         return len(self._code)
 
+    @property
+    def free_codes(self) -> NDArray[np.int64]:
+        """The codes of forgotten tags, not yet given to new tags."""
+        return np.array(self._free, dtype=np.int64)
+
     def name(self, code: int) -> str:
         """The tag of a held ``code``."""
         n = self._names[code]

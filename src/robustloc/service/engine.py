@@ -394,6 +394,9 @@ class Engine:
                 key = (str(tag), int(run))
                 if key not in solved and key in stored_solved and t <= snap_at - snap_forget:
                     solved[key] = stored_solved[key]
+                    # (and in the next snapshot: a restart after a restart with a longer
+                    # --forget-after re-solved the tag's whole history, the forget review)
+                    self._processed[key] = stored_solved[key]
         df = df[~df["late"].to_numpy(bool)]
         if solved:
             sol = (pd.Series(list(solved.values()), index=pd.MultiIndex.from_tuples(list(solved)))
@@ -745,8 +748,12 @@ class Engine:
                 return 0
             runs = self._runs_for(codes)[codes]
             self._run_base = max(self._run_base, int(runs.max()) + 1)
-            self._run_arr[codes] = self._run_base  # (their codes' next tags)
             names = a.forget(codes)
+            # every free code's next tag starts in the new base: a code freed by an earlier
+            # pass kept that pass's base, and a tag forgotten twice came back in a run it
+            # had used (epochs solved twice; after a crash, rows never solved: the forget
+            # review)
+            self._run_arr[a.free_codes] = self._run_base
         gone = set(names)
         forget = getattr(self.processor, "forget", None)
         if forget is not None:
