@@ -12,10 +12,14 @@ HELP = "reproduce every paper's experiment (simulation and real data) into a rep
 DESCRIPTION = """\
 Runs each paper's experiment on simulation built to the paper's setup and on the real
 public data, prints the tables beside the published numbers, and writes report.md,
-report.html, summary.json, CSV tables and PNG figures into --out.
+report.html, summary.json, CSV tables and PNG figures into --out.  The report is written
+whole or not at all: a run that fails or is interrupted leaves --out as it was (absent,
+or the previous report, which a complete run replaces whole); a folder that is not a
+robustloc report is refused.
 
 Real data: --data DIR (default ../shared/data when it exists); without it the small
-excerpts shipped in the package are used and the report says so."""
+excerpts shipped in the package are used and the report says so (a data set missing
+from DIR is taken from its excerpt, with a note on stderr)."""
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -46,6 +50,12 @@ def run(args: argparse.Namespace) -> int:
         section_modules(args.only)
     except ValueError as exc:
         raise InputError(f"argument --only: {exc}") from None
+    from robustloc.reproduce._output import check_out, check_out_text
+
+    # the output checked before any work: an empty -o (``Path("")`` is the working
+    # folder), a file, or a folder that is not a robustloc report (it is never replaced)
+    check_out_text(args.out)
+    check_out(Path(args.out))
     compile_notice("positioning", "filter")
     data_dir = resolve_data_dir(args.data)
     ctx = Context(out_dir=Path(args.out), data_dir=data_dir, seed=args.seed, quick=args.quick)

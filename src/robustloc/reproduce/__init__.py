@@ -8,6 +8,7 @@ experiment lives in its own file.
 
 from __future__ import annotations
 
+import dataclasses
 import html
 import importlib
 import json
@@ -36,15 +37,41 @@ class Context:
         Seed for every simulation.
     quick : bool
         Fewer Monte Carlo trials / epochs (for tests).
+    notes : set of str
+        The data-source notes already printed (:meth:`note`), each said once per run.
     """
 
     out_dir: Path
     data_dir: Path | None
     seed: int = 1
     quick: bool = False
+    notes: set[str] = field(default_factory=set, repr=False, compare=False)
 
     def log(self, message: str) -> None:
         print(message, file=sys.stderr, flush=True)
+
+    def note(self, source: Any) -> None:
+        """Say on stderr (once per run) that a data set fell back to its shipped excerpt.
+
+        ``source`` is a :class:`robustloc.datasets.ble_tetam.DatasetSource` (its ``note``,
+        empty when nothing fell back) or the note's text.
+        """
+        text = source if isinstance(source, str) else getattr(source, "note", "")
+        if text and text not in self.notes:
+            self.notes.add(text)
+            self.log(f"note: {text}")
+
+    def dataset_dir(self, name: str) -> Path | None:
+        """``data_dir`` when it holds the data set ``name`` (its folder ``name/``), else
+        None: the loaders then use the shipped excerpt, and a ``data_dir`` without it gets
+        the note ``NAME not in DIR: using the shipped excerpt`` (the rule of
+        :func:`robustloc.datasets.ble_tetam.resolve_dataset`)."""
+        if self.data_dir is None:
+            return None
+        if (self.data_dir / name).is_dir():
+            return self.data_dir
+        self.note(f"{name} not in {self.data_dir}: using the shipped excerpt")
+        return None
 
 
 @dataclass
@@ -185,22 +212,43 @@ def render(sections: list[Section], out_dir: Path, elapsed: dict[str, float]) ->
 
 
 def run_all(ctx: Context, only: list[str] | None = None) -> list[Section]:
-    """Run every section (or ``only`` those), print their tables and write the report."""
-    ctx.out_dir.mkdir(parents=True, exist_ok=True)
-    sections: list[Section] = []
-    elapsed: dict[str, float] = {}
-    summary: dict[str, Any] = {}
-    for mod in section_modules(only):
-        ctx.log(f"== {mod.TITLE}")
-        t0 = time.perf_counter()
-        sec = mod.run(ctx)
-        elapsed[sec.title] = time.perf_counter() - t0
-        sections.append(sec)
-        summary[mod.KEY] = sec.summary
-        for kind, payload in sec.blocks:
-            if kind == "table":
-                caption, frame = payload
-                print(f"\n{caption}\n{frame.to_string(float_format=lambda v: f'{v:.3f}')}")
-    render(sections, ctx.out_dir, elapsed)
-    (ctx.out_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+    """Run every section (or ``only`` those), print their tables and write the report.
+
+    The report is written whole or not at all: the sections write into a hidden staging
+    folder beside ``ctx.out_dir``, which replaces it only once the report is complete
+    (:class:`robustloc.reproduce._output.ReportFolder`).  An error or an interrupt leaves
+    ``ctx.out_dir`` as it was: absent, or the previous complete report.
+
+    Raises
+    ------
+    InputError
+        ``ctx.out_dir`` is a file, or a folder that is neither empty nor a robustloc report
+        (before any section runs).
+    """
+    from robustloc.reproduce._output import ReportFolder
+
+    mods = section_modules(only)
+    dest = ReportFolder(ctx.out_dir)
+    run_ctx = dataclasses.replace(ctx, out_dir=dest.stage)  # (the notes set is shared)
+    try:
+        sections: list[Section] = []
+        elapsed: dict[str, float] = {}
+        summary: dict[str, Any] = {}
+        for mod in mods:
+            ctx.log(f"== {mod.TITLE}")
+            t0 = time.perf_counter()
+            sec = mod.run(run_ctx)
+            elapsed[sec.title] = time.perf_counter() - t0
+            sections.append(sec)
+            summary[mod.KEY] = sec.summary
+            for kind, payload in sec.blocks:
+                if kind == "table":
+                    caption, frame = payload
+                    print(f"\n{caption}\n{frame.to_string(float_format=lambda v: f'{v:.3f}')}")
+        render(sections, dest.stage, elapsed)
+        (dest.stage / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
+        dest.commit()
+    except BaseException:
+        dest.abort()
+        raise
     return sections

@@ -89,12 +89,26 @@ def _stanford_figure(ctx: Context, panels: list) -> str:
     return name
 
 
+def _note_sources(ctx: Context) -> None:
+    """Say which data sets ``load_cases`` takes from the shipped excerpts although a data
+    folder was given (its rules: ``resolve_dataset``, or the ``NAME/`` folder)."""
+    from robustloc.datasets import ble_tetam, wifi_rtt
+
+    if ctx.data_dir is None:
+        return
+    ctx.note(wifi_rtt.resolve(ctx.data_dir))
+    ctx.dataset_dir("uwb-dwm1001")
+    ctx.dataset_dir("uwb-labyrinth")
+    ctx.note(ble_tetam.resolve(ctx.data_dir))
+
+
 def run(ctx: Context) -> Section:
     from robustloc.estimators.ranging import DEFAULT_METHOD
     from robustloc.eval.realdata import error_stats, load_cases, peer_fixes
 
     sec = Section(TITLE)
     sec.text(__doc__.split("\n\n", 1)[1])
+    _note_sources(ctx)
     cases = load_cases(ctx.data_dir)
     rows_all = []
     verdicts = []

@@ -211,6 +211,7 @@ def _ble(ctx: Context, sec: Section) -> None:
     from robustloc.models.pathloss import log_distance_arrays
 
     src = bt.resolve(ctx.data_dir)
+    ctx.note(src)
     anchors = bt.load_anchors(src.path)
     ids = [str(a) for a in anchors["anchor"]]
     survey = bt.load_survey_means(src.path)
@@ -335,6 +336,7 @@ def _wifi(ctx: Context, sec: Section) -> None:
     for room in wifi_rtt.ROOMS:
         train = wifi_rtt.load_room(room, "train", ctx.data_dir)
         full = wifi_rtt.load_room(room, "all", ctx.data_dir)
+        ctx.note(full.source)
         ids = [str(a) for a in train.anchors["anchor"]]
         xy = train.anchors[["x", "y"]].to_numpy(float)
         survey = survey_from_positions(train.ranges, train.truth, train.anchors)

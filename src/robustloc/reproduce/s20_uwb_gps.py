@@ -159,7 +159,8 @@ def _dwm_experiment(ctx: Context, sec: Section) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    data_dir = None if ctx.quick else ctx.data_dir
+    # the full runs only when --data holds them (else the excerpts, with a note)
+    data_dir = None if ctx.quick else ctx.dataset_dir("uwb-dwm1001")
     where = "full runs" if data_dir is not None else "shipped 60 s excerpts"
     rows = []
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
@@ -241,8 +242,7 @@ def _dwm_experiment(ctx: Context, sec: Section) -> None:
 
 
 def _labyrinth_experiment(ctx: Context, sec: Section) -> None:
-    r = uwb_labyrinth.load(ctx.data_dir if ctx.data_dir is not None and
-                           (ctx.data_dir / "uwb-labyrinth").is_dir() else None)
+    r = uwb_labyrinth.load(ctx.dataset_dir("uwb-labyrinth"))
     odo = pd.DataFrame({"time_s": r.odometry["time"], "speed_mps": r.odometry["speed_mps"],
                         "course_rad": np.nan})
     rows = []

@@ -370,6 +370,7 @@ def _ble(ctx: Context, sec: Section) -> dict:
     from robustloc.models.calibration import calibrate_pathloss
 
     src = ble_tetam.resolve(ctx.data_dir)
+    ctx.note(src)
     anchors = ble_tetam.load_anchors(ctx.data_dir)
     survey = ble_tetam.load_survey_means(ctx.data_dir)
     cal = calibrate_pathloss(survey, "log-distance")
@@ -529,6 +530,7 @@ def _wifi(ctx: Context, sec: Section) -> tuple[dict, dict]:
         train = wifi_rtt.load_room(room, "train", ctx.data_dir)
         test = wifi_rtt.load_room(room, "test", ctx.data_dir)
         kind = train.source.kind
+        ctx.note(train.source)
         sv = survey_from_positions(train.rssi, train.truth, train.anchors)
         trains[room] = sv
         # p0 at 1 m is not surveyed: the attenuation-factor fit takes its own p0 = A of the

@@ -150,6 +150,7 @@ def _wifi_rtt_block(ctx: Context) -> tuple[pd.DataFrame, str]:
         tr = load_room(room, "train", ctx.data_dir)
         te = load_room(room, "test", ctx.data_dir)
         kind = te.source.kind
+        ctx.note(te.source)
         ids = [str(a) for a in tr.anchors["anchor"]]
         A = tr.anchors[["x", "y"]].to_numpy(float)
         R, L, X = _room_matrices(tr, ids)

@@ -47,6 +47,11 @@ def _files(ctx: Context) -> dict[str, dict[str, Path | None]]:
                           "sp3": s / "COD0MGXFIN_20211180000_01D_05M_ORB.SP3",
                           "clk": s / "COD0MGXFIN_20211180000_01D_30S_CLK.CLK"},
         }
+    if full is not None:  # both runs come from the excerpts then
+        missing = [n for n, f in (("gnss-geonet", "07590920.05o"), ("gnss-slac", "slac1180.21o"))
+                   if not (full / n / f).is_file()]
+        ctx.note(f"{' and '.join(missing)} not in {full}: using the shipped gnss-geonet "
+                 "and gnss-slac excerpts")
     g, s = PACKAGE_DATA / "gnss-geonet", PACKAGE_DATA / "gnss-slac"
     return {
         "source": {"name": "shipped excerpts (GEONET complete hour; SLAC 10 minutes)"},

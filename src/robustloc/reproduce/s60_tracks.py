@@ -225,6 +225,7 @@ def _ble(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, f
     from robustloc.tracking import Tracker
 
     src = bt.resolve(ctx.data_dir)
+    ctx.note(src)
     anchors = bt.load_anchors(src.path)
     an = calibrate_pathloss(bt.load_survey_means(src.path), "log-distance").apply_to_anchors(
         anchors)
@@ -360,7 +361,8 @@ def _dwm(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, A
     from robustloc.io import to_epochs
     from robustloc.tracking import Tracker
 
-    data_dir = None if ctx.quick else ctx.data_dir
+    # the full runs only when --data holds them (else the excerpts, with a note)
+    data_dir = None if ctx.quick else ctx.dataset_dir("uwb-dwm1001")
     res: dict[str, Any] = {}
     rows_out = []
     for run in uwb_dwm1001.RUNS:
@@ -465,8 +467,7 @@ def _lab(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, f
     from robustloc.pipelines.locate import LocateSettings, run_locate
     from robustloc.tracking import Tracker
 
-    r = uwb_labyrinth.load(ctx.data_dir if ctx.data_dir is not None and
-                           (ctx.data_dir / "uwb-labyrinth").is_dir() else None)
+    r = uwb_labyrinth.load(ctx.dataset_dir("uwb-labyrinth"))
     ids = [str(a) for a in r.anchors["anchor"]]
     meas = r.measurements.drop(columns=["var"])
     ep = to_epochs(meas, ids)
