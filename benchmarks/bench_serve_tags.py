@@ -34,6 +34,7 @@ import httpx
 import numpy as np
 
 from robustloc.service.launch import ServerProcess
+from robustloc.service.launch import read_metric as metric
 
 ANCHORS = "anchor,x,y\nA1,0,0\nA2,20,0\nA3,20,20\nA4,0,20\n"
 XY = np.array([[0, 0], [20, 0], [20, 20], [0, 20]], dtype=float)
@@ -45,15 +46,6 @@ def rss_mb(pid: int) -> float:
         if ln.startswith("VmRSS:"):
             return int(ln.split()[1]) / 1024
     return float("nan")
-
-
-def metric(url: str, name: str) -> float:
-    """A metric of ``/metrics``, summed over its labels."""
-    total = 0.0
-    for ln in httpx.get(url + "/metrics", timeout=30).text.splitlines():
-        if ln.startswith(name + " ") or ln.startswith(name + "{"):
-            total += float(ln.rsplit(" ", 1)[1])
-    return total
 
 
 def bodies(wave: int, n_tags: int, rows_per_body: int, rng: np.random.Generator

@@ -23,7 +23,7 @@ httpx = pytest.importorskip("httpx")
 from robustloc.io import read_anchors, read_measurements  # noqa: E402
 from robustloc.io.tables import to_epochs  # noqa: E402
 from robustloc.service.assembly import EpochAssembler  # noqa: E402
-from robustloc.service.launch import ROBUSTLOC, ServerProcess  # noqa: E402
+from robustloc.service.launch import ROBUSTLOC, ServerProcess, read_metric  # noqa: E402
 from robustloc.service.processor import LocateProcessor  # noqa: E402
 from robustloc.service.rows import BodyError, RowDecoder, parse_body, validate_rows  # noqa: E402
 from robustloc.service.store import SegmentLog  # noqa: E402
@@ -72,12 +72,7 @@ def wait_for(cond, timeout: float = 60.0, what: str = "condition"):
 
 
 def metric(url: str, name: str, headers: dict | None = None) -> float:
-    text = httpx.get(url + "/metrics", headers=headers or {}).text
-    total = 0.0
-    for ln in text.splitlines():
-        if ln.startswith(name + " ") or ln.startswith(name + "{"):
-            total += float(ln.rsplit(" ", 1)[1])
-    return total
+    return read_metric(url, name, headers)
 
 
 # --------------------------------------------------------------------------------------

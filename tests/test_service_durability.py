@@ -33,6 +33,7 @@ from robustloc.service.launch import (  # noqa: E402
     MosquittoProcess,
     ServerProcess,
     free_port,
+    read_metric,
 )
 
 ANCHORS = {"A1": (0.0, 0.0), "A2": (10.0, 0.0), "A3": (10.0, 10.0), "A4": (0.0, 10.0)}
@@ -49,11 +50,7 @@ def _rows(times: range | list[float], tag: str = "T") -> list[dict]:
 
 
 def _metric(url: str, name: str) -> float:
-    total = 0.0
-    for ln in httpx.get(url + "/metrics", timeout=10).text.splitlines():
-        if ln.startswith(name + " ") or ln.startswith(name + "{"):
-            total += float(ln.rsplit(" ", 1)[1])
-    return total
+    return read_metric(url, name, timeout_s=10.0)
 
 
 def _wait(cond: Callable[[], object], timeout: float, what: str) -> object:

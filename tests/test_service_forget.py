@@ -242,12 +242,10 @@ def test_restart_forgets_the_stores_silent_tags(tmp_path):
         eng.stop()
 
 
-def test_restart_after_a_forget_does_not_solve_the_forgotten_tag_again(tmp_path):
-    """A tracker's snapshot holds the watermarks of the tags it tracks.  A tag forgotten
-    before the snapshot is not in it: the restart took its epochs as never solved and
-    tracked its whole stored history again (a month of rows for a tag silent a month).
-    Now it takes them as solved up to its stored positions."""
-    store = tmp_path / "s"
+def _track_a_and_b_then_forget_a(store: Path) -> None:
+    """Tags a and b tracked (6 epochs each), then b goes on while a stays silent for
+    --forget-after (0.5 s) and is forgotten; the engine stopped (its snapshot holds b's
+    filter and watermark only)."""
     eng = _engine(TrackProcessor(ANCHORS), store_dir=store, forget_after_s=0.5,
                   snapshot_s=0.0)
     eng.ingest(_ranges("a", np.arange(6) * 0.5) + _ranges("b", np.arange(6) * 0.5))
@@ -256,7 +254,16 @@ def test_restart_after_a_forget_does_not_solve_the_forgotten_tag_again(tmp_path)
     eng.ingest(_ranges("b", 3 + np.arange(4) * 0.5))  # b goes on; a is silent
     eng.flush()  # (its pass forgets a)
     assert eng.metrics.tags_forgotten == 1 and eng.processor.tracker.tags == ["b"]
-    eng.stop()  # (the snapshot: b's filter and watermark only)
+    eng.stop()
+
+
+def test_restart_after_a_forget_does_not_solve_the_forgotten_tag_again(tmp_path):
+    """A tracker's snapshot holds the watermarks of the tags it tracks.  A tag forgotten
+    before the snapshot is not in it: the restart took its epochs as never solved and
+    tracked its whole stored history again (a month of rows for a tag silent a month).
+    Now it takes them as solved up to its stored positions."""
+    store = tmp_path / "s"
+    _track_a_and_b_then_forget_a(store)
     n_a = len(_stored_positions(store, "a"))
     assert n_a == 6
     eng = _engine(TrackProcessor(ANCHORS), store_dir=store, forget_after_s=0.5)
@@ -340,15 +347,7 @@ def test_restarts_with_a_longer_forget_after_do_not_solve_a_forgotten_tag_again(
     its next snapshot lacked A's watermark; the restart after that tracked A's whole
     stored history again (the forget review)."""
     store = tmp_path / "s"
-    eng = _engine(TrackProcessor(ANCHORS), store_dir=store, forget_after_s=0.5,
-                  snapshot_s=0.0)
-    eng.ingest(_ranges("a", np.arange(6) * 0.5) + _ranges("b", np.arange(6) * 0.5))
-    eng.flush()
-    time.sleep(0.6)
-    eng.ingest(_ranges("b", 3 + np.arange(4) * 0.5))
-    eng.flush()
-    assert eng.processor.tracker.tags == ["b"]
-    eng.stop()
+    _track_a_and_b_then_forget_a(store)
     for _ in range(2):
         eng = _engine(TrackProcessor(ANCHORS), store_dir=store, forget_after_s=float("inf"))
         try:

@@ -21,6 +21,20 @@ from pathlib import Path
 ROBUSTLOC = [sys.executable, "-c", "import sys; from robustloc.cli import main; sys.exit(main())"]
 
 
+def read_metric(url: str, name: str, headers: dict | None = None,
+                timeout_s: float = 30.0) -> float:
+    """The value of the metric ``name`` of a running service's ``/metrics`` at ``url``,
+    summed over its labels (``name{...}`` lines); 0 when absent."""
+    req = urllib.request.Request(url + "/metrics", headers=headers or {})
+    with urllib.request.urlopen(req, timeout=timeout_s) as r:  # noqa: S310 - http://127.0.0.1
+        text = r.read().decode()
+    total = 0.0
+    for ln in text.splitlines():
+        if ln.startswith(name + " ") or ln.startswith(name + "{"):
+            total += float(ln.rsplit(" ", 1)[1])
+    return total
+
+
 def free_port() -> int:
     """A TCP port free on 127.0.0.1 right now."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
