@@ -72,6 +72,15 @@ def test_empty_out_is_refused(tmp_path, monkeypatch, capsys, nodata):
     assert list(work.iterdir()) == []
 
 
+def test_stdout_is_refused(tmp_path, monkeypatch, capsys, nodata):
+    """``-o -`` wrote a report folder named ``-``: a report is a folder."""
+    monkeypatch.chdir(tmp_path)
+    assert main([*QUICK, "--data", str(nodata), "-o", "-"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: -o -: reproduce writes a report folder"), err
+    assert not (tmp_path / "-").exists()
+
+
 def test_a_folder_that_is_not_a_report_is_refused(tmp_path, capsys, nodata):
     """Replacing it whole would delete the user's files: refused before any work."""
     out = tmp_path / "mine"

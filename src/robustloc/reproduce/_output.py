@@ -32,9 +32,13 @@ REPORT_SUFFIXES = frozenset({".md", ".html", ".json", ".csv", ".png"})
 
 def check_out_text(text: str) -> None:
     """Refuse an empty or blank ``-o`` (``Path("")`` is ``.``: the report would land in the
-    working folder)."""
+    working folder), and ``-`` (a folder named ``-`` was written: a report is a folder,
+    not standard output)."""
     if not str(text).strip():
         raise InputError("-o: empty path")
+    if str(text).strip() == "-":
+        raise InputError("-o -: reproduce writes a report folder, not standard output; "
+                         "give a folder name")
 
 
 def is_report(folder: Path) -> bool:
