@@ -220,3 +220,46 @@ def test_an_output_folder_that_cannot_be_made_is_named_as_given():
         DatasetOutput("/proc/xx")
     assert exc.value.path is not None and str(exc.value.path) == "/proc/xx"
     assert "partial" not in str(exc.value)
+
+
+def test_an_interrupt_raised_where_it_cannot_propagate_is_sent_again(monkeypatch):
+    """A Ctrl-C landing in a callback from C (llvmlite's object cache while numba
+    compiles, distributed's garbage-collection callback) was raised there, printed as
+    "Exception ignored ..." with a traceback, and dropped (the full suite, an interrupt
+    while ``--engine dask`` started).  The command's unraisable hook sends it again;
+    anything else goes to the hook before it."""
+    import signal
+    from types import SimpleNamespace as U
+
+    from robustloc import cli
+
+    later: list[int] = []
+    others: list[object] = []
+    monkeypatch.setattr(cli, "_deliver_later", later.append)
+    hook = cli._unraisable(others.append)
+    hook(U(exc_value=KeyboardInterrupt(), object="_raw_object_cache_notify"))
+    hook(U(exc_value=cli.Terminated(), object="_gc_callback"))
+    odd = U(exc_value=ZeroDivisionError("x"), object="__del__")
+    hook(odd)
+    assert later == [signal.SIGINT, signal.SIGTERM] and others == [odd]
+
+
+def test_a_deferred_signal_reaches_the_main_thread():
+    """``_deliver_later`` delivers the signal to the main thread's handler (SIGINT as
+    KeyboardInterrupt, SIGTERM as Terminated)."""
+    import signal
+
+    from robustloc import cli
+
+    old = signal.signal(signal.SIGINT, cli._raise_interrupt), signal.signal(
+        signal.SIGTERM, cli._raise_terminated)
+    try:
+        for signum, exc in ((signal.SIGINT, KeyboardInterrupt),
+                            (signal.SIGTERM, cli.Terminated)):
+            with pytest.raises(exc):
+                cli._deliver_later(signum)
+                time.sleep(5.0)
+    finally:
+        signal.signal(signal.SIGINT, old[0])
+        signal.signal(signal.SIGTERM, old[1])
+        cli._received.clear()

@@ -30,7 +30,8 @@ import importlib
 import pkgutil
 import sys
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 from robustloc import __version__
 from robustloc.errors import InputError, Terminated
@@ -115,6 +116,17 @@ def error(message: str) -> int:
 _received: list[int] = []
 
 
+def _deliver_later(signum: int) -> None:
+    """Send ``signum`` again to the main thread in 50 ms (out of the callback by then; a
+    real signal, so that a blocking call of the main thread is woken as by the first)."""
+    import signal
+    import threading
+
+    t = threading.Timer(0.05, signal.pthread_kill, args=(threading.main_thread().ident, signum))
+    t.daemon = True
+    t.start()
+
+
 def _raise_terminated(signum: int, frame: object) -> None:
     _received.append(signum)
     raise Terminated()
@@ -125,20 +137,45 @@ def _raise_interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt()
 
 
+def _unraisable(hook: Callable[[Any], None]) -> Callable[[Any], None]:
+    """``sys.unraisablehook`` that sends an interrupt raised where it cannot propagate
+    again, once out of there, and leaves everything else to ``hook``.
+
+    A signal's handler runs wherever the main thread is: inside a callback from C (numba
+    compiling: llvmlite's object cache; distributed's garbage-collection callback), the
+    ``KeyboardInterrupt`` it raises was printed as "Exception ignored ..." with a
+    traceback, and dropped (the full suite, an interrupt while ``--engine dask``
+    started)."""
+    import signal
+
+    def hook_(unraisable: Any) -> None:
+        exc = getattr(unraisable, "exc_value", None)
+        if isinstance(exc, KeyboardInterrupt | Terminated):
+            _deliver_later(signal.SIGINT if isinstance(exc, KeyboardInterrupt)
+                           else signal.SIGTERM)
+            return
+        hook(unraisable)
+
+    return hook_
+
+
 def _install_sigterm() -> object:
     """SIGTERM raises :class:`Terminated`, SIGINT :class:`KeyboardInterrupt`, both noted in
-    :data:`_received` (main thread only); returns the old handlers."""
+    :data:`_received` (main thread only), an interrupt raised where it cannot propagate
+    sent again (:func:`_unraisable`); returns the old handlers and hook."""
     import signal
     import threading
 
     _received.clear()
     if threading.current_thread() is not threading.main_thread():
         return None
+    old_hook = sys.unraisablehook
+    sys.unraisablehook = _unraisable(old_hook)
     old_int = signal.getsignal(signal.SIGINT)
     # (a SIGINT ignored by the parent, as for a background job of a shell, stays ignored)
     if old_int is signal.default_int_handler:
         signal.signal(signal.SIGINT, _raise_interrupt)
-    return signal.signal(signal.SIGTERM, _raise_terminated), old_int
+    return signal.signal(signal.SIGTERM, _raise_terminated), old_int, old_hook
 
 
 def _restore_sigterm(old: object) -> None:
@@ -146,7 +183,8 @@ def _restore_sigterm(old: object) -> None:
 
     _received.clear()
     if old is not None:
-        term, intr = old  # type: ignore[misc]
+        term, intr, hook = old  # type: ignore[misc]
+        sys.unraisablehook = hook
         signal.signal(signal.SIGTERM, term)
         signal.signal(signal.SIGINT, intr)
 
