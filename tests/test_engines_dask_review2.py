@@ -263,3 +263,31 @@ def test_a_deferred_signal_reaches_the_main_thread():
         signal.signal(signal.SIGINT, old[0])
         signal.signal(signal.SIGTERM, old[1])
         cli._received.clear()
+
+
+def test_partition_dask_prints_no_shuffle_chatter(slashed, tmp_path):
+    """``partition --method dask`` on its own LocalCluster printed two WARNING lines of
+    distributed's in-process scheduler per shuffle ("Shuffle ... initialized by task",
+    "... deactivated due to stimulus"): routine, not a warning to its user.  The level
+    of that logger is put back after the command."""
+    import logging
+
+    name = "distributed.shuffle._scheduler_plugin"
+    log = logging.getLogger(name)
+    before = log.level
+    seen: list[logging.LogRecord] = []
+
+    class Keep(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            seen.append(record)
+
+    keep = Keep(level=logging.DEBUG)
+    log.addHandler(keep)  # (distributed's own handler writes to the stderr it was given)
+    try:
+        assert main(["partition", str(slashed["meas"]), "--method", "dask", "--by", "tag",
+                     "--workers", "1", "-o", str(tmp_path / "parts")]) == 0
+    finally:
+        log.removeHandler(keep)
+    assert list(tmp_path.joinpath("parts").rglob("*.parquet"))
+    assert not [r.getMessage() for r in seen if r.levelno >= logging.WARNING]
+    assert log.level == before

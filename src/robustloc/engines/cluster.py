@@ -122,6 +122,7 @@ def dask_client(scheduler: str | None, workers: int | None = None,
     distributed = import_distributed()
     cluster = None
     client = None
+    restore: dict[str, int] = {}
     try:
         if scheduler is not None:
             client = _connect(distributed, scheduler)
@@ -130,6 +131,7 @@ def dask_client(scheduler: str | None, workers: int | None = None,
             extra = {"env": dict(WORKER_ENV)} if processes else {}
             # the client's start and its first call to the workers too: an interrupt
             # inside distributed's synchronous calls can leave its event loop mid-way
+            _quiet_scheduler(restore)
             with _signals_held() as got:
                 cluster = distributed.LocalCluster(
                     n_workers=n, threads_per_worker=1, processes=processes,
@@ -152,6 +154,8 @@ def dask_client(scheduler: str | None, workers: int | None = None,
             client.close()
         if cluster is not None:
             _close_cluster(cluster)
+        for name, level in restore.items():
+            logging.getLogger(name).setLevel(level)
 
 
 def check_scheduler_address(scheduler: str) -> None:
@@ -279,6 +283,23 @@ def _quiet_loggers() -> None:
     worker = logging.getLogger("distributed.worker")
     if not any(isinstance(f, _NoHeartbeatAtClose) for f in worker.filters):
         worker.addFilter(_NoHeartbeatAtClose())
+
+
+#: Loggers of the scheduler, which a LocalCluster runs in the command's own process, that
+#: report routine at WARNING level: the P2P shuffle's start and end, two lines per
+#: shuffle of ``partition --method dask`` ("Shuffle ... initialized by task ...",
+#: "... deactivated due to stimulus ..."; distributed's maintainers call them spammy,
+#: dask/distributed#8358).  Only their errors are shown.
+_QUIET_SCHEDULER_LOGGERS = ("distributed.shuffle._scheduler_plugin",)
+
+
+def _quiet_scheduler(restore: dict[str, int]) -> None:
+    """Only errors from :data:`_QUIET_SCHEDULER_LOGGERS` (their levels saved in
+    ``restore``, for :func:`dask_client` to put back)."""
+    for name in _QUIET_SCHEDULER_LOGGERS:
+        log = logging.getLogger(name)
+        restore.setdefault(name, log.level)
+        log.setLevel(logging.ERROR)
 
 
 def _quiet_worker_logs(client: object) -> None:
