@@ -982,7 +982,11 @@ def validate_survey(
         out = ~lim.check(df[col].to_numpy(dtype=float))
         if out.any():
             i = int(np.argmax(out))
-            raise InputError(f"column '{col}': {df[col].iloc[i]:g} is implausible "
+            # :g where it is exact, else 15 significant digits (100000.4 read as 100000,
+            # inside the limit it broke: the calibration review)
+            v = float(df[col].iloc[i])
+            shown = f"{v:g}" if float(f"{v:g}") == v else f"{v:.15g}"
+            raise InputError(f"column '{col}': {shown} is implausible "
                              f"({lim.describe().replace(lim.name, col, 1)})",
                              _path_of(df, path), _line_of(df, i))
     if anchors is not None:

@@ -191,7 +191,8 @@ def fit_lines(
                 xs, y, g, n_groups, slope, wf, a, b, max_iter, tol, w0
             )
             it += k
-    v = a[g] + b[g] * xs - y
+    with np.errstate(invalid="ignore", over="ignore"):  # (an undetermined group: inf)
+        v = a[g] + b[g] * xs - y
     used = w > 0
     n_obs = np.bincount(g, minlength=n_groups).astype(np.int64)
     n_used = np.bincount(g, weights=used.astype(float), minlength=n_groups).astype(np.int64)
@@ -610,7 +611,8 @@ def calibrate_pathloss(
     _check_determined(survey, per, pool, ids, d, g, names, pooled, "RSSI")
     _check_plausible(survey, per, pool, ids, model, pooled,
                      p0_arr, d0_arr)
-    rows = _assemble(per, pool, ids, slope)
+    rows = _assemble(per, pool, ids, slope,
+                     _one_distance(d, g, m) if slope and pooled else None)
     if model == "log-distance":
         table = _table(rows, {"A": "a", "n": "b"})
     elif model == "attenuation-factor":
@@ -669,7 +671,18 @@ def calibrate_ranges(
     )
     _check_determined(survey, per, pool, ids, d, g, ("bias", "scale") if scale else ("bias",),
                       pooled, "range")
-    rows = _assemble(per, pool, ids, scale)
+    if scale:
+        own = (per.n_used > 2) & (not pooled)
+        check = [(f"anchor {ids[j]}", per.b[j]) for j in np.flatnonzero(own)]
+        for who, b in check + [("pooled fit", pool.b[0])]:
+            if not RANGE_SCALE_LIMITS[0] <= b <= RANGE_SCALE_LIMITS[1]:
+                raise InputError(
+                    f"{who}: fitted scale = {b:.4g} is implausible (a range scale lies in "
+                    f"[{RANGE_SCALE_LIMITS[0]:g}, {RANGE_SCALE_LIMITS[1]:g}]): the survey "
+                    "does not determine it (too small a spread of distances?)",
+                    survey.attrs.get("path"))
+    rows = _assemble(per, pool, ids, scale,
+                     _one_distance(d, g, len(ids)) if scale and pooled else None)
     table = _table(rows, {"bias": "a", "scale": "b"} if scale else {"bias": "a"})
     if not scale:
         table.insert(3, "scale", 1.0)
@@ -710,10 +723,8 @@ def _check_determined(
     slope = names[1]
     m = len(ids)
     dmin = np.full(m, np.inf)
-    dmax = np.full(m, -np.inf)
     np.minimum.at(dmin, g, d)
-    np.maximum.at(dmax, g, d)
-    one = np.isclose(dmin, dmax, rtol=1e-9, atol=0.0)
+    one = _one_distance(d, g, m)
     own = per.n_used > p  # anchors with their own fit (the others take the pooled one)
     for j in np.flatnonzero(one & own & (not pooled)):
         raise InputError(
@@ -741,6 +752,14 @@ def _check_determined(
 #: of distance, beyond any propagation: such a fit is the survey's noise divided by a
 #: tiny spread of distances (3.000 and 3.003 m gave n = 461).
 MAX_EXPONENT = 10.0
+
+
+#: Plausible range scales (``range = scale * distance + bias``).  A ranging scale error
+#: is a clock or propagation-speed error: parts per million for UWB, a few per cent for
+#: WiFi RTT through walls (the shared real logs: 0.93-1.22 per anchor).  A scale of 2 or
+#: 1/2 is no ranging error but a survey that does not determine it: 5.000 and 5.001 m
+#: gave a scale of 50 (the calibration review).
+RANGE_SCALE_LIMITS = (0.5, 2.0)
 
 
 def _check_plausible(
@@ -781,9 +800,23 @@ def _check_plausible(
                 "small a spread of distances?)", survey.attrs.get("path"))
 
 
-def _assemble(per: LineFit, pool: LineFit, ids: list[str], slope: bool) -> dict[str, Array]:
+def _one_distance(d: Array, g: NDArray[np.int64], m: int) -> NDArray[np.bool_]:
+    """Per anchor: every sample at one distance (its own slope undetermined)."""
+    dmin = np.full(m, np.inf)
+    dmax = np.full(m, -np.inf)
+    np.minimum.at(dmin, g, d)
+    np.maximum.at(dmax, g, d)
+    return np.isclose(dmin, dmax, rtol=1e-9, atol=0.0)
+
+
+def _assemble(per: LineFit, pool: LineFit, ids: list[str], slope: bool,
+              undetermined: NDArray[np.bool_] | None = None) -> dict[str, Array]:
     p = 2 if slope else 1
     few = per.n_used <= p  # cannot estimate a standard error: take the pooled fit
+    if undetermined is not None:
+        # (--pooled, an anchor surveyed at one distance: its own "fit" was shown as the
+        # anchor's, with A = n = -inf or n = -0.000; the calibration review)
+        few = few | undetermined
     src = np.where(few, "pooled", "anchor").astype(object)
     out: dict[str, Array] = {"anchor": np.array(ids + [POOLED], dtype=object)}
     for k in ("a", "b", "a_se", "b_se", "residual_std"):
@@ -918,10 +951,24 @@ def survey_from_positions(
       :mod:`robustloc.io.limits` (``invalid_measurement``; a survey file refuses them);
     * ``attrs["n_zero_distance"]``: RSSI rows whose truth position is on the anchor
       (distance 0, where a log-distance model has no value).
+
+    An anchor reported more than once in one epoch (same ``time, tag, anchor``) gives
+    one row, its values averaged as :func:`robustloc.io.tables.to_epochs` averages them
+    (``attrs["n_duplicates"]``: the rows merged).
     """
     from robustloc.io.limits import limits_for
 
     value = measurements.attrs.get("value") or ("rssi" if "rssi" in measurements else "range")
+    # an anchor reported twice in one epoch: one row, the values averaged, as ``locate``
+    # does (counted twice, the standard errors read sqrt(2) too small: the review)
+    key = [c for c in ("time", "tag", "anchor") if c in measurements.columns]
+    dup = measurements.duplicated(key, keep="first").to_numpy()
+    n_dup = int(dup.sum())
+    if n_dup:
+        attrs = dict(measurements.attrs)
+        mean = measurements.groupby(key, sort=False)[value].transform("mean")
+        measurements = measurements.assign(**{value: mean}).loc[~dup]
+        measurements.attrs = attrs
     plausible = limits_for(value).check(measurements[value].to_numpy(dtype=float))
     n_invalid = int((~plausible).sum())
     if n_invalid:
@@ -955,6 +1002,7 @@ def survey_from_positions(
     out.attrs["value"] = value
     out.attrs["n_unmatched"] = int((~ok).sum())
     out.attrs["n_invalid"] = n_invalid
+    out.attrs["n_duplicates"] = n_dup
     out.attrs["n_zero_distance"] = int(at_anchor.sum())
     out.attrs["path"] = measurements.attrs.get("path")
     return out

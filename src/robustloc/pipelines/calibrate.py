@@ -198,6 +198,9 @@ def _load_survey(settings: CalibrateSettings, survey: Any, anchors: pd.DataFrame
                            "models have no value)")
         for d in dropped:
             notes.append(f"{d} were not used")
+        if out.attrs.get("n_duplicates"):
+            notes.append(f"{out.attrs['n_duplicates']} duplicate rows (same epoch and "
+                         "anchor) averaged")
         if len(out) == 0:
             why = "; ".join(dropped)
             raise InputError(f"{_name(measurements)}: no measurement matches the truth by "
@@ -323,7 +326,10 @@ def _d0_with_p0(settings: CalibrateSettings, table: pd.DataFrame,
 
 
 def _records(table: pd.DataFrame) -> list[dict[str, Any]]:
-    return table.replace({np.nan: None}).to_dict(orient="records")
+    """The table's rows for ``--json``: NaN and infinities as None (strict JSON; a
+    ``-Infinity`` came out for an undetermined fit: the calibration review)."""
+    return table.replace({np.nan: None, np.inf: None, -np.inf: None}).to_dict(
+        orient="records")
 
 
 def self_calibrate(
@@ -432,12 +438,33 @@ def _self(settings: CalibrateSettings, anchors: pd.DataFrame, self_log: Any) -> 
             + (f"; {len(res.warnings)} warning(s), the first: {res.warnings[0]}"
                if res.warnings else ""), _name(self_log))
     if res.epochs_used == 0:
+        from robustloc.models.selfcal import _elongation
+
+        heard = np.isfinite(ep.values).any(axis=0)
+        flat = _elongation(xyz[heard]) if heard.sum() > settings.dim else 1.0
+        why = (f"; the anchors heard lie on a {'line' if settings.dim == 2 else 'plane'} "
+               f"(elongation {flat:.2g}), where every fix is ill-conditioned"
+               if flat < 1e-6 else "")
         raise InputError(
             f"nothing to self-calibrate: no epoch has a fix with redundancy (need at least "
             f"{settings.dim + 1} anchors heard in one epoch; {res.epochs_total} epochs, "
-            f"{res.epochs_no_start} without a start fix)", _name(self_log))
+            f"{res.epochs_no_start} without a start fix{why})", _name(self_log))
+    _refuse_implausible(res, ids, kind, ep.values, _name(self_log))
     table, out = self_calibration_table(res, anchors, model)
     notes = []
+    # the input rows set aside, said as `locate` says them for the same file (they were
+    # silent here: the calibration review)
+    if ep.n_duplicates:
+        notes.append(f"{ep.n_duplicates} duplicate rows (same epoch and anchor) averaged")
+    if int(np.sum(ep.n_invalid)):
+        notes.append(f"invalid_measurement: {int(np.sum(ep.n_invalid))} rows (outside the "
+                     "physical limits of robustloc.io.limits; not used)")
+    if res.free.any() and (~res.free[np.asarray(res.n_obs) > 0]).any():
+        # (the calibration review: a true bias of 0.3 m left out at its prior 0 moved the
+        # scales by 3-17 of their standard errors)
+        notes.append("the standard errors assume that the parameters left out equal "
+                     "their priors: where one does not, the estimates that share its "
+                     "epochs are off by more than their standard errors say")
     gone = [c for c in anchors.columns if c not in out.columns]
     if gone:
         # another path-loss model's columns, which the new ones replace (they were dropped
@@ -468,6 +495,36 @@ def _self(settings: CalibrateSettings, anchors: pd.DataFrame, self_log: Any) -> 
     return Calibration(out, table, "m" if kind == "range" else "dB", summary, headline,
                        notes=notes,
                        warnings=[f"{_name(self_log)}: {w}" for w in res.warnings])
+
+
+def _refuse_implausible(res: Any, ids: list[str], kind: str, values: np.ndarray,
+                        where: str | None) -> None:
+    """Refuse a self-calibration that settled on a model no log can have: a scale or a
+    path-loss exponent that is not positive (the observations would grow with distance:
+    RSSI, or shrink: ranges), or a range bias beyond the anchor's longest range (every
+    predicted range would exceed every measured one).  On a short log of three anchors
+    the adjustment wandered to a bias of 8 km and a scale of -0.07 and wrote them, exit
+    0; ``locate`` then refused the file (the calibration review)."""
+    names = res.param_names
+    bad = []
+    for j, name in enumerate(ids):
+        if res.free[j, 1] and not (np.isfinite(res.slope[j]) and res.slope[j] > 0):
+            bad.append(f"{names[1]} of anchor {name} = {res.slope[j]:.4g} (must be positive)")
+        if res.free[j, 0] and not np.isfinite(res.offset[j]):
+            bad.append(f"{names[0]} of anchor {name} = {res.offset[j]}")
+        elif res.free[j, 0] and kind == "range":
+            col = values[:, j]
+            longest = float(np.nanmax(col)) if np.isfinite(col).any() else np.inf
+            if abs(res.offset[j]) > longest:
+                bad.append(f"bias of anchor {name} = {res.offset[j]:.4g} m, beyond its "
+                           f"longest range {longest:.4g} m")
+    if bad:
+        raise InputError(
+            "self-calibration settled on an implausible model: " + "; ".join(bad[:5])
+            + (f" and {len(bad) - 5} more" if len(bad) > 5 else "")
+            + f" ({res.epochs_used} of {res.epochs_total} epochs used): the log does not "
+            "determine the anchors' parameters (too few anchors or epochs, or the tag's "
+            "path does not vary the geometry); nothing written", where)
 
 
 #: What RSSI self-calibration cannot promise (printed with every RSSI ``--self`` run).
