@@ -36,7 +36,8 @@ within decimetres of an anchor) starts again at its sample, as at its first one:
 prior then weighs under 4 % of the update, and the distance and speed states are drawn
 from the sample instead of carried across the gap (counted as restarts).
 Use --static when the receivers do not move.  Path-loss parameters come
-from the anchors file (p0, gamma, faf, d0; p0, d0 for friis; or A, n).
+from the anchors file (p0, gamma, faf, d0; p0, d0 for friis; or A, n); an anchor with an
+empty one is refused as 'locate' refuses it (file, line and anchor named).
 
 What it can gain (measured, issue 11): on the wifi-room walk (seed 3), positions from
 the filtered file (locate --method nls) against positions from the raw file:
@@ -101,15 +102,25 @@ def filter_frame(meas, anchors, args: argparse.Namespace, progress: bool = False
     reaches the filter: its row keeps the raw value in ``rssi`` and ``rssi_raw``, no
     ``distance``, and status ``invalid_measurement``; a row whose time is outside the
     limits likewise.  So ``locate`` on the output sets such rows aside as it does on the
-    raw file.  Returns ``(frame, summary)``.
+    raw file.  Anchors with path-loss columns are checked as ``locate`` checks them
+    (:func:`robustloc.models.pathloss.model_from_anchors`): an empty parameter of an
+    anchor raises :class:`~robustloc.errors.InputError` naming the file, line and anchor.
+    Returns ``(frame, summary)``.
     """
     import numpy as np
 
     from robustloc import status as st
     from robustloc.filters.rssi import RobustRssiFilter, filter_measurements
     from robustloc.io.limits import LIMITS
+    from robustloc.models.pathloss import model_from_anchors
     from robustloc.robust.weights import get_weight
 
+    cols = set(anchors.columns)
+    if {"A", "n"} <= cols or "p0" in cols:
+        # an anchor whose parameters are empty is refused as `locate` refuses it (file,
+        # line, anchor): the filter took p0 = -40 dBm, gamma = 2 for it without a word,
+        # and its distance columns looked real (the filter/fuse review)
+        model_from_anchors(anchors)
     bad = np.zeros(len(meas), dtype=bool)
     raw = None
     if "rssi" in meas.columns:  # implausible values never reach the filter
@@ -204,7 +215,8 @@ def combine_partitions(counts_list: list[dict]) -> dict:
         mean += delta * nb / tot
         n = tot
     return {"share_downweighted": down / n_w if n_w else 0.0,
-            "raw_minus_filtered_std_db": float(np.sqrt(m2 / n)) if n else float("nan")}
+            # None (JSON null) without any filtered value, as filter_measurements says
+            "raw_minus_filtered_std_db": float(np.sqrt(m2 / n)) if n else None}
 
 
 def run(args: argparse.Namespace) -> int:

@@ -10,6 +10,7 @@ from robustloc.options import (
     float_in,
     nonnegative_float,
     positive_float,
+    sigma_value,
     tag_height_m,
 )
 
@@ -53,8 +54,11 @@ input epoch is in one); status:
                         Usable, but the filter and this event's measurements disagree (a
                         fault no weight removed, a diverging filter).  Not tested while
                         the predicted speed is below 0.1 m/s (speed and course are not
-                        linear there).  5 such events in a row give a warning
-  predicted             nothing to update with: the state is the motion model's prediction
+                        linear there).  5 such events in a row give a warning.  Loose
+                        coupling: also an ok event whose fix failed its own test (that of
+                        `locate --method FIX --sigma SIGMA_RANGE --robust-scale apriori`)
+  predicted             nothing to update with, or every measurement of the event was
+                        rejected (n_used 0): the state is the motion model's prediction
   invalid_measurement   every value of the event was outside its physical limits
                         (robustloc.io.limits: range -50..1e5 m, speed 0..515 m/s, course
                         0..360 deg); they were set aside, the row is the prediction.
@@ -72,6 +76,10 @@ smallest measurement variance -- about 50 s without measurements for cv at the d
 and 0.15 m ranges) starts again from the event's own fix, counted as restarts; without a
 fix its rows are predicted (the last estimate, with the prediction's variances) until an
 event gives one.
+An anchor far outside the others (more than 20 times their median spread: a typo such as a
+coordinate in mm) is not used, as in locate and track: a warning and the summary
+(anchors_not_used) name it.  Range rows of one time, tag and anchor are averaged into one
+range (counted: duplicates_merged).
 Values outside the physical limits are counted in the summary (invalid_measurement N) and
 never reach the filter; an update that would make the state non-finite or absurd (beyond
 1e9 m) is rejected: the row is predicted, counted as rejected_updates.
@@ -113,6 +121,8 @@ ROBUST = ("none", "huber", "hampel", "igg", "igg3", "asymmetric-igg")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from robustloc.fusion.run import RANGE_K_MAX
+
     p.add_argument("--ranges", required=True, help="measurements file: time, tag, anchor, range")
     p.add_argument("--anchors", required=True, help="anchors file: anchor, x, y[, z]")
     p.add_argument("--nmea", default=None, help="NMEA log with RMC/VTG (optional)")
@@ -141,12 +151,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--q", type=positive_float, default=None,
                    help="process noise: acceleration (cv) or jerk (ca) variance "
                         "(default 0.5 cv, 0.1 ca)")
-    p.add_argument("--sigma-range", type=positive_float, default=0.15,
-                   help="range std, m (0.15)")
-    p.add_argument("--range-k", type=nonnegative_float, default=0.0,
-                   help="range std growth with distance, sigma = s0 + k d (default 0)")
-    p.add_argument("--sigma-speed", type=positive_float, default=0.05,
-                   help="GPS speed std, m/s (default %(default)s)")
+    # bounded as every a-priori sigma (robustloc.options.SIGMA_RANGE): 1e300 passed,
+    # overflowed to an infinite variance with numpy warnings, and no range was used while
+    # every row said ok (the filter/fuse review); a speed std of 1e300 was a traceback
+    p.add_argument("--sigma-range", type=sigma_value, default=0.15,
+                   help="range std, m (default 0.15; 1e-6 to 1e6)")
+    p.add_argument("--range-k", type=float_in(0.0, RANGE_K_MAX), default=0.0,
+                   help="range std growth with distance, sigma = s0 + k d (default 0; 0 to "
+                        "1: at k = 1 a range's std is the range itself)")
+    p.add_argument("--sigma-speed", type=sigma_value, default=0.05,
+                   help="GPS speed std, m/s (default %(default)s; 1e-6 to 1e6)")
     p.add_argument("--sigma-course", type=float_in(1e-6, 180.0), default=5.0,
                    help="GPS course std, deg (default %(default)s)")
     p.add_argument("--nmea-offset", type=float_in(-1e12, 1e12), default=None,
@@ -245,6 +259,10 @@ def run(args: argparse.Namespace) -> int:
     s = dict(res.summary, out=str(args.out))
     for text in s.get("warnings", []):  # a warning, even with --json
         print(f"warning: {args.nmea}: {text}", file=sys.stderr)
+    from robustloc.pipelines.locate import anchor_warnings
+
+    for text in anchor_warnings(s, args.anchors):  # (as locate and track word it)
+        print(f"warning: {text}", file=sys.stderr)
     if s["diverged"]:  # a warning, even with --json
         print(f"warning: the innovation test failed on {filt.max_failed} or more consecutive "
               f"events with every measurement kept, {s['diverged']} time(s): the filter "
@@ -268,6 +286,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"invalid_measurement: {s['invalid_measurement']}"
               + (f" ({bad}; outside the physical limits, never used)" if bad else ""),
               file=dest)
+        if s["duplicates_merged"]:  # (as locate and filter report them)
+            print(f"  {s['duplicates_merged']} duplicate rows (same time, tag and anchor) "
+                  "averaged", file=dest)
         if s["rejected_updates"]:
             print(f"rejected_updates: {s['rejected_updates']}", file=dest)
         if s["restarts"]:

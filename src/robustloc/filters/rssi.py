@@ -949,7 +949,9 @@ def filter_measurements(
         "restarted": int(0 if res.restarted is None else res.restarted.sum()),
         "duplicates_merged": int(res.extra.get("duplicates_merged", 0)),
         "share_downweighted": float(np.mean(w < 1)) if w.size else 0.0,
+        # None (JSON null) without any filtered value: a bare NaN is no JSON (the
+        # filter/fuse review: every row outside the limits printed NaN with --json)
         "raw_minus_filtered_std_db": (float(np.nanstd(diff)) if np.isfinite(diff).any()
-                                      else float("nan")),
+                                      else None),
     }
     return FilteredTable(out, summary)

@@ -25,6 +25,11 @@ than three distinct anchors) or ``ill_conditioned`` (three or more, but all at o
 on one line -- the anchors' scatter matrix fails the condition test of
 :func:`robustloc.estimators._kernels.inv_spd`).  The filtered state is still written on
 such rows; GPS speed and course (velocity only) cannot make the position observable.
+An event whose update kept no component (all rejected, ``n_used`` 0) is ``predicted``.  In
+loose coupling an ``ok`` event whose fix failed its own test (:func:`fix_test_status`,
+``locate``'s) is ``fault_detected``.  An anchor far outside the others
+(:func:`robustloc.estimators.ranging._sane_anchors`, as in ``locate`` and ``track``) is
+not used; ``summary["anchors_not_used"]`` names it.
 """
 
 from __future__ import annotations
@@ -40,11 +45,16 @@ from robustloc import status as st
 from robustloc.errors import InputError
 from robustloc.fusion.align import Stream, merge_streams
 from robustloc.fusion.pipeline import FusionFilter, FusionMeasurement, initial_state
-from robustloc.fusion.uwb import range_sigma, uwb_fix
+from robustloc.fusion.uwb import fix_test_status, range_sigma, uwb_fix
 from robustloc.io.limits import LIMITS
 from robustloc.io.nmea import NmeaLog
 
 Array = NDArray[np.float64]
+
+#: Largest growth ``k`` of the range std with distance, ``sigma = s0 + k d``: at ``k = 1``
+#: a range's std is the range itself (it says nothing more of the position); 1e300
+#: overflowed to infinite variances (the filter/fuse review).
+RANGE_K_MAX = 1.0
 
 
 @dataclass(frozen=True)
@@ -89,6 +99,8 @@ class FuseOptions:
     nmea_tags: tuple[str, ...] | None = None
 
     def __post_init__(self) -> None:
+        from robustloc.options import SIGMA_RANGE
+
         if self.coupling not in ("loose", "tight"):
             raise ValueError(f"coupling must be 'loose' or 'tight', got {self.coupling!r}")
         for name in ("sigma_range_m", "sigma_speed_mps", "sigma_course_deg", "init_var_m2"):
@@ -97,6 +109,14 @@ class FuseOptions:
         for name in ("range_k", "merge_window_s", "geometry_window_s", "init_acc_var"):
             if not np.isfinite(getattr(self, name)) or getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0 and finite")
+        # a-priori stds as everywhere (SIGMA_RANGE; the command line's bounds)
+        lo, hi = SIGMA_RANGE
+        for name in ("sigma_range_m", "sigma_speed_mps"):
+            if not lo <= getattr(self, name) <= hi:
+                raise ValueError(f"{name} must lie in [{lo:g}, {hi:g}], got "
+                                 f"{getattr(self, name)}")
+        if self.range_k > RANGE_K_MAX:
+            raise ValueError(f"range_k must lie in [0, {RANGE_K_MAX:g}], got {self.range_k}")
         # the offset moves NMEA times onto the ranges' clock, whose times lie within the
         # time limits of robustloc.io.limits
         if self.nmea_offset_s is not None and not LIMITS["time"].check(self.nmea_offset_s):
@@ -152,6 +172,18 @@ def fuse(
         raise InputError(f"unknown anchor id {bad!r} (not in the anchors)")
     a_xy, dz = _anchor_arrays(anchors, opts)
     M = len(ids)
+    # an anchor far outside the others (a typo: a coordinate in mm, 1e200) is not used, as
+    # locate and track leave it out (estimators.ranging._sane_anchors), and is named: the
+    # filter hung on its ranges and wrote every row fault_excluded 7 km off (the filter/
+    # fuse review).  Its coordinates become the others' centroid so that no arithmetic
+    # (the range model of every component, the layout's scatter) meets them
+    from robustloc.estimators.ranging import _sane_anchors
+
+    dims = [c for c in ("x", "y", "z") if c in anchors.columns]
+    far = ~_sane_anchors(anchors[dims].to_numpy(dtype=float))
+    if far.any():
+        a_xy = np.where(far[:, None], a_xy[~far].mean(axis=0), a_xy)
+        dz = None if dz is None else np.where(far, 0.0, dz)
     n = filt.motion.n_states
     t = measurements["time"].to_numpy(float)
     tags = measurements["tag"].astype(str).to_numpy(object)
@@ -176,12 +208,19 @@ def fuse(
         rng_m = apply_range_calibration(anchors, one)[np.arange(len(rng_m)), col]
     # plausibility at the door: an absurd range never reaches a fix or the filter
     bad_range = ~LIMITS["range"].check(rng_m)
-    rng_m = np.where(bad_range, np.nan, rng_m)
+    rng_m = np.where(bad_range | far[col], np.nan, rng_m)  # (a far anchor's: not heard)
     flag = np.where(bad_range, 1.0, np.nan)[:, None]  # invalid marker, NaN = valid
     ones = np.ones((len(t), 1))
+    # rows of one (time, tag, anchor) are averaged into one range (fusion.align, step 3),
+    # as locate and filter average them: counted and said, as they say it
+    used = np.isfinite(rng_m)
+    n_dup = int(pd.DataFrame({"t": t[used], "tag": tags[used], "a": col[used]})
+                .duplicated().sum())
 
     streams: list[Stream] = []
-    summary: dict = {"coupling": opts.coupling, "filter": filt.kind, "motion": filt.motion.name}
+    summary: dict = {"coupling": opts.coupling, "filter": filt.kind, "motion": filt.motion.name,
+                     "anchors_not_used": [a for a, f in zip(ids, far) if f],
+                     "duplicates_merged": n_dup}
     # Columns of the merged vector after the m filter components: an always-present event
     # marker (so that an event whose values are all invalid still gets its row), the
     # invalid marker and, for loose coupling, the fix variances and the anchors heard.
@@ -196,7 +235,7 @@ def fuse(
         meas = FusionMeasurement(n, a_xy, dz)
     else:
         m = 4
-        c_var, c_mark, c_inv, c_heard = 4, 6, 7, 8
+        c_var, c_mark, c_inv, c_fail, c_heard = 4, 6, 7, 8, 9
         m_aug = c_heard + M
         # UWB epochs: rows with the same (tag, time within the window) form one fix epoch
         tl_u = merge_streams(
@@ -210,16 +249,22 @@ def fuse(
                       opts.range_k)
         summary["fixes"] = int(np.isfinite(fix.position).all(axis=1).sum())
         summary["uwb_epochs"] = int(live.sum())
+        # the fix's own test, locate's (fix_test_status): one whose ranges disagree (an
+        # anchor's coordinates 3 m off: every row was ok, where tight coupling and locate
+        # said fault_detected; the filter/fuse review) marks its event
+        fix_st = fix_test_status(a_xy, flat[live, :M], fix, opts.fix_method, dz,
+                                 opts.sigma_range_m, opts.range_k)
+        failed = np.where(st.among(fix_st, (st.FAULT_DETECTED, st.UNAVAILABLE)), 1.0, np.nan)
         tag_rep = np.repeat(tl_u.tags, J)[live]
         heard = np.where(np.isfinite(flat[live, :M]), 1.0, np.nan)
         # x, y, the fix variances, the epoch marker (an epoch without a fix still gets its
-        # predicted row), the invalid marker and the anchors heard
+        # predicted row), the invalid marker, the failed-test marker and the anchors heard
         v = np.concatenate(
             [fix.position, np.diagonal(fix.covariance, axis1=1, axis2=2),
-             np.ones((len(fix.status), 1)), flat[live, M:], heard], axis=1,
+             np.ones((len(fix.status), 1)), flat[live, M:], failed[:, None], heard], axis=1,
         )
         streams.append(Stream(tl_u.time_s.reshape(-1)[live], tag_rep, v,
-                              [0, 1, c_var, c_var + 1, c_mark, c_inv,
+                              [0, 1, c_var, c_var + 1, c_mark, c_inv, c_fail,
                                *range(c_heard, c_heard + M)]))
         meas = FusionMeasurement(n)
     invalid = {"range": int(bad_range.sum()), "time": int(bad_time.sum())}
@@ -321,18 +366,28 @@ def fuse(
     layout = _layout_status(tl.time_s, heard, a_xy, opts.geometry_window_s)
     status = np.asarray(tr.status, dtype=object).copy()
     if tr.time_s.size:
+        if opts.coupling == "loose":  # a fused fix that failed its own test
+            status = np.where((status == st.OK) & np.isfinite(tl.z[..., c_fail]),
+                              st.FAULT_DETECTED, status)
         fixed = st.among(status, (st.OK, st.FAULT_EXCLUDED, st.FAULT_DETECTED))
         status = np.where(fixed & (layout != ""), layout, status)
         # nothing valid arrived with the event: its own input was unusable
         bad_event = np.isfinite(tl.z[..., c_inv]) & (status == st.PREDICTED)
         status = np.where(bad_event, st.INVALID, status)
+        # an update that kept no component (every one rejected: n_used 0, a GPS speed or
+        # course kept counts) left the prediction: predicted, never ok / fault_excluded
+        # (after the layout: an event whose anchors cannot fix a position says that first)
+        status = np.where(st.among(status, (st.OK, st.FAULT_EXCLUDED)) & (tr.n_used == 0),
+                          st.PREDICTED, status)
     frame = _track_frame(tl.tags, tl.time_s, tr, filt, z, m, opts, status)
     frame = _with_set_aside(frame, pd.concat(aside, ignore_index=True), fusion_method(filt))
     summary["rejected_updates"] = int(np.sum(tr.extra.get("nonfinite", 0)))
     summary["restarts"] = int(np.sum(tr.extra.get("restarts", 0)))
     summary["diverged"] = int(np.sum(tr.extra.get("diverged", 0)))
-    summary["events"] = int(np.isfinite(tl.time_s).sum())
-    summary["tags"] = int(K)
+    # the rows written: the fused events and the set-aside (tag, time) rows of times
+    # outside the limits ("fused 4 events" was said over 5 rows: the filter/fuse review)
+    summary["events"] = int(len(frame))
+    summary["tags"] = int(frame["tag"].nunique())
     summary["status"] = frame["status"].value_counts().to_dict()
     return FuseResult(track=frame, summary=summary)
 

@@ -173,3 +173,71 @@ def _nls_fix(
         n_used=heard.astype(np.int64),
         status=status.astype(str),
     )
+
+
+def fix_test_status(
+    anchors: ArrayLike,
+    ranges_m: ArrayLike,
+    fix: UwbFix,
+    method: Literal["ls", "wls", "nls"],
+    height_offset_m: ArrayLike | None = None,
+    sigma0_m: float = 0.1,
+    k: float = 0.0,
+) -> NDArray[np.str_]:
+    """The fixes' own test, as ``robustloc locate`` tests a fix of the same method.
+
+    The fixes of :func:`uwb_fix` go through :func:`robustloc.integrity.fixes.protect`
+    (the w-test and the B-method's global test of the range residuals, seed 003) with the
+    a-priori range sigmas ``sigma0_m + k d`` the fixes' covariances trust -- the test of
+    ``locate --method METHOD --sigma SIGMA0 --robust-scale apriori``, not a second one
+    (the same statuses epoch by epoch on ``tests/test_fuse_filter_review3.py``'s log).  A
+    linearized fix (``ls``, ``wls``) is tested on the least-squares re-solution of its
+    ranges, as there.
+
+    Parameters
+    ----------
+    anchors : (m, 2) anchor coordinates.
+    ranges_m : (N, m) the ranges the fixes were made from (NaN: not heard).
+    fix : the fixes (:func:`uwb_fix` of the same ranges).
+    method : the fixes' method.
+    height_offset_m : (m,) optional anchor-minus-tag heights (slant ranges).
+    sigma0_m, k : range noise model ``sigma_i = sigma0_m + k d_i``.
+
+    Returns
+    -------
+    ndarray of str, shape (N,)
+        ``protect``'s status of each fix: ``fault_detected`` or ``unavailable`` where the
+        test failed (or flagged observations left nothing to confirm the rest), ``ok``
+        etc. where it passed; a fix that is not usable keeps its own status.
+    """
+    from robustloc.estimators.ranging import _area
+    from robustloc.estimators.solution import Solution
+    from robustloc.integrity.fixes import protect, range_model_of
+    from robustloc.models.ranging import RangeModel
+
+    a = np.asarray(anchors, dtype=float)
+    d = np.atleast_2d(np.asarray(ranges_m, dtype=float))
+    N, m = d.shape
+    hz = None if height_offset_m is None else np.broadcast_to(
+        np.asarray(height_offset_m, dtype=float), (m,))
+    status = np.asarray(fix.status, dtype=object)
+    usable = st.among(status, st.USABLE) & np.isfinite(fix.position).all(axis=1)
+    x = np.where(usable[:, None], fix.position, np.nan)
+    pred, jac = RangeModel(a, hz).predict_jacobian(np.nan_to_num(x))
+    use = usable[:, None] & np.isfinite(d)
+    v = np.where(use, pred - d, np.nan)  # range residuals f(x) - d, as Locator.solve's
+    sig = range_sigma(d, sigma0_m, k)
+    dof = use.sum(axis=1) - a.shape[1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sigma0 = np.sqrt(np.nansum((v / sig) ** 2, axis=1) / dof)
+    sol = Solution(
+        position=x, covariance=fix.covariance, residuals=v,
+        weights=np.where(use, 1.0 / sig**2, np.nan), excluded=np.zeros((N, m), dtype=bool),
+        sigma0=np.where(dof > 0, sigma0, np.nan), iterations=np.zeros(N, dtype=np.int64),
+        converged=np.ones(N, dtype=bool), status=status.copy(),
+        n_used=np.asarray(fix.n_used, dtype=np.int64), method=method,
+        extra={"range_residuals": v, "jacobian": np.where(use[..., None], jac, np.nan),
+               "sigma_obs": sig, "anchor_extent": _area(a),
+               "solver": "linearized" if method in ("ls", "wls") else "nonlinear"},
+    )
+    return np.asarray(protect(sol, range_model=range_model_of(a, hz)).status, dtype=str)

@@ -12,8 +12,21 @@ What comes out (:func:`read_nmea` / :func:`parse_nmea`, an :class:`NmeaLog`):
 * ``accuracy`` -- GST: ``time_s, rms_m, sigma_lat_m, sigma_lon_m, sigma_alt_m``.
 * ``summary`` -- counts of lines, parsed sentences per type and every skip by reason.
 
-Time: ``time_s`` is seconds since 00:00 UTC of the day of the first sentence, with day
-roll-overs counted when the time of day jumps back by more than 12 h.  With a dated RMC,
+Time: ``time_s`` is seconds since 00:00 UTC of the day of the first sentence kept.  A
+sentence carries only the time of day, so each is placed at the time nearest to the
+previous one kept (within +-12 h): the step from 23:59:59 to 00:00:00 is one second, into
+the next day, and a sentence arriving late across midnight (23:59:59 after 00:00:20) stays
+on its own day.  A step of more than an hour (:data:`TIME_JUMP_S`) between successive time
+stamps is a *jump* -- a pause of the receiver, or a corrupt time -- and is believed only
+when the log continues from the new time: at least two successive time stamps (sentences
+of one fix share one) within an hour of each other, which the log does not leave to come
+back to the time before the jump.  Such a jump goes forward (a pause of 11 h across
+midnight is a new day).  Sentences whose time fails this -- one fix whose time disagrees
+with both its neighbours by hours (a GGA at 00:00:00 inside a log at 13:00), a run the
+log returns from, a single fix before the log's first run or after its last jump -- are
+skipped and counted as ``time_jump`` (with the VTG sentences that would take their
+time); the rest of the log keeps its times.  A log made only of single fixes hours apart
+has nothing to judge by: every jump is believed.  With a dated RMC,
 ``time_s + day0_posix_s`` is POSIX time.  Add an offset to align it with another stream
 (see :mod:`robustloc.fusion.align`).
 
@@ -66,7 +79,15 @@ SKIP_REASONS = (
     "invalid_fix",
     "unsupported",
     "invalid_measurement",
+    "time_jump",
 )
+
+#: A step between successive time stamps of a log beyond this (s, after the midnight
+#: roll-over) is a jump: believed only when the log continues from the new time (module
+#: docstring, Time).  An hour: a receiver logs at 1 Hz or faster and a fix lost in a tunnel
+#: or a garage comes back within minutes, while a corrupt time (a GGA at 00:00:00 in a log
+#: at 13:00, the filter/fuse review) is off by hours.
+TIME_JUMP_S = 3600.0
 
 
 def nmea_checksum(body: str) -> str:
@@ -151,6 +172,52 @@ def _num(v) -> float:
         return float("nan")
 
 
+def _wrap_day(d: np.ndarray) -> np.ndarray:
+    """Time-of-day differences (s) wrapped to ``[-12 h, 12 h)``: the nearest step."""
+    return (d + 43200.0) % 86400.0 - 43200.0
+
+
+def _unwrap_days(tod: np.ndarray) -> np.ndarray:
+    """Times since 00:00 of the first day kept of a log's time stamps ``tod`` (times of
+    day, s, in the order of the log); NaN where a stamp is set aside.
+
+    The rule of the module docstring (Time): runs of successive stamps at most
+    :data:`TIME_JUMP_S` apart (the nearest step, across midnight too) are continuous log;
+    a run after a jump is placed forward of the time before the jump when it holds two
+    stamps or more and the log does not return to that time after it, else it is set
+    aside (so are single stamps before the first longer run).  Without any run of two
+    stamps every jump is believed.
+    """
+    N = tod.size
+    out = np.full(N, np.nan)
+    if N == 0:
+        return out
+    d = _wrap_day(np.diff(tod))
+    brk = np.abs(d) > TIME_JUMP_S
+    starts = np.r_[0, np.flatnonzero(brk) + 1]
+    ends = np.r_[starts[1:], N]
+    cum = np.r_[0.0, np.cumsum(np.where(brk, 0.0, d))]  # steps within the runs
+    judge = bool(np.any(ends - starts >= 2))
+    ref: float | None = None  # the time of the last stamp kept
+    for s, e in zip(starts.tolist(), ends.tolist()):
+        if ref is None:
+            if judge and e - s < 2:  # a lone fix before the log's first run
+                continue
+            base = float(tod[s])
+        else:
+            step = float(_wrap_day(np.asarray(tod[s] - ref)))
+            if abs(step) <= TIME_JUMP_S:  # back where the log was before a set-aside run
+                base = ref + step
+            else:
+                back = e < N and abs(float(_wrap_day(np.asarray(tod[e] - ref)))) <= TIME_JUMP_S
+                if judge and (e - s < 2 or back):
+                    continue
+                base = ref + float((tod[s] - ref) % 86400.0)  # a pause: forward
+        out[s:e] = base + (cum[s:e] - cum[s])
+        ref = float(out[e - 1])
+    return out
+
+
 def parse_nmea(
     lines: Iterable[str],
     origin: tuple[float, float, float] | None = None,
@@ -176,7 +243,8 @@ def parse_nmea(
     fixes: list[tuple] = []
     acc: list[tuple] = []
     n_lines = 0
-    first_date = None
+    dates: list[tuple[int, datetime.date]] = []  # (order, date) of the dated RMC sentences
+    where: list[tuple[int, str]] = []  # (line number, type) of each sentence used, by order
 
     def skip(lineno: int, reason: str) -> None:
         skipped[reason] += 1
@@ -247,8 +315,8 @@ def parse_nmea(
                     skip(lineno, "truncated")
                     continue
                 speed, course = checked(lineno, speed, _num(msg.true_course))
-                if first_date is None and date is not None:
-                    first_date = (order, date)
+                if date is not None:
+                    dates.append((order, date))
                 motion.append((_tod(ts), speed, np.deg2rad(course), "RMC", order))
             elif kind == "VTG":
                 if getattr(msg, "faa_mode", None) == "N":
@@ -306,20 +374,36 @@ def parse_nmea(
             skip(lineno, "truncated")
             continue
         parsed[kind] += 1
+        where.append((lineno, kind))
         order += 1
 
-    # ---- one time axis: seconds since 00:00 UTC of the first date, with roll-overs
+    # ---- one time axis: seconds since 00:00 UTC of the first day, with roll-overs and
+    # sentences whose time jumps by hours set aside (module docstring, Time)
     events = [(o, t) for (t, *_rest, o) in motion if np.isfinite(t)]
     events += [(r[-1], r[0]) for r in fixes] + [(r[-1], r[0]) for r in acc]
     events.sort()
-    order_to_time: dict[int, float] = {}
-    day = 0
-    prev = None
-    for o, t in events:
-        if prev is not None and t < prev - 43200.0:
-            day += 1
-        prev = t
-        order_to_time[o] = t + 86400.0 * day
+    ev_tod = np.array([t for _, t in events], dtype=float)
+    # time stamps: successive sentences with one time of day (the GGA, RMC, GST of a fix)
+    new_stamp = np.r_[True, ev_tod[1:] != ev_tod[:-1]] if len(events) else np.zeros(0, bool)
+    stamp_of = np.cumsum(new_stamp) - 1
+    stamp_t = _unwrap_days(ev_tod[new_stamp])[stamp_of] if len(events) else ev_tod
+    order_to_time = {o: float(t) for (o, _), t in zip(events, stamp_t) if np.isfinite(t)}
+    jumped = {o for (o, _), t in zip(events, stamp_t) if not np.isfinite(t)}
+    if jumped:
+        # a VTG (no time of its own) after a set-aside sentence belongs to its fix
+        last_timed = None
+        for o, (_, kind) in enumerate(where):
+            if kind != "VTG":
+                last_timed = o
+            elif last_timed in jumped:
+                jumped.add(o)
+        for o in sorted(jumped):
+            lineno, kind = where[o]
+            parsed[kind] -= 1
+            skip(lineno, "time_jump")
+        motion = [r for r in motion if r[-1] not in jumped]
+        fixes = [r for r in fixes if r[-1] not in jumped]
+        acc = [r for r in acc if r[-1] not in jumped]
 
     def timeline(rows_order: list[int], tod: list[float]) -> np.ndarray:
         return np.array([order_to_time.get(o, t) for o, t in zip(rows_order, tod)], dtype=float)
@@ -378,7 +462,8 @@ def parse_nmea(
         invalid=dict(invalid),
     )
     day0 = None
-    if first_date is not None and first_date[0] in order_to_time:
+    first_date = next(((o, d) for o, d in dates if o in order_to_time), None)
+    if first_date is not None:
         import calendar
 
         o, date = first_date
