@@ -15,7 +15,10 @@ DESCRIPTION = """\
 Matches each position to the truth of its tag at the same time (--time-tolerance) and
 reports, per tag and method, over the epochs with a usable fix: max, min, mean, RMS (the
 paper's sigma0), spread sigma1, median and 95th percentile of the horizontal error (and
-the 3-D error when both files have z), the number of failed epochs (status not usable, no
+the 3-D error when both files have z: over the n_ok_3d usable fixes with a z, as the
+vertical bound's columns below; a fix whose z is empty -- a 2-D method beside 3-D ones --
+counts in the horizontal statistics only, and a method without any z has empty 3-D
+columns, null in --json), the number of failed epochs (status not usable, no
 coordinates, or missing: a truth epoch without a positions row of the method), and the
 improvement of mean and RMS over the `ls` method in %. When the positions carry `hpl`
 (every `locate` and `track` output does), the integrity of the bounds too: the usable fixes
@@ -33,6 +36,10 @@ them as [all] and [mean] when a real tag bears one of those names).
 `--plot FILE.png` draws the figure a person would rather look at: the error CDF of each
 method and, when the positions carry `hpl`, each method's Stanford diagram (error against
 hpl, log-log; fixes below the diagonal are misleading, counted as n_misleading counts them).
+Errors of 0 and absurd ones (beyond 1e9 m) are drawn on the edge of the log axes, fixes
+far from the truth are left off the map, and the legends name the first 10 methods: each
+panel says what it left out.  The figure is drawn before anything is written, and the
+names of -o and --plot are checked before any work.
 
   robustloc evaluate positions.csv --truth truth.csv
   robustloc evaluate positions.csv --truth truth.csv --json -o errors.csv
@@ -82,6 +89,8 @@ def run(args: argparse.Namespace) -> int:
 
     check_not_input(args.out, [args.positions, args.truth])
     check_not_input(args.plot, [args.positions, args.truth])
+    # -o's format before any work: `-o table.xlsx` was refused after the figure was written
+    _check_table_out(args.out)
     if args.plot and args.engine == "dask":
         from robustloc.errors import InputError
 
@@ -98,12 +107,26 @@ def run(args: argparse.Namespace) -> int:
         truth = read_truth(args.truth)
         table = error_table(pos, truth, time_tolerance_s=args.time_tolerance,
                             baseline=args.baseline)
-        if args.plot:
+        if args.plot:  # drawn (into memory) before a file is written: see below
             from robustloc.eval.metrics import epoch_errors
-            from robustloc.eval.plots import evaluation_figure
+            from robustloc.eval.plots import render_evaluation_figure
 
-            evaluation_figure(epoch_errors(pos, truth, args.time_tolerance), args.plot)
-    if args.out:
+            figure, _ = render_evaluation_figure(
+                epoch_errors(pos, truth, args.time_tolerance), args.plot)
+    if args.plot:
+        # the figure's temporary file is renamed into place only once the table is
+        # written: a table that cannot be written leaves no figure behind, and the reverse
+        from robustloc.io.atomic import atomic_output
+
+        with atomic_output(args.plot) as (target, stream):
+            if stream is not None:  # pragma: no cover - a figure's name is never "-"
+                stream.write(figure)
+            else:
+                with open(target, "wb") as f:
+                    f.write(figure)
+            if args.out:
+                write_table(_integral_counts(table), args.out)
+    elif args.out:
         write_table(_integral_counts(table), args.out)
     # the report never goes into a data stream: stderr when the table goes to stdout
     dest = sys.stderr if writes_to_stdout(args.out) else sys.stdout
@@ -113,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
         recs = table.replace({np.nan: None, np.inf: None, -np.inf: None}).to_dict(
             orient="records")
         for r in recs:  # counts as integers (the "mean" rows may average to a fraction)
-            for c in ("n", "n_missing", "n_failed", "n_ok"):
+            for c in COUNTS:
                 v = r.get(c)
                 if v is not None and float(v).is_integer():
                     r[c] = int(v)
@@ -134,9 +157,10 @@ def run(args: argparse.Namespace) -> int:
     print("horizontal error (m)", file=dest)
     print(show.to_string(index=False), file=dest)
     if "rms_3d" in table.columns:
-        cols = ["tag", "method", "mean_3d", "rms_3d", "p95_3d", "max_3d"]
+        cols = ["tag", "method", "n_ok_3d", "mean_3d", "rms_3d", "p95_3d", "max_3d"]
         t3 = table[cols].copy()
-        for c in cols[2:]:
+        t3["n_ok_3d"] = t3["n_ok_3d"].map(_count)
+        for c in cols[3:]:
             t3[c] = t3[c].map(_metres)
         print("\n3-D error (m)", file=dest)
         print(t3.to_string(index=False), file=dest)
@@ -153,7 +177,23 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-COUNTS = ("n", "n_missing", "n_failed", "n_ok", "n_misleading", "n_misleading_v")
+#: The count columns: integers in --json and -o (a "mean" row's average may be a fraction).
+COUNTS = ("n", "n_missing", "n_failed", "n_ok", "n_ok_3d", "n_misleading", "n_misleading_v")
+
+
+def _check_table_out(out: str | None) -> None:
+    """Refuse an ``-o`` name :func:`robustloc.io.write_table` would refuse only after the
+    work (``.xlsx``, ``.json``; a ``.bz2`` compression), before it."""
+    if out is None:
+        return
+    from pathlib import Path
+
+    from robustloc.io.atomic import _gzip_wanted, is_stdio
+    from robustloc.io.tables import check_table_path
+
+    check_table_path(out)
+    if not is_stdio(out):
+        _gzip_wanted(Path(out))  # refuses the compressions the readers cannot read back
 
 
 def _count(v: float) -> str:

@@ -94,6 +94,19 @@ def _ints(text: str) -> list[int]:
     return out
 
 
+def _check_table_out(out: str | None) -> None:
+    """Refuse an ``-o`` name :func:`robustloc.io.write_table` would refuse only after the
+    run (``.png``, ``.xlsx``; a ``.bz2`` compression), before it."""
+    if out is None:
+        return
+    from robustloc.io.atomic import _gzip_wanted, is_stdio
+    from robustloc.io.tables import check_table_path
+
+    check_table_path(out)
+    if not is_stdio(out):
+        _gzip_wanted(Path(out))  # refuses the compressions the readers cannot read back
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     lay = p.add_mutually_exclusive_group(required=True)
     lay.add_argument("--anchors", help="ranging layout: anchors file (anchor, x, y[, z])")
@@ -250,6 +263,8 @@ def run(args: argparse.Namespace) -> int:
 
     # before any work: -o naming the anchors file replaced it with the table (exit 0)
     check_not_input(args.out, [getattr(args, "anchors", None)])
+    # and its format: `-o mc.png` was refused after the whole simulation
+    _check_table_out(args.out)
     methods = tuple(m.strip().lower() for m in args.methods.split(",") if m.strip())
     bad = [m for m in methods if m not in METHODS]
     if bad or not methods:

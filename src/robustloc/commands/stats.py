@@ -6,6 +6,8 @@ import argparse
 import json
 from pathlib import Path
 
+import numpy as np
+
 from robustloc.options import float_in, int_in, positive_float, positive_int
 
 NAME = "stats"
@@ -16,6 +18,16 @@ variance, skewness E(x-mu)^3/sigma^3 and kurtosis E(x-mu)^4/sigma^4 (Pearson, 3 
 normal law, as seed 002 Table 1), the autocorrelation up to --max-lag samples and the lag
 where it drops below 0.2, D'Agostino-Pearson and Shapiro-Wilk normality p-values, and the
 correlation of the variance with distance (paper: 0.578).
+
+Distance bins are centred on the multiples of --bin-width w: the bin labelled k*w holds
+the distances from (k - 1/2) w, included, to (k + 1/2) w (so 0 holds those below w/2).
+Bins of fewer than --min-samples samples are left out of per_bin.csv and of everything
+computed from bins: the correlation (null with fewer than 3 distinct bin distances) and
+the per-anchor moments of the residuals about the bin means (resid_n samples in
+resid_bins bins; resid_variance divides by resid_n - resid_bins, one degree of freedom
+per fitted bin mean; empty without a bin).  The summary's shares of anchors count the
+anchors that have the statistic (share_anchors_normal_rejected_5pct: among the
+n_anchors_normality_tested anchors of 8 samples or more, not constant; null if none).
 
 Writes into --out: per_anchor.csv, per_bin.csv (with truth), acf.csv, histograms.png,
 autocorrelation.png, summary.json.  They are written into a temporary folder beside it
@@ -115,8 +127,10 @@ def run(args: argparse.Namespace) -> int:
             print("\nper distance bin:")
             print(res.per_bin[["anchor", "distance_m"] + cols[1:]].to_string(
                 index=False, float_format=lambda v: f"{v:.3g}"))
-            print(f"\ncorrelation of variance with distance: "
-                  f"{res.variance_distance_corr:.3f} (seed 002: 0.578)")
+            corr = res.variance_distance_corr
+            print("\ncorrelation of variance with distance: "
+                  + (f"{corr:.3f}" if np.isfinite(corr) else
+                     "none (fewer than 3 distinct bin distances)") + " (seed 002: 0.578)")
     print(f"\ninvalid_measurement: {summary['invalid_measurement']}"
           + (" (RSSI outside -150 .. +30 dBm, left out)" if summary["invalid_measurement"]
              else ""))

@@ -17,6 +17,13 @@ when both files have ``z``).  Per tag and method, over the epochs with a usable 
   non-finite coordinate), ``n_ok = n - n_failed``, ``failed_pct`` (availability is
   ``100 - failed_pct``).
 
+The 3-D statistics (suffix ``_3d``) and the vertical bound's (``n_misleading_v``,
+``misleading_pct_v``, ``vpl_median``, ``vpl_over_error``) are over the ``n_ok_3d`` usable
+fixes that have a vertical solution (finite ``z``, and a truth ``z``): a usable fix
+without one -- a 2-D method in a file that also holds a 3-D one, or a row whose ``z`` is
+empty -- counts in the horizontal statistics only, and a method without any has NaN 3-D
+and vertical statistics.
+
 Aggregate rows per method: ``tag = "all"`` pools the epochs of every tag; ``tag = "mean"``
 is the mean of the per-tag statistics, which is how the paper's Table 1 forms its
 "average over the points" rows; an error statistic of that row is NaN when the method has
@@ -200,11 +207,17 @@ def _group_rows(df: pd.DataFrame, keys: dict[str, str], has3d: bool) -> dict[str
         row.update(integrity_stats(df["error_2d"].to_numpy()[ok],
                                    df["hpl"].to_numpy(dtype=float)[ok]))
     if has3d:
-        s3 = error_stats(df["error_3d"].to_numpy()[ok])
+        # only the usable fixes with a vertical solution: one without z (a 2-D method
+        # beside 3-D ones, or a row with z empty) has no 3-D error, and its NaN vertical
+        # error was counted misleading (NaN <= vpl is false) while error_stats dropped it
+        # from the 3-D statistics of the same row
+        ok3 = ok & np.isfinite(df["error_3d"].to_numpy(dtype=float))
+        row["n_ok_3d"] = int(ok3.sum())
+        s3 = error_stats(df["error_3d"].to_numpy()[ok3])
         row.update({f"{k}_3d": v for k, v in s3.items()})
         if "vpl" in df.columns and "error_v" in df.columns:  # the vertical bound likewise
-            iv = integrity_stats(df["error_v"].to_numpy()[ok],
-                                 df["vpl"].to_numpy(dtype=float)[ok])
+            iv = integrity_stats(df["error_v"].to_numpy()[ok3],
+                                 df["vpl"].to_numpy(dtype=float)[ok3])
             row.update({k.replace("hpl", "vpl") + ("" if "hpl" in k else "_v"): v
                         for k, v in iv.items()})
     return row
@@ -270,9 +283,10 @@ def error_table(
         Columns: ``tag, method, n, n_missing, n_failed, n_ok, failed_pct, max, min, mean,
         rms, sigma1,
         median, p95`` (metres, horizontal), :data:`INTEGRITY_COLUMNS` when the positions
-        have ``hpl``, the statistics with suffix ``_3d`` when both files have ``z`` (and
-        then, with ``vpl``, the vertical bound's ``n_misleading_v, misleading_pct_v,
-        vpl_median, vpl_over_error``), ``mean_impr_pct, rms_impr_pct`` and
+        have ``hpl``, ``n_ok_3d`` and the statistics with suffix ``_3d`` when both files
+        have ``z`` (and then, with ``vpl``, the vertical bound's ``n_misleading_v,
+        misleading_pct_v, vpl_median, vpl_over_error``; all over the ``n_ok_3d`` usable
+        fixes with a vertical solution), ``mean_impr_pct, rms_impr_pct`` and
         ``aggregate`` (True on the ``all`` and ``mean`` rows: a tag may bear those names).
         ``attrs["n_unmatched"]``: rows without truth (not scored).
     """
@@ -341,8 +355,9 @@ def error_table_from_errors(
             row[c] = float(sub[c].mean(skipna=c not in _USABLE_STATS))
         agg.append(row)
     table = pd.concat([per, pd.DataFrame(agg)], ignore_index=True)
-    for c in ("n", "n_missing", "n_failed", "n_ok"):
-        table[c] = table[c].astype(float)
+    for c in ("n", "n_missing", "n_failed", "n_ok", "n_ok_3d"):
+        if c in table.columns:
+            table[c] = table[c].astype(float)
     aggregate = np.r_[np.zeros(len(per), dtype=bool), np.ones(len(agg), dtype=bool)]
     # each row against the baseline's row of the same tag, aggregates against aggregates
     # (a real tag named "all" is not the pooled row)

@@ -32,6 +32,59 @@ if TYPE_CHECKING:
 
 #: At most this many methods get a Stanford panel (the CDF panel shows every method).
 MAX_METHODS = 6
+#: At most this many methods are named in a legend; the others are drawn unnamed and the
+#: legend says how many ("N more methods"): 300 methods' legend covered the figure and
+#: made ``tight_layout`` warn.
+MAX_LEGEND = 10
+#: The log axes of errors and bounds span at most ``ERROR_VIEW_MIN`` .. ``ERROR_VIEW_MAX``
+#: metres; values beyond are drawn on the edge and counted on the panel.  A fix 1e300 m
+#: off overflowed matplotlib's log ticker (a traceback) and 1e200 leaked overflow
+#: warnings; no real positioning error or bound comes near either end.
+ERROR_VIEW_MIN = 1e-9
+ERROR_VIEW_MAX = 1e9
+#: The map shows coordinates within this many metres of the origin only: beyond, a fix
+#: (or a truth point) is absurd for any local or projected frame, and matplotlib's axes
+#: overflow near 1e300.
+MAP_COORD_MAX = 1e9
+#: The map shows the truth's extent widened on every side by the 95th percentile of the
+#: usable fixes' errors, at most this many extents (or :data:`MAP_MIN_REACH`, if larger);
+#: fixes beyond are left out and counted on the panel.
+MAP_REACH_EXTENTS = 100.0
+MAP_MIN_REACH = 1000.0
+
+
+def _m(v: float) -> str:
+    """Metres for a label: 2 decimals, or 3 significant digits from 1e6 m on (a p95 of
+    1e300 m printed 300 digits)."""
+    return f"{v:.2f}" if abs(v) < 1e6 else f"{v:.3g}"
+
+
+def _n(k: int, what: str) -> str:
+    """``1 error``, ``2 errors`` (``fix``: ``fixes``)."""
+    return f"{k} {what}" if k == 1 else f"{k} {what}{'es' if what.endswith('x') else 's'}"
+
+
+#: A method's name in a legend or a title is cut to this many characters ("..." ending it).
+MAX_NAME = 30
+
+
+def _short(name: str) -> str:
+    """``name``, cut to :data:`MAX_NAME` characters (a 150-character method name pushed
+    the panels out of the figure)."""
+    return name if len(name) <= MAX_NAME else name[: MAX_NAME - 3] + "..."
+
+
+def _legend_label(i: int, name: str) -> str:
+    """The legend label of the ``i``-th method: ``name`` up to :data:`MAX_LEGEND`, then
+    matplotlib's "not in the legend" (a leading underscore)."""
+    return name if i < MAX_LEGEND else "_nolegend_"
+
+
+def _more_methods(ax: Axes, n_methods: int) -> None:
+    """A legend entry "N more methods" (no symbol) when more than :data:`MAX_LEGEND`
+    methods are drawn."""
+    if n_methods > MAX_LEGEND:
+        ax.plot([], [], " ", label=f"{n_methods - MAX_LEGEND} more methods")
 
 
 @dataclass(frozen=True)
@@ -74,10 +127,14 @@ def stanford_counts(error_m: NDArray[np.float64], hpl_m: NDArray[np.float64]) ->
 
 def _log_ticks(axis) -> None:  # noqa: ANN001 - a matplotlib Axis
     """Log-axis ticks at 1, 2, 5 per decade labelled as plain numbers (``0.5``, ``20``),
-    readable when the data span less than a decade."""
+    readable when the data span less than a decade; at the decades alone when the axis
+    (its limits when this is called) spans more than 2 (the labels overlapped, and
+    matplotlib's locator gave no tick at all with 1, 2, 5 over 10 decades)."""
     from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
 
-    axis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+    lo, hi = sorted(float(v) for v in axis.get_view_interval())
+    wide = lo > 0 and np.isfinite(hi) and hi > lo * 150.0
+    axis.set_major_locator(LogLocator(subs=(1.0,) if wide else (1.0, 2.0, 5.0)))
     axis.set_major_formatter(FormatStrFormatter("%g"))
     axis.set_minor_formatter(NullFormatter())
 
@@ -105,7 +162,10 @@ def plot_stanford(ax: Axes, error_m: NDArray[np.float64], hpl_m: NDArray[np.floa
         hi = 10.0 ** np.ceil(np.log10(max(e[pos].max(), h[pos].max())))
     else:
         lo, hi = 0.01, 100.0
-    hi = max(hi, lo * 100.0)
+    # absurd values (1e300 m) on the edge of a sane range, counted below
+    lo = min(max(lo, ERROR_VIEW_MIN), ERROR_VIEW_MAX / 100.0)
+    hi = min(max(hi, lo * 100.0), ERROR_VIEW_MAX)
+    n_edge = int(np.sum(pos & ((e < lo) | (e > hi) | (h < lo) | (h > hi))))
     edges = np.geomspace(lo, hi, bins + 1)
     if pos.any():
         ee, hh = np.clip(e[pos], lo, hi), np.clip(h[pos], lo, hi)
@@ -138,6 +198,8 @@ def plot_stanford(ax: Axes, error_m: NDArray[np.float64], hpl_m: NDArray[np.floa
             f"({counts.misleading_pct:.2f} %)" if counts.n else "no usable fix")
     if nan_h:
         text += f"\n(no hpl: {nan_h}, counted misleading)"
+    if n_edge:
+        text += f"\n{n_edge} off the axes, drawn on the edge"
     if counts.n and fin.any():
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = np.median(np.where(np.isnan(h), np.inf, h)[np.isfinite(e)]) / np.median(
@@ -164,47 +226,221 @@ def _figure_format(path: str | os.PathLike[str]) -> str:
     return Path(path).suffix.lower().lstrip(".")
 
 
-def _write_figure(fig, path: str | os.PathLike[str], fmt: str) -> None:  # noqa: ANN001
-    """Lay out, write atomically (:func:`robustloc.io.atomic.atomic_output`) and close."""
+def _render_figure(fig, fmt: str) -> bytes:  # noqa: ANN001 - a matplotlib Figure
+    """Lay out, render into memory and close: every drawing error comes before a file is
+    written (``evaluate`` then writes its figure and its table together)."""
+    import io
+    import warnings
+
     import matplotlib.pyplot as plt
 
+    try:
+        with warnings.catch_warnings():
+            # a layout that cannot be tightened keeps the default margins: the figure is
+            # complete, and the warning is matplotlib's, not the user's to act on
+            warnings.filterwarnings("ignore", message="Tight layout not applied",
+                                    category=UserWarning)
+            fig.tight_layout()
+        buf = io.BytesIO()
+        fig.savefig(buf, format=fmt, dpi=110)
+    finally:
+        plt.close(fig)
+    return buf.getvalue()
+
+
+def write_figure_bytes(data: bytes, path: str | os.PathLike[str]) -> None:
+    """Write a rendered figure (:func:`render_evaluation_figure`) atomically
+    (:func:`robustloc.io.atomic.atomic_output`)."""
     from robustloc.io.atomic import atomic_output
 
-    fig.tight_layout()
     with atomic_output(path) as (target, stream):
-        fig.savefig(target if target is not None else stream, format=fmt, dpi=110)
-    plt.close(fig)
+        if stream is not None:  # pragma: no cover - a figure's name is never "-"
+            stream.write(data)
+        else:
+            with open(target, "wb") as f:
+                f.write(data)
+
+
+def _write_figure(fig, path: str | os.PathLike[str], fmt: str) -> None:  # noqa: ANN001
+    """Lay out, render, close and write atomically."""
+    write_figure_bytes(_render_figure(fig, fmt), path)
 
 
 #: At most this many fixes per method are drawn on the map (an even subsample beyond).
 MAP_POINTS = 20_000
 
 
+def _map_view(xt: NDArray[np.float64], yt: NDArray[np.float64],
+              errors: NDArray[np.float64]
+              ) -> tuple[float, float, float, float, float] | None:
+    """The box ``(x0, x1, y0, y1, reach)`` the map shows: the extent of the truth points
+    within :data:`MAP_COORD_MAX`, widened on every side by ``reach``, the 95th percentile
+    of the usable ``errors`` (at least the extent, at most :data:`MAP_REACH_EXTENTS`
+    extents or :data:`MAP_MIN_REACH`); None without such a truth point."""
+    t = (np.isfinite(xt) & np.isfinite(yt) & (np.abs(xt) <= MAP_COORD_MAX)
+         & (np.abs(yt) <= MAP_COORD_MAX))
+    if not t.any():
+        return None
+    x0, x1 = float(xt[t].min()), float(xt[t].max())
+    y0, y1 = float(yt[t].min()), float(yt[t].max())
+    extent = max(x1 - x0, y1 - y0, 1.0)
+    e = errors[np.isfinite(errors)]
+    p95 = float(np.percentile(e, 95)) if e.size else 0.0
+    reach = max(extent, min(p95, max(MAP_REACH_EXTENTS * extent, MAP_MIN_REACH)))
+    return x0 - reach, x1 + reach, y0 - reach, y1 + reach, reach
+
+
 def _plot_map(ax: Axes, errors: pd.DataFrame, methods: list[str], meth: NDArray[np.object_],
               usable: NDArray[np.bool_]) -> None:
-    """The usable fixes of each method over the truth (black), equal axes."""
+    """The usable fixes of each method over the truth (black), equal axes; fixes outside
+    :func:`_map_view` (absurd ones: 1e300 m) are left out and counted on the panel."""
     xt = errors["x_true"].to_numpy(dtype=float)
     yt = errors["y_true"].to_numpy(dtype=float)
     x = errors["x"].to_numpy(dtype=float)
     y = errors["y"].to_numpy(dtype=float)
-    for m in methods:
-        sel = np.flatnonzero(usable & (meth == m))
+    view = _map_view(xt, yt, errors["error_2d"].to_numpy(dtype=float)[usable])
+    with np.errstate(invalid="ignore"):
+        if view is None:
+            inside = (np.abs(x) <= MAP_COORD_MAX) & (np.abs(y) <= MAP_COORD_MAX)
+        else:
+            inside = (x >= view[0]) & (x <= view[1]) & (y >= view[2]) & (y <= view[3])
+    n_out = int(np.sum(usable & ~inside))
+    for i, m in enumerate(methods):
+        sel = np.flatnonzero(usable & inside & (meth == m))
         if sel.size > MAP_POINTS:
             sel = sel[np.linspace(0, sel.size - 1, MAP_POINTS).astype(np.int64)]
-        ax.plot(x[sel], y[sel], ".", ms=2, alpha=0.5, label=m)
-    t = np.isfinite(xt) & np.isfinite(yt)
+        ax.plot(x[sel], y[sel], ".", ms=2, alpha=0.5, label=_legend_label(i, _short(m)))
+    _more_methods(ax, len(methods))
+    t = (np.isfinite(xt) & np.isfinite(yt) & (np.abs(xt) <= MAP_COORD_MAX)
+         & (np.abs(yt) <= MAP_COORD_MAX))
     if t.any():
         pts = np.unique(np.column_stack((xt[t], yt[t])), axis=0)
         if len(pts) > MAP_POINTS:
             pts = pts[np.linspace(0, len(pts) - 1, MAP_POINTS).astype(np.int64)]
         ax.plot(pts[:, 0], pts[:, 1], "k.", ms=2, label="truth")
+    n_t_out = len(np.unique(np.column_stack((xt, yt))[np.isfinite(xt) & np.isfinite(yt) & ~t],
+                            axis=0))
+    # what is left out, under the title (a box on the axes would hide fixes)
+    notes = ["usable fixes and the truth"]
+    if n_out:
+        notes.append(f"{_n(n_out, 'usable fix')} not drawn: more than "
+                     + (f"{MAP_COORD_MAX:g} m from the origin" if view is None else
+                        f"{_m(view[4])} m beyond the truth"))
+    if n_t_out:
+        notes.append(f"{_n(n_t_out, 'truth point')} not drawn: beyond {MAP_COORD_MAX:g} m")
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    ax.set_title("usable fixes and the truth", fontsize=9)
+    ax.set_title("\n".join(notes), fontsize=9 if len(notes) == 1 else 8)
     ax.grid(alpha=0.3)
     if ax.get_legend_handles_labels()[0]:
         ax.legend(fontsize=7, markerscale=4, loc="best")
+
+
+def _plot_cdf(ax: Axes, e_all: NDArray[np.float64], methods: list[str],
+              meth: NDArray[np.object_], usable: NDArray[np.bool_]) -> None:
+    """The empirical CDF of the usable fixes' horizontal errors per method, on a log axis
+    from the decade below the smallest positive error to the decade above the largest
+    (within :data:`ERROR_VIEW_MIN` .. :data:`ERROR_VIEW_MAX`); errors below (exact fixes,
+    error 0) or beyond are drawn on the edge and counted on the panel."""
+    e_use = e_all[usable]
+    e_pos = e_use[e_use > 0]
+    if e_pos.size:
+        lo = 10.0 ** np.floor(np.log10(e_pos.min()))
+        hi = 10.0 ** np.ceil(np.log10(e_pos.max()))
+    else:  # no positive error (every fix exact, or none usable): a floor of 1 cm
+        lo = hi = 0.01
+    lo = min(max(lo, ERROR_VIEW_MIN), ERROR_VIEW_MAX / 100.0)
+    hi = min(max(hi, lo * 100.0), ERROR_VIEW_MAX)
+    for i, m in enumerate(methods):
+        e = np.sort(e_all[usable & (meth == m)])
+        if e.size == 0:
+            continue
+        q = np.arange(1, e.size + 1) / e.size
+        p95 = float(np.percentile(e, 95))
+        label = _legend_label(i, f"{_short(m)} (n={e.size}, p95 {_m(p95)} m)")
+        (line,) = ax.step(np.clip(e, lo, hi), q, where="post", lw=1.2, label=label)
+        ax.plot([min(max(p95, lo), hi)], [0.95], "o", color=line.get_color(), ms=4)
+    _more_methods(ax, len(methods))
+    ax.axhline(0.95, color="0.6", lw=0.6)
+    ax.set_xscale("log")
+    ax.set_xlim(lo, hi)
+    _log_ticks(ax.xaxis)
+    # what is drawn on the edge, under the title (a box on the axes would hide a curve)
+    notes = ["error distribution (usable fixes)"]
+    n_lo, n_hi = int(np.sum(e_use < lo)), int(np.sum(e_use > hi))
+    if n_lo:
+        notes.append(f"{_n(n_lo, 'error')} below {lo:g} m (exact fixes) drawn at {lo:g} m")
+    if n_hi:
+        notes.append(f"{_n(n_hi, 'error')} beyond {hi:g} m drawn at {hi:g} m")
+    ax.set_xlabel("horizontal error (m)")
+    ax.set_ylabel("share of usable fixes")
+    ax.set_title("\n".join(notes), fontsize=9 if len(notes) == 1 else 8)
+    ax.grid(alpha=0.3, which="both")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=7, loc="upper left")
+
+
+def render_evaluation_figure(
+    errors: pd.DataFrame, path: str | os.PathLike[str], max_methods: int = MAX_METHODS,
+) -> tuple[bytes, dict[str, StanfordCounts]]:
+    """The figure of :func:`evaluation_figure`, rendered into memory and not written.
+
+    ``robustloc evaluate`` draws it before writing its table, then writes both: a figure
+    that cannot be drawn leaves no table behind.
+
+    Parameters
+    ----------
+    errors : DataFrame
+        As :func:`evaluation_figure`.
+    path : str or PathLike
+        Its suffix gives the format (``.png``, ``.svg`` or ``.pdf``; another:
+        ``ValueError``); nothing is written.
+    max_methods : int
+        As :func:`evaluation_figure`.
+
+    Returns
+    -------
+    tuple
+        The file's bytes, and per method with a panel its :class:`StanfordCounts`.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fmt = _figure_format(path)
+    methods = (list(dict.fromkeys(errors["method"].astype(str))) if "method" in errors.columns
+               else ["positions"])
+    meth = (errors["method"].astype(str).to_numpy() if "method" in errors.columns
+            else np.full(len(errors), "positions", dtype=object))
+    usable = errors["usable"].to_numpy(dtype=bool)
+    e_all = errors["error_2d"].to_numpy(dtype=float)
+    has_hpl = "hpl" in errors.columns
+    shown = methods[:max_methods] if has_hpl else []
+    first = 2  # the CDF and the map come first
+    ncol = min(3, first + len(shown))
+    nrow = int(np.ceil((first + len(shown)) / ncol))
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4.6 * ncol, 4.2 * nrow), squeeze=False)
+    try:
+        _plot_cdf(axes[0, 0], e_all, methods, meth, usable)
+        _plot_map(axes.flat[1], errors, methods, meth, usable)
+        out: dict[str, StanfordCounts] = {}
+        hpl = errors["hpl"].to_numpy(dtype=float) if has_hpl else None
+        for i, m in enumerate(shown, start=first):
+            ax = axes.flat[i]
+            sel = usable & (meth == m)
+            out[m] = plot_stanford(ax, e_all[sel], hpl[sel],
+                                   title=f"Stanford diagram: {_short(m)}")
+        for ax in axes.flat[first + len(shown):]:
+            ax.axis("off")
+        if has_hpl and len(methods) > max_methods:
+            fig.suptitle(f"Stanford diagrams of the first {max_methods} of {len(methods)} "
+                         "methods", fontsize=9)
+    except BaseException:
+        plt.close(fig)
+        raise
+    return _render_figure(fig, fmt), out
 
 
 def evaluation_figure(errors: pd.DataFrame, path: str | os.PathLike[str],
@@ -228,57 +464,14 @@ def evaluation_figure(errors: pd.DataFrame, path: str | os.PathLike[str],
     Panels: the empirical CDF of the horizontal error of the usable fixes per method (its
     95th percentile marked), a map of the usable fixes over the truth (at most
     :data:`MAP_POINTS` per method), then, when the positions carry ``hpl``, one Stanford
-    diagram per method (:func:`plot_stanford`).
+    diagram per method (:func:`plot_stanford`).  The legends name the first
+    :data:`MAX_LEGEND` methods and say how many more there are.  Absurd values stay
+    within sane axes, counted on their panel: errors and bounds outside
+    :data:`ERROR_VIEW_MIN` .. :data:`ERROR_VIEW_MAX` m (errors of 0 among them) on the
+    edge of the log axes, fixes far beyond the truth (:func:`_map_view`) off the map.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fmt = _figure_format(path)
-    methods = (list(dict.fromkeys(errors["method"].astype(str))) if "method" in errors.columns
-               else ["positions"])
-    meth = (errors["method"].astype(str).to_numpy() if "method" in errors.columns
-            else np.full(len(errors), "positions", dtype=object))
-    usable = errors["usable"].to_numpy(dtype=bool)
-    e_all = errors["error_2d"].to_numpy(dtype=float)
-    has_hpl = "hpl" in errors.columns
-    shown = methods[:max_methods] if has_hpl else []
-    first = 2  # the CDF and the map come first
-    ncol = min(3, first + len(shown))
-    nrow = int(np.ceil((first + len(shown)) / ncol))
-    fig, axes = plt.subplots(nrow, ncol, figsize=(4.6 * ncol, 4.2 * nrow), squeeze=False)
-    ax0 = axes[0, 0]
-    for m in methods:
-        e = np.sort(e_all[usable & (meth == m)])
-        if e.size == 0:
-            continue
-        q = np.arange(1, e.size + 1) / e.size
-        (line,) = ax0.step(e, q, where="post", lw=1.2,
-                           label=f"{m} (n={e.size}, p95 {np.percentile(e, 95):.2f} m)")
-        ax0.plot([np.percentile(e, 95)], [0.95], "o", color=line.get_color(), ms=4)
-    ax0.axhline(0.95, color="0.6", lw=0.6)
-    ax0.set_xscale("log")
-    _log_ticks(ax0.xaxis)
-    ax0.set_xlabel("horizontal error (m)")
-    ax0.set_ylabel("share of usable fixes")
-    ax0.set_title("error distribution (usable fixes)", fontsize=9)
-    ax0.grid(alpha=0.3, which="both")
-    if ax0.get_legend_handles_labels()[0]:
-        ax0.legend(fontsize=7, loc="upper left")
-    _plot_map(axes.flat[1], errors, methods, meth, usable)
-    out: dict[str, StanfordCounts] = {}
-    hpl = errors["hpl"].to_numpy(dtype=float) if has_hpl else None
-    for i, m in enumerate(shown, start=first):
-        ax = axes.flat[i]
-        sel = usable & (meth == m)
-        out[m] = plot_stanford(ax, e_all[sel], hpl[sel], title=f"Stanford diagram: {m}")
-    for ax in axes.flat[first + len(shown):]:
-        ax.axis("off")
-    if has_hpl and len(methods) > max_methods:
-        fig.suptitle(f"Stanford diagrams of the first {max_methods} of {len(methods)} "
-                     "methods", fontsize=9)
-    _write_figure(fig, path, fmt)
+    data, out = render_evaluation_figure(errors, path, max_methods)
+    write_figure_bytes(data, path)
     return out
 
 

@@ -18,6 +18,9 @@ Conventions
   mean; for a single run it is ``statsmodels.tsa.stattools.acf(x, adjusted=False)``.
   Per anchor, when the truth is known, ``c`` is the RSSI minus the mean of its distance
   bin, so the distance trend of a moving tag does not pass for correlation.
+* The residual variance per anchor divides the squared residuals about the bin means by
+  ``n - (number of bins)``: each bin mean is fitted.  Only the bins of at least
+  ``min_samples`` samples count (a 1-sample bin's residual is 0 whatever the noise).
 * Normality: D'Agostino-Pearson ``scipy.stats.normaltest`` (needs 8 samples) and
   Shapiro-Wilk ``scipy.stats.shapiro`` (3 to 5000 samples); p-values, NaN when the group is
   too small.
@@ -214,17 +217,22 @@ class RssiStatsResult:
     per_anchor : DataFrame
         One row per anchor: ``anchor, n, mean, variance, skewness, kurtosis,
         decorrelation_lag, normaltest_p, shapiro_p``; with truth also the moments of the
-        residuals about their distance-bin means (``resid_variance, resid_skewness,
-        resid_kurtosis``: the noise without the distance trend) and ``distance_min/max_m``.
-        The summary's skewness and kurtosis are the residual ones when present.
+        residuals about their distance-bin means, over the anchor's bins in ``per_bin``
+        (``resid_n`` samples in ``resid_bins`` bins; ``resid_variance`` divides by
+        ``resid_n - resid_bins``, one degree of freedom per fitted bin mean;
+        ``resid_skewness, resid_kurtosis``: the noise without the distance trend; NaN
+        without a bin of ``min_samples``) and ``distance_min/max_m``.  The summary's
+        skewness and kurtosis are the residual ones when present.
     per_bin : DataFrame or None
-        With truth: one row per (anchor, distance bin): ``anchor, distance_m`` (bin centre)
+        With truth: one row per (anchor, distance bin) of at least ``min_samples``
+        samples: ``anchor, distance_m`` (the bin's centre ``k w``; it holds the distances
+        in ``[(k - 1/2) w, (k + 1/2) w)``, so the first bin, ``0``, those below ``w / 2``)
         and the same statistics.
     acf : DataFrame
         Autocorrelation per anchor: index lag, one column per anchor.
     variance_distance_corr : float
         Pearson correlation of the per-bin variance with the bin distance (paper: 0.578);
-        NaN without truth or with fewer than 3 bins.
+        NaN without truth or with fewer than 3 distinct bin distances in ``per_bin``.
     samples : DataFrame
         The samples analysed (``tag, anchor, time, rssi`` and ``distance_m`` with truth),
         for the histograms.
@@ -261,24 +269,51 @@ class RssiStatsResult:
         return paths
 
     def summary(self) -> dict[str, object]:
-        """Headline numbers (JSON-serializable)."""
+        """Headline numbers (JSON-serializable; None where NaN).
+
+        The shares of anchors (``share_anchors_left_skewed``,
+        ``share_anchors_normal_rejected_5pct``) are over the anchors with a skewness and
+        with a normality p-value (``n_anchors_normality_tested``: 8 samples or more, not
+        constant), None without any.
+        """
         pa = self.per_anchor
         sk = "resid_skewness" if "resid_skewness" in pa.columns else "skewness"
         ku = "resid_kurtosis" if "resid_kurtosis" in pa.columns else "kurtosis"
+        p = pa["normaltest_p"].to_numpy(dtype=float)
         return {
             "n_samples": int(pa["n"].sum()),
             "n_anchors": int(len(pa)),
             "median_skewness": _f(pa[sk].median()),
             "median_kurtosis": _f(pa[ku].median()),
             "median_decorrelation_lag": _f(pa["decorrelation_lag"].median()),
-            "share_anchors_left_skewed": _f((pa[sk] < 0).mean()),
-            "share_anchors_normal_rejected_5pct": _f((pa["normaltest_p"] < 0.05).mean()),
+            # likewise over the anchors with a skewness (not constant, 2 samples or more)
+            "share_anchors_left_skewed": _f((pa[sk][np.isfinite(pa[sk])] < 0).mean())
+            if np.isfinite(pa[sk]).any() else None,
+            # over the anchors the test could judge (8 samples, not constant): an untestable
+            # one counted as not rejected
+            "share_anchors_normal_rejected_5pct": _f((p[np.isfinite(p)] < 0.05).mean())
+            if np.isfinite(p).any() else None,
+            "n_anchors_normality_tested": int(np.isfinite(p).sum()),
             "variance_distance_corr": _f(self.variance_distance_corr),
             "n_bins": 0 if self.per_bin is None else int(len(self.per_bin)),
             "invalid_measurement": int(self.invalid_measurement),
             "n_without_truth": int(self.n_without_truth),
             "n_outside_truth_span": int(self.n_outside_truth_span),
         }
+
+
+def _residual_moments(resid: Array, bins: NDArray[np.float64]) -> dict[str, float]:
+    """Moments of one anchor's residuals about their distance-bin means (the bins of
+    ``per_bin``): ``resid_n`` samples in ``resid_bins`` bins, ``resid_variance``
+    ``sum r^2 / (n - bins)`` (one degree of freedom per fitted bin mean: ``ddof = 1`` was
+    biased low, by half with 2-sample bins), ``resid_skewness`` and ``resid_kurtosis``
+    the population moments as :func:`moments` (the residuals' mean is 0); NaN without a
+    bin."""
+    n, k = int(resid.size), int(np.unique(bins).size)
+    mr = moments(resid)
+    var = float(resid @ resid / (n - k)) if n > k else float("nan")
+    return {"resid_n": n, "resid_bins": k, "resid_variance": var,
+            "resid_skewness": mr["skewness"], "resid_kurtosis": mr["kurtosis"]}
 
 
 def _f(v: object) -> float | None:
@@ -294,8 +329,9 @@ class RssiStatistics:
     max_lag : int
         Largest autocorrelation lag, in samples (default 30).
     bin_width_m : float
-        Width of the distance bins (default 1 m, the paper's 1..8 m steps); bins are
-        centred on multiples of the width.
+        Width ``w`` of the distance bins (default 1 m, the paper's 1..8 m steps); bins are
+        centred on multiples of the width, a distance ``d`` in the bin
+        ``floor(d / w + 1/2) w`` (halves rounded up).
     threshold : float
         Autocorrelation level for the decorrelation lag (paper: 0.2).
     min_samples : int
@@ -382,7 +418,10 @@ class RssiStatistics:
                     f"truth time span, {n_invalid} outside the limits)",
                     measurements.attrs.get("path"))
             w = self.bin_width_m
-            df["bin_m"] = np.maximum(np.round(df["distance_m"] / w), 1) * w
+            # bin k holds [(k - 1/2) w, (k + 1/2) w) and is labelled k w, half up: np.round
+            # (half to even) with a floor of 1 put 3 m and 5 m into one "4 m" bin of width
+            # 2, and 1 .. 7 m into "100 m" with --bin-width 100
+            df["bin_m"] = np.floor(df["distance_m"].to_numpy() / w + 0.5) * w
             rows = []
             for (anchor, b), g in df.groupby(["anchor", "bin_m"], sort=True):
                 if len(g) < self.min_samples:
@@ -394,10 +433,15 @@ class RssiStatistics:
             per_bin = pd.DataFrame(rows, columns=[
                 "anchor", "distance_m", *moments(np.empty(0)), "decorrelation_lag",
                 *normality(np.empty(0))])
-            if len(per_bin) >= 3 and per_bin["variance"].std() > 0:
+            # over 3 distinct distances at least: one bin's anchors alone made numpy divide
+            # 0 by 0 (a warning on stderr) for a NaN
+            if per_bin["distance_m"].nunique() >= 3 and per_bin["variance"].std() > 0:
                 corr = float(np.corrcoef(per_bin["distance_m"], per_bin["variance"])[0, 1])
-            bin_mean = df.groupby(["anchor", "bin_m"])["rssi"].transform("mean")
-            resid = (df["rssi"] - bin_mean).to_numpy()
+            by_bin = df.groupby(["anchor", "bin_m"])["rssi"]
+            resid = (df["rssi"] - by_bin.transform("mean")).to_numpy()
+            # the residual moments use the bins of per_bin only: a 1-sample bin's residual
+            # is 0 whatever the noise
+            kept = (by_bin.transform("size") >= self.min_samples).to_numpy()
         else:
             resid = df["rssi"].to_numpy()
 
@@ -410,9 +454,8 @@ class RssiStatistics:
                                 center=None if truth is None else 0.0)
             row["decorrelation_lag"] = decorrelation_lag(r, self.threshold)
             if truth is not None:
-                mr = moments(resid[idx])
-                row.update({"resid_variance": mr["variance"], "resid_skewness": mr["skewness"],
-                            "resid_kurtosis": mr["kurtosis"]})
+                row.update(_residual_moments(resid[idx][kept[idx]],
+                                             g["bin_m"].to_numpy()[kept[idx]]))
                 row["distance_min_m"] = float(g["distance_m"].min())
                 row["distance_max_m"] = float(g["distance_m"].max())
             rows.append(row)

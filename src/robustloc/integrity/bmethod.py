@@ -187,4 +187,8 @@ def detection_power_global(
     lam = np.asarray(noncentrality, dtype=float)
     d = np.asarray(dof, dtype=float)
     with np.errstate(invalid="ignore"):
-        return np.asarray(stats.ncx2.sf(crit, d, np.maximum(lam, 1e-300)), dtype=float)
+        p = np.asarray(stats.ncx2.sf(crit, d, np.maximum(lam, 1e-300)), dtype=float)
+    # scipy returns NaN from lambda ~ 1e19 on (montecarlo --size 1e6 --sigma 1e-4: the
+    # review); from 1e15 the distribution's mean lies 1e7 standard deviations above any
+    # critical value of a test's degrees of freedom, so the power is 1 to double precision
+    return np.where(np.isnan(p) & (lam >= 1e15), 1.0, p)
