@@ -183,17 +183,11 @@ COUNTS = ("n", "n_missing", "n_failed", "n_ok", "n_ok_3d", "n_misleading", "n_mi
 
 def _check_table_out(out: str | None) -> None:
     """Refuse an ``-o`` name :func:`robustloc.io.write_table` would refuse only after the
-    work (``.xlsx``, ``.json``; a ``.bz2`` compression), before it."""
-    if out is None:
-        return
-    from pathlib import Path
+    work (``.png``, ``.xlsx``, ``.json``; a ``.bz2`` compression), before it."""
+    if out is not None:
+        from robustloc.io.tables import check_table_path
 
-    from robustloc.io.atomic import _gzip_wanted, is_stdio
-    from robustloc.io.tables import check_table_path
-
-    check_table_path(out)
-    if not is_stdio(out):
-        _gzip_wanted(Path(out))  # refuses the compressions the readers cannot read back
+        check_table_path(out)
 
 
 def _count(v: float) -> str:

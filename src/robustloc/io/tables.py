@@ -1791,7 +1791,12 @@ def check_table_path(path: PathLike) -> None:
         shown = inner + suffix
         ok = inner in (".csv", ".txt", "")
     elif suffix in (".bz2", ".xz", ".zip", ".zst"):
-        return  # robustloc.io.atomic names the compressions it writes
+        # refused now, in robustloc.io.atomic's words (it names the compressions it
+        # writes), not after the work that the output was for
+        from robustloc.io.atomic import _gzip_wanted
+
+        _gzip_wanted(Path(path))
+        return
     if not ok:
         raise InputError(f"cannot write a table as {shown!r}: the output is CSV (.csv, "
                          ".txt or no extension, optionally .gz) or "
