@@ -326,6 +326,12 @@ class _Prepared:
         )
 
 
+#: Largest height (m, above or below the ellipsoid) of a plausible receiver position: where
+#: the elevation mask and the atmosphere's corrections apply (a ground receiver, an
+#: aircraft); farther, the iteration has not yet reached the receiver.
+PLAUSIBLE_HEIGHT_M = 1.0e5
+
+
 class SppSolver:
     """Iterated weighted least-squares single-point positioning, all epochs at once.
 
@@ -465,7 +471,10 @@ class SppSolver:
         rho = geo + sag
         K = len(P.systems)
         lat, lon, h = geodetic(rr)
-        pos_ok = np.linalg.norm(rr, axis=1) > 6.0e6
+        # near the Earth's surface: elevations, the atmosphere's corrections and the mask
+        # mean something there (a position at the centre, or hundreds of km up or down
+        # after a step pulled by a gross pseudorange, is not yet a receiver's)
+        pos_ok = (np.linalg.norm(rr, axis=1) > 6.0e6) & (np.abs(h) < PLAUSIBLE_HEIGHT_M)
         az, el = azimuth_elevation(rr, sp, lat, lon)
         el = np.where(pos_ok[:, None], el, np.pi / 2)
         corr = np.zeros_like(rho)
@@ -498,7 +507,17 @@ class SppSolver:
         return pred, H, el, az, np.sqrt(var), pos_ok
 
     def _gauss_newton(self, P: _Prepared, rows, x, allowed, iters, apply_mask, sigma=None):
-        """Iterate WLS for epochs ``rows`` from ``x``; ``allowed (K, S)`` observations."""
+        """Iterate WLS for epochs ``rows`` from ``x``; ``allowed (K, S)`` observations.
+
+        With ``apply_mask`` the elevation mask applies from a position the satellites
+        themselves gave: first every allowed satellite, to convergence, then the mask
+        there.  At the start position (the RINEX header's, possibly wrong: another
+        receiver's coordinates, or 1e308) the mask dropped the satellites below that
+        horizon, too few were left, the position never moved and every epoch was
+        ``insufficient_anchors``, exit 0 (the spp review; RTKLIB's ``rescode`` skips
+        the mask in its first iteration for the same reason)."""
+        if apply_mask:
+            x = self._gauss_newton(P, rows, x, allowed, iters, False, sigma)[0]
         K = len(P.systems)
         mask_rad = np.deg2rad(self.elevation_mask_deg)
         z = P.pr[rows]
@@ -537,7 +556,10 @@ class SppSolver:
         pred, H, el, az, sig, pos_ok = self._model(P, rows, x)
         use = allowed & np.isfinite(pred) & np.isfinite(z)
         if apply_mask:
-            use &= pos_ok[:, None] & (el >= mask_rad)
+            # (at a position that is no receiver's -- pulled hundreds of km by a gross
+            # pseudorange -- every satellite stays, for RAIM to find the one that pulled:
+            # dropping them all made every epoch insufficient_anchors)
+            use &= ~pos_ok[:, None] | (el >= mask_rad)
         absent = (use.astype(float) @ (P.sys_idx[:, None] == np.arange(K)[None, :])) == 0
         return x, H, np.where(use, pred - z, np.nan), use, el, az, sig, conv, n_it, absent
 
@@ -598,6 +620,13 @@ class SppSolver:
             status[~(dop[:, 0] <= self.max_gdop)] = st.ILL_CONDITIONED
             status[n_used < p_eff] = st.INSUFFICIENT
             status[n_used == 0] = st.INSUFFICIENT
+        # a solution no receiver can have (hundreds of km above or below the ellipsoid:
+        # pulled there by a gross pseudorange that no test removed) is no fix (it was
+        # `ok` without --raim, 560 km off: the spp review)
+        with np.errstate(invalid="ignore"):
+            h = geodetic(np.where(np.isfinite(x[:, :3]), x[:, :3], 0.0))[2]
+        implausible = ~(np.abs(h) < PLAUSIBLE_HEIGHT_M) & st.among(status, st.USABLE)
+        status = np.where(implausible, st.UNAVAILABLE, status).astype(object)
         # positions are kept for 'unavailable' (RAIM: a fix whose integrity could not be
         # established; the status says so and `ok` excludes it)
         bad = ~st.among(status, (*st.USABLE, st.UNAVAILABLE))

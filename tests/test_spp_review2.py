@@ -1,0 +1,57 @@
+"""``robustloc spp``: a wrong start position or one gross pseudorange lost every epoch
+(the elevation mask was applied where no receiver was), and a solution pulled hundreds of
+km off was ``ok`` (the spp review)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from robustloc.cli import main
+
+G = Path(__file__).resolve().parents[1] / "src" / "robustloc" / "data" / "gnss-geonet"
+OBS, NAV = G / "07590920.05o", G / "07590920_0000-0400.05n"
+HEADER = " -3976219.5082  3382372.5671  3652512.9849 "
+TRUE_XYZ = "-3976219.5082,3382372.5671,3652512.9849"
+
+
+def _spp(args: list[str], out: Path) -> pd.DataFrame:
+    assert main(["spp", *map(str, args), "-o", str(out), "--quiet"]) == 0
+    return pd.read_csv(out)
+
+
+def test_a_wrong_header_position_solves_as_the_right_one(tmp_path):
+    """SLAC's coordinates in a Japanese receiver's header: 0/120 epochs solved
+    (insufficient_anchors), exit 0.  The mask now applies where the satellites put the
+    receiver, so every epoch comes out as with the true header, to the tolerance of the
+    iteration (the solver stops below 1e-4 m steps)."""
+    wrong = tmp_path / "wrong.o"
+    wrong.write_text(OBS.read_text().replace(HEADER, " -2703115.2660 -4291768.3440  "
+                                                     "3854247.9550 ", 1))
+    ref = _spp([OBS, NAV, "--raim"], tmp_path / "ref.csv")
+    got = _spp([wrong, NAV, "--raim", f"--reference={TRUE_XYZ}"], tmp_path / "got.csv")
+    assert (got["status"] == ref["status"]).all()
+    assert (got["status"] == "ok").sum() == 115
+    for c in ("x", "y", "z"):
+        assert (got[c] - ref[c]).abs().max() < 1e-3
+
+
+def test_a_gross_pseudorange_is_excluded_not_every_satellite_dropped(tmp_path):
+    """+1000 km on G11 with --raim: 0/120 solved (the first solution, pulled 790 km below
+    the ellipsoid, met the elevation mask, which dropped every satellite).  Now RAIM sees
+    them all and excludes G11."""
+    res = _spp([OBS, NAV, "--raim", "--inject", "G11:1000000"], tmp_path / "r.csv")
+    usable = res["status"].isin(["ok", "fault_excluded"])
+    assert usable.sum() >= 100
+    assert res.loc[usable, "excluded"].fillna("").str.contains("G11").all()
+
+
+@pytest.mark.parametrize("raim", [False, True])
+def test_a_solution_far_from_any_receiver_is_not_a_fix(tmp_path, raim):
+    """Without --raim the same log gave 120 `ok` rows 560 km off."""
+    res = _spp([OBS, NAV, "--inject", "G11:1000000"] + (["--raim"] if raim else []),
+               tmp_path / "r.csv")
+    usable = res["status"].isin(["ok", "fault_excluded", "fault_detected"])
+    assert (res.loc[usable, "h"].abs() < 1e5).all()
