@@ -55,3 +55,28 @@ def test_a_solution_far_from_any_receiver_is_not_a_fix(tmp_path, raim):
                tmp_path / "r.csv")
     usable = res["status"].isin(["ok", "fault_excluded", "fault_detected"])
     assert (res.loc[usable, "h"].abs() < 1e5).all()
+
+
+def test_a_header_position_that_is_no_position_is_no_reference(tmp_path):
+    """APPROX POSITION XYZ with an ``inf``: printed as ``Infinity`` in --json (not JSON)
+    and used as the reference; and without any reference the summary stated
+    ``hpl_bounds_h_error_frac: 0.0``, errors against (6378137, 0, 0)."""
+    import json
+
+    bad = tmp_path / "inf.o"
+    bad.write_text(OBS.read_text().replace(HEADER, " -3976219.5082  3382372.5671"
+                                                   "           inf ", 1))
+    out = tmp_path / "o.csv"
+
+    def refuse(name: str) -> None:
+        raise AssertionError(f"{name} in --json")
+    import contextlib
+    import io
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert main(["spp", str(bad), str(NAV), "--raim", "--json", "-o", str(out)]) == 0
+    summary = json.loads(buf.getvalue(), parse_constant=refuse)
+    assert summary["reference"].startswith("none")
+    assert "hpl_bounds_h_error_frac" not in summary and "rms_h_m" not in summary
+    assert summary["median_hpl_m"] > 0 and summary["solved"] == 115

@@ -274,10 +274,17 @@ def _obs_types_v2(hdr: dict[str, str], path: str, end_line: int | None = None) -
 
 
 def _approx(hdr: dict[str, str]) -> NDArray[np.float64]:
+    """The header's APPROX POSITION XYZ, or zeros when absent, unreadable or no position
+    near the Earth's surface (within 100 km of the ellipsoid's radii, 6.25e6-6.48e6 m
+    from the centre): ``inf`` was taken as the reference and printed as ``Infinity`` in
+    ``--json``, 1e308 as the start (the spp review)."""
     try:
-        return np.array([float(v) for v in hdr["APPROX POSITION XYZ"].split()[:3]])
+        xyz = np.array([float(v) for v in hdr["APPROX POSITION XYZ"].split()[:3]])
     except (KeyError, ValueError):
         return np.zeros(3)
+    with np.errstate(over="ignore", invalid="ignore"):
+        r = float(np.linalg.norm(xyz)) if xyz.size == 3 else np.nan
+    return xyz if 6.25e6 < r < 6.48e6 else np.zeros(3)
 
 
 def read_obs(path: str | PathLike[str]) -> ObsData:

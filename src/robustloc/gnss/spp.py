@@ -683,11 +683,23 @@ def error_summary(result: SppResult, ref_xyz_m: NDArray[np.float64]) -> dict:
     epochs and, when RAIM ran, the median protection levels.
     """
     ok = result.ok
-    e = result.enu_errors(ref_xyz_m)[ok]
+    ref = np.asarray(ref_xyz_m, dtype=float)
+    # without a reference (zeros: no --reference and no header position) there is no
+    # error to state: the errors were against (6378137, 0, 0), hpl_bounds 0.0 (the review)
+    has_ref = bool(np.all(np.isfinite(ref)) and np.linalg.norm(ref) > 6.0e6)
+    e = result.enu_errors(ref)[ok] if has_ref else np.zeros((0, 3))
     out: dict = {"epochs": int(result.n_epochs), "solved": int(ok.sum())}
     statuses, counts = np.unique(result.status.astype(str), return_counts=True)
     out["status_counts"] = {str(k): int(c) for k, c in zip(statuses, counts)}
     if e.shape[0] == 0:
+        if not has_ref and "hpl_m" in result.extra:  # the bounds, without errors
+            hpl = result.extra["hpl_m"][ok]
+            vpl = result.extra["vpl_m"][ok]
+            if np.isfinite(hpl).any():
+                out["median_hpl_m"] = float(np.median(hpl[np.isfinite(hpl)]))
+                out["median_vpl_m"] = float(np.median(vpl[np.isfinite(vpl)]))
+            out["faults_detected"] = int(np.sum(result.extra["detected"]))
+            out["epochs_with_exclusion"] = int(np.sum(result.extra["n_excluded"] > 0))
         return out
     h = np.hypot(e[:, 0], e[:, 1])
     d3 = np.linalg.norm(e, axis=1)
