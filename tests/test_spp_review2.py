@@ -80,3 +80,23 @@ def test_a_header_position_that_is_no_position_is_no_reference(tmp_path):
     assert summary["reference"].startswith("none")
     assert "hpl_bounds_h_error_frac" not in summary and "rms_h_m" not in summary
     assert summary["median_hpl_m"] > 0 and summary["solved"] == 115
+
+
+def test_gzip_rinex_is_read_and_a_broken_one_refused(tmp_path, capsys):
+    """`read_obs` reads gzip-compressed files, but the version check read the raw first
+    line: a .gz file was refused as "not a RINEX VERSION / TYPE record".  A truncated
+    .gz must be a user's error, not a traceback."""
+    import gzip
+
+    gz_obs, gz_nav = tmp_path / "o.05o.gz", tmp_path / "n.05n.gz"
+    gz_obs.write_bytes(gzip.compress(OBS.read_bytes()))
+    gz_nav.write_bytes(gzip.compress(NAV.read_bytes()))
+    ref = _spp([OBS, NAV], tmp_path / "ref.csv")
+    got = _spp([gz_obs, gz_nav], tmp_path / "got.csv")
+    pd.testing.assert_frame_equal(got, ref)
+    cut = tmp_path / "cut.gz"
+    cut.write_bytes(gz_obs.read_bytes()[:60])
+    capsys.readouterr()
+    assert main(["spp", str(cut), str(NAV), "-o", str(tmp_path / "x.csv")]) == 2
+    err = capsys.readouterr().err
+    assert "not a readable gzip file" in err and "Traceback" not in err

@@ -214,7 +214,10 @@ def _read_lines(path: str | PathLike[str]) -> list[str]:
     if raw[:2] == b"\x1f\x8b":
         import gzip
 
-        raw = gzip.decompress(raw)
+        try:
+            raw = gzip.decompress(raw)
+        except (OSError, EOFError) as exc:  # (truncated: a traceback)
+            raise InputError(f"not a readable gzip file ({exc})", str(path)) from None
     text = raw.decode("ascii", errors="replace")
     return text.splitlines()
 
@@ -240,7 +243,18 @@ def rinex_version(path: str | PathLike[str]) -> tuple[float, str]:
     """Version and file type letter (``O``, ``N``, ``G``, ...) of a RINEX file."""
     try:
         with open(path, "rb") as fh:
-            first = fh.readline().decode("ascii", errors="replace")
+            head = fh.read(2)
+            fh.seek(0)
+            if head == b"\x1f\x8b":  # gzip, as _read_lines reads it (the spp review:
+                import gzip  # a .gz file was refused as "not a RINEX VERSION record")
+
+                try:
+                    with gzip.open(fh) as gz:
+                        first = gz.readline().decode("ascii", errors="replace")
+                except (OSError, EOFError) as exc:
+                    raise InputError(f"not a readable gzip file ({exc})", path) from None
+            else:
+                first = fh.readline().decode("ascii", errors="replace")
     except IsADirectoryError as exc:
         raise InputError("is a directory, expected a RINEX file", path) from exc
     if "RINEX VERSION" not in first:
