@@ -100,3 +100,20 @@ def test_gzip_rinex_is_read_and_a_broken_one_refused(tmp_path, capsys):
     assert main(["spp", str(cut), str(NAV), "-o", str(tmp_path / "x.csv")]) == 2
     err = capsys.readouterr().err
     assert "not a readable gzip file" in err and "Traceback" not in err
+
+
+def test_defaults_and_empty_injections_are_said(tmp_path, capsys):
+    """A navigation file without ION ALPHA/BETA used the default Klobuchar coefficients
+    without a word (the note came only without any navigation file); an --inject window
+    with no epoch injected nothing, without a word."""
+    noion = tmp_path / "noion.n"
+    noion.write_text("\n".join(ln for ln in NAV.read_text().splitlines()
+                               if "ION ALPHA" not in ln and "ION BETA" not in ln) + "\n")
+    capsys.readouterr()
+    assert main(["spp", str(OBS), str(noion), "-o", str(tmp_path / "a.csv")]) == 0
+    assert "no ION ALPHA / ION BETA" in capsys.readouterr().err
+    assert main(["spp", str(OBS), str(NAV), "-o", str(tmp_path / "b.csv")]) == 0
+    assert "note:" not in capsys.readouterr().err
+    assert main(["spp", str(OBS), str(NAV), "--raim", "--inject", "G11:50",
+                 "--inject-from", "2005-04-03T00:00:00", "-o", str(tmp_path / "c.csv")]) == 0
+    assert "nothing was injected" in capsys.readouterr().err

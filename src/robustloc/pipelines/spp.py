@@ -223,8 +223,12 @@ def run_spp(obs: str, nav: Sequence[str], settings: SppSettings, *, sp3: str | N
                 raise InputError(f"covers GPS seconds {t0:.0f} .. {t1:.0f}, the observations "
                                  f"{o0:.0f} .. {o1:.0f}: no epoch in common (another day?)",
                                  name)
+    injected_epochs = None
     if settings.inject:
         observations = inject_faults(observations, dict(settings.inject), t_from, t_until)
+        t = observations.t_gps_s
+        injected_epochs = int(np.sum((t >= (-np.inf if t_from is None else t_from))
+                                     & (t <= (np.inf if t_until is None else t_until))))
     iono = settings.iono or ("iflc" if precise is not None else "klobuchar")
     if settings.smooth and iono != "iflc":  # (the solver's words were iono='iflc')
         raise InputError(f"--smooth needs --iono iflc (it smooths the ionosphere-free "
@@ -259,6 +263,17 @@ def run_spp(obs: str, nav: Sequence[str], settings: SppSettings, *, sp3: str | N
     if ephemerides is not None and ephemerides.rejected:
         summary["nav_records_set_aside"] = list(ephemerides.rejected)
     notes = _model_notes(iono, ephemerides is not None, precise is not None, res.systems)
+    if (iono == "klobuchar" and ephemerides is not None
+            and getattr(ephemerides, "ion_alpha", None) is None):
+        # (the same default, silently, when the navigation file has no ION ALPHA/BETA:
+        # the spp review)
+        notes.append("Klobuchar ionosphere with RTKLIB's default coefficients: the "
+                     "navigation file has no ION ALPHA / ION BETA (IONOSPHERIC CORR) record")
+    if injected_epochs is not None:
+        summary["injected_epochs"] = injected_epochs
+        if injected_epochs == 0:  # (nothing injected, and nothing said: the spp review)
+            notes.append("--inject: no epoch lies between --inject-from and --inject-until: "
+                         "nothing was injected")
     if notes:
         summary["notes"] = notes
     if np.linalg.norm(ref) > 6.0e6:
