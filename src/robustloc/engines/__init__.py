@@ -57,7 +57,10 @@ def add_engine_arguments(p: argparse.ArgumentParser, *, what: str = "a Parquet d
              "the CPU cores available; one thread each)",
     )
     if "--quiet" not in p._option_string_actions:  # locate already has it
-        g.add_argument("--quiet", action="store_true", help="no progress bar")
+        # -q too, as every command that has --quiet (spp, calibrate ... took only the
+        # long form)
+        names = ["--quiet"] if "-q" in p._option_string_actions else ["-q", "--quiet"]
+        g.add_argument(*names, action="store_true", help="no progress bar")
 
 
 
