@@ -117,3 +117,19 @@ def test_defaults_and_empty_injections_are_said(tmp_path, capsys):
     assert main(["spp", str(OBS), str(NAV), "--raim", "--inject", "G11:50",
                  "--inject-from", "2005-04-03T00:00:00", "-o", str(tmp_path / "c.csv")]) == 0
     assert "nothing was injected" in capsys.readouterr().err
+
+
+def test_a_fix_kept_by_a_minority_of_its_satellites_is_unavailable(tmp_path):
+    """Fourteen satellites faulted (SLAC, precise products): RAIM excluded 12 of 20 and
+    called the fix fault_excluded, usable, 91-213 m off against an hpl of 14-49 m.  The
+    project's rule (robustloc.status): half or more excluded is unavailable."""
+    S = G.parent / "gnss-slac"
+    res = _spp([S / "slac1180_1930-1940.21o", "--sp3",
+                S / "COD0MGXFIN_20211181905_60M_05M_ORB.SP3", "--clk",
+                S / "COD0MGXFIN_20211181930_12M_30S_CLK.CLK", "--raim", "--inject",
+                "G02:40,G06:-60,G12:80,G13:-100,G14:120,G15:-140,G17:160,G19:-180,G24:200,"
+                "G28:-220,G30:240,E13:90,E15:-70,R08:50"], tmp_path / "r.csv")
+    n_excl = res["excluded"].fillna("").map(lambda s: len([x for x in s.split(";") if x]))
+    usable = res["status"].isin(["ok", "fault_excluded", "fault_detected"])
+    assert (2 * n_excl[usable] < n_excl[usable] + res.loc[usable, "n_sats"]).all()
+    assert (res["status"] == "unavailable").any()
