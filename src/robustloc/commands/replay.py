@@ -128,6 +128,11 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
                               df[value].to_numpy(float).tolist())
     ]
     token = token if token is not None else os.environ.get("ROBUSTLOC_TOKEN")
+    if token and not (token.isascii() and token.isprintable()):
+        # an HTTP header carries printable ASCII: 'sécret' was a UnicodeEncodeError
+        # traceback (the replay review), as the map page refuses such a token
+        raise InputError("--token (or $ROBUSTLOC_TOKEN): a token must be printable ASCII "
+                         "(an HTTP header cannot carry it otherwise)")
     headers = {"Authorization": f"Bearer {token}"} if token else {}
     base = url.rstrip("/")
     accepted = 0
@@ -136,18 +141,27 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
     rejected: list[dict] = []
     t_start = time.monotonic()
     bar = tqdm(total=len(records), unit=" rows", disable=not progress, file=sys.stderr)
-    if transport == "ws":
-        from websockets.sync.client import connect
+    conn = client = None
+    # a keepalive that fails in websockets' own thread logged a traceback before the
+    # command's error line (the replay review): the command says what stopped it
+    import logging
 
-        ws_url = base.replace("http://", "ws://", 1).replace("https://", "wss://", 1)
-        conn = connect(ws_url + "/ws/measurements", additional_headers=headers,
-                       max_size=None).__enter__()
-    else:
-        import httpx
-
-        client = httpx.Client(headers=headers, timeout=60.0)
-        conn = None
+    ws_log = logging.getLogger("websockets")
+    ws_level = ws_log.level
+    ws_log.setLevel(logging.CRITICAL)
     try:
+        # connecting inside: a refused or rejected connection also says how far the replay
+        # got (none of it) and gives --json its summary (the replay review)
+        if transport == "ws":
+            from websockets.sync.client import connect
+
+            ws_url = base.replace("http://", "ws://", 1).replace("https://", "wss://", 1)
+            conn = connect(ws_url + "/ws/measurements", additional_headers=headers,
+                           max_size=None).__enter__()
+        else:
+            import httpx
+
+            client = httpx.Client(headers=headers, timeout=ANSWER_TIMEOUT_S)
         for i0, i1 in _batches(times, batch_rows):
             if speed > 0:
                 due = (times[i0] - times[0]) / speed
@@ -159,37 +173,89 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
             while True:
                 if conn is not None:
                     conn.send(body)
-                    res = json.loads(conn.recv())
+                    # (no answer within the timeout: a server that takes the rows and
+                    # never acknowledges them hung the replay for good: the review)
+                    res = _parsed(conn.recv(timeout=ANSWER_TIMEOUT_S))
                     status = res.pop("status", 202) if "error" in res or "status" in res else 202
                 else:
+                    assert client is not None
                     r = client.post(base + "/api/measurements", content=body,
                                     headers={"Content-Type": "application/json"})
                     status = r.status_code
-                    res = r.json() if r.headers.get("content-type", "").startswith(
+                    res = _parsed(r.text) if r.headers.get("content-type", "").startswith(
                         "application/json") else {"error": r.text}
                 if status == 429:  # rate limited: wait as told, resend the same batch
-                    time.sleep(float(res.get("retry_after_s", 0.5)))
+                    time.sleep(_retry_after(res))
                     continue
                 break
             if status != 202:
                 raise RuntimeError(f"server answered {status}: {res.get('error', res)}")
-            accepted += int(res["accepted"])
-            n_rejected += int(res.get("n_rejected", len(res["rejected"])))
+            n_acc, n_rej, listed = _acknowledged(res, i1 - i0)
+            accepted += n_acc
+            n_rejected += n_rej
             sent = i1
-            for r_ in res["rejected"]:
-                rejected.append({"line": int(lines[i0 + r_["index"]]), "error": r_["error"]})
+            for index, error in listed:
+                rejected.append({"line": int(lines[i0 + index]), "error": error})
             bar.update(i1 - i0)
     except _transport_errors() as exc:
         raise ReplayStopped(str(exc), accepted=accepted, sent=sent,
                             rows=len(records)) from exc
     finally:
         bar.close()
+        ws_log.setLevel(ws_level)
         if conn is not None:
             conn.__exit__(None, None, None)
-        else:
+        if client is not None:
             client.close()
     return {"rows": len(records), "accepted": accepted, "n_rejected": n_rejected,
             "rejected": rejected, "seconds": round(time.monotonic() - t_start, 3)}
+
+
+#: Seconds the replay waits for the server's answer to one batch (HTTP and WebSocket).
+ANSWER_TIMEOUT_S = 60.0
+#: Longest wait a 429 answer's ``retry_after_s`` can ask for (s).
+MAX_RETRY_AFTER_S = 60.0
+
+
+def _parsed(text: str | bytes) -> dict:
+    """A server's answer as a JSON object, or RuntimeError (the replay stops with the
+    reason): a server other than ``robustloc serve`` answered ``{not json`` or ``[1, 2]``
+    and the replay ended in a traceback (the review)."""
+    try:
+        res = json.loads(text)
+    except ValueError:
+        raise RuntimeError(f"unexpected answer from the server (not JSON): "
+                           f"{str(text)[:120]!r}") from None
+    if not isinstance(res, dict):
+        raise RuntimeError(f"unexpected answer from the server (not a JSON object): "
+                           f"{str(text)[:120]!r}")
+    return res
+
+
+def _retry_after(res: dict) -> float:
+    """A 429 answer's wait, within ``[0.1, MAX_RETRY_AFTER_S]`` (``-1`` was a sleep
+    error, ``1e9`` a replay that never resumed; 0.1 s at least, never a busy loop)."""
+    try:
+        wait = float(res.get("retry_after_s", 0.5))
+    except (TypeError, ValueError):
+        wait = 0.5
+    return min(max(wait, 0.1), MAX_RETRY_AFTER_S) if np.isfinite(wait) else 0.5
+
+
+def _acknowledged(res: dict, n_rows: int) -> tuple[int, int, list[tuple[int, str]]]:
+    """``(accepted, rejected, [(index, error)])`` of a 202 answer to ``n_rows`` rows, or
+    RuntimeError when it is not one ``robustloc serve`` gives."""
+    try:
+        acc = int(res["accepted"])
+        listed = [(int(r["index"]), str(r["error"])) for r in res.get("rejected", [])]
+        n_rej = int(res.get("n_rejected", len(listed)))
+    except (KeyError, TypeError, ValueError):
+        raise RuntimeError(f"unexpected answer from the server: {str(res)[:120]}") from None
+    if not (0 <= acc <= n_rows and 0 <= n_rej <= n_rows - acc
+            and all(0 <= i < n_rows for i, _ in listed)):
+        raise RuntimeError(f"unexpected answer from the server for {n_rows} rows: "
+                           f"{str(res)[:120]}")
+    return acc, n_rej, listed
 
 
 class ReplayStopped(RuntimeError):

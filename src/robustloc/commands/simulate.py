@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
     # (the name as given: Path("") is ".", so the blank name is refused before Path)
     files = write_folder(args.out, write, inputs=(),
                          owns=("anchors.csv", "measurements.csv", "survey.csv", "truth.csv",
-                               "blocked.csv", "pseudoranges.csv"))
+                               "blocked.csv", "pseudoranges.csv", "gps.nmea", "origin.txt"))
     if args.json:
         print(json.dumps({k: str(v) for k, v in files.items()}, indent=2))
     else:

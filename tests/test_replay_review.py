@@ -1,0 +1,127 @@
+"""``robustloc replay`` against servers that are not ``robustloc serve`` (all on
+127.0.0.1, stopped by each test): every odd answer stops the replay with its reason and
+exit 2, never a traceback or a hang (the replay review)."""
+
+from __future__ import annotations
+
+import json
+import threading
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from robustloc.cli import main
+
+ANSWERS = {
+    "list": (500, b"[1,2]"),
+    "badjson": (202, b"{not json"),
+    "empty202": (202, b"{}"),
+    "index_out_of_range": (202, json.dumps({"accepted": 0, "rejected": [
+        {"index": 99, "error": "x"}]}).encode()),
+    "accepts_more_than_sent": (202, b'{"accepted": 1000, "rejected": []}'),
+}
+
+
+def _log(tmp_path: Path) -> str:
+    path = tmp_path / "m.csv"
+    pd.DataFrame({"time": [0.0, 0.0, 1.0], "tag": "t", "anchor": ["a", "b", "a"],
+                  "range": [1.0, 2.0, 1.5]}).to_csv(path, index=False)
+    return str(path)
+
+
+def _serve(status: int, body: bytes) -> ThreadingHTTPServer:
+    class Handler(BaseHTTPRequestHandler):
+        def do_POST(self) -> None:  # noqa: N802 (http.server's name)
+            self.rfile.read(int(self.headers.get("Content-Length", 0)))
+            self.send_response(status)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args: object) -> None:
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    return server
+
+
+@pytest.mark.parametrize("mode", sorted(ANSWERS))
+def test_an_unexpected_answer_stops_the_replay_with_its_reason(tmp_path, capsys, mode):
+    server = _serve(*ANSWERS[mode])
+    try:
+        url = f"http://127.0.0.1:{server.server_address[1]}"
+        code = main(["replay", _log(tmp_path), "--url", url, "--speed", "0"])
+    finally:
+        server.shutdown()
+        server.server_close()
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err
+    assert "unexpected answer" in err or "server answered 500" in err
+    assert "stopped after 0 of 3 rows" in err
+
+
+def test_a_rate_limit_answer_is_bounded(tmp_path, capsys):
+    """``retry_after_s: -1`` was "sleep length must be non-negative" (and 1e9 slept
+    1e9 s).  The wait is clamped to [0.1, 60] s: the server answers 429 with -1 once,
+    then accepts."""
+    import time
+
+    answers = [(429, b'{"retry_after_s": -1}')]
+    calls = []
+
+    class Handler(BaseHTTPRequestHandler):
+        def do_POST(self) -> None:  # noqa: N802
+            n = int(self.headers.get("Content-Length", 0))
+            rows = json.loads(self.rfile.read(n))
+            calls.append(time.monotonic())
+            status, body = (answers[len(calls) - 1] if len(calls) <= 1 else
+                            (202, json.dumps({"accepted": len(rows),
+                                              "rejected": []}).encode()))
+            self.send_response(status)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args: object) -> None:
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        code = main(["replay", _log(tmp_path), "--url",
+                     f"http://127.0.0.1:{server.server_address[1]}", "--speed", "0"])
+    finally:
+        server.shutdown()
+        server.server_close()
+    assert code == 0, capsys.readouterr().err
+    assert calls[1] - calls[0] >= 0.1  # (not a busy loop)
+
+
+def test_a_token_a_header_cannot_carry_is_refused(tmp_path, capsys):
+    """'sécret' was a UnicodeEncodeError traceback."""
+    code = main(["replay", _log(tmp_path), "--url", "http://127.0.0.1:9", "--speed", "0",
+                 "--token", "sécret"])
+    err = capsys.readouterr().err
+    assert code == 2 and "printable ASCII" in err and "Traceback" not in err
+
+
+def test_a_websocket_replay_that_cannot_connect_still_says_how_far_it_got(tmp_path, capsys):
+    """Over WebSocket a refused connection gave no --json summary and no "stopped after"
+    (the connection was opened outside the replay's error handling)."""
+    pytest.importorskip("websockets")
+    import socket
+
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()  # (a port nothing listens on)
+    code = main(["replay", _log(tmp_path), "--url", f"http://127.0.0.1:{port}", "--speed",
+                 "0", "--transport", "ws", "--json"])
+    out, err = capsys.readouterr()
+    assert code == 2 and "stopped after 0 of 3 rows" in err
+    assert json.loads(out)["sent"] == 0
