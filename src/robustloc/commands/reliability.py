@@ -95,6 +95,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _read(path: str):  # noqa: ANN202
+    import pandas as pd
+
     from robustloc.io import read_anchors
 
     df = read_anchors(path)
@@ -102,6 +104,15 @@ def _read(path: str):  # noqa: ANN202
     xyz = df[cols].to_numpy(dtype=float)
     if "z" in df.columns and not np.all(np.isfinite(xyz[:, 2])):
         raise InputError("anchor heights (z) must all be given when the column exists", path)
+    # two anchors at one place are one anchor counted twice: every point's redundancy
+    # read 0 and every correlation 1, exit 0 (the reliability review)
+    twice = pd.DataFrame(xyz).duplicated(keep="first").to_numpy()
+    if twice.any():
+        i = int(np.argmax(twice))
+        first = int(np.flatnonzero((xyz == xyz[i]).all(axis=1))[0])
+        line = df.index[i] if df.index.name == "line" else i + 2
+        raise InputError(f"anchors {df['anchor'].iloc[first]} and {df['anchor'].iloc[i]} "
+                         "share their coordinates", path, int(line))
     return df, xyz
 
 
@@ -169,6 +180,15 @@ def run(args: argparse.Namespace) -> int:
         )
     except ValueError as exc:  # an option the planner refuses (grid too large, ...)
         raise InputError(str(exc)) from None
+    if grid.table["dop"].isna().all():
+        # one anchor, anchors on one point, a range that hears too few: six empty maps
+        # and an all-NaN table, exit 0 (the reliability review)
+        raise InputError(f"no point of the area has a fix ({len(xyz)} anchor"
+                         f"{'s' if len(xyz) != 1 else ''}; a {args.dim}-D fix needs "
+                         f"{args.dim + 1} heard, not all on one "
+                         f"{'line' if args.dim == 2 else 'plane'}"
+                         + (f", within --max-range {args.max_range:g} m"
+                            if args.max_range is not None else "") + ")", args.anchors)
     from robustloc.commands._folder import write_folder
 
     out = Path(args.out)

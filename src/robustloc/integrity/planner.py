@@ -75,6 +75,11 @@ def grid_axes(area: tuple[float, float, float, float], step: float) -> tuple[Arr
     return xmin + step * np.arange(nx), ymin + step * np.arange(ny)
 
 
+#: Largest number of elements of one ``(points, m, m)`` matrix of a chunk of
+#: :func:`plan` (2**22: 32 MB in float64).
+CHUNK_ELEMENTS = 2**22
+
+
 def plan(
     anchors: ArrayLike,
     area: tuple[float, float, float, float],
@@ -147,6 +152,10 @@ def plan(
     n_heard = np.zeros(len(pts), dtype=np.int64)
     dof = np.zeros(len(pts), dtype=np.int64)
     n_flag = np.zeros(len(pts), dtype=np.int64)
+    # the reliability of a chunk holds (chunk, m, m) matrices (the residuals' projector,
+    # the w-tests' correlations, their flags): at most CHUNK_ELEMENTS of them, whatever
+    # the anchors' count m (300 anchors took 13 GB with 4096 points a chunk: the review)
+    chunk = max(1, min(chunk, CHUNK_ELEMENTS // max(len(anc), 1) ** 2))
     for s in range(0, len(pts), chunk):
         P = pts[s : s + chunk]
         rng, G = rmodel.predict_jacobian(P)

@@ -205,7 +205,9 @@ def reliability(
         ext = np.where(np.isinf(mdb)[:, :, None], np.inf, ext)
         ext_h = np.sqrt(np.sum(ext[:, :, list(horizontal)] ** 2, axis=2))
         sr = np.sqrt(rpos)
-        rho = R / (sr[:, :, None] * sr[:, None, :])
+        # a correlation, within [-1, 1] (rounding gave 1.000000000000001, flagged above a
+        # threshold of 1: the reliability review)
+        rho = np.clip(R / (sr[:, :, None] * sr[:, None, :]), -1.0, 1.0)
     eye = np.eye(n, dtype=bool)[None]
     rho = np.where(eye & valid[:, :, None], 1.0, rho)
     off = np.where(eye, np.nan, np.abs(rho))

@@ -1,0 +1,75 @@
+"""``robustloc reliability``: layouts without any fix, anchors at one place, a correlation
+above 1, and the memory of a site of many anchors (the reliability review)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from robustloc.cli import main
+
+
+def _anchors(tmp_path, rows: str) -> str:
+    path = tmp_path / "a.csv"
+    path.write_text("anchor,x,y\n" + rows)
+    return str(path)
+
+
+@pytest.mark.parametrize("rows, extra, said", [
+    ("A1,0,0\n", [], "no point of the area has a fix (1 anchor"),
+    ("A1,0,0\nA2,10,0\nA3,10,8\nA4,0,8\n", ["--max-range", "0.5"], "within --max-range"),
+])
+def test_a_layout_without_any_fix_is_refused(tmp_path, capsys, rows, extra, said):
+    """Exit 0 with an all-NaN table and six empty maps, before."""
+    out = tmp_path / "o"
+    code = main(["reliability", "--anchors", _anchors(tmp_path, rows), "-o", str(out),
+                 "--no-maps", *extra])
+    err = capsys.readouterr().err
+    assert code == 2 and said in err and not out.exists()
+
+
+def test_anchors_sharing_coordinates_are_refused_with_the_line(tmp_path, capsys):
+    """Redundancy 0 and every correlation 1 everywhere, exit 0, before."""
+    code = main(["reliability", "--anchors",
+                 _anchors(tmp_path, "A1,0,0\nA2,10,0\nA3,5,8\nA4,5,8\n"), "-o",
+                 str(tmp_path / "o"), "--no-maps"])
+    err = capsys.readouterr().err
+    assert code == 2 and ":5: anchors A3 and A4 share their coordinates" in err
+
+
+def test_a_correlation_never_exceeds_one(tmp_path, capsys):
+    """|rho| read 1.000000000000001 (rounding) and pairs were flagged above a threshold of
+    1, which no correlation can pass."""
+    code = main(["reliability", "--anchors",
+                 _anchors(tmp_path, "A1,0,0\nA2,10,0\nA3,10,8\nA4,0,8\n"), "--area",
+                 "0,10,0,8", "--step", "1", "--rho-threshold", "1", "-o",
+                 str(tmp_path / "o"), "--json", "--no-maps"])
+    summary = json.loads(capsys.readouterr().out)
+    assert code == 0 and summary["max_abs_rho"]["max"] <= 1.0
+    assert summary["points_with_flagged_pairs"] == 0
+
+
+def test_the_planner_chunk_shrinks_with_the_anchors(monkeypatch):
+    """300 anchors took 13 GB (chunks of 4096 points of 300 x 300 matrices): the chunk now
+    holds at most CHUNK_ELEMENTS elements of such a matrix.  Checked on the chunks the
+    planner hands to the reliability, with the same grid's result as in one chunk."""
+    from robustloc.integrity import planner
+
+    seen = []
+    real = planner.reliability
+
+    def spy(H, *a, **k):  # noqa: ANN001, ANN002, ANN003, ANN202
+        seen.append(np.shape(H)[0] * np.shape(H)[1] ** 2)
+        return real(H, *a, **k)
+
+    monkeypatch.setattr(planner, "reliability", spy)
+    monkeypatch.setattr(planner, "CHUNK_ELEMENTS", 50 * 30**2)
+    xyz = np.random.default_rng(0).uniform(0, 50, (30, 2))
+    small = planner.plan(xyz, (0, 50, 0, 50), 2.0, 0.3)
+    assert max(seen) <= 50 * 30**2 and len(seen) > 1
+    monkeypatch.setattr(planner, "CHUNK_ELEMENTS", 10**9)
+    whole = planner.plan(xyz, (0, 50, 0, 50), 2.0, 0.3)
+    np.testing.assert_allclose(small.table.to_numpy(float), whole.table.to_numpy(float),
+                               rtol=1e-12, equal_nan=True)
