@@ -73,3 +73,29 @@ def test_the_planner_chunk_shrinks_with_the_anchors(monkeypatch):
     whole = planner.plan(xyz, (0, 50, 0, 50), 2.0, 0.3)
     np.testing.assert_allclose(small.table.to_numpy(float), whole.table.to_numpy(float),
                                rtol=1e-12, equal_nan=True)
+
+
+def test_a_disk_that_refuses_a_write_is_named_as_the_folder_asked_for(tmp_path):
+    """A full disk: `reliability` and `simulate wifi-room` ended in an OSError traceback,
+    `simulate ble-corridor` named the hidden staging folder's file (the review).  The
+    writers are stood in for by functions that fail as a full disk makes them fail."""
+    import errno
+
+    from robustloc.commands._folder import write_folder
+    from robustloc.errors import OutputError
+
+    def full(folder):  # noqa: ANN001, ANN202
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    def full_named(folder):  # noqa: ANN001, ANN202
+        raise OutputError("no space left on device", folder / "measurements.csv",
+                          errno_=errno.ENOSPC)
+
+    out = tmp_path / "out"
+    with pytest.raises(OutputError) as e:
+        write_folder(out, full)
+    assert e.value.path == str(out) and "no space" in e.value.message
+    with pytest.raises(OutputError) as e:
+        write_folder(out, full_named)
+    assert e.value.path == str(out / "measurements.csv")
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no staging left

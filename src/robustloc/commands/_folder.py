@@ -81,7 +81,23 @@ def write_folder(out: str | os.PathLike, write: Callable[[Path], T],
 
         raise OutputError(describe_oserror(exc), out, errno_=exc.errno) from None
     try:
-        result = write(tmp)
+        from robustloc.errors import OutputError
+
+        try:
+            result = write(tmp)
+        except OutputError as exc:  # a writer's own, naming its file in the staging folder
+            inside = exc.path is not None and Path(exc.path).parent == tmp
+            if not inside:
+                raise
+            raise OutputError(exc.message, out / Path(exc.path).name,
+                              errno_=exc.errno) from None
+        except OSError as exc:
+            # a write into the staging folder that the disk refused (full, quota): named
+            # as the folder asked for, not a traceback (reliability, simulate wifi-room)
+            # nor the hidden folder's file (simulate ble-corridor; the review)
+            from robustloc.io.atomic import describe_oserror
+
+            raise OutputError(describe_oserror(exc), out, errno_=exc.errno) from None
         files = sorted(tmp.iterdir())
         if any(p.is_dir() for p in files):
             raise RuntimeError("write_folder moves files only, not sub-folders")
