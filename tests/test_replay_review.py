@@ -31,10 +31,13 @@ def _log(tmp_path: Path) -> str:
     return str(path)
 
 
-def _serve(status: int, body: bytes) -> ThreadingHTTPServer:
+def _serve(answer) -> ThreadingHTTPServer:  # noqa: ANN001
+    """A server on 127.0.0.1 answering each POST with ``answer(rows) -> (status, body)``."""
+
     class Handler(BaseHTTPRequestHandler):
         def do_POST(self) -> None:  # noqa: N802 (http.server's name)
-            self.rfile.read(int(self.headers.get("Content-Length", 0)))
+            rows = json.loads(self.rfile.read(int(self.headers.get("Content-Length", 0))))
+            status, body = answer(rows)
             self.send_response(status)
             self.send_header("Content-Type", "application/json")
             self.send_header("Content-Length", str(len(body)))
@@ -51,7 +54,7 @@ def _serve(status: int, body: bytes) -> ThreadingHTTPServer:
 
 @pytest.mark.parametrize("mode", sorted(ANSWERS))
 def test_an_unexpected_answer_stops_the_replay_with_its_reason(tmp_path, capsys, mode):
-    server = _serve(*ANSWERS[mode])
+    server = _serve(lambda rows: ANSWERS[mode])
     try:
         url = f"http://127.0.0.1:{server.server_address[1]}"
         code = main(["replay", _log(tmp_path), "--url", url, "--speed", "0"])
@@ -70,28 +73,15 @@ def test_a_rate_limit_answer_is_bounded(tmp_path, capsys):
     then accepts."""
     import time
 
-    answers = [(429, b'{"retry_after_s": -1}')]
-    calls = []
+    calls: list[float] = []
 
-    class Handler(BaseHTTPRequestHandler):
-        def do_POST(self) -> None:  # noqa: N802
-            n = int(self.headers.get("Content-Length", 0))
-            rows = json.loads(self.rfile.read(n))
-            calls.append(time.monotonic())
-            status, body = (answers[len(calls) - 1] if len(calls) <= 1 else
-                            (202, json.dumps({"accepted": len(rows),
-                                              "rejected": []}).encode()))
-            self.send_response(status)
-            self.send_header("Content-Type", "application/json")
-            self.send_header("Content-Length", str(len(body)))
-            self.end_headers()
-            self.wfile.write(body)
+    def answer(rows: list) -> tuple[int, bytes]:
+        calls.append(time.monotonic())
+        if len(calls) == 1:
+            return 429, b'{"retry_after_s": -1}'
+        return 202, json.dumps({"accepted": len(rows), "rejected": []}).encode()
 
-        def log_message(self, *args: object) -> None:
-            pass
-
-    server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
+    server = _serve(answer)
     try:
         code = main(["replay", _log(tmp_path), "--url",
                      f"http://127.0.0.1:{server.server_address[1]}", "--speed", "0"])
