@@ -99,3 +99,19 @@ def test_a_disk_that_refuses_a_write_is_named_as_the_folder_asked_for(tmp_path):
         write_folder(out, full_named)
     assert e.value.path == str(out / "measurements.csv")
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no staging left
+
+
+def test_coordinates_beyond_the_area_limit_are_refused(tmp_path, capsys):
+    """Anchors at 1e12 m were planned on a grid of 8e9 m steps, exit 0, and a candidate at
+    1e300 m ended in a matplotlib traceback; --area already refused beyond 1e7 m."""
+    code = main(["reliability", "--anchors",
+                 _anchors(tmp_path, "A1,0,0\nA2,1e12,0\nA3,0,1e12\nA4,1e12,1e12\n"), "-o",
+                 str(tmp_path / "o"), "--no-maps"])
+    assert code == 2 and ":3: anchor A2: a coordinate beyond" in capsys.readouterr().err
+    cand = tmp_path / "c.csv"
+    cand.write_text("x,y\n5,1e300\n")
+    code = main(["reliability", "--anchors",
+                 _anchors(tmp_path, "A1,0,0\nA2,10,0\nA3,10,8\nA4,0,8\n"), "--suggest",
+                 "--candidates", str(cand), "-o", str(tmp_path / "o2"), "--no-maps"])
+    err = capsys.readouterr().err
+    assert code == 2 and "c.csv:2: candidate coordinate beyond" in err

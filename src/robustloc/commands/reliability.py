@@ -38,6 +38,10 @@ Example:
   robustloc reliability --anchors anchors.csv --area 0,40,0,3 --step 0.25 --sigma 1 -o rel/"""
 
 
+#: Largest coordinate (m) of the area, the anchors and the candidates a plan is drawn
+#: for: a site, not a continent (10 000 km; larger values were typos or units).
+MAX_COORDINATE_M = 1e7
+
 def _area(text: str) -> tuple[float, float, float, float]:
     try:
         vals = tuple(finite_float(v) for v in text.split(","))
@@ -47,8 +51,9 @@ def _area(text: str) -> tuple[float, float, float, float]:
         ) from None
     if len(vals) != 4:
         raise argparse.ArgumentTypeError(f"--area expects 4 numbers, got {text!r}")
-    if max(abs(v) for v in vals) > 1e7:
-        raise argparse.ArgumentTypeError(f"--area: coordinates beyond 1e7 m, got {text!r}")
+    if max(abs(v) for v in vals) > MAX_COORDINATE_M:
+        raise argparse.ArgumentTypeError(f"--area: coordinates beyond {MAX_COORDINATE_M:g} m, "
+                                         f"got {text!r}")
     if not (vals[0] < vals[1] and vals[2] < vals[3]):
         raise argparse.ArgumentTypeError(f"--area needs xmin < xmax and ymin < ymax, "
                                          f"got {text!r}")
@@ -104,6 +109,12 @@ def _read(path: str):  # noqa: ANN202
     xyz = df[cols].to_numpy(dtype=float)
     if "z" in df.columns and not np.all(np.isfinite(xyz[:, 2])):
         raise InputError("anchor heights (z) must all be given when the column exists", path)
+    far = np.any(np.abs(xyz) > MAX_COORDINATE_M, axis=1)
+    if far.any():  # (1e12 m gave a grid of 8e9 m steps, exit 0: the reliability review)
+        i = int(np.argmax(far))
+        raise InputError(f"anchor {df['anchor'].iloc[i]}: a coordinate beyond "
+                         f"{MAX_COORDINATE_M:g} m (the limit of --area)", path,
+                         int(df.index[i]) if df.index.name == "line" else i + 2)
     # two anchors at one place are one anchor counted twice: every point's redundancy
     # read 0 and every correlation 1, exit 0 (the reliability review)
     twice = pd.DataFrame(xyz).duplicated(keep="first").to_numpy()
@@ -137,6 +148,10 @@ def _suggest(args: argparse.Namespace, xyz: np.ndarray, area, step: float, n_exp
         if bad.any():
             raise InputError("non-numeric or missing candidate coordinate", args.candidates,
                              int(np.argmax(bad)) + 2)
+        far = np.any(np.abs(cand) > MAX_COORDINATE_M, axis=1)
+        if far.any():  # (y = 1e300: a matplotlib traceback; the reliability review)
+            raise InputError(f"candidate coordinate beyond {MAX_COORDINATE_M:g} m (the "
+                             "limit of --area)", args.candidates, int(np.argmax(far)) + 2)
     else:
         z = float(np.median(xyz[:, 2])) if xyz.shape[1] == 3 else None
         cand = default_candidates(area, 8, z)
