@@ -74,7 +74,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--inject", default=None, metavar="PRN:BIAS_M[,PRN:BIAS_M]",
                    help="add biases (m) to these satellites' pseudoranges, e.g. G11:20,G24:-15")
     p.add_argument("--inject-from", default=None, metavar="T",
-                   help="start of the injected fault: GPS seconds or ISO time (GPS scale)")
+                   help="start of the injected fault: GPS seconds or ISO time (GPS scale; with "
+                        "Z or +HH:MM a civil time, converted with the leap seconds)")
     p.add_argument("--inject-until", default=None, metavar="T",
                    help="end of the injected fault (same formats)")
     p.add_argument("-o", "--out", required=True, help="solution file (.csv or .parquet)")

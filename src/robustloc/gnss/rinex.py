@@ -208,7 +208,32 @@ def _calendar(y: int, mo: int, d: int, h: int, mi: int, sec: float, what: str, p
             "1-12, day of that month, hour 0-23, minute 0-59, second 0-60)", path, line)
 
 
-def _read_lines(path: str | PathLike[str]) -> list[str]:
+class _Lines(list):  # type: ignore[type-arg]
+    """The lines of a file; ``complete`` is False when the last one has no line end (the
+    file may have been cut inside it)."""
+
+    complete: bool = True
+
+
+def _cut_field(lines: _Lines | list[str], first_col: int, path: str) -> None:
+    """Raise when the file ends without a line end inside a fixed-width number field.
+
+    Observation records are ``first_col`` characters and then fields of 16: an ``F14.3``
+    value, right-aligned, and two one-digit flags; a record line therefore ends (blanks
+    stripped) at character 14, 15 or 16 of a field.  A last line that ends elsewhere and has
+    no line end was cut inside a value: ``23619216.594`` read as ``236192`` (exit 0, once).
+    """
+    if getattr(lines, "complete", True) or not lines:
+        return
+    text = lines[-1].rstrip()
+    if len(text) > first_col and (len(text) - first_col) % 16 not in (0, 14, 15):
+        start = first_col + 16 * ((len(text) - first_col) // 16)
+        raise InputError(f"the file ends inside a value ({text[start:].strip()!r}, no line "
+                         "end): the file was cut; the last record cannot be read",
+                         path, len(lines))
+
+
+def _read_lines(path: str | PathLike[str]) -> _Lines:
     p = Path(path)
     raw = p.read_bytes()
     if raw[:2] == b"\x1f\x8b":
@@ -219,7 +244,9 @@ def _read_lines(path: str | PathLike[str]) -> list[str]:
         except (OSError, EOFError) as exc:  # (truncated: a traceback)
             raise InputError(f"not a readable gzip file ({exc})", str(path)) from None
     text = raw.decode("ascii", errors="replace")
-    return text.splitlines()
+    out = _Lines(text.splitlines())
+    out.complete = not text or text.endswith(("\n", "\r"))
+    return out
 
 
 def _header(lines: list[str], path: str) -> tuple[dict[str, str], int]:
@@ -426,6 +453,8 @@ def _read_obs_v2(path: str, version: float) -> ObsData:
             i += nlines_sat
     if not times:
         raise InputError("no observation epochs after the header", path, i0 + 1)
+    if rec_start and rec_start[-1] <= n - 1 < rec_start[-1] + nlines_sat:
+        _cut_field(lines, 0, path)  # (the last line is an observation record)
 
     # vectorized field extraction: each record -> nlines_sat padded 80-char lines
     nrec = len(rec_start)
@@ -440,12 +469,8 @@ def _read_obs_v2(path: str, version: float) -> ObsData:
         li, col = divmod(t, 5)
         fld = buf[:, li, col * 16 : col * 16 + 14].copy().view("S14").ravel()
         blank = np.char.strip(fld) == b""
-        try:
-            vals = np.where(blank, b"nan", fld).astype(np.float64)
-        except ValueError:
-            bad = next(
-                k for k in range(nrec) if not blank[k] and not _isfloat(fld[k])
-            )
+        vals, bad = _numbers(fld, blank)
+        if bad >= 0:
             raise InputError(
                 f"malformed {types[t]} value {fld[bad].decode(errors='replace')!r}",
                 path, int(starts[bad]) + li + 1,
@@ -500,12 +525,32 @@ def _stray_record(lines: list[str], start: int, stop: int, path: str) -> None:
                                  "a line missing, in the epoch's records)", path, j + 1)
 
 
-def _isfloat(b: bytes) -> bool:
+def _isfloat(b: bytes, finite: bool = True) -> bool:
+    """A number as a fixed-width RINEX field writes it: Python's ``float`` also takes
+    ``1_000``, ``nan`` and ``inf``, which no RINEX writer produces (a hand edit, or another
+    program's text: once read as values)."""
+    if b"_" in b:
+        return False
     try:
-        float(b)
+        value = float(b)
     except ValueError:
         return False
-    return True
+    return bool(np.isfinite(value)) or not finite
+
+
+def _numbers(fld: NDArray, blank: NDArray[np.bool_],
+             finite: bool = True) -> tuple[NDArray[np.float64], int]:
+    """Values of fixed-width fields ``fld`` (bytes), NaN where ``blank``, and the index of
+    the first field that is not a number (:func:`_isfloat`), or -1."""
+    try:
+        vals = np.where(blank, b"nan", fld).astype(np.float64)
+    except ValueError:
+        vals = np.full(fld.shape, np.nan)
+        return vals, next(k for k in range(fld.size) if not blank[k] and not _isfloat(fld[k]))
+    odd = ~blank & (np.char.find(fld, b"_") >= 0)
+    if finite:
+        odd |= ~blank & ~np.isfinite(vals)
+    return vals, int(np.argmax(odd)) if odd.any() else -1
 
 
 def _georinex_load(path: str, **kw):  # noqa: ANN202
@@ -627,7 +672,7 @@ def _read_obs_v3(path: str, version: float) -> ObsData:
                                  path, i + 1)
             sysch = rec[0]
             try:
-                prn = int(rec[1:3].replace(" ", "0"))
+                prn = int(rec[1:3])  # "G07", "G 7", "G7 " (not G70)
             except ValueError as exc:
                 raise InputError(f"malformed satellite id {rec[:3]!r}", path,
                                  i + k + 1) from exc
@@ -640,6 +685,8 @@ def _read_obs_v3(path: str, version: float) -> ObsData:
         i += 1 + nsat
     if not times:
         raise InputError("no observation epochs after the header", path, i0 + 1)
+    if rec_line and rec_line[-1] == n - 1:
+        _cut_field(lines, 3, path)  # (the last line is an observation record)
 
     names = list(dict.fromkeys(t for ts in types.values() for t in ts))
     all_sats = sorted(set(rec_sat), key=lambda s: ("GRECJS".find(s[0]), s))
@@ -661,10 +708,8 @@ def _read_obs_v3(path: str, version: float) -> ObsData:
         for t, name in enumerate(sys_types):
             fld = buf[:, 3 + 16 * t : 17 + 16 * t].copy().view("S14").ravel()
             blank = np.char.strip(fld) == b""
-            try:
-                vals = np.where(blank, b"nan", fld).astype(np.float64)
-            except ValueError:
-                bad = next(k for k in range(sel.size) if not blank[k] and not _isfloat(fld[k]))
+            vals, bad = _numbers(fld, blank)
+            if bad >= 0:
                 raise InputError(
                     f"malformed {name} value {fld[bad].decode(errors='replace')!r} of "
                     f"{rec_sat[sel[bad]]}", path, int(lines_all[sel[bad]]) + 1,
@@ -1052,10 +1097,9 @@ def _nav_field_grid(lines: list[str], rec_lines: NDArray[np.int64], col_first: i
             fld = buf[:, li, c : c + 19].copy().view("S19").ravel()
             blank = np.char.strip(fld) == b""
             blanks[:, li, fi] = blank
-            try:
-                out[:, li, fi] = np.where(blank, b"nan", fld).astype(np.float64)
-            except ValueError:
-                bad = next(k for k in range(nrec) if not blank[k] and not _isfloat(fld[k]))
+            # (non-finite values: records set aside by nav_record_problems, with a warning)
+            out[:, li, fi], bad = _numbers(fld, blank, finite=False)
+            if bad >= 0:
                 raise InputError(
                     f"malformed number {fld[bad].decode(errors='replace').strip()!r}",
                     path, int(rec_lines[bad, li]) + 1,
@@ -1191,7 +1235,7 @@ def _read_nav_v3(lines: list[str], i0: int,
     for j in rec_lines[:, 0].tolist():
         ln = lines[j]
         try:
-            prn = int(ln[1:3].replace(" ", "0"))
+            prn = int(ln[1:3])  # "G07", "G 7", "G7 " (not G70)
             y, mo, d, hh, mi, ss = (int(ln[c : c + w]) for c, w in
                                     ((4, 4), (9, 2), (12, 2), (15, 2), (18, 2), (21, 2)))
         except ValueError as exc:

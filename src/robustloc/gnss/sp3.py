@@ -43,6 +43,19 @@ def _epoch_s(parts: list[str], path: str, line: int) -> float:
     return float(datetime64_to_gps_s(np.array([t]))[0])
 
 
+def _sat_id(text: str, path: str, line: int) -> str:
+    """``G07`` from ``G07``, ``G 7`` or ``G7 `` (left-aligned: once read as G70); a blank
+    system letter is GPS (SP3-a)."""
+    system = text[:1] if text[:1].strip() else "G"
+    try:
+        prn = int(text[1:3])
+    except ValueError:
+        prn = -1
+    if not system.isalpha() or prn < 0:
+        raise InputError(f"malformed satellite id {text!r}", path, line)
+    return f"{system}{prn:02d}"
+
+
 @dataclass(frozen=True)
 class Sp3:
     """Precise orbit samples: ``pos_m (S, T, 3)`` and ``clock_s (S, T)`` (NaN = missing)."""
@@ -64,7 +77,13 @@ def read_sp3(path: str | PathLike[str]) -> Sp3:
     recs: list[tuple[int, str, float, float, float, float]] = []
     for i, ln in enumerate(lines):
         if ln.startswith("* "):
-            times.append(_epoch_s(ln[1:].split(), path, i + 1))
+            t = _epoch_s(ln[1:].split(), path, i + 1)
+            if times and not t > times[-1]:
+                # (a repeated or swapped epoch put two epochs' samples in one
+                # interpolation window, without a word)
+                raise InputError(f"epoch {ln[1:].strip()!r} is not later than the previous "
+                                 "one: SP3 epochs must increase", path, i + 1)
+            times.append(t)
         elif ln.startswith("P") and times:
             try:
                 x, y, z = float(ln[4:18]), float(ln[18:32]), float(ln[32:46])
@@ -72,7 +91,7 @@ def read_sp3(path: str | PathLike[str]) -> Sp3:
             except ValueError as exc:
                 raise InputError(f"malformed SP3 position record {ln[:60]!r}", path,
                                  i + 1) from exc
-            recs.append((len(times) - 1, ln[1:4].replace(" ", "0"), x, y, z, c))
+            recs.append((len(times) - 1, _sat_id(ln[1:4], path, i + 1), x, y, z, c))
         elif ln.startswith("EOF"):
             break
     if not times or not recs:

@@ -10,6 +10,7 @@ the run summary.  :class:`SppSettings` holds every setting.  ``robustloc spp``,
 from __future__ import annotations
 
 import argparse
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,8 +24,16 @@ from robustloc.options import check_settings, float_in, nonnegative_int, option
 
 
 def parse_time(text: str | float | None, what: str) -> float | None:
-    """GPS seconds, or an ISO time on the GPS scale, as GPS seconds (``None`` passes)."""
-    from robustloc.gnss.rinex import datetime64_to_gps_s
+    """GPS seconds, or an ISO time, as GPS seconds (``None`` passes).
+
+    An ISO time without a time zone is on the GPS scale (as RINEX epochs are); one with a
+    zone (``Z``, ``+02:00``) is a civil time: converted to UTC, then to GPS time with the
+    leap seconds (numpy parsed the zone with a deprecation UserWarning and left the
+    18 s out).
+    """
+    from datetime import datetime, timezone
+
+    from robustloc.gnss.rinex import _utc_to_gps_s, datetime64_to_gps_s
 
     if text is None:
         return None
@@ -32,12 +41,46 @@ def parse_time(text: str | float | None, what: str) -> float | None:
         value = float(text)
     except ValueError:
         try:
-            value = float(datetime64_to_gps_s(np.array([np.datetime64(str(text))]))[0])
+            stamp = datetime.fromisoformat(str(text).strip())
         except ValueError:
-            value = float("nan")
+            try:  # forms numpy reads and datetime does not ("2021-04": the month's start)
+                with warnings.catch_warnings():  # (a zone numpy reads with a UserWarning)
+                    warnings.simplefilter("error")
+                    value = float(datetime64_to_gps_s(
+                        np.array([np.datetime64(str(text))]))[0])
+            except (ValueError, UserWarning):
+                value = float("nan")
+        else:
+            zone = stamp.utcoffset()
+            naive = stamp.astimezone(timezone.utc).replace(tzinfo=None) if zone is not None \
+                else stamp
+            value = float(datetime64_to_gps_s(np.array([np.datetime64(naive, "ns")]))[0])
+            if zone is not None:
+                value = float(_utc_to_gps_s(np.array([value]))[0])
     if not np.isfinite(value):
         raise InputError(f"{what}: expected GPS seconds or an ISO time, got {text!r}")
     return value
+
+
+def _check_nav_covers(ephemerides: Any, t_obs_gps_s: np.ndarray) -> None:
+    """Refuse navigation files none of whose records is valid at any observation epoch:
+    files of another day gave "no usable pseudoranges" naming the observation file."""
+    from robustloc.gnss.ephemeris import MAX_AGE_S
+
+    toe = np.asarray(ephemerides.toe_gps_s, dtype=float)
+    age = np.array([MAX_AGE_S.get(str(s)[:1], 7201.0) for s in ephemerides.sat])
+    ok = np.isfinite(toe)
+    if not ok.any():
+        return
+    lo, hi = float(np.min((toe - age)[ok])), float(np.max((toe + age)[ok]))
+    o0, o1 = float(np.nanmin(t_obs_gps_s)), float(np.nanmax(t_obs_gps_s))
+    if hi < o0 or lo > o1:
+        paths = list(ephemerides.paths)
+        others = f" (and {', '.join(paths[1:])})" if len(paths) > 1 else ""
+        raise InputError(f"the ephemerides{others} are valid for GPS seconds {lo:.0f} .. "
+                         f"{hi:.0f} (time of ephemeris +- {MAX_AGE_S['G']:.0f} s for GPS), "
+                         f"the observations span {o0:.0f} .. {o1:.0f}: no epoch in common "
+                         "(another day?)", paths[0])
 
 
 def parse_reference(text: str) -> tuple[float, float, float]:
@@ -180,7 +223,7 @@ def run_spp(obs: str, nav: Sequence[str], settings: SppSettings, *, sp3: str | N
     from robustloc import status as st
     from robustloc.gnss.raim import RaimFde, inject_faults
     from robustloc.gnss.rinex import read_nav, read_obs
-    from robustloc.gnss.sp3 import PreciseProducts, read_clk, read_sp3
+    from robustloc.gnss.sp3 import N_LAGRANGE, PreciseProducts, read_clk, read_sp3
     from robustloc.gnss.spp import SppSolver, error_summary
 
     nav = list(nav)
@@ -216,6 +259,13 @@ def run_spp(obs: str, nav: Sequence[str], settings: SppSettings, *, sp3: str | N
             # satellite) were used without a word
             if product is None or not len(product.t_gps_s) or not observations.n_epochs:
                 continue
+            if product is precise.sp3 and len(product.t_gps_s) < N_LAGRANGE:
+                # (3 epochs were interpolated by a parabola: orbits hundreds of metres off,
+                # fixes labelled ok: the spp review)
+                raise InputError(f"{len(product.t_gps_s)} epochs: interpolating the orbits "
+                                 f"needs at least {N_LAGRANGE} (degree-{N_LAGRANGE - 1} "
+                                 "Lagrange); use a product that covers the observations with "
+                                 "margin", name)
             t0, t1 = float(np.nanmin(product.t_gps_s)), float(np.nanmax(product.t_gps_s))
             o0 = float(np.nanmin(observations.t_gps_s))
             o1 = float(np.nanmax(observations.t_gps_s))
@@ -223,6 +273,8 @@ def run_spp(obs: str, nav: Sequence[str], settings: SppSettings, *, sp3: str | N
                 raise InputError(f"covers GPS seconds {t0:.0f} .. {t1:.0f}, the observations "
                                  f"{o0:.0f} .. {o1:.0f}: no epoch in common (another day?)",
                                  name)
+    if ephemerides is not None and precise is None and observations.n_epochs:
+        _check_nav_covers(ephemerides, observations.t_gps_s)
     injected_epochs = None
     if settings.inject:
         observations = inject_faults(observations, dict(settings.inject), t_from, t_until)
