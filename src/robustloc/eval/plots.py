@@ -495,6 +495,32 @@ def read_positions_for_plot(path: str | os.PathLike[str]) -> pd.DataFrame:
     return pd.read_csv(p, usecols=lambda c: c in wanted, dtype={"tag": str})
 
 
+def _near_anchors(x: NDArray[np.float64], y: NDArray[np.float64], usable: NDArray[np.bool_],
+                  anchors: pd.DataFrame
+                  ) -> tuple[NDArray[np.bool_], int, float | None]:
+    """The fixes the positions map draws: within :func:`_map_view` of the anchors (their
+    box widened by the 95th percentile of the usable fixes' distances from it, bounded);
+    returns the mask, the usable fixes left out and the reach (None: no anchor within
+    :data:`MAP_COORD_MAX`, the view is then :data:`MAP_COORD_MAX` from the origin)."""
+    ax_ = anchors["x"].to_numpy(dtype=float)
+    ay_ = anchors["y"].to_numpy(dtype=float)
+    a = np.isfinite(ax_) & np.isfinite(ay_) & (np.abs(ax_) <= MAP_COORD_MAX) \
+        & (np.abs(ay_) <= MAP_COORD_MAX)
+    with np.errstate(invalid="ignore", over="ignore"):
+        if a.any():
+            dx = np.maximum(np.maximum(ax_[a].min() - x, x - ax_[a].max()), 0.0)
+            dy = np.maximum(np.maximum(ay_[a].min() - y, y - ay_[a].max()), 0.0)
+            dist = np.hypot(dx, dy)
+        else:
+            dist = np.full(x.shape, np.nan)
+        view = _map_view(ax_, ay_, dist[usable])
+        if view is None:
+            inside = (np.abs(x) <= MAP_COORD_MAX) & (np.abs(y) <= MAP_COORD_MAX)
+        else:
+            inside = (x >= view[0]) & (x <= view[1]) & (y >= view[2]) & (y <= view[3])
+    return inside, int(np.sum(usable & ~inside)), None if view is None else view[4]
+
+
 def positions_figure(positions: pd.DataFrame, anchors: pd.DataFrame,
                      path: str | os.PathLike[str], title: str = "") -> dict[str, dict[str, int]]:
     """``robustloc locate|track --plot``: what an output holds, for a person to look at,
@@ -503,9 +529,10 @@ def positions_figure(positions: pd.DataFrame, anchors: pd.DataFrame,
     Panels: a map of the anchors and the usable fixes (coloured by tag when there are at
     most :data:`MAX_TAG_COLOURS` tags; a track's rows joined per tag; fixes whose status
     says to look twice -- ``fault_detected``, ``extrapolated``, ``unverified`` -- crossed
-    in red; at most :data:`MAP_POINTS` fixes per method, an even subsample beyond), the
-    count of each status per method, and the distribution of the usable fixes' ``hpl``
-    per method (what an ``--alert-limit`` would keep).
+    in red; at most :data:`MAP_POINTS` fixes per method, an even subsample beyond; fixes
+    far beyond the anchors -- :func:`_near_anchors` -- counted under the title instead),
+    the count of each status per method (written on the bars), and the distribution of
+    the usable fixes' ``hpl`` per method (what an ``--alert-limit`` would keep).
 
     Returns
     -------
@@ -542,9 +569,10 @@ def positions_figure(positions: pd.DataFrame, anchors: pd.DataFrame,
     for (_, a) in anchors.iterrows():
         ax_map.annotate(str(a["anchor"]), (float(a["x"]), float(a["y"])), fontsize=6,
                         xytext=(3, 3), textcoords="offset points")
+    inside, n_out, reach = _near_anchors(x, y, usable, anchors)
     by_tag = tags is not None and len(methods) == 1 and len(set(tags)) <= MAX_TAG_COLOURS
     for m in methods:
-        sel = np.flatnonzero(usable & (meth == m))
+        sel = np.flatnonzero(usable & inside & (meth == m))
         if sel.size > MAP_POINTS:
             sel = sel[np.linspace(0, sel.size - 1, MAP_POINTS).astype(np.int64)]
         track = m.startswith("track")
@@ -563,7 +591,12 @@ def positions_figure(positions: pd.DataFrame, anchors: pd.DataFrame,
     ax_map.set_xlabel("x (m)")
     ax_map.set_ylabel("y (m)")
     ax_map.grid(alpha=0.3)
-    ax_map.set_title(title or "anchors and usable fixes", fontsize=9)
+    heading = title or "anchors and usable fixes"
+    if n_out:  # (one fix at 1e300 m shrank the site to a dot: the review)
+        heading += (f"\n{_n(n_out, 'usable fix')} not drawn: more than "
+                    + (f"{MAP_COORD_MAX:g} m from the origin" if reach is None
+                       else f"{_m(reach)} m beyond the anchors"))
+    ax_map.set_title(heading, fontsize=9 if not n_out else 8)
     ax_map.legend(fontsize=6, loc="best")
     # --- statuses
     names = [s for s in st.ALL if any(s in c for c in counts.values())]
@@ -572,7 +605,10 @@ def positions_figure(positions: pd.DataFrame, anchors: pd.DataFrame,
     h = 0.8 / max(len(methods), 1)
     for i, m in enumerate(methods):
         v = [counts[m].get(s, 0) for s in names]
-        ax_st.barh(ypos + i * h, v, height=h, label=m)
+        bars = ax_st.barh(ypos + i * h, v, height=h, label=m)
+        # (a status of 1 row in 10 000 is a bar too thin to see: the count says it)
+        ax_st.bar_label(bars, labels=[str(c) if c else "" for c in v], fontsize=6,
+                        padding=2)
     ax_st.set_yticks(ypos + 0.4 - h / 2, names, fontsize=7)
     ax_st.invert_yaxis()
     ax_st.set_xlabel("rows")
