@@ -30,9 +30,17 @@ over the area of --suggest-metric (default max_ext_m: the largest position error
 undetected fault can cause) with that one anchor added; the best three are starred on the
 maps and all are written to DIR/suggestions.csv.
 
+A point has a fix where `locate` gives one: dim + 1 anchors heard and, in 2-D, not all of
+them on one line (there every fix fits its mirror image across the line as well: locate
+marks it ill_conditioned); elsewhere every figure is blank (NaN), counted as a point without
+a fix. A layout with no fix anywhere (one or two anchors, all anchors on one line, a
+--max-range that hears too few) is refused (exit 2), unless --suggest finds one more anchor
+that gives fixes: then a warning says the maps are empty and the ranking is printed.
+
 Anchors file: contract format `anchor, x, y[, z]` (CSV or Parquet). In 2-D, anchor heights
 (z) are known offsets from the tag height --tag-z. For --model rssi the path-loss exponent
-is --n, or the anchors' `n` column when present.
+is --n, or the anchors' `n` column when present. On a terminal a progress bar on stderr
+counts the grid points (--suggest: one grid per candidate); -q hides it.
 
 Example:
   robustloc reliability --anchors anchors.csv --area 0,40,0,3 --step 0.25 --sigma 1 -o rel/"""
@@ -97,6 +105,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-maps", action="store_true", help="write the CSV only, no PNG maps")
     p.add_argument("-o", "--out", required=True, help="output folder")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="no progress bar (the summary is still printed)")
 
 
 def _read(path: str):  # noqa: ANN202
@@ -127,10 +137,12 @@ def _read(path: str):  # noqa: ANN202
     return df, xyz
 
 
-def _suggest(args: argparse.Namespace, xyz: np.ndarray, area, step: float, n_exp):  # noqa: ANN001, ANN202
+def _candidates(args: argparse.Namespace, xyz: np.ndarray, area) -> np.ndarray:  # noqa: ANN001
+    """The candidate positions of --suggest: the --candidates file's, else the area's
+    border (:func:`robustloc.integrity.planner.default_candidates`)."""
     import pandas as pd
 
-    from robustloc.integrity.planner import default_candidates, suggest_anchor
+    from robustloc.integrity.planner import default_candidates
 
     if args.candidates is not None:
         from robustloc.io.tables import read_table
@@ -152,15 +164,39 @@ def _suggest(args: argparse.Namespace, xyz: np.ndarray, area, step: float, n_exp
         if far.any():  # (y = 1e300: a matplotlib traceback; the reliability review)
             raise InputError(f"candidate coordinate beyond {MAX_COORDINATE_M:g} m (the "
                              "limit of --area)", args.candidates, int(np.argmax(far)) + 2)
-    else:
-        z = float(np.median(xyz[:, 2])) if xyz.shape[1] == 3 else None
-        cand = default_candidates(area, 8, z)
-    # one planner run per candidate: a grid about twice as coarse as the maps'
-    return suggest_anchor(
-        xyz, area, 2 * step, args.sigma, cand, metric=args.suggest_metric, dim=args.dim,
-        tag_z=args.tag_z, model=args.model, path_loss_n=n_exp, max_range_m=args.max_range,
-        alpha0=args.alpha0, beta0=args.beta0,
-    )
+        return cand
+    z = float(np.median(xyz[:, 2])) if xyz.shape[1] == 3 else None
+    return default_candidates(area, 8, z)
+
+
+def _check_grid(area, step: float, option: str) -> float:  # noqa: ANN001
+    """Number of points of the grid over ``area`` with spacing ``step``; a grid beyond
+    :data:`robustloc.integrity.planner.MAX_GRID_POINTS` is refused naming ``option``, its
+    numbers in ``%g`` (--step 1e-300 printed a grid of a 302-digit number of points, and
+    5e-324 was an OverflowError traceback: the second reliability review)."""
+    from robustloc.integrity.planner import MAX_GRID_POINTS, grid_shape
+
+    nx, ny = grid_shape(area, step)
+    if not nx * ny <= MAX_GRID_POINTS:
+        raise InputError(f"{option}: a grid of {nx:g} x {ny:g} points is too large; "
+                         f"increase --step (at most {MAX_GRID_POINTS:g} points)")
+    return nx * ny
+
+
+def _no_fix(xyz: np.ndarray, args: argparse.Namespace) -> str:
+    """Why no point of the area has a fix, in words (the anchors' count, and whether they
+    lie on one line by the planner's test, :func:`robustloc.integrity.planner.unique_fix`)."""
+    from robustloc.integrity.planner import unique_fix
+
+    m, dim = len(xyz), args.dim
+    what = f"{m} anchor{'s' if m != 1 else ''}"
+    if m > dim and not unique_fix(xyz, np.ones((1, m), dtype=bool), dim)[0]:
+        what += ", all on one line"
+    # (3-D: anchors on one plane give fixes off it, and none in it)
+    return (f"no point of the area has a fix ({what}; a {dim}-D fix needs {dim + 1} heard, "
+            + ("not all on one line" if dim == 2 else "not all in one plane with the tag")
+            + (f", within --max-range {args.max_range:g} m" if args.max_range is not None
+               else "") + ")")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -187,28 +223,44 @@ def run(args: argparse.Namespace) -> int:
             n_exp = df["n"].to_numpy(float)
     if args.dim == 3 and "z" not in df.columns:
         raise InputError("--dim 3 needs anchor heights (a z column)", args.anchors, 1)
-    try:
-        grid = plan(
-            xyz, area, step, args.sigma, dim=args.dim, tag_z=args.tag_z, model=args.model,
-            path_loss_n=n_exp, max_range_m=args.max_range, alpha0=args.alpha0,
-            beta0=args.beta0, rho_threshold=args.rho_threshold,
-        )
-    except ValueError as exc:  # an option the planner refuses (grid too large, ...)
-        raise InputError(str(exc)) from None
+    # both grids checked before any work: the maps' and --suggest's (twice as coarse: one
+    # planner run per candidate)
+    total = _check_grid(area, step, "--step" if args.step is not None else "--area")
+    cand = None
+    if args.suggest:
+        cand = _candidates(args, xyz, area)
+        total += (len(cand) + 1) * _check_grid(area, 2 * step, "--step")
+    from tqdm import tqdm
+
+    kw = dict(dim=args.dim, tag_z=args.tag_z, model=args.model, path_loss_n=n_exp,
+              max_range_m=args.max_range, alpha0=args.alpha0, beta0=args.beta0)
+    with tqdm(total=int(total), desc="reliability", unit=" points", unit_scale=True,
+              file=sys.stderr,
+              disable=getattr(args, "quiet", False) or not sys.stderr.isatty()) as bar:
+        try:
+            grid = plan(xyz, area, step, args.sigma, rho_threshold=args.rho_threshold,
+                        progress=bar.update, **kw)
+            sugg = None
+            if cand is not None:
+                from robustloc.integrity.planner import suggest_anchor
+
+                sugg = suggest_anchor(xyz, area, 2 * step, args.sigma, cand,
+                                      metric=args.suggest_metric, progress=bar.update, **kw)
+        except ValueError as exc:  # an option the planner refuses
+            raise InputError(str(exc)) from None
     if grid.table["dop"].isna().all():
         # one anchor, anchors on one point, a range that hears too few: six empty maps
-        # and an all-NaN table, exit 0 (the reliability review)
-        raise InputError(f"no point of the area has a fix ({len(xyz)} anchor"
-                         f"{'s' if len(xyz) != 1 else ''}; a {args.dim}-D fix needs "
-                         f"{args.dim + 1} heard, not all on one "
-                         f"{'line' if args.dim == 2 else 'plane'}"
-                         + (f", within --max-range {args.max_range:g} m"
-                            if args.max_range is not None else "") + ")", args.anchors)
+        # and an all-NaN table, exit 0 (the reliability review); two anchors, or anchors
+        # on one line, were planned as if their fixes were unique (the second review)
+        why = _no_fix(xyz, args)
+        if sugg is None or not np.isfinite(sugg["score"]).any():
+            raise InputError(why, args.anchors)
+        print(f"warning: {args.anchors}: {why}: the maps are empty; the ranking says "
+              "where one more anchor gives fixes", file=sys.stderr)
     from robustloc.commands._folder import write_folder
 
     out = Path(args.out)
     csv = out / "reliability.csv"
-    sugg = _suggest(args, xyz, area, step, n_exp) if args.suggest else None
     best = None if sugg is None else sugg[["x", "y"]].to_numpy(float)[:3]
 
     def write(folder: Path) -> list:

@@ -20,13 +20,23 @@ that calibrate, locate and evaluate run on them unchanged.
   robustloc simulate ble-corridor --seed 1 --out corridor
   robustloc simulate ble-corridor --seed 1 --out corridor-walk --disturbance
 
-Every scenario documents its assumed numbers: robustloc simulate SCENARIO --help."""
+Every scenario documents its assumed numbers: robustloc simulate SCENARIO --help.
+
+Long runs show a progress bar on stderr when it is a terminal (-q: none).  A scenario whose
+output grows with an option streams it to disk in chunks (gnss --epochs: memory stays
+bounded); one whose draws are whole arrays (wifi-room --samples-per-point, --walk-epochs)
+refuses, before any work, a run whose memory would exceed 1 GiB, naming the option and
+its largest value (exit code 2).  Epochs a run cannot use are counted in a `warning:`
+(gnss: too few satellites for a fix, fewer satellites than --faults); a run with no
+usable epoch at all is refused."""
 
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=nonnegative_int, default=1, help="random seed (default 1)")
     p.add_argument("-o", "--out", required=True, help="output folder (created if missing)")
     p.add_argument("--json", action="store_true", help="print the written files as JSON")
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="no progress bar (the files written are still listed; warnings stay)")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -15,12 +15,22 @@ and the figures an engineer needs to decide where one more beacon goes are compu
 * ``min_redundancy``: smallest redundancy number ``r_i`` (0: an anchor not controlled at all);
   ``dof``: total redundancy ``n - p``; ``n_heard``: anchors in range.
 
-Grid points where fewer anchors than unknowns are heard (or the geometry is singular) get
-NaN; an MDB of an uncontrolled observation (``r_i = 0``) is ``inf``.
+Grid points without a unique fix get NaN in every figure (and ``dof = 0``), as ``locate``
+gives no fix there: fewer than ``dim + 1`` anchors heard (with as many ranges as unknowns
+the circles, or spheres, meet in two points: the fix and its mirror image), in 2-D heard
+anchors that lie on one line (every fix fits its mirror image across the line exactly:
+the test :func:`robustloc.estimators.ranging._collinear` by which ``locate`` marks such an
+epoch ``ill_conditioned``, and ``calibrate --self`` finds no fix), or a singular geometry.
+The local figures at such a point (a finite DOP two heard anchors give off their line)
+hold only where the side of the line is known, which a plan cannot assume (the review of
+``reliability``: a layout of anchors on one line, or of two anchors, was planned with finite
+maps and ranked by ``--suggest``, exit 0).  An MDB of an uncontrolled observation
+(``r_i = 0``) is ``inf``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -58,21 +68,90 @@ class Grid:
         return self.table[column].to_numpy(dtype=float).reshape(self.y.size, self.x.size)
 
 
-def grid_axes(area: tuple[float, float, float, float], step: float) -> tuple[Array, Array]:
-    """Grid coordinates covering ``area = (xmin, xmax, ymin, ymax)`` with spacing ``step``."""
+#: Largest number of points of a planner grid (:func:`grid_axes`).
+MAX_GRID_POINTS = 2_000_000
+
+
+def grid_shape(area: tuple[float, float, float, float], step: float) -> tuple[float, float]:
+    """Number of grid points ``(nx, ny)`` :func:`grid_axes` lays over ``area`` with spacing
+    ``step``, as floats: ``inf`` or numbers of hundreds of digits for an absurd ``step``
+    (an ``int`` of them was printed whole, 300 digits, or raised ``OverflowError``: the
+    second reliability review), so messages format them with ``%g``.
+
+    Raises
+    ------
+    ValueError
+        ``area`` is not four finite numbers with ``xmin < xmax`` and ``ymin < ymax``, or
+        ``step`` is not positive and finite.
+    """
     if np.shape(area) != (4,):  # ("not enough values to unpack": the API review)
         raise ValueError(f"area must be four numbers xmin, xmax, ymin, ymax, got {area!r}")
     xmin, xmax, ymin, ymax = map(float, area)
     if not (np.isfinite([xmin, xmax, ymin, ymax]).all() and xmax > xmin and ymax > ymin):
         raise ValueError(f"area must be xmin,xmax,ymin,ymax with xmin < xmax, ymin < ymax, "
-                         f"got {area}")
+                         f"got ({xmin:g}, {xmax:g}, {ymin:g}, {ymax:g})")
     if not (np.isfinite(step) and step > 0):
-        raise ValueError(f"grid step must be positive, got {step}")
-    nx = int(np.floor((xmax - xmin) / step + 1e-9)) + 1
-    ny = int(np.floor((ymax - ymin) / step + 1e-9)) + 1
-    if nx * ny > 2_000_000:
-        raise ValueError(f"grid of {nx} x {ny} points is too large; increase --step")
-    return xmin + step * np.arange(nx), ymin + step * np.arange(ny)
+        raise ValueError(f"grid step must be positive, got {float(step):g}")
+    with np.errstate(over="ignore"):
+        nx = float(np.floor((xmax - xmin) / step + 1e-9)) + 1.0
+        ny = float(np.floor((ymax - ymin) / step + 1e-9)) + 1.0
+    return nx, ny
+
+
+def grid_axes(area: tuple[float, float, float, float], step: float) -> tuple[Array, Array]:
+    """Grid coordinates covering ``area = (xmin, xmax, ymin, ymax)`` with spacing ``step``.
+
+    Raises
+    ------
+    ValueError
+        As :func:`grid_shape`, or the grid has more than :data:`MAX_GRID_POINTS` points.
+    """
+    nx, ny = grid_shape(area, step)
+    if nx * ny > MAX_GRID_POINTS:
+        raise ValueError(f"grid of {nx:g} x {ny:g} points is too large; increase --step "
+                         f"(at most {MAX_GRID_POINTS:g} points)")
+    xmin, ymin = float(area[0]), float(area[2])
+    return xmin + step * np.arange(int(nx)), ymin + step * np.arange(int(ny))
+
+
+def unique_fix(anchors: ArrayLike, heard: ArrayLike, dim: int = 2) -> NDArray[np.bool_]:
+    """Which points (rows of ``heard``) have a unique fix from the anchors they hear.
+
+    A unique fix needs ``dim + 1`` heard anchors (with ``dim`` ranges the circles, or
+    spheres, meet in two points) and, in 2-D, heard anchors that do not lie on one line
+    (every fix fits its mirror image across the line as well).  The line test is
+    ``locate``'s (:func:`robustloc.estimators.ranging._collinear`, by which it marks such
+    an epoch ``ill_conditioned``; ``calibrate --self`` says "the anchors heard lie on a
+    line" when it leaves no fix), so a plan and the fixes agree.  In 3-D, heard anchors on
+    one plane (ceiling-mounted) still give a fix: ``locate`` starts on their lower side.
+
+    Parameters
+    ----------
+    anchors : array_like (m, 2) or (m, 3)
+        Anchor coordinates, m (in 2-D only the first two columns are used).
+    heard : array_like of bool (P, m)
+        Anchors heard at each point.
+    dim : 2 or 3
+        Solved dimension.
+
+    Returns
+    -------
+    ndarray of bool (P,)
+
+    Examples
+    --------
+    >>> a = np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0], [0.0, 8.0]])
+    >>> unique_fix(a, np.array([[1, 1, 1, 0], [1, 1, 1, 1], [1, 0, 0, 1]], bool))
+    array([False,  True, False])
+    """
+    from robustloc.estimators.ranging import _collinear
+
+    a = np.asarray(anchors, dtype=float)
+    h = np.asarray(heard, dtype=bool)
+    ok = h.sum(axis=1) >= dim + 1
+    if dim == 2 and ok.any():
+        ok[ok] = ~_collinear(a[:, :2], h[ok])
+    return ok
 
 
 #: Largest number of elements of one ``(points, m, m)`` matrix of a chunk of
@@ -95,6 +174,7 @@ def plan(
     beta0: float = BETA0,
     rho_threshold: float = RHO_THRESHOLD,
     chunk: int = 4096,
+    progress: Callable[[int], object] | None = None,
 ) -> Grid:
     """Reliability figures over a grid of tag positions.
 
@@ -121,6 +201,9 @@ def plan(
         See :func:`robustloc.integrity.reliability.reliability`.
     chunk : int
         Grid points processed at once (bounds memory).
+    progress : callable, optional
+        Called with the number of grid points of each chunk done (e.g. a progress bar's
+        ``update``).
     """
     from robustloc.models.ranging import RangeModel, RssiModel
 
@@ -172,15 +255,22 @@ def plan(
         out["crlb_m"][s : s + len(P)] = c.rmse
         rel = reliability(Hm, sigma, mask=heard, alpha0=alpha0, beta0=beta0,
                           rho_threshold=rho_threshold)
-        good = rel.ok & (rel.n_used > dim)
         sl = slice(s, s + len(P))
+        # a unique fix, as `locate` gives one (module docstring): dim + 1 heard, and in
+        # 2-D not all of them on one line (locate's own test, shared, not copied)
+        fix = unique_fix(anc, heard, dim)
+        out["dop"][sl] = np.where(fix, out["dop"][sl], np.nan)
+        out["crlb_m"][sl] = np.where(fix, out["crlb_m"][sl], np.nan)
+        good = fix & rel.ok & (rel.n_used > dim)
         out["max_mdb"][sl] = np.where(good, rel.max_mdb, np.nan)
         out["max_ext_m"][sl] = np.where(good, rel.max_external_horizontal, np.nan)
         out["max_abs_rho"][sl] = np.where(good, rel.max_abs_rho, np.nan)
         out["min_redundancy"][sl] = np.where(good, rel.min_redundancy, np.nan)
         n_heard[sl] = heard.sum(axis=1)
-        dof[sl] = np.where(rel.ok, rel.n_used - dim, 0)
-        n_flag[sl] = np.triu(rel.flagged, 1).sum(axis=(1, 2))
+        dof[sl] = np.where(fix & rel.ok, rel.n_used - dim, 0)
+        n_flag[sl] = np.where(good, np.triu(rel.flagged, 1).sum(axis=(1, 2)), 0)
+        if progress is not None:
+            progress(len(P))
     table = pd.DataFrame({"x": pts[:, 0], "y": pts[:, 1], **out, "n_heard": n_heard, "dof": dof,
                           "n_flagged": n_flag})
     return Grid(gx, gy, table)
@@ -301,7 +391,8 @@ def suggest_anchor(
         cost is one planner run per candidate).
     candidates : (C, d) candidate positions (same columns as ``anchors``).
     metric, quantile : see :func:`layout_score`.
-    **plan_kwargs : further options of :func:`plan` (``dim``, ``model``, ``max_range_m``...).
+    **plan_kwargs : further options of :func:`plan` (``dim``, ``model``, ``max_range_m``...;
+        ``progress`` counts the grid points of every run: ``len(candidates) + 1`` grids).
         Per-anchor path-loss exponents are extended with their median for the candidate.
 
     Returns

@@ -44,6 +44,14 @@ paper's Table 1 distances), same noise without jumps: input of ``robustloc calib
 
 Samples are drawn from :class:`robustloc.models.ranging.RssiModel` (``A = p0 + FAF``,
 ``n = gamma`` for ``d0 = 1 m``), the model the estimators use.
+
+Size: the draws are whole arrays (the AR(1) noise runs along each link, the log is sorted
+by time), about :data:`BYTES_PER_ROW` bytes of memory per row of ``measurements.csv``
+(``(20 --samples-per-point + --walk-epochs) x 4`` rows, plus the survey's 1600).  A run
+beyond the simulation budget, :data:`robustloc.sim._output.MEMORY_BUDGET_BYTES` (1 GiB:
+about 6.7 million rows, e.g. ``--samples-per-point 83000`` with the default walk), is
+refused before any work, naming the larger of the two options and its limit (exit code
+2); on a terminal a progress bar counts the rows written (``-q``: none).
 """
 
 from __future__ import annotations
@@ -73,6 +81,13 @@ JUMPS = ((50, "AP1"), (190, "AP3"), (240, "AP2"))
 JUMP_LENGTH = 20
 AR_PHI = 0.88
 SKEW_SHAPE = -4.0
+#: Peak memory of a run per row of ``measurements.csv``, bytes: the noise arrays, the
+#: frames with their text columns (a Python string per tag and anchor cell), the time
+#: sort's copy and the truth rows that go with them (measured 145-150 from 0.8 to 3.2
+#: million rows, either option; the budget check of :func:`check_size`).
+BYTES_PER_ROW = 160
+#: Distances (m) of the calibration survey (the paper's Table 1).
+SURVEY_DISTANCES_M = np.arange(1.0, 9.0)
 
 
 @dataclass(frozen=True)
@@ -207,7 +222,7 @@ def generate(cfg: WifiRoomConfig, seed: int) -> WifiRoomData:
     truth_walk = pd.DataFrame({"time": t_w, "tag": "walk", "x": pos[:, 0], "y": pos[:, 1]})
 
     # survey at 1..8 m (Table 1 distances)
-    dist = np.arange(1.0, 9.0)
+    dist = SURVEY_DISTANCES_M
     n_s = cfg.survey_samples
     sv = (anchors["A"].to_numpy()[None, None, :]
           - 10 * anchors["n"].to_numpy()[None, None, :] * np.log10(dist)[None, :, None]
@@ -334,8 +349,58 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-jumps", action="store_true", help="no environment changes")
 
 
+def measurement_rows(cfg: WifiRoomConfig) -> tuple[int, int, int]:
+    """Rows of ``measurements.csv`` from the static points and from the walk, and of
+    ``survey.csv``, that :func:`generate` draws for ``cfg``."""
+    m = len(AP_TABLE)
+    return (cfg.samples_per_point * len(reference_points()) * m, cfg.walk_epochs * m,
+            cfg.survey_samples * len(SURVEY_DISTANCES_M) * m)
+
+
+def check_size(cfg: WifiRoomConfig, budget: float | None = None) -> None:
+    """Refuse, before any work, a run whose memory (:data:`BYTES_PER_ROW` per row)
+    exceeds the simulation budget (default
+    :data:`robustloc.sim._output.MEMORY_BUDGET_BYTES`).
+
+    The message names the option with the larger share of the rows, ``--samples-per-point``
+    or ``--walk-epochs``, and its largest value within the budget, the other as given.
+
+    Raises
+    ------
+    robustloc.errors.InputError
+        The run does not fit (exit code 2 on the command line).
+    """
+    from robustloc.sim import _output
+
+    static, walk, survey = measurement_rows(cfg)
+    total = static + walk + survey
+    need = total * BYTES_PER_ROW
+    budget = _output.MEMORY_BUDGET_BYTES if budget is None else budget
+    rows_max = budget / BYTES_PER_ROW
+    m = len(AP_TABLE)
+    if static >= walk:
+        per = len(reference_points()) * m
+        _output.check_memory(
+            need, "--samples-per-point", cfg.samples_per_point,
+            (rows_max - walk - survey) // per,
+            f"{total} rows ({len(reference_points())} points x {m} APs x "
+            f"{cfg.samples_per_point} scans, the walk's {walk} and the survey's {survey})",
+            budget)
+    else:
+        _output.check_memory(
+            need, "--walk-epochs", cfg.walk_epochs, (rows_max - static - survey) // m,
+            f"{total} rows ({m} APs x {cfg.walk_epochs} walk epochs, the static points' "
+            f"{static} and the survey's {survey})", budget)
+
+
 def simulate(out_dir: Path, seed: int, args: argparse.Namespace) -> dict[str, Path]:
-    """Write ``anchors.csv, measurements.csv, truth.csv, survey.csv`` into ``out_dir``."""
+    """Write ``anchors.csv, measurements.csv, truth.csv, survey.csv`` into ``out_dir``.
+
+    A run beyond the memory budget is refused first (:func:`check_size`); on a terminal
+    a progress bar counts the rows written (not with ``args.quiet``).
+    """
+    from robustloc.sim._output import progress_bar, write_csv
+
     cfg = WifiRoomConfig(
         samples_per_point=getattr(args, "samples_per_point", 30),
         walk_epochs=getattr(args, "walk_epochs", 300),
@@ -347,12 +412,16 @@ def simulate(out_dir: Path, seed: int, args: argparse.Namespace) -> dict[str, Pa
         jumps=not getattr(args, "no_jumps", False),
         ar_phi=getattr(args, "ar_phi", AR_PHI),
     )
-    data = generate(cfg, seed)
+    check_size(cfg)
+    static, walk, survey = measurement_rows(cfg)
+    n_truth = cfg.samples_per_point * len(reference_points()) + cfg.walk_epochs
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {}
-    for name, frame in (("anchors", data.anchors), ("measurements", data.measurements),
-                        ("truth", data.truth), ("survey", data.survey)):
-        paths[name] = out / f"{name}.csv"
-        frame.to_csv(paths[name], index=False)
+    with progress_bar(args, len(AP_TABLE) + static + walk + n_truth + survey, " rows",
+                      "simulate") as bar:
+        data = generate(cfg, seed)
+        for name, frame in (("anchors", data.anchors), ("measurements", data.measurements),
+                            ("truth", data.truth), ("survey", data.survey)):
+            paths[name] = write_csv(frame, out / f"{name}.csv", bar)
     return paths
