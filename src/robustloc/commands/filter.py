@@ -5,11 +5,15 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from robustloc.engines import add_engine_arguments
 from robustloc.options import float_in, nonnegative_int, sigma_value
+
+if TYPE_CHECKING:  # pandas is imported where it is used
+    import pandas as pd
 
 NAME = "filter"
 HELP = "robust RSSI Kalman filter per (tag, anchor) link (seed 002); output feeds locate"
@@ -36,8 +40,11 @@ within decimetres of an anchor) starts again at its sample, as at its first one:
 prior then weighs under 4 % of the update, and the distance and speed states are drawn
 from the sample instead of carried across the gap (counted as restarts).
 Use --static when the receivers do not move.  Path-loss parameters come
-from the anchors file (p0, gamma, faf, d0; p0, d0 for friis; or A, n); an anchor with an
-empty one is refused as 'locate' refuses it (file, line and anchor named).
+from the anchors file, the model 'locate' takes from it: A, n (log-distance) when the file
+has them, else p0, gamma[, faf, d0] (attenuation factor), else p0[, d0] (friis); an anchor
+with an empty one is refused as 'locate' refuses it (file, line and anchor named).  A file
+with both A, n and p0, gamma that describe different path losses gets a note on stderr
+naming the first such anchor: A, n are used, as in 'locate'.
 
 What it can gain (measured, issue 11): on the wifi-room walk (seed 3), positions from
 the filtered file (locate --method nls) against positions from the raw file:
@@ -104,7 +111,9 @@ def filter_frame(meas, anchors, args: argparse.Namespace, progress: bool = False
     limits likewise.  So ``locate`` on the output sets such rows aside as it does on the
     raw file.  Anchors with path-loss columns are checked as ``locate`` checks them
     (:func:`robustloc.models.pathloss.model_from_anchors`): an empty parameter of an
-    anchor raises :class:`~robustloc.errors.InputError` naming the file, line and anchor.
+    anchor raises :class:`~robustloc.errors.InputError` naming the file, line and anchor;
+    the model is ``locate``'s too (:func:`robustloc.filters.rssi.link_params_from_anchors`
+    chooses it by the same code: ``A, n`` over ``p0, gamma``).
     Returns ``(frame, summary)``.
     """
     import numpy as np
@@ -171,6 +180,51 @@ def filter_frame(meas, anchors, args: argparse.Namespace, progress: bool = False
     return frame, dict(res.summary, samples=int(len(meas)), invalid_measurement=int(bad.sum()))
 
 
+#: Largest difference, at 1 m (dB) and in the exponent, of two path-loss models of one
+#: anchor that still agree: the rounding of values written with three decimals.
+_AGREE_DB, _AGREE_N = 0.01, 1e-3
+
+
+def pathloss_note(anchors: pd.DataFrame) -> str | None:
+    """The note for an anchors file whose ``A, n`` and ``p0, gamma[, faf, d0]`` (or friis
+    ``p0[, d0]``) columns describe different path losses, or ``None``.
+
+    Both are read by :func:`robustloc.models.pathloss.model_from_anchors` (``locate``'s
+    reader) and compared as ``A - 10 n lg d``; the filter uses ``A, n``, as ``locate``
+    does.  It took ``p0, gamma`` without a word (the filter/fuse review 4), so a file
+    whose columns disagree (a calibration that rewrote one set and kept the other) gave
+    the filter one path loss and ``locate`` another.  Anchors with an empty cell in either
+    set are not compared (the filter refuses an empty ``A`` or ``n`` as ``locate`` does).
+    """
+    from robustloc.models.pathloss import MODEL_COLUMNS, model_from_anchors
+
+    cols = set(anchors.columns)
+    if not ({"A", "n"} <= cols and "p0" in cols):
+        return None
+    other = "attenuation-factor" if "gamma" in cols else "friis"
+    both = anchors[anchors[[c for c in (*MODEL_COLUMNS["log-distance"],
+                                        *MODEL_COLUMNS[other]) if c in cols]]
+                   .notna().all(axis=1)]
+    if both.empty:
+        return None
+    try:
+        A1, n1 = model_from_anchors(both, "log-distance").log_distance_params()
+        A2, n2 = model_from_anchors(both, other).log_distance_params()
+    except ValueError:  # a parameter no model takes (n <= 0): refused elsewhere
+        return None
+    off = (np.abs(A1 - A2) > _AGREE_DB) | (np.abs(n1 - n2) > _AGREE_N)
+    if not off.any():
+        return None
+    i = int(np.argmax(off))
+    path = anchors.attrs.get("path", "anchors")
+    line = f":{both.index[i]}" if both.index.name == "line" else ""
+    names = ", ".join(c for c in MODEL_COLUMNS[other] if c in cols)
+    return (f"{path}{line}: anchor {both['anchor'].iloc[i]!r} has A {A1[i]:g} dBm, n "
+            f"{n1[i]:g} and {names} that give A {A2[i]:g} dBm, n {n2[i]:g} "
+            f"({int(off.sum())} of {len(both)} anchors disagree): the filter uses A, n "
+            "(log-distance), as locate does")
+
+
 def filter_partition(meas, anchors, args: argparse.Namespace):
     """``--engine dask``: one tag partition -> (filtered frame, additive counts, plus
     ``shared`` (the filter's name) and ``_moments`` for :func:`combine_partitions`)."""
@@ -224,12 +278,15 @@ def run(args: argparse.Namespace) -> int:
 
     if args.engine != "dask":  # (the Dask engine checks its output tree itself)
         check_not_input(args.out, [args.measurements, args.anchors])
-    if args.engine == "dask":
-        from robustloc.engines.dask import run_filter
-        return run_filter(args, filter_partition, combine_partitions)
     from robustloc.io import read_anchors, read_measurements, write_table
 
     anchors = read_anchors(args.anchors)
+    note = pathloss_note(anchors)
+    if note:  # (either engine: the model choice is the kernel's, this says it)
+        print(f"note: {note}", file=sys.stderr)
+    if args.engine == "dask":
+        from robustloc.engines.dask import run_filter
+        return run_filter(args, filter_partition, combine_partitions)
     cols = set(anchors.columns)
     if not ({"A", "n"} <= cols or "p0" in cols):
         # the filtered RSSI barely depends on it, but the distance columns would look real

@@ -9,7 +9,6 @@ import sys
 from robustloc.options import (
     float_in,
     nonnegative_float,
-    positive_float,
     sigma_value,
     tag_height_m,
 )
@@ -54,11 +53,16 @@ input epoch is in one); status:
                         Usable, but the filter and this event's measurements disagree (a
                         fault no weight removed, a diverging filter).  Not tested while
                         the predicted speed is below 0.1 m/s (speed and course are not
-                        linear there).  5 such events in a row give a warning.  Loose
-                        coupling: also an ok event whose fix failed its own test (that of
-                        `locate --method FIX --sigma SIGMA_RANGE --robust-scale apriori`)
+                        linear there).  5 such events in a row give a warning (the
+                        filter diverged; the UKF's track then restarts from the next
+                        event's fix, as after a gap).  Loose coupling: also an ok event
+                        whose fix failed its own test (that of `locate --method FIX
+                        --sigma SIGMA_RANGE --robust-scale apriori`)
   predicted             nothing to update with, or every measurement of the event was
-                        rejected (n_used 0): the state is the motion model's prediction
+                        rejected (n_used 0): the state is the motion model's prediction,
+                        whatever the anchors.  Loose coupling has no fix from one or two
+                        anchors: such an event without GPS is predicted, where tight
+                        coupling updates with its ranges (insufficient_anchors)
   invalid_measurement   every value of the event was outside its physical limits
                         (robustloc.io.limits: range -50..1e5 m, speed 0..515 m/s, course
                         0..360 deg); they were set aside, the row is the prediction.
@@ -75,7 +79,10 @@ variance var_x + var_y beyond 1e4 m^2 and beyond R_min / sqrt(eps), R_min the ev
 smallest measurement variance -- about 50 s without measurements for cv at the default q
 and 0.15 m ranges) starts again from the event's own fix, counted as restarts; without a
 fix its rows are predicted (the last estimate, with the prediction's variances) until an
-event gives one.
+event gives one.  The UKF also starts again from an event's fix when its prediction has
+var_x + var_y beyond 1e4 m^2 at an event with ranges (its sigma points, 2 (cv) or 2.4 (ca)
+standard deviations out, would straddle the anchors), and after a divergence
+(fault_detected, above); without a fix it updates as before.
 An anchor far outside the others (more than 20 times their median spread: a typo such as a
 coordinate in mm) is not used, as in locate and track: a warning and the summary
 (anchors_not_used) name it.  Range rows of one time, tag and anchor are averaged into one
@@ -91,23 +98,26 @@ Defaults (--filter ekf --robust hampel), measured: tight coupling, CV, default -
   ekf none        3.60     4.87      0.240      0.063    0.315   0.178    0.619
   ekf hampel      0.919    0.851     0.239      0.063    0.102   0.178    0.619
   ekf igg3        0.902    0.848     0.260      0.063    0.076   0.178    0.619
-  ukf none        3.73     4.89      0.244      0.127    0.786   4344     4256
-  ukf hampel      0.922    0.853     0.243      0.127    0.403   398      395
+  ukf none        1.35     3.57      0.244      0.127    0.803   1024     933
+  ukf hampel      0.922    0.853     0.243      0.127    0.403   58.1     58.8
 hampel was never worse than none on any of the 35 runs (largest RMS ratio 1.000) and is
 much better where ranges are bad; igg3 is better on the NLOS carts but 1.08x none on the
 labyrinth (one range per update, where a redescending weight rejects good ranges).  The
 UKF with the paper's sigma points (alpha = 1, kappa = 0) is worse than the EKF on the carts
 and diverges at T = 10 s: its sigma points (+-2 sigma, 35 m per axis) span the ranges'
-curvature 100 m from the anchors (its rows there are fault_detected, with a warning).  A
-track whose first event has a GPS speed and course starts with that velocity.  Rerun:
+curvature 100 m from the anchors (its rows there are fault_detected, with a warning, and
+the track restarts from a fix: 4344 and 398 m RMS before; the restarts also took the plain
+UKF's largest error on dwm NLOS from 24 to 58 m, a fix holding an NLOS range).  A track
+whose first event has a GPS speed and course starts with that velocity.  Rerun:
 benchmarks/bench_fuse_defaults.py.
 With --motion ca the default filter is the UKF (RMS, m, 4 seeds, hampel, q = 0.1;
 bench_fuse_defaults.py --motion ca --q 0.1):
                  dwm LOS  dwm NLOS  labyrinth  A clean  A NLOS  B clean  B NLOS
   ekf ca          1.15     1.01      0.322      0.501    0.281    235      175
-  ukf ca          1.10     0.917     0.290      0.131    0.282    401      389
-Neither holds group B's 10 s steps at this q (both lost); use CV there, or a --q that fits
-a steadily moving cart (the report's seed-001 section: 1e-6 / T^2).
+  ukf ca          1.10     0.917     0.290      0.131    0.287    38.9     41.6
+Neither holds group B's 10 s steps at this q (the EKF is lost, the UKF diverges and
+restarts); use CV there, or a --q that fits a steadily moving cart (the report's seed-001
+section: 1e-6 / T^2).
 
 `-o -` writes the track as CSV to standard output and the run summary to stderr.
 
@@ -118,6 +128,11 @@ Example:
 """
 
 ROBUST = ("none", "huber", "hampel", "igg", "igg3", "asymmetric-igg")
+#: Bounds of --q, a variance ((m/s^2)^2 for cv, (m/s^3)^2 for ca): the sigma options'
+#: upper bound 1e6 (an acceleration std of 1 km/s^2, 100 g: from about there every event of
+#: a 1 Hz log restarts the track from its fix) and the square of their lower bound 1e-6
+#: (the report's seed-001 q for group B, 1e-6 / T^2 = 1e-8, lies well inside).
+Q_RANGE = (1e-12, 1e6)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -148,9 +163,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "the paper's plain filter; see Defaults)")
     p.add_argument("--gate", type=float_in(0.5, 1.0 - 1e-12), default=None, metavar="PROB",
                    help="chi-square gate probability on the innovation, e.g. 0.999")
-    p.add_argument("--q", type=positive_float, default=None,
+    # bounded as the a-priori sigmas are (robustloc.options.SIGMA_RANGE: 1e-6 to 1e6 for a
+    # std; a variance's lower bound is its square): 1e300 passed, and every event of a
+    # 1 Hz log restarted the track from its fix, exit 0 (the filter/fuse review 4)
+    p.add_argument("--q", type=float_in(Q_RANGE[0], Q_RANGE[1]), default=None,
                    help="process noise: acceleration (cv) or jerk (ca) variance "
-                        "(default 0.5 cv, 0.1 ca)")
+                        "(default 0.5 cv, 0.1 ca; 1e-12 to 1e6)")
     # bounded as every a-priori sigma (robustloc.options.SIGMA_RANGE): 1e300 passed,
     # overflowed to an infinite variance with numpy warnings, and no range was used while
     # every row said ok (the filter/fuse review); a speed std of 1e300 was a traceback
@@ -268,7 +286,8 @@ def run(args: argparse.Namespace) -> int:
               f"events with every measurement kept, {s['diverged']} time(s): the filter "
               "disagrees with its measurements (those rows are fault_detected); "
               + ("the UKF's sigma points may span the ranges' curvature (a wide prediction: "
-                 "long steps or a large --q): try --filter ekf or a --q that fits the motion"
+                 "long steps or a large --q), its track restarts from the next fix: try "
+                 "--filter ekf or a --q that fits the motion"
                  if args.filter == "ukf" else
                  "a --q that fits the motion, or --robust to down-weight bad ranges"),
               file=sys.stderr)
@@ -292,6 +311,7 @@ def run(args: argparse.Namespace) -> int:
         if s["rejected_updates"]:
             print(f"rejected_updates: {s['rejected_updates']}", file=dest)
         if s["restarts"]:
-            print(f"restarts: {s['restarts']} (a prediction too wide to update after a gap: "
-                  f"the track started again from its event's fix)", file=dest)
+            why = ", or a diverged UKF" if args.filter == "ukf" else ""
+            print(f"restarts: {s['restarts']} (a prediction too wide to update after a gap"
+                  f"{why}: the track started again from its event's fix)", file=dest)
     return 0

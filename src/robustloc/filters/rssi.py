@@ -844,37 +844,59 @@ class RobustRssiFilter:
 def link_params_from_anchors(anchors: object, anchor_of_link: ArrayLike) -> LinkParams:
     """Path-loss parameters of each link from an anchors table.
 
-    Attenuation-factor columns ``p0, gamma, faf, d0`` (seed 002 eq. (5)) when present and
-    finite for the anchor (``p0[, d0]`` without a ``gamma`` column: the free-space
-    model, ``gamma = 2``, as ``calibrate --model friis`` writes it); else
-    log-distance ``A, n`` (``p0 = A, gamma = n, FAF = 0, d0 = 1 m``); else
-    ``p0 = -40 dBm, gamma = 2`` (the distance state is then only indicative; the
-    filtered RSSI does not depend on it much).
+    The model ``locate`` takes from the same columns, by the same code
+    (:func:`robustloc.models.pathloss.model_from_anchors`): log-distance ``A, n`` (``p0 =
+    A, gamma = n, FAF = 0, d0 = 1 m``) when the anchor has them, else the attenuation
+    factor ``p0, gamma, faf, d0`` (seed 002 eq. (5); ``faf`` 0 and ``d0`` 1 when absent),
+    else free space ``p0[, d0]`` (``gamma = 2``, as ``calibrate --model friis`` writes
+    it), else ``p0 = -40 dBm, gamma = 2`` (the distance state is then only indicative;
+    the filtered RSSI does not depend on it much).  An anchor with both ``A, n`` and
+    ``p0, gamma`` takes ``A, n``, as ``locate`` does (``robustloc filter`` notes it when
+    they disagree, :func:`robustloc.commands.filter.pathloss_note`); it had taken ``p0,
+    gamma``.  The choice is made per anchor on the parameters it has (an empty cell, which
+    ``robustloc filter`` refuses as ``locate`` does, falls back to the next model here).
     """
     import pandas as pd
 
-    a = pd.DataFrame(anchors).set_index(pd.DataFrame(anchors)["anchor"].astype(str))
-    ids = np.asarray(anchor_of_link).astype(str)
-    n = ids.size
-
-    def col(name: str) -> Array:
-        if name not in a.columns:
-            return np.full(n, np.nan)
-        return a[name].astype(float).reindex(ids).to_numpy()
-
-    p0, g, faf, d0 = col("p0"), col("gamma"), col("faf"), col("d0")
-    A, nn = col("A"), col("n")
-    if "gamma" not in a.columns:  # friis: free space, gamma = 2 (seed 002, eq. (1)),
-        # where the anchor has no A, n (which locate would take first)
-        g = np.where(np.isfinite(p0) & ~(np.isfinite(A) & np.isfinite(nn)), 2.0, np.nan)
-    att = np.isfinite(p0) & np.isfinite(g) & (g > 0)
-    logd = ~att & np.isfinite(A) & np.isfinite(nn) & (nn > 0)
-    return LinkParams(
-        p0_dbm=np.where(att, p0, np.where(logd, A, -40.0)),
-        gamma=np.where(att, g, np.where(logd, nn, 2.0)),
-        faf_db=np.where(att & np.isfinite(faf), faf, 0.0),
-        d0_m=np.where(att & np.isfinite(d0) & (d0 > 0), d0, 1.0),
+    from robustloc.models.pathloss import (
+        MODEL_COLUMNS,
+        AttenuationFactor,
+        FreeSpace,
+        LogDistance,
+        model_from_anchors,
     )
+
+    a = pd.DataFrame(anchors).reset_index(drop=True)
+    names = [c for c in dict.fromkeys(c for m in MODEL_COLUMNS.values() for c in m)
+             if c in a.columns]
+    k = len(a)
+    p0, g, faf, d0 = np.full(k, -40.0), np.full(k, 2.0), np.zeros(k), np.ones(k)
+    have = np.isfinite(a[names].apply(pd.to_numeric, errors="coerce").to_numpy(dtype=float))
+    # anchors with the same parameters present share one model_from_anchors call
+    patterns, which = (np.unique(have, axis=0, return_inverse=True) if names and k
+                       else (np.zeros((0, 0), bool), np.zeros(k, np.int64)))
+    for i, pattern in enumerate(patterns):
+        rows = np.flatnonzero(which.reshape(-1) == i)
+        cols = [c for c, h in zip(names, pattern) if h]
+        try:
+            model = model_from_anchors(a.iloc[rows][["anchor", *cols]])
+        except ValueError:  # no usable parameters (InputError included): the defaults
+            continue
+        if isinstance(model, LogDistance):
+            p0[rows], g[rows] = model.log_distance_params()
+        elif isinstance(model, AttenuationFactor):
+            p0[rows], g[rows] = model.p0, model.gamma
+            faf[rows], d0[rows] = model.faf, model.d0
+        elif isinstance(model, FreeSpace):
+            p0[rows], d0[rows] = model.p0, model.d0
+    idx = pd.Index(a["anchor"].astype(str)).get_indexer(np.asarray(anchor_of_link).astype(str))
+    known = idx >= 0
+
+    def per_link(v: Array, default: float) -> Array:
+        return np.where(known, v[np.maximum(idx, 0)] if k else default, default)
+
+    return LinkParams(p0_dbm=per_link(p0, -40.0), gamma=per_link(g, 2.0),
+                      faf_db=per_link(faf, 0.0), d0_m=per_link(d0, 1.0))
 
 
 @dataclass(frozen=True)

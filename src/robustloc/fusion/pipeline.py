@@ -283,7 +283,8 @@ class FusionFilter:
         is ``fault_detected``, not ``ok`` (:meth:`run`, Notes).
     max_failed : this many consecutive events of a track that fail the test with no
         component rejected are counted as one divergence (``extra["diverged"]``): the
-        filter no longer agrees with its measurements (:meth:`run`, Notes).  0 disables.
+        filter no longer agrees with its measurements (:meth:`run`, Notes); a diverged
+        UKF restarts at its next event's fix.  0 disables.
     lost_pos_var : a prediction whose position variance ``V = var_x + var_y`` (m^2)
         exceeds this *and* is too wide to update, ``sqrt(eps) V >= r_min`` (``r_min`` the
         smallest variance ``R_ii`` of the event's components, :data:`SQRT_EPS`), is lost:
@@ -291,7 +292,12 @@ class FusionFilter:
         1e4 m^2 is a 70 m standard deviation per axis, wider than any UWB cell; the second
         condition is the one that bites (with 0.15 m ranges ``V >= 1.5e6 m^2``: a
         settled CV track at ``q = 0.5`` after a gap of about 50 s without measurements, a
-        CA track at ``q = 0.1`` after about 25 s -- predictions 0.9 km wide).
+        CA track at ``q = 0.1`` after about 25 s -- predictions 0.9 km wide).  The UKF
+        starts again from ``V > lost_pos_var`` alone at an event with ranges and a fix: its
+        sigma points lie ``sqrt(n + lambda)`` standard deviations out (2 for CV with the
+        paper's ``alpha = 1, kappa = 0``), 140 m and more at 1e4 m^2, across the anchors of
+        any UWB cell, where the ranges fold and the unscented moments of the update say
+        nothing (:meth:`run`, Notes).
     engine : ``"compiled"`` (default) -- :meth:`step` runs one compiled call per step
         (:mod:`robustloc.filters._compiled`) when the model is the built-in one:
         ``FusionMeasurement``, CV/CA motion, ``robust.mode == "gain"`` and a built-in weight
@@ -567,7 +573,10 @@ class FusionFilter:
         the last estimate and the variances of its prediction to the row's time.  So does
         a track whose prediction passes ``STATE_LIMIT**2`` at an event without
         measurements.  An update that raises all the same (a near-singular ``S`` below the
-        bound) restarts only its own track, or sets it adrift likewise.
+        bound) restarts only its own track, or sets it adrift likewise.  The UKF also
+        restarts at an event with ranges whose prediction has ``V > lost_pos_var`` (the
+        parameter's note: its sigma points then straddle the anchors), when the event has
+        a fix; without one it updates as before.
 
         Every updated event is tested: ``NIS`` over its ``dof`` available components
         against the B-method's ``chi2(1 - alpha; dof)`` (``alpha0``, ``beta0``).  An event
@@ -578,11 +587,19 @@ class FusionFilter:
         mean the filter has diverged -- on uwb-cart group B (``T = 10 s`` at the default
         ``q``) the UKF with the paper's ``alpha = 1`` drifted 15 km away with every row
         ``ok`` and ``NIS`` up to 5e5 (now ``fault_detected`` from its seventh event on).
-        Such a run is counted in ``extra["diverged"]`` and ``robustloc fuse`` warns; the
-        filter is not restarted: a restart at the event's fix, tried, helped the diverged
-        UKF (4.5 to 1.3 km RMS) but hurt where a persistent NLOS range fails the test
-        (uwb-dwm1001 NLOS plain EKF: largest error 24 to 80 m), since the fix holds the
-        same range.
+        Such a run is counted in ``extra["diverged"]`` and ``robustloc fuse`` warns.  The
+        EKF is not restarted: a restart at the event's fix, tried, hurt where a persistent
+        NLOS range fails the test (uwb-dwm1001 NLOS plain EKF: largest error 24 to 80 m),
+        since the fix holds the same range.  The UKF is: its divergence feeds itself
+        (sigma points spread across the anchors inflate ``S``, so the test passes now and
+        then while the state drifts away -- on group B with hampel weights rows 116 and
+        399 m off said ``ok``, and the track came back only when its variance was lost),
+        so a diverged UKF track restarts at the fix of its next event that has one
+        (updating as before until then), counted in ``extra["restarts"]``.  Measured
+        (``bench_fuse_defaults.py``, 8 seeds of group B, CV): RMS 4344 to 1024 m without
+        weights, 398 to 58 m with hampel; on the shared uwb-dwm1001 NLOS run the plain UKF
+        went from 4.89 to 3.57 m RMS, but its largest error from 24 to 58 m (the EKF's
+        case above); with hampel weights the real runs are unchanged.
         """
         t = np.asarray(time_s, dtype=float)
         z = np.asarray(z, dtype=float)
@@ -605,6 +622,7 @@ class FusionFilter:
         restarts = np.zeros(K, dtype=np.int64)
         coasts = np.zeros(K, dtype=np.int64)
         adrift = np.zeros(K, dtype=bool)  # lost, waiting for a fix to restart at
+        pending = np.zeros(K, dtype=bool)  # a diverged UKF, to restart at the next fix
         failed = np.zeros(K, dtype=np.int64)  # consecutive events failing the test
         diverged = np.zeros(K, dtype=np.int64)  # runs of max_failed such events
         gcrit = np.full(m + 1, np.inf)
@@ -634,22 +652,28 @@ class FusionFilter:
             zj = np.where(live[:, None], z[:, j], np.nan)
             # a lost track (Notes): restart at this event's fix, or coast until one comes
             lost = live & (adrift | self._prediction_lost(x, P, dt, zj, Rj, meas))
+            # a UKF that diverged, or whose sigma points would straddle the anchors, starts
+            # again at this event's fix if it has one, else it updates as it is (Notes)
+            redo = (live & ~lost & (pending | self._straddles(P, dt, zj, meas))
+                    if self.kind == "ukf" else np.zeros(K, dtype=bool))
             coast = np.zeros(K, dtype=bool)
-            if lost.any():
+            if lost.any() or redo.any():
                 fix = fixes[:, j]
-                go = lost & np.isfinite(fix).all(axis=1)
+                go = (lost | redo) & np.isfinite(fix).all(axis=1)
                 coast = lost & ~go
                 x, P = self._restart(go, x, P, P_init, fix)
                 dt = np.where(go, 0.0, dt)
                 zj = np.where(coast[:, None], np.nan, zj)
                 restarts += go
+                failed = np.where(go, 0, failed)  # a new track: no run of failures yet
+                pending &= ~go
             try:
                 r = self.step(x, P, dt, zj, Rj, meas)
             except np.linalg.LinAlgError:  # below the bound all the same: track by track
-                r, x, P, dt, go, failed = self._step_each(x, P, dt, zj, Rj, meas, P_init,
-                                                          fixes[:, j])
+                r, x, P, dt, go, stuck = self._step_each(x, P, dt, zj, Rj, meas, P_init,
+                                                         fixes[:, j])
                 restarts += go
-                coast |= failed
+                coast |= stuck
             r_status, r_nu, r_nis, r_w = r.status, r.n_used, r.nis, r.weights
             r_innov = r.innovation
             x_prior, P_prior = x, P
@@ -681,7 +705,10 @@ class FusionFilter:
             r_status = np.where(fail & (r_status == st.OK), st.FAULT_DETECTED, r_status)
             if self.max_failed > 0:
                 failed = np.where(fail, failed + 1, np.where(had, 0, failed))
-                diverged += failed == self.max_failed  # once per run of failures
+                gone = failed == self.max_failed
+                diverged += gone  # once per run of failures
+                if self.kind == "ukf":  # a diverged UKF restarts at its next fix (Notes)
+                    pending |= gone
             if self.max_rejected > 0:
                 some_rejected = had & (r_nu < avail)
                 rejected = np.where(some_rejected, rejected + 1, np.where(had, 0, rejected))
@@ -730,19 +757,35 @@ class FusionFilter:
         with np.errstate(invalid="ignore"):
             r_min = np.where(use, rd, np.inf).min(axis=1)
         avail = use.any(axis=1)
-        if np.all(dt == dt[0]):
-            F, Q = self.motion.FQ(float(dt[0]))
-            Fp = F[:2]
-            V = np.einsum("ia,kab,ib->k", Fp, P, Fp) + (Q[0, 0] + Q[1, 1])
-        else:
-            F, Q = self.motion.F(dt), self.motion.Q(dt)
-            Fp = F[:, :2]
-            V = np.einsum("kia,kab,kib->k", Fp, P, Fp) + (Q[:, 0, 0] + Q[:, 1, 1])
+        V = self._predicted_pos_var(P, dt)
         with np.errstate(invalid="ignore", over="ignore"):
             fine = (V <= self.lost_pos_var) | (V * SQRT_EPS < r_min)
             # beyond what a posterior may hold (STATE_LIMIT): lost even without an update
             absurd = ~(V <= STATE_LIMIT**2)
         return (avail & ~fine) | absurd
+
+    def _predicted_pos_var(self, P: Array, dt: Array) -> Array:
+        """``V = var_x + var_y`` of the predictions ``F P F^T + Q`` over ``dt (K,)``."""
+        with np.errstate(invalid="ignore", over="ignore"):
+            if np.all(dt == dt[0]):
+                F, Q = self.motion.FQ(float(dt[0]))
+                Fp = F[:2]
+                return np.einsum("ia,kab,ib->k", Fp, P, Fp) + (Q[0, 0] + Q[1, 1])
+            F, Q = self.motion.F(dt), self.motion.Q(dt)
+            Fp = F[:, :2]
+            return np.einsum("kia,kab,kib->k", Fp, P, Fp) + (Q[:, 0, 0] + Q[:, 1, 1])
+
+    def _straddles(self, P: Array, dt: Array, z: Array, meas: FusionMeasurement
+                   ) -> NDArray[np.bool_]:
+        """Tracks whose prediction over ``dt`` has ``V > lost_pos_var`` at an event with a
+        range: the UKF's sigma points, ``sqrt(n + lambda)`` standard deviations out, then
+        lie across the anchors (``lost_pos_var``, :meth:`run`)."""
+        M = meas.n_ranges
+        ranged = np.isfinite(z[:, :M]).any(axis=1) if M else np.zeros(len(z), dtype=bool)
+        if not ranged.any():
+            return ranged
+        with np.errstate(invalid="ignore"):
+            return ranged & (self._predicted_pos_var(P, dt) > self.lost_pos_var)
 
     def _speed_determined(self, x: Array, dt: Array) -> NDArray[np.bool_]:
         """Tracks whose predicted speed over ``dt`` is at least ``min_speed_mps``.

@@ -25,6 +25,14 @@ than three distinct anchors) or ``ill_conditioned`` (three or more, but all at o
 on one line -- the anchors' scatter matrix fails the condition test of
 :func:`robustloc.estimators._kernels.inv_spd`).  The filtered state is still written on
 such rows; GPS speed and course (velocity only) cannot make the position observable.
+These two qualify an *updated* row.  A row that nothing updated is ``predicted`` in either
+coupling, whatever its anchors (its state is the motion model's prediction, ``n_used`` 0):
+a lost track's coasting rows, and in loose coupling every event of one or two anchors
+without GPS -- loose coupling has no fix from them, where tight coupling updates with the
+ranges themselves (so the same epoch is ``insufficient_anchors`` in tight and ``predicted``
+in loose coupling: the rows' states differ).  ``invalid_measurement`` is an event whose
+values were *all* outside their limits; one with a valid range left unused is
+``predicted``.
 An event whose update kept no component (all rejected, ``n_used`` 0) is ``predicted``.  In
 loose coupling an ``ok`` event whose fix failed its own test (:func:`fix_test_status`,
 ``locate``'s) is ``fault_detected``.  An anchor far outside the others
@@ -371,8 +379,12 @@ def fuse(
                               st.FAULT_DETECTED, status)
         fixed = st.among(status, (st.OK, st.FAULT_EXCLUDED, st.FAULT_DETECTED))
         status = np.where(fixed & (layout != ""), layout, status)
-        # nothing valid arrived with the event: its own input was unusable
-        bad_event = np.isfinite(tl.z[..., c_inv]) & (status == st.PREDICTED)
+        # nothing valid arrived with the event: its own input was unusable.  Not an event
+        # with a valid value that nothing used -- loose coupling's one or two ranges, no fix
+        # to update with: predicted, as without the invalid one (it said
+        # invalid_measurement; the filter/fuse review 4)
+        own = heard.any(axis=-1) | np.isfinite(z[..., m - 2 :]).any(axis=-1)
+        bad_event = np.isfinite(tl.z[..., c_inv]) & ~own & (status == st.PREDICTED)
         status = np.where(bad_event, st.INVALID, status)
         # an update that kept no component (every one rejected: n_used 0, a GPS speed or
         # course kept counts) left the prediction: predicted, never ok / fault_excluded

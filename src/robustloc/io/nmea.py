@@ -30,6 +30,13 @@ has nothing to judge by: every jump is believed.  With a dated RMC,
 ``time_s + day0_posix_s`` is POSIX time.  Add an offset to align it with another stream
 (see :mod:`robustloc.fusion.align`).
 
+VTG carries no time: it belongs to the fix whose timed sentences (RMC, GGA, GST) precede
+it in the log, and takes their time.  A VTG without such a fix of its own -- before any
+timed sentence, a second VTG after one fix, or one after a timed sentence of another time
+that was skipped (its RMC and GGA lost to a bad checksum, an invalid fix) -- is an
+*orphan*: it would lend its speed and course to the previous fix, so it is skipped and
+counted as ``orphan_vtg``.
+
 Robustness: lines may carry a prefix or suffix (Android GnssLogger ``NMEA,$GP...*hh,ms``):
 the sentence is the text from ``$`` to the two hex digits after ``*``.  A bad checksum, a
 missing checksum, a truncated sentence (required fields empty), a malformed one (a field
@@ -80,6 +87,7 @@ SKIP_REASONS = (
     "unsupported",
     "invalid_measurement",
     "time_jump",
+    "orphan_vtg",
 )
 
 #: A step between successive time stamps of a log beyond this (s, after the midnight
@@ -165,6 +173,22 @@ def _tod(ts) -> float:
     return ts.hour * 3600.0 + ts.minute * 60.0 + ts.second + ts.microsecond * 1e-6
 
 
+#: Sentence types that carry the time of their fix (a VTG takes theirs).
+_TIMED = ("RMC", "GGA", "GST")
+
+
+def _raw_tod(text: str) -> float | None:
+    """The time of day (s) of an ``hhmmss[.ss]`` field, read as pynmea2 reads a kept
+    sentence's (so that equal times compare equal), as a skipped sentence (bad checksum,
+    invalid fix) still shows it; ``None`` if it is not one."""
+    if len(text) < 6 or not text[:6].isdigit():
+        return None
+    try:
+        return _tod(pynmea2.nmea_utils.timestamp(text))
+    except (ValueError, TypeError):  # minute 61, a fraction that is no number, ...
+        return None
+
+
 def _num(v) -> float:
     try:
         return float(v)
@@ -245,11 +269,22 @@ def parse_nmea(
     n_lines = 0
     dates: list[tuple[int, datetime.date]] = []  # (order, date) of the dated RMC sentences
     where: list[tuple[int, str]] = []  # (line number, type) of each sentence used, by order
+    # the fix a VTG may join (module docstring): the time of day of the latest timed
+    # sentence kept, whether that fix has its VTG already, and whether a timed sentence of
+    # another time was skipped since (the VTG that follows is that lost fix's)
+    fix_tod: float | None = None
+    fix_has_vtg = False
+    fix_passed = False
+    kind, body = "", ""  # the sentence being read
 
     def skip(lineno: int, reason: str) -> None:
+        nonlocal fix_passed
         skipped[reason] += 1
         if len(examples) < 20:
             examples.append((lineno, reason))
+        if kind in _TIMED:  # a timed sentence lost: is it another fix's?
+            tod = _raw_tod(body.split(",", 1)[0])
+            fix_passed |= tod is not None and tod != fix_tod
 
     def checked(lineno: int, speed: float, course_deg: float) -> tuple[float, float]:
         """Speed (m/s) and course (deg) with implausible values set to NaN and counted."""
@@ -271,18 +306,19 @@ def parse_nmea(
         if not line:
             continue
         n_lines += 1
+        kind = ""
         m = _SENTENCE.search(line)
         if m is None:
             skip(lineno, "no_sentence")
             continue
         talker_type, body, cs = m.group(1), m.group(2), m.group(4)
+        kind = talker_type[2:]
         if cs is None:
             skip(lineno, "missing_checksum")
             continue
         if nmea_checksum(f"{talker_type},{body}") != cs.upper():
             skip(lineno, "bad_checksum")
             continue
-        kind = talker_type[2:]
         if kind not in ("RMC", "VTG", "GGA", "GST"):
             skip(lineno, "unsupported")
             continue
@@ -328,8 +364,12 @@ def parse_nmea(
                 if np.isnan(speed):
                     skip(lineno, "truncated")
                     continue
+                if fix_tod is None or fix_has_vtg or fix_passed:
+                    skip(lineno, "orphan_vtg")  # no fix of its own (module docstring)
+                    continue
                 speed, course = checked(lineno, speed, _num(msg.true_track))
-                # VTG has no time: it belongs to the last timed sentence
+                # VTG has no time: it takes its fix's, the last timed sentence's
+                fix_has_vtg = True
                 motion.append((np.nan, speed, np.deg2rad(course), "VTG", order))
             elif kind == "GGA":
                 if ts is None or msg.gps_qual is None or not msg.lat or not msg.lon:
@@ -376,6 +416,11 @@ def parse_nmea(
         parsed[kind] += 1
         where.append((lineno, kind))
         order += 1
+        if kind in _TIMED:  # the fix a following VTG joins
+            if _tod(ts) != fix_tod:
+                fix_tod, fix_has_vtg = _tod(ts), False
+            fix_passed = False
+    kind = ""
 
     # ---- one time axis: seconds since 00:00 UTC of the first day, with roll-overs and
     # sentences whose time jumps by hours set aside (module docstring, Time)
