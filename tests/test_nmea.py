@@ -165,3 +165,19 @@ def test_posix_day_from_rmc_date():
     np.testing.assert_allclose(log2.motion["time_s"], [86399.0, 86401.0])
     assert log2.day0_posix_s == pytest.approx(1703980800.0)  # 2023-12-31 00:00 UTC
     assert parse_nmea([make_vtg(1.0, 0.0)]).day0_posix_s is None
+
+
+def test_parse_nmea_of_a_string_reads_its_lines_and_refuses_a_file_name(tmp_path):
+    """A string was iterated character by character: every character a ``no_sentence``
+    line, no error (a path given to parse_nmea read as 41 empty 'lines')."""
+    import pytest
+
+    from robustloc.io.nmea import parse_nmea, read_nmea
+
+    text = PIXEL6.read_text()
+    from_text = parse_nmea(text)
+    assert from_text.summary.parsed == read_nmea(PIXEL6).summary.parsed
+    assert from_text.summary.parsed["GGA"] == 48
+    assert parse_nmea(text.encode()).summary.parsed["RMC"] == 48
+    with pytest.raises(TypeError, match="use read_nmea"):
+        parse_nmea(str(PIXEL6))

@@ -243,7 +243,7 @@ def _unwrap_days(tod: np.ndarray) -> np.ndarray:
 
 
 def parse_nmea(
-    lines: Iterable[str],
+    lines: Iterable[str] | str | bytes,
     origin: tuple[float, float, float] | None = None,
     source: str = "<nmea>",
 ) -> NmeaLog:
@@ -251,13 +251,22 @@ def parse_nmea(
 
     Parameters
     ----------
-    lines : iterable of str
-        Raw lines (prefixes/suffixes around the sentence are tolerated).
+    lines : iterable of str, or str or bytes
+        Raw lines (prefixes/suffixes around the sentence are tolerated); a string is NMEA
+        text, split into its lines (it was iterated character by character: every
+        character a ``no_sentence`` line, no error).  For a file, :func:`read_nmea`.
     origin : (lat_deg, lon_deg, h_m), optional
         ENU origin for GGA positions; default the first valid GGA fix.
     source : str
         Name used in messages.
     """
+    if isinstance(lines, bytes):
+        lines = lines.decode("ascii", errors="replace")
+    if isinstance(lines, str):
+        if "$" not in lines and "\n" not in lines.strip() and Path(lines).is_file():
+            raise TypeError(f"parse_nmea takes NMEA text or its lines, not a file name "
+                            f"({lines!r}): use read_nmea(path)")
+        lines = lines.splitlines()
     skipped: Counter[str] = Counter({r: 0 for r in SKIP_REASONS})
     invalid: Counter[str] = Counter()
     speed_lim, course_lim = LIMITS["speed"], LIMITS["course"]
