@@ -180,3 +180,14 @@ def test_precise_orbits_with_klobuchar_keep_raim_available(tmp_path):
     brdc = pd.read_csv(tmp_path / "b.csv")
     assert (brdc["status"] == "ok").all()
     assert got["status"].isin(["ok", "fault_excluded"]).all(), got["status"].value_counts()
+
+
+def test_run_spp_takes_one_navigation_path_as_a_path():
+    """One path was read character by character: "file not found" naming its first
+    letter."""
+    from robustloc.pipelines.spp import SppSettings, run_spp
+
+    one, _ = run_spp(str(OBS), str(NAV), SppSettings())
+    many, _ = run_spp(str(OBS), [str(NAV)], SppSettings())
+    pd.testing.assert_frame_equal(one, many)
+    assert (one["status"] == "ok").all()

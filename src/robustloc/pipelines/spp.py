@@ -13,6 +13,7 @@ import argparse
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from os import PathLike
 from pathlib import Path
 from typing import Any
 
@@ -206,9 +207,12 @@ def _model_notes(iono: str, nav: bool, precise: bool, systems: str) -> list[str]
     return notes
 
 
-def run_spp(obs: str, nav: Sequence[str], settings: SppSettings, *, sp3: str | None = None,
+def run_spp(obs: str, nav: Sequence[str] | str, settings: SppSettings, *,
+            sp3: str | None = None,
             clk: str | None = None) -> tuple[pd.DataFrame, dict[str, Any]]:
-    """Solve every epoch of a RINEX observation file.
+    """Solve every epoch of a RINEX observation file (``nav``: one navigation file's path,
+    or a sequence of them; one path was read character by character, "file not found"
+    naming its first letter).
 
     Returns
     -------
@@ -223,6 +227,9 @@ def run_spp(obs: str, nav: Sequence[str], settings: SppSettings, *, sp3: str | N
     from robustloc import status as st
     from robustloc.gnss.raim import RaimFde, inject_faults
     from robustloc.gnss.rinex import read_nav, read_obs
+
+    if isinstance(nav, (str, PathLike)):
+        nav = [nav]
     from robustloc.gnss.sp3 import N_LAGRANGE, PreciseProducts, read_clk, read_sp3
     from robustloc.gnss.spp import SppSolver, error_summary
 
