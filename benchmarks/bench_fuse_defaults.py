@@ -26,9 +26,12 @@ Measured here (full runs, 8 seeds, 2026-12-04), RMS in m:
     ekf    none      3.60     4.87      0.240      0.063    0.315   0.178    0.619
     ekf    hampel    0.919    0.851     0.239      0.063    0.102   0.178    0.619
     ekf    igg3      0.902    0.848     0.260      0.063    0.076   0.178    0.619
-    ukf    none      3.73     4.89      0.244      0.127    0.786   4344     4256
-    ukf    hampel    0.922    0.853     0.243      0.127    0.403   398      395
+    ukf    none      1.35     3.57      0.244      0.127    0.803   1024     933
+    ukf    hampel    0.922    0.853     0.243      0.127    0.403   58.1     58.8
 
+The UKF rows are of 2026-12-05, after a diverged UKF restarts at its next fix (before:
+none 3.73 / 4.89 / 0.244 / 0.127 / 0.786 / 4344 / 4256, hampel group B 398 / 395; the
+plain UKF's largest error on dwm NLOS rose from 24 to 58 m).
 Largest RMS ratio to none over the 35 runs: hampel 1.000, huber 1.000, igg 1.105 and igg3
 1.083 (EKF; the labyrinth).  Share of rows ``fault_detected`` with the EKF and hampel: 0 on
 the clean group-A carts, 0.18 % on group B, 0.13 / 0.19 / 0.86 % on dwm LOS / NLOS /
