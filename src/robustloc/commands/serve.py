@@ -7,6 +7,7 @@ import logging
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
 from robustloc.options import nonnegative_float, positive_float, positive_int
 
@@ -51,7 +52,8 @@ once its rows are stored; one the store cannot write is delivered again later.
 
 Shutdown (SIGTERM, SIGINT): requests in progress get up to --shutdown-grace seconds
 (default 5) to finish, then they are cancelled (a client still sending a body gets no 202:
-nothing of that body is stored).
+nothing of that body is stored); the pending epochs are solved, and the service says
+"stopped (SIGTERM)" and exits 0: a normal stop.
 
 Security: binds 127.0.0.1 unless --host says otherwise; --token (or ROBUSTLOC_TOKEN)
 guards ingest and reads (Authorization: Bearer TOKEN; WebSockets may use ?token=);
@@ -446,9 +448,36 @@ def run(args: argparse.Namespace) -> int:
     server = uvicorn.Server(config)
     print(f"robustloc serve: http://{args.host}:{args.port}/ ({engine.processor.name}, "
           f"latency window {args.latency_window:g} s)", file=sys.stderr, flush=True)
+    stopped_by = _run_until_stopped(server)
+    if cfg.store_lock is not None:
+        cfg.store_lock.release()
+    if stopped_by:
+        kept = (f"; every acknowledged row is in {args.store}" if args.store is not None
+                else " (no --store: its rows are gone)")
+        print(f"robustloc serve: stopped ({stopped_by}){kept}", file=sys.stderr, flush=True)
+    return 0
+
+
+def _run_until_stopped(server: Any) -> str:
+    """Run ``server`` (a ``uvicorn.Server``) to its graceful shutdown; returns the name of
+    the signal that stopped it ("" if none did).
+
+    uvicorn catches SIGTERM and SIGINT, shuts down, then raises the signal again for the
+    handlers it found: the command line's turned that normal stop into ``error:
+    terminated`` and exit code 143 (a service manager then reports the unit failed).  The
+    handlers it finds here only note the signal, and restore the command line's after.
+    """
+    import signal
+
+    got: list[int] = []
+
+    def note(signum: int, frame: object) -> None:
+        got.append(signum)
+
+    old = {sig: signal.signal(sig, note) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         server.run()
     finally:
-        if cfg.store_lock is not None:
-            cfg.store_lock.release()
-    return 0
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+    return signal.Signals(got[0]).name if got else ""
