@@ -111,8 +111,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="true tag position for --anchors (default: anchors' centroid)")
     p.add_argument("--dim", type=int, choices=(2, 3), default=None,
                    help="solved dimension for --anchors (default 2; z = known height offsets)")
-    p.add_argument("--tag-z", type=float_in(-1e5, 1e5), default=None,
-                   help="tag height for --dim 2 (default 0)")
+    p.add_argument("--tag-z", "--tag-height", dest="tag_z", type=float_in(-1e5, 1e5),
+                   default=None, metavar="M",
+                   help="tag height in metres for --dim 2 (default 0); --tag-z and "
+                        "--tag-height (the name locate, calibrate, track and fuse use) are "
+                        "the same option")
     p.add_argument("--sigma", type=float_in(1e-6, 1e6), default=None,
                    help="observation standard deviation for --anchors: m for ranges, dB for "
                         "RSSI (default 1)")

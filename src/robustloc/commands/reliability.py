@@ -6,11 +6,17 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from robustloc.errors import InputError
 from robustloc.options import finite_float, float_in, positive_float
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+    from robustloc.models.pathloss import PathLossModel
 
 NAME = "reliability"
 HELP = "anchor-layout planner: DOP, CRLB, MDB, external reliability, w-test correlation maps"
@@ -38,9 +44,17 @@ a fix. A layout with no fix anywhere (one or two anchors, all anchors on one lin
 that gives fixes: then a warning says the maps are empty and the ranking is printed.
 
 Anchors file: contract format `anchor, x, y[, z]` (CSV or Parquet). In 2-D, anchor heights
-(z) are known offsets from the tag height --tag-z. For --model rssi the path-loss exponent
-is --n, or the anchors' `n` column when present. On a terminal a progress bar on stderr
-counts the grid points (--suggest: one grid per candidate); -q hides it.
+(z) are known offsets from the tag height --tag-z (--tag-height). For --model rssi the
+path-loss exponent is --n, or the anchors' exponents (`n`; `gamma` of the
+attenuation-factor model) when present. On a terminal a progress bar on stderr counts the
+grid points (--suggest: one grid per candidate); -q hides it.
+
+What the anchors file says sets what is left out: --model is rssi when it has path-loss
+columns (A, n; p0, gamma; p0, as `calibrate` writes them) and no range calibration (bias,
+scale), else range; --sigma is its per-anchor `sigma` column (calibrate's residual
+standard deviation, dB or m) when that column is in the model's unit, else 1.  A `note:`
+on stderr says what was taken from the file.  max_mdb is in the observation's unit: dB for
+rssi, m for range.
 
 Example:
   robustloc reliability --anchors anchors.csv --area 0,40,0,3 --step 0.25 --sigma 1 -o rel/"""
@@ -75,17 +89,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="grid extent in metres (default: anchors' bounding box + 10 %%)")
     p.add_argument("--step", type=positive_float, default=None,
                    help="grid spacing in metres (default: about 150 points along the longer side)")
-    p.add_argument("--sigma", type=float_in(1e-9, 1e9), default=1.0,
+    p.add_argument("--sigma", type=float_in(1e-9, 1e9), default=None,
                    help="a-priori standard deviation of one observation: m for ranges, dB for "
-                        "RSSI, 1e-9 .. 1e9 (default 1)")
+                        "RSSI, 1e-9 .. 1e9 (default: the anchors' sigma column when it is in "
+                        "the model's unit, else 1)")
     p.add_argument("--dim", type=int, choices=(2, 3), default=2,
                    help="solved dimension (default 2)")
-    p.add_argument("--tag-z", type=float_in(-1e5, 1e5), default=0.0,
-                   help="tag height in metres (default 0)")
-    p.add_argument("--model", choices=("range", "rssi"), default="range",
-                   help="observation type (default range)")
+    p.add_argument("--tag-z", "--tag-height", dest="tag_z", type=float_in(-1e5, 1e5),
+                   default=0.0, metavar="M",
+                   help="tag height in metres (default 0); --tag-z and --tag-height (the "
+                        "name locate, calibrate, track and fuse use) are the same option")
+    p.add_argument("--model", choices=("range", "rssi"), default=None,
+                   help="observation type (default: rssi when the anchors file has path-loss "
+                        "columns and no range calibration, else range)")
     p.add_argument("--n", type=float_in(0.1, 10.0), default=None,
-                   help="path-loss exponent for --model rssi (default: anchors' n column, else 2)")
+                   help="path-loss exponent for --model rssi (default: the anchors' n, or "
+                        "gamma, column, else 2)")
     p.add_argument("--max-range", type=positive_float, default=None,
                    help="anchors farther than this (m) are not heard (default: all heard)")
     p.add_argument("--alpha0", type=float_in(1e-15, 0.5), default=0.001,
@@ -199,6 +218,82 @@ def _no_fix(xyz: np.ndarray, args: argparse.Namespace) -> str:
                else "") + ")")
 
 
+#: Unit of an observation, its sigma and its MDB, per --model.
+UNITS = {"range": "m", "rssi": "dB"}
+
+
+def _file_defaults(df: pd.DataFrame,
+                   args: argparse.Namespace) -> tuple[PathLossModel | None, str | None]:
+    """Fill in ``args.model`` and ``args.sigma`` left out from what the anchors file says.
+
+    The model is ``rssi`` when the file has a path-loss model
+    (:func:`robustloc.models.pathloss.model_from_anchors`, the columns ``locate`` uses) and
+    no range calibration (``bias``, ``scale``:
+    :data:`robustloc.models.calibration.FIT_COLUMNS`), else ``range``.  The sigma is the
+    file's per-anchor ``sigma`` column (:func:`robustloc.io.tables.anchor_sigma`) when it
+    is in the model's unit (a path-loss fit's is dB, a range calibration's m; a file with
+    both says neither), else 1.
+
+    Parameters
+    ----------
+    df : pandas.DataFrame
+        The anchors (:func:`robustloc.io.read_anchors`).
+    args : argparse.Namespace
+        The command line; ``model`` and ``sigma`` are set in place when None.
+
+    Returns
+    -------
+    path_loss : PathLossModel or None
+        The file's path-loss model (its exponents for ``rssi``), None without one.
+    note : str or None
+        What was taken from the file, or why its sigma was not (None: nothing to say).
+    """
+    from robustloc.io.tables import anchor_sigma
+    from robustloc.models.calibration import FIT_COLUMNS
+    from robustloc.models.pathloss import MODEL_COLUMNS, model_from_anchors
+
+    try:
+        path_loss = model_from_anchors(df)
+    except InputError:  # no path-loss columns (or an anchor without a value: not a model)
+        path_loss = None
+    fitted = [c for c in MODEL_COLUMNS[path_loss.name] if c in df.columns] if path_loss else []
+    ranging = [c for c in FIT_COLUMNS["range"] if c in df.columns]
+    # what the file's sigma is the residual of (None: the file does not say)
+    kind = None if bool(fitted) == bool(ranging) else ("rssi" if fitted else "range")
+    said = []
+    if args.model is None:
+        args.model = "rssi" if kind == "rssi" else "range"
+        if kind is not None:
+            said.append(f"model {args.model} from its {', '.join(fitted or ranging)} columns")
+        elif fitted:
+            said.append(f"model range: it has path-loss columns ({', '.join(fitted)}) and a "
+                        f"range calibration ({', '.join(ranging)}), give --model rssi for RSSI")
+    sigma = anchor_sigma(df)
+    if args.sigma is None:
+        args.sigma = 1.0
+        if sigma is not None and kind in (None, args.model) and not (fitted and ranging):
+            args.sigma = float(sigma[0]) if np.all(sigma == sigma[0]) else sigma
+            said.append(f"sigma {_sigma_text(args.sigma, args.model)} from its sigma column")
+        elif sigma is not None:
+            of = {"rssi": "a path-loss fit's (dB)", "range": "a range calibration's (m)",
+                  None: "a path-loss fit's (dB) or a range calibration's (m)"}[kind]
+            said.append(f"sigma 1 {UNITS[args.model]}, not its sigma column, which is {of}")
+    if not said:
+        return path_loss, None
+    return path_loss, (f"{args.anchors}: " + "; ".join(said)
+                       + " (--model and --sigma override what the file says)")
+
+
+def _sigma_text(sigma: object, model: str) -> str:
+    """``sigma`` for the summary: one number, or the per-anchor range and median."""
+    s = np.asarray(sigma, dtype=float)
+    unit = UNITS[model]
+    if s.ndim == 0:
+        return f"{float(s):g} {unit}"
+    return (f"per anchor {s.min():.3g} .. {s.max():.3g} {unit} (median "
+            f"{float(np.median(s)):.3g})")
+
+
 def run(args: argparse.Namespace) -> int:
     from robustloc.integrity.planner import MAPS, plan, plot_maps
 
@@ -215,10 +310,15 @@ def run(args: argparse.Namespace) -> int:
     step = args.step
     if step is None:
         step = max(area[1] - area[0], area[3] - area[2]) / 150.0
+    path_loss, note = _file_defaults(df, args)
+    if note is not None:
+        print(f"note: {note}", file=sys.stderr)
     n_exp: object = 2.0
     if args.model == "rssi":
         if args.n is not None:
             n_exp = args.n
+        elif path_loss is not None:  # n, or gamma (attenuation factor), or 2 (friis)
+            n_exp = path_loss.log_distance_params()[1]
         elif "n" in df.columns and np.all(np.isfinite(df["n"].to_numpy(float))):
             n_exp = df["n"].to_numpy(float)
     if args.dim == 3 and "z" not in df.columns:
@@ -262,6 +362,9 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     csv = out / "reliability.csv"
     best = None if sugg is None else sugg[["x", "y"]].to_numpy(float)[:3]
+    unit = UNITS[args.model]
+    # the MDB is in the observation's unit (MAPS says "observation units")
+    captions = {**MAPS, "max_mdb": f"largest MDB ({unit})"}
 
     def write(folder: Path) -> list:
         grid.table.to_csv(folder / csv.name, index=False, float_format="%.6g")
@@ -269,7 +372,8 @@ def run(args: argparse.Namespace) -> int:
             sugg.to_csv(folder / "suggestions.csv", index=False, float_format="%.6g")
         if args.no_maps:
             return []
-        maps = plot_maps(grid, xyz, folder, [str(a) for a in df["anchor"]], highlight=best)
+        maps = plot_maps(grid, xyz, folder, [str(a) for a in df["anchor"]], highlight=best,
+                         captions=captions)
         return [out / Path(m).name for m in maps]
 
     # an input named like an output (rel/reliability.csv as --anchors) is refused
@@ -283,7 +387,11 @@ def run(args: argparse.Namespace) -> int:
         "area": list(area),
         "step_m": step,
         "model": args.model,
-        "sigma": args.sigma,
+        # one number (the median of per-anchor sigmas), as before; the anchors' below
+        "sigma": float(np.median(args.sigma)),
+        "sigma_per_anchor": (np.asarray(args.sigma, float).tolist()
+                             if np.ndim(args.sigma) else None),
+        "unit": unit,  # of sigma and max_mdb
         "points_without_fix": int(t["dop"].isna().sum()),
         "points_without_redundancy": int((t["dof"] < 1).sum()),
     }
@@ -304,8 +412,8 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(summary, indent=2))
     else:
         print(f"{summary['grid_points']} grid points, {summary['anchors']} anchors, "
-              f"model {args.model}, sigma {args.sigma}")
-        for col, cap in MAPS.items():
+              f"model {args.model}, sigma {_sigma_text(args.sigma, args.model)}")
+        for col, cap in captions.items():
             s = summary[col]
             if s["median"] is None:
                 continue

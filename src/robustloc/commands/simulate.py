@@ -14,7 +14,9 @@ HELP = "simulate a scenario (ble-corridor, ...) into anchors/measurements/truth/
 DESCRIPTION = """\
 Writes the files of a simulated experiment (anchors.csv, measurements.csv, truth.csv and
 survey.csv where calibration applies) into --out, in the same formats as real logs, so
-that calibrate, locate and evaluate run on them unchanged.
+that calibrate, locate and evaluate run on them unchanged.  gnss writes pseudoranges.csv
+and truth.csv instead, which no command reads (spp takes RINEX): how to use them from
+Python is at the end of robustloc simulate gnss --help.
 
   robustloc simulate --list
   robustloc simulate ble-corridor --seed 1 --out corridor
@@ -44,10 +46,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--list", action="store_true", help="list the scenarios and exit")
     sub = p.add_subparsers(dest="scenario", metavar="SCENARIO")
+    from robustloc.commands._help import rst_to_text
+
     for name, mod in scenario_modules().items():
-        doc = (mod.__doc__ or mod.HELP).strip()
+        # the module docstring is reStructuredText for Sphinx: plain text on a terminal
+        doc = rst_to_text((mod.__doc__ or mod.HELP).strip())
+        usage = getattr(mod, "USAGE", None)  # what to do with the files, after the options
         sp = sub.add_parser(
             name, help=mod.HELP, description=doc,
+            epilog=None if usage is None else rst_to_text(usage),
             formatter_class=argparse.RawDescriptionHelpFormatter,
         )
         _common(sp)
@@ -83,4 +90,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         for k, v in files.items():
             print(f"{k:14s} {v}")
+    note = getattr(mods[args.scenario], "FILES_NOTE", None)  # (gnss: no command reads them)
+    if note is not None and not args.quiet:
+        print(f"note: {note}", file=sys.stderr)
     return 0

@@ -30,7 +30,7 @@ maps and ranked by ``--suggest``, exit 0).  An MDB of an uncontrolled observatio
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -163,7 +163,7 @@ def plan(
     anchors: ArrayLike,
     area: tuple[float, float, float, float],
     step: float,
-    sigma: float,
+    sigma: ArrayLike,
     *,
     dim: int = 2,
     tag_z: float = 0.0,
@@ -186,9 +186,10 @@ def plan(
         Grid extent, m.
     step : float
         Grid spacing, m.
-    sigma : float
+    sigma : float or array_like (m,)
         A-priori standard deviation of one observation: metres (``model="range"``) or dB
-        (``model="rssi"``).
+        (``model="rssi"``); one number, or one per anchor (an anchors file's ``sigma``
+        column, as ``calibrate`` writes it).
     dim : 2 or 3
         Solved dimension.  In 2-D, anchor heights (third column) enter as known offsets from
         the tag height ``tag_z``; in 3-D the grid lies at height ``tag_z``.
@@ -216,8 +217,13 @@ def plan(
         raise ValueError("--dim 3 needs anchor heights (a z column)")
     if model not in ("range", "rssi"):
         raise ValueError(f"model must be 'range' or 'rssi', got {model!r}")
-    if not (np.isfinite(sigma) and sigma > 0):
+    sig = np.asarray(sigma, dtype=float)
+    if sig.ndim > 1 or (sig.ndim == 1 and sig.size != a.shape[0]):
+        raise ValueError(f"sigma must be one number or one per anchor ({a.shape[0]}), "
+                         f"got shape {sig.shape}")
+    if not (np.all(np.isfinite(sig)) and np.all(sig > 0)):
         raise ValueError(f"sigma must be positive, got {sigma}")
+    sigma = sig  # (broadcast against the anchors of every grid point)
     check_chunk(chunk)
     gx, gy = grid_axes(area, step)
     X, Y = np.meshgrid(gx, gy)
@@ -284,11 +290,15 @@ def plot_maps(
     prefix: str = "reliability",
     columns: tuple[str, ...] = tuple(MAPS),
     highlight: ArrayLike | None = None,
+    captions: Mapping[str, str] | None = None,
 ) -> list[Path]:
     """Heat maps of the planner columns with the anchors drawn; returns the PNG paths.
 
     ``highlight`` (k, 2+): positions drawn as white stars (e.g. suggested new anchors).
+    ``captions``: the maps' titles by column, over :data:`MAPS` (e.g. ``max_mdb`` with
+    its unit, dB for RSSI or m for ranges).
     """
+    titles = {**MAPS, **(captions or {})}
     import matplotlib
 
     matplotlib.use("Agg")
@@ -332,13 +342,13 @@ def plot_maps(
         for (px, py), name in zip(a[:, :2], ids):
             ax.annotate(str(name), (px, py), textcoords="offset points", xytext=(3, 3),
                         fontsize=7, color="r")
-        ax.set_title(MAPS.get(col, col), fontsize=10)
+        ax.set_title(titles.get(col, col), fontsize=10)
         ax.set_xlabel("x (m)")
         ax.set_ylabel("y (m)")
         if equal:
             ax.set_aspect("equal")
         else:
-            ax.set_title(MAPS.get(col, col) + " (axes not to scale)", fontsize=10)
+            ax.set_title(titles.get(col, col) + " (axes not to scale)", fontsize=10)
         fig.subplots_adjust(bottom=0.16 if not equal else 0.1, top=0.9)
         p = out / f"{prefix}_{col}.png"
         fig.savefig(p, dpi=100)
@@ -370,7 +380,7 @@ def suggest_anchor(
     anchors: ArrayLike,
     area: tuple[float, float, float, float],
     step: float,
-    sigma: float,
+    sigma: ArrayLike,
     candidates: ArrayLike,
     *,
     metric: str = "max_ext_m",
@@ -393,7 +403,8 @@ def suggest_anchor(
     metric, quantile : see :func:`layout_score`.
     **plan_kwargs : further options of :func:`plan` (``dim``, ``model``, ``max_range_m``...;
         ``progress`` counts the grid points of every run: ``len(candidates) + 1`` grids).
-        Per-anchor path-loss exponents are extended with their median for the candidate.
+        Per-anchor path-loss exponents, and per-anchor sigmas, are extended with their
+        median for the candidate.
 
     Returns
     -------
@@ -413,9 +424,12 @@ def suggest_anchor(
     n_exp = np.asarray(plan_kwargs.get("path_loss_n", 2.0), dtype=float)
     if n_exp.ndim == 1 and n_exp.size == len(a):  # per-anchor exponents: the new one gets
         kw_new["path_loss_n"] = np.append(n_exp, np.median(n_exp))  # the median
+    sig_new = np.asarray(sigma, dtype=float)
+    if sig_new.ndim == 1 and sig_new.size == len(a):  # per-anchor sigmas: the same
+        sig_new = np.append(sig_new, np.median(sig_new))
     rows = []
     for cand in c:
-        g = plan(np.vstack([a, cand]), area, step, sigma, **kw_new)
+        g = plan(np.vstack([a, cand]), area, step, sig_new, **kw_new)
         sc = layout_score(g, metric, quantile)
         rows.append({**{k: float(v) for k, v in zip("xyz", cand)}, "score": sc,
                      "baseline": base,

@@ -72,6 +72,25 @@ from numpy.typing import NDArray
 
 NAME = "gnss"
 HELP = "multi-constellation (GPS/Galileo/BeiDou) pseudoranges with optional gross errors (seed 003)"
+#: What to do with the files, the end of ``simulate gnss --help``: no command reads
+#: ``pseudoranges.csv`` (``spp`` takes RINEX), so the help names the Python function that
+#: tests it (the recipe checked in ``tests/test_newuser_reliability_sim.py``).
+USAGE = """\
+Using the files: no robustloc command reads pseudoranges.csv (`spp` solves RINEX
+observation files with navigation files; `montecarlo --gnss` runs the seed-003 detection
+study on this constellation without files).  From Python, read it with pandas and test
+every epoch by data snooping on the pseudoranges linearized at the truth,
+robustloc.integrity.snooping.snoop_linear(H, y, sigma), an epoch's rows padded with NaN:
+  H      per satellite, the unit vector from the satellite to the receiver (truth.csv's
+         x, y, z, ECEF) and one clock column per system (1 in its own system's);
+  y      pseudorange - |r_s - r_rx| - clock_<system> (truth.csv);
+  sigma  the sigma column.
+Its `excluded` against fault_m != 0 gives the detection and identification rates, and
+robustloc.integrity.reliability.reliability(H, sigma) the MDBs of every satellite."""
+#: The note after the run's list of files.
+FILES_NOTE = ("no robustloc command reads pseudoranges.csv (spp takes RINEX): from Python, "
+              "robustloc.integrity.snooping.snoop_linear tests each epoch linearized at "
+              "truth.csv (robustloc simulate gnss --help says how)")
 
 Array = NDArray[np.float64]
 
