@@ -316,3 +316,11 @@ def test_the_recipe_of_gnss_help_finds_the_simulated_faults(tmp_path, capsys):
     # (faults of 20-40 m against sigmas below 2 m); margin: 36
     assert found.sum() >= 36, found.sum()
     assert (res.excluded & ~fault).sum() <= 4  # measured: 0 good satellites excluded
+
+
+def test_montecarlo_names_both_spellings_of_the_tag_height(capsys):
+    """The refusal named --tag-z although the user typed --tag-height."""
+    from robustloc.cli import main
+
+    assert main(["montecarlo", "--gnss", "--tag-height", "1", "-o", "unused"]) == 2
+    assert "--tag-z/--tag-height applies to --anchors layouts only" in capsys.readouterr().err

@@ -183,7 +183,9 @@ def _layout_options(args: argparse.Namespace) -> None:
     """Refuse the options of the layout not chosen, then fill in the defaults."""
     mine, other, layout = ((_GNSS_OPTIONS, _RANGING_OPTIONS, "--anchors") if args.gnss
                            else (_RANGING_OPTIONS, _GNSS_OPTIONS, "--gnss"))
-    given = ["--" + k.replace("_", "-") for k in other if getattr(args, k) is not None]
+    spelled = {"tag_z": "--tag-z/--tag-height"}  # (one option, two names)
+    given = [spelled.get(k, "--" + k.replace("_", "-")) for k in other
+             if getattr(args, k) is not None]
     if given:
         verb = "applies" if len(given) == 1 else "apply"
         raise InputError(f"{', '.join(given)} {verb} to {layout} layouts only")
