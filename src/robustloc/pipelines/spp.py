@@ -241,7 +241,9 @@ def run_spp(obs: str, nav: Sequence[str] | str, settings: SppSettings, *,
         raise InputError("spp solves a RINEX observation file with navigation files (or "
                          "--sp3); a table of pseudoranges with satellite positions, as "
                          "`robustloc simulate gnss` writes, is for integrity studies from "
-                         "Python (robustloc.gnss.raim.RaimFde, robustloc.integrity)", obs)
+                         "Python (robustloc.integrity.snooping.snoop_linear on the "
+                         "pseudoranges linearized at truth.csv; `simulate gnss --help` shows "
+                         "how) or `robustloc montecarlo --gnss`", obs)
     if not nav and sp3 is None:
         raise InputError("give at least one navigation file or --sp3")
     if clk is not None and sp3 is None:
