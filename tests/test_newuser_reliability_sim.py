@@ -249,7 +249,7 @@ def test_scenario_help_keeps_the_tables_and_names():
 
 
 def test_rst_to_text():
-    from robustloc.commands._help import rst_to_text
+    from robustloc._rst import rst_to_text
 
     assert rst_to_text(":func:`robustloc.x.y` and :data:`X`, :class:`~a.B`") == "y and X, B"
     assert rst_to_text(":func:`the fit <robustloc.x.fit>`") == "the fit"

@@ -46,7 +46,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--list", action="store_true", help="list the scenarios and exit")
     sub = p.add_subparsers(dest="scenario", metavar="SCENARIO")
-    from robustloc.commands._help import rst_to_text
+    from robustloc._rst import rst_to_text
 
     for name, mod in scenario_modules().items():
         # the module docstring is reStructuredText for Sphinx: plain text on a terminal

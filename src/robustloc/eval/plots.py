@@ -29,9 +29,13 @@ from numpy.typing import NDArray
 
 if TYPE_CHECKING:
     from matplotlib.axes import Axes
+    from matplotlib.legend import Legend
 
-#: At most this many methods get a Stanford panel (the CDF panel shows every method).
-MAX_METHODS = 6
+#: At most this many methods get a Stanford panel (the CDF panel shows every method; a
+#: panel beside the diagrams names the others).  Every method of ``locate`` fits.
+MAX_METHODS = 12
+#: Length of the ticks of unbounded fixes on the Stanford diagram's top edge (points).
+UNBOUNDED_TICK_PT = 8.0
 #: At most this many methods are named in a legend; the others are drawn unnamed and the
 #: legend says how many ("N more methods"): 300 methods' legend covered the figure and
 #: made ``tight_layout`` warn.
@@ -78,6 +82,70 @@ def _legend_label(i: int, name: str) -> str:
     """The legend label of the ``i``-th method: ``name`` up to :data:`MAX_LEGEND`, then
     matplotlib's "not in the legend" (a leading underscore)."""
     return name if i < MAX_LEGEND else "_nolegend_"
+
+
+#: Space between an axes' x label and a legend drawn below it (points).
+LEGEND_GAP_PT = 6.0
+#: Legend markers are drawn at least this large (points): the map's 2-point dots were
+#: specks in the legend.
+LEGEND_MIN_MARKER = 5.0
+
+
+def _colour(i: int) -> str:
+    """The colour of the ``i``-th method, the same in every panel of a figure (a panel
+    that skips a method without data shifted the default colour cycle against the
+    others)."""
+    return f"C{i % 10}"
+
+
+def _renderer(fig):  # noqa: ANN001, ANN202 - a matplotlib Figure, its renderer
+    """A renderer to measure ``fig``'s text with: its canvas's (pyplot's Agg figures), or
+    an Agg renderer of its size (a bare ``Figure()``'s canvas draws nothing)."""
+    get = getattr(fig.canvas, "get_renderer", None)
+    if get is not None:
+        return get()
+    from matplotlib.backends.backend_agg import RendererAgg
+
+    return RendererAgg(int(fig.bbox.width), int(fig.bbox.height), fig.dpi)
+
+
+def _legend_below(ax: Axes, fontsize: float = 7.0, ncol: int | None = None,
+                  **kwargs: object) -> Legend | None:
+    """The legend of ``ax`` under its x label, outside the axes: it never covers data
+    (inside, "best" still hid anchors, fixes and curves once there were ten methods).
+
+    Call it once the axes' limits, ticks and labels are set: the legend goes below their
+    extent measured now, in points, which a later layout (``tight_layout``, which makes
+    room for the legend) does not change.  ``ncol`` (default: 1 for up to 3 entries,
+    else 2) is lowered while the legend is wider than 1.5 times the axes (long method
+    names overran the figure).  Returns the legend (None without labelled artists).
+    """
+    from matplotlib.lines import Line2D
+    from matplotlib.transforms import offset_copy
+
+    handles, labels = ax.get_legend_handles_labels()
+    if not handles:
+        return None
+    fig = ax.figure  # (matplotlib >= 3.7: no get_figure(root=True))
+    renderer = _renderer(fig)
+    box = ax.get_window_extent(renderer)
+    under = ax.xaxis.get_tightbbox(renderer)
+    drop_px = max(0.0, box.y0 - under.y0) if under is not None else 0.0
+    drop_pt = drop_px * 72.0 / fig.dpi + LEGEND_GAP_PT
+    anchor = offset_copy(ax.transAxes, fig=fig, y=-drop_pt, units="points")
+    ncol = ncol or (1 if len(labels) <= 3 else 2)
+    while True:  # fewer columns while the legend is much wider than the axes
+        leg = ax.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, 0.0),
+                        bbox_transform=anchor, ncol=ncol, fontsize=fontsize, frameon=False,
+                        borderaxespad=0.0, columnspacing=1.2, handletextpad=0.4, **kwargs)
+        if ncol == 1 or leg.get_window_extent(renderer).width <= 1.5 * box.width:
+            break
+        ncol -= 1
+    for h in leg.legend_handles:
+        if isinstance(h, Line2D) and h.get_marker() not in (None, "None", " ", ""):
+            h.set_markersize(max(h.get_markersize(), LEGEND_MIN_MARKER))
+            h.set_alpha(1.0)
+    return leg
 
 
 def _more_methods(ax: Axes, n_methods: int) -> None:
@@ -145,9 +213,12 @@ def plot_stanford(ax: Axes, error_m: NDArray[np.float64], hpl_m: NDArray[np.floa
     counts (:func:`stanford_counts`).
 
     Log-log axes spanning the data; a 2-D histogram with a logarithmic colour scale (many
-    fixes stay readable); the diagonal ``hpl = error``; misleading fixes (below it) in red
-    with their count; unbounded fixes (``hpl = inf``) as ticks on the top edge; fixes with
-    no bound (NaN) are counted as misleading and listed in the legend text.
+    fixes stay readable); the diagonal ``hpl = error``; misleading fixes (below it) in red;
+    unbounded fixes (``hpl = inf``) as ticks hanging from the top edge (inside the axes,
+    clear of the title); fixes with no bound (NaN) are counted as misleading.  The counts
+    (usable, misleading, unbounded, no bound, off the axes) and the median ``hpl`` over
+    the median error are a legend under the axes (:func:`_legend_below`): nothing is
+    written over the data.
     """
     from matplotlib.colors import LogNorm
     from matplotlib.ticker import FormatStrFormatter, LogLocator, NullFormatter
@@ -179,11 +250,17 @@ def plot_stanford(ax: Axes, error_m: NDArray[np.float64], hpl_m: NDArray[np.floa
         cb.ax.yaxis.set_minor_formatter(NullFormatter())
         bad = e[pos] > h[pos]
         if bad.any():
-            ax.plot(ee[bad], hh[bad], "r.", ms=4, label="misleading")
+            ax.plot(ee[bad], hh[bad], "r.", ms=4)
     unb = np.isfinite(e) & np.isposinf(h) & (e > 0)
     if unb.any():
-        ax.plot(np.clip(e[unb], lo, hi), np.full(int(unb.sum()), hi), "|", color="0.3", ms=8,
-                clip_on=False, label=f"unbounded (hpl = inf): {int(unb.sum())}")
+        # ticks hanging from the top edge, inside the axes: centred on the edge they rose
+        # into the panel's title (the report's "uwb-dwm1001 LOS")
+        from matplotlib.transforms import offset_copy
+
+        down = offset_copy(ax.transData, fig=ax.figure, y=-UNBOUNDED_TICK_PT / 2.0,
+                           units="points")
+        ax.plot(np.clip(e[unb], lo, hi), np.full(int(unb.sum()), hi), "|", color="0.3",
+                ms=UNBOUNDED_TICK_PT, clip_on=False, transform=down)
     ax.plot([lo, hi], [lo, hi], "k-", lw=1)
     ax.fill_between([lo, hi], [lo, lo], [lo, hi], color="red", alpha=0.07, lw=0)
     ax.set_xscale("log")
@@ -194,23 +271,27 @@ def plot_stanford(ax: Axes, error_m: NDArray[np.float64], hpl_m: NDArray[np.floa
     ax.set_xlabel("horizontal error (m)")
     ax.set_ylabel("hpl (m)")
     nan_h = int(np.sum(np.isfinite(e) & np.isnan(h)))
-    text = (f"{counts.n} usable fixes\nmisleading {counts.misleading} "
-            f"({counts.misleading_pct:.2f} %)" if counts.n else "no usable fix")
+    # the counts and the key, under the axes (a box or a legend on the axes covered
+    # fixes: the bounded ones are top left, the misleading ones bottom right)
+    ax.plot([], [], " ", label=f"{counts.n} usable fixes" if counts.n else "no usable fix")
+    if counts.n:
+        ax.plot([], [], "r.", label=f"misleading {counts.misleading} "
+                f"({counts.misleading_pct:.2f} %)")
+    if unb.any():
+        ax.plot([], [], "|", color="0.3", ms=UNBOUNDED_TICK_PT,
+                label=f"unbounded (hpl = inf): {int(unb.sum())}, ticks on the top edge")
     if nan_h:
-        text += f"\n(no hpl: {nan_h}, counted misleading)"
+        ax.plot([], [], " ", label=f"(no hpl: {nan_h}, counted misleading)")
     if n_edge:
-        text += f"\n{n_edge} off the axes, drawn on the edge"
+        ax.plot([], [], " ", label=f"{n_edge} off the axes, drawn on the edge")
     if counts.n and fin.any():
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = np.median(np.where(np.isnan(h), np.inf, h)[np.isfinite(e)]) / np.median(
                 e[np.isfinite(e)])
-        text += f"\nmedian hpl / median error {ratio:.1f}"
-    ax.text(0.97, 0.03, text, transform=ax.transAxes, ha="right", va="bottom", fontsize=7,
-            bbox={"facecolor": "white", "alpha": 0.8, "lw": 0})
-    if unb.any() or (pos.any() and np.any(e[pos] > h[pos])):
-        ax.legend(loc="upper left", fontsize=7)
+        ax.plot([], [], " ", label=f"median hpl / median error {ratio:.1f}")
     if title:
         ax.set_title(title, fontsize=9)
+    _legend_below(ax, fontsize=7)
     return counts
 
 
@@ -240,6 +321,9 @@ def _render_figure(fig, fmt: str) -> bytes:  # noqa: ANN001 - a matplotlib Figur
             # complete, and the warning is matplotlib's, not the user's to act on
             warnings.filterwarnings("ignore", message="Tight layout not applied",
                                     category=UserWarning)
+            # twice: a square (equal-aspect) panel settles in its new slot only after the
+            # first pass, and the legend under it moves with it (it was cut at the bottom)
+            fig.tight_layout()
             fig.tight_layout()
         buf = io.BytesIO()
         fig.savefig(buf, format=fmt, dpi=110)
@@ -309,7 +393,8 @@ def _plot_map(ax: Axes, errors: pd.DataFrame, methods: list[str], meth: NDArray[
         sel = np.flatnonzero(usable & inside & (meth == m))
         if sel.size > MAP_POINTS:
             sel = sel[np.linspace(0, sel.size - 1, MAP_POINTS).astype(np.int64)]
-        ax.plot(x[sel], y[sel], ".", ms=2, alpha=0.5, label=_legend_label(i, _short(m)))
+        ax.plot(x[sel], y[sel], ".", ms=2, alpha=0.5, color=_colour(i),
+                label=_legend_label(i, _short(m)))
     _more_methods(ax, len(methods))
     t = (np.isfinite(xt) & np.isfinite(yt) & (np.abs(xt) <= MAP_COORD_MAX)
          & (np.abs(yt) <= MAP_COORD_MAX))
@@ -333,8 +418,7 @@ def _plot_map(ax: Axes, errors: pd.DataFrame, methods: list[str], meth: NDArray[
     ax.set_ylabel("y (m)")
     ax.set_title("\n".join(notes), fontsize=9 if len(notes) == 1 else 8)
     ax.grid(alpha=0.3)
-    if ax.get_legend_handles_labels()[0]:
-        ax.legend(fontsize=7, markerscale=4, loc="best")
+    _legend_below(ax, ncol=3)
 
 
 def _plot_cdf(ax: Axes, e_all: NDArray[np.float64], methods: list[str],
@@ -359,8 +443,8 @@ def _plot_cdf(ax: Axes, e_all: NDArray[np.float64], methods: list[str],
         q = np.arange(1, e.size + 1) / e.size
         p95 = float(np.percentile(e, 95))
         label = _legend_label(i, f"{_short(m)} (n={e.size}, p95 {_m(p95)} m)")
-        (line,) = ax.step(np.clip(e, lo, hi), q, where="post", lw=1.2, label=label)
-        ax.plot([min(max(p95, lo), hi)], [0.95], "o", color=line.get_color(), ms=4)
+        ax.step(np.clip(e, lo, hi), q, where="post", lw=1.2, color=_colour(i), label=label)
+        ax.plot([min(max(p95, lo), hi)], [0.95], "o", color=_colour(i), ms=4)
     _more_methods(ax, len(methods))
     ax.axhline(0.95, color="0.6", lw=0.6)
     ax.set_xscale("log")
@@ -377,8 +461,21 @@ def _plot_cdf(ax: Axes, e_all: NDArray[np.float64], methods: list[str],
     ax.set_ylabel("share of usable fixes")
     ax.set_title("\n".join(notes), fontsize=9 if len(notes) == 1 else 8)
     ax.grid(alpha=0.3, which="both")
-    if ax.get_legend_handles_labels()[0]:
-        ax.legend(fontsize=7, loc="upper left")
+    _legend_below(ax)
+
+
+def _left_out_note(ax: Axes, n_shown: int, left_out: list[str]) -> None:
+    """The panel after the last Stanford diagram: which methods have none (it was the
+    figure's title alone, easy to miss above the first row)."""
+    n_all = n_shown + len(left_out)
+    names = [_short(m) for m in left_out[:MAX_LEGEND]]
+    if len(left_out) > MAX_LEGEND:
+        names.append(f"and {len(left_out) - MAX_LEGEND} more")
+    ax.axis("off")
+    ax.text(0.0, 1.0, f"Stanford diagrams of the first {n_shown} of {n_all} methods;\n"
+            "no diagram for:\n  " + "\n  ".join(names)
+            + "\n\n(the table's n_misleading counts their misleading fixes)",
+            transform=ax.transAxes, ha="left", va="top", fontsize=9, wrap=True)
 
 
 def render_evaluation_figure(
@@ -418,25 +515,30 @@ def render_evaluation_figure(
     e_all = errors["error_2d"].to_numpy(dtype=float)
     has_hpl = "hpl" in errors.columns
     shown = methods[:max_methods] if has_hpl else []
+    left_out = methods[len(shown):] if has_hpl else []
     first = 2  # the CDF and the map come first
-    ncol = min(3, first + len(shown))
-    nrow = int(np.ceil((first + len(shown)) / ncol))
-    fig, axes = plt.subplots(nrow, ncol, figsize=(4.6 * ncol, 4.2 * nrow), squeeze=False)
+    n_panels = first + len(shown) + (1 if left_out else 0)  # (the note on those left out)
+    ncol = min(3 if n_panels <= 9 else 4, n_panels)
+    nrow = int(np.ceil(n_panels / ncol))
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4.6 * ncol, 5.0 * nrow), squeeze=False)
     try:
         _plot_cdf(axes[0, 0], e_all, methods, meth, usable)
         _plot_map(axes.flat[1], errors, methods, meth, usable)
         out: dict[str, StanfordCounts] = {}
         hpl = errors["hpl"].to_numpy(dtype=float) if has_hpl else None
-        for i, m in enumerate(shown, start=first):
-            ax = axes.flat[i]
+        for k, m in enumerate(shown):
+            ax = axes.flat[first + k]
             sel = usable & (meth == m)
-            out[m] = plot_stanford(ax, e_all[sel], hpl[sel],
-                                   title=f"Stanford diagram: {_short(m)}")
+            # numbered when some are left out: "3 of 14" says so on every diagram
+            title = f"Stanford diagram: {_short(m)}"
+            if left_out:
+                title = f"Stanford diagram {k + 1} of {len(methods)}:" + (
+                    " " if len(m) <= 12 else "\n") + _short(m)
+            out[m] = plot_stanford(ax, e_all[sel], hpl[sel], title=title)
         for ax in axes.flat[first + len(shown):]:
             ax.axis("off")
-        if has_hpl and len(methods) > max_methods:
-            fig.suptitle(f"Stanford diagrams of the first {max_methods} of {len(methods)} "
-                         "methods", fontsize=9)
+        if left_out:
+            _left_out_note(axes.flat[first + len(shown)], len(shown), left_out)
     except BaseException:
         plt.close(fig)
         raise
@@ -454,7 +556,9 @@ def evaluation_figure(errors: pd.DataFrame, path: str | os.PathLike[str],
     path : ``.png``, ``.svg`` or ``.pdf`` (:data:`robustloc.options.FIGURE_FORMATS`; another
         suffix: ``ValueError``).
     max_methods : at most this many methods get a Stanford panel (in the order of the
-        file); the CDF panel shows every method.
+        file; :data:`MAX_METHODS` by default); the CDF panel shows every method, and a
+        panel after the last diagram names the methods left without one (each diagram's
+        title then numbers it: "Stanford diagram 3 of 14: nls").
 
     Returns
     -------
@@ -464,8 +568,10 @@ def evaluation_figure(errors: pd.DataFrame, path: str | os.PathLike[str],
     Panels: the empirical CDF of the horizontal error of the usable fixes per method (its
     95th percentile marked), a map of the usable fixes over the truth (at most
     :data:`MAP_POINTS` per method), then, when the positions carry ``hpl``, one Stanford
-    diagram per method (:func:`plot_stanford`).  The legends name the first
-    :data:`MAX_LEGEND` methods and say how many more there are.  Absurd values stay
+    diagram per method (:func:`plot_stanford`), four panels a row from ten panels on.
+    The legends are under their panels, never over the data; they name the first
+    :data:`MAX_LEGEND` methods and say how many more there are, and a method has the same
+    colour in every panel.  Absurd values stay
     within sane axes, counted on their panel: errors and bounds outside
     :data:`ERROR_VIEW_MIN` .. :data:`ERROR_VIEW_MAX` m (errors of 0 among them) on the
     edge of the log axes, fixes far beyond the truth (:func:`_map_view`) off the map.
@@ -521,6 +627,77 @@ def _near_anchors(x: NDArray[np.float64], y: NDArray[np.float64], usable: NDArra
     return inside, int(np.sum(usable & ~inside)), None if view is None else view[4]
 
 
+#: The status panel draws one bar per method and status up to this many bars, each with
+#: its count at its end; beyond, the bars were thinner than their counts' text (ten
+#: methods: the counts overlapped), and the panel is a table of counts instead
+#: (:func:`_status_matrix`).
+MAX_STATUS_BARS = 16
+
+
+def _status_bars(ax: Axes, counts: dict[str, dict[str, int]], methods: list[str],
+                 names: list[str]) -> None:
+    """One bar per method and status, grouped by status, with its count at its end."""
+    ypos = np.arange(len(names))
+    h = 0.8 / max(len(methods), 1)
+    top = max((v for c in counts.values() for v in c.values()), default=0)
+    for i, m in enumerate(methods):
+        v = [counts[m].get(s, 0) for s in names]
+        bars = ax.barh(ypos + i * h, v, height=h, color=_colour(i),
+                       label=_legend_label(i, _short(m)))
+        # (a status of 1 row in 10 000 is a bar too thin to see: the count says it)
+        ax.bar_label(bars, labels=[str(c) if c else "" for c in v], fontsize=7, padding=2)
+    ax.set_yticks(ypos + 0.4 - h / 2, names, fontsize=7)
+    ax.invert_yaxis()  # the first status on top
+    # room for the longest bar's count inside the axes (it ran over the right edge)
+    ax.set_xlim(0, max(top, 1) * 1.22)
+    ax.set_xlabel("rows")
+    ax.set_title("status of every row", fontsize=9)
+    ax.grid(alpha=0.3, axis="x")
+    if len(methods) > 1:
+        _legend_below(ax)
+
+
+def _status_matrix(ax: Axes, counts: dict[str, dict[str, int]], methods: list[str],
+                   names: list[str]) -> None:
+    """The rows per status (row) and method (column) as a table of counts, shaded by the
+    count (log scale, blank where 0); the counts' font fits the cells (none when the
+    cells are too small for any: the summary has them)."""
+    from matplotlib.colors import LogNorm
+
+    n_s, n_m = len(names), len(methods)
+    table = np.array([[counts[m].get(s, 0) for m in methods] for s in names], dtype=float)
+    # the cells' size in points once laid out (about 70 % of the axes' size now)
+    box = ax.get_window_extent(_renderer(ax.figure))
+    cell_w = 0.7 * box.width * 72.0 / ax.figure.dpi / n_m
+    cell_h = 0.7 * box.height * 72.0 / ax.figure.dpi / n_s
+    norm = LogNorm(vmin=1, vmax=max(float(table.max()), 2.0))
+    ax.pcolormesh(np.ma.masked_equal(table, 0), cmap="Blues", norm=norm,
+                  edgecolors="white", linewidth=0.5 if cell_w >= 4.0 else 0.0)
+    ax.set_xlim(0, n_m)
+    ax.set_ylim(n_s, 0)
+    ax.set_yticks(np.arange(n_s) + 0.5, names, fontsize=7)
+    # method names 40 degrees up: one every 11 points at most (7-point text)
+    step = int(np.ceil(n_m / max(1.0, cell_w * n_m / 11.0)))
+    ax.set_xticks(np.arange(0, n_m, step) + 0.5, [_short(m) for m in methods[::step]],
+                  rotation=40, ha="right", rotation_mode="anchor", fontsize=7)
+    ax.tick_params(length=0)
+    for side in ax.spines.values():
+        side.set_visible(False)
+    digits = len(str(int(table.max()))) if table.size else 1
+    size = min(8.0, 0.85 * cell_w / (0.62 * digits), 0.6 * cell_h)
+    note = ""
+    if size >= 4.0:
+        for r in range(n_s):
+            for c in range(n_m):
+                if table[r, c]:
+                    dark = norm(table[r, c]) > 0.6
+                    ax.text(c + 0.5, r + 0.5, f"{int(table[r, c])}", ha="center",
+                            va="center", fontsize=size, color="white" if dark else "black")
+    else:
+        note = "\n(too many methods to write the counts: see the summary)"
+    ax.set_title("status of every row (rows per method)" + note, fontsize=9)
+
+
 def positions_figure(positions: pd.DataFrame, anchors: pd.DataFrame,
                      path: str | os.PathLike[str], title: str = "") -> dict[str, dict[str, int]]:
     """``robustloc locate|track --plot``: what an output holds, for a person to look at,
@@ -531,8 +708,11 @@ def positions_figure(positions: pd.DataFrame, anchors: pd.DataFrame,
     says to look twice -- ``fault_detected``, ``extrapolated``, ``unverified`` -- crossed
     in red; at most :data:`MAP_POINTS` fixes per method, an even subsample beyond; fixes
     far beyond the anchors -- :func:`_near_anchors` -- counted under the title instead),
-    the count of each status per method (written on the bars), and the distribution of
-    the usable fixes' ``hpl`` per method (what an ``--alert-limit`` would keep).
+    the count of each status per method (bars with their counts, :func:`_status_bars`;
+    with more than :data:`MAX_STATUS_BARS` bars a table of counts,
+    :func:`_status_matrix`), and the distribution of the usable fixes' ``hpl`` per
+    method (what an ``--alert-limit`` would keep).  Legends are under their panels
+    (:func:`_legend_below`) and a method has the same colour in every panel.
 
     Returns
     -------
@@ -560,7 +740,7 @@ def positions_figure(positions: pd.DataFrame, anchors: pd.DataFrame,
                   pd.Series(status[meth == m]).value_counts(sort=False).items()}
               for m in methods}
 
-    fig, axes = plt.subplots(1, 3, figsize=(15.5, 4.8), squeeze=False,
+    fig, axes = plt.subplots(1, 3, figsize=(15.5, 5.8), squeeze=False,
                              gridspec_kw={"width_ratios": [1.35, 1.0, 1.0]})
     ax_map, ax_st, ax_h = axes[0]
     # --- map
@@ -571,7 +751,8 @@ def positions_figure(positions: pd.DataFrame, anchors: pd.DataFrame,
                         xytext=(3, 3), textcoords="offset points")
     inside, n_out, reach = _near_anchors(x, y, usable, anchors)
     by_tag = tags is not None and len(methods) == 1 and len(set(tags)) <= MAX_TAG_COLOURS
-    for m in methods:
+    flagged = []
+    for i, m in enumerate(methods):
         sel = np.flatnonzero(usable & inside & (meth == m))
         if sel.size > MAP_POINTS:
             sel = sel[np.linspace(0, sel.size - 1, MAP_POINTS).astype(np.int64)]
@@ -582,11 +763,16 @@ def positions_figure(positions: pd.DataFrame, anchors: pd.DataFrame,
                 ax_map.plot(x[s], y[s], "-" if track else ".", lw=0.8, ms=2, alpha=0.7,
                             label=f"tag {tg}")
         else:
-            ax_map.plot(x[sel], y[sel], ".", ms=2, alpha=0.5, label=m)
-        flag = sel[np.isin(status[sel], _FLAGGED)]
-        if flag.size:
-            ax_map.plot(x[flag], y[flag], "x", color="red", ms=4, alpha=0.8,
-                        label=f"{m}: {flag.size} to look at ({', '.join(_FLAGGED)})")
+            ax_map.plot(x[sel], y[sel], ".", ms=2, alpha=0.5, color=_colour(i),
+                        label=_legend_label(i, _short(m)))
+        flagged.append(sel[np.isin(status[sel], _FLAGGED)])
+    if not by_tag:
+        _more_methods(ax_map, len(methods))
+    flag = np.concatenate(flagged) if flagged else np.zeros(0, dtype=np.int64)
+    if flag.size:  # (one key for every method: the status panel counts them per method)
+        who = f"{_short(methods[0])}: " if len(methods) == 1 else ""
+        ax_map.plot(x[flag], y[flag], "x", color="red", ms=4, alpha=0.8,
+                    label=f"{who}{flag.size} to look at ({', '.join(_FLAGGED)})")
     ax_map.set_aspect("equal", adjustable="datalim")
     ax_map.set_xlabel("x (m)")
     ax_map.set_ylabel("y (m)")
@@ -597,37 +783,27 @@ def positions_figure(positions: pd.DataFrame, anchors: pd.DataFrame,
                     + (f"{MAP_COORD_MAX:g} m from the origin" if reach is None
                        else f"{_m(reach)} m beyond the anchors"))
     ax_map.set_title(heading, fontsize=9 if not n_out else 8)
-    ax_map.legend(fontsize=6, loc="best")
+    _legend_below(ax_map, ncol=3)
     # --- statuses
     names = [s for s in st.ALL if any(s in c for c in counts.values())]
     names += sorted({k for c in counts.values() for k in c} - set(names))
-    ypos = np.arange(len(names))
-    h = 0.8 / max(len(methods), 1)
-    for i, m in enumerate(methods):
-        v = [counts[m].get(s, 0) for s in names]
-        bars = ax_st.barh(ypos + i * h, v, height=h, label=m)
-        # (a status of 1 row in 10 000 is a bar too thin to see: the count says it)
-        ax_st.bar_label(bars, labels=[str(c) if c else "" for c in v], fontsize=6,
-                        padding=2)
-    ax_st.set_yticks(ypos + 0.4 - h / 2, names, fontsize=7)
-    ax_st.invert_yaxis()
-    ax_st.set_xlabel("rows")
-    ax_st.set_title("status of every row", fontsize=9)
-    ax_st.grid(alpha=0.3, axis="x")
-    if len(methods) > 1:
-        ax_st.legend(fontsize=7)
+    if len(names) * len(methods) <= MAX_STATUS_BARS:
+        _status_bars(ax_st, counts, methods, names)
+    else:
+        _status_matrix(ax_st, counts, methods, names)
     # --- hpl
     if "hpl" in positions.columns:
         hpl = positions["hpl"].to_numpy(dtype=float)
-        for m in methods:
+        for i, m in enumerate(methods):
             hm = hpl[usable & (meth == m)]
             fin = np.sort(hm[np.isfinite(hm) & (hm > 0)])
             if fin.size == 0:
                 continue
             q = np.arange(1, fin.size + 1) / hm.size  # unbounded fixes never reach 1
             n_inf = int(np.sum(np.isposinf(hm)))
-            ax_h.step(fin, q, where="post", lw=1.2,
-                      label=f"{m}: median {np.median(hm):.3g} m, {n_inf} unbounded")
+            ax_h.step(fin, q, where="post", lw=1.2, color=_colour(i), label=_legend_label(
+                i, f"{_short(m)}: median {np.median(hm):.3g} m, {n_inf} unbounded"))
+        _more_methods(ax_h, len(methods))
         ax_h.set_xscale("log")
         _log_ticks(ax_h.xaxis)
         ax_h.set_xlabel("hpl (m)")
@@ -635,8 +811,7 @@ def positions_figure(positions: pd.DataFrame, anchors: pd.DataFrame,
         ax_h.set_title("protection levels (an --alert-limit keeps the left of it)",
                        fontsize=9)
         ax_h.grid(alpha=0.3, which="both")
-        if ax_h.get_legend_handles_labels()[0]:
-            ax_h.legend(fontsize=7, loc="upper left")
+        _legend_below(ax_h)
     else:
         ax_h.axis("off")
     _write_figure(fig, path, fmt)

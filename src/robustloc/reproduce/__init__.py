@@ -13,6 +13,7 @@ import html
 import importlib
 import json
 import pkgutil
+import re
 import sys
 import time
 from dataclasses import dataclass, field
@@ -20,6 +21,8 @@ from pathlib import Path
 from typing import Any
 
 import pandas as pd
+
+from robustloc._rst import rst_markdown  # noqa: F401  (the sections' docstring texts)
 
 
 @dataclass
@@ -72,6 +75,11 @@ class Context:
             return self.data_dir
         self.note(f"{name} not in {self.data_dir}: using the shipped excerpt")
         return None
+
+
+def _html_text(paragraph: str) -> str:
+    """A text paragraph of the report in HTML: escaped, Markdown's `code` as <code>."""
+    return re.sub(r"`([^`]+)`", r"<code>\1</code>", html.escape(paragraph))
 
 
 @dataclass
@@ -178,7 +186,7 @@ def render(sections: list[Section], out_dir: Path, elapsed: dict[str, float]) ->
         for kind, payload in s.blocks:
             if kind == "text":
                 md += [payload, ""]
-                body.append("".join(f"<p>{html.escape(p)}</p>" for p in payload.split("\n\n")))
+                body.append("".join(f"<p>{_html_text(p)}</p>" for p in payload.split("\n\n")))
             elif kind == "table":
                 caption, frame = payload
                 md += [f"**{caption}**", "", _md_table(frame), ""]

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from robustloc.reproduce import Context, Section
+from robustloc.reproduce import Context, Section, rst_markdown
 
 TITLE = "Out of the box on real data: the default locate against peers, same epochs"
 ORDER = 5
@@ -77,12 +77,14 @@ def _stanford_figure(ctx: Context, panels: list) -> str:
 
     ncol = min(4, len(panels))
     nrow = int(np.ceil(len(panels) / ncol))
-    fig, axes = plt.subplots(nrow, ncol, figsize=(4.4 * ncol, 4.0 * nrow), squeeze=False)
+    # (each panel's counts are a legend under it: the rows are taller than the square)
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4.4 * ncol, 4.8 * nrow), squeeze=False)
     for ax, (name, err, hpl) in zip(axes.flat, panels):
         plot_stanford(ax, err, hpl, title=name)
     for ax in axes.flat[len(panels):]:
         ax.axis("off")
     fig.tight_layout()
+    fig.tight_layout()  # (the square panels settle in their slots, their legends with them)
     name = "s05_stanford.png"
     fig.savefig(ctx.out_dir / name, dpi=90)
     plt.close(fig)
@@ -107,7 +109,7 @@ def run(ctx: Context) -> Section:
     from robustloc.eval.realdata import error_stats, load_cases, peer_fixes
 
     sec = Section(TITLE)
-    sec.text(__doc__.split("\n\n", 1)[1])
+    sec.text(rst_markdown(__doc__.split("\n\n", 1)[1]))
     _note_sources(ctx)
     cases = load_cases(ctx.data_dir)
     rows_all = []

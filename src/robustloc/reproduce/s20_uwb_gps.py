@@ -22,7 +22,7 @@ from robustloc.filters import ConstantAcceleration, ConstantVelocity, RobustUpda
 from robustloc.fusion.pipeline import FusionFilter, FusionMeasurement, initial_state
 from robustloc.fusion.run import FuseOptions, fuse
 from robustloc.fusion.uwb import uwb_fix
-from robustloc.reproduce import Context, Section
+from robustloc.reproduce import Context, Section, rst_markdown
 from robustloc.robust.weights import IGG3, Huber
 from robustloc.sim.uwb_cart import (
     SIGMA_COURSE_DEG,
@@ -274,7 +274,7 @@ def _labyrinth_experiment(ctx: Context, sec: Section) -> None:
 
 def run(ctx: Context) -> Section:
     sec = Section(TITLE)
-    sec.text(__doc__.split("\n\n", 1)[1])
+    sec.text(rst_markdown(__doc__.split("\n\n", 1)[1]))
     _fix_experiment(ctx, sec)
     _cart_experiment(ctx, sec)
     _dwm_experiment(ctx, sec)

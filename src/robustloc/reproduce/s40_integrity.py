@@ -54,7 +54,11 @@ def _bmethod_table() -> pd.DataFrame:
 
 def _mc_block(layout, trials: int, methods: tuple[str, ...], seed: int, unit_runs,  # noqa: ANN001
               lege_max_order: int = 3, nonlinear: bool = False,
-              alpha: float | None = None) -> pd.DataFrame:
+              alpha: float | None = None, obs_unit: str = "m") -> pd.DataFrame:
+    """Monte Carlo runs ``unit_runs`` of ``(n_faults, size, unit)`` (``unit`` as
+    :func:`robustloc.integrity.montecarlo.run_montecarlo`'s: ``"m"``, the observations'
+    own unit, or ``"mdb"``), one table; its ``faults`` column names the size in
+    ``obs_unit`` for ``"m"`` (``"dB"`` for an RSSI layout: its faults read "12 m")."""
     from robustloc.integrity.montecarlo import run_montecarlo
 
     frames = []
@@ -64,8 +68,8 @@ def _mc_block(layout, trials: int, methods: tuple[str, ...], seed: int, unit_run
                             nonlinear=nonlinear, alpha=alpha)
         frames.append(df)
     t = pd.concat(frames, ignore_index=True)
-    t["faults"] = [f"{k} x {s:g} {u}" if k else "none" for k, s, u in
-                   zip(t["n_faults"], t["size"], t["unit"])]
+    t["faults"] = [f"{k} x {s:g} {obs_unit if u == 'm' else u}" if k else "none"
+                   for k, s, u in zip(t["n_faults"], t["size"], t["unit"])]
     cols = ["faults", "method", "flag_rate", "theory_global", "theory_w", "identified",
             "unavailable", "err_mean_m", "err_rms_m", "err_p95_m"]
     return t[cols].rename(columns={
@@ -344,8 +348,9 @@ def run(ctx: Context) -> Section:
                  "off the design value")
     lay_s = rssi_layout(bc.ANCHOR_XY, s2, 2.5, bc.N_EXPONENT, list(bc.ANCHOR_IDS),
                         name="ble-corridor RSSI")
+    # sizes in the observations' unit ("m" to run_montecarlo), dB for RSSI
     runs_db = [(0, 0.0, "m"), (1, 12.0, "m"), (2, 12.0, "m")][: 2 if ctx.quick else 3]
-    ts = _mc_block(lay_s, trials, methods_r, ctx.seed + 20, runs_db)
+    ts = _mc_block(lay_s, trials, methods_r, ctx.seed + 20, runs_db, obs_unit="dB")
     sec.text(
         "The same layout observed by RSSI (log-distance model, n = 2.2, sigma 2.5 dB): the "
         "faults are body blockages of 12 dB (the scenario's people-walking scheme draws "
@@ -354,12 +359,12 @@ def run(ctx: Context) -> Section:
     sec.table(f"Monte Carlo, ble-corridor RSSI at S2, 12 dB blockages ({trials} trials per row)",
               ts)
     tsn = _mc_block(lay_s, trials, ("ls", "snooping"), ctx.seed + 20, runs_db[:2],
-                    nonlinear=True)
-    lin = float(ts[(ts["faults"] == "1 x 12 m") & (ts["method"] == "snooping")]
+                    nonlinear=True, obs_unit="dB")
+    lin = float(ts[(ts["faults"] == "1 x 12 dB") & (ts["method"] == "snooping")]
                 ["flagged (measured)"].iloc[0])
-    non = float(tsn[(tsn["faults"] == "1 x 12 m") & (tsn["method"] == "snooping")]
+    non = float(tsn[(tsn["faults"] == "1 x 12 dB") & (tsn["method"] == "snooping")]
                 ["flagged (measured)"].iloc[0])
-    th12 = float(tsn[tsn["faults"] == "1 x 12 m"]["global test (theory)"].iloc[0])
+    th12 = float(tsn[tsn["faults"] == "1 x 12 dB"]["global test (theory)"].iloc[0])
     sec.text(
         "RSSI without linearization (RSSI simulated from the log-distance model and solved "
         "by Gauss-Newton in dB): a 12 dB blockage is detected in "

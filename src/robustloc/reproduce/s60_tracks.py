@@ -583,7 +583,8 @@ def _plot_stanford(ctx: Context, sec: Section, panels: list) -> None:
 
     cols = min(3, len(panels))
     rws = (len(panels) + cols - 1) // cols
-    fig, axes = plt.subplots(rws, cols, figsize=(4.6 * cols, 4.2 * rws), squeeze=False)
+    # (each panel's counts are a legend under it: the rows are taller than the square)
+    fig, axes = plt.subplots(rws, cols, figsize=(4.6 * cols, 5.0 * rws), squeeze=False)
     for ax, (title, err, hpl) in zip(axes.ravel(), panels):
         plot_stanford(ax, err, hpl, title=f"track: {title}")
     for ax in axes.ravel()[len(panels):]:

@@ -1,28 +1,58 @@
-"""Help text for the terminal from reStructuredText docstrings (``simulate SCENARIO --help``
-shows the scenario module's docstring, which Sphinx renders for the documentation)."""
+"""reStructuredText docstrings for people: plain text for the terminal
+(``simulate SCENARIO --help`` shows a scenario module's docstring) and Markdown for the
+report (section introductions taken from module docstrings).  Sphinx renders the same
+docstrings for the documentation; these functions only make them readable elsewhere."""
 
 from __future__ import annotations
 
 import re
 
-#: An interpreted-text role, ``:func:`robustloc.x.y``` or ``:class:`~a.B```, with an
-#: optional title (``:func:`the fit <robustloc.x.y>```).
-_ROLE = re.compile(r":[a-z]+(?::[a-z]+)?:`([^`]+)`")
+#: A Sphinx role, ``:func:`robustloc.x.f```, ``:py:data:`~a.B```, with an optional title
+#: (``:func:`the fit <robustloc.x.fit>```): group 1 the title or target, group 2 the target
+#: when a title is given.
+_ROLE = re.compile(r":(?:[a-z]+:)?[a-z]+:`([^`<]*?)\s*(?:<([^`>]+)>)?`")
 #: Inline literal, ````text```` (it may run over a line break).
 _LITERAL = re.compile(r"``(.+?)``", re.DOTALL)
 #: A rule of a simple table: columns of ``=`` separated by spaces.
 _TABLE_RULE = re.compile(r"^\s*=+(?: +=+)+\s*$")
 
 
-def _role(match: re.Match[str]) -> str:
-    target = match.group(1)
-    title = re.fullmatch(r"(.*?)\s*<([^>]+)>", target)
-    if title and title.group(1):
-        return title.group(1)
-    name = (title.group(2) if title else target).lstrip("~!").rstrip("()")
-    # a module keeps its dotted path: its last name alone ("ranging") names nothing one
-    # could import or look up
-    return name if match.group(0).startswith(":mod:") else name.rsplit(".", 1)[-1]
+def inline_rst(text: str, code: str = "", module_path: bool = False) -> str:
+    """Roles and inline literals of ``text`` as plain words, each wrapped in ``code``.
+
+    A role becomes its title when it has one, else the last dotted part of its target
+    (``:func:`robustloc.x.y``` -> ``y``; with ``module_path`` a ``:mod:`` role keeps the
+    whole dotted path, which is what one could import or look up); an inline literal
+    loses its double backticks.  ``code="`"`` gives Markdown's inline code.
+
+    >>> inline_rst(":func:`robustloc.x.y` and ``--epochs``")
+    'y and --epochs'
+    >>> inline_rst(":data:`robustloc.a.B` (:func:`the peers <robustloc.c.d>`)", code="`")
+    '`B` (`the peers`)'
+    """
+
+    def role(m: re.Match[str]) -> str:
+        title, target = m.group(1).strip(), m.group(2)
+        if target is not None and title:
+            return f"{code}{title}{code}"
+        name = (target or title).strip().lstrip("~!").rstrip("()")
+        keep = module_path and (m.group(0).startswith(":mod:")
+                                or m.group(0).startswith(":py:mod:"))
+        return f"{code}{name if keep else name.rsplit('.', 1)[-1]}{code}"
+
+    return _LITERAL.sub(lambda m: f"{code}{m.group(1)}{code}", _ROLE.sub(role, text))
+
+
+def rst_markdown(text: str) -> str:
+    """Docstring text as Markdown for the report: roles and inline literals in single
+    backticks (:func:`inline_rst`), the rest as it is (the report showed the roles and
+    the double backticks raw).
+
+    >>> rst_markdown("the default (:data:`robustloc.estimators.ranging.DEFAULT_METHOD`, "
+    ...              ":mod:`~robustloc.integrity.fixes`) and scipy ``least_squares``")
+    'the default (`DEFAULT_METHOD`, `fixes`) and scipy `least_squares`'
+    """
+    return inline_rst(text, code="`")
 
 
 def rst_to_text(text: str) -> str:
@@ -52,7 +82,7 @@ def rst_to_text(text: str) -> str:
     """
 
     def inline(s: str) -> str:
-        return _LITERAL.sub(r"\1", _ROLE.sub(_role, s))
+        return inline_rst(s, module_path=True)
 
     lines = text.splitlines()
     out: list[str] = []
