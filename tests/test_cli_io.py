@@ -229,7 +229,10 @@ def test_evaluate_names_the_baseline_it_compares_with(tmp_path, capsys):
            "1,t1,2.1,3,nls,ok\n0,t1,2.4,3,huber,ok\n1,t1,2.4,3,huber,ok\n")
     assert main(["evaluate", p, "--truth", t, "--baseline", "nls"]) == 0
     out = capsys.readouterr().out
-    assert "rms_vs_nls_%" in out and "mean_vs_nls_%" in out and "_vs_ls_" not in out, out
+    # (the text table now uses the CSV/JSON names; its title line names the baseline)
+    title, header = out.splitlines()[:2]
+    assert "over method nls" in title and "over method ls " not in title, out
+    assert {"mean_impr_pct", "rms_impr_pct"} <= set(header.split()) and "_vs_" not in out, out
 
 
 def test_options_that_would_be_ignored_are_refused(tmp_path, capsys):

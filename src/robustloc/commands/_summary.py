@@ -1,6 +1,9 @@
 """The summary that ``locate`` and ``track`` print after their output file: where it
-goes, ``--json``, the anchors' warnings, ``--quiet``, and the notes on the input (rows
-sorted, duplicates averaged, rows outside the physical limits)."""
+goes, ``--json``, the anchors' warnings, ``--quiet``, the notes on the input (rows
+sorted, duplicates averaged, rows outside the physical limits), the timing, and the lines
+after the first, which the Dask engine prints too
+(:func:`robustloc.pipelines.locate.locate_lines`,
+:func:`robustloc.pipelines.track.track_lines`: one formatter for both engines)."""
 
 from __future__ import annotations
 
@@ -8,6 +11,8 @@ import argparse
 import json
 import sys
 from typing import Any, TextIO
+
+from robustloc.pipelines.locate import input_notes  # noqa: F401 - (it lived here)
 
 
 def summary_head(args: argparse.Namespace, summary: dict[str, Any]) -> TextIO | None:
@@ -29,15 +34,21 @@ def summary_head(args: argparse.Namespace, summary: dict[str, Any]) -> TextIO | 
     return None if args.quiet else dest
 
 
-def input_notes(summary: dict[str, Any]) -> list[str]:
-    """The summary's lines on the input rows (each indented by two spaces)."""
-    lines = []
-    if summary.get("sorted_first"):  # (the Dask engine's summary has no such key)
-        lines.append("  rows were not in epoch order: sorted by time and tag first")
-    if summary.get("duplicates_merged"):
-        lines.append(f"  {summary['duplicates_merged']} duplicate rows (same epoch and "
-                     "anchor) averaged")
-    if summary.get("invalid_measurement_rows"):
-        lines.append(f"  invalid_measurement: {summary['invalid_measurement_rows']} rows "
-                     "(outside the physical limits of robustloc.io.limits; not used)")
-    return lines
+def rate_text(rate: float) -> str:
+    """A rate as people read it: whole numbers from 10 on, else two significant digits
+    (a run that solved epochs never shows ``0``)."""
+    if not rate > 0:
+        return "0"
+    return f"{rate:.0f}" if rate >= 10 else f"{rate:.2g}"
+
+
+def timing_text(summary: dict[str, Any], rate_key: str, unit: str) -> str:
+    """The summary's ``(seconds, rate)`` of the first line: the whole run's seconds, the
+    share numba spent compiling kernels that were not cached (``compile_seconds``, when
+    any), and ``summary[rate_key]`` in ``unit`` (a rate over the work without the
+    compiling)."""
+    compiling = float(summary.get("compile_seconds") or 0.0)
+    text = f"{summary['seconds']:.2f} s"
+    if compiling >= 0.05:
+        text += f", of which {compiling:.1f} s compiling kernels"
+    return f"({text}; {rate_text(float(summary.get(rate_key) or 0.0))} {unit})"

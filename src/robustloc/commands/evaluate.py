@@ -6,6 +6,7 @@ import argparse
 import json
 
 import numpy as np
+import pandas as pd
 
 from robustloc.engines import add_engine_arguments
 
@@ -20,18 +21,23 @@ vertical bound's columns below; a fix whose z is empty -- a 2-D method beside 3-
 counts in the horizontal statistics only, and a method without any z has empty 3-D
 columns, null in --json), the number of failed epochs (status not usable, no
 coordinates, or missing: a truth epoch without a positions row of the method), and the
-improvement of mean and RMS over the `ls` method in %. When the positions carry `hpl`
-(every `locate` and `track` output does), the integrity of the bounds too: the usable fixes
-whose horizontal error exceeds their `hpl` (n_misleading, misleading_pct; a missing bound
-counts as exceeded), the median hpl and its ratio to the median error (hpl_over_error);
-in 3-D with `vpl`, the vertical bound likewise (n_misleading_v, misleading_pct_v,
-vpl_median, vpl_over_error).
+improvement of mean and RMS over the `ls` method (--baseline) in %, 100 (ls - method) /
+ls: columns mean_impr_pct and rms_impr_pct in every output (empty, null in --json, when
+the file has no such method; the text report then leaves them out). When the positions
+carry `hpl` (every `locate` and `track` output does), the integrity of the bounds too: the
+usable fixes whose horizontal error exceeds their `hpl` (n_misleading, misleading_pct; a
+missing bound counts as exceeded), the median hpl and its ratio to the median error
+(hpl_over_error); in 3-D with `vpl`, the vertical bound likewise (n_misleading_v,
+misleading_pct_v, vpl_median, vpl_over_error).
 Two positions rows with the same
 time, tag and method are an error. `-o -` writes the table as CSV to standard output (the
 text report then goes to stderr).
-Aggregates: tag "all" pools every epoch, tag "mean" averages the per-tag statistics (the
-paper's Table 1 average rows); column `aggregate` is true on them (and the report shows
-them as [all] and [mean] when a real tag bears one of those names).
+Aggregates: tag "all" pools every epoch (its counts are the sums over the tags), tag
+"mean" averages the per-tag statistics (the paper's Table 1 average rows), its counts
+too: n, n_missing, n_failed (n_ok, n_ok_3d, ...) are per-tag means, fractional in the
+table of -o and --json, shown with "/tag" in the text report (n 42.9/tag); column
+`aggregate` is true on them (and the report shows them as [all] and [mean] when a real
+tag bears one of those names).
 
 `--plot FILE.png` draws the figure a person would rather look at: the error CDF of each
 method and, when the positions carry `hpl`, each method's Stanford diagram (error against
@@ -148,18 +154,31 @@ def run(args: argparse.Namespace) -> int:
     if np.isin(table.loc[~agg, "tag"].astype(str), ("all", "mean")).any():
         # a real tag bears an aggregate's name: the aggregates are shown bracketed
         show.loc[agg, "tag"] = "[" + show.loc[agg, "tag"].astype(str) + "]"
+    # the mean row's counts are per-tag means: said so in the cell (n 42.9/tag)
+    per_tag = agg & (table["tag"] == "mean").to_numpy()
     for c in ("n", "n_missing", "n_failed"):
-        show[c] = show[c].map(_count)
+        show[c] = _count_cells(show[c], per_tag)
     for c in show.columns[5:]:
         show[c] = show[c].map(_metres)
-    show = show.rename(columns={"mean_impr_pct": f"mean_vs_{args.baseline}_%",
-                                "rms_impr_pct": f"rms_vs_{args.baseline}_%"})
-    print("horizontal error (m)", file=dest)
+    # the improvement columns keep the names of -o and --json; without a baseline row
+    # they are empty there and left out here (they were mean_vs_ls_% with no ls at all)
+    impr = [c for c in ("mean_impr_pct", "rms_impr_pct") if c in table.columns]
+    has_impr = bool(impr) and bool(np.isfinite(table[impr].to_numpy(dtype=float)).any())
+    if not has_impr:
+        show = show.drop(columns=impr)
+    # what the columns mean, on the title line (the table's rows follow it directly)
+    title = "horizontal error (m)"
+    if has_impr:
+        title += (f"; mean_impr_pct, rms_impr_pct: % improvement of mean and rms over "
+                  f"method {args.baseline} of the same tag")
+    if per_tag.any():
+        title += "; mean: the tags' average, of the counts too (/tag)"
+    print(title, file=dest)
     print(show.to_string(index=False), file=dest)
     if "rms_3d" in table.columns:
         cols = ["tag", "method", "n_ok_3d", "mean_3d", "rms_3d", "p95_3d", "max_3d"]
         t3 = table[cols].copy()
-        t3["n_ok_3d"] = t3["n_ok_3d"].map(_count)
+        t3["n_ok_3d"] = _count_cells(t3["n_ok_3d"], per_tag)
         for c in cols[3:]:
             t3[c] = t3[c].map(_metres)
         print("\n3-D error (m)", file=dest)
@@ -196,6 +215,15 @@ def _count(v: float) -> str:
     if not np.isfinite(v):
         return ""
     return f"{int(v)}" if float(v).is_integer() else f"{v:.1f}"
+
+
+def _count_cells(values: pd.Series, per_tag: np.ndarray) -> pd.Series:
+    """A count column as the text report shows it (:func:`_count`), the ``mean`` row's
+    (``per_tag``) marked as the per-tag average it is: ``42.9/tag``."""
+    cells = values.map(_count)
+    mark = per_tag & (cells != "").to_numpy()
+    cells[mark] = cells[mark] + "/tag"
+    return cells
 
 
 def _integral_counts(table):

@@ -7,11 +7,15 @@ The command line over :mod:`robustloc.pipelines.track` (options parsed into its
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
 import pandas as pd
 
 from robustloc.engines import add_engine_arguments
 from robustloc.errors import InputError
+
+if TYPE_CHECKING:
+    from robustloc.pipelines.locate import HplTally
 
 NAME = "track"
 HELP = "tracks from RSSI or ranges: a robust tight EKF/UKF per tag, with RTS smoothing"
@@ -215,9 +219,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--chunk-rows", type=positive_int, default=500_000,
                    help="rows read per chunk (default %(default)s)")
     p.add_argument("--json", action="store_true",
-                   help="print the run summary as JSON (statuses, and hpl_histogram: the "
-                        "usable rows' hpl counted in bins of 1/20 decade, key "
-                        "floor(20 log10 hpl), 'inf' for unbounded ones)")
+                   help="print the run summary as JSON (method: the method column's "
+                        "value; statuses; hpl_quantiles: the usable rows' n, unbounded, "
+                        "median_m and p95_bound_m, a value at or below which 95 %% of "
+                        "their hpl lie, exact up to 10^6 rows, else from bins of 1/1000 "
+                        "decade (exact false); hpl_histogram: their hpl counted in bins "
+                        "of 1/20 decade, key floor(20 log10 hpl), 'inf' for unbounded "
+                        "ones; seconds, of which compile_seconds numba compiled kernels "
+                        "not yet cached, and epochs_per_second without the compiling)")
     p.add_argument("-q", "--quiet", action="store_true",
                    help="no progress bar and no text summary (as locate)")
     from robustloc.commands._plot import add_plot_argument
@@ -226,14 +235,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_engine_arguments(p, what="a tag-partitioned Parquet dataset")
 
 
-def track_file(args: argparse.Namespace) -> dict:
-    """Run the ``track`` pipeline as configured by ``args``; returns the summary."""
+def track_file(args: argparse.Namespace, hpl_tally: HplTally | None = None) -> dict:
+    """Run the ``track`` pipeline as configured by ``args``; returns the summary
+    (``hpl_tally``: as :func:`robustloc.pipelines.track.run_track`'s)."""
     from robustloc.io import read_anchors
     from robustloc.pipelines.track import TrackSettings, run_track
 
     _, summary = run_track(args.measurements, read_anchors(args.anchors),
                            TrackSettings.from_namespace(args), args.out,
-                           progress=not args.quiet)
+                           progress=not args.quiet, hpl_tally=hpl_tally)
     return summary
 
 
@@ -242,7 +252,9 @@ def track_partition(meas: pd.DataFrame, anchors: pd.DataFrame, args: argparse.Na
     """``--engine dask``: one tag group read whole (its files concatenated in time order)
     -> (track rows, additive counts).  Used when a group spans several files; a group of
     one file is streamed by :func:`track_partition_file`."""
+    from robustloc._jitnotice import compile_watch
     from robustloc.io.tables import to_epochs
+    from robustloc.pipelines.locate import HplTally
     from robustloc.pipelines.track import (
         TrackSettings,
         link_offset_key,
@@ -257,14 +269,19 @@ def track_partition(meas: pd.DataFrame, anchors: pd.DataFrame, args: argparse.Na
     epochs = to_epochs(meas, trk.anchor_ids)  # sorted by (time, tag): each tag in order
     hist: dict[str, int] = {}
     tally: dict[str, int] = {}
-    table, n, counts = track_blocks(trk, [epochs], settings, hpl_histogram=hist, source=meas,
-                                    tally=tally)
+    hpl = HplTally()
+    with compile_watch("tracker and filter") as jit:
+        table, n, counts = track_blocks(trk, [epochs], settings, hpl_histogram=hist,
+                                        source=meas, tally=tally, hpl_tally=hpl)
+    method = settings.method_name(trk)  # the method column's
     summary = {"epochs": n, "tags": len(trk.tags), "status": counts,
-               "hpl_histogram": {trk.method: hist},
+               "hpl_histogram": {method: hist},
+               "hpl_tally": {method: hpl},  # merged by the engine into hpl_quantiles
+               "compile_seconds": jit.seconds,
                "invalid_measurement_rows": tally.get("invalid_measurement_rows", 0),
                "duplicates_merged": tally.get("duplicates_merged", 0),
                # the same in every group: the single-process summary's keys
-               "shared": {"method": trk.method,
+               "shared": {"method": method,
                           "smoother": (("fixed-lag" if settings.fixed_lag else "rts")
                                        if settings.smoothing else None),
                           "sorted_first": False,  # (read whole and sorted by to_epochs)
@@ -283,9 +300,14 @@ def track_partition_file(args: argparse.Namespace) -> dict:
     """``--engine dask``: the pipeline on one partition file (streamed in
     ``--chunk-rows``, so a worker's memory does not grow with the partition) -> the
     additive counts of its summary."""
-    s = track_file(args)
+    from robustloc.pipelines.locate import HplTally
+
+    hpl = HplTally()
+    s = track_file(args, hpl)
     summary = {"epochs": s["epochs"], "tags": s["tags"], "status": s["status"],
                "hpl_histogram": s["hpl_histogram"], "rows_out": s["epochs"],
+               "hpl_tally": {s["method"]: hpl},  # merged by the engine: hpl_quantiles
+               "compile_seconds": s["compile_seconds"],
                "invalid_measurement_rows": s["invalid_measurement_rows"],
                "duplicates_merged": s["duplicates_merged"],
                "shared": {k: s[k] for k in ("method", "smoother", "sorted_first",
@@ -311,23 +333,13 @@ def run(args: argparse.Namespace) -> int:
                                        "track": str(args.out)})
     summary = track_file(args)
     draw_plot(args)
-    from robustloc.commands._summary import input_notes, summary_head
+    from robustloc.commands._summary import summary_head, timing_text
+    from robustloc.pipelines.track import track_lines
 
     if (dest := summary_head(args, summary)) is None:
         return 0
     print(f"{summary['epochs']} epochs, {summary['tags']} tags -> {summary['track']} "
-          f"({summary['seconds']:.2f} s, {summary['epochs_per_second']:.0f} epochs/s)",
-          file=dest)
-    for line in input_notes(summary):
-        print(line, file=dest)
-    print("  " + ", ".join(f"{k}: {v}" for k, v in sorted(summary["status"].items())),
-          file=dest)
-    from robustloc.pipelines.locate import hpl_lines
-
-    for line in hpl_lines(summary, "rows"):
-        print(line, file=dest)
-    from robustloc.pipelines.track import offset_lines
-
-    for line in offset_lines(summary):
+          + timing_text(summary, "epochs_per_second", "epochs/s"), file=dest)
+    for line in track_lines(summary):  # as the Dask engine's
         print(line, file=dest)
     return 0

@@ -378,16 +378,24 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
             _say(args, f"{name}: {len(plan)} partitions on "
                        f"{len(client.scheduler_info()['workers'])} workers")
             settings = _settings(args)
+            compiling = 0.0  # numba compiling kernels not cached: here and in the tasks
             if name == "locate" and getattr(args, "robust_scale", None) == "log":
                 # the log's noise scale and gross share are the whole dataset's: one
                 # first pass (an even sample of its epochs, in the partitions' order),
                 # handed to every partition, as the single-process first pass does
-                settings.update(_log_scales(client, args, settings, plan))
+                # (solved here: the notice if numba compiles its kernels for it)
+                from robustloc._jitnotice import compile_watch
+
+                with compile_watch("positioning") as jit:
+                    settings.update(_log_scales(client, args, settings, plan))
+                compiling += jit.seconds
             futs = submit_all(client, _file_task, [(fn, settings, input_attr, info.part,
                                                     out.part(i)) for i, info in enumerate(plan)])
             summaries = gather_with_progress(client, futs, _show(args))
             n_workers = len(client.scheduler_info()["workers"])
         wall = _time.perf_counter() - t0
+        hpl = _merged_hpl(summaries)
+        compiling += sum(float(s.get("compile_seconds") or 0.0) for s in summaries)
         total: dict = {}
         for s in summaries:
             _sum_counts(total, s)
@@ -397,10 +405,11 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
             "value": summaries[0].get("value"), "methods": summaries[0].get("methods"),
             "epochs": total.get("epochs", 0), "status": total.get("status", {}),
             "hpl_histogram": total.get("hpl_histogram", {}),
+            "hpl_quantiles": hpl,
             "side_from_log": total.get("side_from_log", {}),
             "duplicates_merged": total.get("duplicates_merged", 0),
             "invalid_measurement_rows": total.get("invalid_measurement_rows", 0),
-            "seconds": round(wall, 3),
+            "seconds": round(wall, 3), "compile_seconds": round(compiling, 3),
             "epochs_per_second": round(total.get("epochs", 0) / max(wall, 1e-9), 1),
             "files": [{"input": info.part.path, "output": Path(out.part(i)).name}
                       for i, info in enumerate(plan)],
@@ -483,13 +492,31 @@ def _log_scales(client: object, args: argparse.Namespace, settings: dict,
         return log_scales_for(locate_settings, anchors, paths)
 
 
+def _merged_hpl(parts: list[dict]) -> dict[str, dict]:
+    """The dataset's ``hpl_quantiles`` from the partitions' ``hpl_tally`` (each method's
+    :class:`~robustloc.pipelines.locate.HplTally`, removed from the partitions'
+    summaries: it is no count to sum and no JSON)."""
+    from robustloc.pipelines.locate import HplTally
+
+    merged: dict[str, HplTally] = {}
+    for part in parts:
+        for m, t in (part.pop("hpl_tally", None) or {}).items():
+            merged.setdefault(m, HplTally()).merge(t)
+    return {m: t.quantiles() for m, t in merged.items()}
+
+
 def _report(args: argparse.Namespace, summary: dict, skip: Iterable[str] = ()) -> None:
     """Print the run's summary: as JSON (``--json``), else its warnings and (unless
     ``--quiet``) its text.  ``skip``: keys the text leaves out (a tag-wise run's copies
-    of its counts at the top level, printed from ``counts``)."""
+    of its counts at the top level, printed from ``counts``).  ``locate`` and ``track``
+    print the lines of the single-machine command
+    (:func:`robustloc.pipelines.locate.locate_lines`,
+    :func:`robustloc.pipelines.track.track_lines`) under a first line naming the
+    partitions and workers."""
     if getattr(args, "json", False):
         print(json.dumps({k: v for k, v in summary.items() if k != "files"}, indent=2))
         return
+    whole = summary
     skip = set(skip) - {"anchors_not_used", "anchors_suspect"}
     summary = {k: v for k, v in summary.items() if k not in skip}
     if "anchors_suspect" in summary or "anchors_not_used" in summary:
@@ -498,6 +525,22 @@ def _report(args: argparse.Namespace, summary: dict, skip: Iterable[str] = ()) -
         for line in anchor_warnings(summary, getattr(args, "anchors", None)):
             print(f"warning: {line}", file=sys.stderr)  # as the command, even with --quiet
     if getattr(args, "quiet", False):  # no text summary, as the single-machine commands
+        return
+    where = (f"in {summary['partitions']} partitions -> {summary['out']} "
+             f"({summary['seconds']:.2f} s on {summary['workers']} dask workers)")
+    if whole.get("command") in ("locate", "track"):
+        from robustloc.pipelines.locate import locate_lines
+        from robustloc.pipelines.track import track_lines
+
+        if whole["command"] == "track":  # the top-level keys are the command's summary
+            print(f"{whole.get('epochs', 0)} epochs, {whole.get('tags', 0)} tags {where}")
+            lines = track_lines(whole)
+        else:
+            print(f"{whole.get('epochs', 0)} epochs of {whole.get('value') or 'rows'} "
+                  + where)
+            lines = locate_lines(whole)
+        for line in lines:
+            print(line)
         return
     what = summary.get("value") or "rows"
     n = summary.get("epochs", summary.get("samples", summary.get("rows_out", 0)))
@@ -510,26 +553,10 @@ def _report(args: argparse.Namespace, summary: dict, skip: Iterable[str] = ()) -
     if summary.get("duplicates_merged"):
         print(f"  {summary['duplicates_merged']} duplicate rows (same epoch and anchor) "
               "averaged")
-    for m, c in summary.get("status", {}).items():
-        print(f"  {m:9s} " + ", ".join(f"{k}: {v}" for k, v in sorted(c.items())))
-    if summary.get("hpl_histogram"):
-        from robustloc.pipelines.locate import hpl_lines
+    from robustloc.pipelines.locate import status_text
 
-        for line in hpl_lines(summary):
-            print(line)
-    for k, v in summary.get("counts", {}).items():
-        if k == "hpl_histogram":
-            from robustloc.pipelines.locate import hpl_lines
-
-            for line in hpl_lines({"hpl_histogram": v}, "rows"):
-                print(line)
-        else:
-            print(f"  {k}: {v}")
-    if any(summary.get(k) for k in ("range_offset_m", "link_offset_m", "link_offset_db")):
-        from robustloc.pipelines.track import offset_lines  # track's final offsets per tag
-
-        for line in offset_lines(summary):
-            print(line)
+    for k, v in summary.get("counts", {}).items():  # (filter's)
+        print(f"  {k}: " + (status_text(v) if isinstance(v, dict) else f"{v}"))
 
 
 def run_filter(args: argparse.Namespace, kernel: TagKernel,
@@ -613,6 +640,9 @@ def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
                                                             [i.part for i in g], out.part(k))])
             counts_list = gather_with_progress(client, futs, _show(args))
         rows = [c.get("rows_out") for c in counts_list]
+        hpl = _merged_hpl(counts_list)  # (track's: the groups' HplTally, merged)
+        compiling = [float(c.pop("compile_seconds")) for c in counts_list
+                     if "compile_seconds" in c]
         combined = combine(counts_list) if combine is not None else {}
         total: dict = {}
         per_tag: dict[str, dict] = {}
@@ -639,6 +669,10 @@ def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
         # the single-process summary's keys at the top level too (a script reading
         # summary["status"] works with either engine); "counts" stays as it was
         local = {**total, **shared, **(local_keys or {}), **combined}
+        if hpl:
+            local["hpl_quantiles"] = hpl
+        if compiling:  # numba compiling kernels not cached, summed over the tasks
+            local["compile_seconds"] = round(sum(compiling), 3)
         if "epochs" in total:
             local["epochs_per_second"] = round(total["epochs"] / max(wall, 1e-9), 1)
         top = [k for k in local if k not in summary]

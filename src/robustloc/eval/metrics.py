@@ -24,15 +24,18 @@ without one -- a 2-D method in a file that also holds a 3-D one, or a row whose 
 empty -- counts in the horizontal statistics only, and a method without any has NaN 3-D
 and vertical statistics.
 
-Aggregate rows per method: ``tag = "all"`` pools the epochs of every tag; ``tag = "mean"``
-is the mean of the per-tag statistics, which is how the paper's Table 1 forms its
-"average over the points" rows; an error statistic of that row is NaN when the method has
-no usable fix on some tag (the mean skipped those tags, so methods were averaged over
-different tags: the self-calibration review).  Column ``aggregate`` is True on those rows
-only, so a
-real tag named ``all`` or ``mean`` stays apart from them.  ``mean_impr_pct`` and
-``rms_impr_pct`` give the improvement over the ``ls`` row of the same tag,
-``100 (ls - method) / ls``, when the positions contain method ``ls``.
+Aggregate rows per method: ``tag = "all"`` pools the epochs of every tag (its counts are
+the tags' sums); ``tag = "mean"`` is the mean of the per-tag statistics, which is how the
+paper's Table 1 forms its "average over the points" rows, its counts (``n``,
+``n_missing``, ``n_failed``, ``n_ok``, ...) included: per-tag means, which may be
+fractional (``robustloc evaluate`` shows them as ``42.9/tag``); an error statistic of
+that row is NaN when the method has no usable fix on some tag (the mean skipped those
+tags, so methods were averaged over different tags: the self-calibration review).
+Column ``aggregate`` is True on those rows only, so a real tag named ``all`` or ``mean``
+stays apart from them.  ``mean_impr_pct`` and ``rms_impr_pct`` give the improvement over
+the ``ls`` row (``baseline``) of the same tag, ``100 (ls - method) / ls``, when the
+positions contain method ``ls``; NaN otherwise (``robustloc evaluate`` uses these names in
+every output, and leaves them out of its text report when they are all NaN).
 
 Matching: each positions row is paired with the truth row of the same ``tag`` whose
 ``time`` is nearest, if within ``time_tolerance_s`` (default 1e-6 s, i.e. equal times

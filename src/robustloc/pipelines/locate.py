@@ -16,7 +16,7 @@ import sys
 import time as _time
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -34,6 +34,9 @@ from robustloc.options import (
     sigma_value,
     tag_height_m,
 )
+
+if TYPE_CHECKING:
+    from robustloc._jitnotice import CompileWatch
 
 #: ``model`` values: the path-loss models of :mod:`robustloc.models.pathloss`.
 PATH_LOSS_MODELS = ("log-distance", "attenuation-factor", "friis")
@@ -531,6 +534,7 @@ def log_scales_for(settings: LocateSettings, anchors: pd.DataFrame, sources: Seq
 def run_locate(
     measurements: Any, anchors: pd.DataFrame, settings: LocateSettings,
     out: str | None = None, *, progress: bool = False,
+    hpl_tallies: dict[str, HplTally] | None = None,
 ) -> tuple[pd.DataFrame | None, dict[str, Any]]:
     """Locate every epoch of a log.
 
@@ -547,12 +551,21 @@ def run_locate(
         returns the positions as a frame.
     progress : bool
         Show a progress bar on a terminal.
+    hpl_tallies : dict, optional
+        Filled with each method's :class:`HplTally` (the Dask engine merges the
+        partitions' into the dataset's ``hpl_quantiles``).
 
     Returns
     -------
     (DataFrame or None, dict)
-        The positions (``out=None``), and the run summary.
+        The positions (``out=None``), and the run summary: ``seconds`` (the whole run,
+        the first pass included), ``compile_seconds`` (of it, numba compiling kernels
+        that were not cached: :func:`robustloc._jitnotice.compile_watch`),
+        ``solve_seconds`` and ``fixes_per_second`` (solving only, compiling left out),
+        ``hpl_quantiles`` (:meth:`HplTally.quantiles` per method), ``hpl_histogram``
+        (:func:`hpl_counts`), the statuses per method, ...
     """
+    from robustloc._jitnotice import compile_watch
     from robustloc.io.atomic import check_not_input, is_stdio
     from robustloc.io.tables import UnsortedInput, _display, check_table_path
 
@@ -563,21 +576,32 @@ def run_locate(
         check_not_input(out, [src for src in (measurements, anchors.attrs.get("path"))
                               if src])
     geo = configure(settings, anchors)
-    if any(loc.robust_scale == "log" for loc in geo.locators):
-        geo = replace(geo, locators=_with_log_scale(settings, geo, [measurements]))
-    # a restartable output (a regular file: the temporary file is discarded; memory)
-    # streams and restarts sorted if the rows turn out not to be in epoch order; standard
-    # output or a device cannot be taken back, so the order is checked first.
-    rewindable = out is None or (not is_stdio(out) and not _is_special(out))
-    order = "auto" if rewindable else "check"
-    while True:
-        try:
-            frame, summary = _run_once(measurements, settings, geo, out, order, progress)
-            break
-        except UnsortedInput:
-            if order != "auto":
-                raise
-            order = "sort"
+    t0 = _time.perf_counter()
+    # the notice when numba starts compiling, whichever pass needs a kernel first (the
+    # log-scale pass compiled them all before the notice was considered: 35 s unannounced)
+    with compile_watch("positioning") as jit:
+        if any(loc.robust_scale == "log" for loc in geo.locators):
+            geo = replace(geo, locators=_with_log_scale(settings, geo, [measurements]))
+        # a restartable output (a regular file: the temporary file is discarded; memory)
+        # streams and restarts sorted if the rows turn out not to be in epoch order;
+        # standard output or a device cannot be taken back, so the order is checked first.
+        rewindable = out is None or (not is_stdio(out) and not _is_special(out))
+        order = "auto" if rewindable else "check"
+        while True:
+            tallies: dict[str, HplTally] = {}
+            try:
+                frame, summary = _run_once(measurements, settings, geo, out, order,
+                                           progress, jit, tallies)
+                break
+            except UnsortedInput:
+                if order != "auto":
+                    raise
+                order = "sort"
+    # the whole run (it was the second pass only: "0.04 s" after 35 s of compiling)
+    summary["seconds"] = round(_time.perf_counter() - t0, 3)
+    summary["compile_seconds"] = round(jit.seconds, 3)
+    if hpl_tallies is not None:
+        hpl_tallies.update(tallies)
     from robustloc.estimators.ranging import _sane_anchors
 
     # an anchor far outside the layout (a typo such as x = 1e30) is never used by any fix
@@ -690,25 +714,212 @@ def hpl_quantiles(hist: dict[str, int], qs: tuple[float, ...] = (0.5, 0.95)
     return out
 
 
+#: Usable fixes' protection levels kept exactly, per method, by :class:`HplTally` (8 MB
+#: each at most); beyond, its quantiles come from its histogram of
+#: :data:`HPL_FINE_BINS_PER_DECADE` bins per decade.
+HPL_EXACT_CAP = 1_000_000
+
+#: Resolution of :class:`HplTally`'s histogram: bins 0.23 % wide, so its median is within
+#: 0.12 % of the exact one (printed as "about"), and the upper edge of the bin that
+#: reaches 95 % is a true bound at most 0.23 % above the exact 95th percentile.
+HPL_FINE_BINS_PER_DECADE = 1000
+
+
+class HplTally:
+    """The usable fixes' (or track rows') protection levels of one method, for the
+    summary's true quantiles (:meth:`quantiles`) in bounded memory.
+
+    The finite values are kept exactly while there are at most :data:`HPL_EXACT_CAP` of
+    them; a histogram of :data:`HPL_FINE_BINS_PER_DECADE` bins per decade of ``hpl`` is
+    kept always and takes over beyond.  Tallies of chunks, or of Dask partitions, merge
+    (:meth:`merge`) into the tally of the whole, exactly as long as the whole is within
+    the cap.  A non-finite ``hpl`` (no bound: ``unverified`` fixes) counts as unbounded,
+    above every value.
+    """
+
+    def __init__(self) -> None:
+        self.n_finite = 0  # (the unbounded ones apart)
+        self.unbounded = 0
+        self._values: list[np.ndarray] | None = []
+        self._bins: dict[int, int] = {}
+
+    @property
+    def exact(self) -> bool:
+        """The values are all kept: :meth:`quantiles` are exact."""
+        return self._values is not None
+
+    def add(self, hpl: NDArray[np.float64], usable: NDArray[np.bool_]) -> None:
+        """Count the ``usable`` rows' ``hpl``."""
+        h = np.asarray(hpl, dtype=float)[np.asarray(usable, dtype=bool)]
+        fin = np.isfinite(h)
+        self.unbounded += int(np.sum(~fin))
+        h = h[fin]
+        self.n_finite += int(h.size)
+        if not h.size:
+            return
+        # a bound of 0 or below (never seen) falls in the lowest bin: its upper edge,
+        # 1e-300 m, still bounds it
+        k, c = np.unique(np.floor(HPL_FINE_BINS_PER_DECADE
+                                  * np.log10(np.maximum(h, 1e-300))).astype(np.int64),
+                         return_counts=True)
+        for k_, c_ in zip(k.tolist(), c.tolist()):
+            self._bins[k_] = self._bins.get(k_, 0) + int(c_)
+        if self._values is not None:
+            self._values.append(h)
+            self._check_cap()
+
+    def merge(self, other: HplTally) -> None:
+        """Add the counts of ``other`` (another chunk's or partition's tally)."""
+        self.n_finite += other.n_finite
+        self.unbounded += other.unbounded
+        for k, c in other._bins.items():
+            self._bins[k] = self._bins.get(k, 0) + c
+        if self._values is not None and other._values is not None:
+            self._values.extend(other._values)
+            self._check_cap()
+        else:
+            self._values = None
+
+    def _check_cap(self) -> None:
+        if self.n_finite > HPL_EXACT_CAP:
+            self._values = None  # the histogram takes over
+        elif self._values is not None and len(self._values) > 64:
+            self._values = [np.concatenate(self._values)]
+
+    def quantiles(self) -> dict[str, Any]:
+        """The summary's ``hpl_quantiles`` entry of this method.
+
+        Returns
+        -------
+        dict
+            ``n`` (usable rows), ``unbounded`` (of them, without a finite ``hpl``),
+            ``median_m`` (the median, as ``numpy.median``; None when it lies among the
+            unbounded rows or there is no row), ``p95_bound_m`` (a value at or below
+            which at least 95 % of the rows' ``hpl`` lie: the order statistic of rank
+            ``ceil(0.95 N)``, or the upper edge of the histogram's bin that reaches that
+            rank; None when that rank is among the unbounded rows) and ``exact`` (False:
+            from the histogram, ``median_m`` within 0.12 % of the exact median and
+            ``p95_bound_m`` at most 0.23 % above the exact order statistic).
+        """
+        total = self.n_finite + self.unbounded
+        out: dict[str, Any] = {"n": total, "unbounded": self.unbounded, "median_m": None,
+                               "p95_bound_m": None, "exact": self.exact}
+        if total == 0:
+            return out
+        r50, r95 = (total + 1) // 2, -(-95 * total // 100)  # ranks: ceil(N/2), ceil(.95 N)
+        if self._values is not None:
+            # the unbounded rows sort after every value
+            v = np.sort(np.concatenate(self._values)) if self._values else np.empty(0)
+            lo, hi = (total - 1) // 2, total // 2  # the middle row(s), 0-based
+            if hi < v.size:
+                out["median_m"] = float((v[lo] + v[hi]) / 2)
+            if r95 <= v.size:
+                out["p95_bound_m"] = float(v[r95 - 1])
+            return out
+        acc, edges = 0, {}
+        for k in sorted(self._bins):
+            acc += self._bins[k]
+            for key, r in (("median_m", r50), ("p95_bound_m", r95)):
+                if key not in edges and acc >= r:
+                    edges[key] = k
+        if "median_m" in edges:  # the geometric centre of its bin
+            out["median_m"] = float(10.0 ** ((edges["median_m"] + 0.5)
+                                             / HPL_FINE_BINS_PER_DECADE))
+        if "p95_bound_m" in edges:  # the bin's upper edge (and a hair: log10's rounding)
+            out["p95_bound_m"] = float(10.0 ** ((edges["p95_bound_m"] + 1)
+                                                / HPL_FINE_BINS_PER_DECADE) * (1 + 1e-12))
+        return out
+
+
+def bound_text(value: float, digits: int = 3) -> str:
+    """``value`` rounded *up* to ``digits`` significant digits, as text: a bound that the
+    printed number still is (19.345 -> ``19.4``; ``"%.3g"`` printed ``19.3``)."""
+    from decimal import ROUND_CEILING, Decimal
+
+    near = f"{value:.{digits}g}"
+    if float(near) >= value:  # (as floats: 19.3 bounds the double 19.3 read from the CSV)
+        return near
+    d = Decimal(float(value))
+    q = d.quantize(Decimal(1).scaleb(d.adjusted() - digits + 1), rounding=ROUND_CEILING)
+    return f"{q:f}"
+
+
 def hpl_lines(summary: dict, noun: str = "fixes") -> list[str]:
-    """The summary's protection levels, one line per method: the median and 95th
-    percentile of the usable fixes' (``noun``: track rows') ``hpl`` (from the summary's
-    histogram, within 6 %)."""
+    """The summary's protection levels, one line per method: the median of the usable
+    fixes' (``noun``: track rows') ``hpl`` and a bound at or below which 95 % of them lie
+    (the summary's ``hpl_quantiles``, :meth:`HplTally.quantiles`: exact, or "about" the
+    median from a histogram of 1/1000 decade; the bound is rounded up, so it holds as
+    printed).  A summary without ``hpl_quantiles`` (one written before it) is read from
+    its ``hpl_histogram`` of 1/20 decade: the median "about" (within 6 %), the bound the
+    upper edge of its bin."""
     lines = []
-    for m, hist in (summary.get("hpl_histogram") or {}).items():
-        n = sum(hist.values())
+    quant = summary.get("hpl_quantiles")
+    if quant is None:
+        quant = {m: _coarse_quantiles(h) for m, h in
+                 (summary.get("hpl_histogram") or {}).items()}
+    for m, q in quant.items():
+        n, unb = int(q.get("n") or 0), int(q.get("unbounded") or 0)
         if not n:
             continue
-        q = hpl_quantiles(hist)
-        unb = hist.get("inf", 0)
-        lines.append(f"  {m:9s} hpl of the {n} usable {noun}: median {q['p50']:.3g} m, "
-                     f"95 % at or below {q['p95']:.3g} m"
+        med = q.get("median_m")
+        med_text = ("unbounded" if med is None
+                    else f"{'' if q.get('exact') else 'about '}{med:.3g} m")
+        p95 = q.get("p95_bound_m")
+        p95_text = ("95 % without a finite bound" if p95 is None
+                    else f"95 % at or below {bound_text(p95)} m")
+        lines.append(f"  {m:9s} hpl of the {n} usable {noun}: median {med_text}, {p95_text}"
                      + (f" ({unb} unbounded)" if unb else ""))
     for m, k in (summary.get("side_from_log") or {}).items():
         if k:
             lines.append(f"  {m:9s} {k} ambiguous fixes placed on the log's side of their "
                          "anchors' line (--side-prior log)")
     return lines
+
+
+def status_text(counts: Mapping[str, int]) -> str:
+    """A status count dict as every summary prints it: ``fault_detected: 1, ok: 179``
+    (sorted by status; ``track --engine dask`` printed the Python dict)."""
+    return ", ".join(f"{k}: {v}" for k, v in sorted(counts.items()))
+
+
+def input_notes(summary: Mapping[str, Any]) -> list[str]:
+    """The summary's lines on the input rows (each indented by two spaces)."""
+    lines = []
+    if summary.get("sorted_first"):  # (the Dask engine's summary has no such key)
+        lines.append("  rows were not in epoch order: sorted by time and tag first")
+    if summary.get("duplicates_merged"):
+        lines.append(f"  {summary['duplicates_merged']} duplicate rows (same epoch and "
+                     "anchor) averaged")
+    if summary.get("invalid_measurement_rows"):
+        lines.append(f"  invalid_measurement: {summary['invalid_measurement_rows']} rows "
+                     "(outside the physical limits of robustloc.io.limits; not used)")
+    return lines
+
+
+def locate_lines(summary: Mapping[str, Any]) -> list[str]:
+    """``locate``'s summary lines after the first, the same for every engine (the
+    command's and the Dask engine's first lines differ): the notes on the input, each
+    method's statuses and protection levels."""
+    lines = input_notes(summary)
+    lines += [f"  {m:9s} " + status_text(c) for m, c in summary.get("status", {}).items()]
+    return lines + hpl_lines(dict(summary))
+
+
+def _coarse_quantiles(hist: dict[str, int]) -> dict[str, Any]:
+    """:meth:`HplTally.quantiles` from a :func:`hpl_counts` histogram (1/20 decade): the
+    median about (its bin's centre), the 95 % bound the upper edge of its bin."""
+    total = sum(int(v) for v in hist.values())
+    med = hpl_quantiles(hist, (0.5,))["p50"]
+    finite = sorted((int(k), int(v)) for k, v in hist.items() if k != "inf")
+    need, acc, bound = -(-95 * total // 100), 0, None
+    for k, v in finite:
+        acc += v
+        if acc >= need:
+            bound = float(10.0 ** ((k + 1) / HPL_BINS_PER_DECADE) * (1 + 1e-12))
+            break
+    return {"n": total, "unbounded": int(hist.get("inf", 0)),
+            "median_m": med if np.isfinite(med) else None, "p95_bound_m": bound,
+            "exact": False}
 
 
 def _is_special(path: str) -> bool:
@@ -723,13 +934,14 @@ def _is_special(path: str) -> bool:
 
 def _run_once(
     measurements: Any, settings: LocateSettings, geo: Geometry, out: str | None, order: str,
-    progress: bool,
+    progress: bool, jit: CompileWatch, tallies: dict[str, HplTally],
 ) -> tuple[pd.DataFrame | None, dict[str, Any]]:
     """One pass over the measurements; raises UnsortedInput (output discarded) when the
-    streamed rows turn out not to be in epoch order."""
+    streamed rows turn out not to be in epoch order.  ``jit``: the run's
+    :class:`~robustloc._jitnotice.CompileWatch` (compiling is left out of the solving
+    time); ``tallies`` is filled with each method's :class:`HplTally`."""
     from tqdm import tqdm
 
-    from robustloc._jitnotice import compile_notice
     from robustloc.estimators.ranging import SOLVE_CELLS
     from robustloc.integrity.fixes import locate_protected
     from robustloc.io import iter_epochs, positions_frame
@@ -742,6 +954,7 @@ def _run_once(
     ids = [str(a) for a in anchors["anchor"]]
     counts: dict[str, dict[str, int]] = {m: {} for m in methods}
     hpl_hist: dict[str, dict[str, int]] = {m: {} for m in methods}
+    tallies.update({m: HplTally() for m in methods})
     moved: dict[str, int] = {m: 0 for m in methods}
     n_epochs = n_dup = n_invalid = 0
     resorted = order == "sort"
@@ -755,8 +968,7 @@ def _run_once(
         with PositionsWriter(out) as writer:
             for block in iter_epochs(measurements, anchors, chunk_rows=settings.chunk_rows,
                                      order=order):
-                if kind is None:  # the first block: its input is valid, solving starts
-                    compile_notice("positioning")
+                if kind is None:  # the first block
                     kind = block.value
                     if kind == "rssi":
                         A, n = log_distance_arrays(anchors, settings.model)
@@ -771,13 +983,13 @@ def _run_once(
                     parts = []
                     for s0 in range(0, max(block.n_epochs, 1), step):
                         sl = slice(s0, s0 + step)
-                        ts = _time.perf_counter()
+                        ts, jit0 = _time.perf_counter(), jit.seconds
                         sol = locate_protected(
                             loc, geo.xyz, values[sl], kind, A=A, n=n,
                             height_offset=geo.height, alpha0=settings.alpha0,
                             beta0=settings.beta0, k_noise=settings.k_noise,
                             alert_limit=settings.alert_limit)
-                        solve_s += _time.perf_counter() - ts
+                        solve_s += _time.perf_counter() - ts - (jit.seconds - jit0)
                         side = sol.extra.get("side_from_log")
                         if side is not None:
                             moved[loc.method] += int(np.sum(side & ~bad[sl]))
@@ -793,9 +1005,10 @@ def _run_once(
                     for s_, c_ in zip(st, c):
                         counts[loc.method][s_] = counts[loc.method].get(s_, 0) + int(c_)
                     if "hpl" in fr:
-                        hpl_counts(fr["hpl"].to_numpy(float),
-                                   among(fr["status"].to_numpy(dtype=object), USABLE),
-                                   hpl_hist[loc.method])
+                        h = fr["hpl"].to_numpy(float)
+                        use = among(fr["status"].to_numpy(dtype=object), USABLE)
+                        hpl_counts(h, use, hpl_hist[loc.method])
+                        tallies[loc.method].add(h, use)
                 writer.write(_epoch_major(frames))
                 n_epochs += block.n_epochs
                 n_dup += block.n_duplicates
@@ -808,11 +1021,13 @@ def _run_once(
     wall = _time.perf_counter() - t0
     return frame, {
         "value": kind, "epochs": n_epochs, "methods": methods, "status": counts,
-        "hpl_histogram": hpl_hist, "side_from_log": moved,
+        "hpl_histogram": hpl_hist,
+        "hpl_quantiles": {m: t.quantiles() for m, t in tallies.items()},
+        "side_from_log": moved,
         "log_sides": {loc.method: [[list(i), s] for i, s in loc.log_sides or ()]
                       for loc in locators},
         "duplicates_merged": n_dup, "invalid_measurement_rows": n_invalid,
         "sorted_first": resorted, "seconds": round(wall, 3),
-        "solve_seconds": round(solve_s, 3),
+        "solve_seconds": round(max(solve_s, 0.0), 3),
         "fixes_per_second": round(n_epochs * len(methods) / max(solve_s, 1e-9), 1),
     }

@@ -15,7 +15,7 @@ import time as _time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -31,6 +31,9 @@ from robustloc.options import (
     sigma_value,
     tag_height_m,
 )
+
+if TYPE_CHECKING:
+    from robustloc.pipelines.locate import HplTally
 
 #: ``weight`` values (robust weight functions of :mod:`robustloc.robust.weights`).
 WEIGHTS = ("ls", "huber", "hampel", "igg", "igg3", "asymmetric-igg")
@@ -84,6 +87,12 @@ class TrackSettings:
         """RTS smoothing on (``smooth`` or ``fixed_lag``)."""
         return self.smooth or self.fixed_lag is not None
 
+    def method_name(self, trk: Any) -> str:
+        """The ``method`` column of ``trk``'s rows with these settings (the summary's
+        ``method``, as ``evaluate`` reads it): ``track-cv-ekf``, ``track-cv-ekf-rts``,
+        ``track-cv-ekf-lag5``, ... (:func:`smoother_suffix`)."""
+        return trk.method + (smoother_suffix(self.fixed_lag) if self.smoothing else "")
+
     @classmethod
     def from_namespace(cls, args: argparse.Namespace) -> TrackSettings:
         """The settings of a parsed ``robustloc track`` command line."""
@@ -109,7 +118,7 @@ class TrackSettings:
 
 def run_track(
     measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
-    out: str | None = None, *, progress: bool = False,
+    out: str | None = None, *, progress: bool = False, hpl_tally: HplTally | None = None,
 ) -> tuple[pd.DataFrame | None, dict[str, Any]]:
     """Track every tag of a log.
 
@@ -125,14 +134,25 @@ def run_track(
         Track file (CSV/Parquet, written atomically); ``None`` returns the frame.
     progress : bool
         Show a progress bar on a terminal.
+    hpl_tally : HplTally, optional
+        A :class:`robustloc.pipelines.locate.HplTally` the usable rows' ``hpl`` are added
+        to (the Dask engine merges the partitions' into the dataset's ``hpl_quantiles``).
 
     Returns
     -------
     (DataFrame or None, dict)
-        The track rows (``out=None``), and the run summary.
+        The track rows (``out=None``), and the run summary: ``method`` (the ``method``
+        column's value, smoother suffix included), ``seconds`` (the whole run), of it
+        ``compile_seconds`` (numba compiling kernels that were not cached:
+        :func:`robustloc._jitnotice.compile_watch`), ``epochs_per_second`` (over the run
+        without the compiling), ``hpl_quantiles``
+        (:meth:`robustloc.pipelines.locate.HplTally.quantiles`), ``hpl_histogram``,
+        the statuses, ...
     """
+    from robustloc._jitnotice import compile_watch
     from robustloc.io.atomic import check_not_input
     from robustloc.io.tables import UnsortedInput, _display, check_table_path
+    from robustloc.pipelines.locate import HplTally
 
     if settings.tag_height is not None and "z" not in anchors.columns:
         raise InputError("--tag-height needs a z column in the anchors file",
@@ -144,23 +164,34 @@ def run_track(
         check_not_input(out, [src for src in (measurements, anchors.attrs.get("path"))
                               if src])
     t0 = _time.perf_counter()
-    try:
-        trk, frame, n_epochs, counts, hist, resorted, tally = _one_pass(
-            measurements, anchors, settings, out, "auto", progress)
-    except UnsortedInput:
-        trk, frame, n_epochs, counts, hist, resorted, tally = _one_pass(
-            measurements, anchors, settings, out, "sort", progress)
+    # the notice when numba starts compiling a kernel the cache lacks (any model, filter
+    # or option: `--model ca` compiled 25 s unannounced), and the time it takes
+    with compile_watch("tracker and filter") as jit:
+        hpl = HplTally()
+        try:
+            trk, frame, n_epochs, counts, hist, resorted, tally = _one_pass(
+                measurements, anchors, settings, out, "auto", progress, hpl)
+        except UnsortedInput:
+            hpl = HplTally()
+            trk, frame, n_epochs, counts, hist, resorted, tally = _one_pass(
+                measurements, anchors, settings, out, "sort", progress, hpl)
+    if hpl_tally is not None:
+        hpl_tally.merge(hpl)
     wall = _time.perf_counter() - t0
+    method = settings.method_name(trk)  # the method column's ("-rts" was left out)
     summary = {"measurements": _display(measurements),
                "track": "<DataFrame>" if out is None else str(out), "epochs": n_epochs,
-               "tags": len(trk.tags), "method": trk.method, "status": counts,
+               "tags": len(trk.tags), "method": method, "status": counts,
                "invalid_measurement_rows": tally.get("invalid_measurement_rows", 0),
                "duplicates_merged": tally.get("duplicates_merged", 0),
-               "hpl_histogram": {trk.method: hist},
+               "hpl_histogram": {method: hist},
+               "hpl_quantiles": {method: hpl.quantiles()},
                "smoother": (("fixed-lag" if settings.fixed_lag else "rts")
                             if settings.smoothing else None),
                "sorted_first": resorted, "seconds": round(wall, 3),
-               "epochs_per_second": round(n_epochs / max(wall, 1e-9), 1)}
+               "compile_seconds": round(jit.seconds, 3),
+               # the rate of the tracking: "0 epochs/s" after 238 s of compiling
+               "epochs_per_second": round(n_epochs / max(wall - jit.seconds, 1e-9), 1)}
     from robustloc.estimators.ranging import _sane_anchors
 
     # as locate: an anchor far outside the layout (a typo such as y = 1e300) is named
@@ -224,11 +255,24 @@ def offset_lines(summary: dict, most: int = 10) -> list[str]:
     return lines
 
 
+def track_lines(summary: dict[str, Any]) -> list[str]:
+    """``track``'s summary lines after the first, the same for every engine (the
+    command's and the Dask engine's first lines differ): the notes on the input, the
+    statuses, the protection levels and the tags' offsets."""
+    from robustloc.pipelines.locate import hpl_lines, input_notes, status_text
+
+    lines = input_notes(summary)
+    lines.append("  " + status_text(summary.get("status", {})))
+    return lines + hpl_lines(summary, "rows") + offset_lines(summary)
+
+
 def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
-              out: str | None, order: str, progress: bool) -> tuple:
+              out: str | None, order: str, progress: bool,
+              hpl_tally: HplTally | None = None) -> tuple:
     """Every epoch through a fresh tracker; a file is written atomically (nothing at
     ``out`` after an error or an interrupt); raises UnsortedInput when rows turn out not
-    to be in time order (the caller sorts and starts again)."""
+    to be in time order (the caller sorts and starts again).  ``hpl_tally``: as
+    :func:`track_blocks`'."""
     import contextlib
 
     from tqdm import tqdm
@@ -254,7 +298,8 @@ def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
                     resorted)
                 table, n, status_counts = track_blocks(
                     trk, blocks, settings, None if writer is None else writer.write,
-                    bar.update, hist, source=measurements, tally=tally)
+                    bar.update, hist, source=measurements, tally=tally,
+                    hpl_tally=hpl_tally)
             finally:
                 if writer is not None:
                     writer.close()
@@ -281,6 +326,7 @@ def track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
                  hpl_histogram: dict[str, int] | None = None,
                  source: Any = None,
                  tally: dict[str, int] | None = None,
+                 hpl_tally: HplTally | None = None,
                  ) -> tuple[pd.DataFrame | None, int, dict[str, int]]:
     """The single core of ``track``: every epoch block through ``trk`` in order.
 
@@ -308,12 +354,31 @@ def track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
         Its ``invalid_measurement_rows`` is increased by the rows outside the physical
         limits (robustloc.io.limits), which no update uses, and ``duplicates_merged`` by
         the rows of an epoch's anchor heard twice (averaged, as ``locate`` does).
+    hpl_tally : HplTally, optional
+        Fills a :class:`robustloc.pipelines.locate.HplTally` with the usable rows'
+        ``hpl`` (the summary's ``hpl_quantiles``).
+
+    The work runs in a :func:`robustloc._jitnotice.compile_watch` (within the caller's
+    when it opened one): the notice when numba starts compiling a kernel the cache lacks.
 
     Returns
     -------
     (table or None, epochs, status counts)
     """
-    from robustloc._jitnotice import compile_notice
+    from robustloc._jitnotice import compile_watch
+
+    with compile_watch("tracker and filter"):
+        return _track_blocks(trk, blocks, settings, write, progress, hpl_histogram, source,
+                             tally, hpl_tally)
+
+
+def _track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
+                  write: Callable[[pd.DataFrame], None] | None,
+                  progress: Callable[[int], Any] | None,
+                  hpl_histogram: dict[str, int] | None, source: Any,
+                  tally: dict[str, int] | None, hpl_tally: HplTally | None,
+                  ) -> tuple[pd.DataFrame | None, int, dict[str, int]]:
+    """:func:`track_blocks`, inside its compile watch."""
     from robustloc.pipelines.locate import hpl_counts, refuse_rssi_options
     from robustloc.status import USABLE, among
 
@@ -322,8 +387,11 @@ def track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
     def count_hpl(rows: pd.DataFrame) -> None:
         if "hpl" not in rows:  # (an empty frame)
             return
-        hpl_counts(rows["hpl"].to_numpy(float),
-                   among(rows["status"].to_numpy(dtype=object), USABLE), hist)
+        h = rows["hpl"].to_numpy(float)
+        use = among(rows["status"].to_numpy(dtype=object), USABLE)
+        hpl_counts(h, use, hist)
+        if hpl_tally is not None:
+            hpl_tally.add(h, use)
 
     smooth = settings.smoothing
     stream = write is not None and not smooth
@@ -347,8 +415,6 @@ def track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
                              "path-loss model's A: calibrate it)",
                              None if source is None else _display(source),
                              None if source is None else 1)
-        if n == 0:
-            compile_notice("filter", "tracker")
         rows = trk.step(block)
         if tally is not None:
             tally["invalid_measurement_rows"] = (tally.get("invalid_measurement_rows", 0)
@@ -430,6 +496,12 @@ class TrackWriter:
             self.path.write_text("")
 
 
+def smoother_suffix(lag: int | None) -> str:
+    """What the smoother appends to the ``method`` column: ``-rts`` (over the whole log),
+    ``-lagN`` (fixed lag ``N``)."""
+    return "-rts" if lag is None else f"-lag{lag}"
+
+
 def apply_smoother(trk: Any, table: pd.DataFrame, lag: int | None) -> pd.DataFrame:
     """Replace the filtered states of ``table`` (rows in step order) by smoothed ones."""
     xs, Ps = trk.smoothed(len(table), lag)
@@ -461,5 +533,5 @@ def apply_smoother(trk: Any, table: pd.DataFrame, lag: int | None) -> pd.DataFra
     k = trk._k_ir
     slope = table.loc[have, "hpl"].to_numpy(float) - k * smaj_f
     t.loc[have, "hpl"] = np.maximum(slope, 0.0) + k * smaj
-    t["method"] = table["method"] + ("-rts" if lag is None else f"-lag{lag}")
+    t["method"] = table["method"] + smoother_suffix(lag)
     return t
