@@ -31,10 +31,12 @@ stderr. A value outside the physical limits (robustloc.io.limits: range -50..1e5
 rows`); an epoch with nothing else gets status invalid_measurement.
 
 Methods (comma-separated list allowed; the `method` column tells them apart):
-  auto      the default: Gauss-Newton (nls) on every epoch that passes its own test,
-            the robust huber fit on the epochs whose test finds a fault ("test, then
-            robustify": no efficiency lost where the data agree with the noise model;
-            chosen by measurement, see the report's "out of the box" section)
+  auto      the default: Gauss-Newton (nls) on every epoch, each fix tested; the robust
+            huber fit on the epochs whose test fails without naming the ranges at fault
+            (a fix whose flagged ranges are all that fails stays nls, fault_detected);
+            igg on every epoch of a log with more than 3.3 % gross residuals ("test,
+            then robustify": no efficiency lost where the data agree with the noise
+            model; chosen by measurement, see the report's "out of the box" section)
   ls        the paper's linearized difference system (seed 000 eq. 3)
   wls       the same, weighted by distance (seed 001 eq. 4)
   nls       Gauss-Newton on the raw observations, with covariance
