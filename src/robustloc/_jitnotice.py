@@ -165,7 +165,7 @@ def _listener() -> _CompileListener | None:
 
 
 @contextmanager
-def compile_watch(*kinds: str) -> Iterator[CompileWatch]:
+def compile_watch(*kinds: str, announce: bool = True) -> Iterator[CompileWatch]:
     """Watch numba while the work inside runs: the notice on stderr when it starts
     compiling a robustloc kernel the cache lacks (once per watch, whichever kernel and
     pass comes first; nothing when every kernel is cached), and the seconds it spends
@@ -176,6 +176,9 @@ def compile_watch(*kinds: str) -> Iterator[CompileWatch]:
     *kinds : str
         The kernels the work uses (keys of :data:`KERNELS`, or any words), named in the
         notice.
+    announce : bool
+        Print the notice (False: ``--quiet``, or a library call: the seconds are still
+        counted).
 
     Yields
     ------
@@ -187,11 +190,13 @@ def compile_watch(*kinds: str) -> Iterator[CompileWatch]:
     watch = CompileWatch(tuple(kinds))
     listener = _listener()
     if listener is None:
-        compile_notice(*(k for k in kinds if k in KERNELS))
+        if announce:
+            compile_notice(*(k for k in kinds if k in KERNELS))
         yield watch
         return
     with listener.lock:
-        watch.announced = any(w.announced for w in listener.watches)
+        # (a silent watch counts as announced: the listener prints for no watch of it)
+        watch.announced = not announce or any(w.announced for w in listener.watches)
         listener.watches.append(watch)
     try:
         yield watch

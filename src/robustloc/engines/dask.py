@@ -386,7 +386,8 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
                 # (solved here: the notice if numba compiles its kernels for it)
                 from robustloc._jitnotice import compile_watch
 
-                with compile_watch("positioning") as jit:
+                with compile_watch("positioning",
+                                   announce=not getattr(args, "quiet", False)) as jit:
                     settings.update(_log_scales(client, args, settings, plan))
                 compiling += jit.seconds
             futs = submit_all(client, _file_task, [(fn, settings, input_attr, info.part,

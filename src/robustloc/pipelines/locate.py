@@ -579,7 +579,7 @@ def run_locate(
     t0 = _time.perf_counter()
     # the notice when numba starts compiling, whichever pass needs a kernel first (the
     # log-scale pass compiled them all before the notice was considered: 35 s unannounced)
-    with compile_watch("positioning") as jit:
+    with compile_watch("positioning", announce=progress) as jit:
         if any(loc.robust_scale == "log" for loc in geo.locators):
             geo = replace(geo, locators=_with_log_scale(settings, geo, [measurements]))
         # a restartable output (a regular file: the temporary file is discarded; memory)

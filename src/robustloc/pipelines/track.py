@@ -166,7 +166,7 @@ def run_track(
     t0 = _time.perf_counter()
     # the notice when numba starts compiling a kernel the cache lacks (any model, filter
     # or option: `--model ca` compiled 25 s unannounced), and the time it takes
-    with compile_watch("tracker and filter") as jit:
+    with compile_watch("tracker and filter", announce=progress) as jit:
         hpl = HplTally()
         try:
             trk, frame, n_epochs, counts, hist, resorted, tally = _one_pass(
