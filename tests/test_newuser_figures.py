@@ -87,14 +87,9 @@ def _located(corridor, tmp_path, methods: str) -> pd.DataFrame:  # noqa: ANN001
 
 
 def _positions_fig(positions, anchors, tmp_path, monkeypatch):  # noqa: ANN001, ANN202
-    figs = []
-    real = plots._write_figure
+    from _figures import keep_written_figures  # (tests/_figures.py)
 
-    def keep(fig, path, fmt):  # noqa: ANN001, ANN202
-        figs.append(fig)
-        return real(fig, path, fmt)
-
-    monkeypatch.setattr(plots, "_write_figure", keep)
+    figs = keep_written_figures(monkeypatch)
     counts = plots.positions_figure(positions, anchors, tmp_path / "p.png")
     return counts, figs[0]
 

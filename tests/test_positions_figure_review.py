@@ -10,14 +10,9 @@ from robustloc.eval import plots
 
 
 def _draw(positions: pd.DataFrame, anchors: pd.DataFrame, tmp_path, monkeypatch):
-    figs = []
-    real = plots._write_figure
+    from _figures import keep_written_figures  # (tests/_figures.py)
 
-    def keep(fig, path, fmt):  # noqa: ANN001, ANN202
-        figs.append(fig)
-        return real(fig, path, fmt)
-
-    monkeypatch.setattr(plots, "_write_figure", keep)
+    figs = keep_written_figures(monkeypatch)
     counts = plots.positions_figure(positions, anchors, tmp_path / "p.svg")
     return counts, figs[0], (tmp_path / "p.svg").read_text()
 
