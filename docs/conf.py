@@ -65,6 +65,29 @@ def _write_cli_reference(app: object) -> None:
         parser.format_help().rstrip(),
         "```",
         "",
+        "## One setting, the names the commands give it",
+        "",
+        "Each command keeps its own name and accepts the others' too (same settings,",
+        "same output; the output's `method` column keeps the command's own name):",
+        "",
+        "| setting | `locate` / `serve` | `track` | `filter` | `fuse` |",
+        "|---|---|---|---|---|",
+        "| robust weight | `--method` (a method; `serve --track` uses the tracker's default) "
+        "| `--weight`, `--robust` | `--robust`, `--weight` | `--robust`, `--weight` |",
+        "| the asymmetric IGG weight (seed 002 eq. 14) | `asym`, `asymmetric-igg` "
+        "| `asymmetric-igg`, `asym` | `asymmetric-igg`, `asym` | `asymmetric-igg`, `asym` |",
+        "| no robust weight | `nls` (a method) | `ls`, `none` | `none`, `ls` | `none`, `ls` |",
+        "| motion model | `serve --track-model`, `--track-motion` | `--model`, `--motion` "
+        "| (none) | `--motion` |",
+        "| a-priori sigma of one observation | `--sigma` | `--sigma` | `--sigma-rssi`, "
+        "`--sigma` | `--sigma-range` (beside `--sigma-speed`, `--sigma-course`) |",
+        "",
+        "`--model` names a path-loss model in `locate`, `calibrate` and `serve`, the",
+        "motion model in `track` (there `--motion` says the same), and the observation",
+        "type (`range` or `rssi`) in `reliability` and `montecarlo`, which take it, and",
+        "`--sigma`, from the anchors file when it is left out.  `--tag-z` and",
+        "`--tag-height` are one option in `reliability` and `montecarlo`.",
+        "",
     ]
     sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
     for mod in _command_modules():

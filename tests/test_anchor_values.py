@@ -64,3 +64,36 @@ def test_a_calibration_of_near_exact_ranges_is_read_back(tmp_path):
     assert main(["locate", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "cal.csv"),
                  "-o", str(tmp_path / "p.csv")]) == 0
     assert len(pd.read_csv(tmp_path / "p.csv")) == 40
+
+
+def _gap_files(tmp_path):
+    """Four anchors with a log-distance model whose second anchor has no A (line 3)."""
+    (tmp_path / "an.csv").write_text("anchor,x,y,A,n\na,0,0,-40,2\nb,10,0,,2\n"
+                                     "c,10,10,-40,2\nd,0,10,-40,2\n")
+    (tmp_path / "m.csv").write_text(
+        "time,tag,anchor,rssi\n" + "".join(f"{t},t,{a},-60\n" for t in range(3)
+                                            for a in "abcd"))
+    return str(tmp_path / "an.csv"), str(tmp_path / "m.csv")
+
+
+@pytest.mark.parametrize("command", ["locate", "track", "filter"])
+def test_an_anchor_without_its_path_loss_value_is_named_with_its_line(
+        tmp_path, capsys, command):
+    # track said "an.csv: anchor 'b' ..." without the line: the tracker's copy of the
+    # anchors had lost the file's line numbers
+    an, m = _gap_files(tmp_path)
+    assert main([command, m, "--anchors", an, "-o", str(tmp_path / "o.csv"), "-q"]) == 2
+    assert capsys.readouterr().err.strip().endswith(
+        "an.csv:3: anchor 'b' has no value for 'A' (log-distance model)")
+
+
+@pytest.mark.parametrize("command", ["reliability", "montecarlo"])
+def test_planners_refuse_a_path_loss_model_with_a_gap(tmp_path, capsys, command):
+    # they took the file for a ranging layout and planned 1 m ranges without a word
+    an, _ = _gap_files(tmp_path)
+    extra = ["--trials", "20"] if command == "montecarlo" else ["--no-maps", "-q"]
+    out = str(tmp_path / ("o.csv" if command == "montecarlo" else "plan"))
+    assert main([command, "--anchors", an, "-o", out, *extra]) == 2
+    assert "an.csv:3: anchor 'b' has no value for 'A'" in capsys.readouterr().err
+    # --model range says the path-loss columns do not matter
+    assert main([command, "--anchors", an, "-o", out, "--model", "range", *extra]) == 0

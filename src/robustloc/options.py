@@ -22,12 +22,13 @@ from __future__ import annotations
 import argparse
 import math
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import field, fields
 from typing import Any
 
 __all__ = [
     "check_settings",
+    "choice",
     "option",
     "finite_float",
     "positive_float",
@@ -84,6 +85,26 @@ def figure_path(text: str) -> str:
             f"{text!r}: the figure's name must end in "
             f"{', '.join('.' + f for f in FIGURE_FORMATS)}")
     return text
+
+
+def choice(synonyms: Mapping[str, str]) -> Callable[[str], str]:
+    """Converter of a choice option: a synonym becomes the name it stands for, anything
+    else stays as given (for ``argparse``'s ``choices`` to accept or refuse with its own
+    message).
+
+    Examples
+    --------
+    >>> choice({"asym": "asymmetric-igg"})("asym")
+    'asymmetric-igg'
+    >>> choice({"asym": "asymmetric-igg"})("huber")
+    'huber'
+    """
+
+    def convert(text: str) -> str:
+        return synonyms.get(text, text) if isinstance(text, str) else text
+
+    convert.__name__ = "choice"
+    return convert
 
 
 def float_in(low: float, high: float) -> Callable[[str], float]:
@@ -190,6 +211,7 @@ tag_height_m = float_in(-1e4, 1e4)
 def option(
     default: Any, *, check: Callable[[Any], Any] | None = None,
     choices: Sequence[Any] | None = None, flag: str | None = None,
+    synonyms: Mapping[str, str] | None = None,
 ) -> Any:
     """A settings-dataclass field that is a command-line option.
 
@@ -206,14 +228,19 @@ def option(
     flag : str, optional
         The option's name on the command line (default ``--`` + the field name with
         dashes), used in messages.
+    synonyms : mapping, optional
+        Other names of ``choices``' values (``{"asym": "asymmetric-igg"}``): a synonym
+        given is stored as the value it names (:func:`check_settings`).
     """
-    return field(default=default, metadata={"check": check, "choices": choices, "flag": flag})
+    return field(default=default, metadata={"check": check, "choices": choices, "flag": flag,
+                                            "synonyms": synonyms or {}})
 
 
 def check_settings(settings: object) -> None:
     """Apply the checks declared with :func:`option` to a settings dataclass.
 
-    ``None`` is "not given" and is not checked.  A refused value raises
+    ``None`` is "not given" and is not checked.  A synonym declared with
+    ``option(synonyms=...)`` is replaced by the value it names.  A refused value raises
     :class:`~robustloc.errors.InputError` with argparse's wording, ``argument --NAME:
     ...``, so the API and the command line say the same.
 
@@ -244,6 +271,10 @@ def check_settings(settings: object) -> None:
         if value is None:
             continue
         flag = meta["flag"] or "--" + f.name.replace("_", "-")
+        synonyms = meta.get("synonyms") or {}
+        if isinstance(value, str) and value in synonyms:
+            value = synonyms[value]
+            object.__setattr__(settings, f.name, value)  # frozen dataclasses too
         choices = meta["choices"]
         if choices is not None and value not in choices:
             raise InputError(f"argument {flag}: invalid choice: {value!r} (choose from "

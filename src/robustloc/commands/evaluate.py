@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from typing import TextIO
 
 import numpy as np
 import pandas as pd
@@ -74,6 +75,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="draw the error CDF per method and each method's Stanford diagram "
                         "(error against hpl) into FILE (.png, .svg or .pdf; --engine "
                         "local)")
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="with -o: no text table and no progress bar (notes stay); without "
+                        "-o the table (or --json's records) is the output and is printed")
     add_engine_arguments(p, what="the positions dataset",
                          output="the one statistics table of -o, as without it")
 
@@ -149,8 +153,12 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps({"n_unmatched": n_unmatched, "rows": recs}, indent=2,
                          allow_nan=False), file=dest)
         return 0
-    show = table[[c for c in _SHOW if c in table.columns]].copy()
     agg = table["aggregate"].to_numpy(dtype=bool)
+    n_missing = int(table.loc[agg & (table["tag"] == "all"), "n_missing"].sum())
+    if args.quiet and args.out:  # the table is in the file: only the notes
+        _notes(n_missing, n_unmatched, sys.stderr)
+        return 0
+    show = table[[c for c in _SHOW if c in table.columns]].copy()
     if np.isin(table.loc[~agg, "tag"].astype(str), ("all", "mean")).any():
         # a real tag bears an aggregate's name: the aggregates are shown bracketed
         show.loc[agg, "tag"] = "[" + show.loc[agg, "tag"].astype(str) + "]"
@@ -183,17 +191,21 @@ def run(args: argparse.Namespace) -> int:
             t3[c] = t3[c].map(_metres)
         print("\n3-D error (m)", file=dest)
         print(t3.to_string(index=False), file=dest)
-    n_missing = int(table.loc[agg & (table["tag"] == "all"), "n_missing"].sum())
-    if n_missing:
-        print(f"note: {n_missing} truth epochs (summed over methods) had no position and "
-              "count as failed", file=dest)
-    if n_unmatched:
-        print(f"note: {n_unmatched} position rows had no truth and were not scored", file=dest)
+    _notes(n_missing, n_unmatched, dest)
     if args.out:
         print(f"written: {args.out}", file=dest)
     if args.plot:
         print(f"figure: {args.plot}", file=dest)
     return 0
+
+
+def _notes(n_missing: int, n_unmatched: int, dest: TextIO) -> None:
+    """The notes under the table: truth epochs without a position, positions without truth."""
+    if n_missing:
+        print(f"note: {n_missing} truth epochs (summed over methods) had no position and "
+              "count as failed", file=dest)
+    if n_unmatched:
+        print(f"note: {n_unmatched} position rows had no truth and were not scored", file=dest)
 
 
 #: The count columns: integers in --json and -o (a "mean" row's average may be a fraction).

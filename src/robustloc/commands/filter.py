@@ -10,7 +10,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from robustloc.engines import add_engine_arguments
-from robustloc.options import float_in, nonnegative_int, sigma_value
+from robustloc.options import choice, float_in, nonnegative_int, sigma_value
+from robustloc.robust.weights import weight_synonyms
 
 if TYPE_CHECKING:  # pandas is imported where it is used
     import pandas as pd
@@ -76,11 +77,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("measurements", help="measurements file (time, tag, anchor, rssi)")
     p.add_argument("--anchors", required=True, help="anchors file with path-loss columns")
     p.add_argument("-o", "--out", required=True, help="filtered measurements (CSV/Parquet)")
-    p.add_argument("--robust", choices=WEIGHTS, default="asymmetric-igg",
+    p.add_argument("--robust", "--weight", dest="robust", choices=WEIGHTS,
+                   type=choice(weight_synonyms(WEIGHTS)), default="asymmetric-igg",
                    help="equivalent weight of the gain (default asymmetric-igg, eq. 14; "
-                        "'none' = plain Kalman filter)")
-    p.add_argument("--sigma-rssi", type=sigma_value, default=2.0,
-                   help="measurement noise std, dB (default 2; 1e-6 to 1e6)")
+                        "'none' = plain Kalman filter; --weight as in track; ls = none, "
+                        "asym = asymmetric-igg)")
+    p.add_argument("--sigma-rssi", "--sigma", dest="sigma_rssi", type=sigma_value,
+                   default=2.0,
+                   help="measurement noise std, dB (default 2; 1e-6 to 1e6; --sigma as in "
+                        "locate and track)")
     p.add_argument("--sigma-accel", type=float_in(0.0, 1e3), default=0.5,
                    help="radial acceleration std, m/s^2 (default 0.5; 0 to 1000)")
     p.add_argument("--q-rssi", type=float_in(0.0, 1e6), default=0.05,

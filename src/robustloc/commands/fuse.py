@@ -7,11 +7,13 @@ import json
 import sys
 
 from robustloc.options import (
+    choice,
     float_in,
     nonnegative_float,
     sigma_value,
     tag_height_m,
 )
+from robustloc.robust.weights import weight_synonyms
 
 NAME = "fuse"
 HELP = "fuse UWB ranges and GPS speed/course (NMEA) with an EKF or UKF (seed 001)"
@@ -158,9 +160,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fix", choices=["ls", "wls", "nls"], default="nls",
                    help="UWB fix for loose coupling: linearized ls/wls or Gauss-Newton "
                         "nls (default nls)")
-    p.add_argument("--robust", choices=ROBUST, default="hampel",
+    p.add_argument("--robust", "--weight", dest="robust", choices=ROBUST, default="hampel",
+                   type=choice(weight_synonyms(ROBUST)),
                    help="equivalent weight of the robust update (default hampel; none is "
-                        "the paper's plain filter; see Defaults)")
+                        "the paper's plain filter; see Defaults; --weight as in track; ls = "
+                        "none, asym = asymmetric-igg)")
     p.add_argument("--gate", type=float_in(0.5, 1.0 - 1e-12), default=None, metavar="PROB",
                    help="chi-square gate probability on the innovation, e.g. 0.999")
     # bounded as the a-priori sigmas are (robustloc.options.SIGMA_RANGE: 1e-6 to 1e6 for a

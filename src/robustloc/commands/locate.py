@@ -108,7 +108,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--method", default=[DEFAULT_METHOD], type=method_list,
         help=f"method or comma-separated methods: {', '.join(methods_known())} "
-             f"(default {DEFAULT_METHOD}: see above; igg is the seed-000 paper's favourite)",
+             f"(default {DEFAULT_METHOD}: see above; igg is the seed-000 paper's favourite; "
+             "asymmetric-igg, the weight's name in filter, fuse and track, = asym)",
     )
     p.add_argument("-o", "--out", required=True,
                    help="positions file (.csv or .parquet); - for CSV on standard output")

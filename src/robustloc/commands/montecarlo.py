@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from robustloc.commands._layout import file_defaults
 from robustloc.errors import InputError
 from robustloc.options import (
     finite_float,
@@ -49,7 +50,9 @@ clean one) is below --reject-weight.  LEGE keeps at least 4 residual degrees of 
 equals ls, and with n - p - 4 < --lege-max-order it searches fewer; a `note:` says so.
 Layout, one of:
   --anchors FILE [--position X,Y[,Z]] [--sigma S]   ranging (sigma in metres; default
-                                                     position: centroid of the anchors)
+                                                     position: centroid of the anchors;
+                                                     --model and --sigma: the file's, as
+                                                     in reliability, else range and 1)
   --anchors FILE --model rssi [--n N] [--sigma S]   RSSI, log-distance model (sigma and
                                                      --unit m sizes in dB)
   --gnss [--systems GEC] [--mask-deg 10] [--lat --lon --height] [--time-s T]
@@ -118,9 +121,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "the same option")
     p.add_argument("--sigma", type=float_in(1e-6, 1e6), default=None,
                    help="observation standard deviation for --anchors: m for ranges, dB for "
-                        "RSSI (default 1)")
+                        "RSSI (default: the anchors file's sigma column in that unit, else 1)")
     p.add_argument("--model", choices=("range", "rssi"), default=None,
-                   help="observation type for --anchors (default range)")
+                   help="observation type for --anchors (default rssi when the file has a "
+                        "path-loss model and no range calibration, else range)")
     p.add_argument("--n", type=float_in(0.1, 10.0), default=None,
                    help="path-loss exponent for --model rssi (default: anchors' n column, "
                         "else 2)")
@@ -173,8 +177,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 #: Options of one layout only, with their defaults (None on the parser, so that an option
 #: given with the other layout is told from its default: it was silently ignored).
-_RANGING_OPTIONS = {"position": None, "dim": 2, "tag_z": 0.0, "sigma": 1.0, "model": "range",
-                    "n": None}
+_RANGING_OPTIONS = {"position": None, "dim": 2, "tag_z": 0.0, "sigma": None, "model": None,
+                    "n": None}  # (sigma and model: the anchors file's, else 1 and range)
 _GNSS_OPTIONS = {"systems": "GEC", "mask_deg": 10.0, "lat": 30.53, "lon": 114.36,
                  "height": 30.0, "time_s": 0.0}
 
@@ -209,6 +213,9 @@ def build_layout(args: argparse.Namespace):  # noqa: ANN201
     from robustloc.io import read_anchors
 
     df = read_anchors(args.anchors)
+    path_loss, note = file_defaults(df, args)  # --model, --sigma left out: the file's
+    if note is not None:
+        print(f"note: {note}", file=sys.stderr)
     has_z = "z" in df.columns
     if args.dim == 3 and not has_z:
         raise InputError("--dim 3 needs a z column", args.anchors)
@@ -220,12 +227,16 @@ def build_layout(args: argparse.Namespace):  # noqa: ANN201
     pos = np.asarray(args.position if args.position is not None else xy.mean(axis=0), float)
     if pos.size != args.dim:
         raise InputError(f"--position needs {args.dim} coordinates, got {pos.size}")
-    if not (np.isfinite(args.sigma) and args.sigma > 0):
+    sig = np.asarray(args.sigma, dtype=float)
+    if not (np.all(np.isfinite(sig)) and np.all(sig > 0)):
         raise InputError(f"--sigma must be positive, got {args.sigma}")
     ids = [str(a) for a in df["anchor"]]
     if args.model == "rssi":
         if args.n is not None:
             n_exp = np.full(len(ids), float(args.n))
+        elif path_loss is not None:  # n, or gamma (attenuation factor), or 2 (friis)
+            n_exp = np.broadcast_to(np.asarray(path_loss.log_distance_params()[1], float),
+                                    (len(ids),)).copy()
         elif "n" in df.columns and np.all(np.isfinite(df["n"].to_numpy(float))):
             n_exp = df["n"].to_numpy(float)
         else:

@@ -10,13 +10,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from robustloc.commands._layout import UNITS, file_defaults, sigma_text
 from robustloc.errors import InputError
 from robustloc.options import finite_float, float_in, positive_float
 
 if TYPE_CHECKING:
-    import pandas as pd
 
-    from robustloc.models.pathloss import PathLossModel
+    pass
 
 NAME = "reliability"
 HELP = "anchor-layout planner: DOP, CRLB, MDB, external reliability, w-test correlation maps"
@@ -219,81 +219,6 @@ def _no_fix(xyz: np.ndarray, args: argparse.Namespace) -> str:
 
 
 #: Unit of an observation, its sigma and its MDB, per --model.
-UNITS = {"range": "m", "rssi": "dB"}
-
-
-def _file_defaults(df: pd.DataFrame,
-                   args: argparse.Namespace) -> tuple[PathLossModel | None, str | None]:
-    """Fill in ``args.model`` and ``args.sigma`` left out from what the anchors file says.
-
-    The model is ``rssi`` when the file has a path-loss model
-    (:func:`robustloc.models.pathloss.model_from_anchors`, the columns ``locate`` uses) and
-    no range calibration (``bias``, ``scale``:
-    :data:`robustloc.models.calibration.FIT_COLUMNS`), else ``range``.  The sigma is the
-    file's per-anchor ``sigma`` column (:func:`robustloc.io.tables.anchor_sigma`) when it
-    is in the model's unit (a path-loss fit's is dB, a range calibration's m; a file with
-    both says neither), else 1.
-
-    Parameters
-    ----------
-    df : pandas.DataFrame
-        The anchors (:func:`robustloc.io.read_anchors`).
-    args : argparse.Namespace
-        The command line; ``model`` and ``sigma`` are set in place when None.
-
-    Returns
-    -------
-    path_loss : PathLossModel or None
-        The file's path-loss model (its exponents for ``rssi``), None without one.
-    note : str or None
-        What was taken from the file, or why its sigma was not (None: nothing to say).
-    """
-    from robustloc.io.tables import anchor_sigma
-    from robustloc.models.calibration import FIT_COLUMNS
-    from robustloc.models.pathloss import MODEL_COLUMNS, model_from_anchors
-
-    try:
-        path_loss = model_from_anchors(df)
-    except InputError:  # no path-loss columns (or an anchor without a value: not a model)
-        path_loss = None
-    fitted = [c for c in MODEL_COLUMNS[path_loss.name] if c in df.columns] if path_loss else []
-    ranging = [c for c in FIT_COLUMNS["range"] if c in df.columns]
-    # what the file's sigma is the residual of (None: the file does not say)
-    kind = None if bool(fitted) == bool(ranging) else ("rssi" if fitted else "range")
-    said = []
-    if args.model is None:
-        args.model = "rssi" if kind == "rssi" else "range"
-        if kind is not None:
-            said.append(f"model {args.model} from its {', '.join(fitted or ranging)} columns")
-        elif fitted:
-            said.append(f"model range: it has path-loss columns ({', '.join(fitted)}) and a "
-                        f"range calibration ({', '.join(ranging)}), give --model rssi for RSSI")
-    sigma = anchor_sigma(df)
-    if args.sigma is None:
-        args.sigma = 1.0
-        if sigma is not None and kind in (None, args.model) and not (fitted and ranging):
-            args.sigma = float(sigma[0]) if np.all(sigma == sigma[0]) else sigma
-            said.append(f"sigma {_sigma_text(args.sigma, args.model)} from its sigma column")
-        elif sigma is not None:
-            of = {"rssi": "a path-loss fit's (dB)", "range": "a range calibration's (m)",
-                  None: "a path-loss fit's (dB) or a range calibration's (m)"}[kind]
-            said.append(f"sigma 1 {UNITS[args.model]}, not its sigma column, which is {of}")
-    if not said:
-        return path_loss, None
-    return path_loss, (f"{args.anchors}: " + "; ".join(said)
-                       + " (--model and --sigma override what the file says)")
-
-
-def _sigma_text(sigma: object, model: str) -> str:
-    """``sigma`` for the summary: one number, or the per-anchor range and median."""
-    s = np.asarray(sigma, dtype=float)
-    unit = UNITS[model]
-    if s.ndim == 0:
-        return f"{float(s):g} {unit}"
-    return (f"per anchor {s.min():.3g} .. {s.max():.3g} {unit} (median "
-            f"{float(np.median(s)):.3g})")
-
-
 def run(args: argparse.Namespace) -> int:
     from robustloc.integrity.planner import MAPS, plan, plot_maps
 
@@ -310,7 +235,7 @@ def run(args: argparse.Namespace) -> int:
     step = args.step
     if step is None:
         step = max(area[1] - area[0], area[3] - area[2]) / 150.0
-    path_loss, note = _file_defaults(df, args)
+    path_loss, note = file_defaults(df, args)
     if note is not None:
         print(f"note: {note}", file=sys.stderr)
     n_exp: object = 2.0
@@ -412,7 +337,7 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(summary, indent=2))
     else:
         print(f"{summary['grid_points']} grid points, {summary['anchors']} anchors, "
-              f"model {args.model}, sigma {_sigma_text(args.sigma, args.model)}")
+              f"model {args.model}, sigma {sigma_text(args.sigma, args.model)}")
         for col, cap in captions.items():
             s = summary[col]
             if s["median"] is None:

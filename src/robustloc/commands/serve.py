@@ -98,7 +98,8 @@ def _forget_after(text: str) -> float:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from robustloc.estimators.ranging import DEFAULT_METHOD, METHODS
+    from robustloc.estimators.ranging import DEFAULT_METHOD, METHOD_SYNONYMS, METHODS
+    from robustloc.options import choice
     from robustloc.service.defaults import (
         DEFAULT_BODY_TIMEOUT_S,
         DEFAULT_FORGET_AFTER_S,
@@ -120,11 +121,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="durable store folder (default: memory only, lost on exit)")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--method", default=DEFAULT_METHOD, choices=("auto",) + METHODS,
-                      help=f"positioning method, as robustloc locate (default {DEFAULT_METHOD})")
+                      type=choice(METHOD_SYNONYMS),
+                      help=f"positioning method, as robustloc locate (default {DEFAULT_METHOD}"
+                           "; asymmetric-igg = asym)")
     mode.add_argument("--track", action="store_true",
                       help="track with robustloc.tracking.Tracker instead of per-epoch fixes")
-    p.add_argument("--track-model", default="cv", help="--track: motion model (default cv)")
-    p.add_argument("--track-filter", default="ekf", help="--track: filter (default ekf)")
+    p.add_argument("--track-model", "--track-motion", dest="track_model",
+                   choices=("cv", "ca", "static"), default="cv",
+                   help="--track: motion model, as robustloc track --model (default cv)")
+    p.add_argument("--track-filter", choices=("ekf", "ukf"), default="ekf",
+                   help="--track: filter (default ekf)")
     p.add_argument("--track-range-offset", action="store_true",
                    help="--track on ranges: estimate each tag's common range offset (a UWB "
                         "antenna delay) as a state, as robustloc track --range-offset; "

@@ -128,7 +128,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
 
     scale = noise_scale_value
-    from robustloc.pipelines.track import WEIGHTS, TrackSettings
+    from robustloc.options import choice
+    from robustloc.pipelines.track import WEIGHT_SYNONYMS, WEIGHTS, TrackSettings
 
     d = TrackSettings()
     # (0 and 1 passed argparse and were refused by the settings in their Python name;
@@ -137,17 +138,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("measurements", help="measurements file (time, tag, anchor, rssi|range)")
     p.add_argument("--anchors", required=True, help="anchors file (anchor, x, y[, z], ...)")
     p.add_argument("-o", "--out", required=True, help="track file (.csv or .parquet)")
-    p.add_argument("--model", choices=("cv", "ca", "static"), default=d.model,
-                   help="motion model (default cv)")
+    p.add_argument("--model", "--motion", dest="model", choices=("cv", "ca", "static"),
+                   default=d.model, help="motion model (default cv; --motion as in fuse)")
     p.add_argument("--filter", choices=("ekf", "ukf"), default=d.filter,
                    help="filter (default ekf)")
     p.add_argument("--q", type=positive_float, default=d.q,
                    help="process noise: white-acceleration variance (m/s^2)^2 for cv, jerk "
                         f"variance for ca, position step variance for static (default {d.q})")
-    p.add_argument("--weight", default=None,
-                   choices=WEIGHTS,
+    p.add_argument("--weight", "--robust", dest="weight", default=None, choices=WEIGHTS,
+                   type=choice(WEIGHT_SYNONYMS),
                    help="robust weight (default huber for ranges, asymmetric-igg with "
-                        "--domain rssi)")
+                        "--domain rssi; --robust as in filter and fuse; none = ls, asym = "
+                        "asymmetric-igg)")
     p.add_argument("--domain", choices=("range", "rssi"), default=d.domain,
                    help="RSSI input: update with converted ranges (default) or in dB")
     p.add_argument("--sigma", type=sigma_value, default=None,

@@ -48,6 +48,9 @@ from robustloc.robust.weights import Huber, get_weight
 Array = NDArray[np.float64]
 
 METHODS = ("ls", "wls", "nls", "huber", "hampel", "igg", "igg3", "asym", "lege", "snooping")
+#: Other names of ``METHODS``: ``asymmetric-igg``, the weight's name in ``filter``,
+#: ``fuse`` and ``track``, is ``asym`` (its constants are ``locate``'s, below).
+METHOD_SYNONYMS = {"asymmetric-igg": "asym"}
 #: The method ``robustloc locate`` uses when none is named (chosen by measurement on the
 #: shared real data and the seed-000 simulation: the report's "out of the box" section).
 DEFAULT_METHOD = "auto"

@@ -51,11 +51,14 @@ def methods_known() -> tuple[str, ...]:
 
 def method_list(text: str | Sequence[str]) -> list[str]:
     """Check a ``--method`` value (comma-separated text, or a sequence of names): known
-    methods, each once; raises :class:`argparse.ArgumentTypeError` otherwise."""
+    methods, each once (a synonym, ``asymmetric-igg``, as the name it stands for: ``asym``);
+    raises :class:`argparse.ArgumentTypeError` otherwise."""
     known = methods_known()
     if not isinstance(text, str):
         text = ",".join(str(m) for m in text)
-    methods = [m.strip() for m in text.split(",")]
+    from robustloc.estimators.ranging import METHOD_SYNONYMS
+
+    methods = [METHOD_SYNONYMS.get(m.strip(), m.strip()) for m in text.split(",")]
     if not any(methods):
         raise argparse.ArgumentTypeError(
             f"expected one or more of {', '.join(known)}, got {text!r}")

@@ -31,12 +31,16 @@ from robustloc.options import (
     sigma_value,
     tag_height_m,
 )
+from robustloc.robust.weights import weight_synonyms
 
 if TYPE_CHECKING:
     from robustloc.pipelines.locate import HplTally
 
 #: ``weight`` values (robust weight functions of :mod:`robustloc.robust.weights`).
 WEIGHTS = ("ls", "huber", "hampel", "igg", "igg3", "asymmetric-igg")
+#: Other names of ``WEIGHTS`` (``none``, ``asym``: as ``filter``/``fuse`` and ``locate``
+#: spell them).
+WEIGHT_SYNONYMS = weight_synonyms(WEIGHTS)
 _PROBABILITY = float_in(1e-15, 0.5)  # as --alpha0 of locate and spp
 
 
@@ -51,10 +55,11 @@ class TrackSettings:
     are the workflow's.
     """
 
-    model: str = option("cv", choices=("cv", "ca", "static"))
+    model: str = option("cv", choices=("cv", "ca", "static"), flag="--model/--motion")
     filter: str = option("ekf", choices=("ekf", "ukf"))
     q: float = option(1.0, check=positive_float)
-    weight: str | None = option(None, choices=WEIGHTS)
+    weight: str | None = option(None, choices=WEIGHTS, synonyms=WEIGHT_SYNONYMS,
+                                flag="--weight/--robust")
     domain: str = option("range", choices=("range", "rssi"))
     sigma: float | None = option(None, check=sigma_value)
     smooth: bool = False

@@ -288,18 +288,43 @@ _REGISTRY: dict[str, type[WeightFunction]] = {
 }
 
 
+#: Names that mean the same weight, as the commands spell them: ``none`` (``filter``,
+#: ``fuse``: no robust weight) is ``ls``; ``asym`` (``locate``'s method) is
+#: ``asymmetric-igg``.  Each command accepts every name of a set and keeps its own.
+WEIGHT_EQUIVALENTS: tuple[tuple[str, ...], ...] = (("ls", "none"), ("asymmetric-igg", "asym"))
+
+
+def weight_synonyms(names: tuple[str, ...] | list[str]) -> dict[str, str]:
+    """The other spellings of ``names``' weights (:data:`WEIGHT_EQUIVALENTS`), each mapped
+    to the one in ``names``.
+
+    Examples
+    --------
+    >>> weight_synonyms(("none", "huber", "asymmetric-igg"))
+    {'ls': 'none', 'asym': 'asymmetric-igg'}
+    """
+    out: dict[str, str] = {}
+    for group in WEIGHT_EQUIVALENTS:
+        own = [g for g in group if g in names]
+        if len(own) == 1:
+            out.update({g: own[0] for g in group if g != own[0]})
+    return out
+
+
 def get_weight(name: str, **params: float) -> WeightFunction:
     """Build a weight function by its command-line name (``huber``, ``igg3``, ...).
 
     Parameters
     ----------
     name : str
-        One of ``ls, huber, hampel, igg, igg3, asymmetric-igg``.
+        One of ``ls, huber, hampel, igg, igg3, asymmetric-igg`` (or ``none``, ``asym``:
+        :data:`WEIGHT_EQUIVALENTS`).
     **params : float
         Constructor arguments overriding the paper's defaults.
     """
     try:
-        cls = _REGISTRY[name.lower()]
+        low = name.lower()
+        cls = _REGISTRY[weight_synonyms(tuple(_REGISTRY)).get(low, low)]
     except KeyError:
         raise ValueError(
             f"unknown weight function {name!r}; choose one of {', '.join(_REGISTRY)}"

@@ -133,9 +133,15 @@ class LocateProcessor:
         range_calibration: bool = True,
         tag_height: float | None = None,
     ) -> None:
-        from robustloc.estimators.ranging import DEFAULT_METHOD, METHODS, ROBUST, Locator
+        from robustloc.estimators.ranging import (
+            DEFAULT_METHOD,
+            METHOD_SYNONYMS,
+            METHODS,
+            ROBUST,
+            Locator,
+        )
 
-        method = DEFAULT_METHOD if method is None else method
+        method = DEFAULT_METHOD if method is None else METHOD_SYNONYMS.get(method, method)
         if method not in METHODS + ("auto",):
             raise ValueError(f"unknown method {method!r}; choose one of auto, "
                              f"{', '.join(METHODS)}")

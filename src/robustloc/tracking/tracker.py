@@ -397,6 +397,9 @@ class Tracker:
         if self.settings.sigma is None:
             anchor_sigma(anchors)  # a partly empty column: refused now, with its line
         self.anchors = anchors.reset_index(drop=True)
+        # the frame as read (same rows, same order): its index is the file's lines, which
+        # the path-loss and range-calibration errors name (the reset one lost them)
+        self._anchors_read = anchors
         self.anchor_ids = tuple(str(a) for a in self.anchors["anchor"])
         from robustloc.estimators.ranging import _sane_anchors
 
@@ -583,13 +586,13 @@ class Tracker:
             sigma = np.full(M, 3.0 if kind == "rssi" else 0.3)
         A = nn = None
         if kind == "rssi":
-            A, nn = log_distance_arrays(a)
+            A, nn = log_distance_arrays(self._anchors_read)
             A, nn = np.asarray(A, float), np.asarray(nn, float)
         self._kind = kind
         if kind == "range":
             from robustloc.models.calibration import range_calibration
 
-            self._range_cal = range_calibration(a)
+            self._range_cal = range_calibration(self._anchors_read)
         self._link = LinkModel(xy, "range" if kind == "range" or s.domain == "range"
                                else "rssi", dz2, sigma, A, nn)
         #: a-priori sd of the links' offsets (item 11), in the measurement's unit
