@@ -41,6 +41,8 @@ from robustloc import status as st
 from robustloc.estimators.linear import LinearFit, irls, lege, sandwich_qvv, solve_wls
 from robustloc.estimators.nonlinear import gauss_newton
 from robustloc.estimators.solution import Solution
+from robustloc.models.geometry import collinear as _collinear
+from robustloc.models.geometry import unique_rows as _unique_rows
 from robustloc.models.ranging import LN10, RangeModel, RssiModel
 from robustloc.robust.scale import MAD_NORMAL, mad_scale
 from robustloc.robust.weights import Huber, get_weight
@@ -200,31 +202,6 @@ def _gaussian_mad_factor(fit_loc: Locator, Jw: Array, heard: NDArray[np.bool_],
         return 1.0
     kappa = float(np.median(u[keep]) / np.median(u_ls[keep]))
     return kappa if np.isfinite(kappa) and kappa > 0 else 1.0
-
-
-def _collinear(a: Array, heard: NDArray[np.bool_], rel: float = 1e-3) -> NDArray[np.bool_]:
-    """Epochs whose heard anchors lie on one line (2-D: the fix is ambiguous by mirror).
-
-    The smaller eigenvalue of the heard anchors' scatter matrix, relative to the larger,
-    below ``rel**2`` (anchors within 0.1 % of their spread from a line).  The moments are
-    taken about the anchors' median (``E[x^2] - E[x]^2`` of coordinates near 1e9 m lost
-    every digit: the input review's layout shifted by 1e12 m was `ill_conditioned` at
-    every epoch); a coordinate far outside the layout (a typo, :func:`_sane_anchors`)
-    does not move that centre.
-    """
-    fin = np.all(np.isfinite(a), axis=1)
-    if fin.any():
-        a = a - np.median(a[fin], axis=0)
-    h = heard.astype(float)
-    cnt = np.maximum(h.sum(axis=1), 1.0)
-    mean = (h @ a) / cnt[:, None]
-    sxx = (h @ (a[:, 0] ** 2)) / cnt - mean[:, 0] ** 2
-    syy = (h @ (a[:, 1] ** 2)) / cnt - mean[:, 1] ** 2
-    sxy = (h @ (a[:, 0] * a[:, 1])) / cnt - mean[:, 0] * mean[:, 1]
-    tr, det = sxx + syy, sxx * syy - sxy**2
-    disc = np.sqrt(np.maximum(tr * tr / 4 - det, 0.0))
-    lmax, lmin = tr / 2 + disc, tr / 2 - disc
-    return lmin <= (rel**2) * np.maximum(lmax, 1e-300)
 
 
 def _anchor_key(a: ArrayLike) -> tuple[bytes, tuple[int, ...]]:
@@ -416,34 +393,6 @@ def _planes(a: Array, patterns: NDArray[np.bool_]) -> tuple[Array, Array, Array]
     radius = np.sqrt(np.max(np.sum(d * d, axis=2), axis=1))
     off = 0.1 * 1.25 * np.maximum(radius, 1.0)  # a tenth of _area's radius
     return np.where(ok[:, None], c, np.nan), nrm, off
-
-
-def _unique_rows(mask: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], NDArray[np.intp]]:
-    """The distinct rows of a boolean matrix (in the order of their ``np.packbits`` keys)
-    and each row's index among them.
-
-    Up to 64 columns a row is one integer, its packed bytes read as a little-endian
-    ``uint64``, and pandas' hash factorization finds the distinct ones (4 ms at 100 000
-    rows of 10, against 17 ms by ``np.unique``'s sort, the same result: tested)."""
-    N, n = mask.shape
-    if 0 < n <= 64 and N >= 4096:
-        import pandas as pd
-
-        j = np.arange(n)
-        shift = (8 * (j // 8) + 7 - j % 8).astype(np.uint64)  # packbits' bit of column j
-        keys = mask.astype(np.uint64) @ np.left_shift(np.uint64(1), shift)
-        inverse, uniq = pd.factorize(keys, sort=True)
-        patterns = ((uniq[:, None] >> shift) & np.uint64(1)).astype(bool)
-        return patterns, np.asarray(inverse, dtype=np.intp)
-    packed = np.packbits(mask, axis=1)
-    width = -(-packed.shape[1] // 8) * 8
-    packed = np.pad(packed, ((0, 0), (0, width - packed.shape[1])))
-    keys = np.ascontiguousarray(packed).view(np.uint64)
-    if keys.shape[1] == 1:
-        _, first, inverse = np.unique(keys[:, 0], return_index=True, return_inverse=True)
-    else:
-        _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
-    return mask[first], np.asarray(inverse).reshape(-1)
 
 
 def _clip_disc(x: Array, centre: Array, radius: float) -> Array:

@@ -148,6 +148,7 @@ from robustloc.estimators.ranging import _unique_rows, canonical_rank
 from robustloc.estimators.solution import Solution
 from robustloc.integrity.bmethod import ALPHA0, BETA0, global_critical, lambda0, w_critical
 from robustloc.integrity.tests import R_MIN
+from robustloc.models.geometry import anchor_elongation, elongation_rows
 from robustloc.models.ranging import RangeModel
 
 Array = NDArray[np.float64]
@@ -306,38 +307,6 @@ MIRROR_RIDGE = 1e-12
 #: other set's median 0.14-0.97 (three heard anchors in a line: 0, checked); on the
 #: benchmark's 10 spread anchors the check would cost half the default pipeline's time.
 AMBIGUITY_ELONGATION = 0.05
-
-
-def anchor_elongation(anchors: Array, keep: NDArray[np.bool_]) -> Array:
-    """Per epoch, the smallest over the largest eigenvalue of the scatter matrix
-    ``sum_i (a_i - c)(a_i - c)^T`` of its kept anchors (all ``p`` coordinates: in 3-D,
-    anchors in one plane give 0): 0 for anchors on a line (plane), 1 for a round spread;
-    NaN with fewer than two kept anchors.
-
-    >>> a = np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.1], [0.0, 10.0]])
-    >>> np.round(anchor_elongation(a, np.array([[1, 1, 1, 0], [1, 1, 1, 1]], bool)), 4)
-    array([0.    , 0.1681])
-    """
-    a = np.asarray(anchors, dtype=float)
-    keep = np.asarray(keep, dtype=bool)
-    if keep.ndim != 2 or keep.shape[0] == 0:
-        return np.full(keep.shape[:1], np.nan)
-    # a function of the row's pattern alone: solved once per distinct pattern (a log has
-    # a handful; the scatter's eigenvalues cost ~1.5 us an epoch)
-    patterns, inverse = _unique_rows(keep)
-    return _elongation(a, patterns)[inverse]
-
-
-def _elongation(a: Array, keep: NDArray[np.bool_]) -> Array:
-    """:func:`anchor_elongation` row by row (no deduplication)."""
-    k = keep.astype(float)
-    cnt = k.sum(axis=1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        c = (k @ a) / np.maximum(cnt, 1.0)[:, None]
-        da = np.where(k[..., None] > 0, a[None, :, :] - c[:, None, :], 0.0)
-        ev = np.linalg.eigvalsh(np.einsum("kmi,kmj->kij", da, da))
-        ratio = np.maximum(ev[:, 0], 0.0) / ev[:, -1]
-    return np.where((cnt >= 2) & (ev[:, -1] > 0), ratio, np.nan)
 
 
 def mirror_solution(
@@ -502,7 +471,7 @@ def ambiguity_sides(sol: Solution, range_model: RangeModel, alpha: float = SIDE_
     amb_rows = np.flatnonzero(np.isfinite(alt[:, 0]))
     sets = [pattern for pattern in _unique_rows(keep[amb_rows])[0]]
     every = np.all(np.isfinite(a), axis=1)
-    if every.sum() > p and _elongation(a, every[None, :])[0] < AMBIGUITY_ELONGATION:
+    if every.sum() > p and elongation_rows(a, every[None, :])[0] < AMBIGUITY_ELONGATION:
         sets.append(every)  # the whole layout is one line (plane): a corridor
     sets = list({tuple(m): m for m in sets}.values())  # each set once
     x, kx = pos[rows], keep[rows]

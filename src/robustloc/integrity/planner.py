@@ -19,7 +19,7 @@ Grid points without a unique fix get NaN in every figure (and ``dof = 0``), as `
 gives no fix there: fewer than ``dim + 1`` anchors heard (with as many ranges as unknowns
 the circles, or spheres, meet in two points: the fix and its mirror image), in 2-D heard
 anchors that lie on one line (every fix fits its mirror image across the line exactly:
-the test :func:`robustloc.estimators.ranging._collinear` by which ``locate`` marks such an
+the test :func:`robustloc.models.geometry.collinear` by which ``locate`` marks such an
 epoch ``ill_conditioned``, and ``calibrate --self`` finds no fix), or a singular geometry.
 The local figures at such a point (a finite DOP two heard anchors give off their line)
 hold only where the side of the line is known, which a plan cannot assume (the review of
@@ -120,7 +120,7 @@ def unique_fix(anchors: ArrayLike, heard: ArrayLike, dim: int = 2) -> NDArray[np
     A unique fix needs ``dim + 1`` heard anchors (with ``dim`` ranges the circles, or
     spheres, meet in two points) and, in 2-D, heard anchors that do not lie on one line
     (every fix fits its mirror image across the line as well).  The line test is
-    ``locate``'s (:func:`robustloc.estimators.ranging._collinear`, by which it marks such
+    ``locate``'s (:func:`robustloc.models.geometry.collinear`, by which it marks such
     an epoch ``ill_conditioned``; ``calibrate --self`` says "the anchors heard lie on a
     line" when it leaves no fix), so a plan and the fixes agree.  In 3-D, heard anchors on
     one plane (ceiling-mounted) still give a fix: ``locate`` starts on their lower side.
@@ -144,13 +144,13 @@ def unique_fix(anchors: ArrayLike, heard: ArrayLike, dim: int = 2) -> NDArray[np
     >>> unique_fix(a, np.array([[1, 1, 1, 0], [1, 1, 1, 1], [1, 0, 0, 1]], bool))
     array([False,  True, False])
     """
-    from robustloc.estimators.ranging import _collinear
+    from robustloc.models.geometry import collinear
 
     a = np.asarray(anchors, dtype=float)
     h = np.asarray(heard, dtype=bool)
     ok = h.sum(axis=1) >= dim + 1
     if dim == 2 and ok.any():
-        ok[ok] = ~_collinear(a[:, :2], h[ok])
+        ok[ok] = ~collinear(a[:, :2], h[ok])
     return ok
 
 

@@ -148,6 +148,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from robustloc._arrays import true_first
+from robustloc.models.geometry import elongation_rows
 from robustloc.robust.weights import IGG3, Huber, WeightFunction
 
 Array = NDArray[np.float64]
@@ -181,14 +182,11 @@ SIGMA_FACTOR_SEED = 20_261_204
 
 
 def _elongation(a: Array) -> float:
-    """Smallest over largest eigenvalue of the anchors' scatter matrix: 0 on a line (2-D)
-    or a plane (3-D), 1 for anchors spread evenly (as the fixes' ambiguity check,
-    :func:`robustloc.integrity.fixes.anchor_elongation`); 1 when fewer than two anchors."""
-    if a.shape[0] < 2:
-        return 1.0
-    d = a - a.mean(axis=0)
-    ev = np.linalg.eigvalsh(d.T @ d)
-    return float(max(ev[0], 0.0) / ev[-1]) if ev[-1] > 0 else 1.0
+    """:func:`robustloc.models.geometry.anchor_elongation` of all the anchors ``a``: 0 on
+    a line (2-D) or a plane (3-D), 1 for anchors spread evenly; 1 when fewer than two
+    anchors (nothing to be elongated)."""
+    e = elongation_rows(a, np.ones((1, a.shape[0]), dtype=bool))[0]
+    return 1.0 if not np.isfinite(e) else float(e)
 
 
 @dataclass(frozen=True)

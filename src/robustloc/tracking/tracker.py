@@ -903,9 +903,9 @@ class Tracker:
             out.hpl[rr] = np.fmax(out.hpl[rr], d + out.hpl[rr])
 
     def _pattern_elongation(self, keep: NDArray[np.bool_]) -> Array:
-        """:func:`robustloc.integrity.fixes.anchor_elongation` of each row's kept anchors,
+        """:func:`robustloc.models.geometry.anchor_elongation` of each row's kept anchors,
         each distinct pattern computed once per tracker."""
-        from robustloc.integrity.fixes import anchor_elongation
+        from robustloc.models.geometry import anchor_elongation
 
         M = keep.shape[1]
         if M > 20:  # (a lookup table of 2^M entries would be too large)
