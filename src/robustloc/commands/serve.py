@@ -49,6 +49,10 @@ default robustloc- and a hash of the store's absolute path) and a persistent ses
 subscribed with QoS 1, so the broker queues the messages published while the service is
 down (restart, upgrade) and delivers them when it is back. A message is acknowledged only
 once its rows are stored; one the store cannot write is delivered again later.
+A broker that is not there, or goes away, does not stop the service: it retries every
+1-10 s, says so in its log (once per outage), and reports the connection in /api/status
+("mqtt": connected, connections, disconnections, last_reason) and /metrics
+(robustloc_mqtt_connected, robustloc_mqtt_disconnections_total): alert on them.
 
 Shutdown (SIGTERM, SIGINT): requests in progress get up to --shutdown-grace seconds
 (default 5) to finish, then they are cancelled (a client still sending a body gets no 202:

@@ -164,6 +164,12 @@ class DatasetOutput:
         metadata and move the dataset into place."""
         if n_parts is not None:
             self.check_parts(n_parts, rows)
+        # a worker killed while writing its part left its temporary file (the task ran
+        # again on another worker and wrote the part): it was committed with the
+        # dataset, a hidden partial parquet file as large as the part (measured with a
+        # SIGKILLed worker of a real LocalCluster)
+        for tmp in self.stage.glob(".part-*.tmp"):
+            tmp.unlink(missing_ok=True)
         (self.stage / META_FILE).write_text(json.dumps(meta, indent=2) + "\n")
         old = None
         if self.out.exists():

@@ -44,6 +44,7 @@ from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import anyio
 import pandas as pd
@@ -64,6 +65,9 @@ from robustloc.service.defaults import (
 from robustloc.service.engine import Engine
 from robustloc.service.rows import BodyError, parse_body
 from robustloc.service.store import StoreLock, StoreWriteError
+
+if TYPE_CHECKING:  # (paho-mqtt is imported only with --mqtt)
+    from robustloc.service.mqtt import MqttIngest
 
 #: Queued messages per position subscriber before the oldest are dropped (and counted).
 WS_QUEUE = 20_000
@@ -98,7 +102,7 @@ class ServiceConfig:
     cors_origins: tuple[str, ...] = ()
     floorplan: Path | None = None
     floorplan_extent: tuple[float, float, float, float] | None = None
-    mqtt: object | None = None  # a started/stoppable MQTT ingest (robustloc.service.mqtt)
+    mqtt: MqttIngest | None = None  # a started/stoppable MQTT ingest
     info: dict = field(default_factory=dict)
     #: the store's lock (``robustloc serve --store``), released when the app shuts down
     store_lock: StoreLock | None = None
@@ -361,6 +365,7 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             "position_store_errors": engine.position_store_errors,
             "positions_not_stored": engine.positions_not_stored,
             "server_time": time.time(),
+            "mqtt": None if cfg.mqtt is None else cfg.mqtt.status(),
             **engine.metrics.summary(), **cfg.info,
         })
 
@@ -388,6 +393,8 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             return unauthorized()
         text = engine.metrics.render(engine.assembler.n_pending, engine.assembler.n_tags,
                                      engine.solver_errors, engine.position_store_errors)
+        if cfg.mqtt is not None:
+            text += cfg.mqtt.prometheus()
         return PlainTextResponse(text, media_type="text/plain; version=0.0.4")
 
     async def index(request: Request) -> Response:

@@ -118,20 +118,86 @@ class MqttIngest:
                                 else Path(engine.store_dir) / "dead-letter")
         self._retry: threading.Timer | None = None
         self._retry_lock = threading.Lock()
+        #: the connection's history, for ``/api/status`` and ``/metrics`` (:meth:`status`):
+        #: an operator could not tell a service that lost its broker (or was given a
+        #: wrong ``--mqtt`` address) from one nobody publishes to
+        self.connections = 0
+        self.disconnections = 0
+        self.since: float | None = None  # time of the last connect or disconnect
+        self.last_reason: str | None = None  # why the last connection ended or failed
+        self._stopping = False
+        self._failure_said = False  # one line per outage, not one per retry
         self.client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, client_id=client_id,
                                   clean_session=not persistent, manual_ack=True)
         self.client.on_connect = self._on_connect
         self.client.on_disconnect = self._on_disconnect
+        self.client.on_connect_fail = self._on_connect_fail
         self.client.on_message = self._on_message
         self.client.reconnect_delay_set(min_delay=1, max_delay=10)
 
+    @property
+    def broker(self) -> str:
+        """``host:port`` of the broker."""
+        return f"{self.host}:{self.port}"
+
     def _on_connect(self, client, userdata, flags, reason_code, properties=None) -> None:
-        if not reason_code.is_failure:
-            client.subscribe(self.topic, qos=self.qos)
-            self.connected.set()
+        if reason_code.is_failure:  # refused by the broker (bad credentials, client id)
+            self.last_reason = f"connection refused: {reason_code}"
+            print(f"error: MQTT broker {self.broker} refused the connection "
+                  f"({reason_code}); retrying", file=sys.stderr, flush=True)
+            return
+        client.subscribe(self.topic, qos=self.qos)
+        self.connections += 1
+        self.since = time.time()
+        self._failure_said = False
+        again = "again " if self.connections > 1 else ""
+        print(f"MQTT: connected {again}to {self.broker}, topic {self.topic}",
+              file=sys.stderr, flush=True)
+        self.connected.set()
+
+    def _on_connect_fail(self, client, userdata) -> None:
+        self.last_reason = "cannot reach the broker"
+        if not self._failure_said and not self._stopping:
+            self._failure_said = True
+            print(f"warning: cannot reach the MQTT broker {self.broker}; retrying every "
+                  "1-10 s (robustloc_mqtt_connected in /metrics, mqtt in /api/status)",
+                  file=sys.stderr, flush=True)
 
     def _on_disconnect(self, client, userdata, flags, reason_code, properties=None) -> None:
+        was = self.connected.is_set()
         self.connected.clear()
+        if self._stopping:
+            return
+        if was:
+            self.disconnections += 1
+            self.since = time.time()
+            self.last_reason = str(reason_code)
+            self._failure_said = True  # (the retries that follow say nothing more)
+            print(f"warning: lost the MQTT broker {self.broker} ({reason_code}); "
+                  "reconnecting (rows published meanwhile arrive with a --store's "
+                  "persistent session, QoS 1)", file=sys.stderr, flush=True)
+
+    def status(self) -> dict[str, object]:
+        """The connection's state for ``/api/status`` (key ``mqtt``): ``broker``,
+        ``topic``, ``connected``, ``connections`` (successful ones), ``disconnections``
+        (lost ones), ``since`` (Unix time of the last change; None before the first
+        connection), ``last_reason`` (why the last one ended or failed) and
+        ``messages`` (received)."""
+        return {"broker": self.broker, "topic": self.topic,
+                "connected": self.connected.is_set(), "connections": self.connections,
+                "disconnections": self.disconnections, "since": self.since,
+                "last_reason": self.last_reason, "messages": self.messages}
+
+    def prometheus(self) -> str:
+        """The connection's metrics in the Prometheus text format (``/metrics``)."""
+        return (
+            "# HELP robustloc_mqtt_connected 1 while the service is connected to its MQTT "
+            "broker, else 0.\n# TYPE robustloc_mqtt_connected gauge\n"
+            f"robustloc_mqtt_connected {int(self.connected.is_set())}\n"
+            "# HELP robustloc_mqtt_disconnections_total Connections to the MQTT broker "
+            "lost (the service reconnects).\n"
+            "# TYPE robustloc_mqtt_disconnections_total counter\n"
+            f"robustloc_mqtt_disconnections_total {self.disconnections}\n")
 
     def _on_message(self, client, userdata, msg) -> None:
         self.messages += 1
@@ -234,6 +300,7 @@ class MqttIngest:
     def stop(self) -> None:
         """Disconnect and stop the network loop (unacknowledged messages stay with the
         broker's session)."""
+        self._stopping = True
         with self._retry_lock:
             if self._retry is not None:
                 self._retry.cancel()
