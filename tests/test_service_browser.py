@@ -948,3 +948,29 @@ def test_map_page_ignores_odd_values_from_the_server(live):
         page.locator('g.offmap-marker[data-tag="ODD_H"]').wait_for(state="visible",
                                                                    timeout=5_000)
     assert not _errors(log), log
+
+
+def test_map_page_says_when_the_mqtt_broker_is_not_connected(tmp_path):
+    """``--mqtt`` where no broker listens: the page says the gateways' rows are not
+    arriving (from ``/api/status``'s ``mqtt``), and says nothing once it is connected."""
+    from robustloc.service.launch import MosquittoProcess, free_port
+
+    if not (shutil.which("mosquitto") or Path("/usr/sbin/mosquitto").exists()):
+        pytest.skip("the mosquitto binary is missing (apt-get install mosquitto)")
+    port = free_port()
+    srv = ServerProcess(["--anchors", str(_write_anchors(tmp_path / "a.csv")),
+                         "--mqtt", f"127.0.0.1:{port}"])
+    broker = MosquittoProcess(port=port)
+    try:
+        srv.start()
+        with _Chromium() as browser:
+            page = _open(browser, srv.url + "/")
+            page.wait_for_function(
+                "/MQTT broker 127.0.0.1:\\d+ not connected \\(cannot reach the broker\\)/"
+                ".test(document.getElementById('mqttmsg').textContent)", timeout=30_000)
+            broker.start()  # the service connects (retries every 1-10 s); the panels poll
+            page.wait_for_function("document.getElementById('mqttmsg').textContent === ''",
+                                   timeout=40_000)
+    finally:
+        broker.stop()
+        srv.stop()
