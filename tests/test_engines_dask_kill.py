@@ -1,4 +1,5 @@
-"""A worker killed mid-run (SIGKILL: the OOM killer, a node lost) on a real LocalCluster.
+"""A worker killed mid-run (SIGKILL: the OOM killer, a node lost) on a real LocalCluster,
+and the whole cluster killed mid-run.
 
 ``locate --engine dask --scheduler ADDRESS`` runs in a subprocess against a LocalCluster
 of two worker processes (nannies) started by the test; once a task is writing its part,
@@ -7,8 +8,13 @@ worker; the command must end with exit 0 and a dataset holding exactly the rows 
 local run, and nothing else: the killed task's temporary file had been committed with
 the dataset (a hidden partial parquet file, as large as the part).
 
-Bounded: 8 partitions of 100 000 epochs, one kill, 300 s at most; the cluster and the
-subprocess are stopped by the test.
+The whole cluster (scheduler and workers, a subprocess of the test) killed while a part
+is written: exit 2 with one line, ``error: lost the dask scheduler ...`` (distributed's
+client had logged three tracebacks, 40 lines, above it), the previous output kept as it
+was, no staging folder left.
+
+Bounded: 8 partitions of 100 000 epochs, one kill each, 300 s at most; the clusters and
+the subprocesses are stopped by the tests.
 """
 
 from __future__ import annotations
@@ -106,3 +112,60 @@ def test_a_worker_killed_while_writing_loses_nothing_and_leaves_nothing(tmp_path
     ref = pd.read_parquet(tmp_path / "local.parquet").sort_values(["tag", "time"])
     pd.testing.assert_frame_equal(got[ref.columns.tolist()],
                                   ref.reset_index(drop=True), check_dtype=False)
+
+
+_CLUSTER = """
+import sys
+import distributed
+if __name__ == "__main__":
+    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                       dashboard_address=":0")
+    print(cluster.scheduler_address, flush=True)
+    sys.stdin.read()  # until the test closes our stdin (or kills us)
+"""
+
+
+def test_a_cluster_killed_mid_run_is_one_error_line_and_the_old_output_stays(tmp_path):
+    ds = _dataset(tmp_path)
+    ANCHORS.to_csv(tmp_path / "a.csv", index=False)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "part-00000.parquet").write_bytes(b"an earlier run's output")
+    (out / "_robustloc.json").write_text('{"command": "locate"}\n')  # (a dataset of ours)
+    (tmp_path / "cluster.py").write_text(_CLUSTER)
+    cluster = subprocess.Popen([sys.executable, str(tmp_path / "cluster.py")],
+                               stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                               stderr=subprocess.DEVNULL, text=True, start_new_session=True)
+    proc = None
+    try:
+        address = cluster.stdout.readline().strip()
+        if not address:
+            pytest.skip("the subprocess's LocalCluster did not start")
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "robustloc.cli", "locate", str(ds), "--anchors",
+             str(tmp_path / "a.csv"), "-o", str(out), "--engine", "dask", "--scheduler",
+             address, "-q"], stderr=subprocess.PIPE, text=True)
+        killed = False
+        deadline = time.monotonic() + 200
+        while proc.poll() is None and not killed and time.monotonic() < deadline:
+            if any(d.is_dir() and any(d.glob(".part-*.tmp"))
+                   for d in tmp_path.glob(".out.partial-*")):
+                os.killpg(cluster.pid, signal.SIGKILL)  # the scheduler and its nannies
+                killed = True
+            time.sleep(0.02)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc is not None and proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+        if cluster.poll() is None:
+            os.killpg(cluster.pid, signal.SIGKILL)
+        cluster.wait(10)
+    if not killed:
+        pytest.skip("no task was caught writing its part (the run was too quick)")
+    assert proc.returncode == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: lost the dask scheduler"), err
+    assert sorted(p.name for p in out.iterdir()) == ["_robustloc.json", "part-00000.parquet"]
+    assert (out / "part-00000.parquet").read_bytes() == b"an earlier run's output"
+    assert not list(tmp_path.glob(".out*")), "a staging folder was left beside -o"

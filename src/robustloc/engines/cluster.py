@@ -123,6 +123,9 @@ def dask_client(scheduler: str | None, workers: int | None = None,
     cluster = None
     client = None
     restore: dict[str, int] = {}
+    client_log = logging.getLogger("distributed.client")
+    no_loss_noise = _NoConnectionLossTraceback()
+    client_log.addFilter(no_loss_noise)
     try:
         if scheduler is not None:
             client = _connect(distributed, scheduler)
@@ -156,6 +159,7 @@ def dask_client(scheduler: str | None, workers: int | None = None,
             _close_cluster(cluster)
         for name, level in restore.items():
             logging.getLogger(name).setLevel(level)
+        client_log.removeFilter(no_loss_noise)
 
 
 def check_scheduler_address(scheduler: str) -> None:
@@ -273,6 +277,22 @@ class _NoHeartbeatAtClose(logging.Filter):
 
     def filter(self, record: logging.LogRecord) -> bool:
         return not str(record.msg).startswith(_HEARTBEAT_LOST)
+
+
+class _NoConnectionLossTraceback(logging.Filter):
+    """Drops the ``distributed.client`` errors that come with tracebacks when the client
+    loses its scheduler (its reconnection's ``CommClosedError``/``OSError``, then the
+    ``CancelledError`` of its close, and "Failed to reconnect to scheduler after 20 s"):
+    the command reports that loss itself, ``error: lost the dask scheduler ...`` (exit 2).  A killed cluster printed 40 lines of three
+    tracebacks above that line (measured with a real external LocalCluster)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        import asyncio
+
+        exc = record.exc_info[1] if record.exc_info else None
+        if isinstance(exc, (OSError, asyncio.CancelledError)):
+            return False
+        return not str(record.msg).startswith("Failed to reconnect to scheduler")
 
 
 def _quiet_loggers() -> None:
