@@ -283,8 +283,9 @@ class _NoConnectionLossTraceback(logging.Filter):
     """Drops the ``distributed.client`` errors that come with tracebacks when the client
     loses its scheduler (its reconnection's ``CommClosedError``/``OSError``, then the
     ``CancelledError`` of its close, and "Failed to reconnect to scheduler after 20 s"):
-    the command reports that loss itself, ``error: lost the dask scheduler ...`` (exit 2).  A killed cluster printed 40 lines of three
-    tracebacks above that line (measured with a real external LocalCluster)."""
+    the command reports that loss itself, ``error: lost the dask scheduler ...`` (exit
+    2).  A killed cluster printed 40 lines of three tracebacks above that line (measured
+    with a real external LocalCluster)."""
 
     def filter(self, record: logging.LogRecord) -> bool:
         import asyncio
