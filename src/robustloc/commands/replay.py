@@ -10,7 +10,7 @@ import time
 import numpy as np
 
 from robustloc.errors import InputError
-from robustloc.options import nonnegative_float, positive_int
+from robustloc.options import nonnegative_float, nonnegative_int, positive_int
 
 #: Slowest replay (``--speed``): 1 000 times slower than real time; 0 means no pacing.
 MIN_SPEED = 1e-3
@@ -50,10 +50,13 @@ its rows to a running service, one batch per time step (or --batch-rows rows), p
 acknowledged (202); rejected rows are reported with their file line. The exit code is 0
 when every row was accepted, 1 when the server rejected some, 2 when the replay stopped:
 a connection error or an error answer (401, 413, 5xx, ...); the message then says how
-many rows the server had accepted before it stopped.
+many rows the server had acknowledged before it stopped, and the --skip that resumes
+the replay from there (the batch in flight when it stopped, if the server stored it
+without answering, is sent again: its rows are then stored twice).
 
   robustloc replay meas.csv --url http://127.0.0.1:8080 --speed 10
   robustloc replay meas.csv --url http://127.0.0.1:8080 --speed 0 --transport ws
+  robustloc replay meas.csv --url http://127.0.0.1:8080 --speed 0 --skip 120000
   ROBUSTLOC_TOKEN=secret robustloc replay meas.parquet --url http://host:8080"""
 
 
@@ -68,6 +71,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "/ws/measurements")
     p.add_argument("--batch-rows", type=positive_int, default=None,
                    help="rows per batch (default: one time step per batch)")
+    p.add_argument("--skip", type=nonnegative_int, default=0, metavar="N",
+                   help="leave out the first N rows of the replay's order (by time, the "
+                        "file's order within a time): resumes a replay that stopped after "
+                        "N rows (default 0)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true",
                    help="print the summary as JSON (rows, accepted, n_rejected, the "
@@ -78,6 +85,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def _batches(times: np.ndarray, batch_rows: int | None) -> list[tuple[int, int]]:
     n = len(times)
+    if n == 0:  # (--skip of every row: nothing to send)
+        return []
     if batch_rows is not None:
         return [(i, min(i + batch_rows, n)) for i in range(0, n, batch_rows)]
     cuts = np.flatnonzero(np.diff(times) != 0) + 1
@@ -87,16 +96,19 @@ def _batches(times: np.ndarray, batch_rows: int | None) -> list[tuple[int, int]]
 
 def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
            transport: str = "http", batch_rows: int | None = None,
-           progress: bool = False) -> dict:
+           progress: bool = False, skip: int = 0) -> dict:
     """Send a log to a service.
+
+    ``skip`` leaves out the first rows of the replay's order (sorted by time, stable):
+    :class:`ReplayStopped`'s ``sent`` is the ``skip`` that resumes a stopped replay.
 
     Returns
     -------
     dict
-        ``{rows, accepted, n_rejected, rejected: [{line, error}], seconds}``: ``rejected``
-        lists the rows the server listed (at most
+        ``{rows, skipped, accepted, n_rejected, rejected: [{line, error}], seconds}``:
+        ``rejected`` lists the rows the server listed (at most
         :data:`~robustloc.service.defaults.MAX_REJECTED_LISTED` per batch), ``n_rejected``
-        counts every rejected row.
+        counts every rejected row; ``accepted`` and ``n_rejected`` count this run's rows.
 
     Raises
     ------
@@ -120,6 +132,10 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
         raise InputError(f"column 'time': {df['time'].iloc[i]:g} is implausible "
                          f"({lim.describe()})", path, int(df.index[i]))
     df = df.sort_values("time", kind="stable")
+    if skip > len(df):
+        raise InputError(f"--skip {skip}: the log has {len(df)} rows", path)
+    n_rows = len(df)
+    df = df.iloc[skip:]
     lines = df.index.to_numpy()
     times = df["time"].to_numpy(float)
     records = [
@@ -137,7 +153,7 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
     base = url.rstrip("/")
     accepted = 0
     n_rejected = 0
-    sent = 0
+    sent = skip  # rows of the log acknowledged (or skipped): the --skip that resumes
     rejected: list[dict] = []
     t_start = time.monotonic()
     bar = tqdm(total=len(records), unit=" rows", disable=not progress, file=sys.stderr)
@@ -193,13 +209,13 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
             n_acc, n_rej, listed = _acknowledged(res, i1 - i0)
             accepted += n_acc
             n_rejected += n_rej
-            sent = i1
+            sent = skip + i1
             for index, error in listed:
                 rejected.append({"line": int(lines[i0 + index]), "error": error})
             bar.update(i1 - i0)
     except _transport_errors() as exc:
-        raise ReplayStopped(str(exc), accepted=accepted, sent=sent,
-                            rows=len(records)) from exc
+        raise ReplayStopped(str(exc), accepted=accepted, sent=sent, rows=n_rows,
+                            skipped=skip) from exc
     finally:
         bar.close()
         ws_log.setLevel(ws_level)
@@ -207,8 +223,9 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
             conn.__exit__(None, None, None)
         if client is not None:
             client.close()
-    return {"rows": len(records), "accepted": accepted, "n_rejected": n_rejected,
-            "rejected": rejected, "seconds": round(time.monotonic() - t_start, 3)}
+    return {"rows": n_rows, "skipped": skip, "accepted": accepted,
+            "n_rejected": n_rejected, "rejected": rejected,
+            "seconds": round(time.monotonic() - t_start, 3)}
 
 
 #: Seconds the replay waits for the server's answer to one batch (HTTP and WebSocket).
@@ -261,13 +278,15 @@ def _acknowledged(res: dict, n_rows: int) -> tuple[int, int, list[tuple[int, str
 class ReplayStopped(RuntimeError):
     """A replay that stopped before its end (connection error or an error answer).
 
-    Attributes ``accepted`` (rows the server accepted), ``sent`` (rows acknowledged,
-    accepted or rejected) and ``rows`` (rows in the log).
+    Attributes ``accepted`` (rows the server accepted in this run), ``sent`` (rows of the
+    log acknowledged, accepted or rejected, or skipped: the ``--skip`` that resumes),
+    ``rows`` (rows in the log) and ``skipped`` (the run's ``--skip``).
     """
 
-    def __init__(self, message: str, *, accepted: int, sent: int, rows: int) -> None:
+    def __init__(self, message: str, *, accepted: int, sent: int, rows: int,
+                 skipped: int = 0) -> None:
         super().__init__(message)
-        self.accepted, self.sent, self.rows = accepted, sent, rows
+        self.accepted, self.sent, self.rows, self.skipped = accepted, sent, rows, skipped
 
 
 def _transport_errors() -> tuple[type[BaseException], ...]:
@@ -292,14 +311,17 @@ def run(args: argparse.Namespace) -> int:
     try:
         summary = replay(args.measurements, args.url, speed=args.speed, token=args.token,
                          transport=args.transport, batch_rows=args.batch_rows,
-                         progress=not (args.quiet or args.json) and sys.stderr.isatty())
+                         progress=not (args.quiet or args.json) and sys.stderr.isatty(),
+                         skip=args.skip)
     except ReplayStopped as exc:
+        first = f"the first {exc.skipped} skipped, " if exc.skipped else ""
+        resume = (f"; resume with --skip {exc.sent}" if exc.sent < exc.rows else "")
         print(f"error: {args.url}: {exc} (stopped after {exc.sent} of {exc.rows} rows; "
-              f"{exc.accepted} accepted)", file=sys.stderr)
+              f"{first}{exc.accepted} accepted{resume})", file=sys.stderr)
         if args.json:  # how far it got, for a script that reads stdout
             print(json.dumps({"measurements": str(args.measurements), "url": args.url,
-                              "rows": exc.rows, "sent": exc.sent, "accepted": exc.accepted,
-                              "stopped": str(exc)}, indent=2))
+                              "rows": exc.rows, "skipped": exc.skipped, "sent": exc.sent,
+                              "accepted": exc.accepted, "stopped": str(exc)}, indent=2))
         return 2
     except _transport_errors() as exc:
         print(f"error: {args.url}: {exc}", file=sys.stderr)
@@ -312,7 +334,8 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps({"measurements": str(args.measurements), "url": args.url,
                           **summary}, indent=2))
         return 1 if n_rej else 0
-    print(f"{summary['accepted']} of {summary['rows']} rows accepted in "
+    first = f" (the first {summary['skipped']} skipped)" if summary["skipped"] else ""
+    print(f"{summary['accepted']} of {summary['rows']} rows accepted{first} in "
           f"{summary['seconds']:.2f} s")
     if n_rej:
         print(f"{n_rej} rows rejected", file=sys.stderr)
