@@ -28,6 +28,8 @@ pytest.importorskip("starlette")
 pytest.importorskip("uvicorn")
 httpx = pytest.importorskip("httpx")
 
+from _waiting import wait_until  # noqa: E402
+
 from robustloc.service.launch import (  # noqa: E402
     ROBUSTLOC,
     MosquittoProcess,
@@ -51,16 +53,6 @@ def _rows(times: range | list[float], tag: str = "T") -> list[dict]:
 
 def _metric(url: str, name: str) -> float:
     return read_metric(url, name, timeout_s=10.0)
-
-
-def _wait(cond: Callable[[], object], timeout: float, what: str) -> object:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        v = cond()
-        if v:
-            return v
-        time.sleep(0.1)
-    raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
 
 
 def _stored_times(store: Path) -> list[float]:
@@ -226,13 +218,13 @@ def test_an_mqtt_message_the_store_cannot_write_is_not_acknowledged(
         _limit_file_size(srv.proc.pid, wal.stat().st_size + 100)
         try:
             pub.publish(topic, json.dumps(_rows(range(0, 10))), qos=1).wait_for_publish(5)
-            _wait(lambda: _metric(srv.url, 'robustloc_requests_rejected_total'
+            wait_until(lambda: _metric(srv.url, 'robustloc_requests_rejected_total'
                                            '{reason="mqtt_store_error"}') >= 1,
                   30, "the store failure counted")
             assert _metric(srv.url, "robustloc_rows_accepted_total") == n0
         finally:
             _limit_file_size(srv.proc.pid, None)
-        _wait(lambda: _metric(srv.url, "robustloc_rows_accepted_total") == n0 + 40,
+        wait_until(lambda: _metric(srv.url, "robustloc_rows_accepted_total") == n0 + 40,
               60, "the message delivered again and stored")
     finally:
         pub.loop_stop()
@@ -276,7 +268,7 @@ def test_mqtt_rows_published_while_the_service_is_down_arrive_after_the_restart(
         for k in range(10):  # the service is down
             pub.publish(topic, json.dumps(_rows([float(k)])), qos=1).wait_for_publish(5)
         srv2 = servers(args)
-        _wait(lambda: _metric(srv2.url, 'robustloc_rows_accepted_total{source="mqtt"}') >= 40,
+        wait_until(lambda: _metric(srv2.url, 'robustloc_rows_accepted_total{source="mqtt"}') >= 40,
               60, "the queued messages delivered")
         time.sleep(0.5)
         assert _metric(srv2.url, 'robustloc_rows_accepted_total{source="mqtt"}') == 40
@@ -417,28 +409,28 @@ def test_an_mqtt_message_an_internal_error_stops_is_kept_in_the_dead_letter_fold
     pub.loop_start()
     ing.start()
     try:
-        _wait(ing.connected.is_set, 30, "the service's MQTT connection")
+        wait_until(ing.connected.is_set, 30, "the service's MQTT connection")
         time.sleep(0.5)  # (the subscription)
         first = json.dumps(_rows([1.0, 2.0])).encode()
         pub.publish("robustloc/measurements/gw", first, qos=1).wait_for_publish(5)
-        files = _wait(lambda: sorted(dead.glob("*.payload")), 30, "the dead-letter file")
+        files = wait_until(lambda: sorted(dead.glob("*.payload")), 30, "the dead-letter file")
         assert [f.read_bytes() for f in files] == [first]
-        _wait(lambda: len(acked) == 1, 10, "the acknowledgement")
+        wait_until(lambda: len(acked) == 1, 10, "the acknowledgement")
         # the folder cannot be written (a file in its place): not acknowledged, delivered
         # again after the reconnect, then kept once it can be
         shutil.rmtree(dead)
         dead.write_text("in the way")
         second = json.dumps(_rows([3.0])).encode()
         pub.publish("robustloc/measurements/gw", second, qos=1).wait_for_publish(5)
-        _wait(lambda: eng.metrics.requests_rejected.get("mqtt_internal_error", 0) >= 2, 30,
+        wait_until(lambda: eng.metrics.requests_rejected.get("mqtt_internal_error", 0) >= 2, 30,
               "the second message")
         time.sleep(0.5)
         assert len(acked) == 1
         dead.unlink()
-        files = _wait(lambda: sorted(dead.glob("*.payload")) if dead.is_dir() else [],
+        files = wait_until(lambda: sorted(dead.glob("*.payload")) if dead.is_dir() else [],
                       service_mqtt.STORE_RETRY_S + 30, "the message delivered again")
         assert [f.read_bytes() for f in files] == [second]
-        _wait(lambda: len(acked) == 2, 10, "its acknowledgement")
+        wait_until(lambda: len(acked) == 2, 10, "its acknowledgement")
     finally:
         ing.stop()
         pub.loop_stop()

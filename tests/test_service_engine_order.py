@@ -23,6 +23,8 @@ pytest.importorskip("starlette")
 pytest.importorskip("uvicorn")
 httpx = pytest.importorskip("httpx")
 
+from _waiting import wait_until  # noqa: E402
+
 from robustloc.service.engine import Engine  # noqa: E402
 from robustloc.service.launch import ROBUSTLOC, free_port  # noqa: E402
 from robustloc.service.processor import LocateProcessor  # noqa: E402
@@ -46,16 +48,6 @@ def _engine(store: Path | None, **kw) -> Engine:
             "value": "range"}
     opts.update(kw)
     return Engine(ANCHORS, LocateProcessor(ANCHORS, method="nls"), store_dir=store, **opts)
-
-
-def _wait_for(cond, timeout: float = 60.0, what: str = "condition"):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        v = cond()
-        if v:
-            return v
-        time.sleep(0.1)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 @pytest.fixture
@@ -86,7 +78,7 @@ def test_rebased_tag_pending_epochs_are_solved_after_kill9(anchors_csv, servers,
             "--idle-flush", "1", "--time-jump", "20"]
     s = servers(args)
     httpx.post(s.url + "/api/measurements", json=_rows(range(100, 111)), timeout=30)
-    _wait_for(lambda: len(httpx.get(s.url + "/api/positions?tag=V").json()) == 11,
+    wait_until(lambda: len(httpx.get(s.url + "/api/positions?tag=V").json()) == 11,
               what="the first run solved")
     time.sleep(1.3)  # quiet longer than --idle-flush: the next far row re-bases the tag
     r = httpx.post(s.url + "/api/measurements", json=_rows(range(4)), timeout=30).json()
@@ -94,12 +86,12 @@ def test_rebased_tag_pending_epochs_are_solved_after_kill9(anchors_csv, servers,
     s.kill9()  # epochs 0..3 wait for the latency window / the idle flush
     s2 = servers(args)
     u = s2.url
-    pos = _wait_for(lambda: (p := httpx.get(u + "/api/positions?tag=V").json())
+    pos = wait_until(lambda: (p := httpx.get(u + "/api/positions?tag=V").json())
                     and len(p) >= 15 and p, timeout=30, what="the new run's epochs solved")
     assert sorted(p["time"] for p in pos) == [0.0, 1.0, 2.0, 3.0, *map(float, range(100, 111))]
     r = httpx.post(u + "/api/measurements", json=_rows(range(4, 8)), timeout=30).json()
     assert r["late"] == 0  # the tag resumed at its new run (newest 3), not at t = 110
-    _wait_for(lambda: len(httpx.get(u + "/api/positions?tag=V").json()) == 19, timeout=30,
+    wait_until(lambda: len(httpx.get(u + "/api/positions?tag=V").json()) == 19, timeout=30,
               what="the resumed run solved")
     s2.stop()
     log = SegmentLog(store / "positions", fsync=False)
@@ -229,7 +221,7 @@ def test_sigterm_solves_pending_epochs_with_store(anchors_csv, servers, tmp_path
                  "--latency-window", "0", "--idle-flush", "600"])
     r = httpx.post(s.url + "/api/measurements", json=_rows(range(10), tag="S"), timeout=30)
     assert r.json()["accepted"] == 50
-    _wait_for(lambda: len(httpx.get(s.url + "/api/positions").json()) == 9,
+    wait_until(lambda: len(httpx.get(s.url + "/api/positions").json()) == 9,
               what="the first 9 epochs solved")
     s.stop()  # SIGTERM
     assert s.proc.returncode is not None
@@ -248,7 +240,7 @@ def test_stop_solves_pending_epochs_without_store():
     eng.start()
     try:
         eng.ingest(_rows(range(10), tag="S"))
-        _wait_for(lambda: sum(len(f) for f in published) == 9, timeout=30,
+        wait_until(lambda: sum(len(f) for f in published) == 9, timeout=30,
                   what="the first 9 epochs published")
     finally:
         eng.stop()

@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import time
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -25,6 +23,8 @@ pytest.importorskip("uvicorn")
 httpx = pytest.importorskip("httpx")
 mqtt = pytest.importorskip("paho.mqtt.client")
 
+from _waiting import wait_until  # noqa: E402
+
 from robustloc.service.launch import MosquittoProcess, free_port, read_metric  # noqa: E402
 
 if not (shutil.which("mosquitto") or Path("/usr/sbin/mosquitto").exists()):
@@ -33,16 +33,6 @@ if not (shutil.which("mosquitto") or Path("/usr/sbin/mosquitto").exists()):
 
 ANCHORS = {"A1": (0.0, 0.0), "A2": (10.0, 0.0), "A3": (10.0, 10.0), "A4": (0.0, 10.0)}
 TOPIC = "robustloc/measurements/gw-1"
-
-
-def _wait(cond: Callable[[], object], timeout: float, what: str) -> object:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        v = cond()
-        if v:
-            return v
-        time.sleep(0.1)
-    raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
 
 
 def _status(url: str) -> dict:
@@ -76,7 +66,7 @@ def test_the_broker_missing_lost_and_back_is_said_and_survived(server_factory, t
         # 1. no broker where --mqtt points: the service serves, and says so
         srv = server_factory(["--anchors", str(anchors), "--mqtt", f"127.0.0.1:{port}",
                               "--idle-flush", "0.3"], startup_timeout_s=120)
-        st = _wait(lambda: (s := _status(srv.url))["last_reason"] and s, 15,
+        st = wait_until(lambda: (s := _status(srv.url))["last_reason"] and s, 15,
                    "the failed connection in /api/status")
         assert st["connected"] is False and st["connections"] == 0
         assert st["last_reason"] == "cannot reach the broker"
@@ -85,13 +75,13 @@ def test_the_broker_missing_lost_and_back_is_said_and_survived(server_factory, t
         assert "cannot reach the MQTT broker" in srv.log()
         # 2. the broker starts: the service connects (paho retries every 1-10 s)
         brokers.append(MosquittoProcess(port=port).start())
-        _wait(lambda: _status(srv.url)["connected"], 30, "the first connection")
+        wait_until(lambda: _status(srv.url)["connected"], 30, "the first connection")
         assert read_metric(srv.url, "robustloc_mqtt_connected", timeout_s=10.0) == 1
         _publish(port, 0.0)
-        _wait(lambda: _accepted(srv.url) >= 4, 20, "the first message's rows")
+        wait_until(lambda: _accepted(srv.url) >= 4, 20, "the first message's rows")
         # 3. the broker goes away: counted, said, the gauge drops
         brokers[0].stop()
-        st = _wait(lambda: (s := _status(srv.url))["disconnections"] and s, 15,
+        st = wait_until(lambda: (s := _status(srv.url))["disconnections"] and s, 15,
                    "the lost connection")
         assert st["connected"] is False and st["disconnections"] == 1
         assert read_metric(srv.url, "robustloc_mqtt_disconnections_total",
@@ -100,11 +90,11 @@ def test_the_broker_missing_lost_and_back_is_said_and_survived(server_factory, t
         # 4. back on the same port: the service reconnects and subscribes again (the
         # broker, without persistence, forgot the subscription)
         brokers.append(MosquittoProcess(port=port).start())
-        _wait(lambda: _status(srv.url)["connected"], 30, "the reconnection")
+        wait_until(lambda: _status(srv.url)["connected"], 30, "the reconnection")
         assert _status(srv.url)["connections"] == 2
         assert "connected again" in srv.log()
         _publish(port, 1.0)
-        _wait(lambda: _accepted(srv.url) >= 8, 20, "the rows sent after the reconnection")
+        wait_until(lambda: _accepted(srv.url) >= 8, 20, "the rows sent after the reconnection")
         assert httpx.get(srv.url + "/healthz", timeout=10).json() == {"status": "ok"}
     finally:
         for b in brokers:
