@@ -688,3 +688,40 @@ def test_an_interrupt_while_the_libraries_load_is_an_interrupt(monkeypatch, caps
     monkeypatch.setattr(cli, "build_parser", loading)
     assert main(["locate", "--help"]) == 130
     assert capsys.readouterr().err == "error: interrupted\n"
+
+
+def test_a_killed_runs_temporary_file_is_removed_by_the_next_write(tmp_path):
+    """``kill -9`` (the OOM killer) leaves the temporary file of the output being written:
+    nothing runs to remove it, and each killed attempt left one more (a whole output's
+    size each).  The temporary file names its process (``.NAME.HOST-PID.*.tmp``); the
+    next write of NAME removes those of dead processes of this host, and keeps one of a
+    process that runs or of another host (a shared filesystem)."""
+    from robustloc.io.atomic import _HOST
+
+    (tmp_path / "a.csv").write_text(ANCHORS)
+    _ranges(400_000).to_csv(tmp_path / "m.csv", index=False)
+    out = tmp_path / "p.csv"
+    proc = subprocess.Popen([*CLI, "locate", str(tmp_path / "m.csv"), "--anchors",
+                             str(tmp_path / "a.csv"), "-o", str(out), "-q"], env=ENV,
+                            stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while not list(tmp_path.glob(".p.csv.*.tmp")):  # writing has started
+            assert proc.poll() is None and time.monotonic() < deadline, "no output begun"
+            time.sleep(0.01)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait(30)
+    orphans = list(tmp_path.glob(".p.csv.*.tmp"))
+    assert len(orphans) == 1 and f".p.csv.{_HOST}-{proc.pid}." in orphans[0].name
+    assert not out.exists()
+    # a live process's file and another host's are not the next write's to remove
+    live = tmp_path / f".p.csv.{_HOST}-{os.getpid()}.x.tmp"
+    other = tmp_path / f".p.csv.otherhost-{proc.pid}.x.tmp"
+    for f in (live, other):
+        f.write_text("in progress")
+    _ranges(20).to_csv(tmp_path / "m2.csv", index=False)
+    assert main(["locate", str(tmp_path / "m2.csv"), "--anchors", str(tmp_path / "a.csv"),
+                 "-o", str(out), "-q"]) == 0
+    assert sorted(tmp_path.glob(".p.csv.*.tmp")) == sorted([live, other])
+    assert len(pd.read_csv(out)) == 20

@@ -36,6 +36,8 @@ import contextlib
 import contextvars
 import errno
 import os
+import re
+import socket
 import stat
 import sys
 import tempfile
@@ -252,6 +254,49 @@ def _gzip_wanted(p: Path) -> bool:
     return suffix == _GZIP_SUFFIX
 
 
+#: This host's name as it appears in a temporary file's name (:func:`_temp_prefix`).
+_HOST = re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname())[:40] or "host"
+
+
+def _temp_prefix(final_name: str) -> str:
+    """``.NAME.HOST-PID.``: a temporary file names the process that writes it, so that a
+    later write of ``NAME`` can remove what a killed process left (:func:`_sweep_orphans`)."""
+    return f".{final_name}.{_HOST}-{os.getpid()}."
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process ``pid`` runs on this host (one of another user counts)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # (PermissionError: it exists)
+        return True
+    return True
+
+
+def _sweep_orphans(parent: Path, final_name: str) -> int:
+    """Remove the temporary files of ``final_name`` in ``parent`` that a process of this
+    host left when it died (SIGKILL, the OOM killer: nothing ran to remove them; a killed
+    run of a 10 GB output left 10 GB beside it, one more per attempt).  A file of another
+    host (a shared filesystem) or of a process that runs is kept; so is one of an older
+    robustloc, whose name says no process.  Returns how many were removed."""
+    if os.name != "posix":  # pragma: no cover - os.kill(pid, 0) probes only there
+        return 0
+    import glob
+
+    head = f".{final_name}.{_HOST}-"
+    n = 0
+    for q in parent.glob(glob.escape(head) + "*.tmp"):
+        pid = q.name[len(head):].split(".", 1)[0]
+        if not pid.isdigit() or int(pid) == os.getpid() or _alive(int(pid)):
+            continue
+        with contextlib.suppress(OSError):
+            q.unlink()
+            n += 1
+    return n
+
+
 def _gzip(tmp: Path, final: Path, temps: list[Path]) -> Path:
     """``tmp`` gzip-compressed into a new temporary file beside it (appended to
     ``temps``, so that the caller removes it on failure); ``tmp`` itself if a writer
@@ -262,7 +307,8 @@ def _gzip(tmp: Path, final: Path, temps: list[Path]) -> Path:
     with open(tmp, "rb") as fh:
         if fh.read(len(_GZIP_MAGIC)) == _GZIP_MAGIC:
             return tmp
-    fd, name = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=tmp.parent)
+    fd, name = tempfile.mkstemp(prefix=_temp_prefix(final.name), suffix=".tmp",
+                                dir=tmp.parent)
     z = Path(name)
     temps.append(z)
     with os.fdopen(fd, "wb") as raw, open(tmp, "rb") as src:
@@ -415,7 +461,8 @@ def atomic_output(path: PathLike, *, binary: bool = True) -> Iterator[tuple[Path
         mode = 0o666 & ~_umask()
     parent = _prepare_parent(p)
     try:
-        fd, tmp_name = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=parent)
+        fd, tmp_name = tempfile.mkstemp(prefix=_temp_prefix(p.name), suffix=".tmp",
+                                        dir=parent)
     except OSError as exc:
         raise OutputError(_output_words(exc, parent), p, errno_=exc.errno) from None
     os.close(fd)
@@ -433,6 +480,7 @@ def atomic_output(path: PathLike, *, binary: bool = True) -> Iterator[tuple[Path
         os.replace(tmp, p)
         done = True
         _fsync_dir(parent)
+        _sweep_orphans(parent, p.name)
     except OutputError:
         raise
     except OSError as exc:
