@@ -725,3 +725,34 @@ def test_a_killed_runs_temporary_file_is_removed_by_the_next_write(tmp_path):
                  "-o", str(out), "-q"]) == 0
     assert sorted(tmp_path.glob(".p.csv.*.tmp")) == sorted([live, other])
     assert len(pd.read_csv(out)) == 20
+
+
+def _dead_pid() -> int:
+    """The pid of a process that has exited (and been waited for)."""
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait(30)
+    return p.pid
+
+
+def test_a_killed_runs_staging_folders_are_removed_by_the_next_run(tmp_path):
+    """Folder outputs (``simulate``, ``stats``, ``reliability``) and staged datasets
+    (``--engine dask``, ``reproduce``) build in a hidden folder named after their
+    process: the next run of the same output removes those of dead processes of this
+    host, and keeps a live process's and another host's."""
+    from robustloc.io.atomic import _HOST, sweep_orphans
+
+    dead = _dead_pid()
+    gone = [tmp_path / f".sim.{_HOST}-{dead}.abc.tmp",  # a folder output's staging
+            tmp_path / f".sim.partial-{_HOST}-{dead}-0123abcd"]  # a dataset's, a report's
+    kept = [tmp_path / f".sim.{_HOST}-{os.getppid()}.abc.tmp",  # a live process's
+            tmp_path / f".sim.partial-otherhost-{dead}-0123abcd",  # another host's
+            tmp_path / ".sim.partial-0123abcd",  # an older robustloc's: says no process
+            tmp_path / f".other.partial-{_HOST}-{dead}-0123abcd"]  # another output's
+    for d in gone + kept:
+        d.mkdir()
+        (d / "part-00000.parquet").write_bytes(b"x" * 1000)
+    assert main(["simulate", "ble-corridor", "--seed", "1", "-o", str(tmp_path / "sim"),
+                 "-q"]) == 0
+    assert [d for d in gone if d.exists()] == []
+    assert all(d.is_dir() for d in kept)
+    assert sweep_orphans(tmp_path, "sim") == 0  # nothing more to remove

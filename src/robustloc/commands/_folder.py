@@ -73,8 +73,11 @@ def write_folder(out: str | os.PathLike, write: Callable[[Path], T],
         raise InputError("already exists and is not a folder (a folder was expected)", out)
     parent = out.parent if str(out.parent) else Path(".")
     parent.mkdir(parents=True, exist_ok=True)
+    from robustloc.io.atomic import sweep_orphans, temp_prefix
+
+    sweep_orphans(parent, out.name)  # a killed run's staging folder
     try:
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=parent))
+        tmp = Path(tempfile.mkdtemp(prefix=temp_prefix(out.name), suffix=".tmp", dir=parent))
     except OSError as exc:  # named as the folder asked for, not the hidden temporary one
         from robustloc.errors import OutputError
         from robustloc.io.atomic import describe_oserror

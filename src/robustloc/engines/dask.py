@@ -114,9 +114,12 @@ class DatasetOutput:
                 raise InputError("directory exists and is not a robustloc dataset; refusing "
                                  "to replace it", given)
         self.given = given
-        self.stage = self.out.parent / f".{self.out.name}.partial-{uuid.uuid4().hex[:8]}"
+        from robustloc.io.atomic import staging_name, sweep_orphans
+
+        self.stage = self.out.parent / staging_name(self.out.name)
         try:
             self.out.parent.mkdir(parents=True, exist_ok=True)
+            sweep_orphans(self.out.parent, self.out.name)  # a killed run's staging
             self.stage.mkdir()
         except OSError as exc:  # named as given (the staging folder's name meant nothing
             # to the user: "/proc/.xx.partial-cc3fd4a5: file not found", the Dask review)

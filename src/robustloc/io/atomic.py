@@ -258,10 +258,20 @@ def _gzip_wanted(p: Path) -> bool:
 _HOST = re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname())[:40] or "host"
 
 
-def _temp_prefix(final_name: str) -> str:
-    """``.NAME.HOST-PID.``: a temporary file names the process that writes it, so that a
-    later write of ``NAME`` can remove what a killed process left (:func:`_sweep_orphans`)."""
+def temp_prefix(final_name: str) -> str:
+    """``.NAME.HOST-PID.``, the start of a temporary file's (or folder's) name: it names
+    the process that writes it, so that a later write of ``NAME`` can remove what a
+    killed process left (:func:`sweep_orphans`)."""
     return f".{final_name}.{_HOST}-{os.getpid()}."
+
+
+def staging_name(final_name: str) -> str:
+    """``.NAME.partial-HOST-PID-XXXXXXXX``: a staging folder's name (a dataset of
+    ``--engine dask``, a report of ``reproduce``), its process named as in
+    :func:`temp_prefix`."""
+    import uuid
+
+    return f".{final_name}.partial-{_HOST}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
 
 
 def _alive(pid: int) -> bool:
@@ -275,25 +285,31 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def _sweep_orphans(parent: Path, final_name: str) -> int:
-    """Remove the temporary files of ``final_name`` in ``parent`` that a process of this
-    host left when it died (SIGKILL, the OOM killer: nothing ran to remove them; a killed
-    run of a 10 GB output left 10 GB beside it, one more per attempt).  A file of another
-    host (a shared filesystem) or of a process that runs is kept; so is one of an older
-    robustloc, whose name says no process.  Returns how many were removed."""
+def sweep_orphans(parent: Path, final_name: str) -> int:
+    """Remove what a process of this host, now dead, left while writing ``final_name`` in
+    ``parent``: temporary files and folders (:func:`temp_prefix`) and staging folders
+    (:func:`staging_name`).  SIGKILL and the OOM killer run no clean-up: a killed run of
+    a 10 GB output left 10 GB beside it, one more per attempt.  What a running process
+    or another host (a shared filesystem) writes is kept; so is a name that says no
+    process (an older robustloc's).  Returns how many were removed."""
     if os.name != "posix":  # pragma: no cover - os.kill(pid, 0) probes only there
         return 0
     import glob
+    import shutil
 
-    head = f".{final_name}.{_HOST}-"
     n = 0
-    for q in parent.glob(glob.escape(head) + "*.tmp"):
-        pid = q.name[len(head):].split(".", 1)[0]
-        if not pid.isdigit() or int(pid) == os.getpid() or _alive(int(pid)):
-            continue
-        with contextlib.suppress(OSError):
-            q.unlink()
-            n += 1
+    for head, tail in ((f".{final_name}.{_HOST}-", "*.tmp"),
+                       (f".{final_name}.partial-{_HOST}-", "*")):
+        for q in Path(parent).glob(glob.escape(head) + tail):
+            pid = q.name[len(head):].replace("-", ".", 1).split(".", 1)[0]
+            if not pid.isdigit() or int(pid) == os.getpid() or _alive(int(pid)):
+                continue
+            with contextlib.suppress(OSError):
+                if q.is_dir() and not q.is_symlink():
+                    shutil.rmtree(q)
+                else:
+                    q.unlink()
+                n += 1
     return n
 
 
@@ -307,7 +323,7 @@ def _gzip(tmp: Path, final: Path, temps: list[Path]) -> Path:
     with open(tmp, "rb") as fh:
         if fh.read(len(_GZIP_MAGIC)) == _GZIP_MAGIC:
             return tmp
-    fd, name = tempfile.mkstemp(prefix=_temp_prefix(final.name), suffix=".tmp",
+    fd, name = tempfile.mkstemp(prefix=temp_prefix(final.name), suffix=".tmp",
                                 dir=tmp.parent)
     z = Path(name)
     temps.append(z)
@@ -460,8 +476,9 @@ def atomic_output(path: PathLike, *, binary: bool = True) -> Iterator[tuple[Path
     except OSError:
         mode = 0o666 & ~_umask()
     parent = _prepare_parent(p)
+    sweep_orphans(parent, p.name)  # (before: the space is free for this write)
     try:
-        fd, tmp_name = tempfile.mkstemp(prefix=_temp_prefix(p.name), suffix=".tmp",
+        fd, tmp_name = tempfile.mkstemp(prefix=temp_prefix(p.name), suffix=".tmp",
                                         dir=parent)
     except OSError as exc:
         raise OutputError(_output_words(exc, parent), p, errno_=exc.errno) from None
@@ -480,7 +497,6 @@ def atomic_output(path: PathLike, *, binary: bool = True) -> Iterator[tuple[Path
         os.replace(tmp, p)
         done = True
         _fsync_dir(parent)
-        _sweep_orphans(parent, p.name)
     except OutputError:
         raise
     except OSError as exc:

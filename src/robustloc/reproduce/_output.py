@@ -95,11 +95,13 @@ class ReportFolder:
         self.out = Path(os.path.realpath(out))
         check_out(self.given)
         parent = self.out.parent
-        tag = uuid.uuid4().hex[:8]
-        self.stage = parent / f".{self.out.name}.partial-{tag}"
-        self._old = parent / f".{self.out.name}.old-{tag}"
+        from robustloc.io.atomic import staging_name, sweep_orphans
+
+        self.stage = parent / staging_name(self.out.name)
+        self._old = parent / f".{self.out.name}.old-{uuid.uuid4().hex[:8]}"
         try:
             parent.mkdir(parents=True, exist_ok=True)
+            sweep_orphans(parent, self.out.name)  # a killed run's staging folder
             self.stage.mkdir()
         except OSError as exc:  # named as the folder asked for, not the hidden one
             from robustloc.io.atomic import describe_oserror
