@@ -10,9 +10,6 @@ real server: a cell shows its text in full when its ``scrollWidth`` is at most i
 from __future__ import annotations
 
 import json
-import os
-import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,16 +19,9 @@ httpx = pytest.importorskip("httpx")
 sync_api = pytest.importorskip("playwright.sync_api")
 
 from test_service import wait_for  # noqa: E402
+from test_service_browser import ARGS, CHROMIUM  # noqa: E402  (skips without chromium)
 
 from robustloc.service.launch import ServerProcess  # noqa: E402
-
-CHROMIUM = os.environ.get("ROBUSTLOC_CHROMIUM", "/usr/bin/chromium")
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-        "--disable-component-update", "--disable-sync", "--no-first-run"]
-
-if not Path(CHROMIUM).exists() and not shutil.which("chromium"):
-    pytest.skip("Debian chromium missing (apt-get install chromium; .ci/install-system)",
-                allow_module_level=True)
 
 #: Six anchors along a 25 m x 4 m corridor (as the other page tests).
 ANCHORS = [(str(i + 1), 5.0 * i, 0.0 if i % 2 == 0 else 4.0) for i in range(6)]
