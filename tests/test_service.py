@@ -600,6 +600,39 @@ def test_track_link_offsets_replay_equals_batch_track(ble, server_factory, tmp_p
     _replayed_rows_equal(srv, ble / "measurements.csv", want, ("x", "y", "hpl"))
 
 
+def test_track_settings_reach_the_live_tracker(ble, server_factory, tmp_path):
+    """``serve --track --sigma S --domain rssi --track-q Q --track-weight W`` gives the rows
+    of ``Tracker(sigma=S, domain="rssi", q=Q, weight=W)`` (to 1e-9 m): ``--sigma`` and
+    ``--domain`` were ignored with --track without a word, and the tracker's process
+    noise and weight, tuned with ``robustloc track``, could not be set live."""
+    track = pytest.importorskip("robustloc.tracking")
+    anchors = read_anchors(ble / "anchors.csv")
+    ep = to_epochs(read_measurements(ble / "measurements.csv"), anchors["anchor"])
+    opts = {"sigma": 5.0, "domain": "rssi", "q": 0.05, "weight": "igg3"}
+    want = track.Tracker(anchors, **opts).step(ep)
+    assert np.abs(want["x"] - track.Tracker(anchors).step(ep)["x"]).max() > 1e-3
+    srv = server_factory(["--anchors", str(ble / "anchors.csv"), "--track",
+                          "--sigma", "5", "--domain", "rssi", "--track-q", "0.05",
+                          "--track-robust", "igg3", "--idle-flush", "0.3"])
+    _replayed_rows_equal(srv, ble / "measurements.csv", want, ("x", "y", "hpl"))
+
+
+@pytest.mark.parametrize(("extra", "message"), [
+    (["--track", "--dim", "3"], "--dim applies to the per-epoch fixes, not to --track"),
+    (["--track", "--alert-limit", "2", "--k-noise", "3"],
+     "--alert-limit, --k-noise apply to the per-epoch fixes, not to --track"),
+    (["--track", "--robust-scale", "apriori"], "--robust-scale applies to the per-epoch"),
+    (["--track-q", "0.1"], "--track-q applies to the tracker: add --track"),
+    (["--track-model", "ca"], "--track-model applies to the tracker: add --track"),
+])
+def test_serve_refuses_the_other_modes_options(ble, extra, message):
+    # (each was ignored without a word, and the service served: a subprocess with a
+    # timeout, so that a regression fails instead of serving for ever)
+    r = subprocess.run([*ROBUSTLOC, "serve", "--anchors", str(ble / "anchors.csv"),
+                        "--port", "0", *extra], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and message in r.stderr, r.stderr
+
+
 def test_serve_cli_errors(ble, tmp_path, capsys):
     """A user's mistake is `error: ...` on stderr and exit code 2, never a traceback."""
     from robustloc.cli import main

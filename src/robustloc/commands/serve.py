@@ -101,9 +101,35 @@ def _forget_after(text: str) -> float:
     return positive_float(text)
 
 
+#: Options of the per-epoch fixes that ``--track`` has no use for, with their defaults
+#: (given with --track they were ignored without a word: the tracker is 2-D, tests its
+#: innovations with its own scale and has no alert limit).
+FIX_ONLY_OPTIONS = {"dim": 2, "solver": "nonlinear", "robust_scale": "mad",
+                    "scale_from": None, "side_prior": "log", "alert_limit": None,
+                    "k_noise": None, "model": None, "no_range_calibration": False}
+#: The tracker's options, which the per-epoch fixes have no use for.
+TRACK_ONLY_OPTIONS = {"track_model": "cv", "track_filter": "ekf", "track_q": None,
+                      "track_weight": None}
+
+
+def _check_mode_options(args: argparse.Namespace) -> None:
+    """Refuse the options of the mode not chosen (fixes or ``--track``)."""
+    from robustloc.errors import InputError
+
+    other = FIX_ONLY_OPTIONS if args.track else TRACK_ONLY_OPTIONS
+    given = ["--" + k.replace("_", "-") for k, d in other.items() if getattr(args, k) != d]
+    if given:
+        verb = "applies" if len(given) == 1 else "apply"
+        raise InputError(f"{', '.join(given)} {verb} to the "
+                         + ("per-epoch fixes, not to --track" if args.track
+                            else "tracker: add --track"))
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from robustloc.estimators.ranging import DEFAULT_METHOD, METHOD_SYNONYMS, METHODS
     from robustloc.options import choice
+    from robustloc.pipelines.track import WEIGHT_SYNONYMS as TRACK_WEIGHT_SYNONYMS
+    from robustloc.pipelines.track import WEIGHTS as TRACK_WEIGHTS
     from robustloc.service.defaults import (
         DEFAULT_BODY_TIMEOUT_S,
         DEFAULT_FORGET_AFTER_S,
@@ -135,6 +161,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="--track: motion model, as robustloc track --model (default cv)")
     p.add_argument("--track-filter", choices=("ekf", "ukf"), default="ekf",
                    help="--track: filter (default ekf)")
+    p.add_argument("--track-q", type=positive_float, default=None, metavar="Q",
+                   help="--track: process noise, as robustloc track --q (default 1)")
+    p.add_argument("--track-weight", "--track-robust", dest="track_weight", default=None,
+                   choices=TRACK_WEIGHTS, type=choice(TRACK_WEIGHT_SYNONYMS),
+                   help="--track: robust weight, as robustloc track --weight (default "
+                        "huber for ranges, asymmetric-igg with --domain rssi)")
     p.add_argument("--track-range-offset", action="store_true",
                    help="--track on ranges: estimate each tag's common range offset (a UWB "
                         "antenna delay) as a state, as robustloc track --range-offset; "
@@ -147,9 +179,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--solver", choices=("nonlinear", "linearized"), default="nonlinear",
                    help="as robustloc locate --solver (default %(default)s)")
     p.add_argument("--domain", choices=("range", "rssi"), default="range",
-                   help="as robustloc locate --domain (default %(default)s)")
+                   help="as robustloc locate --domain, and track --domain with --track "
+                        "(default %(default)s)")
     p.add_argument("--sigma", type=positive_float, default=None,
-                   help="a-priori observation std (m or dB); default the anchors' sigma")
+                   help="a-priori observation std (m or dB); default the anchors' sigma "
+                        "(with --track too, as robustloc track --sigma)")
     p.add_argument("--robust-scale", choices=("mad", "log", "apriori"), default="mad",
                    help="noise scale of the robust methods and of every fix's test: per "
                         "epoch from its residuals (mad, default: a live service has no whole "
@@ -279,6 +313,7 @@ def build(args: argparse.Namespace):
         if value == "rssi":
             raise InputError("--track-range-offset is for ranges: not with --value rssi")
         value = "range"  # an RSSI row is refused: "this service locates from range"
+    _check_mode_options(args)
     if args.track_link_offsets:
         if not args.track:
             raise InputError("--track-link-offsets goes with --track")
@@ -287,7 +322,13 @@ def build(args: argparse.Namespace):
                              "other: the links' offsets include the common one; choose one")
     try:
         if args.track:
-            opts = {"range_offset": True} if args.track_range_offset else {}
+            opts: dict[str, object] = {"sigma": args.sigma, "domain": args.domain}
+            if args.track_q is not None:
+                opts["q"] = args.track_q
+            if args.track_weight is not None:
+                opts["weight"] = args.track_weight
+            if args.track_range_offset:
+                opts["range_offset"] = True
             if args.track_link_offsets:
                 opts["link_offsets"] = True
             processor = TrackProcessor(anchors, model=args.track_model, filter=args.track_filter,
