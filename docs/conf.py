@@ -72,7 +72,8 @@ def _write_cli_reference(app: object) -> None:
         "",
         "| setting | `locate` / `serve` | `track` | `filter` | `fuse` |",
         "|---|---|---|---|---|",
-        "| robust weight | `--method` (a method; `serve --track` uses the tracker's default) "
+        "| robust weight | `--method` (a method; `serve --track`: `--track-weight`, "
+        "`--track-robust`) "
         "| `--weight`, `--robust` | `--robust`, `--weight` | `--robust`, `--weight` |",
         "| the asymmetric IGG weight (seed 002 eq. 14) | `asym`, `asymmetric-igg` "
         "| `asymmetric-igg`, `asym` | `asymmetric-igg`, `asym` | `asymmetric-igg`, `asym` |",
