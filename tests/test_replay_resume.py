@@ -63,7 +63,7 @@ def test_a_replay_stopped_by_a_killed_server_resumes_with_skip(tmp_path):
     store = tmp_path / "store"
     args = ["--anchors", str(anchors), "--store", str(store)]
     srv = ServerProcess(args, startup_timeout_s=120)
-    srv2 = None
+    srv2 = rep = None
     try:
         srv.start()
         # 40 steps at 10x real time: 4 s; the server dies once it has 10 steps' rows
@@ -89,6 +89,9 @@ def test_a_replay_stopped_by_a_killed_server_resumes_with_skip(tmp_path):
         assert main(["replay", str(tmp_path / "m.csv"), "--url", srv2.url, "--speed", "0",
                      "--skip", str(skip), "-q", "--json"]) == 0
     finally:
+        if rep is not None and rep.poll() is None:
+            rep.kill()
+            rep.wait(10)
         srv.stop()
         if srv2 is not None:
             srv2.stop()
