@@ -66,11 +66,11 @@ def test_a_worker_killed_while_writing_loses_nothing_and_leaves_nothing(tmp_path
     ds = _dataset(tmp_path)
     ANCHORS.to_csv(tmp_path / "a.csv", index=False)
     out = tmp_path / "out"
-    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                       dashboard_address=":0")
-    client = distributed.Client(cluster)
-    proc = None
+    cluster = client = proc = None
     try:
+        cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                           dashboard_address=":0")
+        client = distributed.Client(cluster)
         pids = client.run(os.getpid)
         proc = subprocess.Popen(
             [sys.executable, "-m", "robustloc.cli", "locate", str(ds), "--anchors",
@@ -93,8 +93,10 @@ def test_a_worker_killed_while_writing_loses_nothing_and_leaves_nothing(tmp_path
         if proc is not None and proc.poll() is None:
             proc.kill()
             proc.wait(10)
-        client.close()
-        cluster.close()
+        if client is not None:
+            client.close()
+        if cluster is not None:
+            cluster.close()
     if killed is None:
         pytest.skip("no task was caught writing its part (the run was too quick)")
     assert proc.returncode == 0, err
