@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -756,3 +757,49 @@ def test_a_killed_runs_staging_folders_are_removed_by_the_next_run(tmp_path):
     assert [d for d in gone if d.exists()] == []
     assert all(d.is_dir() for d in kept)
     assert sweep_orphans(tmp_path, "sim") == 0  # nothing more to remove
+
+
+def test_a_container_sharing_the_host_name_keeps_its_temporary_files(tmp_path):
+    """Two containers that share a folder and a host name but not their process ids
+    (``docker run -v ... --hostname``) cannot probe each other's processes: one's sweep
+    would take the other's live writer for dead and delete its temporary file.  The
+    name carries the process-id namespace, so a file of another namespace is kept."""
+    import socket
+
+    from robustloc.io.atomic import _HOST, sweep_orphans
+
+    if not os.path.exists("/proc/self/ns/pid"):
+        pytest.skip("no process-id namespaces here")
+    ns = os.stat("/proc/self/ns/pid").st_ino
+    assert _HOST.endswith(f"~{ns:x}")
+    host = _HOST.rsplit("~", 1)[0]
+    assert host == re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname())[:40]
+    dead = _dead_pid()
+    ours = tmp_path / f".p.csv.{_HOST}-{dead}.x.tmp"
+    theirs = tmp_path / f".p.csv.{host}~{ns + 1:x}-{dead}.x.tmp"
+    for f in (ours, theirs):
+        f.write_text("partial")
+    assert sweep_orphans(tmp_path, "p.csv") == 1
+    assert not ours.exists() and theirs.exists()
+
+
+def test_a_previous_report_set_aside_by_a_killed_run_is_removed_only_once_replaced(
+        tmp_path):
+    """``reproduce`` renames the previous report aside, the new one into place, then
+    deletes the old one: a run killed in between leaves ``.NAME.old-*``.  It goes with
+    the next run once the report exists; while the report is missing it may be the only
+    copy of it, and is kept."""
+    from robustloc.io.atomic import _HOST, aside_name, sweep_orphans
+
+    assert aside_name("rep").startswith(f".rep.old-{_HOST}-{os.getpid()}-")
+    dead = _dead_pid()
+    old = tmp_path / f".rep.old-{_HOST}-{dead}-0123abcd"
+    live = tmp_path / f".rep.old-{_HOST}-{os.getppid()}-0123abcd"
+    for d in (old, live):
+        d.mkdir()
+        (d / "report.md").write_text("previous report")
+    assert sweep_orphans(tmp_path, "rep") == 0  # no report: the old one may be the only copy
+    assert old.is_dir()
+    (tmp_path / "rep").mkdir()
+    assert sweep_orphans(tmp_path, "rep") == 1
+    assert not old.exists() and live.is_dir()

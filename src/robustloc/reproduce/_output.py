@@ -19,7 +19,6 @@ from __future__ import annotations
 import os
 import shutil
 import signal
-import uuid
 from pathlib import Path
 
 from robustloc.errors import InputError, OutputError
@@ -95,10 +94,10 @@ class ReportFolder:
         self.out = Path(os.path.realpath(out))
         check_out(self.given)
         parent = self.out.parent
-        from robustloc.io.atomic import staging_name, sweep_orphans
+        from robustloc.io.atomic import aside_name, staging_name, sweep_orphans
 
         self.stage = parent / staging_name(self.out.name)
-        self._old = parent / f".{self.out.name}.old-{uuid.uuid4().hex[:8]}"
+        self._old = parent / aside_name(self.out.name)
         try:
             parent.mkdir(parents=True, exist_ok=True)
             sweep_orphans(parent, self.out.name)  # a killed run's staging folder
