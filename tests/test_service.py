@@ -1294,17 +1294,23 @@ def test_a_number_beyond_the_parsers_range_costs_only_its_row(ndjson):
            b'{"time": 1, "tag": "t", "anchor": "A1", "range": -1e400}',
            b'{"time": 1, "tag": ' + b"7" * 5000 + b', "anchor": "A1", "range": 3}',
            b'{"time": ' + b"9" * 5000 + b', "tag": "t", "anchor": "A1", "range": 3}',
-           b"null"]
+           b"null",
+           # a tag or an anchor of 1e400 (an OverflowError: a 500 over HTTP, a closed
+           # WebSocket, the whole MQTT message dead-lettered with its good rows)
+           b'{"time": 1, "tag": 1e400, "anchor": "A1", "range": 3}',
+           b'{"time": 1, "tag": "t", "anchor": -1e400, "range": 3}']
     parts = [*bad, good]
     body = b"\n".join(parts) if ndjson else b"[" + b",".join(parts) + b"]"
     rows, _ = parse_body(body)
     batch, _, rejected = validate_rows(rows, idx, None, ("range", "rssi"))
     assert len(batch) == 1 and batch.time[0] == 2.0
     why = dict(rejected)
-    assert sorted(why) == [0, 1, 2, 3, 4]
+    assert sorted(why) == [0, 1, 2, 3, 4, 5, 6]
     assert "not finite" in why[0] and "range" in why[1]
     assert "longer than" in why[2] and "not finite" in why[3]
     assert why[4] == "row is a JSON null, expected an object"
+    assert why[5] == "'tag' is a number, expected a string id"
+    assert why[6] == "'anchor' is a number, expected a string id"
 
 
 def test_subscribers_that_stop_reading_then_vanish_leave_no_traceback(uwb, server_factory):

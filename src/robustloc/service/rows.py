@@ -24,6 +24,7 @@ every invalid one.
 from __future__ import annotations
 
 import json
+import math
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -231,7 +232,7 @@ def _ids(col: list[Any], name: str, err: list[str | None]) -> NDArray[np.object_
                         arr[i] = str(x)
                     else:  # (str() of a huge integer is slow, or refused past 4 300 digits)
                         err[i] = f"'{name}' longer than {MAX_ID_CHARS} characters"
-                elif t is float and x == x and x == int(x):
+                elif t is float and math.isfinite(x) and x == int(x):  # (1e400 is inf)
                     arr[i] = str(int(x))
                 else:
                     err[i] = f"'{name}' is a {_json_type(x)}, expected a string id"
