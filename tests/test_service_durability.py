@@ -11,6 +11,7 @@ root and no mount needed (Python ignores ``SIGXFSZ``, so a write past the limit 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import resource
 import shutil
@@ -296,8 +297,12 @@ def test_mqtt_client_id_is_stable_per_store(tmp_path):
 
 def test_a_half_sent_body_does_not_hold_the_shutdown(anchors, servers):
     """A client that sent half a body kept the service alive after SIGTERM for up to
-    --body-timeout; uvicorn's graceful shutdown is now bounded (--shutdown-grace)."""
-    srv = servers(["--anchors", str(anchors), "--body-timeout", "60"])
+    --body-timeout; uvicorn's graceful shutdown is now bounded (--shutdown-grace).  When
+    the grace runs out the request is cancelled: it was answered a bare 500 "Internal
+    Server Error", with uvicorn's traceback in the log (the service review); now a 503
+    that says nothing was stored, and one warning line."""
+    srv = servers(["--anchors", str(anchors), "--body-timeout", "60",
+                   "--shutdown-grace", "1"])
     with socket.create_connection(("127.0.0.1", srv.port), timeout=10) as k:
         k.sendall(b"POST /api/measurements HTTP/1.1\r\nHost: x\r\n"
                   b"Content-Length: 1000\r\n\r\n[{")
@@ -309,7 +314,47 @@ def test_a_half_sent_body_does_not_hold_the_shutdown(anchors, servers):
         except subprocess.TimeoutExpired:
             srv.kill9()
             pytest.fail("still running 15 s after SIGTERM (a half-sent body holds it)")
+        answer = b""
+        with contextlib.suppress(OSError):
+            while chunk := k.recv(65536):
+                answer += chunk
     assert time.monotonic() - t0 < 15
+    head, _, body = answer.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 503 "), answer
+    assert b"retry-after: " in head.lower()
+    assert "none of the body's rows was stored" in json.loads(body)["error"]
+    log = srv.log()
+    assert "Traceback" not in log and "ERROR" not in log, log
+    assert "still running after --shutdown-grace" in log
+
+
+def test_a_second_ctrl_c_stops_without_a_traceback(anchors, servers, tmp_path):
+    """A second Ctrl-C cuts the graceful stop short: the application's lifespan is
+    cancelled, and a 10-line ``CancelledError`` traceback was logged as an error (the
+    service review).  Now one warning line; the acknowledged rows are in the store."""
+    store = tmp_path / "s"
+    srv = servers(["--anchors", str(anchors), "--store", str(store),
+                   "--shutdown-grace", "5"])
+    assert httpx.post(srv.url + "/api/measurements", json=_rows(range(3))).status_code == 202
+    with socket.create_connection(("127.0.0.1", srv.port), timeout=10) as k:
+        k.sendall(b"POST /api/measurements HTTP/1.1\r\nHost: x\r\n"
+                  b"Content-Length: 100\r\n\r\n[")  # holds the graceful stop
+        time.sleep(0.3)
+        srv.proc.send_signal(signal.SIGINT)
+        time.sleep(0.5)
+        srv.proc.send_signal(signal.SIGINT)
+        try:
+            assert srv.proc.wait(timeout=15) == 0
+        except subprocess.TimeoutExpired:
+            srv.kill9()
+            pytest.fail("still running 15 s after two SIGINTs")
+    log = srv.log()
+    assert "Traceback" not in log and "ERROR" not in log, log
+    assert "stop forced by a second signal" in log
+    again = servers(["--anchors", str(anchors), "--store", str(store)])
+    wait_until(lambda: sorted(p["time"] for p in httpx.get(
+        again.url + "/api/positions", params={"limit": 100}).json()) == [0.0, 1.0, 2.0],
+        timeout=30, what="the 3 acknowledged epochs solved after the restart")
 
 
 # --------------------------------------------------------------------------------------

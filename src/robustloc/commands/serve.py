@@ -55,9 +55,9 @@ A broker that is not there, or goes away, does not stop the service: it retries 
 (robustloc_mqtt_connected, robustloc_mqtt_disconnections_total): alert on them.
 
 Shutdown (SIGTERM, SIGINT): requests in progress get up to --shutdown-grace seconds
-(default 5) to finish, then they are cancelled (a client still sending a body gets no 202:
-nothing of that body is stored); the pending epochs are solved, and the service says
-"stopped (SIGTERM)" and exits 0: a normal stop.
+(default 5) to finish, then they are cancelled (a client still sending a body gets 503
+with Retry-After: nothing of that body is stored); the pending epochs are solved, and the
+service says "stopped (SIGTERM)" and exits 0: a normal stop.
 
 Security: binds 127.0.0.1 unless --host says otherwise; --token (or ROBUSTLOC_TOKEN)
 guards ingest and reads (Authorization: Bearer TOKEN; WebSockets may use ?token=);

@@ -303,9 +303,20 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
         except ClientDisconnect:  # the client left mid-body: its mistake, nothing stored
             return refuse("client_disconnect", 400, "the client disconnected before the "
                                                     "body was complete")
+        except asyncio.CancelledError:
+            # the stop's --shutdown-grace ran out while the body came in: uvicorn cancels
+            # the request, which answered 500 with a traceback in the log (the service
+            # review); nothing of the body is stored, and the client is told so
+            return refuse("shutting_down", 503, "the service is stopping; none of the "
+                          "body's rows was stored: send it again later",
+                          Connection="close", **{"Retry-After": "5"})
         client = request.client.host if request.client else "?"
-        status, body = await anyio.to_thread.run_sync(ingest_sync, b"".join(chunks), "http",
-                                                      client)
+        ingest = asyncio.ensure_future(anyio.to_thread.run_sync(
+            ingest_sync, b"".join(chunks), "http", client))
+        try:
+            status, body = await asyncio.shield(ingest)
+        except asyncio.CancelledError:  # (the grace ran out while the rows are stored:
+            status, body = await ingest  # the client gets their answer, not a 500)
         headers = ({"Retry-After": str(math.ceil(body["retry_after_s"]))}
                    if status in (429, INSUFFICIENT_STORAGE) else None)
         return JSONResponse(body, status_code=status, headers=headers)

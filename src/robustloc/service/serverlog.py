@@ -33,13 +33,34 @@ class CountRefused(logging.Filter):
         self.metrics = metrics
 
     def filter(self, record: logging.LogRecord) -> bool:
-        reason = REFUSED_BY_SERVER.get(record.getMessage())
+        message = record.getMessage()
+        reason = REFUSED_BY_SERVER.get(message)
         if reason is not None:
             self.metrics.request_rejected(reason)
-            record.exc_info = None
-            record.exc_text = None
-            record.levelno, record.levelname = logging.WARNING, "WARNING"
+            _warning(record)
+        elif message.startswith("Cancel ") and "timeout graceful shutdown exceeded" in message:
+            # the requests still receiving a body when --shutdown-grace ran out: each
+            # is answered 503 and counted (``shutting_down``) by the application
+            _warning(record, "stopping: " + message.replace(
+                "timeout graceful shutdown exceeded",
+                "still running after --shutdown-grace (a body not complete is answered "
+                "503, not stored)"))
+        elif (message.startswith("Traceback") and message.rstrip().endswith("CancelledError")
+              and "lifespan" in message):
+            # a second Ctrl-C cuts the graceful stop short: the lifespan is cancelled
+            # (a traceback of 10 lines, the service review); acknowledged rows are stored
+            _warning(record, "stop forced by a second signal: the graceful stop was cut "
+                             "short")
         return True
+
+
+def _warning(record: logging.LogRecord, message: str | None = None) -> None:
+    """Make ``record`` a one-line warning (``message`` if given), without its traceback."""
+    record.exc_info = None
+    record.exc_text = None
+    record.levelno, record.levelname = logging.WARNING, "WARNING"
+    if message is not None:
+        record.msg, record.args = message, ()
 
 
 def count_server_refusals(metrics: Metrics, level: int = logging.WARNING) -> CountRefused:
