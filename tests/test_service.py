@@ -668,6 +668,75 @@ def test_serve_cli_errors(ble, tmp_path, capsys):
     assert "error:" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("extra, message", [
+    (["--port", "99999"], "argument --port: expected a TCP port 1-65535"),  # (was 99999 %
+    (["--port", "-5"], "argument --port: expected a TCP port"),  # 65536, announced 99999)
+    (["--host", "999.1.1.1"], "error: cannot listen on 999.1.1.1:"),
+    (["--mqtt", "127.0.0.1:1", "--mqtt-topic", "a/#/b"], "'#' must be a whole level"),
+    (["--mqtt", "127.0.0.1:1", "--mqtt-topic", "a/b+"], "'+' must be a whole level"),
+    (["--mqtt", "127.0.0.1:1", "--mqtt-topic", ""], "an empty topic filter"),
+])
+def test_serve_refuses_a_bad_address_or_topic_before_serving(ble, extra, message):
+    """A bad port or host ended the service with uvicorn's log line and exit 3 after it
+    had announced itself (``--port 99999`` served on 34463); an invalid MQTT topic filter
+    killed paho's thread at the first connection and the service ran on without MQTT or
+    a word of why (the service review).  Now exit 2 and one ``error:`` line, before
+    anything starts (a subprocess with a timeout: a regression fails, not serves)."""
+    r = subprocess.run([*ROBUSTLOC, "serve", "--anchors", str(ble / "anchors.csv"),
+                        *extra], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert message in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert "robustloc serve: http" not in r.stderr
+
+
+def test_serve_on_a_port_in_use_or_any_free_port(ble):
+    """A port in use is ``error: cannot listen on ...: address already in use``, exit 2
+    (was uvicorn's ``ERROR: [Errno 98]`` and exit 3); ``--port 0`` announces the port the
+    system gave (it announced port 0)."""
+    import re
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen(1)
+        port = busy.getsockname()[1]
+        r = subprocess.run([*ROBUSTLOC, "serve", "--anchors", str(ble / "anchors.csv"),
+                            "--port", str(port)], capture_output=True, text=True,
+                           timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip().splitlines()[-1] == (
+        f"error: cannot listen on 127.0.0.1:{port}: address already in use (give another "
+        "--port, or --port 0 for any free one)"), r.stderr
+    proc = subprocess.Popen([*ROBUSTLOC, "serve", "--anchors", str(ble / "anchors.csv"),
+                             "--port", "0"], stderr=subprocess.PIPE, text=True)
+    try:
+        line = ""
+        while "robustloc serve: http" not in line:
+            line = proc.stderr.readline()
+            assert line, "the service ended before announcing itself"
+        got = int(re.search(r"http://127\.0\.0\.1:(\d+)/", line).group(1))
+        assert got > 0
+        assert httpx.get(f"http://127.0.0.1:{got}/healthz", trust_env=False).json() == {
+            "status": "ok"}
+    finally:
+        proc.terminate()
+        proc.wait(30)
+
+
+def test_mqtt_ingest_checks_its_topic_filter():
+    import re
+
+    from robustloc.service.topics import check_topic_filter
+
+    for good in ("#", "+", "a/+/b", "robustloc/measurements/#", "a//b", "/"):
+        assert check_topic_filter(good) == good
+    for bad, why in (("a/#/b", "'#'"), ("a#", "'#'"), ("+a", "'+'"), ("a/b+/c", "'+'"),
+                     ("", "empty"), ("a\0b", "NUL"), ("x" * 65536, "65535"),
+                     ("\udcff", "UTF-8")):
+        with pytest.raises(ValueError, match=re.escape(why)):
+            check_topic_filter(bad)
+
+
 def test_latency_reservoir_is_uniform():
     """The vectorized reservoir (algorithm R) keeps each of N latencies with probability
     cap/N: over 200 runs the first 100 of N = 1 000 (fed in blocks of 37) are kept

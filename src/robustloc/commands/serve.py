@@ -94,6 +94,28 @@ def _hostport(text: str) -> tuple[str, int]:
     return host, int(port)
 
 
+def _topic(text: str) -> str:
+    """``--mqtt-topic``: a valid MQTT subscription filter (checked before serving)."""
+    from robustloc.service.topics import check_topic_filter
+
+    try:
+        return check_topic_filter(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _port(text: str) -> int:
+    """``--port``: 0 (any free port: the one bound is announced) to 65535."""
+    try:
+        port = int(text)
+    except ValueError:
+        port = -1
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(
+            f"expected a TCP port 1-65535 (0: any free one), got {text!r}")
+    return port
+
+
 def _forget_after(text: str) -> float:
     """``--forget-after``: seconds > 0, or ``never`` (infinity)."""
     if text.strip().lower() in ("never", "inf"):
@@ -144,7 +166,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--anchors", required=True, help="anchors file (anchor, x, y[, z], ...)")
     p.add_argument("--host", default="127.0.0.1",
                    help="address to bind (default 127.0.0.1: this machine only)")
-    p.add_argument("--port", type=int, default=8080, help="TCP port (default 8080)")
+    p.add_argument("--port", type=_port, default=8080,
+                   help="TCP port (default 8080; 0: any free port, announced at start)")
     p.add_argument("--token", default=None,
                    help="bearer token for ingest and reads (default: $ROBUSTLOC_TOKEN; none)")
     p.add_argument("--store", default=None, metavar="DIR",
@@ -223,7 +246,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                                      f"(default {DEFAULT_TIME_JUMP_S:g})")
     p.add_argument("--mqtt", type=_hostport, default=None, metavar="HOST:PORT",
                    help="also ingest from this MQTT broker")
-    p.add_argument("--mqtt-topic", default="robustloc/measurements/#",
+    p.add_argument("--mqtt-topic", type=_topic, default="robustloc/measurements/#",
                    help="MQTT topic filter (default robustloc/measurements/#); payload: a "
                         "JSON array, NDJSON or one object of rows, as POST /api/measurements")
     p.add_argument("--mqtt-client-id", default=None, metavar="ID",
@@ -464,6 +487,47 @@ def _check_meta(meta: Path) -> None:
         raise InputError("damaged store metadata (not a JSON object)", meta)
 
 
+def _listen(host: str, port: int) -> list[Any]:
+    """Listening sockets for ``host`` (every address it resolves to, as asyncio's server
+    binds) on ``port`` (0: a free port, the same on each address); ``OSError`` (address
+    in use, no such host, not this machine's address) before anything else starts.
+
+    uvicorn bound after the service had started: a port in use, a bad host or port ended
+    it with uvicorn's own log line and exit 3, after the "serving at" line, and ``--port
+    0`` was announced as port 0 (the service review)."""
+    import socket
+
+    infos = socket.getaddrinfo(host or None, port, type=socket.SOCK_STREAM,
+                               flags=socket.AI_PASSIVE)
+    socks: list[socket.socket] = []
+    seen: set[tuple] = set()
+    try:
+        for family, kind, proto, _, addr in infos:
+            if (family, addr[:2]) in seen:
+                continue
+            seen.add((family, addr[:2]))
+            s = socket.socket(family, kind, proto)
+            socks.append(s)
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            if family == socket.AF_INET6 and len(infos) > 1:
+                s.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+            if port == 0 and len(socks) > 1:  # the first's free port on every address
+                addr = (addr[0], socks[0].getsockname()[1], *addr[2:])
+            s.bind(addr)
+            s.listen(2048)
+            s.set_inheritable(True)
+    except OSError:
+        for s in socks:
+            s.close()
+        raise
+    return socks
+
+
+def _url(host: str, port: int) -> str:
+    """``http://HOST:PORT/``, an IPv6 address in brackets."""
+    return f"http://[{host}]:{port}/" if ":" in host else f"http://{host}:{port}/"
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         import uvicorn
@@ -471,6 +535,26 @@ def run(args: argparse.Namespace) -> int:
         print("error: robustloc serve needs the [serve] extra: pip install 'robustloc[serve]'",
               file=sys.stderr)
         return 2
+    try:
+        sockets = _listen(args.host, args.port)
+    except OSError as exc:  # (socket.gaierror for a host that does not resolve)
+        import errno
+
+        why = (exc.strerror or str(exc)).rstrip(".").lower()
+        if exc.errno == errno.EADDRINUSE:
+            why += " (give another --port, or --port 0 for any free one)"
+        print(f"error: cannot listen on {_url(args.host, args.port)[7:-1]}: {why}",
+              file=sys.stderr)
+        return 2
+    try:
+        return _serve(args, uvicorn, sockets)
+    finally:
+        for s in sockets:
+            s.close()
+
+
+def _serve(args: argparse.Namespace, uvicorn: Any, sockets: list[Any]) -> int:
+    """``run`` on bound ``sockets``."""
     try:
         engine, cfg, app = build(args)
     except RuntimeError as exc:  # --track without robustloc.tracking
@@ -497,9 +581,10 @@ def run(args: argparse.Namespace) -> int:
     # (after the Config: it configures the loggers)
     count_server_refusals(engine.metrics, logging.getLevelName(args.log_level.upper()))
     server = uvicorn.Server(config)
-    print(f"robustloc serve: http://{args.host}:{args.port}/ ({engine.processor.name}, "
+    port = sockets[0].getsockname()[1]  # (--port 0: the one the system gave)
+    print(f"robustloc serve: {_url(args.host, port)} ({engine.processor.name}, "
           f"latency window {args.latency_window:g} s)", file=sys.stderr, flush=True)
-    stopped_by = _run_until_stopped(server)
+    stopped_by = _run_until_stopped(server, sockets)
     if cfg.store_lock is not None:
         cfg.store_lock.release()
     if stopped_by:
@@ -509,7 +594,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_until_stopped(server: Any) -> str:
+def _run_until_stopped(server: Any, sockets: list[Any] | None = None) -> str:
     """Run ``server`` (a ``uvicorn.Server``) to its graceful shutdown; returns the name of
     the signal that stopped it ("" if none did).
 
@@ -527,7 +612,7 @@ def _run_until_stopped(server: Any) -> str:
 
     old = {sig: signal.signal(sig, note) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
-        server.run()
+        server.run(sockets=sockets)
     finally:
         for sig, handler in old.items():
             signal.signal(sig, handler)

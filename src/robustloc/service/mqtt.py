@@ -53,6 +53,7 @@ from robustloc.service.defaults import MAX_ROWS_PER_BODY
 from robustloc.service.engine import Engine
 from robustloc.service.rows import BodyError, parse_body
 from robustloc.service.store import StoreWriteError
+from robustloc.service.topics import check_topic_filter
 
 #: Seconds after a store write failure before the client reconnects (and the broker
 #: delivers the unacknowledged messages again).
@@ -107,6 +108,7 @@ class MqttIngest:
 
         if persistent and not client_id:
             raise ValueError("a persistent MQTT session needs a stable client id")
+        check_topic_filter(topic)
         self.engine = engine
         self.host, self.port, self.topic, self.qos = host, port, topic, qos
         self.max_payload = max_payload_bytes
@@ -146,7 +148,12 @@ class MqttIngest:
             print(f"error: MQTT broker {self.broker} refused the connection "
                   f"({reason_code}); retrying", file=sys.stderr, flush=True)
             return
-        client.subscribe(self.topic, qos=self.qos)
+        try:
+            client.subscribe(self.topic, qos=self.qos)
+        except ValueError as exc:  # (checked at start: a broker-side rule paho enforces)
+            self.last_reason = f"cannot subscribe to {self.topic!r}: {exc}"
+            print(f"error: MQTT: {self.last_reason}", file=sys.stderr, flush=True)
+            return
         self.connections += 1
         self.since = time.time()
         self._failure_said = False
