@@ -31,7 +31,6 @@ input, hold one or lie inside one (it is replaced whole).
 from __future__ import annotations
 
 import os
-import re
 import shutil
 import time as _time
 from dataclasses import dataclass
@@ -48,8 +47,6 @@ REQUIRED = ("time", "tag", "anchor")
 #: Columns read as numbers (and checked finite), and as ids (checked non-empty).
 NUMERIC = ("time", "rssi", "range")
 IDS = ("tag", "anchor")
-_NUMERIC_TYPE = re.compile(r"^(U?(TINY|SMALL|BIG|HUGE)?INT(EGER)?|FLOAT|DOUBLE|REAL"
-                           r"|DECIMAL(\(.*\))?)$", re.IGNORECASE)
 
 
 @dataclass(frozen=True)
@@ -190,9 +187,10 @@ def _source(con, files: list[str], fmt: str, spec: str) -> tuple[str, list[str]]
         if seconds is not None:
             replace.append(f"{seconds} AS time")
     if fmt == "csv":
+        # numbers as DOUBLE, as the readers read them: a column sniffed as BIGINT took
+        # hexadecimal text ("0x10" became 16, which the readers refuse; the review)
         types = {c: "VARCHAR" for c in IDS if c in names}
-        types.update({r[0]: "DOUBLE" for r in described
-                      if r[0] in NUMERIC and not _NUMERIC_TYPE.match(str(r[1]))})
+        types.update({r[0]: "DOUBLE" for r in described if r[0] in NUMERIC})
         if types:
             src += ", types={" + ", ".join(f"{_sql_str(c)}: {_sql_str(t)}"
                                            for c, t in types.items()) + "}"
@@ -335,13 +333,50 @@ def partition_dataset(
                             round(_time.perf_counter() - t0, 3), method)
 
 
-def _key_expr(by: str, buckets: int, t0: float, span: float | None) -> tuple[str, str]:
+def _key_expr(by: str, buckets: int, t0: float, span: float | None,
+              t1: float | None = None) -> tuple[str, str]:
+    """The partition key's name and SQL.  Keys are zero-padded to one width, so that the
+    folders sort in time (bucket) order; the width holds the largest key: DuckDB's
+    ``lpad`` cuts a longer text to the width (bin 1000005 became 100000, and bins 12 days
+    apart were one partition, which ``locate --engine dask`` then refused; the review)."""
     if by == "tag":
         if buckets:
-            return "tag_bucket", f"lpad(CAST(hash(tag) % {buckets} AS VARCHAR), 4, '0')"
+            width = max(4, len(str(buckets - 1)))
+            return "tag_bucket", f"lpad(CAST(hash(tag) % {buckets} AS VARCHAR), {width}, '0')"
         return "tag", "tag"
+    last = 0 if t1 is None or span is None else int((t1 - t0) // span)
+    width = max(6, len(str(last)) + 1)  # (+1: a bin's floor rounding one past the last)
     return "time_bin", f"lpad(CAST(CAST(floor((time - {t0!r}) / {span!r}) AS BIGINT) AS " \
-                       "VARCHAR), 6, '0')"
+                       f"VARCHAR), {width}, '0')"
+
+
+def _check_time_limits(tmin: float, tmax: float, files: list[str], spec: str) -> None:
+    """``--by time`` bins need times within the documented limits (|t| <= 1e12 s,
+    :mod:`robustloc.io.limits`): a time of 1e20, which ``locate`` counts as an
+    ``invalid_measurement``, stopped the partitioning with DuckDB's "can't be cast ...
+    INT64" and no line, and 1e13 made a bin of its own number far beyond the others (the
+    review).  The first such row is named by its line."""
+    from robustloc.io.limits import LIMITS
+
+    lo, hi = LIMITS["time"].low, LIMITS["time"].high
+    if lo <= tmin and tmax <= hi:
+        return
+    from robustloc.io.tables import _iter_raw, _line_of, _numeric
+
+    for f in files:
+        for chunk in _iter_raw(f, 200_000, IDS):
+            chunk = chunk.copy()
+            _numeric(chunk, "time", f)
+            t = chunk["time"].to_numpy(dtype=float)
+            bad = (t < lo) | (t > hi)
+            if bad.any():
+                i = int(bad.argmax())
+                raise InputError(
+                    f"time {t[i]:g} s is beyond the limits of {lo:g} to {hi:g} s: --by time "
+                    "cannot bin it (locate counts such a row invalid_measurement); remove "
+                    "it, or partition --by tag", f, _line_of(chunk, i))
+    raise InputError(f"column 'time' holds values beyond {lo:g} to {hi:g} s (--by time "
+                     "cannot bin them; partition --by tag)", spec)
 
 
 def _stats(con, src: str, names: list[str], spec: str, files: list[str]
@@ -472,8 +507,10 @@ def _duckdb(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, me
     try:
         src, names = _source(con, files, fmt, spec)
         n, tmin, tmax = _stats(con, src, names, spec, files)
+        if by == "time":
+            _check_time_limits(tmin, tmax, files, spec)
         span = _auto_span(n, tmin, tmax, span_s, rows_per_partition) if by == "time" else None
-        key, expr = _key_expr(by, buckets, tmin, span)
+        key, expr = _key_expr(by, buckets, tmin, span, tmax)
         raw = stage / ".unsorted"
         # Stage 1: one partitioned COPY (out of core).  The key column is written into the
         # files only when it is a contract column (tag); bins and buckets live in the path.
@@ -536,6 +573,7 @@ def _dask(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, sche
         span = None
         if by == "time":
             tmin, tmax = (float(v) for v in dd.compute(ddf["time"].min(), ddf["time"].max()))
+            _check_time_limits(tmin, tmax, files, spec)
             span = _auto_span(n, tmin, tmax, span_s, rows_per_partition)
             key = "time_bin"
             ddf = ddf.assign(time_bin=((ddf["time"] - tmin) // span).astype("int64"))
