@@ -535,6 +535,16 @@ def run(args: argparse.Namespace) -> int:
         print("error: robustloc serve needs the [serve] extra: pip install 'robustloc[serve]'",
               file=sys.stderr)
         return 2
+    token = args.token if args.token is not None else os.environ.get("ROBUSTLOC_TOKEN")
+    if token and not (token.isascii() and token.isprintable() and token == token.strip()):
+        # an HTTP header carries bytes that servers read as Latin-1: a token of other
+        # characters, sent as UTF-8 (curl from a UTF-8 terminal), never matched (the
+        # service review: 401 for the right token)
+        where = "--token" if args.token is not None else "ROBUSTLOC_TOKEN"
+        print(f"error: {where}: use printable ASCII characters without surrounding "
+              "spaces (an HTTP header cannot carry others the same way from every client)",
+              file=sys.stderr)
+        return 2
     try:
         sockets = _listen(args.host, args.port)
     except OSError as exc:  # (socket.gaierror for a host that does not resolve)

@@ -374,6 +374,8 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             "tags": engine.assembler.n_tags, "pending_rows": engine.assembler.n_pending,
             "solver_errors": engine.solver_errors, "last_solver_error": engine.last_error,
             "position_store_errors": engine.position_store_errors,
+            "snapshot_errors": engine.snapshot_errors,
+            "last_snapshot_error": engine.last_snapshot_error,
             "positions_not_stored": engine.positions_not_stored,
             "server_time": time.time(),
             "mqtt": None if cfg.mqtt is None else cfg.mqtt.status(),

@@ -47,6 +47,7 @@ import json
 import math
 import os
 import pickle
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -260,6 +261,10 @@ class Engine:
         self._thread: threading.Thread | None = None
         self.solver_errors = 0
         self.last_error: str | None = None
+        #: snapshots of the processor's state that could not be written (disk full): the
+        #: rows are in the store, and a restart replays them from the last snapshot
+        self.snapshot_errors = 0
+        self.last_snapshot_error: str | None = None
         #: per (tag, run), the latest epoch time the processor has processed (its state's
         #: watermark, saved with a snapshot)
         self._processed: dict[tuple[str, int], float] = {}
@@ -484,19 +489,39 @@ class Engine:
         if self.store_dir is None or not state:
             return
         d = self.store_dir / "state"
-        d.mkdir(exist_ok=True)
         tmp = d / "processor.pkl.tmp"
-        with open(tmp, "wb") as f:
-            # the state's watermarks are the epochs the processor has processed, not the
-            # assembler's (which also count blocks queued meanwhile by the ingest threads:
-            # a restart would then skip them, and a tracker would never give them a row)
-            # (with the forgetting rule it was taken under: a restart tells the tags it
-            # lacks because they were forgotten, see _recover)
-            pickle.dump({"state": state, "watermarks": dict(self._processed),
-                         "saved_at": time.time(), "forget_after": self.forget_after_s}, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, d / "processor.pkl")
+        try:
+            d.mkdir(exist_ok=True)
+            with open(tmp, "wb") as f:
+                # the state's watermarks are the epochs the processor has processed, not
+                # the assembler's (which also count blocks queued meanwhile by the ingest
+                # threads: a restart would then skip them, and a tracker would never give
+                # them a row) (with the forgetting rule it was taken under: a restart
+                # tells the tags it lacks because they were forgotten, see _recover)
+                pickle.dump({"state": state, "watermarks": dict(self._processed),
+                             "saved_at": time.time(), "forget_after": self.forget_after_s},
+                            f)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, d / "processor.pkl")
+        except OSError as exc:
+            # a full disk at a snapshot (or at the stop's) raised out of the solver loop,
+            # counted as a solver error, and at a stop left the store unclosed with a
+            # traceback (the service review).  The previous snapshot stays; the rows are
+            # in the store, and a restart replays them from it
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+            from robustloc.io.atomic import describe_oserror
+
+            first = self.last_snapshot_error is None
+            self.snapshot_errors += 1
+            self.last_snapshot_error = describe_oserror(exc)
+            if first:
+                print(f"warning: {tmp.parent / 'processor.pkl'}: the state's snapshot was "
+                      f"not written ({self.last_snapshot_error}); a restart replays the "
+                      "stored rows since the previous one", file=sys.stderr, flush=True)
+            return
+        self.last_snapshot_error = None
 
     # -- ingest --------------------------------------------------------------------------
     def decode(self, body: bytes | str) -> RowBatch | None:
@@ -683,9 +708,13 @@ class Engine:
             except Exception as exc:  # noqa: BLE001 - counted; the rows stay in the store
                 self.solver_errors += 1
                 self.last_error = f"{type(exc).__name__}: {exc}"
-        self._snapshot()
-        self.meas.close()
-        self.pos.close()
+        try:
+            self._snapshot()
+        finally:
+            try:
+                self.meas.close()
+            finally:
+                self.pos.close()
 
     def _loop(self) -> None:
         tick = min(0.25, self.assembler.idle / 4)
