@@ -36,6 +36,11 @@ def test_normal_functions_equal_scipy_stats():
     np.testing.assert_array_equal(_stats.norm_cdf(x), stats.norm.cdf(x))
 
 
+@pytest.mark.parametrize("df", [1, 2, 3, 7, 30.5, 1e4])
+def test_student_t_quantile_equals_scipy_stats(df):
+    np.testing.assert_array_equal(_stats.t_ppf(P, df), stats.t.ppf(P, df))
+
+
 def test_nan_and_out_of_range_arguments_give_nan():
     assert np.isnan(_stats.chi2_isf(0.5, np.nan))
     assert np.isnan(_stats.chi2_sf(np.nan, 3))

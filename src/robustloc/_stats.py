@@ -5,10 +5,10 @@ distribution and parses their docstrings), and every ``robustloc locate`` / ``tr
 ``fuse`` run paid it for a handful of chi-square and normal quantiles.  These are the
 same ``scipy.special`` calls that ``scipy.stats`` makes for them (SciPy 1.17,
 ``scipy/stats/_continuous_distns.py``: ``chi2_gen._sf``, ``_isf``, ``_ppf``;
-``norm_gen._ppf``, ``_cdf``; ``ncx2_gen._ppf`` for a non-zero non-centrality), so the
-values are identical (tested against ``scipy.stats``), without its argument checks:
-callers pass probabilities in ``(0, 1)`` and positive degrees of freedom, and anything
-else gives NaN here as there.
+``norm_gen._ppf``, ``_cdf``; ``t_gen._ppf``; ``ncx2_gen._ppf`` for a non-zero
+non-centrality), so the values are identical (tested against ``scipy.stats``), without
+its argument checks: callers pass probabilities in ``(0, 1)`` and positive degrees of
+freedom, and anything else gives NaN here as there.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import special
 
-__all__ = ["chi2_isf", "chi2_ppf", "chi2_sf", "ncx2_ppf", "norm_cdf", "norm_ppf"]
+__all__ = ["chi2_isf", "chi2_ppf", "chi2_sf", "ncx2_ppf", "norm_cdf", "norm_ppf", "t_ppf"]
 
 
 def chi2_sf(x: ArrayLike, df: ArrayLike) -> NDArray[np.float64]:
@@ -49,3 +49,8 @@ def ncx2_ppf(p: ArrayLike, df: ArrayLike, nc: ArrayLike) -> NDArray[np.float64]:
     """``scipy.stats.ncx2.ppf(p, df, nc)`` for ``nc > 0`` (the central case is
     :func:`chi2_ppf`): the non-central chi-square quantile."""
     return np.asarray(special.chndtrix(p, df, nc), dtype=float)
+
+
+def t_ppf(p: ArrayLike, df: ArrayLike) -> NDArray[np.float64]:
+    """``scipy.stats.t.ppf(p, df)``: Student's t quantile."""
+    return np.asarray(special.stdtrit(df, p), dtype=float)

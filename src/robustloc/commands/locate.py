@@ -136,7 +136,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="noise scale of the robust methods and of every fix's test and "
                         "protection level: per anchor over the log (log, default: a first "
                         "robust pass over an even sample of the whole log), per epoch from "
-                        "its own residuals (mad, the paper's), or trust --sigma (apriori)")
+                        "its own residuals (mad, the paper's; without --sigma hpl then "
+                        "uses Student's t for that estimated scale, a wider bound), or "
+                        "trust --sigma (apriori)")
     p.add_argument("--side-prior", choices=("log", "none"), default="log",
                    help="nearly collinear anchors: place a fix that fits either side of "
                         "their line on the side where the log's unambiguous fixes lie "
