@@ -692,26 +692,29 @@ def test_serve_refuses_a_bad_address_or_topic_before_serving(ble, extra, message
     assert "robustloc serve: http" not in r.stderr
 
 
-def test_serve_on_a_port_in_use_or_any_free_port(ble):
+def test_serve_on_a_port_in_use_or_any_free_port(ble, tmp_path):
     """A port in use is ``error: cannot listen on ...: address already in use``, exit 2
-    (was uvicorn's ``ERROR: [Errno 98]`` and exit 3); ``--port 0`` announces the port the
-    system gave (it announced port 0)."""
+    (was uvicorn's ``ERROR: [Errno 98]`` and exit 3), and the store it opened is released
+    (the next start on it serves); ``--port 0`` announces the port the system gave (it
+    announced port 0)."""
     import re
     import socket
 
+    store = str(tmp_path / "store")
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
         busy.listen(1)
         port = busy.getsockname()[1]
         r = subprocess.run([*ROBUSTLOC, "serve", "--anchors", str(ble / "anchors.csv"),
-                            "--port", str(port)], capture_output=True, text=True,
-                           timeout=120)
+                            "--port", str(port), "--store", store], capture_output=True,
+                           text=True, timeout=120)
     assert r.returncode == 2, r.stderr
     assert r.stderr.strip().splitlines()[-1] == (
         f"error: cannot listen on 127.0.0.1:{port}: address already in use (give another "
         "--port, or --port 0 for any free one)"), r.stderr
     proc = subprocess.Popen([*ROBUSTLOC, "serve", "--anchors", str(ble / "anchors.csv"),
-                             "--port", "0"], stderr=subprocess.PIPE, text=True)
+                             "--port", "0", "--store", store], stderr=subprocess.PIPE,
+                            text=True)
     try:
         line = ""
         while "robustloc serve: http" not in line:
@@ -1610,3 +1613,73 @@ def test_a_snapshot_on_a_full_disk_neither_stops_nor_loses(tmp_path, monkeypatch
     pos = eng2.positions()
     eng2.stop()
     assert sorted(set(pos["time"].tolist())) == [float(t) for t in range(6)]
+
+
+def test_scale_from_a_log_of_the_other_values_is_refused(ble, tmp_path):
+    """``--scale-from`` took a log of ranges for a service of RSSI and applied its noise
+    scale (metres as dB) without a word; fixes of fault-free epochs said
+    ``fault_detected`` (the service review).  Now the log's values must be the
+    service's; without ``--value`` the log fixes them."""
+    from robustloc.cli import build_parser
+    from robustloc.commands.serve import build
+    from robustloc.io import read_anchors
+
+    ids = [str(a) for a in read_anchors(ble / "anchors.csv")["anchor"]]
+    log = tmp_path / "ranges.csv"
+    pd.DataFrame({"time": np.repeat(np.arange(20.0), len(ids)), "tag": "t",
+                  "anchor": ids * 20, "range": 5.0}).to_csv(log, index=False)
+    a = str(ble / "anchors.csv")
+    # (a subprocess with a timeout: the old code served, a regression must fail)
+    r = subprocess.run([*ROBUSTLOC, "serve", "--anchors", a, "--value", "rssi",
+                        "--scale-from", str(log), "--port", "0"], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 2
+    assert r.stderr.strip() == (f"error: {log}: holds range rows; this service locates "
+                                "from rssi (--value): give a log of rssi rows"), r.stderr
+    args = build_parser().parse_args(["serve", "--anchors", a, "--scale-from", str(log)])
+    engine, _, _ = build(args)
+    try:
+        assert engine.kind == "range"
+    finally:
+        engine.stop()
+
+
+def test_connections_that_never_finish_their_headers_are_closed(ble, server_factory):
+    """Slowloris: connections that send a request line and one header, then nothing, were
+    held for ever (neither the keep-alive timeout nor --body-timeout applies), and 300 of
+    them made the service refuse everyone (the service review).  Each is now closed
+    --header-timeout after it started, and counted; a request that completes its headers
+    in time, and a WebSocket past its upgrade, are not affected.  Bounded: 20 connections
+    on loopback, a 1 s timeout."""
+    import socket
+
+    from websockets.sync.client import connect
+
+    srv = server_factory(["--anchors", str(ble / "anchors.csv"), "--header-timeout", "1"])
+    name = 'robustloc_requests_rejected_total{reason="header_timeout"}'
+    with connect(srv.url.replace("http://", "ws://") + "/ws/positions") as ws:
+        socks = []
+        try:
+            for _ in range(20):
+                so = socket.create_connection(("127.0.0.1", srv.port), timeout=10)
+                so.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n")
+                socks.append(so)
+            slow = socket.create_connection(("127.0.0.1", srv.port), timeout=10)
+            socks.append(slow)
+            slow.sendall(b"GET /healthz HTTP/1.1\r\n")
+            time.sleep(0.5)
+            slow.sendall(b"Host: x\r\nConnection: close\r\n\r\n")  # in time
+            assert slow.recv(65536).startswith(b"HTTP/1.1 200 ")
+            t0 = time.monotonic()
+            for so in socks[:20]:
+                assert so.recv(65536) == b""  # closed by the server, no answer
+            assert time.monotonic() - t0 < 5
+        finally:
+            for so in socks:
+                so.close()
+        wait_for(lambda: metric(srv.url, name) == 20, timeout=10,
+                 what="the 20 connections counted")
+        assert httpx.get(srv.url + "/healthz", trust_env=False).status_code == 200
+        with pytest.raises(TimeoutError):
+            ws.recv(timeout=1.5)  # (open past the header timeout: nothing to receive)
+        assert ws.ping().wait(5)  # the WebSocket still answers

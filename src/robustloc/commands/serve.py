@@ -155,6 +155,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from robustloc.service.defaults import (
         DEFAULT_BODY_TIMEOUT_S,
         DEFAULT_FORGET_AFTER_S,
+        DEFAULT_HEADER_TIMEOUT_S,
         DEFAULT_IDLE_FLUSH_S,
         DEFAULT_LATENCY_WINDOW_S,
         DEFAULT_MAX_BODY_BYTES,
@@ -210,8 +211,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--robust-scale", choices=("mad", "log", "apriori"), default="mad",
                    help="noise scale of the robust methods and of every fix's test: per "
                         "epoch from its residuals (mad, default: a live service has no whole "
-                        "log), per anchor from a recorded log (log, needs --scale-from; "
-                        "robustloc locate's default), or --sigma (apriori)")
+                        "log; without --sigma or the anchors' sigma, hpl uses Student's t "
+                        "for that estimated scale, a wider bound), per anchor from a "
+                        "recorded log (log, needs --scale-from; robustloc locate's default), "
+                        "or --sigma (apriori)")
     p.add_argument("--scale-from", default=None, metavar="LOG",
                    help="recorded measurements log whose per-anchor noise scale (robustloc "
                         "locate's first pass) the service uses; implies --robust-scale log")
@@ -266,6 +269,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    metavar="S",
                    help="seconds a client may take to send a body; then 408 and the "
                         f"connection is closed (default {DEFAULT_BODY_TIMEOUT_S:g})")
+    p.add_argument("--header-timeout", type=positive_float,
+                   default=DEFAULT_HEADER_TIMEOUT_S, metavar="S",
+                   help="seconds a connection may take to send its request's headers; then "
+                        "it is closed and counted (a client that never finishes them held "
+                        f"a connection for ever; default {DEFAULT_HEADER_TIMEOUT_S:g})")
     p.add_argument("--rate-limit", type=positive_float, default=DEFAULT_RATE_LIMIT_ROWS,
                    metavar="ROWS_PER_S",
                    help=f"ingest rows/s per client address (default {DEFAULT_RATE_LIMIT_ROWS:g})")
@@ -364,6 +372,14 @@ def build(args: argparse.Namespace):
             scale = share = sides = None
             robust_scale = args.robust_scale
             if args.scale_from is not None:
+                # a log of the other values: its noise scale (m against dB) was applied
+                # without a word, and ``--value`` said nothing (the service review)
+                logged = LocateProcessor.log_value(args.scale_from)
+                if value is not None and logged != value:
+                    raise InputError(f"holds {logged} rows; this service locates from "
+                                     f"{value} (--value): give a log of {value} rows",
+                                     args.scale_from)
+                value = logged  # (the service locates what its scale was measured on)
                 scale, share, sides = LocateProcessor.log_statistics_from(
                     args.scale_from, anchors, method=args.method, sides=True, **settings)
                 robust_scale = "log"
@@ -546,10 +562,18 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     try:
+        engine, cfg, app = build(args)
+    except RuntimeError as exc:  # --track without robustloc.tracking
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    try:  # bound now, the inputs checked: a port in use or a bad host is the user's
         sockets = _listen(args.host, args.port)
     except OSError as exc:  # (socket.gaierror for a host that does not resolve)
         import errno
 
+        engine.stop()  # (never started: closes the store, solves nothing)
+        if cfg.store_lock is not None:
+            cfg.store_lock.release()
         why = (exc.strerror or str(exc)).rstrip(".").lower()
         if exc.errno == errno.EADDRINUSE:
             why += " (give another --port, or --port 0 for any free one)"
@@ -557,19 +581,15 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     try:
-        return _serve(args, uvicorn, sockets)
+        return _serve(args, uvicorn, sockets, engine, cfg, app)
     finally:
         for s in sockets:
             s.close()
 
 
-def _serve(args: argparse.Namespace, uvicorn: Any, sockets: list[Any]) -> int:
-    """``run`` on bound ``sockets``."""
-    try:
-        engine, cfg, app = build(args)
-    except RuntimeError as exc:  # --track without robustloc.tracking
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+def _serve(args: argparse.Namespace, uvicorn: Any, sockets: list[Any], engine: Any,
+           cfg: Any, app: Any) -> int:
+    """``run`` on bound ``sockets``, with what :func:`build` made."""
     if args.store is None:
         print("warning: no --store: rows and positions are kept in memory only and are lost "
               "when the service stops", file=sys.stderr)
@@ -582,10 +602,15 @@ def _serve(args: argparse.Namespace, uvicorn: Any, sockets: list[Any]) -> int:
               file=sys.stderr)
     # timeout_graceful_shutdown: at SIGTERM a request still receiving its body (a client
     # that stopped sending) held the process for --body-timeout; now it is cancelled
+    from robustloc.service.protocol import header_timeout_protocol
+
+    http = header_timeout_protocol(
+        args.header_timeout, lambda: engine.metrics.request_rejected("header_timeout"))
     config = uvicorn.Config(app, host=args.host, port=args.port, log_level=args.log_level,
                             ws_max_size=args.max_body_bytes, lifespan="on",
                             timeout_keep_alive=30, access_log=False,
-                            timeout_graceful_shutdown=args.shutdown_grace)
+                            timeout_graceful_shutdown=args.shutdown_grace,
+                            http=http or "auto")
     from robustloc.service.serverlog import count_server_refusals
 
     # (after the Config: it configures the loggers)

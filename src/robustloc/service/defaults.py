@@ -23,6 +23,9 @@ MAX_ROWS_PER_BODY = 1_000_000
 MAX_REJECTED_LISTED = 1000
 #: Seconds a client may take to send a body once its request started; then 408.
 DEFAULT_BODY_TIMEOUT_S = 60.0
+#: Seconds a connection may take from its start (or its request's first byte) to its
+#: request's last header line; then it is closed (:mod:`robustloc.service.protocol`).
+DEFAULT_HEADER_TIMEOUT_S = 10.0
 #: Default most tags one service holds state for (``serve --max-tags``): each costs some
 #: 1.5 kB (locate) to 4 kB (``--track``) for as long as the service runs, so a gateway
 #: sending random ids grew the service by 0.9 GB per 200 000 (the service review).  Rows

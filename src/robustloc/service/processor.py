@@ -195,6 +195,14 @@ class LocateProcessor:
                                                    chunk_rows=chunk_rows, **settings)[0]
 
     @staticmethod
+    def log_value(path: str) -> str:
+        """``"rssi"`` or ``"range"``: the values a recorded log holds (its header)."""
+        from robustloc.io.tables import _iter_raw, _value_column
+
+        first = next(_iter_raw(path, 1))
+        return _value_column(first, "measurements", path)
+
+    @staticmethod
     def log_statistics_from(path: str, anchors: pd.DataFrame, *, method: str | None = None,
                             dim: int = 2, chunk_rows: int = 500_000, sides: bool = False,
                             **settings: Any) -> tuple:
