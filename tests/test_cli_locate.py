@@ -304,3 +304,37 @@ def test_one_sigma_value_moves_nothing_under_the_log_scale(tmp_path, capsys):
     pd.testing.assert_frame_equal(a.drop(columns="sigma0"), b.drop(columns="sigma0"),
                                   rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(a["sigma0"], 10 * b["sigma0"], rtol=1e-9)
+
+
+@pytest.mark.parametrize("n_anchors, warned", [(6, True), (7, False)])
+def test_lege_says_when_it_cannot_search(tmp_path, capsys, n_anchors, warned):
+    """LEGE keeps 4 degrees of freedom after its exclusions: with six anchors in 2-D it
+    searched for nothing, and its fixes equalled nls' to the last column, without a word
+    (the review of 2026-12-06: an 80-sigma range in every fourth epoch, 50 unavailable
+    fixes either way).  The run now says so; with seven it searches, and finds the fault."""
+    ang = np.linspace(0, 2 * np.pi, n_anchors, endpoint=False)
+    xy = np.column_stack([10 + 10 * np.cos(ang), 10 + 10 * np.sin(ang)])
+    ids = [f"a{i}" for i in range(n_anchors)]
+    pd.DataFrame({"anchor": ids, "x": xy[:, 0], "y": xy[:, 1]}).to_csv(
+        tmp_path / "a.csv", index=False)
+    rng = np.random.default_rng(2)
+    rows = []
+    for t in range(40):
+        p = rng.uniform(6, 14, 2)
+        d = np.hypot(*(xy - p).T) + rng.normal(0, 0.1, n_anchors)
+        if t % 4 == 0:
+            d[1] += 8.0  # 80 sigma
+        rows += [{"time": float(t), "tag": "t", "anchor": a, "range": float(r)}
+                 for a, r in zip(ids, d)]
+    pd.DataFrame(rows).to_csv(tmp_path / "m.csv", index=False)
+    assert main(["locate", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),
+                 "--method", "lege", "--sigma", "0.1", "-o", str(tmp_path / "p.csv"),
+                 "-q"]) == 0
+    err = capsys.readouterr().err
+    assert ("lege searches for gross errors only with 7 or more anchors heard" in err) \
+        == warned, err
+    out = pd.read_csv(tmp_path / "p.csv")
+    faulty = out[out["time"] % 4 == 0]
+    if not warned:
+        assert (faulty["status"] == "fault_excluded").all()
+        assert (faulty["excluded"] == "a1").all()

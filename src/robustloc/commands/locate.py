@@ -46,7 +46,9 @@ Methods (comma-separated list allowed; the `method` column tells them apart):
   asym      robust IRLS with the asymmetric IGG weight (seed 002 eq. 14) turned to
             ranges: a long range (NLOS, a fade) is rejected from 3 sigma, a short one
             only from 5
-  lege      simultaneous location and estimation of gross errors (seed 000 sec. 2.4)
+  lege      simultaneous location and estimation of gross errors (seed 000 sec. 2.4);
+            it searches only where 7 anchors are heard (8 in 3-D: 4 degrees of freedom
+            stay after its exclusions), below that its fix is nls'
   snooping  w-test data snooping with the B-method (seed 003)
 
 Every fix is tested and gets a protection level (robustloc.integrity.fixes): the noise

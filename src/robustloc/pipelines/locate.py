@@ -615,6 +615,15 @@ def run_locate(
                "positions": "<DataFrame>" if out is None else str(out), **summary,
                "anchors_not_used": [a for a, f in zip(ids, far) if f],
                "anchors_suspect": suspect_anchors(geo.locators, ids)}
+    if any(loc.method == "lege" for loc in geo.locators):
+        from robustloc.estimators.linear import LEGE_MIN_DOF
+
+        # LEGE keeps LEGE_MIN_DOF degrees of freedom after its exclusions: with fewer
+        # anchors it searches for nothing and its fixes are nls' (the review of
+        # 2026-12-06: six anchors, a 80-sigma range in every fourth epoch, lege = nls)
+        need = int(np.shape(geo.xyz)[1]) + 1 + LEGE_MIN_DOF
+        if int((~far).sum()) < need:
+            summary["lege_cannot_search"] = {"anchors": int((~far).sum()), "needs": need}
     return frame, summary
 
 
@@ -661,6 +670,12 @@ def anchor_warnings(summary: dict[str, Any], anchors: object) -> list[str]:
         lines.append(f"{anchors}: anchor(s) {', '.join(summary['anchors_not_used'])} lie far "
                      "outside the others (more than 20 times their median spread: a typo?) "
                      "and are not used by any fix")
+    lege = summary.get("lege_cannot_search")
+    if lege:
+        lines.append(f"{anchors}: lege searches for gross errors only with {lege['needs']} "
+                     f"or more anchors heard (it keeps 4 degrees of freedom after its "
+                     f"exclusions); with {lege['anchors']} its fixes are nls' (use auto, "
+                     "snooping or a robust weight to exclude faults)")
     suspect = summary.get("anchors_suspect") or {}
     if suspect:
         each = ", ".join(f"{a} ({r:g}x)" for a, r in suspect.items())
