@@ -531,3 +531,27 @@ def test_standard_input_is_read_anew_by_each_call(monkeypatch):
         pos = robustloc.locate("-", ANCHORS)
         pd.testing.assert_frame_equal(pos, robustloc.locate(log, ANCHORS))
         assert spools() == before
+
+
+def test_complex_numbers_are_refused_not_cut_to_their_real_part():
+    """Complex ranges (or anchor coordinates) were located by their real part, the only
+    sign a ComplexWarning from pandas' insides (the review of 2026-12-06)."""
+    from robustloc.estimators.ranging import Locator
+
+    anchors = pd.DataFrame({"anchor": ["a", "b", "c"], "x": [0.0, 10.0, 0.0],
+                            "y": [0.0, 0.0, 10.0]})
+    meas = pd.DataFrame({"time": 0.0, "tag": "t", "anchor": ["a", "b", "c"],
+                         "range": [5.0, 7.0, 7.0]})
+    with pytest.raises(InputError, match="column 'range' holds complex numbers"):
+        robustloc.locate(meas.assign(range=meas["range"] + 5j), anchors)
+    with pytest.raises(InputError, match="column 'range' holds complex numbers"):
+        robustloc.read_measurements(meas.assign(range=meas["range"].astype(object) + 1j))
+    with pytest.raises(InputError, match="column 'x' holds complex numbers"):
+        robustloc.locate(meas, anchors.assign(x=anchors["x"] + 100j))
+    xy = anchors[["x", "y"]].to_numpy()
+    with pytest.raises(TypeError, match="values holds complex numbers"):
+        Locator("nls").solve(xy, np.array([[5.0, 7.0, 7.0]]) + 1j)
+    with pytest.raises(TypeError, match="anchors holds complex numbers"):
+        Locator("nls").solve(xy + 1j, np.array([[5.0, 7.0, 7.0]]))
+    with pytest.raises(TypeError, match="values is None"):
+        Locator("nls").solve(xy, None)

@@ -338,3 +338,26 @@ def test_lege_says_when_it_cannot_search(tmp_path, capsys, n_anchors, warned):
     if not warned:
         assert (faulty["status"] == "fault_excluded").all()
         assert (faulty["excluded"] == "a1").all()
+
+
+def test_anchors_on_one_line_are_named_as_the_reason(tmp_path, capsys):
+    """Four anchors typed on one line gave every fix ``ill_conditioned`` and no word of
+    why (the review of 2026-12-06); the run now says it, with what to do."""
+    xy = np.array([[0.0, 0.0], [5.0, 0.0], [10.0, 0.0], [15.0, 0.0]])
+    pd.DataFrame({"anchor": list("abcd"), "x": xy[:, 0], "y": xy[:, 1]}).to_csv(
+        tmp_path / "a.csv", index=False)
+    p = np.array([6.0, 4.0])
+    d = np.hypot(*(xy - p).T)
+    pd.DataFrame({"time": 0.0, "tag": "t", "anchor": list("abcd"), "range": d}).to_csv(
+        tmp_path / "m.csv", index=False)
+    assert main(["locate", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),
+                 "-o", str(tmp_path / "p.csv"), "-q"]) == 0
+    assert "the anchors lie on one line" in capsys.readouterr().err
+    assert (pd.read_csv(tmp_path / "p.csv")["status"] == "ill_conditioned").all()
+    # off the line by 5 %: no warning
+    xy[1, 1] = 0.75
+    pd.DataFrame({"anchor": list("abcd"), "x": xy[:, 0], "y": xy[:, 1]}).to_csv(
+        tmp_path / "a.csv", index=False)
+    assert main(["locate", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),
+                 "-o", str(tmp_path / "p.csv"), "-q"]) == 0
+    assert "one line" not in capsys.readouterr().err

@@ -22,3 +22,16 @@ def true_first(mask: NDArray[np.bool_], width: int | None = None) -> NDArray[np.
     if width is None:
         width = int(mask.sum(axis=1).max()) if mask.shape[0] else 0
     return np.argsort(~mask, axis=1, kind="stable")[:, :width]
+
+
+def real_array(x: object, name: str) -> NDArray[np.float64]:
+    """``x`` as a float array; ``TypeError`` naming ``name`` for ``None`` or complex
+    numbers (``np.asarray(..., dtype=float)`` drops an imaginary part with only a
+    ``ComplexWarning``: a range of 5+1j was located as 5; the review of 2026-12-06)."""
+    if x is None:
+        raise TypeError(f"{name} is None; expected an array of numbers")
+    a = np.asarray(x)
+    if np.iscomplexobj(a) or (a.dtype == object and any(isinstance(v, complex)
+                                                         for v in a.ravel().tolist())):
+        raise TypeError(f"{name} holds complex numbers; expected real numbers")
+    return np.asarray(a, dtype=float)

@@ -999,8 +999,10 @@ class Locator:
         if self.method == "auto":
             raise ValueError("method 'auto' chooses per epoch by the fix's own test: solve "
                              "it with robustloc.integrity.fixes.locate_protected")
-        a = np.asarray(anchors, dtype=float)
-        z = np.atleast_2d(np.asarray(values, dtype=float))
+        from robustloc._arrays import real_array
+
+        a = real_array(anchors, "anchors")
+        z = np.atleast_2d(real_array(values, "values"))
         if a.ndim != 2 or a.shape[1] not in (2, 3) or a.shape[0] == 0:
             raise ValueError(f"anchors must be (m, 2) or (m, 3) with m >= 1, got {a.shape}")
         if z.ndim != 2:

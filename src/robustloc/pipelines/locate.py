@@ -615,6 +615,14 @@ def run_locate(
                "positions": "<DataFrame>" if out is None else str(out), **summary,
                "anchors_not_used": [a for a, f in zip(ids, far) if f],
                "anchors_suspect": suspect_anchors(geo.locators, ids)}
+    xy = np.asarray(geo.xyz, dtype=float)
+    if xy.shape[1] == 2 and (~far).sum() >= 2:
+        from robustloc.models.geometry import collinear
+
+        # every 2-D fix is then ambiguous (its mirror fits as well): all ill_conditioned,
+        # with no word of why (the review of 2026-12-06: coordinates typed on one line)
+        if bool(collinear(xy, (~far)[None])[0]):
+            summary["anchors_collinear"] = True
     if any(loc.method == "lege" for loc in geo.locators):
         from robustloc.estimators.linear import LEGE_MIN_DOF
 
@@ -670,6 +678,11 @@ def anchor_warnings(summary: dict[str, Any], anchors: object) -> list[str]:
         lines.append(f"{anchors}: anchor(s) {', '.join(summary['anchors_not_used'])} lie far "
                      "outside the others (more than 20 times their median spread: a typo?) "
                      "and are not used by any fix")
+    if summary.get("anchors_collinear"):
+        lines.append(f"{anchors}: the anchors lie on one line: a 2-D fix cannot tell the two "
+                     "sides of it apart, and every fix is ill_conditioned.  Add an anchor "
+                     "off the line (robustloc reliability --anchors ... plans where), or "
+                     "check the coordinates")
     lege = summary.get("lege_cannot_search")
     if lege:
         lines.append(f"{anchors}: lege searches for gross errors only with {lege['needs']} "
