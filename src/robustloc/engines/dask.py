@@ -424,7 +424,9 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
             "files": [{"input": info.part.path, "output": Path(out.part(i)).name}
                       for i, info in enumerate(plan)],
         }
-        for key in ("anchors_not_used", "anchors_suspect"):
+        from robustloc.pipelines.locate import ANCHOR_WARNING_KEYS
+
+        for key in ANCHOR_WARNING_KEYS:
             # one anchors file and one first pass for every partition: the same lists
             if summaries and key in summaries[0]:
                 summary[key] = summaries[0][key]
@@ -527,11 +529,11 @@ def _report(args: argparse.Namespace, summary: dict, skip: Iterable[str] = ()) -
         print(json.dumps({k: v for k, v in summary.items() if k != "files"}, indent=2))
         return
     whole = summary
-    skip = set(skip) - {"anchors_not_used", "anchors_suspect"}
-    summary = {k: v for k, v in summary.items() if k not in skip}
-    if "anchors_suspect" in summary or "anchors_not_used" in summary:
-        from robustloc.pipelines.locate import anchor_warnings
+    from robustloc.pipelines.locate import ANCHOR_WARNING_KEYS, anchor_warnings
 
+    skip = set(skip) - set(ANCHOR_WARNING_KEYS)
+    summary = {k: v for k, v in summary.items() if k not in skip}
+    if any(k in summary for k in ANCHOR_WARNING_KEYS):
         for line in anchor_warnings(summary, getattr(args, "anchors", None)):
             print(f"warning: {line}", file=sys.stderr)  # as the command, even with --quiet
     if getattr(args, "quiet", False):  # no text summary, as the single-machine commands

@@ -669,6 +669,12 @@ def suspect_of_scale(scale: Sequence[float] | None, ids: Sequence[str]) -> dict[
     return {a: float(f"{r:.3g}") for a, r in zip(ids, ratio) if r > SUSPECT_SCALE_RATIO}
 
 
+#: The summary's keys that :func:`anchor_warnings` words (one anchors file for every
+#: partition of a Dask run: the first partition's are the run's).
+ANCHOR_WARNING_KEYS = ("anchors_not_used", "anchors_suspect", "anchors_collinear",
+                       "lege_cannot_search")
+
+
 def anchor_warnings(summary: dict[str, Any], anchors: object) -> list[str]:
     """The run's warnings about anchors (``anchors``: the anchors file's name), for every
     front end: unused ones (far outside the layout) and suspect ones
