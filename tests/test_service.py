@@ -1683,3 +1683,38 @@ def test_connections_that_never_finish_their_headers_are_closed(ble, server_fact
         with pytest.raises(TimeoutError):
             ws.recv(timeout=1.5)  # (open past the header timeout: nothing to receive)
         assert ws.ping().wait(5)  # the WebSocket still answers
+
+
+def test_other_sites_pages_can_neither_send_nor_listen(ble, server_factory):
+    """With no token, any web page the user had open could add rows (a ``no-cors`` POST,
+    which CORS does not stop) and read every live position over a WebSocket (browsers
+    apply no CORS to WebSockets); a name that DNS points at 127.0.0.1 made a page of the
+    service's own origin (the map review).  Now a POST or a WebSocket from another
+    origin is refused unless --cors-origin allows it, a loopback service answers only
+    its own host names, and each refusal is counted."""
+    from websockets.exceptions import InvalidStatus
+    from websockets.sync.client import connect
+
+    srv = server_factory(["--anchors", str(ble / "anchors.csv"),
+                          "--cors-origin", "http://trusted.example"])
+    anchor = str(read_anchors(ble / "anchors.csv")["anchor"].iloc[0])
+    row = [{"time": 1.0, "tag": "t", "anchor": anchor, "rssi": -60.0}]
+    url = srv.url + "/api/measurements"
+    c = httpx.Client(trust_env=False)
+    evil = c.post(url, json=row, headers={"Origin": "http://evil.example"})
+    assert evil.status_code == 403 and "--cors-origin" in evil.json()["error"]
+    own = f"http://127.0.0.1:{srv.port}"
+    for origin in (own, "http://trusted.example", None):  # (None: not a browser)
+        h = {} if origin is None else {"Origin": origin}
+        assert c.post(url, json=row, headers=h).status_code == 202, origin
+    ws = srv.url.replace("http://", "ws://")
+    with pytest.raises(InvalidStatus) as refused:
+        connect(ws + "/ws/positions", origin="http://evil.example").close()
+    assert refused.value.response.status_code == 403
+    with connect(ws + "/ws/positions", origin=own) as fine:
+        assert fine.ping().wait(5)
+    rebound = c.get(srv.url + "/api/latest", headers={"Host": f"evil.example:{srv.port}"})
+    assert rebound.status_code == 403 and "not this machine's" in rebound.json()["error"]
+    assert c.get(f"http://localhost:{srv.port}/healthz").status_code == 200
+    assert metric(srv.url, 'robustloc_requests_rejected_total{reason="cross_origin"}') == 2
+    assert metric(srv.url, 'robustloc_requests_rejected_total{reason="foreign_host"}') == 1

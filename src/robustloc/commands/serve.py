@@ -325,7 +325,7 @@ def build(args: argparse.Namespace):
     """The engine, app config and app for ``args`` (used by ``run`` and the tests)."""
     from robustloc.errors import InputError
     from robustloc.io import read_anchors
-    from robustloc.service.app import ServiceConfig, create_app
+    from robustloc.service.app import LOOPBACK_HOSTS, ServiceConfig, create_app
     from robustloc.service.processor import LocateProcessor, TrackProcessor
 
     anchors = read_anchors(args.anchors)
@@ -418,6 +418,7 @@ def build(args: argparse.Namespace):
             rate_limit_rows=args.rate_limit, cors_origins=tuple(args.cors_origin),
             floorplan=None if args.floorplan is None else Path(args.floorplan),
             floorplan_extent=args.floorplan_extent, mqtt=mqtt, store_lock=lock,
+            allowed_hosts=LOOPBACK_HOSTS if args.host in LOOPBACK_HOSTS else None,
         )
         return engine, cfg, create_app(engine, cfg)
     except BaseException:

@@ -106,6 +106,75 @@ class ServiceConfig:
     info: dict = field(default_factory=dict)
     #: the store's lock (``robustloc serve --store``), released when the app shuts down
     store_lock: StoreLock | None = None
+    #: host names a request's ``Host`` must name (None: any); ``robustloc serve`` bound
+    #: to a loopback address answers only those of this machine (:class:`SameSiteGuard`)
+    allowed_hosts: tuple[str, ...] | None = None
+
+
+#: The host names of this machine's loopback interface.
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
+
+
+class SameSiteGuard:
+    """ASGI middleware: what a web page of another site must not do through the user's
+    browser (the map review: with no token, any page the user had open could add rows by
+    a ``no-cors`` POST and read every live position over a WebSocket; CORS, which
+    browsers do not apply to either, did not stop them).
+
+    * A POST or a WebSocket handshake whose ``Origin`` is neither the service's own
+      (``http(s)://`` its ``Host``) nor one of ``--cors-origin`` is refused (403),
+      counted as ``cross_origin``.  Clients that are not browsers send no ``Origin``.
+    * With ``allowed_hosts`` (a service bound to a loopback address), a request whose
+      ``Host`` names another host is refused (403, ``foreign_host``): a page of a name
+      that an attacker's DNS points at 127.0.0.1 ("DNS rebinding") is then of the same
+      origin as the service, and only its ``Host`` tells it apart.
+    """
+
+    def __init__(self, app, cors_origins: tuple[str, ...],
+                 allowed_hosts: tuple[str, ...] | None, on_refuse) -> None:
+        self.app = app
+        self.cors_origins = set(cors_origins)
+        self.allowed_hosts = None if allowed_hosts is None else {
+            h.lower().strip("[]") for h in allowed_hosts}
+        self.on_refuse = on_refuse
+
+    async def __call__(self, scope, receive, send) -> None:
+        kind = scope["type"]
+        if kind not in ("http", "websocket"):
+            await self.app(scope, receive, send)
+            return
+        host = origin = None
+        for k, v in scope.get("headers") or ():
+            if k == b"host":
+                host = v.decode("latin-1")
+            elif k == b"origin":
+                origin = v.decode("latin-1")
+        why = None
+        if self.allowed_hosts is not None:
+            name = (host or "").rsplit(":", 1)[0] if not (host or "").startswith("[") \
+                else (host or "").split("]", 1)[0]
+            if name.lower().strip("[]") not in self.allowed_hosts:
+                why = ("foreign_host", f"Host {host!r} is not this machine's: the service "
+                       "listens on a loopback address (open it as 127.0.0.1 or localhost)")
+        if why is None and origin is not None and (
+                kind == "websocket" or scope.get("method") not in ("GET", "HEAD", "OPTIONS")):
+            own = {f"http://{host}", f"https://{host}"} if host else set()
+            if origin not in own and origin not in self.cors_origins \
+                    and "*" not in self.cors_origins:
+                why = ("cross_origin", f"a page of {origin} may not send to or listen to "
+                       "this service (allow it with --cors-origin)")
+        if why is None:
+            await self.app(scope, receive, send)
+            return
+        self.on_refuse(why[0])
+        if kind == "websocket":  # (before the accept: uvicorn answers the handshake 403)
+            await send({"type": "websocket.close", "code": 1008, "reason": why[1][:120]})
+            return
+        body = json.dumps({"error": why[1]}).encode()
+        await send({"type": "http.response.start", "status": 403,
+                    "headers": [(b"content-type", b"application/json"),
+                                (b"content-length", str(len(body)).encode())]})
+        await send({"type": "http.response.body", "body": body})
 
 
 class _Bucket:
@@ -560,9 +629,12 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
         WebSocketRoute("/{path:path}", ws_not_found),
         Mount("/static", StaticFiles(directory=_static_dir()), name="static"),
     ]
-    middleware = []
+    from starlette.middleware import Middleware
+
+    middleware = [Middleware(SameSiteGuard, cors_origins=cfg.cors_origins,
+                             allowed_hosts=cfg.allowed_hosts,
+                             on_refuse=engine.metrics.request_rejected)]
     if cfg.cors_origins:
-        from starlette.middleware import Middleware
         from starlette.middleware.cors import CORSMiddleware
 
         middleware.append(Middleware(CORSMiddleware, allow_origins=list(cfg.cors_origins),

@@ -104,7 +104,8 @@ class Metrics:
                 lh = self.last_heard[i]
                 out.append({
                     "anchor": a, "rows_heard": heard, "rows_rejected": rej,
-                    "rejection_rate": rej / (heard + rej) if heard + rej else 0.0,
+                    # (None when nothing was heard: "0.0 %" read as a measured rate)
+                    "rejection_rate": rej / (heard + rej) if heard + rej else None,
                     "last_heard": None if np.isnan(lh) else float(lh),
                 })
             return out

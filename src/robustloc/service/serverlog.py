@@ -11,6 +11,7 @@ them under a reason of their own and keeps a one-line warning, without the trace
 from __future__ import annotations
 
 import logging
+import re
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -51,7 +52,14 @@ class CountRefused(logging.Filter):
             # (a traceback of 10 lines, the service review); acknowledged rows are stored
             _warning(record, "stop forced by a second signal: the graceful stop was cut "
                              "short")
+        if "token=" in message:  # (the map page's WebSocket carries its token in the
+            # query: uvicorn logged "WebSocket /ws/positions?token=..." in clear at info)
+            record.msg, record.args = _TOKEN_IN_QUERY.sub(r"\1***", message), ()
         return True
+
+
+#: A ``token=`` query parameter's value, redacted from the log.
+_TOKEN_IN_QUERY = re.compile(r"([?&]token=)[^&\s\"']*")
 
 
 def _warning(record: logging.LogRecord, message: str | None = None) -> None:
