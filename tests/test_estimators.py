@@ -435,3 +435,23 @@ def test_locator_refuses_what_it_cannot_solve_by_name(engine):
     for method in ("snooping", "lege", "nls"):
         sol = Locator(method, sigma=0.1, engine=engine).solve(a, np.empty((0, 4)))
         assert sol.position.shape == (0, 2) and sol.status.shape == (0,)
+
+
+def test_snooping_covariance_is_a_posteriori_as_every_methods():
+    """``snooping`` returned the a-priori ``(J^T P J)^-1`` where every other method
+    returns ``sigma0^2 (J^T P J)^-1`` (the LinearFit contract): its ``cov_xx`` was
+    1/sigma0^2 of nls' for the same fix (the numerical review of 2026-12-06).  With no
+    exclusion the two fixes are one, so their covariances must be too."""
+    rng = np.random.default_rng(17)
+    a = np.array([[0, 0], [20, 0], [20, 20], [0, 20], [10, -5], [-5, 10]], float)
+    x = rng.uniform(5, 15, (30, 2))
+    z = ranges_to(a, x) + rng.normal(0, 0.3, (30, 6))
+    sn = Locator("snooping", sigma=0.3, robust_scale="apriori").solve(a, z)
+    nl = Locator("nls", sigma=0.3, robust_scale="apriori").solve(a, z)
+    same = ~sn.excluded.any(axis=1) & (sn.status == st.OK)
+    assert same.sum() > 20
+    # (the two iterations stop at their step tolerance, tol = 1e-3 m: the fixes agree
+    # to it, sigma0 and the covariance to its first order, ~1e-3 relative)
+    np.testing.assert_allclose(sn.position[same], nl.position[same], atol=1e-3)
+    np.testing.assert_allclose(sn.sigma0[same], nl.sigma0[same], rtol=1e-3)
+    np.testing.assert_allclose(sn.covariance[same], nl.covariance[same], rtol=1e-3)

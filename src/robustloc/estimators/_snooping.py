@@ -42,10 +42,14 @@ def snooping_ranging(locator, model, obs: Array, x0: Array, sig: Array) -> Linea
     res = snoop(solve, mask, sig, alpha0=locator.alpha0, beta0=locator.beta0)
     with np.errstate(all="ignore"):
         s0 = np.sqrt(res.global_stat / np.where(res.dof >= 1, res.dof, np.nan))
+    # the a-posteriori covariance sigma0^2 (J^T P J)^-1, as every other method's (the
+    # LinearFit contract); snooping's own is the a-priori one (the numerical review of
+    # 2026-12-06: cov_xx of snooping rows 1/sigma0^2 of nls' on the same fix)
+    s2 = np.where(np.isfinite(s0), s0 * s0, 1.0)
     weights = np.where(res.used, 1.0 / sig**2, np.where(res.excluded, 0.0, np.nan))
     return LinearFit(
         x=res.x, v=res.residuals, w=weights, qvv=res.redundancy * sig**2, sigma0=s0,
-        cov=res.cov, n_used=res.n_used, iterations=res.iterations,
+        cov=res.cov * s2[:, None, None], n_used=res.n_used, iterations=res.iterations,
         converged=np.isin(res.status, ("ok", "fault_excluded")), status=res.status,
         extra={
             "flagged": res.excluded, "w_test": res.w, "global_stat": res.global_stat,
