@@ -124,10 +124,11 @@ class SameSiteGuard:
     * A POST or a WebSocket handshake whose ``Origin`` is neither the service's own
       (``http(s)://`` its ``Host``) nor one of ``--cors-origin`` is refused (403),
       counted as ``cross_origin``.  Clients that are not browsers send no ``Origin``.
-    * With ``allowed_hosts`` (a service bound to a loopback address), a request whose
-      ``Host`` names another host is refused (403, ``foreign_host``): a page of a name
-      that an attacker's DNS points at 127.0.0.1 ("DNS rebinding") is then of the same
-      origin as the service, and only its ``Host`` tells it apart.
+    * With ``allowed_hosts`` (a service bound to a loopback address), a browser's request
+      (one with ``Origin`` or ``Sec-Fetch-*`` headers) whose ``Host`` names another host
+      is refused (403, ``foreign_host``): a page of a name that an attacker's DNS points
+      at 127.0.0.1 ("DNS rebinding") is then of the same origin as the service, and only
+      its ``Host`` tells it apart.
     """
 
     def __init__(self, app, cors_origins: tuple[str, ...],
@@ -144,13 +145,18 @@ class SameSiteGuard:
             await self.app(scope, receive, send)
             return
         host = origin = None
+        browser = False
         for k, v in scope.get("headers") or ():
             if k == b"host":
                 host = v.decode("latin-1")
             elif k == b"origin":
                 origin = v.decode("latin-1")
+            elif k.startswith(b"sec-fetch-"):
+                browser = True
         why = None
-        if self.allowed_hosts is not None:
+        # (the Host is checked on a browser's requests, which name it from the page's
+        # address: tools and gateways on this machine may name it as they like)
+        if self.allowed_hosts is not None and (browser or origin is not None):
             name = (host or "").rsplit(":", 1)[0] if not (host or "").startswith("[") \
                 else (host or "").split("]", 1)[0]
             if name.lower().strip("[]") not in self.allowed_hosts:
