@@ -486,6 +486,7 @@ def _gn_iterate(a, ho2, zz, w0, x, w, u, code, prm, robust, scale_fixed, min_sca
     update = robust and code >= HAMPEL
     frozen = False
     pending = False
+    prev_step = math.nan  # the last accepted step (nonlinear._still_to_go)
     while it < max_iter:
         if not fresh:
             _ranges(a, ho2, x, pred, J, tag)
@@ -583,7 +584,14 @@ def _gn_iterate(a, ho2, zz, w0, x, w, u, code, prm, robust, scale_fixed, min_sca
         it += 1
         flat = accept and (cost_old - cost_new <= 1e-6 * max(cost_old, 1e-300))
         finite = math.isfinite(step)
-        done = (accept and step < tol) or flat or lam > 1e8 or not finite
+        go = 0.0  # the distance still to go (nonlinear._still_to_go)
+        if robust and accept and prev_step > 0:  # (reweighted: Gauss-Newton's is quadratic)
+            q = step / prev_step
+            go = step * q / (1.0 - q) if q < 1.0 else math.inf
+        if accept:
+            prev_step = step
+        reach = step + go
+        done = (accept and reach < tol) or flat or lam > 1e8 or not finite
         if done and update and not frozen and finite and lam <= 1e8:
             pending = True  # converged with moving cofactors: once more with them held
             done = False
@@ -597,7 +605,7 @@ def _gn_iterate(a, ho2, zz, w0, x, w, u, code, prm, robust, scale_fixed, min_sca
                 sd = 0.0
             elif sd == math.inf:
                 sd = 1.7976931348623157e308
-            done = step <= rel_tol * sd
+            done = reach <= rel_tol * sd
             if done and update and not frozen:
                 pending = True
                 done = False
