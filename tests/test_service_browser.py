@@ -458,38 +458,49 @@ def test_map_page_knows_every_status_and_shows_hpl(live):
         assert box["x"] + box["width"] <= aside["x"] + aside["width"]
 
 
-def test_map_page_ages_tags_by_their_own_time(tmp_path):
-    """On a page opened now, a tag whose last fix is 17 s (device clock) or 40 s (Unix
-    clock) behind is shown that old and faded; the fresh ones are not."""
+def test_map_page_ages_tags_by_when_the_server_solved_them(tmp_path):
+    """A tag's age on the map is the time since the server solved its latest row
+    (``solved_at``), whatever its device's clock says: it was the device's time, so a
+    gateway clock 30 s behind made a tag updated every half second "silent" and faded,
+    and a page opened now showed a tag silent for 25 s as fresh when the others were
+    silent too (the map review).  Here: OLD solved 4 s before NEW; SKEW's times are
+    Unix seconds 30 s behind and DEVICE's small device times, both solved now."""
     srv = ServerProcess(["--anchors", str(_write_anchors(tmp_path / "a.csv")),
                          "--idle-flush", "0.3"])
     try:
         srv.start()
+        _post(srv, [r for k in range(3) for r in _rows("OLD", (3, 2), k)])
+        wait_for(lambda: len(_latest(srv)) == 1, what="OLD solved")
+        time.sleep(4)
         now = time.time()
         rows = []
-        for k in range(4):
-            rows += _rows("OLD", (3, 2), k) + _rows("EOLD", (8, 2), now - 43 + k)
-            rows += _rows("NEW", (13, 2), 17 + k) + _rows("ENEW", (18, 2), now - 3 + k)
+        for k in range(3):
+            rows += _rows("SKEW", (8, 2), now - 30 + k) + _rows("DEVICE", (13, 2), 5 + k)
         _post(srv, rows)
-        wait_for(lambda: len(_latest(srv)) == 4, what="four tags")
+        wait_for(lambda: len(_latest(srv)) == 3, what="three tags")
+        latest = _latest(srv)
+        assert latest["OLD"]["solved_at"] < latest["SKEW"]["solved_at"] - 3.5
         with _Chromium() as browser:
             page = _open(browser, srv.url + "/")
-            page.wait_for_function("document.querySelectorAll('#tagtable tr').length == 4")
+            page.wait_for_function("document.querySelectorAll('#tagtable tr').length == 3")
             ages = page.evaluate("() => Object.fromEntries([...window.robustloc.tags.values()]"
                                  ".map(t => [t.tag, (Date.now() - t.seen) / 1000]))")
-            assert ages["OLD"] == pytest.approx(17, abs=1.5)
-            assert ages["NEW"] < 1.5
-            assert ages["EOLD"] == pytest.approx(time.time() - (now - 40), abs=3)
-            assert ages["ENEW"] < 8
-            rows = _table(page)
-            assert rows["OLD"]["cells"][-1] in ("16 s", "17 s", "18 s")
-            assert "stale" in rows["OLD"]["cls"]
-            assert "stale" not in rows["NEW"]["cls"]
-            page.wait_for_function("document.querySelector('circle.tag-marker[data-tag=OLD]')"
-                                   ".getAttribute('data-stale') == '1'", timeout=5_000)
-            for tag, stale in (("EOLD", "1"), ("NEW", "0"), ("ENEW", "0")):
-                assert page.get_attribute(f'circle.tag-marker[data-tag="{tag}"]',
-                                          "data-stale") == stale
+            assert ages["OLD"] == pytest.approx(time.time() - latest["OLD"]["solved_at"],
+                                                abs=1.5)
+            assert ages["OLD"] >= 4
+            assert ages["SKEW"] < 3 and ages["DEVICE"] < 3
+            table = _table(page)
+            assert "stale" not in table["SKEW"]["cls"]
+            assert page.get_attribute('circle.tag-marker[data-tag="SKEW"]',
+                                      "data-stale") == "0"
+            # live rows too: SKEW's next row (30 s behind on its clock) is current
+            t_new = round(time.time() - 27, 3)
+            _post(srv, _rows("SKEW", (8.5, 2), t_new))
+            page.wait_for_function("t => window.robustloc.tags.get('SKEW').last.time === t",
+                                   arg=t_new, timeout=15_000)
+            age = page.evaluate("() => (Date.now() - window.robustloc.tags.get('SKEW').seen)"
+                                " / 1000")
+            assert age < 3
     finally:
         srv.stop()
 

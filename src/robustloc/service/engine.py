@@ -839,6 +839,12 @@ class Engine:
         tag_run = (pd.Series(run, index=rows["tag"]).groupby(level=0).first()
                    if run.any() else pd.Series(dtype=np.int64))
         frame = self._process(epochs)
+        if len(frame):
+            # when each row was solved, on this server's clock (Unix seconds): the map
+            # ages a tag by it (it aged them by the device's time: a gateway's clock 30 s
+            # behind made a live tag "silent", a reloaded page a long-silent one fresh;
+            # the map review)
+            frame = frame.assign(solved_at=round(time.time(), 3))
         if epochs.n_epochs:
             latest = pd.Series(epochs.time).groupby(epochs.tag).max()
             for tag, t in latest.items():
