@@ -880,6 +880,16 @@ def test_map_page_marks_a_tag_without_a_fix(live):
         assert cells[1] == f"{fix['x']:.2f}" and cells[4] == "insufficient_anchors"
         assert page.locator('#looks [data-look="nofix"]').count() == 1
         assert "no fix" in page.inner_text("#note")
+        # a page opened now draws it the same (its snapshot had only the latest row:
+        # no marker, and "no fix yet"; the map review)
+        assert _latest(live)["ANOFIX"]["fix_x"] == pytest.approx(fix["x"])
+        fresh = _open(browser, live.url + "/")
+        fresh.wait_for_function(f"(document.querySelector('{marker}') || "
+                                "{getAttribute: () => null}).getAttribute('data-look') == "
+                                "'nofix'", timeout=10_000)
+        assert float(fresh.get_attribute(marker, "data-x")) == pytest.approx(fix["x"])
+        cells = _table(fresh)["ANOFIX"]["cells"]
+        assert cells[1] == f"{fix['x']:.2f}" and cells[-1] != "—"
 
 
 def test_map_page_anchor_table_fits_long_ids_and_is_accessible(tmp_path):

@@ -432,7 +432,7 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
     async def get_latest(request: Request) -> Response:
         if not authorized(request.headers, request.query_params):
             return unauthorized()
-        df = engine.latest()
+        df = engine.latest_with_fixes()
         return Response(_array_json(df), media_type="application/json")
 
     async def get_status(request: Request) -> Response:

@@ -152,6 +152,10 @@ def _runs_of(table: pa.Table) -> np.ndarray:
     return table["run"].to_pandas().fillna(0).to_numpy(np.int64)
 
 
+#: The columns of a tag's last fix (:meth:`Engine.latest_with_fixes`).
+_FIX_COLUMNS = ("tag", "time", "x", "y", "status", "solved_at")
+
+
 def _latest_by_run(table: pa.Table) -> dict[tuple[str, int], float]:
     """``{(tag, run): latest time}`` of stored rows (columns ``time, tag[, run]``)."""
     if table.num_rows == 0:
@@ -256,6 +260,9 @@ class Engine:
         self._queue: list[tuple[dict, float]] = []
         self._listeners: list[Callable[[pd.DataFrame], None]] = []
         self._latest_frames: list[pd.DataFrame] = []
+        #: each tag's latest row with a position (:meth:`latest_with_fixes`), as
+        #: ``_latest_frames`` (since the start; not seeded from the store at a restart)
+        self._fix_frames: list[pd.DataFrame] = []
         self._latest_lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -794,6 +801,9 @@ class Engine:
                 f = self._latest_frames[0]
                 self._latest_frames = [f[~f["tag"].isin(gone).to_numpy()]
                                        .reset_index(drop=True)]
+            if self._fix_frames and len(self._fix_frames[0]):
+                f = self._fix_frames[0]
+                self._fix_frames = [f[~f["tag"].isin(gone).to_numpy()].reset_index(drop=True)]
         with self.metrics._lock:
             self.metrics.tags_forgotten += len(names)
         return len(names)
@@ -861,6 +871,12 @@ class Engine:
         self.metrics.solved(status, done - ready_wall)
         with self._latest_lock:
             self._latest_frames.append(frame)
+            if {"x", "y"} <= set(frame.columns):
+                has = np.isfinite(frame["x"].to_numpy(float)) & np.isfinite(
+                    frame["y"].to_numpy(float))
+                if has.any():
+                    self._fix_frames.append(frame.loc[has, [c for c in _FIX_COLUMNS
+                                                            if c in frame.columns]])
             if len(self._latest_frames) > 64:
                 self._compact_latest()
         for fn in list(self._listeners):
@@ -968,6 +984,9 @@ class Engine:
         if self._latest_frames:
             both = pd.concat(self._latest_frames, ignore_index=True)
             self._latest_frames = [both.drop_duplicates("tag", keep="last")]
+        if len(self._fix_frames) > 1:
+            both = pd.concat(self._fix_frames, ignore_index=True)
+            self._fix_frames = [both.drop_duplicates("tag", keep="last")]
 
     # -- queries -------------------------------------------------------------------------
     def latest(self) -> pd.DataFrame:
@@ -975,6 +994,28 @@ class Engine:
         with self._latest_lock:
             self._compact_latest()
             return self._latest_frames[0].copy() if self._latest_frames else pd.DataFrame()
+
+    def latest_with_fixes(self) -> pd.DataFrame:
+        """:meth:`latest`, where a tag's latest row has no position with its last fix
+        as ``fix_time``, ``fix_x``, ``fix_y``, ``fix_status``, ``fix_solved_at``: the map
+        page draws such a tag hollow at its last fix, and a page opened then had nothing
+        to draw ("no fix yet"; the map review).  Fixes since the service started."""
+        with self._latest_lock:
+            self._compact_latest()
+            latest = self._latest_frames[0].copy() if self._latest_frames else pd.DataFrame()
+            fixes = self._fix_frames[0].copy() if self._fix_frames else pd.DataFrame()
+        if not len(latest) or not len(fixes) or not {"x", "y"} <= set(latest.columns):
+            return latest
+        nofix = ~(np.isfinite(latest["x"].to_numpy(float))
+                  & np.isfinite(latest["y"].to_numpy(float)))
+        if not nofix.any():
+            return latest
+        f = fixes.set_index("tag")
+        for c in _FIX_COLUMNS[1:]:
+            if c in f.columns:
+                col = latest["tag"].map(f[c])
+                latest["fix_" + c] = col.where(nofix, None)
+        return latest
 
     def positions(self, tag: str | None = None, since: float | None = None,
                   until: float | None = None, limit: int = 100_000) -> pd.DataFrame:
