@@ -738,6 +738,30 @@ def test_map_page_survives_anchors_far_out(tmp_path):
         srv.stop()
 
 
+@pytest.mark.parametrize("extent", ["0,0,40,25", "0,0,1e7,5e6"])
+def test_map_page_labels_keep_their_size_on_a_huge_map(tmp_path, extent):
+    """Labels were sized in metres (10 px times the metres per pixel): past ~1 000 m per
+    pixel (a mistyped --floorplan-extent) Chromium's cap on a font size shrank them to
+    1 px (the map review).  Drawn at their size in pixels and scaled, the axis labels are
+    about 11 px high and the anchors' about 13 px, whatever the map's scale."""
+    plan = tmp_path / "plan.png"
+    _floorplan(plan, tuple(float(v) for v in extent.split(",")))
+    srv = ServerProcess(["--anchors", str(_write_anchors(tmp_path / "a.csv")),
+                         "--floorplan", str(plan), f"--floorplan-extent={extent}"])
+    try:
+        srv.start()
+        with _Chromium() as browser:
+            page = _open(browser, srv.url + "/")
+            page.wait_for_function("document.querySelector('#axes text') && "
+                                   "document.querySelector('.anchor-label')", timeout=10_000)
+            px = page.evaluate("() => [document.querySelector('#axes text'), "
+                               "document.querySelector('.anchor-label')]"
+                               ".map(e => e.getBoundingClientRect().height)")
+            assert 9 <= px[0] <= 14 and 11 <= px[1] <= 16, px
+    finally:
+        srv.stop()
+
+
 def test_map_page_keeps_trails_when_the_floor_plan_fails(tmp_path):
     """The plan's file is deleted after the start (the server answers 404): every failed
     load reset the page's idea of the map, and the next panel refresh wiped every tag's
