@@ -108,3 +108,14 @@ def test_hexadecimal_text_is_refused_as_the_readers_refuse_it(tmp_path, capsys):
     assert main(["partition", str(tmp_path / "m.csv"), "-o", str(tmp_path / "ds"),
                  "--by", "time"]) == 2
     assert "m.csv:2: column 'time': '0x10' is not a number" in capsys.readouterr().err
+
+
+def test_quiet_prints_nothing_as_the_other_commands(tmp_path, capsys):
+    """Every other command takes ``-q``; ``partition -q`` was an argparse error (exit 2)."""
+    _log(TIMES[:2]).to_csv(tmp_path / "m.csv", index=False)
+    for flag in ("-q", "--quiet"):
+        out = tmp_path / f"ds{flag}"
+        assert main(["partition", str(tmp_path / "m.csv"), "-o", str(out), "--by", "tag",
+                     flag]) == 0
+        assert capsys.readouterr().out == ""
+        assert sum(len(pd.read_parquet(f)) for f in out.rglob("*.parquet")) == 16

@@ -57,6 +57,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=local_workers, default=None, metavar="N",
                    help="--method dask without --scheduler: LocalCluster workers")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.add_argument("-q", "--quiet", action="store_true",
+                   help="no summary line (errors and warnings stay), as the other commands")
 
 
 _SIZE = re.compile(r"^\s*(\d+(\.\d*)?|\.\d+)\s*(KB|MB|GB|TB|KIB|MIB|GIB|TIB|%)\s*$",
@@ -94,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
     )
     if args.json:
         print(json.dumps({**s.__dict__, "out": str(args.out)}, indent=2))
-    else:
+    elif not args.quiet:
         span = f", {s.span_s:.6g} s bins" if s.span_s is not None else ""
         print(f"{s.rows} rows -> {s.files} files by {s.key}{span} in {args.out} "
               f"({s.seconds:.2f} s, {s.method})")
