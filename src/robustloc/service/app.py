@@ -39,7 +39,7 @@ import json
 import math
 import threading
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
 from importlib import resources
@@ -54,6 +54,7 @@ from starlette.requests import ClientDisconnect, Request
 from starlette.responses import FileResponse, JSONResponse, PlainTextResponse, Response
 from starlette.routing import Mount, Route, WebSocketRoute
 from starlette.staticfiles import StaticFiles
+from starlette.types import ASGIApp, Receive, Scope, Send
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from robustloc.service.defaults import (
@@ -131,15 +132,16 @@ class SameSiteGuard:
       its ``Host`` tells it apart.
     """
 
-    def __init__(self, app, cors_origins: tuple[str, ...],
-                 allowed_hosts: tuple[str, ...] | None, on_refuse) -> None:
+    def __init__(self, app: ASGIApp, cors_origins: tuple[str, ...],
+                 allowed_hosts: tuple[str, ...] | None,
+                 on_refuse: Callable[[str], None]) -> None:
         self.app = app
         self.cors_origins = set(cors_origins)
         self.allowed_hosts = None if allowed_hosts is None else {
             h.lower().strip("[]") for h in allowed_hosts}
         self.on_refuse = on_refuse
 
-    async def __call__(self, scope, receive, send) -> None:
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         kind = scope["type"]
         if kind not in ("http", "websocket"):
             await self.app(scope, receive, send)
@@ -157,9 +159,7 @@ class SameSiteGuard:
         # (the Host is checked on a browser's requests, which name it from the page's
         # address: tools and gateways on this machine may name it as they like)
         if self.allowed_hosts is not None and (browser or origin is not None):
-            name = (host or "").rsplit(":", 1)[0] if not (host or "").startswith("[") \
-                else (host or "").split("]", 1)[0]
-            if name.lower().strip("[]") not in self.allowed_hosts:
+            if _host_name(host or "") not in self.allowed_hosts:
                 why = ("foreign_host", f"Host {host!r} is not this machine's: the service "
                        "listens on a loopback address (open it as 127.0.0.1 or localhost)")
         if why is None and origin is not None and (
@@ -181,6 +181,13 @@ class SameSiteGuard:
                     "headers": [(b"content-type", b"application/json"),
                                 (b"content-length", str(len(body)).encode())]})
         await send({"type": "http.response.body", "body": body})
+
+
+def _host_name(host: str) -> str:
+    """The name of a ``Host`` header, without its port and brackets, in lower case
+    (``[::1]:8080`` -> ``::1``, ``LocalHost:80`` -> ``localhost``)."""
+    name = host.split("]", 1)[0] if host.startswith("[") else host.rsplit(":", 1)[0]
+    return name.lower().strip("[]")
 
 
 class _Bucket:
