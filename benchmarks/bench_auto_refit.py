@@ -35,21 +35,13 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
-import sys
-import time
-from pathlib import Path
-
 import numpy as np
-import pandas as pd
+from _real_sets import cases, show  # (benchmarks/_real_sets.py)
 
 from robustloc import status as st
 from robustloc.estimators.ranging import Locator
-from robustloc.eval.realdata import CASES, error_stats, load_cases, peer_fixes
+from robustloc.eval.realdata import error_stats, peer_fixes
 from robustloc.integrity import fixes as fx
-from robustloc.paths import default_data_dir
-
-MAX_ROWS = 1500  # as the report's s05 section
 
 
 def variants(case) -> dict[str, tuple[np.ndarray, np.ndarray]]:
@@ -90,23 +82,9 @@ def variants(case) -> dict[str, tuple[np.ndarray, np.ndarray]]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", type=Path, default=None,
-                    help="real-data folder (default ../shared/data; else the excerpts)")
-    ap.add_argument("--sets", default=None,
-                    help=f"comma-separated data sets (default all: {', '.join(CASES)})")
-    ap.add_argument("-o", "--out", type=Path, default=None, help="also write the table (CSV)")
-    args = ap.parse_args(argv)
-    data = args.data if args.data is not None else default_data_dir()
-    only = None if args.sets is None else [s.strip() for s in args.sets.split(",")]
-    if only is not None and set(only) - set(CASES):
-        ap.error(f"unknown data set(s) {sorted(set(only) - set(CASES))}; choose from {CASES}")
+    args, sets = cases(__doc__, argv)
     table = []
-    for case in load_cases(data, only=only):
-        t0 = time.perf_counter()
-        N = len(case.time)
-        R = np.arange(0, N, max(1, int(np.ceil(N / MAX_ROWS))))
+    for case, R in sets:
         res = variants(case)
         flagged_rows, _ = res.pop("_n_flagged")
         n_flag = int(np.isin(R, flagged_rows).sum())
@@ -121,12 +99,7 @@ def main(argv: list[str] | None = None) -> int:
         table.append({"data set": f"{case.name} ({case.source})", "method": f"{best} (best peer)",
                       "rms_m": s["rms"], "p95_m": s["p95"], "availability": s["availability"],
                       "n_flagged": n_flag})
-        print(f"  {case.name}: {time.perf_counter() - t0:.1f} s", file=sys.stderr)
-    df = pd.DataFrame(table)
-    with pd.option_context("display.width", 200, "display.max_rows", 200):
-        print(df.to_string(index=False, float_format=lambda v: f"{v:.4g}"))
-    if args.out is not None:
-        df.to_csv(args.out, index=False)
+    show(table, args.out)
     return 0
 
 

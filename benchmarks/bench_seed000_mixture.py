@@ -27,10 +27,7 @@ import numpy as np
 from scipy.optimize import least_squares, minimize
 
 from robustloc.estimators.ranging import Locator
-from robustloc.io import to_epochs
-from robustloc.models.calibration import calibrate_pathloss
-from robustloc.models.pathloss import log_distance_arrays
-from robustloc.sim import ble_corridor as bc
+from robustloc.reproduce.s10_ble_ranging import corridor_scheme
 
 
 def _em(r: np.ndarray, iterations: int = 200) -> tuple[float, float, float, float]:
@@ -48,13 +45,8 @@ def _em(r: np.ndarray, iterations: int = 200) -> tuple[float, float, float, floa
 
 
 def run_seed(seed: int) -> dict[str, float]:
-    fr = bc.simulate_ble_corridor(seed=seed, disturbance=True)
-    cal = calibrate_pathloss(fr["survey"], "log-distance", pooled=True)
-    an = cal.apply_to_anchors(fr["anchors"][["anchor", "x", "y"]])
-    ids = [str(a) for a in an["anchor"]]
-    A, n = log_distance_arrays(an)
-    xy = an[["x", "y"]].to_numpy(float)
-    ep = to_epochs(fr["measurements"], ids)
+    sc = corridor_scheme(seed, disturbance=True)  # (the report's scheme 2)
+    fr, A, n, xy, ep = sc.fr, sc.A, sc.n, sc.xy, sc.ep
     truth = fr["truth"].set_index(["time", "tag"]).loc[list(zip(ep.time, ep.tag))]
     tr = truth[["x", "y"]].to_numpy()
     V = ep.values

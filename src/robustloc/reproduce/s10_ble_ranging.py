@@ -17,7 +17,9 @@
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -99,26 +101,50 @@ def _cdf_plot(path: Path, curves: dict[str, np.ndarray], title: str, xmax: float
 
 
 # --------------------------------------------------------------------------- simulation
+@dataclass(frozen=True)
+class CorridorScheme:
+    """One Table-1 scheme of the simulated corridor, as the paper sets it up: the frames
+    of :func:`robustloc.sim.ble_corridor.simulate_ble_corridor` (``fr``), A and n
+    calibrated (pooled) from its 1 m-step survey, the anchors' ids and coordinates, and
+    the measurements as epochs."""
+
+    fr: dict
+    ids: list[str]
+    A: np.ndarray
+    n: np.ndarray
+    xy: np.ndarray
+    ep: Any
+
+
+def corridor_scheme(seed: int, disturbance: bool) -> CorridorScheme:
+    """:class:`CorridorScheme` of scheme 1 (``disturbance=False``) or 2 (people walking)."""
+    from robustloc.io import to_epochs
+    from robustloc.models.calibration import calibrate_pathloss
+    from robustloc.models.pathloss import log_distance_arrays
+    from robustloc.sim import ble_corridor as bc
+
+    fr = bc.simulate_ble_corridor(seed=seed, disturbance=disturbance)
+    cal = calibrate_pathloss(fr["survey"], "log-distance", pooled=True)
+    anchors = cal.apply_to_anchors(fr["anchors"][["anchor", "x", "y"]])
+    ids = [str(a) for a in anchors["anchor"]]
+    A, n = log_distance_arrays(anchors)
+    return CorridorScheme(fr, ids, A, n, anchors[["x", "y"]].to_numpy(float),
+                          to_epochs(fr["measurements"], ids))
+
+
 def _table1(ctx: Context, sec: Section) -> None:
     from robustloc.estimators.ranging import Locator
     from robustloc.eval.crlb import crlb_rssi
     from robustloc.eval.metrics import error_table
     from robustloc.integrity.fixes import locate_protected
-    from robustloc.io import positions_frame, to_epochs
-    from robustloc.models.calibration import calibrate_pathloss
-    from robustloc.models.pathloss import log_distance_arrays
+    from robustloc.io import positions_frame
     from robustloc.sim import ble_corridor as bc
 
     rows = []
     per_point = []
     for scheme, dist in ((1, False), (2, True)):
-        fr = bc.simulate_ble_corridor(seed=ctx.seed, disturbance=dist)
-        cal = calibrate_pathloss(fr["survey"], "log-distance", pooled=True)
-        anchors = cal.apply_to_anchors(fr["anchors"][["anchor", "x", "y"]])
-        ids = [str(a) for a in anchors["anchor"]]
-        A, n = log_distance_arrays(anchors)
-        xy = anchors[["x", "y"]].to_numpy(float)
-        ep = to_epochs(fr["measurements"], ids)
+        sc = corridor_scheme(ctx.seed, dist)
+        fr, ids, A, n, xy, ep = sc.fr, sc.ids, sc.A, sc.n, sc.xy, sc.ep
         truth = fr["truth"]
         variants = (
             [(m, "linearized", "first", m) for m in PAPER_METHODS]
