@@ -1251,3 +1251,31 @@ def test_the_kernels_wrappers_check_shapes_and_broadcast_alike(engine):
             np.testing.assert_array_equal(u, w)
     np.testing.assert_array_equal(F.resolution_reduction(J, ones, used, v, engine=engine),
                                   F.resolution_reduction(J, 1.0, True, v, engine=engine))
+
+
+def test_one_long_range_of_four_is_snooped_out_one_at_a_time():
+    """uwb-labyrinth, ranging cycle 40 (the anchors, ranges and the log's per-anchor
+    scales as the report's ``s05_out_of_box`` has them): anchor 1 reads about 0.7 m long
+    (7 sigma), the other three agree with the truth (1.650, 0.634) to 1.5 sigma.  Every
+    ``w > 3.29`` of the Huber fit flagged two of the four ranges, half of what was heard,
+    and the fix was ``unavailable`` where scipy's fix (0.34 m off) counted.  Baarda's
+    snooping flags the largest ``w`` alone; the least-squares re-solution of the other
+    three passes its test (T = 1.7 against 10.8 at one degree of freedom), so the fix is
+    ``fault_excluded`` with anchor 1 alone flagged, and bounded (0.17 m off, hpl 1.7 m)."""
+    from robustloc.integrity.fixes import range_model_of
+
+    a = np.array([[-0.02, -0.01], [-0.02, 2.365], [2.385, 2.36], [2.385, -0.005]])
+    d = np.array([[1.9765273, 3.04670564, 2.04654539, 0.98051414]])
+    sig = (0.12887627, 0.07238109, 0.23305108, 0.11365718)
+    sol = Locator("huber", sigma=sig, robust_scale="apriori").solve(a, d)
+    out = protect(sol, range_model=range_model_of(a, None))
+    assert out.status[0] == st.FAULT_EXCLUDED
+    assert out.extra["flagged"][0].tolist() == [False, True, False, False]
+    assert out.extra["test_statistic"][0] <= out.extra["test_critical"][0]
+    err = np.hypot(*(out.position[0] - [1.65, 0.6345]))
+    assert err < out.extra["hpl"][0] < np.inf
+    # the same epoch by a plain fit keeps its fault (the w-test's first flag is not the
+    # long range there: the fault spread over the fit): no snooping rescue, as before
+    plain = protect(Locator("nls", sigma=sig, robust_scale="apriori").solve(a, d),
+                    range_model=range_model_of(a, None))
+    assert plain.status[0] == st.FAULT_DETECTED
