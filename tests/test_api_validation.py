@@ -555,3 +555,30 @@ def test_complex_numbers_are_refused_not_cut_to_their_real_part():
         Locator("nls").solve(xy + 1j, np.array([[5.0, 7.0, 7.0]]))
     with pytest.raises(TypeError, match="values is None"):
         Locator("nls").solve(xy, None)
+
+
+@pytest.mark.parametrize("engine", ["compiled", "numpy"])
+def test_an_infinite_value_is_not_heard_as_documented(engine):
+    """``Locator.solve``: NaN and infinite values mean "not heard" (a range of ``inf``, an
+    RSSI of ``-inf`` dBm), on both engines: the fix of the four finite ranges, exactly as
+    with the fifth cell NaN (the API review asked whether ``inf`` was dropped silently;
+    the docstring now says so, and the files' readers refuse it with FILE:LINE)."""
+    import numpy as np
+
+    from robustloc.estimators.ranging import Locator
+
+    a = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0], [5.0, -3.0]])
+    d = np.hypot(*(a - [4.0, 6.0]).T)
+    vals = np.tile(d, (3, 1))
+    vals[:, 4] = [np.inf, -np.inf, np.nan]
+    for method in ("nls", "huber", "ls"):
+        sol = Locator(method, engine=engine, sigma=0.1, robust_scale="apriori").solve(a, vals)
+        assert list(sol.n_used) == [4, 4, 4]
+        np.testing.assert_array_equal(sol.position[0], sol.position[2])
+        np.testing.assert_array_equal(sol.position[1], sol.position[2])
+        np.testing.assert_allclose(sol.position[2], [4.0, 6.0], atol=1e-6)
+    rssi = np.tile(-40.0 - 20.0 * np.log10(d), (3, 1))
+    rssi[:, 4] = [-np.inf, np.inf, np.nan]
+    sol = Locator("nls", engine=engine).solve(a, rssi, "rssi", A=np.full(5, -40.0),
+                                                  n=np.full(5, 2.0))
+    assert list(sol.n_used) == [4, 4, 4]

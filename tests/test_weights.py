@@ -100,6 +100,16 @@ def test_get_weight_and_bad_parameters():
         Hampel(3, 2, 1)
     with pytest.raises(ValueError):
         Huber(-1)
+    # a parameter the weight has not: a ValueError naming the ones it has (was Python's
+    # TypeError "__init__() got an unexpected keyword argument"), also through Locator
+    with pytest.raises(ValueError, match="huber has no parameter 'k'; its parameters: c"):
+        get_weight("huber", k=2.0)
+    with pytest.raises(ValueError, match="ls has no parameter 'c'; its parameters: none"):
+        get_weight("none", c=2.0)
+    from robustloc.estimators.ranging import Locator
+
+    with pytest.raises(ValueError, match="asymmetric-igg has no parameter 'a'"):
+        Locator("asym", weight_params={"a": 1.0})
 
 
 def test_mad_scale_and_fast_median():

@@ -986,7 +986,10 @@ class Locator:
         Parameters
         ----------
         anchors : (m, dim) anchor coordinates (dim 2 or 3: the solved dimension).
-        values : (N, m) ranges in metres or RSSI in dBm; NaN = not heard.
+        values : (N, m) ranges in metres or RSSI in dBm; NaN = not heard, and so is an
+            infinite value (a range of ``inf``, an RSSI of ``-inf`` dBm: no signal), on
+            both engines.  The command-line readers refuse ``inf`` in a file
+            (``FILE:LINE``); leave the cell empty there.
         kind : {"range", "rssi"}
         A, n : (m,) log-distance parameters per anchor (required for RSSI).
         height_offset : (m,) known anchor-minus-tag heights for 2-D solutions with

@@ -14,7 +14,7 @@ The same objects serve robust trilateration and the robust Kalman filters.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -329,7 +329,11 @@ def get_weight(name: str, **params: float) -> WeightFunction:
         raise ValueError(
             f"unknown weight function {name!r}; choose one of {', '.join(_REGISTRY)}"
         ) from None
+    known = [f.name for f in fields(cls)]
     for key, value in params.items():  # ({'c': 'x'} said "'<' not supported ...")
+        if key not in known:  # (was Python's "__init__() got an unexpected keyword")
+            raise ValueError(f"{cls.name} has no parameter {key!r}; its parameters: "
+                             + (", ".join(known) or "none"))
         if isinstance(value, bool) or not isinstance(value, int | float | np.number):
             raise ValueError(f"weight parameter {key} must be a number, got {value!r}")
     return cls(**params)
