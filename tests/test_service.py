@@ -1323,6 +1323,51 @@ def test_latest_positions_survive_a_restart(tmp_path):
     pd.testing.assert_frame_equal(after[before.columns], before, check_dtype=False)
 
 
+
+def test_the_last_fix_of_a_tag_without_one_survives_a_restart(tmp_path):
+    """``/api/latest`` gives a tag whose latest row has no position its last fix
+    (``fix_*``: the map page draws it hollow there).  That came from the fixes solved
+    since the start, so after a restart such a tag had none ("no fix yet"; left out in
+    stop 47's note).  It is now read from the store: the same fix before and after.
+    Writing this test found that a tag with two fixes solved in one block (one ingest of
+    two epochs) made ``latest_with_fixes`` raise pandas' "Reindexing only valid with
+    uniquely valued Index objects", a 500 from ``/api/latest``, once its latest row had
+    no position: the "before" query below."""
+    from robustloc.service.engine import Engine
+    from robustloc.service.processor import LocateProcessor
+
+    anchors = pd.DataFrame({"anchor": ["A1", "A2", "A3", "A4"], "x": [0, 10, 10, 0.0],
+                            "y": [0, 0, 10, 10.0]})
+    xy = anchors[["x", "y"]].to_numpy(float)
+    rows = [{"time": float(t), "tag": "walker", "anchor": a, "range": float(r)}
+            for t, p in ((0, [3.0, 4.0]), (1, [3.5, 4.0]))
+            for a, r in zip(anchors["anchor"], np.hypot(*(xy - p).T))]
+    rows += [{"time": 2.0, "tag": "walker", "anchor": "A1", "range": 5.0},  # one anchor
+             {"time": 3.0, "tag": "still", "anchor": "A1", "range": 5.0}]  # never a fix
+    rows += [{"time": 3.0, "tag": "fine", "anchor": a, "range": float(r)}
+             for a, r in zip(anchors["anchor"], np.hypot(*(xy - [6.0, 2.0]).T))]
+
+    def make():
+        return Engine(anchors, LocateProcessor(anchors, method="nls"),
+                      store_dir=tmp_path / "s", latency_window_s=0.0, idle_flush_s=600.0,
+                      fsync=False)
+
+    eng = make()
+    eng.ingest(rows)
+    eng.flush()
+    before = eng.latest_with_fixes().set_index("tag").sort_index()
+    eng.stop()
+    eng = make()
+    after = eng.latest_with_fixes().set_index("tag").sort_index()
+    eng.stop()
+    assert before.loc["walker", "status"] == "insufficient_anchors"
+    assert before.loc["walker", "fix_time"] == 1.0
+    assert before.loc["walker", "fix_x"] == pytest.approx(3.5, abs=1e-6)
+    for c in ("fix_time", "fix_x", "fix_y", "fix_status", "fix_solved_at"):
+        assert after.loc["walker", c] == before.loc["walker", c], c
+        assert pd.isna(after.loc["still", c]) and pd.isna(after.loc["fine", c]), c
+    assert after.loc["fine", "x"] == pytest.approx(6.0, abs=1e-6)
+
 def test_an_ndjson_line_that_is_not_json_is_named_so_in_the_reply():
     """The reply listed such a line with the decoder's message alone ("JSON is
     malformed: ..."), not saying which kind of mistake it was."""

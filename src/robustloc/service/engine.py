@@ -490,6 +490,33 @@ class Engine:
         df = df.loc[keep].drop(columns="run", errors="ignore")
         self._latest_frames = [df.drop_duplicates("tag", keep="last")
                                .sort_values("tag", kind="stable").reset_index(drop=True)]
+        self._seed_fixes(self._latest_frames[0], last)
+
+    def _seed_fixes(self, latest: pd.DataFrame, last: dict[str, tuple[int, float]]) -> None:
+        """The last fix of each tag whose latest stored row has none (of its latest run),
+        for :meth:`latest_with_fixes` after a restart: the map page drew such a tag
+        hollow at its last fix until the restart, and "no fix yet" after it.  Only those
+        tags' rows with a position are read."""
+        if not {"x", "y"} <= set(latest.columns) or not len(latest):
+            return
+        nofix = ~(np.isfinite(latest["x"].to_numpy(float))
+                  & np.isfinite(latest["y"].to_numpy(float)))
+        if not nofix.any():
+            return
+        tags = latest.loc[nofix, "tag"].astype(str).tolist()
+        table = self.pos.scan(
+            columns=[*_FIX_COLUMNS, "run"],
+            expression=ds.field("tag").isin(tags) & ~ds.field("x").is_nan()
+            & ~ds.field("y").is_nan() & ds.field("x").is_valid() & ds.field("y").is_valid())
+        if table.num_rows == 0:
+            return
+        runs = _runs_of(table)
+        df = table.to_pandas().drop(columns="run", errors="ignore")
+        want_run = df["tag"].map({t: r for t, (r, _) in last.items()}).to_numpy()
+        df = df.loc[runs == want_run]
+        if len(df):
+            self._fix_frames = [df.sort_values("time", kind="stable")
+                                .drop_duplicates("tag", keep="last").reset_index(drop=True)]
 
     def _snapshot(self) -> None:
         state = self.processor.state_dict()
@@ -984,7 +1011,8 @@ class Engine:
         if self._latest_frames:
             both = pd.concat(self._latest_frames, ignore_index=True)
             self._latest_frames = [both.drop_duplicates("tag", keep="last")]
-        if len(self._fix_frames) > 1:
+        if self._fix_frames:  # (one frame can hold several epochs of a tag: /api/latest
+            # raised "Reindexing only valid with uniquely valued Index objects" on it)
             both = pd.concat(self._fix_frames, ignore_index=True)
             self._fix_frames = [both.drop_duplicates("tag", keep="last")]
 
