@@ -1283,31 +1283,39 @@ def test_a_tag_whose_clock_jumped_gets_its_rows_solved_again(ble, server_factory
     assert httpx.get(u + "/api/status").json()["tags_rebased"] == 1
 
 
+#: The anchors of the restart tests: a 10 m square.
+RESTART_ANCHORS = pd.DataFrame({"anchor": ["A1", "A2", "A3", "A4"], "x": [0, 10, 10, 0.0],
+                                "y": [0, 0, 10, 10.0]})
+
+
+def _store_engine(tmp_path):
+    """An nls Engine on the store ``tmp_path / "s"`` (a new one per call: a restart)."""
+    from robustloc.service.engine import Engine
+
+    return Engine(RESTART_ANCHORS, LocateProcessor(RESTART_ANCHORS, method="nls"),
+                  store_dir=tmp_path / "s", latency_window_s=0.0, idle_flush_s=600.0,
+                  fsync=False)
+
+
+def _ranges_at(tag, p, times):
+    """Exact range rows of ``tag`` at ``p`` to every restart anchor, at ``times``."""
+    xy = RESTART_ANCHORS[["x", "y"]].to_numpy(float)
+    return [{"time": float(t), "tag": tag, "anchor": a, "range": float(r)}
+            for t in times for a, r in zip(RESTART_ANCHORS["anchor"], np.hypot(*(xy - p).T))]
+
+
 def _latest_across_a_restart(tmp_path, tags, between=None):
     """``/api/latest`` of an Engine fed ``tags`` ((tag, position, times), ...), then of a
     new Engine on the same store (``between()`` runs before the restart)."""
-    from robustloc.service.engine import Engine
-
-    anchors = pd.DataFrame({"anchor": ["A1", "A2", "A3", "A4"], "x": [0, 10, 10, 0.0],
-                            "y": [0, 0, 10, 10.0]})
-    xy = anchors[["x", "y"]].to_numpy(float)
-    rows = [{"time": float(t), "tag": g, "anchor": a, "range": float(r)}
-            for g, p, times in tags
-            for t in times for a, r in zip(anchors["anchor"], np.hypot(*(xy - p).T))]
-
-    def make():
-        return Engine(anchors, LocateProcessor(anchors, method="nls"),
-                      store_dir=tmp_path / "s", latency_window_s=0.0, idle_flush_s=600.0,
-                      fsync=False)
-
-    eng = make()
+    rows = [r for g, p, times in tags for r in _ranges_at(g, p, times)]
+    eng = _store_engine(tmp_path)
     eng.ingest(rows)
     eng.flush()
     before = eng.latest().sort_values("tag").reset_index(drop=True)
     eng.stop()
     if between is not None:
         between()
-    eng = make()
+    eng = _store_engine(tmp_path)
     after = eng.latest().sort_values("tag").reset_index(drop=True)
     eng.stop()
     return before, after
@@ -1333,31 +1341,16 @@ def test_the_last_fix_of_a_tag_without_one_survives_a_restart(tmp_path):
     two epochs) made ``latest_with_fixes`` raise pandas' "Reindexing only valid with
     uniquely valued Index objects", a 500 from ``/api/latest``, once its latest row had
     no position: the "before" query below."""
-    from robustloc.service.engine import Engine
-    from robustloc.service.processor import LocateProcessor
-
-    anchors = pd.DataFrame({"anchor": ["A1", "A2", "A3", "A4"], "x": [0, 10, 10, 0.0],
-                            "y": [0, 0, 10, 10.0]})
-    xy = anchors[["x", "y"]].to_numpy(float)
-    rows = [{"time": float(t), "tag": "walker", "anchor": a, "range": float(r)}
-            for t, p in ((0, [3.0, 4.0]), (1, [3.5, 4.0]))
-            for a, r in zip(anchors["anchor"], np.hypot(*(xy - p).T))]
+    rows = _ranges_at("walker", [3.0, 4.0], [0]) + _ranges_at("walker", [3.5, 4.0], [1])
     rows += [{"time": 2.0, "tag": "walker", "anchor": "A1", "range": 5.0},  # one anchor
              {"time": 3.0, "tag": "still", "anchor": "A1", "range": 5.0}]  # never a fix
-    rows += [{"time": 3.0, "tag": "fine", "anchor": a, "range": float(r)}
-             for a, r in zip(anchors["anchor"], np.hypot(*(xy - [6.0, 2.0]).T))]
-
-    def make():
-        return Engine(anchors, LocateProcessor(anchors, method="nls"),
-                      store_dir=tmp_path / "s", latency_window_s=0.0, idle_flush_s=600.0,
-                      fsync=False)
-
-    eng = make()
+    rows += _ranges_at("fine", [6.0, 2.0], [3])
+    eng = _store_engine(tmp_path)
     eng.ingest(rows)
     eng.flush()
     before = eng.latest_with_fixes().set_index("tag").sort_index()
     eng.stop()
-    eng = make()
+    eng = _store_engine(tmp_path)
     after = eng.latest_with_fixes().set_index("tag").sort_index()
     eng.stop()
     assert before.loc["walker", "status"] == "insufficient_anchors"
@@ -1367,6 +1360,7 @@ def test_the_last_fix_of_a_tag_without_one_survives_a_restart(tmp_path):
         assert after.loc["walker", c] == before.loc["walker", c], c
         assert pd.isna(after.loc["still", c]) and pd.isna(after.loc["fine", c]), c
     assert after.loc["fine", "x"] == pytest.approx(6.0, abs=1e-6)
+
 
 def test_an_ndjson_line_that_is_not_json_is_named_so_in_the_reply():
     """The reply listed such a line with the decoder's message alone ("JSON is
