@@ -165,7 +165,8 @@ def bench_store(tmp: Path, batches: int) -> list[dict]:
     t = time.perf_counter()
     for _ in range(batches):
         log.append(pa.table({**cols, "arrival": np.zeros(n), "late": np.zeros(n, bool),
-                             "source": ["http"] * n}, schema=MEAS_SCHEMA))
+                             "source": ["http"] * n, "run": np.zeros(n, np.int64)},
+                            schema=MEAS_SCHEMA))
     dt = time.perf_counter() - t
     log.close()
     out.append({"store": "robustloc WAL (Arrow IPC frames + fdatasync) -> Parquet",
