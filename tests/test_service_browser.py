@@ -1019,3 +1019,43 @@ def test_map_page_says_when_the_mqtt_broker_is_not_connected(tmp_path):
     finally:
         broker.stop()
         srv.stop()
+
+
+def test_map_page_shows_invisible_and_bidirectional_characters_of_ids(tmp_path):
+    """An id holding U+202E (right-to-left override) was drawn as the override made it
+    look: "A-7\\u202Egnp.exe" read "A-7exe.png" in the table and on the map, and the
+    override ran over the rest of its label; a zero-width space made two ids look alike
+    (the map review's leftover).  The page shows each such character as <U+XXXX> in the
+    table, the labels and the anchor table; ``data-tag`` keeps the id as sent."""
+    spoof, twin = "A-7\u202egnp.exe", "A-\u200b8"
+    anchors = [("Z\u202eA", x, y) if i == 0 else (a, x, y)
+               for i, (a, x, y) in enumerate(ANCHORS)]
+    srv = ServerProcess(["--anchors", str(_write(tmp_path / "bidi.csv", anchors)),
+                         "--idle-flush", "0.3"])
+    try:
+        srv.start()
+        rows = [dict(r, anchor=anchors[i % len(anchors)][0]) for i, r in
+                enumerate(_rows(spoof, (4, 3), 0))] + [
+            dict(r, anchor=anchors[i % len(anchors)][0]) for i, r in
+            enumerate(_rows(twin, (6, 3), 0))]
+        _post(srv, rows)
+        wait_for(lambda: {spoof, twin} <= set(_latest(srv)), what="both tags")
+        with _Chromium() as browser:
+            page = _open(browser, srv.url + "/")
+            page.wait_for_function("document.querySelectorAll('#tagtable tr').length == 2")
+            table = _table(page)
+            assert table[spoof]["cells"][0] == "A-7<U+202E>gnp.exe"
+            assert table[twin]["cells"][0] == "A-<U+200B>8"
+            labels = page.evaluate("() => [...document.querySelectorAll('text.tag-label')]"
+                                   ".map(e => e.textContent)")
+            assert sorted(labels) == ["A-7<U+202E>gnp.exe", "A-<U+200B>8"]
+            anchor_labels = page.evaluate(
+                "() => [...document.querySelectorAll('text.anchor-label')].map(e => "
+                "e.textContent)")
+            assert "Z<U+202E>A" in anchor_labels
+            page.wait_for_function("document.querySelectorAll('#anchortable tr').length == "
+                                   f"{len(anchors)}")
+            cell = page.evaluate("() => document.querySelector('#anchortable td').textContent")
+            assert cell == "Z<U+202E>A"
+    finally:
+        srv.stop()
