@@ -261,7 +261,8 @@ class Engine:
         self._listeners: list[Callable[[pd.DataFrame], None]] = []
         self._latest_frames: list[pd.DataFrame] = []
         #: each tag's latest row with a position (:meth:`latest_with_fixes`), as
-        #: ``_latest_frames`` (since the start; not seeded from the store at a restart)
+        #: ``_latest_frames`` (seeded from the store at a restart for the tags whose
+        #: latest row has no position: :meth:`_seed_fixes`)
         self._fix_frames: list[pd.DataFrame] = []
         self._latest_lock = threading.Lock()
         self._stop = threading.Event()
@@ -1027,7 +1028,7 @@ class Engine:
         """:meth:`latest`, where a tag's latest row has no position with its last fix
         as ``fix_time``, ``fix_x``, ``fix_y``, ``fix_status``, ``fix_solved_at``: the map
         page draws such a tag hollow at its last fix, and a page opened then had nothing
-        to draw ("no fix yet"; the map review).  Fixes since the service started."""
+        to draw ("no fix yet"; the map review).  After a restart, from the store."""
         with self._latest_lock:
             self._compact_latest()
             latest = self._latest_frames[0].copy() if self._latest_frames else pd.DataFrame()
