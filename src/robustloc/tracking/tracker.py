@@ -1002,8 +1002,12 @@ class Tracker:
         out.var[idx] = np.nan
         out.var[idx[ok]] = diag
         out.cxy[idx] = np.where(ok, cxy, np.nan)
+        # a usable snapshot's status where it says more than `ok` (low_redundancy,
+        # fault_excluded, unverified, extrapolated: the start row said `ok` with them)
+        snap_says = ok & ~detected & st.among(snap_status, st.USABLE) & (snap_status != st.OK)
         out.status[idx] = np.where(detected, st.FAULT_DETECTED,
-                                   np.asarray(sol.status, dtype=object))
+                                   np.where(snap_says, snap_status,
+                                            np.asarray(sol.status, dtype=object)))
         out.n_used[idx] = np.asarray(sol.n_used, dtype=np.int64)
         exc = np.asarray(sol.excluded, dtype=bool)
         out.excluded[idx] = exc
@@ -1013,11 +1017,16 @@ class Tracker:
         if cov.ndim == 3:
             smaj = np.maximum(smaj, sig[:, -1])
         hpl = self._k_ir * smaj
-        if detected.any():  # |x - x_s| + HPL_s (:meth:`_snapshot_bound`), never narrower
+        # every start row is bounded as its snapshot bounds it: |x - x_s| + HPL_s
+        # (:meth:`_snapshot_bound`), never narrower; no snapshot bound, no bound (inf).
+        # The start's variance alone (clipped below at init_pos_var_min) gave 1.86 m to
+        # a fix 10 m off on the corridor, and 19-33 % of one-epoch starts with one range
+        # biased by up to 5 m exceeded it, all `ok` (the track review, 2026-12-06)
+        if ok.any():
             with np.errstate(invalid="ignore"):
-                alt = (np.hypot(*(pos[detected] - snap.position[detected, :2]).T)
-                       + np.asarray(snap.extra["hpl"], dtype=float)[detected])
-            hpl[detected] = np.fmax(hpl[detected], np.where(np.isnan(alt), np.inf, alt))
+                alt = (np.hypot(*(pos[ok] - snap.position[ok, :2]).T)
+                       + np.asarray(snap.extra["hpl"], dtype=float)[ok])
+            hpl[ok] = np.fmax(hpl[ok], np.where(np.isnan(alt), np.inf, alt))
         out.hpl[idx] = np.where(ok, hpl, np.nan)
         out.reinit[idx] = self._reinit[sl]
         if self.record:
