@@ -139,7 +139,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--anchors", required=True, help="anchors file (anchor, x, y[, z], ...)")
     p.add_argument("-o", "--out", required=True, help="track file (.csv or .parquet)")
     p.add_argument("--model", "--motion", dest="model", choices=("cv", "ca", "static"),
-                   default=d.model, help="motion model (default cv; --motion as in fuse)")
+                   default=d.model, help="motion model (default cv; --motion as in fuse); "
+                                         "static is for tags that stand still: a walking "
+                                         "tag lags, and hpl has no term for the lag "
+                                         "(docs/limits.md)")
     p.add_argument("--filter", choices=("ekf", "ukf"), default=d.filter,
                    help="filter (default ekf)")
     p.add_argument("--q", type=positive_float, default=d.q,
@@ -176,7 +179,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cusum-h", type=positive_float, default=d.cusum_h,
                    help="enable the per-link step detector (environment changes) with this "
                         "CUSUM threshold, e.g. 10 (default off: measured to cost accuracy "
-                        "on the seed-002 walk and uwb-dwm1001, see the report)")
+                        "on the seed-002 walk and uwb-dwm1001, see the report).  For steps "
+                        "on a minority of the links: a re-admitted link's offset is "
+                        "measured against the track and hpl does not cover its error "
+                        "(four links stepping 0-3 m every 20 s: 3-9 %% of rows beyond hpl, "
+                        "against 0.1-1.3 %% without it; docs/limits.md)")
     p.add_argument("--alpha0", type=probability, default=d.alpha0,
                    help="w-test significance (B-method; default %(default)s)")
     p.add_argument("--beta0", type=probability, default=d.beta0,

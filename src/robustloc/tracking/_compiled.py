@@ -365,7 +365,7 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
             alarm[i] = a
             if a:
                 n_alarm += 1
-            if hd or a:
+            if hd or a or bias_s[s, i] != 0.0:  # (an offset in force: a step before)
                 n_held += 1
             new_gp[k, i] = gp
             new_gm[k, i] = gm
@@ -395,7 +395,7 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
                     hs = hs + (zi - zh[i])
                 hn += 1
             ready = hd and hn >= readmit
-            new_bias[k, i] = hs / max(hn, 1) if ready else bias_s[s, i]
+            new_bias[k, i] = (0.0 if mv else hs / max(hn, 1) if ready else bias_s[s, i])
             zin = math.nan if hd else obs[k, i]
             zf[k, i] = zin
             R[k, i, 0] = rd[k, i]
