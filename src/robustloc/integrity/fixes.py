@@ -975,6 +975,7 @@ def protect(
     alert_limit: float | None = None,
     fallback_rows: NDArray[np.bool_] | None = None,
     range_model: RangeModel | None = None,
+    snoop: bool = True,
 ) -> Solution:
     """Test every fix and attach its protection levels (see the module docstring).
 
@@ -1018,6 +1019,11 @@ def protect(
         alternative's, and its test statistic), ``extra["test_kept"]`` (the
         observations the test kept) and ``extra["ambiguity_kept"]`` (those the
         alternative's test keeps), which :func:`resolve_sides` uses.
+    snoop : bool
+        Flag the w-test's observations one at a time where flagging them all at once
+        leaves a robust fit no majority (module docstring, item 6; :func:`_snoop_one`).
+        False: every ``w`` above the critical value is flagged, as before 2026-12-06
+        (the self-calibration's starts, which want no fix rescued at redundancy 1).
 
         The alternative is the mirror refined on the kept observations; where that fails
         and the test had left observations out, the mirror refined on every heard
@@ -1102,7 +1108,7 @@ def protect(
         # gross errors, against 0.3 % for one flag (huber)
         wz = np.where(flagged, w, -np.inf)
         flagged &= wz >= wz.max(axis=1, keepdims=True)
-    elif sol.method not in PLAIN_FIT_METHODS:
+    elif snoop and sol.method not in PLAIN_FIT_METHODS:
         flagged = _snoop_one(flagged, w, used, heard, excl, vt, Jt, sig, p, alpha0, beta0,
                              lam0, k, testable | unconv)
     # a plain fit (ls, wls, nls) keeps a flagged observation at its full weight: the fix
@@ -1356,6 +1362,7 @@ def locate_protected(
     beta0: float = BETA0,
     k_noise: float | None = None,
     alert_limit: float | None = None,
+    snoop: bool = True,
 ) -> Solution:
     """Solve every epoch and :func:`protect` it: the one entry point of every front end
     (``locate``, the service, the Dask engine) for fixes with their integrity.
@@ -1382,7 +1389,7 @@ def locate_protected(
     kw = dict(A=A, n=n, height_offset=height_offset)
     rm = range_model_of(anchors, height_offset)
     pk = dict(alpha0=alpha0, beta0=beta0, k_noise=k_noise, alert_limit=alert_limit,
-              range_model=rm)
+              range_model=rm, snoop=snoop)
     sol = _locate_tested(locator, anchors, values, kind, kw, pk)
     if rm is None or locator.robust_scale != "log":
         return sol
