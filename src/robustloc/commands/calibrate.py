@@ -61,8 +61,11 @@ parameters + 1, constant values, an exact fit, a fitted level at the reference d
 outside the RSSI limits or an exponent outside (0, 10]) is an error naming the anchor and
 the parameter (exit code 2).
 
-Prints each fit with standard errors and the residual standard deviation (dB or m);
-writes --anchors with the fitted columns, their standard errors (<col>_se) and sigma (the
+Prints each fit with standard errors and the residual standard deviation (dB or m); from
+--measurements and --truth the standard errors are cluster-robust over the tag's dwells
+(consecutive epochs at one truth position; a moving tag's epochs in at most 50 blocks of
+time), a survey file's rows are taken as independent; writes --anchors with the fitted
+columns, their standard errors (<col>_se) and sigma (the
 residual standard deviation, by which `locate` weights the anchors) added or replaced --
 earlier standard errors and calib_fixed are dropped -- or, without --anchors, the
 parameter table with the same columns.  Anchors with too few survey rows, or absent from
