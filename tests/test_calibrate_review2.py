@@ -219,3 +219,53 @@ def test_implausible_value_is_shown_as_in_the_file(tmp_path, capsys):
     s.write_text("anchor,distance,range\na1,10,10.3\na1,20,20.2\na1,30,100000.4\n")
     code, _, err = _cli([str(s), "-o", str(tmp_path / "o.csv")], capsys)
     assert code == 2 and "100000.4 is implausible" in err
+
+
+def _rssi_files(tmp_path: Path) -> tuple[Path, Path, Path]:
+    """An RSSI log with truth (a tag at 12 points, A = -45 dBm, n = 2.2, 2 dB noise), and
+    anchors with log-distance A, n columns."""
+    rng = np.random.default_rng(4)
+    pts = rng.uniform(1.0, 9.0, (12, 2))
+    xy = ANCHORS[["x", "y"]].to_numpy()
+    d = np.linalg.norm(pts[:, None] - xy[None], axis=2)
+    rssi = -45.0 - 22.0 * np.log10(d) + rng.normal(0.0, 2.0, d.shape)
+    meas = pd.DataFrame({"time": np.repeat(np.arange(12.0), 4), "tag": "T",
+                         "anchor": np.tile(ANCHORS["anchor"], 12), "rssi": rssi.ravel()})
+    truth = pd.DataFrame({"time": np.arange(12.0), "tag": "T", "x": pts[:, 0],
+                          "y": pts[:, 1]})
+    paths = tmp_path / "m.csv", tmp_path / "t.csv", tmp_path / "a.csv"
+    meas.to_csv(paths[0], index=False)
+    truth.to_csv(paths[1], index=False)
+    ANCHORS.assign(A=-45.0, n=2.2).to_csv(paths[2], index=False)
+    return paths
+
+
+def test_calibrate_refuses_what_it_would_refuse_at_the_end_first(tmp_path, capsys):
+    """The calibration review: ``-o x.xlsx`` was refused only after the whole fit
+    (minutes of --self); ``--time-tolerance`` with ``--self`` was accepted and ignored.
+    Both are input errors now, before any work (no output file)."""
+    m, t, a = _rssi_files(tmp_path)
+    code, _, err = _cli(["--self", str(m), "--anchors", str(a), "-o",
+                         str(tmp_path / "x.xlsx")], capsys)
+    assert code == 2 and "cannot write a table as '.xlsx'" in err
+    code, _, err = _cli(["--self", str(m), "--anchors", str(a), "--time-tolerance", "2",
+                         "-o", str(tmp_path / "o.csv")], capsys)
+    assert code == 2 and "--time-tolerance applies to --measurements with --truth" in err
+    assert not (tmp_path / "o.csv").exists() and not (tmp_path / "x.xlsx").exists()
+
+
+def test_truth_calibration_of_another_model_says_which_columns_go(tmp_path, capsys):
+    """A truth calibration of the attenuation-factor model writes p0, gamma, faf and
+    drops the anchors file's log-distance A, n (by design); it did so without a word,
+    where ``--self`` says so (the calibration review)."""
+    m, t, a = _rssi_files(tmp_path)
+    out = tmp_path / "af.csv"
+    code, _, err = _cli(["--measurements", str(m), "--truth", str(t), "--anchors", str(a),
+                         "--model", "attenuation-factor", "--p0", "-45", "-o", str(out)],
+                        capsys)
+    assert code == 0
+    assert "note: columns A, n of the anchors file are not in the output" in err
+    assert {"A", "n"}.isdisjoint(pd.read_csv(out).columns)
+    code, _, err = _cli(["--measurements", str(m), "--truth", str(t), "--anchors", str(a),
+                         "-o", str(tmp_path / "ld.csv")], capsys)
+    assert code == 0 and "are not in the output" not in err  # the same model: nothing goes

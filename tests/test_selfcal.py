@@ -462,13 +462,14 @@ def test_cli_self_unheard_anchor_is_warned_and_left_out(tmp_path, capsys):
 @pytest.mark.parametrize(
     ("text", "args", "words"),
     [
-        ("anchor,distance,rssi\nb1,5,-60\nb1,5,-62\nb1,5,-61\n", [],
+        # (four rows: an anchor's own fit needs parameters + 2 rows since 2026-12-06)
+        ("anchor,distance,rssi\nb1,5,-60\nb1,5,-62\nb1,5,-61\nb1,5,-63\n", [],
          "anchor b1: cannot determine n: all samples at one distance"),
         ("anchor,distance,rssi\nb1,5,-60\n", [], "cannot determine A and n: 1 usable"),
         ("anchor,distance,rssi\nb1,1,-60\nb1,2,-60\nb1,5,-60\nb1,7,-60\n", [],
          "anchor b1: cannot determine n: fitted n ="),
         ("anchor,distance,rssi\nb1,1,-60\nb1,2,-66\n", [], "cannot determine A and n: 2"),
-        ("anchor,distance,range\nb1,5,5.1\nb1,5,5.2\nb1,5,5.0\n", ["--scale"],
+        ("anchor,distance,range\nb1,5,5.1\nb1,5,5.2\nb1,5,5.0\nb1,5,5.3\n", ["--scale"],
          "anchor b1: cannot determine scale: all samples at one distance"),
         ("anchor,distance,rssi\nb1,1,-60\nb1,2,-66\nb1,4,-72\n", [],
          "anchor b1: cannot determine sigma"),

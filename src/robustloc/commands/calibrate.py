@@ -144,6 +144,11 @@ def run(args: argparse.Namespace) -> int:
     # the anchors themselves), where `locate` and `track` refused
     check_not_input(args.out, [args.survey, args.anchors, args.measurements, args.truth,
                                args.self_log])
+    if args.out is not None:  # an -o write_table refuses (.xlsx, .png): before the work,
+        # not after minutes of --self (the calibration review)
+        from robustloc.io.tables import check_table_path
+
+        check_table_path(args.out)
     settings = CalibrateSettings.from_namespace(args)
     anchors = read_anchors(args.anchors) if args.anchors else None
     cal = run_calibrate(settings, survey=args.survey, anchors=anchors,

@@ -759,7 +759,7 @@ def calibrate_ranges(
     _check_determined(survey, per, pool, ids, d, g, ("bias", "scale") if scale else ("bias",),
                       pooled, "range")
     if scale:
-        own = (per.n_used > 2) & (not pooled)
+        own = _own_fit(per.n_used, 2) & (not pooled)
         check = [(f"anchor {ids[j]}", per.b[j]) for j in np.flatnonzero(own)]
         for who, b in check + [("pooled fit", pool.b[0])]:
             if not RANGE_SCALE_LIMITS[0] <= b <= RANGE_SCALE_LIMITS[1]:
@@ -812,7 +812,7 @@ def _check_determined(
     dmin = np.full(m, np.inf)
     np.minimum.at(dmin, g, d)
     one = _one_distance(d, g, m)
-    own = per.n_used > p  # anchors with their own fit (the others take the pooled one)
+    own = _own_fit(per.n_used, p)  # anchors with their own fit (the others: pooled)
     for j in np.flatnonzero(one & own & (not pooled)):
         raise InputError(
             f"anchor {ids[j]}: cannot determine {slope}: all samples at one distance "
@@ -869,7 +869,7 @@ def _check_plausible(
                       "attenuation-factor": ("p0 + faf", "d0"),
                       "friis": ("p0", "d0")}[model]
     exp_name = "n" if model == "log-distance" else "gamma"
-    own = (per.n_used > (2 if slope else 1)) & (not pooled)
+    own = _own_fit(per.n_used, 2 if slope else 1) & (not pooled)
     check = [(f"anchor {ids[j]}", per.a[j] + p0_arr[j], per.b[j], d0_arr[j])
              for j in np.flatnonzero(own)]
     check += [("pooled fit", pool.a[0] + p, pool.b[0], d) for p, d in zip(p0_arr, d0_arr)]
@@ -887,6 +887,15 @@ def _check_plausible(
                 "small a spread of distances?)", survey.attrs.get("path"))
 
 
+def _own_fit(n_used: NDArray[np.int64], p: int) -> NDArray[np.bool_]:
+    """Anchors with rows enough for a fit of their own: ``p + 2`` (two degrees of
+    freedom for ``sigma``; the others take the pooled fit).  With ``p + 1`` the anchor's
+    sigma came from one degree of freedom and ``locate`` weighted it by that: one in ten
+    such anchors gets a sigma under 1/8 of the noise, 60x its weight (the calibration
+    review, 2026-12-06); ``calibrate --self`` leaves such anchors out the same way."""
+    return np.asarray(n_used) >= p + 2
+
+
 def _one_distance(d: Array, g: NDArray[np.int64], m: int) -> NDArray[np.bool_]:
     """Per anchor: every sample at one distance (its own slope undetermined)."""
     dmin = np.full(m, np.inf)
@@ -899,7 +908,7 @@ def _one_distance(d: Array, g: NDArray[np.int64], m: int) -> NDArray[np.bool_]:
 def _assemble(per: LineFit, pool: LineFit, ids: list[str], slope: bool,
               undetermined: NDArray[np.bool_] | None = None) -> dict[str, Array]:
     p = 2 if slope else 1
-    few = per.n_used <= p  # cannot estimate a standard error: take the pooled fit
+    few = ~_own_fit(per.n_used, p)  # no trustworthy sigma: take the pooled fit
     if undetermined is not None:
         # (--pooled, an anchor surveyed at one distance: its own "fit" was shown as the
         # anchor's, with A = n = -inf or n = -0.000; the calibration review)
@@ -930,7 +939,7 @@ def _notes(
     per: LineFit, ids: list[str], weight: WeightFunction | None, p: int
 ) -> list[str]:
     notes = []
-    few = [a for a, n in zip(ids, per.n_used) if n <= p]
+    few = [a for a, own in zip(ids, _own_fit(per.n_used, p)) if not own]
     if few:
         notes.append(f"too few survey rows, pooled fit used for anchor(s): {', '.join(few)}")
     if weight is not None and not per.converged:

@@ -141,6 +141,10 @@ def run_calibrate(
         survey_only = {"--robust": settings.robust != default.robust,
                        "--pooled": settings.pooled != default.pooled,
                        "--d0": settings.d0 != default.d0, "--p0": settings.p0 != default.p0}
+        if settings.time_tolerance != default.time_tolerance:  # (accepted and ignored:
+            # the calibration review)
+            raise InputError("--time-tolerance applies to --measurements with --truth "
+                             "only (--self matches no truth)")
         given = [k for k, v in survey_only.items() if v]
         if given:
             raise InputError(
@@ -262,6 +266,8 @@ def _from_survey(settings: CalibrateSettings, survey: Any, anchors: pd.DataFrame
         res = calibrate_ranges(table, scale=bool(settings.scale), robust=settings.robust,
                                pooled=settings.pooled)
     out = res.apply_to_anchors(anchors)
+    if anchors is not None:
+        notes.extend(_dropped_columns(anchors, out))
     absent = res.absent_anchors(anchors)
     if absent:
         kept = ("; each keeps the anchors file's own p0 and d0 where it has a p0"
@@ -296,6 +302,21 @@ def _from_survey(settings: CalibrateSettings, survey: Any, anchors: pd.DataFrame
                "unit": res.unit, "parameters": _records(res.table),
                "notes": notes + list(res.notes)}
     return Calibration(out, res.table, res.unit, summary, headline, notes + list(res.notes))
+
+
+def _dropped_columns(anchors: pd.DataFrame, out: pd.DataFrame) -> list[str]:
+    """A note naming the anchors file's columns the output lacks: another path-loss
+    model's, which the calibrated ones replace (dropped without a word by --self, the
+    self-calibration review, and by a truth or survey fit, the calibration review)."""
+    gone = [c for c in anchors.columns if c not in out.columns
+            and not c.endswith("_se") and c != "calib_fixed"]  # (dropped as documented)
+    if not gone:
+        return []
+    new = ", ".join(c for c in ("A", "n", "p0", "gamma", "faf", "bias", "scale")
+                    if c in out.columns)
+    return [f"columns {', '.join(gone)} of the anchors file are not in the output: they "
+            f"describe another path-loss model, which the calibrated {new} replace "
+            "(--model names the model to calibrate)"]
 
 
 def _d0_with_p0(settings: CalibrateSettings, table: pd.DataFrame,
@@ -472,14 +493,7 @@ def _self(settings: CalibrateSettings, anchors: pd.DataFrame, self_log: Any) -> 
         notes.append("the standard errors assume that the parameters left out equal "
                      "their priors: where one does not, the estimates that share its "
                      "epochs are off by more than their standard errors say")
-    gone = [c for c in anchors.columns if c not in out.columns]
-    if gone:
-        # another path-loss model's columns, which the new ones replace (they were dropped
-        # without a word: the self-calibration review)
-        notes.append(f"columns {', '.join(gone)} of the anchors file are not in the output: "
-                     f"they describe another path-loss model, which the calibrated "
-                     f"{', '.join(c for c in ('A', 'n', 'p0', 'gamma') if c in out.columns)} "
-                     f"replace (--model names the model to calibrate)")
+    notes.extend(_dropped_columns(anchors, out))
     if kind == "rssi":
         # the self-calibration review: on simulated logs the (A, n) estimates were off by
         # several standard errors already at 1 dB of noise (A by -2.2 dB, n by -0.2), and
