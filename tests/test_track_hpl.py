@@ -161,3 +161,27 @@ def test_a_start_row_is_bounded_as_its_snapshot_fix(engine):
     assert not np.any(err[usable] > rows["hpl"].to_numpy()[usable])
     # most of those starts have a flagged range: their rows say so
     assert (rows["status"] == "ok").mean() < 0.5
+
+
+@pytest.mark.parametrize("engine", ["compiled", "numpy"])
+def test_a_fault_the_w_test_identifies_is_not_ok(engine):
+    """A static tag, four corner anchors, 0.1 m noise, and one range 10 m long at t = 10
+    (the track review).  The global test failed (NIS 611 on 4 components) and one w-test
+    exclusion explained it, so the epoch passed; with the default Huber weight the range
+    was only down-weighted and the row said `ok`.  It says `fault_excluded` now (as
+    `locate`'s rows where the w-test flags what the estimator down-weights), and its bound
+    still covers the pulled fix."""
+    rng = np.random.default_rng(0)
+    a = pd.DataFrame({"anchor": ["A1", "A2", "A3", "A4"], "x": [0.0, 10.0, 10.0, 0.0],
+                      "y": [0.0, 0.0, 10.0, 10.0]})
+    xy = a[["x", "y"]].to_numpy()
+    p = np.array([4.0, 3.0])
+    r = np.linalg.norm(p - xy, axis=1)[None] + rng.normal(0.0, 0.1, (20, 4))
+    r[10, 2] += 10.0
+    meas = pd.DataFrame({"time": np.repeat(np.arange(20.0), 4), "tag": "T",
+                         "anchor": np.tile(a["anchor"], 20), "range": r.ravel()})
+    rows = Tracker(a, sigma=0.1, engine=engine).step(to_epochs(meas, list(a["anchor"])))
+    assert rows["status"].iloc[10] == "fault_excluded"
+    assert (rows["status"].iloc[5:10] == "ok").all()
+    err = np.hypot(*(rows[["x", "y"]].to_numpy()[10] - p))
+    assert err < rows["hpl"].iloc[10]

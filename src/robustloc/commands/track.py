@@ -169,7 +169,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                            help="fixed-lag RTS smoother over the next N epochs of each tag")
     p.add_argument("--kernel", choices=("compiled", "numpy"), default=d.kernel,
                    help="the tracker's kernels: compiled (default) or the NumPy reference "
-                        "(Tracker(engine=...); --engine chooses where the command runs)")
+                        "(Tracker(engine=...); --engine chooses where the command runs); "
+                        "they agree to rounding until a test lands within rounding of its "
+                        "critical value, then their rows may part")
     p.add_argument("--noise-scale-min", type=scale, default=d.noise_scale_min,
                    help="lower bound of the adaptive measurement noise scale (a factor of "
                         f"--sigma, in [1e-6, 1e6]; default {d.noise_scale_min:g})")

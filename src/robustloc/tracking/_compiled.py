@@ -458,12 +458,14 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
         # global test (seed 003), unless one w-test exclusion explains its failure, and
         # the "half rejected" rule
         fail = ma > 0 and nis > gcrit[ma]
+        explained = False
         if fail and ma >= 2:
             for i in range(M):
                 avk[i] = math.isfinite(zf[k, i])
             if one_fault_explains(M, hv[k], hbv[k], ocv[k], Pp_o[k], rd[k], y[k], avk, w2c,
                                   gcrit[ma - 1], Ssn, Lsn, Lisn, usn, csn, iasn):
                 fail = False
+                explained = True
         sus[k] = ma > 0 and (fail or 2 * nu <= ma)
         Pn00 = fout[o_P + k * nn]
         Pn01 = fout[o_P + k * nn + 1]
@@ -525,7 +527,8 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
         det = Pn00 * Pn11 - Pn01 * Pn01
         lmax = tr + math.sqrt(max(tr * tr - det, 0.0))
         out_hpl[r] = slope + kir * math.sqrt(max(lmax, 0.0))
-        if c == ST_OK and any_held:
+        if c == ST_OK and (any_held or explained):  # (a w-test-identified fault that
+            # the robust weight only down-weighted was `ok`: the track review)
             c = ST_FAULT_EXCLUDED
         code[k] = c
         out_nu[r] = nu
