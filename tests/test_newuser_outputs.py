@@ -181,7 +181,9 @@ def test_locate_jit_notice_before_the_log_scale_pass_compiles(
 
     def compiling_first_pass(*a, **k):
         if not seen:
-            _fake_compile(0.6, seen, capsys)
+            # (2 s: the solve of 180 fixes must stay below it on a loaded machine; at 0.6 s
+            # the assertion below failed once in a loaded run, 2026-12-06)
+            _fake_compile(2.0, seen, capsys)
         return first_pass(*a, **k)
 
     monkeypatch.setattr(pl, "log_scales_from_sample", compiling_first_pass)
@@ -194,11 +196,11 @@ def test_locate_jit_notice_before_the_log_scale_pass_compiles(
     m = re.search(r"\((\d+\.\d+) s, of which (\d+\.\d) s compiling kernels; (\d+) fixes/s "
                   r"solving\)", text)
     assert m, text
-    assert float(m.group(1)) >= float(m.group(2)) >= 0.6
+    assert float(m.group(1)) >= float(m.group(2)) >= 2.0
     seen.clear()
     assert main(args + ["--json"]) == 0
     s = json.loads(capsys.readouterr().out)
-    assert s["seconds"] >= s["compile_seconds"] >= 0.6 > s["solve_seconds"]
+    assert s["seconds"] >= s["compile_seconds"] >= 2.0 > s["solve_seconds"]
     assert s["fixes_per_second"] == pytest.approx(180 / s["solve_seconds"], rel=0.05)
 
 
