@@ -8,7 +8,10 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
    ranging.Locator`, ``huber``) of the tag's first epoch with enough anchors; its
    covariance (floored) is the starting position covariance, the velocity starts at 0 with
    variance ``init_vel_var``.  Until then a tag's rows carry the fix's status
-   (``insufficient_anchors``, ``ill_conditioned``, ...).
+   (``insufficient_anchors``, ``ill_conditioned``, ...).  The start row (and a
+   re-start's) is bounded as the epoch's protected fix bounds it, ``hpl = max(k sigma,
+   |x - x_s| + HPL_s)``, and carries that fix's status where it says more than ``ok``
+   (``low_redundancy``, ``fault_excluded``, ``fault_detected``, ...).
 2. **Predict** with the motion model, ``x = F x``, ``P = F P F^T + Q`` (seed 002 eq. (13);
    ``Q`` of :mod:`robustloc.filters.motion`, ``q`` the white-acceleration variance).
 3. **Tight update** with every heard anchor as one component (:mod:`robustloc.tracking.
