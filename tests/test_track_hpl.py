@@ -182,6 +182,7 @@ def test_a_fault_the_w_test_identifies_is_not_ok(engine):
                          "anchor": np.tile(a["anchor"], 20), "range": r.ravel()})
     rows = Tracker(a, sigma=0.1, engine=engine).step(to_epochs(meas, list(a["anchor"])))
     assert rows["status"].iloc[10] == "fault_excluded"
+    assert rows["excluded"].iloc[10] == "A3"  # the range the w-test identified
     assert (rows["status"].iloc[5:10] == "ok").all()
     err = np.hypot(*(rows[["x", "y"]].to_numpy()[10] - p))
     assert err < rows["hpl"].iloc[10]

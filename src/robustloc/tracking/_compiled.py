@@ -181,7 +181,8 @@ def linearized_gain_pos(M, hv, hb, oc, Pp, rd, av, S, L, Li, X, ia):  # pragma: 
 def one_fault_explains(M, hv, hb, oc, Pp, rd, y, av, w2_crit, crit_less, S, L, Li, u,
                        c, ia):  # pragma: no cover - jit
     """Data snooping with one exclusion (seed 003; :func:`robustloc.tracking.tracker.
-    one_fault_explains` is the NumPy reference): True when the largest w-test statistic
+    one_fault_explains` is the NumPy reference): the component ``i`` (>= 0) when the
+    largest w-test statistic
     ``w_i^2 = (S^-1 y)_i^2 / (S^-1)_ii`` of the available components exceeds ``w2_crit``
     and the global test of the others passes: ``y^T S^-1 y - w_i^2 <= crit_less`` (the
     innovation quadratic form without component ``i``).  ``S = H P- H^T + diag(rd)`` from
@@ -189,11 +190,12 @@ def one_fault_explains(M, hv, hb, oc, Pp, rd, y, av, w2_crit, crit_less, S, L, L
     entry ``hb[i]`` of an offset state in column ``oc[i]`` (the tag's range offset, or the
     link's: :func:`robustloc.filters._compiled.offset_rows`); ``S, L (M, M)``, ``Li, u, c,
     ia (M,)`` are scratch.  Solved on the available components only
-    (:func:`robustloc.filters._compiled.cholesky_at`; ``u`` and ``c`` compact)."""
+    (:func:`robustloc.filters._compiled.cholesky_at`; ``u`` and ``c`` compact).  -1 where
+    no one exclusion explains the failure."""
     innovation_cov(M, hv, hb, oc, Pp, rd, av, S)
     na = avail_index(av, M, ia)
     if not cholesky_at(S, 1.0, ia, na, L, Li):
-        return False
+        return -1
     for a in range(na):  # u = S^-1 y over the available components
         v = y[ia[a]]
         for b in range(a):
@@ -206,6 +208,7 @@ def one_fault_explains(M, hv, hb, oc, Pp, rd, y, av, w2_crit, crit_less, S, L, L
         u[a] = v * Li[a]
     q = 0.0
     best = 0.0
+    at = -1
     for a in range(na):
         q += y[ia[a]] * u[a]
         # (S^-1)_ii = |L^-1 e_i|^2: column a of L^-1 by forward substitution
@@ -219,7 +222,8 @@ def one_fault_explains(M, hv, hb, oc, Pp, rd, y, av, w2_crit, crit_less, S, L, L
         w2 = u[a] * u[a] / d
         if w2 > best:
             best = w2
-    return best > w2_crit and q - best <= crit_less
+            at = ia[a]
+    return at if best > w2_crit and q - best <= crit_less else -1
 
 
 @njit(cache=True, nogil=True)
@@ -459,11 +463,13 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
         # the "half rejected" rule
         fail = ma > 0 and nis > gcrit[ma]
         explained = False
+        fault = -1  # the component one exclusion explains the failed test by
         if fail and ma >= 2:
             for i in range(M):
                 avk[i] = math.isfinite(zf[k, i])
-            if one_fault_explains(M, hv[k], hbv[k], ocv[k], Pp_o[k], rd[k], y[k], avk, w2c,
-                                  gcrit[ma - 1], Ssn, Lsn, Lisn, usn, csn, iasn):
+            fault = one_fault_explains(M, hv[k], hbv[k], ocv[k], Pp_o[k], rd[k], y[k], avk,
+                                       w2c, gcrit[ma - 1], Ssn, Lsn, Lisn, usn, csn, iasn)
+            if fault >= 0:
                 fail = False
                 explained = True
         sus[k] = ma > 0 and (fail or 2 * nu <= ma)
@@ -508,7 +514,7 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
                 v = math.hypot(g0, g1) * (sl0 * math.sqrt(hph[k, i] + rd[k, i]))
                 if slope == slope and not v <= slope:  # max, NaN propagating (np.max)
                     slope = v
-            out_exc[r, i] = (av and wv <= 0.0) or held_now[k, i]
+            out_exc[r, i] = (av and wv <= 0.0) or held_now[k, i] or i == fault
             any_held = any_held or held_now[k, i]
             held_s[s, i] = new_held[k, i]
             gp_s[s, i] = new_gp[k, i]

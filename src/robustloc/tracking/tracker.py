@@ -1211,10 +1211,11 @@ class Tracker:
             # consistent links, the others rejected), disagrees
             cand = test_fail & (dof >= 2)
             explained = np.zeros(len(sl), dtype=bool)
+            fault = np.full(len(sl), -1, dtype=np.int64)  # the component that explains it
             if cand.any():  # a failure that one w-test exclusion explains passes
-                explained[cand] = one_fault_explains(
+                explained[cand], fault[cand] = one_fault_explains(
                     H[cand], Pp[cand], Rd[cand], y[cand], avail[cand], self._w2_crit,
-                    self._gcrit[dof[cand] - 1])
+                    self._gcrit[dof[cand] - 1], return_index=True)
                 test_fail &= ~explained
         except np.linalg.LinAlgError:
             # a singular system of some tag (the batched solvers stop at the first): the
@@ -1264,7 +1265,8 @@ class Tracker:
         out.status[idx] = status
         out.n_used[idx] = nu
         out.nis[idx] = nis
-        out.excluded[idx] = (avail & (w <= 0)) | held_now
+        out.excluded[idx] = ((avail & (w <= 0)) | held_now
+                             | (np.arange(M)[None, :] == fault[:, None]))
         out.hpl[idx] = hpl
         out.scale[idx] = np.sqrt(scale2)
         if self.n > self.n_motion:  # the snapshot fixes of checks and re-starts: the
@@ -1715,7 +1717,8 @@ class Tracker:
 
 
 def one_fault_explains(H: Array, Pp: Array, Rd: Array, y: Array, avail: NDArray[np.bool_],
-                       w2_crit: float, crit_less: Array) -> NDArray[np.bool_]:
+                       w2_crit: float, crit_less: Array, return_index: bool = False,
+                       ) -> Any:
     """Data snooping with one exclusion (seed 003): does one faulty component explain a
     failed global test?
 
@@ -1733,6 +1736,8 @@ def one_fault_explains(H: Array, Pp: Array, Rd: Array, y: Array, avail: NDArray[
     Rd : ``(K, M)`` measurement variances; y : ``(K, M)`` innovations; avail : ``(K, M)``
         components in the update; w2_crit : squared w-test critical value;
     crit_less : ``(K,)`` critical values of the global test with one component fewer.
+    return_index : also return, per row, the component that explains it (-1: none), as
+        the compiled kernel does (the row lists it in ``excluded``).
     """
     K, M = avail.shape
     S = H @ Pp @ np.swapaxes(H, 1, 2) + Rd[:, :, None] * np.eye(M)[None]
@@ -1743,7 +1748,11 @@ def one_fault_explains(H: Array, Pp: Array, Rd: Array, y: Array, avail: NDArray[
     q = np.sum(y0 * u, axis=1)
     w2 = np.where(avail, u * u / np.diagonal(Si, axis1=1, axis2=2), 0.0)
     best = w2.max(axis=1) if M else np.zeros(K)
-    return (best > w2_crit) & (q - best <= crit_less)
+    ok = (best > w2_crit) & (q - best <= crit_less)
+    if not return_index:
+        return ok
+    at = np.argmax(w2, axis=1) if M else np.zeros(K, dtype=np.int64)
+    return ok, np.where(ok, at, -1)
 
 
 def _fixed(status: NDArray[np.object_]) -> NDArray[np.bool_]:
