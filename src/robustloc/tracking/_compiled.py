@@ -493,9 +493,11 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
             wv = fout[o_w + k * m + i]
             av = math.isfinite(zf[k, i])
             if av:
-                # Sage-Husa: weighted mean of (y^2 - (H P- H^T)_ii) / sigma_i^2 (Mehra 1972)
-                sw += wv
-                swe += wv * ((y[k, i] * y[k, i] - hph[k, i]) / r0[k, i])
+                # Sage-Husa: weighted mean of (y^2 - (H P- H^T)_ii) / sigma_i^2 (Mehra 1972),
+                # without the component the w-test identified (its fault is no noise)
+                if i != fault:
+                    sw += wv
+                    swe += wv * ((y[k, i] * y[k, i] - hph[k, i]) / r0[k, i])
                 # hpl slope: |G_pos,i| MDB_i, G_i = w_i P+ H_i^T / R_ii (seed 003 eq. (3))
                 wr = wv / rd[k, i]
                 # (with an offset state H_i has a third entry: + hb_i P+_c,pos)

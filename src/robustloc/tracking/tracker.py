@@ -1231,8 +1231,10 @@ class Tracker:
             return self._without(lost, idx, sl, t, z, out, self._filter_numpy)
         sus = test_fail | ((dof > 0) & (2 * nu <= dof))
 
-        # --- adaptive noise scale (accepted components, robust weights)
-        wa = np.where(avail, w, 0.0)
+        # --- adaptive noise scale (accepted components, robust weights; not the component
+        # the w-test identified: one 10 m range took the scale from 1.0 to 1.44 and held
+        # it there, the track review)
+        wa = np.where(avail & (np.arange(M)[None, :] != fault[:, None]), w, 0.0)
         with np.errstate(invalid="ignore", divide="ignore"):
             est = np.where(avail, (y * y - HPH) / R0, 0.0)
             sw = wa.sum(axis=1)
