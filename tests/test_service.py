@@ -1309,15 +1309,19 @@ def _latest_across_a_restart(tmp_path, tags, between=None):
     new Engine on the same store (``between()`` runs before the restart)."""
     rows = [r for g, p, times in tags for r in _ranges_at(g, p, times)]
     eng = _store_engine(tmp_path)
-    eng.ingest(rows)
-    eng.flush()
-    before = eng.latest().sort_values("tag").reset_index(drop=True)
-    eng.stop()
+    try:
+        eng.ingest(rows)
+        eng.flush()
+        before = eng.latest().sort_values("tag").reset_index(drop=True)
+    finally:
+        eng.stop()
     if between is not None:
         between()
     eng = _store_engine(tmp_path)
-    after = eng.latest().sort_values("tag").reset_index(drop=True)
-    eng.stop()
+    try:
+        after = eng.latest().sort_values("tag").reset_index(drop=True)
+    finally:
+        eng.stop()
     return before, after
 
 
@@ -1346,13 +1350,17 @@ def test_the_last_fix_of_a_tag_without_one_survives_a_restart(tmp_path):
              {"time": 3.0, "tag": "still", "anchor": "A1", "range": 5.0}]  # never a fix
     rows += _ranges_at("fine", [6.0, 2.0], [3])
     eng = _store_engine(tmp_path)
-    eng.ingest(rows)
-    eng.flush()
-    before = eng.latest_with_fixes().set_index("tag").sort_index()
-    eng.stop()
+    try:  # (stopped even when the query raises, as it did: the store's lock released)
+        eng.ingest(rows)
+        eng.flush()
+        before = eng.latest_with_fixes().set_index("tag").sort_index()
+    finally:
+        eng.stop()
     eng = _store_engine(tmp_path)
-    after = eng.latest_with_fixes().set_index("tag").sort_index()
-    eng.stop()
+    try:
+        after = eng.latest_with_fixes().set_index("tag").sort_index()
+    finally:
+        eng.stop()
     assert before.loc["walker", "status"] == "insufficient_anchors"
     assert before.loc["walker", "fix_time"] == 1.0
     assert before.loc["walker", "fix_x"] == pytest.approx(3.5, abs=1e-6)
