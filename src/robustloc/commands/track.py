@@ -43,7 +43,8 @@ RSSI (converted by the anchors' path-loss model to ranges with sigma_d = d ln10 
                nearly collinear anchors, plus the distance to the mirror solution across
                their line when that fits the epoch as well
   --smooth     fixed-interval Rauch-Tung-Striebel smoother over the forward pass (keeps its
-               robust weights); --fixed-lag N uses only the next N epochs
+               robust weights); --fixed-lag N uses only the next N epochs; a smoothed
+               row's hpl is the forward row's plus the distance smoothing moved it
 
 Output, one row per input epoch (never a dropped epoch): time, tag, x, y, vx, vy[, ax, ay],
 method, status, var_x, var_y, cov_xy, var_vx, var_vy, hpl, n_used, nis, noise_scale,

@@ -222,6 +222,7 @@ def _ble(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, f
     from robustloc.io import to_epochs
     from robustloc.models.calibration import calibrate_pathloss
     from robustloc.models.pathloss import log_distance_arrays
+    from robustloc.pipelines.track import apply_smoother
     from robustloc.tracking import Tracker
 
     src = bt.resolve(ctx.data_dir)
@@ -242,7 +243,7 @@ def _ble(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, f
     # the baseline is the default `robustloc locate` on the whole log (every track one
     # tag, one file, as a user would run it): the default method, the log's noise scale
     located = _default_locate(pd.concat(logs, ignore_index=True), an, z_tag)
-    el, et, es, ef, hp, elk, hlk = [], [], [], [], [], [], []
+    el, et, es, ef, hp, elk, hlk, hs = [], [], [], [], [], [], [], []
     sweep: dict[float, list] = {sd: [] for sd in BLE_LINK_SD_SWEEP}
     found, resid = [], []  # the links' offsets the tracker ends with; RSSI - model at truth
     axyz = an[["x", "y", "z"]].to_numpy(float)
@@ -270,10 +271,12 @@ def _ble(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, f
         es.append(np.hypot(*(sm - txy).T))
         ef.append(np.hypot(*(fl - txy).T))
         hp.append(rows["hpl"].to_numpy(float))
+        hs.append(apply_smoother(trk, rows, None)["hpl"].to_numpy(float))
         if i == 0:
             plots.append((f"ble-tetam {tr}", txy, fix, rows[["x", "y"]].to_numpy(float), sm,
                           xy))
-    el, et, es, ef, hp, elk, hlk = map(np.concatenate, (el, et, es, ef, hp, elk, hlk))
+    el, et, es, ef, hp, elk, hlk, hs = map(np.concatenate,
+                                           (el, et, es, ef, hp, elk, hlk, hs))
     stanford.append(("ble-tetam", et, hp))
     tab = pd.DataFrame([
         {"method": f"locate (default: {DEFAULT_METHOD}, log scale)", "rms": _rms(el),
@@ -302,7 +305,8 @@ def _ble(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, f
     return {"locate_rms": _rms(el), "locate_p95": _p95(el), "track_rms": _rms(et),
             "track_p95": _p95(et), "rts_rms": _rms(es), "rts_p95": _p95(es),
             "lag_rms": _rms(ef), "lag_p95": _p95(ef),
-            "mislead": _mislead(et, hp), "links_rms": _rms(elk), "links_p95": _p95(elk),
+            "mislead": _mislead(et, hp), "rts_mislead": _mislead(es, hs),
+            "links_rms": _rms(elk), "links_p95": _p95(elk),
             "links_mislead": _mislead(elk, hlk), "links_truth_corr": corr}
 
 
@@ -359,6 +363,7 @@ def _dwm(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, A
     from robustloc.datasets import uwb_dwm1001
     from robustloc.datasets.uwb_dwm1001 import error_stats
     from robustloc.io import to_epochs
+    from robustloc.pipelines.track import apply_smoother
     from robustloc.tracking import Tracker
 
     # the full runs only when --data holds them (else the excerpts, with a note)
@@ -382,6 +387,10 @@ def _dwm(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, A
         e = np.hypot(rows["x"] - np.interp(t, tt, r.truth["x"]),
                      rows["y"] - np.interp(t, tt, r.truth["y"])).to_numpy()
         mis = _mislead(e[inside], rows["hpl"].to_numpy(float)[inside])
+        es = np.hypot(sm[:, 0] - np.interp(t, tt, r.truth["x"]),
+                      sm[:, 1] - np.interp(t, tt, r.truth["y"]))
+        rts_mis = _mislead(es[inside],
+                           apply_smoother(trk, rows, None)["hpl"].to_numpy(float)[inside])
         stanford.append((f"uwb-dwm1001 {run}", e[inside], rows["hpl"].to_numpy(float)[inside]))
         ref = DWM_REFERENCE[run]
         rows_out += [
@@ -408,6 +417,7 @@ def _dwm(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, A
                          "rms": s5["rms"], "p95": s5["p95"], "n": s5["n"],
                          "missing": s5["missing"]})
         res[run] = {"rms": s["rms"], "rts_rms": s2["rms"], "mislead": mis,
+                    "rts_mislead": rts_mis,
                     "offset_rms": s4["rms"], "links_rms": s5["rms"]}
         txy = np.c_[np.interp(t, tt, r.truth["x"]), np.interp(t, tt, r.truth["y"])]
         plots.append((f"uwb-dwm1001 {run}", txy, None, rows[["x", "y"]].to_numpy(float), sm,
@@ -649,6 +659,9 @@ def run(ctx: Context) -> Section:
         ("misleading rows (error > hpl), ble-tetam", ble["mislead"], 0.01),
         ("misleading rows, uwb-dwm1001 LOS", dwm["LOS"]["mislead"], 0.01),
         ("misleading rows, uwb-dwm1001 NLOS", dwm["NLOS"]["mislead"], 0.01),
+        ("misleading rows, ble-tetam, --smooth", ble["rts_mislead"], 0.01),
+        ("misleading rows, uwb-dwm1001 LOS, --smooth", dwm["LOS"]["rts_mislead"], 0.01),
+        ("misleading rows, uwb-dwm1001 NLOS, --smooth", dwm["NLOS"]["rts_mislead"], 0.01),
         ("misleading rows, uwb-labyrinth", lab["mislead"], 0.01),
         ("misleading rows, uwb-labyrinth after calibrate --self", lab["cal_mislead"], 0.01),
         ("misleading rows, uwb-labyrinth, --range-offset", lab["off_mislead"], 0.01),
