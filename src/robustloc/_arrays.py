@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import math
+import sys
+from typing import Any
+
 import numpy as np
+import pandas as pd
 from numpy.typing import NDArray
 
 
@@ -35,3 +40,25 @@ def real_array(x: object, name: str) -> NDArray[np.float64]:
                                                          for v in a.ravel().tolist())):
         raise TypeError(f"{name} holds complex numbers; expected real numbers")
     return np.asarray(a, dtype=float)
+
+
+def _beyond_float(v: Any) -> Any:
+    """A whole number beyond float's range as +-inf (the value it stands for in float);
+    any other value as it is."""
+    if isinstance(v, int) and not isinstance(v, bool) and abs(v) > sys.float_info.max:
+        return math.inf if v > 0 else -math.inf
+    return v
+
+
+def to_number(values: pd.Series) -> pd.Series:
+    """``pd.to_numeric(values, errors="coerce")``: what is not a number becomes NaN.
+
+    A whole number beyond float's range (a CSV field of 400 nines, which pandas keeps as
+    a Python int) becomes +-inf, as the same number written ``9.99e399`` does; pandas
+    raised ``OverflowError: int too large to convert to float`` on it, and every command
+    reading the column ended in a traceback (the fuzz review of 2026-12-06).
+    """
+    try:
+        return pd.to_numeric(values, errors="coerce")
+    except OverflowError:
+        return pd.to_numeric(values.map(_beyond_float), errors="coerce")

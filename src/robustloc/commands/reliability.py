@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from robustloc._arrays import to_number
 from robustloc.commands._layout import UNITS, file_defaults, sigma_text
 from robustloc.errors import InputError
 from robustloc.options import finite_float, float_in, positive_float
@@ -159,7 +160,6 @@ def _read(path: str):  # noqa: ANN202
 def _candidates(args: argparse.Namespace, xyz: np.ndarray, area) -> np.ndarray:  # noqa: ANN001
     """The candidate positions of --suggest: the --candidates file's, else the area's
     border (:func:`robustloc.integrity.planner.default_candidates`)."""
-    import pandas as pd
 
     from robustloc.integrity.planner import default_candidates
 
@@ -174,7 +174,7 @@ def _candidates(args: argparse.Namespace, xyz: np.ndarray, area) -> np.ndarray: 
         if cdf.empty:  # (a KeyError traceback from the empty ranking)
             raise InputError("candidates file has a header but no data rows",
                              args.candidates, 2)
-        cand = cdf[cols].apply(pd.to_numeric, errors="coerce").to_numpy(float)
+        cand = cdf[cols].apply(to_number).to_numpy(float)
         bad = ~np.all(np.isfinite(cand), axis=1)
         if bad.any():
             raise InputError("non-numeric or missing candidate coordinate", args.candidates,

@@ -49,6 +49,7 @@ import numpy as np
 import pandas as pd
 
 from robustloc import paths
+from robustloc._arrays import to_number
 from robustloc.errors import InputError
 from robustloc.paths import PACKAGE_DATA
 
@@ -235,7 +236,7 @@ def _read_mbd(path: Path, with_position: bool) -> pd.DataFrame:
     if df.empty:
         raise InputError("empty log", path)
     for c in [c for c in names if c not in ("mac", "beacon")]:
-        num = pd.to_numeric(df[c], errors="coerce")
+        num = to_number(df[c])
         bad = ~np.isfinite(num.to_numpy(dtype=float))
         if bad.any():
             i = int(np.flatnonzero(bad)[0])

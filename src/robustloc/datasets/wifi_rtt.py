@@ -44,6 +44,7 @@ from typing import Literal
 import numpy as np
 import pandas as pd
 
+from robustloc._arrays import to_number
 from robustloc.datasets.ble_tetam import DatasetSource, _existing, _read_text, resolve_dataset
 from robustloc.errors import InputError
 
@@ -169,7 +170,7 @@ def _read_room_csv(path: Path) -> pd.DataFrame:
     if missing:
         raise InputError(f"missing column(s): {', '.join(missing)}", path, 1)
     for c in need:
-        num = pd.to_numeric(df[c], errors="coerce").to_numpy(dtype=float)
+        num = to_number(df[c]).to_numpy(dtype=float)
         bad = ~np.isfinite(num)
         if bad.any():
             i = int(np.flatnonzero(bad)[0])

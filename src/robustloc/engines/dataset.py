@@ -40,6 +40,7 @@ from urllib.parse import unquote
 import numpy as np
 import pandas as pd
 
+from robustloc._arrays import to_number
 from robustloc.errors import InputError
 
 #: Hive keys restored as columns when absent from the partition file.
@@ -258,7 +259,7 @@ def _time_values(col: object) -> np.ndarray:
         return np.asarray(_seconds(s), dtype=float)
     if pd.api.types.is_numeric_dtype(s) and not pd.api.types.is_bool_dtype(s):
         return s.to_numpy(dtype=float, na_value=np.nan)
-    return pd.to_numeric(s, errors="coerce").to_numpy(dtype=float, na_value=np.nan)
+    return to_number(s).to_numpy(dtype=float, na_value=np.nan)
 
 
 def _time_seconds(col: object) -> np.ndarray:

@@ -102,6 +102,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from robustloc._arrays import to_number
 from robustloc.filters import core
 from robustloc.models.pathloss import AttenuationFactor
 from robustloc.robust.weights import AsymmetricIGG, WeightFunction
@@ -871,7 +872,7 @@ def link_params_from_anchors(anchors: object, anchor_of_link: ArrayLike) -> Link
              if c in a.columns]
     k = len(a)
     p0, g, faf, d0 = np.full(k, -40.0), np.full(k, 2.0), np.zeros(k), np.ones(k)
-    have = np.isfinite(a[names].apply(pd.to_numeric, errors="coerce").to_numpy(dtype=float))
+    have = np.isfinite(a[names].apply(to_number).to_numpy(dtype=float))
     # anchors with the same parameters present share one model_from_anchors call
     patterns, which = (np.unique(have, axis=0, return_inverse=True) if names and k
                        else (np.zeros((0, 0), bool), np.zeros(k, np.int64)))

@@ -25,11 +25,13 @@ or shorter than the height difference: that is data, not an error.
 from __future__ import annotations
 
 import contextlib
+import lzma
 import os
 import re
 import stat
 import threading
 import warnings
+import zipfile
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -39,6 +41,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
+from robustloc._arrays import to_number
 from robustloc.errors import InputError
 from robustloc.io.limits import plausible
 from robustloc.options import SIGMA_RANGE
@@ -70,6 +73,12 @@ def is_parquet(path: PathLike) -> bool:
 _SPOOLED: dict[str, Path] = {}
 _GZIP_MAGIC = b"\x1f\x8b"
 _PARQUET_MAGIC = b"PAR1"
+#: Compressed CSV by its first bytes (the formats pandas reads): the content decides, not
+#: the file's name (a plain CSV named ``.zip`` is read as text; a valid ``.xz`` was
+#: refused as "not UTF-8", an invalid ``.zip`` ended in a ``BadZipFile`` traceback: the
+#: fuzz review of 2026-12-06).
+_COMPRESSED_MAGIC = (("gzip", _GZIP_MAGIC), ("bz2", b"BZh"), ("xz", b"\xfd7zXZ\x00"),
+                     ("zip", b"PK\x03\x04"), ("zstd", b"\x28\xb5\x2f\xfd"))
 
 
 def _display(path: PathLike | pd.DataFrame) -> str:
@@ -188,33 +197,70 @@ def _check_file(path: PathLike) -> Path:
 
 def _magic(p: Path) -> bytes:
     with open(p, "rb") as fh:
-        return fh.read(4)
+        return fh.read(6)
 
 
 def _format(p: Path, path: PathLike) -> str:
-    """``parquet``, ``gzip`` (a gzip-compressed CSV, whatever its name) or ``csv``.
-
-    The content decides when it is unambiguous: a gzip file named ``.csv`` is read
-    decompressed (pandas does it when told), a Parquet file named ``.csv`` is read as
-    Parquet.  Otherwise the extension decides (pandas infers ``.bz2``, ``.xz``, ``.zip``,
-    ``.zst`` compression from it).
-    """
+    """``parquet``, a compressed CSV (``gzip``, ``bz2``, ``xz``, ``zip``, ``zstd``) or
+    ``csv`` (plain text), by the file's first bytes: a gzip file named ``.csv`` is read
+    decompressed, a Parquet file named ``.csv`` as Parquet, a plain CSV named ``.zip`` as
+    text.  A Parquet file is also known by its extension (:func:`is_parquet`)."""
     head = _magic(p)
-    if head.startswith(_GZIP_MAGIC):
-        return "gzip"
-    if is_parquet(path) or head == _PARQUET_MAGIC:
+    for kind, magic in _COMPRESSED_MAGIC:
+        if head.startswith(magic):
+            return kind
+    if is_parquet(path) or head[:4] == _PARQUET_MAGIC:
         return "parquet"
     return "csv"
 
 
 def _open_bytes(p: Path, fmt: str):
-    import gzip
+    """The file's bytes, decompressed as :func:`_format` found them."""
+    if fmt == "gzip":
+        import gzip
 
-    return gzip.open(p, "rb") if fmt == "gzip" else open(p, "rb")
+        return gzip.open(p, "rb")
+    if fmt == "bz2":
+        import bz2
+
+        return bz2.open(p, "rb")
+    if fmt == "xz":
+        import lzma
+
+        return lzma.open(p, "rb")
+    if fmt == "zip":
+        return _zip_member(p)
+    if fmt == "zstd":
+        try:
+            import zstandard
+        except ImportError:
+            raise InputError("a zstd-compressed file: reading it needs the zstandard "
+                             "package (pip install zstandard), or decompress it first",
+                             _display(p)) from None
+        return zstandard.ZstdDecompressor().stream_reader(open(p, "rb"), closefd=True)
+    return open(p, "rb")
 
 
-def _compression(fmt: str) -> str:
-    return "gzip" if fmt == "gzip" else "infer"
+@contextlib.contextmanager
+def _zip_member(p: Path) -> Iterator[Any]:
+    """The one file of a zip archive (pandas reads a zip of exactly one file)."""
+    try:
+        z = zipfile.ZipFile(p)
+    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        raise InputError(f"cannot read the zip file: {_first_line(exc)}",
+                         _display(p)) from None
+    with z:
+        members = [i for i in z.infolist() if not i.is_dir()]
+        if len(members) != 1:
+            raise InputError(f"a zip file must hold exactly one file (this one holds "
+                             f"{len(members)})", _display(p))
+        with z.open(members[0]) as fh:
+            yield fh
+
+
+def _compression(fmt: str) -> str | None:
+    """pandas' ``compression`` for a file of format ``fmt`` (None: plain text)."""
+    return fmt if fmt in ("gzip", "bz2", "xz", "zip", "zstd") else None
 
 
 _TOKENIZE_RE = re.compile(r"Expected (\d+) fields in line (\d+), saw (\d+)")
@@ -551,7 +597,9 @@ def _finish_frame(
 
 #: What pandas' C parser raises on a malformed file (besides ParserError): an undecodable
 #: byte, a NUL or other byte it cannot tokenize, a truncated compressed stream.
-_CSV_ERRORS = (pd.errors.ParserError, UnicodeDecodeError, EOFError, OSError, ValueError)
+_CSV_ERRORS: tuple[type[BaseException], ...] = (
+    pd.errors.ParserError, UnicodeDecodeError, EOFError, OSError, ValueError,
+    zipfile.BadZipFile, lzma.LZMAError)
 
 
 def _first_line(exc: BaseException) -> str:
@@ -675,7 +723,7 @@ def anchor_sigma(anchors: pd.DataFrame) -> NDArray[np.float64] | None:
     """
     if "sigma" not in anchors.columns:
         return None
-    sg = pd.to_numeric(anchors["sigma"], errors="coerce").to_numpy(dtype=float)
+    sg = to_number(anchors["sigma"]).to_numpy(dtype=float)
     if np.all(np.isnan(sg)):
         return None
     lo, hi = SIGMA_RANGE
@@ -741,7 +789,7 @@ def _numeric(
     if pd.api.types.is_numeric_dtype(s):
         v = s.to_numpy(dtype=float, na_value=np.nan)
     else:
-        num = pd.to_numeric(s, errors="coerce")
+        num = to_number(s)
         if pd.api.types.is_complex_dtype(num):
             raise InputError(f"column '{col}' holds complex numbers, expected real numbers",
                              _path_of(df, path), 1)
@@ -864,7 +912,7 @@ def validate_anchors(df: pd.DataFrame, path: PathLike | None = None) -> pd.DataF
     for c, what in (("n", "path-loss exponent n"), ("gamma", "path-loss exponent gamma"),
                     ("scale", "range scale"), ("sigma", "sigma")):
         if c in df.columns:
-            v = pd.to_numeric(df[c], errors="coerce").to_numpy(dtype=float)
+            v = to_number(df[c]).to_numpy(dtype=float)
             bad = ~np.isnan(v) & ~(v > 0)
             if bad.any():
                 i = int(np.argmax(bad))
@@ -889,7 +937,7 @@ def validate_anchors(df: pd.DataFrame, path: PathLike | None = None) -> pd.DataF
                             ("scale", "range scale", 1e-3, 1e3),
                             ("sigma", "sigma", *SIGMA_RANGE)):
         if c in df.columns:
-            v = pd.to_numeric(df[c], errors="coerce").to_numpy(dtype=float)
+            v = to_number(df[c]).to_numpy(dtype=float)
             bad = ~np.isnan(v) & ~((v >= lo) & (v <= hi))
             if bad.any():
                 i = int(np.argmax(bad))
@@ -1237,7 +1285,7 @@ def _in_memory_estimate(path: PathLike | pd.DataFrame) -> float:
             raw = p.stat().st_size
         return raw * _MEM_PER_PARQUET_BYTE
     size = p.stat().st_size
-    if fmt == "gzip":
+    if _compression(fmt) is not None:
         size *= 5  # typical compression ratio of numeric CSV
     return size * _MEM_PER_CSV_BYTE
 

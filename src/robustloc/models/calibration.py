@@ -50,6 +50,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
+from robustloc._arrays import to_number
 from robustloc.errors import InputError
 from robustloc.models.selfcal import SelfCalibration
 from robustloc.robust.scale import MAD_NORMAL
@@ -470,13 +471,13 @@ class CalibrationResult:
         out = out.drop(columns=[c for c in out.columns if c in stale])
         ids = out["anchor"].astype(str)
         own = ["p0", "d0"] if self.model == "attenuation-factor" and "p0" in anchors.columns else []
-        has_own = (pd.to_numeric(anchors["p0"], errors="coerce").notna().to_numpy()
+        has_own = (to_number(anchors["p0"]).notna().to_numpy()
                    if own else np.zeros(len(ids), dtype=bool))
         for c in cols:
             vals = ids.map(par[c]).astype(float)
             if c in own and c in anchors.columns:
                 # an absent anchor keeps its own p0 (and the d0 that goes with it)
-                mine = pd.to_numeric(anchors[c], errors="coerce").where(has_own)
+                mine = to_number(anchors[c]).where(has_own)
                 vals = vals.fillna(pd.Series(mine.to_numpy(dtype=float), index=vals.index))
             out[c] = vals.fillna(float(pooled_row[c])).to_numpy()
         src = ids.map(par["calib_source"])
@@ -514,8 +515,8 @@ def _survey_values(survey: pd.DataFrame, value: str, path_loss: bool) -> tuple[A
     was blamed on "constant values?" (the API review)."""
     from robustloc.io.limits import limits_for
 
-    d = pd.to_numeric(survey["distance"], errors="coerce").to_numpy(dtype=float)
-    v = pd.to_numeric(survey[value], errors="coerce").to_numpy(dtype=float)
+    d = to_number(survey["distance"]).to_numpy(dtype=float)
+    v = to_number(survey[value]).to_numpy(dtype=float)
     lim = limits_for(value)
     with np.errstate(invalid="ignore"):
         bad_d = ~(np.isfinite(d) & ((d > 0) if path_loss else (d >= 0)))
@@ -539,7 +540,7 @@ def _survey_weights(survey: pd.DataFrame) -> Array | None:
     """The survey's optional ``weight`` column (frequency weights), validated."""
     if "weight" not in survey.columns:
         return None
-    w = pd.to_numeric(survey["weight"], errors="coerce").to_numpy(dtype=float)
+    w = to_number(survey["weight"]).to_numpy(dtype=float)
     # at most SURVEY_WEIGHT_MAX copies of a row: 1e300 on every row overflowed the fit's
     # sums into "fitted n = nan is not positive" (the input review)
     bad = ~((w >= 0) & (w <= SURVEY_WEIGHT_MAX))

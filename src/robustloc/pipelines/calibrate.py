@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from robustloc._arrays import to_number
 from robustloc.errors import InputError
 from robustloc.io.tables import refuse_duplicate_truth
 from robustloc.options import (
@@ -328,8 +329,8 @@ def _d0_with_p0(settings: CalibrateSettings, table: pd.DataFrame,
             or "p0" not in anchors.columns or "d0" not in anchors.columns):
         return settings.d0
     ids = anchors["anchor"].astype(str).to_numpy()
-    p0 = pd.to_numeric(anchors["p0"], errors="coerce").to_numpy(dtype=float)
-    d0 = pd.to_numeric(anchors["d0"], errors="coerce").to_numpy(dtype=float)
+    p0 = to_number(anchors["p0"]).to_numpy(dtype=float)
+    d0 = to_number(anchors["d0"]).to_numpy(dtype=float)
     use = np.isfinite(p0) & np.isfinite(d0)
     if not use.any():
         return settings.d0
