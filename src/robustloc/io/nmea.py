@@ -185,7 +185,8 @@ def _raw_tod(text: str) -> float | None:
         return None
     try:
         return _tod(pynmea2.nmea_utils.timestamp(text))
-    except (ValueError, TypeError):  # minute 61, a fraction that is no number, ...
+    except (ValueError, TypeError, ArithmeticError):  # minute 61, a fraction that is
+        # no number, an hour of 13 digits (OverflowError: a traceback, the fuzz review)
         return None
 
 
