@@ -1157,7 +1157,14 @@ class Locator:
             if isinstance(v, np.ndarray) and v.ndim >= 2 and v.shape[1] == cols.size:
                 v = widen(v, False if v.dtype == bool else np.nan)
             elif k == "log_scale":
-                v = widen(v[None, :], np.nan)[0]
+                # an anchor no fix uses keeps the scale it was given (NaN without one): a
+                # NaN there was refused when the fixes' scale was handed on (`auto`'s
+                # refit: a ValueError traceback for an anchors file's typo, x 7.5 -> 750;
+                # the fuzz review of 2026-12-06)
+                wide = widen(v[None, :], np.nan)[0]
+                if self.log_scale_fixed is not None and len(self.log_scale_fixed) == m:
+                    wide[~heard] = np.asarray(self.log_scale_fixed, dtype=float)[~heard]
+                v = wide
             extra[k] = v
         return replace(
             sol, residuals=widen(sol.residuals, np.nan), weights=widen(sol.weights, np.nan),
