@@ -143,6 +143,14 @@ def _int(text: str | int) -> int:
         raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
 
 
+#: Largest autocorrelation lag (samples) that
+#: :class:`~robustloc.eval.rssi_stats.RssiStatistics` computes: a day of 1 Hz samples.  Its
+#: table holds ``max_lag + 1`` rows per link whatever the log's length (NaN beyond its
+#: samples): ``stats --max-lag 1000000000000`` asked for 7.3 TiB (a MemoryError traceback,
+#: the fuzz review of 2026-12-06).
+MAX_LAG = 86_400
+
+
 def positive_int(text: str) -> int:
     """A whole number >= 1."""
     value = _int(text)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from robustloc.options import float_in, int_in, positive_float, positive_int
+from robustloc.options import MAX_LAG, float_in, int_in, positive_float
 
 NAME = "stats"
 HELP = "RSSI statistics per anchor and distance bin: moments, autocorrelation, normality"
@@ -55,8 +55,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="truth file (time, tag, x, y[, z]): enables distance bins; rows "
                         "without truth or outside their tag's truth time span are left "
                         "out and counted")
-    p.add_argument("--max-lag", type=positive_int, default=30,
-                   help="largest autocorrelation lag in samples (default 30)")
+    p.add_argument("--max-lag", type=int_in(1, MAX_LAG), default=30,
+                   help=f"largest autocorrelation lag in samples (default 30, at most "
+                        f"{MAX_LAG})")
     p.add_argument("--bin-width", type=positive_float, default=1.0,
                    help="distance bin width, m (default 1)")
     p.add_argument("--min-samples", type=int_in(2, 10**9), default=10,

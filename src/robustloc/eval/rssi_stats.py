@@ -40,6 +40,7 @@ from scipy import stats
 from robustloc.errors import InputError
 from robustloc.io.limits import LIMITS
 from robustloc.io.tables import refuse_duplicate_truth
+from robustloc.options import MAX_LAG
 
 Array = NDArray[np.float64]
 
@@ -327,7 +328,7 @@ class RssiStatistics:
     Parameters
     ----------
     max_lag : int
-        Largest autocorrelation lag, in samples (default 30).
+        Largest autocorrelation lag, in samples (default 30; at most :data:`MAX_LAG`).
     bin_width_m : float
         Width ``w`` of the distance bins (default 1 m, the paper's 1..8 m steps); bins are
         centred on multiples of the width, a distance ``d`` in the bin
@@ -342,8 +343,8 @@ class RssiStatistics:
         self, max_lag: int = 30, bin_width_m: float = 1.0, threshold: float = 0.2,
         min_samples: int = 10,
     ) -> None:
-        if max_lag < 1:
-            raise ValueError(f"max_lag must be >= 1, got {max_lag}")
+        if not 1 <= max_lag <= MAX_LAG:
+            raise ValueError(f"max_lag must lie in [1, {MAX_LAG}], got {max_lag}")
         if not (np.isfinite(bin_width_m) and bin_width_m > 0):
             raise ValueError(f"bin_width_m must be positive and finite, got {bin_width_m}")
         if min_samples < 2:
