@@ -562,12 +562,19 @@ def _natural_key(s: str) -> tuple[int, float, str]:
 
 
 def _survey_clusters(survey: pd.DataFrame) -> NDArray[np.int64] | None:
-    """The dwell cluster of each row of a survey built from positions
-    (:func:`survey_from_positions`: column ``cluster``), or None (a survey file: rows
-    taken as independent)."""
+    """The cluster of each row (column ``cluster``: a survey built from positions,
+    :func:`survey_from_positions`, has its dwells there; a survey file may name its own,
+    any ids, e.g. the surveyed point of each sample), as codes in order of appearance; a
+    row without one is a cluster of its own.  None without the column (rows taken as
+    independent).  (A file's text ids were a ValueError traceback: the review of
+    2026-12-06.)"""
     if "cluster" not in survey.columns:
         return None
-    return survey["cluster"].to_numpy(dtype=np.int64)
+    codes = pd.factorize(survey["cluster"])[0].astype(np.int64)
+    alone = codes < 0  # (missing: NaN or an empty field)
+    if alone.any():
+        codes[alone] = codes.max(initial=-1) + 1 + np.arange(int(alone.sum()))
+    return codes
 
 
 def _groups(survey: pd.DataFrame) -> tuple[NDArray[np.int64], list[str]]:
