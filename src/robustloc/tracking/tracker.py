@@ -165,6 +165,7 @@ import pandas as pd
 from numpy.typing import NDArray
 
 from robustloc import status as st
+from robustloc._arrays import real_array
 from robustloc._stats import chi2_isf
 from robustloc.filters.core import (
     RobustUpdate,
@@ -180,7 +181,7 @@ from robustloc.filters.motion import (
     _Kinematic,
 )
 from robustloc.integrity.bmethod import global_critical, lambda0
-from robustloc.io.tables import anchor_sigma
+from robustloc.io.tables import anchor_sigma, validate_anchors
 from robustloc.robust.weights import get_weight
 from robustloc.tracking.measurement import LN10, LinkModel
 
@@ -307,6 +308,18 @@ class TrackerSettings:
         def bad(msg: str) -> None:
             raise ValueError(msg)
 
+        # numbers are real numbers, counts whole ones (the API review: q = 1+1j ran on its
+        # real part, max_bad_epochs = NaN turned the divergence re-starts off, 2.5 and
+        # readmit_samples = inf passed "< 1")
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.type in ("float", "float | None") and v is not None and (
+                    isinstance(v, bool | np.bool_)
+                    or not isinstance(v, int | float | np.integer | np.floating)):
+                raise TypeError(f"{f.name} must be a real number, got {v!r}")
+            if f.type == "int" and (isinstance(v, bool | np.bool_)
+                                    or not isinstance(v, int | np.integer)):
+                raise TypeError(f"{f.name} must be a whole number, got {v!r}")
         if self.model not in MODELS:
             bad(f"model must be one of {', '.join(MODELS)}, got {self.model!r}")
         if self.filter not in FILTERS:
@@ -404,6 +417,13 @@ class Tracker:
         if unknown:
             raise TypeError(f"unknown tracker option(s): {', '.join(sorted(unknown))}")
         self.settings = TrackerSettings(model=model, filter=filter, **options)
+        # the anchors checked as read_anchors checks them (a frame without 'y' failed at
+        # the first step with a KeyError, None with an AttributeError, duplicate ids were
+        # taken: the API review); a frame read by read_anchors passes unchanged
+        if not isinstance(anchors, pd.DataFrame):
+            raise TypeError("anchors must be a DataFrame (robustloc.read_anchors), got "
+                            f"{type(anchors).__name__}")
+        anchors = validate_anchors(anchors, anchors.attrs.get("path"))
         if self.settings.sigma is None:
             anchor_sigma(anchors)  # a partly empty column: refused now, with its line
         self.anchors = anchors.reset_index(drop=True)
@@ -428,6 +448,10 @@ class Tracker:
         self._slot: dict[str, int] = {}
         self._alloc(0, M)
         self._history: list[dict[str, Any]] = []
+        #: rows output by the recorded steps so far: the history numbers rows across
+        #: steps (each step's from 0 overwrote the earlier steps' in smoothed(): the API
+        #: review)
+        self._rows_recorded = 0
         # deferred snapshot checks (``_count_bad``): a log of checked epochs, appended
         # per round (slot, generation, fails before, passing resets, x, z)
         self._checks: list[tuple[NDArray[Any], ...]] = []
@@ -487,6 +511,14 @@ class Tracker:
             pass
         new = [t for t in dict.fromkeys(tags) if t not in self._slot]
         if new:
+            # two tags that read alike (1 and "1") are one tag in the saved state, whose
+            # keys are text: state_dict() kept one of them (the API review)
+            seen = {str(t): t for t in self._slot}
+            for t in new:
+                other = seen.setdefault(str(t), t)
+                if other is not t and other != t:
+                    raise ValueError(f"tags {other!r} and {t!r} read alike: give tags as "
+                                     "text (robustloc.read_measurements does)")
             S0 = len(self._slot)
             for i, t in enumerate(new):
                 self._slot[t] = S0 + i
@@ -508,7 +540,8 @@ class Tracker:
         return list(self._slot)
 
     def forget(self, tags: Any) -> int:
-        """Drop every state of ``tags``: each given again is a new tag, started afresh
+        """Drop every state of ``tags`` (an iterable of tags, or one tag as a string): each
+        given again is a new tag, started afresh
         from a fix (a long-running service forgets the tags that stopped reporting;
         ``robustloc serve --forget-after``).  Tags not held are ignored.
 
@@ -530,6 +563,8 @@ class Tracker:
         if self.record:
             raise ValueError("a recording tracker (record=True) cannot forget tags: its "
                              "history for smoothed() refers to their state rows")
+        if isinstance(tags, str):  # one tag (its characters were taken as tags: forget("t1")
+            tags = [tags]           # dropped tags 't' and '1' and kept 't1', the API review)
         gone = [t for t in dict.fromkeys(tags) if t in self._slot]
         if not gone:
             return 0
@@ -779,9 +814,20 @@ class Tracker:
         out = _Rows(N, self.n, len(self.anchor_ids))
         if N == 0:
             return self._frame(epochs, out)
+        if self.record:  # this step's rows follow the earlier steps' (smoothed())
+            first = len(self._history)
+            frame = self._step_rows(epochs, out)
+            for h in self._history[first:]:
+                h["idx"] = h["idx"] + self._rows_recorded
+            self._rows_recorded += N
+            return frame
+        return self._step_rows(epochs, out)
+
+    def _step_rows(self, epochs: Any, out: _Rows) -> pd.DataFrame:
+        """:meth:`step` after its checks (``N > 0``)."""
         time = np.asarray(epochs.time, dtype=float)
         tags = np.asarray(epochs.tag, dtype=object)
-        z_all = self._calibrate(np.asarray(epochs.values, dtype=float))
+        z_all = self._calibrate(real_array(epochs.values, "epochs' values"))
         slots = self._slots(tags)
         # an epoch whose every row is outside the physical limits (robustloc.io.limits,
         # e.g. a time of 1e13 s) keeps status invalid_measurement and no state: it never
@@ -1592,7 +1638,18 @@ class Tracker:
         return _copy_attributes(self.__dict__)
 
     def rollback(self, checkpoint: dict[str, Any]) -> None:
-        """Return to a :meth:`checkpoint` (usable again: it is copied, not consumed)."""
+        """Return to a :meth:`checkpoint` (usable again: it is copied, not consumed).
+
+        Raises
+        ------
+        TypeError
+            ``checkpoint`` is not one of :meth:`checkpoint`'s (checked before anything
+            changes: ``rollback({})`` left a tracker without its anchors, the API review).
+        """
+        if not isinstance(checkpoint, dict) or not {
+                "settings", "anchor_ids", "_slot", "_history", "_x", "_P"} <= set(checkpoint):
+            raise TypeError("rollback() takes what checkpoint() returned, got "
+                            f"{type(checkpoint).__name__}")
         self.__dict__.clear()
         self.__dict__.update(_copy_attributes(checkpoint))
 
@@ -1707,14 +1764,28 @@ class Tracker:
         """Rauch-Tung-Striebel smoothing of the recorded forward pass (``record=True``).
 
         Returns smoothed states ``(n_rows, n)`` and covariances ``(n_rows, n, n)`` by row
-        index of the recorded steps (NaN for rows without a filter state); ``lag=None``:
-        fixed interval (all later data), ``lag=N``: fixed lag (the next ``N`` epochs).
-        See :func:`robustloc.tracking.smooth.rts`.
+        index of the recorded steps, numbered across them in order (the first step's rows
+        from 0, the next step's after them; NaN for rows without a filter state);
+        ``lag=None``: fixed interval (all later data), ``lag=N``: fixed lag (the next
+        ``N`` epochs).  See :func:`robustloc.tracking.smooth.rts`.
+
+        Raises
+        ------
+        ValueError
+            Not a recording tracker; ``n_rows`` fewer than the recorded steps' rows;
+            ``lag`` not a whole number >= 0.
         """
         from robustloc.tracking.smooth import rts_rows
 
         if not self.record:
             raise ValueError("smoothing needs Tracker(..., record=True)")
+        if isinstance(n_rows, bool) or not isinstance(n_rows, int | np.integer) or (
+                n_rows < self._rows_recorded):
+            raise ValueError(f"n_rows must be a whole number >= the {self._rows_recorded} "
+                             f"rows of the recorded steps, got {n_rows!r}")
+        if lag is not None and (isinstance(lag, bool) or not isinstance(lag, int | np.integer)
+                                or lag < 0):
+            raise ValueError(f"lag must be None or a whole number >= 0, got {lag!r}")
         return rts_rows(self._history, n_rows, self.n, self._motion, lag)
 
 
