@@ -966,6 +966,29 @@ def _snoop_one(flagged: NDArray[np.bool_], w: Array, used: NDArray[np.bool_],
     return out
 
 
+def _real_option(name: str, value: object) -> float:
+    """An option's value as a float; ``TypeError`` for what is not a real number (a bool,
+    a complex number, whose imaginary part ``float()`` would drop)."""
+    if isinstance(value, bool | complex | np.bool_ | np.complexfloating) or not isinstance(
+            value, int | float | np.integer | np.floating):
+        raise TypeError(f"{name} must be a real number, got {value!r}")
+    return float(value)
+
+
+def _check_protection_options(k_noise: float | None, alert_limit: float | None) -> None:
+    """``k_noise`` finite and >= 0, ``alert_limit`` > 0 (as ``robustloc.locate`` checks
+    them): a negative ``k_noise`` halved the bounds of `ok` fixes, a NaN one made them
+    infinite, an ``alert_limit`` of -1 or NaN refused every fix (the API review)."""
+    if k_noise is not None:
+        k = _real_option("k_noise", k_noise)
+        if not (np.isfinite(k) and k >= 0):
+            raise ValueError(f"k_noise must be finite and >= 0, got {k_noise!r}")
+    if alert_limit is not None:
+        a = _real_option("alert_limit", alert_limit)
+        if not a > 0:
+            raise ValueError(f"alert_limit must be > 0 (m), got {alert_limit!r}")
+
+
 def protect(
     sol: Solution,
     *,
@@ -1033,6 +1056,7 @@ def protect(
         ``test_ambiguous_fixes_move_to_the_side_the_log_shows`` such a fix was 6.2 m off
         with hpl 4.8 m).
     """
+    _check_protection_options(k_noise, alert_limit)
     for key in ("range_residuals", "jacobian"):
         if key not in sol.extra:
             raise ValueError(f"the solution has no {key!r}: solve it with Locator.solve")
@@ -1386,6 +1410,7 @@ def locate_protected(
     least-squares test (a gross error spreads over every residual), and test-then-robustify
     keeps them.
     """
+    _check_protection_options(k_noise, alert_limit)  # (before any epoch is solved)
     kw = dict(A=A, n=n, height_offset=height_offset)
     rm = range_model_of(anchors, height_offset)
     pk = dict(alpha0=alpha0, beta0=beta0, k_noise=k_noise, alert_limit=alert_limit,
