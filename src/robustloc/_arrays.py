@@ -30,7 +30,7 @@ def true_first(mask: NDArray[np.bool_], width: int | None = None) -> NDArray[np.
 
 
 def real_array(x: object, name: str) -> NDArray[np.float64]:
-    """``x`` as a float array; ``TypeError`` naming ``name`` for ``None`` or complex
+    """``x`` as a float array; ``TypeError`` naming ``name`` for ``None``, booleans or complex
     numbers (``np.asarray(..., dtype=float)`` drops an imaginary part with only a
     ``ComplexWarning``: a range of 5+1j was located as 5; the review of 2026-12-06)."""
     if x is None:
@@ -39,6 +39,10 @@ def real_array(x: object, name: str) -> NDArray[np.float64]:
     if np.iscomplexobj(a) or (a.dtype == object and any(isinstance(v, complex)
                                                          for v in a.ravel().tolist())):
         raise TypeError(f"{name} holds complex numbers; expected real numbers")
+    # (booleans: True read as a range of 1 m, and a fix said `ok`; the API review)
+    if a.dtype == bool or (a.dtype == object and any(isinstance(v, bool | np.bool_)
+                                                      for v in a.ravel().tolist())):
+        raise TypeError(f"{name} holds booleans; expected numbers")
     return np.asarray(a, dtype=float)
 
 

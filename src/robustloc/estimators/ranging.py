@@ -816,6 +816,23 @@ def _compiled_gn(
     )
 
 
+def _checked_inputs(anchors: ArrayLike, values: ArrayLike) -> tuple[Array, Array]:
+    """The anchors ``(m, 2|3)`` and the values ``(epochs, m)`` as float arrays, checked
+    (:meth:`Locator.solve`, :meth:`Locator.log_statistics`): ``TypeError`` for ``None``,
+    booleans and complex numbers, ``ValueError`` for the shapes."""
+    from robustloc._arrays import real_array
+
+    a = real_array(anchors, "anchors")
+    z = np.atleast_2d(real_array(values, "values"))
+    if a.ndim != 2 or a.shape[1] not in (2, 3) or a.shape[0] == 0:
+        raise ValueError(f"anchors must be (m, 2) or (m, 3) with m >= 1, got {a.shape}")
+    if z.ndim != 2:
+        raise ValueError(f"values must be (epochs, anchors), got shape {z.shape}")
+    if z.shape[1] != a.shape[0]:
+        raise ValueError(f"values have {z.shape[1]} columns for {a.shape[0]} anchors")
+    return a, z
+
+
 @dataclass(frozen=True)
 class Locator:
     """Batched position solver for ranging (UWB, WiFi RTT) and RSSI (BLE, WiFi) logs.
@@ -1002,16 +1019,7 @@ class Locator:
         if self.method == "auto":
             raise ValueError("method 'auto' chooses per epoch by the fix's own test: solve "
                              "it with robustloc.integrity.fixes.locate_protected")
-        from robustloc._arrays import real_array
-
-        a = real_array(anchors, "anchors")
-        z = np.atleast_2d(real_array(values, "values"))
-        if a.ndim != 2 or a.shape[1] not in (2, 3) or a.shape[0] == 0:
-            raise ValueError(f"anchors must be (m, 2) or (m, 3) with m >= 1, got {a.shape}")
-        if z.ndim != 2:
-            raise ValueError(f"values must be (epochs, anchors), got shape {z.shape}")
-        if z.shape[1] != a.shape[0]:
-            raise ValueError(f"values have {z.shape[1]} columns for {a.shape[0]} anchors")
+        a, z = _checked_inputs(anchors, values)
         if height_offset is not None:
             # one per anchor (or one for all), finite: a NaN made the compiled engine's
             # fixes `ok` and the NumPy engine's `ill_conditioned` (the API review)
@@ -1263,8 +1271,13 @@ class Locator:
         """
         if not 0.0 <= weighting <= 1.0:
             raise ValueError(f"weighting must lie in [0, 1], got {weighting!r}")
-        a = np.asarray(anchors, dtype=float)
-        z = np.atleast_2d(np.asarray(values, dtype=float))
+        # (as solve() checks them: iterations = 0 was an UnboundLocalError, 1-D anchors
+        # an IndexError, max_epochs = 0 all-ones scales; the API review)
+        for name, v in (("max_epochs", max_epochs), ("min_count", min_count),
+                        ("iterations", iterations)):
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 1:
+                raise ValueError(f"{name} must be a whole number >= 1, got {v!r}")
+        a, z = _checked_inputs(anchors, values)
         N, m = z.shape
         rows = np.arange(N)
         if N > max_epochs:
