@@ -39,7 +39,7 @@ class WeightFunction:
 
     def psi(self, u: ArrayLike) -> Array:
         """Influence function ``psi(u) = u p(u) = d rho / du``."""
-        u = np.asarray(u, dtype=float)
+        u = _real(u)
         return u * self.weights(u)
 
     def __call__(self, u: ArrayLike) -> Array:
@@ -51,8 +51,17 @@ class WeightFunction:
         return float("inf")
 
 
+def _real(u: ArrayLike) -> Array:
+    """``u`` as floats; ``TypeError`` for complex numbers (whose imaginary part
+    ``np.asarray(u, dtype=float)`` drops with only a warning: the API review)."""
+    a = np.asarray(u)
+    if np.iscomplexobj(a):
+        raise TypeError("standardized residuals must be real numbers, got complex ones")
+    return a.astype(float, copy=False)
+
+
 def _abs(u: ArrayLike) -> Array:
-    return np.abs(np.asarray(u, dtype=float))
+    return np.abs(_real(u))
 
 
 @dataclass(frozen=True)
@@ -62,11 +71,11 @@ class LeastSquares(WeightFunction):
     name = "ls"
 
     def weights(self, u: ArrayLike) -> Array:
-        u = np.asarray(u, dtype=float)
+        u = _real(u)
         return np.where(np.isnan(u), np.nan, 1.0)
 
     def rho(self, u: ArrayLike) -> Array:
-        u = np.asarray(u, dtype=float)
+        u = _real(u)
         return 0.5 * u * u
 
 
@@ -155,7 +164,7 @@ class IGG(WeightFunction):
     name = "igg"
 
     def __post_init__(self) -> None:
-        if not 0 < self.k0 < self.k1 or self.c < 0:
+        if not 0 < self.k0 < self.k1 or not self.c >= 0:  # (NaN refused)
             raise ValueError(
                 f"IGG needs 0 < k0 < k1 and c >= 0, got {self.k0}, {self.k1}, {self.c}"
             )
@@ -253,7 +262,7 @@ class AsymmetricIGG(WeightFunction):
         return min(self.k1, self.c)
 
     def weights(self, u: ArrayLike) -> Array:
-        e = np.asarray(u, dtype=float)
+        e = _real(u)
         k0, k1, c = self.k0, self.k1, self.c
         with np.errstate(all="ignore"):
             w = np.select(
@@ -269,7 +278,7 @@ class AsymmetricIGG(WeightFunction):
         return np.where(np.isnan(e), np.nan, w)
 
     def rho(self, u: ArrayLike) -> Array:
-        e = np.asarray(u, dtype=float)
+        e = _real(u)
         k0, k1, c = self.k0, self.k1, self.c
         g = k0 / (3.0 * (k1 - k0) ** 2)
         pos = 0.5 * k0 * k0 + g * ((k1 - k0) ** 3 - (k1 - np.minimum(e, k1)) ** 3)
@@ -322,6 +331,8 @@ def get_weight(name: str, **params: float) -> WeightFunction:
     **params : float
         Constructor arguments overriding the paper's defaults.
     """
+    if not isinstance(name, str):  # (None or 3: AttributeError 'lower', the API review)
+        raise TypeError(f"a weight function's name must be a string, got {name!r}")
     try:
         low = name.lower()
         cls = _REGISTRY[weight_synonyms(tuple(_REGISTRY)).get(low, low)]
@@ -334,6 +345,7 @@ def get_weight(name: str, **params: float) -> WeightFunction:
         if key not in known:  # (was Python's "__init__() got an unexpected keyword")
             raise ValueError(f"{cls.name} has no parameter {key!r}; its parameters: "
                              + (", ".join(known) or "none"))
-        if isinstance(value, bool) or not isinstance(value, int | float | np.number):
-            raise ValueError(f"weight parameter {key} must be a number, got {value!r}")
+        if isinstance(value, bool | np.bool_ | np.complexfloating) or not isinstance(
+                value, int | float | np.number) or np.isnan(value):
+            raise ValueError(f"weight parameter {key} must be a real number, got {value!r}")
     return cls(**params)
