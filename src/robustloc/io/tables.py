@@ -863,8 +863,10 @@ def _holds_floats(values: Any) -> bool:
     a column of text answers "string")."""
     if getattr(values, "dtype", None) is not None and values.dtype.kind == "f":
         return True
+    # ("mixed-integer": ints beside text, which may hide a float too: [1.0, 7, "x"] kept
+    # "1.0" where [1.0, "x"] gave "1", the API review)
     return pd.api.types.infer_dtype(values, skipna=True) in (
-        "floating", "mixed-integer-float", "mixed")
+        "floating", "mixed-integer-float", "mixed", "mixed-integer")
 
 
 def _float_id(v: object) -> object:
