@@ -142,3 +142,10 @@ def test_log_statistics_checks_its_inputs():
         Locator("huber").log_scale(XY[0], r)
     with pytest.raises(TypeError, match="None"):
         locate_protected(Locator("auto"), None, r)
+
+
+@pytest.mark.parametrize("value", [np.complex128(1 + 1j), 1 + 1j])
+def test_locate_refuses_a_complex_option(value):
+    log = _ranges(["t"])
+    with pytest.raises(robustloc.InputError, match="real number"):
+        robustloc.locate(log, ANCHORS, sigma=value)

@@ -41,8 +41,10 @@ __all__ = [
 
 
 def _float(text: str | float) -> float:
-    if isinstance(text, bool):
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}")
+    # (a complex number: NumPy's converted to its real part with only a warning, so
+    # locate(sigma=np.complex128(1+1j)) ran as sigma 1; the API review)
+    if isinstance(text, bool | complex):
+        raise argparse.ArgumentTypeError(f"expected a real number, got {text!r}")
     try:
         value = float(text)
     except (ValueError, TypeError):
