@@ -144,7 +144,7 @@ def test_log_statistics_checks_its_inputs():
         locate_protected(Locator("auto"), None, r)
 
 
-@pytest.mark.parametrize("value", [np.complex128(1 + 1j), 1 + 1j])
+@pytest.mark.parametrize("value", [np.complex128(1 + 1j), np.complex64(1 + 1j), 1 + 1j])
 def test_locate_refuses_a_complex_option(value):
     log = _ranges(["t"])
     with pytest.raises(robustloc.InputError, match="real number"):

@@ -142,3 +142,20 @@ def test_stats_max_lag_is_bounded(tmp_path, capsys):
     r = _w(tmp_path, "r.csv", "time,tag,anchor,rssi\n0,t,A,-50\n1,t,A,-52\n")
     assert main(["stats", r, "-o", str(tmp_path / "st"), "--max-lag", "1000000000000"]) == 2
     assert "expected a whole number in [1, 86400]" in capsys.readouterr().err
+
+
+def test_zstd_without_its_package_says_so(tmp_path, capsys):
+    # the zstd branch of the reader: a file with zstd's magic bytes, read without the
+    # optional zstandard package, is an input error naming it (pandas' ImportError was a
+    # traceback); with the package installed the bytes below are not a valid frame
+    try:
+        import zstandard  # noqa: F401
+    except ImportError:
+        pass
+    else:
+        pytest.skip("zstandard is installed: the missing-package message is not reachable")
+    a = _w(tmp_path, "a.csv", ANCHORS)
+    z = tmp_path / "m.csv.zst"
+    z.write_bytes(b"\x28\xb5\x2f\xfd" + b"\x00" * 16)
+    _fails(capsys, ["locate", str(z), "--anchors", a, "-o", "-"], f"error: {z}: ",
+           "zstandard")

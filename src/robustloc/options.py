@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import numbers
 import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import field, fields
@@ -43,7 +44,9 @@ __all__ = [
 def _float(text: str | float) -> float:
     # (a complex number: NumPy's converted to its real part with only a warning, so
     # locate(sigma=np.complex128(1+1j)) ran as sigma 1; the API review)
-    if isinstance(text, bool | complex):
+    if isinstance(text, bool) or (isinstance(text, numbers.Complex)
+                                  and not isinstance(text, numbers.Real)):
+        # (numbers.Complex: Python's and every NumPy complex type, np.complex64 too)
         raise argparse.ArgumentTypeError(f"expected a real number, got {text!r}")
     try:
         value = float(text)

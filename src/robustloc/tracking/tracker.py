@@ -155,7 +155,9 @@ in one call or one epoch at a time gives the same rows (tested).
 
 from __future__ import annotations
 
+import functools
 import math
+import typing
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 from typing import Any
@@ -213,6 +215,12 @@ _SQRT_EPS = float(np.sqrt(np.finfo(np.float64).eps))
 #: Range of the settings the tracker squares (the noise scale's bounds, the offsets'
 #: a-priori standard deviations): their squares stay normal floats.
 _SQUARED_MIN, _SQUARED_MAX = 1e-100, 1e100
+
+
+@functools.cache
+def _type_hints(cls: type) -> dict[str, Any]:
+    """``cls``'s field types, resolved once (the annotations are strings here)."""
+    return typing.get_type_hints(cls)
 
 
 @dataclass(frozen=True)
@@ -311,13 +319,15 @@ class TrackerSettings:
         # numbers are real numbers, counts whole ones (the API review: q = 1+1j ran on its
         # real part, max_bad_epochs = NaN turned the divergence re-starts off, 2.5 and
         # readmit_samples = inf passed "< 1")
+        hints = _type_hints(type(self))
         for f in fields(self):
             v = getattr(self, f.name)
-            if f.type in ("float", "float | None") and v is not None and (
+            kind = hints[f.name]
+            if kind in (float, float | None) and v is not None and (
                     isinstance(v, bool | np.bool_)
                     or not isinstance(v, int | float | np.integer | np.floating)):
                 raise TypeError(f"{f.name} must be a real number, got {v!r}")
-            if f.type == "int" and (isinstance(v, bool | np.bool_)
+            if kind is int and (isinstance(v, bool | np.bool_)
                                     or not isinstance(v, int | np.integer)):
                 raise TypeError(f"{f.name} must be a whole number, got {v!r}")
         if self.model not in MODELS:
