@@ -65,8 +65,9 @@ Prints each fit with standard errors and the residual standard deviation (dB or 
 --measurements and --truth the standard errors are cluster-robust over the tag's dwells
 (consecutive epochs at one truth position; a moving tag's epochs in at most 50 blocks of
 time), a survey file's rows are taken as independent; writes --anchors with the fitted
-columns, their standard errors (<col>_se) and sigma (the
-residual standard deviation, by which `locate` weights the anchors) added or replaced --
+columns, their standard errors (<col>_se) and sigma (the residual standard deviation;
+with --robust the MAD scale of the residuals, which gross errors do not inflate; by which
+`locate` weights the anchors) added or replaced --
 earlier standard errors and calib_fixed are dropped -- or, without --anchors, the
 parameter table with the same columns.  Anchors with too few survey rows, or absent from
 it, get the pooled fit (column calib_source; a note names the absent ones, which keep
