@@ -33,11 +33,12 @@ method: flag rate (with 0 faults: the false-alarm rate), correct-identification 
 (rejected set == faulty set), unavailability and horizontal position error (mean, RMS,
 95th percentile), beside the theory: global-test rejection probability of the drawn faults
 (alpha of the B-method with 0 faults, 1 - beta0 for one fault of MDB size) and the w-test
-power for single faults. Trials are vectorized: 10 000 trials take seconds.  They run in
-chunks of 10 000 with accumulated results, so memory stays that of one chunk for any
---trials (at most 1e9); a progress bar on stderr counts the trials.  Runs of up to 10 000
-trials give the same numbers as before chunking; larger runs draw one random stream per
-chunk (see robustloc.integrity.montecarlo), so they depend on --seed alone.
+power for single faults. Trials are vectorized: 10 000 trials take 0.1-4 s per method and
+experiment, LEGE (which solves candidate subsets) 5-20 s; the example below about a
+minute.  They run in chunks of 10 000 with accumulated results, so memory stays that of one
+chunk for any --trials (at most 1e9); a progress bar on stderr counts the trials.  Runs of
+up to 10 000 trials give the same numbers as before chunking; larger runs draw one random
+stream per chunk (see robustloc.integrity.montecarlo), so they depend on --seed alone.
 
 The model is linearized at the true position (exactly the model the B-method theory is
 derived for); with --nonlinear (ranging and RSSI layouts) the observations themselves are

@@ -52,10 +52,11 @@ reinit, excluded (+ range_offset, var_range_offset with --range-offset). Statuse
 fault_excluded (a component rejected or a link held out), fault_detected (the
 innovations' global test failed and one exclusion does not explain it, or half the
 components were rejected: hpl widened by sqrt(NIS / dof); on clean data at the test's
-false-alarm rate, about 2 %), predicted, and before a tag's first fix the fix's own status
-(insufficient_anchors, ill_conditioned, invalid_measurement); an epoch wholly outside the
-physical limits is invalid_measurement.  `robustloc evaluate` reads
-the file.
+false-alarm rate, about 2 %), predicted; a start row (a tag's first fix, or a re-start)
+says its snapshot fix's status where that says more than ok (low_redundancy, unverified,
+fault_excluded, extrapolated), and before a tag's first fix each row carries the fix's
+own status (insufficient_anchors, ill_conditioned, invalid_measurement); an epoch wholly
+outside the physical limits is invalid_measurement.  `robustloc evaluate` reads the file.
 
   robustloc simulate wifi-room --seed 1 --out room
   robustloc track room/measurements.csv --anchors room/anchors.csv -o room/track.csv

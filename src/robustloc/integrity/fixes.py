@@ -129,8 +129,8 @@ For each epoch, at the fix ``x`` of any method, with the range-domain residuals
    streaming).  An ambiguous fix on the other side, whose alternative lies on the
    preferred one, becomes its alternative (:func:`resolve_sides`); the bound covers both
    as before and the status is unchanged.  The wifi-rtt-rss corridor (every scan,
-   ``auto``; 2026-12-04): 1 961 of 6 827 usable fixes moved, RMS 6.13 -> 3.68 m and p95
-   11.3 -> 5.95 m, against scipy's 6.10 / 11.2; no fix moves on the other shared data sets
+   ``auto``; 2026-12-06): 1 959 of 6 833 usable fixes moved, RMS 6.13 -> 3.67 m and p95
+   11.3 -> 5.91 m, against scipy's 6.10 / 11.2; no fix moves on the other shared data sets
    (lecture theatre and office: 8 and 38 ambiguous fixes, no significant side).  A log
    whose tags are on both sides of the line gets no preference, and an ambiguous fix
    with a weak (not significant) prior stays where its estimator put it.

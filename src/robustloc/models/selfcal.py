@@ -514,7 +514,8 @@ class SelfCalibrator:
                             "larger (another root, pulled by gross errors): the Huber "
                             "estimate was kept")
         if not converged:
-            warnings.append(f"self-calibration stopped at the iteration limit ({self.max_iter})")
+            warnings.append(f"self-calibration stopped at the iteration limit ({self.max_iter} "
+                            "per stage)")
         cov = state["cov"]
         se_off = np.where(free[:, 0], np.sqrt(cov[:, 0, 0]), np.nan)
         se_slo = np.where(free[:, 1], np.sqrt(cov[:, 1, 1]), np.nan)

@@ -512,7 +512,7 @@ def _self(settings: CalibrateSettings, anchors: pd.DataFrame, self_log: Any) -> 
     headline = (f"self-calibration ({kind}), {res.epochs_used} of {res.epochs_total} epochs "
                 f"used ({res.epochs_no_redundancy} without redundancy, {res.epochs_bad} bad, "
                 f"{res.epochs_no_start} without a start fix; {res.observations_rejected} "
-                f"observations rejected), {res.iterations} iterations, "
+                f"observations rejected), {res.iterations} iterations over its stages, "
                 f"sigma0 {res.sigma0:.3f}")
     return Calibration(out, table, "m" if kind == "range" else "dB", summary, headline,
                        notes=notes,
