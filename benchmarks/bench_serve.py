@@ -397,7 +397,9 @@ def bench_capacity(tmp: Path, args) -> dict:
                 "server_cpu_us_per_row": 1e6 * watch.cpu_s / max(res["rows_acked"], 1),
                 "server_peak_rss_mib": rss, "positions": total(m, "robustloc_positions_total"),
                 "epochs_sent": sent_epochs, "pos_latency_p50_ms": p50,
-                "pos_latency_p99_ms": p99})
+                "pos_latency_p99_ms": p99, "late_rows": total(m, "robustloc_rows_late_total"),
+                # epochs whose every row came late: solved apart, published with late=true
+                "late_epochs_solved": total(m, "robustloc_late_epochs_solved_total")})
     return res
 
 
@@ -758,6 +760,8 @@ def report(r: dict, args) -> None:
          pair(c, "pos_latency_p50_ms", "pos_latency_p99_ms")),
         ("  server CPU (% of a core) / per row (us)",
          f"{f(c.get('server_cpu_pct'))} / {f(c.get('server_cpu_us_per_row'), '{:.1f}')}"),
+        ("  positions / epochs sent", pair(c, "positions", "epochs_sent")),
+        ("  late rows / late epochs solved apart", pair(c, "late_rows", "late_epochs_solved")),
         ("MQTT ingest (rows/s)", f(q.get("rows_per_s"))),
         ("  position latency p50 / p99 (ms)",
          pair(q, "pos_latency_p50_ms", "pos_latency_p99_ms")),

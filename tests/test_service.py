@@ -246,8 +246,9 @@ def test_late_rows_stored_and_counted(tokened):
     rows = [{"time": t, "tag": "L", "anchor": a, "rssi": -70.0}
             for t in (0.0, 1.0, 2.0, 3.0) for a in ("1", "2", "3", "4")]
     assert httpx.post(u + "/api/measurements", json=rows, headers=AUTH).json()["accepted"] == 16
-    # window 1 s: epochs 0 and 1 are ready (older than 3 - 1); a row for t=0.5 is late
-    late = [{"time": 0.5, "tag": "L", "anchor": "1", "rssi": -70.0}]
+    # window 1 s: epochs 0 and 1 are ready (older than 3 - 1); a row for t=1 is late (its
+    # epoch solved)
+    late = [{"time": 1.0, "tag": "L", "anchor": "1", "rssi": -70.0}]
     assert httpx.post(u + "/api/measurements", json=late, headers=AUTH).json()["accepted"] == 1
     assert metric(u, "robustloc_rows_late_total", AUTH) == 1
     pos = wait_for(lambda: (p := httpx.get(u + "/api/positions?tag=L", headers=AUTH).json())
@@ -885,7 +886,9 @@ def test_times_round_trip_and_late_rows_are_reported(ble, server_factory):
     rows = [{"time": t, "tag": "R", "anchor": a, "rssi": -65.0 - int(a)}
             for t in times for a in "12345"]
     assert httpx.post(u + "/api/measurements", json=rows).json()["late"] == 0
-    late = [{"time": 1.0, "tag": "R", "anchor": "1", "rssi": -60.0}]
+    # a row of a solved epoch (window 0: solved as the next came; an epoch never solved
+    # would be solved all the same: test_service_late_epochs.py)
+    late = [{"time": times[0], "tag": "R", "anchor": "1", "rssi": -60.0}]
     body = httpx.post(u + "/api/measurements", json=late).json()
     assert body["accepted"] == 1 and body["late"] == 1
     got = wait_for(lambda: (p := httpx.get(u + "/api/positions?tag=R").json())

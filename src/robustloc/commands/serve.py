@@ -280,7 +280,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-tags", type=positive_int, default=DEFAULT_MAX_TAGS, metavar="N",
                    help="most tags the service holds state for; the rows of a new tag beyond "
                         "it are rejected with their reason and the tag counted "
-                        "(robustloc_tags_refused_total).  Each tag costs some 1.5 kB, 4 kB "
+                        "(robustloc_tags_refused_total).  Each tag costs some 1.8 kB, 4 kB "
                         "with --track, while it is held (see --forget-after; default "
                         f"{DEFAULT_MAX_TAGS})")
     p.add_argument("--forget-after", type=_forget_after, default=DEFAULT_FORGET_AFTER_S,

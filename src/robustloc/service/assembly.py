@@ -14,6 +14,16 @@ A row that arrives *late* - its epoch already solved, or older than ``newest - w
 when it arrives - is stored and counted by the caller, but not solved live (the epoch's
 fix has been published); the batch ``robustloc locate`` of the stored log includes it.
 
+An epoch whose *every* row arrives late (a gateway that delivers whole epochs after
+another gateway's later ones) has no fix published at all.  With ``live_late`` (a
+stateless solver: ``serve`` without ``--track``) such an epoch is solved all the same:
+each tag remembers its :data:`RECENT_SOLVED` latest solved epoch times, and a late row
+whose time is newer than the oldest of them and none of them belongs to an epoch never
+solved.  Its rows wait ``idle_flush_s`` of wall time from the first of them (for the rest
+of the epoch), then are released with ``late`` set (:meth:`EpochAssembler.take_ready`).
+A late row older than what the tag remembers is late as above: whether its epoch was
+solved is not known.
+
 A tag's clock can jump: a device restarts its time from 0, or one row carries a time far
 ahead (9e11 s: a unit mistake).  Every later row of the tag was then late, stored and
 never solved, for good.  So a row more than ``time_jump_s`` behind its tag's newest time,
@@ -44,6 +54,10 @@ from numpy.typing import NDArray
 from robustloc.io.tables import Epochs, pivot_epochs
 from robustloc.service.defaults import DEFAULT_TIME_JUMP_S
 
+#: Solved epoch times each tag remembers, to tell a late epoch never solved from the late
+#: rows of one solved (module doc): 256 bytes per tag.
+RECENT_SOLVED = 32
+
 
 class EpochAssembler:
     """Pending rows per tag, released as ready :class:`~robustloc.io.tables.Epochs`.
@@ -59,11 +73,14 @@ class EpochAssembler:
     time_jump_s : float
         A row this far behind its tag's newest time, the tag silent near that time for
         ``idle_flush_s``, re-bases the tag (module doc); ``inf``: never.
+    live_late : bool
+        Solve the epochs whose every row arrives late (module doc); for a stateless
+        solver only (a filter cannot go back in time).
     """
 
     def __init__(
         self, anchor_ids: Sequence[str], latency_window_s: float, idle_flush_s: float,
-        time_jump_s: float = DEFAULT_TIME_JUMP_S,
+        time_jump_s: float = DEFAULT_TIME_JUMP_S, live_late: bool = False,
     ) -> None:
         if not (np.isfinite(latency_window_s) and latency_window_s >= 0):
             raise ValueError(f"latency window must be >= 0 s, got {latency_window_s}")
@@ -90,6 +107,18 @@ class EpochAssembler:
         self._heard = np.empty(0)
         self._chunks: list[tuple[NDArray, ...]] = []
         self._n_pending = 0
+        self.live_late = bool(live_late)
+        #: each tag's latest solved epoch times, ascending, -inf where none (module doc)
+        self._width = RECENT_SOLVED if self.live_late else 0  # (nothing to remember)
+        self._recent = np.empty((0, self._width))
+        #: every solved epoch time of a tag later than this is in ``_recent``
+        self._known_from = np.empty(0)
+        #: rows of late epochs never solved, waiting for the rest of their epoch:
+        #: (time, code, anchor_col, value, wall of arrival)
+        self._late_chunks: list[tuple[NDArray, ...]] = []
+        self._late_released: list[tuple[NDArray, ...]] = []  # of re-based tags
+        #: late epochs released for solving so far
+        self.late_epochs = 0
 
     # -- tags ----------------------------------------------------------------------------
     def codes(self, tags: NDArray[np.object_]) -> NDArray[np.int64]:
@@ -118,6 +147,9 @@ class EpochAssembler:
             self._solved = np.concatenate([self._solved, np.full(grow, -np.inf)])
             self._last_wall = np.concatenate([self._last_wall, np.zeros(grow)])
             self._heard = np.concatenate([self._heard, np.full(grow, -np.inf)])
+            self._recent = np.concatenate([self._recent,
+                                           np.full((grow, self._width), -np.inf)])
+            self._known_from = np.concatenate([self._known_from, np.full(grow, -np.inf)])
         return ucode[codes]
 
     @property
@@ -159,7 +191,8 @@ class EpochAssembler:
             return np.zeros(0, dtype=np.int64)
         held = np.fromiter((n is not None for n in self._names), bool, len(self._names))
         idle &= held
-        for chunk in [*self._chunks, *self._released]:
+        for chunk in [*self._chunks, *self._released, *self._late_chunks,
+                      *self._late_released]:
             idle[chunk[1]] = False
         return np.flatnonzero(idle)
 
@@ -176,7 +209,8 @@ class EpochAssembler:
         """
         codes = np.unique(np.asarray(codes, dtype=np.int64))
         pending = np.zeros(len(self._names), dtype=bool)
-        for chunk in [*self._chunks, *self._released]:
+        for chunk in [*self._chunks, *self._released, *self._late_chunks,
+                      *self._late_released]:
             pending[chunk[1]] = True
         if codes.size and pending[codes].any():
             raise ValueError("cannot forget a tag with pending rows")
@@ -189,6 +223,8 @@ class EpochAssembler:
         self._solved[codes] = -np.inf
         self._last_wall[codes] = 0.0
         self._heard[codes] = -np.inf
+        self._recent[codes] = -np.inf
+        self._known_from[codes] = -np.inf
         return names
 
     @property
@@ -198,7 +234,9 @@ class EpochAssembler:
 
     @property
     def n_pending(self) -> int:
-        return self._n_pending
+        """Rows waiting for their epoch to be released (late epochs' rows included)."""
+        return self._n_pending + sum(len(c[0]) for c in [*self._late_chunks,
+                                                         *self._late_released])
 
     def watermarks(self) -> dict[str, float]:
         """Per tag held, the latest solved epoch time (``-inf``: none yet)."""
@@ -211,17 +249,21 @@ class EpochAssembler:
         for name, c in zip(names.tolist(), codes.tolist()):
             self._solved[c] = max(self._solved[c], solved.get(name, -np.inf))
             self._newest[c] = max(self._newest[c], newest.get(name, -np.inf))
+            # which epochs up to the restored solved time were solved is not known here
+            self._known_from[c] = max(self._known_from[c], solved.get(name, -np.inf))
 
     # -- rows ----------------------------------------------------------------------------
     def add(
         self, time: NDArray[np.float64], tags: NDArray[np.object_],
         anchor_col: NDArray[np.int64], value: NDArray[np.float64], wall: float,
     ) -> NDArray[np.bool_]:
-        """Add rows; returns the mask of *late* rows (not added, see the module doc)."""
+        """Add rows; returns the mask of *late* rows (not solved live, see the module
+        doc)."""
         code = self.codes(tags)
         late = self.late(time, code)
-        self.add_coded(time, code, anchor_col, value, wall, late)
-        return late
+        fresh = self.late_unsolved(time, code, late)
+        self.add_coded(time, code, anchor_col, value, wall, late, fresh)
+        return late & ~fresh
 
     def rebase(self, time: NDArray[np.float64], code: NDArray[np.int64], wall: float
                ) -> NDArray[np.int64]:
@@ -246,8 +288,18 @@ class EpochAssembler:
                 rest = ~out
                 self._chunks = [(t[rest], c[rest], a[rest], v[rest])] if rest.any() else []
                 self._n_pending = int(rest.sum())
+        if self._late_chunks:
+            t, c, a, v, w = (np.concatenate(x) for x in zip(*self._late_chunks))
+            out = np.isin(c, tags)
+            if out.any():
+                self._late_released.append((t[out], c[out], a[out], v[out], w[out]))
+                rest = ~out
+                self._late_chunks = [(t[rest], c[rest], a[rest], v[rest], w[rest])] \
+                    if rest.any() else []
         self._newest[tags] = -np.inf
         self._solved[tags] = -np.inf
+        self._recent[tags] = -np.inf
+        self._known_from[tags] = -np.inf
         self.rebased += int(tags.size)
         return tags
 
@@ -255,14 +307,54 @@ class EpochAssembler:
         """Mask of the rows that would be late now (tags as :meth:`codes`)."""
         return (time <= self._solved[code]) | (time < self._newest[code] - self.window)
 
+    def late_unsolved(self, time: NDArray[np.float64], code: NDArray[np.int64],
+                      late: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        """Mask of the ``late`` rows whose epoch was never solved, as far as their tag
+        remembers (module doc); all False without ``live_late``."""
+        fresh = np.zeros(len(time), dtype=bool)
+        if not self.live_late or not late.any():
+            return fresh
+        li = np.flatnonzero(late)
+        for k in range(0, len(li), 65_536):  # (a bounded (rows, RECENT_SOLVED) compare)
+            i = li[k:k + 65_536]
+            t, c = time[i], code[i]
+            fresh[i] = (t > self._known_from[c]) & ~(self._recent[c] == t[:, None]).any(axis=1)
+        return fresh
+
+    def _remember(self, time: NDArray[np.float64], code: NDArray[np.int64]) -> None:
+        """Add solved epoch times to their tags' memory (the latest RECENT_SOLVED kept;
+        ``_known_from`` rises to the latest time let go)."""
+        if not len(time):
+            return
+        R = RECENT_SOLVED
+        df = pd.DataFrame({"c": code, "t": time}).drop_duplicates().sort_values(["c", "t"])
+        keep = df.groupby("c").cumcount(ascending=False).to_numpy() < R
+        if not keep.all():  # more than R new times of a tag: its oldest are let go now
+            gone = df[~keep].groupby("c")["t"].max()
+            c = gone.index.to_numpy(np.int64)
+            self._known_from[c] = np.maximum(self._known_from[c], gone.to_numpy(float))
+            df = df[keep]
+        tags, row = np.unique(df["c"].to_numpy(np.int64), return_inverse=True)
+        n = np.bincount(row)
+        col = R - n[row] + df.groupby("c").cumcount().to_numpy()
+        new = np.full((len(tags), R), -np.inf)
+        new[row, col] = df["t"].to_numpy(float)
+        both = np.sort(np.concatenate([self._recent[tags], new], axis=1), axis=1)
+        self._known_from[tags] = np.maximum(self._known_from[tags], both[:, R - 1])
+        self._recent[tags] = both[:, R:]
+
     def add_coded(
         self, time: NDArray[np.float64], code: NDArray[np.int64],
         anchor_col: NDArray[np.int64], value: NDArray[np.float64], wall: float,
-        late: NDArray[np.bool_],
+        late: NDArray[np.bool_], fresh: NDArray[np.bool_] | None = None,
     ) -> None:
-        """:meth:`add` with the tags' :meth:`codes` and :meth:`late` mask already computed
-        (with no change of state in between)."""
+        """:meth:`add` with the tags' :meth:`codes`, :meth:`late` and
+        :meth:`late_unsolved` masks already computed (with no change of state in
+        between); ``fresh`` rows wait for their epoch's other late rows."""
         keep = ~late
+        if fresh is not None and fresh.any():
+            self._late_chunks.append((time[fresh], code[fresh], anchor_col[fresh],
+                                      value[fresh], np.full(int(fresh.sum()), wall)))
         if len(code):
             self._heard[code] = wall  # (late rows too: a tag uploading old rows is heard)
         if keep.any():
@@ -288,6 +380,9 @@ class EpochAssembler:
         """
         chunks = list(self._chunks)
         last = self._last_wall
+        if self._late_released or any(bool(np.any(wall - w >= self.idle))
+                                      for *_, w in list(self._late_chunks)):
+            return True
         try:
             return any(bool(np.any(wall - last[c] >= self.idle)) for _, c, _, _ in chunks)
         except IndexError:  # tags registered meanwhile: let take_ready decide
@@ -297,13 +392,16 @@ class EpochAssembler:
         """Remove and return the rows of the ready epochs, as columns.
 
         Ready: ``time < newest(tag) - window``, or the tag idle for ``idle_flush_s`` of wall
-        time at ``wall``, or ``flush_all``.  Returns ``{"time", "tag", "tag_code",
-        "anchor_col", "value"}`` arrays (``tag`` as str objects, ``tag_code`` as
-        :meth:`codes`), or ``None`` when nothing is ready.
+        time at ``wall``, or ``flush_all``; and a late epoch never solved (module doc)
+        ``idle_flush_s`` after its first row arrived.  Returns ``{"time", "tag",
+        "tag_code", "anchor_col", "value", "late"}`` arrays (``tag`` as str objects,
+        ``tag_code`` as :meth:`codes`, ``late`` True for the rows of late epochs, which
+        come last), or ``None`` when nothing is ready.
         """
         released, self._released = self._released, []
+        late = self._take_late(wall, flush_all)
         p = self._pending()
-        if p is None and not released:
+        if p is None and not released and late is None:
             return None
         cols: list[tuple[NDArray, ...]] = []
         if p is not None:
@@ -319,12 +417,41 @@ class EpochAssembler:
                 self._chunks = [(t[rest], c[rest], a[rest], v[rest])] if rest.any() else []
                 self._n_pending = int(rest.sum())
                 cols.append((t[ready], c[ready], a[ready], v[ready]))
+                if self.live_late:
+                    self._remember(t[ready], c[ready])
         cols = released + cols  # a re-based tag's old epochs do not advance its solved time
+        n_live = sum(len(x[0]) for x in cols)
+        if late is not None:
+            cols.append(late)
         if not cols:
             return None
         t, c, a, v = (np.concatenate(x) for x in zip(*cols))
         names = np.array(self._names, dtype=object)  # (the caller holds the ingest lock)
-        return {"time": t, "tag": names[c], "tag_code": c, "anchor_col": a, "value": v}
+        return {"time": t, "tag": names[c], "tag_code": c, "anchor_col": a, "value": v,
+                "late": np.arange(len(t)) >= n_live}
+
+    def _take_late(self, wall: float, flush_all: bool) -> tuple[NDArray, ...] | None:
+        """The rows of the late epochs ready (module doc), remembered as solved."""
+        released, self._late_released = self._late_released, []
+        if self._late_chunks:
+            t, c, a, v, w = (np.concatenate(x) for x in zip(*self._late_chunks))
+            if flush_all:
+                ready = np.ones(len(t), bool)
+            else:  # an epoch's rows wait idle_flush_s from its first row's arrival
+                first = (pd.DataFrame({"c": c, "t": t, "w": w}).groupby(["c", "t"])["w"]
+                         .transform("min").to_numpy())
+                ready = wall - first >= self.idle
+            if ready.any():
+                rest = ~ready
+                self._late_chunks = [(t[rest], c[rest], a[rest], v[rest], w[rest])] \
+                    if rest.any() else []
+                released.append((t[ready], c[ready], a[ready], v[ready], w[ready]))
+                self._remember(t[ready], c[ready])
+        if not released:
+            return None
+        t, c, a, v, _ = (np.concatenate(x) for x in zip(*released))
+        self.late_epochs += len(pd.DataFrame({"c": c, "t": t}).drop_duplicates())
+        return t, c, a, v
 
     def epochs(self, rows: dict, value: str) -> Epochs:
         """Pivot ready rows (from :meth:`take_ready`) with

@@ -27,7 +27,7 @@ DEFAULT_BODY_TIMEOUT_S = 60.0
 #: request's last header line; then it is closed (:mod:`robustloc.service.protocol`).
 DEFAULT_HEADER_TIMEOUT_S = 10.0
 #: Default most tags one service holds state for (``serve --max-tags``): each costs some
-#: 1.5 kB (locate) to 4 kB (``--track``) for as long as the service runs, so a gateway
+#: 1.8 kB (locate) to 4 kB (``--track``) for as long as the service runs, so a gateway
 #: sending random ids grew the service by 0.9 GB per 200 000 (the service review).  Rows
 #: of a tag beyond it are refused, each with its reason.
 DEFAULT_MAX_TAGS = 100_000

@@ -26,6 +26,11 @@ epochs after it (positions queries keep the last row of a re-solved epoch).
 Order: the ready blocks are queued for the solver under the ingest lock, in the order the
 assembler released them, so the epochs of a (tag, run) are solved in time order whatever
 the number of ingest threads (the restart's watermarks rely on it, and so does a tracker).
+The one exception, with a stateless processor only: an epoch whose every row came late
+(:mod:`robustloc.service.assembly`), solved in a pass of its own after the block's
+others, stored, and published with a column ``late`` (true); it is not a tag's latest row
+nor a watermark (the stored positions' watermark is each tag's latest time, not its last
+row).
 
 Forgetting: a tag with no accepted row for ``forget_after_s`` seconds of wall time (and
 no epoch pending) is forgotten: its assembly watermarks, its run, its processor state
@@ -128,8 +133,8 @@ class IngestResult:
         """``{"accepted", "rejected": [{"index", "error"}], "n_rejected", "late"}``: the
         first :data:`~robustloc.service.defaults.MAX_REJECTED_LISTED` rejected rows are
         listed (a reply stays small whatever the body), ``n_rejected`` counts them all;
-        ``late`` counts the accepted rows whose epoch was already solved (stored, not
-        solved live)."""
+        ``late`` counts the accepted rows whose epoch was already solved, or may have
+        been (stored, not solved again; :mod:`robustloc.service.assembly`)."""
         return {"accepted": self.accepted,
                 "rejected": [{"index": i, "error": e}
                              for i, e in self.rejected[:MAX_REJECTED_LISTED]],
@@ -249,8 +254,11 @@ class Engine:
             raise ValueError(f"cannot locate from {value}: the anchors have no path-loss "
                              "parameters (columns A, n; run `robustloc calibrate`)")
         self.kind = value
+        # (the epochs whose every row arrives late are solved by a stateless processor:
+        # a filter cannot go back in time; robustloc.service.assembly)
         self.assembler = EpochAssembler(self.anchor_ids, latency_window_s, idle_flush_s,
-                                        time_jump_s)
+                                        time_jump_s,
+                                        live_late=getattr(processor, "stateless", False))
         self.metrics = Metrics(self.anchor_ids)
         self.store_dir = None if store_dir is None else Path(store_dir)
         self.snapshot_s = snapshot_s
@@ -672,17 +680,19 @@ class Engine:
             self._enqueue([self._take(-np.inf)], wall)
             self._runs_for(rebased)[rebased] += 1
         late = a.late(batch.time, code)
+        # late rows of an epoch never solved are solved all the same (stateless solver)
+        fresh = a.late_unsolved(batch.time, code, late)
         table = pa.table({
             "time": batch.time, "tag": pa.array(batch.tag, pa.string()),
             "anchor": self._anchor_arrow.take(batch.anchor_col), "value": batch.value,
-            "arrival": np.full(n, wall), "late": late,
+            "arrival": np.full(n, wall), "late": late & ~fresh,
             "source": pa.repeat(pa.scalar(source, pa.string()), n),
             "run": self._runs_for(code)[code],
         }, schema=MEAS_SCHEMA)
         self.meas.append(table)  # durable before we answer
-        a.add_coded(batch.time, code, batch.anchor_col, batch.value, wall, late)
+        a.add_coded(batch.time, code, batch.anchor_col, batch.value, wall, late, fresh)
         self._enqueue([self._take(wall)], wall)
-        return int(late.sum()), wall
+        return int((late & ~fresh).sum()), wall
 
     def _finish(self, batch: RowBatch, rejected: list[tuple[int, str]],
                 rej_cols: np.ndarray, n_late: int, wall: float,
@@ -841,11 +851,24 @@ class Engine:
         return self.step(flush_all=True)
 
     def _solve(self, blocks: list[tuple[dict, float]]) -> int:
-        rows = {k: np.concatenate([b[k] for b, _ in blocks]) for k in blocks[0][0]}
+        keys = [k for k in blocks[0][0] if k != "late"]
+        rows = {k: np.concatenate([b[k] for b, _ in blocks]) for k in keys}
+        late = np.concatenate([b.get("late", np.zeros(len(b["time"]), dtype=bool))
+                               for b, _ in blocks])
         row_wall = np.repeat([w for _, w in blocks], [len(b["time"]) for b, _ in blocks])
-        return sum(self._solve_rows(rows if idx is None else {k: v[idx] for k, v in rows.items()},
-                                    row_wall if idx is None else row_wall[idx])
-                   for idx in self._run_passes(rows))
+        out = 0
+        # the epochs in time order first, then the late epochs never solved (assembly)
+        for part in (~late, late):
+            if not part.any():
+                continue
+            sub = rows if part.all() else {k: v[part] for k, v in rows.items()}
+            wall = row_wall if part.all() else row_wall[part]
+            out += sum(self._solve_rows(sub if idx is None else {k: v[idx]
+                                                                 for k, v in sub.items()},
+                                        wall if idx is None else wall[idx],
+                                        late=part is late)
+                       for idx in self._run_passes(sub))
+        return out
 
     @staticmethod
     def _run_passes(rows: dict) -> list[np.ndarray | None]:
@@ -861,8 +884,12 @@ class Engine:
             return [None]
         return [np.flatnonzero(rank == k) for k in range(int(rank.max()) + 1)]
 
-    def _solve_rows(self, rows: dict, row_wall: np.ndarray) -> int:
-        """Solve ready rows (at most one run per tag), store, count and publish them."""
+    def _solve_rows(self, rows: dict, row_wall: np.ndarray, *, late: bool = False) -> int:
+        """Solve ready rows (at most one run per tag), store, count and publish them.
+
+        ``late``: the rows of late epochs never solved (:mod:`robustloc.service.assembly`):
+        stored and published (with a column ``late``, true) like the others, but not a
+        tag's latest row (``/api/latest``), nor a watermark of the processor's state."""
         epochs = self.assembler.epochs(rows, self.kind)
         if not len(row_wall) or (row_wall == row_wall[0]).all():
             ready_wall = np.full(epochs.n_epochs, row_wall[0] if len(row_wall) else time.time())
@@ -883,7 +910,7 @@ class Engine:
             # behind made a live tag "silent", a reloaded page a long-silent one fresh;
             # the map review)
             frame = frame.assign(solved_at=round(time.time(), 3))
-        if epochs.n_epochs:
+        if epochs.n_epochs and not late:
             latest = pd.Series(epochs.time).groupby(epochs.tag).max()
             for tag, t in latest.items():
                 key = (str(tag), int(tag_run.get(tag, 0)))
@@ -897,6 +924,16 @@ class Engine:
         done = time.time()
         status = frame["status"].to_numpy() if "status" in frame else np.array(["ok"] * len(frame))
         self.metrics.solved(status, done - ready_wall)
+        if late:
+            with self.metrics._lock:
+                self.metrics.late_epochs_solved += len(frame)
+            frame = frame.assign(late=True)
+            for fn in list(self._listeners):
+                try:
+                    fn(frame)
+                except Exception:  # a listener's failure must not lose the block
+                    self.solver_errors += 1
+            return len(frame)
         with self._latest_lock:
             self._latest_frames.append(frame)
             if {"x", "y"} <= set(frame.columns):

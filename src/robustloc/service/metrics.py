@@ -33,6 +33,8 @@ class Metrics:
         self.rows_accepted: dict[str, int] = {}
         self.rows_rejected: dict[str, int] = {}
         self.rows_late = 0
+        #: epochs whose every row arrived late, solved all the same (service.assembly)
+        self.late_epochs_solved = 0
         self.tags_rebased = 0  # tags whose clock jumped (robustloc.service.assembly)
         self.tags_refused = 0  # new tags beyond serve --max-tags (their rows rejected)
         self.tags_forgotten = 0  # tags silent for serve --forget-after (state dropped)
@@ -118,6 +120,7 @@ class Metrics:
                 "rows_accepted": sum(self.rows_accepted.values()),
                 "rows_rejected": sum(self.rows_rejected.values()),
                 "rows_late": self.rows_late,
+                "late_epochs_solved": self.late_epochs_solved,
                 "tags_rebased": self.tags_rebased,
                 "tags_refused": self.tags_refused,
                 "tags_forgotten": self.tags_forgotten,
@@ -156,6 +159,11 @@ class Metrics:
                    "Accepted rows that arrived after their epoch was solved (stored, not "
                    "solved live).")
             lines.append(f"robustloc_rows_late_total {self.rows_late}")
+            family("robustloc_late_epochs_solved_total", "counter",
+                   "Epochs whose every row arrived late (after later epochs of the tag were "
+                   "solved), solved all the same and published with late=true (not with "
+                   "--track).")
+            lines.append(f"robustloc_late_epochs_solved_total {self.late_epochs_solved}")
             family("robustloc_tags_rebased_total", "counter",
                    "Times a tag's clock jumped (a row more than --time-jump behind its "
                    "newest time, nothing near it for --idle-flush) and its epochs "

@@ -1,0 +1,183 @@
+"""Live epochs whose every row arrives late (``robustloc.service.assembly``).
+
+A gateway that delivers whole epochs more than the latency window after another gateway's
+later ones left those epochs without any live position (stored, counted late, solved only
+by the batch commands).  A stateless service (``serve`` without ``--track``) now solves
+them: the assembler remembers each tag's latest solved epoch times and tells an epoch never
+solved from the late rows of one solved.  The assembler's rule by hand, then a real server.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from robustloc.service.assembly import RECENT_SOLVED, EpochAssembler
+
+obj = lambda *x: np.array(x, dtype=object)  # noqa: E731
+
+
+def _epochs(a: EpochAssembler, tag: str, times, wall: float, anchors=(0, 1, 2)):
+    t = np.repeat(np.asarray(times, dtype=float), len(anchors))
+    col = np.tile(np.asarray(anchors, dtype=np.int64), len(times))
+    return a.add(t, np.array([tag] * len(t), dtype=object), col, np.ones(len(t)), wall)
+
+
+def test_a_late_epoch_never_solved_is_released_with_late_set():
+    a = EpochAssembler(["A", "B", "C"], latency_window_s=0.5, idle_flush_s=2.0,
+                       live_late=True)
+    assert not _epochs(a, "t", [0, 1, 2, 3, 4, 5], wall=10.0).any()
+    r = a.take_ready(10.0)
+    assert sorted(set(r["time"].tolist())) == [0, 1, 2, 3, 4] and not r["late"].any()
+    # every row of epoch 2.5 arrives late (older than 5 - 0.5): never solved, so held for
+    # the rest of its epoch, then released with `late`
+    late = _epochs(a, "t", [2.5], wall=11.0, anchors=(0, 1))
+    assert not late.any()  # (not late in the sense of the reply: it will be solved)
+    late = _epochs(a, "t", [2.5], wall=12.0, anchors=(2,))  # the rest of its epoch
+    assert not late.any()
+    r = a.take_ready(12.9)  # it waits idle_flush_s from its first row (epoch 5 is idle)
+    assert r["time"].tolist() == [5.0] * 3 and not r["late"].any()
+    r = a.take_ready(13.0)
+    assert r["time"].tolist() == [2.5] * 3 and r["late"].all()
+    assert sorted(r["anchor_col"].tolist()) == [0, 1, 2] and a.late_epochs == 1
+    # solved now: a row of it, or of any solved epoch, is late as before
+    assert _epochs(a, "t", [2.5, 3.0, 5.0], wall=14.0, anchors=(0,)).all()
+    assert a.take_ready(100.0) is None and a.n_pending == 0
+
+
+def test_what_the_tag_no_longer_remembers_stays_late():
+    """Only the latest RECENT_SOLVED solved times are remembered: an epoch older than all
+    of them may have been solved, so its late rows are not solved again."""
+    a = EpochAssembler(["A", "B", "C"], latency_window_s=0.0, idle_flush_s=2.0,
+                       live_late=True)
+    n = RECENT_SOLVED + 8
+    _epochs(a, "t", np.arange(n + 1.0), wall=0.0)
+    assert len(set(a.take_ready(0.0)["time"].tolist())) == n  # 0 .. n-1 solved
+    oldest = n - RECENT_SOLVED  # the oldest time remembered
+    assert _epochs(a, "t", [oldest - 1.5], wall=1.0).all()  # before it: late
+    assert not _epochs(a, "t", [oldest + 0.5], wall=1.0).any()  # within: solved late
+    r = a.take_ready(3.5)  # (epoch n by idle flush, then the late one)
+    assert r["time"][r["late"]].tolist() == [oldest + 0.5] * 3
+    assert r["time"][~r["late"]].tolist() == [float(n)] * 3
+
+
+def test_a_restart_knows_nothing_before_its_restored_watermark():
+    a = EpochAssembler(["A", "B", "C"], latency_window_s=0.0, idle_flush_s=2.0,
+                       live_late=True)
+    a.set_watermarks({"t": 10.0}, {"t": 10.0})
+    assert _epochs(a, "t", [4.5, 10.0], wall=0.0).all()  # at or before 10: late
+    assert not _epochs(a, "t", [11.0], wall=0.0).any()
+
+
+def test_without_live_late_every_late_row_stays_late():
+    a = EpochAssembler(["A", "B", "C"], latency_window_s=0.0, idle_flush_s=2.0)
+    _epochs(a, "t", [0.0, 1.0, 2.0], wall=0.0)
+    a.take_ready(0.0)
+    assert _epochs(a, "t", [0.5], wall=0.0).all()
+    assert a.take_ready(100.0)["time"].tolist() == [2.0] * 3  # (idle flush of epoch 2)
+
+
+def test_late_rows_held_keep_their_tag_and_go_with_a_rebase():
+    a = EpochAssembler(["A", "B", "C"], latency_window_s=0.0, idle_flush_s=2.0,
+                       time_jump_s=100.0, live_late=True)
+    _epochs(a, "t", [500.0, 501.0, 502.0], wall=0.0)
+    a.take_ready(0.0)
+    _epochs(a, "t", [500.5], wall=1.0)  # a late epoch, held
+    assert a.n_pending == 3 + 3  # epoch 502 and the late one
+    assert a.idle_tags(1e9).size == 0  # a tag holding late rows is not forgotten
+    with pytest.raises(ValueError, match="pending"):
+        a.forget(np.array([a.known["t"]]))
+    # the device restarted its clock (2 s later, nothing new since): a re-base releases
+    # the held late epoch with the tag's earlier run, and its memory restarts
+    code = a.codes(obj("t"))
+    assert a.rebase(np.array([3.0]), code, wall=3.0).tolist() == code.tolist()
+    r = a.take_ready(3.0)
+    assert sorted(set(r["time"][r["late"]].tolist())) == [500.5]
+    assert sorted(set(r["time"][~r["late"]].tolist())) == [502.0]
+    assert not _epochs(a, "t", [3.0, 4.0], wall=3.0).any()
+
+
+# --------------------------------------------------------------------------------------
+# a real server
+# --------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def ble(tmp_path_factory):
+    import subprocess
+
+    from robustloc.service.launch import ROBUSTLOC
+
+    d = tmp_path_factory.mktemp("ble")
+    subprocess.run([*ROBUSTLOC, "simulate", "ble-corridor", "--seed", "1", "--out", str(d)],
+                   check=True, capture_output=True, text=True)
+    return d
+
+
+def _rows(ble, tag: str, times) -> list[dict]:
+    """The simulated log's epochs of tag S1 at ``times``, as rows of ``tag``."""
+    from robustloc.io import read_measurements
+
+    m = read_measurements(ble / "measurements.csv")
+    m = m[m["tag"] == "S1"]
+    ts = np.sort(m["time"].unique())
+    return [{"time": float(t), "tag": tag, "anchor": str(a), "rssi": float(v)}
+            for t in ts[list(times)] for a, v in
+            zip(m.loc[m["time"] == t, "anchor"], m.loc[m["time"] == t, "rssi"])]
+
+
+@pytest.mark.parametrize("track", [False, True])
+def test_a_late_epoch_gets_its_live_position(ble, server_factory, track):
+    """Every row of one epoch arrives after ten later epochs were solved: without
+    ``--track`` it is solved all the same (the fix equals that of the same epoch sent in
+    order as another tag, to 1e-9 m), stored, published on the WebSocket with ``late``
+    true and counted; it is not the tag's latest row.  With ``--track`` (a filter cannot
+    go back) its rows are late, stored and counted as before."""
+    httpx = pytest.importorskip("httpx")
+    from test_service import wait_for  # (tests/ is on the path)
+    from websockets.sync.client import connect
+
+    from robustloc.service.launch import read_metric
+
+    srv = server_factory(["--anchors", str(ble / "anchors.csv"), "--latency-window", "0.5",
+                          "--idle-flush", "0.3", *(["--track"] if track else [])])
+    u = srv.url
+    first = _rows(ble, "G", [i for i in range(12) if i != 4])
+    assert httpx.post(u + "/api/measurements", json=first).json()["late"] == 0
+    late_rows = _rows(ble, "G", [4])
+    t_late, t_last = late_rows[0]["time"], first[-1]["time"]
+
+    def positions(tag):
+        return httpx.get(u + f"/api/positions?tag={tag}").json()
+
+    wait_for(lambda: len(positions("G")) == 11, what="the eleven epochs sent in order")
+    with connect(u.replace("http://", "ws://") + "/ws/positions?tag=G") as sub:
+        body = httpx.post(u + "/api/measurements", json=late_rows).json()
+        assert body["accepted"] == len(late_rows)
+        if track:
+            assert body["late"] == len(late_rows)
+            assert read_metric(u, "robustloc_rows_late_total") == len(late_rows)
+            with pytest.raises(TimeoutError):
+                sub.recv(timeout=2.0)
+            assert t_late not in [p["time"] for p in positions("G")]
+            assert read_metric(u, "robustloc_late_epochs_solved_total") == 0
+            return
+        assert body["late"] == 0
+        msg = json.loads(sub.recv(timeout=30))
+    assert msg["time"] == t_late and msg["late"] is True
+    got = wait_for(lambda: [p for p in positions("G") if p["time"] == t_late],
+                   what="the late epoch stored")
+    assert len(got) == 1 and np.isfinite(got[0]["x"]) and "late" not in got[0]
+    # the same epoch in order, as another tag: the same fix
+    httpx.post(u + "/api/measurements", json=_rows(ble, "H", [4]))
+    ref = wait_for(lambda: positions("H"), what="H solved")[0]
+    assert (got[0]["x"], got[0]["y"]) == pytest.approx((ref["x"], ref["y"]), abs=1e-9)
+    assert got[0]["status"] == ref["status"] and msg["x"] == pytest.approx(ref["x"], abs=1e-9)
+    assert read_metric(u, "robustloc_late_epochs_solved_total") == 1
+    assert read_metric(u, "robustloc_rows_late_total") == 0
+    latest = {r["tag"]: r for r in httpx.get(u + "/api/latest").json()}
+    assert latest["G"]["time"] == t_last
+    # a row of it again: its epoch is solved now, the row is late
+    assert httpx.post(u + "/api/measurements", json=late_rows[:1]).json()["late"] == 1
