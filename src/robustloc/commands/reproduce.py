@@ -15,15 +15,22 @@ public data, prints the tables beside the published numbers, and writes report.m
 report.html, summary.json, CSV tables and PNG figures into --out.  The report is written
 whole or not at all: a run that fails or is interrupted leaves --out as it was (absent,
 or the previous report, which a complete run replaces whole); a folder that is not a
-robustloc report is refused.
+robustloc report is refused.  --only without -o refuses to replace the default folder
+`report` when it holds other sections (a rerun of one section would drop the rest): give
+-o a new folder, or -o report to replace it.
 
 Real data: --data DIR (default ../shared/data when it exists); without it the small
 excerpts shipped in the package are used and the report says so (a data set missing
 from DIR is taken from its excerpt, with a note on stderr)."""
 
 
+#: The report folder when -o is not given.
+DEFAULT_OUT = "report"
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("-o", "--out", default="report", help="output folder (default: report)")
+    p.add_argument("-o", "--out", default=None,
+                   help=f"output folder (default: {DEFAULT_OUT})")
     p.add_argument("--data", default=None, help="real-data folder (default: ../shared/data)")
     p.add_argument("--seed", type=nonnegative_int, default=1,
                    help="seed for every simulation (default 1)")
@@ -50,12 +57,25 @@ def run(args: argparse.Namespace) -> int:
         section_modules(args.only)
     except ValueError as exc:
         raise InputError(f"argument --only: {exc}") from None
-    from robustloc.reproduce._output import check_out, check_out_text
+    from robustloc.reproduce._output import check_out, check_out_text, report_sections
 
     # the output checked before any work: an empty -o (``Path("")`` is the working
     # folder), a file, or a folder that is not a robustloc report (it is never replaced)
+    given = args.out is not None
+    if not given:
+        args.out = DEFAULT_OUT
     check_out_text(args.out)
     check_out(Path(args.out))
+    if args.only and not given:
+        # the report's own advice ("Rerun: robustloc reproduce --only s60_tracks") replaced
+        # a whole report by one section, 13 minutes of results gone (the reproduce review)
+        keep = {m.KEY for m in section_modules(args.only)}
+        other = sorted(set(report_sections(Path(args.out))) - keep)
+        if other:
+            raise InputError(
+                f"holds the report of {', '.join(other)} as well, which --only would drop "
+                "(a report folder is replaced whole): give -o a new folder, or -o "
+                f"{args.out} to replace it", Path(args.out))
     compile_notice("positioning", "filter")
     data_dir = resolve_data_dir(args.data)
     ctx = Context(out_dir=Path(args.out), data_dir=data_dir, seed=args.seed, quick=args.quick)

@@ -230,6 +230,11 @@ def _read_mbd(path: Path, with_position: bool) -> pd.DataFrame:
             compression="infer",
             skip_blank_lines=True,
         )
+    except UnicodeDecodeError:
+        # (pandas' message names a byte of its buffer, not of the file, and no line)
+        from robustloc.io.tables import _decode_error, _format
+
+        raise _decode_error(path, path, _format(path, path)) from None
     except (pd.errors.ParserError, ValueError, OSError, EOFError) as e:
         msg = f"malformed log ({ncol} comma-separated fields expected): {e}"
         raise InputError(msg, path) from None
@@ -240,7 +245,9 @@ def _read_mbd(path: Path, with_position: bool) -> pd.DataFrame:
         bad = ~np.isfinite(num.to_numpy(dtype=float))
         if bad.any():
             i = int(np.flatnonzero(bad)[0])
-            raise InputError(f"non-numeric or non-finite {c}: {df[c].iloc[i]!r}", path, i + 1)
+            v = df[c].iloc[i]
+            shown = f"{float(v):g}" if isinstance(v, float | np.floating) else repr(str(v))
+            raise InputError(f"non-numeric or non-finite {c}: {shown}", path, i + 1)
         df[c] = num.astype(float)
     if df["mac"].isna().any():
         i = int(np.flatnonzero(df["mac"].isna().to_numpy())[0])
@@ -307,17 +314,44 @@ def _samples_to_frames(
 # tracks
 
 
+#: The upstream data set's walks (``trk/<name>_all_sensors.mbd``).
+UPSTREAM_TRACKS = ("rectangular_without_rotation", "straight_01", "straight_02",
+                   "straight_03", "zigzagging_without_rotation")
+
+
+def tracks_note(data_dir: str | Path | None = None) -> str:
+    """A note naming the upstream walks a full data folder lacks (``""``: none, or the
+    shipped excerpt, which holds two of them): a deleted walk changed a report's figures
+    without a word (the reproduce review)."""
+    src = resolve(data_dir)
+    if src.kind != "full":
+        return ""
+    missing = sorted(set(UPSTREAM_TRACKS) - set(list_tracks(src.path)))
+    if not missing:
+        return ""
+    return (f"{NAME}: {len(UPSTREAM_TRACKS) - len(missing)} of the upstream's "
+            f"{len(UPSTREAM_TRACKS)} walks in {src.path / 'trk'} (missing: "
+            f"{', '.join(missing)}); the figures cover those present")
+
+
 def list_tracks(data_dir: str | Path | None = None) -> list[str]:
-    """Names of the available tracks (e.g. ``"straight_01"``), sorted."""
+    """Names of the available tracks (e.g. ``"straight_01"``), sorted.
+
+    Raises
+    ------
+    InputError
+        No track log in the data set's ``trk/`` folder (or no such folder): every user
+        of the tracks had a traceback on an empty list (the reproduce review).
+    """
     src = resolve(data_dir)
     d = src.path / "trk"
-    if not d.is_dir():
-        return []
     names = {
         p.name.split(_TRACK_SUFFIX)[0]
-        for p in d.iterdir()
+        for p in (d.iterdir() if d.is_dir() else ())
         if p.name.endswith(_TRACK_SUFFIX) or p.name.endswith(_TRACK_SUFFIX + ".gz")
     }
+    if not names:
+        raise InputError(f"no track log (*{_TRACK_SUFFIX}) in this folder", d)
     return sorted(names)
 
 

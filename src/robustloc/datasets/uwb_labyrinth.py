@@ -41,7 +41,8 @@ class LabyrinthRun:
     measurements : ``time, tag, anchor, range, var``.
     odometry : ``time, speed_mps, yaw_rate_rps``.
     truth : ``time, tag, x, y``.
-    skipped : lines skipped (unknown type or wrong field count), by line number.
+    skipped : always empty (a malformed line is an :class:`InputError`); kept for
+        callers that read it.
     """
 
     anchors: pd.DataFrame
@@ -52,30 +53,34 @@ class LabyrinthRun:
 
 
 def _parse(path: Path) -> tuple[dict[str, list[list[float]]], list[int]]:
+    """The lines of each type.  A line of another type, too few fields or a value that is
+    not a finite number is an error naming its line: the data set has none, and such lines
+    were skipped without a word (a file cut mid-line, or bytes damaged, changed the
+    report's figures; the reproduce review)."""
     try:
         text = path.read_text(encoding="ascii", errors="replace")
     except OSError as exc:
         raise InputError(f"cannot read: {exc.strerror or exc}", path) from None
     rows: dict[str, list[list[float]]] = {k: [] for k in _FIELDS}
-    skipped: list[int] = []
     for lineno, line in enumerate(text.splitlines(), start=1):
         parts = line.split()
         if not parts:
             continue
         n = _FIELDS.get(parts[0])
-        if n is None or len(parts) < n:
-            skipped.append(lineno)
-            continue
+        if n is None:
+            raise InputError(f"not a line of this data set (its first word is one of "
+                             f"{', '.join(_FIELDS)})", path, lineno)
+        if len(parts) < n:
+            raise InputError(f"{parts[0]}: {n} fields expected, {len(parts)} found",
+                             path, lineno)
         try:
             vals = [float(v) for v in parts[1:n]]
         except ValueError:
-            skipped.append(lineno)
-            continue
+            vals = [np.nan]
         if not np.all(np.isfinite(vals)):
-            skipped.append(lineno)
-            continue
+            raise InputError(f"{parts[0]}: a field that is not a finite number", path, lineno)
         rows[parts[0]].append(vals)
-    return rows, skipped
+    return rows, []
 
 
 def load(data_dir: str | Path | None = None) -> LabyrinthRun:

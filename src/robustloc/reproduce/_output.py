@@ -58,12 +58,32 @@ def is_report(folder: Path) -> bool:
     return True
 
 
+def report_sections(folder: Path) -> list[str]:
+    """The sections of the report in ``folder`` (the keys of its ``summary.json``); empty
+    when it holds no report, or one whose summary cannot be read."""
+    import json
+
+    if not folder.is_dir() or not is_report(folder):
+        return []
+    try:
+        summary = json.loads((folder / "summary.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return []
+    return [str(k) for k in summary] if isinstance(summary, dict) else []
+
+
 def check_out(out: Path) -> None:
-    """Refuse an output that cannot take a report, before any work: a file, or a folder
-    that is neither empty nor a robustloc report (its files would be deleted)."""
+    """Refuse an output that cannot take a report, before any work: a file, a path under a
+    file, or a folder that is neither empty nor a robustloc report (its files would be
+    deleted)."""
     if out.exists() and not out.is_dir():
         raise InputError("exists and is not a folder (reproduce writes a report folder)",
                          out)
+    for parent in out.absolute().parents:  # (it said "already exists" of a path that
+        if parent.exists():                # did not: the reproduce review)
+            if not parent.is_dir():
+                raise InputError("a parent of this path is a file, not a folder", out)
+            break
     if out.is_dir():
         try:
             empty = not any(out.iterdir())

@@ -102,6 +102,7 @@ def _note_sources(ctx: Context) -> None:
     ctx.dataset_dir("uwb-dwm1001")
     ctx.dataset_dir("uwb-labyrinth")
     ctx.note(ble_tetam.resolve(ctx.data_dir))
+    ctx.note(ble_tetam.tracks_note(ctx.data_dir))
 
 
 def run(ctx: Context) -> Section:

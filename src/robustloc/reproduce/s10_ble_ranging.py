@@ -245,6 +245,7 @@ def _ble(ctx: Context, sec: Section) -> None:
     an = cal.apply_to_anchors(anchors)
     A, n = log_distance_arrays(an)
     xy = anchors[["x", "y"]].to_numpy(float)
+    ctx.note(bt.tracks_note(src.path))
     tracks = bt.list_tracks(src.path)
     data = []
     for tr in tracks:

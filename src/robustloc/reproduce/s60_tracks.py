@@ -234,6 +234,7 @@ def _ble(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, f
     ids = [str(a) for a in an["anchor"]]
     xy = an[["x", "y"]].to_numpy(float)
     data, logs = [], []
+    ctx.note(bt.tracks_note(src.path))
     for tr in bt.list_tracks(src.path):
         meas, truth = bt.load_track(tr, src.path)
         ep = to_epochs(meas, ids)
@@ -538,7 +539,10 @@ def _lab(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, f
                 txy = np.c_[np.interp(t, tt, r.truth["x"]), np.interp(t, tt, r.truth["y"])]
                 plots.append(("uwb-labyrinth", txy, None, rows[["x", "y"]].to_numpy(float),
                               sm, an[["x", "y"]].to_numpy(float)))
-    sec.table("uwb-labyrinth (one range per 0.128 s, 30 s: 59 ranging cycles): 2-D error "
+    tm = r.measurements["time"].to_numpy(float)
+    n_cycles = len(epochings["ranging cycles"].groupby(["time", "tag"]))
+    sec.table(f"uwb-labyrinth (one range per {np.median(np.diff(tm)):.3g} s, "
+              f"{tm[-1] - tm[0]:.0f} s: {n_cycles} ranging cycles): 2-D error "
               "(m).  `locate` needs epochs: ranging cycles (every anchor once) or fixed "
               "windows.  `+ calibrate --self`: the anchors' range bias, scale and sigma "
               "estimated from this log's ranging cycles without truth (`robustloc "
@@ -622,7 +626,8 @@ def run(ctx: Context) -> Section:
         "`range_offset`); the real data sets also with `link_offsets` (each link's offset as "
         "a state, default prior); the process noise was chosen by measurement on each data "
         "set.  "
-        "Rerun: `robustloc reproduce --only s60_tracks`.")
+        "Rerun: `robustloc reproduce --only s60_tracks -o report-s60` (a folder of its own:"
+        " a report folder is replaced whole).")
     plots: list = []
     stanford: list = []  # (data set, error, hpl) of the tracker's rows (default settings)
     walk = _walk(ctx, sec, plots, stanford)
