@@ -264,6 +264,32 @@ def live(tmp_path_factory):
         srv.stop()
 
 
+def test_map_page_does_not_move_a_tag_to_a_late_epochs_fix(live):
+    """A late epoch's fix (every row of it came after later epochs were solved) is
+    published with ``late`` true: history, not where the tag is.  The page took it as the
+    tag's clock going back: the marker jumped to it and the trail restarted."""
+    from robustloc.service.launch import read_metric
+
+    with _Chromium() as browser:
+        page = _open(browser, live.url + "/")
+        for t in range(7):
+            _post(live, _rows("LATE", (5, 2), t))
+        x = wait_for(lambda: _latest(live).get("LATE", {}).get("time") == 6
+                     and _latest(live)["LATE"]["x"], what="LATE at time 6")
+        _wait_marker_x(page, "LATE", x)
+        before = read_metric(live.url, "robustloc_late_epochs_solved_total")
+        _post(live, _rows("LATE", (20, 2), 2.5))  # every row late, the fix far away
+        wait_for(lambda: read_metric(live.url, "robustloc_late_epochs_solved_total")
+                 > before, what="the late epoch solved")
+        time.sleep(1.0)  # (its row reaches the page over the WebSocket)
+        got = float(page.get_attribute('circle.tag-marker[data-tag="LATE"]', "data-x"))
+        assert got == pytest.approx(x, abs=1e-6)
+        trail = page.get_attribute('polyline.tag-trail[data-tag="LATE"]', "points")
+        ox, _ = _origin(page)
+        pts = [float(p.split(",")[0]) + ox for p in trail.split()]
+        assert len(pts) >= 2 and all(abs(v - 5) < 1 for v in pts), trail
+
+
 def test_map_page_follows_a_tag_whose_clock_went_back(tmp_path):
     """The server re-bases a tag whose clock restarts (--time-jump): the marker follows."""
     srv = ServerProcess(["--anchors", str(_write_anchors(tmp_path / "a.csv")),
