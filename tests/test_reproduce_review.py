@@ -133,3 +133,25 @@ def test_only_does_not_replace_a_fuller_default_report(tmp_path, monkeypatch, ca
     assert not (rep / "seed000_ble_cdf.png").exists()
     # a default report of exactly the sections run is replaced as before
     assert main([*QUICK, "--data", str(nodata)]) == 0
+
+
+def test_the_report_says_first_which_data_it_used(tmp_path):
+    """A fresh clone's report said only table by table that it used the excerpts."""
+    nodata = tmp_path / "nodata"
+    nodata.mkdir()
+    assert main([*QUICK, "--data", str(nodata), "-o", str(tmp_path / "r")]) == 0
+    lines = (tmp_path / "r" / "report.md").read_text().splitlines()
+    assert lines[0] == "# robustloc reproduction report"
+    assert lines[2].startswith(f"Real data: `{nodata}`") and "Seed 1; `--quick`" in lines[2]
+    assert "<p>Real data: <code>" in (tmp_path / "r" / "report.html").read_text()
+    # no data folder at all (a fresh clone): the report says it shows the excerpts
+    import robustloc.paths
+
+    mp = pytest.MonkeyPatch()
+    try:
+        mp.setattr(robustloc.paths, "default_data_dir", lambda: None)
+        assert main([*QUICK, "-o", str(tmp_path / "r2")]) == 0
+    finally:
+        mp.undo()
+    third = (tmp_path / "r2" / "report.md").read_text().splitlines()[2]
+    assert third.startswith("Real data: the small excerpts shipped in the package")

@@ -170,10 +170,30 @@ def _md_table(frame: pd.DataFrame) -> str:
     return "\n".join(lines)
 
 
-def render(sections: list[Section], out_dir: Path, elapsed: dict[str, float]) -> tuple[Path, Path]:
-    """Write ``report.md`` and ``report.html`` into ``out_dir``."""
+def run_preface(ctx: Context) -> str:
+    """The report's first paragraph: which real data it used, the seed, ``--quick``, and
+    the data-source notes of the run (a fresh clone's report said only table by table
+    that it used the shipped excerpts: the reproduce review)."""
+    if ctx.data_dir is None:
+        data = ("Real data: the small excerpts shipped in the package (no `../shared/data` "
+                "and no `--data`): the real-data figures are the excerpts', not the full "
+                "data sets'.")
+    else:
+        data = f"Real data: `{ctx.data_dir}`."
+    notes = "".join(f" Note: {n}." for n in sorted(ctx.notes))
+    run = f" Seed {ctx.seed}{'; `--quick` (fewer trials and epochs)' if ctx.quick else ''}."
+    return data + notes + run
+
+
+def render(sections: list[Section], out_dir: Path, elapsed: dict[str, float],
+           preface: str = "") -> tuple[Path, Path]:
+    """Write ``report.md`` and ``report.html`` into ``out_dir`` (``preface``: a first
+    paragraph, :func:`run_preface`)."""
     md = ["# robustloc reproduction report", ""]
     body = ["<h1>robustloc reproduction report</h1>"]
+    if preface:
+        md += [preface, ""]
+        body.append(f"<p>{_html_text(preface)}</p>")
     heads = [h for s in sections for h in s.headlines]
     if heads:  # the one-screen summary first: each headline, the paper's, ours, the peer's
         summ = pd.DataFrame(heads)
@@ -253,7 +273,7 @@ def run_all(ctx: Context, only: list[str] | None = None) -> list[Section]:
                 if kind == "table":
                     caption, frame = payload
                     print(f"\n{caption}\n{frame.to_string(float_format=lambda v: f'{v:.3f}')}")
-        render(sections, dest.stage, elapsed)
+        render(sections, dest.stage, elapsed, run_preface(ctx))
         (dest.stage / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
         dest.commit()
     except BaseException:
