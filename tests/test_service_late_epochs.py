@@ -13,6 +13,8 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from robustloc.service.assembly import RECENT_SOLVED, EpochAssembler
 
@@ -69,6 +71,23 @@ def test_a_restart_knows_nothing_before_its_restored_watermark():
     a.set_watermarks({"t": 10.0}, {"t": 10.0})
     assert _epochs(a, "t", [4.5, 10.0], wall=0.0).all()  # at or before 10: late
     assert not _epochs(a, "t", [11.0], wall=0.0).any()
+
+
+def test_a_row_of_an_epoch_still_pending_joins_it():
+    """After a restart the store's unsolved rows are pending again, older than their tag's
+    newest time: a row of one of those epochs was late, taken for a late epoch never
+    solved, and the epoch solved twice (the second fix, from one row, replacing the first
+    in /api/positions; the late-epoch review).  It joins its epoch."""
+    a = EpochAssembler(["A", "B", "C"], latency_window_s=0.5, idle_flush_s=8.0,
+                       live_late=True)
+    a.set_watermarks({"t": 10.0}, {})
+    _epochs(a, "t", np.arange(11.0, 21.0), wall=0.0)  # put back, not yet taken
+    a.set_watermarks({}, {"t": 20.0})
+    late = a.add(np.array([12.0]), obj("t"), np.array([0]), np.array([7.0]), wall=1.0)
+    assert not late.any()
+    r = a.take_ready(1.0)
+    assert not r["late"].any() and (r["time"] == 12.0).sum() == 4
+    assert a.late_epochs == 0
 
 
 def test_without_live_late_every_late_row_stays_late():
@@ -181,3 +200,62 @@ def test_a_late_epoch_gets_its_live_position(ble, server_factory, track):
     assert latest["G"]["time"] == t_last
     # a row of it again: its epoch is solved now, the row is late
     assert httpx.post(u + "/api/measurements", json=late_rows[:1]).json()["late"] == 1
+
+
+def _check_memory(a: EpochAssembler, solved: dict[int, set[float]], qc, qt) -> None:
+    got = a.late_unsolved(qt, qc, np.ones(len(qt), dtype=bool))
+    for k, v, g in zip(qc.tolist(), qt.tolist(), got.tolist()):
+        top = sorted(solved[k], reverse=True)
+        floor = top[RECENT_SOLVED] if len(top) > RECENT_SOLVED else -np.inf
+        assert g == (v not in solved[k] and v > floor), (k, v, g, floor)
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.lists(st.tuples(st.lists(st.tuples(st.integers(0, 3), st.integers(0, 200)),
+                                   max_size=60),
+                          st.booleans()), min_size=1, max_size=20),
+       st.lists(st.tuples(st.integers(0, 3), st.integers(0, 210)), min_size=1, max_size=30))
+def test_memory_of_solved_epochs_equals_a_reference(batches, queries):
+    """The memory (folded lazily, a fast path for one newest time per tag, the general
+    sort otherwise) against its definition: a time is an epoch never solved when it is not
+    among the tag's solved times and above the (R+1)-th largest of them.  Batches are
+    noted and, after some, the memory is read (a fold); the streams of one newest time per
+    tag (the fast path) come from the batches' order."""
+    a = EpochAssembler(["A"], latency_window_s=0.0, idle_flush_s=1.0, live_late=True)
+    a.codes(obj("t0", "t1", "t2", "t3"))
+    solved: dict[int, set[float]] = {k: set() for k in range(4)}
+    qc = np.array([q[0] for q in queries], dtype=np.int64)
+    qt = np.array([q[1] / 2 for q in queries])
+    for batch, read in batches:
+        if batch:
+            c = np.array([b[0] for b in batch], dtype=np.int64)
+            t = np.array([b[1] / 2 for b in batch])
+            a._remember(t, c)
+            for k, v in zip(c.tolist(), t.tolist()):
+                solved[k].add(v)
+        if read:
+            _check_memory(a, solved, qc, qt)
+    _check_memory(a, solved, qc, qt)
+
+
+def test_memory_of_a_live_stream_and_a_burst():
+    """The fast path (one newest time per tag and fold), then a burst of more than
+    RECENT_SOLVED times of a tag in one fold (its oldest let go at once)."""
+    a = EpochAssembler(["A"], latency_window_s=0.0, idle_flush_s=1.0, live_late=True)
+    a.codes(obj("t0", "t1"))
+    solved: dict[int, set[float]] = {0: set(), 1: set()}
+    q = np.arange(0.0, 200.0, 0.5)
+    qc0, qc1 = np.zeros(len(q), dtype=np.int64), np.ones(len(q), dtype=np.int64)
+    for k in range(60):  # a fold after each release: the fast path
+        a._remember(np.array([float(k), float(k)]), np.array([0, 1]))
+        solved[0].add(float(k))
+        solved[1].add(float(k))
+        _check_memory(a, solved, qc0, q)
+    a._remember(np.array([61.0, 60.0]), np.array([0, 0]))  # two in a fold: the sort
+    solved[0].update([60.0, 61.0])
+    _check_memory(a, solved, qc0, q)
+    burst = np.arange(100.0, 150.0)  # 50 times of tag 1 in one fold
+    a._remember(burst, np.ones(len(burst), dtype=np.int64))
+    solved[1].update(burst.tolist())
+    _check_memory(a, solved, qc1, q)
+    _check_memory(a, solved, qc0, q)
