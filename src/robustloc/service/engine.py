@@ -928,22 +928,17 @@ class Engine:
             with self.metrics._lock:
                 self.metrics.late_epochs_solved += len(frame)
             frame = frame.assign(late=True)
-            for fn in list(self._listeners):
-                try:
-                    fn(frame)
-                except Exception:  # a listener's failure must not lose the block
-                    self.solver_errors += 1
-            return len(frame)
-        with self._latest_lock:
-            self._latest_frames.append(frame)
-            if {"x", "y"} <= set(frame.columns):
-                has = np.isfinite(frame["x"].to_numpy(float)) & np.isfinite(
-                    frame["y"].to_numpy(float))
-                if has.any():
-                    self._fix_frames.append(frame.loc[has, [c for c in _FIX_COLUMNS
-                                                            if c in frame.columns]])
-            if len(self._latest_frames) > 64:
-                self._compact_latest()
+        else:
+            with self._latest_lock:
+                self._latest_frames.append(frame)
+                if {"x", "y"} <= set(frame.columns):
+                    has = np.isfinite(frame["x"].to_numpy(float)) & np.isfinite(
+                        frame["y"].to_numpy(float))
+                    if has.any():
+                        self._fix_frames.append(frame.loc[has, [c for c in _FIX_COLUMNS
+                                                                if c in frame.columns]])
+                if len(self._latest_frames) > 64:
+                    self._compact_latest()
         for fn in list(self._listeners):
             try:
                 fn(frame)
