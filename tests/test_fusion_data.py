@@ -80,16 +80,25 @@ def test_labyrinth_tight_works_where_loose_has_no_fix():
     assert s2["rms"] < s["rms"]
 
 
-def test_labyrinth_skips_bad_lines(tmp_path):
+def test_labyrinth_refuses_bad_lines(tmp_path):
+    """A bad line was skipped (into ``skipped``, which nothing read): a file cut mid-line
+    changed the report's figures without a word (the reproduce review).  Each is now an
+    error naming its line; a file without one loads."""
+    from robustloc.errors import InputError
+
     d = tmp_path / "uwb-labyrinth"
     d.mkdir()
-    (d / "Indoor_UWB_Input.txt").write_text(
-        "range2 0.1 2.0 0.01 0 0 105 0\nrange2 0.2 nan 0.01 0 0 105 0\nrange2 0.3\n"
-        "bogus 1 2 3\nodom2diff 0.1 0.2 0.2 0 0.08 0 0 0\n"
-    )
+    good = "range2 0.1 2.0 0.01 0 0 105 0\nodom2diff 0.1 0.2 0.2 0 0.08 0 0 0\n"
     (d / "Indoor_UWB_GT.txt").write_text("point2 0.1 1 1 0 0 0 0\n")
+    for bad, message in (("range2 0.2 nan 0.01 0 0 105 0", "not a finite number"),
+                         ("range2 0.3", "8 fields expected, 2 found"),
+                         ("bogus 1 2 3", "not a line of this data set")):
+        (d / "Indoor_UWB_Input.txt").write_text(good + bad + "\n")
+        with pytest.raises(InputError, match=f"Indoor_UWB_Input.txt:3: .*{message}"):
+            uwb_labyrinth.load(tmp_path)
+    (d / "Indoor_UWB_Input.txt").write_text(good)
     r = uwb_labyrinth.load(tmp_path)
-    assert len(r.measurements) == 1 and r.skipped == [2, 3, 4]
+    assert len(r.measurements) == 1 and r.skipped == []
     assert isinstance(r.truth, pd.DataFrame) and len(r.truth) == 1
 
 
