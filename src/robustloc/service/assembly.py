@@ -326,10 +326,13 @@ class EpochAssembler:
         older than ``newest - window`` exist only between a restart putting rows back and
         the next :meth:`take_ready`; a row of one was late, and with ``live_late`` it was
         solved as a second, late epoch: the late-epoch review.)"""
-        late = (time <= self._solved[code]) | (time < self._newest[code] - self.window)
-        if late.any() and self._n_pending:
+        solved = time <= self._solved[code]
+        late = solved | (time < self._newest[code] - self.window)
+        # (a pending epoch is later than its tag's solved time: only such rows are looked
+        # up, so a stream of ordinary late rows never indexes the pending rows)
+        li = np.flatnonzero(late & ~solved)
+        if li.size and self._n_pending:
             t, c, _, _ = self._pending()  # type: ignore[misc]
-            li = np.flatnonzero(late)
             pending = pd.MultiIndex.from_arrays([c, t])
             late[li[pd.MultiIndex.from_arrays([code[li], time[li]]).isin(pending)]] = False
         return late
