@@ -204,7 +204,8 @@ def _source(con, files: list[str], fmt: str, spec: str) -> tuple[str, list[str]]
 
 def _parquet_time_seconds(files: list[str], spec: str) -> str | None:
     """The SQL of a Parquet ``time`` column in seconds, as the commands' reader turns it
-    (:func:`robustloc.io.tables._seconds`), or None for numbers.  A timestamp is seconds
+    (:func:`robustloc.io.tables._seconds`), or None for numbers.  Text is read as the
+    number it spells.  A timestamp is seconds
     since the Unix epoch (``CAST(time AS DOUBLE)`` refused it); a duration, which DuckDB
     reads as a BIGINT of its unit, is divided by the unit (it was taken as seconds: a
     duration of 9 s in microseconds became 9e6 s).
@@ -226,13 +227,19 @@ def _parquet_time_seconds(files: list[str], spec: str) -> str | None:
         if isinstance(t, pa.DictionaryType):
             t = t.value_type
         kinds.add(("timestamp", None) if pa.types.is_timestamp(t)
-                  else ("duration", t.unit) if pa.types.is_duration(t) else ("number", None))
-    if len(kinds) > 1 and any(k != "number" for k, _ in kinds):
+                  else ("duration", t.unit) if pa.types.is_duration(t)
+                  else ("text", None) if pa.types.is_string(t) or pa.types.is_large_string(t)
+                  else ("number", None))
+    if len(kinds) > 1 and any(k not in ("number", "text") for k, _ in kinds):
         raise InputError("the files' time columns differ in kind ("
                          + ", ".join(sorted(f"{k} {u}" if u else k for k, u in kinds))
                          + "): write them with one", spec)
     if kinds == {("timestamp", None)}:
         return "epoch(time)"
+    if ("text", None) in kinds:
+        # numbers written as text, which the readers take (they were binned by text
+        # arithmetic, an error, and sorted as text: "10" < "9"; the Dask review)
+        return "CAST(trim(CAST(time AS VARCHAR)) AS DOUBLE)"
     if len(kinds) == 1 and next(iter(kinds))[0] == "duration":
         per_s = {"s": 1, "ms": 1_000, "us": 1_000_000, "ns": 1_000_000_000}
         return f"CAST(time AS DOUBLE) / {per_s[next(iter(kinds))[1]]}"
@@ -317,9 +324,10 @@ def partition_dataset(
             rows, span, key = _duckdb(files, fmt, dest.stage, by, span_s, rows_per_partition,
                                       buckets, memory_limit, threads, source, str(out))
         else:
-            _check_with_duckdb(files, fmt, dest.stage, memory_limit, threads, source)
+            dtypes = _check_with_duckdb(files, fmt, dest.stage, memory_limit, threads,
+                                        source)
             rows, span, key = _dask(files, fmt, dest.stage, by, span_s, rows_per_partition,
-                                    buckets, scheduler, workers, source)
+                                    buckets, scheduler, workers, source, dtypes)
         written = list(dest.stage.rglob("*.parquet"))
         n_files = len(written)
         _check_rows_written(written, rows, out)
@@ -457,17 +465,68 @@ def _check_rows_written(files: list[Path], rows: int, out: str | os.PathLike) ->
                           "not written (a bug in robustloc; please report it)", out)
 
 
+#: The dtype of a text column in the dask method (Arrow strings, as dask's own).
+_TEXT = "string[pyarrow]"
+#: DuckDB column types that the dask method reads as float64 (any other as text).
+_NUMBER_TYPES = ("DOUBLE", "FLOAT", "REAL", "BIGINT", "INTEGER", "SMALLINT", "TINYINT",
+                 "HUGEINT", "UBIGINT", "UINTEGER", "USMALLINT", "UTINYINT", "DECIMAL")
+
+
 def _check_with_duckdb(files: list[str], fmt: str, stage: Path, memory_limit: str,
-                       threads: int | None, spec: str) -> None:
-    """``method="dask"``: the input checked by :func:`_stats` first (one DuckDB scan)."""
+                       threads: int | None, spec: str) -> dict[str, str]:
+    """``method="dask"``: the input checked by :func:`_stats` first (one DuckDB scan).
+
+    Returns each column of all the files together (their union, in DuckDB's order) with
+    the dtype the dask method reads it as: ``float64`` for a number, :data:`_TEXT`
+    otherwise, ids always text.  Dask takes the columns and their types from the first
+    file (or its first block): a later file with an integer ``time`` where the first had
+    a float, or with one more column, stopped the run with an internal error, and a
+    Parquet file's extra column was dropped without a word (the Dask review)."""
     tmp = stage / ".duckdb-tmp"
     con = _connect(memory_limit, threads, tmp)
     try:
         src, names = _source(con, files, fmt, spec)
         _stats(con, src, names, spec, files)
+        described = con.execute(f"DESCRIBE SELECT * FROM {src}").fetchall()
     finally:
         con.close()
         shutil.rmtree(tmp, ignore_errors=True)
+    return {str(c): (_TEXT if c in IDS
+                     else "float64" if str(t).upper().startswith(_NUMBER_TYPES) else _TEXT)
+            for c, t, *_ in described}
+
+
+def _dask_columns(df, dtypes: dict[str, str], path: str):
+    """One block of one input file in the dataset's columns and types (``dtypes``, from
+    :func:`_check_with_duckdb`): a column the file lacks is missing values, a Parquet
+    ``time`` in seconds as the readers take it, numbers as float64, ids as the readers
+    name them (:func:`robustloc.io.tables._ids`: stripped text, ``1.0`` as ``"1"``)."""
+    import numpy as np
+    import pandas as pd
+
+    from robustloc.io.tables import _ids, _seconds
+
+    df = df.rename(columns={c: str(c).strip() for c in df.columns})
+    cols = {}
+    for c, k in dtypes.items():
+        if c not in df.columns:
+            cols[c] = pd.Series(np.nan if k == "float64" else None, index=df.index, dtype=k)
+            continue
+        s = df[c]
+        if c in IDS:
+            one = pd.DataFrame({c: s})
+            _ids(one, c, path)
+            cols[c] = one[c].astype(k)
+        elif k == "float64":
+            if pd.api.types.is_datetime64_any_dtype(s) or pd.api.types.is_timedelta64_dtype(s):
+                cols[c] = pd.Series(_seconds(s), index=df.index)
+            elif pd.api.types.is_numeric_dtype(s):
+                cols[c] = s.astype("float64")
+            else:  # (numbers written as text)
+                cols[c] = pd.to_numeric(s.astype(str).str.strip()).astype("float64")
+        else:
+            cols[c] = s.astype(k)
+    return pd.DataFrame(cols, index=df.index)
 
 
 def _auto_span(n: int, tmin: float, tmax: float, span_s: float | None, rows: int) -> float:
@@ -551,21 +610,26 @@ _RAW_TAG = "__robustloc_tag"
 
 
 def _dask(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, scheduler, workers,
-          spec) -> tuple[int, float | None, str]:
+          spec, dtypes: dict[str, str]) -> tuple[int, float | None, str]:
     import dask.dataframe as dd
     import numpy as np
     import pandas as pd
 
-    from robustloc.engines.cluster import dask_client
+    from robustloc.engines.cluster import dask_client, gather_with_progress
 
-    with dask_client(scheduler, workers):
-        if fmt == "csv":  # (the ids stripped as the readers strip them)
-            ddf = dd.read_csv(files, dtype={"tag": str, "anchor": str}, blocksize="64MB",
-                              skipinitialspace=True)
-            ddf = ddf.rename(columns={c: str(c).strip() for c in ddf.columns})
-            ddf = ddf.assign(**{c: ddf[c].str.strip() for c in IDS if c in ddf.columns})
-        else:
-            ddf = dd.read_parquet(files, split_row_groups=True)  # a task per row group
+    meta = pd.DataFrame({c: pd.Series(dtype=k) for c, k in dtypes.items()})
+    with dask_client(scheduler, workers) as client:
+        # each file read alone and brought to the dataset's columns and types (dask
+        # takes both from the first file: _check_with_duckdb)
+        parts = []
+        for f in files:
+            if fmt == "csv":  # every column as text, typed by _dask_columns
+                one = dd.read_csv(f, dtype=str, keep_default_na=False, na_values=[""],
+                                  blocksize="64MB", skipinitialspace=True)
+            else:
+                one = dd.read_parquet(f, split_row_groups=True)  # a task per row group
+            parts.append(one.map_partitions(_dask_columns, dtypes, f, meta=meta))
+        ddf = parts[0] if len(parts) == 1 else dd.concat(parts)
         missing = [c for c in REQUIRED if c not in ddf.columns]
         if missing:
             raise InputError(f"input is missing column(s) {', '.join(missing)}", spec, 1)
@@ -595,8 +659,11 @@ def _dask(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, sche
         ddf = ddf.shuffle(on=key, npartitions=n_parts)
         ddf = ddf.map_partitions(lambda df: df.sort_values([key, "time", "tag", "anchor"],
                                                           kind="stable"))
-        ddf.to_parquet(str(stage), partition_on=[key], write_index=False,
-                       write_metadata_file=False)
+        # through the engine's gathering: an interrupt cancels the tasks quietly (dask's
+        # own compute printed "Task exception was never retrieved": the Dask review)
+        write = ddf.to_parquet(str(stage), partition_on=[key], write_index=False,
+                               write_metadata_file=False, compute=False)
+        gather_with_progress(client, [client.compute(write)], False)
     if key == "tag":  # the files' tag: the id itself (dask dropped the escaped one)
         import pyarrow.parquet as pq
 
