@@ -777,10 +777,16 @@ class Tracker:
         var = np.broadcast_to(link.sigma[None] ** 2, z.shape)
         if self._kind != "rssi" or self.settings.domain == "rssi":
             return z, var
-        with np.errstate(over="ignore", invalid="ignore"):
+        with np.errstate(over="ignore", invalid="ignore", under="ignore"):
             d = 10.0 ** ((link.A[None] - z) / (10.0 * link.n[None]))
             sd = d * (np.log(10.0) / 10.0) * link.sigma[None] / link.n[None]
-        return d, sd * sd
+            var = sd * sd
+        # a range that under- or overflows (a path-loss exponent near the reader's lower
+        # limit 0.01 maps an RSSI to 10^-350 m or 10^200 m, a variance of 0 or inf) is
+        # no observation: the compiled update divided by it (ZeroDivisionError, an
+        # internal error) and the NumPy one gave `ok` rows without a bound (the review)
+        bad = ~((d > 0) & np.isfinite(d) & (var > 0) & np.isfinite(var))
+        return np.where(bad, np.nan, d), np.where(bad, np.nan, var)
 
     # ------------------------------------------------------------------ public API
     def step(self, epochs: Any) -> pd.DataFrame:
@@ -849,6 +855,9 @@ class Tracker:
         bounds = np.searchsorted(rank[order], np.arange(rank.max() + 2))
         for r in range(rank.max() + 1):
             idx = order[bounds[r]: bounds[r + 1]]
+            dead = idx[~live[idx]]
+            # (the tag's re-start count so far: such a row said 0 after a re-start)
+            out.reinit[dead] = self._reinit[slots[dead]]
             idx = idx[live[idx]]
             if idx.size:
                 self._round(idx, slots[idx], time[idx], z_all[idx], out)
