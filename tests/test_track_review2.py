@@ -55,3 +55,82 @@ def test_an_invalid_epoch_after_a_restart_keeps_the_restart_count(tmp_path):
     t = pd.read_csv(out)
     assert t.status.tolist()[-1] == "invalid_measurement"
     assert t.reinit.tolist() == [0, 0, 1, 1, 1]
+
+
+def _jump_log(seed: int = 2) -> tuple[pd.DataFrame, pd.DataFrame, pd.DataFrame]:
+    """One range per 0.1 s, round-robin over four anchors of a 10 m square (as
+    uwb-labyrinth ranges), sigma 0.1 m; the tag walks at 0.05 m/s and is carried 8.5 m
+    away at t = 15 s (the reviewer's log)."""
+    rng = np.random.default_rng(seed)
+    a = pd.DataFrame({"anchor": ["A1", "A2", "A3", "A4"], "x": [0.0, 10, 10, 0],
+                      "y": [0.0, 0, 10, 10]})
+    rows, truth = [], []
+    for k in range(400):
+        t = round(k * 0.1, 4)
+        x, y = (2 + 0.05 * t, 2.0) if t < 15 else (8.0, 8.0)
+        truth.append((t, "T", x, y))
+        an = a.iloc[k % 4]
+        rows.append((t, "T", an.anchor, float(np.hypot(x - an.x, y - an.y)
+                                             + rng.normal(0, 0.1))))
+    return (a, pd.DataFrame(rows, columns=["time", "tag", "anchor", "range"]),
+            pd.DataFrame(truth, columns=["time", "tag", "x", "y"]))
+
+
+@pytest.mark.parametrize("kernel", ["compiled", "numpy"])
+def test_a_fault_detected_rows_bound_stands_until_the_filter_is_confirmed(kernel, monkeypatch):
+    """After the jump, the ranges of A1 and A3 fail the innovation test and those of A2
+    and A4 (whose distances the jump hardly changed) pass: the rows alternated
+    ``fault_detected`` and ``ok``, the ``ok`` ones 7-8 m off with ``hpl`` 0.7-2 m, for
+    2 s.  A detected fault's bound now stands for the rows after it until passing epochs
+    have used three ranges: no usable row lies beyond its bound.  The positions are those
+    of the filter without the rule (it changes bounds only): checked against the same
+    log's rows under the rule switched off."""
+    from robustloc.io.tables import to_epochs
+    from robustloc.tracking import Tracker
+    from robustloc.tracking import tracker as tracker_mod
+
+    a, meas, truth = _jump_log()
+    ep = to_epochs(meas, a["anchor"])
+    rows = Tracker(a, sigma=0.1, engine=kernel).step(ep)
+    m = rows.merge(truth, on=["time", "tag"], suffixes=("", "_t"))
+    err = np.hypot(m.x - m.x_t, m.y - m.y_t)
+    usable = m.status.isin(["ok", "fault_excluded", "low_redundancy", "fault_detected"])
+    assert (m.status[(m.time >= 15) & (m.time < 16)] == "fault_detected").sum() >= 4
+    assert not np.any(err[usable] > m.hpl[usable])
+    # the rule changes bounds only: the same log without it
+    monkeypatch.setattr(tracker_mod.Tracker, "_carry_suspicion", lambda self, *args: None)
+    old = Tracker(a, sigma=0.1, engine=kernel).step(ep)
+    pd.testing.assert_frame_equal(rows.drop(columns="hpl"), old.drop(columns="hpl"))
+    both = rows.hpl.notna() & old.hpl.notna()
+    assert (rows.hpl.isna() == old.hpl.isna()).all() and (rows.hpl[both] >= old.hpl[both]).all()
+    assert (rows.hpl[both] > old.hpl[both]).sum() >= 10
+    beyond_old = usable & (err > old.hpl) & (old.status == "ok")
+    assert beyond_old.sum() >= 5  # (the defect, as the review measured it)
+
+
+def test_a_standing_suspicion_is_saved_and_restored():
+    """`serve --track` steps one epoch per call through state_dict: the rows equal one
+    step over the whole log (the standing bound travels with the tag's state), and a
+    state saved before the rule existed (no ``susp`` keys) still loads."""
+    import json
+
+    from robustloc.io.tables import to_epochs
+    from robustloc.tracking import Tracker
+
+    a, meas, _ = _jump_log()
+    ep = to_epochs(meas, a["anchor"])
+    whole = Tracker(a, sigma=0.1).step(ep)
+    parts = []
+    saved = None
+    for i in range(ep.n_epochs):
+        t = Tracker(a, sigma=0.1)
+        if saved is not None:
+            t.load_state_dict(saved)
+        parts.append(t.step(type(ep)(ep.time[i:i + 1], ep.tag[i:i + 1], ep.values[i:i + 1],
+                                     ep.anchor_ids, ep.value, ep.line[i:i + 1])))
+        saved = json.loads(json.dumps(t.state_dict()))
+    pd.testing.assert_frame_equal(whole, pd.concat(parts, ignore_index=True))
+    old = json.loads(json.dumps(saved))
+    for rec in old["tags"].values():
+        del rec["susp"], rec["susp_n"]
+    Tracker(a, sigma=0.1).load_state_dict(old)

@@ -71,7 +71,10 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
    bound exceeds :data:`SNAPSHOT_BOUND_RATIO` times its noise term (after a gap, where
    ``(H P- H^T)_ii`` and with it the MDB grow without bound) also takes the epoch's own
    protected fix's bound ``|x - x_s| + HPL_s`` where smaller
-   (``Tracker._snapshot_bound``).
+   (``Tracker._snapshot_bound``).  A ``fault_detected`` row's bound (widened by
+   ``sqrt(NIS / dof)``) stands for the tag's next rows until passing epochs after it
+   have used :data:`SUSPICION_CONFIRM` observations: an update of one range cannot show
+   the state wrong across that range (``Tracker._carry_suspicion``).
 9. **A lost filter starts again.**  A prediction can be too wide to update: over a long
    gap (a tag's clock jumping ahead by hours) ``P-`` grows as ``q dt^4 / 4`` (``cv``), and
    once its position variance ``V = var_x + var_y`` reaches ``r_min / sqrt(eps)`` (``r_min``
@@ -193,6 +196,10 @@ SNAPSHOT_BOUND_RATIO = 10.0
 #: ... when its prediction widened the position variance of the previous update at least
 #: this many times (a gap).
 SNAPSHOT_PREDICTION_RATIO = 25.0
+#: Observations that passing epochs must use after a ``fault_detected`` row before its
+#: bound stops standing for the tag's rows (:meth:`Tracker._carry_suspicion`): a 2-D
+#: position and one more, the redundancy that can show the filter right.
+SUSPICION_CONFIRM = 3
 
 Array = NDArray[np.float64]
 #: Default a-priori sd of a link's offset (``link_offsets``) by measurement: metres for
@@ -492,6 +499,8 @@ class Tracker:
         self._reinit = np.zeros(S, dtype=np.int64)
         self._lastz = np.full((S, M), np.nan)
         self._lastt = np.full((S, M), np.nan)
+        self._susp = np.zeros(S)
+        self._susp_n = np.zeros(S, dtype=np.int64)
         self._alloc_pending(S)
 
     def _alloc_pending(self, S: int) -> None:
@@ -510,7 +519,9 @@ class Tracker:
             setattr(self, name, np.concatenate([head, np.zeros(S - have, dtype)]))
 
     _ARRAYS = ("_x", "_P", "_t", "_init", "_bias", "_held", "_gp", "_gm", "_hsum", "_hn",
-               "_scale2", "_bad", "_reinit", "_lastz", "_lastt")
+               "_scale2", "_bad", "_reinit", "_lastz", "_lastt", "_susp", "_susp_n")
+    #: Arrays a state saved before they existed lacks: loaded as these values.
+    _ARRAY_DEFAULTS = {"_susp": 0.0, "_susp_n": 0}
 
     def _slots(self, tags: NDArray[np.object_]) -> NDArray[np.int64]:
         """Each tag's slot in the state arrays (new tags get new slots)."""
@@ -915,6 +926,8 @@ class Tracker:
         self._drop_pending(sl)
         self._lastz[sl] = np.nan
         self._lastt[sl] = np.nan
+        self._susp[sl] = 0.0
+        self._susp_n[sl] = 0
 
     def _cover_mirror(self, idx: NDArray[np.int64], sl: NDArray[np.int64], z: Array,
                       out: _Rows) -> None:
@@ -1071,6 +1084,8 @@ class Tracker:
         self._hsum[k] = 0.0
         self._hn[k] = 0
         self._bias[k] = 0.0  # (offsets measured against the filter that is re-started)
+        self._susp[k] = 0.0  # (a start row is bounded by its own snapshot)
+        self._susp_n[k] = 0
         if reinit:
             self._reinit[k] += 1
         # rows: the fix (its status), or the failed fix's status
@@ -1360,6 +1375,7 @@ class Tracker:
                 f = np.sqrt(np.maximum(out.nis[rows] / np.maximum(dof[fd], 1), 1.0))
             out.hpl[rows] = out.hpl[rows] * np.where(np.isfinite(f), f, 1.0)
         self._snapshot_bound(idx, sl, xn, Pn, Pp, z, out)
+        self._carry_suspicion(idx, sl, z, out)
         bad = self._count_bad(sl, xn, z, moved, sus, dof)
         if self.record:
             self._history.append({"idx": idx, "slot": sl.copy(),
@@ -1378,6 +1394,39 @@ class Tracker:
                 for a, v in keep_rows.items():
                     getattr(out, a)[rows] = v[~ok]
         out.reinit[idx] = self._reinit[sl]
+
+    def _carry_suspicion(self, idx: NDArray[np.int64], sl: NDArray[np.int64], z: Array,
+                         out: _Rows) -> None:
+        """Carry a ``fault_detected`` row's bound to its tag's next rows until they
+        confirm the filter (module docstring, item 8).
+
+        A detected fault that no exclusion explains may be the state's, not the
+        observations': the filter keeps its state (it rejects the observations), and an
+        update of one range cannot show it wrong across that range's direction.  So the
+        row's widened ``hpl`` stands as a lower bound of the tag's next rows' until
+        passing epochs after it have used ``3`` observations (2-D position plus one:
+        one redundant epoch, or three single-range epochs in a row).  Before, one range
+        a round (round-robin ranging) after a jump of the tag gave ``fault_detected``
+        and ``ok`` rows in turn, the ``ok`` ones 8 m off with ``hpl`` 0.7-2 m, for 2 s
+        (the tracker review, 2026-12-06).  Positions are unchanged.
+        """
+        status = out.status[idx]
+        fd = status == st.FAULT_DETECTED
+        cur, cnt = self._susp[sl], self._susp_n[sl]
+        cur = np.where(np.isnan(cur), np.inf, cur)  # (state_dict saves inf, no bound, as null)
+        if not (fd.any() or (cur > 0).any()):
+            return
+        used = (np.isfinite(z) & ~out.excluded[idx]).sum(axis=1)
+        passing = ~fd & st.among(status, st.USABLE) & (cur > 0)
+        cnt = np.where(passing, cnt + used, np.where(fd, 0, cnt))
+        done = passing & (cnt >= SUSPICION_CONFIRM)
+        under = (passing & ~done) | (fd & (cur > 0))
+        hpl = out.hpl[idx]
+        out.hpl[idx[under]] = np.maximum(hpl[under], cur[under])
+        with np.errstate(invalid="ignore"):
+            new = np.where(fd, np.fmax(cur, np.where(np.isnan(hpl), np.inf, hpl)), cur)
+        self._susp[sl] = np.where(done, 0.0, new)
+        self._susp_n[sl] = np.where(done, 0, cnt)
 
     def _snapshot_bound(self, idx: NDArray[np.int64], sl: NDArray[np.int64], xn: Array,
                         Pn: Array, Pp: Array, z: Array, out: _Rows) -> None:
@@ -1752,6 +1801,8 @@ class Tracker:
             rec = state["tags"][key]
             for name in self._ARRAYS:
                 a = getattr(self, name)
+                if name in self._ARRAY_DEFAULTS and name[1:] not in rec:  # (older states)
+                    rec = {**rec, name[1:]: self._ARRAY_DEFAULTS[name]}
                 v = np.array([np.nan if u is None else u for u in np.ravel(rec[name[1:]])]
                              if isinstance(rec[name[1:]], list) else
                              [np.nan if rec[name[1:]] is None else rec[name[1:]]])
@@ -1772,7 +1823,8 @@ class Tracker:
                   for name in ("_bias", "_gp", "_gm", "_hsum", "_scale2")]
         checks.append(("_scale2", self._scale2[k] > 0))
         checks += [(name, (getattr(self, name)[k] >= 0).all())
-                   for name in ("_hn", "_bad", "_reinit")]
+                   for name in ("_hn", "_bad", "_reinit", "_susp_n")]
+        checks.append(("_susp", not self._susp[k] < 0))  # (NaN: saved inf, no bound)
         for name, ok in checks:
             if not ok:
                 raise ValueError(f"saved state of tag {tag!r}: {name[1:]} is not a value a "
