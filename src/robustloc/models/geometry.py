@@ -16,7 +16,8 @@ from numpy.typing import ArrayLike, NDArray
 
 Array = NDArray[np.float64]
 
-__all__ = ["anchor_elongation", "collinear", "elongation_rows", "unique_rows"]
+__all__ = ["anchor_elongation", "collinear", "elongation_rows", "mirror_flatness",
+           "unique_rows"]
 
 
 def unique_rows(mask: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], NDArray[np.intp]]:
@@ -83,6 +84,15 @@ def elongation_rows(anchors: ArrayLike, keep: ArrayLike) -> Array:
     Each row's scatter is taken about its own kept anchors' centroid (anchors 1e12 m
     from the origin keep their digits), and anchors a row does not keep never enter
     its sums (a non-finite one included)."""
+    ev, cnt = _scatter_eigenvalues(anchors, keep)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.maximum(ev[:, 0], 0.0) / ev[:, -1]
+    return np.where((cnt >= 2) & (ev[:, -1] > 0), ratio, np.nan)
+
+
+def _scatter_eigenvalues(anchors: ArrayLike, keep: ArrayLike) -> tuple[Array, NDArray[np.int64]]:
+    """Per row, the ascending eigenvalues of its kept anchors' scatter matrix about their
+    centroid (NaN where not finite) and the number of kept anchors."""
     a = np.asarray(anchors, dtype=float)
     k = np.asarray(keep, dtype=bool)
     cnt = k.sum(axis=1)
@@ -95,8 +105,58 @@ def elongation_rows(anchors: ArrayLike, keep: ArrayLike) -> Array:
         ev = np.full(S.shape[:2], np.nan)
         if good.any():
             ev[good] = np.linalg.eigvalsh(S[good])
-        ratio = np.maximum(ev[:, 0], 0.0) / ev[:, -1]
-    return np.where((cnt >= 2) & (ev[:, -1] > 0), ratio, np.nan)
+    return ev, cnt
+
+
+def mirror_flatness(anchors: ArrayLike, keep: ArrayLike, position: ArrayLike) -> Array:
+    """Per epoch, how close its kept anchors lie to a line (2-D; a plane in 3-D) *as seen
+    from the tag*: their mean squared distance from their least-squares line,
+    ``lambda_min / n`` (the smallest eigenvalue of their scatter matrix over their
+    number), over the median squared distance from the position to them.
+
+    0 when the anchors are collinear (the fix has an exact mirror image across their
+    line); about :func:`anchor_elongation` for a tag amid the anchors (a round spread
+    with the tag at its centre: 1/2).  Unlike the elongation, one anchor far from the
+    others does not make a well-spread layout look flat: four anchors on a 20 m square
+    and a fifth 190 m away have elongation 0.014 but flatness 0.36 for a tag inside the
+    square, whose ranges to the square tell a position from its mirror image across any
+    line (the self-calibration review, 2026-12-06).  NaN with fewer than two kept
+    anchors or a position that is not finite.
+
+    Parameters
+    ----------
+    anchors : (m, p) array
+    keep : (N, m) bool array
+        The anchors each epoch uses.
+    position : (N, p) array
+        Each epoch's position (a start fix).
+
+    Examples
+    --------
+    >>> a = np.array([[0.0, 0.0], [20.0, 0.0], [20.0, 20.0], [0.0, 20.0], [200.0, 10.0]])
+    >>> keep = np.ones((1, 5), bool)
+    >>> round(float(anchor_elongation(a, keep)[0]), 3)
+    0.014
+    >>> round(float(mirror_flatness(a, keep, np.array([[8.0, 9.0]]))[0]), 2)
+    0.36
+    """
+    a = np.asarray(anchors, dtype=float)
+    k = np.asarray(keep, dtype=bool)
+    x = np.asarray(position, dtype=float)
+    if k.ndim != 2 or k.shape[0] == 0:
+        return np.full(k.shape[:1], np.nan)
+    patterns, inverse = unique_rows(k)
+    ev, cnt = _scatter_eigenvalues(a, patterns)
+    width2 = (np.maximum(ev[:, 0], 0.0) / np.maximum(cnt, 1))[inverse]
+    with np.errstate(invalid="ignore", over="ignore"):
+        d2 = np.where(k, np.sum((x[:, None, :] - a[None, :, :]) ** 2, axis=-1), np.nan)
+    has = k.sum(axis=1) >= 2
+    med = np.full(k.shape[0], np.nan)
+    if has.any():
+        med[has] = np.nanmedian(d2[has], axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = width2 / med
+    return np.where(has & np.isfinite(out), out, np.nan)
 
 
 def collinear(anchors: ArrayLike, heard: ArrayLike, rel: float = 1e-3) -> NDArray[np.bool_]:

@@ -114,16 +114,18 @@ Far field: when the median start fix lies farther from the anchors' centroid tha
 adjustment: a scale there is a radial stretch of the fixes, and a scale error is amplified
 into the fixes' angle by about distance / extent.
 
-Elongated anchors: when the heard anchors lie close to a line (a plane in 3-D; the
-smallest over the largest eigenvalue of their scatter matrix below ``elongation_ratio``,
-0.05, the threshold of the fixes' ambiguity check), every slope is left out before the
-adjustment.  Each fix then has a mirror image across the line that fits nearly as well,
-the two told apart only by the anchors' small deviations from the line -- which
-per-anchor slopes can mimic, so the adjustment can lock fixes onto the wrong side and
-calibrate the observations to fit them there.  Measured on the wifi-rtt-rss corridor
-(elongation 0.006): with scales, 4.3 % of the default ``locate``'s usable fixes were
-misleading afterwards (mirror fixes 8-10 m off on the wrong side, passing their own test),
-RMS 6.18 m; with the biases only, 0.9 %, RMS 6.06 m (report section ``s05_out_of_box``).
+Elongated anchors: when, in more than half (:data:`MIRROR_SHARE`) of the epochs that hear
+an anchor, the anchors heard lie close to a line as seen from the tag (a plane in 3-D;
+:func:`robustloc.models.geometry.mirror_flatness` of the start fix below
+``elongation_ratio``, 0.05, the threshold of the fixes' ambiguity check), that anchor's
+slope is left out before the adjustment. Each fix then has a mirror image across the line
+that fits nearly as well, the two told apart only by the anchors' small deviations from the
+line -- which per-anchor slopes can mimic, so the adjustment can lock fixes onto the wrong
+side and calibrate the observations to fit them there. Measured on the wifi-rtt-rss
+corridor (elongation 0.006): with scales, 4.3 % of the default ``locate``'s usable fixes
+were misleading afterwards (mirror fixes 8-10 m off on the wrong side, passing their own
+test), RMS 6.18 m; with the biases only, 0.9 %, RMS 6.06 m (report section
+``s05_out_of_box``).
 
 Each left-out parameter gets a warning naming the anchor, the parameter and the reason.
 
@@ -148,7 +150,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from robustloc._arrays import true_first
-from robustloc.models.geometry import elongation_rows
+from robustloc.models.geometry import elongation_rows, mirror_flatness
 from robustloc.robust.weights import IGG3, Huber, WeightFunction
 
 Array = NDArray[np.float64]
@@ -176,6 +178,11 @@ RUNAWAY_SCALE = 2.0
 #: ``median(v^2) / CHI2_1_MEDIAN`` estimates the variance of Gaussian residuals ``v``
 #: (the square of the MAD scale ``median|v| / 0.6745``).
 CHI2_1_MEDIAN = 0.454936423119572
+
+#: An anchor's slope is left out when, in more than this share of the epochs that hear
+#: it, the anchors heard look flat from the tag (:func:`mirror_flatness` below
+#: ``elongation_ratio``): most of its observations then fit a mirror image as well.
+MIRROR_SHARE = 0.5
 
 #: Seed of those draws: the factor, like the calibration, is a function of the log.
 SIGMA_FACTOR_SEED = 20_261_204
@@ -274,9 +281,10 @@ class SelfCalibrator:
         centroid exceeds this many times the anchors' extent (largest anchor distance from
         the centroid).
     elongation_ratio : float
-        Slopes are left out when the heard anchors lie close to a line (a plane in 3-D):
-        the smallest over the largest eigenvalue of their scatter matrix below this (the
-        threshold of the fixes' ambiguity check,
+        An anchor's slope is left out when, in most epochs that hear it, the anchors heard
+        lie close to a line (a plane in 3-D) as seen from the tag:
+        :func:`~robustloc.models.geometry.mirror_flatness` below this (the threshold of the
+        fixes' ambiguity check,
         :data:`robustloc.integrity.fixes.AMBIGUITY_ELONGATION`; module notes).
     se_blocks : int
         The reported covariance is cluster-robust over this many contiguous blocks of
@@ -414,15 +422,25 @@ class SelfCalibrator:
         # elongated anchors: each fix has a mirror image across their line (plane) that
         # fits nearly as well, told apart only by the anchors' small deviations from it,
         # which per-anchor slopes can mimic (module notes)
-        elong = _elongation(a[heard > 0])
-        if free[:, 1].any() and elong < self.elongation_ratio:
-            for j in np.flatnonzero(free[:, 1]):
+        # Judged per epoch, from the tag (mirror_flatness): the elongation of all the
+        # heard anchors together took a square of four anchors with a fifth 190 m away,
+        # or a 150 m hall with anchors on both walls, for a line, and fixed every scale
+        # (biases then 13-30 standard errors off; the self-calibration review)
+        cand0 = start_ok & (n_k > dim)
+        if free[:, 1].any() and cand0.any():
+            hears = obs[cand0]
+            flat = mirror_flatness(a, hears, x[cand0])
+            amb = ~(flat >= self.elongation_ratio)  # (NaN: no spread at all)
+            n_j = hears.sum(axis=0)
+            share = (hears & amb[:, None]).sum(axis=0) / np.maximum(n_j, 1)
+            for j in np.flatnonzero(free[:, 1] & (n_j > 0) & (share > MIRROR_SHARE)):
                 free[j, 1] = False
                 left_out.setdefault((int(j), 1), (
-                    f"the anchors lie close to a {'line' if dim == 2 else 'plane'} "
-                    f"(elongation {elong:.3g} below {self.elongation_ratio:g}): a fix and "
-                    f"its mirror image across it differ only through the anchors' small "
-                    f"deviations from it, which per-anchor {names[1]}s can mimic"))
+                    f"the anchors lie close to a {'line' if dim == 2 else 'plane'} as seen "
+                    f"from the tag in {share[j]:.0%} of the epochs that hear it (flatness "
+                    f"below {self.elongation_ratio:g}): a fix and its mirror image across "
+                    f"it differ only through the anchors' small deviations from it, which "
+                    f"per-anchor {names[1]}s can mimic"))
 
         # redundancy left for the calibration: observations of the epochs with a start and
         # redundancy, minus their positions and the free parameters
