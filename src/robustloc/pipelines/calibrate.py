@@ -586,7 +586,8 @@ def _refuse_implausible(res: Any, ids: list[str], kind: str, values: np.ndarray,
 #: What RSSI self-calibration cannot promise (printed with every RSSI ``--self`` run).
 RSSI_SELFCAL_NOTE = (
     "RSSI self-calibration: each epoch's position is an unknown of its own, so A and n "
-    "carry an incidental-parameter bias the standard errors leave out (simulated: A off "
-    "by ~2 dB and n by ~0.2 at 1 dB of noise, several standard errors), and one-sided "
+    "carry an incidental-parameter bias the standard errors leave out (simulated 5-anchor "
+    "rooms at 1 dB of noise: A off by 2-4 dB and n by 0.2-0.36, 3-6 standard errors, "
+    "moving with the prior and the seed), and one-sided "
     "gross errors (10 % of readings 10-25 dB weak) can take them far off; calibrate RSSI "
     "from a survey (robustloc calibrate SURVEY) where you can")
