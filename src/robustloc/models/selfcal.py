@@ -147,6 +147,7 @@ import warnings as _warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+import pandas as pd
 from numpy.typing import ArrayLike, NDArray
 
 from robustloc._arrays import true_first
@@ -159,6 +160,9 @@ KINDS = ("range", "rssi")
 _LN10 = np.log(10.0)
 #: Start of the reason given when the tag does not move (:meth:`SelfCalibrator._motion_test`).
 STATIC_REASON = "the tag does not move"
+#: Start of the reason given when several tags each stand still
+#: (:meth:`SelfCalibrator._static_tags`).
+STATIC_TAGS_REASON = "the tags do not move"
 #: The reason given for the parameters of an anchor heard in too few epochs (one warning
 #: line for every such anchor: a short log of a large site has hundreds).
 FEW_REASON = ("heard in fewer epochs with a fix than its free parameters + 2 (a gross "
@@ -349,6 +353,7 @@ class SelfCalibrator:
         slope0: ArrayLike | None = None,
         height_offset: ArrayLike | None = None,
         anchor_ids: list[str] | None = None,
+        tags: ArrayLike | None = None,
     ) -> SelfCalibration:
         """Adjust the log.
 
@@ -361,6 +366,9 @@ class SelfCalibrator:
         offset0, slope0 : (m,) priors (default bias 0 / scale 1; required for RSSI).
         height_offset : (m,) anchor-minus-tag heights for 2-D fixes from slant values.
         anchor_ids : names used in the warnings (default ``"0", "1", ...``).
+        tags : (N,) each epoch's tag (default: one tag).  Tags that each stand still
+            give one position apiece, which the motion test counts against the unknowns
+            (:meth:`_static_tags`).
         """
         a = np.asarray(anchors, dtype=float)
         z = np.asarray(values, dtype=float)
@@ -380,6 +388,10 @@ class SelfCalibrator:
         obs = np.isfinite(z)
         start_ok = np.all(np.isfinite(x), axis=1)
         x[~start_ok] = 0.0
+        tag_codes = (np.zeros(N, dtype=np.int64) if tags is None
+                     else pd.factorize(np.asarray(tags, dtype=object))[0].astype(np.int64))
+        if tag_codes.shape != (N,):
+            raise ValueError(f"tags must be (N,) = ({N},)")
         free = np.zeros((m, 2), dtype=bool)
         free[:, 0] = self.fit_offset
         free[:, 1] = self.fit_slope
@@ -481,7 +493,7 @@ class SelfCalibrator:
                 # motion tests on the start fixes, with the noise of this first adjustment
                 # (module notes): what they leave out is re-adjusted from the start
                 out = self._motion_test(a, z, obs, x_start, off_prior, slo_prior, h2,
-                                        state, free, ids, left_out)
+                                        state, free, ids, left_out, tag_codes)
                 if out:
                     for j, p in out:
                         free[j, p] = False
@@ -506,7 +518,8 @@ class SelfCalibrator:
         for (j, p), why in left_out.items():
             by_reason.setdefault(why, []).append((j, p))
         for why, items in by_reason.items():
-            if len(items) == 1 or not (why.startswith(STATIC_REASON) or why == FEW_REASON):
+            if len(items) == 1 or not (why.startswith((STATIC_REASON, STATIC_TAGS_REASON))
+                                       or why == FEW_REASON):
                 for j, p in items:
                     warnings.append(f"anchor {ids[j]}: cannot determine {names[p]}: "
                                     f"{why}; left out (fixed at its prior {names[p]} = "
@@ -993,7 +1006,7 @@ class SelfCalibrator:
     def _motion_test(
         self, a: Array, z: Array, obs: NDArray[np.bool_], x0: Array, off0: Array,
         slo0: Array, h2: Array, state: dict, free: NDArray[np.bool_], ids: list[str],
-        left_out: dict[tuple[int, int], str],
+        left_out: dict[tuple[int, int], str], tags: NDArray[np.int64] | None = None,
     ) -> list[tuple[int, int]]:
         """Does the tag move, and do the distances to each anchor vary, by more than the
         fixes' noise explains?  (Module notes, "Motion".)  Returns the parameters to leave
@@ -1054,6 +1067,9 @@ class SelfCalibrator:
         # d f / d x = f'(rho) g = Jx / slope
         G = lin["Jx"] / np.where(slo == 0, 1.0, slo)[None, :, None]
         var = np.einsum("kjd,kde,kje->kj", G, C, G)
+        if tags is not None:
+            out += self._static_tags(state["x"][used], C, reg, ob, tags[used], free,
+                                     left_out)
         for j in np.flatnonzero(free[:, 1]):
             sel = reg & ob[:, j] & (var[:, j] > 0)
             nj = int(sel.sum())
@@ -1069,6 +1085,67 @@ class SelfCalibrator:
                     f"{self.max_dilution:.0%}), so its {names[1]} cannot be told from its "
                     f"{names[0]} (a {names[1]} fitted there is diluted toward the noise)")
                 out.append((int(j), 1))
+        return out
+
+    def _static_tags(
+        self, x: Array, C: Array, reg: NDArray[np.bool_], ob: NDArray[np.bool_],
+        tags: NDArray[np.int64], free: NDArray[np.bool_],
+        left_out: dict[tuple[int, int], str],
+    ) -> list[tuple[int, int]]:
+        """Tags that each stand still: one position apiece, counted against the unknowns.
+
+        The log moves (the test of :meth:`_static_share` passed) and yet it may hold only
+        a few positions: two tags each standing at its own point give two values per
+        anchor, and the fit of their positions and every anchor's bias and scale was
+        "determined" by the fixes' jitter (scales 0.7-1.9 for a truth of 0.98-1.05, a
+        bias of -6.5 m, ``locate`` 9 m off where the prior gave 0.5 m: the
+        self-calibration review, 2026-12-06).  A tag stands still when the noise explains
+        more than ``max_dilution`` of its fixes' spread: ``D_t = (chi2_0.5(dim) / dim) /
+        median_k (|x_k - xmed_t|^2 / tr C_k)`` (``C_k`` the fix's covariance of the first
+        adjustment, as the anchor test's; a linearized covariance understates RSSI fixes'
+        spread, so RSSI tags at rest may pass for moving: the test then changes nothing).
+        When every tag stands still, the log holds ``V`` distinct values (each tag's
+        anchors) for ``dim`` unknowns per tag and the free parameters: the slopes are
+        left out while the redundancy ``V - unknowns`` is below :data:`OWN_REDUNDANCY`,
+        then the offsets too.  Returns the parameters left out."""
+        from robustloc._stats import chi2_ppf
+
+        n_tags = int(tags.max()) + 1 if tags.size else 0
+        if n_tags < 2 or not free.any():
+            return []
+        dim = x.shape[1]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            tr = np.trace(C, axis1=1, axis2=2)
+        ok = reg & np.isfinite(tr) & (tr > 0) & np.all(np.isfinite(x), axis=1)
+        static, values = 0, 0
+        for t in range(n_tags):
+            sel = ok & (tags == t)
+            if sel.sum() < 2:
+                continue
+            xt = x[sel]
+            tk = np.sum((xt - np.median(xt, axis=0)) ** 2, axis=1) / tr[sel]
+            D = float(chi2_ppf(0.5, dim)) / dim / max(float(np.median(tk)), 1e-300)
+            if D <= self.max_dilution:
+                return []  # a tag that moves: positions enough (the tests before stand)
+            static += 1
+            values += int(ob[sel].any(axis=0).sum())
+        if static < 2:
+            return []
+        names = PARAM_NAMES[self.kind]
+        out: list[tuple[int, int]] = []
+        for p in (1, 0):  # slopes first, then offsets
+            n_free = int(free.sum()) - sum(1 for j, q in out if free[j, q])
+            red = values - dim * static - n_free
+            if red >= OWN_REDUNDANCY:
+                break
+            why = (f"{STATIC_TAGS_REASON}: {static} tags each standing at one point give "
+                   f"{values} distinct values for {dim * static} position unknowns and "
+                   f"{n_free} parameters (a redundancy of {red}; "
+                   f"{names[1] + 's' if p == 1 else 'every parameter'} left out below "
+                   f"{OWN_REDUNDANCY})")
+            for j in np.flatnonzero(free[:, p]):
+                left_out[(int(j), p)] = why
+                out.append((int(j), p))
         return out
 
     def _static_share(

@@ -391,10 +391,11 @@ def _records(table: pd.DataFrame) -> list[dict[str, Any]]:
 def self_calibrate(
     anchors: pd.DataFrame, xyz: np.ndarray, values: np.ndarray, kind: str, *,
     height_offset: np.ndarray | None = None, model_name: str | None = "log-distance",
-    fit_scale: bool = True, se_ratio: float = 3.0,
+    fit_scale: bool = True, se_ratio: float = 3.0, tags: np.ndarray | None = None,
 ) -> tuple[Any, Any]:
     """Self-calibration on arrays: robust start fixes (huber), then the joint adjustment
-    of :class:`robustloc.models.selfcal.SelfCalibrator`.
+    of :class:`robustloc.models.selfcal.SelfCalibrator` (``tags``: each epoch's tag, for
+    its test of tags that stand still).
 
     Returns ``(SelfCalibration, path-loss model or None)``; the anchors frame with the new
     columns is ``robustloc.models.calibration.self_calibration_table(res, anchors, model)``.
@@ -416,12 +417,12 @@ def self_calibrate(
         cal = SelfCalibrator("rssi", fit_slope=type(model).__name__ != "FreeSpace",
                              se_ratio=se_ratio)
         res = cal.fit(xyz, values, start, offset0=A0, slope0=n0,
-                      height_offset=height_offset, anchor_ids=ids)
+                      height_offset=height_offset, anchor_ids=ids, tags=tags)
     else:
         start = _start_fixes(xyz, values, "range", height_offset=height_offset)
         cal = SelfCalibrator("range", fit_slope=fit_scale, se_ratio=se_ratio)
         res = cal.fit(xyz, values, start, height_offset=height_offset,
-                      anchor_ids=ids)
+                      anchor_ids=ids, tags=tags)
     return res, model
 
 
@@ -489,7 +490,7 @@ def _self(settings: CalibrateSettings, anchors: pd.DataFrame, self_log: Any) -> 
     res, model = self_calibrate(anchors, xyz, ep.values, kind, height_offset=height,
                                 model_name=settings.model,
                                 fit_scale=settings.scale is not False,
-                                se_ratio=settings.se_ratio)
+                                se_ratio=settings.se_ratio, tags=ep.tag)
     if res.epochs_used == 0 and res.epochs_bad:
         # (every epoch had its redundancy, and every one failed its test: the reason was
         # given as "no epoch has a fix with redundancy"; the self-calibration review)
