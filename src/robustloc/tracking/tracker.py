@@ -501,6 +501,7 @@ class Tracker:
         self._lastt = np.full((S, M), np.nan)
         self._susp = np.zeros(S)
         self._susp_n = np.zeros(S, dtype=np.int64)
+        self._mline = np.full((S, 4), np.nan)
         self._alloc_pending(S)
 
     def _alloc_pending(self, S: int) -> None:
@@ -519,9 +520,10 @@ class Tracker:
             setattr(self, name, np.concatenate([head, np.zeros(S - have, dtype)]))
 
     _ARRAYS = ("_x", "_P", "_t", "_init", "_bias", "_held", "_gp", "_gm", "_hsum", "_hn",
-               "_scale2", "_bad", "_reinit", "_lastz", "_lastt", "_susp", "_susp_n")
+               "_scale2", "_bad", "_reinit", "_lastz", "_lastt", "_susp", "_susp_n",
+               "_mline")
     #: Arrays a state saved before they existed lacks: loaded as these values.
-    _ARRAY_DEFAULTS = {"_susp": 0.0, "_susp_n": 0}
+    _ARRAY_DEFAULTS = {"_susp": 0.0, "_susp_n": 0, "_mline": [None] * 4}
 
     def _slots(self, tags: NDArray[np.object_]) -> NDArray[np.int64]:
         """Each tag's slot in the state arrays (new tags get new slots)."""
@@ -928,6 +930,7 @@ class Tracker:
         self._lastt[sl] = np.nan
         self._susp[sl] = 0.0
         self._susp_n[sl] = 0
+        self._mline[sl] = np.nan
 
     def _cover_mirror(self, idx: NDArray[np.int64], sl: NDArray[np.int64], z: Array,
                       out: _Rows) -> None:
@@ -941,22 +944,46 @@ class Tracker:
         the motion model, built from such epochs, need not either
         (on the wifi-rtt-rss corridor the tracker followed the mirror side for whole
         stretches: 5.7 % of its rows beyond their ``hpl``, 86 % of them across the line).
-        Then ``hpl = max(hpl, |x' - x| + hpl)``.  RSSI fitted in dB is not checked."""
-        from robustloc.integrity.fixes import AMBIGUITY_ELONGATION, mirror_solution
-        from robustloc.models.ranging import RangeModel
+        Then ``hpl = max(hpl, |x' - x| + hpl)``.  RSSI fitted in dB is not checked.
+
+        The line of such an epoch stays with its tag: the rows after it continue a track
+        that may lie on either side, and while they keep too few anchors for the check
+        (one or two) or nearly collinear ones, their ``hpl`` covers their own reflection
+        across it, ``hpl + 2 |(x - c) . u|`` (``c`` the anchors' centroid, ``u`` the
+        line's normal), until an epoch keeps anchors that span the plane.  (On a
+        corridor, rows of one or two ranges on the mirror side were `ok` 2-3.4 m off
+        with ``hpl`` 1.9-2.6 m, and so were checked rows whose mirror failed the test
+        by the anchors' 0.3 m off the line: the tracker review, 2026-12-06.)"""
+        from robustloc.integrity.fixes import AMBIGUITY_ELONGATION
 
         if self._link is None or (self._kind == "rssi" and self.settings.domain == "rssi"):
             return
-        link = self._link
         # the anchors each row's update kept, and whether they are nearly collinear: a
         # function of the pattern alone, cached (a few hundred patterns at most)
         keep_all = np.isfinite(z) & ~out.excluded[idx]
         elong = self._pattern_elongation(keep_all)
         dof_all = keep_all.sum(axis=1) - 2
         pre = (dof_all >= 1) & (elong < AMBIGUITY_ELONGATION)
-        if not pre.any():
-            return
         x = out.x[idx, :2]
+        spread = (dof_all >= 1) & ~pre
+        prev = self._mline[sl]  # (the lines left by earlier epochs: a copy)
+        self._mline[sl[spread]] = np.nan  # (anchors that span the plane tell the sides)
+        covered = self._check_mirror(idx, sl, z, out, keep_all, pre, x)
+        self._carry_mirror(idx, prev, x, ~spread & ~covered, out)
+
+    def _check_mirror(self, idx: NDArray[np.int64], sl: NDArray[np.int64], z: Array,
+                      out: _Rows, keep_all: NDArray[np.bool_], pre: NDArray[np.bool_],
+                      x: Array) -> NDArray[np.bool_]:
+        """The check of :meth:`_cover_mirror` on the rows ``pre`` (nearly collinear kept
+        anchors, redundancy): widens the ambiguous rows' ``hpl`` by their refined mirror,
+        leaves each one's line with its tag, and returns which rows it widened."""
+        from robustloc.integrity.fixes import AMBIGUITY_ELONGATION, mirror_solution
+        from robustloc.models.ranging import RangeModel
+
+        link = self._link
+        covered = np.zeros(len(idx), dtype=bool)
+        if not pre.any():
+            return covered
         cand_rows = np.flatnonzero(pre)
         use = (st.among(out.status[idx[cand_rows]], st.USABLE)
                & (out.status[idx[cand_rows]] != st.PREDICTED)
@@ -964,7 +991,7 @@ class Tracker:
                & np.isfinite(out.hpl[idx[cand_rows]]))
         rows = cand_rows[use]
         if rows.size == 0:
-            return
+            return covered
         obs, var = self._observations(z[rows] - self._bias[sl[rows]]
                                       - self._offset(sl[rows]))
         keep = keep_all[rows] & np.isfinite(obs)
@@ -990,6 +1017,25 @@ class Tracker:
             rr = idx[r[amb]]
             d = np.hypot(*(x_alt[amb] - xr[amb]).T)
             out.hpl[rr] = np.fmax(out.hpl[rr], d + out.hpl[rr])
+            self._mline[sl[r[amb]]] = _principal_lines(link.anchors_xy, kc[amb])
+            covered[r[amb]] = True
+        return covered
+
+    def _carry_mirror(self, idx: NDArray[np.int64], line: Array, x: Array,
+                      few: NDArray[np.bool_], out: _Rows) -> None:
+        """Rows ``few`` (too few or nearly collinear kept anchors) of a tag whose last
+        ambiguous epoch left its line: ``hpl`` also covers the reflection across it
+        (:meth:`_cover_mirror`; ``line`` each row's tag's, before this round)."""
+        rows = np.flatnonzero(few & np.isfinite(line[:, 0])
+                              & st.among(out.status[idx], st.USABLE)
+                              & (out.status[idx] != st.PREDICTED)
+                              & np.all(np.isfinite(x), axis=1))
+        if rows.size == 0:
+            return
+        c, u = line[rows, :2], line[rows, 2:]
+        d = 2.0 * np.abs(np.einsum("ki,ki->k", x[rows] - c, u))
+        rr = idx[rows]
+        out.hpl[rr] = np.maximum(out.hpl[rr], d + out.hpl[rr])
 
     def _pattern_elongation(self, keep: NDArray[np.bool_]) -> Array:
         """:func:`robustloc.models.geometry.anchor_elongation` of each row's kept anchors,
@@ -1086,6 +1132,7 @@ class Tracker:
         self._bias[k] = 0.0  # (offsets measured against the filter that is re-started)
         self._susp[k] = 0.0  # (a start row is bounded by its own snapshot)
         self._susp_n[k] = 0
+        self._mline[k] = np.nan
         if reinit:
             self._reinit[k] += 1
         # rows: the fix (its status), or the failed fix's status
@@ -1924,6 +1971,18 @@ def _finite_moments(x: Array, P: Array) -> NDArray[np.bool_]:
 
 
 #: Status of the fused kernel's codes (:data:`robustloc.tracking._compiled.CODES`).
+def _principal_lines(anchors: Array, keep: NDArray[np.bool_]) -> Array:
+    """Per row, the centroid and unit normal ``(c_x, c_y, u_x, u_y)`` of the least-squares
+    line of its kept anchors (the eigenvector of the smallest eigenvalue of their scatter
+    matrix), as :func:`robustloc.integrity.fixes.mirror_solution` reflects across it."""
+    k = keep.astype(float)
+    cnt = np.maximum(k.sum(axis=1), 1.0)
+    c = (k @ anchors) / cnt[:, None]
+    da = np.where(keep[..., None], anchors[None, :, :] - c[:, None, :], 0.0)
+    _, vec = np.linalg.eigh(np.einsum("kmi,kmj->kij", da, da))
+    return np.c_[c, vec[:, :, 0]]
+
+
 _CODE_STATUS = np.array([st.OK, st.FAULT_EXCLUDED, st.PREDICTED], dtype=object)
 
 
