@@ -53,3 +53,27 @@ def test_the_dwells_behind_the_standard_errors_are_said(tmp_path, capsys, n_poin
     else:
         assert words in err
     assert (tmp_path / "cal.csv").is_file()
+
+
+def test_self_calibration_names_a_misplaced_anchor(tmp_path, capsys):
+    """An anchor placed 190 m from where it is made the log look static; every parameter
+    was left out ("the tag does not move") and sigmas of 31-191 m written, with no word
+    on the anchor.  The run now names it as `locate` does (anchors_suspect); with the
+    anchor where it is, no such warning."""
+    rng = np.random.default_rng(0)
+    a = pd.DataFrame({"anchor": ["a1", "a2", "a3", "a4", "a5"],
+                      "x": [0.0, 20, 0, 20, 10], "y": [0.0, 0, 20, 20, -3]})
+    x = rng.uniform(2, 18, (300, 2))
+    d = np.hypot(x[:, None, 0] - a.x.to_numpy(), x[:, None, 1] - a.y.to_numpy())
+    z = d + rng.normal(0, 0.1, d.shape)
+    rows = [(float(k), "t", an, z[k, j]) for k in range(300) for j, an in enumerate(a.anchor)]
+    pd.DataFrame(rows, columns=["time", "tag", "anchor", "range"]).to_csv(
+        tmp_path / "m.csv", index=False)
+    wrong = a.copy()
+    wrong.loc[4, ["x", "y"]] = [200.0, 10.0]
+    for name, frame, named in (("wrong", wrong, True), ("right", a, False)):
+        frame.to_csv(tmp_path / f"{name}.csv", index=False)
+        assert main(["calibrate", "--self", str(tmp_path / "m.csv"), "--anchors",
+                     str(tmp_path / f"{name}.csv"), "-o", str(tmp_path / f"c-{name}.csv")]) == 0
+        err = capsys.readouterr().err
+        assert ("anchor(s) a5 (" in err and "check their coordinates" in err) == named, err

@@ -392,10 +392,14 @@ def self_calibrate(
     anchors: pd.DataFrame, xyz: np.ndarray, values: np.ndarray, kind: str, *,
     height_offset: np.ndarray | None = None, model_name: str | None = "log-distance",
     fit_scale: bool = True, se_ratio: float = 3.0, tags: np.ndarray | None = None,
+    diagnostics: dict[str, Any] | None = None,
 ) -> tuple[Any, Any]:
     """Self-calibration on arrays: robust start fixes (huber), then the joint adjustment
     of :class:`robustloc.models.selfcal.SelfCalibrator` (``tags``: each epoch's tag, for
-    its test of tags that stand still).
+    its test of tags that stand still).  ``diagnostics``, when given, receives
+    ``anchors_suspect``: the anchors whose log scale in the start fixes is far above the
+    median anchor's, as ``locate`` reports them
+    (:func:`robustloc.pipelines.locate.suspect_of_scale`).
 
     Returns ``(SelfCalibration, path-loss model or None)``; the anchors frame with the new
     columns is ``robustloc.models.calibration.self_calibration_table(res, anchors, model)``.
@@ -413,20 +417,24 @@ def self_calibrate(
         A0, n0 = model.log_distance_params()
         A0 = np.broadcast_to(A0, (len(ids),)).astype(float)
         n0 = np.broadcast_to(n0, (len(ids),)).astype(float)
-        start = _start_fixes(xyz, values, "rssi", A=A0, n=n0, height_offset=height_offset)
+        start = _start_fixes(xyz, values, "rssi", A=A0, n=n0, height_offset=height_offset,
+                             ids=ids, diagnostics=diagnostics)
         cal = SelfCalibrator("rssi", fit_slope=type(model).__name__ != "FreeSpace",
                              se_ratio=se_ratio)
         res = cal.fit(xyz, values, start, offset0=A0, slope0=n0,
                       height_offset=height_offset, anchor_ids=ids, tags=tags)
     else:
-        start = _start_fixes(xyz, values, "range", height_offset=height_offset)
+        start = _start_fixes(xyz, values, "range", height_offset=height_offset, ids=ids,
+                             diagnostics=diagnostics)
         cal = SelfCalibrator("range", fit_slope=fit_scale, se_ratio=se_ratio)
         res = cal.fit(xyz, values, start, height_offset=height_offset,
                       anchor_ids=ids, tags=tags)
     return res, model
 
 
-def _start_fixes(xyz: np.ndarray, values: np.ndarray, kind: str, **kw: Any) -> np.ndarray:
+def _start_fixes(xyz: np.ndarray, values: np.ndarray, kind: str, *,
+                 ids: list[str] | None = None, diagnostics: dict[str, Any] | None = None,
+                 **kw: Any) -> np.ndarray:
     """The self-calibration's start positions: the fixes ``robustloc locate`` gives with
     its defaults (:func:`robustloc.integrity.fixes.locate_protected` with
     :data:`~robustloc.estimators.ranging.DEFAULT_METHOD`: the log's scale, every fix
@@ -455,7 +463,14 @@ def _start_fixes(xyz: np.ndarray, values: np.ndarray, kind: str, **kw: Any) -> n
     from robustloc.estimators.ranging import DEFAULT_METHOD, Locator
     from robustloc.integrity.fixes import locate_protected
 
-    sol = locate_protected(Locator(DEFAULT_METHOD), xyz, values, kind, snoop=False, **kw)
+    loc = Locator(DEFAULT_METHOD)
+    sol = locate_protected(loc, xyz, values, kind, snoop=False, **kw)
+    if diagnostics is not None and ids is not None:  # (a log-scale pass of <= 5 000 epochs)
+        from robustloc.pipelines.locate import suspect_of_scale
+
+        scale = loc.log_scale(xyz, values, kind, **{k: v for k, v in kw.items()
+                                                    if k in ("A", "n", "height_offset")})
+        diagnostics["anchors_suspect"] = suspect_of_scale(scale, ids)
     pos = np.array(sol.position, dtype=float)
     pos[~st.among(sol.status, st.USABLE)] = np.nan
     return pos
@@ -490,7 +505,8 @@ def _self(settings: CalibrateSettings, anchors: pd.DataFrame, self_log: Any) -> 
     res, model = self_calibrate(anchors, xyz, ep.values, kind, height_offset=height,
                                 model_name=settings.model,
                                 fit_scale=settings.scale is not False,
-                                se_ratio=settings.se_ratio, tags=ep.tag)
+                                se_ratio=settings.se_ratio, tags=ep.tag,
+                                diagnostics=(diag := {}))
     if res.epochs_used == 0 and res.epochs_bad:
         # (every epoch had its redundancy, and every one failed its test: the reason was
         # given as "no epoch has a fix with redundancy"; the self-calibration review)
@@ -549,9 +565,25 @@ def _self(settings: CalibrateSettings, anchors: pd.DataFrame, self_log: Any) -> 
                 f"{res.epochs_no_start} without a start fix; {res.observations_rejected} "
                 f"observations rejected), {res.iterations} iterations over its stages, "
                 f"sigma0 {res.sigma0:.3f}")
+    warn = list(res.warnings) + _suspect_warnings(diag.get("anchors_suspect") or {})
+    summary["warnings"] = warn
     return Calibration(out, table, "m" if kind == "range" else "dB", summary, headline,
-                       notes=notes,
-                       warnings=[f"{_name(self_log)}: {w}" for w in res.warnings])
+                       notes=notes, warnings=[f"{_name(self_log)}: {w}" for w in warn])
+
+
+def _suspect_warnings(suspect: dict[str, float]) -> list[str]:
+    """A warning naming the anchors whose observations disagree with the start fixes far
+    more than the median anchor's, as ``locate``'s ``anchors_suspect`` (their log scale
+    over the median's).  An anchor placed 190 m off made the log look static ("the tag
+    does not move"), every parameter was left out and sigmas of 31-191 m written, with
+    no word on the anchor (the self-calibration review, 2026-12-06)."""
+    if not suspect:
+        return []
+    each = ", ".join(f"{a} ({r:g}x)" for a, r in suspect.items())
+    return [f"anchor(s) {each}: observations that disagree with the start fixes far more "
+            "than the median anchor's (their noise scale over the log, against the "
+            "median's); check their coordinates and ids: a misplaced anchor is no bias or "
+            "scale, and it spoils the whole fit"]
 
 
 def _refuse_implausible(res: Any, ids: list[str], kind: str, values: np.ndarray,
