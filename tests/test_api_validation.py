@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 import pytest
+from _stderr import without_jit_notice  # (tests/_stderr.py)
 
 import robustloc
 from robustloc import InputError
@@ -270,7 +271,7 @@ def test_locate_warns_of_an_anchor_it_does_not_use_as_the_command_does(tmp_path,
     anchors.to_csv(paths["a"], index=False)
     assert main(["locate", str(paths["m"]), "--anchors", str(paths["a"]),
                  "-o", str(tmp_path / "p.csv"), "--quiet"]) == 0
-    err = capsys.readouterr().err.strip().splitlines()
+    err = without_jit_notice(capsys.readouterr().err).strip().splitlines()
     assert len(err) == 1 and err[0].startswith("warning: ")
     for a, name in ((paths["a"], str(paths["a"])), (anchors, "<anchors DataFrame>")):
         with pytest.warns(RobustlocWarning) as rec:

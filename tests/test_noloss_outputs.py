@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from _stderr import without_jit_notice  # (tests/_stderr.py)
 
 from robustloc.cli import main
 from robustloc.errors import InputError, OutputError
@@ -115,7 +116,7 @@ def test_dev_full_and_unwritable_targets_via_cli(small, capsys):
     ]
     for out, message in cases:
         assert main(base + ["-o", out]) == 2, out
-        assert capsys.readouterr().err == message
+        assert without_jit_notice(capsys.readouterr().err) == message
     _no_temp_left(small)
 
 
