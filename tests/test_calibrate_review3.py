@@ -40,7 +40,7 @@ def _write(tmp_path, points: list[tuple[float, float]], per_point: int) -> list[
 
 @pytest.mark.parametrize("n_points, words", [
     (1, "every row at one truth position (one dwell)"),
-    (5, "standard errors from 5-5 dwells per anchor (fewer than 20"),
+    (5, "standard errors from 5 dwells per anchor (fewer than 20"),
     (60, None),
 ])
 def test_the_dwells_behind_the_standard_errors_are_said(tmp_path, capsys, n_points, words):

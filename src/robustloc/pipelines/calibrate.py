@@ -246,7 +246,8 @@ def _dwell_notes(out: pd.DataFrame) -> list[str]:
                      "points)")
     few = per[(per >= 2) & (per < FEW_DWELLS)]
     if len(few):
-        notes.append(f"standard errors from {int(few.min())}-{int(few.max())} dwells per "
+        lo, hi = int(few.min()), int(few.max())
+        notes.append(f"standard errors from {lo if lo == hi else f'{lo}-{hi}'} dwells per "
                      f"anchor (fewer than {FEW_DWELLS}; {len(few)} anchor(s)): cluster-robust "
                      "over the dwells but optimistic with so few (95 % intervals covered "
                      "80 % at 12 dwells in simulation)")
