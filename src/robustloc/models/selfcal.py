@@ -1110,27 +1110,29 @@ class SelfCalibrator:
         then the offsets too.  Returns the parameters left out."""
         from robustloc._stats import chi2_ppf
 
-        n_tags = int(tags.max()) + 1 if tags.size else 0
-        if n_tags < 2 or not free.any():
+        if tags.size == 0 or int(tags.max()) < 1 or not free.any():
             return []
         dim = x.shape[1]
         with np.errstate(invalid="ignore", divide="ignore"):
             tr = np.trace(C, axis1=1, axis2=2)
         ok = reg & np.isfinite(tr) & (tr > 0) & np.all(np.isfinite(x), axis=1)
-        static, values = 0, 0
-        for t in range(n_tags):
-            sel = ok & (tags == t)
-            if sel.sum() < 2:
-                continue
-            xt = x[sel]
-            tk = np.sum((xt - np.median(xt, axis=0)) ** 2, axis=1) / tr[sel]
-            D = float(chi2_ppf(0.5, dim)) / dim / max(float(np.median(tk)), 1e-300)
-            if D <= self.max_dilution:
-                return []  # a tag that moves: positions enough (the tests before stand)
-            static += 1
-            values += int(ob[sel].any(axis=0).sum())
-        if static < 2:
+        # per tag at once (grouped, no loop over tags): each fix's squared distance from
+        # its tag's median point over its covariance's trace, and that ratio's median
+        g = tags[ok]
+        frame = pd.DataFrame(x[ok], columns=[f"c{i}" for i in range(dim)])
+        med = frame.groupby(g).transform("median").to_numpy()
+        tk = np.sum((x[ok] - med) ** 2, axis=1) / tr[ok]
+        per = pd.DataFrame({"g": g, "t": tk}).groupby("g")["t"].agg(["median", "size"])
+        per = per[per["size"] >= 2]
+        if len(per) < 2:
             return []
+        D = float(chi2_ppf(0.5, dim)) / dim / np.maximum(per["median"].to_numpy(), 1e-300)
+        if np.any(D <= self.max_dilution):
+            return []  # a tag that moves: positions enough (the tests before stand)
+        static = len(per)
+        # each static tag's distinct values: the anchors it hears
+        heard = pd.DataFrame(ob[ok]).groupby(g).any()
+        values = int(heard.loc[per.index].to_numpy().sum())
         names = PARAM_NAMES[self.kind]
         out: list[tuple[int, int]] = []
         for p in (1, 0):  # slopes first, then offsets
