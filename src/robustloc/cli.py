@@ -114,6 +114,12 @@ def error(message: str) -> int:
 #: that catches the exception a handler raises and raises its own (DuckDB: "RuntimeError:
 #: Query interrupted") still leaves the run marked as interrupted (:func:`_signalled`).
 _received: list[int] = []
+#: The timers of :func:`_deliver_later` not yet known to be done: cancelled and joined
+#: when the command ends (:func:`_restore_sigterm`).  One that fired after the command had
+#: printed ``error: interrupted`` and restored Python's own SIGINT handler raised a
+#: KeyboardInterrupt during the interpreter's exit: the process died of SIGINT (status
+#: -2, not 130; seen once in the full suite run in two workers).
+_redeliver: list[Any] = []
 
 
 def _deliver_later(signum: int) -> None:
@@ -124,6 +130,7 @@ def _deliver_later(signum: int) -> None:
 
     t = threading.Timer(0.05, signal.pthread_kill, args=(threading.main_thread().ident, signum))
     t.daemon = True
+    _redeliver.append(t)
     t.start()
 
 
@@ -179,6 +186,25 @@ def _install_sigterm() -> object:
 
 
 def _restore_sigterm(old: object) -> None:
+    """End the command's signal handling: re-deliveries of :func:`_deliver_later` still
+    due are dropped and one under way is waited for (its interrupt, raised here, is
+    dropped too: the command has returned, its result and exit code stand), then the old
+    handlers and hook are put back."""
+    pending = list(_redeliver)
+    _redeliver.clear()
+    while pending:
+        try:  # (cancel and join are idempotent: an interrupt here starts the pass again)
+            for t in pending:
+                t.cancel()
+            for t in pending:
+                t.join()
+            pending = []
+        except (KeyboardInterrupt, Terminated):
+            pass
+    _restore_handlers(old)
+
+
+def _restore_handlers(old: object) -> None:
     import signal
 
     _received.clear()
