@@ -558,6 +558,32 @@ def test_locate_dask_places_ambiguous_fixes_as_one_process(scheduler, tmp_path):
     assert meta["side_from_log"]["auto"] >= 3
 
 
+def test_locate_dask_summary_has_every_key_of_one_process(scheduler, tmp_path, capsys):
+    """A script reading the single-process ``--json`` summary works with ``--engine
+    dask``: every key is there (``log_sides``, ``sorted_first``, ``solve_seconds`` and
+    ``fixes_per_second`` were missing: the Dask review), the log's sides are the single
+    process's (one first pass over the whole dataset), the counts are equal."""
+    from _corridor import write_side_files  # (tests/_corridor.py)
+
+    write_side_files(tmp_path)
+    m, a = tmp_path / "measurements.csv", tmp_path / "anchors.csv"
+    assert main(["partition", str(m), "-o", str(tmp_path / "ds"), "--by", "time",
+                 "--span", "50"]) == 0
+    capsys.readouterr()
+    assert main(["locate", str(m), "--anchors", str(a), "-o", str(tmp_path / "one.csv"),
+                 "--json"]) == 0
+    one = json.loads(capsys.readouterr().out)
+    assert main(["locate", str(tmp_path / "ds"), "--anchors", str(a), "-o",
+                 str(tmp_path / "pos"), "--engine", "dask", "--scheduler", scheduler,
+                 "--json"]) == 0
+    got = json.loads(capsys.readouterr().out)
+    assert set(one) - set(got) == set()
+    assert got["log_sides"] == one["log_sides"] and one["log_sides"]["auto"]
+    assert got["status"] == one["status"] and got["epochs"] == one["epochs"]
+    assert got["solve_seconds"] > 0 and got["fixes_per_second"] > 0
+    assert isinstance(got["sorted_first"], bool)
+
+
 def test_locate_dask_names_a_suspect_anchor_as_one_process(scheduler, tmp_path, capsys):
     """An anchor placed 100 m from where its ranges say: the dask run names it on stderr
     and in its summary, with the ratio of the single process (one first pass, the whole

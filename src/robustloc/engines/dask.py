@@ -424,6 +424,21 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
             "files": [{"input": info.part.path, "output": Path(out.part(i)).name}
                       for i, info in enumerate(plan)],
         }
+        # the rest of the single-process summary's keys (a script reading them worked
+        # with one engine only: the Dask review): the dataset's one first pass gives every
+        # partition the same sides; a partition sorted first makes the run's flag; the
+        # solving seconds are the tasks' summed, the rate the run's fixes over its wall
+        # time less the compiling (all workers together)
+        if name == "locate":  # (the single process names its input and output so)
+            summary["measurements"] = str(getattr(args, input_attr))
+            summary["positions"] = str(args.out)
+        if summaries and "log_sides" in summaries[0]:
+            summary["log_sides"] = summaries[0]["log_sides"]
+        summary["sorted_first"] = any(bool(s.get("sorted_first")) for s in summaries)
+        summary["solve_seconds"] = round(sum(float(s.get("solve_seconds") or 0.0)
+                                             for s in summaries), 3)
+        fixes = total.get("epochs", 0) * len(summary.get("methods") or [None])
+        summary["fixes_per_second"] = round(fixes / max(wall - compiling, 1e-9), 1)
         from robustloc.pipelines.locate import ANCHOR_WARNING_KEYS
 
         for key in ANCHOR_WARNING_KEYS:
