@@ -967,9 +967,12 @@ class Tracker:
         x = out.x[idx, :2]
         spread = (dof_all >= 1) & ~pre
         prev = self._mline[sl]  # (the lines left by earlier epochs: a copy)
-        self._mline[sl[spread]] = np.nan  # (anchors that span the plane tell the sides)
+        lined = np.isfinite(prev[:, 0])
+        if lined.any():  # (anchors that span the plane tell the sides)
+            self._mline[sl[spread & lined]] = np.nan
         covered = self._check_mirror(idx, sl, z, out, keep_all, pre, x)
-        self._carry_mirror(idx, prev, x, ~spread & ~covered, out)
+        if lined.any():
+            self._carry_mirror(idx, prev, x, lined & ~spread & ~covered, out)
 
     def _check_mirror(self, idx: NDArray[np.int64], sl: NDArray[np.int64], z: Array,
                       out: _Rows, keep_all: NDArray[np.bool_], pre: NDArray[np.bool_],
@@ -1026,10 +1029,10 @@ class Tracker:
         """Rows ``few`` (too few or nearly collinear kept anchors) of a tag whose last
         ambiguous epoch left its line: ``hpl`` also covers the reflection across it
         (:meth:`_cover_mirror`; ``line`` each row's tag's, before this round)."""
-        rows = np.flatnonzero(few & np.isfinite(line[:, 0])
-                              & st.among(out.status[idx], st.USABLE)
-                              & (out.status[idx] != st.PREDICTED)
-                              & np.all(np.isfinite(x), axis=1))
+        rows = np.flatnonzero(few & np.isfinite(line[:, 0]))
+        rows = rows[st.among(out.status[idx[rows]], st.USABLE)
+                    & (out.status[idx[rows]] != st.PREDICTED)
+                    & np.all(np.isfinite(x[rows]), axis=1)]
         if rows.size == 0:
             return
         c, u = line[rows, :2], line[rows, 2:]
@@ -1459,10 +1462,14 @@ class Tracker:
         """
         status = out.status[idx]
         fd = status == st.FAULT_DETECTED
-        cur, cnt = self._susp[sl], self._susp_n[sl]
-        cur = np.where(np.isnan(cur), np.inf, cur)  # (state_dict saves inf, no bound, as null)
-        if not (fd.any() or (cur > 0).any()):
+        cur = self._susp[sl]
+        on = fd | ~(cur <= 0)  # (NaN: state_dict saves inf, no bound, as null)
+        if not on.any():
             return
+        # only the rows of tags under suspicion, or detecting a fault now
+        idx, sl, z, status, fd = idx[on], sl[on], z[on], status[on], fd[on]
+        cur, cnt = self._susp[sl], self._susp_n[sl]
+        cur = np.where(np.isnan(cur), np.inf, cur)
         used = (np.isfinite(z) & ~out.excluded[idx]).sum(axis=1)
         passing = ~fd & st.among(status, st.USABLE) & (cur > 0)
         cnt = np.where(passing, cnt + used, np.where(fd, 0, cnt))
