@@ -427,8 +427,9 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
         # the rest of the single-process summary's keys (a script reading them worked
         # with one engine only: the Dask review): the dataset's one first pass gives every
         # partition the same sides; a partition sorted first makes the run's flag; the
-        # solving seconds are the tasks' summed, the rate the run's fixes over its wall
-        # time less the compiling (all workers together)
+        # solving seconds are the tasks' summed, and the rate is per second of solving,
+        # as the single process's (compiling, summed over the tasks, can exceed the wall
+        # time: a rate over "wall less compiling" came out absurd)
         if name == "locate":  # (the single process names its input and output so)
             summary["measurements"] = str(getattr(args, input_attr))
             summary["positions"] = str(args.out)
@@ -438,7 +439,7 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
         summary["solve_seconds"] = round(sum(float(s.get("solve_seconds") or 0.0)
                                              for s in summaries), 3)
         fixes = total.get("epochs", 0) * len(summary.get("methods") or [None])
-        summary["fixes_per_second"] = round(fixes / max(wall - compiling, 1e-9), 1)
+        summary["fixes_per_second"] = round(fixes / max(summary["solve_seconds"], 1e-9), 1)
         from robustloc.pipelines.locate import ANCHOR_WARNING_KEYS
 
         for key in ANCHOR_WARNING_KEYS:
