@@ -64,8 +64,8 @@ def test_a_far_anchor_beside_a_square_keeps_the_scales():
 def test_a_long_hall_heard_across_both_walls_keeps_the_scales():
     """A 150 m x 16 m hall, anchors every 15 m on both walls, each heard within 30 m:
     every epoch hears anchors on both walls (flatness well above 0.05) though all the
-    anchors together are elongated (eigenvalue ratio 0.03).  The scales are estimated,
-    within 4 standard errors."""
+    anchors together are elongated (eigenvalue ratio 0.03).  Every scale is estimated,
+    within 4 standard errors (measured: 0.08-1.85)."""
     rng = np.random.default_rng(5)
     xs = np.arange(0.0, 151.0, 15.0)
     a = np.r_[np.c_[xs, np.zeros_like(xs)], np.c_[xs + 7.5, np.full_like(xs, 16.0)]]
@@ -77,9 +77,8 @@ def test_a_long_hall_heard_across_both_walls_keeps_the_scales():
     z = _log(a, x, bias, scale, 2, reach=30.0)
     r = SelfCalibrator("range").fit(a, z, x + 0.2)
     assert not any("close to a line" in w for w in r.warnings)
-    est = r.free[:, 1]
-    assert est.sum() >= m - 2  # (an end anchor may be left out for its own reasons)
-    assert np.all(np.abs(r.slope[est] - scale[est]) < 4 * r.slope_se[est])
+    assert r.free.all()  # (every bias and scale: measured, nothing left out)
+    assert np.all(np.abs(r.slope - scale) < 4 * r.slope_se)
 
 
 def test_a_corridor_still_leaves_the_scales_out():
