@@ -95,3 +95,23 @@ def test_parquet_time_as_text_is_the_number_it_spells(tmp_path, by, scheduler):
             for f in (tmp_path / f"ds-{method}").rglob("*.parquet"):
                 t = pd.read_parquet(f)["time"].to_numpy(float)
                 assert np.all(np.diff(t) >= 0), (method, t)
+
+
+def test_a_compressed_csv_partitions_without_a_warning(tmp_path, capsys, scheduler):
+    """A ``.csv.gz`` (which dask cannot split into blocks) gave a UserWarning on stderr
+    ("gzip compression does not support breaking apart files"); the rows equal the
+    DuckDB method's."""
+    import gzip
+
+    src = tmp_path / "m.csv.gz"
+    with gzip.open(src, "wt") as fh:
+        fh.write("time,tag,anchor,range\n0,T1,A0,5\n1,T1,A0,6\n1,T2,A1,7\n")
+    import warnings
+
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        duck, dask = _both(src, tmp_path, "time", scheduler)
+    assert not [w for w in seen if "compression" in str(w.message)], seen
+    assert "Warning" not in capsys.readouterr().err
+    assert len(dask) == 3
+    _same(duck, dask)

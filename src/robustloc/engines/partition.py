@@ -624,8 +624,12 @@ def _dask(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, sche
         parts = []
         for f in files:
             if fmt == "csv":  # every column as text, typed by _dask_columns
+                # (a compressed file cannot be split into blocks: dask said so in a
+                # UserWarning on stderr for every .csv.gz)
+                packed = f.lower().endswith((".gz", ".bz2", ".xz", ".zst", ".zip"))
                 one = dd.read_csv(f, dtype=str, keep_default_na=False, na_values=[""],
-                                  blocksize="64MB", skipinitialspace=True)
+                                  blocksize=None if packed else "64MB",
+                                  skipinitialspace=True)
             else:
                 one = dd.read_parquet(f, split_row_groups=True)  # a task per row group
             parts.append(one.map_partitions(_dask_columns, dtypes, f, meta=meta))
