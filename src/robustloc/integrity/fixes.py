@@ -382,13 +382,12 @@ def mirror_solution(
     f0 = range_model.predict(np.nan_to_num(x))
     d = np.where(w > 0, f0 - np.nan_to_num(residuals), 0.0)  # observed ranges
     # principal line (plane) of each epoch's kept anchors
-    k = (w > 0).astype(float)
-    cnt = np.maximum(k.sum(axis=1), 1.0)
-    c = (k @ a) / cnt[:, None]
-    da = np.where(k[..., None] > 0, a[None, :, :] - c[:, None, :], 0.0)  # (N, m, p)
-    S = np.einsum("km,kmi,kmj->kij", k, da, da)
-    _, vec = np.linalg.eigh(S)
-    u = vec[:, :, 0]  # smallest eigenvalue's eigenvector (N, p)
+    from robustloc.models.geometry import principal_lines
+
+    kept = w > 0
+    k = kept.astype(float)
+    c, u = principal_lines(a, kept)
+    da = np.where(kept[..., None], a[None, :, :] - c[:, None, :], 0.0)  # (N, m, p)
     xa = x - 2.0 * np.einsum("ki,ki->k", x - c, u)[:, None] * u
     # Gauss-Newton, step limited to the kept anchors' extent (a trust region against a
     # start in a flat valley)

@@ -17,7 +17,7 @@ from numpy.typing import ArrayLike, NDArray
 Array = NDArray[np.float64]
 
 __all__ = ["anchor_elongation", "collinear", "elongation_rows", "mirror_flatness",
-           "unique_rows"]
+           "principal_lines", "unique_rows"]
 
 
 def unique_rows(mask: NDArray[np.bool_]) -> tuple[NDArray[np.bool_], NDArray[np.intp]]:
@@ -106,6 +106,39 @@ def _scatter_eigenvalues(anchors: ArrayLike, keep: ArrayLike) -> tuple[Array, ND
         if good.any():
             ev[good] = np.linalg.eigvalsh(S[good])
     return ev, cnt
+
+
+def principal_lines(anchors: ArrayLike, keep: ArrayLike) -> tuple[Array, Array]:
+    """Per row, the centroid ``c`` and unit normal ``u`` of the least-squares line (2-D;
+    plane in 3-D) of its kept anchors: ``u`` the eigenvector of the smallest eigenvalue
+    of their scatter matrix ``sum_i (a_i - c)(a_i - c)^T``.  A position's mirror image
+    across it is ``x - 2 ((x - c) . u) u`` (:func:`robustloc.integrity.fixes.
+    mirror_solution` starts there; the tracker carries the line of an ambiguous epoch).
+
+    Parameters
+    ----------
+    anchors : (m, p) array
+    keep : (N, m) bool array
+
+    Returns
+    -------
+    c, u : (N, p) arrays
+
+    Examples
+    --------
+    >>> a = np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0], [0.0, 9.0]])
+    >>> c, u = principal_lines(a, np.array([[1, 1, 1, 0]], bool))
+    >>> c[0].tolist(), np.abs(u[0]).tolist()
+    ([10.0, 0.0], [0.0, 1.0])
+    """
+    a = np.asarray(anchors, dtype=float)
+    keep = np.asarray(keep, dtype=bool)
+    k = keep.astype(float)
+    cnt = np.maximum(k.sum(axis=1), 1.0)
+    c = (k @ a) / cnt[:, None]
+    da = np.where(keep[..., None], a[None, :, :] - c[:, None, :], 0.0)  # (N, m, p)
+    _, vec = np.linalg.eigh(np.einsum("kmi,kmj->kij", da, da))
+    return c, vec[:, :, 0]
 
 
 def mirror_flatness(anchors: ArrayLike, keep: ArrayLike, position: ArrayLike) -> Array:

@@ -981,6 +981,7 @@ class Tracker:
         anchors, redundancy): widens the ambiguous rows' ``hpl`` by their refined mirror,
         leaves each one's line with its tag, and returns which rows it widened."""
         from robustloc.integrity.fixes import AMBIGUITY_ELONGATION, mirror_solution
+        from robustloc.models.geometry import principal_lines
         from robustloc.models.ranging import RangeModel
 
         link = self._link
@@ -1020,7 +1021,8 @@ class Tracker:
             rr = idx[r[amb]]
             d = np.hypot(*(x_alt[amb] - xr[amb]).T)
             out.hpl[rr] = np.fmax(out.hpl[rr], d + out.hpl[rr])
-            self._mline[sl[r[amb]]] = _principal_lines(link.anchors_xy, kc[amb])
+            c, u = principal_lines(link.anchors_xy, kc[amb])
+            self._mline[sl[r[amb]]] = np.c_[c, u]
             covered[r[amb]] = True
         return covered
 
@@ -1978,18 +1980,6 @@ def _finite_moments(x: Array, P: Array) -> NDArray[np.bool_]:
 
 
 #: Status of the fused kernel's codes (:data:`robustloc.tracking._compiled.CODES`).
-def _principal_lines(anchors: Array, keep: NDArray[np.bool_]) -> Array:
-    """Per row, the centroid and unit normal ``(c_x, c_y, u_x, u_y)`` of the least-squares
-    line of its kept anchors (the eigenvector of the smallest eigenvalue of their scatter
-    matrix), as :func:`robustloc.integrity.fixes.mirror_solution` reflects across it."""
-    k = keep.astype(float)
-    cnt = np.maximum(k.sum(axis=1), 1.0)
-    c = (k @ anchors) / cnt[:, None]
-    da = np.where(keep[..., None], anchors[None, :, :] - c[:, None, :], 0.0)
-    _, vec = np.linalg.eigh(np.einsum("kmi,kmj->kij", da, da))
-    return np.c_[c, vec[:, :, 0]]
-
-
 _CODE_STATUS = np.array([st.OK, st.FAULT_EXCLUDED, st.PREDICTED], dtype=object)
 
 
