@@ -407,6 +407,27 @@ def test_validate_rows_vectorized_matches_rowwise():
     assert e.value.status == 400
 
 
+@pytest.mark.parametrize("text", ["1_000", "\u0661\u0662", "0x10", "abc"])
+def test_a_number_as_text_is_read_as_the_files_are(text, tmp_path):
+    """A value sent as text is a number exactly when ``locate`` reads it as one from a
+    file (``robustloc._arrays.to_number``).  Python's float() also took "1_000" and the
+    digits of other scripts (Arabic-Indic "\u0661\u0662" read 12), which the batch reader
+    refuses: the same log gave positions live and ``error: ... is not a number`` in
+    ``locate`` (the serve review of 2026-12-06)."""
+    from robustloc.io.tables import InputError, read_measurements
+
+    idx = pd.Index(["1"], dtype=object)
+    rows = [{"time": text, "tag": "a", "anchor": "1", "range": 2.0},
+            {"time": " 7 ", "tag": "a", "anchor": "1", "range": "3"}]
+    b, kind, rej = validate_rows(rows, idx, None)
+    assert [i for i, _ in rej] == [0] and "is not a number" in rej[0][1]
+    assert b.time.tolist() == [7.0]  # padded digits: read by both
+    path = tmp_path / "m.csv"
+    path.write_text(f"time,tag,anchor,range\n{text},a,1,2\n", encoding="utf-8")
+    with pytest.raises(InputError, match="is not a number"):
+        read_measurements(path)
+
+
 _REGULAR = {"time": 1.5, "tag": "T1", "anchor": "A1", "range": 2.5}
 
 

@@ -170,6 +170,17 @@ def _floats(col: list[Any], name: str, err: list[str | None]) -> NDArray[np.floa
         except OverflowError:  # an integer beyond float range: say which row below
             pass
     out = np.full(len(col), np.nan)
+    # numbers written as text: as the batch readers take them (robustloc._arrays.
+    # to_number; Python's float() also took "1_000" and other scripts' digits, which
+    # `locate` refuses: the same log gave positions here and an error there, the serve
+    # review of 2026-12-06)
+    texts = [i for i, x in enumerate(col) if type(x) is str and err[i] is None]
+    if texts:
+        from robustloc._arrays import to_number
+
+        parsed = to_number(pd.Series([col[i] for i in texts], dtype=object)).to_numpy(
+            dtype=float, na_value=np.nan)
+        as_text = dict(zip(texts, parsed.tolist()))
     for i, x in enumerate(col):
         t = type(x)
         if t is float:
@@ -187,9 +198,10 @@ def _floats(col: list[Any], name: str, err: list[str | None]) -> NDArray[np.floa
         elif t is bool:
             err[i] = f"'{name}' is a boolean, expected a number"
         elif t is str:
-            try:
-                out[i] = float(x)
-            except ValueError:
+            v = as_text[i]
+            if v == v or x.strip().lower() == "nan":  # (NaN: as a missing value)
+                out[i] = v
+            else:
                 err[i] = f"'{name}': {x[:40]!r} is not a number"
         else:
             err[i] = f"'{name}' is a {_json_type(x)}, expected a number"
