@@ -1793,3 +1793,18 @@ def test_other_sites_pages_can_neither_send_nor_listen(ble, server_factory):
     assert c.get(f"http://localhost:{srv.port}/healthz").status_code == 200
     assert metric(srv.url, 'robustloc_requests_rejected_total{reason="cross_origin"}') == 2
     assert metric(srv.url, 'robustloc_requests_rejected_total{reason="foreign_host"}') == 1
+    # a CORS preflight: allowed, answered by CORS; refused with a reason, and counted
+    # (CORSMiddleware answered those in plain text, uncounted; the serve review)
+    ok = c.options(url, headers={"Origin": "http://trusted.example",
+                                 "Access-Control-Request-Method": "POST",
+                                 "Access-Control-Request-Headers": "content-type"})
+    assert ok.status_code == 200
+    assert ok.headers["access-control-allow-origin"] == "http://trusted.example"
+    for h in ({"Origin": "http://evil.example", "Access-Control-Request-Method": "POST"},
+              {"Origin": "http://trusted.example", "Access-Control-Request-Method": "DELETE"},
+              {"Origin": "http://trusted.example", "Access-Control-Request-Method": "POST",
+               "Access-Control-Request-Headers": "x-evil"}):
+        refused = c.options(url, headers=h)
+        assert refused.status_code == 400 and refused.json()["error"], h
+    assert metric(srv.url, 'robustloc_requests_rejected_total{reason="cors_preflight"}') == 3
+    assert c.get(srv.url + "/api/status").json()["requests_rejected"]["cors_preflight"] == 3
