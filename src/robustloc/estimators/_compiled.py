@@ -559,10 +559,8 @@ def _gn_iterate(a, ho2, zz, w0, x, w, u, code, prm, robust, scale_fixed, min_sca
                 t += Ni[k, j] * g[j]
             dx[k] = t
             xn[k] = x[k] + t
-            if not t == t or step != step:
-                step = math.nan
-            else:
-                step = max(step, abs(t))
+            step += t * t  # (NaN stays NaN)
+        step = math.sqrt(step)  # the step's length, as nonlinear.gauss_newton's
         _ranges(a, ho2, xn, tmp, J[:0], tag)
         cost_old = 0.0
         cost_new = 0.0
@@ -828,10 +826,10 @@ def _fit_ranges(a, ho2, z, sig, x0, code, prm, robust, redescending, scale_fixed
             t = 2 if ob < oa else 1
             # both starts reached one fix (within the step tolerance): the warm-up's, so
             # the choice does not rest on rounding
-            same = True
+            gap = 0.0  # (the distance between them, as nonlinear.gauss_newton's step)
             for k in range(p):
-                same = same and abs(XS[1, k] - XS[2, k]) <= tol
-            if same:
+                gap += (XS[1, k] - XS[2, k]) ** 2
+            if math.sqrt(gap) <= tol:
                 t = 1
         for k in range(p):
             X[e, k] = XS[t, k]

@@ -327,7 +327,7 @@ def irls(
             # a weighting that destroys the geometry keeps the previous iterate
             enough = np.sum(wn > 0, axis=1) >= p
             ok = good & enough
-            step = np.where(ok, np.max(np.abs(np.nan_to_num(xn - x[act])), axis=1), 0.0)
+            step = np.where(ok, np.sqrt(np.sum(np.nan_to_num(xn - x[act]) ** 2, axis=1)), 0.0)
             x[act[ok]] = xn[ok]
             w[act[ok]] = wn[ok]
             u_all[act] = u

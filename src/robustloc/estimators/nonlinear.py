@@ -227,7 +227,10 @@ def gauss_newton(
             w[act] = wa
             lam[act] = np.where(accept, np.maximum(lam[act] / 1.5, 1e-9), lam[act] * 3.0)
             iters[act] += 1
-            step = np.max(np.abs(dx), axis=1)
+            # the step's length (Euclidean: a per-coordinate maximum depends on the frame's
+            # rotation, and so did where a reweighted fit stopped -- an asym fix moved
+            # 0.22 m with the frame, the locate review of 2026-12-06)
+            step = np.sqrt(np.sum(dx**2, axis=1))
             # the distance still to go: a reweighted iteration converges linearly, its
             # steps shrinking by a ratio q, so the steps to come add up to step q/(1 - q)
             # (none known after the first step).  Stopping at a small step alone left

@@ -306,6 +306,31 @@ def _area_cached(key: bytes, shape: tuple[int, ...]) -> tuple[Array, float]:
     return centre, 1.25 * max(float(np.max(np.linalg.norm(a - centre, axis=1))), 1.0)
 
 
+def _rescue_grid(a: Array, centre: Array, radius: float) -> Array:
+    """The rescue's grid (:meth:`Locator._rescue`): the square of side ``2 radius`` around
+    the anchors' centre, 24 x 24 points in 2-D (10 x 10 x 5 in 3-D, the height from the
+    box's bottom to its top), its sides along the horizontal direction from the centre to
+    the anchor farthest from it (:func:`canonical_rank`'s last; the next where that one
+    lies straight above the centre) and across it.  A grid along the frame's axes depended
+    on the frame's rotation, and so did a rescued fix (the locate review of 2026-12-06:
+    igg3 fixes 6.6 m apart in a frame turned by 0.7 rad); this one turns with the anchors
+    and does not depend on their order in the file."""
+    dim = a.shape[1]
+    off = a[:, :2] - centre[:2]
+    order = np.argsort(-canonical_rank(a))
+    far = order[np.hypot(off[order, 0], off[order, 1]) > 1e-9 * radius]
+    u = off[far[0]] / np.hypot(*off[far[0]]) if far.size else np.array([1.0, 0.0])
+    v = np.array([-u[1], u[0]])
+    per = 24 if dim == 2 else 10
+    s = np.linspace(-radius, radius, per)
+    su, sv = np.meshgrid(s, s, indexing="ij")
+    xy = centre[:2] + su.reshape(-1, 1) * u + sv.reshape(-1, 1) * v
+    if dim == 2:
+        return xy
+    zs = np.linspace(centre[2] - radius, centre[2] + radius, 5)
+    return np.column_stack([np.repeat(xy, zs.size, axis=0), np.tile(zs, xy.shape[0])])
+
+
 #: 3-D anchors whose spread out of their best-fitting plane is below this fraction of
 #: their largest spread in it (square root of the smallest over the largest eigenvalue of
 #: their scatter matrix) are coplanar for the solvers' start (:func:`_off_plane`).
@@ -1575,9 +1600,9 @@ class Locator:
 
         take_b = objective(fb) < objective(fa)
         # both starts reached one fix (within the step tolerance): the warm-up's, so the
-        # choice does not rest on rounding
+        # choice does not rest on rounding (the step's length, as the solvers measure it)
         with np.errstate(invalid="ignore"):
-            take_b &= ~np.all(np.abs(fa.x - fb.x) <= self.tol, axis=1)
+            take_b &= ~(np.sqrt(np.sum((fa.x - fb.x) ** 2, axis=1)) <= self.tol)
         fit = _merge(fa, fb, np.arange(len(take_b)), take_b)
         return replace(fit, iterations=fit.iterations + hub.iterations)
 
@@ -1591,7 +1616,6 @@ class Locator:
         those epochs pay for the grid.
         """
         centre, radius = self._the_area(a)
-        blo, bhi = centre - radius, centre + radius
         x = fit.x
         n_obs = np.sum(np.isfinite(obs), axis=1)
         rejected = np.sum(fit.w <= 0, axis=1)  # NaN (not heard) is not rejected
@@ -1601,9 +1625,7 @@ class Locator:
         if sus.size == 0:
             return fit
         dim = a.shape[1]
-        per = 24 if dim == 2 else 10
-        axes = [np.linspace(blo[k], bhi[k], per if dim == 2 or k < 2 else 5) for k in range(dim)]
-        grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, dim)
+        grid = _rescue_grid(a, centre, radius)
         zs, ss = obs[sus], sig[sus]
         pred_g = model.predict(grid)  # (G, m)
         if self.engine == "compiled":
