@@ -1109,8 +1109,9 @@ def protect(
     with np.errstate(invalid="ignore", divide="ignore"):
         qv = sig * sig * np.where(r > R_MIN, r, np.nan)  # Q_vv,ii of the a-priori fit
     pw = sol.extra.get("weight_factor")
-    robust_fit = (sol.method not in PLAIN_FIT_METHODS and pw is not None
-                  and np.shape(pw) == (N, n))
+    # (a plain fit gives weight factors when its weights are not the tests' a-priori
+    # ones: Gauss-Newton with equal weights tested with the log's per-anchor scale)
+    robust_fit = pw is not None and np.shape(pw) == (N, n)
     if robust_fit:
         # a robust fit's residual is not that of the a-priori weighted adjustment: a row
         # it down-weighted keeps most of its error (variance up to sigma^2 (1 + h), not
