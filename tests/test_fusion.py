@@ -670,7 +670,7 @@ def test_fuse_command_defaults_and_a_diverging_ukf(tmp_path, capsys):
     out = tmp_path / "ukf.csv"
     assert main([*args, "--filter", "ukf", "--robust", "none", "-o", str(out)]) == 0
     err = capsys.readouterr().err
-    assert "warning: the innovation test failed on 5 or more consecutive events" in err
+    assert "warning: the innovation test failed" in err and "on 5 or more consecutive events" in err
     assert "--filter ekf" in err
     tr = pd.read_csv(out)
     e = np.hypot(tr["x"] - truth["x"], tr["y"] - truth["y"])

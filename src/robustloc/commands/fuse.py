@@ -286,9 +286,10 @@ def run(args: argparse.Namespace) -> int:
     for text in anchor_warnings(s, args.anchors):  # (as locate and track word it)
         print(f"warning: {text}", file=sys.stderr)
     if s["diverged"]:  # a warning, even with --json
-        print(f"warning: the innovation test failed on {filt.max_failed} or more consecutive "
-              f"events with every measurement kept, {s['diverged']} time(s): the filter "
-              "disagrees with its measurements (those rows are fault_detected); "
+        print(f"warning: the innovation test failed with every measurement kept, or the "
+              f"update kept a minority of them, on {filt.max_failed} or more consecutive "
+              f"events, {s['diverged']} time(s): the filter disagrees with its measurements "
+              "(those rows are fault_detected or unavailable); "
               + ("the UKF's sigma points may span the ranges' curvature (a wide prediction: "
                  "long steps or a large --q), its track restarts from the next fix: try "
                  "--filter ekf or a --q that fits the motion"

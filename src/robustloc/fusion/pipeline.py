@@ -267,8 +267,11 @@ class FusionFilter:
         velocity variances are raised to ``relock_var`` so that the next measurements are
         standardized against a wide prior and accepted (a robust filter that drifted
         away would otherwise reject everything forever).  0 disables.
-    relock_var : variance (m^2 and (m/s)^2) set on re-lock; the acceleration states of the
-        CA model are zeroed with a variance of ``relock_var / 100`` (m/s^2)^2.
+    relock_var : variance (m^2 and (m/s)^2) set on re-lock, at least: the position's is
+        raised to the event's largest squared range (position) innovation and the
+        velocity's to its squared speed innovation where those are larger, so that what
+        was being rejected is accepted; the acceleration states of the CA model are
+        zeroed with a variance of ``relock_var / 100`` (m/s^2)^2.
     sigma_point_predict : UKF only -- propagate sigma points through the motion model
         (seed 001 eq. (21)).  The CV/CA models are linear, for which the unscented
         transform is exact and equals ``F x, F P F^T + Q`` (tested), so by default the UKF
@@ -282,9 +285,11 @@ class FusionFilter:
         ``track`` and ``locate`` test).  An event that fails with no component rejected
         is ``fault_detected``, not ``ok`` (:meth:`run`, Notes).
     max_failed : this many consecutive events of a track that fail the test with no
-        component rejected are counted as one divergence (``extra["diverged"]``): the
-        filter no longer agrees with its measurements (:meth:`run`, Notes); a diverged
-        UKF restarts at its next event's fix.  0 disables.
+        component rejected, or whose update kept a strict minority of their three or
+        more components (those rows are ``unavailable``), are counted as one divergence
+        (``extra["diverged"]``): the filter no longer agrees with its measurements
+        (:meth:`run`, Notes); a diverged UKF restarts at its next event's fix.  0
+        disables.
     lost_pos_var : a prediction whose position variance ``V = var_x + var_y`` (m^2)
         exceeds this *and* is too wide to update, ``sqrt(eps) V >= r_min`` (``r_min`` the
         smallest variance ``R_ii`` of the event's components, :data:`SQRT_EPS`), is lost:
@@ -703,8 +708,19 @@ class FusionFilter:
             if (fail & kin).any():  # speed and course linearized at an undetermined speed
                 fail &= ~kin | self._speed_determined(x_prior, dt)
             r_status = np.where(fail & (r_status == st.OK), st.FAULT_DETECTED, r_status)
+            # an update that kept a strict minority of the event's components, of three
+            # or more, is no fix: nothing but the filter's own prediction supports it
+            # against most of what it measured (locate's rule, robustloc.status.
+            # UNAVAILABLE).  Such rows said fault_excluded -- "the rest passes" -- with
+            # one component of five kept, hundreds of metres off (the fuse review of
+            # 2026-12-06); they count toward divergence.  (One or two components, as in
+            # a round-robin of ranges: a rejected range leaves the prediction, which
+            # says `predicted`, or half the event, as robust weights should)
+            minority = had & (avail >= 3) & (2 * r_nu < avail) & ~coast
+            r_status = np.where(minority & st.among(r_status, st.USABLE), st.UNAVAILABLE,
+                                r_status)
             if self.max_failed > 0:
-                failed = np.where(fail, failed + 1, np.where(had, 0, failed))
+                failed = np.where(fail | minority, failed + 1, np.where(had, 0, failed))
                 gone = failed == self.max_failed
                 diverged += gone  # once per run of failures
                 if self.kind == "ukf":  # a diverged UKF restarts at its next fix (Notes)
@@ -717,9 +733,28 @@ class FusionFilter:
                     P = P.copy()
                     x = x.copy()
                     P[lock] = 0.0
-                    diag = np.full(n, self.relock_var)
-                    diag[4:] = self.relock_var * 0.01
-                    P[lock] = np.diag(diag)
+                    diag = np.full((int(lock.sum()), n), self.relock_var)
+                    diag[:, 4:] = self.relock_var * 0.01
+                    # at least as wide as the discrepancy that is being rejected: the
+                    # event's largest squared range (or position) innovation for the
+                    # position, its speed innovation for the velocity.  A fixed 4 m^2
+                    # re-locked a track hundreds of metres off to a 2 m sd, its ranges
+                    # were rejected again, and it re-locked every fifth event while it
+                    # coasted away (UKF/CA with asymmetric-igg weights on a simulated
+                    # cart: 589 m off, rows `predicted` with sd 2.8-12 m; the fuse
+                    # review of 2026-12-06)
+                    inn = r_innov[lock]
+                    k_pos = [c for c in range(inn.shape[1])
+                             if c not in (meas.speed_index, meas.course_index)]
+                    with np.errstate(invalid="ignore"):
+                        big = np.nanmax(np.where(np.isfinite(inn[:, k_pos]),
+                                                 inn[:, k_pos] ** 2, 0.0), axis=1,
+                                        initial=0.0)
+                        sp = inn[:, meas.speed_index]
+                        big_v = np.where(np.isfinite(sp), sp * sp, 0.0)
+                    diag[:, :2] = np.maximum(diag[:, :2], big[:, None])
+                    diag[:, 2:4] = np.maximum(diag[:, 2:4], big_v[:, None])
+                    P[lock] = diag[:, :, None] * np.eye(n)[None]
                     x[np.ix_(lock, np.arange(4, n))] = 0.0
                     rejected[lock] = 0
                     relocks += lock

@@ -377,7 +377,8 @@ def fuse(
         if opts.coupling == "loose":  # a fused fix that failed its own test
             status = np.where((status == st.OK) & np.isfinite(tl.z[..., c_fail]),
                               st.FAULT_DETECTED, status)
-        fixed = st.among(status, (st.OK, st.FAULT_EXCLUDED, st.FAULT_DETECTED))
+        fixed = st.among(status, (st.OK, st.FAULT_EXCLUDED, st.FAULT_DETECTED,
+                                  st.UNAVAILABLE))
         status = np.where(fixed & (layout != ""), layout, status)
         # nothing valid arrived with the event: its own input was unusable.  Not an event
         # with a valid value that nothing used -- loose coupling's one or two ranges, no fix
