@@ -60,11 +60,15 @@ input epoch is in one); status:
                         event's fix, as after a gap).  Loose coupling: also an ok event
                         whose fix failed its own test (that of `locate --method FIX
                         --sigma SIGMA_RANGE --robust-scale apriori`)
-  predicted             nothing to update with, or every measurement of the event was
-                        rejected (n_used 0): the state is the motion model's prediction,
-                        whatever the anchors.  Loose coupling has no fix from one or two
-                        anchors: such an event without GPS is predicted, where tight
-                        coupling updates with its ranges (insufficient_anchors)
+  unavailable           the update kept a strict minority of the event's three or more
+                        components (the rest rejected): only the filter's own prediction
+                        supports the row.  Counts toward the warning above
+  predicted             nothing to update with, or every measurement of an event of one or
+                        two components was rejected (n_used 0): the state is the motion
+                        model's prediction, whatever the anchors.  Loose coupling has no
+                        fix from one or two anchors: such an event without GPS is
+                        predicted, where tight coupling updates with its ranges
+                        (insufficient_anchors)
   invalid_measurement   every value of the event was outside its physical limits
                         (robustloc.io.limits: range -50..1e5 m, speed 0..515 m/s, course
                         0..360 deg); they were set aside, the row is the prediction.
