@@ -34,8 +34,9 @@ its own 'rssi_raw' and gets the merged sample's filtered values, whatever the ro
 An RSSI outside -150 .. +30 dBm (robustloc.io.limits) is not fed to the
 filter, nor is a row whose time is beyond +-1e12 s: the row keeps the raw value in 'rssi'
 and 'rssi_raw' (so 'locate' sets it aside as on the raw file), 'distance' is empty,
-'distance_state' and 'speed' are the filter's prediction, and 'status' says
-invalid_measurement (else ok); such rows are counted in the summary.
+'distance_state' and 'speed' are the filter's prediction (empty for a time beyond the
+limits: no prediction reaches it), and 'status' says invalid_measurement (else ok); such
+rows are counted in the summary.
 A link whose predicted RSSI variance exceeds 25 times the measurement's (after a gap, or
 within decimetres of an anchor) starts again at its sample, as at its first one: the
 prior then weighs under 4 % of the update, and the distance and speed states are drawn
@@ -175,7 +176,8 @@ def filter_frame(meas, anchors, args: argparse.Namespace, progress: bool = False
         # an invalid row keeps its raw value in 'rssi' too, so that `locate` on the
         # filtered file sets it aside exactly as on the raw file (it never counts as
         # heard); 'distance' (the filtered RSSI through the model) has no value, while
-        # 'distance_state' and 'speed' keep the filter's prediction of the link
+        # 'distance_state' and 'speed' keep the filter's prediction of the link (a row of
+        # a time beyond the limits has none: they stay empty, as --help says)
         frame = frame.copy()
         values = raw if raw is not None else meas["rssi"].to_numpy(dtype=float)
         for c in ("rssi", "rssi_raw"):

@@ -944,9 +944,12 @@ def filter_measurements(
     if "rssi" not in m.columns:
         raise InputError("the filter needs an 'rssi' column (this file has none)",
                          getattr(measurements, "attrs", {}).get("path"), 1)  # the header
-    key = m["tag"].astype(str) + "\x1f" + m["anchor"].astype(str)
-    link, uniq = pd.factorize(key, sort=True)
-    anchor_of_link = np.array([u.split("\x1f", 1)[1] for u in uniq], dtype=object)
+    # the links (tag, anchor) as pairs: a key joined by a separator split a tag id that
+    # held the separator at the wrong place, and its anchor then took the default path
+    # loss silently (a tag "t\x1f2"; the filter review of 2026-12-06)
+    key = pd.MultiIndex.from_arrays([m["tag"].astype(str), m["anchor"].astype(str)])
+    link, uniq = key.factorize(sort=True)
+    anchor_of_link = np.asarray(uniq.get_level_values(1), dtype=object)
     params = (link_params_from_anchors(anchors, anchor_of_link) if anchors is not None
               else LinkParams.broadcast(len(uniq)))
     res = filt.filter_samples(link, m["time"].to_numpy(dtype=float),
