@@ -98,8 +98,8 @@ def test_an_unweighted_fit_is_tested_against_its_own_residual_variances(method):
     against its variance under the fit's own weights (the sandwich Q_vv, as a robust
     fit's).  Bound: the B-method's global risk (each fix's ``test_alpha``) plus the five
     w-tests' alpha0 (a union bound), plus three binomial standard errors."""
-    from robustloc.integrity.fixes import locate_protected
     from robustloc.integrity.bmethod import ALPHA0
+    from robustloc.integrity.fixes import locate_protected
 
     rng = np.random.default_rng(1)
     a = rng.uniform(0, 20, (5, 2))
@@ -114,3 +114,23 @@ def test_an_unweighted_fit_is_tested_against_its_own_residual_variances(method):
     assert share <= p + 3 * np.sqrt(p * (1 - p) / len(status)), (share, p)
     err = np.linalg.norm(sol.position - x, axis=1)
     assert np.all(err <= sol.extra["hpl"])  # (none of 4 000 beyond its bound, measured)
+
+
+def test_one_sigma_moves_no_fix_with_the_log_scale_except_snooping():
+    """``locate --help``: with --robust-scale log one --sigma value moves no fix and no
+    hpl, "except snooping's, which tests against a given sigma as known" (the help said
+    it of every method; the locate review found snooping's statuses and fixes moving)."""
+    from robustloc.integrity.fixes import locate_protected
+
+    rng = np.random.default_rng(5)
+    x = rng.uniform(2, 18, (300, 2))
+    d = np.linalg.norm(ANCHORS[None] - x[:, None], axis=2) + rng.normal(0, 0.1, (300, 6))
+    d[rng.random(d.shape) < 0.15] += 6.0
+    for method in ("auto", "nls", "huber", "igg3", "lege"):
+        a, b = (locate_protected(Locator(method, sigma=s), ANCHORS, d, "range")
+                for s in (0.1, 5.0))
+        np.testing.assert_allclose(a.position, b.position, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(a.extra["hpl"], b.extra["hpl"], rtol=1e-9)
+    a, b = (locate_protected(Locator("snooping", sigma=s), ANCHORS, d, "range")
+            for s in (0.1, 5.0))
+    assert np.any(np.asarray(a.status) != np.asarray(b.status))

@@ -133,7 +133,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "`sigma` column (per-anchor, e.g. from calibrate) if present, else "
                         "equal weights.  With --robust-scale log (default) the log's noise "
                         "level is measured in units of it, so one value moves no fix and no "
-                        "hpl (only sigma0, a ratio to it); apriori trusts it")
+                        "hpl (only sigma0, a ratio to it), except snooping's, which "
+                        "tests against a given sigma as known; apriori trusts it")
     p.add_argument("--robust-scale", choices=("log", "mad", "apriori"), default="log",
                    help="noise scale of the robust methods and of every fix's test and "
                         "protection level: per anchor over the log (log, default: a first "
