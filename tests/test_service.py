@@ -428,6 +428,26 @@ def test_a_number_as_text_is_read_as_the_files_are(text, tmp_path):
         read_measurements(path)
 
 
+def test_a_whole_number_of_5000_digits_is_infinite_in_files_and_live(tmp_path):
+    """pandas read a whole number of more than 4 300 digits (Python's conversion limit)
+    as NaN, "not a number", where one of 1 000 digits read +inf; the service, reading
+    text as the files are read, said "not a number" for the first too.  Both read +-inf
+    now: a file's row says "infinite value", the service's "not finite"."""
+    from robustloc._arrays import to_number
+    from robustloc.io.tables import InputError, read_measurements
+
+    big = "9" * 5000
+    assert to_number(pd.Series([big, "-" + big, "7", "x" * 5000], dtype=object)).tolist()[
+        :3] == [np.inf, -np.inf, 7.0]
+    path = tmp_path / "m.csv"
+    path.write_text(f"time,tag,anchor,range\n{big},a,1,2\n", encoding="utf-8")
+    with pytest.raises(InputError, match="infinite value"):
+        read_measurements(path)
+    _, _, rej = validate_rows([{"time": big, "tag": "a", "anchor": "1", "range": 2.0}],
+                              pd.Index(["1"], dtype=object), None)
+    assert "not finite" in rej[0][1]
+
+
 _REGULAR = {"time": 1.5, "tag": "T1", "anchor": "A1", "range": 2.5}
 
 

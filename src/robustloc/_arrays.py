@@ -58,11 +58,24 @@ def to_number(values: pd.Series) -> pd.Series:
     """``pd.to_numeric(values, errors="coerce")``: what is not a number becomes NaN.
 
     A whole number beyond float's range (a CSV field of 400 nines, which pandas keeps as
-    a Python int) becomes +-inf, as the same number written ``9.99e399`` does; pandas
+    a Python int, or one of more than 4 000 digits, which it read as NaN) becomes +-inf,
+    as the same number written ``9.99e399`` does; pandas
     raised ``OverflowError: int too large to convert to float`` on it, and every command
     reading the column ended in a traceback (the fuzz review of 2026-12-06).
     """
     try:
-        return pd.to_numeric(values, errors="coerce")
+        out = pd.to_numeric(values, errors="coerce")
     except OverflowError:
-        return pd.to_numeric(values.map(_beyond_float), errors="coerce")
+        out = pd.to_numeric(values.map(_beyond_float), errors="coerce")
+    # whole numbers written with more digits than Python converts (4 300) came out NaN,
+    # "not a number", where 1 000 nines read +inf: the same +-inf (the serve review)
+    if not pd.api.types.is_numeric_dtype(values) and pd.api.types.is_float_dtype(out):
+        na = out.isna().to_numpy()
+        if na.any():
+            cand = values[na]
+            text = cand[cand.map(lambda v: isinstance(v, str) and len(v) > 4000)].str.strip()
+            text = text[text.str.fullmatch(r"[+-]?\d+")]
+            if len(text):
+                out = out.copy()
+                out[text.index] = np.where(text.str.startswith("-"), -np.inf, np.inf)
+    return out
