@@ -1286,3 +1286,17 @@ def test_one_long_range_of_four_is_snooped_out_one_at_a_time():
     plain = protect(Locator("nls", sigma=sig, robust_scale="apriori").solve(a, d),
                     range_model=range_model_of(a, None))
     assert plain.status[0] == st.FAULT_DETECTED
+
+
+def test_a_fault_the_test_cannot_detect_leaves_the_fix_unverified():
+    """Three anchors, the tag on the line of two of them: the third's range alone fixes
+    the coordinate across that line (redundancy number 0), so its fault is undetectable
+    and the bound infinite.  The row said ``low_redundancy`` ("an MDB-sized fault would
+    have been detected") with ``hpl`` inf (the serve review of 2026-12-06); it is
+    ``unverified``, as the README's "the status tells which" promises."""
+    a = np.array([[0.0, 0.0], [10.0, 0.0], [5.0, 8.0]])
+    tag = np.array([[5.0, 0.0], [4.0, 3.0]])  # on the line of a0, a1; off it
+    d = np.linalg.norm(a[None] - tag[:, None], axis=2)  # (exact: a fix on the line)
+    sol = locate_protected(Locator("nls", sigma=0.1, robust_scale="apriori"), a, d, "range")
+    assert sol.status[0] == st.UNVERIFIED and np.isinf(sol.extra["hpl"][0])
+    assert sol.status[1] == st.LOW_REDUNDANCY and np.isfinite(sol.extra["hpl"][1])

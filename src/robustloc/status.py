@@ -34,8 +34,10 @@ PREDICTED = "predicted"
 #: be identified.  Usable; ``hpl`` is valid.
 LOW_REDUNDANCY = "low_redundancy"
 #: Redundancy 0 (or no noise scale to test with: a per-epoch scale of 0): the fix fits its
-#: observations exactly and nothing can be tested.  Usable, with an infinite protection
-#: level.
+#: observations exactly and nothing can be tested.  Also a fix that passed its test with
+#: an observation whose fault the test cannot detect (its redundancy number is 0, as of a
+#: range from the one anchor off the line of the others and the tag).  Usable, with an
+#: infinite protection level.
 UNVERIFIED = "unverified"
 #: The fix's own test failed (a fault is detected) and no observation could be excluded
 #: to make it pass, or the w-test flagged an observation that the fix keeps at full weight

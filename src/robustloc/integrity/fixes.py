@@ -1312,6 +1312,12 @@ def protect(
                 if np.any(amb2):
                     ambiguous(rows2[amb2], x2[amb2], J2[amb2], sc2[amb2], keep2[amb2],
                               T2[amb2])
+    # a passing fix without a finite bound (an observation whose fault its test cannot
+    # detect: a redundancy number below R_MIN, as of a range from an anchor in line with
+    # two others and the tag) is no more verified than one without redundancy: not ok,
+    # not low_redundancy, which say an MDB-sized fault would have been detected (a
+    # low_redundancy row with hpl inf; the serve review of 2026-12-06)
+    new[st.among(new, (st.OK, st.LOW_REDUNDANCY)) & ~np.isfinite(hpl)] = st.UNVERIFIED
     usable = st.among(new, st.USABLE)
     # nothing bounds a usable fix whose bound could not be computed (no redundancy, no
     # scale): infinite, never NaN -- a NaN would pass every ``error > hpl`` check unseen
