@@ -134,3 +134,25 @@ def test_one_sigma_moves_no_fix_with_the_log_scale_except_snooping():
     a, b = (locate_protected(Locator("snooping", sigma=s), ANCHORS, d, "range")
             for s in (0.1, 5.0))
     assert np.any(np.asarray(a.status) != np.asarray(b.status))
+
+
+def test_the_scale_of_a_one_epoch_log_is_not_taken_as_known():
+    """A log of one epoch (five ranges, redundancy 3) gave the log's scale from five
+    residuals, used as if known: 2 % of 4 000 such fixes exceeded their ``hpl``, one
+    ``fault_excluded`` a good range with a 0.017 m bound for a 0.079 m error (the locate
+    review of 2026-12-06).  The scale now carries Student's t for its degrees of freedom
+    (the MAD's efficiency times the redundancy): none of 4 000 measured.  Bound: the
+    bounds' design risk is 0.1 %, so at most 5 of 1 000 (Poisson, mean 1: P(> 5) < 6e-4);
+    before, about 20."""
+    from robustloc.integrity.fixes import locate_protected
+
+    rng = np.random.default_rng(1)
+    a = np.array([[0, 0], [10, 0], [0, 10], [10, 10], [5, -3]], float)
+    misleading = 0
+    for _ in range(1000):
+        x = rng.uniform(1, 9, (1, 2))
+        d = np.linalg.norm(a[None] - x[:, None], axis=2) + rng.normal(0, 0.1, (1, 5))
+        sol = locate_protected(Locator("auto"), a, d, "range")
+        e = float(np.linalg.norm(sol.position - x))
+        misleading += bool(np.isfinite(e) and e > sol.extra["hpl"][0])
+    assert misleading <= 5, misleading

@@ -38,6 +38,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from robustloc import status as st
+from robustloc._stats import norm_ppf, t_ppf
 from robustloc.estimators.linear import LinearFit, irls, lege, sandwich_qvv, solve_wls
 from robustloc.estimators.nonlinear import gauss_newton
 from robustloc.estimators.solution import Solution
@@ -78,6 +79,15 @@ GROSS_U = 4.0
 #: quietest anchor's scale high (a conservative error: its tests lose power): 25-40 % at
 #: 4:1, 3.3x at 8:1 (five anchors, sd 0.05-0.44 m; the locate review of 2026-12-06).
 LOG_SCALE_WEIGHTING = 0.5
+#: The one-sided level of Student's t that widens the log's scale for the redundancy it
+#: was estimated with (:meth:`Locator.log_statistics`): that of the bounds' default
+#: ``k = N(1 - alpha0 / 2)`` with ``alpha0 = 0.001`` (robustloc.integrity.bmethod), the
+#: quantile the per-epoch scale's widening uses too (robustloc.integrity.fixes.protect).
+LOG_SCALE_T_LEVEL = 0.9995
+#: The Gaussian efficiency of the MAD as a scale estimate, 8 phi(c)^2 c^2 with
+#: c = 0.6745 (Huber 1981, sec. 5.4): its variance is that of a standard deviation of
+#: 0.37 times the degrees of freedom (:meth:`Locator.log_statistics`).
+MAD_EFFICIENCY = 0.3675
 
 
 def method_weight(method: str, **params: float):
@@ -1407,6 +1417,17 @@ class Locator:
             u_final = u / step[None, :]
         fin = np.isfinite(u_final)
         gross = float(np.mean(u_final[fin] > GROSS_U)) if fin.any() else float("nan")
+        # the scale is estimated from the log's redundancy: Student's t for it (a common
+        # factor, so no fix moves; tests and bounds widen), its degrees of freedom those
+        # of a standard deviation as precise as this median (the MAD's Gaussian
+        # efficiency, MAD_EFFICIENCY, times the residuals' redundancy).  Taken as known,
+        # the scale of a one-epoch log (redundancy 3) made 2 % of its fixes exceed their
+        # hpl and excluded good ranges (the locate review of 2026-12-06); with the
+        # redundancy alone as degrees of freedom, 0.2 %.  A log of 5 000 residuals: 1.002
+        dof = MAD_EFFICIENCY * float(np.sum(np.where(np.isfinite(u) & np.isfinite(r), r,
+                                                     0.0)))
+        if dof > 0.0:
+            scale = scale * float(t_ppf(LOG_SCALE_T_LEVEL, dof) / norm_ppf(LOG_SCALE_T_LEVEL))
         return scale, gross
 
     # ----------------------------------------------------------------- helpers
