@@ -973,6 +973,22 @@ class Tracker:
         covered = self._check_mirror(idx, sl, z, out, keep_all, pre, x)
         if lined.any():
             self._carry_mirror(idx, prev, x, lined & ~spread & ~covered, out)
+        # two anchors kept: the tag and its reflection across their line fit alike, and
+        # no test can tell them apart; the row covers its reflection, and the line stays
+        # with the tag for its rows of one anchor.  (Three of five anchors falling silent
+        # left two for 60 s: the track crossed their line and followed the mirror side,
+        # `ok` rows 10-27 m off with hpl about 2 m, 10 % of the rows beyond their hpl;
+        # only a line left by an earlier collinear epoch was carried: the track review
+        # of 2026-12-06)
+        two = np.flatnonzero(keep_all.sum(axis=1) == 2)
+        if two.size:
+            from robustloc.models.geometry import principal_lines
+
+            c, u = principal_lines(self._link.anchors_xy, keep_all[two])
+            line = np.full((len(idx), 4), np.nan)
+            line[two] = np.c_[c, u]
+            self._carry_mirror(idx, line, x, np.isin(np.arange(len(idx)), two), out)
+            self._mline[sl[two]] = line[two]
 
     def _check_mirror(self, idx: NDArray[np.int64], sl: NDArray[np.int64], z: Array,
                       out: _Rows, keep_all: NDArray[np.bool_], pre: NDArray[np.bool_],
