@@ -49,7 +49,9 @@ RSSI (converted by the anchors' path-loss model to ranges with sigma_d = d ln10 
 Output, one row per input epoch (never a dropped epoch): time, tag, x, y, vx, vy[, ax, ay],
 method, status, var_x, var_y, cov_xy, var_vx, var_vy, hpl, n_used, nis, noise_scale,
 reinit, excluded (+ range_offset, var_range_offset with --range-offset). Statuses: ok,
-fault_excluded (a component rejected or a link held out), fault_detected (the
+fault_excluded (a component rejected, a link held out, or a down-weighted one that the
+w-test names: 'excluded' lists it though the update still used it at its robust
+weight, as locate's fault_excluded), fault_detected (the
 innovations' global test failed and one exclusion does not explain it, or half the
 components were rejected: hpl widened by sqrt(NIS / dof); on clean data at the test's
 false-alarm rate, about 2 %), predicted; a start row (a tag's first fix, or a re-start)
