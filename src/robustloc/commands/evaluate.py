@@ -63,7 +63,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--truth", required=True, help="truth file (time, tag, x, y[, z])")
     p.add_argument("-o", "--out",
                    help="write the full statistics table (CSV or Parquet; - for CSV on stdout)")
-    p.add_argument("--json", action="store_true", help="print the table as JSON records")
+    p.add_argument("--json", action="store_true",
+                   help='print {"n_unmatched": N, "rows": [one record per row]} as JSON')
     p.add_argument(
         "--time-tolerance", type=nonnegative_float, default=1e-6, metavar="S",
         help="largest |time difference| between a position and its truth (default 1e-6 s)",

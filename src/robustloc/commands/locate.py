@@ -69,7 +69,7 @@ Nearly collinear anchors (a corridor) fit a fix and its mirror image across thei
 equally well; such a fix's hpl covers both.  With --side-prior log (default, with
 --robust-scale log) an ambiguous fix is placed on the side of the line where the log's
 unambiguous fixes lie, when a sign test finds them significantly more often on one side
-(the wifi-rtt corridor: 6.13 -> 3.67 m RMS); --side-prior none leaves each fix where its
+(the wifi-rtt corridor: 6.08 -> 3.57 m RMS); --side-prior none leaves each fix where its
 estimator put it.
 
 RSSI input uses the anchors' path-loss parameters (A, n or p0, gamma, faf, d0; see

@@ -46,7 +46,7 @@ Samples are drawn from :class:`robustloc.models.ranging.RssiModel` (``A = p0 + F
 ``n = gamma`` for ``d0 = 1 m``), the model the estimators use.
 
 Size: the draws are whole arrays (the AR(1) noise runs along each link, the log is sorted
-by time), about :data:`BYTES_PER_ROW` bytes of memory per row of ``measurements.csv``
+by time), about 160 bytes (:data:`BYTES_PER_ROW`) of memory per row of ``measurements.csv``
 (``(20 --samples-per-point + --walk-epochs) x 4`` rows, plus the survey's 1600).  A run
 beyond the simulation budget, :data:`robustloc.sim._output.MEMORY_BUDGET_BYTES` (1 GiB:
 about 6.7 million rows, e.g. ``--samples-per-point 83000`` with the default walk), is
