@@ -55,11 +55,12 @@ weight, as locate's fault_excluded), fault_detected (the
 innovations' global test failed and one exclusion does not explain it, or half the
 components were rejected: hpl widened by sqrt(NIS / dof); on clean data at the test's
 false-alarm rate, about 2 % on smooth motion, 3-8 % where the tag turns more sharply
-than --q allows: the track review, 2026-12-06), predicted; a start row (a tag's first fix, or a re-start)
-says its snapshot fix's status where that says more than ok (low_redundancy, unverified,
-fault_excluded, extrapolated), and before a tag's first fix each row carries the fix's
-own status (insufficient_anchors, ill_conditioned, invalid_measurement); an epoch wholly
-outside the physical limits is invalid_measurement.  `robustloc evaluate` reads the file.
+than --q allows: the track review, 2026-12-06), predicted; a start row (a tag's first
+fix, or a re-start) says its snapshot fix's status where that says more than ok
+(low_redundancy, unverified, fault_excluded, extrapolated), and before a tag's first fix
+each row carries the fix's own status (insufficient_anchors, ill_conditioned,
+invalid_measurement); an epoch wholly outside the physical limits is invalid_measurement.
+`robustloc evaluate` reads the file.
 
   robustloc simulate wifi-room --seed 1 --out room
   robustloc track room/measurements.csv --anchors room/anchors.csv -o room/track.csv
