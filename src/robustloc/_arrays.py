@@ -72,9 +72,9 @@ def to_number(values: pd.Series) -> pd.Series:
     if not pd.api.types.is_numeric_dtype(values) and pd.api.types.is_float_dtype(out):
         na = out.isna().to_numpy()
         if na.any():
-            cand = values[na]
-            text = cand[cand.map(lambda v: isinstance(v, str) and len(v) > 4000)].str.strip()
-            text = text[text.str.fullmatch(r"[+-]?\d+")]
+            cand = values[na].astype(object)
+            text = cand[cand.str.len().fillna(0).to_numpy() > 4000].str.strip()
+            text = text[text.str.fullmatch(r"[+-]?\d+").fillna(False).to_numpy(bool)]
             if len(text):
                 out = out.copy()
                 out[text.index] = np.where(text.str.startswith("-"), -np.inf, np.inf)

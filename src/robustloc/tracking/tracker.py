@@ -987,7 +987,7 @@ class Tracker:
             c, u = principal_lines(self._link.anchors_xy, keep_all[two])
             line = np.full((len(idx), 4), np.nan)
             line[two] = np.c_[c, u]
-            self._carry_mirror(idx, line, x, np.isin(np.arange(len(idx)), two), out)
+            self._carry_mirror(idx, line, x, np.isfinite(line[:, 0]), out)
             self._mline[sl[two]] = line[two]
 
     def _check_mirror(self, idx: NDArray[np.int64], sl: NDArray[np.int64], z: Array,
