@@ -361,9 +361,9 @@ class TrackerSettings:
             bad(f"domain must be 'range' or 'rssi', got {self.domain!r}")
         if self.engine not in ("compiled", "numpy"):
             bad(f"engine must be 'compiled' or 'numpy', got {self.engine!r}")
-        for name in ("q", "init_window_s", "observed_window_s", "lost_pos_var", "noise_forget", "cusum_k",
-                     "init_vel_var",
-                     "init_acc_var", "init_pos_var_min", "range_offset_q", "link_offset_q"):
+        for name in ("q", "init_window_s", "observed_window_s", "lost_pos_var",
+                     "noise_forget", "cusum_k", "init_vel_var", "init_acc_var",
+                     "init_pos_var_min", "range_offset_q", "link_offset_q"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 bad(f"{name} must be finite and >= 0, got {v}")
