@@ -698,6 +698,14 @@ def test_serve_cli_errors(ble, tmp_path, capsys):
     assert main(["serve", "--anchors", a, "--track", "--track-range-offset",
                  "--value", "rssi"]) == 2
     assert "is for ranges" in capsys.readouterr().err
+    # --domain rssi is RSSI in dB: the service accepted it with ranges, ignored it, and
+    # with --track-range-offset refused every RSSI row (the service review, 2026-12-06)
+    assert main(["serve", "--anchors", a, "--track", "--track-range-offset",
+                 "--domain", "rssi"]) == 2
+    assert "--domain rssi fits RSSI in dB: not with --track-range-offset" in (
+        capsys.readouterr().err)
+    assert main(["serve", "--anchors", a, "--value", "range", "--domain", "rssi"]) == 2
+    assert "not with --value range" in capsys.readouterr().err
     assert main(["serve", "--anchors", a, "--track-link-offsets"]) == 2
     assert "goes with --track" in capsys.readouterr().err
     assert main(["serve", "--anchors", a, "--track", "--track-link-offsets",

@@ -344,6 +344,14 @@ def build(args: argparse.Namespace):
         if value == "rssi":
             raise InputError("--track-range-offset is for ranges: not with --value rssi")
         value = "range"  # an RSSI row is refused: "this service locates from range"
+    if args.domain == "rssi" and value == "range":
+        # (the tracker and the fixes fit RSSI in dB only: with ranges the option did
+        # nothing, and --track-range-offset --domain rssi refused every RSSI row as "this
+        # service locates from range": the service review, 2026-12-06; `track` and
+        # `locate` refuse it alike)
+        raise InputError("--domain rssi fits RSSI in dB: not with "
+                         + ("--track-range-offset (ranges)" if args.track_range_offset
+                            else "--value range"))
     _check_mode_options(args)
     if args.track_link_offsets:
         if not args.track:
