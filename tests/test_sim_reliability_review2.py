@@ -196,7 +196,8 @@ def test_gnss_is_streamed_in_chunks_and_writes_the_files_of_one_piece(tmp_path, 
     monkeypatch.setattr(pd.DataFrame, "to_csv", real)
     assert seen and max(seen) <= 7
     whole = gnss.generate(5, epochs=30, interval_s=60.0, faults=2)
-    for name, frame in (("pseudoranges", whole.pseudoranges), ("truth", whole.truth)):
+    for name, frame in (("pseudoranges", whole.pseudoranges),
+                        ("truth", gnss.truth_csv_frame(whole.truth))):
         buf = io.StringIO()
         frame.to_csv(buf, index=False, float_format="%.4f")
         assert paths[name].read_text() == buf.getvalue()

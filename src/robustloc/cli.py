@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import pkgutil
+import re
 import sys
 import warnings
 from collections.abc import Callable, Sequence
@@ -59,6 +60,13 @@ def _command_modules(only: str | None = None) -> list:
     return mods
 
 
+#: A negative number, or a comma-separated list that starts with one (``-1,3``,
+#: ``-5,10,0,8``, ``-1e4``): what a command line means as an option's value.
+NEGATIVE_NUMBERS = re.compile(
+    r"^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?"
+    r"(,\s*[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?)*$")
+
+
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="robustloc",
@@ -75,7 +83,21 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
         )
         mod.add_arguments(p)
         p.set_defaults(_run=mod.run)
+    _numbers_are_values(parser)
     return parser
+
+
+def _numbers_are_values(parser: argparse.ArgumentParser) -> None:
+    """In ``parser`` and every parser under it (``simulate gnss``), a value that starts
+    with a minus is a value, not an option, when it reads as numbers: ``--position
+    -1,3``, ``--area -5,10,0,8`` and ``--height -1e4`` were refused as "expected one
+    argument" (argparse reads only a plain negative number so; ``=`` was needed: the
+    simulate/montecarlo review, 2026-12-06)."""
+    parser._negative_number_matcher = NEGATIVE_NUMBERS
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in dict.fromkeys(action.choices.values()):
+                _numbers_are_values(child)
 
 
 def _parse(parser: argparse.ArgumentParser, argv: list[str],

@@ -85,6 +85,23 @@ def _floats(text: str) -> list[float]:
     return out
 
 
+#: Largest coordinate (m) of ``--position``: a site, not a continent (as ``reliability``'s
+#: ``--area``; projected coordinates such as UTM's reach 1e7 m).
+MAX_POSITION_M = 1e7
+
+
+def _position(text: str) -> list[float]:
+    try:
+        out = [finite_float(v) for v in text.split(",") if v.strip()]
+    except argparse.ArgumentTypeError:
+        out = []
+    if not out or any(abs(v) > MAX_POSITION_M for v in out):
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated coordinates (m) within +-{MAX_POSITION_M:g}, "
+            f"got {text!r}")
+    return out
+
+
 def _ints(text: str) -> list[int]:
     try:
         out = [nonnegative_int(v) for v in text.split(",") if v.strip()]
@@ -111,7 +128,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     lay = p.add_mutually_exclusive_group(required=True)
     lay.add_argument("--anchors", help="ranging layout: anchors file (anchor, x, y[, z])")
     lay.add_argument("--gnss", action="store_true", help="simulated GNSS snapshot layout")
-    p.add_argument("--position", type=_floats, default=None, metavar="X,Y[,Z]",
+    p.add_argument("--position", type=_position, default=None, metavar="X,Y[,Z]",
                    help="true tag position for --anchors (default: anchors' centroid)")
     p.add_argument("--dim", type=int, choices=(2, 3), default=None,
                    help="solved dimension for --anchors (default 2; z = known height offsets)")
@@ -158,7 +175,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--beta0", type=float_in(1e-15, 0.5), default=0.10,
                    help="B-method type II error (0.10)")
     p.add_argument("--alpha", type=float_in(1e-15, 0.5), default=None,
-                   help="fixed global-test significance (default: B-method for each dof)")
+                   help="fixed global-test significance (default: B-method for each dof; "
+                        "raim-single always tests at 0.001, RTKLIB's, and its "
+                        "theory_global is at that)")
     p.add_argument("--reject-weight", type=float_in(0.0, 1.0), default=0.1,
                    help="IRLS: relative weight (1 = clean) below which an observation "
                         "counts as rejected (0.1)")
@@ -194,6 +213,10 @@ def _layout_options(args: argparse.Namespace) -> None:
     if given:
         verb = "applies" if len(given) == 1 else "apply"
         raise InputError(f"{', '.join(given)} {verb} to {layout} layouts only")
+    if not args.gnss and args.dim == 3 and args.tag_z is not None:
+        # (it was ignored: the same table as without it -- the montecarlo review)
+        raise InputError("--tag-z/--tag-height applies to --dim 2 (with --dim 3 the tag's "
+                         "z is the third coordinate of --position)")
     for k, default in mine.items():
         if getattr(args, k) is None:
             setattr(args, k, default)
@@ -228,6 +251,16 @@ def build_layout(args: argparse.Namespace):  # noqa: ANN201
     pos = np.asarray(args.position if args.position is not None else xy.mean(axis=0), float)
     if pos.size != args.dim:
         raise InputError(f"--position needs {args.dim} coordinates, got {pos.size}")
+    # the tag on an anchor: that range's direction is 0/0 (the model's design row came
+    # out [0, 0], a range that carries nothing with a redundancy number of 1 and the
+    # smallest MDB: a table of a meaningless model, exit 0 -- the montecarlo review)
+    rng_m = np.sqrt(np.sum((xy - pos[None]) ** 2, axis=1)
+                    + (0.0 if hoff is None else hoff**2))
+    on = np.flatnonzero(rng_m <= 1e-9 * max(1.0, float(np.max(np.abs(xy)))))
+    if on.size:
+        raise InputError(f"--position {tuple(float(v) for v in pos)} is on anchor "
+                         f"{df['anchor'].iloc[on[0]]!s}: its range has no direction (move "
+                         "the tag off the anchor)", args.anchors)
     sig = np.asarray(args.sigma, dtype=float)
     if not (np.all(np.isfinite(sig)) and np.all(sig > 0)):
         raise InputError(f"--sigma must be positive, got {args.sigma}")
@@ -288,8 +321,6 @@ def run(args: argparse.Namespace) -> int:
     if args.nonlinear and "raim-single" in methods:
         raise InputError("--methods raim-single is available on the linearized model only "
                          "(without --nonlinear)")
-    if args.position is not None and max(abs(v) for v in args.position) > 1e7:
-        raise InputError(f"--position: coordinates beyond 1e7 m, got {args.position}")
     _layout_options(args)
     if args.nonlinear and args.gnss:
         raise InputError("--nonlinear applies to --anchors layouts only")

@@ -16,8 +16,7 @@ from robustloc.errors import InputError
 from robustloc.options import finite_float, float_in, positive_float
 
 if TYPE_CHECKING:
-
-    pass
+    import pandas as pd
 
 NAME = "reliability"
 HELP = "anchor-layout planner: DOP, CRLB, MDB, external reliability, w-test correlation maps"
@@ -81,6 +80,20 @@ def _area(text: str) -> tuple[float, float, float, float]:
         raise argparse.ArgumentTypeError(f"--area needs xmin < xmax and ymin < ymax, "
                                          f"got {text!r}")
     return vals  # type: ignore[return-value]
+
+
+#: Format of the grid's and the suggestions' coordinates (12 significant digits: 0.01 mm
+#: at 1e7 m); the figures keep 6.
+COORDINATE_FORMAT = "{:.12g}"
+
+
+def _coordinates_exact(frame: pd.DataFrame) -> pd.DataFrame:
+    """``frame`` with its coordinate columns ``x, y[, z]`` as text of
+    :data:`COORDINATE_FORMAT`: with the figures' 6 significant digits, projected
+    coordinates (UTM: 4 498 765.432 m) were written as 4 498 770 and grid points merged
+    (the reliability review, 2026-12-06)."""
+    return frame.assign(**{c: frame[c].map(COORDINATE_FORMAT.format)
+                           for c in ("x", "y", "z") if c in frame.columns})
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -292,9 +305,11 @@ def run(args: argparse.Namespace) -> int:
     captions = {**MAPS, "max_mdb": f"largest MDB ({unit})"}
 
     def write(folder: Path) -> list:
-        grid.table.to_csv(folder / csv.name, index=False, float_format="%.6g")
+        _coordinates_exact(grid.table).to_csv(folder / csv.name, index=False,
+                                              float_format="%.6g")
         if sugg is not None:
-            sugg.to_csv(folder / "suggestions.csv", index=False, float_format="%.6g")
+            _coordinates_exact(sugg).to_csv(folder / "suggestions.csv", index=False,
+                                            float_format="%.6g")
         if args.no_maps:
             return []
         maps = plot_maps(grid, xyz, folder, [str(a) for a in df["anchor"]], highlight=best,

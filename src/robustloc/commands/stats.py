@@ -28,6 +28,11 @@ resid_bins bins; resid_variance divides by resid_n - resid_bins, one degree of f
 per fitted bin mean; empty without a bin).  The summary's shares of anchors count the
 anchors that have the statistic (share_anchors_normal_rejected_5pct: among the
 n_anchors_normality_tested anchors of 8 samples or more, not constant; null if none).
+Its median_skewness, median_kurtosis and share_anchors_left_skewed are of the residuals
+about the bin means (resid_skewness, resid_kurtosis) when --truth gives bins, else of
+the RSSI values (skewness, kurtosis): the RSSI of a walk mixes distances, and its
+skewness is the distances' as much as the noise's.  summary.json says which in
+moments_of (residuals or rssi), and so does the text output.
 
 Writes into --out: per_anchor.csv, per_bin.csv (with truth), acf.csv, histograms.png,
 autocorrelation.png, summary.json.  They are written into a temporary folder beside it
@@ -46,6 +51,11 @@ statistic and counted: a note on stderr and in summary.json.  Two truth rows for
 Example:
   robustloc stats sim/measurements.csv --anchors sim/anchors.csv --truth sim/truth.csv -o stats
 """
+
+
+def _text(v: object) -> str:
+    """A summary number for the text output (``none`` for null)."""
+    return "none" if v is None else f"{v:.3g}"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -132,6 +142,10 @@ def run(args: argparse.Namespace) -> int:
             print("\ncorrelation of variance with distance: "
                   + (f"{corr:.3f}" if np.isfinite(corr) else
                      "none (fewer than 3 distinct bin distances)") + " (seed 002: 0.578)")
+    sk_of = ("the residuals about the bin means (resid_skewness)"
+             if summary.get("moments_of") == "residuals" else "the RSSI values (skewness)")
+    print(f"\nsummary: median skewness {_text(summary['median_skewness'])}, share of "
+          f"anchors left-skewed {_text(summary['share_anchors_left_skewed'])}, of {sk_of}")
     print(f"\ninvalid_measurement: {summary['invalid_measurement']}"
           + (" (RSSI outside -150 .. +30 dBm, left out)" if summary["invalid_measurement"]
              else ""))

@@ -275,13 +275,17 @@ class RssiStatsResult:
         The shares of anchors (``share_anchors_left_skewed``,
         ``share_anchors_normal_rejected_5pct``) are over the anchors with a skewness and
         with a normality p-value (``n_anchors_normality_tested``: 8 samples or more, not
-        constant), None without any.
+        constant), None without any.  ``median_skewness``, ``median_kurtosis`` and
+        ``share_anchors_left_skewed`` are of the residuals about the bin means where there
+        are bins (``moments_of``: ``residuals``), else of the RSSI values (``rssi``).
         """
         pa = self.per_anchor
         sk = "resid_skewness" if "resid_skewness" in pa.columns else "skewness"
         ku = "resid_kurtosis" if "resid_kurtosis" in pa.columns else "kurtosis"
         p = pa["normaltest_p"].to_numpy(dtype=float)
         return {
+            # which moments the medians and the share are of (the per-anchor CSV has both)
+            "moments_of": "residuals" if sk == "resid_skewness" else "rssi",
             "n_samples": int(pa["n"].sum()),
             "n_anchors": int(len(pa)),
             "median_skewness": _f(pa[sk].median()),

@@ -523,11 +523,24 @@ def simulate(out_dir: Path, seed: int, args: argparse.Namespace) -> dict[str, Pa
     return paths
 
 
+#: Format of the truth's latitude and longitude (degrees, 9 decimals: 0.1 mm).
+TRUTH_DEGREES = "{:.9f}"
+
+
+def truth_csv_frame(truth: pd.DataFrame) -> pd.DataFrame:
+    """``truth`` as ``truth.csv`` writes it: ``lat, lon`` as text of
+    :data:`TRUTH_DEGREES`, the other numbers through ``float_format="%.4f"``."""
+    return truth.assign(**{c: truth[c].map(TRUTH_DEGREES.format)
+                           for c in ("lat", "lon") if c in truth.columns})
+
+
 def _stream(chunks: Iterator[tuple[pd.DataFrame, pd.DataFrame]], fp: object, ft: object,
             progress: Callable[[int], object]) -> None:
     """Append each chunk's frames to the open files (the header once), as one
-    ``to_csv(float_format="%.4f")`` of the whole frames writes them."""
+    ``to_csv(float_format="%.4f")`` of the whole frames writes them; the truth's latitude
+    and longitude with 9 decimals of a degree (0.1 mm: at 4, 47.123456 was written
+    47.1235, 4.9 m from the row's own ECEF x, y, z -- the simulate review)."""
     for i, (pseudo, truth) in enumerate(chunks):
         pseudo.to_csv(fp, index=False, header=i == 0, float_format="%.4f")
-        truth.to_csv(ft, index=False, header=i == 0, float_format="%.4f")
+        truth_csv_frame(truth).to_csv(ft, index=False, header=i == 0, float_format="%.4f")
         progress(len(truth))
