@@ -29,7 +29,10 @@ carry `hpl` (every `locate` and `track` output does), the integrity of the bound
 usable fixes whose horizontal error exceeds their `hpl` (n_misleading, misleading_pct; a
 missing bound counts as exceeded), the median hpl and its ratio to the median error
 (hpl_over_error); in 3-D with `vpl`, the vertical bound likewise (n_misleading_v,
-misleading_pct_v, vpl_median, vpl_over_error).
+misleading_pct_v, vpl_median, vpl_over_error).  An unbounded statistic (hpl_median where
+more than half of the usable fixes have no finite hpl) is inf in -o and in the text
+report; --json, which has no infinity, writes null and lists the column in the row's
+"infinite".
 Two positions rows with the same
 time, tag and method are an error. `-o -` writes the table as CSV to standard output (the
 text report then goes to stderr).
@@ -86,8 +89,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _metres(v: float) -> str:
     """A table cell: 2 decimals, or 3 significant digits beyond 1e9 (an absurd position
     of 1e300 m printed 300 digits per cell)."""
-    if not np.isfinite(v):
+    if np.isnan(v):
         return ""
+    if np.isinf(v):  # (an unbounded hpl: blank said "no such value", not "unbounded")
+        return "inf" if v > 0 else "-inf"
     return f"{v:.2f}" if abs(v) < 1e9 else f"{v:.3g}"
 
 
@@ -143,9 +148,17 @@ def run(args: argparse.Namespace) -> int:
     dest = sys.stderr if writes_to_stdout(args.out) else sys.stdout
     n_unmatched = table.attrs.get("n_unmatched", 0)
     if args.json:
-        # JSON has no NaN or infinity: both are null (an infinite hpl: unbounded fixes)
+        # JSON has no NaN or infinity: both are null, and each row's "infinite" lists
+        # the columns that are null for being infinite (an infinite hpl_median: more
+        # than half of the usable fixes unbounded), so that "unbounded" and "no such
+        # value" differ (the evaluate review, 2026-12-06)
+        num = table.select_dtypes("number")
+        inf_cols = [[c for c in num.columns if np.isinf(row[c])]
+                    for row in num.to_dict(orient="records")]
         recs = table.replace({np.nan: None, np.inf: None, -np.inf: None}).to_dict(
             orient="records")
+        for r, cols in zip(recs, inf_cols, strict=True):
+            r["infinite"] = cols
         for r in recs:  # counts as integers (the "mean" rows may average to a fraction)
             for c in COUNTS:
                 v = r.get(c)

@@ -46,6 +46,7 @@ Range calibration is applied as ``range_corrected = (range - bias) / scale``
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -580,16 +581,36 @@ def _natural_key(s: str) -> tuple[int, float, str]:
         return (1, 0.0, s)
 
 
+def _cluster_key(s: str) -> tuple:
+    """Natural sort key of a cluster id: numbers numerically (``2.0`` and ``2`` alike),
+    text by its runs of digits as numbers (``p2`` before ``p10``)."""
+    try:
+        return (0, float(s), ())
+    except ValueError:
+        return (1, 0.0, tuple((0, int(p), "") if p.isdigit() else (1, 0, p)
+                              for p in re.split(r"(\d+)", s) if p))
+
+
 def _survey_clusters(survey: pd.DataFrame) -> NDArray[np.int64] | None:
     """The cluster of each row (column ``cluster``: a survey built from positions,
     :func:`survey_from_positions`, has its dwells there; a survey file may name its own,
-    any ids, e.g. the surveyed point of each sample), as codes in order of appearance; a
-    row without one is a cluster of its own.  None without the column (rows taken as
-    independent).  (A file's text ids were a ValueError traceback: the review of
-    2026-12-06.)"""
+    any ids, e.g. the surveyed point of each sample), as codes in the ids' natural order
+    (:func:`_cluster_key`: p2 before p10); a row without one is a cluster of its
+    own.  None without the column (rows taken as independent).  (A file's text ids were
+    a ValueError traceback: the review of 2026-12-06.)  Sorted, not in order of
+    appearance: :func:`cluster_robust_lines` merges neighbouring codes into blocks, and
+    codes numbered by appearance put a shuffled file's far-apart dwells side by side
+    (standard errors 3.3x smaller than those of the same rows sorted: the calibration
+    review of 2026-12-06)."""
     if "cluster" not in survey.columns:
         return None
-    codes = pd.factorize(survey["cluster"])[0].astype(np.int64)
+    ids = survey["cluster"]
+    codes, uniques = pd.factorize(ids.where(ids.isna(), ids.astype(str)))
+    codes = codes.astype(np.int64)
+    order = sorted(range(len(uniques)), key=lambda i: _cluster_key(str(uniques[i])))
+    remap = np.empty(len(uniques), dtype=np.int64)
+    remap[order] = np.arange(len(uniques))
+    codes = np.where(codes >= 0, remap[np.maximum(codes, 0)], -1)
     alone = codes < 0  # (missing: NaN or an empty field)
     if alone.any():
         codes[alone] = codes.max(initial=-1) + 1 + np.arange(int(alone.sum()))
@@ -1122,7 +1143,7 @@ def survey_from_positions(
     # (merged into at most SE_CLUSTERS contiguous blocks per anchor: a moving tag's epochs
     # form blocks of time, as the self-calibration's)
     order = np.lexsort((meas["time"].to_numpy(dtype=float),
-                        pd.factorize(meas["tag"].astype(str))[0]))
+                        pd.factorize(meas["tag"].astype(str), sort=True)[0]))
     ps, tg = pos[order, :2], meas["tag"].astype(str).to_numpy()[order]
     new_dwell = np.ones(len(order), dtype=bool)
     if len(order) > 1:
