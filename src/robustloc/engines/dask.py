@@ -40,7 +40,6 @@ import sys
 import tempfile
 import threading
 import time as _time
-import uuid
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -77,6 +76,12 @@ META_FILE = "_robustloc.json"
 # --------------------------------------------------------------------------------------
 
 
+#: Output names of a single text file, refused as a dataset's folder name (``.parquet``
+#: stays allowed: a folder of Parquet parts is often named so).
+FILE_ONLY_SUFFIXES = (".csv", ".csv.gz", ".csv.bz2", ".csv.xz", ".csv.zst", ".txt", ".tsv",
+                      ".json", ".png")
+
+
 class DatasetOutput:
     """A dataset directory written in a staging directory and renamed into place.
 
@@ -102,6 +107,12 @@ class DatasetOutput:
             raise InputError("--engine dask writes a dataset folder, not standard output",
                              "-o")
         given = Path(out)  # as the user gave it, for messages
+        # a file's name for a folder: `-o positions.csv` made a folder of that name that
+        # `robustloc evaluate positions.csv` then refused as a directory (the Dask review)
+        if given.name.lower().endswith(FILE_ONLY_SUFFIXES):
+            raise InputError("--engine dask writes a dataset (a folder of Parquet parts), "
+                             "not one text file: give a folder name (e.g. positions/), or "
+                             "leave out --engine dask for one CSV file", given)
         # absolute: the tasks write their parts on workers, which resolve a relative
         # path in their own working directory (the parts were lost, exit 0)
         self.out = Path(os.path.abspath(out))
@@ -174,9 +185,13 @@ class DatasetOutput:
         for tmp in self.stage.glob(".part-*.tmp"):
             tmp.unlink(missing_ok=True)
         (self.stage / META_FILE).write_text(json.dumps(meta, indent=2) + "\n")
+        from robustloc.io.atomic import aside_name
+
         old = None
         if self.out.exists():
-            old = self.out.parent / f".{self.out.name}.old-{uuid.uuid4().hex[:8]}"
+            # (named as sweep_orphans knows: a run killed between the two renames left
+            # `.NAME.old-XXXXXXXX`, which no later run removed -- the Dask review)
+            old = self.out.parent / aside_name(self.out.name)
             self.out.rename(old)
         self.stage.rename(self.out)
         if old is not None:
@@ -354,7 +369,10 @@ def _plan_infos(client: object, parts: list[Partition], need: tuple[str, ...], s
         raise InputError(f"partition holds {v2} while {p1} holds {v1}; a dataset holds one "
                          "kind of measurement", p2, 1)
     if not any(i.n_rows for i in infos):
-        raise InputError("every partition of this dataset is empty", parts[0].path)
+        # (line 2: where the first data row would be, as the in-memory reader says of a
+        # file with a header and no data rows)
+        raise InputError("every partition of this dataset is empty (no data rows)",
+                         parts[0].path, 2)
     return infos
 
 

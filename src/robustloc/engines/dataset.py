@@ -466,27 +466,28 @@ def plan_snapshot(infos: list[PartitionInfo]) -> list[PartitionInfo]:
                     f"[{a_lo}, {a_hi}] in {a.part.path}: an epoch's rows could be "
                     "split between partitions (repartition: robustloc partition INPUT -o "
                     "DATASET --by time)",
-                    b.part.path,
+                    b.part.path, _overlap_line(b.part, tag, a_lo, a_hi),
                 )
             if b_hi > a_hi:
                 a_lo, a_hi, a = b_lo, b_hi, b
     return use
 
 
-def _tag_time_ranges(part: Partition) -> dict[str, tuple[float, float]] | None:
-    """Each tag's (first, last) time in ``part`` (in seconds, as the readers convert
-    them; read batch by batch), or None when the file cannot be read so (the caller then
-    uses the partition's range)."""
-    try:
-        pf = _parquet_file(part)
-        names = pf.schema_arrow.names
-        if "time" not in names:
-            return None
-        hive_tag = part.key("tag")
-        if "tag" not in names and hive_tag is None:
-            return None
-        cols = ["time"] + (["tag"] if "tag" in names else [])
-        out: dict[str, tuple[float, float]] = {}
+def _tag_time_batches(part: Partition):  # noqa: ANN202 - a generator of arrays
+    """``(first row, times, tags)`` of ``part``, batch by batch (times in seconds as the
+    readers convert them, tags as their text, ``ok`` rows only: a finite time and a
+    tag); None when the file has no time or no tag."""
+    pf = _parquet_file(part)
+    names = pf.schema_arrow.names
+    if "time" not in names:
+        return None
+    hive_tag = part.key("tag")
+    if "tag" not in names and hive_tag is None:
+        return None
+    cols = ["time"] + (["tag"] if "tag" in names else [])
+
+    def batches():  # noqa: ANN202
+        first = 0
         for b in pf.iter_batches(batch_size=_PLAN_BATCH_ROWS, columns=cols):
             t = _time_values(b.column(0))
             if "tag" in names:
@@ -494,10 +495,40 @@ def _tag_time_ranges(part: Partition) -> dict[str, tuple[float, float]] | None:
             else:
                 tags = pd.Series([hive_tag] * len(t), dtype=object)
             ok = np.isfinite(t) & tags.notna().to_numpy()
-            if not ok.any():
-                continue
-            g = pd.DataFrame({"t": t[ok], "tag": tags[ok].map(_id_text).to_numpy()}
-                             ).groupby("tag")["t"].agg(["min", "max"])
+            rows = first + np.flatnonzero(ok)
+            first += len(t)
+            if ok.any():
+                yield rows, t[ok], tags[ok].map(_id_text).to_numpy()
+
+    return batches()
+
+
+def _overlap_line(part: Partition, tag: str, lo: float, hi: float) -> int | None:
+    """The line (as the readers number a Parquet file's rows: the first is line 2) of
+    the first row of ``tag`` in ``part`` whose time lies in ``[lo, hi]``; None when the
+    file cannot be read so."""
+    try:
+        batches = _tag_time_batches(part)
+        for rows, t, tags in batches or ():
+            hit = np.flatnonzero((tags == tag) & (t >= lo) & (t <= hi))
+            if hit.size:
+                return int(rows[hit[0]]) + 2
+    except Exception:  # noqa: BLE001 - unreadable here: the message names the file only
+        return None
+    return None
+
+
+def _tag_time_ranges(part: Partition) -> dict[str, tuple[float, float]] | None:
+    """Each tag's (first, last) time in ``part`` (in seconds, as the readers convert
+    them; read batch by batch), or None when the file cannot be read so (the caller then
+    uses the partition's range)."""
+    try:
+        batches = _tag_time_batches(part)
+        if batches is None:
+            return None
+        out: dict[str, tuple[float, float]] = {}
+        for _, t, tags in batches:
+            g = pd.DataFrame({"t": t, "tag": tags}).groupby("tag")["t"].agg(["min", "max"])
             for tag, lo, hi in zip(g.index, g["min"], g["max"]):
                 old = out.get(tag)
                 out[tag] = ((float(lo), float(hi)) if old is None
