@@ -28,6 +28,7 @@ if TYPE_CHECKING:  # the static view of the lazy names below
         read_positions,
         read_truth,
         spp,
+        track,
         write_positions,
     )
 

@@ -28,7 +28,7 @@ import os
 import warnings
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import Literal, Union
+from typing import Any, Literal, Union
 
 import pandas as pd
 
@@ -106,18 +106,22 @@ def _labelled() -> Iterator[None]:
         raise InputError(describe_oserror(exc), str(name)) from None
 
 
-def _check_option(flag: str, value: object, check: Callable[[str], object]) -> None:
+def _check_option(flag: str, value: Any, check: Callable[[str], object]) -> Any:
     """Refuse ``value`` as the command line refuses ``flag VALUE`` (a converter of
     :mod:`robustloc.options`): :class:`InputError` ``argument FLAG: ...``, the words
-    :func:`robustloc.options.check_settings` gives a settings field."""
+    :func:`robustloc.options.check_settings` gives a settings field.  Returns the value
+    to use: text as the converter reads it, anything else as given."""
     import argparse
 
     arg = (str(value) if isinstance(value, (int, float)) and not isinstance(value, bool)
            else value)
     try:
-        check(arg)  # type: ignore[arg-type]
+        converted = check(arg)  # type: ignore[arg-type]
     except (argparse.ArgumentTypeError, ValueError, TypeError) as exc:
         raise InputError(f"argument {flag}: {exc}") from None
+    # a value given as text is used as the command line reads it (evaluate's
+    # time_tolerance="1" reached the matching code as text: the API review)
+    return converted if isinstance(value, str) else value
 
 
 def _labelled_frame(df: pd.DataFrame, what: str) -> pd.DataFrame:
@@ -137,6 +141,19 @@ def _stripped_names(df: pd.DataFrame) -> pd.DataFrame:
     are (``" time"`` is ``time``); the caller's frame is not changed."""
     names = [c.strip() if isinstance(c, str) else c for c in df.columns]
     return df if names == list(df.columns) else df.set_axis(names, axis=1)
+
+
+def _robust_choice(robust: object) -> str | None:
+    """``calibrate``'s ``robust``: ``True`` (Huber), ``False`` or ``None`` (plain), or a
+    weight's name; anything else is an :class:`InputError` (``robust=0`` and ``""`` were
+    taken as plain, ``1`` refused as a weight's name: the API review)."""
+    import numpy as np
+
+    if isinstance(robust, (bool, np.bool_)):
+        return "huber" if robust else None
+    if robust is None or (isinstance(robust, str) and robust):
+        return robust
+    raise _InputTypeError(f"robust: expected True, False or a weight's name, got {robust!r}")
 
 
 def _flag(name: str, value: object) -> bool:
@@ -195,7 +212,8 @@ def read_anchors(source: FrameOrPath) -> pd.DataFrame:
     --------
     >>> import pandas as pd
     >>> import robustloc
-    >>> robustloc.read_anchors(pd.DataFrame({"anchor": ["a", "b"], "x": [0, 10], "y": [0, 0]}))
+    >>> robustloc.read_anchors(  # doctest: +NORMALIZE_WHITESPACE
+    ...     pd.DataFrame({"anchor": ["a", "b"], "x": [0, 10], "y": [0, 0]}))
          anchor     x    y
     line
     2         a   0.0  0.0
@@ -284,7 +302,8 @@ def read_truth(source: FrameOrPath) -> pd.DataFrame:
     --------
     >>> import pandas as pd
     >>> import robustloc
-    >>> robustloc.read_truth(pd.DataFrame({"time": [0.0], "tag": [7], "x": [1], "y": [2]}))
+    >>> robustloc.read_truth(  # doctest: +NORMALIZE_WHITESPACE
+    ...     pd.DataFrame({"time": [0.0], "tag": [7], "x": [1], "y": [2]}))
           time tag    x    y
     line
     2      0.0   7  1.0  2.0
@@ -314,8 +333,9 @@ def read_positions(source: FrameOrPath) -> pd.DataFrame:
     --------
     >>> import pandas as pd
     >>> import robustloc
-    >>> robustloc.read_positions(pd.DataFrame({"time": [0.0], "tag": ["t"], "x": [1.0],
-    ...                                        "y": [2.0]}))[["method", "status"]]
+    >>> robustloc.read_positions(  # doctest: +NORMALIZE_WHITESPACE
+    ...     pd.DataFrame({"time": [0.0], "tag": ["t"], "x": [1.0], "y": [2.0]})
+    ... )[["method", "status"]]
            method status
     line
     2     unknown     ok
@@ -788,7 +808,7 @@ def calibrate(
 
     with _labelled():
         settings = CalibrateSettings(
-            model=model, robust="huber" if robust is True else (robust or None),
+            model=model, robust=_robust_choice(robust),
             scale=None if scale is None else _flag("scale", scale),
             pooled=_flag("pooled", pooled), d0=d0, p0=p0, time_tolerance=time_tolerance,
             dim=dim, tag_height=tag_height, se_ratio=se_ratio)
@@ -877,7 +897,7 @@ def evaluate(
     from robustloc.eval.metrics import error_table
     from robustloc.options import figure_path, nonnegative_float
 
-    _check_option("--time-tolerance", time_tolerance, nonnegative_float)
+    time_tolerance = _check_option("--time-tolerance", time_tolerance, nonnegative_float)
     if plot is not None:
         from robustloc.io.atomic import check_not_input
 

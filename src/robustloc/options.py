@@ -252,8 +252,13 @@ def option(
 def check_settings(settings: object) -> None:
     """Apply the checks declared with :func:`option` to a settings dataclass.
 
-    ``None`` is "not given" and is not checked.  A synonym declared with
-    ``option(synonyms=...)`` is replaced by the value it names.  A refused value raises
+    ``None`` is "not given" and is not checked where the field's default is ``None``;
+    elsewhere it is refused (the numerical code met it: ``TypeError: '<' not supported
+    between 'NoneType' and 'int'`` -- the API review, 2026-12-06).  A value given as text
+    is stored as its checker converts it (``q="1"`` is ``1.0``, ``fixed_lag="3"`` is
+    ``3``, as the command line reads them; the text reached the numerical code).  A
+    synonym declared with ``option(synonyms=...)`` is replaced by the value it names.  A
+    refused value raises
     :class:`~robustloc.errors.InputError` with argparse's wording, ``argument --NAME:
     ...``, so the API and the command line say the same.
 
@@ -281,9 +286,12 @@ def check_settings(settings: object) -> None:
         if not meta or "check" not in meta:
             continue
         value = getattr(settings, f.name)
-        if value is None:
-            continue
         flag = meta["flag"] or "--" + f.name.replace("_", "-")
+        if value is None:
+            if f.default is None:
+                continue
+            raise InputError(f"argument {flag}: expected a value, got None (leave it out "
+                             f"for the default {f.default!r})")
         synonyms = meta.get("synonyms") or {}
         if isinstance(value, str) and value in synonyms:
             value = synonyms[value]
@@ -298,9 +306,11 @@ def check_settings(settings: object) -> None:
             arg = (str(value) if isinstance(value, (int, float)) and not isinstance(value, bool)
                    else value)
             try:
-                meta["check"](arg)
+                converted = meta["check"](arg)
             except (argparse.ArgumentTypeError, ValueError, TypeError) as exc:
                 raise InputError(f"argument {flag}: {exc}") from None
+            if isinstance(value, str) and converted is not None:
+                object.__setattr__(settings, f.name, converted)  # frozen dataclasses too
 
 
 def check_systems(text: str, allowed: str) -> str:
@@ -315,7 +325,9 @@ def check_systems(text: str, allowed: str) -> str:
     """
     from robustloc.errors import InputError
 
-    up = str(text).upper()
+    if not isinstance(text, str):  # (None read as 'NONE': "unknown constellation 'NO'")
+        raise InputError(f"--systems: expected letters of {allowed} as text, got {text!r}")
+    up = text.upper()
     bad = sorted(set(up) - set(allowed))
     if not up or bad:
         raise InputError(f"--systems: unknown constellation(s) {''.join(bad)!r}; use "

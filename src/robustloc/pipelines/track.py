@@ -117,7 +117,7 @@ class TrackSettings:
         try:
             return Tracker(anchors, model=self.model, filter=self.filter,
                            record=self.smoothing, **opts)
-        except ValueError as exc:
+        except (ValueError, TypeError) as exc:  # (the tracker's own checks)
             raise InputError(str(exc)) from None
 
 
