@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -73,33 +74,29 @@ Example:
 MAX_FAULT_SIZE = 1e6
 
 
-def _floats(text: str) -> list[float]:
-    try:
-        out = [finite_float(v) for v in text.split(",") if v.strip()]
-    except argparse.ArgumentTypeError:
-        out = []
-    if not out or any(abs(v) > MAX_FAULT_SIZE for v in out):
-        msg = (f"expected comma-separated numbers within +-{MAX_FAULT_SIZE:g}, "
-               f"got {text!r}")
-        raise argparse.ArgumentTypeError(msg)
-    return out
+def _numbers_within(limit: float, what: str) -> Callable[[str], list[float]]:
+    """A parser of comma-separated finite numbers within ``+-limit`` (``what`` names
+    them in the message)."""
 
+    def parse(text: str) -> list[float]:
+        try:
+            out = [finite_float(v) for v in text.split(",") if v.strip()]
+        except argparse.ArgumentTypeError:
+            out = []
+        if not out or any(abs(v) > limit for v in out):
+            raise argparse.ArgumentTypeError(
+                f"expected comma-separated {what} within +-{limit:g}, got {text!r}")
+        return out
+
+    return parse
+
+
+_floats = _numbers_within(MAX_FAULT_SIZE, "numbers")
 
 #: Largest coordinate (m) of ``--position``: a site, not a continent (as ``reliability``'s
 #: ``--area``; projected coordinates such as UTM's reach 1e7 m).
 MAX_POSITION_M = 1e7
-
-
-def _position(text: str) -> list[float]:
-    try:
-        out = [finite_float(v) for v in text.split(",") if v.strip()]
-    except argparse.ArgumentTypeError:
-        out = []
-    if not out or any(abs(v) > MAX_POSITION_M for v in out):
-        raise argparse.ArgumentTypeError(
-            f"expected comma-separated coordinates (m) within +-{MAX_POSITION_M:g}, "
-            f"got {text!r}")
-    return out
+_position = _numbers_within(MAX_POSITION_M, "coordinates (m)")
 
 
 def _ints(text: str) -> list[int]:
