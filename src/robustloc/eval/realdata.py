@@ -74,6 +74,16 @@ class Case:
     def n(self) -> Array | None:
         return self.anchors["n"].to_numpy(float) if self.kind == "rssi" else None
 
+    @property
+    def sigma(self) -> tuple[float, ...] | None:
+        """The anchors' a-priori sigma column, as ``robustloc locate`` reads it (None
+        without one): a :class:`~robustloc.estimators.ranging.Locator` given it solves
+        the case as the command does (ble-tetam's survey calibration has one)."""
+        from robustloc.io.tables import anchor_sigma
+
+        sg = anchor_sigma(self.anchors)
+        return None if sg is None else tuple(float(v) for v in sg)
+
     def measurements(self) -> pd.DataFrame:
         """The epochs as a contract measurements frame (``time, tag, anchor, value``)."""
         ids = self.anchors["anchor"].astype(str).to_numpy()

@@ -37,7 +37,10 @@ def _ours(case, method: str, rows: np.ndarray, anchors=None) -> tuple[np.ndarray
     from robustloc.integrity.fixes import locate_protected
 
     vals, xy = case.values, case.xy
-    sigma = None
+    # the anchors' sigma column where they have one, as `robustloc locate` reads it
+    # (ble-tetam's survey calibration gives each receiver's sigma: the table's default
+    # was 2.92 m where the command gives 2.89 m -- the report review)
+    sigma = case.sigma
     if anchors is not None:  # self-calibrated anchors: bias/scale applied, sigma weights
         from robustloc.models.calibration import apply_range_calibration
 
@@ -146,17 +149,25 @@ def run(ctx: Context) -> Section:
         rows_all.append(tab)
         peer_tab = tab[~tab["method"].str.startswith("robustloc")]
         best = peer_tab.loc[peer_tab["rms"].idxmin()]
+        low95 = peer_tab.loc[peer_tab["p95"].idxmin()]
+        most = peer_tab.loc[peer_tab["availability"].idxmax()]
         d = tab.iloc[0]
+        # rms against the peer of the lowest rms, p95 against the lowest p95 of any peer
+        # (stricter), availability against the best peer's; the table names each peer
+        # (it showed one peer's name beside another's p95: the report review)
         worse = [k for k, bad in (("rms", d["rms"] > best["rms"]),
-                                  ("p95", d["p95"] > peer_tab["p95"].min()),
+                                  ("p95", d["p95"] > low95["p95"]),
                                   ("availability", d["availability"] < best["availability"]))
                  if bad]
         verdicts.append({
             "data set": f"{case.name} ({case.source})", "default rms": d["rms"],
             "default p95": d["p95"], "default availability": d["availability"],
             "misleading": d.get("misleading", np.nan),
-            "best peer": best["method"], "peer rms": best["rms"],
-            "peer p95": peer_tab["p95"].min(), "peer availability": best["availability"],
+            "best peer (rms)": best["method"], "peer rms": best["rms"],
+            "peer availability": best["availability"],
+            "lowest peer p95": f"{low95['p95']:.3g} ({low95['method']})",
+            "most available peer": f"{most['availability']:.3g} ({most['method']}, rms "
+                                   f"{most['rms']:.3g})",
             "verdict": ("at or below the best peer" if not worse
                         else "worse than the best peer: " + ", ".join(worse)),
         })

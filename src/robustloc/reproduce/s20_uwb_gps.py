@@ -204,7 +204,9 @@ def _dwm_experiment(ctx: Context, sec: Section) -> None:
         ax.set_aspect("equal")
         ax.set_xlabel("x (m)")
         ax.set_ylabel("y (m)")
-        ax.legend(fontsize=7)
+        # (outside the axes: inside, "best" still covered the LOS panel's anchors)
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2,
+                  frameon=False)
     fig.tight_layout()
     png = ctx.out_dir / "s20_dwm1001_tracks.png"
     png.parent.mkdir(parents=True, exist_ok=True)

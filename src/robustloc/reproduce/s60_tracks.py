@@ -32,8 +32,12 @@ PAPER_TABLE3 = {
     "robust filter (paper)": {"static mean": 0.544, "static RMS x": 0.363,
                               "static RMS y": 0.406, "walk mean": 1.406},
 }
-#: Authors' ESKF and robustloc ``fuse`` (tight robust EKF), full runs (README / s20).
-DWM_REFERENCE = {"LOS": {"ESKF": 1.20, "fuse": 0.77}, "NLOS": {"ESKF": 1.03, "fuse": 0.75}}
+#: robustloc ``fuse`` (tight robust EKF) on the full runs (README / s20); the authors' ESKF
+#: is scored here on the data the section runs on (full runs 1.20 and 1.03 m).  On the
+#: shipped excerpts the full runs' fuse figures are not comparable and not used (the
+#: report review: the excerpt's tracker was judged against them, "missed" at 0.80 m
+#: where fuse gives 0.82 m on the same excerpt).
+DWM_FUSE_FULL = {"LOS": 0.77, "NLOS": 0.75}
 
 #: Tracker settings per data set (the defaults unless stated).  Process noise ``q`` chosen
 #: by measurement on each data set (a stiff q = 0.01 on the slow ble-tetam walks: 2.18 m
@@ -393,11 +397,17 @@ def _dwm(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, A
         rts_mis = _mislead(es[inside],
                            apply_smoother(trk, rows, None)["hpl"].to_numpy(float)[inside])
         stanford.append((f"uwb-dwm1001 {run}", e[inside], rows["hpl"].to_numpy(float)[inside]))
-        ref = DWM_REFERENCE[run]
+        eskf = r.authors["ESKF"]
+        se = error_stats(eskf["time"].to_numpy(float), eskf[["x", "y"]].to_numpy(float),
+                         r.truth, span)
+        full = data_dir is not None
+        rows_out.append({"run": run, "method": "authors ESKF (" + (
+            "full run" if full else "excerpt") + ")", "rms": se["rms"], "p95": se["p95"],
+            "n": se["n"], "missing": se["missing"]})
+        if full:
+            rows_out.append({"run": run, "method": "fuse tight EKF robust (full run, README)",
+                             "rms": DWM_FUSE_FULL[run]})
         rows_out += [
-            {"run": run, "method": "authors ESKF (full run)", "rms": ref["ESKF"]},
-            {"run": run, "method": "fuse tight EKF robust (full run, README)",
-             "rms": ref["fuse"]},
             {"run": run, "method": "track cv-ekf", "rms": s["rms"], "p95": s["p95"],
              "n": s["n"], "missing": s["missing"]},
             {"run": run, "method": "track cv-ekf + RTS", "rms": s2["rms"], "p95": s2["p95"],
@@ -417,7 +427,9 @@ def _dwm(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, A
         rows_out.append({"run": run, "method": "track cv-ekf --link-offsets",
                          "rms": s5["rms"], "p95": s5["p95"], "n": s5["n"],
                          "missing": s5["missing"]})
-        res[run] = {"rms": s["rms"], "rts_rms": s2["rms"], "mislead": mis,
+        res[run] = {"rms": s["rms"], "eskf_rms": se["rms"],
+                    "fuse_rms": DWM_FUSE_FULL[run] if full else None,
+                    "rts_rms": s2["rms"], "mislead": mis,
                     "rts_mislead": rts_mis,
                     "offset_rms": s4["rms"], "links_rms": s5["rms"]}
         txy = np.c_[np.interp(t, tt, r.truth["x"]), np.interp(t, tt, r.truth["y"])]
@@ -544,8 +556,12 @@ def _lab(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, f
     sec.table(f"uwb-labyrinth (one range per {np.median(np.diff(tm)):.3g} s, "
               f"{tm[-1] - tm[0]:.0f} s: {n_cycles} ranging cycles): 2-D error "
               "(m).  `locate` needs epochs: ranging cycles (every anchor once) or fixed "
-              "windows.  `+ calibrate --self`: the anchors' range bias, scale and sigma "
-              "estimated from this log's ranging cycles without truth (`robustloc "
+              "windows, each fix stamped and scored at its epoch's last range (when it "
+              "is available, as the tracker's rows are; the section `s05_out_of_box` "
+              "scores each cycle at its mean time, the best case of a snapshot fix, "
+              "with a smaller RMS).  `+ calibrate --self`: the anchors' range bias, "
+              "scale and sigma estimated from this log's ranging cycles without truth "
+              "(`robustloc "
               "calibrate --self`), then the same runs (the tracker with the "
               "calibrated sigma per anchor instead of `sigma = 0.1`).  `--range-offset`: "
               "the tracker estimates the tag's common range offset as a state "
@@ -648,10 +664,10 @@ def run(ctx: Context) -> Section:
          st_["static RMS"] / raw["static RMS"], 0.7),
         ("ble-tetam: track RMS <= 0.75x locate", ble["track_rms"] / ble["locate_rms"], 0.75),
         ("ble-tetam: track p95 <= 0.75x locate", ble["track_p95"] / ble["locate_p95"], 0.75),
-        ("uwb-dwm1001 LOS: RMS <= ESKF 1.20 m", dwm["LOS"]["rms"], 1.20),
-        ("uwb-dwm1001 LOS: RMS <= fuse 0.77 m", dwm["LOS"]["rms"], 0.77),
-        ("uwb-dwm1001 NLOS: RMS <= ESKF 1.03 m", dwm["NLOS"]["rms"], 1.03),
-        ("uwb-dwm1001 NLOS: RMS <= fuse 0.75 m", dwm["NLOS"]["rms"], 0.75),
+        *[(f"uwb-dwm1001 {run}: RMS <= {lab_} {ref:.2f} m", dwm[run]["rms"], ref)
+          for run in ("LOS", "NLOS")
+          for lab_, ref in (("the authors' ESKF", dwm[run]["eskf_rms"]),
+                            ("fuse (full run)", dwm[run]["fuse_rms"])) if ref is not None],
         ("uwb-labyrinth: RMS <= 0.9x locate (anchors as surveyed)",
          lab["rms"] / lab["locate_rms"], 0.9),
         ("uwb-labyrinth: RMS <= 0.9x locate (both after calibrate --self)",
