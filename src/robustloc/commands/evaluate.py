@@ -220,6 +220,10 @@ def _notes(n_missing: int, n_unmatched: int, dest: TextIO) -> None:
               "count as failed", file=dest)
     if n_unmatched:
         print(f"note: {n_unmatched} position rows had no truth and were not scored", file=dest)
+    if n_unmatched and n_missing >= n_unmatched // 2:  # (most of both sides unmatched)
+        print("hint: positions and truth mostly miss each other's times: are both in "
+              "seconds on one clock (times in ms match nothing)?  --time-tolerance sets "
+              "the matching window", file=dest)
 
 
 #: The count columns: integers in --json and -o (a "mean" row's average may be a fraction).

@@ -182,7 +182,10 @@ def _check_file(path: PathLike) -> Path:
         if not p.exists():
             raise InputError("file not found", name)
         if p.is_dir():
-            raise InputError("is a directory, expected a file", name)
+            # (a `robustloc partition` dataset is read with --engine dask: the new-user
+            # review found no word of it)
+            raise InputError("is a directory, expected a file (a partitioned dataset "
+                             "is read with --engine dask)", name)
         if not stat.S_ISREG(p.stat().st_mode):  # FIFO, character device: read, don't stat
             p = _spool(path)
     if p.stat().st_size == 0:
@@ -759,6 +762,11 @@ def require_columns(
                     hint += (f"; the header is one column: its fields are separated by "
                              f"{name}, and robustloc reads commas (CSV)")
                     break
+        # a measurements log given where a survey goes (`calibrate LOG`): say what reads
+        # a log (the new-user review)
+        if what == "survey" and "time" in df.columns and "distance" in missing:
+            hint += ("; this looks like a measurements log: calibrate it with --self "
+                     "(no truth) or --measurements LOG --truth TRUTH")
         raise InputError(
             f"{what} file is missing column(s) {', '.join(missing)} (has: {have}){hint}",
             _path_of(df, path),

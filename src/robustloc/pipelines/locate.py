@@ -58,7 +58,9 @@ def method_list(text: str | Sequence[str]) -> list[str]:
         text = ",".join(str(m) for m in text)
     from robustloc.estimators.ranging import METHOD_SYNONYMS
 
-    methods = [METHOD_SYNONYMS.get(m.strip(), m.strip()) for m in text.split(",")]
+    # (case-insensitive: the docs write IGG, LEGE, LS; `--method IGG` was refused)
+    methods = [METHOD_SYNONYMS.get(m.strip().lower(), m.strip().lower())
+               for m in text.split(",")]
     if not any(methods):
         raise argparse.ArgumentTypeError(
             f"expected one or more of {', '.join(known)}, got {text!r}")
@@ -908,8 +910,8 @@ def hpl_lines(summary: dict, noun: str = "fixes") -> list[str]:
                      + (f" ({unb} unbounded)" if unb else ""))
     for m, k in (summary.get("side_from_log") or {}).items():
         if k:
-            lines.append(f"  {m:9s} {k} ambiguous fixes placed on the log's side of their "
-                         "anchors' line (--side-prior log)")
+            lines.append(f"  {m:9s} {k} ambiguous fix{'es' if k != 1 else ''} placed on "
+                         "the log's side of their anchors' line (--side-prior log)")
     return lines
 
 
@@ -939,7 +941,30 @@ def locate_lines(summary: Mapping[str, Any]) -> list[str]:
     method's statuses and protection levels."""
     lines = input_notes(summary)
     lines += [f"  {m:9s} " + status_text(c) for m, c in summary.get("status", {}).items()]
-    return lines + hpl_lines(dict(summary))
+    return lines + hpl_lines(dict(summary)) + mistake_hints(summary)
+
+
+def mistake_hints(summary: Mapping[str, Any]) -> list[str]:
+    """Lines that name the likely mistake when the statuses say the input is not what
+    it seems (the new-user review, 2026-12-06: ranges in millimetres gave 51 of 51
+    fixes `extrapolated` thousands of metres away with nothing said; RSSI written
+    without its sign made every row `invalid_measurement`, exit 0, with no hint)."""
+    from robustloc import status as st
+
+    lines = []
+    epochs = int(summary.get("epochs") or 0)
+    status = summary.get("status", {})
+    if epochs and any(2 * int(c.get(st.EXTRAPOLATED, 0)) > epochs for c in status.values()):
+        lines.append("  hint: most fixes lie far outside the anchors (extrapolated): are the "
+                     "ranges and the anchors' coordinates both in metres (ranges in mm read "
+                     "1000x too long)?")
+    invalid = all(int(c.get(st.INVALID, 0)) >= epochs for c in status.values())
+    if epochs and status and invalid:
+        what = ("RSSI is negative dBm, -150 .. +30 (a level written without its sign "
+                "reads +79 for -79 dBm)" if summary.get("value") == "rssi" else
+                "ranges are metres, -50 .. 1e5")
+        lines.append(f"  hint: every epoch is invalid_measurement: {what}")
+    return lines
 
 
 def _coarse_quantiles(hist: dict[str, int]) -> dict[str, Any]:
