@@ -26,6 +26,9 @@ Run:  NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1 python benchmarks/bench_track.py
 2026-12-06: the unobserved-position bound (tracker docstring, item 12) costs 0.37 ms per
 round of 1 000 tags, about 7 % of the EKF's round (timed inside the default workload on
 a machine at load 6.8: EKF 202 k and 207 k tag-epochs per CPU second after a warm-up run).
+With its review's window (the recent anchors for the mirror, the 10-degree span), four
+interleaved runs against the tracker before item 12 (load 0.8): EKF 175-218 k against
+214-267 k tag-epochs per CPU second (medians 208 k and 221 k, -6 %).
 
 2026-12-05, a site of 100 anchors, 12 heard (``--tags 200 --anchors 100 --heard 12
 --epochs 12 --rounds 2``, load 1.0).  The compiled round had worked on every anchor's

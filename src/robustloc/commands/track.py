@@ -41,9 +41,11 @@ RSSI (converted by the anchors' path-loss model to ranges with sigma_d = d ln10 
   coasting     nothing heard: status `predicted`
   hpl          max_i |gain_i| MDB_i + k sigma_major, k from --integrity-risk (2-D); with
                nearly collinear anchors, plus the distance to the mirror solution across
-               their line when that fits the epoch as well; where the last second's
-               updates kept fewer than two anchors, also the motion since the last row
-               that had two (or the kept range's circle, where smaller)
+               their line when that fits the epoch as well (rows of one or two ranges:
+               the anchors of the tag's recent updates); where those recent updates
+               (the last second, or the last M of M anchors) kept fewer than two anchors
+               10 degrees apart, also the motion since the last row that had them (or
+               the kept range's circle, where smaller)
   --smooth     fixed-interval Rauch-Tung-Striebel smoother over the forward pass (keeps its
                robust weights); --fixed-lag N uses only the next N epochs; a smoothed
                row's hpl is the forward row's plus the distance smoothing moved it

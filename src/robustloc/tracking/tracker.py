@@ -136,17 +136,23 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
 12. **A position the ranges do not fix.**  One range says how far the tag is from its
    anchor, not where on that circle it is; the EKF's covariance, linearized at a point
    that slides along the circle, shrinks in every direction all the same.  A row counts
-   as *observed* when the updates of the last ``observed_window_s`` seconds kept two or
-   more distinct anchors (two: the reflection across their line is item 8's; round-robin
-   UWB ranges, one anchor per epoch, stay observed); it records its time and
-   covariance.  Every other usable row's ``hpl`` also covers the motion since: ``k
-   sigma_major`` of the last observed covariance predicted to the row (``F P F^T + Q``,
-   without the updates that could not fix the position), or, where smaller, the ranges
-   the row kept, ``min_i |x - a_i| + d_i + k s sigma_i`` (the tag is within its range of
-   the anchor).  Measured (the tracker review's case: five anchors on a 20 m circle,
-   ranges of 0.3 m, one anchor heard for 60 s of a walk, six seeds): 29 % of the rows
-   beyond their ``hpl`` (`ok` rows up to 51 m off, ``hpl`` a few metres) -> 0; median
-   ``hpl`` 39-47 m there, errors 12-25 m.  On every shared real data set no row changes.
+   as *observed* when its tag's recent updates (the last ``observed_window_s`` seconds,
+   or its last ``M`` updates within ten such windows, ``M`` the anchors) kept two or
+   more distinct anchors at least 10 degrees apart as seen from it (two: the reflection
+   across their line is item 8's, which takes the same recent anchors for a row that
+   keeps one or two; round-robin UWB ranges, one anchor per epoch, stay observed); it
+   records its time and covariance.  Every other usable row's ``hpl`` also covers the
+   motion since: ``k sigma_major`` of the last observed covariance predicted to the row
+   (``F P F^T + Q``, without the updates that could not fix the position), or, where
+   smaller, the ranges the row kept, ``min_i |x - a_i| + d_i + k s sigma_i`` (the tag is
+   within its range of the anchor).  Measured (the tracker review's case: five anchors
+   on a 20 m circle, ranges of 0.3 m, one anchor heard for 60 s of a walk, six seeds):
+   29 % of the rows beyond their ``hpl`` (`ok` rows up to 51 m off, ``hpl`` a few
+   metres) -> 0; median ``hpl`` 39-47 m there, errors 12-25 m.  Its review (2026-12-06):
+   two anchors heard in turn (11 % beyond, rows 28 m off), two anchors 0.5 m apart (9.5
+   %), a corridor of nearly collinear anchors ranged in turn (5.4 %) -> 0; reports of
+   one range just over a second apart keep the bounds of the rule switched off.  On
+   every shared real data set no row changes.
 
 Engines: ``compiled`` (default) runs the whole round of the ``cv``/``ca`` models in the
 range domain (ranges, or RSSI converted to ranges), with or without the offset states
@@ -211,6 +217,13 @@ SNAPSHOT_BOUND_RATIO = 10.0
 #: ... when its prediction widened the position variance of the previous update at least
 #: this many times (a gap).
 SNAPSHOT_PREDICTION_RATIO = 25.0
+#: An anchor kept among a tag's last ``M`` updates counts as recent (``Tracker.
+#: _recent_kept``) if kept within this many ``observed_window_s`` too.
+OBSERVED_COUNT_SPAN = 10.0
+#: Smallest eigenvalue of ``sum_i u_i u_i^T`` over a row's recent anchors' unit vectors
+#: for its position to count as observed (``Tracker._spans``): ``1 - cos 10 deg``, two
+#: anchors 10 degrees apart as seen from the tag.
+OBSERVED_MIN_EIGENVALUE = 1.0 - math.cos(math.radians(10.0))
 #: Observations that passing epochs must use after a ``fault_detected`` row before its
 #: bound stops standing for the tag's rows (:meth:`Tracker._carry_suspicion`): a 2-D
 #: position and one more, the redundancy that can show the filter right.
@@ -519,6 +532,8 @@ class Tracker:
         self._susp_n = np.zeros(S, dtype=np.int64)
         self._mline = np.full((S, 4), np.nan)
         self._tkeep = np.full((S, M), np.nan)
+        self._ikeep = np.full((S, M), np.nan)
+        self._nupd = np.zeros(S)
         self._tdet = np.full(S, np.nan)
         self._Pdet = np.zeros((S, n, n))
         self._alloc_pending(S)
@@ -540,13 +555,13 @@ class Tracker:
 
     _ARRAYS = ("_x", "_P", "_t", "_init", "_bias", "_held", "_gp", "_gm", "_hsum", "_hn",
                "_scale2", "_bad", "_reinit", "_lastz", "_lastt", "_susp", "_susp_n",
-               "_mline", "_tkeep", "_tdet", "_Pdet")
+               "_mline", "_tkeep", "_ikeep", "_nupd", "_tdet", "_Pdet")
     #: Arrays a state saved before they existed lacks: loaded as these values (``None``:
     #: NaN throughout; a tag without an observed row counts as observed from its next one).
     _ARRAY_DEFAULTS = {"_susp": 0.0, "_susp_n": 0, "_mline": None, "_tkeep": None,
-                       "_tdet": None, "_Pdet": None}
+                       "_ikeep": None, "_nupd": 0.0, "_tdet": None, "_Pdet": None}
     #: Arrays whose new slots start as NaN (not 0): no observation, no line, no time.
-    _NAN_PADDED = ("_lastz", "_lastt", "_mline", "_tkeep", "_tdet")
+    _NAN_PADDED = ("_lastz", "_lastt", "_mline", "_tkeep", "_ikeep", "_tdet")
 
     def _slots(self, tags: NDArray[np.object_]) -> NDArray[np.int64]:
         """Each tag's slot in the state arrays (new tags get new slots)."""
@@ -926,8 +941,9 @@ class Tracker:
                 i = i[lost]
                 self._drop(sl[i])
                 self._start_new(idx[i], sl[i], t[i], z[i], out)
-        self._cover_mirror(idx, sl, z, out)
-        self._cover_unobserved(idx, sl, t, z, out)
+        recent = self._recent_kept(idx, sl, t, z, out)
+        self._cover_mirror(idx, sl, z, out, recent)
+        self._cover_unobserved(idx, sl, t, z, out, recent)
 
     def _start_new(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array, z: Array,
                    out: _Rows) -> None:
@@ -956,10 +972,11 @@ class Tracker:
         self._susp_n[sl] = 0
         self._mline[sl] = np.nan
         self._tkeep[sl] = np.nan
+        self._ikeep[sl] = np.nan
         self._tdet[sl] = np.nan
 
     def _cover_mirror(self, idx: NDArray[np.int64], sl: NDArray[np.int64], z: Array,
-                      out: _Rows) -> None:
+                      out: _Rows, recent: NDArray[np.bool_]) -> None:
         """Widen ``hpl`` over the mirror solution where the epoch's kept anchors are nearly
         collinear (module docstring, item 8; :mod:`robustloc.integrity.fixes`, item 5).
 
@@ -979,7 +996,16 @@ class Tracker:
         line's normal), until an epoch keeps anchors that span the plane.  (On a
         corridor, rows of one or two ranges on the mirror side were `ok` 2-3.4 m off
         with ``hpl`` 1.9-2.6 m, and so were checked rows whose mirror failed the test
-        by the anchors' 0.3 m off the line: the tracker review, 2026-12-06.)"""
+        by the anchors' 0.3 m off the line: the tracker review, 2026-12-06.)
+
+        A row that keeps one or two anchors takes the anchors its tag's updates kept over
+        the window of :meth:`_recent_kept` (``recent``) as its epoch: two of them, or
+        nearly collinear ones, leave a line whose reflection the row covers and which
+        stays with the tag; ones that span the plane clear it.  (Two anchors heard in
+        turn, one range per epoch, never kept two in an epoch: the track crossed their
+        line, `ok` rows 28 m off with ``hpl`` 2.5 m, 11 % of the rows beyond; a corridor
+        of nearly collinear anchors ranged in turn, 5.4 %: the tracker review of item
+        12.)"""
         from robustloc.integrity.fixes import AMBIGUITY_ELONGATION
 
         if self._link is None or (self._kind == "rssi" and self.settings.domain == "rssi"):
@@ -992,13 +1018,28 @@ class Tracker:
         pre = (dof_all >= 1) & (elong < AMBIGUITY_ELONGATION)
         x = out.x[idx, :2]
         spread = (dof_all >= 1) & ~pre
+        # the window's anchors for rows of one or two (ranges taken in turn)
+        few = keep_all.sum(axis=1) < 3
+        win_n = recent.sum(axis=1)
+        win_el = self._pattern_elongation(recent)
+        win_line = few & ((win_n == 2) | ((win_n >= 3) & (win_el < AMBIGUITY_ELONGATION)))
+        spread |= few & (win_n >= 3) & (win_el >= AMBIGUITY_ELONGATION)
         prev = self._mline[sl]  # (the lines left by earlier epochs: a copy)
         lined = np.isfinite(prev[:, 0])
         if lined.any():  # (anchors that span the plane tell the sides)
             self._mline[sl[spread & lined]] = np.nan
         covered = self._check_mirror(idx, sl, z, out, keep_all, pre, x)
         if lined.any():
-            self._carry_mirror(idx, prev, x, lined & ~spread & ~covered, out)
+            self._carry_mirror(idx, prev, x, lined & ~spread & ~covered & ~win_line, out)
+        if win_line.any():
+            from robustloc.models.geometry import principal_lines
+
+            w = np.flatnonzero(win_line)
+            c, u = principal_lines(self._link.anchors_xy, recent[w])
+            line = np.full((len(idx), 4), np.nan)
+            line[w] = np.c_[c, u]
+            self._carry_mirror(idx, line, x, win_line, out)
+            self._mline[sl[w]] = line[w]
         # two anchors kept: the tag and its reflection across their line fit alike, and
         # no test can tell them apart; the row covers its reflection, and the line stays
         # with the tag for its rows of one anchor.  (Three of five anchors falling silent
@@ -1006,7 +1047,7 @@ class Tracker:
         # `ok` rows 10-27 m off with hpl about 2 m, 10 % of the rows beyond their hpl;
         # only a line left by an earlier collinear epoch was carried: the track review
         # of 2026-12-06)
-        two = np.flatnonzero(keep_all.sum(axis=1) == 2)
+        two = np.flatnonzero((keep_all.sum(axis=1) == 2) & ~win_line)
         if two.size:
             from robustloc.models.geometry import principal_lines
 
@@ -1084,13 +1125,54 @@ class Tracker:
         rr = idx[rows]
         out.hpl[rr] = np.maximum(out.hpl[rr], d + out.hpl[rr])
 
+    def _recent_kept(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array,
+                     z: Array, out: _Rows) -> NDArray[np.bool_]:
+        """Record the anchors each row's update kept; return, per row, those its tag's
+        updates kept recently: within ``observed_window_s`` seconds, or among its last
+        ``M`` updates (``M`` the anchors) within :data:`OBSERVED_COUNT_SPAN` windows (one
+        range per report just over a second apart, anchors in turn, made every row
+        unobserved and tripled its ``hpl``: the tracker review of item 12)."""
+        W = self.settings.observed_window_s
+        x = out.x[idx, :2]
+        have = self._init[sl] & np.all(np.isfinite(x), axis=1)
+        upd = have & (out.status[idx] != st.PREDICTED)
+        kept = upd[:, None] & np.isfinite(z) & ~out.excluded[idx]
+        nupd = self._nupd[sl] + upd
+        self._nupd[sl] = nupd
+        tk = np.where(kept, t[:, None], self._tkeep[sl])
+        ik = np.where(kept, nupd[:, None], self._ikeep[sl])
+        self._tkeep[sl] = tk
+        self._ikeep[sl] = ik
+        M = kept.shape[1]
+        with np.errstate(invalid="ignore"):
+            age = t[:, None] - tk
+            recent = (age <= W) | ((nupd[:, None] - ik < M) & (age <= OBSERVED_COUNT_SPAN * W))
+        return recent & have[:, None]
+
+    def _spans(self, x: Array, recent: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        """Whether each row's recent anchors, seen from its position, span the plane:
+        the smallest eigenvalue of ``sum_i u_i u_i^T`` (``u_i`` the unit vectors to them)
+        at least :data:`OBSERVED_MIN_EIGENVALUE` (two anchors at least 10 degrees apart).
+        Two anchors 0.5 m apart, 20 m away, counted as observing the position: their
+        ranges are one circle (9.5 % of the rows beyond ``hpl``, the tracker review)."""
+        d = x[:, None, :] - self._link.anchors_xy[None]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            u = d / np.hypot(d[..., 0], d[..., 1])[..., None]
+        u = np.where(recent[..., None] & np.isfinite(u), u, 0.0)
+        a = np.einsum("km,km->k", u[..., 0], u[..., 0])
+        b = np.einsum("km,km->k", u[..., 1], u[..., 1])
+        c = np.einsum("km,km->k", u[..., 0], u[..., 1])
+        lam_min = 0.5 * (a + b) - np.sqrt(np.maximum(0.25 * (a - b) ** 2 + c * c, 0.0))
+        return lam_min >= OBSERVED_MIN_EIGENVALUE
+
     def _cover_unobserved(self, idx: NDArray[np.int64], sl: NDArray[np.int64], t: Array,
-                          z: Array, out: _Rows) -> None:
+                          z: Array, out: _Rows, recent: NDArray[np.bool_]) -> None:
         """Widen ``hpl`` over the motion since the tag's position was last observed
         (module docstring, item 12).
 
-        A row counts as observed when the updates of the last ``observed_window_s``
-        seconds up to it kept two or more distinct anchors (a start row always does); it
+        A row counts as observed when its tag's recent updates (:meth:`_recent_kept`)
+        kept two or more distinct anchors that span the plane as seen from it
+        (:meth:`_spans`; a start row always counts); it
         then records its time ``t_o`` and covariance ``P_o``.  Any other usable row is
         also bounded by ``k sigma_major`` of ``F(dt) P_o F(dt)^T + Q(dt)``, ``dt = t -
         t_o``: the covariance of the last observed state predicted to the row without the
@@ -1099,17 +1181,12 @@ class Tracker:
         linearized at a point that slides along the circle, shrinks in every direction all
         the same (a walk with one anchor of five heard for 60 s: `ok` rows up to 51 m off
         with ``hpl`` of a few metres, 29 % of the rows beyond their ``hpl``)."""
-        W = self.settings.observed_window_s
         x = out.x[idx, :2]
         have = self._init[sl] & np.all(np.isfinite(x), axis=1)
-        upd = have & (out.status[idx] != st.PREDICTED)
-        tk = np.where(upd[:, None] & np.isfinite(z) & ~out.excluded[idx], t[:, None],
-                      self._tkeep[sl])
-        self._tkeep[sl] = tk
-        with np.errstate(invalid="ignore"):
-            n_recent = ((t[:, None] - tk) <= W).sum(axis=1)
         started = have & (self._tdet[sl] == t)  # (a start row of this round: _start)
-        obs = have & (n_recent >= 2) & ~started
+        obs = have & (recent.sum(axis=1) >= 2) & ~started
+        if obs.any():
+            obs[obs] = self._spans(x[obs], recent[obs])
         if obs.any():
             self._tdet[sl[obs]] = t[obs]
             self._Pdet[sl[obs]] = self._P[sl[obs]]
@@ -1124,8 +1201,8 @@ class Tracker:
         a, b, c = Pu[:, 0, 0], Pu[:, 1, 1], Pu[:, 0, 1]
         lam = 0.5 * (a + b) + np.sqrt(np.maximum(0.25 * (a - b) ** 2 + c * c, 0.0))
         bound = self._k_ir * np.sqrt(lam)
-        ring = self._ring_bound(sl[rows], z[rows], x[rows], tk[rows] == t[rows, None],
-                                out.scale[idx[rows]])
+        ring = self._ring_bound(sl[rows], z[rows], x[rows],
+                                self._tkeep[sl[rows]] == t[rows, None], out.scale[idx[rows]])
         rr = idx[rows]
         out.hpl[rr] = np.maximum(out.hpl[rr], np.fmin(bound, ring))
 
@@ -1249,8 +1326,9 @@ class Tracker:
         # the start row is observed (item 12): the anchors its fix kept count as kept now
         self._tdet[k] = t[ok]
         self._Pdet[k] = self._P[k]
-        self._tkeep[k] = np.where(np.isfinite(z[ok]) & ~np.asarray(sol.excluded, bool)[ok],
-                                  t[ok, None], np.nan)
+        used0 = np.isfinite(z[ok]) & ~np.asarray(sol.excluded, bool)[ok]
+        self._tkeep[k] = np.where(used0, t[ok, None], np.nan)
+        self._ikeep[k] = np.where(used0, self._nupd[k][:, None], np.nan)
         if reinit:
             self._reinit[k] += 1
         # rows: the fix (its status), or the failed fix's status
