@@ -116,7 +116,7 @@ def _check_option(flag: str, value: Any, check: Callable[[str], object]) -> Any:
     arg = (str(value) if isinstance(value, (int, float)) and not isinstance(value, bool)
            else value)
     try:
-        converted = check(arg)  # type: ignore[arg-type]
+        converted = check(arg)
     except (argparse.ArgumentTypeError, ValueError, TypeError) as exc:
         raise InputError(f"argument {flag}: {exc}") from None
     # a value given as text is used as the command line reads it (evaluate's
