@@ -100,3 +100,18 @@ def test_method_names_are_case_insensitive(tmp_path):
     assert main(["locate", *args, "--method", "ls,igg", "-o", str(tmp_path / "b.csv")]) == 0
     pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "a.csv"),
                                   pd.read_csv(tmp_path / "b.csv"))
+
+
+def test_evaluate_says_when_its_arguments_look_swapped(tmp_path, capsys):
+    (tmp_path / "t.csv").write_text("time,tag,x,y\n0,a,0,0\n1,a,1,0\n")
+    (tmp_path / "p.csv").write_text("time,tag,x,y,method,status\n0,a,0.1,0,ls,ok\n"
+                                    "1,a,,,ls,insufficient_anchors\n")
+    # the positions' failed row (no x) refused as truth: the error says why
+    assert main(["evaluate", str(tmp_path / "t.csv"), "--truth", str(tmp_path / "p.csv")]) == 2
+    assert "are the positions and --truth swapped?" in capsys.readouterr().err
+    (tmp_path / "p2.csv").write_text("time,tag,x,y,method,status\n0,a,0.1,0,ls,ok\n"
+                                     "1,a,1.1,0,ls,ok\n")
+    assert main(["evaluate", str(tmp_path / "t.csv"), "--truth", str(tmp_path / "p2.csv")]) == 0
+    assert "are the positions and --truth swapped?" in capsys.readouterr().err
+    assert main(["evaluate", str(tmp_path / "p2.csv"), "--truth", str(tmp_path / "t.csv")]) == 0
+    assert "swapped" not in capsys.readouterr().err

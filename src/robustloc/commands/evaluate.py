@@ -10,6 +10,7 @@ import numpy as np
 import pandas as pd
 
 from robustloc.engines import add_engine_arguments
+from robustloc.errors import InputError
 
 NAME = "evaluate"
 HELP = "error statistics of positions against truth, per tag and method"
@@ -100,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from robustloc.eval.metrics import error_table
-    from robustloc.io import read_positions, read_truth, write_table
+    from robustloc.io import read_positions, write_table
     from robustloc.io.atomic import check_not_input, writes_to_stdout
 
     check_not_input(args.out, [args.positions, args.truth])
@@ -120,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
 
         pos = read_positions(args.positions)
         check_baseline(args.baseline, pos["method"], args.positions)
-        truth = read_truth(args.truth)
+        truth = _read_truth_said(args.truth)
         table = error_table(pos, truth, time_tolerance_s=args.time_tolerance,
                             baseline=args.baseline)
         if args.plot:  # drawn (into memory) before a file is written: see below
@@ -211,6 +212,35 @@ def run(args: argparse.Namespace) -> int:
     if args.plot:
         print(f"figure: {args.plot}", file=dest)
     return 0
+
+
+def _read_truth_said(path: str):  # noqa: ANN202 - a truth frame
+    """:func:`robustloc.io.read_truth`; a refused file that carries positions' columns
+    (``method``, ``status``) says the arguments look swapped (`evaluate truth.csv --truth
+    positions.csv` named only a NaN on some line: the new-user review)."""
+    import sys
+
+    from robustloc.io import read_truth
+
+    def looks_swapped() -> bool:
+        try:
+            head = pd.read_csv(path, nrows=0).columns
+        except Exception:  # noqa: BLE001 - not a CSV header: no guess
+            return False
+        return bool({"method", "status"} & {str(c) for c in head})
+
+    try:
+        truth = read_truth(path)
+    except InputError as exc:
+        if looks_swapped():
+            raise InputError(exc.message + "; this file has the columns of a positions "
+                             "file (method, status): are the positions and --truth "
+                             "swapped?", exc.path, exc.line) from None
+        raise
+    if looks_swapped():  # (read as truth all the same: the table's method 'unknown')
+        print(f"warning: {path}: --truth has the columns of a positions file (method, "
+              "status): are the positions and --truth swapped?", file=sys.stderr)
+    return truth
 
 
 def _notes(n_missing: int, n_unmatched: int, dest: TextIO) -> None:
