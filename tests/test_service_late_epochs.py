@@ -259,3 +259,19 @@ def test_memory_of_a_live_stream_and_a_burst():
     solved[1].update(burst.tolist())
     _check_memory(a, solved, qc1, q)
     _check_memory(a, solved, qc0, q)
+
+
+def test_a_time_remembered_twice_takes_one_slot():
+    """The falsifying example hypothesis found (2026-12-06): times solved in one fold and
+    again in a later one were kept twice, so 15 distinct times filled the 32 slots and an
+    earlier, never solved time counted as let go."""
+    a = EpochAssembler(["A"], latency_window_s=0.0, idle_flush_s=1.0, live_late=True)
+    a.codes(obj("t0"))
+    solved: dict[int, set[float]] = {0: set()}
+    for n, read in ((9, True), (15, True), (9, False)):
+        t = np.arange(1, n + 1) / 2
+        a._remember(t, np.zeros(n, dtype=np.int64))
+        solved[0] |= set(t.tolist())
+        if read:
+            _check_memory(a, solved, np.array([0]), np.array([0.0]))
+    _check_memory(a, solved, np.array([0]), np.array([0.0]))

@@ -404,6 +404,14 @@ class EpochAssembler:
         new = np.full((len(tags), R), -np.inf)
         new[grp[keep], R - 1 - from_end[keep]] = t[keep]
         both = np.sort(np.concatenate([self._recent[tags], new], axis=1), axis=1)
+        # a time remembered again (solved before, in an earlier fold) is one time: kept
+        # twice it took a slot of the memory, and the oldest distinct times were let go
+        # (``_known_from`` rose) while fewer than RECENT_SOLVED were remembered (found by
+        # the property test against the memory's definition)
+        dup = np.zeros(both.shape, dtype=bool)
+        dup[:, 1:] = (both[:, 1:] == both[:, :-1]) & np.isfinite(both[:, 1:])
+        if dup.any():
+            both = np.sort(np.where(dup, -np.inf, both), axis=1)
         self._known_from[tags] = np.maximum(self._known_from[tags], both[:, R - 1])
         self._recent[tags] = both[:, R:]
 
