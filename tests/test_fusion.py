@@ -676,7 +676,12 @@ def test_fuse_command_defaults_and_a_diverging_ukf(tmp_path, capsys):
     e = np.hypot(tr["x"] - truth["x"], tr["y"] - truth["y"])
     assert e.max() > 100.0  # the divergence itself is the paper filter's, not fixed here
     far = e > 50.0
-    assert far.sum() > 10 and (tr.loc[far, "status"] == "fault_detected").all()
+    # (25 rows beyond 50 m before the posterior check of the fuse review of 2026-12-07,
+    # which counts toward divergence and restarts the UKF sooner: 7, RMS 1 152 -> 106 m;
+    # every usable row within 0.5 m, 35 m before)
+    assert far.sum() >= 1 and (tr.loc[far, "status"] == "fault_detected").all()
+    usable = tr["status"].isin(["ok", "fault_excluded"])
+    assert usable.any() and e[usable].max() < 1.0
 
 
 def test_merge_streams_angles_cost_memory_per_angle_not_per_component():

@@ -1,0 +1,75 @@
+"""The sixth fuse/filter review (2026-12-07): a usable row's estimate must agree with the
+measurements its update kept.
+
+On ``simulate uwb-cart --group B --seed 1`` (``fuse --motion ca``: the UKF) rows 20-38 m
+off said ``ok`` with every component kept and ``NIS`` 3-9: the sigma points straddled
+the anchors and inflated ``S`` until every innovation looked small.  With ``--filter
+ekf`` an update rejected one component and kept four 1.5 km off as ``fault_excluded``
+(``NIS`` 432 014), since only events that kept every component were tested.  The
+posterior check (``FusionFilter._posterior_fails``) tests ``sum w_i r_i^2 / R_ii`` of the
+kept components' posterior residuals against the event's critical value.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from robustloc import status as st
+from robustloc.cli import main
+
+SIGMA_RANGE_M = 0.15  # fuse's default --sigma-range
+
+
+@pytest.fixture(scope="module")
+def cart_b(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cart_b")
+    assert main(["simulate", "uwb-cart", "--seed", "1", "--group", "B", "--out", str(d),
+                 "-q"]) == 0
+    return d
+
+
+def _run(d, out, capsys, *extra):
+    rc = main(["fuse", "--ranges", str(d / "measurements.csv"), "--anchors",
+               str(d / "anchors.csv"), "--nmea", str(d / "gps.nmea"), "-o", str(out),
+               "--json", *extra])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    rows = pd.read_csv(out).merge(pd.read_csv(d / "truth.csv"), on=["time", "tag"],
+                                  suffixes=("", "_t"))
+    return rows, json.loads(cap.out)
+
+
+def _posterior_range_residuals(rows: pd.DataFrame, d) -> np.ndarray:
+    """Each row's ranges minus the ranges from its own position (m), ``(N, M)``."""
+    an = pd.read_csv(d / "anchors.csv")
+    meas = pd.read_csv(d / "measurements.csv")
+    wide = meas.pivot_table(index="time", columns="anchor", values="range")
+    wide = wide.reindex(rows["time"].to_numpy())[list(an["anchor"])].to_numpy(float)
+    dz2 = (an["z"].to_numpy(float) ** 2 if "z" in an else 0.0)
+    d_hat = np.sqrt((rows.x.to_numpy()[:, None] - an.x.to_numpy()[None]) ** 2
+                    + (rows.y.to_numpy()[:, None] - an.y.to_numpy()[None]) ** 2 + dz2)
+    return wide - d_hat
+
+
+@pytest.mark.parametrize("extra", [("--motion", "ca"), ("--motion", "ca", "--filter", "ekf"),
+                                   ("--filter", "ukf")])
+def test_a_usable_row_agrees_with_the_ranges_it_kept(cart_b, tmp_path, capsys, extra):
+    """No ``ok`` or ``fault_excluded`` row lies 10 m or more from the truth (before: up
+    to 38 m ``ok`` with the UKF, 1.5 km ``fault_excluded`` with the EKF); and no such row
+    whose ranges all disagree with its position by more than 20 sigma (0.15 m each: a
+    row whose every range misses by metres is no fix)."""
+    rows, summary = _run(cart_b, tmp_path / "t.csv", capsys, *extra)
+    e = np.hypot(rows.x - rows.x_t, rows.y - rows.y_t).to_numpy()
+    good = st.among(rows.status.to_numpy(object), (st.OK, st.FAULT_EXCLUDED))
+    assert good.any()
+    assert not np.any(good & (e >= 10.0)), rows[good & (e >= 10.0)]
+    res = np.abs(_posterior_range_residuals(rows, cart_b))
+    with np.errstate(invalid="ignore"):
+        all_off = np.nanmin(np.where(np.isfinite(res), res, np.inf), axis=1)
+    assert not np.any(good & (all_off > 20 * SIGMA_RANGE_M))
+    # the rows taken away from `ok` are counted, not dropped: every event has its row
+    assert sum(summary["status"].values()) == len(rows)
