@@ -15,13 +15,18 @@ def test_s60_quick_on_shipped_excerpts(tmp_path):
     assert [c for c, f in sec.blocks if c == "figure" and f[1] == "s60_stanford.png"]
     assert (tmp_path / "s60_table3.csv").is_file()
     t = sec.summary["targets"]
-    # 27 on the full data; on the excerpts the two against fuse's full-run RMS are left
+    # 37 on the full data; on the excerpts the two against fuse's full-run RMS are left
     # out (not comparable: the report review), and the authors' ESKF is scored on the
-    # excerpt itself (1.66 / 1.44 m there, 1.20 / 1.03 m on the full runs)
-    assert len(t) == 25
+    # excerpt itself (1.66 / 1.44 m there, 1.20 / 1.03 m on the full runs); ten are those
+    # of `--link-offsets auto` (the log's choice on each data set)
+    assert len(t) == 35
     assert not [k for k in t if "fuse" in k]
     eskf = {k: v["limit"] for k, v in t.items() if "the authors' ESKF" in k}
-    assert len(eskf) == 2 and all(v > 1.3 for v in eskf.values()), eskf
+    assert len(eskf) == 4 and all(v > 1.3 for v in eskf.values()), eskf
+    assert len([k for k in t if "--link-offsets auto" in k]) == 10
+    auto = [f[1] for c, f in sec.blocks if c == "table" and "--link-offsets auto" in f[0]]
+    assert len(auto) == 1 and len(auto[0]) == 5
+    assert set(auto[0]["offsets"]) <= {"on", "off"}
     # the smoothed rows' bounds are counted too (track --smooth)
     assert {"misleading rows, ble-tetam, --smooth", "misleading rows, uwb-dwm1001 LOS, --smooth",
             "misleading rows, uwb-dwm1001 NLOS, --smooth"} <= set(t)

@@ -618,7 +618,7 @@ def track(
     range_offset: bool = False,
     range_offset_sd: float = 0.5,
     range_offset_q: float = 1e-4,
-    link_offsets: bool = False,
+    link_offsets: bool | Literal["auto"] = False,
     link_offset_sd: float | None = None,
     link_offset_q: float = 0.0,
     noise_scale_min: float = 1.0,
@@ -653,6 +653,8 @@ def track(
         state per anchor, its a-priori standard deviation (None: 1 dB or 0.1 m) and
         random-walk growth (``--link-offsets``; the summary's ``link_offset_db`` or
         ``link_offset_m`` gives each tag's final offsets).  Not with ``range_offset``.
+        ``link_offsets="auto"``: the log's first epochs choose (``--link-offsets auto``;
+        the summary's ``link_offsets_auto`` says what and why).
 
     Returns
     -------
@@ -693,7 +695,9 @@ def track(
             tag_height=tag_height, alpha0=alpha0, beta0=beta0,
             integrity_risk=integrity_risk, chunk_rows=chunk_rows,
             range_offset=_flag("range_offset", range_offset), range_offset_sd=range_offset_sd,
-            range_offset_q=range_offset_q, link_offsets=_flag("link_offsets", link_offsets),
+            range_offset_q=range_offset_q, link_offsets=(
+                link_offsets if isinstance(link_offsets, str) and link_offsets == "auto"
+                else _flag("link_offsets", link_offsets)),
             link_offset_sd=link_offset_sd, link_offset_q=link_offset_q,
             noise_scale_min=noise_scale_min, noise_scale_max=noise_scale_max)
         anchor_frame, source = _log_inputs(measurements, anchors)

@@ -218,19 +218,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--range-offset-q", type=nonnegative_float, default=d.range_offset_q,
                    help="random-walk variance growth of the offset "
                         f"(m^2/s, default {d.range_offset_q}; 0: constant)")
-    p.add_argument("--link-offsets", action="store_true",
-                   help="estimate an offset of each link (anchor) of each tag as one more "
-                        "state per anchor: dB added to its RSSI, or m added to its ranges "
-                        "(what the anchors' calibration misses where the tag walks); the "
-                        "summary gives each tag's final offsets.  Measured: ble-tetam "
+    p.add_argument("--link-offsets", nargs="?", const="on", default="off",
+                   choices=("on", "off", "auto"), metavar="{on,off,auto}",
+                   help="(alone: on) estimate an offset of each link (anchor) of each tag as "
+                        "one more state per anchor: dB added to its RSSI, or m added to its "
+                        "ranges (what the anchors' calibration misses where the tag walks); "
+                        "the summary gives each tag's final offsets.  Measured: ble-tetam "
                         "0.77x -> 0.71x the default locate's RMS (the offsets it finds "
                         "correlate 0.93 with the truth's); uwb-dwm1001 LOS 0.77 -> 0.55 m, "
-                        "NLOS 0.74 -> 0.61 m; uwb-labyrinth 0.215 -> 0.172 m; where there "
-                        "are no offsets it costs (simulated walk, 4 APs: 0.93x -> 1.25x "
-                        "the snapshot fixes' RMS); 4 + M states, M the anchors of the file: slower "
-                        "(bench_track.py: 85 k against 252 k tag-epochs/s with 8 anchors, 370 "
-                        "against 46 k on a site of 100).  Not with "
-                        "--range-offset")
+                        "NLOS 0.74 -> 0.61 m; uwb-labyrinth 0.215 -> 0.172 m; where there are"
+                        " no offsets it costs (simulated walk, 4 APs: 0.93x -> 1.25x the "
+                        "snapshot fixes' RMS); 4 + M states, M the anchors of the file: "
+                        "slower (bench_track.py: 85 k against 252 k tag-epochs/s with 8 "
+                        "anchors, 370 against 46 k on a site of 100).  auto (sites of at most"
+                        " 24 anchors; off beyond): the log's first 20 000 epochs tracked "
+                        "without and with the offsets choose (the offsets kept when their "
+                        "one-step predictions of the observations score better beyond chance:"
+                        " a batch-means t-test at 5 %%; robustloc.tracking.select); measured "
+                        "at the report's settings: on for ble-tetam, uwb-labyrinth and "
+                        "dwm1001 NLOS, off for dwm1001 LOS and 20 of 20 simulated walks (q "
+                        "3); at the default q 1, on for 7 of 20 walks, 5 of them worse: a --q"
+                        " too stiff for the motion lets the offsets absorb its lag "
+                        "(benchmarks/bench_link_choice.py).  Not with --range-offset")
     p.add_argument("--link-offset-sd", type=sigma_value, default=None,
                    help="a-priori std of each link's offset at a tag's start, in the "
                         "measurement's unit (default 1 dB for RSSI, 0.1 m for ranges)")
@@ -349,6 +358,11 @@ def run(args: argparse.Namespace) -> int:
         from robustloc.engines.dask import run_tagwise
 
         _check_anchors_on_client(args)
+        if args.link_offsets == "auto":
+            raise InputError("--link-offsets auto chooses once on the whole log; each Dask "
+                             "partition would choose for itself: choose with a local run "
+                             "(its summary says on or off), then give --link-offsets on "
+                             "or off", "--link-offsets")
         return run_tagwise(args, track_partition, "track", file_fn=track_partition_file,
                            local_keys={"measurements": str(args.measurements),
                                        "track": str(args.out)})

@@ -52,7 +52,9 @@ class TrackSettings:
     (same names and defaults; ``kernel`` is its ``engine``, the compiled kernels or the
     NumPy reference); ``smooth``, ``fixed_lag`` (RTS smoothing over the whole log, or over
     the next ``fixed_lag`` epochs of each tag) and ``chunk_rows`` (rows read per chunk)
-    are the workflow's.
+    are the workflow's.  ``link_offsets="auto"`` lets the log choose
+    (:func:`robustloc.tracking.select.choose_link_offsets`; :func:`run_track` resolves it
+    before tracking).
     """
 
     model: str = option("cv", choices=("cv", "ca", "static"), flag="--model/--motion")
@@ -75,14 +77,15 @@ class TrackSettings:
     range_offset: bool = False
     range_offset_sd: float = option(0.5, check=positive_float)
     range_offset_q: float = option(1e-4, check=nonnegative_float)
-    link_offsets: bool = False
+    link_offsets: bool | str = option(False, choices=(False, True, "auto"),
+                                      synonyms={"on": True, "off": False})
     link_offset_sd: float | None = option(None, check=positive_float)
     link_offset_q: float = option(0.0, check=nonnegative_float)
     chunk_rows: int = option(500_000, check=positive_int)
 
     def __post_init__(self) -> None:
         check_settings(self)
-        if self.range_offset and self.link_offsets:
+        if self.range_offset and self.link_offsets is not False:
             raise InputError("--range-offset and --link-offsets exclude each other: the "
                              "links' offsets include the common one (their mean); choose "
                              "one")
@@ -110,15 +113,22 @@ class TrackSettings:
         history when smoothing)."""
         from robustloc.tracking import Tracker
 
-        opts = asdict(self)
-        for k in ("smooth", "fixed_lag", "chunk_rows", "model", "filter"):
-            opts.pop(k)
-        opts["engine"] = opts.pop("kernel")
+        if self.link_offsets == "auto":
+            raise ValueError("link_offsets='auto' is resolved on the log first "
+                             "(resolve_link_offsets)")
         try:
-            return Tracker(anchors, model=self.model, filter=self.filter,
-                           record=self.smoothing, **opts)
+            return Tracker(anchors, record=self.smoothing, **self.tracker_options())
         except (ValueError, TypeError) as exc:  # (the tracker's own checks)
             raise InputError(str(exc)) from None
+
+    def tracker_options(self) -> dict[str, Any]:
+        """The :class:`~robustloc.tracking.Tracker` keywords of these settings (``kernel``
+        as ``engine``; the workflow's own settings left out)."""
+        opts = asdict(self)
+        for k in ("smooth", "fixed_lag", "chunk_rows"):
+            opts.pop(k)
+        opts["engine"] = opts.pop("kernel")
+        return opts
 
 
 def run_track(
@@ -172,6 +182,7 @@ def run_track(
     # the notice when numba starts compiling a kernel the cache lacks (any model, filter
     # or option: `--model ca` compiled 25 s unannounced), and the time it takes
     with compile_watch("tracker and filter", announce=progress) as jit:
+        settings, choice = resolve_link_offsets(measurements, anchors, settings)
         hpl = HplTally()
         try:
             trk, frame, n_epochs, counts, hist, resorted, tally = _one_pass(
@@ -205,9 +216,53 @@ def run_track(
     summary["anchors_not_used"] = [str(a) for a, f in zip(anchors["anchor"], far) if f]
     if settings.range_offset:
         summary["range_offset_m"] = range_offsets(trk)
+    if choice is not None:
+        summary["link_offsets_auto"] = choice.as_dict()
     if settings.link_offsets:
         summary[link_offset_key(trk)] = link_offsets(trk)
     return frame, summary
+
+
+def resolve_link_offsets(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
+                         ) -> tuple[TrackSettings, Any]:
+    """``link_offsets="auto"``: the settings with the choice the log's first epochs make
+    (:func:`robustloc.tracking.select.choose_link_offsets`, at most
+    :data:`~robustloc.tracking.select.AUTO_SAMPLE_EPOCHS`), and that choice; other
+    settings unchanged, with ``None``."""
+    from dataclasses import replace
+
+    from robustloc.io import iter_epochs
+    from robustloc.io.tables import UnsortedInput
+    from robustloc.tracking.select import AUTO_SAMPLE_EPOCHS, choose_link_offsets
+
+    if settings.link_offsets != "auto":
+        return settings, None
+
+    def sample(order: str) -> list:
+        blocks, n = [], 0
+        for block in iter_epochs(measurements, anchors, chunk_rows=settings.chunk_rows,
+                                 order=order):
+            blocks.append(block)
+            n += block.n_epochs
+            if n >= AUTO_SAMPLE_EPOCHS:
+                break
+        return blocks
+
+    try:
+        blocks = sample("auto")
+    except UnsortedInput:
+        blocks = sample("sort")
+    if not blocks:
+        return replace(settings, link_offsets=False), None
+    opts = settings.tracker_options()
+    opts.pop("link_offsets")
+    for block in blocks:  # as the tracking pass refuses them (track_blocks)
+        _refuse_block_options(block, settings, measurements)
+    try:
+        choice = choose_link_offsets(anchors, _joined(blocks), **opts)
+    except (ValueError, TypeError) as exc:  # (the tracker's own checks)
+        raise InputError(str(exc)) from None
+    return replace(settings, link_offsets=choice.use), choice
 
 
 def link_offset_key(trk: Any) -> str:
@@ -244,7 +299,11 @@ def offset_lines(summary: dict, most: int = 10) -> list[str]:
     and :func:`link_offsets`: the first ``most`` tags, then how many more (``--json``
     lists every one)."""
     offsets = summary.get("range_offset_m") or {}
-    lines = [f"  range offset of {tag}: {v['estimate']:+.3f} m (sd "
+    auto = summary.get("link_offsets_auto")
+    lines = [] if not auto else [
+        f"  --link-offsets auto: {'on' if auto['used'] else 'off'}, {auto['reason']}"
+        + (f" (first {auto['epochs']} epochs)" if auto.get("epochs") else "")]
+    lines += [f"  range offset of {tag}: {v['estimate']:+.3f} m (sd "
              + ("n/a" if v["sd"] is None else f"{v['sd']:.3f}") + ")"
              for tag, v in list(offsets.items())[:most] if v["estimate"] is not None]
     if len(offsets) > most:
@@ -384,7 +443,7 @@ def _track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
                   tally: dict[str, int] | None, hpl_tally: HplTally | None,
                   ) -> tuple[pd.DataFrame | None, int, dict[str, int]]:
     """:func:`track_blocks`, inside its compile watch."""
-    from robustloc.pipelines.locate import hpl_counts, refuse_rssi_options
+    from robustloc.pipelines.locate import hpl_counts
     from robustloc.status import USABLE, among
 
     hist: dict[str, int] = {} if hpl_histogram is None else hpl_histogram
@@ -411,15 +470,7 @@ def _track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
     n = 0
     status_counts: dict[str, int] = {}
     for block in blocks:
-        refuse_rssi_options(block.value, {"--domain rssi": settings.domain == "rssi"}, source)
-        if settings.range_offset and block.value != "range":
-            from robustloc.io.tables import _display
-
-            raise InputError("--range-offset applies to ranges, but this log holds RSSI (an "
-                             "rssi column): leave it out (a device's RSSI offset is the "
-                             "path-loss model's A: calibrate it)",
-                             None if source is None else _display(source),
-                             None if source is None else 1)
+        _refuse_block_options(block, settings, source)
         rows = trk.step(block)
         if tally is not None:
             tally["invalid_measurement_rows"] = (tally.get("invalid_measurement_rows", 0)
@@ -445,6 +496,22 @@ def _track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
         status_counts = {str(k): int(v) for k, v in table["status"].value_counts().items()}
         count_hpl(table)
     return table, n, status_counts
+
+
+def _refuse_block_options(block: Any, settings: TrackSettings, source: Any) -> None:
+    """Options the log's kind refuses (:func:`track_blocks`): ``--domain rssi`` and
+    ``--range-offset`` on RSSI-less / range-less logs."""
+    from robustloc.pipelines.locate import refuse_rssi_options
+
+    refuse_rssi_options(block.value, {"--domain rssi": settings.domain == "rssi"}, source)
+    if settings.range_offset and block.value != "range":
+        from robustloc.io.tables import _display
+
+        raise InputError("--range-offset applies to ranges, but this log holds RSSI (an "
+                         "rssi column): leave it out (a device's RSSI offset is the "
+                         "path-loss model's A: calibrate it)",
+                         None if source is None else _display(source),
+                         None if source is None else 1)
 
 
 def _joined(blocks: list[Any]) -> Any:

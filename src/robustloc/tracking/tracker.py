@@ -2080,6 +2080,61 @@ class Tracker:
                                  "tracker holds (not finite, or out of range)")
 
     # ------------------------------------------------------------------ smoothing
+    def predictive_score(self, values: Any) -> tuple[Array, NDArray[np.int64]]:
+        """The recorded forward pass's one-step-ahead predictive score of each row.
+
+        For each filtered row (not a start) and each observation ``i`` it heard, the
+        prediction ``h_i(x-)`` and its variance ``S_ii = (H P- H^T)_ii + sigma_i^2`` (the
+        anchors' a-priori variance, in the filter's domain) give the robust log score
+        of :func:`robustloc.tracking.select.huber_log_score`.  A higher score predicted
+        the observations better: the prequential comparison of two trackers on the same
+        log (Dawid 1984), as :func:`robustloc.tracking.select.choose_link_offsets` makes
+        it.
+
+        Parameters
+        ----------
+        values : ``(N, M)`` the recorded steps' epochs' values, in their order (the rows
+            :meth:`step` was given, every step's after the earlier ones').
+
+        Returns
+        -------
+        (ndarray, ndarray)
+            Per row, the sum of its observations' scores (NaN where none was scored: a
+            start, a coasting or invalid row) and how many were scored.
+
+        Raises
+        ------
+        ValueError
+            Not a recording tracker, or ``values`` not ``(rows recorded, M)``.
+        """
+        from robustloc.tracking.select import huber_log_score
+
+        if not self.record:
+            raise ValueError("the predictive score needs Tracker(..., record=True)")
+        v = np.asarray(values, dtype=float)
+        if v.shape != (self._rows_recorded, len(self.anchor_ids)):
+            raise ValueError(f"values must be ({self._rows_recorded}, "
+                             f"{len(self.anchor_ids)}) (the recorded rows), got {v.shape}")
+        score = np.full(self._rows_recorded, np.nan)
+        count = np.zeros(self._rows_recorded, dtype=np.int64)
+        for h in self._history:
+            keep = ~h["start"]
+            if not keep.any():
+                continue
+            rows = h["idx"][keep]
+            xp, Pp = h["xp"][keep], h["Pp"][keep]
+            y, var = self._observations(self._calibrate(v[rows]))
+            J = self._jacobian(xp)
+            S = np.einsum("kmi,kij,kmj->km", J, Pp, J) + var
+            nu = y - self._predict(xp)
+            ok = np.isfinite(nu) & np.isfinite(S) & (S > 0)
+            sc = np.where(ok, huber_log_score(np.where(ok, nu, 0.0), np.where(ok, S, 1.0)),
+                          0.0)
+            n_ok = ok.sum(axis=1)
+            score[rows] = np.where(n_ok > 0, sc.sum(axis=1), np.nan)
+            count[rows] = n_ok
+        return score, count
+
     def smoothed(self, n_rows: int, lag: int | None = None) -> tuple[Array, Array]:
         """Rauch-Tung-Striebel smoothing of the recorded forward pass (``record=True``).
 

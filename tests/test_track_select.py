@@ -1,0 +1,180 @@
+"""``track --link-offsets auto``: the log chooses whether the links' offsets are states
+(:mod:`robustloc.tracking.select`), by the one-step-ahead predictive score of the
+observations (:meth:`robustloc.tracking.Tracker.predictive_score`)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy.stats import norm, ttest_1samp
+from scipy.stats import t as student_t
+from test_track_link_offsets import LINK_B_M, _circles, _link_ranges
+from test_track_offset import _concat, _ring
+
+from robustloc.tracking import Tracker
+from robustloc.tracking.select import (
+    AUTO_ALPHA,
+    AUTO_BATCHES,
+    HUBER_C,
+    choose_link_offsets,
+    huber_log_score,
+    paired_batch_t,
+)
+
+
+def test_huber_log_score_is_the_normal_log_density_inside_c_and_linear_beyond():
+    """Inside ``|u| <= c`` the score is scipy's normal log density of ``nu`` with variance
+    ``S``; beyond, ``rho(u) - rho(c) = c (|u| - c)`` (Huber's loss is linear there), so
+    the score is the density's value at ``c sqrt(S)`` minus ``c (|u| - c)``."""
+    S = np.array([0.01, 0.25, 4.0, 9.0])
+    u = np.linspace(-6, 6, 121)
+    for s in S:
+        nu = u * np.sqrt(s)
+        got = huber_log_score(nu, np.full_like(nu, s))
+        inside = np.abs(u) <= HUBER_C
+        np.testing.assert_allclose(got[inside], norm.logpdf(nu[inside], scale=np.sqrt(s)),
+                                   rtol=0, atol=1e-12)
+        edge = norm.logpdf(HUBER_C * np.sqrt(s), scale=np.sqrt(s))
+        np.testing.assert_allclose(got[~inside],
+                                   edge - HUBER_C * (np.abs(u[~inside]) - HUBER_C),
+                                   rtol=0, atol=1e-12)
+
+
+def test_paired_batch_t_is_the_one_sample_t_of_the_batch_means():
+    """Rows of one observation each, cut into 20 batches of 10: the statistic is scipy's
+    one-sample t of the 20 batch means, the critical value Student's ``t(0.95; 19)``;
+    with unequal counts each batch's mean is per observation."""
+    rng = np.random.default_rng(3)
+    d = rng.normal(0.1, 1.0, 200)
+    t, crit = paired_batch_t(d, np.ones(200))
+    means = d.reshape(AUTO_BATCHES, -1).mean(axis=1)
+    assert t == pytest.approx(ttest_1samp(means, 0.0).statistic, rel=1e-12)
+    assert crit == pytest.approx(student_t.ppf(1 - AUTO_ALPHA, AUTO_BATCHES - 1), rel=1e-12)
+    # rows of two observations (a sum each) in batches: the same means as the pairs' mean
+    t2, _ = paired_batch_t(2 * d, np.full(200, 2))
+    assert t2 == pytest.approx(t, rel=1e-12)
+    # nothing to test on: no choice
+    assert paired_batch_t(np.array([1.0]), np.array([1]))[1] == np.inf
+
+
+def _walking_log(b: np.ndarray, seed: int):
+    a = _ring()
+    K, T = 8, 160
+    truth = _circles(K, T, centre=(6.0, 2.0), radius=3.0, speed=0.3)
+    return a, _concat(_link_ranges(a, truth, np.broadcast_to(b, (K, len(a))), seed))
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_auto_keeps_offsets_that_are_there_and_leaves_out_those_that_are_not(seed):
+    """Eight tags walking circles in a ring of six anchors: with each anchor's ranges
+    offset by its own ``b_i`` (-0.6 .. 1.2 m, 12 to 6 sigma) the offsets predict the
+    ranges better and are kept; with none, the extra states only widen the predictions
+    and are left out.  The rows are then those of the tracker with the choice made."""
+    a, ep = _walking_log(4 * LINK_B_M, seed)
+    c = choose_link_offsets(a, ep, sigma=0.1, q=0.05)
+    assert c.use and c.t > c.t_critical and c.score_with > c.score_without, c
+    assert c.observations == 6 * 8 * (160 - 1) and c.epochs == ep.n_epochs
+    a, ep = _walking_log(0 * LINK_B_M, seed)
+    c = choose_link_offsets(a, ep, sigma=0.1, q=0.05)
+    assert not c.use and c.t <= c.t_critical, c
+
+
+def test_auto_refuses_to_choose_where_it_cannot_tell():
+    """The common range offset estimated instead, or too few observations per anchor:
+    no offsets, and the reason says which."""
+    a, ep = _walking_log(4 * LINK_B_M, 1)
+    c = choose_link_offsets(a, ep, sigma=0.1, range_offset=True)
+    assert not c.use and "range offset" in c.reason
+    short = type(ep)(ep.time[:16], ep.tag[:16], ep.values[:16], ep.anchor_ids, ep.value,
+                     ep.line[:16])
+    c = choose_link_offsets(a, short, sigma=0.1)
+    assert not c.use and "fewer than" in c.reason and c.observations == 6 * 8
+
+
+def test_predictive_score_scores_every_heard_observation_of_every_filtered_row():
+    """Per row, the observations scored are the finite ones of every row but a tag's
+    start; a start row has none (NaN); without recording, or with values of another
+    shape, it is refused."""
+    a, ep = _walking_log(0 * LINK_B_M, 1)
+    vals = ep.values.copy()
+    vals[5:40:3, 2] = np.nan  # not heard
+    ep = type(ep)(ep.time, ep.tag, vals, ep.anchor_ids, ep.value, ep.line)
+    trk = Tracker(a, sigma=0.1, record=True)
+    rows = trk.step(ep)
+    score, count = trk.predictive_score(ep.values)
+    start = rows.groupby("tag").cumcount().to_numpy() == 0
+    assert np.all(np.isnan(score[start])) and np.all(count[start] == 0)
+    np.testing.assert_array_equal(count[~start], np.isfinite(vals[~start]).sum(axis=1))
+    assert np.all(np.isfinite(score[~start]))
+    with pytest.raises(ValueError, match="record=True"):
+        Tracker(a, sigma=0.1).predictive_score(ep.values)
+    with pytest.raises(ValueError, match="recorded rows"):
+        trk.predictive_score(ep.values[:-1])
+
+
+def _write(tmp_path, a: pd.DataFrame, ep) -> tuple[str, str]:
+    an = tmp_path / "anchors.csv"
+    a.to_csv(an, index=False)
+    t = np.repeat(ep.time, len(ep.anchor_ids))
+    log = pd.DataFrame({"time": t, "tag": np.repeat(ep.tag, len(ep.anchor_ids)),
+                        "anchor": np.tile(ep.anchor_ids, ep.n_epochs),
+                        "range": ep.values.ravel()}).dropna()
+    m = tmp_path / "ranges.csv"
+    log.to_csv(m, index=False)
+    return str(m), str(an)
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "robustloc.cli", *args], capture_output=True,
+                          text=True, timeout=300)
+
+
+def test_track_link_offsets_auto_command_line(tmp_path):
+    """``--link-offsets auto`` writes the rows of the tracker with the choice it names in
+    the summary (``link_offsets_auto`` in JSON, a line of text); ``--link-offsets``
+    alone is ``on``; with ``--range-offset`` or ``--engine dask`` it is refused (exit 2)."""
+    a, ep = _walking_log(4 * LINK_B_M, 1)
+    a = a.assign(sigma=0.1)
+    m, an = _write(tmp_path, a, ep)
+    p = _cli("track", m, "--anchors", an, "-o", str(tmp_path / "auto.csv"), "--q", "0.05",
+             "--link-offsets", "auto", "--json")
+    assert p.returncode == 0, p.stderr
+    s = json.loads(p.stdout)
+    assert s["link_offsets_auto"]["used"] is True and s["link_offsets_auto"]["t"] > 0
+    assert "link_offset_m" in s
+    for flag in (["--link-offsets"], ["--link-offsets", "on"]):
+        p = _cli("track", m, "--anchors", an, "-o", str(tmp_path / "on.csv"), "--q", "0.05",
+                 *flag, "-q")
+        assert p.returncode == 0, p.stderr
+        pd.testing.assert_frame_equal(pd.read_csv(tmp_path / "auto.csv"),
+                                      pd.read_csv(tmp_path / "on.csv"))
+    p = _cli("track", m, "--anchors", an, "-o", str(tmp_path / "auto.csv"),
+             "--link-offsets", "auto")
+    assert p.returncode == 0 and "--link-offsets auto: on" in p.stdout + p.stderr
+    for extra in (["--range-offset"], ["--engine", "dask"]):
+        p = _cli("track", m, "--anchors", an, "-o", str(tmp_path / "x.csv"),
+                 "--link-offsets", "auto", *extra)
+        assert p.returncode == 2 and p.stderr.startswith("error: "), p.stderr
+        assert "Traceback" not in p.stderr
+
+
+def test_api_track_link_offsets_auto(tmp_path):
+    """``robustloc.track(..., link_offsets="auto")``: the choice in the summary; a value
+    other than True, False or "auto" is refused with the command line's words."""
+    import robustloc
+    from robustloc.errors import InputError
+
+    a, ep = _walking_log(0 * LINK_B_M, 2)
+    m, an = _write(tmp_path, a.assign(sigma=0.1), ep)
+    got = robustloc.track(m, an, q=0.05, link_offsets="auto")
+    auto = got.attrs["summary"]["link_offsets_auto"]
+    assert auto["used"] is False and auto["observations"] > 0
+    want = robustloc.track(m, an, q=0.05)
+    pd.testing.assert_frame_equal(got, want)
+    with pytest.raises(InputError, match="link"):
+        robustloc.track(m, an, link_offsets="sometimes")
