@@ -237,3 +237,23 @@ def test_cli_truncated_rinex(tmp_path: Path, capsys) -> None:  # noqa: ANN001
     assert main(["spp", str(cut), str(NAV), "-o", str(tmp_path / "s.csv")]) == 2
     err = capsys.readouterr().err
     assert f"error: {cut}:" in err and "ends inside" in err
+
+
+def test_cli_spp_raim_counts_when_no_fix_is_usable(capsys) -> None:  # noqa: ANN001
+    """With a reference (the header's position) and RAIM rejecting every epoch (a 50 m
+    fault, no exclusion allowed), the summary still counts the faults: the text's
+    ``RAIM:`` line and JSON's ``faults_detected`` vanished exactly then (the GNSS review,
+    2026-12-07), while the same file without a reference printed them."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as d:
+        out = str(Path(d) / "sol.csv")
+        args = ["spp", str(OBS), str(NAV), "--raim", "--inject", "G11:50",
+                "--max-exclusions", "0", "-o", out]
+        assert main([*args, "--json"]) == 0
+        summary = json.loads(capsys.readouterr().out)
+        assert summary["solved"] == 0
+        assert summary["faults_detected"] > 100 and summary["epochs_with_exclusion"] == 0
+        assert main(args) == 0
+        text = capsys.readouterr().out
+        assert f"RAIM: faults detected in {summary['faults_detected']} epochs" in text

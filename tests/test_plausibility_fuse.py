@@ -323,3 +323,28 @@ def test_fuse_day_long_gap_is_a_restart_not_a_traceback(tmp_path, capsys):
         # shift at the restart's 4 m^2 prior, a fifteenth of the 0.15 m range sigma)
         assert np.hypot(*(tr[["x", "y"]].iloc[1] - tr[["x", "y"]].iloc[0])) < 0.01
         assert tr["var_x"].iloc[1] < 1.0
+
+
+def test_gga_with_a_valid_checksum_but_an_impossible_position_is_invalid():
+    """The GNSS review (2026-12-07): a hemisphere ``X`` read as latitude 0, 65 minutes
+    read as 38.09 deg, an infinite altitude (north 2e292 m) and an altitude in feet were
+    fixes; they are skipped as ``invalid_measurement``.  A GGA without its geoid
+    separation keeps its position without an ellipsoidal height (``h_m``, ``up_m`` NaN;
+    the altitude alone was taken as ellipsoidal, 28 m off here), counted as
+    ``geoid_separation``."""
+    good = "GPGGA,000001.00,3725.590397,N,12210.422534,W,1,24,0.4,51.9,M,-28.4,M,,"
+    bad = ["GPGGA,000002.00,3725.590397,X,12210.422534,W,1,24,0.4,51.9,M,-28.4,M,,",
+           "GPGGA,000003.00,3765.590397,N,12210.422534,W,1,24,0.4,51.9,M,-28.4,M,,",
+           "GPGGA,000004.00,3725.590397,N,12260.422534,W,1,24,0.4,51.9,M,-28.4,M,,",
+           "GPGGA,000005.00,3725.590397,N,12210.422534,W,1,24,0.4,inf,M,-28.4,M,,",
+           "GPGGA,000006.00,3725.590397,N,12210.422534,W,1,24,0.4,51.9,F,-28.4,M,,",
+           "GPGGA,000007.00,3725.590397,N,12210.422534,W,1,24,0.4,2e6,M,-28.4,M,,"]
+    nosep = "GPGGA,000008.00,3725.590397,N,12210.422534,W,1,24,0.4,51.9,M,,M,,"
+    log = parse_nmea(["$" + b + "*" + nmea_checksum(b) for b in (good, *bad, nosep)])
+    assert log.summary.skipped["invalid_measurement"] == len(bad)
+    fx = log.fixes
+    assert list(fx["time_s"]) == [1.0, 8.0]
+    assert fx["h_m"].iloc[0] == pytest.approx(51.9 - 28.4)
+    assert np.isnan(fx["h_m"].iloc[1]) and np.isnan(fx["up_m"].iloc[1])
+    assert np.isfinite(fx[["east_m", "north_m"]].to_numpy()).all()
+    assert log.summary.invalid == {"geoid_separation": 1}

@@ -127,10 +127,11 @@ def run(args: argparse.Namespace) -> int:
                   f"{summary['rms_h_m']:.2f} m, 3-D {summary['rms_3d_m']:.2f} m; 95 % "
                   f"horizontal {summary['p95_h_m']:.2f} m; max 3-D {summary['max_3d_m']:.2f} m",
                   file=dest)
-        if "median_hpl_m" in summary:
+        if "faults_detected" in summary:  # (also when RAIM left no usable fix)
             print(f"RAIM: faults detected in {summary['faults_detected']} epochs, exclusions "
-                  f"in {summary['epochs_with_exclusion']}; median HPL "
-                  f"{summary['median_hpl_m']:.1f} m, VPL {summary['median_vpl_m']:.1f} m",
-                  file=dest)
+                  f"in {summary['epochs_with_exclusion']}"
+                  + (f"; median HPL {summary['median_hpl_m']:.1f} m, VPL "
+                     f"{summary['median_vpl_m']:.1f} m" if "median_hpl_m" in summary
+                     else "; no usable fix to bound"), file=dest)
     sys.stdout.flush()
     return 0

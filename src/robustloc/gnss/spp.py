@@ -702,12 +702,14 @@ def error_summary(result: SppResult, ref_xyz_m: NDArray[np.float64]) -> dict:
     statuses, counts = np.unique(result.status.astype(str), return_counts=True)
     out["status_counts"] = {str(k): int(c) for k, c in zip(statuses, counts)}
     if e.shape[0] == 0:
-        if not has_ref and "hpl_m" in result.extra:  # the bounds, without errors
+        if "hpl_m" in result.extra:  # the bounds, without errors (no reference, or no fix)
             hpl = result.extra["hpl_m"][ok]
             vpl = result.extra["vpl_m"][ok]
             if np.isfinite(hpl).any():
                 out["median_hpl_m"] = float(np.median(hpl[np.isfinite(hpl)]))
                 out["median_vpl_m"] = float(np.median(vpl[np.isfinite(vpl)]))
+            # (also where RAIM left no usable fix against a reference: the counts
+            # vanished exactly when RAIM rejected every epoch -- the GNSS review)
             out["faults_detected"] = int(np.sum(result.extra["detected"]))
             out["epochs_with_exclusion"] = int(np.sum(result.extra["n_excluded"] > 0))
         return out

@@ -82,6 +82,8 @@ LIMITS: dict[str, Limits] = {
     "rssi": Limits("rssi", "dBm", -150.0, 30.0),
     "speed": Limits("speed", "m/s", 0.0, 515.0),
     "course": Limits("course", "deg", 0.0, 360.0),
+    # a GGA altitude: the Dead Sea shore to a high-altitude balloon, with margin
+    "height": Limits("height", "m", -1.5e3, 1.0e5),
     "pseudorange": Limits("pseudorange", "m", 1.5e7, 5.0e7),
     "time": Limits("time", "s", -1.0e12, 1.0e12),
 }

@@ -52,6 +52,11 @@ speed also blanks the course, whose Jacobian ``1/v`` depends on it), and counted
 ``summary.invalid``.  A sentence whose time or date is not a calendar value (hour 25, day
 32), or a GGA latitude/longitude beyond +-90/+-180 deg, is skipped and counted as
 ``invalid_measurement`` in ``summary.skipped`` (it has no time, so no row can carry it).
+So is a GGA whose hemisphere is not N/S or E/W, whose minutes reach 60, or whose altitude
+is not a number, outside the ``height`` limits or not in metres (unit ``M``).  A GGA
+without its geoid separation keeps its row with ``h_m`` and ``up_m`` NaN (the altitude is
+above the geoid: no ellipsoidal height), counted in ``summary.invalid`` as
+``geoid_separation``.
 """
 
 from __future__ import annotations
@@ -190,6 +195,13 @@ def _raw_tod(text: str) -> float | None:
         return None
 
 
+def _minutes(field: str, degree_digits: int) -> float:
+    """The minutes of an NMEA ``ddmm.mmmm`` latitude (``degree_digits`` 2) or
+    ``dddmm.mmmm`` longitude (3); NaN when not a number (a malformed field: reading the
+    coordinate then raises, as before)."""
+    return _num(str(field)[degree_digits:])
+
+
 def _num(v) -> float:
     try:
         return float(v)
@@ -270,7 +282,7 @@ def parse_nmea(
         lines = lines.splitlines()
     skipped: Counter[str] = Counter({r: 0 for r in SKIP_REASONS})
     invalid: Counter[str] = Counter()
-    speed_lim, course_lim = LIMITS["speed"], LIMITS["course"]
+    speed_lim, course_lim, height_lim = LIMITS["speed"], LIMITS["course"], LIMITS["height"]
     parsed: Counter[str] = Counter()
     examples: list[tuple[int, str]] = []
     motion: list[tuple[float, float, float, str, int]] = []
@@ -391,13 +403,29 @@ def parse_nmea(
                 if int(msg.gps_qual) == 0:
                     skip(lineno, "invalid_fix")
                     continue
-                lat, lon = float(msg.latitude), float(msg.longitude)
-                if not (abs(lat) <= 90.0 and abs(lon) <= 180.0):
+                # a hemisphere other than N/S, E/W (pynmea2 reads it as 0 deg), minutes
+                # of 60 or more, an altitude not finite, outside the height limits or
+                # not in metres: no position (the GNSS review, 2026-12-07)
+                if (msg.lat_dir not in ("N", "S") or msg.lon_dir not in ("E", "W")
+                        or _minutes(msg.lat, 2) >= 60.0 or _minutes(msg.lon, 3) >= 60.0
+                        or (msg.altitude_units or "M") != "M"
+                        or (msg.geo_sep_units or "M") != "M"):
                     skip(lineno, "invalid_measurement")
                     continue
+                lat, lon = float(msg.latitude), float(msg.longitude)
                 alt = _num(msg.altitude)
+                if not (abs(lat) <= 90.0 and abs(lon) <= 180.0) or not height_lim.check(alt):
+                    skip(lineno, "invalid_measurement")
+                    continue
                 sep = _num(msg.geo_sep)
-                h = alt + (sep if np.isfinite(sep) else 0.0)
+                # the ellipsoidal height needs the geoid separation: without it the
+                # altitude (above the geoid) is no ellipsoidal height, tens of metres off
+                h = alt + sep
+                if not np.isfinite(sep):
+                    invalid["geoid_separation"] += 1
+                    if len(examples) < 20:
+                        examples.append((lineno, "GGA without geoid separation: h_m "
+                                                 "(ellipsoidal) unknown"))
                 fixes.append(
                     (
                         _tod(ts),
@@ -499,7 +527,9 @@ def parse_nmea(
             np.nan_to_num(fx["h_m"].to_numpy(), nan=origin[2]),
             *origin,
         )
-        fx["east_m"], fx["north_m"], fx["up_m"] = np.asarray(e), np.asarray(n), np.asarray(u)
+        fx["east_m"], fx["north_m"] = np.asarray(e), np.asarray(n)
+        # (a fix without its ellipsoidal height has no up either)
+        fx["up_m"] = np.where(np.isfinite(fx["h_m"].to_numpy()), np.asarray(u), np.nan)
     else:
         for c in ("east_m", "north_m", "up_m"):
             fx[c] = pd.Series(dtype=float)
