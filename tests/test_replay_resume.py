@@ -126,3 +126,50 @@ def test_skip_is_in_the_help():
     r = subprocess.run([sys.executable, "-m", "robustloc.cli", "replay", "--help"],
                        capture_output=True, text=True)
     assert "--skip N" in r.stdout and "resume" in r.stdout
+
+
+def test_a_replay_interrupted_by_ctrl_c_says_where_to_resume(tmp_path):
+    """Ctrl-C (SIGINT) on a paced replay: exit 130, and the line says how far it got and
+    the --skip that resumes (it said only "error: interrupted"; the replay review of
+    2026-12-07); --json gives the same counts on stdout.  The resumed replay completes:
+    the store holds every row of the log, none twice but the batch in flight."""
+    import signal
+
+    anchors = tmp_path / "anchors.csv"
+    anchors.write_text("anchor,x,y\n" + "".join(f"{a},{x},{y}\n"
+                                                for a, (x, y) in ANCHORS.items()))
+    log = _log(tmp_path / "m.csv")
+    store = tmp_path / "store"
+    srv = ServerProcess(["--anchors", str(anchors), "--store", str(store)],
+                        startup_timeout_s=120)
+    rep = None
+    try:
+        srv.start()
+        rep = subprocess.Popen([*ROBUSTLOC, "replay", str(tmp_path / "m.csv"), "--url",
+                                srv.url, "--speed", "10", "-q", "--json"],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        deadline = time.monotonic() + 120
+        while (read_metric(srv.url, "robustloc_rows_accepted_total", timeout_s=10.0)
+               < 10 * len(ANCHORS)):
+            assert rep.poll() is None and time.monotonic() < deadline, "no rows arrived"
+            time.sleep(0.05)
+        rep.send_signal(signal.SIGINT)
+        out, err = rep.communicate(timeout=120)
+        assert rep.returncode == 130, err
+        m = re.search(r"error: interrupted \(stopped after (\d+) of (\d+) rows; (\d+) "
+                      r"accepted; resume with --skip (\d+);", err)
+        assert m, err
+        sent, rows, accepted, skip = map(int, m.groups())
+        assert rows == len(log) and sent == skip == accepted and 0 < skip < rows
+        summary = json.loads(out)
+        assert (summary["sent"], summary["stopped"]) == (skip, "interrupted")
+        assert main(["replay", str(tmp_path / "m.csv"), "--url", srv.url, "--speed", "0",
+                     "--skip", str(skip), "-q"]) == 0
+    finally:
+        if rep is not None and rep.poll() is None:
+            rep.kill()
+            rep.wait(10)
+        srv.stop()
+    counts = _stored(store).groupby(["time", "tag", "anchor"]).size()
+    assert len(counts) == len(log)
+    assert (counts > 1).sum() <= len(ANCHORS)

@@ -245,10 +245,25 @@ def _oserror_path(exc: OSError) -> str | None:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the process exit code."""
     try:
-        return _main(argv)
+        code = _main(argv)
     except KeyboardInterrupt:  # while the libraries load, before the command's handlers
         print("error: interrupted", file=sys.stderr)
-        return EXIT_SIGINT
+        code = EXIT_SIGINT
+    if code in (EXIT_SIGINT, EXIT_SIGTERM):
+        _quiet_after_interrupt()
+    return code
+
+
+def _quiet_after_interrupt() -> None:
+    """After ``error: interrupted`` / ``terminated``, the event loop of a Dask client
+    torn down mid-run logs its tasks' exceptions as the process exits ("Task exception
+    was never retrieved ... distributed.client.AllExit", a traceback after the one line
+    the interrupt promises: the partition review, 2026-12-07): those loggers are
+    silenced for the exit."""
+    import logging
+
+    for name in ("asyncio", "distributed", "tornado"):
+        logging.getLogger(name).setLevel(logging.CRITICAL + 1)
 
 
 def _main(argv: Sequence[str] | None) -> int:

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from robustloc.errors import InputError
+from robustloc.errors import InputError, Terminated
 from robustloc.options import nonnegative_float, nonnegative_int, positive_int
 
 #: Slowest replay (``--speed``): 1 000 times slower than real time; 0 means no pacing.
@@ -216,6 +216,10 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
     except _transport_errors() as exc:
         raise ReplayStopped(str(exc), accepted=accepted, sent=sent, rows=n_rows,
                             skipped=skip) from exc
+    except (KeyboardInterrupt, Terminated) as exc:  # Ctrl-C: how far it got, to resume
+        raise ReplayInterrupted("interrupted" if isinstance(exc, KeyboardInterrupt)
+                                else "terminated", accepted=accepted, sent=sent,
+                                rows=n_rows, skipped=skip) from exc
     finally:
         bar.close()
         ws_log.setLevel(ws_level)
@@ -289,6 +293,12 @@ class ReplayStopped(RuntimeError):
         self.accepted, self.sent, self.rows, self.skipped = accepted, sent, rows, skipped
 
 
+class ReplayInterrupted(ReplayStopped):
+    """A replay stopped by Ctrl-C or SIGTERM (the message: ``interrupted`` or
+    ``terminated``); its counts as :class:`ReplayStopped`'s.  A batch sent but not yet
+    acknowledged may have reached the server: ``sent`` counts acknowledged rows only."""
+
+
 def _transport_errors() -> tuple[type[BaseException], ...]:
     errs: list[type[BaseException]] = [OSError, RuntimeError]
     try:
@@ -316,12 +326,22 @@ def run(args: argparse.Namespace) -> int:
     except ReplayStopped as exc:
         first = f"the first {exc.skipped} skipped, " if exc.skipped else ""
         resume = (f"; resume with --skip {exc.sent}" if exc.sent < exc.rows else "")
-        print(f"error: {args.url}: {exc} (stopped after {exc.sent} of {exc.rows} rows; "
-              f"{first}{exc.accepted} accepted{resume})", file=sys.stderr)
+        interrupted = isinstance(exc, ReplayInterrupted)
+        # (Ctrl-C said only "error: interrupted": no --skip to resume from without
+        # losing or repeating rows -- the replay review, 2026-12-07)
+        where = "" if interrupted else f"{args.url}: "
+        print(f"error: {where}{exc} (stopped after {exc.sent} of {exc.rows} rows; "
+              f"{first}{exc.accepted} accepted{resume}"
+              + ("; a batch in flight may have reached the server" if interrupted else "")
+              + ")", file=sys.stderr)
         if args.json:  # how far it got, for a script that reads stdout
             print(json.dumps({"measurements": str(args.measurements), "url": args.url,
                               "rows": exc.rows, "skipped": exc.skipped, "sent": exc.sent,
                               "accepted": exc.accepted, "stopped": str(exc)}, indent=2))
+        if interrupted:
+            from robustloc.cli import EXIT_SIGINT, EXIT_SIGTERM
+
+            return EXIT_SIGINT if str(exc) == "interrupted" else EXIT_SIGTERM
         return 2
     except _transport_errors() as exc:
         print(f"error: {args.url}: {exc}", file=sys.stderr)

@@ -100,26 +100,29 @@ class DatasetOutput:
     """
 
     def __init__(self, out: str | Path,
-                 inputs: Iterable[str | os.PathLike | None] = ()) -> None:
+                 inputs: Iterable[str | os.PathLike | None] = (),
+                 writer: str = "--engine dask") -> None:
         from robustloc.io.atomic import check_not_input_tree, is_stdio
 
+        # (``writer``: who writes the dataset, for the messages -- ``partition`` has no
+        # --engine option, so "leave out --engine dask" was advice it could not follow)
         if is_stdio(out):  # (a folder named "-" was written, exit 0, nothing on stdout)
-            raise InputError("--engine dask writes a dataset folder, not standard output",
-                             "-o")
+            raise InputError(f"{writer} writes a dataset folder, not standard output", "-o")
         given = Path(out)  # as the user gave it, for messages
         # a file's name for a folder: `-o positions.csv` made a folder of that name that
         # `robustloc evaluate positions.csv` then refused as a directory (the Dask review)
         if given.name.lower().endswith(FILE_ONLY_SUFFIXES):
-            raise InputError("--engine dask writes a dataset (a folder of Parquet parts), "
-                             "not one text file: give a folder name (e.g. positions/), or "
-                             "leave out --engine dask for one CSV file", given)
+            raise InputError(f"{writer} writes a dataset (a folder of Parquet parts), "
+                             "not one text file: give a folder name (e.g. positions/)"
+                             + (", or leave out --engine dask for one CSV file"
+                                if writer == "--engine dask" else ""), given)
         # absolute: the tasks write their parts on workers, which resolve a relative
         # path in their own working directory (the parts were lost, exit 0)
         self.out = Path(os.path.abspath(out))
         check_not_input_tree(self.out, inputs)
         if self.out.exists():
             if not self.out.is_dir():
-                raise InputError("exists and is a file; --engine dask writes a dataset "
+                raise InputError(f"exists and is a file; {writer} writes a dataset "
                                  "directory (give a new or a dataset directory)", given)
             if any(self.out.iterdir()) and not (self.out / META_FILE).exists():
                 raise InputError("directory exists and is not a robustloc dataset; refusing "
