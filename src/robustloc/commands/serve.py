@@ -611,7 +611,7 @@ def _serve(args: argparse.Namespace, uvicorn: Any, sockets: list[Any], engine: A
               file=sys.stderr)
     # timeout_graceful_shutdown: at SIGTERM a request still receiving its body (a client
     # that stopped sending) held the process for --body-timeout; now it is cancelled
-    from robustloc.service.protocol import header_timeout_protocol
+    from robustloc.service.protocol import answer_then_close_ws_protocol, header_timeout_protocol
 
     http = header_timeout_protocol(
         args.header_timeout, lambda: engine.metrics.request_rejected("header_timeout"))
@@ -619,7 +619,7 @@ def _serve(args: argparse.Namespace, uvicorn: Any, sockets: list[Any], engine: A
                             ws_max_size=args.max_body_bytes, lifespan="on",
                             timeout_keep_alive=30, access_log=False,
                             timeout_graceful_shutdown=args.shutdown_grace,
-                            http=http or "auto")
+                            http=http or "auto", ws=answer_then_close_ws_protocol() or "auto")
     from robustloc.service.serverlog import count_server_refusals
 
     # (after the Config: it configures the loggers)

@@ -64,6 +64,7 @@ from robustloc.service.defaults import (
     MAX_ROWS_PER_BODY,
 )
 from robustloc.service.engine import Engine
+from robustloc.service.protocol import WS_STATE_KEY
 from robustloc.service.rows import BodyError, parse_body
 from robustloc.service.store import StoreLock, StoreWriteError
 
@@ -574,6 +575,11 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             return
         await ws.accept()
         client = ws.client.host if ws.client else "?"
+        # a message in progress at shutdown is answered before the close
+        # (robustloc.service.protocol.answer_then_close_ws_protocol)
+        state = {"busy": False, "closing": False, "idle": asyncio.Event()}
+        state["idle"].set()
+        ws.scope[WS_STATE_KEY] = state
         try:
             while True:
                 msg = await ws.receive()
@@ -583,13 +589,24 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
                     if msg.get("code") == WS_MESSAGE_TOO_BIG:
                         engine.metrics.request_rejected("too_large")
                     return
+                if state["closing"]:  # (shutting down: not taken, so not stored)
+                    return
                 data = msg.get("text")
                 if data is None:
                     data = msg.get("bytes") or b""
-                status, body = await anyio.to_thread.run_sync(ingest_sync, data, "ws", client)
-                if status != 202:
-                    body["status"] = status
-                await ws.send_text(json.dumps(body))
+                state["busy"] = True
+                state["idle"].clear()
+                try:
+                    status, body = await anyio.to_thread.run_sync(ingest_sync, data, "ws",
+                                                                  client)
+                    if status != 202:
+                        body["status"] = status
+                    await ws.send_text(json.dumps(body))
+                finally:
+                    state["busy"] = False
+                    state["idle"].set()
+                if state["closing"]:  # answered: the shutdown closes the socket (1012)
+                    return
                 if status == INSUFFICIENT_STORAGE:  # answered (counted); then the close
                     await ws.close(code=WS_TRY_AGAIN_LATER,
                                    reason=_close_reason(body["error"]))
