@@ -740,3 +740,37 @@ def test_cycle_slip_records_of_flag_6_are_not_epochs(tmp_path: Path) -> None:
     assert o2.t_gps_s.tolist() == ref2.t_gps_s.tolist()
     for name in ref2.obs:
         np.testing.assert_array_equal(o2.obs[name], ref2.obs[name])
+
+
+def test_compact_or_compressed_rinex_is_named_with_what_to_do(tmp_path: Path) -> None:
+    """A Compact RINEX (Hatanaka) file, or one compressed with .Z / bzip2 / xz / zip,
+    says what it is and how to get the RINEX file (it said only "first line is not a
+    RINEX VERSION / TYPE record": the GNSS review, 2026-12-07); gzip is read."""
+    crx = _write(tmp_path, "a.05d", "1.0                 COMPACT RINEX FORMAT"
+                 "                    CRINEX VERS   / TYPE\n")
+    with pytest.raises(InputError, match="Compact RINEX.*crx2rnx") as e:
+        read_obs(crx)
+    assert e.value.line == 1
+    for name, magic, tool in (("a.05o.Z", b"\x1f\x9d\x90", "uncompress"),
+                              ("a.05o.bz2", b"BZh91AY", "bunzip2"),
+                              ("a.05o.xz", b"\xfd7zXZ\x00", "unxz"),
+                              ("a.zip", b"PK\x03\x04", "unzip")):
+        p = tmp_path / name
+        p.write_bytes(magic + b"\x00" * 64)
+        with pytest.raises(InputError, match=f"compressed file.*{tool}"):
+            read_obs(p)
+
+
+def test_an_unknown_system_letter_in_a_rinex2_epoch_is_named(tmp_path: Path) -> None:
+    """``X24`` in a RINEX 2 epoch header: the satellite was dropped without a word and its
+    epoch said ill_conditioned; now ``FILE:LINE`` names it (exit 2 on the command line)."""
+    lines = OBS.read_text().splitlines()
+    i = _first_epoch(lines)
+    ep = lines[i]
+    ids = ep[32:68]
+    k = next(j for j in range(0, len(ids), 3) if ids[j] == "G")
+    lines[i] = ep[:32 + k] + "X" + ep[32 + k + 1:]
+    p = _write(tmp_path, "x.05o", "\n".join(lines) + "\n")
+    with pytest.raises(InputError, match="unknown satellite system 'X'") as e:
+        read_obs(p)
+    assert e.value.line == i + 1

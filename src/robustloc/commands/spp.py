@@ -24,7 +24,10 @@ constellation, iterated WLS over all epochs at once.
 --raim adds fault detection and exclusion: global test + w-test data snooping with the
 B-method (alpha0 = 0.1 %, beta0 = 10 %), excluding several satellites in turn while the
 redundancy allows, and horizontal/vertical protection levels from the MDB of each
-satellite.  --inject adds a bias to real pseudoranges to exercise the detector.
+satellite.  The levels bound one fault at a time (the slope of the worst single
+satellite): two faulty satellites at once can mislead the test into excluding a healthy
+one and leave a fix beyond its hpl (docs/limits.md).  --inject adds a bias to real
+pseudoranges to exercise the detector.
 
 Output: one row per epoch (time as GPS seconds, week, time of week and UTC ISO; ECEF, lat,
 lon, h; receiver clock(s); n_sats; DOPs; sigma0; status; excluded satellites; test

@@ -266,6 +266,28 @@ def _header(lines: list[str], path: str) -> tuple[dict[str, str], int]:
                      min(len(lines), 2001) or 1)
 
 
+#: Satellite system letters of RINEX 2.11/2.12 observation files (GPS, GLONASS, SBAS,
+#: Galileo, Transit; BeiDou and QZSS in 2.12).
+RINEX2_SYSTEMS = ("G", "R", "S", "E", "T", "C", "J")
+#: Magic bytes of compressions robustloc does not read (gzip it does), with their tools.
+_COMPRESSED = {b"\x1f\x9d": "Unix compress (.Z): uncompress it (gunzip reads .Z too)",
+               b"BZ": "bzip2: bunzip2 it", b"PK": "a zip archive: unzip it",
+               b"\xfd7": "xz: unxz it", b"\x28\xb5": "zstandard: unzstd it"}
+
+
+def _not_rinex(first: str, head: bytes) -> str:
+    """Why a file's first line is no RINEX VERSION / TYPE record, with what to do: a
+    Compact RINEX (Hatanaka) file or a compressed one was "not a RINEX VERSION / TYPE
+    record" alone (the GNSS review, 2026-12-07)."""
+    if "COMPACT RINEX" in first.upper() or "CRINEX" in first:
+        return ("a Compact RINEX (Hatanaka) file: decompress it with crx2rnx (RNXCMP), then "
+                "give the RINEX file")
+    for magic, what in _COMPRESSED.items():
+        if head.startswith(magic):
+            return f"a compressed file ({what}, then give the RINEX file)"
+    return "first line is not a RINEX VERSION / TYPE record"
+
+
 def rinex_version(path: str | PathLike[str]) -> tuple[float, str]:
     """Version and file type letter (``O``, ``N``, ``G``, ...) of a RINEX file."""
     try:
@@ -285,7 +307,7 @@ def rinex_version(path: str | PathLike[str]) -> tuple[float, str]:
     except IsADirectoryError as exc:
         raise InputError("is a directory, expected a RINEX file", path) from exc
     if "RINEX VERSION" not in first:
-        raise InputError("first line is not a RINEX VERSION / TYPE record", path, 1)
+        raise InputError(_not_rinex(first, head), path, 1)
     try:
         version = float(first[:9])
     except ValueError as exc:
@@ -424,6 +446,10 @@ def _read_obs_v2(path: str, version: float) -> ObsData:
                 raise InputError(
                     f"the epoch announces {nsat} satellites but lists {k}", path, i + 1)
             sysch = s[0] if s[0] != " " else default_sys
+            if sysch not in RINEX2_SYSTEMS:  # (X24 was dropped without a word and its
+                # epoch said ill_conditioned: the GNSS review, 2026-12-07)
+                raise InputError(f"unknown satellite system {sysch!r} in {s!r} (RINEX 2 "
+                                 f"knows {', '.join(RINEX2_SYSTEMS)})", path, i + 1)
             try:
                 prn = int(s[1:3])
             except ValueError as exc:
