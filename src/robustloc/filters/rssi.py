@@ -696,10 +696,14 @@ class RobustRssiFilter:
             if not np.all((dt_all >= 0) & np.isfinite(dt_all)):
                 raise ValueError("dt_s must be finite and >= 0 (a sample's interval since "
                                  "its link's previous one)")
-        expo = np.full(L, float(self.exponent)) if self.exponent is not None else np.where(
-            np.isfinite(p.gamma) & (p.gamma > 0), p.gamma, 2.0
-        )
-        c_db = 10.0 * expo / LN10  # dP/d(ln d)
+        # the anchors' calibrated exponent: the measurement model (eq. (5): the tie, the
+        # start's distance); the transition's (eq. (15)) is it too unless forced
+        # (``exponent``: it replaced the calibrated one in the model as well, and the
+        # distance state's median error went from 1.04 to 4.77 m with --exponent 2 --
+        # the fuse/filter review, 2026-12-07)
+        gamma = np.where(np.isfinite(p.gamma) & (p.gamma > 0), p.gamma, 2.0)
+        expo = np.full(L, float(self.exponent)) if self.exponent is not None else gamma
+        c_db = 10.0 * gamma / LN10  # dP/d(ln d) of the model
         R = self.sigma_rssi_db**2
         lam = 1.0 / self.scale_window
         wf = self.weight
@@ -723,7 +727,7 @@ class RobustRssiFilter:
         terms = _ModelTerms(L, expo, self.sigma_accel_mps2, self.q_rssi_db2_per_s,
                             self.min_distance_m)
         # eq. (5) as P = A - c ln d with A = p0 + FAF + 10 n lg d0 (the tie's intercept)
-        tie_a = AttenuationFactor(p.p0_dbm, expo, p.faf_db, p.d0_m).log_distance_params()[0]
+        tie_a = AttenuationFactor(p.p0_dbm, gamma, p.faf_db, p.d0_m).log_distance_params()[0]
 
         steps = range(T)
         if progress and T > 1:
@@ -740,7 +744,7 @@ class RobustRssiFilter:
             # prior: d from the inverse of eq. (5), cov(P, d) through dd/dP)
             new = present & ~started
             if new.any():
-                x[new], P[new] = self._start(z[new], p, expo, c_db, new, R)
+                x[new], P[new] = self._start(z[new], p, gamma, c_db, new, R)
                 started |= new
                 n_acc[new] = 1
             run_now = started & ~new
@@ -758,7 +762,7 @@ class RobustRssiFilter:
                 stale = (upd & (P[:, 0, 0] > self.restart_var_ratio * R)
                          & (P[:, 1, 1] > x[:, 1] ** 2))
                 if stale.any():
-                    x[stale], P[stale] = self._start(z[stale], p, expo, c_db, stale, R)
+                    x[stale], P[stale] = self._start(z[stale], p, gamma, c_db, stale, R)
                     n_rej[stale] = 0
                     n_acc[stale] = 1
                     restarted[k] = stale
