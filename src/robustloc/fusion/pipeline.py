@@ -546,6 +546,8 @@ class FusionFilter:
         P0: ArrayLike,
         progress: bool = False,
         restart: ArrayLike | None = None,
+        P_restart: ArrayLike | None = None,
+        placed: ArrayLike | None = None,
     ) -> FusionTrack:
         """Filter ``K`` event-indexed tracks (see :mod:`robustloc.fusion.align`).
 
@@ -559,6 +561,12 @@ class FusionFilter:
         progress : show a tqdm bar on stderr (only when stderr is a terminal).
         restart : (K, J, 2) a position fix from each event's measurements (NaN: none), where
             a lost track restarts (below); ``None``: no fixes.
+        P_restart : (K, n, n) the covariance a track restarts with; ``None``: ``P0`` (a
+            track that starts without a position has a wide ``P0``, and restarts at its
+            first fix with this one).
+        placed : (K,) False for a track that starts without a position (its ``x0`` a
+            guess, ``P0`` wide): at its first event with a fix its position is set there,
+            with ``P_restart``'s position block, its velocity kept; ``None``: all placed.
 
         Notes
         -----
@@ -632,7 +640,10 @@ class FusionFilter:
         diverged = np.zeros(K, dtype=np.int64)  # runs of max_failed such events
         gcrit = np.full(m + 1, np.inf)
         gcrit[1:] = global_critical(np.arange(1, m + 1), None, self.alpha0, self.beta0)
-        P_init = P.copy()
+        P_init = (P.copy() if P_restart is None
+                  else np.array(P_restart, dtype=float).reshape(K, n, n))
+        unplaced = (np.zeros(K, dtype=bool) if placed is None
+                    else ~np.asarray(placed, dtype=bool).reshape(K))
         fixes = (np.full((K, J, 2), np.nan) if restart is None
                  else np.asarray(restart, dtype=float).reshape(K, J, 2))
         eye_m = np.eye(m)
@@ -656,6 +667,16 @@ class FusionFilter:
                 Rj = R[:, j]
             zj = np.where(live[:, None], z[:, j], np.nan)
             # a lost track (Notes): restart at this event's fix, or coast until one comes
+            if unplaced.any():  # a track's first fix places it (the ``placed`` notes)
+                place = live & unplaced & np.isfinite(fixes[:, j]).all(axis=1)
+                if place.any():
+                    x, P = x.copy(), P.copy()
+                    x[place, :2] = fixes[place, j]
+                    P[place, :2, :] = 0.0
+                    P[place, :, :2] = 0.0
+                    P[place, :2, :2] = P_init[place, :2, :2]
+                    dt = np.where(place, 0.0, dt)
+                    unplaced &= ~place
             lost = live & (adrift | self._prediction_lost(x, P, dt, zj, Rj, meas))
             # a UKF that diverged, or whose sigma points would straddle the anchors, starts
             # again at this event's fix if it has one, else it updates as it is (Notes)

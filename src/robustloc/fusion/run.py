@@ -364,10 +364,13 @@ def fuse(
         # its variance per axis: the speed's plus the course's across the track, v sigma_c
         var_v = opts.sigma_speed_mps**2 + (spd[moving] * np.deg2rad(opts.sigma_course_deg))**2
         P0[moving, 2, 2] = P0[moving, 3, 3] = var_v
+    P_restart = P0.copy()
     P0[~has, 0, 0] = P0[~has, 1, 1] = 1e4
-    # a track whose prediction is lost (a long gap) restarts from its event's fix, with
-    # its initial covariance (FusionFilter.run, Notes)
-    tr = filt.run(tl.time_s, z, Rd, meas, x0, P0, progress=progress, restart=fixes)
+    # a track whose prediction is lost (a long gap), or that started without a position,
+    # restarts from its event's fix with the initial covariance of a track that has one
+    # (FusionFilter.run, Notes)
+    tr = filt.run(tl.time_s, z, Rd, meas, x0, P0, progress=progress, restart=fixes,
+                  P_restart=P_restart, placed=has)
 
     heard = (np.isfinite(z[..., :M]) if opts.coupling == "tight"
              else np.isfinite(tl.z[..., c_heard : c_heard + M]))
@@ -445,9 +448,9 @@ def _initial_positions(tl, z, opts, a_xy, dz, M, max_age_s: float = 1.0):
     the latest range of every anchor heard within ``max_age_s`` (ranges of one TWR round
     rarely share a time stamp).
 
-    Returns the ``(K, 2)`` first positions (the anchors' centroid without any), whether
-    each tag has one, and the ``(K, J, 2)`` fixes of every event (NaN: none), where a lost
-    track restarts."""
+    Returns the ``(K, 2)`` positions at each tag's first event (the anchors' centroid
+    where that event has no fix), whether it has one, and the ``(K, J, 2)`` fixes of
+    every event (NaN: none), where a lost track restarts."""
     K, J = tl.time_s.shape
     if opts.coupling == "loose":
         pos = z[..., :2]
@@ -463,9 +466,12 @@ def _initial_positions(tl, z, opts, a_xy, dz, M, max_age_s: float = 1.0):
         held = np.where(age <= max_age_s, held, np.nan)
         pos = uwb_fix(a_xy, held.reshape(K * J, M), "ls", dz).position.reshape(K, J, 2)
     ok = np.isfinite(pos).all(axis=-1)
-    first = np.argmax(ok, axis=1)
-    has = ok[np.arange(K), first]
-    x0 = np.where(has[:, None], pos[np.arange(K), first], a_xy.mean(axis=0)[None])
+    # the track starts at its first event: with that event's fix, or without a position
+    # (the anchors' centroid, wide) until its first fix restarts it there.  The first fix
+    # of the log, whenever it came, was taken: a GPS-only row 10 s (or 1.7e9 s) before
+    # any range sat at a later fix with a 2 m sd (the fuse/filter review, 2026-12-07)
+    has = ok[:, 0] if J else np.zeros(K, dtype=bool)
+    x0 = np.where(has[:, None], pos[:, 0] if J else np.zeros((K, 2)), a_xy.mean(axis=0)[None])
     return x0, has, np.where(ok[..., None], pos, np.nan)
 
 
