@@ -22,13 +22,13 @@ into batches whose means are compared with zero by a one-sided t-test
 Measured (``python benchmarks/bench_link_choice.py --seeds 20``; the report's settings
 per data set, section ``s60_tracks``): the score per observation with the offsets minus
 without, t, and the track RMS with the offsets over without -- simulated wifi-room walk
-(no offsets to find), 20 seeds: -0.10 to -0.11, t -6.8 to -8.8, 1.24-1.52x: off on
-every seed; ble-tetam +0.22, t 10.9, 0.92x: on; uwb-dwm1001 LOS +0.001, t 0.9, 0.72x:
-off (a gain missed) and NLOS +0.025, t 4.5, 0.83x: on; uwb-labyrinth +0.21, t 8.8, 0.80x:
+(no offsets to find), 20 seeds: -0.10 to -0.11, t -6.0 to -9.0, 1.24-1.52x: off on
+every seed; ble-tetam +0.22, t 10.9, 0.92x: on; uwb-dwm1001 LOS +0.002, t 1.1, 0.72x:
+off (a gain missed) and NLOS +0.025, t 4.5, 0.83x: on; uwb-labyrinth +0.22, t 10.5, 0.80x:
 on.  Where the motion model is too stiff for the motion the offsets also absorb its lag,
 which predicts the observations better without placing the tag better: the walk at the
 default q = 1 (a walker turning corners at 1 m/s) chose the offsets on 7 of 20 seeds,
-5 of them 1.14-1.24x worse.  Choose ``q`` first (the report's per data set), then
+5 of them 1.13-1.49x worse.  Choose ``q`` first (the report's per data set), then
 ``auto``.
 """
 

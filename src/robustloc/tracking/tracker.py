@@ -494,6 +494,7 @@ class Tracker:
         self._slot: dict[str, int] = {}
         self._alloc(0, M)
         self._history: list[dict[str, Any]] = []
+        self._s2_before = np.ones(0)  # the noise scales of the round being filtered
         #: rows output by the recorded steps so far: the history numbers rows across
         #: steps (each step's from 0 overwrote the earlier steps' in smoothed(): the API
         #: review)
@@ -1377,6 +1378,8 @@ class Tracker:
 
         Returns the mask of the tags whose filter is lost (item 9): nothing was written
         for them (state or row); every other tag was advanced as without them."""
+        if self.record:  # the noise scales the update uses (predictive_score)
+            self._s2_before = self._scale2.copy()
         lost = None if self._kernel is None else self._filter_compiled(idx, sl, t, z, out)
         return self._filter_numpy(idx, sl, t, z, out) if lost is None else lost
 
@@ -1623,7 +1626,8 @@ class Tracker:
         if self.record:
             self._history.append({"idx": idx, "slot": sl.copy(),
                                   "start": np.zeros(len(idx), bool), "xf": xn, "Pf": Pn,
-                                  "xp": xp, "Pp": Pp, "dt": dt})
+                                  "xp": xp, "Pp": Pp, "dt": dt,
+                                  "s2": self._s2_before[sl]})
         # --- divergence: re-start from the robust fix of this epoch
         div = bad >= s.max_bad_epochs
         lost = ~div & (Pn[:, 0, 0] + Pn[:, 1, 1] > s.lost_pos_var)
@@ -2084,9 +2088,13 @@ class Tracker:
         """The recorded forward pass's one-step-ahead predictive score of each row.
 
         For each filtered row (not a start) and each observation ``i`` it heard, the
-        prediction ``h_i(x-)`` and its variance ``S_ii = (H P- H^T)_ii + sigma_i^2`` (the
-        anchors' a-priori variance, in the filter's domain) give the robust log score
-        of :func:`robustloc.tracking.select.huber_log_score`.  A higher score predicted
+        prediction ``h_i(x-)`` and its variance ``S_ii = (H P- H^T)_ii + s^2 sigma_i^2``
+        (``sigma_i`` the anchors' a-priori sigma in the filter's domain, ``s`` the tag's
+        noise scale the update used: item 6 of the module docstring) give the robust log
+        score of :func:`robustloc.tracking.select.huber_log_score`.  (With ``sigma_i^2``
+        alone, a log noisier than its anchors' sigma scored the filter without offsets as
+        overconfident, and any extra state's spread as a gain: the review of 2026-12-07,
+        offsets chosen on 9 of 10 clean logs at 3x the stated sigma.)  A higher score predicted
         the observations better: the prequential comparison of two trackers on the same
         log (Dawid 1984), as :func:`robustloc.tracking.select.choose_link_offsets` makes
         it.
@@ -2125,7 +2133,8 @@ class Tracker:
             xp, Pp = h["xp"][keep], h["Pp"][keep]
             y, var = self._observations(self._calibrate(v[rows]))
             J = self._jacobian(xp)
-            S = np.einsum("kmi,kij,kmj->km", J, Pp, J) + var
+            s2 = h["s2"][keep] if "s2" in h else np.ones(len(rows))
+            S = np.einsum("kmi,kij,kmj->km", J, Pp, J) + s2[:, None] * var
             nu = y - self._predict(xp)
             ok = np.isfinite(nu) & np.isfinite(S) & (S > 0)
             sc = np.where(ok, huber_log_score(np.where(ok, nu, 0.0), np.where(ok, S, 1.0)),
