@@ -12,11 +12,10 @@ kept components' posterior residuals against the event's critical value.
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pandas as pd
 import pytest
+from test_fuse_review5 import _run
 
 from robustloc import status as st
 from robustloc.cli import main
@@ -30,17 +29,6 @@ def cart_b(tmp_path_factory):
     assert main(["simulate", "uwb-cart", "--seed", "1", "--group", "B", "--out", str(d),
                  "-q"]) == 0
     return d
-
-
-def _run(d, out, capsys, *extra):
-    rc = main(["fuse", "--ranges", str(d / "measurements.csv"), "--anchors",
-               str(d / "anchors.csv"), "--nmea", str(d / "gps.nmea"), "-o", str(out),
-               "--json", *extra])
-    cap = capsys.readouterr()
-    assert rc == 0, cap.err
-    rows = pd.read_csv(out).merge(pd.read_csv(d / "truth.csv"), on=["time", "tag"],
-                                  suffixes=("", "_t"))
-    return rows, json.loads(cap.out)
 
 
 def _posterior_range_residuals(rows: pd.DataFrame, d) -> np.ndarray:
@@ -62,7 +50,7 @@ def test_a_usable_row_agrees_with_the_ranges_it_kept(cart_b, tmp_path, capsys, e
     to 38 m ``ok`` with the UKF, 1.5 km ``fault_excluded`` with the EKF); and no such row
     whose ranges all disagree with its position by more than 20 sigma (0.15 m each: a
     row whose every range misses by metres is no fix)."""
-    rows, summary = _run(cart_b, tmp_path / "t.csv", capsys, *extra)
+    rows, summary, _ = _run(cart_b, tmp_path / "t.csv", capsys, *extra)
     e = np.hypot(rows.x - rows.x_t, rows.y - rows.y_t).to_numpy()
     good = st.among(rows.status.to_numpy(object), (st.OK, st.FAULT_EXCLUDED))
     assert good.any()

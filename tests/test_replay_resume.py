@@ -55,10 +55,45 @@ def _stored(store: Path) -> pd.DataFrame:
         log.close()
 
 
+def _anchors_file(tmp_path: Path) -> Path:
+    p = tmp_path / "anchors.csv"
+    p.write_text("anchor,x,y\n" + "".join(f"{a},{x},{y}\n" for a, (x, y) in ANCHORS.items()))
+    return p
+
+
+def _resume_point(err: str, prefix: str, n_rows: int) -> int:
+    """The ``--skip`` a stopped replay's error line gives, checked against its counts
+    (every acknowledged row accepted, some but not all of the log's ``n_rows``)."""
+    m = re.search(re.escape(prefix) + r"\(?.*?stopped after (\d+) of (\d+) rows; (\d+) "
+                  r"accepted; resume with --skip (\d+)", err)
+    assert m, err
+    sent, rows, accepted, skip = map(int, m.groups())
+    assert rows == n_rows and sent == skip == accepted and 0 < skip < rows
+    return skip
+
+
+def _start_replay(url: str, log: Path, *extra: str) -> subprocess.Popen:
+    """``robustloc replay LOG --url URL EXTRA...`` running in a subprocess (pipes)."""
+    return subprocess.Popen([*ROBUSTLOC, "replay", str(log), "--url", url, *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _await_rows(srv: ServerProcess, rep: subprocess.Popen, n: int) -> None:
+    """Until the server has accepted ``n`` rows of the running replay ``rep`` (120 s)."""
+    deadline = time.monotonic() + 120
+    while read_metric(srv.url, "robustloc_rows_accepted_total", timeout_s=10.0) < n:
+        assert rep.poll() is None and time.monotonic() < deadline, "no rows arrived"
+        time.sleep(0.05)
+
+
+def _kill(rep: subprocess.Popen | None) -> None:
+    if rep is not None and rep.poll() is None:
+        rep.kill()
+        rep.wait(10)
+
+
 def test_a_replay_stopped_by_a_killed_server_resumes_with_skip(tmp_path):
-    anchors = tmp_path / "anchors.csv"
-    anchors.write_text("anchor,x,y\n" + "".join(f"{a},{x},{y}\n"
-                                                for a, (x, y) in ANCHORS.items()))
+    anchors = _anchors_file(tmp_path)
     log = _log(tmp_path / "m.csv")
     store = tmp_path / "store"
     args = ["--anchors", str(anchors), "--store", str(store)]
@@ -67,31 +102,19 @@ def test_a_replay_stopped_by_a_killed_server_resumes_with_skip(tmp_path):
     try:
         srv.start()
         # 40 steps at 10x real time: 4 s; the server dies once it has 10 steps' rows
-        rep = subprocess.Popen([*ROBUSTLOC, "replay", str(tmp_path / "m.csv"), "--url",
-                                srv.url, "--speed", "10", "-q"],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        deadline = time.monotonic() + 120
-        while (read_metric(srv.url, "robustloc_rows_accepted_total", timeout_s=10.0)
-               < 10 * len(ANCHORS)):
-            assert rep.poll() is None and time.monotonic() < deadline, "no rows arrived"
-            time.sleep(0.05)
+        rep = _start_replay(srv.url, tmp_path / "m.csv", "--speed", "10", "-q")
+        _await_rows(srv, rep, 10 * len(ANCHORS))
         srv.kill9()
         _, err = rep.communicate(timeout=120)
         assert rep.returncode == 2, err
-        m = re.search(r"stopped after (\d+) of (\d+) rows; (\d+) accepted; resume with "
-                      r"--skip (\d+)\)", err)
-        assert m, err
-        sent, rows, accepted, skip = map(int, m.groups())
-        assert rows == len(log) and sent == skip == accepted and 0 < skip < rows
+        skip = _resume_point(err, "", len(log))
         # the same store and port, the rest of the log
         srv2 = ServerProcess(args, port=srv.port, startup_timeout_s=120)
         srv2.start()
         assert main(["replay", str(tmp_path / "m.csv"), "--url", srv2.url, "--speed", "0",
                      "--skip", str(skip), "-q", "--json"]) == 0
     finally:
-        if rep is not None and rep.poll() is None:
-            rep.kill()
-            rep.wait(10)
+        _kill(rep)
         srv.stop()
         if srv2 is not None:
             srv2.stop()
@@ -135,9 +158,7 @@ def test_a_replay_interrupted_by_ctrl_c_says_where_to_resume(tmp_path):
     the store holds every row of the log, none twice but the batch in flight."""
     import signal
 
-    anchors = tmp_path / "anchors.csv"
-    anchors.write_text("anchor,x,y\n" + "".join(f"{a},{x},{y}\n"
-                                                for a, (x, y) in ANCHORS.items()))
+    anchors = _anchors_file(tmp_path)
     log = _log(tmp_path / "m.csv")
     store = tmp_path / "store"
     srv = ServerProcess(["--anchors", str(anchors), "--store", str(store)],
@@ -145,30 +166,18 @@ def test_a_replay_interrupted_by_ctrl_c_says_where_to_resume(tmp_path):
     rep = None
     try:
         srv.start()
-        rep = subprocess.Popen([*ROBUSTLOC, "replay", str(tmp_path / "m.csv"), "--url",
-                                srv.url, "--speed", "10", "-q", "--json"],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        deadline = time.monotonic() + 120
-        while (read_metric(srv.url, "robustloc_rows_accepted_total", timeout_s=10.0)
-               < 10 * len(ANCHORS)):
-            assert rep.poll() is None and time.monotonic() < deadline, "no rows arrived"
-            time.sleep(0.05)
+        rep = _start_replay(srv.url, tmp_path / "m.csv", "--speed", "10", "-q", "--json")
+        _await_rows(srv, rep, 10 * len(ANCHORS))
         rep.send_signal(signal.SIGINT)
         out, err = rep.communicate(timeout=120)
         assert rep.returncode == 130, err
-        m = re.search(r"error: interrupted \(stopped after (\d+) of (\d+) rows; (\d+) "
-                      r"accepted; resume with --skip (\d+);", err)
-        assert m, err
-        sent, rows, accepted, skip = map(int, m.groups())
-        assert rows == len(log) and sent == skip == accepted and 0 < skip < rows
+        skip = _resume_point(err, "error: interrupted ", len(log))
         summary = json.loads(out)
         assert (summary["sent"], summary["stopped"]) == (skip, "interrupted")
         assert main(["replay", str(tmp_path / "m.csv"), "--url", srv.url, "--speed", "0",
                      "--skip", str(skip), "-q"]) == 0
     finally:
-        if rep is not None and rep.poll() is None:
-            rep.kill()
-            rep.wait(10)
+        _kill(rep)
         srv.stop()
     counts = _stored(store).groupby(["time", "tag", "anchor"]).size()
     assert len(counts) == len(log)

@@ -12,8 +12,6 @@ from __future__ import annotations
 import json
 import signal
 import threading
-import time
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -23,33 +21,24 @@ pytest.importorskip("starlette")
 pytest.importorskip("uvicorn")
 pytest.importorskip("websockets")
 
+from test_replay_resume import (  # noqa: E402
+    ANCHORS,
+    _anchors_file,
+    _await_rows,
+    _kill,
+    _start_replay,
+    _stored,
+)
+
 from robustloc.cli import main  # noqa: E402
 from robustloc.service.launch import ServerProcess  # noqa: E402
-
-ANCHORS = {"A1": (0.0, 0.0), "A2": (10.0, 0.0), "A3": (10.0, 10.0), "A4": (0.0, 10.0)}
-
-
-def _anchors(tmp_path: Path) -> Path:
-    p = tmp_path / "anchors.csv"
-    p.write_text("anchor,x,y\n" + "".join(f"{a},{x},{y}\n" for a, (x, y) in ANCHORS.items()))
-    return p
-
-
-def _stored(store: Path) -> pd.DataFrame:
-    from robustloc.service.store import SegmentLog
-
-    log = SegmentLog(store / "measurements", fsync=False)
-    try:
-        return log.scan(columns=["time", "tag", "anchor"]).to_pandas()
-    finally:
-        log.close()
 
 
 def test_a_message_in_progress_is_answered_before_the_close(tmp_path):
     from websockets.sync.client import connect
 
     store = tmp_path / "store"
-    srv = ServerProcess(["--anchors", str(_anchors(tmp_path)), "--store", str(store)],
+    srv = ServerProcess(["--anchors", str(_anchors_file(tmp_path)), "--store", str(store)],
                         startup_timeout_s=120)
     n = 300_000
     rows = [{"time": 1000.0 + (i // 4) * 0.001, "tag": f"w{i % 50}",
@@ -77,11 +66,7 @@ def test_a_websocket_replay_stopped_gracefully_resumes_without_duplicates(tmp_pa
     """Replay over WebSocket, SIGTERM to the server mid-way, resume with the --skip the
     replay printed (JSON ``sent``) on a restarted server: the store holds the log's rows,
     each once."""
-    import subprocess
-
-    from robustloc.service.launch import ROBUSTLOC, read_metric
-
-    anchors = _anchors(tmp_path)
+    anchors = _anchors_file(tmp_path)
     xy = np.array(list(ANCHORS.values()))
     d = np.hypot(*(xy - [3.0, 4.0]).T)
     log = pd.DataFrame([{"time": float(t) * 0.1, "tag": f"T{k}", "anchor": a, "range": r}
@@ -93,14 +78,9 @@ def test_a_websocket_replay_stopped_gracefully_resumes_without_duplicates(tmp_pa
     srv2 = rep = None
     try:
         srv.start()
-        rep = subprocess.Popen([*ROBUSTLOC, "replay", str(tmp_path / "m.csv"), "--url",
-                                srv.url, "--speed", "2", "--transport", "ws", "--json",
-                                "--batch-rows", "12"],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        deadline = time.monotonic() + 120
-        while read_metric(srv.url, "robustloc_rows_accepted_total", timeout_s=10.0) < 300:
-            assert rep.poll() is None and time.monotonic() < deadline, "no rows arrived"
-            time.sleep(0.02)
+        rep = _start_replay(srv.url, tmp_path / "m.csv", "--speed", "2", "--transport",
+                            "ws", "--json", "--batch-rows", "12")
+        _await_rows(srv, rep, 300)
         srv.stop()  # SIGTERM: the graceful stop
         out, err = rep.communicate(timeout=120)
         assert rep.returncode == 2, err
@@ -111,9 +91,7 @@ def test_a_websocket_replay_stopped_gracefully_resumes_without_duplicates(tmp_pa
         assert main(["replay", str(tmp_path / "m.csv"), "--url", srv2.url, "--speed", "0",
                      "--transport", "ws", "--skip", str(skip), "-q"]) == 0
     finally:
-        if rep is not None and rep.poll() is None:
-            rep.kill()
-            rep.wait(10)
+        _kill(rep)
         srv.stop()
         if srv2 is not None:
             srv2.stop()
