@@ -35,11 +35,14 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 from robustloc import __version__
-from robustloc.errors import InputError, Terminated
-
-#: Exit codes: 2 user error, 130 interrupted (128 + SIGINT), 143 terminated (128 + SIGTERM),
-#: 1 internal error (a bug).
-EXIT_USER, EXIT_INTERNAL, EXIT_SIGINT, EXIT_SIGTERM = 2, 1, 130, 143
+from robustloc.errors import (  # noqa: F401 - the exit codes are also this module's
+    EXIT_INTERNAL,
+    EXIT_SIGINT,
+    EXIT_SIGTERM,
+    EXIT_USER,
+    InputError,
+    Terminated,
+)
 
 
 def _command_modules(only: str | None = None) -> list:

@@ -9,6 +9,11 @@ from __future__ import annotations
 
 from os import PathLike
 
+#: Exit codes: 2 user error, 130 interrupted (128 + SIGINT), 143 terminated (128 + SIGTERM),
+#: 1 internal error (a bug).  (Here, below the commands, so that a command can return them
+#: without importing the front end, :mod:`robustloc.cli`.)
+EXIT_USER, EXIT_INTERNAL, EXIT_SIGINT, EXIT_SIGTERM = 2, 1, 130, 143
+
 
 class InputError(ValueError):
     """A problem with user input, located by file and (optionally) line.

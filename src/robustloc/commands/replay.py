@@ -339,7 +339,7 @@ def run(args: argparse.Namespace) -> int:
                               "rows": exc.rows, "skipped": exc.skipped, "sent": exc.sent,
                               "accepted": exc.accepted, "stopped": str(exc)}, indent=2))
         if interrupted:
-            from robustloc.cli import EXIT_SIGINT, EXIT_SIGTERM
+            from robustloc.errors import EXIT_SIGINT, EXIT_SIGTERM
 
             return EXIT_SIGINT if str(exc) == "interrupted" else EXIT_SIGTERM
         return 2
