@@ -2125,23 +2125,26 @@ class Tracker:
                              f"{len(self.anchor_ids)}) (the recorded rows), got {v.shape}")
         score = np.full(self._rows_recorded, np.nan)
         count = np.zeros(self._rows_recorded, dtype=np.int64)
-        for h in self._history:
-            keep = ~h["start"]
-            if not keep.any():
-                continue
-            rows = h["idx"][keep]
-            xp, Pp = h["xp"][keep], h["Pp"][keep]
-            y, var = self._observations(self._calibrate(v[rows]))
-            J = self._jacobian(xp)
-            s2 = h["s2"][keep] if "s2" in h else np.ones(len(rows))
-            S = np.einsum("kmi,kij,kmj->km", J, Pp, J) + s2[:, None] * var
-            nu = y - self._predict(xp)
-            ok = np.isfinite(nu) & np.isfinite(S) & (S > 0)
-            sc = np.where(ok, huber_log_score(np.where(ok, nu, 0.0), np.where(ok, S, 1.0)),
-                          0.0)
-            n_ok = ok.sum(axis=1)
-            score[rows] = np.where(n_ok > 0, sc.sum(axis=1), np.nan)
-            count[rows] = n_ok
+        # every filtered (not started) row of every round at once: one vectorized pass,
+        # not a Python loop over the rounds (one per epoch of a tag's log)
+        parts = [(h["idx"][~h["start"]], h["xp"][~h["start"]], h["Pp"][~h["start"]],
+                  h["s2"][~h["start"]] if "s2" in h else np.ones(int((~h["start"]).sum())))
+                 for h in self._history if (~h["start"]).any()]
+        if not parts:
+            return score, count
+        rows, xp, Pp, s2 = (np.concatenate(a) for a in zip(*parts))
+        # a row recorded twice (a re-start after its filtered entry): its last entry
+        last = len(rows) - 1 - np.unique(rows[::-1], return_index=True)[1]
+        rows, xp, Pp, s2 = rows[last], xp[last], Pp[last], s2[last]
+        y, var = self._observations(self._calibrate(v[rows]))
+        J = self._jacobian(xp)
+        S = np.einsum("kmi,kij,kmj->km", J, Pp, J) + s2[:, None] * var
+        nu = y - self._predict(xp)
+        ok = np.isfinite(nu) & np.isfinite(S) & (S > 0)
+        sc = np.where(ok, huber_log_score(np.where(ok, nu, 0.0), np.where(ok, S, 1.0)), 0.0)
+        n_ok = ok.sum(axis=1)
+        score[rows] = np.where(n_ok > 0, sc.sum(axis=1), np.nan)
+        count[rows] = n_ok
         return score, count
 
     def smoothed(self, n_rows: int, lag: int | None = None) -> tuple[Array, Array]:
