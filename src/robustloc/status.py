@@ -48,7 +48,8 @@ UNVERIFIED = "unverified"
 FAULT_DETECTED = "fault_detected"
 #: A fix farther than 10 times the heard anchors' extent from their centre: the geometry
 #: is extrapolated (a far tag, a small anchor cluster).  Usable, never ``ok``; its ``hpl``
-#: (large there) says how far to trust it.
+#: (large there) says how far to trust it.  A far fix whose own test fails stays
+#: ``fault_detected``.
 EXTRAPOLATED = "extrapolated"
 #: Usable by its own test, but its protection level exceeds the user's alert limit
 #: (``--alert-limit``): not to be used for the operation that limit protects.

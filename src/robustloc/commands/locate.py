@@ -58,8 +58,9 @@ test (B-method significance) checks the rest, and `hpl` (`vpl` in 3-D) is the MD
 bound plus k sigma of the fault-free noise (--alpha0, --beta0, --k-noise).  Statuses:
 ok, fault_excluded, low_redundancy (redundancy 1: detectable, not identifiable),
 unverified (redundancy 0, hpl = inf), fault_detected (the test fails, or the w-test flags
-a range that a plain fit, ls, wls or nls, keeps; hpl of the fix as it is, widened by the
-a-posteriori variance factor), extrapolated (farther than 10x the anchors' extent), all
+a range that a plain fit, ls, wls, nls (and lege, snooping: the rows they kept) keeps;
+hpl of the fix as it is, widened by the a-posteriori variance factor), extrapolated
+(farther than 10x the anchors' extent; a failed test stays fault_detected), all
 usable with not_converged; unavailable (a flagged observation leaves nothing to confirm
 the rest, or half or more of the heard observations are flagged: no majority supports the
 fix), protection_exceeded (hpl > --alert-limit), insufficient_anchors, ill_conditioned and
@@ -140,8 +141,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "protection level: per anchor over the log (log, default: a first "
                         "robust pass over an even sample of the whole log), per epoch from "
                         "its own residuals (mad, the paper's; without --sigma hpl then "
-                        "uses Student's t for that estimated scale, a wider bound), or "
-                        "trust --sigma (apriori)")
+                        "uses Student's t for that estimated scale, a wider bound, and a "
+                        "plain fit's test, nls' and auto's, cannot fail: its scale is "
+                        "that of the residuals it tests, so a gross range shows only in "
+                        "hpl), or trust --sigma (apriori)")
     p.add_argument("--side-prior", choices=("log", "none"), default="log",
                    help="nearly collinear anchors: place a fix that fits either side of "
                         "their line on the side where the log's unambiguous fixes lie "

@@ -1134,6 +1134,12 @@ class Locator:
                     f = (scale / np.max(scale)) ** 2  # p / (s sigma)^2 = 1 / sigma^2 ...
                 sol.extra["weight_factor"] = np.where(np.isfinite(sol.residuals),
                                                       f[None, :], np.nan)
+                # ... and so is its bound: the fix of these weights keeps a flagged row
+                # at its weight (a plain fit), and its covariance is the sandwich
+                # (robustloc.integrity.fixes.protection_levels_local, fit_weight).  With
+                # the log's weights the bound was that of a weighted fix: one anchor of
+                # sd 1 m among five of 0.1 m left 7.7 % of `ok` fixes beyond their hpl
+                sol.extra["fit_weight_factor"] = sol.extra["weight_factor"]
             return sol
         dim = a.shape[1]
         n_heard = np.sum(np.isfinite(z), axis=1)

@@ -164,6 +164,125 @@ def protection_levels_kernel(J, sigma, used, lam0, k_noise, r_min,
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def fit_weighted_protection_kernel(J, sigma, used, fw, lam0, k_noise, r_min,
+                                   tag):  # pragma: no cover - jit
+    """``(hpl, vpl, r)`` of every epoch of a fix weighted by ``fw_i / sigma_i^2``
+    (:func:`robustloc.integrity.fixes.protection_levels_local` with ``fit_weight``), in
+    whitened form ``a_i = J_i / sigma_i``: ``Q = (sum f a a^T)^-1``, the gain
+    ``g_i = f_i Q a_i``, ``C = sum g g^T``, ``r_i = 1 - f_i a_i^T Q a_i`` and the
+    residual's variance ``q_i = sum_j ((I - H)_ij)^2``, ``H_ij = f_j a_i^T Q a_j``; the
+    slope term
+    ``|g_i,h| sqrt(lambda0 q_i) / |r_i|``."""
+    N, n = J.shape[0], J.shape[1]
+    p = len(tag)
+    hpl = np.full(N, np.nan)
+    vpl = np.full(N, np.nan)
+    r_out = np.full((N, n), np.nan)
+    A = np.zeros((n, 3))
+    f = np.zeros(n)
+    use = np.zeros(n, dtype=np.bool_)
+    Nm = np.zeros((p, p))
+    Q = np.zeros((p, p))
+    C = np.zeros((3, 3))
+    QA = np.zeros((n, 3))
+    for k in range(N):
+        count = 0
+        for i in range(n):
+            s = sigma[k, i]
+            u = used[k, i] and np.isfinite(s) and s > 0.0
+            for j in range(p):
+                if not np.isfinite(J[k, i, j]):
+                    u = False
+            fi = fw[k, i]
+            if not (fi > 0.0):  # NaN or non-positive: no weight in the fit
+                fi = 0.0
+            elif fi > 1.0:
+                fi = 1.0
+            use[i] = u
+            f[i] = fi if u else 0.0
+            for j in range(p):
+                A[i, j] = J[k, i, j] / s if u else 0.0
+            if u and fi > 0.0:
+                count += 1
+        for a in range(p):
+            for b in range(p):
+                acc = 0.0
+                for i in range(n):
+                    acc += f[i] * A[i, a] * A[i, b]
+                Nm[a, b] = acc
+        tr = 0.0
+        for a in range(p):
+            tr += Nm[a, a]
+        if p == 2:
+            det = Nm[0, 0] * Nm[1, 1] - Nm[0, 1] * Nm[1, 0]
+        else:
+            det = (Nm[0, 0] * (Nm[1, 1] * Nm[2, 2] - Nm[1, 2] * Nm[2, 1])
+                   - Nm[0, 1] * (Nm[1, 0] * Nm[2, 2] - Nm[1, 2] * Nm[2, 0])
+                   + Nm[0, 2] * (Nm[1, 0] * Nm[2, 1] - Nm[1, 1] * Nm[2, 0]))
+        if not (abs(det) > 1e-12 * max(tr, 1e-300) ** p and count >= p):
+            continue  # as the reference: NaN
+        _inv_small(Nm, Q, tag)
+        for a in range(3):
+            for b in range(3):
+                C[a, b] = 0.0
+        for i in range(n):
+            for a in range(p):
+                acc = 0.0
+                for b in range(p):
+                    acc += Q[a, b] * A[i, b]
+                QA[i, a] = acc
+            if f[i] > 0.0:
+                for a in range(p):
+                    for b in range(p):
+                        C[a, b] += f[i] * f[i] * QA[i, a] * QA[i, b]
+        dh2_max = 0.0
+        du2_max = 0.0
+        for i in range(n):
+            if not use[i]:
+                continue
+            aqa = 0.0
+            for a in range(p):
+                aqa += A[i, a] * QA[i, a]
+            r = 1.0 - f[i] * aqa
+            r_out[k, i] = r
+            # q_i = sum_j ((I - H)_ij)^2, H_ij = f_j a_i^T Q a_j: a sum of squares (the
+            # closed form 1 - 2 f_i a_i^T Q a_i + a_i^T C a_i cancels where r_i is small)
+            q = r * r
+            for j in range(n):
+                if j == i or f[j] == 0.0:
+                    continue
+                hij = 0.0
+                for a in range(p):
+                    hij += A[i, a] * QA[j, a]
+                hij *= f[j]
+                q += hij * hij
+            g2 = 0.0
+            for a in range(p):
+                g2 += (f[i] * QA[i, a]) ** 2
+            if g2 <= 1e-18:
+                continue  # the observation does not move the fix
+            if abs(r) <= r_min:
+                dh2_max = np.inf
+                du2_max = np.inf
+                continue
+            kk2 = lam0 * q / (r * r) * f[i] * f[i]  # (MDB / sigma)^2 times f^2
+            dh2 = (QA[i, 0] * QA[i, 0] + QA[i, 1] * QA[i, 1]) * kk2
+            if dh2 > dh2_max:
+                dh2_max = dh2
+            if p == 3:
+                du2 = QA[i, 2] * QA[i, 2] * kk2
+                if du2 > du2_max:
+                    du2_max = du2
+        t2 = C[0, 0] + C[1, 1]
+        d2 = C[0, 0] * C[1, 1] - C[0, 1] ** 2
+        lam_max = 0.5 * t2 + math.sqrt(max(0.25 * t2 * t2 - d2, 0.0))
+        hpl[k] = math.sqrt(dh2_max) + k_noise * math.sqrt(lam_max)
+        if p == 3:
+            vpl[k] = math.sqrt(du2_max) + k_noise * math.sqrt(C[2, 2])
+    return hpl, vpl, r_out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def _ranges_jacobian(a, h2, xa, f, J):  # pragma: no cover - jit
     """Ranges ``f`` and unit-vector Jacobian ``J`` at ``xa`` (as ``RangeModel``)."""
     for i in range(a.shape[0]):

@@ -52,7 +52,8 @@ For each epoch, at the fix ``x`` of any method, with the range-domain residuals
                              (item 6: no majority supports the fix)
    ``extrapolated``          usable by the above, but farther than 10 times the     yes
                              heard anchors' extent from them: the geometry is
-                             extrapolated, ``hpl`` (large there) says how far
+                             extrapolated, ``hpl`` (large there) says how far; a
+                             far fix whose test fails stays ``fault_detected``
    ``protection_exceeded``   usable, but ``hpl`` (kept) above ``--alert-limit``     no
    ========================  ====================================================  ======
 
@@ -76,6 +77,13 @@ For each epoch, at the fix ``x`` of any method, with the range-domain residuals
    :mod:`robustloc.gnss.raim` (whose docstring gives the 2-D exceedance it allows: up to
    4.5 ``alpha0`` for a circular ellipse); ``k_noise = sqrt(chi2.isf(alpha0, 2))`` = 3.72,
    the tracker's, bounds it at ``alpha0`` (``--k-noise 3.72``).
+   A plain fit whose weights are not ``P`` (Gauss-Newton with equal weights on anchors
+   of unequal noise, ``extra["fit_weight_factor"]``) is bounded as the fix it gave: its
+   gain, its sandwich covariance and MDBs under its own weights
+   (:func:`protection_levels_local` with ``fit_weight``).  A ``fault_excluded`` fix
+   also covers every other single exclusion whose least-squares fix passes the test,
+   ``HPL = max(HPL, |x_j - x|_h + HPL_j)`` (:func:`_cover_other_exclusions`: at
+   redundancy 2 the largest ``w`` often names a healthy range).
 5. **Ambiguity** (with the anchors known, :func:`locate_protected` passes them): ranges
    from collinear anchors (2-D; coplanar in 3-D) fit the fix and its mirror image across
    the anchors' line (plane) equally well, and nearly collinear anchors leave a second
@@ -212,7 +220,7 @@ def _fix_rows(range_model: RangeModel, position: ArrayLike, residuals: ArrayLike
 
 def protection_levels_local(
     J: Array, sigma: Array, used: NDArray[np.bool_], lam0: float, k_noise: float,
-    engine: str = "compiled",
+    engine: str = "compiled", fit_weight: Array | None = None,
 ) -> tuple[Array, Array, Array]:
     """HPL, VPL (N,) and redundancy numbers (N, n) in a local frame (x, y[, z]).
 
@@ -220,6 +228,17 @@ def protection_levels_local(
     eq. (3) plus ``k_noise`` times the major semi-axis of the horizontal covariance); an
     observation whose fault moves the fix but cannot be detected (redundancy number at or
     below ``R_MIN``) makes the bound infinite.
+
+    With ``fit_weight`` the fix is that of the weights ``f_i / sigma_i^2`` while each
+    observation's noise is ``sigma_i`` (Gauss-Newton with equal weights on anchors of
+    unequal noise): in whitened form ``a_i = J_i / sigma_i``, ``Q = (sum_i f_i a_i
+    a_i^T)^-1``, the fix's gain ``g_i = f_i Q a_i`` and covariance ``C = sum_i g_i
+    g_i^T`` (the sandwich), the residual's variance under those weights ``q_i = sum_j
+    ((I - H)_ij)^2``, ``H_ij = f_j a_i^T Q a_j`` (:func:`robust_fit_cofactors`' ``Q_vv``,
+    which the w-test takes), and a fault ``b`` on observation ``i`` shifts its residual by ``r_i
+    b``, ``r_i = 1 - f_i a_i^T Q a_i``: ``MDB_i = sqrt(lambda0 q_i) sigma_i / |r_i|``
+    and ``hpl = max_i |g_i,h| MDB_i / sigma_i + k sqrt(lambda_max(C_h))``.  With
+    ``f = 1`` every term is the one above (``q_i = r_i``).  ``r`` is then ``r_i``.
 
     Parameters
     ----------
@@ -236,6 +255,10 @@ def protection_levels_local(
     engine : {"compiled", "numpy"}
         The numba kernel (:mod:`robustloc.integrity._compiled`, default) or this NumPy
         reference; they agree to rounding (tested).
+    fit_weight : ndarray (N, n), optional
+        The fit's weight factors ``f_i`` in [0, 1] (NaN counts as 0), relative to
+        ``1 / sigma_i^2``: the bound of the fix these weights gave (above).  Default: the
+        fix weighted by ``1 / sigma_i^2``.
 
     Returns
     -------
@@ -245,6 +268,9 @@ def protection_levels_local(
     J = _design(J)
     N, n, p = J.shape
     sigma, used = _per_observation((N, n), sigma=sigma, used=used)
+    if fit_weight is not None:
+        (fw,) = _per_observation((N, n), fit_weight=fit_weight)
+        return _fit_weighted_levels(J, sigma, used, fw, lam0, k_noise, engine)
     if engine == "compiled" and p in (2, 3) and N:
         from robustloc.estimators._compiled import in_threads
         from robustloc.integrity._compiled import protection_levels_kernel
@@ -287,6 +313,73 @@ def protection_levels_local(
     cen = C[:, _H, _H]
     tr, det = cen[:, 0, 0] + cen[:, 1, 1], cen[:, 0, 0] * cen[:, 1, 1] - cen[:, 0, 1] ** 2
     lam_max = 0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
+    with np.errstate(invalid="ignore"):
+        hpl = np.where(ok, np.max(np.nan_to_num(dh, nan=0.0, posinf=np.inf), axis=1)
+                       + k_noise * np.sqrt(lam_max), np.nan)
+        vpl = (np.where(ok, np.max(np.nan_to_num(du, nan=0.0, posinf=np.inf), axis=1)
+                        + k_noise * np.sqrt(C[:, 2, 2]), np.nan)
+               if p == 3 else np.full(N, np.nan))
+    return hpl, vpl, np.where(use & ok[:, None], r, np.nan)
+
+
+def _fit_weighted_levels(J: Array, sigma: Array, used: NDArray[np.bool_], fw: Array,
+                         lam0: float, k_noise: float, engine: str
+                         ) -> tuple[Array, Array, Array]:
+    """:func:`protection_levels_local` with ``fit_weight`` (its docstring has the terms)."""
+    N, n, p = J.shape
+    fw = np.clip(np.nan_to_num(np.asarray(fw, dtype=float), nan=0.0), 0.0, 1.0)
+    if engine == "compiled" and p in (2, 3) and N:
+        from robustloc.estimators._compiled import in_threads
+        from robustloc.integrity._compiled import fit_weighted_protection_kernel
+
+        Jc = np.ascontiguousarray(J, dtype=np.float64)
+        sc = np.ascontiguousarray(sigma, dtype=np.float64)
+        uc = np.ascontiguousarray(used, dtype=np.bool_)
+        fc = np.ascontiguousarray(fw, dtype=np.float64)
+        res = (np.empty(N), np.empty(N), np.empty(used.shape))
+
+        def run(lo: int, hi: int) -> None:
+            for o, part in zip(res, fit_weighted_protection_kernel(
+                    Jc[lo:hi], sc[lo:hi], uc[lo:hi], fc[lo:hi], float(lam0),
+                    float(k_noise), float(R_MIN), (0.0,) * p), strict=True):
+                o[lo:hi] = part
+
+        in_threads(run, N)
+        return res
+    if engine not in ("compiled", "numpy"):
+        raise ValueError(f"engine must be 'compiled' or 'numpy', got {engine!r}")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        use = used & np.isfinite(sigma) & (sigma > 0) & np.all(np.isfinite(J), axis=2)
+        A = np.where(use[..., None], J / np.where(use, sigma, 1.0)[..., None], 0.0)
+    f = np.where(use, fw, 0.0)
+    Nm = np.einsum("kip,ki,kiq->kpq", A, f, A)
+    tr = np.einsum("kii->k", Nm)
+    ok = (np.abs(np.linalg.det(Nm)) > 1e-12 * np.maximum(tr, 1e-300) ** p) & (
+        np.sum(use & (f > 0), axis=1) >= p)
+    Q = np.linalg.inv(np.where(ok[:, None, None], Nm, np.eye(p)))
+    QA = np.einsum("kpq,kiq->kip", Q, A)  # rows: Q a_i
+    G = QA * f[..., None]  # the gains g_i
+    C = np.einsum("kip,kiq->kpq", G, G)
+    aqa = np.sum(A * QA, axis=2)
+    r = 1.0 - f * aqa
+    # q_i = sum_j ((I - H)_ij)^2 with H_ij = f_j a_i^T Q a_j, as a sum of squares (the
+    # closed form 1 - 2 f_i a_i^T Q a_i + a_i^T C a_i cancels where r_i is small)
+    H = np.einsum("kip,kjp->kij", A, QA) * f[:, None, :]
+    IH = np.eye(n)[None] - H
+    q = np.sum(np.where(use[:, None, :] & (f[:, None, :] > 0) | np.eye(n, dtype=bool)[None],
+                        IH * IH, 0.0), axis=2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        moves = np.sum(G * G, axis=2) > 1e-18
+        blind = use & moves & (np.abs(r) <= R_MIN)
+        kk = np.sqrt(lam0 * q) / np.abs(r)
+        dx = G * kk[..., None]
+        dh = np.where(blind, np.inf, np.where(use & moves, np.hypot(dx[..., 0], dx[..., 1]),
+                                               0.0))
+        du = (np.where(blind, np.inf, np.where(use & moves, np.abs(dx[..., 2]), 0.0))
+              if p == 3 else None)
+    cen = C[:, _H, _H]
+    t2, d2 = cen[:, 0, 0] + cen[:, 1, 1], cen[:, 0, 0] * cen[:, 1, 1] - cen[:, 0, 1] ** 2
+    lam_max = 0.5 * t2 + np.sqrt(np.maximum(0.25 * t2 * t2 - d2, 0.0))
     with np.errstate(invalid="ignore"):
         hpl = np.where(ok, np.max(np.nan_to_num(dh, nan=0.0, posinf=np.inf), axis=1)
                        + k_noise * np.sqrt(lam_max), np.nan)
@@ -965,6 +1058,59 @@ def _snoop_one(flagged: NDArray[np.bool_], w: Array, used: NDArray[np.bool_],
     return out
 
 
+def _cover_other_exclusions(
+    range_model: RangeModel, position: Array, v: Array, sig: Array,
+    heard: NDArray[np.bool_], out: NDArray[np.bool_], rows: NDArray[np.bool_], hpl: Array,
+    vpl: Array, widen: Array, alpha0: float, beta0: float, lam0: float, k: float,
+) -> None:
+    """Widen, in place, the bound of each fix in ``rows`` (``fault_excluded``) over every
+    other single exclusion that also passes the test.
+
+    A fix that left the observations ``out`` out is right when they hold the fault.  Had
+    another observation ``j`` held it instead, the least-squares fix ``x_j`` of every
+    heard observation but ``j`` would be fault-free, and where its global test passes
+    the data cannot tell the two hypotheses apart: the fix's error is then at most
+    ``|x - x_j| + hpl_j`` (``hpl_j`` that fix's own bound, widened as the fix's), and
+    ``hpl = max(hpl, |x - x_j|_h + hpl_j)`` over every such ``j`` (single faults, as the
+    bound assumes; the same cover as the mirror's, module docstring item 5), on the fixes
+    whose kept observations have redundancy 1.  At redundancy 2 (four ranges in 2-D) the
+    w-tests of the ranges are strongly correlated, and the largest one often names a
+    healthy range: with 2 % of the ranges 1.5-3 m long, 3.1 % of the single-fault
+    epochs' fixes lay beyond the bound of their exclusion alone (the locate review of
+    2026-12-07); snooping with five ranges, 0.4 %; now none.
+    """
+    p = position.shape[1]
+    idx = np.flatnonzero(rows & np.isfinite(hpl) & np.all(np.isfinite(position), axis=1)
+                         & (heard.sum(axis=1) - p >= 2))  # an alternative keeps dof >= 1
+    if idx.size == 0:
+        return
+    # only where the rest has redundancy 1: its test then detects a fault left in it but
+    # cannot say which, and the exclusion's choice among strongly correlated w-tests is
+    # the weak link.  With redundancy 2 or more left, covering every alternative changed
+    # no bound that mattered (simulated rooms of four and five anchors, one range in 30-50
+    # faulty: the same single-fault epochs beyond their bound with and without), and on
+    # bench_locate's 10 ranges with 20 % gross errors it cost 3x the default's time
+    idx = idx[(heard[idx] & ~out[idx]).sum(axis=1) - p <= 1]
+    ee, jj = np.nonzero(heard[idx] & ~out[idx])
+    ee = idx[ee]
+    if ee.size == 0:
+        return
+    alt = heard[ee].copy()
+    alt[np.arange(ee.size), jj] = False
+    x_a, v_a, J_a = least_squares_resolution(range_model, position[ee], v[ee], sig[ee], alt)
+    T_a, crit_a, dof_a = _global_test(v_a, sig[ee], alt, p, alpha0, beta0)
+    ok = (dof_a >= 1) & (T_a <= crit_a) & np.all(np.isfinite(x_a), axis=1)
+    if not np.any(ok):
+        return
+    ee, alt, x_a, J_a = ee[ok], alt[ok], x_a[ok], J_a[ok]
+    h_a, v_a_pl, _ = protection_levels_local(J_a, sig[ee], alt, lam0, k)
+    d = x_a - position[ee]
+    cover = np.hypot(d[:, 0], d[:, 1]) + h_a * widen[ee]
+    np.fmax.at(hpl, ee, np.where(np.isfinite(cover), cover, np.inf))
+    if p == 3:
+        np.fmax.at(vpl, ee, np.abs(d[:, 2]) + v_a_pl * widen[ee])
+
+
 def _real_option(name: str, value: object) -> float:
     """An option's value as a float; ``TypeError`` for what is not a real number (a bool,
     a complex number, whose imaginary part ``float()`` would drop)."""
@@ -1106,6 +1252,19 @@ def protect(
                 vt = v + np.einsum("kip,kp->ki", J, np.nan_to_num(dx_used))
     # 1. w-test on the observations the estimator kept (a linearized fix: every one)
     hpl_used, vpl_used, r = protection_levels_local(Jt, sig, used, lam0, k)
+    # a plain fit whose weights are not the tests' a-priori ones (Gauss-Newton with equal
+    # weights, nls / lege / snooping, tested with the log's per-anchor scale): its bound
+    # is that of the fix it gave, with the sandwich covariance (the locate review of
+    # 2026-12-07: one anchor of sd 1 m among five of 0.1 m, 7.7 % of `ok` fixes beyond the
+    # bound of the weighted fix)
+    fw_fit = sol.extra.get("fit_weight_factor")
+    fw_fit = (np.asarray(fw_fit, dtype=float)
+              if fw_fit is not None and np.shape(fw_fit) == (N, n) and not linearized
+              else None)
+    if fw_fit is not None:
+        hpl_used, vpl_used, _ = protection_levels_local(Jt, sig, used, lam0, k,
+                                                        fit_weight=fw_fit)
+    plain = sol.method in PLAIN_FIT_METHODS or fw_fit is not None
     with np.errstate(invalid="ignore", divide="ignore"):
         qv = sig * sig * np.where(r > R_MIN, r, np.nan)  # Q_vv,ii of the a-priori fit
     pw = sol.extra.get("weight_factor")
@@ -1132,13 +1291,17 @@ def protect(
         # gross errors, against 0.3 % for one flag (huber)
         wz = np.where(flagged, w, -np.inf)
         flagged &= wz >= wz.max(axis=1, keepdims=True)
-    elif snoop and sol.method not in PLAIN_FIT_METHODS:
+    elif snoop and not plain:
         flagged = _snoop_one(flagged, w, used, heard, excl, vt, Jt, sig, p, alpha0, beta0,
                              lam0, k, testable | unconv)
     # a plain fit (ls, wls, nls) keeps a flagged observation at its full weight: the fix
     # carries the fault, so the test and the bound are those of the fix itself (the
     # statistics review: such fixes said fault_excluded with the fault still in them)
-    carries = flagged.any(axis=1) & (sol.method in PLAIN_FIT_METHODS)
+    # (lege below seven anchors is nls, and lege and snooping keep at full weight the
+    # rows they did not exclude themselves: their flagged rows are carried too; the locate
+    # review: such lege fixes said fault_excluded with the fault in them, 8.4 % beyond
+    # their hpl)
+    carries = flagged.any(axis=1) & plain
     rest = used & ~flagged
     keep = np.where(carries[:, None], used, rest)
     # 2. global test of the rest (of the whole fix where it carries its flags); of a
@@ -1211,7 +1374,8 @@ def protect(
     again = np.flatnonzero(np.any(keep != used, axis=1))
     if again.size:
         hpl[again], vpl[again], _ = protection_levels_local(
-            Jk[again], sig[again] * factor[again, None], keep[again], lam0, k)
+            Jk[again], sig[again] * factor[again, None], keep[again], lam0, k,
+            fit_weight=None if fw_fit is None else fw_fit[again])
     # a scale estimated from the epoch's own residuals: Student's t (seed 003's
     # variance-factor test with sigma0 unknown) widens the bound by t(1 - a/2, r) / k,
     # a the two-sided risk of k and r the redundancy the scale was estimated with.  With
@@ -1238,6 +1402,10 @@ def protect(
         hpl = hpl + np.hypot(d_ls[:, 0], d_ls[:, 1])  # NaN: nothing bounds it (below)
         if p == 3:
             vpl = vpl + np.abs(d_ls[:, 2])
+    if range_model is not None and not linearized:
+        _cover_other_exclusions(range_model, sol.position, v, sig, heard,
+                                heard & (excl | flagged), new == st.FAULT_EXCLUDED, hpl,
+                                vpl, widen, alpha0, beta0, lam0, k)
     # the ambiguity check of a plain fix that keeps its flagged observations while the
     # rest passes is that of the rest, as before those fixes said fault_detected: with
     # every observation and the widened sigma the mirror passed far more often, and the
@@ -1334,7 +1502,9 @@ def protect(
             centre, radius = span
             with np.errstate(invalid="ignore"):
                 far = np.linalg.norm(pos - centre, axis=1) > 10.0 * max(radius, 1.0)
-            new[usable & far] = st.EXTRAPOLATED
+            # (a failed test says more: the fix is not only far, it is wrong -- an `ls`
+            # fix with sigma0 3 096 said `extrapolated`; the locate review)
+            new[usable & far & (new != st.FAULT_DETECTED)] = st.EXTRAPOLATED
     if alert_limit is not None:
         with np.errstate(invalid="ignore"):
             new[st.among(new, st.USABLE) & (new != st.PREDICTED) & ~(hpl <= alert_limit)] = (

@@ -618,7 +618,9 @@ def run_locate(
                "anchors_not_used": [a for a, f in zip(ids, far) if f],
                "anchors_suspect": suspect_anchors(geo.locators, ids)}
     xy = np.asarray(geo.xyz, dtype=float)
-    if xy.shape[1] == 2 and (~far).sum() >= 2:
+    # (three or more: two anchors are on a line by definition, and their fixes are
+    # insufficient_anchors, not ill_conditioned, as the warning said; the locate review)
+    if xy.shape[1] == 2 and (~far).sum() >= 3:
         from robustloc.models.geometry import collinear
 
         # every 2-D fix is then ambiguous (its mirror fits as well): all ill_conditioned,
