@@ -35,14 +35,16 @@ rows stay, and heard again it starts afresh (metric robustloc_tags_forgotten_tot
 --max-tags bounds the tags heard within that time, not every tag ever heard.
 
 Durability (--store DIR): every accepted row is synced to a write-ahead log before the 202;
-logs are sealed into Parquet segments (DIR/measurements/*.parquet, DIR/positions/*.parquet).
-After a crash (even kill -9) and a restart on the same DIR, nothing acknowledged is lost
-and each tag resumes where it stopped. Without --store the service keeps everything in
-memory (a warning says so). One service per store: the service locks DIR/.lock while it
-runs, and a second one on the same DIR exits with an error (2) before serving. A body the
-store cannot write (disk full) is answered 507 and nothing of it is stored (counted as
-store_error in /metrics): send it again later. A damaged store file (meta.json, a Parquet
-segment) is named in the error at start-up.
+logs are sealed into Parquet segments (DIR/measurements/*.parquet,
+DIR/positions/*.parquet). After a crash (even kill -9) and a restart on the same DIR,
+nothing acknowledged is lost and each tag resumes where it stopped (with --track, its
+filter from the snapshot in DIR/state/, every 10 s, or from its first stored row: the
+epochs since are solved again, so a resumed replay gives the tracks of robustloc track).
+Without --store the service keeps everything in memory (a warning says so). One service per
+store: the service locks DIR/.lock while it runs, and a second one on the same DIR exits
+with an error (2) before serving. A body the store cannot write (disk full) is answered 507
+and nothing of it is stored (counted as store_error in /metrics): send it again later. A
+damaged store file (meta.json, a Parquet segment) is named in the error at start-up.
 
 MQTT with --store: the service connects with a stable client id (--mqtt-client-id; by
 default robustloc- and a hash of the store's absolute path) and a persistent session,
