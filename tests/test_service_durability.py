@@ -281,6 +281,61 @@ def test_mqtt_rows_published_while_the_service_is_down_arrive_after_the_restart(
     assert [x for x in times if x >= 0] == sorted(float(t) for t in range(10) for _ in ANCHORS)
 
 
+def test_a_retained_mqtt_message_is_stored_once_across_restarts(
+        anchors, servers, broker, tmp_path):
+    """The broker re-sends a topic's retained message at every subscription, so each start
+    of the service stored its rows again (the serve review: one 3-row retained message,
+    three starts, 9 rows stored, the later copies late).  A retained delivery is now
+    acknowledged and not ingested (counted); the message was stored when it came live,
+    or, published while the service was down, from the persistent session's queue (the
+    broker delivers both with the retain flag cleared)."""
+    mqtt = pytest.importorskip("paho.mqtt.client")
+    store = tmp_path / "s"
+    args = ["--anchors", str(anchors), "--store", str(store), *PENDING,
+            "--mqtt", f"127.0.0.1:{broker.port}"]
+    topic = "robustloc/measurements/gw-1"
+    accepted = 'robustloc_rows_accepted_total{source="mqtt"}'
+    ignored = "robustloc_mqtt_retained_ignored_total"
+    pub = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2)
+    pub.connect("127.0.0.1", broker.port)
+    pub.loop_start()
+    try:
+        srv = servers(args)
+        t = -1000.0
+        while _metric(srv.url, accepted) == 0:  # until subscribed
+            assert t < -900, "the service never subscribed"
+            pub.publish(topic, json.dumps(_rows([t], tag="probe")), qos=1).wait_for_publish(5)
+            t += 1
+            time.sleep(0.5)
+        n0 = _metric(srv.url, accepted)
+        pub.publish(topic, json.dumps(_rows([1.0])), qos=1, retain=True).wait_for_publish(5)
+        wait_until(lambda: _metric(srv.url, accepted) == n0 + 4, 30, "the live message")
+        srv.stop()
+        # the retained message is re-sent at each start: ignored, counted
+        srv = servers(args)
+        wait_until(lambda: _metric(srv.url, ignored) + _metric(srv.url, accepted) > 0, 30,
+                   "the retained copy")
+        time.sleep(1.0)
+        assert (_metric(srv.url, accepted), _metric(srv.url, ignored)) == (0, 1)
+        srv.stop()
+        # one published (retained) while the service is down: queued, stored once
+        pub.publish(topic, json.dumps(_rows([2.0])), qos=1, retain=True).wait_for_publish(5)
+        srv = servers(args)
+        wait_until(lambda: _metric(srv.url, accepted) == 4, 30, "the queued message")
+        wait_until(lambda: _metric(srv.url, ignored) == 1, 30, "the retained copy")
+        time.sleep(1.0)
+        assert _metric(srv.url, accepted) == 4
+        assert httpx.get(srv.url + "/api/status").json()["mqtt"]["retained_ignored"] == 1
+        srv.stop()
+    finally:
+        pub.publish(topic, b"", qos=1, retain=True).wait_for_publish(5)  # (clears it)
+        pub.loop_stop()
+        pub.disconnect()
+    assert "retained message on robustloc/measurements/gw-1 ignored" in srv.log()
+    times = _stored_times(store)
+    assert [x for x in times if x >= 0] == [1.0] * 4 + [2.0] * 4
+
+
 def test_mqtt_client_id_is_stable_per_store(tmp_path):
     from robustloc.service.mqtt import client_id_for_store
 

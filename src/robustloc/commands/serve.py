@@ -50,7 +50,9 @@ MQTT with --store: the service connects with a stable client id (--mqtt-client-i
 default robustloc- and a hash of the store's absolute path) and a persistent session,
 subscribed with QoS 1, so the broker queues the messages published while the service is
 down (restart, upgrade) and delivers them when it is back. A message is acknowledged only
-once its rows are stored; one the store cannot write is delivered again later.
+once its rows are stored; one the store cannot write is delivered again later. A retained
+message the broker re-sends at each subscription is acknowledged and not ingested (it was
+stored when it came live; metric robustloc_mqtt_retained_ignored_total).
 A broker that is not there, or goes away, does not stop the service: it retries every
 1-10 s, says so in its log (once per outage), and reports the connection in /api/status
 ("mqtt": connected, connections, disconnections, last_reason) and /metrics

@@ -37,6 +37,17 @@ broker's ``max_queued_messages``), delivered when it reconnects.  Messages publi
 before the store's first connection are not queued (there was no session yet).
 Without a store the session is clean and the client id random: nothing would keep the
 rows anyway.
+
+Retained messages: a message delivered with the retain flag set is the broker's copy of
+the last message retained on a topic, re-sent at every (re)subscription - at each start of
+the service - and not a measurement of now: it is acknowledged and not ingested, counted in
+``robustloc_mqtt_retained_ignored_total`` (``retained_ignored`` in ``/api/status``), and
+the first one is named in the log.  Its rows were stored, once, when the service received
+the message live: the broker delivers a message published (retained or not) to a running
+subscription, or queued for a persistent session while the service was down, with the
+flag cleared (MQTT 3.1.1 section 3.3.1.3).  Each restart stored the same rows again, late
+(the serve review: one 3-row retained message, three starts, 9 rows stored).  Only a
+retained message published before the service's first subscription is never ingested.
 """
 
 from __future__ import annotations
@@ -125,6 +136,8 @@ class MqttIngest:
         #: wrong ``--mqtt`` address) from one nobody publishes to
         self.connections = 0
         self.disconnections = 0
+        #: retained messages re-sent by the broker at a subscription, not ingested
+        self.retained_ignored = 0
         self.since: float | None = None  # time of the last connect or disconnect
         self.last_reason: str | None = None  # why the last connection ended or failed
         self._stopping = False
@@ -189,11 +202,13 @@ class MqttIngest:
         ``topic``, ``connected``, ``connections`` (successful ones), ``disconnections``
         (lost ones), ``since`` (Unix time of the last change; None before the first
         connection), ``last_reason`` (why the last one ended or failed) and
-        ``messages`` (received)."""
+        ``messages`` (received), ``retained_ignored`` (retained messages re-sent at a
+        subscription, not ingested: module docstring)."""
         return {"broker": self.broker, "topic": self.topic,
                 "connected": self.connected.is_set(), "connections": self.connections,
                 "disconnections": self.disconnections, "since": self.since,
-                "last_reason": self.last_reason, "messages": self.messages}
+                "last_reason": self.last_reason, "messages": self.messages,
+                "retained_ignored": self.retained_ignored}
 
     def prometheus(self) -> str:
         """The connection's metrics in the Prometheus text format (``/metrics``)."""
@@ -204,12 +219,29 @@ class MqttIngest:
             "# HELP robustloc_mqtt_disconnections_total Connections to the MQTT broker "
             "lost (the service reconnects).\n"
             "# TYPE robustloc_mqtt_disconnections_total counter\n"
-            f"robustloc_mqtt_disconnections_total {self.disconnections}\n")
+            f"robustloc_mqtt_disconnections_total {self.disconnections}\n"
+            "# HELP robustloc_mqtt_retained_ignored_total Retained MQTT messages the broker "
+            "re-sent at a subscription (at each start), acknowledged and not ingested: their "
+            "rows were stored when they were received live.\n"
+            "# TYPE robustloc_mqtt_retained_ignored_total counter\n"
+            f"robustloc_mqtt_retained_ignored_total {self.retained_ignored}\n")
 
     def _on_message(self, client, userdata, msg) -> None:
         self.messages += 1
         m = self.engine.metrics
         topic = getattr(msg, "topic", "?")
+        if getattr(msg, "retain", False):
+            # the broker's retained copy, re-sent at the subscription: not a measurement
+            # of now (stored once when it came live; module docstring)
+            self.retained_ignored += 1
+            if self.retained_ignored == 1:
+                print(f"MQTT: a retained message on {topic} ignored (the broker re-sends "
+                      "a topic's retained message at each subscription; its rows were "
+                      "stored when it came live; robustloc_mqtt_retained_ignored_total)",
+                      file=sys.stderr, flush=True)
+            if getattr(msg, "qos", 0) > 0:
+                self.client.ack(msg.mid, msg.qos)
+            return
         try:
             self._ingest(msg.payload)
         except StoreWriteError as exc:  # not acknowledged: the broker sends it again
