@@ -1,14 +1,19 @@
 """``robustloc serve`` after the serve review: a ``--track`` service killed before its
-first state snapshot resumes every tag's filter.
+first state snapshot resumes every tag's filter; a position subscriber that never reads
+holds a bounded number of bytes.
 
-A real ``robustloc serve`` on a free loopback port, stopped by the test; the offline
-reference is ``robustloc track`` on the same file.  Bounded: two tags of 120 epochs of four
-ranges, one ``kill -9``, two server starts.
+Real ``robustloc serve`` processes on free loopback ports, stopped by the tests; the
+offline reference is ``robustloc track`` on the same file.  Bounded: two tags of 120
+epochs of four ranges, one ``kill -9``, two server starts; 110 epochs of 2 000 tags into
+one stalled WebSocket.
 """
 
 from __future__ import annotations
 
+import base64
 import json
+import os
+import socket
 import urllib.request
 from pathlib import Path
 
@@ -24,7 +29,7 @@ from _waiting import wait_until  # noqa: E402
 from test_replay_resume import ANCHORS, _anchors_file  # noqa: E402
 
 from robustloc.cli import main  # noqa: E402
-from robustloc.service.launch import ServerProcess  # noqa: E402
+from robustloc.service.launch import ServerProcess, read_metric  # noqa: E402
 
 #: epochs per tag (every 0.5 s), and the epochs sent before the kill
 N_EPOCHS, CUT = 120, 50
@@ -111,3 +116,49 @@ def test_a_track_service_killed_before_its_first_snapshot_resumes_every_filter(t
         # writes 17 significant digits)
         np.testing.assert_allclose(got[c].astype(float), want[c], rtol=0, atol=1e-9,
                                    equal_nan=True, err_msg=c)
+
+
+def test_a_batch_subscriber_that_never_reads_holds_at_most_ws_queue_bytes(
+        tmp_path, server_factory):
+    """A ``/ws/positions?batch=1`` subscriber that never reads: its queue was bounded by
+    20 000 messages, each a whole solved block (650 kB at 2 000 tags: some 13 GB held
+    before the first drop; the serve review's 400 blocks grew the server by 255 MB more
+    than without the subscriber, no drop).  Now by :data:`WS_QUEUE_BYTES` too: the queue
+    stops growing at 32 MiB, and the oldest blocks are dropped and counted."""
+    srv = server_factory(["--anchors", str(_anchors_file(tmp_path))],
+                         startup_timeout_s=120)
+    port = srv.url.rsplit(":", 1)[1]
+    sock = socket.create_connection(("127.0.0.1", int(port)))
+    try:  # a WebSocket handshake, then never a byte read (a small receive window)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        key = base64.b64encode(os.urandom(16)).decode()
+        sock.sendall(f"GET /ws/positions?batch=1 HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n"
+                     "Upgrade: websocket\r\nConnection: Upgrade\r\n"
+                     f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n"
+                     .encode())
+        head = b""
+        while b"\r\n\r\n" not in head:  # (the answer's headers; no frame comes before)
+            head += sock.recv(1024)
+        assert head.startswith(b"HTTP/1.1 101 "), head
+        xy = np.array(list(ANCHORS.values()))
+        d = np.hypot(*(xy - [3.0, 4.0]).T)
+        n_tags, queued = 2000, []
+        for k in range(110):  # one block of 2 000 rows (some 420 kB of JSON) per epoch
+            rows = pd.DataFrame([{"time": float(k), "tag": f"t{j:05d}", "anchor": a,
+                                  "range": float(r)}
+                                 for j in range(n_tags) for a, r in zip(ANCHORS, d)])
+            assert _post(srv.url, rows)["accepted"] == len(rows)
+            if k in (90, 109):
+                wait_until(lambda n=k: read_metric(srv.url, "robustloc_positions_total")
+                           >= n * n_tags, 60, "the blocks solved")
+                queued.append(read_metric(srv.url, "robustloc_ws_queued_bytes"))
+        dropped = read_metric(srv.url, "robustloc_ws_messages_dropped_total")
+    finally:
+        sock.close()
+    # 110 blocks of some 420 kB (46 MB) into a 32 MiB queue: the oldest dropped, counted
+    assert dropped > 0, (dropped, queued)
+    # the queue stops growing: full (within one block of the bound), never beyond it
+    from robustloc.service.app import WS_QUEUE_BYTES
+
+    block = 2 * WS_QUEUE_BYTES / 100  # (a block is some 420 kB: 2 % of the bound is wider)
+    assert all(WS_QUEUE_BYTES - block <= q <= WS_QUEUE_BYTES for q in queued), queued

@@ -22,7 +22,9 @@ positions durably, and publishes positions over HTTP, WebSocket and a live map p
 Ingest: POST /api/measurements (JSON array, NDJSON or one object of {"time","tag","anchor","rssi"|
 "range"}), WebSocket /ws/measurements, or MQTT (--mqtt HOST:PORT, topic --mqtt-topic,
 payload = the same JSON). Reads: GET /api/positions?tag=&since=&until=, /api/anchors,
-/metrics (Prometheus), WebSocket /ws/positions[?tag=]. /healthz needs no token.
+/metrics (Prometheus), WebSocket /ws/positions[?tag=][&batch=1] (a subscriber too slow to
+keep up holds at most 20 000 messages and 32 MiB; past either its oldest are dropped,
+counted in robustloc_ws_messages_dropped_total). /healthz needs no token.
 
 Epoch assembly: an epoch (time, tag) is solved once it is older than the newest time seen
 for its tag by more than --latency-window seconds (default 0.5 s), or when its tag has been

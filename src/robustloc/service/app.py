@@ -32,6 +32,7 @@ browsers cannot set headers on a WebSocket).
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import gc
 import hmac
@@ -73,6 +74,11 @@ if TYPE_CHECKING:  # (paho-mqtt is imported only with --mqtt)
 
 #: Queued messages per position subscriber before the oldest are dropped (and counted).
 WS_QUEUE = 20_000
+#: Queued characters (bytes of the ASCII JSON) per position subscriber before the oldest
+#: messages are dropped (and counted): 32 MiB, some 100 000 rows, 5 s of a 10 Hz service's
+#: blocks at 2 000 tags.  The count alone let a ``batch=1`` subscriber that never reads
+#: hold 20 000 whole blocks (some 13 GB at 2 000 tags; the serve review).
+WS_QUEUE_BYTES = 32 * 1024 * 1024
 #: WebSocket close code "message too big" (RFC 6455 sec. 7.4.1).
 WS_MESSAGE_TOO_BIG = 1009
 #: WebSocket close code "policy violation" (RFC 6455 sec. 7.4.1).
@@ -259,8 +265,56 @@ class RateLimiter:
         return 0.0
 
 
+class Outbox:
+    """A position subscriber's messages waiting to be sent, bounded by their number and
+    their size: past either bound the oldest are dropped, the newest always kept (one
+    message larger than ``max_chars`` is held alone).  Used from the event loop only.
+
+    Parameters
+    ----------
+    max_messages : int
+        Most messages held (:data:`WS_QUEUE`).
+    max_chars : int
+        Most characters held, summed over the messages (:data:`WS_QUEUE_BYTES`; the
+        messages are ASCII JSON: characters are bytes).
+    """
+
+    def __init__(self, max_messages: int = WS_QUEUE, max_chars: int = WS_QUEUE_BYTES) -> None:
+        self.max_messages = max_messages
+        self.max_chars = max_chars
+        self._items: collections.deque[str] = collections.deque()
+        #: characters held
+        self.chars = 0
+        self._ready = asyncio.Event()
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def put(self, msg: str) -> int:
+        """Append ``msg``; returns how many of the oldest messages were dropped for it."""
+        self._items.append(msg)
+        self.chars += len(msg)
+        dropped = 0
+        while len(self._items) > 1 and (len(self._items) > self.max_messages
+                                        or self.chars > self.max_chars):
+            self.chars -= len(self._items.popleft())
+            dropped += 1
+        self._ready.set()
+        return dropped
+
+    async def get(self) -> str:
+        """The oldest message (waits for one)."""
+        while not self._items:
+            self._ready.clear()
+            await self._ready.wait()
+        msg = self._items.popleft()
+        self.chars -= len(msg)
+        return msg
+
+
 class Hub:
-    """Fan-out of position rows to WebSocket subscribers (one bounded queue each).
+    """Fan-out of position rows to WebSocket subscribers (one bounded :class:`Outbox`
+    each, by messages and by size).
 
     A subscriber gets every row as one message, or (``batch``) one message per solved
     block, the JSON array of its rows; ``tag`` keeps one tag's rows only.
@@ -269,7 +323,12 @@ class Hub:
     def __init__(self, engine: Engine) -> None:
         self.engine = engine
         self.loop: asyncio.AbstractEventLoop | None = None
-        self.subs: dict[int, tuple[asyncio.Queue, str | None, bool]] = {}
+        self.subs: dict[int, tuple[Outbox, str | None, bool]] = {}
+
+    @property
+    def queued_chars(self) -> int:
+        """Characters queued for every subscriber (``robustloc_ws_queued_bytes``)."""
+        return sum(q.chars for q, _, _ in list(self.subs.values()))
 
     def publish(self, frame: pd.DataFrame) -> None:
         """Called from the solver thread."""
@@ -296,11 +355,10 @@ class Hub:
                 for ln in mine:
                     self._put(q, ln)
 
-    def _put(self, q: asyncio.Queue, msg: str) -> None:
-        if q.full():
-            q.get_nowait()
-            self.engine.metrics.ws_dropped += 1
-        q.put_nowait(msg)
+    def _put(self, q: Outbox, msg: str) -> None:
+        dropped = q.put(msg)
+        if dropped:
+            self.engine.metrics.ws_dropped += dropped
 
 
 try:  # round-trip float formatting (shortest repr), NaN and infinities as null
@@ -517,6 +575,11 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             return unauthorized()
         text = engine.metrics.render(engine.assembler.n_pending, engine.assembler.n_tags,
                                      engine.solver_errors, engine.position_store_errors)
+        text += ("# HELP robustloc_ws_queued_bytes Position messages queued for the "
+                 "WebSocket subscribers, in bytes (each subscriber holds at most "
+                 f"{WS_QUEUE_BYTES} and {WS_QUEUE} messages; past either the oldest are "
+                 "dropped).\n# TYPE robustloc_ws_queued_bytes gauge\n"
+                 f"robustloc_ws_queued_bytes {hub.queued_chars}\n")
         if cfg.mqtt is not None:
             text += cfg.mqtt.prometheus()
         return PlainTextResponse(text, media_type="text/plain; version=0.0.4")
@@ -530,7 +593,7 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             await ws.close(code=1008)
             return
         await ws.accept()
-        q: asyncio.Queue = asyncio.Queue(maxsize=WS_QUEUE)
+        q = Outbox()
         key = id(q)
         hub.subs[key] = (q, ws.query_params.get("tag") or None,
                          ws.query_params.get("batch", "0").lower() in ("1", "true", "yes"))
