@@ -234,9 +234,13 @@ def test_every_epoch_at_one_point_is_flagged_and_left_out():
     assert not r.free.any()
     assert np.all(r.slope == 1.0) and np.all(r.offset == 0.0)
     assert np.all(np.isnan(r.slope_se)) and np.all(np.isnan(r.offset_se))
-    assert r.warnings == [w for w in r.warnings if "anchors A, B, C, D, E: cannot "
-                          "determine bias or scale: the tag does not move" in w]
-    assert len(r.warnings) == 1
+    # (and, since 2026-12-07, their sigmas, which carry the unfitted biases)
+    assert r.warnings == [w for w in r.warnings if w.startswith((
+        "anchors A, B, C, D, E: cannot determine bias or scale: the tag does not move",
+        "anchors A, B, C, D, E: cannot determine sigma: its parameters were left out "
+        "(the tag does not move)"))]
+    assert not r.sigma_determined().any()
+    assert len(r.warnings) == 2  # (the parameters, and the sigmas since 2026-12-07)
 
 
 def _static_or_circling(rng, path):
@@ -258,7 +262,9 @@ def test_static_tag_with_noisy_start_fixes_leaves_every_parameter_out():
     r = SelfCalibrator("range").fit(ANCHORS, z, x0, anchor_ids=list("ABCDE"))
     assert not r.free.any()
     assert np.all(r.slope == 1.0) and np.all(r.offset == 0.0)
-    assert len(r.warnings) == 1 and "the tag does not move" in r.warnings[0]
+    assert len(r.warnings) == 2 and "the tag does not move" in r.warnings[0]
+    assert ("cannot determine sigma: its parameters were left out (the tag does not move)"
+            in r.warnings[1])
     # the same log with the tag moving is calibrated (no motion test fires)
     _, z2, x2 = _static_or_circling(np.random.default_rng(11), lambda t: np.c_[
         5 + 3 * np.sin(t / 23), 4 + 2.5 * np.cos(t / 31)])
@@ -284,7 +290,9 @@ def test_static_rssi_tag_leaves_A_and_n_out():
                                    anchor_ids=list("ABCDE"))
     assert not r.free.any()
     assert np.all(r.offset == -60.0) and np.all(r.slope == 2.0)
-    assert len(r.warnings) == 1 and "A or n: the tag does not move" in r.warnings[0]
+    assert len(r.warnings) == 2 and "A or n: the tag does not move" in r.warnings[0]
+    assert ("cannot determine sigma: its parameters were left out (the tag does not move)"
+            in r.warnings[1])
 
 
 def test_constant_distance_to_an_anchor_leaves_its_scale_out_and_keeps_its_bias():
@@ -684,6 +692,7 @@ def test_many_anchors_left_out_for_one_reason_get_one_warning_line():
     silent = [w for w in r.warnings if "no observation" in w]
     few = [w for w in r.warnings if selfcal.FEW_REASON in w]
     assert silent == [f"anchors {', '.join(ids[5:25])} and 5 more: no observation; "
-                      "parameters left at the prior, sigma the median of the other anchors'"]
+                      "parameters and sigma left at their priors (sigma: the anchors "
+                      "file's, else the median of the other anchors')"]
     assert len(few) == 1 and few[0].startswith(f"anchors {', '.join(ids[30:50])} and 4 more")
     assert not r.free[5:].any() and r.free[:5].all()

@@ -47,8 +47,14 @@ cannot determine (inseparable from the positions, a model standard error above -
 sigma, a scale with the tags in the far field of the anchors or with the anchors close to
 a line, a scale of an anchor whose distance to the tag hardly varies, every parameter when
 the tag does not move, those of an anchor heard in fewer epochs than its parameters + 2)
-gets a warning and is left at its prior (bias 0, scale 1, or the
-anchors file's A, n).  Writes the columns bias, scale, sigma (or A, n, sigma) and their
+gets a warning and is left at its prior: the anchors file's bias and scale (0 and 1 where
+it has none) or A, n; the adjustment starts from the raw ranges either way, so what the log
+determines does not depend on them.  A sigma the log cannot determine (an anchor whose
+parameters were left out because the tag does not move, it is heard in too few epochs or
+the log has no redundancy; or a variance component of at most 2 degrees of freedom) gets a
+warning too: the anchors file's sigma stays, else the median of the determined anchors'
+is written, and when no anchor's is determined none (locate then measures the log's noise
+scale).  Writes the columns bias, scale, sigma (or A, n, sigma) and their
 standard errors, cluster-robust over 50 time blocks of the log (errors that persist while
 a tag dwells make the independent-epoch ones too small); the start fixes use the anchors
 file's A, n for RSSI.  The start fixes are tested as `locate` tests them: an epoch whose fix is not
@@ -66,8 +72,9 @@ Prints each fit with standard errors and the residual standard deviation (dB or 
 (consecutive epochs at one truth position; a moving tag's epochs in at most 50 blocks of
 time), a survey file's rows are taken as independent; writes --anchors with the fitted
 columns, their standard errors (<col>_se) and sigma (the residual standard deviation;
-with --robust the MAD scale of the residuals, which gross errors do not inflate; by which
-`locate` weights the anchors) added or replaced --
+with --robust the MAD scale of the residuals, which gross errors do not inflate; for
+ranges divided by the scale: the standard deviation of the corrected range
+(range - bias) / scale, which `locate` fits and weights by it) added or replaced --
 earlier standard errors and calib_fixed are dropped -- or, without --anchors, the
 parameter table with the same columns.  Anchors with too few survey rows, or absent from
 it, get the pooled fit (column calib_source; a note names the absent ones, which keep

@@ -448,12 +448,20 @@ class CalibrationResult:
         return [f"{c}_se" for c in FIT_COLUMNS[self.model] if f"{c}_se" in self.table.columns]
 
     def _sigma(self, ids: pd.Series) -> Array:
-        """The ``sigma`` written per anchor id (see :meth:`apply_to_anchors`)."""
+        """The ``sigma`` written per anchor id (see :meth:`apply_to_anchors`): for ranges
+        divided by the ``scale`` written, the standard deviation of the corrected range
+        ``(range - bias) / scale`` that ``locate`` fits (the residual standard deviation
+        is the raw range's)."""
         par = self.parameters()
-        pooled_sd = float(self.table.set_index("anchor").loc[POOLED, "residual_std"])
+        pooled = self.table.set_index("anchor").loc[POOLED]
+        pooled_sd = float(pooled["residual_std"])
         sd = ids.map(par["residual_std"]).astype(float).to_numpy()
         use_pooled = self.pooled | ~(np.isfinite(sd) & (sd > 0))
-        return _sigma_floor(np.where(use_pooled, pooled_sd, sd))
+        sd = np.where(use_pooled, pooled_sd, sd)
+        if self.model == "range":
+            sc = ids.map(par["scale"]).astype(float).fillna(float(pooled["scale"]))
+            sd = sd / sc.to_numpy()
+        return _sigma_floor(sd)
 
     def apply_to_anchors(self, anchors: pd.DataFrame | None) -> pd.DataFrame:
         """Anchors frame with the fitted columns set (added or replaced).
@@ -471,7 +479,9 @@ class CalibrationResult:
         where the pooled fit is written) and ``sigma``, the fit's residual standard
         deviation (dB for RSSI, m for ranges; of a robust fit the MAD scale of its
         residuals; the pooled one for pooled fits or where an anchor's own is not
-        positive).  ``robustloc locate`` weights each anchor by it.
+        positive), for ranges divided by the ``scale`` written: the standard deviation
+        of the corrected range ``(range - bias) / scale``.  ``robustloc locate`` weights
+        each anchor by it.
         """
         cols = list(FIT_COLUMNS[self.model])
         se = self.se_columns()
@@ -1244,7 +1254,7 @@ def self_calibration_table(
     and ``gamma`` (its ``faf`` and ``d0`` kept), for Friis ``p0 = A - 20 lg d0``; standard
     errors propagated from the ``(A, n)`` covariance.  Also ``n_obs``, ``n_used``,
     ``calib_source = "self"`` and ``calib_fixed`` (the parameters left at their prior).
-    A left-out parameter has an empty standard error.
+    A left-out parameter has an empty standard error.  ``sigma``: :func:`_self_sigma`.
     """
     from robustloc.models.pathloss import AttenuationFactor, FreeSpace
 
@@ -1252,10 +1262,11 @@ def self_calibration_table(
     off, slo, cov = res.offset, res.slope, res.cov
     o_name, s_name = res.param_names
     fixed = [";".join(n for n, f in zip(res.param_names, fr) if not f) for fr in res.free]
+    sigma = _self_sigma(res, anchors)
     cols: dict[str, Array] = {}
     drop: list[str] = []
     if res.kind == "range":
-        cols = {"bias": off, "scale": slo, "sigma": res.sigma,
+        cols = {"bias": off, "scale": slo, "sigma": sigma,
                 "bias_se": res.offset_se, "scale_se": res.slope_se}
     elif isinstance(model, (AttenuationFactor, FreeSpace)):
         m = len(ids)
@@ -1265,14 +1276,14 @@ def self_calibration_table(
             faf = np.broadcast_to(np.asarray(model.faf, dtype=float), (m,))
             p0 = off - faf - c * slo  # seed 002 eq. (5) as A - 10 gamma lg d
             var = cov[:, 0, 0] + c * c * cov[:, 1, 1] - 2.0 * c * cov[:, 0, 1]
-            cols = {"p0": p0, "gamma": slo, "faf": faf, "d0": d0, "sigma": res.sigma,
+            cols = {"p0": p0, "gamma": slo, "faf": faf, "d0": d0, "sigma": sigma,
                     "p0_se": np.where(res.free[:, 0], np.sqrt(np.maximum(var, 0)), np.nan),
                     "gamma_se": res.slope_se}
         else:
-            cols = {"p0": off - 2.0 * c, "d0": d0, "sigma": res.sigma, "p0_se": res.offset_se}
+            cols = {"p0": off - 2.0 * c, "d0": d0, "sigma": sigma, "p0_se": res.offset_se}
         drop = [c_ for c_ in _ALL_PATHLOSS_COLUMNS if c_ not in cols]
     else:
-        cols = {"A": off, "n": slo, "sigma": res.sigma, "A_se": res.offset_se,
+        cols = {"A": off, "n": slo, "sigma": sigma, "A_se": res.offset_se,
                 "n_se": res.slope_se}
         drop = [c_ for c_ in _ALL_PATHLOSS_COLUMNS if c_ not in cols]
     table = pd.DataFrame({"anchor": ids, **cols, "n_obs": res.n_obs, "n_used": res.n_used,
@@ -1280,11 +1291,35 @@ def self_calibration_table(
     out = anchors.drop(columns=[c_ for c_ in drop + [f"{c_}_se" for c_ in drop]
                                 if c_ in anchors.columns]).copy()
     cols["sigma"] = _sigma_floor(cols["sigma"])
+    if not np.isfinite(cols["sigma"]).any():
+        del cols["sigma"]  # (no anchor's determined, none in the file: none written)
     for k, v in cols.items():
         out[k] = np.asarray(v, dtype=float)
     out["calib_source"] = "self"
     out["calib_fixed"] = fixed
     return table, out
+
+
+def _self_sigma(res: SelfCalibration, anchors: pd.DataFrame) -> Array:
+    """The ``sigma`` a self-calibration writes: the standard deviation of the value
+    ``locate`` fits, so for ranges of the corrected range ``(range - bias) / scale``,
+    ``res.sigma / scale`` (``res.sigma`` is the raw range's: with a scale of 1.5 and
+    0.2 m of noise the file said 0.229 m where the corrected ranges spread 0.139 m, the
+    self-calibration review).  Where the log does not determine an anchor's sigma
+    (:meth:`SelfCalibration.sigma_determined`) the anchors file's ``sigma`` stays; without
+    one, the median of the determined anchors'; when no anchor's is determined and the
+    file has none, none (NaN: ``locate`` then measures the log's noise scale itself)."""
+    sig = np.asarray(res.sigma, dtype=float)
+    if res.kind == "range":
+        sig = sig / np.asarray(res.slope, dtype=float)
+    det = res.sigma_determined() & np.isfinite(sig) & (sig > 0)
+    prior = (to_number(anchors["sigma"]).to_numpy(dtype=float) if "sigma" in anchors.columns
+             else np.full(sig.shape, np.nan))
+    out = np.where(det, sig, prior)
+    missing = ~np.isfinite(out)
+    if missing.any() and det.any():
+        out[missing] = float(np.median(sig[det]))
+    return out
 
 
 def default_p0_from_anchors(anchors: pd.DataFrame | None) -> dict[str, float] | None:

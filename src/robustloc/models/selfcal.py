@@ -167,6 +167,11 @@ STATIC_TAGS_REASON = "the tags do not move"
 #: line for every such anchor: a short log of a large site has hundreds).
 FEW_REASON = ("heard in fewer epochs with a fix than its free parameters + 2 (a gross "
               "range would be taken for a parameter; n_used gives the count)")
+#: Start of the reason given when the log has no redundancy left for the calibration.
+NO_REDUNDANCY_REASON = "no redundancy left for it"
+#: An anchor whose parameters were left out for one of these reasons has no determined
+#: ``sigma`` either (:meth:`SelfCalibrator._sigma_undetermined`).
+SIGMA_WITH_PARAMS = (STATIC_REASON, STATIC_TAGS_REASON, FEW_REASON, NO_REDUNDANCY_REASON)
 #: Parameter names per kind: (offset, slope).
 PARAM_NAMES = {"range": ("bias", "scale"), "rssi": ("A", "n")}
 #: Gaussian draws (observations) from which :meth:`SelfCalibrator._sigma_consistency`
@@ -209,8 +214,13 @@ class SelfCalibration:
     offset, slope : (m,) estimates (``bias, scale`` or ``A, n``); prior where left out.
     offset_se, slope_se : (m,) standard errors; NaN where left out (fixed).
     cov : (m, 2, 2) covariance of ``(offset, slope)`` per anchor (0 rows where fixed).
-    sigma : (m,) robust standard deviation of one observation (m or dB).
+    sigma : (m,) robust standard deviation of one observation (m or dB), in the units
+        of the raw observation ``z``; for ranges the corrected range ``(z - bias) /
+        scale`` has ``sigma / scale``, which
+        :func:`robustloc.models.calibration.self_calibration_table` writes.
     free : (m, 2) bool, which parameters were estimated.
+    sigma_free : (m,) bool, which ``sigma`` the log determined
+        (:meth:`SelfCalibrator._sigma_undetermined`); None: every one.
     positions : (N, dim) adjusted positions (NaN for epochs left out).
     epoch_used : (N,) bool.
     weights : (N, m) final robust weights (NaN: not observed).
@@ -251,6 +261,14 @@ class SelfCalibration:
     converged: bool
     min_eigenvalue: float = float("nan")
     warnings: list[str] = field(default_factory=list)
+    sigma_free: NDArray[np.bool_] | None = None
+
+    def sigma_determined(self) -> NDArray[np.bool_]:
+        """Which anchors' ``sigma`` the log determined (:attr:`sigma_free`; every anchor
+        when it is None)."""
+        if self.sigma_free is None:
+            return np.ones(self.sigma.shape[0], dtype=bool)
+        return np.asarray(self.sigma_free, dtype=bool)
 
 
 @dataclass(frozen=True)
@@ -351,6 +369,8 @@ class SelfCalibrator:
         *,
         offset0: ArrayLike | None = None,
         slope0: ArrayLike | None = None,
+        offset_prior: ArrayLike | None = None,
+        slope_prior: ArrayLike | None = None,
         height_offset: ArrayLike | None = None,
         anchor_ids: list[str] | None = None,
         tags: ArrayLike | None = None,
@@ -363,7 +383,14 @@ class SelfCalibrator:
         values : (N, m) ranges (m) or RSSI (dBm) per epoch; NaN = not heard.
         x0 : (N, dim) start positions (e.g. robust fixes with the prior calibration);
             NaN rows are left out (counted as ``epochs_no_start``).
-        offset0, slope0 : (m,) priors (default bias 0 / scale 1; required for RSSI).
+        offset0, slope0 : (m,) the model the adjustment starts from, which the start
+            fixes ``x0`` used and the motion tests take as the prior calibration (default
+            bias 0 / scale 1; required for RSSI).
+        offset_prior, slope_prior : (m,) the values a parameter left out keeps, in the
+            adjustment and in the result (default ``offset0, slope0``; NaN: that
+            default).  ``calibrate --self`` passes the anchors file's range bias and scale
+            here and starts from 0 / 1: a parameter the log cannot determine keeps the
+            file's value, and the estimates of those it determines do not depend on it.
         height_offset : (m,) anchor-minus-tag heights for 2-D fixes from slant values.
         anchor_ids : names used in the warnings (default ``"0", "1", ...``).
         tags : (N,) each epoch's tag (default: one tag).  Tags that each stand still
@@ -383,7 +410,12 @@ class SelfCalibrator:
             raise ValueError("RSSI self-calibration needs the prior A and n of every anchor")
         off = np.zeros(m) if offset0 is None else np.array(offset0, dtype=float)
         slo = np.ones(m) if slope0 is None else np.array(slope0, dtype=float)
+        off_start, slo_start = off.copy(), slo.copy()  # the model of the start fixes
         off_prior, slo_prior = off.copy(), slo.copy()
+        for given, into in ((offset_prior, off_prior), (slope_prior, slo_prior)):
+            if given is not None:
+                q = np.broadcast_to(np.asarray(given, dtype=float), (m,))
+                into[np.isfinite(q)] = q[np.isfinite(q)]
         h2 = np.zeros(m) if height_offset is None else np.asarray(height_offset, float) ** 2
         obs = np.isfinite(z)
         start_ok = np.all(np.isfinite(x), axis=1)
@@ -403,8 +435,8 @@ class SelfCalibrator:
             named = ", ".join(ids[j] for j in silent[:20]) + (
                 f" and {silent.size - 20} more" if silent.size > 20 else "")
             warnings.append(f"anchor{'s' if silent.size > 1 else ''} {named}: no observation; "
-                            "parameters left at the prior, sigma the median of the other "
-                            "anchors'")
+                            "parameters and sigma left at their priors (sigma: the anchors "
+                            "file's, else the median of the other anchors')")
         left_out: dict[tuple[int, int], str] = {}
         # an anchor heard in too few epochs with a fix: its own parameters need a
         # redundancy of OWN_REDUNDANCY among its observations (module notes)
@@ -461,10 +493,13 @@ class SelfCalibrator:
         if red <= 0 and free.any():
             for j, p in zip(*np.nonzero(free)):
                 left_out[(int(j), int(p))] = (
-                    f"no redundancy left for it ({int(n_k[cand].sum())} observations in "
+                    f"{NO_REDUNDANCY_REASON} ({int(n_k[cand].sum())} observations in "
                     f"epochs with a fix, for {dim * int(cand.sum())} position unknowns and "
                     f"{int(free.sum())} parameters)")
             free[:] = False
+        # what is not estimated (left out so far, or never free) holds its prior
+        off = np.where(free[:, 0], off_start, off_prior)
+        slo = np.where(free[:, 1], slo_start, slo_prior)
         stages: list[WeightFunction] = [Huber(self.huber_c)]
         if self.igg3_k1 > 0:
             stages.append(IGG3(self.igg3_k0, self.igg3_k1))
@@ -492,13 +527,15 @@ class SelfCalibrator:
             if _round == 0 and free.any():
                 # motion tests on the start fixes, with the noise of this first adjustment
                 # (module notes): what they leave out is re-adjusted from the start
-                out = self._motion_test(a, z, obs, x_start, off_prior, slo_prior, h2,
+                out = self._motion_test(a, z, obs, x_start, off_start, slo_start, h2,
                                         state, free, ids, left_out, tag_codes)
                 if out:
                     for j, p in out:
                         free[j, p] = False
                     # re-adjusted from scratch, as if left out from the start
-                    off, slo, x = off_prior.copy(), slo_prior.copy(), x_start.copy()
+                    off = np.where(free[:, 0], off_start, off_prior)
+                    slo = np.where(free[:, 1], slo_start, slo_prior)
+                    x = x_start.copy()
                     continue
             # standard-error test: leave out the worst offending parameter (and the
             # offenders that share no epoch with it: _se_test), re-adjust
@@ -539,6 +576,18 @@ class SelfCalibrator:
                 off[j] = off_prior[j]
             else:
                 slo[j] = slo_prior[j]
+        sigma_why = self._sigma_undetermined(state["sigma_dof"], free, left_out, heard)
+        by_why: dict[str, list[int]] = {}
+        for j, why in sigma_why.items():
+            if heard[j] > 0:  # (an anchor never heard has its warning above)
+                by_why.setdefault(why, []).append(j)
+        for why, who in by_why.items():
+            named = ", ".join(ids[j] for j in who[:20]) + (
+                f" and {len(who) - 20} more" if len(who) > 20 else "")
+            warnings.append(f"anchor{'s' if len(who) > 1 else ''} {named}: cannot determine "
+                            f"sigma: {why}; left out (kept at its prior)")
+        sigma_free = np.ones(m, dtype=bool)
+        sigma_free[list(sigma_why)] = False
         if ran_away:
             warnings.append(f"the redescending stage (IGG-III) left the Huber estimate for "
                             f"a fit whose noise scale is over {RUNAWAY_SCALE:g} times "
@@ -564,7 +613,52 @@ class SelfCalibrator:
                                              & state["used"][:, None])),
             sigma0=float(state["sigma0"]), iterations=total_it, converged=converged,
             min_eigenvalue=float(state["min_ev"]), warnings=warnings,
+            sigma_free=sigma_free,
         )
+
+    def _sigma_undetermined(
+        self, dof: Array, free: NDArray[np.bool_], left_out: dict[tuple[int, int], str],
+        heard: NDArray[np.int64],
+    ) -> dict[int, str]:
+        """The anchors whose ``sigma`` the log does not determine, with the reason.
+
+        * never heard;
+        * no parameter estimated, left out because the tag does not move, the tags stand
+          still, the anchor is heard in too few epochs or the log has no redundancy
+          (:data:`SIGMA_WITH_PARAMS`): its residuals then carry its unfitted bias (on a
+          simulated static tag the sigmas came out 0.11-1.04 m for a truth of
+          0.10-0.17 m, and ``locate`` went 0.21 -> 0.53 m RMS with them; the
+          self-calibration review);
+        * the variance component has at most :data:`SIGMA_MIN_DOF` degrees of freedom
+          (Satterthwaite's ``nu_j = 2 var_j^2 / Var(var_j)`` of the MINQUE,
+          :meth:`_vce_dof`; ``nu_j <= 2`` is the estimate within one standard error of
+          zero): the two degrees of freedom a truth-based calibration asks of an anchor's
+          own sigma (:func:`robustloc.models.calibration._own_fit`).  With ``nu = 2``
+          the variance is ``chi2_2 / 2`` distributed: one anchor in 20 reads it below
+          1/20 of the truth (its sigma below 0.22 of it), and ``locate`` weights it by
+          that; a one-epoch log of five anchors (3 residual degrees of freedom for five
+          components) wrote five sigmas off by factors 0.46-14.
+        """
+        out: dict[int, str] = {}
+        short = {STATIC_REASON: "the tag does not move",
+                 STATIC_TAGS_REASON: "the tags do not move",
+                 FEW_REASON: "it is heard in too few epochs",
+                 NO_REDUNDANCY_REASON: "the log has no redundancy"}
+        for j in range(free.shape[0]):
+            if heard[j] == 0:
+                out[j] = "no observation"
+                continue
+            whys = [w for (jj, _), w in left_out.items()
+                    if jj == j and w.startswith(SIGMA_WITH_PARAMS)]
+            if whys and not free[j].any():
+                label = next(v for k, v in short.items() if whys[0].startswith(k))
+                out[j] = (f"its parameters were left out ({label}), so its residuals "
+                          "carry their errors")
+            elif not dof[j] > SIGMA_MIN_DOF:
+                nu = max(float(np.nan_to_num(dof[j])), 0.0)
+                out[j] = (f"the log gives its variance {nu:.2g} degrees of freedom, at "
+                          f"most {SIGMA_MIN_DOF:g} (not told from zero)")
+        return out
 
     # ------------------------------------------------------------------ core
     def _iterate(
@@ -598,8 +692,8 @@ class SelfCalibrator:
             # q_vv = 1 - h, h the leverage of the observation within its epoch's fix
             P = np.where(base[:, None], w, 0.0) / sigma[None, :] ** 2
             veq, R, regular = self._robust_fit(Jx, np.where(base[:, None], w, 0.0), v)
-            sigma = self._vce(veq, R, np.where(base[:, None] & obs, w, 0.0), kappa,
-                              median=median_scale)
+            sigma, sigma_dof = self._vce_dof(veq, R, np.where(base[:, None] & obs, w, 0.0),
+                                             kappa, median=median_scale)
             with np.errstate(invalid="ignore", divide="ignore"):
                 u = veq / np.sqrt(R.variances(sigma**2))
             w = np.where(obs, np.nan_to_num(wf.weights(np.where(obs, u, 0.0)), nan=0.0), 0.0)
@@ -660,7 +754,7 @@ class SelfCalibrator:
         return {
             "x": x, "off": off, "slo": slo, "sigma": sigma, "w": w, "used": used,
             "no_red": no_red, "bad": bad, "cov": cov, "cov_model": cov_model,
-            "sigma0": np.sqrt(s02),
+            "sigma0": np.sqrt(s02), "sigma_dof": sigma_dof,
             "iterations": it, "converged": converged, "fsd": fsd, "min_ev": sol["min_ev"],
         }
 
@@ -721,9 +815,15 @@ class SelfCalibrator:
         res = _Residuals(front, R, m)
         return res.scatter(veq, 0.0), res, regular
 
-    @staticmethod
-    def _vce(veq: Array, R: _Residuals, W: Array, kappa: float,
+    @classmethod
+    def _vce(cls, veq: Array, R: _Residuals, W: Array, kappa: float,
              median: bool = False) -> Array:
+        """:meth:`_vce_dof`'s scales alone."""
+        return cls._vce_dof(veq, R, W, kappa, median)[0]
+
+    @staticmethod
+    def _vce_dof(veq: Array, R: _Residuals, W: Array, kappa: float,
+                 median: bool = False) -> tuple[Array, Array]:
         """Per-anchor variances from the whole log, unbiased (MINQUE with the robust
         weights as the norm, Rao 1971; Koch, "Parameter Estimation and Hypothesis Testing
         in Linear Models", sec. 3.6): ``sum_k w_kj v_kj^2 = sum_i (sum_k w_kj R_k,ji^2)
@@ -751,7 +851,13 @@ class SelfCalibrator:
         The robust weights shrink the tails: ``sum w v^2`` is divided by
         ``kappa = E[w(u) u^2] / P(w(u) > 0)`` for standard normal ``u``
         (:func:`_consistency`) and ``B`` counts the observations in use, so that the
-        estimate is consistent for Gaussian errors."""
+        estimate is consistent for Gaussian errors.
+
+        Returns the scales and each anchor's degrees of freedom, Satterthwaite's
+        ``nu_j = 2 var_j^2 / Var(var_j)`` at the unfloored estimate (the ``nu`` of a
+        ``chi2_nu / nu`` with the estimate's variance; 0 where the estimate is not
+        positive, NaN where it could not be formed): "not told from zero" above is
+        ``nu_j <= 2``."""
         m = veq.shape[1]
         R2 = R.R * R.R
         if median:
@@ -810,7 +916,11 @@ class SelfCalibrator:
         out = np.where(ok, np.sqrt(var), naive)
         pos = np.isfinite(out) & (out > 0)
         fill = float(np.median(out[pos])) if pos.any() else 1.0
-        return np.where(pos, out, fill)
+        sig = np.where(pos, out, fill)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            dof = np.where(ok & np.isfinite(se_var),
+                           np.where(raw > 0, 2.0 * raw**2 / se_var**2, 0.0), np.nan)
+        return sig, dof
 
     def _sigma_consistency(
         self, Jx: Array, obs: NDArray[np.bool_], used: NDArray[np.bool_], sigma: Array,
@@ -1282,6 +1392,11 @@ class SelfCalibrator:
 #: of an anchor heard once became its "bias" (5.8 m, standard error 0.15 m, on a site of
 #: 196 anchors with 200 epochs).
 OWN_REDUNDANCY = 2
+
+#: An anchor's ``sigma`` is left out when the degrees of freedom of its variance
+#: component are at most this (:meth:`SelfCalibrator._sigma_undetermined`): the
+#: :data:`OWN_REDUNDANCY` a truth-based calibration asks of an anchor's own sigma.
+SIGMA_MIN_DOF = float(OWN_REDUNDANCY)
 
 
 #: From this many anchors the standard-error test takes, with the worst offender, the

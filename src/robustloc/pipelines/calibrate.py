@@ -402,6 +402,10 @@ def self_calibrate(
     median anchor's, as ``locate`` reports them
     (:func:`robustloc.pipelines.locate.suspect_of_scale`).
 
+    The priors, which a parameter the log cannot determine keeps: the anchors' ``A, n``
+    (RSSI; also the start) or their range ``bias, scale`` (0 / 1 where not given; the
+    adjustment starts from 0 / 1 and the raw ranges' fixes either way).
+
     Returns ``(SelfCalibration, path-loss model or None)``; the anchors frame with the new
     columns is ``robustloc.models.calibration.self_calibration_table(res, anchors, model)``.
     """
@@ -425,11 +429,17 @@ def self_calibrate(
         res = cal.fit(xyz, values, start, offset0=A0, slope0=n0,
                       height_offset=height_offset, anchor_ids=ids, tags=tags)
     else:
+        from robustloc.models.calibration import range_calibration
+
+        # the raw ranges' fixes and model (0 / 1) are the start, so that what the log
+        # determines does not depend on the anchors file's bias and scale; a parameter it
+        # cannot determine keeps the file's (its prior)
+        bias0, scale0 = range_calibration(anchors)
         start = _start_fixes(xyz, values, "range", height_offset=height_offset, ids=ids,
                              diagnostics=diagnostics)
         cal = SelfCalibrator("range", fit_slope=fit_scale, se_ratio=se_ratio)
-        res = cal.fit(xyz, values, start, height_offset=height_offset,
-                      anchor_ids=ids, tags=tags)
+        res = cal.fit(xyz, values, start, offset_prior=bias0, slope_prior=scale0,
+                      height_offset=height_offset, anchor_ids=ids, tags=tags)
     return res, model
 
 
@@ -546,6 +556,7 @@ def _self(settings: CalibrateSettings, anchors: pd.DataFrame, self_log: Any) -> 
         notes.append("the standard errors assume that the parameters left out equal "
                      "their priors: where one does not, the estimates that share its "
                      "epochs are off by more than their standard errors say")
+    notes.extend(_sigma_notes(res, anchors, out))
     notes.extend(_dropped_columns(anchors, out))
     if kind == "rssi":
         # the self-calibration review: on simulated logs the (A, n) estimates were off by
@@ -570,6 +581,30 @@ def _self(settings: CalibrateSettings, anchors: pd.DataFrame, self_log: Any) -> 
     summary["warnings"] = warn
     return Calibration(out, table, "m" if kind == "range" else "dB", summary, headline,
                        notes=notes, warnings=[f"{_name(self_log)}: {w}" for w in warn])
+
+
+def _sigma_notes(res: Any, anchors: pd.DataFrame, out: pd.DataFrame) -> list[str]:
+    """What was written for the anchors whose sigma the log does not determine
+    (:func:`robustloc.models.calibration._self_sigma`)."""
+    und = ~res.sigma_determined()
+    if not und.any():
+        return []
+    ids = anchors["anchor"].astype(str).to_numpy()
+    if "sigma" not in out.columns or not to_number(out["sigma"]).notna().any():
+        return ["no sigma written: the log determines no anchor's (locate measures the "
+                "log's noise scale itself)"]
+    given = (to_number(anchors["sigma"]).notna().to_numpy() if "sigma" in anchors.columns
+             else np.zeros(len(ids), dtype=bool))
+    notes = []
+    for who, what in ((und & given, "the anchors file's sigma kept"),
+                      (und & ~given, "sigma written as the median of the determined "
+                       "anchors'")):
+        if who.any():
+            sel = ids[who]
+            named = ", ".join(sel[:20]) + (f" and {sel.size - 20} more" if sel.size > 20
+                                           else "")
+            notes.append(f"anchor(s) {named}: {what} (the log does not determine theirs)")
+    return notes
 
 
 def _suspect_warnings(suspect: dict[str, float]) -> list[str]:
