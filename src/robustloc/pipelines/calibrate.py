@@ -658,5 +658,7 @@ RSSI_SELFCAL_NOTE = (
     "carry an incidental-parameter bias the standard errors leave out (simulated 5-anchor "
     "rooms at 1 dB of noise: A off by 2-4 dB and n by 0.2-0.36, 3-6 standard errors, "
     "moving with the prior and the seed), and one-sided "
-    "gross errors (10 % of readings 10-25 dB weak) can take them far off; calibrate RSSI "
+    "gross errors (10 % of readings 10-25 dB weak) can take them far off, as can a tag that "
+    "keeps one distance to an anchor at 1.5 dB of noise or more (its n, with a small standard "
+    "error and no warning: docs/limits.md); calibrate RSSI "
     "from a survey (robustloc calibrate SURVEY) where you can")
