@@ -157,7 +157,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="filter (default ekf)")
     p.add_argument("--q", type=positive_float, default=d.q,
                    help="process noise: white-acceleration variance (m/s^2)^2 for cv, jerk "
-                        f"variance for ca, position step variance for static (default {d.q})")
+                        f"variance for ca, position step variance for static (default {d.q}; "
+                        "hpl has no term for the motion model's error: a tag that "
+                        "accelerates harder than q allows, 5-10 m/s turning, lags and 0.5-3 %% "
+                        "of its rows exceed hpl, see docs/limits.md)")
     p.add_argument("--weight", "--robust", dest="weight", default=None, choices=WEIGHTS,
                    type=choice(WEIGHT_SYNONYMS),
                    help="robust weight (default huber for ranges, asymmetric-igg with "
