@@ -469,6 +469,77 @@ def test_track_missing_column_in_one_tag_partition(sim, by_tag, scheduler, tmp_p
     assert not out.exists() and not list(tmp_path.glob(".trk.partial-*"))
 
 
+def _corrupt(path: Path, column: str) -> None:
+    """Rewrite ``path`` uncompressed and overwrite the second half of ``column``'s
+    column chunk (a dictionary-encoded text column: its indices then point outside the
+    dictionary); the footer stays intact, so the file opens and only reading that
+    column fails."""
+    import pyarrow.parquet as pq
+
+    pd.read_parquet(path).to_parquet(path, index=False, compression="none")
+    md = pq.ParquetFile(path).metadata
+    (cc,) = [md.row_group(0).column(j) for j in range(md.num_columns)
+             if md.row_group(0).column(j).path_in_schema == column]
+    start = cc.dictionary_page_offset or cc.data_page_offset
+    end = start + cc.total_compressed_size
+    b = bytearray(path.read_bytes())
+    b[(cc.data_page_offset + end) // 2:end] = b"\xab" * (end - (cc.data_page_offset + end) // 2)
+    path.write_bytes(bytes(b))
+    with pytest.raises(Exception):  # noqa: B017 - whatever pyarrow raises
+        pq.read_table(path, columns=[column])
+    pq.read_table(path, columns=["time"])  # the rest reads
+
+
+@pytest.mark.parametrize("cmd", ["locate", "track", "filter"])
+def test_a_corrupt_partition_is_named_by_every_command(sim, by_tag, scheduler, tmp_path,
+                                                       capsys, cmd):
+    """A corrupt page in a partition's tag column, which the planner reads: ``track``
+    and ``filter`` ended in "internal error" and pyarrow's ``ValueError: Index not in
+    dictionary bounds`` (exit 1; locate too when the partitions' times meet, as here);
+    now ``error: FILE: cannot read Parquet partition: ...``, exit 2, as the local
+    commands say."""
+    ds = tmp_path / "ds"
+    files = _copy_dataset(by_tag, ds)
+    _corrupt(files[2], "tag")
+    out = tmp_path / f"o-{cmd}"
+    assert main([cmd, str(ds), "--anchors", str(sim["anchors"]), "-o", str(out),
+                 "--engine", "dask", "--scheduler", scheduler, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {files[2]}: cannot read Parquet partition: "), err
+    assert "Traceback" not in err and "internal error" not in err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("cmd", ["locate", "track"])
+def test_a_corrupt_partition_of_a_hive_tree_is_named(sim, by_tag, scheduler, tmp_path,
+                                                     capsys, cmd):
+    """A ``tag=``-tree partition without its tag column is copied with it for the
+    per-file reader (``materialize``): a corrupt page there was a plain ValueError too."""
+    ds = tmp_path / "ds"
+    files = _copy_dataset(by_tag, ds)
+    for f in files:
+        pd.read_parquet(f).drop(columns="tag").to_parquet(f, index=False)
+    _corrupt(files[1], "anchor")
+    out = tmp_path / f"o-{cmd}"
+    assert main([cmd, str(ds), "--anchors", str(sim["anchors"]), "-o", str(out),
+                 "--engine", "dask", "--scheduler", scheduler, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {files[1]}: cannot read Parquet partition: "), err
+    assert not out.exists()
+
+
+def test_evaluate_names_a_corrupt_partition(sim, by_time, scheduler, tmp_path, capsys):
+    pos = tmp_path / "pos"
+    assert main(["locate", str(by_time), "--anchors", str(sim["anchors"]), "-o", str(pos),
+                 "--engine", "dask", "--scheduler", scheduler, "--quiet"]) == 0
+    part = sorted(pos.glob("part-*.parquet"))[1]
+    _corrupt(part, "tag")
+    assert main(["evaluate", str(pos), "--truth", str(sim["truth"]), "--engine", "dask",
+                 "--scheduler", scheduler, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {part}: cannot read Parquet partition: "), err
+
+
 def test_split_epoch_and_foreign_output_directory_are_refused(sim, by_time, scheduler,
                                                               tmp_path, capsys):
     ds = tmp_path / "ds"

@@ -33,6 +33,8 @@ from __future__ import annotations
 
 import glob
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from urllib.parse import unquote
@@ -165,6 +167,26 @@ def _parquet_file(part: Partition):
         raise InputError(f"cannot read Parquet partition: {exc}", part.path) from None
 
 
+@contextmanager
+def _reading(part: Partition) -> Iterator[None]:
+    """Any failure of pyarrow reading ``part``'s data in the block (a corrupt page:
+    ``ArrowInvalid: Index not in dictionary bounds``, a ``ValueError`` that a task
+    returned as a plain one, or an ``OSError`` it raised) as the partition's
+    :class:`InputError`, ``cannot read Parquet partition: ...``; an InputError passes.
+
+    Raises
+    ------
+    InputError
+        Naming the partition file.
+    """
+    try:
+        yield
+    except InputError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any pyarrow failure is a bad partition
+        raise InputError(f"cannot read Parquet partition: {exc}", part.path) from None
+
+
 def missing_hive_columns(part: Partition, columns: tuple[str, ...] | list[str]) -> list[str]:
     """Hive id keys of ``part``'s path that its file lacks (to be added to its rows)."""
     return [k for k, _ in part.keys if k in HIVE_ID_COLUMNS and k not in columns]
@@ -177,8 +199,9 @@ def inspect(part: Partition, need: tuple[str, ...] = ("time", "tag"),
     Raises
     ------
     InputError
-        Unreadable file, or a column of ``need`` missing (neither in the file nor a hive
-        key of its path) -- naming the partition file.
+        Unreadable file (or a corrupt page of a column read), or a column of ``need``
+        missing (neither in the file nor a hive key of its path) -- naming the partition
+        file.
     """
     pf = _parquet_file(part)
     cols = tuple(pf.schema_arrow.names)
@@ -196,15 +219,17 @@ def inspect(part: Partition, need: tuple[str, ...] = ("time", "tag"),
     if "time" in cols and n:
         rng = _time_range_from_statistics(pf)
         if rng is None:
-            try:
-                lo, hi = np.inf, -np.inf
+            lo, hi = np.inf, -np.inf
+            with _reading(part):  # a corrupt page is the partition's error
                 for b in pf.iter_batches(batch_size=_PLAN_BATCH_ROWS, columns=["time"]):
-                    v = _time_seconds(b.column(0))
+                    try:
+                        v = _time_seconds(b.column(0))
+                    except Exception:  # noqa: BLE001 - no numbers: the reader names the line
+                        lo, hi = -np.inf, np.inf
+                        break
                     if v.size:
                         lo, hi = min(lo, float(v.min())), max(hi, float(v.max()))
-                rng = lo, hi
-            except Exception:  # noqa: BLE001 - non-numeric time: the reader names the line
-                rng = -np.inf, np.inf
+            rng = lo, hi
         tmin, tmax = rng
     tagset: frozenset[str] = frozenset()
     if tags and n:
@@ -215,8 +240,10 @@ def inspect(part: Partition, need: tuple[str, ...] = ("time", "tag"),
             # batch by batch: the whole column of a 100 M-row partition is ~1.4 GiB of
             # strings, which paused a 2 GiB worker (memory bounded by one batch now)
             seen: set[object] = set()
-            for b in pf.iter_batches(batch_size=_PLAN_BATCH_ROWS, columns=["tag"]):
-                seen.update(b.column(0).unique().to_pylist())
+            with _reading(part):  # (a corrupt page crashed track and filter --engine
+                # dask with a traceback: pyarrow's ArrowInvalid is a plain ValueError)
+                for b in pf.iter_batches(batch_size=_PLAN_BATCH_ROWS, columns=["tag"]):
+                    seen.update(b.column(0).unique().to_pylist())
             tagset = frozenset(_id_text(v) for v in seen if v is not None)
     return PartitionInfo(part, n, cols, tmin, tmax, tagset)
 
@@ -406,7 +433,8 @@ def materialize(part: Partition, directory: str | os.PathLike) -> str:
     writer = None
     try:
         for i in range(pf.num_row_groups):
-            t = pf.read_row_group(i)
+            with _reading(part):
+                t = pf.read_row_group(i)
             for k in add:
                 t = t.append_column(k, pa.array([part.key(k)] * t.num_rows, pa.string()))
             if writer is None:
