@@ -168,9 +168,10 @@ def test_filter_json_without_any_filtered_value_is_strict(room, tmp_path, capsys
     s = _strict(capsys.readouterr().out)
     assert s["invalid_measurement"] == 2 and s["raw_minus_filtered_std_db"] is None
     # the Dask engine's pooled spread says the same without any filtered value
+    from robustloc._exact import Moments
     from robustloc.commands.filter import combine_partitions
 
-    none = {"n_weighted": 0, "n_diff": 0, "mean": 0.0, "m2": 0.0, "downweighted": 0}
+    none = {"n_weighted": 0, "downweighted": 0, "diff": Moments()}
     assert combine_partitions([{"_moments": none}])["raw_minus_filtered_std_db"] is None
 
 

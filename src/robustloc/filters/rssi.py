@@ -942,6 +942,7 @@ def filter_measurements(
     """
     import pandas as pd
 
+    from robustloc._exact import Moments
     from robustloc.errors import InputError
 
     m = pd.DataFrame(measurements)
@@ -980,8 +981,9 @@ def filter_measurements(
         "duplicates_merged": int(res.extra.get("duplicates_merged", 0)),
         "share_downweighted": float(np.mean(w < 1)) if w.size else 0.0,
         # None (JSON null) without any filtered value: a bare NaN is no JSON (the
-        # filter/fuse review: every row outside the limits printed NaN with --json)
-        "raw_minus_filtered_std_db": (float(np.nanstd(diff)) if np.isfinite(diff).any()
-                                      else None),
+        # filter/fuse review: every row outside the limits printed NaN with --json);
+        # from exact sums, so that --engine dask, which adds its tag groups' moments,
+        # gives the same number (np.nanstd's rounding depends on the rows' order)
+        "raw_minus_filtered_std_db": Moments.of(diff[np.isfinite(diff)]).std(),
     }
     return FilteredTable(out, summary)
