@@ -1013,6 +1013,62 @@ def test_an_unreachable_scheduler_is_a_users_mistake(tmp_path, capsys, monkeypat
     assert not (tmp_path / "dk").exists()
 
 
+_BUSY_WORKER = r"""
+import sys
+import time
+
+from robustloc.engines.cluster import dask_client
+
+
+def task():
+    from tqdm import tqdm
+
+    tqdm(disable=True).close()  # as a quiet locate/track task's loop
+    time.sleep(60)  # busy when the interrupt comes: its nanny kills it
+
+
+try:
+    with dask_client(None, 1) as client:
+        fut = client.submit(task, pure=False)
+        while not any(client.processing().values()):
+            time.sleep(0.05)
+        print("running", flush=True)
+        fut.result()
+except KeyboardInterrupt:
+    print("error: interrupted", file=sys.stderr)
+    sys.exit(130)
+"""
+
+
+def test_interrupt_of_a_busy_worker_leaks_no_semaphore():
+    """Ctrl-C while a task runs: the command's LocalCluster is closed, its nanny kills the
+    busy worker, and the semaphore of the worker's tqdm lock (a multiprocessing lock,
+    made by a task's first bar, even a disabled one) was never released:
+    ``resource_tracker: There appear to be 1 leaked semaphore objects to clean up at
+    shutdown`` below ``error: interrupted`` (2 with two workers, the Dask review).  The
+    workers' tqdm lock is a thread lock now.  (About 6 s: the nanny's wait.)"""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _BUSY_WORKER], stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    try:
+        assert proc.stdout.readline() == "running\n"
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:  # never leave the script (and its cluster) running
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 130, err
+    assert err == "error: interrupted\n", err
+
+
 def test_interrupt_while_the_local_cluster_starts_ends_cleanly(sim, tmp_path):
     # SIGINT (Ctrl-C) at moments across the start of the command's LocalCluster (about
     # 1-3 s here): exit 130 with "error: interrupted" and no traceback.  Interrupted while

@@ -323,11 +323,39 @@ def _quiet_scheduler(restore: dict[str, int]) -> None:
         log.setLevel(logging.ERROR)
 
 
-def _quiet_worker_logs(client: object) -> None:
-    """:func:`_quiet_loggers` on the workers of the command's own LocalCluster (a user's
-    ``--scheduler`` workers keep their own logging)."""
+def _thread_lock_for_progress_bars() -> None:
+    """Run on each worker: tqdm's lock a thread lock, unless tqdm has one already.
+
+    tqdm's first bar (also a disabled one: a task's ``locate``/``track`` loop creates one)
+    makes a multiprocessing lock, a named semaphore registered with the resource tracker
+    that the worker process shares with the command.  A worker busy in a task when the
+    command is interrupted is killed by its nanny, its semaphore never released, and the
+    tracker printed ``resource_tracker: There appear to be 2 leaked semaphore objects to
+    clean up at shutdown`` below ``error: interrupted`` (the Dask review; one per worker).
+    A task's bars never draw (they are disabled there) and a worker's tasks are threads.
+    """
+    import threading
+
     try:
-        client.run(_quiet_loggers)  # type: ignore[attr-defined]
+        from tqdm import tqdm
+    except ImportError:  # pragma: no cover - a dependency of robustloc
+        return
+    if "_lock" not in vars(tqdm):
+        tqdm.set_lock(threading.RLock())
+
+
+def _setup_workers() -> None:
+    """Run on each worker of the command's own LocalCluster: :func:`_quiet_loggers` and
+    :func:`_thread_lock_for_progress_bars`."""
+    _quiet_loggers()
+    _thread_lock_for_progress_bars()
+
+
+def _quiet_worker_logs(client: object) -> None:
+    """:func:`_setup_workers` on the workers of the command's own LocalCluster (a user's
+    ``--scheduler`` workers keep their own logging and locks)."""
+    try:
+        client.run(_setup_workers)  # type: ignore[attr-defined]
     except Exception:  # noqa: BLE001 - only cosmetic
         pass
 
