@@ -259,12 +259,7 @@ def test_mqtt_rows_published_while_the_service_is_down_arrive_after_the_restart(
     pub.loop_start()
     try:
         srv = servers(args)
-        t = -1000.0
-        while _metric(srv.url, "robustloc_rows_accepted_total") == 0:  # until subscribed
-            assert t < -900, "the service never subscribed"
-            pub.publish(topic, json.dumps(_rows([t], tag="probe")), qos=1).wait_for_publish(5)
-            t += 1
-            time.sleep(0.5)
+        _until_subscribed(srv, pub, topic, "robustloc_rows_accepted_total")
         srv.stop()
         for k in range(10):  # the service is down
             pub.publish(topic, json.dumps(_rows([float(k)])), qos=1).wait_for_publish(5)
@@ -279,6 +274,17 @@ def test_mqtt_rows_published_while_the_service_is_down_arrive_after_the_restart(
     srv2.stop()
     times = _stored_times(store)
     assert [x for x in times if x >= 0] == sorted(float(t) for t in range(10) for _ in ANCHORS)
+
+
+def _until_subscribed(srv, pub, topic: str, metric: str) -> None:
+    """Publish probe rows (tag ``probe``, times from -1000 s) until the service has
+    subscribed and accepted one (``metric`` above 0)."""
+    t = -1000.0
+    while _metric(srv.url, metric) == 0:
+        assert t < -900, "the service never subscribed"
+        pub.publish(topic, json.dumps(_rows([t], tag="probe")), qos=1).wait_for_publish(5)
+        t += 1
+        time.sleep(0.5)
 
 
 def test_a_retained_mqtt_message_is_stored_once_across_restarts(
@@ -301,12 +307,7 @@ def test_a_retained_mqtt_message_is_stored_once_across_restarts(
     pub.loop_start()
     try:
         srv = servers(args)
-        t = -1000.0
-        while _metric(srv.url, accepted) == 0:  # until subscribed
-            assert t < -900, "the service never subscribed"
-            pub.publish(topic, json.dumps(_rows([t], tag="probe")), qos=1).wait_for_publish(5)
-            t += 1
-            time.sleep(0.5)
+        _until_subscribed(srv, pub, topic, accepted)
         n0 = _metric(srv.url, accepted)
         pub.publish(topic, json.dumps(_rows([1.0])), qos=1, retain=True).wait_for_publish(5)
         wait_until(lambda: _metric(srv.url, accepted) == n0 + 4, 30, "the live message")

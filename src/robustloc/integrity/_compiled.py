@@ -28,6 +28,29 @@ from robustloc.estimators._compiled import _inv_small, _sandwich_prepare, _sandw
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _normal_checked(A, f, n, p, count, Nm):  # pragma: no cover - jit
+    """``Nm = sum_i f_i a_i a_i^T`` (``a_i`` the rows of ``A``) and whether it is regular
+    as the references test it: ``|det| > 1e-12 tr^p`` and at least ``p`` rows
+    (``count``)."""
+    for a in range(p):
+        for b in range(p):
+            acc = 0.0
+            for i in range(n):
+                acc += f[i] * A[i, a] * A[i, b]
+            Nm[a, b] = acc
+    tr = 0.0
+    for a in range(p):
+        tr += Nm[a, a]
+    if p == 2:
+        det = Nm[0, 0] * Nm[1, 1] - Nm[0, 1] * Nm[1, 0]
+    else:
+        det = (Nm[0, 0] * (Nm[1, 1] * Nm[2, 2] - Nm[1, 2] * Nm[2, 1])
+               - Nm[0, 1] * (Nm[1, 0] * Nm[2, 2] - Nm[1, 2] * Nm[2, 0])
+               + Nm[0, 2] * (Nm[1, 0] * Nm[2, 1] - Nm[1, 1] * Nm[2, 0]))
+    return abs(det) > 1e-12 * max(tr, 1e-300) ** p and count >= p
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def protection_levels_kernel(J, sigma, used, lam0, k_noise, r_min,
                              tag):  # pragma: no cover - jit
     """``(hpl, vpl, r)`` of every epoch; arguments and results as
@@ -39,6 +62,7 @@ def protection_levels_kernel(J, sigma, used, lam0, k_noise, r_min,
     vpl = np.full(N, np.nan)
     r_out = np.full((N, n), np.nan)
     A = np.zeros((n, 3))
+    ones = np.ones(n)
     use = np.zeros(n, dtype=np.bool_)
     Nm = np.zeros((3, 3))
     C = np.zeros((3, 3))
@@ -60,23 +84,7 @@ def protection_levels_kernel(J, sigma, used, lam0, k_noise, r_min,
             if u:
                 count += 1
         # normal matrix J^T P J
-        for a in range(p):
-            for b in range(p):
-                acc = 0.0
-                for i in range(n):
-                    acc += A[i, a] * A[i, b]
-                Nm[a, b] = acc
-        tr = 0.0
-        for a in range(p):
-            tr += Nm[a, a]
-        if p == 2:
-            det = Nm[0, 0] * Nm[1, 1] - Nm[0, 1] * Nm[1, 0]
-        else:
-            det = (Nm[0, 0] * (Nm[1, 1] * Nm[2, 2] - Nm[1, 2] * Nm[2, 1])
-                   - Nm[0, 1] * (Nm[1, 0] * Nm[2, 2] - Nm[1, 2] * Nm[2, 0])
-                   + Nm[0, 2] * (Nm[1, 0] * Nm[2, 1] - Nm[1, 1] * Nm[2, 0]))
-        ok = abs(det) > 1e-12 * max(tr, 1e-300) ** p and count >= p
-        if not ok:
+        if not _normal_checked(A, ones, n, p, count, Nm):
             continue  # hpl, vpl and r stay NaN, as in the reference
         # N^-1 through the Cholesky factor N = L L^T: the closed-form adjugate loses up
         # to ~300 cond x eps on the redundancy numbers 1 - a_i^T N^-1 a_i, Cholesky stays
@@ -204,22 +212,7 @@ def fit_weighted_protection_kernel(J, sigma, used, fw, lam0, k_noise, r_min,
                 A[i, j] = J[k, i, j] / s if u else 0.0
             if u and fi > 0.0:
                 count += 1
-        for a in range(p):
-            for b in range(p):
-                acc = 0.0
-                for i in range(n):
-                    acc += f[i] * A[i, a] * A[i, b]
-                Nm[a, b] = acc
-        tr = 0.0
-        for a in range(p):
-            tr += Nm[a, a]
-        if p == 2:
-            det = Nm[0, 0] * Nm[1, 1] - Nm[0, 1] * Nm[1, 0]
-        else:
-            det = (Nm[0, 0] * (Nm[1, 1] * Nm[2, 2] - Nm[1, 2] * Nm[2, 1])
-                   - Nm[0, 1] * (Nm[1, 0] * Nm[2, 2] - Nm[1, 2] * Nm[2, 0])
-                   + Nm[0, 2] * (Nm[1, 0] * Nm[2, 1] - Nm[1, 1] * Nm[2, 0]))
-        if not (abs(det) > 1e-12 * max(tr, 1e-300) ** p and count >= p):
+        if not _normal_checked(A, f, n, p, count, Nm):
             continue  # as the reference: NaN
         _inv_small(Nm, Q, tag)
         for a in range(3):

@@ -272,27 +272,12 @@ def protection_levels_local(
         (fw,) = _per_observation((N, n), fit_weight=fit_weight)
         return _fit_weighted_levels(J, sigma, used, fw, lam0, k_noise, engine)
     if engine == "compiled" and p in (2, 3) and N:
-        from robustloc.estimators._compiled import in_threads
         from robustloc.integrity._compiled import protection_levels_kernel
 
-        Jc = np.ascontiguousarray(J, dtype=np.float64)
-        sc = np.ascontiguousarray(sigma, dtype=np.float64)
-        uc = np.ascontiguousarray(used, dtype=np.bool_)
-        res = (np.empty(N), np.empty(N), np.empty(used.shape))
-
-        def run(lo: int, hi: int) -> None:
-            for o, part in zip(res, protection_levels_kernel(
-                    Jc[lo:hi], sc[lo:hi], uc[lo:hi], float(lam0), float(k_noise),
-                    float(R_MIN), (0.0,) * p), strict=True):
-                o[lo:hi] = part
-
-        in_threads(run, N)
-        return res
+        return _levels_compiled(protection_levels_kernel, (J, sigma, used), lam0, k_noise)
     if engine not in ("compiled", "numpy"):
         raise ValueError(f"engine must be 'compiled' or 'numpy', got {engine!r}")
-    with np.errstate(invalid="ignore", divide="ignore"):
-        use = used & np.isfinite(sigma) & (sigma > 0) & np.all(np.isfinite(J), axis=2)
-        A = np.where(use[..., None], J / np.where(use, sigma, 1.0)[..., None], 0.0)
+    use, A = _whitened(J, sigma, used)
     Nm = np.matmul(np.swapaxes(A, 1, 2), A)  # J^T P J, (N, p, p)
     tr = np.einsum("kii->k", Nm)
     ok = (np.abs(np.linalg.det(Nm)) > 1e-12 * np.maximum(tr, 1e-300) ** p) & (
@@ -303,13 +288,54 @@ def protection_levels_local(
     with np.errstate(invalid="ignore", divide="ignore"):
         kk = np.sqrt(lam0 / np.where(r > R_MIN, r, np.nan))
         moves = np.sqrt(np.sum(AN * AN, axis=2)) > 1e-9
-        dx = AN * kk[..., None]
-        dh = np.hypot(dx[..., 0], dx[..., 1])
-        blind = use & (r <= R_MIN) & moves
-        dh = np.where(blind, np.inf, np.where(use & moves, dh, 0.0))
+    return _levels(ok, use, moves, use & (r <= R_MIN) & moves, AN * kk[..., None], Ninv, r,
+                   k_noise)
+
+
+def _whitened(J: Array, sigma: Array, used: NDArray[np.bool_]
+              ) -> tuple[NDArray[np.bool_], Array]:
+    """The observations that count (used, finite, positive sigma) and the whitened design
+    ``J_i / sigma_i`` (0 elsewhere)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        use = used & np.isfinite(sigma) & (sigma > 0) & np.all(np.isfinite(J), axis=2)
+        A = np.where(use[..., None], J / np.where(use, sigma, 1.0)[..., None], 0.0)
+    return use, A
+
+
+def _levels_compiled(kernel, arrays: tuple, lam0: float, k_noise: float,
+                     ) -> tuple[Array, Array, Array]:
+    """Run a protection-level kernel (:mod:`robustloc.integrity._compiled`) over the
+    epochs of ``arrays`` (``J`` first, then per-observation arrays) in threads."""
+    from robustloc.estimators._compiled import in_threads
+
+    J = arrays[0]
+    N, n, p = J.shape
+    cont = [np.ascontiguousarray(a, dtype=np.bool_ if a.dtype == bool else np.float64)
+            for a in arrays]
+    res = (np.empty(N), np.empty(N), np.empty((N, n)))
+
+    def run(lo: int, hi: int) -> None:
+        for o, part in zip(res, kernel(*(c[lo:hi] for c in cont), float(lam0),
+                                       float(k_noise), float(R_MIN), (0.0,) * p),
+                           strict=True):
+            o[lo:hi] = part
+
+    in_threads(run, N)
+    return res
+
+
+def _levels(ok: NDArray[np.bool_], use: NDArray[np.bool_], moves: NDArray[np.bool_],
+            blind: NDArray[np.bool_], dx: Array, C: Array, r: Array, k_noise: float,
+            ) -> tuple[Array, Array, Array]:
+    """``(hpl, vpl, r)`` from each observation's MDB shift ``dx`` (N, n, p) and the fix's
+    covariance ``C``: the largest horizontal (vertical) shift, infinite where ``blind``,
+    plus ``k_noise`` standard deviations (the horizontal major semi-axis)."""
+    N, _, p = dx.shape
+    with np.errstate(invalid="ignore", divide="ignore"):
+        dh = np.where(blind, np.inf, np.where(use & moves, np.hypot(dx[..., 0], dx[..., 1]),
+                                               0.0))
         du = (np.where(blind, np.inf, np.where(use & moves, np.abs(dx[..., 2]), 0.0))
               if p == 3 else None)
-    C = Ninv
     cen = C[:, _H, _H]
     tr, det = cen[:, 0, 0] + cen[:, 1, 1], cen[:, 0, 0] * cen[:, 1, 1] - cen[:, 0, 1] ** 2
     lam_max = 0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0))
@@ -329,28 +355,13 @@ def _fit_weighted_levels(J: Array, sigma: Array, used: NDArray[np.bool_], fw: Ar
     N, n, p = J.shape
     fw = np.clip(np.nan_to_num(np.asarray(fw, dtype=float), nan=0.0), 0.0, 1.0)
     if engine == "compiled" and p in (2, 3) and N:
-        from robustloc.estimators._compiled import in_threads
         from robustloc.integrity._compiled import fit_weighted_protection_kernel
 
-        Jc = np.ascontiguousarray(J, dtype=np.float64)
-        sc = np.ascontiguousarray(sigma, dtype=np.float64)
-        uc = np.ascontiguousarray(used, dtype=np.bool_)
-        fc = np.ascontiguousarray(fw, dtype=np.float64)
-        res = (np.empty(N), np.empty(N), np.empty(used.shape))
-
-        def run(lo: int, hi: int) -> None:
-            for o, part in zip(res, fit_weighted_protection_kernel(
-                    Jc[lo:hi], sc[lo:hi], uc[lo:hi], fc[lo:hi], float(lam0),
-                    float(k_noise), float(R_MIN), (0.0,) * p), strict=True):
-                o[lo:hi] = part
-
-        in_threads(run, N)
-        return res
+        return _levels_compiled(fit_weighted_protection_kernel, (J, sigma, used, fw), lam0,
+                                k_noise)
     if engine not in ("compiled", "numpy"):
         raise ValueError(f"engine must be 'compiled' or 'numpy', got {engine!r}")
-    with np.errstate(invalid="ignore", divide="ignore"):
-        use = used & np.isfinite(sigma) & (sigma > 0) & np.all(np.isfinite(J), axis=2)
-        A = np.where(use[..., None], J / np.where(use, sigma, 1.0)[..., None], 0.0)
+    use, A = _whitened(J, sigma, used)
     f = np.where(use, fw, 0.0)
     Nm = np.einsum("kip,ki,kiq->kpq", A, f, A)
     tr = np.einsum("kii->k", Nm)
@@ -370,23 +381,9 @@ def _fit_weighted_levels(J: Array, sigma: Array, used: NDArray[np.bool_], fw: Ar
                         IH * IH, 0.0), axis=2)
     with np.errstate(invalid="ignore", divide="ignore"):
         moves = np.sum(G * G, axis=2) > 1e-18
-        blind = use & moves & (np.abs(r) <= R_MIN)
         kk = np.sqrt(lam0 * q) / np.abs(r)
-        dx = G * kk[..., None]
-        dh = np.where(blind, np.inf, np.where(use & moves, np.hypot(dx[..., 0], dx[..., 1]),
-                                               0.0))
-        du = (np.where(blind, np.inf, np.where(use & moves, np.abs(dx[..., 2]), 0.0))
-              if p == 3 else None)
-    cen = C[:, _H, _H]
-    t2, d2 = cen[:, 0, 0] + cen[:, 1, 1], cen[:, 0, 0] * cen[:, 1, 1] - cen[:, 0, 1] ** 2
-    lam_max = 0.5 * t2 + np.sqrt(np.maximum(0.25 * t2 * t2 - d2, 0.0))
-    with np.errstate(invalid="ignore"):
-        hpl = np.where(ok, np.max(np.nan_to_num(dh, nan=0.0, posinf=np.inf), axis=1)
-                       + k_noise * np.sqrt(lam_max), np.nan)
-        vpl = (np.where(ok, np.max(np.nan_to_num(du, nan=0.0, posinf=np.inf), axis=1)
-                        + k_noise * np.sqrt(C[:, 2, 2]), np.nan)
-               if p == 3 else np.full(N, np.nan))
-    return hpl, vpl, np.where(use & ok[:, None], r, np.nan)
+    return _levels(ok, use, moves, use & moves & (np.abs(r) <= R_MIN), G * kk[..., None], C,
+                   r, k_noise)
 
 
 #: Gauss-Newton iterations of the mirror solution (:func:`mirror_solution`).
