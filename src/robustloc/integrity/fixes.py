@@ -82,7 +82,7 @@ For each epoch, at the fix ``x`` of any method, with the range-domain residuals
    gain, its sandwich covariance and MDBs under its own weights
    (:func:`protection_levels_local` with ``fit_weight``).  A ``fault_excluded`` fix
    also covers every other single exclusion whose least-squares fix passes the test,
-   ``HPL = max(HPL, |x_j - x|_h + HPL_j)`` (:func:`_cover_other_exclusions`: at
+   ``HPL = max(HPL, |x_j - x|_h + k sigma_major(x_j))`` (:func:`_cover_other_exclusions`: at
    redundancy 2 the largest ``w`` often names a healthy range).
 5. **Ambiguity** (with the anchors known, :func:`locate_protected` passes them): ranges
    from collinear anchors (2-D; coplanar in 3-D) fit the fix and its mirror image across
@@ -1066,11 +1066,14 @@ def _cover_other_exclusions(
     A fix that left the observations ``out`` out is right when they hold the fault.  Had
     another observation ``j`` held it instead, the least-squares fix ``x_j`` of every
     heard observation but ``j`` would be fault-free, and where its global test passes
-    the data cannot tell the two hypotheses apart: the fix's error is then at most
-    ``|x - x_j| + hpl_j`` (``hpl_j`` that fix's own bound, widened as the fix's), and
-    ``hpl = max(hpl, |x - x_j|_h + hpl_j)`` over every such ``j`` (single faults, as the
-    bound assumes; the same cover as the mirror's, module docstring item 5), on the fixes
-    whose kept observations have redundancy 1.  At redundancy 2 (four ranges in 2-D) the
+    the data cannot tell the two hypotheses apart.  Under the hypothesis that ``j`` holds
+    the one fault, ``x_j`` is fault-free and its error is within its noise term ``k
+    sigma_major(x_j)`` (widened as the fix's; no slope term: the bound assumes one fault,
+    as the solution separation of ARAIM does), so ``hpl = max(hpl, |x - x_j|_h + k
+    sigma_major(x_j))`` over every such ``j``, on the fixes whose kept observations have
+    redundancy 1.  (With the alternative's own slope bound in place of its noise term, an
+    alternative kept only by an anchor of useless weight, an RSSI range of 1e200 m, made
+    the bound infinite.)  At redundancy 2 (four ranges in 2-D) the
     w-tests of the ranges are strongly correlated, and the largest one often names a
     healthy range: with 2 % of the ranges 1.5-3 m long, 3.1 % of the single-fault
     epochs' fixes lay beyond the bound of their exclusion alone (the locate review of
@@ -1100,12 +1103,21 @@ def _cover_other_exclusions(
     if not np.any(ok):
         return
     ee, alt, x_a, J_a = ee[ok], alt[ok], x_a[ok], J_a[ok]
-    h_a, v_a_pl, _ = protection_levels_local(J_a, sig[ee], alt, lam0, k)
+    # under the hypothesis that ``j`` holds the one fault, ``x_j`` is fault-free: its
+    # error is bounded by its noise term alone (no slope term: no other fault to miss)
+    use, A = _whitened(J_a, sig[ee], alt)
+    Nm = np.matmul(np.swapaxes(A, 1, 2), A)
+    C, good = inv_spd(Nm)
+    cen = C[:, _H, _H]
+    tr, det = cen[:, 0, 0] + cen[:, 1, 1], cen[:, 0, 0] * cen[:, 1, 1] - cen[:, 0, 1] ** 2
+    noise_h = k * np.sqrt(0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0)))
     d = x_a - position[ee]
-    cover = np.hypot(d[:, 0], d[:, 1]) + h_a * widen[ee]
+    cover = np.where(good, np.hypot(d[:, 0], d[:, 1]) + noise_h * widen[ee], np.inf)
     np.fmax.at(hpl, ee, np.where(np.isfinite(cover), cover, np.inf))
     if p == 3:
-        np.fmax.at(vpl, ee, np.abs(d[:, 2]) + v_a_pl * widen[ee])
+        cover_v = np.where(good, np.abs(d[:, 2]) + k * np.sqrt(C[:, 2, 2]) * widen[ee],
+                           np.inf)
+        np.fmax.at(vpl, ee, np.where(np.isfinite(cover_v), cover_v, np.inf))
 
 
 def _real_option(name: str, value: object) -> float:
