@@ -180,3 +180,23 @@ def test_two_anchors_are_not_called_collinear(tmp_path, capsys):
     assert "ill_conditioned" not in capsys.readouterr().err
     out = pd.read_csv(tmp_path / "o.csv")
     assert (out.status == st.INSUFFICIENT).all()
+
+
+def test_fit_weighted_bound_of_a_large_site_in_blocks():
+    """A site of 300 anchors, eight heard per epoch: the NumPy reference forms its
+    (epochs, anchors, anchors) products in blocks of epochs (46 here, so three blocks for
+    100 epochs) and equals the compiled kernel (rtol 1e-6, as the matrix test: spread
+    anchors, condition well under 1e6)."""
+    rng = np.random.default_rng(3)
+    n_epochs, n = 100, 300
+    J = _design(rng, n_epochs, n, 2)
+    sigma = rng.uniform(0.1, 1.0, (n_epochs, n))
+    f = (0.1 / sigma) ** 2
+    used = np.zeros((n_epochs, n), bool)
+    for k in range(n_epochs):
+        used[k, rng.choice(n, 8, replace=False)] = True
+    got = protection_levels_local(J, sigma, used, LAM0, K, fit_weight=f)
+    ref = protection_levels_local(J, sigma, used, LAM0, K, engine="numpy", fit_weight=f)
+    edge = np.nanmin(np.abs(ref[2]), axis=1) < 1e-3
+    assert (~edge).sum() > 90
+    np.testing.assert_allclose(got[0][~edge], ref[0][~edge], rtol=1e-6)

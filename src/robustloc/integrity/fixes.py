@@ -375,10 +375,16 @@ def _fit_weighted_levels(J: Array, sigma: Array, used: NDArray[np.bool_], fw: Ar
     r = 1.0 - f * aqa
     # q_i = sum_j ((I - H)_ij)^2 with H_ij = f_j a_i^T Q a_j, as a sum of squares (the
     # closed form 1 - 2 f_i a_i^T Q a_i + a_i^T C a_i cancels where r_i is small)
-    H = np.einsum("kip,kjp->kij", A, QA) * f[:, None, :]
-    IH = np.eye(n)[None] - H
-    q = np.sum(np.where(use[:, None, :] & (f[:, None, :] > 0) | np.eye(n, dtype=bool)[None],
-                        IH * IH, 0.0), axis=2)
+    # (in blocks of epochs: the (K, n, n) products of a large site's every anchor would
+    # need N n^2 floats at once)
+    q = np.empty((N, n))
+    eye = np.eye(n, dtype=bool)[None]
+    step = max(1, (1 << 22) // max(n * n, 1))
+    for lo in range(0, N, step):
+        sl = slice(lo, lo + step)
+        H = np.einsum("kip,kjp->kij", A[sl], QA[sl]) * f[sl, None, :]
+        IH = np.where((use[sl, None, :] & (f[sl, None, :] > 0)) | eye, eye - H, 0.0)
+        q[sl] = np.sum(IH * IH, axis=2)
     with np.errstate(invalid="ignore", divide="ignore"):
         moves = np.sum(G * G, axis=2) > 1e-18
         kk = np.sqrt(lam0 * q) / np.abs(r)
