@@ -774,3 +774,52 @@ def test_an_unknown_system_letter_in_a_rinex2_epoch_is_named(tmp_path: Path) -> 
     with pytest.raises(InputError, match="unknown satellite system 'X'") as e:
         read_obs(p)
     assert e.value.line == i + 1
+
+
+def _v2_with_g07_twice(tmp_path: Path) -> tuple[Path, int, int, int]:
+    """The GEONET excerpt with G07 listed twice in its second epoch (the second record
+    1000 m off, appended as a ninth satellite); returns the file and the 1-based lines of
+    the epoch, G07's first record and its second."""
+    lines = OBS.read_text().splitlines()
+    i = _first_epoch(lines) + 9  # the second epoch (8 satellites, one line each)
+    assert lines[i].endswith("  8G 3G 7G 8G11G19G20G24G28")
+    rec = lines[i + 2]  # G07
+    bad = rec[:16] + f"{float(rec[16:30]) + 1000:14.3f}" + rec[30:]
+    lines[i] = lines[i][:29] + "  9G 3G 7G 8G11G19G20G24G28G07"
+    lines.insert(i + 9, bad)
+    return _write_lines(tmp_path, "dup.05o", lines), i + 1, i + 3, i + 10
+
+
+def _v3_with_g07_twice(tmp_path: Path) -> tuple[Path, int, int, int]:
+    """The same in RINEX 3 (``> ... 9`` and a second ``G07`` line after the epoch's
+    records)."""
+    lines, _ = _rinex3_geonet(tmp_path)
+    i = [j for j, ln in enumerate(lines) if ln.startswith(">")][1]
+    assert lines[i].endswith("  0  8")
+    g = next(j for j in range(i + 1, i + 9) if lines[j].startswith("G07"))
+    rec = lines[g]
+    bad = rec[:3] + f"{float(rec[3:17]) + 1000:14.3f}" + rec[17:]
+    lines[i] = lines[i][:-3] + "  9"
+    lines.insert(i + 9, bad)
+    return _write_lines(tmp_path, "dup.rnx", lines), i + 1, g + 1, i + 10
+
+
+@pytest.mark.parametrize("make", [_v2_with_g07_twice, _v3_with_g07_twice])
+def test_a_satellite_listed_twice_in_an_epoch_is_an_error(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], make) -> None:  # noqa: ANN001
+    """Two records of G07 in one epoch: the later one silently replaced the earlier (with
+    --raim the epoch was fault_excluded, G07 dropped; without, ``ok`` 315 m off: the spp
+    review).  A receiver writes one record per satellite and epoch: the file is
+    malformed, and the error names the second record, the epoch and the first."""
+    p, epoch, first, second = make(tmp_path)
+    with pytest.raises(InputError) as e:
+        read_obs(p)
+    assert e.value.line == second
+    assert (f"satellite G07 listed twice in the epoch of line {epoch} (its first record "
+            f"is line {first})") in str(e.value)
+    out = tmp_path / "sol.csv"
+    for extra in ([], ["--raim"]):
+        rc = main(["spp", str(p), str(NAV), "-o", str(out), "--quiet", *extra])
+        err = capsys.readouterr().err
+        assert rc == 2 and err.startswith(f"error: {p}:{second}: satellite G07 listed twice")
+        assert "Traceback" not in err and not out.exists()

@@ -23,7 +23,8 @@ every epoch of the file reaches the solver and gets an output row.
 Times are GPS time in seconds since 1980-01-06 00:00:00 (``t_gps_s``), a float64.
 
 Every problem of a file (truncated, wrong counts, impossible dates such as month 13, garbage
-numbers) raises :class:`~robustloc.errors.InputError` naming the file and the line.  A
+numbers, a satellite with two records in one epoch) raises
+:class:`~robustloc.errors.InputError` naming the file and the line.  A
 pseudorange outside the ``pseudorange`` limits of :mod:`robustloc.io.limits`
 (1.5e7 .. 5e7 m) is an *invalid measurement*: it is set to NaN (never reaches a solver) and
 counted per epoch in :attr:`ObsData.invalid`.
@@ -373,7 +374,8 @@ def read_obs(path: str | PathLike[str]) -> ObsData:
     ------
     InputError
         With file and line, for a truncated or malformed file (impossible epoch time,
-        satellite count that does not match the records, a value that is not a number).
+        satellite count that does not match the records, a value that is not a number, a
+        satellite with two records in one epoch: which one is right cannot be told).
     """
     path = str(path)
     version, ftype = rinex_version(path)
@@ -472,7 +474,11 @@ def _read_obs_v2(path: str, version: float) -> ObsData:
                 f"file ends inside the epoch starting here ({nsat} satellites announced)",
                 path, ep_lines[-1],
             )
+        first_rec: dict[str, int] = {}
         for s in sats:
+            if s in first_rec:
+                _listed_twice(s, ep_lines[-1], first_rec[s], i + 1, path)
+            first_rec[s] = i + 1
             sat_ids.append(s)
             rec_epoch.append(epoch_idx)
             rec_start.append(i)
@@ -529,6 +535,21 @@ def _read_obs_v2(path: str, version: float) -> ObsData:
         np.asarray(flags, dtype=np.int64), np.asarray(ep_lines, dtype=np.int64), hdr,
         invalid,
     )
+
+
+def _listed_twice(sat: str, epoch_line: int, first: int, second: int, path: str) -> None:
+    """Raise for a satellite with two observation records in one epoch (1-based lines).
+
+    A receiver writes one record per satellite and epoch: two are a malformed file (an
+    edit or a splice gone wrong), and which of them is right cannot be told.  The later
+    one silently replaced the earlier (a record 1000 m off gave an ``ok`` fix 315 m off
+    without RAIM: the spp review); averaging them, as ``locate`` merges the duplicate
+    rows of a measurements table (repeated measurements of one quantity), would put
+    the fix halfway.
+    """
+    raise InputError(f"satellite {sat} listed twice in the epoch of line {epoch_line} "
+                     f"(its first record is line {first}): one record per satellite and "
+                     "epoch; remove the wrong one", path, second)
 
 
 def _stray_record(lines: list[str], start: int, stop: int, path: str) -> None:
@@ -691,6 +712,7 @@ def _read_obs_v3(path: str, version: float) -> ObsData:
         times.append(ep)
         flags.append(flag)
         ep_lines.append(i + 1)
+        first_rec: dict[str, int] = {}
         for k in range(1, nsat + 1):
             rec = lines[i + k]
             if rec[:1] == ">" or not rec.strip():
@@ -705,7 +727,11 @@ def _read_obs_v3(path: str, version: float) -> ObsData:
             if sysch not in types:
                 raise InputError(f"satellite {rec[:3]!r} of a system without "
                                  "'SYS / # / OBS TYPES' in the header", path, i + k + 1)
-            rec_sat.append(f"{sysch}{prn:02d}")
+            sat = f"{sysch}{prn:02d}"
+            if sat in first_rec:
+                _listed_twice(sat, i + 1, first_rec[sat], i + k + 1, path)
+            first_rec[sat] = i + k + 1
+            rec_sat.append(sat)
             rec_epoch.append(epoch_idx)
             rec_line.append(i + k)
         i += 1 + nsat
