@@ -823,3 +823,32 @@ def test_a_satellite_listed_twice_in_an_epoch_is_an_error(
         err = capsys.readouterr().err
         assert rc == 2 and err.startswith(f"error: {p}:{second}: satellite G07 listed twice")
         assert "Traceback" not in err and not out.exists()
+
+
+def test_rinex4_navigation_is_refused_on_line_1_rinex4_observation_is_read(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A RINEX 4 navigation file went to georinex, which refuses it ("unknown RINEX"), while
+    the version error said 4.xx was supported and read_nav said RINEX 4 went through
+    georinex.  Now: an error on line 1 saying so (exit 2); RINEX 4 observation files have
+    RINEX 3's records and are read."""
+    body = ["> EPH E01 INAV", *_nav3_body()[:8]]  # a Galileo record, framed as in RINEX 4
+    head = ["     4.00           N: GNSS NAV DATA    M: Mixed            RINEX VERSION / TYPE",
+            _NAV3_HEAD[1]]
+    p = _write_lines(tmp_path, "v4.rnx", head + body)
+    with pytest.raises(InputError) as e:
+        read_nav(p)
+    assert e.value.line == 1
+    assert "RINEX 4.00 navigation files are not supported" in str(e.value)
+    v4 = _write(tmp_path, "v4.obs", RINEX3_OBS.replace("     3.03", "     4.01", 1))
+    o = read_obs(v4)
+    assert o.version == 4.01 and o.n_epochs == 2 and o.sats == ["G05", "G19", "E11"]
+    out = tmp_path / "sol.csv"
+    assert main(["spp", str(v4), str(p), "-o", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {p}:1: RINEX 4.00 navigation files are not supported")
+    assert not out.exists()
+    # the version error lists what is read
+    bad = _write(tmp_path, "v5.obs", RINEX3_OBS.replace("     3.03", "     5.00", 1))
+    with pytest.raises(InputError, match=r"not supported \(2.xx and 3.xx are, and 4.xx "
+                                         r"observation files\)"):
+        read_obs(bad)

@@ -52,8 +52,8 @@ Example:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from robustloc.options import float_in, nonnegative_int
 
-    p.add_argument("obs", help="RINEX observation file (2.xx or 3.xx)")
-    p.add_argument("nav", nargs="*", help="RINEX navigation file(s)")
+    p.add_argument("obs", help="RINEX observation file (2.xx, 3.xx or 4.xx)")
+    p.add_argument("nav", nargs="*", help="RINEX navigation file(s) (2.xx or 3.xx)")
     p.add_argument("--sp3", default=None, help="SP3 precise orbit file")
     p.add_argument("--clk", default=None, help="RINEX clock file (with --sp3)")
     p.add_argument("--systems", default="GREC",

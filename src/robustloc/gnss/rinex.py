@@ -14,8 +14,12 @@
 * RINEX 3 observation files are read by a fixed-width reader of our own
   (:func:`_read_obs_v3`): georinex 1.16 silently dropped an epoch with an impossible date
   and every epoch after it, a value that is not a number, and epochs listing 0 satellites.
-* The other navigation files (RINEX 2 non-GPS, RINEX 4) are read through georinex, with its
+  RINEX 4 observation files have the records of RINEX 3 and are read by it too.
+* RINEX 2 navigation files of other systems than GPS are read through georinex, with its
   xarray ``FutureWarning``/``DeprecationWarning`` flood silenced.
+* RINEX 4 navigation files (records framed by ``> EPH``/``> ION``/... lines, the
+  ionosphere coefficients in the body) are refused, naming line 1: georinex 1.16 does not
+  read them either ("unknown RINEX").
 
 An epoch that lists 0 satellites is an epoch without observations (a row of NaN), so that
 every epoch of the file reaches the solver and gets an output row.
@@ -314,8 +318,8 @@ def rinex_version(path: str | PathLike[str]) -> tuple[float, str]:
     except ValueError as exc:
         raise InputError(f"unreadable RINEX version {first[:9]!r}", path, 1) from exc
     if not 2.0 <= version < 5.0:  # (1.00 was read as 2, 9.99 as 3: the GNSS review)
-        raise InputError(f"RINEX version {first[:9].strip()} is not supported (2.xx, 3.xx "
-                         "and 4.xx are)", path, 1)
+        raise InputError(f"RINEX version {first[:9].strip()} is not supported (2.xx and "
+                         "3.xx are, and 4.xx observation files)", path, 1)
     return version, first[20:21].upper()
 
 
@@ -352,10 +356,11 @@ def _approx(hdr: dict[str, str]) -> NDArray[np.float64]:
 
 
 def read_obs(path: str | PathLike[str]) -> ObsData:
-    """Read a RINEX 2 or 3 observation file.
+    """Read a RINEX 2, 3 or 4 observation file.
 
-    Both versions are read by the fixed-width readers of this module
-    (:func:`_read_obs_v2`, :func:`_read_obs_v3`).
+    The versions are read by the fixed-width readers of this module
+    (:func:`_read_obs_v2`, :func:`_read_obs_v3`; RINEX 4 observation records are those of
+    RINEX 3).
 
     Parameters
     ----------
@@ -975,10 +980,12 @@ def read_nav(paths: str | PathLike[str] | list) -> NavData:
     RINEX 2 GPS files and RINEX 3 files are read by the fixed-width record readers of this
     module (:func:`_read_nav_v2`, :func:`_read_nav_v3`): every GPS, Galileo and BeiDou
     record of the file becomes one row, including Galileo I/NAV and F/NAV records of the
-    same epoch.  Other RINEX 2 navigation types and RINEX 4 go through georinex.  GLONASS,
-    SBAS, QZSS and NavIC records are skipped (use SP3 for GLONASS).  Raises
-    :class:`InputError` with the file and line for a truncated or malformed record, or a
-    blank orbit or clock parameter, instead of dropping the record.
+    same epoch.  Other RINEX 2 navigation types go through georinex.  GLONASS, SBAS, QZSS
+    and NavIC records are skipped (use SP3 for GLONASS).  Raises :class:`InputError` with
+    the file and line for a truncated or malformed record, or a blank orbit or clock
+    parameter, instead of dropping the record, and on line 1 of a RINEX 4 navigation file
+    (not supported: its records are framed by ``> EPH`` lines, which neither this module
+    nor georinex 1.16 reads).
 
     A record whose values cannot describe a satellite (:func:`nav_record_problems`: an
     eccentricity of 1.5, sqrt(A) of 0, an infinite value, ...) is set aside with a
@@ -996,6 +1003,11 @@ def read_nav(paths: str | PathLike[str] | list) -> NavData:
         version, ftype = rinex_version(p)
         if ftype not in ("N", "G", "L", "E", "C") and not (version >= 3 and ftype == "N"):
             raise InputError(f"not a navigation file (RINEX type {ftype!r})", p, 1)
+        if version >= 4:  # (was handed to georinex, which refuses it: "unknown RINEX")
+            raise InputError(f"RINEX {version:.2f} navigation files are not supported (their "
+                             "records are framed by '> EPH' lines): give RINEX 3 or 2 "
+                             "navigation files (e.g. the IGS merged BRDC00..._MN.rnx of "
+                             "RINEX 3), or --sp3 and --clk", p, 1)
         lines = _read_lines(p)
         hdr, i0 = _header(lines, p)
         a, b = _klobuchar_from_header(lines[:i0])
@@ -1033,7 +1045,7 @@ def read_nav(paths: str | PathLike[str] | list) -> NavData:
 
 def _nav_from_georinex(path: str) -> tuple[dict[str, NDArray] | None, list[str]]:
     """GPS, Galileo and BeiDou records of a navigation file georinex reads (RINEX 2 types
-    other than GPS, RINEX 4).  georinex names the second record of a satellite at the same
+    other than GPS).  georinex names the second record of a satellite at the same
     epoch ``E01_1``: the suffix is removed so that the record stays with its satellite.
     Returns the records and the messages of those set aside (without line numbers)."""
     ds = _georinex_load(path)
