@@ -181,3 +181,21 @@ def test_parse_nmea_of_a_string_reads_its_lines_and_refuses_a_file_name(tmp_path
     assert parse_nmea(text.encode()).summary.parsed["RMC"] == 48
     with pytest.raises(TypeError, match="use read_nmea"):
         parse_nmea(str(PIXEL6))
+
+
+def _sentence(body: str) -> str:
+    return f"${body}*{nmea_checksum(body)}"
+
+
+def test_rmc_with_faa_mode_n_is_an_invalid_fix_as_a_vtg_is():
+    """RMC's mode indicator N (NMEA 2.3 on: data not valid) was read as a motion row while a
+    VTG with mode N was skipped as invalid_fix (the spp review)."""
+    rmc = "GNRMC,010000.00,A,3725.590397,N,12210.422534,W,010.0,90.0,071123,,,{}"
+    vtg = "GPVTG,90.0,T,,M,10.0,N,18.5,K,N"
+    log = parse_nmea([_sentence(rmc.format("N")), _sentence(vtg)])
+    assert log.summary.parsed == {} and len(log.motion) == 0
+    assert log.summary.skipped["invalid_fix"] == 2
+    for mode in ("A", "D", "E", ""):  # autonomous, differential, estimated, no field
+        log = parse_nmea([_sentence(rmc.format(mode))])
+        assert log.summary.parsed == {"RMC": 1}, mode
+        assert log.motion["speed_mps"].iloc[0] == pytest.approx(10.0 * KNOT_MPS)

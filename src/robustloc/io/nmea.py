@@ -40,8 +40,9 @@ counted as ``orphan_vtg``.
 Robustness: lines may carry a prefix or suffix (Android GnssLogger ``NMEA,$GP...*hh,ms``):
 the sentence is the text from ``$`` to the two hex digits after ``*``.  A bad checksum, a
 missing checksum, a truncated sentence (required fields empty), a malformed one (a field
-that must be a number is not: ``30XY.0021`` for a latitude), an invalid fix (GGA quality 0,
-RMC status ``V``) or an unsupported type is counted in ``summary.skipped`` and skipped --
+that must be a number is not: ``30XY.0021`` for a latitude), an invalid fix
+(GGA quality 0, RMC status ``V``, RMC or VTG FAA mode indicator ``N``: data not valid,
+NMEA 2.3 on) or an unsupported type is counted in ``summary.skipped`` and skipped --
 never an exception.  Only an unreadable *file* raises :class:`InputError`.
 
 Plausibility (:mod:`robustloc.io.limits`): a sentence with a valid checksum can still carry
@@ -358,7 +359,8 @@ def parse_nmea(
                 if ts is None or not msg.status:
                     skip(lineno, "truncated")
                     continue
-                if msg.status != "A":
+                if msg.status != "A" or getattr(msg, "mode_indicator", None) == "N":
+                    # (mode N, NMEA 2.3 on: data not valid, as a VTG's; it was a motion row)
                     skip(lineno, "invalid_fix")
                     continue
                 if msg.spd_over_grnd in (None, ""):
