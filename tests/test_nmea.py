@@ -199,3 +199,25 @@ def test_rmc_with_faa_mode_n_is_an_invalid_fix_as_a_vtg_is():
         log = parse_nmea([_sentence(rmc.format(mode))])
         assert log.summary.parsed == {"RMC": 1}, mode
         assert log.motion["speed_mps"].iloc[0] == pytest.approx(10.0 * KNOT_MPS)
+
+
+@pytest.mark.parametrize("body", [
+    "GPRMC,010016.00,A,3725.590397,N,12210.422534,W,1_0,90.0,071123,,,A",  # speed
+    "GPRMC,010016.00,A,3725.590397,N,12210.422534,W,10.0,9_0,071123,,,A",  # course
+    "GPVTG,9_0,T,,M,10.0,N,18.5,K,A",  # course
+    "GPVTG,90.0,T,,M,10.0,N,1_8.5,K,A",  # speed
+    "GPGGA,010018.00,3725.590397,N,12210.422534,W,1_0,24,0.4,51.9,M,-28.4,M,,",  # quality
+    "GPGGA,010018.00,3725.5_90397,N,12210.422534,W,1,24,0.4,51.9,M,-28.4,M,,",  # latitude
+    "GPGGA,010018.00,3725.590397,N,12210.422534,W,1,24,0.4,5_1.9,M,-28.4,M,,",  # altitude
+    "GPGGA,010018.00,3725.590397,N,12210.422534,W,1,2_4,0.4,51.9,M,-28.4,M,,",  # satellites
+    "GPGGA,0100_18.00,3725.590397,N,12210.422534,W,1,24,0.4,51.9,M,-28.4,M,,",  # time
+    "GPGST,010018.00,0.0_06,0.023,0.020,273.6,0.023,0.020,0.031",  # rms
+])
+def test_a_number_with_an_underscore_is_malformed(body):
+    """Python's float and int read ``1_0`` as 10: an RMC of 1_0 kn was a 10 kn motion row,
+    a GGA of quality 1_0 a fix of quality 10, while the module docstring says such fields
+    are malformed (and the RINEX reader refuses them)."""
+    vtg_fix = [make_rmc(3616.0, 1.0, 0.0)] if body.startswith("GPVTG") else []
+    log = parse_nmea([*vtg_fix, _sentence(body)])
+    assert log.summary.skipped["malformed"] == 1, log.summary.text()
+    assert log.summary.parsed == ({"RMC": 1} if vtg_fix else {})

@@ -40,7 +40,8 @@ counted as ``orphan_vtg``.
 Robustness: lines may carry a prefix or suffix (Android GnssLogger ``NMEA,$GP...*hh,ms``):
 the sentence is the text from ``$`` to the two hex digits after ``*``.  A bad checksum, a
 missing checksum, a truncated sentence (required fields empty), a malformed one (a field
-that must be a number is not: ``30XY.0021`` for a latitude), an invalid fix
+that must be a number is not: ``30XY.0021`` for a latitude, or ``1_0``, which Python's
+``float`` and ``int`` read as 10; no field of these types holds a ``_``), an invalid fix
 (GGA quality 0, RMC status ``V``, RMC or VTG FAA mode indicator ``N``: data not valid,
 NMEA 2.3 on) or an unsupported type is counted in ``summary.skipped`` and skipped --
 never an exception.  Only an unreadable *file* raises :class:`InputError`.
@@ -204,6 +205,10 @@ def _minutes(field: str, degree_digits: int) -> float:
 
 
 def _num(v) -> float:
+    """A field's number, NaN when it is none (``1_0`` included: Python's ``float`` reads
+    it as 10, no NMEA writer writes it)."""
+    if isinstance(v, str) and "_" in v:
+        return float("nan")
     try:
         return float(v)
     except (TypeError, ValueError):
@@ -344,6 +349,10 @@ def parse_nmea(
             continue
         if kind not in ("RMC", "VTG", "GGA", "GST"):
             skip(lineno, "unsupported")
+            continue
+        if "_" in body:  # every number (float, int, pynmea2's latitude and time) would
+            # read 1_0 as 10: no field of these sentences holds a '_' (the spp review)
+            skip(lineno, "malformed")
             continue
         try:
             msg = pynmea2.parse(m.group(0), check=True)
