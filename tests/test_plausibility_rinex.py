@@ -180,3 +180,74 @@ def test_a_missing_record_line_names_the_epoch_header_read_as_a_record(tmp_path,
     bad = _write(tmp_path, "short.05o", lines)
     err = _spp_error(capsys, bad, NAV, tmp_path)
     assert f"{bad}:{i + 9}:" in err and "not an observation record ' 05  4  2" in err
+
+
+def _implausible(line: str, first_col: int, fields: list[int]) -> str:
+    """An observation record line with the given 16-character fields (0-based, from
+    ``first_col``) set to 1 m (no pseudorange: an invalid measurement) where not blank."""
+    for f in fields:
+        c = first_col + 16 * f
+        if line[c : c + 14].strip():
+            line = line[:c] + f"{1.0:14.3f}" + line[c + 14 :]
+    return line
+
+
+def _spp_status(obs: Path, nav: Path, tmp_path: Path, *options: str) -> pd.Series:
+    out = tmp_path / "sol.csv"
+    assert main(["spp", str(obs), str(nav), "-o", str(out), "--quiet", *options]) == 0
+    return pd.read_csv(out)["status"]
+
+
+def test_invalid_value_of_a_satellite_below_the_mask_keeps_the_epochs_reason(tmp_path):
+    """The review: an implausible C1 of G23 (7 deg, below the 15 deg mask, never used) in
+    the last epoch relabelled that ill_conditioned epoch (5 satellites, GDOP 47)
+    invalid_measurement.  The status says invalid_measurement only when the values set
+    aside could have given the epoch a fix."""
+    lines, i = _lines(OBS)
+    k = max(j for j, ln in enumerate(lines) if "    26444999.610 " in ln)  # G23, last epoch
+    assert lines[k - 7].startswith(" 05  4  2  0 59 30") and "G23" in lines[k - 7]
+    clean = _spp_status(OBS, NAV, tmp_path, "--systems", "G")
+    assert clean.iloc[-1] == st.ILL_CONDITIONED
+    lines[k] = _implausible(lines[k], 0, [1])
+    bad = _write(tmp_path, "g23.05o", lines)
+    assert read_obs(bad).invalid_per_epoch[-1] == 1
+    for raim in ([], ["--raim"]):
+        assert _spp_status(bad, NAV, tmp_path, "--systems", "G", *raim).iloc[-1] \
+            == st.ILL_CONDITIONED
+    # the contrast: C1 and P2 of 5 of the first epoch's 8 satellites (all above the mask)
+    lines, i = _lines(OBS)
+    for r in range(1, 6):
+        lines[i + r] = _implausible(lines[i + r], 0, [1, 3])
+    status = _spp_status(_write(tmp_path, "five.05o", lines), NAV, tmp_path, "--systems", "G")
+    assert status.iloc[0] == st.INVALID and status.iloc[1:].equals(clean.iloc[1:])
+
+
+def test_invalid_value_of_a_constellation_not_requested_keeps_the_epochs_reason(tmp_path):
+    """Implausible codes of every Galileo satellite of the SLAC excerpt's first epoch: with
+    --systems G and a 50 deg mask (2 GPS satellites: insufficient_anchors) they could not
+    have mattered (invalid_measurement before); with --systems E they took the epoch's
+    every satellite."""
+    obs = SLAC / "slac1180_1930-1940.21o"
+    nav = SLAC / "brdc1180_1700-2200.21n"
+    sp3 = ["--sp3", str(SLAC / "COD0MGXFIN_20211181905_60M_05M_ORB.SP3"),
+           "--clk", str(SLAC / "COD0MGXFIN_20211181930_12M_30S_CLK.CLK")]
+    lines, i = _lines(obs)
+    types = read_obs(obs).obs.keys()
+    codes = [t for t, name in enumerate(types) if name[0] in "CP"]
+    nsat, per = int(lines[i][29:32]), (len(types) + 4) // 5
+    head = lines[i][32:68] + lines[i + 1][32:68] if nsat > 12 else lines[i][32:68]
+    sats = [head[3 * s : 3 * s + 3] for s in range(nsat)]
+    first = i + (nsat + 11) // 12
+    gal = [s for s in range(nsat) if sats[s].startswith("E")]
+    assert len(gal) >= 4
+    for s in gal:
+        for li in range(per):
+            j = first + s * per + li
+            lines[j] = _implausible(lines[j].ljust(80), 0,
+                                    [t % 5 for t in codes if t // 5 == li]).rstrip()
+    bad = _write(tmp_path, "e.21o", lines)
+    assert read_obs(bad).invalid_per_epoch[0] >= 2 * len(gal)
+    status = _spp_status(bad, nav, tmp_path, "--systems", "G", "--elevation-mask", "50", *sp3)
+    assert (status == st.INSUFFICIENT).all()
+    status = _spp_status(bad, nav, tmp_path, "--systems", "E", *sp3)
+    assert status.iloc[0] == st.INVALID and (status.iloc[1:] == st.OK).all()

@@ -35,10 +35,13 @@ statistics; hpl/vpl).  Status 'unavailable' (RAIM detected a fault it could not 
 or no redundancy to test) keeps the position but marks it unverified.  A pseudorange
 outside 1.5e7 .. 5e7 m (robustloc.io.limits) is an invalid measurement: it is never used,
 counted in the summary (invalid_measurement N), and an epoch left without a solution
-because of such values has status 'invalid_measurement'.  A satellite with two records
-in one epoch is an error (FILE:LINE, exit 2): a receiver writes one record per satellite
-and epoch, and which one is right cannot be told (locate averages the duplicate rows of a
-measurements table: repeated measurements of one range).  A summary of errors
+because of such values has status 'invalid_measurement': when they were of satellites it
+would have used (a constellation of --systems, above the elevation mask) and with them it
+would have had a usable set (a satellite per unknown, GDOP <= 30); otherwise the epoch
+keeps its own status (insufficient_anchors, ill_conditioned, ...).  A satellite with
+two records in one epoch is an error (FILE:LINE, exit 2): a receiver writes one record per
+satellite and epoch, and which one is right cannot be told (locate averages the duplicate
+rows of a measurements table: repeated measurements of one range).  A summary of errors
 against --reference (default: the RINEX header's APPROX POSITION XYZ) is printed (--json
 for JSON).
 

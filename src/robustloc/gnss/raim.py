@@ -426,4 +426,5 @@ def inject_faults(
             if name[0] in "CP":
                 arr[rows, j] += float(bias)
     return ObsData(obs.path, obs.version, obs.t_gps_s, list(obs.sats), new, obs.approx_xyz_m,
-                   obs.epoch_flag, obs.line, dict(obs.header), obs.invalid)
+                   obs.epoch_flag, obs.line, dict(obs.header), obs.invalid,
+                   obs.invalid_cells)

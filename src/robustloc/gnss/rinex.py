@@ -138,6 +138,9 @@ class ObsData:
     invalid : ndarray of int (N,), optional
         Pseudoranges of each epoch outside the physical limits, set to NaN
         (``invalid_measurement``); ``None`` is read as zeros.
+    invalid_cells : dict of str -> ndarray of bool (N, S)
+        Where those values were, per observation type (only the types that had one): the
+        solver's status tells from them whether an epoch lost its fix to them.
     """
 
     path: str
@@ -150,6 +153,7 @@ class ObsData:
     line: NDArray[np.int64]
     header: dict[str, str] = field(default_factory=dict)
     invalid: NDArray[np.int64] | None = None
+    invalid_cells: dict[str, NDArray[np.bool_]] = field(default_factory=dict)
 
     @property
     def n_epochs(self) -> int:
@@ -172,7 +176,7 @@ class ObsData:
             self.path, self.version, self.t_gps_s[rows], list(self.sats),
             {k: v[rows] for k, v in self.obs.items()}, self.approx_xyz_m,
             self.epoch_flag[rows], self.line[rows], dict(self.header),
-            self.invalid_per_epoch[rows],
+            self.invalid_per_epoch[rows], {k: v[rows] for k, v in self.invalid_cells.items()},
         )
 
 
@@ -181,20 +185,26 @@ def is_pseudorange(obs_type: str) -> bool:
     return len(obs_type) >= 2 and obs_type[0] in "CP" and obs_type[1].isdigit()
 
 
-def _implausible_pseudoranges(obs: dict[str, NDArray[np.float64]]) -> NDArray[np.int64]:
-    """Set pseudoranges outside the physical limits to NaN (in place); count per epoch."""
+def _implausible_pseudoranges(
+    obs: dict[str, NDArray[np.float64]],
+) -> tuple[NDArray[np.int64], dict[str, NDArray[np.bool_]]]:
+    """Set pseudoranges outside the physical limits to NaN (in place); count per epoch,
+    and where they were per type (:attr:`ObsData.invalid_cells`)."""
     from robustloc.io.limits import LIMITS
 
     lim = LIMITS["pseudorange"]
     count = None
+    cells: dict[str, NDArray[np.bool_]] = {}
     for name, a in obs.items():
         if not is_pseudorange(name):
             continue
         bad = ~np.isnan(a) & ~lim.check(a)
+        if bad.any():
+            cells[name] = bad
         a[bad] = np.nan
         count = bad.sum(axis=1) if count is None else count + bad.sum(axis=1)
     n = next(iter(obs.values())).shape[0] if obs else 0
-    return np.zeros(n, dtype=np.int64) if count is None else count.astype(np.int64)
+    return (np.zeros(n, dtype=np.int64) if count is None else count.astype(np.int64)), cells
 
 
 def _calendar(y: int, mo: int, d: int, h: int, mi: int, sec: float, what: str, path: str,
@@ -533,12 +543,12 @@ def _read_obs_v2(path: str, version: float) -> ObsData:
             for (y, mo, d, h, mi, s) in times
         ]
     )
-    invalid = _implausible_pseudoranges(obs)
+    invalid, cells = _implausible_pseudoranges(obs)
     return ObsData(
         path, version, _epochs_to_gps_s(tt, _obs_time_system(hdr, lines, path)), all_sats,
         obs, _approx(hdr),
         np.asarray(flags, dtype=np.int64), np.asarray(ep_lines, dtype=np.int64), hdr,
-        invalid,
+        invalid, cells,
     )
 
 
@@ -781,12 +791,12 @@ def _read_obs_v3(path: str, version: float) -> ObsData:
         ],
         dtype="datetime64[ns]",
     )
-    invalid = _implausible_pseudoranges(obs)
+    invalid, cells = _implausible_pseudoranges(obs)
     return ObsData(
         path, version, _epochs_to_gps_s(tt, _obs_time_system(hdr, lines, path)), all_sats,
         obs, _approx(hdr),
         np.asarray(flags, dtype=np.int64), np.asarray(ep_lines, dtype=np.int64), hdr,
-        invalid,
+        invalid, cells,
     )
 
 

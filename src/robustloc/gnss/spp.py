@@ -32,7 +32,8 @@ sigmas as a-priori standard deviations).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import copy
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pandas as pd
@@ -612,6 +613,63 @@ class SppSolver:
         )
         return self._result(P, x, H, v, use, el, az, sig, conv, n_it, absent,
                             np.zeros((N, S), dtype=bool), {})
+
+    def lost_to_invalid(
+        self, obs: ObsData, nav: NavData | None, precise: PreciseProducts | None,
+        xyz_m: NDArray[np.float64],
+    ) -> NDArray[np.bool_]:
+        """Epochs of ``obs`` that their implausible pseudoranges could have given a fix.
+
+        The values set aside (:attr:`ObsData.invalid_cells`) matter to an epoch when a
+        satellite would have been used with one (its code is the one this solver picks, of
+        a constellation of :attr:`systems` with an orbit, above the elevation mask at
+        ``xyz_m``) and the epoch's satellites, with those, would have made a usable set: at
+        least one per unknown and a GDOP within :attr:`max_gdop`.  Otherwise the epoch's
+        own status (too few satellites, a poor geometry) is the reason it has no fix: an
+        implausible value of a satellite below the mask relabelled an ``ill_conditioned``
+        epoch ``invalid_measurement`` (the spp review).
+
+        Parameters
+        ----------
+        obs : ObsData
+            The epochs to judge.
+        nav, precise : NavData or None, PreciseProducts or None
+            As for :meth:`solve`.
+        xyz_m : ndarray (N, 3)
+            Receiver position of each epoch for the elevations (its fix, or a neighbour's);
+            a row of NaN counts every satellite as above the mask.
+
+        Returns
+        -------
+        ndarray of bool (N,)
+        """
+        N = obs.n_epochs
+        out = np.zeros(N, dtype=bool)
+        if not obs.invalid_cells or N == 0:
+            return out
+        # a plausible code in place of each value set aside: it only sets the transmit
+        # time, and the satellite moves some 100 m in the 0.05 s it may be off
+        filled = {k: np.where(obs.invalid_cells[k], 2.2e7, v) if k in obs.invalid_cells
+                  else v for k, v in obs.obs.items()}
+        probe = copy.copy(self)
+        probe.smoothing_epochs = 0
+        withheld = (~np.isfinite(pseudoranges(obs, self.iono))
+                    & np.isfinite(pseudoranges(replace(obs, obs=filled), self.iono)))
+        if not withheld.any():
+            return out
+        P = probe.prepare(replace(obs, obs=filled), nav, precise)
+        K = len(P.systems)
+        if K == 0:
+            return out
+        x = np.zeros((N, 3 + K))
+        xyz = np.asarray(xyz_m, dtype=float).reshape(N, 3)
+        x[:, :3] = np.where(np.all(np.isfinite(xyz), axis=1)[:, None], xyz, 0.0)
+        _, H, el, _, _, pos_ok = probe._model(P, np.arange(N), x)
+        use = P.avail & (~pos_ok[:, None] | (el >= np.deg2rad(self.elevation_mask_deg)))
+        absent = (use.astype(float) @ (P.sys_idx[:, None] == np.arange(K)[None, :])) == 0
+        with np.errstate(invalid="ignore"):
+            gdop = dops(H, use, x[:, :3], absent)[:, 0]
+        return (use & withheld).any(axis=1) & (gdop <= self.max_gdop)
 
     def _result(self, P, x, H, v, use, el, az, sig, conv, n_it, absent, excluded, extra,
                 status=None, dop=None) -> SppResult:

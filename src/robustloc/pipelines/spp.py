@@ -207,6 +207,25 @@ def _model_notes(iono: str, nav: bool, precise: bool, systems: str) -> list[str]
     return notes
 
 
+def _nearest_fix(res: Any, approx_xyz_m: np.ndarray) -> np.ndarray:
+    """Each epoch's usable fix, else the one nearest in time, else the header position
+    (NaN when that is none): where to take the elevations of an epoch without a fix."""
+    t = np.asarray(res.t_gps_s, dtype=float)
+    out = np.full((t.size, 3), np.nan)
+    if np.linalg.norm(approx_xyz_m) > 6.0e6:
+        out[:] = approx_xyz_m
+    have = np.flatnonzero(res.ok)
+    if have.size:
+        order = have[np.argsort(t[have], kind="stable")]
+        ts = t[order]
+        k = np.clip(np.searchsorted(ts, t), 1, max(ts.size - 1, 1))
+        before = order[np.clip(k - 1, 0, ts.size - 1)]
+        after = order[np.clip(k, 0, ts.size - 1)]
+        pick = np.where(np.abs(t - t[before]) <= np.abs(t[after] - t), before, after)
+        out = res.xyz_m[pick].copy()
+    return out
+
+
 def run_spp(obs: str, nav: Sequence[str] | str, settings: SppSettings, *,
             sp3: str | None = None,
             clk: str | None = None) -> tuple[pd.DataFrame, dict[str, Any]]:
@@ -309,9 +328,17 @@ def run_spp(obs: str, nav: Sequence[str] | str, settings: SppSettings, *,
     frame = res.to_frame()
     n_invalid = observations.invalid_per_epoch
     if len(frame) == len(n_invalid):
-        # an epoch left without a solution by implausible pseudoranges
-        lost = (n_invalid > 0) & ~frame["status"].isin(st.USABLE).to_numpy()
-        frame.loc[lost, "status"] = st.INVALID
+        # an epoch left without a solution by implausible pseudoranges: not one whose
+        # values were of satellites it could not use (below the mask, another
+        # constellation), which keeps its own reason (SppSolver.lost_to_invalid)
+        judge = np.flatnonzero((n_invalid > 0) & ~frame["status"].isin(st.USABLE).to_numpy())
+        if judge.size:
+            near = _nearest_fix(res, observations.approx_xyz_m)[judge]
+            lost = solver.lost_to_invalid(observations.select(judge), ephemerides, precise,
+                                          near)
+            status = frame["status"].to_numpy(copy=True)
+            status[judge[lost]] = st.INVALID
+            frame["status"] = status
     if settings.reference is not None:
         ref = np.asarray(settings.reference, dtype=float)
         ref_src = "--reference"
