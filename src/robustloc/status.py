@@ -22,7 +22,9 @@ NOT_CONVERGED = "not_converged"
 #: One or more observations were found faulty by a test and excluded; the fix is usable.
 FAULT_EXCLUDED = "fault_excluded"
 #: A fault was detected but could not be excluded (redundancy exhausted), or the fix kept
-#: a minority of its observations (half or more flagged: no majority supports it).
+#: a minority of its observations (half or more flagged: no majority supports it).  No
+#: position, except in ``spp --raim``, where it is RAIM's word and the position is kept:
+#: no redundancy to test the fix, or a fault it could not attribute (``hpl`` NaN).
 UNAVAILABLE = "unavailable"
 #: The epoch's own input was unusable (all NaN/inf, malformed).
 INVALID = "invalid_measurement"
