@@ -33,7 +33,8 @@ ranges themselves (so the same epoch is ``insufficient_anchors`` in tight and ``
 in loose coupling: the rows' states differ).  ``invalid_measurement`` is an event whose
 values were *all* outside their limits; one with a valid range left unused is
 ``predicted``.
-An event whose update kept no component (all rejected, ``n_used`` 0) is ``predicted``.  In
+An event of one or two components whose update kept none (all rejected, ``n_used`` 0) is
+``predicted`` too, whatever its anchors (one of three or more is ``unavailable``).  In
 loose coupling an ``ok`` event whose fix failed its own test (:func:`fix_test_status`,
 ``locate``'s) is ``fault_detected``.  An anchor far outside the others
 (:func:`robustloc.estimators.ranging._sane_anchors`, as in ``locate`` and ``track``) is
@@ -377,11 +378,19 @@ def fuse(
     layout = _layout_status(tl.time_s, heard, a_xy, opts.geometry_window_s)
     status = np.asarray(tr.status, dtype=object).copy()
     if tr.time_s.size:
+        # an update that kept no component (every one rejected: n_used 0, a GPS speed or
+        # course kept counts) left the prediction: predicted, never ok / fault_excluded,
+        # and before the layout -- insufficient_anchors and ill_conditioned qualify an
+        # updated row (an event of two anchors whose two ranges were both rejected said
+        # insufficient_anchors over the prediction: the fuse status review).  An
+        # event of three or more components that kept none stays unavailable
+        status = np.where(st.among(status, (st.OK, st.FAULT_EXCLUDED)) & (tr.n_used == 0),
+                          st.PREDICTED, status)
         if opts.coupling == "loose":  # a fused fix that failed its own test
             status = np.where((status == st.OK) & np.isfinite(tl.z[..., c_fail]),
                               st.FAULT_DETECTED, status)
         fixed = st.among(status, (st.OK, st.FAULT_EXCLUDED, st.FAULT_DETECTED,
-                                  st.UNAVAILABLE))
+                                  st.UNAVAILABLE)) & (tr.n_used > 0)
         status = np.where(fixed & (layout != ""), layout, status)
         # nothing valid arrived with the event: its own input was unusable.  Not an event
         # with a valid value that nothing used -- loose coupling's one or two ranges, no fix
@@ -390,11 +399,6 @@ def fuse(
         own = heard.any(axis=-1) | np.isfinite(z[..., m - 2 :]).any(axis=-1)
         bad_event = np.isfinite(tl.z[..., c_inv]) & ~own & (status == st.PREDICTED)
         status = np.where(bad_event, st.INVALID, status)
-        # an update that kept no component (every one rejected: n_used 0, a GPS speed or
-        # course kept counts) left the prediction: predicted, never ok / fault_excluded
-        # (after the layout: an event whose anchors cannot fix a position says that first)
-        status = np.where(st.among(status, (st.OK, st.FAULT_EXCLUDED)) & (tr.n_used == 0),
-                          st.PREDICTED, status)
     frame = _track_frame(tl.tags, tl.time_s, tr, filt, z, m, opts, status)
     frame = _with_set_aside(frame, pd.concat(aside, ignore_index=True), fusion_method(filt))
     summary["rejected_updates"] = int(np.sum(tr.extra.get("nonfinite", 0)))
