@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -69,3 +70,44 @@ def test_fuse_row_that_kept_nothing_is_predicted_whatever_the_anchors(cart, tmp_
     updated = tr["n_used"] > 0
     assert (tr.loc[updated & (tr["time"] >= 0.5), "status"] == layout).all()
     assert (tr.loc[~updated, "status"] == st.PREDICTED).all()
+
+
+# --- 3: filter --static restarts a link after a gap, as its help says ------------------------
+
+
+@pytest.mark.parametrize("static", [False, True], ids=["moving", "static"])
+def test_filter_restarts_a_link_after_a_gap(tmp_path, capsys, static):
+    # one link at -50 dBm (3.16 m from an anchor of A = -40, n = 2), then 10 000 s later at
+    # -60 dBm (10 m).  The help: a link whose predicted RSSI variance exceeds 25 times the
+    # measurement's starts again, its distance drawn from the sample.  --static never did
+    # (its distance variance does not grow, and the rule also wanted it beyond d^2): its
+    # distance state stayed at 3.3 m
+    pa, pm, out = tmp_path / "a.csv", tmp_path / "m.csv", tmp_path / "f.csv"
+    pa.write_text("anchor,x,y,A,n\nAP1,0,0,-40,2\n")
+    rows = ([f"{t},t,AP1,-50" for t in range(20)]
+            + [f"{10000 + t},t,AP1,-60" for t in range(20)])
+    pm.write_text("time,tag,anchor,rssi\n" + "\n".join(rows) + "\n")
+    rc = main(["filter", str(pm), "--anchors", str(pa), "-o", str(out), "--json",
+               *(["--static"] if static else [])])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    assert json.loads(cap.out)["restarted"] == 1
+    f = pd.read_csv(out)
+    after = f.iloc[20]
+    assert after["distance_state"] == pytest.approx(10.0, rel=1e-9)
+    assert after["rssi"] == pytest.approx(-60.0, abs=1e-9)
+    assert f.iloc[21:]["distance_state"].sub(10.0).abs().max() < 0.5
+
+
+def test_static_filter_restarts_after_its_random_walk_passes_the_ratio():
+    # a static link's power variance grows by q_rssi per second only: past 25 R after about
+    # (25 R - P) / q = (100 - 0.43) / 0.05 = 1990 s at the defaults (filter --help)
+    from robustloc.filters.rssi import RobustRssiFilter
+
+    f = RobustRssiFilter(sigma_accel_mps2=0.0, init_speed_std_mps=0.0)
+    for gap, want in ((1900.0, 0), (2100.0, 1)):
+        t = np.r_[np.arange(20.0), gap + 19.0 + np.arange(5.0)]
+        z = np.r_[np.full(20, -50.0), np.full(5, -60.0)]
+        r = f.filter_samples(np.zeros(len(t), dtype=np.int64), t, z)
+        assert int(r.restarted.sum()) == want, gap
+    assert f.static and not RobustRssiFilter().static

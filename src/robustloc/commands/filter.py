@@ -37,10 +37,14 @@ and 'rssi_raw' (so 'locate' sets it aside as on the raw file), 'distance' is emp
 'distance_state' and 'speed' are the filter's prediction (empty for a time beyond the
 limits: no prediction reaches it), and 'status' says invalid_measurement (else ok); such
 rows are counted in the summary.
-A link whose predicted RSSI variance exceeds 25 times the measurement's (after a gap, or
-within decimetres of an anchor) starts again at its sample, as at its first one: the
-prior then weighs under 4 % of the update, and the distance and speed states are drawn
-from the sample instead of carried across the gap (counted as restarts).
+A link whose predicted RSSI variance exceeds 25 times the measurement's starts again at
+its sample, as at its first one: the prior then weighs under 4 % of the update, and the
+distance and speed states are drawn from the sample instead of carried across the gap
+(counted as restarts).  A moving link's power prediction also widens near an anchor, so
+it restarts only when its distance's sd exceeds the distance as well (after a gap, or
+within decimetres of an anchor); with --static the distance never moves and the power's
+variance grows with --q-rssi alone: a link restarts after a gap of about
+(25 sigma^2) / q-rssi (2000 s at the defaults).
 Use --static when the receivers do not move.  Path-loss parameters come
 from the anchors file, the model 'locate' takes from it: A, n (log-distance) when the file
 has them, else p0, gamma[, faf, d0] (attenuation factor), else p0[, d0] (friis); an anchor

@@ -516,7 +516,14 @@ class RobustRssiFilter:
         (t^2/2) / d'``, but its distance and speed are known); a static link within
         decimetres of one, with its distance near the floor, restarts at every sample
         (two of the 84 links of a simulated wifi-room, RSSI -13 to -21 dBm), which
-        changes its filtered power by under 4 % of the innovation, as above.
+        changes its filtered power by under 4 % of the innovation, as above.  A
+        :attr:`static` filter's distance never moves (its variance does not grow), so the
+        power's variance alone decides: it grows with the random walk ``q_rssi_db2_per_s``
+        only, past ``ratio R`` after ``(ratio R - P) / q`` seconds without a sample (about
+        2000 s at the defaults), and the link then starts again with the distance of its
+        sample (with the distance condition a static link never restarted: 10 000 s
+        after -50 dBm, a sample of -60 dBm left the distance state at 3.3 m where the
+        sample says 10 m).
     engine : {"scalar", "core"}
         Measurement update: the closed-form ``m = 1`` update (:func:`scalar_update`,
         fast) or the shared core's :func:`~robustloc.filters.core.update_linear` (same
@@ -594,6 +601,14 @@ class RobustRssiFilter:
     @property
     def name(self) -> str:
         return "plain" if self.weight is None else self.weight.name
+
+    @property
+    def static(self) -> bool:
+        """Whether the links cannot move: no acceleration (``sigma_accel_mps2 = 0``) and a
+        speed fixed at 0 (``init_speed_std_mps = 0``; ``robustloc filter --static``).  The
+        prediction then never moves the distance, and its power's variance grows with the
+        power's random walk alone (``restart_var_ratio``)."""
+        return self.sigma_accel_mps2 == 0.0 and self.init_speed_std_mps == 0.0
 
     # -- the path-loss tie ------------------------------------------------------------
 
@@ -728,6 +743,7 @@ class RobustRssiFilter:
                             self.min_distance_m)
         # eq. (5) as P = A - c ln d with A = p0 + FAF + 10 n lg d0 (the tie's intercept)
         tie_a = AttenuationFactor(p.p0_dbm, gamma, p.faf_db, p.d0_m).log_distance_params()[0]
+        static = self.static
 
         steps = range(T)
         if progress and T > 1:
@@ -759,8 +775,11 @@ class RobustRssiFilter:
             # a prediction too wide to carry anything (restart_var_ratio): start again
             upd = present & run_now
             if self.restart_var_ratio is not None:
-                stale = (upd & (P[:, 0, 0] > self.restart_var_ratio * R)
-                         & (P[:, 1, 1] > x[:, 1] ** 2))
+                # (a static filter's distance never moves, so only the power's variance
+                # can say so: with the distance condition, --static never restarted)
+                stale = upd & (P[:, 0, 0] > self.restart_var_ratio * R)
+                if not static:
+                    stale &= P[:, 1, 1] > x[:, 1] ** 2
                 if stale.any():
                     x[stale], P[stale] = self._start(z[stale], p, gamma, c_db, stale, R)
                     n_rej[stale] = 0
