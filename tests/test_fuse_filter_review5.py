@@ -17,6 +17,10 @@ import pytest
 
 from robustloc import status as st
 from robustloc.cli import main
+from robustloc.filters import ConstantVelocity, RobustUpdate
+from robustloc.fusion.pipeline import FusionFilter, FusionMeasurement
+from robustloc.fusion.run import FuseOptions, fuse
+from robustloc.robust.weights import get_weight
 
 
 @pytest.fixture(scope="module")
@@ -70,6 +74,106 @@ def test_fuse_row_that_kept_nothing_is_predicted_whatever_the_anchors(cart, tmp_
     updated = tr["n_used"] > 0
     assert (tr.loc[updated & (tr["time"] >= 0.5), "status"] == layout).all()
     assert (tr.loc[~updated, "status"] == st.PREDICTED).all()
+
+
+# --- 2: a lost track restarts as a track starts: its event's GPS velocity, or wide ----------
+
+WALK_ANCHORS = pd.DataFrame({"anchor": ["A1", "A2", "A3"], "x": [0.0, 300.0, 0.0],
+                             "y": [0.0, 0.0, 300.0]})
+
+
+def _walk(gps_after_gap: bool):
+    """A tag walking east at 1 m/s amid three anchors 300 m apart, with GPS speed and
+    course every second, and 100 s without any measurement (t = 100 .. 199): the track is
+    lost and restarts at t = 200.  Ranges sigma 0.1 m; ``gps_after_gap=False``: no GPS
+    after the gap."""
+    rng = np.random.default_rng(0)
+    a = WALK_ANCHORS[["x", "y"]].to_numpy()
+    rows, gps = [], []
+    for t in [*range(100), *range(200, 300)]:
+        x = np.array([10.0 + t, 100.0])
+        for name, p in zip(WALK_ANCHORS["anchor"], a):
+            rows.append((float(t), "tag", name, float(np.hypot(*(x - p))
+                                                      + rng.normal(0.0, 0.1))))
+        if t < 100 or gps_after_gap:
+            gps.append((float(t), 1.0 + rng.normal(0.0, 0.02),
+                        np.deg2rad(90.0 + rng.normal(0.0, 2.0))))
+    meas = pd.DataFrame(rows, columns=["time", "tag", "anchor", "range"])
+    motion = pd.DataFrame(gps, columns=["time_s", "speed_mps", "course_rad"])
+    return meas, motion
+
+
+def _fuse_walk(kind: str, engine: str, gps_after_gap: bool):
+    meas, motion = _walk(gps_after_gap)
+    # fuse's defaults (--filter ekf/ukf --motion cv --robust hampel, q 0.5)
+    filt = FusionFilter(kind, ConstantVelocity(q=0.5), RobustUpdate(get_weight("hampel")),
+                        engine=engine)
+    res = fuse(meas, WALK_ANCHORS, motion, filt, FuseOptions())
+    assert res.summary["restarts"] == 1
+    return res.track
+
+
+@pytest.mark.parametrize("kind", ["ekf", "ukf"])
+def test_restart_takes_its_event_gps_velocity(kind):
+    # it restarted at rest (vx 0) with var_vx 0.0101 fitted to the first event's speed
+    # (10 sd off the true 1 m/s), and the event's own speed and course were rejected
+    # (Jacobian rows 0 at v = 0): fault_excluded.  Now as the track's start: that velocity
+    tracks = [_fuse_walk(kind, e, True) for e in ("compiled", "numpy")]
+    for tr in tracks:
+        row = tr.loc[tr["time"] == 200.0].iloc[0]
+        assert row["status"] == st.OK and row["n_used"] == 5
+        assert abs(row["vx"] - 1.0) < 0.05 and abs(row["vy"]) < 0.1
+        z = (tr["vx"] - 1.0) / np.sqrt(tr["var_vx"])
+        assert (np.abs(z[tr["time"] >= 200.0]) < 4.0).all()
+        assert (tr.loc[tr["time"] >= 200.0, "status"] == st.OK).all()
+    # both engines alike
+    a, b = tracks
+    pd.testing.assert_frame_equal(a, b, rtol=1e-9, atol=1e-10)
+
+
+@pytest.mark.parametrize("kind", ["ekf", "ukf"])
+def test_restart_without_gps_has_the_velocity_variance_of_a_start_without_gps(kind):
+    # no GPS at the restart's event: at rest, with the velocity variance of a track that
+    # starts without GPS (1 (m/s)^2, the initial state's), not the 0.0101 of the first
+    # event's speed, which put its 1 m/s 10 sd off
+    tracks = [_fuse_walk(kind, e, False) for e in ("compiled", "numpy")]
+    for tr in tracks:
+        row = tr.loc[tr["time"] == 200.0].iloc[0]
+        assert row["vx"] == pytest.approx(0.0, abs=1e-6)
+        assert row["var_vx"] == pytest.approx(1.0, rel=0.05)
+        z = (tr["vx"] - 1.0) / np.sqrt(tr["var_vx"])
+        assert (np.abs(z[tr["time"] >= 200.0]) < 4.0).all()
+    a, b = tracks
+    pd.testing.assert_frame_equal(a, b, rtol=1e-9, atol=1e-10)
+
+
+def test_restart_velocity_unit():
+    # FusionFilter._restart (the lost track's restart, and the track-by-track retry after
+    # an update that raised): a GPS speed of at least min_speed_mps with a course gives
+    # the velocity, R_speed + v^2 R_course per axis; a slow speed or no course: at rest,
+    # P_init's velocity block.  R as (m, m) and (K, m, m) alike
+    f = FusionFilter("ekf", ConstantVelocity(q=0.5))
+    meas = FusionMeasurement(4, WALK_ANCHORS[["x", "y"]].to_numpy())
+    K, m = 4, meas.m
+    x = np.full((K, 4), 7.0)
+    P = np.tile(3.0 * np.eye(4), (K, 1, 1))
+    P_init = np.tile(np.diag([0.25, 0.25, 1.0, 1.0]), (K, 1, 1))
+    fix = np.array([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0], [8.0, 9.0]])
+    z = np.full((K, m), np.nan)
+    z[:, meas.speed_index] = [2.0, 0.05, 2.0, 2.0]
+    z[:, meas.course_index] = [np.pi / 6, 1.0, np.nan, np.pi / 6]
+    R = np.diag([0.01] * (m - 2) + [0.05**2, np.deg2rad(5.0) ** 2])
+    go = np.array([True, True, True, False])
+    for RR in (R, np.broadcast_to(R, (K, m, m))):
+        xr, Pr = f._restart(go, x, P, P_init, fix, z, RR, meas)
+        np.testing.assert_allclose(xr[0], [1.0, 2.0, 2.0 * 0.5, 2.0 * np.cos(np.pi / 6)])
+        var_v = 0.05**2 + 4.0 * np.deg2rad(5.0) ** 2
+        np.testing.assert_allclose(Pr[0], np.diag([0.25, 0.25, var_v, var_v]))
+        for k in (1, 2):  # too slow, no course: at rest with P_init
+            np.testing.assert_array_equal(xr[k], [*fix[k], 0.0, 0.0])
+            np.testing.assert_array_equal(Pr[k], P_init[k])
+        np.testing.assert_array_equal(xr[3], x[3])  # not restarted
+        np.testing.assert_array_equal(Pr[3], P[3])
 
 
 # --- 3: filter --static restarts a link after a gap, as its help says ------------------------

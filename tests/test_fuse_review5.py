@@ -53,8 +53,14 @@ def test_a_minority_kept_is_no_fix_and_the_track_comes_back(cart_nlos, tmp_path,
     assert e.max() < 50.0  # (24.9 m measured; 589 m before)
     # every row that kept one component of five (three ranges, speed, course) or none
     assert set(rows.status[rows.n_used <= 1]) <= {st.UNAVAILABLE}
-    assert summary["status"].get(st.UNAVAILABLE, 0) >= 1
     assert summary["diverged"] >= 1 or summary["restarts"] >= 1 or e.max() < 5.0
+    # (since a restart takes its event's GPS velocity the UKF's track holds after its
+    # first restart: no row keeps a minority, 1.06 m RMS where 2 rows were unavailable
+    # at 1.39 m.)  The EKF on the same cart keeps a minority once
+    rows, summary, _ = _run(cart_nlos, tmp_path / "e.csv", capsys, "--motion", "ca",
+                            "--robust", "asymmetric-igg", "--filter", "ekf")
+    assert set(rows.status[rows.n_used <= 1]) <= {st.UNAVAILABLE}
+    assert summary["status"].get(st.UNAVAILABLE, 0) >= 1
 
 
 def test_the_default_filter_is_unchanged_on_the_nlos_cart(cart_nlos, tmp_path, capsys):

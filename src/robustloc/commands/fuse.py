@@ -87,12 +87,13 @@ instead of 0.92 m RMS (docs/limits.md).
 A track whose prediction is too wide to update (a gap of a day, a clock jump: position
 variance var_x + var_y beyond 1e4 m^2 and beyond R_min / sqrt(eps), R_min the event's
 smallest measurement variance -- about 50 s without measurements for cv at the default q
-and 0.15 m ranges) starts again from the event's own fix, counted as restarts; without a
-fix its rows are predicted (the last estimate, with the prediction's variances) until an
-event gives one.  The UKF also starts again from an event's fix when its prediction has
-var_x + var_y beyond 1e4 m^2 at an event with ranges (its sigma points, 2 (cv) or 2.4 (ca)
-standard deviations out, would straddle the anchors), and after a divergence
-(fault_detected, above); without a fix it updates as before.
+and 0.15 m ranges) starts again from the event's own fix (and GPS velocity, as a track
+starts), counted as restarts; without a fix its rows are predicted (the last estimate,
+with the prediction's variances) until an event gives one.  The UKF also starts again
+from an event's fix when its prediction has var_x + var_y beyond 1e4 m^2 at an event with
+ranges (its sigma points, 2 (cv) or 2.4 (ca) standard deviations out, would straddle the
+anchors), and after a divergence (fault_detected, above); without a fix it updates as
+before.
 An anchor far outside the others (more than 20 times their median spread: a typo such as a
 coordinate in mm) is not used, as in locate and track: a warning and the summary
 (anchors_not_used) name it.  Range rows of one time, tag and anchor are averaged into one
@@ -108,8 +109,8 @@ Defaults (--filter ekf --robust hampel), measured: tight coupling, CV, default -
   ekf none        3.60     4.87      0.240      0.063    0.315   0.178    0.619
   ekf hampel      0.919    0.851     0.239      0.063    0.102   0.178    0.619
   ekf igg3        0.902    0.848     0.260      0.063    0.076   0.178    0.619
-  ukf none        1.35     3.57      0.244      0.127    0.803   1024     933
-  ukf hampel      0.922    0.853     0.243      0.127    0.403   58.1     58.8
+  ukf none        1.35     3.57      0.274      0.127    0.802   57.1     68.9
+  ukf hampel      0.922    0.853     0.272      0.127    0.403   27.5     45.2
 hampel was never worse than none on any of the 35 runs (largest RMS ratio 1.000) and is
 much better where ranges are bad; igg3 is better on the NLOS carts but 1.08x none on the
 labyrinth (one range per update, where a redescending weight rejects good ranges).  The
@@ -118,13 +119,15 @@ and diverges at T = 10 s: its sigma points (+-2 sigma, 35 m per axis) span the r
 curvature 100 m from the anchors (its rows there are fault_detected, with a warning, and
 the track restarts from a fix: 4344 and 398 m RMS before; the restarts also took the plain
 UKF's largest error on dwm NLOS from 24 to 58 m, a fix holding an NLOS range).  A track
-whose first event has a GPS speed and course starts with that velocity.  Rerun:
+whose first event has a GPS speed and course starts with that velocity, and so does a
+restart (after a gap or a divergence) from its own event's GPS speed and course; without
+them it restarts at rest with the velocity variance of a start without GPS.  Rerun:
 benchmarks/bench_fuse_defaults.py.
 With --motion ca the default filter is the UKF (RMS, m, 4 seeds, hampel, q = 0.1;
 bench_fuse_defaults.py --motion ca --q 0.1):
                  dwm LOS  dwm NLOS  labyrinth  A clean  A NLOS  B clean  B NLOS
-  ekf ca          1.15     1.01      0.322      0.501    0.281    235      175
-  ukf ca          1.10     0.917     0.290      0.131    0.287    38.9     41.6
+  ekf ca          1.15     1.01      0.324      0.501    0.281    182      225
+  ukf ca          1.10     0.917     0.312      0.131    0.292    9.31     32.3
 Neither holds group B's 10 s steps at this q (the EKF is lost, the UKF diverges and
 restarts); use CV there, or a --q that fits a steadily moving cart (the report's seed-001
 section: 1e-6 / T^2).

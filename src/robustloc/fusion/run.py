@@ -53,7 +53,12 @@ from numpy.typing import NDArray
 from robustloc import status as st
 from robustloc.errors import InputError
 from robustloc.fusion.align import Stream, merge_streams
-from robustloc.fusion.pipeline import FusionFilter, FusionMeasurement, initial_state
+from robustloc.fusion.pipeline import (
+    FusionFilter,
+    FusionMeasurement,
+    gps_velocity,
+    initial_state,
+)
 from robustloc.fusion.uwb import fix_test_status, range_sigma, uwb_fix
 from robustloc.io.limits import LIMITS
 from robustloc.io.nmea import NmeaLog
@@ -352,24 +357,24 @@ def fuse(
 
     x0pos, has, fixes = _initial_positions(tl, z, opts, a_xy, dz, M)
     x0, P0 = initial_state(x0pos, n, opts.init_var_m2, acc_var=opts.init_acc_var)
+    # a track whose prediction is lost (a long gap), or that started without a position,
+    # restarts from its event's fix with the initial covariance of a track that has one,
+    # and with its event's GPS velocity as below where it has one, else at rest with the
+    # velocity variance of a start without GPS (FusionFilter.run, Notes).  It had the
+    # first event's: fitted to a speed measured before the gap
+    P_restart = P0.copy()
     # a track whose first event carries a GPS speed (at least min_speed_mps) and course
     # starts with that velocity, not at rest: at rest the speed and course rows of the
     # Jacobian are 0, and the velocity's first updates overshoot (0.38 m/s for 0.2 on a
     # simulated cart), so the innovation test failed on its events 2-5 (FusionFilter.run)
     if K * J:
-        spd, crs = z[:, 0, m - 2], z[:, 0, m - 1]
-        with np.errstate(invalid="ignore"):
-            moving = (spd >= filt.min_speed_mps) & np.isfinite(crs)
-        x0[moving, 2] = spd[moving] * np.sin(crs[moving])  # course clockwise from north
-        x0[moving, 3] = spd[moving] * np.cos(crs[moving])
-        # its variance per axis: the speed's plus the course's across the track, v sigma_c
-        var_v = opts.sigma_speed_mps**2 + (spd[moving] * np.deg2rad(opts.sigma_course_deg))**2
-        P0[moving, 2, 2] = P0[moving, 3, 3] = var_v
-    P_restart = P0.copy()
+        # course clockwise from north; its variance per axis the speed's plus the
+        # course's across the track, v sigma_c (as a restart takes it)
+        v, var_v, moving = gps_velocity(z[:, 0, m - 2], z[:, 0, m - 1], Rd[:, 0, m - 2],
+                                        Rd[:, 0, m - 1], filt.min_speed_mps)
+        x0[moving, 2:4] = v[moving]
+        P0[moving, 2, 2] = P0[moving, 3, 3] = var_v[moving]
     P0[~has, 0, 0] = P0[~has, 1, 1] = 1e4
-    # a track whose prediction is lost (a long gap), or that started without a position,
-    # restarts from its event's fix with the initial covariance of a track that has one
-    # (FusionFilter.run, Notes)
     tr = filt.run(tl.time_s, z, Rd, meas, x0, P0, progress=progress, restart=fixes,
                   P_restart=P_restart, placed=has)
 
