@@ -19,7 +19,8 @@ Two engines, measured by ``benchmarks/bench_dask.py`` (the default is the faster
 * ``dask``: ``read_csv/read_parquet -> shuffle(key) -> sort within partitions ->
   to_parquet(partition_on=key)`` on a dask cluster.
 
-Ids (``tag``, ``anchor``) are read as text, so ``007`` stays ``007``.
+Ids (``tag``, ``anchor``) are read as text, so ``007`` stays ``007``; so is every other
+CSV column but ``time``, ``rssi`` and ``range`` (numbers), value for value.
 
 The input is checked before anything is written, as the commands' readers check a file
 (``time``, ``tag`` and ``anchor`` columns; no empty id; ``time``, ``rssi`` and ``range``
@@ -148,9 +149,11 @@ def _source(con, files: list[str], fmt: str, spec: str) -> tuple[str, list[str]]
     :func:`_csv_headers`).  A row DuckDB cannot read (a ragged or garbage line) is
     located by the commands' reader (:func:`_first_bad_row`).  Text ids are stripped as
     the readers strip them, so ``T1`` and ``T1 `` are one tag.  A CSV column of
-    :data:`NUMERIC` that DuckDB's sniffer did not type as a number (``inf`` is sniffed as
-    an infinite DATE, a stray word as VARCHAR) is read as DOUBLE, so that the check of
-    :func:`_stats` sees numbers (or fails on the row that is not one).
+    :data:`NUMERIC` is read as DOUBLE whatever DuckDB's sniffer made of it (``inf`` is
+    sniffed as an infinite DATE, a stray word as VARCHAR), so that the check of
+    :func:`_stats` sees numbers (or fails on the row that is not one); every other CSV
+    column is read as text, as written (DuckDB types a column from a sample of the file:
+    a later value of another type was changed or refused).
     """
     import duckdb
 
@@ -188,9 +191,12 @@ def _source(con, files: list[str], fmt: str, spec: str) -> tuple[str, list[str]]
             replace.append(f"{seconds} AS time")
     if fmt == "csv":
         # numbers as DOUBLE, as the readers read them: a column sniffed as BIGINT took
-        # hexadecimal text ("0x10" became 16, which the readers refuse; the review)
-        types = {c: "VARCHAR" for c in IDS if c in names}
-        types.update({r[0]: "DOUBLE" for r in described if r[0] in NUMERIC})
+        # hexadecimal text ("0x10" became 16, which the readers refuse; the review).
+        # Every other column as text, value for value: typed from DuckDB's sample of
+        # the file, 1.5 on line 55 002 of an integer column became 2, two 20-digit ids
+        # one double, TRUE a boolean and 1e3 1000.0 (exit 0), and a word there stopped
+        # the run with DuckDB's "Conversion Error" (the partition review)
+        types = {c: "DOUBLE" if c in NUMERIC else "VARCHAR" for c in names}
         if types:
             src += ", types={" + ", ".join(f"{_sql_str(c)}: {_sql_str(t)}"
                                            for c, t in types.items()) + "}"
