@@ -36,6 +36,7 @@ import shutil
 import time as _time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 from urllib.parse import quote
 
 from robustloc.engines.dataset import discover
@@ -48,6 +49,9 @@ REQUIRED = ("time", "tag", "anchor")
 #: Columns read as numbers (and checked finite), and as ids (checked non-empty).
 NUMERIC = ("time", "rssi", "range")
 IDS = ("tag", "anchor")
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 
 @dataclass(frozen=True)
@@ -481,40 +485,86 @@ def _check_rows_written(files: list[Path], rows: int, out: str | os.PathLike) ->
 
 #: The dtype of a text column in the dask method (Arrow strings, as dask's own).
 _TEXT = "string[pyarrow]"
-#: DuckDB column types that the dask method reads as float64 (any other as text).
+#: DuckDB column types that the dask method reads as float64 in a column of
+#: :data:`NUMERIC` (any other column keeps its type: :func:`_check_with_duckdb`).
 _NUMBER_TYPES = ("DOUBLE", "FLOAT", "REAL", "BIGINT", "INTEGER", "SMALLINT", "TINYINT",
                  "HUGEINT", "UBIGINT", "UINTEGER", "USMALLINT", "UTINYINT", "DECIMAL")
 
 
 def _check_with_duckdb(files: list[str], fmt: str, stage: Path, memory_limit: str,
-                       threads: int | None, spec: str) -> dict[str, str]:
+                       threads: int | None, spec: str) -> dict[str, object]:
     """``method="dask"``: the input checked by :func:`_stats` first (one DuckDB scan).
 
     Returns each column of all the files together (their union, in DuckDB's order) with
-    the dtype the dask method reads it as: ``float64`` for a number, :data:`_TEXT`
-    otherwise, ids always text.  Dask takes the columns and their types from the first
-    file (or its first block): a later file with an integer ``time`` where the first had
-    a float, or with one more column, stopped the run with an internal error, and a
-    Parquet file's extra column was dropped without a word (the Dask review)."""
+    the dtype the dask method reads it as: ids as text (:data:`_TEXT`), a number of
+    :data:`NUMERIC` as ``float64`` (as the readers read them), every other column in the
+    type DuckDB reads it as (a ``pandas.ArrowDtype`` of its Arrow type; text for a CSV's
+    columns, :func:`_source`), so that both methods write the same values: an int64
+    column was made float64 here, which changed ids and nanosecond stamps beyond 2**53
+    (1910 of the 1917 ``field.stamp`` of the uwb-dwm1001 log ``A3.csv``: the partition
+    review).  Dask takes the columns and their types from the first file (or its first
+    block): a later file with an integer ``time`` where the first had a float, or with
+    one more column, stopped the run with an internal error, and a Parquet file's extra
+    column was dropped without a word (the Dask review)."""
+    import pandas as pd
+    import pyarrow as pa
+
     tmp = stage / ".duckdb-tmp"
     con = _connect(memory_limit, threads, tmp)
     try:
         src, names = _source(con, files, fmt, spec)
         _stats(con, src, names, spec, files)
         described = con.execute(f"DESCRIBE SELECT * FROM {src}").fetchall()
+        schema = con.sql(f"SELECT * FROM {src} LIMIT 0").to_arrow_table().schema
     finally:
         con.close()
         shutil.rmtree(tmp, ignore_errors=True)
-    return {str(c): (_TEXT if c in IDS
-                     else "float64" if str(t).upper().startswith(_NUMBER_TYPES) else _TEXT)
-            for c, t, *_ in described}
+    arrow = {f.name: f.type for f in schema}
+    dtypes: dict[str, object] = {}
+    for c, t, *_ in described:
+        c = str(c)
+        a = arrow.get(c)
+        if c in IDS:
+            dtypes[c] = _TEXT
+        elif c in NUMERIC and str(t).upper().startswith(_NUMBER_TYPES):
+            dtypes[c] = "float64"
+        elif a is None or pa.types.is_string(a) or pa.types.is_large_string(a) \
+                or pa.types.is_string_view(a):
+            dtypes[c] = _TEXT
+        else:
+            dtypes[c] = pd.ArrowDtype(a)
+    return dtypes
 
 
-def _dask_columns(df, dtypes: dict[str, str], path: str):
+def _arrow_backed(s: pd.Series, kind: pd.ArrowDtype) -> pd.Series:
+    """``s`` in the Arrow type of ``kind`` (a ``pandas.ArrowDtype``), value for value (a
+    safe cast: an int64 column of one file in another's double, as DuckDB promotes
+    them)."""
+    import pandas as pd
+    import pyarrow as pa
+
+    arr = pa.array(s, from_pandas=True)
+    return pd.Series(pd.arrays.ArrowExtensionArray(arr.cast(kind.pyarrow_dtype)),
+                     index=s.index, name=s.name)
+
+
+def _numpy_backed(s: pd.Series) -> pd.Series:
+    """An Arrow-backed column as pandas' default conversion of it (what the readers see:
+    datetime64 for a timestamp, float64 or int64 for numbers, object text)."""
+    import pandas as pd
+    import pyarrow as pa
+
+    if not isinstance(s.dtype, pd.ArrowDtype):
+        return s
+    return pd.Series(pa.array(s, from_pandas=True).to_pandas(), index=s.index, name=s.name)
+
+
+def _dask_columns(df: pd.DataFrame, dtypes: dict[str, object], path: str) -> pd.DataFrame:
     """One block of one input file in the dataset's columns and types (``dtypes``, from
     :func:`_check_with_duckdb`): a column the file lacks is missing values, a Parquet
-    ``time`` in seconds as the readers take it, numbers as float64, ids as the readers
-    name them (:func:`robustloc.io.tables._ids`: stripped text, ``1.0`` as ``"1"``)."""
+    ``time`` in seconds as the readers take it, numbers of :data:`NUMERIC` as float64,
+    ids as the readers name them (:func:`robustloc.io.tables._ids`: stripped text,
+    ``1.0`` as ``"1"``), every other column in its own type (Arrow-backed)."""
     import numpy as np
     import pandas as pd
 
@@ -528,16 +578,19 @@ def _dask_columns(df, dtypes: dict[str, str], path: str):
             continue
         s = df[c]
         if c in IDS:
-            one = pd.DataFrame({c: s})
+            one = pd.DataFrame({c: _numpy_backed(s)})
             _ids(one, c, path)
             cols[c] = one[c].astype(k)
         elif k == "float64":
+            s = _numpy_backed(s)
             if pd.api.types.is_datetime64_any_dtype(s) or pd.api.types.is_timedelta64_dtype(s):
                 cols[c] = pd.Series(_seconds(s), index=df.index)
             elif pd.api.types.is_numeric_dtype(s):
                 cols[c] = s.astype("float64")
             else:  # (numbers written as text)
                 cols[c] = pd.to_numeric(s.astype(str).str.strip()).astype("float64")
+        elif isinstance(k, pd.ArrowDtype):
+            cols[c] = _arrow_backed(s, k)
         else:
             cols[c] = s.astype(k)
     return pd.DataFrame(cols, index=df.index)
@@ -671,7 +724,7 @@ def _hive_as_text(path: str) -> dict:
 
 
 def _dask(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, scheduler, workers,
-          spec, dtypes: dict[str, str]) -> tuple[int, float | None, str]:
+          spec, dtypes: dict[str, object]) -> tuple[int, float | None, str]:
     import dask.dataframe as dd
     import numpy as np
     import pandas as pd
@@ -692,7 +745,10 @@ def _dask(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, sche
                                   blocksize=None if packed else "64MB",
                                   skipinitialspace=True)
             else:  # a task per row group; hive keys of the path as text
-                one = dd.read_parquet(f, split_row_groups=True, **_hive_as_text(f))
+                # (in Arrow types: pandas' default made an int64 column with a missing
+                # value float64)
+                one = dd.read_parquet(f, split_row_groups=True, dtype_backend="pyarrow",
+                                      **_hive_as_text(f))
             parts.append(one.map_partitions(_dask_columns, dtypes, f, meta=meta))
         ddf = parts[0] if len(parts) == 1 else dd.concat(parts)
         missing = [c for c in REQUIRED if c not in ddf.columns]
