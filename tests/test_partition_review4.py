@@ -8,6 +8,9 @@ failing on the code before its fix:
   traceback.
 * ``--method dask`` made every integer column float64 (CSV and Parquet): ids and
   nanosecond stamps beyond 2**53 changed (1910 of 1917 stamps of a uwb-dwm1001 log).
+* an input column named ``__key`` was replaced by the partition key (``--method
+  duckdb``), one named ``time_bin``, ``tag_bucket`` or ``__robustloc_tag`` by the key or
+  the raw tag (``--method dask``).
 """
 
 from __future__ import annotations
@@ -122,3 +125,17 @@ def test_dask_keeps_integer_text_of_a_csv(tmp_path, scheduler):
     assert _partition(src, tmp_path / "ds", "dask", scheduler, "--by", "tag") == 0
     assert _rows(tmp_path / "ds").column("stamp").to_pylist() == [
         "1910000000000000001", "1910000000000000003"]
+
+
+@pytest.mark.parametrize("by", [["--by", "time"], ["--by", "tag", "--buckets", "2"],
+                                ["--by", "tag"]])
+def test_input_columns_named_as_the_staged_key_are_kept(tmp_path, method, sched, by):
+    names = ["__key", "time_bin", "tag_bucket", "__robustloc_tag", "__KEY_1"]
+    src = tmp_path / "key.csv"
+    src.write_text("time,tag,anchor,rssi," + ",".join(names) + "\n"
+                   "0,a,1,-50,u1,b1,k1,r1,x1\n1,b,1,-51,u2,b2,k2,r2,x2\n")
+    assert _partition(src, tmp_path / "ds", method, sched, *by) == 0
+    t = _rows(tmp_path / "ds")
+    assert sorted(t.column_names) == sorted(["time", "tag", "anchor", "rssi", *names])
+    for c, v in zip(names, "ubkrx"):
+        assert t.column(c).to_pylist() == [v + "1", v + "2"], c

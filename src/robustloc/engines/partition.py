@@ -90,6 +90,17 @@ def _q(name: str) -> str:
     return '"' + name.replace('"', '""') + '"'
 
 
+def _fresh_name(base: str, names: list[str]) -> str:
+    """``base``, or ``base_1``, ``base_2`` ...: a column name none of ``names`` is (DuckDB
+    compares names without case)."""
+    taken = {n.lower() for n in names}
+    name, i = base, 0
+    while name.lower() in taken:
+        i += 1
+        name = f"{base}_{i}"
+    return name
+
+
 #: What :meth:`str.strip` strips (the readers' ids, :func:`robustloc.io.tables._ids`).
 _WHITESPACE = "".join(c for c in map(chr, range(0x110000)) if c.isspace())
 
@@ -653,9 +664,13 @@ def _duckdb(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, me
         key, expr = _key_expr(by, buckets, tmin, span, tmax)
         raw = stage / ".unsorted"
         # Stage 1: one partitioned COPY (out of core).  The key column is written into the
-        # files only when it is a contract column (tag); bins and buckets live in the path.
-        sel = f"SELECT *, {expr} AS __key FROM {src}" if key != "tag" else f"SELECT * FROM {src}"
-        pby = "__key" if key != "tag" else "tag"
+        # files only when it is a contract column (tag); bins and buckets live in the path,
+        # staged in a column of a name the input does not use (an input column "__key"
+        # was replaced by the key: the partition review)
+        kcol = _fresh_name("__key", names)
+        sel = (f"SELECT *, {expr} AS {_q(kcol)} FROM {src}" if key != "tag"
+               else f"SELECT * FROM {src}")
+        pby = _q(kcol) if key != "tag" else "tag"
         try:
             con.execute(f"COPY ({sel}) TO {_sql_str(str(raw))} (FORMAT parquet, "
                         f"PARTITION_BY ({pby}), WRITE_PARTITION_COLUMNS true)")
@@ -672,7 +687,7 @@ def _duckdb(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, me
             target.mkdir()
             parts = sorted(str(f) for f in d.glob("*.parquet"))
             lst = "[" + ", ".join(_sql_str(f) for f in parts) + "]"
-            drop = " EXCLUDE (__key)" if key != "tag" else ""
+            drop = f" EXCLUDE ({_q(kcol)})" if key != "tag" else ""
             try:  # (reads and writes the staged files only: a failure is the output's)
                 con.execute(
                     f"COPY (SELECT *{drop} FROM read_parquet({lst}) ORDER BY time, tag, "
@@ -692,15 +707,12 @@ def _duckdb(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, me
     return n, span, key
 
 
-#: The column holding each row's tag id while dask writes folders of escaped ids.
-_RAW_TAG = "__robustloc_tag"
-
-
-def _pad_folders(stage: Path, key: str, width: int) -> None:
-    """Dask's ``key=3/part.0.parquet`` renamed as the DuckDB method names them,
+def _pad_folders(stage: Path, staged: str, key: str, width: int) -> None:
+    """Dask's ``staged=3/part.0.parquet`` renamed as the DuckDB method names them,
     ``key=000003/part-0.parquet`` (:func:`_key_expr`'s width): ``time_bin=10`` sorted
-    before ``time_bin=2`` in a listing (the partition review, 2026-12-07)."""
-    for folder in sorted(stage.glob(f"{key}=*")):
+    before ``time_bin=2`` in a listing (the partition review, 2026-12-07).  ``staged``
+    is the key's column while dask writes, a name the input does not use."""
+    for folder in sorted(stage.glob(f"{staged}=*")):
         value = folder.name.split("=", 1)[1]
         for f in folder.glob("part.*.parquet"):
             f.rename(f.with_name("part-" + f.name[len("part."):]))
@@ -756,47 +768,52 @@ def _dask(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, sche
             raise InputError(f"input is missing column(s) {', '.join(missing)}", spec, 1)
         n = int(ddf.shape[0].compute())
         span = None
+        # the key's column (or the raw tag's, by="tag") under a name the input does not
+        # use: an input column "time_bin" (or "__robustloc_tag") was replaced by it
+        kcol = _fresh_name("__key", list(ddf.columns))
         if by == "time":
             tmin, tmax = (float(v) for v in dd.compute(ddf["time"].min(), ddf["time"].max()))
             _check_time_limits(tmin, tmax, files, spec)
             span = _auto_span(n, tmin, tmax, span_s, rows_per_partition)
             key = "time_bin"
-            ddf = ddf.assign(time_bin=((ddf["time"] - tmin) // span).astype("int64"))
+            ddf = ddf.assign(**{kcol: ((ddf["time"] - tmin) // span).astype("int64")})
         elif buckets:
             key = "tag_bucket"
             ddf = ddf.map_partitions(
-                lambda df: df.assign(tag_bucket=(pd.util.hash_array(
-                    df["tag"].to_numpy(dtype=object)) % np.uint64(buckets)).astype("int64")))
+                lambda df: df.assign(**{kcol: (pd.util.hash_array(
+                    df["tag"].to_numpy(dtype=object)) % np.uint64(buckets)).astype("int64")}))
         else:
             key = "tag"
             # dask names each folder by the raw value: a tag holding "/" made folders in
             # folders (a traceback, a tag renamed, rows written outside -o: the Dask
             # review).  The folders get the id escaped as DuckDB's (tag=a%2Fb, which the
             # readers unescape), the files the id itself (put back below)
+            kcol = "tag"
+            raw_tag = _fresh_name("__robustloc_tag", list(ddf.columns))
             ddf = ddf.map_partitions(lambda df: df.assign(**{
-                _RAW_TAG: df["tag"].astype(str),
+                raw_tag: df["tag"].astype(str),
                 "tag": [quote(str(t), safe="") for t in df["tag"].tolist()]}))
         n_parts = max(1, min(ddf.npartitions, 1 + n // max(rows_per_partition, 1)))
-        ddf = ddf.shuffle(on=key, npartitions=n_parts)
-        ddf = ddf.map_partitions(lambda df: df.sort_values([key, "time", "tag", "anchor"],
+        ddf = ddf.shuffle(on=kcol, npartitions=n_parts)
+        ddf = ddf.map_partitions(lambda df: df.sort_values([kcol, "time", "tag", "anchor"],
                                                           kind="stable"))
         # through the engine's gathering: an interrupt cancels the tasks quietly (dask's
         # own compute printed "Task exception was never retrieved": the Dask review)
-        write = ddf.to_parquet(str(stage), partition_on=[key], write_index=False,
+        write = ddf.to_parquet(str(stage), partition_on=[kcol], write_index=False,
                                write_metadata_file=False, compute=False)
         gather_with_progress(client, [client.compute(write)], False)
     if key != "tag":  # the folders as DuckDB names them (zero-padded: ls sorts them)
         last = (buckets - 1) if key == "tag_bucket" else int((tmax - tmin) // span)
-        _pad_folders(stage, key, max(4, len(str(last))) if key == "tag_bucket"
+        _pad_folders(stage, kcol, key, max(4, len(str(last))) if key == "tag_bucket"
                      else max(6, len(str(last)) + 1))
     if key == "tag":  # the files' tag: the id itself (dask dropped the escaped one)
         import pyarrow.parquet as pq
 
         for f in stage.rglob("*.parquet"):
             t = pq.read_table(f)
-            if _RAW_TAG in t.column_names:
+            if raw_tag in t.column_names:
                 if "tag" in t.column_names:
                     t = t.drop_columns(["tag"])
-                t = t.rename_columns(["tag" if c == _RAW_TAG else c for c in t.column_names])
+                t = t.rename_columns(["tag" if c == raw_tag else c for c in t.column_names])
                 pq.write_table(t, f)
     return n, span, key
