@@ -11,6 +11,10 @@ failing on the code before its fix:
 * an input column named ``__key`` was replaced by the partition key (``--method
   duckdb``), one named ``time_bin``, ``tag_bucket`` or ``__robustloc_tag`` by the key or
   the raw tag (``--method dask``).
+* partitioning a partitioned (hive) dataset added every folder key as a column: a stale
+  ``time_bin`` of the earlier partitioning, and a column of that name in the files was
+  hidden by its folder's value.  The rows are now the files' own, plus the ``tag`` and
+  ``anchor`` of a file that lacks them from its path, as the commands' readers take them.
 """
 
 from __future__ import annotations
@@ -139,3 +143,40 @@ def test_input_columns_named_as_the_staged_key_are_kept(tmp_path, method, sched,
     assert sorted(t.column_names) == sorted(["time", "tag", "anchor", "rssi", *names])
     for c, v in zip(names, "ubkrx"):
         assert t.column(c).to_pylist() == [v + "1", v + "2"], c
+
+
+@pytest.mark.parametrize("own", [False, True])
+def test_a_partitioned_dataset_partitions_again_row_for_row(tmp_path, method, sched, own):
+    """``own``: the files hold a column named ``time_bin`` too."""
+    src = tmp_path / "m.csv"
+    with open(src, "w") as fh:
+        fh.write("time,tag,anchor,rssi" + (",time_bin" if own else "") + "\n")
+        fh.writelines(f"{i},T{i % 3},{i % 4},-60" + (f",u{i}" if own else "") + "\n"
+                      for i in range(300))
+    cols = ["time", "tag", "anchor", "rssi"] + (["time_bin"] if own else [])
+    assert _partition(src, tmp_path / "t1", "duckdb", None, "--by", "time", "--span",
+                      "100") == 0
+    steps = [("t1", "g", ["--by", "tag"]), ("g", "t2", ["--by", "time", "--span", "10"])]
+    for a, b, by in steps:
+        assert _partition(tmp_path / a, tmp_path / b, method, sched, *by) == 0
+        t = _rows(tmp_path / b)
+        assert sorted(t.column_names) == sorted(cols), (b, t.column_names)
+        assert t.column("time").to_pylist() == list(range(300))
+        if own:
+            assert t.column("time_bin").to_pylist() == [f"u{i}" for i in range(300)], b
+
+
+def test_ids_of_a_hive_path_fill_the_files_that_lack_them(tmp_path, method, sched):
+    """A pandas ``partition_cols`` tree: ``day=/tag=/anchor=``, files without ``tag`` and
+    ``anchor``: the ids from the path (text, ``007`` kept), the day not a column (the
+    readers take only the ids from a path)."""
+    src = tmp_path / "tree"
+    pd.DataFrame({"time": [1.0, 2.0, 3.0], "day": ["d1", "d1", "d2"],
+                  "tag": ["007", "7", "007"], "anchor": ["A1", "A2", "A1"],
+                  "rssi": [-50.0, -51.0, -52.0]}
+                 ).to_parquet(src, partition_cols=["day", "tag", "anchor"], index=False)
+    assert _partition(src, tmp_path / "ds", method, sched, "--by", "tag") == 0
+    t = _rows(tmp_path / "ds")
+    assert sorted(t.column_names) == ["anchor", "rssi", "tag", "time"]
+    assert t.column("tag").to_pylist() == ["007", "7", "007"]
+    assert t.column("anchor").to_pylist() == ["A1", "A2", "A1"]

@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 from urllib.parse import quote
 
-from robustloc.engines.dataset import discover
+from robustloc.engines.dataset import Partition, _hive_keys, discover, missing_hive_columns
 from robustloc.errors import InputError, OutputError
 
 BY = ("tag", "time")
@@ -67,18 +67,43 @@ class PartitionSummary:
     method: str
 
 
-def _inputs(spec: str) -> tuple[list[str], str]:
-    """Input files and their format (``csv`` or ``parquet``); one format per input."""
+def _inputs(spec: str) -> tuple[list[str], str, dict[str, dict[str, str]]]:
+    """Input files, their format (``csv`` or ``parquet``; one format per input) and, per
+    Parquet file that lacks an id column its path names (``tag=T1/part-0.parquet``
+    without ``tag``), those ids' values: the hive keys the commands' readers restore
+    (:func:`robustloc.engines.dataset.missing_hive_columns`); no other key is read."""
     p = Path(spec)
     if p.is_file():
-        files = [str(p)]
+        parts = [Partition(str(p), _hive_keys(p, None))]
     else:
-        files = [x.path for x in discover(spec, parquet=False, what="input")]
-        files = [f for f in files if not f.endswith((".json", ".txt", ".md"))]
+        parts = [x for x in discover(spec, parquet=False, what="input")
+                 if not x.path.endswith((".json", ".txt", ".md"))]
+    files = [x.path for x in parts]
     kinds = {"parquet" if f.lower().endswith((".parquet", ".pq")) else "csv" for f in files}
     if len(kinds) != 1:
         raise InputError("input mixes CSV and Parquet files; give one format", spec)
-    return files, kinds.pop()
+    fmt = kinds.pop()
+    return files, fmt, (_hive_ids(parts) if fmt == "parquet" else {})
+
+
+def _hive_ids(parts: list[Partition]) -> dict[str, dict[str, str]]:
+    """Per file, the id columns (:data:`IDS`) it lacks and its path names, with their
+    values (the outermost, unescaped as the readers unescape them)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    out = {}
+    for part in parts:
+        if not any(k in IDS for k, _ in part.keys):
+            continue
+        try:
+            have = pq.read_schema(part.path).names
+        except (OSError, pa.ArrowException):
+            continue  # (unreadable: DuckDB's scan says so)
+        lack = {k: str(part.key(k)) for k in missing_hive_columns(part, have)}
+        if lack:
+            out[part.path] = lack
+    return out
 
 
 def _sql_str(s: str) -> str:
@@ -156,8 +181,14 @@ def _csv_headers(files: list[str]) -> list[list[str]]:
     return headers
 
 
-def _source(con, files: list[str], fmt: str, spec: str) -> tuple[str, list[str]]:
+def _source(con, files: list[str], fmt: str, spec: str,
+            hive: dict[str, dict[str, str]] | None = None) -> tuple[str, list[str]]:
     """DuckDB's table function over the input and its column names; ids read as text.
+
+    The rows are the files' own, as the commands' readers take them: no hive key of a
+    path is read (DuckDB added each as a column, a stale ``time_bin`` of a dataset
+    partitioned before, and its folder's value hid a column of that name: the partition
+    review), but the ids ``hive`` gives (:func:`_inputs`) for the files that lack them.
 
     A CSV is read in the commands' dialect, told, not sniffed: comma, double quote
     (doubled inside a field), no comment lines, a header (its names stripped, checked by
@@ -174,13 +205,13 @@ def _source(con, files: list[str], fmt: str, spec: str) -> tuple[str, list[str]]
 
     lst = "[" + ", ".join(_sql_str(f) for f in files) + "]"
     if fmt == "csv":
-        src = (f"read_csv({lst}, header=true, union_by_name=true, delim=',', quote='\"', "
-               "escape='\"', comment='', skip=0")
+        src = (f"read_csv({lst}, header=true, union_by_name=true, hive_partitioning=false, "
+               "delim=',', quote='\"', escape='\"', comment='', skip=0")
         headers = _csv_headers(files)
         if headers and all(h == headers[0] for h in headers):  # (" tag" is "tag")
             src += ", names=[" + ", ".join(_sql_str(c) for c in headers[0]) + "]"
     else:
-        src = f"read_parquet({lst}, union_by_name=true"
+        src = f"read_parquet({lst}, union_by_name=true, hive_partitioning=false"
     try:
         described = con.execute(f"DESCRIBE SELECT * FROM {src})").fetchall()
     except duckdb.Error as exc:
@@ -215,6 +246,10 @@ def _source(con, files: list[str], fmt: str, spec: str) -> tuple[str, list[str]]
         if types:
             src += ", types={" + ", ".join(f"{_sql_str(c)}: {_sql_str(t)}"
                                            for c, t in types.items()) + "}"
+    rel = src + ")"
+    if hive:
+        rel, described = _with_hive_ids(con, src, described, hive)
+        names = [r[0] for r in described]
     text_ids = [r[0] for r in described if r[0] in IDS
                 and (fmt == "csv" or str(r[1]).upper() == "VARCHAR")]
     replace += [f"trim({_q(c)}, {_sql_str(_WHITESPACE)}) AS {_q(c)}" for c in text_ids]
@@ -223,12 +258,50 @@ def _source(con, files: list[str], fmt: str, spec: str) -> tuple[str, list[str]]
     # said 1 (the partition review, 2026-12-07)
     float_ids = [r[0] for r in described if r[0] in IDS and fmt != "csv"
                  and str(r[1]).upper() in ("DOUBLE", "FLOAT", "REAL")]
-    replace += [f"(CASE WHEN {_q(c)} = round({_q(c)}) AND abs({_q(c)}) < 9.2e18 THEN "
-                f"CAST(CAST({_q(c)} AS BIGINT) AS VARCHAR) ELSE CAST({_q(c)} AS VARCHAR) "
-                f"END) AS {_q(c)}" for c in float_ids]
+    replace += [f"{_float_id(_q(c))} AS {_q(c)}" for c in float_ids]
     if replace:
-        return f"(SELECT * REPLACE ({', '.join(replace)}) FROM {src}))", names
-    return src + ")", names
+        return f"(SELECT * REPLACE ({', '.join(replace)}) FROM {rel})", names
+    return rel, names
+
+
+def _float_id(ref: str) -> str:
+    """The SQL of a floating-point id as text, as the readers name it."""
+    return (f"(CASE WHEN {ref} = round({ref}) AND abs({ref}) < 9.2e18 THEN "
+            f"CAST(CAST({ref} AS BIGINT) AS VARCHAR) ELSE CAST({ref} AS VARCHAR) END)")
+
+
+def _with_hive_ids(con, src: str, described: list, hive: dict[str, dict[str, str]]
+                   ) -> tuple[str, list]:
+    """The relation of ``src`` (an unclosed ``read_parquet(``) with the ids of ``hive``
+    (per file, the id columns it lacks and their values from its path) as text, and its
+    DESCRIBE.  Joined on each row's file name (a column of a name the input does not
+    use); an id a file has is its own, as text."""
+    names = [str(r[0]) for r in described]
+    types = {str(r[0]): str(r[1]).upper() for r in described}
+    fcol = _fresh_name("__file", names)
+    ids = [k for k in IDS if any(k in v for v in hive.values())]
+    table = "__robustloc_hive_ids"
+    con.execute(f"CREATE OR REPLACE TEMP TABLE {table} (f VARCHAR, "
+                + ", ".join(f"{_q(k)} VARCHAR" for k in ids) + ")")
+    con.executemany(f"INSERT INTO {table} VALUES ({', '.join('?' * (1 + len(ids)))})",
+                    [(f, *(v.get(k) for k in ids)) for f, v in hive.items()])
+    replace, add = [], []
+    for k in ids:
+        if k not in types:
+            add.append(f"h.{_q(k)} AS {_q(k)}")
+            continue
+        own = f"s.{_q(k)}"
+        own = (own if types[k] == "VARCHAR" else _float_id(own)
+               if types[k] in ("DOUBLE", "FLOAT", "REAL") else f"CAST({own} AS VARCHAR)")
+        replace.append(f"(CASE WHEN h.{_q(k)} IS NOT NULL THEN h.{_q(k)} ELSE {own} END) "
+                       f"AS {_q(k)}")
+    sel = f"s.* EXCLUDE ({_q(fcol)})"
+    if replace:
+        sel += f" REPLACE ({', '.join(replace)})"
+    sel += "".join(", " + a for a in add)
+    rel = (f"(SELECT {sel} FROM {src}, filename={_sql_str(fcol)}) AS s "
+           f"LEFT JOIN {table} AS h ON s.{_q(fcol)} = h.f)")
+    return rel, con.execute(f"DESCRIBE SELECT * FROM {rel}").fetchall()
 
 
 def _parquet_time_seconds(files: list[str], spec: str) -> str | None:
@@ -345,18 +418,18 @@ def partition_dataset(
     if not str(out).strip():  # Path("") is ".": the working folder would be replaced
         raise InputError("--out: empty output name (give a dataset directory name)")
     t0 = _time.perf_counter()
-    files, fmt = _inputs(source)
+    files, fmt, hive = _inputs(source)
     # the output replaces a whole directory: never one that is, holds or lies in an input
     dest = DatasetOutput(out, input_paths(source, (), *files), writer="partition")
     try:
         if method == "duckdb":
             rows, span, key = _duckdb(files, fmt, dest.stage, by, span_s, rows_per_partition,
-                                      buckets, memory_limit, threads, source, str(out))
+                                      buckets, memory_limit, threads, source, str(out), hive)
         else:
             dtypes = _check_with_duckdb(files, fmt, dest.stage, memory_limit, threads,
-                                        source)
+                                        source, hive)
             rows, span, key = _dask(files, fmt, dest.stage, by, span_s, rows_per_partition,
-                                    buckets, scheduler, workers, source, dtypes)
+                                    buckets, scheduler, workers, source, dtypes, hive)
         written = list(dest.stage.rglob("*.parquet"))
         n_files = len(written)
         _check_rows_written(written, rows, out)
@@ -503,7 +576,8 @@ _NUMBER_TYPES = ("DOUBLE", "FLOAT", "REAL", "BIGINT", "INTEGER", "SMALLINT", "TI
 
 
 def _check_with_duckdb(files: list[str], fmt: str, stage: Path, memory_limit: str,
-                       threads: int | None, spec: str) -> dict[str, object]:
+                       threads: int | None, spec: str, hive: dict[str, dict[str, str]]
+                       ) -> dict[str, object]:
     """``method="dask"``: the input checked by :func:`_stats` first (one DuckDB scan).
 
     Returns each column of all the files together (their union, in DuckDB's order) with
@@ -523,7 +597,7 @@ def _check_with_duckdb(files: list[str], fmt: str, stage: Path, memory_limit: st
     tmp = stage / ".duckdb-tmp"
     con = _connect(memory_limit, threads, tmp)
     try:
-        src, names = _source(con, files, fmt, spec)
+        src, names = _source(con, files, fmt, spec, hive)
         _stats(con, src, names, spec, files)
         described = con.execute(f"DESCRIBE SELECT * FROM {src}").fetchall()
         schema = con.sql(f"SELECT * FROM {src} LIMIT 0").to_arrow_table().schema
@@ -570,9 +644,11 @@ def _numpy_backed(s: pd.Series) -> pd.Series:
     return pd.Series(pa.array(s, from_pandas=True).to_pandas(), index=s.index, name=s.name)
 
 
-def _dask_columns(df: pd.DataFrame, dtypes: dict[str, object], path: str) -> pd.DataFrame:
+def _dask_columns(df: pd.DataFrame, dtypes: dict[str, object], path: str,
+                  ids: dict[str, str]) -> pd.DataFrame:
     """One block of one input file in the dataset's columns and types (``dtypes``, from
-    :func:`_check_with_duckdb`): a column the file lacks is missing values, a Parquet
+    :func:`_check_with_duckdb`): an id the file lacks is its value in ``ids`` (from the
+    file's path, :func:`_inputs`), another column it lacks is missing values, a Parquet
     ``time`` in seconds as the readers take it, numbers of :data:`NUMERIC` as float64,
     ids as the readers name them (:func:`robustloc.io.tables._ids`: stripped text,
     ``1.0`` as ``"1"``), every other column in its own type (Arrow-backed)."""
@@ -582,6 +658,9 @@ def _dask_columns(df: pd.DataFrame, dtypes: dict[str, object], path: str) -> pd.
     from robustloc.io.tables import _ids, _seconds
 
     df = df.rename(columns={c: str(c).strip() for c in df.columns})
+    for c, v in ids.items():
+        if c not in df.columns:
+            df[c] = pd.Series(v, index=df.index, dtype=object)
     cols = {}
     for c, k in dtypes.items():
         if c not in df.columns:
@@ -650,13 +729,14 @@ def _memory_error(exc: BaseException, memory_limit: str) -> InputError:
 
 
 def _duckdb(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, memory_limit,
-            threads, spec, out: str) -> tuple[int, float | None, str]:
+            threads, spec, out: str, hive: dict[str, dict[str, str]]
+            ) -> tuple[int, float | None, str]:
     import duckdb
 
     tmp = stage / ".duckdb-tmp"
     con = _connect(memory_limit, threads, tmp)
     try:
-        src, names = _source(con, files, fmt, spec)
+        src, names = _source(con, files, fmt, spec, hive)
         n, tmin, tmax = _stats(con, src, names, spec, files)
         if by == "time":
             _check_time_limits(tmin, tmax, files, spec)
@@ -690,7 +770,8 @@ def _duckdb(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, me
             drop = f" EXCLUDE ({_q(kcol)})" if key != "tag" else ""
             try:  # (reads and writes the staged files only: a failure is the output's)
                 con.execute(
-                    f"COPY (SELECT *{drop} FROM read_parquet({lst}) ORDER BY time, tag, "
+                    f"COPY (SELECT *{drop} FROM read_parquet({lst}, hive_partitioning=false) "
+                    "ORDER BY time, tag, "
                     f"anchor) TO {_sql_str(str(target / 'part-0.parquet'))} (FORMAT parquet)"
                 )
             except duckdb.IOException as exc:
@@ -720,23 +801,9 @@ def _pad_folders(stage: Path, staged: str, key: str, width: int) -> None:
             folder.rename(folder.with_name(f"{key}={int(value):0{width}d}"))
 
 
-def _hive_as_text(path: str) -> dict:
-    """``dd.read_parquet`` keywords that read the hive keys of ``path`` (``tag=007/``) as
-    text, as DuckDB and the readers do.  Dask typed them from the folder names: ``007``
-    and ``7`` became one tag 7, the rows relabelled (the partition review, 2026-12-07)."""
-    import pyarrow as pa
-    import pyarrow.dataset as pads
-
-    keys = list(dict.fromkeys(part.split("=", 1)[0] for part in Path(path).parts[:-1]
-                              if "=" in part and not part.startswith("=")))
-    if not keys:
-        return {}
-    schema = pa.schema([(k, pa.string()) for k in keys])
-    return {"dataset": {"partitioning": pads.partitioning(schema, flavor="hive")}}
-
-
 def _dask(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, scheduler, workers,
-          spec, dtypes: dict[str, object]) -> tuple[int, float | None, str]:
+          spec, dtypes: dict[str, object], hive: dict[str, dict[str, str]]
+          ) -> tuple[int, float | None, str]:
     import dask.dataframe as dd
     import numpy as np
     import pandas as pd
@@ -756,12 +823,13 @@ def _dask(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, sche
                 one = dd.read_csv(f, dtype=str, keep_default_na=False, na_values=[""],
                                   blocksize=None if packed else "64MB",
                                   skipinitialspace=True)
-            else:  # a task per row group; hive keys of the path as text
-                # (in Arrow types: pandas' default made an int64 column with a missing
-                # value float64)
+            else:  # a task per row group, in Arrow types (pandas' default made an int64
+                # column with a missing value float64); no hive key of the path (the ids
+                # of a file that lacks them from hive, as the readers take them)
                 one = dd.read_parquet(f, split_row_groups=True, dtype_backend="pyarrow",
-                                      **_hive_as_text(f))
-            parts.append(one.map_partitions(_dask_columns, dtypes, f, meta=meta))
+                                      dataset={"partitioning": None})
+            parts.append(one.map_partitions(_dask_columns, dtypes, f, hive.get(f, {}),
+                                            meta=meta))
         ddf = parts[0] if len(parts) == 1 else dd.concat(parts)
         missing = [c for c in REQUIRED if c not in ddf.columns]
         if missing:
