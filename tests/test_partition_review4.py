@@ -180,3 +180,24 @@ def test_ids_of_a_hive_path_fill_the_files_that_lack_them(tmp_path, method, sche
     assert sorted(t.column_names) == ["anchor", "rssi", "tag", "time"]
     assert t.column("tag").to_pylist() == ["007", "7", "007"]
     assert t.column("anchor").to_pylist() == ["A1", "A2", "A1"]
+
+
+@pytest.mark.parametrize("tag", ["L" * 300, "/" * 84], ids=["300-bytes", "escaped"])
+def test_a_tag_too_long_for_a_folder_is_named_by_its_line(tmp_path, method, sched, capsys,
+                                                          tag):
+    from robustloc.engines.partition import _name_max
+
+    room = _name_max(tmp_path) - len("tag=")
+    src = tmp_path / "long.csv"
+    src.write_text(f"time,tag,anchor,rssi\n0,b,1,-50\n1,{'a' * room},1,-50\n"
+                   f"2,{tag},1,-50\n3,{tag},1,-50\n")
+    assert _partition(src, tmp_path / "ds", method, sched, "--by", "tag") == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {src}:4: tag "), err
+    assert "too long for a folder name" in err and "--buckets" in err
+    assert "partial" not in err and not (tmp_path / "ds").exists()
+    assert _partition(src, tmp_path / "ds", method, sched, "--by", "tag", "--buckets",
+                      "2") == 0
+    assert _rows(tmp_path / "ds").column("tag").to_pylist() == ["b", "a" * room, tag, tag]
+    src.write_text(f"time,tag,anchor,rssi\n0,b,1,-50\n1,{'a' * room},1,-50\n")
+    assert _partition(src, tmp_path / "ds2", method, sched, "--by", "tag") == 0

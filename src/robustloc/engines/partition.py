@@ -427,7 +427,7 @@ def partition_dataset(
                                       buckets, memory_limit, threads, source, str(out), hive)
         else:
             dtypes = _check_with_duckdb(files, fmt, dest.stage, memory_limit, threads,
-                                        source, hive)
+                                        source, hive, by == "tag" and not buckets)
             rows, span, key = _dask(files, fmt, dest.stage, by, span_s, rows_per_partition,
                                     buckets, scheduler, workers, source, dtypes, hive)
         written = list(dest.stage.rglob("*.parquet"))
@@ -490,8 +490,9 @@ def _check_time_limits(tmin: float, tmax: float, files: list[str], spec: str) ->
 
 
 def _stats(con, src: str, names: list[str], spec: str, files: list[str]
-           ) -> tuple[int, float, float]:
-    """Rows and time range of the input, after checking it as the commands' reader does.
+           ) -> tuple[int, float, float, int]:
+    """Rows, time range and longest tag (bytes) of the input, after checking it as the
+    commands' reader does.
 
     One scan counts, per column, the values the reader refuses (:data:`NUMERIC`: missing,
     NaN or infinite; :data:`IDS`: missing or empty); if any, :func:`_first_bad_row`
@@ -514,9 +515,9 @@ def _stats(con, src: str, names: list[str], spec: str, files: list[str]
                 "empty id(s)") for c in IDS if c in names]
     counts = ", ".join(f"count(*) FILTER (WHERE {cond})" for _, cond, _ in checks)
     try:
-        n, tmin, tmax, *bad = con.execute(
+        n, tmin, tmax, longest, *bad = con.execute(
             f"SELECT count(*), min(CAST(time AS DOUBLE)), max(CAST(time AS DOUBLE)), "
-            f"{counts} FROM {src}"
+            f"max(strlen(CAST(tag AS VARCHAR))), {counts} FROM {src}"
         ).fetchone()
     except duckdb.Error as exc:  # a value that is not a number: the reader names its line
         found = _first_bad_row(files, names)
@@ -531,7 +532,73 @@ def _stats(con, src: str, names: list[str], spec: str, files: list[str]
             raise InputError(f"column '{col}': {k} {what}", spec)
     if not n:
         raise InputError("input has no data rows", spec, 2)
-    return int(n), float(tmin), float(tmax)
+    return int(n), float(tmin), float(tmax), int(longest or 0)
+
+
+def _name_max(folder: Path) -> int:
+    """The longest file name (bytes) the file system of ``folder`` takes (255 if not
+    known)."""
+    try:
+        return int(os.pathconf(folder, "PC_NAME_MAX"))
+    except (OSError, ValueError, AttributeError):
+        return 255
+
+
+def _check_tag_folders(con, src: str, longest: int, stage: Path, files: list[str],
+                       spec: str) -> None:
+    """``--by tag`` without ``--buckets``: each tag's folder (``tag=`` and the tag escaped,
+    as both methods name it) must be a file name the output's file system takes; a tag
+    of 300 bytes stopped the run with an IO error naming the hidden staging folder ("File
+    name too long": the partition review).  ``longest`` (bytes, from :func:`_stats`)
+    rules out most logs without a look at the tags (escaping at most triples a byte).
+
+    Raises
+    ------
+    InputError
+        At the first row of such a tag (``FILE:LINE`` when the readers find it), with the
+        way out: ``--buckets``.
+    """
+    limit = _name_max(stage)
+    room = limit - len("tag=")
+    if 3 * longest <= room:
+        return
+    cur = con.execute(f"SELECT DISTINCT tag FROM {src} WHERE strlen(tag) > {room // 3}")
+    too_long = None
+    while too_long is None and (rows := cur.fetchmany(10_000)):
+        too_long = next((t for (t,) in rows if len(quote(t, safe="")) > room), None)
+    if too_long is None:
+        return
+    where: tuple = (spec,)
+    found = _first_long_tag(files, room)
+    if found is not None:
+        too_long, where = found[0], found[1:]
+    n = len(too_long.encode())
+    raise InputError(
+        f"tag {too_long[:24]!r}... ({n} bytes) is too long for a folder name: tag= and "
+        f"the tag escaped take {4 + len(quote(too_long, safe=''))} bytes, this file "
+        f"system allows {limit}; give --buckets N to hash the tags into N folders "
+        "(tag_bucket=NNNN/, each file keeps its rows' tags)", *where)
+
+
+def _first_long_tag(files: list[str], room: int) -> tuple[str, str, int | None] | None:
+    """The first tag, in file order, whose escaped text is longer than ``room`` bytes,
+    with its file and line (as the readers read the ids); None if the readers find none
+    (a tag from a hive path)."""
+    from robustloc.io.tables import _ids, _iter_raw, _line_of
+
+    for f in files:
+        for chunk in _iter_raw(f, 200_000, IDS):
+            if "tag" not in chunk.columns:
+                break
+            chunk = chunk.copy()
+            _ids(chunk, "tag", f)
+            tags = chunk["tag"].astype(str)
+            long = (tags.str.len() > room // 3).to_numpy()
+            for i in long.nonzero()[0]:
+                t = tags.iloc[i]
+                if len(quote(t, safe="")) > room:
+                    return t, f, _line_of(chunk, int(i))
+    return None
 
 
 def _connect(memory_limit: str, threads: int | None, tmp: Path):
@@ -576,9 +643,10 @@ _NUMBER_TYPES = ("DOUBLE", "FLOAT", "REAL", "BIGINT", "INTEGER", "SMALLINT", "TI
 
 
 def _check_with_duckdb(files: list[str], fmt: str, stage: Path, memory_limit: str,
-                       threads: int | None, spec: str, hive: dict[str, dict[str, str]]
-                       ) -> dict[str, object]:
-    """``method="dask"``: the input checked by :func:`_stats` first (one DuckDB scan).
+                       threads: int | None, spec: str, hive: dict[str, dict[str, str]],
+                       tag_folders: bool) -> dict[str, object]:
+    """``method="dask"``: the input checked by :func:`_stats` first (one DuckDB scan),
+    and its tags' folder names (:func:`_check_tag_folders`) when ``tag_folders``.
 
     Returns each column of all the files together (their union, in DuckDB's order) with
     the dtype the dask method reads it as: ids as text (:data:`_TEXT`), a number of
@@ -598,7 +666,9 @@ def _check_with_duckdb(files: list[str], fmt: str, stage: Path, memory_limit: st
     con = _connect(memory_limit, threads, tmp)
     try:
         src, names = _source(con, files, fmt, spec, hive)
-        _stats(con, src, names, spec, files)
+        *_, longest = _stats(con, src, names, spec, files)
+        if tag_folders:
+            _check_tag_folders(con, src, longest, stage, files, spec)
         described = con.execute(f"DESCRIBE SELECT * FROM {src}").fetchall()
         schema = con.sql(f"SELECT * FROM {src} LIMIT 0").to_arrow_table().schema
     finally:
@@ -737,7 +807,9 @@ def _duckdb(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, me
     con = _connect(memory_limit, threads, tmp)
     try:
         src, names = _source(con, files, fmt, spec, hive)
-        n, tmin, tmax = _stats(con, src, names, spec, files)
+        n, tmin, tmax, longest = _stats(con, src, names, spec, files)
+        if by == "tag" and not buckets:
+            _check_tag_folders(con, src, longest, stage, files, spec)
         if by == "time":
             _check_time_limits(tmin, tmax, files, spec)
         span = _auto_span(n, tmin, tmax, span_s, rows_per_partition) if by == "time" else None
