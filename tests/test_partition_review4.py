@@ -20,6 +20,7 @@ failing on the code before its fix:
 from __future__ import annotations
 
 import csv
+import io
 from pathlib import Path
 
 import pandas as pd
@@ -201,3 +202,37 @@ def test_a_tag_too_long_for_a_folder_is_named_by_its_line(tmp_path, method, sche
     assert _rows(tmp_path / "ds").column("tag").to_pylist() == ["b", "a" * room, tag, tag]
     src.write_text(f"time,tag,anchor,rssi\n0,b,1,-50\n1,{'a' * room},1,-50\n")
     assert _partition(src, tmp_path / "ds2", method, sched, "--by", "tag") == 0
+
+
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_a_progress_bar_on_a_terminal_only_without_quiet(tmp_path, monkeypatch):
+    src = tmp_path / "m.csv"
+    src.write_text("time,tag,anchor,rssi\n" + "".join(f"{i},T{i % 3},A,-60\n"
+                                                      for i in range(50)))
+    for flags, shown in (([], True), (["-q"], False), (["--json"], False)):
+        err = _Terminal()
+        monkeypatch.setattr("sys.stderr", err)
+        ds = tmp_path / f"ds{len(flags)}{shown}"
+        assert main(["partition", str(src), "-o", str(ds), "--by", "tag", *flags]) == 0
+        monkeypatch.undo()
+        text = err.getvalue()
+        for stage in ("checking", "writing", "sorting"):
+            assert (f"partition, {stage}" in text) == shown, (flags, text)
+        assert _rows(ds).num_rows == 50
+
+
+def test_an_error_under_the_progress_bar_is_the_rows_line(tmp_path, monkeypatch):
+    """The bar's queries run in a thread: DuckDB's error still reaches the reader's
+    ``FILE:LINE`` (and nothing is written)."""
+    src = tmp_path / "m.csv"
+    src.write_text("time,tag,anchor,rssi\n0,T,A,-60\n1,T,A,-60\nabc,T,A,-60\n")
+    err = _Terminal()
+    monkeypatch.setattr("sys.stderr", err)
+    rc = main(["partition", str(src), "-o", str(tmp_path / "ds"), "--by", "tag"])
+    monkeypatch.undo()
+    assert rc == 2 and f"error: {src}:4: column 'time'" in err.getvalue(), err.getvalue()
+    assert not (tmp_path / "ds").exists()

@@ -24,6 +24,7 @@ spills to disk beyond --memory-limit):
 
 --method duckdb (default: a partitioned COPY, then a sort of each file) was faster than
 --method dask (a dask shuffle) on this project's benchmark (benchmarks/bench_dask.py).
+A progress bar is shown on a terminal (-q or --json hides it).
 
   robustloc partition big.csv -o meas-by-time --by time
   robustloc partition 'logs/*.parquet' -o meas-by-tag --by tag
@@ -59,7 +60,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="--method dask without --scheduler: LocalCluster workers")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("-q", "--quiet", action="store_true",
-                   help="no summary line (errors and warnings stay), as the other commands")
+                   help="no progress bar and no summary line (errors and warnings stay), as "
+                        "the other commands")
 
 
 _SIZE = re.compile(r"^\s*(\d+(\.\d*)?|\.\d+)\s*(KB|MB|GB|TB|KIB|MIB|GIB|TIB|%)\s*$",
@@ -99,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
         args.input, args.out, args.by, span_s=args.span,
         rows_per_partition=args.rows_per_partition, buckets=args.buckets, method=args.method,
         memory_limit=args.memory_limit, threads=args.threads, scheduler=args.scheduler,
-        workers=args.workers,
+        workers=args.workers, progress=not (args.quiet or args.json),
     )
     if s.files > MANY_PARTITIONS and s.rows / s.files < FEW_ROWS and not args.quiet:
         # one sorted file per partition costs a few ms each (20 000 tags of 10 rows: 2

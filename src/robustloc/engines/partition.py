@@ -33,6 +33,8 @@ from __future__ import annotations
 
 import os
 import shutil
+import sys
+import threading
 import time as _time
 from dataclasses import dataclass
 from pathlib import Path
@@ -376,7 +378,7 @@ def partition_dataset(
     source: str, out: str | os.PathLike, by: str, *, span_s: float | None = None,
     rows_per_partition: int = 2_000_000, buckets: int = 0, method: str = "duckdb",
     memory_limit: str = "2GB", threads: int | None = None, scheduler: str | None = None,
-    workers: int | None = None,
+    workers: int | None = None, progress: bool = False,
 ) -> PartitionSummary:
     """Repartition measurements ``source`` (CSV or Parquet: file, directory or glob).
 
@@ -402,6 +404,9 @@ def partition_dataset(
         DuckDB threads (default: the cores available).
     scheduler, workers
         ``method="dask"``: as ``--scheduler``, ``--workers``.
+    progress : bool
+        Show a progress bar on a terminal (stderr; dask's own on stdout for the dask
+        method's shuffle, as the engine's other commands).
     """
     from robustloc.engines.dask import DatasetOutput
 
@@ -424,12 +429,14 @@ def partition_dataset(
     try:
         if method == "duckdb":
             rows, span, key = _duckdb(files, fmt, dest.stage, by, span_s, rows_per_partition,
-                                      buckets, memory_limit, threads, source, str(out), hive)
+                                      buckets, memory_limit, threads, source, str(out), hive,
+                                      progress)
         else:
             dtypes = _check_with_duckdb(files, fmt, dest.stage, memory_limit, threads,
-                                        source, hive, by == "tag" and not buckets)
+                                        source, hive, by == "tag" and not buckets, progress)
             rows, span, key = _dask(files, fmt, dest.stage, by, span_s, rows_per_partition,
-                                    buckets, scheduler, workers, source, dtypes, hive)
+                                    buckets, scheduler, workers, source, dtypes, hive,
+                                    progress)
         written = list(dest.stage.rglob("*.parquet"))
         n_files = len(written)
         _check_rows_written(written, rows, out)
@@ -489,8 +496,76 @@ def _check_time_limits(tmin: float, tmax: float, files: list[str], spec: str) ->
                      "cannot bin them; partition --by tag)", spec)
 
 
-def _stats(con, src: str, names: list[str], spec: str, files: list[str]
-           ) -> tuple[int, float, float, int]:
+class _Progress:
+    """The DuckDB work's progress bar on stderr, only on a terminal and when ``show``
+    (``-q`` hides it), as the other commands draw theirs: each pass over the rows (the
+    check, the partitioned ``COPY``) in per cent of DuckDB's own estimate
+    (``query_progress``, polled by a thread while the query runs), then the sort of the
+    partitions, file by file.  A 3 M-row partitioning printed nothing for half a minute
+    (the partition review).  Off, :meth:`query` is a plain ``execute``."""
+
+    _QUERY = "partition, {desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}]"
+    _FILES = "partition, {desc}: {n_fmt}/{total_fmt} files|{bar}| [{elapsed}<{remaining}]"
+
+    def __init__(self, show: bool) -> None:
+        self.bar = None
+        if show and sys.stderr.isatty():
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=100, desc="reading", file=sys.stderr, leave=False,
+                            bar_format=self._QUERY)
+
+    def _stage(self, desc: str, total: int, fmt: str) -> None:
+        assert self.bar is not None
+        self.bar.bar_format = fmt
+        self.bar.set_description_str(desc, refresh=False)
+        self.bar.reset(total=total)
+
+    def query(self, con, sql: str, desc: str) -> list:
+        """``con.execute(sql).fetchall()``, the bar following DuckDB's progress, polled
+        by a thread.  The query runs in the calling (main) thread, so that an interrupt
+        stops it as before (run in a thread, Ctrl-C aborted the process: "FATAL:
+        exception not rethrown")."""
+        if self.bar is None:
+            return con.execute(sql).fetchall()
+        self._stage(desc, 100, self._QUERY)
+        bar, stop = self.bar, threading.Event()
+
+        def watch() -> None:
+            while not stop.wait(0.2):
+                try:
+                    done = float(con.query_progress())
+                except Exception:  # noqa: BLE001 - the bar only stops following
+                    return
+                if done > bar.n:
+                    bar.update(min(done, 100.0) - bar.n)
+
+        watcher = threading.Thread(target=watch, name="partition-progress", daemon=True)
+        watcher.start()
+        try:
+            rows = con.execute(sql).fetchall()
+        finally:
+            stop.set()
+            watcher.join()
+        bar.update(100 - bar.n)
+        return rows
+
+    def files(self, desc: str, total: int) -> None:
+        """A stage of ``total`` steps (:meth:`step`)."""
+        if self.bar is not None:
+            self._stage(desc, total, self._FILES)
+
+    def step(self) -> None:
+        if self.bar is not None:
+            self.bar.update(1)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _stats(con, src: str, names: list[str], spec: str, files: list[str],
+           progress: _Progress | None = None) -> tuple[int, float, float, int]:
     """Rows, time range and longest tag (bytes) of the input, after checking it as the
     commands' reader does.
 
@@ -515,10 +590,9 @@ def _stats(con, src: str, names: list[str], spec: str, files: list[str]
                 "empty id(s)") for c in IDS if c in names]
     counts = ", ".join(f"count(*) FILTER (WHERE {cond})" for _, cond, _ in checks)
     try:
-        n, tmin, tmax, longest, *bad = con.execute(
-            f"SELECT count(*), min(CAST(time AS DOUBLE)), max(CAST(time AS DOUBLE)), "
-            f"max(strlen(CAST(tag AS VARCHAR))), {counts} FROM {src}"
-        ).fetchone()
+        n, tmin, tmax, longest, *bad = (progress or _Progress(False)).query(
+            con, f"SELECT count(*), min(CAST(time AS DOUBLE)), max(CAST(time AS DOUBLE)), "
+            f"max(strlen(CAST(tag AS VARCHAR))), {counts} FROM {src}", "checking")[0]
     except duckdb.Error as exc:  # a value that is not a number: the reader names its line
         found = _first_bad_row(files, names)
         if found is not None:
@@ -615,6 +689,10 @@ def _connect(memory_limit: str, threads: int | None, tmp: Path):
             raise InputError(f"--memory-limit: expected a size such as 2GB or 500MB, got "
                              f"{memory_limit!r}") from None
         con.execute(f"SET threads={int(threads or machine_cores())}")
+        # DuckDB's own bar never printed (stdout holds --json); its progress is kept for
+        # the command's bar (_Progress)
+        con.execute("SET enable_progress_bar=true")
+        con.execute("SET enable_progress_bar_print=false")
         con.execute(f"SET temp_directory={_sql_str(str(tmp))}")
     except BaseException:
         con.close()
@@ -644,7 +722,7 @@ _NUMBER_TYPES = ("DOUBLE", "FLOAT", "REAL", "BIGINT", "INTEGER", "SMALLINT", "TI
 
 def _check_with_duckdb(files: list[str], fmt: str, stage: Path, memory_limit: str,
                        threads: int | None, spec: str, hive: dict[str, dict[str, str]],
-                       tag_folders: bool) -> dict[str, object]:
+                       tag_folders: bool, progress: bool = False) -> dict[str, object]:
     """``method="dask"``: the input checked by :func:`_stats` first (one DuckDB scan),
     and its tags' folder names (:func:`_check_tag_folders`) when ``tag_folders``.
 
@@ -664,14 +742,16 @@ def _check_with_duckdb(files: list[str], fmt: str, stage: Path, memory_limit: st
 
     tmp = stage / ".duckdb-tmp"
     con = _connect(memory_limit, threads, tmp)
+    bar = _Progress(progress)
     try:
         src, names = _source(con, files, fmt, spec, hive)
-        *_, longest = _stats(con, src, names, spec, files)
+        *_, longest = _stats(con, src, names, spec, files, bar)
         if tag_folders:
             _check_tag_folders(con, src, longest, stage, files, spec)
         described = con.execute(f"DESCRIBE SELECT * FROM {src}").fetchall()
         schema = con.sql(f"SELECT * FROM {src} LIMIT 0").to_arrow_table().schema
     finally:
+        bar.close()
         con.close()
         shutil.rmtree(tmp, ignore_errors=True)
     arrow = {f.name: f.type for f in schema}
@@ -799,15 +879,16 @@ def _memory_error(exc: BaseException, memory_limit: str) -> InputError:
 
 
 def _duckdb(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, memory_limit,
-            threads, spec, out: str, hive: dict[str, dict[str, str]]
+            threads, spec, out: str, hive: dict[str, dict[str, str]], progress: bool
             ) -> tuple[int, float | None, str]:
     import duckdb
 
     tmp = stage / ".duckdb-tmp"
     con = _connect(memory_limit, threads, tmp)
+    bar = _Progress(progress)
     try:
         src, names = _source(con, files, fmt, spec, hive)
-        n, tmin, tmax, longest = _stats(con, src, names, spec, files)
+        n, tmin, tmax, longest = _stats(con, src, names, spec, files, bar)
         if by == "tag" and not buckets:
             _check_tag_folders(con, src, longest, stage, files, spec)
         if by == "time":
@@ -824,8 +905,8 @@ def _duckdb(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, me
                else f"SELECT * FROM {src}")
         pby = _q(kcol) if key != "tag" else "tag"
         try:
-            con.execute(f"COPY ({sel}) TO {_sql_str(str(raw))} (FORMAT parquet, "
-                        f"PARTITION_BY ({pby}), WRITE_PARTITION_COLUMNS true)")
+            bar.query(con, f"COPY ({sel}) TO {_sql_str(str(raw))} (FORMAT parquet, "
+                      f"PARTITION_BY ({pby}), WRITE_PARTITION_COLUMNS true)", "writing")
         except duckdb.Error as exc:
             if _output_failed(exc, stage):  # the output's disk, not the input, failed
                 raise _output_error(exc, out) from None
@@ -833,7 +914,9 @@ def _duckdb(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, me
                 raise _memory_error(exc, memory_limit) from None
             raise InputError(f"cannot partition: {str(exc).splitlines()[0]}", spec) from None
         # Stage 2: each key's files sorted into one file.
-        for d in sorted(p for p in raw.iterdir() if p.is_dir()):
+        folders = sorted(p for p in raw.iterdir() if p.is_dir())
+        bar.files("sorting", len(folders))
+        for d in folders:
             value = d.name.split("=", 1)[1]
             target = stage / f"{key}={value}"
             target.mkdir()
@@ -853,9 +936,11 @@ def _duckdb(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, me
                     raise _memory_error(exc, memory_limit) from None
                 raise
             shutil.rmtree(d)
+            bar.step()
         shutil.rmtree(raw, ignore_errors=True)
         shutil.rmtree(tmp, ignore_errors=True)
     finally:
+        bar.close()
         con.close()
     return n, span, key
 
@@ -874,8 +959,8 @@ def _pad_folders(stage: Path, staged: str, key: str, width: int) -> None:
 
 
 def _dask(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, scheduler, workers,
-          spec, dtypes: dict[str, object], hive: dict[str, dict[str, str]]
-          ) -> tuple[int, float | None, str]:
+          spec, dtypes: dict[str, object], hive: dict[str, dict[str, str]],
+          progress: bool = False) -> tuple[int, float | None, str]:
     import dask.dataframe as dd
     import numpy as np
     import pandas as pd
@@ -941,7 +1026,7 @@ def _dask(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, sche
         # own compute printed "Task exception was never retrieved": the Dask review)
         write = ddf.to_parquet(str(stage), partition_on=[kcol], write_index=False,
                                write_metadata_file=False, compute=False)
-        gather_with_progress(client, [client.compute(write)], False)
+        gather_with_progress(client, [client.compute(write)], progress)
     if key != "tag":  # the folders as DuckDB names them (zero-padded: ls sorts them)
         last = (buckets - 1) if key == "tag_bucket" else int((tmax - tmin) // span)
         _pad_folders(stage, kcol, key, max(4, len(str(last))) if key == "tag_bucket"
