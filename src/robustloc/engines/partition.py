@@ -636,7 +636,8 @@ def _check_tag_folders(con, src: str, longest: int, stage: Path, files: list[str
     room = limit - len("tag=")
     if 3 * longest <= room:
         return
-    cur = con.execute(f"SELECT DISTINCT tag FROM {src} WHERE strlen(tag) > {room // 3}")
+    tag = "CAST(tag AS VARCHAR)"
+    cur = con.execute(f"SELECT DISTINCT {tag} FROM {src} WHERE strlen({tag}) > {room // 3}")
     too_long = None
     while too_long is None and (rows := cur.fetchmany(10_000)):
         too_long = next((t for (t,) in rows if len(quote(t, safe="")) > room), None)
@@ -749,7 +750,10 @@ def _check_with_duckdb(files: list[str], fmt: str, stage: Path, memory_limit: st
         if tag_folders:
             _check_tag_folders(con, src, longest, stage, files, spec)
         described = con.execute(f"DESCRIBE SELECT * FROM {src}").fetchall()
-        schema = con.sql(f"SELECT * FROM {src} LIMIT 0").to_arrow_table().schema
+        empty = con.sql(f"SELECT * FROM {src} LIMIT 0")
+        # (DuckDB 1.2 names it arrow(); 2.0 warns there and names it to_arrow_table())
+        schema = (empty.to_arrow_table() if hasattr(empty, "to_arrow_table")
+                  else empty.arrow()).schema
     finally:
         bar.close()
         con.close()
@@ -764,7 +768,7 @@ def _check_with_duckdb(files: list[str], fmt: str, stage: Path, memory_limit: st
         elif c in NUMERIC and str(t).upper().startswith(_NUMBER_TYPES):
             dtypes[c] = "float64"
         elif a is None or pa.types.is_string(a) or pa.types.is_large_string(a) \
-                or pa.types.is_string_view(a):
+                or getattr(pa.types, "is_string_view", lambda _: False)(a):
             dtypes[c] = _TEXT
         else:
             dtypes[c] = pd.ArrowDtype(a)
