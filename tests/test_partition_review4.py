@@ -236,3 +236,14 @@ def test_an_error_under_the_progress_bar_is_the_rows_line(tmp_path, monkeypatch)
     monkeypatch.undo()
     assert rc == 2 and f"error: {src}:4: column 'time'" in err.getvalue(), err.getvalue()
     assert not (tmp_path / "ds").exists()
+
+
+def test_dask_keeps_a_parquet_column_named_with_spaces(tmp_path, scheduler):
+    src = tmp_path / "sp.parquet"
+    pd.DataFrame({"time": [0.0, 1.0], "tag": ["a", "b"], "anchor": "1",
+                  "rssi": [-50.0, -51.0], " x ": [1, 2]}).to_parquet(src, index=False)
+    for method in ("duckdb", "dask"):
+        ds = tmp_path / f"ds-{method}"
+        assert _partition(src, ds, method, scheduler if method == "dask" else None,
+                          "--by", "tag") == 0
+        assert _rows(ds).column(" x ").to_pylist() == [1, 2], method

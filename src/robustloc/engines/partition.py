@@ -811,7 +811,10 @@ def _dask_columns(df: pd.DataFrame, dtypes: dict[str, object], path: str,
 
     from robustloc.io.tables import _ids, _seconds
 
-    df = df.rename(columns={c: str(c).strip() for c in df.columns})
+    # a name as DuckDB has it: a CSV header stripped (its reader's), a Parquet name as
+    # written (stripped here, a Parquet column " x" was left empty: exit 0)
+    df = df.rename(columns={c: str(c).strip() for c in df.columns
+                            if str(c) not in dtypes and str(c).strip() in dtypes})
     for c, v in ids.items():
         if c not in df.columns:
             df[c] = pd.Series(v, index=df.index, dtype=object)
