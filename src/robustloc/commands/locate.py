@@ -48,7 +48,9 @@ Methods (comma-separated list allowed; the `method` column tells them apart):
             only from 5
   lege      simultaneous location and estimation of gross errors (seed 000 sec. 2.4);
             it searches only where 7 anchors are heard (8 in 3-D: 4 degrees of freedom
-            stay after its exclusions), below that its fix is nls'
+            stay after its exclusions), below that its fix is nls'; it tries every set
+            of suspects up to 20 000 sets per epoch, larger sets by forward selection
+            (a warning says so)
   snooping  w-test data snooping with the B-method (seed 003)
 
 Every fix is tested and gets a protection level (robustloc.integrity.fixes): the noise

@@ -467,6 +467,10 @@ def _run_snapshot(args: argparse.Namespace, fn: Callable[[argparse.Namespace], d
             # one anchors file and one first pass for every partition: the same lists
             if summaries and key in summaries[0]:
                 summary[key] = summaries[0][key]
+        cut = [s["lege_search_truncated"] for s in summaries if s.get("lege_search_truncated")]
+        if cut:  # epochs of every partition
+            summary["lege_search_truncated"] = {"epochs": sum(int(c["epochs"]) for c in cut),
+                                                "max_sets": cut[0]["max_sets"]}
         out.commit(summary, len(plan))
     except BaseException:
         out.abort()
@@ -566,11 +570,11 @@ def _report(args: argparse.Namespace, summary: dict, skip: Iterable[str] = ()) -
         print(json.dumps({k: v for k, v in summary.items() if k != "files"}, indent=2))
         return
     whole = summary
-    from robustloc.pipelines.locate import ANCHOR_WARNING_KEYS, anchor_warnings
+    from robustloc.pipelines.locate import WARNING_KEYS, anchor_warnings
 
-    skip = set(skip) - set(ANCHOR_WARNING_KEYS)
+    skip = set(skip) - set(WARNING_KEYS)
     summary = {k: v for k, v in summary.items() if k not in skip}
-    if any(k in summary for k in ANCHOR_WARNING_KEYS):
+    if any(k in summary for k in WARNING_KEYS):
         for line in anchor_warnings(summary, getattr(args, "anchors", None)):
             print(f"warning: {line}", file=sys.stderr)  # as the command, even with --quiet
     if getattr(args, "quiet", False):  # no text summary, as the single-machine commands

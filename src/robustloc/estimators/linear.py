@@ -14,6 +14,7 @@ Every function solves ``N`` independent systems at once: ``H`` has shape ``(N, n
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from itertools import combinations
 
@@ -353,6 +354,54 @@ def irls(
 #: order search stops ``LEGE_MIN_DOF`` short of the redundancy.
 LEGE_MIN_DOF = 4
 
+#: Sets of suspected observations :func:`lege` enumerates per epoch at most
+#: (``max_sets``): the orders ``k = 1, 2, ...`` are searched over every set while the sets
+#: of orders ``1 .. k`` number at most this many (:func:`lege_exhaustive_order`), the
+#: higher ones by forward selection.  Every order is enumerated up to 14 observations
+#: (2-D ranges; seed 000's corridor has 10); with 20 the orders 1-4, with 25 the orders
+#: 1-4, with 60 the orders 1-2.  The full search costs ``C(n, k)`` solves per order: a
+#: fault-free epoch of 25 ranges (no order's ratio fires, so every order up to ``r - 4``
+#: is searched) needed 5.2 million sets of order 12 and a 2.4 GB block, 20 ranges 33 s
+#: per epoch, 60 ranges more than 23 GB (the API review of 2026-12-08).
+LEGE_MAX_SETS = 20_000
+
+#: Values (float64) of one block of :func:`lege`'s ``(epochs, sets, k, k)`` matrices at
+#: most (64 MB; with the copies the determinant and the solve make, about 4 times that),
+#: and of its forward search's ``(epochs, n, n)`` ones.  Measured on 200 fault-free
+#: epochs of 25 ranges: 32e6 values (the former 256 MB bound) took 0.65 GB and 28 ms per
+#: epoch, 8e6 0.16 GB and 16 ms.
+_LEGE_BLOCK = 8_000_000
+
+
+def lege_exhaustive_order(n_obs: int, max_sets: int = LEGE_MAX_SETS) -> int:
+    """Largest order :func:`lege` searches over every set of ``n_obs`` observations.
+
+    Parameters
+    ----------
+    n_obs : int
+        Observations of the epoch (those with a positive weight).
+    max_sets : int
+        Sets enumerated per epoch at most (:data:`LEGE_MAX_SETS`).
+
+    Returns
+    -------
+    int
+        The largest ``K`` with ``C(n, 1) + ... + C(n, K) <= max_sets`` (at most ``n``);
+        orders above ``K`` are searched by forward selection.
+
+    Examples
+    --------
+    >>> [lege_exhaustive_order(n) for n in (10, 14, 15, 20, 25, 60, 100)]
+    [10, 14, 7, 4, 4, 2, 2]
+    """
+    total, k = 0, 0
+    while k < n_obs:
+        total += math.comb(n_obs, k + 1)
+        if total > max_sets:
+            break
+        k += 1
+    return k
+
 
 def lege(
     H: ArrayLike,
@@ -363,6 +412,7 @@ def lege(
     max_order: int | None = None,
     min_dof: int = LEGE_MIN_DOF,
     chunk: int = 4096,
+    max_sets: int = LEGE_MAX_SETS,
 ) -> LinearFit:
     """LEGE: simultaneous location and estimation of several gross errors (seed 000 sec. 2.4).
 
@@ -380,6 +430,18 @@ def lege(
     here, batched over epochs and sets.  Correcting ``y_J`` by ``Δ_J`` gives the same
     position as deleting those observations.
 
+    The paper's search enumerates ``C(n, k)`` sets per order, and on an epoch without a
+    gross error no ratio fires, so every order up to ``r - min_dof`` is searched: with
+    many observations that is millions of sets (25 ranges: 5.2 million of order 12).  The
+    orders are therefore enumerated while an epoch's sets of orders ``1 .. k`` number at
+    most ``max_sets`` (:func:`lege_exhaustive_order`; every order up to 14 observations
+    by default); each higher order's set is the previous order's best set plus the one
+    observation whose correction lowers ``σ̂0`` most (forward selection: the largest
+    w-statistic after the previous corrections, as in iterative data snooping, seed 003),
+    with the same ratio rule.  That search is exact for the first orders and greedy
+    beyond: it can miss a set of many gross errors whose best subsets are not nested;
+    ``extra["search_truncated"]`` marks the epochs that were searched so.
+
     Parameters
     ----------
     H, y, w0 : as in :func:`solve_wls`.
@@ -387,7 +449,7 @@ def lege(
         Threshold of eq. (12); the paper uses 3.
     max_order : int, optional
         Largest order searched; default ``r - 1`` as in the paper, further limited by
-        ``min_dof``.  Each order costs ``C(n, k)`` small solves per epoch.
+        ``min_dof``.
     min_dof : int
         Only orders leaving at least this redundancy ``r - k`` are searched.  The ratio
         rule of eq. (12) fires on pure noise once few degrees of freedom remain (the best
@@ -396,16 +458,24 @@ def lege(
         3, 25 % at 2 and 64 % at 1.  Default 4; ``min_dof=1`` is the paper's full search.
     chunk : int
         Epochs processed at once at most (bounds memory; fewer where an order has many
-        sets, so that a chunk's block of sets stays within 256 MB).
+        sets, so that a block of ``(epochs, sets, k, k)`` values stays within 64 MB, and
+        a single epoch's sets are taken in blocks of that size too).
+    max_sets : int
+        Sets enumerated per epoch at most (:data:`LEGE_MAX_SETS`); the orders beyond are
+        searched by forward selection.  ``0``: forward selection from order 1.
 
     Returns
     -------
     LinearFit
         ``extra["gross_errors"]`` (N, n): estimated ``Δ`` (0 where not flagged),
-        ``extra["order"]`` (N,): number of gross errors found, ``extra["rho"]``.
+        ``extra["order"]`` (N,): number of gross errors found, ``extra["rho"]``,
+        ``extra["exhaustive_order"]`` (N,): the largest order searched over every set,
+        ``extra["search_truncated"]`` (N,): ``True`` where a higher order was searched by
+        forward selection.
     """
     H, y, w0 = _prepare(H, y, w0)
     N, n, p = H.shape
+    max_sets = max(int(max_sets), 0)
     fit0 = solve_wls(H, y, w0)
     # full residual cofactor matrix Q_vv = P^-1 - H N^-1 H^T, and P Q_vv P
     observed = w0 > 0
@@ -428,57 +498,84 @@ def lege(
 
     sig_prev = np.where(r > 0, np.sqrt(vpv / np.maximum(r, 1)), np.nan)
     found = np.zeros(N, dtype=np.int64)
+    # each epoch's best set of the last order searched, in the (front) columns searched
     best_set = np.full((N, max(kmax, 1)), -1, dtype=np.int64)
+    last = np.zeros(N, dtype=np.int64)
     rho_found = np.full(N, np.nan)
     searching = (fit0.status == st.OK) & (orders_max >= 1) & (sig_prev > 0)
+    exh = np.zeros(N, dtype=np.int64)
+    for c in np.unique(n_valid):
+        exh[n_valid == c] = lege_exhaustive_order(int(c), max_sets)
+    exh = np.minimum(exh, orders_max)
     # the sets are drawn from each epoch's observed rows, moved to the front in their
     # order (the same sets in the same order as over all n rows, the unobserved ones
     # left out): a site of 100 anchors of which an epoch hears 10 has C(100, 4) = 3.9e6
     # sets of order 4, which took 66 GB per chunk, where C(10, 4) = 210 do
     nc = int(n_valid.max()) if N else 0
-    if nc < n:
+    if nc < n or not np.all(n_valid == nc):
         front = true_first(observed, nc)  # (N, nc)
         Mc = M[np.arange(N)[:, None, None], front[:, :, None], front[:, None, :]]
         Pvc = np.take_along_axis(Pv, front, axis=1)
-        obsc = np.take_along_axis(observed, front, axis=1)
     else:
-        front, Mc, Pvc, obsc = None, M, Pv, observed
-    for k in range(1, kmax + 1):
-        combos = np.array(list(combinations(range(nc), k)), dtype=np.int64)  # (C, k)
-        idx = np.flatnonzero(searching & (orders_max >= k))
-        if idx.size == 0:
+        front, Mc, Pvc = None, M, Pv
+    for k in range(1, int(exh.max(initial=0)) + 1):
+        todo = searching & (exh >= k)
+        if not todo.any():
             break
-        # epochs per chunk: at most ``chunk``, and the (E, C, k, k) block at most 32e6
-        # values (256 MB): C(30, 4) = 27 405 sets took 14 GB at 4 096 epochs
-        step = max(1, min(chunk, int(32e6 // max(combos.shape[0] * k * k, 1))))
-        for s in range(0, idx.size, step):
-            e = idx[s : s + step]
-            Me = Mc[e][:, combos[:, :, None], combos[:, None, :]]  # (E, C, k, k)
-            qe = Pvc[e][:, combos]  # (E, C, k)
-            valid = np.all(obsc[e][:, combos], axis=2)  # (E, C)
-            eye = np.eye(k)
-            with np.errstate(all="ignore"):
-                det_ok = np.linalg.det(Me) > 1e-12 * np.prod(
-                    np.maximum(np.diagonal(Me, axis1=2, axis2=3), 1e-300), axis=2)
-            valid &= det_ok
-            Ms = np.where(valid[..., None, None], Me, eye)
-            red = np.einsum("eck,eck->ec", qe, np.linalg.solve(Ms, qe[..., None])[..., 0])
-            vpv_k = np.where(valid, vpv[e][:, None] - red, np.inf)
-            dof = (r[e] - k)[:, None]
-            sig_k = np.sqrt(np.maximum(vpv_k, 0.0) / np.maximum(dof, 1))
-            best = np.argmin(sig_k, axis=1)
-            sbest = sig_k[np.arange(e.size), best]
-            with np.errstate(all="ignore"):
-                rho = sig_prev[e] / sbest
-            stop = np.isfinite(sbest) & ((rho > rho_stop) | (sbest <= 1e-12 * sig_prev[e]))
-            hit = e[stop]
-            found[hit] = k
-            best_set[hit, :k] = (combos[best[stop]] if front is None else np.take_along_axis(
-                front[hit], combos[best[stop]], axis=1))
-            rho_found[hit] = rho[stop]
-            searching[hit] = False
-            upd = np.isfinite(sbest) & ~stop
-            sig_prev[e[upd]] = sbest[upd]
+        # the epochs hearing c observations: the sets of k among their first c columns
+        for c in np.unique(n_valid[todo]):
+            idx = np.flatnonzero(todo & (n_valid == c))
+            combos = np.array(list(combinations(range(int(c)), k)),
+                              dtype=np.int64).reshape(-1, k)  # (C, k), C <= max_sets
+            n_sets = combos.shape[0]
+            # blocks of at most _LEGE_BLOCK values (64 MB): sets of one epoch, then
+            # epochs (at most ``chunk``): C(30, 4) = 27 405 sets took 14 GB at 4 096 epochs
+            cstep = max(1, min(n_sets, _LEGE_BLOCK // (k * k)))
+            step = max(1, min(chunk, _LEGE_BLOCK // (cstep * k * k)))
+            for s in range(0, idx.size, step):
+                e = idx[s : s + step]
+                sbest = np.full(e.size, np.inf)
+                ibest = np.zeros(e.size, dtype=np.int64)
+                for c0 in range(0, n_sets, cstep):
+                    cb = combos[c0 : c0 + cstep]
+                    sig_k = _lege_block(Mc, Pvc, vpv, r, e, cb, k)
+                    b = np.argmin(sig_k, axis=1)
+                    sb = sig_k[np.arange(e.size), b]
+                    better = sb < sbest  # (strict: the first of equal sets, as one block)
+                    sbest = np.where(better, sb, sbest)
+                    ibest = np.where(better, b + c0, ibest)
+                with np.errstate(all="ignore"):
+                    rho = sig_prev[e] / sbest
+                fin = np.isfinite(sbest)
+                stop = fin & ((rho > rho_stop) | (sbest <= 1e-12 * sig_prev[e]))
+                best_set[e[fin], :k] = combos[ibest[fin]]
+                last[e[fin]] = k
+                hit = e[stop]
+                found[hit] = k
+                rho_found[hit] = rho[stop]
+                searching[hit] = False
+                upd = fin & ~stop
+                sig_prev[e[upd]] = sbest[upd]
+    # the orders beyond the enumerated ones: forward selection from the last best set
+    truncated = np.zeros(N, dtype=bool)
+    fwd = np.flatnonzero(searching & (orders_max > exh) & (last == exh))
+    step = max(1, min(chunk, _LEGE_BLOCK // max(nc * nc, 1)))
+    for s in range(0, fwd.size, step):
+        e = fwd[s : s + step]
+        f_found, f_sets, f_rho, f_used = _lege_forward(
+            Mc[e], Pvc[e], np.arange(nc)[None, :] < n_valid[e][:, None], vpv[e], r[e],
+            exh[e], orders_max[e], best_set[e], sig_prev[e], rho_stop)
+        hit = f_found > 0
+        found[e[hit]] = f_found[hit]
+        rho_found[e[hit]] = f_rho[hit]
+        width = f_sets.shape[1]
+        best_set[e[hit], :width] = f_sets[hit]
+        truncated[e] = f_used
+    sel = np.flatnonzero(found > 0)
+    if front is not None and sel.size:  # the rows of the sets found
+        cols = best_set[sel]  # (its width max(kmax, 1) <= nc)
+        best_set[sel] = np.where(cols >= 0, np.take_along_axis(
+            front[sel], np.maximum(cols, 0), axis=1), -1)
     # estimate the gross errors (eq. (11)) and re-solve without them (same as correcting)
     gross = np.zeros((N, n))
     w = w0.copy()
@@ -500,8 +597,108 @@ def lege(
         x=x, v=v, w=np.where(np.isfinite(y), w, np.nan), qvv=qvv, sigma0=sigma0, cov=cov,
         n_used=n_used, iterations=found + 1, converged=fit0.status == st.OK,
         status=fit0.status.copy(),
-        extra={"gross_errors": gross, "order": found, "rho": rho_found},
+        extra={"gross_errors": gross, "order": found, "rho": rho_found,
+               "exhaustive_order": exh, "search_truncated": truncated},
     )
+
+
+def _lege_block(Mc: Array, Pvc: Array, vpv: Array, r: NDArray[np.int64],
+                e: NDArray[np.intp], combos: NDArray[np.int64], k: int) -> Array:
+    """:func:`lege`'s ``σ̂0^(k)`` of the epochs ``e`` after correcting each of the sets
+    ``combos`` (C, k) of their (front) columns; ``inf`` for a set whose ``(P Q_vv P)_JJ``
+    is singular.  Returns (E, C)."""
+    Me = Mc[e[:, None, None, None], combos[None, :, :, None],
+            combos[None, :, None, :]]  # (E, C, k, k)
+    qe = Pvc[e[:, None, None], combos[None, :, :]]  # (E, C, k)
+    with np.errstate(all="ignore"):
+        valid = np.linalg.det(Me) > 1e-12 * np.prod(
+            np.maximum(np.diagonal(Me, axis1=2, axis2=3), 1e-300), axis=2)
+    Ms = np.where(valid[..., None, None], Me, np.eye(k))
+    red = np.einsum("eck,eck->ec", qe, np.linalg.solve(Ms, qe[..., None])[..., 0])
+    vpv_k = np.where(valid, vpv[e][:, None] - red, np.inf)
+    dof = (r[e] - k)[:, None]
+    return np.sqrt(np.maximum(vpv_k, 0.0) / np.maximum(dof, 1))
+
+
+def _lege_forward(
+    M: Array, q: Array, obs: NDArray[np.bool_], vpv: Array, r: NDArray[np.int64],
+    k0: NDArray[np.int64], kend: NDArray[np.int64], start: NDArray[np.int64],
+    sig_prev: Array, rho_stop: float,
+) -> tuple[NDArray[np.int64], NDArray[np.int64], Array, NDArray[np.bool_]]:
+    """:func:`lege`'s orders ``k0 + 1 .. kend`` by forward selection, per epoch.
+
+    The epoch's set starts as its best set of order ``k0`` (``start[:, :k0]``) and grows
+    by the observation ``j`` whose correction lowers ``v^T P v`` most: with ``M' , q'``
+    the matrix ``P Q_vv P`` and ``P v`` after correcting the set (a Schur complement,
+    updated by one rank-one step per observation), the reduction is ``q'_j^2 / M'_jj``
+    (the squared w-statistic of ``j``), the same ``σ̂0^(k)`` the enumeration computes for
+    that set.  A candidate whose ``(P Q_vv P)`` block would be singular by the
+    enumeration's test (its determinant below ``1e-12`` of its diagonal's product) is
+    left out.  The ratio rule of eq. (12) against ``sig_prev`` (``σ̂0`` of order ``k0``)
+    stops the search.
+
+    Returns
+    -------
+    (found, sets, rho, used)
+        ``found`` (E,): the order at which the ratio fired (0: none), ``sets`` (E, K) the
+        set's columns (its first ``found`` entries), ``rho`` (E,), ``used`` (E,):
+        ``True`` where an order was searched so (not only the start replayed).
+    """
+    E, c, _ = M.shape
+    ar = np.arange(E)
+    Mp, qp = M.copy(), q.copy()
+    d0 = np.maximum(np.diagonal(M, axis1=1, axis2=2), 1e-300)
+    ratio, red = np.ones(E), np.zeros(E)
+    free = obs.copy()
+    K = int(kend.max(initial=0))
+    sets = np.full((E, max(K, 1)), -1, dtype=np.int64)
+    sets[:, : min(start.shape[1], K)] = start[:, : min(start.shape[1], K)]
+    found = np.zeros(E, dtype=np.int64)
+    rho_out = np.full(E, np.nan)
+    active = np.ones(E, dtype=bool)
+    used = np.zeros(E, dtype=bool)
+    sig_prev = sig_prev.copy()
+    for t in range(K):
+        k = t + 1
+        go = active & (k <= kend)
+        if not go.any():
+            break
+        forced = t < k0
+        dg = np.diagonal(Mp, axis1=1, axis2=2)
+        with np.errstate(all="ignore"):
+            gain = qp**2 / dg
+            ok = free & (ratio[:, None] * dg > 1e-12 * d0) & np.isfinite(gain)
+        gain = np.where(ok, gain, -np.inf)
+        pick = np.argmax(gain, axis=1)
+        j = np.where(forced, sets[:, t], pick)
+        j = np.maximum(j, 0)
+        with np.errstate(all="ignore"):
+            g = np.where(forced, qp[ar, j] ** 2 / dg[ar, j], gain[ar, j])
+        greedy = go & ~forced & np.isfinite(g)
+        red_k = red + g
+        with np.errstate(all="ignore"):
+            sig_k = np.sqrt(np.maximum(vpv - red_k, 0.0) / np.maximum(r - k, 1))
+            rho = sig_prev / sig_k
+        stop = greedy & ((rho > rho_stop) | (sig_k <= 1e-12 * sig_prev))
+        used |= greedy
+        sets[greedy, t] = j[greedy]
+        found[stop] = k
+        rho_out[stop] = rho[stop]
+        active &= ~stop & (forced | greedy)  # no candidate left: nothing more to search
+        cont = go & active
+        sig_prev = np.where(cont & ~forced, sig_k, sig_prev)
+        # correct j: M' <- M' - M'_:j M'_j: / M'_jj,  q' <- q' - M'_:j q'_j / M'_jj
+        col = Mp[ar, :, j]  # (E, c)
+        piv = Mp[ar, j, j]
+        with np.errstate(all="ignore"):
+            f = np.where(cont, 1.0 / piv, 0.0)
+        f = np.where(np.isfinite(f), f, 0.0)
+        Mp -= (f[:, None] * col)[:, :, None] * col[:, None, :]
+        qp -= (f * qp[ar, j])[:, None] * col
+        red = np.where(cont, red_k, red)
+        ratio = np.where(cont, ratio * piv / d0[ar, j], ratio)
+        free[ar[cont], j[cont]] = False
+    return found, sets, rho_out, used
 
 
 def with_status(fit: LinearFit, status: NDArray[np.object_]) -> LinearFit:

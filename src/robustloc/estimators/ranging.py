@@ -1714,14 +1714,17 @@ class Locator:
         # LEGE on the linearization y = J dx + e (y = obs - f(x)) at the LS fix, then once
         # more at the fix without the located errors (the first linearization point is
         # pulled by the very errors being sought)
+        truncated = np.zeros(obs.shape[0], dtype=bool)
         for _ in range(2):
             pred, J = model.predict(xs), model.jacobian(xs)
             found = lege(J, obs - pred, w0)
             flagged = found.extra["gross_errors"] != 0
+            truncated |= found.extra["search_truncated"]
             fit = self._gn(model, np.where(flagged, np.nan, obs), xs, sig, None)
             xs = np.where(np.isfinite(fit.x), fit.x, xs)
         fit.extra.update(
-            flagged=flagged, gross_errors=found.extra["gross_errors"], order=found.extra["order"]
+            flagged=flagged, gross_errors=found.extra["gross_errors"], order=found.extra["order"],
+            search_truncated=truncated,
         )
         # keep the excluded observations' residuals visible
         v = np.where(flagged, model.predict(np.nan_to_num(fit.x)) - obs, fit.v)

@@ -677,6 +677,9 @@ def suspect_of_scale(scale: Sequence[float] | None, ids: Sequence[str]) -> dict[
 #: partition of a Dask run: the first partition's are the run's).
 ANCHOR_WARNING_KEYS = ("anchors_not_used", "anchors_suspect", "anchors_collinear",
                        "lege_cannot_search")
+#: Every key :func:`anchor_warnings` words: those above and the run's count of epochs
+#: whose LEGE search went beyond its enumeration (summed over a Dask run's partitions).
+WARNING_KEYS = ANCHOR_WARNING_KEYS + ("lege_search_truncated",)
 
 
 def anchor_warnings(summary: dict[str, Any], anchors: object) -> list[str]:
@@ -699,6 +702,14 @@ def anchor_warnings(summary: dict[str, Any], anchors: object) -> list[str]:
                      f"or more anchors heard (it keeps 4 degrees of freedom after its "
                      f"exclusions); with {lege['anchors']} its fixes are nls' (use auto, "
                      "snooping or a robust weight to exclude faults)")
+    cut = summary.get("lege_search_truncated")
+    if cut:
+        n_cut = int(cut.get("epochs", 0))
+        lines.append(f"lege: {n_cut} epoch{'s' if n_cut != 1 else ''} heard more anchors "
+                     f"than lege enumerates ({cut.get('max_sets')} sets of suspects per "
+                     "epoch): the larger numbers of gross errors were searched by forward "
+                     "selection (one anchor at a time), not over every set "
+                     "(docs/choosing-a-method.md)")
     suspect = summary.get("anchors_suspect") or {}
     if suspect:
         each = ", ".join(f"{a} ({r:g}x)" for a, r in suspect.items())
@@ -1020,7 +1031,7 @@ def _run_once(
     hpl_hist: dict[str, dict[str, int]] = {m: {} for m in methods}
     tallies.update({m: HplTally() for m in methods})
     moved: dict[str, int] = {m: 0 for m in methods}
-    n_epochs = n_dup = n_invalid = 0
+    n_epochs = n_dup = n_invalid = forward = 0
     resorted = order == "sort"
     A = n = None
     kind = None
@@ -1057,6 +1068,9 @@ def _run_once(
                         side = sol.extra.get("side_from_log")
                         if side is not None:
                             moved[loc.method] += int(np.sum(side & ~bad[sl]))
+                        cut = sol.extra.get("search_truncated")
+                        if cut is not None:  # lege's orders beyond its enumeration
+                            forward += int(np.sum(np.asarray(cut, dtype=bool) & ~bad[sl]))
                         parts.append(positions_frame(sol, block.time[sl], block.tag[sl], ids,
                                                      loc.method))
                     fr = parts[0] if len(parts) == 1 else pd.concat(parts, ignore_index=True)
@@ -1083,6 +1097,11 @@ def _run_once(
     finally:
         bar.close()
     wall = _time.perf_counter() - t0
+    more: dict[str, Any] = {}
+    if forward:
+        from robustloc.estimators.linear import LEGE_MAX_SETS
+
+        more["lege_search_truncated"] = {"epochs": forward, "max_sets": LEGE_MAX_SETS}
     return frame, {
         "value": kind, "epochs": n_epochs, "methods": methods, "status": counts,
         "hpl_histogram": hpl_hist,
@@ -1094,4 +1113,5 @@ def _run_once(
         "sorted_first": resorted, "seconds": round(wall, 3),
         "solve_seconds": round(max(solve_s, 0.0), 3),
         "fixes_per_second": round(n_epochs * len(methods) / max(solve_s, 1e-9), 1),
+        **more,
     }
