@@ -7,7 +7,8 @@ its options into the same settings and prints the same summary).  So a frame fro
 equals, row for row, the file the command writes for the same input, and a mistake
 raises :class:`robustloc.InputError` with the message the command prints after
 ``error:`` (a refused option reads ``argument --NAME: ...`` as argparse words it).
-Inputs are DataFrames or paths (CSV or Parquet; ``pathlib.Path`` or str), outputs are
+Inputs are DataFrames or paths (CSV or Parquet; ``pathlib.Path``, str, or the
+``importlib.resources.files(...)`` of the data shipped with the package), outputs are
 DataFrames in the contract formats of ``docs/formats`` (the design's file contract).  The
 run summary (what ``--json`` prints) is in ``frame.attrs["summary"]``; notes and warnings
 become :class:`RobustlocWarning`.
@@ -25,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import sys
 import warnings
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
@@ -33,6 +35,11 @@ from typing import Any, Literal, Union
 import pandas as pd
 
 from robustloc.errors import InputError
+
+if sys.version_info >= (3, 11):
+    from importlib.resources.abc import Traversable
+else:  # (the same protocol, under its older name)
+    from importlib.abc import Traversable
 
 __all__ = [
     "RobustlocWarning",
@@ -48,10 +55,16 @@ __all__ = [
     "write_positions",
 ]
 
-#: A file path as a str or :class:`os.PathLike`.
+#: A file path as a str or :class:`os.PathLike` (a file written).
 PathLike = Union[str, "os.PathLike[str]"]
-#: A contract table held in memory, or the path of a CSV / Parquet file holding one.
-FrameOrPath = Union[pd.DataFrame, str, "os.PathLike[str]"]
+#: A file read: a str, an :class:`os.PathLike`, or an :mod:`importlib.resources`
+#: ``Traversable`` such as ``files("robustloc") / "data" / ...`` (a :class:`pathlib.Path`
+#: for a package installed as files; one inside an archive is refused with a hint:
+#: :func:`importlib.resources.as_file` gives a file to read).
+InputPath = Union[str, "os.PathLike[str]", Traversable]
+#: A contract table held in memory, or a file holding one (CSV / Parquet; as
+#: :data:`InputPath`).
+FrameOrPath = Union[pd.DataFrame, str, "os.PathLike[str]", Traversable]
 
 
 class RobustlocWarning(UserWarning):
@@ -71,12 +84,19 @@ class _InputTypeError(InputError, TypeError):
 
 
 def _path(src: object, what: str, expected: str = "a path") -> str:
-    """``src`` (str or PathLike) as a str; anything else is an :class:`InputError` (and
-    :class:`TypeError`) naming ``what``: ``WHAT: expected a path, got NoneType``."""
+    """``src`` (str or PathLike, which includes the ``Traversable`` that
+    ``importlib.resources.files`` gives for a package installed as files) as a str;
+    anything else is an :class:`InputError` (and :class:`TypeError`) naming ``what``:
+    ``WHAT: expected a path, got NoneType``, or for a resource that is no file (inside a
+    zip archive) the way to one."""
     if isinstance(src, (str, os.PathLike)):
         path = os.fspath(src)
         if isinstance(path, str):
             return path
+    if isinstance(src, Traversable):
+        raise _InputTypeError(
+            f"{what}: {src} ({type(src).__name__}) is a resource, not a file on the file "
+            "system: read it through `with importlib.resources.as_file(resource) as path:`")
     raise _InputTypeError(f"{what}: expected {expected}, got {type(src).__name__}")
 
 
@@ -192,7 +212,7 @@ def read_anchors(source: FrameOrPath) -> pd.DataFrame:
 
     Parameters
     ----------
-    source : DataFrame, str or PathLike
+    source : DataFrame, str, PathLike or Traversable
         A CSV or Parquet file, or a frame with the same columns.
 
     Returns
@@ -240,7 +260,7 @@ def read_measurements(
 
     Parameters
     ----------
-    source : DataFrame, str or PathLike
+    source : DataFrame, str, PathLike or Traversable
         A CSV or Parquet file (rows in any order), or a frame with the same columns.
     anchors : DataFrame, path or sequence of str, optional
         When given, an anchor id not among them is an error naming its line.
@@ -273,7 +293,7 @@ def read_measurements(
 
     src = _source(source, "measurements")
     known: pd.DataFrame | Sequence[str] | None
-    if anchors is None or isinstance(anchors, (pd.DataFrame, str, os.PathLike)):
+    if anchors is None or isinstance(anchors, (pd.DataFrame, str, os.PathLike, Traversable)):
         known = _as_anchor_frame(anchors)
     elif isinstance(anchors, Iterable):
         known = [str(a) for a in anchors]
@@ -295,7 +315,7 @@ def read_truth(source: FrameOrPath) -> pd.DataFrame:
 
     Parameters
     ----------
-    source : DataFrame, str or PathLike
+    source : DataFrame, str, PathLike or Traversable
         A CSV or Parquet file, or a frame with the same columns.
 
     Examples
@@ -326,7 +346,7 @@ def read_positions(source: FrameOrPath) -> pd.DataFrame:
 
     Parameters
     ----------
-    source : DataFrame, str or PathLike
+    source : DataFrame, str, PathLike or Traversable
         A CSV or Parquet file, or a frame with the same columns.
 
     Examples
@@ -444,9 +464,9 @@ def locate(
 
     Parameters
     ----------
-    measurements : DataFrame, str or PathLike
+    measurements : DataFrame, str, PathLike or Traversable
         ``time, tag, anchor`` and ``rssi`` (dBm) or ``range`` (m); rows in any order.
-    anchors : DataFrame, str or PathLike
+    anchors : DataFrame, str, PathLike or Traversable
         ``anchor, x, y[, z]`` (m) and optional ``A, n`` / ``p0, gamma, faf, d0`` /
         ``bias, scale`` / ``sigma`` columns (see :func:`calibrate`).
     method : str or sequence of str
@@ -632,9 +652,9 @@ def track(
 
     Parameters
     ----------
-    measurements : DataFrame, str or PathLike
+    measurements : DataFrame, str, PathLike or Traversable
         ``time, tag, anchor`` and ``rssi`` (dBm) or ``range`` (m); rows in any order.
-    anchors : DataFrame, str or PathLike
+    anchors : DataFrame, str, PathLike or Traversable
         ``anchor, x, y[, z]`` and optional path-loss / ``bias, scale, sigma`` columns.
     model, filter, q, weight, domain, sigma, smooth, fixed_lag, cusum_h
         As the ``robustloc track`` options of the same name (see its ``--help``);
@@ -759,9 +779,9 @@ def calibrate(
 
     Parameters
     ----------
-    survey : DataFrame, str or PathLike, optional
+    survey : DataFrame, str, PathLike or Traversable, optional
         The survey.
-    anchors : DataFrame, str or PathLike, optional
+    anchors : DataFrame, str, PathLike or Traversable, optional
         Anchors to add the fitted columns to (required by ``measurements`` and
         ``self_log``).
     model : {"log-distance", "attenuation-factor", "friis"}
@@ -772,9 +792,9 @@ def calibrate(
         Range data: fit a scale factor too (default no for a survey, yes for ``self_log``).
     pooled, d0, p0, time_tolerance, dim, tag_height, se_ratio
         As the ``robustloc calibrate`` options of the same name.
-    measurements, truth : DataFrame, str or PathLike, optional
+    measurements, truth : DataFrame, str, PathLike or Traversable, optional
         Positioned data to build the survey from.
-    self_log : DataFrame, str or PathLike, optional
+    self_log : DataFrame, str, PathLike or Traversable, optional
         A measurements log for self-calibration (``--self``).
 
     Returns
@@ -865,9 +885,9 @@ def evaluate(
 
     Parameters
     ----------
-    positions : DataFrame, str or PathLike
+    positions : DataFrame, str, PathLike or Traversable
         Positions (from :func:`locate`, or a file).
-    truth : DataFrame, str or PathLike
+    truth : DataFrame, str, PathLike or Traversable
         ``time, tag, x, y[, z]``.
     baseline : str
         Method the improvements refer to: ``ls`` (its improvements are NaN when the
@@ -926,11 +946,11 @@ def evaluate(
 
 
 def spp(
-    obs: PathLike,
-    nav: PathLike | Sequence[PathLike] | None = (),
+    obs: InputPath,
+    nav: InputPath | Sequence[InputPath] | None = (),
     *,
-    sp3: PathLike | None = None,
-    clk: PathLike | None = None,
+    sp3: InputPath | None = None,
+    clk: InputPath | None = None,
     systems: str = "GREC",
     elevation_mask: float = 15.0,
     iono: Literal["klobuchar", "iflc", "none"] | None = None,
@@ -949,12 +969,12 @@ def spp(
 
     Parameters
     ----------
-    obs : str or PathLike
+    obs : str, PathLike or Traversable
         RINEX observation file (2.xx or 3.xx).
     nav : path or sequence of paths
         RINEX navigation file(s) (broadcast ephemerides); may be empty (or ``None``) with
         ``sp3``.
-    sp3, clk : str or PathLike, optional
+    sp3, clk : str, PathLike or Traversable, optional
         Precise orbit (SP3) and clock (RINEX CLK) products.
     systems : str
         Constellations, e.g. ``"G"`` or ``"GREC"``.
@@ -998,7 +1018,7 @@ def spp(
     obs_path = _path(obs, "obs")
     if nav is None:
         nav = ()
-    if isinstance(nav, (str, os.PathLike)) or not isinstance(nav, Iterable):
+    if isinstance(nav, (str, os.PathLike, Traversable)) or not isinstance(nav, Iterable):
         nav = [nav]
     nav_paths = [_path(n, "nav") for n in nav]
     sp3_path = None if sp3 is None else _path(sp3, "sp3")

@@ -51,7 +51,7 @@ import pandas as pd
 from robustloc import paths
 from robustloc._arrays import to_number
 from robustloc.errors import InputError
-from robustloc.paths import PACKAGE_DATA
+from robustloc.paths import PACKAGE_DATA, DataDir, data_folder
 
 NAME = "ble-tetam"
 #: Beacon MAC of the single transmitter in the data set.
@@ -84,7 +84,7 @@ class DatasetSource:
     note: str = ""
 
 
-def resolve_dataset(name: str, marker: str, data_dir: str | Path | None = None) -> DatasetSource:
+def resolve_dataset(name: str, marker: str, data_dir: DataDir | None = None) -> DatasetSource:
     """Find the folder of data set ``name`` (shared by the dataset loaders).
 
     Parameters
@@ -93,7 +93,7 @@ def resolve_dataset(name: str, marker: str, data_dir: str | Path | None = None) 
         Folder name of the data set, e.g. ``"ble-tetam"``.
     marker : str
         A relative path that must exist inside the data set folder.
-    data_dir : str or Path, optional
+    data_dir : str, PathLike or Traversable, optional
         Either the root holding ``name/`` (like ``../shared/data``) or the data set folder
         itself.  None: the shared data if present, else the shipped excerpt.  An existing
         root without ``name/`` also falls back to the excerpt (``kind="excerpt"`` and a
@@ -108,7 +108,7 @@ def resolve_dataset(name: str, marker: str, data_dir: str | Path | None = None) 
         if (pkg / marker).exists() or _gz(pkg / marker).exists():
             return DatasetSource(pkg, "excerpt")
         raise InputError(f"data set {name!r} not found: no shared data and no excerpt", pkg)
-    d = Path(data_dir)
+    d = data_folder(data_dir)
     for cand in (d / name, d):
         if (cand / marker).exists() or _gz(cand / marker).exists():
             cand = cand.resolve()
@@ -148,7 +148,7 @@ def _read_text(p: Path) -> str:
         raise InputError(f"cannot read file: {e}", p) from None
 
 
-def resolve(data_dir: str | Path | None = None) -> DatasetSource:
+def resolve(data_dir: DataDir | None = None) -> DatasetSource:
     """The ble-tetam folder used for ``data_dir`` (see module docstring)."""
     return resolve_dataset(NAME, "cnf/tetam.dev", data_dir)
 
@@ -194,7 +194,7 @@ def _dongles(text: str, path: Path) -> pd.DataFrame:
     return df.sort_values("anchor", kind="stable").reset_index(drop=True)
 
 
-def load_anchors(data_dir: str | Path | None = None) -> pd.DataFrame:
+def load_anchors(data_dir: DataDir | None = None) -> pd.DataFrame:
     """The 12 receivers as an anchors frame ``anchor, x, y, z, mac`` (metres).
 
     Positions from ``cnf/tetam.dev``; ``anchor`` is the sensor alias (``"sensor10"``).
@@ -319,7 +319,7 @@ UPSTREAM_TRACKS = ("rectangular_without_rotation", "straight_01", "straight_02",
                    "straight_03", "zigzagging_without_rotation")
 
 
-def tracks_note(data_dir: str | Path | None = None) -> str:
+def tracks_note(data_dir: DataDir | None = None) -> str:
     """A note naming the upstream walks a full data folder lacks (``""``: none, or the
     shipped excerpt, which holds two of them): a deleted walk changed a report's figures
     without a word (the reproduce review)."""
@@ -334,7 +334,7 @@ def tracks_note(data_dir: str | Path | None = None) -> str:
             f"{', '.join(missing)}); the figures cover those present")
 
 
-def list_tracks(data_dir: str | Path | None = None) -> list[str]:
+def list_tracks(data_dir: DataDir | None = None) -> list[str]:
     """Names of the available tracks (e.g. ``"straight_01"``), sorted.
 
     Raises
@@ -357,7 +357,7 @@ def list_tracks(data_dir: str | Path | None = None) -> list[str]:
 
 def load_track(
     name: str,
-    data_dir: str | Path | None = None,
+    data_dir: DataDir | None = None,
     *,
     window_s: float | None = 1.0,
     statistic: Literal["mean", "median"] = "mean",
@@ -368,7 +368,7 @@ def load_track(
     ----------
     name : str
         Track name from :func:`list_tracks` (``trk/<name>_all_sensors.mbd``).
-    data_dir : str or Path, optional
+    data_dir : str, PathLike or Traversable, optional
         Shared data root or the data set folder; None: shared data, else the excerpt.
     window_s : float or None
         Epoch length in seconds (see the module docstring); None: one row per raw sample.
@@ -399,7 +399,7 @@ def load_track(
 # static logs
 
 
-def list_static_points(data_dir: str | Path | None = None) -> list[str]:
+def list_static_points(data_dir: DataDir | None = None) -> list[str]:
     """Static points with raw logs in ``hst/set_1`` (``"10.36_10.95_1.90"``); empty when
     only the excerpt is available (the raw logs are 6.5 MB and not shipped)."""
     src = resolve(data_dir)
@@ -416,7 +416,7 @@ def list_static_points(data_dir: str | Path | None = None) -> list[str]:
 
 def load_static(
     point: str,
-    data_dir: str | Path | None = None,
+    data_dir: DataDir | None = None,
     *,
     window_s: float | None = 1.0,
     statistic: Literal["mean", "median"] = "mean",
@@ -510,7 +510,7 @@ def _read_histograms(src: DatasetSource, set_name: str) -> _Histograms:
 
 
 def load_histograms(
-    data_dir: str | Path | None = None,
+    data_dir: DataDir | None = None,
     *,
     set_name: str = "set_1",
     expand_to: int | None = None,
@@ -561,7 +561,7 @@ def load_histograms(
 
 
 def load_survey_means(
-    data_dir: str | Path | None = None, *, set_name: str = "set_1"
+    data_dir: DataDir | None = None, *, set_name: str = "set_1"
 ) -> pd.DataFrame:
     """One survey row per static point and sensor: the histogram's mean RSSI.
 

@@ -28,7 +28,7 @@ import numpy as np
 import pandas as pd
 
 from robustloc.errors import InputError
-from robustloc.paths import PACKAGE_DATA
+from robustloc.paths import PACKAGE_DATA, DataDir, data_folder
 
 ANCHOR_FILES = ("A3", "A5", "A9", "A12")
 TAG_HEIGHT_M = 1.0
@@ -155,14 +155,14 @@ def load_run(folder: str | Path, name: str | None = None) -> Dwm1001Run:
     )
 
 
-def load(run: str = "LOS", data_dir: str | Path | None = None) -> Dwm1001Run:
+def load(run: str = "LOS", data_dir: DataDir | None = None) -> Dwm1001Run:
     """Load the ``LOS`` or ``NLOS`` run: full data under ``data_dir/uwb-dwm1001`` when
     given (e.g. ``/work/shared/data``), else the shipped 60 s excerpt."""
     key = run.upper()
     if key not in RUNS:
         raise ValueError(f"run must be one of {RUNS}, got {run!r}")
     if data_dir is not None:
-        return load_run(Path(data_dir) / "uwb-dwm1001" / RUN_DIRS[key], key)
+        return load_run(data_folder(data_dir) / "uwb-dwm1001" / RUN_DIRS[key], key)
     return load_run(PACKAGE_DATA / "uwb-dwm1001" / key, key)
 
 

@@ -23,7 +23,7 @@ import numpy as np
 import pandas as pd
 
 from robustloc.errors import InputError
-from robustloc.paths import PACKAGE_DATA
+from robustloc.paths import PACKAGE_DATA, DataDir, data_folder
 
 FOLDER = "uwb-labyrinth"
 INPUT = "Indoor_UWB_Input.txt"
@@ -83,9 +83,9 @@ def _parse(path: Path) -> tuple[dict[str, list[list[float]]], list[int]]:
     return rows, []
 
 
-def load(data_dir: str | Path | None = None) -> LabyrinthRun:
+def load(data_dir: DataDir | None = None) -> LabyrinthRun:
     """Load the run from ``data_dir/uwb-labyrinth`` (default: the shipped copy)."""
-    folder = (Path(data_dir) / FOLDER) if data_dir is not None else PACKAGE_DATA / FOLDER
+    folder = (data_folder(data_dir) / FOLDER) if data_dir is not None else PACKAGE_DATA / FOLDER
     rows, skipped = _parse(folder / INPUT)
     gt, skipped_gt = _parse(folder / TRUTH)
     r = np.asarray(rows["range2"], dtype=float).reshape(-1, 7)

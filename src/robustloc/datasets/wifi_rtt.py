@@ -47,6 +47,7 @@ import pandas as pd
 from robustloc._arrays import to_number
 from robustloc.datasets.ble_tetam import DatasetSource, _existing, _read_text, resolve_dataset
 from robustloc.errors import InputError
+from robustloc.paths import DataDir
 
 NAME = "wifi-rtt-rss"
 ROOMS = ("lecture_theatre", "office", "corridor")
@@ -103,7 +104,7 @@ class WifiRoom:
         return len(self.truth)
 
 
-def resolve(data_dir: str | Path | None = None) -> DatasetSource:
+def resolve(data_dir: DataDir | None = None) -> DatasetSource:
     """The wifi-rtt-rss folder used for ``data_dir`` (shared data, else the excerpt)."""
     return resolve_dataset(NAME, AP_POSITION_FILE, data_dir)
 
@@ -113,7 +114,7 @@ def _check_room(room: str) -> None:
         raise ValueError(f"unknown room {room!r}; one of {', '.join(ROOMS)}")
 
 
-def load_anchors(room: str, data_dir: str | Path | None = None) -> pd.DataFrame:
+def load_anchors(room: str, data_dir: DataDir | None = None) -> pd.DataFrame:
     """AP positions of ``room`` as an anchors frame ``anchor, x, y`` (metres)."""
     _check_room(room)
     src = resolve(data_dir)
@@ -184,7 +185,7 @@ def _read_room_csv(path: Path) -> pd.DataFrame:
 def load_room(
     room: str,
     split: Literal["train", "test", "all"] = "train",
-    data_dir: str | Path | None = None,
+    data_dir: DataDir | None = None,
 ) -> WifiRoom:
     """Load one room (see the module docstring for units, epochs and missing values).
 
@@ -193,7 +194,7 @@ def load_room(
     room : {"lecture_theatre", "office", "corridor"}
     split : {"train", "test", "all"}
         The data set's own train / test files, or both (train scans first).
-    data_dir : str or Path, optional
+    data_dir : str, PathLike or Traversable, optional
         Shared data root or the data set folder; None: shared data, else the excerpt.
     """
     _check_room(room)
