@@ -378,3 +378,36 @@ def test_track_takes_the_noise_scale_bounds_of_the_command_line():
     assert np.nanmax(capped["noise_scale"]) <= 1.0 + 1e-12
     with pytest.raises(robustloc.InputError, match="--noise-scale-min"):
         robustloc.track(log, anchors, noise_scale_min=-1.0)
+
+
+def test_track_link_offsets_takes_the_command_words(tmp_path):
+    """``link_offsets="on"`` was refused (``expected True or False``) although the command
+    takes ``--link-offsets on|off|auto`` and the API its words elsewhere: "on" / "off" /
+    "auto" now mean what they mean to the command, row for row."""
+    anchors = pd.DataFrame({"anchor": ["a", "b", "c", "d", "e"],
+                            "x": [0.0, 10.0, 10.0, 0.0, 5.0], "y": [0.0, 0.0, 10.0, 10.0, 12.0]})
+    t = np.arange(40) * 0.5
+    xy = np.c_[2.0 + 0.2 * t, 5.0 + 0.1 * t]
+    d = np.hypot(anchors.x.to_numpy() - xy[:, :1], anchors.y.to_numpy() - xy[:, 1:])
+    d = d + np.random.default_rng(4).normal(0, 0.05, d.shape) + [0.3, 0, 0, -0.2, 0]
+    log = pd.DataFrame({"time": np.repeat(t, 5), "tag": "t1",
+                        "anchor": np.tile(anchors.anchor, t.size), "range": d.ravel()})
+    anchors.to_csv(tmp_path / "a.csv", index=False)
+    log.to_csv(tmp_path / "m.csv", index=False)
+    for word, flag in (("on", True), ("off", False), ("auto", None)):
+        out = tmp_path / f"{word}.parquet"
+        assert main(["track", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),
+                     "--link-offsets", word, "-o", str(out), "--quiet"]) == 0
+        by_word = robustloc.track(log, anchors, link_offsets=word)
+        pd.testing.assert_frame_equal(by_word.reset_index(drop=True), pd.read_parquet(out),
+                                      check_dtype=False, atol=1e-9, rtol=0)
+        if flag is not None:
+            by_flag = robustloc.track(log, anchors, link_offsets=flag)
+            pd.testing.assert_frame_equal(by_word, by_flag)
+            assert ("link_offset_m" in by_word.attrs["summary"]) == flag
+        else:
+            assert "link_offsets_auto" in by_word.attrs["summary"]
+    for bad in ("yes", "ON", 1, None):
+        with pytest.raises(InputError, match="link_offsets: expected True, False, 'on', "
+                                             "'off' or 'auto'"):
+            robustloc.track(log, anchors, link_offsets=bad)

@@ -187,6 +187,22 @@ def _flag(name: str, value: object) -> bool:
     raise _InputTypeError(f"{name}: expected True or False, got {value!r}")
 
 
+def _link_offsets(value: object) -> bool | str:
+    """``link_offsets`` as :class:`~robustloc.pipelines.track.TrackSettings` takes it:
+    ``True`` / ``False`` (NumPy's too), or the words of ``--link-offsets on|off|auto``
+    (``"on"`` is ``True``, ``"off"`` ``False``); anything else is an :class:`InputError`
+    (and :class:`TypeError` for a value that is neither a flag nor a word)."""
+    import numpy as np
+
+    words: dict[str, bool | str] = {"on": True, "off": False, "auto": "auto"}
+    if isinstance(value, str) and value in words:
+        return words[value]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    text = f"link_offsets: expected True, False, 'on', 'off' or 'auto', got {value!r}"
+    raise InputError(text) if isinstance(value, str) else _InputTypeError(text)
+
+
 def _refuse_duplicate_columns(df: pd.DataFrame, what: str | None = None) -> None:
     """A column named twice is an error naming the frame (its ``attrs["path"]``, else
     ``<what DataFrame>``), as a file's header naming a column twice is (pandas would raise
@@ -638,7 +654,7 @@ def track(
     range_offset: bool = False,
     range_offset_sd: float = 0.5,
     range_offset_q: float = 1e-4,
-    link_offsets: bool | Literal["auto"] = False,
+    link_offsets: bool | Literal["on", "off", "auto"] = False,
     link_offset_sd: float | None = None,
     link_offset_q: float = 0.0,
     noise_scale_min: float = 1.0,
@@ -673,7 +689,8 @@ def track(
         state per anchor, its a-priori standard deviation (None: 1 dB or 0.1 m) and
         random-walk growth (``--link-offsets``; the summary's ``link_offset_db`` or
         ``link_offset_m`` gives each tag's final offsets).  Not with ``range_offset``.
-        ``link_offsets="auto"``: the log's first epochs choose (``--link-offsets auto``;
+        ``link_offsets`` takes ``True`` / ``False`` or the command's words ``"on"`` /
+        ``"off"``; ``"auto"``: the log's first epochs choose (``--link-offsets auto``;
         the summary's ``link_offsets_auto`` says what and why).
 
     Returns
@@ -715,9 +732,7 @@ def track(
             tag_height=tag_height, alpha0=alpha0, beta0=beta0,
             integrity_risk=integrity_risk, chunk_rows=chunk_rows,
             range_offset=_flag("range_offset", range_offset), range_offset_sd=range_offset_sd,
-            range_offset_q=range_offset_q, link_offsets=(
-                link_offsets if isinstance(link_offsets, str) and link_offsets == "auto"
-                else _flag("link_offsets", link_offsets)),
+            range_offset_q=range_offset_q, link_offsets=_link_offsets(link_offsets),
             link_offset_sd=link_offset_sd, link_offset_q=link_offset_q,
             noise_scale_min=noise_scale_min, noise_scale_max=noise_scale_max)
         anchor_frame, source = _log_inputs(measurements, anchors)
