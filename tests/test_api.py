@@ -411,3 +411,21 @@ def test_track_link_offsets_takes_the_command_words(tmp_path):
         with pytest.raises(InputError, match="link_offsets: expected True, False, 'on', "
                                              "'off' or 'auto'"):
             robustloc.track(log, anchors, link_offsets=bad)
+
+
+def test_locate_docstring_describes_auto_as_it_runs():
+    """The docstring said ``auto`` is "Gauss-Newton where its test passes, huber where it
+    finds a fault": it left out igg on every epoch of a log with more than 3.3 % gross
+    residuals, and the Gauss-Newton fix kept (``fault_detected``) where the w-test names
+    the faulty ranges.  The text now names both, with the constants the code uses."""
+    import re
+
+    from robustloc.integrity import fixes
+
+    doc = " ".join(robustloc.locate.__doc__.split())
+    auto = doc[doc.index("``auto`` is"):doc.index("dim, solver, reference")]
+    share = re.search(r"more than ([\d.]+) % gross residuals", auto)
+    assert share and float(share.group(1)) == pytest.approx(100 * fixes.AUTO_GROSS_SHARE)
+    assert f"by ``{fixes.AUTO_HEAVY}`` on every epoch" in auto
+    assert f"solved again by ``{fixes.AUTO_ROBUST}``" in auto
+    assert "fault_detected" in auto and "w-test names" in auto

@@ -486,9 +486,17 @@ def locate(
         ``anchor, x, y[, z]`` (m) and optional ``A, n`` / ``p0, gamma, faf, d0`` /
         ``bias, scale`` / ``sigma`` columns (see :func:`calibrate`).
     method : str or sequence of str
-        ``auto`` (default: Gauss-Newton where its test passes, ``huber`` where it finds
-        a fault), ``ls``, ``wls``, ``nls``, ``huber``, ``hampel``, ``igg``, ``igg3``,
-        ``asym``, ``lege``, ``snooping``; several give several rows per epoch.
+        ``auto`` (default), ``ls``, ``wls``, ``nls``, ``huber``, ``hampel``, ``igg``,
+        ``igg3``, ``asym``, ``lege``, ``snooping``; several give several rows per epoch
+        (``docs/choosing-a-method.md``).  ``auto`` is "test, then robustify": Gauss-Newton
+        on every epoch, each fix tested; a fix that passes is kept, and so is one whose
+        test fails only by the ranges the w-test names (``fault_detected``, its ``hpl``
+        widened); the epochs whose test fails without naming the ranges at fault (or
+        that are ``unavailable``) are solved again by ``huber`` with the log's noise
+        scale and tested again.  A log whose first pass (``robust_scale="log"``, the
+        default) finds more than 3.3 % gross residuals (beyond 4 sigma;
+        :data:`robustloc.integrity.fixes.AUTO_GROSS_SHARE`) is solved by ``igg`` on every
+        epoch instead.
     dim, solver, reference, domain, robust_scale, model
         As the ``robustloc locate`` options of the same name (``--robust-scale`` is
         ``robust_scale``); see ``robustloc locate --help``.
