@@ -23,6 +23,7 @@ from typing import Any
 import pandas as pd
 
 from robustloc._rst import rst_markdown  # noqa: F401  (the sections' docstring texts)
+from robustloc.reproduce._format import fmt_num, format_frame, text_table  # noqa: F401
 
 
 @dataclass
@@ -142,31 +143,14 @@ def section_modules(only: list[str] | None = None) -> list:
     return mods
 
 
-def _fmt_table(frame: pd.DataFrame) -> str:
-    return frame.to_markdown(floatfmt=".3g") if _has_tabulate() else frame.to_string()
-
-
-def _has_tabulate() -> bool:
-    try:
-        import tabulate  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
 def _md_table(frame: pd.DataFrame) -> str:
-    """Markdown pipe table without the optional ``tabulate`` dependency."""
-    named = frame.index.name or not isinstance(frame.index, pd.RangeIndex)
-    df = frame.reset_index() if named else frame
+    """Markdown pipe table of ``frame`` as the report prints it
+    (:func:`robustloc.reproduce._format.format_frame`: 3 significant digits, counts as
+    integers, no column of row numbers), without the optional ``tabulate`` dependency."""
+    df = format_frame(frame)
     cols = [str(c) for c in df.columns]
-
-    def cell(v: Any) -> str:
-        if isinstance(v, float):
-            return "" if pd.isna(v) else f"{v:.3g}"
-        return str(v)
-
     lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in df.itertuples(index=False)]
+    lines += ["| " + " | ".join(row) + " |" for row in df.itertuples(index=False)]
     return "\n".join(lines)
 
 
@@ -199,7 +183,7 @@ def render(sections: list[Section], out_dir: Path, elapsed: dict[str, float],
         summ = pd.DataFrame(heads)
         md += ["## Summary", "", _md_table(summ), ""]
         body.append("<h2>Summary</h2>")
-        body.append(summ.to_html(index=False, na_rep=""))
+        body.append(format_frame(summ).to_html(index=False))
     for s in sections:
         md += [f"## {s.title}", ""]
         body.append(f"<h2>{html.escape(s.title)}</h2>")
@@ -211,9 +195,7 @@ def render(sections: list[Section], out_dir: Path, elapsed: dict[str, float],
                 caption, frame = payload
                 md += [f"**{caption}**", "", _md_table(frame), ""]
                 body.append(f"<h4>{html.escape(caption)}</h4>")
-                named = frame.index.name or not isinstance(frame.index, pd.RangeIndex)
-                body.append(frame.to_html(float_format=lambda v: f"{v:.3g}", na_rep="",
-                                          index=bool(named)))
+                body.append(format_frame(frame).to_html(index=False))
             elif kind == "figure":
                 caption, rel = payload
                 md += [f"![{caption}]({rel})", "", f"*{caption}*", ""]
@@ -272,7 +254,7 @@ def run_all(ctx: Context, only: list[str] | None = None) -> list[Section]:
             for kind, payload in sec.blocks:
                 if kind == "table":
                     caption, frame = payload
-                    print(f"\n{caption}\n{frame.to_string(float_format=lambda v: f'{v:.3f}')}")
+                    print(f"\n{caption}\n{text_table(frame)}")
         render(sections, dest.stage, elapsed, run_preface(ctx))
         (dest.stage / "summary.json").write_text(json.dumps(summary, indent=2, default=float))
         dest.commit()

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from robustloc.reproduce import Context, Section, rst_markdown
+from robustloc.reproduce import Context, Section, fmt_num, rst_markdown
 
 TITLE = "Out of the box on real data: the default locate against peers, same epochs"
 ORDER = 5
@@ -165,9 +165,9 @@ def run(ctx: Context) -> Section:
             "misleading": d.get("misleading", np.nan),
             "best peer (rms)": best["method"], "peer rms": best["rms"],
             "peer availability": best["availability"],
-            "lowest peer p95": f"{low95['p95']:.3g} ({low95['method']})",
-            "most available peer": f"{most['availability']:.3g} ({most['method']}, rms "
-                                   f"{most['rms']:.3g})",
+            "lowest peer p95": f"{fmt_num(low95['p95'])} ({low95['method']})",
+            "most available peer": f"{fmt_num(most['availability'])} ({most['method']}, rms "
+                                   f"{fmt_num(most['rms'])})",
             "verdict": ("at or below the best peer" if not worse
                         else "worse than the best peer: " + ", ".join(worse)),
         })

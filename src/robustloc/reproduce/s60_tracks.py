@@ -20,7 +20,7 @@ import pandas as pd
 from scipy.stats import chi2
 
 from robustloc.estimators.ranging import DEFAULT_METHOD
-from robustloc.reproduce import Context, Section
+from robustloc.reproduce import Context, Section, fmt_num
 
 TITLE = "Tracks: a robust tight tracker per tag (issue 11)"
 ORDER = 60
@@ -570,7 +570,7 @@ def _lab(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, A
                               sm, an[["x", "y"]].to_numpy(float)))
     tm = r.measurements["time"].to_numpy(float)
     n_cycles = len(epochings["ranging cycles"].groupby(["time", "tag"]))
-    sec.table(f"uwb-labyrinth (one range per {np.median(np.diff(tm)):.3g} s, "
+    sec.table(f"uwb-labyrinth (one range per {fmt_num(np.median(np.diff(tm)))} s, "
               f"{tm[-1] - tm[0]:.0f} s: {n_cycles} ranging cycles): 2-D error "
               "(m).  `locate` needs epochs: ranging cycles (every anchor once) or fixed "
               "windows, each fix stamped and scored at its epoch's last range (when it "
