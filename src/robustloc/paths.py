@@ -22,21 +22,34 @@ DataDir = Union[str, "os.PathLike[str]", Traversable]
 PACKAGE_DATA = Path(__file__).resolve().parent / "data"
 
 
-def default_data_dir() -> Path | None:
-    """Return ``../shared/data`` relative to the working directory or the source tree.
-
-    Looks beside the current directory first (a checkout run from its root), then beside
-    the source checkout this package was installed from.  Returns ``None`` when neither
-    exists (a user's fresh clone), so callers fall back to the shipped excerpts.
-    """
-    candidates = [
+def default_data_candidates() -> list[Path]:
+    """The folders :func:`default_data_dir` tries, in order: ``../shared/data`` from the
+    working directory (a checkout run from its root), then ``shared/data`` beside the
+    source checkout this package was installed from (the checkout's ``../shared/data``)."""
+    return [
         Path.cwd() / ".." / "shared" / "data",
         Path(__file__).resolve().parents[3] / "shared" / "data",
     ]
-    for c in candidates:
+
+
+def default_data_dir() -> Path | None:
+    """Return the first of :func:`default_data_candidates` that is a folder, resolved.
+
+    Returns ``None`` when neither exists (a user's fresh clone), so callers fall back to
+    the shipped excerpts.
+    """
+    for c in default_data_candidates():
         if c.is_dir():
             return c.resolve()
     return None
+
+
+def default_data_help() -> str:
+    """What :func:`default_data_dir` does, in words, for a command's ``--help``."""
+    cwd, src = default_data_candidates()
+    return (f"../shared/data from the working folder if it exists, else {src.resolve()} "
+            "(the shared/data beside the source checkout robustloc runs from) if it exists, "
+            "else the small excerpts shipped in the package")
 
 
 def resolve_data_dir(data: str | Path | None) -> Path | None:

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from robustloc.options import nonnegative_int
+from robustloc.paths import default_data_help
 
 NAME = "reproduce"
 HELP = "reproduce every paper's experiment (simulation and real data) into a report"
@@ -19,9 +20,10 @@ robustloc report is refused.  --only without -o refuses to replace the default f
 `report` when it holds other sections (a rerun of one section would drop the rest): give
 -o a new folder, or -o report to replace it.
 
-Real data: --data DIR (default ../shared/data when it exists); without it the small
-excerpts shipped in the package are used and the report says so (a data set missing
-from DIR is taken from its excerpt, with a note on stderr)."""
+Real data: --data DIR; without it, ../shared/data from the working folder if it exists,
+else the shared/data folder beside the source checkout robustloc runs from (see --data)
+if it exists, else the small excerpts shipped in the package, and the report says so (a
+data set missing from DIR is taken from its excerpt, with a note on stderr)."""
 
 
 #: The report folder when -o is not given.
@@ -31,7 +33,8 @@ DEFAULT_OUT = "report"
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("-o", "--out", default=None,
                    help=f"output folder (default: {DEFAULT_OUT})")
-    p.add_argument("--data", default=None, help="real-data folder (default: ../shared/data)")
+    p.add_argument("--data", default=None,
+                   help=f"real-data folder (default: {default_data_help()})")
     p.add_argument("--seed", type=nonnegative_int, default=1,
                    help="seed for every simulation (default 1)")
     p.add_argument("--quick", action="store_true", help="fewer trials, for a fast smoke run")
@@ -80,7 +83,8 @@ def run(args: argparse.Namespace) -> int:
     data_dir = resolve_data_dir(args.data)
     ctx = Context(out_dir=Path(args.out), data_dir=data_dir, seed=args.seed, quick=args.quick)
     if data_dir is None:
-        ctx.log("note: ../shared/data not found; real-data sections use the shipped excerpts")
+        ctx.log("note: no --data and no ../shared/data (from the working folder or beside "
+                "the source checkout); real-data sections use the shipped excerpts")
     else:
         ctx.log(f"real data: {data_dir}")
     run_all(ctx, args.only)

@@ -35,8 +35,9 @@ class Context:
     out_dir : Path
         Report folder; sections write figures and CSV tables here.
     data_dir : Path or None
-        The full real-data folder (``--data``, default ``../shared/data``), or None when
-        absent: sections then use the excerpts shipped in the package and say so.
+        The full real-data folder (``--data``, default
+        :func:`robustloc.paths.default_data_dir`), or None when absent: sections then use
+        the excerpts shipped in the package and say so.
     seed : int
         Seed for every simulation.
     quick : bool
@@ -159,9 +160,9 @@ def run_preface(ctx: Context) -> str:
     the data-source notes of the run (a fresh clone's report said only table by table
     that it used the shipped excerpts: the reproduce review)."""
     if ctx.data_dir is None:
-        data = ("Real data: the small excerpts shipped in the package (no `../shared/data` "
-                "and no `--data`): the real-data figures are the excerpts', not the full "
-                "data sets'.")
+        data = ("Real data: the small excerpts shipped in the package (no `--data` and no "
+                "`../shared/data`, from the working folder or beside the source checkout): "
+                "the real-data figures are the excerpts', not the full data sets'.")
     else:
         data = f"Real data: `{ctx.data_dir}`."
     notes = "".join(f" Note: {n}." for n in sorted(ctx.notes))
