@@ -30,6 +30,24 @@ def test_s10_quick_on_excerpts(tmp_path, no_shared_data):
         assert w["source"] == "excerpt"
         assert w["huber_calibrated_rms"] < w["issue_best_peer_rms"]
     assert summary["ble_tetam_rms"]["huber"] < summary["ble_tetam_rms"]["ls"]
+    # the summary's rows (the report review): the best peer is a peer tool's run on the
+    # same epochs with its number (it was our own LS, the worst method), the paper's
+    # column is the paper's published figure or "-" (it held our run of its method), the
+    # simulated corridor says so and the excerpt says so
+    heads = sec.headlines
+    assert len(heads) == 3
+    for h in heads:
+        name, value = h["best peer"].rsplit(" ", 1)
+        assert name.split()[0] in ("scipy", "statsmodels"), h
+        assert float(value) > 0
+    t1 = [h for h in heads if h["headline"].startswith("Table 1")]
+    assert len(t1) == 2
+    for h in t1:
+        assert "(simulated corridor)" in h["headline"] and h["verdict"].endswith("(simulation)")
+    assert [h["paper"] for h in t1] == ["IGG 2.2", "IGG 2.6"]
+    (ble,) = [h for h in heads if h["headline"].startswith("ble-tetam")]
+    assert ble["paper"] == "-" and "(excerpts)" in ble["headline"]
+    assert "linearized IGG, run here" in ble["verdict"]
     html = (tmp_path / "report.html").read_text()
     assert "Table 1" in html and "seed000_ble_cdf.png" in html
     assert (tmp_path / "seed000_wifi_office_cdf.png").stat().st_size > 1000

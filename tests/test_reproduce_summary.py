@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from robustloc.cli import main
 from robustloc.paths import default_data_candidates
+from robustloc.reproduce import fmt_num
 
 
 def test_help_says_what_the_default_data_folder_is(capsys):
@@ -20,3 +21,28 @@ def test_help_says_what_the_default_data_folder_is(capsys):
         str(checkout.resolve()))
     assert "excerpts shipped in the package" in out
 
+
+def test_s05_headline_gives_the_numbers(tmp_path, monkeypatch):
+    """s05's best-peer cell said "best peer per set", no number, and "on the shared real
+    data sets" when it ran on the excerpts."""
+    from robustloc.eval import realdata
+    from robustloc.reproduce import Context, s05_out_of_box
+
+    real = realdata.load_cases
+    monkeypatch.setattr(realdata, "load_cases",
+                        lambda d=None: [c for c in real(d) if c.name == "uwb-labyrinth"])
+    sec = s05_out_of_box.run(Context(out_dir=tmp_path, data_dir=None, quick=True))
+    (h,) = sec.headlines
+    assert "(excerpts)" in h["headline"] and "labyrinth" in h["headline"]
+    ver = sec.summary["verdicts"][0]
+    assert h["best peer"] == fmt_num(ver["peer rms"])
+    assert h["robustloc"].startswith(fmt_num(ver["default rms"]) + " (at or below")
+
+
+def test_data_label():
+    from robustloc.reproduce import data_label
+
+    assert data_label("excerpt") == "(excerpts)"
+    assert data_label("full") == "(full data)"
+    assert data_label({"a": "full", "b": "excerpt"}) == "(full data; excerpts: b)"
+    assert data_label({"a": "excerpt", "b": "excerpt"}) == "(excerpts)"

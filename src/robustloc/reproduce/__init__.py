@@ -79,6 +79,24 @@ class Context:
         return None
 
 
+def data_label(sources: dict[str, str] | str) -> str:
+    """The data a real-data headline ran on, said the same way by every section:
+    ``(excerpts)`` when every data set came from the excerpts shipped in the package,
+    ``(full data)`` when none did, else ``(full data; excerpts: NAME, ...)``.
+
+    ``sources`` maps each data set's name to its source kind (``"full"`` or
+    ``"excerpt"``, as :class:`robustloc.datasets.ble_tetam.DatasetSource` and
+    :class:`robustloc.eval.realdata.Case` say it), or is one such kind.
+    """
+    kinds = {"": sources} if isinstance(sources, str) else dict(sources)
+    excerpts = [name for name, kind in kinds.items() if kind != "full"]
+    if not excerpts:
+        return "(full data)"
+    if len(excerpts) == len(kinds):
+        return "(excerpts)"
+    return f"(full data; excerpts: {', '.join(excerpts)})"
+
+
 def _html_text(paragraph: str) -> str:
     """A text paragraph of the report in HTML: escaped, Markdown's `code` as <code>."""
     return re.sub(r"`([^`]+)`", r"<code>\1</code>", html.escape(paragraph))
