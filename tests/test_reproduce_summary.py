@@ -46,3 +46,17 @@ def test_data_label():
     assert data_label("full") == "(full data)"
     assert data_label({"a": "full", "b": "excerpt"}) == "(full data; excerpts: b)"
     assert data_label({"a": "excerpt", "b": "excerpt"}) == "(excerpts)"
+
+
+def test_summary_rows_are_grouped_by_seed(tmp_path):
+    from robustloc.reproduce import Section, render
+
+    a, b = Section("a"), Section("b")
+    a.headline("002", "real", "-", "1", "-", "v")
+    a.headline("003", "gnss", "-", "1", "-", "v")
+    b.headline("002", "simulated", "-", "1", "-", "v")
+    b.headline("all", "every set", "-", "1", "-", "v")
+    md, _ = render([a, b], tmp_path, {})
+    rows = [ln.split(" | ")[1] for ln in md.read_text().splitlines()
+            if ln.startswith("| all") or ln.startswith("| 00")]
+    assert rows == ["every set", "real", "simulated", "gnss"]

@@ -174,7 +174,7 @@ def test_stats_cli(sim, tmp_path, capsys):
 
 
 def test_reproduce_section_quick_without_shared_data(tmp_path):
-    from robustloc.reproduce import Context
+    from robustloc.reproduce import Context, fmt_num
     from robustloc.reproduce import s30_wifi_rssi as s30
 
     ctx = Context(out_dir=tmp_path, data_dir=None, seed=1, quick=True)
@@ -191,6 +191,21 @@ def test_reproduce_section_quick_without_shared_data(tmp_path):
     assert any("Table 3" in c for c in captions) and any("Table 1" in c for c in captions)
     figs = [p[1] for k, p in sec.blocks if k == "figure"]
     assert all((tmp_path / f).is_file() for f in figs) and len(figs) >= 2
+    # seed 002's real-data results are in the report's summary (only its simulated
+    # Table 3 rows were: the report review), with the run's numbers, said as excerpts
+    heads = sec.headlines
+    assert [h["headline"].split(",")[0] for h in heads] == ["ble-tetam tracks",
+                                                           "wifi-rtt-rss RSS static test points"]
+    assert all("(excerpts)" in h["headline"] and h["seed"] == "002" for h in heads)
+    ble, wifi = heads
+    assert ble["paper"].startswith("5.38 -> 1.41") and "its WiFi walk" in ble["paper"]
+    assert ble["robustloc"].startswith(f"{fmt_num(s['ble_raw_m'])} -> "
+                                       f"{fmt_num(s['ble_robust_m'])}")
+    assert wifi["paper"].startswith("0.871 -> 0.544")
+    assert wifi["robustloc"] == (f"{fmt_num(s['wifi_lecture_theatre_raw_m'])} -> "
+                                 f"{fmt_num(s['wifi_lecture_theatre_robust_m'])}")
+    assert all(h["verdict"].endswith(("a gain as large as the paper's",
+                                      "a smaller gain than the paper's")) for h in heads)
 
 
 def test_friis_anchors_from_calibrate_work_in_locate_track_and_filter(sim, tmp_path, capsys):

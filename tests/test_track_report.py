@@ -41,9 +41,15 @@ def test_s60_quick_on_shipped_excerpts(tmp_path):
             "misleading rows, uwb-dwm1001 NLOS, --smooth"} <= set(t)
     assert all(np.isfinite(v["measured"]) for v in t.values())
     # seed 002's Table 3 headlines (walk, static points) open the report's summary
+    # (simulated: each row says so, the paper's column says its figure is of a real walk /
+    # room, and neither claims a peer -- the report review)
     heads = [h for h in sec.headlines if h["seed"] == "002"]
-    assert [h["headline"].split(":")[0] for h in heads] == ["walk", "static points"]
-    assert all(h["verdict"].endswith(("met", "missed")) for h in heads)
+    assert [h["headline"].split(":")[0] for h in heads] == [
+        "walk (simulated wifi-room)", "static points (simulated wifi-room)"]
+    assert all(h["verdict"].endswith(("met (simulation)", "missed (simulation)"))
+               for h in heads)
+    assert "its real walk" in heads[0]["paper"] and "its real room" in heads[1]["paper"]
+    assert all(h["best peer"].startswith("- (no peer") for h in heads)
     # the model-correct simulation: the filter is consistent (median NEES near its dof 4;
     # 40 runs x 4 dof: the mean of one step has a standard deviation sqrt(8 / 40) = 0.45)
     assert abs(sec.summary["nees"]["nees_median"] - 4.0) < 0.9

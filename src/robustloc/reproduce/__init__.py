@@ -197,7 +197,10 @@ def render(sections: list[Section], out_dir: Path, elapsed: dict[str, float],
     if preface:
         md += [preface, ""]
         body.append(f"<p>{_html_text(preface)}</p>")
-    heads = [h for s in sections for h in s.headlines]
+    # (by seed, "all" first, each seed's rows in section order: seed 002's real-data rows
+    # of s30 and simulated rows of s60 together)
+    heads = sorted((h for s in sections for h in s.headlines),
+                   key=lambda h: (h["seed"] != "all", h["seed"]))
     if heads:  # the one-screen summary first: each headline, the paper's, ours, the peer's
         summ = pd.DataFrame(heads)
         md += ["## Summary", "", _md_table(summ), ""]

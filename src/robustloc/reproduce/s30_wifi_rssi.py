@@ -569,9 +569,48 @@ def _wifi(ctx: Context, sec: Section) -> tuple[dict, dict]:
         "per AP that no filter over time can remove); the per-point mean is about what "
         "a filter can reach on static data here."
     )
-    summ = {f"wifi_{r}_{k}": float(piv.loc[r, m]) for r in piv.index
-            for k, m in (("raw_m", "raw (every scan)"), ("robust_m", "robust KF (eq. 14)"))}
+    summ: dict = {f"wifi_{r}_{k}": float(piv.loc[r, m]) for r in piv.index
+                  for k, m in (("raw_m", "raw (every scan)"),
+                               ("robust_m", "robust KF (eq. 14)"))}
+    summ["wifi_source"] = kind
     return summ, trains
+
+
+def _gain_verdict(ratios: list[float], paper_ratio: float) -> str:
+    """The robust filter's error ratios to raw (ours, one per data set) against the
+    paper's: the change of the error in % and whether the gain is as large as the
+    paper's."""
+    ch = sorted(100 * (r - 1) for r in ratios)
+    ours = f"{ch[0]:+.0f} %" if len(ch) == 1 else f"{ch[0]:+.0f} to {ch[-1]:+.0f} %"
+    same = all(r <= paper_ratio for r in ratios)
+    return (f"error {ours} (paper's {100 * (paper_ratio - 1):+.0f} %): "
+            + ("a gain as large as the paper's" if same else "a smaller gain than the paper's"))
+
+
+def _headlines(sec: Section, b: dict, w: dict) -> None:
+    """Seed 002's real-data headlines for the report's summary (its simulated Table 3 rows
+    are s60_tracks'): the paper's real walk and room beside ours on real BLE tracks and
+    real WiFi RSS points.  No peer filter runs on these (FilterPy is not run here)."""
+    from robustloc.reproduce import data_label, fmt_num
+
+    walk = PAPER["walk_robust"] / PAPER["walk_raw"]
+    r = b["ble_robust_m"] / b["ble_raw_m"]
+    sec.headline(
+        "002", f"ble-tetam tracks, real BLE {data_label(b['ble_source'])}: mean error, raw "
+        "1 s means -> robust filter (m)",
+        f"{PAPER['walk_raw']:.2f} -> {PAPER['walk_robust']:.2f} ({walk:.2f}x; its WiFi walk)",
+        f"{fmt_num(b['ble_raw_m'])} -> {fmt_num(b['ble_robust_m'])} ({fmt_num(r)}x; plain "
+        f"KF {fmt_num(b['ble_plain_m'])})", "- (no peer filter run)", _gain_verdict([r], walk))
+    rooms = sorted(k[len("wifi_"):-len("_raw_m")] for k in w if k.endswith("_raw_m"))
+    static = PAPER["static_robust"][0] / PAPER["static_raw"][0]
+    ratios = [w[f"wifi_{m}_robust_m"] / w[f"wifi_{m}_raw_m"] for m in rooms]
+    sec.headline(
+        "002", f"wifi-rtt-rss RSS static test points, real WiFi {data_label(w['wifi_source'])}"
+        f": mean error, raw scans -> robust filter (m), {'/'.join(rooms)}",
+        f"{PAPER['static_raw'][0]:.3f} -> {PAPER['static_robust'][0]:.3f} ({static:.2f}x; "
+        "its room)",
+        " / ".join(f"{fmt_num(w[f'wifi_{m}_raw_m'])} -> {fmt_num(w[f'wifi_{m}_robust_m'])}"
+                   for m in rooms), "- (no peer filter run)", _gain_verdict(ratios, static))
 
 
 def run(ctx: Context) -> Section:
@@ -593,6 +632,7 @@ def run(ctx: Context) -> Section:
     summary.update(b)
     w, wifi_train = _wifi(ctx, sec)
     summary.update(w)
+    _headlines(sec, b, w)
     _fit_section(ctx, sec, sim, wifi_train, ble_survey)
     summary.update({k: v for k, v in sim.items() if k not in ("survey", "anchors")})
     sec.summary.update({k: (float(v) if isinstance(v, (int, float, np.floating)) else v)
