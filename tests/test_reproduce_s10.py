@@ -5,6 +5,7 @@ import json
 import pytest
 
 import robustloc.paths
+from robustloc.datasets import ble_tetam
 from robustloc.reproduce import Context, run_all
 
 
@@ -48,6 +49,10 @@ def test_s10_quick_on_excerpts(tmp_path, no_shared_data):
     (ble,) = [h for h in heads if h["headline"].startswith("ble-tetam")]
     assert ble["paper"] == "-" and "(excerpts)" in ble["headline"]
     assert "linearized IGG, run here" in ble["verdict"]
+    # the prose counts the tracks it ran (it said "five" on the two-track excerpt)
+    text = " ".join(p for k, p in sec.blocks if k == "text")
+    n_tracks = len(ble_tetam.list_tracks(None))
+    assert f"one file of the {n_tracks} tracks" in text and "five tracks" not in text
     html = (tmp_path / "report.html").read_text()
     assert "Table 1" in html and "seed000_ble_cdf.png" in html
     assert (tmp_path / "seed000_wifi_office_cdf.png").stat().st_size > 1000

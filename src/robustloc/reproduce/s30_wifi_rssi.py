@@ -375,6 +375,8 @@ def _ble(ctx: Context, sec: Section) -> dict:
     survey = ble_tetam.load_survey_means(ctx.data_dir)
     cal = calibrate_pathloss(survey, "log-distance")
     anchors = cal.apply_to_anchors(anchors)
+    res_sd = cal.table["residual_std"].to_numpy(float)
+    pooled = (cal.table["calib_source"] == "pooled").to_numpy()
     tag_height_m = 1.75  # beacon carried at about this height (truth z 1.6-1.9 m)
     hoff = anchors["z"].to_numpy(float) - tag_height_m
     ctx.note(ble_tetam.tracks_note(ctx.data_dir))
@@ -420,9 +422,11 @@ def _ble(ctx: Context, sec: Section) -> dict:
         f"lag {s['median_decorrelation_lag']:.0f} samples, variance-distance correlation "
         f"{s['variance_distance_corr']:.2f}.  Positioning: robust filter {rob_e:.2f} m, plain "
         f"filter {pla_e:.2f} m, raw window means {raw_e:.2f} m (filtering gains "
-        f"{100 * (raw_e - rob_e) / raw_e:.0f} %).  The path-loss model itself misfits by "
-        "about 4.5 dB (see the fits table): that bias, not sample noise, dominates the BLE "
-        "error, so filtering the noise can only gain a little here."
+        f"{100 * (raw_e - rob_e) / raw_e:.0f} %).  The path-loss model itself misfits the "
+        f"survey by {np.median(res_sd[~pooled]):.1f} dB per receiver (median residual std"
+        + (f"; {res_sd[pooled][0]:.1f} dB pooled" if pooled.any() else "")
+        + "; see the fits table): that bias, not sample "
+        "noise, dominates the BLE error, so filtering the noise can only gain a little here."
     )
     static = _ble_static(ctx, sec, anchors, hoff)
     return {"ble_raw_m": raw_e, "ble_robust_m": rob_e, "ble_plain_m": pla_e, **static,
