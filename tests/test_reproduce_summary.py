@@ -60,3 +60,19 @@ def test_summary_rows_are_grouped_by_seed(tmp_path):
     rows = [ln.split(" | ")[1] for ln in md.read_text().splitlines()
             if ln.startswith("| all") or ln.startswith("| 00")]
     assert rows == ["every set", "real", "simulated", "gnss"]
+
+
+def test_real_data_headlines_say_excerpts(tmp_path):
+    """On the shipped excerpts every real-data headline says "(excerpts)" the same way
+    (s05's said "on the shared real data sets", s10's ble-tetam nothing, s20's "shipped
+    60 s excerpts")."""
+    from robustloc.reproduce import Context, Section, s20_uwb_gps, s50_gnss
+
+    ctx = Context(out_dir=tmp_path, data_dir=None, quick=True)
+    sec = Section("s20")
+    s20_uwb_gps._dwm_experiment(ctx, sec)
+    heads = sec.headlines + s50_gnss.run(ctx).headlines
+    assert len(heads) == 3
+    assert all("(excerpts)" in h["headline"] for h in heads), heads
+    (gnss,) = [h for h in heads if h["seed"] == "003"]
+    assert "quoted" in gnss["best peer"]  # RTKLIB is not run here: its figure says so

@@ -22,7 +22,7 @@ from robustloc.filters import ConstantAcceleration, ConstantVelocity, RobustUpda
 from robustloc.fusion.pipeline import FusionFilter, FusionMeasurement, initial_state
 from robustloc.fusion.run import FuseOptions, FuseResult, fuse
 from robustloc.fusion.uwb import uwb_fix
-from robustloc.reproduce import Context, Section, rst_markdown
+from robustloc.reproduce import Context, Section, data_label, rst_markdown
 from robustloc.robust.weights import IGG3, Huber
 from robustloc.sim.uwb_cart import (
     SIGMA_COURSE_DEG,
@@ -242,7 +242,9 @@ def _dwm_experiment(ctx: Context, sec: Section) -> None:
         }
         if "tight EKF-CV robust" in sub.index and "authors ESKF" in sub.index:
             ours, eskf = sub.loc["tight EKF-CV robust", "rms"], sub.loc["authors ESKF", "rms"]
-            sec.headline("001", f"uwb-dwm1001 {run} ({where}): 2-D RMS (m)", "-",
+            sec.headline("001", f"uwb-dwm1001 {run} "
+                         f"{data_label('full' if data_dir is not None else 'excerpt')}: "
+                         "2-D RMS (m)", "-",
                          f"tight robust EKF {ours:.2f}", f"authors' ESKF {eskf:.2f}",
                          "better" if ours <= eskf else "worse")
 

@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from robustloc.integrity.reliability import RHO_THRESHOLD
-from robustloc.reproduce import Context, Section
+from robustloc.reproduce import Context, Section, data_label
 
 TITLE = "Issue 4 / seed 003: GNSS single-point positioning with RAIM FDE on real data"
 ORDER = 50
@@ -239,10 +239,14 @@ def run(ctx: Context) -> Section:
     sec.summary["slac_gps"] = {k: acc.loc["SLAC, GPS broadcast (ours)", k]
                                for k in ("rms_h_m", "rms_3d_m", "solved")}
     g = sec.summary["geonet_gps"]
-    sec.headline("003", "GEONET 0759 GPS single-point, horizontal / 3-D RMS (m), epochs",
+    rk = RTKLIB["gnss-geonet"]  # (no RTKLIB binary here: the issue's figures, labelled)
+    sec.headline("003", f"GEONET 0759 GPS single-point "
+                 f"{data_label('full' if same else 'excerpt')}: horizontal / 3-D RMS (m), "
+                 "epochs",
                  "-", f"{g['rms_h_m']:.2f} / {g['rms_3d_m']:.2f}, {g['solved']}",
-                 "RTKLIB 2.4.3: 0.67 / 1.62, 115/120",
-                 "at or below RTKLIB" if g["rms_h_m"] <= 0.67 else "worse than RTKLIB")
+                 f"RTKLIB 2.4.3 (issue 4's run of the full file, quoted): {rk['rms_h_m']:.2f} / "
+                 f"{rk['rms_3d_m']:.2f}, {rk['solved']}",
+                 "at or below RTKLIB" if g["rms_h_m"] <= rk["rms_h_m"] else "worse than RTKLIB")
     sec.summary["slac_gre_precise_smoothed"] = {
         k: acc.loc["SLAC, GPS+GLONASS+Galileo SP3/CLK, iono-free, carrier-smoothed (60 epochs)",
                    k]
