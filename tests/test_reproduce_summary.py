@@ -76,3 +76,13 @@ def test_real_data_headlines_say_excerpts(tmp_path):
     assert all("(excerpts)" in h["headline"] for h in heads), heads
     (gnss,) = [h for h in heads if h["seed"] == "003"]
     assert "quoted" in gnss["best peer"]  # RTKLIB is not run here: its figure says so
+
+
+def test_s30_gain_verdict():
+    from robustloc.reproduce.s30_wifi_rssi import _gain_verdict
+
+    # (the full data's three rooms all round to -3 %: said once, not "-3 to -3 %")
+    assert _gain_verdict([0.974, 0.972, 0.971], 0.62).startswith("error -3 % (paper's -38 %)")
+    assert _gain_verdict([0.95, 0.99], 0.62).startswith("error -5 to -1 %")
+    assert _gain_verdict([0.9], 0.26).endswith("a smaller gain than the paper's")
+    assert _gain_verdict([0.2], 0.26).endswith("a gain as large as the paper's")

@@ -22,7 +22,7 @@ from robustloc.filters import ConstantAcceleration, ConstantVelocity, RobustUpda
 from robustloc.fusion.pipeline import FusionFilter, FusionMeasurement, initial_state
 from robustloc.fusion.run import FuseOptions, FuseResult, fuse
 from robustloc.fusion.uwb import uwb_fix
-from robustloc.reproduce import Context, Section, data_label, rst_markdown
+from robustloc.reproduce import Context, Section, data_label, fmt_num, rst_markdown
 from robustloc.robust.weights import IGG3, Huber
 from robustloc.sim.uwb_cart import (
     SIGMA_COURSE_DEG,
@@ -245,7 +245,8 @@ def _dwm_experiment(ctx: Context, sec: Section) -> None:
             sec.headline("001", f"uwb-dwm1001 {run} "
                          f"{data_label('full' if data_dir is not None else 'excerpt')}: "
                          "2-D RMS (m)", "-",
-                         f"tight robust EKF {ours:.2f}", f"authors' ESKF {eskf:.2f}",
+                         f"tight robust EKF {fmt_num(ours)}",
+                         f"authors' ESKF {fmt_num(eskf)}",
                          "better" if ours <= eskf else "worse")
 
 

@@ -585,7 +585,8 @@ def _gain_verdict(ratios: list[float], paper_ratio: float) -> str:
     paper's: the change of the error in % and whether the gain is as large as the
     paper's."""
     ch = sorted(100 * (r - 1) for r in ratios)
-    ours = f"{ch[0]:+.0f} %" if len(ch) == 1 else f"{ch[0]:+.0f} to {ch[-1]:+.0f} %"
+    lo, hi = f"{ch[0]:+.0f}", f"{ch[-1]:+.0f}"
+    ours = f"{lo} %" if lo == hi else f"{lo} to {hi} %"
     same = all(r <= paper_ratio for r in ratios)
     return (f"error {ours} (paper's {100 * (paper_ratio - 1):+.0f} %): "
             + ("a gain as large as the paper's" if same else "a smaller gain than the paper's"))

@@ -410,9 +410,10 @@ def _dwm(ctx: Context, sec: Section, plots: list, stanford: list) -> dict[str, A
         rows_out.append({"run": run, "method": "authors ESKF (" + (
             "full run" if full else "excerpt") + ")", "rms": se["rms"], "p95": se["p95"],
             "n": se["n"], "missing": se["missing"]})
-        # robustloc `fuse` (tight robust EKF), run here on the same epochs by s20's own
-        # call (it was a typed-in figure of the full runs, used as a target's limit: the
-        # report review); under a second per full run
+        # robustloc `fuse` (tight robust EKF), run here on the same ranges by s20's own
+        # call and scored over the same span at its own epochs (it was a typed-in figure of
+        # the full runs, used as a target's limit: the report review); under a second per
+        # full run
         fz = s20_uwb_gps.dwm_fuse(r).track
         sf = error_stats(fz["time"].to_numpy(float), fz[["x", "y"]].to_numpy(float),
                          r.truth, span)
@@ -684,7 +685,7 @@ def run(ctx: Context) -> Section:
         *[(f"uwb-dwm1001 {run}: RMS <= {lab_} {fmt_num(ref)} m", dwm[run]["rms"], ref)
           for run in ("LOS", "NLOS")
           for lab_, ref in (("the authors' ESKF", dwm[run]["eskf_rms"]),
-                            ("fuse (same epochs)", dwm[run]["fuse_rms"]))],
+                            ("fuse (same data)", dwm[run]["fuse_rms"]))],
         ("uwb-labyrinth: RMS <= 0.9x locate (anchors as surveyed)",
          lab["rms"] / lab["locate_rms"], 0.9),
         ("uwb-labyrinth: RMS <= 0.9x locate (both after calibrate --self)",
