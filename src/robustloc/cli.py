@@ -215,17 +215,20 @@ def _restore_sigterm(old: object) -> None:
     due are dropped and one under way is waited for (its interrupt, raised here, is
     dropped too: the command has returned, its result and exit code stand), then the old
     handlers and hook are put back."""
-    pending = list(_redeliver)
-    _redeliver.clear()
-    while pending:
-        try:  # (cancel and join are idempotent: an interrupt here starts the pass again)
+    # (until none is left: one that an interrupt dropped during the join sends again
+    # (the hook is still installed) is appended while this runs; cancel and join are
+    # idempotent: an interrupt here starts the pass again)
+    while _redeliver:
+        pending = list(_redeliver)
+        try:
             for t in pending:
                 t.cancel()
             for t in pending:
                 t.join()
-            pending = []
         except (KeyboardInterrupt, Terminated):
-            pass
+            continue
+        for t in pending:
+            _redeliver.remove(t)
     _restore_handlers(old)
 
 
@@ -253,20 +256,33 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("error: interrupted", file=sys.stderr)
         code = EXIT_SIGINT
     if code in (EXIT_SIGINT, EXIT_SIGTERM):
-        _quiet_after_interrupt()
+        _quiet_after_interrupt(exiting=argv is None)
     return code
 
 
-def _quiet_after_interrupt() -> None:
+def _quiet_after_interrupt(exiting: bool) -> None:
     """After ``error: interrupted`` / ``terminated``, the event loop of a Dask client
     torn down mid-run logs its tasks' exceptions as the process exits ("Task exception
     was never retrieved ... distributed.client.AllExit", a traceback after the one line
     the interrupt promises: the partition review, 2026-12-07): those loggers are
-    silenced for the exit."""
+    silenced for the exit.
+
+    ``exiting`` (:func:`main` called as the process's entry point, ``argv`` None: the
+    ``robustloc`` script, ``python -m robustloc.cli``): the process is about to exit with
+    the code it printed, so SIGINT and SIGTERM are ignored from here.  A signal that
+    arrived, or was re-sent (:func:`_deliver_later`), after the command had returned met
+    Python's own handler again and killed the process during its exit (status -2, not
+    130, after ``error: interrupted``: the full suite, ``test_reproduce_atomic``,
+    2026-12-07).  A caller that passes ``argv`` keeps its handlers."""
     import logging
+    import signal
+    import threading
 
     for name in ("asyncio", "distributed", "tornado"):
         logging.getLogger(name).setLevel(logging.CRITICAL + 1)
+    if exiting and threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN)
 
 
 def _main(argv: Sequence[str] | None) -> int:

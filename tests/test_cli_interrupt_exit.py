@@ -1,0 +1,63 @@
+"""An interrupted command's process exits with the code it printed (130 / 143), even when
+a signal arrives after the command has returned: the full suite saw a reproduce run print
+``error: interrupted`` and then die of SIGINT (status -2), a signal handled by Python's own
+handler during the exit (``robustloc.cli._quiet_after_interrupt``)."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+SCRIPT = textwrap.dedent("""
+    import os, signal, sys
+    import robustloc.cli as cli
+
+    def interrupted(args):
+        raise {exc}()
+
+    import robustloc.commands.stats as command
+
+    command.run = interrupted  # (the parser takes the command module's run)
+    sys.argv = ["robustloc", "stats", "m.csv", "-o", "out"]
+    code = cli.main({argv})
+    # a signal after the command returned (one re-sent late, or a second Ctrl-C)
+    os.kill(os.getpid(), signal.{sig})
+    for _ in range(1000):
+        pass
+    print("exiting", code, flush=True)
+    sys.exit(code)
+""")
+
+
+def _run(tmp_path, exc: str, sig: str, argv: str) -> subprocess.CompletedProcess:
+    (tmp_path / "m.csv").write_text("time,tag,anchor,rssi\n0,t,a,-60\n")
+    return subprocess.run([sys.executable, "-c", SCRIPT.format(exc=exc, sig=sig, argv=argv)],
+                          capture_output=True, text=True, timeout=120, cwd=tmp_path)
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+@pytest.mark.parametrize("exc, sig, code, said", [
+    ("KeyboardInterrupt", "SIGINT", 130, "error: interrupted"),
+    ("cli.Terminated", "SIGTERM", 143, "error: terminated"),
+])
+def test_a_signal_after_an_interrupted_command_keeps_its_exit_code(tmp_path, exc, sig, code,
+                                                                  said):
+    """Entry point (``argv`` None): the late signal is ignored, the process exits with the
+    code it printed.  (Before: SIGINT killed it, status -2; SIGTERM, -15.)"""
+    proc = _run(tmp_path, exc, sig, "None")
+    assert proc.returncode == code, (proc.returncode, proc.stderr)
+    assert said in proc.stderr
+    assert f"exiting {code}" in proc.stdout
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+def test_a_caller_passing_argv_keeps_its_own_sigint_handler(tmp_path):
+    """``main([...])`` from a program (tests, notebooks) leaves its handlers alone: the
+    late SIGINT is that program's KeyboardInterrupt, as before."""
+    proc = _run(tmp_path, "KeyboardInterrupt", "SIGINT", "sys.argv[1:]")
+    assert proc.returncode == -signal.SIGINT, (proc.returncode, proc.stderr)
+    assert "error: interrupted" in proc.stderr
