@@ -1,7 +1,7 @@
 """An interrupted command's process exits with the code it printed (130 / 143), even when
 a signal arrives after the command has returned: the full suite saw a reproduce run print
 ``error: interrupted`` and then die of SIGINT (status -2), a signal handled by Python's own
-handler during the exit (``robustloc.cli._quiet_after_interrupt``)."""
+handler during the exit (``robustloc.cli.entry``)."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ SCRIPT = textwrap.dedent("""
 
     command.run = interrupted  # (the parser takes the command module's run)
     sys.argv = ["robustloc", "stats", "m.csv", "-o", "out"]
-    code = cli.main({argv})
+    code = {call}
     # a signal after the command returned (one re-sent late, or a second Ctrl-C)
     os.kill(os.getpid(), signal.{sig})
     for _ in range(1000):
@@ -33,9 +33,9 @@ SCRIPT = textwrap.dedent("""
 """)
 
 
-def _run(tmp_path, exc: str, sig: str, argv: str) -> subprocess.CompletedProcess:
+def _run(tmp_path, exc: str, sig: str, call: str) -> subprocess.CompletedProcess:
     (tmp_path / "m.csv").write_text("time,tag,anchor,rssi\n0,t,a,-60\n")
-    return subprocess.run([sys.executable, "-c", SCRIPT.format(exc=exc, sig=sig, argv=argv)],
+    return subprocess.run([sys.executable, "-c", SCRIPT.format(exc=exc, sig=sig, call=call)],
                           capture_output=True, text=True, timeout=120, cwd=tmp_path)
 
 
@@ -46,18 +46,20 @@ def _run(tmp_path, exc: str, sig: str, argv: str) -> subprocess.CompletedProcess
 ])
 def test_a_signal_after_an_interrupted_command_keeps_its_exit_code(tmp_path, exc, sig, code,
                                                                   said):
-    """Entry point (``argv`` None): the late signal is ignored, the process exits with the
-    code it printed.  (Before: SIGINT killed it, status -2; SIGTERM, -15.)"""
-    proc = _run(tmp_path, exc, sig, "None")
+    """The entry point (``cli.entry``, the ``robustloc`` script): the late signal is ignored,
+    the process exits with the code it printed.  (Before, ``main`` was the entry point:
+    SIGINT killed it, status -2; SIGTERM, -15.)"""
+    proc = _run(tmp_path, exc, sig, 'getattr(cli, "entry", cli.main)()')
     assert proc.returncode == code, (proc.returncode, proc.stderr)
     assert said in proc.stderr
     assert f"exiting {code}" in proc.stdout
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
-def test_a_caller_passing_argv_keeps_its_own_sigint_handler(tmp_path):
-    """``main([...])`` from a program (tests, notebooks) leaves its handlers alone: the
-    late SIGINT is that program's KeyboardInterrupt, as before."""
-    proc = _run(tmp_path, "KeyboardInterrupt", "SIGINT", "sys.argv[1:]")
+def test_a_program_calling_main_keeps_its_own_sigint_handler(tmp_path):
+    """``main()`` called from a program (tests, notebooks) leaves its handlers alone (an
+    ignored SIGINT would be inherited by every process it starts): the late SIGINT is
+    that program's KeyboardInterrupt, as before."""
+    proc = _run(tmp_path, "KeyboardInterrupt", "SIGINT", "cli.main()")
     assert proc.returncode == -signal.SIGINT, (proc.returncode, proc.stderr)
     assert "error: interrupted" in proc.stderr

@@ -256,33 +256,40 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("error: interrupted", file=sys.stderr)
         code = EXIT_SIGINT
     if code in (EXIT_SIGINT, EXIT_SIGTERM):
-        _quiet_after_interrupt(exiting=argv is None)
+        _quiet_after_interrupt()
     return code
 
 
-def _quiet_after_interrupt(exiting: bool) -> None:
+def _quiet_after_interrupt() -> None:
     """After ``error: interrupted`` / ``terminated``, the event loop of a Dask client
     torn down mid-run logs its tasks' exceptions as the process exits ("Task exception
     was never retrieved ... distributed.client.AllExit", a traceback after the one line
     the interrupt promises: the partition review, 2026-12-07): those loggers are
-    silenced for the exit.
-
-    ``exiting`` (:func:`main` called as the process's entry point, ``argv`` None: the
-    ``robustloc`` script, ``python -m robustloc.cli``): the process is about to exit with
-    the code it printed, so SIGINT and SIGTERM are ignored from here.  A signal that
-    arrived, or was re-sent (:func:`_deliver_later`), after the command had returned met
-    Python's own handler again and killed the process during its exit (status -2, not
-    130, after ``error: interrupted``: the full suite, ``test_reproduce_atomic``,
-    2026-12-07).  A caller that passes ``argv`` keeps its handlers."""
+    silenced for the exit."""
     import logging
-    import signal
-    import threading
 
     for name in ("asyncio", "distributed", "tornado"):
         logging.getLogger(name).setLevel(logging.CRITICAL + 1)
-    if exiting and threading.current_thread() is threading.main_thread():
+
+
+def entry() -> int:
+    """The process's entry point (the ``robustloc`` script, ``python -m robustloc.cli``):
+    :func:`main`, and after an interrupted command SIGINT and SIGTERM ignored, since the
+    process exits with the code it printed.  A signal that arrived, or was re-sent
+    (:func:`_deliver_later`), after the command had returned met Python's own handler
+    again and killed the process during its exit (status -2, not 130, after ``error:
+    interrupted``: the full suite, ``test_reproduce_atomic``, 2026-12-07).  Programs that
+    call :func:`main` keep their handlers (an ignored SIGINT is inherited by every
+    process they start)."""
+    import signal
+    import threading
+
+    code = main()
+    if code in (EXIT_SIGINT, EXIT_SIGTERM) and (
+            threading.current_thread() is threading.main_thread()):
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, signal.SIG_IGN)
+    return code
 
 
 def _main(argv: Sequence[str] | None) -> int:
@@ -414,4 +421,4 @@ def _internal_error() -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    sys.exit(entry())
