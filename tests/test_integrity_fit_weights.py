@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pandas as pd
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st_
 from scipy import stats
 
@@ -51,6 +51,9 @@ def _reference(J, sigma, used, f):
 
 @settings(max_examples=40, deadline=None)
 @given(seed=st_.integers(0, 2**31 - 1), p=st_.sampled_from([2, 3]), n=st_.integers(4, 9))
+# (the full suite's find, 2026-12-07: the compiled kernel inverted the normal matrix by its
+# adjugate, 1.03e-6 off at cond 8e5 and r_i 1e-3; by Cholesky now, as the plain kernel)
+@example(seed=72553, p=3, n=4)
 def test_fit_weighted_bound_equals_the_matrix_formulas(seed, p, n):
     """Both engines equal the bound written with full matrices (a different computation
     of the same formulas); with every weight factor 1 the bound is the a-priori one.

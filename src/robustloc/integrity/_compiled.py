@@ -51,6 +51,47 @@ def _normal_checked(A, f, n, p, count, Nm):  # pragma: no cover - jit
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _cholesky_inverse(Nm, p, L, M, out):  # pragma: no cover - jit
+    """``out = Nm^-1`` (the leading ``p x p`` blocks) through the Cholesky factor
+    ``Nm = L L^T``: ``M = L^-1`` (lower triangular), ``out = M^T M``; ``L`` and ``M`` are
+    left filled.  False where ``Nm`` is not positive definite in rounding (singular).
+    The closed-form adjugate (``_inv_small``) loses up to ~300 cond x eps on the
+    redundancy numbers ``1 - a_i^T N^-1 a_i``; Cholesky stays within cond x eps, like the
+    LAPACK inverse of the references (the fit-weighted kernel used the adjugate: 1.03e-6
+    off the matrix formulas at cond 8e5, r_i 1e-3, 6 x eps cond / r_i; the full suite,
+    2026-12-07)."""
+    for a in range(p):
+        acc = Nm[a, a]
+        for c in range(a):
+            acc -= L[a, c] * L[a, c]
+        if not acc > 0.0:
+            return False
+        L[a, a] = math.sqrt(acc)
+        for b in range(a + 1, p):
+            acc = Nm[b, a]
+            for c in range(a):
+                acc -= L[b, c] * L[a, c]
+            L[b, a] = acc / L[a, a]
+    for a in range(p):
+        for b in range(p):
+            M[a, b] = 0.0
+    for a in range(p):
+        M[a, a] = 1.0 / L[a, a]
+        for b in range(a):
+            acc = 0.0
+            for c in range(b, a):
+                acc += L[a, c] * M[c, b]
+            M[a, b] = -acc / L[a, a]
+    for a in range(p):
+        for b in range(p):
+            acc = 0.0
+            for c in range(max(a, b), p):
+                acc += M[c, a] * M[c, b]
+            out[a, b] = acc
+    return True
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def protection_levels_kernel(J, sigma, used, lam0, k_noise, r_min,
                              tag):  # pragma: no cover - jit
     """``(hpl, vpl, r)`` of every epoch; arguments and results as
@@ -86,42 +127,9 @@ def protection_levels_kernel(J, sigma, used, lam0, k_noise, r_min,
         # normal matrix J^T P J
         if not _normal_checked(A, ones, n, p, count, Nm):
             continue  # hpl, vpl and r stay NaN, as in the reference
-        # N^-1 through the Cholesky factor N = L L^T: the closed-form adjugate loses up
-        # to ~300 cond x eps on the redundancy numbers 1 - a_i^T N^-1 a_i, Cholesky stays
-        # within cond x eps like the LAPACK inverse of the reference
-        pos = True
-        for a in range(p):
-            acc = Nm[a, a]
-            for c in range(a):
-                acc -= L[a, c] * L[a, c]
-            if not acc > 0.0:
-                pos = False
-                break
-            L[a, a] = math.sqrt(acc)
-            for b in range(a + 1, p):
-                acc = Nm[b, a]
-                for c in range(a):
-                    acc -= L[b, c] * L[a, c]
-                L[b, a] = acc / L[a, a]
-        if not pos:
+        # N^-1 through its Cholesky factor (_cholesky_inverse); L and M stay for the rows
+        if not _cholesky_inverse(Nm, p, L, M, C):
             continue  # not positive definite in rounding: treated as singular
-        # M = L^-1 (lower triangular), then C = N^-1 = M^T M
-        for a in range(p):
-            for b in range(p):
-                M[a, b] = 0.0
-        for a in range(p):
-            M[a, a] = 1.0 / L[a, a]
-            for b in range(a):
-                acc = 0.0
-                for c in range(b, a):
-                    acc += L[a, c] * M[c, b]
-                M[a, b] = -acc / L[a, a]
-        for a in range(p):
-            for b in range(p):
-                acc = 0.0
-                for c in range(max(a, b), p):
-                    acc += M[c, a] * M[c, b]
-                C[a, b] = acc
         # the largest squared slope terms; one square root per epoch at the end
         dh2_max = 0.0
         du2_max = 0.0
@@ -191,6 +199,8 @@ def fit_weighted_protection_kernel(J, sigma, used, fw, lam0, k_noise, r_min,
     use = np.zeros(n, dtype=np.bool_)
     Nm = np.zeros((p, p))
     Q = np.zeros((p, p))
+    Lf = np.zeros((p, p))
+    Mf = np.zeros((p, p))
     C = np.zeros((3, 3))
     QA = np.zeros((n, 3))
     for k in range(N):
@@ -214,7 +224,8 @@ def fit_weighted_protection_kernel(J, sigma, used, fw, lam0, k_noise, r_min,
                 count += 1
         if not _normal_checked(A, f, n, p, count, Nm):
             continue  # as the reference: NaN
-        _inv_small(Nm, Q, tag)
+        if not _cholesky_inverse(Nm, p, Lf, Mf, Q):
+            continue  # not positive definite in rounding: singular, NaN as the reference
         for a in range(3):
             for b in range(3):
                 C[a, b] = 0.0
