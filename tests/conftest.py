@@ -1,5 +1,5 @@
 """Fixtures shared by several test modules: a started ``robustloc serve`` (the service
-tests) and a dask scheduler (the Dask engine tests)."""
+tests) a dask scheduler (the Dask engine tests) and the simulated uwb-cart (the fuse tests)."""
 
 from __future__ import annotations
 
@@ -40,3 +40,14 @@ def scheduler() -> Iterator[str]:
         yield cluster.scheduler_address
     finally:
         cluster.close()
+
+
+@pytest.fixture(scope="module")
+def cart(tmp_path_factory):
+    """The simulated ``uwb-cart`` scenario (seed 1), simulated once per test module: the
+    fuse, filter and plausibility tests' common input."""
+    from robustloc.cli import main
+
+    d = tmp_path_factory.mktemp("cart")
+    assert main(["simulate", "uwb-cart", "--seed", "1", "--out", str(d)]) == 0
+    return d

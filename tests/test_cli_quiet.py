@@ -20,13 +20,6 @@ def room(tmp_path_factory):
     return simulate(out, 4, argparse.Namespace(samples_per_point=5, walk_epochs=30))
 
 
-@pytest.fixture(scope="module")
-def cart(tmp_path_factory):
-    d = tmp_path_factory.mktemp("cart")
-    assert main(["simulate", "uwb-cart", "--seed", "1", "--out", str(d)]) == 0
-    return d
-
-
 @pytest.mark.parametrize("command", ["locate", "track", "filter", "fuse"])
 @pytest.mark.parametrize("flag", ["-q", "--quiet"])
 def test_quiet_writes_the_output_and_prints_no_summary(command, flag, room, cart, tmp_path,

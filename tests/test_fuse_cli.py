@@ -7,16 +7,8 @@ cart of ``robustloc simulate uwb-cart`` (3 anchors ``anchor, x, y`` without ``z`
 from __future__ import annotations
 
 import pandas as pd
-import pytest
 
 from robustloc.cli import main
-
-
-@pytest.fixture(scope="module")
-def cart(tmp_path_factory):
-    d = tmp_path_factory.mktemp("cart")
-    assert main(["simulate", "uwb-cart", "--seed", "1", "--out", str(d)]) == 0
-    return d
 
 
 def test_tag_height_without_anchor_z_is_refused(cart, tmp_path, capsys):

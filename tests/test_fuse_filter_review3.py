@@ -21,13 +21,6 @@ from robustloc.io.nmea import nmea_checksum, parse_nmea
 
 
 @pytest.fixture(scope="module")
-def cart(tmp_path_factory):
-    d = tmp_path_factory.mktemp("cart")
-    assert main(["simulate", "uwb-cart", "--seed", "1", "--out", str(d)]) == 0
-    return d
-
-
-@pytest.fixture(scope="module")
 def room(tmp_path_factory):
     d = tmp_path_factory.mktemp("room")
     assert main(["simulate", "wifi-room", "--seed", "1", "--out", str(d)]) == 0

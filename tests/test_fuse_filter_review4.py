@@ -28,13 +28,6 @@ AT = np.array([2.0, 2.5])  # where the tag stands
 
 
 @pytest.fixture(scope="module")
-def cart(tmp_path_factory):
-    d = tmp_path_factory.mktemp("cart")
-    assert main(["simulate", "uwb-cart", "--seed", "1", "--out", str(d)]) == 0
-    return d
-
-
-@pytest.fixture(scope="module")
 def cart_b(tmp_path_factory):
     d = tmp_path_factory.mktemp("cart_b")
     assert main(["simulate", "uwb-cart", "--group", "B", "--seed", "1", "--out", str(d)]) == 0

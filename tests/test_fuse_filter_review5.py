@@ -23,13 +23,6 @@ from robustloc.fusion.run import FuseOptions, fuse
 from robustloc.robust.weights import get_weight
 
 
-@pytest.fixture(scope="module")
-def cart(tmp_path_factory):
-    d = tmp_path_factory.mktemp("cart")
-    assert main(["simulate", "uwb-cart", "--seed", "1", "--out", str(d)]) == 0
-    return d
-
-
 def _fuse(tmp_path, capsys, ranges, anchors, *extra):
     out = tmp_path / "track.csv"
     rc = main(["fuse", "--ranges", str(ranges), "--anchors", str(anchors), "-o", str(out),

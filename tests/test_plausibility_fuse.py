@@ -21,13 +21,6 @@ from robustloc.fusion.pipeline import FusionFilter, FusionMeasurement, initial_s
 from robustloc.io.nmea import nmea_checksum, parse_nmea
 
 
-@pytest.fixture(scope="module")
-def cart(tmp_path_factory):
-    d = tmp_path_factory.mktemp("cart")
-    assert main(["simulate", "uwb-cart", "--seed", "1", "--out", str(d)]) == 0
-    return d
-
-
 def _resum(line: str, change) -> str:
     """An NMEA sentence with some fields changed and a *valid* checksum."""
     body = line[1 : line.index("*")]
