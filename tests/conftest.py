@@ -1,5 +1,5 @@
 """Fixtures shared by several test modules: a started ``robustloc serve`` (the service
-tests) a dask scheduler (the Dask engine tests) and the simulated uwb-cart (the fuse tests)."""
+tests), a dask scheduler (the Dask engine tests) and the simulated uwb-cart (the fuse tests)."""
 
 from __future__ import annotations
 
