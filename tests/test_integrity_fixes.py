@@ -452,12 +452,64 @@ def test_a_wrong_exclusion_of_the_anchor_off_the_line_makes_the_fix_ambiguous():
     assert out.extra["ambiguity_terms"][0, 4] <= crit  # the alternative passes
     np.testing.assert_array_equal(out.extra["ambiguity_kept"][0],
                                   [False, True, True, True, True])
-    # control: D not heard -- no excluded anchor to re-admit, no ambiguity
+    # D not heard: no excluded anchor to re-admit, no alternative that fits without a
+    # fault (nothing for the side prior), but the mirror with the biased range left out,
+    # the truth itself (three exact ranges), passes: under the one-fault hypothesis the
+    # bound covers it (until 2026-12-07 it stayed the slope bound, 2.9 m for 6.9 m)
     d_unheard = d.copy()
     d_unheard[4] = np.nan
     blind = protect(fix_at(d_unheard, np.zeros((1, 5), dtype=bool)), range_model=model)
     assert np.isnan(blind.extra["ambiguity_position"][0, 0])
-    assert blind.extra["hpl"][0] == pytest.approx(plain.extra["hpl"][0], rel=1e-9)
+    assert blind.status[0] == st.OK and blind.extra["hpl"][0] >= err
+
+
+def test_one_fault_that_fails_the_mirror_leaves_the_wrong_side_covered():
+    """The wifi-rtt-rss corridor after ``calibrate --self`` (its four access points and
+    their sigmas, times 0.75 as the log's scale had them; scan 2642): the tag at (18, 0),
+    AP3's range 7.7 m long, the others within 2.2 m.  The fix lands across the line,
+    12.7 m off, and passes its test; its mirror fails it (AP3 misfits there as at the
+    truth), so the ambiguity check without a fault adds nothing and the slope bound,
+    12.3 m, missed the error.  Under the one-fault hypothesis the mirror refined without
+    AP3 (found independently by scipy from the reflected fix) passes: the bound covers
+    the distance to it, and so the truth; the fix does not move (no side prior from an
+    alternative that needs a fault)."""
+    from scipy.optimize import least_squares
+
+    from robustloc.integrity.bmethod import global_critical
+    from robustloc.integrity.fixes import mirror_solution
+    from robustloc.models.ranging import RangeModel
+
+    an = np.array([[1.2, 4.5], [10.2, 4.08], [22.8, 5.4], [28.8, 3.0]])
+    sig = 0.75 * np.array([2.39, 2.97, 2.39, 0.91])
+    truth = np.array([18.0, 0.0])
+    d = np.linalg.norm(truth - an, axis=1) + np.array([0.8, 7.7, -1.0, 2.2])
+    sol = locate_protected(Locator("auto", sigma=tuple(sig), robust_scale="apriori"), an,
+                           d[None])
+    x = sol.position[0]
+    err = float(np.linalg.norm(x - truth))
+    # preconditions: ok, across the line (y > 4.5), the mirror on all four fails
+    assert sol.status[0] == st.OK and x[1] > 8.0 and err > 12.0
+    crit2, crit1 = global_critical(np.array([2, 1]))
+    assert sol.extra["test_statistic"][0] <= crit2
+    _, T_m, _ = mirror_solution(RangeModel(an), sol.position, sol.extra["range_residuals"],
+                                sig[None], np.ones((1, 4), dtype=bool))
+    assert T_m[0] > crit2 and np.isnan(sol.extra["ambiguity_position"][0, 0])
+    # the one-fault mirrors, by scipy from the fix reflected across the line y = 4.2
+    start = np.array([x[0], 2 * 4.2 - x[1]])
+    passing = []
+    for j in range(4):
+        o = np.arange(4) != j
+        r = least_squares(lambda q, o=o: (np.linalg.norm(q - an[o], axis=1) - d[o]) / sig[o],
+                          start)
+        if 2 * r.cost <= crit1 and r.x[1] < 4.2:
+            passing.append((j, float(np.linalg.norm(r.x - x))))
+    # AP3's exclusion passes (the others too: three nearly collinear ranges fit loosely)
+    assert 1 in [j for j, _ in passing]
+    hpl = sol.extra["hpl"][0]
+    assert hpl >= max(dist for _, dist in passing) and hpl >= err
+    # nothing moved: the plain Gauss-Newton fix (the one the test passed)
+    np.testing.assert_allclose(x, Locator("nls", sigma=tuple(sig), robust_scale="apriori")
+                               .solve(an, d[None]).position[0], atol=1e-9)
 
 
 @settings(max_examples=40, deadline=None)

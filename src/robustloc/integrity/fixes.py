@@ -104,7 +104,13 @@ For each epoch, at the fix ``x`` of any method, with the range-domain residuals
    the truth (cross-line error 8.8 m median, along 0.5 m), and the mirror passed the
    fix's test in 72 % of them (issue 10); the term takes the misleading share there from
    15 % to 4.3 % (the rest: the mirror fails a test whose sigma, the calibrated sigma
-   times the log's MAD scale, is 0.4-0.8 of the residual spread at the truth).
+   times the log's MAD scale, is 0.4-0.8 of the residual spread at the truth).  The
+   bound assumes one fault, and so does the check: where the mirror fails on every kept
+   observation, the mirror refined without one of them, ``x'_j``, that passes its test
+   is covered as well, ``HPL = max(HPL, |x'_j - x|_h + k sigma_major(x'_j))``
+   (:func:`_cover_mirror_exclusions`; bound only, the fix is not moved).  The same
+   corridor (2026-12-07): 75 of 6 832 usable fixes beyond their bound, one access point
+   4-8 m long in each, then none.
 
 6. **Majority.**  A fix whose flagged observations are half or more of those heard is
    ``unavailable``: the flagged ones may be the consistent ones.  No estimator breaks
@@ -1126,6 +1132,59 @@ def _cover_other_exclusions(
         np.fmax.at(vpl, ee, np.where(np.isfinite(cover_v), cover_v, np.inf))
 
 
+def _cover_mirror_exclusions(
+    range_model: RangeModel, position: Array, v: Array, sc: Array,
+    keep: NDArray[np.bool_], rows: NDArray[np.intp], hpl: Array, vpl: Array, widen: Array,
+    alpha0: float, beta0: float, k: float,
+) -> None:
+    """Widen, in place, the bound of each fix in ``rows`` (elongated kept anchors, a
+    mirror that fails its test) over the mirror solutions with one observation left out.
+
+    The slope bound assumes at most one fault; so must the ambiguity check (module
+    docstring, item 5).  Where the mirror ``x'`` fails the test on every kept observation,
+    one fault on observation ``j`` may be what makes it fail: the mirror ``x'_j`` refined
+    on the kept observations but ``j`` (:func:`mirror_solution`, its own principal line)
+    is then fault-free, and where its global test passes (redundancy at least 1) the data
+    cannot tell the fix from the tag across the line with ``j`` faulty.  As for the other
+    exclusions (:func:`_cover_other_exclusions`, the solution separation of ARAIM), the
+    hypothesis bounds ``x'_j``'s error by its noise term alone: ``hpl = max(hpl, |x'_j -
+    x|_h + k sigma_major(x'_j))`` over every such ``j`` (widened as the fix's).  Only the
+    bound moves: the log's side prior (item 7) moves a fix to an alternative that fits
+    without a fault, not to one that needs one.  Measured on the wifi-rtt-rss corridor
+    after ``calibrate --self`` (every scan, 2026-12-07): of its 75 usable fixes beyond
+    their bound, all ``ok`` and across the access points' line from the truth, an access
+    point reading 4-8 m long made the mirror fail while the wrong side fitted.
+    """
+    p = position.shape[1]
+    rows = rows[keep[rows].sum(axis=1) - p >= 2]  # x'_j keeps redundancy >= 1
+    ee, jj = np.nonzero(keep[rows])
+    ee = rows[ee]
+    if ee.size == 0:
+        return
+    alt = keep[ee].copy()
+    alt[np.arange(ee.size), jj] = False
+    x_a, T_a, J_a = mirror_solution(range_model, position[ee], v[ee], sc[ee], alt)
+    dof_a = alt.sum(axis=1) - p
+    crit_a = global_critical(dof_a, alpha0=alpha0, beta0=beta0)
+    ok = np.isfinite(T_a) & (T_a <= crit_a) & np.all(np.isfinite(x_a), axis=1)
+    if not np.any(ok):
+        return
+    ee, alt, x_a, J_a = ee[ok], alt[ok], x_a[ok], J_a[ok]
+    use, A = _whitened(J_a, sc[ee], alt)
+    Nm = np.matmul(np.swapaxes(A, 1, 2), A)
+    C, good = inv_spd(Nm)
+    cen = C[:, _H, _H]
+    tr, det = cen[:, 0, 0] + cen[:, 1, 1], cen[:, 0, 0] * cen[:, 1, 1] - cen[:, 0, 1] ** 2
+    noise_h = k * np.sqrt(0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0)))
+    d = x_a - position[ee]
+    cover = np.where(good, np.hypot(d[:, 0], d[:, 1]) + noise_h * widen[ee], np.inf)
+    np.fmax.at(hpl, ee, np.where(np.isfinite(cover), cover, np.inf))
+    if p == 3:
+        cover_v = np.where(good, np.abs(d[:, 2]) + k * np.sqrt(C[:, 2, 2]) * widen[ee],
+                           np.inf)
+        np.fmax.at(vpl, ee, np.where(np.isfinite(cover_v), cover_v, np.inf))
+
+
 def _real_option(name: str, value: object) -> float:
     """An option's value as a float; ``TypeError`` for what is not a real number (a bool,
     a complex number, whose imaginary part ``float()`` would drop)."""
@@ -1495,6 +1554,10 @@ def protect(
                 if np.any(amb2):
                     ambiguous(rows2[amb2], x2[amb2], J2[amb2], sc2[amb2], keep2[amb2],
                               T2[amb2])
+                amb[np.flatnonzero(ex)[amb2]] = True
+            # one fault: the mirror with one observation left out (bound only)
+            _cover_mirror_exclusions(range_model, sol.position, v, sig * factor_a[:, None],
+                                     keep_a, cand[~amb], hpl, vpl, widen, alpha0, beta0, k)
     # a passing fix without a finite bound (an observation whose fault its test cannot
     # detect: a redundancy number below R_MIN, as of a range from an anchor in line with
     # two others and the tag) is no more verified than one without redundancy: not ok,
