@@ -317,6 +317,24 @@ def test_version_from_metadata(capsys):
     assert capsys.readouterr().out.strip() == f"robustloc {robustloc.__version__}"
 
 
+
+def test_python_dash_m_runs_the_command(tmp_path):
+    """``python -m robustloc`` is the ``robustloc`` command: its version, its exit code 2
+    and ``error:`` line for a user's mistake (it said "No module named
+    robustloc.__main__")."""
+    import subprocess
+    import sys
+
+    def run(*args):
+        return subprocess.run([sys.executable, "-m", "robustloc", *args], cwd=tmp_path,
+                              capture_output=True, text=True, timeout=120)
+
+    ver = run("--version")
+    assert ver.returncode == 0 and ver.stdout.strip() == f"robustloc {robustloc.__version__}"
+    bad = run("locate", "missing.csv", "--anchors", "missing_anchors.csv", "-o", "out.csv")
+    assert bad.returncode == 2 and bad.stderr.startswith("error: ")
+    assert "Traceback" not in bad.stderr
+
 def test_track_equals_the_command_line(tmp_path):
     import numpy as np
 
