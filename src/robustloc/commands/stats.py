@@ -38,7 +38,9 @@ Writes into --out: per_anchor.csv, per_bin.csv (with truth), acf.csv, histograms
 autocorrelation.png, summary.json.  They are written into a temporary folder beside it
 and moved in only when all are complete: after an error nothing is left behind.  RSSI
 values outside -150 .. +30 dBm (robustloc.io.limits) are left out and counted
-(invalid_measurement N).
+(invalid_measurement N).  Rows may come in any order.  The moments take every sample;
+the autocorrelation takes each link's series in time, one value per time: readings of
+one link at one time are averaged there, as every other command averages them.
 
 With --truth, each row's distance comes from its tag's truth position interpolated
 linearly at the row's time, within the tag's truth time span [t_min, t_max] (exact ends,

@@ -432,7 +432,8 @@ class RssiStatistics:
                 if len(g) < self.min_samples:
                     continue
                 rows.append({"anchor": anchor, "distance_m": b,
-                             **self._stats(g["rssi"].to_numpy(), self._runs(g))})
+                             **self._stats(g["rssi"].to_numpy(), None),
+                             "decorrelation_lag": self._lag(*_series(g, g["rssi"]))})
             # no bin with min_samples: the table's columns all the same (its CSV was one
             # empty line, and `robustloc stats` ended in a KeyError printing it)
             per_bin = pd.DataFrame(rows, columns=[
@@ -455,7 +456,8 @@ class RssiStatistics:
         for anchor, g in df.groupby("anchor", sort=True):
             idx = g.index.to_numpy()
             row = {"anchor": anchor, **self._stats(g["rssi"].to_numpy(), None)}
-            r = autocorrelation(resid[idx], self.max_lag, runs=g["tag"].to_numpy(),
+            x, runs = _series(g, resid[idx], gaps=False)
+            r = autocorrelation(x, self.max_lag, runs=runs,
                                 center=None if truth is None else 0.0)
             row["decorrelation_lag"] = decorrelation_lag(r, self.threshold)
             if truth is not None:
@@ -470,20 +472,40 @@ class RssiStatistics:
         return RssiStatsResult(per_anchor, per_bin, acf, corr, df, n_invalid, n_no_tag,
                                n_outside)
 
-    @staticmethod
-    def _runs(g: pd.DataFrame) -> NDArray[np.int64]:
-        """Contiguous runs of a group: a new run where the tag changes or rows skip."""
-        tag_change = np.r_[True, g["tag"].to_numpy()[1:] != g["tag"].to_numpy()[:-1]]
-        gap = np.r_[True, np.diff(g.index.to_numpy()) != 1]
-        return np.cumsum(tag_change | gap)
+    def _lag(self, x: Array, runs: ArrayLike) -> float:
+        """The decorrelation lag of a series in runs."""
+        return decorrelation_lag(autocorrelation(x, self.max_lag, runs=runs), self.threshold)
 
     def _stats(self, x: Array, runs: ArrayLike | None) -> dict[str, float]:
         out: dict[str, float] = dict(moments(x))
         if runs is not None:
-            r = autocorrelation(x, self.max_lag, runs=runs)
-            out["decorrelation_lag"] = decorrelation_lag(r, self.threshold)
+            out["decorrelation_lag"] = self._lag(x, runs)
         out.update(normality(x))
         return out
+
+
+def _series(g: pd.DataFrame, values: ArrayLike, gaps: bool = True
+            ) -> tuple[Array, NDArray[np.int64]]:
+    """One anchor's rows ``g`` (sorted by tag and time, indexed by their position in the
+    anchor-sorted frame) as the time series the autocorrelation takes: one value per tag
+    and time, the mean of the readings that share them (as every other command averages
+    them, :func:`robustloc.io.to_epochs`), and its runs: a new run where the tag changes,
+    and with ``gaps`` where rows of the frame were skipped (a bin that the tag left and
+    entered again).  Readings of one link at one time were separate samples in file order,
+    so the autocorrelation depended on the rows' order (the input-order review,
+    2026-12-07: ``median_decorrelation_lag`` 2.0 or 2.5 for the same ble-tetam rows)."""
+    v = np.asarray(values, dtype=float)
+    tag = g["tag"].to_numpy()
+    time = g["time"].to_numpy(dtype=float)
+    pos = g.index.to_numpy()
+    new = np.r_[True, (tag[1:] != tag[:-1]) | (time[1:] != time[:-1])]
+    start = np.flatnonzero(new)
+    x = np.add.reduceat(v, start) / np.diff(np.r_[start, v.size])
+    run_start = tag[start][1:] != tag[start][:-1]
+    if gaps:  # the first row of a series point must follow the last of the one before
+        last = np.r_[start[1:] - 1, v.size - 1]
+        run_start |= pos[start][1:] != pos[last][:-1] + 1
+    return x, np.cumsum(np.r_[True, run_start])
 
 
 # ---------------------------------------------------------------------------------------
