@@ -27,8 +27,10 @@ from robustloc.errors import InputError
 SRC = pathlib.Path(robustloc.__file__).parent
 
 #: Front ends, highest first: a package may import only packages to its right, and the
-#: cores (everything not listed) import none of them.
-FRONT = ["cli", "commands", "reproduce", "api", "engines", "service", "pipelines"]
+#: cores (everything not listed) import none of them.  ``__main__`` (``python -m
+#: robustloc``) is the process's entry, above the command line it runs.
+FRONT = ["__main__", "cli", "commands", "reproduce", "api", "engines", "service",
+         "pipelines"]
 
 
 def _imports(path: pathlib.Path) -> set[str]:
