@@ -4,6 +4,14 @@ the code before its fix.
 * ``--self`` named an anchor "suspect" (check its coordinates: a misplaced anchor ...)
   for the ordinary bias or scale that ``--self`` exists to estimate, as the test ran on
   the raw log; it now runs on the calibrated one and still names a misplaced anchor.
+* A range survey in millimetres was calibrated without ``--scale`` (biases of 10 km,
+  exit 0); it is refused, naming the anchor and the unit.
+* The survey's ``weight`` column (frequency weights: a row counts as ``weight`` rows) was
+  ignored by the attenuation-factor ``p0`` and by the count of rows that gives an anchor
+  a fit of its own: the weight column now gives what the rows repeated give.
+* ``--self --model friis`` listed the exponent, 2 by the model's definition, as a
+  parameter left out (``calib_fixed = n``) with the note that goes with one.
+* ``calibrate --robust survey.csv`` took the survey for ``--robust``'s weight function.
 """
 
 from __future__ import annotations
@@ -15,6 +23,8 @@ import pandas as pd
 import pytest
 
 from robustloc.cli import main
+from robustloc.errors import InputError
+from robustloc.models.calibration import calibrate_ranges
 
 #: Five anchors around a 20 m square and a tag circling inside it (600 epochs, 5 cm
 #: range noise): the reviewer's UWB log.
@@ -67,3 +77,41 @@ def test_self_names_a_misplaced_anchor_not_a_bias_or_scale(tmp_path, capsys, bia
         assert np.allclose(cal["scale"], scale, atol=0.006)
     else:
         assert f"anchor(s) {named} (" in err and "check their coordinates" in err, err
+
+
+def _mm_survey(tmp_path: Path, unit: float) -> Path:
+    """Two anchors surveyed at 1-20 m, bias 0.3 m, ranges written in ``unit`` (m)."""
+    rng = np.random.default_rng(0)
+    d = rng.uniform(1, 20, 50)
+    r = (d + 0.3 + rng.normal(0, 0.05, 50)) / unit
+    path = tmp_path / "survey.csv"
+    pd.DataFrame({"anchor": np.repeat(["A1", "A2"], 25), "distance": d, "range": r}).to_csv(
+        path, index=False)
+    return path
+
+
+@pytest.mark.parametrize("extra", [[], ["--scale"]])
+def test_range_survey_in_millimetres_is_refused_naming_the_unit(tmp_path, capsys, extra):
+    survey = _mm_survey(tmp_path, 1e-3)
+    out = tmp_path / "cal.csv"
+    assert main(["calibrate", str(survey), "-o", str(out), *extra]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {survey}: anchor A1: ") and err.count("\n") == 1, err
+    assert "ranges in mm read 1000x too long" in err, err
+    assert not out.exists()
+    # the same survey in metres is calibrated: the bias it was simulated with
+    survey = _mm_survey(tmp_path, 1.0)
+    assert main(["calibrate", str(survey), "-o", str(out), *extra]) == 0
+    assert np.allclose(pd.read_csv(out)["bias"], 0.3, atol=0.1)
+
+
+def test_range_bias_beyond_every_distance_is_refused():
+    """Least squares pulled by one gross range (200 m at 5 m): the bias, 39.08 m
+    ((4 x 0.1 + 195) / 5 by hand), exceeds every distance surveyed (3-6 m) though the
+    median range / distance (1.025) is plausible.  A robust fit takes the 0.1 m."""
+    d = np.array([3.0, 4.0, 5.0, 6.0, 5.0])
+    s = pd.DataFrame({"anchor": "a", "distance": d, "range": d + [0.1, 0.1, 0.1, 0.1, 195]})
+    with pytest.raises(InputError, match=r"anchor a: fitted bias = 39\.08 m exceeds the "
+                       r"largest distance surveyed \(6 m\)"):
+        calibrate_ranges(s)
+    assert calibrate_ranges(s, robust="igg3").table["bias"].iloc[0] == pytest.approx(0.1)

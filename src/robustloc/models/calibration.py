@@ -858,16 +858,21 @@ def calibrate_ranges(
     )
     _check_determined(survey, per, pool, ids, d, g, ("bias", "scale") if scale else ("bias",),
                       pooled, "range")
+    ratio = _range_ratios(d, r, g, len(ids), sw)
+    lo, hi = RANGE_SCALE_LIMITS
     if scale:
         own = _own_fit(per.n_used, 2) & (not pooled)
-        check = [(f"anchor {ids[j]}", per.b[j]) for j in np.flatnonzero(own)]
-        for who, b in check + [("pooled fit", pool.b[0])]:
-            if not RANGE_SCALE_LIMITS[0] <= b <= RANGE_SCALE_LIMITS[1]:
+        check = [(f"anchor {ids[j]}", per.b[j], ratio[j]) for j in np.flatnonzero(own)]
+        for who, b, q in check + [("pooled fit", pool.b[0], ratio[-1])]:
+            if not lo <= b <= hi:
+                why = (f"the ranges read {q:.4g}x the distances: {_unit_hint(q)}"
+                       if not lo <= q <= hi else
+                       "the survey does not determine it (too small a spread of distances?)")
                 raise InputError(
                     f"{who}: fitted scale = {b:.4g} is implausible (a range scale lies in "
-                    f"[{RANGE_SCALE_LIMITS[0]:g}, {RANGE_SCALE_LIMITS[1]:g}]): the survey "
-                    "does not determine it (too small a spread of distances?)",
-                    survey.attrs.get("path"))
+                    f"[{lo:g}, {hi:g}]): {why}", survey.attrs.get("path"))
+    else:
+        _check_range_units(survey, per, pool, ids, d, g, ratio, pooled)
     rows = _assemble(per, pool, ids, scale,
                      _one_distance(d, g, len(ids)) if scale and pooled else None)
     table = _table(rows, {"bias": "a", "scale": "b"} if scale else {"bias": "a"})
@@ -878,6 +883,69 @@ def calibrate_ranges(
         robust=None if weight is None else weight.name, unit="m",
         notes=_notes(per, ids, weight, 2 if scale else 1),
     )
+
+
+def _range_ratios(d: Array, r: Array, g: NDArray[np.int64], m: int,
+                  weights: Array | None) -> Array:
+    """The median of ``range / distance`` of each anchor's rows (distance > 0; weighted
+    by the survey's frequency weights) and, last, of every row: shape ``(m + 1,)``, NaN
+    where no row has a distance."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        q = np.where(d > 0, r / np.where(d > 0, d, 1.0), np.nan)
+    per = _grouped_mad(q, g, m, weights) * MAD_NORMAL  # (q >= 0: med |q| = med q)
+    pool = _grouped_mad(q, np.zeros_like(g), 1, weights) * MAD_NORMAL
+    return np.append(per, pool)
+
+
+#: Units a survey's ranges or distances may come in by mistake, with their length in
+#: metres (:func:`_unit_hint`).
+_UNITS = (("mm", 1e-3), ("cm", 1e-2), ("inches", 0.0254), ("feet", 0.3048),
+          ("km", 1e3))
+
+
+def _unit_hint(ratio: float) -> str:
+    """The unit mistake a median ``range / distance`` of ``ratio`` suggests (ranges in
+    mm read 1000x too long), or a general question."""
+    for unit, metres in _UNITS:
+        for f, col in ((1.0 / metres, "ranges"), (metres, "distances")):
+            if f > 1.0 and np.isfinite(ratio) and abs(np.log(ratio / f)) < np.log(1.25):
+                return (f"a unit error? {col} in {unit} read {f:g}x too long; convert the "
+                        f"{col} to metres")
+    return ("are the ranges and the distances both in metres? (a bias that large needs "
+            "distances surveyed beyond it)")
+
+
+def _check_range_units(
+    survey: pd.DataFrame, per: LineFit, pool: LineFit, ids: list[str], d: Array,
+    g: NDArray[np.int64], ratio: Array, pooled: bool,
+) -> None:
+    """Refuse a bias-only range calibration of a survey whose ranges and distances are
+    not both in metres: an anchor whose median ``range / distance`` (``ratio``,
+    :func:`_range_ratios`) lies outside :data:`RANGE_SCALE_LIMITS`, or a fitted bias
+    beyond the largest distance surveyed (gross errors that pull a least-squares bias,
+    or a unit error: no ranging bias exceeds every distance surveyed).  The scale is
+    fixed at 1 here, so nothing else notices: a survey in millimetres of distances of
+    1-20 m was written with biases of 10.7 km and sigmas of 6 km, exit 0 (the calibration
+    review; with ``--scale`` its fitted scale of 1 002 was refused)."""
+    path = survey.attrs.get("path")
+    lo, hi = RANGE_SCALE_LIMITS
+    for j, name in enumerate(ids):
+        if np.isfinite(ratio[j]) and not lo <= ratio[j] <= hi:
+            raise InputError(
+                f"anchor {name}: the ranges read {ratio[j]:.4g}x the surveyed distances "
+                f"(the median of range / distance; a range is its distance times a scale "
+                f"in [{lo:g}, {hi:g}] plus a bias): {_unit_hint(float(ratio[j]))}", path)
+    m = len(ids)
+    dmax = np.full(m, -np.inf)
+    np.maximum.at(dmax, g, d)
+    own = _own_fit(per.n_used, 1) & (not pooled)
+    check = [(f"anchor {ids[j]}", per.a[j], dmax[j]) for j in np.flatnonzero(own)]
+    for who, bias, top in check + [("pooled fit", pool.a[0], float(d.max()))]:
+        if bias > top:
+            raise InputError(
+                f"{who}: fitted bias = {bias:.4g} m exceeds the largest distance surveyed "
+                f"({top:g} m): gross errors among the ranges (fit with --robust), or "
+                "ranges in another unit than the distances?", path)
 
 
 def _check_determined(
