@@ -21,10 +21,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+import statsmodels.api as sm
 
 from robustloc.cli import main
 from robustloc.errors import InputError
-from robustloc.models.calibration import calibrate_ranges
+from robustloc.models.calibration import calibrate_pathloss, calibrate_ranges
 
 #: Five anchors around a 20 m square and a tag circling inside it (600 epochs, 5 cm
 #: range noise): the reviewer's UWB log.
@@ -115,3 +116,30 @@ def test_range_bias_beyond_every_distance_is_refused():
                        r"largest distance surveyed \(6 m\)"):
         calibrate_ranges(s)
     assert calibrate_ranges(s, robust="igg3").table["bias"].iloc[0] == pytest.approx(0.1)
+
+
+def _repeated(weighted: pd.DataFrame) -> pd.DataFrame:
+    """The survey with each row repeated ``weight`` times (the column's meaning)."""
+    return (weighted.loc[weighted.index.repeat(weighted["weight"])]
+            .drop(columns="weight").reset_index(drop=True))
+
+
+def test_attenuation_factor_p0_counts_the_weight_column():
+    """p0 is the mean reading at d0 = 1 m: (9 x -40 + 1 x -50) / 10 = -41 dBm by hand,
+    the weight-0 row (-90 dBm) not a reading at all.  The unweighted mean of the rows,
+    that one included, gave -60; faf and gamma are statsmodels' WLS of ``rssi - p0`` on
+    ``10 lg(d0 / d)`` with the weights (seed 002 eq. (5))."""
+    rows = [("a", 1.0, -40.0, 9), ("a", 1.0, -50.0, 1), ("a", 1.0, -90.0, 0),
+            ("a", 2.0, -47.0, 3), ("a", 2.0, -49.0, 2), ("a", 4.0, -55.0, 4),
+            ("a", 4.0, -57.0, 2), ("a", 8.0, -62.0, 3), ("a", 8.0, -64.0, 1)]
+    w = pd.DataFrame(rows, columns=["anchor", "distance", "rssi", "weight"])
+    got = calibrate_pathloss(w, "attenuation-factor").table.iloc[0]
+    assert got["p0"] == pytest.approx(-41.0, abs=1e-12)
+    use = w[w.weight > 0]
+    ref = sm.WLS(use.rssi + 41.0, sm.add_constant(-10 * np.log10(use.distance)),
+                 weights=use.weight).fit()
+    assert got["faf"] == pytest.approx(ref.params.iloc[0], abs=1e-9)
+    assert got["gamma"] == pytest.approx(ref.params.iloc[1], abs=1e-9)
+    rep = calibrate_pathloss(_repeated(w), "attenuation-factor").table.iloc[0]
+    for c in ("p0", "faf", "gamma", "gamma_se", "residual_std"):
+        assert got[c] == pytest.approx(rep[c], rel=1e-9, abs=1e-12), c

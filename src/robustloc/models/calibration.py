@@ -643,8 +643,13 @@ def _p0_per_anchor(
     ids: list[str],
     d0: Array,
     p0: float | Mapping[str, float] | None,
+    weights: Array | None = None,
 ) -> Array:
-    """``p0`` per anchor (module notes); ``d0`` per anchor, shape ``(m,)``."""
+    """``p0`` per anchor (module notes); ``d0`` per anchor, shape ``(m,)``; ``weights``:
+    the survey's frequency weights (:func:`_survey_weights`), by which the readings near
+    ``d0`` are averaged, as the same rows repeated would be (the unweighted mean, weight-0
+    rows included, gave p0 -45 dBm for the -41 of the rows repeated, and moved faf by as
+    much: the calibration review)."""
     m = len(ids)
     if isinstance(p0, Mapping):
         vals = np.array([float(p0.get(a, np.nan)) for a in ids])
@@ -656,12 +661,14 @@ def _p0_per_anchor(
         return vals
     d = survey["distance"].to_numpy(dtype=float)
     r = survey["rssi"].to_numpy(dtype=float)
-    near = np.abs(d - d0[g]) <= 0.05 * d0[g]
-    cnt = np.bincount(g[near], minlength=m)
-    s = np.bincount(g[near], weights=r[near], minlength=m)
+    w = np.ones_like(r) if weights is None else np.asarray(weights, dtype=float)
+    near = (np.abs(d - d0[g]) <= 0.05 * d0[g]) & (w > 0)
+    cnt = np.bincount(g[near], weights=w[near], minlength=m)
+    s = np.bincount(g[near], weights=w[near] * r[near], minlength=m)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean_near = s / cnt
-    pooled_near = r[near].mean() if near.any() else np.nan
+    pooled_near = (float(np.sum(w[near] * r[near]) / np.sum(w[near])) if near.any()
+                   else np.nan)
     vals = np.where(np.isfinite(vals), vals, mean_near)
     vals = np.where(np.isfinite(vals), vals, pooled_near)
     if not np.all(np.isfinite(vals)):
@@ -732,15 +739,15 @@ def calibrate_pathloss(
         d0_arr = np.full(m, float(d0))
     if not np.all(d0_arr > 0):  # NaN too
         raise ValueError(f"d0 must be positive, got {d0}")
+    sw = _survey_weights(survey)
     p0_arr = np.zeros(m)  # the level offset: the attenuation-factor p0, else 0
     if model == "log-distance":
         x, y, slope = -10.0 * np.log10(d), r, True
     elif model == "attenuation-factor":
-        p0_arr = _p0_per_anchor(survey, g, ids, d0_arr, p0)
+        p0_arr = _p0_per_anchor(survey, g, ids, d0_arr, p0, sw)
         x, y, slope = 10.0 * np.log10(d0_arr[g] / d), r - p0_arr[g], True
     else:
         x, y, slope = np.zeros_like(d), r - 20.0 * np.log10(d0_arr[g] / d), False
-    sw = _survey_weights(survey)
     cl = _survey_clusters(survey)
     per = fit_lines(x, y, g, m, slope=slope, robust=weight, max_iter=max_iter, weights=sw,
                     cluster=cl)
