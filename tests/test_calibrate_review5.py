@@ -143,3 +143,43 @@ def test_attenuation_factor_p0_counts_the_weight_column():
     rep = calibrate_pathloss(_repeated(w), "attenuation-factor").table.iloc[0]
     for c in ("p0", "faf", "gamma", "gamma_se", "residual_std"):
         assert got[c] == pytest.approx(rep[c], rel=1e-9, abs=1e-12), c
+
+
+def _few_weighted_rows(value: str) -> pd.DataFrame:
+    """Anchor "a": three rows (three distances) of weight 50 each; anchor "b": 40 rows
+    of weight 1 (the reviewer's survey).  Ranges: "a" two rows, as a bias-only fit of
+    its own needs three rows (``p + 2``)."""
+    rng = np.random.default_rng(0)
+    rows = []
+    for d in (1.0, 3.0, 9.0):
+        rows.append(("a", d, -50 - 20 * np.log10(d) + rng.normal(0, 1), 50))
+    for d in np.linspace(1, 20, 40):
+        rows.append(("b", d, -60 - 30 * np.log10(d) + rng.normal(0, 2), 1))
+    s = pd.DataFrame(rows, columns=["anchor", "distance", "rssi", "weight"])
+    if value == "range":  # (a bias-only fit, one parameter: "a" keeps two rows of three)
+        s = s.assign(range=s.distance + 0.2 + 0.01 * (s.rssi - s.rssi.mean())).drop(
+            columns="rssi").drop(index=1).reset_index(drop=True)
+    return s
+
+
+@pytest.mark.parametrize("value", ["rssi", "range"])
+def test_own_fit_counts_the_weight_column(value):
+    """150 readings of anchor "a" (three rows of weight 50; ranges: 100 in two rows)
+    are enough for a fit of its own, as the same readings as rows are; counted by rows
+    (3 < 4; 2 < 3) it took the pooled fit.  Its parameters are statsmodels' WLS of its
+    rows alone."""
+    w = _few_weighted_rows(value)
+    fit = calibrate_pathloss if value == "rssi" else calibrate_ranges
+    got = fit(w).table.set_index("anchor")
+    rep = fit(_repeated(w)).table.set_index("anchor")
+    assert got.loc["a", "calib_source"] == rep.loc["a", "calib_source"] == "anchor"
+    a = w[w.anchor == "a"]
+    if value == "rssi":
+        ref = sm.WLS(a.rssi, sm.add_constant(-10 * np.log10(a.distance)),
+                     weights=a.weight).fit()
+        cols = {"A": ref.params.iloc[0], "n": ref.params.iloc[1]}
+    else:
+        cols = {"bias": np.average(a.range - a.distance, weights=a.weight)}
+    for c, v in cols.items():
+        assert got.loc["a", c] == pytest.approx(v, abs=1e-9), c
+        assert got.loc["a", c] == pytest.approx(rep.loc["a", c], abs=1e-9), c

@@ -87,7 +87,9 @@ class LineFit:
 
     Arrays have one entry per group (shape ``(g,)``), except ``weights`` and ``residuals``
     (one per row, ``v = a + b x - y``).  ``residual_std`` is ``sqrt(sum(w v^2) / dof)`` of a
-    least-squares fit and the MAD scale of a robust one's (module doc).
+    least-squares fit and the MAD scale of a robust one's (module doc).  ``n_count``: the
+    observations each group's fit counts, ``n_used`` without prior weights and the sum of
+    the frequency weights of the rows in use with them (``dof + p``); None: ``n_used``.
     """
 
     a: Array
@@ -102,6 +104,12 @@ class LineFit:
     converged: bool
     weights: Array
     residuals: Array
+    n_count: Array | None = None
+
+    def counted(self) -> Array:
+        """:attr:`n_count`, or :attr:`n_used` where it is None."""
+        return np.asarray(self.n_used if self.n_count is None else self.n_count,
+                          dtype=float)
 
 
 
@@ -208,7 +216,8 @@ def fit_lines(
     n_obs = np.bincount(g, minlength=n_groups).astype(np.int64)
     n_used = np.bincount(g, weights=used.astype(float), minlength=n_groups).astype(np.int64)
     (wvv, n_freq) = _group_sums(g, n_groups, w * v * v, np.where(used, w0, 0.0))
-    dof = (n_used if weights is None else n_freq) - p
+    n_count = n_used.astype(float) if weights is None else n_freq
+    dof = n_count - p
     with np.errstate(invalid="ignore", divide="ignore"):
         s2 = np.where(dof > 0, wvv / np.maximum(dof, 1), np.nan)
     sw, swx, swxx = _group_sums(g, n_groups, w, w * xs, w * xs * xs)
@@ -246,7 +255,7 @@ def fit_lines(
     return LineFit(
         a=a, b=b, a_se=_sqrt(var_a), b_se=_sqrt(var_b) if slope else var_b,
         cov_ab=cov_ab, residual_std=sd, n_obs=n_obs, n_used=n_used,
-        iterations=it, converged=converged, weights=w, residuals=v,
+        iterations=it, converged=converged, weights=w, residuals=v, n_count=n_count,
     )
 
 
@@ -868,7 +877,7 @@ def calibrate_ranges(
     ratio = _range_ratios(d, r, g, len(ids), sw)
     lo, hi = RANGE_SCALE_LIMITS
     if scale:
-        own = _own_fit(per.n_used, 2) & (not pooled)
+        own = _own_fit(per, 2) & (not pooled)
         check = [(f"anchor {ids[j]}", per.b[j], ratio[j]) for j in np.flatnonzero(own)]
         for who, b, q in check + [("pooled fit", pool.b[0], ratio[-1])]:
             if not lo <= b <= hi:
@@ -945,7 +954,7 @@ def _check_range_units(
     m = len(ids)
     dmax = np.full(m, -np.inf)
     np.maximum.at(dmax, g, d)
-    own = _own_fit(per.n_used, 1) & (not pooled)
+    own = _own_fit(per, 1) & (not pooled)
     check = [(f"anchor {ids[j]}", per.a[j], dmax[j]) for j in np.flatnonzero(own)]
     for who, bias, top in check + [("pooled fit", pool.a[0], float(d.max()))]:
         if bias > top:
@@ -987,7 +996,7 @@ def _check_determined(
     dmin = np.full(m, np.inf)
     np.minimum.at(dmin, g, d)
     one = _one_distance(d, g, m)
-    own = _own_fit(per.n_used, p)  # anchors with their own fit (the others: pooled)
+    own = _own_fit(per, p)  # anchors with their own fit (the others: pooled)
     for j in np.flatnonzero(one & own & (not pooled)):
         raise InputError(
             f"anchor {ids[j]}: cannot determine {slope}: all samples at one distance "
@@ -1044,7 +1053,7 @@ def _check_plausible(
                       "attenuation-factor": ("p0 + faf", "d0"),
                       "friis": ("p0", "d0")}[model]
     exp_name = "n" if model == "log-distance" else "gamma"
-    own = _own_fit(per.n_used, 2 if slope else 1) & (not pooled)
+    own = _own_fit(per, 2 if slope else 1) & (not pooled)
     check = [(f"anchor {ids[j]}", per.a[j] + p0_arr[j], per.b[j], d0_arr[j])
              for j in np.flatnonzero(own)]
     check += [("pooled fit", pool.a[0] + p, pool.b[0], d) for p, d in zip(p0_arr, d0_arr)]
@@ -1062,13 +1071,21 @@ def _check_plausible(
                 "small a spread of distances?)", survey.attrs.get("path"))
 
 
-def _own_fit(n_used: NDArray[np.int64], p: int) -> NDArray[np.bool_]:
-    """Anchors with rows enough for a fit of their own: ``p + 2`` (two degrees of
-    freedom for ``sigma``; the others take the pooled fit).  With ``p + 1`` the anchor's
-    sigma came from one degree of freedom and ``locate`` weighted it by that: one in ten
-    such anchors gets a sigma under 1/8 of the noise, 60x its weight (the calibration
-    review, 2026-12-06); ``calibrate --self`` leaves such anchors out the same way."""
-    return np.asarray(n_used) >= p + 2
+def _own_fit(per: LineFit, p: int) -> NDArray[np.bool_]:
+    """Anchors with observations enough for a fit of their own: ``p + 2`` (two degrees
+    of freedom for ``sigma``; the others take the pooled fit).  With ``p + 1`` the
+    anchor's sigma came from one degree of freedom and ``locate`` weighted it by that:
+    one in ten such anchors gets a sigma under 1/8 of the noise, 60x its weight (the
+    calibration review, 2026-12-06); ``calibrate --self`` leaves such anchors out the
+    same way.
+
+    The observations are counted as the fit counts its degrees of freedom
+    (:meth:`LineFit.counted`): with a ``weight`` column its frequency weights, so that a
+    row of weight 50 is 50 rows.  Counted by rows, an anchor surveyed at three distances
+    of 50 readings each took the pooled fit, which the same readings as 150 rows did not
+    (the calibration review).  A slope of its own still needs two distinct distances
+    (:func:`_check_determined`), with weights as with repeated rows."""
+    return per.counted() >= p + 2
 
 
 def _one_distance(d: Array, g: NDArray[np.int64], m: int) -> NDArray[np.bool_]:
@@ -1083,7 +1100,7 @@ def _one_distance(d: Array, g: NDArray[np.int64], m: int) -> NDArray[np.bool_]:
 def _assemble(per: LineFit, pool: LineFit, ids: list[str], slope: bool,
               undetermined: NDArray[np.bool_] | None = None) -> dict[str, Array]:
     p = 2 if slope else 1
-    few = ~_own_fit(per.n_used, p)  # no trustworthy sigma: take the pooled fit
+    few = ~_own_fit(per, p)  # no trustworthy sigma: take the pooled fit
     if undetermined is not None:
         # (--pooled, an anchor surveyed at one distance: its own "fit" was shown as the
         # anchor's, with A = n = -inf or n = -0.000; the calibration review)
@@ -1114,7 +1131,7 @@ def _notes(
     per: LineFit, ids: list[str], weight: WeightFunction | None, p: int
 ) -> list[str]:
     notes = []
-    few = [a for a, own in zip(ids, _own_fit(per.n_used, p)) if not own]
+    few = [a for a, own in zip(ids, _own_fit(per, p)) if not own]
     if few:
         notes.append(f"too few survey rows, pooled fit used for anchor(s): {', '.join(few)}")
     if weight is not None and not per.converged:
