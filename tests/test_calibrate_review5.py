@@ -183,3 +183,28 @@ def test_own_fit_counts_the_weight_column(value):
     for c, v in cols.items():
         assert got.loc["a", c] == pytest.approx(v, abs=1e-9), c
         assert got.loc["a", c] == pytest.approx(rep.loc["a", c], abs=1e-9), c
+
+
+def test_self_friis_lists_no_exponent_as_left_out(tmp_path, capsys):
+    """Free space has no exponent to estimate (2 by definition): nothing was left out
+    for want of data, so ``calib_fixed`` is empty and the standard errors' note on
+    parameters left out is not given."""
+    rng = np.random.default_rng(5)
+    a = np.array([[0.0, 0.0], [10, 0], [10, 8], [0, 8], [5, -2]])
+    ids = [f"a{j}" for j in range(len(a))]
+    x = rng.uniform([1.0, 1.0], [9.0, 7.0], (600, 2))
+    d = np.hypot(*(x[:, None, :] - a[None]).transpose(2, 0, 1))
+    z = -50.0 - 20 * np.log10(d) + rng.normal(0, 1.0, d.shape)
+    rows = [(float(k), "t", an, z[k, j]) for k in range(len(x)) for j, an in enumerate(ids)]
+    pd.DataFrame(rows, columns=["time", "tag", "anchor", "rssi"]).to_csv(
+        tmp_path / "m.csv", index=False)
+    pd.DataFrame({"anchor": ids, "x": a[:, 0], "y": a[:, 1], "p0": -48.0, "d0": 1.0}).to_csv(
+        tmp_path / "a.csv", index=False)
+    out = tmp_path / "cal.csv"
+    assert main(["calibrate", "--self", str(tmp_path / "m.csv"), "--anchors",
+                 str(tmp_path / "a.csv"), "--model", "friis", "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    cal = pd.read_csv(out)
+    assert cal["calib_fixed"].isna().all(), cal["calib_fixed"].tolist()
+    assert np.isfinite(cal["p0_se"]).all()  # (p0 estimated for every anchor)
+    assert "parameters left out" not in err, err

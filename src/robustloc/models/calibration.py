@@ -1352,8 +1352,8 @@ def self_calibration_table(
 
     ids = anchors["anchor"].astype(str).to_numpy()
     off, slo, cov = res.offset, res.slope, res.cov
-    o_name, s_name = res.param_names
-    fixed = [";".join(n for n, f in zip(res.param_names, fr) if not f) for fr in res.free]
+    fixed = [";".join(n for n, f in zip(res.param_names, fr) if f)
+             for fr in self_left_out(res, model)]
     sigma = _self_sigma(res, anchors)
     cols: dict[str, Array] = {}
     drop: list[str] = []
@@ -1390,6 +1390,21 @@ def self_calibration_table(
     out["calib_source"] = "self"
     out["calib_fixed"] = fixed
     return table, out
+
+
+def self_left_out(res: SelfCalibration, model: object | None = None) -> NDArray[np.bool_]:
+    """Which parameters of each anchor a self-calibration left at their prior, shape
+    ``(m, 2)``: those it did not estimate (``~res.free``), except the exponent of a
+    free-space model (``model``, :class:`robustloc.models.pathloss.FreeSpace`), which is
+    2 by the model's definition, not for want of data.  ``--self --model friis`` had
+    written ``calib_fixed = n`` for every anchor and the note that the standard errors
+    assume the parameters left out equal their priors (the calibration review)."""
+    from robustloc.models.pathloss import FreeSpace
+
+    out = ~np.asarray(res.free, dtype=bool)
+    if res.kind == "rssi" and isinstance(model, FreeSpace):
+        out[:, 1] = False
+    return out
 
 
 def _self_sigma(res: SelfCalibration, anchors: pd.DataFrame) -> Array:

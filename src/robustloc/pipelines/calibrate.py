@@ -513,7 +513,7 @@ def _start_fixes(xyz: np.ndarray, values: np.ndarray, kind: str, **kw: Any) -> n
 
 def _self(settings: CalibrateSettings, anchors: pd.DataFrame, self_log: Any) -> Calibration:
     from robustloc.io import read_measurements, to_epochs
-    from robustloc.models.calibration import self_calibration_table
+    from robustloc.models.calibration import self_calibration_table, self_left_out
 
     where = anchors.attrs.get("path")
     if ((settings.dim == 3 or settings.tag_height is not None)
@@ -574,7 +574,7 @@ def _self(settings: CalibrateSettings, anchors: pd.DataFrame, self_log: Any) -> 
     if int(np.sum(ep.n_invalid)):
         notes.append(f"invalid_measurement: {int(np.sum(ep.n_invalid))} rows (outside the "
                      "physical limits of robustloc.io.limits; not used)")
-    if res.free.any() and (~res.free[np.asarray(res.n_obs) > 0]).any():
+    if res.free.any() and self_left_out(res, model)[np.asarray(res.n_obs) > 0].any():
         # (the calibration review: a true bias of 0.3 m left out at its prior 0 moved the
         # scales by 3-17 of their standard errors)
         notes.append("the standard errors assume that the parameters left out equal "
