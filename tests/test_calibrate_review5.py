@@ -208,3 +208,33 @@ def test_self_friis_lists_no_exponent_as_left_out(tmp_path, capsys):
     assert cal["calib_fixed"].isna().all(), cal["calib_fixed"].tolist()
     assert np.isfinite(cal["p0_se"]).all()  # (p0 estimated for every anchor)
     assert "parameters left out" not in err, err
+
+
+def _survey(tmp_path: Path) -> Path:
+    rng = np.random.default_rng(1)
+    d = np.tile(np.linspace(1, 15, 15), 2)
+    r = -45 - 25 * np.log10(d) + rng.normal(0, 2, d.size)
+    r[::7] -= 20  # gross errors, so that the robust fit differs from least squares
+    path = tmp_path / "survey.csv"
+    pd.DataFrame({"anchor": np.repeat(["b1", "b2"], 15), "distance": d, "rssi": r}).to_csv(
+        path, index=False)
+    return path
+
+
+def test_robust_before_the_survey_takes_the_survey_as_the_file(tmp_path, capsys):
+    """``--robust survey.csv`` (the weight optional) is the survey with the default
+    weight, as ``survey.csv --robust`` is; with a survey given as well it is an error
+    that says what ``--robust`` took."""
+    survey = _survey(tmp_path)
+    first, after = tmp_path / "first.csv", tmp_path / "after.csv"
+    assert main(["calibrate", "--robust", str(survey), "-o", str(first)]) == 0
+    assert main(["calibrate", str(survey), "--robust", "-o", str(after)]) == 0
+    assert main(["calibrate", str(survey), "-o", str(tmp_path / "ls.csv")]) == 0
+    pd.testing.assert_frame_equal(pd.read_csv(first), pd.read_csv(after))
+    assert not pd.read_csv(first)["A"].equals(pd.read_csv(tmp_path / "ls.csv")["A"])
+    capsys.readouterr()
+    assert main(["calibrate", str(survey), "--robust", str(survey), "-o",
+                 str(tmp_path / "x.csv")]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"error: --robust took {str(survey)!r} as its weight function: put "
+                   "--robust after the file, or name the function (--robust huber)\n"), err

@@ -150,6 +150,35 @@ def _fmt(table: pd.DataFrame, unit: str) -> str:
     return t.to_string(index=False)
 
 
+def _robust_took_the_survey(args: argparse.Namespace) -> None:
+    """``--robust``'s optional WEIGHT swallows the survey file that follows it
+    (``calibrate --robust survey.csv -o out.csv`` said "unknown weight function
+    'survey.csv'": the calibration review).  A value that is no weight function but a
+    file (it exists, or its name has a suffix such as ``.csv``) is taken as the survey,
+    with the default weight (huber), when no file was given otherwise; else an error
+    says what happened.  An unknown name that is no file keeps the unknown-name error."""
+    from pathlib import Path
+
+    from robustloc.errors import InputError
+    from robustloc.robust.weights import get_weight
+
+    if args.robust is None:
+        return
+    try:
+        get_weight(str(args.robust))
+        return
+    except ValueError:
+        pass
+    value = str(args.robust)
+    if not (Path(value).exists() or Path(value).suffix):
+        return
+    if args.survey is None and args.self_log is None and args.measurements is None:
+        args.survey, args.robust = value, "huber"
+        return
+    raise InputError(f"--robust took {value!r} as its weight function: put --robust after "
+                     "the file, or name the function (--robust huber)")
+
+
 def run(args: argparse.Namespace) -> int:
     from robustloc.io import read_anchors, write_table
     from robustloc.io.atomic import check_not_input
@@ -164,6 +193,7 @@ def run(args: argparse.Namespace) -> int:
         from robustloc.io.tables import check_table_path
 
         check_table_path(args.out)
+    _robust_took_the_survey(args)
     settings = CalibrateSettings.from_namespace(args)
     anchors = read_anchors(args.anchors) if args.anchors else None
     cal = run_calibrate(settings, survey=args.survey, anchors=anchors,
