@@ -1103,12 +1103,9 @@ def _cover_other_exclusions(
     # faulty: the same single-fault epochs beyond their bound with and without), and on
     # bench_locate's 10 ranges with 20 % gross errors it cost 3x the default's time
     idx = idx[(heard[idx] & ~out[idx]).sum(axis=1) - p <= 1]
-    ee, jj = np.nonzero(heard[idx] & ~out[idx])
-    ee = idx[ee]
+    ee, alt = _one_out(heard & ~out, idx, heard)
     if ee.size == 0:
         return
-    alt = heard[ee].copy()
-    alt[np.arange(ee.size), jj] = False
     x_a, v_a, J_a = least_squares_resolution(range_model, position[ee], v[ee], sig[ee], alt)
     T_a, crit_a, dof_a = _global_test(v_a, sig[ee], alt, p, alpha0, beta0)
     ok = (dof_a >= 1) & (T_a <= crit_a) & np.all(np.isfinite(x_a), axis=1)
@@ -1117,7 +1114,32 @@ def _cover_other_exclusions(
     ee, alt, x_a, J_a = ee[ok], alt[ok], x_a[ok], J_a[ok]
     # under the hypothesis that ``j`` holds the one fault, ``x_j`` is fault-free: its
     # error is bounded by its noise term alone (no slope term: no other fault to miss)
-    use, A = _whitened(J_a, sig[ee], alt)
+    _cover_fault_free(position, ee, x_a, J_a, sig[ee], alt, widen, k, hpl, vpl)
+
+
+def _one_out(mask: NDArray[np.bool_], rows: NDArray[np.intp],
+             base: NDArray[np.bool_] | None = None
+             ) -> tuple[NDArray[np.intp], NDArray[np.bool_]]:
+    """Every single exclusion of one of ``mask``'s observations on the epochs ``rows``:
+    the epoch of each (repeated once per observation) and ``base`` (default ``mask``)
+    without that observation."""
+    ee, jj = np.nonzero(mask[rows])
+    ee = rows[ee]
+    alt = (mask if base is None else base)[ee].copy()
+    alt[np.arange(ee.size), jj] = False
+    return ee, alt
+
+def _cover_fault_free(
+    position: Array, ee: NDArray[np.intp], x_a: Array, J_a: Array, sig: Array,
+    alt: NDArray[np.bool_], widen: Array, k: float, hpl: Array, vpl: Array,
+) -> None:
+    """Widen, in place, the bounds of the fixes ``ee`` (with repeats) to cover the
+    fault-free alternatives ``x_a`` (the least-squares fixes of observations ``alt``,
+    design ``J_a``, sigma ``sig``): ``hpl = max(hpl, |x_a - x|_h + k sigma_major(x_a))``
+    and ``vpl = max(vpl, |z_a - z| + k sigma_z(x_a))``, the noise terms widened as the
+    fix's (``widen``); infinite where the alternative's normal matrix is singular."""
+    p = position.shape[1]
+    use, A = _whitened(J_a, sig, alt)
     Nm = np.matmul(np.swapaxes(A, 1, 2), A)
     C, good = inv_spd(Nm)
     cen = C[:, _H, _H]
@@ -1157,12 +1179,9 @@ def _cover_mirror_exclusions(
     """
     p = position.shape[1]
     rows = rows[keep[rows].sum(axis=1) - p >= 2]  # x'_j keeps redundancy >= 1
-    ee, jj = np.nonzero(keep[rows])
-    ee = rows[ee]
+    ee, alt = _one_out(keep, rows)
     if ee.size == 0:
         return
-    alt = keep[ee].copy()
-    alt[np.arange(ee.size), jj] = False
     x_a, T_a, J_a = mirror_solution(range_model, position[ee], v[ee], sc[ee], alt)
     dof_a = alt.sum(axis=1) - p
     crit_a = global_critical(dof_a, alpha0=alpha0, beta0=beta0)
@@ -1170,19 +1189,7 @@ def _cover_mirror_exclusions(
     if not np.any(ok):
         return
     ee, alt, x_a, J_a = ee[ok], alt[ok], x_a[ok], J_a[ok]
-    use, A = _whitened(J_a, sc[ee], alt)
-    Nm = np.matmul(np.swapaxes(A, 1, 2), A)
-    C, good = inv_spd(Nm)
-    cen = C[:, _H, _H]
-    tr, det = cen[:, 0, 0] + cen[:, 1, 1], cen[:, 0, 0] * cen[:, 1, 1] - cen[:, 0, 1] ** 2
-    noise_h = k * np.sqrt(0.5 * tr + np.sqrt(np.maximum(0.25 * tr * tr - det, 0.0)))
-    d = x_a - position[ee]
-    cover = np.where(good, np.hypot(d[:, 0], d[:, 1]) + noise_h * widen[ee], np.inf)
-    np.fmax.at(hpl, ee, np.where(np.isfinite(cover), cover, np.inf))
-    if p == 3:
-        cover_v = np.where(good, np.abs(d[:, 2]) + k * np.sqrt(C[:, 2, 2]) * widen[ee],
-                           np.inf)
-        np.fmax.at(vpl, ee, np.where(np.isfinite(cover_v), cover_v, np.inf))
+    _cover_fault_free(position, ee, x_a, J_a, sc[ee], alt, widen, k, hpl, vpl)
 
 
 def _real_option(name: str, value: object) -> float:
