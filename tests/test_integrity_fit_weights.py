@@ -32,9 +32,12 @@ def _reference(J, sigma, used, f):
     J^T W`` (``W = diag(f / sigma^2)``), its covariance ``G Sigma G^T``, the residuals'
     ``(I - J G) Sigma (I - J G)^T``; a bias ``b`` on row ``i`` moves the fix by ``G_i b``
     and the w-test's statistic by ``(I - J G)_ii b / sqrt(Q_vv,ii)``, so the MDB is
-    ``sqrt(lambda0 Q_vv,ii) / |(I - J G)_ii|``."""
+    ``sqrt(lambda0 Q_vv,ii) / |(I - J G)_ii|``.  The horizontal bound takes the shift's
+    horizontal length and the major semi-axis of ``C``'s horizontal block; the vertical
+    one (3-D) the shift's vertical component ``|G_2i| MDB_i`` and ``sqrt(C_22)``."""
     N, n, p = J.shape
     hpl = np.full(N, np.nan)
+    vpl = np.full(N, np.nan)
     for k in range(N):
         u = used[k]
         Jk, s, fk = J[k][u], sigma[k][u], f[k][u]
@@ -46,7 +49,9 @@ def _reference(J, sigma, used, f):
         mdb = np.sqrt(LAM0 * np.diag(Q)) / np.abs(np.diag(R))
         slope = np.hypot(G[0], G[1]) * mdb
         hpl[k] = slope.max() + K * np.sqrt(np.linalg.eigvalsh(C[:2, :2]).max())
-    return hpl
+        if p == 3:
+            vpl[k] = (np.abs(G[2]) * mdb).max() + K * np.sqrt(C[2, 2])
+    return hpl, vpl
 
 
 @settings(max_examples=40, deadline=None)
@@ -72,12 +77,18 @@ def test_fit_weighted_bound_equals_the_matrix_formulas(seed, p, n):
     _, _, r = protection_levels_local(J, sigma, used, LAM0, K, engine="numpy", fit_weight=f)
     keep = (cond < 1e6) & (np.min(np.abs(r), axis=1) >= 1e-3)
     J, sigma, f, used = J[keep], sigma[keep], f[keep], used[keep]
-    ref = _reference(J, sigma, used, f)
+    ref, ref_v = _reference(J, sigma, used, f)
     for engine in ("compiled", "numpy"):
         hpl, vpl, _ = protection_levels_local(J, sigma, used, LAM0, K, engine=engine,
                                               fit_weight=f)
         np.testing.assert_allclose(hpl, ref, rtol=1e-6)
-        assert (np.isfinite(vpl) if p == 3 else np.isnan(vpl)).all()
+        # the vertical bound: the same terms, the same rounding argument (its slope is
+        # a component of the same shift, its noise term a diagonal entry of the same C)
+        if p == 3:
+            assert np.isfinite(vpl).all()
+            np.testing.assert_allclose(vpl, ref_v, rtol=1e-6)
+        else:
+            assert np.isnan(vpl).all()
         plain = protection_levels_local(J, sigma, used, LAM0, K, engine=engine)
         ones = protection_levels_local(J, sigma, used, LAM0, K, engine=engine,
                                        fit_weight=np.ones_like(f))

@@ -44,6 +44,41 @@ def test_protection_level_hand_derived_square_centre():
     np.testing.assert_allclose(hpl2, 0.3 * hpl, rtol=1e-12)
 
 
+@pytest.mark.parametrize("engine", ["compiled", "numpy"])
+def test_protection_levels_hand_derived_octahedron_centre(engine):
+    """3-D: the tag at the centre of an octahedron of six anchors (+-a on each axis).
+
+    The lines of sight are -+e_j, so ``J^T J = 2 I`` whatever ``a``; with noise ``s_j``
+    on the two anchors of axis ``j`` the whitened normal matrix is ``diag(2 / s_j^2)``,
+    ``C = diag(s_j^2 / 2)``, and every redundancy number ``r_i = 1 - (1 / s_j^2)(s_j^2 /
+    2) = 1/2`` (n = 6, p = 3: they sum to 3).  ``MDB_i = s_j sqrt(lambda0 / r_i) = s_j
+    sqrt(2 lambda0)``; it moves the fix along axis ``j`` only, by ``C J_i^T MDB_i /
+    s_j^2 = MDB_i / 2``.  So ``hpl = max(s_x, s_y) (sqrt(2 lambda0) / 2 + k sqrt(1/2))``
+    and ``vpl = s_z (sqrt(2 lambda0) / 2 + k sqrt(1/2))``: equal sigma gives ``hpl = vpl``,
+    a vertical sigma twice the horizontal doubles ``vpl`` alone (which tells the
+    vertical variance ``C_22`` from the horizontal ones).  Tolerance: a handful of
+    operations on a normal matrix of condition 4, rtol 1e-12 (as the square's case)."""
+    e = np.eye(3)
+    J = np.concatenate([-e, e])[None]  # anchors at +a e_j, then -a e_j: -(a - x) / |a - x|
+    lam0 = lambda0(0.001, 0.10)
+    k = stats.norm.ppf(1 - 0.001 / 2)
+    unit = 0.5 * np.sqrt(2 * lam0) + k * np.sqrt(0.5)
+    used = np.ones((1, 6), bool)
+    hpl, vpl, r = protection_levels_local(J, np.ones((1, 6)), used, lam0, k, engine=engine)
+    np.testing.assert_allclose(r, 0.5, atol=1e-12)
+    np.testing.assert_allclose(hpl, unit, rtol=1e-12)
+    np.testing.assert_allclose(vpl, unit, rtol=1e-12)
+    s = np.array([[1.0, 1.0, 2.0, 1.0, 1.0, 2.0]])  # z anchors twice as noisy
+    hpl, vpl, r = protection_levels_local(J, s, used, lam0, k, engine=engine)
+    np.testing.assert_allclose(r, 0.5, atol=1e-12)
+    np.testing.assert_allclose(hpl, unit, rtol=1e-12)
+    np.testing.assert_allclose(vpl, 2.0 * unit, rtol=1e-12)
+    s = np.array([[0.5, 1.5, 1.0, 0.5, 1.5, 1.0]])  # y the noisiest axis: hpl follows it
+    hpl, vpl, _ = protection_levels_local(J, s, used, lam0, k, engine=engine)
+    np.testing.assert_allclose(hpl, 1.5 * unit, rtol=1e-12)
+    np.testing.assert_allclose(vpl, unit, rtol=1e-12)
+
+
 def test_log_scale_recovers_per_anchor_noise():
     rng = np.random.default_rng(5)
     N = 3000
