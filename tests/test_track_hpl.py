@@ -18,7 +18,11 @@ AP3).
 import numpy as np
 import pandas as pd
 import pytest
+from filterpy.common import Q_discrete_white_noise
+from filterpy.kalman import ExtendedKalmanFilter
+from scipy import stats
 
+from robustloc.integrity.bmethod import lambda0
 from robustloc.io import to_epochs
 from robustloc.tracking import Tracker
 
@@ -64,9 +68,121 @@ def test_hpl_of_one_component_stays_within_its_bound(seed, filt):
     assert k.size >= 30  # the test has rows to check
     prev = var[k - 1].copy()
     prev[:, :2] += q * 1.0**2
+    # (an upper bound only: Cauchy-Schwarz is tight just for r -> 0 along P-'s major
+    # axis, never on these rows; the exact value is tested on a hand case below)
     bound = np.sqrt(trk._lam0 * lmax(prev)) + trk._k_ir * np.sqrt(lmax(var[k]))
     hpl = rows["hpl"].to_numpy(float)[k]
     assert np.all(hpl <= bound * (1 + 1e-9)), (hpl.max(), bound[np.argmax(hpl - bound)])
+
+
+SQUARE = pd.DataFrame({"anchor": ["A1", "A2", "A3", "A4"], "x": [0.0, 10.0, 10.0, 0.0],
+                       "y": [0.0, 0.0, 10.0, 10.0]})
+
+
+def _centre_log():
+    """Exact ranges from the centre (5, 5) of a 10 m square of anchors at t = 0 and 1."""
+    d = np.hypot(*(SQUARE[["x", "y"]].to_numpy() - [5.0, 5.0]).T)
+    return pd.DataFrame({"time": np.repeat([0.0, 1.0], 4), "tag": "T",
+                         "anchor": np.tile(SQUARE["anchor"], 2), "range": np.tile(d, 2)})
+
+
+def _lam0_k():
+    """lambda0 of the B-method (alpha0 1e-3, beta0 0.10, the defaults) and
+    ``k = sqrt(chi2.isf(integrity_risk, 2))`` (integrity_risk 1e-3), from scipy."""
+    lam0 = lambda0(0.001, 0.10)
+    assert lam0 == pytest.approx((stats.norm.isf(0.0005) + stats.norm.isf(0.10)) ** 2,
+                                 rel=1e-12)
+    return lam0, np.sqrt(stats.chi2.isf(1e-3, 2))
+
+
+@pytest.mark.parametrize(("model", "q", "engine"), [
+    ("static", 0.05, "numpy"), ("cv", 0.5, "numpy"), ("cv", 0.5, "compiled")])
+def test_hpl_of_one_ekf_step_equals_its_formula(model, q, engine):
+    """The first update of a tag, computed independently: the module docstring's item 8,
+    ``hpl = max_i |G_pos,i| MDB_i + k sigma_major`` with the EKF's ``G_i = w_i P+ H_i^T /
+    R_ii`` and ``MDB_i = sqrt(lambda0 (H P- H^T + R)_ii)``.
+
+    The tag sits at the centre of a 10 m square and every range is exact.  Its start
+    (item 1) is the fix (5, 5) with the a-priori variance ``sigma^2 / 2 = 0.045`` per
+    axis (``J^T J = 2 I``), below the floor ``init_pos_var_min = 0.25``: ``P0 =
+    diag(0.25, 0.25[, init_vel_var 1, 1])``.  One second later: ``P- = F P0 F^T + Q``
+    (``static``: ``Q = q dt^2 I``; ``cv``: FilterPy's discrete white-noise ``Q`` per
+    axis, ``q [[dt^4/4, dt^3/2], [dt^3/2, dt^2]]``), the innovations are 0 (every robust
+    weight 1, the noise scale still 1: ``R = sigma^2 I``), and FilterPy's EKF gives
+    ``P+``.  Nothing widens this row (four anchors 90 degrees apart: no mirror, observed;
+    no gap).  Tolerance: the same few operations on 2x2-4x4 matrices of condition below
+    10 in another order (FilterPy's Joseph form), rounding of order 1e-15: rtol 1e-12.
+    Static with the closed form as well: ``p- = 0.25 + q``, ``p+ = 1 / (1 / p- + 2 /
+    sigma^2)``."""
+    sig = 0.3
+    xy = SQUARE[["x", "y"]].to_numpy()
+    trk = Tracker(SQUARE, model=model, filter="ekf", q=q, sigma=sig, engine=engine)
+    rows = trk.step(to_epochs(_centre_log(), list(SQUARE["anchor"])))
+    assert list(rows["status"]) == ["ok", "ok"] and list(rows["n_used"]) == [4, 4]
+    n = 2 if model == "static" else 4
+    f = ExtendedKalmanFilter(dim_x=n, dim_z=4)
+    f.x = np.r_[5.0, 5.0, np.zeros(n - 2)]
+    f.P = np.diag([0.25, 0.25] + [1.0] * (n - 2))
+    f.R = sig**2 * np.eye(4)
+    if model == "static":
+        f.F, f.Q = np.eye(2), q * np.eye(2)
+    else:
+        f.F = np.eye(4) + np.eye(4, k=2)  # [x, y, vx, vy], dt = 1
+        f.Q = np.kron(Q_discrete_white_noise(2, dt=1.0, var=q), np.eye(2))
+    f.predict()
+    Pm = f.P.copy()
+
+    def jac(x):
+        H = np.zeros((4, n))
+        H[:, :2] = (x[:2] - xy) / np.hypot(*(x[:2] - xy).T)[:, None]
+        return H
+
+    H = jac(f.x)
+    f.update(np.hypot(*(xy - 5.0).T), jac, lambda x: np.hypot(*(x[:2] - xy).T))
+    Pp = f.P
+    lam0, k = _lam0_k()
+    gain = (Pp @ H.T / sig**2)[:2]  # column i: G_pos,i (weights 1)
+    mdb = np.sqrt(lam0 * (np.diag(H @ Pm @ H.T) + sig**2))
+    hpl = np.max(np.hypot(*gain) * mdb) + k * np.sqrt(np.linalg.eigvalsh(Pp[:2, :2]).max())
+    if model == "static":
+        pm = 0.25 + q
+        pp = 1.0 / (1.0 / pm + 2.0 / sig**2)
+        closed = pp / sig**2 * np.sqrt(lam0 * (pm + sig**2)) + k * np.sqrt(pp)
+        assert hpl == pytest.approx(closed, rel=1e-12)
+    np.testing.assert_allclose(rows[["var_x", "var_y", "cov_xy"]].to_numpy()[1],
+                               [Pp[0, 0], Pp[1, 1], Pp[0, 1]], rtol=1e-12, atol=1e-15)
+    assert rows["hpl"].iloc[1] == pytest.approx(hpl, rel=1e-12)
+
+
+def test_hpl_of_one_ukf_step_equals_its_formula():
+    """The same step with the UKF (``static``, NumPy core): ``G = P- H^T S^-1``, ``S = H
+    P- H^T + R`` (item 8: the linearized gain), the noise term from the sigma-point
+    ``P+``, written out here: Merwe points ``alpha = 1, beta = 2, kappa = 0`` (``lambda =
+    0``: ``x``, ``x +- sqrt(2 p-) e_j``; mean weights ``0, 1/4 x 4``, covariance weights
+    ``2, 1/4 x 4``), ``P+ = P- - K P_zz K^T``, ``K = P_xz P_zz^-1``.  The innovations
+    (exact ranges against the points' mean range, which the curvature lengthens) are
+    0.034 of their sd: Huber weights 1.  Tolerance as the EKF's: rtol 1e-12."""
+    sig, q = 0.3, 0.05
+    xy = SQUARE[["x", "y"]].to_numpy()
+    trk = Tracker(SQUARE, model="static", filter="ukf", q=q, sigma=sig, engine="numpy")
+    rows = trk.step(to_epochs(_centre_log(), list(SQUARE["anchor"])))
+    assert list(rows["status"]) == ["ok", "ok"] and list(rows["n_used"]) == [4, 4]
+    x, pm = np.array([5.0, 5.0]), 0.25 + q
+    X = np.vstack([x, x + np.sqrt(2 * pm) * np.eye(2), x - np.sqrt(2 * pm) * np.eye(2)])
+    wm, wc = np.r_[0.0, [0.25] * 4], np.r_[2.0, [0.25] * 4]
+    Z = np.hypot(*(X[:, None] - xy[None]).transpose(2, 0, 1))
+    dZ, dX = Z - wm @ Z, X - wm @ X
+    Pzz = (wc[:, None] * dZ).T @ dZ + sig**2 * np.eye(4)
+    K = ((wc[:, None] * dX).T @ dZ) @ np.linalg.inv(Pzz)
+    Pp = pm * np.eye(2) - K @ Pzz @ K.T
+    H = (x - xy) / np.hypot(*(x - xy).T)[:, None]
+    S = pm * H @ H.T + sig**2 * np.eye(4)
+    gain = pm * H.T @ np.linalg.inv(S)
+    lam0, k = _lam0_k()
+    hpl = (np.max(np.hypot(*gain) * np.sqrt(lam0 * np.diag(S)))
+           + k * np.sqrt(np.linalg.eigvalsh(Pp).max()))
+    assert np.all(np.abs(np.hypot(*(xy - x).T) - wm @ Z) / np.sqrt(np.diag(Pzz)) < 0.05)
+    assert rows["hpl"].iloc[1] == pytest.approx(hpl, rel=1e-12)
 
 
 @pytest.mark.parametrize("kernel", ["compiled", "numpy"])
