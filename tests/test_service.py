@@ -225,18 +225,46 @@ def test_post_answers(tokened):
 
 
 def test_bad_queries_and_fuzz_never_crash(tokened):
+    """Random bytes get a 4xx or a 202 that accepts nothing; each hand-made body gets the
+    answer ``robustloc.service.rows`` documents for it: a body that starts like an array
+    and does not decode (nested past the parser's depth) or a single line that is not
+    JSON is refused whole (400); a JSON array or NDJSON of several lines is taken row by
+    row (202), each bad row rejected at its index; a number beyond float range (1e400)
+    is read as inf so that only its row is refused; ids are at most 128 characters.  No
+    row of any of them reaches the store: ``robustloc_rows_accepted_total`` stays put."""
     u = tokened.url
     for q in ("since=abc", "until=nan", "limit=0", "limit=x"):
         assert httpx.get(u + "/api/positions?" + q, headers=AUTH).status_code == 400
+    accepted0 = metric(u, "robustloc_rows_accepted_total", AUTH)
     rng = np.random.default_rng(7)
     bodies = [bytes(rng.integers(0, 256, int(n), dtype=np.uint8)) for n in rng.integers(1, 400, 60)]
-    bodies += [b"[" * 5000 + b"]" * 5000, b'{"time": 1e400, "tag": "a", "anchor": "1", "rssi": 1}',
-               b'[{"time": 1, "tag": {"x": 1}, "anchor": [1], "rssi": "NaN"}]',
-               b"\xff\xfe\x00", b'[null, true, "row", 1.5, {}]', b'{"a": 1}\n[]\n7\n',
-               json.dumps([{"time": 1, "tag": "t" * 1000, "anchor": "1", "rssi": -60}]).encode()]
     for b in bodies:
         r = httpx.post(u + "/api/measurements", content=b, headers=AUTH)
         assert r.status_code in (202, 400, 413, 422), (b[:40], r.status_code, r.text)
+        if r.status_code == 202:
+            assert r.json()["accepted"] == 0, (b[:40], r.text)
+    # (body, status, indexes of the rejected rows for a 202)
+    known = [(b"[" * 5000 + b"]" * 5000, 400, None),
+             (b'{"time": 1e400, "tag": "a", "anchor": "1", "rssi": 1}', 202, [0]),
+             (b'[{"time": 1, "tag": {"x": 1}, "anchor": [1], "rssi": "NaN"}]', 202, [0]),
+             (b"\xff\xfe\x00", 400, None),
+             (b'[null, true, "row", 1.5, {}]', 202, [0, 1, 2, 3, 4]),
+             (b'{"a": 1}\n[]\n7\n', 202, [0, 1, 2]),
+             (json.dumps([{"time": 1, "tag": "t" * 1000, "anchor": "1", "rssi": -60}]).encode(),
+              202, [0])]
+    for b, status, rejected in known:
+        r = httpx.post(u + "/api/measurements", content=b, headers=AUTH)
+        assert r.status_code == status, (b[:40], r.status_code, r.text)
+        if status == 202:
+            assert r.json()["accepted"] == 0, (b[:40], r.text)
+            assert [x["index"] for x in r.json()["rejected"]] == rejected, (b[:40], r.text)
+        else:
+            assert "error" in r.json(), (b[:40], r.text)
+    assert metric(u, "robustloc_rows_accepted_total", AUTH) == accepted0
+    # a good row after all of them is still taken and counted (the counter is live)
+    good = [{"time": 0.0, "tag": "T", "anchor": "1", "rssi": -70.0}]
+    assert httpx.post(u + "/api/measurements", json=good, headers=AUTH).json()["accepted"] == 1
+    assert metric(u, "robustloc_rows_accepted_total", AUTH) == accepted0 + 1
     assert httpx.get(u + "/healthz").status_code == 200
     assert tokened.proc.poll() is None
 
