@@ -166,16 +166,21 @@ def test_two_concurrent_writers_last_complete_file_wins(tmp_path, ext):
     n_epochs = 20_000
     _ranges(n_epochs).to_csv(tmp_path / "m.csv", index=False)
     out = tmp_path / f"same.{ext}"
-    procs = [
-        subprocess.Popen(CLI + ["locate", str(tmp_path / "m.csv"), "--anchors",
-                                str(tmp_path / "a.csv"), "-o", str(out), "--method", meth,
-                                "--chunk-rows", "4000", "--quiet"],
-                         stderr=subprocess.PIPE, text=True, env=ENV)
-        for meth in ("ls", "nls")
-    ]
-    for p in procs:
-        _, err = p.communicate(timeout=300)
-        assert p.returncode == 0, err
+    procs = []
+    try:
+        for meth in ("ls", "nls"):
+            procs.append(subprocess.Popen(
+                CLI + ["locate", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),
+                       "-o", str(out), "--method", meth, "--chunk-rows", "4000", "--quiet"],
+                stderr=subprocess.PIPE, text=True, env=ENV))
+        for p in procs:
+            _, err = p.communicate(timeout=300)
+            assert p.returncode == 0, err
+    finally:  # a failed assertion or a timeout leaves no writer running
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
     pos = read_positions(out)
     assert len(pos) == n_epochs
     assert pos["method"].nunique() == 1  # one complete file, never a mix
@@ -215,13 +220,19 @@ def test_signal_mid_run_leaves_nothing(big, tmp_path, sig, code, word, ext, prev
                                        str(big / "a.csv"), "-o", str(out), "--method", "nls",
                                        "--chunk-rows", "20000", "--quiet"],
                          stderr=subprocess.PIPE, text=True, env=ENV)
-    deadline = time.monotonic() + 240
-    while not any(f.name.endswith(".tmp") and f.stat().st_size > 0 for f in tmp_path.iterdir()):
-        assert p.poll() is None, p.communicate()[1]
-        assert time.monotonic() < deadline
-        time.sleep(0.05)
-    p.send_signal(sig)
-    _, err = p.communicate(timeout=120)
+    try:
+        deadline = time.monotonic() + 240
+        while not any(f.name.endswith(".tmp") and f.stat().st_size > 0
+                      for f in tmp_path.iterdir()):
+            assert p.poll() is None, p.communicate()[1]
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+        p.send_signal(sig)
+        _, err = p.communicate(timeout=120)
+    finally:  # a failed wait or a timeout leaves no process running
+        if p.poll() is None:
+            p.kill()
+            p.wait()
     assert p.returncode == code, err
     assert err == f"error: {word}\n"
     if previous:
