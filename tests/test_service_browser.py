@@ -154,7 +154,14 @@ def test_map_page_shows_tags_where_the_api_says(tmp_path):
                 # per-anchor health: last heard and rejection rate in the side table
                 page.wait_for_function(
                     "document.querySelectorAll('#anchortable tr').length == 10", timeout=10_000)
-                time.sleep(2.5)  # one panel refresh after the replay
+                # the panels refresh every 2 s (index.html: setInterval(refreshPanels,
+                # 2000)): wait for a refresh after the replay, at most five of them
+                # (cells: anchor, last heard, rows, rejection rate)
+                page.wait_for_function(
+                    "() => { const r = document.querySelector("
+                    "'#anchortable tr[data-anchor=\"1\"]'); if (!r) return false; "
+                    "const c = r.cells; return c.length == 4 && c[3].innerText == '0.0 %' "
+                    "&& /^(now|[0-9]+ s ago)$/.test(c[1].innerText); }", timeout=10_000)
                 row1 = page.locator('#anchortable tr[data-anchor="1"]').inner_text()
                 assert "0.0 %" in row1 and ("now" in row1 or "s ago" in row1)
                 shot = (SCREENSHOT if os.environ.get("ROBUSTLOC_UPDATE_SCREENSHOT") == "1"
