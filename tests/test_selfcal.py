@@ -428,6 +428,27 @@ def test_cli_self_rssi_says_which_columns_of_another_model_it_leaves_out(tmp_pat
         capsys.readouterr().err
 
 
+
+def test_cli_self_names_a_left_out_parameter_by_its_column(tmp_path):
+    """An anchor heard in three epochs keeps its prior, and ``calib_fixed`` names what was
+    left out as the output's columns do: ``A;n`` for log-distance, ``p0;gamma`` for an
+    attenuation-factor model (it said ``A;n`` there, a column the file does not have)."""
+    rng = np.random.default_rng(29)
+    paths, _ = _write_log(tmp_path, rng, n=600, rssi=True)
+    meas = pd.read_csv(paths["meas"])
+    rare = (meas["anchor"] == "a0") & (meas["time"] >= 3)
+    meas[~rare].to_csv(paths["meas"], index=False)
+    a = pd.read_csv(paths["anchors"]).assign(p0=-48.0, gamma=2.3, faf=0.0, d0=1.0)
+    a.to_csv(paths["anchors"], index=False)
+    for model, want in (("log-distance", "A;n"), ("attenuation-factor", "p0;gamma")):
+        cal = tmp_path / f"cal_{model}.csv"
+        assert main(["calibrate", "--self", str(paths["meas"]), "--anchors",
+                     str(paths["anchors"]), "--model", model, "-o", str(cal)]) == 0
+        out = pd.read_csv(cal).set_index("anchor")
+        assert out.loc["a0", "calib_fixed"] == want
+        assert out.drop(index="a0")["calib_fixed"].isna().all()
+        assert set(want.split(";")) <= set(out.columns)
+
 def test_cli_self_on_a_log_whose_every_epoch_fails_says_so(tmp_path, capsys):
     """Tags 240 m from five anchors 13 m apart: every epoch with a fix failed its test,
     and the error said that no epoch had a fix with redundancy -- though all five anchors

@@ -1352,7 +1352,7 @@ def self_calibration_table(
 
     ids = anchors["anchor"].astype(str).to_numpy()
     off, slo, cov = res.offset, res.slope, res.cov
-    fixed = [";".join(n for n, f in zip(res.param_names, fr) if f)
+    fixed = [";".join(n for n, f in zip(_self_param_names(res, model), fr) if f)
              for fr in self_left_out(res, model)]
     sigma = _self_sigma(res, anchors)
     cols: dict[str, Array] = {}
@@ -1391,6 +1391,20 @@ def self_calibration_table(
     out["calib_fixed"] = fixed
     return table, out
 
+
+def _self_param_names(res: SelfCalibration, model: object | None) -> tuple[str, str]:
+    """The names of a self-calibration's offset and slope as the written columns call
+    them (``calib_fixed``): ``bias, scale`` for ranges; ``p0, gamma`` for an
+    attenuation-factor model and ``p0, n`` for free space (whose exponent is never left
+    out, :func:`self_left_out`); ``A, n`` else.  (``calib_fixed`` said ``A`` for an
+    attenuation-factor file, whose column is ``p0``: the calibration fixer's note.)"""
+    from robustloc.models.pathloss import AttenuationFactor, FreeSpace
+
+    if res.kind == "rssi" and isinstance(model, AttenuationFactor):
+        return ("p0", "gamma")
+    if res.kind == "rssi" and isinstance(model, FreeSpace):
+        return ("p0", "n")
+    return (str(res.param_names[0]), str(res.param_names[1]))
 
 def self_left_out(res: SelfCalibration, model: object | None = None) -> NDArray[np.bool_]:
     """Which parameters of each anchor a self-calibration left at their prior, shape
