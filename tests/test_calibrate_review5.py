@@ -238,3 +238,27 @@ def test_robust_before_the_survey_takes_the_survey_as_the_file(tmp_path, capsys)
     err = capsys.readouterr().err
     assert err == (f"error: --robust took {str(survey)!r} as its weight function: put "
                    "--robust after the file, or name the function (--robust huber)\n"), err
+
+
+@pytest.mark.parametrize("pooled", [False, True])
+def test_a_row_of_weight_0_is_no_second_distance(pooled):
+    """Anchor ``a`` is surveyed at 2 m (weight 1) and at 1, 4 and 8 m with weight 0: one
+    distance, as the same survey without those rows says, not "fitted n = nan" (its
+    weight-0 distances passed the one-distance check).  With ``--pooled`` the anchor's
+    own slope is undetermined either way: the two surveys give the same table."""
+    rng = np.random.default_rng(1)
+    rows = [(a, d, -45 - 22 * np.log10(d) + rng.normal(0, 1), 1.0)
+            for a in ("a", "b") for d in (1.0, 2.0, 4.0, 8.0) for _ in range(10)]
+    sv = pd.DataFrame(rows, columns=["anchor", "distance", "rssi", "weight"])
+    sv.loc[(sv["anchor"] == "a") & (sv["distance"] != 2.0), "weight"] = 0.0
+    dropped = sv[sv["weight"] > 0].reset_index(drop=True)
+    if not pooled:
+        for survey in (sv, dropped):
+            with pytest.raises(InputError, match="anchor a: cannot determine n: all samples "
+                                                 "at one distance"):
+                calibrate_pathloss(survey, "log-distance")
+        return
+    got = calibrate_pathloss(sv, "log-distance", pooled=True).table
+    want = calibrate_pathloss(dropped, "log-distance", pooled=True).table
+    cols = [c for c in want.columns if want[c].dtype.kind == "f"]
+    pd.testing.assert_frame_equal(got[cols], want[cols], rtol=1e-9)

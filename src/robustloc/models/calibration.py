@@ -770,7 +770,7 @@ def calibrate_pathloss(
     _check_plausible(survey, per, pool, ids, model, pooled,
                      p0_arr, d0_arr)
     rows = _assemble(per, pool, ids, slope,
-                     _one_distance(d, g, m) if slope and pooled else None)
+                     _one_distance(d, g, m, sw) if slope and pooled else None)
     if model == "log-distance":
         table = _table(rows, {"A": "a", "n": "b"})
     elif model == "attenuation-factor":
@@ -890,7 +890,7 @@ def calibrate_ranges(
     else:
         _check_range_units(survey, per, pool, ids, d, g, ratio, pooled)
     rows = _assemble(per, pool, ids, scale,
-                     _one_distance(d, g, len(ids)) if scale and pooled else None)
+                     _one_distance(d, g, len(ids), sw) if scale and pooled else None)
     table = _table(rows, {"bias": "a", "scale": "b"} if scale else {"bias": "a"})
     if not scale:
         table.insert(3, "scale", 1.0)
@@ -993,6 +993,11 @@ def _check_determined(
         return
     slope = names[1]
     m = len(ids)
+    # the samples that count: a row of weight 0 is no sample (as the same survey without
+    # it: its distance made the check pass, and the fit then said "n = nan")
+    sw = _survey_weights(survey)
+    if sw is not None and np.any(sw > 0):
+        d, g = d[sw > 0], g[sw > 0]
     dmin = np.full(m, np.inf)
     np.minimum.at(dmin, g, d)
     one = _one_distance(d, g, m)
@@ -1088,8 +1093,12 @@ def _own_fit(per: LineFit, p: int) -> NDArray[np.bool_]:
     return per.counted() >= p + 2
 
 
-def _one_distance(d: Array, g: NDArray[np.int64], m: int) -> NDArray[np.bool_]:
-    """Per anchor: every sample at one distance (its own slope undetermined)."""
+def _one_distance(d: Array, g: NDArray[np.int64], m: int,
+                  weights: Array | None = None) -> NDArray[np.bool_]:
+    """Per anchor: every sample at one distance (its own slope undetermined); with the
+    survey's frequency ``weights``, rows of weight 0 are no samples."""
+    if weights is not None and np.any(weights > 0):
+        d, g = d[weights > 0], g[weights > 0]
     dmin = np.full(m, np.inf)
     dmax = np.full(m, -np.inf)
     np.minimum.at(dmin, g, d)
