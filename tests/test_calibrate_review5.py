@@ -106,16 +106,38 @@ def test_range_survey_in_millimetres_is_refused_naming_the_unit(tmp_path, capsys
     assert np.allclose(pd.read_csv(out)["bias"], 0.3, atol=0.1)
 
 
-def test_range_bias_beyond_every_distance_is_refused():
-    """Least squares pulled by one gross range (200 m at 5 m): the bias, 39.08 m
-    ((4 x 0.1 + 195) / 5 by hand), exceeds every distance surveyed (3-6 m) though the
-    median range / distance (1.025) is plausible.  A robust fit takes the 0.1 m."""
-    d = np.array([3.0, 4.0, 5.0, 6.0, 5.0])
-    s = pd.DataFrame({"anchor": "a", "distance": d, "range": d + [0.1, 0.1, 0.1, 0.1, 195]})
-    with pytest.raises(InputError, match=r"anchor a: fitted bias = 39\.08 m exceeds the "
-                       r"largest distance surveyed \(6 m\)"):
-        calibrate_ranges(s)
-    assert calibrate_ranges(s, robust="igg3").table["bias"].iloc[0] == pytest.approx(0.1)
+@pytest.mark.parametrize(("bias", "distances"), [
+    (2.0, (1.0, 1.5, 2.0, 3.0)), (2.0, (0.5, 1.0, 1.5)), (0.3, (0.2, 0.3, 0.5))])
+def test_a_true_bias_at_short_distances_is_calibrated_not_refused(bias, distances):
+    """A bias adds to the ranges, a unit error multiplies them: WiFi RTT 2 m long at 1-3
+    m (median range / distance 2.1) or at 0.5-1.5 m (a bias beyond every distance), a UWB
+    antenna delay of 0.3 m at 0.2-0.5 m (ratio 2.0).  The unit check's first version
+    refused all three; the bias-only fit is the mean of range - distance, to 3 standard
+    errors of 0.05 m noise over 10 rows per distance."""
+    rng = np.random.default_rng(0)
+    d = np.repeat(np.asarray(distances), 10)
+    s = pd.DataFrame({"anchor": "a", "distance": d,
+                      "range": d + bias + rng.normal(0, 0.05, d.size)})
+    got = calibrate_ranges(s).table["bias"].iloc[0]
+    assert got == pytest.approx(float(np.mean(s["range"] - s["distance"])), abs=1e-9)
+    assert got == pytest.approx(bias, abs=3 * 0.05 / np.sqrt(d.size))
+
+
+def test_a_unit_error_is_refused_by_its_slope_or_its_one_distance():
+    """Ranges in feet of distances of 1-20 m grow 3.28x as fast as the distances, beyond
+    the scale limits by far more than 3 standard errors: refused, naming feet.  An anchor
+    surveyed at one distance has no slope: in mm (1000x) it is refused, a 2 m bias at
+    0.5 m (5x) is not."""
+    rng = np.random.default_rng(3)
+    d = rng.uniform(1, 20, 40)
+    feet = pd.DataFrame({"anchor": "a", "distance": d,
+                         "range": (d + 0.3 + rng.normal(0, 0.05, 40)) / 0.3048})
+    with pytest.raises(InputError, match="ranges in feet read 3.28084x too long"):
+        calibrate_ranges(feet)
+    one = pd.DataFrame({"anchor": "a", "distance": 0.5, "range": 2.5 + rng.normal(0, 0.05, 9)})
+    assert calibrate_ranges(one).table["bias"].iloc[0] == pytest.approx(2.0, abs=3 * 0.05 / 3)
+    with pytest.raises(InputError, match="ranges in mm read 1000x too long"):
+        calibrate_ranges(one.assign(range=one["range"] * 1000 / 5))
 
 
 def _repeated(weighted: pd.DataFrame) -> pd.DataFrame:

@@ -888,7 +888,7 @@ def calibrate_ranges(
                     f"{who}: fitted scale = {b:.4g} is implausible (a range scale lies in "
                     f"[{lo:g}, {hi:g}]): {why}", survey.attrs.get("path"))
     else:
-        _check_range_units(survey, per, pool, ids, d, g, ratio, pooled)
+        _check_range_units(survey, ids, d, r, g, ratio, sw, weight, max_iter)
     rows = _assemble(per, pool, ids, scale,
                      _one_distance(d, g, len(ids), sw) if scale and pooled else None)
     table = _table(rows, {"bias": "a", "scale": "b"} if scale else {"bias": "a"})
@@ -927,41 +927,54 @@ def _unit_hint(ratio: float) -> str:
             if f > 1.0 and np.isfinite(ratio) and abs(np.log(ratio / f)) < np.log(1.25):
                 return (f"a unit error? {col} in {unit} read {f:g}x too long; convert the "
                         f"{col} to metres")
-    return ("are the ranges and the distances both in metres? (a bias that large needs "
-            "distances surveyed beyond it)")
+    return "are the ranges and the distances both in metres?"
+
+
+#: A single-distance survey cannot tell a scale from a bias; its median ``range /
+#: distance`` is refused only beyond this factor either way (a unit error of mm, cm or km,
+#: not a bias of a few metres at a short distance).
+RANGE_RATIO_ONE_DISTANCE = 50.0
 
 
 def _check_range_units(
-    survey: pd.DataFrame, per: LineFit, pool: LineFit, ids: list[str], d: Array,
-    g: NDArray[np.int64], ratio: Array, pooled: bool,
+    survey: pd.DataFrame, ids: list[str], d: Array, r: Array, g: NDArray[np.int64],
+    ratio: Array, weights: Array | None, robust: WeightFunction | None, max_iter: int,
 ) -> None:
     """Refuse a bias-only range calibration of a survey whose ranges and distances are
-    not both in metres: an anchor whose median ``range / distance`` (``ratio``,
-    :func:`_range_ratios`) lies outside :data:`RANGE_SCALE_LIMITS`, or a fitted bias
-    beyond the largest distance surveyed (gross errors that pull a least-squares bias,
-    or a unit error: no ranging bias exceeds every distance surveyed).  The scale is
-    fixed at 1 here, so nothing else notices: a survey in millimetres of distances of
-    1-20 m was written with biases of 10.7 km and sigmas of 6 km, exit 0 (the calibration
-    review; with ``--scale`` its fitted scale of 1 002 was refused)."""
+    not both in metres.  A unit error multiplies the ranges, a bias adds to them, so the
+    test is the slope of range on distance (the ``--scale`` fit, with the survey's
+    weights and ``robust``): an anchor of two distinct distances or more whose slope lies
+    outside :data:`RANGE_SCALE_LIMITS` by more than 3 standard errors.  An anchor surveyed
+    at one distance has no slope: its median ``range / distance`` (``ratio``,
+    :func:`_range_ratios`) beyond :data:`RANGE_RATIO_ONE_DISTANCE` either way.
+
+    A survey in millimetres of distances of 1-20 m was written with biases of 10.7 km,
+    exit 0 (the calibration review).  The first fix judged the median ratio of every
+    anchor against the scale limits, and so refused true biases at short distances (a
+    UWB antenna delay of 0.3 m surveyed at 0.2-0.5 m: ratio 2.02; WiFi RTT 2 m long at
+    1-3 m: 2.12); and a least-squares bias beyond every surveyed distance, which a real
+    bias can be (2 m at 0.5-1.5 m).  Both were reverted the same session."""
     path = survey.attrs.get("path")
     lo, hi = RANGE_SCALE_LIMITS
-    for j, name in enumerate(ids):
-        if np.isfinite(ratio[j]) and not lo <= ratio[j] <= hi:
-            raise InputError(
-                f"anchor {name}: the ranges read {ratio[j]:.4g}x the surveyed distances "
-                f"(the median of range / distance; a range is its distance times a scale "
-                f"in [{lo:g}, {hi:g}] plus a bias): {_unit_hint(float(ratio[j]))}", path)
     m = len(ids)
-    dmax = np.full(m, -np.inf)
-    np.maximum.at(dmax, g, d)
-    own = _own_fit(per, 1) & (not pooled)
-    check = [(f"anchor {ids[j]}", per.a[j], dmax[j]) for j in np.flatnonzero(own)]
-    for who, bias, top in check + [("pooled fit", pool.a[0], float(d.max()))]:
-        if bias > top:
+    fit = fit_lines(d, r, g, m, slope=True, robust=robust, max_iter=max_iter,
+                    weights=weights)
+    spread = ~_one_distance(d, g, m, weights)
+    for j, name in enumerate(ids):
+        b, se = float(fit.b[j]), float(fit.b_se[j])
+        if spread[j] and np.isfinite(b):
+            margin = 3.0 * se if np.isfinite(se) else 0.0
+            if b - margin > hi or b + margin < lo:
+                raise InputError(
+                    f"anchor {name}: the ranges grow {b:.4g}x as fast as the surveyed "
+                    f"distances (a range is its distance times a scale in [{lo:g}, {hi:g}] "
+                    f"plus a bias): {_unit_hint(b)}", path)
+        elif np.isfinite(ratio[j]) and not (
+                1.0 / RANGE_RATIO_ONE_DISTANCE <= ratio[j] <= RANGE_RATIO_ONE_DISTANCE):
             raise InputError(
-                f"{who}: fitted bias = {bias:.4g} m exceeds the largest distance surveyed "
-                f"({top:g} m): gross errors among the ranges (fit with --robust), or "
-                "ranges in another unit than the distances?", path)
+                f"anchor {name}: the ranges read {ratio[j]:.4g}x the surveyed distance "
+                f"(one distance: the median of range / distance): "
+                f"{_unit_hint(float(ratio[j]))}", path)
 
 
 def _check_determined(
