@@ -1108,3 +1108,47 @@ def test_interrupt_while_the_local_cluster_starts_ends_cleanly(sim, tmp_path):
         if proc.returncode == 130:
             assert "error: interrupted" in err and not out.exists()
     assert 130 in codes
+
+
+def test_track_dask_default_link_offsets_choose_once_on_the_client(scheduler, tmp_path,
+                                                                  capsys):
+    """``track`` without ``--link-offsets`` (auto, the default) and ``--engine dask``: the
+    choice is made once, on the dataset's first partition file, and every worker tracks
+    with it (each partition choosing for itself could give one log two models).  Eight
+    tags in a ring of six anchors whose ranges carry per-anchor offsets of 6 to 12 sigma:
+    the first file (tag t0 alone) chooses them, as the whole log does, and the rows equal
+    the single process's; the summary and the metadata name the choice and its sample."""
+    from test_track_link_offsets import LINK_B_M
+    from test_track_select import _walking_log, _write
+
+    from robustloc.tracking.select import choose_link_offsets
+
+    a, ep = _walking_log(4 * LINK_B_M, 1)
+    m, an = _write(tmp_path, a.assign(sigma=0.1), ep)
+    opts = ["--anchors", an, "--q", "0.05"]
+    assert main(["track", m, *opts, "-o", str(tmp_path / "ref.parquet"), "--json"]) == 0
+    want = json.loads(capsys.readouterr().out)
+    assert want["link_offsets_auto"]["used"] is True and "link_offset_m" in want
+    ds = tmp_path / "by_tag"
+    assert main(["partition", m, "-o", str(ds), "--by", "tag"]) == 0
+    first = sorted(ds.rglob("*.parquet"))[0]
+    one = ep.tag == "t0"
+    alone = choose_link_offsets(a.assign(sigma=0.1), type(ep)(
+        ep.time[one], ep.tag[one], ep.values[one], ep.anchor_ids, ep.value, ep.line[one]),
+        q=0.05)
+    assert alone.use and alone.t > alone.t_critical, alone
+    capsys.readouterr()
+    out = tmp_path / "t-dask"
+    assert main(["track", str(ds), *opts, "-o", str(out), "--engine", "dask",
+                 "--scheduler", scheduler, "--json"]) == 0
+    got = json.loads(capsys.readouterr().out)
+    auto = got["link_offsets_auto"]
+    assert auto["used"] is True and auto["sample"].endswith(first.name)
+    assert auto["t"] == pytest.approx(round(alone.t, 4), abs=1e-4)
+    assert got["link_offset_m"] == want["link_offset_m"]
+    meta = json.loads((out / "_robustloc.json").read_text())
+    assert meta["link_offsets_auto"] == auto
+    ref = pd.read_parquet(tmp_path / "ref.parquet").sort_values(["time", "tag"])
+    rows = _dataset(out).sort_values(["time", "tag"])
+    pd.testing.assert_frame_equal(rows.reset_index(drop=True), ref.reset_index(drop=True),
+                                  check_exact=True)

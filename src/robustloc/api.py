@@ -662,7 +662,7 @@ def track(
     range_offset: bool = False,
     range_offset_sd: float = 0.5,
     range_offset_q: float = 1e-4,
-    link_offsets: bool | Literal["on", "off", "auto"] = False,
+    link_offsets: bool | Literal["on", "off", "auto"] = "auto",
     link_offset_sd: float | None = None,
     link_offset_q: float = 0.0,
     noise_scale_min: float = 1.0,
@@ -698,8 +698,9 @@ def track(
         random-walk growth (``--link-offsets``; the summary's ``link_offset_db`` or
         ``link_offset_m`` gives each tag's final offsets).  Not with ``range_offset``.
         ``link_offsets`` takes ``True`` / ``False`` or the command's words ``"on"`` /
-        ``"off"``; ``"auto"``: the log's first epochs choose (``--link-offsets auto``;
-        the summary's ``link_offsets_auto`` says what and why).
+        ``"off"``; ``"auto"`` (the default): the log's first epochs choose
+        (``--link-offsets auto``; the summary's ``link_offsets_auto`` says what and why;
+        with ``range_offset`` they are left out).
 
     Returns
     -------

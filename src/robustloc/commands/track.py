@@ -37,7 +37,8 @@ RSSI (converted by the anchors' path-loss model to ranges with sigma_d = d ln10 
   noise        the measurement noise scale adapts within [--noise-scale-min, -max]
   offset       --range-offset: each tag's common range offset (a UWB antenna delay) as
                one more state, estimated with the track; --link-offsets: one offset per
-               link (dB of RSSI, m of ranges)
+               link (dB of RSSI, m of ranges); by default (auto) the log's first epochs
+               choose whether the links' offsets are estimated
   coasting     nothing heard: status `predicted`
   hpl          max_i |gain_i| MDB_i + k sigma_major, k from --integrity-risk (2-D); with
                nearly collinear anchors, plus the distance to the mirror solution across
@@ -109,6 +110,26 @@ def _check_anchors_on_client(args: argparse.Namespace) -> None:
     from robustloc.io import read_anchors
 
     _tag_height_needs_z(args.tag_height, read_anchors(args.anchors))
+
+
+def _resolve_auto_on_client(args: argparse.Namespace) -> dict | None:
+    """``--engine dask`` with ``--link-offsets auto`` (the default): the choice made once,
+    here, on the dataset's first partition file (path order; at most its first
+    :data:`~robustloc.tracking.select.AUTO_SAMPLE_EPOCHS` epochs), and handed to every
+    worker as ``on`` or ``off`` (each partition choosing for itself would give one log
+    two models).  Returns the choice for the summary, or None (not ``auto``)."""
+    if args.link_offsets != "auto":
+        return None
+    from robustloc.engines.dataset import discover, inspect, read_partition
+    from robustloc.io import read_anchors
+    from robustloc.pipelines.track import TrackSettings, resolve_link_offsets
+
+    first = discover(args.measurements, what="measurements dataset")[0]
+    inspect(first, ("time", "tag", "anchor"))  # the planner's checks and messages first
+    settings, choice = resolve_link_offsets(read_partition(first), read_anchors(args.anchors),
+                                            TrackSettings.from_namespace(args))
+    args.link_offsets = "on" if settings.link_offsets else "off"
+    return None if choice is None else {**choice.as_dict(), "sample": first.path}
 
 
 def _tag_height_needs_z(tag_height: float | None, anchors: pd.DataFrame) -> None:
@@ -221,28 +242,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--range-offset-q", type=nonnegative_float, default=d.range_offset_q,
                    help="random-walk variance growth of the offset "
                         f"(m^2/s, default {d.range_offset_q}; 0: constant)")
-    p.add_argument("--link-offsets", nargs="?", const="on", default="off",
+    p.add_argument("--link-offsets", nargs="?", const="on", default="auto",
                    choices=("on", "off", "auto"), metavar="{on,off,auto}",
-                   help="(alone: on) estimate an offset of each link (anchor) of each tag as "
-                        "one more state per anchor: dB added to its RSSI, or m added to its "
-                        "ranges (what the anchors' calibration misses where the tag walks); "
-                        "the summary gives each tag's final offsets.  Measured: ble-tetam "
-                        "0.77x -> 0.71x the default locate's RMS (the offsets it finds "
-                        "correlate 0.93 with the truth's); uwb-dwm1001 LOS 0.77 -> 0.55 m, "
-                        "NLOS 0.74 -> 0.61 m; uwb-labyrinth 0.215 -> 0.172 m; where there are"
-                        " no offsets it costs (simulated walk, 4 APs: 0.93x -> 1.25x the "
-                        "snapshot fixes' RMS); 4 + M states, M the anchors of the file: "
-                        "slower (bench_track.py: 85 k against 252 k tag-epochs/s with 8 "
-                        "anchors, 370 against 46 k on a site of 100).  auto (sites of at most"
-                        " 24 anchors; off beyond): the log's first 20 000 epochs tracked "
-                        "without and with the offsets choose (the offsets kept when their "
-                        "one-step predictions of the observations score better beyond chance:"
-                        " a batch-means t-test at 5 %%; robustloc.tracking.select); measured "
-                        "at the report's settings: on for ble-tetam, uwb-labyrinth and "
-                        "dwm1001 NLOS, off for dwm1001 LOS and 20 of 20 simulated walks (q "
-                        "3); at the default q 1, on for 7 of 20 walks, 5 of them worse: a --q"
-                        " too stiff for the motion lets the offsets absorb its lag "
-                        "(benchmarks/bench_link_choice.py).  Not with --range-offset")
+                   help="auto (the default): the log chooses; on (the option alone) or "
+                        "off: estimate, or not, an offset of each link (anchor) of each tag "
+                        "as one more state per anchor: dB added to its RSSI, or m added to "
+                        "its ranges (what the anchors' calibration misses where the tag "
+                        "walks); the summary gives each tag's final offsets.  Measured: "
+                        "ble-tetam 0.77x -> 0.71x the default locate's RMS (the offsets it "
+                        "finds correlate 0.93 with the truth's); uwb-dwm1001 LOS 0.77 -> "
+                        "0.55 m, NLOS 0.74 -> 0.61 m; uwb-labyrinth 0.215 -> 0.172 m; where "
+                        "there are none they cost (simulated walk, 4 APs: 0.93x -> 1.25x the "
+                        "snapshot fixes' RMS) and 4 + M states, M the anchors of the file, "
+                        "are slower (bench_track.py: 85 k against 252 k tag-epochs/s with 8 "
+                        "anchors).  auto: the log's first 20 000 epochs (with --engine dask, "
+                        "of the dataset's first partition file) tracked without and with "
+                        "them; they are kept when their one-step predictions of the "
+                        "observations score better beyond chance (a batch-means t-test at "
+                        "0.1 %%: robustloc.tracking.select; the summary's line says which "
+                        "and why); off on sites of more than 24 anchors, on logs of fewer "
+                        "than 20 observations per anchor, and with --range-offset.  Measured:"
+                        " on for ble-tetam and uwb-labyrinth, off for 20 of 20 simulated "
+                        "walks (benchmarks/bench_link_choice.py)")
     p.add_argument("--link-offset-sd", type=sigma_value, default=None,
                    help="a-priori std of each link's offset at a tag's start, in the "
                         "measurement's unit (default 1 dB for RSSI, 0.1 m for ranges)")
@@ -361,14 +382,11 @@ def run(args: argparse.Namespace) -> int:
         from robustloc.engines.dask import run_tagwise
 
         _check_anchors_on_client(args)
-        if args.link_offsets == "auto":
-            raise InputError("--link-offsets auto chooses once on the whole log; each Dask "
-                             "partition would choose for itself: choose with a local run "
-                             "(its summary says on or off), then give --link-offsets on "
-                             "or off", "--link-offsets")
+        keys = {"measurements": str(args.measurements), "track": str(args.out)}
+        if (choice := _resolve_auto_on_client(args)) is not None:
+            keys["link_offsets_auto"] = choice
         return run_tagwise(args, track_partition, "track", file_fn=track_partition_file,
-                           local_keys={"measurements": str(args.measurements),
-                                       "track": str(args.out)})
+                           local_keys=keys)
     summary = track_file(args)
     draw_plot(args)
     from robustloc.commands._summary import summary_head, timing_text

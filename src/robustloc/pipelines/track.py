@@ -52,9 +52,10 @@ class TrackSettings:
     (same names and defaults; ``kernel`` is its ``engine``, the compiled kernels or the
     NumPy reference); ``smooth``, ``fixed_lag`` (RTS smoothing over the whole log, or over
     the next ``fixed_lag`` epochs of each tag) and ``chunk_rows`` (rows read per chunk)
-    are the workflow's.  ``link_offsets="auto"`` lets the log choose
+    are the workflow's.  ``link_offsets="auto"`` (the default) lets the log choose
     (:func:`robustloc.tracking.select.choose_link_offsets`; :func:`run_track` resolves it
-    before tracking).
+    before tracking); :class:`~robustloc.tracking.Tracker` itself, a filter fed epoch by
+    epoch with no log to look at, has them off unless told.
     """
 
     model: str = option("cv", choices=("cv", "ca", "static"), flag="--model/--motion")
@@ -77,7 +78,7 @@ class TrackSettings:
     range_offset: bool = False
     range_offset_sd: float = option(0.5, check=positive_float)
     range_offset_q: float = option(1e-4, check=nonnegative_float)
-    link_offsets: bool | str = option(False, choices=(False, True, "auto"),
+    link_offsets: bool | str = option("auto", choices=(False, True, "auto"),
                                       synonyms={"on": True, "off": False})
     link_offset_sd: float | None = option(None, check=positive_float)
     link_offset_q: float = option(0.0, check=nonnegative_float)
@@ -85,7 +86,8 @@ class TrackSettings:
 
     def __post_init__(self) -> None:
         check_settings(self)
-        if self.range_offset and self.link_offsets is not False:
+        # (``auto``, the default, with the common offset: the links' are left out)
+        if self.range_offset and self.link_offsets is True:
             raise InputError("--range-offset and --link-offsets exclude each other: the "
                              "links' offsets include the common one (their mean); choose "
                              "one")
