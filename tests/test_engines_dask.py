@@ -1113,18 +1113,26 @@ def test_interrupt_while_the_local_cluster_starts_ends_cleanly(sim, tmp_path):
 def test_track_dask_default_link_offsets_choose_once_on_the_client(scheduler, tmp_path,
                                                                   capsys):
     """``track`` without ``--link-offsets`` (auto, the default) and ``--engine dask``: the
-    choice is made once, on the dataset's first partition file, and every worker tracks
-    with it (each partition choosing for itself could give one log two models).  Eight
-    tags in a ring of six anchors whose ranges carry per-anchor offsets of 6 to 12 sigma:
-    the first file (tag t0 alone) chooses them, as the whole log does, and the rows equal
-    the single process's; the summary and the metadata name the choice and its sample."""
+    choice is made once, on the client, and every worker tracks with it (each partition
+    choosing for itself could give one log two models).  Eight tags in a ring of six
+    anchors whose ranges carry per-anchor offsets of 6 to 12 sigma, and a stray tag of
+    three epochs whose partition comes first in path order: the client reads partitions
+    until it has the sample's epochs (here all of them) and sorts them by time, so its
+    choice is the single process's to the digit, and so are the rows.  The first
+    partition alone (3 epochs) chose "off" for every tag (the default's review: rows up
+    to 47 m apart on ble-tetam).  An empty partition file first is skipped, as the
+    planner skips it (it failed the run)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
     from test_track_link_offsets import LINK_B_M
     from test_track_select import _walking_log, _write
 
-    from robustloc.tracking.select import choose_link_offsets
-
     a, ep = _walking_log(4 * LINK_B_M, 1)
     m, an = _write(tmp_path, a.assign(sigma=0.1), ep)
+    log = pd.read_csv(m)
+    stray = log[log["time"] >= log["time"].max() - 1.0].assign(tag="00_stray")
+    assert stray["time"].nunique() == 3
+    pd.concat([stray, log]).to_csv(m, index=False)
     opts = ["--anchors", an, "--q", "0.05"]
     assert main(["track", m, *opts, "-o", str(tmp_path / "ref.parquet"), "--json"]) == 0
     want = json.loads(capsys.readouterr().out)
@@ -1132,23 +1140,27 @@ def test_track_dask_default_link_offsets_choose_once_on_the_client(scheduler, tm
     ds = tmp_path / "by_tag"
     assert main(["partition", m, "-o", str(ds), "--by", "tag"]) == 0
     first = sorted(ds.rglob("*.parquet"))[0]
-    one = ep.tag == "t0"
-    alone = choose_link_offsets(a.assign(sigma=0.1), type(ep)(
-        ep.time[one], ep.tag[one], ep.values[one], ep.anchor_ids, ep.value, ep.line[one]),
-        q=0.05)
-    assert alone.use and alone.t > alone.t_critical, alone
+    assert "00_stray" in str(first)
+    empty = ds / "tag=000_empty" / "part-0.parquet"
+    empty.parent.mkdir()
+    pq.write_table(pa.Table.from_pandas(pd.read_parquet(first).iloc[:0],
+                                        preserve_index=False), empty)
     capsys.readouterr()
     out = tmp_path / "t-dask"
     assert main(["track", str(ds), *opts, "-o", str(out), "--engine", "dask",
                  "--scheduler", scheduler, "--json"]) == 0
     got = json.loads(capsys.readouterr().out)
-    auto = got["link_offsets_auto"]
-    assert auto["used"] is True and auto["sample"].endswith(first.name)
-    assert auto["t"] == pytest.approx(round(alone.t, 4), abs=1e-4)
+    auto = dict(got["link_offsets_auto"])
+    sample = auto.pop("sample")
+    assert len(sample) == 9 and not any("000_empty" in f for f in sample)
+    assert auto == want["link_offsets_auto"]
     assert got["link_offset_m"] == want["link_offset_m"]
     meta = json.loads((out / "_robustloc.json").read_text())
-    assert meta["link_offsets_auto"] == auto
+    assert meta["link_offsets_auto"] == got["link_offsets_auto"]
     ref = pd.read_parquet(tmp_path / "ref.parquet").sort_values(["time", "tag"])
     rows = _dataset(out).sort_values(["time", "tag"])
+    # the stray tag's epochs are updated in a batch of other tags in one process and of
+    # its own on its worker: equal to rounding (measured 1e-14 m; 1e-12 relative is
+    # ~4 500 ulp), where a model chosen differently moves rows by metres
     pd.testing.assert_frame_equal(rows.reset_index(drop=True), ref.reset_index(drop=True),
-                                  check_exact=True)
+                                  check_exact=False, rtol=1e-12, atol=1e-12)

@@ -197,8 +197,9 @@ def test_api_track_link_offsets_auto(tmp_path):
     got = robustloc.track(m, an, q=0.05, link_offsets="auto")
     auto = got.attrs["summary"]["link_offsets_auto"]
     assert auto["used"] is False and auto["observations"] > 0
-    want = robustloc.track(m, an, q=0.05)
+    want = robustloc.track(m, an, q=0.05, link_offsets=False)  # (auto is the default)
     pd.testing.assert_frame_equal(got, want)
+    assert "link_offsets_auto" not in want.attrs["summary"]
     with pytest.raises(InputError, match="link"):
         robustloc.track(m, an, link_offsets="sometimes")
 
@@ -258,3 +259,36 @@ def test_auto_leaves_out_offsets_that_only_absorb_a_stiff_models_lag(seed):
     c = choose_link_offsets(data.anchors, ep)
     assert c.t_critical == pytest.approx(student_t.ppf(0.999, 19), rel=1e-12)
     assert 2.5 < c.t < c.t_critical and not c.use, c
+
+
+def test_auto_chooses_on_the_order_it_tracks(tmp_path, monkeypatch):
+    """Several logs one after another (each in time order) are sorted when the disorder
+    shows, and ``auto`` chooses on the first epochs of the sorted log, as for the same
+    rows sorted: the same choice and the same rows.  Eight tags without offsets, then
+    the same times for eight tags whose anchors read 6 to 12 sigma off: with the sample
+    shortened to 300 epochs and chunks of 600 rows (100 epochs), the first 300 epochs of
+    the file as written are the clean tags' alone (the choice was made there, off at t
+    -4.3, and kept after the sort: the default's review), those of the sorted log mix
+    both (on, t 14.9)."""
+    import robustloc
+    import robustloc.tracking.select as sel
+
+    a, clean = _walking_log(0 * LINK_B_M, 1)
+    _, biased = _walking_log(4 * LINK_B_M, 2)
+    m1, an = _write(tmp_path, a.assign(sigma=0.1), clean)
+    (tmp_path / "b").mkdir()
+    m2, _ = _write(tmp_path / "b", a.assign(sigma=0.1), biased)
+    one, two = pd.read_csv(m1), pd.read_csv(m2)
+    two["tag"] = "b" + two["tag"].astype(str)
+    after = pd.concat([one, two], ignore_index=True)  # the clean log, then the other
+    after.to_csv(tmp_path / "after.csv", index=False)
+    after.sort_values(["time", "tag"], kind="stable").to_csv(tmp_path / "sorted.csv",
+                                                             index=False)
+    monkeypatch.setattr(sel, "AUTO_SAMPLE_EPOCHS", 300)
+    got = {name: robustloc.track(tmp_path / f"{name}.csv", an, q=0.05, chunk_rows=600)
+           for name in ("after", "sorted")}
+    s = {k: v.attrs["summary"] for k, v in got.items()}
+    assert s["after"]["sorted_first"] and not s["sorted"]["sorted_first"]
+    assert s["sorted"]["link_offsets_auto"]["used"] is True
+    assert s["after"]["link_offsets_auto"] == s["sorted"]["link_offsets_auto"]
+    pd.testing.assert_frame_equal(got["after"], got["sorted"])

@@ -7,7 +7,7 @@ The command line over :mod:`robustloc.pipelines.track` (options parsed into its
 from __future__ import annotations
 
 import argparse
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import pandas as pd
 
@@ -112,24 +112,53 @@ def _check_anchors_on_client(args: argparse.Namespace) -> None:
     _tag_height_needs_z(args.tag_height, read_anchors(args.anchors))
 
 
-def _resolve_auto_on_client(args: argparse.Namespace) -> dict | None:
-    """``--engine dask`` with ``--link-offsets auto`` (the default): the choice made once,
-    here, on the dataset's first partition file (path order; at most its first
-    :data:`~robustloc.tracking.select.AUTO_SAMPLE_EPOCHS` epochs), and handed to every
-    worker as ``on`` or ``off`` (each partition choosing for itself would give one log
-    two models).  Returns the choice for the summary, or None (not ``auto``)."""
+def _resolve_auto_on_client(args: argparse.Namespace, infos: list) -> dict:
+    """``--engine dask`` with ``--link-offsets auto`` (the default), once the planner has
+    checked every partition (``infos``, in path order): the choice made once, here, and
+    handed to every worker as ``on`` or ``off`` (each partition choosing for itself
+    would give one log two models).  Its sample: the partition files in path order,
+    empty ones skipped, each read and sorted as the single process reads a file, until
+    :data:`~robustloc.tracking.select.AUTO_SAMPLE_EPOCHS` epochs, then sorted by time
+    (a tag's rows stay in order).  Returns the summary's ``link_offsets_auto``
+    (``sample``: the files read), or nothing (not ``auto``)."""
     if args.link_offsets != "auto":
-        return None
-    from robustloc.engines.dataset import discover, inspect, read_partition
-    from robustloc.io import read_anchors
-    from robustloc.pipelines.track import TrackSettings, resolve_link_offsets
+        return {}
+    from robustloc.engines.dataset import read_partition
+    from robustloc.io import iter_epochs, read_anchors
+    from robustloc.pipelines.track import TrackSettings, _joined, resolve_link_offsets
+    from robustloc.tracking.select import AUTO_SAMPLE_EPOCHS
 
-    first = discover(args.measurements, what="measurements dataset")[0]
-    inspect(first, ("time", "tag", "anchor"))  # the planner's checks and messages first
-    settings, choice = resolve_link_offsets(read_partition(first), read_anchors(args.anchors),
-                                            TrackSettings.from_namespace(args))
+    anchors = read_anchors(args.anchors)
+    settings = TrackSettings.from_namespace(args)
+    files: list[str] = []
+    blocks, n = [], 0
+    for part in [i.part for i in infos if i.n_rows]:  # (as the planner skips empty ones)
+        files.append(part.path)
+        for block in iter_epochs(read_partition(part), anchors,
+                                 chunk_rows=settings.chunk_rows, order="sort"):
+            blocks.append(block)
+            n += block.n_epochs
+        if n >= AUTO_SAMPLE_EPOCHS:
+            break
+    # in time order, as the single process reads the log: a dataset of fewer epochs
+    # gives its sample exactly (the test's batches follow the rows' order)
+    sample = [_by_time(_joined(blocks))] if n else []
+    settings, choice, _ = resolve_link_offsets(iter(sample), anchors, settings,
+                                               args.measurements)
     args.link_offsets = "on" if settings.link_offsets else "off"
-    return None if choice is None else {**choice.as_dict(), "sample": first.path}
+    return {} if choice is None else {"link_offsets_auto": {**choice.as_dict(),
+                                                           "sample": files}}
+
+
+def _by_time(ep: Any) -> Any:
+    """Epochs sorted by (time, tag), stably (each tag's rows keep their order)."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    k = np.lexsort((ep.tag.astype(str), ep.time))
+    return replace(ep, time=ep.time[k], tag=ep.tag[k], values=ep.values[k], line=ep.line[k],
+                   n_invalid=None if ep.n_invalid is None else ep.n_invalid[k])
 
 
 def _tag_height_needs_z(tag_height: float | None, anchors: pd.DataFrame) -> None:
@@ -256,14 +285,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "snapshot fixes' RMS) and 4 + M states, M the anchors of the file, "
                         "are slower (bench_track.py: 85 k against 252 k tag-epochs/s with 8 "
                         "anchors).  auto: the log's first 20 000 epochs (with --engine dask, "
-                        "of the dataset's first partition file) tracked without and with "
-                        "them; they are kept when their one-step predictions of the "
-                        "observations score better beyond chance (a batch-means t-test at "
-                        "0.1 %%: robustloc.tracking.select; the summary's line says which "
-                        "and why); off on sites of more than 24 anchors, on logs of fewer "
-                        "than 20 observations per anchor, and with --range-offset.  Measured:"
-                        " on for ble-tetam and uwb-labyrinth, off for 20 of 20 simulated "
-                        "walks (benchmarks/bench_link_choice.py)")
+                        "of the partition files in path order, sorted by time) tracked "
+                        "without and with them; they are kept when their one-step "
+                        "predictions of the observations score better beyond chance (a "
+                        "batch-means t-test at 0.1 %%: robustloc.tracking.select; the "
+                        "summary's line says which and why); off on sites of more than 24 "
+                        "anchors, with fewer than 20 x M observations in those epochs (M "
+                        "anchors), and with --range-offset.  Measured: on for ble-tetam and "
+                        "uwb-labyrinth, off for 20 of 20 simulated walks "
+                        "(benchmarks/bench_link_choice.py)")
     p.add_argument("--link-offset-sd", type=sigma_value, default=None,
                    help="a-priori std of each link's offset at a tag's start, in the "
                         "measurement's unit (default 1 dB for RSSI, 0.1 m for ranges)")
@@ -382,11 +412,10 @@ def run(args: argparse.Namespace) -> int:
         from robustloc.engines.dask import run_tagwise
 
         _check_anchors_on_client(args)
-        keys = {"measurements": str(args.measurements), "track": str(args.out)}
-        if (choice := _resolve_auto_on_client(args)) is not None:
-            keys["link_offsets_auto"] = choice
         return run_tagwise(args, track_partition, "track", file_fn=track_partition_file,
-                           local_keys=keys)
+                           local_keys={"measurements": str(args.measurements),
+                                       "track": str(args.out)},
+                           prepare=lambda infos: _resolve_auto_on_client(args, infos))
     summary = track_file(args)
     draw_plot(args)
     from robustloc.commands._summary import summary_head, timing_text

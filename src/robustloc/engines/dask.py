@@ -623,7 +623,8 @@ def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
                 input_attr: str = "measurements",
                 file_fn: Callable[[argparse.Namespace], dict] | None = None,
                 local_keys: dict | None = None,
-                combine: Callable[[list[dict]], dict] | None = None) -> int:
+                combine: Callable[[list[dict]], dict] | None = None,
+                prepare: Callable[[list[PartitionInfo]], dict] | None = None) -> int:
     """Apply ``kernel`` to each tag group of the dataset ``args.<input_attr>``.
 
     Parameters
@@ -657,6 +658,11 @@ def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
         sums (``filter``: the share of down-weighted samples, the spread of raw minus
         filtered RSSI), from every group's counts before they are summed; it removes the
         private keys it used from each group's counts.
+    prepare : callable, optional
+        ``prepare(infos) -> dict``, called on the client once the partitions are planned
+        (every planner check passed; ``infos`` in path order, empty files included): it
+        may set ``args`` that every task then gets (``track``'s ``--link-offsets auto``,
+        chosen once) and returns further keys of the summary.
 
     The summary (``--json``, ``_robustloc.json``) holds the Dask keys (``command``,
     ``engine``, ``input``, ``out``, ``partitions``, ``workers``, ``rows_out``,
@@ -682,6 +688,8 @@ def run_tagwise(args: argparse.Namespace, kernel: TagKernel, name: str,
                       "by tag first (robustloc partition INPUT -o DATASET --by tag)",
                       file=sys.stderr)
             _say(args, f"{name}: {len(groups)} tag groups on {n_workers} workers")
+            if prepare is not None:  # (before the settings are handed to the tasks)
+                local_keys = {**(local_keys or {}), **prepare(infos)}
             settings = _settings(args)
             futs = []
             for k, g in enumerate(groups):

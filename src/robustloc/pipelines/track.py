@@ -184,15 +184,18 @@ def run_track(
     # the notice when numba starts compiling a kernel the cache lacks (any model, filter
     # or option: `--model ca` compiled 25 s unannounced), and the time it takes
     with compile_watch("tracker and filter", announce=progress) as jit:
-        settings, choice = resolve_link_offsets(measurements, anchors, settings)
+        # (``auto`` is chosen inside each pass, on the first epochs of the very order it
+        # tracks: a log whose disorder shows only after them is sorted, and chosen on
+        # again -- the rows of several tags' logs one after another and of the same rows
+        # sorted were tracked with two models: the default's review)
         hpl = HplTally()
         try:
-            trk, frame, n_epochs, counts, hist, resorted, tally = _one_pass(
-                measurements, anchors, settings, out, "auto", progress, hpl)
+            (trk, frame, n_epochs, counts, hist, resorted, tally, settings,
+             choice) = _one_pass(measurements, anchors, settings, out, "auto", progress, hpl)
         except UnsortedInput:
             hpl = HplTally()
-            trk, frame, n_epochs, counts, hist, resorted, tally = _one_pass(
-                measurements, anchors, settings, out, "sort", progress, hpl)
+            (trk, frame, n_epochs, counts, hist, resorted, tally, settings,
+             choice) = _one_pass(measurements, anchors, settings, out, "sort", progress, hpl)
     if hpl_tally is not None:
         hpl_tally.merge(hpl)
     wall = _time.perf_counter() - t0
@@ -225,46 +228,38 @@ def run_track(
     return frame, summary
 
 
-def resolve_link_offsets(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
-                         ) -> tuple[TrackSettings, Any]:
-    """``link_offsets="auto"``: the settings with the choice the log's first epochs make
-    (:func:`robustloc.tracking.select.choose_link_offsets`, at most
-    :data:`~robustloc.tracking.select.AUTO_SAMPLE_EPOCHS`), and that choice; other
-    settings unchanged, with ``None``."""
+def resolve_link_offsets(blocks: Any, anchors: pd.DataFrame, settings: TrackSettings,
+                         source: Any = None) -> tuple[TrackSettings, Any, list]:
+    """``link_offsets="auto"``: the settings with the choice that the first epochs of
+    ``blocks`` make (:func:`robustloc.tracking.select.choose_link_offsets`, at most
+    :data:`~robustloc.tracking.select.AUTO_SAMPLE_EPOCHS`; the blocks as a pass reads
+    them), that choice, and the blocks read for it (to be tracked first: the log is read
+    once).  Other settings: unchanged, ``None`` and no blocks read.
+    """
     from dataclasses import replace
 
-    from robustloc.io import iter_epochs
-    from robustloc.io.tables import UnsortedInput
     from robustloc.tracking.select import AUTO_SAMPLE_EPOCHS, choose_link_offsets
 
     if settings.link_offsets != "auto":
-        return settings, None
-
-    def sample(order: str) -> list:
-        blocks, n = [], 0
-        for block in iter_epochs(measurements, anchors, chunk_rows=settings.chunk_rows,
-                                 order=order):
-            blocks.append(block)
-            n += block.n_epochs
-            if n >= AUTO_SAMPLE_EPOCHS:
-                break
-        return blocks
-
-    try:
-        blocks = sample("auto")
-    except UnsortedInput:
-        blocks = sample("sort")
-    if not blocks:
-        return replace(settings, link_offsets=False), None
+        return settings, None, []
+    head, n = [], 0
+    for block in blocks:
+        head.append(block)
+        n += block.n_epochs
+        if n >= AUTO_SAMPLE_EPOCHS:
+            break
+    if not n:
+        return replace(settings, link_offsets=False), None, head
     opts = settings.tracker_options()
     opts.pop("link_offsets")
-    for block in blocks:  # as the tracking pass refuses them (track_blocks)
-        _refuse_block_options(block, settings, measurements)
+    for block in head:  # as the tracking pass refuses them (track_blocks)
+        _refuse_block_options(block, settings, source)
     try:
-        choice = choose_link_offsets(anchors, _joined(blocks), **opts)
+        choice = choose_link_offsets(anchors, _joined([b for b in head if b.n_epochs]),
+                                     **opts)
     except (ValueError, TypeError) as exc:  # (the tracker's own checks)
         raise InputError(str(exc)) from None
-    return replace(settings, link_offsets=choice.use), choice
+    return replace(settings, link_offsets=choice.use), choice, head
 
 
 def link_offset_key(trk: Any) -> str:
@@ -340,6 +335,8 @@ def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
     to be in time order (the caller sorts and starts again).  ``hpl_tally``: as
     :func:`track_blocks`'."""
     import contextlib
+    import itertools
+    from dataclasses import replace
 
     from tqdm import tqdm
 
@@ -347,10 +344,13 @@ def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
     from robustloc.io.atomic import atomic_output
     from robustloc.io.tables import is_parquet
 
-    trk = settings.tracker(anchors)
+    # the tracker's own checks before any reading, as without ``auto``
+    trk = (replace(settings, link_offsets=False) if settings.link_offsets == "auto"
+           else settings).tracker(anchors)
     hist: dict[str, int] = {}
     tally: dict[str, int] = {}
     resorted = [order == "sort"]
+    choice = None
     bar = tqdm(unit=" epochs", disable=not progress or not sys.stderr.isatty(),
                file=sys.stderr)
     opened = atomic_output(out) if out is not None else contextlib.nullcontext((None, None))
@@ -362,6 +362,11 @@ def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
                 blocks = _noting_sort(iter_epochs(
                     measurements, anchors, chunk_rows=settings.chunk_rows, order=order),
                     resorted)
+                settings, choice, head = resolve_link_offsets(blocks, anchors, settings,
+                                                              measurements)
+                blocks = itertools.chain(head, blocks)
+                if settings.link_offsets:
+                    trk = settings.tracker(anchors)
                 table, n, status_counts = track_blocks(
                     trk, blocks, settings, None if writer is None else writer.write,
                     bar.update, hist, source=measurements, tally=tally,
@@ -376,7 +381,8 @@ def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
                     write_table(table, target, parquet=is_parquet(out))
     finally:
         bar.close()
-    return (trk, table if out is None else None, n, status_counts, hist, resorted[0], tally)
+    return (trk, table if out is None else None, n, status_counts, hist, resorted[0], tally,
+            settings, choice)
 
 
 def _noting_sort(blocks: Any, resorted: list[bool]) -> Any:
