@@ -129,9 +129,11 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
    -> 0.61 m; uwb-labyrinth 0.215 -> 0.172 m (after ``calibrate --self`` 0.139 -> 0.148
    m: the calibration had removed the offsets).  Where there are no offsets to find it
    costs accuracy: the simulated wifi-room walk (4 access points, an exact path-loss
-   model) 0.93x -> 1.25x the snapshot fixes' RMS.  An option, not the default (``4 +
+   model) 0.93x -> 1.25x the snapshot fixes' RMS.  Off in this filter unless told (``4 +
    M`` states cost time: ``benchmarks/bench_track.py``, 8 anchors, EKF 38 k tag-epochs per
-   second compiled, 24 k on NumPy, against 144 k without them).
+   second compiled, 24 k on NumPy, against 144 k without them); ``robustloc track`` and
+   :func:`robustloc.track`, which read the log first, let it choose by default
+   (``link_offsets="auto"``, :mod:`robustloc.tracking.select`).
 
 12. **A position the ranges do not fix.**  One range says how far the tag is from its
    anchor, not where on that circle it is; the EKF's covariance, linearized at a point
