@@ -292,3 +292,35 @@ def test_auto_chooses_on_the_order_it_tracks(tmp_path, monkeypatch):
     assert s["sorted"]["link_offsets_auto"]["used"] is True
     assert s["after"]["link_offsets_auto"] == s["sorted"]["link_offsets_auto"]
     pd.testing.assert_frame_equal(got["after"], got["sorted"])
+
+
+def test_the_sample_is_scored_in_pieces_with_the_same_scores(monkeypatch):
+    """The trial tracks its sample in pieces and drops each piece's recorded history
+    (``Tracker.forget_record``: bounded memory); the rows' scores are those of one
+    recording over the whole sample, to the bit, and so is the choice.  After
+    ``forget_record`` the score covers only the later steps, numbered from 0."""
+    import robustloc.tracking.select as sel
+
+    a, ep = _walking_log(4 * LINK_B_M, 1)
+    whole = Tracker(a, sigma=0.1, q=0.05, record=True, link_offsets=True)
+    whole.step(ep)
+    r_all, c_all = whole.predictive_score(ep.values)
+    cut = int(np.flatnonzero(np.diff(ep.time) > 0)[60]) + 1  # where the time changes
+    trk = Tracker(a, sigma=0.1, q=0.05, record=True, link_offsets=True)
+    first = type(ep)(ep.time[:cut], ep.tag[:cut], ep.values[:cut], ep.anchor_ids,
+                     ep.value, ep.line[:cut])
+    rest = type(ep)(ep.time[cut:], ep.tag[cut:], ep.values[cut:], ep.anchor_ids, ep.value,
+                    ep.line[cut:])
+    trk.step(first)
+    trk.forget_record()
+    trk.step(rest)
+    r, c = trk.predictive_score(rest.values)
+    np.testing.assert_array_equal(r, r_all[cut:])
+    np.testing.assert_array_equal(c, c_all[cut:])
+    with pytest.raises(ValueError, match="recorded rows"):
+        trk.predictive_score(ep.values)
+    choices = []
+    for piece in (10**9, 97):
+        monkeypatch.setattr(sel, "AUTO_SCORE_PIECE", piece)
+        choices.append(choose_link_offsets(a, ep, sigma=0.1, q=0.05))
+    assert choices[0] == choices[1] and choices[0].use, choices

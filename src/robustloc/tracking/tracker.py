@@ -2149,6 +2149,15 @@ class Tracker:
         count[rows] = n_ok
         return score, count
 
+    def forget_record(self) -> None:
+        """Drop what a recording tracker (``record=True``) has recorded: its filter states
+        are kept, and :meth:`predictive_score` and :meth:`smoothed` then cover the steps
+        after this call, their rows numbered from 0 again.  For scoring a long log in
+        pieces with bounded memory (the history holds two covariance matrices per row:
+        20 000 rows of 24 anchors are about 250 MB)."""
+        self._history = []
+        self._rows_recorded = 0
+
     def smoothed(self, n_rows: int, lag: int | None = None) -> tuple[Array, Array]:
         """Rauch-Tung-Striebel smoothing of the recorded forward pass (``record=True``).
 
