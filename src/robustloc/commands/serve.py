@@ -203,7 +203,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "the service then locates from ranges only")
     p.add_argument("--track-link-offsets", action="store_true",
                    help="--track: estimate an offset of each link of each tag (dB of RSSI, m "
-                        "of ranges) as states, as robustloc track --link-offsets")
+                        "of ranges) as states, as robustloc track --link-offsets on.  Off "
+                        "without it: robustloc track lets a log's first 20 000 epochs "
+                        "choose (its default, --link-offsets auto), and a live stream has "
+                        "no log to look at before its first fix; run track on a day's "
+                        "log to see what it chooses (the summary's line)")
     p.add_argument("--dim", type=int, choices=(2, 3), default=2,
                    help="solve in 2-D or 3-D (default %(default)s)")
     p.add_argument("--solver", choices=("nonlinear", "linearized"), default="nonlinear",
