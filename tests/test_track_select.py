@@ -324,3 +324,24 @@ def test_the_sample_is_scored_in_pieces_with_the_same_scores(monkeypatch):
         monkeypatch.setattr(sel, "AUTO_SCORE_PIECE", piece)
         choices.append(choose_link_offsets(a, ep, sigma=0.1, q=0.05))
     assert choices[0] == choices[1] and choices[0].use, choices
+
+
+def test_the_trial_reports_its_progress(tmp_path, monkeypatch):
+    """The trial tracks its sample twice (without and with the offsets), in pieces: the
+    progress callback is told each piece's epochs, twice the sample's in all; on a
+    terminal ``track`` draws a bar named after the option, and ``-q`` silences it."""
+    from test_cli_quiet import _stderr_on_a_terminal
+
+    import robustloc.tracking.select as sel
+
+    a, ep = _walking_log(4 * LINK_B_M, 1)
+    monkeypatch.setattr(sel, "AUTO_SCORE_PIECE", 300)
+    seen: list[int] = []
+    choose_link_offsets(a, ep, progress=seen.append, sigma=0.1, q=0.05)
+    assert sum(seen) == 2 * ep.n_epochs and len(seen) >= 2 * (ep.n_epochs // 300), seen
+    m, an = _write(tmp_path, a.assign(sigma=0.1), ep)
+    args = ["track", m, "--anchors", an, "--q", "0.05"]
+    loud = _stderr_on_a_terminal([*args, "-o", str(tmp_path / "a.csv")])
+    assert "--link-offsets auto (both ways)" in loud and f"{2 * ep.n_epochs}/" in loud, loud
+    quiet = _stderr_on_a_terminal([*args, "-o", str(tmp_path / "b.csv"), "-q"])
+    assert "link-offsets auto (both" not in quiet, quiet

@@ -229,12 +229,14 @@ def run_track(
 
 
 def resolve_link_offsets(blocks: Any, anchors: pd.DataFrame, settings: TrackSettings,
-                         source: Any = None) -> tuple[TrackSettings, Any, list]:
+                         source: Any = None, progress: bool = False,
+                         ) -> tuple[TrackSettings, Any, list]:
     """``link_offsets="auto"``: the settings with the choice that the first epochs of
     ``blocks`` make (:func:`robustloc.tracking.select.choose_link_offsets`, at most
     :data:`~robustloc.tracking.select.AUTO_SAMPLE_EPOCHS`; the blocks as a pass reads
     them), that choice, and the blocks read for it (to be tracked first: the log is read
-    once).  Other settings: unchanged, ``None`` and no blocks read.
+    once).  Other settings: unchanged, ``None`` and no blocks read.  ``progress``: a bar
+    of the trial's epochs on a terminal.
     """
     from dataclasses import replace
 
@@ -254,11 +256,16 @@ def resolve_link_offsets(blocks: Any, anchors: pd.DataFrame, settings: TrackSett
     opts.pop("link_offsets")
     for block in head:  # as the tracking pass refuses them (track_blocks)
         _refuse_block_options(block, settings, source)
-    try:
-        choice = choose_link_offsets(anchors, _joined([b for b in head if b.n_epochs]),
-                                     **opts)
-    except (ValueError, TypeError) as exc:  # (the tracker's own checks)
-        raise InputError(str(exc)) from None
+    from tqdm import tqdm
+
+    sample = _joined([b for b in head if b.n_epochs])
+    with tqdm(total=2 * min(sample.n_epochs, AUTO_SAMPLE_EPOCHS), unit=" epochs",
+              desc="--link-offsets auto (both ways)", file=sys.stderr,
+              disable=not progress or not sys.stderr.isatty()) as bar:
+        try:
+            choice = choose_link_offsets(anchors, sample, progress=bar.update, **opts)
+        except (ValueError, TypeError) as exc:  # (the tracker's own checks)
+            raise InputError(str(exc)) from None
     return replace(settings, link_offsets=choice.use), choice, head
 
 
@@ -363,7 +370,7 @@ def _one_pass(measurements: Any, anchors: pd.DataFrame, settings: TrackSettings,
                     measurements, anchors, chunk_rows=settings.chunk_rows, order=order),
                     resorted)
                 settings, choice, head = resolve_link_offsets(blocks, anchors, settings,
-                                                              measurements)
+                                                              measurements, progress)
                 blocks = itertools.chain(head, blocks)
                 if settings.link_offsets:
                     trk = settings.tracker(anchors)

@@ -35,6 +35,7 @@ the lag out of the comparison.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -156,7 +157,8 @@ def _pieces(time: NDArray[np.float64], size: int) -> list[int]:
     return cuts + [N]
 
 
-def choose_link_offsets(anchors: pd.DataFrame, epochs: Any, **options: Any,
+def choose_link_offsets(anchors: pd.DataFrame, epochs: Any,
+                        progress: Callable[[int], Any] | None = None, **options: Any,
                         ) -> LinkOffsetChoice:
     """Track the log's first epochs without and with the links' offsets and keep the
     model whose one-step predictions score better (the module docstring).
@@ -167,6 +169,9 @@ def choose_link_offsets(anchors: pd.DataFrame, epochs: Any, **options: Any,
         The anchors, as for :class:`~robustloc.tracking.Tracker`.
     epochs : :class:`robustloc.io.tables.Epochs`
         The log (time-sorted per tag); its first :data:`AUTO_SAMPLE_EPOCHS` are used.
+    progress : callable, optional
+        Called with the epochs of each piece tracked (both runs: twice the sample's
+        epochs in all), for a progress bar.
     **options
         The tracker's other settings (``model``, ``filter``, ``q``, ...), the same for
         both runs; ``link_offsets`` is not one of them.
@@ -202,6 +207,8 @@ def choose_link_offsets(anchors: pd.DataFrame, epochs: Any, **options: Any,
             trk.step(piece)
             parts.append(trk.predictive_score(piece.values))
             trk.forget_record()
+            if progress is not None:
+                progress(piece.n_epochs)
         scores.append((np.concatenate([r for r, _ in parts]),
                        np.concatenate([c for _, c in parts])))
     (r0, c0), (r1, c1) = scores
