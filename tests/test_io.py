@@ -394,3 +394,36 @@ def test_parquet_is_streamed_without_pre_buffering(tmp_path, monkeypatch):
                           df["range"].to_numpy())
     _parquet_file(Partition(str(path)))
     assert opened and all(v is False for v in opened), opened
+
+
+def test_epochs_take_and_concat_keep_every_row_field_together():
+    """``Epochs.take`` reorders (or slices) time, tag, values, line and n_invalid alike;
+    ``Epochs.concat`` joins blocks in order, sums ``n_duplicates`` and keeps ``resorted``
+    if any block has it.  Checked against the frame the epochs came from."""
+    import numpy as np
+
+    from robustloc.io.tables import Epochs, to_epochs
+
+    log = pd.DataFrame({"time": [0.0, 0.0, 1.0, 1.0, 2.0, 2.0, 2.0],
+                        "tag": ["a", "a", "b", "b", "a", "a", "a"],
+                        "anchor": ["x", "y", "x", "y", "x", "y", "y"],
+                        "range": [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0]})
+    ep = to_epochs(log, ["x", "y"])
+    assert ep.n_duplicates == 1 and ep.values[2, 1] == 7.0  # (6 + 8) / 2
+    k = np.array([2, 0, 1])
+    got = ep.take(k)
+    np.testing.assert_array_equal(got.time, [2.0, 0.0, 1.0])
+    np.testing.assert_array_equal(got.tag, ["a", "a", "b"])
+    np.testing.assert_array_equal(got.values, [[5.0, 7.0], [1.0, 2.0], [3.0, 4.0]])
+    np.testing.assert_array_equal(got.line, ep.line[k])
+    np.testing.assert_array_equal(got.n_invalid, ep.n_invalid[k])
+    head, tail = ep.take(slice(0, 1)), ep.take(slice(1, 3))
+    from dataclasses import replace
+
+    both = Epochs.concat([head, replace(tail, n_duplicates=2, resorted=True)])
+    np.testing.assert_array_equal(both.values, ep.values)
+    np.testing.assert_array_equal(both.time, ep.time)
+    assert both.n_duplicates == 3 and both.resorted
+    assert Epochs.concat([ep]) is ep
+    with pytest.raises(ValueError, match="no epoch blocks"):
+        Epochs.concat([])

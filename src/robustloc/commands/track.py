@@ -7,7 +7,7 @@ The command line over :mod:`robustloc.pipelines.track` (options parsed into its
 from __future__ import annotations
 
 import argparse
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import pandas as pd
 
@@ -123,9 +123,12 @@ def _resolve_auto_on_client(args: argparse.Namespace, infos: list) -> dict:
     (``sample``: the files read), or nothing (not ``auto``)."""
     if args.link_offsets != "auto":
         return {}
+    import numpy as np
+
     from robustloc.engines.dataset import read_partition
     from robustloc.io import iter_epochs, read_anchors
-    from robustloc.pipelines.track import TrackSettings, _joined, resolve_link_offsets
+    from robustloc.io.tables import Epochs
+    from robustloc.pipelines.track import TrackSettings, resolve_link_offsets
     from robustloc.tracking.select import AUTO_SAMPLE_EPOCHS
 
     anchors = read_anchors(args.anchors)
@@ -142,23 +145,16 @@ def _resolve_auto_on_client(args: argparse.Namespace, infos: list) -> dict:
             break
     # in time order, as the single process reads the log: a dataset of fewer epochs
     # gives its sample exactly (the test's batches follow the rows' order)
-    sample = [_by_time(_joined(blocks))] if n else []
+    if n:
+        joined = Epochs.concat(blocks)
+        sample = [joined.take(np.lexsort((joined.tag.astype(str), joined.time)))]
+    else:
+        sample = []
     settings, choice, _ = resolve_link_offsets(iter(sample), anchors, settings,
                                                args.measurements)
     args.link_offsets = "on" if settings.link_offsets else "off"
     return {} if choice is None else {"link_offsets_auto": {**choice.as_dict(),
                                                            "sample": files}}
-
-
-def _by_time(ep: Any) -> Any:
-    """Epochs sorted by (time, tag), stably (each tag's rows keep their order)."""
-    from dataclasses import replace
-
-    import numpy as np
-
-    k = np.lexsort((ep.tag.astype(str), ep.time))
-    return replace(ep, time=ep.time[k], tag=ep.tag[k], values=ep.values[k], line=ep.line[k],
-                   n_invalid=None if ep.n_invalid is None else ep.n_invalid[k])
 
 
 def _tag_height_needs_z(tag_height: float | None, anchors: pd.DataFrame) -> None:

@@ -1682,6 +1682,33 @@ class Epochs:
     def __len__(self) -> int:
         return self.n_epochs
 
+    def take(self, rows: slice | NDArray[np.int64]) -> Epochs:
+        """The epochs ``rows`` (a slice or an index array), in that order; the other
+        attributes (``anchor_ids``, ``n_duplicates``, ...) as they are."""
+        from dataclasses import replace
+
+        return replace(self, time=self.time[rows], tag=self.tag[rows],
+                       values=self.values[rows], line=self.line[rows],
+                       n_invalid=self.n_invalid[rows])
+
+    @staticmethod
+    def concat(blocks: list[Epochs]) -> Epochs:
+        """Epoch blocks (of one log: the same anchors and value) as one, in the given
+        order; ``n_duplicates`` summed, ``resorted`` if any block's is."""
+        from dataclasses import replace
+
+        if not blocks:
+            raise ValueError("no epoch blocks")
+        if len(blocks) == 1:
+            return blocks[0]
+        return replace(blocks[0], time=np.concatenate([b.time for b in blocks]),
+                       tag=np.concatenate([np.asarray(b.tag, dtype=object) for b in blocks]),
+                       values=np.concatenate([b.values for b in blocks]),
+                       line=np.concatenate([b.line for b in blocks]),
+                       n_duplicates=sum(b.n_duplicates for b in blocks),
+                       n_invalid=np.concatenate([b.n_invalid for b in blocks]),
+                       resorted=any(b.resorted for b in blocks))
+
 
 def to_epochs(
     frame: pd.DataFrame, anchor_ids: Sequence[str], value: str | None = None

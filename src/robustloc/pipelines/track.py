@@ -258,7 +258,9 @@ def resolve_link_offsets(blocks: Any, anchors: pd.DataFrame, settings: TrackSett
         _refuse_block_options(block, settings, source)
     from tqdm import tqdm
 
-    sample = _joined([b for b in head if b.n_epochs])
+    from robustloc.io.tables import Epochs
+
+    sample = Epochs.concat([b for b in head if b.n_epochs])
     with tqdm(total=2 * min(sample.n_epochs, AUTO_SAMPLE_EPOCHS), unit=" epochs",
               desc="--link-offsets auto (both ways)", file=sys.stderr,
               disable=not progress or not sys.stderr.isatty()) as bar:
@@ -480,7 +482,9 @@ def _track_blocks(trk: Any, blocks: Any, settings: TrackSettings,
         # epoch anyway); block by block, rows of later blocks were smoothed with the
         # states of earlier ones (the result depended on --chunk-rows)
         joined = list(blocks)
-        blocks = [_joined(joined)] if joined else []
+        from robustloc.io.tables import Epochs
+
+        blocks = [Epochs.concat(joined)] if joined else []
     frames: list[pd.DataFrame] = []
     n = 0
     status_counts: dict[str, int] = {}
@@ -527,23 +531,6 @@ def _refuse_block_options(block: Any, settings: TrackSettings, source: Any) -> N
                          "path-loss model's A: calibrate it)",
                          None if source is None else _display(source),
                          None if source is None else 1)
-
-
-def _joined(blocks: list[Any]) -> Any:
-    """Epoch blocks (consecutive, in time order) as one :class:`Epochs`."""
-    from dataclasses import replace
-
-    if len(blocks) == 1:
-        return blocks[0]
-    if not blocks:
-        raise ValueError("no epoch blocks")
-    b0 = blocks[0]
-    return replace(b0, time=np.concatenate([b.time for b in blocks]),
-                   tag=np.concatenate([np.asarray(b.tag, dtype=object) for b in blocks]),
-                   values=np.concatenate([b.values for b in blocks]),
-                   line=np.concatenate([b.line for b in blocks]),
-                   n_duplicates=sum(b.n_duplicates for b in blocks),
-                   n_invalid=np.concatenate([b.n_invalid for b in blocks]))
 
 
 class TrackWriter:

@@ -128,18 +128,7 @@ class LinkOffsetChoice:
 
 def _head(epochs: Any, n: int) -> Any:
     """The first ``n`` epochs of ``epochs`` (an :class:`robustloc.io.tables.Epochs`)."""
-    if epochs.n_epochs <= n:
-        return epochs
-    return _rows(epochs, 0, n)
-
-
-def _rows(epochs: Any, lo: int, hi: int) -> Any:
-    """Rows ``lo:hi`` of ``epochs``."""
-    from dataclasses import replace
-
-    return replace(epochs, time=epochs.time[lo:hi], tag=epochs.tag[lo:hi],
-                   values=epochs.values[lo:hi], line=epochs.line[lo:hi],
-                   n_invalid=None if epochs.n_invalid is None else epochs.n_invalid[lo:hi])
+    return epochs if epochs.n_epochs <= n else epochs.take(slice(0, n))
 
 
 def _pieces(time: NDArray[np.float64], size: int) -> list[int]:
@@ -203,7 +192,7 @@ def choose_link_offsets(anchors: pd.DataFrame, epochs: Any,
         trk = Tracker(anchors, record=True, link_offsets=links, **opts)
         parts = []
         for lo, hi in zip(cuts[:-1], cuts[1:]):
-            piece = _rows(sample, lo, hi)
+            piece = sample.take(slice(lo, hi))
             trk.step(piece)
             parts.append(trk.predictive_score(piece.values))
             trk.forget_record()
