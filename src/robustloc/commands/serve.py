@@ -169,6 +169,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         DEFAULT_RATE_LIMIT_ROWS,
         DEFAULT_TIME_JUMP_S,
     )
+    from robustloc.tracking.select import AUTO_SAMPLE_EPOCHS
 
     p.add_argument("--anchors", required=True, help="anchors file (anchor, x, y[, z], ...)")
     p.add_argument("--host", default="127.0.0.1",
@@ -201,13 +202,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="--track on ranges: estimate each tag's common range offset (a UWB "
                         "antenna delay) as a state, as robustloc track --range-offset; "
                         "the service then locates from ranges only")
-    p.add_argument("--track-link-offsets", action="store_true",
+    p.add_argument("--track-link-offsets", nargs="?", const="on", default="off",
+                   choices=("off", "on", "auto"), metavar="{off,on,auto}",
                    help="--track: estimate an offset of each link of each tag (dB of RSSI, m "
-                        "of ranges) as states, as robustloc track --link-offsets on.  Off "
-                        "without it: robustloc track lets a log's first 20 000 epochs "
-                        "choose (its default, --link-offsets auto), and a live stream has "
-                        "no log to look at before its first fix; run track on a day's "
-                        "log to see what it chooses (the summary's line)")
+                        "of ranges) as states, as robustloc track --link-offsets.  The "
+                        "option alone is 'on'; 'auto' runs the tracker without and with "
+                        "the offsets over the stream's first --track-auto-sample epochs "
+                        "(its rows without them meanwhile: twice the tracking cost), then "
+                        "keeps the one whose predictions scored better, as track chooses "
+                        "on a log (GET /api/status shows the trial and the choice).  Default "
+                        "off: a live stream has no log to look at before its first fix")
+    p.add_argument("--track-auto-sample", type=positive_int, default=None,
+                   metavar="EPOCHS",
+                   help="--track-link-offsets auto: epochs of the trial (default "
+                        f"{AUTO_SAMPLE_EPOCHS}, track's sample)")
     p.add_argument("--dim", type=int, choices=(2, 3), default=2,
                    help="solve in 2-D or 3-D (default %(default)s)")
     p.add_argument("--solver", choices=("nonlinear", "linearized"), default="nonlinear",
@@ -363,12 +371,14 @@ def build(args: argparse.Namespace):
                          + ("--track-range-offset (ranges)" if args.track_range_offset
                             else "--value range"))
     _check_mode_options(args)
-    if args.track_link_offsets:
+    if args.track_link_offsets != "off":
         if not args.track:
             raise InputError("--track-link-offsets goes with --track")
-        if args.track_range_offset:
+        if args.track_range_offset and args.track_link_offsets == "on":
             raise InputError("--track-range-offset and --track-link-offsets exclude each "
                              "other: the links' offsets include the common one; choose one")
+    if args.track_auto_sample is not None and args.track_link_offsets != "auto":
+        raise InputError("--track-auto-sample goes with --track-link-offsets auto")
     try:
         if args.track:
             opts: dict[str, object] = {"sigma": args.sigma, "domain": args.domain}
@@ -378,8 +388,9 @@ def build(args: argparse.Namespace):
                 opts["weight"] = args.track_weight
             if args.track_range_offset:
                 opts["range_offset"] = True
-            if args.track_link_offsets:
-                opts["link_offsets"] = True
+            opts["link_offsets"] = args.track_link_offsets
+            if args.track_auto_sample is not None:
+                opts["auto_sample_epochs"] = args.track_auto_sample
             processor = TrackProcessor(anchors, model=args.track_model, filter=args.track_filter,
                                        **opts)
         else:

@@ -548,7 +548,7 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             "positions_not_stored": engine.positions_not_stored,
             "server_time": time.time(),
             "mqtt": None if cfg.mqtt is None else cfg.mqtt.status(),
-            **engine.metrics.summary(), **cfg.info,
+            **engine.processor.status(), **engine.metrics.summary(), **cfg.info,
         })
 
     async def get_floorplan(request: Request) -> Response:

@@ -67,6 +67,10 @@ class Processor(Protocol):
         """Drop the state of ``tags`` (silent for long): heard again, each starts afresh."""
         ...
 
+    def status(self) -> dict:
+        """Fields the service's ``/api/status`` adds (empty for the per-epoch fixes)."""
+        ...
+
 
 class LocateProcessor:
     """Per-epoch fixes, each tested with its protection level, as ``robustloc locate``.
@@ -293,6 +297,10 @@ class LocateProcessor:
         """Nothing to drop: a fix uses no state of its tag."""
         return None
 
+    def status(self) -> dict:
+        """Nothing to add to ``/api/status``."""
+        return {}
+
 
 class TrackProcessor:
     """Tracks with ``robustloc.tracking.Tracker`` (motion model + filter per tag).
@@ -302,6 +310,12 @@ class TrackProcessor:
     anchors : DataFrame
     model, filter : str
         Passed to ``Tracker``.
+    link_offsets : ``"off"``, ``"on"`` or ``"auto"``
+        The links' offsets as states (``Tracker(link_offsets=...)``), or chosen by the
+        stream's first ``auto_sample_epochs`` epochs
+        (:class:`robustloc.tracking.AutoTracker`, ``serve --track-link-offsets auto``).
+    auto_sample_epochs : int, optional
+        The trial's epochs with ``"auto"`` (default: ``track``'s sample, 20 000).
     **options
         Further ``Tracker`` settings.
 
@@ -312,10 +326,14 @@ class TrackProcessor:
     """
 
     def __init__(
-        self, anchors: pd.DataFrame, *, model: str = "cv", filter: str = "ekf", **options: Any
+        self, anchors: pd.DataFrame, *, model: str = "cv", filter: str = "ekf",
+        link_offsets: str = "off", auto_sample_epochs: int | None = None, **options: Any
     ) -> None:
+        if link_offsets not in ("off", "on", "auto"):
+            raise ValueError(f"link_offsets must be 'off', 'on' or 'auto', got "
+                             f"{link_offsets!r}")
         try:
-            from robustloc.tracking import Tracker
+            from robustloc.tracking import AutoTracker, Tracker
         except ImportError as exc:
             raise RuntimeError(
                 "--track needs robustloc.tracking (the tracker), which this installation lacks "
@@ -324,10 +342,26 @@ class TrackProcessor:
         self.name = f"track-{model}-{filter}"
         self.values = solvable_values(anchors)
         self.stateless = False  # per-tag filter state: a block is never processed twice
-        self.tracker = Tracker(anchors, model=model, filter=filter, **options)
+        self.tracker: Any
+        if link_offsets == "auto":
+            sample = {} if auto_sample_epochs is None else {
+                "sample_epochs": auto_sample_epochs}
+            self.tracker = AutoTracker(anchors, model=model, filter=filter, **sample,
+                                       **options)
+        else:
+            self.tracker = Tracker(anchors, model=model, filter=filter,
+                                   link_offsets=link_offsets == "on", **options)
 
     def process(self, epochs: Epochs) -> pd.DataFrame:
         return self.tracker.step(epochs)
+
+    def status(self) -> dict:
+        """``link_offsets``: ``{"mode": "on" | "off"}``, or with ``auto`` the trial's
+        progress and then its choice (:meth:`robustloc.tracking.AutoTracker.status`)."""
+        if hasattr(self.tracker, "status"):
+            return {"link_offsets": self.tracker.status()}
+        return {"link_offsets": {"mode": "on" if self.tracker.settings.link_offsets
+                                 else "off"}}
 
     def checkpoint(self) -> object:
         """The tracker's in-memory state before a block (``Tracker.checkpoint``)."""

@@ -173,12 +173,9 @@ def choose_link_offsets(anchors: pd.DataFrame, epochs: Any,
 
     opts = {k: v for k, v in options.items() if k != "link_offsets"}
     M = len(anchors)
-    if opts.get("range_offset"):
-        return LinkOffsetChoice(False, "the tag's common range offset is estimated "
-                                       "instead (--range-offset)")
-    if M > AUTO_MAX_ANCHORS:
-        return LinkOffsetChoice(False, f"{M} anchors (auto chooses on sites of at most "
-                                       f"{AUTO_MAX_ANCHORS}: one state per anchor and tag)")
+    refused = refusal(M, opts)
+    if refused is not None:
+        return refused
     sample = _head(epochs, AUTO_SAMPLE_EPOCHS)
     need = AUTO_MIN_OBS_PER_ANCHOR * M
     heard = int(np.isfinite(sample.values).sum())  # at least the observations scored
@@ -201,12 +198,40 @@ def choose_link_offsets(anchors: pd.DataFrame, epochs: Any,
         scores.append((np.concatenate([r for r, _ in parts]),
                        np.concatenate([c for _, c in parts])))
     (r0, c0), (r1, c1) = scores
+    return decide_link_offsets(r0, c0, r1, c1, M, int(sample.n_epochs))
+
+
+def refusal(n_anchors: int, options: dict[str, Any]) -> LinkOffsetChoice | None:
+    """The choice made without a trial (``off``, and why), or None when a trial decides:
+    a tag's common range offset estimated instead, or more than
+    :data:`AUTO_MAX_ANCHORS` anchors."""
+    if options.get("range_offset"):
+        return LinkOffsetChoice(False, "the tag's common range offset is estimated "
+                                       "instead (--range-offset)")
+    if n_anchors > AUTO_MAX_ANCHORS:
+        return LinkOffsetChoice(False, f"{n_anchors} anchors (auto chooses on sites of at "
+                                       f"most {AUTO_MAX_ANCHORS}: one state per anchor and "
+                                       "tag)")
+    return None
+
+
+def decide_link_offsets(r0: ArrayLike, c0: ArrayLike, r1: ArrayLike, c1: ArrayLike,
+                        n_anchors: int, epochs: int) -> LinkOffsetChoice:
+    """The choice from the two trackers' per-row predictive scores over the same rows in
+    time order (:meth:`~robustloc.tracking.Tracker.predictive_score`: ``r0, c0`` without
+    the offsets, ``r1, c1`` with them): rows scored alike by both are compared, at least
+    :data:`AUTO_MIN_OBS_PER_ANCHOR` observations per anchor, by :func:`paired_batch_t` at
+    :data:`AUTO_ALPHA`.  Shared by :func:`choose_link_offsets` (a log's first epochs) and
+    :class:`robustloc.tracking.auto.AutoTracker` (a stream's)."""
+    r0, r1 = np.asarray(r0, dtype=float), np.asarray(r1, dtype=float)
+    c0, c1 = np.asarray(c0, dtype=np.int64), np.asarray(c1, dtype=np.int64)
+    need = AUTO_MIN_OBS_PER_ANCHOR * n_anchors
     both = np.isfinite(r0) & np.isfinite(r1) & (c0 == c1)
     n_obs = int(c0[both].sum())
     s0 = float(r0[both].sum() / n_obs) if n_obs else float("nan")
     s1 = float(r1[both].sum() / n_obs) if n_obs else float("nan")
     base: dict[str, Any] = {"score_without": s0, "score_with": s1, "observations": n_obs,
-                            "epochs": int(sample.n_epochs)}
+                            "epochs": int(epochs)}
     if n_obs < need:
         return LinkOffsetChoice(False, f"{n_obs} observations scored, fewer than the {need} "
                                        "that tell the models apart", **base)

@@ -621,12 +621,14 @@ class Tracker:
         Raises
         ------
         ValueError
-            A recording tracker (``record=True``): its history for :meth:`smoothed` holds
-            the tags' state rows.
+            A recording tracker (``record=True``) with a history (its history for
+            :meth:`smoothed` holds the tags' state rows; after :meth:`forget_record` it
+            can forget).
         """
-        if self.record:
+        if self.record and (self._history or self._rows_recorded):
             raise ValueError("a recording tracker (record=True) cannot forget tags: its "
-                             "history for smoothed() refers to their state rows")
+                             "history for smoothed() refers to their state rows "
+                             "(forget_record() first)")
         if isinstance(tags, str):  # one tag (its characters were taken as tags: forget("t1")
             tags = [tags]           # dropped tags 't' and '1' and kept 't1', the API review)
         gone = [t for t in dict.fromkeys(tags) if t in self._slot]
