@@ -15,7 +15,10 @@ Columns ``+offset`` and ``+offset numpy``: the tag's range offset as a fifth sta
 (``Tracker(range_offset=True)``, ``track --range-offset``) on the compiled engine (the fused
 kernel of state size 5) and on the NumPy engine.  Columns ``+links`` and ``+links numpy``:
 each link's offset as a state (``link_offsets=True``, ``track --link-offsets``: 4 + 8
-states here), compiled (``track_round_n``) and NumPy.
+states here), compiled (``track_round_n``) and NumPy.  Column ``auto trial``:
+:class:`~robustloc.tracking.AutoTracker` while its trial runs (``serve --track
+--track-link-offsets auto``: the tracker without and with the links' offsets, and both
+trackers' predictive scores, on every step).
 
 ``--heard N``: a large site instead (the anchors on a 10 m grid, each tag ranging to its
 ``N`` nearest, the others missing); FilterPy then updates with the heard anchors only.
@@ -116,7 +119,7 @@ import pandas as pd
 
 from robustloc.io.tables import Epochs
 from robustloc.options import int_in
-from robustloc.tracking import Tracker
+from robustloc.tracking import AutoTracker, Tracker
 
 SIGMA_M = 0.1
 #: The clock of the timings (``--clock``): ``cpu`` (``time.process_time``, the CPU seconds
@@ -168,6 +171,21 @@ def _ours(anchors: pd.DataFrame, blocks: list[Epochs], filt: str, engine: str,
                   range_offset=range_offset, link_offsets=link_offsets)
     trk.step(blocks[0])  # start: robust fixes
     trk.step(blocks[1])  # warm (compiles on first use)
+    t0 = clock()
+    for b in blocks[2:]:
+        trk.step(b)
+    dt = clock() - t0
+    return sum(b.n_epochs for b in blocks[2:]) / dt
+
+
+def _ours_auto(anchors: pd.DataFrame, blocks: list[Epochs], filt: str,
+               clock: Callable[[], float] = time.process_time) -> float:
+    """``AutoTracker`` during its trial (``serve --track-link-offsets auto``): both
+    trackers and their predictive scores on every step (the sample never reached)."""
+    trk = AutoTracker(anchors, model="cv", filter=filt, sigma=SIGMA_M,
+                      sample_epochs=10**12)
+    trk.step(blocks[0])
+    trk.step(blocks[1])
     t0 = clock()
     for b in blocks[2:]:
         trk.step(b)
@@ -287,7 +305,8 @@ def main() -> None:
           f"epochs per tag (best of {a.rounds} rounds; tag-epochs per {a.clock} second)")
     print(f"load average at start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     print(f"{'filter':6s} {'compiled':>12s} {'one step':>12s} {'numpy':>12s} {'+offset':>12s}"
-          f" {'+offset numpy':>14s} {'+links':>10s} {'+links numpy':>13s} {'FilterPy':>12s}"
+          f" {'+offset numpy':>14s} {'+links':>10s} {'+links numpy':>13s} {'auto trial':>11s}"
+          f" {'FilterPy':>12s}"
           f" {'x FilterPy':>11s} {'target':>9s}")
     for filt, target in (("ekf", 200_000), ("ukf", 50_000)):
         comp = max(_ours(anchors, blocks, filt, "compiled", clock) for _ in range(a.rounds))
@@ -301,9 +320,11 @@ def main() -> None:
                   for _ in range(a.rounds))
         lnn = max(_ours(anchors, blocks, filt, "numpy", clock, link_offsets=True)
                   for _ in range(a.rounds))
+        auto = max(_ours_auto(anchors, blocks, filt, clock) for _ in range(a.rounds))
         peer = _filterpy(anchors, blocks, filt, min(a.peer_tags, a.tags), clock)
         print(f"{filt:6s} {comp:12,.0f} {batch:12,.0f} {nump:12,.0f} {offs:12,.0f}"
-              f" {offn:14,.0f} {lnk:10,.0f} {lnn:13,.0f} {peer:12,.0f} {comp / peer:10.0f}x"
+              f" {offn:14,.0f} {lnk:10,.0f} {lnn:13,.0f} {auto:11,.0f} {peer:12,.0f}"
+              f" {comp / peer:10.0f}x"
               f" {target:9,d}")
     print(f"load average at end: {os.getloadavg()[0]:.1f}")
 

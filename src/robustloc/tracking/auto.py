@@ -24,11 +24,14 @@ come:
   anchors, the offsets are off from the start.
 
 On the same epochs, in the same order, the choice is ``track``'s on a log of
-``sample_epochs`` epochs or more (the same scores, in the same rows; ``test_auto``), and
-after the choice the rows are the chosen tracker's.  The rows before the choice are the
-tracker's without the offsets: the price of a choice made on data not yet seen.  The
-trial costs about twice the tracking it replaces (two trackers), for ``sample_epochs``
-epochs only.
+``sample_epochs`` epochs or more (the same scores, in the same rows:
+``tests/test_track_auto.py``), and after the choice the rows are the chosen tracker's.
+The rows before the choice are the tracker's without the offsets: the price of a choice
+made on data not yet seen.  The trial runs both trackers and scores both on every step,
+for ``sample_epochs`` epochs only: ``benchmarks/bench_track.py`` (300 tags x 8 anchors
+of ranges, CV, one core, 2026-12-07) measured 43 k tag-epochs per second during the
+trial against 157 k for the plain tracker (EKF) and 85 k with the offsets; UKF 34 k
+against 140 k and 55 k.
 
 Example
 -------
