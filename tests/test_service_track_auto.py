@@ -94,3 +94,33 @@ def test_serve_refuses_what_auto_cannot_go_with(ble):
     assert main(["serve", "--anchors", a, "--track", "--track-auto-sample", "50"]) == 2
     assert main(["serve", "--anchors", a, "--track", "--track-link-offsets", "on",
                  "--track-auto-sample", "50"]) == 2
+
+
+def test_a_store_of_auto_restarted_with_its_choice_pinned(ble):
+    """The processor behind ``--store``: a state written with ``auto`` after its choice
+    (on) is taken over by ``--track-link-offsets on`` (the rows go on as the chosen
+    tracker's) and refused by ``off``, saying what the store holds; one written mid-trial
+    is refused by both; a plain tracker's state is refused by ``auto``."""
+    from robustloc.service.processor import TrackProcessor
+
+    anchors = read_anchors(ble / "anchors.csv")
+    ep = to_epochs(read_measurements(ble / "measurements.csv"), anchors["anchor"])
+    first, rest = ep.take(slice(0, 120)), ep.take(slice(120, ep.n_epochs))
+    auto = TrackProcessor(anchors, link_offsets="auto", auto_sample_epochs=90)
+    auto.process(first)
+    assert auto.status()["link_offsets"]["used"] is True
+    on = TrackProcessor(anchors, link_offsets="on")
+    on.load_state_dict(auto.state_dict())
+    pd.testing.assert_frame_equal(on.process(rest), auto.process(rest))
+    with pytest.raises(ValueError, match="chose on: restart with --track-link-offsets "
+                                         "auto or on.*new --store"):
+        TrackProcessor(anchors).load_state_dict(auto.state_dict())
+    trial = TrackProcessor(anchors, link_offsets="auto", auto_sample_epochs=150)
+    trial.process(first)
+    for other in ("on", "off"):
+        with pytest.raises(ValueError, match="trial still running"):
+            TrackProcessor(anchors, link_offsets=other).load_state_dict(trial.state_dict())
+    with pytest.raises(ValueError, match="not an auto tracker's"):
+        TrackProcessor(anchors, link_offsets="auto").load_state_dict(on.state_dict())
+    with pytest.raises(ValueError, match="link_offsets must be"):
+        TrackProcessor(anchors, link_offsets="yes")

@@ -28,30 +28,105 @@ def _run(trk, ep, size: int) -> pd.DataFrame:
 
 
 @pytest.mark.parametrize("offsets, use", [(4.0, True), (0.0, False)])
-@pytest.mark.parametrize("size", [640, 64, 37])
+@pytest.mark.parametrize("size", [640, 64, 37, 1280])
 def test_the_stream_chooses_as_track_chooses_on_the_same_epochs(offsets, use, size):
-    """Stepped in blocks of 640, 64 or 37 epochs, the trial's choice is
-    ``choose_link_offsets``' on the same first 640 epochs (37 does not divide 640: the
-    block that reaches the count is scored whole, 666 epochs), with the same scores; the
-    rows are those of the tracker without the offsets up to the choice and those of the
-    chosen tracker, which followed the whole stream, after it (exactly: recording and
-    scoring do not change a row)."""
+    """Stepped in blocks of 640, 64, 37 or 1 280 epochs (37 does not divide 640; 1 280 is
+    the whole stream in one block), the trial's choice is ``choose_link_offsets``' on the
+    same first 640 epochs, with the same scores: a block that crosses the count is cut
+    there.  The rows are those of the tracker without the offsets up to the choice and
+    those of the chosen tracker, which followed the whole stream, after it (exactly:
+    recording, scoring and cutting do not change a row)."""
     a, ep = _walking_log(offsets * LINK_B_M, 1)
     trk = AutoTracker(a, sample_epochs=SAMPLE, **OPTS)
     rows = _run(trk, ep, size)
-    seen = -(-SAMPLE // size) * size  # the epochs of the trial: whole blocks
-    ref = choose_link_offsets(a, ep.take(slice(0, seen)), **OPTS)
+    ref = choose_link_offsets(a, ep.take(slice(0, SAMPLE)), **OPTS)
     c = trk.choice
     assert c is not None and c.use is use is ref.use, (c, ref)
     assert (c.t, c.score_with, c.score_without, c.observations, c.epochs) == (
         ref.t, ref.score_with, ref.score_without, ref.observations, ref.epochs)
+    assert c.epochs == SAMPLE
     without = Tracker(a, **OPTS).step(ep)
     chosen = Tracker(a, link_offsets=use, **OPTS).step(ep)
-    pd.testing.assert_frame_equal(rows.iloc[:seen], without.iloc[:seen])
-    pd.testing.assert_frame_equal(rows.iloc[seen:].reset_index(drop=True),
-                                  chosen.iloc[seen:].reset_index(drop=True))
+    pd.testing.assert_frame_equal(rows.iloc[:SAMPLE], without.iloc[:SAMPLE])
+    pd.testing.assert_frame_equal(rows.iloc[SAMPLE:].reset_index(drop=True),
+                                  chosen.iloc[SAMPLE:].reset_index(drop=True))
     assert trk.status()["phase"] == "chosen" and trk.status()["used"] is use
     assert trk.tracker.settings.link_offsets is use and not trk.tracker.record
+
+
+def test_a_large_block_is_tracked_in_pieces_with_the_same_rows(monkeypatch):
+    """A block far larger than the trial's pieces: no tracker ever holds the record of
+    more than one piece (the trial's memory is bounded by the piece, not by the block
+    the service hands over), and the rows and the choice are those of one piece."""
+    import robustloc.tracking.auto as auto
+
+    a, ep = _walking_log(4 * LINK_B_M, 1)
+    whole = AutoTracker(a, sample_epochs=SAMPLE, **OPTS)
+    ref = whole.step(ep)
+    monkeypatch.setattr(auto, "AUTO_SCORE_PIECE", 50)
+    held = []
+    score = Tracker.predictive_score
+
+    def spy(self, values):
+        held.append(self._rows_recorded)
+        return score(self, values)
+
+    monkeypatch.setattr(Tracker, "predictive_score", spy)
+    trk = AutoTracker(a, sample_epochs=SAMPLE, **OPTS)
+    pd.testing.assert_frame_equal(trk.step(ep), ref)
+    assert trk.choice == whole.choice
+    assert max(held) == 50 and len(held) == 2 * -(-SAMPLE // 50)
+
+
+def test_a_failing_tracker_with_offsets_ends_the_trial_and_a_failing_block_changes_nothing(
+        monkeypatch):
+    """The tracker with the offsets raising: the trial ends with them off and the error
+    as the reason, and the rows are the plain tracker's throughout.  The tracker without
+    them raising: the step raises and nothing changed (the same state, and the next steps
+    give the uninterrupted rows)."""
+    a, ep = _walking_log(4 * LINK_B_M, 1)
+    blocks = _blocks(ep, 80)
+    trk = AutoTracker(a, sample_epochs=SAMPLE, **OPTS)
+    trk.step(blocks[0])
+    step = Tracker.step
+
+    def broken(self, epochs):
+        if self.settings.link_offsets:
+            raise FloatingPointError("singular innovation covariance")
+        return step(self, epochs)
+
+    monkeypatch.setattr(Tracker, "step", broken)
+    rows = trk.step(blocks[1])
+    c = trk.choice
+    assert c is not None and not c.use and "FloatingPointError" in c.reason
+    assert c.epochs == 80 and trk._shadow is None and not trk.tracker.record
+    monkeypatch.setattr(Tracker, "step", step)
+    rows = pd.concat([rows] + [trk.step(b) for b in blocks[2:]], ignore_index=True)
+    plain = Tracker(a, **OPTS).step(ep)
+    pd.testing.assert_frame_equal(rows, plain.iloc[80:].reset_index(drop=True))
+
+    trk = AutoTracker(a, sample_epochs=SAMPLE, **OPTS)
+    trk.step(blocks[0])
+    before = json.dumps(trk.state_dict())
+    calls = []
+
+    def late(self, epochs):
+        calls.append(1)
+        if len(calls) == 3:  # the plain tracker's second piece: after one piece scored
+            raise FloatingPointError("boom")
+        return step(self, epochs)
+
+    monkeypatch.setattr("robustloc.tracking.auto.AUTO_SCORE_PIECE", 40)
+    monkeypatch.setattr(Tracker, "step", late)
+    with pytest.raises(FloatingPointError):
+        trk.step(blocks[1])
+    monkeypatch.setattr(Tracker, "step", step)
+    assert json.dumps(trk.state_dict()) == before and trk.trial_epochs == 80
+    ref = AutoTracker(a, sample_epochs=SAMPLE, **OPTS)
+    ref.step(blocks[0])
+    for b in blocks[1:]:
+        pd.testing.assert_frame_equal(trk.step(b), ref.step(b))
+    assert trk.choice == ref.choice
 
 
 def test_a_saved_state_and_a_rollback_continue_the_trial_exactly():
@@ -157,7 +232,9 @@ def test_bad_settings_and_states_are_refused_and_change_nothing():
                          ({**saved, "version": 9}, "version"),
                          ({**saved, "scores": None}, "lacks its shadow"),
                          ({**saved, "scores": {**saved["scores"], "with": [1.0]}},
-                          "differ in length"),
+                          "do not cover"),
+                         ({**saved, "epochs": -50}, "epochs must be a count"),
+                         ({**saved, "epochs": 99}, "do not cover"),
                          ({k: v for k, v in saved.items() if k != "live"}, "lacks")):
         other = AutoTracker(a, sample_epochs=SAMPLE, **OPTS)
         other.step(ep.take(slice(0, 50)))
@@ -169,3 +246,20 @@ def test_bad_settings_and_states_are_refused_and_change_nothing():
         trk.load_state_dict([])
     with pytest.raises(TypeError):
         trk.rollback({})
+
+
+def test_a_trial_restarted_with_a_shorter_sample_chooses_on_its_first_epochs():
+    """Saved after 400 epochs, loaded with a sample of 300: the choice is made at once, on
+    the first 300 epochs (``choose_link_offsets`` on them); a choice already made keeps
+    the sample it was made on."""
+    a, ep = _walking_log(4 * LINK_B_M, 1)
+    trk = AutoTracker(a, sample_epochs=SAMPLE, **OPTS)
+    for b in _blocks(ep.take(slice(0, 400)), 80):
+        trk.step(b)
+    short = AutoTracker(a, sample_epochs=300, **OPTS)
+    short.load_state_dict(json.loads(json.dumps(trk.state_dict())))
+    ref = choose_link_offsets(a, ep.take(slice(0, 300)), **OPTS)
+    assert short.choice is not None and short.choice.t == ref.t and short.choice.epochs == 300
+    again = AutoTracker(a, sample_epochs=5000, **OPTS)
+    again.load_state_dict(json.loads(json.dumps(short.state_dict())))
+    assert again.choice == short.choice and again.sample_epochs == 300

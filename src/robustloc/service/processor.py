@@ -378,9 +378,35 @@ class TrackProcessor:
         """Drop the filters of ``tags`` (``Tracker.forget``)."""
         self.tracker.forget(tags)
 
+    def _load_auto_choice(self, state: dict) -> None:
+        """A store written with ``--track-link-offsets auto``, restarted with ``on`` or
+        ``off``: its tracker is taken over when the trial had chosen the same (the
+        operator pins the choice; the next snapshot is the plain tracker's), refused
+        otherwise, saying what the store holds."""
+        choice = state.get("choice")
+        want = "on" if self.tracker.settings.link_offsets else "off"
+        if not isinstance(choice, dict):
+            raise ValueError("saved tracker state is a --track-link-offsets auto trial "
+                             "still running (no choice yet): restart with "
+                             "--track-link-offsets auto")
+        chose = "on" if choice.get("use") else "off"
+        if chose != want:
+            raise ValueError("saved tracker state is --track-link-offsets auto's, which "
+                             f"chose {chose}: restart with --track-link-offsets auto or "
+                             f"{chose}")
+        live = state.get("live")
+        if not isinstance(live, dict):
+            raise ValueError("saved tracker state of --track-link-offsets auto lacks its "
+                             "tracker")
+        self.tracker.load_state_dict(live)
+
     def load_state_dict(self, state: dict) -> None:
         try:
-            self.tracker.load_state_dict(state)
+            if (isinstance(state, dict) and state.get("kind") == "auto-link-offsets"
+                    and not hasattr(self.tracker, "status")):
+                self._load_auto_choice(state)
+            else:
+                self.tracker.load_state_dict(state)
         except ValueError as exc:  # the store was written by a tracker set up otherwise
             raise ValueError(f"the store's {exc}: start with the --track options it was "
                              "written with, or with a new --store") from None

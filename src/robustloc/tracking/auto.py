@@ -9,23 +9,32 @@ look at before its first row.  :class:`AutoTracker` makes the same choice as the
 come:
 
 * **Trial.**  Both trackers advance on every epoch; the rows given back are those of the
-  tracker without the offsets (the default's rows until the log has spoken).  After each
-  step both trackers' predictive scores of the step's rows are kept
+  tracker without the offsets (the default's rows until the log has spoken).  A block is
+  tracked in pieces of at most :data:`~robustloc.tracking.select.AUTO_SCORE_PIECE`
+  epochs, after each of which both trackers' predictive scores of its rows are kept
   (:meth:`~robustloc.tracking.Tracker.predictive_score`, then
-  :meth:`~robustloc.tracking.Tracker.forget_record`: memory stays that of the scores, four
-  numbers per epoch).
-* **Choice.**  Once the trial has seen ``sample_epochs`` epochs (the step that reaches the
-  count is scored whole), the scores are compared by the same test as ``track``'s
-  (:func:`~robustloc.tracking.select.decide_link_offsets`: batch means, one-sided level
-  :data:`~robustloc.tracking.select.AUTO_ALPHA`).  The chosen tracker has followed every
-  epoch of the trial, so it continues without a restart; the other is dropped.
+  :meth:`~robustloc.tracking.Tracker.forget_record`): memory stays that of the scores,
+  four numbers per epoch, however large a block the service hands over (a backlog, a
+  replay after a restart).
+* **Choice.**  After exactly ``sample_epochs`` epochs (a block that crosses the count is
+  cut there: the choice does not depend on how the stream was cut into blocks, nor on a
+  restart that replays it in other blocks), the scores are compared by the same test as
+  ``track``'s (:func:`~robustloc.tracking.select.decide_link_offsets`: batch means,
+  one-sided level :data:`~robustloc.tracking.select.AUTO_ALPHA`).  The chosen tracker has
+  followed every epoch of the trial, so it continues without a restart (the rest of the
+  block included); the other is dropped.
+* **A failing trial.**  Should the tracker with the offsets fail on a block (a numerical
+  failure: both trackers refuse bad input alike, before anything changes), the trial
+  ends there with the offsets off and the error as the reason; the rows given back,
+  those of the tracker without them, are unaffected.  A failure of that tracker leaves
+  both as they were before the block (:meth:`AutoTracker.step` is all or nothing).
 * **No trial** where ``track`` runs none: with ``range_offset`` (the tag's common offset
   is estimated instead) or more than :data:`~robustloc.tracking.select.AUTO_MAX_ANCHORS`
   anchors, the offsets are off from the start.
 
-On the same epochs, in the same order, the choice is ``track``'s on a log of
-``sample_epochs`` epochs or more (the same scores, in the same rows:
-``tests/test_track_auto.py``), and after the choice the rows are the chosen tracker's.
+On the same epochs, in the same order, the choice is ``track``'s on the first
+``sample_epochs`` epochs (the same scores, in the same rows: ``tests/test_track_auto.py``),
+and after the choice the rows are the chosen tracker's.
 The rows before the choice are the tracker's without the offsets: the price of a choice
 made on data not yet seen.  The trial runs both trackers and scores both on every step,
 for ``sample_epochs`` epochs only: ``benchmarks/bench_track.py`` (300 tags x 8 anchors
@@ -52,6 +61,7 @@ import pandas as pd
 
 from robustloc.tracking.select import (
     AUTO_SAMPLE_EPOCHS,
+    AUTO_SCORE_PIECE,
     LinkOffsetChoice,
     decide_link_offsets,
     refusal,
@@ -110,14 +120,21 @@ class AutoTracker:
         self.sample_epochs = int(sample_epochs)
         self._options: dict[str, Any] = {"model": model, "filter": filter, **options}
         live = Tracker(anchors, **self._options)  # the options checked once, here
-        self.choice: LinkOffsetChoice | None = refusal(len(live.anchor_ids), self._options)
+        choice = refusal(len(live.anchor_ids), self._options)
+        #: (epochs of the trial so far, the choice or None): one attribute, replaced
+        #: whole, so that a reader on another thread (the service's /api/status) never
+        #: sees the count of one moment with the choice of another
+        self._progress: tuple[int, LinkOffsetChoice | None] = (0, choice)
         self._anchors = anchors
         self._live = live
         self._shadow: Tracker | None = None
-        if self.choice is None:
+        if choice is None:
+            from scipy.stats import t as _student_t  # noqa: F401  (the test's, imported
+            # now: lazily inside the step that chooses, it held /api/status's view of a
+            # half-made choice open for a second)
+
             live.record = True
             self._shadow = Tracker(anchors, record=True, link_offsets=True, **self._options)
-        self._epochs = 0
         self._scores: list[tuple[np.ndarray, ...]] = []
 
     # ------------------------------------------------------------------ properties
@@ -137,17 +154,23 @@ class AutoTracker:
         return self._live.tags
 
     @property
+    def choice(self) -> LinkOffsetChoice | None:
+        """What was chosen and why; None while the trial runs."""
+        return self._progress[1]
+
+    @property
     def trial_epochs(self) -> int:
         """Epochs the trial has scored so far."""
-        return self._epochs
+        return self._progress[0]
 
     def status(self) -> dict[str, Any]:
         """What a service shows: the trial's progress, or the choice (``as_dict``)."""
-        if self.choice is None:
-            return {"mode": "auto", "phase": "trial", "epochs": self._epochs,
+        epochs, choice = self._progress
+        if choice is None:
+            return {"mode": "auto", "phase": "trial", "epochs": epochs,
                     "sample_epochs": self.sample_epochs}
         return {"mode": "auto", "phase": "chosen", "sample_epochs": self.sample_epochs,
-                **self.choice.as_dict()}
+                **choice.as_dict()}
 
     def link_offsets(self) -> pd.DataFrame:
         """The chosen tracker's links' offsets (:meth:`Tracker.link_offsets`; empty while
@@ -157,31 +180,65 @@ class AutoTracker:
     # ------------------------------------------------------------------ tracking
     def step(self, epochs: Any) -> pd.DataFrame:
         """Advance each tag by ``epochs`` (as :meth:`Tracker.step`); one track row per
-        epoch, in the order of ``epochs``."""
-        if self._shadow is None:
+        epoch, in the order of ``epochs``.  During the trial, all or nothing: a block
+        that raises leaves both trackers, the scores and the count as they were."""
+        N = int(epochs.n_epochs)
+        if self._shadow is None or N == 0:
             return self._live.step(epochs)
-        rows = self._live.step(epochs)
-        self._shadow.step(epochs)
-        scored = []
-        for trk in (self._live, self._shadow):
-            scored.extend(trk.predictive_score(epochs.values))
-            trk.forget_record()
-        self._scores.append(tuple(scored))
-        self._epochs += int(epochs.n_epochs)
-        if self._epochs >= self.sample_epochs:
-            self._choose()
+        cut = min(N, self.sample_epochs - self._progress[0])  # the trial's epochs of it
+        saved = self.checkpoint()
+        try:
+            frames = []
+            for lo in range(0, cut, AUTO_SCORE_PIECE):
+                hi = min(lo + AUTO_SCORE_PIECE, cut)
+                frames.append(self._trial_piece(epochs if (lo, hi) == (0, N)
+                                                else epochs.take(slice(lo, hi))))
+            if self._shadow is not None and self._progress[0] >= self.sample_epochs:
+                self._choose(self.sample_epochs)
+            if cut < N:  # the rest of the block: the chosen tracker's alone
+                frames.append(self._live.step(epochs.take(slice(cut, N))))
+        except BaseException:
+            self.rollback(saved)
+            raise
+        return frames[0] if len(frames) == 1 else pd.concat(frames, ignore_index=True)
+
+    def _trial_piece(self, piece: Any) -> pd.DataFrame:
+        """One piece of the trial: both trackers stepped and scored, their records
+        dropped.  The tracker with the offsets failing ends the trial (offsets off, the
+        error as the reason); the rows are the other's either way."""
+        rows = self._live.step(piece)
+        if self._shadow is None:  # (the trial ended on an earlier piece of this block)
+            return rows
+        try:
+            self._shadow.step(piece)
+            scored = self._shadow.predictive_score(piece.values)
+        except Exception as exc:  # noqa: BLE001 - a numerical failure of the trial alone
+            self._end_trial(LinkOffsetChoice(
+                False, "the tracker with the links' offsets failed during the trial "
+                       f"({type(exc).__name__}: {exc}); the offsets stay off",
+                epochs=self._progress[0]))
+            return rows
+        self._scores.append((*self._live.predictive_score(piece.values), *scored))
+        self._live.forget_record()
+        self._shadow.forget_record()
+        self._progress = (self._progress[0] + int(piece.n_epochs), None)
         return rows
 
-    def _choose(self) -> None:
-        """The trial's verdict: keep one tracker, drop the other and the scores."""
-        r0, c0, r1, c1 = (np.concatenate([s[k] for s in self._scores]) for k in range(4))
-        self.choice = decide_link_offsets(r0, c0, r1, c1, len(self.anchor_ids),
-                                          self._epochs)
-        if self.choice.use and self._shadow is not None:
+    def _choose(self, epochs: int) -> None:
+        """The trial's verdict on its first ``epochs`` (the sample): keep one tracker,
+        drop the other and the scores."""
+        r0, c0, r1, c1 = (np.concatenate([s[k] for s in self._scores])[:epochs]
+                          for k in range(4))
+        self._end_trial(decide_link_offsets(r0, c0, r1, c1, len(self.anchor_ids), epochs))
+
+    def _end_trial(self, choice: LinkOffsetChoice) -> None:
+        if choice.use and self._shadow is not None:
             self._live = self._shadow
+        self._live.forget_record()
         self._live.record = False
         self._shadow = None
         self._scores = []
+        self._progress = (choice.epochs, choice)
 
     def forget(self, tags: Any) -> int:
         """Drop every state of ``tags`` (:meth:`Tracker.forget`), in both trackers while
@@ -196,12 +253,12 @@ class AutoTracker:
         return {"live": (self._live, self._live.checkpoint()),
                 "shadow": None if self._shadow is None else (self._shadow,
                                                              self._shadow.checkpoint()),
-                "choice": self.choice, "epochs": self._epochs, "scores": list(self._scores)}
+                "progress": self._progress, "scores": list(self._scores)}
 
     def rollback(self, checkpoint: dict[str, Any]) -> None:
         """Return to a :meth:`checkpoint` (a block that failed is undone in both trackers,
         the choice included when the block had made it)."""
-        if not isinstance(checkpoint, dict) or not {"live", "shadow", "choice", "epochs",
+        if not isinstance(checkpoint, dict) or not {"live", "shadow", "progress",
                                                     "scores"} <= set(checkpoint):
             raise TypeError("rollback() takes what checkpoint() returned, got "
                             f"{type(checkpoint).__name__}")
@@ -211,9 +268,9 @@ class AutoTracker:
         if checkpoint["shadow"] is not None:
             shadow, saved = checkpoint["shadow"]
             shadow.rollback(saved)
-        self._live, self._shadow, self.choice = live, shadow, checkpoint["choice"]
-        self._epochs = int(checkpoint["epochs"])
+        self._live, self._shadow = live, shadow
         self._scores = list(checkpoint["scores"])
+        self._progress = checkpoint["progress"]
 
     def _tracker_for(self, choice: LinkOffsetChoice | None) -> Tracker:
         """A fresh tracker of the model the live rows come from under ``choice``."""
@@ -239,14 +296,19 @@ class AutoTracker:
             choice = {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
                       for k, v in asdict(self.choice).items()}
         return {"version": STATE_VERSION, "kind": "auto-link-offsets",
-                "sample_epochs": self.sample_epochs, "epochs": self._epochs,
+                "sample_epochs": self.sample_epochs, "epochs": self._progress[0],
                 "choice": choice, "scores": scores, "live": self._live.state_dict(),
                 "shadow": None if self._shadow is None else self._shadow.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
         """Restore a :meth:`state_dict` (settings and anchors must match).  All or
         nothing: a state that cannot be loaded raises ``ValueError`` (``TypeError`` for
-        one that is not a dict) and leaves this tracker as it was."""
+        one that is not a dict) and leaves this tracker as it was.
+
+        A choice already made keeps the sample it was made on (``sample_epochs`` becomes
+        the saved one); a trial still running goes on to this tracker's
+        ``sample_epochs``, and one that has passed it chooses at once on its first
+        ``sample_epochs`` epochs."""
         if not isinstance(state, dict):
             raise TypeError(f"state must be a dict from state_dict(), got "
                             f"{type(state).__name__}")
@@ -257,7 +319,14 @@ class AutoTracker:
             raise ValueError(f"unsupported auto tracker state version "
                              f"{state.get('version')!r}")
         try:
-            epochs = int(state["epochs"])
+            epochs = state["epochs"]
+            if isinstance(epochs, bool) or not isinstance(epochs, int) or epochs < 0:
+                raise ValueError(f"saved auto tracker state's epochs must be a count, got "
+                                 f"{epochs!r}")
+            sample = state["sample_epochs"]
+            if isinstance(sample, bool) or not isinstance(sample, int) or sample < 1:
+                raise ValueError(f"saved auto tracker state's sample_epochs must be a "
+                                 f"positive count, got {sample!r}")
             choice = None
             if state["choice"] is not None:
                 names = {f.name for f in fields(LinkOffsetChoice)}
@@ -281,14 +350,17 @@ class AutoTracker:
                           _array(s["count_without"], "counts", np.int64),
                           _array(s["with"], "scores", float),
                           _array(s["count_with"], "counts", np.int64))
-                if len({a.size for a in arrays}) != 1:
-                    raise ValueError("saved auto tracker scores differ in length")
+                if {a.size for a in arrays} != {epochs}:
+                    raise ValueError(f"saved auto tracker scores do not cover its {epochs} "
+                                     "epochs")
                 scores = [arrays]
         except KeyError as exc:
             raise ValueError(f"saved auto tracker state lacks {exc}") from None
         except TypeError as exc:
             raise ValueError(f"saved auto tracker state is malformed ({exc})") from None
-        self._live, self._shadow, self.choice = live, shadow, choice
-        self._epochs, self._scores = epochs, scores
-        if self.choice is None and self._epochs >= self.sample_epochs:
-            self._choose()  # (restarted with a shorter sample)
+        self._live, self._shadow, self._scores = live, shadow, scores
+        self._progress = (epochs, choice)
+        if choice is not None:
+            self.sample_epochs = sample  # (the sample the choice was made on)
+        elif epochs >= self.sample_epochs:
+            self._choose(self.sample_epochs)  # (restarted with a shorter sample)
