@@ -54,3 +54,34 @@ def test_calibrate_reads_a_survey_file_with_text_clusters(tmp_path, capsys):
                  "-o", str(out)]) == 0
     assert "Traceback" not in capsys.readouterr().err
     assert np.isfinite(pd.read_csv(out)["A_se"]).all()
+
+
+def test_an_all_empty_cluster_column_is_as_no_column(tmp_path, capsys):
+    """A column with no id in it says no more than one left out: the rows independent
+    (an IndexError traceback on the empty list of ids, exit 1, before: the commands
+    review).  The written anchors are byte for byte those of the survey without it."""
+    s = _survey().drop(columns="cluster")
+    s.to_csv(tmp_path / "plain.csv", index=False)
+    s.assign(cluster="").to_csv(tmp_path / "empty.csv", index=False)
+    outs = []
+    for name in ("plain", "empty"):
+        out = tmp_path / f"{name}_out.csv"
+        assert main(["calibrate", str(tmp_path / f"{name}.csv"), "-o", str(out)]) == 0
+        assert "Traceback" not in capsys.readouterr().err
+        outs.append(out.read_bytes())
+    assert outs[0] == outs[1]
+
+
+def test_blank_cluster_ids_in_a_frame_stand_alone_as_a_file_s_empty_fields():
+    """From Python, "" (or blanks) is a missing id as a file's empty field is: all-blank
+    is as no column (an IndexError before), and a few blank rows stand alone, as NaN."""
+    s = _survey()
+    plain = calibrate_pathloss(s.drop(columns="cluster")).table
+    for blank in ("", "  "):
+        pd.testing.assert_frame_equal(calibrate_pathloss(s.assign(cluster=blank)).table,
+                                      plain)
+    some_nan, some_blank = s.copy(), s.copy()
+    some_nan.loc[s.index[:30], "cluster"] = np.nan
+    some_blank.loc[s.index[:30], "cluster"] = ""
+    pd.testing.assert_frame_equal(calibrate_pathloss(some_blank).table,
+                                  calibrate_pathloss(some_nan).table)

@@ -615,7 +615,9 @@ def _survey_clusters(survey: pd.DataFrame) -> NDArray[np.int64] | None:
     :func:`survey_from_positions`, has its dwells there; a survey file may name its own,
     any ids, e.g. the surveyed point of each sample), as codes in the ids' natural order
     (:func:`_cluster_key`: p2 before p10); a row without one is a cluster of its
-    own.  None without the column (rows taken as independent).  (A file's text ids were
+    own.  None without the column, or with no id in it (rows taken as independent: a
+    column left empty says no more than one left out, and was an IndexError traceback
+    on the empty list of ids, the commands review).  (A file's text ids were
     a ValueError traceback: the review of 2026-12-06.)  Sorted, not in order of
     appearance: :func:`cluster_robust_lines` merges neighbouring codes into blocks, and
     codes numbered by appearance put a shuffled file's far-apart dwells side by side
@@ -624,7 +626,12 @@ def _survey_clusters(survey: pd.DataFrame) -> NDArray[np.int64] | None:
     if "cluster" not in survey.columns:
         return None
     ids = survey["cluster"]
-    codes, uniques = pd.factorize(ids.where(ids.isna(), ids.astype(str)))
+    # an empty field is no id, from a file (NaN) or a DataFrame ("" or blanks): "" was
+    # one cluster of all such rows, where a file's empty field stands alone
+    text = ids.astype(str)
+    codes, uniques = pd.factorize(text.where(~(ids.isna() | text.str.strip().eq(""))))
+    if len(uniques) == 0:
+        return None
     codes = codes.astype(np.int64)
     order = sorted(range(len(uniques)), key=lambda i: _cluster_key(str(uniques[i])))
     remap = np.empty(len(uniques), dtype=np.int64)
