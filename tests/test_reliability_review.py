@@ -4,6 +4,7 @@ above 1, and the memory of a site of many anchors (the reliability review)."""
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -115,3 +116,34 @@ def test_coordinates_beyond_the_area_limit_are_refused(tmp_path, capsys):
                  "--candidates", str(cand), "-o", str(tmp_path / "o2"), "--no-maps"])
     err = capsys.readouterr().err
     assert code == 2 and "c.csv:2: candidate coordinate beyond" in err
+
+
+def test_the_summary_keeps_infinite_mdbs_as_the_table_has_them(tmp_path, capsys):
+    """Three anchors on a line and one off it: on the line, the fourth anchor's range is
+    controlled by no other (redundancy 0, MDB inf).  The summary said max_mdb max 16.8
+    and nothing of them (inf dropped with the NaN: the commands review); checked
+    against the written table, pandas' max and count of infinities."""
+    import pandas as pd
+
+    anchors = _anchors(tmp_path, "A,0,0\nB,10,0\nC,20,0\nD,5,20\n")
+    out = tmp_path / "o"
+    argv = ["reliability", "--anchors", anchors, "--area", "4,6,-1,1", "--step", "1",
+            "-o", str(out), "-q", "--no-maps"]
+    assert main(argv + ["--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    table = pd.read_csv(out / "reliability.csv")
+    n_inf = int(np.isinf(table["max_mdb"]).sum())
+    assert n_inf == 3  # the grid's row y = 0, on the line of A, B, C
+    assert summary["points_with_undetectable_observation"] == n_inf
+    for col in ("max_mdb", "max_ext_m"):
+        v = table[col].dropna()
+        assert np.isinf(v.max())
+        assert summary[col]["max"] is None and "max" in summary[col]["infinite"]
+        assert summary[col]["min"] == pytest.approx(v.min(), rel=1e-5)  # the CSV's %.6g
+        assert summary[col]["median"] == pytest.approx(v.median(), rel=1e-5)
+    assert summary["dop"]["infinite"] == []
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    line = next(s for s in text.splitlines() if s.strip().startswith("max_mdb"))
+    assert re.search(r"\bmax\s+inf\b", line), line
+    assert "with an undetectable observation (MDB inf): 3" in text

@@ -56,6 +56,12 @@ standard deviation, dB or m) when that column is in the model's unit, else 1.  A
 on stderr says what was taken from the file.  max_mdb is in the observation's unit: dB for
 rssi, m for range.
 
+The summary's median, min and max of each figure are over the points with a fix.  An
+observation no other controls (redundancy number 0) has an infinite MDB and external
+reliability: inf stays in the summary (--json: null, the figure's "infinite" lists which
+of median, min, max it is), and such points are counted (points with an undetectable
+observation).
+
 Example:
   robustloc reliability --anchors anchors.csv --area 0,40,0,3 --step 0.25 --sigma 1 -o rel/"""
 
@@ -334,34 +340,49 @@ def run(args: argparse.Namespace) -> int:
         "unit": unit,  # of sigma and max_mdb
         "points_without_fix": int(t["dop"].isna().sum()),
         "points_without_redundancy": int((t["dof"] < 1).sum()),
+        # an observation with redundancy 0 at a point that has a fix: no test can see
+        # its fault (MDB inf); the count of points with redundancy left above does not
+        # show them (the commands review: 3 of 9 points, "without redundancy: 0")
+        "points_with_undetectable_observation": int(np.isinf(t["max_mdb"]).sum()),
     }
+    stats = {}
     for col in MAPS:
         v = t[col].to_numpy(float)
-        v = v[np.isfinite(v)]
-        summary[col] = {
+        # NaN is "no fix here" and is left out; inf (an MDB, or its effect, of an
+        # uncontrolled observation) is a value and stays in max and median: dropped with
+        # the NaN, the summary's largest MDB was that of the controlled points only
+        v = v[~np.isnan(v)]
+        stats[col] = {
             "median": float(np.median(v)) if v.size else None,
             "max": float(v.max()) if v.size else None,
             "min": float(v.min()) if v.size else None,
         }
+        # JSON has no infinity: null, and "infinite" names the figures that are null for
+        # being infinite, as evaluate --json does
+        summary[col] = {k: (None if x is not None and np.isinf(x) else x)
+                        for k, x in stats[col].items()}
+        summary[col]["infinite"] = [k for k, x in stats[col].items()
+                                    if x is not None and np.isinf(x)]
     summary["points_with_flagged_pairs"] = int((t["n_flagged"] > 0).sum())
     if sugg is not None:
         summary["suggestions"] = json.loads(sugg.head(5).to_json(orient="records"))
     summary["csv"] = str(csv)
     summary["figures"] = [str(p) for p in pngs]
     if args.json:
-        print(json.dumps(summary, indent=2))
+        print(json.dumps(summary, indent=2, allow_nan=False))
     else:
         print(f"{summary['grid_points']} grid points, {summary['anchors']} anchors, "
               f"model {args.model}, sigma {sigma_text(args.sigma, args.model)}")
         for col, cap in captions.items():
-            s = summary[col]
+            s = stats[col]
             if s["median"] is None:
                 continue
             print(f"  {col:15s} median {s['median']:9.3f}  min {s['min']:9.3f}  "
                   f"max {s['max']:9.3f}   {cap}")
         print(f"  points without a fix: {summary['points_without_fix']}, without redundancy: "
-              f"{summary['points_without_redundancy']}, with flagged pairs: "
-              f"{summary['points_with_flagged_pairs']}")
+              f"{summary['points_without_redundancy']}, with an undetectable observation "
+              f"(MDB inf): {summary['points_with_undetectable_observation']}, with flagged "
+              f"pairs: {summary['points_with_flagged_pairs']}")
         if sugg is not None:
             print(f"one more anchor, ranked by the 95th percentile of {args.suggest_metric} "
                   f"(now {sugg['baseline'].iloc[0]:.3f}):")
