@@ -94,8 +94,8 @@ huber; igg3, hampel, ...).
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from robustloc.options import finite_float, nonnegative_float, positive_float, tag_height_m
-    from robustloc.pipelines.calibrate import CALIBRATION_MODELS
+    from robustloc.options import nonnegative_float, positive_float, tag_height_m
+    from robustloc.pipelines.calibrate import CALIBRATION_MODELS, p0_dbm
 
     p.add_argument("survey", nargs="?", help="survey file: anchor, distance, rssi|range")
     p.add_argument(
@@ -116,8 +116,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--d0", type=positive_float, default=1.0,
                    help="reference distance d0 in m (default 1; attenuation-factor with the "
                         "anchors' p0: their d0 column)")
-    p.add_argument("--p0", type=finite_float, default=None,
-                   help="attenuation factor: P_r(d0) in dBm")
+    p.add_argument("--p0", type=p0_dbm, default=None,
+                   help="attenuation factor: P_r(d0) in dBm, -150 .. 30")
     p.add_argument(
         "--self", dest="self_log", metavar="MEASUREMENTS", default=None,
         help="self-calibration from a measurements log without truth (needs --anchors)",

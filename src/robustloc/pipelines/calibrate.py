@@ -32,6 +32,28 @@ from robustloc.options import (
 CALIBRATION_MODELS = ("log-distance", "attenuation-factor", "friis")
 
 
+def p0_dbm(text: str) -> float:
+    """``--p0``: an RSSI at ``d0`` within the RSSI limits of :mod:`robustloc.io.limits`
+    (-150 to +30 dBm), which the anchors reader enforces on a ``p0`` column.  (Any finite
+    number was taken: ``--p0 1000`` wrote anchors that ``locate`` and ``filter`` then
+    refused, ``--p0 1e308`` said "fitted gamma = nan": the commands review.)
+
+    Raises
+    ------
+    argparse.ArgumentTypeError
+        Not a finite number, or outside the limits.
+    """
+    from robustloc.io.limits import limits_for
+
+    value = finite_float(text)
+    lim = limits_for("rssi")
+    if not lim.low <= value <= lim.high:
+        raise argparse.ArgumentTypeError(
+            f"expected the RSSI at d0 in [{lim.low:g}, {lim.high:g}] dBm (the physical "
+            f"limits an anchors file's p0 is held to), got {text!r}")
+    return value
+
+
 def weight_name(name: str) -> str:
     """A robust weight function's name (:func:`robustloc.robust.weights.get_weight`
     refuses an unknown one, naming the known)."""
@@ -69,7 +91,7 @@ class CalibrateSettings:
     scale: bool | None = None
     pooled: bool = False
     d0: float = option(1.0, check=positive_float)
-    p0: float | None = option(None, check=finite_float)
+    p0: float | None = option(None, check=p0_dbm)
     time_tolerance: float = option(1e-6, check=nonnegative_float)
     dim: int = option(2, choices=(2, 3))
     tag_height: float | None = option(None, check=tag_height_m)

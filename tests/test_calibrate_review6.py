@@ -1,0 +1,61 @@
+"""`robustloc calibrate`: the commands review's defects, each case failing on the code
+before its fix.
+
+* ``--p0`` took any finite number: ``--p0 1000`` wrote anchors that ``locate`` and
+  ``filter`` then refused, ``--p0 1e308`` said "fitted gamma = nan".  It is held to the
+  limits the anchors reader holds a ``p0`` column to (the reader is the reference).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from robustloc.cli import main
+from robustloc.errors import InputError
+from robustloc.io import read_anchors
+from robustloc.io.limits import limits_for
+from robustloc.pipelines.calibrate import CalibrateSettings
+
+
+def _survey(tmp_path) -> tuple[str, str]:
+    """Two anchors, P = -40 + 10 * 2.2 lg(1 / d) + 0.5 dB noise (attenuation factor,
+    p0 -40 dBm at d0 = 1 m), and their anchors file."""
+    rng = np.random.default_rng(3)
+    d = np.tile(np.linspace(1.0, 12.0, 40), 2)
+    pd.DataFrame({"anchor": np.repeat(["1", "2"], 40), "distance": d,
+                  "rssi": -40 - 22 * np.log10(d) + rng.normal(0, 0.5, d.size)}).to_csv(
+        tmp_path / "s.csv", index=False)
+    (tmp_path / "a.csv").write_text("anchor,x,y\n1,0,0\n2,10,0\n")
+    return str(tmp_path / "s.csv"), str(tmp_path / "a.csv")
+
+
+@pytest.mark.parametrize("p0", ["1000", "1e308", "-1e308", "30.5", "-150.5"])
+def test_p0_beyond_the_anchors_readers_limits_is_refused(tmp_path, capsys, p0):
+    survey, anchors = _survey(tmp_path)
+    # the reference: the anchors reader refuses a p0 column of this value
+    (tmp_path / "ref.csv").write_text(f"anchor,x,y,p0\n1,0,0,{p0}\n")
+    with pytest.raises(InputError, match="p0 must lie in"):
+        read_anchors(tmp_path / "ref.csv")
+    out = tmp_path / "c.csv"
+    code = main(["calibrate", survey, "--anchors", anchors, "--model", "attenuation-factor",
+                 f"--p0={p0}", "-o", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and "argument --p0" in err and "[-150, 30] dBm" in err
+    assert "Traceback" not in err and not out.exists()
+    with pytest.raises(InputError, match="argument --p0"):
+        CalibrateSettings(model="attenuation-factor", p0=float(p0))
+
+
+@pytest.mark.parametrize("p0", [limits_for("rssi").low, -40.0, limits_for("rssi").high])
+def test_p0_within_the_limits_is_taken_and_written_readably(tmp_path, p0):
+    """Every value the reader takes is taken, the limits themselves too (where the fit is
+    determined: at -150 and +30 dBm the survey's gamma is still positive)."""
+    survey, anchors = _survey(tmp_path)
+    out = tmp_path / "c.csv"
+    assert main(["calibrate", survey, "--anchors", anchors, "--model", "attenuation-factor",
+                 f"--p0={p0:g}", "-o", str(out)]) == 0
+    written = read_anchors(out)
+    assert (written["p0"] == p0).all()
+    assert CalibrateSettings(model="attenuation-factor", p0=p0).p0 == p0
