@@ -78,6 +78,10 @@ Example:
 WEIGHTS = ("asymmetric-igg", "igg3", "igg", "huber", "hampel", "none")
 
 
+#: ``--sigma-accel``'s default, by which a value given is told from none.
+SIGMA_ACCEL_DEFAULT = 0.5
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("measurements", help="measurements file (time, tag, anchor, rssi)")
     p.add_argument("--anchors", required=True, help="anchors file with path-loss columns")
@@ -91,13 +95,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    default=2.0,
                    help="measurement noise std, dB (default 2; 1e-6 to 1e6; --sigma as in "
                         "locate and track)")
-    p.add_argument("--sigma-accel", type=float_in(0.0, 1e3), default=0.5,
-                   help="radial acceleration std, m/s^2 (default 0.5; 0 to 1000)")
+    p.add_argument("--sigma-accel", type=float_in(0.0, 1e3), default=SIGMA_ACCEL_DEFAULT,
+                   help="radial acceleration std, m/s^2 (default 0.5; 0 to 1000; refused "
+                        "with --static)")
     p.add_argument("--q-rssi", type=float_in(0.0, 1e6), default=0.05,
                    help="power random walk, dB^2/s (default 0.05; 0 to 1e6)")
     p.add_argument("--exponent", type=float_in(0.1, 10.0), default=None,
                    help="path-loss exponent of the transition (default: each anchor's "
-                        "gamma; 2 = the paper's 20 lg)")
+                        "gamma; 2 = the paper's 20 lg; refused with --static)")
     p.add_argument("--static", action="store_true",
                    help="receivers do not move: speed fixed at 0, no acceleration (the "
                         "filter becomes a robust running mean with a slow power walk)")
@@ -281,8 +286,27 @@ def combine_partitions(counts_list: list[dict]) -> dict:
             "raw_minus_filtered_std_db": diff.std()}
 
 
+def _refuse_moving_options(args: argparse.Namespace) -> None:
+    """Options of a moving receiver, refused with ``--static`` (they were taken and
+    changed no output byte: the commands review).  Under ``--static`` the speed stays 0,
+    so no acceleration enters the state and the transition's path-loss exponent, which
+    turns a change of distance into one of power, has no change to turn."""
+    from robustloc.errors import InputError
+
+    if not args.static:
+        return
+    given = [flag for flag, on in (("--sigma-accel", args.sigma_accel != SIGMA_ACCEL_DEFAULT),
+                                   ("--exponent", args.exponent is not None)) if on]
+    if given:
+        raise InputError(f"{', '.join(given)} does not apply to --static (the receivers do "
+                         "not move: no acceleration, and no change of distance for the "
+                         "transition's exponent to turn into power)")
+
+
 def run(args: argparse.Namespace) -> int:
     from robustloc.io.atomic import check_not_input
+
+    _refuse_moving_options(args)  # before any work
 
     if args.engine != "dask":  # (the Dask engine checks its output tree itself)
         check_not_input(args.out, [args.measurements, args.anchors])

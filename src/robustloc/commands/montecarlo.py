@@ -79,8 +79,10 @@ def _numbers_within(limit: float, what: str) -> Callable[[str], list[float]]:
     them in the message)."""
 
     def parse(text: str) -> list[float]:
+        # an empty item (1,,2 or 1,2,) is refused, not skipped: a slip that lost a
+        # value ran with the others without a word (the commands review)
         try:
-            out = [finite_float(v) for v in text.split(",") if v.strip()]
+            out = [finite_float(v) for v in text.split(",")]
         except argparse.ArgumentTypeError:
             out = []
         if not out or any(abs(v) > limit for v in out):
@@ -93,6 +95,9 @@ def _numbers_within(limit: float, what: str) -> Callable[[str], list[float]]:
 
 _floats = _numbers_within(MAX_FAULT_SIZE, "numbers")
 
+#: ``--lege-max-order``'s default, by which a value given is told from none.
+LEGE_MAX_ORDER_DEFAULT = 3
+
 #: Largest coordinate (m) of ``--position``: a site, not a continent (as ``reliability``'s
 #: ``--area``; projected coordinates such as UTM's reach 1e7 m).
 MAX_POSITION_M = 1e7
@@ -100,8 +105,8 @@ _position = _numbers_within(MAX_POSITION_M, "coordinates (m)")
 
 
 def _ints(text: str) -> list[int]:
-    try:
-        out = [nonnegative_int(v) for v in text.split(",") if v.strip()]
+    try:  # (an empty item refused, as _numbers_within's)
+        out = [nonnegative_int(v) for v in text.split(",")]
     except argparse.ArgumentTypeError:
         out = []
     if not out:
@@ -178,9 +183,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reject-weight", type=float_in(0.0, 1.0), default=0.1,
                    help="IRLS: relative weight (1 = clean) below which an observation "
                         "counts as rejected (0.1)")
-    p.add_argument("--lege-max-order", type=int_in(1, 6), default=3,
+    p.add_argument("--lege-max-order", type=int_in(1, 6), default=LEGE_MAX_ORDER_DEFAULT,
                    help="largest number of gross errors LEGE searches (default 3; at most "
-                        "n - p - 4, see above; linearized model only)")
+                        "n - p - 4, see above; linearized model and --methods lege only, "
+                        "refused otherwise)")
     p.add_argument("--nonlinear", action="store_true",
                    help="--anchors only: simulate the observations and solve them by "
                         "Gauss-Newton (robustloc locate's solvers, with the a-priori --sigma "
@@ -308,7 +314,10 @@ def run(args: argparse.Namespace) -> int:
     check_not_input(args.out, [getattr(args, "anchors", None)])
     # and its format: `-o mc.png` was refused after the whole simulation
     _check_table_out(args.out)
-    methods = tuple(m.strip().lower() for m in args.methods.split(",") if m.strip())
+    methods = tuple(m.strip().lower() for m in args.methods.split(","))
+    if "" in methods:  # (ls,,huber: an empty item, as --size's, is no method)
+        raise InputError(f"--methods: an empty item in {args.methods!r}; give the "
+                         f"methods separated by single commas, among {', '.join(METHODS)}")
     bad = [m for m in methods if m not in METHODS]
     if bad or not methods:
         raise InputError(f"--methods: unknown or no method(s) {', '.join(bad)!r}; choose "
@@ -323,6 +332,14 @@ def run(args: argparse.Namespace) -> int:
         raise InputError("--nonlinear applies to --anchors layouts only")
     if args.nonlinear and args.alpha is not None:
         raise InputError("--alpha (fixed) is not available with --nonlinear")
+    if args.lege_max_order != LEGE_MAX_ORDER_DEFAULT:  # (taken and ignored before)
+        if args.nonlinear:
+            raise InputError("--lege-max-order applies to the linearized model only: "
+                             "--nonlinear runs locate's LEGE, which searches as many "
+                             "gross errors as the redundancy allows")
+        if "lege" not in methods:
+            raise InputError("--lege-max-order applies to --methods lege, which "
+                             f"{args.methods!r} does not list")
     lay = build_layout(args)
     if any(k < 0 or k > lay.n - lay.p for k in args.faults):
         raise InputError(f"--faults must be within 0..{lay.n - lay.p} (the redundancy)")

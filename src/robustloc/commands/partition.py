@@ -43,17 +43,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--span", type=float_in(1e-6, 1e12), default=None, metavar="S",
                    help="--by time: bin width in seconds, 1e-6 to 1e12 (default: from "
                         "--rows-per-partition)")
-    p.add_argument("--rows-per-partition", type=positive_int, default=2_000_000, metavar="N",
-                   help="--by time without --span: target rows per file (default 2000000)")
+    p.add_argument("--rows-per-partition", type=positive_int, default=ROWS_PER_PARTITION,
+                   metavar="N",
+                   help="--by time without --span: target rows per file (default 2000000); "
+                        "--method dask: also about the rows of each of its shuffle's tasks")
     p.add_argument("--buckets", type=nonnegative_int, default=0, metavar="N",
                    help="--by tag: hash the tags into N buckets (default 0: one per tag)")
     p.add_argument("--method", choices=METHODS, default="duckdb",
                    help="duckdb (default, measured faster) or dask (a shuffle)")
     p.add_argument("--memory-limit", type=memory_size, default="2GB", metavar="SIZE",
                    help="DuckDB memory limit before spilling to disk, e.g. 500MB, 2GB, "
-                        "1.5GiB or 50%% of the RAM (default 2GB)")
+                        "1.5GiB or 50%% of the RAM (default 2GB; --method dask: of the "
+                        "DuckDB scan that checks the input first)")
     p.add_argument("--threads", type=positive_int, default=None,
-                   help="DuckDB threads (default: the cores available)")
+                   help="DuckDB threads (default: the cores available; --method dask: "
+                        "of its input check)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="--method dask: a running scheduler (default: a LocalCluster)")
     p.add_argument("--workers", type=local_workers, default=None, metavar="N",
@@ -94,9 +98,41 @@ MANY_PARTITIONS = 1000
 FEW_ROWS = 1000
 
 
+#: ``--rows-per-partition``'s default, by which a value given is told from none.
+ROWS_PER_PARTITION = 2_000_000
+
+
+def _refuse_idle_options(args: argparse.Namespace) -> None:
+    """Options that the other key or method never reads, refused (they were taken and
+    changed nothing: the commands review).  ``--rows-per-partition`` chooses the span of
+    ``--by time`` without ``--span``; under ``--method dask`` it also sizes the shuffle's
+    tasks, so it is refused only for ``--method duckdb``.  ``--memory-limit`` and
+    ``--threads`` apply under either method (``dask`` checks its input with DuckDB)."""
+    from robustloc.errors import InputError
+
+    idle = []
+    if args.by == "time" and args.buckets:
+        idle.append(("--buckets", "--by tag", "--by time bins the rows by time"))
+    if args.by == "tag" and args.span is not None:
+        idle.append(("--span", "--by time", "--by tag partitions by the tags"))
+    if (args.method == "duckdb" and args.rows_per_partition != ROWS_PER_PARTITION
+            and (args.by == "tag" or args.span is not None)):
+        idle.append(("--rows-per-partition", "--by time without --span, or --method dask",
+                     "--span gives the bins" if args.by == "time"
+                     else "--by tag partitions by the tags"))
+    if args.method == "duckdb":
+        for flag, value in (("--scheduler", args.scheduler), ("--workers", args.workers)):
+            if value is not None:
+                idle.append((flag, "--method dask", "--method duckdb runs in this process"))
+    if idle:
+        flag, where, why = idle[0]
+        raise InputError(f"{flag} applies to {where} only ({why})")
+
+
 def run(args: argparse.Namespace) -> int:
     from robustloc.engines.partition import partition_dataset
 
+    _refuse_idle_options(args)  # before any work
     s = partition_dataset(
         args.input, args.out, args.by, span_s=args.span,
         rows_per_partition=args.rows_per_partition, buckets=args.buckets, method=args.method,
