@@ -183,6 +183,47 @@ def _csv_headers(files: list[str]) -> list[list[str]]:
     return headers
 
 
+def _check_one_kind(files: list[str], headers: list[list[str]]) -> None:
+    """Every file with the value column (:data:`robustloc.io.tables.VALUE_COLUMNS`:
+    ``rssi`` or ``range``) of the first: a dataset holds one kind of measurement.
+
+    ``headers``: each file's column names, in ``files``' order.  Checked per file before
+    the files are read as one: their union gave a file of ranges the RSSI column of the
+    others, all missing, and the error named the folder, not the file (``gl3: column
+    'rssi': 153 missing ...``: the commands review).
+
+    Raises
+    ------
+    InputError
+        ``FILE:1``: the first file whose value column is not the first file's.
+    """
+    from robustloc.io.tables import VALUE_COLUMNS
+
+    kinds = [[c for c in VALUE_COLUMNS if c in names] for names in headers]
+    for f, kind in zip(files[1:], kinds[1:]):
+        if kind == kinds[0]:
+            continue
+        def said(k: list[str]) -> str:
+            return (" and ".join(repr(c) for c in k) if k
+                    else "no " + " or ".join(repr(c) for c in VALUE_COLUMNS))
+
+        raise InputError(f"has {said(kind)}, not {said(kinds[0])} as {files[0]}: a dataset "
+                         "holds one kind of measurement (partition the RSSI and the range "
+                         "files apart)", f, 1)
+
+
+def _parquet_headers(files: list[str]) -> list[list[str]] | None:
+    """Each Parquet file's column names, or None when one cannot be read (DuckDB's scan
+    then says why)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        return [pq.read_schema(f).names for f in files]
+    except (OSError, pa.ArrowException):
+        return None
+
+
 def _source(con, files: list[str], fmt: str, spec: str,
             hive: dict[str, dict[str, str]] | None = None) -> tuple[str, list[str]]:
     """DuckDB's table function over the input and its column names; ids read as text.
@@ -210,10 +251,15 @@ def _source(con, files: list[str], fmt: str, spec: str,
         src = (f"read_csv({lst}, header=true, union_by_name=true, hive_partitioning=false, "
                "delim=',', quote='\"', escape='\"', comment='', skip=0")
         headers = _csv_headers(files)
+        if len(headers) == len(files):  # (else a Parquet file named .csv: DuckDB says so)
+            _check_one_kind(files, headers)
         if headers and all(h == headers[0] for h in headers):  # (" tag" is "tag")
             src += ", names=[" + ", ".join(_sql_str(c) for c in headers[0]) + "]"
     else:
         src = f"read_parquet({lst}, union_by_name=true, hive_partitioning=false"
+        schemas = _parquet_headers(files)
+        if schemas is not None:
+            _check_one_kind(files, schemas)
     try:
         described = con.execute(f"DESCRIBE SELECT * FROM {src})").fetchall()
     except duckdb.Error as exc:
