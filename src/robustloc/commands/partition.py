@@ -22,6 +22,12 @@ spills to disk beyond --memory-limit):
              All rows of one time land in one file, so an epoch is never split.  For
              locate and evaluate (locate also runs on a dataset by tag).
 
+The files hold the input's columns (tag too); the folder names only organize them.  To
+read the dataset with pandas or pyarrow, leave the folder keys out:
+pandas.read_parquet(DIR, partitioning=None) or pyarrow.dataset.dataset(DIR,
+format="parquet", partitioning=None) (read as a column, tag= clashes with the files' tag:
+"Field tag has incompatible types").
+
 --method duckdb (default: a partitioned COPY, then a sort of each file) was faster than
 --method dask (a dask shuffle) on this project's benchmark (benchmarks/bench_dask.py).
 A progress bar is shown on a terminal (-q or --json hides it).
