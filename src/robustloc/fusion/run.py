@@ -24,8 +24,12 @@ the preceding ranges) span such a layout; otherwise it is ``insufficient_anchors
 than three distinct anchors) or ``ill_conditioned`` (three or more, but all at one point or
 on one line -- the anchors' scatter matrix fails the condition test of
 :func:`robustloc.estimators._kernels.inv_spd`).  The filtered state is still written on
-such rows; GPS speed and course (velocity only) cannot make the position observable.
-These two qualify an *updated* row.  A row that nothing updated is ``predicted`` in either
+such rows, with a position covariance that also covers the position the ranges cannot
+tell from it (:func:`_cover_mirror`); GPS speed and course (velocity only) cannot make the
+position observable.  These two qualify an *updated* row.  A tag whose first ranges
+come from anchors on one line (two) starts at each of the two positions they allow and
+keeps the run with the smaller sum of NIS (:func:`_mirror_starts`).
+A row that nothing updated is ``predicted`` in either
 coupling, whatever its anchors (its state is the motion model's prediction, ``n_used`` 0):
 a lost track's coasting rows, and in loose coupling every event of one or two anchors
 without GPS -- loose coupling has no fix from them, where tight coupling updates with the
@@ -355,7 +359,9 @@ def fuse(
     Rd[..., m - 2] = opts.sigma_speed_mps**2
     Rd[..., m - 1] = np.deg2rad(opts.sigma_course_deg) ** 2
 
-    x0pos, has, fixes = _initial_positions(tl, z, opts, a_xy, dz, M)
+    heard = (np.isfinite(z[..., :M]) if opts.coupling == "tight"
+             else np.isfinite(tl.z[..., c_heard : c_heard + M]))
+    x0pos, has, fixes, alt = _initial_positions(tl, z, opts, a_xy, dz, M, heard)
     x0, P0 = initial_state(x0pos, n, opts.init_var_m2, acc_var=opts.init_acc_var)
     # a track whose prediction is lost (a long gap), or that started without a position,
     # restarts from its event's fix with the initial covariance of a track that has one,
@@ -374,13 +380,33 @@ def fuse(
                                         Rd[:, 0, m - 1], filt.min_speed_mps)
         x0[moving, 2:4] = v[moving]
         P0[moving, 2, 2] = P0[moving, 3, 3] = var_v[moving]
-    P0[~has, 0, 0] = P0[~has, 1, 1] = 1e4
+    # a track without a position starts wide; one at a two-anchor start (_mirror_starts)
+    # is placed by its ranges as a fix places it, but for the side (run both, below):
+    # from 1e4 m^2 the UKF's sigma points (200 m out) straddled the anchors (24 m median
+    # error, 548 m max on the two-anchor cart; the fuse review, finding 2)
+    wide = ~has & ~np.isfinite(alt).all(axis=1)
+    P0[wide, 0, 0] = P0[wide, 1, 1] = 1e4
     tr = filt.run(tl.time_s, z, Rd, meas, x0, P0, progress=progress, restart=fixes,
                   P_restart=P_restart, placed=has)
+    # a tag that starts on a line of anchors (two heard) has two starts, mirror images:
+    # the other is run too, and the run whose innovations are smaller in sum (NIS: GPS
+    # course tells the sides apart, a track on the wrong side fails the test) is kept.
+    # From the file's centroid, on the side of an anchor never heard, the cart's track
+    # kept to the mirror side: 3.3 m median error (the fuse review, finding 2)
+    amb = np.flatnonzero(np.isfinite(alt).all(axis=1))
+    summary["mirror_starts"] = int(amb.size)
+    if amb.size:
+        x0b = x0[amb].copy()
+        x0b[:, :2] = alt[amb]
+        tr_b = filt.run(tl.time_s[amb], z[amb], Rd[amb], meas, x0b, P0[amb],
+                        restart=fixes[amb], P_restart=P_restart[amb], placed=has[amb])
+        score_a = np.nansum(tr.nis[amb], axis=1)
+        score_b = np.nansum(tr_b.nis, axis=1)
+        tr = _take_tracks(tr, tr_b, amb[score_b < score_a], score_b < score_a)
 
-    heard = (np.isfinite(z[..., :M]) if opts.coupling == "tight"
-             else np.isfinite(tl.z[..., c_heard : c_heard + M]))
     layout = _layout_status(tl.time_s, heard, a_xy, opts.geometry_window_s)
+    tr = _cover_mirror(tr, _recent_anchors(tl.time_s, heard, opts.geometry_window_s),
+                       layout, a_xy)
     status = np.asarray(tr.status, dtype=object).copy()
     if tr.time_s.size:
         # an update that kept no component (every one rejected: n_used 0, a GPS speed or
@@ -452,14 +478,101 @@ def _one_hot(L: int, M: int, col: NDArray[np.int64], v: Array) -> Array:
     return out
 
 
-def _initial_positions(tl, z, opts, a_xy, dz, M, max_age_s: float = 1.0):
+def _take_tracks(tr, tr_b, rows: NDArray[np.int64], pick: NDArray[np.bool_]):
+    """``tr`` with the tracks ``rows`` replaced by ``tr_b``'s tracks ``pick`` (``tr_b``
+    ran on a subset of ``tr``'s tags, in order)."""
+    from dataclasses import replace
+
+    if rows.size == 0:
+        return tr
+    out = {}
+    for name in ("time_s", "x", "var", "status", "n_used", "nis", "weights", "P_last",
+                 "cov_xy"):
+        v = getattr(tr, name)
+        if v is None:
+            continue
+        v = v.copy()
+        v[rows] = getattr(tr_b, name)[pick]
+        out[name] = v
+    extra = {}
+    for k, v in tr.extra.items():
+        vb = tr_b.extra.get(k)
+        if isinstance(v, np.ndarray) and isinstance(vb, np.ndarray) and v.shape[:1] == (
+                len(tr.time_s),):
+            v = v.copy()
+            v[rows] = vb[pick]
+        extra[k] = v
+    return replace(tr, extra=extra, **out)
+
+
+def _mirror_starts(time_s: Array, z: Array, a_xy: Array, dz: Array | None,
+                   start: NDArray[np.bool_], window_s: float) -> tuple[Array, Array]:
+    """The two positions, mirror images across the line of a tag's start anchors, that
+    its first ranges allow, for each tag whose start anchors (:func:`_start_anchors`) are
+    two, or more on one line (tight coupling; NaN for the other tags).
+
+    Along the line (centroid ``c``, direction ``v``, normal ``u``), anchor ``i`` at
+    ``p_i`` and the tag at ``s + h u``: ``r_i^2 - p_i^2 = -2 p_i s + (s^2 + h^2)``, linear
+    in ``s`` and ``s^2 + h^2`` -- least squares over the start anchors' first ranges within
+    ``window_s`` of the tag's first range (each anchor's first), ``h`` clipped at 0."""
+    from robustloc.estimators._kernels import inv_spd
+    from robustloc.models.geometry import principal_lines
+
+    K, J, M = z.shape
+    a = np.full((K, 2), np.nan)
+    b = np.full((K, 2), np.nan)
+    cnt = start.sum(axis=1)
+    c, u = principal_lines(a_xy, start)
+    ca = a_xy[None] - c[:, None]  # (K, M, 2) anchors about each tag's centroid
+    on_line = np.abs(np.einsum("kmi,ki->km", ca, u))
+    ext = np.max(np.where(start, np.hypot(ca[..., 0], ca[..., 1]), 0.0), axis=1)
+    # a line: two anchors, or more within 1e-6 of their extent off it (the layout test's
+    # ill_conditioned covers these and more; a nearly collinear layout still has one fix)
+    tol = 1e-6 * np.maximum(ext, 1e-300)[:, None]
+    line = (cnt >= 2) & np.all(~start | (on_line <= tol), axis=1) & (ext > 0)
+    if not line.any():
+        return a, b
+    r = np.where(start[:, None, :], z, np.nan)
+    with np.errstate(invalid="ignore"):
+        t0 = np.nanmin(np.where(np.isfinite(r).any(axis=-1), time_s, np.nan), axis=1) \
+            if J else np.full(K, np.nan)
+        early = time_s <= (t0 + window_s)[:, None]
+    r = np.where(early[..., None], r, np.nan)
+    has_r = np.isfinite(r)
+    first = np.argmax(has_r, axis=1)  # (K, M) each anchor's first range
+    r1 = np.take_along_axis(r, first[:, None, :], axis=1)[:, 0]
+    r1 = np.where(has_r.any(axis=1), r1, np.nan)
+    if dz is not None:  # slant ranges to horizontal ones
+        r1 = np.sqrt(np.maximum(r1**2 - dz[None] ** 2, 0.0))
+    v = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    pp = np.einsum("kmi,ki->km", ca, v)  # along-line coordinates
+    ok = np.isfinite(r1) & start
+    line &= ok.sum(axis=1) >= 2
+    w = ok.astype(float)
+    A = np.stack([-2.0 * pp, np.ones_like(pp)], axis=-1) * w[..., None]  # (K, M, 2)
+    y = np.where(ok, r1**2 - pp**2, 0.0)
+    N = np.einsum("kmi,kmj->kij", A, A)
+    Ninv, good = inv_spd(N)
+    sol = np.einsum("kij,kmj,km->ki", Ninv, A, y)
+    sa = sol[:, 0]
+    h = np.sqrt(np.maximum(sol[:, 1] - sa**2, 0.0))
+    line &= good & np.isfinite(h)
+    base = c + sa[:, None] * v
+    a[line] = (base + h[:, None] * u)[line]
+    b[line] = (base - h[:, None] * u)[line]
+    return a, b
+
+
+def _initial_positions(tl, z, opts, a_xy, dz, M, heard, max_age_s: float = 1.0):
     """First usable position of each tag: a fix (loose), or in tight coupling an LS fix of
     the latest range of every anchor heard within ``max_age_s`` (ranges of one TWR round
     rarely share a time stamp).
 
-    Returns the ``(K, 2)`` positions at each tag's first event (the anchors' centroid
-    where that event has no fix), whether it has one, and the ``(K, J, 2)`` fixes of
-    every event (NaN: none), where a lost track restarts."""
+    Returns the ``(K, 2)`` positions at each tag's first event (where that event has no
+    fix: the centroid of the anchors the tag hears within ``geometry_window_s`` of its
+    first range, or of all anchors when it hears none), whether it has one, and the
+    ``(K, J, 2)`` fixes of every event (NaN: none), where a lost track restarts.
+    ``heard`` is the ``(K, J, M)`` mask of the anchors each event heard."""
     K, J = tl.time_s.shape
     if opts.coupling == "loose":
         pos = z[..., :2]
@@ -480,8 +593,98 @@ def _initial_positions(tl, z, opts, a_xy, dz, M, max_age_s: float = 1.0):
     # of the log, whenever it came, was taken: a GPS-only row 10 s (or 1.7e9 s) before
     # any range sat at a later fix with a 2 m sd (the fuse/filter review, 2026-12-07)
     has = ok[:, 0] if J else np.zeros(K, dtype=bool)
-    x0 = np.where(has[:, None], pos[:, 0] if J else np.zeros((K, 2)), a_xy.mean(axis=0)[None])
-    return x0, has, np.where(ok[..., None], pos, np.nan)
+    # without a fix, the centroid of the anchors the tag hears around its start: that of
+    # all anchors in the file pulled a two-anchor track to the mirror side of their line
+    # (an anchor never heard, BS.C of the cart, sat on that side: 3.3 m median error with
+    # a 0.11 m sd; the fuse review, finding 2)
+    start = _start_anchors(tl.time_s, heard, opts.geometry_window_s)
+    cnt = start.sum(axis=1)
+    near = (start @ a_xy) / np.maximum(cnt, 1)[:, None]
+    centre = np.where(cnt[:, None] > 0, near, a_xy.mean(axis=0)[None])
+    x0 = np.where(has[:, None], pos[:, 0] if J else np.zeros((K, 2)), centre)
+    # on the line of two anchors (their centroid) the ranges say nothing across it: a
+    # tag heard by two (or collinear) anchors starts at one of the two positions their
+    # first ranges allow; fuse runs the other too and keeps the better (_mirror_starts)
+    alt = np.full((K, 2), np.nan)
+    if opts.coupling == "tight" and J:
+        one, two = _mirror_starts(tl.time_s, z[..., :M], a_xy, dz, start,
+                                  opts.geometry_window_s)
+        amb = ~has & np.isfinite(one).all(axis=1)
+        x0 = np.where(amb[:, None], one, x0)
+        alt = np.where(amb[:, None], two, alt)
+    return x0, has, np.where(ok[..., None], pos, np.nan), alt
+
+
+def _start_anchors(time_s: Array, heard: NDArray[np.bool_],
+                   window_s: float) -> NDArray[np.bool_]:
+    """``(K, M)``: the anchors each tag hears from its first event with a range up to
+    ``window_s`` seconds later (all false for a tag that hears none)."""
+    K, J, M = heard.shape
+    if K * J == 0:
+        return np.zeros((K, M), dtype=bool)
+    any_r = heard.any(axis=-1)
+    first = np.argmax(any_r, axis=1)
+    t0 = np.where(any_r.any(axis=1), time_s[np.arange(K), first], np.nan)
+    with np.errstate(invalid="ignore"):
+        early = time_s <= (t0 + window_s)[:, None]
+    return (heard & early[..., None]).any(axis=1)
+
+
+def _recent_anchors(time_s: Array, heard: NDArray[np.bool_],
+                    window_s: float) -> NDArray[np.bool_]:
+    """``(K, J, M)``: the anchors each event's tag heard within ``window_s`` seconds up to
+    it (the event's own included): the layout of :func:`_layout_status`."""
+    K, J, M = heard.shape
+    idx = np.where(heard, np.arange(J)[None, :, None], -1)
+    last = np.maximum.accumulate(idx, axis=1)  # (K, J, M) latest event that heard anchor m
+    t_last = np.take_along_axis(
+        np.broadcast_to(time_s[:, :, None], (K, J, M)), np.maximum(last, 0), axis=1)
+    with np.errstate(invalid="ignore"):
+        return (last >= 0) & (time_s[..., None] - t_last <= window_s)
+
+
+def _cover_mirror(tr, recent: NDArray[np.bool_], layout: NDArray[np.object_],
+                  a_xy: Array):
+    """``tr`` with the position covariance of every event whose anchors cannot fix the
+    position (``layout`` not ``''``) widened to cover the positions its ranges cannot
+    tell from its own: ``+ (2 d)^2 u u^T``, ``d`` the distance from the line of the
+    anchors heard (:func:`robustloc.models.geometry.principal_lines`, normal ``u``) --
+    the mirror image lies ``2 d`` across it -- or, for anchors at one point, the circle
+    about it: ``+ (2 rho)^2 t t^T``, ``rho`` the distance to the point, ``t`` the
+    tangent.  The filter's own covariance is that of the side it follows: on the
+    two-anchor cart the EKF followed the mirror side 3.3 m off with a 0.11 m sd (the
+    fuse review, finding 2).  Rows that heard no anchor recently are left as they are."""
+    from dataclasses import replace
+
+    from robustloc.models.geometry import principal_lines
+
+    K, J, M = recent.shape
+    rows = (layout != "") & recent.any(axis=-1) & np.isfinite(tr.x[..., :2]).all(axis=-1)
+    if not rows.any():
+        return tr
+    k, j = np.nonzero(rows)
+    keep = recent[k, j]
+    c, u = principal_lines(a_xy, keep)
+    x = tr.x[k, j, :2]
+    spread = np.max(np.where(keep, np.hypot(*(a_xy[None] - c[:, None]).transpose(2, 0, 1)),
+                             0.0), axis=1)
+    rel = x - c
+    rho = np.hypot(rel[:, 0], rel[:, 1])
+    point = spread <= 1e-9 * np.maximum(rho, 1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        tang = np.stack([-rel[:, 1], rel[:, 0]], axis=1) / rho[:, None]
+    tang = np.where(np.isfinite(tang), tang, 0.0)
+    d = np.where(point, rho, np.abs(np.einsum("ki,ki->k", rel, u)))
+    dirn = np.where(point[:, None], tang, u)
+    add = (2.0 * d)[:, None, None] ** 2 * (dirn[:, :, None] * dirn[:, None, :])
+    var = tr.var.copy()
+    var[k, j, 0] += add[:, 0, 0]
+    var[k, j, 1] += add[:, 1, 1]
+    cov = None
+    if tr.cov_xy is not None:
+        cov = tr.cov_xy.copy()
+        cov[k, j] += add[:, 0, 1]
+    return replace(tr, var=var, cov_xy=cov)
 
 
 def _layout_status(time_s: Array, heard: NDArray[np.bool_], a_xy: Array,
@@ -495,12 +698,7 @@ def _layout_status(time_s: Array, heard: NDArray[np.bool_], a_xy: Array,
     out = np.full((K, J), "", dtype=object)
     if K * J == 0:
         return out
-    idx = np.where(heard, np.arange(J)[None, :, None], -1)
-    last = np.maximum.accumulate(idx, axis=1)  # (K, J, M) latest event that heard anchor m
-    t_last = np.take_along_axis(
-        np.broadcast_to(time_s[:, :, None], (K, J, M)), np.maximum(last, 0), axis=1)
-    with np.errstate(invalid="ignore"):
-        recent = (last >= 0) & (time_s[..., None] - t_last <= window_s)
+    recent = _recent_anchors(time_s, heard, window_s)
     cnt = recent.sum(axis=-1)
     w = recent.astype(float)
     # scatter of the recent anchors: sum w c c^T - n m m^T with c the anchors about their
