@@ -55,6 +55,26 @@ def _errors(tr: pd.DataFrame, cart) -> tuple[np.ndarray, np.ndarray]:
     return np.hypot(ex, ey), nees
 
 
+# --- 1: a failed test keeps its status under the layout's ---------------------------------
+
+
+def test_failed_test_is_not_hidden_by_too_few_anchors(cart, tmp_path, capsys):
+    # a +20 m range at t = 20 s, the plain filter (nothing down-weights it): its event's
+    # NIS is in the thousands.  It said insufficient_anchors, as did every row
+    two = _two_anchors(cart, tmp_path, shift=20.0)
+    tr, cap = _fuse(cart, tmp_path, capsys, two, "--robust", "none")
+    row = tr.loc[tr["time"] == 20.0].iloc[0]
+    assert row["nis"] > 1000.0
+    assert row["status"] == st.FAULT_DETECTED
+    assert "fault_detected or unavailable" in cap.err  # the warning's word, now on rows
+    # the rows before the fault passed their test: the layout's status
+    assert (tr.loc[tr["time"] < 20.0, "status"] == st.INSUFFICIENT).all()
+    # a robust update rejects the range (n_used 1): the row passed with the other one
+    tr, _ = _fuse(cart, tmp_path, capsys, two)
+    row = tr.loc[tr["time"] == 20.0].iloc[0]
+    assert row["n_used"] == 1 and row["status"] == st.INSUFFICIENT
+
+
 # --- 2: two anchors: the track's side, and a covariance that covers the other ---------------
 
 

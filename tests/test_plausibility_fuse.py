@@ -147,7 +147,13 @@ def test_identical_anchors_are_ill_conditioned_not_ok(cart, tmp_path, capsys):
                              str(cart / "gps.nmea"), anchors=p)
         assert rc == 0, cap.err
         tr = pd.read_csv(out)
-        assert len(tr) == 51 and (tr["status"] == st.ILL_CONDITIONED).all(), coupling
+        # no row ok; a row whose test failed (ranges to three anchors at one point
+        # disagree: NIS in the thousands) keeps fault_detected / unavailable, which the
+        # layout's status hid (the fuse review, finding 1)
+        assert len(tr) == 51, coupling
+        assert set(tr["status"]) <= {st.ILL_CONDITIONED, st.FAULT_DETECTED,
+                                     st.UNAVAILABLE}, coupling
+        assert (tr["status"] == st.ILL_CONDITIONED).any(), coupling
     # locate agrees
     rc = main(["locate", str(cart / "measurements.csv"), "--anchors", str(p), "-o",
                str(tmp_path / "pos.csv")])

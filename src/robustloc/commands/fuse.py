@@ -75,19 +75,22 @@ input epoch is in one); status:
                         A time outside |t| <= 1e12 s (ranges, or NMEA times plus
                         --nmea-offset) cannot be placed on the timeline: one such row
                         per (tag, time), without a state (as in locate)
-  insufficient_anchors  updated, but fewer than three anchors heard within
-                        --geometry-window: ranges cannot fix the position (as in locate)
-  ill_conditioned       updated, but the anchors heard are all at one point or on one line
-                        (as in locate); GPS speed/course do not fix a position either
+  insufficient_anchors  updated and the test passed, but fewer than three anchors heard
+                        within --geometry-window: ranges cannot fix the position (as in
+                        locate).  A failed test stays fault_detected or unavailable
+  ill_conditioned       as insufficient_anchors, but the anchors heard are all at one
+                        point or on one line (as in locate); GPS speed/course do not fix a
+                        position either
 The filtered state is written on every row; its var_* columns say how far to trust it
 under the noise it assumes (--sigma-range, --q): ranges noisier than --sigma-range make
 them optimistic.  Where the anchors heard cannot fix the position (the last two
-statuses) var_x, var_y and cov_xy also cover the position's mirror image across the
-anchors' line, (2 d)^2 across it at a distance d (about a single anchor: its circle): the
-ranges cannot tell the two apart.  A tag whose first ranges come from two anchors (or
-more on one line) starts at each of the two positions they allow, and the run with the
-smaller sum of NIS is kept (GPS course tells the sides apart; without GPS the choice is
-no better than a guess, which the variances say).
+statuses, and a failed test with such anchors) var_x, var_y and cov_xy also cover the
+position's mirror image across the anchors' line, (2 d)^2 across it at a distance d
+(about a single anchor: its circle): the ranges cannot tell the two apart.  A tag whose
+first ranges come from two anchors (or more on one line) starts at each of the two
+positions they allow, and the run with the smaller sum of NIS is kept (GPS course tells
+the sides apart; without GPS the choice is no better than a guess, which the variances
+say).
 On uwb-dwm1001 at the defaults the errors are about 3x their sd (the
 mean NEES 18-20 where 2 is consistent); --sigma-range 0.5 brings it to 4, for 1.27
 instead of 0.92 m RMS (docs/limits.md).
