@@ -129,3 +129,21 @@ def test_two_anchor_starts_per_tag(cart, tmp_path, capsys):
     ac.to_csv(ac_p, index=False)
     other, _ = _fuse(cart, tmp_path / "b", capsys, ac_p)
     pd.testing.assert_frame_equal(tr[tr["tag"] == "other"].reset_index(drop=True), other)
+
+
+# --- 6: an open bound is said as open ------------------------------------------------------
+
+
+@pytest.mark.parametrize("value", ["1", "0.4", "1.5"])
+def test_gate_out_of_range_names_the_open_interval(cart, tmp_path, capsys, value):
+    # the bound was 1 - 1e-12, printed with :g: "expected a number in [0.5, 1], got '1'"
+    rc = main(["fuse", "--ranges", str(cart / "measurements.csv"), "--anchors",
+               str(cart / "anchors.csv"), "-o", str(tmp_path / "t.csv"), "--gate", value])
+    assert rc == 2
+    assert f"expected a number in [0.5, 1), got '{value}'" in capsys.readouterr().err
+
+
+def test_gate_accepts_up_to_one(cart, tmp_path, capsys):
+    for value in ("0.5", "0.999", "0.999999999999"):
+        tr, _ = _fuse(cart, tmp_path, capsys, cart / "measurements.csv", "--gate", value)
+        assert len(tr) == 51

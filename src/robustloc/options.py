@@ -112,17 +112,26 @@ def choice(synonyms: Mapping[str, str]) -> Callable[[str], str]:
     return convert
 
 
-def float_in(low: float, high: float) -> Callable[[str], float]:
-    """Converter for a finite float in the closed interval ``[low, high]``."""
+def float_in(low: float, high: float, *, open_high: bool = False) -> Callable[[str], float]:
+    """Converter for a finite float in the closed interval ``[low, high]``, or in
+    ``[low, high)`` with ``open_high``.
+
+    An open bound is said as open: ``--gate`` bounded by ``1 - 1e-12`` printed
+    "expected a number in [0.5, 1], got '1'" (``:g`` rounds it to 1; the fuse review).
+
+    >>> float_in(0.5, 1.0, open_high=True)("0.999")
+    0.999
+    """
 
     def convert(text: str) -> float:
         value = _float(text)
-        if not low <= value <= high:
+        if not (low <= value < high if open_high else low <= value <= high):
             raise argparse.ArgumentTypeError(
-                f"expected a number in [{low:g}, {high:g}], got {text!r}")
+                f"expected a number in [{low:g}, {high:g}{')' if open_high else ']'}, "
+                f"got {text!r}")
         return value
 
-    convert.__name__ = f"float_in_{low:g}_{high:g}"
+    convert.__name__ = f"float_in_{low:g}_{high:g}{'_open' if open_high else ''}"
     return convert
 
 

@@ -186,8 +186,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="equivalent weight of the robust update (default hampel; none is "
                         "the paper's plain filter; see Defaults; --weight as in track; ls = "
                         "none, asym = asymmetric-igg)")
-    p.add_argument("--gate", type=float_in(0.5, 1.0 - 1e-12), default=None, metavar="PROB",
-                   help="chi-square gate probability on the innovation, e.g. 0.999")
+    p.add_argument("--gate", type=float_in(0.5, 1.0, open_high=True), default=None,
+                   metavar="PROB",
+                   help="chi-square gate probability on the innovation, e.g. 0.999 "
+                        "(0.5 <= PROB < 1)")
     # bounded as the a-priori sigmas are (robustloc.options.SIGMA_RANGE: 1e-6 to 1e6 for a
     # std; a variance's lower bound is its square): 1e300 passed, and every event of a
     # 1 Hz log restarted the track from its fix, exit 0 (the filter/fuse review 4)
