@@ -147,3 +147,28 @@ def test_gate_accepts_up_to_one(cart, tmp_path, capsys):
     for value in ("0.5", "0.999", "0.999999999999"):
         tr, _ = _fuse(cart, tmp_path, capsys, cart / "measurements.csv", "--gate", value)
         assert len(tr) == 51
+
+
+# --- 4: a ranges file that also has rssi (the DWM1001 loader writes both) ------------------
+
+
+def test_fuse_reads_the_range_column_beside_rssi(cart, tmp_path, capsys):
+    # fuse refused it ("has both 'rssi' and 'range' columns; keep exactly one")
+    m = pd.read_csv(cart / "measurements.csv")
+    both = tmp_path / "both.csv"
+    m.assign(rssi=-60.0).assign(rssi=lambda d: d["rssi"].where(d.index != 3)).to_csv(
+        both, index=False)  # an rssi NaN too: fuse never reads that column
+    tr, _ = _fuse(cart, tmp_path, capsys, both)
+    (tmp_path / "r").mkdir()
+    ref, _ = _fuse(cart, tmp_path / "r", capsys, cart / "measurements.csv")
+    pd.testing.assert_frame_equal(tr, ref)
+    # locate cannot tell which is meant and still refuses (docs: one of rssi or range)
+    assert main(["locate", str(both), "--anchors", str(cart / "anchors.csv"), "-o",
+                 str(tmp_path / "p.csv")]) == 2
+    assert "keep exactly one" in capsys.readouterr().err
+    # an rssi-only file: fuse says what it takes
+    rs = tmp_path / "rssi.csv"
+    m.assign(rssi=-60.0).drop(columns="range").to_csv(rs, index=False)
+    assert main(["fuse", "--ranges", str(rs), "--anchors", str(cart / "anchors.csv"),
+                 "-o", str(tmp_path / "t.csv")]) == 2
+    assert f"error: {rs}:1: measurements file has no 'range' column" in capsys.readouterr().err

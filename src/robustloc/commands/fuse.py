@@ -247,13 +247,12 @@ def run(args: argparse.Namespace) -> int:
         # the slant-range correction needs the anchors' heights: never ignore it silently
         raise InputError("--tag-height needs a z column in the anchors file",
                          anchors.attrs.get("path", args.anchors), 1)
-    meas = read_measurements(args.ranges, anchors)
+    # fuse takes the range column: a file that also has rssi (the DWM1001 loader writes
+    # both) is read for its ranges, where locate refuses the ambiguity
+    meas = read_measurements(args.ranges, anchors, value="range")
     from robustloc._jitnotice import compile_notice
 
     compile_notice("positioning", "filter")
-    if meas.attrs.get("value") != "range":
-        raise InputError("the measurements file has no 'range' column (fuse takes UWB "
-                         "ranges)", args.ranges, 1)  # the header line
     origin = None
     if args.origin:
         try:

@@ -1061,7 +1061,15 @@ def validate_survey(
     return df
 
 
-def _value_column(df: pd.DataFrame, what: str, path: PathLike | None) -> str:
+def _value_column(df: pd.DataFrame, what: str, path: PathLike | None,
+                  value: str | None = None) -> str:
+    if value is not None:  # the reader's caller names the column it uses (fuse: range)
+        other = [c for c in VALUE_COLUMNS if c != value and c in df.columns]
+        if value not in df.columns and other:
+            raise InputError(f"{what} file has no '{value}' column (it has '{other[0]}'; "
+                             f"this command takes {value}s)", _path_of(df, path), 1)
+        require_columns(df, (value,), what, path)
+        return value
     present = [c for c in VALUE_COLUMNS if c in df.columns]
     if len(present) == 0:
         require_columns(df, ("rssi or range",), what, path)
@@ -1193,6 +1201,7 @@ def validate_measurements(
     df: pd.DataFrame,
     path: PathLike | None = None,
     anchors: pd.DataFrame | Sequence[str] | None = None,
+    value: str | None = None,
 ) -> pd.DataFrame:
     """Validate a measurements frame (see :func:`read_measurements`).
 
@@ -1201,7 +1210,7 @@ def validate_measurements(
     here; :func:`to_epochs` leaves it out of the fix and counts it (``Epochs.n_invalid``).
     """
     df = df.copy()
-    value = _value_column(df, "measurements", path)
+    value = _value_column(df, "measurements", path, value)
     require_columns(df, ("time", "tag", "anchor"), "measurements", path)
     _ids(df, "tag", path)
     _ids(df, "anchor", path)
@@ -1220,7 +1229,8 @@ def _anchor_ids(anchors: pd.DataFrame | Sequence[str]) -> list[str]:
 
 
 def read_measurements(
-    path: PathLike, anchors: pd.DataFrame | Sequence[str] | None = None
+    path: PathLike, anchors: pd.DataFrame | Sequence[str] | None = None,
+    value: str | None = None,
 ) -> pd.DataFrame:
     """Read a whole measurements file: ``time, tag, anchor`` and one of ``rssi``/``range``.
 
@@ -1241,13 +1251,18 @@ def read_measurements(
         index = source line; ``frame.attrs["value"]`` names the value column.  A NaN/inf
         value, time or an empty id is an error naming its line (never a silent drop).
         Negative ranges are accepted.
+    value : ``"rssi"`` or ``"range"``, optional
+        The value column the caller uses: required, and the other one, if present, is
+        kept as an extra column (unchecked).  ``None`` (default): the file must hold
+        exactly one of them (which one is meant cannot be told: ``locate``).  ``fuse``
+        takes ranges, and the DWM1001 loader writes both columns (the fuse review).
     """
     if isinstance(path, pd.DataFrame):  # an in_memory_source
         _require_rows(path, "measurements", _display(path))
-        return validate_measurements(path, _display(path), anchors)
+        return validate_measurements(path, _display(path), anchors, value)
     df = _read_raw(path, ("tag", "anchor"))
     _require_rows(df, "measurements", _display(path))
-    return validate_measurements(df, _display(path), anchors)
+    return validate_measurements(df, _display(path), anchors, value)
 
 
 class UnsortedInput(InputError):
