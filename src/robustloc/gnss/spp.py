@@ -143,9 +143,10 @@ def carrier_smooth_iflc(
     code-carrier divergence, so long windows are safe.  The filter restarts for a
     satellite when its phase or code is missing, on a cycle slip -- a jump of the
     geometry-free phase ``lambda1 L1 - lambda2 L2`` by more than ``slip_gf_m`` or of the
-    code-minus-phase by more than ``slip_cmp_m`` between epochs -- or after a gap of more than
-    two sampling intervals.  Sequential in time (one vectorized step per epoch over all
-    satellites); satellites without both carriers (GLONASS) keep the raw code.
+    code-minus-phase by more than ``slip_cmp_m`` between epochs -- after a gap of more than
+    two sampling intervals, or at a time step of 0 or backwards.  Sequential in time (one
+    vectorized step per epoch over all satellites); satellites without both carriers
+    (GLONASS) keep the raw code.
 
     Parameters
     ----------
@@ -181,7 +182,11 @@ def carrier_smooth_iflc(
         p, ph, gk = out[k], phi[k], gf[k]
         ok = np.isfinite(p) & np.isfinite(ph)
         with np.errstate(invalid="ignore"):
-            cont = (ok & np.isfinite(prev_phi) & (obs.t_gps_s[k] - t_prev <= max_gap)
+            # a step of 0 or backwards (epochs out of time order, an epoch repeated) is
+            # no continuation: it smoothed across it (0.26 m on GEONET with the first two
+            # epochs swapped; the GNSS review)
+            step = obs.t_gps_s[k] - t_prev
+            cont = (ok & np.isfinite(prev_phi) & (step > 0) & (step <= max_gap)
                     & (np.abs(gk - prev_gf) <= slip_gf_m))
             pred = prev_ps + ph - prev_phi
             cont &= np.abs(p - pred) <= slip_cmp_m

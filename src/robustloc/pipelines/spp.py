@@ -278,6 +278,18 @@ def run_spp(obs: str, nav: Sequence[str] | str, settings: SppSettings, *,
         raise InputError(f"--inject-from ({settings.inject_from}) is later than "
                          f"--inject-until ({settings.inject_until}): no epoch between them")
     observations = read_obs(obs)
+    # epochs out of time order are solved in time order, as the measurement readers take
+    # rows in any order (docs/formats.md), and said: in file order the Hatch filter
+    # smoothed across the backward step and the rows came out unsorted, without a word
+    # (the GNSS review: the first two GEONET epochs swapped moved fixes 0.26 m)
+    unsorted_note = None
+    back = np.flatnonzero(np.diff(observations.t_gps_s) < 0)
+    if back.size:
+        line = int(observations.line[back[0] + 1])
+        observations = observations.select(np.argsort(observations.t_gps_s, kind="stable"))
+        unsorted_note = (f"{obs}:{line}: an epoch earlier than the one before it "
+                         f"({back.size} such in the file): the epochs are solved and "
+                         "written in time order")
     ephemerides = read_nav(nav) if nav else None
     precise = None
     if sp3 is not None:
@@ -351,6 +363,8 @@ def run_spp(obs: str, nav: Sequence[str] | str, settings: SppSettings, *,
     if ephemerides is not None and ephemerides.rejected:
         summary["nav_records_set_aside"] = list(ephemerides.rejected)
     notes = _model_notes(iono, ephemerides is not None, precise is not None, res.systems)
+    if unsorted_note is not None:
+        notes.insert(0, unsorted_note)
     if (iono == "klobuchar" and ephemerides is not None
             and getattr(ephemerides, "ion_alpha", None) is None):
         # (the same default, silently, when the navigation file has no ION ALPHA/BETA:
