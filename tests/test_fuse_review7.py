@@ -172,3 +172,41 @@ def test_fuse_reads_the_range_column_beside_rssi(cart, tmp_path, capsys):
     assert main(["fuse", "--ranges", str(rs), "--anchors", str(cart / "anchors.csv"),
                  "-o", str(tmp_path / "t.csv")]) == 2
     assert f"error: {rs}:1: measurements file has no 'range' column" in capsys.readouterr().err
+
+
+# --- 3: options that change nothing are refused ------------------------------------------
+
+
+def test_fuse_refuses_options_that_change_nothing(cart, tmp_path, capsys):
+    # each gave a byte-identical track, exit 0
+    base = ["fuse", "--ranges", str(cart / "measurements.csv"), "--anchors",
+            str(cart / "anchors.csv"), "-o", str(tmp_path / "t.csv")]
+    for extra, said in ((["--fix", "ls"], "--fix goes with --coupling loose"),
+                        (["--sigma-course", "3"], "--sigma-course goes with --nmea"),
+                        (["--sigma-speed", "0.1"], "--sigma-speed goes with --nmea"),
+                        (["--nmea-offset", "1"], "--nmea-offset goes with --nmea"),
+                        (["--origin", "10,10,0", "--nmea", str(cart / "gps.nmea")],
+                         "--origin sets the ENU origin of GGA positions, which fuse does "
+                         "not use")):
+        assert main([*base, *extra]) == 2, extra
+        err = capsys.readouterr().err
+        assert f"error: {said}" in err, err
+    # with what they go with, accepted
+    assert main([*base, "--coupling", "loose", "--fix", "ls", "--nmea",
+                 str(cart / "gps.nmea"), "--sigma-course", "3", "--sigma-speed", "0.1",
+                 "--nmea-offset", "0", "-q"]) == 0
+
+
+def test_fuse_warns_of_a_log_without_speed_or_course(cart, tmp_path, capsys):
+    # "used GGA 51", and every row's source uwb: nothing of the log was fused, unsaid
+    gga = tmp_path / "gga.nmea"
+    gga.write_text("".join(s for s in (cart / "gps.nmea").read_text().splitlines(True)
+                           if s.startswith("$GPGGA")))
+    tr, cap = _fuse(cart, tmp_path, capsys, cart / "measurements.csv", "--nmea", str(gga))
+    assert (tr["source"] == "uwb").all()
+    assert (f"warning: {gga}: the log has no RMC or VTG sentence with a speed or course"
+            in cap.err)
+    # a log with them: no such warning
+    _, cap = _fuse(cart, tmp_path, capsys, cart / "measurements.csv", "--nmea",
+                   str(cart / "gps.nmea"))
+    assert "no RMC or VTG" not in cap.err

@@ -61,3 +61,40 @@ def test_spp_solves_epochs_out_of_order_in_time_order(tmp_path, capsys):
     ref = pd.read_csv(tmp_path / "ref.csv")
     assert got["time"].is_monotonic_increasing
     pd.testing.assert_frame_equal(got, ref)
+
+
+# --- 3: options that change nothing are refused ------------------------------------------
+
+
+def test_options_that_need_raim_or_inject_are_refused(tmp_path, capsys):
+    # each was accepted, exit 0, and the solution was that of the run without it
+    base = ["spp", str(GEONET_OBS), str(GEONET_NAV), "-o", str(tmp_path / "s.csv")]
+    for extra, need in ((["--alpha0", "0.01"], "--raim"), (["--beta0", "0.2"], "--raim"),
+                        (["--max-exclusions", "1"], "--raim"),
+                        (["--inject-from", "796436400"], "--inject"),
+                        (["--inject-until", "796436400"], "--inject")):
+        assert main([*base, *extra]) == 2, extra
+        err = capsys.readouterr().err
+        assert f"error: {extra[0]} goes with {need}" in err, err
+        assert "Traceback" not in err
+    # with them, as before
+    assert main([*base, "--raim", "--alpha0", "0.01", "--beta0", "0.2",
+                 "--max-exclusions", "1"]) == 0
+    assert main([*base, "--inject", "G11:20", "--inject-from", "796436400"]) == 0
+    # a window that covers no epoch: said (a note since the earlier review)
+    capsys.readouterr()
+    assert main([*base, "--inject", "G11:20", "--inject-from", "2030-01-01"]) == 0
+    assert "nothing was injected" in capsys.readouterr().err
+
+
+def test_settings_refuse_inject_window_without_inject(tmp_path):
+    from robustloc.errors import InputError
+    from robustloc.pipelines.spp import SppSettings, run_spp
+
+    for kw, need in (({"inject_from": 0.0}, "--inject"), ({"max_exclusions": 1}, "--raim")):
+        try:
+            run_spp(GEONET_OBS, [GEONET_NAV], SppSettings(**kw))
+        except InputError as e:
+            assert f"goes with {need}" in str(e)
+        else:
+            raise AssertionError(kw)

@@ -33,7 +33,8 @@ Coupling:
          of a whole fix.
 
 From the NMEA log only speed and course are fused (the paper's GPS measurements); GGA
-positions are parsed (ENU about --origin) but not used as measurements.
+positions are not used (a log without RMC/VTG sentences gives a warning: nothing of it is
+fused).
 
 Time alignment: NMEA times (seconds of the UTC day) plus --nmea-offset must match the
 ranges' time column (automatic for POSIX-time ranges and dated RMC sentences).
@@ -178,9 +179,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--motion", choices=["cv", "ca"], default="cv", help="default cv")
     p.add_argument("--coupling", choices=["loose", "tight"], default="tight",
                    help="default tight")
-    p.add_argument("--fix", choices=["ls", "wls", "nls"], default="nls",
-                   help="UWB fix for loose coupling: linearized ls/wls or Gauss-Newton "
-                        "nls (default nls)")
+    p.add_argument("--fix", choices=["ls", "wls", "nls"], default=None,
+                   help="UWB fix for loose coupling (refused with tight coupling, which "
+                        "fuses the ranges): linearized ls/wls or Gauss-Newton nls "
+                        "(default nls)")
     p.add_argument("--robust", "--weight", dest="robust", choices=ROBUST, default="hampel",
                    type=choice(weight_synonyms(ROBUST)),
                    help="equivalent weight of the robust update (default hampel; none is "
@@ -204,14 +206,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--range-k", type=float_in(0.0, RANGE_K_MAX), default=0.0,
                    help="range std growth with distance, sigma = s0 + k d (default 0; 0 to "
                         "1: at k = 1 a range's std is the range itself)")
-    p.add_argument("--sigma-speed", type=sigma_value, default=0.05,
-                   help="GPS speed std, m/s (default %(default)s; 1e-6 to 1e6)")
-    p.add_argument("--sigma-course", type=float_in(1e-6, 180.0), default=5.0,
-                   help="GPS course std, deg (default %(default)s)")
+    p.add_argument("--sigma-speed", type=sigma_value, default=None,
+                   help="GPS speed std, m/s (default 0.05; 1e-6 to 1e6; with --nmea)")
+    p.add_argument("--sigma-course", type=float_in(1e-6, 180.0), default=None,
+                   help="GPS course std, deg (default 5; with --nmea)")
     p.add_argument("--nmea-offset", type=float_in(-1e12, 1e12), default=None,
                    help="seconds added to NMEA times (UTC seconds of day) to reach the "
                         "ranges' clock (default: POSIX time from the RMC date when the "
-                        "ranges' times are POSIX seconds, else 0)")
+                        "ranges' times are POSIX seconds, else 0; with --nmea)")
     p.add_argument("--nmea-tag", action="append", default=None, metavar="TAG",
                    help="the tag that carries the NMEA log's GPS receiver: its speed and "
                         "course are fused into this tag's track only (repeatable; default: "
@@ -224,8 +226,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "whether its position can be ok (default 1)")
     p.add_argument("--tag-height", type=tag_height_m, default=None,
                    help="tag height, m: with anchor z, slant ranges are made horizontal")
+    # kept to say so: fuse fuses no GGA position (only RMC/VTG speed and course), so an
+    # origin changed nothing -- a byte-identical track (the fuse review)
     p.add_argument("--origin", default=None, metavar="LAT,LON,H",
-                   help="ENU origin for GGA positions (default: first fix)")
+                   help="refused: the ENU origin of GGA positions, which fuse does not use "
+                        "(it fuses RMC/VTG speed and course only)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("-q", "--quiet", action="store_true",
                    help="no progress bar and no text summary (as locate; warnings stay)")
@@ -242,6 +247,20 @@ def run(args: argparse.Namespace) -> int:
     from robustloc.robust.weights import get_weight
 
     check_not_input(args.out, [args.ranges, args.anchors, args.nmea])
+    # options that would change nothing are refused, as --nmea-tag without --nmea: each
+    # was accepted and the track came out byte-identical (the fuse review)
+    if args.origin is not None:
+        raise InputError("--origin sets the ENU origin of GGA positions, which fuse does "
+                         "not use (it fuses RMC/VTG speed and course): it would change "
+                         "nothing; leave it out")
+    if args.fix is not None and args.coupling == "tight":
+        raise InputError("--fix goes with --coupling loose (tight coupling, the default, "
+                         "fuses the ranges, not fixes)")
+    for given, name in ((args.sigma_speed, "--sigma-speed"),
+                        (args.sigma_course, "--sigma-course"),
+                        (args.nmea_offset, "--nmea-offset")):
+        if given is not None and args.nmea is None:
+            raise InputError(f"{name} goes with --nmea")
     anchors = read_anchors(args.anchors)
     if args.tag_height is not None and "z" not in anchors.columns:
         # the slant-range correction needs the anchors' heights: never ignore it silently
@@ -253,20 +272,7 @@ def run(args: argparse.Namespace) -> int:
     from robustloc._jitnotice import compile_notice
 
     compile_notice("positioning", "filter")
-    origin = None
-    if args.origin:
-        try:
-            origin = tuple(float(v) for v in args.origin.split(","))
-            if len(origin) != 3:
-                raise ValueError
-        except ValueError:
-            raise InputError(f"--origin must be LAT,LON,H, got {args.origin!r}") from None
-        lat, lon, h = origin
-        if not (abs(lat) <= 90.0 and abs(lon) <= 180.0 and abs(h) <= 1e5):
-            raise InputError(f"--origin: latitude must lie in [-90, 90], longitude in "
-                             f"[-180, 180] deg and height in [-1e5, 1e5] m, got "
-                             f"{args.origin!r}")
-    nmea = read_nmea(args.nmea, origin=origin) if args.nmea else None
+    nmea = read_nmea(args.nmea) if args.nmea else None
     tags = sorted(set(meas["tag"].astype(str)))
     if args.nmea_tag is not None:
         if nmea is None:
@@ -289,9 +295,11 @@ def run(args: argparse.Namespace) -> int:
     )
     filt = FusionFilter(args.filter, motion_model(args.motion, q=q), robust)
     opts = FuseOptions(
-        coupling=args.coupling, fix_method=args.fix, sigma_range_m=args.sigma_range,
-        range_k=args.range_k, sigma_speed_mps=args.sigma_speed,
-        sigma_course_deg=args.sigma_course, nmea_offset_s=args.nmea_offset,
+        coupling=args.coupling, fix_method=args.fix or "nls",
+        sigma_range_m=args.sigma_range, range_k=args.range_k,
+        sigma_speed_mps=0.05 if args.sigma_speed is None else args.sigma_speed,
+        sigma_course_deg=5.0 if args.sigma_course is None else args.sigma_course,
+        nmea_offset_s=args.nmea_offset,
         merge_window_s=args.merge_window, tag_height_m=args.tag_height,
         geometry_window_s=args.geometry_window,
         nmea_tags=None if args.nmea_tag is None else tuple(args.nmea_tag),

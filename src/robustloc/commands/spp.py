@@ -71,28 +71,36 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="carrier-smooth the ionosphere-free code over up to EPOCHS epochs "
                         "(Hatch filter, needs --iono iflc; default 0 = off)")
     p.add_argument("--raim", action="store_true", help="fault detection and exclusion + PLs")
-    p.add_argument("--alpha0", type=float_in(1e-15, 0.5), default=0.001,
-                   help="w-test significance (0.001)")
-    p.add_argument("--beta0", type=float_in(1e-15, 0.5), default=0.10,
-                   help="B-method missed detection (0.10)")
+    p.add_argument("--alpha0", type=float_in(1e-15, 0.5), default=None,
+                   help="w-test significance (0.001; with --raim)")
+    p.add_argument("--beta0", type=float_in(1e-15, 0.5), default=None,
+                   help="B-method missed detection (0.10; with --raim)")
     p.add_argument("--max-exclusions", type=nonnegative_int, default=None,
-                   help="at most this many satellites excluded per epoch")
+                   help="at most this many satellites excluded per epoch (with --raim)")
     p.add_argument("--reference", default=None, metavar="X,Y,Z",
                    help="reference ECEF position (m) for the error summary (default: RINEX "
                         "header); write --reference=X,Y,Z when X is negative")
     p.add_argument("--inject", default=None, metavar="PRN:BIAS_M[,PRN:BIAS_M]",
                    help="add biases (m) to these satellites' pseudoranges, e.g. G11:20,G24:-15")
     p.add_argument("--inject-from", default=None, metavar="T",
-                   help="start of the injected fault: GPS seconds or ISO time (GPS scale; with "
-                        "Z or +HH:MM a civil time, converted with the leap seconds)")
+                   help="start of the injected fault (with --inject): GPS seconds or ISO "
+                        "time (GPS scale; with Z or +HH:MM a civil time, converted with the "
+                        "leap seconds)")
     p.add_argument("--inject-until", default=None, metavar="T",
-                   help="end of the injected fault (same formats)")
+                   help="end of the injected fault (with --inject; same formats)")
     p.add_argument("-o", "--out", required=True, help="solution file (.csv or .parquet)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     add_engine_arguments(p, what="the observation files (OBS: a directory or a glob)")
 
 
 def run(args: argparse.Namespace) -> int:
+    from robustloc.errors import InputError
+
+    # options that would change nothing are refused, as --clk without --sp3: each was
+    # accepted and the solution came out the same (the GNSS review)
+    for name in ("alpha0", "beta0", "max_exclusions"):
+        if getattr(args, name) is not None and not args.raim:
+            raise InputError(f"--{name.replace('_', '-')} goes with --raim")
     if args.engine == "dask":
         from robustloc.engines.dask import run_spp
         return run_spp(args, run)

@@ -302,6 +302,12 @@ def fuse(
             invalid["course"] = invalid.get("course", 0) + int((bad_crs & ~bad_spd).sum())
             mo = mo.assign(speed_mps=np.where(bad_spd, np.nan, spd),
                            course_rad=np.where(bad_spd | bad_crs, np.nan, crs))
+    if isinstance(nmea, NmeaLog) and (mo is None or not len(mo)):
+        # a log of GGA sentences only: "used GGA 51" was printed over rows all of source
+        # uwb -- nothing of it is fused (the fuse review)
+        summary.setdefault("warnings", []).append(
+            "the log has no RMC or VTG sentence with a speed or course: nothing of it is "
+            "fused (GGA positions are not used)")
     offset = opts.nmea_offset_s
     if offset is None:
         day0 = nmea.day0_posix_s if isinstance(nmea, NmeaLog) else None

@@ -179,10 +179,14 @@ class SppSettings:
     @classmethod
     def from_namespace(cls, args: argparse.Namespace) -> SppSettings:
         """The settings of a parsed ``robustloc spp`` command line (text options parsed)."""
+        # (--alpha0 and --beta0 default to None on the command line, which refuses them
+        # without --raim: None is the settings' default)
+        tests = {k: getattr(args, k) for k in ("alpha0", "beta0")
+                 if getattr(args, k, None) is not None}
         return cls(
             systems=args.systems, elevation_mask=args.elevation_mask, iono=args.iono,
-            tropo=args.tropo, smooth=args.smooth, raim=args.raim, alpha0=args.alpha0,
-            beta0=args.beta0, max_exclusions=args.max_exclusions,
+            tropo=args.tropo, smooth=args.smooth, raim=args.raim, **tests,
+            max_exclusions=args.max_exclusions,
             reference=None if args.reference is None else parse_reference(args.reference),
             inject=parse_inject(args.inject) if args.inject else None,
             inject_from=args.inject_from, inject_until=args.inject_until)
@@ -267,6 +271,14 @@ def run_spp(obs: str, nav: Sequence[str] | str, settings: SppSettings, *,
         raise InputError("give at least one navigation file or --sp3")
     if clk is not None and sp3 is None:
         raise InputError("--clk needs --sp3")
+    # (each was accepted and changed nothing: the GNSS review)
+    if not settings.inject:
+        for given, name in ((settings.inject_from, "--inject-from"),
+                            (settings.inject_until, "--inject-until")):
+            if given is not None:
+                raise InputError(f"{name} goes with --inject")
+    if settings.max_exclusions is not None and not settings.raim:
+        raise InputError("--max-exclusions goes with --raim")
     for f in [obs, *nav, sp3, clk]:
         if f is not None and not Path(f).is_file():
             raise InputError("file not found" if not Path(f).exists()
