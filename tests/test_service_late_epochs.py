@@ -202,6 +202,43 @@ def test_a_late_epoch_gets_its_live_position(ble, server_factory, track):
     assert httpx.post(u + "/api/measurements", json=late_rows[:1]).json()["late"] == 1
 
 
+def test_a_late_epoch_acknowledged_before_a_kill_9_is_solved_after_the_restart(
+        ble, server_factory, tmp_path):
+    """A late epoch never solved, acknowledged with ``late`` 0, waits for the rest of its
+    epoch; killed (SIGKILL) meanwhile, the service restarted without ever solving it: the
+    restart took every epoch up to the tag's latest stored position as solved (the serve
+    review).  It is solved after the restart, once; nothing else is solved twice."""
+    httpx = pytest.importorskip("httpx")
+    from test_service import wait_for  # (tests/ is on the path)
+
+    # --idle-flush 1000: the late epoch (and the newest) wait, so the kill comes first
+    args = ["--anchors", str(ble / "anchors.csv"), "--latency-window", "0.5",
+            "--idle-flush", "1000", "--store", str(tmp_path / "store")]
+    srv = server_factory(args)
+    u = srv.url
+    first = _rows(ble, "G", [i for i in range(12) if i != 4])
+    assert httpx.post(u + "/api/measurements", json=first).json()["late"] == 0
+    late_rows = _rows(ble, "G", [4])
+    t_late = late_rows[0]["time"]
+
+    def times(url):
+        return sorted(p["time"] for p in httpx.get(url + "/api/positions?tag=G").json())
+
+    wait_for(lambda: len(times(u)) == 10, what="the epochs before the newest solved")
+    body = httpx.post(u + "/api/measurements", json=late_rows).json()
+    assert body["accepted"] == len(late_rows) and body["late"] == 0
+    srv.kill9()
+
+    srv = server_factory(args)
+    got = wait_for(lambda: t_late in times(srv.url) and times(srv.url),
+                   what="the late epoch solved after the restart")
+    assert got.count(t_late) == 1 and len(got) == len(set(got)) == 11
+    srv.stop()  # a graceful stop solves the newest epoch
+    srv = server_factory(args)
+    # every epoch once, none solved again
+    assert times(srv.url) == sorted({r["time"] for r in first + late_rows})
+
+
 def _check_memory(a: EpochAssembler, solved: dict[int, set[float]], qc, qt) -> None:
     got = a.late_unsolved(qt, qc, np.ones(len(qt), dtype=bool))
     for k, v, g in zip(qc.tolist(), qt.tolist(), got.tolist()):

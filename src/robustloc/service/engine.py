@@ -18,7 +18,10 @@ rows of the API and the WebSocket have no ``run`` column.
 Restart: the positions store gives each (tag, run)'s latest solved epoch; accepted rows
 after it (acknowledged, not yet solved at the crash) are put back - the tag's latest run
 into the assembler, an earlier run's rows (released by a re-base, not yet solved) straight
-into the solver's queue - so every acknowledged row's epoch is solved exactly once.  A
+into the solver's queue - so every acknowledged row's epoch is solved exactly once.  With
+a stateless processor, a not-late epoch at or before that latest time whose (tag, run,
+time) has no stored position (a late epoch never solved, acknowledged, then a crash) is
+queued too, solved as a late epoch.  A
 stateful processor (the tracker) is snapshotted every ``snapshot_s`` seconds with the
 per-(tag, run) watermarks it corresponds to; a restart loads the snapshot and re-solves the
 epochs after it (positions queries keep the last row of a re-solved epoch).  Without a
@@ -385,7 +388,8 @@ class Engine:
                                  "anchors cannot locate (no path-loss parameters: columns "
                                  "A, n; run `robustloc calibrate`)")
         self._check_rows_kind(stored_rows)
-        stored_solved = _latest_by_run(self.pos.scan(columns=["time", "tag", "run"]))
+        stored_pos = self.pos.scan(columns=["time", "tag", "run"])
+        stored_solved = _latest_by_run(stored_pos)
         self._seed_latest(stored_solved)
         snap = self.store_dir / "state" / "processor.pkl" if self.store_dir else None
         snap_forget, snap_at = math.inf, math.nan
@@ -441,7 +445,16 @@ class Engine:
             sol = np.where(np.isnan(sol), -np.inf, sol)
         else:
             sol = np.full(len(df), -np.inf)
-        todo = df[df["time"].to_numpy(float) > sol]
+        above = df["time"].to_numpy(float) > sol
+        # a stateless processor solves a late epoch never solved (assembly's live_late)
+        # below its tag's latest solved time: the latest stored position is not a
+        # watermark of what was solved, and such an epoch acknowledged but killed (-9)
+        # before its solve had no position after the restart (the serve review).  The
+        # exact rule: an epoch below it is unsolved when no stored position has its
+        # (tag, run, time); it is solved at once, late, as it would have been
+        gap = (self._unsolved_below(df[~above], stored_pos)
+               if getattr(self.processor, "stateless", False) else df.iloc[:0])
+        todo = df[above]
         is_cur = (todo["run"].to_numpy(np.int64)
                   == todo["tag"].map(current).to_numpy(np.int64))
         cur, old = todo[is_cur], todo[~is_cur]
@@ -464,10 +477,49 @@ class Engine:
                     old["anchor"].to_numpy(object)).astype(np.int64),
                 "value": old["value"].to_numpy(float), "run": old["run"].to_numpy(np.int64),
             }, time.time()))
-        self.recovered_rows = len(todo)
+        if len(gap):
+            tags = gap["tag"].to_numpy(object)
+            self._queue.append(({
+                "time": gap["time"].to_numpy(float), "tag": tags, "tag_code": a.codes(tags),
+                "anchor_col": self._anchor_index.get_indexer(
+                    gap["anchor"].to_numpy(object)).astype(np.int64),
+                "value": gap["value"].to_numpy(float), "run": gap["run"].to_numpy(np.int64),
+                "late": np.ones(len(gap), dtype=bool),
+            }, time.time()))
+        self.recovered_rows = len(todo) + len(gap)
         heard = np.bincount(self._anchor_index.get_indexer(df["anchor"].to_numpy(object)),
                             minlength=len(self.anchor_ids))
         self.metrics.heard += heard
+
+    @staticmethod
+    def _unsolved_below(rows: pd.DataFrame, positions: pa.Table) -> pd.DataFrame:
+        """The stored rows (columns ``time, tag, run, ...``) whose epoch ``(tag, run,
+        time)`` has no stored position (times compared exactly, as epochs are formed).
+
+        Parameters
+        ----------
+        rows : pandas.DataFrame
+            Not-late measurement rows at or below their (tag, run)'s latest stored
+            position time.
+        positions : pyarrow.Table
+            The stored positions' ``time, tag[, run]`` columns.
+
+        Returns
+        -------
+        pandas.DataFrame
+            The subset of ``rows`` never solved.
+        """
+        if not len(rows):
+            return rows
+        if positions.num_rows == 0:
+            return rows
+        have = pd.MultiIndex.from_arrays([positions["tag"].to_pandas().astype(object),
+                                          _runs_of(positions),
+                                          positions["time"].to_numpy()])
+        keys = pd.MultiIndex.from_arrays([rows["tag"].astype(object).to_numpy(),
+                                          rows["run"].to_numpy(np.int64),
+                                          rows["time"].to_numpy(float)])
+        return rows[~keys.isin(have)]
 
     def _check_anchors(self, meas: pa.Table) -> None:
         """Refuse a store with rows of anchors the anchors file lacks (an anchor removed
