@@ -397,6 +397,62 @@ def test_store_truncates_torn_tail(tmp_path):
     log2.close()
 
 
+def test_store_says_it_truncated_a_torn_tail(tmp_path, capsys):
+    import pyarrow as pa
+
+    log = SegmentLog(tmp_path, fsync=False)
+    for i in range(3):
+        log.append(pa.table({"time": [float(i)] * 2, "tag": ["a"] * 2}))
+    log.close()
+    (wal,) = tmp_path.glob("*.wal")
+    data = wal.read_bytes()
+    wal.write_bytes(data[:-7])  # the last append cut short by a crash: never acknowledged
+    log2 = SegmentLog(tmp_path, fsync=False)
+    try:
+        cut = len(data) - 7 - log2.truncated_bytes
+        assert sorted(log2.scan()["time"].to_pylist()) == [0.0, 0.0, 1.0, 1.0]
+    finally:
+        log2.close()
+    err = capsys.readouterr().err
+    assert f"warning: {wal}: {log2.truncated_bytes} bytes of an incomplete last frame cut " \
+           f"off at byte {cut}" in err
+
+
+@pytest.mark.parametrize("where", ["payload", "length"])
+def test_store_refuses_a_log_damaged_before_intact_frames(tmp_path, where):
+    """One bad byte in a log's first frame: every later (acknowledged) frame was cut off
+    at the next open, silently (the serve review).  The open is refused naming the file
+    and the offsets, and the file is left as it is."""
+    import pyarrow as pa
+
+    from robustloc.service.store import StoreError
+
+    log = SegmentLog(tmp_path, fsync=False)
+    for i in range(3):
+        log.append(pa.table({"time": [float(i)] * 2, "tag": ["a"] * 2}))
+    log.close()
+    (wal,) = tmp_path.glob("*.wal")
+    data = bytearray(wal.read_bytes())
+    second = data.find(b"RLW1", 1)
+    data[40 if where == "payload" else 5] ^= 0xFF  # (5: the first frame's length)
+    wal.write_bytes(bytes(data))
+    with pytest.raises(StoreError) as e:
+        SegmentLog(tmp_path, fsync=False)
+    assert e.value.path == str(wal)
+    assert e.value.message == (f"damaged write-ahead log of the store (a bad frame at byte "
+                               f"0, intact frames from byte {second}); move it aside to "
+                               "start without its rows")
+    assert wal.read_bytes() == bytes(data)  # nothing cut off
+    data[40 if where == "payload" else 5] ^= 0xFF  # repaired: every row back
+    wal.write_bytes(bytes(data))
+    log = SegmentLog(tmp_path, fsync=False)
+    try:
+        assert sorted(log.scan()["time"].to_pylist()) == [0.0, 0.0, 1.0, 1.0, 2.0, 2.0]
+        assert log.truncated_bytes == 0
+    finally:
+        log.close()
+
+
 # --------------------------------------------------------------------------------------
 # pieces
 # --------------------------------------------------------------------------------------

@@ -454,6 +454,36 @@ def test_damaged_store_files_are_named_at_start(anchors, servers, tmp_path):
     assert _stored_times(store) == sorted(float(t) for t in range(3) for _ in ANCHORS)
 
 
+def test_a_log_damaged_mid_file_is_named_at_start_and_nothing_is_cut(anchors, servers,
+                                                                     tmp_path):
+    """One bad byte in the first frame of the measurements log after ``kill -9``: the
+    restart cut every later, acknowledged frame off, silently (the serve review).  It is
+    refused (exit 2) naming the log and the offset, like a damaged segment; repaired, every
+    acknowledged row is there."""
+    store = tmp_path / "s"
+    args = ["--anchors", str(anchors), "--store", str(store), *PENDING]
+    srv = servers(args)
+    for k in range(3):  # three bodies: three frames
+        r = httpx.post(srv.url + "/api/measurements", json=_rows([k]))
+        assert r.status_code == 202
+    srv.kill9()
+    (wal,) = (store / "measurements").glob("seg-*.wal")
+    good = wal.read_bytes()
+    bad = bytearray(good)
+    bad[40] ^= 0xFF
+    wal.write_bytes(bytes(bad))
+    p = _serve_once(args)
+    assert p.returncode == 2, p.stderr
+    last = p.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"error: {wal}: damaged write-ahead log of the store (a bad "
+                           "frame at byte 0, intact frames from byte "), last
+    assert last.endswith("move it aside to start without its rows")
+    assert "Traceback" not in p.stderr
+    assert wal.read_bytes() == bytes(bad)
+    wal.write_bytes(good)
+    assert _stored_times(store) == sorted(float(t) for t in range(3) for _ in ANCHORS)
+
+
 # --------------------------------------------------------------------------------------
 # 10. WebSocket to an unknown path
 # --------------------------------------------------------------------------------------

@@ -15,7 +15,11 @@ segments**.
   Its sealed Parquet segments are synced like the measurements'.
 * On open, Parquet segments are read as they are, and every log file without a segment is
   replayed frame by frame; a torn or corrupt tail (a crash mid-write) ends the replay and is
-  truncated (those rows were never acknowledged: the sync had not returned).
+  truncated, with a warning on stderr (those rows were never acknowledged: the sync had not
+  returned).  A bad frame followed by an intact one (found by the frame magic) is damage,
+  not a torn tail: the open is refused naming the file and the offsets
+  (:class:`StoreError`), as for a damaged Parquet segment, rather than the acknowledged
+  frames after it being cut off.
 * One writer per folder: a :class:`SegmentLog` holds an exclusive ``flock`` on its folder's
   ``.lock`` file while it is open (opening seals every log file it finds, which would take
   the active log of another writer); a second opener gets :class:`StoreInUse`.
@@ -194,25 +198,45 @@ def _encode(batch: pa.RecordBatch | pa.Table) -> bytes:
     return _HEADER.pack(_MAGIC, len(payload), zlib.crc32(payload)) + payload
 
 
-def _read_log(path: Path) -> tuple[list[pa.Table], int]:
-    """Frames of a log file, and the byte length of its valid prefix."""
+def _frame_at(data: bytes, pos: int) -> tuple[pa.Table, int] | None:
+    """The table of the frame starting at byte ``pos`` of ``data`` and the frame's end, or
+    None when no whole, intact frame starts there."""
+    if pos + _HEADER.size > len(data):
+        return None
+    magic, length, crc = _HEADER.unpack_from(data, pos)
+    end = pos + _HEADER.size + length
+    if magic != _MAGIC or end > len(data):
+        return None
+    payload = data[pos + _HEADER.size : end]
+    if zlib.crc32(payload) != crc:
+        return None
+    try:
+        return pa.ipc.open_stream(payload).read_all(), end
+    except pa.ArrowException:
+        return None
+
+
+def _read_log(path: Path) -> tuple[list[pa.Table], int, int | None]:
+    """The frames of a log file before its first bad one, the byte length of that valid
+    prefix, and the offset of the first intact frame after the bad one (None: nothing
+    intact follows, the bad bytes are a torn tail).
+
+    The bytes after a bad frame are searched for the frame magic: an append crashed
+    mid-write leaves only a prefix of its own frame, so an intact frame after a bad one
+    means the file was damaged in the middle, and the frames after it were acknowledged
+    (cutting the file at the first bad frame silently deleted them: the serve review).
+    """
     data = path.read_bytes()
     out: list[pa.Table] = []
     pos = 0
-    while pos + _HEADER.size <= len(data):
-        magic, length, crc = _HEADER.unpack_from(data, pos)
-        end = pos + _HEADER.size + length
-        if magic != _MAGIC or end > len(data):
-            break
-        payload = data[pos + _HEADER.size : end]
-        if zlib.crc32(payload) != crc:
-            break
-        try:
-            out.append(pa.ipc.open_stream(payload).read_all())
-        except pa.ArrowInvalid:
-            break
-        pos = end
-    return out, pos
+    while (frame := _frame_at(data, pos)) is not None:
+        out.append(frame[0])
+        pos = frame[1]
+    at = pos
+    while (at := data.find(_MAGIC, at + 1)) >= 0:
+        if _frame_at(data, at) is not None:
+            return out, pos, at
+    return out, pos, None
 
 
 class SegmentLog:
@@ -267,13 +291,24 @@ class SegmentLog:
             if seq in seqs:  # sealed, the log's deletion did not happen before a crash
                 p.unlink()
                 continue
-            tables, valid = _read_log(p)
+            tables, valid, intact = _read_log(p)
+            if intact is not None:
+                # acknowledged frames after a damaged one: refused, as a damaged segment
+                # (never cut off: those rows were synced and answered 202)
+                raise StoreError(f"damaged write-ahead log of the store (a bad frame at "
+                                 f"byte {valid}, intact frames from byte {intact}); move "
+                                 "it aside to start without its rows", p)
             size = p.stat().st_size
             if valid < size:
                 self.truncated_bytes += size - valid
                 with open(p, "r+b") as f:
                     f.truncate(valid)
                     os.fsync(f.fileno())
+                # (said, not silent: these bytes were never acknowledged, the sync of
+                # their append had not returned)
+                print(f"warning: {p}: {size - valid} bytes of an incomplete last frame "
+                      f"cut off at byte {valid} (an append interrupted by a crash, never "
+                      "acknowledged)", file=sys.stderr, flush=True)
             self._memory[seq] = tables
             self.recovered_rows += sum(t.num_rows for t in tables)
             seqs.add(seq)
