@@ -984,6 +984,153 @@ def test_deep_json_huge_numbers_and_many_rows_are_4xx(ble, server_factory, tmp_p
     assert metric(u, 'robustloc_requests_rejected_total{reason="too_many_rows"}') == 1
 
 
+def test_rows_beyond_counts_what_parse_body_decodes():
+    """The count before decoding equals the rows :func:`parse_body` decodes: JSON arrays
+    whose strings hold brackets, commas, quotes and backslashes, NDJSON with blank lines,
+    at every chunk boundary (hypothesis)."""
+    hypothesis = pytest.importorskip("hypothesis")
+    from hypothesis import strategies as hs
+
+    import robustloc.service.rows as rows_mod
+    from robustloc.service.rows import rows_beyond
+
+    text = hs.text(alphabet='\\"[]{},: ax\u00e9', max_size=6)
+    value = hs.recursive(hs.none() | hs.integers() | text,
+                         lambda inner: hs.lists(inner, max_size=3)
+                         | hs.dictionaries(text, inner, max_size=3), max_leaves=12)
+
+    @hypothesis.settings(max_examples=400, deadline=None)
+    @hypothesis.given(doc=hs.lists(value, max_size=8), sep=hs.sampled_from([",", " ,\n "]),
+                      chunk=hs.sampled_from([1, 2, 3, 5, 1 << 20]), ndjson=hs.booleans(),
+                      blank=hs.sampled_from(["", " ", "\t\r "]))
+    def check(doc, sep, chunk, ndjson, blank):
+        if ndjson:
+            body = f"\n{blank}\n".join(json.dumps(d) for d in doc if isinstance(d, dict))
+        else:
+            body = json.dumps(doc, separators=(sep, ":"))
+        try:
+            want = len(parse_body(body)[0])
+        except BodyError:
+            return
+        saved = rows_mod._COUNT_CHUNK
+        rows_mod._COUNT_CHUNK = chunk
+        try:
+            assert rows_beyond(body, -1) == want
+            assert rows_beyond(body, want) is None
+        finally:
+            rows_mod._COUNT_CHUNK = saved
+
+    check()
+
+
+def test_bodies_decoded_row_by_row_take_turns(monkeypatch):
+    """At most MAX_CONCURRENT_ROW_PARSES bodies are decoded row by row at once (each
+    holds its rows as Python objects); the others wait, and every body is answered."""
+    import asyncio
+    import threading
+
+    import pandas as pd
+
+    import robustloc.service.app as app_mod
+    from robustloc.service.defaults import MAX_CONCURRENT_ROW_PARSES
+    from robustloc.service.engine import Engine
+
+    anchors = pd.DataFrame({"anchor": ["A1", "A2", "A3"], "x": [0, 10, 0.0],
+                            "y": [0, 0, 10.0]})
+    eng = Engine(anchors, LocateProcessor(anchors, method="nls"), latency_window_s=0.0,
+                 idle_flush_s=600.0, fsync=False)
+    lock, now, most = threading.Lock(), [0], [0]
+
+    def slow_parse(body):
+        with lock:
+            now[0] += 1
+            most[0] = max(most[0], now[0])
+        time.sleep(0.3)
+        with lock:
+            now[0] -= 1
+        return parse_body(body)
+
+    monkeypatch.setattr(app_mod, "parse_body", slow_parse)
+    app = app_mod.create_app(eng)
+    body = b'{"time": 1, "tag": "T", "anchor": "A1", "range": 5}\n'  # NDJSON: row by row
+
+    async def main():
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as client:
+            return await asyncio.gather(*(client.post("/api/measurements", content=body)
+                                          for _ in range(6)))
+
+    try:
+        answers = asyncio.run(main())
+    finally:
+        eng.stop()
+    assert [r.status_code for r in answers] == [202] * 6
+    assert most[0] == MAX_CONCURRENT_ROW_PARSES
+
+
+def _hwm_kb(pid: int) -> int:
+    """The peak resident memory of a process (kB, Linux ``VmHWM``)."""
+    return int(Path(f"/proc/{pid}/status").read_text().split("VmHWM:")[1].split()[0])
+
+
+@pytest.mark.parametrize("kind", ["ndjson", "array"])
+def test_a_body_of_too_many_rows_is_refused_before_it_is_decoded(ble, server_factory, kind):
+    """A 32 MiB body of ``{}`` rows (within the default --max-body-bytes) was decoded
+    whole before its 413 for too many rows: 1.5 GB of the server's memory per body, 4.66
+    GB for three at once (the serve review).  It is refused, with the same reason and
+    counter, with a bounded peak."""
+    if not Path("/proc/self/status").exists():
+        pytest.skip("the peak memory is read from /proc (Linux)")
+    s = server_factory(["--anchors", str(ble / "anchors.csv")])
+    n = (32 * 1024 * 1024 - 2) // 3
+    body = b"{}\n" * n if kind == "ndjson" else b"[" + b"{}," * (n - 1) + b"{}]"
+    before = _hwm_kb(s.proc.pid)
+    r = httpx.post(s.url + "/api/measurements", content=body, timeout=120)
+    assert r.status_code == 413, r.text
+    assert r.json()["error"] == f"body holds {n} rows, more than 1000000: send it in parts"
+    # the body itself is held twice or thrice (received chunks, joined, stripped)
+    assert _hwm_kb(s.proc.pid) - before < 400_000
+    assert metric(s.url, 'robustloc_requests_rejected_total{reason="too_many_rows"}') == 1
+    assert httpx.get(s.url + "/healthz").status_code == 200
+
+
+def test_the_rows_of_a_body_are_counted_without_decoding_it(monkeypatch):
+    """In process: the refusal does not call the decoder, and its peak allocation is a
+    fraction of what decoding took (tracemalloc)."""
+    import tracemalloc
+
+    import pandas as pd
+
+    import robustloc.service.app as app_mod
+    from robustloc.service.engine import Engine
+
+    anchors = pd.DataFrame({"anchor": ["A1", "A2", "A3"], "x": [0, 10, 0.0],
+                            "y": [0, 0, 10.0]})
+    eng = Engine(anchors, LocateProcessor(anchors, method="nls"), latency_window_s=0.0,
+                 idle_flush_s=600.0, fsync=False)
+    calls = []
+    monkeypatch.setattr(app_mod, "parse_body", lambda *a: calls.append(a) or parse_body(*a))
+    import asyncio
+
+    async def post(body: bytes):
+        transport = httpx.ASGITransport(app=app_mod.create_app(eng))
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as client:
+            return await client.post("/api/measurements", content=body)
+
+    body = b"{}\n" * 3_000_000  # 9 MB: 3 million rows
+    tracemalloc.start()
+    try:
+        r = asyncio.run(post(body))
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+        eng.stop()
+    assert r.status_code == 413 and "3000000 rows" in r.json()["error"]
+    assert not calls
+    assert peak < 100e6  # (decoding it: some 450 MB)
+    assert eng.metrics.requests_rejected == {"too_many_rows": 1}
+
+
 def test_unknown_routes_and_methods_are_json_and_counted(tokened):
     u = tokened.url
     r = httpx.get(u + "/nope", headers=AUTH)

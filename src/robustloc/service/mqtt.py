@@ -62,7 +62,7 @@ from pathlib import Path
 
 from robustloc.service.defaults import MAX_ROWS_PER_BODY
 from robustloc.service.engine import Engine
-from robustloc.service.rows import BodyError, parse_body
+from robustloc.service.rows import BodyError, parse_body, rows_beyond
 from robustloc.service.store import StoreWriteError
 from robustloc.service.topics import check_topic_filter
 
@@ -301,13 +301,13 @@ class MqttIngest:
         if batch is not None:
             self.engine.ingest_batch(batch, "mqtt")
             return
+        if rows_beyond(payload, MAX_ROWS_PER_BODY) is not None:  # as an HTTP body:
+            m.request_rejected("mqtt_too_many_rows")  # refused before anything is decoded
+            return
         try:
             rows, _ = parse_body(payload)
         except BodyError:
             m.request_rejected("mqtt_not_rows")
-            return
-        if len(rows) > MAX_ROWS_PER_BODY:  # as an HTTP body: refused before the rows
-            m.request_rejected("mqtt_too_many_rows")
             return
         self.engine.ingest(rows, "mqtt")
 

@@ -152,6 +152,127 @@ def parse_body(body: bytes | str) -> tuple[list[Any], list[tuple[int, str]]]:
     return rows, bad
 
 
+#: ASCII whitespace as ``bytes.strip`` takes it (a blank NDJSON line is only these).
+_WS = np.zeros(256, dtype=bool)
+_WS[list(b" \t\n\r\x0b\x0c")] = True
+#: Bytes per vectorized pass of the row count (bounds its temporary arrays to ~10 MB).
+_COUNT_CHUNK = 1 << 20
+
+
+def rows_beyond(body: bytes | str, limit: int) -> int | None:
+    """The number of rows :func:`parse_body` would return, when it is more than ``limit``;
+    None when it is at most ``limit``.  Counted without decoding anything.
+
+    Decoding first cost 1.5 GB for a 32 MiB NDJSON body of ``{}`` lines (11 million
+    dicts) before it was refused for its rows (the serve review).  Counting is a few
+    vectorized passes over the bytes: NDJSON rows are the non-blank lines; a JSON array's
+    rows are its elements, the commas at depth 1 outside strings, plus one.  The
+    count is exact for any body :func:`parse_body` decodes; for a malformed array it is
+    the count of what looks like its elements.
+
+    Parameters
+    ----------
+    body : bytes or str
+        The body as received.
+    limit : int
+        Most rows accepted.
+
+    Returns
+    -------
+    int or None
+        The rows, if more than ``limit``.
+    """
+    if isinstance(body, str):
+        body = body.encode("utf-8", "surrogatepass")
+    text = body.strip()
+    if text[:1] == b"[":
+        if text.count(b",") < limit:  # (every element after the first follows a comma)
+            return None
+        n = _array_elements(text)
+    else:
+        if text.count(b"\n") < limit:  # (every row after the first follows a newline)
+            return None
+        n = _nonblank_lines(text)
+    return n if n > limit else None
+
+
+def _nonblank_lines(text: bytes) -> int:
+    """Lines of ``text`` (split at ``\\n``) holding a byte other than ASCII whitespace."""
+    n, after_newline = 0, True
+    for off in range(0, len(text), _COUNT_CHUNK):
+        b = np.frombuffer(text, np.uint8, min(_COUNT_CHUNK, len(text) - off), off)
+        newline = b == 10
+        # the newlines and the other non-blank bytes, in order: a line is non-blank where
+        # a non-blank byte follows a newline (or the start)
+        is_nl = newline[newline | ~_WS[b]]
+        if not len(is_nl):
+            continue
+        prev = np.empty(len(is_nl), dtype=bool)
+        prev[0] = after_newline
+        prev[1:] = is_nl[:-1]
+        n += int(np.count_nonzero(~is_nl & prev))
+        after_newline = bool(is_nl[-1])
+    return n
+
+
+def _array_elements(text: bytes) -> int:
+    """Elements of the JSON array ``text``: its commas at depth 1 outside strings, plus
+    one unless it is empty.
+
+    NumPy passes over chunks of the bytes, the state carried from one chunk to the next:
+    the depth, whether a string is open, and the run of backslashes at the chunk's end (a
+    quote after an odd run is escaped).  A regular expression blanking the strings took
+    9 s and 970 MB for a 39 MiB body of 700 000 rows (a list of its pieces)."""
+    commas, depth, seen = 0, 0, False
+    in_string, backslashes = False, 0
+    for off in range(0, len(text), _COUNT_CHUNK):
+        b = np.frombuffer(text, np.uint8, min(_COUNT_CHUNK, len(text) - off), off)
+        quotes = np.flatnonzero(b == 34)
+        before = np.zeros(len(quotes), dtype=np.int64)  # backslashes before each quote
+        is_bs = b == 92
+        if is_bs.any():
+            idx = np.arange(len(b), dtype=np.int32)
+            # the run of backslashes ending at each byte: i - (index of the last other)
+            last_other = np.where(is_bs, np.int32(-1), idx)
+            np.maximum.accumulate(last_other, out=last_other)
+            run = idx - last_other
+            run[last_other < 0] += backslashes  # (a run going on from the last chunk)
+            before[quotes > 0] = run[quotes[quotes > 0] - 1]
+            end_run = int(run[-1])
+        else:
+            end_run = 0
+        if len(quotes) and quotes[0] == 0:
+            before[0] = backslashes
+        backslashes = end_run
+        opening = quotes[before % 2 == 0]  # the quotes that open or close a string
+        outside = None
+        if len(opening) or in_string:
+            toggle = np.zeros(len(b), dtype=bool)
+            toggle[opening] = True
+            inside = (np.cumsum(toggle, dtype=np.int32) + in_string) % 2 == 1
+            inside[opening] = True  # (a string's quotes are in it)
+            outside = ~inside
+            in_string = bool((len(opening) + in_string) % 2)
+        opens = (b == 91) | (b == 123)
+        closes = (b == 93) | (b == 125)
+        if outside is not None:
+            opens &= outside
+            closes &= outside
+        step = opens.astype(np.int32) - closes
+        level = np.cumsum(step, dtype=np.int64)
+        level += depth
+        level -= step  # the depth at each byte
+        at1 = level == 1
+        comma = b == 44
+        if outside is not None:
+            comma &= outside
+        commas += int(np.count_nonzero(at1 & comma))
+        # an element: a byte at depth 1 other than whitespace and the closing bracket
+        seen = seen or bool(np.any(at1 & ~_WS[b] & ~closes))
+        depth = int(level[-1] + step[-1])
+    return commas + 1 if seen else 0
+
+
 class _NotJSON:
     """Placeholder for an NDJSON line that did not decode (already rejected)."""
 
