@@ -478,6 +478,48 @@ def test_assembler_rule_by_hand():
     assert sorted(a.take_ready(0.0, flush_all=True)["time"].tolist()) == [0.4, 0.4, 0.6]
 
 
+@pytest.mark.parametrize(("first", "reason"), [
+    ({"range": "abc"}, "'range': 'abc' is not a number"),
+    ({"range": 1e12}, "range must lie in"),
+    ({"rssi": 500.0}, "rssi must lie in"),
+    ({"range": 5.0, "time": 1e30}, "time must lie in"),
+    ({"range": 5.0, "anchor": "nope"}, "unknown anchor id"),
+])
+def test_a_rejected_first_row_does_not_fix_the_value(first, reason):
+    """The value was taken from the first row without an error *before* the value checks:
+    a first row with a range that is not a number (rejected) fixed the service to ranges,
+    and the next body's rssi rows were all rejected (the serve review)."""
+    idx = pd.Index(["A", "B"])
+    bad = {"time": 1.0, "tag": "T", "anchor": "A", **first}
+    good = {"time": 2.0, "tag": "T", "anchor": "B", "rssi" if "range" in first else "range":
+            -70.0 if "range" in first else 4.0}
+    batch, kind, rejected = validate_rows([bad, good], idx, None)
+    assert kind == ("rssi" if "range" in first else "range")
+    assert len(batch) == 1 and batch.time.tolist() == [2.0]
+    assert [i for i, _ in rejected] == [0]
+    batch, kind, rejected = validate_rows([bad], idx, None)
+    assert kind is None and not len(batch) and reason in rejected[0][1], rejected
+
+
+def test_a_rejected_first_row_does_not_fix_the_services_value(ble, server_factory, tmp_path):
+    """On a server with a store: a rejected range row, then an rssi row: the rssi row is
+    accepted, the store's meta.json says rssi, and a restart with --value rssi starts."""
+    store = tmp_path / "store"
+    args = ["--anchors", str(ble / "anchors.csv"), "--store", str(store)]
+    s = server_factory(args)
+    r = httpx.post(s.url + "/api/measurements",
+                   json=[{"time": 1, "tag": "T", "anchor": "1", "range": "abc"}])
+    assert r.status_code == 202 and r.json()["accepted"] == 0
+    assert json.loads((store / "meta.json").read_text())["value"] is None
+    r = httpx.post(s.url + "/api/measurements",
+                   json=[{"time": 2, "tag": "T", "anchor": "1", "rssi": -70}])
+    assert r.status_code == 202 and r.json()["accepted"] == 1, r.text
+    assert json.loads((store / "meta.json").read_text())["value"] == "rssi"
+    s.stop()
+    s = server_factory([*args, "--value", "rssi"])
+    assert httpx.get(s.url + "/healthz").status_code == 200
+
+
 def test_validate_rows_vectorized_matches_rowwise():
     idx = pd.Index(["1", "2"], dtype=object)
     rows = [{"time": 1, "tag": " a ", "anchor": "1", "range": 2.5},

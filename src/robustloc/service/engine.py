@@ -649,13 +649,15 @@ class Engine:
             kind0 = self.kind
             batch, kind, rejected = validate_rows(rows, self._anchor_index, self.kind,
                                                   self.values)
-            if kind != kind0:  # the store's metadata first: a failed write changes nothing
-                self._write_meta(kind)
-                self.kind = kind
             if len(batch):
                 batch, over = self._within_max_tags(batch, rejected)
                 if over:
                     rejected = sorted(rejected + over)
+            # the kind is fixed by a row accepted (none refused for --max-tags either); the
+            # store's metadata first: a failed write changes nothing
+            if kind != kind0 and len(batch):
+                self._write_meta(kind)
+                self.kind = kind
             n_late, wall = self._accept(batch, source)
         rej_cols = self._rejected_anchor_cols(rows, rejected)
         return self._finish(batch, rejected, rej_cols, n_late, wall, source)

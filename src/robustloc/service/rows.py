@@ -495,6 +495,32 @@ class RowDecoder:
         return _regular_batch(t, tag, anc, val, kind, self._amap, self._ids)
 
 
+def _first_accepted_kind(
+    t: NDArray[np.float64], rs: list[Any], rg: list[Any], has_rs: NDArray[np.bool_],
+    has_rg: NDArray[np.bool_], err: list[str | None], allowed: tuple[str, ...],
+) -> str | None:
+    """The value of the first row that passes every check with it (one value, a number
+    within that value's limits, a time within its limits, no other error so far), or None.
+
+    The kind was that of the first row without an error *before* the value checks: a
+    first row ``{"range": "abc"}``, rejected, fixed the service (and its store's
+    meta.json) to ranges for good (the serve review)."""
+    clean = np.array([e is None for e in err], dtype=bool)
+    clean &= (has_rs ^ has_rg) & limits_for("time").check(t)
+    first, found = len(t), None
+    for name, has, col in (("rssi", has_rs, rs), ("range", has_rg, rg)):
+        idx = np.flatnonzero(clean & has)
+        if name not in allowed or not len(idx):
+            continue
+        scratch: list[str | None] = [None] * len(idx)  # (the row's errors are set later)
+        v = _floats([col[i] for i in idx.tolist()], name, scratch)
+        good = idx[np.array([e is None for e in scratch], dtype=bool)
+                   & limits_for(name).check(v)]
+        if len(good) and good[0] < first:
+            first, found = int(good[0]), name
+    return found
+
+
 def validate_rows(
     rows: list[Any], anchor_index: pd.Index, kind: str | None,
     allowed: tuple[str, ...] = ("rssi", "range"),
@@ -519,7 +545,8 @@ def validate_rows(
     batch : RowBatch
         The accepted rows, in body order.
     kind : str or None
-        The value kind (fixed by the first valid row when ``kind`` was None).
+        The value kind (when ``kind`` was None: that of the first row accepted, None if
+        none is).
     rejected : list of (index, error)
         Sorted by index.
     """
@@ -561,9 +588,7 @@ def validate_rows(
                 if err[i] is None:
                     err[i] = why
     if kind is None:
-        first = np.flatnonzero((has_rs ^ has_rg) & np.array([e is None for e in err], bool))
-        if len(first):
-            kind = "rssi" if has_rs[first[0]] else "range"
+        kind = _first_accepted_kind(t, rs, rg, has_rs, has_rg, err, allowed)
     for i in np.flatnonzero(has_rs & has_rg).tolist():
         if err[i] is None:
             err[i] = "row has both 'rssi' and 'range'; send one value per row"
@@ -577,13 +602,24 @@ def validate_rows(
                 err[i] = (f"this service locates from {kind}; row has "
                           f"{'range' if kind == 'rssi' else 'rssi'}")
         val = _floats(rs if kind == "rssi" else rg, kind, err)
+        checks = [("time", t, None), (kind, val, None)]
     else:
+        # no row is accepted: each row's reason by its own value (unchecked, a row with
+        # a range that is not a number was accepted with a NaN value)
         val = np.full(n, np.nan)
-    for name, v in (("time", t), (kind, val)):
-        if name is None:
-            continue
+        checks = [("time", t, None)]
+        for name, has, given in (("rssi", has_rs, rs), ("range", has_rg, rg)):
+            idx = np.flatnonzero(has & ~(has_rs & has_rg))
+            if len(idx):
+                sub = [err[i] for i in idx.tolist()]
+                val[idx] = _floats([given[i] for i in idx.tolist()], name, sub)
+                for i, e in zip(idx.tolist(), sub):
+                    err[i] = e
+                checks.append((name, val, has))
+    for name, v, rows_of in checks:
         lim = limits_for(name)
-        for i in np.flatnonzero(~lim.check(v)).tolist():
+        bad = ~lim.check(v) if rows_of is None else ~lim.check(v) & rows_of
+        for i in np.flatnonzero(bad).tolist():
             if err[i] is None:
                 err[i] = (f"'{name}' is not finite" if not np.isfinite(v[i])
                           else f"{lim.describe()}, got {v[i]:g}")
