@@ -454,6 +454,39 @@ def test_damaged_store_files_are_named_at_start(anchors, servers, tmp_path):
     assert _stored_times(store) == sorted(float(t) for t in range(3) for _ in ANCHORS)
 
 
+def test_a_segment_damaged_in_its_data_is_named_at_start(anchors, servers, tmp_path):
+    """A Parquet segment damaged in its data, its footer intact (the schema reads): the
+    start ended in a traceback and exit 1 (the serve review).  It is named with the
+    damaged-segment message, exit 2."""
+    import pyarrow.parquet as pq
+
+    store = tmp_path / "s"
+    args = ["--anchors", str(anchors), "--store", str(store), *PENDING]
+    srv = servers(args)
+    assert httpx.post(srv.url + "/api/measurements",
+                      json=_rows(range(500))).status_code == 202
+    srv.stop()
+    servers(args).stop()  # a restart seals the log into a Parquet segment
+    (seg,) = (store / "measurements").glob("seg-*.parquet")
+    meta = pq.read_metadata(seg)
+    names = [meta.schema.column(i).name for i in range(meta.num_columns)]
+    chunk = meta.row_group(0).column(names.index("time"))  # (a column the start reads)
+    # (its first page's header: damaged data inside a page may read without an error,
+    # Parquet pages carry no checksum by default)
+    at = chunk.dictionary_page_offset or chunk.data_page_offset
+    good = seg.read_bytes()
+    seg.write_bytes(good[:at] + b"x" * 50 + good[at + 50:])
+    pq.read_schema(seg)  # (the footer is intact)
+    p = _serve_once(args)
+    assert p.returncode == 2, p.stderr
+    last = p.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"error: {seg}: damaged Parquet segment of the store ("), last
+    assert last.endswith("); move it aside to start without its rows")
+    assert "Traceback" not in p.stderr and str(anchors) not in p.stderr
+    seg.write_bytes(good)
+    assert _stored_times(store) == sorted(float(t) for t in range(500) for _ in ANCHORS)
+
+
 def test_a_log_damaged_mid_file_is_named_at_start_and_nothing_is_cut(anchors, servers,
                                                                      tmp_path):
     """One bad byte in the first frame of the measurements log after ``kill -9``: the

@@ -444,9 +444,14 @@ class SegmentLog:
             schema = pa.unify_schemas([self._schema(p) for p in segments],
                                       promote_options="permissive")
             cols = None if columns is None else [c for c in columns if c in schema.names]
-            parts.append(ds.dataset([str(p) for p in segments], schema=schema,
-                                    format="parquet").to_table(columns=cols,
-                                                               filter=expression))
+            try:
+                parts.append(ds.dataset([str(p) for p in segments], schema=schema,
+                                        format="parquet").to_table(columns=cols,
+                                                                   filter=expression))
+            except (pa.ArrowException, OSError) as exc:
+                # a segment damaged in its data (its footer reads): named, as at open; the
+                # Arrow message alone named no file, and at start it was a traceback
+                raise self._damaged(segments, schema, cols, exc) from None
         if memory:
             mem = pa.concat_tables(memory, promote_options="default")
             if expression is not None:
@@ -457,6 +462,22 @@ class SegmentLog:
         if not parts:
             return pa.table({})
         return pa.concat_tables(parts, promote_options="default")
+
+    @staticmethod
+    def _damaged(segments: list[Path], schema: pa.Schema, columns: list[str] | None,
+                 exc: BaseException) -> StoreError:
+        """The error naming the segment whose read failed with ``exc`` (each segment read
+        alone to find it; the folder when none fails alone)."""
+        for p in segments:
+            try:
+                ds.dataset([str(p)], schema=schema, format="parquet").to_table(
+                    columns=columns)
+            except (pa.ArrowException, OSError) as one:
+                why = " ".join(str(one).split())  # (Arrow's messages span lines)
+                return StoreError(f"damaged Parquet segment of the store ({why}); move it "
+                                  "aside to start without its rows", p)
+        why = " ".join(str(exc).split())
+        return StoreError(f"damaged Parquet segments of the store ({why})", segments[0].parent)
 
     def _schema(self, path: Path) -> pa.Schema:
         """The schema of a sealed segment (read once: segments never change)."""
