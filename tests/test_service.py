@@ -172,6 +172,26 @@ def test_token_guards_ingest_and_reads(tokened):
     assert metric(u, 'robustloc_requests_rejected_total{reason="unauthorized"}', AUTH) >= 9
 
 
+def test_a_websocket_without_the_token_is_refused_403_at_the_handshake(tokened):
+    """The documented answer (README, app doc): HTTP 403 at the handshake (the docs said
+    401, and the code's close code 1008 never reaches the client), counted."""
+    from websockets.exceptions import InvalidStatus
+    from websockets.sync.client import connect
+
+    w = tokened.url.replace("http://", "ws://")
+    before = metric(tokened.url, 'robustloc_requests_rejected_total{reason="unauthorized"}',
+                    AUTH)
+    for path in ("/ws/positions", "/ws/measurements", f"/ws/positions?token={TOKEN}x"):
+        with pytest.raises(InvalidStatus) as refused:
+            connect(w + path, open_timeout=10)
+        assert refused.value.response.status_code == 403
+    assert metric(tokened.url, 'robustloc_requests_rejected_total{reason="unauthorized"}',
+                  AUTH) == before + 3
+    with connect(w + f"/ws/measurements?token={TOKEN}", open_timeout=10) as ws:
+        ws.send("[]")
+        assert json.loads(ws.recv(timeout=10))["accepted"] == 0
+
+
 def test_post_answers(tokened):
     u = tokened.url
     rows = [

@@ -36,17 +36,20 @@ A tag silent for --forget-after (default 7 days) is forgotten: its state goes, i
 rows stay, and heard again it starts afresh (metric robustloc_tags_forgotten_total); so
 --max-tags bounds the tags heard within that time, not every tag ever heard.
 
-Durability (--store DIR): every accepted row is synced to a write-ahead log before the 202;
-logs are sealed into Parquet segments (DIR/measurements/*.parquet,
-DIR/positions/*.parquet). After a crash (even kill -9) and a restart on the same DIR,
-nothing acknowledged is lost and each tag resumes where it stopped (with --track, its
-filter from the snapshot in DIR/state/, every 10 s, or from its first stored row: the
-epochs since are solved again, so a resumed replay gives the tracks of robustloc track).
-Without --store the service keeps everything in memory (a warning says so). One service per
-store: the service locks DIR/.lock while it runs, and a second one on the same DIR exits
-with an error (2) before serving. A body the store cannot write (disk full) is answered 507
-and nothing of it is stored (counted as store_error in /metrics): send it again later. A
-damaged store file (meta.json, a Parquet segment) is named in the error at start-up.
+Durability (--store DIR): every accepted row is synced to a write-ahead log
+(DIR/measurements/seg-*.wal) before the 202. A log is sealed into a Parquet segment
+(DIR/measurements/*.parquet, DIR/positions/*.parquet) once it holds 1 000 000 rows, and the
+logs a stop or a crash left are sealed at the next start: after a stop the newest rows are
+still in the .wal files (read them through the service). After a crash (even kill -9) and a
+restart on the same DIR, nothing acknowledged is lost and each tag resumes where it stopped
+(with --track, its filter from the snapshot in DIR/state/, every 10 s, or from its first
+stored row: the epochs since are solved again, so a resumed replay gives the tracks of
+robustloc track). Without --store the service keeps everything in memory (a warning says
+so). One service per store: the service locks DIR/.lock while it runs, and a second one on
+the same DIR exits with an error (2) before serving. A body the store cannot write (disk
+full) is answered 507 and nothing of it is stored (counted as store_error in /metrics):
+send it again later. A damaged store file (meta.json, a Parquet segment, a write-ahead log
+damaged before intact frames) is named in the error at start-up (exit 2).
 
 MQTT with --store: the service connects with a stable client id (--mqtt-client-id; by
 default robustloc- and a hash of the store's absolute path) and a persistent session,

@@ -26,7 +26,9 @@ the client may resend it whole.
 
 When a token is set, every endpoint except ``/``, ``/static`` and ``/healthz`` needs
 ``Authorization: Bearer TOKEN`` (WebSockets may send ``?token=TOKEN`` instead, since
-browsers cannot set headers on a WebSocket).
+browsers cannot set headers on a WebSocket).  An HTTP request without it gets ``401``; a
+WebSocket without it is refused at the handshake with HTTP ``403`` (closed before it is
+accepted, so no close code is ever sent), counted as ``unauthorized`` alike.
 """
 
 from __future__ import annotations
@@ -606,6 +608,8 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
     async def ws_positions(ws: WebSocket) -> None:
         if not authorized(ws.headers, ws.query_params):
             engine.metrics.request_rejected("unauthorized")
+            # closed before the accept: uvicorn answers the handshake HTTP 403 (the
+            # client sees that status, not this code)
             await ws.close(code=1008)
             return
         await ws.accept()
@@ -650,6 +654,8 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
     async def ws_measurements(ws: WebSocket) -> None:
         if not authorized(ws.headers, ws.query_params):
             engine.metrics.request_rejected("unauthorized")
+            # closed before the accept: uvicorn answers the handshake HTTP 403 (the
+            # client sees that status, not this code)
             await ws.close(code=1008)
             return
         await ws.accept()
