@@ -738,9 +738,16 @@ def _replayed_rows_equal(srv, log, want: pd.DataFrame, columns: tuple[str, ...]
         d = pd.DataFrame(httpx.get(srv.url + "/api/positions").json())
         return d if len(d) == len(want) else None
 
-    g = wait_for(got, what="every epoch solved")
+    return rows_equal(wait_for(got, what="every epoch solved"), want, columns)
+
+
+def rows_equal(got: pd.DataFrame, want: pd.DataFrame, columns: tuple[str, ...]
+               ) -> pd.DataFrame:
+    """The service's rows ``got`` against ``want`` by (tag, time): the same statuses, and
+    ``columns`` to 1e-9 (the JSON round trip of float64 positions); returns ``got``
+    sorted."""
     key = ["tag", "time"]
-    g = g.sort_values(key).reset_index(drop=True)
+    g = got.sort_values(key).reset_index(drop=True)
     w = want.assign(tag=want["tag"].astype(str)).sort_values(key).reset_index(drop=True)
     assert (g["status"] == w["status"]).all()
     for c in columns:

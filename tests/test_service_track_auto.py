@@ -12,7 +12,7 @@ pytest.importorskip("starlette")
 pytest.importorskip("uvicorn")
 httpx = pytest.importorskip("httpx")
 
-from test_service import _cli, wait_for  # noqa: E402
+from test_service import _cli, rows_equal, wait_for  # noqa: E402
 
 from robustloc.io import read_anchors, read_measurements  # noqa: E402
 from robustloc.io.tables import to_epochs  # noqa: E402
@@ -41,13 +41,8 @@ def _post(srv, rows: pd.DataFrame, n_positions: int) -> pd.DataFrame:
     return wait_for(got, what=f"{n_positions} positions")
 
 
-def _check(rows: pd.DataFrame, want: pd.DataFrame, columns=("x", "y", "hpl")) -> None:
-    key = ["tag", "time"]
-    g = rows.sort_values(key).reset_index(drop=True)
-    w = want.assign(tag=want["tag"].astype(str)).sort_values(key).reset_index(drop=True)
-    assert (g["status"] == w["status"]).all()
-    for c in columns:
-        np.testing.assert_allclose(g[c].astype(float), w[c], rtol=0, atol=1e-9, equal_nan=True)
+def _check(rows: pd.DataFrame, want: pd.DataFrame) -> None:
+    rows_equal(rows, want, ("x", "y", "hpl"))
 
 
 def test_the_stream_chooses_and_a_restart_keeps_the_trial(ble, server_factory, tmp_path):

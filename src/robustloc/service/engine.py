@@ -470,26 +470,27 @@ class Engine:
         a.set_watermarks({}, live.groupby("tag")["time"].max().to_dict())
         # an earlier run's unsolved rows were released by its re-base: solved as they are
         if len(old):
-            tags = old["tag"].to_numpy(object)
-            self._queue.append(({
-                "time": old["time"].to_numpy(float), "tag": tags, "tag_code": a.codes(tags),
-                "anchor_col": self._anchor_index.get_indexer(
-                    old["anchor"].to_numpy(object)).astype(np.int64),
-                "value": old["value"].to_numpy(float), "run": old["run"].to_numpy(np.int64),
-            }, time.time()))
-        if len(gap):
-            tags = gap["tag"].to_numpy(object)
-            self._queue.append(({
-                "time": gap["time"].to_numpy(float), "tag": tags, "tag_code": a.codes(tags),
-                "anchor_col": self._anchor_index.get_indexer(
-                    gap["anchor"].to_numpy(object)).astype(np.int64),
-                "value": gap["value"].to_numpy(float), "run": gap["run"].to_numpy(np.int64),
-                "late": np.ones(len(gap), dtype=bool),
-            }, time.time()))
+            self._queue.append((self._solver_block(old), time.time()))
+        if len(gap):  # (solved as the late epochs they were)
+            self._queue.append((self._solver_block(gap, late=True), time.time()))
         self.recovered_rows = len(todo) + len(gap)
         heard = np.bincount(self._anchor_index.get_indexer(df["anchor"].to_numpy(object)),
                             minlength=len(self.anchor_ids))
         self.metrics.heard += heard
+
+    def _solver_block(self, rows: pd.DataFrame, late: bool = False) -> dict:
+        """Stored measurement rows as a block of the solver's queue (the assembler's
+        release format), ``late`` marking them all as late epochs."""
+        tags = rows["tag"].to_numpy(object)
+        block = {"time": rows["time"].to_numpy(float), "tag": tags,
+                 "tag_code": self.assembler.codes(tags),
+                 "anchor_col": self._anchor_index.get_indexer(
+                     rows["anchor"].to_numpy(object)).astype(np.int64),
+                 "value": rows["value"].to_numpy(float),
+                 "run": rows["run"].to_numpy(np.int64)}
+        if late:
+            block["late"] = np.ones(len(rows), dtype=bool)
+        return block
 
     @staticmethod
     def _unsolved_below(rows: pd.DataFrame, positions: pa.Table) -> pd.DataFrame:
