@@ -63,3 +63,45 @@ def test_a_program_calling_main_keeps_its_own_sigint_handler(tmp_path):
     proc = _run(tmp_path, "KeyboardInterrupt", "SIGINT", "cli.main()")
     assert proc.returncode == -signal.SIGINT, (proc.returncode, proc.stderr)
     assert "error: interrupted" in proc.stderr
+
+
+SPY = textwrap.dedent("""
+    import os, signal, sys
+    import robustloc.cli as cli
+    import robustloc.commands.stats as command
+
+    def interrupted(args):
+        os.kill(os.getpid(), signal.SIGINT)  # the command's handler raises, and notes it
+        for _ in range(10**6):
+            pass
+
+    seen = []
+    restore = cli._restore_handlers
+
+    def spy(old):
+        restore(old)
+        seen.append(signal.getsignal(signal.SIGINT))
+
+    cli._restore_handlers = spy
+    command.run = interrupted
+    sys.argv = ["robustloc", "stats", "m.csv", "-o", "out"]
+    code = cli.{call}()
+    print("restored", code, "ignored" if seen[0] is signal.SIG_IGN else
+          "python's" if seen[0] is signal.default_int_handler else repr(seen[0]), flush=True)
+""")
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
+@pytest.mark.parametrize("call, handler", [("entry", "ignored"), ("main", "python's")])
+def test_an_interrupted_command_never_puts_pythons_handler_back_before_the_exit(
+        tmp_path, call, handler):
+    """Through ``entry`` (the process ends with the command), the end of an interrupted
+    command ignores SIGINT at once instead of restoring Python's handler: no moment is
+    left where a late signal kills the process (status -2 after ``error: interrupted``,
+    the full suite a third time).  Through ``main`` (a program's call) its handler is
+    restored."""
+    (tmp_path / "m.csv").write_text("time,tag,anchor,rssi\n0,t,a,-60\n")
+    proc = subprocess.run([sys.executable, "-c", SPY.format(call=call)], capture_output=True,
+                          text=True, timeout=120, cwd=tmp_path)
+    assert f"restored 130 {handler}" in proc.stdout, (proc.stdout, proc.stderr)
+    assert "error: interrupted" in proc.stderr

@@ -232,15 +232,30 @@ def _restore_sigterm(old: object) -> None:
     _restore_handlers(old)
 
 
+#: Set by :func:`entry` (the process ends with the command): an interrupted command's
+#: end ignores SIGINT and SIGTERM instead of putting Python's own handlers back.  With
+#: them back, a signal landing before :func:`entry` could ignore it (the re-sent one of
+#: :func:`_deliver_later`, or one more from the user) raised a KeyboardInterrupt where
+#: nothing caught it, and the process died of SIGINT after printing ``error:
+#: interrupted`` (status -2, not 130: the full suite, ``test_reproduce_atomic``, a third
+#: time after the two guards of :func:`entry`).
+_exit_after_command = False
+
+
 def _restore_handlers(old: object) -> None:
     import signal
 
+    interrupted = bool(_received)
     _received.clear()
     if old is not None:
         term, intr, hook = old  # type: ignore[misc]
+        if _exit_after_command and interrupted:  # (first: no window with Python's own)
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        else:
+            signal.signal(signal.SIGTERM, term)
+            signal.signal(signal.SIGINT, intr)
         sys.unraisablehook = hook
-        signal.signal(signal.SIGTERM, term)
-        signal.signal(signal.SIGINT, intr)
 
 
 def _oserror_path(exc: OSError) -> str | None:
@@ -284,6 +299,8 @@ def entry() -> int:
     import signal
     import threading
 
+    global _exit_after_command
+    _exit_after_command = True
     try:
         code = main()
     except KeyboardInterrupt:
