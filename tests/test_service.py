@@ -473,6 +473,65 @@ def test_store_refuses_a_log_damaged_before_intact_frames(tmp_path, where):
         log.close()
 
 
+def test_a_torn_frame_holding_a_frame_in_its_rows_is_a_torn_tail(tmp_path, capsys):
+    """A crash mid-append leaves a prefix of the frame; its rows' text (a tag id) may
+    spell a whole frame.  That is no intact frame after damage (the frames from it do not
+    run to the end of the file): the tail is cut with a warning, the store opens (it
+    refused to start: the review of the fix)."""
+    import pyarrow as pa
+
+    from robustloc.service.store import _encode
+
+    log = SegmentLog(tmp_path, fsync=False)
+    for i in range(2):
+        log.append(pa.table({"time": [float(i)] * 2, "tag": ["a"] * 2}))
+    log.close()
+    (wal,) = tmp_path.glob("*.wal")
+    good = wal.read_bytes()
+    inner = _encode(pa.table({"time": [9.0], "tag": ["x"]}))
+    torn = _encode(pa.table({"time": [2.0] * 3, "tag": ["p" * 50, inner.hex(), "q" * 300]}))
+    # the torn frame's bytes hold the inner frame (hex-spelled here: a tag of bytes that
+    # are a frame) and stop after it and some more of the payload
+    raw = inner + b"z" * 40
+    wal.write_bytes(good + torn[:60] + raw)
+    log = SegmentLog(tmp_path, fsync=False)
+    try:
+        assert sorted(log.scan()["time"].to_pylist()) == [0.0, 0.0, 1.0, 1.0]
+        assert log.truncated_bytes == 60 + len(raw)
+    finally:
+        log.close()
+    assert "incomplete last frame cut off" in capsys.readouterr().err
+
+
+def test_a_positions_log_damaged_mid_file_is_cut_not_refused(tmp_path, capsys):
+    """The positions log is not synced (its rows are recomputed after a crash): a page of
+    it lost in a power cut, later ones written, must not stop the service.  Opened with
+    ``refuse_damage=False`` it is cut at the damage, with a warning; the measurements'
+    default refuses the same file."""
+    import pyarrow as pa
+
+    from robustloc.service.store import StoreError
+
+    log = SegmentLog(tmp_path, fsync=False)
+    for i in range(4):
+        log.append(pa.table({"time": [float(i)] * 2, "tag": ["a"] * 2}))
+    log.close()
+    (wal,) = tmp_path.glob("*.wal")
+    data = bytearray(wal.read_bytes())
+    second = data.find(b"RLW1", 1)
+    data[second + 20: second + 60] = b"\0" * 40  # the second frame's page lost
+    wal.write_bytes(bytes(data))
+    with pytest.raises(StoreError, match="damaged write-ahead log"):
+        SegmentLog(tmp_path, fsync=False)
+    log = SegmentLog(tmp_path, fsync=False, refuse_damage=False)
+    try:
+        assert log.scan()["time"].to_pylist() == [0.0, 0.0]
+        assert log.truncated_bytes == len(data) - second
+    finally:
+        log.close()
+    assert "from a damaged frame on" in capsys.readouterr().err
+
+
 # --------------------------------------------------------------------------------------
 # pieces
 # --------------------------------------------------------------------------------------

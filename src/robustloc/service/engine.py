@@ -312,7 +312,8 @@ class Engine:
             # position of its tag, so a position lost in a crash comes back (the sync
             # would sit in the latency path of every published position)
             try:
-                self.pos = SegmentLog(self.store_dir / "positions", seal_rows, fsync=False)
+                self.pos = SegmentLog(self.store_dir / "positions", seal_rows, fsync=False,
+                                      refuse_damage=False)
             except BaseException:  # (a damaged positions segment): the first log released
                 self.meas.close()
                 raise

@@ -232,11 +232,37 @@ def _read_log(path: Path) -> tuple[list[pa.Table], int, int | None]:
     while (frame := _frame_at(data, pos)) is not None:
         out.append(frame[0])
         pos = frame[1]
+    # the bad frame's own bytes are not searched when its header is whole and its payload
+    # ends inside the file (a wrong checksum: the damage is in it), and a frame found
+    # after the bad one counts only when the frames from it run to the end of the file
+    # (the last one may be torn).  A payload holds the rows' text: a tag id shaped as a
+    # frame, inside a frame torn by a crash mid-append, was taken for acknowledged frames
+    # after damage, and the store refused to start (the review of the fix); a real
+    # damage's later frames run to the end, whatever the bad frame's header says
     at = pos
+    if pos + _HEADER.size <= len(data):
+        magic, length, _ = _HEADER.unpack_from(data, pos)
+        if magic == _MAGIC and pos + _HEADER.size + length <= len(data):
+            at = pos + _HEADER.size + length - 1
     while (at := data.find(_MAGIC, at + 1)) >= 0:
-        if _frame_at(data, at) is not None:
+        if _frames_to_end(data, at):
             return out, pos, at
     return out, pos, None
+
+
+def _frames_to_end(data: bytes, pos: int) -> bool:
+    """Whether whole frames run from byte ``pos`` to the end of ``data``, but for a torn
+    last one (a prefix of a frame: its header cut, or its payload ending past the end) or
+    a zero-filled tail (space allocated, never written)."""
+    if _frame_at(data, pos) is None:
+        return False
+    while (frame := _frame_at(data, pos)) is not None:
+        pos = frame[1]
+    rest = len(data) - pos
+    if rest == 0 or rest < _HEADER.size or not data[pos:].strip(b"\0"):
+        return True
+    magic, length, _ = _HEADER.unpack_from(data, pos)
+    return magic == _MAGIC and pos + _HEADER.size + length > len(data)
 
 
 class SegmentLog:
@@ -249,11 +275,18 @@ class SegmentLog:
     seal_rows : int
         Rows per log before it is sealed into a Parquet segment.
     fsync : bool
-        Sync every append (default True; False only for throw-away stores in tests).
+        Sync every append (default True; False only for throw-away stores in tests, and
+        the positions log).
+    refuse_damage : bool
+        A log damaged before intact frames is refused at open (default True: its rows
+        were acknowledged).  False for a log whose rows are recomputed after a crash (the
+        positions): it is cut at the damage, with a warning, as a torn tail is -- a power
+        cut can lose any unsynced page of it, and that must not stop the service.
     """
 
     def __init__(self, directory: str | os.PathLike, seal_rows: int = 1_000_000,
-                 fsync: bool = True) -> None:
+                 fsync: bool = True, refuse_damage: bool = True) -> None:
+        self.refuse_damage = refuse_damage
         self.dir = Path(directory)
         self.dir.mkdir(parents=True, exist_ok=True)
         # one writer per folder, taken before anything is read, sealed or deleted
@@ -292,7 +325,7 @@ class SegmentLog:
                 p.unlink()
                 continue
             tables, valid, intact = _read_log(p)
-            if intact is not None:
+            if intact is not None and self.refuse_damage:
                 # acknowledged frames after a damaged one: refused, as a damaged segment
                 # (never cut off: those rows were synced and answered 202)
                 raise StoreError(f"damaged write-ahead log of the store (a bad frame at "
@@ -306,9 +339,14 @@ class SegmentLog:
                     os.fsync(f.fileno())
                 # (said, not silent: these bytes were never acknowledged, the sync of
                 # their append had not returned)
-                print(f"warning: {p}: {size - valid} bytes of an incomplete last frame "
-                      f"cut off at byte {valid} (an append interrupted by a crash, never "
-                      "acknowledged)", file=sys.stderr, flush=True)
+                if intact is None:
+                    msg = (f"{size - valid} bytes of an incomplete last frame cut off at "
+                           f"byte {valid} (an append interrupted by a crash, never "
+                           "acknowledged)")
+                else:
+                    msg = (f"{size - valid} bytes cut off at byte {valid}, from a damaged "
+                           "frame on (this log's rows are recomputed after a crash)")
+                print(f"warning: {p}: {msg}", file=sys.stderr, flush=True)
             self._memory[seq] = tables
             self.recovered_rows += sum(t.num_rows for t in tables)
             seqs.add(seq)
