@@ -1259,6 +1259,46 @@ def test_the_rows_of_a_body_are_counted_without_decoding_it(monkeypatch):
     assert eng.metrics.requests_rejected == {"too_many_rows": 1}
 
 
+def test_a_body_the_fast_decoder_takes_is_held_to_the_row_limit(monkeypatch):
+    """A JSON array of valid rows goes through the fast decoder, which skipped the row
+    limit (a body of more than 1 000 000 rows was accepted above --max-body-bytes 44 MB:
+    the review of the fix).  With the limit at 5 (monkeypatched), 6 valid rows get the
+    413 and nothing is stored; 5 are accepted."""
+    import asyncio
+
+    import pandas as pd
+
+    import robustloc.service.app as app_mod
+    from robustloc.service.engine import Engine
+
+    monkeypatch.setattr(app_mod, "MAX_ROWS_PER_BODY", 5)
+    anchors = pd.DataFrame({"anchor": ["A1", "A2", "A3"], "x": [0, 10, 0.0],
+                            "y": [0, 0, 10.0]})
+    eng = Engine(anchors, LocateProcessor(anchors, method="nls"), latency_window_s=0.0,
+                 idle_flush_s=600.0, fsync=False)
+
+    def body(n: int) -> bytes:
+        return json.dumps([{"time": float(i), "tag": "t", "anchor": "A1", "range": 5.0}
+                           for i in range(n)]).encode()
+
+    eng.ingest([{"time": 100.0, "tag": "u", "anchor": "A1", "range": 5.0}])  # (the value)
+    assert eng.decode(body(6)) is not None  # (the fast path, once the value is fixed)
+
+    async def post(data: bytes):
+        transport = httpx.ASGITransport(app=app_mod.create_app(eng))
+        async with httpx.AsyncClient(transport=transport, base_url="http://t") as client:
+            return await client.post("/api/measurements", content=data)
+
+    try:
+        r = asyncio.run(post(body(6)))
+        assert r.status_code == 413 and "6 rows, more than 5" in r.json()["error"]
+        assert eng.metrics.requests_rejected == {"too_many_rows": 1}
+        r = asyncio.run(post(body(5)))
+        assert r.status_code == 202 and r.json()["accepted"] == 5
+    finally:
+        eng.stop()
+
+
 def test_unknown_routes_and_methods_are_json_and_counted(tokened):
     u = tokened.url
     r = httpx.get(u + "/nope", headers=AUTH)

@@ -298,12 +298,12 @@ class MqttIngest:
             m.request_rejected("mqtt_too_large")
             return
         batch = self.engine.decode(payload)  # the common payload, in one pass
-        if batch is not None:
+        if batch is not None and len(batch) <= MAX_ROWS_PER_BODY:
             self.engine.ingest_batch(batch, "mqtt")
             return
-        if rows_beyond(payload, MAX_ROWS_PER_BODY) is not None:  # as an HTTP body:
-            m.request_rejected("mqtt_too_many_rows")  # refused before anything is decoded
-            return
+        if batch is not None or rows_beyond(payload, MAX_ROWS_PER_BODY) is not None:
+            m.request_rejected("mqtt_too_many_rows")  # as an HTTP body: refused (before
+            return  # anything is decoded row by row)
         try:
             rows, _ = parse_body(payload)
         except BodyError:
