@@ -131,6 +131,70 @@ def test_two_anchor_starts_per_tag(cart, tmp_path, capsys):
     pd.testing.assert_frame_equal(tr[tr["tag"] == "other"].reset_index(drop=True), other)
 
 
+# --- the review of the fix: one start anchor, a side told by GPS, a layout seen -----------
+
+
+def test_a_tag_first_heard_by_one_anchor_does_not_start_on_it(cart, tmp_path, capsys):
+    # BS.A alone for the first 3 s: the centroid of the one anchor heard is the anchor
+    # itself, where a range's gradient is undefined -- the track stuck there, 29 m off,
+    # rows fault_detected.  It starts at the site's centroid, as before the two-anchor
+    # starts: the same track as then (max 15.9 m in its first row, 0.054 m median)
+    m = pd.read_csv(cart / "measurements.csv")
+    m = m[~((m["time"] < 3.0) & (m["anchor"] != "BS.A"))]
+    p = tmp_path / "one.csv"
+    m.to_csv(p, index=False)
+    tr, _ = _fuse(cart, tmp_path, capsys, p, "--nmea", str(cart / "gps.nmea"))
+    err, _ = _errors(tr, cart)
+    assert np.median(err) < 0.1 and err[3:].max() < 0.5, err[:6]
+    a = pd.read_csv(cart / "anchors.csv").set_index("anchor").loc["BS.A"]
+    assert np.hypot(tr["x"].iloc[0] - a["x"], tr["y"].iloc[0] - a["y"]) > 1.0
+
+
+@pytest.mark.parametrize("kind", ["ekf", "ukf"])
+def test_a_side_told_by_gps_keeps_the_filters_covariance(cart, tmp_path, capsys, kind):
+    # the two mirror runs' fits differ by far more than chi2(0.99; 1): the side is known,
+    # and the rows keep the filter's covariance (a 0.085 m error had a 3.7 m sd), still
+    # consistent: at most 5 % beyond the 99 % NEES bound
+    two = _two_anchors(cart, tmp_path)
+    tr, _ = _fuse(cart, tmp_path, capsys, two, "--filter", kind, "--nmea",
+                  str(cart / "gps.nmea"))
+    err, nees = _errors(tr, cart)
+    sd = np.sqrt(tr["var_x"] + tr["var_y"])
+    assert np.median(sd) < 0.5, np.median(sd)
+    assert np.mean(nees > NEES_99) <= 0.05
+
+
+def test_a_layout_seen_fixes_the_side_and_loose_coupling_is_not_widened(cart, tmp_path,
+                                                                         capsys):
+    # three anchors for the first 2 s, then two: the side was fixed while three were
+    # heard, so the two-anchor rows keep the filter's covariance (they had 3.4 m sd
+    # around a 0.08 m error); loose coupling never filters two ranges: not widened
+    m = pd.read_csv(cart / "measurements.csv")
+    m = m[~((m["time"] >= 2.0) & (m["anchor"] == "BS.C"))]
+    p = tmp_path / "three_then_two.csv"
+    m.to_csv(p, index=False)
+    for extra in ((), ("--coupling", "loose")):
+        tr, _ = _fuse(cart, tmp_path, capsys, p, "--nmea", str(cart / "gps.nmea"), *extra)
+        err, nees = _errors(tr, cart)
+        sd = np.sqrt(tr["var_x"] + tr["var_y"])
+        assert np.median(err) < 0.2 and np.median(sd) < 0.5, (np.median(err), np.median(sd))
+        assert np.mean(nees > NEES_99) <= 0.05
+
+
+def test_without_gps_the_start_keeps_to_the_sites_side(cart, tmp_path, capsys):
+    # the cart's log heard by BS.B and BS.C only, no GPS: the two mirror runs fit about
+    # equally, and the smaller NIS sum was a coin flip that went to the far side (9.9 m
+    # median error).  The start on the side of the site's centroid is kept unless the
+    # other fits better by more than chi2(0.99; 1): here it stays on the truth's side
+    m = pd.read_csv(cart / "measurements.csv")
+    p = tmp_path / "bc.csv"
+    m[m["anchor"] != "BS.A"].to_csv(p, index=False)
+    tr, _ = _fuse(cart, tmp_path, capsys, p)
+    err, nees = _errors(tr, cart)
+    assert np.median(err) < 0.5, np.median(err)
+    assert np.mean(nees > NEES_99) <= 0.05
+
+
 # --- 6: an open bound is said as open ------------------------------------------------------
 
 
