@@ -144,8 +144,9 @@ def carrier_smooth_iflc(
     satellite when its phase or code is missing, on a cycle slip -- a jump of the
     geometry-free phase ``lambda1 L1 - lambda2 L2`` by more than ``slip_gf_m`` or of the
     code-minus-phase by more than ``slip_cmp_m`` between epochs -- after a gap of more than
-    two sampling intervals, or at a time step of 0 or backwards.  Sequential in time (one
-    vectorized step per epoch over all satellites); satellites without both carriers
+    two sampling intervals, or at a time step backwards; an epoch repeated (a step of 0)
+    gets the smoothed code of its first copy and leaves the filter as it was.  Sequential
+    in time (one vectorized step per epoch over all satellites); satellites without both carriers
     (GLONASS) keep the raw code.
 
     Parameters
@@ -181,10 +182,17 @@ def carrier_smooth_iflc(
     for k in range(N):
         p, ph, gk = out[k], phi[k], gf[k]
         ok = np.isfinite(p) & np.isfinite(ph)
+        if obs.t_gps_s[k] == t_prev:
+            # the epoch repeated: its smoothed code where the satellite was smoothed, the
+            # filter's state unchanged (a restart here moved later fixes by up to 2.3 m,
+            # a second sample of one epoch weighed it twice: the review of the fix)
+            out[k] = np.where(ok & np.isfinite(prev_ps) & (np.abs(ph - prev_phi) <= 1e-3),
+                              prev_ps, p)
+            continue
         with np.errstate(invalid="ignore"):
-            # a step of 0 or backwards (epochs out of time order, an epoch repeated) is
-            # no continuation: it smoothed across it (0.26 m on GEONET with the first two
-            # epochs swapped; the GNSS review)
+            # a step backwards (epochs out of time order) is no continuation: it
+            # smoothed across it (0.26 m on GEONET with the first two epochs swapped; the
+            # GNSS review)
             step = obs.t_gps_s[k] - t_prev
             cont = (ok & np.isfinite(prev_phi) & (step > 0) & (step <= max_gap)
                     & (np.abs(gk - prev_gf) <= slip_gf_m))
