@@ -417,14 +417,21 @@ def test_store_truncates_torn_tail(tmp_path):
     log2.close()
 
 
-def test_store_says_it_truncated_a_torn_tail(tmp_path, capsys):
+def _small_log(directory, frames: int):
+    """A closed measurements-like log of ``frames`` frames (times 0, 1, ..., two rows
+    each); returns its file."""
     import pyarrow as pa
 
-    log = SegmentLog(tmp_path, fsync=False)
-    for i in range(3):
+    log = SegmentLog(directory, fsync=False)
+    for i in range(frames):
         log.append(pa.table({"time": [float(i)] * 2, "tag": ["a"] * 2}))
     log.close()
-    (wal,) = tmp_path.glob("*.wal")
+    (wal,) = directory.glob("*.wal")
+    return wal
+
+
+def test_store_says_it_truncated_a_torn_tail(tmp_path, capsys):
+    wal = _small_log(tmp_path, 3)
     data = wal.read_bytes()
     wal.write_bytes(data[:-7])  # the last append cut short by a crash: never acknowledged
     log2 = SegmentLog(tmp_path, fsync=False)
@@ -443,15 +450,9 @@ def test_store_refuses_a_log_damaged_before_intact_frames(tmp_path, where):
     """One bad byte in a log's first frame: every later (acknowledged) frame was cut off
     at the next open, silently (the serve review).  The open is refused naming the file
     and the offsets, and the file is left as it is."""
-    import pyarrow as pa
-
     from robustloc.service.store import StoreError
 
-    log = SegmentLog(tmp_path, fsync=False)
-    for i in range(3):
-        log.append(pa.table({"time": [float(i)] * 2, "tag": ["a"] * 2}))
-    log.close()
-    (wal,) = tmp_path.glob("*.wal")
+    wal = _small_log(tmp_path, 3)
     data = bytearray(wal.read_bytes())
     second = data.find(b"RLW1", 1)
     data[40 if where == "payload" else 5] ^= 0xFF  # (5: the first frame's length)
@@ -482,11 +483,7 @@ def test_a_torn_frame_holding_a_frame_in_its_rows_is_a_torn_tail(tmp_path, capsy
 
     from robustloc.service.store import _encode
 
-    log = SegmentLog(tmp_path, fsync=False)
-    for i in range(2):
-        log.append(pa.table({"time": [float(i)] * 2, "tag": ["a"] * 2}))
-    log.close()
-    (wal,) = tmp_path.glob("*.wal")
+    wal = _small_log(tmp_path, 2)
     good = wal.read_bytes()
     inner = _encode(pa.table({"time": [9.0], "tag": ["x"]}))
     torn = _encode(pa.table({"time": [2.0] * 3, "tag": ["p" * 50, inner.hex(), "q" * 300]}))
@@ -508,15 +505,9 @@ def test_a_positions_log_damaged_mid_file_is_cut_not_refused(tmp_path, capsys):
     it lost in a power cut, later ones written, must not stop the service.  Opened with
     ``refuse_damage=False`` it is cut at the damage, with a warning; the measurements'
     default refuses the same file."""
-    import pyarrow as pa
-
     from robustloc.service.store import StoreError
 
-    log = SegmentLog(tmp_path, fsync=False)
-    for i in range(4):
-        log.append(pa.table({"time": [float(i)] * 2, "tag": ["a"] * 2}))
-    log.close()
-    (wal,) = tmp_path.glob("*.wal")
+    wal = _small_log(tmp_path, 4)
     data = bytearray(wal.read_bytes())
     second = data.find(b"RLW1", 1)
     data[second + 20: second + 60] = b"\0" * 40  # the second frame's page lost
