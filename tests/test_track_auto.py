@@ -246,6 +246,11 @@ def test_bad_settings_and_states_are_refused_and_change_nothing():
         trk.load_state_dict([])
     with pytest.raises(TypeError):
         trk.rollback({})
+    # not Epochs: the tracker's own message (an AttributeError before), nothing changed
+    keep = json.dumps(trk.state_dict())
+    with pytest.raises(TypeError, match="epochs must be robustloc.io.tables.Epochs"):
+        trk.step(pd.DataFrame({"time": [1.0], "tag": ["t"], "anchor": ["a0"], "range": [1.0]}))
+    assert json.dumps(trk.state_dict()) == keep
 
 
 def test_a_trial_restarted_with_a_shorter_sample_chooses_on_its_first_epochs():

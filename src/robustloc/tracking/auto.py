@@ -182,9 +182,10 @@ class AutoTracker:
         """Advance each tag by ``epochs`` (as :meth:`Tracker.step`); one track row per
         epoch, in the order of ``epochs``.  During the trial, all or nothing: a block
         that raises leaves both trackers, the scores and the count as they were."""
-        N = int(epochs.n_epochs)
-        if self._shadow is None or N == 0:
+        N = getattr(epochs, "n_epochs", None)
+        if self._shadow is None or not N:  # (not Epochs: the tracker's own TypeError)
             return self._live.step(epochs)
+        N = int(N)
         cut = min(N, self.sample_epochs - self._progress[0])  # the trial's epochs of it
         saved = self.checkpoint()
         try:
