@@ -61,6 +61,24 @@ def test_montecarlo_takes_lege_max_order_where_it_applies(tmp_path, anchors):
     assert not tables[0].equals(tables[1])
 
 
+def test_run_montecarlo_refuses_lege_max_order_with_nonlinear(tmp_path, anchors):
+    """The library's ``run_montecarlo(nonlinear=True, lege_max_order=K)`` took K and ignored
+    it (the Locator's LEGE has no cap), where the command line refused it: it is refused
+    here too, and left out it still runs (nonlinear and linearized)."""
+    from robustloc.integrity.montecarlo import ranging_layout, run_montecarlo
+    xy = pd.read_csv(anchors)[["x", "y"]].to_numpy(float)
+    lay = ranging_layout(xy, np.array([10.0, 10.0]), sigma_m=0.1)
+    with pytest.raises(ValueError, match="lege_max_order applies to the linearized"):
+        run_montecarlo(lay, trials=5, methods=("lege",), nonlinear=True, lege_max_order=1)
+    for nonlinear in (True, False):
+        t = run_montecarlo(lay, trials=5, methods=("lege",), nonlinear=nonlinear)
+        assert t["trials"].tolist() == [5]
+    one = run_montecarlo(lay, trials=200, methods=("lege",), n_faults=2, size=3.0,
+                         lege_max_order=1)
+    three = run_montecarlo(lay, trials=200, methods=("lege",), n_faults=2, size=3.0)
+    assert one["identified"].iloc[0] != three["identified"].iloc[0]
+
+
 def _measurements(tmp_path) -> str:
     path = tmp_path / "m.csv"
     rng = np.random.default_rng(0)

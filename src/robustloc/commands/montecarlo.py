@@ -96,7 +96,7 @@ def _numbers_within(limit: float, what: str) -> Callable[[str], list[float]]:
 _floats = _numbers_within(MAX_FAULT_SIZE, "numbers")
 
 #: ``--lege-max-order``'s default, by which a value given is told from none.
-LEGE_MAX_ORDER_DEFAULT = 3
+LEGE_MAX_ORDER_DEFAULT = 3  # (robustloc.integrity.montecarlo.LEGE_MAX_ORDER; imported late)
 
 #: Largest coordinate (m) of ``--position``: a site, not a continent (as ``reliability``'s
 #: ``--area``; projected coordinates such as UTM's reach 1e7 m).
@@ -363,7 +363,8 @@ def run(args: argparse.Namespace) -> int:
             frames.append(run_montecarlo(
                 lay, n_faults=k, size=s, unit=args.unit, trials=args.trials,
                 methods=methods, alpha=args.alpha, alpha0=args.alpha0, beta0=args.beta0,
-                reject_weight=args.reject_weight, lege_max_order=args.lege_max_order,
+                reject_weight=args.reject_weight,
+                lege_max_order=None if args.nonlinear else args.lege_max_order,
                 seed=args.seed + i, nonlinear=args.nonlinear, progress=bar.update,
             ))
     table = pd.concat(frames, ignore_index=True)

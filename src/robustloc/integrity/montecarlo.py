@@ -86,6 +86,9 @@ RAIM_SINGLE_ALPHA = 0.001
 #: draw exactly the numbers they drew before chunking).
 CHUNK_TRIALS = 10_000
 
+#: LEGE's largest number of gross errors searched on the linearized model, by default.
+LEGE_MAX_ORDER = 3
+
 #: Methods understood by :func:`run_montecarlo`.
 METHODS = ("ls", "snooping", "raim-single", "lege", "huber", "hampel", "igg", "igg3")
 
@@ -489,7 +492,7 @@ def run_montecarlo(
     alpha0: float = ALPHA0,
     beta0: float = BETA0,
     reject_weight: float = 0.1,
-    lege_max_order: int = 3,
+    lege_max_order: int | None = None,
     seed: int = 1,
     nonlinear: bool = False,
     progress: Callable[[int], None] | None = None,
@@ -514,8 +517,11 @@ def run_montecarlo(
         w-test significance and B-method type II error.
     reject_weight : float
         IRLS: equivalent weight below which an observation counts as rejected.
-    lege_max_order : int
-        Largest number of gross errors LEGE searches for (cost grows as ``C(n, k)``).
+    lege_max_order : int, optional
+        Largest number of gross errors LEGE searches for (cost grows as ``C(n, k)``);
+        default 3.  Linearized model only: with ``nonlinear`` it is refused
+        (``ValueError``), since the Locator's LEGE searches as many as the redundancy
+        allows.
     seed : int
     nonlinear : bool
         Ranging / RSSI layouts only: simulate the observations themselves (model value +
@@ -529,7 +535,8 @@ def run_montecarlo(
         :func:`_run_method_nonlinear`).  The theory columns stay those of the linearized
         model: the gap is the effect of the linearization and of the Locator's own
         iteration (robust start, cofactor updates of redescending weights).
-        A fixed ``alpha`` and ``lege_max_order`` do not apply (Locator's own settings).
+        A fixed ``alpha`` and ``lege_max_order`` do not apply (Locator's own settings):
+        either given is refused with ``ValueError`` (they were taken and ignored).
     progress : callable, optional
         Called with the number of trials of each finished chunk (e.g. a progress bar's
         ``update``).
@@ -558,6 +565,12 @@ def run_montecarlo(
         raise ValueError("method 'raim-single' is available on the linearized model only")
     if nonlinear and alpha is not None:
         raise ValueError("a fixed alpha is not available for nonlinear runs (B-method only)")
+    if nonlinear and lege_max_order is not None:  # (taken and ignored before)
+        raise ValueError("lege_max_order applies to the linearized model only: nonlinear "
+                         "runs use the Locator's LEGE, which searches as many gross errors "
+                         "as the redundancy allows")
+    if lege_max_order is None:
+        lege_max_order = LEGE_MAX_ORDER
     if trials < 1:
         raise ValueError("number of trials must be at least 1")
     notes = []

@@ -53,7 +53,7 @@ def _bmethod_table() -> pd.DataFrame:
 
 
 def _mc_block(layout, trials: int, methods: tuple[str, ...], seed: int, unit_runs,  # noqa: ANN001
-              lege_max_order: int = 3, nonlinear: bool = False,
+              lege_max_order: int | None = None, nonlinear: bool = False,
               alpha: float | None = None, obs_unit: str = "m") -> pd.DataFrame:
     """Monte Carlo runs ``unit_runs`` of ``(n_faults, size, unit)`` (``unit`` as
     :func:`robustloc.integrity.montecarlo.run_montecarlo`'s: ``"m"``, the observations'
