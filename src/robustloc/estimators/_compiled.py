@@ -580,7 +580,8 @@ def _gn_iterate(a, ho2, zz, w0, x, w, u, code, prm, robust, scale_fixed, min_sca
             w[i] = wa[i]
         lam = max(lam / 1.5, 1e-9) if accept else lam * 3.0
         it += 1
-        flat = accept and (cost_old - cost_new <= 1e-6 * max(cost_old, 1e-300))
+        flat_cost = 1e-6 if rel_tol > 0 else 1e-12  # (nonlinear.FLAT_COST, _FLOOR)
+        flat = accept and (cost_old - cost_new <= flat_cost * max(cost_old, 1e-300))
         finite = math.isfinite(step)
         go = 0.0  # the distance still to go (nonlinear._still_to_go)
         if robust and accept and prev_step > 0:  # (reweighted: Gauss-Newton's is quadratic)

@@ -912,7 +912,9 @@ class Locator:
         when ``sigma`` is None).
     max_iter, tol : iteration limit and step threshold (metres) of the iterative solvers.
     rel_tol : float
-        Also converged when a step is below this fraction of the fix's standard error.
+        Also converged when a step is below this fraction of the fix's standard error, or
+        lowers the cost by at most 1e-6 of it (``0``: ``tol`` stops the iteration, or a
+        cost that falls by no more than rounding).
     alpha0, beta0 : significance and power of the w-test (``snooping``, B-method).
     reference : {"first", "nearest"}
         Reference anchor of the linearized system (:func:`linearized_system`): the
