@@ -168,20 +168,47 @@ def error_stats(errors: NDArray[np.float64]) -> dict[str, float]:
     e = np.sort(e[np.isfinite(e)])
     if e.size == 0:
         return {k: float("nan") for k in STAT_COLUMNS}
-    mean = e.mean()
-    # the squares scaled by the largest error: an error of 1e300 m squared overflowed (a
-    # RuntimeWarning on stderr, an infinite rms) where the rms is finite
-    top = float(np.max(np.abs(e)))
-    scale = top if top > 0 else 1.0
+    # every sum over the errors divided by the power of two at or below the largest (exact:
+    # the digits of the unscaled formulas), then multiplied back: errors of 1e300 m
+    # squared, and two of 1.4e308 m summed, overflowed (a RuntimeWarning on stderr, an
+    # infinite mean, median or rms beside a finite max), where each is at most the max
+    scale = _scale(e)
+    u = e / scale
+    mean = float(np.mean(u))
     return {
         "max": float(e.max()),
         "min": float(e.min()),
-        "mean": float(mean),
-        "rms": scale * float(np.sqrt(np.mean((e / scale) ** 2))),  # seed 000: sigma0
-        "sigma1": scale * float(np.sqrt(np.mean(((e - mean) / scale) ** 2))),  # sigma1
-        "median": float(np.median(e)),
-        "p95": float(np.percentile(e, 95)),
+        "mean": scale * mean,
+        "rms": scale * float(np.sqrt(np.mean(u * u))),  # seed 000: sigma0
+        "sigma1": scale * float(np.sqrt(np.mean((u - mean) ** 2))),  # sigma1
+        "median": _median(e),
+        "p95": scale * float(np.percentile(u, 95)),
     }
+
+
+def _scale(values: NDArray[np.float64]) -> float:
+    """The power of two at or below the largest finite ``|value|`` (1 without one): the
+    values divided by it are at most 2 in size, and exactly the values' digits."""
+    v = np.abs(values[np.isfinite(values)])
+    top = float(v.max()) if v.size else 0.0
+    return float(np.ldexp(1.0, np.frexp(top)[1] - 1)) if top > 0 else 1.0
+
+
+def _median(values: NDArray[np.float64]) -> float:
+    """``np.median`` of the values scaled by :func:`_scale` (the mean of two middle values
+    of 1.4e308 overflowed)."""
+    scale = _scale(values)
+    return scale * float(np.median(values / scale))
+
+
+def _mean(values: NDArray[np.float64], skipna: bool = False) -> float:
+    """The mean of the values scaled by :func:`_scale` (two of 1.4e308 overflowed); NaN
+    if one is NaN, or with ``skipna`` if all are."""
+    v = values[~np.isnan(values)] if skipna else values
+    if v.size == 0 or np.isnan(v).any():
+        return float("nan")
+    scale = _scale(v)
+    return scale * float(np.mean(v / scale))
 
 
 def integrity_stats(errors: NDArray[np.float64], hpl: NDArray[np.float64]
@@ -196,7 +223,7 @@ def integrity_stats(errors: NDArray[np.float64], hpl: NDArray[np.float64]
     with np.errstate(invalid="ignore"):
         mis = int(np.sum(~(e <= h)))  # NaN: exceeded
     h = np.where(np.isnan(h), np.inf, h)
-    med_h, med_e = np.median(h), np.median(e)
+    med_h, med_e = _median(h), _median(e)
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = np.float64(med_h) / np.float64(med_e)  # a zero median error: inf (or NaN)
     return {"n_misleading": float(mis), "misleading_pct": 100.0 * mis / e.size,
@@ -361,7 +388,7 @@ def error_table_from_errors(
             # an error statistic over every tag or none: a tag without a usable fix would
             # drop out of this method's mean only (apples to oranges with the others'),
             # horizontal, 3-D, and the protection levels' alike
-            row[c] = float(sub[c].mean(skipna=c not in _USABLE_STATS))
+            row[c] = _mean(sub[c].to_numpy(dtype=float), skipna=c not in _USABLE_STATS)
         agg.append(row)
     table = pd.concat([per, pd.DataFrame(agg)], ignore_index=True)
     for c in ("n", "n_missing", "n_failed", "n_ok", "n_ok_3d"):

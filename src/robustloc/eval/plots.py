@@ -230,7 +230,9 @@ def plot_stanford(ax: Axes, error_m: NDArray[np.float64], hpl_m: NDArray[np.floa
     pos = fin & (e > 0) & (h > 0)
     if pos.any():
         lo = 10.0 ** np.floor(np.log10(min(e[pos].min(), h[pos].min())))
-        hi = 10.0 ** np.ceil(np.log10(max(e[pos].max(), h[pos].max())))
+        # (the decade above 1.4e308 overflowed: at most ERROR_VIEW_MAX's, as below)
+        hi = 10.0 ** min(np.ceil(np.log10(max(e[pos].max(), h[pos].max()))),
+                         np.log10(ERROR_VIEW_MAX))
     else:
         lo, hi = 0.01, 100.0
     # absurd values (1e300 m) on the edge of a sane range, counted below
@@ -285,9 +287,11 @@ def plot_stanford(ax: Axes, error_m: NDArray[np.float64], hpl_m: NDArray[np.floa
     if n_edge:
         ax.plot([], [], " ", label=f"{n_edge} off the axes, drawn on the edge")
     if counts.n and fin.any():
+        from robustloc.eval.metrics import _median  # (scaled: errors of 1e308 overflowed)
+
         with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.median(np.where(np.isnan(h), np.inf, h)[np.isfinite(e)]) / np.median(
-                e[np.isfinite(e)])
+            ratio = np.float64(_median(np.where(np.isnan(h), np.inf, h)[np.isfinite(e)])) / (
+                _median(e[np.isfinite(e)]))
         ax.plot([], [], " ", label=f"median hpl / median error {ratio:.1f}")
     if title:
         ax.set_title(title, fontsize=9)
@@ -431,7 +435,8 @@ def _plot_cdf(ax: Axes, e_all: NDArray[np.float64], methods: list[str],
     e_pos = e_use[e_use > 0]
     if e_pos.size:
         lo = 10.0 ** np.floor(np.log10(e_pos.min()))
-        hi = 10.0 ** np.ceil(np.log10(e_pos.max()))
+        # (the decade above 1.4e308 overflowed: at most ERROR_VIEW_MAX's, as below)
+        hi = 10.0 ** min(np.ceil(np.log10(e_pos.max())), np.log10(ERROR_VIEW_MAX))
     else:  # no positive error (every fix exact, or none usable): a floor of 1 cm
         lo = hi = 0.01
     lo = min(max(lo, ERROR_VIEW_MIN), ERROR_VIEW_MAX / 100.0)

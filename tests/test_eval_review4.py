@@ -1,0 +1,56 @@
+"""The fourth review of ``evaluate`` and ``stats``: errors beyond the floats' range, a
+positions file whose extra columns bear internal names, the matching hint, the order of
+the method rows, the anchors of the stats figures and the distance bins' labels.  Every
+case goes through the command line with every warning an error."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pandas as pd
+
+from robustloc.cli import main
+
+
+def _run(argv: list[str]) -> int:
+    """``main(argv)`` with every warning an error: a warning that would reach stderr
+    makes the command fail (an internal error, exit code 1) instead."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        return main(argv)
+
+
+def _evaluate_files(tmp_path, pos: pd.DataFrame, truth: pd.DataFrame) -> list[str]:
+    pos.to_csv(tmp_path / "pos.csv", index=False)
+    truth.to_csv(tmp_path / "truth.csv", index=False)
+    return ["evaluate", str(tmp_path / "pos.csv"), "--truth", str(tmp_path / "truth.csv")]
+
+
+def _rows(capsys) -> dict[tuple[str, str], dict]:
+    out = json.loads(capsys.readouterr().out)["rows"]
+    return {(r["tag"], r["method"]): r for r in out}
+
+
+# ------------------------------------------------------- 1. statistics of huge errors
+def test_mean_median_and_sigma1_of_huge_errors_do_not_overflow(tmp_path, capsys):
+    """Errors of sqrt(2) 1e308 m (finite): the mean, the median (the mean of the two
+    middle errors) and sigma1 summed them to inf, with a RuntimeWarning, while max and
+    rms were finite; the "mean" row over two such tags likewise, and the hpl median.
+    Each is now at most the max: here all equal to it, sigma1 0 (exactly: the errors
+    are equal, and the scaling by a power of two is exact)."""
+    truth = pd.DataFrame({"time": [0.0, 1.0, 0.0, 1.0], "tag": ["A", "A", "B", "B"],
+                          "x": 0.0, "y": 0.0})
+    pos = truth.assign(x=[1e308, -1e308, 1e308, -1e308], y=1e308, method="ls",
+                       status="ok", hpl=1e308)
+    args = _evaluate_files(tmp_path, pos, truth)
+    assert _run([*args, "--json", "--plot", str(tmp_path / "f.png")]) == 0
+    by = _rows(capsys)
+    e = float(np.hypot(1e308, 1e308))
+    for key in (("A", "ls"), ("all", "ls"), ("mean", "ls")):
+        r = by[key]
+        assert r["infinite"] == [], key
+        for c in ("max", "min", "mean", "rms", "median", "p95"):
+            assert r[c] == e, (key, c)
+        assert r["sigma1"] == 0.0 and r["hpl_median"] == 1e308, key
