@@ -54,3 +54,32 @@ def test_mean_median_and_sigma1_of_huge_errors_do_not_overflow(tmp_path, capsys)
         for c in ("max", "min", "mean", "rms", "median", "p95"):
             assert r[c] == e, (key, c)
         assert r["sigma1"] == 0.0 and r["hpl_median"] == 1e308, key
+
+
+def test_a_fix_whose_error_overflows_is_usable_and_scored(tmp_path, capsys):
+    """A fix at x = 1e308 (finite, status ok) against a truth at -1e308: the difference
+    overflowed to inf (a RuntimeWarning on stderr) and ``isfinite(error)`` counted the fix
+    failed and left it out of the statistics (max 5, n_failed 1).  It is usable: its
+    error is inf, and so are max, mean, rms, sigma1, and median and p95 here (the linear
+    interpolation between 5 and inf); min stays 5.  In 3-D, likewise: it has a vertical
+    solution (z given), its 3-D error is inf; a fix without z stays out of the 3-D
+    statistics (its 3-D error NaN, not the inf of hypot(inf, NaN))."""
+    truth = pd.DataFrame({"time": [0.0, 1.0, 2.0], "tag": "A", "x": [-1e308, 0.0, 0.0],
+                          "y": 0.0, "z": 0.0})
+    pos = pd.DataFrame({"time": [0.0, 1.0, 2.0], "tag": "A", "x": [1e308, 3.0, 1e308],
+                        "y": [0.0, 4.0, 0.0], "z": [0.0, 0.0, np.nan], "method": "ls",
+                        "status": "ok", "hpl": 10.0})
+    pos.loc[2, "x"] = 0.0  # the third: error 0 horizontally, no z
+    args = _evaluate_files(tmp_path, pos, truth)
+    assert _run([*args, "--json", "--plot", str(tmp_path / "f.png")]) == 0
+    r = _rows(capsys)["A", "ls"]
+    assert (r["n"], r["n_failed"], r["n_ok"], r["n_ok_3d"]) == (3, 0, 3, 2)
+    assert r["min"] == 0.0 and r["min_3d"] == 5.0
+    assert {"max", "mean", "rms", "sigma1", "max_3d", "mean_3d", "rms_3d", "sigma1_3d",
+            "median_3d", "p95_3d"} <= set(r["infinite"])
+    assert r["median"] == 5.0 and "median" not in r["infinite"]
+    assert r["n_misleading"] == 1  # inf > hpl 10
+    # the text report: scored, not failed, and no warning on stderr
+    assert _run(args) == 0
+    out = capsys.readouterr()
+    assert "inf" in out.out and out.err == ""

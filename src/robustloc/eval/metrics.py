@@ -143,21 +143,32 @@ def epoch_errors(
     """Per-row errors: the positions frame plus ``error_2d`` (m), ``error_3d`` and the
     vertical ``error_v`` (when both have ``z``), ``usable`` (bool) and ``matched`` (bool)."""
     m = match_truth(positions, truth, time_tolerance_s)
-    dx = m["x"].to_numpy(dtype=float) - m["x_true"].to_numpy(dtype=float)
-    dy = m["y"].to_numpy(dtype=float) - m["y_true"].to_numpy(dtype=float)
-    m["error_2d"] = np.hypot(dx, dy)
-    if "z" in m.columns and "z_true" in m.columns:
-        dz = m["z"].to_numpy(dtype=float) - m["z_true"].to_numpy(dtype=float)
-        m["error_3d"] = np.sqrt(dx * dx + dy * dy + dz * dz)
-        m["error_v"] = np.abs(dz)
+    x, y = m["x"].to_numpy(dtype=float), m["y"].to_numpy(dtype=float)
+    xt, yt = m["x_true"].to_numpy(dtype=float), m["y_true"].to_numpy(dtype=float)
+    # a fix of 1e308 against a truth of -1e308: a difference beyond the floats, inf (it
+    # was counted failed, with a RuntimeWarning on stderr), the fix usable all the same
+    with np.errstate(over="ignore"):
+        dx, dy = x - xt, y - yt
+        m["error_2d"] = np.hypot(dx, dy)
+        if "z" in m.columns and "z_true" in m.columns:
+            dz = m["z"].to_numpy(dtype=float) - m["z_true"].to_numpy(dtype=float)
+            # NaN without a vertical solution (hypot(inf, NaN) is inf); hypot: the sum of
+            # the squares of errors of 1e200 m overflowed
+            m["error_3d"] = np.where(np.isnan(dz), np.nan, np.hypot(m["error_2d"], dz))
+            m["error_v"] = np.abs(dz)
     status = m["status"].astype(str) if "status" in m.columns else pd.Series("ok", index=m.index)
-    m["matched"] = np.isfinite(m["x_true"].to_numpy(dtype=float))
-    m["usable"] = status.isin(st.USABLE).to_numpy() & np.isfinite(m["error_2d"].to_numpy())
+    m["matched"] = np.isfinite(xt)
+    m["usable"] = (status.isin(st.USABLE).to_numpy() & np.isfinite(x) & np.isfinite(y)
+                   & np.isfinite(xt) & np.isfinite(yt))
     return m
 
 
 def error_stats(errors: NDArray[np.float64]) -> dict[str, float]:
     """The statistics of :data:`STAT_COLUMNS` of one set of errors (NaN if empty).
+
+    NaN errors are left out; an infinite one (a fix whose difference from the truth is
+    beyond the floats) makes ``max``, ``mean``, ``rms`` and ``sigma1`` infinite, and
+    ``median`` and ``p95`` where they reach it.
 
     The errors are sorted first, so each statistic depends on the set of errors and not
     on their order: ``evaluate --engine dask`` joins its partitions' errors in the
@@ -165,7 +176,7 @@ def error_stats(errors: NDArray[np.float64]) -> dict[str, float]:
     differed in the last digit (2.403925181162548 against ...477, the Dask review).
     """
     e = np.asarray(errors, dtype=float)
-    e = np.sort(e[np.isfinite(e)])
+    e = np.sort(e[~np.isnan(e)])
     if e.size == 0:
         return {k: float("nan") for k in STAT_COLUMNS}
     # every sum over the errors divided by the power of two at or below the largest (exact:
@@ -175,15 +186,27 @@ def error_stats(errors: NDArray[np.float64]) -> dict[str, float]:
     scale = _scale(e)
     u = e / scale
     mean = float(np.mean(u))
+    inf = bool(np.isinf(e).any())  # (inf - inf: a NaN sigma1, and a warning)
     return {
         "max": float(e.max()),
         "min": float(e.min()),
         "mean": scale * mean,
         "rms": scale * float(np.sqrt(np.mean(u * u))),  # seed 000: sigma0
-        "sigma1": scale * float(np.sqrt(np.mean((u - mean) ** 2))),  # sigma1
+        "sigma1": np.inf if inf else scale * float(np.sqrt(np.mean((u - mean) ** 2))),
         "median": _median(e),
-        "p95": scale * float(np.percentile(u, 95)),
+        "p95": _p95(e),
     }
+
+
+def _p95(e: NDArray[np.float64]) -> float:
+    """The 95th percentile of sorted errors ``e`` (none NaN), numpy's linear
+    interpolation between the order statistics at ``h = 0.95 (n - 1)``; infinite where it
+    reaches an infinite error (numpy's ``inf - inf`` made it NaN, with a warning)."""
+    h = 0.95 * (e.size - 1)
+    i = int(np.floor(h))
+    if np.isinf(e[i]) or (h > i and np.isinf(e[i + 1])):
+        return float("inf")
+    return float(np.percentile(e, 95))  # (the order statistics it takes are finite)
 
 
 def _scale(values: NDArray[np.float64]) -> float:
@@ -247,7 +270,7 @@ def _group_rows(df: pd.DataFrame, keys: dict[str, str], has3d: bool) -> dict[str
         # beside 3-D ones, or a row with z empty) has no 3-D error, and its NaN vertical
         # error was counted misleading (NaN <= vpl is false) while error_stats dropped it
         # from the 3-D statistics of the same row
-        ok3 = ok & np.isfinite(df["error_3d"].to_numpy(dtype=float))
+        ok3 = ok & ~np.isnan(df["error_3d"].to_numpy(dtype=float))  # (inf: an overflow)
         row["n_ok_3d"] = int(ok3.sum())
         s3 = error_stats(df["error_3d"].to_numpy()[ok3])
         row.update({f"{k}_3d": v for k, v in s3.items()})

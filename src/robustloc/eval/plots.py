@@ -174,7 +174,9 @@ class StanfordCounts:
 
 def stanford_counts(error_m: NDArray[np.float64], hpl_m: NDArray[np.float64]) -> StanfordCounts:
     """Count the regions of the Stanford diagram of fixes with horizontal errors
-    ``error_m`` and bounds ``hpl_m`` (same length; non-finite errors are left out).
+    ``error_m`` and bounds ``hpl_m`` (same length; NaN errors are left out, an infinite
+    one -- beyond the floats -- counts as :func:`robustloc.eval.metrics.integrity_stats`
+    counts it).
 
     >>> c = stanford_counts(np.array([1.0, 2.0, 3.0, 4.0]), np.array([5.0, 1.0, np.inf, np.nan]))
     >>> (c.n, c.bounded, c.unbounded, c.misleading)
@@ -184,7 +186,7 @@ def stanford_counts(error_m: NDArray[np.float64], hpl_m: NDArray[np.float64]) ->
     h = np.asarray(hpl_m, dtype=float)
     if e.shape != h.shape:
         raise ValueError(f"error and hpl differ in shape: {e.shape} and {h.shape}")
-    keep = np.isfinite(e)
+    keep = ~np.isnan(e)
     e, h = e[keep], h[keep]
     with np.errstate(invalid="ignore"):
         ok = e <= h  # NaN bound: not ok (as integrity_stats)
@@ -226,7 +228,7 @@ def plot_stanford(ax: Axes, error_m: NDArray[np.float64], hpl_m: NDArray[np.floa
     counts = stanford_counts(error_m, hpl_m)
     e = np.asarray(error_m, dtype=float)
     h = np.asarray(hpl_m, dtype=float)
-    fin = np.isfinite(e) & np.isfinite(h)
+    fin = ~np.isnan(e) & np.isfinite(h)  # (an infinite error: on the edge, counted)
     pos = fin & (e > 0) & (h > 0)
     if pos.any():
         lo = 10.0 ** np.floor(np.log10(min(e[pos].min(), h[pos].min())))
@@ -253,7 +255,7 @@ def plot_stanford(ax: Axes, error_m: NDArray[np.float64], hpl_m: NDArray[np.floa
         bad = e[pos] > h[pos]
         if bad.any():
             ax.plot(ee[bad], hh[bad], "r.", ms=4)
-    unb = np.isfinite(e) & np.isposinf(h) & (e > 0)
+    unb = ~np.isnan(e) & np.isposinf(h) & (e > 0)
     if unb.any():
         # ticks hanging from the top edge, inside the axes: centred on the edge they rose
         # into the panel's title (the report's "uwb-dwm1001 LOS")
@@ -272,7 +274,7 @@ def plot_stanford(ax: Axes, error_m: NDArray[np.float64], hpl_m: NDArray[np.floa
     ax.set_aspect("equal")
     ax.set_xlabel("horizontal error (m)")
     ax.set_ylabel("hpl (m)")
-    nan_h = int(np.sum(np.isfinite(e) & np.isnan(h)))
+    nan_h = int(np.sum(~np.isnan(e) & np.isnan(h)))
     # the counts and the key, under the axes (a box or a legend on the axes covered
     # fixes: the bounded ones are top left, the misleading ones bottom right)
     ax.plot([], [], " ", label=f"{counts.n} usable fixes" if counts.n else "no usable fix")
@@ -290,8 +292,8 @@ def plot_stanford(ax: Axes, error_m: NDArray[np.float64], hpl_m: NDArray[np.floa
         from robustloc.eval.metrics import _median  # (scaled: errors of 1e308 overflowed)
 
         with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = np.float64(_median(np.where(np.isnan(h), np.inf, h)[np.isfinite(e)])) / (
-                _median(e[np.isfinite(e)]))
+            ratio = np.float64(_median(np.where(np.isnan(h), np.inf, h)[~np.isnan(e)])) / (
+                _median(e[~np.isnan(e)]))
         ax.plot([], [], " ", label=f"median hpl / median error {ratio:.1f}")
     if title:
         ax.set_title(title, fontsize=9)
@@ -431,6 +433,8 @@ def _plot_cdf(ax: Axes, e_all: NDArray[np.float64], methods: list[str],
     from the decade below the smallest positive error to the decade above the largest
     (within :data:`ERROR_VIEW_MIN` .. :data:`ERROR_VIEW_MAX`); errors below (exact fixes,
     error 0) or beyond are drawn on the edge and counted on the panel."""
+    from robustloc.eval.metrics import _p95
+
     e_use = e_all[usable]
     e_pos = e_use[e_use > 0]
     if e_pos.size:
@@ -446,7 +450,7 @@ def _plot_cdf(ax: Axes, e_all: NDArray[np.float64], methods: list[str],
         if e.size == 0:
             continue
         q = np.arange(1, e.size + 1) / e.size
-        p95 = float(np.percentile(e, 95))
+        p95 = _p95(e)  # (an infinite error made numpy's NaN, and a warning)
         label = _legend_label(i, f"{_short(m)} (n={e.size}, p95 {_m(p95)} m)")
         ax.step(np.clip(e, lo, hi), q, where="post", lw=1.2, color=_colour(i), label=label)
         ax.plot([min(max(p95, lo), hi)], [0.95], "o", color=_colour(i), ms=4)
