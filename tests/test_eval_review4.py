@@ -10,6 +10,7 @@ import warnings
 
 import numpy as np
 import pandas as pd
+import pytest
 
 from robustloc.cli import main
 
@@ -83,3 +84,31 @@ def test_a_fix_whose_error_overflows_is_usable_and_scored(tmp_path, capsys):
     assert _run(args) == 0
     out = capsys.readouterr()
     assert "inf" in out.out and out.err == ""
+
+
+# ------------------------------------------------- 2. extra columns with internal names
+@pytest.mark.parametrize("col", ["x_true", "y_true", "z_true", "_truth_row", "_t_true",
+                                 "_row"])
+def test_extra_positions_columns_with_internal_names(tmp_path, capsys, col):
+    """An extra positions column named as a column the matching adds (x_true, ...,
+    _truth_row) or uses (_t_true, _row) ended evaluate in a KeyError traceback (exit 1),
+    or (_row) was overwritten, and a z_true beside a z with a 2-D truth was taken for the
+    truth's z.  The matched truth's replace the first kind, the helpers take other names
+    and are carried through: the table is the one without the column (errors 5 and 1,
+    not 3-D)."""
+    from robustloc.eval.metrics import match_truth
+
+    truth = pd.DataFrame({"time": [0.0, 1.0], "tag": "A", "x": 0.0, "y": 0.0})
+    pos = pd.DataFrame({"time": [1.0, 0.0], "tag": "A", "x": [1.0, 3.0], "y": [0.0, 4.0],
+                        "z": 1.0, "method": "ls", "status": "ok", col: [7.0, 9.0]})
+    assert _run([*_evaluate_files(tmp_path, pos, truth), "--json"]) == 0
+    r = _rows(capsys)["A", "ls"]
+    assert (r["n_ok"], r["max"], r["min"], r["mean"]) == (2, 5.0, 1.0, 3.0)
+    assert "rms_3d" not in r
+    m = match_truth(pos, truth)
+    if col in ("_t_true", "_row"):
+        assert m[col].tolist() == [7.0, 9.0]
+    else:
+        assert col not in ("x_true", "y_true") or m[col].tolist() == [0.0, 0.0]
+        assert col != "_truth_row" or m[col].tolist() == [1, 0]
+        assert col != "z_true" or "z_true" not in m.columns

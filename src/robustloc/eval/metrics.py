@@ -73,7 +73,10 @@ _USABLE_STATS = frozenset(
 def match_truth(
     positions: pd.DataFrame, truth: pd.DataFrame, time_tolerance_s: float = 1e-6
 ) -> pd.DataFrame:
-    """Positions with the matched truth columns ``x_true, y_true[, z_true]`` (NaN: none).
+    """Positions with the matched truth columns ``x_true, y_true[, z_true]`` (NaN: none)
+    and the matched truth row's number ``_truth_row``.  A positions column of one of
+    those names (``z_true`` too, when the truth has no ``z``) is replaced: it ended the
+    match in a KeyError, and a ``z_true`` of the positions would pass for the truth's.
 
     Raises
     ------
@@ -92,10 +95,14 @@ def match_truth(
     right = t[["time", "tag", "_truth_row"] + cols].rename(
         columns={c: f"{c}_true" for c in cols})
     right = right.sort_values("time", kind="stable").reset_index(drop=True)
-    right["_t_true"] = right["time"]
-    left = positions.copy()
+    left = positions.drop(columns=[c for c in ("x_true", "y_true", "z_true", "_truth_row")
+                                   if c in positions.columns])
     left["tag"] = left["tag"].astype(str)
-    left["_row"] = np.arange(len(left))
+    # the helper columns under names no positions column bears (an extra column _t_true
+    # or _row was merged beside them, or overwritten)
+    t_true, row = _free_name("_t_true", left.columns), _free_name("_row", left.columns)
+    right[t_true] = right["time"]
+    left[row] = np.arange(len(left))
     left = left.sort_values("time", kind="stable").reset_index(drop=True)
     merged = pd.merge_asof(
         left, right, on="time", by="tag", direction="nearest",
@@ -103,13 +110,20 @@ def match_truth(
         allow_exact_matches=True,
     )
     if time_tolerance_s == 0:
-        off = merged["_t_true"].to_numpy() != merged["time"].to_numpy()
+        off = merged[t_true].to_numpy() != merged["time"].to_numpy()
         for c in cols:
             merged.loc[off, f"{c}_true"] = np.nan
         merged.loc[off, "_truth_row"] = np.nan
-    merged = merged.sort_values("_row").drop(columns=["_row", "_t_true"])
+    merged = merged.sort_values(row).drop(columns=[row, t_true])
     merged.index = positions.index
     return merged
+
+
+def _free_name(name: str, taken: pd.Index) -> str:
+    """``name``, with underscores before it until no column of ``taken`` bears it."""
+    while name in taken:
+        name = "_" + name
+    return name
 
 
 def check_baseline(baseline: str, methods: object, path: object = None) -> None:
