@@ -112,3 +112,18 @@ def test_extra_positions_columns_with_internal_names(tmp_path, capsys, col):
         assert col not in ("x_true", "y_true") or m[col].tolist() == [0.0, 0.0]
         assert col != "_truth_row" or m[col].tolist() == [1, 0]
         assert col != "z_true" or "z_true" not in m.columns
+
+
+# ------------------------------------------------------------------ 3. the matching hint
+def test_the_time_hint_needs_most_rows_unmatched(tmp_path, capsys):
+    """1000 of 1001 positions rows matched, and the hint said positions and truth
+    "mostly miss each other's times" (n_missing >= n_unmatched // 2 held for one
+    unmatched row).  It now needs most rows of both sides unmatched; the note on the
+    one row stays (test_newuser_review2 has the case that does get the hint)."""
+    truth = pd.DataFrame({"time": np.arange(1000.0), "tag": "A", "x": 0.0, "y": 0.0})
+    pos = pd.concat([truth.assign(x=1.0), truth.iloc[:1].assign(time=1000.5)],
+                    ignore_index=True).assign(method="ls", status="ok")
+    args = _evaluate_files(tmp_path, pos, truth)
+    assert _run([*args, "-q", "-o", str(tmp_path / "out.csv")]) == 0
+    err = capsys.readouterr().err
+    assert "1 position rows had no truth" in err and "hint" not in err

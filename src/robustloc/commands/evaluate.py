@@ -169,9 +169,11 @@ def run(args: argparse.Namespace) -> int:
                          allow_nan=False), file=dest)
         return 0
     agg = table["aggregate"].to_numpy(dtype=bool)
-    n_missing = int(table.loc[agg & (table["tag"] == "all"), "n_missing"].sum())
+    pooled = agg & (table["tag"] == "all").to_numpy()
+    n_missing = int(table.loc[pooled, "n_missing"].sum())
+    n_scored = int(table.loc[pooled, "n"].sum())
     if args.quiet and args.out:  # the table is in the file: only the notes
-        _notes(n_missing, n_unmatched, sys.stderr)
+        _notes(n_missing, n_unmatched, n_scored, sys.stderr)
         return 0
     show = table[[c for c in _SHOW if c in table.columns]].copy()
     if np.isin(table.loc[~agg, "tag"].astype(str), ("all", "mean")).any():
@@ -206,7 +208,7 @@ def run(args: argparse.Namespace) -> int:
             t3[c] = t3[c].map(_metres)
         print("\n3-D error (m)", file=dest)
         print(t3.to_string(index=False), file=dest)
-    _notes(n_missing, n_unmatched, dest)
+    _notes(n_missing, n_unmatched, n_scored, dest)
     if args.out:
         print(f"written: {args.out}", file=dest)
     if args.plot:
@@ -243,14 +245,21 @@ def _read_truth_said(path: str):  # noqa: ANN202 - a truth frame
     return truth
 
 
-def _notes(n_missing: int, n_unmatched: int, dest: TextIO) -> None:
-    """The notes under the table: truth epochs without a position, positions without truth."""
+def _notes(n_missing: int, n_unmatched: int, n_scored: int, dest: TextIO) -> None:
+    """The notes under the table: truth epochs without a position, positions without truth.
+
+    ``n_scored``: the epochs scored over the methods (matched positions rows and missing
+    truth epochs, the ``all`` rows' ``n``), so ``n_scored - n_missing`` positions rows
+    matched."""
     if n_missing:
         print(f"note: {n_missing} truth epochs (summed over methods) had no position and "
               "count as failed", file=dest)
     if n_unmatched:
         print(f"note: {n_unmatched} position rows had no truth and were not scored", file=dest)
-    if n_unmatched and n_missing >= n_unmatched // 2:  # (most of both sides unmatched)
+    # most of both sides unmatched (it was n_missing >= n_unmatched // 2: with one row
+    # unmatched, always, 1000 of 1001 rows matched)
+    n_positions = n_unmatched + n_scored - n_missing
+    if 2 * n_unmatched > n_positions and 2 * n_missing > n_scored:
         print("hint: positions and truth mostly miss each other's times: are both in "
               "seconds on one clock (times in ms match nothing)?  --time-tolerance sets "
               "the matching window", file=dest)
