@@ -127,3 +127,35 @@ def test_the_time_hint_needs_most_rows_unmatched(tmp_path, capsys):
     assert _run([*args, "-q", "-o", str(tmp_path / "out.csv")]) == 0
     err = capsys.readouterr().err
     assert "1 position rows had no truth" in err and "hint" not in err
+
+
+# ---------------------------------------------------------------- 4. the rows' order
+def test_the_table_and_the_figure_do_not_depend_on_the_rows_order(tmp_path, capsys):
+    """The method rows came in the order the file's rows first named them: the same
+    rows in another order gave another table (and another figure: colours, legends and
+    the Stanford panels follow the methods' order).  Now the --baseline method comes
+    first and the others by name, in the table and in the figure."""
+    from robustloc.eval.metrics import epoch_errors
+    from robustloc.eval.plots import render_evaluation_figure
+
+    truth = pd.DataFrame({"time": [0.0], "tag": "A", "x": 0.0, "y": 0.0})
+    pos = pd.DataFrame({"time": 0.0, "tag": "A", "x": [0.0, 3.0, 1.0, 2.0], "y": 1.0,
+                        "method": ["nls", "ls", "igg", "huber"], "status": "ok",
+                        "hpl": 5.0})
+    cases = [(pos.iloc[order].reset_index(drop=True), baseline)
+             for order, baseline in (([0, 1, 2, 3], "ls"), ([3, 2, 1, 0], "ls"),
+                                     ([2, 0, 3, 1], "igg"))]
+    tables = []
+    for p, baseline in cases:
+        out = tmp_path / f"t{len(tables)}.csv"
+        assert _run([*_evaluate_files(tmp_path, p, truth), "-q", "-o", str(out),
+                     "--baseline", baseline]) == 0
+        tables.append(pd.read_csv(out))
+    assert tables[0]["method"].tolist() == ["ls", "huber", "igg", "nls"] * 3
+    pd.testing.assert_frame_equal(tables[0], tables[1])
+    assert tables[2]["method"].tolist() == ["igg", "huber", "ls", "nls"] * 3
+    figures = [list(render_evaluation_figure(epoch_errors(p, truth), "f.svg",
+                                             baseline=baseline)[1])
+               for p, baseline in cases]
+    assert figures == [["ls", "huber", "igg", "nls"]] * 2 + [["igg", "huber", "ls", "nls"]]
+

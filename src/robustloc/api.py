@@ -965,7 +965,8 @@ def evaluate(
             from robustloc.eval.metrics import epoch_errors
             from robustloc.eval.plots import evaluation_figure
 
-            evaluation_figure(epoch_errors(pos, tru, time_tolerance), plot)
+            evaluation_figure(epoch_errors(pos, tru, time_tolerance), plot,
+                              baseline=baseline)
     return _with_summary(table, {"n_unmatched": int(table.attrs.get("n_unmatched", 0))})
 
 

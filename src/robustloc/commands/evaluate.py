@@ -37,6 +37,8 @@ report; --json, which has no infinity, writes null and lists the column in the r
 Two positions rows with the same
 time, tag and method are an error. `-o -` writes the table as CSV to standard output (the
 text report then goes to stderr).
+Rows: the tags by name, and in each the --baseline method first, the others by name,
+whatever the order of the positions' rows.
 Aggregates: tag "all" pools every epoch (its counts are the sums over the tags), tag
 "mean" averages the per-tag statistics (the paper's Table 1 average rows), its counts
 too: n, n_missing, n_failed (n_ok, n_ok_3d, ...) are per-tag means, fractional in the
@@ -48,9 +50,9 @@ tag bears one of those names).
 method and, when the positions carry `hpl`, each method's Stanford diagram (error against
 hpl, log-log; fixes below the diagonal are misleading, counted as n_misleading counts them).
 Errors of 0 and absurd ones (beyond 1e9 m) are drawn on the edge of the log axes, fixes
-far from the truth are left off the map, and the legends name the first 10 methods: each
-panel says what it left out.  The figure is drawn before anything is written, and the
-names of -o and --plot are checked before any work.
+far from the truth are left off the map, and the legends name the first 10 methods (in
+the table's order): each panel says what it left out.  The figure is drawn before
+anything is written, and the names of -o and --plot are checked before any work.
 
   robustloc evaluate positions.csv --truth truth.csv
   robustloc evaluate positions.csv --truth truth.csv --json -o errors.csv
@@ -129,7 +131,8 @@ def run(args: argparse.Namespace) -> int:
             from robustloc.eval.plots import render_evaluation_figure
 
             figure, _ = render_evaluation_figure(
-                epoch_errors(pos, truth, args.time_tolerance), args.plot)
+                epoch_errors(pos, truth, args.time_tolerance), args.plot,
+                baseline=args.baseline)
     if args.plot:
         # the figure's temporary file is renamed into place only once the table is
         # written: a table that cannot be written leaves no figure behind, and the reverse

@@ -24,7 +24,9 @@ without one -- a 2-D method in a file that also holds a 3-D one, or a row whose 
 empty -- counts in the horizontal statistics only, and a method without any has NaN 3-D
 and vertical statistics.
 
-Aggregate rows per method: ``tag = "all"`` pools the epochs of every tag (its counts are
+Rows: per tag (by name) the methods, ``baseline`` first and the others by name, then the
+aggregates per method in the same order; the order of the positions' rows does not
+matter.  Aggregate rows per method: ``tag = "all"`` pools the epochs of every tag (its counts are
 the tags' sums); ``tag = "mean"`` is the mean of the per-tag statistics, which is how the
 paper's Table 1 forms its "average over the points" rows, its counts (``n``,
 ``n_missing``, ``n_failed``, ``n_ok``, ...) included: per-tag means, which may be
@@ -124,6 +126,14 @@ def _free_name(name: str, taken: pd.Index) -> str:
     while name in taken:
         name = "_" + name
     return name
+
+
+def method_order(methods: object, baseline: str = "ls") -> list[str]:
+    """The distinct ``methods`` in the order of the table's rows: ``baseline`` first when
+    it is one of them, the others by name (it was the order of the file's rows, so the
+    same rows in another order gave another table)."""
+    names = sorted({str(m) for m in methods})  # type: ignore[attr-defined]
+    return [baseline] * (baseline in names) + [m for m in names if m != baseline]
 
 
 def check_baseline(baseline: str, methods: object, path: object = None) -> None:
@@ -351,7 +361,8 @@ def error_table(
     Returns
     -------
     DataFrame
-        One row per (tag, method), then per method ``tag = "all"`` (pooled epochs) and
+        One row per (tag, method) (tags by name, methods in :func:`method_order`: the
+        baseline first), then per method ``tag = "all"`` (pooled epochs) and
         ``tag = "mean"`` (mean of the per-tag statistics, the paper's average rows).
         Columns: ``tag, method, n, n_missing, n_failed, n_ok, failed_pct, max, min, mean,
         rms, sigma1,
@@ -390,7 +401,7 @@ def error_table_from_errors(
     n_unmatched = int((~e["matched"]).sum())
     # every method of the positions, also one none of whose rows met the truth (it was
     # left out of the table: its epochs all failed, not absent)
-    all_methods = list(dict.fromkeys(e["method"].astype(str)))
+    all_methods = method_order(e["method"], baseline)
     e = e[e["matched"].to_numpy()].copy()
     if len(e) > 0 and truth is not None:
         e = pd.concat([e.assign(missing=False), _missing_rows(e, truth, all_methods)],
@@ -404,7 +415,7 @@ def error_table_from_errors(
     has3d = "error_3d" in e.columns
     e["method"] = e["method"].astype(str)
     rows = []
-    methods = list(dict.fromkeys(e["method"]))
+    methods = method_order(e["method"], baseline)
     tags = sorted(set(e["tag"]))
     for (tag, meth), grp in e.groupby(["tag", "method"], sort=False):
         rows.append(_group_rows(grp, {"tag": tag, "method": meth}, has3d))

@@ -489,6 +489,7 @@ def _left_out_note(ax: Axes, n_shown: int, left_out: list[str]) -> None:
 
 def render_evaluation_figure(
     errors: pd.DataFrame, path: str | os.PathLike[str], max_methods: int = MAX_METHODS,
+    baseline: str = "ls",
 ) -> tuple[bytes, dict[str, StanfordCounts]]:
     """The figure of :func:`evaluation_figure`, rendered into memory and not written.
 
@@ -504,6 +505,8 @@ def render_evaluation_figure(
         ``ValueError``); nothing is written.
     max_methods : int
         As :func:`evaluation_figure`.
+    baseline : str
+        As :func:`evaluation_figure`.
 
     Returns
     -------
@@ -516,7 +519,10 @@ def render_evaluation_figure(
     import matplotlib.pyplot as plt
 
     fmt = _figure_format(path)
-    methods = (list(dict.fromkeys(errors["method"].astype(str))) if "method" in errors.columns
+    from robustloc.eval.metrics import method_order
+
+    # the table's order (it was the file's: the same rows in another order, another figure)
+    methods = (method_order(errors["method"], baseline) if "method" in errors.columns
                else ["positions"])
     meth = (errors["method"].astype(str).to_numpy() if "method" in errors.columns
             else np.full(len(errors), "positions", dtype=object))
@@ -555,7 +561,8 @@ def render_evaluation_figure(
 
 
 def evaluation_figure(errors: pd.DataFrame, path: str | os.PathLike[str],
-                      max_methods: int = MAX_METHODS) -> dict[str, StanfordCounts]:
+                      max_methods: int = MAX_METHODS, baseline: str = "ls",
+                      ) -> dict[str, StanfordCounts]:
     """``robustloc evaluate --plot``: the figure of an evaluation, written atomically.
 
     Parameters
@@ -565,9 +572,11 @@ def evaluation_figure(errors: pd.DataFrame, path: str | os.PathLike[str],
     path : ``.png``, ``.svg`` or ``.pdf`` (:data:`robustloc.options.FIGURE_FORMATS`; another
         suffix: ``ValueError``).
     max_methods : at most this many methods get a Stanford panel (in the order of the
-        file; :data:`MAX_METHODS` by default); the CDF panel shows every method, and a
-        panel after the last diagram names the methods left without one (each diagram's
-        title then numbers it: "Stanford diagram 3 of 14: nls").
+        table's rows, :func:`robustloc.eval.metrics.method_order`: ``baseline`` first,
+        the others by name; :data:`MAX_METHODS` by default); the CDF panel shows every
+        method, and a panel after the last diagram names the methods left without one
+        (each diagram's title then numbers it: "Stanford diagram 3 of 14: nls").
+    baseline : the method drawn first, when the errors have it (``evaluate --baseline``).
 
     Returns
     -------
@@ -585,7 +594,7 @@ def evaluation_figure(errors: pd.DataFrame, path: str | os.PathLike[str],
     :data:`ERROR_VIEW_MIN` .. :data:`ERROR_VIEW_MAX` m (errors of 0 among them) on the
     edge of the log axes, fixes far beyond the truth (:func:`_map_view`) off the map.
     """
-    data, out = render_evaluation_figure(errors, path, max_methods)
+    data, out = render_evaluation_figure(errors, path, max_methods, baseline)
     write_figure_bytes(data, path)
     return out
 
