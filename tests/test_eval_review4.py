@@ -1,7 +1,7 @@
 """The fourth review of ``evaluate`` and ``stats``: errors beyond the floats' range, a
 positions file whose extra columns bear internal names, the matching hint, the order of
-the method rows, the anchors of the stats figures and the distance bins' labels.  Every
-case goes through the command line with every warning an error."""
+the method rows, the anchors of the stats figures and the distance bins' labels.  The
+commands run with every warning an error."""
 
 from __future__ import annotations
 
@@ -159,3 +159,37 @@ def test_the_table_and_the_figure_do_not_depend_on_the_rows_order(tmp_path, caps
                for p, baseline in cases]
     assert figures == [["ls", "huber", "igg", "nls"]] * 2 + [["igg", "huber", "ls", "nls"]]
 
+
+# --------------------------------------------------------------- 5. the stats figures
+def _rssi(n_anchors: int) -> pd.DataFrame:
+    rng = np.random.default_rng(2)
+    return pd.DataFrame([(float(t), "T", f"A{a:03d}", -60 + rng.normal(0, 3))
+                         for t in range(12) for a in range(n_anchors)],
+                        columns=["time", "tag", "anchor", "rssi"])
+
+
+def test_stats_figures_show_every_anchor_or_say_which(tmp_path, monkeypatch):
+    """histograms.png drew the first 16 anchors and said nothing of the others (20
+    here), and autocorrelation.png had no legend beyond 12 anchors.  Now every anchor
+    has a panel up to MAX_HISTOGRAMS (48; the first ones by name beyond, said in the
+    title) and a legend entry up to MAX_ACF_LEGEND (40; the title says when there are
+    too many)."""
+    from robustloc.eval import rssi_stats
+    from robustloc.eval.rssi_stats import RssiStatistics, plot_autocorrelation, plot_histograms
+
+    res = RssiStatistics().compute(_rssi(20))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        hist = plot_histograms(res, tmp_path / "h.svg").read_text()
+        acf = plot_autocorrelation(res, tmp_path / "a.svg").read_text()
+    assert all(f"<!-- A{a:03d}: skew" in hist for a in range(20))
+    assert "the first" not in hist
+    assert all(f"<!-- A{a:03d} -->" in acf for a in range(20))
+    # beyond the caps (lowered here: 48 panels take a minute to draw as SVG)
+    hist = plot_histograms(res, tmp_path / "h2.svg", max_panels=8).read_text()
+    assert "<!-- A007: skew" in hist and "<!-- A008: skew" not in hist
+    assert "the first 8 of 20 anchors (by name); per_anchor.csv has every one" in hist
+    monkeypatch.setattr(rssi_stats, "MAX_ACF_LEGEND", 12)
+    acf = plot_autocorrelation(res, tmp_path / "a2.svg").read_text()
+    assert "20 anchors: too many to name (acf.csv has each)" in acf
+    assert "<!-- A000 -->" not in acf

@@ -34,8 +34,10 @@ the RSSI values (skewness, kurtosis): the RSSI of a walk mixes distances, and it
 skewness is the distances' as much as the noise's.  summary.json says which in
 moments_of (residuals or rssi), and so does the text output.
 
-Writes into --out: per_anchor.csv, per_bin.csv (with truth), acf.csv, histograms.png,
-autocorrelation.png, summary.json.  They are written into a temporary folder beside it
+Writes into --out: per_anchor.csv, per_bin.csv (with truth), acf.csv, histograms.png
+(one panel per anchor, up to 48: beyond, the first 48 by name, said on the figure),
+autocorrelation.png (its legend names up to 40 anchors; beyond, the figure says so),
+summary.json.  They are written into a temporary folder beside it
 and moved in only when all are complete: after an error nothing is left behind.  RSSI
 values outside -150 .. +30 dBm (robustloc.io.limits) are left out and counted
 (invalid_measurement N).  Rows may come in any order.  The moments take every sample;

@@ -513,18 +513,35 @@ def _series(g: pd.DataFrame, values: ArrayLike, gaps: bool = True
 # ---------------------------------------------------------------------------------------
 
 
-def plot_histograms(result: RssiStatsResult, path: Path, max_panels: int = 16) -> Path:
-    """Histogram of the RSSI of each anchor with the fitted normal density (PNG)."""
+#: ``histograms.png`` draws at most this many anchors (the first by name; it drew 16 and
+#: did not say so): 8 rows of 6 panels.  ``per_anchor.csv`` has every anchor.
+MAX_HISTOGRAMS = 48
+#: ``autocorrelation.png`` names at most this many anchors in its legend (10 colours times
+#: 4 line styles: every curve told apart; it named none beyond 12, silently).
+MAX_ACF_LEGEND = 40
+
+
+def plot_histograms(result: RssiStatsResult, path: Path,
+                    max_panels: int = MAX_HISTOGRAMS) -> Path:
+    """Histogram of the RSSI of each anchor with the fitted normal density (PNG).
+
+    Every anchor up to ``max_panels`` (4 panels a row, 6 beyond 16 anchors); with more,
+    the first ``max_panels`` by name, and the figure's title says so.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    anchors = list(result.per_anchor["anchor"])[:max_panels]
+    every = list(result.per_anchor["anchor"])
+    anchors = every[:max_panels]
     n = len(anchors)
-    cols = min(4, n)
+    cols = min(4 if n <= 16 else 6, n)
     rows = int(np.ceil(n / cols))
     fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.6 * rows), squeeze=False)
+    if len(every) > n:
+        fig.suptitle(f"the first {n} of {len(every)} anchors (by name); per_anchor.csv "
+                     "has every one", fontsize=10)
     s = result.samples
     for ax, a in zip(axes.ravel(), anchors):
         v = s.loc[s["anchor"] == a, "rssi"].to_numpy()
@@ -548,20 +565,31 @@ def plot_histograms(result: RssiStatsResult, path: Path, max_panels: int = 16) -
 
 
 def plot_autocorrelation(result: RssiStatsResult, path: Path, threshold: float = 0.2) -> Path:
-    """Autocorrelation of each anchor's RSSI against the lag, with the threshold (PNG)."""
+    """Autocorrelation of each anchor's RSSI against the lag, with the threshold (PNG).
+
+    The legend, beside the axes, names up to :data:`MAX_ACF_LEGEND` anchors; with more,
+    the title says they are in ``acf.csv``.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.4, 3.8))
-    for a in result.acf.columns:
-        ax.plot(result.acf.index, result.acf[a], lw=1, label=str(a))
+    n = len(result.acf.columns)
+    named = n <= MAX_ACF_LEGEND
+    ncol = int(np.ceil(n / 20)) if named else 0  # a legend column per 20 anchors
+    fig, ax = plt.subplots(figsize=(6.4 + 1.2 * ncol, 3.8))
+    for i, a in enumerate(result.acf.columns):
+        # 10 colours, then another line style: 40 curves told apart in the legend
+        ax.plot(result.acf.index, result.acf[a], lw=1, label=str(a), color=f"C{i % 10}",
+                ls=("-", "--", ":", "-.")[i // 10 % 4])
     ax.axhline(threshold, color="k", ls="--", lw=1)
     ax.set_xlabel("lag (samples)")
     ax.set_ylabel("autocorrelation")
-    if len(result.acf.columns) <= 12:
-        ax.legend(fontsize=7, ncol=2)
+    if named:  # beside the axes, not over the curves (it was left out beyond 12 anchors)
+        ax.legend(fontsize=7, ncol=ncol, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    else:
+        ax.set_title(f"{n} anchors: too many to name (acf.csv has each)", fontsize=9)
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=90)
