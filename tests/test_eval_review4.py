@@ -193,3 +193,19 @@ def test_stats_figures_show_every_anchor_or_say_which(tmp_path, monkeypatch):
     acf = plot_autocorrelation(res, tmp_path / "a2.svg").read_text()
     assert "20 anchors: too many to name (acf.csv has each)" in acf
     assert "<!-- A000 -->" not in acf
+
+
+# ----------------------------------------------------------- 6. the distance bins' labels
+def test_stats_bin_labels_are_the_multiples_as_written(tmp_path, capsys):
+    """--bin-width 0.1: per_bin.csv labelled the bins 0.30000000000000004 and
+    11.100000000000001 (3 x 0.1 and 111 x 0.1 in floats); to 12 significant digits
+    they are 0.3 and 11.1."""
+    from test_eval_review3 import _one_anchor  # (tests/test_eval_review3.py)
+
+    rng = np.random.default_rng(4)
+    args = _one_anchor(tmp_path, {f"d{d}": (d, list(np.round(-60 + rng.normal(0, 2, 12))))
+                                  for d in (0.3, 11.1)})
+    assert _run([*args, "--bin-width", "0.1", "-o", str(tmp_path / "s"), "--json"]) == 0
+    capsys.readouterr()
+    text = (tmp_path / "s" / "per_bin.csv").read_text().splitlines()
+    assert [line.split(",")[1] for line in text[1:]] == ["0.3", "11.1"]

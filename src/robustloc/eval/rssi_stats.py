@@ -431,7 +431,8 @@ class RssiStatistics:
             for (anchor, b), g in df.groupby(["anchor", "bin_m"], sort=True):
                 if len(g) < self.min_samples:
                     continue
-                rows.append({"anchor": anchor, "distance_m": b,
+                # the label k w to 12 significant digits: 111 x 0.1 is 11.100000000000001
+                rows.append({"anchor": anchor, "distance_m": float(f"{b:.12g}"),
                              **self._stats(g["rssi"].to_numpy(), None),
                              "decorrelation_lag": self._lag(*_series(g, g["rssi"]))})
             # no bin with min_samples: the table's columns all the same (its CSV was one
