@@ -258,7 +258,8 @@ def test_evaluate_plot_of_many_methods_caps_the_legends(tmp_path, capsys):
     assert _run([*_evaluate_files(tmp_path, pos, truth), "--plot", str(fig)]) == 0
     svg = fig.read_text()
     assert svg.count("290 more methods") == 2  # the CDF and the map
-    assert "m9 (n=4" in svg and "m10 (n=4" not in svg
+    # the first 10 in the table's order, by name: m0, m1, m10, m100 .. m106
+    assert "m106 (n=4" in svg and "m107 (n=4" not in svg and "m9 (n=4" not in svg
     # a method name of 150 characters is cut in the legends and the panel's title
     long = pos[pos["method"].isin(["m0", "m1"])].replace({"m1": "x" * 150})
     assert _run([*_evaluate_files(tmp_path, long, truth), "--plot", str(fig)]) == 0
