@@ -65,3 +65,25 @@ def test_invalid_probabilities_raise(bad):
         lambda0(bad, 0.1)
     with pytest.raises(ValueError):
         global_alpha(3, 0.001, bad)
+
+
+@pytest.mark.parametrize("dof", [2.5, 2.99, 3.7])
+def test_global_alpha_non_integer_dof_is_exact(dof):
+    """A non-integer dof is eq. (4) at that dof; it was rounded down to the integer below.
+
+    scipy.stats evaluates the same quantile (``special.chndtrix``) and tail, so the two
+    agree to rounding (rel 1e-12).  The critical value is checked through the independent
+    non-central cdf at the 1e-9 of :func:`test_b_method_condition_holds`."""
+    lam = lambda0()
+    exact = stats.chi2.sf(stats.ncx2.ppf(0.10, dof, lam), dof)
+    a = float(global_alpha(dof))
+    assert a == pytest.approx(exact, rel=1e-12)
+    assert float(global_alpha(np.floor(dof))) < a < float(global_alpha(np.ceil(dof)))
+    crit = float(global_critical(dof))
+    assert crit == pytest.approx(stats.chi2.isf(exact, dof), rel=1e-9)
+    assert stats.ncx2.cdf(crit, dof, lam) == pytest.approx(0.10, abs=1e-9)
+    assert float(detection_power_global(lam, dof)) == pytest.approx(0.90, abs=1e-9)
+    # mixed with whole numbers in one array: each entry as asked alone
+    both = global_alpha(np.array([2.0, dof, 6.0]))
+    assert both[1] == a
+    assert both[0] == float(global_alpha(2)) and both[2] == float(global_alpha(6))

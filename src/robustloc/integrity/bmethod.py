@@ -74,17 +74,26 @@ def _alpha_one(dof: int, alpha0: float, beta0: float) -> float:
     return float(chi2_sf(q, dof))  # 1 - alpha quantile equals q
 
 
+def _alpha_direct(
+    dof: NDArray[np.float64], alpha0: float, beta0: float
+) -> NDArray[np.float64]:
+    """Eq. (4) for non-integer ``dof`` (vectorized, not cached): as :func:`_alpha_one`."""
+    q = ncx2_ppf(beta0, dof, lambda0(alpha0, beta0))
+    return np.asarray(chi2_sf(q, dof), dtype=float)
+
+
 def global_alpha(
     dof: ArrayLike, alpha0: float = ALPHA0, beta0: float = BETA0
 ) -> NDArray[np.float64]:
     """Significance of the global test for ``dof`` degrees of freedom (seed 003, eq. (4)).
 
     Solves ``chi2(beta0; dof, lambda0) = chi2(1 - alpha; dof)`` for ``alpha``.  Vectorized
-    over ``dof``; each distinct ``dof`` is computed once and cached.
+    over ``dof``; each distinct whole ``dof`` is computed once and cached, a non-integer
+    ``dof`` (the chi-square of real degrees of freedom) directly.
 
     Parameters
     ----------
-    dof : int or array_like of int
+    dof : float or array_like of float
         Redundancy ``n - p`` (any shape).  Entries ``< 1`` give NaN (no test possible).
     alpha0, beta0 : float
         Local-test significance and type II error (defaults 0.1 %, 10 %).
@@ -99,10 +108,14 @@ def global_alpha(
     d = np.asarray(dof)
     out = np.full(d.shape, np.nan)
     finite = np.isfinite(d) & (d >= 1)
-    if np.any(finite):
-        keys, inv = np.unique(d[finite].astype(np.int64), return_inverse=True)
+    whole = finite & (d == np.floor(d))
+    if np.any(whole):
+        keys, inv = np.unique(d[whole].astype(np.int64), return_inverse=True)
         vals = np.array([_alpha_one(int(k), a0, b0) for k in keys])
-        out[finite] = vals[inv]
+        out[whole] = vals[inv]
+    rest = finite & ~whole
+    if np.any(rest):  # non-integer dof: eq. (4) as asked (it was rounded down)
+        out[rest] = _alpha_direct(np.asarray(d[rest], dtype=float), a0, b0)
     return out
 
 
@@ -116,7 +129,7 @@ def global_critical(
 
     Parameters
     ----------
-    dof : array_like of int
+    dof : array_like of float
         Degrees of freedom ``n - p``; entries ``< 1`` give NaN.
     alpha : float or array_like, optional
         Significance; default: the B-method value :func:`global_alpha` for each ``dof``.
