@@ -122,3 +122,30 @@ def test_mad_scale_and_fast_median():
     big = rng.normal(0, 2.0, 200_000)
     assert mad_scale(big) == pytest.approx(2.0, rel=0.01)
     assert np.isnan(nanmedian_fast(np.full((1, 3), np.nan), axis=1))[0]
+
+
+def test_all_covers_every_exported_weight_class():
+    import robustloc.robust as rr
+    from robustloc.robust.weights import WeightFunction
+
+    exported = {c for c in (getattr(rr, n) for n in rr.__all__)
+                if isinstance(c, type) and issubclass(c, WeightFunction)}
+    exported.discard(WeightFunction)
+    assert exported <= {type(w) for w in ALL}
+
+
+@pytest.mark.parametrize("wf", ALL, ids=lambda w: repr(w))
+def test_nan_in_gives_nan_out(wf):
+    """Module docstring: NaN in gives NaN out, for weights, psi and rho alike (Hampel's and
+    IGG's rho gave their value beyond the rejection threshold), compiled twins included."""
+    from robustloc.robust import _compiled as rc
+
+    u = np.array([[0.5, np.nan, -3.0], [np.nan, 10.0, -0.2]])
+    for f in (wf.weights, wf.psi, wf.rho):
+        assert np.isnan(f(np.nan))
+        got = f(u)
+        assert got.shape == u.shape
+        np.testing.assert_array_equal(np.isnan(got), np.isnan(u))
+    code, prm = rc.weight_spec(wf)
+    assert np.isnan(rc.rho_value(code, prm, np.nan))
+    assert np.isnan(rc.weight_value(code, prm, np.nan))

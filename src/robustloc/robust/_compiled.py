@@ -108,7 +108,10 @@ def weight_scalar(code: int, p0: float, p1: float, p2: float,
 
 @njit(cache=True, nogil=True, error_model="numpy", _nrt=False)
 def rho_value(code: int, prm: np.ndarray, u: float) -> float:  # pragma: no cover - jit
-    """Objective ``rho(u)``, the same formulas as the NumPy ``rho`` methods."""
+    """Objective ``rho(u)`` (NaN for NaN ``u``), the same formulas as the NumPy ``rho``
+    methods."""
+    if math.isnan(u):  # (Hampel and IGG fell through to their outer value)
+        return math.nan
     x = abs(u)
     if code == LS:
         return 0.5 * u * u

@@ -145,7 +145,8 @@ class Hampel(WeightFunction):
         r_b = a * b - 0.5 * a * a
         r_mid = r_b + a / (c - b) * (c * x - 0.5 * x * x - c * b + 0.5 * b * b)
         r_c = r_b + 0.5 * a * (c - b)
-        return np.select([x <= a, x <= b, x <= c], [0.5 * x * x, a * x - 0.5 * a * a, r_mid], r_c)
+        r = np.select([x <= a, x <= b, x <= c], [0.5 * x * x, a * x - 0.5 * a * a, r_mid], r_c)
+        return np.where(np.isnan(x), np.nan, r)  # (select's default took NaN: r_c)
 
 
 @dataclass(frozen=True)
@@ -187,9 +188,10 @@ class IGG(WeightFunction):
             return 0.5 * k0 * k0 + (t - k0) - c * np.log((t + c) / (k0 + c))
 
         with np.errstate(all="ignore"):
-            return np.select(
+            r = np.select(
                 [x < k0, x < k1], [0.5 * x * x, mid(x)], mid(np.asarray(k1, dtype=float))
             )
+        return np.where(np.isnan(x), np.nan, r)  # (select's default took NaN: rho(k1))
 
 
 @dataclass(frozen=True)
