@@ -98,3 +98,26 @@ def test_ill_conditioned_and_bad_sigma():
         whiten(H_LEVEL, -1.0)
     with pytest.raises(ValueError):
         whiten(H_LEVEL, np.ones(3))
+
+
+@pytest.mark.parametrize("bad", [float("nan"), 0.0, 1.0, 1.5])
+def test_bad_alpha_beta0_raise_naming_them(bad):
+    """alpha=NaN went through (every epoch failed its global test silently, also with no
+    epoch testable), beta0 with a fixed alpha was not looked at; now ValueErrors."""
+    from robustloc.integrity import detection_power_global, global_critical, snoop_linear
+
+    y = np.array([[1.0, 2.0, 3.5, 1.0]])
+    for kw in (dict(alpha=bad), dict(alpha=0.01, beta0=bad)):
+        name = "beta0" if "beta0" in kw else "alpha"
+        with pytest.raises(ValueError, match=f"^{name} must be strictly between 0 and 1"):
+            global_and_w_tests(H_LEVEL, y, 1.0, **kw)
+        with pytest.raises(ValueError, match=f"^{name} must be strictly between 0 and 1"):
+            global_and_w_tests(H_LEVEL[:2], y[:, :2], 1.0, **kw)  # dof 0: nothing testable
+        with pytest.raises(ValueError, match=f"^{name} must be strictly between 0 and 1"):
+            global_critical(3, **kw)
+        with pytest.raises(ValueError, match=f"^{name} must be strictly between 0 and 1"):
+            snoop_linear(H_LEVEL, y, 1.0, **kw)
+    with pytest.raises(ValueError, match="^alpha must be strictly between 0 and 1"):
+        global_critical([3, 4], [0.01, bad])
+    with pytest.raises(ValueError, match="^alpha must be strictly between 0 and 1"):
+        detection_power_global(20.0, 3, bad)

@@ -134,7 +134,7 @@ def global_critical(
     alpha : float or array_like, optional
         Significance; default: the B-method value :func:`global_alpha` for each ``dof``.
     alpha0, beta0 : float
-        Used only when ``alpha`` is None.
+        Used only when ``alpha`` is None (checked always).
 
     Returns
     -------
@@ -142,9 +142,9 @@ def global_critical(
         Critical values with the broadcast shape of ``dof`` and ``alpha``.
     """
     d = np.asarray(dof, dtype=float)
+    a0 = _check_prob("alpha0", alpha0)  # (checked also when unused: NaN went through)
+    b0 = _check_prob("beta0", beta0)
     if alpha is None:  # one quantile per distinct dof (a block has a handful), cached
-        a0 = _check_prob("alpha0", alpha0)
-        b0 = _check_prob("beta0", beta0)
         out = np.full(d.shape, np.nan)
         whole = np.isfinite(d) & (d >= 1) & (d == np.floor(d))
         if np.any(whole):
@@ -156,8 +156,8 @@ def global_critical(
             out[rest] = chi2_isf(global_alpha(d[rest], a0, b0), d[rest])
         return out
     a = np.asarray(alpha, dtype=float)
-    if np.any((a <= 0) | (a >= 1)):
-        raise ValueError("alpha must be strictly between 0 and 1")
+    if not np.all((a > 0) & (a < 1)):  # (NaN refused: every test failed silently)
+        raise ValueError(f"alpha must be strictly between 0 and 1, got {alpha}")
     with np.errstate(invalid="ignore"):
         out = chi2_isf(a, np.where(d >= 1, d, np.nan))
     return np.asarray(out, dtype=float)

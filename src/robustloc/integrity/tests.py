@@ -26,7 +26,14 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from robustloc.integrity.bmethod import ALPHA0, BETA0, global_alpha, global_critical, w_critical
+from robustloc.integrity.bmethod import (
+    ALPHA0,
+    BETA0,
+    _check_prob,
+    global_alpha,
+    global_critical,
+    w_critical,
+)
 
 Array = NDArray[np.float64]
 
@@ -254,6 +261,9 @@ def integrity_tests(
     alpha0, beta0 : float
         w-test significance and type II error.
     """
+    if alpha is not None:  # (NaN failed every epoch's global test silently)
+        alpha = _check_prob("alpha", alpha)
+    _check_prob("beta0", beta0)  # (unused with a fixed alpha, but not to be wrong)
     vv = np.asarray(v, dtype=float)
     used = wh.used & np.isfinite(vv)
     r = wh.redundancy()
