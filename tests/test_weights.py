@@ -149,3 +149,16 @@ def test_nan_in_gives_nan_out(wf):
     code, prm = rc.weight_spec(wf)
     assert np.isnan(rc.rho_value(code, prm, np.nan))
     assert np.isnan(rc.weight_value(code, prm, np.nan))
+
+
+def test_mad_scale_empty_rows_and_scalar():
+    """Rows with no value give NaN, as all-NaN rows do (numpy's IndexError before); a 0-d
+    input has no axis: a ValueError naming ``residuals`` (numpy's AxisError before)."""
+    assert np.isnan(mad_scale([]))
+    out = mad_scale(np.empty((3, 0)))
+    assert out.shape == (3,) and np.all(np.isnan(out))
+    assert np.all(np.isnan(mad_scale(np.empty((3, 0)), center=True)))
+    assert mad_scale(np.empty((0, 4))).shape == (0,)
+    assert np.all(np.isnan(nanmedian_fast(np.empty((2, 0)), axis=1)))
+    with pytest.raises(ValueError, match="residuals"):
+        mad_scale(2.0)

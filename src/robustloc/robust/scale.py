@@ -30,9 +30,16 @@ def mad_scale(
     Returns
     -------
     ndarray
-        Scale with ``axis`` removed; NaN where every entry is NaN.
+        Scale with ``axis`` removed; NaN where every entry is NaN or there is none.
+
+    Raises
+    ------
+    ValueError
+        For a 0-d ``residuals`` (a scalar has no axis to take the scale along).
     """
     v = np.asarray(residuals, dtype=float)
+    if v.ndim == 0:  # (numpy's AxisError named neither residuals nor the cause)
+        raise ValueError(f"residuals must be an array with an axis, got the scalar {v}")
     if center:
         v = v - nanmedian_fast(v, axis=axis)[..., None] if axis in (-1, v.ndim - 1) else (
             v - np.nanmedian(v, axis=axis, keepdims=True))
@@ -44,6 +51,8 @@ def nanmedian_fast(a: ArrayLike, axis: int = -1) -> NDArray[np.float64]:
     """NaN-ignoring median along ``axis`` by one sort (much faster than ``np.nanmedian``
     on many short rows).  Rows with no finite value give NaN."""
     x = np.moveaxis(np.asarray(a, dtype=float), axis, -1)
+    if x.shape[-1] == 0:  # rows with no value (take_along_axis had no index 0: IndexError)
+        return np.full(x.shape[:-1], np.nan)
     nan = np.isnan(x)
     c = x.shape[-1] - nan.sum(axis=-1)
     srt = np.sort(np.where(nan, np.inf, x), axis=-1)
