@@ -121,3 +121,27 @@ def test_bad_alpha_beta0_raise_naming_them(bad):
         global_critical([3, 4], [0.01, bad])
     with pytest.raises(ValueError, match="^alpha must be strictly between 0 and 1"):
         detection_power_global(20.0, 3, bad)
+
+
+def test_wrong_shapes_name_the_argument():
+    """Residuals or a mask that do not fit the observations (N, n): a ValueError naming
+    the argument and the expected shape (numpy's broadcast error named neither)."""
+    from robustloc.integrity import integrity_tests, snoop_linear
+
+    y = np.array([[1.0, 2.0, 3.5, 1.0]])
+    expected = r"expected \(1, 4\) \(epochs, observations\)"
+    with pytest.raises(ValueError, match=rf"^v has shape \(1, 3\); {expected}"):
+        global_and_w_tests(H_LEVEL, y[:, :3], 1.0)
+    with pytest.raises(ValueError, match=rf"^v has shape \(1, 3\); {expected}"):
+        integrity_tests(whiten(H_LEVEL, 1.0), y[:, :3])
+    with pytest.raises(ValueError, match=rf"^mask has shape \(3,\); {expected}"):
+        global_and_w_tests(H_LEVEL, y, 1.0, mask=np.ones(3, bool))
+    with pytest.raises(ValueError, match=rf"^mask has shape \(3,\); {expected}"):
+        whiten(H_LEVEL, 1.0, mask=np.ones(3, bool))
+    with pytest.raises(ValueError, match=rf"^y has shape \(1, 3\); {expected}"):
+        whiten(H_LEVEL, 1.0, y=y[:, :3])
+    with pytest.raises(ValueError, match=rf"^mask has shape \(3,\); {expected}"):
+        snoop_linear(H_LEVEL, y, 1.0, mask=np.ones(3, bool))
+    # shapes that broadcast are still taken: one mask row for every epoch
+    t = global_and_w_tests(H_LEVEL, y, 1.0, mask=np.ones(4, bool))
+    np.testing.assert_array_equal(t.w, global_and_w_tests(H_LEVEL, y, 1.0).w)

@@ -55,7 +55,14 @@ from numpy.typing import ArrayLike, NDArray
 from robustloc import status as st
 from robustloc.estimators.solution import Solution
 from robustloc.integrity.bmethod import ALPHA0, BETA0, lambda0, w_critical
-from robustloc.integrity.tests import RCOND, as_design, broadcast_sigma, integrity_tests, whiten
+from robustloc.integrity.tests import (
+    RCOND,
+    _observation_array,
+    as_design,
+    broadcast_sigma,
+    integrity_tests,
+    whiten,
+)
 
 Array = NDArray[np.float64]
 Solver = Callable[..., tuple[ArrayLike, ArrayLike, ArrayLike]]
@@ -456,7 +463,7 @@ def snoop_linear(
     sig = broadcast_sigma(sigma, (N, n))
     m = np.isfinite(yy) & np.all(np.isfinite(Hm), axis=2) & np.isfinite(sig)
     if mask is not None:
-        m &= np.broadcast_to(np.asarray(mask, dtype=bool), (N, n))
+        m &= _observation_array("mask", mask, (N, n), bool)
 
     def _solve(mk: NDArray[np.bool_], rows: NDArray[np.int64]) -> tuple[Array, Array, Array]:
         Hr, yr = Hm[rows], yy[rows]

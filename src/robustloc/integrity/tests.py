@@ -22,6 +22,7 @@ Everything is computed in the whitened model ``A = P^(1/2) H``, ``b = P^(1/2) y`
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -60,6 +61,18 @@ def broadcast_sigma(sigma: ArrayLike, shape: tuple[int, int]) -> Array:
     if np.any(np.isinf(s)):
         raise ValueError("a-priori standard deviations (sigma) must be finite")
     return s
+
+
+def _observation_array(name: str, value: ArrayLike, shape: tuple[int, int],
+                       dtype: type = float) -> NDArray[Any]:
+    """``value`` broadcast to the observations' ``shape`` (N, n); a ``ValueError`` naming
+    ``name`` when it does not fit (numpy's broadcast error named neither)."""
+    a: NDArray[Any] = np.asarray(value, dtype=dtype)
+    try:
+        return np.broadcast_to(a, shape)
+    except ValueError:
+        raise ValueError(f"{name} has shape {a.shape}; expected {shape} (epochs, "
+                         "observations) or one that broadcasts to it") from None
 
 
 def as_design(H: ArrayLike) -> Array:
@@ -187,9 +200,9 @@ def whiten(
     s = broadcast_sigma(sigma, (N, n))
     used = np.all(np.isfinite(Hm), axis=2) & np.isfinite(s)
     if mask is not None:
-        used &= np.broadcast_to(np.asarray(mask, dtype=bool), (N, n))
+        used &= _observation_array("mask", mask, (N, n), bool)
     if y is not None:
-        used &= np.isfinite(np.broadcast_to(np.asarray(y, dtype=float), (N, n)))
+        used &= np.isfinite(_observation_array("y", y, (N, n)))
     with np.errstate(invalid="ignore", divide="ignore"):
         A = np.where(used[:, :, None], Hm / s[:, :, None], 0.0)
     Ninv, ok = normal_inverse(A, rcond)
@@ -264,7 +277,7 @@ def integrity_tests(
     if alpha is not None:  # (NaN failed every epoch's global test silently)
         alpha = _check_prob("alpha", alpha)
     _check_prob("beta0", beta0)  # (unused with a fixed alpha, but not to be wrong)
-    vv = np.asarray(v, dtype=float)
+    vv = _observation_array("v", v, wh.used.shape)
     used = wh.used & np.isfinite(vv)
     r = wh.redundancy()
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -327,5 +340,7 @@ def global_and_w_tests(
     >>> np.round(t.w, 3).tolist()          # |v| / sqrt(2/3)
     [[1.225, 1.225, 2.449]]
     """
-    wh = whiten(H, sigma, mask=mask, y=v)
+    Hm = as_design(H)
+    v = _observation_array("v", v, Hm.shape[:2])  # (whiten would name it y)
+    wh = whiten(Hm, sigma, mask=mask, y=v)
     return integrity_tests(wh, v, alpha=alpha, alpha0=alpha0, beta0=beta0)
