@@ -162,3 +162,16 @@ def test_mad_scale_empty_rows_and_scalar():
     assert np.all(np.isnan(nanmedian_fast(np.empty((2, 0)), axis=1)))
     with pytest.raises(ValueError, match="residuals"):
         mad_scale(2.0)
+
+
+@pytest.mark.parametrize(("cls", "key"), [(Huber, "c"), (Hampel, "a"), (Hampel, "c"),
+                                          (IGG, "k0"), (IGG, "c"), (IGG3, "k1"),
+                                          (AsymmetricIGG, "c")])
+@pytest.mark.parametrize("bad", ["2", None, [3.0], True, np.nan, 1 + 2j])
+def test_constructors_check_parameters_like_get_weight(cls, key, bad):
+    """The exported classes refuse what get_weight refuses, naming the parameter (Python's
+    "'>' not supported ..." before; ``Huber(c=True)`` was Huber(1))."""
+    with pytest.raises(ValueError, match=f"^weight parameter {key} must be a real number"):
+        cls(**{key: bad})
+    assert cls(**{key: getattr(cls(), key)}) == cls()  # defaults and ints still taken
+    assert Huber(2) == Huber(2.0) and IGG3(np.float32(1.0), 4) == IGG3(1.0, 4.0)

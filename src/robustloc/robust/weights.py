@@ -64,6 +64,21 @@ def _abs(u: ArrayLike) -> Array:
     return np.abs(_real(u))
 
 
+def _check_real(key: str, value: object) -> None:
+    """``ValueError`` naming the parameter ``key`` unless ``value`` is a real number (not a
+    bool, a string, None, a list or NaN): the constructors' and :func:`get_weight`'s check."""
+    if isinstance(value, bool | np.bool_ | np.complexfloating) or not isinstance(
+            value, int | float | np.number) or np.isnan(value):
+        raise ValueError(f"weight parameter {key} must be a real number, got {value!r}")
+
+
+def _check_fields(wf: WeightFunction) -> None:
+    """:func:`_check_real` on every parameter of the dataclass ``wf`` (a string, None or a
+    list gave Python's "'>' not supported ..."; ``True`` was taken as 1)."""
+    for f in fields(wf):  # type: ignore[arg-type]
+        _check_real(f.name, getattr(wf, f.name))
+
+
 @dataclass(frozen=True)
 class LeastSquares(WeightFunction):
     """Ordinary least squares: ``p(u) = 1``, ``rho(u) = u^2 / 2``."""
@@ -92,6 +107,7 @@ class Huber(WeightFunction):
     name = "huber"
 
     def __post_init__(self) -> None:
+        _check_fields(self)
         if not self.c > 0:
             raise ValueError(f"Huber threshold c must be positive, got {self.c}")
 
@@ -121,6 +137,7 @@ class Hampel(WeightFunction):
     name = "hampel"
 
     def __post_init__(self) -> None:
+        _check_fields(self)
         if not 0 < self.a <= self.b < self.c:
             raise ValueError(f"Hampel needs 0 < a <= b < c, got {self.a}, {self.b}, {self.c}")
 
@@ -165,6 +182,7 @@ class IGG(WeightFunction):
     name = "igg"
 
     def __post_init__(self) -> None:
+        _check_fields(self)
         if not 0 < self.k0 < self.k1 or not self.c >= 0:  # (NaN refused)
             raise ValueError(
                 f"IGG needs 0 < k0 < k1 and c >= 0, got {self.k0}, {self.k1}, {self.c}"
@@ -207,6 +225,7 @@ class IGG3(WeightFunction):
     name = "igg3"
 
     def __post_init__(self) -> None:
+        _check_fields(self)
         if not 0 < self.k0 < self.k1:
             raise ValueError(f"IGG3 needs 0 < k0 < k1, got {self.k0}, {self.k1}")
 
@@ -254,6 +273,7 @@ class AsymmetricIGG(WeightFunction):
     name = "asymmetric-igg"
 
     def __post_init__(self) -> None:
+        _check_fields(self)
         if not (0 < self.k0 < self.k1 and self.k0 < self.c):
             raise ValueError(
                 f"AsymmetricIGG needs 0 < k0 < k1 and k0 < c, got {self.k0}, {self.k1}, {self.c}"
@@ -347,7 +367,5 @@ def get_weight(name: str, **params: float) -> WeightFunction:
         if key not in known:  # (was Python's "__init__() got an unexpected keyword")
             raise ValueError(f"{cls.name} has no parameter {key!r}; its parameters: "
                              + (", ".join(known) or "none"))
-        if isinstance(value, bool | np.bool_ | np.complexfloating) or not isinstance(
-                value, int | float | np.number) or np.isnan(value):
-            raise ValueError(f"weight parameter {key} must be a real number, got {value!r}")
+        _check_real(key, value)
     return cls(**params)
