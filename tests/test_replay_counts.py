@@ -76,3 +76,27 @@ def test_replay_stopped_by_an_error_answer_says_how_far_it_got(tmp_path):
     sj = json.loads(pj.stdout)
     assert (sj["rows"], sj["sent"], sj["accepted"]) == (n, n_good, n_good)
     assert "413" in sj["stopped"] and "413" in pj.stderr
+
+
+def test_rows_rejected_before_a_replay_stopped_are_reported(tmp_path):
+    """A replay that stops (here a 413) after the server rejected rows reports them as a
+    finished run does: the count, ``FILE:LINE: reason`` and --json's ``n_rejected`` and
+    ``rejected`` (they were never reported, and the ``--skip`` resumes past them)."""
+    good = "".join(f"{t},T,{a},{5.0 + t}\n" for t in range(3) for a, _, _ in ANCHORS)
+    bad = "1,T,99,5.0\n"  # line 14: an unknown anchor, rejected
+    big = "".join(f"3,T{k},{ANCHORS[k % 4][0]},7.0\n" for k in range(400))
+    log = tmp_path / "log.csv"
+    log.write_text("time,tag,anchor,range\n" + good + bad + big)
+    with ServerProcess(["--anchors", str(_anchors(tmp_path / "a.csv")),
+                        "--max-body-bytes", "4000"]) as srv:
+        p = _replay(log, srv.url)
+        pj = _replay(log, srv.url, "--json")
+    n_good, n = 3 * len(ANCHORS), 3 * len(ANCHORS) + 1 + 400
+    assert p.returncode == 2, p.stderr
+    assert (f"stopped after {n_good + 1} of {n} rows; {n_good} accepted, 1 rejected; "
+            f"resume with --skip {n_good + 1}") in p.stderr
+    assert "1 rows rejected" in p.stderr and f"  {log}:14: " in p.stderr
+    assert pj.returncode == 2, pj.stderr
+    sj = json.loads(pj.stdout)
+    assert (sj["sent"], sj["accepted"], sj["n_rejected"]) == (n_good + 1, n_good, 1)
+    assert [r["line"] for r in sj["rejected"]] == [14] and "99" in sj["rejected"][0]["error"]

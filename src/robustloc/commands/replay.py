@@ -79,8 +79,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true",
                    help="print the summary as JSON (rows, accepted, n_rejected, the "
                         "rejected rows the server listed with their file line and "
-                        "reason, seconds; a replay that stopped: rows, sent, accepted "
-                        "and why); no progress bar")
+                        "reason, seconds; a replay that stopped: rows, sent, accepted, "
+                        "n_rejected, rejected and why); no progress bar")
 
 
 def _batches(times: np.ndarray, batch_rows: int | None) -> list[tuple[int, int]]:
@@ -215,11 +215,13 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
             bar.update(i1 - i0)
     except _transport_errors() as exc:
         raise ReplayStopped(str(exc), accepted=accepted, sent=sent, rows=n_rows,
-                            skipped=skip) from exc
+                            skipped=skip, n_rejected=n_rejected,
+                            rejected=rejected) from exc
     except (KeyboardInterrupt, Terminated) as exc:  # Ctrl-C: how far it got, to resume
         raise ReplayInterrupted("interrupted" if isinstance(exc, KeyboardInterrupt)
                                 else "terminated", accepted=accepted, sent=sent,
-                                rows=n_rows, skipped=skip) from exc
+                                rows=n_rows, skipped=skip, n_rejected=n_rejected,
+                                rejected=rejected) from exc
     finally:
         bar.close()
         ws_log.setLevel(ws_level)
@@ -284,13 +286,19 @@ class ReplayStopped(RuntimeError):
 
     Attributes ``accepted`` (rows the server accepted in this run), ``sent`` (rows of the
     log acknowledged, accepted or rejected, or skipped: the ``--skip`` that resumes),
-    ``rows`` (rows in the log) and ``skipped`` (the run's ``--skip``).
+    ``rows`` (rows in the log), ``skipped`` (the run's ``--skip``), ``n_rejected`` (rows
+    the server rejected in this run) and ``rejected`` (``[{line, error}]``, the rejected
+    rows the server listed, as :func:`replay` returns them): a ``--skip`` resumes past
+    the rejected rows, so they are reported here or never.
     """
 
     def __init__(self, message: str, *, accepted: int, sent: int, rows: int,
-                 skipped: int = 0) -> None:
+                 skipped: int = 0, n_rejected: int = 0,
+                 rejected: list[dict] | None = None) -> None:
         super().__init__(message)
         self.accepted, self.sent, self.rows, self.skipped = accepted, sent, rows, skipped
+        self.n_rejected = n_rejected
+        self.rejected = list(rejected) if rejected is not None else []
 
 
 class ReplayInterrupted(ReplayStopped):
@@ -330,14 +338,19 @@ def run(args: argparse.Namespace) -> int:
         # (Ctrl-C said only "error: interrupted": no --skip to resume from without
         # losing or repeating rows -- the replay review, 2026-12-07)
         where = "" if interrupted else f"{args.url}: "
+        rej = f", {exc.n_rejected} rejected" if exc.n_rejected else ""
         print(f"error: {where}{exc} (stopped after {exc.sent} of {exc.rows} rows; "
-              f"{first}{exc.accepted} accepted{resume}"
+              f"{first}{exc.accepted} accepted{rej}{resume}"
               + ("; a batch in flight may have reached the server" if interrupted else "")
               + ")", file=sys.stderr)
         if args.json:  # how far it got, for a script that reads stdout
             print(json.dumps({"measurements": str(args.measurements), "url": args.url,
                               "rows": exc.rows, "skipped": exc.skipped, "sent": exc.sent,
-                              "accepted": exc.accepted, "stopped": str(exc)}, indent=2))
+                              "accepted": exc.accepted, "n_rejected": exc.n_rejected,
+                              "rejected": exc.rejected, "stopped": str(exc)}, indent=2))
+        else:  # (the rows rejected before it stopped: a --skip resumes past them --
+            # they were never reported; the replay review)
+            _print_rejected(args.measurements, exc.n_rejected, exc.rejected)
         if interrupted:
             from robustloc.errors import EXIT_SIGINT, EXIT_SIGTERM
 
@@ -357,11 +370,17 @@ def run(args: argparse.Namespace) -> int:
     first = f" (the first {summary['skipped']} skipped)" if summary["skipped"] else ""
     print(f"{summary['accepted']} of {summary['rows']} rows accepted{first} in "
           f"{summary['seconds']:.2f} s")
-    if n_rej:
-        print(f"{n_rej} rows rejected", file=sys.stderr)
-    for r in summary["rejected"][:20]:
-        print(f"  {args.measurements}:{r['line']}: {r['error']}", file=sys.stderr)
-    if n_rej > 20:
-        print(f"  ... {n_rej - min(len(summary['rejected']), 20)} more rejected rows",
-              file=sys.stderr)
+    _print_rejected(args.measurements, n_rej, summary["rejected"])
     return 1 if n_rej else 0
+
+
+def _print_rejected(path: str, n_rejected: int, rejected: list[dict]) -> None:
+    """On stderr: how many rows the server rejected and the first 20 it listed, as
+    ``FILE:LINE: reason``."""
+    if n_rejected:
+        print(f"{n_rejected} rows rejected", file=sys.stderr)
+    for r in rejected[:20]:
+        print(f"  {path}:{r['line']}: {r['error']}", file=sys.stderr)
+    if n_rejected > 20:
+        print(f"  ... {n_rejected - min(len(rejected), 20)} more rejected rows",
+              file=sys.stderr)
