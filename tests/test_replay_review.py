@@ -21,6 +21,8 @@ ANSWERS = {
     "index_out_of_range": (202, json.dumps({"accepted": 0, "rejected": [
         {"index": 99, "error": "x"}]}).encode()),
     "accepts_more_than_sent": (202, b'{"accepted": 1000, "rejected": []}'),
+    # a 202 for only part of the batch (2 rows: 1 accepted, none rejected) exited 0
+    "accounts_for_part": (202, b'{"accepted": 1, "rejected": [], "n_rejected": 0}'),
 }
 
 

@@ -267,14 +267,17 @@ def _retry_after(res: dict) -> float:
 
 def _acknowledged(res: dict, n_rows: int) -> tuple[int, int, list[tuple[int, str]]]:
     """``(accepted, rejected, [(index, error)])`` of a 202 answer to ``n_rows`` rows, or
-    RuntimeError when it is not one ``robustloc serve`` gives."""
+    RuntimeError when it is not one ``robustloc serve`` gives (which accounts for every
+    row: ``accepted + n_rejected == n_rows``)."""
     try:
         acc = int(res["accepted"])
         listed = [(int(r["index"]), str(r["error"])) for r in res.get("rejected", [])]
         n_rej = int(res.get("n_rejected", len(listed)))
     except (KeyError, TypeError, ValueError):
         raise RuntimeError(f"unexpected answer from the server: {str(res)[:120]}") from None
-    if not (0 <= acc <= n_rows and 0 <= n_rej <= n_rows - acc
+    # every row accepted or rejected: a 202 for half a batch (accepted + n_rejected <
+    # rows) exited 0 with the other half nowhere (the replay review)
+    if not (0 <= acc <= n_rows and 0 <= n_rej and acc + n_rej == n_rows
             and all(0 <= i < n_rows for i, _ in listed)):
         raise RuntimeError(f"unexpected answer from the server for {n_rows} rows: "
                            f"{str(res)[:120]}")
