@@ -100,3 +100,19 @@ def test_rows_rejected_before_a_replay_stopped_are_reported(tmp_path):
     sj = json.loads(pj.stdout)
     assert (sj["sent"], sj["accepted"], sj["n_rejected"]) == (n_good + 1, n_good, 1)
     assert [r["line"] for r in sj["rejected"]] == [14] and "99" in sj["rejected"][0]["error"]
+
+
+def test_batch_rows_keeps_the_pace(tmp_path):
+    """``--batch-rows`` with ``--speed`` > 0: a batch ends with its time step, so no row
+    goes out before its paced time (a batch of 2000 rows was sent at its first row's
+    time: 59 s of a log in 0.56 s at --speed 1)."""
+    log = tmp_path / "log.csv"
+    log.write_text("time,tag,anchor,range\n" + "".join(
+        f"{t},T,{a},5.0\n" for t in range(5) for a, _, _ in ANCHORS))  # 0..4 s
+    with ServerProcess(["--anchors", str(_anchors(tmp_path / "a.csv"))]) as srv:
+        p = subprocess.run([*ROBUSTLOC, "replay", str(log), "--url", srv.url, "--speed",
+                            "4", "--batch-rows", "1000", "--json"],
+                           capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    s = json.loads(p.stdout)
+    assert s["accepted"] == 5 * len(ANCHORS) and s["seconds"] >= 4 / 4 - 0.05, s
