@@ -69,6 +69,9 @@ def test_replay_stopped_by_an_error_answer_says_how_far_it_got(tmp_path):
     n_good, n = 3 * len(ANCHORS), 3 * len(ANCHORS) + 400
     assert "413" in p.stderr
     assert f"stopped after {n_good} of {n} rows; {n_good} accepted" in p.stderr
+    # (it advised "resume with --skip 12", which failed again the same way, for ever)
+    assert (f"the server refuses a batch of 400 rows as too large: resume with --skip "
+            f"{n_good} and a --batch-rows below 400") in p.stderr
     assert "Traceback" not in p.stderr
     # --json: how far it got on stdout too (the same error line on stderr).  The second
     # replay re-sends the first three steps, accepted again (as any client's retry)
@@ -94,7 +97,7 @@ def test_rows_rejected_before_a_replay_stopped_are_reported(tmp_path):
     n_good, n = 3 * len(ANCHORS), 3 * len(ANCHORS) + 1 + 400
     assert p.returncode == 2, p.stderr
     assert (f"stopped after {n_good + 1} of {n} rows; {n_good} accepted, 1 rejected; "
-            f"resume with --skip {n_good + 1}") in p.stderr
+            f"the server refuses") in p.stderr
     assert "1 rows rejected" in p.stderr and f"  {log}:14: " in p.stderr
     assert pj.returncode == 2, pj.stderr
     sj = json.loads(pj.stdout)
@@ -116,3 +119,20 @@ def test_batch_rows_keeps_the_pace(tmp_path):
     assert p.returncode == 0, p.stderr
     s = json.loads(p.stdout)
     assert s["accepted"] == 5 * len(ANCHORS) and s["seconds"] >= 4 / 4 - 0.05, s
+
+
+def test_websocket_stops_say_what_to_do(tmp_path):
+    """Over WebSocket: a wrong token said only "HTTP 403" (HTTP says the token), and a
+    batch over --max-body-bytes (close 1009) advised a --skip that fails again."""
+    pytest.importorskip("websockets")
+    big = "".join(f"0,T{k},{ANCHORS[k % 4][0]},7.0\n" for k in range(400))
+    log = tmp_path / "log.csv"
+    log.write_text("time,tag,anchor,range\n" + big)
+    with ServerProcess(["--anchors", str(_anchors(tmp_path / "a.csv")),
+                        "--max-body-bytes", "4000", "--token", "s3cret"]) as srv:
+        wrong = _replay(log, srv.url, "--transport", "ws", "--token", "wrong")
+        big = _replay(log, srv.url, "--transport", "ws", "--token", "s3cret")
+    assert wrong.returncode == 2 and "403: missing or wrong --token?" in wrong.stderr
+    assert big.returncode == 2, big.stderr
+    assert ("the server refuses a batch of 400 rows as too large: resume with --skip 0 "
+            "and a --batch-rows below 400") in big.stderr

@@ -117,3 +117,32 @@ def test_a_websocket_replay_that_cannot_connect_still_says_how_far_it_got(tmp_pa
     out, err = capsys.readouterr()
     assert code == 2 and "stopped after 0 of 3 rows" in err
     assert json.loads(out)["sent"] == 0
+
+
+def test_a_timeout_with_a_batch_in_flight_says_so(tmp_path, capsys, monkeypatch):
+    """A batch that got no answer within the timeout may have been stored: the line says
+    so with its rows, as on Ctrl-C (it advised the --skip alone)."""
+    import time
+
+    import robustloc.commands.replay as rp
+
+    monkeypatch.setattr(rp, "ANSWER_TIMEOUT_S", 0.5)
+    calls: list[int] = []
+
+    def answer(rows: list) -> tuple[int, bytes]:
+        calls.append(len(rows))
+        if len(calls) == 2:  # the second time step: no answer in time
+            time.sleep(1.5)
+        return 202, json.dumps({"accepted": len(rows), "rejected": []}).encode()
+
+    server = _serve(answer)
+    try:
+        code = main(["replay", _log(tmp_path), "--url",
+                     f"http://127.0.0.1:{server.server_address[1]}", "--speed", "0"])
+    finally:
+        server.shutdown()
+        server.server_close()
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err
+    assert ("stopped after 2 of 3 rows; 2 accepted; resume with --skip 2; a batch in "
+            "flight (row 3 of the replay's order) may have reached the server") in err

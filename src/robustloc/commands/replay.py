@@ -168,6 +168,10 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
     t_start = time.monotonic()
     bar = tqdm(total=len(records), unit=" rows", disable=not progress, file=sys.stderr)
     conn = client = None
+    i0 = i1 = 0
+    # rows (of the replay's order: [start, stop)) sent and not yet answered: they may
+    # have reached the server; ``too_large``: rows of a batch refused as too large
+    in_flight: tuple[int, int] | None = None
     # a keepalive that fails in websockets' own thread logged a traceback before the
     # command's error line (the replay review): the command says what stopped it
     import logging
@@ -199,14 +203,19 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
             while True:
                 if conn is not None:
                     conn.send(body)
+                    in_flight = (skip + i0, skip + i1)
                     # (no answer within the timeout: a server that takes the rows and
                     # never acknowledges them hung the replay for good: the review)
-                    res = _parsed(conn.recv(timeout=ANSWER_TIMEOUT_S))
+                    text = conn.recv(timeout=ANSWER_TIMEOUT_S)
+                    in_flight = None
+                    res = _parsed(text)
                     status = res.pop("status", 202) if "error" in res or "status" in res else 202
                 else:
                     assert client is not None
+                    in_flight = (skip + i0, skip + i1)
                     r = client.post(base + "/api/measurements", content=body,
                                     headers={"Content-Type": "application/json"})
+                    in_flight = None
                     status = r.status_code
                     res = _parsed(r.text) if r.headers.get("content-type", "").startswith(
                         "application/json") else {"error": r.text}
@@ -215,7 +224,8 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
                     continue
                 break
             if status != 202:
-                raise RuntimeError(f"server answered {status}: {res.get('error', res)}")
+                raise (_TooLarge if status == 413 else RuntimeError)(
+                    f"server answered {status}: {res.get('error', res)}")
             n_acc, n_rej, listed = _acknowledged(res, i1 - i0)
             accepted += n_acc
             n_rejected += n_rej
@@ -224,14 +234,23 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
                 rejected.append({"line": int(lines[i0 + index]), "error": error})
             bar.update(i1 - i0)
     except _transport_errors() as exc:
-        raise ReplayStopped(str(exc), accepted=accepted, sent=sent, rows=n_rows,
-                            skipped=skip, n_rejected=n_rejected,
-                            rejected=rejected) from exc
+        message, too_large = str(exc), 0
+        if isinstance(exc, _TooLarge) or _close_code(exc) == WS_MESSAGE_TOO_BIG:
+            too_large, in_flight = i1 - i0, None  # (refused: not stored)
+        elif _not_connected(exc):
+            in_flight = None
+        if getattr(getattr(exc, "response", None), "status_code", None) in (401, 403):
+            # (a WebSocket handshake said only "HTTP 403"; HTTP says the token: the
+            # replay review)
+            message += ": missing or wrong --token?"
+        raise ReplayStopped(message, accepted=accepted, sent=sent, rows=n_rows,
+                            skipped=skip, n_rejected=n_rejected, rejected=rejected,
+                            in_flight=in_flight, too_large=too_large) from exc
     except (KeyboardInterrupt, Terminated) as exc:  # Ctrl-C: how far it got, to resume
         raise ReplayInterrupted("interrupted" if isinstance(exc, KeyboardInterrupt)
                                 else "terminated", accepted=accepted, sent=sent,
                                 rows=n_rows, skipped=skip, n_rejected=n_rejected,
-                                rejected=rejected) from exc
+                                rejected=rejected, in_flight=in_flight) from exc
     finally:
         bar.close()
         ws_log.setLevel(ws_level)
@@ -248,6 +267,34 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
 ANSWER_TIMEOUT_S = 60.0
 #: Longest wait a 429 answer's ``retry_after_s`` can ask for (s).
 MAX_RETRY_AFTER_S = 60.0
+#: The WebSocket close code of a message over the server's size limit.
+WS_MESSAGE_TOO_BIG = 1009
+
+
+class _TooLarge(RuntimeError):
+    """A batch the server refused as too large (HTTP 413)."""
+
+
+def _close_code(exc: BaseException) -> int | None:
+    """The close code a WebSocket connection closed with (received, else sent), or None
+    when ``exc`` is no closed connection."""
+    for frame in (getattr(exc, "rcvd", None), getattr(exc, "sent", None)):
+        if frame is not None and isinstance(getattr(frame, "code", None), int):
+            return frame.code
+    return None
+
+
+def _not_connected(exc: BaseException) -> bool:
+    """True when ``exc`` failed to connect (refused, no route, connect timeout): nothing
+    of a batch was sent."""
+    try:
+        import httpx
+
+        if isinstance(exc, (httpx.ConnectError, httpx.ConnectTimeout)):
+            return True
+    except ImportError:
+        pass
+    return isinstance(exc, ConnectionRefusedError)
 
 
 def _parsed(text: str | bytes) -> dict:
@@ -302,16 +349,21 @@ class ReplayStopped(RuntimeError):
     ``rows`` (rows in the log), ``skipped`` (the run's ``--skip``), ``n_rejected`` (rows
     the server rejected in this run) and ``rejected`` (``[{line, error}]``, the rejected
     rows the server listed, as :func:`replay` returns them): a ``--skip`` resumes past
-    the rejected rows, so they are reported here or never.
+    the rejected rows, so they are reported here or never.  ``in_flight``: the rows
+    ``(start, stop)`` of the replay's order sent and not answered (they may have reached
+    the server), or None; ``too_large``: the rows of a batch the server refused as too
+    large (413, WebSocket close 1009), else 0.
     """
 
     def __init__(self, message: str, *, accepted: int, sent: int, rows: int,
                  skipped: int = 0, n_rejected: int = 0,
-                 rejected: list[dict] | None = None) -> None:
+                 rejected: list[dict] | None = None,
+                 in_flight: tuple[int, int] | None = None, too_large: int = 0) -> None:
         super().__init__(message)
         self.accepted, self.sent, self.rows, self.skipped = accepted, sent, rows, skipped
         self.n_rejected = n_rejected
         self.rejected = list(rejected) if rejected is not None else []
+        self.in_flight, self.too_large = in_flight, too_large
 
 
 class ReplayInterrupted(ReplayStopped):
@@ -347,15 +399,23 @@ def run(args: argparse.Namespace) -> int:
     except ReplayStopped as exc:
         first = f"the first {exc.skipped} skipped, " if exc.skipped else ""
         resume = (f"; resume with --skip {exc.sent}" if exc.sent < exc.rows else "")
+        if exc.too_large > 1:  # (--skip alone failed again, for ever: the replay review)
+            resume = (f"; the server refuses a batch of {exc.too_large} rows as too large: "
+                      f"resume with --skip {exc.sent} and a --batch-rows below "
+                      f"{exc.too_large}")
+        if exc.in_flight is not None:  # (said on Ctrl-C only, without its rows: the
+            # replay review; a timeout or a reset leaves a batch in flight as well)
+            a, b = exc.in_flight
+            rows = f"rows {a + 1} to {b}" if b > a + 1 else f"row {b}"
+            resume += (f"; a batch in flight ({rows} of the replay's order) may have "
+                       "reached the server")
         interrupted = isinstance(exc, ReplayInterrupted)
         # (Ctrl-C said only "error: interrupted": no --skip to resume from without
         # losing or repeating rows -- the replay review, 2026-12-07)
         where = "" if interrupted else f"{args.url}: "
         rej = f", {exc.n_rejected} rejected" if exc.n_rejected else ""
         print(f"error: {where}{exc} (stopped after {exc.sent} of {exc.rows} rows; "
-              f"{first}{exc.accepted} accepted{rej}{resume}"
-              + ("; a batch in flight may have reached the server" if interrupted else "")
-              + ")", file=sys.stderr)
+              f"{first}{exc.accepted} accepted{rej}{resume})", file=sys.stderr)
         if args.json:  # how far it got, for a script that reads stdout
             print(json.dumps({"measurements": str(args.measurements), "url": args.url,
                               "rows": exc.rows, "skipped": exc.skipped, "sent": exc.sent,
