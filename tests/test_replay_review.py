@@ -146,3 +146,14 @@ def test_a_timeout_with_a_batch_in_flight_says_so(tmp_path, capsys, monkeypatch)
     assert code == 2 and "Traceback" not in err
     assert ("stopped after 2 of 3 rows; 2 accepted; resume with --skip 2; a batch in "
             "flight (row 3 of the replay's order) may have reached the server") in err
+
+
+def test_a_directory_is_refused_without_the_engine_hint(tmp_path, capsys):
+    """replay has no --engine: a directory said "a partitioned dataset is read with
+    --engine dask" all the same."""
+    code = main(["replay", str(tmp_path), "--url", "http://127.0.0.1:9", "--speed", "0"])
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err
+    assert err.startswith(f"error: {tmp_path}: is a directory, expected a file (this "
+                          "command reads one file")
+    assert "--engine" not in err

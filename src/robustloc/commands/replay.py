@@ -133,7 +133,7 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
     from robustloc.io import read_measurements
     from robustloc.io.limits import limits_for
 
-    df = read_measurements(path)
+    df = read_measurements(path, engine_hint=False)  # (replay has no --engine)
     value = df.attrs["value"]
     lim = limits_for("time")  # the service refuses such rows; here they would set the pace
     out = ~lim.check(df["time"].to_numpy(float))

@@ -169,9 +169,11 @@ def _spool(path: PathLike) -> Path:
     return tmp
 
 
-def _check_file(path: PathLike) -> Path:
+def _check_file(path: PathLike, engine_hint: bool = True) -> Path:
     """The regular file to read for ``path`` (standard input and FIFOs are spooled);
-    missing, a directory, or empty is an :class:`InputError`."""
+    missing, a directory, or empty is an :class:`InputError`.  ``engine_hint``: a
+    directory's error says a partitioned dataset is read with ``--engine dask`` (for a
+    command that offers it), else that the command reads one file."""
     import stat
 
     name = _display(path)
@@ -184,8 +186,10 @@ def _check_file(path: PathLike) -> Path:
         if p.is_dir():
             # (a `robustloc partition` dataset is read with --engine dask: the new-user
             # review found no word of it)
-            raise InputError("is a directory, expected a file (a partitioned dataset "
-                             "is read with --engine dask)", name)
+            # (replay, which has no --engine, gave that hint too: the replay review)
+            raise InputError("is a directory, expected a file (" + (
+                "a partitioned dataset is read with --engine dask" if engine_hint else
+                "this command reads one file, not a partitioned dataset") + ")", name)
         if not stat.S_ISREG(p.stat().st_mode):  # FIFO, character device: read, don't stat
             p = _spool(path)
     if p.stat().st_size == 0:
@@ -610,9 +614,11 @@ def _first_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
-def _read_raw(path: PathLike, str_columns: Sequence[str] = ()) -> pd.DataFrame:
-    """Read a whole CSV or Parquet file; index = source line number."""
-    p = _check_file(path)
+def _read_raw(path: PathLike, str_columns: Sequence[str] = (),
+              engine_hint: bool = True) -> pd.DataFrame:
+    """Read a whole CSV or Parquet file; index = source line number (``engine_hint``:
+    :func:`_check_file`'s)."""
+    p = _check_file(path, engine_hint)
     fmt = _format(p, path)
     if fmt == "parquet":
         try:
@@ -1230,7 +1236,7 @@ def _anchor_ids(anchors: pd.DataFrame | Sequence[str]) -> list[str]:
 
 def read_measurements(
     path: PathLike, anchors: pd.DataFrame | Sequence[str] | None = None,
-    value: str | None = None,
+    value: str | None = None, *, engine_hint: bool = True,
 ) -> pd.DataFrame:
     """Read a whole measurements file: ``time, tag, anchor`` and one of ``rssi``/``range``.
 
@@ -1256,11 +1262,14 @@ def read_measurements(
         kept as an extra column (unchecked).  ``None`` (default): the file must hold
         exactly one of them (which one is meant cannot be told: ``locate``).  ``fuse``
         takes ranges, and the DWM1001 loader writes both columns (the fuse review).
+    engine_hint : bool, default True
+        A directory's error says a partitioned dataset is read with ``--engine dask``;
+        False (a command without ``--engine``): that the command reads one file.
     """
     if isinstance(path, pd.DataFrame):  # an in_memory_source
         _require_rows(path, "measurements", _display(path))
         return validate_measurements(path, _display(path), anchors, value)
-    df = _read_raw(path, ("tag", "anchor"))
+    df = _read_raw(path, ("tag", "anchor"), engine_hint)
     _require_rows(df, "measurements", _display(path))
     return validate_measurements(df, _display(path), anchors, value)
 
