@@ -182,3 +182,49 @@ def test_a_replay_interrupted_by_ctrl_c_says_where_to_resume(tmp_path):
     counts = _stored(store).groupby(["time", "tag", "anchor"]).size()
     assert len(counts) == len(log)
     assert (counts > 1).sum() <= len(ANCHORS)
+
+
+@pytest.mark.parametrize("transport", ["http", "ws"])
+def test_a_refused_connection_and_a_restart_are_retried(tmp_path, transport):
+    """A refused connection (no server yet) and a graceful restart between two time steps
+    (WebSocket: closed with 1012) stopped the replay; the batch certainly was not
+    received, so it is sent again (--retry-s) and the replay completes: every row of the
+    log stored once, the retries said on stderr."""
+    if transport == "ws":
+        pytest.importorskip("websockets")
+    from robustloc.service.launch import free_port
+
+    anchors = _anchors_file(tmp_path)
+    log = tmp_path / "m.csv"
+    df = pd.DataFrame([{"time": float(t), "tag": "T", "anchor": a, "range": 5.0}
+                       for t in (0, 20) for a in ANCHORS])
+    df.to_csv(log, index=False)
+    store = tmp_path / "store"
+    args = ["--anchors", str(anchors), "--store", str(store)]
+    port = free_port()
+    srv = ServerProcess(args, port=port, startup_timeout_s=120)
+    srv2 = rep = None
+    try:
+        # nothing listens yet: refused, retried until the server is up
+        rep = _start_replay(srv.url, log, "--speed", "1", "-q", "--transport", transport,
+                            "--retry-s", "120")
+        time.sleep(1.0)
+        srv.start()
+        _await_rows(srv, rep, len(ANCHORS))
+        srv.stop()  # the restart, in the 20 s between the two time steps
+        srv2 = ServerProcess(args, port=port, startup_timeout_s=120)
+        srv2.start()
+        out, err = rep.communicate(timeout=180)
+    finally:
+        _kill(rep)
+        srv.stop()
+        if srv2 is not None:
+            srv2.stop()
+    assert rep.returncode == 0, err
+    assert f"{2 * len(ANCHORS)} of {2 * len(ANCHORS)} rows accepted" in out
+    assert f"rows 1 to {len(ANCHORS)} not sent: sending them again" in err
+    if transport == "ws":
+        assert (f"the WebSocket was closed (code 1012); rows {len(ANCHORS) + 1} to "
+                f"{2 * len(ANCHORS)} not sent") in err
+    counts = _stored(store).groupby(["time", "tag", "anchor"]).size()
+    assert len(counts) == len(df) and (counts == 1).all()

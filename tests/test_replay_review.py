@@ -113,7 +113,7 @@ def test_a_websocket_replay_that_cannot_connect_still_says_how_far_it_got(tmp_pa
     port = s.getsockname()[1]
     s.close()  # (a port nothing listens on)
     code = main(["replay", _log(tmp_path), "--url", f"http://127.0.0.1:{port}", "--speed",
-                 "0", "--transport", "ws", "--json"])
+                 "0", "--transport", "ws", "--json", "--retry-s", "0"])
     out, err = capsys.readouterr()
     assert code == 2 and "stopped after 0 of 3 rows" in err
     assert json.loads(out)["sent"] == 0

@@ -77,6 +77,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="leave out the first N rows of the replay's order (by time, the "
                         "file's order within a time): resumes a replay that stopped after "
                         "N rows (default 0)")
+    p.add_argument("--retry-s", type=nonnegative_float, default=30.0, metavar="S",
+                   help="when the connection is refused, or a WebSocket was closed before "
+                        "a batch was sent (1012: a server restart), send the batch again "
+                        "for up to S seconds, saying so on stderr (default 30; 0: stop "
+                        "at once)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true",
                    help="print the summary as JSON (rows, accepted, n_rejected, the "
@@ -106,11 +111,15 @@ def _batches(times: np.ndarray, batch_rows: int | None,
 
 def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
            transport: str = "http", batch_rows: int | None = None,
-           progress: bool = False, skip: int = 0) -> dict:
+           progress: bool = False, skip: int = 0,
+           retry_s: float = 30.0) -> dict:
     """Send a log to a service.
 
     ``skip`` leaves out the first rows of the replay's order (sorted by time, stable):
     :class:`ReplayStopped`'s ``sent`` is the ``skip`` that resumes a stopped replay.
+    A batch that certainly did not reach the server (the connection refused, or a
+    WebSocket closed before the send, e.g. 1012 at a restart) is sent again, for up to
+    ``retry_s`` seconds (backoff 0.25 s doubling to 5 s), saying so on stderr.
 
     Returns
     -------
@@ -186,8 +195,6 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
             from websockets.sync.client import connect
 
             ws_url = base.replace("http://", "ws://", 1).replace("https://", "wss://", 1)
-            conn = connect(ws_url + "/ws/measurements", additional_headers=headers,
-                           max_size=None).__enter__()
         else:
             import httpx
 
@@ -200,9 +207,44 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
                     time.sleep(min(wait, 60.0))
                     wait = due - (time.monotonic() - t_start)
             body = json.dumps(records[i0:i1])
+            retry_until = None
+            backoff = 0.25
             while True:
+                try:
+                    if transport == "ws" and conn is None:
+                        conn = connect(ws_url + "/ws/measurements",
+                                       additional_headers=headers, max_size=None).__enter__()
+                    if conn is not None:
+                        conn.send(body)
+                    else:
+                        assert client is not None
+                        in_flight = (skip + i0, skip + i1)
+                        r = client.post(base + "/api/measurements", content=body,
+                                        headers={"Content-Type": "application/json"})
+                        in_flight = None
+                except _transport_errors() as exc:
+                    # refused, or a WebSocket closed (1012: a restart) before the send:
+                    # the batch certainly did not reach the server; send it again
+                    # (a restart stopped the replay: the replay review)
+                    if not _safe_to_retry(exc):
+                        raise
+                    in_flight = None
+                    now = time.monotonic()
+                    retry_until = now + retry_s if retry_until is None else retry_until
+                    if now >= retry_until:
+                        raise RuntimeError(f"{_reason(exc)} (retried for {retry_s:g} s)"
+                                           if retry_s else _reason(exc)) from exc
+                    wait = min(backoff, retry_until - now)
+                    print(f"warning: {url}: {_reason(exc)}; rows {skip + i0 + 1} to "
+                          f"{skip + i1} not sent: sending them again in {wait:.2g} s",
+                          file=sys.stderr)
+                    if conn is not None:
+                        conn.__exit__(None, None, None)
+                        conn = None
+                    time.sleep(wait)
+                    backoff = min(2 * backoff, 5.0)
+                    continue
                 if conn is not None:
-                    conn.send(body)
                     in_flight = (skip + i0, skip + i1)
                     # (no answer within the timeout: a server that takes the rows and
                     # never acknowledges them hung the replay for good: the review)
@@ -211,11 +253,6 @@ def replay(path: str, url: str, *, speed: float = 1.0, token: str | None = None,
                     res = _parsed(text)
                     status = res.pop("status", 202) if "error" in res or "status" in res else 202
                 else:
-                    assert client is not None
-                    in_flight = (skip + i0, skip + i1)
-                    r = client.post(base + "/api/measurements", content=body,
-                                    headers={"Content-Type": "application/json"})
-                    in_flight = None
                     status = r.status_code
                     res = _parsed(r.text) if r.headers.get("content-type", "").startswith(
                         "application/json") else {"error": r.text}
@@ -269,6 +306,9 @@ ANSWER_TIMEOUT_S = 60.0
 MAX_RETRY_AFTER_S = 60.0
 #: The WebSocket close code of a message over the server's size limit.
 WS_MESSAGE_TOO_BIG = 1009
+#: WebSocket close codes after which a batch not yet sent is sent again on a new
+#: connection: going away (1001) and service restart (1012).
+WS_RETRY_CODES = (1001, 1012)
 
 
 class _TooLarge(RuntimeError):
@@ -282,6 +322,28 @@ def _close_code(exc: BaseException) -> int | None:
         if frame is not None and isinstance(getattr(frame, "code", None), int):
             return frame.code
     return None
+
+
+def _safe_to_retry(exc: BaseException) -> bool:
+    """True when ``exc`` (raised connecting or sending, before any answer) means the
+    batch certainly did not reach the server: the connection was refused, or the
+    WebSocket was closed for a restart (1012) or going away (1001) before the send (a
+    message is not sent on a closed one)."""
+    if _close_code(exc) in WS_RETRY_CODES:
+        return True  # (raised by the send: closed before it)
+    while exc is not None:  # httpx wraps the socket's error
+        if isinstance(exc, ConnectionRefusedError):
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
+def _reason(exc: BaseException) -> str:
+    """A one-line reason for a retried failure."""
+    code = _close_code(exc)
+    if code is not None:
+        return f"the WebSocket was closed (code {code})"
+    return str(exc) or type(exc).__name__
 
 
 def _not_connected(exc: BaseException) -> bool:
@@ -395,7 +457,7 @@ def run(args: argparse.Namespace) -> int:
         summary = replay(args.measurements, args.url, speed=args.speed, token=args.token,
                          transport=args.transport, batch_rows=args.batch_rows,
                          progress=not (args.quiet or args.json) and sys.stderr.isatty(),
-                         skip=args.skip)
+                         skip=args.skip, retry_s=args.retry_s)
     except ReplayStopped as exc:
         first = f"the first {exc.skipped} skipped, " if exc.skipped else ""
         resume = (f"; resume with --skip {exc.sent}" if exc.sent < exc.rows else "")
