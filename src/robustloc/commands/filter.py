@@ -35,8 +35,10 @@ An RSSI outside -150 .. +30 dBm (robustloc.io.limits) is not fed to the
 filter, nor is a row whose time is beyond +-1e12 s: the row keeps the raw value in 'rssi'
 and 'rssi_raw' (so 'locate' sets it aside as on the raw file), 'distance' is empty,
 'distance_state' and 'speed' are the filter's prediction (empty for a time beyond the
-limits: no prediction reaches it), and 'status' says invalid_measurement (else ok); such
-rows are counted in the summary.
+limits: no prediction reaches it), 'weight' and 'innovation' are empty, and 'status' says
+invalid_measurement (else ok); such rows are counted in the summary.  The summary counts
+the weights, rejections, re-locks and restarts over the filter's samples (rows merged
+into one sample once, invalid rows not): "filtered N samples (M rows)".
 A link whose predicted RSSI variance exceeds 25 times the measurement's starts again at
 its sample, as at its first one: the prior then weighs under 4 % of the update, and the
 distance and speed states are drawn from the sample instead of carried across the gap
@@ -249,14 +251,22 @@ def filter_partition(meas, anchors, args: argparse.Namespace):
     frame, summary = filter_frame(meas, anchors, args)
     counts = {k: v for k, v in summary.items() if isinstance(v, int)}
     counts["shared"] = {"filter": summary["filter"]}
+    import pandas as pd
+
     from robustloc import status as st
+    from robustloc.filters.rssi import one_row_per_sample
 
     # as filter_measurements' summary: over the rows fed to the filter (an invalid row
-    # keeps its raw value in both columns: not a difference of the filter's)
+    # keeps its raw value in both columns: not a difference of the filter's), the weights
+    # over one row of each sample of the filter
     fed = frame["status"].to_numpy() == st.OK
     diff = (frame["rssi_raw"] - frame["rssi"]).to_numpy(dtype=float)[fed]
     diff = diff[np.isfinite(diff)]
-    innovated = np.isfinite(frame["innovation"].to_numpy(dtype=float))
+    link = pd.MultiIndex.from_arrays([frame["tag"].astype(str),
+                                      frame["anchor"].astype(str)]).factorize()[0]
+    one = one_row_per_sample(link, frame["time"].to_numpy(dtype=float),
+                             fed & np.isfinite(frame["rssi_raw"].to_numpy(dtype=float)))
+    innovated = one & np.isfinite(frame["innovation"].to_numpy(dtype=float))
     w = frame["weight"].to_numpy(dtype=float)[innovated]
     counts["_moments"] = {"n_weighted": int(innovated.sum()),
                           "downweighted": int(np.sum(w < 1)), "diff": Moments.of(diff)}
@@ -337,7 +347,10 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(s, indent=2), file=dest)
     elif not args.quiet:
-        print(f"filtered {s['samples']} samples on {s['links']} links ({s['filter']}): "
+        rows = (f" ({s['samples']} rows)" if s["samples"] != s["filtered_samples"]
+                else "")
+        print(f"filtered {s['filtered_samples']} samples{rows} on {s['links']} links "
+              f"({s['filter']}): "
               f"{s['downweighted']} down-weighted, {s['rejected']} rejected, "
               f"{s['relocked']} re-locks, {s['restarted']} restarts -> {s['out']}",
               file=dest)

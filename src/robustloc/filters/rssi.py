@@ -651,7 +651,9 @@ class RobustRssiFilter:
         each gets that merged sample's result, whatever their order in the input (ranked
         by input order, their filtered values depended on which came first).  How many
         were merged is ``extra["duplicates_merged"]`` (finite values beyond the first of
-        each time and link).
+        each time and link).  A NaN sample at the time of a finite one of its link is no
+        part of it: it gets the prediction (before that sample's update), weight and
+        innovation NaN, not re-locked nor restarted, as a missing measurement does.
         """
         link = np.asarray(link, dtype=np.int64)
         t = np.asarray(time_s, dtype=float)
@@ -681,10 +683,25 @@ class RobustRssiFilter:
         layout = StepLayout.build(link_g, t_g)
         if params is None:
             params = LinkParams.broadcast(layout.n_links)
-        res = self.run(layout.scatter(z_g), layout.intervals(t_g), params,
-                       progress=progress).gather(layout)
+        # NaN samples merged with a finite one: they had taken its update, weight and
+        # innovation (a -500 dBm row set aside by `robustloc filter` showed the weight 0
+        # of the valid row beside it: the filter review); they get the prediction
+        lone = None if group is None else np.isnan(z) & ~np.isnan(z_g[group])
+        res, prior = self._run(layout.scatter(z_g), layout.intervals(t_g), params,
+                               progress=progress, prior=lone is not None and lone.any())
+        res = res.gather(layout)
         if group is not None:
             res = res.take(group)
+        if prior is not None and lone is not None:
+            where = group[lone]
+            for values, key in ((res.rssi_dbm, "p"), (res.distance_m, "d"),
+                                (res.speed_mps, "v"), (res.rssi_var_db2, "var")):
+                values[lone] = layout.gather(prior[key])[where]
+            for values in (res.innovation_db, res.standardized, res.scale_db, res.weight):
+                values[lone] = np.nan
+            res.relocked[lone] = False
+            if res.restarted is not None:
+                res.restarted[lone] = False
         res.extra["duplicates_merged"] = n_dup
         return res
 
@@ -696,6 +713,15 @@ class RobustRssiFilter:
         One vectorized step per row; every link is an independent filter.  ``progress``
         shows a bar on stderr when it is a terminal.
         """
+        return self._run(rssi_dbm, dt_s, params, progress=progress)[0]
+
+    def _run(
+        self, rssi_dbm: ArrayLike, dt_s: ArrayLike, params: LinkParams, progress: bool = False,
+        prior: bool = False,
+    ) -> tuple[RssiFilterResult, dict[str, Array] | None]:
+        """:meth:`run`, and with ``prior`` the prediction of each step before its update
+        (``(T, L)`` arrays ``p, d, v, var``; NaN where the link has not started or starts
+        at that step), else ``None``."""
         z_all = np.asarray(rssi_dbm, dtype=float)
         dt_all = np.asarray(dt_s, dtype=float)
         if z_all.ndim != 2 or dt_all.shape != z_all.shape:
@@ -730,6 +756,8 @@ class RobustRssiFilter:
                ("p", "d", "v", "var", "innov", "u", "scale", "w")}
         relocked = np.zeros((T, L), dtype=bool)
         restarted = np.zeros((T, L), dtype=bool)
+        pred = ({k: np.full((T, L), np.nan) for k in ("p", "d", "v", "var")} if prior
+                else None)
 
         x = np.zeros((L, 3))
         P = np.zeros((L, 3, 3))
@@ -772,6 +800,10 @@ class RobustRssiFilter:
             x_pred, phi, Q = terms(x, dt)
             x, P = core.predict_ekf(x, P, lambda _s, xp=x_pred: xp, Q,
                                     jac=lambda _s, jp=phi: jp)
+            if pred is not None:
+                for key, col in (("p", 0), ("d", 1), ("v", 2)):
+                    pred[key][k] = np.where(run_now, x[:, col], np.nan)
+                pred["var"][k] = np.where(run_now, P[:, 0, 0], np.nan)
             # a prediction too wide to carry anything (restart_var_ratio): start again
             upd = present & run_now
             if self.restart_var_ratio is not None:
@@ -840,7 +872,7 @@ class RobustRssiFilter:
         return RssiFilterResult(
             out["p"], out["d"], out["v"], out["var"], out["innov"], out["u"], out["scale"],
             out["w"], relocked, {"exponent": expo}, restarted,
-        )
+        ), pred
 
     def _start(self, z: Array, p: LinkParams, expo: Array, c_db: Array,
                which: NDArray[np.bool_], R: float) -> tuple[Array, Array]:
@@ -923,6 +955,20 @@ def link_params_from_anchors(anchors: object, anchor_of_link: ArrayLike) -> Link
                       faf_db=per_link(faf, 0.0), d0_m=per_link(d0, 1.0))
 
 
+def one_row_per_sample(link: ArrayLike, time_s: ArrayLike, fed: ArrayLike) -> NDArray[np.bool_]:
+    """The first row fed to the filter (``fed``: it has a value) of each sample of the
+    filter, rows of one link at one time being one sample; the filter's counts are over
+    these rows."""
+    import pandas as pd
+
+    fed = np.asarray(fed, dtype=bool)
+    idx = np.flatnonzero(fed)
+    keys = pd.DataFrame({"link": np.asarray(link)[idx], "time": np.asarray(time_s)[idx]})
+    one = np.zeros(fed.size, dtype=bool)
+    one[idx[~keys.duplicated().to_numpy()]] = True
+    return one
+
+
 @dataclass(frozen=True)
 class FilteredTable:
     """Result of :func:`filter_measurements`.
@@ -935,8 +981,10 @@ class FilteredTable:
     ``D``), ``innovation`` (dB) and ``relocked``.  Rows of one link at one time are one
     sample of the filter (their RSSI averaged, as ``locate`` averages an epoch's
     duplicates): each such row has the merged sample's filtered columns and its own
-    ``rssi_raw``.  ``summary`` holds the counts (``duplicates_merged``: rows merged
-    into another's sample).
+    ``rssi_raw``.  ``summary`` holds the counts (``samples``: rows;
+    ``filtered_samples``: samples of the filter, rows without a value left out; the
+    weights, re-locks and restarts are counted over these; ``duplicates_merged``: rows
+    merged into another's sample).
     """
 
     frame: object
@@ -987,16 +1035,22 @@ def filter_measurements(
     out["weight"] = res.weight
     out["innovation"] = res.innovation_db
     out["relocked"] = res.relocked
-    w = res.weight[np.isfinite(res.innovation_db)]
+    # the counts are of the filter's samples: one row of each merged sample, none without
+    # a value (a merged rejected sample of two rows counted 2 rejections, and rows set
+    # aside counted as filtered: the filter review)
+    one = one_row_per_sample(link, m["time"].to_numpy(dtype=float),
+                             np.isfinite(out["rssi_raw"].to_numpy(dtype=float)))
+    w = res.weight[one & np.isfinite(res.innovation_db)]
     diff = (out["rssi_raw"] - out["rssi"]).to_numpy(dtype=float)
     summary = {
         "filter": filt.name,
         "samples": int(len(m)),
+        "filtered_samples": int(one.sum()),
         "links": int(len(uniq)),
         "downweighted": int(np.sum(w < 1)),
         "rejected": int(np.sum(w == 0)),
-        "relocked": int(res.relocked.sum()),
-        "restarted": int(0 if res.restarted is None else res.restarted.sum()),
+        "relocked": int(res.relocked[one].sum()),
+        "restarted": int(0 if res.restarted is None else res.restarted[one].sum()),
         "duplicates_merged": int(res.extra.get("duplicates_merged", 0)),
         "share_downweighted": float(np.mean(w < 1)) if w.size else 0.0,
         # None (JSON null) without any filtered value: a bare NaN is no JSON (the
