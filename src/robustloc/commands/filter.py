@@ -109,7 +109,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="receivers do not move: speed fixed at 0, no acceleration (the "
                         "filter becomes a robust running mean with a slow power walk)")
     p.add_argument("--max-rejected", type=nonnegative_int, default=8,
-                   help="consecutive rejections before a link re-locks (0: never; default 8)")
+                   help="rejections in a row after which a link re-locks, taking that "
+                        "sample with weight 1 (0: never; default 8); a young link re-locks "
+                        "sooner, at the rejection that makes its rejections in a row "
+                        "outnumber the samples it has taken (weight > 0) since it started "
+                        "or restarted")
     p.add_argument("--no-adaptive", action="store_true",
                    help="standardize by the predicted innovation std only")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")

@@ -92,7 +92,11 @@ level for good: every later innovation is then rejected, and only the slowly gro
 predicted variance would let the new level in.  When a link would reject its
 ``max_rejected``-th consecutive sample (default 8, the paper's decorrelation lag), that
 sample is taken with weight one and the power variance is first inflated by ``e^2``, so the
-filter re-locks to the new level at once (``max_rejected=0`` disables this).
+filter re-locks to the new level at once.  A young link re-locks sooner: at the rejection
+that makes its consecutive rejections outnumber the samples it has taken (weight above
+zero, its first one included) since it started or restarted, as when its first sample was
+a fade and the good samples after it were rejected (3 samples taken, then re-locked at
+the 4th rejection in a row).  ``max_rejected=0`` disables both.
 """
 
 from __future__ import annotations
@@ -375,7 +379,8 @@ class RssiFilterResult:
     scale_db : the standard error ``s`` used (see module docstring).
     weight : equivalent weight ``D`` applied to the gain (1 for the plain filter; NaN for a
         missing measurement).
-    relocked : the sample re-locked the link after ``max_rejected`` rejections.
+    relocked : the sample re-locked the link after ``max_rejected`` rejections in a row, or
+        after fewer that outnumber the samples the link has taken (module docstring).
     restarted : the sample started the link again (``restart_var_ratio``): its weight is
         1, it has no innovation.
     """
@@ -496,7 +501,9 @@ class RobustRssiFilter:
     scale_window : float
         ``1/lambda`` of the running scale ``s_emp``, in samples.
     max_rejected : int
-        Consecutive zero-weight samples after which a link re-locks (0: never).
+        Consecutive zero-weight samples after which a link re-locks (0: never); a link
+        re-locks sooner when its consecutive rejections outnumber the samples it has taken
+        (weight above zero) since it started (module docstring).
     model_sigma_db : float or None
         Standard deviation (dB) of the path-loss tie ``P_r = P_r(d)`` (eq. (5)) applied as a
         pseudo-observation after each update (see the module docstring); ``None``: the
