@@ -11,6 +11,10 @@ taken where it has one.
 * ``filter --static --sigma-accel`` and ``--static --exponent``: the output was byte for
   byte that of ``--static`` alone (checked here on the option taken without
   ``--static``, where it changes the output).
+* ``filter --robust none --max-rejected`` and ``--robust none --no-adaptive`` (the plain
+  filter rejects nothing and takes no scale), ``--robust huber --max-rejected`` (Huber's
+  weight is never 0); ``simulate gnss --fault-m`` without ``--faults``, ``simulate
+  wifi-room --no-jumps --jump-db`` (the filter review).
 """
 
 from __future__ import annotations
@@ -148,3 +152,98 @@ def test_filter_takes_them_for_a_moving_receiver(tmp_path, rssi_site, extra):
     assert main(["filter", *rssi_site, "-o", str(base)]) == 0
     assert main(["filter", *rssi_site, *extra, "-o", str(other)]) == 0
     assert not np.allclose(pd.read_csv(base)["rssi"], pd.read_csv(other)["rssi"])
+
+
+@pytest.mark.parametrize("extra, said", [
+    (["--robust", "none", "--max-rejected", "1"],
+     "--max-rejected does not apply to --robust none"),
+    (["--robust", "ls", "--max-rejected", "8"],  # the default, given: refused too
+     "--max-rejected does not apply to --robust none"),
+    (["--robust", "none", "--no-adaptive"], "--no-adaptive does not apply to --robust none"),
+    (["--robust", "none", "--no-adaptive", "--max-rejected", "0"],
+     "--max-rejected, --no-adaptive does not apply to --robust none"),
+    (["--robust", "huber", "--max-rejected", "1"],
+     "--max-rejected does not apply to --robust huber (Huber's weight c/|u| is never 0"),
+])
+def test_filter_refuses_the_options_its_weight_makes_idle(tmp_path, capsys, rssi_site,
+                                                          extra, said):
+    out = tmp_path / "f.csv"
+    code = main(["filter", *rssi_site, *extra, "-o", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and said in err and "Traceback" not in err, err
+    assert not out.exists()
+
+
+def test_the_refused_filter_options_change_nothing_there():
+    """Why they are refused: with the plain filter, re-locks and the adaptive scale leave
+    every value as it is (a fade and a level change included); Huber's weight stays above
+    0 however large the innovation, so nothing is rejected and nothing re-locks."""
+    from robustloc.filters.rssi import RobustRssiFilter
+    from robustloc.robust.weights import Huber
+
+    z = np.r_[np.full(5, -50.0), -80.0, np.full(12, -70.0)]
+    args = (np.zeros(z.size, dtype=np.int64), np.arange(z.size, dtype=float), z)
+    plain = RobustRssiFilter(None, robust=False).filter_samples(*args)
+    other = RobustRssiFilter(None, robust=False, max_rejected=1,
+                             adaptive=False).filter_samples(*args)
+    for name in ("rssi_dbm", "distance_m", "speed_mps", "weight", "innovation_db"):
+        np.testing.assert_array_equal(getattr(plain, name), getattr(other, name))
+    assert np.all(Huber().weights(np.array([3.0, 1e6, -1e300])) > 0)
+    huber = [RobustRssiFilter(Huber(), max_rejected=k).filter_samples(*args)
+             for k in (1, 8)]
+    assert not huber[0].relocked.any()
+    np.testing.assert_array_equal(huber[0].rssi_dbm, huber[1].rssi_dbm)
+
+
+@pytest.mark.parametrize("extra", [["--max-rejected", "1"], ["--no-adaptive"]])
+def test_filter_takes_them_with_a_weight_that_rejects(tmp_path, extra):
+    """With the default weight (asymmetric IGG, which rejects) each option is taken, and
+    --no-adaptive with Huber too (its weight depends on the scale): noise of 4 dB (twice
+    --sigma-rssi, so the adaptive scale matters) and a drop of 20 dB (re-locks)."""
+    (tmp_path / "a.csv").write_text("anchor,x,y,A,n\nA1,0,0,-40,2\n")
+    z = np.r_[np.full(30, -50.0), np.full(30, -70.0)] + np.random.default_rng(3).normal(
+        0, 4, 60)
+    pd.DataFrame({"time": np.arange(60.0), "tag": "T1", "anchor": "A1", "rssi": z}).to_csv(
+        tmp_path / "m.csv", index=False)
+    site = [str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"), "-q",
+            "--static"]
+    runs = {}
+    for name, opts in {"base": [], "other": extra,
+                       "huber": ["--robust", "huber"],
+                       "huber_other": ["--robust", "huber", "--no-adaptive"]}.items():
+        out = tmp_path / f"{name}.csv"
+        if name != "huber_other" or extra == ["--no-adaptive"]:
+            assert main(["filter", *site, *opts, "-o", str(out)]) == 0
+            runs[name] = pd.read_csv(out)
+    assert not runs["base"].equals(runs["other"])
+    if "huber_other" in runs:
+        assert not runs["huber"].equals(runs["huber_other"])
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["gnss", "--epochs", "3", "--fault-m", "500"], "--fault-m does not apply without --faults"),
+    (["gnss", "--epochs", "3", "--faults", "0", "--fault-m", "20"],
+     "--fault-m does not apply without --faults"),
+    (["wifi-room", "--no-jumps", "--jump-db", "50"],
+     "--jump-db does not apply to --no-jumps"),
+])
+def test_simulate_refuses_what_it_would_ignore(tmp_path, capsys, argv, said):
+    out = tmp_path / "sim"
+    code = main(["simulate", *argv, "-o", str(out), "-q"])
+    err = capsys.readouterr().err
+    assert code == 2 and said in err and "Traceback" not in err, err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("base, extra", [
+    (["gnss", "--epochs", "3", "--faults", "1"], ["--fault-m", "500"]),
+    (["wifi-room", "--walk-epochs", "300", "--samples-per-point", "2"], ["--jump-db", "50"]),
+])
+def test_simulate_takes_them_where_they_apply(tmp_path, capsys, base, extra):
+    files = []
+    for name, opts in (("a", []), ("b", extra)):
+        assert main(["simulate", *base, *opts, "-o", str(tmp_path / name), "-q"]) == 0
+        capsys.readouterr()
+        file = "pseudoranges.csv" if base[0] == "gnss" else "measurements.csv"
+        files.append((tmp_path / name / file).read_bytes())
+    assert files[0] != files[1]

@@ -82,6 +82,9 @@ WEIGHTS = ("asymmetric-igg", "igg3", "igg", "huber", "hampel", "none")
 
 #: ``--sigma-accel``'s default, by which a value given is told from none.
 SIGMA_ACCEL_DEFAULT = 0.5
+#: ``--max-rejected``'s default (the option's default is None: a value given is told from
+#: none, :func:`_refuse_idle_robust_options`).
+MAX_REJECTED_DEFAULT = 8
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -108,14 +111,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--static", action="store_true",
                    help="receivers do not move: speed fixed at 0, no acceleration (the "
                         "filter becomes a robust running mean with a slow power walk)")
-    p.add_argument("--max-rejected", type=nonnegative_int, default=8,
+    p.add_argument("--max-rejected", type=nonnegative_int, default=None,
                    help="rejections in a row after which a link re-locks, taking that "
                         "sample with weight 1 (0: never; default 8); a young link re-locks "
                         "sooner, at the rejection that makes its rejections in a row "
                         "outnumber the samples it has taken (weight > 0) since it started "
-                        "or restarted")
+                        "or restarted; refused with --robust none or huber, which "
+                        "never reject)")
     p.add_argument("--no-adaptive", action="store_true",
-                   help="standardize by the predicted innovation std only")
+                   help="standardize by the predicted innovation std only (refused with "
+                        "--robust none)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.add_argument("-q", "--quiet", action="store_true",
                    help="no progress bar and no text summary (as locate; warnings stay)")
@@ -168,7 +173,8 @@ def filter_frame(meas, anchors, args: argparse.Namespace, progress: bool = False
         init_speed_std_mps=0.0 if args.static else 1.0,
         q_rssi_db2_per_s=args.q_rssi,
         exponent=args.exponent,
-        max_rejected=args.max_rejected,
+        max_rejected=(MAX_REJECTED_DEFAULT if args.max_rejected is None
+                      else args.max_rejected),
         adaptive=not args.no_adaptive,
     )
     # a time outside the limits (|t| >= 1e12 s) never reaches the filter either: its
@@ -317,10 +323,36 @@ def _refuse_moving_options(args: argparse.Namespace) -> None:
                          "transition's exponent to turn into power)")
 
 
+def _refuse_idle_robust_options(args: argparse.Namespace) -> None:
+    """Options of the robust weight, refused where the weight makes them idle (they were
+    taken and changed no output byte: the filter review).  A link re-locks only after a
+    rejection (weight 0): ``--robust none`` gives every sample weight 1, and Huber's weight
+    ``c / |u|`` is never 0 for a finite innovation, so ``--max-rejected`` has nothing to
+    count; the adaptive scale only standardizes the innovation for the weight, which
+    ``--robust none`` does not take."""
+    from robustloc.errors import InputError
+
+    why = {"none": "the plain filter gives every sample weight 1",
+           "huber": "Huber's weight c/|u| is never 0"}.get(args.robust)
+    if why is None:
+        return
+    given = [flag for flag, on in (
+        ("--max-rejected", args.max_rejected is not None),
+        ("--no-adaptive", args.no_adaptive and args.robust == "none")) if on]
+    if given:
+        what = ("no sample is rejected, so no link re-locks, and the innovation's scale "
+                "weighs nothing" if len(given) > 1 else
+                "no sample is rejected, so no link re-locks" if given[0] == "--max-rejected"
+                else "the innovation's scale weighs nothing")
+        raise InputError(f"{', '.join(given)} does not apply to --robust {args.robust} "
+                         f"({why}: {what})")
+
+
 def run(args: argparse.Namespace) -> int:
     from robustloc.io.atomic import check_not_input
 
     _refuse_moving_options(args)  # before any work
+    _refuse_idle_robust_options(args)
 
     if args.engine != "dask":  # (the Dask engine checks its output tree itself)
         check_not_input(args.out, [args.measurements, args.anchors])

@@ -71,6 +71,9 @@ def run(args: argparse.Namespace) -> int:
         for name, mod in mods.items():
             print(f"{name:16s} {mod.HELP}")
         return 0 if args.list else 2
+    refuse = getattr(mods[args.scenario], "refuse_idle_options", None)
+    if refuse is not None:  # an option the others make idle: refused before any work
+        refuse(args)
     from robustloc.commands._folder import write_folder
 
     out = Path(args.out)

@@ -6,7 +6,10 @@ A scenario module exposes
 * ``add_arguments(parser)`` for its own options,
 * ``simulate(out_dir: Path, seed: int, args: argparse.Namespace) -> dict[str, Path]``
   which writes the contract files (``anchors.csv``, ``measurements.csv``, ``truth.csv``,
-  ``survey.csv`` where calibration applies, ...) and returns them by name.
+  ``survey.csv`` where calibration applies, ...) and returns them by name,
+* optionally ``refuse_idle_options(args)``, which raises
+  :class:`robustloc.errors.InputError` for an option that the other options make idle
+  (``robustloc simulate`` calls it before any work).
 
 Scenarios sample from the same measurement models the estimators use.
 """

@@ -232,6 +232,10 @@ def visible_design(
     )
 
 
+#: ``--fault-m``'s default (the option's default is None: a value given is told from none).
+FAULT_M_DEFAULT = 20.0
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from robustloc.options import (
         float_in,
@@ -257,8 +261,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--faults", type=int_in(0, 100), default=0,
                    help="gross errors per epoch (default 0)")
-    p.add_argument("--fault-m", type=float_in(0.0, 1e6), default=20.0,
-                   help="gross-error scale: size +-U(1, 2) times this, m (default 20)")
+    p.add_argument("--fault-m", type=float_in(0.0, 1e6), default=None,
+                   help=f"gross-error scale: size +-U(1, 2) times this, m (default "
+                        f"{FAULT_M_DEFAULT:g}; refused without --faults)")
+
+
+def refuse_idle_options(args: argparse.Namespace) -> None:
+    """``--fault-m`` without ``--faults`` (0 gross errors: nothing to size) is refused with
+    :class:`robustloc.errors.InputError`: it was taken and changed no byte of the files
+    (the filter review)."""
+    from robustloc.errors import InputError
+
+    if getattr(args, "fault_m", None) is not None and not getattr(args, "faults", 0):
+        raise InputError("--fault-m does not apply without --faults (no gross error to "
+                         "size: the files have none)")
 
 
 @dataclass(frozen=True)
@@ -511,7 +527,7 @@ def simulate(out_dir: Path, seed: int, args: argparse.Namespace) -> dict[str, Pa
         mask_deg=args.mask_deg,
         elevation_weighting=not args.no_elevation_weighting,
         faults=args.faults,
-        fault_m=args.fault_m,
+        fault_m=FAULT_M_DEFAULT if args.fault_m is None else args.fault_m,
         counts=counts,
     )
     with progress_bar(args, args.epochs, " epochs", "simulate gnss") as bar, \

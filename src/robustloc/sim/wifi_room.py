@@ -342,11 +342,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"scale of the skewed RSSI noise, dB (default {d.noise_db})")
     p.add_argument("--fade-prob", type=float_in(0.0, 1.0), default=d.fade_prob,
                    help=f"probability of a 4-10 dB fade per scan (default {d.fade_prob})")
-    p.add_argument("--jump-db", type=float_in(0.0, 100.0), default=d.jump_db,
-                   help=f"environment-change drop on the walk, dB (default {d.jump_db})")
+    p.add_argument("--jump-db", type=float_in(0.0, 100.0), default=None,
+                   help=f"environment-change drop on the walk, dB (default {d.jump_db}; "
+                        "refused with --no-jumps)")
     p.add_argument("--ar-phi", type=float_in(0.0, 0.999999), default=d.ar_phi,
                    help=f"AR(1) coefficient of the correlated noise per scan (default {d.ar_phi})")
     p.add_argument("--no-jumps", action="store_true", help="no environment changes")
+
+
+def refuse_idle_options(args: argparse.Namespace) -> None:
+    """``--jump-db`` with ``--no-jumps`` (no environment change to size) is refused with
+    :class:`robustloc.errors.InputError`: it was taken and changed no byte of the files
+    (the filter review)."""
+    from robustloc.errors import InputError
+
+    if getattr(args, "jump_db", None) is not None and getattr(args, "no_jumps", False):
+        raise InputError("--jump-db does not apply to --no-jumps (no environment change "
+                         "on the walk to size)")
 
 
 def measurement_rows(cfg: WifiRoomConfig) -> tuple[int, int, int]:
@@ -408,7 +420,7 @@ def simulate(out_dir: Path, seed: int, args: argparse.Namespace) -> dict[str, Pa
         speed_mps=getattr(args, "speed", 1.0),
         noise_db=getattr(args, "noise_db", 1.5),
         fade_prob=getattr(args, "fade_prob", 0.03),
-        jump_db=getattr(args, "jump_db", 8.0),
+        jump_db=8.0 if getattr(args, "jump_db", None) is None else args.jump_db,
         jumps=not getattr(args, "no_jumps", False),
         ar_phi=getattr(args, "ar_phi", AR_PHI),
     )
