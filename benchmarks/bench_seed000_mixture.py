@@ -11,8 +11,9 @@ three strongest beacons).  Beside it, ``nls`` and least squares in the dB domain
 
 Measured 2026-12-06, mean 2-D error over S1-S3 and seeds 1-4: ``nls`` 1.805 m, the mixture
 1.828 m, dB-domain least squares 2.183 m.  The range domain stays better than any
-dB-domain fit of this simulator (its calibration is censored at the sensitivity: ``n``
-comes out 2.05 for the true 2.2), so the mixture is not adopted.
+dB-domain fit of this simulator (its calibration is censored at the sensitivity: the
+pooled ``n`` comes out 1.96, 1.91, 2.04 and 1.98 on seeds 1-4 for the true 2.2), so the
+mixture is not adopted.
 
 Usage::
 
