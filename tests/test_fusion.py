@@ -717,3 +717,21 @@ def test_merge_streams_angles_cost_memory_per_angle_not_per_component():
             want = np.arctan2(np.sin(vals[sel, 7]).sum(), np.cos(vals[sel, 7]).sum())
             assert tl.z[k, j, 7] == pytest.approx(want, abs=1e-12)
             assert tl.z[k, j, 0] == pytest.approx(vals[sel, 0].mean(), abs=1e-12)
+
+
+def test_uwb_cart_docstring_says_where_the_cart_stops():
+    """The docstring (``simulate uwb-cart --help``) said the diagonal runs "to the far
+    corner"; the cart stops at the last whole step, short of it (the filter review)."""
+    import re
+
+    doc = " ".join(uwb_cart.__doc__.split())
+    said = re.search(r"in the (\d+) epochs whose whole steps fit in the diagonal, so it stops "
+                     r"short of the far corner, at \(([0-9.]+), \2\) in group A and "
+                     r"\(([0-9.]+), \3\) in group B", doc)
+    assert said is not None, doc
+    line = uwb_cart.simulate_cart("A", "line").truth[0]
+    assert len(line) == 51 and tuple(line[-1, :2]) == (10.0, 5.0)  # "from x = 0 to 10 m"
+    for group, stop in (("A", said.group(2)), ("B", said.group(3))):
+        truth = uwb_cart.simulate_cart(group, "diagonal").truth[0]
+        assert len(truth) == int(said.group(1))
+        np.testing.assert_allclose(truth[-1, :2], float(stop), atol=0.005)

@@ -4,7 +4,9 @@ Geometry (seed 001, experiments): group A, a 10 m x 10 m field with anchors BS.A
 BS.B (10, 0), BS.C (10, 10), the cart moving straight along ``y = 5`` (``--path line``) or
 ``y = x`` (``--path diagonal``) at 0.2 m/s, ``T = 1 s``; group B, 100 m x 100 m, anchors
 (0, 100), (100, 0), (100, 100), along ``y = x``, ``T = 10 s``.  The cart crosses the field
-(``y = 5``: from x = 0 to 10 m; ``y = x``: from (0, 0) to the far corner).
+(``y = 5``: from x = 0 to 10 m in 51 epochs; ``y = x``: from (0, 0) in the 71 epochs whose
+whole steps fit in the diagonal, so it stops short of the far corner, at (9.90, 9.90) in
+group A and (98.99, 98.99) in group B).
 
 Noise (our documented choice; the paper gives none for the experiments):
 
