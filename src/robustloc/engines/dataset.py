@@ -2,7 +2,8 @@
 
 A *dataset* is a directory (searched recursively), a glob, or one file.  Its Parquet files
 (``*.parquet``, ``*.pq``; names starting with ``_`` or ``.`` are ignored, as Spark, dask,
-pyarrow and DuckDB do) are its *partitions*, and each partition file is the unit of work
+pyarrow and DuckDB do; symbolic links are followed, a link to nothing is refused) are
+its *partitions*, and each partition file is the unit of work
 and of error reporting: a problem found in it is ``error: PARTITION_FILE:LINE: what``,
 where LINE counts the file's rows as in CSV (data row ``i`` from 0 is line ``i + 2``).
 
@@ -99,6 +100,28 @@ def _hive_keys(path: Path, base: Path | None) -> tuple[tuple[str, str], ...]:
     return tuple(out)
 
 
+def _walk(root: Path) -> list[Path]:
+    """The files under ``root``, following symbolic links to folders (each real folder
+    walked once, so a link loop ends) and keeping links to nothing (for the caller to
+    refuse); hidden names (:func:`_hidden`) are left out at any depth.
+
+    ``Path.rglob`` does not follow linked folders (Python 3.11) and ``Path.is_file`` is
+    False for a dangling link: both left partitions out without a word.
+    """
+    out: list[Path] = []
+    seen: set[tuple[int, int]] = set()
+    for top, dirs, names in os.walk(root, followlinks=True):
+        st = os.stat(top)
+        if (st.st_dev, st.st_ino) in seen:
+            dirs[:] = []
+            continue
+        seen.add((st.st_dev, st.st_ino))
+        dirs[:] = sorted(d for d in dirs if not _hidden(d))
+        out += [f for f in (Path(top, n) for n in names if not _hidden(n))
+                if f.is_file() or not f.exists()]
+    return out
+
+
 def discover(spec: str | os.PathLike, *, parquet: bool = True, what: str = "dataset",
              absolute: bool = False) -> list[Partition]:
     """The partition files of a dataset: a directory, a glob, or one file.
@@ -132,23 +155,26 @@ def discover(spec: str | os.PathLike, *, parquet: bool = True, what: str = "data
     base: Path | None = None
     if p.is_dir():
         base = p
-        files = [f for f in p.rglob("*") if f.is_file()
-                 and not any(_hidden(x) for x in f.relative_to(p).parts)]
+        files = _walk(p)
     elif p.is_file():
         files = [p]
+    elif p.is_symlink() and not glob.has_magic(s):
+        raise InputError("broken link", s)
     elif glob.has_magic(s):
         files = []
         for m in sorted(glob.glob(s, recursive=True)):
             mp = Path(m)
             if mp.is_dir():
-                files += [f for f in mp.rglob("*") if f.is_file()
-                          and not any(_hidden(x) for x in f.relative_to(mp).parts)]
+                files += _walk(mp)
             elif not _hidden(mp.name):
                 files.append(mp)
     else:
         raise InputError(f"{what} not found (expected a directory, a glob or a file)", s)
     if parquet:
         files = [f for f in files if f.name.lower().endswith(_PARQUET_EXT)]
+    for f in files:
+        if not f.exists():  # a symbolic link to nothing: refused, never left out
+            raise InputError("broken link", f)
     if not files:
         kind = "Parquet files" if parquet else "files"
         raise InputError(f"no {kind} in this {what}", s)
