@@ -65,3 +65,87 @@ def test_a_link_to_nothing_is_refused(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
     assert main(["partition", str(ds), "-o", str(tmp_path / "o2"), "--by", "tag"]) == 2
     assert capsys.readouterr().err.strip() == f"error: {ds / 'p1.parquet'}: broken link"
+
+
+# --------------------------------------------------------------------------------------
+# Ctrl-C at a terminal: SIGINT to the whole process group, the cluster's workers too
+# --------------------------------------------------------------------------------------
+
+
+def _workers(pid: int) -> list[int]:
+    """The worker processes ``pid`` spawned (multiprocessing's spawn, exec'd)."""
+    out = []
+    for d in os.listdir("/proc"):
+        try:
+            with open(f"/proc/{d}/stat") as f:
+                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+            with open(f"/proc/{d}/cmdline", "rb") as f:
+                cmd = f.read()
+        except (ValueError, OSError, IndexError):
+            continue
+        if ppid == pid and b"spawn_main" in cmd:
+            out.append(int(d))
+    return out
+
+
+def _group_alive(pgid: int) -> bool:
+    try:
+        os.killpg(pgid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+@pytest.mark.skipif(not hasattr(os, "killpg") or not os.path.isdir("/proc"),
+                    reason="process groups and /proc")
+@pytest.mark.parametrize("when", ["startup", "mid-run"])
+def test_ctrl_c_is_one_line_and_exit_130_and_leaves_no_process(tmp_path, when):
+    """Ctrl-C while the LocalCluster started gave ``internal error ... RuntimeError: Nanny
+    failed to start`` (exit 1); mid-run, exit 130 under 2-5 worker tracebacks and
+    ``distributed.worker - ERROR`` lines: the workers, in the terminal's process group,
+    had the SIGINT too."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    ds = tmp_path / "ds"
+    ds.mkdir()
+    for k in range(4):
+        _epochs(ds / f"part-{k}.parquet", f"T{k}", n=200)
+    (tmp_path / "a.csv").write_text(ANCHORS)
+    out = tmp_path / "out"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "robustloc.cli", "locate", str(ds), "--anchors",
+         str(tmp_path / "a.csv"), "-o", str(out), "--engine", "dask", "--workers", "2"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+        start_new_session=True)
+    first = ""
+    try:
+        if when == "startup":
+            deadline = time.monotonic() + 120
+            while (proc.poll() is None and not _workers(proc.pid)
+                   and time.monotonic() < deadline):
+                time.sleep(0.01)
+            time.sleep(0.3)  # the worker importing distributed
+        else:  # the cluster started, the tasks submitted
+            first = proc.stderr.readline()
+        running = proc.poll() is None
+        os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C
+        so, err = proc.communicate(timeout=120)
+        deadline = time.monotonic() + 30
+        while _group_alive(proc.pid) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        left = _group_alive(proc.pid)
+    finally:
+        if proc.poll() is None or _group_alive(proc.pid):
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+    if not running:
+        pytest.skip(f"the run ended before the {when} was caught")
+    if when == "mid-run":
+        assert first.startswith("locate: 4 partitions on 2 workers"), first
+    assert (proc.returncode, err.strip(), so) == (130, "error: interrupted", ""), err
+    assert not left, "a process of the run was left"
+    assert not out.exists() and not list(tmp_path.glob(".out*"))

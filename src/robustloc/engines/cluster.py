@@ -97,6 +97,48 @@ def _signals_held() -> Iterator[list[int]]:
 
 
 @contextmanager
+def _sigint_blocked_in_new_threads() -> Iterator[None]:
+    """SIGINT blocked in the threads the block starts (main thread only), so that the
+    worker processes they spawn never see a terminal's Ctrl-C.
+
+    Ctrl-C sends SIGINT to the terminal's whole process group, LocalCluster's worker
+    processes included: a worker starting died of it (``internal error ... RuntimeError:
+    Nanny failed to start``, exit 1) and a worker running printed its traceback and
+    ``distributed.nanny - ERROR`` lines (4-6 tracebacks above ``error: interrupted``).
+    A signal mask passes to a new thread and through fork and exec to a process (a
+    disposition set to a handler does not; ``SIG_IGN`` would, but this process must see
+    the signal): the main thread blocks SIGINT while the cluster starts its event-loop
+    thread (which starts every worker process, a restarted one too), and a catcher
+    thread started before receives the signal meanwhile for the main thread's handler
+    (Python runs a handler in the main thread whichever thread the signal reached).
+    Only this process then handles Ctrl-C; it closes the cluster, which stops the
+    workers.
+    """
+    import signal
+
+    if (threading.current_thread() is not threading.main_thread()
+            or not hasattr(signal, "pthread_sigmask")):  # pragma: no cover - not POSIX
+        yield
+        return
+    # multiprocessing's resource tracker unblocks SIGINT in the thread that starts it
+    # (the event loop's, at the first worker): started here first, it never does
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()
+    stop = threading.Event()
+    catcher = threading.Thread(target=stop.wait, name="robustloc SIGINT catcher",
+                               daemon=True)
+    catcher.start()
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        stop.set()
+        catcher.join()
+
+
+@contextmanager
 def dask_client(scheduler: str | None, workers: int | None = None,
                 processes: bool = True) -> Iterator[object]:
     """A ``distributed.Client``: on ``scheduler``, or on a new LocalCluster.
@@ -136,10 +178,11 @@ def dask_client(scheduler: str | None, workers: int | None = None,
             # inside distributed's synchronous calls can leave its event loop mid-way
             _quiet_scheduler(restore)
             with _signals_held() as got:
-                cluster = distributed.LocalCluster(
-                    n_workers=n, threads_per_worker=1, processes=processes,
-                    memory_limit=WORKER_MEMORY_BYTES, dashboard_address=":0", **extra,
-                )
+                with _sigint_blocked_in_new_threads():
+                    cluster = distributed.LocalCluster(
+                        n_workers=n, threads_per_worker=1, processes=processes,
+                        memory_limit=WORKER_MEMORY_BYTES, dashboard_address=":0", **extra,
+                    )
                 client = distributed.Client(cluster)
                 _quiet_worker_logs(client)
             if got:  # interrupted while it started: close it, then deliver the signal
