@@ -149,3 +149,32 @@ def test_ctrl_c_is_one_line_and_exit_130_and_leaves_no_process(tmp_path, when):
     assert (proc.returncode, err.strip(), so) == (130, "error: interrupted", ""), err
     assert not left, "a process of the run was left"
     assert not out.exists() and not list(tmp_path.glob(".out*"))
+
+
+# --------------------------------------------------------------------------------------
+# spp's summary
+# --------------------------------------------------------------------------------------
+
+
+def test_spp_summary_names_the_parts_where_they_are(scheduler, tmp_path, capsys):
+    """Each file's ``out`` was its part in the staging folder, gone after the run."""
+    import json
+    from pathlib import Path
+
+    data = Path(__file__).resolve().parents[1] / "../shared/data/gnss-geonet"
+    obs, nav = data / "07590920.05o", data / "07590920.05n"
+    if not obs.is_file():
+        pytest.skip("shared GNSS data not available")
+    d = tmp_path / "obs"
+    d.mkdir()
+    (d / "a.05o").symlink_to(obs.resolve())
+    out = tmp_path / "sol"
+    assert main(["spp", str(d), str(nav), "--systems", "G", "-o", str(out), "--engine",
+                 "dask", "--scheduler", scheduler, "--json", "-q"]) == 0
+    printed = capsys.readouterr().out
+    meta = (out / "_robustloc.json").read_text()
+    assert ".partial" not in printed and ".partial" not in meta
+    for text in (printed, meta):
+        (f,) = json.loads(text)["files"]
+        assert f["out"] == str(out / "part-00000.parquet") and Path(f["out"]).is_file()
+        assert f["output"] == "part-00000.parquet"

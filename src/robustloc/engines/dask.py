@@ -825,7 +825,9 @@ def run_spp(args: argparse.Namespace, run: Callable[[argparse.Namespace], int]) 
             "epochs": sum(int(s.get("epochs", 0)) for s in summaries),
             "solved": sum(int(s.get("solved", 0)) for s in summaries),
             "seconds": round(_time.perf_counter() - t0, 3),
-            "files": [dict(s, output=Path(out.part(i)).name) for i, s in enumerate(summaries)],
+            # a task's "out" is its part in the staging folder, gone once committed
+            "files": [dict(s, out=str(Path(args.out) / Path(out.part(i)).name),
+                           output=Path(out.part(i)).name) for i, s in enumerate(summaries)],
         }
         out.commit(summary, len(parts))
     except BaseException:
