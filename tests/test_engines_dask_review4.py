@@ -178,3 +178,63 @@ def test_spp_summary_names_the_parts_where_they_are(scheduler, tmp_path, capsys)
         (f,) = json.loads(text)["files"]
         assert f["out"] == str(out / "part-00000.parquet") and Path(f["out"]).is_file()
         assert f["output"] == "part-00000.parquet"
+
+
+# --------------------------------------------------------------------------------------
+# a tag from the folder names: at its contract place, as in the single-process output
+# --------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def wifi(tmp_path_factory):
+    import argparse
+
+    from robustloc.sim.wifi_room import simulate
+
+    out = tmp_path_factory.mktemp("wifi")
+    sim = simulate(out, 4, argparse.Namespace(samples_per_point=10, walk_epochs=60))
+    m = pd.read_csv(sim["measurements"], dtype={"tag": str, "anchor": str})
+    hive = out / "hive"
+    for tag, g in m.groupby("tag"):
+        (hive / f"tag={tag}").mkdir(parents=True)
+        g.drop(columns="tag").to_parquet(hive / f"tag={tag}" / "part-0.parquet", index=False)
+    return sim, m, hive
+
+
+def test_a_tag_from_the_folders_is_read_at_its_place(wifi, tmp_path):
+    from robustloc.engines.dataset import materialize, read_partition
+
+    _, m, hive = wifi
+    part = discover(hive)[0]
+    assert list(read_partition(part).columns) == list(m.columns)
+    assert list(pd.read_parquet(materialize(part, tmp_path)).columns) == list(m.columns)
+    empty = tmp_path / "tag=E"
+    empty.mkdir()
+    m.drop(columns="tag").iloc[:0].to_parquet(empty / "part-0.parquet", index=False)
+    (p,) = discover(empty / "part-0.parquet")
+    p = type(p)(p.path, (("tag", "E"),))
+    assert list(read_partition(p).columns) == list(m.columns)
+    (tmp_path / "m").mkdir()
+    assert list(pd.read_parquet(materialize(p, tmp_path / "m")).columns) == list(m.columns)
+
+
+def test_filter_and_partition_by_dask_keep_the_local_column_order(wifi, scheduler,
+                                                                  tmp_path):
+    sim, m, hive = wifi
+    local = tmp_path / "filtered.parquet"
+    assert main(["filter", str(sim["measurements"]), "--anchors", str(sim["anchors"]),
+                 "-o", str(local), "--quiet"]) == 0
+    out = tmp_path / "f"
+    assert main(["filter", str(hive), "--anchors", str(sim["anchors"]), "-o", str(out),
+                 "--engine", "dask", "--scheduler", scheduler, "--quiet"]) == 0
+    want = list(pd.read_parquet(local).columns)
+    for p in discover(out):
+        assert list(pd.read_parquet(p.path).columns) == want
+    shuf = tmp_path / "shuf.csv"
+    m.sample(frac=1.0, random_state=3).to_csv(shuf, index=False)
+    for method in ("duckdb", "dask"):
+        ds = tmp_path / f"p-{method}"
+        assert main(["partition", str(shuf), "-o", str(ds), "--by", "tag", "--method",
+                     method, *(["--scheduler", scheduler] if method == "dask" else [])]) == 0
+        for p in discover(ds):
+            assert list(pd.read_parquet(p.path).columns) == list(m.columns), method

@@ -9,8 +9,8 @@ where LINE counts the file's rows as in CSV (data row ``i`` from 0 is line ``i +
 
 Hive trees (``tag=T1/date=2026-01-01/part-0.parquet``) are understood: a key of the path
 that is a contract id column (``tag``, ``anchor``) and absent from the file is added to
-its rows (dask's and DuckDB's partitioned writers drop it from the file).  Other keys
-(dates, time bins, buckets) only organize the files.
+its rows, at its place in ``time, tag, anchor`` (dask's and DuckDB's partitioned writers
+drop it from the file).  Other keys (dates, time bins, buckets) only organize the files.
 
 Partitioning rules
 ------------------
@@ -213,6 +213,20 @@ def _reading(part: Partition) -> Iterator[None]:
         raise InputError(f"cannot read Parquet partition: {exc}", part.path) from None
 
 
+#: The measurements contract's leading columns, in order (docs/formats.md).
+_CONTRACT_ORDER = ("time", "tag", "anchor")
+
+
+def _key_position(columns: list[str], key: str) -> int:
+    """Where a restored hive key ``key`` goes among ``columns``: after the contract
+    columns that precede it (``time, tag, anchor``), so that the rows have the columns
+    of the single-process reader's input (appended last, ``filter`` and ``partition
+    --method dask`` wrote ``time, anchor, rssi, tag``)."""
+    before = _CONTRACT_ORDER[:_CONTRACT_ORDER.index(key)]
+    at = [i for i, c in enumerate(columns) if str(c).strip() in before]
+    return max(at) + 1 if at else 0
+
+
 def missing_hive_columns(part: Partition, columns: tuple[str, ...] | list[str]) -> list[str]:
     """Hive id keys of ``part``'s path that its file lacks (to be added to its rows)."""
     return [k for k, _ in part.keys if k in HIVE_ID_COLUMNS and k not in columns]
@@ -390,7 +404,7 @@ def read_partition(part: Partition, columns: list[str] | None = None) -> pd.Data
     except Exception as exc:  # noqa: BLE001
         raise InputError(f"cannot read Parquet partition: {exc}", part.path) from None
     for k in missing_hive_columns(part, list(df.columns)):
-        df[k] = part.key(k)
+        df.insert(_key_position(list(df.columns), k), k, part.key(k))
     df.columns = [str(c).strip() for c in df.columns]
     df.index = pd.RangeIndex(2, 2 + len(df), name="line")
     df.attrs["path"] = part.path
@@ -462,14 +476,16 @@ def materialize(part: Partition, directory: str | os.PathLike) -> str:
             with _reading(part):
                 t = pf.read_row_group(i)
             for k in add:
-                t = t.append_column(k, pa.array([part.key(k)] * t.num_rows, pa.string()))
+                t = t.add_column(_key_position(t.column_names, k), k,
+                                 pa.array([part.key(k)] * t.num_rows, pa.string()))
             if writer is None:
                 writer = pq.ParquetWriter(out, t.schema)
             writer.write_table(t)
         if writer is None:  # no row groups: an empty file with the columns
             schema = pf.schema_arrow
             for k in add:
-                schema = schema.append(pa.field(k, pa.string()))
+                schema = schema.insert(_key_position(schema.names, k),
+                                       pa.field(k, pa.string()))
             pq.write_table(schema.empty_table(), out)
     finally:
         if writer is not None:

@@ -1067,6 +1067,7 @@ def _dask(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, sche
             # review).  The folders get the id escaped as DuckDB's (tag=a%2Fb, which the
             # readers unescape), the files the id itself (put back below)
             kcol = "tag"
+            order = list(ddf.columns)  # the input's (DuckDB's method keeps it)
             raw_tag = _fresh_name("__robustloc_tag", list(ddf.columns))
             ddf = ddf.map_partitions(lambda df: df.assign(**{
                 raw_tag: df["tag"].astype(str),
@@ -1093,5 +1094,9 @@ def _dask(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, sche
                 if "tag" in t.column_names:
                     t = t.drop_columns(["tag"])
                 t = t.rename_columns(["tag" if c == raw_tag else c for c in t.column_names])
+                # the tag at its input place (appended, it came last: time, anchor,
+                # rssi, tag where the input and DuckDB's method have time, tag, ...)
+                t = t.select([c for c in order if c in t.column_names]
+                             + [c for c in t.column_names if c not in order])
                 pq.write_table(t, f)
     return n, span, key
