@@ -238,3 +238,81 @@ def test_filter_and_partition_by_dask_keep_the_local_column_order(wifi, schedule
                      method, *(["--scheduler", scheduler] if method == "dask" else [])]) == 0
         for p in discover(ds):
             assert list(pd.read_parquet(p.path).columns) == list(m.columns), method
+
+
+# --------------------------------------------------------------------------------------
+# track --link-offsets auto: the client's sample streamed
+# --------------------------------------------------------------------------------------
+
+
+def _ranges(path, tags, n: int, shuffle: bool = False, hive: bool = False) -> None:
+    import numpy as np
+
+    rng = np.random.default_rng(2)
+    df = pd.concat([pd.DataFrame({
+        "time": np.repeat(np.arange(n, dtype=float) * 0.1, 4), "tag": t,
+        "anchor": np.tile(list("abcd"), n), "range": rng.uniform(3, 9, 4 * n)})
+        for t in tags]).sort_values(["time", "tag"], kind="stable")
+    if shuffle:
+        df = df.sample(frac=1.0, random_state=1)
+    if hive:
+        df = df.drop(columns="tag")
+    df.to_parquet(path, index=False, row_group_size=1000)
+
+
+def test_first_epochs_of_a_time_sorted_partition_are_read_alone(tmp_path):
+    from robustloc.engines.dataset import Partition, read_first_epochs, read_partition
+
+    _ranges(tmp_path / "s.parquet", ["T1", "T2"], 5000)
+    part = Partition(str(tmp_path / "s.parquet"))
+    whole = read_partition(part)
+    head = read_first_epochs(part, 300, batch_rows=512)
+    assert 600 <= len(head) < len(whole)
+    pd.testing.assert_frame_equal(head, whole.iloc[:len(head)])
+    assert head[["time", "tag"]].drop_duplicates().shape[0] >= 300
+    assert whole["time"].iloc[len(head)] > head["time"].max()  # no epoch cut
+    assert head.attrs["path"] == part.path
+    # a hive tag, and a file shorter than asked: all of it
+    (tmp_path / "tag=T3").mkdir()
+    _ranges(tmp_path / "tag=T3" / "p.parquet", ["T3"], 50, hive=True)
+    (p,) = discover(tmp_path / "tag=T3")
+    pd.testing.assert_frame_equal(read_first_epochs(p, 300, batch_rows=64),
+                                  read_partition(p))
+    # rows not in time order: the first epochs by time need the whole file
+    _ranges(tmp_path / "u.parquet", ["T1"], 2000, shuffle=True)
+    u = Partition(str(tmp_path / "u.parquet"))
+    pd.testing.assert_frame_equal(read_first_epochs(u, 30, batch_rows=64),
+                                  read_partition(u))
+
+
+def test_track_auto_sample_reads_no_whole_sorted_partition(tmp_path, monkeypatch, capsys):
+    """``--link-offsets auto`` read every sample file whole in the client (680 MB for a
+    tag of 3 M rows, 165 MB with ``off``); the same choice from the first epochs."""
+    import json
+
+    from robustloc.cli import build_parser
+    from robustloc.commands.track import _resolve_auto_on_client
+    from robustloc.engines import dataset
+    from robustloc.engines.dataset import inspect
+    from robustloc.tracking.select import AUTO_SAMPLE_EPOCHS
+
+    ds = tmp_path / "ds"
+    ds.mkdir()
+    _ranges(ds / "part-0.parquet", ["T1"], AUTO_SAMPLE_EPOCHS + 5000)
+    (tmp_path / "a.csv").write_text(ANCHORS)
+    local = tmp_path / "local.parquet"
+    assert main(["track", str(ds / "part-0.parquet"), "--anchors", str(tmp_path / "a.csv"),
+                 "-o", str(local), "--json", "-q"]) == 0
+    want = json.loads(capsys.readouterr().out)["link_offsets_auto"]
+    args = build_parser().parse_args(["track", str(ds), "--anchors",
+                                      str(tmp_path / "a.csv"), "-o", str(tmp_path / "o")])
+    infos = [inspect(p) for p in discover(ds, absolute=True)]
+
+    def whole(*a, **k):
+        raise AssertionError("a time-sorted partition read whole in the client")
+
+    monkeypatch.setattr(dataset, "read_partition", whole)
+    got = _resolve_auto_on_client(args, infos)["link_offsets_auto"]
+    assert got.pop("sample") == [infos[0].part.path]
+    assert got == want and want["epochs"] == AUTO_SAMPLE_EPOCHS
+    assert args.link_offsets == ("on" if want["used"] else "off")

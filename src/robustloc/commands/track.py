@@ -118,14 +118,15 @@ def _resolve_auto_on_client(args: argparse.Namespace, infos: list) -> dict:
     handed to every worker as ``on`` or ``off`` (each partition choosing for itself
     would give one log two models).  Its sample: the partition files in path order,
     empty ones skipped, each read and sorted as the single process reads a file, until
-    :data:`~robustloc.tracking.select.AUTO_SAMPLE_EPOCHS` epochs, then sorted by time
-    (a tag's rows stay in order).  Returns the summary's ``link_offsets_auto``
+    :data:`~robustloc.tracking.select.AUTO_SAMPLE_EPOCHS` epochs (of a file in time
+    order, only its first that many: :func:`~robustloc.engines.dataset.read_first_epochs`),
+    then sorted by time (a tag's rows stay in order).  Returns the summary's ``link_offsets_auto``
     (``sample``: the files read), or nothing (not ``auto``)."""
     if args.link_offsets != "auto":
         return {}
     import numpy as np
 
-    from robustloc.engines.dataset import read_partition
+    from robustloc.engines.dataset import read_first_epochs
     from robustloc.io import iter_epochs, read_anchors
     from robustloc.io.tables import Epochs
     from robustloc.pipelines.track import TrackSettings, resolve_link_offsets
@@ -137,7 +138,9 @@ def _resolve_auto_on_client(args: argparse.Namespace, infos: list) -> dict:
     blocks, n = [], 0
     for part in [i.part for i in infos if i.n_rows]:  # (as the planner skips empty ones)
         files.append(part.path)
-        for block in iter_epochs(read_partition(part), anchors,
+        # (a file's first epochs only, when its rows are in time order: its later
+        # epochs come after these in the sorted sample)
+        for block in iter_epochs(read_first_epochs(part, AUTO_SAMPLE_EPOCHS), anchors,
                                  chunk_rows=settings.chunk_rows, order="sort"):
             blocks.append(block)
             n += block.n_epochs

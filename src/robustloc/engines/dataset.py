@@ -403,6 +403,55 @@ def read_partition(part: Partition, columns: list[str] | None = None) -> pd.Data
         df = pf.read(columns=columns).to_pandas()
     except Exception as exc:  # noqa: BLE001
         raise InputError(f"cannot read Parquet partition: {exc}", part.path) from None
+    return _as_frame(part, df)
+
+
+def read_first_epochs(part: Partition, n_epochs: int,
+                      batch_rows: int = 1 << 16) -> pd.DataFrame:
+    """The rows of ``part``'s first ``n_epochs`` epochs by time, or more, as
+    :func:`read_partition` gives them (a prefix of its rows, same lines).
+
+    A time-sorted partition (as ``robustloc partition`` writes) is streamed in batches
+    of ``batch_rows`` and read until the rows before the latest time seen hold
+    ``n_epochs`` epochs (``(time, tag)`` pairs): those rows, all epochs earlier than any
+    left unread.  A partition whose times go back (or are not comparable numbers) is
+    read whole: its first epochs by time cannot be known before.  (``track
+    --link-offsets auto``'s sample read every file whole in the client: 680 MB for a
+    tag of 3 M rows, where the workers' streamed run took 165 MB.)
+    """
+    import pyarrow as pa
+
+    pf = _parquet_file(part)
+    batches: list[pa.RecordBatch] = []
+    seen: list[pd.DataFrame] = []  # (time, tag) of the rows read
+    last = None
+    with _reading(part):
+        cols = pf.schema_arrow.names
+        has_tag = "tag" in cols
+        for b in pf.iter_batches(batch_size=batch_rows):
+            if b.num_rows == 0:
+                continue
+            time = b.column(cols.index("time")).to_numpy(zero_copy_only=False)
+            if time.dtype.kind not in "iufM" or (
+                    (last is not None and time[0] < last) or not np.all(time[1:] >= time[:-1])):
+                return read_partition(part)  # not sorted by time (or NaN): read it whole
+            last = time[-1]
+            batches.append(b)
+            seen.append(pd.DataFrame({
+                "time": time, "tag": b.column(cols.index("tag")).to_numpy(
+                    zero_copy_only=False) if has_tag else ""}))
+            st = pd.concat(seen, ignore_index=True)
+            done = st[st["time"] < last]  # complete: every later row has time >= last
+            if len(done.drop_duplicates()) >= n_epochs:
+                df = pa.Table.from_batches(batches).slice(0, len(done)).to_pandas()
+                return _as_frame(part, df)
+        df = (pa.Table.from_batches(batches) if batches
+              else pf.schema_arrow.empty_table()).to_pandas()
+    return _as_frame(part, df)
+
+
+def _as_frame(part: Partition, df: pd.DataFrame) -> pd.DataFrame:
+    """``df`` read from ``part`` as :func:`read_partition` gives it."""
     for k in missing_hive_columns(part, list(df.columns)):
         df.insert(_key_position(list(df.columns), k), k, part.key(k))
     df.columns = [str(c).strip() for c in df.columns]
