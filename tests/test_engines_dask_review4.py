@@ -1,5 +1,7 @@
 """The Dask engine review of 2026-12-07: partitions behind symbolic links (followed, a
-link loop walked once, a link to nothing refused), ..."""
+link loop walked once, a link to nothing refused), Ctrl-C to the whole process group (one
+line, exit 130, no process left), spp's summary naming the final parts, a hive tag at its
+column's place, and ``track --link-offsets auto``'s sample read from the first epochs."""
 
 from __future__ import annotations
 
