@@ -415,17 +415,24 @@ def test_evaluate_dask_refuses_what_the_single_process_refuses(sim, scheduler, t
     assert t.loc[t["tag"] == "A", "n"].item() == 3 and t.loc[t["tag"] == "A", "rms"].item() == 1
 
 
-def test_spp_dask_equals_single_process_per_file(scheduler, tmp_path):
+def geonet_obs_folder(tmp_path: Path, names: tuple[str, ...]) -> tuple[Path, Path]:
+    """A folder ``obs`` of links named ``names`` to the shared gnss-geonet observation
+    file, and its navigation file (skips without the shared data)."""
     data = Path(__file__).resolve().parents[1] / "../shared/data/gnss-geonet"
     obs, nav = data / "07590920.05o", data / "07590920.05n"
     if not obs.is_file():
         pytest.skip("shared GNSS data not available")
     d = tmp_path / "obs"
     d.mkdir()
-    (d / "a.05o").symlink_to(obs.resolve())
-    (d / "b.05o").symlink_to(obs.resolve())
+    for name in names:
+        (d / name).symlink_to(obs.resolve())
+    return d, nav
+
+
+def test_spp_dask_equals_single_process_per_file(scheduler, tmp_path):
+    d, nav = geonet_obs_folder(tmp_path, ("a.05o", "b.05o"))
     local = tmp_path / "one.parquet"
-    assert main(["spp", str(obs), str(nav), "--systems", "G", "--raim", "-o", str(local),
+    assert main(["spp", str(d / "a.05o"), str(nav), "--systems", "G", "--raim", "-o", str(local),
                  "--json"]) == 0
     out = tmp_path / "sol"
     assert main(["spp", str(d), str(nav), "--systems", "G", "--raim", "-o", str(out),

@@ -163,13 +163,9 @@ def test_spp_summary_names_the_parts_where_they_are(scheduler, tmp_path, capsys)
     import json
     from pathlib import Path
 
-    data = Path(__file__).resolve().parents[1] / "../shared/data/gnss-geonet"
-    obs, nav = data / "07590920.05o", data / "07590920.05n"
-    if not obs.is_file():
-        pytest.skip("shared GNSS data not available")
-    d = tmp_path / "obs"
-    d.mkdir()
-    (d / "a.05o").symlink_to(obs.resolve())
+    from test_engines_dask import geonet_obs_folder
+
+    d, nav = geonet_obs_folder(tmp_path, ("a.05o",))
     out = tmp_path / "sol"
     assert main(["spp", str(d), str(nav), "--systems", "G", "-o", str(out), "--engine",
                  "dask", "--scheduler", scheduler, "--json", "-q"]) == 0

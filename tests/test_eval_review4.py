@@ -11,22 +11,7 @@ import warnings
 import numpy as np
 import pandas as pd
 import pytest
-
-from robustloc.cli import main
-
-
-def _run(argv: list[str]) -> int:
-    """``main(argv)`` with every warning an error: a warning that would reach stderr
-    makes the command fail (an internal error, exit code 1) instead."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        return main(argv)
-
-
-def _evaluate_files(tmp_path, pos: pd.DataFrame, truth: pd.DataFrame) -> list[str]:
-    pos.to_csv(tmp_path / "pos.csv", index=False)
-    truth.to_csv(tmp_path / "truth.csv", index=False)
-    return ["evaluate", str(tmp_path / "pos.csv"), "--truth", str(tmp_path / "truth.csv")]
+from test_eval_review3 import _evaluate_files, _run  # (every warning an error)
 
 
 def _rows(capsys) -> dict[tuple[str, str], dict]:

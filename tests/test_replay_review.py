@@ -54,15 +54,21 @@ def _serve(answer) -> ThreadingHTTPServer:  # noqa: ANN001
     return server
 
 
-@pytest.mark.parametrize("mode", sorted(ANSWERS))
-def test_an_unexpected_answer_stops_the_replay_with_its_reason(tmp_path, capsys, mode):
-    server = _serve(lambda rows: ANSWERS[mode])
+def _replay(tmp_path: Path, answer) -> int:  # noqa: ANN001
+    """``robustloc replay`` of :func:`_log` (unpaced) to a :func:`_serve` server, stopped
+    after; its exit code."""
+    server = _serve(answer)
     try:
-        url = f"http://127.0.0.1:{server.server_address[1]}"
-        code = main(["replay", _log(tmp_path), "--url", url, "--speed", "0"])
+        return main(["replay", _log(tmp_path), "--url",
+                     f"http://127.0.0.1:{server.server_address[1]}", "--speed", "0"])
     finally:
         server.shutdown()
         server.server_close()
+
+
+@pytest.mark.parametrize("mode", sorted(ANSWERS))
+def test_an_unexpected_answer_stops_the_replay_with_its_reason(tmp_path, capsys, mode):
+    code = _replay(tmp_path, lambda rows: ANSWERS[mode])
     err = capsys.readouterr().err
     assert code == 2 and "Traceback" not in err
     assert "unexpected answer" in err or "server answered 500" in err
@@ -83,13 +89,7 @@ def test_a_rate_limit_answer_is_bounded(tmp_path, capsys):
             return 429, b'{"retry_after_s": -1}'
         return 202, json.dumps({"accepted": len(rows), "rejected": []}).encode()
 
-    server = _serve(answer)
-    try:
-        code = main(["replay", _log(tmp_path), "--url",
-                     f"http://127.0.0.1:{server.server_address[1]}", "--speed", "0"])
-    finally:
-        server.shutdown()
-        server.server_close()
+    code = _replay(tmp_path, answer)
     assert code == 0, capsys.readouterr().err
     assert calls[1] - calls[0] >= 0.1  # (not a busy loop)
 
@@ -135,13 +135,7 @@ def test_a_timeout_with_a_batch_in_flight_says_so(tmp_path, capsys, monkeypatch)
             time.sleep(1.5)
         return 202, json.dumps({"accepted": len(rows), "rejected": []}).encode()
 
-    server = _serve(answer)
-    try:
-        code = main(["replay", _log(tmp_path), "--url",
-                     f"http://127.0.0.1:{server.server_address[1]}", "--speed", "0"])
-    finally:
-        server.shutdown()
-        server.server_close()
+    code = _replay(tmp_path, answer)
     err = capsys.readouterr().err
     assert code == 2 and "Traceback" not in err
     assert ("stopped after 2 of 3 rows; 2 accepted; resume with --skip 2; a batch in "
