@@ -193,6 +193,9 @@ def test_no_trial_where_track_runs_none():
     assert "range offset" in trk.choice.reason
     pd.testing.assert_frame_equal(trk.step(ep),
                                   Tracker(a, range_offset=True, **OPTS).step(ep))
+    still = AutoTracker(a, sample_epochs=SAMPLE, **{**OPTS, "model": "static"})
+    assert still.choice is not None and not still.choice.use
+    assert "--model static" in still.choice.reason
     many = pd.DataFrame({"anchor": [f"a{i}" for i in range(AUTO_MAX_ANCHORS + 1)],
                          "x": np.cos(np.arange(AUTO_MAX_ANCHORS + 1.0)) * 10,
                          "y": np.sin(np.arange(AUTO_MAX_ANCHORS + 1.0)) * 10})

@@ -90,6 +90,10 @@ def test_auto_refuses_to_choose_where_it_cannot_tell():
     a, ep = _walking_log(4 * LINK_B_M, 1)
     c = choose_link_offsets(a, ep, sigma=0.1, range_offset=True)
     assert not c.use and "range offset" in c.reason
+    # a standing tag: its offsets stay confounded with its position (no trial run: the
+    # walk with offsets to find, which a trial turns on above, is not scored)
+    c = choose_link_offsets(a, ep, sigma=0.1, model="static")
+    assert not c.use and "--model static" in c.reason and c.observations == 0
     short = type(ep)(ep.time[:16], ep.tag[:16], ep.values[:16], ep.anchor_ids, ep.value,
                      ep.line[:16])
     c = choose_link_offsets(a, short, sigma=0.1)

@@ -290,7 +290,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "batch-means t-test at 0.1 %%: robustloc.tracking.select; the "
                         "summary's line says which and why); off on sites of more than 24 "
                         "anchors, with fewer than 20 x M observations in those epochs (M "
-                        "anchors), and with --range-offset.  Measured: on for ble-tetam and "
+                        "anchors), with --range-offset, and with --model static (a standing "
+                        "tag's offsets stay confounded with its position).  Measured: on "
+                        "for ble-tetam and "
                         "uwb-labyrinth, off for 20 of 20 simulated walks "
                         "(benchmarks/bench_link_choice.py)")
     p.add_argument("--link-offset-sd", type=sigma_value, default=None,
