@@ -3,7 +3,11 @@
 Endpoints (the API is a contract; see the README's "Live service" section)::
 
     POST /api/measurements      JSON array or NDJSON of rows -> 202 {accepted, rejected}
-    GET  /api/positions         ?tag=&since=&until=&limit=  -> JSON array of position rows
+    GET  /api/positions         ?tag=&since=&until=&limit=  -> JSON array of position rows,
+                                sorted by time then tag: the *latest* ``limit`` (100 000)
+                                matching rows; header ``X-Total-Count`` the rows matching,
+                                ``X-Truncated: true`` when the earliest were left out
+                                (fetch them with a narrower ``since``/``until``)
     GET  /api/anchors           anchors with per-anchor health
     GET  /api/latest            latest position row per tag
     GET  /api/status            service settings and counters (for the map page)
@@ -532,8 +536,14 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
         except ValueError as exc:
             return refuse("bad_query", 400, f"bad query: {exc}")
         tag = request.query_params.get("tag") or None
-        df = await anyio.to_thread.run_sync(lambda: engine.positions(tag, since, until, limit))
-        return Response(_array_json(df), media_type="application/json")
+        df, total = await anyio.to_thread.run_sync(
+            lambda: engine.positions_counted(tag, since, until, limit))
+        # the body keeps the latest ``limit`` rows (as before); the headers say how many
+        # matched and that the earliest were left out (it was silent: the API review)
+        headers = {"X-Total-Count": str(total)}
+        if total > len(df):
+            headers["X-Truncated"] = "true"
+        return Response(_array_json(df), media_type="application/json", headers=headers)
 
     async def get_anchors(request: Request) -> Response:
         if not authorized(request.headers, request.query_params):

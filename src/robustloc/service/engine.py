@@ -1152,6 +1152,21 @@ class Engine:
     def positions(self, tag: str | None = None, since: float | None = None,
                   until: float | None = None, limit: int = 100_000) -> pd.DataFrame:
         """Stored positions, filtered, sorted by time then tag (latest ``limit`` rows)."""
+        return self.positions_counted(tag, since, until, limit)[0]
+
+    def positions_counted(self, tag: str | None = None, since: float | None = None,
+                          until: float | None = None, limit: int = 100_000
+                          ) -> tuple[pd.DataFrame, int]:
+        """:meth:`positions` and how many rows matched the filter before ``limit``.
+
+        Returns
+        -------
+        frame : DataFrame
+            The latest ``limit`` matching rows, sorted by time then tag.
+        total : int
+            Rows matching ``tag``, ``since`` and ``until``; more than ``len(frame)`` when
+            ``limit`` left the earliest out.
+        """
         expr = None
         for e in ((ds.field("tag") == tag) if tag is not None else None,
                   (ds.field("time") >= since) if since is not None else None,
@@ -1160,7 +1175,7 @@ class Engine:
                 expr = e if expr is None else expr & e
         t = self.pos.scan(expression=expr)
         if t.num_rows == 0:
-            return pd.DataFrame(columns=["time", "tag", "x", "y", "method", "status"])
+            return pd.DataFrame(columns=["time", "tag", "x", "y", "method", "status"]), 0
         runs = _runs_of(t)
         df = t.to_pandas().drop(columns="run", errors="ignore")
         # an epoch re-solved after a restart: its last row; two runs of a re-based tag
@@ -1168,4 +1183,4 @@ class Engine:
         keys = [c for c in ("time", "tag", "method") if c in df.columns]
         dup = pd.DataFrame({"run": runs, **{c: df[c] for c in keys}}).duplicated(keep="last")
         df = df.loc[~dup.to_numpy()].sort_values(["time", "tag"], kind="stable")
-        return df.tail(limit).reset_index(drop=True)
+        return df.tail(limit).reset_index(drop=True), len(df)

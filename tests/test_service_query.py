@@ -1,0 +1,93 @@
+"""Live service: the query strings of the GET endpoints (the API review).
+
+A real ``robustloc serve`` on a free loopback port, with a token (so that ``?token=`` is
+exercised as a query parameter too), holding the positions of two tags.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("starlette")
+pytest.importorskip("uvicorn")
+httpx = pytest.importorskip("httpx")
+
+from robustloc.service.launch import ServerProcess  # noqa: E402
+
+TOKEN = "q-token"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+XY = {"A1": (0, 0), "A2": (10, 0), "A3": (10, 10), "A4": (0, 10), "A5": (5, 12)}
+#: epochs of tag "A" (times 0 .. 59) and of tag "B" (times 0, 10, 20)
+N_A = 60
+B_TIMES = (0.0, 10.0, 20.0)
+
+
+def _rows(tag: str, times: tuple[float, ...] | range) -> list[dict]:
+    return [{"time": float(t), "tag": tag, "anchor": a,
+             "range": float(np.hypot(3 - p[0], 4 - p[1]))}
+            for t in times for a, p in XY.items()]
+
+
+def _metric(url: str, name: str) -> float:
+    for line in httpx.get(url + "/metrics", headers=AUTH).text.splitlines():
+        if line.startswith(name + " "):
+            return float(line.split()[-1])
+    return 0.0
+
+
+def _bad_queries(url: str) -> float:
+    return _metric(url, 'robustloc_requests_rejected_total{reason="bad_query"}')
+
+
+@pytest.fixture(scope="module")
+def srv(tmp_path_factory) -> Iterator[ServerProcess]:
+    d: Path = tmp_path_factory.mktemp("query")
+    anchors = d / "anchors.csv"
+    anchors.write_text("anchor,x,y\n" + "".join(f"{a},{x},{y}\n" for a, (x, y) in XY.items()))
+    s = ServerProcess(["--anchors", str(anchors), "--latency-window", "0",
+                       "--idle-flush", "0.3"], env={"ROBUSTLOC_TOKEN": TOKEN})
+    s.start()
+    try:
+        rows = _rows("A", range(N_A)) + _rows("B", B_TIMES)
+        r = httpx.post(s.url + "/api/measurements", json=rows, headers=AUTH)
+        assert r.status_code == 202 and r.json()["accepted"] == len(rows), r.text
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            got = httpx.get(s.url + "/api/positions?limit=1000", headers=AUTH).json()
+            if len(got) == N_A + len(B_TIMES):
+                break
+            time.sleep(0.2)
+        else:
+            pytest.fail("the positions were not all solved")
+        yield s
+    finally:
+        s.stop()
+
+
+def test_limit_keeps_the_latest_rows_and_says_so(srv):
+    """``limit`` keeps the latest rows (as before) but said nothing: a query matching more
+    rows than ``limit`` lost its earliest silently.  Now ``X-Total-Count`` gives the rows
+    matched and ``X-Truncated: true`` marks a body that left some out."""
+    u = srv.url
+    r = httpx.get(u + "/api/positions?tag=A&limit=10", headers=AUTH)
+    assert r.status_code == 200
+    assert [p["time"] for p in r.json()] == [float(t) for t in range(N_A - 10, N_A)]
+    assert r.headers["x-total-count"] == str(N_A) and r.headers["x-truncated"] == "true"
+    # the rest, with a narrower until (as the docs say)
+    r = httpx.get(u + f"/api/positions?tag=A&until={N_A - 11}&limit=10", headers=AUTH)
+    assert [p["time"] for p in r.json()] == [float(t) for t in range(N_A - 20, N_A - 10)]
+    assert r.headers["x-total-count"] == str(N_A - 10)
+    # nothing left out: the count, no X-Truncated
+    r = httpx.get(u + "/api/positions?since=0&until=1000", headers=AUTH)
+    assert len(r.json()) == N_A + len(B_TIMES)
+    assert r.headers["x-total-count"] == str(N_A + len(B_TIMES))
+    assert "x-truncated" not in r.headers
+    r = httpx.get(u + "/api/positions?tag=A&limit=60", headers=AUTH)
+    assert len(r.json()) == N_A and "x-truncated" not in r.headers
+    r = httpx.get(u + "/api/positions?tag=nobody", headers=AUTH)
+    assert r.json() == [] and r.headers["x-total-count"] == "0"
