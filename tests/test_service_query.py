@@ -91,3 +91,54 @@ def test_limit_keeps_the_latest_rows_and_says_so(srv):
     assert len(r.json()) == N_A and "x-truncated" not in r.headers
     r = httpx.get(u + "/api/positions?tag=nobody", headers=AUTH)
     assert r.json() == [] and r.headers["x-total-count"] == "0"
+
+
+@pytest.mark.parametrize(("path", "name"), [
+    ("/api/positions?tags=A", "tags"), ("/api/positions?from=5", "from"),
+    ("/api/positions?format=csv", "format"), ("/api/positions?offset=1", "offset"),
+    ("/api/positions?tag=A&tag=B", "tag"), ("/api/positions?limit=5&limit=6", "limit"),
+    ("/api/latest?tag=A", "tag"), ("/api/anchors?x=1", "x"), ("/api/status?verbose=1", "verbose"),
+    ("/metrics?name=robustloc_rows_accepted_total", "name"), ("/floorplan?size=2", "size"),
+])
+def test_unknown_or_repeated_query_parameters_are_refused(srv, path, name):
+    """A misspelled, unknown or repeated parameter was ignored: ``tags=A``, ``from=5``,
+    ``format=csv``, ``offset=1`` answered every row, ``tag=A&tag=B`` only B's, and
+    ``/api/latest?tag=A`` every tag.  Now ``400`` naming it, counted as ``bad_query``."""
+    u = srv.url
+    before = _bad_queries(u)
+    r = httpx.get(u + path, headers=AUTH)
+    assert r.status_code == 400, (path, r.status_code, r.text[:200])
+    assert repr(name) in r.json()["error"]
+    assert _bad_queries(u) == before + 1
+    assert httpx.get(u + "/healthz").status_code == 200
+
+
+def test_known_query_parameters_still_answer(srv):
+    """The parameters each endpoint takes (``token`` among them) answer as before."""
+    u = srv.url
+    r = httpx.get(u + f"/api/positions?tag=B&since=0&until=100&limit=5&token={TOKEN}")
+    assert r.status_code == 200 and [p["time"] for p in r.json()] == list(B_TIMES)
+    for path in ("/api/latest", "/api/anchors", "/api/status", "/metrics"):
+        assert httpx.get(u + f"{path}?token={TOKEN}").status_code == 200, path
+        assert httpx.get(u + path, headers=AUTH).status_code == 200, path
+    assert len(httpx.get(u + "/api/latest", headers=AUTH).json()) == 2
+    # the token twice: refused as any repeated parameter
+    assert httpx.get(u + f"/api/latest?token={TOKEN}&token={TOKEN}").status_code == 400
+
+
+def test_websocket_positions_refuses_unknown_parameters_at_the_handshake(srv):
+    """``/ws/positions?tags=A`` subscribed to every tag; now refused at the handshake with
+    HTTP 400 and the reason, counted as ``bad_query``; ``tag``, ``batch``, ``token`` work."""
+    from websockets.exceptions import InvalidStatus
+    from websockets.sync.client import connect
+
+    w = srv.url.replace("http://", "ws://")
+    before = _bad_queries(srv.url)
+    for q in ("tags=A", "tag=A&tag=B", "bach=1"):
+        with pytest.raises(InvalidStatus) as refused:
+            connect(w + f"/ws/positions?{q}&token={TOKEN}", open_timeout=10)
+        assert refused.value.response.status_code == 400, q
+        assert b"bad query" in refused.value.response.body, q
+    assert _bad_queries(srv.url) == before + 3
+    with connect(w + f"/ws/positions?tag=A&batch=1&token={TOKEN}", open_timeout=10):
+        pass

@@ -23,6 +23,10 @@ Endpoints (the API is a contract; see the README's "Live service" section)::
     WS   any other path         accepted, then closed with 1008 and a reason (counted as
                                 ``not_found``, as an HTTP request to an unknown path)
 
+A query parameter an endpoint does not take (:data:`QUERY_PARAMS`; ``token`` on every
+endpoint behind the token), or one given twice, is answered ``400`` naming it and counted
+as ``bad_query`` (``/ws/positions``: HTTP 400 at the handshake, before it is accepted).
+
 A body the store cannot write (disk full, I/O error) is answered ``507 Insufficient
 Storage`` with the reason and counted as ``store_error``; none of its rows is stored, so
 the client may resend it whole.
@@ -407,6 +411,44 @@ def _json(obj: object, status: int = 200) -> JSONResponse:
     return JSONResponse(obj, status_code=status)
 
 
+#: Query parameters each endpoint takes (``token``: the token may come in the query).
+#: Any other, or one given twice, is refused ``400`` and counted as ``bad_query``: a
+#: misspelled ``tags=A`` or ``from=5`` answered everything, ``tag=A&tag=B`` only B, and
+#: nothing said so (the API review).
+QUERY_PARAMS: dict[str, frozenset[str]] = {
+    "/api/positions": frozenset({"tag", "since", "until", "limit", "token"}),
+    "/ws/positions": frozenset({"tag", "batch", "token"}),
+}
+#: What every other endpoint behind the token takes.
+TOKEN_ONLY = frozenset({"token"})
+
+
+def query_problem(items: list[tuple[str, str]], allowed: frozenset[str]) -> str | None:
+    """Why a query string is refused, or None when it is fine.
+
+    Parameters
+    ----------
+    items : list of (str, str)
+        The query's ``(name, value)`` pairs, in order, repeats included.
+    allowed : frozenset of str
+        The names the endpoint takes.
+
+    Returns
+    -------
+    str or None
+        The reason naming the parameter (unknown, or given more than once).
+    """
+    seen: set[str] = set()
+    for name, _ in items:
+        if name not in allowed:
+            takes = ", ".join(sorted(allowed))
+            return f"unknown query parameter {name!r} (this endpoint takes {takes})"
+        if name in seen:
+            return f"query parameter {name!r} given more than once"
+        seen.add(name)
+    return None
+
+
 def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette:
     """Build the Starlette app around a (not yet started) :class:`Engine`."""
     cfg = config or ServiceConfig()
@@ -428,6 +470,12 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
     def unauthorized() -> JSONResponse:
         return refuse("unauthorized", 401, "missing or wrong bearer token",
                       **{"WWW-Authenticate": "Bearer"})
+
+    def bad_params(request: Request) -> JSONResponse | None:
+        """The ``400`` for a query parameter the endpoint does not take, or given twice."""
+        allowed = QUERY_PARAMS.get(request.url.path, TOKEN_ONLY)
+        why = query_problem(request.query_params.multi_items(), allowed)
+        return None if why is None else refuse("bad_query", 400, f"bad query: {why}")
 
     parse_slots = threading.BoundedSemaphore(MAX_CONCURRENT_ROW_PARSES)
 
@@ -527,6 +575,8 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
     async def get_positions(request: Request) -> Response:
         if not authorized(request.headers, request.query_params):
             return unauthorized()
+        if (bad := bad_params(request)) is not None:
+            return bad
         try:
             since = _float_param(request, "since")
             until = _float_param(request, "until")
@@ -548,6 +598,8 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
     async def get_anchors(request: Request) -> Response:
         if not authorized(request.headers, request.query_params):
             return unauthorized()
+        if (bad := bad_params(request)) is not None:
+            return bad
         rows = json.loads(engine.anchors.reset_index(drop=True).to_json(orient="records"))
         for r, h in zip(rows, engine.metrics.anchor_health()):
             r["anchor"] = h["anchor"]
@@ -557,12 +609,16 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
     async def get_latest(request: Request) -> Response:
         if not authorized(request.headers, request.query_params):
             return unauthorized()
+        if (bad := bad_params(request)) is not None:
+            return bad
         df = engine.latest_with_fixes()
         return Response(_array_json(df), media_type="application/json")
 
     async def get_status(request: Request) -> Response:
         if not authorized(request.headers, request.query_params):
             return unauthorized()
+        if (bad := bad_params(request)) is not None:
+            return bad
         ext = cfg.floorplan_extent
         return _json({
             "processor": engine.processor.name, "value": engine.kind,
@@ -585,6 +641,8 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
     async def get_floorplan(request: Request) -> Response:
         if not authorized(request.headers, request.query_params):
             return unauthorized()
+        if (bad := bad_params(request)) is not None:
+            return bad
         if cfg.floorplan is None:  # (counted as every refused request is)
             return refuse("not_found", 404, "no floor plan configured (serve --floorplan)")
         try:  # the image may have gone since the start (a 500 with a traceback, every 2 s)
@@ -604,6 +662,8 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
     async def metrics(request: Request) -> Response:
         if not authorized(request.headers, request.query_params):
             return unauthorized()
+        if (bad := bad_params(request)) is not None:
+            return bad
         text = engine.metrics.render(engine.assembler.n_pending, engine.assembler.n_tags,
                                      engine.solver_errors, engine.position_store_errors)
         text += ("# HELP robustloc_ws_queued_bytes Position messages queued for the "
@@ -624,6 +684,15 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             # closed before the accept: uvicorn answers the handshake HTTP 403 (the
             # client sees that status, not this code)
             await ws.close(code=1008)
+            return
+        why = query_problem(ws.query_params.multi_items(), QUERY_PARAMS["/ws/positions"])
+        if why is not None:  # refused at the handshake, as a bad HTTP query is
+            engine.metrics.request_rejected("bad_query")
+            if "websocket.http.response" in ws.scope.get("extensions", {}):
+                await ws.send_denial_response(
+                    JSONResponse({"error": f"bad query: {why}"}, status_code=400))
+            else:  # (a server without the denial extension: HTTP 403, no reason)
+                await ws.close(code=WS_POLICY_VIOLATION)
             return
         await ws.accept()
         q = Outbox()
