@@ -142,3 +142,24 @@ def test_websocket_positions_refuses_unknown_parameters_at_the_handshake(srv):
     assert _bad_queries(srv.url) == before + 3
     with connect(w + f"/ws/positions?tag=A&batch=1&token={TOKEN}", open_timeout=10):
         pass
+
+
+def test_queried_tag_is_trimmed_as_ingest_trims(srv):
+    """Ingest stores ``" C "`` as ``C``; ``?tag=%20C`` was not trimmed and found nothing
+    (the only test that adds rows: run last, it leaves the others' counts alone)."""
+    u = srv.url
+    r = httpx.post(u + "/api/measurements", json=_rows(" C ", (30.0,)), headers=AUTH)
+    assert r.status_code == 202 and r.json()["accepted"] == len(XY)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        got = httpx.get(u + "/api/positions?tag=C", headers=AUTH).json()
+        if got:
+            break
+        time.sleep(0.2)
+    assert [p["time"] for p in got] == [30.0] and got[0]["tag"] == "C"
+    for q in ("%20C", "C%20%20", "%09C%20"):
+        r = httpx.get(u + f"/api/positions?tag={q}", headers=AUTH)
+        assert r.status_code == 200 and r.json() == got, q
+    # only spaces: no tag given, as ``?tag=`` is (every tag)
+    assert len(httpx.get(u + "/api/positions?tag=%20&limit=1000", headers=AUTH).json()) == \
+        N_A + len(B_TIMES) + 1

@@ -585,7 +585,8 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
                 raise ValueError("limit must be in 1 .. 10000000")
         except ValueError as exc:
             return refuse("bad_query", 400, f"bad query: {exc}")
-        tag = request.query_params.get("tag") or None
+        # trimmed as ingest trims a row's tag (rows.py): ``?tag=%20C`` found nothing
+        tag = request.query_params.get("tag", "").strip() or None
         df, total = await anyio.to_thread.run_sync(
             lambda: engine.positions_counted(tag, since, until, limit))
         # the body keeps the latest ``limit`` rows (as before); the headers say how many
@@ -697,7 +698,7 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
         await ws.accept()
         q = Outbox()
         key = id(q)
-        hub.subs[key] = (q, ws.query_params.get("tag") or None,
+        hub.subs[key] = (q, ws.query_params.get("tag", "").strip() or None,
                          ws.query_params.get("batch", "0").lower() in ("1", "true", "yes"))
 
         async def pump() -> None:
