@@ -106,10 +106,11 @@ def _both(kind, motion, robust, meas, x, P, dt, z, R, **kw):
 @pytest.mark.parametrize("tight", [False, True], ids=["loose", "tight"])
 @pytest.mark.parametrize("weight", list(WEIGHTS))
 @pytest.mark.parametrize("gate", [None, 0.99])
-def test_compiled_step_matches_numpy(kind, motion, tight, weight, gate):
+@pytest.mark.parametrize("mode", ["gain", "variance"])
+def test_compiled_step_matches_numpy(kind, motion, tight, weight, gate, mode):
     seed = zlib.crc32(f"{kind}{tight}{weight}".encode())
     meas, x, P, dt, z, R = _case(motion, tight, K=50, seed=seed)
-    robust = RobustUpdate(WEIGHTS[weight], gate)
+    robust = RobustUpdate(WEIGHTS[weight], gate, mode=mode)
     a, b = _both(kind, motion, robust, meas, x, P, dt, z, R)
     _assert_same(a, b)
     # the data do reach the edge cases
@@ -178,7 +179,7 @@ def test_results_are_not_overwritten_and_fallbacks():
         def weights(self, u):
             return np.where(np.abs(u) < 2, 1.0, 0.5)
 
-    for robust in (RobustUpdate(Custom()), RobustUpdate(Huber(1.5), mode="variance")):
+    for robust in (RobustUpdate(Custom()), RobustUpdate(Custom(), mode="variance")):
         g = FusionFilter("ekf", motion, robust)
         r = g.step(x, P, dt, z, R, meas)
         assert g._fast["state"][1] is None  # no compiled twin: NumPy path
@@ -354,3 +355,31 @@ def test_ranges_only_kernel_equals_missing_speed_and_course(kind, motion):
     np.testing.assert_array_equal(fk[lk["nis"]: lk["gated"]], fr[lr["nis"]: lr["gated"]])
     # a ranges-only vector needs anchors; a mismatched measurement size is refused
     assert f.compiled_params(FusionMeasurement(n), kinematic=False) is None
+
+
+@pytest.mark.parametrize("kind", ["ekf", "ukf"])
+@pytest.mark.parametrize("engine", ["compiled", "numpy"])
+@pytest.mark.parametrize("tight", [False, True], ids=["loose", "tight"])
+def test_variance_mode_never_widens_the_prediction(kind, engine, tight):
+    """``mode="variance"`` (the tracker's) has ``P+ <= P-`` for every track; ``K D`` not.
+
+    The equivalent-variance gain ``G = P_xz S'^-1`` is the Kalman gain of the model with
+    ``R' = R + diag(R_ii (1 / D_ii - 1)) >= R`` on the used components, so
+    ``P+ = P- - G S' G^T <= P-``.  ``K D`` keeps the gain of all the components and cuts
+    the rejected columns; Joseph's form then gives its true covariance, which exceeds the
+    prediction's in some direction on these data (an outlier among correlated components).
+    The bound is rounding: ``1e-12`` of the largest variance (the products are ``O(P)``).
+    """
+    motion = ConstantAcceleration(q=0.02)
+    meas, x, P, dt, z, R = _case(motion, tight, K=200, seed=3)
+    widest = {}
+    for mode in ("gain", "variance"):
+        f = FusionFilter(kind, motion, RobustUpdate(IGG(1.5, 3.0), mode=mode), engine=engine)
+        prior = f.step(x, P, dt, np.full_like(z, np.nan), R, meas).P  # nothing heard
+        post = f.step(x, P, dt, z, R, meas)
+        assert (f._fast["state"][1] is not None) == (engine == "compiled")  # that engine
+        assert (post.status == "fault_excluded").sum() >= 20  # outliers were rejected
+        scale = np.abs(prior).max(axis=(1, 2))
+        widest[mode] = (np.linalg.eigvalsh(post.P - prior)[:, -1] / scale).max()
+    assert widest["variance"] <= 1e-12
+    assert widest["gain"] > 1e-3  # the data do make K D widen the covariance

@@ -4,11 +4,13 @@ One call of a kernel of :data:`KERNELS` advances ``K`` tracks of the built-in fu
 :mod:`robustloc.fusion.pipeline` by one event: the linear CV/CA prediction
 ``x = F x, P = F P F^T + Q`` (seed 002 eq. (13)) and the EKF or UKF update of
 ``FusionMeasurement`` followed by everything :func:`robustloc.filters.core.update_from_moments`
-does in its default ``mode="gain"``: chi-square gate, equivalent weights ``D``, robust gain
-``K_hat = K D`` (seed 002 eq. (12)) and the covariance of that estimator (Joseph form for the
-EKF).  It is the loop-per-track twin of the batched NumPy core for this one model, written
-to remove NumPy's per-call overhead (a single track costs one compiled call instead of a few
-dozen small array calls); tests check it against the NumPy path to rounding.
+does: chi-square gate, equivalent weights ``D``, robust gain ``K_hat = K D`` (seed 002 eq.
+(12); its default ``mode="gain"``) or the gain of the equivalent variances ``R_ii / D_ii``
+(``mode="variance"``, the tracker's; ``pack_params(variance=True)``), and the covariance of
+that estimator (Joseph form for the EKF).  It is the loop-per-track twin of the batched
+NumPy core for this one model, written to remove NumPy's per-call overhead (a single track
+costs one compiled call instead of a few dozen small array calls); tests check it against
+the NumPy path to rounding.
 
 Measurement ``z`` (seed 001): loose coupling ``[x, y, v, theta]``, tight coupling
 ``[r_1 .. r_M, v, theta]`` with ``r_i = sqrt((x - a_ix)^2 + (y - a_iy)^2 + dz_i^2)``,
@@ -63,7 +65,8 @@ _Q, _MIN_SPEED, _SCALE, _WM0, _WMI, _WC0, _WCI = 0, 1, 2, 3, 4, 5, 6
 _WPRM = 7  # 3 weight parameters
 _WCODE, _KIND, _NPOW, _N, _M, _NANCH, _KIN = 10, 11, 12, 13, 14, 15, 16
 _ROFF = 17  # the tracker's offset states: one of OFF_NONE .. OFF_LINKS_SCALED
-_HEAD = 18
+_VAR = 18  # 1.0: the equivalent-variance gain (``RobustUpdate(mode="variance")``)
+_HEAD = 19
 #: Offset states of the range tracker (``prm[_ROFF]``, :func:`pack_params` ``offsets``):
 #: none; a common range offset as the last state (``r_i = d_i + b``); one offset per link
 #: after the kinematic states (``r_i = d_i + b_i``: ranges, or RSSI fitted in dB); one per
@@ -122,6 +125,7 @@ def pack_params(
     kinematic: bool = True,
     offsets: int = OFF_NONE,
     link_n: np.ndarray | None = None,
+    variance: bool = False,
 ) -> np.ndarray | None:
     """Pack the settings of one filter and measurement model into one float vector.
 
@@ -150,6 +154,10 @@ def pack_params(
         into ranges, ``r_i = d_i 10^(-b_i / (10 n_i))`` (``link_offsets``; state size
         ``4 + M`` or ``6 + M``, the kernel :func:`fusion_step_n`).
     link_n : ``(M,)`` path-loss exponents ``n_i`` of :data:`OFF_LINKS_SCALED`.
+    variance : the gain of ``update_from_moments(mode="variance")``: a component of
+        weight ``D_ii < 1`` enters with the equivalent variance ``R_ii / D_ii`` (left out
+        at ``D_ii = 0``) and the gain is the Kalman gain of that model, so the update
+        never widens the prediction's covariance; ``False``: ``K_hat = K D``.
 
     Returns
     -------
@@ -192,6 +200,7 @@ def pack_params(
     head[_WCODE], head[_KIND], head[_NPOW] = weight_code, kind, npow
     head[_N], head[_M], head[_NANCH], head[_KIN] = n, m, M, 1.0 if kinematic else 0.0
     head[_ROFF] = float(offsets)
+    head[_VAR] = 1.0 if variance else 0.0
     anch = np.column_stack([np.asarray(anchors, float).reshape(M, 2), dz2]).ravel()
     chars = np.zeros((len(STATUSES), STATUS_CHARS))
     for c, name in enumerate(STATUSES):
@@ -262,6 +271,28 @@ def cholesky_at(A, scale, ia, ma, L, Li):  # pragma: no cover - jit
             else:
                 L[a, b] = s * Li[b]
     return True
+
+
+@njit(cache=True, nogil=True, inline="always")
+def cholesky_solve(L, Li, ma, B, nc):  # pragma: no cover - jit
+    """``B[:ma, :nc] <- A^-1 B[:ma, :nc]`` in place, ``L`` the Cholesky factor of ``A``
+    (:func:`cholesky_at`): forward then back substitution, all right-hand sides at once."""
+    for a in range(ma):  # forward substitution
+        for l in range(a):
+            f = L[a, l]
+            for c in range(nc):
+                B[a, c] -= f * B[l, c]
+        f = Li[a]
+        for c in range(nc):
+            B[a, c] *= f
+    for a in range(ma - 1, -1, -1):  # back substitution
+        for l in range(a + 1, ma):
+            f = L[l, a]
+            for c in range(nc):
+                B[a, c] -= f * B[l, c]
+        f = Li[a]
+        for c in range(nc):
+            B[a, c] *= f
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -461,6 +492,8 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
     sig = np.empty((ns, n))
     Pxz = np.empty((n, m))  # state-measurement cross covariance
     Gt = np.empty((m, n))  # robust gain K D, transposed
+    wd = np.empty(m)  # weights D
+    ex = np.empty(m)  # equivalent variance added to R (variance mode)
     GMG = np.empty((n, n))
     Mm = np.empty((m, m))
     V = np.empty((n, m))
@@ -486,6 +519,7 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
     for c in range(3 * STATUS_CHARS):
         chars[c] = np.uint32(prm[off_s + c])
     wm0, wmi, wc0, wci = prm[_WM0], prm[_WMI], prm[_WC0], prm[_WCI]
+    var = prm[_VAR] != 0.0
 
     dt_prev = math.nan
     for k in range(k0, k1):
@@ -605,26 +639,12 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
         na = avail_index(av, m, ia)
         if not cholesky_at(S, 1.0, ia, na, L, Li):
             return NOT_PD
-        for a in range(na):  # forward substitution, all right-hand sides at once
+        for a in range(na):
             i = ia[a]
             for c in range(n):
                 solc[a, c] = Pxz[c, i]
             solc[a, n] = y0[i]
-            for l in range(a):
-                f = L[a, l]
-                for c in range(n + 1):
-                    solc[a, c] -= f * solc[l, c]
-            f = Li[a]
-            for c in range(n + 1):
-                solc[a, c] *= f
-        for a in range(na - 1, -1, -1):  # back substitution
-            for l in range(a + 1, na):
-                f = L[l, a]
-                for c in range(n + 1):
-                    solc[a, c] -= f * solc[l, c]
-            f = Li[a]
-            for c in range(n + 1):
-                solc[a, c] *= f
+        cholesky_solve(L, Li, na, solc, n + 1)
         for i in range(m):
             for c in range(n + 1):
                 sol[i, c] = 0.0
@@ -638,6 +658,7 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
 
         # ------------------------------------------------ weights D, gain K D (seed 002 (12))
         nu = 0
+        down = False  # a heard component weighted below 1
         for i in range(m):
             if av[i]:
                 e = y[i] / math.sqrt(S[i, i])
@@ -651,9 +672,36 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
                 fout[o_e + k * m + i] = math.nan
                 wv = 0.0
             fout[o_w + k * m + i] = wv
+            wd[i] = wv
             nu += wv > 0.0
+            down = down or (av[i] and wv != 1.0)
             for j in range(n):  # row i of K_hat^T = (K D)^T
                 Gt[i, j] = sol[i, j] * wv
+        vu = var and down
+        if vu:
+            # the equivalent-variance gain (update_from_moments, mode="variance"): the used
+            # components (D_ii > 0) with S'_ii = S_ii + R_ii (1 / D_ii - 1), the others left
+            # out; G = P_xz S'^-1, so P+ = P - G S' G^T never exceeds P
+            na = 0
+            for i in range(m):
+                ex[i] = 0.0
+                if wd[i] > 0.0:
+                    ex[i] = _r(R, rk, i, i) * (1.0 / wd[i] - 1.0)
+                    S[i, i] += ex[i]
+                    ia[na] = i
+                    na += 1
+            if not cholesky_at(S, 1.0, ia, na, L, Li):
+                return NOT_PD
+            for a in range(na):
+                for c in range(n):
+                    solc[a, c] = Pxz[c, ia[a]]
+            cholesky_solve(L, Li, na, solc, n)
+            for i in range(m):
+                for j in range(n):
+                    Gt[i, j] = 0.0
+            for a in range(na):
+                for j in range(n):
+                    Gt[ia[a], j] = solc[a, j]
         for j in range(n):  # x+ = x + K_hat y
             s = 0.0
             for i in range(m):
@@ -668,6 +716,8 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
             for b in range(na):
                 j = ia[b]
                 Mm[a, b] = _r(R, rk, i, j) if kind == EKF else S[i, j]
+                if vu and kind == EKF and a == b:  # R_eff = R + the equivalent variance
+                    Mm[a, b] += ex[i]
         for i in range(n):  # V = G M
             for b in range(na):
                 s = 0.0

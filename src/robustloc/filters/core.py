@@ -26,7 +26,12 @@ Update
      ``e_i = y_i / sqrt(S_ii)`` gives ``D = diag(p(e_i))`` from a weight object of
      :mod:`robustloc.robust.weights` (Huber, IGG, IGG3, AsymmetricIGG, ...);
   4. gain ``K = P_xz S^-1`` re-weighted ``K_hat = K D`` (seed 002, eq. (12)) -- or, with
-     ``mode="variance"``, ``R_ii`` inflated to ``R_ii / D_ii`` (equivalent-variance form);
+     ``mode="variance"``, ``R_ii`` inflated to ``R_ii / D_ii`` (equivalent-variance form;
+     ``D_ii = 0`` leaves the component out) and ``K_hat`` the Kalman gain of that model.
+     Only the variance form guarantees ``P+ <= P-``: ``K D`` keeps the gain of every
+     component and cuts the rejected columns, and its true covariance (step 5) can exceed
+     the prediction's when some components are rejected and others kept (the tracker
+     uses the variance form; ``docs/limits.md``);
   5. ``x+ = x + K_hat y``; covariance of that estimator for *any* gain ``G``:
      ``P+ = P - G P_xz^T - P_xz G^T + G S G^T``, which equals the Joseph form
      ``(I - G H) P (I - G H)^T + G R G^T`` for a linear(ized) ``H`` (used then), and

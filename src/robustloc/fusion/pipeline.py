@@ -19,9 +19,9 @@ analytic Jacobian; ``ukf`` -- unscented predict and update (seed 001 eqs. (20)-(
 use the shared robust update of :mod:`robustloc.filters.core`.
 
 Engines: :meth:`FusionFilter.step` runs the built-in model (``FusionMeasurement``, CV/CA
-motion, ``mode="gain"``, a built-in weight function) through one compiled call per step
-(:mod:`robustloc.filters._compiled`, the same equations as the NumPy core, tested against
-it); any other combination, or ``engine="numpy"``, uses the batched NumPy core.
+motion, ``mode="gain"`` or ``"variance"``, a built-in weight function) through one
+compiled call per step (:mod:`robustloc.filters._compiled`, the same equations as the NumPy
+core, tested against it); any other combination, or ``engine="numpy"``, uses the batched NumPy core.
 """
 
 from __future__ import annotations
@@ -400,7 +400,7 @@ class FusionFilter:
             or type(base) not in (ConstantVelocity, ConstantAcceleration)
             or base.dim != 2
             or meas.n_states != motion.n_states
-            or self.robust.mode != "gain"
+            or self.robust.mode not in ("gain", "variance")
             or (not kinematic and meas.n_ranges == 0)
             or (roff and not base.q > 0)  # the offset's Q enters as a multiple of base.q
         ):
@@ -432,6 +432,7 @@ class FusionFilter:
             _compiled.EKF if self.kind == "ekf" else _compiled.UKF, base.q,
             self.min_speed_mps, float(n + lam), wm, wc, spec[0], spec[1], chi,
             cF, cQ, anchors, meas._dz2(), kinematic=kinematic, offsets=offsets, link_n=link_n,
+            variance=self.robust.mode == "variance",
         )
 
     @staticmethod
