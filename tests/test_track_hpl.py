@@ -306,3 +306,90 @@ def test_a_fault_the_w_test_identifies_is_not_ok(engine):
     assert (rows["status"].iloc[5:10] == "ok").all()
     err = np.hypot(*(rows[["x", "y"]].to_numpy()[10] - p))
     assert err < rows["hpl"].iloc[10]
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_a_down_weighted_range_enters_with_its_equivalent_variance(engine):
+    """The tracker's update is the Kalman update with ``R'_ii = R_ii / w_i`` (the
+    equivalent-variance form, item 3), checked against FilterPy's EKF given that ``R'``.
+
+    The hand case of the test above (``static``), with the second epoch's range to A2
+    2 m long: its innovation is ``e = 2 / sqrt(p- + sigma^2) = 3.20`` sd, the Huber weight
+    ``w = 0.624`` (computed here from the tracker's own weight function, so the test
+    does not depend on its tuning).  Seed 002's ``K D`` would keep the gain of all four
+    ranges and scale A2's column by ``w`` (a different state and, by Joseph's form, a
+    different ``P+``); the equivalent variance gives FilterPy's state and ``P+``, and
+    ``G = P+ H^T R'^-1`` exactly, so ``hpl`` is item 8's formula with ``G_i = w_i P+ H_i^T
+    / R_ii``.  Tolerance as above: rtol 1e-12 (rounding of a few 4x4 operations)."""
+    sig, q = 0.3, 0.05
+    xy = SQUARE[["x", "y"]].to_numpy()
+    log = _centre_log()
+    log.loc[5, "range"] += 2.0  # t = 1, A2
+    trk = Tracker(SQUARE, model="static", filter="ekf", q=q, sigma=sig, engine=engine)
+    rows = trk.step(to_epochs(log, list(SQUARE["anchor"])))
+    f = ExtendedKalmanFilter(dim_x=2, dim_z=4)
+    f.x, f.P = np.array([5.0, 5.0]), 0.25 * np.eye(2)
+    f.F, f.Q = np.eye(2), q * np.eye(2)
+    f.predict()
+    Pm = f.P.copy()
+    H = (f.x - xy) / np.hypot(*(f.x - xy).T)[:, None]
+    z = log["range"].to_numpy()[4:]
+    S = H @ Pm @ H.T + sig**2 * np.eye(4)
+    w = trk._weight.weights((z - np.hypot(*(f.x - xy).T)) / np.sqrt(np.diag(S)))
+    assert 0.5 < w[1] < 0.7 and np.all(w[[0, 2, 3]] == 1.0)  # A2 down-weighted, not cut
+    f.R = np.diag(sig**2 / w)
+    f.update(z, lambda x: H, lambda x: np.hypot(*(x - xy).T))
+    assert rows["n_used"].iloc[1] == 4
+    np.testing.assert_allclose(rows[["x", "y"]].to_numpy()[1], f.x, rtol=1e-12)
+    np.testing.assert_allclose(rows[["var_x", "var_y", "cov_xy"]].to_numpy()[1],
+                               [f.P[0, 0], f.P[1, 1], f.P[0, 1]], rtol=1e-12, atol=1e-15)
+    lam0, k = _lam0_k()
+    gain = f.P @ H.T @ np.linalg.inv(f.R)  # column i: G_pos,i = w_i P+ H_i^T / R_ii
+    mdb = np.sqrt(lam0 * np.diag(S))
+    hpl = np.max(np.hypot(*gain) * mdb) + k * np.sqrt(np.linalg.eigvalsh(f.P).max())
+    assert rows["hpl"].iloc[1] == pytest.approx(hpl, rel=1e-12)
+
+
+@pytest.mark.parametrize("engine", ["numpy", "compiled"])
+def test_the_ukf_bound_uses_the_equivalent_variance_gain(engine):
+    """UKF (item 8): ``G = P- H^T S'^-1``, ``S' = H P- H^T + diag(R_ii / w_i)``, on the
+    down-weighted case above with the range to A2 4 m long (CV model, so the compiled
+    round runs it too; ``w = 0.6``).  The noise
+    term comes from the row's own ``P+`` (the sigma points'); the slope is computed here
+    from ``P-`` (``F P0 F^T + Q``, FilterPy's ``Q``) and the weight the tracker's weight
+    function gives the innovation against the sigma points' mean range, which is the
+    exact range plus a curvature term of 0.10 m (taken from the points as the UKF does).
+    Tolerance rtol 1e-10: the compiled round sums in another order (1e-15 each) and the
+    slope passes one 4x4 solve of condition below 10."""
+    from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+
+    sig, q = 0.3, 0.5
+    xy = SQUARE[["x", "y"]].to_numpy()
+    log = _centre_log()
+    log.loc[5, "range"] += 4.0
+    trk = Tracker(SQUARE, model="cv", filter="ukf", q=q, sigma=sig, engine=engine)
+    rows = trk.step(to_epochs(log, list(SQUARE["anchor"])))
+    F = np.eye(4) + np.eye(4, k=2)
+    Pm = F @ np.diag([0.25, 0.25, 1.0, 1.0]) @ F.T + np.kron(
+        Q_discrete_white_noise(2, dt=1.0, var=q), np.eye(2))
+    pts = MerweScaledSigmaPoints(4, alpha=1.0, beta=2.0, kappa=0.0)
+    ukf = UnscentedKalmanFilter(4, 4, 1.0, lambda x: np.hypot(*(x[:2] - xy).T),
+                                lambda x, dt: F @ x, pts)
+    ukf.x, ukf.P = np.array([5.0, 5.0, 0.0, 0.0]), Pm
+    ukf.compute_process_sigmas(1.0, fx=lambda x, dt: x)
+    Z = np.array([ukf.hx(s) for s in ukf.sigmas_f])
+    zhat = ukf.Wm @ Z
+    Pzz = (ukf.Wc[:, None] * (Z - zhat)).T @ (Z - zhat) + sig**2 * np.eye(4)
+    z = log["range"].to_numpy()[4:]
+    w = trk._weight.weights((z - zhat) / np.sqrt(np.diag(Pzz)))
+    assert 0.4 < w[1] < 0.8 and np.all(w[[0, 2, 3]] == 1.0)
+    H = np.zeros((4, 4))
+    H[:, :2] = (np.array([5.0, 5.0]) - xy) / np.hypot(*(xy - 5.0).T)[:, None]
+    S = H @ Pm @ H.T + sig**2 * np.eye(4)
+    gain = (Pm @ H.T @ np.linalg.inv(H @ Pm @ H.T + np.diag(sig**2 / w)))[:2]
+    lam0, k = _lam0_k()
+    v = rows[["var_x", "var_y", "cov_xy"]].to_numpy()[1]
+    P2 = np.array([[v[0], v[2]], [v[2], v[1]]])
+    hpl = np.max(np.hypot(*gain) * np.sqrt(lam0 * np.diag(S))) + k * np.sqrt(
+        np.linalg.eigvalsh(P2).max())
+    assert rows["hpl"].iloc[1] == pytest.approx(hpl, rel=1e-10)

@@ -246,13 +246,15 @@ def test_auto_scores_with_the_noise_scale_the_filter_uses():
         assert c.t < 0, (seed, c)
 
 
-@pytest.mark.parametrize("seed", [6, 13])
+@pytest.mark.parametrize("seed", [6, 18])
 def test_auto_leaves_out_offsets_that_only_absorb_a_stiff_models_lag(seed):
     """The seed-002 simulated walk (four access points, an exact path-loss model: no
     offsets to find) at the tracker's default q: a walker turning corners lags the stiff
     CV model, and the offsets absorb part of that lag, so they predict the RSSI a little
-    better (t 2.8 and 3.2 on these seeds) while placing the tag worse (seed 6: 2.50 ->
-    2.81 m, seed 13: 1.61 -> 1.87 m RMS; ``benchmarks/bench_link_choice.py``).  At the
+    better (t 3.24 and 3.28 on these seeds) while placing the tag worse (seed 6: 2.45 ->
+    2.76 m, seed 18: 2.10 -> 2.40 m RMS; ``benchmarks/bench_link_choice.py``; the
+    seeds of t between 2.5 and the critical value since the equivalent-variance update
+    of 2026-12-07, which moved seed 13 from t 3.15 to -0.12).  At the
     level of 5 % both chose them; the default's 0.1 % (``t(0.999; 19)`` = 3.58) does
     not.  The critical value is Student's, from scipy."""
     from robustloc.io import to_epochs

@@ -27,7 +27,9 @@ RSSI (converted by the anchors' path-loss model to ranges with sigma_d = d ln10 
 (10 n), or in dB with --domain rssi). An epoch with 1 or 2 anchors still updates.
 
   start        a robust snapshot fix (huber) of the tag's first usable epoch
-  update       robust M-estimation update (gain K D, seed 002 eq. 12) with --weight
+  update       robust M-estimation update with --weight: a link of weight w enters with
+               the variance R/w (w = 0: left out), so an update never widens the
+               prediction's covariance (seed 002's gain K D, eq. 12, can)
   env. change  robust weights down-weight a link whose level steps; --cusum-h H adds a
                two-sided CUSUM on each link's innovations: a link whose level steps is
                held out (never inflating the covariance) while its new offset is

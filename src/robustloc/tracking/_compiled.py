@@ -28,7 +28,8 @@ A tag whose filter is lost (item 9 of the tracker's docstring) is flagged in ``l
 prediction is meaningless (``var_x + var_y > lost_pos_var`` and ``sqrt(eps) (var_x +
 var_y) >= min_i R_ii`` over the components of the update, :func:`prediction_lost`; found in
 step 1, before the update), or its update failed numerically (a non-finite state or
-covariance, or a negative variance, after step 3).  The kernel then returns :data:`LOST`
+covariance, a negative variance, or a heard component without a positive innovation
+variance, after step 3).  The kernel then returns :data:`LOST`
 without writing anything; the caller re-starts the flagged tags and runs the round again
 without them.
 
@@ -147,13 +148,17 @@ def innovation_cov(M, hv, hb, oc, Pp, rd, av, S):  # pragma: no cover - jit
 
 
 @njit(cache=True, nogil=True)
-def linearized_gain_pos(M, hv, hb, oc, Pp, rd, av, S, L, Li, X, ia):  # pragma: no cover - jit
-    """The position rows of the linearized gain ``G = P- H^T S^-1`` over the available
-    components ``av``, transposed into ``X (M, 2)`` (row ``i``: component ``i``'s column;
-    zero where not available): the UKF's hpl (``Tracker._hpl``).  False when ``S`` is not
-    positive definite.  Solved on the available components only (``ia (M,)`` scratch;
+def linearized_gain_pos(M, hv, hb, oc, Pp, rd, w, av, S, L, Li, X, ia):  # pragma: no cover - jit
+    """The position rows of the linearized gain ``G = P- H^T S'^-1`` over the components
+    ``av`` the update used (``w_i > 0``), ``S' = H P- H^T + diag(rd / w)`` (the update's
+    equivalent variances), transposed into ``X (M, 2)`` (row ``i``: component ``i``'s
+    column; zero where not used): the UKF's hpl (``Tracker._hpl``).  False when ``S'`` is
+    not positive definite.  Solved on the used components only (``ia (M,)`` scratch;
     :func:`robustloc.filters._compiled.cholesky_at`)."""
     innovation_cov(M, hv, hb, oc, Pp, rd, av, S)
+    for i in range(M):
+        if av[i]:
+            S[i, i] += rd[i] * (1.0 / w[i] - 1.0)
     na = avail_index(av, M, ia)
     if not cholesky_at(S, 1.0, ia, na, L, Li):
         return False
@@ -270,6 +275,8 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
     zf = np.empty((K, m))
     R = np.empty((K, m, 1))  # diagonal (filters._compiled._r)
     o_P = K * n
+    o_y = o_P + K * nn  # innovations, then standardized innovations (K, m) each
+    o_e = o_y + K * m
     o_w = o_P + K * nn + 2 * K * m
     o_nis = o_w + K * m
     o_nu = o_nis + K
@@ -435,9 +442,14 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
         rc = fusion_step_7(xg, Pg, dt_o, zf, R, prm, fout)
     if rc != DONE:
         return rc
-    # an update that failed numerically (a non-finite moment, a negative variance): lost
+    # an update that failed numerically (a non-finite moment, a negative variance, or a
+    # heard component whose innovation variance is not positive -- the prediction is no
+    # covariance -- which the equivalent-variance update leaves out): lost
     for k in range(K):
         ok = True
+        for i in range(m):
+            ok = ok and not (math.isfinite(fout[o_y + k * m + i])
+                             and not math.isfinite(fout[o_e + k * m + i]))
         for i in range(n):
             ok = ok and math.isfinite(fout[k * n + i])
             for j in range(n):
@@ -478,12 +490,13 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
         Pn10 = fout[o_P + k * nn + n]
         Pn11 = fout[o_P + k * nn + n + 1]
         # UKF: its P+ is the sigma points', for which G = P+ H^T R^-1 does not hold: the
-        # linearized gain P- H^T S^-1 instead (Tracker._hpl)
+        # linearized gain P- H^T S'^-1 instead (Tracker._hpl)
         gain_ok = False
         if ukf and ma > 0:
             for i in range(M):
-                avk[i] = math.isfinite(zf[k, i])
-            gain_ok = linearized_gain_pos(M, hv[k], hbv[k], ocv[k], Pp_o[k], rd[k], avk,
+                avk[i] = math.isfinite(zf[k, i]) and fout[o_w + k * m + i] > 0.0
+            gain_ok = linearized_gain_pos(M, hv[k], hbv[k], ocv[k], Pp_o[k], rd[k],
+                                          fout[o_w + k * m: o_w + k * m + M], avk,
                                           Ssn, Lsn, Lisn, Xg, iasn)
         sw = 0.0
         swe = 0.0
@@ -503,8 +516,8 @@ def _round(n, sl, t, z, x_s, P_s, t_s, bias_s, held_s, gp_s, gm_s, hsum_s, hn_s,
                 # (with an offset state H_i has a third entry: + hb_i P+_c,pos)
                 oci = ocv[k, i]
                 if ukf:
-                    g0 = wv * Xg[i, 0] if gain_ok else math.inf  # no gain: unbounded
-                    g1 = wv * Xg[i, 1] if gain_ok else math.inf
+                    g0 = Xg[i, 0] if gain_ok else math.inf  # no gain: unbounded
+                    g1 = Xg[i, 1] if gain_ok else math.inf
                 else:
                     g0 = hv[k, i, 0] * Pn00 + hv[k, i, 1] * Pn10
                     g1 = hv[k, i, 0] * Pn01 + hv[k, i, 1] * Pn11

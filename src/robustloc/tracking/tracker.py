@@ -17,8 +17,14 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
 3. **Tight update** with every heard anchor as one component (:mod:`robustloc.tracking.
    measurement`; RSSI in dB through the path-loss model, or calibrated ranges), an epoch
    with one or two anchors updating too.  The update is the core's robust one: equivalent
-   weights ``D = p(e_i)`` of the standardized innovations, gain ``K D`` (seed 002 eqs.
-   (11)-(12)), default Huber for ranges (measured, or RSSI converted by the path-loss
+   weights ``D = p(e_i)`` of the standardized innovations (seed 002 eq. (11)), in the
+   equivalent-variance form (``RobustUpdate(mode="variance")``): component ``i`` enters
+   with the variance ``R_ii / D_ii`` (left out at ``D_ii = 0``) and the gain is the Kalman
+   gain of that model, so ``P+ <= P-`` -- the update never widens the prediction's
+   covariance, while seed 002's ``K D`` (eq. (12)), the gain of every heard link with the
+   rejected columns cut, does when links are rejected (its true covariance, Joseph's form,
+   grew by up to 5.5 m^2 in a UKF's position block on the simulated wifi-room walk);
+   default Huber for ranges (measured, or RSSI converted by the path-loss
    model, the default domain as in ``locate``) and the asymmetric IGG of seed 002 eq. (14)
    for RSSI in dB (fades read low: ``e < 0`` is the long tail); ``R_ii = (s sigma_i)^2`` with
    ``sigma_i`` the anchor's a-priori sigma and ``s`` the tag's noise scale (step 6).
@@ -92,8 +98,9 @@ Per tag, the state ``x = [x, y, vx, vy(, ax, ay)]`` (``cv``, ``ca``) or ``[x, y]
    on the 44 199 filtered epochs of the report's section ``s60_tracks``: ``V <= 57 m^2``,
    ``eps V / r_min <= 4e-13``, four decades below ``sqrt(eps) = 1.5e-8``: none is
    dropped, every row is as before.)  A filter whose update fails numerically all the
-   same (a singular system, a non-finite state or covariance, a negative variance) is
-   dropped alike; the other tags of the round are advanced as if it were not there.
+   same (a singular system, a non-finite state or covariance, a negative variance, a
+   heard component whose innovation variance ``S_ii`` is not positive) is dropped alike;
+   the other tags of the round are advanced as if it were not there.
 
 10. **A tag's range offset** (``range_offset``, ranges only).  Every range a tag measures
    can carry the same offset ``b``: a UWB tag's uncalibrated antenna delay, a phone's WiFi
@@ -711,7 +718,8 @@ class Tracker:
                                 else LINK_OFFSET_SD[kind])
         wname = s.weight or ("asymmetric-igg" if self._link.kind == "rssi" else "huber")
         self._weight = get_weight(wname)
-        self._robust = RobustUpdate(weight=self._weight)
+        # the equivalent-variance gain: never wider than the prediction (item 3)
+        self._robust = RobustUpdate(weight=self._weight, mode="variance")
         self._weight_name = wname
         from robustloc.estimators.ranging import Locator
 
@@ -1555,8 +1563,13 @@ class Tracker:
             return np.concatenate([self._filter_numpy(idx[k:k + 1], sl[k:k + 1], t[k:k + 1],
                                                       z[k:k + 1], out)
                                    for k in range(len(idx))])
-        # --- an update that failed numerically (item 9): non-finite, negative variance
-        lost = ~_finite_moments(xn, Pn)
+        # --- an update that failed numerically (item 9): non-finite, negative variance,
+        # or a heard component whose innovation variance is not positive (the prediction
+        # is no covariance; the equivalent-variance update leaves such a component out and
+        # could return a plausible P+ from a broken P-)
+        with np.errstate(invalid="ignore"):
+            no_var = (np.isfinite(res.innovation) & ~np.isfinite(res.standardized)).any(axis=1)
+        lost = ~_finite_moments(xn, Pn) | no_var
         if lost.any():
             return self._without(lost, idx, sl, t, z, out, self._filter_numpy)
         sus = test_fail | ((dof > 0) & (2 * nu <= dof))
@@ -1896,26 +1909,25 @@ class Tracker:
              Pn: Array, Pp: Array) -> Array:
         """``max_i |G_pos,i| MDB_i + k sigma_major`` (module docstring, item 8).
 
-        EKF: the gain column of component ``i`` is taken as ``G_i = w_i P+ H_i^T / R_ii``
-        (for the linearized update ``K = P+ H^T R^-1`` exactly; with robust weights the
-        down-weighted components' columns are scaled by their weight), which avoids a
-        second factorization of ``S``.  With a weight below 1 this is an approximation on
-        the safe side: ``P+`` is then that of the reweighted update, and the columns come
-        out larger than the exact ``w_i K_i`` (by 0.3-7 % with one Huber weight of 0.67,
-        measured in the statistics review), so the bound is slightly conservative.  UKF:
-        its ``P+`` comes from the sigma points, for which that identity does not hold --
-        next to an anchor, where the range bends within the points' spread and an RSSI
-        range's variance ``R_ii`` is small, ``P+ H_i^T / R_ii`` reached 10^3 m in a 10 m
-        room -- so the gain is the linearized ``G = w P-
-        H^T S^-1``, ``S = H P- H^T + R`` over the available components (the innovation
-        covariance the MDB and the w-test use).
+        EKF: the gain column of component ``i`` is ``G_i = w_i P+ H_i^T / R_ii``: the
+        update's gain is the Kalman gain of the equivalent variances ``R_ii / w_i``
+        (``RobustUpdate(mode="variance")``), for which ``G = P+ H^T R'^-1`` holds exactly,
+        and which avoids a second factorization of ``S``.  UKF: its ``P+`` comes from the
+        sigma points, for which that identity does not hold -- next to an anchor, where the
+        range bends within the points' spread and an RSSI range's variance ``R_ii`` is
+        small, ``P+ H_i^T / R_ii`` reached 10^3 m in a 10 m room -- so the gain is the
+        linearized ``G = P- H^T S'^-1``, ``S' = H P- H^T + R'`` over the components the
+        update used (``w_i > 0``), ``R'_ii = R_ii / w_i``.
         """
         K, M = avail.shape
         if self.settings.filter == "ukf" and M:
-            S = H @ Pp @ np.swapaxes(H, 1, 2) + Rd[:, :, None] * np.eye(M)[None]
-            both = avail[:, :, None] & avail[:, None, :]
-            S = np.where(both, S, np.eye(M)[None])  # identity over missing components
-            A = np.where(avail[:, :, None], (H @ Pp)[:, :, :2], 0.0)  # rows: (P- H_i^T)_pos
+            used = avail & (w > 0)
+            with np.errstate(divide="ignore"):
+                Rv = np.where(used, Rd / np.where(used, w, 1.0), 1.0)  # R_ii / w_i
+            S = H @ Pp @ np.swapaxes(H, 1, 2) + Rv[:, :, None] * np.eye(M)[None]
+            both = used[:, :, None] & used[:, None, :]
+            S = np.where(both, S, np.eye(M)[None])  # identity over unused components
+            A = np.where(used[:, :, None], (H @ Pp)[:, :, :2], 0.0)  # rows: (P- H_i^T)_pos
             try:
                 X = np.linalg.solve(S, A)
             except np.linalg.LinAlgError:  # a singular S of some tag: its bound unbounded
@@ -1925,7 +1937,7 @@ class Tracker:
                         X[k] = np.linalg.solve(S[k], A[k])
                     except np.linalg.LinAlgError:
                         X[k] = np.inf
-            G = np.where(np.isinf(X), np.inf, X * np.where(avail, w, 0.0)[:, :, None])
+            G = X
         else:
             wr = np.where(avail, w, 0.0) / Rd  # (K, M)
             if self.n > self.n_motion:  # the offsets' columns feed the position rows too
