@@ -87,3 +87,17 @@ def test_global_alpha_non_integer_dof_is_exact(dof):
     both = global_alpha(np.array([2.0, dof, 6.0]))
     assert both[1] == a
     assert both[0] == float(global_alpha(2)) and both[2] == float(global_alpha(6))
+
+
+@pytest.mark.parametrize("bad", ["0.1", None, True, b"0.1"])
+def test_a_probability_that_is_not_a_real_number_is_refused_by_name(bad):
+    """``alpha0="0.1"`` was taken as 0.1 (float() parses strings) and ``True`` as 1.0;
+    ``None`` gave float()'s message without the parameter's name (left open by the API
+    review).  A NumPy scalar is a real number and still taken."""
+    from robustloc.integrity.bmethod import global_alpha, lambda0, w_critical
+
+    for call in (lambda: lambda0(bad), lambda: lambda0(0.001, bad),
+                 lambda: global_alpha(3, bad), lambda: w_critical(bad)):
+        with pytest.raises(TypeError, match="(alpha0|beta0) must be a real number"):
+            call()
+    assert lambda0(np.float64(0.001)) == lambda0(0.001)

@@ -20,6 +20,7 @@ Reference values (``alpha0 = 0.1 %``, ``beta0 = 10 %``): ``lambda0 = 20.90``;
 
 from __future__ import annotations
 
+import numbers
 from functools import lru_cache
 
 import numpy as np
@@ -34,6 +35,10 @@ BETA0 = 0.10
 
 
 def _check_prob(name: str, value: float) -> float:
+    # a real number only: float() took the string "0.1" and called True 1.0, and None
+    # gave float()'s own message without the parameter's name
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a real number, got {type(value).__name__}")
     value = float(value)
     if not 0.0 < value < 1.0:
         raise ValueError(f"{name} must be strictly between 0 and 1, got {value}")
