@@ -97,14 +97,24 @@ MEAS_SCHEMA = pa.schema([
 class _MemoryLog:
     """In-memory stand-in for :class:`SegmentLog` when the service runs without --store."""
 
-    def __init__(self) -> None:
-        self._tables: list[pa.Table] = []
+    def __init__(self, tables: list[pa.Table] | None = None) -> None:
+        self._tables: list[pa.Table] = [] if tables is None else tables
         self._lock = threading.Lock()
 
     def append(self, table: pa.Table) -> None:
         if table.num_rows:
             with self._lock:
                 self._tables.append(table)
+
+    def snapshot(self) -> _MemoryLog:
+        """The rows held now, as :meth:`robustloc.service.store.SegmentLog.snapshot`."""
+        with self._lock:
+            return _MemoryLog(list(self._tables))
+
+    def schemas(self) -> list[pa.Schema]:
+        """The schema of each table held (not unified)."""
+        with self._lock:
+            return [t.schema for t in self._tables]
 
     def scan(self, columns: list[str] | None = None,
              expression: ds.Expression | None = None) -> pa.Table:
@@ -162,6 +172,45 @@ def _runs_of(table: pa.Table) -> np.ndarray:
     if "run" not in table.column_names:
         return np.zeros(table.num_rows, dtype=np.int64)
     return table["run"].to_pandas().fillna(0).to_numpy(np.int64)
+
+
+def _answered_rows(keys: pd.DataFrame, runs: np.ndarray, limit: int
+                   ) -> tuple[np.ndarray, int]:
+    """Which stored rows a positions query answers, from their key columns.
+
+    Parameters
+    ----------
+    keys : DataFrame
+        The matching rows' ``time``, ``tag`` (and ``method``), in the log's order, with
+        a default index.
+    runs : ndarray
+        Their runs (:func:`_runs_of`).
+    limit : int
+        Most rows answered (the latest).
+
+    Returns
+    -------
+    rows : ndarray
+        Positions in ``keys`` of the rows answered, sorted by time then tag: an epoch
+        re-solved after a restart gives its last row; two runs of a re-based tag at the
+        same time are two epochs, both kept.
+    total : int
+        Rows that match, each epoch once (before ``limit``).
+    """
+    by = [c for c in ("time", "tag", "method") if c in keys.columns]
+    dup = pd.DataFrame({"run": runs, **{c: keys[c] for c in by}}).duplicated(keep="last")
+    kept = keys.loc[~dup.to_numpy(), ["time", "tag"]].sort_values(["time", "tag"],
+                                                                    kind="stable")
+    return kept.index.to_numpy(np.int64)[-limit:], len(kept)
+
+
+def _latest_rows(table: pa.Table, limit: int) -> tuple[pd.DataFrame, int]:
+    """:meth:`Engine.positions_counted` from every column of every matching row."""
+    rows, total = _answered_rows(table.select(
+        [c for c in ("time", "tag", "method") if c in table.column_names]).to_pandas(),
+        _runs_of(table), limit)
+    df = table.to_pandas().drop(columns="run", errors="ignore")
+    return df.iloc[rows].reset_index(drop=True), total
 
 
 #: The columns of a tag's last fix (:meth:`Engine.latest_with_fixes`).
@@ -1159,6 +1208,13 @@ class Engine:
                           ) -> tuple[pd.DataFrame, int]:
         """:meth:`positions` and how many rows matched the filter before ``limit``.
 
+        The rows are read in two passes over one snapshot of the positions log: the
+        columns that decide which rows are answered (``time``, ``tag``, ``method``,
+        ``run``, and the integer and boolean columns, whose nulls decide their type in
+        the frame) of every matching row, then every column of the rows from the
+        earliest time answered on only.  The whole log was read into a frame for each
+        query (8 queries at once over 125 000 positions: 671 MiB more, the serve review).
+
         Returns
         -------
         frame : DataFrame
@@ -1173,14 +1229,42 @@ class Engine:
                   (ds.field("time") <= until) if until is not None else None):
             if e is not None:
                 expr = e if expr is None else expr & e
-        t = self.pos.scan(expression=expr)
-        if t.num_rows == 0:
+        snap = self.pos.snapshot()
+        typed = sorted({f.name for sch in snap.schemas() for f in sch
+                        if pa.types.is_integer(f.type) or pa.types.is_boolean(f.type)})
+        keys = snap.scan(columns=list(dict.fromkeys(["time", "tag", "method", "run", *typed])),
+                         expression=expr)
+        if keys.num_rows == 0:
             return pd.DataFrame(columns=["time", "tag", "x", "y", "method", "status"]), 0
-        runs = _runs_of(t)
-        df = t.to_pandas().drop(columns="run", errors="ignore")
-        # an epoch re-solved after a restart: its last row; two runs of a re-based tag
-        # at the same time: two epochs, both kept
-        keys = [c for c in ("time", "tag", "method") if c in df.columns]
-        dup = pd.DataFrame({"run": runs, **{c: df[c] for c in keys}}).duplicated(keep="last")
-        df = df.loc[~dup.to_numpy()].sort_values(["time", "tag"], kind="stable")
-        return df.tail(limit).reset_index(drop=True), len(df)
+        kdf = keys.select([c for c in ("time", "tag", "method")
+                           if c in keys.column_names]).to_pandas()
+        # the type that every matching row gives a column with nulls (an int64 column is
+        # float64 in the frame, also when the rows answered have none)
+        null_typed = {c: keys.select([c]).to_pandas()[c].dtype for c in typed
+                      if c in keys.column_names and keys[c].null_count}
+        rows, total = _answered_rows(kdf, _runs_of(keys), limit)
+        times = kdf["time"].to_numpy(np.float64)
+        cut = float(times[rows[0]]) if len(rows) < keys.num_rows else math.nan
+        read = np.flatnonzero(times >= cut) if math.isfinite(cut) else None
+        # a time bound pushed down when it leaves most rows out (a filter copies the rows
+        # it keeps: more than half kept cost more than reading them all)
+        if read is None or 2 * len(read) > keys.num_rows or np.isnan(times[rows]).any():
+            table, at, expect = snap.scan(expression=expr), rows, keys.num_rows
+        else:  # the rows answered and the others of their times: the earlier not read
+            bound = ds.field("time") >= cut
+            table = snap.scan(expression=bound if expr is None else expr & bound)
+            at, expect = np.searchsorted(read, rows), len(read)
+        if table.num_rows != expect:  # (not the rows of the first pass: never seen)
+            return _latest_rows(snap.scan(expression=expr), limit)
+        if len(at) and (np.diff(at) == 1).all():  # the log's order is the answer's
+            out = table.slice(int(at[0]), len(at))  # (no copy)
+        else:
+            out = table.take(pa.array(at, pa.int64()))
+        want = keys.select(["time", "tag"]).take(pa.array(rows, pa.int64()))
+        if not (out["time"].equals(want["time"]) and out["tag"].equals(want["tag"])):
+            return _latest_rows(snap.scan(expression=expr), limit)  # (NaN times too)
+        df = out.to_pandas().drop(columns="run", errors="ignore")
+        for c, dtype in null_typed.items():
+            if c in df.columns and df[c].dtype != dtype:
+                df[c] = df[c].astype(dtype)
+        return df, total

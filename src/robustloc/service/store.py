@@ -466,40 +466,19 @@ class SegmentLog:
         for t in list(self._sealers):
             t.join()
 
+    def snapshot(self) -> LogSnapshot:
+        """The rows held now, to be read later as they are now (:class:`LogSnapshot`):
+        rows appended or sealed meanwhile are not in it."""
+        with self._lock:
+            segments = list(self._segments)
+            memory = [t for seq in sorted(self._memory) for t in self._memory[seq]]
+        return LogSnapshot(self, segments, memory)
+
     def scan(
         self, columns: list[str] | None = None, expression: ds.Expression | None = None,
     ) -> pa.Table:
         """All rows (optionally only ``columns``, filtered by a dataset ``expression``)."""
-        with self._lock:
-            segments = list(self._segments)
-            memory = [t for seq in sorted(self._memory) for t in self._memory[seq]]
-        parts: list[pa.Table] = []
-        if segments:
-            # the union of the segments' columns: a dataset of several files takes the
-            # first file's schema, and the columns only later segments have (a segment
-            # of fallback rows of six columns sealed first: every later row lost its
-            # hpl and covariance terms after a restart) were dropped
-            schema = pa.unify_schemas([self._schema(p) for p in segments],
-                                      promote_options="permissive")
-            cols = None if columns is None else [c for c in columns if c in schema.names]
-            try:
-                parts.append(ds.dataset([str(p) for p in segments], schema=schema,
-                                        format="parquet").to_table(columns=cols,
-                                                                   filter=expression))
-            except (pa.ArrowException, OSError) as exc:
-                # a segment damaged in its data (its footer reads): named, as at open; the
-                # Arrow message alone named no file, and at start it was a traceback
-                raise self._damaged(segments, schema, cols, exc) from None
-        if memory:
-            mem = pa.concat_tables(memory, promote_options="default")
-            if expression is not None:
-                mem = mem.filter(expression)
-            if columns is not None:
-                mem = mem.select([c for c in columns if c in mem.column_names])
-            parts.append(mem)
-        if not parts:
-            return pa.table({})
-        return pa.concat_tables(parts, promote_options="default")
+        return self.snapshot().scan(columns, expression)
 
     @staticmethod
     def _damaged(segments: list[Path], schema: pa.Schema, columns: list[str] | None,
@@ -532,6 +511,66 @@ class SegmentLog:
         self._dir_lock.release()
 
 
+class LogSnapshot:
+    """The rows of a :class:`SegmentLog` at one moment: its sealed segments (immutable
+    files, never deleted while the log is open) and the tables of its logs not yet
+    sealed.  Two scans of one snapshot read the same rows in the same order, whatever
+    was appended or sealed between them (a query reads the key columns of every
+    matching row first, then every column of the rows it keeps only).
+
+    Parameters
+    ----------
+    log : SegmentLog
+        The log (its cached segment schemas, and the naming of a damaged segment).
+    segments : list of Path
+        The sealed segments, in the log's order.
+    memory : list of Table
+        The rows not yet sealed, in order.
+    """
+
+    def __init__(self, log: SegmentLog, segments: list[Path], memory: list[pa.Table]) -> None:
+        self.log = log
+        self.segments = segments
+        self.memory = memory
+
+    def schemas(self) -> list[pa.Schema]:
+        """The schema of each segment and each unsealed table (not unified)."""
+        return [self.log._schema(p) for p in self.segments] + [t.schema for t in self.memory]
+
+    def scan(
+        self, columns: list[str] | None = None, expression: ds.Expression | None = None,
+    ) -> pa.Table:
+        """All rows (optionally only ``columns``, filtered by a dataset ``expression``)."""
+        segments, memory = self.segments, self.memory
+        parts: list[pa.Table] = []
+        if segments:
+            # the union of the segments' columns: a dataset of several files takes the
+            # first file's schema, and the columns only later segments have (a segment
+            # of fallback rows of six columns sealed first: every later row lost its
+            # hpl and covariance terms after a restart) were dropped
+            schema = pa.unify_schemas([self.log._schema(p) for p in segments],
+                                      promote_options="permissive")
+            cols = None if columns is None else [c for c in columns if c in schema.names]
+            try:
+                parts.append(ds.dataset([str(p) for p in segments], schema=schema,
+                                        format="parquet").to_table(columns=cols,
+                                                                   filter=expression))
+            except (pa.ArrowException, OSError) as exc:
+                # a segment damaged in its data (its footer reads): named, as at open; the
+                # Arrow message alone named no file, and at start it was a traceback
+                raise self.log._damaged(segments, schema, cols, exc) from None
+        if memory:
+            mem = pa.concat_tables(memory, promote_options="default")
+            if expression is not None:
+                mem = mem.filter(expression)
+            if columns is not None:
+                mem = mem.select([c for c in columns if c in mem.column_names])
+            parts.append(mem)
+        if not parts:
+            return pa.table({})
+        return pa.concat_tables(parts, promote_options="default")
+
+
 def max_by(table: pa.Table, key: str, value: str) -> dict[str, float]:
     """``{key: max(value)}`` over a table (e.g. the latest time per tag)."""
     if table.num_rows == 0:
@@ -540,4 +579,5 @@ def max_by(table: pa.Table, key: str, value: str) -> dict[str, float]:
     return dict(zip(g[key].to_pylist(), g[f"{value}_max"].to_pylist()))
 
 
-__all__ = ["SegmentLog", "StoreError", "StoreInUse", "StoreLock", "StoreWriteError", "max_by"]
+__all__ = ["LogSnapshot", "SegmentLog", "StoreError", "StoreInUse", "StoreLock",
+           "StoreWriteError", "max_by"]

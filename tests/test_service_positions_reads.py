@@ -1,0 +1,157 @@
+"""Live service: ``GET /api/positions`` reads bounded (the serve review).
+
+Every query read every column of every matching row of the positions log into a frame;
+now it reads the columns that decide which rows it answers, then every column of those
+rows (and the others of their times) only.
+
+The replies must not change: a real ``robustloc serve`` on a free loopback port answers
+queries over a store written here, whose rows the test knows one by one (several sealed
+segments and an unsealed log, epochs re-solved after a restart, two runs of a tag, a
+column some segments lack), and each reply is checked against the rows the query must
+answer, built from that list.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+pytest.importorskip("starlette")
+pytest.importorskip("uvicorn")
+httpx = pytest.importorskip("httpx")
+pa = pytest.importorskip("pyarrow")
+
+from robustloc.service.store import SegmentLog  # noqa: E402
+
+ANCHORS = pd.DataFrame({"anchor": ["A1", "A2", "A3", "A4"], "x": [0.0, 10.0, 10.0, 0.0],
+                        "y": [0.0, 0.0, 10.0, 10.0]})
+
+
+# --------------------------------------------------------------------------------------
+# the replies: as before, over a store of several parts
+# --------------------------------------------------------------------------------------
+
+
+def _stored_rows() -> list[dict]:
+    """Position rows as a store holds them, in their order: tags A, B, C at times 0 ..
+    29; A's epochs 10 .. 19 solved again after a restart (the later row holds, its x
+    differs); C re-based at time 25 (a second run at times 0 .. 4, as many epochs as
+    the first run's); the first 40 rows without ``n_used`` (an earlier version's rows:
+    null in the query)."""
+    rows = []
+    for t in range(30):
+        for tag in ("B", "A", "C"):
+            rows.append({"time": float(t), "tag": tag, "x": t + 0.25, "y": 1.0,
+                         "method": "nls", "status": "ok", "n_used": 4, "run": 0})
+        if t == 25:
+            rows += [{"time": float(k), "tag": "C", "x": 100.0 + k, "y": 2.0,
+                      "method": "nls", "status": "ok", "n_used": 3, "run": 1}
+                     for k in range(5)]
+    rows += [{"time": float(t), "tag": "A", "x": t + 0.5, "y": 1.0, "method": "nls",
+              "status": "ok", "n_used": 4, "run": 0} for t in range(10, 20)]
+    for r in rows[:40]:
+        r["n_used"] = None
+    return rows
+
+
+def _expected(rows: list[dict], tag: str | None, since: float | None,
+              until: float | None, limit: int) -> tuple[list[dict], int]:
+    """What a query answers, from the rows themselves: the rows matching, each epoch
+    ``(time, tag, method, run)`` once (its last row), sorted by time then tag (store
+    order among equals), the latest ``limit``; and how many matched."""
+    match = [r for r in rows if (tag is None or r["tag"] == tag)
+             and (since is None or r["time"] >= since)
+             and (until is None or r["time"] <= until)]
+    last = {(r["time"], r["tag"], r["method"], r["run"]): i for i, r in enumerate(match)}
+    kept = sorted((i for i in last.values()),
+                  key=lambda i: (match[i]["time"], match[i]["tag"], i))
+    return [{k: v for k, v in match[i].items() if k != "run"} for i in kept][-limit:], len(kept)
+
+
+@pytest.fixture(scope="module")
+def store_server(tmp_path_factory):
+    """A real server on a store holding :func:`_stored_rows`: sealed segments (12 rows
+    each, written by a log of ``seal_rows`` 12) and an unsealed log of the last 9 rows
+    (sealed when the server opens the store)."""
+    from robustloc.service.launch import ServerProcess
+
+    d: Path = tmp_path_factory.mktemp("posreads")
+    anchors = d / "anchors.csv"
+    ANCHORS.to_csv(anchors, index=False)
+    rows = _stored_rows()
+    log = SegmentLog(d / "store" / "positions", seal_rows=12, fsync=False)
+    try:
+        # blocks as the solver appends them; the first ones of the old schema (no
+        # ``n_used``, no ``run``), as a store of an earlier version holds
+        for i in range(0, len(rows), 4):
+            block = pd.DataFrame(rows[i:i + 4])
+            if i < 40:
+                block = block.drop(columns=["n_used", "run"])
+            else:
+                block["n_used"] = block["n_used"].astype("int64")
+            log.append(pa.Table.from_pandas(block, preserve_index=False))
+        log.wait_sealed()
+        assert len(list((d / "store" / "positions").glob("*.parquet"))) > 5
+        assert 0 < sum(len(t) for ts in log._memory.values() for t in ts)  # (a tail)
+    finally:
+        log.close()
+    s = ServerProcess(["--anchors", str(anchors), "--store", str(d / "store"),
+                       "--value", "range"])
+    s.start()
+    try:
+        yield s, rows
+    finally:
+        s.stop()
+
+
+QUERIES = [(tag, since, until, limit)
+           for tag in (None, "A", "C", "nobody")
+           for since, until in ((None, None), (12.0, None), (None, 14.5), (3.0, 3.0))
+           for limit in (1, 4, 31, None)]
+
+
+def test_positions_replies_are_the_rows_the_query_must_answer(store_server):
+    """Rows, their order, the re-solved epochs once (the last), both runs of C, and the
+    headers, for every combination of tag, since, until and limit; a count column with
+    nulls among the matching rows (re-solved ones included) is a float in every reply
+    (``4.0``: as when every matching row was read into one frame), also when the rows
+    answered have none."""
+    s, rows = store_server
+    with httpx.Client(base_url=s.url, timeout=60) as c:
+        for tag, since, until, limit in QUERIES:
+            q = {k: v for k, v in (("tag", tag), ("since", since), ("until", until),
+                                   ("limit", limit)) if v is not None}
+            r = c.get("/api/positions", params=q)
+            assert r.status_code == 200, (q, r.text)
+            want, total = _expected(rows, tag, since, until, limit or 100_000)
+            got = r.json()
+            assert [(p["time"], p["tag"], p["x"]) for p in got] == \
+                [(p["time"], p["tag"], p["x"]) for p in want], q
+            assert got == want, q
+            assert r.headers["x-total-count"] == str(total), q
+            assert r.headers.get("x-truncated") == ("true" if total > len(got) else None), q
+            # (a row of the matching ones, re-solved or not, without a count)
+            nulls = any(r["n_used"] is None for r in rows
+                        if (tag is None or r["tag"] == tag)
+                        and (since is None or r["time"] >= since)
+                        and (until is None or r["time"] <= until))
+            assert all(isinstance(p["n_used"], float if nulls else int) for p in got
+                       if p["n_used"] is not None), q
+    assert any(_expected(rows, *q[:3], 100_000)[1] > 31 for q in QUERIES)  # (truncated)
+
+
+def test_concurrent_positions_queries_get_the_same_reply(store_server):
+    """Eight queries at once: each the same bytes and headers as the same query alone."""
+    s, _ = store_server
+    alone = httpx.get(s.url + "/api/positions?since=5&limit=40", timeout=60)
+    with ThreadPoolExecutor(8) as ex:
+        replies = list(ex.map(lambda _: httpx.get(s.url + "/api/positions?since=5&limit=40",
+                                                   timeout=60), range(8)))
+    for r in replies:
+        assert r.status_code == 200 and r.content == alone.content
+        assert r.headers["x-total-count"] == alone.headers["x-total-count"]
+        assert r.headers.get("x-truncated") == alone.headers.get("x-truncated") == "true"
+    assert len(alone.json()) == 40
