@@ -25,6 +25,13 @@ MAX_ROWS_PER_BODY = 1_000_000
 #: by 330 MB, six at once by 757 MB unbounded and 530 MB with two at a time (the
 #: validation is one at a time anyway, under the ingest lock).
 MAX_CONCURRENT_ROW_PARSES = 2
+#: ``GET /api/positions`` queries read and answered at once (the store read, the frame and
+#: the JSON body, in worker threads of their own, not the pool that ingest uses); the
+#: others wait their turn.  Each held a frame of every matching row and its body: 8 at
+#: once over a store of 125 000 positions raised the server's peak by 660-680 MiB and
+#: held ``/healthz`` for up to 2.6 s and a POST of rows for up to 4.2 s (the serve
+#: review; two at a time in their threads: 170-250 MiB, 50-180 ms and 100-240 ms).
+MAX_CONCURRENT_POSITION_READS = 2
 #: Rejected rows listed in a reply (``rejected``); ``n_rejected`` counts them all.
 MAX_REJECTED_LISTED = 1000
 #: Seconds a client may take to send a body once its request started; then 408.
