@@ -17,7 +17,9 @@ pytest.importorskip("starlette")
 pytest.importorskip("uvicorn")
 httpx = pytest.importorskip("httpx")
 
-from robustloc.service.launch import ServerProcess  # noqa: E402
+from _waiting import wait_until  # noqa: E402
+
+from robustloc.service.launch import ServerProcess, read_metric  # noqa: E402
 
 TOKEN = "q-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -163,3 +165,49 @@ def test_queried_tag_is_trimmed_as_ingest_trims(srv):
     # only spaces: no tag given, as ``?tag=`` is (every tag)
     assert len(httpx.get(u + "/api/positions?tag=%20&limit=1000", headers=AUTH).json()) == \
         N_A + len(B_TIMES) + 1
+
+
+@pytest.mark.parametrize(("query", "name"), [
+    ("bogus=1", "bogus"), ("tag=A", "tag"), ("token=x&token=y", "token"),
+])
+def test_post_measurements_refuses_unknown_or_repeated_query_parameters(srv, query, name):
+    """``POST /api/measurements`` took any query (``?bogus=1`` stored the rows, a
+    misspelled option said nothing) while every GET refused it: now ``400`` naming it,
+    counted as ``bad_query``, before the body is read; nothing of the body is stored."""
+    u = srv.url
+    before = _bad_queries(u)
+    accepted = read_metric(u, "robustloc_rows_accepted_total", AUTH)
+    r = httpx.post(u + f"/api/measurements?{query}", json=_rows("E", (50.0,)), headers=AUTH)
+    assert r.status_code == 400, r.text
+    assert r.json()["error"].startswith("bad query: ") and repr(name) in r.json()["error"]
+    assert _bad_queries(u) == before + 1
+    assert read_metric(u, "robustloc_rows_accepted_total", AUTH) == accepted > 0
+
+
+def test_websocket_measurements_refuses_unknown_parameters_at_the_handshake(srv):
+    """``/ws/measurements?bogus=1`` was accepted as ingest; now refused at the handshake
+    with HTTP 400 and the reason (as ``/ws/positions``), counted as ``bad_query``."""
+    from websockets.exceptions import InvalidStatus
+    from websockets.sync.client import connect
+
+    w = srv.url.replace("http://", "ws://")
+    before = _bad_queries(srv.url)
+    for q in (f"bogus=1&token={TOKEN}", f"token={TOKEN}&token={TOKEN}"):
+        with pytest.raises(InvalidStatus) as refused:
+            connect(w + f"/ws/measurements?{q}", open_timeout=10)
+        assert refused.value.response.status_code == 400, q
+        assert b"bad query" in refused.value.response.body, q
+    assert _bad_queries(srv.url) == before + 2
+
+
+def test_post_measurements_with_the_token_in_the_query_still_ingests(srv):
+    """The parameter the POST takes (``token``) and none at all: accepted as before
+    (adds a tag's rows: after the tests that count them)."""
+    u = srv.url
+    r = httpx.post(u + f"/api/measurements?token={TOKEN}", json=_rows("D", (40.0,)))
+    assert r.status_code == 202 and r.json()["accepted"] == len(XY), r.text
+    r = httpx.post(u + "/api/measurements", json=_rows("D", (41.0,)), headers=AUTH)
+    assert r.status_code == 202 and r.json()["accepted"] == len(XY), r.text
+    got = wait_until(lambda: (p := httpx.get(u + "/api/positions?tag=D", headers=AUTH).json())
+                     and len(p) == 2 and p, timeout=30, what="tag D's epochs solved")
+    assert [p["time"] for p in got] == [40.0, 41.0]

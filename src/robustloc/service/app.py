@@ -3,6 +3,7 @@
 Endpoints (the API is a contract; see the README's "Live service" section)::
 
     POST /api/measurements      JSON array or NDJSON of rows -> 202 {accepted, rejected}
+                                (no query parameter but ``token``)
     GET  /api/positions         ?tag=&since=&until=&limit=  -> JSON array of position rows,
                                 sorted by time then tag: the *latest* ``limit`` (100 000)
                                 matching rows; header ``X-Total-Count`` the rows matching,
@@ -25,7 +26,7 @@ Endpoints (the API is a contract; see the README's "Live service" section)::
 
 A query parameter an endpoint does not take (:data:`QUERY_PARAMS`; ``token`` on every
 endpoint behind the token), or one given twice, is answered ``400`` naming it and counted
-as ``bad_query`` (``/ws/positions``: HTTP 400 at the handshake, before it is accepted).
+as ``bad_query`` (a WebSocket: HTTP 400 at the handshake, before it is accepted).
 
 A body the store cannot write (disk full, I/O error) is answered ``507 Insufficient
 Storage`` with the reason and counted as ``store_error``; none of its rows is stored, so
@@ -565,6 +566,10 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
     async def post_measurements(request: Request) -> Response:
         if not authorized(request.headers, request.query_params):
             return unauthorized()
+        # (refused before the body is read, as a body too large is; ``?tags=...`` or a
+        # misspelled option was accepted silently, while every GET refused it)
+        if (bad := bad_params(request)) is not None:
+            return bad
         length = request.headers.get("content-length")
         if length is not None and (not length.isdigit() or int(length) > cfg.max_body_bytes):
             return refuse("too_large", 413, f"body larger than {cfg.max_body_bytes} bytes")
@@ -719,6 +724,22 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
     async def index(request: Request) -> Response:
         return FileResponse(_static_dir() / "index.html", media_type="text/html")
 
+    async def refused_ws_query(ws: WebSocket) -> bool:
+        """Refuse a WebSocket whose query has a parameter its endpoint does not take (or
+        one twice) at the handshake, with HTTP 400 and the reason, as a bad HTTP query
+        is (counted as ``bad_query``); True when it was refused."""
+        why = query_problem(ws.query_params.multi_items(),
+                            QUERY_PARAMS.get(ws.url.path, TOKEN_ONLY))
+        if why is None:
+            return False
+        engine.metrics.request_rejected("bad_query")
+        if "websocket.http.response" in ws.scope.get("extensions", {}):
+            await ws.send_denial_response(
+                JSONResponse({"error": f"bad query: {why}"}, status_code=400))
+        else:  # (a server without the denial extension: HTTP 403, no reason)
+            await ws.close(code=WS_POLICY_VIOLATION)
+        return True
+
     async def ws_positions(ws: WebSocket) -> None:
         if not authorized(ws.headers, ws.query_params):
             engine.metrics.request_rejected("unauthorized")
@@ -726,14 +747,7 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             # client sees that status, not this code)
             await ws.close(code=1008)
             return
-        why = query_problem(ws.query_params.multi_items(), QUERY_PARAMS["/ws/positions"])
-        if why is not None:  # refused at the handshake, as a bad HTTP query is
-            engine.metrics.request_rejected("bad_query")
-            if "websocket.http.response" in ws.scope.get("extensions", {}):
-                await ws.send_denial_response(
-                    JSONResponse({"error": f"bad query: {why}"}, status_code=400))
-            else:  # (a server without the denial extension: HTTP 403, no reason)
-                await ws.close(code=WS_POLICY_VIOLATION)
+        if await refused_ws_query(ws):
             return
         await ws.accept()
         q = Outbox()
@@ -780,6 +794,8 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             # closed before the accept: uvicorn answers the handshake HTTP 403 (the
             # client sees that status, not this code)
             await ws.close(code=1008)
+            return
+        if await refused_ws_query(ws):  # (``?token=`` only; a misspelled one was ignored)
             return
         await ws.accept()
         client = ws.client.host if ws.client else "?"
