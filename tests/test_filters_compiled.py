@@ -383,3 +383,30 @@ def test_variance_mode_never_widens_the_prediction(kind, engine, tight):
         widest[mode] = (np.linalg.eigvalsh(post.P - prior)[:, -1] / scale).max()
     assert widest["variance"] <= 1e-12
     assert widest["gain"] > 1e-3  # the data do make K D widen the covariance
+
+
+@pytest.mark.parametrize("engine", ["compiled", "numpy"])
+def test_variance_mode_leaves_out_a_weight_whose_variance_overflows(engine):
+    """A weight so small that ``R_ii / D_ii`` overflows is an infinite variance: the
+    component is left out (weight 0), and the update equals that with the component
+    missing.  Here the first range has ``R_ii = 1e300`` and reads 1e161 off, so its
+    Huber weight is ``1.5 sqrt(1e300) / 1e161 = 1.5e-11`` and ``R_ii / D_ii = 6.7e310``
+    overflows.  Before, the weight stayed 1.5e-11 and the covariance of those 16 tracks
+    came out NaN (inf in the Joseph form).
+    Tolerance: rounding of the same few operations (rtol 1e-12)."""
+    motion = ConstantVelocity(q=0.05)
+    meas, x, P, dt, z, R = _case(motion, True, K=50, seed=11)
+    R = np.diag(np.diag(R))
+    R[0, 0] = 1e300
+    hit = np.isfinite(z[:, 0]) & (np.arange(50) % 3 == 0)
+    z[hit, 0] += 1e161
+    robust = RobustUpdate(Huber(1.5), mode="variance")
+    f = FusionFilter("ekf", motion, robust, engine=engine)
+    r = f.step(x, P, dt, z, R, meas)
+    assert (f._fast["state"][1] is not None) == (engine == "compiled")
+    assert hit.sum() >= 10 and np.all(r.weights[hit, 0] == 0.0)
+    assert np.isfinite(r.x).all() and np.isfinite(r.P).all()
+    ref = FusionFilter("ekf", motion, robust, engine="numpy").step(
+        x, P, dt, np.where(hit[:, None] & (np.arange(z.shape[1]) == 0), np.nan, z), R, meas)
+    np.testing.assert_allclose(r.x, ref.x, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(r.P, ref.P, rtol=1e-12, atol=1e-15)

@@ -440,10 +440,14 @@ def update_from_moments(
 
     if robust.mode == "variance" and robust.weight is not None:
         # equivalent variance R_ii / D_ii: S gains R_ii (1/D_ii - 1) on its diagonal
-        use = D > 0
         eye_m = np.eye(m)
         R = _as_batch(R, K)
         rdiag = np.diagonal(R, axis1=1, axis2=2)
+        # a weight so small that R_ii / D_ii overflows (a denormal near a redescending
+        # weight's cut) is an infinite variance: the component is left out, D_ii = 0
+        with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
+            D = np.where((D > 0) & ~np.isfinite(rdiag / D), 0.0, D)
+        use = D > 0
         with np.errstate(divide="ignore"):
             extra = np.where(use, rdiag * (1.0 / np.where(use, D, 1.0) - 1.0), 0.0)
         pair_u = use[:, :, None] & use[:, None, :]
