@@ -30,7 +30,8 @@ Coupling:
          uwb-dwm1001 (fixes correlated near +-1) from 1.4 to 17 m RMS, plain EKF;
   tight  the raw ranges are measurements (default): epochs with fewer than three anchors
          still update, and a robust update (--robust) down-weights one bad range instead
-         of a whole fix.
+         of a whole fix.  A component of weight w enters with the variance R/w (w = 0:
+         left out), so an update never widens the prediction's covariance.
 
 From the NMEA log only speed and course are fused (the paper's GPS measurements); GGA
 positions are not used (a log without RMC/VTG sentences gives a warning: nothing of it is
@@ -289,9 +290,11 @@ def run(args: argparse.Namespace) -> int:
     q = args.q if args.q is not None else (0.5 if args.motion == "cv" else 0.1)
     if args.filter is None:  # seed 001's pairs, measured (the --filter help)
         args.filter = "ekf" if args.motion == "cv" else "ukf"
+    # the equivalent-variance form (a component of weight w enters with R / w): an update
+    # never widens the prediction's covariance, as seed 002's gain K D can (docs/limits.md)
     robust = RobustUpdate(
         weight=None if args.robust == "none" else get_weight(args.robust),
-        gate_probability=args.gate,
+        gate_probability=args.gate, mode="variance",
     )
     filt = FusionFilter(args.filter, motion_model(args.motion, q=q), robust)
     opts = FuseOptions(

@@ -148,7 +148,8 @@ def _cart_experiment(ctx: Context, sec: Section) -> None:
 
 
 def _real_filter(kind: str = "ekf") -> FusionFilter:
-    return FusionFilter(kind, ConstantVelocity(q=REAL_Q), RobustUpdate(weight=REAL_WEIGHT))
+    return FusionFilter(kind, ConstantVelocity(q=REAL_Q),
+                        RobustUpdate(weight=REAL_WEIGHT, mode="variance"))
 
 
 def dwm_fuse(run: uwb_dwm1001.Dwm1001Run, coupling: str = "tight",
@@ -268,7 +269,8 @@ def _labyrinth_experiment(ctx: Context, sec: Section) -> None:
     ]
     for label, coupling, kind, motion_obs, weight in configs[:2] if ctx.quick else configs:
         res = fuse(r.measurements, r.anchors, motion_obs,
-                   FusionFilter(kind, ConstantVelocity(q=0.5), RobustUpdate(weight=weight)),
+                   FusionFilter(kind, ConstantVelocity(q=0.5),
+                                RobustUpdate(weight=weight, mode="variance")),
                    FuseOptions(coupling=coupling, sigma_range_m=0.1, merge_window_s=0.0))
         tr = res.track
         s = error_stats(tr["time"].to_numpy(), tr[["x", "y"]].to_numpy(), r.truth, span)
