@@ -433,3 +433,29 @@ def test_angular_state_wraps(kind):
         assert -np.pi <= x[0, 0] < np.pi
         assert abs(wrap_angle(x[0, 0] - truth[0])) < np.deg2rad(2.0)
         assert abs(x[0, 1] - 0.05) < 0.01
+
+
+@pytest.mark.parametrize("w", [3e-309, 1e-310, 4.9e-324])
+def test_variance_mode_leaves_out_a_weight_whose_inverse_overflows(w):
+    """With ``R_ii < 1`` a weight below ``1 / DBL_MAX`` (5.6e-309) has a finite
+    ``R_ii / w`` but an infinite ``1 / w``: the added variance ``R_ii (1 / w - 1)`` is
+    infinite, and the state and covariance came out NaN (the review's denorm.py: w =
+    3e-309 and 1e-310; 4.9e-324 was left out).  Such a component is left out: the update
+    equals that without it (the same operations: exact up to rounding, rtol 1e-12)."""
+    from robustloc.filters import RobustUpdate, update_linear
+    from robustloc.robust.weights import WeightFunction
+
+    class Tiny(WeightFunction):
+        def weights(self, u):
+            return np.where(np.arange(np.shape(u)[-1]) == 1, w, 1.0) * np.ones_like(u)
+
+    x, P = np.array([[1.0, 2.0]]), np.array([[[0.5, 0.1], [0.1, 0.4]]])
+    H = np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
+    R = 0.01 * np.eye(3)
+    z = np.array([[1.1, 2.5, 3.2]])
+    r = update_linear(x, P, z, H, R, RobustUpdate(Tiny(), mode="variance"))
+    ref = update_linear(x, P, np.array([[1.1, np.nan, 3.2]]), H, R,
+                        RobustUpdate(Tiny(), mode="variance"))
+    assert r.weights[0, 1] == 0.0 and r.n_used[0] == 2
+    np.testing.assert_allclose(r.x, ref.x, rtol=1e-12)
+    np.testing.assert_allclose(r.P, ref.P, rtol=1e-12)

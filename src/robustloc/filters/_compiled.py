@@ -667,8 +667,9 @@ def _step(n, mc, x, P, dt, z, R, prm, fout, k0, k1):  # pragma: no cover - jit
                 wv = weight_scalar(wcode, wp0, wp1, wp2, e)
                 if gated or not math.isfinite(wv):
                     wv = 0.0
-                elif var and wv > 0.0 and not math.isfinite(_r(R, rk, i, i) / wv):
-                    wv = 0.0  # R_ii / D_ii overflows: an infinite variance, left out
+                elif var and wv > 0.0 and not math.isfinite(
+                        _r(R, rk, i, i) * (1.0 / wv - 1.0)):
+                    wv = 0.0  # the added variance overflows: infinite, left out
             else:
                 fout[o_y + k * m + i] = math.nan
                 fout[o_e + k * m + i] = math.nan

@@ -443,10 +443,10 @@ def update_from_moments(
         eye_m = np.eye(m)
         R = _as_batch(R, K)
         rdiag = np.diagonal(R, axis1=1, axis2=2)
-        # a weight so small that R_ii / D_ii overflows (a denormal near a redescending
-        # weight's cut) is an infinite variance: the component is left out, D_ii = 0
+        # a weight so small that the added variance R_ii (1 / D_ii - 1) overflows (1 / D
+        # does below 5.6e-309 whatever R) is an infinite variance: left out, D_ii = 0
         with np.errstate(divide="ignore", over="ignore", invalid="ignore"):
-            D = np.where((D > 0) & ~np.isfinite(rdiag / D), 0.0, D)
+            D = np.where((D > 0) & ~np.isfinite(rdiag * (1.0 / D - 1.0)), 0.0, D)
         use = D > 0
         with np.errstate(divide="ignore"):
             extra = np.where(use, rdiag * (1.0 / np.where(use, D, 1.0) - 1.0), 0.0)
