@@ -234,3 +234,25 @@ def test_concurrent_positions_queries_get_the_same_reply(store_server):
         assert r.headers["x-total-count"] == alone.headers["x-total-count"]
         assert r.headers.get("x-truncated") == alone.headers.get("x-truncated") == "true"
     assert len(alone.json()) == 40
+
+
+# --------------------------------------------------------------------------------------
+# the body's encoder
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("n", [0, 1, 8191, 8192, 8193, 20_000])
+def test_chunked_body_is_the_array_json_bytes(n):
+    """:func:`_array_json_bytes` (chunks of 8 192 rows) gives :func:`_array_json`'s bytes:
+    rows of several columns, and rows without columns (their chunks encode to nothing:
+    over 8 192 such rows it gave ``[,,]``, not ``[]``)."""
+    import numpy as np
+
+    from robustloc.service.app import _array_json, _array_json_bytes
+
+    frame = pd.DataFrame({"time": np.arange(n) * 0.1, "tag": ["A"] * n,
+                          "x": np.where(np.arange(n) % 7 == 0, np.nan, 1.5)})
+    assert _array_json_bytes(frame) == _array_json(frame).encode()
+    bare = frame[[]]  # (the rows, no column)
+    assert len(bare) == n
+    assert _array_json_bytes(bare) == _array_json(bare).encode() == b"[]"
