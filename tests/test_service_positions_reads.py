@@ -237,6 +237,58 @@ def test_concurrent_positions_queries_get_the_same_reply(store_server):
 
 
 # --------------------------------------------------------------------------------------
+# unsealed rows: a filter copies the columns asked for only
+# --------------------------------------------------------------------------------------
+
+_UNSEALED_SCAN = """
+import sys, tempfile
+import numpy as np, pyarrow as pa, pyarrow.dataset as ds
+from robustloc.service.engine import _MemoryLog
+from robustloc.service.store import SegmentLog
+kind = sys.argv[1]
+log = (_MemoryLog() if kind == "memory" else
+       SegmentLog(tempfile.mkdtemp() + "/p", seal_rows=10**8, fsync=False))
+n, rng = 200_000, np.random.default_rng(1)
+for i in range(0, n, 5000):
+    k = np.arange(i, i + 5000)
+    log.append(pa.table({"time": k * 0.1, "tag": pa.array([f"t{j % 50}" for j in k]),
+                         **{f"c{j}": rng.normal(size=5000) for j in range(12)}}))
+snap = log.snapshot()
+pool = pa.default_memory_pool()
+base = pool.bytes_allocated()
+expr = (ds.field("time") >= n * 0.05) & (ds.field("tag") != "t3")
+got = snap.scan(columns=["time", "c0"], expression=expr)
+peak = pool.max_memory() - base
+rows = snap.scan()  # (every row: the store's are all unsealed)
+assert rows.num_rows == n
+assert got.equals(rows.filter(expr).select(["time", "c0"])), "not the rows of a filter"
+whole = snap.scan(columns=["tag", "time"], expression=ds.field("time") >= 0)
+assert whole.equals(rows.select(["tag", "time"])), "not every row"
+print(peak)
+"""
+
+
+@pytest.mark.parametrize("kind", ["memory", "store"])
+def test_filtered_scan_of_unsealed_rows_copies_the_columns_asked_for(kind):
+    """A scan with a filter over rows held in memory (a service without ``--store``, or
+    the store's log not yet sealed) filtered every column, then kept those asked for:
+    the first pass of a ``since`` query over 1 000 000 rows took 134 MiB of Arrow memory
+    (23 MiB without a filter).  Now the columns asked for are filtered only (the
+    expression read over the columns it names), none when every row is kept: here 2 of
+    14 columns, half of 200 000 rows kept.  A fresh interpreter: Arrow's peak is the
+    process's."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", _UNSEALED_SCAN, kind], capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    peak = int(out.stdout.split()[-1])
+    # all 14 columns of the 100 000 rows kept: 11 MB (the old filter); 2 of them: 1.6 MB
+    assert peak < 4 * 2**20, peak
+
+
+# --------------------------------------------------------------------------------------
 # the body's encoder
 # --------------------------------------------------------------------------------------
 

@@ -84,7 +84,7 @@ from robustloc.service.defaults import (
 from robustloc.service.metrics import Metrics
 from robustloc.service.processor import Processor
 from robustloc.service.rows import RowBatch, RowDecoder, validate_rows
-from robustloc.service.store import SegmentLog, StoreWriteError
+from robustloc.service.store import SegmentLog, StoreWriteError, scan_table
 from robustloc.status import SOLVER_ERROR
 
 MEAS_SCHEMA = pa.schema([
@@ -122,12 +122,10 @@ class _MemoryLog:
             tables = list(self._tables)
         if not tables:
             return pa.table({})
-        t = pa.concat_tables(tables, promote_options="default")
-        if expression is not None:
-            t = t.filter(expression)
-        if columns is not None:
-            t = t.select([c for c in columns if c in t.column_names])
-        return t
+        # (the columns asked for and the expression's only: filtering every column
+        # first copied them all for the rows kept, as the store's unsealed rows did)
+        return scan_table(pa.concat_tables(tables, promote_options="default"), columns,
+                          expression)
 
     def close(self) -> None:
         return None

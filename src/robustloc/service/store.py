@@ -52,6 +52,8 @@ import zlib
 from pathlib import Path
 
 import pyarrow as pa
+import pyarrow.acero as acero
+import pyarrow.compute as pc
 import pyarrow.dataset as ds
 import pyarrow.parquet as pq
 
@@ -560,15 +562,51 @@ class LogSnapshot:
                 # Arrow message alone named no file, and at start it was a traceback
                 raise self.log._damaged(segments, schema, cols, exc) from None
         if memory:
-            mem = pa.concat_tables(memory, promote_options="default")
-            if expression is not None:
-                mem = mem.filter(expression)
-            if columns is not None:
-                mem = mem.select([c for c in columns if c in mem.column_names])
-            parts.append(mem)
+            parts.append(scan_table(pa.concat_tables(memory, promote_options="default"),
+                                    columns, expression))
         if not parts:
             return pa.table({})
         return pa.concat_tables(parts, promote_options="default")
+
+
+def scan_table(table: pa.Table, columns: list[str] | None = None,
+               expression: ds.Expression | None = None) -> pa.Table:
+    """The rows of an in-memory ``table`` that ``expression`` keeps, ``columns`` only
+    (those of them it has), in the table's order: as a scan of a segment reads them.
+
+    The expression is evaluated over the columns it names only, and the columns wanted
+    are selected (no copy) before the rows are filtered: ``Table.filter`` copied every
+    column of the rows it kept, most then dropped (a query with ``since`` over 1 000 000
+    unsealed positions: 134 MiB of Arrow memory for a first pass of a few columns, 23 MiB
+    without a filter).  When every row is kept nothing is copied.
+
+    Parameters
+    ----------
+    table : Table
+        The rows.
+    columns : list of str, optional
+        The columns wanted, in this order (default: all).
+    expression : Expression, optional
+        A dataset filter (default: every row); a row where it is null is left out, as a
+        filter leaves it.
+
+    Returns
+    -------
+    Table
+        The rows kept, the columns wanted.
+    """
+    kept = table if columns is None else table.select(
+        [c for c in columns if c in table.column_names])
+    if expression is None:
+        return kept
+    # (one boolean per row, in the table's order, as ``Table.filter`` evaluates it)
+    mask = acero.Declaration.from_sequence([
+        acero.Declaration("table_source", acero.TableSourceNodeOptions(table)),
+        acero.Declaration("project", acero.ProjectNodeOptions([expression], ["keep"])),
+    ]).to_table()["keep"]
+    if mask.null_count == 0 and pc.all(mask).as_py() is not False:  # every row kept
+        return kept
+    return kept.filter(mask)
 
 
 def max_by(table: pa.Table, key: str, value: str) -> dict[str, float]:
@@ -580,4 +618,4 @@ def max_by(table: pa.Table, key: str, value: str) -> dict[str, float]:
 
 
 __all__ = ["LogSnapshot", "SegmentLog", "StoreError", "StoreInUse", "StoreLock",
-           "StoreWriteError", "max_by"]
+           "StoreWriteError", "max_by", "scan_table"]
