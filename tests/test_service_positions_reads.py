@@ -108,6 +108,151 @@ def test_positions_reads_are_bounded_and_leave_the_default_pool_to_ingest(monkey
     assert pool_used and set(pool_used) == {0}
 
 
+class _HeldReads:
+    """``Engine.positions_counted`` held in its thread until :attr:`release` is set,
+    counting the reads begun (an app of :func:`create_app` in process)."""
+
+    def __init__(self, monkeypatch) -> None:
+        import robustloc.service.app as app_mod
+
+        self.eng = Engine(ANCHORS, LocateProcessor(ANCHORS, method="nls"),
+                          latency_window_s=0.0, idle_flush_s=600.0, fsync=False,
+                          value="range")
+        real = self.eng.positions_counted
+        self.lock, self.begun, self.release = threading.Lock(), [0], threading.Event()
+
+        def held_read(*args):
+            with self.lock:
+                self.begun[0] += 1
+            self.release.wait(60)  # (a bound: a test that fails does not hang)
+            return real(*args)
+
+        monkeypatch.setattr(self.eng, "positions_counted", held_read)
+        self.app = app_mod.create_app(self.eng)
+
+    async def request(self, gone: asyncio.Event | None = None) -> dict:
+        """``GET /api/positions`` as uvicorn calls the app: the request, and
+        ``http.disconnect`` once ``gone`` is set (at once when it is); returns the
+        status, the headers and the body sent (``None`` before ``http.response.start``)."""
+        scope = {"type": "http", "asgi": {"version": "3.0"}, "http_version": "1.1",
+                 "method": "GET", "scheme": "http", "path": "/api/positions",
+                 "raw_path": b"/api/positions", "query_string": b"", "root_path": "",
+                 "headers": [(b"host", b"t")], "client": ("127.0.0.1", 5),
+                 "server": ("127.0.0.1", 80)}
+        sent: dict = {"status": None, "headers": {}, "body": b""}
+        first = [True]
+        gone = gone or asyncio.Event()
+
+        async def receive() -> dict:  # (as uvicorn's: a client gone is told first)
+            if first[0] and not gone.is_set():
+                first[0] = False
+                return {"type": "http.request", "body": b"", "more_body": False}
+            await gone.wait()
+            return {"type": "http.disconnect"}
+
+        async def send(msg: dict) -> None:
+            if msg["type"] == "http.response.start":
+                sent["status"] = msg["status"]
+                sent["headers"] = {k.decode(): v.decode() for k, v in msg["headers"]}
+            else:
+                sent["body"] += msg.get("body", b"")
+
+        await self.app(scope, receive, send)
+        return sent
+
+    async def until_begun(self, n: int) -> None:
+        with anyio_fail_after(30):
+            while self.begun[0] < n:
+                await asyncio.sleep(0.01)
+
+
+def anyio_fail_after(seconds: float):
+    """:func:`anyio.fail_after` (a bound on a hang, not a speed)."""
+    import anyio
+
+    return anyio.fail_after(seconds)
+
+
+def test_positions_queries_waiting_at_shutdown_are_answered_503(monkeypatch):
+    """The stop's ``--shutdown-grace`` ran out while positions queries waited for a read
+    slot (uvicorn cancels them): each was answered a plain-text 500 with a
+    ``CancelledError ... acquire`` traceback (the serve review: 8 of 12 queries).  Now
+    the ones waiting, which hold nothing, get ``503`` with a JSON reason and
+    ``Retry-After`` (as a body still arriving), counted as ``shutting_down``, and are not
+    read; the ones reading are read to the end and answered, or ``503`` when the event
+    loop itself ends first (a second cancellation)."""
+    held = _HeldReads(monkeypatch)
+    n_wait = 3
+
+    async def main():
+        tasks = [asyncio.ensure_future(held.request())
+                 for _ in range(MAX_CONCURRENT_POSITION_READS + n_wait)]
+        await held.until_begun(MAX_CONCURRENT_POSITION_READS)
+        await asyncio.sleep(0.2)  # (the others wait for a slot)
+        for t in tasks:  # the grace runs out
+            t.cancel("Task cancelled, timeout graceful shutdown exceeded")
+        await asyncio.sleep(0.2)
+        reading = [t for t in tasks if not t.done()]
+        for t in reading[:1]:  # the event loop ends: the others' are cancelled again
+            t.cancel()
+        await asyncio.sleep(0.2)
+        held.release.set()
+        with anyio_fail_after(30):
+            return reading, await asyncio.gather(*tasks)
+
+    try:
+        reading, answers = asyncio.run(main())
+    finally:
+        held.release.set()
+        held.eng.stop()
+    assert len(reading) == MAX_CONCURRENT_POSITION_READS  # (not ended by the cancel)
+    assert held.begun[0] == MAX_CONCURRENT_POSITION_READS  # (the waiting: not read)
+    stopping = [a for a in answers if a["status"] == 503]
+    assert len(stopping) == n_wait + 1, [a["status"] for a in answers]
+    for a in stopping:
+        assert a["headers"]["content-type"] == "application/json"
+        assert a["headers"]["retry-after"] == "5"
+        assert "the service is stopping" in json.loads(a["body"])["error"]
+    done = [a for a in answers if a["status"] == 200]
+    assert len(done) == MAX_CONCURRENT_POSITION_READS - 1
+    assert all(json.loads(a["body"]) == [] for a in done)
+    assert held.eng.metrics.requests_rejected.get("shutting_down") == n_wait + 1
+
+
+def test_positions_query_whose_client_left_while_it_waited_is_not_read(monkeypatch):
+    """A query whose client disconnected while it waited for a read slot was read and
+    encoded for nobody, and the queries behind it waited for that (the serve review: a
+    ``limit=1`` query waited 12.4 s behind 16 abandoned ones).  Now it is not read:
+    counted as ``client_disconnect``; a query whose client stays is read and answered."""
+    held = _HeldReads(monkeypatch)
+
+    async def main():
+        first = [asyncio.ensure_future(held.request())
+                 for _ in range(MAX_CONCURRENT_POSITION_READS)]
+        await held.until_begun(MAX_CONCURRENT_POSITION_READS)
+        gone = asyncio.Event()
+        left = [asyncio.ensure_future(held.request(gone)) for _ in range(3)]
+        stays = asyncio.ensure_future(held.request())
+        await asyncio.sleep(0.2)  # (all waiting for a slot)
+        gone.set()  # their clients leave
+        await asyncio.sleep(0.1)
+        held.release.set()
+        with anyio_fail_after(30):
+            return (await asyncio.gather(*first), await asyncio.gather(*left),
+                    await stays)
+
+    try:
+        first, left, stays = asyncio.run(main())
+    finally:
+        held.release.set()
+        held.eng.stop()
+    assert [a["status"] for a in first] == [200] * MAX_CONCURRENT_POSITION_READS
+    assert stays["status"] == 200 and json.loads(stays["body"]) == []
+    assert held.begun[0] == MAX_CONCURRENT_POSITION_READS + 1  # (not the 3 that left)
+    assert held.eng.metrics.requests_rejected.get("client_disconnect") == 3
+    assert all(a["body"] == b"" for a in left)
+
+
 # --------------------------------------------------------------------------------------
 # the replies: as before, over a store of several parts
 # --------------------------------------------------------------------------------------
@@ -157,8 +302,20 @@ def store_server(tmp_path_factory):
     from robustloc.service.launch import ServerProcess
 
     d: Path = tmp_path_factory.mktemp("posreads")
-    anchors = d / "anchors.csv"
-    ANCHORS.to_csv(anchors, index=False)
+    rows = _write_store(d)
+    s = ServerProcess(["--anchors", str(d / "anchors.csv"), "--store", str(d / "store"),
+                       "--value", "range"])
+    s.start()
+    try:
+        yield s, rows
+    finally:
+        s.stop()
+
+
+def _write_store(d: Path) -> list[dict]:
+    """``d/anchors.csv``, and ``d/store`` holding :func:`_stored_rows` (returned): sealed
+    segments of 12 rows and an unsealed log of the last 9 rows."""
+    ANCHORS.to_csv(d / "anchors.csv", index=False)
     rows = _stored_rows()
     log = SegmentLog(d / "store" / "positions", seal_rows=12, fsync=False)
     try:
@@ -176,13 +333,7 @@ def store_server(tmp_path_factory):
         assert 0 < sum(len(t) for ts in log._memory.values() for t in ts)  # (a tail)
     finally:
         log.close()
-    s = ServerProcess(["--anchors", str(anchors), "--store", str(d / "store"),
-                       "--value", "range"])
-    s.start()
-    try:
-        yield s, rows
-    finally:
-        s.stop()
+    return rows
 
 
 QUERIES = [(tag, since, until, limit)

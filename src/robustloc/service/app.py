@@ -30,7 +30,10 @@ as ``bad_query`` (a WebSocket: HTTP 400 at the handshake, before it is accepted)
 
 A body the store cannot write (disk full, I/O error) is answered ``507 Insufficient
 Storage`` with the reason and counted as ``store_error``; none of its rows is stored, so
-the client may resend it whole.
+the client may resend it whole.  A positions query still waiting for its read slot
+when the stop's ``--shutdown-grace`` runs out is answered ``503`` with ``Retry-After`` (as
+a body still arriving), counted as ``shutting_down``; one whose client left while it
+waited is not read (``client_disconnect``).
     GET  /                      the live map page (static; data come with the token)
 
 When a token is set, every endpoint except ``/``, ``/static`` and ``/healthz`` needs
@@ -104,6 +107,9 @@ WS_TRY_AGAIN_LATER = 1013
 INSUFFICIENT_STORAGE = 507
 #: Seconds a client is told to wait after a store write failure (``Retry-After``).
 STORE_RETRY_AFTER_S = 5
+#: Status of a query whose client left before it was read (nginx's "client closed
+#: request"): never sent, it is for the access log.
+CLIENT_CLOSED_REQUEST = 499
 
 
 def _close_reason(text: str) -> str:
@@ -507,9 +513,10 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
         return None if why is None else refuse("bad_query", 400, f"bad query: {why}")
 
     parse_slots = threading.BoundedSemaphore(MAX_CONCURRENT_ROW_PARSES)
-    #: the worker threads of ``GET /api/positions``: at most this many queries read the
-    #: store and build their body at once, the others wait (holding no thread); and not
-    #: in anyio's default pool, which ingest (POST, WebSocket) and the shutdown use
+    #: the slots of ``GET /api/positions``: at most this many queries read the store and
+    #: build their body at once (each in a worker thread, not of anyio's default pool,
+    #: which ingest (POST, WebSocket) and the shutdown use), the others wait holding no
+    #: thread (:func:`read_positions`)
     position_reads = anyio.CapacityLimiter(MAX_CONCURRENT_POSITION_READS)
 
     def positions_body(tag: str | None, since: float | None, until: float | None,
@@ -616,6 +623,57 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             raise ValueError(f"{name} must be a finite number")
         return x
 
+    def stopping() -> JSONResponse:
+        """The ``503`` of a request the stop's ``--shutdown-grace`` cut short before it
+        held anything (counted as ``shutting_down``)."""
+        return refuse("shutting_down", 503, "the service is stopping: send the query "
+                      "again later", Connection="close", **{"Retry-After": "5"})
+
+    async def read_positions(request: Request, tag: str | None, since: float | None,
+                             until: float | None, limit: int
+                             ) -> tuple[bytes, int, int] | Response:
+        """The body of a positions query, its rows and the rows matching, read in a
+        worker thread once one of ``position_reads``' slots is free; or the answer to a
+        query that waited for its slot in vain.
+
+        * The stop's ``--shutdown-grace`` ran out while it waited (uvicorn cancels the
+          request): ``503`` with ``Retry-After``, as a body still arriving is answered
+          (it was a plain-text 500 and a ``CancelledError`` traceback per query).
+        * Its client left while it waited: not read (it was read and encoded for nobody,
+          and the queries behind it waited for that); counted as ``client_disconnect``.
+
+        A query already reading when the grace runs out is read to the end and answered,
+        unless the event loop ends first (uvicorn does not wait for the requests it
+        cancelled; the loop ends after the application's shutdown): then ``503`` too.
+        """
+        try:
+            await position_reads.acquire()
+        except asyncio.CancelledError:  # (waiting, it held nothing)
+            return stopping()
+        try:
+            try:
+                gone = await request.is_disconnected()
+            except asyncio.CancelledError:
+                return stopping()
+            if gone:  # (nobody to answer: the status is for the access log only)
+                engine.metrics.request_rejected("client_disconnect")
+                return Response(status_code=CLIENT_CLOSED_REQUEST)
+            # (the body is built in the worker thread too: encoding 100 000 rows on the
+            # event loop held /healthz and ingest for a second per query; the slot is
+            # held here, so the thread's own limiter never makes it wait)
+            read = asyncio.ensure_future(anyio.to_thread.run_sync(
+                positions_body, tag, since, until, limit, limiter=anyio.CapacityLimiter(1)))
+            try:
+                return await asyncio.shield(read)
+            except asyncio.CancelledError:  # (the grace ran out while it reads: the
+                pass  # client gets its answer, not a 500)
+            try:
+                return await read
+            except asyncio.CancelledError:  # (cancelled again: the event loop itself
+                return stopping()  # ends, after the application's shutdown)
+        finally:
+            position_reads.release()
+
     async def get_positions(request: Request) -> Response:
         if not authorized(request.headers, request.query_params):
             return unauthorized()
@@ -631,10 +689,10 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             return refuse("bad_query", 400, f"bad query: {exc}")
         # trimmed as ingest trims a row's tag (rows.py): ``?tag=%20C`` found nothing
         tag = request.query_params.get("tag", "").strip() or None
-        # (the body is built in the worker thread too: encoding 100 000 rows on the event
-        # loop held /healthz and ingest for a second per query)
-        body, n, total = await anyio.to_thread.run_sync(
-            positions_body, tag, since, until, limit, limiter=position_reads)
+        answer = await read_positions(request, tag, since, until, limit)
+        if isinstance(answer, Response):  # (stopping, or the client left)
+            return answer
+        body, n, total = answer
         # the body keeps the latest ``limit`` rows (as before); the headers say how many
         # matched and that the earliest were left out (it was silent: the API review)
         headers = {"X-Total-Count": str(total)}

@@ -40,12 +40,13 @@ class CountRefused(logging.Filter):
             self.metrics.request_rejected(reason)
             _warning(record)
         elif message.startswith("Cancel ") and "timeout graceful shutdown exceeded" in message:
-            # the requests still receiving a body when --shutdown-grace ran out: each
-            # is answered 503 and counted (``shutting_down``) by the application
+            # the requests still receiving a body, or positions queries still waiting
+            # for a read slot, when --shutdown-grace ran out: each is answered 503 and
+            # counted (``shutting_down``) by the application; a query reading finishes
             _warning(record, "stopping: " + message.replace(
                 "timeout graceful shutdown exceeded",
                 "still running after --shutdown-grace (a body not complete is answered "
-                "503, not stored)"))
+                "503, not stored; a positions query not yet read 503)"))
         elif (message.startswith("Traceback") and message.rstrip().endswith("CancelledError")
               and "lifespan" in message):
             # a second Ctrl-C cuts the graceful stop short: the lifespan is cancelled
