@@ -387,6 +387,36 @@ def test_concurrent_positions_queries_get_the_same_reply(store_server):
     assert len(alone.json()) == 40
 
 
+def test_damaged_segment_is_named_in_the_reply(tmp_path):
+    """A sealed segment cut while the service runs: every positions query was answered
+    ``500 {"error": "internal error: StoreError"}`` with a traceback in the log, the
+    store's own reason (the file, what is wrong) never reached the client.  Now ``500``
+    with that reason, counted as ``store_error``, one log line (not one per query), and
+    the service goes on (``/healthz``)."""
+    import os
+
+    from robustloc.service.launch import ServerProcess, read_metric
+
+    _write_store(tmp_path)
+    with ServerProcess(["--anchors", str(tmp_path / "anchors.csv"), "--store",
+                        str(tmp_path / "store"), "--value", "range"]) as s:
+        assert httpx.get(s.url + "/api/positions?limit=1", timeout=60).status_code == 200
+        seg = sorted((tmp_path / "store" / "positions").glob("seg-*.parquet"))[2]
+        os.truncate(seg, seg.stat().st_size // 2)
+        errors = read_metric(s.url, 'robustloc_requests_rejected_total{reason="store_error"}')
+        for q in ("limit=1", "tag=A&limit=5", "since=3&until=20"):
+            r = httpx.get(s.url + "/api/positions?" + q, timeout=60)
+            assert r.status_code == 500, (q, r.text)
+            why = r.json()["error"]
+            assert why.startswith(f"{seg}: damaged Parquet segment of the store"), why
+        assert read_metric(
+            s.url, 'robustloc_requests_rejected_total{reason="store_error"}') == errors + 3
+        assert httpx.get(s.url + "/healthz").status_code == 200
+        log = s.log()
+    assert "Traceback" not in log, log
+    assert log.count(f"{seg}: damaged Parquet segment") == 1, log
+
+
 # --------------------------------------------------------------------------------------
 # unsealed rows: a filter copies the columns asked for only
 # --------------------------------------------------------------------------------------

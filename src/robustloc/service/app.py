@@ -30,7 +30,9 @@ as ``bad_query`` (a WebSocket: HTTP 400 at the handshake, before it is accepted)
 
 A body the store cannot write (disk full, I/O error) is answered ``507 Insufficient
 Storage`` with the reason and counted as ``store_error``; none of its rows is stored, so
-the client may resend it whole.  A positions query still waiting for its read slot
+the client may resend it whole.  A positions query the store cannot read (a segment
+damaged while the service runs) is answered ``500`` with the store's reason, naming the
+file, counted as ``store_error`` alike.  A positions query still waiting for its read slot
 when the stop's ``--shutdown-grace`` runs out is answered ``503`` with ``Retry-After`` (as
 a body still arriving), counted as ``shutting_down``; one whose client left while it
 waited is not read (``client_disconnect``).
@@ -52,6 +54,7 @@ import gc
 import hmac
 import json
 import math
+import sys
 import threading
 import time
 from collections.abc import AsyncIterator, Callable
@@ -83,7 +86,7 @@ from robustloc.service.defaults import (
 from robustloc.service.engine import Engine
 from robustloc.service.protocol import WS_STATE_KEY
 from robustloc.service.rows import BodyError, RowBatch, parse_body, rows_beyond
-from robustloc.service.store import StoreLock, StoreWriteError
+from robustloc.service.store import StoreError, StoreLock, StoreWriteError
 
 if TYPE_CHECKING:  # (paho-mqtt is imported only with --mqtt)
     from robustloc.service.mqtt import MqttIngest
@@ -645,6 +648,11 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
         A query already reading when the grace runs out is read to the end and answered,
         unless the event loop ends first (uvicorn does not wait for the requests it
         cancelled; the loop ends after the application's shutdown): then ``503`` too.
+
+        Raises
+        ------
+        StoreError
+            A segment of the store cannot be read.
         """
         try:
             await position_reads.acquire()
@@ -674,6 +682,19 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
         finally:
             position_reads.release()
 
+    last_read_error = [""]  # (each store read error logged once, not per query)
+
+    def store_read_error(exc: StoreError) -> JSONResponse:
+        """The ``500`` of a positions query the store could not answer (a segment
+        damaged while the service runs): the store's reason, which names the file and
+        what is wrong (it was ``internal error: StoreError`` and a traceback per
+        query); counted as ``store_error``, logged once per reason."""
+        why = str(exc)
+        if why != last_read_error[0]:
+            last_read_error[0] = why
+            print(f"warning: GET /api/positions: {why}", file=sys.stderr, flush=True)
+        return refuse("store_error", 500, why)
+
     async def get_positions(request: Request) -> Response:
         if not authorized(request.headers, request.query_params):
             return unauthorized()
@@ -689,7 +710,10 @@ def create_app(engine: Engine, config: ServiceConfig | None = None) -> Starlette
             return refuse("bad_query", 400, f"bad query: {exc}")
         # trimmed as ingest trims a row's tag (rows.py): ``?tag=%20C`` found nothing
         tag = request.query_params.get("tag", "").strip() or None
-        answer = await read_positions(request, tag, since, until, limit)
+        try:
+            answer = await read_positions(request, tag, since, until, limit)
+        except StoreError as exc:  # a segment damaged while the service runs: named
+            return store_read_error(exc)
         if isinstance(answer, Response):  # (stopping, or the client left)
             return answer
         body, n, total = answer
