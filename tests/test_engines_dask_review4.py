@@ -314,3 +314,39 @@ def test_track_auto_sample_reads_no_whole_sorted_partition(tmp_path, monkeypatch
     assert got.pop("sample") == [infos[0].part.path]
     assert got == want and want["epochs"] == AUTO_SAMPLE_EPOCHS
     assert args.link_offsets == ("on" if want["used"] else "off")
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_first_epochs_counted_batch_by_batch_as_over_the_whole_prefix(tmp_path, seed):
+    """``read_first_epochs`` counts each batch's complete epochs once (it concatenated and
+    deduplicated the whole prefix read at every batch: quadratic in the batches); the
+    rows returned are those of the whole-prefix count: the shortest prefix of complete
+    times (time < the latest time read) at a batch's end holding ``n`` epochs.  Random
+    sorted logs with runs of equal times longer than a batch, several tags a time,
+    repeated (time, tag) rows; checked against that rule computed here."""
+    import numpy as np
+
+    from robustloc.engines.dataset import Partition, read_first_epochs, read_partition
+
+    rng = np.random.default_rng(seed)
+    n = 400
+    t = np.sort(rng.integers(0, 60, n)).astype(float)  # long runs of one time
+    df = pd.DataFrame({"time": t, "tag": rng.choice(["A", "B", "C"], n),
+                       "anchor": rng.choice(list("abcd"), n),
+                       "range": rng.uniform(3, 9, n)}).sort_values(["time", "tag"],
+                                                                  kind="stable")
+    path = tmp_path / "p.parquet"
+    df.to_parquet(path, index=False, row_group_size=50)
+    part = Partition(str(path))
+    whole = read_partition(part)
+    for batch, want in ((7, 5), (7, 40), (16, 25), (33, 90), (64, 200)):
+        got = read_first_epochs(part, want, batch_rows=batch)
+        expect = len(whole)  # no batch end reaches it: everything
+        for end in range(batch, len(whole) + batch, batch):
+            pre = whole.iloc[:min(end, len(whole))]
+            done = pre[pre["time"] < pre["time"].iloc[-1]]
+            if len(done[["time", "tag"]].drop_duplicates()) >= want:
+                expect = len(done)
+                break
+        assert len(got) == expect, (batch, want)
+        pd.testing.assert_frame_equal(got, whole.iloc[:expect])

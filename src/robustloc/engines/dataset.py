@@ -423,7 +423,14 @@ def read_first_epochs(part: Partition, n_epochs: int,
 
     pf = _parquet_file(part)
     batches: list[pa.RecordBatch] = []
-    seen: list[pd.DataFrame] = []  # (time, tag) of the rows read
+    # the rows read so far are a prefix of times ``< last`` (complete: every later row has
+    # time >= last), ``done_rows`` of them holding ``done_epochs`` (time, tag) pairs, and
+    # the rows at ``last`` (``pending``: their epochs may go on in the next batch).  Each
+    # batch adds the pairs of its own complete rows, whose times all lie at or after the
+    # earlier ``last``: no pair is counted twice, and no batch looks at the earlier ones
+    # again (the whole prefix was concatenated and deduplicated at every batch).
+    done_rows = done_epochs = 0
+    pending = pd.DataFrame({"time": [], "tag": []})
     last = None
     with _reading(part):
         cols = pf.schema_arrow.names
@@ -437,13 +444,16 @@ def read_first_epochs(part: Partition, n_epochs: int,
                 return read_partition(part)  # not sorted by time (or NaN): read it whole
             last = time[-1]
             batches.append(b)
-            seen.append(pd.DataFrame({
+            rows = pd.DataFrame({
                 "time": time, "tag": b.column(cols.index("tag")).to_numpy(
-                    zero_copy_only=False) if has_tag else ""}))
-            st = pd.concat(seen, ignore_index=True)
-            done = st[st["time"] < last]  # complete: every later row has time >= last
-            if len(done.drop_duplicates()) >= n_epochs:
-                df = pa.Table.from_batches(batches).slice(0, len(done)).to_pandas()
+                    zero_copy_only=False) if has_tag else ""})
+            new = rows if pending.empty else pd.concat([pending, rows], ignore_index=True)
+            complete = (new["time"] < last).to_numpy()
+            done_rows += int(complete.sum())
+            done_epochs += len(new[complete].drop_duplicates())
+            pending = new[~complete]
+            if done_epochs >= n_epochs:
+                df = pa.Table.from_batches(batches).slice(0, done_rows).to_pandas()
                 return _as_frame(part, df)
         df = (pa.Table.from_batches(batches) if batches
               else pf.schema_arrow.empty_table()).to_pandas()
