@@ -489,3 +489,27 @@ def test_chunked_body_is_the_array_json_bytes(n):
     bare = frame[[]]  # (the rows, no column)
     assert len(bare) == n
     assert _array_json_bytes(bare) == _array_json(bare).encode() == b"[]"
+
+
+def test_a_segment_damaged_before_any_read_of_its_schema_is_named(tmp_path):
+    """A segment sealed while the service runs and damaged before any query read its
+    schema: the read of its footer raised Arrow's own error (``ArrowInvalid``, a generic
+    500 at the endpoint), not the store's, since only the data read was checked.  Now the
+    store's error naming the file, as at open and for a segment damaged in its data."""
+    import os
+
+    import pyarrow as pa
+
+    from robustloc.service.store import SegmentLog, StoreError
+
+    log = SegmentLog(tmp_path / "p", seal_rows=100, fsync=False)
+    try:
+        log.append(pa.table({"time": [float(i) for i in range(150)], "tag": ["A"] * 150}))
+        log.wait_sealed()
+        (seg,) = sorted((tmp_path / "p").glob("seg-*.parquet"))
+        os.truncate(seg, seg.stat().st_size // 2)
+        with pytest.raises(StoreError, match="damaged Parquet segment of the store") as e:
+            log.snapshot().scan(columns=["time"])
+        assert str(seg) in str(e.value)
+    finally:
+        log.close()

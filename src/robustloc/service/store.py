@@ -314,11 +314,7 @@ class SegmentLog:
             p.unlink()
         for p in sorted(self.dir.glob("seg-*.parquet")):
             # a damaged segment is named now, not by a later query's Arrow message
-            try:
-                self._schemas[p] = pq.read_schema(p)
-            except (pa.ArrowException, OSError) as exc:
-                raise StoreError(f"damaged Parquet segment of the store ({exc}); move it "
-                                 "aside to start without its rows", p) from None
+            self._schema(p)
             self._segments.append(p)
             seqs.add(int(p.name[4:12]))
         for p in sorted(self.dir.glob("seg-*.wal")):
@@ -499,10 +495,22 @@ class SegmentLog:
         return StoreError(f"damaged Parquet segments of the store ({why})", segments[0].parent)
 
     def _schema(self, path: Path) -> pa.Schema:
-        """The schema of a sealed segment (read once: segments never change)."""
+        """The schema of a sealed segment (read once: segments never change).
+
+        Raises
+        ------
+        StoreError
+            Its footer cannot be read (a damaged file): named, at open as at a query (a
+            segment sealed after the start and damaged before any query read it gave a
+            query Arrow's message, a generic 500).
+        """
         sch = self._schemas.get(path)
         if sch is None:
-            sch = self._schemas[path] = pq.read_schema(path)
+            try:
+                sch = self._schemas[path] = pq.read_schema(path)
+            except (pa.ArrowException, OSError) as exc:
+                raise StoreError(f"damaged Parquet segment of the store ({exc}); move it "
+                                 "aside to start without its rows", path) from None
         return sch
 
     def close(self) -> None:
