@@ -44,6 +44,23 @@ def test_plan_max_range_and_rssi():
         grid_axes((0, -1, 0, 1), 1.0)
 
 
+def test_grid_reaches_both_edges():
+    # a step that divides the extent is kept exactly
+    gx, gy = grid_axes((0, 10, -2, 4), 2.0)
+    np.testing.assert_array_equal(gx, [0, 2, 4, 6, 8, 10])
+    np.testing.assert_array_equal(gy, [-2, 0, 2, 4])
+    # one that does not: the far strip is covered (floor stopped at x 9, y 6; the
+    # stats review), evenly, no two points more than the step apart
+    gx, gy = grid_axes((0, 10, 0, 8), 3.0)
+    assert gx[0] == 0 and gx[-1] == 10 and gy[0] == 0 and gy[-1] == 8
+    assert len(gx) == 5 and len(gy) == 4  # ceil(10 / 3) + 1, ceil(8 / 3) + 1
+    for g in (gx, gy):
+        d = np.diff(g)
+        assert d.max() <= 3.0 and d.max() - d.min() < 1e-12
+    g = plan(SQUARE, (0, 10, 0, 8), 3.0, 0.5)
+    assert g.table["x"].max() == 10 and g.table["y"].max() == 8
+
+
 def test_cli_reliability(tmp_path, capsys):
     anchors = tmp_path / "anchors.csv"
     pd.DataFrame({"anchor": list("ABCDE"), "x": SQUARE[:, 0], "y": SQUARE[:, 1],

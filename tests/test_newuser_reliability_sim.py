@@ -143,8 +143,9 @@ def test_planner_per_anchor_sigma_against_the_textbook():
     a = np.array([r[1:] for r in ROOM])
     s = np.array(SIGMAS)
     x = np.array([2.0, 3.0])
+    # (the grid's corners: the point is its first row; the grid reaches both edges)
     t = plan(a, (2.0, 2.5, 3.0, 3.5), 1.0, s).table
-    assert len(t) == 1 and tuple(t[["x", "y"]].iloc[0]) == (2.0, 3.0)
+    assert len(t) == 4 and tuple(t[["x", "y"]].iloc[0]) == (2.0, 3.0)
     d = x - a
     G = d / np.linalg.norm(d, axis=1)[:, None]
     W = np.diag(1 / s**2)

@@ -106,9 +106,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--anchors", required=True, help="anchors file (anchor, x, y[, z])")
     p.add_argument("--area", type=_area, default=None, metavar="XMIN,XMAX,YMIN,YMAX",
-                   help="grid extent in metres (default: anchors' bounding box + 10 %%)")
+                   help="grid extent in metres, covered edge to edge (default: the "
+                        "anchors' bounding box widened by 10 %% of its size on each side, "
+                        "at least 1 m)")
     p.add_argument("--step", type=positive_float, default=None,
-                   help="grid spacing in metres (default: about 150 points along the longer side)")
+                   help="largest grid spacing in metres: the points are spread evenly from "
+                        "edge to edge of --area, STEP apart where STEP divides its size, a "
+                        "little closer where it does not (default: 151 points along the "
+                        "longer side)")
     p.add_argument("--sigma", type=float_in(1e-9, 1e9), default=None,
                    help="a-priori standard deviation of one observation: m for ranges, dB for "
                         "RSSI, 1e-9 .. 1e9 (default: the anchors' sigma column when it is in "
@@ -379,8 +384,11 @@ def run(args: argparse.Namespace) -> int:
                 continue
             print(f"  {col:15s} median {s['median']:9.3f}  min {s['min']:9.3f}  "
                   f"max {s['max']:9.3f}   {cap}")
-        print(f"  points without a fix: {summary['points_without_fix']}, without redundancy: "
-              f"{summary['points_without_redundancy']}, with an undetectable observation "
+        # (a fix needs dim + 1 anchors heard, so a point with a fix has redundancy: the
+        # count of points without it repeated the count without a fix; the JSON keeps
+        # points_without_redundancy for scripts; the stats review)
+        print(f"  points without a fix: {summary['points_without_fix']}, "
+              f"with an undetectable observation "
               f"(MDB inf): {summary['points_with_undetectable_observation']}, with flagged "
               f"pairs: {summary['points_with_flagged_pairs']}")
         if sugg is not None:

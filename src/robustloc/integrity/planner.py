@@ -92,14 +92,20 @@ def grid_shape(area: tuple[float, float, float, float], step: float) -> tuple[fl
                          f"got ({xmin:g}, {xmax:g}, {ymin:g}, {ymax:g})")
     if not (np.isfinite(step) and step > 0):
         raise ValueError(f"grid step must be positive, got {float(step):g}")
+    # (spacing at most ``step``, so that the grid reaches both edges: with ``floor`` a
+    # step that does not divide the extent left the far strip out, while the summary
+    # still named the whole area: --area 0,10,0,8 --step 3 stopped at x 9, y 6; the
+    # stats review)
     with np.errstate(over="ignore"):
-        nx = float(np.floor((xmax - xmin) / step + 1e-9)) + 1.0
-        ny = float(np.floor((ymax - ymin) / step + 1e-9)) + 1.0
+        nx = float(np.ceil((xmax - xmin) / step - 1e-9)) + 1.0
+        ny = float(np.ceil((ymax - ymin) / step - 1e-9)) + 1.0
     return nx, ny
 
 
 def grid_axes(area: tuple[float, float, float, float], step: float) -> tuple[Array, Array]:
-    """Grid coordinates covering ``area = (xmin, xmax, ymin, ymax)`` with spacing ``step``.
+    """Grid coordinates covering ``area = (xmin, xmax, ymin, ymax)`` from edge to edge,
+    evenly spaced at most ``step`` apart on each axis (``step`` exactly where it divides
+    the extent).
 
     Raises
     ------
@@ -110,8 +116,8 @@ def grid_axes(area: tuple[float, float, float, float], step: float) -> tuple[Arr
     if nx * ny > MAX_GRID_POINTS:
         raise ValueError(f"grid of {nx:g} x {ny:g} points is too large; increase --step "
                          f"(at most {MAX_GRID_POINTS:g} points)")
-    xmin, ymin = float(area[0]), float(area[2])
-    return xmin + step * np.arange(int(nx)), ymin + step * np.arange(int(ny))
+    xmin, xmax, ymin, ymax = map(float, area)
+    return np.linspace(xmin, xmax, int(nx)), np.linspace(ymin, ymax, int(ny))
 
 
 def unique_fix(anchors: ArrayLike, heard: ArrayLike, dim: int = 2) -> NDArray[np.bool_]:
@@ -185,7 +191,7 @@ def plan(
     area : (xmin, xmax, ymin, ymax)
         Grid extent, m.
     step : float
-        Grid spacing, m.
+        Largest grid spacing, m (:func:`grid_axes`: the grid reaches both edges).
     sigma : float or array_like (m,)
         A-priori standard deviation of one observation: metres (``model="range"``) or dB
         (``model="rssi"``); one number, or one per anchor (an anchors file's ``sigma``
