@@ -129,6 +129,52 @@ def _parse(parser: argparse.ArgumentParser, argv: list[str],
     return ns
 
 
+#: The options (by ``dest``) that name an input file, of every command: standard input
+#: can feed one of them (:func:`_one_stdin_input`).
+_INPUT_DESTS = frozenset({
+    "measurements", "anchors", "truth", "positions", "survey", "self_log", "ranges", "nmea",
+    "candidates", "obs", "nav", "sp3", "clk", "input", "scale_from", "floorplan"})
+
+
+def _one_stdin_input(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse ``-`` (standard input) given for two inputs of the command, naming both.
+
+    Standard input is one stream.  Every input named ``-`` read the first one's copy:
+    ``evaluate - --truth -`` compared the positions with themselves and exited 0 with
+    every error 0; ``calibrate --self - --anchors -`` blamed the anchors for the
+    measurements' columns (the input review).  Checked before anything is read, so the
+    message names the options, not whichever file was read first.
+    (:func:`robustloc.io.tables._claim_stdin` refuses it in the library as well.)
+
+    Raises
+    ------
+    InputError
+        ``<stdin>: standard input is already read as another input of this command
+        (FIRST), so SECOND cannot also be - (...)``.
+    """
+    sub = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)),
+               None)
+    own = None if sub is None else sub.choices.get(getattr(args, "command", None) or "")
+    if own is None:
+        return
+    named = []
+    for action in own._actions:
+        if action.dest not in _INPUT_DESTS:
+            continue
+        value = getattr(args, action.dest, None)
+        values = value if isinstance(value, (list, tuple)) else [value]
+        for v in values:
+            if isinstance(v, str) and v == "-":
+                longs = [o for o in action.option_strings if o.startswith("--")]
+                named.append(longs[0] if longs else str(action.metavar or action.dest.upper()))
+    if len(named) > 1:
+        second = named[1] if named[1] != named[0] else f"a second {named[1]}"
+        raise InputError(
+            f"standard input is already read as another input of this command "
+            f"({named[0]}), so {second} cannot also be - (one input per command can "
+            "come from standard input: give the other one as a file)", "<stdin>")
+
+
 def error(message: str) -> int:
     """Print ``error: message`` on stderr and return exit code 2."""
     print(f"error: {message}", file=sys.stderr)
@@ -342,6 +388,7 @@ def _main(argv: Sequence[str] | None) -> int:
     try:
         from robustloc.io.tables import spool_scope
 
+        _one_stdin_input(parser, args)
         with spool_scope():  # standard input / a FIFO: copied once for the command
             return int(args._run(args) or 0)
     except InputError as exc:

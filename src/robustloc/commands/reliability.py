@@ -190,7 +190,7 @@ def _candidates(args: argparse.Namespace, xyz: np.ndarray, area) -> np.ndarray: 
     if args.candidates is not None:
         from robustloc.io.tables import read_table
 
-        cdf = read_table(args.candidates)
+        cdf = read_table(args.candidates, "candidates")
         cols = ["x", "y"] + (["z"] if xyz.shape[1] == 3 else [])
         missing = [c for c in cols if c not in cdf.columns]
         if missing:

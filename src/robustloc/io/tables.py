@@ -71,6 +71,11 @@ def is_parquet(path: PathLike) -> bool:
 
 
 _SPOOLED: dict[str, Path] = {}
+#: What standard input was read as in this scope (the reader's noun, ``"truth"``): one
+#: input of a command can come from standard input.  Every input named ``-`` read the
+#: first one's spooled copy (``evaluate - --truth -`` compared the positions with
+#: themselves and exited 0 with every error 0: the input review).
+_STDIN_READ_AS: dict[str, str] = {}
 _GZIP_MAGIC = b"\x1f\x8b"
 _PARQUET_MAGIC = b"PAR1"
 #: Compressed CSV by its first bytes (the formats pandas reads): the content decides, not
@@ -117,6 +122,7 @@ def _cleanup_spool() -> None:
         except OSError:
             pass
     _SPOOLED.clear()
+    _STDIN_READ_AS.clear()
 
 
 _SPOOL_DEPTH = [0]
@@ -142,16 +148,54 @@ def spool_scope() -> Iterator[None]:
                 _cleanup_spool()
 
 
-def _spool(path: PathLike) -> Path:
+def _claim_stdin(what: str | None) -> None:
+    """Note that standard input is read as the ``what`` input (the reader's noun:
+    ``"measurements"``, ``"truth"``, ...); another input also named ``-`` is an
+    :class:`InputError`.
+
+    Standard input is one stream: it can feed one input of a command.  The same input
+    read again (``locate`` reads its measurements twice: the log's scale, then the fixes)
+    is the same noun and reads the spooled copy.  ``None`` (a caller that does not say
+    what it reads) is not checked.
+
+    Raises
+    ------
+    InputError
+        ``<stdin>: standard input is already read as another input of this command (the
+        WHAT1 file), so the WHAT2 file cannot also be - (...)``.
+    """
+    if what is None:
+        return
+    first = _STDIN_READ_AS.setdefault("-", what)
+    if first != what:
+        # (a second input named - got the first one's data: the input review)
+        raise InputError(
+            f"standard input is already read as another input of this command (the "
+            f"{first} file), so the {what} file cannot also be - (one input per command "
+            "can come from standard input: give the other one as a file)", _display("-"))
+
+
+def _spool(path: PathLike, what: str | None = None) -> Path:
     """Copy standard input (``-``) or a FIFO (``<(cat m.csv)``) to a temporary regular
     file once per :func:`spool_scope` (else per process), so that it can be read by name,
-    more than once, and seeked (Parquet).  Removed when the scope ends, or at exit."""
+    more than once, and seeked (Parquet).  Removed when the scope ends, or at exit.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        ``-`` or the FIFO's name.
+    what : str, optional
+        The input it is read as (``"measurements"``, ``"truth"``, ...): standard input
+        read as a second input is an :class:`InputError` (:func:`_claim_stdin`).
+    """
     import atexit
     import shutil
     import sys
     import tempfile
 
     key = str(path)
+    if key == "-":
+        _claim_stdin(what)
     if key in _SPOOLED:
         return _SPOOLED[key]
     if not _SPOOLED:
@@ -169,16 +213,17 @@ def _spool(path: PathLike) -> Path:
     return tmp
 
 
-def _check_file(path: PathLike, engine_hint: bool = True) -> Path:
+def _check_file(path: PathLike, engine_hint: bool = True, what: str | None = None) -> Path:
     """The regular file to read for ``path`` (standard input and FIFOs are spooled);
     missing, a directory, or empty is an :class:`InputError`.  ``engine_hint``: a
     directory's error says a partitioned dataset is read with ``--engine dask`` (for a
-    command that offers it), else that the command reads one file."""
+    command that offers it), else that the command reads one file.  ``what``: the input
+    it is read as (:func:`_spool`)."""
     import stat
 
     name = _display(path)
     if str(path) == "-":
-        p = _spool(path)
+        p = _spool(path, what)
     else:
         p = Path(path)
         if not p.exists():
@@ -615,10 +660,10 @@ def _first_line(exc: BaseException) -> str:
 
 
 def _read_raw(path: PathLike, str_columns: Sequence[str] = (),
-              engine_hint: bool = True) -> pd.DataFrame:
-    """Read a whole CSV or Parquet file; index = source line number (``engine_hint``:
-    :func:`_check_file`'s)."""
-    p = _check_file(path, engine_hint)
+              engine_hint: bool = True, what: str | None = None) -> pd.DataFrame:
+    """Read a whole CSV or Parquet file; index = source line number (``engine_hint``,
+    ``what``: :func:`_check_file`'s)."""
+    p = _check_file(path, engine_hint, what)
     fmt = _format(p, path)
     if fmt == "parquet":
         try:
@@ -645,10 +690,11 @@ def _read_raw(path: PathLike, str_columns: Sequence[str] = (),
 
 
 def _iter_raw(
-    path: PathLike, chunk_rows: int, str_columns: Sequence[str] = ()
+    path: PathLike, chunk_rows: int, str_columns: Sequence[str] = (),
+    what: str | None = None,
 ) -> Iterator[pd.DataFrame]:
     """Stream a CSV or Parquet file in chunks of about ``chunk_rows`` rows (an in-memory
-    frame of :func:`in_memory_source`: slices of it)."""
+    frame of :func:`in_memory_source`: slices of it; ``what``: :func:`_check_file`'s)."""
     if chunk_rows < 1:
         raise ValueError(f"chunk_rows must be >= 1, got {chunk_rows}")
     if isinstance(path, pd.DataFrame):
@@ -657,7 +703,7 @@ def _iter_raw(
         for i in range(0, len(path), chunk_rows):
             yield path.iloc[i: i + chunk_rows]
         return
-    p = _check_file(path)
+    p = _check_file(path, what=what)
     fmt = _format(p, path)
     if fmt == "parquet":
         import pyarrow.parquet as pq
@@ -992,7 +1038,7 @@ def read_anchors(path: PathLike) -> pd.DataFrame:
         Missing column, empty file, non-numeric or non-finite coordinate, duplicate or
         empty anchor id -- with file and line.
     """
-    return validate_anchors(_read_raw(path, ("anchor",)), _display(path))
+    return validate_anchors(_read_raw(path, ("anchor",), what="anchors"), _display(path))
 
 
 def read_survey(
@@ -1007,7 +1053,7 @@ def read_survey(
     index = source line; ``frame.attrs["value"]`` is ``"rssi"`` or ``"range"``.  With
     ``anchors`` given, an anchor id not among them is an error naming its line.
     """
-    df = _read_raw(path, ("anchor",))
+    df = _read_raw(path, ("anchor",), what="survey")
     return validate_survey(df, _display(path), anchors)
 
 
@@ -1091,7 +1137,7 @@ def _value_column(df: pd.DataFrame, what: str, path: PathLike | None,
 def read_truth(path: PathLike) -> pd.DataFrame:
     """Read a truth file: ``time, tag, x, y[, z]`` (all finite; each ``(time, tag)`` once,
     see :func:`refuse_duplicate_truth`).  Index: source line."""
-    df = _read_raw(path, ("tag",))
+    df = _read_raw(path, ("tag",), what="truth")
     return validate_truth(df, _display(path))
 
 
@@ -1144,7 +1190,7 @@ def read_positions(path: PathLike) -> pd.DataFrame:
     absent (a positions file from another tool); an empty ``method`` or ``status`` cell
     is an :class:`InputError` naming its line.  ``n_used`` and ``excluded`` are optional.
     """
-    df = _read_raw(path, ("tag", "method", "status", "excluded"))
+    df = _read_raw(path, ("tag", "method", "status", "excluded"), what="positions")
     return validate_positions(df, _display(path))
 
 
@@ -1269,7 +1315,7 @@ def read_measurements(
     if isinstance(path, pd.DataFrame):  # an in_memory_source
         _require_rows(path, "measurements", _display(path))
         return validate_measurements(path, _display(path), anchors, value)
-    df = _read_raw(path, ("tag", "anchor"), engine_hint)
+    df = _read_raw(path, ("tag", "anchor"), engine_hint, what="measurements")
     _require_rows(df, "measurements", _display(path))
     return validate_measurements(df, _display(path), anchors, value)
 
@@ -1307,7 +1353,7 @@ _MEM_PER_PARQUET_BYTE = 4.0
 def _in_memory_estimate(path: PathLike | pd.DataFrame) -> float:
     if isinstance(path, pd.DataFrame):
         return 0.0  # already in memory: sorting it there costs one copy
-    p = _check_file(path)
+    p = _check_file(path, what="measurements")
     fmt = _format(p, path)
     if fmt == "parquet":
         try:
@@ -1407,7 +1453,7 @@ def _iter_streamed(
     seen: list[NDArray[np.uint64]] = []  # sorted hashes of tags emitted at time last_t
     n_rows = 0
     value = None
-    for raw in _iter_raw(path, chunk_rows, ("tag", "anchor")):
+    for raw in _iter_raw(path, chunk_rows, ("tag", "anchor"), "measurements"):
         if len(raw) == 0:
             continue
         chunk = validate_measurements(raw, name, known)
@@ -1512,7 +1558,7 @@ def _iter_sorted_out_of_core(
         writer = None
         n_rows = 0
         try:
-            for raw in _iter_raw(path, chunk_rows, ("tag", "anchor")):
+            for raw in _iter_raw(path, chunk_rows, ("tag", "anchor"), "measurements"):
                 if len(raw) == 0:
                     continue
                 chunk = validate_measurements(raw, name, known)
@@ -2168,6 +2214,7 @@ class _Aborted(Exception):
     """Internal: PositionsWriter.abort() passes it to the atomic output to discard it."""
 
 
-def read_table(path: PathLike) -> pd.DataFrame:
-    """Read any CSV/Parquet table without contract validation (index = source line)."""
-    return _read_raw(path)
+def read_table(path: PathLike, what: str = "table") -> pd.DataFrame:
+    """Read any CSV/Parquet table without contract validation (index = source line);
+    ``what``: the input it is, for standard input (:func:`_spool`)."""
+    return _read_raw(path, what=what)
