@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["Limits", "LIMITS", "plausible", "limits_for"]
+__all__ = ["Limits", "LIMITS", "PATH_LOSS_EXPONENT_LIMITS", "plausible", "limits_for"]
 
 
 @dataclass(frozen=True)
@@ -87,6 +87,16 @@ LIMITS: dict[str, Limits] = {
     "pseudorange": Limits("pseudorange", "m", 1.5e7, 5.0e7),
     "time": Limits("time", "s", -1.0e12, 1.0e12),
 }
+
+
+#: The path-loss exponent (``n``, ``gamma``) an anchors file may hold, which every
+#: command that reads anchors (``locate``, ``track``, ``filter``, ...) accepts.  Below
+#: 0.01 the RSSI falls by less than 0.1 dB per decade of distance: 1 dB of noise moves
+#: the range by a factor of 10^10 (a typo or a unit slip, not a link); above 20 (200 dB
+#: per decade) no propagation falls so fast.  ``calibrate`` refuses a fit outside a
+#: narrower interval inside this one (:data:`robustloc.models.calibration.MAX_EXPONENT`),
+#: so that it never writes a file the other commands refuse (the input review).
+PATH_LOSS_EXPONENT_LIMITS = (0.01, 20.0)
 
 
 def limits_for(quantity: str) -> Limits:

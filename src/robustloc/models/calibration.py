@@ -56,6 +56,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from robustloc._arrays import to_number
 from robustloc.errors import InputError
+from robustloc.io.limits import PATH_LOSS_EXPONENT_LIMITS
 from robustloc.models.selfcal import SelfCalibration
 from robustloc.robust.scale import MAD_NORMAL
 from robustloc.robust.weights import Huber, WeightFunction, get_weight
@@ -1048,6 +1049,11 @@ def _check_determined(
 #: of distance, beyond any propagation: such a fit is the survey's noise divided by a
 #: tiny spread of distances (3.000 and 3.003 m gave n = 461).
 MAX_EXPONENT = 10.0
+#: Smallest plausible path-loss exponent: the smallest an anchors file may hold
+#: (:data:`robustloc.io.limits.PATH_LOSS_EXPONENT_LIMITS`, 0.01: 0.1 dB per decade of
+#: distance).  A survey whose RSSI hardly falls with distance fitted n = 0.004 and was
+#: written, exit 0, and ``locate`` then refused the file (the input review).
+MIN_EXPONENT = PATH_LOSS_EXPONENT_LIMITS[0]
 
 
 #: Plausible range scales (``range = scale * distance + bias``).  A ranging scale error
@@ -1067,7 +1073,9 @@ def _check_plausible(
     The fitted level at the reference distance (``A`` at 1 m, ``p0 + faf`` or the Friis
     ``p0`` at ``d0``) is an RSSI, so it must lie within the physical RSSI limits of
     :mod:`robustloc.io.limits` (-150 .. +30 dBm: no received power exceeds the +30 dBm
-    EIRP ceiling); the exponent must lie in ``(0, MAX_EXPONENT]``.  Checked for each
+    EIRP ceiling); the exponent must lie in ``[MIN_EXPONENT, MAX_EXPONENT]`` (inside
+    what the anchors reader accepts, so that ``locate`` reads every file written).
+    Checked for each
     anchor with its own fit (unless ``pooled``) and for the pooled fit.
     """
     from robustloc.io.limits import limits_for
@@ -1089,11 +1097,20 @@ def _check_plausible(
                 f"{who}: fitted {level_name} = {level:.4g} dBm at {where} is implausible "
                 f"({lim.describe()}): the survey does not determine the path loss (too "
                 "small a spread of distances?)", survey.attrs.get("path"))
-        if slope and not b <= MAX_EXPONENT:
+        # (the message said "(0, 10]" while 0.004 passed here and the anchors reader
+        # refused it: the interval stated is the one checked -- the input review)
+        if slope and not MIN_EXPONENT <= b <= MAX_EXPONENT:
+            why = ("too small a spread of distances?" if b > MAX_EXPONENT else
+                   "the RSSI hardly falls with distance over the survey")
             raise InputError(
                 f"{who}: fitted {exp_name} = {b:.4g} is implausible (a path-loss exponent "
-                f"lies in (0, {MAX_EXPONENT:g}]): the survey does not determine it (too "
-                "small a spread of distances?)", survey.attrs.get("path"))
+                f"lies in {exponent_interval()}): the survey does not determine it "
+                f"({why})", survey.attrs.get("path"))
+
+
+def exponent_interval() -> str:
+    """The plausible path-loss exponents as messages state them: ``[0.01, 10]``."""
+    return f"[{MIN_EXPONENT:g}, {MAX_EXPONENT:g}]"
 
 
 def _own_fit(per: LineFit, p: int) -> NDArray[np.bool_]:

@@ -673,15 +673,25 @@ def _refuse_implausible(res: Any, ids: list[str], kind: str, values: np.ndarray,
                         where: str | None) -> None:
     """Refuse a self-calibration that settled on a model no log can have: a scale or a
     path-loss exponent that is not positive (the observations would grow with distance:
-    RSSI, or shrink: ranges), or a range bias beyond the anchor's longest range (every
-    predicted range would exceed every measured one).  On a short log of three anchors
-    the adjustment wandered to a bias of 8 km and a scale of -0.07 and wrote them, exit
-    0; ``locate`` then refused the file (the calibration review)."""
+    RSSI, or shrink: ranges), an RSSI exponent outside the interval a survey's fit is held
+    to (:func:`robustloc.models.calibration.exponent_interval`), or a range bias beyond
+    the anchor's longest range (every predicted range would exceed every measured
+    one).  On a short log of three anchors the adjustment wandered to a bias of 8 km and
+    a scale of -0.07 and wrote them, exit 0; ``locate`` then refused the file (the
+    calibration review)."""
+    from robustloc.models.calibration import MAX_EXPONENT, MIN_EXPONENT, exponent_interval
+
     names = res.param_names
     bad = []
     for j, name in enumerate(ids):
         if res.free[j, 1] and not (np.isfinite(res.slope[j]) and res.slope[j] > 0):
             bad.append(f"{names[1]} of anchor {name} = {res.slope[j]:.4g} (must be positive)")
+        elif res.free[j, 1] and kind == "rssi" and not (
+                MIN_EXPONENT <= res.slope[j] <= MAX_EXPONENT):
+            # (a survey's fit is held to the same interval: an exponent the anchors
+            # reader refuses was written, exit 0 -- the input review)
+            bad.append(f"{names[1]} of anchor {name} = {res.slope[j]:.4g} (a path-loss "
+                       f"exponent lies in {exponent_interval()})")
         if res.free[j, 0] and not np.isfinite(res.offset[j]):
             bad.append(f"{names[0]} of anchor {name} = {res.offset[j]}")
         elif res.free[j, 0] and kind == "range":
