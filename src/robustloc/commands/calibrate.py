@@ -71,7 +71,7 @@ you can.
 
 A survey that cannot determine a parameter (every sample at one distance, fewer rows than
 parameters + 1, constant values, an exact fit, a fitted level at the reference distance
-outside the RSSI limits or an exponent outside (0, 10]) is an error naming the anchor and
+outside the RSSI limits or an exponent outside [0.01, 10]) is an error naming the anchor and
 the parameter (exit code 2).
 
 Prints each fit with standard errors and the residual standard deviation (dB or m).  The
