@@ -142,6 +142,34 @@ def float_in(low: float, high: float, *, open_high: bool = False) -> Callable[[s
 SIGMA_RANGE = (1e-6, 1e6)
 sigma_value = float_in(*SIGMA_RANGE)
 
+#: The largest process-noise intensity of the tracker (``track --q``, ``--range-offset-q``,
+#: ``--link-offset-q``; ``serve --track-q``), as ``fuse --q``'s: 1e6.  A random walk of
+#: 1e6 unit^2/s lets an offset wander by 1000 units (m or dB) in one second; a white
+#: acceleration of 1e6 (m/s^2)^2 is 1000 m/s^2 (100 g) per second of one-sigma
+#: acceleration: far beyond any tag or link, and far from float64's overflow.  1e308 was
+#: accepted: ``track --link-offset-q 1e308`` wrote 73 of 180 rows ``ok`` without an
+#: ``hpl`` (the covariance overflowed), ``--range-offset-q 1e308`` leaked NumPy overflow
+#: warnings (the input review).
+PROCESS_NOISE_MAX = 1e6
+#: A random walk's variance growth (``--range-offset-q``, ``--link-offset-q``): 0 (a
+#: constant offset) to :data:`PROCESS_NOISE_MAX`.
+process_noise = float_in(0.0, PROCESS_NOISE_MAX)
+
+
+def positive_process_noise(text: str) -> float:
+    """A process-noise intensity ``q`` in ``(0, PROCESS_NOISE_MAX]`` (``track --q``,
+    ``serve --track-q``).
+
+    >>> positive_process_noise("2")
+    2.0
+    """
+    value = _float(text)
+    if not 0 < value <= PROCESS_NOISE_MAX:
+        raise argparse.ArgumentTypeError(
+            f"expected a number in (0, {PROCESS_NOISE_MAX:g}], got {text!r}")
+    return value
+
+
 #: The floor of an estimated robust scale (``--min-scale``, units of sigma): 0 to 1e6.
 #: 1e300 passed and made every bound infinite on fixes still called ``ok`` (the input
 #: review).

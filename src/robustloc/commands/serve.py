@@ -9,7 +9,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from robustloc.options import nonnegative_float, positive_float, positive_int
+from robustloc.options import (
+    nonnegative_float,
+    positive_float,
+    positive_int,
+    positive_process_noise,
+    sigma_value,
+)
 
 NAME = "serve"
 HELP = "live positioning service: HTTP/WebSocket/MQTT ingest, positions API, live map page"
@@ -195,7 +201,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="--track: motion model, as robustloc track --model (default cv)")
     p.add_argument("--track-filter", choices=("ekf", "ukf"), default="ekf",
                    help="--track: filter (default ekf)")
-    p.add_argument("--track-q", type=positive_float, default=None, metavar="Q",
+    # (as track --q: 1e308 overflowed the covariance -- the input review)
+    p.add_argument("--track-q", type=positive_process_noise, default=None, metavar="Q",
                    help="--track: process noise, as robustloc track --q (default 1)")
     p.add_argument("--track-weight", "--track-robust", dest="track_weight", default=None,
                    choices=TRACK_WEIGHTS, type=choice(TRACK_WEIGHT_SYNONYMS),
@@ -227,7 +234,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--domain", choices=("range", "rssi"), default="range",
                    help="as robustloc locate --domain, and track --domain with --track "
                         "(default %(default)s)")
-    p.add_argument("--sigma", type=positive_float, default=None,
+    # (as track's and locate's --sigma: a sigma of 1e308 squared overflows -- the input
+    # review)
+    p.add_argument("--sigma", type=sigma_value, default=None,
                    help="a-priori observation std (m or dB); default the anchors' sigma "
                         "(with --track too, as robustloc track --sigma)")
     p.add_argument("--robust-scale", choices=("mad", "log", "apriori"), default="mad",

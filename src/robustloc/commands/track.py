@@ -181,9 +181,11 @@ def _far_anchors(anchors: pd.DataFrame) -> list[str]:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from robustloc.options import (
-        nonnegative_float,
+        PROCESS_NOISE_MAX,
         positive_float,
         positive_int,
+        positive_process_noise,
+        process_noise,
         sigma_value,
         tag_height_m,
     )
@@ -206,9 +208,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                                          "(docs/limits.md)")
     p.add_argument("--filter", choices=("ekf", "ukf"), default=d.filter,
                    help="filter (default ekf)")
-    p.add_argument("--q", type=positive_float, default=d.q,
+    # (the q-like options end at PROCESS_NOISE_MAX: 1e308 overflowed the covariance into
+    # rows 'ok' without hpl -- the input review)
+    p.add_argument("--q", type=positive_process_noise, default=d.q,
                    help="process noise: white-acceleration variance (m/s^2)^2 for cv, jerk "
-                        f"variance for ca, position step variance for static (default {d.q}; "
+                        f"variance for ca, position step variance for static (at most "
+                        f"{PROCESS_NOISE_MAX:g}; default {d.q}; "
                         "hpl has no term for the motion model's error: a tag that "
                         "accelerates harder than q allows, 5-10 m/s turning, lags and 0.5-3 %% "
                         "of its rows exceed hpl, see docs/limits.md)")
@@ -269,9 +274,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--range-offset-sd", type=sigma_value, default=d.range_offset_sd,
                    help="a-priori std of the offset at a tag's start "
                         f"(m, default {d.range_offset_sd})")
-    p.add_argument("--range-offset-q", type=nonnegative_float, default=d.range_offset_q,
+    p.add_argument("--range-offset-q", type=process_noise, default=d.range_offset_q,
                    help="random-walk variance growth of the offset "
-                        f"(m^2/s, default {d.range_offset_q}; 0: constant)")
+                        f"(m^2/s, 0 to {PROCESS_NOISE_MAX:g}, default {d.range_offset_q}; 0: "
+                        "constant)")
     p.add_argument("--link-offsets", nargs="?", const="on", default="auto",
                    choices=("on", "off", "auto"), metavar="{on,off,auto}",
                    help="auto (the default): the log chooses; on (the option alone) or "
@@ -300,9 +306,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--link-offset-sd", type=sigma_value, default=None,
                    help="a-priori std of each link's offset at a tag's start, in the "
                         "measurement's unit (default 1 dB for RSSI, 0.1 m for ranges)")
-    p.add_argument("--link-offset-q", type=nonnegative_float, default=d.link_offset_q,
-                   help="random-walk variance growth of the links' offsets (unit^2/s, "
-                        f"default {d.link_offset_q}: constant)")
+    p.add_argument("--link-offset-q", type=process_noise, default=d.link_offset_q,
+                   help="random-walk variance growth of the links' offsets (unit^2/s, 0 to "
+                        f"{PROCESS_NOISE_MAX:g}, default {d.link_offset_q}: constant)")
     p.add_argument("--chunk-rows", type=positive_int, default=500_000,
                    help="rows read per chunk (default %(default)s)")
     p.add_argument("--json", action="store_true",

@@ -24,10 +24,11 @@ from robustloc.errors import InputError
 from robustloc.options import (
     check_settings,
     float_in,
-    nonnegative_float,
     option,
     positive_float,
     positive_int,
+    positive_process_noise,
+    process_noise,
     sigma_value,
     tag_height_m,
 )
@@ -60,7 +61,7 @@ class TrackSettings:
 
     model: str = option("cv", choices=("cv", "ca", "static"), flag="--model/--motion")
     filter: str = option("ekf", choices=("ekf", "ukf"))
-    q: float = option(1.0, check=positive_float)
+    q: float = option(1.0, check=positive_process_noise)
     weight: str | None = option(None, choices=WEIGHTS, synonyms=WEIGHT_SYNONYMS,
                                 flag="--weight/--robust")
     domain: str = option("range", choices=("range", "rssi"))
@@ -77,11 +78,11 @@ class TrackSettings:
     tag_height: float | None = option(None, check=tag_height_m)
     range_offset: bool = False
     range_offset_sd: float = option(0.5, check=positive_float)
-    range_offset_q: float = option(1e-4, check=nonnegative_float)
+    range_offset_q: float = option(1e-4, check=process_noise)
     link_offsets: bool | str = option("auto", choices=(False, True, "auto"),
                                       synonyms={"on": True, "off": False})
     link_offset_sd: float | None = option(None, check=positive_float)
-    link_offset_q: float = option(0.0, check=nonnegative_float)
+    link_offset_q: float = option(0.0, check=process_noise)
     chunk_rows: int = option(500_000, check=positive_int)
 
     def __post_init__(self) -> None:

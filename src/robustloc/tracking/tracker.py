@@ -316,14 +316,16 @@ class TrackerSettings:
         every range it measures: a UWB tag's uncalibrated antenna delay, a phone's WiFi
         RTT offset) as one more state (item 10 of the module docstring).
     range_offset_sd : a-priori standard deviation of that offset (m) at a tag's start.
-    range_offset_q : its random-walk variance growth (m^2/s): 0 for a constant offset.
+    range_offset_q : its random-walk variance growth (m^2/s): 0 for a constant offset,
+        at most 1e6 (:data:`robustloc.options.PROCESS_NOISE_MAX`, as ``q``).
     link_offsets : estimate an offset of each link (anchor) of each tag as one more state
         per anchor (item 11 of the module docstring): metres added to its ranges, or dB
         added to its RSSI (what the anchors file's calibration misses where the tag is).
         Not with ``range_offset`` (their mean is the common offset).
     link_offset_sd : a-priori standard deviation of each link's offset at a tag's start, in
         the measurement's unit (m or dB); None: 0.1 m for ranges, 1 dB for RSSI.
-    link_offset_q : its random-walk variance growth (unit^2/s): 0 for constant offsets.
+    link_offset_q : its random-walk variance growth (unit^2/s): 0 for constant
+        offsets, at most 1e6.
     """
 
     model: str = "cv"
@@ -389,6 +391,14 @@ class TrackerSettings:
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 bad(f"{name} must be finite and >= 0, got {v}")
+        from robustloc.options import PROCESS_NOISE_MAX
+
+        for name in ("q", "range_offset_q", "link_offset_q"):
+            # (1e308 overflowed the covariance: rows 'ok' without hpl, NumPy overflow
+            # warnings on stderr -- the input review; 1e6 is 1000 units per second)
+            v = getattr(self, name)
+            if v > PROCESS_NOISE_MAX:
+                bad(f"{name} must be at most {PROCESS_NOISE_MAX:g}, got {v}")
         if self.cusum_h is not None and not (math.isfinite(self.cusum_h) and self.cusum_h > 0):
             bad(f"cusum_h must be positive and finite (or None), got {self.cusum_h}")
         if not 0 < self.noise_scale_min <= self.noise_scale_max < math.inf:
