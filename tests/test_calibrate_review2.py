@@ -88,6 +88,39 @@ def test_implausible_self_calibration_is_refused_not_written():
     _refuse_implausible(ok, ["a", "b"], "range", values, "log.csv")  # no error
 
 
+def test_self_calibrated_scale_the_anchors_reader_refuses_is_not_written(tmp_path):
+    """A positive range scale beyond what the anchors reader accepts ([1e-3, 1e3]) is
+    refused by the self-calibration too, so that it never writes a file `locate` refuses
+    (the input review); at the interval's ends it is written and read back."""
+    from robustloc.io import read_anchors
+    from robustloc.io.limits import RANGE_SCALE_LIMITS
+    from robustloc.pipelines.calibrate import _refuse_implausible
+
+    lo, hi = RANGE_SCALE_LIMITS
+    free = np.ones((2, 2), bool)
+    values = np.array([[3.0, 4.0], [5.0, 6.0]])
+    for wild in (lo / 2, hi * 2):
+        res = SimpleNamespace(param_names=("bias", "scale"), free=free,
+                              offset=np.array([0.1, 0.2]), slope=np.array([1.0, wild]),
+                              epochs_used=2, epochs_total=2)
+        with pytest.raises(InputError, match=r"scale of anchor b = .*a range scale lies in"):
+            _refuse_implausible(res, ["a", "b"], "range", values, "log.csv")
+        f = tmp_path / "a.csv"
+        pd.DataFrame({"anchor": ["a", "b", "c"], "x": [0.0, 5, 0], "y": [0.0, 0, 5],
+                      "scale": [1.0, wild, 1.0]}).to_csv(f, index=False)
+        with pytest.raises(InputError, match="range scale must lie in"):
+            read_anchors(f)
+    for edge in (lo, hi):
+        ok = SimpleNamespace(param_names=("bias", "scale"), free=free,
+                             offset=np.array([0.1, 0.2]), slope=np.array([1.0, edge]),
+                             epochs_used=2, epochs_total=2)
+        _refuse_implausible(ok, ["a", "b"], "range", values, "log.csv")
+        f = tmp_path / "b.csv"
+        pd.DataFrame({"anchor": ["a", "b", "c"], "x": [0.0, 5, 0], "y": [0.0, 0, 5],
+                      "scale": [1.0, edge, 1.0]}).to_csv(f, index=False)
+        read_anchors(f)
+
+
 @pytest.mark.parametrize("seed", [1, 3, 5, 12])
 def test_three_anchors_never_write_an_implausible_model(tmp_path, capsys, seed):
     """Three anchors, eight epochs (the review's log): whatever the draw, a written

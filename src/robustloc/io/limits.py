@@ -40,7 +40,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["Limits", "LIMITS", "PATH_LOSS_EXPONENT_LIMITS", "plausible", "limits_for"]
+__all__ = ["Limits", "LIMITS", "PATH_LOSS_EXPONENT_LIMITS", "RANGE_SCALE_LIMITS", "plausible",
+           "limits_for"]
 
 
 @dataclass(frozen=True)
@@ -97,6 +98,12 @@ LIMITS: dict[str, Limits] = {
 #: narrower interval inside this one (:data:`robustloc.models.calibration.MAX_EXPONENT`),
 #: so that it never writes a file the other commands refuse (the input review).
 PATH_LOSS_EXPONENT_LIMITS = (0.01, 20.0)
+
+#: The range scale (``scale``: measured = scale * distance + bias) an anchors file may
+#: hold: a clock or a propagation speed off by a factor of 1000 either way is a unit slip
+#: (mm for m, km for m), not a calibration.  ``calibrate --self`` refuses a fit outside
+#: it, so that it never writes a file the other commands refuse.
+RANGE_SCALE_LIMITS = (1e-3, 1e3)
 
 
 def limits_for(quantity: str) -> Limits:

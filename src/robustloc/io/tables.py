@@ -983,7 +983,7 @@ def validate_anchors(df: pd.DataFrame, path: PathLike | None = None) -> pd.DataF
                                  _line_of(df, i))
     # path-loss parameters far outside anything physical (a typo, a unit slip) overflowed
     # the models silently and left every epoch without a fix: refused with their line
-    from robustloc.io.limits import PATH_LOSS_EXPONENT_LIMITS, limits_for
+    from robustloc.io.limits import PATH_LOSS_EXPONENT_LIMITS, RANGE_SCALE_LIMITS, limits_for
 
     # (and the range calibration and sigma: a bias of 1e300 m with a scale of 1e-300
     # overflowed into every range and made every epoch invalid_measurement without naming
@@ -996,7 +996,7 @@ def validate_anchors(df: pd.DataFrame, path: PathLike | None = None) -> pd.DataF
                             ("n", "path-loss exponent n", *PATH_LOSS_EXPONENT_LIMITS),
                             ("gamma", "path-loss exponent gamma", *PATH_LOSS_EXPONENT_LIMITS),
                             ("bias", "range bias", -rng.high, rng.high),
-                            ("scale", "range scale", 1e-3, 1e3),
+                            ("scale", "range scale", *RANGE_SCALE_LIMITS),
                             ("sigma", "sigma", *SIGMA_RANGE)):
         if c in df.columns:
             v = to_number(df[c]).to_numpy(dtype=float)

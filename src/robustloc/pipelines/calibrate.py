@@ -679,6 +679,7 @@ def _refuse_implausible(res: Any, ids: list[str], kind: str, values: np.ndarray,
     one).  On a short log of three anchors the adjustment wandered to a bias of 8 km and
     a scale of -0.07 and wrote them, exit 0; ``locate`` then refused the file (the
     calibration review)."""
+    from robustloc.io.limits import RANGE_SCALE_LIMITS
     from robustloc.models.calibration import MAX_EXPONENT, MIN_EXPONENT, exponent_interval
 
     names = res.param_names
@@ -692,6 +693,13 @@ def _refuse_implausible(res: Any, ids: list[str], kind: str, values: np.ndarray,
             # reader refuses was written, exit 0 -- the input review)
             bad.append(f"{names[1]} of anchor {name} = {res.slope[j]:.4g} (a path-loss "
                        f"exponent lies in {exponent_interval()})")
+        elif res.free[j, 1] and kind == "range" and not (
+                RANGE_SCALE_LIMITS[0] <= res.slope[j] <= RANGE_SCALE_LIMITS[1]):
+            # (the anchors reader refuses such a scale: it was written, exit 0, and
+            # locate refused the file -- the input review)
+            lo, hi = RANGE_SCALE_LIMITS
+            bad.append(f"{names[1]} of anchor {name} = {res.slope[j]:.4g} (a range scale "
+                       f"lies in [{lo:g}, {hi:g}])")
         if res.free[j, 0] and not np.isfinite(res.offset[j]):
             bad.append(f"{names[0]} of anchor {name} = {res.offset[j]}")
         elif res.free[j, 0] and kind == "range":
