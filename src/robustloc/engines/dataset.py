@@ -1,9 +1,12 @@
 """Partitioned Parquet datasets and the partitioning rules of the distributed engine.
 
-A *dataset* is a directory (searched recursively), a glob, or one file.  Its Parquet files
-(``*.parquet``, ``*.pq``; names starting with ``_`` or ``.`` are ignored, as Spark, dask,
-pyarrow and DuckDB do; symbolic links are followed, a link to nothing is refused) are
-its *partitions*, and each partition file is the unit of work
+A *dataset* is a directory (searched recursively), a glob, or one file.  Its files are
+its *partitions*: every file whose name does not start with ``_`` or ``.`` (those are
+ignored, as Spark, dask, pyarrow and DuckDB do; symbolic links are followed, a link to
+nothing is refused).  Each must be Parquet -- known by its first bytes, ``PAR1``, or a
+``.parquet``, ``.pq`` or ``.parq`` name, so Hive's ``000000_0`` is one -- and any other
+file is refused by name, never left out (a CSV beside a Parquet file lost its rows
+without a word: the dask review).  Each partition file is the unit of work
 and of error reporting: a problem found in it is ``error: PARTITION_FILE:LINE: what``,
 where LINE counts the file's rows as in CSV (data row ``i`` from 0 is line ``i + 2``).
 
@@ -48,7 +51,9 @@ from robustloc.errors import InputError
 
 #: Hive keys restored as columns when absent from the partition file.
 HIVE_ID_COLUMNS = ("tag", "anchor")
-_PARQUET_EXT = (".parquet", ".pq")
+#: Names of Parquet files (a file of another name is Parquet by its first bytes).
+_PARQUET_EXT = (".parquet", ".pq", ".parq")
+_PARQUET_MAGIC = b"PAR1"
 
 
 @dataclass(frozen=True)
@@ -88,6 +93,45 @@ class PartitionInfo:
 
 def _hidden(name: str) -> bool:
     return name.startswith(("_", "."))
+
+
+def is_parquet_file(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a Parquet file: its name ends in ``.parquet``, ``.pq`` or
+    ``.parq`` (any case), or its first four bytes are Parquet's magic ``PAR1``.
+
+    The name alone is not the test: Hive names its files ``000000_0``, and those were
+    left out of a dataset without a word (the dask review).  A file with a Parquet name
+    is one without its bytes being read, so that a damaged one is reported as an
+    unreadable partition, not as a file of another kind.
+
+    Raises
+    ------
+    InputError
+        The file's first bytes cannot be read (``FILE: cannot read (REASON)``).
+    """
+    if str(path).lower().endswith(_PARQUET_EXT):
+        return True
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(len(_PARQUET_MAGIC)) == _PARQUET_MAGIC
+    except OSError as exc:
+        raise InputError(f"cannot read ({exc.strerror or exc})", path) from None
+
+
+def _not_parquet(path: Path, what: str, one_file: bool) -> InputError:
+    """The error for a file of a Parquet dataset that is not Parquet: refused, never
+    skipped (its rows were left out, exit 0: the dask review), saying what to do."""
+    # (robustloc partition writes measurements only: positions are written as Parquet
+    # by the command that made them, with -o DIR --engine dask)
+    how = ("robustloc partition INPUT -o DATASET" if "measurements" in what
+           else "the command's --engine dask writes it so")
+    if one_file:
+        return InputError(f"not a Parquet file: a {what} for --engine dask is Parquet "
+                          f"({how}), or read this one file without --engine dask", path)
+    return InputError(f"not a Parquet file, and every file of a {what} is read as a "
+                      f"partition (its rows are never left out): convert the data to "
+                      f"Parquet ({how}), or keep a side file under a name starting with "
+                      "'_' or '.', which datasets ignore", path)
 
 
 def _hive_keys(path: Path, base: Path | None) -> tuple[tuple[str, str], ...]:
@@ -131,7 +175,9 @@ def discover(spec: str | os.PathLike, *, parquet: bool = True, what: str = "data
     spec : str or PathLike
         Directory (searched recursively), glob (``**`` allowed) or file.
     parquet : bool
-        Keep only Parquet files (default); False keeps every regular file (RINEX inputs).
+        Every file must be Parquet (default: :func:`is_parquet_file`; any other
+        non-hidden file is refused, never left out); False keeps every regular file
+        (RINEX inputs, ``partition``'s CSV).
     what : str
         Word for messages.
     absolute : bool
@@ -148,7 +194,8 @@ def discover(spec: str | os.PathLike, *, parquet: bool = True, what: str = "data
     Raises
     ------
     InputError
-        Nothing matches, or no partition file is found.
+        Nothing matches, no partition file is found, a link leads nowhere, or (with
+        ``parquet``) a file is not Parquet -- naming the file.
     """
     s = str(spec)
     p = Path(s)
@@ -170,11 +217,13 @@ def discover(spec: str | os.PathLike, *, parquet: bool = True, what: str = "data
                 files.append(mp)
     else:
         raise InputError(f"{what} not found (expected a directory, a glob or a file)", s)
-    if parquet:
-        files = [f for f in files if f.name.lower().endswith(_PARQUET_EXT)]
     for f in files:
         if not f.exists():  # a symbolic link to nothing: refused, never left out
             raise InputError("broken link", f)
+    if parquet:
+        for f in sorted(files):
+            if not is_parquet_file(f):  # refused by name, never skipped (the dask review)
+                raise _not_parquet(f, what, base is None and len(files) == 1)
     if not files:
         kind = "Parquet files" if parquet else "files"
         raise InputError(f"no {kind} in this {what}", s)

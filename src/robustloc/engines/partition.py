@@ -41,7 +41,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 from urllib.parse import quote
 
-from robustloc.engines.dataset import Partition, _hive_keys, discover, missing_hive_columns
+from robustloc.engines.dataset import (
+    Partition,
+    _hive_keys,
+    discover,
+    is_parquet_file,
+    missing_hive_columns,
+)
 from robustloc.errors import InputError, OutputError
 
 BY = ("tag", "time")
@@ -81,10 +87,16 @@ def _inputs(spec: str) -> tuple[list[str], str, dict[str, dict[str, str]]]:
         parts = [x for x in discover(spec, parquet=False, what="input")
                  if not x.path.endswith((".json", ".txt", ".md"))]
     files = [x.path for x in parts]
-    kinds = {"parquet" if f.lower().endswith((".parquet", ".pq")) else "csv" for f in files}
-    if len(kinds) != 1:
-        raise InputError("input mixes CSV and Parquet files; give one format", spec)
-    fmt = kinds.pop()
+    # Parquet by the datasets' test (its first bytes or name): by the name alone, a folder
+    # of Hive's Parquet files (000000_0) "mixed CSV and Parquet" (the dask review)
+    kind = {f: "parquet" if is_parquet_file(f) else "csv" for f in files}
+    if len(set(kind.values())) != 1:
+        one = next(f for f in files if kind[f] == "parquet")
+        other = next(f for f in files if kind[f] == "csv")
+        raise InputError(f"input mixes Parquet files and others ({other} is not Parquet, "
+                         f"{one} is); give one format, or keep a side file under a name "
+                         "starting with '_' or '.', which inputs ignore", spec)
+    fmt = kind[files[0]]
     return files, fmt, (_hive_ids(parts) if fmt == "parquet" else {})
 
 
