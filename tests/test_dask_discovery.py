@@ -104,3 +104,71 @@ def test_partition_reads_hive_named_parquet_and_names_the_file_of_another_kind(
     err = capsys.readouterr().err
     assert err.startswith(f"error: {src}: input mixes Parquet files and others "
                           f"({src / 'extra.csv'} is not Parquet"), err
+
+
+# --------------------------------------------------------------------------------------
+# bug 2: hive folders of an id that dask wrote unescaped
+# --------------------------------------------------------------------------------------
+
+
+def _dask_tree(path, tags: list[str]) -> None:
+    """Two walks under ``tags``, written by dask's ``partition_on`` (which drops the tag
+    from the files and names the folders by the raw tags); dask's local threads, no
+    cluster."""
+    dd = pytest.importorskip("dask.dataframe")
+    d = pd.concat([_epochs(t0=10.0 * i, tag=t) for i, t in enumerate(tags)])
+    dd.from_pandas(d, npartitions=1, sort=False).to_parquet(
+        str(path), partition_on=["tag"], write_index=False)
+
+
+def test_a_tag_holding_a_slash_under_dask_partition_on_is_refused(tmp_path, capsys):
+    ds = tmp_path / "ds"
+    _dask_tree(ds, ["a", "a/b"])
+    nested = [p for p in (ds / "tag=a" / "b").iterdir() if p.suffix == ".parquet"]
+    assert len(nested) == 1  # dask's layout: tag=a/b/part.0.parquet
+    with pytest.raises(InputError, match="not key=value") as exc:
+        discover(ds)
+    assert exc.value.path == str(nested[0])
+    assert "'a/b'" in exc.value.message and "robustloc partition" in exc.value.message
+    # the commands refuse it before a cluster starts (it was one track of both walks)
+    out = tmp_path / "out"
+    assert main(["track", str(ds), "--anchors", _anchors(tmp_path), "-o", str(out),
+                 "--engine", "dask", "--workers", "1", "-q"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {nested[0]}: folder 'b' below 'tag=a' is not "
+                          "key=value"), err
+    assert not out.exists()
+    assert main(["partition", str(ds), "-o", str(out), "--by", "tag", "-q"]) == 2
+    assert "is not key=value" in capsys.readouterr().err
+
+
+def test_a_folder_below_a_tag_is_fine_when_the_files_hold_the_tag(tmp_path):
+    ds = tmp_path / "ds"
+    (ds / "tag=a" / "b").mkdir(parents=True)
+    _epochs(tag="a").to_parquet(ds / "tag=a" / "p.parquet", index=False)
+    _epochs(tag="a/b").to_parquet(ds / "tag=a" / "b" / "p.parquet", index=False)
+    assert sorted(t for p in discover(ds) for t in inspect(p).tags) == ["a", "a/b"]
+
+
+def test_two_spellings_of_one_tag_folder_are_refused_as_ambiguous(tmp_path):
+    ds = tmp_path / "ds"
+    _dask_tree(ds, ["A", "%41"])  # folders tag=A and tag=%41, both unescaping to 'A'
+    with pytest.raises(InputError, match="both read as tag 'A'") as exc:
+        discover(ds)
+    assert exc.value.path == str(ds / "tag=A")
+    assert "'tag=%41' and 'tag=A'" in exc.value.message
+
+
+def test_pyarrows_escaped_tree_is_read_as_its_tags(tmp_path):
+    """pyarrow escapes a folder's value as in a URL (``tag=a%2Fb``, ``tag=%2541``):
+    those read back as the tags written."""
+    pa = pytest.importorskip("pyarrow")
+    import pyarrow.parquet as pq
+
+    tags = ["a", "a/b", "A", "%41"]
+    d = pd.concat([_epochs(t0=10.0 * i, tag=t) for i, t in enumerate(tags)])
+    pq.write_to_dataset(pa.Table.from_pandas(d, preserve_index=False), str(tmp_path / "ds"),
+                        partition_cols=["tag"])
+    assert {p.name for p in (tmp_path / "ds").iterdir()} >= {"tag=a%2Fb", "tag=%2541"}
+    parts = discover(tmp_path / "ds")
+    assert sorted(t for p in parts for t in inspect(p).tags) == sorted(tags)

@@ -14,6 +14,11 @@ Hive trees (``tag=T1/date=2026-01-01/part-0.parquet``) are understood: a key of 
 that is a contract id column (``tag``, ``anchor``) and absent from the file is added to
 its rows, at its place in ``time, tag, anchor`` (dask's and DuckDB's partitioned writers
 drop it from the file).  Other keys (dates, time bins, buckets) only organize the files.
+A folder's name is unescaped as pyarrow and DuckDB escape it (``tag=a%2Fb`` is tag
+``a/b``).  dask's ``partition_on`` does not escape, so a tree of files without their id
+column is refused where its folders cannot be read back (:func:`_hive_folders`: a folder
+that is not ``key=value`` below an id's, ``tag=a/b/``; :func:`_check_id_spellings`:
+``tag=A`` beside ``tag=%41``); a tag ``a/b`` was read as ``a``, two walks one track.
 
 Partitioning rules
 ------------------
@@ -134,14 +139,97 @@ def _not_parquet(path: Path, what: str, one_file: bool) -> InputError:
                       "'_' or '.', which datasets ignore", path)
 
 
-def _hive_keys(path: Path, base: Path | None) -> tuple[tuple[str, str], ...]:
-    parts = path.parent.parts if base is None else path.parent.relative_to(base).parts
-    out = []
-    for p in parts:
+def _lacks_column(path: Path, column: str) -> bool:
+    """Whether ``path`` is a Parquet file without ``column`` (so that a hive key of its
+    path would be restored as that column); False for another file (its hive keys are
+    never read) or one whose schema cannot be read (its reader says why)."""
+    import pyarrow.parquet as pq
+
+    try:
+        if not is_parquet_file(path):
+            return False
+        return column not in pq.read_schema(path).names
+    except Exception:  # noqa: BLE001 - unreadable: the partition's reader reports it
+        return False
+
+
+def _hive_folders(path: Path, base: Path | None) -> list[tuple[Path, str, str]]:
+    """The hive folders of ``path`` (below ``base``): ``(folder, key, value)``, key and
+    value unescaped as pyarrow and DuckDB escape them (``tag=a%2Fb`` is tag ``a/b``).
+
+    Raises
+    ------
+    InputError
+        A folder that is not ``key=value`` below the folder of an id key
+        (:data:`HIVE_ID_COLUMNS`) when the file lacks that column: dask's
+        ``to_parquet(partition_on=["tag"])`` does not escape a tag's ``/``, so tag
+        ``a/b``'s rows lie in ``tag=a/b/`` and were read as tag ``a``, two walks merged
+        into one track with exit 0 (the dask review).
+    """
+    rel = path.parent.parts if base is None else path.parent.relative_to(base).parts
+    out: list[tuple[Path, str, str]] = []
+    above: tuple[str, str, str] | None = None  # the innermost id key's folder, key, value
+    folder = Path() if base is None else base
+    for p in rel:
+        folder = folder / p
         k, sep, v = p.partition("=")
         if sep and k:
-            out.append((unquote(k), unquote(v)))
-    return tuple(out)
+            key, value = unquote(k), unquote(v)
+            out.append((folder, key, value))
+            if key in HIVE_ID_COLUMNS:
+                above = (p, key, value)
+        elif above is not None and _lacks_column(path, above[1]):
+            name, key, value = above
+            raise InputError(
+                f"folder {p!r} below {name!r} is not key=value, and this file has no "
+                f"{key} column: it would be read as {key} {value!r}, but its {key} may be "
+                f"{value + '/' + p!r} (dask's to_parquet(partition_on=[{key!r}]) writes a "
+                f"{key} holding '/' unescaped, as folders in folders); give the data as "
+                f"files that hold the {key} column, or write the dataset with robustloc "
+                "partition (it escapes the folder names)", path)
+    return out
+
+
+def _hive_keys(path: Path, base: Path | None) -> tuple[tuple[str, str], ...]:
+    """The hive ``key=value`` pairs of ``path``'s folders below ``base``, outermost first
+    (:func:`_hive_folders`, whose errors it raises)."""
+    return tuple((k, v) for _, k, v in _hive_folders(path, base))
+
+
+def _check_id_spellings(folders: dict[Path, list[tuple[Path, str, str]]]) -> None:
+    """Refuse two folders of one id key whose names differ but unescape to one value
+    (``tag=A`` and ``tag=%41``) when a file under them lacks the column.
+
+    ``folders``: each file's :func:`_hive_folders`.  pyarrow escapes a ``%`` (tag
+    ``%41`` is ``tag=%2541``); dask's ``partition_on`` does not, so ``tag=%41`` may be
+    the tag ``%41``, and its rows were merged with tag ``A``'s (the dask review).  One
+    spelling of a value is never refused: pyarrow's trees (``tag=a%2Fb``, tag ``a/b``)
+    read as before.
+
+    Raises
+    ------
+    InputError
+        ``FOLDER: folders 'tag=A' and 'tag=%41' both read as tag 'A' ...``.
+    """
+    spellings: dict[tuple[str, str], dict[str, tuple[Path, list[Path]]]] = {}
+    for f, hive in folders.items():
+        for folder, key, value in hive:
+            if key in HIVE_ID_COLUMNS:
+                entry = spellings.setdefault((key, value), {}).setdefault(
+                    folder.name, (folder, []))
+                entry[1].append(f)
+    for (key, value), by_name in spellings.items():
+        if len(by_name) < 2:
+            continue
+        if not any(_lacks_column(f, key) for _, fs in by_name.values() for f in fs):
+            continue  # every file holds its id: the folders' names are not read
+        (a, _), (b, (folder_b, _)) = sorted(by_name.items())[:2]
+        raise InputError(
+            f"folders {a!r} and {b!r} both read as {key} {value!r} (a folder name is "
+            f"unescaped as pyarrow escapes it, but dask's to_parquet(partition_on="
+            f"[{key!r}]) does not escape, so one of them may be another {key}): "
+            f"ambiguous; give the data as files that hold the {key} column, or write the "
+            "dataset with robustloc partition", folder_b)
 
 
 def _walk(root: Path) -> list[Path]:
@@ -227,8 +315,10 @@ def discover(spec: str | os.PathLike, *, parquet: bool = True, what: str = "data
     if not files:
         kind = "Parquet files" if parquet else "files"
         raise InputError(f"no {kind} in this {what}", s)
-    return [Partition(os.path.abspath(f) if absolute else str(f), _hive_keys(f, base))
-            for f in sorted(set(files))]
+    folders = {f: _hive_folders(f, base) for f in sorted(set(files))}
+    _check_id_spellings(folders)
+    return [Partition(os.path.abspath(f) if absolute else str(f),
+                      tuple((k, v) for _, k, v in hive)) for f, hive in folders.items()]
 
 
 def _parquet_file(part: Partition):
