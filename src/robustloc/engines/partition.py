@@ -60,6 +60,7 @@ IDS = ("tag", "anchor")
 
 if TYPE_CHECKING:
     import pandas as pd
+    import pyarrow as pa
 
 
 @dataclass(frozen=True)
@@ -226,14 +227,46 @@ def _check_one_kind(files: list[str], headers: list[list[str]]) -> None:
 
 def _parquet_headers(files: list[str]) -> list[list[str]] | None:
     """Each Parquet file's column names, or None when one cannot be read (DuckDB's scan
-    then says why)."""
+    then says why), after the checks of :func:`_check_parquet_columns`."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
     try:
-        return [pq.read_schema(f).names for f in files]
+        schemas = [pq.read_schema(f) for f in files]
     except (OSError, pa.ArrowException):
         return None
+    for f, schema in zip(files, schemas):
+        _check_parquet_columns(f, schema)
+    return [schema.names for schema in schemas]
+
+
+def _check_parquet_columns(path: str, schema: pa.Schema) -> None:
+    """A Parquet file's columns checked as the commands' reader checks them, with its
+    words: a column named twice (DuckDB renamed the second ``rssi_1`` and wrote it, exit
+    0, where the same CSV header and ``locate`` were refused) and a column of
+    :data:`NUMERIC` holding booleans (DuckDB read them as 1.0 and 0.0; only ``locate
+    --engine dask`` refused the dataset, later: the input review).
+
+    Raises
+    ------
+    InputError
+        ``FILE:1: duplicate column 'rssi' in the header``
+        (:func:`robustloc.io.tables._check_header`) or ``FILE:1: column 'rssi' holds
+        booleans, expected numbers`` (:func:`robustloc.io.tables._numeric`'s words).
+    """
+    import pyarrow as pa
+
+    from robustloc.io.tables import _check_header
+
+    _check_header(schema.names, path)
+    for c in NUMERIC:
+        if c not in schema.names:
+            continue
+        t = schema.field(c).type
+        if isinstance(t, pa.DictionaryType):
+            t = t.value_type
+        if pa.types.is_boolean(t):
+            raise InputError(f"column '{c}' holds booleans, expected numbers", path, 1)
 
 
 def _source(con, files: list[str], fmt: str, spec: str,
