@@ -103,3 +103,31 @@ def test_reading_a_tag_tree_with_its_folder_keys_is_what_the_docs_warn_of(tmp_pa
     assert main(["partition", str(src), "-o", str(out), "-q", "--by", "tag"]) == 0
     with pytest.raises(pa.ArrowTypeError, match="Field tag has incompatible types"):
         pd.read_parquet(out)
+
+
+def test_a_log_named_txt_is_partitioned_and_notes_are_named(tmp_path, capsys):
+    """A folder's log named ``.txt`` is a table like any other (it was left out without
+    a word, its rows missing from the dataset: the dask fixer); notes and metadata
+    (``.md``, ``.json``) are left out, and the command says which."""
+    src = tmp_path / "in"
+    src.mkdir()
+    a, b = _log("rssi"), _log("rssi")
+    b["time"] += 100.0
+    a.to_csv(src / "a.csv", index=False)
+    b.to_csv(src / "b.txt", index=False)
+    (src / "README.md").write_text("# a site's logs\n")
+    (src / "meta.json").write_text("{}\n")
+    out = tmp_path / "ds"
+    assert main(["partition", str(src), "-o", str(out), "--by", "time", "-q"]) == 0
+    err = capsys.readouterr().err
+    assert "left out 2 file(s) that are notes" in err
+    assert "README.md" in err and "meta.json" in err
+    back = pd.read_parquet(out, partitioning=None)
+    assert len(back) == len(a) + len(b)
+    # a folder of notes only: the input's error, not a traceback
+    notes = tmp_path / "notes"
+    notes.mkdir()
+    (notes / "README.md").write_text("# nothing yet\n")
+    assert main(["partition", str(notes), "-o", str(tmp_path / "ds2"), "--by", "tag",
+                 "-q"]) == 2
+    assert "no table in this input, only notes" in capsys.readouterr().err

@@ -76,6 +76,10 @@ class PartitionSummary:
     method: str
 
 
+#: Names of files in an input folder that are notes or metadata, never tables.
+_NOT_TABLES = (".json", ".md")
+
+
 def _inputs(spec: str) -> tuple[list[str], str, dict[str, dict[str, str]]]:
     """Input files, their format (``csv`` or ``parquet``; one format per input) and, per
     Parquet file that lacks an id column its path names (``tag=T1/part-0.parquet``
@@ -85,8 +89,19 @@ def _inputs(spec: str) -> tuple[list[str], str, dict[str, dict[str, str]]]:
     if p.is_file():
         parts = [Partition(str(p), _hive_keys(p, None))]
     else:
-        parts = [x for x in discover(spec, parquet=False, what="input")
-                 if not x.path.endswith((".json", ".txt", ".md"))]
+        found = discover(spec, parquet=False, what="input")
+        # notes and metadata (.json, .md) are no tables: left out, and said so; any other
+        # file is read as a table (a log named .txt was left out without a word: the
+        # dask fixer; a text that is no table is refused at its line)
+        parts = [x for x in found if not x.path.lower().endswith(_NOT_TABLES)]
+        left = [x.path for x in found if x.path.lower().endswith(_NOT_TABLES)]
+        if not parts:  # (an IndexError before)
+            raise InputError(f"no table in this input, only notes ({', '.join(left[:3])})",
+                             spec)
+        if left:
+            print(f"note: {spec}: left out {len(left)} file(s) that are notes, not tables "
+                  f"({', '.join(_NOT_TABLES)}): {', '.join(left[:3])}"
+                  + (" ..." if len(left) > 3 else ""), file=sys.stderr)
     files = [x.path for x in parts]
     # Parquet by the datasets' test (its first bytes or name): by the name alone, a folder
     # of Hive's Parquet files (000000_0) "mixed CSV and Parquet" (the dask review)
