@@ -546,17 +546,41 @@ def read_partition(part: Partition, columns: list[str] | None = None) -> pd.Data
 
 
 def read_first_epochs(part: Partition, n_epochs: int,
-                      batch_rows: int = 1 << 16) -> pd.DataFrame:
+                      batch_rows: int = 1 << 16,
+                      until: float | None = None) -> pd.DataFrame:
     """The rows of ``part``'s first ``n_epochs`` epochs by time, or more, as
     :func:`read_partition` gives them (a prefix of its rows, same lines).
 
     A time-sorted partition (as ``robustloc partition`` writes) is streamed in batches
     of ``batch_rows`` and read until the rows before the latest time seen hold
     ``n_epochs`` epochs (``(time, tag)`` pairs): those rows, all epochs earlier than any
-    left unread.  A partition whose times go back (or are not comparable numbers) is
-    read whole: its first epochs by time cannot be known before.  (``track
-    --link-offsets auto``'s sample read every file whole in the client: 680 MB for a
-    tag of 3 M rows, where the workers' streamed run took 165 MB.)
+    left unread.  With ``until``, it is also read only until a batch passes that time:
+    then only its rows at or before ``until`` (every epoch at that time whole: one with a
+    smaller tag than the caller's epoch at ``until`` comes before it).  A partition whose
+    times go back (or are not comparable numbers) is read whole: its first epochs by
+    time cannot be known before.  (``track --link-offsets auto``'s sample read every
+    file whole in the client: 680 MB for a tag of 3 M rows, where the workers' streamed
+    run took 165 MB.)
+
+    Parameters
+    ----------
+    part : Partition
+        The partition file.
+    n_epochs : int
+        The epochs wanted from its start.
+    batch_rows : int, optional
+        Rows read at a time.
+    until : float, optional
+        A time in seconds, as the readers convert the ``time`` column: the rows after it
+        are not wanted (``track --engine dask``'s sample, once it holds its epochs, needs
+        from the next files only the epochs before its last; the dask review).
+
+    Returns
+    -------
+    DataFrame
+        A prefix of :func:`read_partition`'s rows holding the first ``n_epochs`` epochs
+        (all of them when fewer), or every row at or before ``until``, whichever stops
+        first; every row of a partition not sorted by time.
     """
     import pyarrow as pa
 
@@ -568,7 +592,7 @@ def read_first_epochs(part: Partition, n_epochs: int,
     # batch adds the pairs of its own complete rows, whose times all lie at or after the
     # earlier ``last``: no pair is counted twice, and no batch looks at the earlier ones
     # again (the whole prefix was concatenated and deduplicated at every batch).
-    done_rows = done_epochs = 0
+    done_rows = done_epochs = read_rows = 0
     pending = pd.DataFrame({"time": [], "tag": []})
     last = None
     with _reading(part):
@@ -583,6 +607,14 @@ def read_first_epochs(part: Partition, n_epochs: int,
                 return read_partition(part)  # not sorted by time (or NaN): read it whole
             last = time[-1]
             batches.append(b)
+            read_rows += b.num_rows
+            if until is not None:
+                # in the readers' seconds (a timestamp column's are dates), still sorted
+                sec = _time_values(b.column(cols.index("time")))
+                if sec[-1] > until:  # every row at or before ``until`` is read
+                    keep = read_rows - b.num_rows + int(np.searchsorted(sec, until, "right"))
+                    df = pa.Table.from_batches(batches).slice(0, keep).to_pandas()
+                    return _as_frame(part, df)
             rows = pd.DataFrame({
                 "time": time, "tag": b.column(cols.index("tag")).to_numpy(
                     zero_copy_only=False) if has_tag else ""})
