@@ -1123,9 +1123,9 @@ def test_track_dask_default_link_offsets_choose_once_on_the_client(scheduler, tm
     choice is made once, on the client, and every worker tracks with it (each partition
     choosing for itself could give one log two models).  Eight tags in a ring of six
     anchors whose ranges carry per-anchor offsets of 6 to 12 sigma, and a stray tag of
-    three epochs whose partition comes first in path order: the client reads partitions
-    until it has the sample's epochs (here all of them) and sorts them by time, so its
-    choice is the single process's to the digit, and so are the rows.  The first
+    three epochs whose partition comes first in path order: the client takes the first
+    epochs by time, then tag, over every partition (here all of them), so its choice is
+    the single process's to the digit, and so are the rows.  The first
     partition alone (3 epochs) chose "off" for every tag (the default's review: rows up
     to 47 m apart on ble-tetam).  An empty partition file first is skipped, as the
     planner skips it (it failed the run)."""

@@ -115,15 +115,37 @@ def _check_anchors_on_client(args: argparse.Namespace) -> None:
 
 
 def _resolve_auto_on_client(args: argparse.Namespace, infos: list) -> dict:
-    """``--engine dask`` with ``--link-offsets auto`` (the default), once the planner has
-    checked every partition (``infos``, in path order): the choice made once, here, and
-    handed to every worker as ``on`` or ``off`` (each partition choosing for itself
-    would give one log two models).  Its sample: the partition files in path order,
-    empty ones skipped, each read and sorted as the single process reads a file, until
-    :data:`~robustloc.tracking.select.AUTO_SAMPLE_EPOCHS` epochs (of a file in time
-    order, only its first that many: :func:`~robustloc.engines.dataset.read_first_epochs`),
-    then sorted by time (a tag's rows stay in order).  Returns the summary's ``link_offsets_auto``
-    (``sample``: the files read), or nothing (not ``auto``)."""
+    """``--engine dask`` with ``--link-offsets auto`` (the default): the choice made once,
+    here, and handed to every worker as ``on`` or ``off`` (each partition choosing for
+    itself would give one log two models).
+
+    Its sample is the single process's: the dataset's first
+    :data:`~robustloc.tracking.select.AUTO_SAMPLE_EPOCHS` epochs by time, then tag,
+    over every partition file.  The files are read in the order of their first times
+    (empty ones skipped, as the planner skips them), each as the single process reads
+    and sorts a file, and the sample kept cut to its first epochs; once it holds them,
+    its last epoch's time bounds the next files: a time-sorted file is read only up to
+    that time or up to its own first epochs
+    (:func:`~robustloc.engines.dataset.read_first_epochs`), a file starting after it not
+    at all, a file not in time order whole.  (The files in path order until the sample
+    was full, then sorted: on a dataset partitioned by tag, each file spanning the whole
+    log, that was the first files' tags alone -- a walk of 30 tags, 10 of them with link
+    offsets, chose ``off`` where the single process chose ``on``, and 59 970 of its
+    60 000 rows differed; the dask review.)
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The command's options; ``link_offsets`` is set to ``on`` or ``off``.
+    infos : list of PartitionInfo
+        Every partition, checked by the planner (in path order, empty files included).
+
+    Returns
+    -------
+    dict
+        The summary's ``link_offsets_auto`` (``sample``: the files holding the sample's
+        epochs, in path order), or nothing (not ``auto``).
+    """
     if args.link_offsets != "auto":
         return {}
     import numpy as np
@@ -132,32 +154,40 @@ def _resolve_auto_on_client(args: argparse.Namespace, infos: list) -> dict:
     from robustloc.io import iter_epochs, read_anchors
     from robustloc.io.tables import Epochs
     from robustloc.pipelines.track import TrackSettings, resolve_link_offsets
-    from robustloc.tracking.select import AUTO_SAMPLE_EPOCHS
+    from robustloc.tracking import select
 
+    want = select.AUTO_SAMPLE_EPOCHS
     anchors = read_anchors(args.anchors)
     settings = TrackSettings.from_namespace(args)
-    files: list[str] = []
-    blocks, n = [], 0
-    for part in [i.part for i in infos if i.n_rows]:  # (as the planner skips empty ones)
-        files.append(part.path)
-        # (a file's first epochs only, when its rows are in time order: its later
-        # epochs come after these in the sorted sample)
-        for block in iter_epochs(read_first_epochs(part, AUTO_SAMPLE_EPOCHS), anchors,
-                                 chunk_rows=settings.chunk_rows, order="sort"):
-            blocks.append(block)
-            n += block.n_epochs
-        if n >= AUTO_SAMPLE_EPOCHS:
-            break
-    # in time order, as the single process reads the log: a dataset of fewer epochs
-    # gives its sample exactly (the test's batches follow the rows' order)
-    if n:
+    sample: Epochs | None = None  # the first ``want`` epochs of the files read so far
+    source = np.zeros(0, dtype=np.int64)  # the file (index in ``infos``) of each epoch
+    until = None  # the sample's last time, once it holds ``want`` epochs
+    # (by first time: a dataset split by time fills the sample from its first files and
+    # reads none of the later ones)
+    order = sorted((k for k, i in enumerate(infos) if i.n_rows),
+                   key=lambda k: (infos[k].time_min, infos[k].part.path))
+    for k in order:
+        if until is not None and infos[k].time_min > until:
+            break  # this file's epochs, and every later file's, come after the sample's
+        blocks = [b for b in iter_epochs(read_first_epochs(infos[k].part, want, until=until),
+                                         anchors, chunk_rows=settings.chunk_rows,
+                                         order="sort") if b.n_epochs]
+        if not blocks:
+            continue
+        n_new = sum(b.n_epochs for b in blocks)
+        if sample is not None:
+            blocks.insert(0, sample)
         joined = Epochs.concat(blocks)
-        sample = [joined.take(np.lexsort((joined.tag.astype(str), joined.time)))]
-    else:
-        sample = []
-    settings, choice, _ = resolve_link_offsets(iter(sample), anchors, settings,
-                                               args.measurements)
+        source = np.concatenate([source, np.full(n_new, k, dtype=np.int64)])
+        # by time, then tag, as the single process's blocks order epochs (to_epochs)
+        keep = np.lexsort((joined.tag.astype(str), joined.time))[:want]
+        sample, source = joined.take(keep), source[keep]
+        if sample.n_epochs >= want:
+            until = float(sample.time[-1])
+    settings, choice, _ = resolve_link_offsets(iter([] if sample is None else [sample]),
+                                               anchors, settings, args.measurements)
     args.link_offsets = "on" if settings.link_offsets else "off"
+    files = [infos[k].part.path for k in sorted(set(source.tolist()))]
     return {} if choice is None else {"link_offsets_auto": {**choice.as_dict(),
                                                            "sample": files}}
 
@@ -291,8 +321,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "there are none they cost (simulated walk, 4 APs: 0.93x -> 1.25x the "
                         "snapshot fixes' RMS) and 4 + M states, M the anchors of the file, "
                         "are slower (bench_track.py: 85 k against 252 k tag-epochs/s with 8 "
-                        "anchors).  auto: the log's first 20 000 epochs (with --engine dask, "
-                        "of the partition files in path order, sorted by time) tracked "
+                        "anchors).  auto: the log's first 20 000 epochs (with --engine dask "
+                        "too: by time, then tag, over every partition file) tracked "
                         "without and with them; they are kept when their one-step "
                         "predictions of the observations score better beyond chance (a "
                         "batch-means t-test at 0.1 %%: robustloc.tracking.select; the "
