@@ -10,7 +10,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 
-from robustloc.errors import InputError
+from robustloc.errors import InputError, Terminated
 
 #: Environment of LocalCluster workers: one thread per worker for numba and BLAS, so
 #: ``workers x threads`` never oversubscribes the cores (dask runs one task per worker
@@ -50,11 +50,13 @@ def import_distributed():
 
 
 @contextmanager
-def _signals_held() -> Iterator[list[int]]:
+def _signals_held(limit: int | None = 2) -> Iterator[list[int]]:
     """SIGINT and SIGTERM held while the block runs (main thread only): a handler notes
     them in the yielded list, the old handlers come back at the end, and the caller
-    delivers what was noted.  A second SIGINT raises ``KeyboardInterrupt`` at once (the
-    way out of a start that hangs).  A signal ignored stays ignored.
+    delivers what was noted.  The ``limit``-th signal (default: a second one; None:
+    none) raises ``KeyboardInterrupt`` at once, and so does the first one held for
+    :data:`SIGNAL_HOLD_SECONDS` (the ways out of a start or close that hangs).  A signal
+    ignored stays ignored.
 
     Used around the start of a LocalCluster: interrupted half-way, its worker processes
     never reach a state ``close()`` accepts, distributed's ``atexit`` hook then fails on
@@ -71,17 +73,23 @@ def _signals_held() -> Iterator[list[int]]:
     import _thread
 
     timer: list[threading.Timer] = []
+    expired: list[bool] = []
+
+    def deadline() -> None:
+        expired.append(True)
+        _thread.interrupt_main()  # (runs ``note`` in the main thread)
 
     def note(signum: int, frame: object) -> None:
         got.append(signum)
-        if len(got) >= 2:  # a second signal (or the deadline below): out at once
+        if expired or (limit is not None and len(got) >= limit):  # out at once
             raise KeyboardInterrupt()
-        # held for SIGNAL_HOLD_SECONDS at most: a start that hangs must not keep a
-        # SIGTERM (``timeout``'s only one) waiting for ever (the Dask review)
-        t = threading.Timer(SIGNAL_HOLD_SECONDS, _thread.interrupt_main)
-        t.daemon = True
-        t.start()
-        timer.append(t)
+        if not timer:
+            # held for SIGNAL_HOLD_SECONDS at most: a start that hangs must not keep a
+            # SIGTERM (``timeout``'s only one) waiting for ever (the Dask review)
+            t = threading.Timer(SIGNAL_HOLD_SECONDS, deadline)
+            t.daemon = True
+            t.start()
+            timer.append(t)
 
     old = {}
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -94,6 +102,66 @@ def _signals_held() -> Iterator[list[int]]:
             t.cancel()
         for sig, handler in old.items():
             signal.signal(sig, handler)
+
+
+@contextmanager
+def _cleanup_signals_held(exc: BaseException | None) -> Iterator[None]:
+    """SIGINT and SIGTERM noted, not raised, while the block cleans up after ``exc``
+    (None: a normal end): cancelling the tasks, closing the client and the LocalCluster
+    (main thread only; a close that hangs is left after :data:`SIGNAL_HOLD_SECONDS`).
+    What was noted is dropped when ``exc`` is itself an interrupt (the command ends
+    ``interrupted`` already), else delivered after the block.
+
+    Those are calls of distributed's ``sync()``, which waits for its coroutine on the
+    event loop: an interrupt raised in that wait before the loop had started the
+    coroutine ran distributed's cancel callback on an unset variable (``NameError:
+    cannot access free variable 'future'``, a tornado traceback above ``error:
+    interrupted``; distributed 2026.11).  After a Ctrl-C the next signal lands there:
+    a second Ctrl-C, or the one ``timeout`` forwards to its child and again to the
+    process group (the dask review: 1 run in 6 of ``locate --engine dask``, 2 of 8 of
+    ``partition --method dask``), and it also cut the close short.
+    """
+    import signal
+
+    interrupted = isinstance(exc, KeyboardInterrupt | Terminated)
+    # the cluster torn down mid-run: its scheduler (in this process for a LocalCluster)
+    # logs the tasks it drops ("distributed.core - ERROR - Exception while handling op
+    # shuffle_barrier ... KeyError", a partition --method dask shuffle interrupted: the
+    # dask review); the user asked for it to stop, the one line says so.  For the
+    # cleanup only (the command then silences them for the exit: cli's
+    # _quiet_after_interrupt)
+    # (each logger of theirs: distributed's configuration gives some their own level,
+    # tornado.application's ERROR, which a parent's level does not override)
+    noisy = [n for n in ("distributed", "tornado", "asyncio",
+                         *logging.Logger.manager.loggerDict)
+             if interrupted and n.split(".")[0] in ("distributed", "tornado", "asyncio")]
+    levels = {name: logging.getLogger(name).level for name in noisy}
+    for name in noisy:
+        logging.getLogger(name).setLevel(logging.CRITICAL + 1)
+    try:
+        with _signals_held(limit=None) as got:
+            yield
+    finally:
+        for name, level in levels.items():
+            logging.getLogger(name).setLevel(level)
+    if got and not interrupted:
+        for signum in dict.fromkeys(got):
+            signal.raise_signal(signum)
+
+
+def _cancel(client: object, futures: Sequence[object]) -> None:
+    """``client.cancel(futures)``, nothing when the client is no longer running: closed
+    by the main thread after an interrupt, before or while this runs (the watch thread
+    of :func:`gather_with_progress` then raised ``ClosedClientError`` twice, a traceback
+    above ``error: interrupted``: the dask review).  Any other failure of a running
+    client is raised."""
+    if getattr(client, "status", "running") != "running":
+        return
+    try:
+        client.cancel(futures)  # type: ignore[attr-defined]
+    except Exception:
+        if getattr(client, "status", "running") == "running":
+            raise
 
 
 @contextmanager
@@ -164,6 +232,7 @@ def dask_client(scheduler: str | None, workers: int | None = None,
     distributed = import_distributed()
     cluster = None
     client = None
+    failed: BaseException | None = None
     restore: dict[str, int] = {}
     client_log = logging.getLogger("distributed.client")
     no_loss_noise = _NoConnectionLossTraceback()
@@ -188,21 +257,21 @@ def dask_client(scheduler: str | None, workers: int | None = None,
             if got:  # interrupted while it started: close it, then deliver the signal
                 import signal
 
-                client.close()
-                client = None
-                _close_cluster(cluster)
-                cluster = None
+                _close(client, cluster, KeyboardInterrupt())
+                client = cluster = None
                 for signum in dict.fromkeys(got):
                     signal.raise_signal(signum)
         yield client
+    except BaseException as exc:
+        failed = exc
+        raise
     finally:
-        if client is not None:
-            client.close()
-        if cluster is not None:
-            _close_cluster(cluster)
-        for name, level in restore.items():
-            logging.getLogger(name).setLevel(level)
-        client_log.removeFilter(no_loss_noise)
+        try:
+            _close(client, cluster, failed)
+        finally:  # (a signal held meanwhile is delivered at its end)
+            for name, level in restore.items():
+                logging.getLogger(name).setLevel(level)
+            client_log.removeFilter(no_loss_noise)
 
 
 def check_scheduler_address(scheduler: str) -> None:
@@ -403,6 +472,18 @@ def _quiet_worker_logs(client: object) -> None:
         pass
 
 
+def _close(client: object, cluster: object, exc: BaseException | None) -> None:
+    """Close ``client`` and then ``cluster`` (either may be None) after ``exc`` (None: a
+    normal end), with the signals held (:func:`_cleanup_signals_held`)."""
+    with _cleanup_signals_held(exc):
+        try:
+            if client is not None:
+                client.close()  # type: ignore[attr-defined]
+        finally:
+            if cluster is not None:
+                _close_cluster(cluster)
+
+
 def _close_cluster(cluster: object) -> None:
     """Close a LocalCluster.  A worker slow to exit is killed by its nanny, which logs a
     warning the user can do nothing about; keep the terminal for the command's own
@@ -480,11 +561,11 @@ def gather_with_progress(client: object, futures: Sequence[object], show: bool) 
                 elif fut.status == "cancelled" and not first:
                     first.append(RuntimeError("a dask task was cancelled"))
                 if first:
-                    client.cancel(futures)
+                    _cancel(client, futures)
                     return
         except BaseException as exc:  # noqa: BLE001 - reported by the main thread
             first.append(exc)
-            client.cancel(futures)
+            _cancel(client, futures)
 
     watcher = threading.Thread(target=watch, daemon=True)
     watcher.start()
@@ -493,8 +574,9 @@ def gather_with_progress(client: object, futures: Sequence[object], show: bool) 
             distributed.progress(futures)
             sys.stdout.write("\n")
         watcher.join()
-    except BaseException:
-        client.cancel(futures)
+    except BaseException as exc:
+        with _cleanup_signals_held(exc):
+            _cancel(client, futures)
         raise
     if first:
         raise _cluster_failure(first[0], client) or first[0]
