@@ -1104,13 +1104,16 @@ def _dask(files, fmt, stage: Path, by, span_s, rows_per_partition, buckets, sche
         missing = [c for c in REQUIRED if c not in ddf.columns]
         if missing:
             raise InputError(f"input is missing column(s) {', '.join(missing)}", spec, 1)
-        n = int(ddf.shape[0].compute())
+        # the counts too through the engine's gathering (dask's compute, interrupted,
+        # printed "Task exception was never retrieved ... AllExit": the dask review)
+        n = int(gather_with_progress(client, [client.compute(ddf.shape[0])], False)[0])
         span = None
         # the key's column (or the raw tag's, by="tag") under a name the input does not
         # use: an input column "time_bin" (or "__robustloc_tag") was replaced by it
         kcol = _fresh_name("__key", list(ddf.columns))
         if by == "time":
-            tmin, tmax = (float(v) for v in dd.compute(ddf["time"].min(), ddf["time"].max()))
+            tmin, tmax = (float(v) for v in gather_with_progress(
+                client, client.compute([ddf["time"].min(), ddf["time"].max()]), False))
             _check_time_limits(tmin, tmax, files, spec)
             span = _auto_span(n, tmin, tmax, span_s, rows_per_partition)
             key = "time_bin"
