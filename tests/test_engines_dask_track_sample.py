@@ -29,15 +29,9 @@ def _clean_then_biased(tmp_path) -> tuple[str, str]:
     and eight more whose ranges carry per-anchor offsets of 6 to 12 sigma (``bt0``-``bt7``),
     both over the same 80 s: by tag, the clean tags' files come first in path order.  The
     log sorted by time (CSV) and the anchors."""
-    from test_track_link_offsets import LINK_B_M
-    from test_track_select import _walking_log, _write
+    from test_track_select import clean_and_biased_logs
 
-    a, clean = _walking_log(0 * LINK_B_M, 1)
-    _, biased = _walking_log(4 * LINK_B_M, 2)
-    m1, an = _write(tmp_path, a.assign(sigma=0.1), clean)
-    (tmp_path / "b").mkdir()
-    m2, _ = _write(tmp_path / "b", a.assign(sigma=0.1), biased)
-    one, two = pd.read_csv(m1), pd.read_csv(m2)
+    one, two, an = clean_and_biased_logs(tmp_path)
     one["tag"] = "a" + one["tag"].astype(str)  # (path order: the clean tags first)
     two["tag"] = "b" + two["tag"].astype(str)
     log = pd.concat([one, two], ignore_index=True).sort_values(["time", "tag"],

@@ -15,9 +15,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 import pytest
+from test_noloss_inputs import ANCHORS, _ranges  # (a log of four anchors' ranges)
 
 import robustloc
 import robustloc.io.tables as tables
@@ -26,26 +26,14 @@ from robustloc.errors import InputError
 
 ENV = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1] / "src")}
 CLI = [sys.executable, "-m", "robustloc.cli"]
-ANCHORS = "anchor,x,y\na,0,0\nb,20,0\nc,0,20\nd,20,20\n"
 ONE_INPUT = ("one input per command can come from standard input: give the other one as "
              "a file")
-
-
-def _ranges(n_epochs: int = 20, seed: int = 0) -> pd.DataFrame:
-    rng = np.random.default_rng(seed)
-    anc = np.array([[0, 0], [20, 0], [0, 20], [20, 20]], float)
-    k = np.repeat(np.arange(n_epochs), 4)
-    j = np.tile(np.arange(4), n_epochs)
-    pos = rng.uniform(2, 18, (n_epochs, 2))
-    d = np.hypot(pos[k, 0] - anc[j, 0], pos[k, 1] - anc[j, 1])
-    return pd.DataFrame({"time": k * 0.5, "tag": "T", "anchor": np.array(list("abcd"))[j],
-                         "range": d + rng.normal(0, 0.05, d.size)})
 
 
 @pytest.fixture()
 def files(tmp_path):
     (tmp_path / "a.csv").write_text(ANCHORS)
-    _ranges().to_csv(tmp_path / "m.csv", index=False)
+    _ranges(20).to_csv(tmp_path / "m.csv", index=False)
     assert main(["locate", str(tmp_path / "m.csv"), "--anchors", str(tmp_path / "a.csv"),
                  "--method", "ls", "-o", str(tmp_path / "p.csv"), "-q"]) == 0
     return tmp_path

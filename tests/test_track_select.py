@@ -267,6 +267,18 @@ def test_auto_leaves_out_offsets_that_only_absorb_a_stiff_models_lag(seed):
     assert 2.5 < c.t < c.t_critical and not c.use, c
 
 
+def clean_and_biased_logs(tmp_path) -> tuple[pd.DataFrame, pd.DataFrame, str]:
+    """Eight tags walking without link offsets, and eight over the same times whose
+    anchors read 6 to 12 sigma off (``4 LINK_B_M``), as read back from their files (both
+    tagged ``0``-``7``), and the anchors file (sigma 0.1 m)."""
+    a, clean = _walking_log(0 * LINK_B_M, 1)
+    _, biased = _walking_log(4 * LINK_B_M, 2)
+    m1, an = _write(tmp_path, a.assign(sigma=0.1), clean)
+    (tmp_path / "b").mkdir()
+    m2, _ = _write(tmp_path / "b", a.assign(sigma=0.1), biased)
+    return pd.read_csv(m1), pd.read_csv(m2), an
+
+
 def test_auto_chooses_on_the_order_it_tracks(tmp_path, monkeypatch):
     """Several logs one after another (each in time order) are sorted when the disorder
     shows, and ``auto`` chooses on the first epochs of the sorted log, as for the same
@@ -279,12 +291,7 @@ def test_auto_chooses_on_the_order_it_tracks(tmp_path, monkeypatch):
     import robustloc
     import robustloc.tracking.select as sel
 
-    a, clean = _walking_log(0 * LINK_B_M, 1)
-    _, biased = _walking_log(4 * LINK_B_M, 2)
-    m1, an = _write(tmp_path, a.assign(sigma=0.1), clean)
-    (tmp_path / "b").mkdir()
-    m2, _ = _write(tmp_path / "b", a.assign(sigma=0.1), biased)
-    one, two = pd.read_csv(m1), pd.read_csv(m2)
+    one, two, an = clean_and_biased_logs(tmp_path)
     two["tag"] = "b" + two["tag"].astype(str)
     after = pd.concat([one, two], ignore_index=True)  # the clean log, then the other
     after.to_csv(tmp_path / "after.csv", index=False)
